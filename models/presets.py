@@ -1,0 +1,155 @@
+"""Named presets as data (science.md §3.7, §4) and the merge of a caller's overrides.
+
+A preset is a plain dict: a one-line description plus one section per pipeline stage it configures
+(`tm`, `mcn`, later `slsbh`/`encoder`). Callers never subclass anything: they pick a name and
+optionally override individual parameters.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+# NuPIC 1.0.5 / htm.core constructor defaults, with their parameter names (science.md §3.1).
+TM_DEFAULTS: dict[str, Any] = {
+    "columnDimensions": 2048,
+    "cellsPerColumn": 32,
+    "activationThreshold": 13,
+    "initialPermanence": 0.21,
+    "connectedPermanence": 0.50,
+    "minThreshold": 10,
+    "maxNewSynapseCount": 20,
+    "permanenceIncrement": 0.10,
+    "permanenceDecrement": 0.10,
+    "predictedSegmentDecrement": 0.0,
+    "maxSegmentsPerCell": 255,
+    "maxSynapsesPerSegment": 255,
+    "seed": 42,
+}
+
+# MCN (science.md §4). `nInConPerCol=None` means "round(mean ones per input)", derived from the data;
+# `minColumnActivity` is a fraction of nInConPerCol, rounded; `strict` selects `>` instead of `>=`.
+MCN_DEFAULTS: dict[str, Any] = {
+    "nCellPerCol": 32,
+    "nInConPerCol": None,
+    "minColumnActivity": 0.25,
+    "strict": False,
+    "nColsPerPattern": 10,
+    "kActiveColumn": None,
+    "kMin": 1,
+    "creation": "replace",
+    "probAdditionalCon": 0.05,
+    "max_columns": 100_000,
+    "seed": 42,
+}
+
+confs: dict[str, dict[str, Any]] = {
+    "cba2020-grid": {
+        "description": "TM 2048x4 of the paper's grid world (run00.py); never predicts (13 > 3 synapses)",
+        "tm": {
+            "cellsPerColumn": 4,
+            "activationThreshold": 13,
+            "initialPermanence": 0.21,
+            "minThreshold": 1,
+            "maxNewSynapseCount": 3,
+            "permanenceIncrement": 0.1,
+            "permanenceDecrement": 0.1,
+            "predictedSegmentDecrement": 0.0005,
+            "maxSegmentsPerCell": 3,
+            "maxSynapsesPerSegment": 3,
+        },
+    },
+    "cba2020-nordland": {
+        "description": "TM 2048x32 of the paper's Nordland run (run03.py, neoslam); one-shot, 3.7 GiB",
+        "tm": {
+            "cellsPerColumn": 32,
+            "activationThreshold": 4,
+            "initialPermanence": 0.55,
+            "minThreshold": 1,
+            "maxNewSynapseCount": 20,
+            "permanenceIncrement": 0.01,
+            "permanenceDecrement": 0.01,
+            "predictedSegmentDecrement": 0.0005,
+            "maxSegmentsPerCell": 100,
+            "maxSynapsesPerSegment": 100,
+        },
+        "slsbh": {"k": 1024, "s": 0.25},
+    },
+    "numenta-defaults": {
+        "description": "NuPIC/htm.core constructor defaults (reference; needs 24 GiB as preallocated)",
+        "tm": {},
+    },
+    "cortexloc-grid": {
+        "description": "TM 2048x4 that really predicts; chosen on the grid-world sweep (docs/results.md)",
+        "tm": {
+            "cellsPerColumn": 4,
+            "activationThreshold": 8,
+            "initialPermanence": 0.55,
+            "minThreshold": 4,
+            "maxNewSynapseCount": 20,
+            "permanenceIncrement": 0.1,
+            "permanenceDecrement": 0.05,
+            "predictedSegmentDecrement": 0.0005,
+            "maxSegmentsPerCell": 16,
+            "maxSynapsesPerSegment": 32,
+        },
+    },
+    "mcn-grid": {
+        "description": "MCN of the paper's grid world (run00.py miniColumn.py), predictions carried",
+        "mcn": {},
+    },
+    "mcn-nordland": {
+        "description": "MCN of the paper's Nordland run (run03.py), predictions carried",
+        "mcn": {
+            "nInConPerCol": 200,
+            "minColumnActivity": 0.75,
+            "strict": True,
+            "nColsPerPattern": 50,
+            "kActiveColumn": 100,
+            "kMin": None,
+            "creation": "top_up",
+        },
+    },
+}
+
+
+def names() -> list[str]:
+    """All preset names, in definition order."""
+    return list(confs)
+
+
+def describe(name: str) -> str:
+    return get(name)["description"]
+
+
+def get(name: str) -> dict[str, Any]:
+    """The preset `name` (a deep copy). Raises KeyError with the known names."""
+    if name not in confs:
+        raise KeyError(f"unknown preset {name!r}; known: {', '.join(confs)}")
+    return copy.deepcopy(confs[name])
+
+
+def _merge(defaults: dict[str, Any], section: dict[str, Any], overrides: dict[str, Any] | None) -> dict:
+    out = dict(defaults)
+    for source in (section, overrides or {}):
+        unknown = set(source) - set(defaults)
+        if unknown:
+            raise ValueError(f"unknown parameter(s) {sorted(unknown)}; known: {sorted(defaults)}")
+        out.update(source)
+    return out
+
+
+def tm_params(name: str, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Full Temporal Memory parameters: NuPIC defaults <- preset `name` <- `overrides`."""
+    preset = get(name)
+    if "tm" not in preset:
+        raise ValueError(f"preset {name!r} has no Temporal Memory section")
+    return _merge(TM_DEFAULTS, preset["tm"], overrides)
+
+
+def mcn_params(name: str = "mcn-grid", overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Full MCN parameters: defaults <- preset `name` <- `overrides`."""
+    preset = get(name)
+    if "mcn" not in preset:
+        raise ValueError(f"preset {name!r} has no MCN section")
+    return _merge(MCN_DEFAULTS, preset["mcn"], overrides)

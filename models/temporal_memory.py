@@ -1,0 +1,370 @@
+"""Numenta's Temporal Memory with NuPIC 1.0.5 semantics in fixed, preallocated memory.
+
+science.md §3 is the specification: parameter names as in NuPIC/htm.core (§3.1), learned connections
+kept apart from the per-stream sequence context (§3.2), the step of §3.3, the bounded-memory rules of
+§3.5 (LRU segment eviction, lowest-permanence overrun, decay below 1e-5, empty segments destroyed) and
+the randomness rules of §3.6 (one seeded `numpy.random.Generator`, drawn only while learning).
+
+The hot loops live in `models._tm_kernels` (numba); this module is the readable interface.
+
+Example:
+    >>> tm = TemporalMemory(presets.tm_params("cortexloc-grid"))
+    >>> ctx = tm.new_context()
+    >>> winners = tm.compute(np.array([3, 17, 40]), learn=True, context=ctx)
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from models import _tm_kernels as K
+from models import presets
+
+_EMPTY = np.zeros(0, dtype=np.int64)
+_EMPTY32 = np.zeros(0, dtype=np.int32)
+
+
+def _alloc(n: int, dtype: type, value: int | float = 0) -> np.ndarray:
+    """Allocate and touch every page now: a map's memory is committed when it is created, so it can
+    neither grow later nor fail later (np.zeros would leave pages to be faulted in during learning)."""
+    a = np.empty(n, dtype=dtype)
+    a.fill(value)
+    return a
+
+
+def _i64(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.int64)
+
+
+@dataclass
+class StepStats:
+    """Per-step statistics (science.md §3.3): counts of the step just computed."""
+
+    active_columns: int = 0
+    predicted_columns: int = 0
+    bursting_columns: int = 0
+    predictive_cells: int = 0  # cells predicted for the *next* step
+    winner_cells: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class StreamContext:
+    """Sequence state of one stream (science.md §3.2): what the next step continues from.
+
+    Attributes:
+        active_cells, winner_cells: (n,) int64 sorted cell ids of the previous step.
+        active_segs, matching_segs: (n,) int64 sorted segment ids computed from `active_cells`.
+        active_pot, matching_pot: (n,) int32 active potential synapse counts of those segments.
+        version: the connections version the segment lists were computed at.
+    """
+
+    active_cells: np.ndarray = field(default_factory=lambda: _EMPTY)
+    winner_cells: np.ndarray = field(default_factory=lambda: _EMPTY)
+    active_segs: np.ndarray = field(default_factory=lambda: _EMPTY)
+    active_pot: np.ndarray = field(default_factory=lambda: _EMPTY32)
+    matching_segs: np.ndarray = field(default_factory=lambda: _EMPTY)
+    matching_pot: np.ndarray = field(default_factory=lambda: _EMPTY32)
+    version: int = -1
+    stats: StepStats = field(default_factory=StepStats)
+
+    def reset(self) -> None:
+        """Break the sequence: nothing is predicted or learned across this point."""
+        self.active_cells = _EMPTY
+        self.winner_cells = _EMPTY
+        self.active_segs = _EMPTY
+        self.active_pot = _EMPTY32
+        self.matching_segs = _EMPTY
+        self.matching_pot = _EMPTY32
+        self.version = -1
+        self.stats = StepStats()
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        return {
+            "active_cells": self.active_cells.copy(),
+            "winner_cells": self.winner_cells.copy(),
+            "active_segs": self.active_segs.copy(),
+            "active_pot": self.active_pot.copy(),
+            "matching_segs": self.matching_segs.copy(),
+            "matching_pot": self.matching_pot.copy(),
+            "version": np.array(self.version, dtype=np.int64),
+            "stats": np.array(list(self.stats.as_dict().values()), dtype=np.int64),
+        }
+
+    @classmethod
+    def from_state(cls, state: dict[str, np.ndarray]) -> StreamContext:
+        return cls(
+            active_cells=_i64(state["active_cells"]),
+            winner_cells=_i64(state["winner_cells"]),
+            active_segs=_i64(state["active_segs"]),
+            active_pot=np.ascontiguousarray(state["active_pot"], dtype=np.int32),
+            matching_segs=_i64(state["matching_segs"]),
+            matching_pot=np.ascontiguousarray(state["matching_pot"], dtype=np.int32),
+            version=int(state["version"]),
+            stats=StepStats(*(int(v) for v in state["stats"])),
+        )
+
+
+def validate(params: dict[str, Any]) -> list[str]:
+    """Check parameters as NuPIC does; return the warnings of science.md §3.1.
+
+    Raises:
+        ValueError: a count below 1, a permanence outside [0, 1], minThreshold > activationThreshold,
+            or an unknown parameter.
+    """
+    unknown = set(params) - set(presets.TM_DEFAULTS)
+    if unknown:
+        raise ValueError(f"unknown Temporal Memory parameter(s): {sorted(unknown)}")
+    for name in ("columnDimensions", "cellsPerColumn", "activationThreshold", "minThreshold",
+                 "maxNewSynapseCount", "maxSegmentsPerCell", "maxSynapsesPerSegment"):
+        if int(params[name]) < 1:
+            raise ValueError(f"{name} must be >= 1, got {params[name]}")
+    for name in ("initialPermanence", "connectedPermanence", "permanenceIncrement",
+                 "permanenceDecrement", "predictedSegmentDecrement"):
+        if not 0.0 <= float(params[name]) <= 1.0:
+            raise ValueError(f"{name} must be in [0, 1], got {params[name]}")
+    if params["minThreshold"] > params["activationThreshold"]:
+        raise ValueError(
+            f"minThreshold ({params['minThreshold']}) must not exceed activationThreshold "
+            f"({params['activationThreshold']})"
+        )
+    if params["maxSegmentsPerCell"] > 65535 or params["maxSynapsesPerSegment"] > 65535:
+        raise ValueError("maxSegmentsPerCell and maxSynapsesPerSegment must be <= 65535")
+    notes = []
+    if params["activationThreshold"] > params["maxSynapsesPerSegment"]:
+        notes.append(
+            f"activationThreshold {params['activationThreshold']} > maxSynapsesPerSegment "
+            f"{params['maxSynapsesPerSegment']}: this memory can never predict"
+        )
+    if params["maxNewSynapseCount"] > params["maxSynapsesPerSegment"]:
+        notes.append("maxNewSynapseCount > maxSynapsesPerSegment: growth is cut by the synapse cap")
+    if params["initialPermanence"] >= params["connectedPermanence"]:
+        notes.append("initialPermanence >= connectedPermanence: one-shot learning")
+    return notes
+
+
+class TemporalMemory:
+    """Learned connections of one map (science.md §3.2) plus its seeded generator.
+
+    Args:
+        params: full parameter dict (see `presets.tm_params`); missing keys take NuPIC defaults.
+
+    Attributes:
+        warnings: configuration warnings of science.md §3.1 (not errors: presets reproduce them).
+        iteration: learning iterations so far; version: bumped by every step that changes connections.
+    """
+
+    _CANONICAL = ("presyn", "perm", "nsyn", "last_used")
+
+    def __init__(self, params: dict[str, Any] | None = None) -> None:
+        merged = dict(presets.TM_DEFAULTS)
+        merged.update(params or {})
+        self.warnings = validate(merged)
+        self.params = merged
+        self.n_columns = int(merged["columnDimensions"])
+        self.cells_per_column = int(merged["cellsPerColumn"])
+        self.n_cells = self.n_columns * self.cells_per_column
+        S = int(merged["maxSegmentsPerCell"])
+        Kc = int(merged["maxSynapsesPerSegment"])
+        n_seg = self.n_cells * S
+        n_slot = n_seg * Kc
+        cell_dtype = np.uint16 if self.n_cells <= 65536 else np.uint32
+        slot_dtype = np.int32 if n_slot < 2**31 else np.int64
+        f32 = np.float32
+        # Parameters cast to float32 once (science.md §3.6).
+        self._p = np.array(
+            [merged["initialPermanence"], f32(merged["connectedPermanence"]) - f32(K.EPS),
+             merged["permanenceIncrement"], merged["permanenceDecrement"],
+             merged["predictedSegmentDecrement"]], dtype=f32)
+        self._ip = np.array(
+            [self.cells_per_column, S, Kc, merged["activationThreshold"], merged["minThreshold"],
+             merged["maxNewSynapseCount"]], dtype=np.int64)
+        # Canonical state (science.md §3.5 table).
+        self.presyn = _alloc(n_slot, cell_dtype)
+        self.perm = _alloc(n_slot, f32)
+        self.nsyn = _alloc(n_seg, np.uint16)
+        self.last_used = _alloc(n_seg, np.int64)
+        # Auxiliary, fixed-capacity, derived from the canonical arrays.
+        self._seg_count = _alloc(self.n_cells, np.uint16)
+        self._head = _alloc(self.n_cells, slot_dtype, -1)
+        self._nxt = _alloc(n_slot, slot_dtype, -1)
+        self._prv = _alloc(n_slot, slot_dtype, -1)
+        # Scratch for one step: counts per segment, touched segments, masks over cells, candidates.
+        self._cnt_conn = _alloc(n_seg, np.int32)
+        self._cnt_pot = _alloc(n_seg, np.int32)
+        # Matching segments fill it from the front, touched ones from the back: 2x covers both.
+        self._touched = _alloc(2 * n_seg, np.int32 if 2 * n_seg < 2**31 else np.int64)
+        self._mask_active = np.zeros(self.n_cells, dtype=np.bool_)
+        self._mask_winner = np.zeros(self.n_cells, dtype=np.bool_)
+        self._mask_scratch = np.zeros(self.n_cells, dtype=np.bool_)
+        self._cand = np.zeros(self.n_cells, dtype=np.int64)
+        self.counters = np.zeros(4, dtype=np.int64)
+        self.iteration = 0
+        self.version = 0
+        self.rng = np.random.Generator(np.random.PCG64(int(merged["seed"])))
+        self.context = StreamContext()
+
+    # ---------------------------------------------------------------- stepping
+
+    def new_context(self) -> StreamContext:
+        """A fresh sequence context (a new stream)."""
+        return StreamContext()
+
+    def reset(self, context: StreamContext | None = None) -> None:
+        """Break sequence context of `context` (default: the built-in stream)."""
+        (context or self.context).reset()
+
+    def compute(self, active_columns: np.ndarray, learn: bool = True,
+                context: StreamContext | None = None) -> np.ndarray:
+        """One Temporal Memory step (science.md §3.3).
+
+        Args:
+            active_columns: (a,) column indices in [0, columnDimensions); sorted and deduplicated here.
+            learn: adapt the connections (mapping); False leaves connections and generator untouched.
+            context: the stream's sequence state, updated in place (default: the built-in stream).
+
+        Returns:
+            winner_cells: (w,) int64 sorted cell ids, the place descriptor.
+        """
+        ctx = context or self.context
+        cols = np.unique(np.asarray(active_columns, dtype=np.int64))
+        if cols.size and (cols[0] < 0 or cols[-1] >= self.n_columns):
+            raise ValueError(f"active column out of range [0, {self.n_columns})")
+        if ctx.version != self.version and ctx.active_cells.size:
+            # Another stream learned since this context's segments were computed.
+            self._activate_dendrites(ctx, ctx.active_cells, learn=False)
+        active, winners, n_pred, n_burst, changed = K.step(
+            cols, bool(learn), ctx.active_cells, ctx.winner_cells, ctx.active_segs, ctx.active_pot,
+            ctx.matching_segs, ctx.matching_pot, self.iteration, self._p, self._ip, self.rng,
+            self.presyn, self.perm, self.nsyn, self.last_used, self._seg_count, self._head, self._nxt,
+            self._prv, self._mask_active, self._mask_winner, self._mask_scratch, self._cand,
+            self.counters)
+        if changed:
+            self.version += 1
+        n_predictive = self._activate_dendrites(ctx, active, learn=bool(learn))
+        if learn:
+            self.iteration += 1
+        ctx.active_cells = active
+        ctx.winner_cells = winners
+        ctx.stats = StepStats(cols.size, n_pred, n_burst, n_predictive, winners.size)
+        return winners
+
+    def _activate_dendrites(self, ctx: StreamContext, active: np.ndarray, learn: bool) -> int:
+        a, ap, m, mp, n_predictive = K.activity(
+            active, learn, self.iteration, self._p, self._ip, self.presyn, self.perm, self.nsyn,
+            self.last_used, self._head, self._nxt, self._cnt_conn, self._cnt_pot, self._touched)
+        ctx.active_segs, ctx.active_pot, ctx.matching_segs, ctx.matching_pot = a, ap, m, mp
+        ctx.version = self.version
+        return int(n_predictive)
+
+    def predictive_cells(self, context: StreamContext | None = None) -> np.ndarray:
+        """(p,) int64 sorted cells predicted for the next step of `context`."""
+        ctx = context or self.context
+        return np.unique(ctx.active_segs // int(self._ip[K.I_S]))
+
+    # ---------------------------------------------------------------- inspection
+
+    def cell_segments(self, cell: int) -> list[dict[str, Any]]:
+        """Live segments of `cell` with their synapses, in slot order (for tests and debugging).
+
+        Returns:
+            [{"slot", "last_used", "presyn": (n,) int, "perm": (n,) float32}, ...]
+        """
+        S, Kc = int(self._ip[K.I_S]), int(self._ip[K.I_K])
+        out = []
+        for s in range(S):
+            g = cell * S + s
+            n = int(self.nsyn[g])
+            if n:
+                q = g * Kc
+                out.append({"slot": s, "last_used": int(self.last_used[g]),
+                            "presyn": self.presyn[q:q + n].astype(np.int64),
+                            "perm": self.perm[q:q + n].copy()})
+        return out
+
+    def size(self) -> dict[str, int]:
+        """Exact counts and bytes (science.md §3.5).
+
+        Returns:
+            segments, synapses (live), segment_capacity, synapse_capacity, evictions,
+            overrun_destroyed, decay_destroyed, empty_destroyed, canonical_bytes (the reference layout),
+            bytes (everything this object preallocated: canonical + reverse index + scratch).
+        """
+        canonical = sum(getattr(self, n).nbytes for n in self._CANONICAL)
+        aux = sum(a.nbytes for a in (self._seg_count, self._head, self._nxt, self._prv, self._cnt_conn,
+                                     self._cnt_pot, self._touched, self._mask_active, self._mask_winner,
+                                     self._mask_scratch, self._cand, self.counters, self._p, self._ip))
+        return {
+            "columns": self.n_columns,
+            "cells": self.n_cells,
+            "segments": int(np.count_nonzero(self.nsyn)),
+            "synapses": int(self.nsyn.sum(dtype=np.int64)),
+            "segment_capacity": int(self.nsyn.size),
+            "synapse_capacity": int(self.presyn.size),
+            "evictions": int(self.counters[K.C_EVICT]),
+            "overrun_destroyed": int(self.counters[K.C_OVERRUN]),
+            "decay_destroyed": int(self.counters[K.C_DECAY]),
+            "empty_destroyed": int(self.counters[K.C_EMPTY]),
+            "canonical_bytes": int(canonical),
+            "bytes": int(canonical + aux),
+        }
+
+    # ---------------------------------------------------------------- persistence
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """The whole learned state as plain numpy arrays (copies); see `from_state`.
+
+        Contexts are saved separately (`StreamContext.state_dict`), except the built-in one, which
+        is included with a `ctx.` prefix.
+        """
+        bg = self.rng.bit_generator.state
+        mask64 = (1 << 64) - 1
+        rng_words = [bg["state"]["state"] >> 64, bg["state"]["state"] & mask64,
+                     bg["state"]["inc"] >> 64, bg["state"]["inc"] & mask64,
+                     bg["has_uint32"], bg["uinteger"]]
+        out = {n: getattr(self, n).copy() for n in self._CANONICAL}
+        out.update({
+            "params": np.array(json.dumps(self.params, sort_keys=True)),
+            "counters": self.counters.copy(),
+            "scalars": np.array([self.iteration, self.version], dtype=np.int64),
+            "rng": np.array(rng_words, dtype=np.uint64),
+            "numpy_version": np.array(np.__version__),
+        })
+        out.update({f"ctx.{k}": v for k, v in self.context.state_dict().items()})
+        return out
+
+    @classmethod
+    def from_state(cls, state: dict[str, np.ndarray]) -> TemporalMemory:
+        """Rebuild a memory saved by `state_dict` (the reverse index is rebuilt, not loaded)."""
+        tm = cls(json.loads(str(state["params"])))
+        for n in cls._CANONICAL:
+            src = np.asarray(state[n])
+            dst = getattr(tm, n)
+            if src.shape != dst.shape or src.dtype != dst.dtype:
+                raise ValueError(f"state array {n!r}: expected {dst.dtype}{dst.shape}, got {src.dtype}{src.shape}")
+            dst[...] = src
+        tm.counters[...] = state["counters"]
+        tm.iteration, tm.version = (int(v) for v in state["scalars"])
+        w = [int(v) for v in state["rng"]]
+        tm.rng.bit_generator.state = {
+            "bit_generator": "PCG64",
+            "state": {"state": (w[0] << 64) | w[1], "inc": (w[2] << 64) | w[3]},
+            "has_uint32": w[4], "uinteger": w[5],
+        }
+        Kc = int(tm._ip[K.I_K])
+        S = int(tm._ip[K.I_S])
+        K.rebuild_links(tm.nsyn, tm.presyn, Kc, tm._head, tm._nxt, tm._prv)
+        tm._seg_count[...] = np.count_nonzero(tm.nsyn.reshape(-1, S), axis=1)
+        tm.context = StreamContext.from_state(
+            {k[4:]: v for k, v in state.items() if k.startswith("ctx.")})
+        if str(state.get("numpy_version", np.__version__)) != np.__version__:
+            warnings.warn("state saved with another NumPy build: the random stream may differ (NEP 19)",
+                          stacklevel=2)
+        return tm
