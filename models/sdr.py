@@ -56,7 +56,8 @@ def _incidence(sdrs: Sequence[np.ndarray]) -> np.ndarray:
     (65,536 TM cells, or an MCN's unbounded column count).
     """
     lengths = np.fromiter((len(s) for s in sdrs), dtype=np.int64, count=len(sdrs))
-    flat = np.concatenate([np.asarray(s, dtype=np.int64) for s in sdrs]) if len(sdrs) else np.zeros(0, np.int64)
+    parts = [np.asarray(s, dtype=np.int64) for s in sdrs]
+    flat = np.concatenate(parts) if parts else np.zeros(0, np.int64)
     used, inverse = np.unique(flat, return_inverse=True)
     rows = np.repeat(np.arange(len(sdrs)), lengths)
     m = np.zeros((len(sdrs), max(len(used), 1)), dtype=np.float32)

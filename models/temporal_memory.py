@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from models import _tm_kernels as K
+from models import _tm_kernels as kern
 from models import presets
 
 _EMPTY = np.zeros(0, dtype=np.int64)
@@ -180,7 +180,7 @@ class TemporalMemory:
         f32 = np.float32
         # Parameters cast to float32 once (science.md §3.6).
         self._p = np.array(
-            [merged["initialPermanence"], f32(merged["connectedPermanence"]) - f32(K.EPS),
+            [merged["initialPermanence"], f32(merged["connectedPermanence"]) - f32(kern.EPS),
              merged["permanenceIncrement"], merged["permanenceDecrement"],
              merged["predictedSegmentDecrement"]], dtype=f32)
         self._ip = np.array(
@@ -240,7 +240,7 @@ class TemporalMemory:
         if ctx.version != self.version and ctx.active_cells.size:
             # Another stream learned since this context's segments were computed.
             self._activate_dendrites(ctx, ctx.active_cells, learn=False)
-        active, winners, n_pred, n_burst, changed = K.step(
+        active, winners, n_pred, n_burst, changed = kern.step(
             cols, bool(learn), ctx.active_cells, ctx.winner_cells, ctx.active_segs, ctx.active_pot,
             ctx.matching_segs, ctx.matching_pot, self.iteration, self._p, self._ip, self.rng,
             self.presyn, self.perm, self.nsyn, self.last_used, self._seg_count, self._head, self._nxt,
@@ -257,7 +257,7 @@ class TemporalMemory:
         return winners
 
     def _activate_dendrites(self, ctx: StreamContext, active: np.ndarray, learn: bool) -> int:
-        a, ap, m, mp, n_predictive = K.activity(
+        a, ap, m, mp, n_predictive = kern.activity(
             active, learn, self.iteration, self._p, self._ip, self.presyn, self.perm, self.nsyn,
             self.last_used, self._head, self._nxt, self._cnt_conn, self._cnt_pot, self._touched)
         ctx.active_segs, ctx.active_pot, ctx.matching_segs, ctx.matching_pot = a, ap, m, mp
@@ -267,7 +267,7 @@ class TemporalMemory:
     def predictive_cells(self, context: StreamContext | None = None) -> np.ndarray:
         """(p,) int64 sorted cells predicted for the next step of `context`."""
         ctx = context or self.context
-        return np.unique(ctx.active_segs // int(self._ip[K.I_S]))
+        return np.unique(ctx.active_segs // int(self._ip[kern.I_S]))
 
     # ---------------------------------------------------------------- inspection
 
@@ -277,7 +277,7 @@ class TemporalMemory:
         Returns:
             [{"slot", "last_used", "presyn": (n,) int, "perm": (n,) float32}, ...]
         """
-        S, Kc = int(self._ip[K.I_S]), int(self._ip[K.I_K])
+        S, Kc = int(self._ip[kern.I_S]), int(self._ip[kern.I_K])
         out = []
         for s in range(S):
             g = cell * S + s
@@ -308,10 +308,10 @@ class TemporalMemory:
             "synapses": int(self.nsyn.sum(dtype=np.int64)),
             "segment_capacity": int(self.nsyn.size),
             "synapse_capacity": int(self.presyn.size),
-            "evictions": int(self.counters[K.C_EVICT]),
-            "overrun_destroyed": int(self.counters[K.C_OVERRUN]),
-            "decay_destroyed": int(self.counters[K.C_DECAY]),
-            "empty_destroyed": int(self.counters[K.C_EMPTY]),
+            "evictions": int(self.counters[kern.C_EVICT]),
+            "overrun_destroyed": int(self.counters[kern.C_OVERRUN]),
+            "decay_destroyed": int(self.counters[kern.C_DECAY]),
+            "empty_destroyed": int(self.counters[kern.C_EMPTY]),
             "canonical_bytes": int(canonical),
             "bytes": int(canonical + aux),
         }
@@ -348,7 +348,8 @@ class TemporalMemory:
             src = np.asarray(state[n])
             dst = getattr(tm, n)
             if src.shape != dst.shape or src.dtype != dst.dtype:
-                raise ValueError(f"state array {n!r}: expected {dst.dtype}{dst.shape}, got {src.dtype}{src.shape}")
+                raise ValueError(
+                    f"state array {n!r}: expected {dst.dtype}{dst.shape}, got {src.dtype}{src.shape}")
             dst[...] = src
         tm.counters[...] = state["counters"]
         tm.iteration, tm.version = (int(v) for v in state["scalars"])
@@ -358,9 +359,9 @@ class TemporalMemory:
             "state": {"state": (w[0] << 64) | w[1], "inc": (w[2] << 64) | w[3]},
             "has_uint32": w[4], "uinteger": w[5],
         }
-        Kc = int(tm._ip[K.I_K])
-        S = int(tm._ip[K.I_S])
-        K.rebuild_links(tm.nsyn, tm.presyn, Kc, tm._head, tm._nxt, tm._prv)
+        Kc = int(tm._ip[kern.I_K])
+        S = int(tm._ip[kern.I_S])
+        kern.rebuild_links(tm.nsyn, tm.presyn, Kc, tm._head, tm._nxt, tm._prv)
         tm._seg_count[...] = np.count_nonzero(tm.nsyn.reshape(-1, S), axis=1)
         tm.context = StreamContext.from_state(
             {k[4:]: v for k, v in state.items() if k.startswith("ctx.")})

@@ -1,0 +1,63 @@
+"""PR-curve and similarity-matrix figures (science.md §8.1, §8.6)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from models.evaluation.metrics import pr_curve
+from models.evaluation.plots import plot_pr_curves, plot_similarity
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _png_size(path: Path) -> tuple[int, int]:
+    data = path.read_bytes()
+    assert data[:8] == PNG_SIGNATURE
+    # IHDR is the first chunk: width and height are its first two big-endian 32-bit fields.
+    return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+
+
+def test_plot_pr_curves_writes_a_png(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    GT = np.eye(20, dtype=bool)
+    curves = {
+        "InputSDR": pr_curve(rng.random((20, 20)) + GT * 0.5, GT),
+        "HTM": pr_curve(rng.random((20, 20)) + GT * 1.0, GT),
+        "list input": ([1.0, 1.0, 0.5], [0.0, 0.5, 1.0]),
+    }
+    out = plot_pr_curves(curves, tmp_path / "figs" / "pr.png", "grid a=5 n=0.5, paper scoring")
+    assert out == tmp_path / "figs" / "pr.png"
+    assert out.stat().st_size > 1000
+    width, height = _png_size(out)
+    assert width > 100 and height > 100
+
+
+def test_plot_similarity_writes_a_png(tmp_path: Path) -> None:
+    S = np.random.default_rng(1).random((30, 40))
+    out = plot_similarity(S, str(tmp_path / "S.png"), "InputSDR Dice")
+    assert Path(out).is_file() and Path(out).stat().st_size > 1000
+    _png_size(Path(out))
+
+
+def test_plot_similarity_rejects_non_matrices(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="2-D"):
+        plot_similarity(np.ones(5), tmp_path / "bad.png", "bad")
+
+
+def test_matplotlib_is_loaded_lazily_and_pyplot_never(tmp_path: Path) -> None:
+    # A fresh interpreter, because this test session may already have imported matplotlib elsewhere.
+    code = (
+        "import sys, numpy as np\n"
+        "from models.evaluation import plots\n"
+        "assert 'matplotlib' not in sys.modules\n"
+        f"plots.plot_similarity(np.eye(3), {str(tmp_path / 'b.png')!r}, 't')\n"
+        "assert 'matplotlib.pyplot' not in sys.modules\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "b.png").is_file()
