@@ -80,15 +80,17 @@ confs: dict[str, dict[str, Any]] = {
         "tm": {},
     },
     "cortexloc-grid": {
-        "description": "TM 2048x4 that really predicts; chosen on the grid-world sweep (docs/results.md)",
+        "description": "TM 2048x4 that really predicts (one-shot, threshold 4); chosen by the grid sweep",
+        # Chosen by `python -m models.evaluation.sweep` (docs/results.md): best worst-case clean AUC
+        # over the published (a=5, n=0.5) file and generated (a=5, n=0.5) and (a=1, n=0.05) worlds.
         "tm": {
             "cellsPerColumn": 4,
-            "activationThreshold": 8,
+            "activationThreshold": 4,
             "initialPermanence": 0.55,
-            "minThreshold": 4,
+            "minThreshold": 3,
             "maxNewSynapseCount": 20,
             "permanenceIncrement": 0.1,
-            "permanenceDecrement": 0.05,
+            "permanenceDecrement": 0.02,
             "predictedSegmentDecrement": 0.0005,
             "maxSegmentsPerCell": 16,
             "maxSynapsesPerSegment": 32,

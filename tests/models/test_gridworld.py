@@ -2,24 +2,17 @@
 
 from __future__ import annotations
 
-import os
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from models.evaluation.datasets import grid_dir
 from models.evaluation.gridworld import GridData, generate, load_published, trajectory
 from models.sdr import INDEX_DTYPE, from_dense, overlap
 
-
-def _grid_data_dir() -> Path:
-    env = os.environ.get("CORTEXLOC_SHARED_DATA")
-    base = Path(env) if env else Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
-    return base / "gridworld_cba2020"
-
-
-GRID_DIR = _grid_data_dir()
+GRID_DIR = grid_dir()
 PLACES_FILE = GRID_DIR / "seq_multi_loop_noNoise_gt.txt"
 AL1_FILE = GRID_DIR / "seq_multi_loop_noise0_al1.txt"
 AL5_FILE = GRID_DIR / "seq_multi_loop_noise05_al5.txt"

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
 
+from models.evaluation.datasets import grid_dir
 from models.evaluation.gridworld import generate, load_published
 from models.evaluation.metrics import (
     apply_tolerance,
@@ -21,14 +19,7 @@ from models.evaluation.metrics import (
 )
 from models.sdr import as_sdr, dice_matrix
 
-
-def _grid_data_dir() -> Path:
-    env = os.environ.get("CORTEXLOC_SHARED_DATA")
-    base = Path(env) if env else Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
-    return base / "gridworld_cba2020"
-
-
-GRID_DIR = _grid_data_dir()
+GRID_DIR = grid_dir()
 PLACES_FILE = GRID_DIR / "seq_multi_loop_noNoise_gt.txt"
 
 

@@ -1,0 +1,186 @@
+"""The `cortexloc` command line: a stable contract that scripts and acceptance checks call.
+
+    cortexloc presets
+    cortexloc eval grid --sdr FILE --places FILE [--scoring paper|clean] [--preset NAME] [--seeds K]
+                        [--json OUT] [--plots DIR]
+    cortexloc eval grid --generate --aliasing A --noise N [--loops L] [...same options]
+    cortexloc bench tm [--columns C] [--cells K] [--active A] [--steps S] [--preset NAME] [--json OUT]
+
+Tables go to stdout, progress and warnings to stderr, machine-readable results to --json.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import sys
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+import typer
+
+from models import presets
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="cortexloc: visual place recognition with a Hierarchical Temporal Memory.")
+eval_app = typer.Typer(no_args_is_help=True, help="Reproduce and measure the science.")
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks (medians; run on demand).")
+app.add_typer(eval_app, name="eval")
+app.add_typer(bench_app, name="bench")
+
+
+def _progress(label: str):
+    """A one-line progress bar on stderr (stdout stays a clean table)."""
+    def show(done: int, total: int) -> None:
+        width = 30
+        filled = int(width * done / max(total, 1))
+        end = "\n" if done >= total else ""
+        sys.stderr.write(f"\r{label} [{'#' * filled}{'.' * (width - filled)}] {done}/{total}{end}")
+        sys.stderr.flush()
+    return show
+
+
+def _write_json(path: Path | None, payload: dict[str, Any]) -> None:
+    if path is None:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=2, default=_jsonable))
+    tmp.replace(path)
+
+
+def _jsonable(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _provenance() -> dict[str, Any]:
+    return {"command": " ".join(["cortexloc", *sys.argv[1:]]), "python": platform.python_version(),
+            "numpy": np.__version__}
+
+
+@app.command("presets")
+def list_presets() -> None:
+    """Print every preset name, a tab, and its one-line description."""
+    for name in presets.names():
+        typer.echo(f"{name}\t{presets.describe(name)}")
+
+
+@eval_app.command("grid")
+def eval_grid(
+    sdr: Annotated[Path | None, typer.Option(help="Published SDR file (T rows of 2048 0/1 values).",
+                                             exists=True, dir_okay=False)] = None,
+    places: Annotated[Path | None, typer.Option(help="Published places file (header, then x,y rows).",
+                                                exists=True, dir_okay=False)] = None,
+    generate: Annotated[bool, typer.Option("--generate", help="Simulate the grid world instead.")] = False,
+    aliasing: Annotated[int, typer.Option(min=0, max=6, help="Aliased place pairs (with --generate).")] = 0,
+    noise: Annotated[float, typer.Option(min=0.0, max=1.0, help="Noise fraction (with --generate).")] = 0.0,
+    loops: Annotated[int, typer.Option(min=1, help="Loops of the trajectory (with --generate).")] = 11,
+    mode: Annotated[str, typer.Option(help="Place SDRs: bernoulli | exact.")] = "bernoulli",
+    scoring: Annotated[str, typer.Option(help="paper (reproduces the published numbers) | clean.")] = "paper",
+    preset: Annotated[str, typer.Option(help="Temporal Memory preset.")] = "cba2020-grid",
+    mcn_preset: Annotated[str, typer.Option(help="MCN preset.")] = "mcn-grid",
+    seeds: Annotated[int, typer.Option(min=1, help="Runs; seeds spawned from --seed.")] = 10,
+    seed: Annotated[int, typer.Option(help="Experiment seed.")] = 0,
+    methods: Annotated[str, typer.Option(help="Comma-separated: pairwise,mcn,htm.")] = "pairwise,mcn,htm",
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write results as JSON here.")] = None,
+    plots_dir: Annotated[Path | None, typer.Option("--plots", help="Write PR and similarity PNGs here.")]
+    = None,
+) -> None:
+    """Grid-world evaluation (science.md §2): pairwise InputSDR, MCN and HTM, over seeds."""
+    from models.evaluation import gridworld, runner
+
+    if scoring not in ("paper", "clean"):
+        raise typer.BadParameter("must be paper or clean", param_hint="--scoring")
+    for name in (preset, mcn_preset):
+        if name not in presets.confs:
+            raise typer.BadParameter(f"unknown preset {name!r}; see `cortexloc presets`")
+    method_list = [m.strip() for m in methods.split(",") if m.strip()]
+    bad = set(method_list) - set(runner.METHODS)
+    if bad or not method_list:
+        raise typer.BadParameter(f"methods must be among {', '.join(runner.METHODS)}", param_hint="--methods")
+    if generate == (sdr is not None or places is not None):
+        raise typer.BadParameter("give either --sdr and --places, or --generate")
+    if generate:
+        def data_for_seed(s: int) -> gridworld.GridData:
+            return gridworld.generate(aliasing, noise, loops=loops, seed=s, mode=mode)
+    else:
+        if sdr is None or places is None:
+            raise typer.BadParameter("--sdr and --places go together")
+        try:
+            published = gridworld.load_published(sdr, places)
+        except ValueError as e:
+            raise typer.BadParameter(str(e)) from e
+
+        def data_for_seed(s: int) -> gridworld.GridData:
+            return published
+
+    result = runner.grid_experiment(
+        data_for_seed, scoring=scoring, preset=preset, mcn_preset=mcn_preset, seeds=seeds, seed=seed,
+        methods=method_list, plots_dir=plots_dir,
+        progress=_progress("grid") if seeds > 1 else None)
+    for w in result["methods"].get("htm", {}).get("warnings", []):
+        typer.echo(f"warning ({preset}): {w}", err=True)
+    result["provenance"] = _provenance()
+    _write_json(json_out, result)
+    typer.echo(format_grid_table(result))
+
+
+def format_grid_table(result: dict[str, Any]) -> str:
+    """A readable table of a grid result (stdout)."""
+    data = result["data"]
+    if data.get("source") == "generated":
+        what = f"generated a={data['aliasing']} n={data['noise']} loops={data['loops']} ({data['mode']})"
+    else:
+        what = f"published {Path(str(data.get('sdr_file', '?'))).name}"
+    lines = [f"grid world: {what}; scoring={result['scoring']}; seeds={result['seeds']}",
+             f"{'method':<10} {'AUC mean':>9} {'sd':>7} {'min':>8} {'max':>8} {'R@1':>7} {'R@5':>7} "
+             f"{'R@100P':>7}  notes"]
+    for m, e in result["methods"].items():
+        notes = ""
+        if m == "htm":
+            notes = f"{e['preset']}, predicted columns {e['predicted_column_fraction_mean']:.3f}"
+        elif m == "mcn":
+            notes = f"{e['preset']}, columns {e['columns_mean']:.0f}"
+        lines.append(f"{m:<10} {e['auc_mean']:>9.6f} {e['auc_sd']:>7.4f} {e['auc_min']:>8.4f} "
+                     f"{e['auc_max']:>8.4f} {e['recall_at_1_mean']:>7.3f} {e['recall_at_5_mean']:>7.3f} "
+                     f"{e['recall_at_100p_mean']:>7.3f}  {notes}")
+    return "\n".join(lines)
+
+
+@bench_app.command("tm")
+def bench_tm(
+    columns: Annotated[int, typer.Option(min=1)] = 2048,
+    cells: Annotated[int, typer.Option(min=1)] = 4,
+    active: Annotated[int, typer.Option(min=1)] = 40,
+    steps: Annotated[int, typer.Option(min=1)] = 5000,
+    preset: Annotated[str, typer.Option(help="TM preset supplying caps and thresholds.")] = "cortexloc-grid",
+    period: Annotated[int, typer.Option(min=0, help="Repeat a sequence of this length (0: all novel).")] = 0,
+    json_out: Annotated[Path | None, typer.Option("--json")] = None,
+) -> None:
+    """Temporal Memory speed and memory: median ms/step and RSS growth over learning steps."""
+    from models.bench import bench_tm as run
+
+    if preset not in presets.confs:
+        raise typer.BadParameter(f"unknown preset {preset!r}; see `cortexloc presets`")
+    if active > columns:
+        raise typer.BadParameter("--active must not exceed --columns")
+    result = run(columns=columns, cells=cells, active=active, steps=steps, preset=preset, period=period)
+    result["provenance"] = _provenance()
+    _write_json(json_out, result)
+    typer.echo(f"TM {columns}x{cells}, {active} active, {steps} steps ({preset}): "
+               f"median {result['ms_per_step_median']:.3f} ms/step, p90 {result['ms_per_step_p90']:.3f}, "
+               f"RSS growth {result['rss_growth_mb']:.1f} MB, segments {result['segments']}, "
+               f"synapses {result['synapses']}, bytes {result['bytes']}")
+
+
+def main() -> None:  # pragma: no cover - console entry point
+    app()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()
