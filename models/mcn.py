@@ -19,7 +19,7 @@ Cell id = column · nCellPerCol + i.
 Example:
     >>> params = resolve_in_con(presets.mcn_params("mcn-grid"), mean_ones=40.6)
     >>> mcn = MCN(params, input_width=2048)
-    >>> winners = mcn.step(np.array([3, 17, 40, ...]), learn=True)
+    >>> winners = mcn.step(np.array([3, 17, 40]), learn=True)  # sorted input ones -> sorted cell ids
 """
 
 from __future__ import annotations
