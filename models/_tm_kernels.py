@@ -3,10 +3,14 @@
 Layout (flattened so that one integer names a segment or a synapse slot):
     segment g = cell * S + slot,            g in [0, C*S)
     synapse q = g * K + k,                  q in [0, C*S*K), k < nsyn[g] (creation order)
-A per-presynaptic-cell doubly linked list over synapse slots (head/nxt/prv) is the reverse index that
-makes segment activation cost proportional to the synapses of the active cells, not to all synapses.
-It is fixed-capacity (one link pair per slot), rebuilt from the canonical arrays on load, and counted
-in the reported bytes.
+The reverse index `rx` makes segment activation cost proportional to the synapses of the active cells
+rather than to all synapses, and reads memory contiguously: each presynaptic cell owns a chain of
+blocks of B entries, each entry `g*2 + connected` for one synapse from that cell (the connected bit is
+kept in step with the permanence, so activation never touches the permanence array). `rpos[q]` is the
+entry of synapse q, for O(1) removal (swap with the cell's last entry). All blocks come from one pool
+sized ceil(C*S*K / B) + C, enough because only a cell's last block can be partly filled; the index is
+fixed-capacity, rebuilt from the canonical arrays on load, and counted in the reported bytes.
+`rx` = (rev, rpos, blk_prev, blk_fill, tail, pool) with pool[0] the head of the free-block list.
 
 `p` (float32): initialPermanence, connectedPermanence - EPS, permanenceIncrement,
 permanenceDecrement, predictedSegmentDecrement.
@@ -29,70 +33,95 @@ I_CPC, I_S, I_K, I_ACT, I_MIN, I_NEW = 0, 1, 2, 3, 4, 5
 C_EVICT, C_OVERRUN, C_DECAY, C_EMPTY = 0, 1, 2, 3
 
 
-@njit(cache=True, inline="always")
-def _link(q, cell, head, nxt, prv):
-    h = head[cell]
-    nxt[q] = h
-    prv[q] = -1
-    if h != -1:
-        prv[h] = q
-    head[cell] = q
+B = 16  # entries per reverse-index block: one 64-byte cache line of int32
 
 
-@njit(cache=True, inline="always")
-def _unlink(q, cell, head, nxt, prv):
-    a = prv[q]
-    b = nxt[q]
-    if a == -1:
-        head[cell] = b
-    else:
-        nxt[a] = b
-    if b != -1:
-        prv[b] = a
+def pool_blocks(n_slot: int, n_cells: int) -> int:
+    """Blocks the reverse index needs at most (see module docstring)."""
+    return -(-n_slot // B) + n_cells
 
 
 @njit(cache=True)
-def _destroy_synapse(g, k, K, presyn, perm, nsyn, head, nxt, prv):
+def _rx_add(q, cell, g, connected, rx):
+    rev, rpos, blk_prev, blk_fill, tail, pool = rx
+    t = tail[cell]
+    if t == -1 or blk_fill[t] == B:
+        b = pool[0]
+        pool[0] = blk_prev[b]
+        blk_prev[b] = t
+        blk_fill[b] = 0
+        tail[cell] = b
+        t = b
+    pos = t * B + blk_fill[t]
+    rev[pos] = g * 2 + (1 if connected else 0)
+    rpos[q] = pos
+    blk_fill[t] += 1
+
+
+@njit(cache=True)
+def _rx_remove(q, cell, K, presyn, nsyn, rx):
+    """Drop synapse q (from `cell`) from the index; the cell's last entry fills the hole."""
+    rev, rpos, blk_prev, blk_fill, tail, pool = rx
+    pos = rpos[q]
+    t = tail[cell]
+    last = t * B + blk_fill[t] - 1
+    if pos != last:
+        moved = rev[last]
+        rev[pos] = moved
+        # A segment holds at most one synapse per presynaptic cell: find the moved entry's slot.
+        g2 = np.int64(moved >> 1)
+        base = g2 * K
+        for k in range(np.int64(nsyn[g2])):
+            if presyn[base + k] == cell:
+                rpos[base + k] = pos
+                break
+    blk_fill[t] -= 1
+    if blk_fill[t] == 0:
+        tail[cell] = blk_prev[t]
+        blk_prev[t] = pool[0]
+        pool[0] = t
+
+
+@njit(cache=True)
+def _set_perm(q, v, conn, perm, rx):
+    """Write a permanence and keep the entry's connected bit in step with it."""
+    if (v >= conn) != (perm[q] >= conn):
+        rx[0][rx[1][q]] ^= 1
+    perm[q] = v
+
+
+@njit(cache=True)
+def _destroy_synapse(g, k, K, presyn, perm, nsyn, rx):
     """Remove synapse k of segment g; later synapses shift down so creation order is kept."""
+    rpos = rx[1]
     base = g * K
     n = np.int64(nsyn[g])
     q = base + k
-    _unlink(q, presyn[q], head, nxt, prv)
+    _rx_remove(q, np.int64(presyn[q]), K, presyn, nsyn, rx)
     for j in range(k + 1, n):
         src = base + j
-        dst = src - 1
-        cell = presyn[src]
-        presyn[dst] = cell
-        perm[dst] = perm[src]
-        # Re-point the neighbours of the moved slot at its new position.
-        a = prv[src]
-        b = nxt[src]
-        prv[dst] = a
-        nxt[dst] = b
-        if a == -1:
-            head[cell] = dst
-        else:
-            nxt[a] = dst
-        if b != -1:
-            prv[b] = dst
+        presyn[src - 1] = presyn[src]
+        perm[src - 1] = perm[src]
+        rpos[src - 1] = rpos[src]  # the entry (segment id + connected bit) itself is unchanged
     nsyn[g] = n - 1
 
 
 @njit(cache=True)
-def _destroy_segment(g, S, K, presyn, nsyn, seg_count, head, nxt, prv):
+def _destroy_segment(g, S, K, presyn, nsyn, seg_count, rx):
     base = g * K
     for k in range(np.int64(nsyn[g])):
         q = base + k
-        _unlink(q, presyn[q], head, nxt, prv)
+        _rx_remove(q, np.int64(presyn[q]), K, presyn, nsyn, rx)
     nsyn[g] = 0
     seg_count[g // S] -= 1
 
 
 @njit(cache=True)
-def _adapt(g, inc, dec, prev_active_mask, ip, presyn, perm, nsyn, seg_count, head, nxt, prv, counters):
+def _adapt(g, inc, dec, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count, rx, counters):
     """NuPIC _adaptSegment: +inc for synapses from previously active cells, -dec for the others."""
     S = ip[I_S]
     K = ip[I_K]
+    conn = p[P_CONN]
     base = g * K
     # Descending so that destroying slot k only shifts slots already visited.
     for k in range(np.int64(nsyn[g]) - 1, -1, -1):
@@ -107,18 +136,18 @@ def _adapt(g, inc, dec, prev_active_mask, ip, presyn, perm, nsyn, seg_count, hea
         elif v > 1:
             v = np.float32(1.0)
         if v < EPS:
-            _destroy_synapse(g, k, K, presyn, perm, nsyn, head, nxt, prv)
+            _destroy_synapse(g, k, K, presyn, perm, nsyn, rx)
             counters[C_DECAY] += 1
         else:
-            perm[q] = v
+            _set_perm(q, v, conn, perm, rx)
     if nsyn[g] == 0:
-        _destroy_segment(g, S, K, presyn, nsyn, seg_count, head, nxt, prv)
+        _destroy_segment(g, S, K, presyn, nsyn, seg_count, rx)
         counters[C_EMPTY] += 1
 
 
 @njit(cache=True)
 def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip, rng,
-          presyn, perm, nsyn, head, nxt, prv, counters):
+          presyn, perm, nsyn, rx, counters):
     """NuPIC _growSynapses with the overrun rule of science.md §3.5 and one draw per growth (§3.6)."""
     if n_desired <= 0:
         return
@@ -150,7 +179,7 @@ def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip
                 best_v = perm[q]
         if best == -1:
             break
-        _destroy_synapse(g, best, K, presyn, perm, nsyn, head, nxt, prv)
+        _destroy_synapse(g, best, K, presyn, perm, nsyn, rx)
         counters[C_OVERRUN] += 1
         overrun -= 1
     n_actual = min(n_actual, K - np.int64(nsyn[g]))
@@ -164,17 +193,18 @@ def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip
         cand[j] = t
     n = np.int64(nsyn[g])
     init = p[P_INIT]
+    connected = init >= p[P_CONN]
     for i in range(n_actual):
         q = base + n + i
         cell = cand[i]
         presyn[q] = cell
         perm[q] = init
-        _link(q, cell, head, nxt, prv)
+        _rx_add(q, cell, g, connected, rx)
     nsyn[g] = n + n_actual
 
 
 @njit(cache=True)
-def _create_segment(cell, iteration, ip, presyn, nsyn, last_used, seg_count, head, nxt, prv, counters):
+def _create_segment(cell, iteration, ip, presyn, nsyn, last_used, seg_count, rx, counters):
     S = ip[I_S]
     K = ip[I_K]
     base = cell * S
@@ -186,7 +216,7 @@ def _create_segment(cell, iteration, ip, presyn, nsyn, last_used, seg_count, hea
             if nsyn[g] > 0 and last_used[g] < lru_t:
                 lru = g
                 lru_t = last_used[g]
-        _destroy_segment(lru, S, K, presyn, nsyn, seg_count, head, nxt, prv)
+        _destroy_segment(lru, S, K, presyn, nsyn, seg_count, rx)
         counters[C_EVICT] += 1
     for s in range(S):
         g = base + s
@@ -198,45 +228,47 @@ def _create_segment(cell, iteration, ip, presyn, nsyn, last_used, seg_count, hea
 
 
 @njit(cache=True)
-def activity(active_cells, learn, iteration, p, ip, presyn, perm, nsyn, last_used, head, nxt,
-             cnt_conn, cnt_pot, touched):
+def activity(active_cells, learn, iteration, ip, last_used, rx, seg_act, epoch, matching):
     """activateDendrites (science.md §3.3): active and matching segments for `active_cells`.
+
+    `seg_act[g]` packs (epoch << 32 | connected << 16 | potential) so that one random access per
+    synapse both tests "first touch in this call" and counts, and no pass is needed to clear counts.
 
     Returns:
         active_segs (a,), active_pot (a,), matching_segs (m,), matching_pot (m,): segment ids sorted
         ascending (so grouped by cell and column) with their counts of active potential synapses;
         n_predictive: number of distinct cells owning an active segment.
     """
-    K = ip[I_K]
+    rev, _, blk_prev, blk_fill, tail, _ = rx
     S = ip[I_S]
-    conn = p[P_CONN]
     thr_act = ip[I_ACT]
     thr_min = ip[I_MIN]
-    # Segments reaching minThreshold are collected as they cross it, so only those are sorted; every
-    # touched segment is remembered (from the end of `touched`) to zero its counters afterwards.
+    epoch[0] += 1
+    if epoch[0] >= 2**31:  # wrap-around: forget every stamp once in 2**31 calls
+        seg_act[:] = 0
+        epoch[0] = 1
+    stamp = epoch[0] << 32
     n_m = 0
-    n_t = 0
-    last = touched.size - 1
     for i in range(active_cells.size):
-        q = head[active_cells[i]]
-        while q != -1:
-            g = q // K
-            c = cnt_pot[g]
-            if c == 0:
-                touched[last - n_t] = g
-                n_t += 1
-            c += 1
-            cnt_pot[g] = c
-            if c == thr_min:
-                touched[n_m] = g
-                n_m += 1
-            if perm[q] >= conn:
-                cnt_conn[g] += 1
-            q = nxt[q]
-    segs = np.sort(touched[:n_m]).astype(np.int64)
+        t = tail[active_cells[i]]
+        while t != -1:
+            start = t * B
+            for pos in range(start, start + blk_fill[t]):
+                e = rev[pos]
+                g = e >> 1
+                v = seg_act[g]
+                if v < stamp:
+                    v = stamp
+                v += 1 + ((e & 1) << 16)
+                seg_act[g] = v
+                if (v & 0xFFFF) == thr_min:
+                    matching[n_m] = g
+                    n_m += 1
+            t = blk_prev[t]
+    segs = np.sort(matching[:n_m]).astype(np.int64)
     n_act = 0
     for i in range(n_m):
-        if cnt_conn[segs[i]] >= thr_act:
+        if (seg_act[segs[i]] >> 16) & 0xFFFF >= thr_act:
             n_act += 1
     active_segs = np.empty(n_act, np.int64)
     active_pot = np.empty(n_act, np.int32)
@@ -246,26 +278,24 @@ def activity(active_cells, learn, iteration, p, ip, presyn, perm, nsyn, last_use
     last_cell = -1
     for i in range(n_m):
         g = segs[i]
-        matching_pot[i] = cnt_pot[g]
-        if cnt_conn[g] >= thr_act:
+        v = seg_act[g]
+        pot = v & 0xFFFF
+        matching_pot[i] = pot
+        if (v >> 16) & 0xFFFF >= thr_act:
             active_segs[a] = g
-            active_pot[a] = cnt_pot[g]
+            active_pot[a] = pot
             a += 1
             if learn:
                 last_used[g] = iteration
             if g // S != last_cell:
                 last_cell = g // S
                 n_predictive += 1
-    for i in range(n_t):
-        g = touched[last - i]
-        cnt_pot[g] = 0
-        cnt_conn[g] = 0
     return active_segs, active_pot, segs, matching_pot, n_predictive
 
 
 @njit(cache=True)
 def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs, match_pot,
-         iteration, p, ip, rng, presyn, perm, nsyn, last_used, seg_count, head, nxt, prv,
+         iteration, p, ip, rng, presyn, perm, nsyn, last_used, seg_count, rx,
          prev_active_mask, prev_winner_mask, scratch_mask, cand, counters):
     """activateCells (science.md §3.3) for sorted `columns`, learning when `learn`.
 
@@ -333,11 +363,10 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
                     last_cell = cell
                 if learn:
                     changed = True
-                    _adapt(g, inc, dec, prev_active_mask, ip, presyn, perm, nsyn, seg_count,
-                           head, nxt, prv, counters)
+                    _adapt(g, inc, dec, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count, rx, counters)
                     if nsyn[g] > 0:
                         _grow(g, max_new - act_pot[t], prev_winner, prev_winner_mask, scratch_mask, cand,
-                              p, ip, rng, presyn, perm, nsyn, head, nxt, prv, counters)
+                              p, ip, rng, presyn, perm, nsyn, rx, counters)
         elif is_active:
             # Burst: every cell fires; one winner learns the transition.
             n_burst += 1
@@ -354,11 +383,10 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
                 winner = g // S
                 if learn:
                     changed = True
-                    _adapt(g, inc, dec, prev_active_mask, ip, presyn, perm, nsyn, seg_count,
-                           head, nxt, prv, counters)
+                    _adapt(g, inc, dec, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count, rx, counters)
                     if nsyn[g] > 0:
                         _grow(g, max_new - match_pot[best], prev_winner, prev_winner_mask, scratch_mask,
-                              cand, p, ip, rng, presyn, perm, nsyn, head, nxt, prv, counters)
+                              cand, p, ip, rng, presyn, perm, nsyn, rx, counters)
             else:
                 fewest = np.iinfo(np.int64).max
                 n_ties = 0
@@ -374,18 +402,18 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
                 winner = cand[rng.integers(0, n_ties)] if learn else cand[0]
                 if learn and n_prev_winner > 0:
                     changed = True
-                    g = _create_segment(winner, iteration, ip, presyn, nsyn, last_used, seg_count,
-                                        head, nxt, prv, counters)
+                    g = _create_segment(winner, iteration, ip, presyn, nsyn, last_used, seg_count, rx,
+                                        counters)
                     _grow(g, min(max_new, n_prev_winner), prev_winner, prev_winner_mask, scratch_mask,
-                          cand, p, ip, rng, presyn, perm, nsyn, head, nxt, prv, counters)
+                          cand, p, ip, rng, presyn, perm, nsyn, rx, counters)
             winners[n_w] = winner
             n_w += 1
         elif learn and pdec > 0:
             # Matching segments of a column that stayed silent predicted wrongly: punish them.
             for t in range(m0, ims):
                 changed = True
-                _adapt(match_segs[t], -pdec, zero, prev_active_mask, ip, presyn, perm, nsyn, seg_count,
-                       head, nxt, prv, counters)
+                _adapt(match_segs[t], -pdec, zero, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count,
+                       rx, counters)
 
     for i in range(prev_active.size):
         prev_active_mask[prev_active[i]] = False
@@ -395,11 +423,17 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
 
 
 @njit(cache=True)
-def rebuild_links(nsyn, presyn, K, head, nxt, prv):
+def rebuild_index(nsyn, presyn, perm, p, K, rx):
     """Rebuild the reverse index from the canonical arrays (after a load)."""
-    head[:] = -1
+    _, _, blk_prev, blk_fill, tail, pool = rx
+    tail[:] = -1
+    for b in range(blk_prev.size):
+        blk_prev[b] = b + 1 if b + 1 < blk_prev.size else -1
+    blk_fill[:] = 0
+    pool[0] = 0
+    conn = p[P_CONN]
     for g in range(nsyn.size):
         base = g * K
         for k in range(np.int64(nsyn[g])):
             q = base + k
-            _link(q, presyn[q], head, nxt, prv)
+            _rx_add(q, np.int64(presyn[q]), g, perm[q] >= conn, rx)

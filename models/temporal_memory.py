@@ -176,7 +176,6 @@ class TemporalMemory:
         n_seg = self.n_cells * S
         n_slot = n_seg * Kc
         cell_dtype = np.uint16 if self.n_cells <= 65536 else np.uint32
-        slot_dtype = np.int32 if n_slot < 2**31 else np.int64
         f32 = np.float32
         # Parameters cast to float32 once (science.md §3.6).
         self._p = np.array(
@@ -193,14 +192,24 @@ class TemporalMemory:
         self.last_used = _alloc(n_seg, np.int64)
         # Auxiliary, fixed-capacity, derived from the canonical arrays.
         self._seg_count = _alloc(self.n_cells, np.uint16)
-        self._head = _alloc(self.n_cells, slot_dtype, -1)
-        self._nxt = _alloc(n_slot, slot_dtype, -1)
-        self._prv = _alloc(n_slot, slot_dtype, -1)
-        # Scratch for one step: counts per segment, touched segments, masks over cells, candidates.
-        self._cnt_conn = _alloc(n_seg, np.int32)
-        self._cnt_pot = _alloc(n_seg, np.int32)
-        # Matching segments fill it from the front, touched ones from the back: 2x covers both.
-        self._touched = _alloc(2 * n_seg, np.int32 if 2 * n_seg < 2**31 else np.int64)
+        # Reverse index (see models._tm_kernels): blocks of entries per presynaptic cell.
+        n_blocks = kern.pool_blocks(n_slot, self.n_cells)
+        entry_dtype = np.int32 if 2 * n_seg < 2**31 else np.int64
+        pos_dtype = np.int32 if n_blocks * kern.B < 2**31 else np.int64
+        self._rx = (
+            _alloc(n_blocks * kern.B, entry_dtype),  # rev: g*2 + connected
+            _alloc(n_slot, pos_dtype),  # rpos: entry of each synapse slot
+            np.arange(1, n_blocks + 1, dtype=np.int64),  # blk_prev (free list while unused)
+            _alloc(n_blocks, np.int32),  # blk_fill
+            _alloc(self.n_cells, np.int64, -1),  # tail block of each cell
+            np.zeros(1, dtype=np.int64),  # pool[0]: first free block
+        )
+        self._rx[2][-1] = -1
+        # Scratch for one step: packed per-segment counts with their epoch, the matching list, masks
+        # over cells, growth candidates.
+        self._seg_act = _alloc(n_seg, np.int64)
+        self._epoch = np.zeros(1, dtype=np.int64)
+        self._matching = _alloc(n_seg, np.int32 if n_seg < 2**31 else np.int64)
         self._mask_active = np.zeros(self.n_cells, dtype=np.bool_)
         self._mask_winner = np.zeros(self.n_cells, dtype=np.bool_)
         self._mask_scratch = np.zeros(self.n_cells, dtype=np.bool_)
@@ -243,9 +252,8 @@ class TemporalMemory:
         active, winners, n_pred, n_burst, changed = kern.step(
             cols, bool(learn), ctx.active_cells, ctx.winner_cells, ctx.active_segs, ctx.active_pot,
             ctx.matching_segs, ctx.matching_pot, self.iteration, self._p, self._ip, self.rng,
-            self.presyn, self.perm, self.nsyn, self.last_used, self._seg_count, self._head, self._nxt,
-            self._prv, self._mask_active, self._mask_winner, self._mask_scratch, self._cand,
-            self.counters)
+            self.presyn, self.perm, self.nsyn, self.last_used, self._seg_count, self._rx, self._mask_active,
+            self._mask_winner, self._mask_scratch, self._cand, self.counters)
         if changed:
             self.version += 1
         n_predictive = self._activate_dendrites(ctx, active, learn=bool(learn))
@@ -258,8 +266,8 @@ class TemporalMemory:
 
     def _activate_dendrites(self, ctx: StreamContext, active: np.ndarray, learn: bool) -> int:
         a, ap, m, mp, n_predictive = kern.activity(
-            active, learn, self.iteration, self._p, self._ip, self.presyn, self.perm, self.nsyn,
-            self.last_used, self._head, self._nxt, self._cnt_conn, self._cnt_pot, self._touched)
+            active, learn, self.iteration, self._ip, self.last_used, self._rx, self._seg_act, self._epoch,
+            self._matching)
         ctx.active_segs, ctx.active_pot, ctx.matching_segs, ctx.matching_pot = a, ap, m, mp
         ctx.version = self.version
         return int(n_predictive)
@@ -298,8 +306,8 @@ class TemporalMemory:
             bytes (everything this object preallocated: canonical + reverse index + scratch).
         """
         canonical = sum(getattr(self, n).nbytes for n in self._CANONICAL)
-        aux = sum(a.nbytes for a in (self._seg_count, self._head, self._nxt, self._prv, self._cnt_conn,
-                                     self._cnt_pot, self._touched, self._mask_active, self._mask_winner,
+        aux = sum(a.nbytes for a in (self._seg_count, *self._rx, self._seg_act,
+                                     self._epoch, self._matching, self._mask_active, self._mask_winner,
                                      self._mask_scratch, self._cand, self.counters, self._p, self._ip))
         return {
             "columns": self.n_columns,
@@ -361,7 +369,7 @@ class TemporalMemory:
         }
         Kc = int(tm._ip[kern.I_K])
         S = int(tm._ip[kern.I_S])
-        kern.rebuild_links(tm.nsyn, tm.presyn, Kc, tm._head, tm._nxt, tm._prv)
+        kern.rebuild_index(tm.nsyn, tm.presyn, tm.perm, tm._p, Kc, tm._rx)
         tm._seg_count[...] = np.count_nonzero(tm.nsyn.reshape(-1, S), axis=1)
         tm.context = StreamContext.from_state(
             {k[4:]: v for k, v in state.items() if k.startswith("ctx.")})

@@ -14,8 +14,9 @@ from models.evaluation.datasets import GRID_PLACES_FILE, GRID_SDR_FILES, grid_di
 from service.cli import app
 
 GRID = grid_dir()
-needs_data = pytest.mark.skipif(not (GRID / GRID_PLACES_FILE).is_file(),
-                                reason=f"published grid-world data not found in {GRID} (set CORTEXLOC_SHARED_DATA)")
+needs_data = pytest.mark.skipif(
+    not (GRID / GRID_PLACES_FILE).is_file(),
+    reason=f"published grid-world data not found in {GRID} (set CORTEXLOC_SHARED_DATA)")
 cli = CliRunner()
 
 
