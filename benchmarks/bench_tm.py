@@ -17,6 +17,9 @@ from models.bench import bench_tm
 CONFIGS = [
     {"columns": 2048, "cells": 4, "active": 40},
     {"columns": 2048, "cells": 32, "active": 512},
+    # NuPIC's thresholds (what htm.core runs by default), with caps so that memory is bounded.
+    {"columns": 2048, "cells": 4, "active": 40, "preset": "numenta-defaults",
+     "overrides": {"maxSegmentsPerCell": 32, "maxSynapsesPerSegment": 32}},
 ]
 
 
@@ -28,9 +31,9 @@ def main() -> None:
     args = ap.parse_args()
     results = []
     for cfg in CONFIGS:
-        r = bench_tm(steps=args.steps, preset=args.preset, **cfg)
+        r = bench_tm(steps=args.steps, **{"preset": args.preset, **cfg})
         results.append(r)
-        print(f"TM {cfg['columns']}x{cfg['cells']} active {cfg['active']}: median "
+        print(f"TM {cfg['columns']}x{cfg['cells']} active {cfg['active']} ({r['config']['preset']}): median "
               f"{r['ms_per_step_median']:.3f} ms/step (p90 {r['ms_per_step_p90']:.3f}), RSS growth "
               f"{r['rss_growth_mb']:.1f} MB, segments {r['segments']}, synapses {r['synapses']}, "
               f"preallocated {r['bytes'] / 2**20:.1f} MiB", flush=True)

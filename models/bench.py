@@ -33,7 +33,8 @@ def random_sequence(n: int, columns: int, active: int, seed: int = 0) -> list[np
 
 
 def bench_tm(columns: int = 2048, cells: int = 4, active: int = 40, steps: int = 5000,
-             preset: str = "cortexloc-grid", period: int = 0, seed: int = 0) -> dict[str, Any]:
+             preset: str = "cortexloc-grid", period: int = 0, seed: int = 0,
+             overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """Time `steps` learning steps of a Temporal Memory on a random SDR sequence.
 
     Args:
@@ -42,12 +43,14 @@ def bench_tm(columns: int = 2048, cells: int = 4, active: int = 40, steps: int =
         steps: learning steps timed.
         preset: TM preset supplying the other parameters (caps, thresholds).
         period: repeat a random sequence of this length (0: never repeat, every step is novel).
+        overrides: further TM parameters (e.g. smaller caps for `numenta-defaults`).
 
     Returns:
         ms_per_step_median, ms_per_step_p90, rss_growth_mb (after allocation and compilation),
         segments, synapses, bytes, and the parameters used.
     """
-    params = presets.tm_params(preset, {"columnDimensions": columns, "cellsPerColumn": cells})
+    params = presets.tm_params(preset, {**(overrides or {}), "columnDimensions": columns,
+                                        "cellsPerColumn": cells})
     # Compile the kernels on a tiny memory first, so compilation is neither timed nor counted in RSS.
     warm = TemporalMemory({**params, "columnDimensions": 64, "maxSegmentsPerCell": 2})
     for x in random_sequence(20, 64, min(active, 8), seed):
@@ -77,5 +80,5 @@ def bench_tm(columns: int = 2048, cells: int = 4, active: int = 40, steps: int =
         "bytes": size["bytes"],
         "predicted_column_fraction": predicted / (steps * active),
         "config": {"columns": columns, "cells": cells, "active": active, "steps": steps,
-                   "preset": preset, "period": period, "seed": seed},
+                   "preset": preset, "period": period, "seed": seed, "overrides": overrides or {}},
     }

@@ -160,6 +160,8 @@ def bench_tm(
     steps: Annotated[int, typer.Option(min=1)] = 5000,
     preset: Annotated[str, typer.Option(help="TM preset supplying caps and thresholds.")] = "cortexloc-grid",
     period: Annotated[int, typer.Option(min=0, help="Repeat a sequence of this length (0: all novel).")] = 0,
+    max_segments: Annotated[int | None, typer.Option(min=1, help="Override maxSegmentsPerCell.")] = None,
+    max_synapses: Annotated[int | None, typer.Option(min=1, help="Override maxSynapsesPerSegment.")] = None,
     json_out: Annotated[Path | None, typer.Option("--json")] = None,
 ) -> None:
     """Temporal Memory speed and memory: median ms/step and RSS growth over learning steps."""
@@ -169,7 +171,10 @@ def bench_tm(
         raise typer.BadParameter(f"unknown preset {preset!r}; see `cortexloc presets`")
     if active > columns:
         raise typer.BadParameter("--active must not exceed --columns")
-    result = run(columns=columns, cells=cells, active=active, steps=steps, preset=preset, period=period)
+    overrides = {k: v for k, v in (("maxSegmentsPerCell", max_segments),
+                                   ("maxSynapsesPerSegment", max_synapses)) if v is not None}
+    result = run(columns=columns, cells=cells, active=active, steps=steps, preset=preset, period=period,
+                 overrides=overrides)
     result["provenance"] = _provenance()
     _write_json(json_out, result)
     typer.echo(f"TM {columns}x{cells}, {active} active, {steps} steps ({preset}): "
