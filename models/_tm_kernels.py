@@ -10,7 +10,7 @@ kept in step with the permanence, so activation never touches the permanence arr
 entry of synapse q, for O(1) removal (swap with the cell's last entry). All blocks come from one pool
 sized ceil(C*S*K / B) + C, enough because only a cell's last block can be partly filled; the index is
 fixed-capacity, rebuilt from the canonical arrays on load, and counted in the reported bytes.
-`rx` = (rev, rpos, blk_prev, blk_fill, tail, pool) with pool[0] the head of the free-block list.
+`rx` = (rev, rpos, bprev, bfill, tail, pool) with pool[0] the head of the free-block list.
 
 `p` (float32): initialPermanence, connectedPermanence - EPS, permanenceIncrement,
 permanenceDecrement, predictedSegmentDecrement.
@@ -35,36 +35,37 @@ C_EVICT, C_OVERRUN, C_DECAY, C_EMPTY = 0, 1, 2, 3
 
 B = 16  # entries per reverse-index block: one 64-byte cache line of int32
 
+# The small helpers are inlined: a call that passes arrays costs reference-count updates per array,
+# which dominated adapt (about 100 ns per synapse) before.
+
 
 def pool_blocks(n_slot: int, n_cells: int) -> int:
     """Blocks the reverse index needs at most (see module docstring)."""
     return -(-n_slot // B) + n_cells
 
 
-@njit(cache=True)
-def _rx_add(q, cell, g, connected, rx):
-    rev, rpos, blk_prev, blk_fill, tail, pool = rx
+@njit(cache=True, inline="always")
+def _rx_add(q, cell, g, connected, rev, rpos, bprev, bfill, tail, pool):
     t = tail[cell]
-    if t == -1 or blk_fill[t] == B:
+    if t == -1 or bfill[t] == B:
         b = pool[0]
-        pool[0] = blk_prev[b]
-        blk_prev[b] = t
-        blk_fill[b] = 0
+        pool[0] = bprev[b]
+        bprev[b] = t
+        bfill[b] = 0
         tail[cell] = b
         t = b
-    pos = t * B + blk_fill[t]
+    pos = t * B + bfill[t]
     rev[pos] = g * 2 + (1 if connected else 0)
     rpos[q] = pos
-    blk_fill[t] += 1
+    bfill[t] += 1
 
 
-@njit(cache=True)
-def _rx_remove(q, cell, K, presyn, nsyn, rx):
+@njit(cache=True, inline="always")
+def _rx_remove(q, cell, K, presyn, nsyn, rev, rpos, bprev, bfill, tail, pool):
     """Drop synapse q (from `cell`) from the index; the cell's last entry fills the hole."""
-    rev, rpos, blk_prev, blk_fill, tail, pool = rx
     pos = rpos[q]
     t = tail[cell]
-    last = t * B + blk_fill[t] - 1
+    last = t * B + bfill[t] - 1
     if pos != last:
         moved = rev[last]
         rev[pos] = moved
@@ -75,29 +76,20 @@ def _rx_remove(q, cell, K, presyn, nsyn, rx):
             if presyn[base + k] == cell:
                 rpos[base + k] = pos
                 break
-    blk_fill[t] -= 1
-    if blk_fill[t] == 0:
-        tail[cell] = blk_prev[t]
-        blk_prev[t] = pool[0]
+    bfill[t] -= 1
+    if bfill[t] == 0:
+        tail[cell] = bprev[t]
+        bprev[t] = pool[0]
         pool[0] = t
 
 
-@njit(cache=True)
-def _set_perm(q, v, conn, perm, rx):
-    """Write a permanence and keep the entry's connected bit in step with it."""
-    if (v >= conn) != (perm[q] >= conn):
-        rx[0][rx[1][q]] ^= 1
-    perm[q] = v
-
-
-@njit(cache=True)
-def _destroy_synapse(g, k, K, presyn, perm, nsyn, rx):
+@njit(cache=True, inline="always")
+def _destroy_synapse(g, k, K, presyn, perm, nsyn, rev, rpos, bprev, bfill, tail, pool):
     """Remove synapse k of segment g; later synapses shift down so creation order is kept."""
-    rpos = rx[1]
     base = g * K
     n = np.int64(nsyn[g])
     q = base + k
-    _rx_remove(q, np.int64(presyn[q]), K, presyn, nsyn, rx)
+    _rx_remove(q, np.int64(presyn[q]), K, presyn, nsyn, rev, rpos, bprev, bfill, tail, pool)
     for j in range(k + 1, n):
         src = base + j
         presyn[src - 1] = presyn[src]
@@ -106,18 +98,19 @@ def _destroy_synapse(g, k, K, presyn, perm, nsyn, rx):
     nsyn[g] = n - 1
 
 
-@njit(cache=True)
-def _destroy_segment(g, S, K, presyn, nsyn, seg_count, rx):
+@njit(cache=True, inline="always")
+def _destroy_segment(g, S, K, presyn, nsyn, seg_count, rev, rpos, bprev, bfill, tail, pool):
     base = g * K
     for k in range(np.int64(nsyn[g])):
         q = base + k
-        _rx_remove(q, np.int64(presyn[q]), K, presyn, nsyn, rx)
+        _rx_remove(q, np.int64(presyn[q]), K, presyn, nsyn, rev, rpos, bprev, bfill, tail, pool)
     nsyn[g] = 0
     seg_count[g // S] -= 1
 
 
-@njit(cache=True)
-def _adapt(g, inc, dec, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count, rx, counters):
+@njit(cache=True, inline="always")
+def _adapt(g, inc, dec, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count,
+           rev, rpos, bprev, bfill, tail, pool, counters):
     """NuPIC _adaptSegment: +inc for synapses from previously active cells, -dec for the others."""
     S = ip[I_S]
     K = ip[I_K]
@@ -136,18 +129,22 @@ def _adapt(g, inc, dec, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count, 
         elif v > 1:
             v = np.float32(1.0)
         if v < EPS:
-            _destroy_synapse(g, k, K, presyn, perm, nsyn, rx)
+            _destroy_synapse(g, k, K, presyn, perm, nsyn, rev, rpos, bprev, bfill, tail, pool)
             counters[C_DECAY] += 1
         else:
-            _set_perm(q, v, conn, perm, rx)
+            # Keep the reverse-index entry's connected bit in step with the permanence (written out
+            # here rather than in a helper: a call per synapse cost more than the whole loop).
+            if (v >= conn) != (perm[q] >= conn):
+                rev[rpos[q]] ^= 1
+            perm[q] = v
     if nsyn[g] == 0:
-        _destroy_segment(g, S, K, presyn, nsyn, seg_count, rx)
+        _destroy_segment(g, S, K, presyn, nsyn, seg_count, rev, rpos, bprev, bfill, tail, pool)
         counters[C_EMPTY] += 1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip, rng,
-          presyn, perm, nsyn, rx, counters):
+          presyn, perm, nsyn, rev, rpos, bprev, bfill, tail, pool, counters):
     """NuPIC _growSynapses with the overrun rule of science.md §3.5 and one draw per growth (§3.6)."""
     if n_desired <= 0:
         return
@@ -179,7 +176,7 @@ def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip
                 best_v = perm[q]
         if best == -1:
             break
-        _destroy_synapse(g, best, K, presyn, perm, nsyn, rx)
+        _destroy_synapse(g, best, K, presyn, perm, nsyn, rev, rpos, bprev, bfill, tail, pool)
         counters[C_OVERRUN] += 1
         overrun -= 1
     n_actual = min(n_actual, K - np.int64(nsyn[g]))
@@ -199,12 +196,13 @@ def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip
         cell = cand[i]
         presyn[q] = cell
         perm[q] = init
-        _rx_add(q, cell, g, connected, rx)
+        _rx_add(q, cell, g, connected, rev, rpos, bprev, bfill, tail, pool)
     nsyn[g] = n + n_actual
 
 
-@njit(cache=True)
-def _create_segment(cell, iteration, ip, presyn, nsyn, last_used, seg_count, rx, counters):
+@njit(cache=True, inline="always")
+def _create_segment(cell, iteration, ip, presyn, nsyn, last_used, seg_count,
+                    rev, rpos, bprev, bfill, tail, pool, counters):
     S = ip[I_S]
     K = ip[I_K]
     base = cell * S
@@ -216,7 +214,7 @@ def _create_segment(cell, iteration, ip, presyn, nsyn, last_used, seg_count, rx,
             if nsyn[g] > 0 and last_used[g] < lru_t:
                 lru = g
                 lru_t = last_used[g]
-        _destroy_segment(lru, S, K, presyn, nsyn, seg_count, rx)
+        _destroy_segment(lru, S, K, presyn, nsyn, seg_count, rev, rpos, bprev, bfill, tail, pool)
         counters[C_EVICT] += 1
     for s in range(S):
         g = base + s
@@ -239,7 +237,7 @@ def activity(active_cells, learn, iteration, ip, last_used, rx, seg_act, epoch, 
         ascending (so grouped by cell and column) with their counts of active potential synapses;
         n_predictive: number of distinct cells owning an active segment.
     """
-    rev, _, blk_prev, blk_fill, tail, _ = rx
+    rev, _, bprev, bfill, tail, _ = rx
     S = ip[I_S]
     thr_act = ip[I_ACT]
     thr_min = ip[I_MIN]
@@ -253,7 +251,7 @@ def activity(active_cells, learn, iteration, ip, last_used, rx, seg_act, epoch, 
         t = tail[active_cells[i]]
         while t != -1:
             start = t * B
-            for pos in range(start, start + blk_fill[t]):
+            for pos in range(start, start + bfill[t]):
                 e = rev[pos]
                 g = e >> 1
                 v = seg_act[g]
@@ -264,7 +262,7 @@ def activity(active_cells, learn, iteration, ip, last_used, rx, seg_act, epoch, 
                 if (v & 0xFFFF) == thr_min:
                     matching[n_m] = g
                     n_m += 1
-            t = blk_prev[t]
+            t = bprev[t]
     segs = np.sort(matching[:n_m]).astype(np.int64)
     n_act = 0
     for i in range(n_m):
@@ -303,8 +301,11 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
         active_cells, winner_cells (sorted int64), n_predicted_columns, n_bursting_columns,
         changed (whether the connections were modified).
     """
+    rev, rpos, bprev, bfill, tail, pool = rx
     cpc = ip[I_CPC]
     S = ip[I_S]
+    Kc = ip[I_K]
+    conn = p[P_CONN]
     max_new = ip[I_NEW]
     inc = p[P_INC]
     dec = p[P_DEC]
@@ -363,10 +364,11 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
                     last_cell = cell
                 if learn:
                     changed = True
-                    _adapt(g, inc, dec, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count, rx, counters)
+                    _adapt(g, inc, dec, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count,
+                           rev, rpos, bprev, bfill, tail, pool, counters)
                     if nsyn[g] > 0:
                         _grow(g, max_new - act_pot[t], prev_winner, prev_winner_mask, scratch_mask, cand,
-                              p, ip, rng, presyn, perm, nsyn, rx, counters)
+                              p, ip, rng, presyn, perm, nsyn, rev, rpos, bprev, bfill, tail, pool, counters)
         elif is_active:
             # Burst: every cell fires; one winner learns the transition.
             n_burst += 1
@@ -383,10 +385,12 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
                 winner = g // S
                 if learn:
                     changed = True
-                    _adapt(g, inc, dec, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count, rx, counters)
+                    _adapt(g, inc, dec, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count,
+                           rev, rpos, bprev, bfill, tail, pool, counters)
                     if nsyn[g] > 0:
                         _grow(g, max_new - match_pot[best], prev_winner, prev_winner_mask, scratch_mask,
-                              cand, p, ip, rng, presyn, perm, nsyn, rx, counters)
+                              cand, p, ip, rng, presyn, perm, nsyn, rev, rpos, bprev, bfill, tail, pool,
+                              counters)
             else:
                 fewest = np.iinfo(np.int64).max
                 n_ties = 0
@@ -402,18 +406,39 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
                 winner = cand[rng.integers(0, n_ties)] if learn else cand[0]
                 if learn and n_prev_winner > 0:
                     changed = True
-                    g = _create_segment(winner, iteration, ip, presyn, nsyn, last_used, seg_count, rx,
-                                        counters)
+                    g = _create_segment(winner, iteration, ip, presyn, nsyn, last_used, seg_count,
+                                        rev, rpos, bprev, bfill, tail, pool, counters)
                     _grow(g, min(max_new, n_prev_winner), prev_winner, prev_winner_mask, scratch_mask,
-                          cand, p, ip, rng, presyn, perm, nsyn, rx, counters)
+                          cand, p, ip, rng, presyn, perm, nsyn, rev, rpos, bprev, bfill, tail, pool, counters)
             winners[n_w] = winner
             n_w += 1
         elif learn and pdec > 0:
             # Matching segments of a column that stayed silent predicted wrongly: punish them.
+            # This runs for every chance match, so the common case (nothing decays below EPS) is
+            # written out here; a segment that would lose a synapse takes the general path.
+            changed = changed or ims > m0
             for t in range(m0, ims):
-                changed = True
-                _adapt(match_segs[t], -pdec, zero, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count,
-                       rx, counters)
+                g = match_segs[t]
+                base = g * Kc
+                n = np.int64(nsyn[g])
+                dies = False
+                for k in range(n):
+                    q = base + k
+                    if prev_active_mask[presyn[q]] and perm[q] - pdec < EPS:
+                        dies = True
+                        break
+                if dies:
+                    _adapt(g, -pdec, zero, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count,
+                           rev, rpos, bprev, bfill, tail, pool, counters)
+                    continue
+                for k in range(n):
+                    q = base + k
+                    if prev_active_mask[presyn[q]]:
+                        old = perm[q]
+                        v = old - pdec
+                        if (v >= conn) != (old >= conn):
+                            rev[rpos[q]] ^= 1
+                        perm[q] = v
 
     for i in range(prev_active.size):
         prev_active_mask[prev_active[i]] = False
@@ -425,15 +450,15 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
 @njit(cache=True)
 def rebuild_index(nsyn, presyn, perm, p, K, rx):
     """Rebuild the reverse index from the canonical arrays (after a load)."""
-    _, _, blk_prev, blk_fill, tail, pool = rx
+    rev, rpos, bprev, bfill, tail, pool = rx
     tail[:] = -1
-    for b in range(blk_prev.size):
-        blk_prev[b] = b + 1 if b + 1 < blk_prev.size else -1
-    blk_fill[:] = 0
+    for b in range(bprev.size):
+        bprev[b] = b + 1 if b + 1 < bprev.size else -1
+    bfill[:] = 0
     pool[0] = 0
     conn = p[P_CONN]
     for g in range(nsyn.size):
         base = g * K
         for k in range(np.int64(nsyn[g])):
             q = base + k
-            _rx_add(q, np.int64(presyn[q]), g, perm[q] >= conn, rx)
+            _rx_add(q, np.int64(presyn[q]), g, perm[q] >= conn, rev, rpos, bprev, bfill, tail, pool)
