@@ -20,6 +20,7 @@ import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 
 from models import _tm_kernels as kern
@@ -166,6 +167,8 @@ class TemporalMemory:
     def __init__(self, params: dict[str, Any] | None = None) -> None:
         merged = dict(presets.TM_DEFAULTS)
         merged.update(params or {})
+        # Plain Python numbers, so the parameters always serialise (snapshots store them as JSON).
+        merged = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in merged.items()}
         self.warnings = validate(merged)
         self.params = merged
         self.n_columns = int(merged["columnDimensions"])
@@ -243,7 +246,10 @@ class TemporalMemory:
             winner_cells: (w,) int64 sorted cell ids, the place descriptor.
         """
         ctx = context or self.context
-        cols = np.unique(np.asarray(active_columns, dtype=np.int64))
+        cols = np.asarray(active_columns)
+        if cols.dtype == np.bool_:
+            raise ValueError("active_columns are indices, not a dense boolean mask (use np.flatnonzero)")
+        cols = np.unique(cols.astype(np.int64))
         if cols.size and (cols[0] < 0 or cols[-1] >= self.n_columns):
             raise ValueError(f"active column out of range [0, {self.n_columns})")
         if ctx.version != self.version and ctx.active_cells.size:
@@ -326,11 +332,12 @@ class TemporalMemory:
 
     # ---------------------------------------------------------------- persistence
 
-    def state_dict(self) -> dict[str, np.ndarray]:
-        """The whole learned state as plain numpy arrays (copies); see `from_state`.
+    def state_dict(self, streams: dict[str, StreamContext] | None = None) -> dict[str, np.ndarray]:
+        """The whole state as plain numpy arrays (copies); see `from_state` and `load_streams`.
 
-        Contexts are saved separately (`StreamContext.state_dict`), except the built-in one, which
-        is included with a `ctx.` prefix.
+        Args:
+            streams: named stream contexts to include (science.md §3.6: every context is in the
+                snapshot); the built-in context is always included under the `ctx.` prefix.
         """
         bg = self.rng.bit_generator.state
         mask64 = (1 << 64) - 1
@@ -343,10 +350,27 @@ class TemporalMemory:
             "counters": self.counters.copy(),
             "scalars": np.array([self.iteration, self.version], dtype=np.int64),
             "rng": np.array(rng_words, dtype=np.uint64),
+            # The generator stream is stable only for one NumPy build (NEP 19), and the kernels draw
+            # through numba's implementation of it.
             "numpy_version": np.array(np.__version__),
+            "numba_version": np.array(numba.__version__),
         })
         out.update({f"ctx.{k}": v for k, v in self.context.state_dict().items()})
+        for name, ctx in (streams or {}).items():
+            if "." in name:
+                raise ValueError(f"stream name {name!r} must not contain '.'")
+            out.update({f"stream.{name}.{k}": v for k, v in ctx.state_dict().items()})
         return out
+
+    @staticmethod
+    def load_streams(state: dict[str, np.ndarray]) -> dict[str, StreamContext]:
+        """The named stream contexts saved by `state_dict(streams=...)`."""
+        fields: dict[str, dict[str, np.ndarray]] = {}
+        for key, value in state.items():
+            if key.startswith("stream."):
+                _, name, field_name = key.split(".", 2)
+                fields.setdefault(name, {})[field_name] = value
+        return {name: StreamContext.from_state(f) for name, f in fields.items()}
 
     @classmethod
     def from_state(cls, state: dict[str, np.ndarray]) -> TemporalMemory:
@@ -373,7 +397,8 @@ class TemporalMemory:
         tm._seg_count[...] = np.count_nonzero(tm.nsyn.reshape(-1, S), axis=1)
         tm.context = StreamContext.from_state(
             {k[4:]: v for k, v in state.items() if k.startswith("ctx.")})
-        if str(state.get("numpy_version", np.__version__)) != np.__version__:
-            warnings.warn("state saved with another NumPy build: the random stream may differ (NEP 19)",
-                          stacklevel=2)
+        for lib, version in (("numpy", np.__version__), ("numba", numba.__version__)):
+            if str(state.get(f"{lib}_version", version)) != version:
+                warnings.warn(f"state saved with another {lib} version: the random stream may differ",
+                              stacklevel=2)
         return tm

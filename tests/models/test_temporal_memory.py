@@ -280,6 +280,22 @@ def test_save_load_continues_bit_identically():
     assert_same_state(snapshot(restored), snapshot(ref))
 
 
+def test_named_streams_round_trip_through_the_state():
+    tm = small(seed=np.int64(7))  # numpy scalars in the parameters must still serialise
+    learn_sequence(tm, [A, B, C, D], times=2)
+    s1 = tm.new_context()
+    tm.compute(A, learn=False, context=s1)
+    state = tm.state_dict(streams={"robot-1": s1})
+    restored = TemporalMemory.from_state(state)
+    streams = TemporalMemory.load_streams(state)
+    assert set(streams) == {"robot-1"}
+    np.testing.assert_array_equal(
+        restored.compute(B, learn=False, context=streams["robot-1"]), tm.compute(B, learn=False, context=s1))
+    assert streams["robot-1"].stats.bursting_columns == 0
+    with pytest.raises(ValueError, match="boolean"):
+        tm.compute(np.ones(32, dtype=bool))
+
+
 def test_streams_keep_separate_contexts():
     tm = small()
     learn_sequence(tm, [A, B, C, D], times=2)
