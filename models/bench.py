@@ -82,3 +82,69 @@ def bench_tm(columns: int = 2048, cells: int = 4, active: int = 40, steps: int =
         "config": {"columns": columns, "cells": cells, "active": active, "steps": steps,
                    "preset": preset, "period": period, "seed": seed, "overrides": overrides or {}},
     }
+
+
+def synthetic_jpegs(n: int, width: int = 640, height: int = 480, seed: int = 0) -> list[bytes]:
+    """n camera-sized JPEGs of smooth random scenes (encoded once, so decoding is real work)."""
+    import cv2
+
+    rng = np.random.Generator(np.random.PCG64(seed))
+    out = []
+    for _ in range(n):
+        small = rng.integers(0, 256, (height // 8, width // 8, 3), dtype=np.uint8)
+        img = cv2.resize(small, (width, height), interpolation=cv2.INTER_CUBIC)
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        assert ok
+        out.append(buf.tobytes())
+    return out
+
+
+def bench_encoder(backbone: str = "alexnet", repeats: int = 15, threads: int = 1,
+                  projection: str = "dense") -> dict[str, Any]:
+    """Whole-encoder latency and throughput beside a bare torch forward in the same run.
+
+    The bare forward is the backbone alone on random tensors (batch 16); measurements alternate
+    between the two so machine noise hits both alike: the ratio is the figure that counts.
+
+    Returns:
+        batch1_ms_median, batch16_images_per_s, bare_conv3_batch16_images_per_s, ratio, per-stage
+        medians at batch 16 (ms), and the encoder identity.
+    """
+    import torch
+
+    from models.encoder import Encoder
+
+    enc = Encoder({"backbone": backbone, "torch_threads": threads, "slsbh": {"projection": projection}})
+    jpegs = synthetic_jpegs(16)
+    bare_in = torch.randn(16, 3, 224, 224)
+    clock = time.perf_counter
+    for _ in range(2):  # warm-up: allocators, oneDNN kernels, thread pools
+        enc.encode(jpegs[:1])
+        enc.encode(jpegs)
+        enc.features(bare_in.numpy())
+    one, sixteen, bare = [], [], []
+    stages: dict[str, list[float]] = {}
+    for i in range(repeats):
+        t0 = clock()
+        enc.encode([jpegs[i % 16]])
+        one.append(clock() - t0)
+        t0 = clock()
+        r = enc.encode(jpegs)
+        sixteen.append(clock() - t0)
+        for k, v in r.timings_ms.items():
+            stages.setdefault(k, []).append(v)
+        t0 = clock()
+        enc.features(bare_in.numpy())
+        bare.append(clock() - t0)
+    enc_ips = 16 / float(np.median(sixteen))
+    bare_ips = 16 / float(np.median(bare))
+    return {
+        "batch1_ms_median": float(np.median(one) * 1e3),
+        "batch16_images_per_s": enc_ips,
+        "bare_conv3_batch16_images_per_s": bare_ips,
+        "ratio_to_bare": enc_ips / bare_ips,
+        "batch16_stage_ms_median": {k: float(np.median(v)) for k, v in stages.items()},
+        "encoder": enc.identity,
+        "config": {"backbone": backbone, "repeats": repeats, "threads": threads, "image": "640x480 JPEG",
+                   "projection": projection},
+    }

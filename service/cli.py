@@ -26,8 +26,10 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="cortexloc: visual place recognition with a Hierarchical Temporal Memory.")
 eval_app = typer.Typer(no_args_is_help=True, help="Reproduce and measure the science.")
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks (medians; run on demand).")
+weights_app = typer.Typer(no_args_is_help=True, help="Install AlexNet conv1..conv3 weights.")
 app.add_typer(eval_app, name="eval")
 app.add_typer(bench_app, name="bench")
+app.add_typer(weights_app, name="weights")
 
 
 def _progress(label: str):
@@ -181,6 +183,65 @@ def bench_tm(
                f"median {result['ms_per_step_median']:.3f} ms/step, p90 {result['ms_per_step_p90']:.3f}, "
                f"RSS growth {result['rss_growth_mb']:.1f} MB, segments {result['segments']}, "
                f"synapses {result['synapses']}, bytes {result['bytes']}")
+
+
+@bench_app.command("encoder")
+def bench_encoder(
+    backbone: Annotated[str, typer.Option(help="alexnet | efficientnet-lite0")] = "alexnet",
+    repeats: Annotated[int, typer.Option(min=1)] = 15,
+    threads: Annotated[int, typer.Option(min=1, help="torch threads")] = 1,
+    projection: Annotated[str, typer.Option(help="dense | sparse")] = "dense",
+    json_out: Annotated[Path | None, typer.Option("--json")] = None,
+) -> None:
+    """Whole-encoder batch-1 latency and batch-16 throughput beside a bare backbone forward."""
+    from models.bench import bench_encoder as run
+
+    if backbone not in ("alexnet", "efficientnet-lite0"):
+        raise typer.BadParameter("must be alexnet or efficientnet-lite0", param_hint="--backbone")
+    if projection not in ("dense", "sparse"):
+        raise typer.BadParameter("must be dense or sparse", param_hint="--projection")
+    result = run(backbone=backbone, repeats=repeats, threads=threads, projection=projection)
+    result["provenance"] = _provenance()
+    _write_json(json_out, result)
+    st = result["batch16_stage_ms_median"]
+    typer.echo(f"encoder {result['encoder']} ({projection} projection, {threads} thread(s)): batch 1 "
+               f"{result['batch1_ms_median']:.1f} ms; batch 16 {result['batch16_images_per_s']:.1f} img/s "
+               f"vs bare backbone {result['bare_conv3_batch16_images_per_s']:.1f} img/s "
+               f"(ratio {result['ratio_to_bare']:.2f}); stages at batch 16 (ms): "
+               + ", ".join(f"{k} {v:.1f}" for k, v in st.items()))
+
+
+@weights_app.command("download")
+def weights_download(
+    dest: Annotated[Path | None, typer.Option(help="Cache directory (default: $CORTEXLOC_WEIGHTS_DIR "
+                                                   "or ~/.cache/cortexloc/weights).")] = None,
+    url: Annotated[str | None, typer.Option(help="Checkpoint URL (default: torchvision's).")] = None,
+) -> None:
+    """Fetch torchvision's AlexNet checkpoint, verify its SHA-256 (7be5be79...), keep conv1..conv3."""
+    from models import weights
+
+    try:
+        path = weights.download_alexnet(dest, **({"url": url} if url else {}))
+    except weights.WeightsError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1) from e
+    typer.echo(f"installed {path}\nthe encoder finds it there; or set CORTEXLOC_WEIGHTS_PATH={path}")
+
+
+@weights_app.command("import")
+def weights_import(
+    path: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="alexnet-owt-7be5be79.pth")],
+    dest: Annotated[Path | None, typer.Option(help="Cache directory.")] = None,
+) -> None:
+    """Install weights from a local copy of torchvision's checkpoint (verified the same way)."""
+    from models import weights
+
+    try:
+        installed = weights.import_alexnet(path, dest)
+    except weights.WeightsError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1) from e
+    typer.echo(f"installed {installed}\nthe encoder finds it there; or set CORTEXLOC_WEIGHTS_PATH={installed}")
 
 
 def main() -> None:  # pragma: no cover - console entry point
