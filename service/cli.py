@@ -220,12 +220,7 @@ def weights_download(
     """Fetch torchvision's AlexNet checkpoint, verify its SHA-256 (7be5be79...), keep conv1..conv3."""
     from models import weights
 
-    try:
-        path = weights.download_alexnet(dest, **({"url": url} if url else {}))
-    except weights.WeightsError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(1) from e
-    typer.echo(f"installed {path}\nthe encoder finds it there; or set CORTEXLOC_WEIGHTS_PATH={path}")
+    _install(lambda: weights.download_alexnet(dest, **({"url": url} if url else {})))
 
 
 @weights_app.command("import")
@@ -236,12 +231,19 @@ def weights_import(
     """Install weights from a local copy of torchvision's checkpoint (verified the same way)."""
     from models import weights
 
+    _install(lambda: weights.import_alexnet(path, dest))
+
+
+def _install(run: Any) -> None:
+    """Run a weights install; say where it went and how to point the service at it, or why not."""
+    from models import weights
+
     try:
-        installed = weights.import_alexnet(path, dest)
+        path = run()
     except weights.WeightsError as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from e
-    typer.echo(f"installed {installed}\nthe encoder finds it there; or set CORTEXLOC_WEIGHTS_PATH={installed}")
+    typer.echo(f"installed {path}\nthe encoder finds it there; or set CORTEXLOC_WEIGHTS_PATH={path}")
 
 
 def main() -> None:  # pragma: no cover - console entry point
