@@ -1,10 +1,9 @@
 """Parameter search for a grid-world TM preset that really predicts (issue: "beyond the paper").
 
-Run: `python -m models.evaluation.sweep [--seeds K]` (needs the published files in ../shared/data, or
-falls back to generated data). Prints one line per configuration, best clean AUC on (a=5, n=0.5) last.
-Every configuration is scored with clean scoring on the (a=5, n=0.5) published file and on generated
-(a=5, n=0.5), (a=1, n=0.05), (a=0, n=0) and (a=5, n=0) worlds, so a choice cannot be tuned to one
-file; the objective is the worst of these AUCs.
+Run: `python -m models.evaluation.sweep [--seeds K] [--grid main|followup]`. Every configuration is
+scored with clean scoring on the published (a=5, n=0.5) file (when ../shared/data has it) and on
+generated (a=5, n=0.5), (a=1, n=0.05), (a=0, n=0) and (a=5, n=0) worlds, so a choice cannot be tuned
+to one file; the objective is the worst of these AUCs. One line per configuration, the best last.
 """
 
 from __future__ import annotations
@@ -19,14 +18,27 @@ from models.evaluation import gridworld, metrics
 from models.evaluation.datasets import grid_dir
 from models.evaluation.runner import run_htm
 
-GRID = {
-    "activationThreshold": [4, 8, 13],
-    "minThreshold": [2, 3],
-    "maxNewSynapseCount": [20, 32],
-    "initialPermanence": [0.21, 0.35, 0.55],
-    "permanenceDecrement": [0.02, 0.1],
-    "maxSegmentsPerCell": [16],
-    "maxSynapsesPerSegment": [32],
+GRIDS = {
+    "main": {
+        "activationThreshold": [4, 8, 13],
+        "minThreshold": [2, 3],
+        "maxNewSynapseCount": [20, 32],
+        "initialPermanence": [0.21, 0.35, 0.55],
+        "permanenceDecrement": [0.02, 0.1],
+        "maxSegmentsPerCell": [16],
+        "maxSynapsesPerSegment": [32],
+    },
+    # Around the main grid's finding that maxNewSynapseCount near the ~40 winners per step is what
+    # keeps noiseless loops stable.
+    "followup": {
+        "maxNewSynapseCount": [24, 28, 40],
+        "minThreshold": [2, 3],
+        "activationThreshold": [4, 8],
+        "initialPermanence": [0.55],
+        "permanenceDecrement": [0.02],
+        "maxSegmentsPerCell": [16],
+        "maxSynapsesPerSegment": [32, 48],
+    },
 }
 
 
@@ -48,14 +60,18 @@ def _datasets(seed: int) -> dict[str, gridworld.GridData]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--grid", choices=sorted(GRIDS), default="main")
     args = ap.parse_args()
     data = _datasets(0)
     base = presets.tm_params("cortexloc-grid")
-    keys = list(GRID)
+    grid = GRIDS[args.grid]
+    keys = list(grid)
     rows = []
-    for values in itertools.product(*(GRID[k] for k in keys)):
+    for values in itertools.product(*(grid[k] for k in keys)):
         over = dict(zip(keys, values, strict=True))
         if over["minThreshold"] > over["activationThreshold"]:
+            continue
+        if over["maxNewSynapseCount"] > over["maxSynapsesPerSegment"]:
             continue
         presets.confs["_sweep"] = {"description": "sweep", "tm": {**base, **over}}
         scores = {}
