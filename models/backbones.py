@@ -199,15 +199,16 @@ def alexnet_conv3(weights_path: str | Path | None, seed: int = 0,
     else:
         state, digest = load_alexnet_state(weights_path)
         meta = weights.read_sidecar(weights_path)
-        if meta is None:
-            weights_id = f"imagenet-{digest[:8]}"
-        elif meta["trimmed_sha256"] != digest:
+        if meta is not None and meta["trimmed_sha256"] != digest:
             raise WeightsError(
                 f"{weights_path}: SHA-256 {digest} differs from {meta['trimmed_sha256']} recorded in its "
                 f"sidecar {weights.sidecar_path(weights_path).name}; the file changed after install, "
                 f"reinstall it")
-        else:
-            weights_id = f"imagenet-{meta['original_sha256'][:8]}"
+        original = meta["original_sha256"] if meta is not None else digest
+        # Only torchvision's published checkpoint (or a verified trim of it) is called ImageNet; any
+        # other AlexNet-shaped file is named by its own digest and not reported as pretrained.
+        kind = "imagenet" if original.startswith(weights.ALEXNET_SHA256_PREFIX) else "file"
+        weights_id = f"{kind}-{original[:8]}"
     model.load_state_dict(state, strict=True)
     model.eval()
     model.requires_grad_(False)

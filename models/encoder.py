@@ -99,8 +99,8 @@ class Encoder:
         self.conf = merge_conf(conf)
         torch.set_num_threads(int(self.conf["torch_threads"]))
         self.model, self.weights_id, self.input_mean, self.input_std = self._build_backbone()
-        self.pretrained = not self.weights_id.startswith("random")
-        if not self.pretrained:
+        self.pretrained = self.weights_id.startswith("imagenet")
+        if self.weights_id.startswith("random"):
             log.warning(
                 "encoder runs on RANDOM weights (%s): results cannot support claims about the paper. "
                 "Fix: `cortexloc weights download` (online) or `cortexloc weights import PATH`.",
@@ -155,12 +155,16 @@ class Encoder:
     @property
     def identity(self) -> str:
         """e.g. `alexnet-conv3/imagenet-7be5be79:crop` or `alexnet-conv3/random-seed0:crop`."""
-        arch = "alexnet-conv3" if self.conf["backbone"] == "alexnet" else self.conf["backbone"]
+        if self.conf["backbone"] == "alexnet":
+            arch = "alexnet-conv3"
+        else:  # the descriptor layer is part of what makes codes comparable
+            arch = f"{self.conf['backbone']}-{self.model.descriptor_layer}"
         return f"{arch}/{self.weights_id}:{self.conf['resize']}"
 
     def describe(self) -> dict[str, Any]:
         """What the service reports in /readyz and every response."""
-        return {"encoder": self.identity, "weights": "pretrained" if self.pretrained else "random",
+        weights = "pretrained" if self.pretrained else self.weights_id.split("-", 1)[0]  # random | file
+        return {"encoder": self.identity, "weights": weights,
                 "projection": f"sha256:{self.projection_sha256}", "slsbh": dict(self.conf["slsbh"])}
 
     # ------------------------------------------------------------------ encoding

@@ -226,14 +226,20 @@ def _jpeg_header(data: bytes) -> tuple[int, int, bool]:
     n = len(data)
     size: tuple[int, int] | None = None
     pos = 2  # after SOI
+    segments = 0
     while True:
+        segments += 1
+        if segments > _JPEG_MAX_SEGMENTS:
+            # Real files have tens of segments; millions of empty ones only cost time under the GIL.
+            raise _corrupt("jpeg", f"more than {_JPEG_MAX_SEGMENTS} marker segments")
         if pos < n and data[pos] != 0xFF:
             # Garbage between segments: libjpeg skips it with a warning, so do we.
             pos = data.find(b"\xff", pos)
             if pos < 0:
                 pos = n
-        while pos < n and data[pos] == 0xFF:  # fill bytes
-            pos += 1
+        m_fill = _JPEG_FILL.match(data, pos)  # fill bytes, skipped in C rather than one by one
+        if m_fill:
+            pos = m_fill.end()
         if pos >= n:
             break
         marker = data[pos]
@@ -275,6 +281,10 @@ def _jpeg_header(data: bytes) -> tuple[int, int, bool]:
     if size is None:
         raise _truncated("jpeg", "the file ends before the frame header (SOF) that gives its size", n)
     return size[0], size[1], False
+
+
+_JPEG_FILL = re.compile(rb"\xff+")
+_JPEG_MAX_SEGMENTS = 4096
 
 
 def _png_header(data: bytes) -> tuple[int, int, bool]:
@@ -476,6 +486,11 @@ def decode(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int =
     try:
         rgb = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     except cv2.error as e:  # OpenCV's own pixel guard (OPENCV_IO_MAX_IMAGE_PIXELS) or a codec assertion
+        if "MAX_IMAGE_PIXELS" in str(e):
+            raise ImageError("too-many-pixels",
+                             f"image has {info.width}x{info.height} = {info.width * info.height} pixels, "
+                             "more than OpenCV's limit (OPENCV_IO_MAX_IMAGE_PIXELS, set before cv2 is "
+                             "imported)", format=info.format, width=info.width, height=info.height) from e
         raise ImageError("not-an-image",
                          f"OpenCV refused the {_FORMAT_NAMES[info.format]} image "
                          f"({info.width}x{info.height}): {str(e).strip().splitlines()[-1]}",

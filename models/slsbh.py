@@ -37,7 +37,6 @@ import math
 import os
 import re
 import sys
-import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +45,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from models.files import atomic_write
 from models.sdr import INDEX_DTYPE
 
 default_conf: dict[str, Any] = {"k": 1024, "s": 0.25, "seed": 0, "projection": "gaussian"}
@@ -197,17 +197,7 @@ def save_projection(P: np.ndarray, directory: str | os.PathLike[str]) -> tuple[P
         except ProjectionError as exc:
             warnings.warn(f"replacing corrupt projection file {path}: {exc}", RuntimeWarning, stacklevel=2)
     arr = np.ascontiguousarray(P, dtype=_LE_F4)
-    fd, tmp = tempfile.mkstemp(prefix=f".{sha[:16]}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.lib.format.write_array(f, arr, version=(1, 0), allow_pickle=False)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    _fsync_dir(directory)
+    atomic_write(path, lambda f: np.lib.format.write_array(f, arr, version=(1, 0), allow_pickle=False))
     return path, sha
 
 
@@ -260,17 +250,6 @@ def _check_dense_dtype(P: np.ndarray) -> None:
     if not isinstance(P, np.ndarray) or P.ndim != 2 or P.dtype.kind != "f" or P.dtype.itemsize != 4:
         desc = f"{type(P).__name__} {getattr(P, 'dtype', '?')} {getattr(P, 'shape', '?')}"
         raise ProjectionError(f"projection must be a 2-D float32 array, got {desc}")
-
-
-def _fsync_dir(directory: Path) -> None:
-    # Makes the rename durable on POSIX; directories cannot be opened for fsync on Windows.
-    if sys.platform == "win32":
-        return
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -40,6 +40,8 @@ from typing import Any, BinaryIO
 
 import torch
 
+from models.files import atomic_write, sha256_file
+
 ALEXNET_URL = "https://download.pytorch.org/models/alexnet-owt-7be5be79.pth"
 ALEXNET_SHA256_PREFIX = "7be5be79"
 
@@ -104,15 +106,6 @@ def trimmed_name(prefix: str) -> str:
 def sidecar_path(path: str | Path) -> Path:
     """The sidecar JSON of a weights file: the same name with the suffix replaced by `.json`."""
     return Path(path).with_suffix(".json")
-
-
-def sha256_file(path: str | Path) -> str:
-    """SHA-256 (lowercase hex) of a file, read in 1 MiB chunks so a 233 MB file costs no memory."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(_CHUNK):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _check_prefix(prefix: str) -> str:
@@ -231,35 +224,8 @@ def read_sidecar(path: str | Path) -> dict[str, Any] | None:
 # ------------------------------------------------------------------------------------ atomic install
 
 
-def _fsync_dir(directory: Path) -> None:
-    # Makes the rename itself durable; some platforms/filesystems cannot open a directory: skip there.
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
-def _atomic_write_bytes(target: Path, data: bytes) -> None:
-    """Write `data` to `target` so that readers see either the old file or the complete new one."""
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; the service may run as another user
-        os.replace(tmp, target)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    _fsync_dir(target.parent)
+def _write_bytes(target: Path, data: bytes) -> None:
+    atomic_write(target, lambda f: f.write(data))
 
 
 def _install(full: Path, original_sha256: str, original_bytes: int, source: str, dest: Path) -> Path:
@@ -285,8 +251,8 @@ def _install(full: Path, original_sha256: str, original_bytes: int, source: str,
     }
     # Sidecar first, weights second: the trimmed file's presence marks a complete install, so a crash in
     # between leaves a sidecar without weights, which `find_alexnet` reports as "not installed".
-    _atomic_write_bytes(sidecar_path(target), (json.dumps(meta, indent=2) + "\n").encode("utf-8"))
-    _atomic_write_bytes(target, data)
+    _write_bytes(sidecar_path(target), (json.dumps(meta, indent=2) + "\n").encode("utf-8"))
+    _write_bytes(target, data)
     return target
 
 

@@ -46,10 +46,11 @@ def _progress(label: str):
 def _write_json(path: Path | None, payload: dict[str, Any]) -> None:
     if path is None:
         return
+    from models.files import atomic_write
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(payload, indent=2, default=_jsonable))
-    tmp.replace(path)
+    text = json.dumps(payload, indent=2, default=_jsonable).encode()
+    atomic_write(path, lambda f: f.write(text))
 
 
 def _jsonable(o: Any) -> Any:
@@ -240,7 +241,7 @@ def _install(run: Any) -> None:
 
     try:
         path = run()
-    except weights.WeightsError as e:
+    except (weights.WeightsError, ValueError) as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from e
     typer.echo(f"installed {path}\nthe encoder finds it there; or set CORTEXLOC_WEIGHTS_PATH={path}")

@@ -11,6 +11,7 @@ from torch.nn import functional
 
 from models import efficientnet as effnet
 from models import images
+from models.files import sha256_file
 
 skdata = pytest.importorskip("skimage.data")
 
@@ -57,11 +58,10 @@ def test_loads_package_weights_strictly_in_eval_mode(loaded: tuple[effnet.Effici
 
 def test_weights_sha256_is_cached_and_names_the_file() -> None:
     path = effnet.package_weights_path()
-    digest = effnet.weights_sha256(path)
+    digest = sha256_file(path)
     assert digest == effnet.WEIGHTS_SHA256
     assert digest[:8] in path.name  # torch.hub convention: the file name carries the hash prefix
-    assert digest in effnet._SHA256_CACHE.values()
-    assert effnet.weights_sha256(path) is digest
+    assert sha256_file(path) is digest
 
 
 def test_corrupted_package_file_is_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -76,7 +76,7 @@ def test_other_weights_file_gets_its_own_id(model: effnet.EfficientNetLite0, tmp
     path = tmp_path / "copy.pth"
     torch.save(model.state_dict(), path)
     other, weights_id = effnet.efficientnet_lite0(weights_path=path, layer="stage5")
-    assert weights_id == f"file-{effnet.weights_sha256(path)[:8]}"
+    assert weights_id == f"file-{sha256_file(path)[:8]}"
     assert other.descriptor_layer == "stage5"
 
 

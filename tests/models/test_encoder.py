@@ -79,13 +79,19 @@ def test_random_weights_are_announced(caplog):
     assert any("RANDOM weights" in r.message and "cortexloc weights" in r.message for r in caplog.records)
 
 
-def test_weights_file_is_used_and_named(tmp_path):
+def test_weights_file_is_used_and_named(tmp_path, monkeypatch):
+    from models import weights
+
     state = backbones.random_alexnet_state(seed=9)
     path = tmp_path / "conv3.pt"
     torch.save(state, path)
     enc = Encoder({"weights_path": str(path), "slsbh": {"k": 16}, "resize": "squash"})
+    # An AlexNet-shaped file that is not torchvision's checkpoint is not called pretrained.
+    assert not enc.pretrained and enc.describe()["weights"] == "file"
+    assert enc.identity.startswith("alexnet-conv3/file-") and enc.identity.endswith(":squash")
+    monkeypatch.setattr(weights, "ALEXNET_SHA256_PREFIX", weights.sha256_file(path)[:8])
+    enc = Encoder({"weights_path": str(path), "slsbh": {"k": 16}, "resize": "squash"})
     assert enc.pretrained and enc.identity.startswith("alexnet-conv3/imagenet-")
-    assert enc.identity.endswith(":squash")
     ref = backbones.AlexNetConv3()
     ref.load_state_dict(state)
     x = np.zeros((1, 3, 224, 224), np.float32)
@@ -125,7 +131,7 @@ def test_conf_validation():
 
 def test_efficientnet_backbone_encodes():
     enc = Encoder({"backbone": "efficientnet-lite0", "slsbh": {"k": 32}})
-    assert enc.pretrained and enc.identity.startswith("efficientnet-lite0/imagenet-")
+    assert enc.pretrained and enc.identity.startswith("efficientnet-lite0-stage7/imagenet-")
     out = enc.encode(synthetic_jpegs(2), return_features=True)
     assert out.codes.shape == (2, 2 * slsbh.n_ones(32, 0.25))
     assert out.features.shape[1] == enc.feature_dim

@@ -440,3 +440,15 @@ def test_decode_then_preprocess_end_to_end():
     x = preprocess_batch([decode(_encode(rgb, ".png")), decode(_encode(rgb, ".jpg"))])
     assert x.shape == (2, 3, 224, 224)
     assert np.abs(x[0] - x[1]).mean() < 0.05
+
+
+def test_hostile_jpeg_marker_floods_are_refused_cheaply():
+    # Millions of empty segments would otherwise be walked one by one under the GIL.
+    flood = b"\xff\xd8" + b"\xff\xfe\x00\x02" * 100_000
+    with pytest.raises(images.ImageError) as e:
+        images.decode(flood)
+    assert e.value.code == "not-an-image" and "marker segments" in str(e.value)
+    fill = b"\xff\xd8" + b"\xff" * 1_000_000
+    with pytest.raises(images.ImageError) as e:
+        images.decode(fill)
+    assert e.value.code == "truncated"

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 import torch
 
+import models.weights as weights_module
 from models import weights
 from models.backbones import AlexNetConv3, alexnet_conv3, load_alexnet_state
 from models.weights import (
@@ -164,9 +165,14 @@ def test_download_installs_verified_trimmed_file(server: str, fake: dict, tmp_pa
         assert torch.equal(state[key], value)
     assert path.stat().st_size < 4_100_000  # about 4 MB: the six tensors only
 
-    # The trimmed file keeps the identity of the original, and computes the same descriptors.
+    # The trimmed file keeps the identity of the original, and computes the same descriptors. Only
+    # torchvision's digest is called ImageNet: the fake checkpoint is named as a file...
     model, wid = alexnet_conv3(path)
-    assert wid == f"imagenet-{fake['prefix']}"
+    assert wid == f"file-{fake['prefix']}"
+    # ...unless its digest is the one expected of torchvision's checkpoint.
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(weights_module, "ALEXNET_SHA256_PREFIX", fake["prefix"])
+        assert alexnet_conv3(path)[1] == f"imagenet-{fake['prefix']}"
     reference = AlexNetConv3().eval()
     reference.load_state_dict(fake["state"])
     x = torch.from_numpy(np.random.Generator(np.random.PCG64(0)).standard_normal((2, 3, 224, 224),
@@ -229,7 +235,7 @@ def test_import_from_local_file(fake: dict, tmp_path: Path) -> None:
     for key, value in fake["state"].items():
         assert torch.equal(state[key], value)
     # Loading the full checkpoint directly gives the same id as its trimmed copy.
-    assert alexnet_conv3(src)[1] == alexnet_conv3(path)[1] == f"imagenet-{fake['prefix']}"
+    assert alexnet_conv3(src)[1] == alexnet_conv3(path)[1] == f"file-{fake['prefix']}"
     # Importing again is idempotent: same bytes, same digests.
     again = import_alexnet(src, dest, expected_prefix=fake["prefix"])
     assert again == path and read_sidecar(again)["trimmed_sha256"] == meta["trimmed_sha256"]
