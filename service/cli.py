@@ -155,6 +155,100 @@ def format_grid_table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+@eval_app.command("images")
+def eval_images(
+    db: Annotated[Path, typer.Option(help="Database image folder (e.g. summer).", exists=True,
+                                     file_okay=False)],
+    query: Annotated[Path, typer.Option(help="Query image folder (e.g. winter); same name = same place.",
+                                        exists=True, file_okay=False)],
+    offset: Annotated[int, typer.Option(min=0, help="First pair (in sorted name order).")] = 0,
+    limit: Annotated[int | None, typer.Option(min=2, help="Number of pairs (default: all).")] = None,
+    backbone: Annotated[str, typer.Option(help="alexnet | efficientnet-lite0")] = "alexnet",
+    resize: Annotated[str, typer.Option(help="crop | squash")] = "crop",
+    methods: Annotated[str, typer.Option(help="Comma-separated: cosine,slsbh,mcn,htm,seqslam.")]
+    = "cosine,slsbh,mcn,htm,seqslam",
+    preset: Annotated[str, typer.Option(help="Temporal Memory preset.")] = "cba2020-nordland",
+    mcn_preset: Annotated[str, typer.Option(help="MCN preset.")] = "mcn-nordland",
+    s: Annotated[float | None, typer.Option(min=0.0, max=0.5, help="sLSBH sparsity (default: the "
+                                                                    "preset's, else 0.25).")] = None,
+    tolerance: Annotated[int, typer.Option(min=0, help="±files that count as the same place.")] = 0,
+    reset: Annotated[bool, typer.Option("--reset/--no-reset",
+                                        help="Reset between database and query (the paper does not).")]
+    = False,
+    seeds: Annotated[int, typer.Option(min=1)] = 3,
+    seed: Annotated[int, typer.Option(help="Experiment seed.")] = 0,
+    cache: Annotated[Path | None, typer.Option(help="Feature cache folder (default: "
+                                                    "$CORTEXLOC_CACHE_DIR or ~/.cache/cortexloc).")] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write results as JSON here.")] = None,
+    plots_dir: Annotated[Path | None, typer.Option("--plots", help="Write PR and similarity PNGs here.")]
+    = None,
+) -> None:
+    """Cross-season evaluation on image sequences (science.md §8.5): learn db, then query, per method."""
+    import os
+
+    from models.encoder import Encoder
+    from models.evaluation import plots, sequences
+
+    method_list = [m.strip() for m in methods.split(",") if m.strip()]
+    bad = set(method_list) - set(sequences.METHODS)
+    if bad or not method_list:
+        raise typer.BadParameter(f"must be among {', '.join(sequences.METHODS)}", param_hint="--methods")
+    for name in (preset, mcn_preset):
+        if name not in presets.confs:
+            raise typer.BadParameter(f"unknown preset {name!r}; see `cortexloc presets`")
+    if backbone not in ("alexnet", "efficientnet-lite0"):
+        raise typer.BadParameter("must be alexnet or efficientnet-lite0", param_hint="--backbone")
+    if resize not in ("crop", "squash"):
+        raise typer.BadParameter("must be crop or squash", param_hint="--resize")
+    s_conf = presets.get(preset).get("slsbh", {"k": 1024, "s": 0.25})
+    sparsity = float(s if s is not None else s_conf["s"])
+    if not 0 < sparsity <= 0.5:
+        raise typer.BadParameter("must be in (0, 0.5]", param_hint="--s")
+    try:
+        names = sequences.paired_names(db, query, offset, limit)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from e
+    cache_dir = cache or Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc"))
+    enc = Encoder({"backbone": backbone, "resize": resize, "slsbh": {"k": 16}})  # features only
+    feats = {}
+    for label, folder in (("db", db), ("query", query)):
+        feats[label] = sequences.cached_features(enc, [folder / n for n in names], cache_dir / "features",
+                                                 progress=_progress(f"features {label}"))
+    result = sequences.image_experiment(
+        feats["db"], feats["query"], methods=method_list, preset=preset, mcn_preset=mcn_preset,
+        k=int(s_conf["k"]), s=sparsity, seeds=seeds, seed=seed, tolerance=tolerance, reset=reset,
+        progress=_progress("runs") if seeds > 1 else None)
+    first = result.pop("first")
+    if plots_dir is not None:
+        plots_dir.mkdir(parents=True, exist_ok=True)
+        plots.plot_pr_curves({m: (r["P"], r["R"]) for m, r in first.items()}, plots_dir / "pr.png",
+                             f"{db.name} -> {query.name}, {len(names)} pairs (first seed)")
+        for m, r in first.items():
+            plots.plot_similarity(np.asarray(r["S"], dtype=float), plots_dir / f"similarity_{m}.png",
+                                  f"{m}: similarity (database rows, query columns)")
+    result["config"] = {"db": str(db), "query": str(query), "offset": offset, "limit": limit,
+                        "pairs": len(names), "first": names[0], "last": names[-1], "encoder": enc.identity,
+                        "weights": enc.describe()["weights"], "preset": preset, "mcn_preset": mcn_preset,
+                        "k": int(s_conf["k"]), "s": sparsity, "tolerance": tolerance, "reset": reset,
+                        "seeds": seeds, "seed": seed}
+    result["provenance"] = _provenance()
+    _write_json(json_out, result)
+    typer.echo(f"{db.name} -> {query.name}: {len(names)} pairs ({names[0]} .. {names[-1]}), encoder "
+               f"{enc.identity} [{result['config']['weights']} weights], s={sparsity}, "
+               f"tolerance ±{tolerance}, {'reset' if reset else 'no reset'}, seeds={seeds}")
+    typer.echo(f"{'method':<9} {'AUC mean':>9} {'min':>7} {'max':>7} {'R@1':>6} {'R@5':>6} {'R@100P':>7} "
+               f"{'s/run':>7}  notes")
+    for m, e in result["methods"].items():
+        notes = ""
+        if m == "htm":
+            notes = f"{e['preset']}, query predicted {e['query_predicted_fraction_mean']:.3f}"
+        elif m == "mcn":
+            notes = f"{e['preset']}, columns {e['columns_mean']:.0f}"
+        typer.echo(f"{m:<9} {e['auc_mean']:>9.4f} {e['auc_min']:>7.4f} {e['auc_max']:>7.4f} "
+                   f"{e['recall_at_1_mean']:>6.3f} {e['recall_at_5_mean']:>6.3f} "
+                   f"{e['recall_at_100p_mean']:>7.3f} {e['seconds_mean']:>7.2f}  {notes}")
+
+
 @bench_app.command("tm")
 def bench_tm(
     columns: Annotated[int, typer.Option(min=1)] = 2048,

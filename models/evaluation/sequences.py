@@ -1,0 +1,205 @@
+"""Cross-season image sequences: pairing, cached features, and the database/query protocol.
+
+science.md §8.5: the memory learns the database sequence (learn = true), then runs the query sequence
+with learning off; the paper does this without a reset in between, the project's protocol may reset.
+S has database items as rows and queries as columns, higher = more similar (§8.1).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models import presets, sdr, slsbh
+from models.encoder import Encoder
+from models.evaluation import metrics
+from models.evaluation.seqslam import seqslam
+from models.files import atomic_write, sha256_file
+from models.mcn import MCN
+from models.temporal_memory import TemporalMemory
+
+METHODS = ("cosine", "slsbh", "mcn", "htm", "seqslam")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
+
+
+def paired_names(db_dir: Path, query_dir: Path, offset: int = 0, limit: int | None = None) -> list[str]:
+    """File names present in both folders (same name = same place), sorted, then sliced.
+
+    Raises:
+        ValueError: a folder is missing or the two have no name in common.
+    """
+    for d in (db_dir, query_dir):
+        if not Path(d).is_dir():
+            raise ValueError(f"not a folder: {d}")
+
+    def names(d: Path) -> set[str]:
+        return {p.name for p in Path(d).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
+
+    common = sorted(names(db_dir) & names(query_dir))
+    if not common:
+        raise ValueError(f"no image file name is in both {db_dir} and {query_dir}")
+    out = common[offset: None if limit is None else offset + limit]
+    if not out:
+        raise ValueError(f"offset {offset} leaves no pair of the {len(common)} in common")
+    return out
+
+
+def cached_features(encoder: Encoder, paths: Sequence[Path], cache_dir: Path | None,
+                    progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+    """(N, D) float32 backbone features of `paths`, cached on disk by content.
+
+    The cache key hashes the encoder identity (backbone, weights, resize mode) and every file's SHA-256,
+    so a sweep over memory parameters never recomputes features, and a changed file or encoder never
+    reuses stale ones.
+    """
+    h = hashlib.sha256(encoder.identity.encode())
+    for p in paths:
+        h.update(sha256_file(p).encode())
+    key = h.hexdigest()
+    if cache_dir is not None:
+        cached = Path(cache_dir) / f"features-{key}.npy"
+        if cached.exists():
+            return np.load(cached)
+    out = []
+    for i in range(0, len(paths), 32):
+        chunk = [Path(p).read_bytes() for p in paths[i:i + 32]]
+        out.append(encoder.encode(chunk, return_features=True).features)
+        if progress:
+            progress(min(i + 32, len(paths)), len(paths))
+    feats = np.concatenate(out).astype(np.float32)
+    if cache_dir is not None:
+        Path(cache_dir).mkdir(parents=True, exist_ok=True)
+        atomic_write(cached, lambda f: np.save(f, feats))
+    return feats
+
+
+def run_tm(db_codes: np.ndarray, q_codes: np.ndarray, preset: str, seed: int, reset: bool,
+           width: int) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, Any]]:
+    """Learn the database codes, then run the query codes with learning off.
+
+    Returns:
+        db winners, query winners (sorted cell arrays), and statistics: the fraction of active columns
+        predicted in the query pass (in true order) and the preallocated bytes.
+    """
+    tm = TemporalMemory(presets.tm_params(preset, {"seed": int(seed), "columnDimensions": width}))
+    db_w = [tm.compute(c, learn=True) for c in db_codes]
+    if reset:
+        tm.reset()
+    q_w, predicted, active = [], 0, 0
+    for c in q_codes:
+        q_w.append(tm.compute(c, learn=False))
+        predicted += tm.context.stats.predicted_columns
+        active += tm.context.stats.active_columns
+    return db_w, q_w, {"query_predicted_fraction": predicted / max(active, 1), "bytes": tm.size()["bytes"]}
+
+
+def run_mcn(db_codes: np.ndarray, q_codes: np.ndarray, preset: str, seed: int, reset: bool,
+            width: int) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, Any]]:
+    """MCN on the same codes: learn the database, infer the queries (science.md §4)."""
+    params = presets.mcn_params(preset, {"seed": int(seed)})
+    if params["nInConPerCol"] is None:
+        params["nInConPerCol"] = round(float(np.mean([len(c) for c in db_codes])))
+    mcn = MCN(params, input_width=width)
+    db_w = [mcn.step(c, learn=True) for c in db_codes]
+    if reset:
+        mcn.reset()
+    q_w = [mcn.step(c, learn=False) for c in q_codes]
+    return db_w, q_w, {"columns": mcn.n_columns}
+
+
+def evaluate(S: np.ndarray, tolerance: int) -> dict[str, float]:
+    """AUC, R@1, R@5, R@100P of S (n_db, n_q) against identity ground truth (±tolerance, §8.3)."""
+    gt = np.eye(S.shape[0], S.shape[1], dtype=bool)
+    if tolerance > 0:
+        S_pr, gt_soft = metrics.apply_tolerance(S, gt, tolerance)
+        P, R = metrics.pr_curve(S_pr, gt)
+        hits = gt_soft
+    else:
+        P, R = metrics.pr_curve(S, gt)
+        hits = gt
+    return {"auc": metrics.auc(P, R), "recall_at_1": metrics.recall_at_k(S, hits, 1),
+            "recall_at_5": metrics.recall_at_k(S, hits, 5),
+            "recall_at_100p": metrics.recall_at_100_precision(P, R), "P": P, "R": R}
+
+
+def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequence[str],
+                     preset: str, mcn_preset: str = "mcn-nordland", k: int = 1024, s: float = 0.25,
+                     seeds: int = 3, seed: int = 0, tolerance: int = 0, reset: bool = False,
+                     progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """All methods on one database/query pair of feature sequences, over seeds.
+
+    Args:
+        db_feats, q_feats: (n, D) L2-normalised features, row i of both = the same place.
+        methods: subset of METHODS.
+        preset: TM preset; mcn_preset: MCN preset.
+        k, s: sLSBH size and sparsity (2k = TM columns).
+        seeds: runs; projection, TM and MCN seeds spawned from `seed` (science.md §8.6).
+        tolerance: ±files counted as the same place.
+        reset: reset the sequence memory between database and query (the paper does not).
+
+    Returns:
+        {"methods": {name: {"auc_mean", "auc_min", "auc_max", "recall_at_1_mean", ..., "per_seed"}},
+         "first": {name: {"S", "P", "R"}}} (first seed's matrices, for plots).
+    """
+    bad = set(methods) - set(METHODS)
+    if bad:
+        raise ValueError(f"unknown method(s) {sorted(bad)}; known: {', '.join(METHODS)}")
+    runs: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
+    first: dict[str, dict[str, Any]] = {}
+    cos = db_feats @ q_feats.T
+    children = np.random.SeedSequence(seed).spawn(seeds)
+    for i, child in enumerate(children):
+        proj_seed, tm_seed, mcn_seed = (int(v) for v in child.generate_state(3))
+        needs_codes = {"slsbh", "htm", "mcn"} & set(methods)
+        if needs_codes:
+            hasher = slsbh.Hasher(slsbh.make_projection(db_feats.shape[1], k, proj_seed), s)
+            db_codes, q_codes = hasher(db_feats), hasher(q_feats)
+        for m in methods:
+            if i > 0 and m in ("cosine", "seqslam"):
+                continue  # deterministic given the features
+            info: dict[str, Any] = {}
+            t0 = time.perf_counter()
+            if m == "cosine":
+                S = cos
+            elif m == "seqslam":
+                S = seqslam(cos)
+            elif m == "slsbh":
+                S = sdr.dice_matrix(list(db_codes), list(q_codes))
+            else:
+                run = run_tm if m == "htm" else run_mcn
+                db_w, q_w, info = run(db_codes, q_codes, preset if m == "htm" else mcn_preset,
+                                      tm_seed if m == "htm" else mcn_seed, reset, 2 * k)
+                S = sdr.dice_matrix(db_w, q_w)
+            info["seconds"] = time.perf_counter() - t0
+            r = evaluate(S, tolerance)
+            if m not in first:
+                first[m] = {"S": S, "P": r["P"], "R": r["R"]}
+            runs[m].append({"seed": {"projection": proj_seed, "tm": tm_seed, "mcn": mcn_seed},
+                            **{key: float(r[key]) for key in ("auc", "recall_at_1", "recall_at_5",
+                                                              "recall_at_100p")}, **info})
+        if progress:
+            progress(i + 1, seeds)
+    summary: dict[str, Any] = {}
+    for m, rs in runs.items():
+        entry: dict[str, Any] = {}
+        for key in ("auc", "recall_at_1", "recall_at_5", "recall_at_100p"):
+            vals = np.array([r[key] for r in rs])
+            entry.update({f"{key}_mean": float(vals.mean()), f"{key}_min": float(vals.min()),
+                          f"{key}_max": float(vals.max())})
+        if m == "htm":
+            entry["preset"] = preset
+            entry["query_predicted_fraction_mean"] = float(np.mean([r["query_predicted_fraction"]
+                                                                    for r in rs]))
+            entry["bytes"] = rs[0]["bytes"]
+        if m == "mcn":
+            entry["preset"] = mcn_preset
+            entry["columns_mean"] = float(np.mean([r["columns"] for r in rs]))
+        entry["seconds_mean"] = float(np.mean([r["seconds"] for r in rs]))
+        entry["per_seed"] = rs
+        summary[m] = entry
+    return {"methods": summary, "first": first}

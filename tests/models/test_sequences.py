@@ -1,0 +1,102 @@
+"""Cross-season protocol on generated image sequences: pairing, feature cache, methods, CLI."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from models.encoder import Encoder
+from models.evaluation import sequences
+from service.cli import app
+
+
+def write_sequences(root, n: int = 24, seed: int = 0):
+    """A 'route' of n places; the query season is the database darkened with noise."""
+    rng = np.random.default_rng(seed)
+    db, q = root / "summer", root / "winter"
+    db.mkdir()
+    q.mkdir()
+    for i in range(n):
+        place = cv2.resize(rng.integers(0, 256, (8, 16, 3), dtype=np.uint8), (64, 32),
+                           interpolation=cv2.INTER_CUBIC)
+        winter = np.clip(place.astype(np.float32) * 0.7 + rng.normal(0, 6, place.shape), 0, 255)
+        cv2.imwrite(str(db / f"images-{i:05d}.png"), place)
+        cv2.imwrite(str(q / f"images-{i:05d}.png"), winter.astype(np.uint8))
+    (db / "only-in-summer.png").write_bytes((db / "images-00000.png").read_bytes())
+    return db, q
+
+
+@pytest.fixture(autouse=True)
+def no_installed_weights(tmp_path, monkeypatch):
+    monkeypatch.setenv("CORTEXLOC_WEIGHTS_DIR", str(tmp_path / "no-weights"))
+
+
+def test_pairs_by_name_offset_and_limit(tmp_path):
+    db, q = write_sequences(tmp_path, n=10)
+    names = sequences.paired_names(db, q)
+    assert len(names) == 10 and "only-in-summer.png" not in names
+    assert sequences.paired_names(db, q, offset=3, limit=4) == names[3:7]
+    with pytest.raises(ValueError, match="offset"):
+        sequences.paired_names(db, q, offset=50)
+    with pytest.raises(ValueError, match="not a folder"):
+        sequences.paired_names(db, tmp_path / "nope")
+
+
+def test_features_are_cached_by_content(tmp_path):
+    db, _ = write_sequences(tmp_path, n=6)
+    enc = Encoder({"resize": "squash", "slsbh": {"k": 16}})
+    paths = [db / n for n in sorted(p.name for p in db.glob("images-*.png"))]
+    a = sequences.cached_features(enc, paths, tmp_path / "cache")
+    assert len(list((tmp_path / "cache").glob("features-*.npy"))) == 1
+    np.testing.assert_array_equal(sequences.cached_features(enc, paths, tmp_path / "cache"), a)
+    cv2.imwrite(str(paths[0]), np.zeros((32, 64, 3), np.uint8))  # content changed: new key
+    sequences.cached_features(enc, paths, tmp_path / "cache")
+    assert len(list((tmp_path / "cache").glob("features-*.npy"))) == 2
+
+
+def test_every_method_scores_and_sequence_methods_use_order():
+    rng = np.random.default_rng(0)
+    n, d = 40, 64
+    db = rng.normal(size=(n, d)).astype(np.float32)
+    q = db + rng.normal(0, 1.2, size=(n, d)).astype(np.float32)  # weak single-image similarity
+    db /= np.linalg.norm(db, axis=1, keepdims=True)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    res = sequences.image_experiment(db, q, methods=list(sequences.METHODS), preset="cortexloc-grid",
+                                     k=256, s=0.05, seeds=2)
+    m = res["methods"]
+    assert set(m) == set(sequences.METHODS)
+    for entry in m.values():
+        assert 0.0 <= entry["auc_min"] <= entry["auc_mean"] <= entry["auc_max"] <= 1.0
+    assert m["seqslam"]["auc_mean"] > m["cosine"]["auc_mean"]
+    assert len(m["htm"]["per_seed"]) == 2 and len(m["cosine"]["per_seed"]) == 1
+    assert 0.0 <= m["htm"]["query_predicted_fraction_mean"] <= 1.0
+    assert res["first"]["htm"]["S"].shape == (n, n)
+
+
+def test_tolerance_counts_neighbours():
+    S = np.zeros((5, 5))
+    S[np.arange(4) + 1, np.arange(4)] = 1.0  # every query's best match is off by one
+    S[3, 4] = 1.0
+    assert sequences.evaluate(S, 0)["recall_at_1"] == 0.0
+    assert sequences.evaluate(S, 1)["recall_at_1"] == 1.0
+
+
+def test_eval_images_command(tmp_path):
+    db, q = write_sequences(tmp_path, n=20)
+    out = tmp_path / "r.json"
+    r = CliRunner().invoke(app, ["eval", "images", "--db", str(db), "--query", str(q), "--resize", "squash",
+                                 "--methods", "cosine,slsbh,htm,seqslam", "--preset", "cortexloc-grid",
+                                 "--s", "0.02", "--seeds", "2", "--cache", str(tmp_path / "c"), "--json",
+                                 str(out), "--plots", str(tmp_path / "p")])
+    assert r.exit_code == 0, r.output
+    payload = json.loads(out.read_text())
+    assert set(payload["methods"]) == {"cosine", "slsbh", "htm", "seqslam"}
+    assert payload["config"]["pairs"] == 20 and payload["config"]["weights"] == "random"
+    assert payload["methods"]["cosine"]["auc_mean"] > 0.5  # the seasons differ only by light and noise
+    assert (tmp_path / "p" / "pr.png").stat().st_size > 0
+    bad = CliRunner().invoke(app, ["eval", "images", "--db", str(db), "--query", str(q), "--methods", "x"])
+    assert bad.exit_code == 2
