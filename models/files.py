@@ -44,12 +44,13 @@ def fsync_dir(directory: str | os.PathLike[str]) -> None:
 
 
 def atomic_write(target: str | os.PathLike[str], write: Callable[[BinaryIO], None],
-                 mode: int = 0o644) -> None:
+                 mode: int = 0o644, before_replace: Callable[[], None] | None = None) -> None:
     """Write `target` so that readers see either the old file or the complete new one.
 
     A temporary file in the same directory is written by `write`, fsynced, given `mode` (mkstemp makes
     0600, and the service may run as another user than the CLI that wrote the file), renamed over
-    `target`, and the directory is fsynced.
+    `target`, and the directory is fsynced. `before_replace` runs just before the rename (e.g. to drop
+    an SQLite WAL that belongs to the file being replaced).
     """
     target = Path(target)
     fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
@@ -59,6 +60,8 @@ def atomic_write(target: str | os.PathLike[str], write: Callable[[BinaryIO], Non
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, mode)
+        if before_replace is not None:
+            before_replace()
         os.replace(tmp, target)
     except BaseException:
         with contextlib.suppress(OSError):

@@ -5,6 +5,7 @@
                         [--json OUT] [--plots DIR]
     cortexloc eval grid --generate --aliasing A --noise N [--loops L] [...same options]
     cortexloc bench tm [--columns C] [--cells K] [--active A] [--steps S] [--preset NAME] [--json OUT]
+    cortexloc serve [--host H] [--port P] [--data-dir DIR]
 
 Tables go to stdout, progress and warnings to stderr, machine-readable results to --json.
 """
@@ -339,6 +340,40 @@ def _install(run: Any) -> None:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from e
     typer.echo(f"installed {path}\nthe encoder finds it there; or set CORTEXLOC_WEIGHTS_PATH={path}")
+
+
+@app.command("serve")
+def serve(
+    host: Annotated[str | None, typer.Option(help="Bind address (default: $CORTEXLOC_HOST or 127.0.0.1).")]
+    = None,
+    port: Annotated[int | None, typer.Option(min=0, max=65535,
+                                             help="Bind port (default: $CORTEXLOC_PORT or 8000).")] = None,
+    data_dir: Annotated[Path | None, typer.Option(help="Root of all state (default: $CORTEXLOC_DATA_DIR "
+                                                       "or ./var).")] = None,
+) -> None:
+    """Run the HTTP service (one uvicorn worker: maps live in process memory). Other settings: CORTEXLOC_*."""
+    import os
+
+    from service.settings import ConfigError, Settings
+
+    env = dict(os.environ)
+    for var, value in (("CORTEXLOC_HOST", host), ("CORTEXLOC_PORT", port), ("CORTEXLOC_DATA_DIR", data_dir)):
+        if value is not None:
+            env[var] = str(value)
+    try:
+        settings = Settings.from_env(env)  # read once, here; the app gets this object
+    except ConfigError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from e
+    # OpenCV reads its pixel guard once, when cv2 is imported (by the app's modules, below).
+    os.environ["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(settings.max_pixels)
+
+    import uvicorn
+
+    from service.app import create_app
+
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, workers=1, lifespan="on",
+                log_level=settings.log_level.lower())
 
 
 def main() -> None:  # pragma: no cover - console entry point

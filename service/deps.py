@@ -1,0 +1,89 @@
+"""Typed dependencies: what routes receive from the app (one place, one spelling each).
+
+    SettingsDep   the validated `Settings` (read once at startup)
+    EncoderDep    the loaded `Encoder` (503 not-ready while there is none)
+    MetricsDep    the app's `Metrics` (per-app Prometheus registry)
+    MapsDep       `app.state.maps`, map_id -> map runtime object
+    require_api_key / ApiKeyDep   guard for write routes when `CORTEXLOC_API_KEY` is set
+
+Example:
+    >>> @router.post("/v1/maps", dependencies=[ApiKeyDep])
+    ... def create_map(settings: SettingsDep, maps: MapsDep) -> ...
+"""
+
+from __future__ import annotations
+
+import secrets
+from typing import Annotated, Any
+
+from fastapi import Depends, Request, Security
+from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
+
+from models.encoder import Encoder
+from service.errors import Problem
+from service.routes.metrics import Metrics
+from service.settings import Settings
+
+__all__ = ["ApiKeyDep", "EncoderDep", "MapsDep", "MetricsDep", "SettingsDep", "get_encoder", "get_maps",
+           "get_metrics", "get_settings", "require_api_key"]
+
+
+def get_settings(request: Request) -> Settings:
+    settings = getattr(request.app.state, "settings", None)
+    if settings is None:  # only before startup finished (e.g. a TestClient used without `with`)
+        raise Problem(503, "not-ready", "the service has not finished starting")
+    return settings
+
+
+def get_encoder(request: Request) -> Encoder:
+    encoder = getattr(request.app.state, "encoder", None)
+    if encoder is None:
+        raise Problem(503, "not-ready", "the encoder is not loaded yet")
+    return encoder
+
+
+def get_metrics(request: Request) -> Metrics:
+    return request.app.state.metrics
+
+
+def get_maps(request: Request) -> dict[str, Any]:
+    maps = getattr(request.app.state, "maps", None)
+    if maps is None:
+        raise Problem(503, "not-ready", "the service has not finished starting")
+    return maps
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+EncoderDep = Annotated[Encoder, Depends(get_encoder)]
+MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+MapsDep = Annotated[dict[str, Any], Depends(get_maps)]
+
+_api_key_header = APIKeyHeader(name="X-API-Key", scheme_name="ApiKey", auto_error=False,
+                               description="the value of CORTEXLOC_API_KEY, when the server sets one")
+_bearer = HTTPBearer(scheme_name="Bearer", auto_error=False,
+                     description="`Authorization: Bearer <CORTEXLOC_API_KEY>`, when the server sets one")
+
+
+def require_api_key(
+    settings: SettingsDep,
+    api_key: Annotated[str | None, Security(_api_key_header)] = None,
+    bearer: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)] = None,
+) -> None:
+    """Let the request through if no key is configured, or if `X-API-Key` or a Bearer token matches it.
+
+    Raises:
+        Problem: 401 `unauthorized` (with `WWW-Authenticate: Bearer`) on a missing or wrong key.
+    """
+    expected = settings.api_key
+    if expected is None:
+        return
+    given = api_key if api_key else (bearer.credentials if bearer is not None else None)
+    if given is not None and secrets.compare_digest(given.encode(), expected.encode()):
+        return
+    detail = ("this operation needs the API key: send it in X-API-Key or as Authorization: Bearer"
+              if given is None else "the API key is not valid")
+    raise Problem(401, "unauthorized", detail, headers={"WWW-Authenticate": 'Bearer realm="cortexloc"'})
+
+
+#: `dependencies=[ApiKeyDep]` on a write route or router.
+ApiKeyDep = Depends(require_api_key)

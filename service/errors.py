@@ -1,0 +1,374 @@
+"""One error shape everywhere: RFC 9457 `application/problem+json` (service.md §2).
+
+Routes raise `Problem(status, slug, detail, **members)`; `install_error_handlers` turns it, FastAPI's
+validation errors, the router's 404/405, an `ImageError` and any unexpected exception into the same
+body:
+
+    {"type": "urn:cortexloc:problem:<slug>", "title": <fixed per slug>, "status": ..., "detail": ...,
+     "instance": <request path>, "request_id": ..., <members>}
+
+`RequestContextMiddleware` (pure ASGI, outermost) gives every request an id (a valid incoming
+`X-Request-ID`, else a UUID4), echoes it in the `X-Request-ID` response header, exposes it to logging
+(`request_id_var`), and turns an exception that escaped everything else into a 500 `internal-error`
+that leaks nothing (the traceback goes to the log with the request id).
+
+Example:
+    >>> raise Problem(404, "map-not-found", "map 'lab' does not exist", map_id="lab")
+"""
+
+from __future__ import annotations
+
+import contextvars
+import logging
+import re
+import uuid
+from collections.abc import Mapping
+from http import HTTPStatus
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ConfigDict
+from starlette.datastructures import MutableHeaders
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from models.images import ImageError
+
+__all__ = [
+    "IMAGE_MEDIA_TYPES",
+    "PROBLEM_MEDIA_TYPE",
+    "REQUEST_ID_HEADER",
+    "TITLES",
+    "Problem",
+    "ProblemDetails",
+    "RequestContextMiddleware",
+    "image_error_problem",
+    "install_error_handlers",
+    "problem_response",
+    "problem_responses",
+    "request_id_of",
+    "request_id_var",
+]
+
+log = logging.getLogger("cortexloc.errors")
+
+PROBLEM_MEDIA_TYPE = "application/problem+json"
+TYPE_PREFIX = "urn:cortexloc:problem:"
+REQUEST_ID_HEADER = "X-Request-ID"
+#: Media types the observation route accepts (the `allowed` member of 415 unsupported-media-type).
+IMAGE_MEDIA_TYPES = ("image/jpeg", "image/png", "application/octet-stream")
+
+#: slug -> (usual status, fixed title): the service.md §2 table plus `unauthorized`.
+PROBLEMS: dict[str, tuple[int, str]] = {
+    "invalid-parameter": (400, "Invalid parameter"),
+    "unauthorized": (401, "Unauthorized"),
+    "map-not-found": (404, "Map not found"),
+    "snapshot-not-found": (404, "Snapshot not found"),
+    "not-found": (404, "Not found"),
+    "method-not-allowed": (405, "Method not allowed"),
+    "map-exists": (409, "Map already exists"),
+    "map-limit": (409, "Too many maps"),
+    "map-full": (409, "Map is full"),
+    "payload-too-large": (413, "Payload too large"),
+    "image-too-large": (413, "Image too large"),
+    "unsupported-media-type": (415, "Unsupported media type"),
+    "undecodable-image": (422, "Undecodable image"),
+    "degenerate-image": (422, "Degenerate image"),
+    "map-too-large": (422, "Map too large"),
+    "invalid-configuration": (422, "Invalid configuration"),
+    "not-ready": (503, "Not ready"),
+    "map-unavailable": (503, "Map unavailable"),
+    "overloaded": (503, "Overloaded"),
+    "insufficient-storage": (507, "Insufficient storage"),
+    "internal-error": (500, "Internal error"),
+}
+TITLES: dict[str, str] = {slug: title for slug, (_, title) in PROBLEMS.items()}
+
+#: Members every problem has; a route's extra members may not reuse these names.
+RESERVED_MEMBERS = frozenset({"type", "title", "status", "detail", "instance", "request_id"})
+
+#: Slug for an HTTPException raised by the framework (or a library) with this status.
+_STATUS_SLUGS = {400: "invalid-parameter", 401: "unauthorized", 404: "not-found", 405: "method-not-allowed",
+                 413: "payload-too-large", 415: "unsupported-media-type", 503: "not-ready"}
+
+request_id_var: contextvars.ContextVar[str | None] = contextvars.ContextVar("cortexloc_request_id",
+                                                                            default=None)
+_REQUEST_ID_RE = re.compile(r"[A-Za-z0-9._:-]{1,128}")
+
+
+class Problem(Exception):  # noqa: N818 - the RFC 9457 name
+    """An error that becomes a problem+json response.
+
+    Args:
+        status: HTTP status.
+        slug: one of `TITLES` (the type is `urn:cortexloc:problem:<slug>`).
+        detail: a specific, human-readable sentence.
+        headers: extra response headers (e.g. `Retry-After`).
+        **members: the slug's extra members (service.md §2 table), JSON-serialisable.
+    """
+
+    def __init__(self, status: int, slug: str, detail: str, *, headers: Mapping[str, str] | None = None,
+                 **members: Any) -> None:
+        if slug not in TITLES:
+            raise ValueError(f"unknown problem slug {slug!r}; register it in service.errors.PROBLEMS")
+        clash = RESERVED_MEMBERS & set(members)
+        if clash:
+            raise ValueError(f"problem members may not be named {sorted(clash)}")
+        super().__init__(detail)
+        self.status = int(status)
+        self.slug = slug
+        self.detail = detail
+        self.headers = dict(headers or {})
+        self.members = members
+
+    @property
+    def title(self) -> str:
+        return TITLES[self.slug]
+
+    def __repr__(self) -> str:
+        return f"Problem({self.status}, {self.slug!r}, {self.detail!r})"
+
+
+class ProblemDetails(BaseModel):
+    """The problem+json body, for OpenAPI (`problem_responses`); slug-specific members are extra."""
+
+    model_config = ConfigDict(extra="allow")
+
+    type: str
+    title: str
+    status: int
+    detail: str
+    instance: str
+    request_id: str
+
+
+def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI `responses=` entries documenting problem+json bodies for these statuses.
+
+    Example:
+        >>> @router.get("/v1/maps/{map_id}", responses=problem_responses(404))
+    """
+    schema = ProblemDetails.model_json_schema()
+    return {s: {"description": HTTPStatus(s).phrase, "content": {PROBLEM_MEDIA_TYPE: {"schema": schema}}}
+            for s in statuses}
+
+
+# ------------------------------------------------------------------------------------ request ids
+
+
+def _new_request_id() -> str:
+    return str(uuid.uuid4())
+
+
+def request_id_of(scope_or_request: Scope | Request) -> str:
+    """The request's id (set by `RequestContextMiddleware`); a fresh one if the middleware did not run."""
+    scope = scope_or_request.scope if isinstance(scope_or_request, Request) else scope_or_request
+    state = scope.setdefault("state", {})
+    rid = state.get("request_id")
+    if rid is None:
+        rid = state["request_id"] = _new_request_id()
+    return rid
+
+
+def problem_response(request: Request, status: int, slug: str, detail: str, *,
+                     headers: Mapping[str, str] | None = None, **members: Any) -> JSONResponse:
+    """The problem+json response for this request.
+
+    Args:
+        request: the request (gives `instance` and `request_id`).
+        status, slug, detail, members: see `Problem`.
+        headers: extra headers; `X-Request-ID` is always set.
+    """
+    if slug not in TITLES:
+        raise ValueError(f"unknown problem slug {slug!r}")
+    rid = request_id_of(request)
+    body = {"type": TYPE_PREFIX + slug, "title": TITLES[slug], "status": int(status), "detail": detail,
+            "instance": request.url.path, "request_id": rid}
+    body.update({k: v for k, v in members.items() if k not in RESERVED_MEMBERS})
+    out_headers = {**(headers or {}), REQUEST_ID_HEADER: rid}
+    return JSONResponse(body, status_code=int(status), headers=out_headers, media_type=PROBLEM_MEDIA_TYPE)
+
+
+def problem_to_response(request: Request, problem: Problem) -> JSONResponse:
+    return problem_response(request, problem.status, problem.slug, problem.detail, headers=problem.headers,
+                            **problem.members)
+
+
+# --------------------------------------------------------------------------------- image errors
+
+_IMAGE_SLUGS: dict[str, tuple[int, str]] = {
+    "too-large": (413, "payload-too-large"),
+    "too-many-pixels": (413, "image-too-large"),
+    "unsupported-format": (415, "unsupported-media-type"),
+    "empty": (422, "undecodable-image"),
+    "not-an-image": (422, "undecodable-image"),
+    "truncated": (422, "undecodable-image"),
+    "degenerate": (422, "degenerate-image"),
+}
+
+
+def image_error_problem(e: ImageError, *, max_pixels: int | None = None,
+                        allowed: tuple[str, ...] = IMAGE_MEDIA_TYPES) -> Problem:
+    """The service.md §2 problem for an `ImageError`, with `e.details` as members.
+
+    Args:
+        e: the error from `models.images`.
+        max_pixels: filled in as `max_pixels` for `image-too-large` when the error lacks it (OpenCV's
+            own guard does not know the configured cap).
+        allowed: the `allowed` member of `unsupported-media-type`.
+    """
+    status, slug = _IMAGE_SLUGS[e.code]
+    members = {k: v for k, v in e.details.items() if k not in RESERVED_MEMBERS}
+    if slug == "image-too-large" and max_pixels is not None:
+        members.setdefault("max_pixels", max_pixels)
+    if slug == "unsupported-media-type":
+        members.setdefault("allowed", list(allowed))
+        members.setdefault("detected", None)
+    return Problem(status, slug, e.message, **members)
+
+
+# ------------------------------------------------------------------------------------- handlers
+
+
+async def _problem_handler(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, Problem)
+    return problem_to_response(request, exc)
+
+
+async def _image_error_handler(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, ImageError)
+    settings = getattr(request.app.state, "settings", None)
+    problem = image_error_problem(exc, max_pixels=getattr(settings, "max_pixels", None))
+    return problem_to_response(request, problem)
+
+
+def _validation_errors(exc: RequestValidationError) -> list[dict[str, str]]:
+    out = []
+    for err in exc.errors():
+        loc = [str(p) for p in err.get("loc", ())]
+        location = loc[0] if loc else "request"
+        if err.get("type") == "json_invalid":  # loc is ("body", <character offset>)
+            name, message = "", f"invalid JSON: {err.get('ctx', {}).get('error', err.get('msg', ''))}"
+        else:
+            name, message = ".".join(loc[1:]), str(err.get("msg", "invalid value"))
+        out.append({"location": location, "name": name, "message": message})
+    return out
+
+
+async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    errors = _validation_errors(exc)
+    first = errors[0] if errors else {"location": "request", "name": "", "message": "invalid request"}
+    where = f"{first['location']} parameter {first['name']!r}" if first["name"] else first["location"]
+    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    return problem_response(request, 400, "invalid-parameter", f"{where}: {first['message']}{more}",
+                            errors=errors)
+
+
+def allowed_methods(request: Request) -> list[str]:
+    """Methods of every route whose path matches the request (Starlette's 405 names only the first)."""
+    methods: set[str] = set()
+    for route in request.app.router.routes:
+        route_methods = getattr(route, "methods", None)
+        if not route_methods:
+            continue
+        match, _ = route.matches(request.scope)
+        if match in (Match.FULL, Match.PARTIAL):
+            methods |= set(route_methods)
+    return sorted(methods)
+
+
+async def _http_exception_handler(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    status = exc.status_code
+    phrase = HTTPStatus(status).phrase if status in HTTPStatus._value2member_map_ else ""
+    custom = isinstance(exc.detail, str) and exc.detail and exc.detail != phrase
+    headers = dict(exc.headers or {})
+    if status == 404:
+        detail = exc.detail if custom else f"no resource at {request.url.path}"
+        return problem_response(request, 404, "not-found", detail, headers=headers)
+    if status == 405:
+        allowed = allowed_methods(request)
+        if not allowed and "Allow" in headers:
+            allowed = sorted(m.strip() for m in headers["Allow"].split(",") if m.strip())
+        headers["Allow"] = ", ".join(allowed)
+        detail = f"{request.method} is not allowed on {request.url.path}; allowed: {', '.join(allowed)}"
+        return problem_response(request, 405, "method-not-allowed", detail, headers=headers, allowed=allowed)
+    slug = _STATUS_SLUGS.get(status, "internal-error" if status >= 500 else "invalid-parameter")
+    detail = exc.detail if custom else (phrase or f"HTTP {status}")
+    members: dict[str, Any] = {"errors": []} if slug == "invalid-parameter" else {}
+    return problem_response(request, status, slug, str(detail), headers=headers, **members)
+
+
+def internal_error_response(request: Request) -> JSONResponse:
+    return problem_response(request, 500, "internal-error",
+                            f"an internal error occurred; quote request id {request_id_of(request)} when "
+                            "reporting it")
+
+
+async def _internal_error_handler(request: Request, exc: Exception) -> JSONResponse:
+    log.error("unhandled exception in %s %s", request.method, request.url.path, exc_info=exc)
+    return internal_error_response(request)
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Replace FastAPI's validation, 404/405 and 500 handlers with problem+json ones."""
+    app.add_exception_handler(Problem, _problem_handler)
+    app.add_exception_handler(ImageError, _image_error_handler)
+    app.add_exception_handler(RequestValidationError, _validation_handler)
+    app.add_exception_handler(StarletteHTTPException, _http_exception_handler)
+    app.add_exception_handler(Exception, _internal_error_handler)
+
+
+# ----------------------------------------------------------------------------- request context
+
+
+class RequestContextMiddleware:
+    """Pure ASGI, outermost: request id in, `X-Request-ID` out, and the last-resort 500.
+
+    The id is a valid incoming `X-Request-ID` (1-128 of `A-Za-z0-9._:-`), else a new UUID4; it is stored
+    in `scope["state"]["request_id"]` (so `request.state.request_id`) and in `request_id_var` for logs.
+    An exception that reaches this middleware before the response started is logged with its traceback
+    and answered with a 500 `internal-error` carrying no internals; it is not re-raised (the server
+    would log it a second time, without the request id).
+    """
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        incoming = None
+        for key, value in scope.get("headers", ()):
+            if key == b"x-request-id":
+                incoming = value.decode("latin-1").strip()
+                break
+        rid = incoming if incoming and _REQUEST_ID_RE.fullmatch(incoming) else _new_request_id()
+        scope.setdefault("state", {})["request_id"] = rid
+        token = request_id_var.set(rid)
+        started = False
+
+        async def send_with_id(message: Message) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+                headers = MutableHeaders(scope=message)
+                if REQUEST_ID_HEADER not in headers:
+                    headers[REQUEST_ID_HEADER] = rid
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_with_id)
+        except Exception as exc:
+            request = Request(scope)
+            log.error("unhandled exception in %s %s", scope.get("method"), scope.get("path"), exc_info=exc)
+            if started:
+                raise
+            await internal_error_response(request)(scope, receive, send)
+        finally:
+            request_id_var.reset(token)

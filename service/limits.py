@@ -1,0 +1,127 @@
+"""Request body limits, before routing and parsing (service.md §3).
+
+`UploadLimitMiddleware` is a pure ASGI middleware (no `BaseHTTPMiddleware`, which would buffer and run
+the app in another task):
+
+- a `Content-Length` above the limit is answered 413 `payload-too-large` at once, without reading a
+  byte of the body;
+- otherwise the body is counted as it arrives (chunked uploads too): the chunk that crosses the limit is
+  not handed to the app, which sees `BodyTooLargeError` from `receive()`; whatever the app then does, its
+  response is replaced by the 413 (a route that already started streaming its reply is only cut off).
+
+The limit is `CORTEXLOC_MAX_UPLOAD_BYTES`, read per request from `app.state.settings`, and 64 KiB for
+JSON bodies (`application/json` or `application/*+json`). 413 responses carry `Connection: close`
+because the rest of the body is left unread.
+"""
+
+from __future__ import annotations
+
+from starlette.datastructures import Headers
+from starlette.requests import Request
+from starlette.responses import JSONResponse
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.errors import problem_response
+
+__all__ = [
+    "DEFAULT_MAX_UPLOAD_BYTES", "JSON_MAX_BYTES", "BodyTooLargeError", "UploadLimitMiddleware", "body_limit",
+]
+
+JSON_MAX_BYTES = 64 * 1024
+DEFAULT_MAX_UPLOAD_BYTES = 10 * 2**20
+
+
+class BodyTooLargeError(Exception):
+    """Raised from `receive()` once the body passed its limit."""
+
+    def __init__(self, max_bytes: int, received_bytes: int) -> None:
+        super().__init__(f"request body exceeds {max_bytes} bytes")
+        self.max_bytes = max_bytes
+        self.received_bytes = received_bytes
+
+
+def _is_json(content_type: str | None) -> bool:
+    if not content_type:
+        return False
+    media = content_type.split(";", 1)[0].strip().lower()
+    return media == "application/json" or (media.startswith("application/") and media.endswith("+json"))
+
+
+def body_limit(scope: Scope, headers: Headers) -> int:
+    """The byte limit of this request's body."""
+    settings = getattr(getattr(scope.get("app"), "state", None), "settings", None)
+    limit = int(getattr(settings, "max_upload_bytes", DEFAULT_MAX_UPLOAD_BYTES))
+    if _is_json(headers.get("content-type")):
+        limit = min(limit, JSON_MAX_BYTES)
+    return limit
+
+
+def _too_large(scope: Scope, max_bytes: int, received: int, *, declared: bool) -> JSONResponse:
+    what = f"Content-Length: {received}" if declared else f"cut off after {received} bytes"
+    detail = f"request body is larger than the limit of {max_bytes} bytes ({what})"
+    return problem_response(Request(scope), 413, "payload-too-large", detail, headers={"Connection": "close"},
+                            max_bytes=max_bytes, received_bytes=received)
+
+
+class UploadLimitMiddleware:
+    """Pure ASGI body limit; see the module docstring."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        headers = Headers(scope=scope)
+        limit = body_limit(scope, headers)
+        declared = headers.get("content-length")
+        if declared is not None:
+            try:
+                length = int(declared)
+                if length < 0:
+                    raise ValueError(declared)
+            except ValueError:
+                request = Request(scope)
+                response = problem_response(
+                    request, 400, "invalid-parameter", f"invalid Content-Length header {declared!r}",
+                    headers={"Connection": "close"},
+                    errors=[{"location": "header", "name": "content-length",
+                             "message": "must be a non-negative integer"}])
+                await response(scope, receive, send)
+                return
+            if length > limit:
+                await _too_large(scope, limit, length, declared=True)(scope, receive, send)
+                return
+
+        received = 0
+        exceeded: BodyTooLargeError | None = None
+        app_started = False
+
+        async def limited_receive() -> Message:
+            nonlocal received, exceeded
+            if exceeded is not None:
+                raise exceeded
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > limit:
+                    exceeded = BodyTooLargeError(limit, received)
+                    raise exceeded
+            return message
+
+        async def guarded_send(message: Message) -> None:
+            nonlocal app_started
+            if exceeded is not None and not app_started:
+                return  # the app's reply to a cut-off body is replaced by the 413 below
+            if message["type"] == "http.response.start":
+                app_started = True
+            await send(message)
+
+        try:
+            await self.app(scope, limited_receive, guarded_send)
+        except Exception:
+            if exceeded is None or app_started:
+                raise
+        if exceeded is not None and not app_started:
+            await _too_large(scope, limit, exceeded.received_bytes, declared=False)(scope, receive, send)

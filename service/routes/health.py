@@ -1,0 +1,136 @@
+"""`GET /healthz` (liveness) and `GET /readyz` (readiness with each check's result), service.md §1.6.
+
+A check result is a dict with `status` = `pass` | `warn` | `fail` and its details. The service is ready
+iff no check fails: 200 `{"status": "ready", "checks": ..., "warnings": [...]}`, else 503 problem+json
+`not-ready` with `checks`. Built-in checks:
+
+- `data_dir`: a probe file is written, fsynced and deleted in `CORTEXLOC_DATA_DIR`;
+- `encoder`: loaded, with its weights (`pretrained` + SHA-256, or `random` + seed: `warn`, or `fail`
+  when `CORTEXLOC_ALLOW_RANDOM_WEIGHTS=false`);
+- `maps`: the state of each map in `app.state.maps` (objects or dicts with `state`, `state_reason`):
+  ready iff none is `recovering`; `failed` maps are listed but do not make the service unready.
+
+More checks (e.g. the catalog) are registered at startup in `app.state.ready_checks`: name -> callable
+taking the app and returning a check result dict. They run in a worker thread, like the built-ins.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, FastAPI, Request
+from fastapi.responses import JSONResponse
+
+from service.errors import problem_response, problem_responses
+
+__all__ = ["Check", "ReadyCheck", "check_data_dir", "check_encoder", "check_maps", "readiness", "router"]
+
+Check = dict[str, Any]
+ReadyCheck = Callable[[FastAPI], Check]
+
+router = APIRouter(tags=["operations"])
+
+
+def check_data_dir(data_dir: Path) -> Check:
+    """Write, fsync and delete a probe file in `data_dir`."""
+    probe = Path(data_dir) / f".readyz-{uuid.uuid4().hex}"
+    out: Check = {"status": "pass", "path": str(data_dir)}
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            os.write(fd, b"cortexloc readiness probe\n")
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        out.update(status="fail", error=f"data directory is not writable: {e.strerror or e}")
+        with contextlib.suppress(OSError):
+            probe.unlink(missing_ok=True)
+    return out
+
+
+def check_encoder(app: FastAPI) -> Check:
+    """The encoder is loaded; its weights, with a warning (or a failure) for random ones."""
+    encoder = getattr(app.state, "encoder", None)
+    if encoder is None:
+        return {"status": "fail", "error": "encoder not loaded"}
+    info: dict[str, Any] = dict(getattr(app.state, "encoder_weights", None) or {})
+    desc = encoder.describe()
+    out: Check = {"status": "pass", "encoder": desc["encoder"], "weights": desc["weights"], **info}
+    if desc["weights"] == "random":
+        settings = app.state.settings
+        out["seed"] = settings.random_weights_seed
+        if settings.allow_random_weights:
+            out.update(status="warn",
+                       warning="encoder runs on random weights: matches are not meaningful; set "
+                               "CORTEXLOC_WEIGHTS_PATH or run `cortexloc weights download`")
+        else:
+            out.update(status="fail", error="random weights are not allowed (CORTEXLOC_ALLOW_RANDOM_WEIGHTS="
+                                            "false): set CORTEXLOC_WEIGHTS_PATH or run `cortexloc weights "
+                                            "download`")
+    return out
+
+
+def _map_state(m: Any) -> tuple[str, str | None]:
+    if isinstance(m, dict):
+        return str(m.get("state", "ready")), m.get("state_reason")
+    return str(getattr(m, "state", "ready")), getattr(m, "state_reason", None)
+
+
+def check_maps(maps: dict[str, Any]) -> Check:
+    """Each map's state; fails while a map is still recovering."""
+    states = {}
+    for map_id, m in sorted(maps.items()):
+        state, reason = _map_state(m)
+        states[map_id] = {"state": state, "state_reason": reason}
+    recovering = [k for k, v in states.items() if v["state"] == "recovering"]
+    failed = [k for k, v in states.items() if v["state"] == "failed"]
+    out: Check = {"status": "pass", "count": len(states), "maps": states}
+    if failed:
+        out.update(status="warn", warning=f"failed map(s), served as map-unavailable: {', '.join(failed)}")
+    if recovering:
+        out.update(status="fail", error=f"map(s) still recovering: {', '.join(recovering)}")
+    return out
+
+
+def readiness(app: FastAPI) -> tuple[bool, dict[str, Check]]:
+    """Run every check: (ready, results by name)."""
+    checks: dict[str, Check] = {}
+    settings = getattr(app.state, "settings", None)
+    if settings is None:
+        return False, {"startup": {"status": "fail", "error": "startup has not finished"}}
+    checks["data_dir"] = check_data_dir(settings.data_dir)
+    checks["encoder"] = check_encoder(app)
+    checks["maps"] = check_maps(getattr(app.state, "maps", None) or {})
+    extra: dict[str, ReadyCheck] = getattr(app.state, "ready_checks", None) or {}
+    for name, fn in extra.items():
+        try:
+            checks[name] = fn(app)
+        except Exception as e:  # a check that crashes is a failed check, not a 500
+            checks[name] = {"status": "fail", "error": f"{type(e).__name__}: {e}"}
+    ready = all(c.get("status") != "fail" for c in checks.values())
+    return ready, checks
+
+
+@router.get("/healthz")
+async def healthz() -> dict[str, str]:
+    """Liveness: the process answers. Touches nothing."""
+    return {"status": "ok"}
+
+
+@router.get("/readyz", responses=problem_responses(503))
+def readyz(request: Request) -> JSONResponse:
+    """Readiness: 200 with each check's result, or 503 problem+json `not-ready` with `checks`."""
+    ready, checks = readiness(request.app)
+    warnings = [c["warning"] for c in checks.values() if c.get("warning")]
+    if ready:
+        return JSONResponse({"status": "ready", "checks": checks, "warnings": warnings})
+    failing = [name for name, c in checks.items() if c.get("status") == "fail"]
+    return problem_response(request, 503, "not-ready", f"not ready: {', '.join(failing)} failed",
+                            checks=checks, warnings=warnings)

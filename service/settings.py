@@ -1,0 +1,153 @@
+"""The service configuration: one validated, immutable `Settings` object (service.md §8).
+
+Read once from the `CORTEXLOC_*` environment variables by `Settings.from_env()`, which the app
+factory's lifespan calls at startup (never at import time), then injected through `deps.SettingsDep`.
+Each field `name` is read from `CORTEXLOC_<NAME>`; an empty value counts as unset (the default applies).
+An invalid value raises `ConfigError`, whose message names the variable, and stops startup. Unknown
+`CORTEXLOC_*` names are logged as warnings (with a suggestion when one is close to a known name).
+
+Example:
+    >>> s = Settings.from_env({"CORTEXLOC_PORT": "9000"})
+    >>> s.port, s.data_dir
+    (9000, PosixPath('var'))
+    >>> Settings.from_env({"CORTEXLOC_PORT": "http"})
+    Traceback (most recent call last):
+    ConfigError: invalid configuration: CORTEXLOC_PORT='http': Input should be a valid integer, ...
+"""
+
+from __future__ import annotations
+
+import difflib
+import logging
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+__all__ = ["ENV_PREFIX", "OTHER_KNOWN_VARIABLES", "ConfigError", "Settings", "env_name"]
+
+log = logging.getLogger("cortexloc.settings")
+
+ENV_PREFIX = "CORTEXLOC_"
+
+#: `CORTEXLOC_*` variables read elsewhere (models, evaluation), so not reported as unknown here.
+OTHER_KNOWN_VARIABLES = frozenset({
+    "CORTEXLOC_WEIGHTS_DIR",  # models.weights.default_cache_dir
+    "CORTEXLOC_CACHE_DIR",  # cortexloc eval images feature cache
+    "CORTEXLOC_SHARED_DATA",  # models.evaluation.datasets
+})
+
+#: Fields whose value must never appear in a message or a repr.
+_SECRET_FIELDS = frozenset({"api_key"})
+
+
+class ConfigError(ValueError):
+    """An invalid configuration value; the message names every offending variable.
+
+    Attributes:
+        errors: (variable, message) pairs, one per invalid value.
+    """
+
+    def __init__(self, errors: list[tuple[str, str]]) -> None:
+        self.errors = errors
+        super().__init__("invalid configuration: " + "; ".join(f"{var}{msg}" for var, msg in errors))
+
+    @property
+    def variables(self) -> list[str]:
+        return [var for var, _ in self.errors]
+
+
+def env_name(field: str) -> str:
+    """`max_upload_bytes` -> `CORTEXLOC_MAX_UPLOAD_BYTES`."""
+    return ENV_PREFIX + field.upper()
+
+
+class Settings(BaseModel):
+    """Every knob of the service, with the defaults of service.md §8 (plus `api_key`)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    data_dir: Path = Field(Path("./var"), description="root of all state")
+    host: str = Field("127.0.0.1", min_length=1, description="bind address")
+    port: int = Field(8000, ge=0, le=65535, description="bind port")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"] = "INFO"
+    log_format: Literal["json", "text"] = "json"
+    weights_path: Path | None = Field(None, description="AlexNet weights file (full or trimmed)")
+    allow_random_weights: bool = Field(True, description="serve (with a warning) on random weights")
+    random_weights_seed: int = Field(0, ge=0, description="seed of the random fallback weights")
+    device: Literal["cpu", "cuda"] = "cpu"
+    torch_threads: int = Field(1, ge=1)
+    encoder_workers: int = Field(1, ge=1, description="encoder executor size")
+    encoder_queue: int = Field(32, ge=1, description="encoder queue length (full: 503 overloaded)")
+    max_upload_bytes: int = Field(10 * 2**20, ge=1, description="request body limit")
+    max_pixels: int = Field(25_000_000, ge=1, description="decoded-image limit (width x height)")
+    default_preset: str = Field("cortexloc-default", min_length=1)
+    max_map_bytes: int = Field(2**31, ge=1, description="cap on a map's preallocated TM arrays")
+    max_maps: int = Field(64, ge=1)
+    max_observations: int = Field(1_000_000, ge=1)
+    max_streams: int = Field(64, ge=1)
+    max_top_k: int = Field(100, ge=0)
+    snapshot_every: int = Field(1000, ge=0, description="automatic snapshot period (0 = off)")
+    snapshot_keep: int = Field(3, ge=0, description="automatic snapshots kept (0 = off)")
+    api_key: str | None = Field(None, min_length=1, repr=False,
+                                description="when set, every write needs it (X-API-Key or Bearer)")
+
+    @field_validator("log_level", mode="before")
+    @classmethod
+    def _upper_level(cls, v: Any) -> Any:
+        return v.strip().upper() if isinstance(v, str) else v
+
+    @field_validator("log_format", "device", mode="before")
+    @classmethod
+    def _lower(cls, v: Any) -> Any:
+        return v.strip().lower() if isinstance(v, str) else v
+
+    @classmethod
+    def variables(cls) -> dict[str, str]:
+        """Environment variable name -> field name."""
+        return {env_name(name): name for name in cls.model_fields}
+
+    @classmethod
+    def from_env(cls, environ: Mapping[str, str] | None = None) -> Settings:
+        """Read and validate the `CORTEXLOC_*` variables once.
+
+        Args:
+            environ: the variables to read; None: `os.environ`.
+
+        Returns:
+            The validated settings.
+
+        Raises:
+            ConfigError: one or more values are invalid; the message names each variable and why (the
+                value itself is shown, except for secrets).
+        """
+        env = os.environ if environ is None else environ
+        known = cls.variables()
+        raw: dict[str, str] = {}
+        for var, value in env.items():
+            if not var.startswith(ENV_PREFIX):
+                continue
+            field = known.get(var)
+            if field is None:
+                if var not in OTHER_KNOWN_VARIABLES:
+                    suffixes = [k.removeprefix(ENV_PREFIX) for k in known]
+                    close = difflib.get_close_matches(var.removeprefix(ENV_PREFIX), suffixes, n=1,
+                                                      cutoff=0.75)
+                    hint = f"; did you mean {ENV_PREFIX}{close[0]}?" if close else ""
+                    log.warning("unknown configuration variable %s is ignored%s", var, hint)
+                continue
+            value = value.strip()
+            if value:  # empty = unset: the default applies
+                raw[field] = value
+        try:
+            return cls.model_validate(raw)
+        except ValidationError as e:
+            errors = []
+            for err in e.errors(include_url=False, include_input=False):
+                field = str(err["loc"][0]) if err["loc"] else ""
+                var = env_name(field) if field else ENV_PREFIX + "*"
+                shown = "" if field in _SECRET_FIELDS or field not in raw else f"={raw[field]!r}"
+                errors.append((var, f"{shown}: {err['msg']}"))
+            raise ConfigError(errors) from None

@@ -1,0 +1,91 @@
+"""Pieces shared by the storage modules: the error base class, timestamps, and how SQLite is opened.
+
+Kept private (leading underscore): the public names are re-exported by the modules that use them.
+"""
+
+from __future__ import annotations
+
+import errno
+import sqlite3
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
+from datetime import UTC, datetime
+from pathlib import Path
+
+
+class StorageError(Exception):
+    """Base class of every error raised on purpose by `storage` (the service maps them to problems)."""
+
+
+# Exception names follow the service's problem slugs (map-full, snapshot-invalid, ...), hence no "Error"
+# suffix on the subclasses.
+class StorageFull(StorageError):  # noqa: N818
+    """A write failed for lack of space (SQLITE_FULL or ENOSPC); nothing of that write is committed."""
+
+
+def utc_now() -> str:
+    """Current UTC time as ISO 8601 with microseconds and a `Z` suffix (sortable as text)."""
+    return datetime.now(UTC).isoformat(timespec="microseconds").replace("+00:00", "Z")
+
+
+def connect(path: str | Path, *, readonly: bool = False) -> sqlite3.Connection:
+    """Open a SQLite file the way every storage file is opened.
+
+    - `isolation_level=None`: Python's implicit transactions are off; writers say `BEGIN IMMEDIATE` and
+      `COMMIT` themselves, so a commit happens exactly where the code says (service.md §4.3).
+    - `check_same_thread=False`: the service's writer runs in worker threads (`asyncio.to_thread`), a
+      different thread each time; callers serialise access with their own lock instead.
+    - WAL + `synchronous=FULL` (read-write only): a commit is on disk when COMMIT returns. `journal_mode`
+      is stored in the file, `synchronous` is per connection, so both are set on every open.
+
+    Args:
+        path: the database file.
+        readonly: open with `mode=ro` (inspecting snapshot copies without creating -wal/-shm files).
+
+    Returns:
+        The connection.
+    """
+    if readonly:
+        conn = sqlite3.connect(f"{Path(path).resolve().as_uri()}?mode=ro", uri=True,
+                               isolation_level=None, check_same_thread=False)
+        return conn
+    conn = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)
+    try:
+        # A reader of another connection (backup, inspection) waits instead of failing at once.
+        conn.execute("PRAGMA busy_timeout=5000")
+        mode = conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+        if str(mode).lower() != "wal":
+            raise StorageError(f"{path}: could not enable WAL journal mode (got {mode!r})")
+        conn.execute("PRAGMA synchronous=FULL")
+    except BaseException:
+        conn.close()
+        raise
+    return conn
+
+
+def is_full_error(exc: BaseException) -> bool:
+    """True when `exc` means the disk (or the database size limit) is full."""
+    if isinstance(exc, sqlite3.Error):
+        return getattr(exc, "sqlite_errorname", "") == "SQLITE_FULL"
+    return isinstance(exc, OSError) and exc.errno == errno.ENOSPC
+
+
+@contextmanager
+def transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
+    """`BEGIN IMMEDIATE` … `COMMIT`, rolled back on any exception; SQLITE_FULL becomes `StorageFull`.
+
+    IMMEDIATE takes the write lock at BEGIN, so a second writer fails (or waits) before doing work
+    rather than at COMMIT.
+    """
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        yield conn
+        conn.execute("COMMIT")
+    except BaseException as exc:
+        if conn.in_transaction:
+            # SQLite may already have rolled back on its own (e.g. after SQLITE_FULL).
+            with suppress(sqlite3.Error):
+                conn.execute("ROLLBACK")
+        if is_full_error(exc):
+            raise StorageFull(str(exc)) from exc
+        raise

@@ -1,0 +1,577 @@
+"""`map.sqlite`: one map's frozen metadata and its append-only observations (service.md §4.2, §4.3).
+
+One SQLite file per map, so maps never contend for SQLite's single writer and a map moves between
+servers as one directory. The file is the system of record: the in-memory TM and index are rebuilt
+from it (snapshot + replay, §4.4), so a row, once committed, is never changed or removed — triggers
+refuse UPDATE and DELETE on `observations`, and a restore replaces the whole file instead
+(`MapStore.install_copy`).
+
+Sequence numbers: `seq` is assigned here, strictly increasing and never reused. SQLite's own choice
+(max(rowid)+1) would reuse seqs after a restore rolls the file back, so the caller passes the
+catalog's high-water mark as `seq_floor` and the next seq is `max(last_seq, seq_floor) + 1`.
+
+Example:
+    >>> store = MapStore.create(path, MapMeta("lab", params, sha, "alexnet-conv3:…", "uint16"))
+    >>> seq = store.append(NewObservation("default", image_sha, columns, winners))
+    >>> [row.seq for row in store.rows()]
+    [1]
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import sqlite3
+import tempfile
+import threading
+import uuid
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+
+from models.files import atomic_write, fsync_dir
+from models.sdr import INDEX_DTYPE
+from storage._common import StorageError, StorageFull, connect, is_full_error, transaction, utc_now
+
+__all__ = [
+    "CELL_DTYPES",
+    "INPUT_DTYPE",
+    "SCHEMA_VERSION",
+    "DuplicateObservation",
+    "MapMeta",
+    "MapStore",
+    "NewObservation",
+    "Observation",
+    "StorageError",
+    "StorageFull",
+    "StoreCorrupt",
+    "cell_dtype_for",
+]
+
+#: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
+SCHEMA_VERSION = 1
+#: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
+INPUT_DTYPE = "uint16"
+#: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
+CELL_DTYPES = ("uint16", "uint32")
+
+_PAGE = 1024  # rows per SELECT in `rows()`: bounded memory, and no read transaction held between pages
+
+_SCHEMA = """
+CREATE TABLE meta (
+    key   TEXT PRIMARY KEY,
+    value TEXT NOT NULL              -- JSON
+);
+CREATE TABLE observations (
+    seq              INTEGER PRIMARY KEY CHECK (seq > 0),
+    observation_id   TEXT NOT NULL UNIQUE,
+    stream           TEXT NOT NULL,
+    context_prev_seq INTEGER NULL CHECK (context_prev_seq IS NULL OR context_prev_seq < seq),
+    label            TEXT NULL,
+    created_at       TEXT NOT NULL,
+    image_sha256     TEXT NOT NULL,
+    input_sdr        BLOB NOT NULL,  -- sorted little-endian uint16 active columns
+    winner_cells     BLOB NOT NULL   -- sorted little-endian uint16 or uint32 (meta.cell_dtype) cells
+);
+-- The append-only rule enforced by the file itself, not only by this module's API.
+CREATE TRIGGER observations_no_update BEFORE UPDATE ON observations
+BEGIN SELECT RAISE(ABORT, 'observations are append-only'); END;
+CREATE TRIGGER observations_no_delete BEFORE DELETE ON observations
+BEGIN SELECT RAISE(ABORT, 'observations are append-only'); END;
+-- The resolved parameters are frozen into the map (service.md §1.1): another configuration is another map.
+CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
+BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
+CREATE TRIGGER meta_no_delete BEFORE DELETE ON meta
+BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
+"""
+
+_COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
+            "input_sdr, winner_cells")
+
+
+class StoreCorrupt(StorageError):  # noqa: N818
+    """The file is not a readable map database (not SQLite, tables missing, meta unreadable)."""
+
+
+class DuplicateObservation(StorageError):  # noqa: N818
+    """An `observation_id` that is already stored; nothing was written."""
+
+
+def cell_dtype_for(n_cells: int) -> str:
+    """Winner-cell blob dtype for a memory of `n_cells` cells (service.md §4.2).
+
+    uint16 holds cell ids 0…65,535, so it serves up to 65,536 cells; above that uint32.
+    """
+    if n_cells <= 0:
+        raise ValueError(f"n_cells must be positive, got {n_cells}")
+    return "uint16" if n_cells <= 1 << 16 else "uint32"
+
+
+@dataclass(frozen=True)
+class MapMeta:
+    """What is frozen into a map when it is created (the `meta` table).
+
+    Attributes:
+        map_id: the map's identifier.
+        params: resolved parameters (`tm`, `slsbh`, `encoder`, `seed`, `exclude_recent`), JSON-able.
+        projection_sha256: checksum of the map's sLSBH projection.
+        encoder_id: identity of the encoder whose codes the map holds.
+        cell_dtype: `uint16` or `uint32` (see `cell_dtype_for`).
+        schema_version: layout version of the file.
+    """
+
+    map_id: str
+    params: dict[str, Any]
+    projection_sha256: str
+    encoder_id: str
+    cell_dtype: str = "uint16"
+    schema_version: int = SCHEMA_VERSION
+
+    def __post_init__(self) -> None:
+        if self.cell_dtype not in CELL_DTYPES:
+            raise ValueError(f"cell_dtype must be one of {CELL_DTYPES}, got {self.cell_dtype!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class NewObservation:
+    """A learned observation about to be appended (its `seq` is assigned by `MapStore.append`).
+
+    Attributes:
+        stream: the stream whose context the step used.
+        image_sha256: SHA-256 of the uploaded image bytes.
+        input_sdr: active columns (sorted, distinct, < 65,536).
+        winner_cells: the TM's winner cells (sorted, distinct, within the map's cell dtype).
+        context_prev_seq: the learned observation whose context this step continued; None = new sequence.
+        label: optional client text.
+        observation_id: UUID (generated when not given).
+        created_at: ISO 8601 UTC (now when not given).
+    """
+
+    stream: str
+    image_sha256: str
+    input_sdr: np.ndarray
+    winner_cells: np.ndarray
+    context_prev_seq: int | None = None
+    label: str | None = None
+    observation_id: str = field(default_factory=lambda: str(uuid.uuid4()))
+    created_at: str = field(default_factory=utc_now)
+
+
+@dataclass(frozen=True, eq=False)
+class Observation:
+    """A stored observation; arrays are decoded to `models.sdr.INDEX_DTYPE` (int32), sorted.
+
+    `eq=False` because numpy arrays do not compare to a single bool; compare fields explicitly.
+    """
+
+    seq: int
+    observation_id: str
+    stream: str
+    context_prev_seq: int | None
+    label: str | None
+    created_at: str
+    image_sha256: str
+    input_sdr: np.ndarray
+    winner_cells: np.ndarray
+
+
+def _encode(values: np.ndarray | Sequence[int], dtype: str, what: str) -> bytes:
+    """Validate a sorted set of indices and pack it little-endian.
+
+    Unsorted or duplicated input is refused rather than sorted here: the blob is compared exactly at
+    replay, so a caller that produced something else than it stores is a bug worth seeing at once.
+    """
+    a = np.asarray(values)
+    if a.ndim != 1:
+        raise ValueError(f"{what} must be 1-D, got shape {a.shape}")
+    if a.size == 0:
+        return b""
+    if a.dtype.kind not in "iu":
+        raise ValueError(f"{what} must hold integers, got {a.dtype}")
+    hi = np.iinfo(dtype).max
+    if int(a[0]) < 0 or int(a.max()) > hi:
+        raise ValueError(f"{what} out of range [0, {hi}]")
+    if a.size > 1 and not bool(np.all(a[1:] > a[:-1])):
+        raise ValueError(f"{what} must be sorted ascending without duplicates")
+    return a.astype(np.dtype(dtype).newbyteorder("<"), copy=False).tobytes()
+
+
+def _decode(blob: bytes, dtype: str) -> np.ndarray:
+    le = np.dtype(dtype).newbyteorder("<")
+    if len(blob) % le.itemsize:
+        raise StoreCorrupt(f"blob of {len(blob)} bytes is not a whole number of {dtype}")
+    return np.frombuffer(blob, dtype=le).astype(INDEX_DTYPE)
+
+
+class MapStore:
+    """One map's `map.sqlite`: frozen meta + append-only observations.
+
+    Thread-safe: every method takes the store's lock, so the map's writer (in worker threads) and
+    readers such as `GET /v1/maps/{id}` can share one store. Count and last seq are cached in memory:
+    this object is the file's only writer (service.md: one writer per map).
+    """
+
+    def __init__(self, path: Path, conn: sqlite3.Connection, meta: MapMeta, seq_floor: int) -> None:
+        """Use `MapStore.create` or `MapStore.open`."""
+        self.path = path
+        self.meta = meta
+        self._conn: sqlite3.Connection | None = conn
+        self._lock = threading.RLock()
+        self._cell_dtype = meta.cell_dtype
+        last, count = conn.execute("SELECT coalesce(max(seq), 0), count(*) FROM observations").fetchone()
+        self._last_seq = int(last)
+        self._count = int(count)
+        self._seq_floor = max(0, int(seq_floor))
+
+    # ------------------------------------------------------------------ lifecycle
+
+    @classmethod
+    def create(cls, path: str | os.PathLike[str], meta: MapMeta, *, seq_floor: int = 0) -> MapStore:
+        """Create a new `map.sqlite` atomically and open it.
+
+        The schema and meta are written to a temporary file beside `path`, which is closed (so its WAL
+        is checkpointed into it), fsynced and renamed: a crash leaves either no map file or a complete
+        one, never a file without meta.
+
+        Args:
+            path: the file to create; its directory must exist.
+            meta: what is frozen into the map.
+            seq_floor: see `open`.
+
+        Raises:
+            FileExistsError: `path` exists.
+        """
+        path = Path(path)
+        if path.exists():
+            raise FileExistsError(f"{path} exists")
+        fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        os.close(fd)
+        tmp = Path(tmp_name)
+        try:
+            conn = connect(tmp)
+            try:
+                # A temporary file: atomicity comes from the rename below, not from one transaction
+                # (executescript would commit a pending transaction anyway).
+                conn.executescript(_SCHEMA)
+                with transaction(conn):
+                    conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
+                        ("schema_version", json.dumps(meta.schema_version)),
+                        ("map_id", json.dumps(meta.map_id)),
+                        ("params", json.dumps(meta.params, sort_keys=True)),
+                        ("projection_sha256", json.dumps(meta.projection_sha256)),
+                        ("encoder_id", json.dumps(meta.encoder_id)),
+                        ("cell_dtype", json.dumps(meta.cell_dtype)),
+                    ])
+            finally:
+                conn.close()
+            with tmp.open("rb+") as f:
+                os.fsync(f.fileno())
+            if path.exists():  # re-check: another creator may have won meanwhile
+                raise FileExistsError(f"{path} exists")
+            os.replace(tmp, path)
+        except BaseException:
+            for leftover in (tmp, Path(f"{tmp}-wal"), Path(f"{tmp}-shm")):
+                with contextlib.suppress(OSError):
+                    leftover.unlink()
+            raise
+        fsync_dir(path.parent)
+        return cls.open(path, seq_floor=seq_floor)
+
+    @classmethod
+    def open(cls, path: str | os.PathLike[str], *, seq_floor: int = 0) -> MapStore:
+        """Open an existing `map.sqlite`.
+
+        Args:
+            path: the file.
+            seq_floor: the lowest seq that counts as used (the catalog's high-water mark): the next
+                append gets `max(last_seq, seq_floor) + 1`, so a restored (older) file never hands out a
+                seq again.
+
+        Raises:
+            FileNotFoundError: no such file (SQLite would silently create an empty one).
+            StoreCorrupt: not a map database.
+            StorageError: written by a newer schema version.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path} does not exist")
+        try:
+            conn = connect(path)
+        except sqlite3.DatabaseError as exc:
+            raise StoreCorrupt(f"{path}: {exc}") from exc
+        try:
+            meta = _read_meta(conn, path)
+            if meta.schema_version > SCHEMA_VERSION:
+                raise StorageError(f"{path}: schema version {meta.schema_version} is newer than "
+                                   f"this code's {SCHEMA_VERSION}")
+            return cls(path, conn, meta, seq_floor)
+        except sqlite3.DatabaseError as exc:
+            conn.close()
+            raise StoreCorrupt(f"{path}: {exc}") from exc
+        except BaseException:
+            conn.close()
+            raise
+
+    def close(self) -> None:
+        """Close the connection (idempotent). SQLite checkpoints and removes the WAL on the last close."""
+        with self._lock:
+            if self._conn is not None:
+                self._conn.close()
+                self._conn = None
+
+    def __enter__(self) -> MapStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def closed(self) -> bool:
+        """True after `close`."""
+        return self._conn is None
+
+    def _db(self) -> sqlite3.Connection:
+        if self._conn is None:
+            raise StorageError(f"{self.path}: store is closed")
+        return self._conn
+
+    # ------------------------------------------------------------------ writes
+
+    @property
+    def seq_floor(self) -> int:
+        """The high-water mark below or at which no seq is handed out."""
+        return self._seq_floor
+
+    def raise_seq_floor(self, seq: int) -> None:
+        """Raise (never lower) the seq floor, e.g. after the catalog's high-water mark moved."""
+        with self._lock:
+            self._seq_floor = max(self._seq_floor, int(seq))
+
+    def next_seq(self) -> int:
+        """The seq the next `append` will assign."""
+        with self._lock:
+            return max(self._last_seq, self._seq_floor) + 1
+
+    def append(self, row: NewObservation) -> int:
+        """INSERT one observation and COMMIT; durable (WAL, synchronous=FULL) when this returns.
+
+        Returns:
+            Its seq.
+
+        Raises:
+            ValueError: arrays not sorted/distinct/in range, or a context_prev_seq that is not earlier.
+            DuplicateObservation: the observation_id is already stored.
+            StorageFull: the disk is full; nothing was written and the seq is not consumed.
+        """
+        return self.append_many([row])[0]
+
+    def append_many(self, rows: Iterable[NewObservation]) -> list[int]:
+        """Group commit: INSERT several observations in one transaction (all or none).
+
+        Each reply of the service must still wait for this commit (service.md §4.3).
+
+        Returns:
+            Their seqs, in order.
+        """
+        rows = list(rows)
+        with self._lock:
+            conn = self._db()
+            first = max(self._last_seq, self._seq_floor) + 1
+            params = []
+            for i, r in enumerate(rows):
+                seq = first + i
+                prev = r.context_prev_seq
+                if prev is not None and not 0 < int(prev) < seq:
+                    raise ValueError(f"context_prev_seq {prev} must be in [1, {seq})")
+                params.append((seq, str(r.observation_id), str(r.stream),
+                               None if prev is None else int(prev), r.label, str(r.created_at),
+                               str(r.image_sha256), _encode(r.input_sdr, INPUT_DTYPE, "input_sdr"),
+                               _encode(r.winner_cells, self._cell_dtype, "winner_cells")))
+            if not params:
+                return []
+            try:
+                with transaction(conn):
+                    conn.executemany(f"INSERT INTO observations ({_COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?)",
+                                     params)
+            except sqlite3.IntegrityError as exc:
+                if "observation_id" in str(exc):
+                    raise DuplicateObservation(str(exc)) from exc
+                raise
+            # Only after COMMIT returned: a failed commit consumes no seq and changes no counter.
+            self._last_seq = first + len(params) - 1
+            self._count += len(params)
+            return list(range(first, first + len(params)))
+
+    # ------------------------------------------------------------------ reads
+
+    def count(self) -> int:
+        """Number of stored observations."""
+        with self._lock:
+            return self._count
+
+    def last_seq(self) -> int:
+        """Highest stored seq (0 when empty); the seq floor is not counted."""
+        with self._lock:
+            return self._last_seq
+
+    def get(self, seq: int) -> Observation | None:
+        """The observation with this seq, or None."""
+        with self._lock:
+            r = self._db().execute(f"SELECT {_COLUMNS} FROM observations WHERE seq = ?",
+                                   (int(seq),)).fetchone()
+        return None if r is None else self._row(r)
+
+    def get_many(self, seqs: Iterable[int]) -> dict[int, Observation]:
+        """Observations by seq (missing seqs are absent from the result); for the top-k of a ranking."""
+        wanted = sorted({int(s) for s in seqs})
+        out: dict[int, Observation] = {}
+        # SQLite limits bound parameters per statement; 500 is far below every build's limit.
+        for i in range(0, len(wanted), 500):
+            chunk = wanted[i:i + 500]
+            marks = ",".join("?" * len(chunk))
+            with self._lock:
+                found = self._db().execute(
+                    f"SELECT {_COLUMNS} FROM observations WHERE seq IN ({marks})", chunk).fetchall()
+            out.update((int(r[0]), self._row(r)) for r in found)
+        return out
+
+    def rows(self, after_seq: int = 0) -> Iterator[Observation]:
+        """Observations with seq > `after_seq`, in seq order (replay, index rebuild).
+
+        Read in pages by seq, so appends between pages are fine and no read transaction is held while
+        the caller works on a row.
+        """
+        last = int(after_seq)
+        while True:
+            with self._lock:
+                page = self._db().execute(
+                    f"SELECT {_COLUMNS} FROM observations WHERE seq > ? ORDER BY seq LIMIT ?",
+                    (last, _PAGE)).fetchall()
+            if not page:
+                return
+            for r in page:
+                yield self._row(r)
+            last = int(page[-1][0])
+
+    def _row(self, r: tuple[Any, ...]) -> Observation:
+        return Observation(seq=int(r[0]), observation_id=r[1], stream=r[2],
+                           context_prev_seq=None if r[3] is None else int(r[3]), label=r[4],
+                           created_at=r[5], image_sha256=r[6], input_sdr=_decode(r[7], INPUT_DTYPE),
+                           winner_cells=_decode(r[8], self._cell_dtype))
+
+    # ------------------------------------------------------------------ checks and sizes
+
+    def quick_check(self) -> bool:
+        """`PRAGMA quick_check` is `ok` (recovery's first step; failure = map `failed`, database-corrupt)."""
+        return self._check("quick_check")
+
+    def integrity_check(self) -> bool:
+        """`PRAGMA integrity_check` is `ok` (slower than quick_check: also verifies index contents)."""
+        return self._check("integrity_check")
+
+    def _check(self, pragma: str) -> bool:
+        try:
+            with self._lock:
+                result = self._db().execute(f"PRAGMA {pragma}").fetchall()
+        except sqlite3.DatabaseError:
+            return False
+        return result == [("ok",)]
+
+    def durability(self) -> dict[str, Any]:
+        """The connection's `journal_mode` and `synchronous` (2 = FULL) as SQLite reports them."""
+        with self._lock:
+            conn = self._db()
+            return {"journal_mode": conn.execute("PRAGMA journal_mode").fetchone()[0],
+                    "synchronous": int(conn.execute("PRAGMA synchronous").fetchone()[0])}
+
+    def db_bytes(self) -> int:
+        """Size of `map.sqlite` on disk."""
+        return _size(self.path)
+
+    def wal_bytes(self) -> int:
+        """Size of `map.sqlite-wal` (0 when absent)."""
+        return _size(Path(f"{self.path}-wal"))
+
+    # ------------------------------------------------------------------ copies
+
+    def backup_to(self, dest: str | os.PathLike[str]) -> int:
+        """Consistent copy of the database with SQLite's online backup API (service.md §4.4).
+
+        The copy is switched to `journal_mode=DELETE` so it is one self-contained file: a snapshot's
+        checksum then covers everything, and it can be opened read-only without -wal/-shm files.
+        `MapStore.open` turns WAL back on when the copy is installed.
+
+        Args:
+            dest: the new file (must not exist).
+
+        Returns:
+            Size of the copy in bytes.
+        """
+        dest = Path(dest)
+        if dest.exists():
+            raise FileExistsError(f"{dest} exists")
+        out = sqlite3.connect(str(dest), isolation_level=None)
+        try:
+            with self._lock:
+                self._db().backup(out)
+            out.execute("PRAGMA journal_mode=DELETE")
+        except BaseException as exc:
+            out.close()
+            with contextlib.suppress(OSError):
+                dest.unlink()
+            if is_full_error(exc):
+                raise StorageFull(str(exc)) from exc
+            raise
+        out.close()
+        with dest.open("rb+") as f:
+            os.fsync(f.fileno())
+        return _size(dest)
+
+    @staticmethod
+    def install_copy(src: str | os.PathLike[str], dest: str | os.PathLike[str]) -> None:
+        """Make `dest` an exact copy of the database file `src` (restore, import), atomically.
+
+        The store on `dest` must be closed. `src` is copied to a temporary file beside `dest` and
+        fsynced; then any `dest-wal`/`dest-shm` is removed *before* the rename, because SQLite would
+        otherwise apply the old file's WAL frames to the new file; then the rename and a directory fsync.
+        A crash before the rename leaves the old file (only its uncheckpointed tail is lost, and that is
+        exactly what a restore discards); after it, the new file.
+        """
+        src, dest = Path(src), Path(dest)
+
+        def copy(out: BinaryIO) -> None:
+            with src.open("rb") as inp:
+                shutil.copyfileobj(inp, out, 1 << 20)
+
+        def drop_stale_wal() -> None:
+            for stale in (Path(f"{dest}-wal"), Path(f"{dest}-shm")):
+                with contextlib.suppress(FileNotFoundError):
+                    stale.unlink()
+
+        atomic_write(dest, copy, before_replace=drop_stale_wal)
+
+
+def _size(p: Path) -> int:
+    try:
+        return p.stat().st_size
+    except FileNotFoundError:
+        return 0
+
+
+def _read_meta(conn: sqlite3.Connection, path: Path) -> MapMeta:
+    tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    if not {"meta", "observations"} <= tables:
+        raise StoreCorrupt(f"{path}: not a map database (tables {sorted(tables)})")
+    raw = dict(conn.execute("SELECT key, value FROM meta").fetchall())
+    try:
+        values = {k: json.loads(v) for k, v in raw.items()}
+        return MapMeta(map_id=values["map_id"], params=values["params"],
+                       projection_sha256=values["projection_sha256"], encoder_id=values["encoder_id"],
+                       cell_dtype=values["cell_dtype"], schema_version=int(values["schema_version"]))
+    except (KeyError, ValueError, TypeError) as exc:
+        raise StoreCorrupt(f"{path}: unreadable meta: {exc}") from exc

@@ -1,0 +1,209 @@
+"""Upload limits before routing and parsing (service.md §3): 413 problem+json, pure ASGI."""
+
+from __future__ import annotations
+
+import json
+
+import anyio
+import pytest
+from fastapi import Request
+from fastapi.testclient import TestClient
+from pydantic import BaseModel
+
+from service.app import build_encoder, create_app
+from service.errors import PROBLEM_MEDIA_TYPE
+from service.limits import JSON_MAX_BYTES, UploadLimitMiddleware
+from service.settings import Settings
+
+LIMIT = 1000
+
+
+class Doc(BaseModel):
+    text: str
+
+
+@pytest.fixture
+def app_and_calls(tmp_path):
+    app = create_app(Settings(data_dir=tmp_path / "data", max_upload_bytes=LIMIT),
+                     encoder_factory=lambda s: build_encoder(s, slsbh={"k": 16}))
+    calls: list[str] = []
+
+    @app.post("/test/upload")
+    async def upload(request: Request) -> dict:
+        calls.append("upload")
+        data = await request.body()
+        return {"bytes": len(data)}
+
+    @app.post("/test/json")
+    def post_json(doc: Doc) -> dict:
+        calls.append("json")
+        return {"chars": len(doc.text)}
+
+    return app, calls
+
+
+@pytest.fixture
+def client(app_and_calls):
+    with TestClient(app_and_calls[0]) as c:
+        yield c
+
+
+def assert_413(r, max_bytes: int) -> dict:
+    assert r.status_code == 413, r.text
+    assert r.headers["content-type"] == PROBLEM_MEDIA_TYPE
+    body = r.json()
+    assert body["type"] == "urn:cortexloc:problem:payload-too-large"
+    assert body["max_bytes"] == max_bytes
+    assert body["received_bytes"] > max_bytes
+    assert body["request_id"] == r.headers["x-request-id"]
+    assert r.headers["connection"] == "close"
+    return body
+
+
+def test_body_within_the_limit_passes(client):
+    r = client.post("/test/upload", content=b"x" * LIMIT)
+    assert r.status_code == 200 and r.json() == {"bytes": LIMIT}
+
+
+def test_content_length_over_the_limit_is_refused_before_the_route(client, app_and_calls):
+    r = client.post("/test/upload", content=b"x" * (LIMIT + 1))
+    body = assert_413(r, LIMIT)
+    assert body["received_bytes"] == LIMIT + 1
+    assert app_and_calls[1] == []  # the route never ran
+    # before routing: an unknown path with a big body is also a 413, not a 404
+    assert_413(client.post("/nowhere", content=b"x" * 5000), LIMIT)
+
+
+def test_chunked_body_over_the_limit_is_cut_off(client, app_and_calls):
+    def chunks():
+        for _ in range(10):
+            yield b"y" * 300
+
+    r = client.post("/test/upload", content=chunks())
+    assert "content-length" not in {k.lower() for k in r.request.headers}
+    assert r.request.headers["transfer-encoding"] == "chunked"
+    assert_413(r, LIMIT)
+    assert app_and_calls[1] == ["upload"]  # the route started reading; its reply was replaced
+
+    r = client.post("/test/upload", content=(b"z" * 100 for _ in range(10)))  # exactly the limit
+    assert r.status_code == 200 and r.json() == {"bytes": 1000}
+
+
+def test_json_bodies_are_limited_to_64_kib(tmp_path):
+    app = create_app(Settings(data_dir=tmp_path / "data"),
+                     encoder_factory=lambda s: build_encoder(s, slsbh={"k": 16}))
+
+    @app.post("/test/json")
+    def post_json(doc: Doc) -> dict:
+        return {"chars": len(doc.text)}
+
+    @app.post("/test/upload")
+    async def upload(request: Request) -> dict:
+        return {"bytes": len(await request.body())}
+
+    with TestClient(app) as c:
+        small = json.dumps({"text": "a" * (JSON_MAX_BYTES - 100)}).encode()
+        r = c.post("/test/json", content=small, headers={"content-type": "application/json"})
+        assert r.status_code == 200
+        big = json.dumps({"text": "a" * JSON_MAX_BYTES}).encode()
+        assert_413(c.post("/test/json", content=big, headers={"content-type": "application/json"}),
+                   JSON_MAX_BYTES)
+        assert_413(c.post("/test/json", content=(big[i:i + 4096] for i in range(0, len(big), 4096)),
+                          headers={"content-type": "application/json; charset=utf-8"}), JSON_MAX_BYTES)
+        # the same size as an image body is fine: 64 KiB applies to JSON only
+        r = c.post("/test/upload", content=big, headers={"content-type": "application/octet-stream"})
+        assert r.status_code == 200 and r.json() == {"bytes": len(big)}
+
+
+def test_limit_metrics_record_the_route(client):
+    client.post("/test/upload", content=b"x" * (LIMIT + 1))
+    text = client.get("/metrics").text
+    assert 'cortexloc_requests_total{method="POST",route="/test/upload",status="413"} 1.0' in text
+
+
+# ------------------------------------------------------------------ the middleware alone (raw ASGI)
+
+
+class _State:
+    settings = Settings(max_upload_bytes=LIMIT)
+
+
+class _App:
+    state = _State()
+
+
+def _scope(headers: list[tuple[bytes, bytes]]) -> dict:
+    return {"type": "http", "method": "POST", "path": "/x", "raw_path": b"/x", "query_string": b"",
+            "headers": headers, "app": _App(), "scheme": "http", "server": ("test", 80), "root_path": "",
+            "http_version": "1.1"}
+
+
+def _run(middleware, scope, messages):
+    sent: list[dict] = []
+    received: list[int] = []
+    queue = list(messages)
+
+    async def receive():
+        if not queue:
+            raise AssertionError("receive() called after the last message")
+        received.append(1)
+        return queue.pop(0)
+
+    async def send(message):
+        sent.append(message)
+
+    anyio.run(middleware, scope, receive, send)
+    return sent, len(received)
+
+
+def _reader_app(got: list[int]):
+    async def app(scope, receive, send):
+        total = 0
+        while True:
+            message = await receive()
+            total += len(message.get("body", b""))
+            got.append(total)
+            if not message.get("more_body"):
+                break
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": str(total).encode()})
+    return app
+
+
+def test_declared_length_is_refused_without_reading_the_body():
+    async def app(scope, receive, send):  # pragma: no cover - must not run
+        raise AssertionError("the app ran")
+
+    sent, reads = _run(UploadLimitMiddleware(app), _scope([(b"content-length", b"1000000")]),
+                       [{"type": "http.request", "body": b"x", "more_body": True}])
+    assert reads == 0
+    assert sent[0]["status"] == 413
+    assert json.loads(sent[1]["body"])["received_bytes"] == 1_000_000
+
+
+def test_chunks_are_counted_and_cut_at_the_limit():
+    got: list[int] = []
+    chunks = [{"type": "http.request", "body": b"a" * 400, "more_body": True} for _ in range(10)]
+    sent, reads = _run(UploadLimitMiddleware(_reader_app(got)), _scope([]), chunks)
+    assert reads == 3  # the third chunk crosses 1000 bytes: nothing more is read
+    assert got == [400, 800]  # the app never saw the chunk that crossed the limit
+    assert sent[0]["status"] == 413 and len(sent) == 2
+    body = json.loads(sent[1]["body"])
+    assert (body["max_bytes"], body["received_bytes"]) == (LIMIT, 1200)
+    assert body["instance"] == "/x"
+
+
+def test_small_chunked_body_reaches_the_app():
+    got: list[int] = []
+    chunks = [{"type": "http.request", "body": b"a" * 250, "more_body": i < 3} for i in range(4)]
+    sent, _ = _run(UploadLimitMiddleware(_reader_app(got)), _scope([]), chunks)
+    assert sent[0]["status"] == 200 and sent[1]["body"] == b"1000"
+
+
+def test_invalid_content_length_is_400():
+    async def app(scope, receive, send):  # pragma: no cover - must not run
+        raise AssertionError("the app ran")
+
+    sent, reads = _run(UploadLimitMiddleware(app), _scope([(b"content-length", b"12abc")]), [])
+    assert reads == 0 and sent[0]["status"] == 400
+    assert json.loads(sent[1]["body"])["type"] == "urn:cortexloc:problem:invalid-parameter"

@@ -1,0 +1,174 @@
+"""Settings: read once from CORTEXLOC_* at startup, validated, errors name the variable (service.md §8)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+from typer.testing import CliRunner
+
+from service.app import build_encoder, create_app
+from service.settings import ConfigError, Settings
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def tiny_encoder(settings: Settings):
+    return build_encoder(settings, slsbh={"k": 16})
+
+
+def test_defaults_match_the_spec_table():
+    s = Settings.from_env({})
+    assert s.data_dir == Path("./var")
+    assert (s.host, s.port) == ("127.0.0.1", 8000)
+    assert (s.log_level, s.log_format) == ("INFO", "json")
+    assert s.weights_path is None
+    assert (s.allow_random_weights, s.random_weights_seed) == (True, 0)
+    assert s.device == "cpu"
+    assert (s.torch_threads, s.encoder_workers, s.encoder_queue) == (1, 1, 32)
+    assert s.max_upload_bytes == 10_485_760
+    assert s.max_pixels == 25_000_000
+    assert s.default_preset == "cortexloc-default"
+    assert s.max_map_bytes == 2_147_483_648
+    assert (s.max_maps, s.max_observations, s.max_streams, s.max_top_k) == (64, 1_000_000, 64, 100)
+    assert (s.snapshot_every, s.snapshot_keep) == (1000, 3)
+    assert s.api_key is None
+    assert Settings.from_env({}) == Settings()
+
+
+def test_values_are_read_and_converted():
+    s = Settings.from_env({
+        "CORTEXLOC_DATA_DIR": "/srv/cortexloc", "CORTEXLOC_PORT": " 9000 ", "CORTEXLOC_LOG_LEVEL": "debug",
+        "CORTEXLOC_LOG_FORMAT": "TEXT", "CORTEXLOC_ALLOW_RANDOM_WEIGHTS": "false",
+        "CORTEXLOC_WEIGHTS_PATH": "/w/alexnet.pt", "CORTEXLOC_MAX_TOP_K": "0",
+        "CORTEXLOC_SNAPSHOT_EVERY": "0",
+        "CORTEXLOC_API_KEY": "s3cret", "PATH": "/usr/bin"})
+    assert s.data_dir == Path("/srv/cortexloc")
+    assert s.port == 9000
+    assert (s.log_level, s.log_format) == ("DEBUG", "text")
+    assert s.allow_random_weights is False
+    assert s.weights_path == Path("/w/alexnet.pt")
+    assert (s.max_top_k, s.snapshot_every) == (0, 0)
+    assert s.api_key == "s3cret"
+    assert "s3cret" not in repr(s)
+
+
+def test_empty_value_means_unset():
+    s = Settings.from_env({"CORTEXLOC_WEIGHTS_PATH": "", "CORTEXLOC_PORT": "  "})
+    assert s.weights_path is None and s.port == 8000
+
+
+@pytest.mark.parametrize(("var", "value"), [
+    ("CORTEXLOC_PORT", "http"),
+    ("CORTEXLOC_PORT", "70000"),
+    ("CORTEXLOC_ALLOW_RANDOM_WEIGHTS", "perhaps"),
+    ("CORTEXLOC_LOG_LEVEL", "LOUD"),
+    ("CORTEXLOC_LOG_FORMAT", "xml"),
+    ("CORTEXLOC_DEVICE", "tpu"),
+    ("CORTEXLOC_MAX_UPLOAD_BYTES", "-1"),
+    ("CORTEXLOC_TORCH_THREADS", "0"),
+    ("CORTEXLOC_SNAPSHOT_KEEP", "three"),
+])
+def test_invalid_value_names_the_variable(var, value):
+    with pytest.raises(ConfigError) as info:
+        Settings.from_env({var: value})
+    assert var in str(info.value)
+    assert repr(value) in str(info.value)
+    assert info.value.variables == [var]
+
+
+def test_every_invalid_variable_is_reported():
+    with pytest.raises(ConfigError) as info:
+        Settings.from_env({"CORTEXLOC_PORT": "x", "CORTEXLOC_MAX_MAPS": "0"})
+    assert set(info.value.variables) == {"CORTEXLOC_PORT", "CORTEXLOC_MAX_MAPS"}
+
+
+def test_unknown_variables_warn_and_are_ignored(caplog):
+    with caplog.at_level(logging.WARNING, logger="cortexloc.settings"):
+        s = Settings.from_env({"CORTEXLOC_PROT": "9000", "CORTEXLOC_BANANA": "1",
+                               "CORTEXLOC_WEIGHTS_DIR": "/w", "OTHER_THING": "1"})
+    assert s.port == 8000
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("CORTEXLOC_PROT" in m and "did you mean CORTEXLOC_PORT" in m for m in messages)
+    assert any("CORTEXLOC_BANANA" in m for m in messages)
+    assert not any("CORTEXLOC_WEIGHTS_DIR" in m or "OTHER_THING" in m for m in messages)
+    assert all(r.levelno == logging.WARNING for r in caplog.records)
+
+
+def test_settings_are_immutable():
+    s = Settings()
+    with pytest.raises(ValueError, match="frozen"):
+        s.port = 1  # type: ignore[misc]
+
+
+def test_import_reads_nothing():
+    env = {**os.environ, "CORTEXLOC_PORT": "not-a-port", "CORTEXLOC_DATA_DIR": "/nonexistent/x"}
+    code = "import service.app, service.deps, service.routes; service.app.create_app(); print('ok')"
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ok"
+    assert not Path("/nonexistent/x").exists()
+
+
+def test_env_is_read_at_startup_not_in_create_app(monkeypatch, tmp_path):
+    app = create_app(encoder_factory=tiny_encoder)  # nothing read yet
+    monkeypatch.setenv("CORTEXLOC_DATA_DIR", str(tmp_path / "data"))
+    monkeypatch.setenv("CORTEXLOC_MAX_TOP_K", "7")
+    with TestClient(app) as client:
+        assert app.state.settings.max_top_k == 7
+        assert app.state.settings.data_dir == tmp_path / "data"
+        assert (tmp_path / "data").is_dir()
+        assert client.get("/healthz").status_code == 200
+        monkeypatch.setenv("CORTEXLOC_MAX_TOP_K", "9")  # read once: later changes are not seen
+        assert app.state.settings.max_top_k == 7
+
+
+def test_invalid_env_stops_startup(monkeypatch, tmp_path):
+    monkeypatch.setenv("CORTEXLOC_DATA_DIR", str(tmp_path))
+    monkeypatch.setenv("CORTEXLOC_MAX_PIXELS", "lots")
+    app = create_app(encoder_factory=tiny_encoder)
+    with pytest.raises(ConfigError, match="CORTEXLOC_MAX_PIXELS"), TestClient(app):
+        pass
+
+
+def test_unusable_weights_file_stops_startup(tmp_path):
+    bad = tmp_path / "alexnet.pt"
+    bad.write_bytes(b"not a checkpoint")
+    app = create_app(Settings(data_dir=tmp_path / "data", weights_path=bad), encoder_factory=tiny_encoder)
+    with pytest.raises(ConfigError, match="CORTEXLOC_WEIGHTS_PATH"), TestClient(app):
+        pass
+
+
+def test_serve_refuses_an_invalid_environment(monkeypatch):
+    from service.cli import app as cli
+
+    monkeypatch.setenv("CORTEXLOC_LOG_FORMAT", "xml")
+    result = CliRunner().invoke(cli, ["serve", "--port", "8123"])
+    assert result.exit_code == 2
+    assert "CORTEXLOC_LOG_FORMAT" in result.output
+
+
+def test_serve_passes_options_to_uvicorn(monkeypatch, tmp_path):
+    import uvicorn
+
+    from service.cli import app as cli
+
+    seen = {}
+
+    def fake_run(app, **kwargs):
+        seen["app"], seen["kwargs"] = app, kwargs
+
+    monkeypatch.setattr(uvicorn, "run", fake_run)
+    result = CliRunner().invoke(cli, ["serve", "--host", "0.0.0.0", "--port", "8123", "--data-dir",
+                                      str(tmp_path / "d")])
+    assert result.exit_code == 0, result.output
+    assert seen["kwargs"]["host"] == "0.0.0.0" and seen["kwargs"]["port"] == 8123
+    assert seen["kwargs"]["workers"] == 1
+    settings = seen["app"].state.settings
+    assert settings.data_dir == tmp_path / "d" and settings.port == 8123

@@ -1,0 +1,99 @@
+"""catalog.sqlite: maps, states, snapshot registry (newest first), seq high-water marks."""
+
+from __future__ import annotations
+
+import sqlite3
+from pathlib import Path
+
+import pytest
+
+from storage.catalog import Catalog, MapExists, MapNotFound, SnapshotRecord
+
+
+def snap(map_id: str, sid: str, seq: int, kind: str = "manual") -> SnapshotRecord:
+    return SnapshotRecord(snapshot_id=sid, map_id=map_id, seq=seq, kind=kind,
+                          created_at="2025-01-01T00:00:00.000000Z", bytes=100 + seq,
+                          manifest_sha256="cd" * 32, path=f"/data/maps/{map_id}/snapshots/{sid}")
+
+
+@pytest.fixture
+def catalog(tmp_path: Path) -> Catalog:
+    c = Catalog.open(tmp_path / "catalog.sqlite")
+    yield c
+    c.close()
+
+
+def test_map_crud(catalog: Catalog, tmp_path: Path) -> None:
+    params = {"tm": {"cellsPerColumn": 4}, "seed": 1}
+    rec = catalog.create_map("lab", params, preset="cortexloc-default", state="recovering")
+    assert rec.state == "recovering" and rec.params == params and rec.seq_high_water == 0
+    assert catalog.get_map("lab") == rec
+    assert catalog.get_map("nope") is None
+    with pytest.raises(MapExists):
+        catalog.create_map("lab", {})
+    catalog.create_map("yard", {})
+    assert [m.map_id for m in catalog.list_maps()] == ["lab", "yard"]
+    assert catalog.count_maps() == 2
+
+    failed = catalog.set_state("lab", "failed", "replay-divergence")
+    assert (failed.state, failed.state_reason) == ("failed", "replay-divergence")
+    assert catalog.set_state("lab", "ready").state_reason is None
+    with pytest.raises(ValueError):
+        catalog.set_state("lab", "sleeping")  # type: ignore[arg-type]
+    with pytest.raises(MapNotFound):
+        catalog.set_state("nope", "ready")
+
+    # Durable and reopenable, with WAL + FULL like the map files.
+    catalog.close()
+    again = Catalog.open(tmp_path / "catalog.sqlite")
+    assert again.get_map("lab").state == "ready" and again.ping()
+    assert sqlite3.connect(tmp_path / "catalog.sqlite").execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    again.delete_map("yard")
+    assert again.get_map("yard") is None
+    with pytest.raises(MapNotFound):
+        again.delete_map("yard")
+    again.close()
+
+
+def test_high_water_mark(catalog: Catalog) -> None:
+    catalog.create_map("lab", {})
+    assert catalog.get_high_water("lab") == 0
+    assert catalog.bump_high_water("lab", 12) == 12
+    assert catalog.bump_high_water("lab", 5) == 12  # never lowered
+    assert catalog.get_map("lab").seq_high_water == 12
+    with pytest.raises(MapNotFound):
+        catalog.bump_high_water("nope", 1)
+    with pytest.raises(MapNotFound):
+        catalog.get_high_water("nope")
+
+
+def test_snapshot_registry(catalog: Catalog) -> None:
+    catalog.create_map("lab", {})
+    catalog.create_map("yard", {})
+    catalog.register_snapshot(snap("lab", "s1", 10, "auto"))
+    catalog.register_snapshot(snap("lab", "s2", 20, "pre-restore"))
+    catalog.register_snapshot(snap("lab", "s3", 10, "manual"))  # after a restore: lower seq, newer
+    catalog.register_snapshot(snap("yard", "s1", 3))  # ids are per map
+    assert [s.snapshot_id for s in catalog.list_snapshots("lab")] == ["s3", "s2", "s1"]
+    assert [s.snapshot_id for s in catalog.list_snapshots("lab", kind="auto")] == ["s1"]
+    assert catalog.get_snapshot("lab", "s2") == snap("lab", "s2", 20, "pre-restore")
+    assert catalog.get_snapshot("lab", "zz") is None
+    assert catalog.snapshots_bytes("lab") == 110 + 120 + 110
+    with pytest.raises(ValueError):
+        catalog.register_snapshot(snap("lab", "s1", 11))  # duplicate id
+    with pytest.raises(ValueError):
+        catalog.register_snapshot(snap("lab", "s9", 1, "hourly"))
+    with pytest.raises(MapNotFound):
+        catalog.register_snapshot(snap("nope", "s1", 1))
+
+    assert catalog.delete_snapshot("lab", "s2") is True
+    assert catalog.delete_snapshot("lab", "s2") is False
+    assert [s.snapshot_id for s in catalog.list_snapshots("lab")] == ["s3", "s1"]
+
+    # Deleting a map removes its registrations (and returns them so their files can go too).
+    gone = catalog.delete_map("lab")
+    assert [s.snapshot_id for s in gone] == ["s3", "s1"]
+    assert catalog.list_snapshots("lab") == []
+    assert [s.snapshot_id for s in catalog.list_snapshots("yard")] == ["s1"]
+    catalog.create_map("lab", {})  # a new map with the old id starts clean
+    assert catalog.list_snapshots("lab") == [] and catalog.get_high_water("lab") == 0

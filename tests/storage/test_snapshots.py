@@ -1,0 +1,296 @@
+"""Snapshot directories: create, verify, tamper detection, load, tar export/import, unsafe tars refused."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import sqlite3
+import tarfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from storage import snapshots
+from storage.mapstore import MapStore, NewObservation
+from storage.snapshots import SnapshotInvalid, create_snapshot, export_tar, import_tar, load_memory, verify
+
+RowFactory = Callable[..., NewObservation]
+
+
+def memory_arrays() -> dict[str, np.ndarray]:
+    """Arrays shaped like `TemporalMemory.state_dict(streams=...)`: numbers, 0-d strings, prefixed keys."""
+    rng = np.random.default_rng(3)
+    return {
+        "presyn": rng.integers(0, 2**16, 4096, dtype=np.uint16),
+        "perm": rng.random(4096, dtype=np.float32),
+        "last_used": rng.integers(0, 10**6, 256),
+        "params": np.array(json.dumps({"cellsPerColumn": 4})),
+        "rng": np.array([1, 2, 3, 4, 0, 0], dtype=np.uint64),
+        "scalars": np.array([17, 4], dtype=np.int64),
+        "ctx.active_cells": np.arange(12),
+        "stream.cam-1.winner_cells": np.array([], dtype=np.int64),
+    }
+
+
+@pytest.fixture
+def snap(tmp_path: Path, store: MapStore, row_factory: RowFactory) -> tuple[Path, snapshots.Manifest]:
+    for i in range(1, 6):
+        store.append(row_factory(i))
+    dest = tmp_path / "snapshots" / "s1"
+    manifest = create_snapshot(store, memory_arrays(), dest, kind="manual", code_version="0.3.0")
+    return dest, manifest
+
+
+def flip_byte(path: Path) -> None:
+    """Change one byte in place like bit rot: same size, and the modification time put back."""
+    st = path.stat()
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    with path.open("r+b") as f:
+        f.write(data)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+
+
+def test_create_and_verify(snap: tuple[Path, snapshots.Manifest], store: MapStore,
+                           row_factory: RowFactory) -> None:
+    dest, m = snap
+    assert sorted(p.name for p in dest.iterdir()) == ["manifest.json", "map.sqlite", "memory.npz"]
+    assert [p.name for p in dest.parent.iterdir()] == ["s1"]  # no temporary directory left
+    assert (m.snapshot_id, m.map_id, m.seq, m.last_observation_id, m.kind) == (
+        "s1", "lab", 5, "obs-00000005", "manual")
+    assert (m.encoder_id, m.projection_sha256, m.params) == (
+        store.meta.encoder_id, store.meta.projection_sha256, store.meta.params)
+    assert m.numpy_version == np.__version__ and m.code_version == "0.3.0"
+    body = (dest / "manifest.json").read_bytes()
+    assert m.manifest_sha256 == hashlib.sha256(body).hexdigest()
+    assert m.bytes == sum(p.stat().st_size for p in dest.iterdir())
+    for name, entry in m.files.items():
+        assert entry.bytes == (dest / name).stat().st_size
+        assert entry.sha256 == hashlib.sha256((dest / name).read_bytes()).hexdigest()
+    assert verify(dest) == m
+
+    # The copy is the cut at seq 5, whatever the map does next.
+    store.append(row_factory(6))
+    conn = sqlite3.connect(f"file:{dest / 'map.sqlite'}?mode=ro", uri=True)
+    assert conn.execute("SELECT max(seq), count(*) FROM observations").fetchone() == (5, 5)
+    conn.close()
+    assert verify(dest) == m  # reading it changed nothing
+
+    loaded = load_memory(dest)
+    want = memory_arrays()
+    assert loaded.keys() == want.keys()
+    for k, v in want.items():
+        assert loaded[k].dtype == v.dtype and loaded[k].shape == v.shape
+        np.testing.assert_array_equal(loaded[k], v)
+
+
+def test_empty_map_snapshot(tmp_path: Path, store: MapStore) -> None:
+    m = create_snapshot(store, {"x": np.zeros(3)}, tmp_path / "s0", kind="auto")
+    assert (m.seq, m.last_observation_id) == (0, None)
+    assert verify(tmp_path / "s0").seq == 0
+
+
+def test_real_temporal_memory_state_round_trips(tmp_path: Path, store: MapStore) -> None:
+    from models.temporal_memory import TemporalMemory
+
+    tm = TemporalMemory({"columnDimensions": 32, "cellsPerColumn": 4, "activationThreshold": 3,
+                         "minThreshold": 2, "maxNewSynapseCount": 4, "maxSegmentsPerCell": 4,
+                         "maxSynapsesPerSegment": 8, "seed": 7})
+    cam = tm.new_context()
+    for cols in ([0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]):
+        tm.compute(np.array(cols), learn=True, context=cam)
+    state = tm.state_dict(streams={"cam-1": cam})
+    create_snapshot(store, state, tmp_path / "tm", kind="manual")
+    verify(tmp_path / "tm")
+    loaded = load_memory(tmp_path / "tm")
+    back = TemporalMemory.from_state(loaded)
+    again = back.state_dict(streams=TemporalMemory.load_streams(loaded))
+    assert again.keys() == state.keys()
+    for k in state:
+        np.testing.assert_array_equal(again[k], state[k])
+
+
+def test_create_refuses(tmp_path: Path, store: MapStore) -> None:
+    with pytest.raises(ValueError, match="object"):
+        create_snapshot(store, {"bad": np.array([{"a": 1}], dtype=object)}, tmp_path / "s", kind="manual")
+    with pytest.raises(ValueError, match="not allowed"):
+        create_snapshot(store, {"file": np.zeros(1)}, tmp_path / "s", kind="manual")
+    with pytest.raises(ValueError, match="kind"):
+        create_snapshot(store, {}, tmp_path / "s", kind="hourly")
+    assert not (tmp_path / "s").exists()
+    assert not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]
+    (tmp_path / "s").mkdir()
+    with pytest.raises(FileExistsError):
+        create_snapshot(store, {}, tmp_path / "s", kind="manual")
+
+
+@pytest.mark.parametrize("target", ["map.sqlite", "memory.npz"])
+def test_flipped_byte_is_detected(snap: tuple[Path, snapshots.Manifest], target: str) -> None:
+    dest, _ = snap
+    verify(dest)  # warm any hash cache on purpose: verification must still re-read the bytes
+    flip_byte(dest / target)
+    with pytest.raises(SnapshotInvalid, match="checksum"):
+        verify(dest)
+
+
+def test_other_damage_is_detected(snap: tuple[Path, snapshots.Manifest]) -> None:
+    dest, _ = snap
+    raw = (dest / "manifest.json").read_text()
+    m = json.loads(raw)
+    (dest / "memory.npz").rename(dest / "moved.npz")
+    with pytest.raises(SnapshotInvalid, match="missing"):
+        verify(dest)
+    (dest / "moved.npz").rename(dest / "memory.npz")
+    with (dest / "map.sqlite").open("ab") as f:
+        f.write(b"\0")
+    with pytest.raises(SnapshotInvalid, match="bytes"):
+        verify(dest)
+    with (dest / "map.sqlite").open("r+b") as f:
+        f.truncate(m["files"]["map.sqlite"]["bytes"])
+    verify(dest)
+    (dest / "manifest.json").write_text(raw.replace('"seq": 5', '"seq": 6'))
+    verify(dest)  # the manifest's own integrity is the catalog's manifest_sha256, checked by the caller
+    assert verify(dest).manifest_sha256 != hashlib.sha256(raw.encode()).hexdigest()
+    for broken in ("{", json.dumps({**m, "format": "other"}), json.dumps({**m, "files": {}}),
+                   json.dumps({**m, "files": {**m["files"], "../x": m["files"]["map.sqlite"]}})):
+        (dest / "manifest.json").write_text(broken)
+        with pytest.raises(SnapshotInvalid):
+            verify(dest)
+    (dest / "manifest.json").unlink()
+    with pytest.raises(SnapshotInvalid):
+        verify(dest)
+
+
+class _WriteOnly:
+    """A non-seekable sink, like an HTTP response body."""
+
+    def __init__(self) -> None:
+        self.buf = io.BytesIO()
+
+    def write(self, b: bytes) -> int:
+        return self.buf.write(b)
+
+
+def test_export_import_round_trip(tmp_path: Path, store: MapStore, row_factory: RowFactory) -> None:
+    store.append(row_factory(1))
+    projection = tmp_path / "proj.npy"
+    np.save(projection, np.ones((4, 3), dtype=np.float32))
+    src = tmp_path / "snapshots" / "s1"
+    m = create_snapshot(store, memory_arrays(), src, kind="manual", external={"projection.npy": projection})
+    assert m.external["projection.npy"].sha256 == hashlib.sha256(projection.read_bytes()).hexdigest()
+
+    sink = _WriteOnly()
+    n = export_tar(src, sink, extra={"projection.npy": projection})
+    data = sink.buf.getvalue()
+    assert n == len(data) == snapshots.tar_size(src, extra={"projection.npy": projection})
+    with tarfile.open(fileobj=io.BytesIO(data)) as tar:
+        assert tar.getnames() == ["manifest.json", "map.sqlite", "memory.npz", "projection.npy"]
+
+    dest = tmp_path / "elsewhere" / "imported"
+    got = import_tar(io.BytesIO(data), dest)
+    assert got == m
+    assert verify(dest) == m
+    for name in ("manifest.json", "map.sqlite", "memory.npz"):
+        assert (dest / name).read_bytes() == (src / name).read_bytes()
+    assert (dest / "projection.npy").read_bytes() == projection.read_bytes()
+    with pytest.raises(FileExistsError):
+        import_tar(io.BytesIO(data), dest)
+    # Without the extra file the tar is still a complete snapshot.
+    plain = io.BytesIO()
+    assert export_tar(src, plain) == snapshots.tar_size(src) == len(plain.getvalue())
+    assert import_tar(io.BytesIO(plain.getvalue()), tmp_path / "plain") == m
+
+
+def test_import_detects_tampering(tmp_path: Path, snap: tuple[Path, snapshots.Manifest]) -> None:
+    src, _ = snap
+    buf = io.BytesIO()
+    export_tar(src, buf)
+    data = bytearray(buf.getvalue())
+    # Flip a byte inside map.sqlite's data (the second member, after manifest header+data and its header).
+    with tarfile.open(fileobj=io.BytesIO(bytes(data))) as tar:
+        member = tar.getmember("map.sqlite")
+        data[member.offset_data + member.size // 2] ^= 0x01
+    with pytest.raises(SnapshotInvalid, match="checksum"):
+        import_tar(io.BytesIO(bytes(data)), tmp_path / "bad")
+    assert not (tmp_path / "bad").exists()
+    assert not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]
+    with pytest.raises(SnapshotInvalid):
+        import_tar(io.BytesIO(b"not a tar at all" * 100), tmp_path / "bad")
+    with pytest.raises(SnapshotInvalid, match="more than"):
+        import_tar(io.BytesIO(buf.getvalue()), tmp_path / "bad", max_bytes=1000)
+
+
+def _tar(members: list[tuple[tarfile.TarInfo, bytes | None]]) -> io.BytesIO:
+    out = io.BytesIO()
+    with tarfile.open(fileobj=out, mode="w", format=tarfile.GNU_FORMAT) as tar:
+        for info, payload in members:
+            if payload is not None:
+                info.size = len(payload)
+                tar.addfile(info, io.BytesIO(payload))
+            else:
+                tar.addfile(info)
+    out.seek(0)
+    return out
+
+
+def _file(name: str) -> tarfile.TarInfo:
+    return tarfile.TarInfo(name)
+
+
+@pytest.mark.parametrize("name", ["../evil", "/tmp/evil", "sub/evil", "..", ".hidden", "a\\..\\evil", ""])
+def test_path_traversal_refused(tmp_path: Path, snap: tuple[Path, snapshots.Manifest], name: str) -> None:
+    src, _ = snap
+    good = [(_file(n), (src / n).read_bytes()) for n in ("manifest.json", "map.sqlite", "memory.npz")]
+    work = tmp_path / "work"
+    work.mkdir()
+    with pytest.raises(SnapshotInvalid):
+        import_tar(_tar([*good[:1], (_file(name), b"owned"), *good[1:]]), work / "dest")
+    assert not (work / "dest").exists()
+    assert not (tmp_path / "evil").exists() and not (work / "evil").exists()
+    assert list(work.iterdir()) == []
+
+
+def test_links_duplicates_and_unknown_members_refused(tmp_path: Path,
+                                                      snap: tuple[Path, snapshots.Manifest]) -> None:
+    src, _ = snap
+    good = [(_file(n), (src / n).read_bytes()) for n in ("manifest.json", "map.sqlite", "memory.npz")]
+    sym = tarfile.TarInfo("memory.npz")
+    sym.type, sym.linkname = tarfile.SYMTYPE, "/etc/passwd"
+    hard = tarfile.TarInfo("memory.npz")
+    hard.type, hard.linkname = tarfile.LNKTYPE, "map.sqlite"
+    folder = tarfile.TarInfo("dir")
+    folder.type = tarfile.DIRTYPE
+    cases = {
+        "symlink": [*good[:2], (sym, None)],
+        "hardlink": [*good[:2], (hard, None)],
+        "directory": [*good, (folder, None)],
+        "duplicate": [*good, good[1]],
+        "unknown": [*good, (_file("notes.txt"), b"hello")],
+        "missing": good[:2],
+        "no manifest": good[1:],
+    }
+    for why, members in cases.items():
+        with pytest.raises(SnapshotInvalid):
+            import_tar(_tar(members), tmp_path / "dest")
+        assert not (tmp_path / "dest").exists(), why
+    # A projection the manifest does not list is accepted (the caller verifies it by its own checksum).
+    got = import_tar(_tar([*good, (_file("projection.npy"), b"npy")]), tmp_path / "dest")
+    assert (tmp_path / "dest" / "projection.npy").read_bytes() == b"npy" and got.seq == 5
+
+
+def test_scan_and_stale_temp(tmp_path: Path, snap: tuple[Path, snapshots.Manifest], store: MapStore) -> None:
+    src, m1 = snap
+    parent = src.parent
+    m2 = create_snapshot(store, {"x": np.zeros(1)}, parent / "s2", kind="auto",
+                         created_at="2999-01-01T00:00:00.000000Z")
+    (parent / ".s3.tmp-abc").mkdir()  # an interrupted create
+    (parent / "broken").mkdir()  # no manifest: not a snapshot
+    assert [(d.name, m.snapshot_id) for d, m in snapshots.scan(parent)] == [("s2", m2.snapshot_id),
+                                                                          ("s1", m1.snapshot_id)]
+    assert [p.name for p in snapshots.remove_stale_temp(parent)] == [".s3.tmp-abc"]
+    assert sorted(p.name for p in parent.iterdir()) == ["broken", "s1", "s2"]
+    assert len(snapshots.new_snapshot_id()) > 20
