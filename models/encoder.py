@@ -14,6 +14,7 @@ Example:
 from __future__ import annotations
 
 import copy
+import functools
 import logging
 import time
 from collections.abc import Sequence
@@ -70,12 +71,12 @@ class EncodeResult:
     """What `Encoder.encode` returns.
 
     Attributes:
-        codes: (N, 2n) int32, each row the sorted active columns of one image.
+        codes: (N, 2n) int32, each row the sorted active columns of one image (None from `embed`).
         features: (N, D) float32 L2-normalised backbone features, when asked for.
         timings_ms: wall time per stage for the whole batch (decode, preprocess, backbone, hash).
     """
 
-    codes: np.ndarray
+    codes: np.ndarray | None
     features: np.ndarray | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -105,25 +106,43 @@ class Encoder:
                 "encoder runs on RANDOM weights (%s): results cannot support claims about the paper. "
                 "Fix: `cortexloc weights download` (online) or `cortexloc weights import PATH`.",
                 self.weights_id)
-        d = self.feature_dim
         s_conf = self.conf["slsbh"]
-        k, seed = int(s_conf["k"]), int(s_conf["seed"])
-        if projection is None:
-            if s_conf["projection"] == "sparse":
-                projection = slsbh.make_sparse_projection(d, k, seed)
-            elif s_conf["projection"] == "dense":
-                projection = slsbh.make_projection(d, k, seed)
-            else:
-                raise ValueError(f"slsbh.projection must be dense or sparse, got {s_conf['projection']!r}")
-        if tuple(projection.shape) != (d, k):
-            raise ValueError(f"projection shape {tuple(projection.shape)} != ({d}, {k})")
-        self.projection = projection
-        self.hasher = slsbh.Hasher(projection, float(s_conf["s"]))
-        self.projection_sha256 = self.hasher.sha256()
-        if self.conf["projection_dir"] is not None and isinstance(projection, np.ndarray):
-            slsbh.save_projection(projection, Path(self.conf["projection_dir"]))
+        if s_conf["projection"] not in ("dense", "sparse"):
+            raise ValueError(f"slsbh.projection must be dense or sparse, got {s_conf['projection']!r}")
+        if projection is not None:
+            self._check_projection(projection)
+            self.__dict__["hasher"] = slsbh.Hasher(projection, float(s_conf["s"]))
         threads = int(self.conf["decode_threads"])
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="decode") if threads > 1 else None
+
+    # ------------------------------------------------------------------ projection
+
+    def _check_projection(self, projection: np.ndarray | slsbh.SparseProjection) -> None:
+        expected = (self.feature_dim, int(self.conf["slsbh"]["k"]))
+        if tuple(projection.shape) != expected:
+            raise ValueError(f"projection shape {tuple(projection.shape)} != {expected}")
+
+    @functools.cached_property
+    def hasher(self) -> slsbh.Hasher:
+        """The sLSBH hasher, built on first use: a service that hashes with each map's own projection
+        (`Encoder.embed` + the map's hasher) never pays for a 266 MB matrix it does not use."""
+        s_conf = self.conf["slsbh"]
+        d, k, seed = self.feature_dim, int(s_conf["k"]), int(s_conf["seed"])
+        if s_conf["projection"] == "sparse":
+            projection = slsbh.make_sparse_projection(d, k, seed)
+        else:
+            projection = slsbh.make_projection(d, k, seed)
+            if self.conf["projection_dir"] is not None:
+                slsbh.save_projection(projection, Path(self.conf["projection_dir"]))
+        return slsbh.Hasher(projection, float(s_conf["s"]))
+
+    @property
+    def projection(self) -> np.ndarray | slsbh.SparseProjection:
+        return self.hasher.P
+
+    @property
+    def projection_sha256(self) -> str:
+        return self.hasher.sha256()
 
     # ------------------------------------------------------------------ identity
 
@@ -185,14 +204,23 @@ class Encoder:
             return self._forward(torch.from_numpy(np.ascontiguousarray(batch))).numpy()
 
     def encode(self, data: Sequence[bytes], return_features: bool = False) -> EncodeResult:
-        """Encode a batch of uploaded images.
+        """Encode a batch of uploaded images into sLSBH codes; see `embed` for the errors."""
+        out = self.embed(data)
+        t0 = time.perf_counter()
+        out.codes = self.hasher(out.features)
+        out.timings_ms["hash"] = (time.perf_counter() - t0) * 1e3
+        if not return_features:
+            out.features = None
+        return out
+
+    def embed(self, data: Sequence[bytes]) -> EncodeResult:
+        """Backbone features of a batch of uploaded images (no hashing: `codes` is None).
 
         Args:
             data: N encoded images (JPEG, PNG, BMP, WebP).
-            return_features: also return the dense backbone features.
 
         Returns:
-            EncodeResult with codes (N, 2n) and per-stage timings.
+            EncodeResult with features (N, D) and the decode, preprocess and backbone timings.
 
         Raises:
             images.ImageError: an input is not a decodable image within the limits (the whole batch is
@@ -201,7 +229,7 @@ class Encoder:
         """
         limits = {"max_bytes": int(self.conf["max_bytes"]), "max_pixels": int(self.conf["max_pixels"])}
         kw = {"mode": self.conf["resize"], "mean": self.input_mean, "std": self.input_std}
-        timings = dict.fromkeys(STAGES, 0.0)
+        timings = dict.fromkeys(STAGES[:3], 0.0)
 
         def prepare(b: bytes) -> tuple[np.ndarray, float, float]:
             t0 = time.perf_counter()
@@ -237,7 +265,4 @@ class Encoder:
             feats_parts.append(self.features(batch))
             timings["backbone"] += (time.perf_counter() - t0) * 1e3
         feats = np.concatenate(feats_parts) if len(feats_parts) > 1 else feats_parts[0]
-        t0 = time.perf_counter()
-        codes = self.hasher(feats)
-        timings["hash"] = (time.perf_counter() - t0) * 1e3
-        return EncodeResult(codes=codes, features=feats if return_features else None, timings_ms=timings)
+        return EncodeResult(codes=None, features=feats, timings_ms=timings)

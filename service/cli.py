@@ -210,7 +210,7 @@ def eval_images(
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     cache_dir = cache or Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc"))
-    enc = Encoder({"backbone": backbone, "resize": resize, "slsbh": {"k": 16}})  # features only
+    enc = Encoder({"backbone": backbone, "resize": resize})  # features only (embed): no projection built
     feats = {}
     for label, folder in (("db", db), ("query", query)):
         feats[label] = sequences.cached_features(enc, [folder / n for n in names], cache_dir / "features",

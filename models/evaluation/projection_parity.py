@@ -24,8 +24,7 @@ from models.evaluation.datasets import shared_data_dir
 def _features(enc: Encoder, folder: Path, names: list[str]) -> np.ndarray:
     out = []
     for i in range(0, len(names), 32):
-        out.append(enc.encode([(folder / n).read_bytes() for n in names[i:i + 32]], return_features=True)
-                   .features)
+        out.append(enc.embed([(folder / n).read_bytes() for n in names[i:i + 32]]).features)
     return np.concatenate(out)
 
 
@@ -40,8 +39,7 @@ def main() -> None:
     args = ap.parse_args()
     root = shared_data_dir() / "nordland_tiny_64x32"
     names = sorted(p.name for p in (root / "summer").glob("*.png"))
-    # The encoder's own hash is unused here (k=16 keeps its projection tiny).
-    enc = Encoder({"backbone": args.backbone, "resize": args.resize, "slsbh": {"k": 16}})
+    enc = Encoder({"backbone": args.backbone, "resize": args.resize})  # features only: no projection built
     results = []
     for start in (int(w) for w in args.windows.split(",")):
         window = names[start:start + args.n]

@@ -68,7 +68,7 @@ def cached_features(encoder: Encoder, paths: Sequence[Path], cache_dir: Path | N
     out = []
     for i in range(0, len(paths), 32):
         chunk = [Path(p).read_bytes() for p in paths[i:i + 32]]
-        out.append(encoder.encode(chunk, return_features=True).features)
+        out.append(encoder.embed(chunk).features)
         if progress:
             progress(min(i + 32, len(paths)), len(paths))
     feats = np.concatenate(out).astype(np.float32)
