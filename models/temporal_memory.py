@@ -151,6 +151,46 @@ def validate(params: dict[str, Any]) -> list[str]:
     return notes
 
 
+def _layout(params: dict[str, Any]) -> dict[str, tuple[int, Any, int]]:
+    """Every array a memory with `params` preallocates: name -> (length, dtype, fill value).
+
+    One table for both the constructor and `planned_bytes`, so the reported size is exact.
+    """
+    cells = int(params["columnDimensions"]) * int(params["cellsPerColumn"])
+    n_seg = cells * int(params["maxSegmentsPerCell"])
+    n_slot = n_seg * int(params["maxSynapsesPerSegment"])
+    n_blocks = kern.pool_blocks(n_slot, cells)
+    return {
+        "presyn": (n_slot, np.uint16 if cells <= 65536 else np.uint32, 0),
+        "perm": (n_slot, np.float32, 0),
+        "nsyn": (n_seg, np.uint16, 0),
+        "last_used": (n_seg, np.int64, 0),
+        "seg_count": (cells, np.uint16, 0),
+        "rev": (n_blocks * kern.B, np.int32 if 2 * n_seg < 2**31 else np.int64, 0),
+        "rpos": (n_slot, np.int32 if n_blocks * kern.B < 2**31 else np.int64, 0),
+        "blk_prev": (n_blocks, np.int64, -1),
+        "blk_fill": (n_blocks, np.int32, 0),
+        "tail": (cells, np.int64, -1),
+        "pool": (1, np.int64, 0),
+        "seg_act": (n_seg, np.int64, 0),
+        "epoch": (1, np.int64, 0),
+        "matching": (n_seg, np.int32 if n_seg < 2**31 else np.int64, 0),
+        "mask_active": (cells, np.bool_, 0),
+        "mask_winner": (cells, np.bool_, 0),
+        "mask_scratch": (cells, np.bool_, 0),
+        "cand": (cells, np.int64, 0),
+        "counters": (4, np.int64, 0),
+    }
+
+
+def planned_bytes(params: dict[str, Any]) -> int:
+    """Exact bytes a `TemporalMemory(params)` preallocates (`size()["bytes"]`), without allocating."""
+    merged = {**presets.TM_DEFAULTS, **params}
+    validate(merged)
+    arrays = sum(n * np.dtype(dtype).itemsize for n, dtype, _ in _layout(merged).values())
+    return arrays + 5 * 4 + 6 * 8  # plus the float32 and int64 parameter vectors
+
+
 class TemporalMemory:
     """Learned connections of one map (science.md §3.2) plus its seeded generator.
 
@@ -176,9 +216,6 @@ class TemporalMemory:
         self.n_cells = self.n_columns * self.cells_per_column
         S = int(merged["maxSegmentsPerCell"])
         Kc = int(merged["maxSynapsesPerSegment"])
-        n_seg = self.n_cells * S
-        n_slot = n_seg * Kc
-        cell_dtype = np.uint16 if self.n_cells <= 65536 else np.uint32
         f32 = np.float32
         # Parameters cast to float32 once (science.md §3.6).
         self._p = np.array(
@@ -188,36 +225,22 @@ class TemporalMemory:
         self._ip = np.array(
             [self.cells_per_column, S, Kc, merged["activationThreshold"], merged["minThreshold"],
              merged["maxNewSynapseCount"]], dtype=np.int64)
+        a = {name: _alloc(n, dtype, fill) for name, (n, dtype, fill) in _layout(merged).items()}
         # Canonical state (science.md §3.5 table).
-        self.presyn = _alloc(n_slot, cell_dtype)
-        self.perm = _alloc(n_slot, f32)
-        self.nsyn = _alloc(n_seg, np.uint16)
-        self.last_used = _alloc(n_seg, np.int64)
+        self.presyn, self.perm, self.nsyn, self.last_used = a["presyn"], a["perm"], a["nsyn"], a["last_used"]
         # Auxiliary, fixed-capacity, derived from the canonical arrays.
-        self._seg_count = _alloc(self.n_cells, np.uint16)
-        # Reverse index (see models._tm_kernels): blocks of entries per presynaptic cell.
-        n_blocks = kern.pool_blocks(n_slot, self.n_cells)
-        entry_dtype = np.int32 if 2 * n_seg < 2**31 else np.int64
-        pos_dtype = np.int32 if n_blocks * kern.B < 2**31 else np.int64
-        self._rx = (
-            _alloc(n_blocks * kern.B, entry_dtype),  # rev: g*2 + connected
-            _alloc(n_slot, pos_dtype),  # rpos: entry of each synapse slot
-            np.arange(1, n_blocks + 1, dtype=np.int64),  # blk_prev (free list while unused)
-            _alloc(n_blocks, np.int32),  # blk_fill
-            _alloc(self.n_cells, np.int64, -1),  # tail block of each cell
-            np.zeros(1, dtype=np.int64),  # pool[0]: first free block
-        )
-        self._rx[2][-1] = -1
+        self._seg_count = a["seg_count"]
+        # Reverse index (see models._tm_kernels): blocks of entries per presynaptic cell; the unused
+        # blocks form the free list through blk_prev.
+        a["blk_prev"][:] = np.arange(1, a["blk_prev"].size + 1)
+        a["blk_prev"][-1] = -1
+        self._rx = (a["rev"], a["rpos"], a["blk_prev"], a["blk_fill"], a["tail"], a["pool"])
         # Scratch for one step: packed per-segment counts with their epoch, the matching list, masks
         # over cells, growth candidates.
-        self._seg_act = _alloc(n_seg, np.int64)
-        self._epoch = np.zeros(1, dtype=np.int64)
-        self._matching = _alloc(n_seg, np.int32 if n_seg < 2**31 else np.int64)
-        self._mask_active = np.zeros(self.n_cells, dtype=np.bool_)
-        self._mask_winner = np.zeros(self.n_cells, dtype=np.bool_)
-        self._mask_scratch = np.zeros(self.n_cells, dtype=np.bool_)
-        self._cand = np.zeros(self.n_cells, dtype=np.int64)
-        self.counters = np.zeros(4, dtype=np.int64)
+        self._seg_act, self._epoch, self._matching = a["seg_act"], a["epoch"], a["matching"]
+        self._mask_active, self._mask_winner = a["mask_active"], a["mask_winner"]
+        self._mask_scratch, self._cand = a["mask_scratch"], a["cand"]
+        self.counters = a["counters"]
         self.iteration = 0
         self.version = 0
         self.rng = np.random.Generator(np.random.PCG64(int(merged["seed"])))

@@ -356,3 +356,16 @@ def test_grid_preset_never_predicts_but_predicting_preset_does():
         frac[name] = predicted / (len(seq) * 40)
     assert frac["cba2020-grid"] == 0.0
     assert frac["cortexloc-grid"] > 0.9  # science.md §3.7: > 90 % predicted from the second repetition
+
+
+def test_planned_bytes_equal_the_allocated_bytes():
+    from models.temporal_memory import planned_bytes
+
+    for name in ("cba2020-grid", "cortexloc-grid"):
+        params = presets.tm_params(name)
+        assert planned_bytes(params) == TemporalMemory(params).size()["bytes"]
+    small_params = {"columnDimensions": 64, "cellsPerColumn": 3, "maxSegmentsPerCell": 5,
+                    "maxSynapsesPerSegment": 7, "minThreshold": 2, "activationThreshold": 3}
+    assert planned_bytes(small_params) == TemporalMemory(small_params).size()["bytes"]
+    # the paper's Nordland preset is sized without being allocated
+    assert planned_bytes(presets.tm_params("cba2020-nordland")) > 3_997_696_000
