@@ -423,7 +423,9 @@ def probe(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = 
             raise ImageError("unsupported-format",
                              f"{name} images are not supported; send {_accepted_list(formats)}",
                              detected=name)
-        raise ImageError("not-an-image",
+        # No known signature at all: the upload is of an unsupported kind (service.md §2: 415), as
+        # opposed to a recognised image whose contents are corrupt (422).
+        raise ImageError("unsupported-format",
                          f"data is not a {_accepted_list(formats)} image (first bytes: {head[:8].hex(' ')})",
                          detected=None)
     if fmt not in formats:

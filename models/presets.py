@@ -43,6 +43,20 @@ MCN_DEFAULTS: dict[str, Any] = {
     "seed": 42,
 }
 
+# The predicting 2048x4 Temporal Memory chosen on the grid world (docs/results.md §3).
+_PREDICTING_TM: dict[str, Any] = {
+    "cellsPerColumn": 4,
+    "activationThreshold": 8,
+    "initialPermanence": 0.55,
+    "minThreshold": 2,
+    "maxNewSynapseCount": 28,
+    "permanenceIncrement": 0.1,
+    "permanenceDecrement": 0.02,
+    "predictedSegmentDecrement": 0.0005,
+    "maxSegmentsPerCell": 16,
+    "maxSynapsesPerSegment": 32,
+}
+
 confs: dict[str, dict[str, Any]] = {
     "cba2020-grid": {
         "description": "TM 2048x4 of the paper's grid world (run00.py); never predicts (13 > 3 synapses)",
@@ -85,18 +99,15 @@ confs: dict[str, dict[str, Any]] = {
         # worst-case clean AUC over the published (a=5, n=0.5) file and generated worlds with and
         # without noise. maxNewSynapseCount near the ~40 winners per step matters: with 20, noiseless
         # loops keep re-learning a new high-order code for the same place (clean AUC 0.88 at n=0).
-        "tm": {
-            "cellsPerColumn": 4,
-            "activationThreshold": 8,
-            "initialPermanence": 0.55,
-            "minThreshold": 2,
-            "maxNewSynapseCount": 28,
-            "permanenceIncrement": 0.1,
-            "permanenceDecrement": 0.02,
-            "predictedSegmentDecrement": 0.0005,
-            "maxSegmentsPerCell": 16,
-            "maxSynapsesPerSegment": 32,
-        },
+        "tm": _PREDICTING_TM,
+    },
+    "cortexloc-default": {
+        "description": "service default (interim): cortexloc-grid TM on 40-of-2048 sLSBH codes, 62.5 MiB",
+        # Interim until the cross-season sweep (issue: cross-season evaluation) chooses the default by
+        # measurement. s = 0.02 gives 2n = 40 active columns, the density the TM assumes (science.md
+        # §3.8: 25 % dense codes flood the TM with chance predictions).
+        "tm": _PREDICTING_TM,
+        "slsbh": {"k": 1024, "s": 0.02},
     },
     "mcn-grid": {
         "description": "MCN of the paper's grid world (run00.py miniColumn.py), predictions carried",

@@ -190,8 +190,30 @@ def _openapi_with_problems(app: FastAPI) -> Callable[[], dict[str, Any]]:
     return openapi
 
 
+@asynccontextmanager
+async def map_registry(app: FastAPI) -> AsyncIterator[None]:
+    """The maps of the data directory: opened and recovered by replay at start, closed at shutdown."""
+    from service.runtime import MapRegistry
+
+    s = app.state.settings
+    try:
+        registry = await anyio.to_thread.run_sync(MapRegistry, s.data_dir, app.state.encoder, s)
+        await anyio.to_thread.run_sync(registry.start)
+    except Exception:
+        # /readyz says why (data directory, catalog); the process stays alive for /healthz.
+        log.exception("cannot open the maps in %s; the service will not be ready", s.data_dir)
+        yield
+        return
+    app.state.registry = registry
+    app.state.maps = registry.maps
+    try:
+        yield
+    finally:
+        await anyio.to_thread.run_sync(registry.close)
+
+
 def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFactory | None = None,
-               components: Sequence[Component] = ()) -> FastAPI:
+               components: Sequence[Component] = (map_registry,)) -> FastAPI:
     """Build the app; settings are read and the encoder built when it starts, not here.
 
     Args:

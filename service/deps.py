@@ -24,8 +24,8 @@ from service.errors import Problem
 from service.routes.metrics import Metrics
 from service.settings import Settings
 
-__all__ = ["ApiKeyDep", "EncoderDep", "MapsDep", "MetricsDep", "SettingsDep", "get_encoder", "get_maps",
-           "get_metrics", "get_settings", "require_api_key"]
+__all__ = ["ApiKeyDep", "EncoderDep", "MapsDep", "MetricsDep", "RegistryDep", "SettingsDep", "get_encoder",
+           "get_maps", "get_metrics", "get_registry", "get_settings", "require_api_key"]
 
 
 def get_settings(request: Request) -> Settings:
@@ -57,6 +57,16 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 EncoderDep = Annotated[Encoder, Depends(get_encoder)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 MapsDep = Annotated[dict[str, Any], Depends(get_maps)]
+
+
+def get_registry(request: Request) -> Any:
+    registry = getattr(request.app.state, "registry", None)
+    if registry is None:
+        raise Problem(503, "not-ready", "the maps are not loaded yet")
+    return registry
+
+
+RegistryDep = Annotated[Any, Depends(get_registry)]  # service.runtime.MapRegistry
 
 _api_key_header = APIKeyHeader(name="X-API-Key", scheme_name="ApiKey", auto_error=False,
                                description="the value of CORTEXLOC_API_KEY, when the server sets one")

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from service.routes import health, metrics
+from service.routes import health, maps, metrics, observations
 
 __all__ = ["api_router"]
 
 api_router = APIRouter()
 api_router.include_router(health.router)
 api_router.include_router(metrics.router)
+api_router.include_router(maps.router)
+api_router.include_router(observations.router)

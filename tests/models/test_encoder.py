@@ -102,7 +102,7 @@ def test_weights_file_is_used_and_named(tmp_path, monkeypatch):
 def test_bad_images_raise_one_typed_error(encoder):
     with pytest.raises(images.ImageError) as e:
         encoder.encode([b"not an image at all"])
-    assert e.value.code == "not-an-image"
+    assert e.value.code == "unsupported-format"
     good = png(scene(1))
     with pytest.raises(images.ImageError) as e:
         encoder.encode([good, good[: len(good) // 2]])  # one bad upload in a batch

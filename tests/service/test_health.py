@@ -67,8 +67,12 @@ def test_readyz_ready_with_a_random_weights_warning(client, tmp_path):
     assert enc["encoder"] == "alexnet-conv3/random-seed0:crop"
     assert "random weights" in enc["warning"]
     assert body["warnings"] == [enc["warning"]]
-    assert checks["maps"] == {"status": "pass", "count": 0, "maps": {}}
-    assert list((tmp_path / "data").iterdir()) == []  # the probe file is gone
+    # a fresh install serves the `default` map with no other step
+    assert checks["maps"] == {"status": "pass", "count": 1,
+                              "maps": {"default": {"state": "ready", "state_reason": None}}}
+    names = {p.name for p in (tmp_path / "data").iterdir()}
+    assert {"catalog.sqlite", "maps", "projections"} <= names
+    assert not [n for n in names if "probe" in n]  # the writability probe file is gone
 
 
 def test_readyz_not_ready_when_random_weights_are_not_allowed(tmp_path):
@@ -106,13 +110,16 @@ def test_readyz_not_ready_when_data_dir_is_read_only(tmp_path):
 
 
 def test_readyz_not_ready_when_data_dir_disappears(client, app, tmp_path):
+    import shutil
+
     data = tmp_path / "data"
-    data.rmdir()
+    shutil.rmtree(data)
     body = assert_not_ready(client.get("/readyz"))
     assert body["checks"]["data_dir"]["status"] == "fail"
 
 
 def test_readyz_reports_map_states(client, app):
+    app.state.maps = {}  # the states /readyz reads, apart from the runtime's own maps
     app.state.maps["lab"] = SimpleNamespace(state="ready", state_reason=None)
     app.state.maps["old"] = {"state": "failed", "state_reason": "database-corrupt"}
     r = client.get("/readyz")

@@ -1,0 +1,405 @@
+"""Map runtimes: one writer per map, the TM step, ranking, the commit, and recovery by replay.
+
+service.md §1.2–§1.4, §4.3–§4.4, §6. Each map owns a Temporal Memory, its sLSBH hasher (its own
+persisted projection), a `MapStore` (system of record) and an inverted index over winner cells. All
+work on a map runs in that map's single writer thread, in submission order, so the memory sees frames
+in arrival order and never two at once; different maps proceed in parallel.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import logging
+import re
+import shutil
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from models import presets, slsbh
+from models.temporal_memory import StreamContext, TemporalMemory, planned_bytes, validate
+from service.errors import Problem
+from storage.catalog import Catalog, MapExists, MapRecord
+from storage.index import IndexFull, InvertedIndex
+from storage.mapstore import MapMeta, MapStore, NewObservation, StoreCorrupt, cell_dtype_for
+
+log = logging.getLogger("cortexloc.runtime")
+T = TypeVar("T")
+
+MAP_ID_RE = re.compile(r"^[a-z0-9][a-z0-9._-]{0,63}$")
+STREAM_RE = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
+
+
+def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] | None = None,
+                   slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0) -> dict[str, Any]:
+    """Freeze a map's parameters: preset <- overrides (service.md §1.1).
+
+    Raises:
+        Problem: 422 invalid-configuration for an unknown preset or parameter, or inconsistent values.
+    """
+    errors: list[dict[str, str]] = []
+    try:
+        tm_params = presets.tm_params(preset, dict(tm or {}))
+    except (KeyError, ValueError) as e:
+        raise Problem(422, "invalid-configuration", str(e).strip("'\""),
+                      errors=[{"location": "body", "name": "tm" if tm else "preset",
+                               "message": str(e)}]) from e
+    s_conf = {"k": 1024, "s": 0.25, **presets.get(preset).get("slsbh", {}), **(slsbh_conf or {})}
+    unknown = set(s_conf) - {"k", "s", "seed"}
+    if unknown:
+        errors.append({"location": "body", "name": "slsbh", "message": f"unknown key(s) {sorted(unknown)}"})
+    if seed is not None:
+        tm_params["seed"] = int(seed)
+    s_conf.setdefault("seed", int(tm_params["seed"]))
+    try:
+        slsbh.n_ones(int(s_conf["k"]), float(s_conf["s"]))
+    except (ValueError, TypeError) as e:
+        errors.append({"location": "body", "name": "slsbh", "message": str(e)})
+    if int(s_conf.get("k", 0)) * 2 != int(tm_params["columnDimensions"]):
+        errors.append({"location": "body", "name": "slsbh.k",
+                       "message": f"2k must equal columnDimensions ({tm_params['columnDimensions']})"})
+    try:
+        warnings = validate(tm_params)
+    except ValueError as e:
+        errors.append({"location": "body", "name": "tm", "message": str(e)})
+        warnings = []
+    if errors:
+        raise Problem(422, "invalid-configuration", "; ".join(e["message"] for e in errors), errors=errors)
+    return {"preset": preset, "tm": tm_params, "slsbh": s_conf, "seed": int(tm_params["seed"]),
+            "exclude_recent": int(exclude_recent), "warnings": warnings}
+
+
+@dataclass
+class Stream:
+    """A stream's sequence state in one map (service.md §1.3)."""
+
+    context: StreamContext = field(default_factory=StreamContext)
+    step: int = 0  # steps since the context was last empty
+    last_learned_seq: int | None = None  # the learned observation the context continues
+    learning: bool | None = None  # mode of the last step (a switch to learning starts a new sequence)
+
+
+class MapRuntime:
+    """One map in memory, with its single writer thread.
+
+    Public methods run in the writer thread through `run`; the state lives in
+    `state` (`ready` | `recovering` | `failed`) and `state_reason`.
+    """
+
+    def __init__(self, record: MapRecord, map_dir: Path, projections_dir: Path, catalog: Catalog,
+                 encoder_id: str, feature_dim: int, max_streams: int, max_observations: int) -> None:
+        self.record = record
+        self.map_id = record.map_id
+        self.params = record.params
+        self.dir = map_dir
+        self.catalog = catalog
+        self.encoder_id = encoder_id
+        self.max_streams = max_streams
+        self.state = "recovering"
+        self.state_reason: str | None = None
+        self.streams: OrderedDict[str, Stream] = OrderedDict()
+        self._writer = ThreadPoolExecutor(1, thread_name_prefix=f"map-{self.map_id}")
+        self._lock = threading.Lock()
+        sha = self.params["projection_sha256"]
+        projection = slsbh.load_projection(projections_dir / f"{sha}.npy", sha,
+                                           shape=(feature_dim, int(self.params["slsbh"]["k"])))
+        self.hasher = slsbh.Hasher(projection, float(self.params["slsbh"]["s"]))
+        self.tm = TemporalMemory(self.params["tm"])
+        self.index = InvertedIndex(self.tm.n_cells, max_observations)
+        self.store: MapStore | None = None
+
+    # ------------------------------------------------------------------ writer
+
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        """Run `fn(*args)` in this map's writer thread, after everything submitted before it."""
+        fut: Future[T] = self._writer.submit(fn, *args)
+        return await asyncio.wrap_future(fut)
+
+    def submit(self, fn: Callable[..., T], *args: Any) -> Future[T]:
+        return self._writer.submit(fn, *args)
+
+    def close(self) -> None:
+        self._writer.shutdown(wait=True)
+        if self.store is not None:
+            self.store.close()
+
+    # ------------------------------------------------------------------ recovery
+
+    def recover(self) -> None:
+        """Open the store and rebuild the memory by replaying every observation (service.md §4.4).
+
+        Each replayed step must reproduce its stored winner cells; a divergence marks the map failed
+        rather than serving a different memory.
+        """
+        try:
+            self.store = MapStore.open(self.dir / "map.sqlite",
+                                       seq_floor=self.catalog.get_high_water(self.map_id))
+            if not self.store.quick_check():
+                raise StoreCorrupt("quick_check failed")
+        except StoreCorrupt as e:
+            self._fail("database-corrupt", str(e))
+            return
+        contexts: dict[str, StreamContext] = {}
+        replayed = 0
+        for row in self.store.rows():
+            ctx = contexts.setdefault(row.stream, StreamContext())
+            if row.context_prev_seq is None:
+                ctx.reset()
+            winners = self.tm.compute(row.input_sdr, learn=True, context=ctx)
+            if not np.array_equal(winners, row.winner_cells):
+                self._fail("replay-divergence", f"observation seq {row.seq} replayed to other winner cells")
+                return
+            self.index.add(row.seq, winners, row.stream)
+            replayed += 1
+        self.state, self.state_reason = "ready", None
+        log.info("map %s ready: replayed %d observations", self.map_id, replayed)
+
+    def _fail(self, reason: str, detail: str) -> None:
+        self.state, self.state_reason = "failed", reason
+        self.catalog.set_state(self.map_id, "failed", reason)
+        log.error("map %s failed (%s): %s", self.map_id, reason, detail)
+
+    def require_ready(self) -> None:
+        if self.state != "ready":
+            raise Problem(503, "map-unavailable", f"map {self.map_id!r} is {self.state}"
+                          + (f" ({self.state_reason})" if self.state_reason else ""),
+                          state=self.state, state_reason=self.state_reason)
+
+    # ------------------------------------------------------------------ streams
+
+    def _stream(self, name: str) -> Stream:
+        st = self.streams.get(name)
+        if st is None:
+            st = Stream()
+            self.streams[name] = st
+            while len(self.streams) > self.max_streams:
+                self.streams.popitem(last=False)  # the least recently used context is dropped (a reset)
+        self.streams.move_to_end(name)
+        return st
+
+    def reset_stream(self, name: str) -> dict[str, Any]:
+        st = self.streams.pop(name, None)
+        had = st is not None and st.context.active_cells.size > 0
+        return {"stream": name, "had_context": bool(had)}
+
+    # ------------------------------------------------------------------ observations
+
+    def observe(self, features: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
+                label: str | None) -> dict[str, Any]:
+        """One frame: TM step on the stream's context, ranking, and for learning the durable commit.
+
+        Args:
+            features: (D,) L2-normalised backbone features of the frame.
+
+        Returns:
+            The observation part of the response (service.md §1.2).
+        """
+        self.require_ready()
+        assert self.store is not None
+        if learn and len(self.index) >= self.index.max_observations:
+            raise Problem(409, "map-full", f"map {self.map_id!r} holds its maximum of "
+                          f"{self.index.max_observations} observations; localisation still works",
+                          max_observations=self.index.max_observations)
+        t0 = time.perf_counter()
+        code = self.hasher(features[None, :])[0]
+        t1 = time.perf_counter()
+        st = self._stream(stream)
+        if learn and st.learning is False:
+            st.context.reset()  # a switch to mapping starts a new sequence: replay relies on it
+            st.step, st.last_learned_seq = 0, None
+        if st.context.active_cells.size == 0:
+            st.step, st.last_learned_seq = 0, None
+        winners = self.tm.compute(code, learn=learn, context=st.context)
+        stats = st.context.stats.as_dict()
+        t2 = time.perf_counter()
+        exclude_recent = int(self.params.get("exclude_recent", 0))
+        matches = self.index.rank(winners, top_k, exclude_recent_stream=stream if exclude_recent else None,
+                                  exclude_recent=exclude_recent) if top_k > 0 else []
+        t3 = time.perf_counter()
+        seq = obs_id = None
+        if learn:
+            row = NewObservation(stream=stream, image_sha256=image_sha256,
+                                 input_sdr=code.astype(np.int64), winner_cells=winners,
+                                 context_prev_seq=st.last_learned_seq, label=label)
+            try:
+                seq = self.store.append(row)
+            except Exception:
+                # The TM learned a step that is not on disk: rebuild from the store before any other.
+                self.state, self.state_reason = "recovering", "commit-failed"
+                self.tm = TemporalMemory(self.params["tm"])
+                self.index = InvertedIndex(self.tm.n_cells, self.index.max_observations)
+                self.streams.clear()
+                self.recover()
+                raise
+            obs_id = row.observation_id
+            with contextlib.suppress(IndexFull):  # checked above; the row is durable either way
+                self.index.add(seq, winners, stream)
+            st.last_learned_seq = seq
+        st.learning = learn
+        st.step += 1
+        t4 = time.perf_counter()
+        rows = self.store.get_many(m.seq for m in matches) if matches else {}
+        return {
+            "learned": learn, "observation_id": obs_id, "seq": seq,
+            "sequence": {"step": st.step - 1, "active_columns": stats["active_columns"],
+                         "predicted_columns": stats["predicted_columns"],
+                         "bursting_columns": stats["bursting_columns"],
+                         "winner_cells": stats["winner_cells"]},
+            "matches": [{"rank": i + 1, "observation_id": rows[m.seq].observation_id, "seq": m.seq,
+                         "stream": rows[m.seq].stream, "label": rows[m.seq].label,
+                         "created_at": rows[m.seq].created_at, "overlap": int(m.overlap),
+                         "score": float(m.score)} for i, m in enumerate(matches)],
+            "timings_ms": {"hash": (t1 - t0) * 1e3, "tm": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3,
+                           "store": (t4 - t3) * 1e3},
+            "map_seq": self.store.last_seq(),
+        }
+
+    # ------------------------------------------------------------------ resources
+
+    def resource(self) -> dict[str, Any]:
+        p = self.params
+        return {"map_id": self.map_id, "created_at": self.record.created_at, "state": self.state,
+                "state_reason": self.state_reason, "preset": p["preset"],
+                "params": {"tm": p["tm"], "slsbh": p["slsbh"], "seed": p["seed"],
+                           "exclude_recent": p["exclude_recent"]},
+                "encoder": p["encoder_id"], "projection_sha256": p["projection_sha256"],
+                "observations": len(self.index), "last_seq": self.store.last_seq() if self.store else 0,
+                "streams": list(self.streams), "warnings": p.get("warnings", [])}
+
+    def memory(self) -> dict[str, Any]:
+        size = self.tm.size()
+        store = self.store
+        return {
+            "tm": {"columns": size["columns"], "cells_per_column": self.tm.cells_per_column,
+                   "cells": size["cells"],
+                   "max_segments_per_cell": int(self.params["tm"]["maxSegmentsPerCell"]),
+                   "max_synapses_per_segment": int(self.params["tm"]["maxSynapsesPerSegment"]),
+                   "segments": size["segments"], "segment_capacity": size["segment_capacity"],
+                   "synapses": size["synapses"], "synapse_capacity": size["synapse_capacity"],
+                   "allocated_bytes": size["bytes"], "evicted_segments_total": size["evictions"],
+                   "overrun_synapses_total": size["overrun_destroyed"]},
+            "index": {"observations": len(self.index), "max_observations": self.index.max_observations,
+                      "postings": self.index.postings(), "bytes": self.index.nbytes()},
+            "streams": {"count": len(self.streams), "max": self.max_streams,
+                        "bytes": sum(sum(v.nbytes for v in s.context.state_dict().values())
+                                     for s in self.streams.values())},
+            "projection_bytes": int(np.asarray(self.hasher.P).nbytes) if not self.hasher.sparse else 0,
+            "storage": {"db_bytes": store.db_bytes() if store else 0,
+                        "wal_bytes": store.wal_bytes() if store else 0,
+                        "snapshots_bytes": self.catalog.snapshots_bytes(self.map_id)},
+        }
+
+    def tm_digest(self) -> str:
+        """SHA-256 over the learned arrays and generator state (tests: 'nothing changed')."""
+        h = hashlib.sha256()
+        for k, v in sorted(self.tm.state_dict().items()):
+            if not k.startswith("ctx."):
+                h.update(k.encode())
+                h.update(np.ascontiguousarray(v).tobytes())
+        return h.hexdigest()
+
+
+class MapRegistry:
+    """All maps of one data directory: the catalog, the projections, and a runtime per map."""
+
+    def __init__(self, data_dir: Path, encoder: Any, settings: Any) -> None:
+        self.data_dir = Path(data_dir)
+        self.encoder = encoder
+        self.settings = settings
+        self.catalog = Catalog.open(self.data_dir / "catalog.sqlite")
+        self.projections = self.data_dir / "projections"
+        self.projections.mkdir(parents=True, exist_ok=True)
+        self.maps: dict[str, MapRuntime] = {}
+        self._create_lock = threading.Lock()
+
+    def _runtime(self, record: MapRecord) -> MapRuntime:
+        s = self.settings
+        return MapRuntime(record, self.data_dir / "maps" / record.map_id, self.projections, self.catalog,
+                          self.encoder.identity, self.encoder.feature_dim, s.max_streams, s.max_observations)
+
+    def start(self) -> None:
+        """Open every map and recover it by replay; create `default` on a fresh install."""
+        for record in self.catalog.list_maps():
+            rt = self._runtime(record)
+            self.maps[record.map_id] = rt
+            if record.params.get("encoder_id") != self.encoder.identity:
+                rt.state, rt.state_reason = "failed", "encoder-mismatch"
+                log.error("map %s was built with encoder %s, this server runs %s", record.map_id,
+                          record.params.get("encoder_id"), self.encoder.identity)
+                continue
+            rt.recover()
+        if not self.maps:
+            self.create("default", preset=self.settings.default_preset)
+
+    def close(self) -> None:
+        for rt in self.maps.values():
+            rt.close()
+        self.catalog.close()
+
+    def get(self, map_id: str) -> MapRuntime:
+        rt = self.maps.get(map_id)
+        if rt is None:
+            raise Problem(404, "map-not-found", f"no map {map_id!r}", map_id=map_id)
+        return rt
+
+    def create(self, map_id: str, *, preset: str, seed: int | None = None, tm: dict[str, Any] | None = None,
+               slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0) -> MapRuntime:
+        """Create a map: resolve and freeze parameters, persist the projection, then the store (§1.1)."""
+        if not MAP_ID_RE.match(map_id):
+            raise Problem(400, "invalid-parameter", f"map_id {map_id!r} must match {MAP_ID_RE.pattern}",
+                          errors=[{"location": "body", "name": "map_id", "message": "invalid identifier"}])
+        params = resolve_params(preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf,
+                                exclude_recent=exclude_recent)
+        need = planned_bytes(params["tm"])
+        if need > self.settings.max_map_bytes:
+            raise Problem(422, "map-too-large", f"this configuration preallocates {need} bytes, more than "
+                          f"CORTEXLOC_MAX_MAP_BYTES={self.settings.max_map_bytes}",
+                          required_bytes=need, max_bytes=self.settings.max_map_bytes)
+        with self._create_lock:
+            if map_id in self.maps:
+                raise Problem(409, "map-exists", f"map {map_id!r} exists", map_id=map_id)
+            if len(self.maps) >= self.settings.max_maps:
+                raise Problem(409, "map-limit", f"at most {self.settings.max_maps} maps",
+                              max_maps=self.settings.max_maps)
+            s_conf = params["slsbh"]
+            P = slsbh.make_projection(self.encoder.feature_dim, int(s_conf["k"]), int(s_conf["seed"]))
+            _, sha = slsbh.save_projection(P, self.projections)
+            del P
+            params["projection_sha256"] = sha
+            params["encoder_id"] = self.encoder.identity
+            if self.encoder.identity.split("/")[1].startswith("random"):
+                log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, self.encoder.identity)
+            map_dir = self.data_dir / "maps" / map_id
+            if map_dir.exists():
+                shutil.rmtree(map_dir)  # leftovers of a creation that never reached the catalog
+            map_dir.mkdir(parents=True)
+            store = MapStore.create(map_dir / "map.sqlite", MapMeta(
+                map_id=map_id, params=params, projection_sha256=sha, encoder_id=self.encoder.identity,
+                cell_dtype=cell_dtype_for(int(params["tm"]["columnDimensions"])
+                                          * int(params["tm"]["cellsPerColumn"]))))
+            store.close()
+            try:
+                record = self.catalog.create_map(map_id, params, preset=preset, state="ready")
+            except MapExists as e:
+                raise Problem(409, "map-exists", f"map {map_id!r} exists", map_id=map_id) from e
+            rt = self._runtime(record)
+            rt.recover()
+            self.maps[map_id] = rt
+            return rt
+
+    def delete(self, map_id: str) -> None:
+        rt = self.get(map_id)
+        with self._create_lock:
+            self.maps.pop(map_id, None)
+            rt.close()
+            self.catalog.delete_map(map_id)
+            shutil.rmtree(self.data_dir / "maps" / map_id, ignore_errors=True)

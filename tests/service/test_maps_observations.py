@@ -1,0 +1,171 @@
+"""Maps and observations through the HTTP API, in process: mapping, localisation, revisits, restart,
+bad input, and what every one of them leaves stored."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import build_encoder, create_app
+from service.errors import PROBLEM_MEDIA_TYPE
+from service.settings import Settings
+
+
+def make_client(data_dir, **overrides) -> TestClient:
+    app = create_app(Settings(data_dir=data_dir, **overrides),
+                     encoder_factory=lambda s: build_encoder(s, slsbh={"k": 16}))
+    return TestClient(app)
+
+
+def frame(place: int, noise: float = 0.0, fmt: str = ".png") -> bytes:
+    """A 'camera frame' of a place: a smooth random scene per place, optionally re-noised."""
+    rng = np.random.default_rng(place)
+    img = cv2.resize(rng.integers(0, 256, (12, 16, 3), dtype=np.uint8), (128, 96),
+                     interpolation=cv2.INTER_CUBIC).astype(np.float32)
+    if noise:
+        img += np.random.default_rng(1000 + place).normal(0, noise, img.shape)
+    ok, buf = cv2.imencode(fmt, np.clip(img, 0, 255).astype(np.uint8))
+    assert ok
+    return buf.tobytes()
+
+
+def post(c: TestClient, body: bytes, map_id: str = "default", ctype: str = "image/png", **params):
+    return c.post(f"/v1/maps/{map_id}/observations", content=body, headers={"Content-Type": ctype},
+                  params=params)
+
+
+def state_of(c: TestClient, map_id: str = "default") -> tuple:
+    """Everything a 4xx or a localisation must leave as it was."""
+    rt = c.app.state.registry.get(map_id)
+    return rt.store.count(), rt.store.last_seq(), rt.tm_digest(), len(rt.index)
+
+
+@pytest.fixture
+def client(tmp_path):
+    with make_client(tmp_path / "data") as c:
+        yield c
+
+
+def test_fresh_install_serves_the_default_map(client):
+    r = client.get("/v1/maps")
+    assert r.status_code == 200 and [m["map_id"] for m in r.json()["maps"]] == ["default"]
+    r = post(client, frame(1))
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["learned"] is True and body["seq"] == 1 and body["observation_id"]
+    assert body["matches"] == [] and body["versions"]["weights"] == "random"
+    assert set(body["timings_ms"]) >= {"decode", "encode", "tm", "search", "store", "total"}
+    assert body["sequence"]["step"] == 0
+
+
+def test_a_revisited_place_ranks_first(client):
+    route = [frame(p) for p in range(8)]
+    for img in route:
+        assert post(client, img, learn="true").status_code == 200
+    client.post("/v1/maps/default/streams/default/reset")
+    # Localisation needs sequence context, as the paper's protocol: a few frames of the same route.
+    for p in (1, 2):
+        post(client, frame(p, noise=4.0), learn="false", top_k=0)
+    r = post(client, frame(3, noise=4.0), learn="false", top_k=3)
+    body = r.json()
+    assert r.status_code == 200 and body["learned"] is False and body["seq"] is None
+    assert body["sequence"]["predicted_columns"] > 0
+    assert body["matches"][0]["seq"] == 4  # place 3 was the 4th observation
+    assert body["matches"][0]["score"] >= body["matches"][1]["score"]
+    assert 0 < body["matches"][0]["score"] <= 1
+
+
+def test_localisation_changes_nothing_stored(client):
+    for p in range(4):
+        post(client, frame(p))
+    before = state_of(client)
+    for p in range(4):
+        assert post(client, frame(p, noise=3.0), learn="false").status_code == 200
+    assert state_of(client) == before
+
+
+def test_restart_rebuilds_the_same_memory_by_replay(tmp_path):
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        for p in (0, 1, 2, 0, 1):
+            post(c, frame(p), stream="robot-1")
+        post(c, frame(5), stream="robot-2")
+        before = state_of(c)
+        answer = post(c, frame(2, noise=3.0), learn="false", stream="probe").json()["matches"]
+    with make_client(data) as c:
+        assert c.get("/readyz").status_code == 200
+        assert state_of(c) == before
+        again = post(c, frame(2, noise=3.0), learn="false", stream="probe").json()["matches"]
+    assert again == answer
+
+
+def test_create_get_delete_a_map_and_memory_sizes(client):
+    r = client.post("/v1/maps", json={"map_id": "lab", "tm": {"cellsPerColumn": 2}})
+    assert r.status_code == 201, r.text
+    assert r.headers["Location"] == "/v1/maps/lab"
+    assert r.json()["params"]["tm"]["cellsPerColumn"] == 2
+    assert client.post("/v1/maps", json={"map_id": "lab"}).status_code == 409
+    post(client, frame(1), map_id="lab")
+    mem = client.get("/v1/maps/lab/memory").json()
+    assert mem["tm"]["cells"] == 128 * 2 and mem["index"]["observations"] == 1
+    assert mem["tm"]["allocated_bytes"] > 0 and mem["storage"]["db_bytes"] > 0
+    assert client.delete("/v1/maps/lab").status_code == 204
+    assert client.get("/v1/maps/lab").status_code == 404
+
+
+@pytest.mark.parametrize("payload, status, slug", [
+    ({"tm": {"minThreshold": 20, "activationThreshold": 4}}, 422, "invalid-configuration"),
+    ({"tm": {"bogus": 1}}, 422, "invalid-configuration"),
+    ({"preset": "no-such-preset"}, 422, "invalid-configuration"),
+    ({"map_id": "Bad/Id"}, 400, "invalid-parameter"),
+    ({"unknown_field": 1}, 400, "invalid-parameter"),
+    ({"preset": "cba2020-nordland"}, 422, "map-too-large"),
+])
+def test_bad_map_creation_is_refused(client, payload, status, slug):
+    r = client.post("/v1/maps", json=payload)
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
+    assert r.json()["type"] == f"urn:cortexloc:problem:{slug}"
+    assert [m["map_id"] for m in client.get("/v1/maps").json()["maps"]] == ["default"]
+
+
+def bad_inputs() -> list[tuple[str, bytes, str, dict, int, str]]:
+    png = frame(1)
+    jpg = frame(1, fmt=".jpg")
+    return [
+        ("empty", b"", "image/png", {}, 422, "undecodable-image"),
+        ("one byte", b"\x89", "image/png", {}, 422, "undecodable-image"),
+        ("random bytes", bytes(range(256)) * 4, "application/octet-stream", {}, 415,
+         "unsupported-media-type"),
+        ("truncated png", png[: len(png) // 2], "image/png", {}, 422, "undecodable-image"),
+        ("jpeg declared as png", jpg, "image/png", {}, 415, "unsupported-media-type"),
+        ("text/plain", png, "text/plain", {}, 415, "unsupported-media-type"),
+        ("bmp", frame(1, fmt=".bmp"), "application/octet-stream", {}, 415, "unsupported-media-type"),
+        ("learn=maybe", png, "image/png", {"learn": "maybe"}, 400, "invalid-parameter"),
+        ("top_k=-1", png, "image/png", {"top_k": -1}, 400, "invalid-parameter"),
+        ("top_k too big", png, "image/png", {"top_k": 10_000}, 400, "invalid-parameter"),
+        ("stream with /", png, "image/png", {"stream": "a/b"}, 400, "invalid-parameter"),
+    ]
+
+
+@pytest.mark.parametrize("case", bad_inputs(), ids=lambda c: c[0])
+def test_bad_input_gets_a_problem_and_changes_nothing(client, case):
+    _, body, ctype, params, status, slug = case
+    post(client, frame(7))
+    before = state_of(client)
+    r = post(client, body, ctype=ctype, **params)
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
+    assert r.json()["type"] == f"urn:cortexloc:problem:{slug}"
+    assert state_of(client) == before
+
+
+def test_unknown_map_and_oversized_upload(client):
+    r = post(client, frame(1), map_id="nope")
+    assert r.status_code == 404 and r.json()["type"].endswith("map-not-found")
+    with make_client(client.app.state.settings.data_dir.parent / "small", max_upload_bytes=1000) as c:
+        r = post(c, frame(1))
+        assert r.status_code == 413 and r.json()["type"].endswith("payload-too-large")
+        assert c.app.state.registry.get("default").store.count() == 0
