@@ -22,7 +22,7 @@ test: install lint
 	$(BIN)/pytest -q
 
 run: install
-	$(BIN)/cortexloc eval grid --generate --aliasing 5 --noise 0.5 --seeds 3
+	$(BIN)/cortexloc serve
 
 bench: install
 	$(BIN)/python benchmarks/run_all.py

@@ -308,6 +308,15 @@ class MapRuntime:
         return h.hexdigest()
 
 
+def _warm_up() -> None:
+    """Compile the TM kernels now (numba, cached on disk), not during the first client's request."""
+    tm = TemporalMemory({"columnDimensions": 64, "cellsPerColumn": 4, "maxSegmentsPerCell": 2,
+                         "maxSynapsesPerSegment": 4, "activationThreshold": 2, "minThreshold": 1})
+    for x in ([1, 2, 3], [4, 5, 6], [1, 2, 3], [4, 5, 6]):
+        tm.compute(np.array(x), learn=True)
+    tm.compute(np.array([1, 2, 3]), learn=False)
+
+
 class MapRegistry:
     """All maps of one data directory: the catalog, the projections, and a runtime per map."""
 
@@ -328,6 +337,7 @@ class MapRegistry:
 
     def start(self) -> None:
         """Open every map and recover it by replay; create `default` on a fresh install."""
+        _warm_up()
         for record in self.catalog.list_maps():
             rt = self._runtime(record)
             self.maps[record.map_id] = rt
