@@ -28,7 +28,8 @@ import numpy as np
 from models import presets, slsbh
 from models.temporal_memory import StreamContext, TemporalMemory, planned_bytes, validate
 from service.errors import Problem
-from storage.catalog import Catalog, MapExists, MapRecord
+from storage import snapshots
+from storage.catalog import Catalog, MapExists, MapRecord, SnapshotRecord
 from storage.index import IndexFull, InvertedIndex
 from storage.mapstore import MapMeta, MapStore, NewObservation, StoreCorrupt, cell_dtype_for
 
@@ -78,6 +79,11 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
             "exclude_recent": int(exclude_recent), "warnings": warnings}
 
 
+def snapshot_resource(rec: SnapshotRecord) -> dict[str, Any]:
+    return {"snapshot_id": rec.snapshot_id, "seq": rec.seq, "kind": rec.kind, "created_at": rec.created_at,
+            "bytes": rec.bytes, "manifest_sha256": rec.manifest_sha256}
+
+
 @dataclass
 class Stream:
     """A stream's sequence state in one map (service.md §1.3)."""
@@ -96,7 +102,8 @@ class MapRuntime:
     """
 
     def __init__(self, record: MapRecord, map_dir: Path, projections_dir: Path, catalog: Catalog,
-                 encoder_id: str, feature_dim: int, max_streams: int, max_observations: int) -> None:
+                 encoder_id: str, feature_dim: int, max_streams: int, max_observations: int,
+                 snapshot_every: int = 0, snapshot_keep: int = 3) -> None:
         self.record = record
         self.map_id = record.map_id
         self.params = record.params
@@ -104,13 +111,16 @@ class MapRuntime:
         self.catalog = catalog
         self.encoder_id = encoder_id
         self.max_streams = max_streams
+        self.snapshot_every = snapshot_every
+        self.snapshot_keep = snapshot_keep
         self.state = "recovering"
         self.state_reason: str | None = None
         self.streams: OrderedDict[str, Stream] = OrderedDict()
         self._writer = ThreadPoolExecutor(1, thread_name_prefix=f"map-{self.map_id}")
         self._lock = threading.Lock()
         sha = self.params["projection_sha256"]
-        projection = slsbh.load_projection(projections_dir / f"{sha}.npy", sha,
+        self.projection_path = projections_dir / f"{sha}.npy"
+        projection = slsbh.load_projection(self.projection_path, sha,
                                            shape=(feature_dim, int(self.params["slsbh"]["k"])))
         self.hasher = slsbh.Hasher(projection, float(self.params["slsbh"]["s"]))
         self.tm = TemporalMemory(self.params["tm"])
@@ -128,9 +138,95 @@ class MapRuntime:
         return self._writer.submit(fn, *args)
 
     def close(self) -> None:
+        """Drain the writer; at a clean shutdown take an automatic snapshot if anything is new."""
         self._writer.shutdown(wait=True)
-        if self.store is not None:
-            self.store.close()
+        if self.store is None:
+            return
+        latest = self.catalog.list_snapshots(self.map_id)
+        if (self.state == "ready" and self.snapshot_every
+                and self.store.last_seq() > (latest[0].seq if latest else 0)):
+            try:
+                self.snapshot("auto")
+                self._prune_auto(self.snapshot_keep)
+            except Exception:  # the rows are durable; a snapshot only shortens the next replay
+                log.exception("map %s: shutdown snapshot failed", self.map_id)
+        self.store.close()
+
+    def snapshots(self) -> list[dict[str, Any]]:
+        return [snapshot_resource(r) for r in self.catalog.list_snapshots(self.map_id)]
+
+    def snapshot_dir(self, snapshot_id: str) -> Path:
+        rec = self.catalog.get_snapshot(self.map_id, snapshot_id)
+        if rec is None:
+            raise Problem(404, "snapshot-not-found", f"no snapshot {snapshot_id!r} of map {self.map_id!r}",
+                          map_id=self.map_id)
+        return Path(rec.path)
+
+    # ------------------------------------------------------------------ memory state
+
+    def memory_state(self) -> dict[str, np.ndarray]:
+        """The whole memory as arrays: TM, generator, every stream's context and bookkeeping."""
+        names = {name.encode().hex(): name for name in self.streams}  # stream names may hold '.'
+        state = self.tm.state_dict(streams={h: self.streams[n].context for h, n in names.items()})
+        for h, n in names.items():
+            st = self.streams[n]
+            state[f"streammeta.{h}"] = np.array(
+                [st.step, -1 if st.last_learned_seq is None else st.last_learned_seq,
+                 -1 if st.learning is None else int(st.learning)], dtype=np.int64)
+        return state
+
+    def load_memory_state(self, state: dict[str, np.ndarray]) -> None:
+        self.tm = TemporalMemory.from_state(state)
+        self.streams = OrderedDict()
+        for h, ctx in TemporalMemory.load_streams(state).items():
+            step, last, learning = (int(v) for v in state[f"streammeta.{h}"])
+            self.streams[bytes.fromhex(h).decode()] = Stream(
+                ctx, step, None if last < 0 else last, None if learning < 0 else bool(learning))
+
+    # ------------------------------------------------------------------ snapshots
+
+    def snapshot(self, kind: str = "manual") -> dict[str, Any]:
+        """A consistent cut at the current seq, taken by the writer (service.md §1.5, §4.4)."""
+        assert self.store is not None
+        sid = snapshots.new_snapshot_id()
+        dest = self.dir / "snapshots" / sid
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        t0 = time.perf_counter()
+        m = snapshots.create_snapshot(self.store, self.memory_state(), dest, kind=kind,
+                                      external={"projection.npy": self.projection_path})
+        rec = self.catalog.register_snapshot(SnapshotRecord(
+            snapshot_id=m.snapshot_id, map_id=self.map_id, seq=m.seq, kind=kind, created_at=m.created_at,
+            bytes=m.bytes, manifest_sha256=m.manifest_sha256, path=str(dest)))
+        log.info("map %s: %s snapshot %s at seq %d in %.2f s", self.map_id, kind, sid, m.seq,
+                 time.perf_counter() - t0)
+        return snapshot_resource(rec)
+
+    def _prune_auto(self, keep: int) -> None:
+        for rec in self.catalog.list_snapshots(self.map_id, kind="auto")[keep:]:
+            self.catalog.delete_snapshot(self.map_id, rec.snapshot_id)
+            shutil.rmtree(rec.path, ignore_errors=True)
+
+    def restore(self, snapshot_id: str) -> dict[str, Any]:
+        """Roll the map back to a snapshot, after keeping the present in a pre-restore snapshot."""
+        assert self.store is not None
+        rec = self.catalog.get_snapshot(self.map_id, snapshot_id)
+        if rec is None:
+            raise Problem(404, "snapshot-not-found", f"no snapshot {snapshot_id!r} of map {self.map_id!r}",
+                          map_id=self.map_id)
+        snapshots.verify(rec.path)  # refuse a damaged snapshot before touching anything
+        before = self.store.count()
+        self.snapshot("pre-restore")
+        self.catalog.bump_high_water(self.map_id, self.store.next_seq() - 1)
+        self.store.close()
+        MapStore.install_copy(Path(rec.path) / "map.sqlite", self.dir / "map.sqlite")
+        self.store = MapStore.open(self.dir / "map.sqlite",
+                                   seq_floor=self.catalog.get_high_water(self.map_id))
+        self.load_memory_state(snapshots.load_memory(rec.path))
+        self.index = InvertedIndex(self.tm.n_cells, self.index.max_observations)
+        self.index.rebuild(self.store.rows())
+        out = self.resource()
+        out["discarded_observations"] = before - self.store.count()
+        return out
 
     # ------------------------------------------------------------------ recovery
 
@@ -148,9 +244,10 @@ class MapRuntime:
         except StoreCorrupt as e:
             self._fail("database-corrupt", str(e))
             return
-        contexts: dict[str, StreamContext] = {}
+        after = self._load_newest_snapshot()
+        contexts = {name: st.context for name, st in self.streams.items()}
         replayed = 0
-        for row in self.store.rows():
+        for row in self.store.rows(after_seq=after):
             ctx = contexts.setdefault(row.stream, StreamContext())
             if row.context_prev_seq is None:
                 ctx.reset()
@@ -158,10 +255,34 @@ class MapRuntime:
             if not np.array_equal(winners, row.winner_cells):
                 self._fail("replay-divergence", f"observation seq {row.seq} replayed to other winner cells")
                 return
-            self.index.add(row.seq, winners, row.stream)
+            st = self.streams.setdefault(row.stream, Stream(ctx))
+            st.context, st.last_learned_seq, st.learning = ctx, row.seq, True
             replayed += 1
+        self.index = InvertedIndex(self.tm.n_cells, self.index.max_observations)
+        self.index.rebuild(self.store.rows())
         self.state, self.state_reason = "ready", None
         log.info("map %s ready: replayed %d observations", self.map_id, replayed)
+
+    def _load_newest_snapshot(self) -> int:
+        """Load the newest snapshot that verifies and lies on the store's branch; return its seq."""
+        assert self.store is not None
+        for rec in self.catalog.list_snapshots(self.map_id):
+            try:
+                m = snapshots.verify(rec.path)
+            except snapshots.SnapshotInvalid as e:
+                log.warning("map %s: snapshot %s skipped: %s", self.map_id, rec.snapshot_id, e)
+                continue
+            if m.seq > 0:
+                row = self.store.get(m.seq)
+                if row is None or row.observation_id != m.last_observation_id:
+                    continue  # from a branch a restore abandoned
+            self.load_memory_state(snapshots.load_memory(rec.path))
+            # A localisation stream's context was never durable: after a restart it starts afresh
+            # (service.md §1.2, sequence.step), whatever the snapshot held.
+            for name in [n for n, st in self.streams.items() if st.learning is False]:
+                del self.streams[name]
+            return m.seq
+        return 0
 
     def _fail(self, reason: str, detail: str) -> None:
         self.state, self.state_reason = "failed", reason
@@ -244,6 +365,9 @@ class MapRuntime:
             with contextlib.suppress(IndexFull):  # checked above; the row is durable either way
                 self.index.add(seq, winners, stream)
             st.last_learned_seq = seq
+            if self.snapshot_every and seq % self.snapshot_every == 0:
+                self.snapshot("auto")
+                self._prune_auto(self.snapshot_keep)
         st.learning = learn
         st.step += 1
         t4 = time.perf_counter()
@@ -333,7 +457,8 @@ class MapRegistry:
     def _runtime(self, record: MapRecord) -> MapRuntime:
         s = self.settings
         return MapRuntime(record, self.data_dir / "maps" / record.map_id, self.projections, self.catalog,
-                          self.encoder.identity, self.encoder.feature_dim, s.max_streams, s.max_observations)
+                          self.encoder.identity, self.encoder.feature_dim, s.max_streams, s.max_observations,
+                          s.snapshot_every, s.snapshot_keep)
 
     def start(self) -> None:
         """Open every map and recover it by replay; create `default` on a fresh install."""

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from service.routes import health, maps, metrics, observations
+from service.routes import health, maps, metrics, observations, snapshots
 
 __all__ = ["api_router"]
 
@@ -17,3 +17,4 @@ api_router.include_router(health.router)
 api_router.include_router(metrics.router)
 api_router.include_router(maps.router)
 api_router.include_router(observations.router)
+api_router.include_router(snapshots.router)
