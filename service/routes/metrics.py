@@ -62,6 +62,8 @@ class Metrics:
                                         ["stage"], buckets=STAGE_BUCKETS, registry=self.registry)
         self.encoder_info = Gauge(PREFIX + "encoder_info", "The loaded encoder (value always 1)",
                                   ["weights", "encoder"], registry=self.registry)
+        self.observations = Counter(PREFIX + "observations", "Observations answered, by map and mode",
+                                    ["map", "learned"], registry=self.registry)
 
     def observe_stage(self, stage: str, seconds: float) -> None:
         """Record one duration of `stage` (seconds)."""

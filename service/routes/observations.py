@@ -10,7 +10,7 @@ import anyio
 from fastapi import APIRouter, Path, Query, Request
 
 from models import images
-from service.deps import ApiKeyDep, EncoderDep, RegistryDep, SettingsDep
+from service.deps import ApiKeyDep, EncoderDep, MetricsDep, RegistryDep, SettingsDep
 from service.errors import Problem, problem_responses
 
 router = APIRouter(prefix="/v1/maps", tags=["observations"])
@@ -30,6 +30,7 @@ async def post_observation(
     registry: RegistryDep,
     encoder: EncoderDep,
     settings: SettingsDep,
+    metrics: MetricsDep,
     learn: Annotated[bool, Query(description="true: mapping (stored, learned); false: localisation")] = True,
     top_k: Annotated[int, Query(ge=0, description="matches to return (0 skips ranking)")] = 5,
     stream: Annotated[str, Query(pattern=r"^[A-Za-z0-9._-]{1,64}$")] = "default",
@@ -64,6 +65,10 @@ async def post_observation(
     timings = {"decode": embedded.timings_ms["decode"], "encode": (t_encoded - t_checked) * 1e3,
                **result.pop("timings_ms"), "total": (t_done - t_start) * 1e3}
     map_seq = result.pop("map_seq")
+    for stage, ms in timings.items():
+        if stage != "total":
+            metrics.observe_stage(stage, ms / 1e3)
+    metrics.observations.labels(map=map_id, learned=str(learn).lower()).inc()
     return {"request_id": getattr(request.state, "request_id", None), "map_id": map_id, "stream": stream,
             **result, "timings_ms": {k: round(v, 3) for k, v in timings.items()},
             "versions": {"api": "v1", "code": request.app.version, "encoder": desc["encoder"],

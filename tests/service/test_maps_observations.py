@@ -61,6 +61,9 @@ def test_fresh_install_serves_the_default_map(client):
     assert body["matches"] == [] and body["versions"]["weights"] == "random"
     assert set(body["timings_ms"]) >= {"decode", "encode", "tm", "search", "store", "total"}
     assert body["sequence"]["step"] == 0
+    text = client.get("/metrics").text
+    assert 'cortexloc_observations_total{learned="true",map="default"} 1.0' in text
+    assert 'cortexloc_stage_duration_seconds_count{stage="tm"} 1.0' in text
 
 
 def test_a_revisited_place_ranks_first(client):
