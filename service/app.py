@@ -204,11 +204,15 @@ async def map_registry(app: FastAPI) -> AsyncIterator[None]:
         log.exception("cannot open the maps in %s; the service will not be ready", s.data_dir)
         yield
         return
+    from service.encoding import EncoderPool
+
     app.state.registry = registry
     app.state.maps = registry.maps
+    app.state.encoder_pool = EncoderPool(app.state.encoder, s.encoder_workers, s.encoder_queue)
     try:
         yield
     finally:
+        await anyio.to_thread.run_sync(app.state.encoder_pool.close)
         await anyio.to_thread.run_sync(registry.close)
 
 

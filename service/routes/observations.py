@@ -6,7 +6,6 @@ import hashlib
 import time
 from typing import Annotated, Any
 
-import anyio
 from fastapi import APIRouter, Path, Query, Request
 
 from models import images
@@ -56,13 +55,24 @@ async def post_observation(
         raise Problem(415, "unsupported-media-type", f"declared {media} but the bytes are {info.format}",
                       allowed=list(MEDIA_TYPES), detected=info.format)
     t_checked = time.perf_counter()
-    embedded = await anyio.to_thread.run_sync(encoder.embed, [body])
-    t_encoded = time.perf_counter()
-    result = await rt.run(lambda: rt.observe(embedded.features[0], hashlib.sha256(body).hexdigest(),
-                                             learn=learn, stream=stream, top_k=top_k, label=label))
+    # The ticket: the encoding starts now, concurrently with others, and the writer job is queued now,
+    # so the map's memory sees frames in the order their requests passed the checks.
+    encoding = request.app.state.encoder_pool.submit(body)
+    image_sha = hashlib.sha256(body).hexdigest()
+    stamps: dict[str, float] = {}
+
+    def step() -> dict[str, Any]:
+        embedded = encoding.result()  # an ImageError surfaces here, before anything stateful
+        stamps["encoded"] = time.perf_counter()
+        stamps["decode"] = embedded.timings_ms["decode"]
+        return rt.observe(embedded.features[0], image_sha, learn=learn, stream=stream, top_k=top_k,
+                          label=label)
+
+    result = await rt.run(step)
     t_done = time.perf_counter()
+    t_encoded = stamps["encoded"]
     desc = encoder.describe()
-    timings = {"decode": embedded.timings_ms["decode"], "encode": (t_encoded - t_checked) * 1e3,
+    timings = {"decode": stamps["decode"], "encode": (t_encoded - t_checked) * 1e3,
                **result.pop("timings_ms"), "total": (t_done - t_start) * 1e3}
     map_seq = result.pop("map_seq")
     for stage, ms in timings.items():

@@ -235,3 +235,44 @@ def test_download_is_a_complete_tar(client):
     assert set(names) == {"manifest.json", "map.sqlite", "memory.npz", "projection.npy"}
     assert client.get("/v1/maps/default/snapshots/nope/download").status_code == 404
     assert client.post("/v1/maps/default/snapshots/nope/restore").status_code == 404
+
+
+# -------------------------------------------------------------------------------------- concurrency
+
+
+def test_concurrent_clients_get_distinct_increasing_seqs_and_none_is_lost(client):
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(8) as pool:
+        replies = list(pool.map(lambda p: post(client, frame(p % 5), top_k=1), range(24)))
+    assert all(r.status_code == 200 for r in replies)
+    seqs = sorted(r.json()["seq"] for r in replies)
+    assert seqs == list(range(1, 25))
+    assert client.app.state.registry.get("default").store.count() == 24
+
+
+def test_a_full_encoder_queue_answers_503_and_stores_nothing(tmp_path):
+    import threading
+    import time as _time
+    from concurrent.futures import ThreadPoolExecutor
+
+    with make_client(tmp_path / "d", encoder_workers=1, encoder_queue=1) as c:  # 2 in flight at most
+        enc = c.app.state.encoder
+        gate = threading.Event()
+        real = enc.embed
+
+        def slow(data):
+            gate.wait(10)
+            return real(data)
+
+        enc.embed = slow
+        with ThreadPoolExecutor(4) as pool:
+            futs = [pool.submit(post, c, frame(p)) for p in range(4)]
+            _time.sleep(1.0)
+            gate.set()
+            statuses = sorted(f.result().status_code for f in futs)
+        enc.embed = real
+        assert statuses.count(503) >= 1 and 200 in statuses
+        busy = next(f.result() for f in futs if f.result().status_code == 503)
+        assert busy.headers["Retry-After"] == "1" and busy.json()["type"].endswith("overloaded")
+        assert c.app.state.registry.get("default").store.count() == statuses.count(200)
