@@ -29,6 +29,7 @@ from models import presets, slsbh
 from models.temporal_memory import StreamContext, TemporalMemory, planned_bytes, validate
 from service.errors import Problem
 from storage import snapshots
+from storage._common import StorageFull
 from storage.catalog import Catalog, MapExists, MapRecord, SnapshotRecord
 from storage.index import IndexFull, InvertedIndex
 from storage.mapstore import MapMeta, MapStore, NewObservation, StoreCorrupt, cell_dtype_for
@@ -131,20 +132,28 @@ class MapRuntime:
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
         """Run `fn(*args)` in this map's writer thread, after everything submitted before it."""
-        fut: Future[T] = self._writer.submit(fn, *args)
-        return await asyncio.wrap_future(fut)
+        return await asyncio.wrap_future(self.submit(fn, *args))
 
     def submit(self, fn: Callable[..., T], *args: Any) -> Future[T]:
-        return self._writer.submit(fn, *args)
+        try:
+            return self._writer.submit(fn, *args)
+        except RuntimeError as e:  # the writer was shut down: the map was deleted meanwhile
+            raise Problem(404, "map-not-found", f"no map {self.map_id!r}", map_id=self.map_id) from e
 
-    def close(self) -> None:
-        """Drain the writer; at a clean shutdown take an automatic snapshot if anything is new."""
+    def close(self, snapshot: bool = True) -> None:
+        """Drain the writer; at a clean shutdown take an automatic snapshot if anything is new.
+
+        "New" includes a stream that switched to localisation: that switch is not in the rows, and the
+        snapshot carries it (a localisation stream comes back empty, so its next mapping step starts a
+        new sequence as it would have without the restart).
+        """
         self._writer.shutdown(wait=True)
         if self.store is None:
             return
         latest = self.catalog.list_snapshots(self.map_id)
-        if (self.state == "ready" and self.snapshot_every
-                and self.store.last_seq() > (latest[0].seq if latest else 0)):
+        new_rows = self.store.last_seq() > (latest[0].seq if latest else 0)
+        switched = any(st.learning is False for st in self.streams.values())
+        if snapshot and self.state == "ready" and self.snapshot_every and (new_rows or switched):
             try:
                 self.snapshot("auto")
                 self._prune_auto(self.snapshot_keep)
@@ -256,6 +265,7 @@ class MapRuntime:
                 self._fail("replay-divergence", f"observation seq {row.seq} replayed to other winner cells")
                 return
             st = self.streams.setdefault(row.stream, Stream(ctx))
+            st.step = 1 if row.context_prev_seq is None else st.step + 1  # steps taken, as in observe
             st.context, st.last_learned_seq, st.learning = ctx, row.seq, True
             replayed += 1
         self.index = InvertedIndex(self.tm.n_cells, self.index.max_observations)
@@ -353,13 +363,17 @@ class MapRuntime:
                                  context_prev_seq=st.last_learned_seq, label=label)
             try:
                 seq = self.store.append(row)
-            except Exception:
+            except Exception as e:
                 # The TM learned a step that is not on disk: rebuild from the store before any other.
                 self.state, self.state_reason = "recovering", "commit-failed"
+                self.store.close()
                 self.tm = TemporalMemory(self.params["tm"])
                 self.index = InvertedIndex(self.tm.n_cells, self.index.max_observations)
                 self.streams.clear()
                 self.recover()
+                if isinstance(e, StorageFull):
+                    raise Problem(507, "insufficient-storage", "the observation could not be stored: the "
+                                  "disk is full; nothing was learned") from e
                 raise
             obs_id = row.observation_id
             with contextlib.suppress(IndexFull):  # checked above; the row is durable either way
@@ -535,6 +549,6 @@ class MapRegistry:
         rt = self.get(map_id)
         with self._create_lock:
             self.maps.pop(map_id, None)
-            rt.close()
+            rt.close(snapshot=False)
             self.catalog.delete_map(map_id)
             shutil.rmtree(self.data_dir / "maps" / map_id, ignore_errors=True)

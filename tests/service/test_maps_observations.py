@@ -276,3 +276,35 @@ def test_a_full_encoder_queue_answers_503_and_stores_nothing(tmp_path):
         busy = next(f.result() for f in futs if f.result().status_code == 503)
         assert busy.headers["Retry-After"] == "1" and busy.json()["type"].endswith("overloaded")
         assert c.app.state.registry.get("default").store.count() == statuses.count(200)
+
+
+def test_restart_keeps_step_counts_and_the_switch_to_localisation(tmp_path):
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        for p in range(4):
+            post(c, frame(p), stream="a")
+        post(c, frame(9), stream="a", learn="false")  # a switch: the next mapping step starts anew
+        cont = post(c, frame(5), stream="b").json()["sequence"]["step"]
+    with make_client(data) as c:
+        assert post(c, frame(6), stream="b").json()["sequence"]["step"] == cont + 1
+        rt = c.app.state.registry.get("default")
+        seq = post(c, frame(7), stream="a").json()["seq"]
+        assert rt.store.get(seq).context_prev_seq is None
+
+
+def test_disk_full_is_507_and_nothing_is_learned(client, monkeypatch):
+    from storage._common import StorageFull
+    from storage.mapstore import MapStore
+
+    post(client, frame(1))
+    before = state_of(client)
+
+    def full(self, row):
+        raise StorageFull("database or disk is full")
+
+    monkeypatch.setattr(MapStore, "append", full)
+    r = post(client, frame(2))
+    assert r.status_code == 507 and r.json()["type"].endswith("insufficient-storage")
+    monkeypatch.undo()
+    assert state_of(client) == before
+    assert post(client, frame(2)).json()["seq"] == 2
