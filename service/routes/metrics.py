@@ -64,6 +64,29 @@ class Metrics:
                                   ["weights", "encoder"], registry=self.registry)
         self.observations = Counter(PREFIX + "observations", "Observations answered, by map and mode",
                                     ["map", "learned"], registry=self.registry)
+        labels = ["map"]
+        self.map_gauges = {
+            name: Gauge(PREFIX + "map_" + name, help_, labels, registry=self.registry)
+            for name, help_ in (("segments", "Live TM segments"), ("synapses", "Live TM synapses"),
+                                ("evictions", "TM segments evicted (least recently used) so far"),
+                                ("overruns", "TM synapses destroyed by overrun so far"),
+                                ("observations", "Learned observations stored"),
+                                ("memory_bytes", "Preallocated TM bytes"))}
+
+    def update_maps(self, maps: dict) -> None:
+        """Refresh the per-map gauges from the map runtimes (at scrape time: always current)."""
+        for g in self.map_gauges.values():
+            g.clear()
+        for map_id, rt in maps.items():
+            tm = getattr(rt, "tm", None)
+            if tm is None:
+                continue
+            size = tm.size()
+            values = {"segments": size["segments"], "synapses": size["synapses"],
+                      "evictions": size["evictions"], "overruns": size["overrun_destroyed"],
+                      "observations": len(rt.index), "memory_bytes": size["bytes"]}
+            for name, v in values.items():
+                self.map_gauges[name].labels(map=map_id).set(v)
 
     def observe_stage(self, stage: str, seconds: float) -> None:
         """Record one duration of `stage` (seconds)."""
@@ -147,4 +170,5 @@ router = APIRouter(tags=["operations"])
 def metrics(request: Request) -> Response:
     """Prometheus text format (`cortexloc_*`)."""
     m: Metrics = request.app.state.metrics
+    m.update_maps(getattr(request.app.state, "maps", None) or {})
     return Response(m.render(), media_type=CONTENT_TYPE_LATEST)

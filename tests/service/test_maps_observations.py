@@ -64,6 +64,8 @@ def test_fresh_install_serves_the_default_map(client):
     text = client.get("/metrics").text
     assert 'cortexloc_observations_total{learned="true",map="default"} 1.0' in text
     assert 'cortexloc_stage_duration_seconds_count{stage="tm"} 1.0' in text
+    assert 'cortexloc_map_observations{map="default"} 1.0' in text
+    assert 'cortexloc_map_memory_bytes{map="default"}' in text
 
 
 def test_a_revisited_place_ranks_first(client):
