@@ -121,9 +121,14 @@ class MapRuntime:
         self._lock = threading.Lock()
         sha = self.params["projection_sha256"]
         self.projection_path = projections_dir / f"{sha}.npy"
-        projection = slsbh.load_projection(self.projection_path, sha,
-                                           shape=(feature_dim, int(self.params["slsbh"]["k"])))
-        self.hasher = slsbh.Hasher(projection, float(self.params["slsbh"]["s"]))
+        self.hasher: slsbh.Hasher | None = None
+        self._projection_error: str | None = None
+        try:  # the checksum is verified on load: a map never runs on another matrix (science.md §7)
+            projection = slsbh.load_projection(self.projection_path, sha,
+                                               shape=(feature_dim, int(self.params["slsbh"]["k"])))
+            self.hasher = slsbh.Hasher(projection, float(self.params["slsbh"]["s"]))
+        except (slsbh.ProjectionError, OSError) as e:
+            self._projection_error = str(e)
         self.tm = TemporalMemory(self.params["tm"])
         self.index = InvertedIndex(self.tm.n_cells, max_observations)
         self.store: MapStore | None = None
@@ -245,6 +250,9 @@ class MapRuntime:
         Each replayed step must reproduce its stored winner cells; a divergence marks the map failed
         rather than serving a different memory.
         """
+        if self.hasher is None:
+            self._fail("projection-invalid", self._projection_error or "no projection")
+            return
         try:
             self.store = MapStore.open(self.dir / "map.sqlite",
                                        seq_floor=self.catalog.get_high_water(self.map_id))
@@ -341,6 +349,7 @@ class MapRuntime:
                           f"{self.index.max_observations} observations; localisation still works",
                           max_observations=self.index.max_observations)
         t0 = time.perf_counter()
+        assert self.hasher is not None  # a map without its projection is failed, never ready
         code = self.hasher(features[None, :])[0]
         t1 = time.perf_counter()
         st = self._stream(stream)
@@ -430,7 +439,7 @@ class MapRuntime:
             "streams": {"count": len(self.streams), "max": self.max_streams,
                         "bytes": sum(sum(v.nbytes for v in s.context.state_dict().values())
                                      for s in self.streams.values())},
-            "projection_bytes": int(np.asarray(self.hasher.P).nbytes) if not self.hasher.sparse else 0,
+            "projection_bytes": self.projection_path.stat().st_size if self.projection_path.exists() else 0,
             "storage": {"db_bytes": store.db_bytes() if store else 0,
                         "wal_bytes": store.wal_bytes() if store else 0,
                         "snapshots_bytes": self.catalog.snapshots_bytes(self.map_id)},

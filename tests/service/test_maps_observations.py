@@ -310,3 +310,22 @@ def test_disk_full_is_507_and_nothing_is_learned(client, monkeypatch):
     monkeypatch.undo()
     assert state_of(client) == before
     assert post(client, frame(2)).json()["seq"] == 2
+
+
+def test_a_map_whose_projection_changed_fails_alone(tmp_path):
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        post(c, frame(1))
+        c.post("/v1/maps", json={"map_id": "other", "seed": 5})
+        sha = c.get("/v1/maps/default").json()["projection_sha256"]
+    path = data / "projections" / f"{sha}.npy"
+    raw = bytearray(path.read_bytes())
+    raw[-1] ^= 0xFF  # one flipped bit in the matrix
+    path.write_bytes(bytes(raw))
+    with make_client(data) as c:
+        ready = c.get("/readyz")
+        assert ready.status_code == 200  # a failed map does not make the service unready
+        assert ready.json()["checks"]["maps"]["maps"]["default"]["state_reason"] == "projection-invalid"
+        r = post(c, frame(1))
+        assert r.status_code == 503 and r.json()["type"].endswith("map-unavailable")
+        assert c.get("/v1/maps/other").json()["state"] == "ready"
