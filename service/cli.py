@@ -376,6 +376,32 @@ def serve(
                 log_level=settings.log_level.lower())
 
 
+@app.command("import")
+def import_map(
+    tar: Annotated[Path, typer.Argument(exists=True, dir_okay=False,
+                                        help="A snapshot tar from /v1/maps/{map}/snapshots/{id}/download")],
+    data_dir: Annotated[Path | None, typer.Option(help="Data directory (default: $CORTEXLOC_DATA_DIR "
+                                                       "or ./var).")] = None,
+) -> None:
+    """Create a map from a snapshot tar, verifying every checksum (run while the server is stopped)."""
+    import os
+    from types import SimpleNamespace
+
+    from service.runtime import MapRegistry
+    from storage.snapshots import SnapshotInvalid
+
+    root = data_dir or Path(os.environ.get("CORTEXLOC_DATA_DIR", "./var"))
+    registry = MapRegistry(root, SimpleNamespace(identity="", feature_dim=0), settings=None)
+    try:
+        map_id = registry.import_snapshot(tar)
+    except (SnapshotInvalid, ValueError, OSError) as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1) from e
+    finally:
+        registry.catalog.close()
+    typer.echo(f"imported map {map_id!r} into {root}; it recovers from the snapshot when the server starts")
+
+
 def main() -> None:  # pragma: no cover - console entry point
     app()
 

@@ -471,6 +471,7 @@ class MapRegistry:
         self.data_dir = Path(data_dir)
         self.encoder = encoder
         self.settings = settings
+        self.data_dir.mkdir(parents=True, exist_ok=True)
         self.catalog = Catalog.open(self.data_dir / "catalog.sqlite")
         self.projections = self.data_dir / "projections"
         self.projections.mkdir(parents=True, exist_ok=True)
@@ -553,6 +554,49 @@ class MapRegistry:
             rt.recover()
             self.maps[map_id] = rt
             return rt
+
+    def import_snapshot(self, tar_path: Path) -> str:
+        """Create a map from a downloaded snapshot tar (`cortexloc import`, server stopped).
+
+        Every checksum is verified (the snapshot's files, and the projection against the map's
+        recorded SHA-256) before anything is registered; the map then recovers from that snapshot.
+
+        Returns:
+            The imported map's id.
+        """
+        maps_dir = self.data_dir / "maps"
+        staging = maps_dir / f".import-{snapshots.new_snapshot_id()}"
+        with tar_path.open("rb") as f:
+            manifest = snapshots.import_tar(f, staging)
+        try:
+            map_id = manifest.map_id
+            if self.catalog.get_map(map_id) is not None:
+                raise ValueError(f"map {map_id!r} exists here already")
+            sha = manifest.projection_sha256
+            target = self.projections / f"{sha}.npy"
+            if (staging / "projection.npy").exists():
+                slsbh.load_projection(staging / "projection.npy", sha)  # refuses another matrix
+                if not target.exists():
+                    (staging / "projection.npy").replace(target)
+                else:
+                    (staging / "projection.npy").unlink()
+            if not target.exists():
+                raise ValueError(f"the tar holds no projection and {target} is missing")
+            map_dir = maps_dir / map_id
+            map_dir.mkdir(parents=True)
+            MapStore.install_copy(staging / "map.sqlite", map_dir / "map.sqlite")
+            snap_dir = map_dir / "snapshots" / manifest.snapshot_id
+            snap_dir.parent.mkdir(parents=True)
+            staging.replace(snap_dir)
+            self.catalog.create_map(map_id, manifest.params, preset=manifest.params.get("preset"),
+                                    state="ready")
+            self.catalog.register_snapshot(SnapshotRecord(
+                snapshot_id=manifest.snapshot_id, map_id=map_id, seq=manifest.seq, kind=manifest.kind,
+                created_at=manifest.created_at, bytes=manifest.bytes,
+                manifest_sha256=manifest.manifest_sha256, path=str(snap_dir)))
+            return map_id
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
 
     def delete(self, map_id: str) -> None:
         rt = self.get(map_id)

@@ -329,3 +329,33 @@ def test_a_map_whose_projection_changed_fails_alone(tmp_path):
         r = post(c, frame(1))
         assert r.status_code == 503 and r.json()["type"].endswith("map-unavailable")
         assert c.get("/v1/maps/other").json()["state"] == "ready"
+
+
+def test_download_then_import_recreates_the_map_elsewhere(tmp_path):
+    from typer.testing import CliRunner
+
+    from service.cli import app as cli_app
+
+    with make_client(tmp_path / "a") as c:
+        c.post("/v1/maps", json={"map_id": "lab"})
+        for p in range(5):
+            post(c, frame(p), map_id="lab")
+        sid = c.post("/v1/maps/lab/snapshots").json()["snapshot_id"]
+        tar = tmp_path / "lab.tar"
+        tar.write_bytes(c.get(f"/v1/maps/lab/snapshots/{sid}/download").content)
+        expected = state_of(c, "lab")
+        answer = post(c, frame(3), map_id="lab", learn="false", stream="q").json()["matches"]
+    r = CliRunner().invoke(cli_app, ["import", str(tar), "--data-dir", str(tmp_path / "b")])
+    assert r.exit_code == 0, r.output
+    with make_client(tmp_path / "b") as c:
+        assert c.get("/v1/maps/lab").json()["state"] == "ready"
+        assert state_of(c, "lab") == expected
+        assert post(c, frame(3), map_id="lab", learn="false", stream="q").json()["matches"] == answer
+    again = CliRunner().invoke(cli_app, ["import", str(tar), "--data-dir", str(tmp_path / "b")])
+    assert again.exit_code == 1 and "exists" in again.output
+    bad = tmp_path / "bad.tar"
+    raw = bytearray(tar.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    bad.write_bytes(bytes(raw))
+    r = CliRunner().invoke(cli_app, ["import", str(bad), "--data-dir", str(tmp_path / "c")])
+    assert r.exit_code == 1
