@@ -253,6 +253,8 @@ class MapRuntime:
         if self.hasher is None:
             self._fail("projection-invalid", self._projection_error or "no projection")
             return
+        if (self.dir / "snapshots").is_dir():  # a crash during a snapshot leaves only a temporary dir
+            snapshots.remove_stale_temp(self.dir / "snapshots")
         try:
             self.store = MapStore.open(self.dir / "map.sqlite",
                                        seq_floor=self.catalog.get_high_water(self.map_id))

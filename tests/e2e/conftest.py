@@ -47,6 +47,7 @@ class Server:
     """Start, kill and restart `cortexloc serve` on one data directory."""
 
     def __init__(self, tmp_path: Path) -> None:
+        self.extra_env: dict[str, str] = {}
         self.tmp = tmp_path
         self.data_dir = tmp_path / "var"
         self.proc: subprocess.Popen | None = None
@@ -55,7 +56,8 @@ class Server:
     def start(self) -> str:
         port = free_port()
         env = {k: v for k, v in os.environ.items() if not k.startswith("CORTEXLOC_")}
-        env.update({"CORTEXLOC_WEIGHTS_DIR": str(self.tmp / "no-weights"), "CORTEXLOC_LOG_FORMAT": "text"})
+        env.update({"CORTEXLOC_WEIGHTS_DIR": str(self.tmp / "no-weights"), "CORTEXLOC_LOG_FORMAT": "text",
+                    **self.extra_env})
         self.log = (self.tmp / "server.log").open("a")
         self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port),
                                       "--data-dir", str(self.data_dir)], env=env, stdout=self.log,

@@ -10,6 +10,8 @@ from storage.mapstore import MapStore
 
 
 def test_kill_9_loses_nothing_acknowledged(server_proc, http, make_frame):
+    # A snapshot every 2 learned frames: some kills land in the middle of one.
+    server_proc.extra_env = {"CORTEXLOC_SNAPSHOT_EVERY": "2"}
     base = server_proc.start()
     acked: list[tuple[int, str]] = []
     stop = threading.Event()
@@ -44,3 +46,6 @@ def test_kill_9_loses_nothing_acknowledged(server_proc, http, make_frame):
         base = server_proc.start()
         status, m = http(f"{base}/v1/maps/default")
         assert status == 200 and m["state"] == "ready" and m["observations"] == len(stored)
+        leftovers = [p.name for p in (server_proc.data_dir / "maps" / "default" / "snapshots").iterdir()
+                     if p.name.startswith(".")]
+        assert not leftovers  # a snapshot cut short by the kill is cleaned up, never loaded
