@@ -359,3 +359,16 @@ def test_download_then_import_recreates_the_map_elsewhere(tmp_path):
     bad.write_bytes(bytes(raw))
     r = CliRunner().invoke(cli_app, ["import", str(bad), "--data-dir", str(tmp_path / "c")])
     assert r.exit_code == 1
+
+
+def test_concurrent_requests_are_encoded_in_batches(client):
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = client.app.state.encoder_pool
+    pool.wait_s = 0.05  # a generous gathering window so the test does not depend on timing luck
+    bad = frame(1)[:100]  # truncated: fails alone, without failing the batch it arrived in
+    with ThreadPoolExecutor(8) as ex:
+        replies = list(ex.map(lambda b: post(client, b, top_k=0), [frame(p) for p in range(11)] + [bad]))
+    assert sorted(r.status_code for r in replies) == [200] * 11 + [422]
+    assert max(pool.batches) > 1
+    assert client.app.state.registry.get("default").store.count() == 11
