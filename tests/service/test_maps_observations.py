@@ -155,7 +155,24 @@ def bad_inputs() -> list[tuple[str, bytes, str, dict, int, str]]:
         ("top_k=-1", png, "image/png", {"top_k": -1}, 400, "invalid-parameter"),
         ("top_k too big", png, "image/png", {"top_k": 10_000}, 400, "invalid-parameter"),
         ("stream with /", png, "image/png", {"stream": "a/b"}, 400, "invalid-parameter"),
+        ("png header claiming 100000x100000", huge_png_header(), "image/png", {}, 413, "image-too-large"),
+        ("1x4000", frame_of_size(1, 4000), "image/png", {}, 422, "degenerate-image"),
     ]
+
+
+def huge_png_header() -> bytes:
+    import struct
+    import zlib
+
+    ihdr = struct.pack(">IIBBBBB", 100_000, 100_000, 8, 2, 0, 0, 0)
+    chunk = struct.pack(">I", len(ihdr)) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+    return b"\x89PNG\r\n\x1a\n" + chunk
+
+
+def frame_of_size(w: int, h: int) -> bytes:
+    ok, buf = cv2.imencode(".png", np.full((h, w, 3), 128, np.uint8))
+    assert ok
+    return buf.tobytes()
 
 
 @pytest.mark.parametrize("case", bad_inputs(), ids=lambda c: c[0])
@@ -372,3 +389,15 @@ def test_concurrent_requests_are_encoded_in_batches(client):
     assert sorted(r.status_code for r in replies) == [200] * 11 + [422]
     assert max(pool.batches) > 1
     assert client.app.state.registry.get("default").store.count() == 11
+
+
+def test_api_key_guards_every_write(tmp_path):
+    with make_client(tmp_path / "d", api_key="s3cret") as c:
+        r = post(c, frame(1))
+        assert r.status_code == 401 and r.json()["type"].endswith("unauthorized")
+        assert c.post("/v1/maps", json={"map_id": "x"}).status_code == 401
+        assert c.get("/v1/maps").status_code == 200  # reads stay open
+        ok = c.post("/v1/maps/default/observations", content=frame(1),
+                    headers={"Content-Type": "image/png", "X-API-Key": "s3cret"})
+        assert ok.status_code == 200
+        assert c.app.state.registry.get("default").store.count() == 1
