@@ -145,15 +145,21 @@ def format_grid_table(result: dict[str, Any]) -> str:
              f"{'method':<10} {'AUC mean':>9} {'sd':>7} {'min':>8} {'max':>8} {'R@1':>7} {'R@5':>7} "
              f"{'R@100P':>7}  notes"]
     for m, e in result["methods"].items():
-        notes = ""
-        if m == "htm":
-            notes = f"{e['preset']}, predicted columns {e['predicted_column_fraction_mean']:.3f}"
-        elif m == "mcn":
-            notes = f"{e['preset']}, columns {e['columns_mean']:.0f}"
         lines.append(f"{m:<10} {e['auc_mean']:>9.6f} {e['auc_sd']:>7.4f} {e['auc_min']:>8.4f} "
                      f"{e['auc_max']:>8.4f} {e['recall_at_1_mean']:>7.3f} {e['recall_at_5_mean']:>7.3f} "
-                     f"{e['recall_at_100p_mean']:>7.3f}  {notes}")
+                     f"{e['recall_at_100p_mean']:>7.3f}  {_method_notes(m, e)}")
     return "\n".join(lines)
+
+
+def _method_notes(method: str, entry: dict[str, Any]) -> str:
+    """The notes column of a result table: preset, and how much the memory predicted or grew."""
+    if method == "htm":
+        if "predicted_column_fraction_mean" in entry:
+            return f"{entry['preset']}, predicted columns {entry['predicted_column_fraction_mean']:.3f}"
+        return f"{entry['preset']}, query predicted {entry['query_predicted_fraction_mean']:.3f}"
+    if method == "mcn":
+        return f"{entry['preset']}, columns {entry['columns_mean']:.0f}"
+    return ""
 
 
 @eval_app.command("images")
@@ -240,14 +246,9 @@ def eval_images(
     typer.echo(f"{'method':<9} {'AUC mean':>9} {'min':>7} {'max':>7} {'R@1':>6} {'R@5':>6} {'R@100P':>7} "
                f"{'s/run':>7}  notes")
     for m, e in result["methods"].items():
-        notes = ""
-        if m == "htm":
-            notes = f"{e['preset']}, query predicted {e['query_predicted_fraction_mean']:.3f}"
-        elif m == "mcn":
-            notes = f"{e['preset']}, columns {e['columns_mean']:.0f}"
         typer.echo(f"{m:<9} {e['auc_mean']:>9.4f} {e['auc_min']:>7.4f} {e['auc_max']:>7.4f} "
                    f"{e['recall_at_1_mean']:>6.3f} {e['recall_at_5_mean']:>6.3f} "
-                   f"{e['recall_at_100p_mean']:>7.3f} {e['seconds_mean']:>7.2f}  {notes}")
+                   f"{e['recall_at_100p_mean']:>7.3f} {e['seconds_mean']:>7.2f}  {_method_notes(m, e)}")
 
 
 @bench_app.command("tm")
