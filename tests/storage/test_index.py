@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -182,27 +181,13 @@ def test_rebuild_equals_incremental_and_sizes() -> None:
     assert len(other) == 0 and other.postings() == 0 and other.rank([1], 3) == []
 
 
-def test_rank_speed_1e5_descriptors() -> None:
-    """10^5 stored descriptors of 40 cells out of 8,192: a query stays well under a millisecond-ish.
-
-    The bound is loose (shared CI machines); the measured median is printed for the record.
-    """
+def test_rank_at_1e5_descriptors() -> None:
+    """10^5 stored descriptors of 40 cells out of 8,192 (its speed: benchmarks/bench_index.py)."""
     rng = np.random.default_rng(0)
     n, w, n_cells = 100_000, 40, 8192
     cells = random_sets(rng, n, w, n_cells)
     idx = InvertedIndex(n_cells, 1_000_000)
-    t0 = time.perf_counter()
     idx.rebuild(SimpleNamespace(seq=i + 1, winner_cells=cells[i], stream="s") for i in range(n))
-    rebuild_s = time.perf_counter() - t0
-    queries = random_sets(rng, 100, w, n_cells)
-    times = []
-    for q in queries:
-        t = time.perf_counter()
-        idx.rank(q, 5, exclude_recent_stream="s", exclude_recent=10)
-        times.append(time.perf_counter() - t)
-    median_ms = float(np.median(times)) * 1e3
-    print(f"\nrank() median {median_ms:.3f} ms over 100 queries; rebuild {rebuild_s:.2f} s; "
-          f"{idx.postings()} postings, {idx.nbytes()} bytes")
+    assert idx.postings() == n * w
     # A stored descriptor finds itself first.
     assert idx.rank(cells[1234], 1)[0] == Match(1235, 40, 1.0)
-    assert median_ms < 20.0
