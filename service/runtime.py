@@ -103,14 +103,13 @@ class MapRuntime:
     """
 
     def __init__(self, record: MapRecord, map_dir: Path, projections_dir: Path, catalog: Catalog,
-                 encoder_id: str, feature_dim: int, max_streams: int, max_observations: int,
+                 feature_dim: int, max_streams: int, max_observations: int,
                  snapshot_every: int = 0, snapshot_keep: int = 3) -> None:
         self.record = record
         self.map_id = record.map_id
         self.params = record.params
         self.dir = map_dir
         self.catalog = catalog
-        self.encoder_id = encoder_id
         self.max_streams = max_streams
         self.snapshot_every = snapshot_every
         self.snapshot_keep = snapshot_keep
@@ -118,7 +117,6 @@ class MapRuntime:
         self.state_reason: str | None = None
         self.streams: OrderedDict[str, Stream] = OrderedDict()
         self._writer = ThreadPoolExecutor(1, thread_name_prefix=f"map-{self.map_id}")
-        self._lock = threading.Lock()
         sha = self.params["projection_sha256"]
         self.projection_path = projections_dir / f"{sha}.npy"
         self.hasher: slsbh.Hasher | None = None
@@ -483,7 +481,7 @@ class MapRegistry:
     def _runtime(self, record: MapRecord) -> MapRuntime:
         s = self.settings
         return MapRuntime(record, self.data_dir / "maps" / record.map_id, self.projections, self.catalog,
-                          self.encoder.identity, self.encoder.feature_dim, s.max_streams, s.max_observations,
+                          self.encoder.feature_dim, s.max_streams, s.max_observations,
                           s.snapshot_every, s.snapshot_keep)
 
     def start(self) -> None:
