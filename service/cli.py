@@ -156,7 +156,8 @@ def _method_notes(method: str, entry: dict[str, Any]) -> str:
     if method == "htm":
         if "predicted_column_fraction_mean" in entry:
             return f"{entry['preset']}, predicted columns {entry['predicted_column_fraction_mean']:.3f}"
-        return f"{entry['preset']}, query predicted {entry['query_predicted_fraction_mean']:.3f}"
+        return (f"{entry['preset']}, query predicted {entry['query_predicted_fraction_mean']:.3f} "
+                f"(chance {entry['chance_predicted_fraction_mean']:.3f}), {entry['bytes'] / 2**20:.1f} MiB")
     if method == "mcn":
         return f"{entry['preset']}, columns {entry['columns_mean']:.0f}"
     return ""
@@ -182,6 +183,10 @@ def eval_images(
     reset: Annotated[bool, typer.Option("--reset/--no-reset",
                                         help="Reset between database and query (the paper does not).")]
     = False,
+    adapt: Annotated[int, typer.Option(min=0, help="Running-mean subtraction time constant in frames "
+                                       "(models.adaptation), for every method; 0 = off.")] = 0,
+    drop_dark: Annotated[float, typer.Option(min=0.0, help="Drop pairs where either frame's mean grey is "
+                                                          "below this (0 = keep all; §8.5 uses 20).")] = 0.0,
     seeds: Annotated[int, typer.Option(min=1)] = 3,
     seed: Annotated[int, typer.Option(help="Experiment seed.")] = 0,
     cache: Annotated[Path | None, typer.Option(help="Feature cache folder (default: "
@@ -215,6 +220,12 @@ def eval_images(
         names = sequences.paired_names(db, query, offset, limit)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
+    if drop_dark > 0:
+        dark = (sequences.dark_frames([db / n for n in names], drop_dark)
+                | sequences.dark_frames([query / n for n in names], drop_dark))
+        names = [n for n, d in zip(names, dark, strict=True) if not d]
+        if len(names) < 2:
+            raise typer.BadParameter("fewer than two pairs are left", param_hint="--drop-dark")
     cache_dir = cache or Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc"))
     enc = Encoder({"backbone": backbone, "resize": resize})  # features only (embed): no projection built
     feats = {}
@@ -224,7 +235,7 @@ def eval_images(
     result = sequences.image_experiment(
         feats["db"], feats["query"], methods=method_list, preset=preset, mcn_preset=mcn_preset,
         k=int(s_conf["k"]), s=sparsity, seeds=seeds, seed=seed, tolerance=tolerance, reset=reset,
-        progress=_progress("runs") if seeds > 1 else None)
+        adapt_tau=adapt, progress=_progress("runs") if seeds > 1 else None)
     first = result.pop("first")
     if plots_dir is not None:
         plots_dir.mkdir(parents=True, exist_ok=True)
@@ -236,12 +247,13 @@ def eval_images(
     result["config"] = {"db": str(db), "query": str(query), "offset": offset, "limit": limit,
                         "pairs": len(names), "first": names[0], "last": names[-1], "encoder": enc.identity,
                         "weights": enc.describe()["weights"], "preset": preset, "mcn_preset": mcn_preset,
-                        "k": int(s_conf["k"]), "s": sparsity, "tolerance": tolerance, "reset": reset,
+                        "k": int(s_conf["k"]), "s": sparsity, "adapt_tau": adapt,
+                        "drop_dark": drop_dark, "tolerance": tolerance, "reset": reset,
                         "seeds": seeds, "seed": seed}
     result["provenance"] = _provenance()
     _write_json(json_out, result)
     typer.echo(f"{db.name} -> {query.name}: {len(names)} pairs ({names[0]} .. {names[-1]}), encoder "
-               f"{enc.identity} [{result['config']['weights']} weights], s={sparsity}, "
+               f"{enc.identity} [{result['config']['weights']} weights], s={sparsity}, adapt={adapt}, "
                f"tolerance ±{tolerance}, {'reset' if reset else 'no reset'}, seeds={seeds}")
     typer.echo(f"{'method':<9} {'AUC mean':>9} {'min':>7} {'max':>7} {'R@1':>6} {'R@5':>6} {'R@100P':>7} "
                f"{'s/run':>7}  notes")

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from models import presets, sdr, slsbh
+from models.adaptation import running_mean_subtract
 from models.encoder import Encoder
 from models.evaluation import metrics
 from models.evaluation.seqslam import seqslam
@@ -78,24 +79,50 @@ def cached_features(encoder: Encoder, paths: Sequence[Path], cache_dir: Path | N
     return feats
 
 
+def dark_frames(paths: Sequence[Path], threshold: float = 20.0) -> np.ndarray:
+    """(n,) bool: frames whose mean grey level is below `threshold` (tunnels, stations; science.md §8.5)."""
+    import cv2  # only this helper needs it; the rest of the module works on features
+
+    out = []
+    for p in paths:
+        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise ValueError(f"cannot read image {p}")
+        out.append(float(img.mean()) < threshold)
+    return np.array(out, dtype=bool)
+
+
+def _predicted_fraction(tm: TemporalMemory, codes: Sequence[np.ndarray]) -> tuple[list[np.ndarray], float]:
+    winners, predicted, active = [], 0, 0
+    for c in codes:
+        winners.append(tm.compute(c, learn=False))
+        predicted += tm.context.stats.predicted_columns
+        active += tm.context.stats.active_columns
+    return winners, predicted / max(active, 1)
+
+
 def run_tm(db_codes: np.ndarray, q_codes: np.ndarray, preset: str, seed: int, reset: bool,
-           width: int) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, Any]]:
+           width: int, tm_overrides: dict[str, Any] | None = None
+           ) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, Any]]:
     """Learn the database codes, then run the query codes with learning off.
 
     Returns:
         db winners, query winners (sorted cell arrays), and statistics: the fraction of active columns
-        predicted in the query pass (in true order) and the preallocated bytes.
+        predicted in the query pass in true order, the same in a random order of the query frames (the
+        chance-prediction rate, science.md §3.8: the difference is what sequence memory contributes),
+        and the preallocated bytes.
     """
-    tm = TemporalMemory(presets.tm_params(preset, {"seed": int(seed), "columnDimensions": width}))
+    tm = TemporalMemory(presets.tm_params(preset, {**(tm_overrides or {}), "seed": int(seed),
+                                                   "columnDimensions": width}))
     db_w = [tm.compute(c, learn=True) for c in db_codes]
     if reset:
         tm.reset()
-    q_w, predicted, active = [], 0, 0
-    for c in q_codes:
-        q_w.append(tm.compute(c, learn=False))
-        predicted += tm.context.stats.predicted_columns
-        active += tm.context.stats.active_columns
-    return db_w, q_w, {"query_predicted_fraction": predicted / max(active, 1), "bytes": tm.size()["bytes"]}
+    q_w, in_order = _predicted_fraction(tm, q_codes)
+    tm.reset()  # learn=False changed nothing, so the shuffled pass sees the same learned memory
+    order = np.random.default_rng(seed).permutation(len(q_codes))
+    _, shuffled = _predicted_fraction(tm, [q_codes[i] for i in order])
+    return db_w, q_w, {"query_predicted_fraction": in_order, "chance_predicted_fraction": shuffled,
+                       "bytes": tm.size()["bytes"]}
 
 
 def run_mcn(db_codes: np.ndarray, q_codes: np.ndarray, preset: str, seed: int, reset: bool,
@@ -130,6 +157,7 @@ def evaluate(S: np.ndarray, tolerance: int) -> dict[str, float]:
 def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequence[str],
                      preset: str, mcn_preset: str = "mcn-nordland", k: int = 1024, s: float = 0.25,
                      seeds: int = 3, seed: int = 0, tolerance: int = 0, reset: bool = False,
+                     adapt_tau: int = 0, tm_overrides: dict[str, Any] | None = None,
                      progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """All methods on one database/query pair of feature sequences, over seeds.
 
@@ -141,6 +169,9 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
         seeds: runs; projection, TM and MCN seeds spawned from `seed` (science.md §8.6).
         tolerance: ±files counted as the same place.
         reset: reset the sequence memory between database and query (the paper does not).
+        adapt_tau: > 0: each sequence minus its running mean (models.adaptation) before every method;
+            0: the features as they are.
+        tm_overrides: Temporal Memory parameters replacing the preset's (sweeps).
 
     Returns:
         {"methods": {name: {"auc_mean", "auc_min", "auc_max", "recall_at_1_mean", ..., "per_seed"}},
@@ -151,6 +182,9 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
         raise ValueError(f"unknown method(s) {sorted(bad)}; known: {', '.join(METHODS)}")
     runs: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
     first: dict[str, dict[str, Any]] = {}
+    if adapt_tau:
+        db_feats = running_mean_subtract(db_feats, adapt_tau)
+        q_feats = running_mean_subtract(q_feats, adapt_tau)
     cos = db_feats @ q_feats.T
     children = np.random.SeedSequence(seed).spawn(seeds)
     for i, child in enumerate(children):
@@ -171,9 +205,10 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
             elif m == "slsbh":
                 S = sdr.dice_matrix(list(db_codes), list(q_codes))
             else:
-                run = run_tm if m == "htm" else run_mcn
-                db_w, q_w, info = run(db_codes, q_codes, preset if m == "htm" else mcn_preset,
-                                      tm_seed if m == "htm" else mcn_seed, reset, 2 * k)
+                if m == "htm":
+                    db_w, q_w, info = run_tm(db_codes, q_codes, preset, tm_seed, reset, 2 * k, tm_overrides)
+                else:
+                    db_w, q_w, info = run_mcn(db_codes, q_codes, mcn_preset, mcn_seed, reset, 2 * k)
                 S = sdr.dice_matrix(db_w, q_w)
             info["seconds"] = time.perf_counter() - t0
             r = evaluate(S, tolerance)
@@ -193,8 +228,8 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
                           f"{key}_max": float(vals.max())})
         if m == "htm":
             entry["preset"] = preset
-            entry["query_predicted_fraction_mean"] = float(np.mean([r["query_predicted_fraction"]
-                                                                    for r in rs]))
+            for key in ("query_predicted_fraction", "chance_predicted_fraction"):
+                entry[f"{key}_mean"] = float(np.mean([r[key] for r in rs]))
             entry["bytes"] = rs[0]["bytes"]
         if m == "mcn":
             entry["preset"] = mcn_preset

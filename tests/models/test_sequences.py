@@ -77,6 +77,31 @@ def test_every_method_scores_and_sequence_methods_use_order():
     assert res["first"]["htm"]["S"].shape == (n, n)
 
 
+def test_chance_prediction_rate_is_far_below_the_in_order_rate():
+    """science.md §3.8: shuffled query frames are predicted only by chance; true order by sequence."""
+    rng = np.random.default_rng(1)
+    codes = np.stack([np.sort(rng.choice(2048, 40, replace=False)) for _ in range(60)])
+    _, q_w, info = sequences.run_tm(codes, codes, "cortexloc-grid", seed=3, reset=True, width=2048)
+    assert len(q_w) == 60
+    assert info["query_predicted_fraction"] > 0.9
+    assert info["chance_predicted_fraction"] < 0.1
+
+
+def test_adaptation_is_applied_to_every_method():
+    rng = np.random.default_rng(2)
+    n, d = 30, 64
+    places = rng.normal(size=(n, d))
+    # A large season-wide offset hides the places from single-image cosine; adaptation removes it.
+    db = (places + 8 * rng.normal(size=d)).astype(np.float32)
+    q = (places + 0.5 * rng.normal(size=(n, d)) + 8 * rng.normal(size=d)).astype(np.float32)
+    db /= np.linalg.norm(db, axis=1, keepdims=True)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    plain = sequences.image_experiment(db, q, methods=["cosine"], preset="cortexloc-grid", seeds=1)
+    adapted = sequences.image_experiment(db, q, methods=["cosine"], preset="cortexloc-grid", seeds=1,
+                                         adapt_tau=5)
+    assert adapted["methods"]["cosine"]["recall_at_1_mean"] > plain["methods"]["cosine"]["recall_at_1_mean"]
+
+
 def test_tolerance_counts_neighbours():
     S = np.zeros((5, 5))
     S[np.arange(4) + 1, np.arange(4)] = 1.0  # every query's best match is off by one
@@ -100,3 +125,17 @@ def test_eval_images_command(tmp_path):
     assert (tmp_path / "p" / "pr.png").stat().st_size > 0
     bad = CliRunner().invoke(app, ["eval", "images", "--db", str(db), "--query", str(q), "--methods", "x"])
     assert bad.exit_code == 2
+
+
+def test_eval_images_drops_dark_pairs(tmp_path):
+    db, q = write_sequences(tmp_path, n=12)
+    for name in ("images-00003.png", "images-00007.png"):  # a tunnel in winter only, and in both
+        cv2.imwrite(str(q / name), np.full((32, 64, 3), 5, np.uint8))
+    cv2.imwrite(str(db / "images-00007.png"), np.full((32, 64, 3), 5, np.uint8))
+    out = tmp_path / "r.json"
+    r = CliRunner().invoke(app, ["eval", "images", "--db", str(db), "--query", str(q), "--methods", "cosine",
+                                 "--drop-dark", "20", "--adapt", "4", "--cache", str(tmp_path / "c"),
+                                 "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    config = json.loads(out.read_text())["config"]
+    assert config["pairs"] == 10 and config["drop_dark"] == 20 and config["adapt_tau"] == 4

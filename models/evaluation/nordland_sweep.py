@@ -1,0 +1,100 @@
+"""Parameter search for the cross-season default (issue: cross-season evaluation, science.md §8.5).
+
+Run: `python -m models.evaluation.nordland_sweep [--split tune] [--json OUT]` (one seed: a sweep ranks).
+Protocol `tune` (files 1-894 of nordland_tiny_64x32, summer database, winter query, reset between them,
+squash resize): every configuration of sLSBH density, stream adaptation and Temporal Memory parameters
+is run on both backbones (random-weight AlexNet conv3, ImageNet EfficientNet-Lite0 stage 7). Per
+configuration it prints HTM AUC / R@1, the single-image sLSBH AUC on the same codes, and the predicted
+fraction of query columns in true and in shuffled order (science.md §3.8). The objective is the mean
+HTM AUC over the two backbones. Choose on `tune`; report on `test` with `cortexloc eval images`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models import sdr, slsbh
+from models.adaptation import running_mean_subtract
+from models.encoder import Encoder
+from models.evaluation import sequences
+from models.evaluation.datasets import shared_data_dir
+
+K = 1024  # sLSBH projections: 2K = 2048 TM columns
+SPLITS = {"tune": (0, 894), "test": (894, 894)}
+BACKBONES = ("alexnet", "efficientnet-lite0")
+GRID: dict[str, list[Any]] = {
+    "s": [0.02, 0.05, 0.1],
+    "adapt_tau": [0, 20],
+    "activationThreshold": [8, 12, 16],
+    "initialPermanence": [0.55, 0.21],  # one-shot (>= connectedPermanence 0.5) vs gradual
+    "cellsPerColumn": [4, 8],
+}
+
+
+def load_features(split: str, cache_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """{backbone: (summer, winter)} features of the split, from the shared feature cache."""
+    root = shared_data_dir() / "nordland_tiny_64x32"
+    offset, limit = SPLITS[split]
+    names = sequences.paired_names(root / "summer", root / "winter", offset, limit)
+    out = {}
+    for backbone in BACKBONES:
+        enc = Encoder({"backbone": backbone, "resize": "squash"})
+        out[backbone] = tuple(sequences.cached_features(enc, [root / season / n for n in names], cache_dir)
+                              for season in ("summer", "winter"))
+    return out
+
+
+def _codes(db: np.ndarray, q: np.ndarray, s: float, adapt_tau: int, seed: int) -> tuple[np.ndarray, ...]:
+    if adapt_tau:
+        db, q = running_mean_subtract(db, adapt_tau), running_mean_subtract(q, adapt_tau)
+    hasher = slsbh.Hasher(slsbh.make_projection(db.shape[1], K, seed), s)
+    return hasher(db), hasher(q)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--split", choices=sorted(SPLITS), default="tune")
+    ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "cortexloc" / "features")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+    feats = load_features(args.split, args.cache)
+    tm_keys = [k for k in GRID if k not in ("s", "adapt_tau")]
+    rows = []
+    # Codes depend on (backbone, s, adaptation) only: hash once, then run every TM configuration on them.
+    for s, adapt_tau in itertools.product(GRID["s"], GRID["adapt_tau"]):
+        codes = {b: _codes(db, q, s, adapt_tau, seed=1) for b, (db, q) in feats.items()}
+        base = {b: sequences.evaluate(sdr.dice_matrix(list(c[0]), list(c[1])), 0) for b, c in codes.items()}
+        for values in itertools.product(*(GRID[k] for k in tm_keys)):
+            tm = dict(zip(tm_keys, values, strict=True))
+            conf = {"s": s, "adapt_tau": adapt_tau, **tm}
+            per_backbone = {}
+            for backbone, (db_codes, q_codes) in codes.items():
+                db_w, q_w, info = sequences.run_tm(db_codes, q_codes, "cortexloc-grid", seed=1, reset=True,
+                                                   width=2 * K, tm_overrides=tm)
+                r = sequences.evaluate(sdr.dice_matrix(db_w, q_w), 0)
+                per_backbone[backbone] = {
+                    "htm_auc": r["auc"], "htm_r1": r["recall_at_1"], "slsbh_auc": base[backbone]["auc"],
+                    "slsbh_r1": base[backbone]["recall_at_1"], "predicted": info["query_predicted_fraction"],
+                    "chance": info["chance_predicted_fraction"], "mib": info["bytes"] / 2**20}
+            score = float(np.mean([v["htm_auc"] for v in per_backbone.values()]))
+            rows.append({"conf": conf, "objective": score, "backbones": per_backbone})
+            print(f"{conf} objective {score:.4f} | " + " | ".join(
+                f"{b[:4]}: htm {v['htm_auc']:.4f}/{v['htm_r1']:.3f} slsbh {v['slsbh_auc']:.4f}/"
+                f"{v['slsbh_r1']:.3f} pred {v['predicted']:.2f} chance {v['chance']:.2f}"
+                for b, v in per_backbone.items()), flush=True)
+    rows.sort(key=lambda r: r["objective"])
+    for adapt in GRID["adapt_tau"]:
+        best = [r for r in rows if r["conf"]["adapt_tau"] == adapt][-1]
+        print(f"best with adapt_tau={adapt}: {best['conf']} objective {best['objective']:.4f}")
+    if args.json:
+        args.json.write_text(json.dumps({"split": args.split, "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

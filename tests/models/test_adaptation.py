@@ -1,0 +1,39 @@
+"""Stream adaptation (models.adaptation): removes what recent frames share, causally."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.adaptation import running_mean_subtract
+
+
+def _stream(n: int = 200, d: int = 256, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    common = 10.0 * rng.normal(size=d)  # one camera's shared component, much larger than the places
+    return (common + rng.normal(size=(n, d))).astype(np.float32)
+
+
+def test_removes_the_shared_component():
+    x = _stream()
+    xn = x / np.linalg.norm(x, axis=1, keepdims=True)
+    y = running_mean_subtract(x, tau=20)
+    off_diag = ~np.eye(len(x), dtype=bool)
+    # Later frames (after warm-up) of different places: almost identical before, unrelated after.
+    assert (xn @ xn.T)[off_diag].mean() > 0.9
+    assert abs((y[40:] @ y[40:].T)[off_diag[40:, 40:]].mean()) < 0.1
+    np.testing.assert_allclose(np.linalg.norm(y, axis=1), 1.0, rtol=1e-5)
+
+
+def test_is_causal_and_keeps_the_first_frame():
+    x = _stream(n=50)
+    y = running_mean_subtract(x, tau=10)
+    x2 = x.copy()
+    x2[30:] += 5.0  # the future changes
+    np.testing.assert_array_equal(running_mean_subtract(x2, tau=10)[:30], y[:30])
+    np.testing.assert_allclose(y[0], x[0] / np.linalg.norm(x[0]), rtol=1e-6)
+
+
+def test_rejects_a_bad_time_constant():
+    with pytest.raises(ValueError, match="tau"):
+        running_mean_subtract(_stream(n=3), tau=0)
