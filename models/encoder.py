@@ -140,8 +140,9 @@ class Encoder:
     def projection(self) -> np.ndarray | slsbh.SparseProjection:
         return self.hasher.P
 
-    @property
+    @functools.cached_property
     def projection_sha256(self) -> str:
+        """SHA-256 of the projection (hashing 266 MB takes ~0.2 s: computed once)."""
         return self.hasher.sha256()
 
     # ------------------------------------------------------------------ identity
@@ -181,10 +182,13 @@ class Encoder:
         return f"{arch}/{self.weights_id}:{self.conf['resize']}"
 
     def describe(self) -> dict[str, Any]:
-        """What the service reports in /readyz and every response."""
+        """What the service reports in /readyz and every response: the backbone and its weights.
+
+        The projection is not part of it: in the service every map hashes with its own persisted
+        projection, and building this encoder's would cost 266 MB and a SHA-256 per call.
+        """
         weights = "pretrained" if self.pretrained else self.weights_id.split("-", 1)[0]  # random | file
-        return {"encoder": self.identity, "weights": weights,
-                "projection": f"sha256:{self.projection_sha256}", "slsbh": dict(self.conf["slsbh"])}
+        return {"encoder": self.identity, "weights": weights}
 
     # ------------------------------------------------------------------ encoding
 

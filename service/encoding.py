@@ -4,6 +4,13 @@ Concurrent requests are encoded together: a worker takes the first waiting image
 else arrives within a few milliseconds (up to `max_batch`), and runs one backbone call for all of
 them, so throughput under load approaches the backbone's batch throughput. A full queue answers 503
 `overloaded` at once instead of letting latency grow without bound.
+
+A request may bring its map's sLSBH hasher (`submit(body, hasher=...)`): the batch is then also hashed
+here, one matrix product per map present in the batch. The dense projection is 64,896 x 1,024 float32
+(266 MB) and hashing is bound by reading it, so hashing image by image in the map's writer costs the
+same ~15-20 ms per image as hashing 16 at once costs per batch (benchmarks/bench_http.py,
+docs/benchmarks.md); in the writer it also serialises behind the TM step and the commit. Hashing is
+stateless (the map's projection never changes), so doing it before the writer changes no ordering.
 """
 
 from __future__ import annotations
@@ -13,8 +20,11 @@ import threading
 import time
 from concurrent.futures import Future
 
+import numpy as np
+
 from models.encoder import Encoder, EncodeResult
 from models.images import ImageError
+from models.slsbh import Hasher
 from service.errors import Problem
 
 _STOP = object()
@@ -46,7 +56,13 @@ class EncoderPool:
         for t in self._threads:
             t.start()
 
-    def submit(self, body: bytes) -> Future[EncodeResult]:
+    def submit(self, body: bytes, hasher: Hasher | None = None) -> Future[EncodeResult]:
+        """Queue one image; the future's `EncodeResult` has `features` (1, D) and, with `hasher`,
+        `codes` (1, 2n) from that hasher (else None).
+
+        Raises:
+            Problem: 503 overloaded when `workers + queue` requests are already in flight.
+        """
         with self._lock:
             if self.pending >= self.limit:
                 raise Problem(503, "overloaded",
@@ -54,7 +70,7 @@ class EncoderPool:
                               headers={"Retry-After": "1"}, retry_after=1)
             self.pending += 1
         fut: Future[EncodeResult] = Future()
-        self._queue.put((body, fut))
+        self._queue.put((body, fut, hasher))
         return fut
 
     def _run(self) -> None:
@@ -76,28 +92,53 @@ class EncoderPool:
                 batch.append(nxt)
             self._encode(batch)
 
-    def _encode(self, batch: list[tuple[bytes, Future[EncodeResult]]]) -> None:
+    def _encode(self, batch: list[tuple[bytes, Future[EncodeResult], Hasher | None]]) -> None:
         try:
             try:
-                out = self.encoder.embed([body for body, _ in batch])
+                out = self.encoder.embed([body for body, _, _ in batch])
                 self.batches = [*self.batches[-99:], len(batch)]
-                for i, (_, fut) in enumerate(batch):
-                    fut.set_result(EncodeResult(codes=None, features=out.features[i:i + 1],
-                                                timings_ms=dict(out.timings_ms)))
+                codes, hash_ms = self._hash(out.features, [h for _, _, h in batch])
+                for i, (_, fut, _) in enumerate(batch):
+                    fut.set_result(EncodeResult(codes=codes[i], features=out.features[i:i + 1],
+                                                timings_ms={**out.timings_ms, "hash": hash_ms}))
             except ImageError:
                 # One bad image must not fail the others: encode each alone to attribute the error.
-                for body, fut in batch:
+                for body, fut, hasher in batch:
                     try:
-                        fut.set_result(self.encoder.embed([body]))
+                        one = self.encoder.embed([body])
+                        one.codes, one.timings_ms["hash"] = self._hash(one.features, [hasher])
+                        one.codes = one.codes[0]
+                        fut.set_result(one)
                     except Exception as e:
                         fut.set_exception(e)
             except Exception as e:
-                for _, fut in batch:
+                for _, fut, _ in batch:
                     if not fut.done():
                         fut.set_exception(e)
         finally:
             with self._lock:
                 self.pending -= len(batch)
+
+    @staticmethod
+    def _hash(features: np.ndarray, hashers: list[Hasher | None]) -> tuple[list[np.ndarray | None], float]:
+        """Codes of each row of `features` (N, D) with its own hasher, one product per distinct hasher.
+
+        Returns:
+            ([(1, 2n) int32 codes or None per row], milliseconds spent).
+        """
+        t0 = time.perf_counter()
+        codes: list[np.ndarray | None] = [None] * len(hashers)
+        groups: dict[int, list[int]] = {}
+        for i, h in enumerate(hashers):
+            if h is not None:
+                groups.setdefault(id(h), []).append(i)
+        for rows in groups.values():
+            hasher = hashers[rows[0]]
+            assert hasher is not None
+            c = hasher(features[rows])  # (len(rows), 2n): the projection is read once for the group
+            for j, i in enumerate(rows):
+                codes[i] = c[j:j + 1]
+        return codes, (time.perf_counter() - t0) * 1e3
 
     def close(self) -> None:
         self._queue.put(_STOP)

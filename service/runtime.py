@@ -32,6 +32,7 @@ from storage import snapshots
 from storage._common import StorageFull
 from storage.catalog import Catalog, MapExists, MapRecord, SnapshotRecord
 from storage.index import IndexFull, InvertedIndex
+from storage.index import warm_up as index_warm_up
 from storage.mapstore import MapMeta, MapStore, NewObservation, StoreCorrupt, cell_dtype_for
 
 log = logging.getLogger("cortexloc.runtime")
@@ -333,11 +334,13 @@ class MapRuntime:
     # ------------------------------------------------------------------ observations
 
     def observe(self, features: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
-                label: str | None) -> dict[str, Any]:
+                label: str | None, code: np.ndarray | None = None) -> dict[str, Any]:
         """One frame: TM step on the stream's context, ranking, and for learning the durable commit.
 
         Args:
             features: (D,) L2-normalised backbone features of the frame.
+            code: (2n,) its sLSBH code from this map's hasher, when already computed (the encoder pool
+                hashes batches, `service.encoding`); None: hashed here.
 
         Returns:
             The observation part of the response (service.md §1.2).
@@ -350,7 +353,10 @@ class MapRuntime:
                           max_observations=self.index.max_observations)
         t0 = time.perf_counter()
         assert self.hasher is not None  # a map without its projection is failed, never ready
-        code = self.hasher(features[None, :])[0]
+        if code is None:
+            code = self.hasher(features[None, :])[0]
+        elif code.shape != (2 * self.hasher.n,):
+            raise ValueError(f"code has shape {code.shape}, this map's codes are ({2 * self.hasher.n},)")
         t1 = time.perf_counter()
         st = self._stream(stream)
         if learn and st.learning is False:
@@ -456,12 +462,13 @@ class MapRuntime:
 
 
 def _warm_up() -> None:
-    """Compile the TM kernels now (numba, cached on disk), not during the first client's request."""
+    """Compile the TM and index kernels now (numba, cached on disk), not during the first client's request."""
     tm = TemporalMemory({"columnDimensions": 64, "cellsPerColumn": 4, "maxSegmentsPerCell": 2,
                          "maxSynapsesPerSegment": 4, "activationThreshold": 2, "minThreshold": 1})
     for x in ([1, 2, 3], [4, 5, 6], [1, 2, 3], [4, 5, 6]):
         tm.compute(np.array(x), learn=True)
     tm.compute(np.array([1, 2, 3]), learn=False)
+    index_warm_up()
 
 
 class MapRegistry:

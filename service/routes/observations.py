@@ -57,7 +57,8 @@ async def post_observation(
     t_checked = time.perf_counter()
     # The ticket: the encoding starts now, concurrently with others, and the writer job is queued now,
     # so the map's memory sees frames in the order their requests passed the checks.
-    encoding = request.app.state.encoder_pool.submit(body)
+    # The pool hashes with the map's own projection, batched with other requests (service.encoding).
+    encoding = request.app.state.encoder_pool.submit(body, hasher=rt.hasher)
     image_sha = hashlib.sha256(body).hexdigest()
     stamps: dict[str, float] = {}
 
@@ -66,7 +67,7 @@ async def post_observation(
         stamps["encoded"] = time.perf_counter()
         stamps["decode"] = embedded.timings_ms["decode"]
         return rt.observe(embedded.features[0], image_sha, learn=learn, stream=stream, top_k=top_k,
-                          label=label)
+                          label=label, code=None if embedded.codes is None else embedded.codes[0])
 
     result = await rt.run(step)
     t_done = time.perf_counter()

@@ -1,0 +1,267 @@
+"""End to end over HTTP on loopback: images/s and latency for 1, 4 and 16 clients, next to the encoder.
+
+Run: `python benchmarks/bench_http.py [--clients 1 4 16] [--requests 160] [--quick]` (`make bench`).
+Writes benchmarks/results/http.json.
+
+Setup: the real service (`cortexloc serve`, one uvicorn worker, default settings) in a subprocess on
+a free 127.0.0.1 port with a temporary data directory and no weights installed (the seeded random
+AlexNet: the same computation as the pretrained weights). Frames are 640x480 synthetic JPEGs
+(`models.bench.synthetic_jpegs`). Each client is one robot: its own stream, posting `learn=true`
+(mapping: TM step, ranking top-5 and a durable SQLite commit with synchronous=FULL before the reply)
+to the `default` map, one request at a time, the next as soon as the reply is in. The load generator
+is bounded: `--requests` replies per client count (split evenly over the clients) and a wall-clock
+cap, then it stops by itself.
+
+Reported per client count: images/s (replies 200 / wall time), client-side p50/p95/p99 latency, the
+server's own per-stage medians from the replies' `timings_ms`, the encoder batch sizes the service
+ran, errors, and the server RSS. Next to it, in the same run and the same process as this client
+(the server idle meanwhile): the encoder alone on the same images (decode + preprocess + AlexNet
+conv1-conv3 + sLSBH hash, as the service runs it), batch 1 latency and batch 16 throughput, measured
+before and after the HTTP runs; the ratios HTTP/encoder are the figures to compare across machines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import shlex
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+from _common import RESULTS, ROOT, quick_mode, write_json  # also puts the repo on sys.path
+
+from models.bench import synthetic_jpegs
+
+TARGET_IPS_16, TARGET_P50_1_MS = 40.0, 70.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def proc_rss_mib(pid: int) -> float:
+    """VmRSS of another process in MiB (0.0 where /proc is unavailable)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+class Server:
+    """`cortexloc serve` in a subprocess on a free loopback port with its own data directory."""
+
+    def __init__(self, tmp: Path, extra_env: dict[str, str] | None = None,
+                 command: list[str] | None = None) -> None:
+        self.tmp = tmp
+        self.port = free_port()
+        self.base = f"http://127.0.0.1:{self.port}"
+        env = {k: v for k, v in os.environ.items() if not k.startswith("CORTEXLOC_")}
+        env.update({"CORTEXLOC_WEIGHTS_DIR": str(tmp / "no-weights"), "CORTEXLOC_LOG_FORMAT": "text",
+                    "CORTEXLOC_LOG_LEVEL": "WARNING", **(extra_env or {})})
+        exe = Path(sys.executable).parent / "cortexloc"
+        cmd = command or ([str(exe)] if exe.exists() else [sys.executable, "-m", "service.cli"])
+        self.log_path = tmp / "server.log"
+        self._log = self.log_path.open("ab")
+        argv = [*cmd, "serve", "--port", str(self.port), "--data-dir", str(tmp / "var")]
+        self.proc = subprocess.Popen(argv, env=env, cwd=ROOT, stdout=self._log, stderr=self._log)
+
+    def wait_ready(self, timeout: float = 180.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"server exited: {self.log_path.read_text()[-2000:]}")
+            try:
+                if httpx.get(f"{self.base}/readyz", timeout=5).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.3)
+        raise RuntimeError(f"server not ready within {timeout} s")
+
+    def rss_mib(self) -> float:
+        return proc_rss_mib(self.proc.pid)
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=30)
+        self._log.close()
+
+
+async def drive(base: str, frames: list[bytes], clients: int, total: int, max_s: float,
+                map_id: str = "default") -> dict[str, Any]:
+    """`clients` concurrent loops posting frames until `total` replies or `max_s` seconds, then stop.
+
+    Returns:
+        images_per_s, latency_ms (p50/p95/p99/mean), replies, errors (status -> count), server stage
+        medians (ms), wall_s.
+    """
+    per_client = max(1, total // clients)
+    lat: list[float] = []
+    errors: dict[str, int] = {}
+    stages: dict[str, list[float]] = {}
+    deadline = time.perf_counter() + max_s
+    limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
+
+    async def client(i: int, http: httpx.AsyncClient) -> None:
+        url = f"{base}/v1/maps/{map_id}/observations"
+        params = {"stream": f"robot-{i}", "learn": "true", "top_k": "5"}
+        for j in range(per_client):
+            if time.perf_counter() > deadline:
+                return
+            body = frames[(i * 7919 + j) % len(frames)]  # each robot its own walk through the frames
+            t0 = time.perf_counter()
+            r = await http.post(url, params=params, content=body, headers={"Content-Type": "image/jpeg"})
+            dt = time.perf_counter() - t0
+            if r.status_code != 200:
+                errors[str(r.status_code)] = errors.get(str(r.status_code), 0) + 1
+                continue
+            lat.append(dt)
+            for k, v in r.json()["timings_ms"].items():
+                stages.setdefault(k, []).append(float(v))
+
+    async with httpx.AsyncClient(limits=limits, timeout=120) as http:
+        t0 = time.perf_counter()
+        await asyncio.gather(*(client(i, http) for i in range(clients)))
+        wall = time.perf_counter() - t0
+    ms = np.asarray(lat) * 1e3
+    return {
+        "clients": clients, "replies": len(lat), "errors": errors, "wall_s": wall,
+        "images_per_s": len(lat) / wall if wall > 0 else 0.0,
+        "latency_ms": {"p50": float(np.percentile(ms, 50)), "p95": float(np.percentile(ms, 95)),
+                       "p99": float(np.percentile(ms, 99)), "mean": float(ms.mean())} if ms.size else {},
+        "server_stage_ms_median": {k: float(np.median(v)) for k, v in stages.items()},
+    }
+
+
+def encoder_alone(frames: list[bytes], repeats: int) -> dict[str, Any]:
+    """The encoder as the service builds it (AlexNet conv3, 1 torch thread, the default map's sLSBH),
+    on the same frames: batch-1 latency and batch-16 throughput of decode + backbone + hash."""
+    from models import presets, slsbh
+    from models.encoder import Encoder
+
+    s_conf = {"k": 1024, "s": 0.25, **presets.get("cortexloc-default").get("slsbh", {})}
+    enc = Encoder({"backbone": "alexnet", "torch_threads": 1, "slsbh": {"k": s_conf["k"], "s": s_conf["s"]}})
+    batch = frames[:16]
+    hasher = slsbh.Hasher(enc.hasher.P, float(s_conf["s"]))
+    clock = time.perf_counter
+    for _ in range(2):  # warm-up: allocators, oneDNN kernels
+        enc.encode(batch[:1])
+        enc.encode(batch)
+    one, sixteen, hash_one = [], [], []
+    for i in range(repeats):
+        t0 = clock()
+        out = enc.embed([frames[i % len(frames)]])
+        t1 = clock()
+        hasher(out.features)  # the service hashes one image at a time, in the map's writer
+        one.append(clock() - t0)
+        hash_one.append(clock() - t1)
+        t0 = clock()
+        enc.encode(batch)
+        sixteen.append(clock() - t0)
+    return {"batch1_ms_median": float(np.median(one) * 1e3),
+            "batch1_hash_ms_median": float(np.median(hash_one) * 1e3),
+            "batch16_images_per_s": 16 / float(np.median(sixteen)),
+            "encoder": enc.identity}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--clients", type=int, nargs="+", default=[1, 4, 16])
+    ap.add_argument("--requests", type=int, default=None, help="replies per client count (default 160)")
+    ap.add_argument("--max-seconds", type=float, default=120.0, help="wall-clock cap per client count")
+    ap.add_argument("--repeats", type=int, default=None, help="encoder-alone repeats (default 15)")
+    ap.add_argument("--quick", action="store_true", help="smoke run (also CORTEXLOC_BENCH_QUICK=1)")
+    ap.add_argument("--keep", action="store_true", help="keep the temporary data directory")
+    ap.add_argument("--server-cmd", default=None,
+                    help="command that starts the CLI instead of `cortexloc` (e.g. another build); "
+                         "`serve --port P --data-dir D` is appended")
+    ap.add_argument("--out", type=Path, default=RESULTS / "http.json")
+    args = ap.parse_args()
+    quick = quick_mode(args.quick)
+    total = args.requests or (32 if quick else 160)
+    repeats = args.repeats or (3 if quick else 15)
+    frames = synthetic_jpegs(64, seed=1)
+    tmp = Path(tempfile.mkdtemp(prefix="cortexloc-bench-http-"))
+    os.environ["CORTEXLOC_WEIGHTS_DIR"] = str(tmp / "no-weights")  # the same random weights as the server
+    server = Server(tmp, command=shlex.split(args.server_cmd) if args.server_cmd else None)
+    try:
+        t0 = time.perf_counter()
+        server.wait_ready()
+        startup_s = time.perf_counter() - t0
+        rss_start = server.rss_mib()
+        enc_before = encoder_alone(frames, repeats)
+        # Warm-up: the first requests pay for lazy imports, the writer thread and the batch path.
+        asyncio.run(drive(server.base, frames, 4, 16, 60))
+        levels = []
+        for c in args.clients:
+            r = asyncio.run(drive(server.base, frames, c, max(total, c), args.max_seconds))
+            r["server_rss_mib"] = server.rss_mib()
+            levels.append(r)
+            st = r["server_stage_ms_median"]
+            print(f"{c:>3} clients: {r['images_per_s']:.1f} img/s, latency p50 {r['latency_ms']['p50']:.1f} "
+                  f"p95 {r['latency_ms']['p95']:.1f} p99 {r['latency_ms']['p99']:.1f} ms; server stages "
+                  "(median ms) " + ", ".join(f"{k} {v:.1f}" for k, v in st.items())
+                  + (f"; errors {r['errors']}" if r["errors"] else ""), flush=True)
+        enc_after = encoder_alone(frames, repeats)
+        memory = httpx.get(f"{server.base}/v1/maps/default/memory", timeout=30).json()
+    finally:
+        server.stop()
+        if not args.keep:
+            shutil.rmtree(tmp, ignore_errors=True)
+    enc = {k: float(np.median([enc_before[k], enc_after[k]]))
+           for k in ("batch1_ms_median", "batch1_hash_ms_median", "batch16_images_per_s")}
+    by_c = {r["clients"]: r for r in levels}
+    summary: dict[str, Any] = {"encoder_alone": enc}
+    if 16 in by_c:
+        summary["images_per_s_16"] = by_c[16]["images_per_s"]
+        summary["ratio_http16_to_encoder_batch16"] = by_c[16]["images_per_s"] / enc["batch16_images_per_s"]
+        summary["target_images_per_s_16"] = TARGET_IPS_16
+        summary["met_images_per_s_16"] = by_c[16]["images_per_s"] >= TARGET_IPS_16
+    if 1 in by_c:
+        p50 = by_c[1]["latency_ms"]["p50"]
+        summary["p50_ms_1"] = p50
+        summary["ratio_http1_p50_to_encoder_batch1"] = p50 / enc["batch1_ms_median"]
+        summary["target_p50_ms_1"] = TARGET_P50_1_MS
+        summary["met_p50_ms_1"] = p50 <= TARGET_P50_1_MS
+    print(f"encoder alone (same images, same run): batch 1 {enc['batch1_ms_median']:.1f} ms "
+          f"(+ hash {enc['batch1_hash_ms_median']:.1f} ms included), batch 16 "
+          f"{enc['batch16_images_per_s']:.1f} img/s", flush=True)
+    if 16 in by_c and 1 in by_c:
+        print(f"16 clients: {summary['images_per_s_16']:.1f} img/s = "
+              f"{summary['ratio_http16_to_encoder_batch16']:.2f} x encoder batch 16 (target >= 40: "
+              f"{'met' if summary['met_images_per_s_16'] else 'NOT met'}); "
+              f"1 client p50 {summary['p50_ms_1']:.1f} ms"
+              f" = {summary['ratio_http1_p50_to_encoder_batch1']:.2f} x encoder batch 1 (target <= 70 ms: "
+              f"{'met' if summary['met_p50_ms_1'] else 'NOT met'})", flush=True)
+    write_json(args.out.name, {
+        "config": {"server_cmd": args.server_cmd or "cortexloc", "clients": args.clients,
+                   "requests_per_level": total, "frames": "64 x 640x480 JPEG",
+                   "route": "POST /v1/maps/default/observations?learn=true&top_k=5", "quick": quick,
+                   "settings": "defaults (1 uvicorn worker, CORTEXLOC_TORCH_THREADS=1, "
+                               "CORTEXLOC_ENCODER_WORKERS=1), random weights"},
+        "startup_s": startup_s, "server_rss_start_mib": rss_start, "levels": levels,
+        "encoder_alone_before": enc_before, "encoder_alone_after": enc_after, "summary": summary,
+        "map_memory_after": memory}, args.out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,238 @@
+"""Start-up time of a map with 10^5 observations: snapshot load, replay after it, index rebuild.
+
+Run: `python benchmarks/bench_startup.py [--observations 100000] [--quick] [--full-replay]`
+(`make bench`). Writes benchmarks/results/startup.json.
+
+Setup: a data directory with one map `default` (preset `cortexloc-default`, the real 64,896 x 1,024
+projection), built through `MapRuntime.observe` exactly as the service stores observations, except that
+the sLSBH codes are given (synthetic routes: 100 places driven twice with 10 % noise, then a reset) and
+the build connection runs with `synchronous=OFF` (building only; the files are the same, and start-up
+never writes). Two snapshots are taken during the build: `--long-tail` observations before the end and
+`--short-tail` before the end. Then the map is opened as the service does at start
+(`MapRegistry(...).start()`: warm-up, catalog, projection load and checksum, quick_check, newest valid
+snapshot, replay of the rows after it with verification, index rebuild from all rows):
+
+1. with both snapshots: the replay tail is `--short-tail` observations (a clean shutdown or a recent
+   automatic snapshot);
+2. with the newer snapshot removed: the tail is `--long-tail` observations (CORTEXLOC_SNAPSHOT_EVERY
+   is 1,000 by default, so 10,000 means nine missed snapshots);
+3. (`--full-replay`) with no snapshot: every observation is replayed.
+
+Each opening runs in a fresh process; each phase is timed by wrapping the functions recovery calls,
+and `registry.start()` is timed around the whole (interpreter and library imports excluded). The
+encoder is not part of start-up (replay needs no CNN), so a stub with the real feature dimension
+stands in for it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from _common import RESULTS, quick_mode, rss_mib, write_json  # also puts the repo on sys.path
+from bench_longrun import noisy, random_places
+
+import service.runtime as runtime_mod
+from models import presets, slsbh
+from models.temporal_memory import TemporalMemory
+from service.settings import Settings
+from storage import snapshots
+from storage.index import InvertedIndex
+from storage.mapstore import MapStore
+
+FEATURE_DIM = 64_896  # AlexNet conv3, 384 x 13 x 13: the projection's real size
+
+
+class StubEncoder:
+    """What `MapRegistry` needs from an encoder at start-up: its identity and feature dimension."""
+
+    feature_dim = FEATURE_DIM
+    identity = "alexnet-conv3/bench-stub:crop"
+
+
+class PhaseTimer:
+    """Wraps functions so every call adds its wall time to a named phase (nested calls excluded)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self.calls: dict[str, int] = {}
+        self._undo: list[Callable[[], None]] = []
+        self._depth = 0
+
+    def wrap(self, owner: Any, attr: str, phase: str) -> None:
+        original = getattr(owner, attr)
+
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            outer = self._depth == 0
+            self._depth += 1
+            t0 = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                self._depth -= 1
+                if outer:
+                    self.seconds[phase] = self.seconds.get(phase, 0.0) + time.perf_counter() - t0
+                    self.calls[phase] = self.calls.get(phase, 0) + 1
+
+        setattr(owner, attr, timed)
+        self._undo.append(lambda: setattr(owner, attr, original))
+
+    def undo(self) -> None:
+        for u in reversed(self._undo):
+            u()
+        self._undo.clear()
+
+
+def settings_for(data_dir: Path) -> Settings:
+    # No automatic snapshots: the benchmark places its own; a map of 10^5 fits the default caps.
+    return Settings(data_dir=data_dir, snapshot_every=0, snapshot_keep=10)
+
+
+def build(data_dir: Path, n: int, short_tail: int, long_tail: int, seed: int = 0) -> dict[str, Any]:
+    """Create map `default` with n observations and snapshots at n - long_tail and n - short_tail."""
+    reg = runtime_mod.MapRegistry(data_dir, StubEncoder(), settings_for(data_dir))
+    reg.start()  # creates `default` with the default preset (and its 266 MB projection)
+    rt = reg.get("default")
+    assert rt.store is not None and rt.hasher is not None
+    rt.store._db().execute("PRAGMA synchronous=OFF")  # building only: start-up never writes
+    params = presets.tm_params("cortexloc-default")
+    columns, active = int(params["columnDimensions"]), 2 * rt.hasher.n
+    rng = np.random.Generator(np.random.PCG64(seed))
+    features = np.zeros(FEATURE_DIM, dtype=np.float32)  # unused: the code is given
+    snaps_at = {n - long_tail, n - short_tail}
+    t0 = time.perf_counter()
+    done = 0
+    while done < n:
+        route = random_places(100, columns, active, rng)
+        rt.reset_stream("robot")
+        for lap in range(2):
+            for p, base in enumerate(route):
+                if done == n:
+                    break
+                code = noisy(base, round(0.1 * active), columns, rng).astype(np.int32)
+                rt.observe(features, f"{done:064x}", learn=True, stream="robot", top_k=0,
+                           label=f"lap {lap} place {p}", code=code)
+                done += 1
+                if done in snaps_at:
+                    rt.snapshot("auto")
+                if done % 10_000 == 0:
+                    el = time.perf_counter() - t0
+                    print(f"  built {done}/{n} observations ({el:.0f} s, {done / el:.0f}/s)", flush=True)
+    build_s = time.perf_counter() - t0
+    rt.store._db().execute("PRAGMA synchronous=FULL")
+    reg.close()
+    return {"observations": n, "build_s": build_s, "snapshots_at": sorted(snaps_at)}
+
+
+def open_once(data_dir: Path) -> dict[str, Any]:
+    """`MapRegistry.start()` on the data directory, with the time of each recovery phase."""
+    timer = PhaseTimer()
+    timer.wrap(runtime_mod, "_warm_up", "kernel warm-up (numba cache load)")
+    timer.wrap(slsbh, "load_projection", "projection load + SHA-256")
+    timer.wrap(MapStore, "open", "store open")
+    timer.wrap(MapStore, "quick_check", "quick_check")
+    timer.wrap(snapshots, "verify", "snapshot verify (checksums)")
+    timer.wrap(snapshots, "load_memory", "snapshot load (npz)")
+    timer.wrap(runtime_mod.MapRuntime, "load_memory_state", "snapshot -> TM (reverse index rebuild)")
+    timer.wrap(TemporalMemory, "compute", "replay (TM steps, verified)")
+    timer.wrap(InvertedIndex, "rebuild", "index rebuild (read rows + build)")
+    rss0 = rss_mib()
+    try:
+        t0 = time.perf_counter()
+        reg = runtime_mod.MapRegistry(data_dir, StubEncoder(), settings_for(data_dir))
+        reg.start()
+        total = time.perf_counter() - t0
+    finally:
+        timer.undo()
+    rt = reg.get("default")
+    state, replayed = rt.state, timer.calls.get("replay (TM steps, verified)", 0)
+    observations = len(rt.index)
+    rss = rss_mib() - rss0
+    # Close without the shutdown snapshot, so the next scenario finds the same snapshots.
+    rt.close(snapshot=False)
+    reg.catalog.close()
+    replay_s = timer.seconds.get("replay (TM steps, verified)", 0.0)
+    return {"start_s": total, "state": state, "observations": observations, "replayed": replayed,
+            "replay_ms_per_step": replay_s / replayed * 1e3 if replayed else None,
+            "phases_s": {k: round(v, 4) for k, v in timer.seconds.items()},
+            "rss_growth_mib": round(rss, 1)}
+
+
+def drop_newest_snapshot(data_dir: Path) -> int:
+    """Remove the newest snapshot (catalog entry and files); return the seq of the remaining newest."""
+    from storage.catalog import Catalog
+
+    cat = Catalog.open(data_dir / "catalog.sqlite")
+    try:
+        snaps = cat.list_snapshots("default")
+        newest = snaps[0]
+        cat.delete_snapshot("default", newest.snapshot_id)
+        shutil.rmtree(newest.path, ignore_errors=True)
+        return snaps[1].seq if len(snaps) > 1 else 0
+    finally:
+        cat.close()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--observations", type=int, default=None, help="map size (default 100,000; quick 2,000)")
+    ap.add_argument("--short-tail", type=int, default=None, help="replay after the newest snapshot (100)")
+    ap.add_argument("--long-tail", type=int, default=None, help="replay after the older snapshot (10,000)")
+    ap.add_argument("--full-replay", action="store_true", help="also open with no snapshot at all")
+    ap.add_argument("--data-dir", type=Path, default=None,
+                    help="reuse (or build once into) this directory instead of a temporary one")
+    ap.add_argument("--quick", action="store_true", help="smoke run (also CORTEXLOC_BENCH_QUICK=1)")
+    ap.add_argument("--out", type=Path, default=RESULTS / "startup.json")
+    args = ap.parse_args()
+    quick = quick_mode(args.quick)
+    n = args.observations or (2_000 if quick else 100_000)
+    short_tail = args.short_tail or (20 if quick else 100)
+    long_tail = args.long_tail or (500 if quick else 10_000)
+    tmp = None
+    if args.data_dir is None:
+        tmp = Path(tempfile.mkdtemp(prefix="cortexloc-bench-startup-"))
+        data_dir = tmp / "var"
+    else:
+        data_dir = args.data_dir
+    try:
+        built: dict[str, Any] = {"reused": True}
+        if not (data_dir / "catalog.sqlite").exists():
+            print(f"startup: building a map of {n} observations in {data_dir} (once)", flush=True)
+            built = build(data_dir, n, short_tail, long_tail)
+        db_mib = (data_dir / "maps" / "default" / "map.sqlite").stat().st_size / 2**20
+        scenarios = []
+        for name in ("short tail", "long tail", "no snapshot"):
+            if name == "long tail":
+                drop_newest_snapshot(data_dir)
+            if name == "no snapshot":
+                if not args.full_replay:
+                    break
+                drop_newest_snapshot(data_dir)
+            # A fresh process per opening, as at a real start: numba loads its cached kernels, the page
+            # cache is whatever the previous opening left (warm, as after a restart of the service).
+            with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as ex:
+                r = {"scenario": name, **ex.submit(open_once, data_dir).result()}
+            scenarios.append(r)
+            ph = r["phases_s"]
+            print(f"{name:>11}: start {r['start_s']:.2f} s, replayed {r['replayed']} "
+                  f"({(r['replay_ms_per_step'] or 0):.2f} ms/step), state {r['state']}; phases (s) "
+                  + ", ".join(f"{k} {v:.2f}" for k, v in ph.items()), flush=True)
+        write_json(args.out.name, {
+            "config": {"observations": n, "short_tail": short_tail, "long_tail": long_tail,
+                       "preset": "cortexloc-default", "quick": quick},
+            "build": built, "db_mib": db_mib, "scenarios": scenarios}, args.out)
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

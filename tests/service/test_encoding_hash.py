@@ -1,0 +1,83 @@
+"""Hashing in the encoder pool: codes computed per batch with each request's map hasher equal the
+writer's own hashing, bad images still fail alone, and `MapRuntime.observe(code=...)` stores exactly
+what hashing in the writer stores (benchmarks/bench_http.py measured why: docs/benchmarks.md §1)."""
+
+from __future__ import annotations
+
+from functools import partial
+
+import numpy as np
+import pytest
+
+from models.images import ImageError
+from models.slsbh import Hasher, make_projection
+from service.encoding import EncoderPool
+from tests.service.test_maps_observations import frame, make_client
+
+
+class FakeEncoder:
+    """`embed` returns one fixed feature row per image (derived from its bytes); b"bad" fails."""
+
+    def __init__(self) -> None:
+        self.calls: list[int] = []
+
+    def embed(self, data):
+        from models.encoder import EncodeResult
+
+        self.calls.append(len(data))
+        if any(b == b"bad" for b in data):
+            raise ImageError("truncated", "the image data ends early")
+        feats = np.stack([np.random.default_rng(len(b)).standard_normal(32).astype(np.float32)
+                          for b in data])
+        return EncodeResult(codes=None, features=feats, timings_ms={"decode": 0.0})
+
+
+def test_pool_hashes_each_request_with_its_own_hasher() -> None:
+    h1 = Hasher(make_projection(32, 16, seed=1), 0.25)
+    h2 = Hasher(make_projection(32, 16, seed=2), 0.25)
+    enc = FakeEncoder()
+    pool = EncoderPool(enc, workers=1, queue=64, wait_ms=50)  # a wide window: one batch, deterministically
+    try:
+        bodies = [bytes(10 + i) for i in range(9)]
+        hashers = [h1, h2, None] * 3
+        futs = [pool.submit(b, hasher=h) for b, h in zip(bodies, hashers, strict=True)]
+        results = [f.result(timeout=30) for f in futs]
+        assert max(pool.batches) > 1
+        for b, h, r in zip(bodies, hashers, results, strict=True):
+            feats = enc.embed([b]).features
+            assert np.array_equal(r.features, feats)
+            if h is None:
+                assert r.codes is None
+            else:
+                assert r.codes.shape == (1, 2 * h.n)
+                assert np.array_equal(r.codes, h(feats))  # the same code as hashing alone
+        # A bad image fails alone; its batch-mates still get their codes.
+        futs = [pool.submit(b"bad", hasher=h1), pool.submit(bytes(5), hasher=h1)]
+        with pytest.raises(ImageError):
+            futs[0].result(timeout=30)
+        ok = futs[1].result(timeout=30)
+        assert np.array_equal(ok.codes, h1(enc.embed([bytes(5)]).features))
+    finally:
+        pool.close()
+
+
+def test_observe_with_a_precomputed_code_stores_the_same_as_hashing_in_the_writer(tmp_path) -> None:
+    frames = [frame(p % 5, noise=3.0 * (p // 5)) for p in range(12)]
+    stored = []
+    for mode in ("writer", "pool"):
+        with make_client(tmp_path / mode) as c:
+            rt = c.app.state.registry.get("default")
+            pool = c.app.state.encoder_pool
+            hasher = rt.hasher if mode == "pool" else None
+            encs = [pool.submit(b, hasher=hasher) for b in frames]  # queued at once: batched
+            for i, e in enumerate(encs):
+                r = e.result(timeout=60)
+                code = r.codes[0] if mode == "pool" else None
+                rt.submit(partial(rt.observe, r.features[0], f"{i:064x}", learn=True, stream="s", top_k=3,
+                                  label=None, code=code)).result(timeout=60)
+            stored.append([(o.input_sdr.tolist(), o.winner_cells.tolist()) for o in rt.store.rows()])
+            with pytest.raises(ValueError):  # a code of another width is refused before any state change
+                rt.submit(partial(rt.observe, r.features[0], "0" * 64, learn=True, stream="s", top_k=0,
+                                  label=None, code=np.arange(3, dtype=np.int32))).result(timeout=60)
+            assert rt.store.count() == len(frames)
+    assert stored[0] == stored[1]

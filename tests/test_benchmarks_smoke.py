@@ -1,0 +1,49 @@
+"""The retrieval benchmark's own check, small: the index and the brute-force popcount agree.
+
+benchmarks/bench_index.py compares `InvertedIndex.rank` with a packed-bit `np.bitwise_count` scan at
+10^3..10^6 descriptors; here the same code runs on a few thousand, asserting that both return the same
+top-10 (seq and overlap, ties to the older row) and that a noisy copy of a stored descriptor finds it.
+Timings are never asserted (they live in the benchmark's JSON).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import bench_index
+from bench_longrun import noisy
+
+
+def test_descriptor_generators_keep_constant_weight() -> None:
+    rng = np.random.default_rng(0)
+    sets = bench_index.random_sets(rng, 500)
+    assert sets.shape == (500, bench_index.WEIGHT)
+    assert bool(np.all(np.diff(sets, axis=1) > 0)) and sets.min() >= 0 and sets.max() < bench_index.N_CELLS
+    q = bench_index.noisy_query(rng, sets[0], 30)
+    assert q.size == 40 and np.unique(q).size == 40 and np.intersect1d(q, sets[0]).size == 30
+    x = noisy(sets[1].astype(np.int64), 4, bench_index.N_CELLS, rng)
+    assert x.size == 40 and np.unique(x).size == 40 and np.intersect1d(x, sets[1]).size == 36
+
+
+def test_packed_popcount_counts_overlaps() -> None:
+    rng = np.random.default_rng(1)
+    sets = bench_index.random_sets(rng, 50)
+    packed = bench_index.pack(sets)
+    q = sets[7].astype(np.int64)
+    top = bench_index.brute_top(packed, q, k=50)
+    expected = {i: np.intersect1d(sets[i], q).size for i in range(50)}
+    assert top[0] == (7, 40)
+    assert all(expected[r] == o for r, o in top)
+    assert [o for _, o in top] == sorted((o for _, o in top), reverse=True)
+
+
+def test_index_and_brute_force_return_the_same_top10() -> None:
+    r = bench_index.bench_size(3_000, queries=15, keep=30, seed=3)
+    assert r["same_top10"] == 15
+    assert r["target_in_top10"] == 15
+    assert r["index"]["postings"] == 3_000 * bench_index.WEIGHT
