@@ -7,11 +7,56 @@ different places share 12 of 40 bits on average and the same place only 16 (docs
 Temporal Memory then sees near-identical codes everywhere and predicts by chance (science.md §3.8).
 Subtracting the stream's own recent mean removes what all recent frames share, as retinal adaptation
 does, and is causal: frame t uses frames <= t only, so a robot can run it online.
+
+The service adapts each stream in projection space (y = x·P, k values instead of D features): the
+projection is linear, so the running mean of y is the projection of the running mean of x, and the
+positive scale of the L2 normalisation does not change which entries are largest. The sLSBH code of
+an adapted projection is therefore the code of the adapted features.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+
+
+@dataclass
+class RunningMean:
+    """One stream's running mean: the mean of the first `tau` vectors, then an EMA with weight 1/tau.
+
+    Attributes:
+        tau: time constant in frames (>= 1).
+        count: vectors seen so far.
+        mean: (m,) float64 running mean, None before the first vector.
+    """
+
+    tau: int
+    count: int = 0
+    mean: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.tau < 1:
+            raise ValueError(f"tau must be >= 1, got {self.tau}")
+
+    def subtract(self, v: np.ndarray) -> np.ndarray:
+        """Update the mean with `v` (m,), then return v minus it (`v` itself for the first vector)."""
+        v = np.asarray(v, dtype=np.float64)
+        if self.mean is None:
+            self.mean = np.zeros_like(v)
+        self.count += 1
+        self.mean += (v - self.mean) / min(self.count, self.tau)
+        return v - self.mean if self.count > 1 else v.copy()
+
+    def state(self) -> np.ndarray:
+        """(1 + m,) float64: count, then the mean (empty mean before the first vector)."""
+        mean = np.zeros(0) if self.mean is None else self.mean
+        return np.concatenate([[float(self.count)], mean])
+
+    @classmethod
+    def from_state(cls, tau: int, state: np.ndarray) -> RunningMean:
+        count = int(state[0])
+        return cls(tau, count, np.array(state[1:], dtype=np.float64) if count else None)
 
 
 def running_mean_subtract(x: np.ndarray, tau: int) -> np.ndarray:
@@ -27,13 +72,10 @@ def running_mean_subtract(x: np.ndarray, tau: int) -> np.ndarray:
     Returns:
         (n, D) float32, rows L2-normalised (a row equal to the mean stays zero).
     """
-    if tau < 1:
-        raise ValueError(f"tau must be >= 1, got {tau}")
+    running = RunningMean(tau)
     x = np.asarray(x, dtype=np.float32)
     out = np.empty_like(x)
-    mean = np.zeros(x.shape[1], dtype=np.float64)
     for i, row in enumerate(x):
-        mean += (row - mean) / min(i + 1, tau)
-        out[i] = row - mean if i else row
+        out[i] = running.subtract(row)
     norms = np.linalg.norm(out, axis=1, keepdims=True)
     return out / np.where(norms > 0, norms, 1.0)

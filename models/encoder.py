@@ -74,10 +74,12 @@ class EncodeResult:
         codes: (N, 2n) int32, each row the sorted active columns of one image (None from `embed`).
         features: (N, D) float32 L2-normalised backbone features, when asked for.
         timings_ms: wall time per stage for the whole batch (decode, preprocess, backbone, hash).
+        projected: (N, k) float32 projections x·P, when a caller projected for a map (service.encoding).
     """
 
     codes: np.ndarray | None
     features: np.ndarray | None = None
+    projected: np.ndarray | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 

@@ -5,12 +5,14 @@ else arrives within a few milliseconds (up to `max_batch`), and runs one backbon
 them, so throughput under load approaches the backbone's batch throughput. A full queue answers 503
 `overloaded` at once instead of letting latency grow without bound.
 
-A request may bring its map's sLSBH hasher (`submit(body, hasher=...)`): the batch is then also hashed
-here, one matrix product per map present in the batch. The dense projection is 64,896 x 1,024 float32
-(266 MB) and hashing is bound by reading it, so hashing image by image in the map's writer costs the
-same ~15-20 ms per image as hashing 16 at once costs per batch (benchmarks/bench_http.py,
-docs/benchmarks.md); in the writer it also serialises behind the TM step and the commit. Hashing is
-stateless (the map's projection never changes), so doing it before the writer changes no ordering.
+A request may bring its map's sLSBH hasher (`submit(body, hasher=...)`): the batch is then also
+projected here (y = x·P), one matrix product per map present in the batch. The dense projection is
+64,896 x 1,024 float32 (266 MB) and the product is bound by reading it, so projecting image by image in
+the map's writer costs the same ~15-20 ms per image as projecting 16 at once costs per batch
+(benchmarks/bench_http.py, docs/benchmarks.md); in the writer it also serialises behind the TM step and
+the commit. The projection is stateless (a map's matrix never changes), so doing it before the writer
+changes no ordering; what depends on the stream (adaptation, models.adaptation) and the top-n
+selection of the code stay in the writer, on k values.
 """
 
 from __future__ import annotations
@@ -58,7 +60,7 @@ class EncoderPool:
 
     def submit(self, body: bytes, hasher: Hasher | None = None) -> Future[EncodeResult]:
         """Queue one image; the future's `EncodeResult` has `features` (1, D) and, with `hasher`,
-        `codes` (1, 2n) from that hasher (else None).
+        `projected` (1, k) = features · that hasher's projection (else None).
 
         Raises:
             Problem: 503 overloaded when `workers + queue` requests are already in flight.
@@ -97,17 +99,18 @@ class EncoderPool:
             try:
                 out = self.encoder.embed([body for body, _, _ in batch])
                 self.batches = [*self.batches[-99:], len(batch)]
-                codes, hash_ms = self._hash(out.features, [h for _, _, h in batch])
+                projected, ms = self._project(out.features, [h for _, _, h in batch])
                 for i, (_, fut, _) in enumerate(batch):
-                    fut.set_result(EncodeResult(codes=codes[i], features=out.features[i:i + 1],
-                                                timings_ms={**out.timings_ms, "hash": hash_ms}))
+                    fut.set_result(EncodeResult(codes=None, features=out.features[i:i + 1],
+                                                projected=projected[i],
+                                                timings_ms={**out.timings_ms, "project": ms}))
             except ImageError:
                 # One bad image must not fail the others: encode each alone to attribute the error.
                 for body, fut, hasher in batch:
                     try:
                         one = self.encoder.embed([body])
-                        one.codes, one.timings_ms["hash"] = self._hash(one.features, [hasher])
-                        one.codes = one.codes[0]
+                        projected, one.timings_ms["project"] = self._project(one.features, [hasher])
+                        one.projected = projected[0]
                         fut.set_result(one)
                     except Exception as e:
                         fut.set_exception(e)
@@ -120,14 +123,15 @@ class EncoderPool:
                 self.pending -= len(batch)
 
     @staticmethod
-    def _hash(features: np.ndarray, hashers: list[Hasher | None]) -> tuple[list[np.ndarray | None], float]:
-        """Codes of each row of `features` (N, D) with its own hasher, one product per distinct hasher.
+    def _project(features: np.ndarray, hashers: list[Hasher | None]
+                 ) -> tuple[list[np.ndarray | None], float]:
+        """Each row of `features` (N, D) times its own hasher's projection, one product per hasher.
 
         Returns:
-            ([(1, 2n) int32 codes or None per row], milliseconds spent).
+            ([(1, k) float32 projections or None per row], milliseconds spent).
         """
         t0 = time.perf_counter()
-        codes: list[np.ndarray | None] = [None] * len(hashers)
+        out: list[np.ndarray | None] = [None] * len(hashers)
         groups: dict[int, list[int]] = {}
         for i, h in enumerate(hashers):
             if h is not None:
@@ -135,10 +139,10 @@ class EncoderPool:
         for rows in groups.values():
             hasher = hashers[rows[0]]
             assert hasher is not None
-            c = hasher(features[rows])  # (len(rows), 2n): the projection is read once for the group
+            Y = hasher.project(features[rows])  # (len(rows), k): the matrix is read once for the group
             for j, i in enumerate(rows):
-                codes[i] = c[j:j + 1]
-        return codes, (time.perf_counter() - t0) * 1e3
+                out[i] = Y[j:j + 1]
+        return out, (time.perf_counter() - t0) * 1e3
 
     def close(self) -> None:
         self._queue.put(_STOP)

@@ -26,6 +26,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from models import presets, slsbh
+from models.adaptation import RunningMean
 from models.temporal_memory import StreamContext, TemporalMemory, planned_bytes, validate
 from service.errors import Problem
 from storage import snapshots
@@ -57,7 +58,8 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
                       errors=[{"location": "body", "name": "tm" if tm else "preset",
                                "message": str(e)}]) from e
     s_conf = {"k": 1024, "s": 0.25, **presets.get(preset).get("slsbh", {}), **(slsbh_conf or {})}
-    unknown = set(s_conf) - {"k", "s", "seed"}
+    s_conf.setdefault("adapt_tau", 0)
+    unknown = set(s_conf) - {"k", "s", "seed", "adapt_tau"}
     if unknown:
         errors.append({"location": "body", "name": "slsbh", "message": f"unknown key(s) {sorted(unknown)}"})
     if seed is not None:
@@ -67,6 +69,9 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
         slsbh.n_ones(int(s_conf["k"]), float(s_conf["s"]))
     except (ValueError, TypeError) as e:
         errors.append({"location": "body", "name": "slsbh", "message": str(e)})
+    if not isinstance(s_conf["adapt_tau"], int) or s_conf["adapt_tau"] < 0:
+        errors.append({"location": "body", "name": "slsbh.adapt_tau",
+                       "message": "adapt_tau must be an integer >= 0 (0 = no adaptation)"})
     if int(s_conf.get("k", 0)) * 2 != int(tm_params["columnDimensions"]):
         errors.append({"location": "body", "name": "slsbh.k",
                        "message": f"2k must equal columnDimensions ({tm_params['columnDimensions']})"})
@@ -94,6 +99,7 @@ class Stream:
     step: int = 0  # steps since the context was last empty
     last_learned_seq: int | None = None  # the learned observation the context continues
     learning: bool | None = None  # mode of the last step (a switch to learning starts a new sequence)
+    adapt: RunningMean | None = None  # the stream's running mean of projections (models.adaptation)
 
 
 class MapRuntime:
@@ -121,6 +127,7 @@ class MapRuntime:
         sha = self.params["projection_sha256"]
         self.projection_path = projections_dir / f"{sha}.npy"
         self.hasher: slsbh.Hasher | None = None
+        self.adapt_tau = int(self.params["slsbh"].get("adapt_tau", 0))  # maps made before it: none
         self._projection_error: str | None = None
         try:  # the checksum is verified on load: a map never runs on another matrix (science.md §7)
             projection = slsbh.load_projection(self.projection_path, sha,
@@ -186,6 +193,8 @@ class MapRuntime:
             state[f"streammeta.{h}"] = np.array(
                 [st.step, -1 if st.last_learned_seq is None else st.last_learned_seq,
                  -1 if st.learning is None else int(st.learning)], dtype=np.int64)
+            if st.adapt is not None:
+                state[f"streamadapt.{h}"] = st.adapt.state()
         return state
 
     def load_memory_state(self, state: dict[str, np.ndarray]) -> None:
@@ -193,8 +202,10 @@ class MapRuntime:
         self.streams = OrderedDict()
         for h, ctx in TemporalMemory.load_streams(state).items():
             step, last, learning = (int(v) for v in state[f"streammeta.{h}"])
+            adapt = (RunningMean.from_state(self.adapt_tau, state[f"streamadapt.{h}"])
+                     if self.adapt_tau and f"streamadapt.{h}" in state else None)
             self.streams[bytes.fromhex(h).decode()] = Stream(
-                ctx, step, None if last < 0 else last, None if learning < 0 else bool(learning))
+                ctx, step, None if last < 0 else last, None if learning < 0 else bool(learning), adapt)
 
     # ------------------------------------------------------------------ snapshots
 
@@ -327,20 +338,25 @@ class MapRuntime:
         return st
 
     def reset_stream(self, name: str) -> dict[str, Any]:
-        st = self.streams.pop(name, None)
+        """Break the stream's sequence (the next frame starts a new one); its adaptation is kept,
+        because it describes the camera and the conditions, not where the robot is."""
+        st = self.streams.get(name)
         had = st is not None and st.context.active_cells.size > 0
+        if st is not None:
+            st.context.reset()
+            st.step, st.last_learned_seq = 0, None
         return {"stream": name, "had_context": bool(had)}
 
     # ------------------------------------------------------------------ observations
 
     def observe(self, features: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
-                label: str | None, code: np.ndarray | None = None) -> dict[str, Any]:
+                label: str | None, projected: np.ndarray | None = None) -> dict[str, Any]:
         """One frame: TM step on the stream's context, ranking, and for learning the durable commit.
 
         Args:
             features: (D,) L2-normalised backbone features of the frame.
-            code: (2n,) its sLSBH code from this map's hasher, when already computed (the encoder pool
-                hashes batches, `service.encoding`); None: hashed here.
+            projected: (k,) features · this map's projection, when already computed (the encoder pool
+                projects batches, `service.encoding`); None: projected here.
 
         Returns:
             The observation part of the response (service.md §1.2).
@@ -353,12 +369,18 @@ class MapRuntime:
                           max_observations=self.index.max_observations)
         t0 = time.perf_counter()
         assert self.hasher is not None  # a map without its projection is failed, never ready
-        if code is None:
-            code = self.hasher(features[None, :])[0]
-        elif code.shape != (2 * self.hasher.n,):
-            raise ValueError(f"code has shape {code.shape}, this map's codes are ({2 * self.hasher.n},)")
-        t1 = time.perf_counter()
+        if projected is None:
+            projected = self.hasher.project(features)
+        elif projected.shape != (self.hasher.k,):
+            raise ValueError(f"projection has shape {projected.shape}, this map's are ({self.hasher.k},)")
         st = self._stream(stream)
+        if self.adapt_tau:
+            # The adapted stream's code; a crash loses the means since the last snapshot (they are
+            # not in the store), which costs about tau frames of weaker codes, never a stored row.
+            st.adapt = st.adapt or RunningMean(self.adapt_tau)
+            projected = st.adapt.subtract(projected)
+        code = slsbh.hash_projected(projected[None, :], self.hasher.s)[0]
+        t1 = time.perf_counter()
         if learn and st.learning is False:
             st.context.reset()  # a switch to mapping starts a new sequence: replay relies on it
             st.step, st.last_learned_seq = 0, None

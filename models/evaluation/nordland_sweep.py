@@ -20,7 +20,6 @@ from typing import Any
 import numpy as np
 
 from models import sdr, slsbh
-from models.adaptation import running_mean_subtract
 from models.encoder import Encoder
 from models.evaluation import sequences
 from models.evaluation.datasets import shared_data_dir
@@ -51,10 +50,8 @@ def load_features(split: str, cache_dir: Path) -> dict[str, tuple[np.ndarray, np
 
 
 def _codes(db: np.ndarray, q: np.ndarray, s: float, adapt_tau: int, seed: int) -> tuple[np.ndarray, ...]:
-    if adapt_tau:
-        db, q = running_mean_subtract(db, adapt_tau), running_mean_subtract(q, adapt_tau)
     hasher = slsbh.Hasher(slsbh.make_projection(db.shape[1], K, seed), s)
-    return hasher(db), hasher(q)
+    return sequences.codes(hasher, db, adapt_tau), sequences.codes(hasher, q, adapt_tau)
 
 
 def main() -> None:

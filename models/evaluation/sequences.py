@@ -139,6 +139,13 @@ def run_mcn(db_codes: np.ndarray, q_codes: np.ndarray, preset: str, seed: int, r
     return db_w, q_w, {"columns": mcn.n_columns}
 
 
+def codes(hasher: slsbh.Hasher, feats: np.ndarray, adapt_tau: int = 0) -> np.ndarray:
+    """(N, 2n) sLSBH codes of one stream's features (N, D) in time order, adapted with time constant
+    `adapt_tau` (0 = not) in projection space, exactly as the service does it (models.adaptation)."""
+    Y = hasher.project(feats)
+    return slsbh.hash_projected(running_mean_subtract(Y, adapt_tau) if adapt_tau else Y, hasher.s)
+
+
 def evaluate(S: np.ndarray, tolerance: int) -> dict[str, float]:
     """AUC, R@1, R@5, R@100P of S (n_db, n_q) against identity ground truth (±tolerance, §8.3)."""
     gt = np.eye(S.shape[0], S.shape[1], dtype=bool)
@@ -182,6 +189,7 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
         raise ValueError(f"unknown method(s) {sorted(bad)}; known: {', '.join(METHODS)}")
     runs: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
     first: dict[str, dict[str, Any]] = {}
+    raw = {"db": db_feats, "q": q_feats}
     if adapt_tau:
         db_feats = running_mean_subtract(db_feats, adapt_tau)
         q_feats = running_mean_subtract(q_feats, adapt_tau)
@@ -192,7 +200,7 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
         needs_codes = {"slsbh", "htm", "mcn"} & set(methods)
         if needs_codes:
             hasher = slsbh.Hasher(slsbh.make_projection(db_feats.shape[1], k, proj_seed), s)
-            db_codes, q_codes = hasher(db_feats), hasher(q_feats)
+            db_codes, q_codes = (codes(hasher, raw[key], adapt_tau) for key in ("db", "q"))
         for m in methods:
             if i > 0 and m in ("cosine", "seqslam"):
                 continue  # deterministic given the features

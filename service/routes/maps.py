@@ -23,6 +23,8 @@ class SlsbhConf(BaseModel):
     model_config = ConfigDict(extra="forbid")
     k: int | None = Field(default=None, ge=1)
     s: float | None = Field(default=None, gt=0, le=0.5)
+    adapt_tau: int | None = Field(default=None, ge=0, le=100_000,
+                                  description="stream adaptation time constant in frames; 0 = off")
 
 
 class CreateMap(BaseModel):

@@ -57,7 +57,7 @@ async def post_observation(
     t_checked = time.perf_counter()
     # The ticket: the encoding starts now, concurrently with others, and the writer job is queued now,
     # so the map's memory sees frames in the order their requests passed the checks.
-    # The pool hashes with the map's own projection, batched with other requests (service.encoding).
+    # The pool projects with the map's own matrix, batched with other requests (service.encoding).
     encoding = request.app.state.encoder_pool.submit(body, hasher=rt.hasher)
     image_sha = hashlib.sha256(body).hexdigest()
     stamps: dict[str, float] = {}
@@ -67,7 +67,8 @@ async def post_observation(
         stamps["encoded"] = time.perf_counter()
         stamps["decode"] = embedded.timings_ms["decode"]
         return rt.observe(embedded.features[0], image_sha, learn=learn, stream=stream, top_k=top_k,
-                          label=label, code=None if embedded.codes is None else embedded.codes[0])
+                          label=label,
+                          projected=None if embedded.projected is None else embedded.projected[0])
 
     result = await rt.run(step)
     t_done = time.perf_counter()

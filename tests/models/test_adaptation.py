@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.adaptation import running_mean_subtract
+from models import slsbh
+from models.adaptation import RunningMean, running_mean_subtract
+from models.evaluation import sequences
 
 
 def _stream(n: int = 200, d: int = 256, seed: int = 0) -> np.ndarray:
@@ -37,3 +39,23 @@ def test_is_causal_and_keeps_the_first_frame():
 def test_rejects_a_bad_time_constant():
     with pytest.raises(ValueError, match="tau"):
         running_mean_subtract(_stream(n=3), tau=0)
+
+
+def test_adapting_projections_gives_the_codes_of_adapted_features():
+    """The service adapts y = x·P (k values), not x (D values); linearity makes the codes equal."""
+    x = _stream(n=40, d=256)
+    hasher = slsbh.Hasher(slsbh.make_projection(256, 64, seed=3), 0.1)
+    np.testing.assert_array_equal(sequences.codes(hasher, x, adapt_tau=8),
+                                  hasher(running_mean_subtract(x, tau=8)))
+
+
+def test_state_round_trip_continues_identically():
+    rng = np.random.default_rng(4)
+    vs = rng.normal(size=(12, 8))
+    a = RunningMean(5)
+    for v in vs[:6]:
+        a.subtract(v)
+    b = RunningMean.from_state(5, a.state())
+    assert RunningMean.from_state(5, RunningMean(5).state()).mean is None
+    for v in vs[6:]:
+        np.testing.assert_array_equal(a.subtract(v), b.subtract(v))

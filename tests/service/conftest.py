@@ -25,5 +25,5 @@ def _tiny_default_preset(monkeypatch):
             "tm": {**presets.confs["cortexloc-default"]["tm"], "columnDimensions": 128,
                    "maxSegmentsPerCell": 8, "maxSynapsesPerSegment": 16, "maxNewSynapseCount": 8,
                    "activationThreshold": 4, "minThreshold": 2},
-            "slsbh": {"k": 64, "s": 0.05}}
+            "slsbh": {**presets.confs["cortexloc-default"]["slsbh"], "k": 64}}
     monkeypatch.setitem(presets.confs, "cortexloc-default", tiny)

@@ -1,6 +1,6 @@
-"""Hashing in the encoder pool: codes computed per batch with each request's map hasher equal the
-writer's own hashing, bad images still fail alone, and `MapRuntime.observe(code=...)` stores exactly
-what hashing in the writer stores (benchmarks/bench_http.py measured why: docs/benchmarks.md §1)."""
+"""Projecting in the encoder pool: projections computed per batch with each request's map hasher equal
+the writer's own, bad images still fail alone, and `MapRuntime.observe(projected=...)` stores exactly
+what projecting in the writer stores (benchmarks/bench_http.py measured why: docs/benchmarks.md §1)."""
 
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ class FakeEncoder:
         return EncodeResult(codes=None, features=feats, timings_ms={"decode": 0.0})
 
 
-def test_pool_hashes_each_request_with_its_own_hasher() -> None:
+def test_pool_projects_each_request_with_its_own_hasher() -> None:
     h1 = Hasher(make_projection(32, 16, seed=1), 0.25)
     h2 = Hasher(make_projection(32, 16, seed=2), 0.25)
     enc = FakeEncoder()
@@ -46,22 +46,24 @@ def test_pool_hashes_each_request_with_its_own_hasher() -> None:
         for b, h, r in zip(bodies, hashers, results, strict=True):
             feats = enc.embed([b]).features
             assert np.array_equal(r.features, feats)
+            assert r.codes is None
             if h is None:
-                assert r.codes is None
+                assert r.projected is None
             else:
-                assert r.codes.shape == (1, 2 * h.n)
-                assert np.array_equal(r.codes, h(feats))  # the same code as hashing alone
+                assert r.projected.shape == (1, h.k)
+                np.testing.assert_allclose(r.projected, h.project(feats), rtol=1e-5, atol=1e-6)
         # A bad image fails alone; its batch-mates still get their codes.
         futs = [pool.submit(b"bad", hasher=h1), pool.submit(bytes(5), hasher=h1)]
         with pytest.raises(ImageError):
             futs[0].result(timeout=30)
         ok = futs[1].result(timeout=30)
-        assert np.array_equal(ok.codes, h1(enc.embed([bytes(5)]).features))
+        np.testing.assert_allclose(ok.projected, h1.project(enc.embed([bytes(5)]).features), rtol=1e-5,
+                                   atol=1e-6)
     finally:
         pool.close()
 
 
-def test_observe_with_a_precomputed_code_stores_the_same_as_hashing_in_the_writer(tmp_path) -> None:
+def test_observe_with_a_precomputed_projection_stores_the_same_as_projecting_in_the_writer(tmp_path) -> None:
     frames = [frame(p % 5, noise=3.0 * (p // 5)) for p in range(12)]
     stored = []
     for mode in ("writer", "pool"):
@@ -72,12 +74,12 @@ def test_observe_with_a_precomputed_code_stores_the_same_as_hashing_in_the_write
             encs = [pool.submit(b, hasher=hasher) for b in frames]  # queued at once: batched
             for i, e in enumerate(encs):
                 r = e.result(timeout=60)
-                code = r.codes[0] if mode == "pool" else None
+                projected = r.projected[0] if mode == "pool" else None
                 rt.submit(partial(rt.observe, r.features[0], f"{i:064x}", learn=True, stream="s", top_k=3,
-                                  label=None, code=code)).result(timeout=60)
+                                  label=None, projected=projected)).result(timeout=60)
             stored.append([(o.input_sdr.tolist(), o.winner_cells.tolist()) for o in rt.store.rows()])
-            with pytest.raises(ValueError):  # a code of another width is refused before any state change
+            with pytest.raises(ValueError):  # another width is refused before any state change
                 rt.submit(partial(rt.observe, r.features[0], "0" * 64, learn=True, stream="s", top_k=0,
-                                  label=None, code=np.arange(3, dtype=np.int32))).result(timeout=60)
+                                  label=None, projected=np.zeros(3, np.float32))).result(timeout=60)
             assert rt.store.count() == len(frames)
     assert stored[0] == stored[1]

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from models.evaluation import sequences
 from service.app import build_encoder, create_app
 from service.errors import PROBLEM_MEDIA_TYPE
 from service.settings import Settings
@@ -129,6 +130,7 @@ def test_create_get_delete_a_map_and_memory_sizes(client):
     ({"preset": "no-such-preset"}, 422, "invalid-configuration"),
     ({"map_id": "Bad/Id"}, 400, "invalid-parameter"),
     ({"unknown_field": 1}, 400, "invalid-parameter"),
+    ({"slsbh": {"adapt_tau": -1}}, 400, "invalid-parameter"),
     ({"preset": "cba2020-nordland"}, 422, "map-too-large"),
 ])
 def test_bad_map_creation_is_refused(client, payload, status, slug):
@@ -197,6 +199,29 @@ def test_unknown_map_and_oversized_upload(client):
 
 
 # ---------------------------------------------------------------------------------------- snapshots
+
+
+def test_each_stream_is_adapted_on_its_own_as_the_evaluation_does(tmp_path):
+    a_frames, b_frames = [frame(p) for p in range(7)], [frame(10 + p, noise=2.0) for p in range(6)]
+    new_map = {"map_id": "adapted", "slsbh": {"adapt_tau": 4}}
+    with make_client(tmp_path / "data") as c:
+        assert c.post("/v1/maps", json=new_map).status_code == 201
+        for fa, fb in zip(a_frames, b_frames, strict=False):  # two robots interleaved
+            assert post(c, fa, "adapted", stream="a").status_code == 200
+            assert post(c, fb, "adapted", stream="b").status_code == 200
+    with make_client(tmp_path / "data") as c:  # the running means survive a restart (snapshot)
+        assert post(c, a_frames[6], "adapted", stream="a").status_code == 200
+        rt = c.app.state.registry.get("adapted")
+        rows = list(rt.store.rows())
+        enc = c.app.state.encoder
+        for name, frames in (("a", a_frames), ("b", b_frames)):
+            feats = np.concatenate([enc.embed([f]).features for f in frames])
+            expected = sequences.codes(rt.hasher, feats, 4)  # what `cortexloc eval images --adapt 4` hashes
+            got = [r.input_sdr for r in rows if r.stream == name]
+            assert len(got) == len(frames)
+            assert all(np.array_equal(g, e) for g, e in zip(got, expected, strict=True))
+            assert np.array_equal(got[0], rt.hasher(feats[0]))  # no history yet: the plain code
+            assert not all(np.array_equal(g, rt.hasher(f)) for g, f in zip(got[1:], feats[1:], strict=True))
 
 
 def run_route(c: TestClient, places, stream: str = "default") -> list[list[int]]:
