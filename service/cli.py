@@ -185,6 +185,8 @@ def eval_images(
     = False,
     adapt: Annotated[int, typer.Option(min=0, help="Running-mean subtraction time constant in frames "
                                        "(models.adaptation), for every method; 0 = off.")] = 0,
+    reverse_query: Annotated[bool, typer.Option("--reverse-query", help="Drive the query sequence "
+                                                "backwards (a route driven the other way).")] = False,
     drop_dark: Annotated[float, typer.Option(min=0.0, help="Drop pairs where either frame's mean grey is "
                                                           "below this (0 = keep all; §8.5 uses 20).")] = 0.0,
     seeds: Annotated[int, typer.Option(min=1)] = 3,
@@ -235,7 +237,7 @@ def eval_images(
     result = sequences.image_experiment(
         feats["db"], feats["query"], methods=method_list, preset=preset, mcn_preset=mcn_preset,
         k=int(s_conf["k"]), s=sparsity, seeds=seeds, seed=seed, tolerance=tolerance, reset=reset,
-        adapt_tau=adapt, progress=_progress("runs") if seeds > 1 else None)
+        adapt_tau=adapt, reverse_query=reverse_query, progress=_progress("runs") if seeds > 1 else None)
     first = result.pop("first")
     if plots_dir is not None:
         plots_dir.mkdir(parents=True, exist_ok=True)
@@ -248,7 +250,8 @@ def eval_images(
                         "pairs": len(names), "first": names[0], "last": names[-1], "encoder": enc.identity,
                         "weights": enc.describe()["weights"], "preset": preset, "mcn_preset": mcn_preset,
                         "k": int(s_conf["k"]), "s": sparsity, "adapt_tau": adapt,
-                        "drop_dark": drop_dark, "tolerance": tolerance, "reset": reset,
+                        "drop_dark": drop_dark, "reverse_query": reverse_query, "tolerance": tolerance,
+                        "reset": reset,
                         "seeds": seeds, "seed": seed}
     result["provenance"] = _provenance()
     _write_json(json_out, result)

@@ -59,6 +59,9 @@ def main() -> None:
     ap.add_argument("--split", choices=sorted(SPLITS), default="tune")
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "cortexloc" / "features")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--codes-only", action="store_true",
+                    help="only the code statistics per (s, adaptation): bits shared by the same place "
+                         "and by different places, and single-image sLSBH AUC")
     args = ap.parse_args()
     feats = load_features(args.split, args.cache)
     tm_keys = [k for k in GRID if k not in ("s", "adapt_tau")]
@@ -66,7 +69,16 @@ def main() -> None:
     # Codes depend on (backbone, s, adaptation) only: hash once, then run every TM configuration on them.
     for s, adapt_tau in itertools.product(GRID["s"], GRID["adapt_tau"]):
         codes = {b: _codes(db, q, s, adapt_tau, seed=1) for b, (db, q) in feats.items()}
-        base = {b: sequences.evaluate(sdr.dice_matrix(list(c[0]), list(c[1])), 0) for b, c in codes.items()}
+        dice = {b: sdr.dice_matrix(list(c[0]), list(c[1])) for b, c in codes.items()}
+        base = {b: sequences.evaluate(D, 0) for b, D in dice.items()}
+        for b, D in dice.items():
+            ones = codes[b][0].shape[1]
+            off = ~np.eye(len(D), dtype=bool)
+            print(f"codes s={s} adapt_tau={adapt_tau} {b}: bits shared of {ones}: same place "
+                  f"{np.diag(D).mean() * ones:.1f}, different places {D[off].mean() * ones:.1f}; sLSBH AUC "
+                  f"{base[b]['auc']:.4f}, R@1 {base[b]['recall_at_1']:.3f}", flush=True)
+        if args.codes_only:
+            continue
         for values in itertools.product(*(GRID[k] for k in tm_keys)):
             tm = dict(zip(tm_keys, values, strict=True))
             conf = {"s": s, "adapt_tau": adapt_tau, **tm}
@@ -86,7 +98,7 @@ def main() -> None:
                 f"{v['slsbh_r1']:.3f} pred {v['predicted']:.2f} chance {v['chance']:.2f}"
                 for b, v in per_backbone.items()), flush=True)
     rows.sort(key=lambda r: r["objective"])
-    for adapt in GRID["adapt_tau"]:
+    for adapt in GRID["adapt_tau"] if rows else ():
         best = [r for r in rows if r["conf"]["adapt_tau"] == adapt][-1]
         print(f"best with adapt_tau={adapt}: {best['conf']} objective {best['objective']:.4f}")
     if args.json:

@@ -165,6 +165,7 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
                      preset: str, mcn_preset: str = "mcn-nordland", k: int = 1024, s: float = 0.25,
                      seeds: int = 3, seed: int = 0, tolerance: int = 0, reset: bool = False,
                      adapt_tau: int = 0, tm_overrides: dict[str, Any] | None = None,
+                     reverse_query: bool = False,
                      progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """All methods on one database/query pair of feature sequences, over seeds.
 
@@ -179,6 +180,8 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
         adapt_tau: > 0: each sequence minus its running mean (models.adaptation) before every method;
             0: the features as they are.
         tm_overrides: Temporal Memory parameters replacing the preset's (sweeps).
+        reverse_query: the query sequence is driven backwards (last row first); S keeps row i of both
+            inputs as the same place.
 
     Returns:
         {"methods": {name: {"auc_mean", "auc_min", "auc_max", "recall_at_1_mean", ..., "per_seed"}},
@@ -189,6 +192,8 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
         raise ValueError(f"unknown method(s) {sorted(bad)}; known: {', '.join(METHODS)}")
     runs: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
     first: dict[str, dict[str, Any]] = {}
+    if reverse_query:
+        q_feats = q_feats[::-1]
     raw = {"db": db_feats, "q": q_feats}
     if adapt_tau:
         db_feats = running_mean_subtract(db_feats, adapt_tau)
@@ -219,6 +224,8 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
                     db_w, q_w, info = run_mcn(db_codes, q_codes, mcn_preset, mcn_seed, reset, 2 * k)
                 S = sdr.dice_matrix(db_w, q_w)
             info["seconds"] = time.perf_counter() - t0
+            if reverse_query:
+                S = S[:, ::-1]  # back to file order: column j is query place j again
             r = evaluate(S, tolerance)
             if m not in first:
                 first[m] = {"S": S, "P": r["P"], "R": r["R"]}
