@@ -153,6 +153,7 @@ def format_grid_table(result: dict[str, Any]) -> str:
 
 def _method_notes(method: str, entry: dict[str, Any]) -> str:
     """The notes column of a result table: preset, and how much the memory predicted or grew."""
+    method = method.removesuffix("-seq")
     if method == "htm":
         if "predicted_column_fraction_mean" in entry:
             return f"{entry['preset']}, predicted columns {entry['predicted_column_fraction_mean']:.3f}"
@@ -173,8 +174,10 @@ def eval_images(
     limit: Annotated[int | None, typer.Option(min=2, help="Number of pairs (default: all).")] = None,
     backbone: Annotated[str, typer.Option(help="alexnet | efficientnet-lite0")] = "alexnet",
     resize: Annotated[str, typer.Option(help="crop | squash")] = "crop",
-    methods: Annotated[str, typer.Option(help="Comma-separated: cosine,slsbh,mcn,htm,seqslam.")]
-    = "cosine,slsbh,mcn,htm,seqslam",
+    methods: Annotated[str, typer.Option(help="Comma-separated: cosine,slsbh,mcn,htm,seqslam and "
+                                          "slsbh-seq,mcn-seq,htm-seq (single-image similarity through "
+                                          "the seqslam filter).")]
+    = "cosine,slsbh,mcn,htm,seqslam,slsbh-seq,htm-seq",
     preset: Annotated[str, typer.Option(help="Temporal Memory preset.")] = "cba2020-nordland",
     mcn_preset: Annotated[str, typer.Option(help="MCN preset.")] = "mcn-nordland",
     s: Annotated[float | None, typer.Option(min=0.0, max=0.5, help="sLSBH sparsity (default: the "

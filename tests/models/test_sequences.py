@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 
 from models.encoder import Encoder
 from models.evaluation import sequences
+from models.evaluation.seqslam import seqslam
 from service.cli import app
 
 
@@ -153,3 +154,22 @@ def test_eval_images_drops_dark_pairs(tmp_path):
     assert r.exit_code == 0, r.output
     config = json.loads(out.read_text())["config"]
     assert config["pairs"] == 10 and config["drop_dark"] == 20 and config["adapt_tau"] == 4
+
+
+def test_sequence_filtered_methods_gain_from_order_and_keep_their_base():
+    """X-seq is X's own similarity through the seqslam filter: it must use the frame order."""
+    rng = np.random.default_rng(4)
+    n, d = 60, 64
+    db = rng.normal(size=(n, d)).astype(np.float32)
+    q = db + rng.normal(0, 4.0, size=(n, d)).astype(np.float32)
+    db /= np.linalg.norm(db, axis=1, keepdims=True)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    res = sequences.image_experiment(db, q, methods=["slsbh", "slsbh-seq", "htm", "htm-seq"],
+                                     preset="cortexloc-default", k=256, s=0.15, seeds=1, reset=True)
+    m, first = res["methods"], res["first"]
+    assert m["slsbh-seq"]["auc_mean"] > 2 * m["slsbh"]["auc_mean"]
+    assert m["htm-seq"]["auc_mean"] > 2 * m["htm"]["auc_mean"]
+    np.testing.assert_allclose(first["htm-seq"]["S"], seqslam(first["htm"]["S"]))
+    assert m["htm-seq"]["preset"] == "cortexloc-default" and "query_predicted_fraction_mean" in m["htm-seq"]
+    # The winner cells carry the previous step's context, which the filter's straight lines add up.
+    assert m["htm-seq"]["auc_mean"] > m["slsbh-seq"]["auc_mean"]
