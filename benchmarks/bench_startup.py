@@ -5,7 +5,8 @@ Run: `python benchmarks/bench_startup.py [--observations 100000] [--quick] [--fu
 
 Setup: a data directory with one map `default` (preset `cortexloc-default`, the real 64,896 x 1,024
 projection), built through `MapRuntime.observe` exactly as the service stores observations, except that
-the sLSBH codes are given (synthetic routes: 100 places driven twice with 10 % noise, then a reset) and
+the projected features are given (synthetic routes: 100 places, each a random k-vector, driven twice
+with Gaussian noise of 0.3 of its scale, then a reset; the map hashes them into its codes) and
 the build connection runs with `synchronous=OFF` (building only; the files are the same, and start-up
 never writes). Two snapshots are taken during the build: `--long-tail` observations before the end and
 `--short-tail` before the end. Then the map is opened as the service does at start
@@ -38,10 +39,9 @@ from typing import Any
 
 import numpy as np
 from _common import RESULTS, quick_mode, rss_mib, write_json  # also puts the repo on sys.path
-from bench_longrun import noisy, random_places
 
 import service.runtime as runtime_mod
-from models import presets, slsbh
+from models import slsbh
 from models.temporal_memory import TemporalMemory
 from service.settings import Settings
 from storage import snapshots
@@ -103,23 +103,21 @@ def build(data_dir: Path, n: int, short_tail: int, long_tail: int, seed: int = 0
     rt = reg.get("default")
     assert rt.store is not None and rt.hasher is not None
     rt.store._db().execute("PRAGMA synchronous=OFF")  # building only: start-up never writes
-    params = presets.tm_params("cortexloc-default")
-    columns, active = int(params["columnDimensions"]), 2 * rt.hasher.n
     rng = np.random.Generator(np.random.PCG64(seed))
-    features = np.zeros(FEATURE_DIM, dtype=np.float32)  # unused: the code is given
+    features = np.zeros(FEATURE_DIM, dtype=np.float32)  # unused: the projection is given
     snaps_at = {n - long_tail, n - short_tail}
     t0 = time.perf_counter()
     done = 0
     while done < n:
-        route = random_places(100, columns, active, rng)
+        route = rng.normal(size=(100, rt.hasher.k)).astype(np.float32)
         rt.reset_stream("robot")
         for lap in range(2):
             for p, base in enumerate(route):
                 if done == n:
                     break
-                code = noisy(base, round(0.1 * active), columns, rng).astype(np.int32)
+                projected = base + 0.3 * rng.normal(size=base.shape).astype(np.float32)
                 rt.observe(features, f"{done:064x}", learn=True, stream="robot", top_k=0,
-                           label=f"lap {lap} place {p}", code=code)
+                           label=f"lap {lap} place {p}", projected=projected)
                 done += 1
                 if done in snaps_at:
                     rt.snapshot("auto")
