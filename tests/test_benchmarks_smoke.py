@@ -49,19 +49,12 @@ def test_index_and_brute_force_return_the_same_top10() -> None:
     assert r["index"]["postings"] == 3_000 * bench_index.WEIGHT
 
 
-def test_startup_benchmark_builds_a_map_and_reopens_it_from_its_snapshot(tmp_path, monkeypatch) -> None:
+def test_startup_benchmark_builds_a_map_and_reopens_it_from_its_snapshot(tmp_path, monkeypatch,
+                                                                           tiny_default_preset) -> None:
     """bench_startup drives the service's own MapRuntime: a tiny map keeps it cheap, and a change of
     that interface breaks here rather than in a two-hour `make bench`."""
     import bench_startup
 
-    from models import presets
-
-    tiny = {"description": "tiny default for the benchmark smoke test",
-            "tm": {**presets.confs["cortexloc-default"]["tm"], "columnDimensions": 128,
-                   "maxSegmentsPerCell": 8, "maxSynapsesPerSegment": 16, "maxNewSynapseCount": 8,
-                   "activationThreshold": 4, "minThreshold": 2},
-            "slsbh": {**presets.confs["cortexloc-default"]["slsbh"], "k": 64}}
-    monkeypatch.setitem(presets.confs, "cortexloc-default", tiny)
     monkeypatch.setenv("CORTEXLOC_WEIGHTS_DIR", str(tmp_path / "no-weights"))
     built = bench_startup.build(tmp_path / "data", 60, short_tail=5, long_tail=30)
     assert built["snapshots_at"] == [30, 55]

@@ -16,14 +16,5 @@ def _isolated_env(monkeypatch, tmp_path):
 
 
 @pytest.fixture(autouse=True)
-def _tiny_default_preset(monkeypatch):
-    """Service tests run the service's real code paths on a small map: the default preset's TM and
-    projection (64,896 x 1,024 floats) would cost seconds and 266 MB per app otherwise."""
-    from models import presets
-
-    tiny = {"description": "tiny default for service tests",
-            "tm": {**presets.confs["cortexloc-default"]["tm"], "columnDimensions": 128,
-                   "maxSegmentsPerCell": 8, "maxSynapsesPerSegment": 16, "maxNewSynapseCount": 8,
-                   "activationThreshold": 4, "minThreshold": 2},
-            "slsbh": {**presets.confs["cortexloc-default"]["slsbh"], "k": 64}}
-    monkeypatch.setitem(presets.confs, "cortexloc-default", tiny)
+def _tiny_default_preset(tiny_default_preset):
+    """Service tests run the service's real code paths on a small map (tests/conftest.py)."""

@@ -1,0 +1,19 @@
+"""Fixtures shared by the service tests and the benchmark smoke tests."""
+
+from __future__ import annotations
+
+import pytest
+
+
+@pytest.fixture
+def tiny_default_preset(monkeypatch):
+    """`cortexloc-default` shrunk to 128 columns and k = 64: the real code paths on a small map (the
+    real TM and 64,896 x 1,024 projection would cost seconds and 266 MB per map)."""
+    from models import presets
+
+    tiny = {"description": "tiny default for tests",
+            "tm": {**presets.confs["cortexloc-default"]["tm"], "columnDimensions": 128,
+                   "maxSegmentsPerCell": 8, "maxSynapsesPerSegment": 16, "maxNewSynapseCount": 8,
+                   "activationThreshold": 4, "minThreshold": 2},
+            "slsbh": {**presets.confs["cortexloc-default"]["slsbh"], "k": 64}}
+    monkeypatch.setitem(presets.confs, "cortexloc-default", tiny)
