@@ -254,8 +254,11 @@ def _run_and_kill(path: Path, acks_wanted: int) -> list[tuple[int, str]]:
         seq, oid = line.split()
         acks.append((int(seq), oid.decode()))
     os.kill(proc.pid, signal.SIGKILL)  # mid-stream: the writer is inside its append loop
-    rest, _ = proc.communicate(timeout=10)
-    # Lines already in the pipe were printed after their commit: acknowledged too.
+    # Lines already in the pipe, or read ahead into the BufferedReader by readline(), were printed after
+    # their commit: acknowledged too. Read them through the buffer (communicate() with a timeout reads
+    # the raw fd and would skip what readline() buffered); the pipe closes with the killed writer.
+    rest = proc.stdout.read()
+    proc.wait(timeout=10)
     acks += [(int(a), b.decode()) for a, b in (ln.split() for ln in rest.splitlines() if ln.strip())]
     assert proc.returncode == -signal.SIGKILL
     return acks
