@@ -1,6 +1,7 @@
 """Every `§` citation in the repository's code and docs leads to a section of a document in the repository.
 
-A citation is `<file>.md §N[.N…]` (optionally with more sections after it: `§3.7, §7`, `§1.2–§1.4`).
+A citation is `<file>.md §N[.N…]` (optionally with more sections after it: `§3.7, §7`, `§1.2–§1.4`,
+`§3.7/§3.8`).
 How the file is found:
 
 - a path with a folder (`docs/design/science.md §3.5`, the form the code uses) is relative to the
@@ -26,10 +27,10 @@ DOCS = "docs"
 
 _SECTION = r"\d+(?:\.\d+)*"
 # The file name, an optional closing backtick, blanks or a comment marker (a citation broken over two
-# comment lines), then `§N` and any further `, §M` / `–§M` / `and §M` sections.
+# comment lines), then `§N` and any further `, §M` / `–§M` / `/§M` / `and §M` sections.
 CITATION = re.compile(
     r"(?P<file>[A-Za-z0-9_][A-Za-z0-9_./-]*\.md)`?(?:\s|#)*§\s?(?P<first>" + _SECTION + r")"
-    r"(?P<more>(?:\s*(?:,|–|-|and|to)\s*§\s?" + _SECTION + r")*)")
+    r"(?P<more>(?:\s*(?:,|–|-|/|and|to)\s*§\s?" + _SECTION + r")*)")
 _MORE = re.compile(r"§\s?(" + _SECTION + r")")
 HEADING = re.compile(r"^#{1,6}\s+§?\s*(" + _SECTION + r")\.?(?:\s|$)", re.MULTILINE)
 
@@ -129,12 +130,14 @@ def test_citation_forms_are_recognised(tmp_path):
         "docs/design/theory.md": _DESIGN,
         "m.py": ('"""As in docs/design/theory.md §3.5 and `theory.md` §3.7, §7."""\n'
                  "# the > 90 % of docs/design/theory.md\n# §3.7, a citation over two comment lines\n"
-                 "x = 1  # theory.md §3.5. End of sentence; theory.md §3.5–§3.7 is a range\n"),
+                 "x = 1  # theory.md §3.5. Sentence ends; theory.md §3.5–§3.7 a range\n"
+                 "y = 2  # theory.md §3.5/§7 a pair\n"),
     })
     got = [(c.line, c.file, c.section) for c in citations(root)]
     assert got == [(1, "docs/design/theory.md", "3.5"), (1, "theory.md", "3.7"), (1, "theory.md", "7"),
                    (2, "docs/design/theory.md", "3.7"), (4, "theory.md", "3.5"),
-                   (4, "theory.md", "3.5"), (4, "theory.md", "3.7")]
+                   (4, "theory.md", "3.5"), (4, "theory.md", "3.7"), (5, "theory.md", "3.5"),
+                   (5, "theory.md", "7")]
     assert problems(root) == []
 
 
