@@ -16,6 +16,7 @@ document once) is not checked here, nor is this file, whose samples cite made-up
 
 from __future__ import annotations
 
+import os
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -47,12 +48,13 @@ class Citation:
 
 
 def _text_files(root: Path) -> Iterator[Path]:
-    for path in sorted(root.rglob("*")):
-        rel = path.relative_to(root)
-        if any(part.startswith(".") or part == "__pycache__" for part in rel.parts) or path == SELF:
-            continue  # .venv, .git, tool caches
-        if path.suffix in (".py", ".md") and path.is_file():
-            yield path
+    for folder, dirs, files in os.walk(root):
+        # Pruned, not filtered: a .venv inside the clone holds tens of thousands of files.
+        dirs[:] = sorted(d for d in dirs if not d.startswith(".") and d != "__pycache__")
+        for name in sorted(files):
+            path = Path(folder) / name
+            if path.suffix in (".py", ".md") and path != SELF:
+                yield path
 
 
 def citations(root: Path) -> list[Citation]:
