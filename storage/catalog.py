@@ -32,6 +32,7 @@ __all__ = [
     "MapRecord",
     "SnapshotRecord",
     "StorageError",
+    "snapshot_relpath",
 ]
 
 MapState = Literal["ready", "recovering", "failed"]
@@ -113,7 +114,8 @@ class SnapshotRecord:
         created_at: ISO 8601 UTC.
         bytes: total size of the snapshot's files.
         manifest_sha256: SHA-256 of its manifest.json.
-        path: its directory.
+        path: its directory; as read from the catalog, relative to the data directory (the catalog's
+            folder, see `Catalog.snapshot_dir`), so a moved or copied data directory keeps its snapshots.
     """
 
     snapshot_id: str
@@ -135,9 +137,20 @@ def _map(r: tuple[Any, ...]) -> MapRecord:
                      params=json.loads(r[5]), seq_high_water=int(r[6]))
 
 
+def snapshot_relpath(map_id: str, snapshot_id: str) -> str:
+    """Where a snapshot lives, relative to the data directory (the one layout every writer uses)."""
+    return f"maps/{map_id}/snapshots/{snapshot_id}"
+
+
 def _snap(r: tuple[Any, ...]) -> SnapshotRecord:
+    path = r[7]
+    if os.path.isabs(path):
+        # Written by a version that stored absolute paths: the directory may have been moved or copied
+        # since, and reading the path as written would use another data directory's files. A snapshot
+        # always lies at its place in *this* data directory.
+        path = snapshot_relpath(r[1], r[0])
     return SnapshotRecord(snapshot_id=r[0], map_id=r[1], seq=int(r[2]), kind=r[3], created_at=r[4],
-                          bytes=int(r[5]), manifest_sha256=r[6], path=r[7])
+                          bytes=int(r[5]), manifest_sha256=r[6], path=path)
 
 
 class Catalog:
@@ -163,6 +176,11 @@ class Catalog:
             if version > _SCHEMA_VERSION:
                 raise StorageError(f"{path}: catalog schema {version} is newer than this code's "
                                    f"{_SCHEMA_VERSION}")
+            with transaction(self._conn):  # absolute paths of older versions become relative (`_snap`)
+                for r in self._conn.execute(f"SELECT {_SNAP_COLS} FROM snapshots WHERE path LIKE '/%'"
+                                            ).fetchall():
+                    self._conn.execute("UPDATE snapshots SET path = ? WHERE map_id = ? AND snapshot_id = ?",
+                                       (_snap(r).path, r[1], r[0]))
         except BaseException:
             self._conn.close()
             raise
@@ -171,6 +189,15 @@ class Catalog:
     def open(cls, path: str | os.PathLike[str]) -> Catalog:
         """Open or create the catalog file."""
         return cls(path)
+
+    @property
+    def root(self) -> Path:
+        """The data directory: snapshot paths are relative to it."""
+        return self.path.parent
+
+    def snapshot_dir(self, record: SnapshotRecord) -> Path:
+        """A registered snapshot's directory (absolute, in this data directory)."""
+        return self.root / record.path
 
     def close(self) -> None:
         """Close the connection (idempotent)."""
@@ -200,12 +227,23 @@ class Catalog:
             return self._conn.execute(sql, args).fetchall()
 
     def ping(self) -> bool:
-        """The catalog answers a query (for `/readyz`)."""
+        """The catalog answers a query."""
         try:
             self._read("SELECT 1")
         except (sqlite3.Error, StorageError):
             return False
         return True
+
+    def check(self) -> dict[str, Any]:
+        """`/readyz`'s catalog check: `PRAGMA quick_check` reads every page of this small file, so a
+        file damaged or replaced under the open connection is seen, not only a closed one."""
+        try:
+            result = [r[0] for r in self._read("PRAGMA quick_check")]
+        except (sqlite3.Error, StorageError) as exc:
+            return {"status": "fail", "path": str(self.path), "error": f"catalog unreadable: {exc}"}
+        if result != ["ok"]:
+            return {"status": "fail", "path": str(self.path), "error": f"catalog damaged: {result[:3]}"}
+        return {"status": "pass", "path": str(self.path)}
 
     # ------------------------------------------------------------------ maps
 
@@ -312,10 +350,20 @@ class Catalog:
 
         Raises:
             MapNotFound: unknown map.
-            ValueError: unknown kind, or a snapshot id already registered for this map.
+            ValueError: unknown kind, a snapshot id already registered for this map, or a path outside
+                the data directory (an absolute path inside it is stored relative to it).
         """
         if record.kind not in SNAPSHOT_KINDS:
             raise ValueError(f"kind must be one of {SNAPSHOT_KINDS}, got {record.kind!r}")
+        path = Path(record.path)
+        if path.is_absolute():
+            try:
+                path = path.resolve().relative_to(self.root.resolve())
+            except ValueError:
+                raise ValueError(f"snapshot path {record.path} is outside the data directory "
+                                 f"{self.root}") from None
+        if ".." in path.parts:
+            raise ValueError(f"snapshot path {record.path} leaves the data directory")
         try:
             with self._write() as conn:
                 if conn.execute("SELECT 1 FROM maps WHERE map_id = ?", (record.map_id,)).fetchone() is None:
@@ -323,7 +371,7 @@ class Catalog:
                 conn.execute(f"INSERT INTO snapshots ({_SNAP_COLS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                              (record.snapshot_id, record.map_id, int(record.seq), record.kind,
                               record.created_at, int(record.bytes), record.manifest_sha256,
-                              str(record.path)))
+                              path.as_posix()))
         except sqlite3.IntegrityError as exc:
             raise ValueError(f"snapshot {record.snapshot_id!r} of map {record.map_id!r}: {exc}") from exc
         return record
