@@ -395,6 +395,22 @@ def serve(
                 log_level=settings.log_level.lower())
 
 
+def _offline_settings(data_dir: Path | None) -> Any:
+    """The settings for a command that works on a data directory while the server is stopped."""
+    import os
+
+    from service.settings import ConfigError, Settings
+
+    env = dict(os.environ)
+    if data_dir is not None:
+        env["CORTEXLOC_DATA_DIR"] = str(data_dir)
+    try:
+        return Settings.from_env(env)
+    except ConfigError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from e
+
+
 @app.command("import")
 def import_map(
     tar: Annotated[Path, typer.Argument(exists=True, dir_okay=False,
@@ -402,17 +418,20 @@ def import_map(
     data_dir: Annotated[Path | None, typer.Option(help="Data directory (default: $CORTEXLOC_DATA_DIR "
                                                        "or ./var).")] = None,
 ) -> None:
-    """Create a map from a snapshot tar, verifying every checksum (run while the server is stopped)."""
-    import os
+    """Create a map from a snapshot tar, verifying every checksum (run while the server is stopped).
+
+    Refused before anything is written: ids that the API would refuse, a map that exists, a tar that
+    declares more than CORTEXLOC_MAX_IMPORT_BYTES or than the free space."""
     from types import SimpleNamespace
 
     from service.runtime import MapRegistry
     from storage.snapshots import SnapshotInvalid
 
-    root = data_dir or Path(os.environ.get("CORTEXLOC_DATA_DIR", "./var"))
-    registry = MapRegistry(root, SimpleNamespace(identity="", feature_dim=0), settings=None)
+    settings = _offline_settings(data_dir)
+    root = settings.data_dir
+    registry = MapRegistry(root, SimpleNamespace(identity="", feature_dim=0), settings=settings)
     try:
-        map_id = registry.import_snapshot(tar)
+        map_id = registry.import_snapshot(tar, settings.max_import_bytes)
     except (SnapshotInvalid, ValueError, OSError) as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from e

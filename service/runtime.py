@@ -32,7 +32,7 @@ from service.errors import Problem
 from service.recovery import Stream
 from storage import snapshots
 from storage._common import StorageFull, utc_now
-from storage.catalog import Catalog, MapExists, MapRecord, SnapshotRecord
+from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord, SnapshotRecord
 from storage.index import IndexFull, InvertedIndex
 from storage.index import warm_up as index_warm_up
 from storage.mapstore import MapMeta, MapStore, NewObservation, StoreCorrupt, cell_dtype_for
@@ -40,7 +40,6 @@ from storage.mapstore import MapMeta, MapStore, NewObservation, StoreCorrupt, ce
 log = logging.getLogger("cortexloc.runtime")
 T = TypeVar("T")
 
-MAP_ID_RE = re.compile(r"^[a-z0-9][a-z0-9._-]{0,63}$")
 STREAM_RE = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
 _LISTED = 20  # divergent seqs listed in a recovery note (the count says how many there are)
 
@@ -596,23 +595,36 @@ class MapRegistry:
             self.maps[map_id] = rt
             return rt
 
-    def import_snapshot(self, tar_path: Path) -> str:
+    def import_snapshot(self, tar_path: Path, max_bytes: int) -> str:
         """Create a map from a downloaded snapshot tar (`cortexloc import`, server stopped).
 
-        Every checksum is verified (the snapshot's files, and the projection against the map's
-        recorded SHA-256) before anything is registered; the map then recovers from that snapshot.
+        The manifest (the tar's first member) is checked before anything is written: its ids follow
+        the API's rules (`storage.snapshots`), the map is new here, and the files it declares fit in
+        `max_bytes` and in the free space of the data directory. Every checksum is then verified (the
+        snapshot's files, and the projection against the map's recorded SHA-256) before anything is
+        registered; the map recovers from that snapshot when the server starts.
 
         Returns:
             The imported map's id.
+
+        Raises:
+            SnapshotInvalid: a bad or too large tar. ValueError: the map exists, or no projection.
         """
         maps_dir = self.data_dir / "maps"
+
+        def acceptable(m: snapshots.Manifest) -> None:
+            if self.catalog.get_map(m.map_id) is not None:
+                raise ValueError(f"map {m.map_id!r} exists here already")
+            need = sum(e.bytes for e in (*m.files.values(), *m.external.values()))
+            free = shutil.disk_usage(self.data_dir).free
+            if need > free:
+                raise ValueError(f"the snapshot needs {need} bytes, {self.data_dir} has {free} free")
+
         staging = maps_dir / f".import-{snapshots.new_snapshot_id()}"
         with tar_path.open("rb") as f:
-            manifest = snapshots.import_tar(f, staging)
+            manifest = snapshots.import_tar(f, staging, max_bytes=max_bytes, check=acceptable)
         try:
             map_id = manifest.map_id
-            if self.catalog.get_map(map_id) is not None:
-                raise ValueError(f"map {map_id!r} exists here already")
             sha = manifest.projection_sha256
             target = self.projections / f"{sha}.npy"
             if (staging / "projection.npy").exists():

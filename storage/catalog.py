@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sqlite3
 import threading
 from collections.abc import Iterator
@@ -24,7 +25,9 @@ from typing import Any, Literal
 from storage._common import StorageError, connect, transaction, utc_now
 
 __all__ = [
+    "MAP_ID_RE",
     "MAP_STATES",
+    "SNAPSHOT_ID_RE",
     "SNAPSHOT_KINDS",
     "Catalog",
     "MapExists",
@@ -34,6 +37,11 @@ __all__ = [
     "StorageError",
     "snapshot_relpath",
 ]
+
+#: A map id (the API's rule; also a directory name under `maps/`, so never `.`, `..` or a path).
+MAP_ID_RE = re.compile(r"^[a-z0-9][a-z0-9._-]{0,63}$")
+#: A snapshot id: what the API's `{snapshot_id}` accepts, less a leading dot (also a directory name).
+SNAPSHOT_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,79}$")
 
 MapState = Literal["ready", "recovering", "failed"]
 SnapshotKind = Literal["manual", "auto", "pre-restore"]
