@@ -9,17 +9,22 @@ directions (`memory_state`, `load_memory_state`).
 
 from __future__ import annotations
 
+import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from models import slsbh
 from models.adaptation import RunningMean
 from models.temporal_memory import StreamContext, TemporalMemory
-from storage.mapstore import Observation
+from storage import snapshots
+from storage.catalog import Catalog, MapRecord, StorageError
+from storage.mapstore import MapStore, Observation
 
-__all__ = ["Rebuilt", "Stream", "load_memory_state", "memory_state", "rebuild"]
+__all__ = ["MapCheck", "Rebuilt", "Stream", "load_memory_state", "memory_state", "rebuild", "verify_map"]
 
 
 @dataclass
@@ -120,4 +125,71 @@ def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Obs
         st.last_learned_seq, st.learning = row.seq, True
         if progress is not None:
             progress(out.replayed)
+    return out
+
+
+@dataclass
+class MapCheck:
+    """What `verify_map` found for one map.
+
+    Attributes:
+        map_id: the map.
+        rows: rows replayed and compared.
+        mismatches: seqs whose stored winner cells the replay from the first row did not reproduce.
+        snapshots_ok: ids of the snapshots whose every checksum verified.
+        snapshots_bad: snapshot id -> why it does not verify.
+        problems: anything else wrong (store unreadable or damaged, projection missing or changed).
+        seconds: wall time of the check.
+    """
+
+    map_id: str
+    rows: int = 0
+    mismatches: list[int] = field(default_factory=list)
+    snapshots_ok: list[str] = field(default_factory=list)
+    snapshots_bad: dict[str, str] = field(default_factory=dict)
+    problems: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return not (self.mismatches or self.snapshots_bad or self.problems)
+
+
+def verify_map(catalog: Catalog, record: MapRecord, *,
+               progress: Callable[[int, int], None] | None = None) -> MapCheck:
+    """The offline full check of one map (`cortexloc verify`), changing nothing on disk: the store's
+    integrity, a replay from the first row comparing every row's stored winner cells, every snapshot's
+    checksums, and the projection's SHA-256.
+
+    Args:
+        catalog: the data directory's catalog (opened read-only).
+        record: the map.
+        progress: called with (rows replayed, rows in the store).
+    """
+    t0 = time.perf_counter()
+    out = MapCheck(record.map_id)
+    root = catalog.root
+    sha = str(record.params.get("projection_sha256", ""))
+    projection = root / "projections" / f"{sha}.npy"
+    try:
+        slsbh.load_projection(projection, sha)  # the same check a starting server makes
+    except slsbh.ProjectionError as e:
+        out.problems.append(f"projection: {e}")
+    for rec in catalog.list_snapshots(record.map_id):
+        try:
+            snapshots.verify(catalog.snapshot_dir(rec))
+            out.snapshots_ok.append(rec.snapshot_id)
+        except snapshots.SnapshotInvalid as e:
+            out.snapshots_bad[rec.snapshot_id] = str(e)
+    try:
+        with MapStore.open(Path(root) / "maps" / record.map_id / "map.sqlite", readonly=True) as store:
+            if not store.integrity_check():
+                out.problems.append("map.sqlite fails PRAGMA integrity_check")
+            total = store.count()
+            done = rebuild(TemporalMemory(record.params["tm"]), store.rows(), stop_at_mismatch=False,
+                           progress=None if progress is None else lambda n: progress(n, total))
+            out.rows, out.mismatches = done.replayed, done.mismatches
+    except (StorageError, OSError) as e:
+        out.problems.append(f"map.sqlite unreadable: {e}")
+    out.seconds = time.perf_counter() - t0
     return out

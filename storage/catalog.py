@@ -167,11 +167,17 @@ class Catalog:
     Thread-safe through one lock; every mutation is one committed transaction when it returns.
     """
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
+    def __init__(self, path: str | os.PathLike[str], readonly: bool = False) -> None:
         """Open (creating if needed) the catalog at `path`; prefer `Catalog.open`."""
         self.path = Path(path)
         self._lock = threading.RLock()
-        self._conn: sqlite3.Connection | None = connect(self.path)
+        self._conn: sqlite3.Connection | None = None
+        if readonly:
+            if not self.path.is_file():  # SQLite would answer as if it were empty
+                raise FileNotFoundError(f"{self.path} does not exist")
+            self._conn = connect(self.path, readonly=True)
+            return
+        self._conn = connect(self.path)
         try:
             # Per connection: without it ON DELETE CASCADE would not remove a deleted map's snapshots.
             self._conn.execute("PRAGMA foreign_keys=ON")
@@ -194,9 +200,10 @@ class Catalog:
             raise
 
     @classmethod
-    def open(cls, path: str | os.PathLike[str]) -> Catalog:
-        """Open or create the catalog file."""
-        return cls(path)
+    def open(cls, path: str | os.PathLike[str], *, readonly: bool = False) -> Catalog:
+        """Open or create the catalog file; `readonly`: inspect an existing one, changing nothing (no
+        schema upgrade, no path migration: `_snap` reads old rows the same way)."""
+        return cls(path, readonly)
 
     @property
     def root(self) -> Path:
