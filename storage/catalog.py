@@ -95,7 +95,7 @@ class MapRecord:
         map_id: identifier.
         created_at: ISO 8601 UTC.
         state: `ready`, `recovering` or `failed`.
-        state_reason: why the map is not ready (e.g. `database-corrupt`, `replay-divergence`), else None.
+        state_reason: why the map is not ready (e.g. `database-corrupt`, `projection-invalid`), else None.
         preset: the preset the parameters were resolved from.
         params: resolved parameters (decoded JSON).
         seq_high_water: highest seq ever handed out that a restore may have removed from `map.sqlite`.
