@@ -43,6 +43,7 @@ from _common import RESULTS, quick_mode, rss_mib, write_json  # also puts the re
 import service.runtime as runtime_mod
 from models import slsbh
 from models.temporal_memory import TemporalMemory
+from service import recovery
 from service.settings import Settings
 from storage import snapshots
 from storage.index import InvertedIndex
@@ -139,7 +140,7 @@ def open_once(data_dir: Path) -> dict[str, Any]:
     timer.wrap(MapStore, "quick_check", "quick_check")
     timer.wrap(snapshots, "verify", "snapshot verify (checksums)")
     timer.wrap(snapshots, "load_memory", "snapshot load (npz)")
-    timer.wrap(runtime_mod.MapRuntime, "load_memory_state", "snapshot -> TM (reverse index rebuild)")
+    timer.wrap(recovery, "load_memory_state", "snapshot -> TM (reverse index rebuild)")
     timer.wrap(TemporalMemory, "compute", "replay (TM steps, verified)")
     timer.wrap(InvertedIndex, "rebuild", "index rebuild (read rows + build)")
     rss0 = rss_mib()

@@ -199,11 +199,14 @@ async def map_registry(app: FastAPI) -> AsyncIterator[None]:
     try:
         registry = await anyio.to_thread.run_sync(MapRegistry, s.data_dir, app.state.encoder, s)
         await anyio.to_thread.run_sync(registry.start)
-    except Exception:
-        # /readyz says why (data directory, catalog); the process stays alive for /healthz.
+    except Exception as e:
+        # /readyz says why; the process stays alive for /healthz.
         log.exception("cannot open the maps in %s; the service will not be ready", s.data_dir)
+        error = f"the maps could not be opened: {type(e).__name__}: {e}"
+        app.state.ready_checks["catalog"] = lambda app: {"status": "fail", "error": error}
         yield
         return
+    app.state.ready_checks["catalog"] = lambda app: registry.catalog.check()
     from service.encoding import EncoderPool
 
     app.state.registry = registry

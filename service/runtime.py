@@ -19,7 +19,6 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -27,11 +26,13 @@ import numpy as np
 
 from models import presets, slsbh
 from models.adaptation import RunningMean
-from models.temporal_memory import StreamContext, TemporalMemory, planned_bytes, validate
+from models.temporal_memory import TemporalMemory, planned_bytes, validate
+from service import recovery
 from service.errors import Problem
+from service.recovery import Stream
 from storage import snapshots
-from storage._common import StorageFull
-from storage.catalog import Catalog, MapExists, MapRecord, SnapshotRecord
+from storage._common import StorageFull, utc_now
+from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord, SnapshotRecord
 from storage.index import IndexFull, InvertedIndex
 from storage.index import warm_up as index_warm_up
 from storage.mapstore import MapMeta, MapStore, NewObservation, StoreCorrupt, cell_dtype_for
@@ -39,8 +40,8 @@ from storage.mapstore import MapMeta, MapStore, NewObservation, StoreCorrupt, ce
 log = logging.getLogger("cortexloc.runtime")
 T = TypeVar("T")
 
-MAP_ID_RE = re.compile(r"^[a-z0-9][a-z0-9._-]{0,63}$")
 STREAM_RE = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
+_LISTED = 20  # divergent seqs listed in a recovery note (the count says how many there are)
 
 
 def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] | None = None,
@@ -91,17 +92,6 @@ def snapshot_resource(rec: SnapshotRecord) -> dict[str, Any]:
             "bytes": rec.bytes, "manifest_sha256": rec.manifest_sha256}
 
 
-@dataclass
-class Stream:
-    """A stream's sequence state in one map (service.md §1.3)."""
-
-    context: StreamContext = field(default_factory=StreamContext)
-    step: int = 0  # steps since the context was last empty
-    last_learned_seq: int | None = None  # the learned observation the context continues
-    learning: bool | None = None  # mode of the last step (a switch to learning starts a new sequence)
-    adapt: RunningMean | None = None  # the stream's running mean of projections (models.adaptation)
-
-
 class MapRuntime:
     """One map in memory, with its single writer thread.
 
@@ -122,6 +112,10 @@ class MapRuntime:
         self.snapshot_keep = snapshot_keep
         self.state = "recovering"
         self.state_reason: str | None = None
+        # What the last recovery did (`recover`); the last automatic snapshot's failure, if it failed.
+        self.recovery: dict[str, Any] | None = None
+        self.snapshot_error: dict[str, Any] | None = None
+        self.snapshot_failures = 0
         self.streams: OrderedDict[str, Stream] = OrderedDict()
         self._writer = ThreadPoolExecutor(1, thread_name_prefix=f"map-{self.map_id}")
         sha = self.params["projection_sha256"]
@@ -180,44 +174,33 @@ class MapRuntime:
         if rec is None:
             raise Problem(404, "snapshot-not-found", f"no snapshot {snapshot_id!r} of map {self.map_id!r}",
                           map_id=self.map_id)
-        return Path(rec.path)
+        return self.catalog.snapshot_dir(rec)
 
     # ------------------------------------------------------------------ memory state
 
     def memory_state(self) -> dict[str, np.ndarray]:
         """The whole memory as arrays: TM, generator, every stream's context and bookkeeping."""
-        names = {name.encode().hex(): name for name in self.streams}  # stream names may hold '.'
-        state = self.tm.state_dict(streams={h: self.streams[n].context for h, n in names.items()})
-        for h, n in names.items():
-            st = self.streams[n]
-            state[f"streammeta.{h}"] = np.array(
-                [st.step, -1 if st.last_learned_seq is None else st.last_learned_seq,
-                 -1 if st.learning is None else int(st.learning)], dtype=np.int64)
-            if st.adapt is not None:
-                state[f"streamadapt.{h}"] = st.adapt.state()
-        return state
-
-    def load_memory_state(self, state: dict[str, np.ndarray]) -> None:
-        self.tm = TemporalMemory.from_state(state)
-        self.streams = OrderedDict()
-        for h, ctx in TemporalMemory.load_streams(state).items():
-            step, last, learning = (int(v) for v in state[f"streammeta.{h}"])
-            adapt = (RunningMean.from_state(self.adapt_tau, state[f"streamadapt.{h}"])
-                     if self.adapt_tau and f"streamadapt.{h}" in state else None)
-            self.streams[bytes.fromhex(h).decode()] = Stream(
-                ctx, step, None if last < 0 else last, None if learning < 0 else bool(learning), adapt)
+        return recovery.memory_state(self.tm, self.streams)
 
     # ------------------------------------------------------------------ snapshots
 
     def snapshot(self, kind: str = "manual") -> dict[str, Any]:
-        """A consistent cut at the current seq, taken by the writer (service.md §1.5, §4.4)."""
+        """A consistent cut at the current seq, taken by the writer (service.md §1.5, §4.4).
+
+        Raises:
+            Problem: 507 insufficient-storage when the disk is full (nothing is left behind).
+        """
         assert self.store is not None
         sid = snapshots.new_snapshot_id()
         dest = self.dir / "snapshots" / sid
         dest.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
-        m = snapshots.create_snapshot(self.store, self.memory_state(), dest, kind=kind,
-                                      external={"projection.npy": self.projection_path})
+        try:
+            m = snapshots.create_snapshot(self.store, self.memory_state(), dest, kind=kind,
+                                          external={"projection.npy": self.projection_path})
+        except StorageFull as e:
+            raise Problem(507, "insufficient-storage", f"the {kind} snapshot could not be written: the "
+                          "disk is full; the map is unchanged") from e
         rec = self.catalog.register_snapshot(SnapshotRecord(
             snapshot_id=m.snapshot_id, map_id=self.map_id, seq=m.seq, kind=kind, created_at=m.created_at,
             bytes=m.bytes, manifest_sha256=m.manifest_sha256, path=str(dest)))
@@ -225,10 +208,25 @@ class MapRuntime:
                  time.perf_counter() - t0)
         return snapshot_resource(rec)
 
+    def _auto_snapshot(self) -> None:
+        """The periodic snapshot after a commit. It only shortens the next recovery, so a failure
+        (typically a full disk) is logged, counted and shown in /readyz, never the request's error:
+        the row it follows is durable and acknowledged."""
+        try:
+            self.snapshot("auto")
+            self._prune_auto(self.snapshot_keep)
+        except Exception as e:  # any failure: see the docstring
+            self.snapshot_failures += 1
+            self.snapshot_error = {"seq": self.store.last_seq() if self.store else 0, "at": utc_now(),
+                                   "error": getattr(e, "detail", None) or str(e) or type(e).__name__}
+            log.exception("map %s: automatic snapshot failed; the rows stay durable", self.map_id)
+        else:
+            self.snapshot_error = None
+
     def _prune_auto(self, keep: int) -> None:
         for rec in self.catalog.list_snapshots(self.map_id, kind="auto")[keep:]:
             self.catalog.delete_snapshot(self.map_id, rec.snapshot_id)
-            shutil.rmtree(rec.path, ignore_errors=True)
+            shutil.rmtree(self.catalog.snapshot_dir(rec), ignore_errors=True)
 
     def restore(self, snapshot_id: str) -> dict[str, Any]:
         """Roll the map back to a snapshot, after keeping the present in a pre-restore snapshot."""
@@ -237,17 +235,17 @@ class MapRuntime:
         if rec is None:
             raise Problem(404, "snapshot-not-found", f"no snapshot {snapshot_id!r} of map {self.map_id!r}",
                           map_id=self.map_id)
-        snapshots.verify(rec.path)  # refuse a damaged snapshot before touching anything
+        path = self.catalog.snapshot_dir(rec)
+        m = snapshots.verify(path)  # refuse a damaged snapshot before touching anything
         before = self.store.count()
         self.snapshot("pre-restore")
         self.catalog.bump_high_water(self.map_id, self.store.next_seq() - 1)
         self.store.close()
-        MapStore.install_copy(Path(rec.path) / "map.sqlite", self.dir / "map.sqlite")
+        MapStore.install_copy(path / snapshots.DB_FILE, self.dir / "map.sqlite")
         self.store = MapStore.open(self.dir / "map.sqlite",
                                    seq_floor=self.catalog.get_high_water(self.map_id))
-        self.load_memory_state(snapshots.load_memory(rec.path))
-        self.index = InvertedIndex(self.tm.n_cells, self.index.max_observations)
-        self.index.rebuild(self.store.rows())
+        self._install(recovery.rebuild(snapshots.load_memory(path), self.store.rows(after_seq=m.seq),
+                                       adapt_tau=self.adapt_tau))
         out = self.resource()
         out["discarded_observations"] = before - self.store.count()
         return out
@@ -255,10 +253,16 @@ class MapRuntime:
     # ------------------------------------------------------------------ recovery
 
     def recover(self) -> None:
-        """Open the store and rebuild the memory by replaying every observation (service.md §4.4).
+        """Open the store and rebuild the memory: the newest usable snapshot, then a verified replay of
+        the rows after it (service.md §4.4).
 
-        Each replayed step must reproduce its stored winner cells; a divergence marks the map failed
-        rather than serving a different memory.
+        A snapshot that does not verify, cannot be loaded, or whose replay does not reproduce the
+        stored winner cells is passed over for the next older one (one from a branch a restore
+        abandoned is skipped silently). The last resort is a replay from the first row on the fresh
+        `self.tm` (as `__init__` and the commit-failure path leave it); it serves the memory it
+        rebuilds and lists the rows whose stored winner cells it did not reproduce. What happened is
+        in `self.recovery` (map resource, /readyz) and the log; only an unreadable store or
+        projection fails the map.
         """
         if self.hasher is None:
             self._fail("projection-invalid", self._projection_error or "no projection")
@@ -273,46 +277,50 @@ class MapRuntime:
         except StoreCorrupt as e:
             self._fail("database-corrupt", str(e))
             return
-        after = self._load_newest_snapshot()
-        contexts = {name: st.context for name, st in self.streams.items()}
-        replayed = 0
-        for row in self.store.rows(after_seq=after):
-            ctx = contexts.setdefault(row.stream, StreamContext())
-            if row.context_prev_seq is None:
-                ctx.reset()
-            winners = self.tm.compute(row.input_sdr, learn=True, context=ctx)
-            if not np.array_equal(winners, row.winner_cells):
-                self._fail("replay-divergence", f"observation seq {row.seq} replayed to other winner cells")
-                return
-            st = self.streams.setdefault(row.stream, Stream(ctx))
-            st.step = 1 if row.context_prev_seq is None else st.step + 1  # steps taken, as in observe
-            st.context, st.last_learned_seq, st.learning = ctx, row.seq, True
-            replayed += 1
+        t0 = time.perf_counter()
+        skipped: list[dict[str, str]] = []
+        for rec in self.catalog.list_snapshots(self.map_id):
+            path = self.catalog.snapshot_dir(rec)
+            try:
+                m = snapshots.verify(path)
+                if m.seq > 0:
+                    row = self.store.get(m.seq)
+                    if row is None or row.observation_id != m.last_observation_id:
+                        continue  # from a branch a restore abandoned
+                done = recovery.rebuild(snapshots.load_memory(path), self.store.rows(after_seq=m.seq),
+                                        adapt_tau=self.adapt_tau)
+            except Exception as e:  # an unusable snapshot is passed over, never fatal
+                reason = str(e) or type(e).__name__
+            else:
+                if not done.mismatches:
+                    note: dict[str, Any] = {"source": "snapshot", "snapshot_id": rec.snapshot_id,
+                                            "snapshot_seq": m.seq}
+                    break
+                reason = f"the replay after it diverged at seq {done.mismatches[0]}"
+                del done  # its memory is as large as the map's: free it before the next attempt
+            skipped.append({"snapshot_id": rec.snapshot_id, "reason": reason})
+            log.warning("map %s: snapshot %s passed over: %s", self.map_id, rec.snapshot_id, reason)
+        else:
+            done = recovery.rebuild(self.tm, self.store.rows(), stop_at_mismatch=False)
+            note = {"source": "replay", "mismatches": len(done.mismatches),
+                    "mismatched_seqs": done.mismatches[:_LISTED]}
+            if done.mismatches:
+                log.error("map %s: the replay from the first row did not reproduce the stored winner cells "
+                          "of %d row(s), first seq %d; serving the replayed memory (run `cortexloc verify`)",
+                          self.map_id, len(done.mismatches), done.mismatches[0])
+        self._install(done)
+        note.update(replayed=done.replayed, skipped_snapshots=skipped,
+                    seconds=round(time.perf_counter() - t0, 3))
+        self.recovery = note
+        self.state, self.state_reason = "ready", None
+        log.info("map %s ready: %s", self.map_id, note)
+
+    def _install(self, done: recovery.Rebuilt) -> None:
+        """Serve a rebuilt memory: its TM and streams, and the index rebuilt from the store."""
+        assert self.store is not None
+        self.tm, self.streams = done.tm, done.streams
         self.index = InvertedIndex(self.tm.n_cells, self.index.max_observations)
         self.index.rebuild(self.store.rows())
-        self.state, self.state_reason = "ready", None
-        log.info("map %s ready: replayed %d observations", self.map_id, replayed)
-
-    def _load_newest_snapshot(self) -> int:
-        """Load the newest snapshot that verifies and lies on the store's branch; return its seq."""
-        assert self.store is not None
-        for rec in self.catalog.list_snapshots(self.map_id):
-            try:
-                m = snapshots.verify(rec.path)
-            except snapshots.SnapshotInvalid as e:
-                log.warning("map %s: snapshot %s skipped: %s", self.map_id, rec.snapshot_id, e)
-                continue
-            if m.seq > 0:
-                row = self.store.get(m.seq)
-                if row is None or row.observation_id != m.last_observation_id:
-                    continue  # from a branch a restore abandoned
-            self.load_memory_state(snapshots.load_memory(rec.path))
-            # A localisation stream's context was never durable: after a restart it starts afresh
-            # (service.md §1.2, sequence.step), whatever the snapshot held.
-            for name in [n for n, st in self.streams.items() if st.learning is False]:
-                del self.streams[name]
-            return m.seq
-        return 0
 
     def _fail(self, reason: str, detail: str) -> None:
         self.state, self.state_reason = "failed", reason
@@ -416,11 +424,13 @@ class MapRuntime:
             with contextlib.suppress(IndexFull):  # checked above; the row is durable either way
                 self.index.add(seq, winners, stream)
             st.last_learned_seq = seq
-            if self.snapshot_every and seq % self.snapshot_every == 0:
-                self.snapshot("auto")
-                self._prune_auto(self.snapshot_keep)
+        # The step is recorded before the automatic snapshot, so the snapshot holds the stream as it
+        # is after this frame (a snapshot taken before would hold a stream that just switched back to
+        # mapping as localising, and recovery would drop the context the next row continues).
         st.learning = learn
         st.step += 1
+        if learn and self.snapshot_every and seq is not None and seq % self.snapshot_every == 0:
+            self._auto_snapshot()
         t4 = time.perf_counter()
         rows = self.store.get_many(m.seq for m in matches) if matches else {}
         return {
@@ -448,7 +458,8 @@ class MapRuntime:
                            "exclude_recent": p["exclude_recent"]},
                 "encoder": p["encoder_id"], "projection_sha256": p["projection_sha256"],
                 "observations": len(self.index), "last_seq": self.store.last_seq() if self.store else 0,
-                "streams": list(self.streams), "warnings": p.get("warnings", [])}
+                "streams": list(self.streams), "warnings": p.get("warnings", []),
+                "recovery": self.recovery, "snapshot_error": self.snapshot_error}
 
     def memory(self) -> dict[str, Any]:
         size = self.tm.size()
@@ -584,23 +595,36 @@ class MapRegistry:
             self.maps[map_id] = rt
             return rt
 
-    def import_snapshot(self, tar_path: Path) -> str:
+    def import_snapshot(self, tar_path: Path, max_bytes: int) -> str:
         """Create a map from a downloaded snapshot tar (`cortexloc import`, server stopped).
 
-        Every checksum is verified (the snapshot's files, and the projection against the map's
-        recorded SHA-256) before anything is registered; the map then recovers from that snapshot.
+        The manifest (the tar's first member) is checked before anything is written: its ids follow
+        the API's rules (`storage.snapshots`), the map is new here, and the files it declares fit in
+        `max_bytes` and in the free space of the data directory. Every checksum is then verified (the
+        snapshot's files, and the projection against the map's recorded SHA-256) before anything is
+        registered; the map recovers from that snapshot when the server starts.
 
         Returns:
             The imported map's id.
+
+        Raises:
+            SnapshotInvalid: a bad or too large tar. ValueError: the map exists, or no projection.
         """
         maps_dir = self.data_dir / "maps"
+
+        def acceptable(m: snapshots.Manifest) -> None:
+            if self.catalog.get_map(m.map_id) is not None:
+                raise ValueError(f"map {m.map_id!r} exists here already")
+            need = sum(e.bytes for e in (*m.files.values(), *m.external.values()))
+            free = shutil.disk_usage(self.data_dir).free
+            if need > free:
+                raise ValueError(f"the snapshot needs {need} bytes, {self.data_dir} has {free} free")
+
         staging = maps_dir / f".import-{snapshots.new_snapshot_id()}"
         with tar_path.open("rb") as f:
-            manifest = snapshots.import_tar(f, staging)
+            manifest = snapshots.import_tar(f, staging, max_bytes=max_bytes, check=acceptable)
         try:
             map_id = manifest.map_id
-            if self.catalog.get_map(map_id) is not None:
-                raise ValueError(f"map {map_id!r} exists here already")
             sha = manifest.projection_sha256
             target = self.projections / f"{sha}.npy"
             if (staging / "projection.npy").exists():

@@ -91,6 +91,9 @@ class Settings(BaseModel):
     max_top_k: int = Field(100, ge=0)
     snapshot_every: int = Field(1000, ge=0, description="automatic snapshot period (0 = off)")
     snapshot_keep: int = Field(3, ge=0, description="automatic snapshots kept (0 = off)")
+    max_import_bytes: int = Field(2**33, ge=1, description="most bytes a snapshot tar may unpack to "
+                                  "(`cortexloc import`); about 2 GiB of TM arrays (max_map_bytes), the "
+                                  "266 MB projection and a million ~3 KB rows fit in 8 GiB")
     api_key: str | None = Field(None, min_length=1, repr=False,
                                 description="when set, every write needs it (X-API-Key or Bearer)")
 

@@ -40,13 +40,17 @@ def connect(path: str | Path, *, readonly: bool = False) -> sqlite3.Connection:
 
     Args:
         path: the database file.
-        readonly: open with `mode=ro` (inspecting snapshot copies without creating -wal/-shm files).
+        readonly: inspect without changing anything: `immutable=1` when there is no (non-empty) `-wal`
+            file, since even `mode=ro` creates `-wal` and `-shm` files beside a WAL database; `mode=ro`
+            when a crash left committed rows in the `-wal` (they must be read; its `-shm` is reused).
 
     Returns:
         The connection.
     """
     if readonly:
-        conn = sqlite3.connect(f"{Path(path).resolve().as_uri()}?mode=ro", uri=True,
+        wal = Path(f"{path}-wal")
+        mode = "mode=ro" if wal.is_file() and wal.stat().st_size > 0 else "mode=ro&immutable=1"
+        conn = sqlite3.connect(f"{Path(path).resolve().as_uri()}?{mode}", uri=True,
                                isolation_level=None, check_same_thread=False)
         return conn
     conn = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sqlite3
 import threading
 from collections.abc import Iterator
@@ -24,7 +25,9 @@ from typing import Any, Literal
 from storage._common import StorageError, connect, transaction, utc_now
 
 __all__ = [
+    "MAP_ID_RE",
     "MAP_STATES",
+    "SNAPSHOT_ID_RE",
     "SNAPSHOT_KINDS",
     "Catalog",
     "MapExists",
@@ -32,7 +35,13 @@ __all__ = [
     "MapRecord",
     "SnapshotRecord",
     "StorageError",
+    "snapshot_relpath",
 ]
+
+#: A map id (the API's rule; also a directory name under `maps/`, so never `.`, `..` or a path).
+MAP_ID_RE = re.compile(r"^[a-z0-9][a-z0-9._-]{0,63}$")
+#: A snapshot id: what the API's `{snapshot_id}` accepts, less a leading dot (also a directory name).
+SNAPSHOT_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,79}$")
 
 MapState = Literal["ready", "recovering", "failed"]
 SnapshotKind = Literal["manual", "auto", "pre-restore"]
@@ -86,7 +95,7 @@ class MapRecord:
         map_id: identifier.
         created_at: ISO 8601 UTC.
         state: `ready`, `recovering` or `failed`.
-        state_reason: why the map is not ready (e.g. `database-corrupt`, `replay-divergence`), else None.
+        state_reason: why the map is not ready (e.g. `database-corrupt`, `projection-invalid`), else None.
         preset: the preset the parameters were resolved from.
         params: resolved parameters (decoded JSON).
         seq_high_water: highest seq ever handed out that a restore may have removed from `map.sqlite`.
@@ -113,7 +122,8 @@ class SnapshotRecord:
         created_at: ISO 8601 UTC.
         bytes: total size of the snapshot's files.
         manifest_sha256: SHA-256 of its manifest.json.
-        path: its directory.
+        path: its directory; as read from the catalog, relative to the data directory (the catalog's
+            folder, see `Catalog.snapshot_dir`), so a moved or copied data directory keeps its snapshots.
     """
 
     snapshot_id: str
@@ -135,9 +145,20 @@ def _map(r: tuple[Any, ...]) -> MapRecord:
                      params=json.loads(r[5]), seq_high_water=int(r[6]))
 
 
+def snapshot_relpath(map_id: str, snapshot_id: str) -> str:
+    """Where a snapshot lives, relative to the data directory (the one layout every writer uses)."""
+    return f"maps/{map_id}/snapshots/{snapshot_id}"
+
+
 def _snap(r: tuple[Any, ...]) -> SnapshotRecord:
+    path = r[7]
+    if os.path.isabs(path):
+        # Written by a version that stored absolute paths: the directory may have been moved or copied
+        # since, and reading the path as written would use another data directory's files. A snapshot
+        # always lies at its place in *this* data directory.
+        path = snapshot_relpath(r[1], r[0])
     return SnapshotRecord(snapshot_id=r[0], map_id=r[1], seq=int(r[2]), kind=r[3], created_at=r[4],
-                          bytes=int(r[5]), manifest_sha256=r[6], path=r[7])
+                          bytes=int(r[5]), manifest_sha256=r[6], path=path)
 
 
 class Catalog:
@@ -146,11 +167,17 @@ class Catalog:
     Thread-safe through one lock; every mutation is one committed transaction when it returns.
     """
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
+    def __init__(self, path: str | os.PathLike[str], readonly: bool = False) -> None:
         """Open (creating if needed) the catalog at `path`; prefer `Catalog.open`."""
         self.path = Path(path)
         self._lock = threading.RLock()
-        self._conn: sqlite3.Connection | None = connect(self.path)
+        self._conn: sqlite3.Connection | None = None
+        if readonly:
+            if not self.path.is_file():  # SQLite would answer as if it were empty
+                raise FileNotFoundError(f"{self.path} does not exist")
+            self._conn = connect(self.path, readonly=True)
+            return
+        self._conn = connect(self.path)
         try:
             # Per connection: without it ON DELETE CASCADE would not remove a deleted map's snapshots.
             self._conn.execute("PRAGMA foreign_keys=ON")
@@ -163,14 +190,29 @@ class Catalog:
             if version > _SCHEMA_VERSION:
                 raise StorageError(f"{path}: catalog schema {version} is newer than this code's "
                                    f"{_SCHEMA_VERSION}")
+            with transaction(self._conn):  # absolute paths of older versions become relative (`_snap`)
+                for r in self._conn.execute(f"SELECT {_SNAP_COLS} FROM snapshots WHERE path LIKE '/%'"
+                                            ).fetchall():
+                    self._conn.execute("UPDATE snapshots SET path = ? WHERE map_id = ? AND snapshot_id = ?",
+                                       (_snap(r).path, r[1], r[0]))
         except BaseException:
             self._conn.close()
             raise
 
     @classmethod
-    def open(cls, path: str | os.PathLike[str]) -> Catalog:
-        """Open or create the catalog file."""
-        return cls(path)
+    def open(cls, path: str | os.PathLike[str], *, readonly: bool = False) -> Catalog:
+        """Open or create the catalog file; `readonly`: inspect an existing one, changing nothing (no
+        schema upgrade, no path migration: `_snap` reads old rows the same way)."""
+        return cls(path, readonly)
+
+    @property
+    def root(self) -> Path:
+        """The data directory: snapshot paths are relative to it."""
+        return self.path.parent
+
+    def snapshot_dir(self, record: SnapshotRecord) -> Path:
+        """A registered snapshot's directory (absolute, in this data directory)."""
+        return self.root / record.path
 
     def close(self) -> None:
         """Close the connection (idempotent)."""
@@ -200,12 +242,23 @@ class Catalog:
             return self._conn.execute(sql, args).fetchall()
 
     def ping(self) -> bool:
-        """The catalog answers a query (for `/readyz`)."""
+        """The catalog answers a query."""
         try:
             self._read("SELECT 1")
         except (sqlite3.Error, StorageError):
             return False
         return True
+
+    def check(self) -> dict[str, Any]:
+        """`/readyz`'s catalog check: `PRAGMA quick_check` reads every page of this small file, so a
+        file damaged or replaced under the open connection is seen, not only a closed one."""
+        try:
+            result = [r[0] for r in self._read("PRAGMA quick_check")]
+        except (sqlite3.Error, StorageError) as exc:
+            return {"status": "fail", "path": str(self.path), "error": f"catalog unreadable: {exc}"}
+        if result != ["ok"]:
+            return {"status": "fail", "path": str(self.path), "error": f"catalog damaged: {result[:3]}"}
+        return {"status": "pass", "path": str(self.path)}
 
     # ------------------------------------------------------------------ maps
 
@@ -312,10 +365,20 @@ class Catalog:
 
         Raises:
             MapNotFound: unknown map.
-            ValueError: unknown kind, or a snapshot id already registered for this map.
+            ValueError: unknown kind, a snapshot id already registered for this map, or a path outside
+                the data directory (an absolute path inside it is stored relative to it).
         """
         if record.kind not in SNAPSHOT_KINDS:
             raise ValueError(f"kind must be one of {SNAPSHOT_KINDS}, got {record.kind!r}")
+        path = Path(record.path)
+        if path.is_absolute():
+            try:
+                path = path.resolve().relative_to(self.root.resolve())
+            except ValueError:
+                raise ValueError(f"snapshot path {record.path} is outside the data directory "
+                                 f"{self.root}") from None
+        if ".." in path.parts:
+            raise ValueError(f"snapshot path {record.path} leaves the data directory")
         try:
             with self._write() as conn:
                 if conn.execute("SELECT 1 FROM maps WHERE map_id = ?", (record.map_id,)).fetchone() is None:
@@ -323,7 +386,7 @@ class Catalog:
                 conn.execute(f"INSERT INTO snapshots ({_SNAP_COLS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                              (record.snapshot_id, record.map_id, int(record.seq), record.kind,
                               record.created_at, int(record.bytes), record.manifest_sha256,
-                              str(record.path)))
+                              path.as_posix()))
         except sqlite3.IntegrityError as exc:
             raise ValueError(f"snapshot {record.snapshot_id!r} of map {record.map_id!r}: {exc}") from exc
         return record

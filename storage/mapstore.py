@@ -283,7 +283,7 @@ class MapStore:
         return cls.open(path, seq_floor=seq_floor)
 
     @classmethod
-    def open(cls, path: str | os.PathLike[str], *, seq_floor: int = 0) -> MapStore:
+    def open(cls, path: str | os.PathLike[str], *, seq_floor: int = 0, readonly: bool = False) -> MapStore:
         """Open an existing `map.sqlite`.
 
         Args:
@@ -291,6 +291,7 @@ class MapStore:
             seq_floor: the lowest seq that counts as used (the catalog's high-water mark): the next
                 append gets `max(last_seq, seq_floor) + 1`, so a restored (older) file never hands out a
                 seq again.
+            readonly: inspect only (`cortexloc verify`): nothing on disk changes, appends fail.
 
         Raises:
             FileNotFoundError: no such file (SQLite would silently create an empty one).
@@ -301,7 +302,7 @@ class MapStore:
         if not path.is_file():
             raise FileNotFoundError(f"{path} does not exist")
         try:
-            conn = connect(path)
+            conn = connect(path, readonly=readonly)
         except sqlite3.DatabaseError as exc:
             raise StoreCorrupt(f"{path}: {exc}") from exc
         try:

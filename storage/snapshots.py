@@ -32,7 +32,7 @@ import stat
 import tarfile
 import tempfile
 import uuid
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -42,6 +42,7 @@ import numpy as np
 
 from models.files import atomic_write, fsync_dir, sha256_file
 from storage._common import StorageError, StorageFull, connect, is_full_error, utc_now
+from storage.catalog import MAP_ID_RE, SNAPSHOT_ID_RE
 from storage.mapstore import MapStore
 
 __all__ = [
@@ -73,6 +74,7 @@ KINDS = ("manual", "auto", "pre-restore")
 _SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 _TMP_MARK = ".tmp-"
 _CHUNK = 1 << 20
+_MAX_MANIFEST = 1 << 20  # a manifest is a few KiB; read whole, so bounded
 # np.savez(file, *args, allow_pickle=..., **kwds): array names that would collide with its parameters.
 _RESERVED_KEYS = frozenset({"file", "allow_pickle"})
 
@@ -303,6 +305,13 @@ def _parse_manifest(body: bytes, where: str) -> Manifest:
         raise SnapshotInvalid(f"{where}: manifest field missing or mistyped: {exc}") from exc
     if m.kind not in KINDS or m.seq < 0 or (m.seq > 0) != (m.last_observation_id is not None):
         raise SnapshotInvalid(f"{where}: inconsistent manifest (kind {m.kind!r}, seq {m.seq})")
+    # The ids and the projection's checksum become directory and file names on import.
+    if not MAP_ID_RE.match(m.map_id):
+        raise SnapshotInvalid(f"{where}: map_id {m.map_id!r} must match {MAP_ID_RE.pattern}")
+    if not SNAPSHOT_ID_RE.match(m.snapshot_id):
+        raise SnapshotInvalid(f"{where}: snapshot_id {m.snapshot_id!r} must match {SNAPSHOT_ID_RE.pattern}")
+    if not re.fullmatch(r"[0-9a-f]{64}", m.projection_sha256):
+        raise SnapshotInvalid(f"{where}: projection_sha256 is not a SHA-256")
     return m
 
 
@@ -475,37 +484,47 @@ class _CountingWriter:
 
 def import_tar(fileobj: BinaryIO, dest: str | os.PathLike[str], *,
                allow_unlisted: tuple[str, ...] = ("projection.npy",),
-               max_bytes: int | None = None) -> Manifest:
+               max_bytes: int | None = None, check: Callable[[Manifest], None] | None = None) -> Manifest:
     """Unpack a snapshot tar into the new directory `dest`, verifying everything on the way.
 
-    Every member must be a regular file with a plain name (no `/`, no leading `.`, so no `..` or
-    absolute path; links, directories and devices are refused) and appear once. Each file is hashed
-    while it is written into a temporary directory beside `dest`; then the manifest must list every
-    member (in `files` or `external`) with the same size and SHA-256, or the member's name must be in
+    The tar must begin with `manifest.json` (as `export_tar` writes it): it is parsed first (ids and
+    names checked), the total it declares is held against `max_bytes`, and `check` may refuse it,
+    all before anything is written. Every further member must be a regular file with a plain name (no
+    `/`, no leading `.`, so no `..` or absolute path; links, directories and devices are refused),
+    appear once, and be listed in the manifest with the size its tar header declares, or be named in
     `allow_unlisted` (a projection exported from a snapshot that did not record it; the caller verifies
-    it, e.g. with `models.slsbh.load_projection` against `projection_sha256`). Only then is the
-    directory renamed to `dest`.
+    it, e.g. with `models.slsbh.load_projection` against `projection_sha256`). Sizes come from the tar
+    headers, so a member is refused before its data is read, and a compressed bomb costs no disk.
+    Each file is hashed while it is written into a temporary directory beside `dest`; only when every
+    listed file is there with its SHA-256 is the directory renamed to `dest`.
+
+    (`tarfile`'s extraction filters, e.g. `filter="data"`, would still accept subdirectories, links
+    inside the tree and unlisted names; this format needs less, so it checks for exactly that.)
 
     Args:
         fileobj: the tar stream (plain or compressed; read sequentially).
         dest: the directory to create (must not exist).
         allow_unlisted: member names accepted without a manifest entry.
-        max_bytes: refuse tars whose members total more (bounds disk use of an upload).
+        max_bytes: refuse tars whose members total more (bounds disk use of an import or upload).
+        check: called with the parsed manifest before anything is written; raises to refuse it.
 
     Returns:
         The manifest (with `manifest_sha256` and `bytes` of the snapshot files proper).
 
     Raises:
-        SnapshotInvalid: unsafe member, unknown or missing file, size or checksum mismatch, bad tar.
+        SnapshotInvalid: unsafe member, unknown or missing file, size or checksum mismatch, too large,
+            bad tar.
         FileExistsError: `dest` exists.
     """
     dest = Path(dest)
     if dest.exists():
         raise FileExistsError(f"{dest} exists")
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=dest.parent, prefix=f".{dest.name}{_TMP_MARK}"))
+    tmp: Path | None = None
     try:
         got: dict[str, FileEntry] = {}
+        m: Manifest | None = None
+        body = b""
+        listed: dict[str, FileEntry] = {}
         total = 0
         try:
             with tarfile.open(fileobj=fileobj, mode="r|*") as tar:
@@ -515,37 +534,58 @@ def import_tar(fileobj: BinaryIO, dest: str | os.PathLike[str], *,
                         raise SnapshotInvalid(f"tar member {name!r} is not a regular file")
                     if not _SAFE_NAME.match(name):
                         raise SnapshotInvalid(f"tar member name {name!r} is not a plain file name")
-                    if name in got:
+                    if name in got or (m is not None and name == MANIFEST_FILE):
                         raise SnapshotInvalid(f"tar member {name!r} appears twice")
-                    total += member.size
-                    if max_bytes is not None and total > max_bytes:
-                        raise SnapshotInvalid(f"tar holds more than {max_bytes} bytes")
                     src = tar.extractfile(member)
                     assert src is not None  # a regular file always has a data stream
+                    if m is None:
+                        if name != MANIFEST_FILE:
+                            raise SnapshotInvalid(f"the tar must begin with {MANIFEST_FILE}, not {name!r}")
+                        if member.size > _MAX_MANIFEST:
+                            raise SnapshotInvalid(f"{MANIFEST_FILE} has {member.size} bytes")
+                        body = src.read()
+                        m = _parse_manifest(body, "tar")
+                        listed = {**m.files, **m.external}
+                        total = len(body) + sum(e.bytes for e in listed.values())
+                        if max_bytes is not None and total > max_bytes:
+                            raise SnapshotInvalid(f"the manifest declares {total} bytes, more than the "
+                                                  f"{max_bytes} allowed")
+                        if check is not None:
+                            check(m)
+                        dest.parent.mkdir(parents=True, exist_ok=True)
+                        tmp = Path(tempfile.mkdtemp(dir=dest.parent, prefix=f".{dest.name}{_TMP_MARK}"))
+                        atomic_write(tmp / MANIFEST_FILE, lambda f, b=body: f.write(b))
+                        continue
+                    entry = listed.get(name)
+                    if entry is None:
+                        if name not in allow_unlisted:
+                            raise SnapshotInvalid(f"tar member {name!r} is not in the manifest")
+                        total += member.size
+                    elif member.size != entry.bytes:
+                        raise SnapshotInvalid(f"tar member {name}: {member.size} bytes, the manifest says "
+                                              f"{entry.bytes}")
+                    if max_bytes is not None and total > max_bytes:
+                        raise SnapshotInvalid(f"tar holds more than {max_bytes} bytes")
+                    assert tmp is not None
                     got[name] = _write_hashed(src, tmp / name)
         except (tarfile.TarError, EOFError, OSError) as exc:
             if is_full_error(exc):
                 raise StorageFull(str(exc)) from exc
             raise SnapshotInvalid(f"unreadable tar: {exc}") from exc
-        if MANIFEST_FILE not in got:
+        if m is None or tmp is None:
             raise SnapshotInvalid(f"tar has no {MANIFEST_FILE}")
-        body = (tmp / MANIFEST_FILE).read_bytes()
-        m = _parse_manifest(body, "tar")
-        listed = {**m.files, **m.external}
         for name, entry in listed.items():
             if name in m.files and name not in got:
                 raise SnapshotInvalid(f"tar lacks {name}")
             if name in got and got[name] != entry:
-                raise SnapshotInvalid(f"tar member {name}: size or checksum differs from the manifest")
-        unknown = set(got) - set(listed) - {MANIFEST_FILE} - set(allow_unlisted)
-        if unknown:
-            raise SnapshotInvalid(f"tar members not in the manifest: {sorted(unknown)}")
+                raise SnapshotInvalid(f"tar member {name}: checksum differs from the manifest")
         fsync_dir(tmp)
         if dest.exists():
             raise FileExistsError(f"{dest} exists")
         os.rename(tmp, dest)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
         raise
     fsync_dir(dest.parent)
     size = sum(e.bytes for e in m.files.values()) + len(body)

@@ -7,8 +7,9 @@ iff no check fails: 200 `{"status": "ready", "checks": ..., "warnings": [...]}`,
 - `data_dir`: a probe file is written, fsynced and deleted in `CORTEXLOC_DATA_DIR`;
 - `encoder`: loaded, with its weights (`pretrained` + SHA-256, or `random` + seed: `warn`, or `fail`
   when `CORTEXLOC_ALLOW_RANDOM_WEIGHTS=false`);
-- `maps`: the state of each map in `app.state.maps` (objects or dicts with `state`, `state_reason`):
-  ready iff none is `recovering`; `failed` maps are listed but do not make the service unready.
+- `maps`: the state of each map in `app.state.maps` (objects or dicts with `state`, `state_reason`,
+  optionally `recovery` and `snapshot_error`): ready iff none is `recovering`; `failed` maps, recoveries
+  that passed over snapshots or rows, and failed automatic snapshots are warnings.
 
 More checks (e.g. the catalog) are registered at startup in `app.state.ready_checks`: name -> callable
 taking the app and returning a check result dict. They run in a worker thread, like the built-ins.
@@ -77,23 +78,36 @@ def check_encoder(app: FastAPI) -> Check:
     return out
 
 
-def _map_state(m: Any) -> tuple[str, str | None]:
-    if isinstance(m, dict):
-        return str(m.get("state", "ready")), m.get("state_reason")
-    return str(getattr(m, "state", "ready")), getattr(m, "state_reason", None)
+def _map_field(m: Any, name: str, default: Any = None) -> Any:
+    return m.get(name, default) if isinstance(m, dict) else getattr(m, name, default)
 
 
 def check_maps(maps: dict[str, Any]) -> Check:
-    """Each map's state; fails while a map is still recovering."""
+    """Each map's state, how it recovered and whether its last automatic snapshot failed; fails while
+    a map is still recovering, warns about failed maps and about recoveries or snapshots that went
+    wrong (the map serves, but an operator should look)."""
     states = {}
+    notes = []
     for map_id, m in sorted(maps.items()):
-        state, reason = _map_state(m)
-        states[map_id] = {"state": state, "state_reason": reason}
+        states[map_id] = {"state": str(_map_field(m, "state", "ready")),
+                          "state_reason": _map_field(m, "state_reason")}
+        recovery, snap_error = _map_field(m, "recovery"), _map_field(m, "snapshot_error")
+        if recovery and (recovery.get("skipped_snapshots") or recovery.get("mismatches")):
+            states[map_id]["recovery"] = recovery  # only when it went wrong: the usual case stays short
+            notes.append(f"map {map_id} recovered by {recovery.get('source')} after passing over "
+                         f"{len(recovery.get('skipped_snapshots') or [])} snapshot(s), "
+                         f"{recovery.get('mismatches', 0)} row(s) not reproduced")
+        if snap_error:
+            states[map_id]["snapshot_error"] = snap_error
+            notes.append(f"map {map_id}: automatic snapshot failed at seq {snap_error.get('seq')}: "
+                         f"{snap_error.get('error')}")
     recovering = [k for k, v in states.items() if v["state"] == "recovering"]
     failed = [k for k, v in states.items() if v["state"] == "failed"]
     out: Check = {"status": "pass", "count": len(states), "maps": states}
     if failed:
-        out.update(status="warn", warning=f"failed map(s), served as map-unavailable: {', '.join(failed)}")
+        notes.insert(0, f"failed map(s), served as map-unavailable: {', '.join(failed)}")
+    if notes:
+        out.update(status="warn", warning="; ".join(notes))
     if recovering:
         out.update(status="fail", error=f"map(s) still recovering: {', '.join(recovering)}")
     return out

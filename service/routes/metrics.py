@@ -71,7 +71,9 @@ class Metrics:
                                 ("evictions", "TM segments evicted (least recently used) so far"),
                                 ("overruns", "TM synapses destroyed by overrun so far"),
                                 ("observations", "Learned observations stored"),
-                                ("memory_bytes", "Preallocated TM bytes"))}
+                                ("memory_bytes", "Preallocated TM bytes"),
+                                ("snapshot_failures", "Automatic snapshots that failed since start (the "
+                                                      "rows stay durable; /readyz says why)"))}
 
     def update_maps(self, maps: dict) -> None:
         """Refresh the per-map gauges from the map runtimes (at scrape time: always current)."""
@@ -84,7 +86,8 @@ class Metrics:
             size = tm.size()
             values = {"segments": size["segments"], "synapses": size["synapses"],
                       "evictions": size["evictions"], "overruns": size["overrun_destroyed"],
-                      "observations": len(rt.index), "memory_bytes": size["bytes"]}
+                      "observations": len(rt.index), "memory_bytes": size["bytes"],
+                      "snapshot_failures": getattr(rt, "snapshot_failures", 0)}
             for name, v in values.items():
                 self.map_gauges[name].labels(map=map_id).set(v)
 

@@ -49,3 +49,40 @@ def test_kill_9_loses_nothing_acknowledged(server_proc, http, make_frame):
         leftovers = [p.name for p in (server_proc.data_dir / "maps" / "default" / "snapshots").iterdir()
                      if p.name.startswith(".")]
         assert not leftovers  # a snapshot cut short by the kill is cleaned up, never loaded
+
+
+def test_kill_9_after_a_snapshot_on_a_switch_back_to_mapping_recovers(server_proc, http, make_frame):
+    """Issue 11, item 1, with CORTEXLOC_SNAPSHOT_EVERY=4 instead of 1000 (the same boundary): learned
+    frames on other streams; then on `w` learn, localise, learn x4, the automatic snapshot landing on
+    the first of the four; kill -9; restart. The map used to come back failed for good."""
+    server_proc.extra_env = {"CORTEXLOC_SNAPSHOT_EVERY": "4"}
+    base = server_proc.start()
+    obs = f"{base}/v1/maps/default/observations"
+    for place, stream in ((0, "a"), (1, "b")):
+        assert http(f"{obs}?learn=true&stream={stream}", make_frame(place))[0] == 200
+    assert http(f"{obs}?learn=true&stream=w", make_frame(2))[1]["seq"] == 3
+    assert http(f"{obs}?learn=false&stream=w", make_frame(3))[0] == 200
+    steps = []
+    for seq, place in zip((4, 5, 6, 7), (4, 5, 6, 0), strict=True):
+        status, body = http(f"{obs}?learn=true&stream=w", make_frame(place))
+        assert status == 200 and body["seq"] == seq
+        steps.append(body["sequence"]["step"])
+    status, snaps = http(f"{base}/v1/maps/default/snapshots")
+    assert [s["seq"] for s in snaps["snapshots"]] == [4]
+    server_proc.kill9()
+
+    base = server_proc.start()
+    status, m = http(f"{base}/v1/maps/default")
+    assert status == 200 and m["state"] == "ready", m
+    assert m["recovery"]["source"] == "snapshot" and m["recovery"]["snapshot_seq"] == 4
+    assert m["recovery"]["skipped_snapshots"] == [] and m["observations"] == 7
+    status, body = http(f"{base}/v1/maps/default/observations?learn=true&stream=w", make_frame(1))
+    assert status == 200 and body["sequence"]["step"] == steps[-1] + 1
+    sid = snaps["snapshots"][0]["snapshot_id"]
+    status, restored = http(f"{base}/v1/maps/default/snapshots/{sid}/restore", b"", "application/json")
+    assert status == 200 and restored["state"] == "ready", restored
+    server_proc.kill9()
+    base = server_proc.start()  # and again after a second crash, now after a restore
+    status, m = http(f"{base}/v1/maps/default")
+    assert status == 200 and m["state"] == "ready" and m["observations"] == 4
+    assert http(f"{base}/readyz")[0] == 200

@@ -13,7 +13,7 @@ from storage.catalog import Catalog, MapExists, MapNotFound, SnapshotRecord
 def snap(map_id: str, sid: str, seq: int, kind: str = "manual") -> SnapshotRecord:
     return SnapshotRecord(snapshot_id=sid, map_id=map_id, seq=seq, kind=kind,
                           created_at="2025-01-01T00:00:00.000000Z", bytes=100 + seq,
-                          manifest_sha256="cd" * 32, path=f"/data/maps/{map_id}/snapshots/{sid}")
+                          manifest_sha256="cd" * 32, path=f"maps/{map_id}/snapshots/{sid}")
 
 
 @pytest.fixture
@@ -97,3 +97,14 @@ def test_snapshot_registry(catalog: Catalog) -> None:
     assert [s.snapshot_id for s in catalog.list_snapshots("yard")] == ["s1"]
     catalog.create_map("lab", {})  # a new map with the old id starts clean
     assert catalog.list_snapshots("lab") == [] and catalog.get_high_water("lab") == 0
+
+
+def test_snapshot_paths_are_stored_relative_to_the_data_directory(catalog: Catalog, tmp_path: Path) -> None:
+    catalog.create_map("lab", {})
+    inside = tmp_path / "maps" / "lab" / "snapshots" / "s1"
+    catalog.register_snapshot(SnapshotRecord(**{**snap("lab", "s1", 1).__dict__, "path": str(inside)}))
+    rec = catalog.get_snapshot("lab", "s1")
+    assert rec.path == "maps/lab/snapshots/s1" and catalog.snapshot_dir(rec) == tmp_path / rec.path
+    for outside in ("/elsewhere/maps/lab/snapshots/s2", "maps/../../x/s2"):
+        with pytest.raises(ValueError):
+            catalog.register_snapshot(SnapshotRecord(**{**snap("lab", "s2", 2).__dict__, "path": outside}))

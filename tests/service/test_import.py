@@ -1,0 +1,125 @@
+"""`cortexloc import` refuses hostile manifests and oversized tars before writing anything, and never
+writes outside the data directory (issue 11, item 2)."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import tarfile
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from service.cli import app as cli_app
+from storage import snapshots
+from tests.service.test_maps_observations import frame, make_client, post
+
+
+@pytest.fixture
+def members(tmp_path) -> dict[str, bytes]:
+    """The members of a real downloaded snapshot tar, by name (manifest first)."""
+    with make_client(tmp_path / "source") as c:
+        c.post("/v1/maps", json={"map_id": "lab"})
+        for p in range(3):
+            post(c, frame(p), map_id="lab")
+        sid = c.post("/v1/maps/lab/snapshots").json()["snapshot_id"]
+        raw = c.get(f"/v1/maps/lab/snapshots/{sid}/download").content
+    with tarfile.open(fileobj=io.BytesIO(raw)) as tar:
+        return {m.name: tar.extractfile(m).read() for m in tar}
+
+
+def make_tar(path: Path, members: dict[str, bytes], mode: str = "w") -> Path:
+    with tarfile.open(path, mode) as tar:
+        for name, data in members.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+    return path
+
+
+def with_manifest(members: dict[str, bytes], **changes) -> dict[str, bytes]:
+    manifest = json.loads(members["manifest.json"])
+    manifest.update(changes)
+    return {**members, "manifest.json": json.dumps(manifest).encode()}
+
+
+def tree(root: Path) -> dict[str, bytes]:
+    """Every file under `root` with its bytes (what 'nothing was written' compares)."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def run_import(tar: Path, data: Path):
+    return CliRunner().invoke(cli_app, ["import", str(tar), "--data-dir", str(data)])
+
+
+@pytest.mark.parametrize("changes", [
+    {"map_id": "../../escaped"},
+    {"map_id": "<absolute>"},
+    {"map_id": "Bad Map!"},
+    {"map_id": ".."},
+    {"snapshot_id": "../../../../newdir/snap"},
+    {"snapshot_id": ".."},
+    {"projection_sha256": "../../../projection-escape"},
+], ids=lambda c: f"{next(iter(c))}={next(iter(c.values()))}")
+def test_hostile_names_are_refused_before_anything_is_written(tmp_path, members, changes):
+    root = tmp_path / "box"
+    data = root / "deep" / "data"
+    with make_client(data):
+        pass  # a data directory as the server leaves it
+    before = tree(root)
+    changes = {k: str(root / "escaped") if v == "<absolute>" else v for k, v in changes.items()}
+    r = run_import(make_tar(tmp_path / "bad.tar", with_manifest(members, **changes)), data)
+    assert r.exit_code == 1, r.output
+    assert "must match" in r.output or "not a SHA-256" in r.output
+    assert tree(root) == before  # nothing inside the data directory, nor beside it
+
+
+def test_a_good_tar_still_imports(tmp_path, members):
+    r = run_import(make_tar(tmp_path / "good.tar", members), tmp_path / "data")
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "data" / "maps" / "lab" / "map.sqlite").is_file()
+
+
+def test_a_compressed_bomb_is_refused_before_its_data_is_written(tmp_path, members, monkeypatch):
+    """64 MiB of zeros, gzip-compressed to ~64 KB, against a 32 MiB cap: refused from the manifest
+    when declared, from the member's tar header when not, and never written either way."""
+    monkeypatch.setenv("CORTEXLOC_MAX_IMPORT_BYTES", str(32 * 2**20))
+    zeros = bytes(64 * 2**20)
+    members = {k: v for k, v in members.items() if k != "projection.npy"}  # random floats: incompressible
+    manifest = json.loads(members["manifest.json"])
+    manifest["files"]["map.sqlite"] = {"bytes": len(zeros), "sha256": hashlib.sha256(zeros).hexdigest()}
+    bomb = {**members, "manifest.json": json.dumps(manifest).encode(), "map.sqlite": zeros}
+    written: list[str] = []
+    real = snapshots._write_hashed
+
+    def spy(src, path):
+        written.append(path.name)
+        return real(src, path)
+
+    monkeypatch.setattr(snapshots, "_write_hashed", spy)
+    data = tmp_path / "data"
+    tar = make_tar(tmp_path / "bomb.tar.gz", bomb, "w:gz")
+    assert tar.stat().st_size < 2**20
+    r = run_import(tar, data)
+    assert r.exit_code == 1 and f"more than the {32 * 2**20} allowed" in r.output, r.output
+    assert written == [] and not list(data.glob("maps/*"))
+    # An unlisted member (a projection needs no manifest entry) is held against the cap by its header.
+    unlisted = json.loads(members["manifest.json"])
+    unlisted["external"] = {}
+    sneaky = {**members, "manifest.json": json.dumps(unlisted).encode(), "projection.npy": zeros}
+    r = run_import(make_tar(tmp_path / "sneaky.tar.gz", sneaky, "w:gz"), data)
+    assert r.exit_code == 1 and f"more than {32 * 2**20} bytes" in r.output, r.output
+    assert "projection.npy" not in written and not list(data.glob("maps/*"))
+    # A member larger than the manifest says is refused by its header, before its data is read.
+    written.clear()
+    r = run_import(make_tar(tmp_path / "liar.tar.gz", {**members, "memory.npz": zeros}, "w:gz"), data)
+    assert r.exit_code == 1 and "the manifest says" in r.output, r.output
+    assert "memory.npz" not in written
+
+
+def test_the_manifest_must_come_first(tmp_path, members):
+    reordered = {k: members[k] for k in sorted(members, key=lambda n: n != "map.sqlite")}
+    r = run_import(make_tar(tmp_path / "late.tar", reordered), tmp_path / "data")
+    assert r.exit_code == 1 and "must begin with manifest.json" in r.output
