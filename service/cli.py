@@ -6,6 +6,8 @@
     cortexloc eval grid --generate --aliasing A --noise N [--loops L] [...same options]
     cortexloc bench tm [--columns C] [--cells K] [--active A] [--steps S] [--preset NAME] [--json OUT]
     cortexloc serve [--host H] [--port P] [--data-dir DIR]
+    cortexloc ingest SOURCE --map M [--stream S] [--learn | --localise] [--url URL | --data-dir DIR]
+                     [--topic T] [--every N] [--json] [--prefetch K] [--label-stamp] [--api-key KEY]
 
 Tables go to stdout, progress and warnings to stderr, machine-readable results to --json.
 """
@@ -22,6 +24,7 @@ import numpy as np
 import typer
 
 from models import presets
+from service.ingest.command import ingest_command
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="cortexloc: visual place recognition with a Hierarchical Temporal Memory.")
@@ -361,6 +364,29 @@ def _install(run: Any) -> None:
     typer.echo(f"installed {path}\nthe encoder finds it there; or set CORTEXLOC_WEIGHTS_PATH={path}")
 
 
+def process_settings(*, host: str | None = None, port: int | None = None, data_dir: Path | None = None,
+                     **env_defaults: str) -> Any:
+    """The settings of a service run by this process (`serve`, in-process `ingest`): CORTEXLOC_* with the
+    given options over them and `env_defaults` under them, read once; exits 2 naming a bad variable.
+
+    Also sets OpenCV's pixel guard, which OpenCV reads once when cv2 is first imported (by the app)."""
+    import os
+
+    from service.settings import ConfigError, Settings
+
+    env = {**env_defaults, **os.environ}
+    for var, value in (("CORTEXLOC_HOST", host), ("CORTEXLOC_PORT", port), ("CORTEXLOC_DATA_DIR", data_dir)):
+        if value is not None:
+            env[var] = str(value)
+    try:
+        settings = Settings.from_env(env)  # read once, here; the app gets this object
+    except ConfigError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from e
+    os.environ["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(settings.max_pixels)
+    return settings
+
+
 @app.command("serve")
 def serve(
     host: Annotated[str | None, typer.Option(help="Bind address (default: $CORTEXLOC_HOST or 127.0.0.1).")]
@@ -371,21 +397,7 @@ def serve(
                                                        "or ./var).")] = None,
 ) -> None:
     """Run the HTTP service (one uvicorn worker: maps live in process memory). Other settings: CORTEXLOC_*."""
-    import os
-
-    from service.settings import ConfigError, Settings
-
-    env = dict(os.environ)
-    for var, value in (("CORTEXLOC_HOST", host), ("CORTEXLOC_PORT", port), ("CORTEXLOC_DATA_DIR", data_dir)):
-        if value is not None:
-            env[var] = str(value)
-    try:
-        settings = Settings.from_env(env)  # read once, here; the app gets this object
-    except ConfigError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(2) from e
-    # OpenCV reads its pixel guard once, when cv2 is imported (by the app's modules, below).
-    os.environ["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(settings.max_pixels)
+    settings = process_settings(host=host, port=port, data_dir=data_dir)
 
     import uvicorn
 
@@ -419,6 +431,9 @@ def import_map(
     finally:
         registry.catalog.close()
     typer.echo(f"imported map {map_id!r} into {root}; it recovers from the snapshot when the server starts")
+
+
+app.command("ingest")(ingest_command)
 
 
 def main() -> None:  # pragma: no cover - console entry point
