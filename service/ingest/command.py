@@ -47,28 +47,35 @@ def ingest_command(
     label_stamp: Annotated[bool, typer.Option("--label-stamp", help="Send each bag message's stamp "
                                                                     "(sec.nanosec) as the observation's "
                                                                     "label.")] = False,
+    revisit_score: Annotated[float | None, typer.Option(min=0.0, max=1.0, help="A revisit, in the summary: "
+                                                        "the top match's score reaches this (default "
+                                                        "0.9, see service.ingest.poster).")] = None,
     api_key: Annotated[str | None, typer.Option(help="API key of the service (X-API-Key); in process "
                                                      "the configured CORTEXLOC_API_KEY is used.")] = None,
 ) -> None:
     """Post a folder of images or a ROS bag to a map in source order, with progress and a summary."""
+    if url is not None and data_dir is not None:
+        raise typer.BadParameter("--data-dir is for the in-process service; with --url the server has its "
+                                 "own", param_hint="--data-dir")
+    # Before anything imports cv2 (the readers do): the settings set OpenCV's pixel guard for the app.
+    settings = None if url is not None else _in_process_settings(data_dir)
+    if settings is not None and api_key is None:
+        api_key = settings.api_key
+
     import anyio
 
     from service.ingest import poster
     from service.ingest.sources import SourceError, open_source
 
-    if url is not None and data_dir is not None:
-        raise typer.BadParameter("--data-dir is for the in-process service; with --url the server has its "
-                                 "own", param_hint="--data-dir")
     try:
         src = open_source(source, topic=topic, every=every)
     except SourceError as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from e
-    settings = None if url is not None else _in_process_settings(data_dir)
-    if settings is not None and api_key is None:
-        api_key = settings.api_key
+    if revisit_score is None:
+        revisit_score = poster.REVISIT_SCORE
     opts = poster.Options(map_id=map_id, stream=stream, learn=learn, label_stamp=label_stamp,
-                          api_key=api_key, prefetch=prefetch)
+                          api_key=api_key, prefetch=prefetch, revisit_score=revisit_score)
     progress = _progress(src.total, src.describe())
 
     def on_record(rec: Record) -> None:
@@ -80,7 +87,7 @@ def ingest_command(
         elif rec.status != 200:
             progress.console.print(f"frame {rec.name}: {rec.status} {rec.answer.get('detail', '')}")
         task = progress.tasks[0]
-        progress.update(task.id, advance=1, revisits=task.fields["revisits"] + rec.is_revisit(),
+        progress.update(task.id, advance=1, revisits=task.fields["revisits"] + rec.is_revisit(revisit_score),
                         errors=task.fields["errors"] + (rec.status != 200))
 
     async def run() -> poster.Summary:

@@ -70,7 +70,9 @@ def test_every_topic_of_a_ros2_bag_answers_as_its_frames_posted_one_by_one(tmp_p
                 summary = await poster.ingest(client, open_source(bag, topic=topic), opts,
                                               on_record=got[topic].append)
                 assert summary.created_map and summary.frames == summary.learned == len(ROUTE)
-                assert summary.revisits >= 3 and summary.errors == 0
+                # the repeated places close the loop (seeded weights and map: the count is fixed)
+                assert summary.revisits == sum(r.is_revisit() for r in got[topic]) >= 2
+                assert summary.errors == 0
 
     anyio.run(run)
     for topic, (_, body_of) in TOPICS.items():
@@ -168,3 +170,15 @@ def test_a_refused_frame_is_counted_and_the_ingest_goes_on_but_a_refused_map_sto
     with pytest.raises(poster.IngestError, match=r"frame frame_0001\.jpg: 404"):
         anyio.run(run)
     assert len(service.bodies) == 2
+
+
+def test_registering_ingest_keeps_cv2_out_of_the_cli_start():
+    """`cortexloc serve` sets OpenCV's pixel guard before cv2 is imported; the readers import cv2 lazily."""
+    import subprocess
+    import sys
+
+    code = ("import sys, service.cli; "
+            "print(sorted(m for m in ('cv2', 'torch', 'rosbags') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parents[2])
+    assert out.stdout.strip() == "[]"
