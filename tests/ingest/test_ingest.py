@@ -41,7 +41,8 @@ def reference(data_dir: Path, map_id: str, bodies: list[bytes], *, labels: list[
         return out
 
 
-def test_cli_ingests_a_folder_in_process_with_the_answers_of_posting_one_by_one(tmp_path):
+def test_cli_ingests_a_folder_in_process_with_the_answers_of_posting_one_by_one(tmp_path, monkeypatch):
+    monkeypatch.setenv("CORTEXLOC_API_KEY", "s3cret")  # the in-process app wants it; the ingest sends it
     bodies = write_folder(tmp_path / "frames")
     result = CliRunner().invoke(cli.app, ["ingest", str(tmp_path / "frames"), "--map", "farm", "--stream",
                                           "cam0", "--data-dir", str(tmp_path / "a"), "--json"])
@@ -104,9 +105,11 @@ class Scripted:
     def __init__(self, answers: list[tuple[int, dict[str, str]]] | None = None) -> None:
         self.answers = list(answers or [])
         self.bodies: list[bytes] = []
+        self.keys: set[str | None] = set()
         self.in_flight = self.max_in_flight = 0
 
     async def __call__(self, request: httpx.Request) -> httpx.Response:
+        self.keys.add(request.headers.get("X-API-Key"))
         if request.method == "GET":
             return httpx.Response(200, json={"map_id": "m"})
         self.in_flight += 1
@@ -119,7 +122,7 @@ class Scripted:
         return httpx.Response(status, json=body, headers=headers)
 
 
-def _ingest(tmp_path: Path, service: Scripted, *, prefetch: int = 4):
+def _ingest(tmp_path: Path, service: Scripted, *, prefetch: int = 4, api_key: str | None = None):
     bodies = write_folder(tmp_path / "frames")
     sleeps: list[float] = []
 
@@ -129,16 +132,17 @@ def _ingest(tmp_path: Path, service: Scripted, *, prefetch: int = 4):
     async def run() -> poster.Summary:
         async with httpx.AsyncClient(transport=httpx.MockTransport(service), base_url="http://svc") as c:
             src = open_source(tmp_path / "frames")
-            return await poster.ingest(c, src, poster.Options("m", prefetch=prefetch), sleep=sleep)
+            opts = poster.Options("m", prefetch=prefetch, api_key=api_key)
+            return await poster.ingest(c, src, opts, sleep=sleep)
 
     return bodies, sleeps, run
 
 
 def test_posts_go_one_at_a_time_in_source_order_whatever_the_prefetch(tmp_path):
     service = Scripted()
-    bodies, _, run = _ingest(tmp_path, service, prefetch=8)
+    bodies, _, run = _ingest(tmp_path, service, prefetch=8, api_key="k")
     summary = anyio.run(run)
-    assert service.bodies == bodies and service.max_in_flight == 1
+    assert service.bodies == bodies and service.max_in_flight == 1 and service.keys == {"k"}
     assert summary.frames == len(ROUTE) and summary.errors == 0
 
 
