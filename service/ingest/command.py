@@ -66,6 +66,7 @@ def ingest_command(
 
     from service.ingest import poster
     from service.ingest.sources import SourceError, open_source
+    from service.settings import ConfigError
 
     try:
         src = open_source(source, topic=topic, every=every)
@@ -103,7 +104,7 @@ def ingest_command(
         print(e.summary.text(), file=out)
         typer.echo(f"error: stopped: {e}", err=True)
         raise typer.Exit(1) from e
-    except SourceError as e:
+    except (SourceError, ConfigError) as e:  # a bag message that cannot be read; the app's configuration
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from e
     print(summary.text(), file=out)
