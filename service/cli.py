@@ -18,13 +18,16 @@ import json
 import platform
 import sys
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 import typer
 
 from models import presets
 from service.ingest.command import ingest_command
+
+if TYPE_CHECKING:
+    from service.settings import Settings
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="cortexloc: visual place recognition with a Hierarchical Temporal Memory.")
@@ -365,7 +368,7 @@ def _install(run: Any) -> None:
 
 
 def process_settings(*, host: str | None = None, port: int | None = None, data_dir: Path | None = None,
-                     **env_defaults: str) -> Any:
+                     **env_defaults: str) -> Settings:
     """The settings of a service run by this process (`serve`, in-process `ingest`): CORTEXLOC_* with the
     given options over them and `env_defaults` under them, read once; exits 2 naming a bad variable.
 
