@@ -10,6 +10,8 @@ Nothing is read or built at import time. At startup the lifespan:
    shutdown): the place for the map runtime, which fills `app.state.maps` (map_id -> object with
    `state`, `state_reason`) and may register readiness checks in `app.state.ready_checks`.
 
+`/docs` and `/redoc` load their assets from the service itself (`fastapi_offline`), never from a CDN.
+
 Middleware, outermost first (all pure ASGI): `RequestContextMiddleware` (request id, last-resort 500),
 `MetricsMiddleware`, `UploadLimitMiddleware` (413 before routing). Errors are problem+json everywhere
 (`service.errors`).
@@ -34,6 +36,7 @@ from typing import Any
 
 import anyio
 from fastapi import FastAPI
+from fastapi_offline import FastAPIOffline
 
 from models.encoder import Encoder
 from service.errors import RequestContextMiddleware, install_error_handlers, problem_responses, request_id_var
@@ -262,9 +265,11 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFact
             yield
         log.info("cortexloc stopped")
 
-    app = FastAPI(title="cortexloc", version=_version(), lifespan=lifespan,
-                  description="Visual place recognition with a Hierarchical Temporal Memory.",
-                  responses=problem_responses(500))
+    # /docs (Swagger UI 5, which reads OpenAPI 3.1) and /redoc with their scripts and styles served from
+    # the package's files under /static-offline-docs, not a CDN: robot networks are often offline.
+    app = FastAPIOffline(title="cortexloc", version=_version(), lifespan=lifespan,
+                         description="Visual place recognition with a Hierarchical Temporal Memory.",
+                         responses=problem_responses(500))
     app.state.metrics = metrics
     if settings is not None:
         app.state.settings = settings

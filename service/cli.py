@@ -8,6 +8,8 @@
     cortexloc serve [--host H] [--port P] [--data-dir DIR]
     cortexloc import FILE.tar [--data-dir DIR]
     cortexloc verify [--map M] [--data-dir DIR]
+    cortexloc ingest SOURCE --map M [--stream S] [--learn | --localise] [--url URL | --data-dir DIR]
+                     [--topic T] [--every N] [--json] [--prefetch K] [--label-stamp] [--api-key KEY]
 
 Tables go to stdout, progress and warnings to stderr, machine-readable results to --json.
 """
@@ -18,12 +20,16 @@ import json
 import platform
 import sys
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 import typer
 
 from models import presets
+from service.ingest.command import ingest_command
+
+if TYPE_CHECKING:
+    from service.settings import Settings
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="cortexloc: visual place recognition with a Hierarchical Temporal Memory.")
@@ -363,6 +369,29 @@ def _install(run: Any) -> None:
     typer.echo(f"installed {path}\nthe encoder finds it there; or set CORTEXLOC_WEIGHTS_PATH={path}")
 
 
+def process_settings(*, host: str | None = None, port: int | None = None, data_dir: Path | None = None,
+                     **env_defaults: str) -> Settings:
+    """The settings of a service run by this process (`serve`, in-process `ingest`): CORTEXLOC_* with the
+    given options over them and `env_defaults` under them, read once; exits 2 naming a bad variable.
+
+    Also sets OpenCV's pixel guard, which OpenCV reads once when cv2 is first imported (by the app)."""
+    import os
+
+    from service.settings import ConfigError, Settings
+
+    env = {**env_defaults, **os.environ}
+    for var, value in (("CORTEXLOC_HOST", host), ("CORTEXLOC_PORT", port), ("CORTEXLOC_DATA_DIR", data_dir)):
+        if value is not None:
+            env[var] = str(value)
+    try:
+        settings = Settings.from_env(env)  # read once, here; the app gets this object
+    except ConfigError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from e
+    os.environ["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(settings.max_pixels)
+    return settings
+
+
 @app.command("serve")
 def serve(
     host: Annotated[str | None, typer.Option(help="Bind address (default: $CORTEXLOC_HOST or 127.0.0.1).")]
@@ -373,21 +402,7 @@ def serve(
                                                        "or ./var).")] = None,
 ) -> None:
     """Run the HTTP service (one uvicorn worker: maps live in process memory). Other settings: CORTEXLOC_*."""
-    import os
-
-    from service.settings import ConfigError, Settings
-
-    env = dict(os.environ)
-    for var, value in (("CORTEXLOC_HOST", host), ("CORTEXLOC_PORT", port), ("CORTEXLOC_DATA_DIR", data_dir)):
-        if value is not None:
-            env[var] = str(value)
-    try:
-        settings = Settings.from_env(env)  # read once, here; the app gets this object
-    except ConfigError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(2) from e
-    # OpenCV reads its pixel guard once, when cv2 is imported (by the app's modules, below).
-    os.environ["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(settings.max_pixels)
+    settings = process_settings(host=host, port=port, data_dir=data_dir)
 
     import uvicorn
 
@@ -395,22 +410,6 @@ def serve(
 
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, workers=1, lifespan="on",
                 log_level=settings.log_level.lower())
-
-
-def _offline_settings(data_dir: Path | None) -> Any:
-    """The settings for a command that works on a data directory while the server is stopped."""
-    import os
-
-    from service.settings import ConfigError, Settings
-
-    env = dict(os.environ)
-    if data_dir is not None:
-        env["CORTEXLOC_DATA_DIR"] = str(data_dir)
-    try:
-        return Settings.from_env(env)
-    except ConfigError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(2) from e
 
 
 @app.command("import")
@@ -429,7 +428,7 @@ def import_map(
     from service.runtime import MapRegistry
     from storage.snapshots import SnapshotInvalid
 
-    settings = _offline_settings(data_dir)
+    settings = process_settings(data_dir=data_dir)
     root = settings.data_dir
     registry = MapRegistry(root, SimpleNamespace(identity="", feature_dim=0), settings=settings)
     try:
@@ -453,7 +452,7 @@ def verify(
     from service.recovery import verify_map
     from storage.catalog import Catalog
 
-    root = _offline_settings(data_dir).data_dir
+    root = process_settings(data_dir=data_dir).data_dir
     try:
         catalog = Catalog.open(root / "catalog.sqlite", readonly=True)
         records = [r for r in catalog.list_maps() if map_id is None or r.map_id == map_id]
@@ -493,6 +492,7 @@ def verify(
     typer.echo(f"{len(records)} map(s) checked, {bad} with problems")
     if bad:
         raise typer.Exit(1)
+app.command("ingest")(ingest_command)
 
 
 def main() -> None:  # pragma: no cover - console entry point

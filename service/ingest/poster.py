@@ -1,0 +1,301 @@
+"""The HTTP side of `cortexloc ingest`: one code path for a running service and for the app in this process.
+
+`remote_client(url)` talks to a running service; `in_process_client(settings)` builds the app
+(`service.app.create_app`), enters its lifespan (encoder, maps) and serves it through httpx's ASGI
+transport, so both answer through the same routes, checks and map runtime. `ingest(client, source, opts)`
+then posts the source's frames **one at a time, in source order**:
+
+- order: the service hands frames to a map's memory in the order their requests pass its checks. Two
+  requests in flight may pass them in either order, and a stream's sequence context (what the memory
+  predicts next) depends on the order, so a stream is posted sequentially: frame i+1 leaves after frame
+  i's answer. What runs alongside the post in flight is the reading and PNG conversion of the next
+  `prefetch` frames (a reader thread and a bounded buffer).
+- 503 (overloaded, map recovering, starting): retried after `Retry-After` (capped at `MAX_WAIT_S`), at most
+  `MAX_RETRIES` times. Nothing else is retried: a post lost to a timeout may have been learned, and the
+  service has no idempotency key yet.
+- a frame the service refuses for its bytes (413, 415, 422) is recorded as an error and the ingest goes
+  on; any other refusal (401, 404, 409 map full, 5xx) stops it (`IngestError`, with the summary so far).
+- a missing map is created with the server's default preset when learning (`Summary.created_map`);
+  localising against a missing map stops.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from contextlib import asynccontextmanager
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import anyio
+import httpx
+import numpy as np
+
+from service.ingest.sources import Frame, Source
+
+if TYPE_CHECKING:
+    from service.settings import Settings
+
+__all__ = ["MAX_RETRIES", "MAX_WAIT_S", "REVISIT_SCORE", "IngestError", "Options", "Record", "Summary",
+           "in_process_client", "ingest", "remote_client"]
+
+#: The default revisit: the top match's Dice score of winner cells reaches this (`Options.revisit_score`).
+#: The same frame seen again in the same context scores 1; a revisit of a place on new footage scores less,
+#: and with random weights unrelated frames reach 0.84 (12 synthetic 640x480 frames, default preset: distinct
+#: ones 0.80-0.84, repeats 1.0), so the default sits above that. With the map's default `exclude_recent=0`
+#: the previous frame of a slow robot can count too.
+REVISIT_SCORE = 0.9
+MAX_RETRIES = 5
+MAX_WAIT_S = 30.0
+#: Refusals of one frame's bytes: recorded, and the ingest goes on.
+FRAME_ERRORS = frozenset({413, 415, 422})
+REMOTE_TIMEOUT_S = 120.0
+
+
+class IngestError(RuntimeError):
+    """The ingest stopped before the end of the source; `summary` holds what was done."""
+
+    def __init__(self, message: str, summary: Summary) -> None:
+        super().__init__(message)
+        self.summary = summary
+
+
+@dataclass(frozen=True)
+class Options:
+    """Where and how to post: map, stream, learn (mapping) or localise, stamp as label, API key."""
+
+    map_id: str
+    stream: str = "default"
+    learn: bool = True
+    label_stamp: bool = False
+    api_key: str | None = None
+    prefetch: int = 2
+    revisit_score: float = REVISIT_SCORE
+
+
+@dataclass(frozen=True)
+class Record:
+    """One frame's outcome: `answer` is the service's JSON (the observation, or a problem)."""
+
+    frame: int
+    name: str
+    stamp_ns: int | None
+    status: int
+    latency_ms: float
+    answer: dict[str, Any]
+
+    def is_revisit(self, threshold: float = REVISIT_SCORE) -> bool:
+        """The top match scores at least `threshold`."""
+        matches = (self.answer.get("matches") or []) if self.status == 200 else []
+        return bool(matches) and float(matches[0]["score"]) >= threshold
+
+
+@dataclass
+class Summary:
+    """Totals of an ingest; latencies are client round trips of a post (retries included), in ms."""
+
+    source: str
+    map_id: str
+    stream: str
+    learn: bool
+    total: int
+    revisit_score: float = REVISIT_SCORE
+    created_map: bool = False
+    frames: int = 0
+    learned: int = 0
+    revisits: int = 0
+    errors: int = 0
+    retries: int = 0
+    elapsed_s: float = 0.0
+    latencies_ms: list[float] = field(default_factory=list, repr=False)
+
+    def add(self, rec: Record) -> None:
+        if rec.status == 200:
+            self.frames += 1
+            self.learned += bool(rec.answer.get("learned"))
+            self.revisits += rec.is_revisit(self.revisit_score)
+            self.latencies_ms.append(rec.latency_ms)
+        else:
+            self.errors += 1
+
+    def as_dict(self) -> dict[str, Any]:
+        out = {k: v for k, v in asdict(self).items() if k != "latencies_ms"}
+        lat = np.asarray(self.latencies_ms) if self.latencies_ms else None
+        out["latency_ms_median"] = None if lat is None else round(float(np.median(lat)), 3)
+        out["latency_ms_p95"] = None if lat is None else round(float(np.percentile(lat, 95)), 3)
+        out["frames_per_s"] = round(self.frames / self.elapsed_s, 3) if self.elapsed_s > 0 else None
+        return out
+
+    def text(self) -> str:
+        d = self.as_dict()
+        lat = ("n/a" if d["latency_ms_median"] is None
+               else f"median {d['latency_ms_median']:.1f} ms, p95 {d['latency_ms_p95']:.1f} ms")
+        rate = "n/a" if d["frames_per_s"] is None else f"{d['frames_per_s']:.1f} frames/s"
+        return (f"{self.source} -> map {self.map_id!r}, stream {self.stream!r} "
+                f"({'learn' if self.learn else 'localise'}{', map created' if self.created_map else ''})\n"
+                f"posted {self.frames}/{self.total} frames, learned {self.learned}, revisits {self.revisits} "
+                f"(top score >= {self.revisit_score}), errors {self.errors}, retries {self.retries}\n"
+                f"latency {lat}; {rate} over {self.elapsed_s:.1f} s")
+
+
+# ------------------------------------------------------------------------------------ transports
+
+
+@asynccontextmanager
+async def remote_client(url: str) -> AsyncIterator[httpx.AsyncClient]:
+    """A client of the service at `url` (e.g. `http://robot:8000`)."""
+    async with httpx.AsyncClient(base_url=url.rstrip("/"), timeout=REMOTE_TIMEOUT_S) as client:
+        yield client
+
+
+@asynccontextmanager
+async def in_process_client(settings: Settings) -> AsyncIterator[httpx.AsyncClient]:
+    """The app built from `settings`, started (its lifespan: encoder, maps) and served in this process."""
+    from service.app import create_app
+
+    app = create_app(settings)
+    async with app.router.lifespan_context(app):
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://cortexloc.in-process",
+                                     timeout=None) as client:
+            yield client
+
+
+# ------------------------------------------------------------------------------------------ ingest
+
+
+Sleep = Callable[[float], Awaitable[None]]
+
+
+async def ingest(client: httpx.AsyncClient, source: Source, opts: Options, *,
+                 on_record: Callable[[Record], None] | None = None, sleep: Sleep = anyio.sleep) -> Summary:
+    """Post every frame of `source` to `opts.map_id` in order; see the module docstring for the rules.
+
+    Args:
+        client: from `remote_client` or `in_process_client`.
+        on_record: called with each frame's `Record` as its answer arrives (progress, --json).
+        sleep: the wait between retries (tests pass a recorder).
+
+    Returns:
+        The summary (also when frames were refused: `errors`).
+
+    Raises:
+        IngestError: the service cannot be reached, refuses the map, or answers 503 past the retries.
+    """
+    summary = Summary(source=source.describe(), map_id=opts.map_id, stream=opts.stream, learn=opts.learn,
+                      total=source.total, revisit_score=opts.revisit_score)
+    headers = {"X-API-Key": opts.api_key} if opts.api_key else {}
+    t0 = time.perf_counter()
+    try:
+        summary.created_map = await _ensure_map(client, opts, headers, summary)
+        send, receive = anyio.create_memory_object_stream[Frame | Exception](max(opts.prefetch, 0))
+        stop = threading.Event()
+        failed: Exception | None = None  # raised after the task group, which would wrap it in a group
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(anyio.to_thread.run_sync, _produce, source, send, stop)
+            async with receive:
+                try:
+                    async for item in receive:
+                        if isinstance(item, Exception):
+                            raise item
+                        assert isinstance(item, Frame)
+                        rec = await _post_frame(client, item, opts, headers, summary, sleep)
+                        summary.add(rec)
+                        if on_record is not None:
+                            on_record(rec)
+                except Exception as e:
+                    failed = e
+                finally:
+                    stop.set()
+        if failed is not None:
+            raise failed
+    finally:
+        summary.elapsed_s = time.perf_counter() - t0
+    return summary
+
+
+def _produce(source: Source, send: Any, stop: threading.Event) -> None:
+    """Reader thread: frames (or the exception that ended the reading) into the bounded buffer."""
+    with send:
+        try:
+            for frame in source.frames():
+                if stop.is_set():
+                    return
+                anyio.from_thread.run(send.send, frame)
+        except (anyio.BrokenResourceError, anyio.ClosedResourceError):
+            return  # the consumer stopped
+        except Exception as e:
+            try:
+                anyio.from_thread.run(send.send, e)
+            except (anyio.BrokenResourceError, anyio.ClosedResourceError):
+                return
+
+
+async def _ensure_map(client: httpx.AsyncClient, opts: Options, headers: dict[str, str],
+                      summary: Summary) -> bool:
+    r = await _request(client, "GET", f"/v1/maps/{opts.map_id}", summary, headers=headers)
+    if r.status_code == 200:
+        return False
+    if r.status_code == 404 and opts.learn:
+        created = await _request(client, "POST", "/v1/maps", summary, headers=headers,
+                                 json={"map_id": opts.map_id})
+        if created.status_code == 201:
+            return True
+        r = created
+    raise IngestError(f"map {opts.map_id!r}: {_problem_text(r)}", summary)
+
+
+async def _post_frame(client: httpx.AsyncClient, frame: Frame, opts: Options, headers: dict[str, str],
+                      summary: Summary, sleep: Sleep) -> Record:
+    params: dict[str, str] = {"learn": "true" if opts.learn else "false", "stream": opts.stream}
+    if opts.label_stamp and frame.stamp_ns is not None:
+        params["label"] = f"{frame.stamp_ns // 1_000_000_000}.{frame.stamp_ns % 1_000_000_000:09d}"
+    t = time.perf_counter()
+    for attempt in range(MAX_RETRIES + 1):
+        r = await _request(client, "POST", f"/v1/maps/{opts.map_id}/observations", summary, params=params,
+                           content=frame.data, headers={**headers, "Content-Type": frame.media_type})
+        if r.status_code != 503 or attempt == MAX_RETRIES:
+            break
+        summary.retries += 1
+        await sleep(retry_after_s(r.headers.get("Retry-After"), attempt))
+    latency_ms = (time.perf_counter() - t) * 1e3
+    rec = Record(frame.index, frame.name, frame.stamp_ns, r.status_code, round(latency_ms, 3), _json(r))
+    if r.status_code != 200 and r.status_code not in FRAME_ERRORS:
+        summary.add(rec)
+        raise IngestError(f"frame {frame.name}: {_problem_text(r)}", summary)
+    return rec
+
+
+def retry_after_s(value: str | None, attempt: int) -> float:
+    """Seconds to wait: the `Retry-After` delay in seconds, else 1, 2, 4, ... s; never above MAX_WAIT_S."""
+    try:
+        wait = float(value) if value is not None else 2.0**attempt
+    except ValueError:  # an HTTP date: the service sends seconds; back off instead of parsing clocks
+        wait = 2.0**attempt
+    return min(max(wait, 0.0), MAX_WAIT_S)
+
+
+async def _request(client: httpx.AsyncClient, method: str, path: str, summary: Summary,
+                   **kwargs: Any) -> httpx.Response:
+    try:
+        return await client.request(method, path, **kwargs)
+    except httpx.TimeoutException as e:
+        raise IngestError(f"{method} {path}: no answer within {REMOTE_TIMEOUT_S:.0f} s ({e!r}); a frame "
+                            "being learned may or may not have been stored", summary) from e
+    except httpx.TransportError as e:
+        raise IngestError(f"{method} {path}: cannot reach the service at {client.base_url}: {e}",
+                            summary) from e
+
+
+def _json(r: httpx.Response) -> dict[str, Any]:
+    try:
+        body = r.json()
+    except ValueError:
+        return {"status": r.status_code, "detail": r.text[:500]}
+    return body if isinstance(body, dict) else {"body": body}
+
+
+def _problem_text(r: httpx.Response) -> str:
+    body = _json(r)
+    return f"{r.status_code} {body.get('title', '')}: {body.get('detail', '')}".strip()

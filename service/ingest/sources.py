@@ -1,0 +1,241 @@
+"""Frame sources for `cortexloc ingest`: an image folder, a ROS 1 `.bag`, a ROS 2 bag (`.db3` or `.mcap`).
+
+`open_source(path, topic=None, every=1)` checks the source up front (the topic exists and carries images)
+and returns a `Source`; `Source.frames()` then reads lazily, so a long bag is never held in memory and
+frames skipped by `every` are never converted.
+
+Bags are read with `rosbags` (pure Python, no ROS install). From `sensor_msgs/msg/CompressedImage` the
+`data` is posted as it is (the service tells JPEG from PNG by the bytes). `sensor_msgs/msg/Image` is
+converted here to a lossless PNG of the same pixels (`RAW_ENCODINGS`), so the answer equals that of posting
+those pixels as PNG. A message's stamp is its `header.stamp` (when the sensor took it), or the time the bag
+recorded it when the header carries none.
+
+Example:
+    >>> src = open_source(Path("run1"), topic="/cam0/image_raw", every=5)
+    >>> src.total, next(iter(src.frames())).stamp_ns
+    (120, 1700000000123456789)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from models import images
+
+__all__ = ["COMPRESSED_TYPE", "IMAGE_SUFFIXES", "IMAGE_TYPE", "RAW_ENCODINGS", "Frame", "Source",
+           "SourceError", "image_to_png", "open_source"]
+
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
+
+#: File name endings of the formats the encoder decodes (`models.images.FORMATS`); the service decides
+#: which of them it accepts (a refused one is reported per frame, the ingest goes on).
+_SUFFIXES_BY_FORMAT = {"jpeg": (".jpg", ".jpeg", ".jpe"), "png": (".png",), "bmp": (".bmp",),
+                       "webp": (".webp",)}
+IMAGE_SUFFIXES = tuple(s for fmt in images.FORMATS for s in _SUFFIXES_BY_FORMAT[fmt])
+
+#: ROS `sensor_msgs/Image` encodings -> (channels, bytes per sample, OpenCV conversion to its B,G,R(,A)
+#: order or None). PNG keeps 16-bit samples and alpha, so nothing is lost on the way.
+RAW_ENCODINGS: dict[str, tuple[int, int, int | None]] = {
+    "rgb8": (3, 1, cv2.COLOR_RGB2BGR), "bgr8": (3, 1, None), "mono8": (1, 1, None),
+    "mono16": (1, 2, None), "rgba8": (4, 1, cv2.COLOR_RGBA2BGRA), "bgra8": (4, 1, None),
+}
+
+#: What a body made here is posted as; bytes posted as they are go as octet-stream (the service sniffs).
+PNG_MEDIA = "image/png"
+AS_IS_MEDIA = "application/octet-stream"
+
+
+class SourceError(ValueError):
+    """A source that cannot be read as asked (missing, no images, wrong or ambiguous topic, bad message)."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One frame to post.
+
+    Attributes:
+        index: position in the source (0-based, before `every`): file order or message order on the topic.
+        name: the file name, or `topic#index`.
+        stamp_ns: the message time in nanoseconds since the epoch; None for files.
+        data: the body to post.
+        media_type: its Content-Type.
+    """
+
+    index: int
+    name: str
+    stamp_ns: int | None
+    data: bytes
+    media_type: str
+
+
+@dataclass(frozen=True)
+class Source:
+    """A checked source: `kind` folder | ros1 | ros2, `topic` (bags), `total` frames after `every`."""
+
+    path: Path
+    kind: str
+    every: int
+    total: int
+    topic: str | None = None
+    _files: tuple[Path, ...] = ()
+
+    def describe(self) -> str:
+        where = f"{self.path} ({self.kind}" + (f", topic {self.topic}" if self.topic else "") + ")"
+        return where + (f", every {self.every}th frame" if self.every > 1 else "")
+
+    def frames(self) -> Iterator[Frame]:
+        """The frames in source order, every `every`-th from the first; read lazily."""
+        if self.kind == "folder":
+            for i, f in enumerate(self._files):
+                if i % self.every == 0:
+                    yield Frame(i, f.name, None, f.read_bytes(), AS_IS_MEDIA)
+            return
+        yield from _bag_frames(self)
+
+
+def open_source(path: Path, *, topic: str | None = None, every: int = 1) -> Source:
+    """Check `path` and say what will be read.
+
+    Args:
+        path: a folder of images (read in name order: zero-pad numbered names), a ROS 1 `.bag`, or a ROS 2
+            bag (its folder with `metadata.yaml`, or a `.db3` / `.mcap` file in it).
+        topic: the image topic of a bag; None: the bag's only image topic.
+        every: keep the first frame and every `every`-th after it.
+
+    Raises:
+        SourceError: with what was found (the image topics, the files) when it cannot be read as asked.
+    """
+    if every < 1:
+        raise SourceError(f"every must be >= 1, got {every}")
+    path = Path(path)
+    if not path.exists():
+        raise SourceError(f"{path}: no such file or folder")
+    if path.is_file() and path.suffix in (".db3", ".mcap"):
+        if not (path.parent / "metadata.yaml").is_file():
+            raise SourceError(f"{path}: a ROS 2 bag is read from its folder with metadata.yaml; "
+                              "there is none beside this file")
+        path = path.parent
+    if path.is_dir() and not (path / "metadata.yaml").is_file():
+        if topic is not None:
+            raise SourceError(f"{path} is a folder of images: --topic applies to bags only")
+        files = tuple(sorted((f for f in path.iterdir() if f.is_file() and not f.name.startswith(".")
+                              and f.suffix.lower() in IMAGE_SUFFIXES), key=lambda f: f.name))
+        if not files:
+            raise SourceError(f"{path}: no image files ({', '.join(IMAGE_SUFFIXES)}) and no metadata.yaml "
+                              "(a ROS 2 bag)")
+        return Source(path, "folder", every, _subsampled(len(files), every), _files=files)
+    if path.is_file() and path.suffix != ".bag":
+        raise SourceError(f"{path}: not a folder of images, a ROS 1 .bag or a ROS 2 bag")
+    kind = "ros1" if path.suffix == ".bag" else "ros2"
+    with _reader(path) as reader:
+        chosen, count = _choose_topic(path, reader, topic)
+    return Source(path, kind, every, _subsampled(count, every), topic=chosen)
+
+
+def _subsampled(n: int, every: int) -> int:
+    return (n + every - 1) // every
+
+
+def _reader(path: Path) -> Any:
+    """An opened-on-enter `rosbags` AnyReader; bags without type definitions fall back to the latest LTS."""
+    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.typesys import Stores, get_typestore
+
+    try:
+        return AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
+    except (AnyReaderError, OSError) as e:
+        raise SourceError(f"{path}: cannot read the bag: {e}") from e
+
+
+def _choose_topic(path: Path, reader: Any, topic: str | None) -> tuple[str, int]:
+    """(topic, message count) of the requested or only image topic."""
+    counts: dict[str, int] = {}
+    types: dict[str, str] = {}
+    for c in reader.connections:
+        counts[c.topic] = counts.get(c.topic, 0) + c.msgcount
+        types[c.topic] = c.msgtype
+    image_topics = sorted(t for t, ty in types.items() if ty in (IMAGE_TYPE, COMPRESSED_TYPE))
+
+    def listing() -> str:
+        shown = ", ".join(f"{t} ({types[t]}, {counts[t]} messages)" for t in sorted(types)) or "none"
+        return f"topics in {path}: {shown}"
+
+    if topic is None:
+        if len(image_topics) == 1:
+            return image_topics[0], counts[image_topics[0]]
+        if not image_topics:
+            raise SourceError(f"no {IMAGE_TYPE} or {COMPRESSED_TYPE} topic; {listing()}")
+        raise SourceError(f"{len(image_topics)} image topics, choose one with --topic: "
+                          f"{', '.join(image_topics)}; {listing()}")
+    if topic not in types:
+        raise SourceError(f"no topic {topic!r}; {listing()}")
+    if topic not in image_topics:
+        raise SourceError(f"topic {topic!r} carries {types[topic]}, not {IMAGE_TYPE} or {COMPRESSED_TYPE}; "
+                          f"{listing()}")
+    return topic, counts[topic]
+
+
+def _bag_frames(src: Source) -> Iterator[Frame]:
+    with _reader(src.path) as reader:
+        conns = [c for c in reader.connections if c.topic == src.topic]
+        for i, (conn, recorded_ns, raw) in enumerate(reader.messages(connections=conns)):
+            if i % src.every:
+                continue
+            msg = reader.deserialize(raw, conn.msgtype)
+            stamp = msg.header.stamp
+            stamp_ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec) or int(recorded_ns)
+            name = f"{src.topic}#{i}"
+            if conn.msgtype == COMPRESSED_TYPE:
+                yield Frame(i, name, stamp_ns, bytes(msg.data), AS_IS_MEDIA)
+            else:
+                try:
+                    png = image_to_png(msg.data, height=msg.height, width=msg.width, step=msg.step,
+                                       encoding=msg.encoding, is_bigendian=bool(msg.is_bigendian))
+                except SourceError as e:
+                    raise SourceError(f"{name}: {e}") from e
+                yield Frame(i, name, stamp_ns, png, PNG_MEDIA)
+
+
+def image_to_png(data: bytes | np.ndarray, *, height: int, width: int, step: int, encoding: str,
+                 is_bigendian: bool = False) -> bytes:
+    """A `sensor_msgs/Image` payload as a lossless PNG of the same pixels.
+
+    Args:
+        data: `height` rows of `step` bytes each (a row may be padded past `width` pixels).
+        encoding: one of `RAW_ENCODINGS`.
+        is_bigendian: the byte order of 16-bit samples.
+
+    Returns:
+        PNG bytes: 8-bit grey, B,G,R or B,G,R,A as OpenCV writes them, or 16-bit grey for mono16.
+
+    Raises:
+        SourceError: an unknown encoding, or a payload shorter than its shape says.
+    """
+    if encoding not in RAW_ENCODINGS:
+        raise SourceError(f"image encoding {encoding!r} is not supported; supported: "
+                          f"{', '.join(RAW_ENCODINGS)}")
+    channels, sample, convert = RAW_ENCODINGS[encoding]
+    row = width * channels * sample
+    buf = np.frombuffer(data, np.uint8) if isinstance(data, bytes | bytearray) else np.asarray(data, np.uint8)
+    if height < 1 or width < 1 or step < row or buf.size < step * height:
+        raise SourceError(f"{encoding} image {width}x{height} needs {height} rows of >= {row} bytes "
+                          f"(step {step}); the message holds {buf.size} bytes")
+    rows = buf[: step * height].reshape(height, step)[:, :row]
+    if sample == 2:
+        pixels = rows.copy().view(">u2" if is_bigendian else "<u2").astype(np.uint16)
+    else:
+        pixels = rows
+    pixels = pixels.reshape(height, width, channels) if channels > 1 else pixels.reshape(height, width)
+    if convert is not None:
+        pixels = cv2.cvtColor(np.ascontiguousarray(pixels), convert)
+    ok, out = cv2.imencode(".png", np.ascontiguousarray(pixels))
+    if not ok:  # pragma: no cover - OpenCV encodes every shape and depth above
+        raise SourceError(f"OpenCV could not write a PNG of this {encoding} image")
+    return out.tobytes()

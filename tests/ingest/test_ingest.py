@@ -1,0 +1,188 @@
+"""`cortexloc ingest` in process: the answers of posting the frames one by one; order, retries, errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import anyio
+import httpx
+import pytest
+from fastapi.testclient import TestClient
+from typer.testing import CliRunner
+
+from service import cli
+from service.app import create_app
+from service.ingest import poster
+from service.ingest.sources import open_source
+from service.settings import Settings
+from tests.ingest.data import ROUTE, TOPICS, comparable, stamp, write_folder, write_ros2_bag
+
+
+@pytest.fixture(autouse=True)
+def _small_maps(clean_env, tiny_default_preset):
+    """Real code paths on a small map (tests/conftest.py), random seeded weights."""
+
+
+def reference(data_dir: Path, map_id: str, bodies: list[bytes], *, labels: list[str | None] | None = None,
+              stream: str = "default") -> list[dict[str, Any]]:
+    """The answers of posting `bodies` one by one, by hand, to a new map of a fresh service."""
+    with TestClient(create_app(Settings(data_dir=data_dir))) as c:
+        assert c.post("/v1/maps", json={"map_id": map_id}).status_code == 201
+        out = []
+        for body, label in zip(bodies, labels or [None] * len(bodies), strict=True):
+            ctype = "image/png" if body.startswith(b"\x89PNG") else "image/jpeg"
+            params = {"stream": stream, **({"label": label} if label else {})}
+            r = c.post(f"/v1/maps/{map_id}/observations", content=body, params=params,
+                       headers={"Content-Type": ctype})
+            assert r.status_code == 200, r.text
+            out.append(r.json())
+        return out
+
+
+def test_cli_ingests_a_folder_in_process_with_the_answers_of_posting_one_by_one(tmp_path, monkeypatch):
+    monkeypatch.setenv("CORTEXLOC_API_KEY", "s3cret")  # the in-process app wants it; the ingest sends it
+    bodies = write_folder(tmp_path / "frames")
+    result = CliRunner().invoke(cli.app, ["ingest", str(tmp_path / "frames"), "--map", "farm", "--stream",
+                                          "cam0", "--data-dir", str(tmp_path / "a"), "--json"])
+    assert result.exit_code == 0, result.output
+    lines = [json.loads(line) for line in result.stdout.splitlines()]
+    assert [line["frame"] for line in lines] == list(range(len(ROUTE)))
+    assert all(line["status"] == 200 and line["answer"]["stream"] == "cam0" for line in lines)
+    want = reference(tmp_path / "b", "farm", bodies, stream="cam0")
+    assert [comparable(line["answer"]) for line in lines] == [comparable(a) for a in want]
+    assert lines[6]["answer"]["matches"][0]["seq"] == lines[2]["answer"]["seq"]  # the loop closes
+    assert "map created" in result.stderr and f"posted {len(ROUTE)}/{len(ROUTE)} frames" in result.stderr
+    assert "revisits" in result.stderr and "latency median" in result.stderr
+
+
+def test_every_topic_of_a_ros2_bag_answers_as_its_frames_posted_one_by_one(tmp_path):
+    bag = write_ros2_bag(tmp_path / "bag")
+    labels = [f"{stamp(i) // 10**9}.{stamp(i) % 10**9:09d}" for i in range(len(ROUTE))]
+    got: dict[str, list[poster.Record]] = {}
+
+    async def run() -> None:
+        settings = Settings(data_dir=tmp_path / "a", log_level="WARNING")
+        async with poster.in_process_client(settings) as client:
+            for topic in TOPICS:
+                got[topic] = []
+                opts = poster.Options(map_id=topic.strip("/").replace("/", "-"), label_stamp=True)
+                summary = await poster.ingest(client, open_source(bag, topic=topic), opts,
+                                              on_record=got[topic].append)
+                assert summary.created_map and summary.frames == summary.learned == len(ROUTE)
+                # the repeated places close the loop (seeded weights and map: the count is fixed)
+                assert summary.revisits == sum(r.is_revisit() for r in got[topic]) >= 2
+                assert summary.errors == 0
+
+    anyio.run(run)
+    for topic, (_, body_of) in TOPICS.items():
+        want = reference(tmp_path / f"ref{topic.replace('/', '-')}", "m", [body_of(p) for p in ROUTE],
+                         labels=labels)
+        assert [comparable(r.answer) for r in got[topic]] == [comparable(a) for a in want], topic
+        assert [r.stamp_ns for r in got[topic]] == [stamp(i) for i in range(len(ROUTE))]
+        assert got[topic][6].answer["matches"][0]["label"] == labels[2]  # the loop closes
+
+
+def test_bad_sources_and_options_exit_2_with_the_reason(tmp_path):
+    bag = write_ros2_bag(tmp_path / "bag", topics=["/cam/rgb", "/cam/mono"])
+    run = CliRunner().invoke
+    r = run(cli.app, ["ingest", str(bag), "--map", "m", "--data-dir", str(tmp_path / "a")])
+    assert r.exit_code == 2 and "2 image topics, choose one with --topic: /cam/mono, /cam/rgb" in r.stderr
+    r = run(cli.app, ["ingest", str(bag), "--map", "m", "--topic", "/nope", "--data-dir", str(tmp_path)])
+    assert r.exit_code == 2 and "no topic '/nope'" in r.stderr
+    r = run(cli.app, ["ingest", str(bag), "--map", "m", "--url", "http://x", "--data-dir", str(tmp_path)])
+    assert r.exit_code == 2 and "--data-dir" in r.stderr
+    assert not (tmp_path / "a").exists()  # nothing started
+
+
+# ----------------------------------------------------------------- against a scripted service
+
+
+class Scripted:
+    """A fake service: GET map -> 200; observation posts answered by `answers` in turn (then 200)."""
+
+    def __init__(self, answers: list[tuple[int, dict[str, str]]] | None = None) -> None:
+        self.answers = list(answers or [])
+        self.bodies: list[bytes] = []
+        self.keys: set[str | None] = set()
+        self.in_flight = self.max_in_flight = 0
+
+    async def __call__(self, request: httpx.Request) -> httpx.Response:
+        self.keys.add(request.headers.get("X-API-Key"))
+        if request.method == "GET":
+            return httpx.Response(200, json={"map_id": "m"})
+        self.in_flight += 1
+        self.max_in_flight = max(self.max_in_flight, self.in_flight)
+        await anyio.sleep(0.001)  # let a second post start if the ingest would send one
+        self.in_flight -= 1
+        self.bodies.append(request.content)
+        status, headers = self.answers.pop(0) if self.answers else (200, {})
+        body = {"learned": True, "matches": []} if status == 200 else {"title": "T", "detail": f"d{status}"}
+        return httpx.Response(status, json=body, headers=headers)
+
+
+def _ingest(tmp_path: Path, service: Scripted, *, prefetch: int = 4, api_key: str | None = None):
+    bodies = write_folder(tmp_path / "frames")
+    sleeps: list[float] = []
+
+    async def sleep(s: float) -> None:
+        sleeps.append(s)
+
+    async def run() -> poster.Summary:
+        async with httpx.AsyncClient(transport=httpx.MockTransport(service), base_url="http://svc") as c:
+            src = open_source(tmp_path / "frames")
+            opts = poster.Options("m", prefetch=prefetch, api_key=api_key)
+            return await poster.ingest(c, src, opts, sleep=sleep)
+
+    return bodies, sleeps, run
+
+
+def test_posts_go_one_at_a_time_in_source_order_whatever_the_prefetch(tmp_path):
+    service = Scripted()
+    bodies, _, run = _ingest(tmp_path, service, prefetch=8, api_key="k")
+    summary = anyio.run(run)
+    assert service.bodies == bodies and service.max_in_flight == 1 and service.keys == {"k"}
+    assert summary.frames == len(ROUTE) and summary.errors == 0
+
+
+def test_503_is_retried_after_retry_after_and_the_frame_is_posted_once_answered(tmp_path):
+    service = Scripted([(503, {"Retry-After": "3"}), (503, {}), (200, {})])
+    bodies, sleeps, run = _ingest(tmp_path, service)
+    summary = anyio.run(run)
+    assert sleeps == [3.0, 2.0]  # the header's delay, then backoff (attempt 1: 2 s)
+    assert service.bodies == [bodies[0]] * 3 + bodies[1:]
+    assert summary.retries == 2 and summary.frames == len(ROUTE)
+    assert poster.retry_after_s("3600", 0) == poster.MAX_WAIT_S
+
+
+def test_retries_are_bounded(tmp_path):
+    service = Scripted([(503, {"Retry-After": "1"})] * (poster.MAX_RETRIES + 1))
+    _, sleeps, run = _ingest(tmp_path, service)
+    with pytest.raises(poster.IngestError, match=r"frame frame_0000\.png: 503 T: d503") as e:
+        anyio.run(run)
+    assert sleeps == [1.0] * poster.MAX_RETRIES and e.value.summary.errors == 1
+
+
+def test_a_refused_frame_is_counted_and_the_ingest_goes_on_but_a_refused_map_stops_it(tmp_path):
+    service = Scripted([(200, {}), (422, {})])
+    bodies, _, run = _ingest(tmp_path, service)
+    summary = anyio.run(run)
+    assert summary.errors == 1 and summary.frames == len(ROUTE) - 1 and service.bodies == bodies
+    service = Scripted([(200, {}), (404, {})])
+    _, _, run = _ingest(tmp_path / "again", service)
+    with pytest.raises(poster.IngestError, match=r"frame frame_0001\.jpg: 404"):
+        anyio.run(run)
+    assert len(service.bodies) == 2
+
+
+def test_registering_ingest_keeps_cv2_out_of_the_cli_start():
+    """`cortexloc serve` sets OpenCV's pixel guard before cv2 is imported; the readers import cv2 lazily."""
+    import subprocess
+    import sys
+
+    code = ("import sys, service.cli; "
+            "print(sorted(m for m in ('cv2', 'torch', 'rosbags') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parents[2])
+    assert out.stdout.strip() == "[]"

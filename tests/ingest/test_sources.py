@@ -1,0 +1,130 @@
+"""The readers of `cortexloc ingest`: folders, ROS 2 bags (.db3, .mcap), ROS 1 bags, raw image conversion."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from service.ingest.sources import RAW_ENCODINGS, SourceError, image_to_png, open_source
+from tests.ingest.data import ROUTE, TOPICS, png, stamp, write_folder, write_ros1_bag, write_ros2_bag
+
+
+def test_a_folder_is_read_in_name_order_skipping_what_is_not_an_image(tmp_path):
+    data = write_folder(tmp_path / "frames")
+    src = open_source(tmp_path / "frames")
+    frames = list(src.frames())
+    assert src.kind == "folder" and src.total == len(ROUTE)
+    assert [f.data for f in frames] == data
+    names = [f"frame_{i:04d}.{'jpg' if i % 2 else 'png'}" for i in range(len(ROUTE))]
+    assert [f.name for f in frames] == names
+    assert all(f.stamp_ns is None for f in frames)
+
+
+def test_every_keeps_the_first_frame_and_every_nth_after_it(tmp_path):
+    write_folder(tmp_path / "frames")
+    src = open_source(tmp_path / "frames", every=3)
+    assert src.total == 3 and [f.index for f in src.frames()] == [0, 3, 6]
+    bag = open_source(write_ros2_bag(tmp_path / "bag", topics=["/cam/compressed"]), every=3)
+    assert bag.total == 3 and [f.index for f in bag.frames()] == [0, 3, 6]
+
+
+@pytest.mark.parametrize("topic", list(TOPICS))
+def test_a_ros2_bag_gives_the_pixels_posted_as_png_or_the_compressed_bytes_as_they_are(tmp_path, topic):
+    src = open_source(write_ros2_bag(tmp_path / "bag"), topic=topic)
+    frames = list(src.frames())
+    assert src.kind == "ros2" and src.topic == topic and src.total == len(ROUTE)
+    # Byte for byte the PNG (or JPEG) a user would post of the same pixels: rgb8 is swapped to OpenCV's order.
+    assert [f.data for f in frames] == [TOPICS[topic][1](p) for p in ROUTE]
+    assert [f.stamp_ns for f in frames] == [stamp(i) for i in range(len(ROUTE))]  # header.stamp, not record
+    assert {f.media_type for f in frames} == {"application/octet-stream" if "compressed" in topic
+                                              else "image/png"}
+
+
+def _frames(src):
+    return [(f.index, f.stamp_ns, f.data) for f in src.frames()]
+
+
+def test_mcap_ros1_and_a_db3_file_path_read_the_same_frames(tmp_path):
+    db3 = write_ros2_bag(tmp_path / "db3")
+    mcap = write_ros2_bag(tmp_path / "mcap", storage="mcap")
+    ros1 = write_ros1_bag(tmp_path / "run.bag")
+    for topic in TOPICS:
+        want = _frames(open_source(db3, topic=topic))
+        assert _frames(open_source(mcap, topic=topic)) == want
+        assert _frames(open_source(ros1, topic=topic)) == want
+        assert open_source(ros1, topic=topic).kind == "ros1"
+    (file,) = db3.glob("*.db3")
+    assert open_source(file, topic="/cam/mono").path == db3
+
+
+def test_topic_selection_errors_list_the_topics(tmp_path):
+    bag = write_ros2_bag(tmp_path / "bag", extra_topics=[("/imu", "sensor_msgs/msg/Imu")])
+    with pytest.raises(SourceError, match=r"4 image topics, choose one with --topic: /cam/bgr, "
+                                          r"/cam/compressed, /cam/mono, /cam/rgb;"):
+        open_source(bag)
+    with pytest.raises(SourceError, match=r"no topic '/cam/depth'; topics in .*/imu \(sensor_msgs/msg/Imu, "
+                                          r"0 messages\)"):
+        open_source(bag, topic="/cam/depth")
+    with pytest.raises(SourceError, match=r"topic '/imu' carries sensor_msgs/msg/Imu, not"):
+        open_source(bag, topic="/imu")
+    imu = [("/imu", "sensor_msgs/msg/Imu")]
+    one = write_ros2_bag(tmp_path / "one", topics=["/cam/rgb"], extra_topics=imu)
+    assert open_source(one).topic == "/cam/rgb"  # the only image topic needs no --topic
+    none = write_ros2_bag(tmp_path / "none", topics=[], extra_topics=[("/imu", "sensor_msgs/msg/Imu")])
+    with pytest.raises(SourceError, match=r"no sensor_msgs/msg/Image or .*CompressedImage topic; topics"):
+        open_source(none)
+
+
+def test_sources_that_cannot_be_read_say_why(tmp_path):
+    with pytest.raises(SourceError, match="no such file"):
+        open_source(tmp_path / "missing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SourceError, match=r"no image files \(.jpg"):
+        open_source(tmp_path / "empty")
+    write_folder(tmp_path / "frames")
+    with pytest.raises(SourceError, match="--topic applies to bags only"):
+        open_source(tmp_path / "frames", topic="/cam")
+    (tmp_path / "x.db3").write_bytes(b"")
+    with pytest.raises(SourceError, match=r"metadata\.yaml"):
+        open_source(tmp_path / "x.db3")
+    with pytest.raises(SourceError, match="every must be >= 1"):
+        open_source(tmp_path / "frames", every=0)
+
+
+def _decoded(data: bytes) -> np.ndarray:
+    return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+
+
+def test_raw_encodings_become_lossless_pngs_of_the_same_pixels():
+    rng = np.random.default_rng(0)
+    bgra = rng.integers(0, 256, (5, 7, 4), dtype=np.uint8)
+    bgr, grey = bgra[..., :3].copy(), bgra[..., 0].copy()
+    # rows padded to 32 bytes: the step, not the width, says where a row starts
+    def padded(a: np.ndarray) -> tuple[bytes, int]:
+        rows = a.reshape(a.shape[0], -1).view(np.uint8)
+        out = np.zeros((a.shape[0], 32), np.uint8)
+        out[:, : rows.shape[1]] = rows
+        return out.tobytes(), 32
+
+    for encoding, pixels, want in (("bgr8", bgr, bgr), ("rgb8", bgr[..., ::-1].copy(), bgr),
+                                   ("mono8", grey, grey), ("bgra8", bgra, bgra),
+                                   ("rgba8", bgra[..., [2, 1, 0, 3]].copy(), bgra)):
+        data, step = padded(pixels)
+        got = image_to_png(data, height=5, width=7, step=step, encoding=encoding)
+        assert np.array_equal(_decoded(got), want), encoding
+        assert got == png(want), encoding
+    deep = rng.integers(0, 65536, (5, 7), dtype=np.uint16)
+    for big in (False, True):
+        raw = deep.astype(">u2" if big else "<u2").tobytes()
+        got = _decoded(image_to_png(raw, height=5, width=7, step=14, encoding="mono16", is_bigendian=big))
+        assert got.dtype == np.uint16 and np.array_equal(got, deep)
+    assert set(RAW_ENCODINGS) == {"rgb8", "bgr8", "mono8", "mono16", "rgba8", "bgra8"}
+
+
+def test_raw_images_that_cannot_be_converted_say_why():
+    with pytest.raises(SourceError, match=r"encoding 'bayer_rggb8' is not supported; supported: rgb8"):
+        image_to_png(b"\0" * 12, height=2, width=2, step=2, encoding="bayer_rggb8")
+    with pytest.raises(SourceError, match=r"rgb8 image 4x2 needs 2 rows of >= 12 bytes \(step 12\); the "
+                                          r"message holds 20 bytes"):
+        image_to_png(b"\0" * 20, height=2, width=4, step=12, encoding="rgb8")
