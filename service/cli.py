@@ -2,8 +2,10 @@
 
     cortexloc presets
     cortexloc eval grid --sdr FILE --places FILE [--scoring paper|clean] [--preset NAME] [--seeds K]
-                        [--json OUT] [--plots DIR]
+                        [--ds N] [--json OUT] [--plots DIR]
     cortexloc eval grid --generate --aliasing A --noise N [--loops L] [...same options]
+    cortexloc eval images --db DIR --query DIR [--methods M,...] [--ds N] [--gt FILE] [--preset NAME]
+                          [--backbone B] [--resize R] [--seeds K] [--json OUT] [--plots DIR]
     cortexloc bench tm [--columns C] [--cells K] [--active A] [--steps S] [--preset NAME] [--json OUT]
     cortexloc serve [--host H] [--port P] [--data-dir DIR]
 
@@ -90,7 +92,10 @@ def eval_grid(
     mcn_preset: Annotated[str, typer.Option(help="MCN preset.")] = "mcn-grid",
     seeds: Annotated[int, typer.Option(min=1, help="Runs; seeds spawned from --seed.")] = 10,
     seed: Annotated[int, typer.Option(help="Experiment seed.")] = 0,
-    methods: Annotated[str, typer.Option(help="Comma-separated: pairwise,mcn,htm.")] = "pairwise,mcn,htm",
+    methods: Annotated[str, typer.Option(help="Comma-separated: pairwise,pairwise-seq,mcn,htm (pairwise-seq: "
+                                          "the sequence matcher on the input codes; it and pairwise always "
+                                          "run beside mcn and htm).")] = "pairwise,pairwise-seq,mcn,htm",
+    ds: Annotated[int, typer.Option(min=2, help="Steps per sequence path of pairwise-seq.")] = 10,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write results as JSON here.")] = None,
     plots_dir: Annotated[Path | None, typer.Option("--plots", help="Write PR and similarity PNGs here.")]
     = None,
@@ -125,7 +130,7 @@ def eval_grid(
 
     result = runner.grid_experiment(
         data_for_seed, scoring=scoring, preset=preset, mcn_preset=mcn_preset, seeds=seeds, seed=seed,
-        methods=method_list, plots_dir=plots_dir,
+        methods=method_list, ds=ds, plots_dir=plots_dir,
         progress=_progress("grid") if seeds > 1 else None)
     for w in result["methods"].get("htm", {}).get("warnings", []):
         typer.echo(f"warning ({preset}): {w}", err=True)
@@ -142,10 +147,10 @@ def format_grid_table(result: dict[str, Any]) -> str:
     else:
         what = f"published {Path(str(data.get('sdr_file', '?'))).name}"
     lines = [f"grid world: {what}; scoring={result['scoring']}; seeds={result['seeds']}",
-             f"{'method':<10} {'AUC mean':>9} {'sd':>7} {'min':>8} {'max':>8} {'R@1':>7} {'R@5':>7} "
+             f"{'method':<12} {'AUC mean':>9} {'sd':>7} {'min':>8} {'max':>8} {'R@1':>7} {'R@5':>7} "
              f"{'R@100P':>7}  notes"]
     for m, e in result["methods"].items():
-        lines.append(f"{m:<10} {e['auc_mean']:>9.6f} {e['auc_sd']:>7.4f} {e['auc_min']:>8.4f} "
+        lines.append(f"{m:<12} {e['auc_mean']:>9.6f} {e['auc_sd']:>7.4f} {e['auc_min']:>8.4f} "
                      f"{e['auc_max']:>8.4f} {e['recall_at_1_mean']:>7.3f} {e['recall_at_5_mean']:>7.3f} "
                      f"{e['recall_at_100p_mean']:>7.3f}  {_method_notes(m, e)}")
     return "\n".join(lines)

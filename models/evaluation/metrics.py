@@ -185,7 +185,8 @@ def place_ground_truth(places: np.ndarray) -> np.ndarray:
     return labels[:, None] == labels[None, :]
 
 
-def grid_evaluation(descriptors: Sequence[np.ndarray], places: np.ndarray, scoring: str) -> dict[str, Any]:
+def grid_evaluation(descriptors: Sequence[np.ndarray], places: np.ndarray, scoring: str,
+                    similarity: np.ndarray | None = None) -> dict[str, Any]:
     """Score one method's grid-world descriptors against place identity (§8.4).
 
     `paper` reproduces [SIM] `run00.py` + `utils.py` exactly: the whole T x T matrix, S[i, j] = raw overlap
@@ -198,6 +199,9 @@ def grid_evaluation(descriptors: Sequence[np.ndarray], places: np.ndarray, scori
         descriptors: T SDRs (sorted index arrays), one per step: input SDRs, TM or MCN winner cells.
         places: (T, 2) place of each step.
         scoring: "paper" or "clean".
+        similarity: (T, T) a method's own similarity (rows: older steps) replacing Dice, and the overlap
+            count of `paper` scoring, whose lower triangle then takes the minimum instead of 1.0 (the
+            quirk's effect: those pairs come last); -inf entries (no full sequence path) rank last too.
 
     Returns:
         {"scoring", "auc", "recall_at_1", "recall_at_5", "recall_at_100p", "P": list[float],
@@ -210,10 +214,20 @@ def grid_evaluation(descriptors: Sequence[np.ndarray], places: np.ndarray, scori
     gt_place = place_ground_truth(places)
     if gt_place.shape[0] != T:
         raise ValueError(f"{T} descriptors but {gt_place.shape[0]} places")
-    dice = dice_matrix(descriptors)
     upper = np.triu(np.ones((T, T), dtype=bool))  # j >= i
+    if similarity is None:
+        dice = dice_matrix(descriptors)
+    else:
+        dice = np.asarray(similarity, dtype=np.float64)
+        if dice.shape != (T, T):
+            raise ValueError(f"similarity must have shape {(T, T)}, got {dice.shape}")
+        finite = np.isfinite(dice)
+        dice = np.where(finite, dice, dice[finite].min())
 
-    if scoring == "paper":
+    if scoring == "paper" and similarity is not None:
+        S = np.where(upper, dice, dice.min())
+        P, R = pr_curve(S, gt_place & upper)
+    elif scoring == "paper":
         # The paper's normaliser is len() of a 1-tuple, so scores are raw overlap counts, and its lower
         # triangle is left at the initial 1.0 (§8.4): kept as is to reproduce the published AUCs.
         S = np.where(upper, overlap_matrix(descriptors).astype(np.float64), 1.0)

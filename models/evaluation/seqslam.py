@@ -20,7 +20,7 @@ best path outside a window of rows around it.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -145,6 +145,20 @@ def seqslam(S: np.ndarray, ds: int = DS, slopes: Sequence[float] | None = None,
     """
     Dn = contrast_normalise(-np.asarray(S, dtype=np.float64), radius)
     return -path_sums(Dn, ds, slopes, crossing) / ds
+
+
+def with_ablations(methods: Sequence[str], table: Mapping[str, Sequence[str]]) -> list[str]:
+    """`methods` with each method's ablations (`table[method]`) added before it, in order, once each.
+
+    The memory's contribution is only visible beside the same matcher on the codes it is fed (and on the
+    features): evaluations add these whether or not they were asked for (science.md §10.1).
+    """
+    out: list[str] = []
+    for m in methods:
+        for extra in (*table.get(m, ()), m):
+            if extra not in out:
+                out.append(extra)
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -29,8 +29,7 @@ from models.temporal_memory import TemporalMemory
 # that matcher on its own pixel front end with its own match score, the reference (science.md §10.1).
 SEQUENCE_FILTERED = ("cosine", "slsbh", "mcn", "htm")
 METHODS = ("cosine", "slsbh", "mcn", "htm", "openseqslam", *(f"{m}-seq" for m in SEQUENCE_FILTERED))
-# The memory's contribution is only visible beside the same matcher on the codes it is fed and on the
-# features (science.md §10.1): these always run with the memory methods.
+# What always runs beside a memory method (seqslam.with_ablations).
 ABLATIONS = {"htm": ("cosine", "slsbh"), "mcn": ("cosine", "slsbh"),
              "htm-seq": ("cosine-seq", "slsbh-seq"), "mcn-seq": ("cosine-seq", "slsbh-seq")}
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
@@ -163,12 +162,7 @@ def codes(hasher: slsbh.Hasher, feats: np.ndarray, adapt_tau: int = 0) -> np.nda
 
 def with_ablations(methods: Sequence[str]) -> list[str]:
     """`methods` with each memory method's ablations (ABLATIONS) added before it, in order, once each."""
-    out: list[str] = []
-    for m in methods:
-        for extra in (*ABLATIONS.get(m, ()), m):
-            if extra not in out:
-                out.append(extra)
-    return out
+    return seq.with_ablations(methods, ABLATIONS)
 
 
 def is_sequence(method: str) -> bool:
