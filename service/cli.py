@@ -263,10 +263,15 @@ def eval_images(
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     cache_dir = cache or Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc"))
-    enc = encoder_mod.Encoder({"backbone": backbone, "resize": resize})  # features only: no projection
-    feats = {label: sequences.cached_features(enc, [folder / n for n in names], cache_dir / "features",
-                                              progress=_progress(f"features {label}"))
-             for label, folder, names in (("db", db, db_names), ("query", query, q_names))}
+    if method_list == ["openseqslam"]:  # it reads pixels: no backbone to run
+        enc = None
+        feats = {label: np.zeros((len(names), 0), np.float32)
+                 for label, names in (("db", db_names), ("query", q_names))}
+    else:
+        enc = encoder_mod.Encoder({"backbone": backbone, "resize": resize})  # features only: no projection
+        feats = {label: sequences.cached_features(enc, [folder / n for n in names], cache_dir / "features",
+                                                  progress=_progress(f"features {label}"))
+                 for label, folder, names in (("db", db, db_names), ("query", query, q_names))}
     if db_keep is not None:
         if drop_dark > 0:
             dark = (sequences.dark_frames([db / db_names[i] for i in db_keep], drop_dark)
@@ -303,8 +308,10 @@ def eval_images(
     result["config"] = {"db": str(db), "query": str(query), "offset": offset, "limit": limit,
                         "gt": str(gt) if gt is not None else "same file name",
                         "pairs": len(q_names), "first": q_names[0], "last": q_names[-1],
-                        "encoder": enc.identity, "backbone": backbone, "resize": resize,
-                        "weights": enc.describe()["weights"], "preset": preset, "mcn_preset": mcn_preset,
+                        "encoder": enc.identity if enc else "none",
+                        "backbone": backbone if enc else "none", "resize": resize if enc else "none",
+                        "weights": enc.describe()["weights"] if enc else "none", "preset": preset,
+                        "mcn_preset": mcn_preset,
                         "k": int(s_conf["k"]), "s": sparsity, "ds": ds, "adapt_tau": adapt,
                         "drop_dark": drop_dark, "reverse_query": reverse_query, "tolerance": tolerance,
                         "reset": reset, "seeds": seeds, "seed": seed}

@@ -26,7 +26,7 @@ from models import sdr, slsbh
 from models.encoder import Encoder
 from models.evaluation import sequences
 from models.evaluation.datasets import shared_data_dir
-from models.evaluation.seqslam import seqslam
+from models.evaluation.seqslam import full_window, seqslam
 
 K = 1024  # sLSBH projections: 2K = 2048 TM columns
 SPLITS = {"tune": (0, 894), "test": (894, 894)}
@@ -75,8 +75,10 @@ def main() -> None:
     for s, adapt_tau in itertools.product(GRID["s"], GRID["adapt_tau"]):
         codes = {b: _codes(db, q, s, adapt_tau, seed=1) for b, (db, q) in feats.items()}
         dice = {b: sdr.dice_matrix(list(c[0]), list(c[1])) for b, c in codes.items()}
-        base = {b: sequences.evaluate(D, 0) for b, D in dice.items()}
-        base_seq = {b: sequences.evaluate(seqslam(D), 0) for b, D in dice.items()}
+        # Every method on the queries with a full path window, as `cortexloc eval images` scores them.
+        cols = full_window(len(next(iter(dice.values()))))
+        base = {b: sequences.evaluate(D, 0, columns=cols) for b, D in dice.items()}
+        base_seq = {b: sequences.evaluate(seqslam(D), 0, columns=cols) for b, D in dice.items()}
         for b, D in dice.items():
             ones = codes[b][0].shape[1]
             off = ~np.eye(len(D), dtype=bool)
@@ -93,7 +95,8 @@ def main() -> None:
                 db_w, q_w, info = sequences.run_tm(db_codes, q_codes, "cortexloc-grid", seed=1, reset=True,
                                                    width=2 * K, tm_overrides=tm)
                 T = sdr.dice_matrix(db_w, q_w)
-                r, r_seq = sequences.evaluate(T, 0), sequences.evaluate(seqslam(T), 0)
+                r = sequences.evaluate(T, 0, columns=cols)
+                r_seq = sequences.evaluate(seqslam(T), 0, columns=cols)
                 per_backbone[backbone] = {
                     "htm_auc": r["auc"], "htm_r1": r["recall_at_1"], "htm_seq_auc": r_seq["auc"],
                     "htm_seq_r1": r_seq["recall_at_1"], "slsbh_seq_auc": base_seq[backbone]["auc"],
