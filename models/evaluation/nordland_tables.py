@@ -27,9 +27,9 @@ from models.evaluation import seqslam as seq
 from models.evaluation import sequences
 from models.evaluation.datasets import nordland_dir
 
-WINDOWS = {"tune (1-894)": (0, 894), "test (895-1,788)": (894, 894), "200 @ 1": (0, 200),
-           "200 @ 401": (400, 200), "200 @ 801": (800, 200), "200 @ 1,201": (1200, 200),
-           "200 @ 1,589": (1588, 200)}
+# Files (1-based, as in science.md §10.1) -> (offset, count).
+WINDOWS = {"1-200": (0, 200), "401-600": (400, 200), "801-1000": (800, 200), "1201-1400": (1200, 200),
+           "1589-1788": (1588, 200), "test": (894, 894), "tune": (0, 894)}
 METHODS = ["cosine", "slsbh", "htm", "openseqslam", "cosine-seq", "slsbh-seq", "htm-seq"]
 PRESET = "cortexloc-default"
 
@@ -50,6 +50,34 @@ def _memoised_run_tm() -> None:
     sequences.run_tm = cached
 
 
+def markdown(result: dict[str, Any], metric: str) -> str:
+    """One markdown table of `metric` (e.g. "recall_at_1", "query_auc", "auc") from a --json result.
+
+    Single-image methods are shown once (scored on the queries of the first ds); sequence methods as
+    "first ds / second ds"; the last column is htm-seq minus slsbh-seq, what the memory adds.
+    """
+    windows = result["windows"]
+    some = next(iter(windows.values()))
+    ds_list = list(some)
+    fmt = "{:.4f}" if metric == "auc" else "{:.3f}"
+    single = [m for m in METHODS if m in ("cosine", "slsbh", "htm")]
+    multi = [m for m in METHODS if m not in single]
+    ds_label = " / ".join(map(str, ds_list))
+    head = ["files", *single, *(f"{m} (ds {ds_label})" for m in multi), "htm-seq − slsbh-seq"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for window, by_ds in windows.items():
+        first = by_ds[ds_list[0]]
+        cells = [window, *(fmt.format(first[m][f"{metric}_mean"]) for m in single)]
+        for m in multi:
+            vals = [fmt.format(by_ds[d][m][f"{metric}_mean"]) for d in ds_list]
+            cells.append(" / ".join(vals))
+        gain = [by_ds[d]["htm-seq"][f"{metric}_mean"] - by_ds[d]["slsbh-seq"][f"{metric}_mean"]
+                for d in ds_list]
+        cells.append(" / ".join(f"{g:+.3f}" for g in gain))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--backbone", default="efficientnet-lite0", choices=("alexnet", "efficientnet-lite0"))
@@ -57,9 +85,18 @@ def main() -> None:
     ap.add_argument("--ds", default="10,20", help="comma-separated path lengths")
     ap.add_argument("--windows", default=",".join(WINDOWS), help="comma-separated names of WINDOWS")
     ap.add_argument("--reverse-query", action="store_true", help="drive the query route backwards")
+    ap.add_argument("--crossing", action="store_true", help="sequence methods answer the row where the best "
+                    "path crosses the query, not OpenSeqSLAM's start row + ds/2")
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "cortexloc" / "features")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--markdown", type=Path, default=None,
+                    help="print the tables of a --json result, run nothing")
     args = ap.parse_args()
+    if args.markdown:
+        result = json.loads(args.markdown.read_text())
+        for metric in ("recall_at_1", "query_auc", "auc"):
+            print(f"\n{metric} ({result['backbone']}, {result['seeds']} seeds)\n" + markdown(result, metric))
+        return
     root = nordland_dir()
     names = sequences.paired_names(root / "summer", root / "winter")
     enc = Encoder({"backbone": args.backbone, "resize": "squash"})
@@ -69,7 +106,7 @@ def main() -> None:
     codes = presets.get(PRESET)["slsbh"]
     _memoised_run_tm()
     out: dict[str, Any] = {"backbone": enc.identity, "preset": PRESET, "seeds": args.seeds,
-                           "reverse_query": args.reverse_query, "windows": {}}
+                           "reverse_query": args.reverse_query, "crossing": args.crossing, "windows": {}}
     for window in args.windows.split(","):
         o, n = WINDOWS[window]
         sl = slice(o, o + n)

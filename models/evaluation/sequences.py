@@ -217,7 +217,7 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
                      seeds: int = 3, seed: int = 0, tolerance: int = 0, reset: bool = False,
                      adapt_tau: int = 0, tm_overrides: dict[str, Any] | None = None,
                      reverse_query: bool = False, ds: int = seq.DS, gt: np.ndarray | None = None,
-                     frames: tuple[np.ndarray, np.ndarray] | None = None,
+                     frames: tuple[np.ndarray, np.ndarray] | None = None, crossing: bool = False,
                      progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """All methods on one database/query pair of feature sequences, over seeds.
 
@@ -237,6 +237,8 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
             queries, those with ds frames centred on them (in driven order).
         gt: (n_db, n_q) bool exact matches; default identity (row i of both = the same place).
         frames: (db, query) patch-normalised grey frames (`seqslam.load_frames`), for `openseqslam`.
+        crossing: every sequence method answers the row where its best path crosses the query instead
+            of OpenSeqSLAM's start row + ds // 2 (seqslam.path_sums); a measurement, not a default.
 
     Returns:
         {"methods": {name: {"auc_mean", "auc_min", "auc_max", "query_auc_mean", ..., "recall_at_1_mean",
@@ -282,7 +284,7 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
             answers = None
             info: dict[str, Any] = {}
             if m == "openseqslam":
-                found = seq.openseqslam(*frames, ds=ds)
+                found = seq.openseqslam(*frames, ds=ds, crossing=crossing)
                 S, answers = found.S, (found.best, found.confidence)
                 if reverse_query:
                     answers = (answers[0][::-1], answers[1][::-1])
@@ -304,7 +306,7 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
                 S, info, base_seconds = single[base]
                 info = {**info, "seconds": base_seconds}
                 if m != base:
-                    S = seq.seqslam(S, ds)
+                    S = seq.seqslam(S, ds, crossing=crossing)
             info["seconds"] = info.get("seconds", 0.0) + time.perf_counter() - t0
             if reverse_query:
                 S = S[:, ::-1]  # back to file order: column j is query place j again

@@ -250,3 +250,15 @@ def test_eval_images_reads_ground_truth_from_a_csv(tmp_path):
     assert r.exit_code == 2 and "not-images-00000.png" in r.output
     r = CliRunner().invoke(app, [*args, "--limit", "5"])
     assert r.exit_code == 2
+
+
+def test_eval_images_openseqslam_alone_runs_no_backbone(tmp_path):
+    db, q = write_sequences(tmp_path, n=16)
+    out = tmp_path / "r.json"
+    r = CliRunner().invoke(app, ["eval", "images", "--db", str(db), "--query", str(q), "--methods",
+                                 "openseqslam", "--ds", "4", "--seeds", "1", "--cache", str(tmp_path / "c"),
+                                 "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    payload = json.loads(out.read_text())
+    assert payload["config"]["encoder"] == "none" and not (tmp_path / "c").exists()
+    assert payload["methods"]["openseqslam"]["recall_at_1_mean"] > 0.9
