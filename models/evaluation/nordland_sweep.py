@@ -45,12 +45,13 @@ def load_features(split: str, cache_dir: Path) -> dict[str, tuple[np.ndarray, np
     """{backbone: (summer, winter)} features of the split, from the shared feature cache."""
     root = shared_data_dir() / "nordland_tiny_64x32"
     offset, limit = SPLITS[split]
-    names = sequences.paired_names(root / "summer", root / "winter", offset, limit)
+    # The whole route's features (the cache entry `cortexloc eval images` makes), then the split.
+    names = sequences.paired_names(root / "summer", root / "winter")
     out = {}
     for backbone in BACKBONES:
         enc = Encoder({"backbone": backbone, "resize": "squash"})
         out[backbone] = tuple(sequences.cached_features(enc, [root / season / n for n in names], cache_dir)
-                              for season in ("summer", "winter"))
+                              [offset:offset + limit] for season in ("summer", "winter"))
     return out
 
 
@@ -67,7 +68,14 @@ def main() -> None:
     ap.add_argument("--codes-only", action="store_true",
                     help="only the code statistics per (s, adaptation): bits shared by the same place "
                          "and by different places, and single-image sLSBH AUC")
+    ap.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2",
+                    help="replace GRID[KEY] by these values (re-run single rows)")
     args = ap.parse_args()
+    for item in args.grid:
+        key, _, values = item.partition("=")
+        if key not in GRID:
+            ap.error(f"--grid: unknown key {key!r}; known: {', '.join(GRID)}")
+        GRID[key] = [type(GRID[key][0])(v) for v in values.split(",")]
     feats = load_features(args.split, args.cache)
     tm_keys = [k for k in GRID if k not in ("s", "adapt_tau")]
     rows = []

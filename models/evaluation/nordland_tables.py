@@ -115,6 +115,7 @@ def main() -> None:
             r = sequences.image_experiment(
                 feats["summer"][sl], feats["winter"][sl], methods=METHODS, preset=PRESET, k=codes["k"],
                 s=codes["s"], seeds=args.seeds, reset=True, ds=ds, reverse_query=args.reverse_query,
+                crossing=args.crossing,
                 frames=(frames["summer"][sl], frames["winter"][sl]))
             r.pop("first")
             out["windows"][window][ds] = r["methods"]
