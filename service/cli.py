@@ -2,8 +2,10 @@
 
     cortexloc presets
     cortexloc eval grid --sdr FILE --places FILE [--scoring paper|clean] [--preset NAME] [--seeds K]
-                        [--json OUT] [--plots DIR]
+                        [--ds N] [--json OUT] [--plots DIR]
     cortexloc eval grid --generate --aliasing A --noise N [--loops L] [...same options]
+    cortexloc eval images --db DIR --query DIR [--methods M,...] [--ds N] [--gt FILE] [--preset NAME]
+                          [--backbone B] [--resize R] [--seeds K] [--json OUT] [--plots DIR]
     cortexloc bench tm [--columns C] [--cells K] [--active A] [--steps S] [--preset NAME] [--json OUT]
     cortexloc serve [--host H] [--port P] [--data-dir DIR]
     cortexloc import FILE.tar [--data-dir DIR]
@@ -98,7 +100,10 @@ def eval_grid(
     mcn_preset: Annotated[str, typer.Option(help="MCN preset.")] = "mcn-grid",
     seeds: Annotated[int, typer.Option(min=1, help="Runs; seeds spawned from --seed.")] = 10,
     seed: Annotated[int, typer.Option(help="Experiment seed.")] = 0,
-    methods: Annotated[str, typer.Option(help="Comma-separated: pairwise,mcn,htm.")] = "pairwise,mcn,htm",
+    methods: Annotated[str, typer.Option(help="Comma-separated: pairwise,pairwise-seq,mcn,htm (pairwise-seq: "
+                                          "the sequence matcher on the input codes; it and pairwise always "
+                                          "run beside mcn and htm).")] = "pairwise,pairwise-seq,mcn,htm",
+    ds: Annotated[int, typer.Option(min=2, help="Steps per sequence path of pairwise-seq.")] = 10,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write results as JSON here.")] = None,
     plots_dir: Annotated[Path | None, typer.Option("--plots", help="Write PR and similarity PNGs here.")]
     = None,
@@ -133,7 +138,7 @@ def eval_grid(
 
     result = runner.grid_experiment(
         data_for_seed, scoring=scoring, preset=preset, mcn_preset=mcn_preset, seeds=seeds, seed=seed,
-        methods=method_list, plots_dir=plots_dir,
+        methods=method_list, ds=ds, plots_dir=plots_dir,
         progress=_progress("grid") if seeds > 1 else None)
     for w in result["methods"].get("htm", {}).get("warnings", []):
         typer.echo(f"warning ({preset}): {w}", err=True)
@@ -150,10 +155,10 @@ def format_grid_table(result: dict[str, Any]) -> str:
     else:
         what = f"published {Path(str(data.get('sdr_file', '?'))).name}"
     lines = [f"grid world: {what}; scoring={result['scoring']}; seeds={result['seeds']}",
-             f"{'method':<10} {'AUC mean':>9} {'sd':>7} {'min':>8} {'max':>8} {'R@1':>7} {'R@5':>7} "
+             f"{'method':<12} {'AUC mean':>9} {'sd':>7} {'min':>8} {'max':>8} {'R@1':>7} {'R@5':>7} "
              f"{'R@100P':>7}  notes"]
     for m, e in result["methods"].items():
-        lines.append(f"{m:<10} {e['auc_mean']:>9.6f} {e['auc_sd']:>7.4f} {e['auc_min']:>8.4f} "
+        lines.append(f"{m:<12} {e['auc_mean']:>9.6f} {e['auc_sd']:>7.4f} {e['auc_min']:>8.4f} "
                      f"{e['auc_max']:>8.4f} {e['recall_at_1_mean']:>7.3f} {e['recall_at_5_mean']:>7.3f} "
                      f"{e['recall_at_100p_mean']:>7.3f}  {_method_notes(m, e)}")
     return "\n".join(lines)
@@ -176,26 +181,36 @@ def _method_notes(method: str, entry: dict[str, Any]) -> str:
 def eval_images(
     db: Annotated[Path, typer.Option(help="Database image folder (e.g. summer).", exists=True,
                                      file_okay=False)],
-    query: Annotated[Path, typer.Option(help="Query image folder (e.g. winter); same name = same place.",
-                                        exists=True, file_okay=False)],
+    query: Annotated[Path, typer.Option(help="Query image folder (e.g. winter); same name = same place "
+                                        "unless --gt is given.", exists=True, file_okay=False)],
     offset: Annotated[int, typer.Option(min=0, help="First pair (in sorted name order).")] = 0,
     limit: Annotated[int | None, typer.Option(min=2, help="Number of pairs (default: all).")] = None,
-    backbone: Annotated[str, typer.Option(help="alexnet | efficientnet-lite0")] = "alexnet",
-    resize: Annotated[str, typer.Option(help="crop | squash")] = "crop",
-    methods: Annotated[str, typer.Option(help="Comma-separated: cosine,slsbh,mcn,htm,seqslam and "
-                                          "slsbh-seq,mcn-seq,htm-seq (single-image similarity through "
-                                          "the seqslam filter).")]
-    = "cosine,slsbh,mcn,htm,seqslam,slsbh-seq,htm-seq",
-    preset: Annotated[str, typer.Option(help="Temporal Memory preset.")] = "cba2020-nordland",
+    gt: Annotated[Path | None, typer.Option(help="Ground truth file instead of equal names: CSV "
+                                            "query_index,query_file,matching_ref_indices or VPR-Bench "
+                                            "ground_truth_new.npy (models/evaluation/ground_truth.py); "
+                                            "indices count in each folder's sorted names, whole folders.",
+                                            exists=True, dir_okay=False)] = None,
+    backbone: Annotated[str | None, typer.Option(help="alexnet | efficientnet-lite0 (default: the "
+                                                      "service's)")] = None,
+    resize: Annotated[str | None, typer.Option(help="crop | squash (default: the service's)")] = None,
+    methods: Annotated[str, typer.Option(help="Comma-separated: cosine,slsbh,mcn,htm (one frame); "
+                                          "openseqslam (the reference on grey pixels); cosine-seq,"
+                                          "slsbh-seq,mcn-seq,htm-seq (the same sequence matcher on each "
+                                          "single-image similarity). Memory methods bring their ablations.")]
+    = "cosine,slsbh,htm,openseqslam,cosine-seq,slsbh-seq,htm-seq",
+    ds: Annotated[int, typer.Option(min=2, help="Frames per sequence path, centred on the query.")] = 10,
+    preset: Annotated[str | None, typer.Option(help="Temporal Memory preset (default: the service's; the "
+                                                    "paper's is cba2020-nordland).")] = None,
     mcn_preset: Annotated[str, typer.Option(help="MCN preset.")] = "mcn-nordland",
     s: Annotated[float | None, typer.Option(min=0.0, max=0.5, help="sLSBH sparsity (default: the "
                                                                     "preset's, else 0.25).")] = None,
-    tolerance: Annotated[int, typer.Option(min=0, help="±files that count as the same place.")] = 0,
+    tolerance: Annotated[int, typer.Option(min=0, help="±database images that count as the same place.")]
+    = 0,
     reset: Annotated[bool, typer.Option("--reset/--no-reset",
                                         help="Reset between database and query (the paper does not).")]
     = False,
     adapt: Annotated[int, typer.Option(min=0, help="Running-mean subtraction time constant in frames "
-                                       "(models.adaptation), for every method; 0 = off.")] = 0,
+                                       "(models.adaptation), for every feature method; 0 = off.")] = 0,
     reverse_query: Annotated[bool, typer.Option("--reverse-query", help="Drive the query sequence "
                                                 "backwards (a route driven the other way).")] = False,
     drop_dark: Annotated[float, typer.Option(min=0.0, help="Drop pairs where either frame's mean grey is "
@@ -205,19 +220,28 @@ def eval_images(
     cache: Annotated[Path | None, typer.Option(help="Feature cache folder (default: "
                                                     "$CORTEXLOC_CACHE_DIR or ~/.cache/cortexloc).")] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write results as JSON here.")] = None,
-    plots_dir: Annotated[Path | None, typer.Option("--plots", help="Write PR and similarity PNGs here.")]
+    plots_dir: Annotated[Path | None, typer.Option("--plots", help="Write PR curves (all pairs and per "
+                                                   "query), similarity images and match galleries here.")]
     = None,
+    gallery: Annotated[int, typer.Option(min=1, help="Queries shown in each match gallery.")] = 12,
 ) -> None:
-    """Cross-season evaluation on image sequences (science.md §8.5): learn db, then query, per method."""
+    """Cross-season evaluation on image sequences (science.md §8.5, §10.1): learn db, then query."""
     import os
 
-    from models.encoder import Encoder
-    from models.evaluation import plots, sequences
+    from models import encoder as encoder_mod
+    from models.evaluation import ground_truth, plots, sequences
+    from models.evaluation import seqslam as seq
+    from service.settings import Settings
 
+    # The service's defaults, read from their one home each (service.md §8, models.encoder).
+    preset = preset or Settings.model_fields["default_preset"].default
+    backbone = backbone or encoder_mod.default_conf["backbone"]
+    resize = resize or encoder_mod.default_conf["resize"]
     method_list = [m.strip() for m in methods.split(",") if m.strip()]
     bad = set(method_list) - set(sequences.METHODS)
     if bad or not method_list:
         raise typer.BadParameter(f"must be among {', '.join(sequences.METHODS)}", param_hint="--methods")
+    method_list = sequences.with_ablations(method_list)
     for name in (preset, mcn_preset):
         if name not in presets.confs:
             raise typer.BadParameter(f"unknown preset {name!r}; see `cortexloc presets`")
@@ -229,52 +253,99 @@ def eval_images(
     sparsity = float(s if s is not None else s_conf["s"])
     if not 0 < sparsity <= 0.5:
         raise typer.BadParameter("must be in (0, 0.5]", param_hint="--s")
+    gt_matrix = None
     try:
-        names = sequences.paired_names(db, query, offset, limit)
+        if gt is not None:
+            if offset or limit is not None or drop_dark > 0:
+                raise typer.BadParameter("--gt indexes the whole folders: leave out --offset, --limit and "
+                                         "--drop-dark", param_hint="--gt")
+            db_names, q_names = sequences.image_names(db), sequences.image_names(query)
+            gt_matrix = ground_truth.load(gt, len(db_names), len(q_names), q_names)
+            db_keep = q_keep = None
+        else:
+            # Features are computed (and cached) for the whole paired route once; a window is a slice.
+            db_names = q_names = sequences.paired_names(db, query)
+            db_keep = q_keep = np.arange(len(q_names))[offset: None if limit is None else offset + limit]
+            if db_keep.size == 0:
+                raise ValueError(f"offset {offset} leaves no pair of the {len(q_names)} in common")
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
-    if drop_dark > 0:
-        dark = (sequences.dark_frames([db / n for n in names], drop_dark)
-                | sequences.dark_frames([query / n for n in names], drop_dark))
-        names = [n for n, d in zip(names, dark, strict=True) if not d]
-        if len(names) < 2:
-            raise typer.BadParameter("fewer than two pairs are left", param_hint="--drop-dark")
     cache_dir = cache or Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc"))
-    enc = Encoder({"backbone": backbone, "resize": resize})  # features only (embed): no projection built
-    feats = {}
-    for label, folder in (("db", db), ("query", query)):
-        feats[label] = sequences.cached_features(enc, [folder / n for n in names], cache_dir / "features",
-                                                 progress=_progress(f"features {label}"))
-    result = sequences.image_experiment(
-        feats["db"], feats["query"], methods=method_list, preset=preset, mcn_preset=mcn_preset,
-        k=int(s_conf["k"]), s=sparsity, seeds=seeds, seed=seed, tolerance=tolerance, reset=reset,
-        adapt_tau=adapt, reverse_query=reverse_query, progress=_progress("runs") if seeds > 1 else None)
+    if method_list == ["openseqslam"]:  # it reads pixels: no backbone to run
+        enc = None
+        feats = {label: np.zeros((len(names), 0), np.float32)
+                 for label, names in (("db", db_names), ("query", q_names))}
+    else:
+        enc = encoder_mod.Encoder({"backbone": backbone, "resize": resize})  # features only: no projection
+        feats = {label: sequences.cached_features(enc, [folder / n for n in names], cache_dir / "features",
+                                                  progress=_progress(f"features {label}"))
+                 for label, folder, names in (("db", db, db_names), ("query", query, q_names))}
+    if db_keep is not None:
+        if drop_dark > 0:
+            dark = (sequences.dark_frames([db / db_names[i] for i in db_keep], drop_dark)
+                    | sequences.dark_frames([query / q_names[i] for i in q_keep], drop_dark))
+            db_keep = q_keep = db_keep[~dark]
+            if len(db_keep) < 2:
+                raise typer.BadParameter("fewer than two pairs are left", param_hint="--drop-dark")
+        feats = {"db": feats["db"][db_keep], "query": feats["query"][q_keep]}
+        db_names = q_names = [q_names[i] for i in q_keep]
+    db_paths, q_paths = [db / n for n in db_names], [query / n for n in q_names]
+    frames = ((seq.load_frames(db_paths), seq.load_frames(q_paths)) if "openseqslam" in method_list
+              else None)
+    try:
+        result = sequences.image_experiment(
+            feats["db"], feats["query"], methods=method_list, preset=preset, mcn_preset=mcn_preset,
+            k=int(s_conf["k"]), s=sparsity, seeds=seeds, seed=seed, tolerance=tolerance, reset=reset,
+            adapt_tau=adapt, reverse_query=reverse_query, ds=ds, gt=gt_matrix, frames=frames,
+            progress=_progress("runs") if seeds > 1 else None)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from e
     first = result.pop("first")
+    what = f"{db.name} -> {query.name}, {len(q_names)} queries"
     if plots_dir is not None:
         plots_dir.mkdir(parents=True, exist_ok=True)
         plots.plot_pr_curves({m: (r["P"], r["R"]) for m, r in first.items()}, plots_dir / "pr.png",
-                             f"{db.name} -> {query.name}, {len(names)} pairs (first seed)")
+                             f"{what}: all pairs (paper, §8.2), first seed")
+        plots.plot_pr_curves({m: (r["query_P"], r["query_R"]) for m, r in first.items()},
+                             plots_dir / "pr_query.png", f"{what}: per query (best match), first seed")
         for m, r in first.items():
             plots.plot_similarity(np.asarray(r["S"], dtype=float), plots_dir / f"similarity_{m}.png",
                                   f"{m}: similarity (database rows, query columns)")
+            plots.match_gallery(db_paths, q_paths, result["queries"], r["best"], r["correct"],
+                                r["confidence"], plots_dir / f"gallery_{m}.png", n=gallery)
     result["config"] = {"db": str(db), "query": str(query), "offset": offset, "limit": limit,
-                        "pairs": len(names), "first": names[0], "last": names[-1], "encoder": enc.identity,
-                        "weights": enc.describe()["weights"], "preset": preset, "mcn_preset": mcn_preset,
-                        "k": int(s_conf["k"]), "s": sparsity, "adapt_tau": adapt,
+                        "gt": str(gt) if gt is not None else "same file name",
+                        "pairs": len(q_names), "first": q_names[0], "last": q_names[-1],
+                        "encoder": enc.identity if enc else "none",
+                        "backbone": backbone if enc else "none", "resize": resize if enc else "none",
+                        "weights": enc.describe()["weights"] if enc else "none", "preset": preset,
+                        "mcn_preset": mcn_preset,
+                        "k": int(s_conf["k"]), "s": sparsity, "ds": ds, "adapt_tau": adapt,
                         "drop_dark": drop_dark, "reverse_query": reverse_query, "tolerance": tolerance,
-                        "reset": reset,
-                        "seeds": seeds, "seed": seed}
+                        "reset": reset, "seeds": seeds, "seed": seed}
     result["provenance"] = _provenance()
     _write_json(json_out, result)
-    typer.echo(f"{db.name} -> {query.name}: {len(names)} pairs ({names[0]} .. {names[-1]}), encoder "
-               f"{enc.identity} [{result['config']['weights']} weights], s={sparsity}, adapt={adapt}, "
-               f"tolerance ±{tolerance}, {'reset' if reset else 'no reset'}, seeds={seeds}")
-    typer.echo(f"{'method':<9} {'AUC mean':>9} {'min':>7} {'max':>7} {'R@1':>6} {'R@5':>6} {'R@100P':>7} "
-               f"{'s/run':>7}  notes")
+    typer.echo(format_images_table(result))
+
+
+def format_images_table(result: dict[str, Any]) -> str:
+    """A readable table of an image result (stdout): the settings it ran with, then both metrics."""
+    c = result["config"]
+    lines = [f"{Path(c['db']).name} -> {Path(c['query']).name}: {c['pairs']} queries ({c['first']} .. "
+             f"{c['last']}), ground truth {c['gt']}, tolerance ±{c['tolerance']}",
+             f"preset {c['preset']}, backbone {c['backbone']} [{c['weights']} weights], "
+             f"resize {c['resize']}, s={c['s']}, adapt={c['adapt_tau']}, "
+             f"{'reset' if c['reset'] else 'no reset'}, seeds={c['seeds']}, ds={c['ds']}; "
+             f"{len(result['queries'])} queries scored",
+             "all pairs = the paper's AUC (§8.2); per query = each query's best match and its confidence",
+             f"{'method':<12} {'AUC pairs':>9} {'min':>7} {'max':>7} {'AUC query':>9} {'R@1':>6} {'R@5':>6} "
+             f"{'R@100P':>7} {'s/run':>7}  notes"]
     for m, e in result["methods"].items():
-        typer.echo(f"{m:<9} {e['auc_mean']:>9.4f} {e['auc_min']:>7.4f} {e['auc_max']:>7.4f} "
-                   f"{e['recall_at_1_mean']:>6.3f} {e['recall_at_5_mean']:>6.3f} "
-                   f"{e['recall_at_100p_mean']:>7.3f} {e['seconds_mean']:>7.2f}  {_method_notes(m, e)}")
+        lines.append(f"{m:<12} {e['auc_mean']:>9.4f} {e['auc_min']:>7.4f} {e['auc_max']:>7.4f} "
+                     f"{e['query_auc_mean']:>9.4f} {e['recall_at_1_mean']:>6.3f} "
+                     f"{e['recall_at_5_mean']:>6.3f} {e['query_recall_at_100p_mean']:>7.3f} "
+                     f"{e['seconds_mean']:>7.2f}  {_method_notes(m, e)}")
+    return "\n".join(lines)
 
 
 @bench_app.command("tm")

@@ -24,3 +24,8 @@ def shared_data_dir() -> Path:
 def grid_dir() -> Path:
     """Folder of the CBA 2020 published grid-world files."""
     return shared_data_dir() / "gridworld_cba2020"
+
+
+def nordland_dir() -> Path:
+    """Folder of nordland_tiny_64x32 (summer/ and winter/, frame-aligned by file name)."""
+    return shared_data_dir() / "nordland_tiny_64x32"

@@ -185,7 +185,8 @@ def place_ground_truth(places: np.ndarray) -> np.ndarray:
     return labels[:, None] == labels[None, :]
 
 
-def grid_evaluation(descriptors: Sequence[np.ndarray], places: np.ndarray, scoring: str) -> dict[str, Any]:
+def grid_evaluation(descriptors: Sequence[np.ndarray], places: np.ndarray, scoring: str,
+                    similarity: np.ndarray | None = None) -> dict[str, Any]:
     """Score one method's grid-world descriptors against place identity (§8.4).
 
     `paper` reproduces [SIM] `run00.py` + `utils.py` exactly: the whole T x T matrix, S[i, j] = raw overlap
@@ -198,6 +199,9 @@ def grid_evaluation(descriptors: Sequence[np.ndarray], places: np.ndarray, scori
         descriptors: T SDRs (sorted index arrays), one per step: input SDRs, TM or MCN winner cells.
         places: (T, 2) place of each step.
         scoring: "paper" or "clean".
+        similarity: (T, T) a method's own similarity (rows: older steps) replacing Dice, and the overlap
+            count of `paper` scoring, whose lower triangle then takes the minimum instead of 1.0 (the
+            quirk's effect: those pairs come last); -inf entries (no full sequence path) rank last too.
 
     Returns:
         {"scoring", "auc", "recall_at_1", "recall_at_5", "recall_at_100p", "P": list[float],
@@ -210,10 +214,20 @@ def grid_evaluation(descriptors: Sequence[np.ndarray], places: np.ndarray, scori
     gt_place = place_ground_truth(places)
     if gt_place.shape[0] != T:
         raise ValueError(f"{T} descriptors but {gt_place.shape[0]} places")
-    dice = dice_matrix(descriptors)
     upper = np.triu(np.ones((T, T), dtype=bool))  # j >= i
+    if similarity is None:
+        dice = dice_matrix(descriptors)
+    else:
+        dice = np.asarray(similarity, dtype=np.float64)
+        if dice.shape != (T, T):
+            raise ValueError(f"similarity must have shape {(T, T)}, got {dice.shape}")
+        finite = np.isfinite(dice)
+        dice = np.where(finite, dice, dice[finite].min())
 
-    if scoring == "paper":
+    if scoring == "paper" and similarity is not None:
+        S = np.where(upper, dice, dice.min())
+        P, R = pr_curve(S, gt_place & upper)
+    elif scoring == "paper":
         # The paper's normaliser is len() of a 1-tuple, so scores are raw overlap counts, and its lower
         # triangle is left at the initial 1.0 (§8.4): kept as is to reproduce the published AUCs.
         S = np.where(upper, overlap_matrix(descriptors).astype(np.float64), 1.0)
@@ -238,3 +252,92 @@ def grid_evaluation(descriptors: Sequence[np.ndarray], places: np.ndarray, scori
         "R": R.tolist(),
         "S": S,
     }
+
+
+# ---------------------------------------------------------------------------------------------------
+# Per-query metrics (the standard VPR protocol, beside the paper's all-pairs AUC of §8.2): each query
+# gives one answer, its best database item, with a confidence; precision and recall are counted over
+# the answers accepted at a confidence threshold.
+
+
+def best_matches(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each query's best database item and its similarity as the confidence.
+
+    Args:
+        S: (n_db, n_q) similarities, higher = more similar (-inf allowed: never the best unless all are).
+
+    Returns:
+        best (n_q,) int64 row index (ties: the lower row), confidence (n_q,) float64 = S[best, q].
+    """
+    s = np.asarray(S, dtype=np.float64)
+    if s.ndim != 2 or s.shape[0] == 0:
+        raise ValueError(f"S must be 2-D with at least one database row, got shape {s.shape}")
+    best = np.argmax(s, axis=0)
+    return best.astype(np.int64), s[best, np.arange(s.shape[1])]
+
+
+def query_pr_curve(confidence: np.ndarray, correct: np.ndarray, has_positive: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Precision-recall of one answer per query over confidence thresholds.
+
+    At threshold τ the answers with confidence >= τ are accepted; TP = accepted and correct, FP =
+    accepted and wrong (an answer to a query without any positive is always wrong); P = TP / (TP + FP),
+    R = TP / (queries with a positive). One threshold per distinct confidence, highest first, so tied
+    answers are accepted together; (R = 0, P = 1) is prepended.
+
+    Args:
+        confidence: (n,) higher = more confident (finite).
+        correct: (n,) bool, the answer is a positive.
+        has_positive: (n,) bool, the query has at least one positive in the database.
+
+    Returns:
+        (P, R), each (distinct confidences + 1,) float64.
+
+    Raises:
+        ValueError: shapes differ, a confidence is not finite, or no query has a positive.
+    """
+    c = np.asarray(confidence, dtype=np.float64).ravel()
+    ok = np.asarray(correct).astype(bool).ravel()
+    pos = np.asarray(has_positive).astype(bool).ravel()
+    if not c.shape == ok.shape == pos.shape:
+        raise ValueError(f"shapes differ: {c.shape}, {ok.shape}, {pos.shape}")
+    if not np.all(np.isfinite(c)):
+        raise ValueError("confidence contains NaN or infinite values")
+    n_pos = int(np.count_nonzero(pos))
+    if n_pos == 0:
+        raise ValueError("no query has a positive: recall is undefined")
+    order = np.argsort(-c, kind="stable")
+    tp = np.cumsum(ok[order] & pos[order])
+    accepted = np.arange(1, c.size + 1)
+    # The last answer of each run of equal confidence closes that threshold.
+    last = np.flatnonzero(np.append(np.diff(c[order]) != 0, True))
+    P = np.concatenate(([1.0], tp[last] / accepted[last]))
+    R = np.concatenate(([0.0], tp[last] / n_pos))
+    return P, R
+
+
+def query_metrics(S: np.ndarray, GT: np.ndarray, confidence: np.ndarray | None = None,
+                  best: np.ndarray | None = None) -> dict[str, Any]:
+    """Per-query metrics of one method: answers, PR curve, `query_auc`, R@1, R@5, R@100P.
+
+    Args:
+        S: (n_db, n_q) similarities (for R@5 and, by default, the answers).
+        GT: (n_db, n_q) bool; with a tolerance pass the soft ground truth (a hit within ±t counts).
+        confidence, best: (n_q,) a method's own answers and confidences (OpenSeqSLAM's match score);
+            default `best_matches(S)`.
+
+    Returns:
+        {"best", "confidence", "correct" (n_q,), "P", "R", "query_auc", "recall_at_1", "recall_at_5",
+        "query_recall_at_100p"}; recall@K over the queries with a positive (§8.3).
+    """
+    gt = np.asarray(GT).astype(bool)
+    if best is None or confidence is None:
+        best, confidence = best_matches(S)
+    cols = np.arange(gt.shape[1])
+    correct = gt[best, cols]
+    has_pos = gt.any(axis=0)
+    P, R = query_pr_curve(confidence, correct, has_pos)
+    return {"best": best, "confidence": np.asarray(confidence, dtype=np.float64), "correct": correct,
+            "P": P, "R": R, "query_auc": auc(P, R),
+            "recall_at_1": float(np.count_nonzero(correct & has_pos)) / int(np.count_nonzero(has_pos)),
+            "recall_at_5": recall_at_k(S, gt, 5), "query_recall_at_100p": recall_at_100_precision(P, R)}

@@ -26,7 +26,7 @@ from models import sdr, slsbh
 from models.encoder import Encoder
 from models.evaluation import sequences
 from models.evaluation.datasets import shared_data_dir
-from models.evaluation.seqslam import seqslam
+from models.evaluation.seqslam import full_window, seqslam
 
 K = 1024  # sLSBH projections: 2K = 2048 TM columns
 SPLITS = {"tune": (0, 894), "test": (894, 894)}
@@ -45,12 +45,13 @@ def load_features(split: str, cache_dir: Path) -> dict[str, tuple[np.ndarray, np
     """{backbone: (summer, winter)} features of the split, from the shared feature cache."""
     root = shared_data_dir() / "nordland_tiny_64x32"
     offset, limit = SPLITS[split]
-    names = sequences.paired_names(root / "summer", root / "winter", offset, limit)
+    # The whole route's features (the cache entry `cortexloc eval images` makes), then the split.
+    names = sequences.paired_names(root / "summer", root / "winter")
     out = {}
     for backbone in BACKBONES:
         enc = Encoder({"backbone": backbone, "resize": "squash"})
         out[backbone] = tuple(sequences.cached_features(enc, [root / season / n for n in names], cache_dir)
-                              for season in ("summer", "winter"))
+                              [offset:offset + limit] for season in ("summer", "winter"))
     return out
 
 
@@ -67,7 +68,14 @@ def main() -> None:
     ap.add_argument("--codes-only", action="store_true",
                     help="only the code statistics per (s, adaptation): bits shared by the same place "
                          "and by different places, and single-image sLSBH AUC")
+    ap.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2",
+                    help="replace GRID[KEY] by these values (re-run single rows)")
     args = ap.parse_args()
+    for item in args.grid:
+        key, _, values = item.partition("=")
+        if key not in GRID:
+            ap.error(f"--grid: unknown key {key!r}; known: {', '.join(GRID)}")
+        GRID[key] = [type(GRID[key][0])(v) for v in values.split(",")]
     feats = load_features(args.split, args.cache)
     tm_keys = [k for k in GRID if k not in ("s", "adapt_tau")]
     rows = []
@@ -75,8 +83,10 @@ def main() -> None:
     for s, adapt_tau in itertools.product(GRID["s"], GRID["adapt_tau"]):
         codes = {b: _codes(db, q, s, adapt_tau, seed=1) for b, (db, q) in feats.items()}
         dice = {b: sdr.dice_matrix(list(c[0]), list(c[1])) for b, c in codes.items()}
-        base = {b: sequences.evaluate(D, 0) for b, D in dice.items()}
-        base_seq = {b: sequences.evaluate(seqslam(D), 0) for b, D in dice.items()}
+        # Every method on the queries with a full path window, as `cortexloc eval images` scores them.
+        cols = full_window(len(next(iter(dice.values()))))
+        base = {b: sequences.evaluate(D, 0, columns=cols) for b, D in dice.items()}
+        base_seq = {b: sequences.evaluate(seqslam(D), 0, columns=cols) for b, D in dice.items()}
         for b, D in dice.items():
             ones = codes[b][0].shape[1]
             off = ~np.eye(len(D), dtype=bool)
@@ -93,7 +103,8 @@ def main() -> None:
                 db_w, q_w, info = sequences.run_tm(db_codes, q_codes, "cortexloc-grid", seed=1, reset=True,
                                                    width=2 * K, tm_overrides=tm)
                 T = sdr.dice_matrix(db_w, q_w)
-                r, r_seq = sequences.evaluate(T, 0), sequences.evaluate(seqslam(T), 0)
+                r = sequences.evaluate(T, 0, columns=cols)
+                r_seq = sequences.evaluate(seqslam(T), 0, columns=cols)
                 per_backbone[backbone] = {
                     "htm_auc": r["auc"], "htm_r1": r["recall_at_1"], "htm_seq_auc": r_seq["auc"],
                     "htm_seq_r1": r_seq["recall_at_1"], "slsbh_seq_auc": base_seq[backbone]["auc"],

@@ -85,3 +85,69 @@ def plot_similarity(S: np.ndarray, path: str | Path, title: str) -> Path:
     ax.set_title(title)
     fig.tight_layout()
     return _save(fig, path)
+
+
+# Match gallery layout (pixels): every image is shown at TILE = (width, height); a pair is framed by
+# BORDER pixels of its verdict's colour, with a caption strip under it.
+TILE = (128, 64)
+BORDER = 4
+GAP = 4
+CAPTION = 18
+RIGHT_BGR = (0, 170, 0)
+WRONG_BGR = (0, 0, 230)
+
+
+def gallery_cell_size() -> tuple[int, int]:
+    """(width, height) of one query/answer pair in the match gallery."""
+    return 2 * TILE[0] + GAP + 2 * BORDER, TILE[1] + 2 * BORDER + CAPTION
+
+
+def match_gallery(db_paths: Sequence[str | Path], q_paths: Sequence[str | Path], queries: Sequence[int],
+                  best: Sequence[int], correct: Sequence[bool], confidence: Sequence[float],
+                  path: str | Path, n: int = 12, cols: int = 3) -> Path:
+    """A PNG of sampled queries beside their answers: green frame when right, red when wrong.
+
+    Args:
+        db_paths, q_paths: the database and query image files (index = row / column of S).
+        queries: (m,) scored query indices; best, correct, confidence: (m,) each query's answer
+            (database index), its verdict and its confidence, in the same order.
+        path: PNG file to write (parent folders are created).
+        n: queries shown, evenly spaced over the m (all if m <= n).
+        cols: pairs per gallery row.
+
+    Returns:
+        The written path. The image is ceil(k / cols) x cols cells of `gallery_cell_size()`, k = min(n, m);
+        each cell: query left, answer right, caption "q <query> -> <answer>  conf <c>".
+    """
+    import cv2
+
+    m = len(queries)
+    if m == 0 or n < 1 or cols < 1:
+        raise ValueError(f"need at least one query, n >= 1 and cols >= 1 (got {m}, {n}, {cols})")
+    pick = np.unique(np.linspace(0, m - 1, min(n, m)).round().astype(int))
+    cw, ch = gallery_cell_size()
+    rows = -(-len(pick) // cols)
+    canvas = np.full((rows * ch, min(cols, len(pick)) * cw, 3), 255, dtype=np.uint8)
+
+    def tile(p: str | Path) -> np.ndarray:
+        img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if img is None:
+            raise ValueError(f"cannot read image {p}")
+        return cv2.resize(img, TILE, interpolation=cv2.INTER_NEAREST)
+
+    for slot, k in enumerate(pick):
+        y, x = (slot // cols) * ch, (slot % cols) * cw
+        colour = RIGHT_BGR if correct[k] else WRONG_BGR
+        canvas[y:y + TILE[1] + 2 * BORDER, x:x + cw] = colour
+        inner_y, inner_x = y + BORDER, x + BORDER
+        canvas[inner_y:inner_y + TILE[1], inner_x:inner_x + TILE[0]] = tile(q_paths[queries[k]])
+        ax = inner_x + TILE[0] + GAP
+        canvas[inner_y:inner_y + TILE[1], ax:ax + TILE[0]] = tile(db_paths[best[k]])
+        cv2.putText(canvas, f"q {queries[k]} -> {best[k]}  conf {confidence[k]:.3f}",
+                    (x + 2, y + TILE[1] + 2 * BORDER + CAPTION - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    (0, 0, 0), 1, cv2.LINE_AA)
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), canvas):
+        raise OSError(f"cannot write {out}")
+    return out

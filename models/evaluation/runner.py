@@ -14,12 +14,15 @@ from typing import Any
 import numpy as np
 
 from models import presets
-from models.evaluation import metrics, plots
+from models.evaluation import metrics, plots, seqslam
 from models.evaluation.gridworld import GridData
 from models.mcn import MCN, resolve_in_con
+from models.sdr import dice_matrix
 from models.temporal_memory import TemporalMemory
 
-METHODS = ("pairwise", "mcn", "htm")
+METHODS = ("pairwise", "pairwise-seq", "mcn", "htm")
+# What the memory adds beyond any sequence matcher: the same matcher on the input codes runs beside it.
+ABLATIONS = {"htm": ("pairwise", "pairwise-seq"), "mcn": ("pairwise", "pairwise-seq")}
 _METRICS = ("auc", "recall_at_1", "recall_at_5", "recall_at_100p")
 
 
@@ -61,19 +64,29 @@ def run_mcn(data: GridData, preset: str, seed: int) -> tuple[list[np.ndarray], d
 
 
 def run_grid_once(data: GridData, scoring: str, preset: str, mcn_preset: str, tm_seed: int,
-                  mcn_seed: int, methods: Iterable[str] = METHODS) -> dict[str, dict[str, Any]]:
-    """All methods on one data set. Returns {method: {auc, recall_at_1, ..., P, R, S, info}}."""
+                  mcn_seed: int, methods: Iterable[str] = METHODS, ds: int = seqslam.DS
+                  ) -> dict[str, dict[str, Any]]:
+    """All methods on one data set. Returns {method: {auc, recall_at_1, ..., P, R, S, info}}.
+
+    `pairwise-seq` is the OpenSeqSLAM matcher (models.evaluation.seqslam, ds steps centred on each step,
+    full paths only) over the Dice of the input SDRs: what a plain sequence filter gets from the codes,
+    beside what the Temporal Memory gets (science.md §10.1).
+    """
     out: dict[str, dict[str, Any]] = {}
     for method in methods:
+        similarity = None
         if method == "pairwise":
             descriptors, info = data.sdrs, {}
+        elif method == "pairwise-seq":
+            descriptors, info = data.sdrs, {"ds": ds}
+            similarity = seqslam.seqslam(dice_matrix(data.sdrs), ds)
         elif method == "mcn":
             descriptors, info = run_mcn(data, mcn_preset, mcn_seed)
         elif method == "htm":
             descriptors, info = run_htm(data, preset, tm_seed)
         else:
             raise ValueError(f"unknown method {method!r}; known: {', '.join(METHODS)}")
-        result = metrics.grid_evaluation(descriptors, data.places, scoring)
+        result = metrics.grid_evaluation(descriptors, data.places, scoring, similarity)
         result["info"] = info
         out[method] = result
     return out
@@ -94,6 +107,7 @@ def grid_experiment(
     seeds: int = 10,
     seed: int = 0,
     methods: Iterable[str] = METHODS,
+    ds: int = seqslam.DS,
     plots_dir: str | Path | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
@@ -104,13 +118,15 @@ def grid_experiment(
 
     Args:
         data_for_seed: builds the data set for a data seed (published files ignore it).
+        methods: subset of METHODS; each memory method's ablations (ABLATIONS) are added.
+        ds: steps per sequence path of `pairwise-seq`.
         progress: called as progress(done, total) after each seed.
 
     Returns:
         JSON-ready dict: {"scoring", "data", "seeds", "methods": {name: {"auc_mean", "auc_sd",
         "auc_min", "auc_max", "recall_at_1_mean", ..., "per_seed": [...], ...}}}.
     """
-    methods = tuple(methods)
+    methods = tuple(seqslam.with_ablations(list(methods), ABLATIONS))
     children = np.random.SeedSequence(seed).spawn(seeds)
     per_method: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
     first: dict[str, dict[str, Any]] | None = None
@@ -119,7 +135,7 @@ def grid_experiment(
         data_seed, tm_seed, mcn_seed = (int(v) for v in child.generate_state(3))
         data = data_for_seed(data_seed)
         data_meta = dict(data.meta)
-        results = run_grid_once(data, scoring, preset, mcn_preset, tm_seed, mcn_seed, methods)
+        results = run_grid_once(data, scoring, preset, mcn_preset, tm_seed, mcn_seed, methods, ds)
         for m, r in results.items():
             per_method[m].append({"seed": {"data": data_seed, "tm": tm_seed, "mcn": mcn_seed},
                                   **{k: float(r[k]) for k in _METRICS}, **r["info"]})

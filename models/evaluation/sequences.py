@@ -19,17 +19,34 @@ from models import presets, sdr, slsbh
 from models.adaptation import running_mean_subtract
 from models.encoder import Encoder
 from models.evaluation import metrics
-from models.evaluation.seqslam import seqslam
+from models.evaluation import seqslam as seq
 from models.files import atomic_write, sha256_file
 from models.mcn import MCN
 from models.temporal_memory import TemporalMemory
 
-# "X-seq" is method X's single-image similarity through the same sequence filter as `seqslam` (which is
-# cosine through it): the filter's gain on each descriptor, so that what the Temporal Memory adds can be
-# told apart from what any sequence matcher adds (science.md §5).
-SEQUENCE_FILTERED = ("slsbh", "mcn", "htm")
-METHODS = ("cosine", "slsbh", "mcn", "htm", "seqslam", *(f"{m}-seq" for m in SEQUENCE_FILTERED))
+# "X-seq" is method X's single-image similarity through the OpenSeqSLAM matcher (models.evaluation.
+# seqslam: contrast enhancement, full straight paths of ds frames centred on the query); `openseqslam` is
+# that matcher on its own pixel front end with its own match score, the reference (science.md §10.1).
+SEQUENCE_FILTERED = ("cosine", "slsbh", "mcn", "htm")
+METHODS = ("cosine", "slsbh", "mcn", "htm", "openseqslam", *(f"{m}-seq" for m in SEQUENCE_FILTERED))
+# What always runs beside a memory method (seqslam.with_ablations).
+ABLATIONS = {"htm": ("cosine", "slsbh"), "mcn": ("cosine", "slsbh"),
+             "htm-seq": ("cosine-seq", "slsbh-seq"), "mcn-seq": ("cosine-seq", "slsbh-seq")}
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
+
+
+def image_names(folder: Path) -> list[str]:
+    """The image file names in `folder`, sorted (the order ground-truth files index).
+
+    Raises:
+        ValueError: `folder` is not a folder or holds no image.
+    """
+    if not Path(folder).is_dir():
+        raise ValueError(f"not a folder: {folder}")
+    out = sorted(p.name for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not out:
+        raise ValueError(f"no image in {folder}")
+    return out
 
 
 def paired_names(db_dir: Path, query_dir: Path, offset: int = 0, limit: int | None = None) -> list[str]:
@@ -38,14 +55,7 @@ def paired_names(db_dir: Path, query_dir: Path, offset: int = 0, limit: int | No
     Raises:
         ValueError: a folder is missing or the two have no name in common.
     """
-    for d in (db_dir, query_dir):
-        if not Path(d).is_dir():
-            raise ValueError(f"not a folder: {d}")
-
-    def names(d: Path) -> set[str]:
-        return {p.name for p in Path(d).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
-
-    common = sorted(names(db_dir) & names(query_dir))
+    common = sorted(set(image_names(db_dir)) & set(image_names(query_dir)))
     if not common:
         raise ValueError(f"no image file name is in both {db_dir} and {query_dir}")
     out = common[offset: None if limit is None else offset + limit]
@@ -150,54 +160,109 @@ def codes(hasher: slsbh.Hasher, feats: np.ndarray, adapt_tau: int = 0) -> np.nda
     return slsbh.hash_projected(running_mean_subtract(Y, adapt_tau) if adapt_tau else Y, hasher.s)
 
 
-def evaluate(S: np.ndarray, tolerance: int) -> dict[str, float]:
-    """AUC, R@1, R@5, R@100P of S (n_db, n_q) against identity ground truth (±tolerance, §8.3)."""
-    gt = np.eye(S.shape[0], S.shape[1], dtype=bool)
+def with_ablations(methods: Sequence[str]) -> list[str]:
+    """`methods` with each memory method's ablations (ABLATIONS) added before it, in order, once each."""
+    return seq.with_ablations(methods, ABLATIONS)
+
+
+def is_sequence(method: str) -> bool:
+    """A method that matches sequences of ds frames (scored only on queries with a full window)."""
+    return method == "openseqslam" or method.endswith("-seq")
+
+
+def evaluate(S: np.ndarray, tolerance: int, gt: np.ndarray | None = None, columns: np.ndarray | None = None,
+             answers: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
+    """Both metrics of S (n_db, n_q): the paper's all-pairs PR (§8.2) and the per-query one (labelled).
+
+    Args:
+        S: similarities, higher = more similar; -inf where a sequence method has no full path.
+        tolerance: ±database items counted as the same place (§8.3).
+        gt: (n_db, n_q) bool exact matches (default identity: row i = query i).
+        columns: (n_q,) bool, the queries scored (default all).
+        answers: (best, confidence), each (n_q,): a method's own answers (OpenSeqSLAM's match score);
+            default each query's most similar item and its similarity.
+
+    Returns:
+        all pairs: "auc", "recall_at_100p", "P", "R"; per query: "query_auc", "recall_at_1",
+        "recall_at_5", "query_recall_at_100p", "query_P", "query_R", "best", "confidence", "correct"
+        (over the scored queries, in column order).
+    """
+    S = np.asarray(S, dtype=np.float64)
+    gt = np.eye(*S.shape, dtype=bool) if gt is None else np.asarray(gt, dtype=bool)
+    cols = np.ones(S.shape[1], dtype=bool) if columns is None else np.asarray(columns, dtype=bool)
+    S, gt = S[:, cols], gt[:, cols]
+    finite = np.isfinite(S)
+    if not finite.any():
+        raise ValueError("no finite similarity among the scored queries")
+    # Pairs without a full path rank below every scored pair; the curve's thresholds keep their range.
+    S = np.where(finite, S, S[finite].min())
     if tolerance > 0:
-        S_pr, gt_soft = metrics.apply_tolerance(S, gt, tolerance)
-        P, R = metrics.pr_curve(S_pr, gt)
-        hits = gt_soft
+        S_pr, hits = metrics.apply_tolerance(S, gt, tolerance)
     else:
-        P, R = metrics.pr_curve(S, gt)
-        hits = gt
-    return {"auc": metrics.auc(P, R), "recall_at_1": metrics.recall_at_k(S, hits, 1),
-            "recall_at_5": metrics.recall_at_k(S, hits, 5),
-            "recall_at_100p": metrics.recall_at_100_precision(P, R), "P": P, "R": R}
+        S_pr, hits = S, gt
+    P, R = metrics.pr_curve(S_pr, gt)
+    q = metrics.query_metrics(S, hits, *(() if answers is None else (answers[1][cols], answers[0][cols])))
+    return {"auc": metrics.auc(P, R), "recall_at_100p": metrics.recall_at_100_precision(P, R), "P": P,
+            "R": R, "query_auc": q["query_auc"], "recall_at_1": q["recall_at_1"],
+            "recall_at_5": q["recall_at_5"], "query_recall_at_100p": q["query_recall_at_100p"],
+            "query_P": q["P"], "query_R": q["R"], "best": q["best"], "confidence": q["confidence"],
+            "correct": q["correct"]}
+
+
+METRICS = ("auc", "query_auc", "recall_at_1", "recall_at_5", "recall_at_100p", "query_recall_at_100p")
 
 
 def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequence[str],
                      preset: str, mcn_preset: str = "mcn-nordland", k: int = 1024, s: float = 0.25,
                      seeds: int = 3, seed: int = 0, tolerance: int = 0, reset: bool = False,
                      adapt_tau: int = 0, tm_overrides: dict[str, Any] | None = None,
-                     reverse_query: bool = False,
+                     reverse_query: bool = False, ds: int = seq.DS, gt: np.ndarray | None = None,
+                     frames: tuple[np.ndarray, np.ndarray] | None = None, crossing: bool = False,
                      progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """All methods on one database/query pair of feature sequences, over seeds.
 
     Args:
-        db_feats, q_feats: (n, D) L2-normalised features, row i of both = the same place.
-        methods: subset of METHODS.
+        db_feats, q_feats: (n_db, D), (n_q, D) L2-normalised features in route order.
+        methods: subset of METHODS; each memory method's ablations (ABLATIONS) are added.
         preset: TM preset; mcn_preset: MCN preset.
         k, s: sLSBH size and sparsity (2k = TM columns).
         seeds: runs; projection, TM and MCN seeds spawned from `seed` (science.md §8.6).
-        tolerance: ±files counted as the same place.
+        tolerance: ±database items counted as the same place.
         reset: reset the sequence memory between database and query (the paper does not).
-        adapt_tau: > 0: each sequence minus its running mean (models.adaptation) before every method;
-            0: the features as they are.
+        adapt_tau: > 0: each sequence minus its running mean (models.adaptation) before every feature
+            method; 0: the features as they are.
         tm_overrides: Temporal Memory parameters replacing the preset's (sweeps).
-        reverse_query: the query sequence is driven backwards (last row first); S keeps row i of both
-            inputs as the same place.
+        reverse_query: the query sequence is driven backwards (last row first); S keeps file order.
+        ds: frames per sequence path. When any sequence method runs, every method is scored on the same
+            queries, those with ds frames centred on them (in driven order).
+        gt: (n_db, n_q) bool exact matches; default identity (row i of both = the same place).
+        frames: (db, query) patch-normalised grey frames (`seqslam.load_frames`), for `openseqslam`.
+        crossing: every sequence method answers the row where its best path crosses the query instead
+            of OpenSeqSLAM's start row + ds // 2 (seqslam.path_sums); a measurement, not a default.
 
     Returns:
-        {"methods": {name: {"auc_mean", "auc_min", "auc_max", "recall_at_1_mean", ..., "per_seed"}},
-         "first": {name: {"S", "P", "R"}}} (first seed's matrices, for plots).
+        {"methods": {name: {"auc_mean", "auc_min", "auc_max", "query_auc_mean", ..., "recall_at_1_mean",
+         ..., "per_seed"}}, "queries": scored query indices (file order),
+         "first": {name: {"S", "P", "R", "query_P", "query_R", "best", "confidence", "correct"}}}
+        (the first seed's matrices and answers, for plots and the match gallery).
     """
+    methods = with_ablations(methods)
     bad = set(methods) - set(METHODS)
     if bad:
         raise ValueError(f"unknown method(s) {sorted(bad)}; known: {', '.join(METHODS)}")
+    if "openseqslam" in methods and frames is None:
+        raise ValueError("openseqslam needs the frames (seqslam.load_frames)")
+    n_q = len(q_feats)
     runs: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
     first: dict[str, dict[str, Any]] = {}
+    columns = seq.full_window(n_q, ds) if any(map(is_sequence, methods)) else np.ones(n_q, dtype=bool)
     if reverse_query:
         q_feats = q_feats[::-1]
+        columns = columns[::-1]  # full windows in driven order, indexed in file order
+        if frames is not None:
+            frames = (frames[0], frames[1][::-1])
+    if not columns.any():
+        raise ValueError(f"{n_q} queries leave none with a full window of ds = {ds}")
     raw = {"db": db_feats, "q": q_feats}
     if adapt_tau:
         db_feats = running_mean_subtract(db_feats, adapt_tau)
@@ -207,49 +272,56 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
     for i, child in enumerate(children):
         proj_seed, tm_seed, mcn_seed = (int(v) for v in child.generate_state(3))
         bases = {m.removesuffix("-seq") for m in methods}
-        if bases & set(SEQUENCE_FILTERED):
+        if bases & {"slsbh", "mcn", "htm"}:
             hasher = slsbh.Hasher(slsbh.make_projection(db_feats.shape[1], k, proj_seed), s)
             db_codes, q_codes = (codes(hasher, raw[key], adapt_tau) for key in ("db", "q"))
         single: dict[str, tuple[np.ndarray, dict[str, Any], float]] = {}  # this seed's S per base method
         for m in methods:
-            if i > 0 and m in ("cosine", "seqslam"):
-                continue  # deterministic given the features
-            base = "cosine" if m == "seqslam" else m.removesuffix("-seq")
+            if i > 0 and m in ("cosine", "cosine-seq", "openseqslam"):
+                continue  # deterministic given the features and frames
+            base = m.removesuffix("-seq")
             t0 = time.perf_counter()
-            if base not in single:
-                info: dict[str, Any] = {}
-                if base == "cosine":
-                    S = cos
-                elif base == "slsbh":
-                    S = sdr.dice_matrix(list(db_codes), list(q_codes))
-                else:
-                    if base == "htm":
-                        db_w, q_w, info = run_tm(db_codes, q_codes, preset, tm_seed, reset, 2 * k,
-                                                 tm_overrides)
+            answers = None
+            info: dict[str, Any] = {}
+            if m == "openseqslam":
+                found = seq.openseqslam(*frames, ds=ds, crossing=crossing)
+                S, answers = found.S, (found.best, found.confidence)
+                if reverse_query:
+                    answers = (answers[0][::-1], answers[1][::-1])
+            else:
+                if base not in single:
+                    if base == "cosine":
+                        S = cos
+                    elif base == "slsbh":
+                        S = sdr.dice_matrix(list(db_codes), list(q_codes))
                     else:
-                        db_w, q_w, info = run_mcn(db_codes, q_codes, mcn_preset, mcn_seed, reset, 2 * k)
-                    S = sdr.dice_matrix(db_w, q_w)
-                single[base] = (S, info, time.perf_counter() - t0)
-                t0 = time.perf_counter()
-            S, info, base_seconds = single[base]
-            info = dict(info)
-            if m != base:
-                S = seqslam(S)
-            info["seconds"] = base_seconds + time.perf_counter() - t0
+                        if base == "htm":
+                            db_w, q_w, info = run_tm(db_codes, q_codes, preset, tm_seed, reset, 2 * k,
+                                                     tm_overrides)
+                        else:
+                            db_w, q_w, info = run_mcn(db_codes, q_codes, mcn_preset, mcn_seed, reset, 2 * k)
+                        S = sdr.dice_matrix(db_w, q_w)
+                    single[base] = (S, info, time.perf_counter() - t0)
+                    t0 = time.perf_counter()
+                S, info, base_seconds = single[base]
+                info = {**info, "seconds": base_seconds}
+                if m != base:
+                    S = seq.seqslam(S, ds, crossing=crossing)
+            info["seconds"] = info.get("seconds", 0.0) + time.perf_counter() - t0
             if reverse_query:
                 S = S[:, ::-1]  # back to file order: column j is query place j again
-            r = evaluate(S, tolerance)
+            r = evaluate(S, tolerance, gt, columns, answers)
             if m not in first:
-                first[m] = {"S": S, "P": r["P"], "R": r["R"]}
+                first[m] = {key: r[key] for key in ("P", "R", "query_P", "query_R", "best", "confidence",
+                                                    "correct")} | {"S": S}
             runs[m].append({"seed": {"projection": proj_seed, "tm": tm_seed, "mcn": mcn_seed},
-                            **{key: float(r[key]) for key in ("auc", "recall_at_1", "recall_at_5",
-                                                              "recall_at_100p")}, **info})
+                            **{key: float(r[key]) for key in METRICS}, **info})
         if progress:
             progress(i + 1, seeds)
     summary: dict[str, Any] = {}
     for m, rs in runs.items():
         entry: dict[str, Any] = {}
-        for key in ("auc", "recall_at_1", "recall_at_5", "recall_at_100p"):
+        for key in METRICS:
             vals = np.array([r[key] for r in rs])
             entry.update({f"{key}_mean": float(vals.mean()), f"{key}_min": float(vals.min()),
                           f"{key}_max": float(vals.max())})
@@ -261,7 +333,9 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
         if m.removesuffix("-seq") == "mcn":
             entry["preset"] = mcn_preset
             entry["columns_mean"] = float(np.mean([r["columns"] for r in rs]))
+        if is_sequence(m):
+            entry["ds"] = ds
         entry["seconds_mean"] = float(np.mean([r["seconds"] for r in rs]))
         entry["per_seed"] = rs
         summary[m] = entry
-    return {"methods": summary, "first": first}
+    return {"methods": summary, "queries": np.flatnonzero(columns).tolist(), "first": first}

@@ -42,7 +42,7 @@ def test_eval_grid_generate_writes_json_table_and_plots(tmp_path):
     assert result.exit_code == 0, result.output
     payload = json.loads(out.read_text())
     assert payload["scoring"] == "clean"
-    assert set(payload["methods"]) == {"pairwise", "mcn", "htm"}
+    assert list(payload["methods"]) == ["pairwise", "pairwise-seq", "mcn", "htm"]
     for entry in payload["methods"].values():
         assert entry["auc_min"] <= entry["auc_mean"] <= entry["auc_max"] <= 1.0
         assert 0.0 <= entry["recall_at_1_mean"] <= 1.0
@@ -51,7 +51,7 @@ def test_eval_grid_generate_writes_json_table_and_plots(tmp_path):
     assert payload["methods"]["htm"]["predicted_column_fraction_mean"] > 0
     assert "pairwise" in result.stdout and "htm" in result.stdout  # the table
     pngs = sorted(p.name for p in (tmp_path / "plots").glob("*.png"))
-    assert "pr_clean.png" in pngs and len(pngs) == 4
+    assert "pr_clean.png" in pngs and len(pngs) == 5
 
 
 def test_eval_grid_rejects_bad_arguments(tmp_path):
@@ -118,3 +118,13 @@ def test_predicting_preset_on_generated_world():
     assert info["predicted_column_fraction"] > 0.2
     assert clean["auc"] > pairwise["auc"] + 0.2
     assert np.isfinite(clean["recall_at_1"])
+
+
+def test_the_memory_always_runs_beside_a_sequence_filter_on_its_input_codes():
+    data = gridworld.generate(5, 0.5, loops=4, seed=2)
+    res = runner.grid_experiment(lambda s: data, scoring="clean", seeds=1, preset="cortexloc-grid",
+                                 methods=["htm"])["methods"]
+    assert list(res) == ["pairwise", "pairwise-seq", "htm"]
+    # With aliased twins the filter over the input codes alone beats one code against one.
+    assert res["pairwise-seq"]["auc_mean"] > res["pairwise"]["auc_mean"]
+    assert res["pairwise-seq"]["per_seed"][0]["ds"] == 10

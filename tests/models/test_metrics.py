@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.evaluation import metrics
 from models.evaluation.datasets import grid_dir
 from models.evaluation.gridworld import generate, load_published
 from models.evaluation.metrics import (
@@ -277,3 +278,37 @@ def test_input_sdr_check_values(sdr_file: str, paper: float, clean: float) -> No
     for result in (paper_result, clean_result):
         assert len(result["P"]) == len(result["R"]) == 101
         assert 0.0 <= result["recall_at_1"] <= result["recall_at_5"] <= 1.0
+
+
+# ---- per-query metrics (one answer per query, with a confidence) ----------------------------------
+
+
+def test_query_pr_curve_counts_answers_over_confidence_thresholds():
+    conf = np.array([0.9, 0.8, 0.8, 0.3])
+    correct = np.array([True, False, True, True])
+    has_pos = np.array([True, True, True, False])  # the last query has no match: its answer is wrong
+    P, R = metrics.query_pr_curve(conf, correct, has_pos)
+    # Thresholds 0.9, 0.8 (both tied answers at once), 0.3; recall over the 3 queries with a match.
+    np.testing.assert_allclose(P, [1.0, 1.0, 2 / 3, 2 / 4])
+    np.testing.assert_allclose(R, [0.0, 1 / 3, 2 / 3, 2 / 3])
+    with pytest.raises(ValueError, match="no query has a positive"):
+        metrics.query_pr_curve(conf, correct, np.zeros(4, bool))
+
+
+def test_query_metrics_reward_confident_right_answers():
+    gt = np.eye(4, dtype=bool)
+    S = np.array([[0.9, 0.0, 0.0, 0.0],
+                  [0.0, 0.2, 0.7, 0.0],  # query 2 answers row 1: wrong, but confidently
+                  [0.0, 0.1, 0.1, 0.0],
+                  [0.0, 0.0, 0.0, 0.8]])
+    q = metrics.query_metrics(S, gt)
+    assert q["best"].tolist() == [0, 1, 1, 3] and q["correct"].tolist() == [True, True, False, True]
+    assert q["recall_at_1"] == 0.75
+    assert q["query_recall_at_100p"] == 0.5  # the two most confident answers are right, then a wrong one
+    assert 0.0 < q["query_auc"] < 1.0
+    # The same answers, the wrong one least confident: precision stays 1 up to recall 0.75.
+    S2 = S.copy()
+    S2[1, 2] = 0.15
+    S2[2, 2] = 0.1
+    q2 = metrics.query_metrics(S2, gt)
+    assert q2["query_recall_at_100p"] == 0.75 and q2["query_auc"] > q["query_auc"]

@@ -61,3 +61,31 @@ def test_matplotlib_is_loaded_lazily_and_pyplot_never(tmp_path: Path) -> None:
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "b.png").is_file()
+
+
+def test_match_gallery_frames_right_answers_green_and_wrong_ones_red(tmp_path: Path) -> None:
+    import cv2
+
+    from models.evaluation import plots
+
+    rng = np.random.default_rng(0)
+    paths = []
+    for i in range(6):
+        p = tmp_path / f"img-{i}.png"
+        cv2.imwrite(str(p), rng.integers(0, 256, (32, 64, 3), dtype=np.uint8))
+        paths.append(p)
+    queries, best = [0, 1, 2, 3, 4], [0, 3, 2, 0, 4]
+    correct = [q == b for q, b in zip(queries, best, strict=True)]
+    out = plots.match_gallery(paths, paths, queries, best, correct, [0.9, 0.1, 0.8, 0.2, 0.7],
+                              tmp_path / "g.png", n=4, cols=2)
+    img = cv2.imread(str(out), cv2.IMREAD_COLOR)
+    cw, ch = plots.gallery_cell_size()
+    assert img.shape == (2 * ch, 2 * cw, 3)  # 4 of 5 queries, evenly spaced: 0, 1, 3, 4
+    # The frame's top-left pixel of each cell carries the verdict's colour.
+    colours = [tuple(int(v) for v in img[r * ch + 1, c * cw + 1]) for r in range(2) for c in range(2)]
+    green, red = plots.RIGHT_BGR, plots.WRONG_BGR
+    assert colours == [green, red, red, green]
+    # The query tile sits inside the frame, resized to TILE: its pixels are the image's, not a colour.
+    tile = img[plots.BORDER:plots.BORDER + plots.TILE[1], plots.BORDER:plots.BORDER + plots.TILE[0]]
+    expected = cv2.resize(cv2.imread(str(paths[0])), plots.TILE, interpolation=cv2.INTER_NEAREST)
+    np.testing.assert_array_equal(tile, expected)
