@@ -104,14 +104,13 @@ confs: dict[str, dict[str, Any]] = {
     "cortexloc-default": {
         "description": "service default: one-shot TM 2048x4 (threshold 24), 308-of-2048 sLSBH codes, 62 MiB",
         # Chosen with `python -m models.evaluation.nordland_sweep` on the Nordland `tune` split
-        # (docs/results.md §7), objective: AUC of the winner cells compared over sequences (`htm-seq`),
-        # mean over both backbones. The cell that wins each burst (best matching segment, minThreshold
-        # 2) carries the previous step's context; s = 0.15 gives the best context code on both
-        # backbones; activationThreshold barely changes that AUC, and 24 (of 28 one-shot synapses)
-        # keeps chance predictions low on ImageNet features. Known cost (§7.3): at this density only
-        # about a quarter of an exactly repeated sequence is predicted, not the > 90 % of science.md
-        # §3.7, because chance-matching segments are re-used. Stream adaptation stays off: it cuts
-        # the sequence-compared AUC (§7.2).
+        # (docs/results.md §7), then with a sequence filter that let short paths win. With only full
+        # paths competing, the winner cells add nothing measurable over the sLSBH codes across seasons
+        # (§7.4), so the context argument for minThreshold 2 is gone (§7.7); it stays the default
+        # until a configuration earns its place. activationThreshold 24 (of 28 one-shot synapses)
+        # keeps chance predictions low on ImageNet features. Known cost: at this density only about a
+        # quarter of an exactly repeated sequence is predicted, not the > 90 % of science.md §3.7,
+        # because chance-matching segments are re-used. Stream adaptation stays off.
         "tm": {**_PREDICTING_TM, "activationThreshold": 24},
         "slsbh": {"k": 1024, "s": 0.15, "adapt_tau": 0},
     },
