@@ -77,6 +77,7 @@ PROBLEMS: dict[str, tuple[int, str]] = {
     "unsupported-media-type": (415, "Unsupported media type"),
     "undecodable-image": (422, "Undecodable image"),
     "degenerate-image": (422, "Degenerate image"),
+    "decompression-bomb": (422, "Decompression bomb"),
     "map-too-large": (422, "Map too large"),
     "invalid-configuration": (422, "Invalid configuration"),
     "not-ready": (503, "Not ready"),
@@ -207,6 +208,7 @@ _IMAGE_SLUGS: dict[str, tuple[int, str]] = {
     "not-an-image": (422, "undecodable-image"),
     "truncated": (422, "undecodable-image"),
     "degenerate": (422, "degenerate-image"),
+    "bomb": (422, "decompression-bomb"),
 }
 
 
