@@ -36,6 +36,7 @@ from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from models.images import ImageError
+from storage.snapshots import SnapshotInvalid
 
 __all__ = [
     "IMAGE_MEDIA_TYPES",
@@ -67,6 +68,7 @@ PROBLEMS: dict[str, tuple[int, str]] = {
     "unauthorized": (401, "Unauthorized"),
     "map-not-found": (404, "Map not found"),
     "snapshot-not-found": (404, "Snapshot not found"),
+    "snapshot-invalid": (409, "Snapshot invalid"),
     "not-found": (404, "Not found"),
     "method-not-allowed": (405, "Method not allowed"),
     "map-exists": (409, "Map already exists"),
@@ -260,6 +262,23 @@ def _validation_errors(exc: RequestValidationError) -> list[dict[str, str]]:
     return out
 
 
+#: Domain errors -> (status, slug); the detail is the error's message, with the data directory's path
+#: cut off (it names the file, not where the server keeps it).
+DOMAIN_PROBLEMS: dict[type[Exception], tuple[int, str]] = {
+    SnapshotInvalid: (409, "snapshot-invalid"),
+}
+
+
+async def _domain_error_handler(request: Request, exc: Exception) -> JSONResponse:
+    status, slug = next(v for cls, v in DOMAIN_PROBLEMS.items() if isinstance(exc, cls))
+    detail = str(exc)
+    data_dir = getattr(getattr(request.app.state, "settings", None), "data_dir", None)
+    if data_dir is not None:
+        for root in {str(data_dir.resolve()), str(data_dir)}:
+            detail = detail.replace(root.rstrip("/") + "/", "")
+    return problem_response(request, status, slug, detail)
+
+
 async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
     errors = _validation_errors(exc)
@@ -320,6 +339,8 @@ def install_error_handlers(app: FastAPI) -> None:
     """Replace FastAPI's validation, 404/405 and 500 handlers with problem+json ones."""
     app.add_exception_handler(Problem, _problem_handler)
     app.add_exception_handler(ImageError, _image_error_handler)
+    for domain_error in DOMAIN_PROBLEMS:
+        app.add_exception_handler(domain_error, _domain_error_handler)
     app.add_exception_handler(RequestValidationError, _validation_handler)
     app.add_exception_handler(StarletteHTTPException, _http_exception_handler)
     app.add_exception_handler(Exception, _internal_error_handler)

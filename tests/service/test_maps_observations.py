@@ -440,7 +440,8 @@ def test_png_decompression_bomb_gets_a_problem_and_changes_nothing(client, png_b
     assert r.status_code == 422, r.text
     assert r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
     body = r.json()
-    assert body["type"] == "urn:cortexloc:problem:decompression-bomb" and body["title"] == "Decompression bomb"
+    assert body["type"] == "urn:cortexloc:problem:decompression-bomb"
+    assert body["title"] == "Decompression bomb"
     assert body["width"] == width and body["raster_bytes"] == height * (1 + 3 * width)
     assert state_of(client) == before
     assert post(client, frame(8)).status_code == 200  # the encoder is free for the next frame
