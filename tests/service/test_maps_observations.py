@@ -130,7 +130,7 @@ def test_create_get_delete_a_map_and_memory_sizes(client):
     ({"preset": "no-such-preset"}, 422, "invalid-configuration"),
     ({"map_id": "Bad/Id"}, 400, "invalid-parameter"),
     ({"unknown_field": 1}, 400, "invalid-parameter"),
-    ({"slsbh": {"adapt_tau": -1}}, 400, "invalid-parameter"),
+    ({"slsbh": {"adapt_tau": -1}}, 422, "invalid-configuration"),
     ({"preset": "cba2020-nordland"}, 422, "map-too-large"),
 ])
 def test_bad_map_creation_is_refused(client, payload, status, slug):
