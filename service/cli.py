@@ -390,9 +390,10 @@ def serve(
     import uvicorn
 
     from service.app import create_app
+    from service.server import ProblemH11Protocol
 
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, workers=1, lifespan="on",
-                log_level=settings.log_level.lower())
+                log_level=settings.log_level.lower(), http=ProblemH11Protocol)
 
 
 @app.command("import")

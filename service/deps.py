@@ -25,9 +25,22 @@ from service.errors import Problem
 from service.routes.metrics import Metrics
 from service.settings import Settings
 
-__all__ = ["ApiKeyDep", "EncoderDep", "MapReadKeyDep", "MapsDep", "MetricsDep", "RegistryDep", "SettingsDep",
-           "get_encoder", "get_maps", "get_metrics", "get_registry", "get_settings", "require_api_key",
-           "require_api_key_for_map_reads"]
+__all__ = [
+    "ApiKeyDep",
+    "EncoderDep",
+    "MapReadKeyDep",
+    "MapsDep",
+    "MetricsDep",
+    "RegistryDep",
+    "SettingsDep",
+    "get_encoder",
+    "get_maps",
+    "get_metrics",
+    "get_registry",
+    "get_settings",
+    "require_api_key",
+    "require_api_key_for_map_reads",
+]
 
 
 def get_settings(request: Request) -> Settings:

@@ -22,16 +22,17 @@ import contextvars
 import logging
 import re
 import uuid
-from collections.abc import Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from http import HTTPStatus
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, ConfigDict
 from starlette.datastructures import MutableHeaders
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -39,6 +40,8 @@ from models.images import ImageError
 from storage.snapshots import SnapshotInvalid
 
 __all__ = [
+    "CLIENT_CLOSED_REQUEST",
+    "DOMAIN_PROBLEMS",
     "IMAGE_MEDIA_TYPES",
     "PROBLEM_MEDIA_TYPE",
     "REQUEST_ID_HEADER",
@@ -48,6 +51,9 @@ __all__ = [
     "RequestContextMiddleware",
     "image_error_problem",
     "install_error_handlers",
+    "iter_routes",
+    "new_request_id",
+    "problem_body",
     "problem_response",
     "problem_responses",
     "request_id_of",
@@ -162,18 +168,29 @@ def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
 # ------------------------------------------------------------------------------------ request ids
 
 
-def _new_request_id() -> str:
-    return str(uuid.uuid4())
-
-
 def request_id_of(scope_or_request: Scope | Request) -> str:
     """The request's id (set by `RequestContextMiddleware`); a fresh one if the middleware did not run."""
     scope = scope_or_request.scope if isinstance(scope_or_request, Request) else scope_or_request
     state = scope.setdefault("state", {})
     rid = state.get("request_id")
     if rid is None:
-        rid = state["request_id"] = _new_request_id()
+        rid = state["request_id"] = new_request_id()
     return rid
+
+
+def problem_body(status: int, slug: str, detail: str, *, instance: str, request_id: str,
+                 **members: Any) -> dict[str, Any]:
+    """The problem+json object (also for answers written below the app, e.g. by the HTTP protocol)."""
+    if slug not in TITLES:
+        raise ValueError(f"unknown problem slug {slug!r}")
+    body = {"type": TYPE_PREFIX + slug, "title": TITLES[slug], "status": int(status), "detail": detail,
+            "instance": instance, "request_id": request_id}
+    body.update({k: v for k, v in members.items() if k not in RESERVED_MEMBERS})
+    return body
+
+
+def new_request_id() -> str:
+    return str(uuid.uuid4())
 
 
 def problem_response(request: Request, status: int, slug: str, detail: str, *,
@@ -185,12 +202,8 @@ def problem_response(request: Request, status: int, slug: str, detail: str, *,
         status, slug, detail, members: see `Problem`.
         headers: extra headers; `X-Request-ID` is always set.
     """
-    if slug not in TITLES:
-        raise ValueError(f"unknown problem slug {slug!r}")
     rid = request_id_of(request)
-    body = {"type": TYPE_PREFIX + slug, "title": TITLES[slug], "status": int(status), "detail": detail,
-            "instance": request.url.path, "request_id": rid}
-    body.update({k: v for k, v in members.items() if k not in RESERVED_MEMBERS})
+    body = problem_body(status, slug, detail, instance=request.url.path, request_id=rid, **members)
     out_headers = {**(headers or {}), REQUEST_ID_HEADER: rid}
     return JSONResponse(body, status_code=int(status), headers=out_headers, media_type=PROBLEM_MEDIA_TYPE)
 
@@ -289,10 +302,21 @@ async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:
                             errors=errors)
 
 
+def iter_routes(routes: Iterable[Any]) -> Iterator[Any]:
+    """Every route of a router, included routers flattened (FastAPI >= 0.16x keeps an included router as
+    one entry whose `effective_candidates()` are its routes with the prefixes applied)."""
+    for route in routes:
+        candidates = getattr(route, "effective_candidates", None)
+        if callable(candidates):
+            yield from iter_routes(candidates())
+        else:
+            yield route
+
+
 def allowed_methods(request: Request) -> list[str]:
     """Methods of every route whose path matches the request (Starlette's 405 names only the first)."""
     methods: set[str] = set()
-    for route in request.app.router.routes:
+    for route in iter_routes(request.app.router.routes):
         route_methods = getattr(route, "methods", None)
         if not route_methods:
             continue
@@ -302,8 +326,21 @@ def allowed_methods(request: Request) -> list[str]:
     return sorted(methods)
 
 
-async def _http_exception_handler(request: Request, exc: Exception) -> JSONResponse:
+#: Status recorded for a request whose client went away before it was read (nginx's "client closed
+#: request"): nobody receives it, the metrics count it apart from the server's errors.
+CLIENT_CLOSED_REQUEST = 499
+
+
+async def _client_disconnect_handler(request: Request, exc: Exception) -> Response:
+    """The client closed the connection mid-request (e.g. during an upload): not a server error."""
+    log.info("client went away before %s %s was read", request.method, request.url.path)
+    return Response(status_code=CLIENT_CLOSED_REQUEST)
+
+
+async def _http_exception_handler(request: Request, exc: Exception) -> Response:
     assert isinstance(exc, StarletteHTTPException)
+    if isinstance(exc.__cause__, ClientDisconnect):  # FastAPI's 400 "error parsing the body"
+        return await _client_disconnect_handler(request, exc.__cause__)
     status = exc.status_code
     phrase = HTTPStatus(status).phrase if status in HTTPStatus._value2member_map_ else ""
     custom = isinstance(exc.detail, str) and exc.detail and exc.detail != phrase
@@ -342,6 +379,7 @@ def install_error_handlers(app: FastAPI) -> None:
     for domain_error in DOMAIN_PROBLEMS:
         app.add_exception_handler(domain_error, _domain_error_handler)
     app.add_exception_handler(RequestValidationError, _validation_handler)
+    app.add_exception_handler(ClientDisconnect, _client_disconnect_handler)
     app.add_exception_handler(StarletteHTTPException, _http_exception_handler)
     app.add_exception_handler(Exception, _internal_error_handler)
 
@@ -371,7 +409,7 @@ class RequestContextMiddleware:
             if key == b"x-request-id":
                 incoming = value.decode("latin-1").strip()
                 break
-        rid = incoming if incoming and _REQUEST_ID_RE.fullmatch(incoming) else _new_request_id()
+        rid = incoming if incoming and _REQUEST_ID_RE.fullmatch(incoming) else new_request_id()
         scope.setdefault("state", {})["request_id"] = rid
         token = request_id_var.set(rid)
         started = False

@@ -143,6 +143,8 @@ class MapRuntime:
         self.snapshot_keep = snapshot_keep
         self.state = "recovering"
         self.state_reason: str | None = None
+        # Snapshots the last recovery could not use (damaged): [{snapshot_id, reason}], for /readyz.
+        self.skipped_snapshots: list[dict[str, str]] = []
         self.streams: OrderedDict[str, Stream] = OrderedDict()
         self._writer = ThreadPoolExecutor(1, thread_name_prefix=f"map-{self.map_id}")
         sha = self.params["projection_sha256"]
@@ -322,6 +324,7 @@ class MapRuntime:
                 m = snapshots.verify(rec.path)
             except snapshots.SnapshotInvalid as e:
                 log.warning("map %s: snapshot %s skipped: %s", self.map_id, rec.snapshot_id, e)
+                self.skipped_snapshots.append({"snapshot_id": rec.snapshot_id, "reason": str(e)})
                 continue
             if m.seq > 0:
                 row = self.store.get(m.seq)

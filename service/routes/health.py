@@ -84,16 +84,27 @@ def _map_state(m: Any) -> tuple[str, str | None]:
 
 
 def check_maps(maps: dict[str, Any]) -> Check:
-    """Each map's state; fails while a map is still recovering."""
+    """Each map's state, and the damaged snapshots its recovery skipped; fails while a map is still
+    recovering."""
     states = {}
     for map_id, m in sorted(maps.items()):
         state, reason = _map_state(m)
         states[map_id] = {"state": state, "state_reason": reason}
+        skipped = m.get("skipped_snapshots") if isinstance(m, dict) else getattr(m, "skipped_snapshots", None)
+        if skipped:
+            states[map_id]["skipped_snapshots"] = list(skipped)
     recovering = [k for k, v in states.items() if v["state"] == "recovering"]
     failed = [k for k, v in states.items() if v["state"] == "failed"]
+    skipping = [k for k, v in states.items() if v.get("skipped_snapshots")]
     out: Check = {"status": "pass", "count": len(states), "maps": states}
+    warnings = []
     if failed:
-        out.update(status="warn", warning=f"failed map(s), served as map-unavailable: {', '.join(failed)}")
+        warnings.append(f"failed map(s), served as map-unavailable: {', '.join(failed)}")
+    if skipping:
+        warnings.append(f"map(s) recovered without their damaged snapshot(s), by a longer replay: "
+                        f"{', '.join(skipping)}")
+    if warnings:
+        out.update(status="warn", warning="; ".join(warnings))
     if recovering:
         out.update(status="fail", error=f"map(s) still recovering: {', '.join(recovering)}")
     return out

@@ -84,7 +84,7 @@ def test_good_overrides_are_frozen_as_given(client):
 
 def test_one_home_for_the_parameter_rules():
     # The defaults are the models'; the service resolves through the same checks as the TM itself.
-    assert presets.TM_DEFAULTS == presets.TmParams().model_dump()
+    assert presets.TmParams().model_dump() == presets.TM_DEFAULTS
     with pytest.raises(presets.ParamsError) as info:
         presets.check_section(presets.TmParams, "tm", {"columnDimensions": "x"})
     assert info.value.errors[0][0] == "columnDimensions"
