@@ -220,11 +220,18 @@ def _merge(defaults: dict[str, Any], section: dict[str, Any], overrides: dict[st
 
 
 def tm_params(name: str, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Full Temporal Memory parameters: NuPIC defaults <- preset `name` <- `overrides`."""
+    """Full Temporal Memory parameters: NuPIC defaults <- preset `name` <- `overrides`.
+
+    Raises:
+        KeyError: unknown preset. ValueError: the preset has no `tm` section.
+        ParamsError (a ValueError): an unknown parameter, a value of the wrong type or out of range.
+    """
     preset = get(name)
     if "tm" not in preset:
         raise ValueError(f"preset {name!r} has no Temporal Memory section")
-    return _merge(TM_DEFAULTS, preset["tm"], overrides)
+    params = {**TM_DEFAULTS, **preset["tm"], **(overrides or {})}
+    check_section(TmParams, "tm", params)
+    return params
 
 
 def mcn_params(name: str = "mcn-grid", overrides: dict[str, Any] | None = None) -> dict[str, Any]:

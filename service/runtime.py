@@ -62,28 +62,24 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
         Problem: 422 invalid-configuration with `errors` [{location, name, message}] naming each
             offending parameter (`tm.<name>`, `slsbh.<name>`), or the unknown preset.
     """
-    try:
-        base = presets.get(preset)
-        if "tm" not in base:
-            raise ValueError(f"preset {preset!r} has no Temporal Memory section")
-    except (KeyError, ValueError) as e:
-        msg = str(e).strip("'\"")
-        raise Problem(422, "invalid-configuration", msg,
-                      errors=[{"location": "body", "name": "preset", "message": msg}]) from e
     errors: list[dict[str, str]] = []
 
     def collect(e: presets.ParamsError) -> None:
         errors.extend({"location": "body", "name": f"{e.section}.{name}", "message": message}
                       for name, message in e.errors)
 
-    tm_params = {**presets.TM_DEFAULTS, **base["tm"], **(tm or {})}
-    if seed is not None:
-        tm_params["seed"] = seed
     warnings: list[str] = []
+    tm_params: dict[str, Any] = {}
     try:
+        base = presets.get(preset)
+        tm_params = presets.tm_params(preset, {**(tm or {}), **({} if seed is None else {"seed": seed})})
         warnings = validate(tm_params)
     except presets.ParamsError as e:
         collect(e)
+    except (KeyError, ValueError) as e:  # no such preset, or one without a TM
+        msg = str(e).strip("'\"")
+        raise Problem(422, "invalid-configuration", msg,
+                      errors=[{"location": "body", "name": "preset", "message": msg}]) from e
     s_conf = {**presets.SlsbhParams().model_dump(), **base.get("slsbh", {}), **(slsbh_conf or {})}
     try:
         presets.check_section(presets.SlsbhParams, "slsbh", s_conf)
