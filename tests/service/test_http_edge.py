@@ -18,6 +18,7 @@ from fastapi.testclient import TestClient
 
 from service.app import build_encoder, create_app
 from service.errors import PROBLEM_MEDIA_TYPE
+from service.limits import HEAD_MAX_BYTES
 from service.server import ProblemH11Protocol
 from service.settings import Settings
 
@@ -169,7 +170,16 @@ def test_the_serve_command_uses_the_problem_protocol(monkeypatch, tmp_path):
     monkeypatch.setattr(uvicorn, "run", lambda app, **kw: seen.update(kw))
     monkeypatch.setenv("CORTEXLOC_DATA_DIR", str(tmp_path))
     cli.serve(host=None, port=0, data_dir=None)
-    assert seen["http"] is ProblemH11Protocol
+    assert seen["http"] is ProblemH11Protocol and seen["h11_max_incomplete_event_size"] == HEAD_MAX_BYTES
+
+
+def test_oversized_headers_are_refused_however_they_arrive(client):
+    # h11 refuses a head over its limit only while it is incomplete; one that arrives in a single read
+    # reaches the app, which refuses it the same way.
+    r = client.get("/healthz", headers={"X-Big": "a" * HEAD_MAX_BYTES})
+    assert r.status_code == 400 and r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
+    assert r.json()["type"].endswith("invalid-parameter") and str(HEAD_MAX_BYTES) in r.json()["detail"]
+    assert client.get("/healthz", headers={"X-Big": "a" * (HEAD_MAX_BYTES - 1000)}).status_code == 200
 
 
 def test_requests_answered_before_routing_are_counted_under_their_route(tmp_path):
