@@ -1,7 +1,8 @@
 """One error shape everywhere: RFC 9457 `application/problem+json` (service.md §2).
 
 Routes raise `Problem(status, slug, detail, **members)`; `install_error_handlers` turns it, FastAPI's
-validation errors, the router's 404/405, an `ImageError` and any unexpected exception into the same
+validation errors, the router's 404/405, an `ImageError`, the domain errors of `DOMAIN_PROBLEMS` (one
+table: e.g. a damaged snapshot is 409 `snapshot-invalid`) and any unexpected exception into the same
 body:
 
     {"type": "urn:cortexloc:problem:<slug>", "title": <fixed per slug>, "status": ..., "detail": ...,
@@ -10,7 +11,8 @@ body:
 `RequestContextMiddleware` (pure ASGI, outermost) gives every request an id (a valid incoming
 `X-Request-ID`, else a UUID4), echoes it in the `X-Request-ID` response header, exposes it to logging
 (`request_id_var`), and turns an exception that escaped everything else into a 500 `internal-error`
-that leaks nothing (the traceback goes to the log with the request id).
+that leaks nothing (the traceback goes to the log with the request id). A client that goes away
+before its request was read is no server error: logged at info and counted as 499 (nobody receives it).
 
 Example:
     >>> raise Problem(404, "map-not-found", "map 'lab' does not exist", map_id="lab")
