@@ -99,6 +99,48 @@ def synthetic_jpegs(n: int, width: int = 640, height: int = 480, seed: int = 0) 
     return out
 
 
+def make_png(width: int, height: int, zlib_data: bytes, *, colour: int = 2, depth: int = 8,
+             interlace: int = 0, idat_chunks: int = 1) -> bytes:
+    """A PNG with this IHDR whose IDAT chunks hold `zlib_data` split into `idat_chunks` pieces (the image
+    data is not checked: hostile inputs for tests and benchmarks)."""
+    import struct
+    import zlib
+
+    def chunk(ctype: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + ctype + data + struct.pack(">I", zlib.crc32(ctype + data))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, depth, colour, 0, 0, interlace)
+    step = max(1, -(-len(zlib_data) // idat_chunks))
+    idats = [chunk(b"IDAT", zlib_data[i:i + step]) for i in range(0, len(zlib_data), step)]
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + b"".join(idats) + chunk(b"IEND", b"")
+
+
+def deflated_zeros(n_bytes: int) -> bytes:
+    """zlib stream of `n_bytes` zeros at a real bomb's ratio (~1,000:1), built in milliseconds: each MiB
+    is compressed independently (full flush), so one compressed MiB is repeated, then the stream ends
+    with an empty final block and the Adler-32 of all the zeros."""
+    import zlib
+
+    mib = 1 << 20
+    block = bytes(mib)
+    c = zlib.compressobj(9)
+    head = c.compress(b"") + c.flush(zlib.Z_FULL_FLUSH)  # the 2-byte zlib header
+    piece = c.compress(block) + c.flush(zlib.Z_FULL_FLUSH)
+    adler = 1
+    for _ in range(n_bytes // mib):
+        adler = zlib.adler32(block, adler)
+    rest = bytes(n_bytes % mib)
+    tail = c.compress(rest) + c.flush(zlib.Z_FULL_FLUSH)
+    adler = zlib.adler32(rest, adler)
+    return head + piece * (n_bytes // mib) + tail + b"\x03\x00" + adler.to_bytes(4, "big")
+
+
+def png_bomb(width: int, height: int, inflated_bytes: int, idat_chunks: int = 1) -> bytes:
+    """An 8-bit RGB PNG whose image data is `inflated_bytes` deflated zeros, whatever its raster needs
+    (a decompression bomb when that is more: issue 11's was 100x100 with ~9.6 GB in 9.8 MB)."""
+    return make_png(width, height, deflated_zeros(inflated_bytes), idat_chunks=idat_chunks)
+
+
 def bench_encoder(backbone: str = "alexnet", repeats: int = 15, threads: int = 1,
                   projection: str = "dense") -> dict[str, Any]:
     """Whole-encoder latency and throughput beside a bare torch forward in the same run.

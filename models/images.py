@@ -6,7 +6,18 @@ Decoding follows the order of work of service.md §1.2 and §3, so a hostile upl
 before it is refused: byte limit -> magic bytes (JPEG, PNG, BMP, WebP; everything else is refused before
 OpenCV sees it, which keeps OpenCV's many other codecs out of reach) -> width and height read from the
 header by small pure-Python parsers -> pixel cap and aspect-ratio cap -> a structural completeness check
-(truncated uploads are refused rather than decoded into half-grey frames) -> `cv2.imdecode`.
+(truncated uploads are refused rather than decoded into half-grey frames) -> a decoding-cost check ->
+`cv2.imdecode`.
+
+Decoding cost is bounded by the declared raster, not only by the byte limit: a 10 MB PNG can hold ~10 GB
+of deflated zeros (libpng inflates all of it, ~25 s), and a 300 kB progressive JPEG thousands of empty
+scans over a 25-megapixel frame (~100 s). So the header walk refuses PNG image data larger than its
+raster could need compressed and JPEGs with more than `JPEG_MAX_SCANS` scans (both cheap, before
+anything is queued), and `decode` inflates the PNG data once with a bounded decompressor that stops at
+the raster's exact size, so no upload costs more than a legitimate image of its declared size. These
+parsers stay ours rather than Pillow's lazy `open`: Pillow's bomb guard is a pixel count (the cap we
+already check) and says nothing about compression ratios or scan counts, and a second codec library
+would be more attack surface than these few hundred lines.
 
 Preprocessing reproduces torchvision's `Resize(256)` + `CenterCrop(224)` + `ToTensor` + `Normalize`
 geometry and arithmetic (science.md §6), with OpenCV's `INTER_AREA` standing in for antialiased bilinear
@@ -29,9 +40,10 @@ os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", "25000000")
 
 import re
 import struct
+import zlib
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -44,6 +56,7 @@ __all__ = [
     "FORMATS",
     "IMAGENET_MEAN",
     "IMAGENET_STD",
+    "JPEG_MAX_SCANS",
     "MODES",
     "ImageError",
     "ImageInfo",
@@ -65,7 +78,8 @@ DEFAULT_MAX_ASPECT = 16.0
 FORMATS = ("jpeg", "png", "bmp", "webp")
 MODES = ("crop", "squash")
 ERROR_CODES = frozenset(
-    {"empty", "too-large", "not-an-image", "truncated", "too-many-pixels", "unsupported-format", "degenerate"}
+    {"empty", "too-large", "not-an-image", "truncated", "too-many-pixels", "unsupported-format", "degenerate",
+     "bomb"}
 )
 
 _FORMAT_NAMES = {"jpeg": "JPEG", "png": "PNG", "bmp": "BMP", "webp": "WebP"}
@@ -76,11 +90,14 @@ class ImageError(ValueError):
 
     The HTTP service maps `code` to a 4xx problem+json (service.md §2): `too-large` -> 413
     payload-too-large, `too-many-pixels` -> 413 image-too-large, `unsupported-format` -> 415,
-    `degenerate` -> 422 degenerate-image, `empty` / `not-an-image` / `truncated` -> 422 undecodable-image.
+    `degenerate` -> 422 degenerate-image, `bomb` -> 422 decompression-bomb, `empty` / `not-an-image` /
+    `truncated` -> 422 undecodable-image.
 
     Attributes:
         code: one of `ERROR_CODES`: "empty", "too-large", "not-an-image", "truncated", "too-many-pixels",
-            "unsupported-format", "degenerate".
+            "unsupported-format", "degenerate", "bomb" (a small file whose decoding would cost far more
+            than its declared size needs: PNG data that inflates past its raster, a JPEG with too many
+            progressive scans).
         message: the human sentence, also `str(error)`.
         details: the numbers behind the message, for problem+json members (e.g. `width`, `height`,
             `max_pixels`; `received_bytes`, `max_bytes`; `detected`; `format`).
@@ -196,10 +213,18 @@ def _is_signature_prefix(data: bytes) -> str | None:
 
 
 # ------------------------------------------------------------------------------------------ header parsers
-# Each returns (width, height, complete). They raise ImageError("truncated") when the file ends before the
-# dimensions, ImageError("not-an-image") when the structure is corrupt. `complete` says whether the file
-# reaches its end marker; it is reported separately so that the pixel cap is checked first (a tiny file
-# that claims 20000×20000 is "too-many-pixels", whatever follows its header).
+# Each returns a `_Header`. They raise ImageError("truncated") when the file ends before the dimensions,
+# ImageError("not-an-image") when the structure is corrupt. `complete` says whether the file reaches its
+# end marker and `costly` holds a "bomb" error; both are reported separately so that the pixel cap is
+# checked first (a tiny file that claims 20000×20000 is "too-many-pixels", whatever follows its header).
+
+
+class _Header(NamedTuple):
+    width: int
+    height: int
+    complete: bool
+    costly: ImageError | None = None  # raised by `probe` after the size and completeness checks
+
 
 _JPEG_SOF = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
 # Inside entropy-coded data 0xFF is byte-stuffed (FF 00) and restart markers FF D0..D7 may occur; any
@@ -216,17 +241,19 @@ def _corrupt(fmt: str, detail: str) -> ImageError:
     return ImageError("not-an-image", f"corrupt {_FORMAT_NAMES[fmt]} image: {detail}", format=fmt)
 
 
-def _jpeg_header(data: bytes) -> tuple[int, int, bool]:
+def _jpeg_header(data: bytes) -> _Header:
     """Walk the JPEG marker segments: SOFn gives the size; EOI (FF D9) must follow the last scan.
 
     Walking segments (rather than looking for FF D9 anywhere) matters because an EXIF thumbnail is a
     whole JPEG, EOI included, inside the APP1 segment of a truncated file. Progressive files have
-    several scans; each scan's entropy-coded data is skipped with one C-level regex search.
+    several scans; each scan's entropy-coded data is skipped with one C-level regex search. Scans are
+    counted: libjpeg walks every block of the frame once per scan, even for an empty one.
     """
     n = len(data)
     size: tuple[int, int] | None = None
     pos = 2  # after SOI
     segments = 0
+    scans = 0
     while True:
         segments += 1
         if segments > _JPEG_MAX_SEGMENTS:
@@ -247,7 +274,7 @@ def _jpeg_header(data: bytes) -> tuple[int, int, bool]:
         if marker == 0xD9:  # EOI
             if size is None:
                 raise _corrupt("jpeg", "end-of-image marker before any frame header (SOF)")
-            return size[0], size[1], True
+            return _Header(size[0], size[1], True, _jpeg_scans_error(scans, size))
         if marker in (0x00, 0x01, 0xD8) or 0xD0 <= marker <= 0xD7:  # standalone markers carry no length
             continue
         if pos + 2 > n:
@@ -271,6 +298,9 @@ def _jpeg_header(data: bytes) -> tuple[int, int, bool]:
         if marker == 0xDA:  # SOS: header segment, then entropy-coded data up to the next real marker
             if size is None:
                 raise _corrupt("jpeg", "scan (SOS) before any frame header (SOF)")
+            scans += 1
+            if scans > JPEG_MAX_SCANS:  # stop walking: the answer is known
+                return _Header(size[0], size[1], True, _jpeg_scans_error(scans, size))
             m = _JPEG_SCAN_END.search(data, seg_end)
             if m is None:
                 pos = n
@@ -280,35 +310,153 @@ def _jpeg_header(data: bytes) -> tuple[int, int, bool]:
         pos = seg_end
     if size is None:
         raise _truncated("jpeg", "the file ends before the frame header (SOF) that gives its size", n)
-    return size[0], size[1], False
+    return _Header(size[0], size[1], False)
 
 
 _JPEG_FILL = re.compile(rb"\xff+")
 _JPEG_MAX_SEGMENTS = 4096
+#: Scans per JPEG at most. Encoders write 1 (baseline) to about 10 (libjpeg's progressive script; mozjpeg's
+#: optimised ones are of that order); each extra scan costs a pass over every block of the frame, ~23 ms
+#: at 25 megapixels here, so 4,000 empty scans in 300 kB held the encoder for 100 s.
+JPEG_MAX_SCANS = 32
 
 
-def _png_header(data: bytes) -> tuple[int, int, bool]:
-    """IHDR must be the first chunk; the file is complete if it holds the IEND chunk."""
+def _jpeg_scans_error(scans: int, size: tuple[int, int]) -> ImageError | None:
+    if scans <= JPEG_MAX_SCANS:
+        return None
+    return ImageError("bomb", f"JPEG image has more than {JPEG_MAX_SCANS} scans; each one costs a pass over "
+                      f"the whole {size[0]}x{size[1]} frame", format="jpeg", width=size[0], height=size[1],
+                      max_scans=JPEG_MAX_SCANS)
+
+
+# Colour type -> samples per pixel, and the bit depths the PNG specification allows with it.
+_PNG_COLOUR_TYPES = {0: (1, (1, 2, 4, 8, 16)), 2: (3, (8, 16)), 3: (1, (1, 2, 4, 8)), 4: (2, (8, 16)),
+                     6: (4, (8, 16))}
+# Adam7 passes: first column, first row, column step, row step.
+_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+# Real files have a handful of chunks plus IDATs of 8-64 kB (libpng writes 8 kB: 1,280 for 10 MB); the
+# cap keeps the Python walk under ~20 ms.
+_PNG_MAX_CHUNKS = 16384
+_INFLATE_STEP = 1 << 22
+
+
+@dataclass(frozen=True)
+class _PngLayout:
+    """What the chunk walk found: the raster and where its compressed data lies."""
+
+    width: int
+    height: int
+    raster_bytes: int  # exact size of the filtered scanlines the IDAT stream must inflate to
+    idat: tuple[tuple[int, int], ...]  # (start, end) of each IDAT chunk's data
+    complete: bool  # the walk reached IEND
+
+
+def _png_raster_bytes(width: int, height: int, bits_per_pixel: int, interlaced: bool) -> int:
+    """Filtered scanline bytes: one filter byte plus the packed pixels per row, per Adam7 pass if any."""
+    def rows(w: int, h: int) -> int:
+        return h * (1 + (w * bits_per_pixel + 7) // 8) if w and h else 0
+
+    if not interlaced:
+        return rows(width, height)
+    return sum(rows(max(0, -(-(width - x0) // dx)), max(0, -(-(height - y0) // dy)))
+               for x0, y0, dx, dy in _ADAM7)
+
+
+def _png_layout(data: bytes) -> _PngLayout:
+    """Walk the chunks: IHDR first (size, depth, colour type, interlace), then every IDAT, up to IEND."""
     n = len(data)
     if n < 33:  # signature 8 + length 4 + type 4 + IHDR data 13 + CRC 4
         raise _truncated("png", "the file ends inside the IHDR header", n)
     length, ctype = struct.unpack_from(">I4s", data, 8)
     if ctype != b"IHDR" or length != 13:
         raise _corrupt("png", "the first chunk is not a 13-byte IHDR")
-    width, height = struct.unpack_from(">II", data, 16)
+    width, height, depth, colour, compression, filtering, interlace = struct.unpack_from(">IIBBBBB", data, 16)
     if width == 0 or height == 0 or width > 2**31 - 1 or height > 2**31 - 1:
         raise _corrupt("png", f"IHDR gives an invalid size {width}x{height}")
-    # IEND is a zero-length chunk, so its length and type are these 8 fixed bytes. Searching for them (in C)
-    # costs O(n) without a Python loop over possibly many tiny chunks; a false hit inside compressed data
-    # is astronomically unlikely, and libpng would still refuse such a file (imdecode -> None).
-    complete = data.find(b"\x00\x00\x00\x00IEND", 33) >= 0
-    return width, height, complete
+    samples, depths = _PNG_COLOUR_TYPES.get(colour, (0, ()))
+    if depth not in depths or compression != 0 or filtering != 0 or interlace > 1:
+        raise _corrupt("png", f"IHDR gives an invalid format (bit depth {depth}, colour type {colour}, "
+                              f"compression {compression}, filter {filtering}, interlace {interlace})")
+    idat: list[tuple[int, int]] = []
+    complete = False
+    pos = 33
+    unpack = struct.Struct(">I4s").unpack_from
+    for _ in range(_PNG_MAX_CHUNKS):
+        if pos + 8 > n:
+            break
+        length, ctype = unpack(data, pos)
+        if ctype == b"IDAT":
+            idat.append((pos + 8, min(pos + 8 + length, n)))
+        elif ctype == b"IEND":
+            complete = pos + 12 + length <= n
+            break
+        pos += 12 + length  # length, type, data, CRC
+    else:
+        raise _corrupt("png", f"more than {_PNG_MAX_CHUNKS} chunks")
+    raster = _png_raster_bytes(width, height, samples * depth, bool(interlace))
+    return _PngLayout(width, height, raster, tuple(idat), complete)
+
+
+def _png_deflate_bound(raster_bytes: int) -> int:
+    """Most compressed bytes a raster this size can take: stored deflate blocks add 5 bytes per 64 kB,
+    fixed Huffman codes at most 1/8; a quarter plus 64 kB leaves room for odd encoders."""
+    return raster_bytes + raster_bytes // 4 + 65536
+
+
+def _png_header(data: bytes) -> _Header:
+    """IHDR must be the first chunk; complete if the walk reaches IEND; costly if the compressed image
+    data is larger than its raster could need (the inflated bytes would be thrown away, after costing
+    ~2.5 s per GB)."""
+    png = _png_layout(data)
+    compressed = sum(end - start for start, end in png.idat)
+    costly = None
+    if compressed > _png_deflate_bound(png.raster_bytes):
+        costly = ImageError("bomb", f"PNG image data is {compressed} bytes compressed, more than a "
+                            f"{png.width}x{png.height} image could need ({png.raster_bytes} bytes "
+                            "uncompressed)", format="png", width=png.width, height=png.height,
+                            compressed_bytes=compressed, raster_bytes=png.raster_bytes)
+    return _Header(png.width, png.height, png.complete, costly)
+
+
+def _png_check_inflate(data: bytes) -> None:
+    """Inflate the IDAT stream once with a bounded decompressor: it must end at the raster's exact size.
+
+    libpng inflates the whole stream, also what follows the last row, so the cost of `cv2.imdecode` is
+    set by the stream, not by the image; here at most `raster_bytes` + 4 MB are inflated (in 4 MB
+    steps, never held), which is what a legitimate image of the declared size costs anyway (about as
+    much again as OpenCV's own decode of a PNG: ~10 ms at 640x480).
+
+    Raises:
+        ImageError: "bomb" when the stream inflates past the raster, "not-an-image" when it is not
+            valid zlib data or ends short of the raster.
+    """
+    png = _png_layout(data)
+    z = zlib.decompressobj()
+    produced = 0
+    view = memoryview(data)
+    try:
+        for start, end in png.idat:
+            pending = view[start:end]
+            while pending and not z.eof:
+                produced += len(z.decompress(pending, _INFLATE_STEP))
+                if produced > png.raster_bytes:
+                    raise ImageError("bomb", f"PNG image data inflates past the {png.raster_bytes} bytes of "
+                                     f"its {png.width}x{png.height} raster", format="png", width=png.width,
+                                     height=png.height, raster_bytes=png.raster_bytes)
+                pending = z.unconsumed_tail
+            if z.eof:
+                break
+    except zlib.error as e:
+        raise _corrupt("png", f"image data is not a valid zlib stream ({e})") from e
+    if not z.eof or produced != png.raster_bytes:
+        raise _corrupt("png", f"image data inflates to {produced} bytes, its raster needs "
+                              f"{png.raster_bytes}")
 
 
 _BMP_BIT_DEPTHS = frozenset({1, 2, 4, 8, 16, 24, 32})
 
 
-def _bmp_header(data: bytes) -> tuple[int, int, bool]:
+def _bmp_header(data: bytes) -> _Header:
     """BITMAPFILEHEADER + core (12-byte) or info (40+ byte) header; complete if the pixel array fits."""
     n = len(data)
     if n < 18:
@@ -340,10 +488,10 @@ def _bmp_header(data: bytes) -> tuple[int, int, bool]:
         need = offbits + size_image
     else:
         raise _corrupt("bmp", f"unknown compression {compression}")
-    return width, height, n >= need
+    return _Header(width, height, n >= need)
 
 
-def _webp_header(data: bytes) -> tuple[int, int, bool]:
+def _webp_header(data: bytes) -> _Header:
     """RIFF container; the first chunk is VP8 (lossy), VP8L (lossless) or VP8X (extended)."""
     n = len(data)
     if n < 30:  # RIFF header 12 + chunk header 8 + the 10 bytes that hold the size in every variant
@@ -367,7 +515,7 @@ def _webp_header(data: bytes) -> tuple[int, int, bool]:
         raise _corrupt("webp", f"unknown first chunk {fourcc!r}")
     if width == 0 or height == 0:
         raise _corrupt("webp", f"header gives an invalid size {width}x{height}")
-    return width, height, n >= 8 + riff_size
+    return _Header(width, height, n >= 8 + riff_size)
 
 
 _HEADER_PARSERS = {"jpeg": _jpeg_header, "png": _png_header, "bmp": _bmp_header, "webp": _webp_header}
@@ -398,7 +546,7 @@ def probe(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = 
 
     Raises:
         ImageError: with `code` "empty", "too-large", "unsupported-format", "not-an-image", "truncated",
-            "too-many-pixels" or "degenerate".
+            "too-many-pixels", "degenerate" or "bomb".
     """
     unknown = set(formats) - set(FORMATS)
     if unknown or not formats:
@@ -433,7 +581,7 @@ def probe(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = 
                          f"{_FORMAT_NAMES[fmt]} images are not accepted here; send {_accepted_list(formats)}",
                          detected=_FORMAT_NAMES[fmt])
 
-    width, height, complete = _HEADER_PARSERS[fmt](data)
+    width, height, complete, costly = _HEADER_PARSERS[fmt](data)
     if width * height > max_pixels:
         raise ImageError("too-many-pixels",
                          f"image has {width}x{height} = {width * height} pixels, "
@@ -450,6 +598,8 @@ def probe(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = 
                "bmp": "the pixel array is shorter than the header says",
                "webp": "shorter than its RIFF header says"}[fmt]
         raise _truncated(fmt, end, n)
+    if costly is not None:
+        raise costly
     return ImageInfo(fmt, width, height)
 
 
@@ -473,11 +623,13 @@ def decode(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int =
 
     Raises:
         ImageError: see `probe`; also "not-an-image" when OpenCV cannot decode a structurally complete
-            file (corrupt data).
+            file (corrupt data), "bomb" when PNG image data inflates past its raster.
     """
     if not isinstance(data, bytes):
         data = bytes(data)
     info = probe(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect, formats=formats)
+    if info.format == "png":
+        _png_check_inflate(data)
     # IMREAD_COLOR_RGB: BGR->RGB inside the codec, grey/alpha to 3 channels, EXIF orientation applied.
     # For PNG also ask for 16-bit samples (IMREAD_ANYDEPTH keeps the orientation handling) so that 16-bit
     # files are scaled with rounding below instead of OpenCV's truncating `>> 8`. Only PNG: a 12-bit JPEG

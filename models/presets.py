@@ -10,22 +10,81 @@ from __future__ import annotations
 import copy
 from typing import Any
 
-# NuPIC 1.0.5 / htm.core constructor defaults, with their parameter names (science.md §3.1).
-TM_DEFAULTS: dict[str, Any] = {
-    "columnDimensions": 2048,
-    "cellsPerColumn": 32,
-    "activationThreshold": 13,
-    "initialPermanence": 0.21,
-    "connectedPermanence": 0.50,
-    "minThreshold": 10,
-    "maxNewSynapseCount": 20,
-    "permanenceIncrement": 0.10,
-    "permanenceDecrement": 0.10,
-    "predictedSegmentDecrement": 0.0,
-    "maxSegmentsPerCell": 255,
-    "maxSynapsesPerSegment": 255,
-    "seed": 42,
-}
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+_COUNT = 65535  # synapse and segment counts are stored as uint16
+_SEED = 2**63 - 1
+
+
+class TmParams(BaseModel):
+    """The Temporal Memory section: each parameter's NuPIC 1.0.5 / htm.core name and constructor default
+    (science.md §3.1), its type (JSON numbers only: strict, no strings or booleans) and its range.
+    Rules between parameters are `models.temporal_memory.validate`'s."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    columnDimensions: int = Field(2048, ge=1, le=2**24)
+    cellsPerColumn: int = Field(32, ge=1, le=2**16)
+    activationThreshold: int = Field(13, ge=1, le=_COUNT)
+    initialPermanence: float = Field(0.21, ge=0.0, le=1.0)
+    connectedPermanence: float = Field(0.50, ge=0.0, le=1.0)
+    minThreshold: int = Field(10, ge=1, le=_COUNT)
+    maxNewSynapseCount: int = Field(20, ge=1, le=_COUNT)
+    permanenceIncrement: float = Field(0.10, ge=0.0, le=1.0)
+    permanenceDecrement: float = Field(0.10, ge=0.0, le=1.0)
+    predictedSegmentDecrement: float = Field(0.0, ge=0.0, le=1.0)
+    maxSegmentsPerCell: int = Field(255, ge=1, le=_COUNT)
+    maxSynapsesPerSegment: int = Field(255, ge=1, le=_COUNT)
+    seed: int = Field(42, ge=0, le=_SEED)
+
+
+class SlsbhParams(BaseModel):
+    """The sLSBH section of a map (science.md §7): projected dimension, sparsity, projection seed (None:
+    the TM's seed) and the stream adaptation time constant in frames (0 = off, models.adaptation)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    k: int = Field(1024, ge=1, le=2**16)
+    s: float = Field(0.25, gt=0.0, le=0.5)
+    seed: int | None = Field(None, ge=0, le=_SEED)
+    adapt_tau: int = Field(0, ge=0, le=100_000)
+
+
+class ParamsError(ValueError):
+    """Invalid parameters of one preset section.
+
+    Attributes:
+        section: "tm" or "slsbh".
+        errors: (parameter, message) pairs.
+    """
+
+    def __init__(self, section: str, errors: list[tuple[str, str]]) -> None:
+        self.section = section
+        self.errors = errors
+        super().__init__("; ".join(f"{section}.{name}: {message}" for name, message in errors))
+
+
+def check_section(model: type[BaseModel], section: str, values: dict[str, Any]) -> None:
+    """Check a section's values against its model (names, types, ranges).
+
+    Raises:
+        ParamsError: every offending parameter, with what was given.
+    """
+    try:
+        model.model_validate(values)
+    except ValidationError as e:
+        errors = []
+        for err in e.errors(include_url=False):
+            name = ".".join(str(p) for p in err["loc"]) or section
+            if err["type"] == "extra_forbidden":
+                errors.append((name, f"unknown parameter; known: {', '.join(model.model_fields)}"))
+            else:
+                errors.append((name, f"{err['msg']} (got {repr(err.get('input'))[:40]})"))
+        raise ParamsError(section, errors) from None
+
+
+#: NuPIC 1.0.5 / htm.core constructor defaults, with their parameter names (science.md §3.1).
+TM_DEFAULTS: dict[str, Any] = TmParams().model_dump()
 
 # MCN (science.md §4). `nInConPerCol=None` means "round(mean ones per input)", derived from the data;
 # `minColumnActivity` is a fraction of nInConPerCol, rounded; `strict` selects `>` instead of `>=`.
@@ -160,11 +219,18 @@ def _merge(defaults: dict[str, Any], section: dict[str, Any], overrides: dict[st
 
 
 def tm_params(name: str, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Full Temporal Memory parameters: NuPIC defaults <- preset `name` <- `overrides`."""
+    """Full Temporal Memory parameters: NuPIC defaults <- preset `name` <- `overrides`.
+
+    Raises:
+        KeyError: unknown preset. ValueError: the preset has no `tm` section.
+        ParamsError (a ValueError): an unknown parameter, a value of the wrong type or out of range.
+    """
     preset = get(name)
     if "tm" not in preset:
         raise ValueError(f"preset {name!r} has no Temporal Memory section")
-    return _merge(TM_DEFAULTS, preset["tm"], overrides)
+    params = {**TM_DEFAULTS, **preset["tm"], **(overrides or {})}
+    check_section(TmParams, "tm", params)
+    return params
 
 
 def mcn_params(name: str = "mcn-grid", overrides: dict[str, Any] | None = None) -> dict[str, Any]:

@@ -116,28 +116,18 @@ class StreamContext:
 def validate(params: dict[str, Any]) -> list[str]:
     """Check parameters as NuPIC does; return the warnings of science.md §3.1.
 
+    Names, types and ranges are `presets.TmParams`'s; the rules between parameters are here.
+
     Raises:
-        ValueError: a count below 1, a permanence outside [0, 1], minThreshold > activationThreshold,
-            or an unknown parameter.
+        presets.ParamsError (a ValueError): an unknown parameter, a value of the wrong type or out of
+            range (a count below 1, a permanence outside [0, 1], ...), minThreshold > activationThreshold.
     """
-    unknown = set(params) - set(presets.TM_DEFAULTS)
-    if unknown:
-        raise ValueError(f"unknown Temporal Memory parameter(s): {sorted(unknown)}")
-    for name in ("columnDimensions", "cellsPerColumn", "activationThreshold", "minThreshold",
-                 "maxNewSynapseCount", "maxSegmentsPerCell", "maxSynapsesPerSegment"):
-        if int(params[name]) < 1:
-            raise ValueError(f"{name} must be >= 1, got {params[name]}")
-    for name in ("initialPermanence", "connectedPermanence", "permanenceIncrement",
-                 "permanenceDecrement", "predictedSegmentDecrement"):
-        if not 0.0 <= float(params[name]) <= 1.0:
-            raise ValueError(f"{name} must be in [0, 1], got {params[name]}")
+    params = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in params.items()}
+    presets.check_section(presets.TmParams, "tm", params)
     if params["minThreshold"] > params["activationThreshold"]:
-        raise ValueError(
+        raise presets.ParamsError("tm", [("minThreshold", (
             f"minThreshold ({params['minThreshold']}) must not exceed activationThreshold "
-            f"({params['activationThreshold']})"
-        )
-    if params["maxSegmentsPerCell"] > 65535 or params["maxSynapsesPerSegment"] > 65535:
-        raise ValueError("maxSegmentsPerCell and maxSynapsesPerSegment must be <= 65535")
+            f"({params['activationThreshold']})"))])
     notes = []
     if params["activationThreshold"] > params["maxSynapsesPerSegment"]:
         notes.append(

@@ -478,9 +478,12 @@ def serve(
     import uvicorn
 
     from service.app import create_app
+    from service.limits import HEAD_MAX_BYTES
+    from service.server import ProblemH11Protocol
 
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, workers=1, lifespan="on",
-                log_level=settings.log_level.lower())
+                log_level=settings.log_level.lower(), http=ProblemH11Protocol,
+                h11_max_incomplete_event_size=HEAD_MAX_BYTES)
 
 
 @app.command("import")

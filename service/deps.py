@@ -5,6 +5,7 @@
     MetricsDep    the app's `Metrics` (per-app Prometheus registry)
     MapsDep       `app.state.maps`, map_id -> map runtime object
     require_api_key / ApiKeyDep   guard for write routes when `CORTEXLOC_API_KEY` is set
+    MapReadKeyDep   the same guard for reads of whole maps (downloads), when `CORTEXLOC_API_KEY_READS`
 
 Example:
     >>> @router.post("/v1/maps", dependencies=[ApiKeyDep])
@@ -24,8 +25,22 @@ from service.errors import Problem
 from service.routes.metrics import Metrics
 from service.settings import Settings
 
-__all__ = ["ApiKeyDep", "EncoderDep", "MapsDep", "MetricsDep", "RegistryDep", "SettingsDep", "get_encoder",
-           "get_maps", "get_metrics", "get_registry", "get_settings", "require_api_key"]
+__all__ = [
+    "ApiKeyDep",
+    "EncoderDep",
+    "MapReadKeyDep",
+    "MapsDep",
+    "MetricsDep",
+    "RegistryDep",
+    "SettingsDep",
+    "get_encoder",
+    "get_maps",
+    "get_metrics",
+    "get_registry",
+    "get_settings",
+    "require_api_key",
+    "require_api_key_for_map_reads",
+]
 
 
 def get_settings(request: Request) -> Settings:
@@ -97,3 +112,17 @@ def require_api_key(
 
 #: `dependencies=[ApiKeyDep]` on a write route or router.
 ApiKeyDep = Depends(require_api_key)
+
+
+def require_api_key_for_map_reads(
+    settings: SettingsDep,
+    api_key: Annotated[str | None, Security(_api_key_header)] = None,
+    bearer: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)] = None,
+) -> None:
+    """`require_api_key` for reads of a whole map (a snapshot download), when `CORTEXLOC_API_KEY_READS`."""
+    if settings.api_key_reads:
+        require_api_key(settings, api_key, bearer)
+
+
+#: `dependencies=[MapReadKeyDep]` on a route that hands out a whole map.
+MapReadKeyDep = Depends(require_api_key_for_map_reads)

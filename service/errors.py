@@ -1,7 +1,8 @@
 """One error shape everywhere: RFC 9457 `application/problem+json` (service.md §2).
 
 Routes raise `Problem(status, slug, detail, **members)`; `install_error_handlers` turns it, FastAPI's
-validation errors, the router's 404/405, an `ImageError` and any unexpected exception into the same
+validation errors, the router's 404/405, an `ImageError`, the domain errors of `DOMAIN_PROBLEMS` (one
+table: e.g. a damaged snapshot is 409 `snapshot-invalid`) and any unexpected exception into the same
 body:
 
     {"type": "urn:cortexloc:problem:<slug>", "title": <fixed per slug>, "status": ..., "detail": ...,
@@ -10,7 +11,8 @@ body:
 `RequestContextMiddleware` (pure ASGI, outermost) gives every request an id (a valid incoming
 `X-Request-ID`, else a UUID4), echoes it in the `X-Request-ID` response header, exposes it to logging
 (`request_id_var`), and turns an exception that escaped everything else into a 500 `internal-error`
-that leaks nothing (the traceback goes to the log with the request id).
+that leaks nothing (the traceback goes to the log with the request id). A client that goes away
+before its request was read is no server error: logged at info and counted as 499 (nobody receives it).
 
 Example:
     >>> raise Problem(404, "map-not-found", "map 'lab' does not exist", map_id="lab")
@@ -22,22 +24,26 @@ import contextvars
 import logging
 import re
 import uuid
-from collections.abc import Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from http import HTTPStatus
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, ConfigDict
 from starlette.datastructures import MutableHeaders
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from models.images import ImageError
+from storage.snapshots import SnapshotInvalid
 
 __all__ = [
+    "CLIENT_CLOSED_REQUEST",
+    "DOMAIN_PROBLEMS",
     "IMAGE_MEDIA_TYPES",
     "PROBLEM_MEDIA_TYPE",
     "REQUEST_ID_HEADER",
@@ -47,6 +53,9 @@ __all__ = [
     "RequestContextMiddleware",
     "image_error_problem",
     "install_error_handlers",
+    "iter_routes",
+    "new_request_id",
+    "problem_body",
     "problem_response",
     "problem_responses",
     "request_id_of",
@@ -67,6 +76,7 @@ PROBLEMS: dict[str, tuple[int, str]] = {
     "unauthorized": (401, "Unauthorized"),
     "map-not-found": (404, "Map not found"),
     "snapshot-not-found": (404, "Snapshot not found"),
+    "snapshot-invalid": (409, "Snapshot invalid"),
     "not-found": (404, "Not found"),
     "method-not-allowed": (405, "Method not allowed"),
     "map-exists": (409, "Map already exists"),
@@ -77,6 +87,7 @@ PROBLEMS: dict[str, tuple[int, str]] = {
     "unsupported-media-type": (415, "Unsupported media type"),
     "undecodable-image": (422, "Undecodable image"),
     "degenerate-image": (422, "Degenerate image"),
+    "decompression-bomb": (422, "Decompression bomb"),
     "map-too-large": (422, "Map too large"),
     "invalid-configuration": (422, "Invalid configuration"),
     "not-ready": (503, "Not ready"),
@@ -159,18 +170,29 @@ def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
 # ------------------------------------------------------------------------------------ request ids
 
 
-def _new_request_id() -> str:
-    return str(uuid.uuid4())
-
-
 def request_id_of(scope_or_request: Scope | Request) -> str:
     """The request's id (set by `RequestContextMiddleware`); a fresh one if the middleware did not run."""
     scope = scope_or_request.scope if isinstance(scope_or_request, Request) else scope_or_request
     state = scope.setdefault("state", {})
     rid = state.get("request_id")
     if rid is None:
-        rid = state["request_id"] = _new_request_id()
+        rid = state["request_id"] = new_request_id()
     return rid
+
+
+def problem_body(status: int, slug: str, detail: str, *, instance: str, request_id: str,
+                 **members: Any) -> dict[str, Any]:
+    """The problem+json object (also for answers written below the app, e.g. by the HTTP protocol)."""
+    if slug not in TITLES:
+        raise ValueError(f"unknown problem slug {slug!r}")
+    body = {"type": TYPE_PREFIX + slug, "title": TITLES[slug], "status": int(status), "detail": detail,
+            "instance": instance, "request_id": request_id}
+    body.update({k: v for k, v in members.items() if k not in RESERVED_MEMBERS})
+    return body
+
+
+def new_request_id() -> str:
+    return str(uuid.uuid4())
 
 
 def problem_response(request: Request, status: int, slug: str, detail: str, *,
@@ -182,12 +204,8 @@ def problem_response(request: Request, status: int, slug: str, detail: str, *,
         status, slug, detail, members: see `Problem`.
         headers: extra headers; `X-Request-ID` is always set.
     """
-    if slug not in TITLES:
-        raise ValueError(f"unknown problem slug {slug!r}")
     rid = request_id_of(request)
-    body = {"type": TYPE_PREFIX + slug, "title": TITLES[slug], "status": int(status), "detail": detail,
-            "instance": request.url.path, "request_id": rid}
-    body.update({k: v for k, v in members.items() if k not in RESERVED_MEMBERS})
+    body = problem_body(status, slug, detail, instance=request.url.path, request_id=rid, **members)
     out_headers = {**(headers or {}), REQUEST_ID_HEADER: rid}
     return JSONResponse(body, status_code=int(status), headers=out_headers, media_type=PROBLEM_MEDIA_TYPE)
 
@@ -207,6 +225,7 @@ _IMAGE_SLUGS: dict[str, tuple[int, str]] = {
     "not-an-image": (422, "undecodable-image"),
     "truncated": (422, "undecodable-image"),
     "degenerate": (422, "degenerate-image"),
+    "bomb": (422, "decompression-bomb"),
 }
 
 
@@ -258,6 +277,23 @@ def _validation_errors(exc: RequestValidationError) -> list[dict[str, str]]:
     return out
 
 
+#: Domain errors -> (status, slug); the detail is the error's message, with the data directory's path
+#: cut off (it names the file, not where the server keeps it).
+DOMAIN_PROBLEMS: dict[type[Exception], tuple[int, str]] = {
+    SnapshotInvalid: (409, "snapshot-invalid"),
+}
+
+
+async def _domain_error_handler(request: Request, exc: Exception) -> JSONResponse:
+    status, slug = next(v for cls, v in DOMAIN_PROBLEMS.items() if isinstance(exc, cls))
+    detail = str(exc)
+    data_dir = getattr(getattr(request.app.state, "settings", None), "data_dir", None)
+    if data_dir is not None:
+        for root in {str(data_dir.resolve()), str(data_dir)}:
+            detail = detail.replace(root.rstrip("/") + "/", "")
+    return problem_response(request, status, slug, detail)
+
+
 async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
     errors = _validation_errors(exc)
@@ -268,10 +304,21 @@ async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:
                             errors=errors)
 
 
+def iter_routes(routes: Iterable[Any]) -> Iterator[Any]:
+    """Every route of a router, included routers flattened (FastAPI >= 0.16x keeps an included router as
+    one entry whose `effective_candidates()` are its routes with the prefixes applied)."""
+    for route in routes:
+        candidates = getattr(route, "effective_candidates", None)
+        if callable(candidates):
+            yield from iter_routes(candidates())
+        else:
+            yield route
+
+
 def allowed_methods(request: Request) -> list[str]:
     """Methods of every route whose path matches the request (Starlette's 405 names only the first)."""
     methods: set[str] = set()
-    for route in request.app.router.routes:
+    for route in iter_routes(request.app.router.routes):
         route_methods = getattr(route, "methods", None)
         if not route_methods:
             continue
@@ -281,8 +328,21 @@ def allowed_methods(request: Request) -> list[str]:
     return sorted(methods)
 
 
-async def _http_exception_handler(request: Request, exc: Exception) -> JSONResponse:
+#: Status recorded for a request whose client went away before it was read (nginx's "client closed
+#: request"): nobody receives it, the metrics count it apart from the server's errors.
+CLIENT_CLOSED_REQUEST = 499
+
+
+async def _client_disconnect_handler(request: Request, exc: Exception) -> Response:
+    """The client closed the connection mid-request (e.g. during an upload): not a server error."""
+    log.info("client went away before %s %s was read", request.method, request.url.path)
+    return Response(status_code=CLIENT_CLOSED_REQUEST)
+
+
+async def _http_exception_handler(request: Request, exc: Exception) -> Response:
     assert isinstance(exc, StarletteHTTPException)
+    if isinstance(exc.__cause__, ClientDisconnect):  # FastAPI's 400 "error parsing the body"
+        return await _client_disconnect_handler(request, exc.__cause__)
     status = exc.status_code
     phrase = HTTPStatus(status).phrase if status in HTTPStatus._value2member_map_ else ""
     custom = isinstance(exc.detail, str) and exc.detail and exc.detail != phrase
@@ -318,7 +378,10 @@ def install_error_handlers(app: FastAPI) -> None:
     """Replace FastAPI's validation, 404/405 and 500 handlers with problem+json ones."""
     app.add_exception_handler(Problem, _problem_handler)
     app.add_exception_handler(ImageError, _image_error_handler)
+    for domain_error in DOMAIN_PROBLEMS:
+        app.add_exception_handler(domain_error, _domain_error_handler)
     app.add_exception_handler(RequestValidationError, _validation_handler)
+    app.add_exception_handler(ClientDisconnect, _client_disconnect_handler)
     app.add_exception_handler(StarletteHTTPException, _http_exception_handler)
     app.add_exception_handler(Exception, _internal_error_handler)
 
@@ -348,7 +411,7 @@ class RequestContextMiddleware:
             if key == b"x-request-id":
                 incoming = value.decode("latin-1").strip()
                 break
-        rid = incoming if incoming and _REQUEST_ID_RE.fullmatch(incoming) else _new_request_id()
+        rid = incoming if incoming and _REQUEST_ID_RE.fullmatch(incoming) else new_request_id()
         scope.setdefault("state", {})["request_id"] = rid
         token = request_id_var.set(rid)
         started = False

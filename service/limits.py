@@ -12,6 +12,11 @@ the app in another task):
 The limit is `CORTEXLOC_MAX_UPLOAD_BYTES`, read per request from `app.state.settings`, and 64 KiB for
 JSON bodies (`application/json` or `application/*+json`). 413 responses carry `Connection: close`
 because the rest of the body is left unread.
+
+The request line and headers are limited to `HEAD_MAX_BYTES` (16 KiB, h11's own limit, which
+`cortexloc serve` passes to uvicorn): h11 enforces it only while a head is incomplete, so a larger head
+that arrives in one read would get through; here it is refused whatever the segmentation, with the
+same 400 `invalid-parameter` that `service.server.ProblemH11Protocol` writes in the other case.
 """
 
 from __future__ import annotations
@@ -24,10 +29,12 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service.errors import problem_response
 
 __all__ = [
-    "DEFAULT_MAX_UPLOAD_BYTES", "JSON_MAX_BYTES", "BodyTooLargeError", "UploadLimitMiddleware", "body_limit",
+    "DEFAULT_MAX_UPLOAD_BYTES", "HEAD_MAX_BYTES", "JSON_MAX_BYTES", "BodyTooLargeError",
+    "UploadLimitMiddleware", "body_limit", "head_bytes",
 ]
 
 JSON_MAX_BYTES = 64 * 1024
+HEAD_MAX_BYTES = 16 * 1024
 DEFAULT_MAX_UPLOAD_BYTES = 10 * 2**20
 
 
@@ -56,6 +63,13 @@ def body_limit(scope: Scope, headers: Headers) -> int:
     return limit
 
 
+def head_bytes(scope: Scope) -> int:
+    """Bytes of the request line and headers as sent (`METHOD target HTTP/x.y`, `name: value`, CRLFs)."""
+    target = len(scope.get("raw_path") or scope["path"].encode()) + len(scope.get("query_string") or b"")
+    line = len(scope.get("method", "")) + target + 1 + 12
+    return line + sum(len(k) + len(v) + 4 for k, v in scope.get("headers", ())) + 2
+
+
 def _too_large(scope: Scope, max_bytes: int, received: int, *, declared: bool) -> JSONResponse:
     what = f"Content-Length: {received}" if declared else f"cut off after {received} bytes"
     detail = f"request body is larger than the limit of {max_bytes} bytes ({what})"
@@ -72,6 +86,15 @@ class UploadLimitMiddleware:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
+            return
+        head = head_bytes(scope)
+        if head > HEAD_MAX_BYTES:
+            response = problem_response(
+                Request(scope), 400, "invalid-parameter",
+                f"the request line and headers are {head} bytes, more than the limit of {HEAD_MAX_BYTES}",
+                headers={"Connection": "close"},
+                errors=[{"location": "header", "name": "", "message": f"at most {HEAD_MAX_BYTES} bytes"}])
+            await response(scope, receive, send)
             return
         headers = Headers(scope=scope)
         limit = body_limit(scope, headers)

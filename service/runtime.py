@@ -46,44 +46,61 @@ _LISTED = 20  # divergent seqs listed in a recovery note (the count says how man
 
 def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] | None = None,
                    slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0) -> dict[str, Any]:
-    """Freeze a map's parameters: preset <- overrides (service.md §1.1).
+    """Freeze a map's parameters: preset <- overrides (service.md §1.1), every value checked against the
+    section models (`presets.TmParams`, `presets.SlsbhParams`: names, types, ranges) and the rules
+    between them, before anything is converted or allocated.
+
+    Args:
+        preset: a preset name with a `tm` section.
+        seed: overrides `tm.seed` (and so the projection's seed unless `slsbh.seed` is given).
+        tm, slsbh_conf: the request's overrides, as sent.
+        exclude_recent: frozen into the map.
+
+    Returns:
+        {"preset", "tm", "slsbh", "seed", "exclude_recent", "warnings"}.
 
     Raises:
-        Problem: 422 invalid-configuration for an unknown preset or parameter, or inconsistent values.
+        Problem: 422 invalid-configuration with `errors` [{location, name, message}] naming each
+            offending parameter (`tm.<name>`, `slsbh.<name>`), or the unknown preset.
     """
     errors: list[dict[str, str]] = []
+
+    def collect(e: presets.ParamsError) -> None:
+        errors.extend({"location": "body", "name": f"{e.section}.{name}", "message": message}
+                      for name, message in e.errors)
+
+    warnings: list[str] = []
+    tm_params: dict[str, Any] = {}
     try:
-        tm_params = presets.tm_params(preset, dict(tm or {}))
-    except (KeyError, ValueError) as e:
-        raise Problem(422, "invalid-configuration", str(e).strip("'\""),
-                      errors=[{"location": "body", "name": "tm" if tm else "preset",
-                               "message": str(e)}]) from e
-    s_conf = {"k": 1024, "s": 0.25, **presets.get(preset).get("slsbh", {}), **(slsbh_conf or {})}
-    s_conf.setdefault("adapt_tau", 0)
-    unknown = set(s_conf) - {"k", "s", "seed", "adapt_tau"}
-    if unknown:
-        errors.append({"location": "body", "name": "slsbh", "message": f"unknown key(s) {sorted(unknown)}"})
-    if seed is not None:
-        tm_params["seed"] = int(seed)
-    s_conf.setdefault("seed", int(tm_params["seed"]))
+        base = presets.get(preset)
+        tm_params = presets.tm_params(preset, {**(tm or {}), **({} if seed is None else {"seed": seed})})
+        warnings = validate(tm_params)
+    except presets.ParamsError as e:
+        collect(e)
+    except (KeyError, ValueError) as e:  # no such preset, or one without a TM
+        msg = str(e).strip("'\"")
+        raise Problem(422, "invalid-configuration", msg,
+                      errors=[{"location": "body", "name": "preset", "message": msg}]) from e
+    s_conf = {**presets.SlsbhParams().model_dump(), **base.get("slsbh", {}), **(slsbh_conf or {})}
     try:
-        slsbh.n_ones(int(s_conf["k"]), float(s_conf["s"]))
-    except (ValueError, TypeError) as e:
-        errors.append({"location": "body", "name": "slsbh", "message": str(e)})
-    if not isinstance(s_conf["adapt_tau"], int) or s_conf["adapt_tau"] < 0:
-        errors.append({"location": "body", "name": "slsbh.adapt_tau",
-                       "message": "adapt_tau must be an integer >= 0 (0 = no adaptation)"})
-    if int(s_conf.get("k", 0)) * 2 != int(tm_params["columnDimensions"]):
+        presets.check_section(presets.SlsbhParams, "slsbh", s_conf)
+    except presets.ParamsError as e:
+        collect(e)
+    if errors:
+        raise Problem(422, "invalid-configuration", "; ".join(f"{e['name']}: {e['message']}" for e in errors),
+                      errors=errors)
+    if s_conf["seed"] is None:
+        s_conf["seed"] = tm_params["seed"]
+    try:
+        slsbh.n_ones(s_conf["k"], s_conf["s"])
+    except ValueError as e:
+        errors.append({"location": "body", "name": "slsbh.s", "message": str(e)})
+    if s_conf["k"] * 2 != tm_params["columnDimensions"]:
         errors.append({"location": "body", "name": "slsbh.k",
                        "message": f"2k must equal columnDimensions ({tm_params['columnDimensions']})"})
-    try:
-        warnings = validate(tm_params)
-    except ValueError as e:
-        errors.append({"location": "body", "name": "tm", "message": str(e)})
-        warnings = []
     if errors:
         raise Problem(422, "invalid-configuration", "; ".join(e["message"] for e in errors), errors=errors)
-    return {"preset": preset, "tm": tm_params, "slsbh": s_conf, "seed": int(tm_params["seed"]),
+    return {"preset": preset, "tm": tm_params, "slsbh": s_conf, "seed": tm_params["seed"],
             "exclude_recent": int(exclude_recent), "warnings": warnings}
 
 

@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
 
 __all__ = ["ENV_PREFIX", "OTHER_KNOWN_VARIABLES", "ConfigError", "Settings", "env_name"]
 
@@ -96,6 +96,8 @@ class Settings(BaseModel):
                                   "266 MB projection and a million ~3 KB rows fit in 8 GiB")
     api_key: str | None = Field(None, min_length=1, repr=False,
                                 description="when set, every write needs it (X-API-Key or Bearer)")
+    api_key_reads: bool = Field(False, description="reads of whole maps (snapshot downloads) need the key "
+                                                   "too; requires CORTEXLOC_API_KEY")
 
     @field_validator("log_level", mode="before")
     @classmethod
@@ -106,6 +108,13 @@ class Settings(BaseModel):
     @classmethod
     def _lower(cls, v: Any) -> Any:
         return v.strip().lower() if isinstance(v, str) else v
+
+    @field_validator("api_key_reads")
+    @classmethod
+    def _reads_need_a_key(cls, v: bool, info: ValidationInfo) -> bool:
+        if v and info.data.get("api_key") is None:
+            raise ValueError("needs CORTEXLOC_API_KEY: there is no key to require")
+        return v
 
     @classmethod
     def variables(cls) -> dict[str, str]:

@@ -53,6 +53,7 @@ __all__ = [
     "FileEntry",
     "Manifest",
     "SnapshotInvalid",
+    "TarExport",
     "create_snapshot",
     "export_tar",
     "import_tar",
@@ -401,85 +402,149 @@ def remove_stale_temp(parent: str | os.PathLike[str]) -> list[Path]:
 # ---------------------------------------------------------------------- tar
 
 
-def _members(directory: Path, extra: Mapping[str, str | os.PathLike[str]] | None
-             ) -> tuple[Manifest, list[tuple[str, Path, int]]]:
-    """(manifest, [(member name, source path, size)]) in tar order: manifest first."""
-    body = (directory / MANIFEST_FILE).read_bytes()
-    m = _parse_manifest(body, str(directory))
-    members = [(MANIFEST_FILE, directory / MANIFEST_FILE, len(body))]
-    members += [(name, directory / name, e.bytes) for name, e in sorted(m.files.items())]
-    for name, src in (extra or {}).items():
-        if not _SAFE_NAME.match(name) or name == MANIFEST_FILE or name in m.files:
-            raise ValueError(f"unsafe or duplicate extra member name {name!r}")
-        src = Path(src)
-        recorded = m.external.get(name)
-        size = src.stat().st_size
-        if recorded is not None and recorded.bytes != size:
-            raise SnapshotInvalid(f"{src}: {size} bytes, the manifest records {recorded.bytes} for {name}")
-        members.append((name, src, size))
-    return m, members
+class TarExport:
+    """A snapshot opened for export as an uncompressed tar: `manifest.json`, its files, then `extra`.
+
+    Opening holds one descriptor per member and, by default, verifies every file the manifest lists
+    (regular, same size, same SHA-256, all bytes re-read from those descriptors), `extra` files too
+    where the manifest's `external` section records them. The tar is then generated from the same
+    descriptors chunk by chunk (`chunks`), with no copy anywhere: what is sent is what was verified,
+    even if the snapshot directory is pruned meanwhile (an unlinked file stays readable while open).
+    `close` (or leaving the `with` block) releases every descriptor.
+
+    Layout (GNU, as `tarfile` writes it): per member a 512-byte header and the data padded to 512; two
+    zero blocks; the whole padded to a 10,240-byte record. Names are short plain names, so no long-name
+    or pax headers appear, and GNU format stores sizes of 8 GiB and more without extra headers.
+
+    Args:
+        directory: a snapshot directory.
+        extra: member name -> path of files to add, e.g. `{"projection.npy": path}`.
+        verify: check the checksums on opening (False: sizes only, the importer verifies).
+
+    Attributes:
+        manifest: the parsed manifest.
+        size: exact byte length of the tar (for `Content-Length`).
+
+    Raises:
+        SnapshotInvalid: unreadable or inconsistent manifest, a missing file, a size or checksum that
+            differs from the manifest.
+        ValueError: an unsafe or duplicate `extra` name.
+    """
+
+    def __init__(self, directory: str | os.PathLike[str],
+                 extra: Mapping[str, str | os.PathLike[str]] | None = None, *, verify: bool = True) -> None:
+        directory = Path(directory)
+        self._held: list[BinaryIO] = []  # every descriptor opened, closed by `close`
+        self._files: list[tuple[tarfile.TarInfo, BinaryIO]] = []
+        try:
+            self._open(directory, extra or {}, verify)
+        except BaseException:
+            self.close()
+            raise
+
+    def _open(self, directory: Path, extra: Mapping[str, str | os.PathLike[str]], verify: bool) -> None:
+        manifest_file = self._hold(directory / MANIFEST_FILE, f"{directory}: no readable {MANIFEST_FILE}")
+        body = manifest_file.read()
+        manifest_file.seek(0)
+        self.manifest = _parse_manifest(body, str(directory))
+        m = self.manifest
+        for name in extra:
+            if not _SAFE_NAME.match(name) or name == MANIFEST_FILE or name in m.files:
+                raise ValueError(f"unsafe or duplicate extra member name {name!r}")
+        # (member name, where it is for messages, open file, what the manifest records or None)
+        here = str(directory)
+        members = [(MANIFEST_FILE, here, manifest_file, FileEntry(len(body), ""))]
+        members += [(name, here, self._hold(directory / name, f"{here}: {name} missing"), entry)
+                    for name, entry in sorted(m.files.items())]
+        members += [(name, str(src), self._hold(Path(src), f"{src}: {name} missing"), m.external.get(name))
+                    for name, src in extra.items()]
+        mtime = int(datetime.fromisoformat(m.created_at.replace("Z", "+00:00")).timestamp())
+        for name, where, f, entry in members:
+            st = os.fstat(f.fileno())
+            if not stat.S_ISREG(st.st_mode):
+                raise SnapshotInvalid(f"{where}: {name} is not a regular file")
+            if entry is not None and st.st_size != entry.bytes:
+                raise SnapshotInvalid(f"{where}: {name} has {st.st_size} bytes, manifest says {entry.bytes}")
+            if verify and entry is not None and entry.sha256:
+                if hashlib.file_digest(f, "sha256").hexdigest() != entry.sha256:
+                    raise SnapshotInvalid(f"{where}: {name} checksum mismatch")
+                f.seek(0)
+            info = tarfile.TarInfo(name)
+            info.size, info.mtime, info.mode = st.st_size, mtime, 0o644
+            info.uid = info.gid = 0
+            info.uname = info.gname = ""
+            self._files.append((info, f))
+        self._members_bytes = sum(tarfile.BLOCKSIZE + -(-info.size // tarfile.BLOCKSIZE) * tarfile.BLOCKSIZE
+                                  for info, _ in self._files)
+        end = self._members_bytes + 2 * tarfile.BLOCKSIZE
+        self.size = -(-end // tarfile.RECORDSIZE) * tarfile.RECORDSIZE
+
+    def _hold(self, path: Path, missing: str) -> BinaryIO:
+        try:
+            f = path.open("rb")
+        except OSError as exc:
+            raise SnapshotInvalid(f"{missing} ({exc.strerror or exc})") from exc
+        self._held.append(f)
+        return f
+
+    def chunks(self, chunk_bytes: int = _CHUNK) -> Iterator[bytes]:
+        """The tar, in pieces of at most `chunk_bytes` (headers and padding are separate pieces).
+
+        Raises:
+            SnapshotInvalid: a file got shorter since it was opened (the tar would disagree with `size`).
+        """
+        for info, f in self._files:
+            yield info.tobuf(tarfile.GNU_FORMAT, tarfile.ENCODING, "surrogateescape")
+            remaining = info.size
+            while remaining:
+                chunk = f.read(min(chunk_bytes, remaining))
+                if not chunk:
+                    raise SnapshotInvalid(f"{f.name}: shorter than when the export began")
+                remaining -= len(chunk)
+                yield chunk
+            if info.size % tarfile.BLOCKSIZE:
+                yield bytes(tarfile.BLOCKSIZE - info.size % tarfile.BLOCKSIZE)
+        yield bytes(self.size - self._members_bytes)  # the two end-of-archive blocks, the record padding
+
+    def close(self) -> None:
+        """Release every descriptor (idempotent)."""
+        for f in self._held:
+            f.close()
+        self._held.clear()
+
+    def __enter__(self) -> TarExport:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def tar_size(directory: str | os.PathLike[str], extra: Mapping[str, str | os.PathLike[str]] | None = None
              ) -> int:
-    """Exact byte length of what `export_tar` writes, for `Content-Length`.
-
-    GNU tar layout as Python writes it: per member one 512-byte header plus the data rounded up to 512;
-    then two zero blocks; the whole padded to a 10,240-byte record. Names are short plain names, so no
-    long-name or pax headers appear, and GNU format stores sizes ≥ 8 GiB without extra headers.
-    """
-    _, members = _members(Path(directory), extra)
-    n = sum(tarfile.BLOCKSIZE + -(-size // tarfile.BLOCKSIZE) * tarfile.BLOCKSIZE for _, _, size in members)
-    n += 2 * tarfile.BLOCKSIZE
-    return -(-n // tarfile.RECORDSIZE) * tarfile.RECORDSIZE
+    """Exact byte length of what `export_tar` writes (see `TarExport` for the layout)."""
+    with TarExport(directory, extra, verify=False) as export:
+        return export.size
 
 
 def export_tar(directory: str | os.PathLike[str], fileobj: IO[bytes],
-               extra: Mapping[str, str | os.PathLike[str]] | None = None) -> int:
-    """Stream a snapshot as an uncompressed tar: `manifest.json`, then its files, then `extra`.
-
-    Streams (tar mode `w|`): `fileobj` need not be seekable, and memory stays bounded. Files are not
-    re-hashed here (the importer verifies every checksum); sizes come from the manifest and a file that
-    changed size fails the export instead of producing a tar that disagrees with `tar_size`.
+               extra: Mapping[str, str | os.PathLike[str]] | None = None, *, verify: bool = False) -> int:
+    """Write a snapshot as an uncompressed tar to `fileobj` (which need not be seekable); see `TarExport`.
 
     Args:
         directory: a snapshot directory.
-        fileobj: where the tar goes (an HTTP body stream, a file).
+        fileobj: where the tar goes (a file, a pipe).
         extra: member name → path of files to add, e.g. `{"projection.npy": path}`.
+        verify: check every checksum first (by default only sizes: the importer verifies checksums).
 
     Returns:
         Bytes written (= `tar_size(directory, extra)`).
     """
-    directory = Path(directory)
-    m, members = _members(directory, extra)
-    mtime = int(datetime.fromisoformat(m.created_at.replace("Z", "+00:00")).timestamp())
-    counted = _CountingWriter(fileobj)
-    with tarfile.open(fileobj=counted, mode="w|", format=tarfile.GNU_FORMAT) as tar:
-        for name, src, size in members:
-            info = tarfile.TarInfo(name)
-            info.size, info.mtime, info.mode = size, mtime, 0o644
-            info.uid = info.gid = 0
-            info.uname = info.gname = ""
-            with src.open("rb") as f:
-                tar.addfile(info, f)
-    return counted.n
-
-
-class _CountingWriter:
-    """A write-only file object that counts what passes through (tarfile needs only `write`)."""
-
-    def __init__(self, raw: IO[bytes]) -> None:
-        self.raw = raw
-        self.n = 0
-
-    def write(self, b: bytes) -> int:
-        self.raw.write(b)
-        self.n += len(b)
-        return len(b)
-
-    def flush(self) -> None:
-        with contextlib.suppress(AttributeError):
-            self.raw.flush()
+    n = 0
+    with TarExport(directory, extra, verify=verify) as export:
+        for chunk in export.chunks():
+            fileobj.write(chunk)
+            n += len(chunk)
+    return n
 
 
 def import_tar(fileobj: BinaryIO, dest: str | os.PathLike[str], *,

@@ -92,10 +92,13 @@ def check_maps(maps: dict[str, Any]) -> Check:
         states[map_id] = {"state": str(_map_field(m, "state", "ready")),
                           "state_reason": _map_field(m, "state_reason")}
         recovery, snap_error = _map_field(m, "recovery"), _map_field(m, "snapshot_error")
-        if recovery and (recovery.get("skipped_snapshots") or recovery.get("mismatches")):
+        skipped = list((recovery or {}).get("skipped_snapshots") or [])
+        if skipped:
+            states[map_id]["skipped_snapshots"] = skipped
+        if recovery and (skipped or recovery.get("mismatches")):
             states[map_id]["recovery"] = recovery  # only when it went wrong: the usual case stays short
             notes.append(f"map {map_id} recovered by {recovery.get('source')} after passing over "
-                         f"{len(recovery.get('skipped_snapshots') or [])} snapshot(s), "
+                         f"{len(skipped)} snapshot(s) (a damaged snapshot, or one whose replay diverged), "
                          f"{recovery.get('mismatches', 0)} row(s) not reproduced")
         if snap_error:
             states[map_id]["snapshot_error"] = snap_error

@@ -19,23 +19,20 @@ MapId = Annotated[str, Path(pattern=r"^[a-z0-9][a-z0-9._-]{0,63}$", description=
 StreamName = Annotated[str, Path(pattern=r"^[A-Za-z0-9._-]{1,64}$", description="stream name")]
 
 
-class SlsbhConf(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    k: int | None = Field(default=None, ge=1)
-    s: float | None = Field(default=None, gt=0, le=0.5)
-    adapt_tau: int | None = Field(default=None, ge=0, le=100_000,
-                                  description="stream adaptation time constant in frames; 0 = off")
-
-
 class CreateMap(BaseModel):
-    """Every field optional; overrides are merged over the preset and frozen into the map."""
+    """Every field optional; overrides are merged over the preset and frozen into the map.
+
+    `tm` and `slsbh` are checked parameter by parameter (names, types, ranges: `models.presets.TmParams`
+    and `SlsbhParams`, with the rules between them) where the map's parameters are resolved
+    (`service.runtime.resolve_params`): a bad value is 422 invalid-configuration naming it.
+    """
 
     model_config = ConfigDict(extra="forbid")
     map_id: str | None = Field(default=None, pattern=r"^[a-z0-9][a-z0-9._-]{0,63}$")
     preset: str | None = None
-    seed: int | None = Field(default=None, ge=0)
-    tm: dict[str, Any] | None = None
-    slsbh: SlsbhConf | None = None
+    seed: int | None = Field(default=None, description="the TM's seed (and the projection's); >= 0")
+    tm: dict[str, Any] | None = Field(default=None, description="Temporal Memory overrides, NuPIC names")
+    slsbh: dict[str, Any] | None = Field(default=None, description="sLSBH overrides: k, s, seed, adapt_tau")
     exclude_recent: int = Field(default=0, ge=0)
 
 
@@ -44,10 +41,9 @@ class CreateMap(BaseModel):
 async def create_map(body: CreateMap, registry: RegistryDep, settings: SettingsDep,
                      response: Response) -> dict[str, Any]:
     map_id = body.map_id or f"map-{uuid.uuid4().hex[:12]}"
-    slsbh_conf = {k: v for k, v in (body.slsbh.model_dump() if body.slsbh else {}).items() if v is not None}
     rt = await anyio.to_thread.run_sync(lambda: registry.create(
         map_id, preset=body.preset or settings.default_preset, seed=body.seed, tm=body.tm,
-        slsbh_conf=slsbh_conf, exclude_recent=body.exclude_recent))
+        slsbh_conf=body.slsbh, exclude_recent=body.exclude_recent))
     response.headers["Location"] = f"/v1/maps/{map_id}"
     return rt.resource()
 

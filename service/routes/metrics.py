@@ -35,6 +35,8 @@ from prometheus_client import (
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.errors import iter_routes
+
 __all__ = ["Metrics", "MetricsMiddleware", "router"]
 
 PREFIX = "cortexloc_"
@@ -119,7 +121,7 @@ def _route_template(scope: Scope) -> str:
     if isinstance(path, str):
         return path
     app = scope.get("app")  # answered before routing (e.g. a 413): find the route the path would take
-    for candidate in getattr(getattr(app, "router", None), "routes", ()):
+    for candidate in iter_routes(getattr(getattr(app, "router", None), "routes", ())):
         try:
             match, _ = candidate.matches(scope)
         except Exception:  # pragma: no cover - a route that cannot match this scope

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import time
 from typing import Annotated, Any
 
+import anyio
 from fastapi import APIRouter, Path, Query, Request
 
 from models import images
@@ -47,10 +49,12 @@ async def post_observation(
         raise Problem(415, "unsupported-media-type", f"Content-Type {media or '(none)'!r} is not accepted",
                       allowed=list(MEDIA_TYPES), detected=media or None)
     body = await request.body()
-    # Every input check runs before anything stateful: the header (size, pixels, aspect) here, the
-    # full decode in the encoder's thread.
-    info = images.probe(body, max_bytes=settings.max_upload_bytes, max_pixels=settings.max_pixels,
-                        formats=("jpeg", "png"))
+    # Every input check runs before anything stateful: the header (size, pixels, aspect, decoding cost)
+    # here, off the event loop (a chunk walk may take milliseconds), the full decode in the encoder's
+    # thread.
+    info = await anyio.to_thread.run_sync(functools.partial(
+        images.probe, body, max_bytes=settings.max_upload_bytes, max_pixels=settings.max_pixels,
+        formats=("jpeg", "png")))
     if media in _DECLARED and _DECLARED[media] != info.format:
         raise Problem(415, "unsupported-media-type", f"declared {media} but the bytes are {info.format}",
                       allowed=list(MEDIA_TYPES), detected=info.format)

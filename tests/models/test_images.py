@@ -452,3 +452,78 @@ def test_hostile_jpeg_marker_floods_are_refused_cheaply():
     with pytest.raises(images.ImageError) as e:
         images.decode(fill)
     assert e.value.code == "truncated"
+
+
+# ------------------------------------------------------------------------------------- decoding cost
+
+
+def test_png_bomb_is_refused_from_its_chunks_without_inflating(png_bomb, no_decoding, monkeypatch):
+    # The bomb at 1/100 scale, same ratio: 100x100 (30,100 raster bytes), 100 MB of zeros.
+    data = png_bomb(100, 100, 100 << 20)
+    assert len(data) < 120_000
+    monkeypatch.setattr(images.zlib, "decompressobj", None)  # the header walk alone must refuse it
+    for split in (1, 300):  # one IDAT, or many
+        with pytest.raises(ImageError) as info:
+            probe(png_bomb(100, 100, 100 << 20, idat_chunks=split))
+        err = info.value
+        assert err.code == "bomb" and err.details["raster_bytes"] == 30_100
+        assert err.details["compressed_bytes"] > 100_000
+        assert "100x100" in str(err)
+
+
+def test_png_bomb_in_a_large_raster_is_stopped_at_the_raster_size(png_bomb, no_decoding, monkeypatch):
+    # 1000x1000 RGB needs 3,001,000 bytes; 64 MB of zeros compress to less than that, so the chunk walk
+    # cannot tell; the bounded inflate stops after the raster instead of inflating all 64 MB.
+    data = png_bomb(1000, 1000, 64 << 20)
+    assert probe(data).width == 1000
+    inflated = []
+    real = images.zlib.decompressobj
+
+    class Counting:
+        def __init__(self) -> None:
+            self.z = real()
+
+        def decompress(self, buf, max_length=0):
+            out = self.z.decompress(buf, max_length)
+            inflated.append(len(out))
+            return out
+
+        def __getattr__(self, name):
+            return getattr(self.z, name)
+
+    monkeypatch.setattr(images.zlib, "decompressobj", Counting)
+    with pytest.raises(ImageError) as info:
+        decode(data)
+    assert info.value.code == "bomb" and info.value.details["raster_bytes"] == 3_001_000
+    assert sum(inflated) <= 3_001_000 + images._INFLATE_STEP
+
+
+@pytest.mark.parametrize("interlace", [0, 1])
+@pytest.mark.parametrize(("colour", "depth", "samples"), [(0, 1, 1), (0, 16, 1), (2, 8, 3), (3, 4, 1),
+                                                           (4, 8, 2), (6, 16, 4)])
+def test_png_image_data_must_inflate_to_exactly_its_raster(colour, depth, samples, interlace, make_png):
+    # Exactly the raster decodes; one byte more is refused before OpenCV (libpng would inflate it all),
+    # one byte less is corrupt. Odd sizes exercise the Adam7 pass arithmetic and sub-byte packing.
+    w, h = 13, 7
+    exact = images._png_raster_bytes(w, h, samples * depth, bool(interlace))
+    plte = _png_chunk(b"PLTE", bytes(3 * 16)) if colour == 3 else b""
+
+    def png(n: int) -> bytes:
+        data = make_png(w, h, zlib.compress(bytes(n)), colour=colour, depth=depth, interlace=interlace)
+        return data[:33] + plte + data[33:]
+
+    assert decode(png(exact)).shape == (h, w, 3)
+    assert _code(png(exact + 1)) == "bomb"
+    assert _code(png(exact - 1)) == "not-an-image"
+
+
+def test_jpeg_with_too_many_scans_is_refused_without_decoding(no_decoding):
+    data = _encode(_blocks_rgb(), ".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])
+    sos = [i for i in range(len(data) - 1) if data[i:i + 2] == b"\xff\xda"]
+    assert 1 < len(sos) <= images.JPEG_MAX_SCANS  # a real progressive file passes
+    assert probe(data).format == "jpeg"
+    last_scan = data[sos[-1]:-2]  # an empty refinement scan still costs a pass over every block
+    flood = data[:-2] + last_scan * images.JPEG_MAX_SCANS + b"\xff\xd9"
+    with pytest.raises(ImageError) as info:
+        decode(flood)
+    assert info.value.code == "bomb" and info.value.details["max_scans"] == images.JPEG_MAX_SCANS

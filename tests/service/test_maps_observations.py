@@ -130,7 +130,7 @@ def test_create_get_delete_a_map_and_memory_sizes(client):
     ({"preset": "no-such-preset"}, 422, "invalid-configuration"),
     ({"map_id": "Bad/Id"}, 400, "invalid-parameter"),
     ({"unknown_field": 1}, 400, "invalid-parameter"),
-    ({"slsbh": {"adapt_tau": -1}}, 400, "invalid-parameter"),
+    ({"slsbh": {"adapt_tau": -1}}, 422, "invalid-configuration"),
     ({"preset": "cba2020-nordland"}, 422, "map-too-large"),
 ])
 def test_bad_map_creation_is_refused(client, payload, status, slug):
@@ -426,3 +426,22 @@ def test_api_key_guards_every_write(tmp_path):
                     headers={"Content-Type": "image/png", "X-API-Key": "s3cret"})
         assert ok.status_code == 200
         assert c.app.state.registry.get("default").store.count() == 1
+
+
+@pytest.mark.parametrize(("width", "height", "inflated"), [(100, 100, 100 << 20), (1000, 1000, 64 << 20)],
+                         ids=["small raster", "large raster"])
+def test_png_decompression_bomb_gets_a_problem_and_changes_nothing(client, png_bomb, width, height,
+                                                                   inflated):
+    # The 100x100 bomb at 1/100 scale (refused from its chunks), and one whose compressed size
+    # fits its raster (refused by the bounded inflate in the encoder).
+    post(client, frame(7))
+    before = state_of(client)
+    r = post(client, png_bomb(width, height, inflated))
+    assert r.status_code == 422, r.text
+    assert r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
+    body = r.json()
+    assert body["type"] == "urn:cortexloc:problem:decompression-bomb"
+    assert body["title"] == "Decompression bomb"
+    assert body["width"] == width and body["raster_bytes"] == height * (1 + 3 * width)
+    assert state_of(client) == before
+    assert post(client, frame(8)).status_code == 200  # the encoder is free for the next frame

@@ -294,3 +294,41 @@ def test_scan_and_stale_temp(tmp_path: Path, snap: tuple[Path, snapshots.Manifes
     assert [p.name for p in snapshots.remove_stale_temp(parent)] == [".s3.tmp-abc"]
     assert sorted(p.name for p in parent.iterdir()) == ["broken", "s1", "s2"]
     assert len(snapshots.new_snapshot_id()) > 20
+
+
+def test_tar_export_is_tarfile_layout_from_held_files(tmp_path: Path, snap: tuple[Path, snapshots.Manifest]
+                                                      ) -> None:
+    # The chunked export writes exactly what tarfile's streaming writer would, and reads the files it
+    # opened (and verified) even when the directory disappears meanwhile (a pruned snapshot).
+    src, m = snap
+    projection = tmp_path / "proj.npy"
+    np.save(projection, np.arange(1000, dtype=np.float32))
+    expected = io.BytesIO()
+    mtime = int(snapshots.datetime.fromisoformat(m.created_at.replace("Z", "+00:00")).timestamp())
+    with tarfile.open(fileobj=expected, mode="w|", format=tarfile.GNU_FORMAT) as tar:
+        for name, path in [("manifest.json", src / "manifest.json"), ("map.sqlite", src / "map.sqlite"),
+                           ("memory.npz", src / "memory.npz"), ("projection.npy", projection)]:
+            info = tarfile.TarInfo(name)
+            info.size = path.stat().st_size
+            info.mtime = mtime
+            info.mode, info.uname, info.gname = 0o644, "", ""
+            with path.open("rb") as f:
+                tar.addfile(info, f)
+    export = snapshots.TarExport(src, {"projection.npy": projection})
+    for p in src.iterdir():
+        p.unlink()
+    src.rmdir()
+    data = b"".join(export.chunks(chunk_bytes=1000))
+    export.close()
+    assert data == expected.getvalue() and len(data) == export.size
+
+
+def test_tar_export_verifies_before_the_first_byte(snap: tuple[Path, snapshots.Manifest]) -> None:
+    src, _ = snap
+    flip_byte(src / "memory.npz")
+    assert snapshots.TarExport(src, verify=False).size > 0  # sizes still agree
+    with pytest.raises(SnapshotInvalid, match=r"memory\.npz checksum"):
+        snapshots.TarExport(src)
+    (src / "manifest.json").write_text("{")
+    with pytest.raises(SnapshotInvalid, match="not JSON"):
+        snapshots.TarExport(src, verify=False)

@@ -1,0 +1,191 @@
+"""Smaller defects at the HTTP edge (issue 11, items 10 and 11): a client that goes away mid-upload,
+the 405's `Allow`, repeated query parameters, unparseable requests below the app, and what /readyz says
+about snapshots a recovery skipped."""
+
+from __future__ import annotations
+
+import json
+import logging
+import socket
+import threading
+import time
+
+import cv2
+import numpy as np
+import pytest
+import uvicorn
+from fastapi.testclient import TestClient
+
+from service.app import build_encoder, create_app
+from service.errors import PROBLEM_MEDIA_TYPE
+from service.limits import HEAD_MAX_BYTES
+from service.server import ProblemH11Protocol
+from service.settings import Settings
+
+
+def make_client(data_dir, **overrides) -> TestClient:
+    app = create_app(Settings(data_dir=data_dir, **overrides),
+                     encoder_factory=lambda s: build_encoder(s, slsbh={"k": 16}))
+    return TestClient(app)
+
+
+def frame(place: int) -> bytes:
+    rng = np.random.default_rng(place)
+    return cv2.imencode(".png", cv2.resize(rng.integers(0, 256, (12, 16, 3), dtype=np.uint8), (128, 96)))[1]\
+        .tobytes()
+
+
+@pytest.fixture
+def client(tmp_path):
+    with make_client(tmp_path / "data") as c:
+        yield c
+
+
+def _gone_mid_body(c: TestClient, method: str, path: str, ctype: str, part: bytes, declared: int) -> int:
+    """Send the headers and `part` of a `declared`-byte body, then disconnect; the status the app sent."""
+    sent: list[int] = []
+
+    async def call() -> None:
+        messages = [{"type": "http.request", "body": part, "more_body": True}, {"type": "http.disconnect"}]
+
+        async def receive() -> dict:
+            return messages.pop(0) if messages else {"type": "http.disconnect"}
+
+        async def send(message: dict) -> None:
+            if message["type"] == "http.response.start":
+                sent.append(message["status"])
+
+        headers = [(b"content-type", ctype.encode()), (b"content-length", str(declared).encode())]
+        await c.app({"type": "http", "asgi": {"version": "3.0", "spec_version": "2.3"}, "http_version": "1.1",
+                     "method": method, "scheme": "http", "path": path, "raw_path": path.encode(),
+                     "root_path": "", "query_string": b"", "headers": headers, "client": ("127.0.0.1", 1),
+                     "server": ("testserver", 80)}, receive, send)
+
+    c.portal.call(call)
+    return sent[0]
+
+
+def test_a_client_gone_mid_upload_is_no_server_error(client, caplog):
+    body = frame(1)
+    with caplog.at_level(logging.INFO):
+        status = _gone_mid_body(client, "POST", "/v1/maps/default/observations", "image/png", body[:100],
+                                len(body))
+        json_status = _gone_mid_body(client, "POST", "/v1/maps", "application/json", b'{"map_id": ',
+                                     200)
+    assert status == json_status == 499
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text
+    assert not [r for r in caplog.records if r.exc_info]
+    assert any("went away" in r.getMessage() and r.levelno == logging.INFO for r in caplog.records)
+    metrics = client.get("/metrics").text
+    assert 'route="/v1/maps/{map_id}/observations",status="499"} 1.0' in metrics
+    assert 'route="/v1/maps",status="499"} 1.0' in metrics
+    assert 'status="500"' not in metrics
+    assert client.app.state.registry.get("default").store.count() == 0
+
+
+@pytest.mark.parametrize(("method", "path", "allowed"), [
+    ("PUT", "/v1/maps/default", ["DELETE", "GET"]),
+    ("PATCH", "/v1/maps", ["GET", "POST"]),
+    ("DELETE", "/v1/maps/default/snapshots", ["GET", "POST"]),
+])
+def test_405_lists_every_method_of_the_path(client, method, path, allowed):
+    r = client.request(method, path)
+    assert r.status_code == 405 and r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
+    assert r.headers["allow"] == ", ".join(allowed) and r.json()["allowed"] == allowed
+
+
+def test_repeated_query_parameters_are_refused(client):
+    r = client.post("/v1/maps/default/observations?learn=false&learn=true&top_k=1&top_k=1",
+                    content=frame(1), headers={"Content-Type": "image/png"})
+    assert r.status_code == 400 and r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
+    body = r.json()
+    assert body["type"].endswith("invalid-parameter")
+    assert [e["name"] for e in body["errors"]] == ["learn", "top_k"]
+    assert client.app.state.registry.get("default").store.count() == 0
+    assert client.get("/v1/maps?x=1&y=2").status_code == 200  # distinct parameters are fine
+
+
+def test_readyz_reports_the_damaged_snapshots_recovery_skipped(tmp_path):
+    with make_client(tmp_path / "data") as c:
+        for p in range(3):
+            c.post("/v1/maps/default/observations", content=frame(p), headers={"Content-Type": "image/png"})
+        sid = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        snap = c.app.state.registry.get("default").snapshot_dir(sid)
+        assert "skipped_snapshots" not in c.get("/readyz").json()["checks"]["maps"]["maps"]["default"]
+    data = bytearray((snap / "memory.npz").read_bytes())
+    data[len(data) // 2] ^= 1
+    (snap / "memory.npz").write_bytes(bytes(data))
+    with make_client(tmp_path / "data", snapshot_every=0) as c:  # no shutdown snapshot hides it
+        r = c.get("/readyz")
+        assert r.status_code == 200
+        check = r.json()["checks"]["maps"]
+        entry = check["maps"]["default"]
+        assert entry["state"] == "ready"
+        assert [s["snapshot_id"] for s in entry["skipped_snapshots"]] == [sid]
+        assert "checksum" in entry["skipped_snapshots"][0]["reason"]
+        assert check["status"] == "warn" and "default" in check["warning"]
+        assert any("damaged snapshot" in w for w in r.json()["warnings"])
+
+
+def test_unparseable_requests_get_problem_json_from_the_protocol():
+    # uvicorn answers these itself, before the app; `cortexloc serve` runs it with ProblemH11Protocol.
+    async def app(scope, receive, send):  # never reached by the requests below
+        raise AssertionError("the app saw an unparseable request")
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, http=ProblemH11Protocol,
+                                           lifespan="off", log_level="critical"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 30
+        while not server.started and time.monotonic() < deadline:
+            time.sleep(0.02)
+        # Headers past h11's 16 KiB limit (refused once that much arrived without the blank line that
+        # ends them), and a malformed header line.
+        for raw in (b"GET / HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 40_000,
+                    b"GET / HTTP/1.1\r\nHost: x\r\nno colon in this header\r\n\r\n"):
+            with socket.create_connection(("127.0.0.1", port), timeout=10) as conn:
+                conn.sendall(raw)
+                reply = b""
+                while chunk := conn.recv(65536):
+                    reply += chunk
+            head, _, body = reply.partition(b"\r\n\r\n")
+            assert head.startswith(b"HTTP/1.1 400 ")
+            assert b"content-type: application/problem+json" in head.lower()
+            problem = json.loads(body)
+            assert problem["type"] == "urn:cortexloc:problem:invalid-parameter" and problem["status"] == 400
+            assert problem["request_id"] in head.decode() and problem["errors"]
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10)
+
+
+def test_the_serve_command_uses_the_problem_protocol(monkeypatch, tmp_path):
+    from service import cli
+
+    seen = {}
+    monkeypatch.setattr(uvicorn, "run", lambda app, **kw: seen.update(kw))
+    monkeypatch.setenv("CORTEXLOC_DATA_DIR", str(tmp_path))
+    cli.serve(host=None, port=0, data_dir=None)
+    assert seen["http"] is ProblemH11Protocol and seen["h11_max_incomplete_event_size"] == HEAD_MAX_BYTES
+
+
+def test_oversized_headers_are_refused_however_they_arrive(client):
+    # h11 refuses a head over its limit only while it is incomplete; one that arrives in a single read
+    # reaches the app, which refuses it the same way.
+    r = client.get("/healthz", headers={"X-Big": "a" * HEAD_MAX_BYTES})
+    assert r.status_code == 400 and r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
+    assert r.json()["type"].endswith("invalid-parameter") and str(HEAD_MAX_BYTES) in r.json()["detail"]
+    assert client.get("/healthz", headers={"X-Big": "a" * (HEAD_MAX_BYTES - 1000)}).status_code == 200
+
+
+def test_requests_answered_before_routing_are_counted_under_their_route(tmp_path):
+    # A 413 is answered by the upload-limit middleware before routing; its route template is still found
+    # (the routes of included routers are searched too).
+    with make_client(tmp_path / "data", max_upload_bytes=100) as c:
+        r = c.post("/v1/maps/default/observations", content=frame(1), headers={"Content-Type": "image/png"})
+        assert r.status_code == 413
+        assert 'route="/v1/maps/{map_id}/observations",status="413"} 1.0' in c.get("/metrics").text
