@@ -1,4 +1,4 @@
-"""Compiled inner loops of the Temporal Memory (science.md §3.3, §3.5, §3.6).
+"""Compiled inner loops of the Temporal Memory (docs/design/science.md §3.3, §3.5, §3.6).
 
 Layout (flattened so that one integer names a segment or a synapse slot):
     segment g = cell * S + slot,            g in [0, C*S)
@@ -145,7 +145,8 @@ def _adapt(g, inc, dec, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count,
 @njit(cache=True, inline="always")
 def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip, rng,
           presyn, perm, nsyn, rev, rpos, bprev, bfill, tail, pool, counters):
-    """NuPIC _growSynapses with the overrun rule of science.md §3.5 and one draw per growth (§3.6)."""
+    """NuPIC _growSynapses with the overrun rule of docs/design/science.md §3.5 and one draw per growth
+    (§3.6)."""
     if n_desired <= 0:
         return
     K = ip[I_K]
@@ -227,7 +228,7 @@ def _create_segment(cell, iteration, ip, presyn, nsyn, last_used, seg_count,
 
 @njit(cache=True)
 def activity(active_cells, learn, iteration, ip, last_used, rx, seg_act, epoch, matching):
-    """activateDendrites (science.md §3.3): active and matching segments for `active_cells`.
+    """activateDendrites (docs/design/science.md §3.3): active and matching segments for `active_cells`.
 
     `seg_act[g]` packs (epoch << 32 | connected << 16 | potential) so that one random access per
     synapse both tests "first touch in this call" and counts, and no pass is needed to clear counts.
@@ -295,7 +296,7 @@ def activity(active_cells, learn, iteration, ip, last_used, rx, seg_act, epoch, 
 def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs, match_pot,
          iteration, p, ip, rng, presyn, perm, nsyn, last_used, seg_count, rx,
          prev_active_mask, prev_winner_mask, scratch_mask, cand, counters):
-    """activateCells (science.md §3.3) for sorted `columns`, learning when `learn`.
+    """activateCells (docs/design/science.md §3.3) for sorted `columns`, learning when `learn`.
 
     Returns:
         active_cells, winner_cells (sorted int64), n_predicted_columns, n_bursting_columns,
@@ -402,7 +403,7 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
                     if sc == fewest:
                         cand[n_ties] = first + i
                         n_ties += 1
-                # A localisation step draws nothing (science.md §3.6): lowest cell among the ties.
+                # A localisation step draws nothing (docs/design/science.md §3.6): lowest cell among the ties.
                 winner = cand[rng.integers(0, n_ties)] if learn else cand[0]
                 if learn and n_prev_winner > 0:
                     changed = True

@@ -4,9 +4,9 @@ Why: backbone features of one camera share a large common component (lighting, s
 itself). sLSBH keeps the n largest and n smallest projections, so that common component picks the same
 bits for every frame: on Nordland (random AlexNet weights, s = 0.02) a summer and a winter frame of
 different places share 12 of 40 bits on average and the same place only 16 (docs/results.md §7). The
-Temporal Memory then sees near-identical codes everywhere and predicts by chance (science.md §3.8).
-Subtracting the stream's own recent mean removes what all recent frames share, as retinal adaptation
-does, and is causal: frame t uses frames <= t only, so a robot can run it online.
+Temporal Memory then sees near-identical codes everywhere and predicts by chance
+(docs/design/science.md §3.8). Subtracting the stream's own recent mean removes what all recent frames share,
+as retinal adaptation does, and is causal: frame t uses frames <= t only, so a robot can run it online.
 
 The service adapts each stream in projection space (y = x·P, k values instead of D features): the
 projection is linear, so the running mean of y is the projection of the running mean of x, and the

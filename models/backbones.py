@@ -1,4 +1,5 @@
-"""AlexNet conv1..conv3 front end (science.md §6): image batch -> L2-normalised 64,896-float descriptor.
+"""AlexNet conv1..conv3 front end (docs/design/science.md §6): image batch -> L2-normalised 64,896-float
+descriptor.
 
 The network is the first seven modules of torchvision's `alexnet().features`, written in plain torch
 (no torchvision dependency) with the same module indices, so torchvision's published checkpoint and
@@ -123,7 +124,7 @@ def random_alexnet_state(seed: int = 0) -> dict[str, torch.Tensor]:
 
     Returns:
         dict with torchvision's keys `features.{0,3,6}.{weight,bias}` -> float32 tensors of the
-        science.md §6 shapes (994,624 values).
+        docs/design/science.md §6 shapes (994,624 values).
     """
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
@@ -151,7 +152,7 @@ def load_alexnet_state(path: str | Path) -> tuple[dict[str, torch.Tensor], str]:
 
     Returns:
         (state, sha256_hex): state maps the six `features.{0,3,6}.{weight,bias}` keys to float32 tensors
-        of the science.md §6 shapes (994,624 values); sha256_hex is the file's digest.
+        of the docs/design/science.md §6 shapes (994,624 values); sha256_hex is the file's digest.
 
     Raises:
         WeightsError: missing or unloadable file, missing key, wrong shape (the message names the key, its

@@ -1,4 +1,4 @@
-"""Encoder: a batch of image bytes -> sLSBH SDRs (science.md §1, §6, §7).
+"""Encoder: a batch of image bytes -> sLSBH SDRs (docs/design/science.md §1, §6, §7).
 
 One entry point, `Encoder.encode(images)`, stateless across calls and batch-first, so the service can
 batch concurrent requests. Configuration is a `default_conf` merged with the caller's (presets as
@@ -39,7 +39,7 @@ default_conf: dict[str, Any] = {
     "decode_threads": 2,  # OpenCV releases the GIL: a batch decodes and resizes in parallel
     "max_bytes": 10 * 2**20,
     "max_pixels": 25_000_000,
-    # projection: dense (science.md §7) | sparse (very sparse random projection, measured in
+    # projection: dense (docs/design/science.md §7) | sparse (very sparse random projection, measured in
     # docs/results.md before it may become a default)
     "slsbh": {"k": 1024, "s": 0.25, "seed": 0, "projection": "dense"},
     "projection_dir": None,  # where projections are stored content-addressed; None: keep in memory

@@ -1,10 +1,11 @@
-"""Image bytes -> 8-bit RGB -> normalised network input (science.md §6 "Front end", Preprocessing).
+"""Image bytes -> 8-bit RGB -> normalised network input (docs/design/science.md §6 "Front end",
+Preprocessing).
 
 The one place that knows image formats. Everything is OpenCV + NumPy: no torchvision, no PIL.
 
-Decoding follows the order of work of service.md §1.2 and §3, so a hostile upload costs almost nothing
-before it is refused: byte limit -> magic bytes (JPEG, PNG, BMP, WebP; everything else is refused before
-OpenCV sees it, which keeps OpenCV's many other codecs out of reach) -> width and height read from the
+Decoding follows the order of work of docs/design/service.md §1.2 and §3, so a hostile upload costs almost
+nothing before it is refused: byte limit -> magic bytes (JPEG, PNG, BMP, WebP; everything else is refused
+before OpenCV sees it, which keeps OpenCV's many other codecs out of reach) -> width and height read from the
 header by small pure-Python parsers -> pixel cap and aspect-ratio cap -> a structural completeness check
 (truncated uploads are refused rather than decoded into half-grey frames) -> a decoding-cost check ->
 `cv2.imdecode`.
@@ -20,8 +21,8 @@ already check) and says nothing about compression ratios or scan counts, and a s
 would be more attack surface than these few hundred lines.
 
 Preprocessing reproduces torchvision's `Resize(256)` + `CenterCrop(224)` + `ToTensor` + `Normalize`
-geometry and arithmetic (science.md §6), with OpenCV's `INTER_AREA` standing in for antialiased bilinear
-when shrinking, plus the `squash` mode (straight to 224×224).
+geometry and arithmetic (docs/design/science.md §6), with OpenCV's `INTER_AREA` standing in for antialiased
+bilinear when shrinking, plus the `squash` mode (straight to 224×224).
 
 Example:
     >>> rgb = decode(open("frame.jpg", "rb").read())      # (H, W, 3) uint8 RGB
@@ -32,8 +33,8 @@ from __future__ import annotations
 
 import os
 
-# OpenCV's own decompression-bomb guard, read once when cv2 is loaded (service.md §3: "set to the same
-# value before OpenCV is imported"). It is the second line of defence behind the header check below;
+# OpenCV's own decompression-bomb guard, read once when cv2 is loaded (docs/design/service.md §3: "set to the
+# same value before OpenCV is imported"). It is the second line of defence behind the header check below;
 # setdefault so that a deployment (or a test) that sets it first keeps its value. If cv2 was already
 # imported elsewhere this is a harmless no-op.
 os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", "25000000")
@@ -71,8 +72,8 @@ IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 DEFAULT_MAX_BYTES = 10 * 2**20
 DEFAULT_MAX_PIXELS = 25_000_000
-# service.md §1.2: "long side more than 16× the short side" is a degenerate image. The cap also bounds the
-# Resize(256) intermediate: a 1×4000 upload would otherwise become a 256×1,024,000 array (786 MB).
+# docs/design/service.md §1.2: "long side more than 16× the short side" is a degenerate image. The cap also
+# bounds the Resize(256) intermediate: a 1×4000 upload would otherwise become a 256×1,024,000 array (786 MB).
 DEFAULT_MAX_ASPECT = 16.0
 
 FORMATS = ("jpeg", "png", "bmp", "webp")
@@ -88,7 +89,7 @@ _FORMAT_NAMES = {"jpeg": "JPEG", "png": "PNG", "bmp": "BMP", "webp": "WebP"}
 class ImageError(ValueError):
     """An upload that is not a decodable image within the limits.
 
-    The HTTP service maps `code` to a 4xx problem+json (service.md §2): `too-large` -> 413
+    The HTTP service maps `code` to a 4xx problem+json (docs/design/service.md §2): `too-large` -> 413
     payload-too-large, `too-many-pixels` -> 413 image-too-large, `unsupported-format` -> 415,
     `degenerate` -> 422 degenerate-image, `bomb` -> 422 decompression-bomb, `empty` / `not-an-image` /
     `truncated` -> 422 undecodable-image.
@@ -531,7 +532,7 @@ def _accepted_list(formats: Collection[str]) -> str:
 
 def probe(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = DEFAULT_MAX_PIXELS,
           max_aspect: float | None = DEFAULT_MAX_ASPECT, formats: Collection[str] = FORMATS) -> ImageInfo:
-    """Every check `decode` makes, without decoding a pixel (service.md §1.2 order of work).
+    """Every check `decode` makes, without decoding a pixel (docs/design/service.md §1.2 order of work).
 
     Args:
         data: the uploaded bytes.
@@ -571,7 +572,7 @@ def probe(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = 
             raise ImageError("unsupported-format",
                              f"{name} images are not supported; send {_accepted_list(formats)}",
                              detected=name)
-        # No known signature at all: the upload is of an unsupported kind (service.md §2: 415), as
+        # No known signature at all: the upload is of an unsupported kind (docs/design/service.md §2: 415), as
         # opposed to a recognised image whose contents are corrupt (422).
         raise ImageError("unsupported-format",
                          f"data is not a {_accepted_list(formats)} image (first bytes: {head[:8].hex(' ')})",
@@ -605,7 +606,7 @@ def probe(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = 
 
 def decode(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = DEFAULT_MAX_PIXELS,
            max_aspect: float | None = DEFAULT_MAX_ASPECT, formats: Collection[str] = FORMATS) -> np.ndarray:
-    """Decode an uploaded JPEG, PNG, BMP or WebP to 8-bit RGB (science.md §6).
+    """Decode an uploaded JPEG, PNG, BMP or WebP to 8-bit RGB (docs/design/science.md §6).
 
     Grey images are replicated to three channels, alpha is dropped (not composited), 16-bit PNGs are
     scaled to 8 bits with rounding (v × 255 / 65535), and the EXIF orientation is applied, as OpenCV's
@@ -667,7 +668,8 @@ def decode(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int =
 
 
 def _resize(img: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Resize with INTER_AREA on shrinking axes and INTER_LINEAR on enlarging ones (science.md §6).
+    """Resize with INTER_AREA on shrinking axes and INTER_LINEAR on enlarging ones
+    (docs/design/science.md §6).
 
     INTER_AREA is the antialiased choice when shrinking (a box filter; torchvision's bilinear with
     antialias=True is a triangle filter, close to it); INTER_LINEAR when enlarging, where INTER_AREA
@@ -728,7 +730,7 @@ def _check_params(mode: str, size: int, resize: int, mean: Sequence[float],
 def preprocess_batch(images: Sequence[np.ndarray], mode: str = "crop", size: int = 224,
                      mean: Sequence[float] = IMAGENET_MEAN, std: Sequence[float] = IMAGENET_STD,
                      resize: int = 256) -> np.ndarray:
-    """Network input for a batch of decoded images (science.md §6, Preprocessing).
+    """Network input for a batch of decoded images (docs/design/science.md §6, Preprocessing).
 
     Per image: "crop" = Resize(`resize`) (short side to `resize`, long side int(resize·long/short)) then
     CenterCrop(`size`) with top = round((h−size)/2), left = round((w−size)/2); "squash" = resize straight
@@ -765,7 +767,7 @@ def preprocess_batch(images: Sequence[np.ndarray], mode: str = "crop", size: int
 def preprocess(rgb: np.ndarray, mode: str = "crop", size: int = 224,
                mean: Sequence[float] = IMAGENET_MEAN, std: Sequence[float] = IMAGENET_STD,
                resize: int = 256) -> np.ndarray:
-    """Network input for one decoded image; see `preprocess_batch` for the steps (science.md §6).
+    """Network input for one decoded image; see `preprocess_batch` for the steps (docs/design/science.md §6).
 
     Args:
         rgb: (H, W, 3) uint8 RGB.

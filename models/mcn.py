@@ -1,4 +1,4 @@
-"""Minicolumn network (MCN) baseline of Neubert et al., as restated by [CBA2020] (science.md §4).
+"""Minicolumn network (MCN) baseline of Neubert et al., as restated by [CBA2020] (docs/design/science.md §4).
 
 No spatial-pooler learning: minicolumns are created on demand, each with a fixed multiset of input
 indices (FF). No dendritic segments: every cell has one set of binary outgoing "prediction connections",
@@ -6,7 +6,7 @@ learned in one shot; a cell is predicted if any cell active at t−1 connects to
 grows without bound, up to a `max_columns` cap that raises instead of truncating.
 
 This is the working grid variant of [SIM] `miniColumn.py` plus the learning/inference split of
-`miniColumn2.py`, without the defects listed in science.md §4:
+`miniColumn2.py`, without the defects listed in docs/design/science.md §4:
 
 1. predictions are carried: `P_next` is a fresh array every step, never an alias of `P_prev`;
 2. the "already connected from this column" check uses the previous winner's column;
@@ -36,12 +36,14 @@ _CREATION_RULES = ("replace", "top_up")
 
 
 class MCNCapacityError(RuntimeError):
-    """Creating the columns a step needs would exceed `max_columns` (science.md §4: never truncate)."""
+    """Creating the columns a step needs would exceed `max_columns` (docs/design/science.md §4: never
+    truncate)."""
 
 
 @dataclass
 class MCNStepStats:
-    """Counts of the step just computed (science.md §4, "report the column count after every step").
+    """Counts of the step just computed (docs/design/science.md §4, "report the column count after every
+    step").
 
     Attributes:
         active_columns: |A|, including columns created by this step.
@@ -80,8 +82,8 @@ def _round_half_up(value: float) -> int:
 def resolve_in_con(params: dict[str, Any], mean_ones: float) -> dict[str, Any]:
     """Fill in `nInConPerCol = round(mean ones per input)` when the preset leaves it `None`.
 
-    science.md §4 table: [SIM] `run00.py` sets nInConPerCol = round(count_nonzero(D) / rows), which is
-    41 for `noise0_al1` and 38 for `noise05_al5`. An explicit value is kept as it is.
+    docs/design/science.md §4 table: [SIM] `run00.py` sets nInConPerCol = round(count_nonzero(D) / rows),
+    which is 41 for `noise0_al1` and 38 for `noise05_al5`. An explicit value is kept as it is.
 
     Args:
         params: full MCN parameters (`presets.mcn_params(...)`); not modified.
@@ -99,7 +101,7 @@ def resolve_in_con(params: dict[str, Any], mean_ones: float) -> dict[str, Any]:
 
 
 class MCN:
-    """Minicolumn network of science.md §4.
+    """Minicolumn network of docs/design/science.md §4.
 
     Args:
         params: full parameter dict (`presets.mcn_params(...)`, then `resolve_in_con`); keys:
@@ -215,7 +217,7 @@ class MCN:
     # ------------------------------------------------------------------ one step
 
     def step(self, x: np.ndarray, learn: bool = True) -> np.ndarray:
-        """One step of science.md §4.
+        """One step of docs/design/science.md §4.
 
         Args:
             x: (w,) sorted int indices of the ones of the input SDR, all in [0, input_width).
@@ -331,7 +333,7 @@ class MCN:
         n = self._n_cols
         if n:
             dense = sdr.to_dense(x, self.input_width)
-            # A repeated FF index counts as many times as it is repeated (science.md §4).
+            # A repeated FF index counts as many times as it is repeated (docs/design/science.md §4).
             activity = np.take(dense, self._ff[:n]).sum(axis=1, dtype=np.int32)
         else:
             activity = np.zeros(0, dtype=np.int32)
@@ -387,7 +389,7 @@ class MCN:
         self._out_count = out
 
     def _learn(self, winners: list[int]) -> None:
-        """Connect every previous winner p to every current winner w (science.md §4).
+        """Connect every previous winner p to every current winner w (docs/design/science.md §4).
 
         p→w is added when no cell of p's column already connects to w; otherwise only with
         probability probAdditionalCon. The check is sequential, as in miniColumn.py: a connection

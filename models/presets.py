@@ -1,4 +1,4 @@
-"""Named presets as data (science.md §3.7, §4) and the merge of a caller's overrides.
+"""Named presets as data (docs/design/science.md §3.7, §4) and the merge of a caller's overrides.
 
 A preset is a plain dict: a one-line description plus one section per pipeline stage it configures
 (`tm`, `mcn`, later `slsbh`/`encoder`). Callers never subclass anything: they pick a name and
@@ -18,7 +18,7 @@ _SEED = 2**63 - 1
 
 class TmParams(BaseModel):
     """The Temporal Memory section: each parameter's NuPIC 1.0.5 / htm.core name and constructor default
-    (science.md §3.1), its type (JSON numbers only: strict, no strings or booleans) and its range.
+    (docs/design/science.md §3.1), its type (JSON numbers only: strict, no strings or booleans) and its range.
     Rules between parameters are `models.temporal_memory.validate`'s."""
 
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
@@ -39,8 +39,8 @@ class TmParams(BaseModel):
 
 
 class SlsbhParams(BaseModel):
-    """The sLSBH section of a map (science.md §7): projected dimension, sparsity, projection seed (None:
-    the TM's seed) and the stream adaptation time constant in frames (0 = off, models.adaptation)."""
+    """The sLSBH section of a map (docs/design/science.md §7): projected dimension, sparsity, projection seed
+    (None: the TM's seed) and the stream adaptation time constant in frames (0 = off, models.adaptation)."""
 
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
@@ -83,11 +83,11 @@ def check_section(model: type[BaseModel], section: str, values: dict[str, Any]) 
         raise ParamsError(section, errors) from None
 
 
-#: NuPIC 1.0.5 / htm.core constructor defaults, with their parameter names (science.md §3.1).
+#: NuPIC 1.0.5 / htm.core constructor defaults, with their parameter names (docs/design/science.md §3.1).
 TM_DEFAULTS: dict[str, Any] = TmParams().model_dump()
 
-# MCN (science.md §4). `nInConPerCol=None` means "round(mean ones per input)", derived from the data;
-# `minColumnActivity` is a fraction of nInConPerCol, rounded; `strict` selects `>` instead of `>=`.
+# MCN (docs/design/science.md §4). `nInConPerCol=None` means "round(mean ones per input)", derived from the
+# data; `minColumnActivity` is a fraction of nInConPerCol, rounded; `strict` selects `>` instead of `>=`.
 MCN_DEFAULTS: dict[str, Any] = {
     "nCellPerCol": 32,
     "nInConPerCol": None,
@@ -168,7 +168,7 @@ confs: dict[str, dict[str, Any]] = {
         # (§7.4), so the context argument for minThreshold 2 is gone (§7.7); it stays the default
         # until a configuration earns its place. activationThreshold 24 (of 28 one-shot synapses)
         # keeps chance predictions low on ImageNet features. Known cost: at this density only about a
-        # quarter of an exactly repeated sequence is predicted, not the > 90 % of science.md §3.7,
+        # quarter of an exactly repeated sequence is predicted, not the > 90 % of docs/design/science.md §3.7,
         # because chance-matching segments are re-used. Stream adaptation stays off.
         "tm": {**_PREDICTING_TM, "activationThreshold": 24},
         "slsbh": {"k": 1024, "s": 0.15, "adapt_tau": 0},

@@ -2,7 +2,7 @@
 
 An SDR is a sorted 1-D array of distinct non-negative indices (its "ones"). Dense binary vectors are
 accepted at the edges and converted once. Dice(a, b) = 2·|a ∩ b| / (|a| + |b|) is the paper's
-"normalised overlap" (science.md, notation).
+"normalised overlap" (docs/design/science.md, notation).
 """
 
 from __future__ import annotations

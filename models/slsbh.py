@@ -1,4 +1,4 @@
-"""sLSBH: sparsified binary locality-sensitive hashing (science.md §7).
+"""sLSBH: sparsified binary locality-sensitive hashing (docs/design/science.md §7).
 
 A conv3 feature vector x (d = 64,896 floats, L2-normalised, §6) is projected to k values y = x·P and
 turned into a 2k-bit code with exactly 2n ones: bits 0…k−1 mark the n largest entries of y, bits
@@ -50,7 +50,7 @@ from models.sdr import INDEX_DTYPE
 
 default_conf: dict[str, Any] = {"k": 1024, "s": 0.25, "seed": 0, "projection": "gaussian"}
 
-D_CONV3 = 64_896  # 384×13×13 AlexNet conv3 values (science.md §6)
+D_CONV3 = 64_896  # 384×13×13 AlexNet conv3 values (docs/design/science.md §6)
 
 # Rows per chunk when normalising, hashing or checking a projection: bounds the float64 scratch to
 # 4096·k·8 bytes (32 MB at k = 1024) while keeping NumPy calls large.
@@ -71,7 +71,7 @@ class ProjectionError(ValueError):
 
 
 def n_ones(k: int, s: float) -> int:
-    """Ones per half of an sLSBH code: n = floor(s·k + 0.5) (science.md §7.3).
+    """Ones per half of an sLSBH code: n = floor(s·k + 0.5) (docs/design/science.md §7.3).
 
     Args:
         k: projected dimension (≥ 1).
@@ -99,7 +99,7 @@ def n_ones(k: int, s: float) -> int:
 
 
 def make_projection(d: int = D_CONV3, k: int = 1024, seed: int = 0) -> np.ndarray:
-    """Gaussian projection with unit-norm columns (science.md §7.1).
+    """Gaussian projection with unit-norm columns (docs/design/science.md §7.1).
 
     Draw order: one call `Generator(PCG64(seed)).standard_normal((d, k), dtype=float32)`, which fills
     P in C order (row 0 first); drawing row chunks in sequence into the same array gives identical
@@ -146,7 +146,7 @@ def make_projection(d: int = D_CONV3, k: int = 1024, seed: int = 0) -> np.ndarra
 
 
 def projection_sha256(P: np.ndarray) -> str:
-    """SHA-256 of a dense projection's raw little-endian C-order float32 bytes (science.md §7).
+    """SHA-256 of a dense projection's raw little-endian C-order float32 bytes (docs/design/science.md §7).
 
     The shape is not hashed (the spec identifies the bytes); `load_projection` checks it separately.
 
@@ -168,7 +168,7 @@ def projection_sha256(P: np.ndarray) -> str:
 
 
 def save_projection(P: np.ndarray, directory: str | os.PathLike[str]) -> tuple[Path, str]:
-    """Store P content-addressed as `<directory>/<sha256>.npy` (science.md §7, DECISION).
+    """Store P content-addressed as `<directory>/<sha256>.npy` (docs/design/science.md §7, DECISION).
 
     Written atomically: a temporary file in the same directory, fsync, `os.replace`, then an fsync of
     the directory, so a reader never sees a partial file under the final name. If the file already
@@ -208,7 +208,7 @@ def load_projection(
     shape: tuple[int, int] | None = None,
     mmap: bool = True,
 ) -> np.ndarray:
-    """Load a stored projection and refuse anything but the expected bytes (science.md §7).
+    """Load a stored projection and refuse anything but the expected bytes (docs/design/science.md §7).
 
     Args:
         path: a `.npy` file written by `save_projection`.
@@ -437,7 +437,7 @@ def make_sparse_projection(
 
 
 def hash_projected(Y: np.ndarray, s: float) -> np.ndarray:
-    """sLSBH codes of projected values (science.md §7.3–7.4).
+    """sLSBH codes of projected values (docs/design/science.md §7.3–7.4).
 
     Bits 0…k−1: ones at the n largest entries of each row; bits k…2k−1: ones at k + j for the n
     smallest entries j. Ties are ordered by value, then by lower index (a stable order), in both
@@ -496,7 +496,7 @@ Projection = np.ndarray | SparseProjection
 
 
 class Hasher:
-    """x ↦ sLSBH code: project with P, then `hash_projected` (science.md §7).
+    """x ↦ sLSBH code: project with P, then `hash_projected` (docs/design/science.md §7).
 
     Args:
         P: (d, k) float32 dense projection (may be a read-only memmap from `load_projection`) or a

@@ -1,8 +1,8 @@
 """Numenta's Temporal Memory with NuPIC 1.0.5 semantics in fixed, preallocated memory.
 
-science.md §3 is the specification: parameter names as in NuPIC/htm.core (§3.1), learned connections
-kept apart from the per-stream sequence context (§3.2), the step of §3.3, the bounded-memory rules of
-§3.5 (LRU segment eviction, lowest-permanence overrun, decay below 1e-5, empty segments destroyed) and
+docs/design/science.md §3 is the specification: parameter names as in NuPIC/htm.core (§3.1), learned
+connections kept apart from the per-stream sequence context (§3.2), the step of §3.3, the bounded-memory rules
+of §3.5 (LRU segment eviction, lowest-permanence overrun, decay below 1e-5, empty segments destroyed) and
 the randomness rules of §3.6 (one seeded `numpy.random.Generator`, drawn only while learning).
 
 The hot loops live in `models._tm_kernels` (numba); this module is the readable interface.
@@ -44,7 +44,7 @@ def _i64(a: np.ndarray) -> np.ndarray:
 
 @dataclass
 class StepStats:
-    """Per-step statistics (science.md §3.3): counts of the step just computed."""
+    """Per-step statistics (docs/design/science.md §3.3): counts of the step just computed."""
 
     active_columns: int = 0
     predicted_columns: int = 0
@@ -58,7 +58,7 @@ class StepStats:
 
 @dataclass
 class StreamContext:
-    """Sequence state of one stream (science.md §3.2): what the next step continues from.
+    """Sequence state of one stream (docs/design/science.md §3.2): what the next step continues from.
 
     Attributes:
         active_cells, winner_cells: (n,) int64 sorted cell ids of the previous step.
@@ -114,7 +114,7 @@ class StreamContext:
 
 
 def validate(params: dict[str, Any]) -> list[str]:
-    """Check parameters as NuPIC does; return the warnings of science.md §3.1.
+    """Check parameters as NuPIC does; return the warnings of docs/design/science.md §3.1.
 
     Names, types and ranges are `presets.TmParams`'s; the rules between parameters are here.
 
@@ -182,13 +182,13 @@ def planned_bytes(params: dict[str, Any]) -> int:
 
 
 class TemporalMemory:
-    """Learned connections of one map (science.md §3.2) plus its seeded generator.
+    """Learned connections of one map (docs/design/science.md §3.2) plus its seeded generator.
 
     Args:
         params: full parameter dict (see `presets.tm_params`); missing keys take NuPIC defaults.
 
     Attributes:
-        warnings: configuration warnings of science.md §3.1 (not errors: presets reproduce them).
+        warnings: configuration warnings of docs/design/science.md §3.1 (not errors: presets reproduce them).
         iteration: learning iterations so far; version: bumped by every step that changes connections.
     """
 
@@ -207,7 +207,7 @@ class TemporalMemory:
         S = int(merged["maxSegmentsPerCell"])
         Kc = int(merged["maxSynapsesPerSegment"])
         f32 = np.float32
-        # Parameters cast to float32 once (science.md §3.6).
+        # Parameters cast to float32 once (docs/design/science.md §3.6).
         self._p = np.array(
             [merged["initialPermanence"], f32(merged["connectedPermanence"]) - f32(kern.EPS),
              merged["permanenceIncrement"], merged["permanenceDecrement"],
@@ -216,7 +216,7 @@ class TemporalMemory:
             [self.cells_per_column, S, Kc, merged["activationThreshold"], merged["minThreshold"],
              merged["maxNewSynapseCount"]], dtype=np.int64)
         a = {name: _alloc(n, dtype, fill) for name, (n, dtype, fill) in _layout(merged).items()}
-        # Canonical state (science.md §3.5 table).
+        # Canonical state (docs/design/science.md §3.5 table).
         self.presyn, self.perm, self.nsyn, self.last_used = a["presyn"], a["perm"], a["nsyn"], a["last_used"]
         # Auxiliary, fixed-capacity, derived from the canonical arrays.
         self._seg_count = a["seg_count"]
@@ -248,7 +248,7 @@ class TemporalMemory:
 
     def compute(self, active_columns: np.ndarray, learn: bool = True,
                 context: StreamContext | None = None) -> np.ndarray:
-        """One Temporal Memory step (science.md §3.3).
+        """One Temporal Memory step (docs/design/science.md §3.3).
 
         Args:
             active_columns: (a,) column indices in [0, columnDimensions); sorted and deduplicated here.
@@ -317,7 +317,7 @@ class TemporalMemory:
         return out
 
     def size(self) -> dict[str, int]:
-        """Exact counts and bytes (science.md §3.5).
+        """Exact counts and bytes (docs/design/science.md §3.5).
 
         Returns:
             segments, synapses (live), segment_capacity, synapse_capacity, evictions,
@@ -349,7 +349,7 @@ class TemporalMemory:
         """The whole state as plain numpy arrays (copies); see `from_state` and `load_streams`.
 
         Args:
-            streams: named stream contexts to include (science.md §3.6: every context is in the
+            streams: named stream contexts to include (docs/design/science.md §3.6: every context is in the
                 snapshot); the built-in context is always included under the `ctx.` prefix.
         """
         bg = self.rng.bit_generator.state

@@ -1,4 +1,5 @@
-"""AlexNet conv1..conv3 weights: download, import, verify, trim and cache (science.md §6, service.md §7).
+"""AlexNet conv1..conv3 weights: download, import, verify, trim and cache (docs/design/science.md §6,
+docs/design/service.md §7).
 
 torchvision publishes the ImageNet AlexNet as `alexnet-owt-7be5be79.pth` (about 233 MB); the 8 hex
 digits are the start of the file's SHA-256, which is how a copy is verified. The front end needs only
@@ -45,7 +46,8 @@ from models.files import atomic_write, sha256_file
 ALEXNET_URL = "https://download.pytorch.org/models/alexnet-owt-7be5be79.pth"
 ALEXNET_SHA256_PREFIX = "7be5be79"
 
-#: torchvision state-dict keys of conv1..conv3 and their shapes (science.md §6 table), in forward order.
+#: torchvision state-dict keys of conv1..conv3 and their shapes (docs/design/science.md §6 table), in forward
+#: order.
 ALEXNET_CONV3_SHAPES: dict[str, tuple[int, ...]] = {
     "features.0.weight": (64, 3, 11, 11),
     "features.0.bias": (64,),
@@ -160,7 +162,7 @@ def extract_conv3_state(obj: Any, label: str) -> dict[str, torch.Tensor]:
 
     Raises:
         WeightsError: not a mapping, a key missing, a value not a floating tensor, a shape different
-            from science.md §6 (the message names the key, its shape and the expected one), or a
+            from docs/design/science.md §6 (the message names the key, its shape and the expected one), or a
             non-finite value (it would turn every descriptor into NaN).
     """
     if not isinstance(obj, Mapping):

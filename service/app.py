@@ -1,4 +1,4 @@
-"""The app factory: `create_app(settings=None) -> FastAPI` (service.md §1, §6, §8).
+"""The app factory: `create_app(settings=None) -> FastAPI` (docs/design/service.md §1, §6, §8).
 
 Nothing is read or built at import time. At startup the lifespan:
 

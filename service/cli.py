@@ -108,7 +108,7 @@ def eval_grid(
     plots_dir: Annotated[Path | None, typer.Option("--plots", help="Write PR and similarity PNGs here.")]
     = None,
 ) -> None:
-    """Grid-world evaluation (science.md §2): pairwise InputSDR, MCN and HTM, over seeds."""
+    """Grid-world evaluation (docs/design/science.md §2): pairwise InputSDR, MCN and HTM, over seeds."""
     from models.evaluation import gridworld, runner
 
     if scoring not in ("paper", "clean"):
@@ -225,7 +225,8 @@ def eval_images(
     = None,
     gallery: Annotated[int, typer.Option(min=1, help="Queries shown in each match gallery.")] = 12,
 ) -> None:
-    """Cross-season evaluation on image sequences (science.md §8.5, §10.1): learn db, then query."""
+    """Cross-season evaluation on image sequences (docs/design/science.md §8.5, §10.1): learn db, then
+    query."""
     import os
 
     from models import encoder as encoder_mod
@@ -233,7 +234,7 @@ def eval_images(
     from models.evaluation import seqslam as seq
     from service.settings import Settings
 
-    # The service's defaults, read from their one home each (service.md §8, models.encoder).
+    # The service's defaults, read from their one home each (docs/design/service.md §8, models.encoder).
     preset = preset or Settings.model_fields["default_preset"].default
     backbone = backbone or encoder_mod.default_conf["backbone"]
     resize = resize or encoder_mod.default_conf["resize"]

@@ -1,4 +1,4 @@
-"""The encoder behind a bounded, batching executor (service.md §6).
+"""The encoder behind a bounded, batching executor (docs/design/service.md §6).
 
 Concurrent requests are encoded together: a worker takes the first waiting image, gathers whatever
 else arrives within a few milliseconds (up to `max_batch`), and runs one backbone call for all of

@@ -1,4 +1,4 @@
-"""One error shape everywhere: RFC 9457 `application/problem+json` (service.md §2).
+"""One error shape everywhere: RFC 9457 `application/problem+json` (docs/design/service.md §2).
 
 Routes raise `Problem(status, slug, detail, **members)`; `install_error_handlers` turns it, FastAPI's
 validation errors, the router's 404/405, an `ImageError`, the domain errors of `DOMAIN_PROBLEMS` (one
@@ -70,7 +70,7 @@ REQUEST_ID_HEADER = "X-Request-ID"
 #: Media types the observation route accepts (the `allowed` member of 415 unsupported-media-type).
 IMAGE_MEDIA_TYPES = ("image/jpeg", "image/png", "application/octet-stream")
 
-#: slug -> (usual status, fixed title): the service.md §2 table plus `unauthorized`.
+#: slug -> (usual status, fixed title): the docs/design/service.md §2 table plus `unauthorized`.
 PROBLEMS: dict[str, tuple[int, str]] = {
     "invalid-parameter": (400, "Invalid parameter"),
     "unauthorized": (401, "Unauthorized"),
@@ -118,7 +118,7 @@ class Problem(Exception):  # noqa: N818 - the RFC 9457 name
         slug: one of `TITLES` (the type is `urn:cortexloc:problem:<slug>`).
         detail: a specific, human-readable sentence.
         headers: extra response headers (e.g. `Retry-After`).
-        **members: the slug's extra members (service.md §2 table), JSON-serialisable.
+        **members: the slug's extra members (docs/design/service.md §2 table), JSON-serialisable.
     """
 
     def __init__(self, status: int, slug: str, detail: str, *, headers: Mapping[str, str] | None = None,
@@ -231,7 +231,7 @@ _IMAGE_SLUGS: dict[str, tuple[int, str]] = {
 
 def image_error_problem(e: ImageError, *, max_pixels: int | None = None,
                         allowed: tuple[str, ...] = IMAGE_MEDIA_TYPES) -> Problem:
-    """The service.md §2 problem for an `ImageError`, with `e.details` as members.
+    """The docs/design/service.md §2 problem for an `ImageError`, with `e.details` as members.
 
     Args:
         e: the error from `models.images`.

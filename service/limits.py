@@ -1,4 +1,4 @@
-"""Request body limits, before routing and parsing (service.md §3).
+"""Request body limits, before routing and parsing (docs/design/service.md §3).
 
 `UploadLimitMiddleware` is a pure ASGI middleware (no `BaseHTTPMiddleware`, which would buffer and run
 the app in another task):

@@ -1,5 +1,5 @@
 """Rebuilding a map's memory from its store: the one path that recovery at startup, restore and
-`cortexloc verify` share (service.md §4.4).
+`cortexloc verify` share (docs/design/service.md §4.4).
 
 A rebuild starts from a fresh memory (replay from the first row) or from a snapshot's arrays, then
 replays the store's rows after that point, comparing every replayed step's winner cells with the
@@ -29,7 +29,7 @@ __all__ = ["MapCheck", "Rebuilt", "Stream", "load_memory_state", "memory_state",
 
 @dataclass
 class Stream:
-    """A stream's sequence state in one map (service.md §1.3)."""
+    """A stream's sequence state in one map (docs/design/service.md §1.3)."""
 
     context: StreamContext = field(default_factory=StreamContext)
     step: int = 0  # steps since the context was last empty
@@ -90,7 +90,7 @@ def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Obs
     """Replay `rows` (in seq order) on a fresh memory or a snapshot's arrays, checking each step.
 
     A localisation stream's context was never durable: one held by the snapshot is dropped, so its
-    next step starts afresh exactly as after a restart without the snapshot (service.md §1.2).
+    next step starts afresh exactly as after a restart without the snapshot (docs/design/service.md §1.2).
 
     Args:
         start: a fresh `TemporalMemory` (used in place) or the arrays of a snapshot's `memory.npz`.

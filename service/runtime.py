@@ -1,6 +1,6 @@
 """Map runtimes: one writer per map, the TM step, ranking, the commit, and recovery by replay.
 
-service.md §1.2–§1.4, §4.3–§4.4, §6. Each map owns a Temporal Memory, its sLSBH hasher (its own
+docs/design/service.md §1.2–§1.4, §4.3–§4.4, §6. Each map owns a Temporal Memory, its sLSBH hasher (its own
 persisted projection), a `MapStore` (system of record) and an inverted index over winner cells. All
 work on a map runs in that map's single writer thread, in submission order, so the memory sees frames
 in arrival order and never two at once; different maps proceed in parallel.
@@ -46,8 +46,8 @@ _LISTED = 20  # divergent seqs listed in a recovery note (the count says how man
 
 def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] | None = None,
                    slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0) -> dict[str, Any]:
-    """Freeze a map's parameters: preset <- overrides (service.md §1.1), every value checked against the
-    section models (`presets.TmParams`, `presets.SlsbhParams`: names, types, ranges) and the rules
+    """Freeze a map's parameters: preset <- overrides (docs/design/service.md §1.1), every value checked
+    against the section models (`presets.TmParams`, `presets.SlsbhParams`: names, types, ranges) and the rules
     between them, before anything is converted or allocated.
 
     Args:
@@ -140,7 +140,8 @@ class MapRuntime:
         self.hasher: slsbh.Hasher | None = None
         self.adapt_tau = int(self.params["slsbh"].get("adapt_tau", 0))  # maps made before it: none
         self._projection_error: str | None = None
-        try:  # the checksum is verified on load: a map never runs on another matrix (science.md §7)
+        # the checksum is verified on load: a map never runs on another matrix (docs/design/science.md §7)
+        try:
             projection = slsbh.load_projection(self.projection_path, sha,
                                                shape=(feature_dim, int(self.params["slsbh"]["k"])))
             self.hasher = slsbh.Hasher(projection, float(self.params["slsbh"]["s"]))
@@ -202,7 +203,7 @@ class MapRuntime:
     # ------------------------------------------------------------------ snapshots
 
     def snapshot(self, kind: str = "manual") -> dict[str, Any]:
-        """A consistent cut at the current seq, taken by the writer (service.md §1.5, §4.4).
+        """A consistent cut at the current seq, taken by the writer (docs/design/service.md §1.5, §4.4).
 
         Raises:
             Problem: 507 insufficient-storage when the disk is full (nothing is left behind).
@@ -271,7 +272,7 @@ class MapRuntime:
 
     def recover(self) -> None:
         """Open the store and rebuild the memory: the newest usable snapshot, then a verified replay of
-        the rows after it (service.md §4.4).
+        the rows after it (docs/design/service.md §4.4).
 
         A snapshot that does not verify, cannot be loaded, or whose replay does not reproduce the
         stored winner cells is passed over for the next older one (one from a branch a restore
@@ -384,7 +385,7 @@ class MapRuntime:
                 projects batches, `service.encoding`); None: projected here.
 
         Returns:
-            The observation part of the response (service.md §1.2).
+            The observation part of the response (docs/design/service.md §1.2).
         """
         self.require_ready()
         assert self.store is not None

@@ -3,7 +3,7 @@
 uvicorn answers a request it cannot parse (a malformed request line, or a request line plus
 headers larger than h11's incomplete-event limit, `service.limits.HEAD_MAX_BYTES`) itself, before the
 app sees anything, with a text/plain 400. `ProblemH11Protocol` is uvicorn's h11 protocol with only
-that answer replaced by the service's problem+json (service.md §2), so every error has one shape.
+that answer replaced by the service's problem+json (docs/design/service.md §2), so every error has one shape.
 (uvicorn picks httptools when it is installed; it is not a dependency here, and `serve` names this
 protocol explicitly.)
 """

@@ -1,4 +1,4 @@
-"""The service configuration: one validated, immutable `Settings` object (service.md §8).
+"""The service configuration: one validated, immutable `Settings` object (docs/design/service.md §8).
 
 Read once from the `CORTEXLOC_*` environment variables by `Settings.from_env()`, which the app
 factory's lifespan calls at startup (never at import time), then injected through `deps.SettingsDep`.
@@ -65,7 +65,7 @@ def env_name(field: str) -> str:
 
 
 class Settings(BaseModel):
-    """Every knob of the service, with the defaults of service.md §8 (plus `api_key`)."""
+    """Every knob of the service, with the defaults of docs/design/service.md §8 (plus `api_key`)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 

@@ -32,7 +32,7 @@ def connect(path: str | Path, *, readonly: bool = False) -> sqlite3.Connection:
     """Open a SQLite file the way every storage file is opened.
 
     - `isolation_level=None`: Python's implicit transactions are off; writers say `BEGIN IMMEDIATE` and
-      `COMMIT` themselves, so a commit happens exactly where the code says (service.md §4.3).
+      `COMMIT` themselves, so a commit happens exactly where the code says (docs/design/service.md §4.3).
     - `check_same_thread=False`: the service's writer runs in worker threads (`asyncio.to_thread`), a
       different thread each time; callers serialise access with their own lock instead.
     - WAL + `synchronous=FULL` (read-write only): a commit is on disk when COMMIT returns. `journal_mode`

@@ -3,8 +3,8 @@
 The catalog is small and written rarely (map creation, state changes, snapshots, restores), so one file
 for the whole data directory is enough; each map's observations live in its own `map.sqlite`.
 
-The seq high-water mark is what keeps seqs unique across restores (service.md §1: "never reused, not
-even after a restore"): before a restore replaces `map.sqlite` with an older copy, the service bumps
+The seq high-water mark is what keeps seqs unique across restores (docs/design/service.md §1: "never reused,
+not even after a restore"): before a restore replaces `map.sqlite` with an older copy, the service bumps
 the mark to the current last seq, and opens the restored file with `MapStore.open(seq_floor=mark)`.
 Bumping only at restore (not per observation) keeps the per-observation commit to one file.
 """
@@ -112,7 +112,7 @@ class MapRecord:
 
 @dataclass(frozen=True)
 class SnapshotRecord:
-    """A row of the snapshot registry (the service.md §1.5 resource, plus where it lies).
+    """A row of the snapshot registry (the docs/design/service.md §1.5 resource, plus where it lies).
 
     Attributes:
         snapshot_id: identifier, unique within the map.

@@ -1,4 +1,5 @@
-"""In-memory inverted index over winner cells: who shares cells with a query, ranked by Dice (service.md §5).
+"""In-memory inverted index over winner cells: who shares cells with a query, ranked by Dice
+(docs/design/service.md §5).
 
 Layout: one growable int32 array of row numbers per cell (its postings), plus per-row arrays of seq
 and weight (|cells|). Rows are numbered 0, 1, … in insertion order and seqs must increase with them,
@@ -177,7 +178,7 @@ class InvertedIndex:
 
     Args:
         n_cells: size of the cell space (the TM's cells); cells must lie in [0, n_cells).
-        max_observations: the most rows it will hold (service.md §1.4).
+        max_observations: the most rows it will hold (docs/design/service.md §1.4).
     """
 
     def __init__(self, n_cells: int, max_observations: int) -> None:
@@ -360,7 +361,7 @@ class InvertedIndex:
             top_k: how many to return (0 → none; more than available → all that qualify).
             exclude_seqs: seqs never returned.
             exclude_recent_stream: with `exclude_recent` = N > 0, the last N observations of this stream
-                are skipped (service.md §1.2).
+                are skipped (docs/design/service.md §1.2).
             exclude_recent: see above.
             min_overlap: rows sharing fewer cells are not candidates. The default 1 returns only rows
                 that share something with the query; 0 ranks every row (zero-overlap rows last).

@@ -1,4 +1,5 @@
-"""`map.sqlite`: one map's frozen metadata and its append-only observations (service.md §4.2, §4.3).
+"""`map.sqlite`: one map's frozen metadata and its append-only observations (docs/design/service.md §4.2,
+§4.3).
 
 One SQLite file per map, so maps never contend for SQLite's single writer and a map moves between
 servers as one directory. The file is the system of record: the in-memory TM and index are rebuilt
@@ -83,7 +84,8 @@ CREATE TRIGGER observations_no_update BEFORE UPDATE ON observations
 BEGIN SELECT RAISE(ABORT, 'observations are append-only'); END;
 CREATE TRIGGER observations_no_delete BEFORE DELETE ON observations
 BEGIN SELECT RAISE(ABORT, 'observations are append-only'); END;
--- The resolved parameters are frozen into the map (service.md §1.1): another configuration is another map.
+-- The resolved parameters are frozen into the map (docs/design/service.md §1.1): another configuration is
+-- another map.
 CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
 BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
 CREATE TRIGGER meta_no_delete BEFORE DELETE ON meta
@@ -103,7 +105,7 @@ class DuplicateObservation(StorageError):  # noqa: N818
 
 
 def cell_dtype_for(n_cells: int) -> str:
-    """Winner-cell blob dtype for a memory of `n_cells` cells (service.md §4.2).
+    """Winner-cell blob dtype for a memory of `n_cells` cells (docs/design/service.md §4.2).
 
     uint16 holds cell ids 0…65,535, so it serves up to 65,536 cells; above that uint32.
     """
@@ -213,7 +215,7 @@ class MapStore:
 
     Thread-safe: every method takes the store's lock, so the map's writer (in worker threads) and
     readers such as `GET /v1/maps/{id}` can share one store. Count and last seq are cached in memory:
-    this object is the file's only writer (service.md: one writer per map).
+    this object is the file's only writer (docs/design/service.md: one writer per map).
     """
 
     def __init__(self, path: Path, conn: sqlite3.Connection, meta: MapMeta, seq_floor: int) -> None:
@@ -374,7 +376,7 @@ class MapStore:
     def append_many(self, rows: Iterable[NewObservation]) -> list[int]:
         """Group commit: INSERT several observations in one transaction (all or none).
 
-        Each reply of the service must still wait for this commit (service.md §4.3).
+        Each reply of the service must still wait for this commit (docs/design/service.md §4.3).
 
         Returns:
             Their seqs, in order.
@@ -501,7 +503,7 @@ class MapStore:
     # ------------------------------------------------------------------ copies
 
     def backup_to(self, dest: str | os.PathLike[str]) -> int:
-        """Consistent copy of the database with SQLite's online backup API (service.md §4.4).
+        """Consistent copy of the database with SQLite's online backup API (docs/design/service.md §4.4).
 
         The copy is switched to `journal_mode=DELETE` so it is one self-contained file: a snapshot's
         checksum then covers everything, and it can be opened read-only without -wal/-shm files.

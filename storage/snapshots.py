@@ -1,4 +1,5 @@
-"""Snapshot directories: create, verify, load, export as tar, import from tar (service.md §1.5, §4.4).
+"""Snapshot directories: create, verify, load, export as tar, import from tar (docs/design/service.md §1.5,
+§4.4).
 
 A snapshot is a directory `maps/<map_id>/snapshots/<snapshot_id>/` holding
 
@@ -161,7 +162,7 @@ def create_snapshot(store: MapStore, memory: Mapping[str, np.ndarray], dest: str
                     kind: str, snapshot_id: str | None = None, code_version: str = "",
                     created_at: str | None = None,
                     external: Mapping[str, str | os.PathLike[str]] | None = None) -> Manifest:
-    """Write a snapshot directory at `dest` (service.md §4.4), to be called by the map's writer.
+    """Write a snapshot directory at `dest` (docs/design/service.md §4.4), to be called by the map's writer.
 
     Order: temporary directory beside `dest` → `map.sqlite` by online backup → `memory.npz` → fsync →
     `manifest.json` last → fsync the directory → rename to `dest` → fsync the parent. The cut's seq and

@@ -1,4 +1,4 @@
-"""Grid-world simulation and the published grid-world data (science.md §2).
+"""Grid-world simulation and the published grid-world data (docs/design/science.md §2).
 
 The simulator emits 2048-bit SDRs that are fed to the Temporal Memory as active columns directly, with
 no Spatial Pooler (§1). Everything here is deterministic given its arguments: one PCG64 generator per

@@ -1,4 +1,4 @@
-"""Place-recognition metrics (science.md §8).
+"""Place-recognition metrics (docs/design/science.md §8).
 
 Conventions follow [VPRT] `evaluation/metrics.py`: S has database items as rows and queries as columns,
 higher = more similar; GT is a boolean matrix of the same shape (§8.1). PR curves use the "multi"

@@ -1,4 +1,5 @@
-"""Parameter search for the cross-season default (issue: cross-season evaluation, science.md §8.5).
+"""Parameter search for the cross-season default (issue: cross-season evaluation,
+docs/design/science.md §8.5).
 
 Run: `python -m models.evaluation.nordland_sweep [--split tune] [--json OUT]` (one seed: a sweep ranks).
 Protocol `tune` (files 1-894 of nordland_tiny_64x32, summer database, winter query, reset between them,
@@ -6,9 +7,9 @@ squash resize): every configuration of sLSBH density, stream adaptation and Temp
 is run on both backbones (random-weight AlexNet conv3, ImageNet EfficientNet-Lite0 stage 7). Per
 configuration it prints HTM AUC / R@1 single-image and through the seqslam filter (`htm-seq`), the sLSBH
 AUC on the same codes (single-image and filtered), and the predicted fraction of query columns in true
-and in shuffled order (science.md §3.8). The objective is the mean `htm-seq` AUC over the two backbones:
-single-image HTM AUC stays within noise of sLSBH everywhere on these frames (docs/results.md §7), so
-the sequence-compared winner cells are what tell configurations apart. Choose on `tune`; report on
+and in shuffled order (docs/design/science.md §3.8). The objective is the mean `htm-seq` AUC over the two
+backbones: single-image HTM AUC stays within noise of sLSBH everywhere on these frames (docs/results.md §7),
+so the sequence-compared winner cells are what tell configurations apart. Choose on `tune`; report on
 `test` with `cortexloc eval images`.
 """
 

@@ -2,8 +2,8 @@
 
 Run: `python -m models.evaluation.nordland_tables --backbone efficientnet-lite0 [--seeds 3] [--json OUT]`.
 nordland_tiny_64x32, summer database, winter query, squash resize, `cortexloc-default`, reset between
-database and query, tolerance 0 (science.md §8.5). Per window (tune, test and five windows of 200 files)
-and per ds (10, 20) it runs what `cortexloc eval images --reset --ds DS --offset O --limit N` runs:
+database and query, tolerance 0 (docs/design/science.md §8.5). Per window (tune, test and five windows of 200
+files) and per ds (10, 20) it runs what `cortexloc eval images --reset --ds DS --offset O --limit N` runs:
 cosine, sLSBH, HTM (one frame), openseqslam (the reference on grey pixels), and the same sequence matcher
 on cosine, sLSBH and winner cells (cosine-seq, slsbh-seq, htm-seq). Every method is scored on the queries
 with a full window of ds frames. The Temporal Memory's winner cells do not depend on ds: each seed's run
@@ -27,7 +27,7 @@ from models.evaluation import seqslam as seq
 from models.evaluation import sequences
 from models.evaluation.datasets import nordland_dir
 
-# Files (1-based, as in science.md §10.1) -> (offset, count).
+# Files (1-based, as in docs/design/science.md §10.1) -> (offset, count).
 WINDOWS = {"1-200": (0, 200), "401-600": (400, 200), "801-1000": (800, 200), "1201-1400": (1200, 200),
            "1589-1788": (1588, 200), "test": (894, 894), "tune": (0, 894)}
 METHODS = ["cosine", "slsbh", "htm", "openseqslam", "cosine-seq", "slsbh-seq", "htm-seq"]

@@ -1,4 +1,4 @@
-"""Figures written beside every evaluation result (science.md §8.1, §8.6): PR curves and S images.
+"""Figures written beside every evaluation result (docs/design/science.md §8.1, §8.6): PR curves and S images.
 
 The figures are drawn on an explicit Agg canvas instead of through pyplot: no global backend switch, no
 display needed, and safe to call from worker threads of the service or from tests.

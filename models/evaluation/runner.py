@@ -1,4 +1,4 @@
-"""Grid-world experiments: the protocol of science.md §2.4 run over seeds, aggregated per §8.6.
+"""Grid-world experiments: the protocol of docs/design/science.md §2.4 run over seeds, aggregated per §8.6.
 
 One pass over all observations with learning on at every step and no reset; each step yields the input
 SDR (pairwise / InputSDR), the MCN winner cells and the TM winner cells; each descriptor sequence is
@@ -70,7 +70,7 @@ def run_grid_once(data: GridData, scoring: str, preset: str, mcn_preset: str, tm
 
     `pairwise-seq` is the OpenSeqSLAM matcher (models.evaluation.seqslam, ds steps centred on each step,
     full paths only) over the Dice of the input SDRs: what a plain sequence filter gets from the codes,
-    beside what the Temporal Memory gets (science.md §10.1).
+    beside what the Temporal Memory gets (docs/design/science.md §10.1).
     """
     out: dict[str, dict[str, Any]] = {}
     for method in methods:
@@ -111,7 +111,7 @@ def grid_experiment(
     plots_dir: str | Path | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
-    """Run the grid protocol over `seeds` seeds and aggregate (science.md §8.6).
+    """Run the grid protocol over `seeds` seeds and aggregate (docs/design/science.md §8.6).
 
     Seeds for data, TM and MCN are spawned from the experiment `seed` with `numpy.random.SeedSequence`,
     so every run is reproducible from one number.

@@ -1,7 +1,7 @@
 """Sequence matching over a difference matrix: the SeqSLAM filter and the OpenSeqSLAM reference.
 
-science.md §10.1 (Milford & Wyeth, ICRA 2012, with the parameters of Sünderhauf's OpenSeqSLAM release),
-written from that description:
+docs/design/science.md §10.1 (Milford & Wyeth, ICRA 2012, with the parameters of Sünderhauf's OpenSeqSLAM
+release), written from that description:
 
 - local contrast enhancement of each database row over a window of database rows, per query column;
 - straight paths of `ds` query steps **centred on the query** at velocities of 0.8-1.2 database steps per
@@ -151,7 +151,7 @@ def with_ablations(methods: Sequence[str], table: Mapping[str, Sequence[str]]) -
     """`methods` with each method's ablations (`table[method]`) added before it, in order, once each.
 
     The memory's contribution is only visible beside the same matcher on the codes it is fed (and on the
-    features): evaluations add these whether or not they were asked for (science.md §10.1).
+    features): evaluations add these whether or not they were asked for (docs/design/science.md §10.1).
     """
     out: list[str] = []
     for m in methods:

@@ -1,7 +1,7 @@
 """Cross-season image sequences: pairing, cached features, and the database/query protocol.
 
-science.md §8.5: the memory learns the database sequence (learn = true), then runs the query sequence
-with learning off; the paper does this without a reset in between, the project's protocol may reset.
+docs/design/science.md §8.5: the memory learns the database sequence (learn = true), then runs the query
+sequence with learning off; the paper does this without a reset in between, the project's protocol may reset.
 S has database items as rows and queries as columns, higher = more similar (§8.1).
 """
 
@@ -26,7 +26,8 @@ from models.temporal_memory import TemporalMemory
 
 # "X-seq" is method X's single-image similarity through the OpenSeqSLAM matcher (models.evaluation.
 # seqslam: contrast enhancement, full straight paths of ds frames centred on the query); `openseqslam` is
-# that matcher on its own pixel front end with its own match score, the reference (science.md §10.1).
+# that matcher on its own pixel front end with its own match score, the reference
+# (docs/design/science.md §10.1).
 SEQUENCE_FILTERED = ("cosine", "slsbh", "mcn", "htm")
 METHODS = ("cosine", "slsbh", "mcn", "htm", "openseqslam", *(f"{m}-seq" for m in SEQUENCE_FILTERED))
 # What always runs beside a memory method (seqslam.with_ablations).
@@ -94,7 +95,8 @@ def cached_features(encoder: Encoder, paths: Sequence[Path], cache_dir: Path | N
 
 
 def dark_frames(paths: Sequence[Path], threshold: float = 20.0) -> np.ndarray:
-    """(n,) bool: frames whose mean grey level is below `threshold` (tunnels, stations; science.md §8.5)."""
+    """(n,) bool: frames whose mean grey level is below `threshold` (tunnels, stations;
+    docs/design/science.md §8.5)."""
     import cv2  # only this helper needs it; the rest of the module works on features
 
     out = []
@@ -123,8 +125,8 @@ def run_tm(db_codes: np.ndarray, q_codes: np.ndarray, preset: str, seed: int, re
     Returns:
         db winners, query winners (sorted cell arrays), and statistics: the fraction of active columns
         predicted in the query pass in true order, the same in a random order of the query frames (the
-        chance-prediction rate, science.md §3.8: the difference is what sequence memory contributes),
-        and the preallocated bytes.
+        chance-prediction rate, docs/design/science.md §3.8: the difference is what sequence memory
+        contributes), and the preallocated bytes.
     """
     tm = TemporalMemory(presets.tm_params(preset, {**(tm_overrides or {}), "seed": int(seed),
                                                    "columnDimensions": width}))
@@ -141,7 +143,7 @@ def run_tm(db_codes: np.ndarray, q_codes: np.ndarray, preset: str, seed: int, re
 
 def run_mcn(db_codes: np.ndarray, q_codes: np.ndarray, preset: str, seed: int, reset: bool,
             width: int) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, Any]]:
-    """MCN on the same codes: learn the database, infer the queries (science.md §4)."""
+    """MCN on the same codes: learn the database, infer the queries (docs/design/science.md §4)."""
     params = presets.mcn_params(preset, {"seed": int(seed)})
     if params["nInConPerCol"] is None:
         params["nInConPerCol"] = round(float(np.mean([len(c) for c in db_codes])))
@@ -226,7 +228,7 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
         methods: subset of METHODS; each memory method's ablations (ABLATIONS) are added.
         preset: TM preset; mcn_preset: MCN preset.
         k, s: sLSBH size and sparsity (2k = TM columns).
-        seeds: runs; projection, TM and MCN seeds spawned from `seed` (science.md §8.6).
+        seeds: runs; projection, TM and MCN seeds spawned from `seed` (docs/design/science.md §8.6).
         tolerance: ±database items counted as the same place.
         reset: reset the sequence memory between database and query (the paper does not).
         adapt_tau: > 0: each sequence minus its running mean (models.adaptation) before every feature

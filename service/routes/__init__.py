@@ -1,4 +1,4 @@
-"""The HTTP routes, one router per resource (service.md §1), gathered in `api_router`.
+"""The HTTP routes, one router per resource (docs/design/service.md §1), gathered in `api_router`.
 
 `service.app.create_app` includes `api_router`; a new resource is a module here with its own `router`,
 added below.

@@ -1,4 +1,5 @@
-"""`GET /healthz` (liveness) and `GET /readyz` (readiness with each check's result), service.md §1.6.
+"""`GET /healthz` (liveness) and `GET /readyz` (readiness with each check's result),
+docs/design/service.md §1.6.
 
 A check result is a dict with `status` = `pass` | `warn` | `fail` and its details. The service is ready
 iff no check fails: 200 `{"status": "ready", "checks": ..., "warnings": [...]}`, else 503 problem+json

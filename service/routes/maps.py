@@ -1,4 +1,4 @@
-"""Maps: create, list, get, delete, memory sizes, stream reset (service.md §1.1, §1.3, §1.4)."""
+"""Maps: create, list, get, delete, memory sizes, stream reset (docs/design/service.md §1.1, §1.3, §1.4)."""
 
 from __future__ import annotations
 

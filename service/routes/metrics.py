@@ -1,4 +1,4 @@
-"""`GET /metrics`: the Prometheus text format (service.md §1.6), from a per-app registry.
+"""`GET /metrics`: the Prometheus text format (docs/design/service.md §1.6), from a per-app registry.
 
 Each app owns a `Metrics` (its own `CollectorRegistry`, never the process-global one), so tests can build
 several apps. What is here:

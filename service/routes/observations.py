@@ -1,4 +1,4 @@
-"""Observations: image in, ranked matches out (service.md §1.2)."""
+"""Observations: image in, ranked matches out (docs/design/service.md §1.2)."""
 
 from __future__ import annotations
 

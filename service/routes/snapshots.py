@@ -1,4 +1,4 @@
-"""Snapshots: create, list, restore, download (service.md §1.5)."""
+"""Snapshots: create, list, restore, download (docs/design/service.md §1.5)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """kill -9 while a robot is mapping: nothing acknowledged is lost, the database is intact, and the
-restarted memory is the one that ran (service.md §4.3, §10.4)."""
+restarted memory is the one that ran (docs/design/service.md §4.3, §10.4)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""AlexNet conv1..conv3 front end (science.md §6): shapes, normalisation, keys, random weights, ids."""
+"""AlexNet conv1..conv3 front end (docs/design/science.md §6): shapes, normalisation, keys, random weights,
+ids."""
 
 from __future__ import annotations
 

@@ -90,7 +90,7 @@ def test_seeds_make_runs_reproducible_and_distinct():
 
 @needs_data
 def test_paper_scoring_reproduces_the_published_numbers():
-    """science.md §9.3 acceptance: 10 seeds, published files, paper scoring."""
+    """docs/design/science.md §9.3 acceptance: 10 seeds, published files, paper scoring."""
     a1 = runner.grid_experiment(lambda s: published("a1n0"), scoring="paper", seeds=10)["methods"]
     a5 = runner.grid_experiment(lambda s: published("a5n05"), scoring="paper", seeds=10)["methods"]
     assert a1["pairwise"]["auc_mean"] == pytest.approx(0.911734, abs=1e-6)
@@ -99,7 +99,8 @@ def test_paper_scoring_reproduces_the_published_numbers():
     assert 0.947 <= a5["htm"]["auc_mean"] <= 0.959
     assert 0.95 <= a1["mcn"]["auc_mean"] <= 0.995
     assert 0.79 <= a5["mcn"]["auc_mean"] <= 0.86
-    assert a5["htm"]["predicted_column_fraction_mean"] == 0.0  # science.md §3.8: it never predicts
+    # docs/design/science.md §3.8: it never predicts
+    assert a5["htm"]["predicted_column_fraction_mean"] == 0.0
 
 
 @needs_data

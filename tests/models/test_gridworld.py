@@ -1,4 +1,4 @@
-"""Grid-world trajectory, generator and published-data loader (science.md §2)."""
+"""Grid-world trajectory, generator and published-data loader (docs/design/science.md §2)."""
 
 from __future__ import annotations
 

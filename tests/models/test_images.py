@@ -1,4 +1,5 @@
-"""Image decoding and preprocessing (science.md §6 "Front end"; service.md §1.2, §3 input checks).
+"""Image decoding and preprocessing (docs/design/science.md §6 "Front end"; docs/design/service.md §1.2, §3
+input checks).
 
 Every input is generated here (NumPy + cv2.imencode, skimage's bundled photo); nothing is downloaded.
 """

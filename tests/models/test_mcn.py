@@ -1,4 +1,5 @@
-"""Behaviour of the minicolumn network baseline (science.md §4) and its grid-world acceptance (§9.3)."""
+"""Behaviour of the minicolumn network baseline (docs/design/science.md §4) and its grid-world acceptance
+(§9.3)."""
 
 from __future__ import annotations
 
@@ -48,7 +49,7 @@ def test_resolve_in_con_and_threshold() -> None:
     assert grid["nInConPerCol"] is None
     with pytest.raises(ValueError, match="resolve_in_con"):
         MCN(grid, WIDTH)
-    # The published files: 40.56 and 38.40 mean ones per input (science.md §4 table).
+    # The published files: 40.56 and 38.40 mean ones per input (docs/design/science.md §4 table).
     a1, a5 = resolve_in_con(grid, 8598 / 212), resolve_in_con(grid, 8141 / 212)
     assert (a1["nInConPerCol"], a5["nInConPerCol"]) == (41, 38)
     assert grid["nInConPerCol"] is None  # not modified in place
@@ -99,7 +100,7 @@ def test_output_is_sorted_int_cell_ids_of_active_columns() -> None:
 
 
 def test_second_presentation_is_predicted() -> None:
-    """science.md §4 defect 1: predictions must survive to the next step (no aliasing of P)."""
+    """docs/design/science.md §4 defect 1: predictions must survive to the next step (no aliasing of P)."""
     seq = _random_sdrs(20)
     m = MCN(_grid_params(), WIDTH)
     first = []
@@ -228,7 +229,7 @@ def test_strict_threshold() -> None:
 
 
 def test_already_connected_from_this_column_rule() -> None:
-    """science.md §4 defect 2: the check is on the previous winner's column."""
+    """docs/design/science.md §4 defect 2: the check is on the previous winner's column."""
     for prob, expect_extra in ((0.0, False), (1.0, True)):
         m = _tiny(probAdditionalCon=prob)
         (a0,) = m.step(A)
@@ -293,7 +294,8 @@ def _data_dir() -> Path | None:
 
 
 def _auc(sim: np.ndarray, gt: np.ndarray) -> float:
-    """science.md §8.2: 100 thresholds from max to min, (R=0, P=1) prepended, trapezoid of P over R."""
+    """docs/design/science.md §8.2: 100 thresholds from max to min, (R=0, P=1) prepended, trapezoid of P over
+    R."""
     R, P = [0.0], [1.0]
     for t in np.linspace(sim.max(), sim.min(), 100):
         passed = sim >= t

@@ -1,4 +1,4 @@
-"""PR curve, AUC, recall@K, tolerance and grid scoring (science.md §8)."""
+"""PR curve, AUC, recall@K, tolerance and grid scoring (docs/design/science.md §8)."""
 
 from __future__ import annotations
 

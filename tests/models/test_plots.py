@@ -1,4 +1,4 @@
-"""PR-curve and similarity-matrix figures (science.md §8.1, §8.6)."""
+"""PR-curve and similarity-matrix figures (docs/design/science.md §8.1, §8.6)."""
 
 from __future__ import annotations
 

@@ -113,8 +113,8 @@ def test_openseqslam_answers_a_shifted_route_and_scores_confidence():
     assert m2.ratio[25] > np.median(m.ratio[cols])
 
 
-# R@1 of OpenSeqSLAM measured with the release (issue 12, science.md §10.1): summer database, winter
-# query, tolerance 0, queries with a full centred window, ds = 10. Two windows keep the test fast; the
+# R@1 of OpenSeqSLAM measured with the release (issue 12, docs/design/science.md §10.1): summer database,
+# winter query, tolerance 0, queries with a full centred window, ds = 10. Two windows keep the test fast; the
 # whole list is a command in docs/results.md §7.
 REFERENCE_R1 = {(400, 200): 0.737, (1588, 200): 0.821}
 

@@ -86,7 +86,8 @@ def test_every_method_scores_and_sequence_methods_use_order():
 
 
 def test_chance_prediction_rate_is_far_below_the_in_order_rate():
-    """science.md §3.8: shuffled query frames are predicted only by chance; true order by sequence."""
+    """docs/design/science.md §3.8: shuffled query frames are predicted only by chance; true order by
+    sequence."""
     rng = np.random.default_rng(1)
     codes = np.stack([np.sort(rng.choice(2048, 40, replace=False)) for _ in range(60)])
     _, q_w, info = sequences.run_tm(codes, codes, "cortexloc-grid", seed=3, reset=True, width=2048)

@@ -1,4 +1,4 @@
-"""sLSBH hashing, its projections and their persistence (science.md §7, §5)."""
+"""sLSBH hashing, its projections and their persistence (docs/design/science.md §7, §5)."""
 
 from __future__ import annotations
 
@@ -229,7 +229,7 @@ def test_hasher_accepts_torch_float64_and_single_vectors(dense_p: np.ndarray) ->
 
 
 def test_overlap_dice_and_hamming_rank_alike(dense_p: np.ndarray) -> None:
-    """science.md §5: with constant weight 2n, Dice = overlap/(2n), Hamming = 4n − 2·overlap."""
+    """docs/design/science.md §5: with constant weight 2n, Dice = overlap/(2n), Hamming = 4n − 2·overlap."""
     P = dense_p
     h = Hasher(P, s=0.25)
     db = list(h(_features(30, seed=3)))

@@ -1,4 +1,5 @@
-"""Every rule of science.md §3.3-§3.6, on small memories whose outcome can be worked out by hand."""
+"""Every rule of docs/design/science.md §3.3-§3.6, on small memories whose outcome can be worked out by
+hand."""
 
 from __future__ import annotations
 
@@ -337,7 +338,7 @@ def test_validation_and_warnings():
 def test_reported_bytes_match_reference_layout():
     grid = TemporalMemory(presets.tm_params("cba2020-grid"))
     size = grid.size()
-    assert size["canonical_bytes"] == 688_128  # science.md §3.7: C·S·(6K + 10)
+    assert size["canonical_bytes"] == 688_128  # docs/design/science.md §3.7: C·S·(6K + 10)
     assert size["segment_capacity"] == 8192 * 3 and size["synapse_capacity"] == 8192 * 9
     assert size["bytes"] > size["canonical_bytes"]
 
@@ -355,11 +356,13 @@ def test_grid_preset_never_predicts_but_predicting_preset_does():
             predicted += tm.context.stats.predicted_columns
         frac[name] = predicted / (len(seq) * 40)
     assert frac["cba2020-grid"] == 0.0
-    assert frac["cortexloc-grid"] > 0.9  # science.md §3.7: > 90 % predicted from the second repetition
+    # docs/design/science.md §3.7: > 90 % predicted from the second repetition
+    assert frac["cortexloc-grid"] > 0.9
 
 
 def test_default_preset_predicts_repeats_of_its_own_codes_and_rarely_by_chance():
-    """science.md §3.7/§3.8 for `cortexloc-default` at its sLSBH density (2n of 2048 columns active).
+    """docs/design/science.md §3.7/§3.8 for `cortexloc-default` at its sLSBH density (2n of 2048 columns
+    active).
 
     At 15 % density with minThreshold 2 most segments match by chance, so bursting columns re-use them
     and an exact repeat is predicted in only about a quarter of its columns (docs/results.md §7 gives

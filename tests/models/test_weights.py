@@ -1,4 +1,4 @@
-"""Weights download / import / verify / cache (service.md §7), without the network.
+"""Weights download / import / verify / cache (docs/design/service.md §7), without the network.
 
 A fake "full" checkpoint (the six conv tensors with random values plus classifier keys) stands in for
 torchvision's file. Its real SHA-256 cannot start with 7be5be79, so the tests pass the fake file's own

@@ -1,5 +1,5 @@
 """Schemathesis against the OpenAPI, in process, fresh data directory, bounded examples: no 5xx,
-and every 4xx is problem+json (service.md §10.2)."""
+and every 4xx is problem+json (docs/design/service.md §10.2)."""
 
 from __future__ import annotations
 

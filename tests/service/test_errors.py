@@ -1,4 +1,4 @@
-"""One error shape everywhere: RFC 9457 problem+json with request ids (service.md §2)."""
+"""One error shape everywhere: RFC 9457 problem+json with request ids (docs/design/service.md §2)."""
 
 from __future__ import annotations
 

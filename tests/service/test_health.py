@@ -1,4 +1,4 @@
-"""Liveness, readiness and metrics (service.md §1.6)."""
+"""Liveness, readiness and metrics (docs/design/service.md §1.6)."""
 
 from __future__ import annotations
 

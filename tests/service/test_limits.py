@@ -1,4 +1,4 @@
-"""Upload limits before routing and parsing (service.md §3): 413 problem+json, pure ASGI."""
+"""Upload limits before routing and parsing (docs/design/service.md §3): 413 problem+json, pure ASGI."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Settings: read once from CORTEXLOC_* at startup, validated, errors name the variable (service.md §8)."""
+"""Settings: read once from CORTEXLOC_* at startup, validated, errors name the variable
+(docs/design/service.md §8)."""
 
 from __future__ import annotations
 
