@@ -36,8 +36,9 @@ from typing import Any
 import numpy as np
 from _common import RESULTS, quick_mode, rss_mib, write_json  # also puts the repo on sys.path
 
-from models import presets, slsbh
-from models.temporal_memory import StreamContext, TemporalMemory
+from models import presets
+from models.frontend import slsbh
+from models.memory.temporal_memory import StreamContext, TemporalMemory
 from storage.index import InvertedIndex
 
 CHECK_EVERY = 100  # steps between looks at the eviction/overrun counters
@@ -100,7 +101,7 @@ class LongRun:
         return w
 
     def _check_caps(self) -> None:
-        c = self.tm.counters  # [evictions, overruns, decay, empty] (models._tm_kernels.C_*)
+        c = self.tm.counters  # [evictions, overruns, decay, empty] (models.memory._tm_kernels.C_*)
         if self.first_eviction is None and c[0] > 0:
             self.first_eviction = self.steps
         if self.first_overrun is None and c[1] > 0:

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from models import presets
-from models.temporal_memory import TemporalMemory
+from models.memory.temporal_memory import TemporalMemory
 
 
 def rss_mb() -> float:
@@ -154,7 +154,7 @@ def bench_encoder(backbone: str = "alexnet", repeats: int = 15, threads: int = 1
     """
     import torch
 
-    from models.encoder import Encoder
+    from models.frontend.encoder import Encoder
 
     enc = Encoder({"backbone": backbone, "torch_threads": threads, "slsbh": {"projection": projection}})
     jpegs = synthetic_jpegs(16)

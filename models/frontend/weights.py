@@ -9,7 +9,7 @@ the six conv1..conv3 tensors (994,624 float32 values, about 4 MB), so an install
     <cache>/alexnet-conv3-7be5be79.json  sidecar: SHA-256 of the original and of the trimmed file, source
 
 The sidecar is what lets the trimmed file keep the identity of the original (`imagenet-7be5be79`, see
-`models.backbones.alexnet_conv3`) and lets `find_alexnet` detect a corrupted copy.
+`models.frontend.backbones.alexnet.alexnet_conv3`) and lets `find_alexnet` detect a corrupted copy.
 
 Nothing here runs at import time and nothing is downloaded unless `download_alexnet` is called: tests
 and offline machines never touch the network. Only the standard library is used for HTTP.

@@ -1,7 +1,8 @@
 """Parameter search for the cross-season default (issue: cross-season evaluation,
 docs/design/science.md §8.5).
 
-Run: `python -m models.evaluation.nordland_sweep [--split tune] [--json OUT]` (one seed: a sweep ranks).
+Run: `python -m models.evaluation.sweeps.nordland_sweep [--split tune] [--json OUT]` (one seed: a sweep
+ranks).
 Protocol `tune` (files 1-894 of nordland_tiny_64x32, summer database, winter query, reset between them,
 squash resize): every configuration of sLSBH density, stream adaptation and Temporal Memory parameters
 is run on both backbones (random-weight AlexNet conv3, ImageNet EfficientNet-Lite0 stage 7). Per
@@ -23,15 +24,16 @@ from typing import Any
 
 import numpy as np
 
-from models import sdr, slsbh
-from models.encoder import Encoder
+from models import sdr
 from models.evaluation import sequences
 from models.evaluation.datasets import shared_data_dir
 from models.evaluation.seqslam import full_window, seqslam
+from models.frontend import slsbh
+from models.frontend.encoder import Encoder
 
 K = 1024  # sLSBH projections: 2K = 2048 TM columns
 SPLITS = {"tune": (0, 894), "test": (894, 894)}
-BACKBONES = ("alexnet", "efficientnet-lite0")
+BACKBONES = ("alexnet", "efficientnet-lite0")  # the experiment's choice, each a registered backbone
 GRID: dict[str, list[Any]] = {
     "s": [0.02, 0.05, 0.1, 0.15, 0.2],
     "adapt_tau": [0, 20],

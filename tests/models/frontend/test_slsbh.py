@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from models import sdr, slsbh
-from models.slsbh import Hasher, ProjectionError, SparseProjection
+from models import sdr
+from models.frontend import slsbh
+from models.frontend.slsbh import Hasher, ProjectionError, SparseProjection
 
 D, K = 500, 64
 

@@ -11,9 +11,11 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from models import backbones, images, sdr, slsbh
-from models.bench import synthetic_jpegs
-from models.encoder import STAGES, Encoder, merge_conf
+from models import sdr
+from models.evaluation.bench import synthetic_jpegs
+from models.frontend import images, slsbh
+from models.frontend.backbones import alexnet as backbones
+from models.frontend.encoder import STAGES, Encoder, merge_conf
 from service.cli import app
 
 
@@ -80,7 +82,7 @@ def test_random_weights_are_announced(caplog):
 
 
 def test_weights_file_is_used_and_named(tmp_path, monkeypatch):
-    from models import weights
+    from models.frontend import weights
 
     state = backbones.random_alexnet_state(seed=9)
     path = tmp_path / "conv3.pt"
@@ -139,7 +141,7 @@ def test_efficientnet_backbone_encodes():
 
 
 def test_weights_import_command_installs_and_refuses(tmp_path):
-    from models import weights
+    from models.frontend import weights
 
     full = tmp_path / "alexnet-full.pth"
     torch.save({**backbones.random_alexnet_state(seed=1), "classifier.1.weight": torch.zeros(2, 2)}, full)
@@ -153,7 +155,7 @@ def test_weights_import_command_installs_and_refuses(tmp_path):
 
 
 def test_bench_encoder_reports_the_contract(tmp_path, monkeypatch):
-    import models.bench as bench
+    import models.evaluation.bench as bench
 
     monkeypatch.setattr(bench, "synthetic_jpegs", lambda n: synthetic_jpegs(n, 96, 64))
     out = tmp_path / "e.json"

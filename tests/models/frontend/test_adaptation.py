@@ -1,13 +1,13 @@
-"""Stream adaptation (models.adaptation): removes what recent frames share, causally."""
+"""Stream adaptation (models.frontend.adaptation): removes what recent frames share, causally."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from models import slsbh
-from models.adaptation import RunningMean, running_mean_subtract
 from models.evaluation import sequences
+from models.frontend import slsbh
+from models.frontend.adaptation import RunningMean, running_mean_subtract
 
 
 def _stream(n: int = 200, d: int = 256, seed: int = 0) -> np.ndarray:

@@ -22,10 +22,10 @@ import numpy as np
 import pytest
 import torch
 
-import models.weights as weights_module
-from models import weights
-from models.backbones import AlexNetConv3, alexnet_conv3, load_alexnet_state
-from models.weights import (
+import models.frontend.weights as weights_module
+from models.frontend import weights
+from models.frontend.backbones.alexnet import AlexNetConv3, alexnet_conv3, load_alexnet_state
+from models.frontend.weights import (
     ALEXNET_CONV3_SHAPES,
     ALEXNET_SHA256_PREFIX,
     ALEXNET_URL,

@@ -3,7 +3,7 @@ descriptor.
 
 The network is the first seven modules of torchvision's `alexnet().features`, written in plain torch
 (no torchvision dependency) with the same module indices, so torchvision's published checkpoint and
-our trimmed copy of it (models/weights.py) load with `load_state_dict` directly:
+our trimmed copy of it (models/frontend/weights.py) load with `load_state_dict` directly:
 
     features.0  Conv 3->64, k11, s4, p2   (N,3,224,224) -> (N,64,55,55)
     features.1  ReLU
@@ -30,15 +30,19 @@ from __future__ import annotations
 import hashlib
 import io
 import math
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional
 
-from models import weights
-from models.weights import ALEXNET_CONV3_PARAMETERS, ALEXNET_CONV3_SHAPES, WeightsError
+from models.frontend import weights
+from models.frontend.backbones import Backbone, register
+from models.frontend.images import IMAGENET_MEAN, IMAGENET_STD
+from models.frontend.weights import ALEXNET_CONV3_PARAMETERS, ALEXNET_CONV3_SHAPES, WeightsError
 
 #: Length of the flattened conv3 output at 224x224: 384 x 13 x 13.
 ALEXNET_CONV3_DIM = 64_896
@@ -214,3 +218,15 @@ def alexnet_conv3(weights_path: str | Path | None, seed: int = 0,
     model.eval()
     model.requires_grad_(False)
     return model, weights_id
+
+
+@register("alexnet")
+def build(conf: Mapping[str, Any]) -> Backbone:
+    """The registry's `alexnet`: conv1..conv3 with `conf["weights_path"]`, else the installed weights
+    (`weights.find_alexnet`), else seeded random weights (`conf["random_seed"]`); ImageNet input
+    normalisation; (N, 3, 224, 224) -> (N, 64896)."""
+    path = conf.get("weights_path")
+    if path is None:
+        path = weights.find_alexnet()
+    model, weights_id = alexnet_conv3(path, seed=int(conf.get("random_seed", 0)))
+    return Backbone(model, model, weights_id, "alexnet-conv3", IMAGENET_MEAN, IMAGENET_STD)

@@ -9,9 +9,9 @@ import pytest
 import torch
 from torch.nn import functional
 
-from models import efficientnet as effnet
-from models import images
 from models.files import sha256_file
+from models.frontend import images
+from models.frontend.backbones import efficientnet_lite0 as effnet
 
 skdata = pytest.importorskip("skimage.data")
 

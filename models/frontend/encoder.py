@@ -26,12 +26,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from models import images, slsbh
+from models.frontend import backbones, images, slsbh
 
 log = logging.getLogger("cortexloc.encoder")
 
 default_conf: dict[str, Any] = {
-    "backbone": "alexnet",  # alexnet | efficientnet-lite0
+    "backbone": "alexnet",  # a name registered in models.frontend.backbones: alexnet | efficientnet-lite0
     "resize": "crop",  # crop (Resize 256 + CenterCrop 224, as the paper) | squash (straight to 224)
     "weights_path": None,  # AlexNet conv1..conv3 file; None: look in the weights cache, else random
     "random_seed": 0,  # seed of the NumPy-generated fallback weights
@@ -101,7 +101,9 @@ class Encoder:
                  projection: np.ndarray | slsbh.SparseProjection | None = None) -> None:
         self.conf = merge_conf(conf)
         torch.set_num_threads(int(self.conf["torch_threads"]))
-        self.model, self.weights_id, self.input_mean, self.input_std = self._build_backbone()
+        self.backbone = backbones.get(self.conf["backbone"])(self.conf)
+        self.weights_id = self.backbone.weights_id
+        self.input_mean, self.input_std = self.backbone.input_mean, self.backbone.input_std
         self.pretrained = self.weights_id.startswith("imagenet")
         if self.weights_id.startswith("random"):
             log.warning(
@@ -149,23 +151,6 @@ class Encoder:
 
     # ------------------------------------------------------------------ identity
 
-    def _build_backbone(self) -> tuple[torch.nn.Module, str, tuple, tuple]:
-        name = self.conf["backbone"]
-        if name == "alexnet":
-            from models import backbones, weights
-
-            path = self.conf["weights_path"]
-            if path is None:
-                path = weights.find_alexnet()
-            model, wid = backbones.alexnet_conv3(path, seed=int(self.conf["random_seed"]))
-            return model, wid, images.IMAGENET_MEAN, images.IMAGENET_STD
-        if name == "efficientnet-lite0":
-            from models import efficientnet
-
-            model, wid = efficientnet.efficientnet_lite0()
-            return model, wid, efficientnet.INPUT_MEAN, efficientnet.INPUT_STD
-        raise ValueError(f"unknown backbone {name!r}; known: alexnet, efficientnet-lite0")
-
     @property
     def feature_dim(self) -> int:
         """D, the length of the flattened backbone descriptor at 224x224."""
@@ -177,11 +162,8 @@ class Encoder:
     @property
     def identity(self) -> str:
         """e.g. `alexnet-conv3/imagenet-7be5be79:crop` or `alexnet-conv3/random-seed0:crop`."""
-        if self.conf["backbone"] == "alexnet":
-            arch = "alexnet-conv3"
-        else:  # the descriptor layer is part of what makes codes comparable
-            arch = f"{self.conf['backbone']}-{self.model.descriptor_layer}"
-        return f"{arch}/{self.weights_id}:{self.conf['resize']}"
+        # The architecture names its descriptor layer: that is part of what makes codes comparable.
+        return f"{self.backbone.arch}/{self.weights_id}:{self.conf['resize']}"
 
     def describe(self) -> dict[str, Any]:
         """What the service reports in /readyz and every response: the backbone and its weights.
@@ -195,9 +177,7 @@ class Encoder:
     # ------------------------------------------------------------------ encoding
 
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.conf["backbone"] == "alexnet":
-            return self.model(x)
-        return self.model.descriptor(x)
+        return self.backbone.describe(x)
 
     def preprocess(self, rgbs: Sequence[np.ndarray]) -> np.ndarray:
         """(N, 3, 224, 224) float32 network input for decoded RGB images."""

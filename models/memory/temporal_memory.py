@@ -5,7 +5,7 @@ connections kept apart from the per-stream sequence context (§3.2), the step of
 of §3.5 (LRU segment eviction, lowest-permanence overrun, decay below 1e-5, empty segments destroyed) and
 the randomness rules of §3.6 (one seeded `numpy.random.Generator`, drawn only while learning).
 
-The hot loops live in `models._tm_kernels` (numba); this module is the readable interface.
+The hot loops live in `models.memory._tm_kernels` (numba); this module is the readable interface.
 
 Example:
     >>> tm = TemporalMemory(presets.tm_params("cortexloc-grid"))
@@ -23,8 +23,8 @@ from typing import Any
 import numba
 import numpy as np
 
-from models import _tm_kernels as kern
 from models import presets
+from models.memory import _tm_kernels as kern
 
 _EMPTY = np.zeros(0, dtype=np.int64)
 _EMPTY32 = np.zeros(0, dtype=np.int32)
@@ -220,7 +220,7 @@ class TemporalMemory:
         self.presyn, self.perm, self.nsyn, self.last_used = a["presyn"], a["perm"], a["nsyn"], a["last_used"]
         # Auxiliary, fixed-capacity, derived from the canonical arrays.
         self._seg_count = a["seg_count"]
-        # Reverse index (see models._tm_kernels): blocks of entries per presynaptic cell; the unused
+        # Reverse index (see models.memory._tm_kernels): blocks of entries per presynaptic cell; the unused
         # blocks form the free list through blk_prev.
         a["blk_prev"][:] = np.arange(1, a["blk_prev"].size + 1)
         a["blk_prev"][-1] = -1

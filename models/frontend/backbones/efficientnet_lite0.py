@@ -49,13 +49,16 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import nn
 from torch.nn import functional
 
 from models.files import sha256_file
+from models.frontend.backbones import Backbone, register
 
 __all__ = [
     "DEFAULT_LAYER",
@@ -307,3 +310,12 @@ def efficientnet_lite0(device: str | torch.device = "cpu", layer: str = DEFAULT_
     model.to(device).eval()
     prefix = "imagenet" if digest == WEIGHTS_SHA256 else "file"
     return model, f"{prefix}-{digest[:8]}"
+
+
+@register("efficientnet-lite0")
+def build(conf: Mapping[str, Any]) -> Backbone:
+    """The registry's `efficientnet-lite0`: the package's ImageNet weights, descriptor `DEFAULT_LAYER`
+    (identity `efficientnet-lite0-stage7`); (N, 3, 224, 224) -> (N, 15680). `conf` has nothing for it."""
+    model, weights_id = efficientnet_lite0()
+    return Backbone(model, model.descriptor, weights_id, f"efficientnet-lite0-{model.descriptor_layer}",
+                    INPUT_MEAN, INPUT_STD)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from models import presets
-from models.bench import random_sequence
-from models.temporal_memory import TemporalMemory
+from models.evaluation.bench import random_sequence
+from models.memory.temporal_memory import TemporalMemory
 
 CPC = 4
 
@@ -392,7 +392,7 @@ def test_default_preset_predicts_repeats_of_its_own_codes_and_rarely_by_chance()
 
 
 def test_planned_bytes_equal_the_allocated_bytes():
-    from models.temporal_memory import planned_bytes
+    from models.memory.temporal_memory import planned_bytes
 
     for name in ("cba2020-grid", "cortexloc-grid"):
         params = presets.tm_params(name)

@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 import torch
 
-from models.backbones import (
+from models.frontend.backbones.alexnet import (
     ALEXNET_CONV3_DIM,
     AlexNetConv3,
     alexnet_conv3,
     load_alexnet_state,
     random_alexnet_state,
 )
-from models.weights import ALEXNET_CONV3_SHAPES, WeightsError
+from models.frontend.weights import ALEXNET_CONV3_SHAPES, WeightsError
 
 TORCHVISION_KEYS = [f"features.{i}.{p}" for i in (0, 3, 6) for p in ("weight", "bias")]
 

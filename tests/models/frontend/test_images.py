@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 import pytest
 
-from models import images
-from models.images import ImageError, decode, preprocess, preprocess_batch, probe
+from models.frontend import images
+from models.frontend.images import ImageError, decode, preprocess, preprocess_batch, probe
 
 # ----------------------------------------------------------------------------------------------- helpers
 

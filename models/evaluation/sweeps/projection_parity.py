@@ -1,6 +1,6 @@
 """Dense versus very sparse sLSBH projection: is the cheaper one as good? (issue: front end, §3)
 
-Run: `python -m models.evaluation.projection_parity [--windows 0,1000] [--n 200] [--seeds 3]`.
+Run: `python -m models.evaluation.sweeps.projection_parity [--windows 0,1000] [--n 200] [--seeds 3]`.
 Encodes Nordland summer (database) and winter (query) frames once with the AlexNet conv3 encoder, then
 hashes the same features with dense and sparse projections of several seeds, at s = 0.25 and
 s = 0.025, and reports the pairwise-sLSBH AUC (S = Dice, GT = same file name) of each. The sparse
@@ -15,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from models import sdr, slsbh
-from models.encoder import Encoder
+from models import sdr
 from models.evaluation import metrics
 from models.evaluation.datasets import shared_data_dir
+from models.frontend import backbones, slsbh
+from models.frontend.encoder import Encoder
 
 
 def _features(enc: Encoder, folder: Path, names: list[str]) -> np.ndarray:
@@ -34,7 +35,7 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=200, help="frames per window")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--resize", default="squash", help="crop | squash (64x32 frames: squash keeps the view)")
-    ap.add_argument("--backbone", default="alexnet", help="alexnet | efficientnet-lite0")
+    ap.add_argument("--backbone", default="alexnet", choices=backbones.names())
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     root = shared_data_dir() / "nordland_tiny_64x32"

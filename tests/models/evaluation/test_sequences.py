@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from models.encoder import Encoder
 from models.evaluation import seqslam as seq
 from models.evaluation import sequences
 from models.evaluation.seqslam import seqslam
+from models.frontend.encoder import Encoder
 from service.cli import app
 
 
@@ -215,7 +215,7 @@ def test_sequence_filtered_methods_gain_from_order_and_keep_their_base():
 
 
 def test_eval_images_defaults_follow_the_service(tmp_path):
-    from models.encoder import default_conf
+    from models.frontend.encoder import default_conf
     from service.settings import Settings
 
     db, q = write_sequences(tmp_path, n=14)

@@ -11,7 +11,7 @@ import pytest
 
 from models import presets, sdr
 from models.evaluation import datasets
-from models.mcn import MCN, MCNCapacityError, resolve_in_con
+from models.memory.mcn import MCN, MCNCapacityError, resolve_in_con
 
 WIDTH = 2048
 
