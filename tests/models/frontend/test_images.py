@@ -14,7 +14,16 @@ import numpy as np
 import pytest
 
 from models.frontend import images
-from models.frontend.images import ImageError, decode, preprocess, preprocess_batch, probe
+from models.frontend.images import (
+    ImageError,
+    decode,
+    decoding,
+    preprocess,
+    preprocess_batch,
+    probe,
+    probing,
+)
+from models.frontend.images import png as png_mod
 
 # ----------------------------------------------------------------------------------------------- helpers
 
@@ -58,7 +67,7 @@ def _png_chunk(ctype: bytes, data: bytes) -> bytes:
 def _png_claiming(width: int, height: int) -> bytes:
     """A tiny, well-formed-looking PNG whose IHDR claims width × height (8-bit RGB)."""
     ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
-    return (images._PNG_SIGNATURE + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", zlib.compress(b""))
+    return (probing._PNG_SIGNATURE + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", zlib.compress(b""))
             + _png_chunk(b"IEND", b""))
 
 
@@ -82,7 +91,7 @@ def no_decoding(monkeypatch):
     """Fail the test if OpenCV is asked to decode anything."""
     def refuse(*args, **kwargs):
         raise AssertionError("cv2.imdecode was called")
-    monkeypatch.setattr(images.cv2, "imdecode", refuse)
+    monkeypatch.setattr(decoding.cv2, "imdecode", refuse)
 
 
 # ---------------------------------------------------------------------------------------------- decoding
@@ -462,7 +471,7 @@ def test_png_bomb_is_refused_from_its_chunks_without_inflating(png_bomb, no_deco
     # The issue's bomb at 1/100 scale, same ratio: 100x100 (30,100 raster bytes), 100 MB of zeros.
     data = png_bomb(100, 100, 100 << 20)
     assert len(data) < 120_000
-    monkeypatch.setattr(images.zlib, "decompressobj", None)  # the header walk alone must refuse it
+    monkeypatch.setattr(png_mod.zlib, "decompressobj", None)  # the header walk alone must refuse it
     for split in (1, 300):  # one IDAT, or many
         with pytest.raises(ImageError) as info:
             probe(png_bomb(100, 100, 100 << 20, idat_chunks=split))
@@ -478,7 +487,7 @@ def test_png_bomb_in_a_large_raster_is_stopped_at_the_raster_size(png_bomb, no_d
     data = png_bomb(1000, 1000, 64 << 20)
     assert probe(data).width == 1000
     inflated = []
-    real = images.zlib.decompressobj
+    real = png_mod.zlib.decompressobj
 
     class Counting:
         def __init__(self) -> None:
@@ -492,11 +501,11 @@ def test_png_bomb_in_a_large_raster_is_stopped_at_the_raster_size(png_bomb, no_d
         def __getattr__(self, name):
             return getattr(self.z, name)
 
-    monkeypatch.setattr(images.zlib, "decompressobj", Counting)
+    monkeypatch.setattr(png_mod.zlib, "decompressobj", Counting)
     with pytest.raises(ImageError) as info:
         decode(data)
     assert info.value.code == "bomb" and info.value.details["raster_bytes"] == 3_001_000
-    assert sum(inflated) <= 3_001_000 + images._INFLATE_STEP
+    assert sum(inflated) <= 3_001_000 + png_mod._INFLATE_STEP
 
 
 @pytest.mark.parametrize("interlace", [0, 1])
@@ -506,7 +515,7 @@ def test_png_image_data_must_inflate_to_exactly_its_raster(colour, depth, sample
     # Exactly the raster decodes; one byte more is refused before OpenCV (libpng would inflate it all),
     # one byte less is corrupt. Odd sizes exercise the Adam7 pass arithmetic and sub-byte packing.
     w, h = 13, 7
-    exact = images._png_raster_bytes(w, h, samples * depth, bool(interlace))
+    exact = png_mod._png_raster_bytes(w, h, samples * depth, bool(interlace))
     plte = _png_chunk(b"PLTE", bytes(3 * 16)) if colour == 3 else b""
 
     def png(n: int) -> bytes:
