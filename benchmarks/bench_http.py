@@ -159,7 +159,7 @@ def encoder_alone(frames: list[bytes], repeats: int) -> dict[str, Any]:
     from models.frontend import slsbh
     from models.frontend.encoder import Encoder
 
-    s_conf = {"k": 1024, "s": 0.25, **presets.get("cortexloc-default").get("slsbh", {})}
+    s_conf = presets.slsbh_params("cortexloc-default")
     enc = Encoder({"backbone": "alexnet", "torch_threads": 1, "slsbh": {"k": s_conf["k"], "s": s_conf["s"]}})
     batch = frames[:16]
     hasher = slsbh.Hasher(enc.hasher.P, float(s_conf["s"]))

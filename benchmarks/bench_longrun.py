@@ -74,7 +74,7 @@ class LongRun:
     def __init__(self, preset: str, places: int, laps: int, noise: float, seed: int) -> None:
         self.preset = preset
         self.params = presets.tm_params(preset)
-        s_conf = {"k": 1024, "s": 0.25, **presets.get(preset).get("slsbh", {})}
+        s_conf = presets.slsbh_params(preset)
         self.columns = int(self.params["columnDimensions"])
         self.active = 2 * slsbh.n_ones(int(s_conf["k"]), float(s_conf["s"]))  # the codes' ones (2n)
         self.n_replace = round(noise * self.active)

@@ -234,6 +234,12 @@ def tm_params(name: str, overrides: dict[str, Any] | None = None) -> dict[str, A
     return params
 
 
+def slsbh_params(name: str) -> dict[str, Any]:
+    """The sLSBH section of preset `name` with every default filled in (`SlsbhParams`, the one home of
+    the sLSBH defaults): {"k", "s", "seed", "adapt_tau"}. Raises KeyError for an unknown preset."""
+    return {**SlsbhParams().model_dump(), **get(name).get("slsbh", {})}
+
+
 def mcn_params(name: str = "mcn-grid", overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """Full MCN parameters: defaults <- preset `name` <- `overrides`."""
     preset = get(name)

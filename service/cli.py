@@ -259,7 +259,7 @@ def eval_images(
     _check_backbone(backbone)
     if resize not in ("crop", "squash"):
         raise typer.BadParameter("must be crop or squash", param_hint="--resize")
-    s_conf = presets.get(preset).get("slsbh", {"k": 1024, "s": 0.25})
+    s_conf = presets.slsbh_params(preset)
     sparsity = float(s if s is not None else s_conf["s"])
     if not 0 < sparsity <= 0.5:
         raise typer.BadParameter("must be in (0, 0.5]", param_hint="--s")

@@ -26,9 +26,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from models import presets
 from models.frontend import backbones, images, slsbh
 
 log = logging.getLogger("cortexloc.encoder")
+
+_SLSBH = presets.SlsbhParams()
 
 default_conf: dict[str, Any] = {
     "backbone": "alexnet",  # a name registered in models.frontend.backbones: alexnet | efficientnet-lite0
@@ -41,7 +44,8 @@ default_conf: dict[str, Any] = {
     "max_pixels": 25_000_000,
     # projection: dense (docs/design/science.md §7) | sparse (very sparse random projection, measured in
     # docs/results.md before it may become a default)
-    "slsbh": {"k": 1024, "s": 0.25, "seed": 0, "projection": "dense"},
+    # k and s: the map defaults (presets.SlsbhParams); the encoder's own projection has seed 0.
+    "slsbh": {"k": _SLSBH.k, "s": _SLSBH.s, "seed": 0, "projection": "dense"},
     "projection_dir": None,  # where projections are stored content-addressed; None: keep in memory
 }
 
