@@ -101,7 +101,7 @@ class LongRun:
         return w
 
     def _check_caps(self) -> None:
-        c = self.tm.counters  # [evictions, overruns, decay, empty] (models.memory._tm_kernels.C_*)
+        c = self.tm.counters  # [evictions, overruns, decay, empty] (models.memory._tm_synapses.C_*)
         if self.first_eviction is None and c[0] > 0:
             self.first_eviction = self.steps
         if self.first_overrun is None and c[1] > 0:

@@ -25,6 +25,7 @@ import numpy as np
 
 from models import presets
 from models.memory import _tm_kernels as kern
+from models.memory import _tm_synapses as syn
 
 _EMPTY = np.zeros(0, dtype=np.int64)
 _EMPTY32 = np.zeros(0, dtype=np.int32)
@@ -149,15 +150,15 @@ def _layout(params: dict[str, Any]) -> dict[str, tuple[int, Any, int]]:
     cells = int(params["columnDimensions"]) * int(params["cellsPerColumn"])
     n_seg = cells * int(params["maxSegmentsPerCell"])
     n_slot = n_seg * int(params["maxSynapsesPerSegment"])
-    n_blocks = kern.pool_blocks(n_slot, cells)
+    n_blocks = syn.pool_blocks(n_slot, cells)
     return {
         "presyn": (n_slot, np.uint16 if cells <= 65536 else np.uint32, 0),
         "perm": (n_slot, np.float32, 0),
         "nsyn": (n_seg, np.uint16, 0),
         "last_used": (n_seg, np.int64, 0),
         "seg_count": (cells, np.uint16, 0),
-        "rev": (n_blocks * kern.B, np.int32 if 2 * n_seg < 2**31 else np.int64, 0),
-        "rpos": (n_slot, np.int32 if n_blocks * kern.B < 2**31 else np.int64, 0),
+        "rev": (n_blocks * syn.B, np.int32 if 2 * n_seg < 2**31 else np.int64, 0),
+        "rpos": (n_slot, np.int32 if n_blocks * syn.B < 2**31 else np.int64, 0),
         "blk_prev": (n_blocks, np.int64, -1),
         "blk_fill": (n_blocks, np.int32, 0),
         "tail": (cells, np.int64, -1),
@@ -209,7 +210,7 @@ class TemporalMemory:
         f32 = np.float32
         # Parameters cast to float32 once (docs/design/science.md §3.6).
         self._p = np.array(
-            [merged["initialPermanence"], f32(merged["connectedPermanence"]) - f32(kern.EPS),
+            [merged["initialPermanence"], f32(merged["connectedPermanence"]) - f32(syn.EPS),
              merged["permanenceIncrement"], merged["permanenceDecrement"],
              merged["predictedSegmentDecrement"]], dtype=f32)
         self._ip = np.array(
@@ -294,7 +295,7 @@ class TemporalMemory:
     def predictive_cells(self, context: StreamContext | None = None) -> np.ndarray:
         """(p,) int64 sorted cells predicted for the next step of `context`."""
         ctx = context or self.context
-        return np.unique(ctx.active_segs // int(self._ip[kern.I_S]))
+        return np.unique(ctx.active_segs // int(self._ip[syn.I_S]))
 
     # ---------------------------------------------------------------- inspection
 
@@ -304,7 +305,7 @@ class TemporalMemory:
         Returns:
             [{"slot", "last_used", "presyn": (n,) int, "perm": (n,) float32}, ...]
         """
-        S, Kc = int(self._ip[kern.I_S]), int(self._ip[kern.I_K])
+        S, Kc = int(self._ip[syn.I_S]), int(self._ip[syn.I_K])
         out = []
         for s in range(S):
             g = cell * S + s
@@ -335,10 +336,10 @@ class TemporalMemory:
             "synapses": int(self.nsyn.sum(dtype=np.int64)),
             "segment_capacity": int(self.nsyn.size),
             "synapse_capacity": int(self.presyn.size),
-            "evictions": int(self.counters[kern.C_EVICT]),
-            "overrun_destroyed": int(self.counters[kern.C_OVERRUN]),
-            "decay_destroyed": int(self.counters[kern.C_DECAY]),
-            "empty_destroyed": int(self.counters[kern.C_EMPTY]),
+            "evictions": int(self.counters[syn.C_EVICT]),
+            "overrun_destroyed": int(self.counters[syn.C_OVERRUN]),
+            "decay_destroyed": int(self.counters[syn.C_DECAY]),
+            "empty_destroyed": int(self.counters[syn.C_EMPTY]),
             "canonical_bytes": int(canonical),
             "bytes": int(canonical + aux),
         }
@@ -404,9 +405,9 @@ class TemporalMemory:
             "state": {"state": (w[0] << 64) | w[1], "inc": (w[2] << 64) | w[3]},
             "has_uint32": w[4], "uinteger": w[5],
         }
-        Kc = int(tm._ip[kern.I_K])
-        S = int(tm._ip[kern.I_S])
-        kern.rebuild_index(tm.nsyn, tm.presyn, tm.perm, tm._p, Kc, tm._rx)
+        Kc = int(tm._ip[syn.I_K])
+        S = int(tm._ip[syn.I_S])
+        syn.rebuild_index(tm.nsyn, tm.presyn, tm.perm, tm._p, Kc, tm._rx)
         tm._seg_count[...] = np.count_nonzero(tm.nsyn.reshape(-1, S), axis=1)
         tm.context = StreamContext.from_state(
             {k[4:]: v for k, v in state.items() if k.startswith("ctx.")})
