@@ -14,6 +14,15 @@ The sidecar is what lets the trimmed file keep the identity of the original (`im
 Nothing here runs at import time and nothing is downloaded unless `download_alexnet` is called: tests
 and offline machines never touch the network. Only the standard library is used for HTTP.
 
+The download follows torch.hub's convention (the file name's 8 hex digits are a prefix of its SHA-256,
+checked while streaming into a temporary file that is moved into place only when it verifies) but is
+not `torch.hub.download_url_to_file(hash_prefix=...)` (torch 2.13): that call has no socket timeout (a
+stalled server hangs the CLI forever), no size cap (`MAX_DOWNLOAD_BYTES`), reports a cut-off transfer
+as a hash mismatch instead of saying it was cut off, offers a tqdm bar instead of a progress callback,
+and does not return the digest the sidecar records (a second pass over 233 MB).
+`load_state_dict_from_url(check_hash=True)` wraps the same call and adds torch's hub cache, which the
+trimmed install replaces.
+
 Example:
     >>> path = download_alexnet()                      # connected machine
     >>> path = import_alexnet("alexnet-owt-7be5be79.pth")  # offline machine, file copied by hand
