@@ -73,12 +73,11 @@ class ImageInfo:
         return self.width * self.height
 
 
-
-
-# Each returns a `_Header`. They raise ImageError("truncated") when the file ends before the dimensions,
-# ImageError("not-an-image") when the structure is corrupt. `complete` says whether the file reaches its
-# end marker and `costly` holds a "bomb" error; both are reported separately so that the pixel cap is
-# checked first (a tiny file that claims 20000×20000 is "too-many-pixels", whatever follows its header).
+# The header parsers (jpeg, png, bmp_webp) each return a `_Header`. They raise ImageError("truncated")
+# when the file ends before the dimensions, ImageError("not-an-image") when the structure is corrupt.
+# `complete` says whether the file reaches its end marker and `costly` holds a "bomb" error; both are
+# reported separately so that the pixel cap is checked first (a tiny file that claims 20000×20000 is
+# "too-many-pixels", whatever follows its header).
 
 
 class _Header(NamedTuple):

@@ -40,7 +40,6 @@ def n_ones(k: int, s: float) -> int:
     return n
 
 
-
 def hash_projected(Y: np.ndarray, s: float) -> np.ndarray:
     """sLSBH codes of projected values (docs/design/science.md §7.3–7.4).
 

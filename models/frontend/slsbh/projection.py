@@ -33,7 +33,6 @@ class ProjectionError(ValueError):
     """A stored projection is not the one expected (checksum, dtype, shape or memory order)."""
 
 
-
 # --------------------------------------------------------------------------------------------------
 # Dense Gaussian projection
 
