@@ -20,7 +20,7 @@ RESULTS = HERE / "results"
 if str(ROOT) not in sys.path:  # `python benchmarks/bench_x.py` from anywhere imports the project
     sys.path.insert(0, str(ROOT))
 
-from models.bench import rss_mb as rss_mib  # noqa: E402  (needs the path above)
+from models.evaluation.bench import rss_mb as rss_mib  # noqa: E402  (needs the path above)
 
 __all__ = ["RESULTS", "machine", "quick_mode", "rss_mib", "write_json"]
 

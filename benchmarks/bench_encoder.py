@@ -11,7 +11,7 @@ import argparse
 import json
 from pathlib import Path
 
-from models.bench import bench_encoder
+from models.evaluation.bench import bench_encoder
 
 CONFIGS = [
     {"backbone": "alexnet", "projection": "dense"},

@@ -38,7 +38,7 @@ import numpy as np
 from _common import RESULTS, quick_mode, write_json
 from bench_http import Server
 
-from models.bench import make_png, png_bomb, synthetic_jpegs
+from models.evaluation.bench import make_png, png_bomb, synthetic_jpegs
 
 ISSUE_BOMB_BYTES = 9_600_000_000  # zeros inflated from the issue's 9.8 MB PNG
 

@@ -6,7 +6,7 @@ Writes benchmarks/results/http.json.
 Setup: the real service (`cortexloc serve`, one uvicorn worker, default settings) in a subprocess on
 a free 127.0.0.1 port with a temporary data directory and no weights installed (the seeded random
 AlexNet: the same computation as the pretrained weights). Frames are 640x480 synthetic JPEGs
-(`models.bench.synthetic_jpegs`). Each client is one robot: its own stream, posting `learn=true`
+(`models.evaluation.bench.synthetic_jpegs`). Each client is one robot: its own stream, posting `learn=true`
 (mapping: TM step, ranking top-5 and a durable SQLite commit with synchronous=FULL before the reply)
 to the `default` map, one request at a time, the next as soon as the reply is in. The load generator
 is bounded: `--requests` replies per client count (split evenly over the clients) and a wall-clock
@@ -39,7 +39,7 @@ import httpx
 import numpy as np
 from _common import RESULTS, ROOT, quick_mode, write_json  # also puts the repo on sys.path
 
-from models.bench import synthetic_jpegs
+from models.evaluation.bench import synthetic_jpegs
 
 TARGET_IPS_16, TARGET_P50_1_MS = 40.0, 70.0
 
@@ -155,10 +155,11 @@ async def drive(base: str, frames: list[bytes], clients: int, total: int, max_s:
 def encoder_alone(frames: list[bytes], repeats: int) -> dict[str, Any]:
     """The encoder as the service builds it (AlexNet conv3, 1 torch thread, the default map's sLSBH),
     on the same frames: batch-1 latency and batch-16 throughput of decode + backbone + hash."""
-    from models import presets, slsbh
-    from models.encoder import Encoder
+    from models import presets
+    from models.frontend import slsbh
+    from models.frontend.encoder import Encoder
 
-    s_conf = {"k": 1024, "s": 0.25, **presets.get("cortexloc-default").get("slsbh", {})}
+    s_conf = presets.slsbh_params("cortexloc-default")
     enc = Encoder({"backbone": "alexnet", "torch_threads": 1, "slsbh": {"k": s_conf["k"], "s": s_conf["s"]}})
     batch = frames[:16]
     hasher = slsbh.Hasher(enc.hasher.P, float(s_conf["s"]))

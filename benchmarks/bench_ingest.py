@@ -3,9 +3,10 @@
 Run: `python benchmarks/bench_ingest.py [--frames 50] [--repeats 3] [--quick]` (`make bench`).
 Writes benchmarks/results/ingest.json.
 
-Setup: a folder of `--frames` 640x480 synthetic JPEGs (`models.bench.synthetic_jpegs`), learned into a
-fresh map of the default preset (created before the clock starts) on random seeded AlexNet weights, one
-stream, posts one at a time in source order as `cortexloc ingest` does (`service.ingest.poster.ingest`):
+Setup: a folder of `--frames` 640x480 synthetic JPEGs (`models.evaluation.bench.synthetic_jpegs`),
+learned into a fresh map of the default preset (created before the clock starts) on random seeded AlexNet
+weights, one stream, posts one at a time in source order as `cortexloc ingest` does
+(`service.ingest.poster.ingest`):
 
 - in process: the app in this process behind httpx's ASGI transport (`in_process_client`);
 - over HTTP: `cortexloc serve` in a subprocess on loopback (`remote_client`), default settings.
@@ -28,7 +29,7 @@ import httpx
 from _common import quick_mode, write_json  # also puts the repo on sys.path
 from bench_http import Server
 
-from models.bench import synthetic_jpegs
+from models.evaluation.bench import synthetic_jpegs
 from service.ingest import poster
 from service.ingest.sources import open_source
 

@@ -36,8 +36,9 @@ from typing import Any
 import numpy as np
 from _common import RESULTS, quick_mode, rss_mib, write_json  # also puts the repo on sys.path
 
-from models import presets, slsbh
-from models.temporal_memory import StreamContext, TemporalMemory
+from models import presets
+from models.frontend import slsbh
+from models.memory.temporal_memory import StreamContext, TemporalMemory
 from storage.index import InvertedIndex
 
 CHECK_EVERY = 100  # steps between looks at the eviction/overrun counters
@@ -73,7 +74,7 @@ class LongRun:
     def __init__(self, preset: str, places: int, laps: int, noise: float, seed: int) -> None:
         self.preset = preset
         self.params = presets.tm_params(preset)
-        s_conf = {"k": 1024, "s": 0.25, **presets.get(preset).get("slsbh", {})}
+        s_conf = presets.slsbh_params(preset)
         self.columns = int(self.params["columnDimensions"])
         self.active = 2 * slsbh.n_ones(int(s_conf["k"]), float(s_conf["s"]))  # the codes' ones (2n)
         self.n_replace = round(noise * self.active)
@@ -100,7 +101,7 @@ class LongRun:
         return w
 
     def _check_caps(self) -> None:
-        c = self.tm.counters  # [evictions, overruns, decay, empty] (models._tm_kernels.C_*)
+        c = self.tm.counters  # [evictions, overruns, decay, empty] (models.memory._tm_synapses.C_*)
         if self.first_eviction is None and c[0] > 0:
             self.first_eviction = self.steps
         if self.first_overrun is None and c[1] > 0:

@@ -41,8 +41,8 @@ import numpy as np
 from _common import RESULTS, quick_mode, rss_mib, write_json  # also puts the repo on sys.path
 
 import service.runtime as runtime_mod
-from models import slsbh
-from models.temporal_memory import TemporalMemory
+from models.frontend import slsbh
+from models.memory.temporal_memory import TemporalMemory
 from service import recovery
 from service.settings import Settings
 from storage import snapshots

@@ -12,7 +12,7 @@ import argparse
 import json
 from pathlib import Path
 
-from models.bench import bench_tm
+from models.evaluation.bench import bench_tm
 
 CONFIGS = [
     {"columns": 2048, "cells": 4, "active": 40},

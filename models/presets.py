@@ -19,7 +19,7 @@ _SEED = 2**63 - 1
 class TmParams(BaseModel):
     """The Temporal Memory section: each parameter's NuPIC 1.0.5 / htm.core name and constructor default
     (docs/design/science.md §3.1), its type (JSON numbers only: strict, no strings or booleans) and its range.
-    Rules between parameters are `models.temporal_memory.validate`'s."""
+    Rules between parameters are `models.memory.temporal_memory.validate`'s."""
 
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
@@ -40,7 +40,8 @@ class TmParams(BaseModel):
 
 class SlsbhParams(BaseModel):
     """The sLSBH section of a map (docs/design/science.md §7): projected dimension, sparsity, projection seed
-    (None: the TM's seed) and the stream adaptation time constant in frames (0 = off, models.adaptation)."""
+    (None: the TM's seed) and the stream adaptation time constant in frames (0 = off,
+    models.frontend.adaptation)."""
 
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
@@ -154,7 +155,7 @@ confs: dict[str, dict[str, Any]] = {
     },
     "cortexloc-grid": {
         "description": "TM 2048x4 that really predicts (one-shot, threshold 8); chosen by the grid sweep",
-        # Chosen by `python -m models.evaluation.sweep` and the follow-up in docs/results.md: the best
+        # Chosen by `python -m models.evaluation.sweeps.sweep` and the follow-up in docs/results.md: the best
         # worst-case clean AUC over the published (a=5, n=0.5) file and generated worlds with and
         # without noise. maxNewSynapseCount near the ~40 winners per step matters: with 20, noiseless
         # loops keep re-learning a new high-order code for the same place (clean AUC 0.88 at n=0).
@@ -162,7 +163,7 @@ confs: dict[str, dict[str, Any]] = {
     },
     "cortexloc-default": {
         "description": "service default: one-shot TM 2048x4 (threshold 24), 308-of-2048 sLSBH codes, 62 MiB",
-        # Chosen with `python -m models.evaluation.nordland_sweep` on the Nordland `tune` split
+        # Chosen with `python -m models.evaluation.sweeps.nordland_sweep` on the Nordland `tune` split
         # (docs/results.md §7), then with a sequence filter that let short paths win. With only full
         # paths competing, the winner cells add nothing measurable over the sLSBH codes across seasons
         # (§7.4), so the context argument for minThreshold 2 is gone (§7.7); it stays the default
@@ -231,6 +232,12 @@ def tm_params(name: str, overrides: dict[str, Any] | None = None) -> dict[str, A
     params = {**TM_DEFAULTS, **preset["tm"], **(overrides or {})}
     check_section(TmParams, "tm", params)
     return params
+
+
+def slsbh_params(name: str) -> dict[str, Any]:
+    """The sLSBH section of preset `name` with every default filled in (`SlsbhParams`, the one home of
+    the sLSBH defaults): {"k", "s", "seed", "adapt_tau"}. Raises KeyError for an unknown preset."""
+    return {**SlsbhParams().model_dump(), **get(name).get("slsbh", {})}
 
 
 def mcn_params(name: str = "mcn-grid", overrides: dict[str, Any] | None = None) -> dict[str, Any]:

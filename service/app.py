@@ -38,7 +38,7 @@ import anyio
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
-from models.encoder import Encoder
+from models.frontend.encoder import Encoder
 from service.errors import RequestContextMiddleware, install_error_handlers, problem_responses, request_id_var
 from service.limits import UploadLimitMiddleware
 from service.routes import api_router
@@ -112,12 +112,12 @@ def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
 
     Args:
         settings: the settings.
-        **overrides: `models.encoder.default_conf` keys merged last (tests: `slsbh={"k": 16}`).
+        **overrides: `models.frontend.encoder.default_conf` keys merged last (tests: `slsbh={"k": 16}`).
 
     Raises:
         ConfigError: naming CORTEXLOC_WEIGHTS_PATH when the weights cannot be used.
     """
-    from models import weights
+    from models.frontend import weights
 
     if settings.device != "cpu":
         log.warning("CORTEXLOC_DEVICE=%s: the encoder runs on the CPU in this version", settings.device)
@@ -137,8 +137,8 @@ def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
 
 def encoder_weights_info(encoder: Encoder) -> dict[str, Any]:
     """What /readyz reports about the weights: `weights_id`, and the file's SHA-256 (or the seed)."""
-    from models import weights
     from models.files import sha256_file
+    from models.frontend import weights
 
     info: dict[str, Any] = {"weights_id": encoder.weights_id}
     if encoder.weights_id.startswith("random"):

@@ -72,6 +72,14 @@ def _jsonable(o: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+def _check_backbone(name: str) -> None:
+    """--backbone must name a backbone of the registry (models.frontend.backbones)."""
+    from models.frontend import backbones
+
+    if name not in backbones.names():
+        raise typer.BadParameter(f"must be one of {', '.join(backbones.names())}", param_hint="--backbone")
+
+
 def _provenance() -> dict[str, Any]:
     return {"command": " ".join(["cortexloc", *sys.argv[1:]]), "python": platform.python_version(),
             "numpy": np.__version__}
@@ -190,8 +198,8 @@ def eval_images(
                                             "ground_truth_new.npy (models/evaluation/ground_truth.py); "
                                             "indices count in each folder's sorted names, whole folders.",
                                             exists=True, dir_okay=False)] = None,
-    backbone: Annotated[str | None, typer.Option(help="alexnet | efficientnet-lite0 (default: the "
-                                                      "service's)")] = None,
+    backbone: Annotated[str | None, typer.Option(help="a registered backbone: alexnet | efficientnet-lite0 "
+                                                      "(default: the service's)")] = None,
     resize: Annotated[str | None, typer.Option(help="crop | squash (default: the service's)")] = None,
     methods: Annotated[str, typer.Option(help="Comma-separated: cosine,slsbh,mcn,htm (one frame); "
                                           "openseqslam (the reference on grey pixels); cosine-seq,"
@@ -210,7 +218,8 @@ def eval_images(
                                         help="Reset between database and query (the paper does not).")]
     = False,
     adapt: Annotated[int, typer.Option(min=0, help="Running-mean subtraction time constant in frames "
-                                       "(models.adaptation), for every feature method; 0 = off.")] = 0,
+                                       "(models.frontend.adaptation), for every feature method; 0 = off.")]
+    = 0,
     reverse_query: Annotated[bool, typer.Option("--reverse-query", help="Drive the query sequence "
                                                 "backwards (a route driven the other way).")] = False,
     drop_dark: Annotated[float, typer.Option(min=0.0, help="Drop pairs where either frame's mean grey is "
@@ -229,12 +238,13 @@ def eval_images(
     query."""
     import os
 
-    from models import encoder as encoder_mod
     from models.evaluation import ground_truth, plots, sequences
     from models.evaluation import seqslam as seq
+    from models.frontend import encoder as encoder_mod
     from service.settings import Settings
 
-    # The service's defaults, read from their one home each (docs/design/service.md §8, models.encoder).
+    # The service's defaults, read from their one home each (docs/design/service.md §8,
+    # models.frontend.encoder).
     preset = preset or Settings.model_fields["default_preset"].default
     backbone = backbone or encoder_mod.default_conf["backbone"]
     resize = resize or encoder_mod.default_conf["resize"]
@@ -246,11 +256,10 @@ def eval_images(
     for name in (preset, mcn_preset):
         if name not in presets.confs:
             raise typer.BadParameter(f"unknown preset {name!r}; see `cortexloc presets`")
-    if backbone not in ("alexnet", "efficientnet-lite0"):
-        raise typer.BadParameter("must be alexnet or efficientnet-lite0", param_hint="--backbone")
+    _check_backbone(backbone)
     if resize not in ("crop", "squash"):
         raise typer.BadParameter("must be crop or squash", param_hint="--resize")
-    s_conf = presets.get(preset).get("slsbh", {"k": 1024, "s": 0.25})
+    s_conf = presets.slsbh_params(preset)
     sparsity = float(s if s is not None else s_conf["s"])
     if not 0 < sparsity <= 0.5:
         raise typer.BadParameter("must be in (0, 0.5]", param_hint="--s")
@@ -362,7 +371,7 @@ def bench_tm(
     json_out: Annotated[Path | None, typer.Option("--json")] = None,
 ) -> None:
     """Temporal Memory speed and memory: median ms/step and RSS growth over learning steps."""
-    from models.bench import bench_tm as run
+    from models.evaluation.bench import bench_tm as run
 
     if preset not in presets.confs:
         raise typer.BadParameter(f"unknown preset {preset!r}; see `cortexloc presets`")
@@ -382,17 +391,17 @@ def bench_tm(
 
 @bench_app.command("encoder")
 def bench_encoder(
-    backbone: Annotated[str, typer.Option(help="alexnet | efficientnet-lite0")] = "alexnet",
+    backbone: Annotated[str, typer.Option(help="a registered backbone: alexnet | efficientnet-lite0")]
+    = "alexnet",
     repeats: Annotated[int, typer.Option(min=1)] = 15,
     threads: Annotated[int, typer.Option(min=1, help="torch threads")] = 1,
     projection: Annotated[str, typer.Option(help="dense | sparse")] = "dense",
     json_out: Annotated[Path | None, typer.Option("--json")] = None,
 ) -> None:
     """Whole-encoder batch-1 latency and batch-16 throughput beside a bare backbone forward."""
-    from models.bench import bench_encoder as run
+    from models.evaluation.bench import bench_encoder as run
 
-    if backbone not in ("alexnet", "efficientnet-lite0"):
-        raise typer.BadParameter("must be alexnet or efficientnet-lite0", param_hint="--backbone")
+    _check_backbone(backbone)
     if projection not in ("dense", "sparse"):
         raise typer.BadParameter("must be dense or sparse", param_hint="--projection")
     result = run(backbone=backbone, repeats=repeats, threads=threads, projection=projection)
@@ -413,7 +422,7 @@ def weights_download(
     url: Annotated[str | None, typer.Option(help="Checkpoint URL (default: torchvision's).")] = None,
 ) -> None:
     """Fetch torchvision's AlexNet checkpoint, verify its SHA-256 (7be5be79...), keep conv1..conv3."""
-    from models import weights
+    from models.frontend import weights
 
     _install(lambda: weights.download_alexnet(dest, **({"url": url} if url else {})))
 
@@ -424,14 +433,14 @@ def weights_import(
     dest: Annotated[Path | None, typer.Option(help="Cache directory.")] = None,
 ) -> None:
     """Install weights from a local copy of torchvision's checkpoint (verified the same way)."""
-    from models import weights
+    from models.frontend import weights
 
     _install(lambda: weights.import_alexnet(path, dest))
 
 
 def _install(run: Any) -> None:
     """Run a weights install; say where it went and how to point the service at it, or why not."""
-    from models import weights
+    from models.frontend import weights
 
     try:
         path = run()

@@ -20,7 +20,7 @@ from typing import Annotated, Any
 from fastapi import Depends, Request, Security
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
-from models.encoder import Encoder
+from models.frontend.encoder import Encoder
 from service.errors import Problem
 from service.routes.metrics import Metrics
 from service.settings import Settings

@@ -11,7 +11,7 @@ projected here (y = x·P), one matrix product per map present in the batch. The 
 the map's writer costs the same ~15-20 ms per image as projecting 16 at once costs per batch
 (benchmarks/bench_http.py, docs/benchmarks.md); in the writer it also serialises behind the TM step and
 the commit. The projection is stateless (a map's matrix never changes), so doing it before the writer
-changes no ordering; what depends on the stream (adaptation, models.adaptation) and the top-n
+changes no ordering; what depends on the stream (adaptation, models.frontend.adaptation) and the top-n
 selection of the code stay in the writer, on k values.
 """
 
@@ -24,9 +24,9 @@ from concurrent.futures import Future
 
 import numpy as np
 
-from models.encoder import Encoder, EncodeResult
-from models.images import ImageError
-from models.slsbh import Hasher
+from models.frontend.encoder import Encoder, EncodeResult
+from models.frontend.images import ImageError
+from models.frontend.slsbh import Hasher
 from service.errors import Problem
 
 _STOP = object()

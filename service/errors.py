@@ -38,7 +38,7 @@ from starlette.requests import ClientDisconnect
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from models.images import ImageError
+from models.frontend.images import ImageError
 from storage.snapshots import SnapshotInvalid
 
 __all__ = [
@@ -234,7 +234,7 @@ def image_error_problem(e: ImageError, *, max_pixels: int | None = None,
     """The docs/design/service.md §2 problem for an `ImageError`, with `e.details` as members.
 
     Args:
-        e: the error from `models.images`.
+        e: the error from `models.frontend.images`.
         max_pixels: filled in as `max_pixels` for `image-too-large` when the error lacks it (OpenCV's
             own guard does not know the configured cap).
         allowed: the `allowed` member of `unsupported-media-type`.

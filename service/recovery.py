@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from models import slsbh
-from models.adaptation import RunningMean
-from models.temporal_memory import StreamContext, TemporalMemory
+from models.frontend import slsbh
+from models.frontend.adaptation import RunningMean
+from models.memory.temporal_memory import StreamContext, TemporalMemory
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, StorageError
 from storage.mapstore import MapStore, Observation
@@ -35,7 +35,7 @@ class Stream:
     step: int = 0  # steps since the context was last empty
     last_learned_seq: int | None = None  # the learned observation the context continues
     learning: bool | None = None  # mode of the last step (a switch to learning starts a new sequence)
-    adapt: RunningMean | None = None  # the stream's running mean of projections (models.adaptation)
+    adapt: RunningMean | None = None  # the stream's running mean of projections (models.frontend.adaptation)
 
 
 def memory_state(tm: TemporalMemory, streams: Mapping[str, Stream]) -> dict[str, np.ndarray]:

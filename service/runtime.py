@@ -24,9 +24,10 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from models import presets, slsbh
-from models.adaptation import RunningMean
-from models.temporal_memory import TemporalMemory, planned_bytes, validate
+from models import presets
+from models.frontend import slsbh
+from models.frontend.adaptation import RunningMean
+from models.memory.temporal_memory import TemporalMemory, planned_bytes, validate
 from service import recovery
 from service.errors import Problem
 from service.recovery import Stream

@@ -34,7 +34,7 @@ ENV_PREFIX = "CORTEXLOC_"
 
 #: `CORTEXLOC_*` variables read elsewhere (models, evaluation), so not reported as unknown here.
 OTHER_KNOWN_VARIABLES = frozenset({
-    "CORTEXLOC_WEIGHTS_DIR",  # models.weights.default_cache_dir
+    "CORTEXLOC_WEIGHTS_DIR",  # models.frontend.weights.default_cache_dir
     "CORTEXLOC_CACHE_DIR",  # cortexloc eval images feature cache
     "CORTEXLOC_SHARED_DATA",  # models.evaluation.datasets
 })

@@ -559,8 +559,8 @@ def import_tar(fileobj: BinaryIO, dest: str | os.PathLike[str], *,
     `/`, no leading `.`, so no `..` or absolute path; links, directories and devices are refused),
     appear once, and be listed in the manifest with the size its tar header declares, or be named in
     `allow_unlisted` (a projection exported from a snapshot that did not record it; the caller verifies
-    it, e.g. with `models.slsbh.load_projection` against `projection_sha256`). Sizes come from the tar
-    headers, so a member is refused before its data is read, and a compressed bomb costs no disk.
+    it, e.g. with `models.frontend.slsbh.load_projection` against `projection_sha256`). Sizes come from the
+    tar headers, so a member is refused before its data is read, and a compressed bomb costs no disk.
     Each file is hashed while it is written into a temporary directory beside `dest`; only when every
     listed file is there with its SHA-256 is the directory renamed to `dest`.
 

@@ -22,9 +22,10 @@ def tiny_default_preset(monkeypatch):
 
 @pytest.fixture
 def png_bomb():
-    """`png_bomb(width, height, inflated_bytes, idat_chunks=1) -> bytes` (models.bench.png_bomb): an 8-bit
-    RGB PNG whose image data is `inflated_bytes` deflated zeros, whatever its raster needs."""
-    from models.bench import png_bomb
+    """`png_bomb(width, height, inflated_bytes, idat_chunks=1) -> bytes`
+    (models.evaluation.bench.png_bomb): an 8-bit RGB PNG whose image data is `inflated_bytes` deflated
+    zeros, whatever its raster needs."""
+    from models.evaluation.bench import png_bomb
 
     return png_bomb
 
@@ -32,6 +33,6 @@ def png_bomb():
 @pytest.fixture
 def make_png():
     """`make_png(width, height, zlib_data, colour=2, depth=8, interlace=0, idat_chunks=1) -> bytes`."""
-    from models.bench import make_png
+    from models.evaluation.bench import make_png
 
     return make_png

@@ -22,10 +22,11 @@ from typing import Any
 import numpy as np
 
 from models import presets
-from models.encoder import Encoder
 from models.evaluation import seqslam as seq
 from models.evaluation import sequences
 from models.evaluation.datasets import nordland_dir
+from models.frontend import backbones
+from models.frontend.encoder import Encoder
 
 # Files (1-based, as in docs/design/science.md §10.1) -> (offset, count).
 WINDOWS = {"1-200": (0, 200), "401-600": (400, 200), "801-1000": (800, 200), "1201-1400": (1200, 200),
@@ -80,7 +81,7 @@ def markdown(result: dict[str, Any], metric: str) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--backbone", default="efficientnet-lite0", choices=("alexnet", "efficientnet-lite0"))
+    ap.add_argument("--backbone", default="efficientnet-lite0", choices=backbones.names())
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--ds", default="10,20", help="comma-separated path lengths")
     ap.add_argument("--windows", default=",".join(WINDOWS), help="comma-separated names of WINDOWS")

@@ -16,9 +16,9 @@ import numpy as np
 from models import presets
 from models.evaluation import metrics, plots, seqslam
 from models.evaluation.gridworld import GridData
-from models.mcn import MCN, resolve_in_con
+from models.memory.mcn import MCN, resolve_in_con
+from models.memory.temporal_memory import TemporalMemory
 from models.sdr import dice_matrix
-from models.temporal_memory import TemporalMemory
 
 METHODS = ("pairwise", "pairwise-seq", "mcn", "htm")
 # What the memory adds beyond any sequence matcher: the same matcher on the input codes runs beside it.

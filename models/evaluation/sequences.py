@@ -15,14 +15,15 @@ from typing import Any
 
 import numpy as np
 
-from models import presets, sdr, slsbh
-from models.adaptation import running_mean_subtract
-from models.encoder import Encoder
+from models import presets, sdr
 from models.evaluation import metrics
 from models.evaluation import seqslam as seq
 from models.files import atomic_write, sha256_file
-from models.mcn import MCN
-from models.temporal_memory import TemporalMemory
+from models.frontend import slsbh
+from models.frontend.adaptation import running_mean_subtract
+from models.frontend.encoder import Encoder
+from models.memory.mcn import MCN
+from models.memory.temporal_memory import TemporalMemory
 
 # "X-seq" is method X's single-image similarity through the OpenSeqSLAM matcher (models.evaluation.
 # seqslam: contrast enhancement, full straight paths of ds frames centred on the query); `openseqslam` is
@@ -157,7 +158,7 @@ def run_mcn(db_codes: np.ndarray, q_codes: np.ndarray, preset: str, seed: int, r
 
 def codes(hasher: slsbh.Hasher, feats: np.ndarray, adapt_tau: int = 0) -> np.ndarray:
     """(N, 2n) sLSBH codes of one stream's features (N, D) in time order, adapted with time constant
-    `adapt_tau` (0 = not) in projection space, exactly as the service does it (models.adaptation)."""
+    `adapt_tau` (0 = not) in projection space, exactly as the service does it (models.frontend.adaptation)."""
     Y = hasher.project(feats)
     return slsbh.hash_projected(running_mean_subtract(Y, adapt_tau) if adapt_tau else Y, hasher.s)
 
@@ -231,7 +232,7 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
         seeds: runs; projection, TM and MCN seeds spawned from `seed` (docs/design/science.md §8.6).
         tolerance: ±database items counted as the same place.
         reset: reset the sequence memory between database and query (the paper does not).
-        adapt_tau: > 0: each sequence minus its running mean (models.adaptation) before every feature
+        adapt_tau: > 0: each sequence minus its running mean (models.frontend.adaptation) before every feature
             method; 0: the features as they are.
         tm_overrides: Temporal Memory parameters replacing the preset's (sweeps).
         reverse_query: the query sequence is driven backwards (last row first); S keeps file order.

@@ -26,7 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from models import images
+from models.frontend import images
 
 __all__ = ["COMPRESSED_TYPE", "IMAGE_SUFFIXES", "IMAGE_TYPE", "RAW_ENCODINGS", "Frame", "Source",
            "SourceError", "image_to_png", "open_source"]
@@ -34,8 +34,8 @@ __all__ = ["COMPRESSED_TYPE", "IMAGE_SUFFIXES", "IMAGE_TYPE", "RAW_ENCODINGS", "
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
 
-#: File name endings of the formats the encoder decodes (`models.images.FORMATS`); the service decides
-#: which of them it accepts (a refused one is reported per frame, the ingest goes on).
+#: File name endings of the formats the encoder decodes (`models.frontend.images.FORMATS`); the service
+#: decides which of them it accepts (a refused one is reported per frame, the ingest goes on).
 _SUFFIXES_BY_FORMAT = {"jpeg": (".jpg", ".jpeg", ".jpe"), "png": (".png",), "bmp": (".bmp",),
                        "webp": (".webp",)}
 IMAGE_SUFFIXES = tuple(s for fmt in images.FORMATS for s in _SUFFIXES_BY_FORMAT[fmt])

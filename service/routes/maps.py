@@ -9,7 +9,7 @@ import anyio
 from fastapi import APIRouter, Path, Response
 from pydantic import BaseModel, ConfigDict, Field
 
-from models.bench import rss_mb
+from models.evaluation.bench import rss_mb
 from service.deps import ApiKeyDep, RegistryDep, SettingsDep
 from service.errors import problem_responses
 

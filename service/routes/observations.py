@@ -10,7 +10,7 @@ from typing import Annotated, Any
 import anyio
 from fastapi import APIRouter, Path, Query, Request
 
-from models import images
+from models.frontend import images
 from service.deps import ApiKeyDep, EncoderDep, MetricsDep, RegistryDep, SettingsDep
 from service.errors import Problem, problem_responses
 

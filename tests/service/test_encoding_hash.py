@@ -9,8 +9,8 @@ from functools import partial
 import numpy as np
 import pytest
 
-from models.images import ImageError
-from models.slsbh import Hasher, make_projection
+from models.frontend.images import ImageError
+from models.frontend.slsbh import Hasher, make_projection
 from service.encoding import EncoderPool
 from tests.service.test_maps_observations import frame, make_client
 
@@ -22,7 +22,7 @@ class FakeEncoder:
         self.calls: list[int] = []
 
     def embed(self, data):
-        from models.encoder import EncodeResult
+        from models.frontend.encoder import EncodeResult
 
         self.calls.append(len(data))
         if any(b == b"bad" for b in data):

@@ -11,7 +11,7 @@ from fastapi import Depends, Query
 from fastapi.testclient import TestClient
 from pydantic import BaseModel, ConfigDict
 
-from models.images import ERROR_CODES, ImageError
+from models.frontend.images import ERROR_CODES, ImageError
 from service.app import build_encoder, create_app
 from service.deps import ApiKeyDep, SettingsDep, require_api_key
 from service.errors import PROBLEM_MEDIA_TYPE, TITLES, Problem, image_error_problem, problem_responses

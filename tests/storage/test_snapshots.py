@@ -95,7 +95,7 @@ def test_empty_map_snapshot(tmp_path: Path, store: MapStore) -> None:
 
 
 def test_real_temporal_memory_state_round_trips(tmp_path: Path, store: MapStore) -> None:
-    from models.temporal_memory import TemporalMemory
+    from models.memory.temporal_memory import TemporalMemory
 
     tm = TemporalMemory({"columnDimensions": 32, "cellsPerColumn": 4, "activationThreshold": 3,
                          "minThreshold": 2, "maxNewSynapseCount": 4, "maxSegmentsPerCell": 4,

@@ -1,0 +1,258 @@
+"""Encoder: a batch of image bytes -> sLSBH SDRs (docs/design/science.md §1, §6, §7).
+
+One entry point, `Encoder.encode(images)`, stateless across calls and batch-first, so the service can
+batch concurrent requests. Configuration is a `default_conf` merged with the caller's (presets as
+data); the encoder's identity string says which backbone, weights and resize mode it runs on, because
+descriptors from different encoders are not comparable.
+
+Example:
+    >>> enc = Encoder({"backbone": "alexnet", "slsbh": {"s": 0.25}})
+    >>> out = enc.encode([open("frame.jpg", "rb").read()])
+    >>> out.codes[0]          # (2n,) int32 sorted active columns
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import logging
+import time
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from models import presets
+from models.frontend import backbones, images, slsbh
+
+log = logging.getLogger("cortexloc.encoder")
+
+_SLSBH = presets.SlsbhParams()
+
+default_conf: dict[str, Any] = {
+    "backbone": "alexnet",  # a name registered in models.frontend.backbones: alexnet | efficientnet-lite0
+    "resize": "crop",  # crop (Resize 256 + CenterCrop 224, as the paper) | squash (straight to 224)
+    "weights_path": None,  # AlexNet conv1..conv3 file; None: look in the weights cache, else random
+    "random_seed": 0,  # seed of the NumPy-generated fallback weights
+    "torch_threads": 1,
+    "decode_threads": 2,  # OpenCV releases the GIL: a batch decodes and resizes in parallel
+    "max_bytes": 10 * 2**20,
+    "max_pixels": 25_000_000,
+    # projection: dense (docs/design/science.md §7) | sparse (very sparse random projection, measured in
+    # docs/results.md before it may become a default)
+    # k and s: the map defaults (presets.SlsbhParams); the encoder's own projection has seed 0.
+    "slsbh": {"k": _SLSBH.k, "s": _SLSBH.s, "seed": 0, "projection": "dense"},
+    "projection_dir": None,  # where projections are stored content-addressed; None: keep in memory
+}
+
+STAGES = ("decode", "preprocess", "backbone", "hash")
+
+
+def merge_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
+    """`default_conf` updated with `conf` (one level deep for the `slsbh` section)."""
+    out = copy.deepcopy(default_conf)
+    for key, value in (conf or {}).items():
+        if key not in out:
+            raise ValueError(f"unknown encoder option {key!r}; known: {sorted(out)}")
+        if key == "slsbh":
+            unknown = set(value) - set(out["slsbh"])
+            if unknown:
+                raise ValueError(f"unknown sLSBH option(s) {sorted(unknown)}; known: {sorted(out['slsbh'])}")
+            out["slsbh"].update(value)
+        else:
+            out[key] = value
+    if out["resize"] not in ("crop", "squash"):
+        raise ValueError(f"resize must be crop or squash, got {out['resize']!r}")
+    return out
+
+
+@dataclass
+class EncodeResult:
+    """What `Encoder.encode` returns.
+
+    Attributes:
+        codes: (N, 2n) int32, each row the sorted active columns of one image (None from `embed`).
+        features: (N, D) float32 L2-normalised backbone features, when asked for.
+        timings_ms: wall time per stage for the whole batch (decode, preprocess, backbone, hash).
+        projected: (N, k) float32 projections x·P, when a caller projected for a map (service.encoding).
+    """
+
+    codes: np.ndarray | None
+    features: np.ndarray | None = None
+    projected: np.ndarray | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class Encoder:
+    """Image bytes -> SDR codes, with the backbone and the sLSBH projection of one configuration.
+
+    Timings: decode and preprocess are summed over the images (they run in a thread pool, overlapped
+    with the backbone); backbone and hash are wall time.
+
+    Args:
+        conf: overrides of `default_conf`.
+        projection: an existing projection (d, k), dense array or `slsbh.SparseProjection`, to use
+            instead of generating one (a map's).
+    """
+
+    CHUNK = 8  # images per backbone call while the pool prepares the next ones
+
+    def __init__(self, conf: dict[str, Any] | None = None,
+                 projection: np.ndarray | slsbh.SparseProjection | None = None) -> None:
+        self.conf = merge_conf(conf)
+        torch.set_num_threads(int(self.conf["torch_threads"]))
+        self.backbone = backbones.get(self.conf["backbone"])(self.conf)
+        self.weights_id = self.backbone.weights_id
+        self.input_mean, self.input_std = self.backbone.input_mean, self.backbone.input_std
+        self.pretrained = self.weights_id.startswith("imagenet")
+        if self.weights_id.startswith("random"):
+            log.warning(
+                "encoder runs on RANDOM weights (%s): results cannot support claims about the paper. "
+                "Fix: `cortexloc weights download` (online) or `cortexloc weights import PATH`.",
+                self.weights_id)
+        s_conf = self.conf["slsbh"]
+        if s_conf["projection"] not in ("dense", "sparse"):
+            raise ValueError(f"slsbh.projection must be dense or sparse, got {s_conf['projection']!r}")
+        if projection is not None:
+            self._check_projection(projection)
+            self.__dict__["hasher"] = slsbh.Hasher(projection, float(s_conf["s"]))
+        threads = int(self.conf["decode_threads"])
+        self._pool = ThreadPoolExecutor(threads, thread_name_prefix="decode") if threads > 1 else None
+
+    # ------------------------------------------------------------------ projection
+
+    def _check_projection(self, projection: np.ndarray | slsbh.SparseProjection) -> None:
+        expected = (self.feature_dim, int(self.conf["slsbh"]["k"]))
+        if tuple(projection.shape) != expected:
+            raise ValueError(f"projection shape {tuple(projection.shape)} != {expected}")
+
+    @functools.cached_property
+    def hasher(self) -> slsbh.Hasher:
+        """The sLSBH hasher, built on first use: a service that hashes with each map's own projection
+        (`Encoder.embed` + the map's hasher) never pays for a 266 MB matrix it does not use."""
+        s_conf = self.conf["slsbh"]
+        d, k, seed = self.feature_dim, int(s_conf["k"]), int(s_conf["seed"])
+        if s_conf["projection"] == "sparse":
+            projection = slsbh.make_sparse_projection(d, k, seed)
+        else:
+            projection = slsbh.make_projection(d, k, seed)
+            if self.conf["projection_dir"] is not None:
+                slsbh.save_projection(projection, Path(self.conf["projection_dir"]))
+        return slsbh.Hasher(projection, float(s_conf["s"]))
+
+    @property
+    def projection(self) -> np.ndarray | slsbh.SparseProjection:
+        return self.hasher.P
+
+    @functools.cached_property
+    def projection_sha256(self) -> str:
+        """SHA-256 of the projection (hashing 266 MB takes ~0.2 s: computed once)."""
+        return self.hasher.sha256()
+
+    # ------------------------------------------------------------------ identity
+
+    @property
+    def feature_dim(self) -> int:
+        """D, the length of the flattened backbone descriptor at 224x224."""
+        if not hasattr(self, "_feature_dim"):
+            with torch.inference_mode():
+                self._feature_dim = int(self._forward(torch.zeros(1, 3, 224, 224)).shape[1])
+        return self._feature_dim
+
+    @property
+    def identity(self) -> str:
+        """e.g. `alexnet-conv3/imagenet-7be5be79:crop` or `alexnet-conv3/random-seed0:crop`."""
+        # The architecture names its descriptor layer: that is part of what makes codes comparable.
+        return f"{self.backbone.arch}/{self.weights_id}:{self.conf['resize']}"
+
+    def describe(self) -> dict[str, Any]:
+        """What the service reports in /readyz and every response: the backbone and its weights.
+
+        The projection is not part of it: in the service every map hashes with its own persisted
+        projection, and building this encoder's would cost 266 MB and a SHA-256 per call.
+        """
+        weights = "pretrained" if self.pretrained else self.weights_id.split("-", 1)[0]  # random | file
+        return {"encoder": self.identity, "weights": weights}
+
+    # ------------------------------------------------------------------ encoding
+
+    def _forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.backbone.describe(x)
+
+    def preprocess(self, rgbs: Sequence[np.ndarray]) -> np.ndarray:
+        """(N, 3, 224, 224) float32 network input for decoded RGB images."""
+        return images.preprocess_batch(rgbs, mode=self.conf["resize"], mean=self.input_mean,
+                                       std=self.input_std)
+
+    def features(self, batch: np.ndarray) -> np.ndarray:
+        """(N, D) float32 L2-normalised descriptors of a preprocessed batch (N, 3, 224, 224)."""
+        with torch.inference_mode():
+            return self._forward(torch.from_numpy(np.ascontiguousarray(batch))).numpy()
+
+    def encode(self, data: Sequence[bytes], return_features: bool = False) -> EncodeResult:
+        """Encode a batch of uploaded images into sLSBH codes; see `embed` for the errors."""
+        out = self.embed(data)
+        t0 = time.perf_counter()
+        out.codes = self.hasher(out.features)
+        out.timings_ms["hash"] = (time.perf_counter() - t0) * 1e3
+        if not return_features:
+            out.features = None
+        return out
+
+    def embed(self, data: Sequence[bytes]) -> EncodeResult:
+        """Backbone features of a batch of uploaded images (no hashing: `codes` is None).
+
+        Args:
+            data: N encoded images (JPEG, PNG, BMP, WebP).
+
+        Returns:
+            EncodeResult with features (N, D) and the decode, preprocess and backbone timings.
+
+        Raises:
+            images.ImageError: an input is not a decodable image within the limits (the whole batch is
+                refused; the service decodes per request before batching, so one bad upload never
+                fails another's).
+        """
+        limits = {"max_bytes": int(self.conf["max_bytes"]), "max_pixels": int(self.conf["max_pixels"])}
+        kw = {"mode": self.conf["resize"], "mean": self.input_mean, "std": self.input_std}
+        timings = dict.fromkeys(STAGES[:3], 0.0)
+
+        def prepare(b: bytes) -> tuple[np.ndarray, float, float]:
+            t0 = time.perf_counter()
+            rgb = images.decode(b, **limits)
+            t1 = time.perf_counter()
+            x = images.preprocess(rgb, **kw)
+            return x, (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3
+
+        def collect(prepared: list[tuple[np.ndarray, float, float]]) -> np.ndarray:
+            for _, dt_decode, dt_pre in prepared:
+                timings["decode"] += dt_decode
+                timings["preprocess"] += dt_pre
+            return np.stack([x for x, _, _ in prepared])
+
+        feats_parts = []
+        if self._pool is not None and len(data) > 1:
+            # Pipelined: the pool decodes and resizes (OpenCV, no GIL) while the backbone runs on the
+            # chunks already prepared, so the two cores overlap instead of taking turns.
+            futures = [self._pool.submit(prepare, b) for b in data]
+            try:
+                for start in range(0, len(futures), self.CHUNK):
+                    batch = collect([f.result() for f in futures[start:start + self.CHUNK]])
+                    t0 = time.perf_counter()
+                    feats_parts.append(self.features(batch))
+                    timings["backbone"] += (time.perf_counter() - t0) * 1e3
+            except BaseException:
+                for f in futures:
+                    f.cancel()
+                raise
+        else:
+            batch = collect([prepare(b) for b in data]) if data else np.zeros((0, 3, 224, 224), np.float32)
+            t0 = time.perf_counter()
+            feats_parts.append(self.features(batch))
+            timings["backbone"] += (time.perf_counter() - t0) * 1e3
+        feats = np.concatenate(feats_parts) if len(feats_parts) > 1 else feats_parts[0]
+        return EncodeResult(codes=None, features=feats, timings_ms=timings)

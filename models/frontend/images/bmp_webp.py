@@ -1,0 +1,72 @@
+"""BMP and WebP headers: size and completeness, without decoding (docs/design/service.md §1.2)."""
+
+from __future__ import annotations
+
+import struct
+
+from models.frontend.images.common import ImageError, _corrupt, _Header, _truncated
+
+_BMP_BIT_DEPTHS = frozenset({1, 2, 4, 8, 16, 24, 32})
+
+
+def _bmp_header(data: bytes) -> _Header:
+    """BITMAPFILEHEADER + core (12-byte) or info (40+ byte) header; complete if the pixel array fits."""
+    n = len(data)
+    if n < 18:
+        raise _truncated("bmp", "the file ends inside the file header", n)
+    (offbits,) = struct.unpack_from("<I", data, 10)
+    (dib_size,) = struct.unpack_from("<I", data, 14)
+    if dib_size == 12:  # BITMAPCOREHEADER (OS/2 1.x): unsigned 16-bit sizes, never compressed
+        if n < 26:
+            raise _truncated("bmp", "the file ends inside the bitmap header", n)
+        width, height, _planes, bpp = struct.unpack_from("<HHHH", data, 18)
+        compression, size_image = 0, 0
+    elif 40 <= dib_size <= 124:  # BITMAPINFOHEADER and its V2..V5 extensions
+        if n < 14 + 40:
+            raise _truncated("bmp", "the file ends inside the bitmap header", n)
+        width, height, _planes, bpp, compression, size_image = struct.unpack_from("<iiHHII", data, 18)
+        height = abs(height)  # negative height = top-down rows
+    else:
+        raise _corrupt("bmp", f"unknown bitmap header size {dib_size}")
+    if width <= 0 or height <= 0:
+        raise _corrupt("bmp", f"header gives an invalid size {width}x{height}")
+    if bpp not in _BMP_BIT_DEPTHS:
+        raise _corrupt("bmp", f"unsupported bit depth {bpp}")
+    if compression in (4, 5):
+        raise ImageError("unsupported-format", "BMP files that wrap a JPEG or PNG stream are not supported",
+                         detected="BMP (embedded JPEG/PNG)")
+    if compression in (0, 3, 6):  # BI_RGB, BI_BITFIELDS, BI_ALPHABITFIELDS: rows padded to 4 bytes
+        need = offbits + ((width * bpp + 31) // 32) * 4 * height
+    elif compression in (1, 2):  # RLE8 / RLE4: biSizeImage is the compressed size
+        need = offbits + size_image
+    else:
+        raise _corrupt("bmp", f"unknown compression {compression}")
+    return _Header(width, height, n >= need)
+
+
+def _webp_header(data: bytes) -> _Header:
+    """RIFF container; the first chunk is VP8 (lossy), VP8L (lossless) or VP8X (extended)."""
+    n = len(data)
+    if n < 30:  # RIFF header 12 + chunk header 8 + the 10 bytes that hold the size in every variant
+        raise _truncated("webp", "the file ends inside the header", n)
+    (riff_size,) = struct.unpack_from("<I", data, 4)
+    fourcc = data[12:16]
+    if fourcc == b"VP8 ":
+        if data[23:26] != b"\x9d\x01\x2a":
+            raise _corrupt("webp", "VP8 frame without its start code")
+        w, h = struct.unpack_from("<HH", data, 26)
+        width, height = w & 0x3FFF, h & 0x3FFF  # the top 2 bits are upscaling hints
+    elif fourcc == b"VP8L":
+        if data[20] != 0x2F:
+            raise _corrupt("webp", "VP8L stream without its signature byte")
+        (bits,) = struct.unpack_from("<I", data, 21)
+        width, height = (bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1
+    elif fourcc == b"VP8X":
+        width = int.from_bytes(data[24:27], "little") + 1
+        height = int.from_bytes(data[27:30], "little") + 1
+    else:
+        raise _corrupt("webp", f"unknown first chunk {fourcc!r}")
+    if width == 0 or height == 0:
+        raise _corrupt("webp", f"header gives an invalid size {width}x{height}")
+    return _Header(width, height, n >= 8 + riff_size)
+

@@ -1,0 +1,97 @@
+"""What every part of `models.frontend.images` shares: the limits, the formats, the one error type and
+the parsers' result (docs/design/service.md §1.2, §2)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+DEFAULT_MAX_BYTES = 10 * 2**20
+DEFAULT_MAX_PIXELS = 25_000_000
+# docs/design/service.md §1.2: "long side more than 16× the short side" is a degenerate image. The cap also
+# bounds the Resize(256) intermediate: a 1×4000 upload would otherwise become a 256×1,024,000 array (786 MB).
+DEFAULT_MAX_ASPECT = 16.0
+
+FORMATS = ("jpeg", "png", "bmp", "webp")
+MODES = ("crop", "squash")
+ERROR_CODES = frozenset(
+    {"empty", "too-large", "not-an-image", "truncated", "too-many-pixels", "unsupported-format", "degenerate",
+     "bomb"}
+)
+
+_FORMAT_NAMES = {"jpeg": "JPEG", "png": "PNG", "bmp": "BMP", "webp": "WebP"}
+
+
+class ImageError(ValueError):
+    """An upload that is not a decodable image within the limits.
+
+    The HTTP service maps `code` to a 4xx problem+json (docs/design/service.md §2): `too-large` -> 413
+    payload-too-large, `too-many-pixels` -> 413 image-too-large, `unsupported-format` -> 415,
+    `degenerate` -> 422 degenerate-image, `bomb` -> 422 decompression-bomb, `empty` / `not-an-image` /
+    `truncated` -> 422 undecodable-image.
+
+    Attributes:
+        code: one of `ERROR_CODES`: "empty", "too-large", "not-an-image", "truncated", "too-many-pixels",
+            "unsupported-format", "degenerate", "bomb" (a small file whose decoding would cost far more
+            than its declared size needs: PNG data that inflates past its raster, a JPEG with too many
+            progressive scans).
+        message: the human sentence, also `str(error)`.
+        details: the numbers behind the message, for problem+json members (e.g. `width`, `height`,
+            `max_pixels`; `received_bytes`, `max_bytes`; `detected`; `format`).
+    """
+
+    def __init__(self, code: str, message: str, **details: Any) -> None:
+        if code not in ERROR_CODES:
+            raise ValueError(f"unknown ImageError code {code!r}")
+        super().__init__(message)
+        self.code = code
+        self.message = message
+        self.details = details
+
+    def __repr__(self) -> str:
+        return f"ImageError({self.code!r}, {self.message!r})"
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    """What the header says, read without decoding.
+
+    Attributes:
+        format: "jpeg", "png", "bmp" or "webp".
+        width: stored width in pixels (before any EXIF rotation, which may swap it with height).
+        height: stored height in pixels.
+    """
+
+    format: str
+    width: int
+    height: int
+
+    @property
+    def pixels(self) -> int:
+        return self.width * self.height
+
+
+# The header parsers (jpeg, png, bmp_webp) each return a `_Header`. They raise ImageError("truncated")
+# when the file ends before the dimensions, ImageError("not-an-image") when the structure is corrupt.
+# `complete` says whether the file reaches its end marker and `costly` holds a "bomb" error; both are
+# reported separately so that the pixel cap is checked first (a tiny file that claims 20000×20000 is
+# "too-many-pixels", whatever follows its header).
+
+
+class _Header(NamedTuple):
+    width: int
+    height: int
+    complete: bool
+    costly: ImageError | None = None  # raised by `probe` after the size and completeness checks
+
+
+def _truncated(fmt: str, detail: str, n: int) -> ImageError:
+    return ImageError("truncated", f"{_FORMAT_NAMES[fmt]} image is truncated: {detail} ({n} bytes received)",
+                      format=fmt, received_bytes=n)
+
+
+def _corrupt(fmt: str, detail: str) -> ImageError:
+    return ImageError("not-an-image", f"corrupt {_FORMAT_NAMES[fmt]} image: {detail}", format=fmt)
+

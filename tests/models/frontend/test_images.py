@@ -1,0 +1,539 @@
+"""Image decoding and preprocessing (docs/design/science.md §6 "Front end"; docs/design/service.md §1.2, §3
+input checks).
+
+Every input is generated here (NumPy + cv2.imencode, skimage's bundled photo); nothing is downloaded.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+
+import cv2
+import numpy as np
+import pytest
+
+from models.frontend import images
+from models.frontend.images import (
+    ImageError,
+    decode,
+    decoding,
+    preprocess,
+    preprocess_batch,
+    probe,
+    probing,
+)
+from models.frontend.images import png as png_mod
+
+# ----------------------------------------------------------------------------------------------- helpers
+
+
+def _encode(rgb: np.ndarray, ext: str, params: list[int] | None = None) -> bytes:
+    """Encode an RGB (or grey, or RGBA, any depth) array; OpenCV wants BGR(A) channel order."""
+    if rgb.ndim == 3 and rgb.shape[2] == 3:
+        arr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+    elif rgb.ndim == 3 and rgb.shape[2] == 4:
+        arr = cv2.cvtColor(rgb, cv2.COLOR_RGBA2BGRA)
+    else:
+        arr = rgb
+    ok, buf = cv2.imencode(ext, arr, params or [])
+    assert ok
+    return buf.tobytes()
+
+
+def _random_rgb(h: int = 48, w: int = 64, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, (h, w, 3), dtype=np.uint8)
+
+
+def _blocks_rgb(h: int = 64, w: int = 96) -> np.ndarray:
+    """Large flat colour blocks: survives lossy compression, asymmetric under every rotation."""
+    img = np.zeros((h, w, 3), np.uint8)
+    img[: h // 2, : w // 2] = (255, 0, 0)
+    img[: h // 2, w // 2:] = (0, 255, 0)
+    img[h // 2:, : w // 3] = (0, 0, 255)
+    img[h // 2:, w // 3:] = (255, 255, 0)
+    return img
+
+
+def _smooth_rgb(h: int = 120, w: int = 160) -> np.ndarray:
+    y, x = np.mgrid[0:h, 0:w]
+    return np.dstack([x * 255 // (w - 1), y * 255 // (h - 1), (x + y) * 255 // (w + h - 2)]).astype(np.uint8)
+
+
+def _png_chunk(ctype: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + ctype + data + struct.pack(">I", zlib.crc32(ctype + data))
+
+
+def _png_claiming(width: int, height: int) -> bytes:
+    """A tiny, well-formed-looking PNG whose IHDR claims width × height (8-bit RGB)."""
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return (probing._PNG_SIGNATURE + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", zlib.compress(b""))
+            + _png_chunk(b"IEND", b""))
+
+
+def _with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
+    """Insert an APP1 Exif segment holding only the Orientation tag (0x0112) right after SOI."""
+    ifd = struct.pack(">H", 1) + struct.pack(">HHIHH", 0x0112, 3, 1, orientation, 0) + struct.pack(">I", 0)
+    tiff = b"MM\x00\x2a" + struct.pack(">I", 8) + ifd
+    payload = b"Exif\x00\x00" + tiff
+    app1 = b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload
+    return jpeg[:2] + app1 + jpeg[2:]
+
+
+def _code(data: bytes, **kw) -> str:
+    with pytest.raises(ImageError) as info:
+        decode(data, **kw)
+    return info.value.code
+
+
+@pytest.fixture
+def no_decoding(monkeypatch):
+    """Fail the test if OpenCV is asked to decode anything."""
+    def refuse(*args, **kwargs):
+        raise AssertionError("cv2.imdecode was called")
+    monkeypatch.setattr(decoding.cv2, "imdecode", refuse)
+
+
+# ---------------------------------------------------------------------------------------------- decoding
+
+
+@pytest.mark.parametrize(("ext", "params"), [
+    (".png", None),
+    (".bmp", None),
+    (".webp", [cv2.IMWRITE_WEBP_QUALITY, 101]),  # quality > 100 = lossless WebP (VP8L)
+])
+def test_lossless_formats_decode_to_the_exact_source(ext, params):
+    rgb = _random_rgb()
+    out = decode(_encode(rgb, ext, params))
+    assert out.dtype == np.uint8 and out.shape == rgb.shape and out.flags.c_contiguous
+    np.testing.assert_array_equal(out, rgb)
+
+
+@pytest.mark.parametrize(("ext", "params"), [
+    (".jpg", [cv2.IMWRITE_JPEG_QUALITY, 95]),
+    (".jpg", [cv2.IMWRITE_JPEG_QUALITY, 90, cv2.IMWRITE_JPEG_PROGRESSIVE, 1]),  # several scans
+    (".jpg", [cv2.IMWRITE_JPEG_QUALITY, 90, cv2.IMWRITE_JPEG_RST_INTERVAL, 2]),  # FF D0..D7 inside the scan
+    (".webp", [cv2.IMWRITE_WEBP_QUALITY, 95]),  # lossy WebP (VP8)
+])
+def test_lossy_formats_decode_close_to_the_source(ext, params):
+    from skimage import data as skdata
+
+    rgb = np.ascontiguousarray(skdata.chelsea())  # a real photo, (300, 451, 3) RGB
+    out = decode(_encode(rgb, ext, params))
+    assert out.shape == rgb.shape and out.dtype == np.uint8
+    assert np.abs(out.astype(int) - rgb.astype(int)).mean() < 4.0
+
+
+@pytest.mark.parametrize("ext", [".png", ".bmp", ".jpg", ".webp"])
+def test_channel_order_is_rgb(ext):
+    red = np.zeros((16, 16, 3), np.uint8)
+    red[..., 0] = 255
+    out = decode(_encode(red, ext)).astype(int)
+    assert (out[..., 0] > 240).all() and (out[..., 1:] < 15).all()
+
+
+def test_grey_png_becomes_three_equal_channels():
+    grey = _random_rgb()[..., 0].copy()
+    out = decode(_encode(grey, ".png"))
+    assert out.shape == (*grey.shape, 3)
+    for c in range(3):
+        np.testing.assert_array_equal(out[..., c], grey)
+
+
+def test_rgba_png_drops_alpha():
+    rgb = _random_rgb()
+    alpha = np.random.default_rng(1).integers(1, 256, rgb.shape[:2], dtype=np.uint8)
+    out = decode(_encode(np.dstack([rgb, alpha]), ".png"))
+    np.testing.assert_array_equal(out, rgb)
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_16_bit_png_is_scaled_to_8_bits_with_rounding(channels):
+    rng = np.random.default_rng(2)
+    a = rng.integers(0, 65536, (32, 40, channels), dtype=np.uint16)
+    a[0, 0], a[0, 1] = 0, 65535
+    src = a[..., 0] if channels == 1 else a
+    out = decode(_encode(src, ".png"))
+    expected = np.round(a.astype(np.float64) / 257.0).astype(np.uint8)
+    expected = np.broadcast_to(expected, (32, 40, 3))
+    np.testing.assert_array_equal(out, expected)
+    assert out[0, 0, 0] == 0 and out[0, 1, 0] == 255
+
+
+@pytest.mark.parametrize(("orientation", "displayed"), [
+    (1, lambda a: a),
+    (3, lambda a: np.rot90(a, 2)),
+    (6, lambda a: np.rot90(a, -1)),  # stored image must be rotated 90° clockwise to display
+    (8, lambda a: np.rot90(a, 1)),
+])
+def test_jpeg_exif_orientation_is_applied(orientation, displayed):
+    rgb = _blocks_rgb()
+    data = _with_exif_orientation(_encode(rgb, ".jpg", [cv2.IMWRITE_JPEG_QUALITY, 95]), orientation)
+    info = probe(data)
+    assert (info.width, info.height) == (96, 64)  # the header gives the stored size
+    out = decode(data)
+    expected = displayed(rgb)
+    assert out.shape == expected.shape
+    assert np.abs(out.astype(int) - expected.astype(int)).mean() < 3.0
+
+
+def test_jpeg_with_bytes_after_eoi_is_accepted():
+    rgb = _blocks_rgb()
+    out = decode(_encode(rgb, ".jpg") + b"\x00" * 64 + b"trailer")
+    assert out.shape == rgb.shape
+
+
+def test_probe_reads_sizes_from_every_header():
+    rgb = _random_rgb(37, 53)
+    for ext, params, fmt in [(".png", None, "png"), (".bmp", None, "bmp"), (".jpg", None, "jpeg"),
+                             (".webp", [cv2.IMWRITE_WEBP_QUALITY, 80], "webp"),
+                             (".webp", [cv2.IMWRITE_WEBP_QUALITY, 101], "webp")]:
+        assert probe(_encode(rgb, ext, params)) == images.ImageInfo(fmt, 53, 37), ext
+    vp8x = b"RIFF" + struct.pack("<I", 22) + b"WEBP" + b"VP8X" + struct.pack("<I", 10) + b"\x00" * 4
+    vp8x += (1919).to_bytes(3, "little") + (1079).to_bytes(3, "little")
+    assert probe(vp8x) == images.ImageInfo("webp", 1920, 1080)
+
+
+# -------------------------------------------------------------------------------------------------- errors
+
+
+def test_error_is_a_value_error_with_code_and_details():
+    with pytest.raises(ValueError) as info:
+        decode(b"")
+    assert isinstance(info.value, ImageError)
+    assert info.value.code == "empty" and "empty" in str(info.value)
+
+
+def test_random_bytes_are_not_an_image():
+    data = b"\x13" + np.random.default_rng(3).integers(0, 256, 4096, dtype=np.uint8).tobytes()
+    with pytest.raises(ImageError) as info:
+        decode(data)
+    assert info.value.code == "unsupported-format"  # no image signature at all (415 in the service)
+    assert "13" in str(info.value)  # names the first bytes
+
+
+@pytest.mark.parametrize(("head", "name"), [
+    (b"GIF89a\x10\x00\x10\x00\x80\x00\x00", "GIF"),
+    (b"GIF87a\x10\x00\x10\x00\x80\x00\x00", "GIF"),
+    (b"II*\x00\x08\x00\x00\x00" + b"\x00" * 32, "TIFF"),
+    (b"MM\x00*\x00\x00\x00\x08" + b"\x00" * 32, "TIFF"),
+    (b"\x00\x00\x00\x1cftypavif" + b"\x00" * 32, "AVIF"),
+])
+def test_other_formats_are_unsupported(head, name, no_decoding):
+    with pytest.raises(ImageError) as info:
+        decode(head)
+    assert info.value.code == "unsupported-format"
+    assert info.value.details["detected"] == name and name in str(info.value)
+
+
+def test_formats_can_be_narrowed(no_decoding):
+    bmp = _encode(_random_rgb(), ".bmp")
+    with pytest.raises(ImageError) as info:
+        probe(bmp, formats=("jpeg", "png"))
+    assert info.value.code == "unsupported-format" and "JPEG or PNG" in str(info.value)
+
+
+@pytest.mark.parametrize(("ext", "params"), [
+    (".png", None), (".jpg", None), (".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1]),
+    (".bmp", None), (".webp", [cv2.IMWRITE_WEBP_QUALITY, 80]), (".webp", [cv2.IMWRITE_WEBP_QUALITY, 101]),
+])
+@pytest.mark.parametrize("keep", [0.5, 0.95])
+def test_truncated_files_are_refused(ext, params, keep, no_decoding):
+    from skimage import data as skdata
+
+    data = _encode(np.ascontiguousarray(skdata.chelsea()), ext, params)
+    assert _code(data[: int(len(data) * keep)]) == "truncated"
+
+
+def test_truncated_jpeg_is_refused_even_with_an_exif_thumbnail_eoi(no_decoding):
+    # A JPEG inside APP1 (like an EXIF thumbnail) brings its own FF D9 before the main image's scan.
+    thumb = _encode(_blocks_rgb(16, 16), ".jpg")
+    payload = b"Exif\x00\x00" + thumb
+    main = _encode(_blocks_rgb(), ".jpg")
+    data = main[:2] + b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload + main[2:]
+    assert probe(data) == images.ImageInfo("jpeg", 96, 64)  # the thumbnail's SOF is not the image's
+    assert _code(data[: len(data) - 200]) == "truncated"
+
+
+@pytest.mark.parametrize("data", [b"\xff\xd8", b"\x89PNG\r\n", b"RIFF\x00\x00\x00\x00WE"])
+def test_a_body_cut_inside_the_signature_is_truncated(data):
+    assert _code(data) == "truncated"
+
+
+def test_png_header_claiming_a_huge_image_is_refused_without_decoding(no_decoding):
+    data = _png_claiming(20000, 20000)
+    assert len(data) < 100
+    with pytest.raises(ImageError) as info:
+        decode(data)
+    err = info.value
+    assert err.code == "too-many-pixels"
+    assert str(err) == "image has 20000x20000 = 400000000 pixels, more than the limit of 25000000"
+    assert err.details["width"] == 20000 and err.details["height"] == 20000
+    assert err.details["max_pixels"] == 25_000_000
+
+
+def test_jpeg_sof_claiming_a_huge_image_is_refused_without_decoding(no_decoding):
+    data = bytearray(_encode(_blocks_rgb(), ".jpg"))
+    sof = data.index(b"\xff\xc0")
+    data[sof + 5:sof + 9] = struct.pack(">HH", 30000, 30000)  # height, width
+    with pytest.raises(ImageError) as info:
+        decode(bytes(data))
+    assert info.value.code == "too-many-pixels"
+    assert "30000x30000 = 900000000 pixels" in str(info.value)
+
+
+def test_pixel_cap_is_a_parameter():
+    data = _encode(_random_rgb(40, 50), ".png")
+    assert decode(data, max_pixels=2000).shape == (40, 50, 3)
+    assert _code(data, max_pixels=1999) == "too-many-pixels"
+
+
+def test_over_max_bytes_is_too_large(no_decoding):
+    data = _encode(_random_rgb(), ".png")
+    with pytest.raises(ImageError) as info:
+        decode(data, max_bytes=len(data) - 1)
+    assert info.value.code == "too-large"
+    assert info.value.details == {"received_bytes": len(data), "max_bytes": len(data) - 1}
+    assert f"{len(data)} bytes" in str(info.value)
+
+
+def test_degenerate_aspect_ratio_is_refused():
+    data = _encode(np.zeros((1, 4000, 3), np.uint8), ".png")
+    assert _code(data) == "degenerate"
+    assert decode(data, max_aspect=None).shape == (1, 4000, 3)
+    assert decode(_encode(np.zeros((1, 16, 3), np.uint8), ".png")).shape == (1, 16, 3)  # 16x is allowed
+    assert decode(_encode(np.zeros((1, 1, 3), np.uint8), ".png")).shape == (1, 1, 3)
+
+
+def test_structurally_complete_but_corrupt_png_is_not_an_image():
+    data = bytearray(_encode(_random_rgb(), ".png"))
+    idat = data.index(b"IDAT")
+    data[idat + 4:idat + 40] = b"\x00" * 36  # garbage deflate stream, CRC now wrong
+    assert _code(bytes(data)) == "not-an-image"
+
+
+# ------------------------------------------------------------------------------------------ preprocessing
+
+IDENTITY = {"mean": (0.0, 0.0, 0.0), "std": (1.0, 1.0, 1.0)}
+
+
+def _unnormalise(x: np.ndarray, mean=images.IMAGENET_MEAN, std=images.IMAGENET_STD) -> np.ndarray:
+    """(3, S, S) normalised -> (S, S, 3) in 0..255."""
+    return ((x * np.asarray(std)[:, None, None] + np.asarray(mean)[:, None, None]) * 255.0).transpose(1, 2, 0)
+
+
+@pytest.mark.parametrize("mode", ["crop", "squash"])
+def test_preprocess_shape_dtype_and_normalisation(mode):
+    x = preprocess(_random_rgb(300, 451), mode=mode)
+    assert x.shape == (3, 224, 224) and x.dtype == np.float32 and x.flags.c_contiguous
+    mean_img = np.broadcast_to(np.round(np.asarray(images.IMAGENET_MEAN) * 255), (100, 150, 3))
+    z = preprocess(np.ascontiguousarray(mean_img, dtype=np.uint8), mode=mode)
+    assert np.abs(z).max() < 0.5 / 255 / 0.224 + 1e-6  # only the rounding of the mean to 8 bits remains
+    black = preprocess(np.zeros((50, 60, 3), np.uint8), mode=mode)
+    white = preprocess(np.full((50, 60, 3), 255, np.uint8), mode=mode)
+    for c in range(3):
+        m, s = images.IMAGENET_MEAN[c], images.IMAGENET_STD[c]
+        np.testing.assert_allclose(black[c], -m / s, rtol=1e-6)
+        np.testing.assert_allclose(white[c], (1 - m) / s, rtol=1e-6)
+
+
+def test_preprocess_matches_the_float32_tensor_arithmetic():
+    rgb = _random_rgb(224, 224)  # square of the crop size after Resize(256): exercise only normalisation
+    x = preprocess(rgb, mode="squash")
+    mean = np.asarray(images.IMAGENET_MEAN, np.float32)[:, None, None]
+    std = np.asarray(images.IMAGENET_STD, np.float32)[:, None, None]
+    expected = (rgb.transpose(2, 0, 1).astype(np.float32) / np.float32(255) - mean) / std
+    np.testing.assert_array_equal(x, expected)
+
+
+def _gradient(h: int, w: int) -> np.ndarray:
+    """Channel 0 = 4·x, channel 1 = 8·y (the layout of a 64 wide × 32 high Nordland frame)."""
+    y, x = np.mgrid[0:h, 0:w]
+    return np.dstack([4 * x, 8 * y, np.zeros_like(x)]).astype(np.uint8)
+
+
+def test_crop_keeps_the_central_part_of_a_64x32_frame():
+    img = _gradient(32, 64)  # short side 32 -> 256 (×8), long side 64 -> 512; crop left 144, top 16
+    v = _unnormalise(preprocess(img, mode="crop"))
+    # INTER_LINEAR at ×8: output column j samples source x = (j + 0.5) / 8 − 0.5.
+    x_first, x_last = (144 + 0.5) / 8 - 0.5, (144 + 223 + 0.5) / 8 - 0.5  # 17.56 and 45.44
+    y_first, y_last = (16 + 0.5) / 8 - 0.5, (16 + 223 + 0.5) / 8 - 0.5  # 1.56 and 29.44
+    np.testing.assert_allclose(v[:, 0, 0], 4 * x_first, atol=1.0)
+    np.testing.assert_allclose(v[:, -1, 0], 4 * x_last, atol=1.0)
+    np.testing.assert_allclose(v[0, :, 1], 8 * y_first, atol=1.0)
+    np.testing.assert_allclose(v[-1, :, 1], 8 * y_last, atol=1.0)
+    # 56 % of the width is lost: nothing left of the outer source columns.
+    assert v[..., 0].min() > 4 * 17 and v[..., 0].max() < 4 * 46
+
+
+def test_squash_keeps_the_whole_frame():
+    img = _gradient(32, 64)
+    v = _unnormalise(preprocess(img, mode="squash"))
+    assert v[..., 0].min() < 4 and v[..., 0].max() > 4 * 63 - 4
+    assert v[..., 1].min() < 8 and v[..., 1].max() > 8 * 31 - 8
+    assert np.all(np.diff(v[0, :, 0]) >= -1e-3)  # monotone left to right, nothing cut
+
+
+@pytest.mark.parametrize(("w", "left"), [(256, 16), (257, 16), (259, 18)])
+def test_centre_crop_offsets_round_half_to_even(w, left):
+    # Short side already 256 and int(256·w/256) = w: no resampling, so the crop is exact pixels.
+    img = _random_rgb(256, w, seed=w)
+    x = preprocess(img, mode="crop", **IDENTITY)
+    expected = img[16:240, left:left + 224].transpose(2, 0, 1).astype(np.float32) / np.float32(255)
+    np.testing.assert_array_equal(x, expected)
+
+
+def test_portrait_images_crop_symmetrically():
+    img = _gradient(32, 64).transpose(1, 0, 2)[..., ::-1].copy()  # 32 wide × 64 high, y-gradient in ch 2
+    v = _unnormalise(preprocess(img, mode="crop"))
+    assert v[..., 2].min() > 4 * 17 and v[..., 2].max() < 4 * 46
+
+
+def test_resize_size_follows_torchvision():
+    # 451 × 300 -> long side int(256·451/300) = int(384.85) = 384; the crop is then taken at left 80.
+    img = np.zeros((300, 451, 3), np.uint8)
+    img[:, 225] = 255  # a one-pixel line at the centre column
+    v = _unnormalise(preprocess(img, mode="crop", **IDENTITY), mean=(0, 0, 0), std=(1, 1, 1))
+    col = int(np.argmax(v[112, :, 0]))
+    assert col == pytest.approx(384 * 225.5 / 451 - 80, abs=1.0)
+
+
+def test_shrinking_is_antialiased():
+    # A 1-pixel checkerboard shrunk 3×: INTER_AREA averages 3×3 blocks (4/9 or 5/9 white); plain
+    # bilinear would sample single pixels and keep the full 0/255 contrast.
+    board = ((np.indices((768, 768)).sum(0) % 2) * 255).astype(np.uint8)
+    v = _unnormalise(preprocess(np.dstack([board] * 3), mode="crop", **IDENTITY), mean=(0, 0, 0),
+                     std=(1, 1, 1))
+    assert v.min() > 100 and v.max() < 155
+
+
+def test_squash_of_a_wide_image_shrinks_one_axis_and_enlarges_the_other():
+    img = _gradient(32, 64)
+    wide = np.ascontiguousarray(np.repeat(img, 10, axis=1))  # 640 × 32
+    x = preprocess(wide, mode="squash", size=112)
+    assert x.shape == (3, 112, 112) and np.isfinite(x).all()
+
+
+def test_preprocess_batch_stacks_mixed_sizes():
+    imgs = [_random_rgb(300, 451, 0), _random_rgb(32, 64, 1), _random_rgb(500, 400, 2)]
+    for kw in ({}, {"mode": "squash", "size": 112}):
+        batch = preprocess_batch(imgs, **kw)
+        size = kw.get("size", 224)
+        assert batch.shape == (3, 3, size, size) and batch.dtype == np.float32 and batch.flags.c_contiguous
+        for i, img in enumerate(imgs):
+            np.testing.assert_array_equal(batch[i], preprocess(img, **kw))
+    assert preprocess_batch([]).shape == (0, 3, 224, 224)
+
+
+@pytest.mark.parametrize("bad", [
+    np.zeros((10, 10), np.uint8),
+    np.zeros((10, 10, 4), np.uint8),
+    np.zeros((10, 10, 3), np.float32),
+    np.zeros((0, 10, 3), np.uint8),
+])
+def test_preprocess_refuses_non_rgb_input(bad):
+    with pytest.raises(ValueError):
+        preprocess(bad)
+
+
+@pytest.mark.parametrize("kw", [{"mode": "stretch"}, {"size": 300}, {"mean": (0.5, 0.5)},
+                                {"std": (1.0, 0.0, 1.0)}])
+def test_preprocess_refuses_bad_parameters(kw):
+    with pytest.raises(ValueError):
+        preprocess(_random_rgb(), **kw)
+
+
+def test_decode_then_preprocess_end_to_end():
+    from skimage import data as skdata
+
+    rgb = np.ascontiguousarray(skdata.chelsea())
+    x = preprocess_batch([decode(_encode(rgb, ".png")), decode(_encode(rgb, ".jpg"))])
+    assert x.shape == (2, 3, 224, 224)
+    assert np.abs(x[0] - x[1]).mean() < 0.05
+
+
+def test_hostile_jpeg_marker_floods_are_refused_cheaply():
+    # Millions of empty segments would otherwise be walked one by one under the GIL.
+    flood = b"\xff\xd8" + b"\xff\xfe\x00\x02" * 100_000
+    with pytest.raises(images.ImageError) as e:
+        images.decode(flood)
+    assert e.value.code == "not-an-image" and "marker segments" in str(e.value)
+    fill = b"\xff\xd8" + b"\xff" * 1_000_000
+    with pytest.raises(images.ImageError) as e:
+        images.decode(fill)
+    assert e.value.code == "truncated"
+
+
+# ------------------------------------------------------------------------------------- decoding cost
+
+
+def test_png_bomb_is_refused_from_its_chunks_without_inflating(png_bomb, no_decoding, monkeypatch):
+    # The issue's bomb at 1/100 scale, same ratio: 100x100 (30,100 raster bytes), 100 MB of zeros.
+    data = png_bomb(100, 100, 100 << 20)
+    assert len(data) < 120_000
+    monkeypatch.setattr(png_mod.zlib, "decompressobj", None)  # the header walk alone must refuse it
+    for split in (1, 300):  # one IDAT, or many
+        with pytest.raises(ImageError) as info:
+            probe(png_bomb(100, 100, 100 << 20, idat_chunks=split))
+        err = info.value
+        assert err.code == "bomb" and err.details["raster_bytes"] == 30_100
+        assert err.details["compressed_bytes"] > 100_000
+        assert "100x100" in str(err)
+
+
+def test_png_bomb_in_a_large_raster_is_stopped_at_the_raster_size(png_bomb, no_decoding, monkeypatch):
+    # 1000x1000 RGB needs 3,001,000 bytes; 64 MB of zeros compress to less than that, so the chunk walk
+    # cannot tell; the bounded inflate stops after the raster instead of inflating all 64 MB.
+    data = png_bomb(1000, 1000, 64 << 20)
+    assert probe(data).width == 1000
+    inflated = []
+    real = png_mod.zlib.decompressobj
+
+    class Counting:
+        def __init__(self) -> None:
+            self.z = real()
+
+        def decompress(self, buf, max_length=0):
+            out = self.z.decompress(buf, max_length)
+            inflated.append(len(out))
+            return out
+
+        def __getattr__(self, name):
+            return getattr(self.z, name)
+
+    monkeypatch.setattr(png_mod.zlib, "decompressobj", Counting)
+    with pytest.raises(ImageError) as info:
+        decode(data)
+    assert info.value.code == "bomb" and info.value.details["raster_bytes"] == 3_001_000
+    assert sum(inflated) <= 3_001_000 + png_mod._INFLATE_STEP
+
+
+@pytest.mark.parametrize("interlace", [0, 1])
+@pytest.mark.parametrize(("colour", "depth", "samples"), [(0, 1, 1), (0, 16, 1), (2, 8, 3), (3, 4, 1),
+                                                           (4, 8, 2), (6, 16, 4)])
+def test_png_image_data_must_inflate_to_exactly_its_raster(colour, depth, samples, interlace, make_png):
+    # Exactly the raster decodes; one byte more is refused before OpenCV (libpng would inflate it all),
+    # one byte less is corrupt. Odd sizes exercise the Adam7 pass arithmetic and sub-byte packing.
+    w, h = 13, 7
+    exact = png_mod._png_raster_bytes(w, h, samples * depth, bool(interlace))
+    plte = _png_chunk(b"PLTE", bytes(3 * 16)) if colour == 3 else b""
+
+    def png(n: int) -> bytes:
+        data = make_png(w, h, zlib.compress(bytes(n)), colour=colour, depth=depth, interlace=interlace)
+        return data[:33] + plte + data[33:]
+
+    assert decode(png(exact)).shape == (h, w, 3)
+    assert _code(png(exact + 1)) == "bomb"
+    assert _code(png(exact - 1)) == "not-an-image"
+
+
+def test_jpeg_with_too_many_scans_is_refused_without_decoding(no_decoding):
+    data = _encode(_blocks_rgb(), ".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])
+    sos = [i for i in range(len(data) - 1) if data[i:i + 2] == b"\xff\xda"]
+    assert 1 < len(sos) <= images.JPEG_MAX_SCANS  # a real progressive file passes
+    assert probe(data).format == "jpeg"
+    last_scan = data[sos[-1]:-2]  # an empty refinement scan still costs a pass over every block
+    flood = data[:-2] + last_scan * images.JPEG_MAX_SCANS + b"\xff\xd9"
+    with pytest.raises(ImageError) as info:
+        decode(flood)
+    assert info.value.code == "bomb" and info.value.details["max_scans"] == images.JPEG_MAX_SCANS
