@@ -33,7 +33,6 @@ def test_map_crud(catalog: Catalog, tmp_path: Path) -> None:
         catalog.create_map("lab", {})
     catalog.create_map("yard", {})
     assert [m.map_id for m in catalog.list_maps()] == ["lab", "yard"]
-    assert catalog.count_maps() == 2
 
     failed = catalog.set_state("lab", "failed", "replay-divergence")
     assert (failed.state, failed.state_reason) == ("failed", "replay-divergence")
@@ -46,7 +45,7 @@ def test_map_crud(catalog: Catalog, tmp_path: Path) -> None:
     # Durable and reopenable, with WAL + FULL like the map files.
     catalog.close()
     again = Catalog.open(tmp_path / "catalog.sqlite")
-    assert again.get_map("lab").state == "ready" and again.ping()
+    assert again.get_map("lab").state == "ready"
     assert sqlite3.connect(tmp_path / "catalog.sqlite").execute("PRAGMA journal_mode").fetchone()[0] == "wal"
     again.delete_map("yard")
     assert again.get_map("yard") is None
