@@ -107,3 +107,16 @@ def test_snapshot_paths_are_stored_relative_to_the_data_directory(catalog: Catal
     for outside in ("/elsewhere/maps/lab/snapshots/s2", "maps/../../x/s2"):
         with pytest.raises(ValueError):
             catalog.register_snapshot(SnapshotRecord(**{**snap("lab", "s2", 2).__dict__, "path": outside}))
+
+
+def test_a_catalog_write_is_one_transaction_until_it_returns(catalog: Catalog, tmp_path: Path) -> None:
+    # sqlite-utils writes inside the catalog's BEGIN IMMEDIATE as savepoints: nothing is committed (seen
+    # by another connection) before the block ends, and an error rolls every statement of it back.
+    other = sqlite3.connect(tmp_path / "catalog.sqlite")
+    with pytest.raises(RuntimeError), catalog._write() as db:
+        db["maps"].insert({"map_id": "half", "created_at": "t", "state": "ready", "params": "{}"})
+        db["maps"].update("half", {"state": "failed"})
+        assert other.execute("SELECT count(*) FROM maps").fetchone()[0] == 0
+        raise RuntimeError("stop")
+    assert other.execute("SELECT count(*) FROM maps").fetchone()[0] == 0 and catalog.get_map("half") is None
+    other.close()
