@@ -2,9 +2,12 @@
 
 Read once from the `CORTEXLOC_*` environment variables by `Settings.from_env()`, which the app
 factory's lifespan calls at startup (never at import time), then injected through `deps.SettingsDep`.
-Each field `name` is read from `CORTEXLOC_<NAME>`; an empty value counts as unset (the default applies).
-An invalid value raises `ConfigError`, whose message names the variable, and stops startup. Unknown
-`CORTEXLOC_*` names are logged as warnings (with a suggestion when one is close to a known name).
+Each field `name` is read from `CORTEXLOC_<NAME>` by pydantic-settings' environment source; an empty
+(or blank) value counts as unset (the default applies). An invalid value raises `ConfigError`, whose
+message names the variable, and stops startup. Unknown `CORTEXLOC_*` names are logged as warnings (with
+a suggestion when one is close to a known name). `Settings(...)` itself takes only what it is given:
+the environment is read by `from_env` alone, so settings built in code (tests, benchmarks) never pick
+up a stray variable.
 
 Example:
     >>> s = Settings.from_env({"CORTEXLOC_PORT": "9000"})
@@ -24,7 +27,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
+from pydantic import Field, ValidationError, ValidationInfo, field_validator
+from pydantic_settings import BaseSettings, EnvSettingsSource, PydanticBaseSettingsSource, SettingsConfigDict
+from pydantic_settings.sources.utils import parse_env_vars
 
 __all__ = ["ENV_PREFIX", "OTHER_KNOWN_VARIABLES", "ConfigError", "Settings", "env_name"]
 
@@ -64,10 +69,23 @@ def env_name(field: str) -> str:
     return ENV_PREFIX + field.upper()
 
 
-class Settings(BaseModel):
+class _Environ(EnvSettingsSource):
+    """The `CORTEXLOC_*` variables of a given mapping (not only `os.environ`), values stripped."""
+
+    def __init__(self, settings_cls: type[BaseSettings], environ: Mapping[str, str]) -> None:
+        self._environ = environ  # read by `_load_env_vars`, which the base class calls
+        super().__init__(settings_cls)
+
+    def _load_env_vars(self) -> Mapping[str, str | None]:
+        stripped = {k: v.strip() for k, v in self._environ.items() if k.startswith(ENV_PREFIX)}
+        return parse_env_vars(stripped, self.case_sensitive, self.env_ignore_empty, self.env_parse_none_str)
+
+
+class Settings(BaseSettings):
     """Every knob of the service, with the defaults of docs/design/service.md §8 (plus `api_key`)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, env_ignore_empty=True, frozen=True,
+                                      extra="forbid")
 
     data_dir: Path = Field(Path("./var"), description="root of all state")
     host: str = Field("127.0.0.1", min_length=1, description="bind address")
@@ -117,6 +135,16 @@ class Settings(BaseModel):
         return v
 
     @classmethod
+    def settings_customise_sources(cls, settings_cls: type[BaseSettings],
+                                   init_settings: PydanticBaseSettingsSource,
+                                   env_settings: PydanticBaseSettingsSource,
+                                   dotenv_settings: PydanticBaseSettingsSource,
+                                   file_secret_settings: PydanticBaseSettingsSource,
+                                   ) -> tuple[PydanticBaseSettingsSource, ...]:
+        # Only the arguments: `from_env` is the one place that reads the environment (once, at startup).
+        return (init_settings,)
+
+    @classmethod
     def variables(cls) -> dict[str, str]:
         """Environment variable name -> field name."""
         return {env_name(name): name for name in cls.model_fields}
@@ -137,24 +165,15 @@ class Settings(BaseModel):
         """
         env = os.environ if environ is None else environ
         known = cls.variables()
-        raw: dict[str, str] = {}
-        for var, value in env.items():
-            if not var.startswith(ENV_PREFIX):
-                continue
-            field = known.get(var)
-            if field is None:
-                if var not in OTHER_KNOWN_VARIABLES:
-                    suffixes = [k.removeprefix(ENV_PREFIX) for k in known]
-                    close = difflib.get_close_matches(var.removeprefix(ENV_PREFIX), suffixes, n=1,
-                                                      cutoff=0.75)
-                    hint = f"; did you mean {ENV_PREFIX}{close[0]}?" if close else ""
-                    log.warning("unknown configuration variable %s is ignored%s", var, hint)
-                continue
-            value = value.strip()
-            if value:  # empty = unset: the default applies
-                raw[field] = value
+        for var in env:
+            if var.startswith(ENV_PREFIX) and var not in known and var not in OTHER_KNOWN_VARIABLES:
+                suffixes = [k.removeprefix(ENV_PREFIX) for k in known]
+                close = difflib.get_close_matches(var.removeprefix(ENV_PREFIX), suffixes, n=1, cutoff=0.75)
+                hint = f"; did you mean {ENV_PREFIX}{close[0]}?" if close else ""
+                log.warning("unknown configuration variable %s is ignored%s", var, hint)
+        raw: dict[str, Any] = _Environ(cls, env)()  # field name -> text
         try:
-            return cls.model_validate(raw)
+            return cls(**raw)
         except ValidationError as e:
             errors = []
             for err in e.errors(include_url=False, include_input=False):

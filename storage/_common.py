@@ -33,8 +33,10 @@ def connect(path: str | Path, *, readonly: bool = False) -> sqlite3.Connection:
 
     - `isolation_level=None`: Python's implicit transactions are off; writers say `BEGIN IMMEDIATE` and
       `COMMIT` themselves, so a commit happens exactly where the code says (docs/design/service.md §4.3).
-    - `check_same_thread=False`: the service's writer runs in worker threads (`asyncio.to_thread`), a
-      different thread each time; callers serialise access with their own lock instead.
+    - `check_same_thread=False`: a connection is opened in one thread and used from others: a map's
+      store is opened at startup in a worker thread, written by the map's own single writer thread (a
+      one-thread executor per map) and read from request handler threads; the catalog likewise. The
+      owners (`MapStore`, `Catalog`) serialise access with their own lock instead.
     - WAL + `synchronous=FULL` (read-write only): a commit is on disk when COMMIT returns. `journal_mode`
       is stored in the file, `synchronous` is per connection, so both are set on every open.
 

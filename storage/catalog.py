@@ -7,10 +7,15 @@ The seq high-water mark is what keeps seqs unique across restores (docs/design/s
 not even after a restore"): before a restore replaces `map.sqlite` with an older copy, the service bumps
 the mark to the current last seq, and opens the restored file with `MapStore.open(seq_floor=mark)`.
 Bumping only at restore (not per observation) keeps the per-observation commit to one file.
+
+Plain CRUD goes through `sqlite_utils` tables over our own connection (`storage._common.connect`: WAL,
+synchronous=FULL, explicit `BEGIN IMMEDIATE` transactions, inside which sqlite-utils writes as
+savepoints); the schema stays SQL, since sqlite-utils' table creation has no CHECK constraints.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -21,6 +26,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
+
+import sqlite_utils
+from sqlite_utils.db import NotFoundError
 
 from storage._common import StorageError, connect, transaction, utc_now
 
@@ -136,13 +144,10 @@ class SnapshotRecord:
     path: str
 
 
-_MAP_COLS = "map_id, created_at, state, state_reason, preset, params, seq_high_water"
-_SNAP_COLS = "snapshot_id, map_id, seq, kind, created_at, bytes, manifest_sha256, path"
-
-
-def _map(r: tuple[Any, ...]) -> MapRecord:
-    return MapRecord(map_id=r[0], created_at=r[1], state=r[2], state_reason=r[3], preset=r[4],
-                     params=json.loads(r[5]), seq_high_water=int(r[6]))
+def _map(r: dict[str, Any]) -> MapRecord:
+    return MapRecord(map_id=r["map_id"], created_at=r["created_at"], state=r["state"],
+                     state_reason=r["state_reason"], preset=r["preset"], params=json.loads(r["params"]),
+                     seq_high_water=int(r["seq_high_water"]))
 
 
 def snapshot_relpath(map_id: str, snapshot_id: str) -> str:
@@ -150,15 +155,31 @@ def snapshot_relpath(map_id: str, snapshot_id: str) -> str:
     return f"maps/{map_id}/snapshots/{snapshot_id}"
 
 
-def _snap(r: tuple[Any, ...]) -> SnapshotRecord:
-    path = r[7]
+def _snap(r: dict[str, Any]) -> SnapshotRecord:
+    path = r["path"]
     if os.path.isabs(path):
         # Written by a version that stored absolute paths: the directory may have been moved or copied
         # since, and reading the path as written would use another data directory's files. A snapshot
         # always lies at its place in *this* data directory.
-        path = snapshot_relpath(r[1], r[0])
-    return SnapshotRecord(snapshot_id=r[0], map_id=r[1], seq=int(r[2]), kind=r[3], created_at=r[4],
-                          bytes=int(r[5]), manifest_sha256=r[6], path=path)
+        path = snapshot_relpath(r["map_id"], r["snapshot_id"])
+    return SnapshotRecord(snapshot_id=r["snapshot_id"], map_id=r["map_id"], seq=int(r["seq"]),
+                          kind=r["kind"], created_at=r["created_at"], bytes=int(r["bytes"]),
+                          manifest_sha256=r["manifest_sha256"], path=path)
+
+
+_ONE_SNAPSHOT = "map_id = ? AND snapshot_id = ?"
+
+
+def _tables(conn: sqlite3.Connection) -> sqlite_utils.Database:
+    # Over our connection as configured: no PRAGMA of its own (recursive_triggers), no plugins.
+    return sqlite_utils.Database(conn, recursive_triggers=False, execute_plugins=False)
+
+
+def _get_map(db: sqlite_utils.Database, map_id: str) -> dict[str, Any]:
+    try:
+        return db["maps"].get(map_id)
+    except NotFoundError:
+        raise MapNotFound(f"map {map_id!r} not found") from None
 
 
 class Catalog:
@@ -176,8 +197,10 @@ class Catalog:
             if not self.path.is_file():  # SQLite would answer as if it were empty
                 raise FileNotFoundError(f"{self.path} does not exist")
             self._conn = connect(self.path, readonly=True)
+            self._db = _tables(self._conn)
             return
         self._conn = connect(self.path)
+        self._db = _tables(self._conn)
         try:
             # Per connection: without it ON DELETE CASCADE would not remove a deleted map's snapshots.
             self._conn.execute("PRAGMA foreign_keys=ON")
@@ -191,10 +214,9 @@ class Catalog:
                 raise StorageError(f"{path}: catalog schema {version} is newer than this code's "
                                    f"{_SCHEMA_VERSION}")
             with transaction(self._conn):  # absolute paths of older versions become relative (`_snap`)
-                for r in self._conn.execute(f"SELECT {_SNAP_COLS} FROM snapshots WHERE path LIKE '/%'"
-                                            ).fetchall():
-                    self._conn.execute("UPDATE snapshots SET path = ? WHERE map_id = ? AND snapshot_id = ?",
-                                       (_snap(r).path, r[1], r[0]))
+                snapshots = self._db["snapshots"]
+                for r in list(snapshots.rows_where("path LIKE '/%'")):
+                    snapshots.update(r["ord"], {"path": _snap(r).path})
         except BaseException:
             self._conn.close()
             raise
@@ -228,32 +250,28 @@ class Catalog:
         self.close()
 
     @contextmanager
-    def _write(self) -> Iterator[sqlite3.Connection]:
+    def _write(self) -> Iterator[sqlite_utils.Database]:
+        """The tables, inside one `BEGIN IMMEDIATE` ... `COMMIT` under the lock."""
         with self._lock:
             if self._conn is None:
                 raise StorageError(f"{self.path}: catalog is closed")
-            with transaction(self._conn) as conn:
-                yield conn
+            with transaction(self._conn):
+                yield self._db
 
-    def _read(self, sql: str, args: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
+    @contextmanager
+    def _tables(self) -> Iterator[sqlite_utils.Database]:
+        """The tables, to read, under the lock."""
         with self._lock:
             if self._conn is None:
                 raise StorageError(f"{self.path}: catalog is closed")
-            return self._conn.execute(sql, args).fetchall()
-
-    def ping(self) -> bool:
-        """The catalog answers a query."""
-        try:
-            self._read("SELECT 1")
-        except (sqlite3.Error, StorageError):
-            return False
-        return True
+            yield self._db
 
     def check(self) -> dict[str, Any]:
         """`/readyz`'s catalog check: `PRAGMA quick_check` reads every page of this small file, so a
         file damaged or replaced under the open connection is seen, not only a closed one."""
         try:
-            result = [r[0] for r in self._read("PRAGMA quick_check")]
+            with self._tables() as db:
+                result = [r[0] for r in db.execute("PRAGMA quick_check").fetchall()]
         except (sqlite3.Error, StorageError) as exc:
             return {"status": "fail", "path": str(self.path), "error": f"catalog unreadable: {exc}"}
         if result != ["ok"]:
@@ -274,25 +292,25 @@ class Catalog:
             raise ValueError(f"state must be one of {MAP_STATES}, got {state!r}")
         created_at = created_at or utc_now()
         try:
-            with self._write() as conn:
-                conn.execute(f"INSERT INTO maps ({_MAP_COLS}) VALUES (?, ?, ?, NULL, ?, ?, 0)",
-                             (map_id, created_at, state, preset, json.dumps(params, sort_keys=True)))
+            with self._write() as db:
+                db["maps"].insert({"map_id": map_id, "created_at": created_at, "state": state,
+                                   "preset": preset, "params": json.dumps(params, sort_keys=True)})
         except sqlite3.IntegrityError as exc:
             raise MapExists(f"map {map_id!r} exists") from exc
         return MapRecord(map_id, created_at, state, None, preset, json.loads(json.dumps(params)), 0)
 
     def get_map(self, map_id: str) -> MapRecord | None:
         """The map's record, or None."""
-        rows = self._read(f"SELECT {_MAP_COLS} FROM maps WHERE map_id = ?", (map_id,))
-        return _map(rows[0]) if rows else None
+        with self._tables() as db:
+            try:
+                return _map(db["maps"].get(map_id))
+            except NotFoundError:
+                return None
 
     def list_maps(self) -> list[MapRecord]:
         """All maps, oldest first (creation order)."""
-        return [_map(r) for r in self._read(f"SELECT {_MAP_COLS} FROM maps ORDER BY created_at, map_id")]
-
-    def count_maps(self) -> int:
-        """Number of maps (for `CORTEXLOC_MAX_MAPS`)."""
-        return int(self._read("SELECT count(*) FROM maps")[0][0])
+        with self._tables() as db:
+            return [_map(r) for r in db["maps"].rows_where(order_by="created_at, map_id")]
 
     def set_state(self, map_id: str, state: MapState, reason: str | None = None) -> MapRecord:
         """Set a map's state and reason (the reason is cleared when not given).
@@ -303,14 +321,10 @@ class Catalog:
         """
         if state not in MAP_STATES:
             raise ValueError(f"state must be one of {MAP_STATES}, got {state!r}")
-        with self._write() as conn:
-            cur = conn.execute("UPDATE maps SET state = ?, state_reason = ? WHERE map_id = ?",
-                               (state, reason, map_id))
-            if cur.rowcount == 0:
-                raise MapNotFound(f"map {map_id!r} not found")
-        rec = self.get_map(map_id)
-        assert rec is not None
-        return rec
+        with self._write() as db:
+            _get_map(db, map_id)
+            db["maps"].update(map_id, {"state": state, "state_reason": reason})
+            return _map(db["maps"].get(map_id))
 
     def delete_map(self, map_id: str) -> list[SnapshotRecord]:
         """Remove a map, its snapshot registrations and its high-water mark from the catalog.
@@ -321,11 +335,11 @@ class Catalog:
         Raises:
             MapNotFound: unknown map.
         """
-        with self._write() as conn:
-            snaps = [_snap(r) for r in conn.execute(
-                f"SELECT {_SNAP_COLS} FROM snapshots WHERE map_id = ? ORDER BY ord DESC", (map_id,))]
-            if conn.execute("DELETE FROM maps WHERE map_id = ?", (map_id,)).rowcount == 0:
-                raise MapNotFound(f"map {map_id!r} not found")
+        with self._write() as db:
+            _get_map(db, map_id)
+            snaps = [_snap(r) for r in db["snapshots"].rows_where("map_id = ?", [map_id],
+                                                                  order_by="ord DESC")]
+            db["maps"].delete(map_id)  # ON DELETE CASCADE removes its snapshot rows
         return snaps
 
     # ------------------------------------------------------------------ seq high-water mark
@@ -339,13 +353,10 @@ class Catalog:
         Raises:
             MapNotFound: unknown map.
         """
-        with self._write() as conn:
-            cur = conn.execute("UPDATE maps SET seq_high_water = max(seq_high_water, ?) WHERE map_id = ?",
-                               (int(seq), map_id))
-            if cur.rowcount == 0:
-                raise MapNotFound(f"map {map_id!r} not found")
-            return int(conn.execute("SELECT seq_high_water FROM maps WHERE map_id = ?",
-                                    (map_id,)).fetchone()[0])
+        with self._write() as db:
+            mark = max(int(_get_map(db, map_id)["seq_high_water"]), int(seq))
+            db["maps"].update(map_id, {"seq_high_water": mark})
+            return mark
 
     def get_high_water(self, map_id: str) -> int:
         """The map's seq high-water mark.
@@ -353,10 +364,8 @@ class Catalog:
         Raises:
             MapNotFound: unknown map.
         """
-        rows = self._read("SELECT seq_high_water FROM maps WHERE map_id = ?", (map_id,))
-        if not rows:
-            raise MapNotFound(f"map {map_id!r} not found")
-        return int(rows[0][0])
+        with self._tables() as db:
+            return int(_get_map(db, map_id)["seq_high_water"])
 
     # ------------------------------------------------------------------ snapshots
 
@@ -380,13 +389,10 @@ class Catalog:
         if ".." in path.parts:
             raise ValueError(f"snapshot path {record.path} leaves the data directory")
         try:
-            with self._write() as conn:
-                if conn.execute("SELECT 1 FROM maps WHERE map_id = ?", (record.map_id,)).fetchone() is None:
-                    raise MapNotFound(f"map {record.map_id!r} not found")
-                conn.execute(f"INSERT INTO snapshots ({_SNAP_COLS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                             (record.snapshot_id, record.map_id, int(record.seq), record.kind,
-                              record.created_at, int(record.bytes), record.manifest_sha256,
-                              path.as_posix()))
+            with self._write() as db:
+                _get_map(db, record.map_id)
+                db["snapshots"].insert({**dataclasses.asdict(record), "seq": int(record.seq),
+                                        "bytes": int(record.bytes), "path": path.as_posix()})
         except sqlite3.IntegrityError as exc:
             raise ValueError(f"snapshot {record.snapshot_id!r} of map {record.map_id!r}: {exc}") from exc
         return record
@@ -397,18 +403,15 @@ class Catalog:
         "Newest" is registration order, not `seq`: after a restore a newer snapshot can have a
         lower seq than the pre-restore one, and wall-clock times can step back.
         """
-        if kind is None:
-            rows = self._read(f"SELECT {_SNAP_COLS} FROM snapshots WHERE map_id = ? ORDER BY ord DESC",
-                              (map_id,))
-        else:
-            rows = self._read(f"SELECT {_SNAP_COLS} FROM snapshots WHERE map_id = ? AND kind = ? "
-                              "ORDER BY ord DESC", (map_id, kind))
-        return [_snap(r) for r in rows]
+        where, args = ("map_id = ?", [map_id]) if kind is None else ("map_id = ? AND kind = ?",
+                                                                      [map_id, kind])
+        with self._tables() as db:
+            return [_snap(r) for r in db["snapshots"].rows_where(where, args, order_by="ord DESC")]
 
     def get_snapshot(self, map_id: str, snapshot_id: str) -> SnapshotRecord | None:
         """One snapshot's record, or None."""
-        rows = self._read(f"SELECT {_SNAP_COLS} FROM snapshots WHERE map_id = ? AND snapshot_id = ?",
-                          (map_id, snapshot_id))
+        with self._tables() as db:
+            rows = list(db["snapshots"].rows_where(_ONE_SNAPSHOT, [map_id, snapshot_id]))
         return _snap(rows[0]) if rows else None
 
     def delete_snapshot(self, map_id: str, snapshot_id: str) -> bool:
@@ -417,12 +420,13 @@ class Catalog:
         Returns:
             Whether it was registered.
         """
-        with self._write() as conn:
-            cur = conn.execute("DELETE FROM snapshots WHERE map_id = ? AND snapshot_id = ?",
-                               (map_id, snapshot_id))
-            return cur.rowcount > 0
+        with self._write() as db:
+            found = db["snapshots"].count_where(_ONE_SNAPSHOT, [map_id, snapshot_id]) > 0
+            db["snapshots"].delete_where(_ONE_SNAPSHOT, [map_id, snapshot_id])
+            return found
 
     def snapshots_bytes(self, map_id: str) -> int:
         """Total registered snapshot bytes of a map (`storage.snapshots_bytes` of the memory endpoint)."""
-        return int(self._read("SELECT coalesce(sum(bytes), 0) FROM snapshots WHERE map_id = ?",
-                              (map_id,))[0][0])
+        with self._tables() as db:
+            return int(db.execute("SELECT coalesce(sum(bytes), 0) FROM snapshots WHERE map_id = ?",
+                                  [map_id]).fetchone()[0])

@@ -21,23 +21,32 @@ Example:
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import shutil
 import sqlite3
-import tempfile
 import threading
-import uuid
-from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
-import numpy as np
-
-from models.files import atomic_write, fsync_dir
-from models.sdr import INDEX_DTYPE
-from storage._common import StorageError, StorageFull, connect, is_full_error, transaction, utc_now
+from models.files import atomic_write
+from storage._common import StorageError, StorageFull, connect, is_full_error, transaction
+from storage.mapschema import (
+    CELL_DTYPES,
+    COLUMNS,
+    INPUT_DTYPE,
+    SCHEMA_VERSION,
+    DuplicateObservation,
+    MapMeta,
+    NewObservation,
+    Observation,
+    StoreCorrupt,
+    cell_dtype_for,
+    create_file,
+    decode,
+    encode,
+    read_meta,
+)
 
 __all__ = [
     "CELL_DTYPES",
@@ -54,168 +63,22 @@ __all__ = [
     "cell_dtype_for",
 ]
 
-#: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 1
-#: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
-INPUT_DTYPE = "uint16"
-#: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
-CELL_DTYPES = ("uint16", "uint32")
 
 _PAGE = 1024  # rows per SELECT in `rows()`: bounded memory, and no read transaction held between pages
-
-_SCHEMA = """
-CREATE TABLE meta (
-    key   TEXT PRIMARY KEY,
-    value TEXT NOT NULL              -- JSON
-);
-CREATE TABLE observations (
-    seq              INTEGER PRIMARY KEY CHECK (seq > 0),
-    observation_id   TEXT NOT NULL UNIQUE,
-    stream           TEXT NOT NULL,
-    context_prev_seq INTEGER NULL CHECK (context_prev_seq IS NULL OR context_prev_seq < seq),
-    label            TEXT NULL,
-    created_at       TEXT NOT NULL,
-    image_sha256     TEXT NOT NULL,
-    input_sdr        BLOB NOT NULL,  -- sorted little-endian uint16 active columns
-    winner_cells     BLOB NOT NULL   -- sorted little-endian uint16 or uint32 (meta.cell_dtype) cells
-);
--- The append-only rule enforced by the file itself, not only by this module's API.
-CREATE TRIGGER observations_no_update BEFORE UPDATE ON observations
-BEGIN SELECT RAISE(ABORT, 'observations are append-only'); END;
-CREATE TRIGGER observations_no_delete BEFORE DELETE ON observations
-BEGIN SELECT RAISE(ABORT, 'observations are append-only'); END;
--- The resolved parameters are frozen into the map (docs/design/service.md §1.1): another configuration is
--- another map.
-CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
-BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
-CREATE TRIGGER meta_no_delete BEFORE DELETE ON meta
-BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
-"""
-
-_COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
-            "input_sdr, winner_cells")
-
-
-class StoreCorrupt(StorageError):  # noqa: N818
-    """The file is not a readable map database (not SQLite, tables missing, meta unreadable)."""
-
-
-class DuplicateObservation(StorageError):  # noqa: N818
-    """An `observation_id` that is already stored; nothing was written."""
-
-
-def cell_dtype_for(n_cells: int) -> str:
-    """Winner-cell blob dtype for a memory of `n_cells` cells (docs/design/service.md §4.2).
-
-    uint16 holds cell ids 0…65,535, so it serves up to 65,536 cells; above that uint32.
-    """
-    if n_cells <= 0:
-        raise ValueError(f"n_cells must be positive, got {n_cells}")
-    return "uint16" if n_cells <= 1 << 16 else "uint32"
-
-
-@dataclass(frozen=True)
-class MapMeta:
-    """What is frozen into a map when it is created (the `meta` table).
-
-    Attributes:
-        map_id: the map's identifier.
-        params: resolved parameters (`tm`, `slsbh`, `encoder`, `seed`, `exclude_recent`), JSON-able.
-        projection_sha256: checksum of the map's sLSBH projection.
-        encoder_id: identity of the encoder whose codes the map holds.
-        cell_dtype: `uint16` or `uint32` (see `cell_dtype_for`).
-        schema_version: layout version of the file.
-    """
-
-    map_id: str
-    params: dict[str, Any]
-    projection_sha256: str
-    encoder_id: str
-    cell_dtype: str = "uint16"
-    schema_version: int = SCHEMA_VERSION
-
-    def __post_init__(self) -> None:
-        if self.cell_dtype not in CELL_DTYPES:
-            raise ValueError(f"cell_dtype must be one of {CELL_DTYPES}, got {self.cell_dtype!r}")
-
-
-@dataclass(frozen=True, eq=False)
-class NewObservation:
-    """A learned observation about to be appended (its `seq` is assigned by `MapStore.append`).
-
-    Attributes:
-        stream: the stream whose context the step used.
-        image_sha256: SHA-256 of the uploaded image bytes.
-        input_sdr: active columns (sorted, distinct, < 65,536).
-        winner_cells: the TM's winner cells (sorted, distinct, within the map's cell dtype).
-        context_prev_seq: the learned observation whose context this step continued; None = new sequence.
-        label: optional client text.
-        observation_id: UUID (generated when not given).
-        created_at: ISO 8601 UTC (now when not given).
-    """
-
-    stream: str
-    image_sha256: str
-    input_sdr: np.ndarray
-    winner_cells: np.ndarray
-    context_prev_seq: int | None = None
-    label: str | None = None
-    observation_id: str = field(default_factory=lambda: str(uuid.uuid4()))
-    created_at: str = field(default_factory=utc_now)
-
-
-@dataclass(frozen=True, eq=False)
-class Observation:
-    """A stored observation; arrays are decoded to `models.sdr.INDEX_DTYPE` (int32), sorted.
-
-    `eq=False` because numpy arrays do not compare to a single bool; compare fields explicitly.
-    """
-
-    seq: int
-    observation_id: str
-    stream: str
-    context_prev_seq: int | None
-    label: str | None
-    created_at: str
-    image_sha256: str
-    input_sdr: np.ndarray
-    winner_cells: np.ndarray
-
-
-def _encode(values: np.ndarray | Sequence[int], dtype: str, what: str) -> bytes:
-    """Validate a sorted set of indices and pack it little-endian.
-
-    Unsorted or duplicated input is refused rather than sorted here: the blob is compared exactly at
-    replay, so a caller that produced something else than it stores is a bug worth seeing at once.
-    """
-    a = np.asarray(values)
-    if a.ndim != 1:
-        raise ValueError(f"{what} must be 1-D, got shape {a.shape}")
-    if a.size == 0:
-        return b""
-    if a.dtype.kind not in "iu":
-        raise ValueError(f"{what} must hold integers, got {a.dtype}")
-    hi = np.iinfo(dtype).max
-    if int(a[0]) < 0 or int(a.max()) > hi:
-        raise ValueError(f"{what} out of range [0, {hi}]")
-    if a.size > 1 and not bool(np.all(a[1:] > a[:-1])):
-        raise ValueError(f"{what} must be sorted ascending without duplicates")
-    return a.astype(np.dtype(dtype).newbyteorder("<"), copy=False).tobytes()
-
-
-def _decode(blob: bytes, dtype: str) -> np.ndarray:
-    le = np.dtype(dtype).newbyteorder("<")
-    if len(blob) % le.itemsize:
-        raise StoreCorrupt(f"blob of {len(blob)} bytes is not a whole number of {dtype}")
-    return np.frombuffer(blob, dtype=le).astype(INDEX_DTYPE)
 
 
 class MapStore:
     """One map's `map.sqlite`: frozen meta + append-only observations.
 
-    Thread-safe: every method takes the store's lock, so the map's writer (in worker threads) and
-    readers such as `GET /v1/maps/{id}` can share one store. Count and last seq are cached in memory:
-    this object is the file's only writer (docs/design/service.md: one writer per map).
+    Thread-safe: every method takes the store's lock, so the map's writer thread and readers such as
+    `GET /v1/maps/{id}` (request threads) can share one store. Count and last seq are cached in memory:
+    this object is the file's only writer (docs/design/service.md §6: one writer per map).
+
+    Plain `sqlite3`, not `sqlite_utils` (which the catalog uses): the append path is the service's
+    durability contract (§4.3), and each of its steps is spelled out here: an explicit `BEGIN
+    IMMEDIATE` ... `COMMIT` per group, seqs assigned before the INSERT and counted only after COMMIT
+    returns, the file's triggers' errors and SQLITE_FULL mapped to our errors. A helper that opens
+    its own transactions or retries would blur exactly that.
     """
 
     def __init__(self, path: Path, conn: sqlite3.Connection, meta: MapMeta, seq_floor: int) -> None:
@@ -234,11 +97,8 @@ class MapStore:
 
     @classmethod
     def create(cls, path: str | os.PathLike[str], meta: MapMeta, *, seq_floor: int = 0) -> MapStore:
-        """Create a new `map.sqlite` atomically and open it.
-
-        The schema and meta are written to a temporary file beside `path`, which is closed (so its WAL
-        is checkpointed into it), fsynced and renamed: a crash leaves either no map file or a complete
-        one, never a file without meta.
+        """Create a new `map.sqlite` atomically (`storage.mapschema.create_file`: a crash leaves no map
+        file or a complete one) and open it.
 
         Args:
             path: the file to create; its directory must exist.
@@ -248,40 +108,7 @@ class MapStore:
         Raises:
             FileExistsError: `path` exists.
         """
-        path = Path(path)
-        if path.exists():
-            raise FileExistsError(f"{path} exists")
-        fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        os.close(fd)
-        tmp = Path(tmp_name)
-        try:
-            conn = connect(tmp)
-            try:
-                # A temporary file: atomicity comes from the rename below, not from one transaction
-                # (executescript would commit a pending transaction anyway).
-                conn.executescript(_SCHEMA)
-                with transaction(conn):
-                    conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
-                        ("schema_version", json.dumps(meta.schema_version)),
-                        ("map_id", json.dumps(meta.map_id)),
-                        ("params", json.dumps(meta.params, sort_keys=True)),
-                        ("projection_sha256", json.dumps(meta.projection_sha256)),
-                        ("encoder_id", json.dumps(meta.encoder_id)),
-                        ("cell_dtype", json.dumps(meta.cell_dtype)),
-                    ])
-            finally:
-                conn.close()
-            with tmp.open("rb+") as f:
-                os.fsync(f.fileno())
-            if path.exists():  # re-check: another creator may have won meanwhile
-                raise FileExistsError(f"{path} exists")
-            os.replace(tmp, path)
-        except BaseException:
-            for leftover in (tmp, Path(f"{tmp}-wal"), Path(f"{tmp}-shm")):
-                with contextlib.suppress(OSError):
-                    leftover.unlink()
-            raise
-        fsync_dir(path.parent)
+        create_file(Path(path), meta)
         return cls.open(path, seq_floor=seq_floor)
 
     @classmethod
@@ -308,7 +135,7 @@ class MapStore:
         except sqlite3.DatabaseError as exc:
             raise StoreCorrupt(f"{path}: {exc}") from exc
         try:
-            meta = _read_meta(conn, path)
+            meta = read_meta(conn, path)
             if meta.schema_version > SCHEMA_VERSION:
                 raise StorageError(f"{path}: schema version {meta.schema_version} is newer than "
                                    f"this code's {SCHEMA_VERSION}")
@@ -393,13 +220,13 @@ class MapStore:
                     raise ValueError(f"context_prev_seq {prev} must be in [1, {seq})")
                 params.append((seq, str(r.observation_id), str(r.stream),
                                None if prev is None else int(prev), r.label, str(r.created_at),
-                               str(r.image_sha256), _encode(r.input_sdr, INPUT_DTYPE, "input_sdr"),
-                               _encode(r.winner_cells, self._cell_dtype, "winner_cells")))
+                               str(r.image_sha256), encode(r.input_sdr, INPUT_DTYPE, "input_sdr"),
+                               encode(r.winner_cells, self._cell_dtype, "winner_cells")))
             if not params:
                 return []
             try:
                 with transaction(conn):
-                    conn.executemany(f"INSERT INTO observations ({_COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?)",
+                    conn.executemany(f"INSERT INTO observations ({COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?)",
                                      params)
             except sqlite3.IntegrityError as exc:
                 if "observation_id" in str(exc):
@@ -425,7 +252,7 @@ class MapStore:
     def get(self, seq: int) -> Observation | None:
         """The observation with this seq, or None."""
         with self._lock:
-            r = self._db().execute(f"SELECT {_COLUMNS} FROM observations WHERE seq = ?",
+            r = self._db().execute(f"SELECT {COLUMNS} FROM observations WHERE seq = ?",
                                    (int(seq),)).fetchone()
         return None if r is None else self._row(r)
 
@@ -439,7 +266,7 @@ class MapStore:
             marks = ",".join("?" * len(chunk))
             with self._lock:
                 found = self._db().execute(
-                    f"SELECT {_COLUMNS} FROM observations WHERE seq IN ({marks})", chunk).fetchall()
+                    f"SELECT {COLUMNS} FROM observations WHERE seq IN ({marks})", chunk).fetchall()
             out.update((int(r[0]), self._row(r)) for r in found)
         return out
 
@@ -453,7 +280,7 @@ class MapStore:
         while True:
             with self._lock:
                 page = self._db().execute(
-                    f"SELECT {_COLUMNS} FROM observations WHERE seq > ? ORDER BY seq LIMIT ?",
+                    f"SELECT {COLUMNS} FROM observations WHERE seq > ? ORDER BY seq LIMIT ?",
                     (last, _PAGE)).fetchall()
             if not page:
                 return
@@ -464,8 +291,8 @@ class MapStore:
     def _row(self, r: tuple[Any, ...]) -> Observation:
         return Observation(seq=int(r[0]), observation_id=r[1], stream=r[2],
                            context_prev_seq=None if r[3] is None else int(r[3]), label=r[4],
-                           created_at=r[5], image_sha256=r[6], input_sdr=_decode(r[7], INPUT_DTYPE),
-                           winner_cells=_decode(r[8], self._cell_dtype))
+                           created_at=r[5], image_sha256=r[6], input_sdr=decode(r[7], INPUT_DTYPE),
+                           winner_cells=decode(r[8], self._cell_dtype))
 
     # ------------------------------------------------------------------ checks and sizes
 
@@ -566,15 +393,3 @@ def _size(p: Path) -> int:
         return 0
 
 
-def _read_meta(conn: sqlite3.Connection, path: Path) -> MapMeta:
-    tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-    if not {"meta", "observations"} <= tables:
-        raise StoreCorrupt(f"{path}: not a map database (tables {sorted(tables)})")
-    raw = dict(conn.execute("SELECT key, value FROM meta").fetchall())
-    try:
-        values = {k: json.loads(v) for k, v in raw.items()}
-        return MapMeta(map_id=values["map_id"], params=values["params"],
-                       projection_sha256=values["projection_sha256"], encoder_id=values["encoder_id"],
-                       cell_dtype=values["cell_dtype"], schema_version=int(values["schema_version"]))
-    except (KeyError, ValueError, TypeError) as exc:
-        raise StoreCorrupt(f"{path}: unreadable meta: {exc}") from exc

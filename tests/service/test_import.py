@@ -13,7 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from service.cli import app as cli_app
-from storage import snapshots
+from storage import archive
 from tests.service.test_maps_observations import frame, make_client, post
 
 
@@ -92,13 +92,13 @@ def test_a_compressed_bomb_is_refused_before_its_data_is_written(tmp_path, membe
     manifest["files"]["map.sqlite"] = {"bytes": len(zeros), "sha256": hashlib.sha256(zeros).hexdigest()}
     bomb = {**members, "manifest.json": json.dumps(manifest).encode(), "map.sqlite": zeros}
     written: list[str] = []
-    real = snapshots._write_hashed
+    real = archive._write_hashed
 
     def spy(src, path):
         written.append(path.name)
         return real(src, path)
 
-    monkeypatch.setattr(snapshots, "_write_hashed", spy)
+    monkeypatch.setattr(archive, "_write_hashed", spy)
     data = tmp_path / "data"
     tar = make_tar(tmp_path / "bomb.tar.gz", bomb, "w:gz")
     assert tar.stat().st_size < 2**20

@@ -1,98 +1,29 @@
-"""The `cortexloc` command line: a stable contract that scripts and acceptance checks call.
+"""`cortexloc eval grid | images`: reproduce and measure the science (docs/design/science.md §2, §8.5).
 
-    cortexloc presets
     cortexloc eval grid --sdr FILE --places FILE [--scoring paper|clean] [--preset NAME] [--seeds K]
                         [--ds N] [--json OUT] [--plots DIR]
     cortexloc eval grid --generate --aliasing A --noise N [--loops L] [...same options]
     cortexloc eval images --db DIR --query DIR [--methods M,...] [--ds N] [--gt FILE] [--preset NAME]
                           [--backbone B] [--resize R] [--seeds K] [--json OUT] [--plots DIR]
-    cortexloc bench tm [--columns C] [--cells K] [--active A] [--steps S] [--preset NAME] [--json OUT]
-    cortexloc serve [--host H] [--port P] [--data-dir DIR]
-    cortexloc import FILE.tar [--data-dir DIR]
-    cortexloc verify [--map M] [--data-dir DIR]
-    cortexloc ingest SOURCE --map M [--stream S] [--learn | --localise] [--url URL | --data-dir DIR]
-                     [--topic T] [--every N] [--json] [--prefetch K] [--label-stamp] [--api-key KEY]
 
 Tables go to stdout, progress and warnings to stderr, machine-readable results to --json.
 """
 
 from __future__ import annotations
 
-import json
-import platform
-import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import Annotated, Any
 
 import numpy as np
 import typer
 
 from models import presets
-from service.ingest.command import ingest_command
+from service.cli.common import check_backbone, check_presets, progress, provenance, write_json
 
-if TYPE_CHECKING:
-    from service.settings import Settings
-
-app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="cortexloc: visual place recognition with a Hierarchical Temporal Memory.")
-eval_app = typer.Typer(no_args_is_help=True, help="Reproduce and measure the science.")
-bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks (medians; run on demand).")
-weights_app = typer.Typer(no_args_is_help=True, help="Install AlexNet conv1..conv3 weights.")
-app.add_typer(eval_app, name="eval")
-app.add_typer(bench_app, name="bench")
-app.add_typer(weights_app, name="weights")
+app = typer.Typer(no_args_is_help=True, help="Reproduce and measure the science.")
 
 
-def _progress(label: str):
-    """A one-line progress bar on stderr (stdout stays a clean table)."""
-    def show(done: int, total: int) -> None:
-        width = 30
-        filled = int(width * done / max(total, 1))
-        end = "\n" if done >= total else ""
-        sys.stderr.write(f"\r{label} [{'#' * filled}{'.' * (width - filled)}] {done}/{total}{end}")
-        sys.stderr.flush()
-    return show
-
-
-def _write_json(path: Path | None, payload: dict[str, Any]) -> None:
-    if path is None:
-        return
-    from models.files import atomic_write
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(payload, indent=2, default=_jsonable).encode()
-    atomic_write(path, lambda f: f.write(text))
-
-
-def _jsonable(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
-def _check_backbone(name: str) -> None:
-    """--backbone must name a backbone of the registry (models.frontend.backbones)."""
-    from models.frontend import backbones
-
-    if name not in backbones.names():
-        raise typer.BadParameter(f"must be one of {', '.join(backbones.names())}", param_hint="--backbone")
-
-
-def _provenance() -> dict[str, Any]:
-    return {"command": " ".join(["cortexloc", *sys.argv[1:]]), "python": platform.python_version(),
-            "numpy": np.__version__}
-
-
-@app.command("presets")
-def list_presets() -> None:
-    """Print every preset name, a tab, and its one-line description."""
-    for name in presets.names():
-        typer.echo(f"{name}\t{presets.describe(name)}")
-
-
-@eval_app.command("grid")
+@app.command("grid")
 def eval_grid(
     sdr: Annotated[Path | None, typer.Option(help="Published SDR file (T rows of 2048 0/1 values).",
                                              exists=True, dir_okay=False)] = None,
@@ -121,9 +52,7 @@ def eval_grid(
 
     if scoring not in ("paper", "clean"):
         raise typer.BadParameter("must be paper or clean", param_hint="--scoring")
-    for name in (preset, mcn_preset):
-        if name not in presets.confs:
-            raise typer.BadParameter(f"unknown preset {name!r}; see `cortexloc presets`")
+    check_presets(preset, mcn_preset)
     method_list = [m.strip() for m in methods.split(",") if m.strip()]
     bad = set(method_list) - set(runner.METHODS)
     if bad or not method_list:
@@ -144,14 +73,14 @@ def eval_grid(
         def data_for_seed(s: int) -> gridworld.GridData:
             return published
 
-    result = runner.grid_experiment(
-        data_for_seed, scoring=scoring, preset=preset, mcn_preset=mcn_preset, seeds=seeds, seed=seed,
-        methods=method_list, ds=ds, plots_dir=plots_dir,
-        progress=_progress("grid") if seeds > 1 else None)
+    with progress("grid", show=seeds > 1) as tick:
+        result = runner.grid_experiment(
+            data_for_seed, scoring=scoring, preset=preset, mcn_preset=mcn_preset, seeds=seeds, seed=seed,
+            methods=method_list, ds=ds, plots_dir=plots_dir, progress=tick)
     for w in result["methods"].get("htm", {}).get("warnings", []):
         typer.echo(f"warning ({preset}): {w}", err=True)
-    result["provenance"] = _provenance()
-    _write_json(json_out, result)
+    result["provenance"] = provenance()
+    write_json(json_out, result)
     typer.echo(format_grid_table(result))
 
 
@@ -185,7 +114,7 @@ def _method_notes(method: str, entry: dict[str, Any]) -> str:
     return ""
 
 
-@eval_app.command("images")
+@app.command("images")
 def eval_images(
     db: Annotated[Path, typer.Option(help="Database image folder (e.g. summer).", exists=True,
                                      file_okay=False)],
@@ -253,10 +182,8 @@ def eval_images(
     if bad or not method_list:
         raise typer.BadParameter(f"must be among {', '.join(sequences.METHODS)}", param_hint="--methods")
     method_list = sequences.with_ablations(method_list)
-    for name in (preset, mcn_preset):
-        if name not in presets.confs:
-            raise typer.BadParameter(f"unknown preset {name!r}; see `cortexloc presets`")
-    _check_backbone(backbone)
+    check_presets(preset, mcn_preset)
+    check_backbone(backbone)
     if resize not in ("crop", "squash"):
         raise typer.BadParameter("must be crop or squash", param_hint="--resize")
     s_conf = presets.slsbh_params(preset)
@@ -287,9 +214,11 @@ def eval_images(
                  for label, names in (("db", db_names), ("query", q_names))}
     else:
         enc = encoder_mod.Encoder({"backbone": backbone, "resize": resize})  # features only: no projection
-        feats = {label: sequences.cached_features(enc, [folder / n for n in names], cache_dir / "features",
-                                                  progress=_progress(f"features {label}"))
-                 for label, folder, names in (("db", db, db_names), ("query", query, q_names))}
+        feats = {}
+        for label, folder, names in (("db", db, db_names), ("query", query, q_names)):
+            with progress(f"features {label}") as tick:
+                feats[label] = sequences.cached_features(enc, [folder / n for n in names],
+                                                         cache_dir / "features", progress=tick)
     if db_keep is not None:
         if drop_dark > 0:
             dark = (sequences.dark_frames([db / db_names[i] for i in db_keep], drop_dark)
@@ -303,11 +232,12 @@ def eval_images(
     frames = ((seq.load_frames(db_paths), seq.load_frames(q_paths)) if "openseqslam" in method_list
               else None)
     try:
-        result = sequences.image_experiment(
-            feats["db"], feats["query"], methods=method_list, preset=preset, mcn_preset=mcn_preset,
-            k=int(s_conf["k"]), s=sparsity, seeds=seeds, seed=seed, tolerance=tolerance, reset=reset,
-            adapt_tau=adapt, reverse_query=reverse_query, ds=ds, gt=gt_matrix, frames=frames,
-            progress=_progress("runs") if seeds > 1 else None)
+        with progress("runs", show=seeds > 1) as tick:
+            result = sequences.image_experiment(
+                feats["db"], feats["query"], methods=method_list, preset=preset, mcn_preset=mcn_preset,
+                k=int(s_conf["k"]), s=sparsity, seeds=seeds, seed=seed, tolerance=tolerance, reset=reset,
+                adapt_tau=adapt, reverse_query=reverse_query, ds=ds, gt=gt_matrix, frames=frames,
+                progress=tick)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     first = result.pop("first")
@@ -333,8 +263,8 @@ def eval_images(
                         "k": int(s_conf["k"]), "s": sparsity, "ds": ds, "adapt_tau": adapt,
                         "drop_dark": drop_dark, "reverse_query": reverse_query, "tolerance": tolerance,
                         "reset": reset, "seeds": seeds, "seed": seed}
-    result["provenance"] = _provenance()
-    _write_json(json_out, result)
+    result["provenance"] = provenance()
+    write_json(json_out, result)
     typer.echo(format_images_table(result))
 
 
@@ -356,232 +286,3 @@ def format_images_table(result: dict[str, Any]) -> str:
                      f"{e['recall_at_5_mean']:>6.3f} {e['query_recall_at_100p_mean']:>7.3f} "
                      f"{e['seconds_mean']:>7.2f}  {_method_notes(m, e)}")
     return "\n".join(lines)
-
-
-@bench_app.command("tm")
-def bench_tm(
-    columns: Annotated[int, typer.Option(min=1)] = 2048,
-    cells: Annotated[int, typer.Option(min=1)] = 4,
-    active: Annotated[int, typer.Option(min=1)] = 40,
-    steps: Annotated[int, typer.Option(min=1)] = 5000,
-    preset: Annotated[str, typer.Option(help="TM preset supplying caps and thresholds.")] = "cortexloc-grid",
-    period: Annotated[int, typer.Option(min=0, help="Repeat a sequence of this length (0: all novel).")] = 0,
-    max_segments: Annotated[int | None, typer.Option(min=1, help="Override maxSegmentsPerCell.")] = None,
-    max_synapses: Annotated[int | None, typer.Option(min=1, help="Override maxSynapsesPerSegment.")] = None,
-    json_out: Annotated[Path | None, typer.Option("--json")] = None,
-) -> None:
-    """Temporal Memory speed and memory: median ms/step and RSS growth over learning steps."""
-    from models.evaluation.bench import bench_tm as run
-
-    if preset not in presets.confs:
-        raise typer.BadParameter(f"unknown preset {preset!r}; see `cortexloc presets`")
-    if active > columns:
-        raise typer.BadParameter("--active must not exceed --columns")
-    overrides = {k: v for k, v in (("maxSegmentsPerCell", max_segments),
-                                   ("maxSynapsesPerSegment", max_synapses)) if v is not None}
-    result = run(columns=columns, cells=cells, active=active, steps=steps, preset=preset, period=period,
-                 overrides=overrides)
-    result["provenance"] = _provenance()
-    _write_json(json_out, result)
-    typer.echo(f"TM {columns}x{cells}, {active} active, {steps} steps ({preset}): "
-               f"median {result['ms_per_step_median']:.3f} ms/step, p90 {result['ms_per_step_p90']:.3f}, "
-               f"RSS growth {result['rss_growth_mb']:.1f} MB, segments {result['segments']}, "
-               f"synapses {result['synapses']}, bytes {result['bytes']}")
-
-
-@bench_app.command("encoder")
-def bench_encoder(
-    backbone: Annotated[str, typer.Option(help="a registered backbone: alexnet | efficientnet-lite0")]
-    = "alexnet",
-    repeats: Annotated[int, typer.Option(min=1)] = 15,
-    threads: Annotated[int, typer.Option(min=1, help="torch threads")] = 1,
-    projection: Annotated[str, typer.Option(help="dense | sparse")] = "dense",
-    json_out: Annotated[Path | None, typer.Option("--json")] = None,
-) -> None:
-    """Whole-encoder batch-1 latency and batch-16 throughput beside a bare backbone forward."""
-    from models.evaluation.bench import bench_encoder as run
-
-    _check_backbone(backbone)
-    if projection not in ("dense", "sparse"):
-        raise typer.BadParameter("must be dense or sparse", param_hint="--projection")
-    result = run(backbone=backbone, repeats=repeats, threads=threads, projection=projection)
-    result["provenance"] = _provenance()
-    _write_json(json_out, result)
-    st = result["batch16_stage_ms_median"]
-    typer.echo(f"encoder {result['encoder']} ({projection} projection, {threads} thread(s)): batch 1 "
-               f"{result['batch1_ms_median']:.1f} ms; batch 16 {result['batch16_images_per_s']:.1f} img/s "
-               f"vs bare backbone {result['bare_conv3_batch16_images_per_s']:.1f} img/s "
-               f"(ratio {result['ratio_to_bare']:.2f}); stages at batch 16 (ms): "
-               + ", ".join(f"{k} {v:.1f}" for k, v in st.items()))
-
-
-@weights_app.command("download")
-def weights_download(
-    dest: Annotated[Path | None, typer.Option(help="Cache directory (default: $CORTEXLOC_WEIGHTS_DIR "
-                                                   "or ~/.cache/cortexloc/weights).")] = None,
-    url: Annotated[str | None, typer.Option(help="Checkpoint URL (default: torchvision's).")] = None,
-) -> None:
-    """Fetch torchvision's AlexNet checkpoint, verify its SHA-256 (7be5be79...), keep conv1..conv3."""
-    from models.frontend import weights
-
-    _install(lambda: weights.download_alexnet(dest, **({"url": url} if url else {})))
-
-
-@weights_app.command("import")
-def weights_import(
-    path: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="alexnet-owt-7be5be79.pth")],
-    dest: Annotated[Path | None, typer.Option(help="Cache directory.")] = None,
-) -> None:
-    """Install weights from a local copy of torchvision's checkpoint (verified the same way)."""
-    from models.frontend import weights
-
-    _install(lambda: weights.import_alexnet(path, dest))
-
-
-def _install(run: Any) -> None:
-    """Run a weights install; say where it went and how to point the service at it, or why not."""
-    from models.frontend import weights
-
-    try:
-        path = run()
-    except (weights.WeightsError, ValueError) as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(1) from e
-    typer.echo(f"installed {path}\nthe encoder finds it there; or set CORTEXLOC_WEIGHTS_PATH={path}")
-
-
-def process_settings(*, host: str | None = None, port: int | None = None, data_dir: Path | None = None,
-                     **env_defaults: str) -> Settings:
-    """The settings of a service run by this process (`serve`, in-process `ingest`): CORTEXLOC_* with the
-    given options over them and `env_defaults` under them, read once; exits 2 naming a bad variable.
-
-    Also sets OpenCV's pixel guard, which OpenCV reads once when cv2 is first imported (by the app)."""
-    import os
-
-    from service.settings import ConfigError, Settings
-
-    env = {**env_defaults, **os.environ}
-    for var, value in (("CORTEXLOC_HOST", host), ("CORTEXLOC_PORT", port), ("CORTEXLOC_DATA_DIR", data_dir)):
-        if value is not None:
-            env[var] = str(value)
-    try:
-        settings = Settings.from_env(env)  # read once, here; the app gets this object
-    except ConfigError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(2) from e
-    os.environ["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(settings.max_pixels)
-    return settings
-
-
-@app.command("serve")
-def serve(
-    host: Annotated[str | None, typer.Option(help="Bind address (default: $CORTEXLOC_HOST or 127.0.0.1).")]
-    = None,
-    port: Annotated[int | None, typer.Option(min=0, max=65535,
-                                             help="Bind port (default: $CORTEXLOC_PORT or 8000).")] = None,
-    data_dir: Annotated[Path | None, typer.Option(help="Root of all state (default: $CORTEXLOC_DATA_DIR "
-                                                       "or ./var).")] = None,
-) -> None:
-    """Run the HTTP service (one uvicorn worker: maps live in process memory). Other settings: CORTEXLOC_*."""
-    settings = process_settings(host=host, port=port, data_dir=data_dir)
-
-    import uvicorn
-
-    from service.app import create_app
-    from service.limits import HEAD_MAX_BYTES
-    from service.server import ProblemH11Protocol
-
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, workers=1, lifespan="on",
-                log_level=settings.log_level.lower(), http=ProblemH11Protocol,
-                h11_max_incomplete_event_size=HEAD_MAX_BYTES)
-
-
-@app.command("import")
-def import_map(
-    tar: Annotated[Path, typer.Argument(exists=True, dir_okay=False,
-                                        help="A snapshot tar from /v1/maps/{map}/snapshots/{id}/download")],
-    data_dir: Annotated[Path | None, typer.Option(help="Data directory (default: $CORTEXLOC_DATA_DIR "
-                                                       "or ./var).")] = None,
-) -> None:
-    """Create a map from a snapshot tar, verifying every checksum (run while the server is stopped).
-
-    Refused before anything is written: ids that the API would refuse, a map that exists, a tar that
-    declares more than CORTEXLOC_MAX_IMPORT_BYTES or than the free space."""
-    from types import SimpleNamespace
-
-    from service.runtime import MapRegistry
-    from storage.snapshots import SnapshotInvalid
-
-    settings = process_settings(data_dir=data_dir)
-    root = settings.data_dir
-    registry = MapRegistry(root, SimpleNamespace(identity="", feature_dim=0), settings=settings)
-    try:
-        map_id = registry.import_snapshot(tar, settings.max_import_bytes)
-    except (SnapshotInvalid, ValueError, OSError) as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(1) from e
-    finally:
-        registry.catalog.close()
-    typer.echo(f"imported map {map_id!r} into {root}; it recovers from the snapshot when the server starts")
-
-
-@app.command("verify")
-def verify(
-    map_id: Annotated[str | None, typer.Option("--map", help="One map (default: every map).")] = None,
-    data_dir: Annotated[Path | None, typer.Option(help="Data directory (default: $CORTEXLOC_DATA_DIR "
-                                                       "or ./var).")] = None,
-) -> None:
-    """Check maps offline, changing nothing: replay every row from the first and compare its stored
-    winner cells, verify every snapshot's checksums and the projection. Exit 1 on any problem."""
-    from service.recovery import verify_map
-    from storage.catalog import Catalog
-
-    root = process_settings(data_dir=data_dir).data_dir
-    try:
-        catalog = Catalog.open(root / "catalog.sqlite", readonly=True)
-        records = [r for r in catalog.list_maps() if map_id is None or r.map_id == map_id]
-    except Exception as e:  # a missing or garbage catalog: say so, as a failed check
-        typer.echo(f"error: cannot read the catalog in {root}: {e}", err=True)
-        raise typer.Exit(1) from e
-    if map_id is not None and not records:
-        catalog.close()
-        typer.echo(f"error: no map {map_id!r} in {root}", err=True)
-        raise typer.Exit(2)
-    bad = 0
-    try:
-        for record in records:
-            show = _progress(f"verify {record.map_id}")
-
-            def tick(done: int, total: int, show: Any = show) -> None:
-                # Every ~1% (and the last row): the bar is redrawn, not the terminal flooded.
-                if done == total or done % max(1, total // 100) == 0:
-                    show(done, total)
-
-            check = verify_map(catalog, record, progress=tick)
-            bad += not check.ok
-            rate = check.rows / check.seconds if check.seconds else 0.0
-            typer.echo(f"map {record.map_id}: {'ok' if check.ok else 'PROBLEMS'}; {check.rows} rows "
-                       f"replayed in {check.seconds:.2f} s ({rate:.0f} rows/s), "
-                       f"{len(check.mismatches)} mismatched; snapshots {len(check.snapshots_ok)} ok, "
-                       f"{len(check.snapshots_bad)} bad")
-            if check.mismatches:
-                seqs = ", ".join(map(str, check.mismatches))
-                typer.echo(f"  stored winner cells differ from the replay at seq {seqs}")
-            for sid, why in check.snapshots_bad.items():
-                typer.echo(f"  snapshot {sid}: {why}")
-            for problem in check.problems:
-                typer.echo(f"  {problem}")
-    finally:
-        catalog.close()
-    typer.echo(f"{len(records)} map(s) checked, {bad} with problems")
-    if bad:
-        raise typer.Exit(1)
-app.command("ingest")(ingest_command)
-
-
-def main() -> None:  # pragma: no cover - console entry point
-    app()
-
-
-if __name__ == "__main__":  # pragma: no cover
-    main()

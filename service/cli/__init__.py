@@ -1,0 +1,51 @@
+"""The `cortexloc` command line: a stable contract that scripts and acceptance checks call.
+
+    cortexloc presets
+    cortexloc eval grid | images ...            service.cli.evaluate
+    cortexloc bench tm | encoder ...            service.cli.bench
+    cortexloc weights download | import ...     service.cli.weights
+    cortexloc serve [--host H] [--port P] [--data-dir DIR]            service.cli.serve
+    cortexloc import FILE.tar [--data-dir DIR]                        service.cli.maps
+    cortexloc verify [--map M] [--data-dir DIR]                       service.cli.maps
+    cortexloc ingest SOURCE --map M [--stream S] [--learn | --localise] [--url URL | --data-dir DIR]
+                     [--topic T] [--every N] [--json] [--prefetch K] [--label-stamp] [--api-key KEY]
+                                                                      service.ingest.command
+
+Tables go to stdout, progress and warnings to stderr, machine-readable results to --json. Importing this
+package imports no heavy library (torch, cv2, rosbags): each command imports what it needs when it runs,
+so `serve` can set OpenCV's pixel guard before cv2 is first imported.
+"""
+
+from __future__ import annotations
+
+import typer
+
+from models import presets
+from service.cli import bench, evaluate, maps, weights
+from service.cli.serve import process_settings, serve
+from service.ingest.command import ingest_command
+
+__all__ = ["app", "main", "process_settings", "serve"]
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="cortexloc: visual place recognition with a Hierarchical Temporal Memory.")
+app.add_typer(evaluate.app, name="eval")
+app.add_typer(bench.app, name="bench")
+app.add_typer(weights.app, name="weights")
+
+
+@app.command("presets")
+def list_presets() -> None:
+    """Print every preset name, a tab, and its one-line description."""
+    for name in presets.names():
+        typer.echo(f"{name}\t{presets.describe(name)}")
+
+
+app.command("serve")(serve)
+app.command("import")(maps.import_map)
+app.command("verify")(maps.verify)
+app.command("ingest")(ingest_command)
+
+
+def main() -> None:  # pragma: no cover - console entry point
+    app()

@@ -1,0 +1,58 @@
+"""`cortexloc serve`, and the settings of a service that this process runs (`serve`, in-process
+`ingest`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+
+if TYPE_CHECKING:
+    from service.settings import Settings
+
+
+def process_settings(*, host: str | None = None, port: int | None = None, data_dir: Path | None = None,
+                     **env_defaults: str) -> Settings:
+    """The settings of a service run by this process (`serve`, in-process `ingest`): CORTEXLOC_* with the
+    given options over them and `env_defaults` under them, read once; exits 2 naming a bad variable.
+
+    Also sets OpenCV's pixel guard, which OpenCV reads once when cv2 is first imported (by the app)."""
+    import os
+
+    from service.settings import ConfigError, Settings
+
+    env = {**env_defaults, **os.environ}
+    for var, value in (("CORTEXLOC_HOST", host), ("CORTEXLOC_PORT", port), ("CORTEXLOC_DATA_DIR", data_dir)):
+        if value is not None:
+            env[var] = str(value)
+    try:
+        settings = Settings.from_env(env)  # read once, here; the app gets this object
+    except ConfigError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from e
+    os.environ["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(settings.max_pixels)
+    return settings
+
+
+def serve(
+    host: Annotated[str | None, typer.Option(help="Bind address (default: $CORTEXLOC_HOST or 127.0.0.1).")]
+    = None,
+    port: Annotated[int | None, typer.Option(min=0, max=65535,
+                                             help="Bind port (default: $CORTEXLOC_PORT or 8000).")] = None,
+    data_dir: Annotated[Path | None, typer.Option(help="Root of all state (default: $CORTEXLOC_DATA_DIR "
+                                                       "or ./var).")] = None,
+) -> None:
+    """Run the HTTP service (one uvicorn worker: maps live in process memory). Other settings: CORTEXLOC_*."""
+    settings = process_settings(host=host, port=port, data_dir=data_dir)
+
+    import uvicorn
+
+    from service.app import create_app
+    from service.limits import HEAD_MAX_BYTES
+    from service.server import ProblemH11Protocol
+
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, workers=1, lifespan="on",
+                log_level=settings.log_level.lower(), http=ProblemH11Protocol,
+                h11_max_incomplete_event_size=HEAD_MAX_BYTES)
+

@@ -1,0 +1,260 @@
+"""`map.sqlite`'s layout: its schema, its rows as Python values, and the creation of a new file
+(docs/design/service.md §4.2). `storage.mapstore` reads and appends; this module says what is stored.
+
+A row, once committed, is never changed or removed: triggers in the file refuse UPDATE and DELETE on
+`observations`, and the frozen `meta` likewise.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import sqlite3
+import tempfile
+import uuid
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.files import fsync_dir
+from models.sdr import INDEX_DTYPE
+from storage._common import StorageError, connect, transaction, utc_now
+
+__all__ = [
+    "CELL_DTYPES",
+    "COLUMNS",
+    "INPUT_DTYPE",
+    "SCHEMA_VERSION",
+    "DuplicateObservation",
+    "MapMeta",
+    "NewObservation",
+    "Observation",
+    "StoreCorrupt",
+    "cell_dtype_for",
+    "create_file",
+    "decode",
+    "encode",
+    "read_meta",
+]
+
+#: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
+SCHEMA_VERSION = 1
+#: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
+INPUT_DTYPE = "uint16"
+#: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
+CELL_DTYPES = ("uint16", "uint32")
+
+
+_SCHEMA = """
+CREATE TABLE meta (
+    key   TEXT PRIMARY KEY,
+    value TEXT NOT NULL              -- JSON
+);
+CREATE TABLE observations (
+    seq              INTEGER PRIMARY KEY CHECK (seq > 0),
+    observation_id   TEXT NOT NULL UNIQUE,
+    stream           TEXT NOT NULL,
+    context_prev_seq INTEGER NULL CHECK (context_prev_seq IS NULL OR context_prev_seq < seq),
+    label            TEXT NULL,
+    created_at       TEXT NOT NULL,
+    image_sha256     TEXT NOT NULL,
+    input_sdr        BLOB NOT NULL,  -- sorted little-endian uint16 active columns
+    winner_cells     BLOB NOT NULL   -- sorted little-endian uint16 or uint32 (meta.cell_dtype) cells
+);
+-- The append-only rule enforced by the file itself, not only by this module's API.
+CREATE TRIGGER observations_no_update BEFORE UPDATE ON observations
+BEGIN SELECT RAISE(ABORT, 'observations are append-only'); END;
+CREATE TRIGGER observations_no_delete BEFORE DELETE ON observations
+BEGIN SELECT RAISE(ABORT, 'observations are append-only'); END;
+-- The resolved parameters are frozen into the map (docs/design/service.md §1.1): another configuration is
+-- another map.
+CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
+BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
+CREATE TRIGGER meta_no_delete BEFORE DELETE ON meta
+BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
+"""
+
+#: The columns of `observations`, in the order every SELECT and INSERT uses.
+COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
+            "input_sdr, winner_cells")
+
+
+class StoreCorrupt(StorageError):  # noqa: N818
+    """The file is not a readable map database (not SQLite, tables missing, meta unreadable)."""
+
+
+class DuplicateObservation(StorageError):  # noqa: N818
+    """An `observation_id` that is already stored; nothing was written."""
+
+
+def cell_dtype_for(n_cells: int) -> str:
+    """Winner-cell blob dtype for a memory of `n_cells` cells (docs/design/service.md §4.2).
+
+    uint16 holds cell ids 0…65,535, so it serves up to 65,536 cells; above that uint32.
+    """
+    if n_cells <= 0:
+        raise ValueError(f"n_cells must be positive, got {n_cells}")
+    return "uint16" if n_cells <= 1 << 16 else "uint32"
+
+
+@dataclass(frozen=True)
+class MapMeta:
+    """What is frozen into a map when it is created (the `meta` table).
+
+    Attributes:
+        map_id: the map's identifier.
+        params: resolved parameters (`tm`, `slsbh`, `encoder`, `seed`, `exclude_recent`), JSON-able.
+        projection_sha256: checksum of the map's sLSBH projection.
+        encoder_id: identity of the encoder whose codes the map holds.
+        cell_dtype: `uint16` or `uint32` (see `cell_dtype_for`).
+        schema_version: layout version of the file.
+    """
+
+    map_id: str
+    params: dict[str, Any]
+    projection_sha256: str
+    encoder_id: str
+    cell_dtype: str = "uint16"
+    schema_version: int = SCHEMA_VERSION
+
+    def __post_init__(self) -> None:
+        if self.cell_dtype not in CELL_DTYPES:
+            raise ValueError(f"cell_dtype must be one of {CELL_DTYPES}, got {self.cell_dtype!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class NewObservation:
+    """A learned observation about to be appended (its `seq` is assigned by `MapStore.append`).
+
+    Attributes:
+        stream: the stream whose context the step used.
+        image_sha256: SHA-256 of the uploaded image bytes.
+        input_sdr: active columns (sorted, distinct, < 65,536).
+        winner_cells: the TM's winner cells (sorted, distinct, within the map's cell dtype).
+        context_prev_seq: the learned observation whose context this step continued; None = new sequence.
+        label: optional client text.
+        observation_id: UUID (generated when not given).
+        created_at: ISO 8601 UTC (now when not given).
+    """
+
+    stream: str
+    image_sha256: str
+    input_sdr: np.ndarray
+    winner_cells: np.ndarray
+    context_prev_seq: int | None = None
+    label: str | None = None
+    observation_id: str = field(default_factory=lambda: str(uuid.uuid4()))
+    created_at: str = field(default_factory=utc_now)
+
+
+@dataclass(frozen=True, eq=False)
+class Observation:
+    """A stored observation; arrays are decoded to `models.sdr.INDEX_DTYPE` (int32), sorted.
+
+    `eq=False` because numpy arrays do not compare to a single bool; compare fields explicitly.
+    """
+
+    seq: int
+    observation_id: str
+    stream: str
+    context_prev_seq: int | None
+    label: str | None
+    created_at: str
+    image_sha256: str
+    input_sdr: np.ndarray
+    winner_cells: np.ndarray
+
+
+def encode(values: np.ndarray | Sequence[int], dtype: str, what: str) -> bytes:
+    """Validate a sorted set of indices and pack it little-endian.
+
+    Unsorted or duplicated input is refused rather than sorted here: the blob is compared exactly at
+    replay, so a caller that produced something else than it stores is a bug worth seeing at once.
+    """
+    a = np.asarray(values)
+    if a.ndim != 1:
+        raise ValueError(f"{what} must be 1-D, got shape {a.shape}")
+    if a.size == 0:
+        return b""
+    if a.dtype.kind not in "iu":
+        raise ValueError(f"{what} must hold integers, got {a.dtype}")
+    hi = np.iinfo(dtype).max
+    if int(a[0]) < 0 or int(a.max()) > hi:
+        raise ValueError(f"{what} out of range [0, {hi}]")
+    if a.size > 1 and not bool(np.all(a[1:] > a[:-1])):
+        raise ValueError(f"{what} must be sorted ascending without duplicates")
+    return a.astype(np.dtype(dtype).newbyteorder("<"), copy=False).tobytes()
+
+
+def decode(blob: bytes, dtype: str) -> np.ndarray:
+    """A stored blob as sorted `INDEX_DTYPE` indices; `StoreCorrupt` when its length does not fit."""
+    le = np.dtype(dtype).newbyteorder("<")
+    if len(blob) % le.itemsize:
+        raise StoreCorrupt(f"blob of {len(blob)} bytes is not a whole number of {dtype}")
+    return np.frombuffer(blob, dtype=le).astype(INDEX_DTYPE)
+
+
+
+def create_file(path: Path, meta: MapMeta) -> None:
+    """Create a new `map.sqlite` at `path` atomically: schema and meta, or no file.
+
+    The schema and meta are written to a temporary file beside `path`, which is closed (so its WAL
+    is checkpointed into it), fsynced and renamed: a crash leaves either no map file or a complete
+    one, never a file without meta.
+
+    Raises:
+        FileExistsError: `path` exists.
+    """
+    path = Path(path)
+    if path.exists():
+        raise FileExistsError(f"{path} exists")
+    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        conn = connect(tmp)
+        try:
+            # A temporary file: atomicity comes from the rename below, not from one transaction
+            # (executescript would commit a pending transaction anyway).
+            conn.executescript(_SCHEMA)
+            with transaction(conn):
+                conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
+                    ("schema_version", json.dumps(meta.schema_version)),
+                    ("map_id", json.dumps(meta.map_id)),
+                    ("params", json.dumps(meta.params, sort_keys=True)),
+                    ("projection_sha256", json.dumps(meta.projection_sha256)),
+                    ("encoder_id", json.dumps(meta.encoder_id)),
+                    ("cell_dtype", json.dumps(meta.cell_dtype)),
+                ])
+        finally:
+            conn.close()
+        with tmp.open("rb+") as f:
+            os.fsync(f.fileno())
+        if path.exists():  # re-check: another creator may have won meanwhile
+            raise FileExistsError(f"{path} exists")
+        os.replace(tmp, path)
+    except BaseException:
+        for leftover in (tmp, Path(f"{tmp}-wal"), Path(f"{tmp}-shm")):
+            with contextlib.suppress(OSError):
+                leftover.unlink()
+        raise
+    fsync_dir(path.parent)
+
+
+def read_meta(conn: sqlite3.Connection, path: Path) -> MapMeta:
+    """The frozen meta of an open map file; `StoreCorrupt` when it is not a map database."""
+    tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    if not {"meta", "observations"} <= tables:
+        raise StoreCorrupt(f"{path}: not a map database (tables {sorted(tables)})")
+    raw = dict(conn.execute("SELECT key, value FROM meta").fetchall())
+    try:
+        values = {k: json.loads(v) for k, v in raw.items()}
+        return MapMeta(map_id=values["map_id"], params=values["params"],
+                       projection_sha256=values["projection_sha256"], encoder_id=values["encoder_id"],
+                       cell_dtype=values["cell_dtype"], schema_version=int(values["schema_version"]))
+    except (KeyError, ValueError, TypeError) as exc:
+        raise StoreCorrupt(f"{path}: unreadable meta: {exc}") from exc
