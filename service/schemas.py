@@ -9,9 +9,11 @@ from typing import Any, Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field
 
-__all__ = ["CreateMap", "Health", "IndexMemoryModel", "MapList", "MapModel", "MatchModel", "MemoryModel",
-           "ObservationModel", "Readiness", "RestoreModel", "SequenceModel", "SnapshotList", "SnapshotModel",
-           "StorageMemoryModel", "StreamResetModel", "StreamsMemoryModel", "TmMemoryModel", "Versions"]
+from service.maps import results
+
+__all__ = ["CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel", "ObservationModel",
+           "Readiness", "RestoreModel", "SequenceModel", "SnapshotList", "SnapshotModel", "StreamResetModel",
+           "Versions"]
 
 MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"
 
@@ -84,46 +86,14 @@ class StreamResetModel(_Out):
     had_context: bool
 
 
-class TmMemoryModel(_Out):
-    columns: int
-    cells_per_column: int
-    cells: int
-    max_segments_per_cell: int
-    max_synapses_per_segment: int
-    segments: int
-    segment_capacity: int
-    synapses: int
-    synapse_capacity: int
-    allocated_bytes: int
-    evicted_segments_total: int
-    overrun_synapses_total: int
-
-
-class IndexMemoryModel(_Out):
-    observations: int
-    max_observations: int
-    postings: int
-    bytes: int
-
-
-class StreamsMemoryModel(_Out):
-    count: int
-    max: int
-    bytes: int
-
-
-class StorageMemoryModel(_Out):
-    db_bytes: int
-    wal_bytes: int
-    snapshots_bytes: int
-
-
 class MemoryModel(_Out):
-    tm: TmMemoryModel
-    index: IndexMemoryModel
-    streams: StreamsMemoryModel
+    """Sizes of one map (docs/design/service.md §1.4); its parts are the domain's records as they are."""
+
+    tm: results.TmMemory
+    index: results.IndexMemory
+    streams: results.StreamsMemory
     projection_bytes: int
-    storage: StorageMemoryModel
+    storage: results.StorageMemory
     process_rss_bytes: int
 
 

@@ -6,7 +6,11 @@ data directory.
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -16,7 +20,7 @@ from fastapi.testclient import TestClient
 from service.app import build_encoder, create_app
 from service.settings import Settings
 
-__all__ = ["frame", "make_app", "make_client", "post", "state_of", "tiny_encoder"]
+__all__ = ["frame", "held_encoder", "make_app", "make_client", "post", "state_of", "tiny_encoder"]
 
 
 def tiny_encoder(settings: Settings):
@@ -55,3 +59,22 @@ def state_of(c: TestClient, map_id: str = "default") -> tuple:
     """Everything a 4xx or a localisation must leave as it was: rows, last seq, learned arrays, index."""
     rt = c.app.state.registry.get(map_id)
     return rt.store.count(), rt.store.last_seq(), rt.tm_digest(), len(rt.index)
+
+
+@contextmanager
+def held_encoder(encoder: Any) -> Iterator[tuple[threading.Event, list[int]]]:
+    """`encoder.embed` records each call's batch size, then waits for the gate: (gate, sizes).
+    The gate opens at the latest when the block ends."""
+    gate, sizes, real = threading.Event(), [], encoder.embed
+
+    def held(data):
+        sizes.append(len(data))
+        gate.wait(30)
+        return real(data)
+
+    encoder.embed = held
+    try:
+        yield gate, sizes
+    finally:
+        gate.set()
+        encoder.embed = real

@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 
 from models.evaluation import sequences
 from service.errors import PROBLEM_MEDIA_TYPE
-from tests.service.helpers import frame, make_client, post, state_of
+from tests.service.helpers import frame, held_encoder, make_client, post, state_of
 
 
 @pytest.fixture
@@ -266,20 +266,10 @@ def test_concurrent_clients_get_distinct_increasing_seqs_and_none_is_lost(client
 
 
 def test_a_full_encoder_queue_answers_503_and_stores_nothing(tmp_path):
-    import threading
     from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 
     with make_client(tmp_path / "d", encoder_workers=1, encoder_queue=1) as c:  # 2 in flight at most
-        enc = c.app.state.encoder
-        gate = threading.Event()
-        real = enc.embed
-
-        def held(data):
-            gate.wait(30)
-            return real(data)
-
-        enc.embed = held
-        with ThreadPoolExecutor(4) as pool:
+        with held_encoder(c.app.state.encoder) as (gate, _), ThreadPoolExecutor(4) as pool:
             futs = [pool.submit(post, c, frame(p)) for p in range(4)]
             done: set = set()
             while len(done) < 2:  # the two beyond the limit are answered while the encoder is held
@@ -287,7 +277,6 @@ def test_a_full_encoder_queue_answers_503_and_stores_nothing(tmp_path):
             early = sorted(f.result().status_code for f in done)
             gate.set()
             statuses = sorted(f.result().status_code for f in futs)
-        enc.embed = real
         assert early == [503, 503] and statuses == [200, 200, 503, 503]
         busy = next(f.result() for f in done)
         assert busy.headers["Retry-After"] == "1" and busy.json()["type"].endswith("overloaded")
@@ -376,25 +365,16 @@ def test_download_then_import_recreates_the_map_elsewhere(tmp_path):
 
 
 def test_concurrent_requests_are_encoded_in_batches(tmp_path):
-    import threading
     import time
     from concurrent.futures import ThreadPoolExecutor
 
     with make_client(tmp_path / "d", encoder_workers=1) as c:
-        pool, enc = c.app.state.encoder_pool, c.app.state.encoder
+        pool = c.app.state.encoder_pool
         bad = bytearray(frame(1))
         at = bad.index(b"IDAT") + 200
         bad[at:at + 40] = bytes(x ^ 0xFF for x in bad[at:at + 40])  # passes the header probe, not the decode
         bodies = [frame(p) for p in range(11)] + [bytes(bad)]  # fails alone, in the pool
-        gate, sizes, real = threading.Event(), [], enc.embed
-
-        def held(data):
-            sizes.append(len(data))
-            gate.wait(30)
-            return real(data)
-
-        enc.embed = held
-        with ThreadPoolExecutor(len(bodies)) as ex:
+        with held_encoder(c.app.state.encoder) as (gate, sizes), ThreadPoolExecutor(len(bodies)) as ex:
             futs = [ex.submit(post, c, b, top_k=0) for b in bodies]
             # the first image holds the only worker until every request waits in the pool's queue
             for _ in range(3000):  # a condition, polled: the requests reach the pool in their own time
@@ -404,7 +384,6 @@ def test_concurrent_requests_are_encoded_in_batches(tmp_path):
             assert pool.pending == len(bodies), [f.result().text for f in futs if f.done()]
             gate.set()
             replies = [f.result() for f in futs]
-        enc.embed = real
         assert sorted(r.status_code for r in replies) == [200] * 11 + [422]
         assert max(sizes) > 1  # the waiting requests went to the backbone together
         assert c.app.state.registry.get("default").store.count() == 11

@@ -5,7 +5,6 @@ measured why the pool projects: docs/benchmarks.md §1)."""
 
 from __future__ import annotations
 
-import threading
 from functools import partial
 
 import numpy as np
@@ -14,7 +13,7 @@ import pytest
 from models.frontend.images import ImageError
 from models.frontend.slsbh import Hasher, make_projection
 from service.maps.encoder_pool import EncoderPool
-from tests.service.helpers import frame, make_client
+from tests.service.helpers import frame, held_encoder, make_client
 
 
 class FakeEncoder:
@@ -38,23 +37,15 @@ def test_pool_projects_each_request_with_its_own_hasher() -> None:
     h1 = Hasher(make_projection(32, 16, seed=1), 0.25)
     h2 = Hasher(make_projection(32, 16, seed=2), 0.25)
     enc = FakeEncoder()
-    gate = threading.Event()
-    real = enc.embed
-
-    def held(data):
-        gate.wait(30)
-        return real(data)
-
-    enc.embed = held
     pool = EncoderPool(enc, workers=1, queue=64)
     try:
         bodies = [bytes(10 + i) for i in range(9)]
         hashers = [h1, h2, None] * 3
-        futs = [pool.submit(b, hasher=h) for b, h in zip(bodies, hashers, strict=True)]
-        gate.set()  # the first image held the worker while the other eight queued
-        results = [f.result(timeout=30) for f in futs]
-        enc.embed = real
-        assert max(enc.calls) > 1  # the images queued behind the held one went together
+        with held_encoder(enc) as (gate, sizes):
+            futs = [pool.submit(b, hasher=h) for b, h in zip(bodies, hashers, strict=True)]
+            gate.set()  # the first image held the worker while the others queued
+            results = [f.result(timeout=30) for f in futs]
+        assert max(sizes) > 1  # the images queued behind the held one went together
         for b, h, r in zip(bodies, hashers, results, strict=True):
             feats = enc.embed([b]).features
             assert np.array_equal(r.features, feats)
