@@ -42,8 +42,8 @@ from fastapi_offline import FastAPIOffline
 from models.frontend.encoder import Encoder
 from service.errors import RequestContextMiddleware, install_error_handlers, problem_responses, request_id_var
 from service.limits import UploadLimitMiddleware
+from service.metrics import Metrics, MetricsMiddleware
 from service.routes import api_router
-from service.routes.metrics import Metrics, MetricsMiddleware
 from service.settings import ConfigError, Settings
 
 __all__ = ["Component", "EncoderFactory", "build_encoder", "configure_logging", "create_app",

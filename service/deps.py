@@ -23,7 +23,7 @@ from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBea
 from models.frontend.encoder import Encoder
 from service.errors import Problem
 from service.maps.registry import MapRegistry
-from service.routes.metrics import Metrics
+from service.metrics import Metrics
 from service.settings import Settings
 
 __all__ = [

@@ -1,10 +1,9 @@
 """One error shape everywhere: RFC 9457 `application/problem+json` (docs/design/service.md §2).
 
-Routes raise `Problem(status, slug, detail, **members)` for what they check themselves; the domain
-(`service.maps`) raises its own errors, which `DOMAIN_PROBLEMS` maps to problems in one table (e.g. a
-damaged snapshot is 409 `snapshot-invalid`). `install_error_handlers` turns a `Problem`, FastAPI's
-validation errors, the router's 404/405, an `ImageError`, a domain error and any unexpected exception
-into the same body:
+Routes raise `Problem(status, slug, detail, **members)`; the domain (`service.maps`) raises its own
+errors, mapped in one table, `DOMAIN_PROBLEMS` (e.g. a damaged snapshot is 409 `snapshot-invalid`).
+`install_error_handlers` turns these, FastAPI's validation errors, the router's 404/405, an
+`ImageError` and any unexpected exception into the same body:
 
     {"type": "urn:cortexloc:problem:<slug>", "title": <fixed per slug>, "status": ..., "detail": ...,
      "instance": <request path>, "request_id": ..., <members>}
@@ -26,10 +25,10 @@ import logging
 import re
 import uuid
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass, field
 from http import HTTPStatus
 from pathlib import Path
-from typing import Any
+from types import MappingProxyType
+from typing import Any, NamedTuple
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -45,28 +44,11 @@ from models.frontend.images import ImageError
 from service.maps import errors as maps_errors
 from storage.snapshots import SnapshotInvalid
 
-__all__ = [
-    "CLIENT_CLOSED_REQUEST",
-    "DOMAIN_PROBLEMS",
-    "IMAGE_MEDIA_TYPES",
-    "PROBLEM_MEDIA_TYPE",
-    "REQUEST_ID_HEADER",
-    "TITLES",
-    "DomainProblem",
-    "Problem",
-    "ProblemDetails",
-    "RequestContextMiddleware",
-    "domain_problem",
-    "image_error_problem",
-    "install_error_handlers",
-    "iter_routes",
-    "new_request_id",
-    "problem_body",
-    "problem_response",
-    "problem_responses",
-    "request_id_of",
-    "request_id_var",
-]
+__all__ = ["CLIENT_CLOSED_REQUEST", "DOMAIN_PROBLEMS", "IMAGE_MEDIA_TYPES", "PROBLEM_MEDIA_TYPE",
+           "REQUEST_ID_HEADER", "TITLES", "DomainProblem", "Problem", "ProblemDetails",
+           "RequestContextMiddleware", "domain_problem", "image_error_problem", "install_error_handlers",
+           "iter_routes", "new_request_id", "problem_body", "problem_response", "problem_responses",
+           "request_id_of", "request_id_var"]
 
 log = logging.getLogger("cortexloc.errors")
 
@@ -283,14 +265,12 @@ def _validation_errors(exc: RequestValidationError) -> list[dict[str, str]]:
     return out
 
 
-@dataclass(frozen=True)
-class DomainProblem:
+class DomainProblem(NamedTuple):
     """How a domain error is answered: status, slug, the error's attributes shown as members, headers."""
-
     status: int
     slug: str
     members: tuple[str, ...] = ()
-    headers: Mapping[str, str] = field(default_factory=dict)
+    headers: Mapping[str, str] = MappingProxyType({})
 
 
 #: Domain errors -> their problem, the one table (docs/design/service.md §2). The detail is the error's
@@ -315,9 +295,8 @@ def domain_problem(exc: Exception, data_dir: Path | None = None) -> Problem:
     """The `Problem` for a domain error of `DOMAIN_PROBLEMS` (its nearest listed class)."""
     entry = next(DOMAIN_PROBLEMS[cls] for cls in type(exc).__mro__ if cls in DOMAIN_PROBLEMS)
     detail = str(exc)
-    if data_dir is not None:
-        for root in {str(data_dir.resolve()), str(data_dir)}:
-            detail = detail.replace(root.rstrip("/") + "/", "")
+    for root in {str(data_dir.resolve()), str(data_dir)} if data_dir is not None else ():
+        detail = detail.replace(root.rstrip("/") + "/", "")
     return Problem(entry.status, entry.slug, detail, headers=entry.headers,
                    **{name: getattr(exc, name) for name in entry.members})
 

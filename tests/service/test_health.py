@@ -9,7 +9,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.errors import PROBLEM_MEDIA_TYPE
-from service.routes.metrics import Metrics
+from service.metrics import Metrics
 from tests.service.helpers import make_app
 
 
