@@ -40,13 +40,13 @@ from typing import Any
 import numpy as np
 from _common import RESULTS, quick_mode, rss_mib, write_json  # also puts the repo on sys.path
 
-import service.runtime as runtime_mod
+import service.maps.registry as registry_mod
 from models.frontend import slsbh
 from models.memory.temporal_memory import TemporalMemory
-from service import recovery
+from service.maps import recovery
+from service.maps.index import InvertedIndex
 from service.settings import Settings
 from storage import snapshots
-from storage.index import InvertedIndex
 from storage.mapstore import MapStore
 
 FEATURE_DIM = 64_896  # AlexNet conv3, 384 x 13 x 13: the projection's real size
@@ -99,13 +99,12 @@ def settings_for(data_dir: Path) -> Settings:
 
 def build(data_dir: Path, n: int, short_tail: int, long_tail: int, seed: int = 0) -> dict[str, Any]:
     """Create map `default` with n observations and snapshots at n - long_tail and n - short_tail."""
-    reg = runtime_mod.MapRegistry(data_dir, StubEncoder(), settings_for(data_dir))
+    reg = registry_mod.MapRegistry(data_dir, StubEncoder(), settings_for(data_dir))
     reg.start()  # creates `default` with the default preset (and its 266 MB projection)
     rt = reg.get("default")
     assert rt.store is not None and rt.hasher is not None
     rt.store._db().execute("PRAGMA synchronous=OFF")  # building only: start-up never writes
     rng = np.random.Generator(np.random.PCG64(seed))
-    features = np.zeros(FEATURE_DIM, dtype=np.float32)  # unused: the projection is given
     snaps_at = {n - long_tail, n - short_tail}
     t0 = time.perf_counter()
     done = 0
@@ -117,8 +116,8 @@ def build(data_dir: Path, n: int, short_tail: int, long_tail: int, seed: int = 0
                 if done == n:
                     break
                 projected = base + 0.3 * rng.normal(size=base.shape).astype(np.float32)
-                rt.observe(features, f"{done:064x}", learn=True, stream="robot", top_k=0,
-                           label=f"lap {lap} place {p}", projected=projected)
+                rt.apply(projected, f"{done:064x}", learn=True, stream="robot", top_k=0,
+                         label=f"lap {lap} place {p}")
                 done += 1
                 if done in snaps_at:
                     rt.snapshot("auto")
@@ -134,7 +133,7 @@ def build(data_dir: Path, n: int, short_tail: int, long_tail: int, seed: int = 0
 def open_once(data_dir: Path) -> dict[str, Any]:
     """`MapRegistry.start()` on the data directory, with the time of each recovery phase."""
     timer = PhaseTimer()
-    timer.wrap(runtime_mod, "_warm_up", "kernel warm-up (numba cache load)")
+    timer.wrap(registry_mod, "warm_up", "kernel warm-up (numba cache load)")
     timer.wrap(slsbh, "load_projection", "projection load + SHA-256")
     timer.wrap(MapStore, "open", "store open")
     timer.wrap(MapStore, "quick_check", "quick_check")
@@ -146,7 +145,7 @@ def open_once(data_dir: Path) -> dict[str, Any]:
     rss0 = rss_mib()
     try:
         t0 = time.perf_counter()
-        reg = runtime_mod.MapRegistry(data_dir, StubEncoder(), settings_for(data_dir))
+        reg = registry_mod.MapRegistry(data_dir, StubEncoder(), settings_for(data_dir))
         reg.start()
         total = time.perf_counter() - t0
     finally:

@@ -7,8 +7,9 @@ Nothing is read or built at import time. At startup the lifespan:
 3. builds the encoder in a worker thread (`app.state.encoder`, `app.state.encoder_weights`) and sets
    `cortexloc_encoder_info`; an unusable weights file stops startup with a `ConfigError`;
 4. enters each component (async context managers taking the app, in order; left in reverse order at
-   shutdown): the place for the map runtime, which fills `app.state.maps` (map_id -> object with
-   `state`, `state_reason`) and may register readiness checks in `app.state.ready_checks`.
+   shutdown): the place for the map registry (`map_registry`), which fills `app.state.registry`,
+   `app.state.maps` (map_id -> `MapRuntime`) and `app.state.encoder_pool`, or `app.state.registry_error`
+   when the maps cannot be opened (/readyz reports it).
 
 `/docs` and `/redoc` load their assets from the service itself (`fastapi_offline`), never from a CDN.
 
@@ -41,8 +42,8 @@ from fastapi_offline import FastAPIOffline
 from models.frontend.encoder import Encoder
 from service.errors import RequestContextMiddleware, install_error_handlers, problem_responses, request_id_var
 from service.limits import UploadLimitMiddleware
+from service.metrics import Metrics, MetricsMiddleware
 from service.routes import api_router
-from service.routes.metrics import Metrics, MetricsMiddleware
 from service.settings import ConfigError, Settings
 
 __all__ = ["Component", "EncoderFactory", "build_encoder", "configure_logging", "create_app",
@@ -196,7 +197,8 @@ def _openapi_with_problems(app: FastAPI) -> Callable[[], dict[str, Any]]:
 @asynccontextmanager
 async def map_registry(app: FastAPI) -> AsyncIterator[None]:
     """The maps of the data directory: opened and recovered by replay at start, closed at shutdown."""
-    from service.runtime import MapRegistry
+    from service.maps.encoder_pool import EncoderPool
+    from service.maps.registry import MapRegistry
 
     s = app.state.settings
     try:
@@ -205,13 +207,9 @@ async def map_registry(app: FastAPI) -> AsyncIterator[None]:
     except Exception as e:
         # /readyz says why; the process stays alive for /healthz.
         log.exception("cannot open the maps in %s; the service will not be ready", s.data_dir)
-        error = f"the maps could not be opened: {type(e).__name__}: {e}"
-        app.state.ready_checks["catalog"] = lambda app: {"status": "fail", "error": error}
+        app.state.registry_error = f"the maps could not be opened: {type(e).__name__}: {e}"
         yield
         return
-    app.state.ready_checks["catalog"] = lambda app: registry.catalog.check()
-    from service.encoding import EncoderPool
-
     app.state.registry = registry
     app.state.maps = registry.maps
     app.state.encoder_pool = EncoderPool(app.state.encoder, s.encoder_workers, s.encoder_queue)
@@ -233,7 +231,7 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFact
 
     Returns:
         The app. `app.state` after startup: `settings`, `metrics`, `encoder`, `encoder_weights`, `maps`
-        (dict), `ready_checks` (dict name -> callable(app) -> check result).
+        (dict), and what the components add (`map_registry`: `registry`, `encoder_pool`).
     """
     metrics = Metrics()
     factory = encoder_factory or build_encoder
@@ -244,7 +242,7 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFact
         configure_logging(s)
         app.state.settings = s
         app.state.maps = {}
-        app.state.ready_checks = {}
+        app.state.registry = app.state.registry_error = None
         app.state.encoder = None
         app.state.encoder_weights = None
         _prepare_data_dir(s.data_dir)

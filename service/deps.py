@@ -3,38 +3,37 @@
     SettingsDep   the validated `Settings` (read once at startup)
     EncoderDep    the loaded `Encoder` (503 not-ready while there is none)
     MetricsDep    the app's `Metrics` (per-app Prometheus registry)
-    MapsDep       `app.state.maps`, map_id -> map runtime object
+    RegistryDep   the `MapRegistry` (503 not-ready until the maps are open)
     require_api_key / ApiKeyDep   guard for write routes when `CORTEXLOC_API_KEY` is set
     MapReadKeyDep   the same guard for reads of whole maps (downloads), when `CORTEXLOC_API_KEY_READS`
 
 Example:
     >>> @router.post("/v1/maps", dependencies=[ApiKeyDep])
-    ... def create_map(settings: SettingsDep, maps: MapsDep) -> ...
+    ... def create_map(settings: SettingsDep, registry: RegistryDep) -> ...
 """
 
 from __future__ import annotations
 
 import secrets
-from typing import Annotated, Any
+from typing import Annotated
 
 from fastapi import Depends, Request, Security
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
 from models.frontend.encoder import Encoder
 from service.errors import Problem
-from service.routes.metrics import Metrics
+from service.maps.registry import MapRegistry
+from service.metrics import Metrics
 from service.settings import Settings
 
 __all__ = [
     "ApiKeyDep",
     "EncoderDep",
     "MapReadKeyDep",
-    "MapsDep",
     "MetricsDep",
     "RegistryDep",
     "SettingsDep",
     "get_encoder",
-    "get_maps",
     "get_metrics",
     "get_registry",
     "get_settings",
@@ -61,27 +60,19 @@ def get_metrics(request: Request) -> Metrics:
     return request.app.state.metrics
 
 
-def get_maps(request: Request) -> dict[str, Any]:
-    maps = getattr(request.app.state, "maps", None)
-    if maps is None:
-        raise Problem(503, "not-ready", "the service has not finished starting")
-    return maps
-
-
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 EncoderDep = Annotated[Encoder, Depends(get_encoder)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
-MapsDep = Annotated[dict[str, Any], Depends(get_maps)]
 
 
-def get_registry(request: Request) -> Any:
+def get_registry(request: Request) -> MapRegistry:
     registry = getattr(request.app.state, "registry", None)
     if registry is None:
         raise Problem(503, "not-ready", "the maps are not loaded yet")
     return registry
 
 
-RegistryDep = Annotated[Any, Depends(get_registry)]  # service.runtime.MapRegistry
+RegistryDep = Annotated[MapRegistry, Depends(get_registry)]
 
 _api_key_header = APIKeyHeader(name="X-API-Key", scheme_name="ApiKey", auto_error=False,
                                description="the value of CORTEXLOC_API_KEY, when the server sets one")

@@ -1,9 +1,9 @@
 """One error shape everywhere: RFC 9457 `application/problem+json` (docs/design/service.md §2).
 
-Routes raise `Problem(status, slug, detail, **members)`; `install_error_handlers` turns it, FastAPI's
-validation errors, the router's 404/405, an `ImageError`, the domain errors of `DOMAIN_PROBLEMS` (one
-table: e.g. a damaged snapshot is 409 `snapshot-invalid`) and any unexpected exception into the same
-body:
+Routes raise `Problem(status, slug, detail, **members)`; the domain (`service.maps`) raises its own
+errors, mapped in one table, `DOMAIN_PROBLEMS` (e.g. a damaged snapshot is 409 `snapshot-invalid`).
+`install_error_handlers` turns these, FastAPI's validation errors, the router's 404/405, an
+`ImageError` and any unexpected exception into the same body:
 
     {"type": "urn:cortexloc:problem:<slug>", "title": <fixed per slug>, "status": ..., "detail": ...,
      "instance": <request path>, "request_id": ..., <members>}
@@ -26,7 +26,9 @@ import re
 import uuid
 from collections.abc import Iterable, Iterator, Mapping
 from http import HTTPStatus
-from typing import Any
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, NamedTuple
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -39,28 +41,14 @@ from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from models.frontend.images import ImageError
+from service.maps import errors as maps_errors
 from storage.snapshots import SnapshotInvalid
 
-__all__ = [
-    "CLIENT_CLOSED_REQUEST",
-    "DOMAIN_PROBLEMS",
-    "IMAGE_MEDIA_TYPES",
-    "PROBLEM_MEDIA_TYPE",
-    "REQUEST_ID_HEADER",
-    "TITLES",
-    "Problem",
-    "ProblemDetails",
-    "RequestContextMiddleware",
-    "image_error_problem",
-    "install_error_handlers",
-    "iter_routes",
-    "new_request_id",
-    "problem_body",
-    "problem_response",
-    "problem_responses",
-    "request_id_of",
-    "request_id_var",
-]
+__all__ = ["CLIENT_CLOSED_REQUEST", "DOMAIN_PROBLEMS", "IMAGE_MEDIA_TYPES", "PROBLEM_MEDIA_TYPE",
+           "REQUEST_ID_HEADER", "TITLES", "DomainProblem", "Problem", "ProblemDetails",
+           "RequestContextMiddleware", "domain_problem", "image_error_problem", "install_error_handlers",
+           "iter_routes", "new_request_id", "problem_body", "problem_response", "problem_responses",
+           "request_id_of", "request_id_var"]
 
 log = logging.getLogger("cortexloc.errors")
 
@@ -277,21 +265,45 @@ def _validation_errors(exc: RequestValidationError) -> list[dict[str, str]]:
     return out
 
 
-#: Domain errors -> (status, slug); the detail is the error's message, with the data directory's path
-#: cut off (it names the file, not where the server keeps it).
-DOMAIN_PROBLEMS: dict[type[Exception], tuple[int, str]] = {
-    SnapshotInvalid: (409, "snapshot-invalid"),
+class DomainProblem(NamedTuple):
+    """How a domain error is answered: status, slug, the error's attributes shown as members, headers."""
+    status: int
+    slug: str
+    members: tuple[str, ...] = ()
+    headers: Mapping[str, str] = MappingProxyType({})
+
+
+#: Domain errors -> their problem, the one table (docs/design/service.md §2). The detail is the error's
+#: message, with the data directory's path cut off (it names the file, not where the server keeps it).
+DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
+    maps_errors.InvalidMapId: DomainProblem(400, "invalid-parameter", ("errors",)),
+    maps_errors.MapNotFound: DomainProblem(404, "map-not-found", ("map_id",)),
+    maps_errors.SnapshotNotFound: DomainProblem(404, "snapshot-not-found", ("map_id",)),
+    SnapshotInvalid: DomainProblem(409, "snapshot-invalid"),
+    maps_errors.MapAlreadyExists: DomainProblem(409, "map-exists", ("map_id",)),
+    maps_errors.MapLimit: DomainProblem(409, "map-limit", ("max_maps",)),
+    maps_errors.MapFull: DomainProblem(409, "map-full", ("max_observations",)),
+    maps_errors.MapTooLarge: DomainProblem(422, "map-too-large", ("required_bytes", "max_bytes")),
+    maps_errors.InvalidConfiguration: DomainProblem(422, "invalid-configuration", ("errors",)),
+    maps_errors.MapUnavailable: DomainProblem(503, "map-unavailable", ("state", "state_reason")),
+    maps_errors.Overloaded: DomainProblem(503, "overloaded", ("retry_after",), {"Retry-After": "1"}),
+    maps_errors.InsufficientStorage: DomainProblem(507, "insufficient-storage"),
 }
 
 
-async def _domain_error_handler(request: Request, exc: Exception) -> JSONResponse:
-    status, slug = next(v for cls, v in DOMAIN_PROBLEMS.items() if isinstance(exc, cls))
+def domain_problem(exc: Exception, data_dir: Path | None = None) -> Problem:
+    """The `Problem` for a domain error of `DOMAIN_PROBLEMS` (its nearest listed class)."""
+    entry = next(DOMAIN_PROBLEMS[cls] for cls in type(exc).__mro__ if cls in DOMAIN_PROBLEMS)
     detail = str(exc)
-    data_dir = getattr(getattr(request.app.state, "settings", None), "data_dir", None)
-    if data_dir is not None:
-        for root in {str(data_dir.resolve()), str(data_dir)}:
-            detail = detail.replace(root.rstrip("/") + "/", "")
-    return problem_response(request, status, slug, detail)
+    for root in {str(data_dir.resolve()), str(data_dir)} if data_dir is not None else ():
+        detail = detail.replace(root.rstrip("/") + "/", "")
+    return Problem(entry.status, entry.slug, detail, headers=entry.headers,
+                   **{name: getattr(exc, name) for name in entry.members})
+
+
+async def _domain_error_handler(request: Request, exc: Exception) -> JSONResponse:
+    settings = getattr(request.app.state, "settings", None)
+    return problem_to_response(request, domain_problem(exc, getattr(settings, "data_dir", None)))
 
 
 async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:

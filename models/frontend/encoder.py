@@ -78,7 +78,8 @@ class EncodeResult:
         codes: (N, 2n) int32, each row the sorted active columns of one image (None from `embed`).
         features: (N, D) float32 L2-normalised backbone features, when asked for.
         timings_ms: wall time per stage for the whole batch (decode, preprocess, backbone, hash).
-        projected: (N, k) float32 projections x·P, when a caller projected for a map (service.encoding).
+        projected: (N, k) float32 projections x·P, when a caller projected for a map
+            (service.maps.encoder_pool).
     """
 
     codes: np.ndarray | None

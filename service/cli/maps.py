@@ -23,7 +23,7 @@ def import_map(
     declares more than CORTEXLOC_MAX_IMPORT_BYTES or than the free space."""
     from types import SimpleNamespace
 
-    from service.runtime import MapRegistry
+    from service.maps.registry import MapRegistry
     from storage.snapshots import SnapshotInvalid
 
     settings = process_settings(data_dir=data_dir)
@@ -46,7 +46,7 @@ def verify(
 ) -> None:
     """Check maps offline, changing nothing: replay every row from the first and compare its stored
     winner cells, verify every snapshot's checksums and the projection. Exit 1 on any problem."""
-    from service.recovery import verify_map
+    from service.maps.recovery import verify_map
     from storage.catalog import Catalog
 
     root = process_settings(data_dir=data_dir).data_dir

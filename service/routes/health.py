@@ -8,12 +8,11 @@ iff no check fails: 200 `{"status": "ready", "checks": ..., "warnings": [...]}`,
 - `data_dir`: a probe file is written, fsynced and deleted in `CORTEXLOC_DATA_DIR`;
 - `encoder`: loaded, with its weights (`pretrained` + SHA-256, or `random` + seed: `warn`, or `fail`
   when `CORTEXLOC_ALLOW_RANDOM_WEIGHTS=false`);
-- `maps`: the state of each map in `app.state.maps` (objects or dicts with `state`, `state_reason`,
-  optionally `recovery` and `snapshot_error`): ready iff none is `recovering`; `failed` maps, recoveries
-  that passed over snapshots or rows, and failed automatic snapshots are warnings.
-
-More checks (e.g. the catalog) are registered at startup in `app.state.ready_checks`: name -> callable
-taking the app and returning a check result dict. They run in a worker thread, like the built-ins.
+- `maps`: the state of each map in `app.state.maps` (objects with `state`, `state_reason`, `recovery`
+  and `snapshot_error`): ready iff none is `recovering`; `failed` maps, recoveries that passed over
+  snapshots or rows, and failed automatic snapshots are warnings;
+- `catalog`: once the map registry started, its catalog's own check (`Catalog.check`); if the registry
+  could not start, `app.state.registry_error` says why (a failure).
 """
 
 from __future__ import annotations
@@ -21,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import os
 import uuid
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -29,11 +27,11 @@ from fastapi import APIRouter, FastAPI, Request
 from fastapi.responses import JSONResponse
 
 from service.errors import problem_response, problem_responses
+from service.schemas import Health, Readiness
 
-__all__ = ["Check", "ReadyCheck", "check_data_dir", "check_encoder", "check_maps", "readiness", "router"]
+__all__ = ["Check", "check_catalog", "check_data_dir", "check_encoder", "check_maps", "readiness", "router"]
 
 Check = dict[str, Any]
-ReadyCheck = Callable[[FastAPI], Check]
 
 router = APIRouter(tags=["operations"])
 
@@ -79,10 +77,6 @@ def check_encoder(app: FastAPI) -> Check:
     return out
 
 
-def _map_field(m: Any, name: str, default: Any = None) -> Any:
-    return m.get(name, default) if isinstance(m, dict) else getattr(m, name, default)
-
-
 def check_maps(maps: dict[str, Any]) -> Check:
     """Each map's state, how it recovered and whether its last automatic snapshot failed; fails while
     a map is still recovering, warns about failed maps and about recoveries or snapshots that went
@@ -90,9 +84,8 @@ def check_maps(maps: dict[str, Any]) -> Check:
     states = {}
     notes = []
     for map_id, m in sorted(maps.items()):
-        states[map_id] = {"state": str(_map_field(m, "state", "ready")),
-                          "state_reason": _map_field(m, "state_reason")}
-        recovery, snap_error = _map_field(m, "recovery"), _map_field(m, "snapshot_error")
+        states[map_id] = {"state": str(m.state), "state_reason": m.state_reason}
+        recovery, snap_error = getattr(m, "recovery", None), getattr(m, "snapshot_error", None)
         skipped = list((recovery or {}).get("skipped_snapshots") or [])
         if skipped:
             states[map_id]["skipped_snapshots"] = skipped
@@ -117,6 +110,20 @@ def check_maps(maps: dict[str, Any]) -> Check:
     return out
 
 
+def check_catalog(app: FastAPI) -> Check | None:
+    """The map registry's catalog; None while no registry was started (an app without maps)."""
+    error = getattr(app.state, "registry_error", None)
+    if error is not None:
+        return {"status": "fail", "error": error}
+    registry = getattr(app.state, "registry", None)
+    if registry is None:
+        return None
+    try:
+        return registry.catalog.check()
+    except Exception as e:  # a check that crashes is a failed check, not a 500
+        return {"status": "fail", "error": f"{type(e).__name__}: {e}"}
+
+
 def readiness(app: FastAPI) -> tuple[bool, dict[str, Check]]:
     """Run every check: (ready, results by name)."""
     checks: dict[str, Check] = {}
@@ -126,29 +133,26 @@ def readiness(app: FastAPI) -> tuple[bool, dict[str, Check]]:
     checks["data_dir"] = check_data_dir(settings.data_dir)
     checks["encoder"] = check_encoder(app)
     checks["maps"] = check_maps(getattr(app.state, "maps", None) or {})
-    extra: dict[str, ReadyCheck] = getattr(app.state, "ready_checks", None) or {}
-    for name, fn in extra.items():
-        try:
-            checks[name] = fn(app)
-        except Exception as e:  # a check that crashes is a failed check, not a 500
-            checks[name] = {"status": "fail", "error": f"{type(e).__name__}: {e}"}
+    catalog = check_catalog(app)
+    if catalog is not None:
+        checks["catalog"] = catalog
     ready = all(c.get("status") != "fail" for c in checks.values())
     return ready, checks
 
 
 @router.get("/healthz")
-async def healthz() -> dict[str, str]:
+async def healthz() -> Health:
     """Liveness: the process answers. Touches nothing."""
-    return {"status": "ok"}
+    return Health(status="ok")
 
 
-@router.get("/readyz", responses=problem_responses(503))
-def readyz(request: Request) -> JSONResponse:
+@router.get("/readyz", response_model=Readiness, responses=problem_responses(503))
+def readyz(request: Request) -> Readiness | JSONResponse:
     """Readiness: 200 with each check's result, or 503 problem+json `not-ready` with `checks`."""
     ready, checks = readiness(request.app)
     warnings = [c["warning"] for c in checks.values() if c.get("warning")]
     if ready:
-        return JSONResponse({"status": "ready", "checks": checks, "warnings": warnings})
+        return Readiness(status="ready", checks=checks, warnings=warnings)
     failing = [name for name, c in checks.items() if c.get("status") == "fail"]
     return problem_response(request, 503, "not-ready", f"not ready: {', '.join(failing)} failed",
                             checks=checks, warnings=warnings)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import functools
-from typing import Annotated, Any
+from typing import Annotated
 
 import anyio
 from fastapi import APIRouter, Path, Response
@@ -12,35 +12,36 @@ from starlette.types import Receive, Scope, Send
 
 from service.deps import ApiKeyDep, MapReadKeyDep, RegistryDep
 from service.errors import problem_responses
+from service.schemas import MAP_ID_PATTERN, RestoreModel, SnapshotList, SnapshotModel
 from storage import snapshots
 
 router = APIRouter(prefix="/v1/maps/{map_id}/snapshots", tags=["snapshots"])
 
-MapId = Annotated[str, Path(pattern=r"^[a-z0-9][a-z0-9._-]{0,63}$")]
+MapId = Annotated[str, Path(pattern=MAP_ID_PATTERN)]
 SnapshotId = Annotated[str, Path(pattern=r"^[A-Za-z0-9._-]{1,80}$")]
 
 
-@router.post("", status_code=201, dependencies=[ApiKeyDep], responses=problem_responses(401, 404, 503))
-async def create_snapshot(map_id: MapId, registry: RegistryDep, response: Response) -> dict[str, Any]:
+@router.post("", status_code=201, dependencies=[ApiKeyDep], responses=problem_responses(401, 404, 503, 507))
+async def create_snapshot(map_id: MapId, registry: RegistryDep, response: Response) -> SnapshotModel:
     rt = registry.get(map_id)
     rt.require_ready()
     snap = await rt.run(rt.snapshot, "manual")
-    response.headers["Location"] = f"/v1/maps/{map_id}/snapshots/{snap['snapshot_id']}"
-    return snap
+    response.headers["Location"] = f"/v1/maps/{map_id}/snapshots/{snap.snapshot_id}"
+    return SnapshotModel.from_result(snap)
 
 
 @router.get("", responses=problem_responses(404))
-async def list_snapshots(map_id: MapId, registry: RegistryDep) -> dict[str, Any]:
+async def list_snapshots(map_id: MapId, registry: RegistryDep) -> SnapshotList:
     rt = registry.get(map_id)
-    return {"snapshots": await rt.run(rt.snapshots)}
+    return SnapshotList(snapshots=[SnapshotModel.from_result(s) for s in await rt.run(rt.snapshots)])
 
 
 @router.post("/{snapshot_id}/restore", dependencies=[ApiKeyDep],
-             responses=problem_responses(401, 404, 409, 503))
-async def restore_snapshot(map_id: MapId, snapshot_id: SnapshotId, registry: RegistryDep) -> dict[str, Any]:
+             responses=problem_responses(401, 404, 409, 503, 507))
+async def restore_snapshot(map_id: MapId, snapshot_id: SnapshotId, registry: RegistryDep) -> RestoreModel:
     rt = registry.get(map_id)
     rt.require_ready()
-    return await rt.run(rt.restore, snapshot_id)
+    return RestoreModel.from_result(await rt.run(rt.restore, snapshot_id))
 
 
 class TarExportResponse(StreamingResponse):

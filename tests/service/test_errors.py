@@ -12,10 +12,9 @@ from fastapi.testclient import TestClient
 from pydantic import BaseModel, ConfigDict
 
 from models.frontend.images import ERROR_CODES, ImageError
-from service.app import build_encoder, create_app
 from service.deps import ApiKeyDep, SettingsDep, require_api_key
 from service.errors import PROBLEM_MEDIA_TYPE, TITLES, Problem, image_error_problem, problem_responses
-from service.settings import Settings
+from tests.service import helpers
 
 CORE = {"type", "title", "status", "detail", "instance", "request_id"}
 
@@ -27,8 +26,7 @@ class Body(BaseModel):
 
 
 def make_app(tmp_path, **overrides):
-    settings = Settings(data_dir=tmp_path / "data", **overrides)
-    app = create_app(settings, encoder_factory=lambda s: build_encoder(s, slsbh={"k": 16}))
+    app = helpers.make_app(tmp_path / "data", **overrides)
 
     @app.get("/test/items")
     def list_items(top_k: int = Query(5, ge=0, le=10), learn: bool = True) -> dict:

@@ -8,15 +8,9 @@ from types import SimpleNamespace
 import pytest
 from fastapi.testclient import TestClient
 
-from service.app import build_encoder, create_app
 from service.errors import PROBLEM_MEDIA_TYPE
-from service.routes.metrics import Metrics
-from service.settings import Settings
-
-
-def make_app(data_dir, **overrides):
-    return create_app(Settings(data_dir=data_dir, **overrides),
-                      encoder_factory=lambda s: build_encoder(s, slsbh={"k": 16}))
+from service.metrics import Metrics
+from tests.service.helpers import make_app
 
 
 @pytest.fixture
@@ -121,7 +115,7 @@ def test_readyz_not_ready_when_data_dir_disappears(client, app, tmp_path):
 def test_readyz_reports_map_states(client, app):
     app.state.maps = {}  # the states /readyz reads, apart from the runtime's own maps
     app.state.maps["lab"] = SimpleNamespace(state="ready", state_reason=None)
-    app.state.maps["old"] = {"state": "failed", "state_reason": "database-corrupt"}
+    app.state.maps["old"] = SimpleNamespace(state="failed", state_reason="database-corrupt")
     r = client.get("/readyz")
     assert r.status_code == 200  # a failed map does not make the service unready
     maps = r.json()["checks"]["maps"]
@@ -134,14 +128,13 @@ def test_readyz_reports_map_states(client, app):
     assert body["checks"]["maps"]["status"] == "fail" and "new" in body["checks"]["maps"]["error"]
 
 
-def test_readyz_runs_registered_checks(client, app):
-    app.state.ready_checks["catalog"] = lambda a: {"status": "pass", "path": "catalog.sqlite"}
+def test_readyz_checks_the_catalog_and_a_crashing_check_is_a_failure(client, app, monkeypatch):
     assert client.get("/readyz").json()["checks"]["catalog"]["status"] == "pass"
 
-    def broken(a):
+    def broken():
         raise OSError("disk on fire")
 
-    app.state.ready_checks["catalog"] = broken
+    monkeypatch.setattr(app.state.registry.catalog, "check", broken)
     body = assert_not_ready(client.get("/readyz"))
     assert body["checks"]["catalog"] == {"status": "fail", "error": "OSError: disk on fire"}
 

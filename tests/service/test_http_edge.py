@@ -10,29 +10,14 @@ import socket
 import threading
 import time
 
-import cv2
-import numpy as np
 import pytest
 import uvicorn
 from fastapi.testclient import TestClient
 
-from service.app import build_encoder, create_app
 from service.errors import PROBLEM_MEDIA_TYPE
 from service.limits import HEAD_MAX_BYTES
 from service.server import ProblemH11Protocol
-from service.settings import Settings
-
-
-def make_client(data_dir, **overrides) -> TestClient:
-    app = create_app(Settings(data_dir=data_dir, **overrides),
-                     encoder_factory=lambda s: build_encoder(s, slsbh={"k": 16}))
-    return TestClient(app)
-
-
-def frame(place: int) -> bytes:
-    rng = np.random.default_rng(place)
-    return cv2.imencode(".png", cv2.resize(rng.integers(0, 256, (12, 16, 3), dtype=np.uint8), (128, 96)))[1]\
-        .tobytes()
+from tests.service.helpers import frame, make_client
 
 
 @pytest.fixture

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from service.cli import app as cli_app
 from storage import archive
-from tests.service.test_maps_observations import frame, make_client, post
+from tests.service.helpers import frame, make_client, post
 
 
 @pytest.fixture

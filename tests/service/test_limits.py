@@ -10,10 +10,10 @@ from fastapi import Request
 from fastapi.testclient import TestClient
 from pydantic import BaseModel
 
-from service.app import build_encoder, create_app
 from service.errors import PROBLEM_MEDIA_TYPE
 from service.limits import JSON_MAX_BYTES, UploadLimitMiddleware
 from service.settings import Settings
+from tests.service.helpers import make_app
 
 LIMIT = 1000
 
@@ -24,8 +24,7 @@ class Doc(BaseModel):
 
 @pytest.fixture
 def app_and_calls(tmp_path):
-    app = create_app(Settings(data_dir=tmp_path / "data", max_upload_bytes=LIMIT),
-                     encoder_factory=lambda s: build_encoder(s, slsbh={"k": 16}))
+    app = make_app(tmp_path / "data", max_upload_bytes=LIMIT)
     calls: list[str] = []
 
     @app.post("/test/upload")
@@ -90,8 +89,7 @@ def test_chunked_body_over_the_limit_is_cut_off(client, app_and_calls):
 
 
 def test_json_bodies_are_limited_to_64_kib(tmp_path):
-    app = create_app(Settings(data_dir=tmp_path / "data"),
-                     encoder_factory=lambda s: build_encoder(s, slsbh={"k": 16}))
+    app = make_app(tmp_path / "data")
 
     @app.post("/test/json")
     def post_json(doc: Doc) -> dict:

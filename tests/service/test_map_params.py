@@ -10,16 +10,14 @@ import pytest
 from fastapi.testclient import TestClient
 
 from models import presets
-from service.app import build_encoder, create_app
 from service.errors import PROBLEM_MEDIA_TYPE
-from service.runtime import resolve_params
-from service.settings import Settings
+from service.maps.params import resolve_params
+from tests.service.helpers import make_app
 
 
 @pytest.fixture
 def client(tmp_path):
-    app = create_app(Settings(data_dir=tmp_path / "data"),
-                     encoder_factory=lambda s: build_encoder(s, slsbh={"k": 16}))
+    app = make_app(tmp_path / "data")
     with TestClient(app) as c:
         yield c
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.service.test_maps_observations import frame, make_client, post, state_of
+from tests.service.helpers import frame, make_client, post, state_of
 
 
 def crash(c) -> None:

@@ -13,14 +13,11 @@ import pytest
 from fastapi.testclient import TestClient
 from typer.testing import CliRunner
 
-from service.app import build_encoder, create_app
+from service.app import create_app
 from service.settings import ConfigError, Settings
+from tests.service.helpers import tiny_encoder
 
 REPO = Path(__file__).resolve().parents[2]
-
-
-def tiny_encoder(settings: Settings):
-    return build_encoder(settings, slsbh={"k": 16})
 
 
 def test_defaults_match_the_spec_table():

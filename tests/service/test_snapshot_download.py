@@ -11,26 +11,12 @@ import tarfile
 from pathlib import Path
 
 import anyio
-import cv2
-import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from service.app import build_encoder, create_app
 from service.errors import PROBLEM_MEDIA_TYPE
 from service.settings import ConfigError, Settings
-
-
-def make_client(data_dir: Path, **overrides) -> TestClient:
-    app = create_app(Settings(data_dir=data_dir, **overrides),
-                     encoder_factory=lambda s: build_encoder(s, slsbh={"k": 16}))
-    return TestClient(app)
-
-
-def frame(place: int) -> bytes:
-    rng = np.random.default_rng(place)
-    img = cv2.resize(rng.integers(0, 256, (12, 16, 3), dtype=np.uint8), (128, 96))
-    return cv2.imencode(".png", img)[1].tobytes()
+from tests.service.helpers import frame, make_client
 
 
 def snapshot_with_frames(c: TestClient, n: int = 3, headers: dict | None = None) -> tuple[str, Path]:

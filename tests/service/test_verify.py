@@ -9,7 +9,7 @@ from pathlib import Path
 from typer.testing import CliRunner
 
 from service.cli import app as cli_app
-from tests.service.test_maps_observations import frame, make_client, post
+from tests.service.helpers import frame, make_client, post
 from tests.service.test_recovery import corrupt_winner_cells, snapshot_dirs
 
 

@@ -1,69 +1,35 @@
-"""Rebuilding a map's memory from its store: the one path that recovery at startup, restore and
-`cortexloc verify` share (docs/design/service.md §4.4).
+"""Rebuilding a map's memory from its store: the one path that recovery at startup, restore, the
+commit-failure path and `cortexloc verify` share (docs/design/service.md §4.4).
 
 A rebuild starts from a fresh memory (replay from the first row) or from a snapshot's arrays, then
 replays the store's rows after that point, comparing every replayed step's winner cells with the
-stored ones. Streams, their bookkeeping and the arrays of a snapshot are converted here in both
-directions (`memory_state`, `load_memory_state`).
+stored ones (`rebuild`). `recover` picks the start: the newest snapshot on the store's branch that
+verifies, loads and reproduces the rows after it, else a replay from the first row.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from models.frontend import slsbh
-from models.frontend.adaptation import RunningMean
-from models.memory.temporal_memory import StreamContext, TemporalMemory
+from models.memory.temporal_memory import TemporalMemory
+from service.maps.state import Stream, load_memory_state
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, StorageError
 from storage.mapstore import MapStore, Observation
 
-__all__ = ["MapCheck", "Rebuilt", "Stream", "load_memory_state", "memory_state", "rebuild", "verify_map"]
+__all__ = ["MapCheck", "Rebuilt", "rebuild", "recover", "verify_map"]
 
-
-@dataclass
-class Stream:
-    """A stream's sequence state in one map (docs/design/service.md §1.3)."""
-
-    context: StreamContext = field(default_factory=StreamContext)
-    step: int = 0  # steps since the context was last empty
-    last_learned_seq: int | None = None  # the learned observation the context continues
-    learning: bool | None = None  # mode of the last step (a switch to learning starts a new sequence)
-    adapt: RunningMean | None = None  # the stream's running mean of projections (models.frontend.adaptation)
-
-
-def memory_state(tm: TemporalMemory, streams: Mapping[str, Stream]) -> dict[str, np.ndarray]:
-    """The whole memory as arrays: TM, generator, every stream's context and bookkeeping."""
-    names = {name.encode().hex(): name for name in streams}  # stream names may hold '.'
-    state = tm.state_dict(streams={h: streams[n].context for h, n in names.items()})
-    for h, n in names.items():
-        st = streams[n]
-        state[f"streammeta.{h}"] = np.array(
-            [st.step, -1 if st.last_learned_seq is None else st.last_learned_seq,
-             -1 if st.learning is None else int(st.learning)], dtype=np.int64)
-        if st.adapt is not None:
-            state[f"streamadapt.{h}"] = st.adapt.state()
-    return state
-
-
-def load_memory_state(state: Mapping[str, np.ndarray], adapt_tau: int
-                      ) -> tuple[TemporalMemory, OrderedDict[str, Stream]]:
-    """The reverse of `memory_state`: (memory, streams by name)."""
-    tm = TemporalMemory.from_state(dict(state))
-    streams: OrderedDict[str, Stream] = OrderedDict()
-    for h, ctx in TemporalMemory.load_streams(dict(state)).items():
-        step, last, learning = (int(v) for v in state[f"streammeta.{h}"])
-        adapt = (RunningMean.from_state(adapt_tau, state[f"streamadapt.{h}"])
-                 if adapt_tau and f"streamadapt.{h}" in state else None)
-        streams[bytes.fromhex(h).decode()] = Stream(
-            ctx, step, None if last < 0 else last, None if learning < 0 else bool(learning), adapt)
-    return tm, streams
+log = logging.getLogger("cortexloc.recovery")
+_LISTED = 20  # divergent seqs listed in a recovery note (the count says how many there are)
 
 
 @dataclass
@@ -126,6 +92,60 @@ def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Obs
         if progress is not None:
             progress(out.replayed)
     return out
+
+
+def recover(store: MapStore, catalog: Catalog, map_id: str, tm_params: dict[str, Any], *,
+            adapt_tau: int = 0) -> tuple[Rebuilt, dict[str, Any]]:
+    """The memory of `store`: the newest usable snapshot, then a verified replay of the rows after it.
+
+    A snapshot that does not verify, cannot be loaded, or whose replay does not reproduce the stored
+    winner cells is passed over for the next older one; one from a branch a restore abandoned (its last
+    row is not this store's row at that seq) is skipped silently. The last resort is a replay from the
+    first row on a fresh memory: it is served, and the rows whose stored winner cells it did not
+    reproduce are listed.
+
+    Args:
+        store: the map's open store (the system of record).
+        catalog: lists the map's snapshots, newest first.
+        map_id: the map.
+        tm_params: the map's frozen TM parameters (for the fresh memory of the last resort).
+        adapt_tau: the map's adaptation time constant.
+
+    Returns:
+        (the rebuilt memory, the note the map resource shows as `recovery`).
+    """
+    t0 = time.perf_counter()
+    skipped: list[dict[str, str]] = []
+    for rec in catalog.list_snapshots(map_id):
+        path = catalog.snapshot_dir(rec)
+        try:
+            m = snapshots.verify(path)
+            if m.seq > 0:
+                row = store.get(m.seq)
+                if row is None or row.observation_id != m.last_observation_id:
+                    continue  # from a branch a restore abandoned
+            done = rebuild(snapshots.load_memory(path), store.rows(after_seq=m.seq), adapt_tau=adapt_tau)
+        except Exception as e:  # an unusable snapshot is passed over, never fatal
+            reason = str(e) or type(e).__name__
+        else:
+            if not done.mismatches:
+                note: dict[str, Any] = {"source": "snapshot", "snapshot_id": rec.snapshot_id,
+                                        "snapshot_seq": m.seq}
+                break
+            reason = f"the replay after it diverged at seq {done.mismatches[0]}"
+            del done  # its memory is as large as the map's: free it before the next attempt
+        skipped.append({"snapshot_id": rec.snapshot_id, "reason": reason})
+        log.warning("map %s: snapshot %s passed over: %s", map_id, rec.snapshot_id, reason)
+    else:
+        done = rebuild(TemporalMemory(tm_params), store.rows(), stop_at_mismatch=False)
+        note = {"source": "replay", "mismatches": len(done.mismatches),
+                "mismatched_seqs": done.mismatches[:_LISTED]}
+        if done.mismatches:
+            log.error("map %s: the replay from the first row did not reproduce the stored winner cells "
+                      "of %d row(s), first seq %d; serving the replayed memory (run `cortexloc verify`)",
+                      map_id, len(done.mismatches), done.mismatches[0])
+    note.update(replayed=done.replayed, skipped_snapshots=skipped, seconds=round(time.perf_counter() - t0, 3))
+    return done, note
 
 
 @dataclass

@@ -1,6 +1,7 @@
 """Projecting in the encoder pool: projections computed per batch with each request's map hasher equal
-the writer's own, bad images still fail alone, and `MapRuntime.observe(projected=...)` stores exactly
-what projecting in the writer stores (benchmarks/bench_http.py measured why: docs/benchmarks.md §1)."""
+projecting one image at a time, bad images still fail alone, and `MapRuntime.apply` stores exactly the
+same rows from the pool's projections as from projections made image by image (benchmarks/bench_http.py
+measured why the pool projects: docs/benchmarks.md §1)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,8 @@ import pytest
 
 from models.frontend.images import ImageError
 from models.frontend.slsbh import Hasher, make_projection
-from service.encoding import EncoderPool
-from tests.service.test_maps_observations import frame, make_client
+from service.maps.encoder_pool import EncoderPool
+from tests.service.helpers import frame, held_encoder, make_client
 
 
 class FakeEncoder:
@@ -36,13 +37,15 @@ def test_pool_projects_each_request_with_its_own_hasher() -> None:
     h1 = Hasher(make_projection(32, 16, seed=1), 0.25)
     h2 = Hasher(make_projection(32, 16, seed=2), 0.25)
     enc = FakeEncoder()
-    pool = EncoderPool(enc, workers=1, queue=64, wait_ms=50)  # a wide window: one batch, deterministically
+    pool = EncoderPool(enc, workers=1, queue=64)
     try:
         bodies = [bytes(10 + i) for i in range(9)]
         hashers = [h1, h2, None] * 3
-        futs = [pool.submit(b, hasher=h) for b, h in zip(bodies, hashers, strict=True)]
-        results = [f.result(timeout=30) for f in futs]
-        assert max(pool.batches) > 1
+        with held_encoder(enc) as (gate, sizes):
+            futs = [pool.submit(b, hasher=h) for b, h in zip(bodies, hashers, strict=True)]
+            gate.set()  # the first image held the worker while the others queued
+            results = [f.result(timeout=30) for f in futs]
+        assert max(sizes) > 1  # the images queued behind the held one went together
         for b, h, r in zip(bodies, hashers, results, strict=True):
             feats = enc.embed([b]).features
             assert np.array_equal(r.features, feats)
@@ -63,23 +66,22 @@ def test_pool_projects_each_request_with_its_own_hasher() -> None:
         pool.close()
 
 
-def test_observe_with_a_precomputed_projection_stores_the_same_as_projecting_in_the_writer(tmp_path) -> None:
+def test_the_pools_projections_store_the_same_as_projecting_image_by_image(tmp_path) -> None:
     frames = [frame(p % 5, noise=3.0 * (p // 5)) for p in range(12)]
     stored = []
-    for mode in ("writer", "pool"):
-        with make_client(tmp_path / mode) as c:
+    for mode in ("one by one", "pool"):
+        with make_client(tmp_path / mode.replace(" ", "-")) as c:
             rt = c.app.state.registry.get("default")
             pool = c.app.state.encoder_pool
-            hasher = rt.hasher if mode == "pool" else None
-            encs = [pool.submit(b, hasher=hasher) for b in frames]  # queued at once: batched
+            encs = [pool.submit(b, hasher=rt.hasher if mode == "pool" else None) for b in frames]
             for i, e in enumerate(encs):
                 r = e.result(timeout=60)
-                projected = r.projected[0] if mode == "pool" else None
-                rt.submit(partial(rt.observe, r.features[0], f"{i:064x}", learn=True, stream="s", top_k=3,
-                                  label=None, projected=projected)).result(timeout=60)
+                projected = r.projected[0] if mode == "pool" else rt.hasher.project(r.features)[0]
+                rt.submit(partial(rt.apply, projected, f"{i:064x}", learn=True, stream="s", top_k=3,
+                                  label=None)).result(timeout=60)
             stored.append([(o.input_sdr.tolist(), o.winner_cells.tolist()) for o in rt.store.rows()])
             with pytest.raises(ValueError):  # another width is refused before any state change
-                rt.submit(partial(rt.observe, r.features[0], "0" * 64, learn=True, stream="s", top_k=0,
-                                  label=None, projected=np.zeros(3, np.float32))).result(timeout=60)
+                rt.submit(partial(rt.apply, np.zeros(3, np.float32), "0" * 64, learn=True, stream="s",
+                                  top_k=0, label=None)).result(timeout=60)
             assert rt.store.count() == len(frames)
     assert stored[0] == stored[1]

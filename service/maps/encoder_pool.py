@@ -1,11 +1,12 @@
-"""The encoder behind a bounded, batching executor (docs/design/service.md §6).
+"""The encoder behind a bounded, batching executor (docs/design/service.md §6): the one place where
+images are batched.
 
 Concurrent requests are encoded together: a worker takes the first waiting image, gathers whatever
 else arrives within a few milliseconds (up to `max_batch`), and runs one backbone call for all of
 them, so throughput under load approaches the backbone's batch throughput. A full queue answers 503
 `overloaded` at once instead of letting latency grow without bound.
 
-A request may bring its map's sLSBH hasher (`submit(body, hasher=...)`): the batch is then also
+A request brings its map's sLSBH hasher (`MapRuntime.observe` passes it): the batch is then also
 projected here (y = x·P), one matrix product per map present in the batch. The dense projection is
 64,896 x 1,024 float32 (266 MB) and the product is bound by reading it, so projecting image by image in
 the map's writer costs the same ~15-20 ms per image as projecting 16 at once costs per batch
@@ -27,7 +28,7 @@ import numpy as np
 from models.frontend.encoder import Encoder, EncodeResult
 from models.frontend.images import ImageError
 from models.frontend.slsbh import Hasher
-from service.errors import Problem
+from service.maps.errors import Overloaded
 
 _STOP = object()
 
@@ -52,7 +53,6 @@ class EncoderPool:
         self._queue: queues.Queue = queues.Queue()
         self._lock = threading.Lock()
         self.pending = 0
-        self.batches: list[int] = []  # sizes of the recent backbone calls (tests, metrics)
         self._threads = [threading.Thread(target=self._run, name=f"encoder-{i}", daemon=True)
                          for i in range(workers)]
         for t in self._threads:
@@ -63,13 +63,11 @@ class EncoderPool:
         `projected` (1, k) = features · that hasher's projection (else None).
 
         Raises:
-            Problem: 503 overloaded when `workers + queue` requests are already in flight.
+            Overloaded: `workers + queue` requests are already in flight.
         """
         with self._lock:
             if self.pending >= self.limit:
-                raise Problem(503, "overloaded",
-                              f"the encoder queue is full ({self.limit} requests in flight)",
-                              headers={"Retry-After": "1"}, retry_after=1)
+                raise Overloaded(self.limit)
             self.pending += 1
         fut: Future[EncodeResult] = Future()
         self._queue.put((body, fut, hasher))
@@ -95,10 +93,14 @@ class EncoderPool:
             self._encode(batch)
 
     def _encode(self, batch: list[tuple[bytes, Future[EncodeResult], Hasher | None]]) -> None:
+        taken = len(batch)
+        # A request whose client went away cancelled its future while it waited: it costs no encoding.
+        batch = [item for item in batch if item[1].set_running_or_notify_cancel()]
         try:
+            if not batch:
+                return
             try:
                 out = self.encoder.embed([body for body, _, _ in batch])
-                self.batches = [*self.batches[-99:], len(batch)]
                 projected, ms = self._project(out.features, [h for _, _, h in batch])
                 for i, (_, fut, _) in enumerate(batch):
                     fut.set_result(EncodeResult(codes=None, features=out.features[i:i + 1],
@@ -120,7 +122,7 @@ class EncoderPool:
                         fut.set_exception(e)
         finally:
             with self._lock:
-                self.pending -= len(batch)
+                self.pending -= taken
 
     @staticmethod
     def _project(features: np.ndarray, hashers: list[Hasher | None]

@@ -30,15 +30,13 @@ from typing import NamedTuple, Protocol
 import numpy as np
 from numba import njit
 
-from storage._common import StorageError
-
 __all__ = ["IndexFull", "IndexRow", "InvertedIndex", "Match"]
 
 _ROW = np.int32  # row numbers; max_observations is capped below 2**31
 _MIN_CAP = 4  # first allocation of a cell's postings; doubled when full
 
 
-class IndexFull(StorageError):  # noqa: N818 - named after the problem slug `map-full`
+class IndexFull(Exception):  # noqa: N818 - named after the problem slug `map-full`
     """Adding beyond `max_observations`."""
 
     def __init__(self, max_observations: int) -> None:

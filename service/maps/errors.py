@@ -1,0 +1,89 @@
+"""What can go wrong with a map, in domain words (docs/design/service.md §2).
+
+Nothing here knows HTTP: `service.errors.DOMAIN_PROBLEMS` maps each class to its status, slug and the
+attributes it shows as problem members, in one table. The message is the problem's `detail`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["InsufficientStorage", "InvalidConfiguration", "InvalidMapId", "MapAlreadyExists", "MapError",
+           "MapFull", "MapLimit", "MapNotFound", "MapTooLarge", "MapUnavailable", "Overloaded",
+           "SnapshotNotFound"]
+
+
+class MapError(Exception):
+    """A refused map operation; nothing stored changed."""
+
+
+class MapNotFound(MapError):  # noqa: N818 - named after the problem slug
+    def __init__(self, map_id: str) -> None:
+        super().__init__(f"no map {map_id!r}")
+        self.map_id = map_id
+
+
+class MapUnavailable(MapError):  # noqa: N818
+    """The map is `recovering` or `failed` (docs/design/service.md §4.4)."""
+
+    def __init__(self, map_id: str, state: str, state_reason: str | None) -> None:
+        super().__init__(f"map {map_id!r} is {state}" + (f" ({state_reason})" if state_reason else ""))
+        self.state, self.state_reason = state, state_reason
+
+
+class MapFull(MapError):  # noqa: N818
+    def __init__(self, map_id: str, max_observations: int) -> None:
+        super().__init__(f"map {map_id!r} holds its maximum of {max_observations} observations; "
+                         "localisation still works")
+        self.max_observations = max_observations
+
+
+class MapAlreadyExists(MapError):  # noqa: N818
+    def __init__(self, map_id: str) -> None:
+        super().__init__(f"map {map_id!r} exists")
+        self.map_id = map_id
+
+
+class MapLimit(MapError):  # noqa: N818
+    def __init__(self, max_maps: int) -> None:
+        super().__init__(f"at most {max_maps} maps")
+        self.max_maps = max_maps
+
+
+class MapTooLarge(MapError):  # noqa: N818
+    def __init__(self, required_bytes: int, max_bytes: int) -> None:
+        super().__init__(f"this configuration preallocates {required_bytes} bytes, more than "
+                         f"CORTEXLOC_MAX_MAP_BYTES={max_bytes}")
+        self.required_bytes, self.max_bytes = required_bytes, max_bytes
+
+
+class InvalidMapId(MapError):  # noqa: N818
+    def __init__(self, map_id: str, pattern: str) -> None:
+        super().__init__(f"map_id {map_id!r} must match {pattern}")
+        self.errors = [{"location": "body", "name": "map_id", "message": "invalid identifier"}]
+
+
+class InvalidConfiguration(MapError):  # noqa: N818
+    """Map parameters that cannot be frozen; `errors` names each one ([{location, name, message}])."""
+
+    def __init__(self, message: str, errors: list[dict[str, Any]]) -> None:
+        super().__init__(message)
+        self.errors = errors
+
+
+class SnapshotNotFound(MapError):  # noqa: N818
+    def __init__(self, map_id: str, snapshot_id: str) -> None:
+        super().__init__(f"no snapshot {snapshot_id!r} of map {map_id!r}")
+        self.map_id = map_id
+
+
+class InsufficientStorage(MapError):  # noqa: N818
+    """The disk is full; what the message names was not written and the map is unchanged."""
+
+
+class Overloaded(MapError):  # noqa: N818
+    """The encoder pool has `limit` requests in flight; retry after `retry_after` seconds."""
+
+    def __init__(self, limit: int, retry_after: int = 1) -> None:
+        super().__init__(f"the encoder queue is full ({limit} requests in flight)")
+        self.retry_after = retry_after

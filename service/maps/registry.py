@@ -1,0 +1,150 @@
+"""All maps of one data directory: the catalog, the projections, a runtime per map, and the numba
+warm-up before the first request (docs/design/service.md §1.1, §4.4)."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.frontend import slsbh
+from models.memory.temporal_memory import TemporalMemory, planned_bytes
+from service.maps import snapshots as map_snapshots
+from service.maps.errors import InvalidMapId, MapAlreadyExists, MapLimit, MapNotFound, MapTooLarge
+from service.maps.index import warm_up as index_warm_up
+from service.maps.params import resolve_params
+from service.maps.runtime import MapRuntime
+from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord
+from storage.mapstore import MapMeta, MapStore, cell_dtype_for
+
+__all__ = ["MapRegistry", "warm_up"]
+
+log = logging.getLogger("cortexloc.runtime")
+
+
+def warm_up() -> None:
+    """Compile the TM and index kernels now (numba, cached on disk), not during the first client's request."""
+    tm = TemporalMemory({"columnDimensions": 64, "cellsPerColumn": 4, "maxSegmentsPerCell": 2,
+                         "maxSynapsesPerSegment": 4, "activationThreshold": 2, "minThreshold": 1})
+    for x in ([1, 2, 3], [4, 5, 6], [1, 2, 3], [4, 5, 6]):
+        tm.compute(np.array(x), learn=True)
+    tm.compute(np.array([1, 2, 3]), learn=False)
+    index_warm_up()
+
+
+class MapRegistry:
+    """All maps of one data directory. Its methods run in a worker thread (they block on disk), never on
+    the event loop; `get` may run anywhere.
+
+    Args:
+        data_dir: CORTEXLOC_DATA_DIR.
+        encoder: has `identity` and `feature_dim` (the service's `Encoder`).
+        settings: the service's settings (map caps, snapshot cadence, default preset).
+    """
+
+    def __init__(self, data_dir: Path, encoder: Any, settings: Any) -> None:
+        self.data_dir = Path(data_dir)
+        self.encoder = encoder
+        self.settings = settings
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self.catalog = Catalog.open(self.data_dir / "catalog.sqlite")
+        self.projections = self.data_dir / "projections"
+        self.projections.mkdir(parents=True, exist_ok=True)
+        self.maps: dict[str, MapRuntime] = {}
+        self._create_lock = threading.Lock()
+
+    def _runtime(self, record: MapRecord) -> MapRuntime:
+        s = self.settings
+        return MapRuntime(record, self.data_dir / "maps" / record.map_id, self.projections, self.catalog,
+                          self.encoder.feature_dim, s.max_streams, s.max_observations,
+                          s.snapshot_every, s.snapshot_keep)
+
+    def start(self) -> None:
+        """Open every map and recover it by replay; create `default` on a fresh install."""
+        warm_up()
+        for record in self.catalog.list_maps():
+            rt = self._runtime(record)
+            self.maps[record.map_id] = rt
+            if record.params.get("encoder_id") != self.encoder.identity:
+                rt.state, rt.state_reason = "failed", "encoder-mismatch"
+                log.error("map %s was built with encoder %s, this server runs %s", record.map_id,
+                          record.params.get("encoder_id"), self.encoder.identity)
+                continue
+            rt.recover()
+        if not self.maps:
+            self.create("default", preset=self.settings.default_preset)
+
+    def close(self) -> None:
+        for rt in self.maps.values():
+            rt.close()
+        self.catalog.close()
+
+    def get(self, map_id: str) -> MapRuntime:
+        """Raises MapNotFound."""
+        rt = self.maps.get(map_id)
+        if rt is None:
+            raise MapNotFound(map_id)
+        return rt
+
+    def create(self, map_id: str, *, preset: str, seed: int | None = None, tm: dict[str, Any] | None = None,
+               slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0) -> MapRuntime:
+        """Create a map: resolve and freeze parameters, persist the projection, then the store (§1.1).
+
+        Raises:
+            InvalidMapId, InvalidConfiguration, MapTooLarge, MapAlreadyExists, MapLimit.
+        """
+        if not MAP_ID_RE.match(map_id):
+            raise InvalidMapId(map_id, MAP_ID_RE.pattern)
+        params = resolve_params(preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf,
+                                exclude_recent=exclude_recent)
+        need = planned_bytes(params["tm"])
+        if need > self.settings.max_map_bytes:
+            raise MapTooLarge(need, self.settings.max_map_bytes)
+        with self._create_lock:
+            if map_id in self.maps:
+                raise MapAlreadyExists(map_id)
+            if len(self.maps) >= self.settings.max_maps:
+                raise MapLimit(self.settings.max_maps)
+            s_conf = params["slsbh"]
+            P = slsbh.make_projection(self.encoder.feature_dim, int(s_conf["k"]), int(s_conf["seed"]))
+            _, sha = slsbh.save_projection(P, self.projections)
+            del P
+            params["projection_sha256"] = sha
+            params["encoder_id"] = self.encoder.identity
+            if self.encoder.identity.split("/")[1].startswith("random"):
+                log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, self.encoder.identity)
+            map_dir = self.data_dir / "maps" / map_id
+            if map_dir.exists():
+                shutil.rmtree(map_dir)  # leftovers of a creation that never reached the catalog
+            map_dir.mkdir(parents=True)
+            store = MapStore.create(map_dir / "map.sqlite", MapMeta(
+                map_id=map_id, params=params, projection_sha256=sha, encoder_id=self.encoder.identity,
+                cell_dtype=cell_dtype_for(int(params["tm"]["columnDimensions"])
+                                          * int(params["tm"]["cellsPerColumn"]))))
+            store.close()
+            try:
+                record = self.catalog.create_map(map_id, params, preset=preset, state="ready")
+            except MapExists as e:
+                raise MapAlreadyExists(map_id) from e
+            rt = self._runtime(record)
+            rt.recover()
+            self.maps[map_id] = rt
+            return rt
+
+    def import_snapshot(self, tar_path: Path, max_bytes: int) -> str:
+        """Create a map from a downloaded snapshot tar (`service.maps.snapshots.import_snapshot`)."""
+        return map_snapshots.import_snapshot(self.data_dir, self.catalog, self.projections, tar_path,
+                                             max_bytes)
+
+    def delete(self, map_id: str) -> None:
+        """Raises MapNotFound."""
+        rt = self.get(map_id)
+        with self._create_lock:
+            self.maps.pop(map_id, None)
+            rt.close(snapshot=False)
+            self.catalog.delete_map(map_id)
+            shutil.rmtree(self.data_dir / "maps" / map_id, ignore_errors=True)

@@ -1,0 +1,141 @@
+"""What the map domain answers, as plain dataclasses; the routes turn them into the response models of
+`service/schemas.py` (docs/design/service.md §1)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = ["IndexMemory", "MapInfo", "Match", "MemoryInfo", "ObservationResult", "RestoreResult",
+           "SequenceStats", "SnapshotInfo", "StorageMemory", "StreamReset", "StreamsMemory", "TmMemory"]
+
+
+@dataclass(frozen=True)
+class Match:
+    """A stored observation that shares winner cells with the query (docs/design/service.md §5)."""
+
+    rank: int
+    observation_id: str
+    seq: int
+    stream: str
+    label: str | None
+    created_at: str
+    overlap: int
+    score: float  # Dice of the two winner-cell sets
+
+
+@dataclass(frozen=True)
+class SequenceStats:
+    """The stream's TM step: `step` counts steps since its context was last empty."""
+
+    step: int
+    active_columns: int
+    predicted_columns: int
+    bursting_columns: int
+    winner_cells: int
+
+
+@dataclass(frozen=True)
+class ObservationResult:
+    """One frame's outcome. `timings_ms`: decode, encode (event loop), hash, tm, search, store (writer)."""
+
+    map_id: str
+    stream: str
+    learned: bool
+    observation_id: str | None
+    seq: int | None
+    sequence: SequenceStats
+    matches: list[Match]
+    timings_ms: dict[str, float]
+    map_seq: int
+    projection_sha256: str
+
+
+@dataclass(frozen=True)
+class MapInfo:
+    """A map as the API shows it; `recovery` says what the last rebuild did (docs/design/service.md §4.4)."""
+
+    map_id: str
+    created_at: str
+    state: str
+    state_reason: str | None
+    preset: str | None
+    params: dict[str, Any]
+    encoder: str
+    projection_sha256: str
+    observations: int
+    last_seq: int
+    streams: list[str]
+    warnings: list[str]
+    recovery: dict[str, Any] | None
+    snapshot_error: dict[str, Any] | None
+
+
+@dataclass(frozen=True)
+class RestoreResult(MapInfo):
+    discarded_observations: int
+
+
+@dataclass(frozen=True)
+class SnapshotInfo:
+    snapshot_id: str
+    seq: int
+    kind: str
+    created_at: str
+    bytes: int
+    manifest_sha256: str
+
+
+@dataclass(frozen=True)
+class StreamReset:
+    stream: str
+    had_context: bool
+
+
+@dataclass(frozen=True)
+class TmMemory:
+    columns: int
+    cells_per_column: int
+    cells: int
+    max_segments_per_cell: int
+    max_synapses_per_segment: int
+    segments: int
+    segment_capacity: int
+    synapses: int
+    synapse_capacity: int
+    allocated_bytes: int
+    evicted_segments_total: int
+    overrun_synapses_total: int
+
+
+@dataclass(frozen=True)
+class IndexMemory:
+    observations: int
+    max_observations: int
+    postings: int
+    bytes: int
+
+
+@dataclass(frozen=True)
+class StreamsMemory:
+    count: int
+    max: int
+    bytes: int
+
+
+@dataclass(frozen=True)
+class StorageMemory:
+    db_bytes: int
+    wal_bytes: int
+    snapshots_bytes: int
+
+
+@dataclass(frozen=True)
+class MemoryInfo:
+    """Sizes of one map in memory and on disk (docs/design/service.md §1.4)."""
+
+    tm: TmMemory
+    index: IndexMemory
+    streams: StreamsMemory
+    projection_bytes: int
+    storage: StorageMemory

@@ -1,0 +1,429 @@
+"""One map in memory: its writer thread and the way of an observation through it
+(docs/design/service.md §1.2–§1.4, §4.3–§4.4, §6).
+
+Each map owns a Temporal Memory, its sLSBH hasher (its own persisted projection), a `MapStore` (the
+system of record) and an inverted index over winner cells. Every change to them runs in the map's
+single writer thread, in submission order, so the memory sees frames in arrival order and never two at
+once; different maps proceed in parallel.
+
+Which thread runs what:
+
+    event loop     observe (queues the image, awaits the features, then queues the step), run,
+                   require_ready
+    writer         apply, snapshot, restore, reset_stream, info, memory, snapshots, snapshot_dir,
+                   tm_digest (reach them through `run` / `submit`)
+    start-up       recover (before the writer takes work; in the writer on the commit-failure path), close
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import functools
+import hashlib
+import logging
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from models.frontend import slsbh
+from models.frontend.adaptation import RunningMean
+from models.memory.temporal_memory import TemporalMemory
+from service.maps import recovery
+from service.maps import snapshots as map_snapshots
+from service.maps.encoder_pool import EncoderPool
+from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable
+from service.maps.index import IndexFull, InvertedIndex
+from service.maps.results import (
+    IndexMemory,
+    MapInfo,
+    Match,
+    MemoryInfo,
+    ObservationResult,
+    RestoreResult,
+    SequenceStats,
+    SnapshotInfo,
+    StorageMemory,
+    StreamReset,
+    StreamsMemory,
+    TmMemory,
+)
+from service.maps.state import Stream, memory_state
+from storage import snapshots
+from storage._common import StorageFull, utc_now
+from storage.catalog import Catalog, MapRecord
+from storage.mapstore import MapStore, NewObservation, StoreCorrupt
+
+__all__ = ["MapRuntime"]
+
+log = logging.getLogger("cortexloc.runtime")
+T = TypeVar("T")
+
+
+class MapRuntime:
+    """One map in memory, with its single writer thread; `state` is `ready` | `recovering` | `failed`
+    and `state_reason` says why (module docstring: which thread runs which method)."""
+
+    def __init__(self, record: MapRecord, map_dir: Path, projections_dir: Path, catalog: Catalog,
+                 feature_dim: int, max_streams: int, max_observations: int,
+                 snapshot_every: int = 0, snapshot_keep: int = 3) -> None:
+        self.record = record
+        self.map_id = record.map_id
+        self.params = record.params
+        self.dir = map_dir
+        self.catalog = catalog
+        self.max_streams = max_streams
+        self.snapshot_every = snapshot_every
+        self.snapshot_keep = snapshot_keep
+        self.state = "recovering"
+        self.state_reason: str | None = None
+        # What the last recovery did (`recover`); the last automatic snapshot's failure, if it failed.
+        self.recovery: dict[str, Any] | None = None
+        self.snapshot_error: dict[str, Any] | None = None
+        self.snapshot_failures = 0
+        self.streams: OrderedDict[str, Stream] = OrderedDict()
+        self._writer = ThreadPoolExecutor(1, thread_name_prefix=f"map-{self.map_id}")
+        # The order in which observations reach the writer: each waits for the one before to be queued.
+        self._turn = asyncio.Event()
+        self._turn.set()
+        sha = self.params["projection_sha256"]
+        self.projection_path = projections_dir / f"{sha}.npy"
+        self.hasher: slsbh.Hasher | None = None
+        self.adapt_tau = int(self.params["slsbh"].get("adapt_tau", 0))  # maps made before it: none
+        self._projection_error: str | None = None
+        # the checksum is verified on load: a map never runs on another matrix (docs/design/science.md §7)
+        try:
+            projection = slsbh.load_projection(self.projection_path, sha,
+                                               shape=(feature_dim, int(self.params["slsbh"]["k"])))
+            self.hasher = slsbh.Hasher(projection, float(self.params["slsbh"]["s"]))
+        except (slsbh.ProjectionError, OSError) as e:
+            self._projection_error = str(e)
+        self.tm = TemporalMemory(self.params["tm"])
+        self.index = InvertedIndex(self.tm.n_cells, max_observations)
+        self.store: MapStore | None = None
+
+    # ------------------------------------------------------------------ writer
+
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        """Event loop: `fn(*args)` in this map's writer thread, after everything submitted before it."""
+        return await asyncio.wrap_future(self.submit(fn, *args))
+
+    def submit(self, fn: Callable[..., T], *args: Any) -> Future[T]:
+        """Any thread: queue `fn(*args)` on the writer. Raises MapNotFound once the map is deleted."""
+        try:
+            return self._writer.submit(fn, *args)
+        except RuntimeError as e:  # the writer was shut down: the map was deleted meanwhile
+            raise MapNotFound(self.map_id) from e
+
+    def close(self, snapshot: bool = True) -> None:
+        """Drain the writer; at a clean shutdown take an automatic snapshot if anything is new.
+
+        "New" includes a stream that switched to localisation: that switch is not in the rows, and the
+        snapshot carries it (a localisation stream comes back empty, so its next mapping step starts a
+        new sequence as it would have without the restart).
+        """
+        self._writer.shutdown(wait=True)
+        if self.store is None:
+            return
+        latest = self.catalog.list_snapshots(self.map_id)
+        new_rows = self.store.last_seq() > (latest[0].seq if latest else 0)
+        switched = any(st.learning is False for st in self.streams.values())
+        if snapshot and self.state == "ready" and self.snapshot_every and (new_rows or switched):
+            try:
+                self.snapshot("auto")
+                map_snapshots.prune_auto(self.catalog, self.map_id, self.snapshot_keep)
+            except Exception:  # the rows are durable; a snapshot only shortens the next replay
+                log.exception("map %s: shutdown snapshot failed", self.map_id)
+        self.store.close()
+
+    def require_ready(self) -> None:
+        """Raises MapUnavailable unless the map is ready."""
+        if self.state != "ready":
+            raise MapUnavailable(self.map_id, self.state, self.state_reason)
+
+    # ------------------------------------------------------------------ snapshots
+
+    def snapshots(self) -> list[SnapshotInfo]:
+        return map_snapshots.listing(self.catalog, self.map_id)
+
+    def snapshot_dir(self, snapshot_id: str) -> Path:
+        return map_snapshots.locate(self.catalog, self.map_id, snapshot_id)[1]
+
+    def snapshot(self, kind: str = "manual") -> SnapshotInfo:
+        """A consistent cut at the current seq (docs/design/service.md §1.5, §4.4).
+
+        Raises:
+            InsufficientStorage: the disk is full (nothing is left behind).
+        """
+        assert self.store is not None
+        return map_snapshots.take(self.store, memory_state(self.tm, self.streams), self.catalog, self.map_id,
+                                  self.dir, self.projection_path, kind)
+
+    def _auto_snapshot(self) -> None:
+        """The periodic snapshot after a commit. It only shortens the next recovery, so a failure
+        (typically a full disk) is logged, counted and shown in /readyz, never the request's error:
+        the row it follows is durable and acknowledged."""
+        try:
+            self.snapshot("auto")
+            map_snapshots.prune_auto(self.catalog, self.map_id, self.snapshot_keep)
+        except Exception as e:  # any failure: see the docstring
+            self.snapshot_failures += 1
+            self.snapshot_error = {"seq": self.store.last_seq() if self.store else 0, "at": utc_now(),
+                                   "error": str(e) or type(e).__name__}
+            log.exception("map %s: automatic snapshot failed; the rows stay durable", self.map_id)
+        else:
+            self.snapshot_error = None
+
+    def restore(self, snapshot_id: str) -> RestoreResult:
+        """Roll the map back to a snapshot, after keeping the present in a pre-restore snapshot.
+
+        The snapshot's store replaces the map's; the memory is then rebuilt by `recover`, which finds
+        that snapshot as the newest on the store's branch (the later ones, the pre-restore one included,
+        are on the branch the restore leaves).
+
+        Raises:
+            SnapshotNotFound; SnapshotInvalid (before anything changes); InsufficientStorage.
+        """
+        assert self.store is not None
+        _, path = map_snapshots.locate(self.catalog, self.map_id, snapshot_id)
+        snapshots.verify(path)  # refuse a damaged snapshot before touching anything
+        before = self.store.count()
+        self.snapshot("pre-restore")
+        self.catalog.bump_high_water(self.map_id, self.store.next_seq() - 1)
+        self.store.close()
+        MapStore.install_copy(path / snapshots.DB_FILE, self.dir / "map.sqlite")
+        self.recover()
+        after = self.store.count() if self.store is not None else 0
+        return RestoreResult(**vars(self.info()), discarded_observations=before - after)
+
+    # ------------------------------------------------------------------ recovery
+
+    def recover(self) -> None:
+        """Open the store and rebuild the memory from it (`recovery.recover`, docs/design/service.md §4.4):
+        at startup, after a restore, and after a failed commit. What happened is in `self.recovery`
+        (map resource, /readyz) and the log; only an unreadable store or projection fails the map."""
+        if self.hasher is None:
+            self._fail("projection-invalid", self._projection_error or "no projection")
+            return
+        if (self.dir / "snapshots").is_dir():  # a crash during a snapshot leaves only a temporary dir
+            snapshots.remove_stale_temp(self.dir / "snapshots")
+        try:
+            self.store = MapStore.open(self.dir / "map.sqlite",
+                                       seq_floor=self.catalog.get_high_water(self.map_id))
+            if not self.store.quick_check():
+                raise StoreCorrupt("quick_check failed")
+        except StoreCorrupt as e:
+            self._fail("database-corrupt", str(e))
+            return
+        done, note = recovery.recover(self.store, self.catalog, self.map_id, self.params["tm"],
+                                      adapt_tau=self.adapt_tau)
+        self.tm, self.streams = done.tm, done.streams
+        self.index = InvertedIndex(self.tm.n_cells, self.index.max_observations)
+        self.index.rebuild(self.store.rows())
+        self.recovery = note
+        self.state, self.state_reason = "ready", None
+        log.info("map %s ready: %s", self.map_id, note)
+
+    def _fail(self, reason: str, detail: str) -> None:
+        self.state, self.state_reason = "failed", reason
+        self.catalog.set_state(self.map_id, "failed", reason)
+        log.error("map %s failed (%s): %s", self.map_id, reason, detail)
+
+    # ------------------------------------------------------------------ streams
+
+    def _stream(self, name: str) -> Stream:
+        st = self.streams.get(name)
+        if st is None:
+            st = Stream()
+            self.streams[name] = st
+            while len(self.streams) > self.max_streams:
+                self.streams.popitem(last=False)  # the least recently used context is dropped (a reset)
+        self.streams.move_to_end(name)
+        return st
+
+    def reset_stream(self, name: str) -> StreamReset:
+        """Break the stream's sequence (the next frame starts a new one); its adaptation is kept,
+        because it describes the camera and the conditions, not where the robot is."""
+        st = self.streams.get(name)
+        had = st is not None and st.context.active_cells.size > 0
+        if st is not None:
+            st.context.reset()
+            st.step, st.last_learned_seq = 0, None
+        return StreamReset(stream=name, had_context=bool(had))
+
+    # ------------------------------------------------------------------ observations
+
+    async def observe(self, pool: EncoderPool, body: bytes, *, learn: bool, stream: str, top_k: int,
+                      label: str | None) -> ObservationResult:
+        """Event loop: one checked image through the map (docs/design/service.md §1.2, §6).
+
+        The pool encodes and projects it with this map's matrix, batched with other requests; the step
+        (`apply`) is then queued on the writer, after the steps of the requests that arrived before
+        this one, so the memory sees frames in arrival order while the writer never waits for an
+        encoding.
+
+        Raises:
+            MapUnavailable, Overloaded (nothing queued); ImageError (the decode failed, nothing
+            changed); MapFull, InsufficientStorage (from `apply`).
+        """
+        self.require_ready()
+        t0 = time.perf_counter()
+        encoding = pool.submit(body, hasher=self.hasher)
+        before, mine = self._turn, asyncio.Event()
+        self._turn = mine
+        try:
+            encoded = await asyncio.wrap_future(encoding)
+            t_encoded = time.perf_counter()
+            await before.wait()
+            assert encoded.projected is not None  # the pool projects when given a hasher
+            step = self.submit(functools.partial(
+                self.apply, encoded.projected[0], hashlib.sha256(body).hexdigest(), learn=learn,
+                stream=stream, top_k=top_k, label=label))
+        finally:
+            mine.set()
+        result = await asyncio.wrap_future(step)
+        return dataclasses.replace(result, timings_ms={
+            "decode": encoded.timings_ms["decode"], "encode": (t_encoded - t0) * 1e3, **result.timings_ms})
+
+    def apply(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
+              label: str | None) -> ObservationResult:
+        """Writer: one frame's TM step on the stream's context, ranking, and for learning the commit.
+
+        Args:
+            projected: (k,) the frame's features · this map's projection (docs/design/science.md §7).
+            image_sha256: hex digest of the image bytes (stored, never the image).
+
+        Returns:
+            The result; `timings_ms` holds hash, tm, search and store.
+
+        Raises:
+            ValueError: `projected` is not (k,) (before any state change). MapUnavailable, MapFull.
+            InsufficientStorage: the disk is full; the memory was rebuilt from the store, nothing learned.
+        """
+        self.require_ready()
+        assert self.store is not None and self.hasher is not None  # a map without them is never ready
+        if learn and len(self.index) >= self.index.max_observations:
+            raise MapFull(self.map_id, self.index.max_observations)
+        if projected.shape != (self.hasher.k,):
+            raise ValueError(f"projection has shape {projected.shape}, this map's are ({self.hasher.k},)")
+        t0 = time.perf_counter()
+        st = self._stream(stream)
+        if self.adapt_tau:
+            # The adapted stream's code; a crash loses the means since the last snapshot (they are
+            # not in the store), which costs about tau frames of weaker codes, never a stored row.
+            st.adapt = st.adapt or RunningMean(self.adapt_tau)
+            projected = st.adapt.subtract(projected)
+        code = slsbh.hash_projected(projected[None, :], self.hasher.s)[0]
+        t1 = time.perf_counter()
+        if learn and st.learning is False:
+            st.context.reset()  # a switch to mapping starts a new sequence: replay relies on it
+            st.step, st.last_learned_seq = 0, None
+        if st.context.active_cells.size == 0:
+            st.step, st.last_learned_seq = 0, None
+        winners = self.tm.compute(code, learn=learn, context=st.context)
+        stats = st.context.stats.as_dict()
+        t2 = time.perf_counter()
+        exclude_recent = int(self.params.get("exclude_recent", 0))
+        ranked = self.index.rank(winners, top_k, exclude_recent_stream=stream if exclude_recent else None,
+                                 exclude_recent=exclude_recent) if top_k > 0 else []
+        t3 = time.perf_counter()
+        seq = obs_id = None
+        if learn:
+            seq, obs_id = self._commit(NewObservation(
+                stream=stream, image_sha256=image_sha256, input_sdr=code.astype(np.int64),
+                winner_cells=winners, context_prev_seq=st.last_learned_seq, label=label))
+            st.last_learned_seq = seq
+        # The step is recorded before the automatic snapshot, so the snapshot holds the stream as it
+        # is after this frame (a snapshot taken before would hold a stream that just switched back to
+        # mapping as localising, and recovery would drop the context the next row continues).
+        st.learning = learn
+        st.step += 1
+        if learn and self.snapshot_every and seq is not None and seq % self.snapshot_every == 0:
+            self._auto_snapshot()
+        t4 = time.perf_counter()
+        rows = self.store.get_many(m.seq for m in ranked) if ranked else {}
+        return ObservationResult(
+            map_id=self.map_id, stream=stream, learned=learn, observation_id=obs_id, seq=seq,
+            sequence=SequenceStats(step=st.step - 1, active_columns=stats["active_columns"],
+                                   predicted_columns=stats["predicted_columns"],
+                                   bursting_columns=stats["bursting_columns"],
+                                   winner_cells=stats["winner_cells"]),
+            matches=[Match(rank=i + 1, observation_id=rows[m.seq].observation_id, seq=m.seq,
+                           stream=rows[m.seq].stream, label=rows[m.seq].label,
+                           created_at=rows[m.seq].created_at, overlap=int(m.overlap), score=float(m.score))
+                     for i, m in enumerate(ranked)],
+            timings_ms={"hash": (t1 - t0) * 1e3, "tm": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3,
+                        "store": (t4 - t3) * 1e3},
+            map_seq=self.store.last_seq(), projection_sha256=self.params["projection_sha256"])
+
+    def _commit(self, row: NewObservation) -> tuple[int, str]:
+        """Writer: the row on disk, then in the index: (seq, observation id).
+
+        A failed commit leaves the TM one learned step ahead of the store: the memory is rebuilt from
+        the store (`recover`) before anything else runs, then the error is raised.
+        """
+        assert self.store is not None
+        try:
+            seq = self.store.append(row)
+        except Exception as e:
+            self.state, self.state_reason = "recovering", "commit-failed"
+            self.store.close()
+            self.recover()
+            if isinstance(e, StorageFull):
+                raise InsufficientStorage("the observation could not be stored: the disk is full; nothing "
+                                          "was learned") from e
+            raise
+        with contextlib.suppress(IndexFull):  # checked in `apply`; the row is durable either way
+            self.index.add(seq, row.winner_cells, row.stream)
+        return seq, row.observation_id
+
+    # ------------------------------------------------------------------ resources
+
+    def info(self) -> MapInfo:
+        p = self.params
+        return MapInfo(
+            map_id=self.map_id, created_at=self.record.created_at, state=self.state,
+            state_reason=self.state_reason, preset=p["preset"],
+            params={"tm": p["tm"], "slsbh": p["slsbh"], "seed": p["seed"],
+                    "exclude_recent": p["exclude_recent"]},
+            encoder=p["encoder_id"], projection_sha256=p["projection_sha256"],
+            observations=len(self.index),
+            last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),
+            warnings=p.get("warnings", []), recovery=self.recovery, snapshot_error=self.snapshot_error)
+
+    def memory(self) -> MemoryInfo:
+        size = self.tm.size()
+        store = self.store
+        return MemoryInfo(
+            tm=TmMemory(columns=size["columns"], cells_per_column=self.tm.cells_per_column,
+                        cells=size["cells"],
+                        max_segments_per_cell=int(self.params["tm"]["maxSegmentsPerCell"]),
+                        max_synapses_per_segment=int(self.params["tm"]["maxSynapsesPerSegment"]),
+                        segments=size["segments"], segment_capacity=size["segment_capacity"],
+                        synapses=size["synapses"], synapse_capacity=size["synapse_capacity"],
+                        allocated_bytes=size["bytes"], evicted_segments_total=size["evictions"],
+                        overrun_synapses_total=size["overrun_destroyed"]),
+            index=IndexMemory(observations=len(self.index), max_observations=self.index.max_observations,
+                              postings=self.index.postings(), bytes=self.index.nbytes()),
+            streams=StreamsMemory(count=len(self.streams), max=self.max_streams,
+                                  bytes=sum(sum(v.nbytes for v in s.context.state_dict().values())
+                                            for s in self.streams.values())),
+            projection_bytes=self.projection_path.stat().st_size if self.projection_path.exists() else 0,
+            storage=StorageMemory(db_bytes=store.db_bytes() if store else 0,
+                                  wal_bytes=store.wal_bytes() if store else 0,
+                                  snapshots_bytes=self.catalog.snapshots_bytes(self.map_id)))
+
+    def tm_digest(self) -> str:
+        """SHA-256 over the learned arrays and generator state (tests: 'nothing changed')."""
+        h = hashlib.sha256()
+        for k, v in sorted(self.tm.state_dict().items()):
+            if not k.startswith("ctx."):
+                h.update(k.encode())
+                h.update(np.ascontiguousarray(v).tobytes())
+        return h.hexdigest()

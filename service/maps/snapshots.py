@@ -1,0 +1,130 @@
+"""Snapshots at the map level: take one, list, find, prune the automatic ones, import a downloaded tar
+(docs/design/service.md §1.5, §4.4). The files themselves are `storage.snapshots`'s business."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import time
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from models.frontend import slsbh
+from service.maps.errors import InsufficientStorage, SnapshotNotFound
+from service.maps.results import SnapshotInfo
+from storage import snapshots
+from storage._common import StorageFull
+from storage.catalog import Catalog, SnapshotRecord
+from storage.mapstore import MapStore
+
+__all__ = ["import_snapshot", "info", "listing", "locate", "prune_auto", "take"]
+
+log = logging.getLogger("cortexloc.snapshots")
+
+
+def info(rec: SnapshotRecord) -> SnapshotInfo:
+    return SnapshotInfo(snapshot_id=rec.snapshot_id, seq=rec.seq, kind=rec.kind, created_at=rec.created_at,
+                        bytes=rec.bytes, manifest_sha256=rec.manifest_sha256)
+
+
+def listing(catalog: Catalog, map_id: str) -> list[SnapshotInfo]:
+    """The map's snapshots, newest first."""
+    return [info(r) for r in catalog.list_snapshots(map_id)]
+
+
+def locate(catalog: Catalog, map_id: str, snapshot_id: str) -> tuple[SnapshotRecord, Path]:
+    """The snapshot's record and directory. Raises SnapshotNotFound."""
+    rec = catalog.get_snapshot(map_id, snapshot_id)
+    if rec is None:
+        raise SnapshotNotFound(map_id, snapshot_id)
+    return rec, catalog.snapshot_dir(rec)
+
+
+def take(store: MapStore, memory: Mapping[str, np.ndarray], catalog: Catalog, map_id: str, map_dir: Path,
+         projection_path: Path, kind: str) -> SnapshotInfo:
+    """A consistent cut at the store's current seq, with the memory's arrays; registered in the catalog.
+
+    Raises:
+        InsufficientStorage: the disk is full (nothing is left behind).
+    """
+    sid = snapshots.new_snapshot_id()
+    dest = map_dir / "snapshots" / sid
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    try:
+        m = snapshots.create_snapshot(store, dict(memory), dest, kind=kind,
+                                      external={"projection.npy": projection_path})
+    except StorageFull as e:
+        raise InsufficientStorage(f"the {kind} snapshot could not be written: the disk is full; the map "
+                                  "is unchanged") from e
+    rec = catalog.register_snapshot(SnapshotRecord(
+        snapshot_id=m.snapshot_id, map_id=map_id, seq=m.seq, kind=kind, created_at=m.created_at,
+        bytes=m.bytes, manifest_sha256=m.manifest_sha256, path=str(dest)))
+    log.info("map %s: %s snapshot %s at seq %d in %.2f s", map_id, kind, sid, m.seq, time.perf_counter() - t0)
+    return info(rec)
+
+
+def prune_auto(catalog: Catalog, map_id: str, keep: int) -> None:
+    """Keep the `keep` newest automatic snapshots; manual and pre-restore ones stay."""
+    for rec in catalog.list_snapshots(map_id, kind="auto")[keep:]:
+        catalog.delete_snapshot(map_id, rec.snapshot_id)
+        shutil.rmtree(catalog.snapshot_dir(rec), ignore_errors=True)
+
+
+def import_snapshot(data_dir: Path, catalog: Catalog, projections: Path, tar_path: Path,
+                    max_bytes: int) -> str:
+    """Create a map from a downloaded snapshot tar (`cortexloc import`, server stopped).
+
+    The manifest (the tar's first member) is checked before anything is written: its ids follow
+    the API's rules (`storage.snapshots`), the map is new here, and the files it declares fit in
+    `max_bytes` and in the free space of the data directory. Every checksum is then verified (the
+    snapshot's files, and the projection against the map's recorded SHA-256) before anything is
+    registered; the map recovers from that snapshot when the server starts.
+
+    Returns:
+        The imported map's id.
+
+    Raises:
+        SnapshotInvalid: a bad or too large tar. ValueError: the map exists, or no projection.
+    """
+    maps_dir = data_dir / "maps"
+
+    def acceptable(m: snapshots.Manifest) -> None:
+        if catalog.get_map(m.map_id) is not None:
+            raise ValueError(f"map {m.map_id!r} exists here already")
+        need = sum(e.bytes for e in (*m.files.values(), *m.external.values()))
+        free = shutil.disk_usage(data_dir).free
+        if need > free:
+            raise ValueError(f"the snapshot needs {need} bytes, {data_dir} has {free} free")
+
+    staging = maps_dir / f".import-{snapshots.new_snapshot_id()}"
+    with tar_path.open("rb") as f:
+        manifest = snapshots.import_tar(f, staging, max_bytes=max_bytes, check=acceptable)
+    try:
+        map_id = manifest.map_id
+        sha = manifest.projection_sha256
+        target = projections / f"{sha}.npy"
+        if (staging / "projection.npy").exists():
+            slsbh.load_projection(staging / "projection.npy", sha)  # refuses another matrix
+            if not target.exists():
+                (staging / "projection.npy").replace(target)
+            else:
+                (staging / "projection.npy").unlink()
+        if not target.exists():
+            raise ValueError(f"the tar holds no projection and {target} is missing")
+        map_dir = maps_dir / map_id
+        map_dir.mkdir(parents=True)
+        MapStore.install_copy(staging / "map.sqlite", map_dir / "map.sqlite")
+        snap_dir = map_dir / "snapshots" / manifest.snapshot_id
+        snap_dir.parent.mkdir(parents=True)
+        staging.replace(snap_dir)
+        catalog.create_map(map_id, manifest.params, preset=manifest.params.get("preset"), state="ready")
+        catalog.register_snapshot(SnapshotRecord(
+            snapshot_id=manifest.snapshot_id, map_id=map_id, seq=manifest.seq, kind=manifest.kind,
+            created_at=manifest.created_at, bytes=manifest.bytes,
+            manifest_sha256=manifest.manifest_sha256, path=str(snap_dir)))
+        return map_id
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)

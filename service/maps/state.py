@@ -1,0 +1,54 @@
+"""A map's memory as arrays and back: the TM, its generator, every stream's context and bookkeeping
+(docs/design/service.md §1.3, §4.4). Snapshots store these arrays; recovery loads them."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from models.frontend.adaptation import RunningMean
+from models.memory.temporal_memory import StreamContext, TemporalMemory
+
+__all__ = ["Stream", "load_memory_state", "memory_state"]
+
+
+@dataclass
+class Stream:
+    """A stream's sequence state in one map (docs/design/service.md §1.3)."""
+
+    context: StreamContext = field(default_factory=StreamContext)
+    step: int = 0  # steps since the context was last empty
+    last_learned_seq: int | None = None  # the learned observation the context continues
+    learning: bool | None = None  # mode of the last step (a switch to learning starts a new sequence)
+    adapt: RunningMean | None = None  # the stream's running mean of projections (models.frontend.adaptation)
+
+
+def memory_state(tm: TemporalMemory, streams: Mapping[str, Stream]) -> dict[str, np.ndarray]:
+    """The whole memory as arrays: TM, generator, every stream's context and bookkeeping."""
+    names = {name.encode().hex(): name for name in streams}  # stream names may hold '.'
+    state = tm.state_dict(streams={h: streams[n].context for h, n in names.items()})
+    for h, n in names.items():
+        st = streams[n]
+        state[f"streammeta.{h}"] = np.array(
+            [st.step, -1 if st.last_learned_seq is None else st.last_learned_seq,
+             -1 if st.learning is None else int(st.learning)], dtype=np.int64)
+        if st.adapt is not None:
+            state[f"streamadapt.{h}"] = st.adapt.state()
+    return state
+
+
+def load_memory_state(state: Mapping[str, np.ndarray], adapt_tau: int
+                      ) -> tuple[TemporalMemory, OrderedDict[str, Stream]]:
+    """The reverse of `memory_state`: (memory, streams by name)."""
+    tm = TemporalMemory.from_state(dict(state))
+    streams: OrderedDict[str, Stream] = OrderedDict()
+    for h, ctx in TemporalMemory.load_streams(dict(state)).items():
+        step, last, learning = (int(v) for v in state[f"streammeta.{h}"])
+        adapt = (RunningMean.from_state(adapt_tau, state[f"streamadapt.{h}"])
+                 if adapt_tau and f"streamadapt.{h}" in state else None)
+        streams[bytes.fromhex(h).decode()] = Stream(
+            ctx, step, None if last < 0 else last, None if learning < 0 else bool(learning), adapt)
+    return tm, streams

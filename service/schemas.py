@@ -1,0 +1,174 @@
+"""The HTTP bodies: the one request model (`CreateMap`) and a response model for every JSON reply
+(docs/design/service.md §1), so /openapi.json describes each 2xx body. Routes build them from the
+dataclasses of `service.maps.results` (`from_result`)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Literal, Self
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.maps import results
+
+__all__ = ["CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel", "ObservationModel",
+           "Readiness", "RestoreModel", "SequenceModel", "SnapshotList", "SnapshotModel", "StreamResetModel",
+           "Versions"]
+
+MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    @classmethod
+    def from_result(cls, result: Any, **more: Any) -> Self:
+        """The model of a `service.maps.results` dataclass, with `more` fields the route adds."""
+        return cls.model_validate({**dataclasses.asdict(result), **more})
+
+
+# ------------------------------------------------------------------------------------------- maps
+
+
+class CreateMap(BaseModel):
+    """Every field optional; overrides are merged over the preset and frozen into the map.
+
+    `tm` and `slsbh` are checked parameter by parameter (names, types, ranges: `models.presets.TmParams`
+    and `SlsbhParams`, with the rules between them) where the map's parameters are resolved
+    (`service.maps.params.resolve_params`): a bad value is 422 invalid-configuration naming it.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    map_id: str | None = Field(default=None, pattern=MAP_ID_PATTERN)
+    preset: str | None = None
+    seed: int | None = Field(default=None, description="the TM's seed (and the projection's); >= 0")
+    tm: dict[str, Any] | None = Field(default=None, description="Temporal Memory overrides, NuPIC names")
+    slsbh: dict[str, Any] | None = Field(default=None, description="sLSBH overrides: k, s, seed, adapt_tau")
+    exclude_recent: int = Field(default=0, ge=0)
+
+
+class MapParams(_Out):
+    tm: dict[str, Any]
+    slsbh: dict[str, Any]
+    seed: int
+    exclude_recent: int
+
+
+class MapModel(_Out):
+    """A map; `recovery` says what its last rebuild from the store did (docs/design/service.md §4.4)."""
+
+    map_id: str
+    created_at: str
+    state: Literal["ready", "recovering", "failed"]
+    state_reason: str | None
+    preset: str | None
+    params: MapParams
+    encoder: str
+    projection_sha256: str
+    observations: int
+    last_seq: int
+    streams: list[str]
+    warnings: list[str]
+    recovery: dict[str, Any] | None
+    snapshot_error: dict[str, Any] | None
+
+
+class MapList(_Out):
+    maps: list[MapModel]
+
+
+class RestoreModel(MapModel):
+    discarded_observations: int = Field(description="observations after the snapshot, now dropped")
+
+
+class StreamResetModel(_Out):
+    stream: str
+    had_context: bool
+
+
+class MemoryModel(_Out):
+    """Sizes of one map (docs/design/service.md §1.4); its parts are the domain's records as they are."""
+
+    tm: results.TmMemory
+    index: results.IndexMemory
+    streams: results.StreamsMemory
+    projection_bytes: int
+    storage: results.StorageMemory
+    process_rss_bytes: int
+
+
+# ----------------------------------------------------------------------------------- observations
+
+
+class SequenceModel(_Out):
+    step: int
+    active_columns: int
+    predicted_columns: int
+    bursting_columns: int
+    winner_cells: int
+
+
+class MatchModel(_Out):
+    rank: int
+    observation_id: str
+    seq: int
+    stream: str
+    label: str | None
+    created_at: str
+    overlap: int
+    score: float = Field(description="Dice of the winner-cell sets")
+
+
+class Versions(_Out):
+    api: str
+    code: str
+    encoder: str
+    weights: str
+    projection: str
+    map_seq: int
+
+
+class ObservationModel(_Out):
+    """One frame's answer (docs/design/service.md §1.2); `timings_ms` per stage, and `total`."""
+
+    request_id: str | None
+    map_id: str
+    stream: str
+    learned: bool
+    observation_id: str | None
+    seq: int | None
+    sequence: SequenceModel
+    matches: list[MatchModel]
+    timings_ms: dict[str, float]
+    versions: Versions
+
+
+# -------------------------------------------------------------------------------------- snapshots
+
+
+class SnapshotModel(_Out):
+    snapshot_id: str
+    seq: int
+    kind: str
+    created_at: str
+    bytes: int
+    manifest_sha256: str
+
+
+class SnapshotList(_Out):
+    snapshots: list[SnapshotModel]
+
+
+# ------------------------------------------------------------------------------------- operations
+
+
+class Health(_Out):
+    status: Literal["ok"]
+
+
+class Readiness(_Out):
+    """Each check's result (`status` pass | warn | fail and its details); the warnings gathered."""
+
+    status: Literal["ready"]
+    checks: dict[str, dict[str, Any]]
+    warnings: list[str]
