@@ -105,7 +105,7 @@ def test_confidence_is_higher_on_right_answers_than_on_wrong_ones() -> None:
     truth = np.concatenate([np.arange(0, 100), np.arange(200, 300), np.arange(100, 200)])
     S = place_similarity(np.arange(n), truth, noise=0.45, seed=3)
     places = run(S, SequenceGraph.chain(n))
-    ok = np.array([p is not None and p.seq == t for p, t in zip(places, truth)])
+    ok = np.array([p is not None and p.seq == t for p, t in zip(places, truth, strict=True)])
     conf = np.array([0.0 if p is None else p.confidence for p in places])
     assert 10 < np.count_nonzero(~ok) < 150
     assert conf[ok].mean() > conf[~ok].mean() + 0.2
