@@ -17,8 +17,8 @@ def noisy_route(n: int = 80, d: int = 64, noise: float = 3.0, seed: int = 0) -> 
 def test_online_methods_beat_single_frames_and_follow_a_reversed_route() -> None:
     db, q = noisy_route()
     for reverse in (False, True):
-        res = sequences.image_experiment(db, q, methods=["cosine", "online-htm"], preset="cortexloc-grid", k=64, s=0.1,
-                                         seeds=1, reverse_query=reverse)["methods"]
+        res = sequences.image_experiment(db, q, methods=["cosine", "online-htm"], preset="cortexloc-grid",
+                                         k=64, s=0.1, seeds=1, reverse_query=reverse)["methods"]
         assert set(res) == {"cosine", "online-cosine", "online-slsbh", "online-htm"}
         assert res["online-cosine"]["recall_at_1_mean"] > res["cosine"]["recall_at_1_mean"] + 0.2
         assert res["online-cosine"]["recall_at_1_mean"] > 0.8
