@@ -28,16 +28,18 @@ from service.ui import STATIC_DIR
 OUT = Path(__file__).resolve().parents[2] / "out"
 
 
-def _chromium() -> str:
+@pytest.fixture
+def chromium() -> str:
+    """The browser's path; the test skips without one (asked first, before any server starts)."""
     found = shutil.which("chromium") or shutil.which("chromium-browser")
     if found is None:
         pytest.skip("no headless browser: install Debian's `chromium` (.ci/run does)")
     return found
 
 
-def browse(url: str, profile: Path, screenshot: Path | None = None) -> str:
+def browse(chromium: str, url: str, profile: Path, screenshot: Path | None = None) -> str:
     """The page's DOM after its scripts ran (virtual time: polls included), and optionally a screenshot."""
-    base = [_chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    base = [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
             "--disable-background-networking", "--disable-component-update", "--disable-sync",
             f"--user-data-dir={profile}", "--virtual-time-budget=8000"]
     dom = subprocess.run([*base, "--dump-dom", url], capture_output=True, text=True, timeout=120, check=True)
@@ -106,8 +108,8 @@ def by_header(rows: Rows) -> list[dict[str, str]]:
 # ------------------------------------------------------------------------------- a real service
 
 
-def test_the_viewer_shows_a_running_services_map_and_its_answers_in_order(server, http, make_frame,
-                                                                       tmp_path):
+def test_the_viewer_shows_a_running_services_map_and_its_answers_in_order(chromium, server, http,
+                                                                       make_frame, tmp_path):
     assert http(f"{server}/v1/maps", json.dumps({"map_id": "yard"}).encode(), "application/json")[0] == 201
     sent = []
     for place in range(5):  # a mapping run, then a revisit of places 1-3 without learning
@@ -121,7 +123,7 @@ def test_the_viewer_shows_a_running_services_map_and_its_answers_in_order(server
         assert status == 200
         sent.append(body)
 
-    dom = browse(f"{server}/ui/?map=yard", tmp_path / "profile", OUT / "viewer.png")
+    dom = browse(chromium, f"{server}/ui/?map=yard", tmp_path / "profile", OUT / "viewer.png")
 
     maps = {a["data-map-id"]: cells for a, cells in Rows(dom, "maps").rows}
     assert set(maps) == {"default", "yard"}
@@ -148,6 +150,14 @@ def test_the_viewer_shows_a_running_services_map_and_its_answers_in_order(server
             assert row["place"] == row["confidence"] == row["revisit"] == "—"
     assert "trajectory-panel" in dom and 'class="panel empty"' in dom  # no poses: the panel says why
     assert dom.count('class="match-point"') == sum(1 for b in sent if b["matches"])
+
+
+def test_the_viewer_asks_for_the_key_when_reads_need_one(chromium, server_proc, tmp_path):
+    server_proc.extra_env = {"CORTEXLOC_API_KEY": "k3y", "CORTEXLOC_API_KEY_READS": "true"}
+    base = server_proc.start()
+    dom = browse(chromium, f"{base}/ui/", tmp_path / "profile")
+    assert 'data-state="error"' in dom and "the service needs the API key for reads" in dom
+    assert 'id="api-key"' in dom  # where the person types it
 
 
 # ---------------------------------------------------------------------- a service with every field
@@ -246,8 +256,9 @@ def stub_service() -> Iterator[str]:
         httpd.server_close()
 
 
-def test_the_viewer_shows_places_poses_and_thumbnails_when_the_service_gives_them(stub_service, tmp_path):
-    dom = browse(f"{stub_service}/ui/?map=yard", tmp_path / "profile", OUT / "viewer-full.png")
+def test_the_viewer_shows_places_poses_and_thumbnails_when_the_service_gives_them(chromium, stub_service,
+                                                                                 tmp_path):
+    dom = browse(chromium, f"{stub_service}/ui/?map=yard", tmp_path / "profile", OUT / "viewer-full.png")
 
     maps = Rows(dom, "maps")
     assert maps.rows[0][1][maps.header.index("backbone")] == "alexnet"
