@@ -52,10 +52,15 @@ function renderMaps() {
   }));
 }
 
-function select(mapId) {
-  if (mapId === state.selected) return;
+function forget(mapId) {
+  // What was read of the map shown before: its answers and stored rows.
   state.selected = mapId;
   state.recent = []; state.rows = new Map(); state.rowsAfter = 0; state.rowsRoute = true; state.stream = "";
+}
+
+function select(mapId) {
+  if (mapId === state.selected) return;
+  forget(mapId);
   const url = new URL(location.href);
   url.searchParams.set("map", mapId);
   history.replaceState(null, "", url);
@@ -210,7 +215,7 @@ async function poll() {
   try {
     const list = await getJson("/v1/maps");
     state.maps = list.maps;
-    if (!selectedMap() && state.maps.length) state.selected = state.maps[0].map_id;
+    if (!selectedMap() && state.maps.length) forget(state.maps[0].map_id);  // none chosen, or deleted
     if (state.tick % MEMORY_EVERY === 0 || state.maps.some((m) => !(m.map_id in state.memory))) {
       await Promise.all(state.maps.map(async (m) => {
         try { state.memory[m.map_id] = await getJson(`/v1/maps/${enc(m.map_id)}/memory`); }
