@@ -45,6 +45,7 @@ from service.limits import UploadLimitMiddleware
 from service.metrics import Metrics, MetricsMiddleware
 from service.routes import api_router
 from service.settings import ConfigError, Settings
+from service.ui import UI_PATH, static_files
 
 __all__ = ["Component", "EncoderFactory", "build_encoder", "configure_logging", "create_app",
            "encoder_weights_info"]
@@ -277,5 +278,6 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFact
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(RequestContextMiddleware)
     app.include_router(api_router)
+    app.mount(UI_PATH, static_files(), name="ui")  # the map viewer: static files, no API of its own
     app.openapi = _openapi_with_problems(app)  # type: ignore[method-assign]
     return app

@@ -12,8 +12,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from service.maps import results
 
 __all__ = ["CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel", "ObservationModel",
-           "Readiness", "RestoreModel", "SequenceModel", "SnapshotList", "SnapshotModel", "StreamResetModel",
-           "Versions"]
+           "Readiness", "RecentList", "RecentModel", "RestoreModel", "SequenceModel", "SnapshotList",
+           "SnapshotModel", "StreamResetModel", "Versions"]
 
 MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"
 
@@ -141,6 +141,21 @@ class ObservationModel(_Out):
     matches: list[MatchModel]
     timings_ms: dict[str, float]
     versions: Versions
+
+
+class RecentModel(_Out):
+    """One answer of the recent ring: the observation reply as it was sent, and when."""
+
+    received_at: str = Field(description="when the reply was sent (UTC, ISO 8601)")
+    reply: ObservationModel
+
+
+class RecentList(_Out):
+    """The map's latest answers, oldest first; in memory only (docs/design/service.md §1.7)."""
+
+    map_id: str
+    capacity: int = Field(description="answers the service keeps per map")
+    answers: list[RecentModel]
 
 
 # -------------------------------------------------------------------------------------- snapshots

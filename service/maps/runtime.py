@@ -40,6 +40,7 @@ from service.maps import snapshots as map_snapshots
 from service.maps.encoder_pool import EncoderPool
 from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable
 from service.maps.index import IndexFull, InvertedIndex
+from service.maps.recent import RecentAnswers
 from service.maps.results import (
     IndexMemory,
     MapInfo,
@@ -107,6 +108,7 @@ class MapRuntime:
         self.tm = TemporalMemory(self.params["tm"])
         self.index = InvertedIndex(self.tm.n_cells, max_observations)
         self.store: MapStore | None = None
+        self.recent: RecentAnswers[Any] = RecentAnswers()  # the replies as sent (the route fills it)
 
     # ------------------------------------------------------------------ writer
 

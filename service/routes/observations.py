@@ -70,7 +70,7 @@ async def post_observation(
             metrics.observe_stage(stage, ms / 1e3)
     metrics.observations.labels(map=map_id, learned=str(learn).lower()).inc()
     desc = encoder.describe()
-    return ObservationModel(
+    reply = ObservationModel(
         request_id=getattr(request.state, "request_id", None), map_id=result.map_id, stream=result.stream,
         learned=result.learned, observation_id=result.observation_id, seq=result.seq,
         sequence=SequenceModel.from_result(result.sequence),
@@ -79,3 +79,5 @@ async def post_observation(
         versions=Versions(api="v1", code=request.app.version, encoder=desc["encoder"],
                           weights=desc["weights"], projection=f"sha256:{result.projection_sha256}",
                           map_seq=result.map_seq))
+    rt.recent.add(result.stream, reply)  # the viewer's window (GET .../recent): the reply as sent
+    return reply

@@ -1,0 +1,31 @@
+"""The latest answers of a map, for watching it work (docs/design/service.md §1.7): the observation
+replies as they were sent, from the map's in-memory ring (`service.maps.recent`), not from the store."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Path, Query
+
+from service.deps import MapReadKeyDep, RegistryDep
+from service.errors import problem_responses
+from service.maps.recent import RECENT_CAPACITY
+from service.schemas import MAP_ID_PATTERN, RecentList, RecentModel
+
+router = APIRouter(prefix="/v1/maps", tags=["observations"])
+
+
+@router.get("/{map_id}/recent", dependencies=[MapReadKeyDep], responses=problem_responses(400, 401, 404))
+async def recent_answers(
+    map_id: Annotated[str, Path(pattern=MAP_ID_PATTERN)],
+    registry: RegistryDep,
+    limit: Annotated[int, Query(ge=1, le=RECENT_CAPACITY, description="newest answers to return")] = 50,
+    stream: Annotated[str | None, Query(pattern=r"^[A-Za-z0-9._-]{1,64}$",
+                                        description="only this stream's answers")] = None,
+) -> RecentList:
+    """The map's newest answers (learned and localised), oldest first. Not durable: empty after a
+    restart."""
+    rt = registry.get(map_id)
+    return RecentList(map_id=map_id, capacity=rt.recent.capacity,
+                      answers=[RecentModel(received_at=e.received_at, reply=e.reply)
+                               for e in rt.recent.last(limit, stream)])

@@ -1,0 +1,48 @@
+// Formatting shared by the panels: one spelling of "no value" and of sizes, scores and times.
+
+export const NONE = "—";
+
+export function num(v, digits = 0) {
+  return typeof v === "number" && Number.isFinite(v) ? v.toFixed(digits) : NONE;
+}
+
+export function bytes(v) {
+  if (typeof v !== "number" || !Number.isFinite(v)) return NONE;
+  const units = ["B", "KiB", "MiB", "GiB", "TiB"];
+  let i = 0;
+  while (v >= 1024 && i < units.length - 1) { v /= 1024; i += 1; }
+  return `${v.toFixed(i === 0 ? 0 : 1)} ${units[i]}`;
+}
+
+export function text(v) { return v === null || v === undefined || v === "" ? NONE : String(v); }
+
+export function clock(iso) {
+  const d = new Date(iso);
+  return Number.isNaN(d.getTime()) ? NONE : d.toLocaleTimeString([], { hour12: false }) +
+    "." + String(d.getMilliseconds()).padStart(3, "0");
+}
+
+/** Confidence class: hi (confident), mid (unsure), lo (weak); none without a value. */
+export function level(v) {
+  if (typeof v !== "number" || !Number.isFinite(v)) return "none";
+  return v >= 0.7 ? "hi" : v >= 0.4 ? "mid" : "lo";
+}
+
+/** An element with attributes and children (strings become text nodes). */
+export function el(tag, attrs = {}, ...children) {
+  const node = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) {
+    if (v === null || v === undefined || v === false) continue;
+    if (k === "class") node.className = v; else node.setAttribute(k, v === true ? "" : String(v));
+  }
+  for (const c of children) if (c !== null && c !== undefined) node.append(c);
+  return node;
+}
+
+// The SVG namespace is taken from the page's own <svg> elements, so the shipped files name no URL at all.
+export function svg(tag, attrs = {}, ...children) {
+  const node = document.createElementNS(document.querySelector("svg").namespaceURI, tag);
+  for (const [k, v] of Object.entries(attrs)) if (v !== null && v !== undefined) node.setAttribute(k, String(v));
+  for (const c of children) if (c !== null && c !== undefined) node.append(c);
+  return node;
+}

@@ -1,0 +1,260 @@
+// The map viewer: polls the API and redraws four panels (maps, recent answers, trajectory, sequence
+// match). Selecting a map: click its row, or open /ui/?map=ID.
+
+import { apiKey, getImageUrl, getJson, HttpError, isMissingRoute, setApiKey } from "./api.js";
+import * as A from "./answers.js";
+import { NONE, bytes, clock, el, level, num, text } from "./format.js";
+import { drawSeqMatch } from "./seqmatch.js";
+import { drawTrajectory } from "./trajectory.js";
+
+const POLL_MS = 2000;         // the recent answers and the map list
+const MEMORY_EVERY = 3;       // memory sizes every third poll: they run on the map's writer
+const RECENT_LIMIT = 100;     // answers asked for (the service keeps at most its ring's capacity)
+const ROWS_SHOWN = 60;        // rows of the recent table
+const OBS_PAGE = 500;         // stored rows per page of /observations
+
+const state = {
+  maps: [], memory: {}, selected: new URLSearchParams(location.search).get("map"), stream: "",
+  recent: [], rows: new Map(), rowsAfter: 0, rowsRoute: true, thumbs: new Map(), tick: 0, busy: false,
+};
+
+const $ = (id) => document.getElementById(id);
+
+function setStatus(kind, message) {
+  $("status").dataset.state = kind;
+  $("status").textContent = message;
+}
+
+function enc(s) { return encodeURIComponent(s); }
+
+function selectedMap() { return state.maps.find((m) => m.map_id === state.selected) || null; }
+
+// ------------------------------------------------------------------------------------------- maps
+
+function renderMaps() {
+  const body = $("maps").tBodies[0];
+  body.replaceChildren(...state.maps.map((m) => {
+    const mem = state.memory[m.map_id];
+    const tr = el("tr", { "data-map-id": m.map_id, class: m.map_id === state.selected ? "selected" : null },
+      el("td", {}, m.map_id),
+      el("td", { class: `state-${m.state}`, title: m.state_reason || "" }, m.state),
+      el("td", { title: m.encoder || "" }, text(m.backbone)),
+      el("td", {}, text(m.preset)),
+      el("td", { class: "num obs-count" }, num(m.observations)),
+      el("td", { class: "num" }, num(m.streams ? m.streams.length : undefined)),
+      el("td", { class: "num" }, bytes(mem && mem.tm ? mem.tm.allocated_bytes : undefined)),
+      el("td", { class: "num" }, bytes(mem && mem.index ? mem.index.bytes : undefined)),
+      el("td", { class: "num" }, bytes(mem ? mem.projection_bytes : undefined)),
+      el("td", { class: "num" }, bytes(mem && mem.storage ? mem.storage.db_bytes + mem.storage.wal_bytes
+                                                           : undefined)));
+    tr.addEventListener("click", () => select(m.map_id));
+    return tr;
+  }));
+}
+
+function forget(mapId) {
+  // What was read of the map shown before: its answers and stored rows.
+  state.selected = mapId;
+  state.recent = []; state.rows = new Map(); state.rowsAfter = 0; state.rowsRoute = true; state.stream = "";
+}
+
+function select(mapId) {
+  if (mapId === state.selected) return;
+  forget(mapId);
+  const url = new URL(location.href);
+  url.searchParams.set("map", mapId);
+  history.replaceState(null, "", url);
+  renderMaps();
+  poll();
+}
+
+function renderStreams(map) {
+  const pick = $("stream");
+  const names = new Set(map ? map.streams || [] : []);
+  for (const e of state.recent) names.add(e.reply.stream);
+  const wanted = ["", ...[...names].sort()];
+  const have = [...pick.options].map((o) => o.value);
+  if (wanted.join("\n") !== have.join("\n")) {
+    pick.replaceChildren(...wanted.map((s) => el("option", { value: s }, s || "all")));
+  }
+  pick.value = state.stream;
+}
+
+// ---------------------------------------------------------------------------------------- answers
+
+function thumbnailsOn(map) {
+  return Boolean(map && (map.thumbnails === true || (map.params && map.params.thumbnails === true)));
+}
+
+function thumb(map, seq) {
+  const cell = el("td", { class: "thumb" });
+  if (!thumbnailsOn(map) || typeof seq !== "number") { cell.textContent = NONE; return cell; }
+  const key = `${map.map_id}/${seq}`;
+  if (!state.thumbs.has(key)) {
+    state.thumbs.set(key, null);
+    getImageUrl(`/v1/maps/${enc(map.map_id)}/observations/${seq}/thumbnail`).then((url) => {
+      state.thumbs.set(key, url || NONE);
+      renderRecent();
+    }).catch(() => state.thumbs.set(key, NONE));
+  }
+  const url = state.thumbs.get(key);
+  if (url && url !== NONE) cell.append(el("img", { src: url, alt: `seq ${seq}` }));
+  else cell.textContent = url === NONE ? NONE : "…";
+  return cell;
+}
+
+function confidenceCell(v) {
+  const cls = level(v);
+  if (cls === "none") return el("td", { class: "num none" }, NONE);
+  const bar = el("span", { class: "bar" }, el("i", { class: cls, style: `width:${Math.round(v * 100)}%` }));
+  return el("td", { class: "num" }, el("span", { class: `conf ${cls}` }, bar, num(v, 2)));
+}
+
+function revisitCell(place) {
+  if (place === undefined || place === null || typeof place.revisit !== "boolean") {
+    return el("td", { class: "none" }, NONE);
+  }
+  return el("td", {}, place.revisit ? el("span", { class: "badge revisit" }, "revisit")
+                                    : el("span", { class: "badge new" }, "new"));
+}
+
+function renderRecent() {
+  const map = selectedMap();
+  $("recent-map").textContent = map ? map.map_id : "";
+  const shown = state.recent.filter((e) => !state.stream || e.reply.stream === state.stream);
+  const rows = shown.slice(-ROWS_SHOWN).map((e, i) => ({ e, i: shown.length - Math.min(shown.length, ROWS_SHOWN) + i }))
+    .reverse();
+  $("recent").tBodies[0].replaceChildren(...rows.map(({ e, i }) => {
+    const r = e.reply;
+    const p = A.place(r);
+    const m = A.topMatch(r);
+    return el("tr", { "data-index": i, "data-seq": r.seq ?? "", "data-mode": r.learned ? "learn" : "localise" },
+      el("td", { class: "num" }, clock(e.received_at)),
+      el("td", {}, r.stream),
+      el("td", {}, el("span", { class: `badge ${r.learned ? "learn" : "localise"}` },
+                      r.learned ? "learned" : "localised")),
+      el("td", { class: "num" }, num(r.seq ?? undefined)),
+      el("td", { class: "num" }, num(r.sequence ? r.sequence.step : undefined)),
+      el("td", { class: "num place-seq" }, p ? num(p.seq) : NONE),
+      el("td", {}, p ? text(p.label) : NONE),
+      confidenceCell(p ? p.confidence : undefined),
+      revisitCell(p),
+      el("td", { class: "num" }, p ? num(p.support) : NONE),
+      el("td", { class: "num match-seq" }, m ? num(m.seq) : NONE),
+      el("td", {}, m ? text(m.label) : NONE),
+      el("td", { class: `num ${level(m ? m.score : undefined)}` }, m ? num(m.score, 3) : NONE),
+      thumb(map, r.learned ? r.seq : null),
+      thumb(map, A.matchedSeq(r) ?? (m ? m.seq : null)));
+  }));
+  const notes = [];
+  if (!state.recent.length) notes.push("No answers since the service started (the list is kept in memory only).");
+  if (state.recent.length && state.recent.every((e) => e.reply.place === undefined)) {
+    notes.push("This service sends no sequence place: place columns show —.");
+  }
+  if (map && !thumbnailsOn(map)) notes.push("Thumbnails are off for this map.");
+  $("recent-note").textContent = notes.join(" ");
+}
+
+// ----------------------------------------------------------------------------------------- poses
+
+async function loadRows(map) {
+  // Stored rows with their metadata, paged from the last seq seen; a service without the route says so once.
+  if (!state.rowsRoute) return;
+  for (let page = 0; page < 20; page += 1) {
+    let body;
+    try {
+      body = await getJson(`/v1/maps/${enc(map.map_id)}/observations?after_seq=${state.rowsAfter}&limit=${OBS_PAGE}`);
+    } catch (err) {
+      if (isMissingRoute(err)) { state.rowsRoute = false; return; }
+      throw err;
+    }
+    const items = Array.isArray(body) ? body : body.observations || body.items || [];
+    for (const row of items) {
+      state.rows.set(row.seq, row);
+      state.rowsAfter = Math.max(state.rowsAfter, row.seq);
+    }
+    if (items.length < OBS_PAGE) return;
+  }
+}
+
+function renderTrajectory() {
+  const panel = $("trajectory-panel");
+  const stored = [...state.rows.values()].map((row) => ({ seq: row.seq, stream: row.stream, pose: A.pose(row.metadata) }))
+    .filter((r) => r.pose);
+  const queries = state.recent.map((e) => ({ e, pose: A.pose(e.reply.metadata) })).filter((q) => q.pose);
+  const poseOf = (seq) => {
+    const row = state.rows.get(seq);
+    if (row && A.pose(row.metadata)) return A.pose(row.metadata);
+    const hit = state.recent.find((e) => e.reply.seq === seq && A.pose(e.reply.metadata));
+    if (hit) return A.pose(hit.reply.metadata);
+    for (const e of state.recent) {  // a match or place that carries its own metadata
+      for (const m of [e.reply.place, ...(e.reply.matches || [])]) {
+        if (m && m.seq === seq && A.pose(m.metadata)) return A.pose(m.metadata);
+      }
+    }
+    return null;
+  };
+  if (!stored.length && !queries.length) {
+    panel.classList.add("empty");
+    $("trajectory").replaceChildren();
+    const why = !state.rowsRoute && state.recent.every((e) => e.reply.metadata === undefined)
+      ? "This service returns no observation metadata; the trajectory needs poses."
+      : "No poses yet: post observations with metadata.pose {x, y} to draw the trajectory.";
+    $("trajectory-note").textContent = why;
+    return;
+  }
+  panel.classList.remove("empty");
+  $("trajectory-note").textContent = drawTrajectory($("trajectory"), stored, queries, poseOf);
+}
+
+// ----------------------------------------------------------------------------------------- poll
+
+async function poll() {
+  if (state.busy) return;
+  state.busy = true;
+  try {
+    const list = await getJson("/v1/maps");
+    state.maps = list.maps;
+    if (!selectedMap() && state.maps.length) forget(state.maps[0].map_id);  // none chosen, or deleted
+    if (state.tick % MEMORY_EVERY === 0 || state.maps.some((m) => !(m.map_id in state.memory))) {
+      await Promise.all(state.maps.map(async (m) => {
+        try { state.memory[m.map_id] = await getJson(`/v1/maps/${enc(m.map_id)}/memory`); }
+        catch { state.memory[m.map_id] = null; }
+      }));
+    }
+    const map = selectedMap();
+    if (map) {
+      const recent = await getJson(`/v1/maps/${enc(map.map_id)}/recent?limit=${RECENT_LIMIT}`);
+      state.recent = recent.answers;
+      await loadRows(map);
+    }
+    renderMaps();
+    renderStreams(map);
+    renderRecent();
+    renderTrajectory();
+    const stream = state.stream || (state.recent.length ? state.recent[state.recent.length - 1].reply.stream : "");
+    $("seqmatch-stream").textContent = stream;
+    drawSeqMatch($("seqmatch"), state.recent.filter((e) => e.reply.stream === stream), map);
+    const last = state.recent.length ? clock(state.recent[state.recent.length - 1].received_at) : NONE;
+    setStatus("live", `${state.maps.length} map(s) · ${state.recent.length} recent answer(s) · last ${last} · ` +
+                      `polling every ${POLL_MS / 1000} s`);
+  } catch (err) {
+    const needKey = err instanceof HttpError && err.status === 401;
+    setStatus("error", needKey ? `the service needs the API key for reads${apiKey() ? " (the one given is refused)" : ""}`
+                               : `cannot reach the service: ${err.message}`);
+  } finally {
+    state.tick += 1;
+    state.busy = false;
+  }
+}
+
+$("key-form").addEventListener("submit", (ev) => {
+  ev.preventDefault();
+  setApiKey($("api-key").value.trim());
+  $("api-key").value = "";
+  poll();
+});
+$("stream").addEventListener("change", () => { state.stream = $("stream").value; poll(); });
+
+poll();
+setInterval(poll, POLL_MS);

@@ -1,0 +1,44 @@
+"""GET /v1/maps/{map_id}/recent: the observation replies as they were sent, newest last, in memory only."""
+
+from __future__ import annotations
+
+from service.maps.recent import RECENT_CAPACITY
+from tests.service.helpers import frame, make_client, post
+
+
+def test_recent_gives_back_each_reply_as_sent_in_arrival_order(tmp_path):
+    with make_client(tmp_path / "var") as c:
+        sent = [post(c, frame(p), learn="true", stream="cam0", label=f"p{p}").json() for p in range(3)]
+        sent.append(post(c, frame(1), learn="false", stream="cam1").json())
+        r = c.get("/v1/maps/default/recent")
+        assert r.status_code == 200
+        body = r.json()
+        assert body["map_id"] == "default" and body["capacity"] == RECENT_CAPACITY
+        assert [a["reply"] for a in body["answers"]] == sent  # every field, as the client got it
+        times = [a["received_at"] for a in body["answers"]]
+        assert times == sorted(times)
+
+        assert [a["reply"]["seq"] for a in c.get("/v1/maps/default/recent?limit=2").json()["answers"]] == \
+            [sent[2]["seq"], None]
+        cam1 = c.get("/v1/maps/default/recent?stream=cam1").json()["answers"]
+        assert [a["reply"] for a in cam1] == [sent[3]]
+
+
+def test_recent_refuses_bad_parameters_and_unknown_maps(tmp_path):
+    with make_client(tmp_path / "var") as c:
+        for query in ("limit=0", f"limit={RECENT_CAPACITY + 1}", "stream=a%20b"):
+            r = c.get(f"/v1/maps/default/recent?{query}")
+            assert r.status_code == 400 and r.headers["content-type"] == "application/problem+json", query
+        assert c.get("/v1/maps/nope/recent").json()["type"].endswith(":map-not-found")
+
+
+def test_recent_is_in_memory_only_and_follows_the_read_key_rule(tmp_path):
+    with make_client(tmp_path / "var", api_key="k3y", api_key_reads=True) as c:
+        assert post(c, frame(0), learn="true").status_code == 401  # writes need the key anyway
+        assert c.post("/v1/maps/default/observations", content=frame(0), headers={
+            "Content-Type": "image/png", "X-API-Key": "k3y"}).status_code == 200
+        assert c.get("/v1/maps/default/recent").status_code == 401
+        assert len(c.get("/v1/maps/default/recent", headers={"X-API-Key": "k3y"}).json()["answers"]) == 1
+    with make_client(tmp_path / "var", api_key="k3y") as c:  # restarted; reads open without the setting
+        assert c.get("/v1/maps/default/recent").json()["answers"] == []
+        assert c.get("/v1/maps/default").json()["observations"] == 1
