@@ -48,7 +48,7 @@ __all__ = [
 
 #: A map id (the API's rule; also a directory name under `maps/`, so never `.`, `..` or a path).
 MAP_ID_RE = re.compile(r"^[a-z0-9][a-z0-9._-]{0,63}$")
-#: A snapshot id: what the API's `{snapshot_id}` accepts, less a leading dot (also a directory name).
+#: A snapshot id: also the API's `{snapshot_id}` pattern, and a directory name (so never `.`, `..`, `-x`).
 SNAPSHOT_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,79}$")
 
 MapState = Literal["ready", "recovering", "failed"]
