@@ -24,6 +24,7 @@ from models.files import atomic_write, fsync_dir
 from storage._common import StorageFull, is_full_error
 from storage.manifest import (
     MANIFEST_FILE,
+    PROJECTION_FILE,
     SAFE_NAME,
     TMP_MARK,
     FileEntry,
@@ -55,7 +56,7 @@ class TarExport:
 
     Args:
         directory: a snapshot directory.
-        extra: member name -> path of files to add, e.g. `{"projection.npy": path}`.
+        extra: member name -> path of files to add, e.g. `{PROJECTION_FILE: path}`.
         verify: check the checksums on opening (False: sizes only, the importer verifies).
 
     Attributes:
@@ -170,7 +171,7 @@ def export_tar(directory: str | os.PathLike[str], fileobj: IO[bytes],
     Args:
         directory: a snapshot directory.
         fileobj: where the tar goes (a file, a pipe).
-        extra: member name → path of files to add, e.g. `{"projection.npy": path}`.
+        extra: member name → path of files to add, e.g. `{PROJECTION_FILE: path}`.
         verify: check every checksum first (by default only sizes: the importer verifies checksums).
 
     Returns:
@@ -185,7 +186,7 @@ def export_tar(directory: str | os.PathLike[str], fileobj: IO[bytes],
 
 
 def import_tar(fileobj: BinaryIO, dest: str | os.PathLike[str], *,
-               allow_unlisted: tuple[str, ...] = ("projection.npy",),
+               allow_unlisted: tuple[str, ...] = (PROJECTION_FILE,),
                max_bytes: int | None = None, check: Callable[[Manifest], None] | None = None) -> Manifest:
     """Unpack a snapshot tar into the new directory `dest`, verifying everything on the way.
 

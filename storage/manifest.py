@@ -31,6 +31,7 @@ __all__ = [
     "KINDS",
     "MANIFEST_FILE",
     "MEMORY_FILE",
+    "PROJECTION_FILE",
     "SAFE_NAME",
     "TMP_MARK",
     "FileEntry",
@@ -46,6 +47,9 @@ FORMAT = "cortexloc-snapshot/1"
 MANIFEST_FILE = "manifest.json"
 DB_FILE = "map.sqlite"
 MEMORY_FILE = "memory.npz"
+#: The sLSBH projection as a member of an exported tar; a snapshot directory records only its size and
+#: checksum (`external`): the file itself is content-addressed under `projections/`.
+PROJECTION_FILE = "projection.npy"
 KINDS = ("manual", "auto", "pre-restore")
 
 #: A member or file name: one path component, no leading dot (so neither `..` nor hidden temp files).

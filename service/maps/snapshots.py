@@ -55,7 +55,7 @@ def take(store: MapStore, memory: Mapping[str, np.ndarray], catalog: Catalog, ma
     t0 = time.perf_counter()
     try:
         m = snapshots.create_snapshot(store, dict(memory), dest, kind=kind,
-                                      external={"projection.npy": projection_path})
+                                      external={snapshots.PROJECTION_FILE: projection_path})
     except StorageFull as e:
         raise InsufficientStorage(f"the {kind} snapshot could not be written: the disk is full; the map "
                                   "is unchanged") from e
@@ -106,12 +106,13 @@ def import_snapshot(data_dir: Path, catalog: Catalog, projections: Path, tar_pat
         map_id = manifest.map_id
         sha = manifest.projection_sha256
         target = projections / f"{sha}.npy"
-        if (staging / "projection.npy").exists():
-            slsbh.load_projection(staging / "projection.npy", sha)  # refuses another matrix
+        staged = staging / snapshots.PROJECTION_FILE
+        if staged.exists():
+            slsbh.load_projection(staged, sha)  # refuses another matrix
             if not target.exists():
-                (staging / "projection.npy").replace(target)
+                staged.replace(target)
             else:
-                (staging / "projection.npy").unlink()
+                staged.unlink()
         if not target.exists():
             raise ValueError(f"the tar holds no projection and {target} is missing")
         map_dir = maps_dir / map_id

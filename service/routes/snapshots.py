@@ -70,5 +70,5 @@ async def download_snapshot(map_id: MapId, snapshot_id: SnapshotId,
     rt = registry.get(map_id)
     directory = await rt.run(rt.snapshot_dir, snapshot_id)
     export = await anyio.to_thread.run_sync(functools.partial(
-        snapshots.TarExport, directory, {"projection.npy": rt.projection_path}))
+        snapshots.TarExport, directory, {snapshots.PROJECTION_FILE: rt.projection_path}))
     return TarExportResponse(export, f"{map_id}-{snapshot_id}.tar")
