@@ -63,7 +63,7 @@ def test_batched_and_single_encoding_agree(encoder):
     batch = encoder.encode(data, return_features=True)
     single = [encoder.encode([d], return_features=True) for d in data]
     np.testing.assert_allclose(batch.features, np.concatenate([s.features for s in single]), atol=1e-5)
-    assert batch.features.shape == (10, backbones.ALEXNET_CONV3_DIM)
+    assert batch.features.shape == (10, slsbh.D_CONV3)
     np.testing.assert_allclose(np.linalg.norm(batch.features, axis=1), 1.0, atol=1e-5)
 
 
