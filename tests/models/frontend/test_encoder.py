@@ -54,7 +54,7 @@ def test_codes_have_exactly_2n_sorted_ones_and_are_deterministic(encoder):
     assert a.codes.shape == (2, 2 * n) and a.codes.dtype == np.int32
     assert all((np.diff(c) > 0).all() and c.max() < 256 for c in a.codes)
     np.testing.assert_array_equal(a.codes, b.codes)
-    assert set(a.timings_ms) == set(STAGES) and all(v >= 0 for v in a.timings_ms.values())
+    assert set(a.timings_ms) == set(STAGES)
     assert a.features is None
 
 
