@@ -317,15 +317,15 @@ def _clean_auc(desc: list[np.ndarray], same: np.ndarray) -> float:
 
 
 @pytest.mark.parametrize(("name", "band", "clean_min"), [
-    ("noise0_al1", (0.955, 0.992), 0.98),
-    ("noise05_al5", (0.793, 0.856), 0.88),
+    ("a1n0", (0.955, 0.992), 0.98),
+    ("a5n05", (0.793, 0.856), 0.88),
 ])
 def test_grid_acceptance_on_published_files(name: str, band: tuple[float, float], clean_min: float) -> None:
     folder = _data_dir()
     if folder is None:
         pytest.skip(f"grid-world data not found at {datasets.grid_dir()} (set CORTEXLOC_SHARED_DATA)")
-    xy = np.loadtxt(folder / "seq_multi_loop_noNoise_gt.txt", dtype=np.int64, delimiter=",", skiprows=1)
-    X = np.loadtxt(folder / f"seq_multi_loop_{name}.txt", dtype=np.int64, delimiter=",")
+    xy = np.loadtxt(folder / datasets.GRID_PLACES_FILE, dtype=np.int64, delimiter=",", skiprows=1)
+    X = np.loadtxt(folder / datasets.GRID_SDR_FILES[name], dtype=np.int64, delimiter=",")
     same = (xy[:, None, :] == xy[None, :, :]).all(axis=-1)
     seq = [sdr.from_dense(row) for row in X]
     params = resolve_in_con(presets.mcn_params("mcn-grid"), X.sum() / X.shape[0])
@@ -336,7 +336,7 @@ def test_grid_acceptance_on_published_files(name: str, band: tuple[float, float]
         for x in seq:  # grid protocol (§2.4): one pass, learning at every step
             out.append(m.step(x, learn=True))
             predicted.append(m.stats.predicted_cells)
-        if name == "noise0_al1":
+        if name == "a1n0":
             # Noise-free loops are learned after the first lap: about one predicted cell per column.
             assert np.mean(predicted[30:]) > 9.0
         paper.append(_paper_auc(out, same))
