@@ -18,10 +18,15 @@ from models.evaluation.metrics import (
     recall_at_k,
     soft_ground_truth,
 )
-from models.sdr import as_sdr, dice_matrix
+from models.sdr import INDEX_DTYPE, dice_matrix
 
 GRID_DIR = grid_dir()
 PLACES_FILE = GRID_DIR / GRID_PLACES_FILE
+
+
+def as_sdr(indices: list[int]) -> np.ndarray:
+    """A sorted, unique int32 SDR of `indices`."""
+    return np.unique(np.asarray(indices, dtype=np.int64)).astype(INDEX_DTYPE)
 
 
 def _reference_create_pr(S: np.ndarray, GT: np.ndarray, n: int = 100) -> tuple[list[float], list[float]]:
