@@ -22,7 +22,7 @@ import numpy as np
 
 from models.files import atomic_write, fsync_dir, sha256_file
 from storage._common import StorageFull, connect, is_full_error, utc_now
-from storage.archive import TarExport, export_tar, import_tar, tar_size
+from storage.archive import TarExport, import_tar
 from storage.manifest import (
     DB_FILE,
     FORMAT,
@@ -52,12 +52,10 @@ __all__ = [
     "SnapshotInvalid",
     "TarExport",
     "create_snapshot",
-    "export_tar",
     "import_tar",
     "load_memory",
     "new_snapshot_id",
     "remove_stale_temp",
-    "tar_size",
     "verify",
 ]
 
