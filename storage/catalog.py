@@ -31,6 +31,7 @@ import sqlite_utils
 from sqlite_utils.db import NotFoundError
 
 from storage._common import StorageError, connect, transaction, utc_now
+from storage.layout import Layout
 
 __all__ = [
     "MAP_ID_RE",
@@ -43,7 +44,6 @@ __all__ = [
     "MapRecord",
     "SnapshotRecord",
     "StorageError",
-    "snapshot_relpath",
 ]
 
 #: A map id (the API's rule; also a directory name under `maps/`, so never `.`, `..` or a path).
@@ -150,18 +150,13 @@ def _map(r: dict[str, Any]) -> MapRecord:
                      seq_high_water=int(r["seq_high_water"]))
 
 
-def snapshot_relpath(map_id: str, snapshot_id: str) -> str:
-    """Where a snapshot lives, relative to the data directory (the one layout every writer uses)."""
-    return f"maps/{map_id}/snapshots/{snapshot_id}"
-
-
 def _snap(r: dict[str, Any]) -> SnapshotRecord:
     path = r["path"]
     if os.path.isabs(path):
         # Written by a version that stored absolute paths: the directory may have been moved or copied
         # since, and reading the path as written would use another data directory's files. A snapshot
         # always lies at its place in *this* data directory.
-        path = snapshot_relpath(r["map_id"], r["snapshot_id"])
+        path = Layout.snapshot_relpath(r["map_id"], r["snapshot_id"])
     return SnapshotRecord(snapshot_id=r["snapshot_id"], map_id=r["map_id"], seq=int(r["seq"]),
                           kind=r["kind"], created_at=r["created_at"], bytes=int(r["bytes"]),
                           manifest_sha256=r["manifest_sha256"], path=path)
@@ -231,6 +226,11 @@ class Catalog:
     def root(self) -> Path:
         """The data directory: snapshot paths are relative to it."""
         return self.path.parent
+
+    @property
+    def layout(self) -> Layout:
+        """The paths of the data directory this catalog describes."""
+        return Layout(self.root)
 
     def snapshot_dir(self, record: SnapshotRecord) -> Path:
         """A registered snapshot's directory (absolute, in this data directory)."""

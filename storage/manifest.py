@@ -24,6 +24,7 @@ from typing import Any
 
 from storage._common import StorageError
 from storage.catalog import MAP_ID_RE, SNAPSHOT_ID_RE
+from storage.layout import DB_FILE
 
 __all__ = [
     "DB_FILE",
@@ -45,7 +46,6 @@ __all__ = [
 
 FORMAT = "cortexloc-snapshot/1"
 MANIFEST_FILE = "manifest.json"
-DB_FILE = "map.sqlite"
 MEMORY_FILE = "memory.npz"
 #: The sLSBH projection as a member of an exported tar; a snapshot directory records only its size and
 #: checksum (`external`): the file itself is content-addressed under `projections/`.
