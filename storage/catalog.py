@@ -25,7 +25,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import sqlite_utils
 from sqlite_utils.db import NotFoundError
@@ -53,8 +53,8 @@ SNAPSHOT_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,79}$")
 
 MapState = Literal["ready", "recovering", "failed"]
 SnapshotKind = Literal["manual", "auto", "pre-restore"]
-MAP_STATES: tuple[str, ...] = ("ready", "recovering", "failed")
-SNAPSHOT_KINDS: tuple[str, ...] = ("manual", "auto", "pre-restore")
+MAP_STATES: tuple[str, ...] = get_args(MapState)
+SNAPSHOT_KINDS: tuple[str, ...] = get_args(SnapshotKind)
 
 _SCHEMA_VERSION = 1
 # Statements separated by ";" (no ";" inside comments): run one by one inside one transaction, since
