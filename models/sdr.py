@@ -33,11 +33,6 @@ def to_dense(sdr: np.ndarray, width: int) -> np.ndarray:
     return out
 
 
-def as_sdr(x: np.ndarray | Sequence[int]) -> np.ndarray:
-    """Normalise an index collection into a sorted, unique int32 SDR."""
-    return np.unique(np.asarray(x, dtype=np.int64)).astype(INDEX_DTYPE)
-
-
 def overlap(a: np.ndarray, b: np.ndarray) -> int:
     """|a ∩ b| of two sorted SDRs."""
     return int(np.intersect1d(a, b, assume_unique=True).size)

@@ -27,15 +27,15 @@ from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.errors import problem_response
+from service.settings import Settings
 
 __all__ = [
-    "DEFAULT_MAX_UPLOAD_BYTES", "HEAD_MAX_BYTES", "JSON_MAX_BYTES", "BodyTooLargeError",
-    "UploadLimitMiddleware", "body_limit", "head_bytes",
+    "HEAD_MAX_BYTES", "JSON_MAX_BYTES", "BodyTooLargeError", "UploadLimitMiddleware", "body_limit",
+    "head_bytes",
 ]
 
 JSON_MAX_BYTES = 64 * 1024
 HEAD_MAX_BYTES = 16 * 1024
-DEFAULT_MAX_UPLOAD_BYTES = 10 * 2**20
 
 
 class BodyTooLargeError(Exception):
@@ -57,7 +57,7 @@ def _is_json(content_type: str | None) -> bool:
 def body_limit(scope: Scope, headers: Headers) -> int:
     """The byte limit of this request's body."""
     settings = getattr(getattr(scope.get("app"), "state", None), "settings", None)
-    limit = int(getattr(settings, "max_upload_bytes", DEFAULT_MAX_UPLOAD_BYTES))
+    limit = int(getattr(settings, "max_upload_bytes", Settings.model_fields["max_upload_bytes"].default))
     if _is_json(headers.get("content-type")):
         limit = min(limit, JSON_MAX_BYTES)
     return limit

@@ -1,8 +1,8 @@
 """A snapshot as an uncompressed tar: export (streamed, exact length in advance) and checked import
 (docs/design/service.md §1.5, §4.4).
 
-Export streams `manifest.json` first, so an importer learns the checksums before the data; `tar_size`
-gives the tar's exact length in advance for `Content-Length`. Import checks every member (the standard
+Export (`TarExport`) streams `manifest.json` first, so an importer learns the checksums before the data,
+and knows the tar's exact length in advance for `Content-Length`. Import checks every member (the standard
 library's `data` extraction filter, then this format's own rules) and every checksum before the
 directory appears under its final name.
 """
@@ -24,6 +24,7 @@ from models.files import atomic_write, fsync_dir
 from storage._common import StorageFull, is_full_error
 from storage.manifest import (
     MANIFEST_FILE,
+    PROJECTION_FILE,
     SAFE_NAME,
     TMP_MARK,
     FileEntry,
@@ -33,7 +34,7 @@ from storage.manifest import (
     with_facts,
 )
 
-__all__ = ["TarExport", "export_tar", "import_tar", "tar_size"]
+__all__ = ["TarExport", "import_tar"]
 
 _CHUNK = 1 << 20
 _MAX_MANIFEST = 1 << 20  # a manifest is a few KiB; read whole, so bounded
@@ -55,7 +56,7 @@ class TarExport:
 
     Args:
         directory: a snapshot directory.
-        extra: member name -> path of files to add, e.g. `{"projection.npy": path}`.
+        extra: member name -> path of files to add, e.g. `{PROJECTION_FILE: path}`.
         verify: check the checksums on opening (False: sizes only, the importer verifies).
 
     Attributes:
@@ -156,40 +157,12 @@ class TarExport:
         self.close()
 
 
-def tar_size(directory: str | os.PathLike[str], extra: Mapping[str, str | os.PathLike[str]] | None = None
-             ) -> int:
-    """Exact byte length of what `export_tar` writes (see `TarExport` for the layout)."""
-    with TarExport(directory, extra, verify=False) as export:
-        return export.size
-
-
-def export_tar(directory: str | os.PathLike[str], fileobj: IO[bytes],
-               extra: Mapping[str, str | os.PathLike[str]] | None = None, *, verify: bool = False) -> int:
-    """Write a snapshot as an uncompressed tar to `fileobj` (which need not be seekable); see `TarExport`.
-
-    Args:
-        directory: a snapshot directory.
-        fileobj: where the tar goes (a file, a pipe).
-        extra: member name → path of files to add, e.g. `{"projection.npy": path}`.
-        verify: check every checksum first (by default only sizes: the importer verifies checksums).
-
-    Returns:
-        Bytes written (= `tar_size(directory, extra)`).
-    """
-    n = 0
-    with TarExport(directory, extra, verify=verify) as export:
-        for chunk in export.chunks():
-            fileobj.write(chunk)
-            n += len(chunk)
-    return n
-
-
 def import_tar(fileobj: BinaryIO, dest: str | os.PathLike[str], *,
-               allow_unlisted: tuple[str, ...] = ("projection.npy",),
+               allow_unlisted: tuple[str, ...] = (PROJECTION_FILE,),
                max_bytes: int | None = None, check: Callable[[Manifest], None] | None = None) -> Manifest:
     """Unpack a snapshot tar into the new directory `dest`, verifying everything on the way.
 
-    The tar must begin with `manifest.json` (as `export_tar` writes it): it is parsed first (ids and
+    The tar must begin with `manifest.json` (as `TarExport` writes it): it is parsed first (ids and
     names checked), the total it declares is held against `max_bytes`, and `check` may refuse it,
     all before anything is written. Every further member must be a regular file with a plain name (no
     `/`, no leading `.`, so no `..` or absolute path; links, directories and devices are refused),

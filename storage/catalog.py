@@ -25,12 +25,13 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import sqlite_utils
 from sqlite_utils.db import NotFoundError
 
 from storage._common import StorageError, connect, transaction, utc_now
+from storage.layout import Layout
 
 __all__ = [
     "MAP_ID_RE",
@@ -43,18 +44,17 @@ __all__ = [
     "MapRecord",
     "SnapshotRecord",
     "StorageError",
-    "snapshot_relpath",
 ]
 
 #: A map id (the API's rule; also a directory name under `maps/`, so never `.`, `..` or a path).
 MAP_ID_RE = re.compile(r"^[a-z0-9][a-z0-9._-]{0,63}$")
-#: A snapshot id: what the API's `{snapshot_id}` accepts, less a leading dot (also a directory name).
+#: A snapshot id: also the API's `{snapshot_id}` pattern, and a directory name (so never `.`, `..`, `-x`).
 SNAPSHOT_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,79}$")
 
 MapState = Literal["ready", "recovering", "failed"]
 SnapshotKind = Literal["manual", "auto", "pre-restore"]
-MAP_STATES: tuple[str, ...] = ("ready", "recovering", "failed")
-SNAPSHOT_KINDS: tuple[str, ...] = ("manual", "auto", "pre-restore")
+MAP_STATES: tuple[str, ...] = get_args(MapState)
+SNAPSHOT_KINDS: tuple[str, ...] = get_args(SnapshotKind)
 
 _SCHEMA_VERSION = 1
 # Statements separated by ";" (no ";" inside comments): run one by one inside one transaction, since
@@ -150,18 +150,13 @@ def _map(r: dict[str, Any]) -> MapRecord:
                      seq_high_water=int(r["seq_high_water"]))
 
 
-def snapshot_relpath(map_id: str, snapshot_id: str) -> str:
-    """Where a snapshot lives, relative to the data directory (the one layout every writer uses)."""
-    return f"maps/{map_id}/snapshots/{snapshot_id}"
-
-
 def _snap(r: dict[str, Any]) -> SnapshotRecord:
     path = r["path"]
     if os.path.isabs(path):
         # Written by a version that stored absolute paths: the directory may have been moved or copied
         # since, and reading the path as written would use another data directory's files. A snapshot
         # always lies at its place in *this* data directory.
-        path = snapshot_relpath(r["map_id"], r["snapshot_id"])
+        path = Layout.snapshot_relpath(r["map_id"], r["snapshot_id"])
     return SnapshotRecord(snapshot_id=r["snapshot_id"], map_id=r["map_id"], seq=int(r["seq"]),
                           kind=r["kind"], created_at=r["created_at"], bytes=int(r["bytes"]),
                           manifest_sha256=r["manifest_sha256"], path=path)
@@ -231,6 +226,11 @@ class Catalog:
     def root(self) -> Path:
         """The data directory: snapshot paths are relative to it."""
         return self.path.parent
+
+    @property
+    def layout(self) -> Layout:
+        """The paths of the data directory this catalog describes."""
+        return Layout(self.root)
 
     def snapshot_dir(self, record: SnapshotRecord) -> Path:
         """A registered snapshot's directory (absolute, in this data directory)."""

@@ -23,14 +23,15 @@ from pathlib import Path
 from typing import Any
 
 from storage._common import StorageError
-from storage.catalog import MAP_ID_RE, SNAPSHOT_ID_RE
+from storage.catalog import MAP_ID_RE, SNAPSHOT_ID_RE, SNAPSHOT_KINDS
+from storage.layout import DB_FILE
 
 __all__ = [
     "DB_FILE",
     "FORMAT",
-    "KINDS",
     "MANIFEST_FILE",
     "MEMORY_FILE",
+    "PROJECTION_FILE",
     "SAFE_NAME",
     "TMP_MARK",
     "FileEntry",
@@ -44,9 +45,10 @@ __all__ = [
 
 FORMAT = "cortexloc-snapshot/1"
 MANIFEST_FILE = "manifest.json"
-DB_FILE = "map.sqlite"
 MEMORY_FILE = "memory.npz"
-KINDS = ("manual", "auto", "pre-restore")
+#: The sLSBH projection as a member of an exported tar; a snapshot directory records only its size and
+#: checksum (`external`): the file itself is content-addressed under `projections/`.
+PROJECTION_FILE = "projection.npy"
 
 #: A member or file name: one path component, no leading dot (so neither `..` nor hidden temp files).
 SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
@@ -173,7 +175,7 @@ def parse_manifest(body: bytes, where: str) -> Manifest:
             files=files, external=external)
     except (KeyError, TypeError, ValueError) as exc:
         raise SnapshotInvalid(f"{where}: manifest field missing or mistyped: {exc}") from exc
-    if m.kind not in KINDS or m.seq < 0 or (m.seq > 0) != (m.last_observation_id is not None):
+    if m.kind not in SNAPSHOT_KINDS or m.seq < 0 or (m.seq > 0) != (m.last_observation_id is not None):
         raise SnapshotInvalid(f"{where}: inconsistent manifest (kind {m.kind!r}, seq {m.seq})")
     # The ids and the projection's checksum become directory and file names on import.
     if not MAP_ID_RE.match(m.map_id):

@@ -22,13 +22,14 @@ import numpy as np
 
 from models.files import atomic_write, fsync_dir, sha256_file
 from storage._common import StorageFull, connect, is_full_error, utc_now
-from storage.archive import TarExport, export_tar, import_tar, tar_size
+from storage.archive import TarExport, import_tar
+from storage.catalog import SNAPSHOT_KINDS
 from storage.manifest import (
     DB_FILE,
     FORMAT,
-    KINDS,
     MANIFEST_FILE,
     MEMORY_FILE,
+    PROJECTION_FILE,
     SAFE_NAME,
     TMP_MARK,
     FileEntry,
@@ -45,17 +46,16 @@ __all__ = [
     "FORMAT",
     "MANIFEST_FILE",
     "MEMORY_FILE",
+    "PROJECTION_FILE",
     "FileEntry",
     "Manifest",
     "SnapshotInvalid",
     "TarExport",
     "create_snapshot",
-    "export_tar",
     "import_tar",
     "load_memory",
     "new_snapshot_id",
     "remove_stale_temp",
-    "tar_size",
     "verify",
 ]
 
@@ -98,8 +98,8 @@ def create_snapshot(store: MapStore, memory: Mapping[str, np.ndarray], dest: str
         ValueError: bad kind, object arrays or reserved names in `memory`, unsafe external names.
         StorageFull: the disk filled up (nothing is left behind).
     """
-    if kind not in KINDS:
-        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    if kind not in SNAPSHOT_KINDS:
+        raise ValueError(f"kind must be one of {SNAPSHOT_KINDS}, got {kind!r}")
     dest = Path(dest)
     snapshot_id = snapshot_id or dest.name
     arrays = _check_memory(memory)

@@ -13,7 +13,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from models.localisation import SequenceGraph, SequenceLocaliser, top_candidates
+from models.localisation import SequenceGraph, SequenceLocaliser
 
 
 class OnlineAnswers(NamedTuple):
@@ -47,13 +47,12 @@ def localise(S: np.ndarray, conf: Mapping[str, Any] | None = None,
     graph = SequenceGraph.chain(n_db) if graph is None else graph
     loc = SequenceLocaliser(conf)
     state = loc.new_state()
-    k = int(loc.conf["top_k"])
     best = np.full(n_q, -1, np.int64)
     confidence = np.zeros(n_q)
     support = np.zeros(n_q, np.int64)
     out = np.full((n_db, n_q), -np.inf)
     for j in range(n_q):
-        place = loc.step(state, graph, *top_candidates(S[:, j], k))
+        place = loc.step_dense(state, graph, S[:, j])
         live = state.rows >= 0
         np.maximum.at(out[:, j], state.rows[live], state.scores[live])
         if place is not None:

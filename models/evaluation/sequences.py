@@ -225,9 +225,9 @@ METRICS = ("auc", "query_auc", "recall_at_1", "recall_at_5", "recall_at_100p", "
 
 
 def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequence[str],
-                     preset: str, mcn_preset: str = "mcn-nordland", k: int = 1024, s: float = 0.25,
-                     seeds: int = 3, seed: int = 0, tolerance: int = 0, reset: bool = False,
-                     adapt_tau: int = 0, tm_overrides: dict[str, Any] | None = None,
+                     preset: str, mcn_preset: str = "mcn-nordland", k: int | None = None,
+                     s: float | None = None, seeds: int = 3, seed: int = 0, tolerance: int = 0,
+                     reset: bool = False, adapt_tau: int = 0, tm_overrides: dict[str, Any] | None = None,
                      reverse_query: bool = False, ds: int = seq.DS, gt: np.ndarray | None = None,
                      frames: tuple[np.ndarray, np.ndarray] | None = None, crossing: bool = False,
                      localiser: dict[str, Any] | None = None,
@@ -238,7 +238,7 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
         db_feats, q_feats: (n_db, D), (n_q, D) L2-normalised features in route order.
         methods: subset of METHODS; each memory method's ablations (ABLATIONS) are added.
         preset: TM preset; mcn_preset: MCN preset.
-        k, s: sLSBH size and sparsity (2k = TM columns).
+        k, s: sLSBH size and sparsity (2k = TM columns); None: the TM preset's (`presets.slsbh_params`).
         seeds: runs; projection, TM and MCN seeds spawned from `seed` (docs/design/science.md §8.6).
         tolerance: ±database items counted as the same place.
         reset: reset the sequence memory between database and query (the paper does not).
@@ -260,6 +260,9 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
          "first": {name: {"S", "P", "R", "query_P", "query_R", "best", "confidence", "correct"}}}
         (the first seed's matrices and answers, for plots and the match gallery).
     """
+    defaults = presets.slsbh_params(preset)
+    k = defaults["k"] if k is None else k
+    s = defaults["s"] if s is None else s
     methods = with_ablations(methods)
     bad = set(methods) - set(METHODS)
     if bad:

@@ -200,11 +200,6 @@ class MCN:
         """Sorted (m,) int64 targets of the outgoing prediction connections of `cell`."""
         return np.array(sorted(self._cell_targets.get(int(cell), ())), dtype=np.int64)
 
-    def edges(self) -> np.ndarray:
-        """(m, 2) int64 (pre, post) cell pairs of all prediction connections, sorted."""
-        keys = np.array(sorted(self._edge_keys), dtype=np.int64)
-        return np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1) if keys.size else np.zeros((0, 2), np.int64)
-
     def predictive_cells(self) -> np.ndarray:
         """Sorted cell ids predicted for the next step (P_next > 0 of the last step)."""
         return np.flatnonzero(self._p_prev).astype(np.int64)

@@ -299,24 +299,6 @@ class TemporalMemory:
 
     # ---------------------------------------------------------------- inspection
 
-    def cell_segments(self, cell: int) -> list[dict[str, Any]]:
-        """Live segments of `cell` with their synapses, in slot order (for tests and debugging).
-
-        Returns:
-            [{"slot", "last_used", "presyn": (n,) int, "perm": (n,) float32}, ...]
-        """
-        S, Kc = int(self._ip[syn.I_S]), int(self._ip[syn.I_K])
-        out = []
-        for s in range(S):
-            g = cell * S + s
-            n = int(self.nsyn[g])
-            if n:
-                q = g * Kc
-                out.append({"slot": s, "last_used": int(self.last_used[g]),
-                            "presyn": self.presyn[q:q + n].astype(np.int64),
-                            "perm": self.perm[q:q + n].copy()})
-        return out
-
     def size(self) -> dict[str, int]:
         """Exact counts and bytes (docs/design/science.md §3.5).
 

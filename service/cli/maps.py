@@ -48,10 +48,11 @@ def verify(
     winner cells, verify every snapshot's checksums and the projection. Exit 1 on any problem."""
     from service.maps.recovery import verify_map
     from storage.catalog import Catalog
+    from storage.layout import Layout
 
     root = process_settings(data_dir=data_dir).data_dir
     try:
-        catalog = Catalog.open(root / "catalog.sqlite", readonly=True)
+        catalog = Catalog.open(Layout(root).catalog, readonly=True)
         records = [r for r in catalog.list_maps() if map_id is None or r.map_id == map_id]
     except Exception as e:  # a missing or garbage catalog: say so, as a failed check
         typer.echo(f"error: cannot read the catalog in {root}: {e}", err=True)

@@ -48,7 +48,6 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
     warnings: list[str] = []
     tm_params: dict[str, Any] = {}
     try:
-        base = presets.get(preset)
         tm_params = presets.tm_params(preset, {**(tm or {}), **({} if seed is None else {"seed": seed})})
         warnings = validate(tm_params)
     except presets.ParamsError as e:
@@ -56,7 +55,7 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
     except (KeyError, ValueError) as e:  # no such preset, or one without a TM
         msg = str(e).strip("'\"")
         raise InvalidConfiguration(msg, [_body("preset", msg)]) from e
-    s_conf = {**presets.SlsbhParams().model_dump(), **base.get("slsbh", {}), **(slsbh_conf or {})}
+    s_conf = {**presets.slsbh_params(preset), **(slsbh_conf or {})}
     try:
         presets.check_section(presets.SlsbhParams, "slsbh", s_conf)
     except presets.ParamsError as e:

@@ -14,7 +14,6 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -188,9 +187,9 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
     """
     t0 = time.perf_counter()
     out = MapCheck(record.map_id)
-    root = catalog.root
+    layout = catalog.layout
     sha = str(record.params.get("projection_sha256", ""))
-    projection = root / "projections" / f"{sha}.npy"
+    projection = layout.projection(sha)
     try:
         slsbh.load_projection(projection, sha)  # the same check a starting server makes
     except slsbh.ProjectionError as e:
@@ -202,7 +201,7 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
         except snapshots.SnapshotInvalid as e:
             out.snapshots_bad[rec.snapshot_id] = str(e)
     try:
-        with MapStore.open(Path(root) / "maps" / record.map_id / "map.sqlite", readonly=True) as store:
+        with MapStore.open(layout.map_db(record.map_id), readonly=True) as store:
             if not store.integrity_check():
                 out.problems.append("map.sqlite fails PRAGMA integrity_check")
             total = store.count()

@@ -17,6 +17,7 @@ from service.maps.results import SnapshotInfo
 from storage import snapshots
 from storage._common import StorageFull
 from storage.catalog import Catalog, SnapshotRecord
+from storage.layout import Layout
 from storage.mapstore import MapStore
 
 __all__ = ["import_snapshot", "info", "listing", "locate", "prune_auto", "take"]
@@ -45,17 +46,19 @@ def locate(catalog: Catalog, map_id: str, snapshot_id: str) -> tuple[SnapshotRec
 def take(store: MapStore, memory: Mapping[str, np.ndarray], catalog: Catalog, map_id: str, map_dir: Path,
          projection_path: Path, kind: str) -> SnapshotInfo:
     """A consistent cut at the store's current seq, with the memory's arrays; registered in the catalog.
+    It goes where the catalog's `Layout` puts the map's snapshots (`map_dir` is not read: the caller,
+    `MapRuntime.snapshot`, still passes it).
 
     Raises:
         InsufficientStorage: the disk is full (nothing is left behind).
     """
     sid = snapshots.new_snapshot_id()
-    dest = map_dir / "snapshots" / sid
+    dest = catalog.layout.snapshot_dir(map_id, sid)
     dest.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     try:
         m = snapshots.create_snapshot(store, dict(memory), dest, kind=kind,
-                                      external={"projection.npy": projection_path})
+                                      external={snapshots.PROJECTION_FILE: projection_path})
     except StorageFull as e:
         raise InsufficientStorage(f"the {kind} snapshot could not be written: the disk is full; the map "
                                   "is unchanged") from e
@@ -81,7 +84,9 @@ def import_snapshot(data_dir: Path, catalog: Catalog, projections: Path, tar_pat
     the API's rules (`storage.snapshots`), the map is new here, and the files it declares fit in
     `max_bytes` and in the free space of the data directory. Every checksum is then verified (the
     snapshot's files, and the projection against the map's recorded SHA-256) before anything is
-    registered; the map recovers from that snapshot when the server starts.
+    registered; the map recovers from that snapshot when the server starts. Every path comes from
+    `Layout(data_dir)` (`projections` is not read: the caller, `MapRegistry.import_snapshot`, still
+    passes it).
 
     Returns:
         The imported map's id.
@@ -89,7 +94,7 @@ def import_snapshot(data_dir: Path, catalog: Catalog, projections: Path, tar_pat
     Raises:
         SnapshotInvalid: a bad or too large tar. ValueError: the map exists, or no projection.
     """
-    maps_dir = data_dir / "maps"
+    layout = Layout(data_dir)
 
     def acceptable(m: snapshots.Manifest) -> None:
         if catalog.get_map(m.map_id) is not None:
@@ -99,25 +104,25 @@ def import_snapshot(data_dir: Path, catalog: Catalog, projections: Path, tar_pat
         if need > free:
             raise ValueError(f"the snapshot needs {need} bytes, {data_dir} has {free} free")
 
-    staging = maps_dir / f".import-{snapshots.new_snapshot_id()}"
+    staging = layout.maps / f".import-{snapshots.new_snapshot_id()}"
     with tar_path.open("rb") as f:
         manifest = snapshots.import_tar(f, staging, max_bytes=max_bytes, check=acceptable)
     try:
         map_id = manifest.map_id
         sha = manifest.projection_sha256
-        target = projections / f"{sha}.npy"
-        if (staging / "projection.npy").exists():
-            slsbh.load_projection(staging / "projection.npy", sha)  # refuses another matrix
+        target = layout.projection(sha)
+        staged = staging / snapshots.PROJECTION_FILE
+        if staged.exists():
+            slsbh.load_projection(staged, sha)  # refuses another matrix
             if not target.exists():
-                (staging / "projection.npy").replace(target)
+                staged.replace(target)
             else:
-                (staging / "projection.npy").unlink()
+                staged.unlink()
         if not target.exists():
             raise ValueError(f"the tar holds no projection and {target} is missing")
-        map_dir = maps_dir / map_id
-        map_dir.mkdir(parents=True)
-        MapStore.install_copy(staging / "map.sqlite", map_dir / "map.sqlite")
-        snap_dir = map_dir / "snapshots" / manifest.snapshot_id
+        layout.map_dir(map_id).mkdir(parents=True)
+        MapStore.install_copy(staging / snapshots.DB_FILE, layout.map_db(map_id))
+        snap_dir = layout.snapshot_dir(map_id, manifest.snapshot_id)
         snap_dir.parent.mkdir(parents=True)
         staging.replace(snap_dir)
         catalog.create_map(map_id, manifest.params, preset=manifest.params.get("preset"), state="ready")

@@ -14,11 +14,12 @@ from service.deps import ApiKeyDep, MapReadKeyDep, RegistryDep
 from service.errors import problem_responses
 from service.schemas import MAP_ID_PATTERN, RestoreModel, SnapshotList, SnapshotModel
 from storage import snapshots
+from storage.catalog import SNAPSHOT_ID_RE
 
 router = APIRouter(prefix="/v1/maps/{map_id}/snapshots", tags=["snapshots"])
 
 MapId = Annotated[str, Path(pattern=MAP_ID_PATTERN)]
-SnapshotId = Annotated[str, Path(pattern=r"^[A-Za-z0-9._-]{1,80}$")]
+SnapshotId = Annotated[str, Path(pattern=SNAPSHOT_ID_RE.pattern)]
 
 
 @router.post("", status_code=201, dependencies=[ApiKeyDep], responses=problem_responses(401, 404, 503, 507))
@@ -69,5 +70,5 @@ async def download_snapshot(map_id: MapId, snapshot_id: SnapshotId,
     rt = registry.get(map_id)
     directory = await rt.run(rt.snapshot_dir, snapshot_id)
     export = await anyio.to_thread.run_sync(functools.partial(
-        snapshots.TarExport, directory, {"projection.npy": rt.projection_path}))
+        snapshots.TarExport, directory, {snapshots.PROJECTION_FILE: rt.projection_path}))
     return TarExportResponse(export, f"{map_id}-{snapshot_id}.tar")

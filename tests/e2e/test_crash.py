@@ -29,14 +29,19 @@ def test_kill_9_loses_nothing_acknowledged(server_proc, http, make_frame):
             place += 1
 
     for round_ in range(2):
+        # Kill once this round has some acknowledgements (a later point in the second round), not after
+        # a fixed sleep: a slow machine would otherwise kill before the first one.
+        want = len(acked) + 3 + 2 * round_
         t = threading.Thread(target=robot)
         t.start()
-        time.sleep(1.5 + 0.5 * round_)
+        deadline = time.monotonic() + 120
+        while len(acked) < want and t.is_alive() and time.monotonic() < deadline:
+            time.sleep(0.01)
         server_proc.kill9()
         stop.set()
         t.join(timeout=30)
         stop.clear()
-        assert acked, "the robot got no acknowledgement before the kill"
+        assert len(acked) >= want, f"the robot got {len(acked)} acknowledgements before the kill, not {want}"
         with MapStore.open(server_proc.data_dir / "maps" / "default" / "map.sqlite") as store:
             assert store.integrity_check()
             stored = {row.seq: row.observation_id for row in store.rows()}

@@ -164,3 +164,15 @@ def test_a_damaged_snapshot_is_refused_with_its_reason(client, damage):
         "/v1/maps/default/snapshots").json()["snapshots"]])
     assert after == before  # no pre-restore snapshot, nothing rolled back
     assert json.loads(client.get("/v1/maps/default").text)["state"] == "ready"
+
+
+@pytest.mark.parametrize("bad", ["-abc", ".abc", "a" * 81, "a%20b"])
+def test_a_malformed_snapshot_id_is_refused_like_any_bad_parameter(client, bad):
+    # The route's pattern is the catalog's: a leading '.' or '-' (never a directory the catalog writes)
+    # gets the same 400 as an over-long id, before any file is looked at.
+    snapshot_with_frames(client, 1)
+    for r in (client.get(f"/v1/maps/default/snapshots/{bad}/download"),
+              client.post(f"/v1/maps/default/snapshots/{bad}/restore")):
+        assert r.status_code == 400, r.text
+        assert r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
+        assert r.json()["type"] == "urn:cortexloc:problem:invalid-parameter"

@@ -17,7 +17,7 @@ import pytest
 
 from storage import snapshots
 from storage.mapstore import MapStore, NewObservation
-from storage.snapshots import SnapshotInvalid, create_snapshot, export_tar, import_tar, load_memory, verify
+from storage.snapshots import SnapshotInvalid, create_snapshot, import_tar, load_memory, verify
 
 RowFactory = Callable[..., NewObservation]
 
@@ -166,14 +166,12 @@ def test_other_damage_is_detected(snap: tuple[Path, snapshots.Manifest]) -> None
         verify(dest)
 
 
-class _WriteOnly:
-    """A non-seekable sink, like an HTTP response body."""
-
-    def __init__(self) -> None:
-        self.buf = io.BytesIO()
-
-    def write(self, b: bytes) -> int:
-        return self.buf.write(b)
+def exported(directory: Path, extra: dict[str, Path] | None = None) -> bytes:
+    """The snapshot's tar as the download route streams it, chunk by chunk; exactly its announced size."""
+    with snapshots.TarExport(directory, extra) as export:
+        data = b"".join(export.chunks())
+        assert len(data) == export.size
+    return data
 
 
 def test_export_import_round_trip(tmp_path: Path, store: MapStore, row_factory: RowFactory) -> None:
@@ -184,10 +182,7 @@ def test_export_import_round_trip(tmp_path: Path, store: MapStore, row_factory: 
     m = create_snapshot(store, memory_arrays(), src, kind="manual", external={"projection.npy": projection})
     assert m.external["projection.npy"].sha256 == hashlib.sha256(projection.read_bytes()).hexdigest()
 
-    sink = _WriteOnly()
-    n = export_tar(src, sink, extra={"projection.npy": projection})
-    data = sink.buf.getvalue()
-    assert n == len(data) == snapshots.tar_size(src, extra={"projection.npy": projection})
+    data = exported(src, {"projection.npy": projection})
     with tarfile.open(fileobj=io.BytesIO(data)) as tar:
         assert tar.getnames() == ["manifest.json", "map.sqlite", "memory.npz", "projection.npy"]
 
@@ -201,16 +196,13 @@ def test_export_import_round_trip(tmp_path: Path, store: MapStore, row_factory: 
     with pytest.raises(FileExistsError):
         import_tar(io.BytesIO(data), dest)
     # Without the extra file the tar is still a complete snapshot.
-    plain = io.BytesIO()
-    assert export_tar(src, plain) == snapshots.tar_size(src) == len(plain.getvalue())
-    assert import_tar(io.BytesIO(plain.getvalue()), tmp_path / "plain") == m
+    assert import_tar(io.BytesIO(exported(src)), tmp_path / "plain") == m
 
 
 def test_import_detects_tampering(tmp_path: Path, snap: tuple[Path, snapshots.Manifest]) -> None:
     src, _ = snap
-    buf = io.BytesIO()
-    export_tar(src, buf)
-    data = bytearray(buf.getvalue())
+    good = exported(src)
+    data = bytearray(good)
     # Flip a byte inside map.sqlite's data (the second member, after manifest header+data and its header).
     with tarfile.open(fileobj=io.BytesIO(bytes(data))) as tar:
         member = tar.getmember("map.sqlite")
@@ -222,7 +214,7 @@ def test_import_detects_tampering(tmp_path: Path, snap: tuple[Path, snapshots.Ma
     with pytest.raises(SnapshotInvalid):
         import_tar(io.BytesIO(b"not a tar at all" * 100), tmp_path / "bad")
     with pytest.raises(SnapshotInvalid, match="more than"):
-        import_tar(io.BytesIO(buf.getvalue()), tmp_path / "bad", max_bytes=1000)
+        import_tar(io.BytesIO(good), tmp_path / "bad", max_bytes=1000)
 
 
 def _tar(members: list[tuple[tarfile.TarInfo, bytes | None]]) -> io.BytesIO:

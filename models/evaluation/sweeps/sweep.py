@@ -15,7 +15,7 @@ import numpy as np
 
 from models import presets
 from models.evaluation import gridworld, metrics
-from models.evaluation.datasets import grid_dir
+from models.evaluation.datasets import GRID_PLACES_FILE, GRID_SDR_FILES, grid_dir
 from models.evaluation.runner import run_htm
 
 GRIDS = {
@@ -46,8 +46,8 @@ def _datasets(seed: int) -> dict[str, gridworld.GridData]:
     root = grid_dir()
     out = {}
     if root.is_dir():
-        out["file a5 n0.5"] = gridworld.load_published(root / "seq_multi_loop_noise05_al5.txt",
-                                                       root / "seq_multi_loop_noNoise_gt.txt")
+        out["file a5 n0.5"] = gridworld.load_published(root / GRID_SDR_FILES["a5n05"],
+                                                       root / GRID_PLACES_FILE)
     out["gen a5 n0.5"] = gridworld.generate(5, 0.5, seed=seed)
     out["gen a1 n0.05"] = gridworld.generate(1, 0.05, seed=seed + 1)
     # Noiseless loops without a reset are the hard case for a predicting TM: every loop pushes a new

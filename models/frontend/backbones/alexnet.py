@@ -44,9 +44,6 @@ from models.frontend.backbones import Backbone, register
 from models.frontend.images import IMAGENET_MEAN, IMAGENET_STD
 from models.frontend.weights import ALEXNET_CONV3_PARAMETERS, ALEXNET_CONV3_SHAPES, WeightsError
 
-#: Length of the flattened conv3 output at 224x224: 384 x 13 x 13.
-ALEXNET_CONV3_DIM = 64_896
-
 #: Files up to this size are read once into memory, so the recorded SHA-256 is provably that of the
 #: bytes loaded; larger ones (the 233 MB full checkpoint) are hashed and loaded in two reads to avoid
 #: holding the file twice in memory.

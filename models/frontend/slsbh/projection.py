@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
+from models import presets
 from models.files import atomic_write
 
 D_CONV3 = 64_896  # 384×13×13 AlexNet conv3 values (docs/design/science.md §6)
@@ -37,7 +38,7 @@ class ProjectionError(ValueError):
 # Dense Gaussian projection
 
 
-def make_projection(d: int = D_CONV3, k: int = 1024, seed: int = 0) -> np.ndarray:
+def make_projection(d: int = D_CONV3, k: int | None = None, seed: int = 0) -> np.ndarray:
     """Gaussian projection with unit-norm columns (docs/design/science.md §7.1).
 
     Draw order: one call `Generator(PCG64(seed)).standard_normal((d, k), dtype=float32)`, which fills
@@ -53,7 +54,7 @@ def make_projection(d: int = D_CONV3, k: int = 1024, seed: int = 0) -> np.ndarra
 
     Args:
         d: input dimension (64,896 for AlexNet conv3).
-        k: projected dimension.
+        k: projected dimension; None: the sLSBH default (`presets.SlsbhParams`).
         seed: PCG64 seed.
 
     Returns:
@@ -62,6 +63,7 @@ def make_projection(d: int = D_CONV3, k: int = 1024, seed: int = 0) -> np.ndarra
     Raises:
         ValueError: d or k < 1 (or, with vanishing probability, a zero column).
     """
+    k = presets.SlsbhParams().k if k is None else k
     if d < 1 or k < 1:
         raise ValueError(f"d and k must be positive, got d={d}, k={k}")
     rng = np.random.Generator(np.random.PCG64(seed))
@@ -326,7 +328,7 @@ def _sparse_batch(XT, indptr, indices, values):  # pragma: no cover - compiled
 
 
 def make_sparse_projection(
-    d: int = D_CONV3, k: int = 1024, seed: int = 0, density: float | None = None
+    d: int = D_CONV3, k: int | None = None, seed: int = 0, density: float | None = None
 ) -> SparseProjection:
     """Very sparse random projection (Li, Hastie & Church 2006), columns normalised as in §7.1.
 
@@ -339,7 +341,7 @@ def make_sparse_projection(
 
     Args:
         d: input dimension.
-        k: projected dimension.
+        k: projected dimension; None: the sLSBH default (`presets.SlsbhParams`).
         seed: PCG64 seed.
         density: fraction of nonzero entries, 0 < density ≤ 1; 1/√d when None.
 
@@ -350,6 +352,7 @@ def make_sparse_projection(
         ValueError: bad d, k or density, or an empty column (probability k·e^(−√d) by default, about
             1e-108 at the real size; a different seed fixes it).
     """
+    k = presets.SlsbhParams().k if k is None else k
     if d < 1 or k < 1:
         raise ValueError(f"d and k must be positive, got d={d}, k={k}")
     density = 1.0 / math.sqrt(d) if density is None else float(density)

@@ -8,14 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.evaluation.datasets import grid_dir
+from models.evaluation.datasets import GRID_PLACES_FILE, GRID_SDR_FILES, grid_dir
 from models.evaluation.gridworld import GridData, generate, load_published, trajectory
 from models.sdr import INDEX_DTYPE, from_dense, overlap
 
 GRID_DIR = grid_dir()
-PLACES_FILE = GRID_DIR / "seq_multi_loop_noNoise_gt.txt"
-AL1_FILE = GRID_DIR / "seq_multi_loop_noise0_al1.txt"
-AL5_FILE = GRID_DIR / "seq_multi_loop_noise05_al5.txt"
+PLACES_FILE = GRID_DIR / GRID_PLACES_FILE
+AL1_FILE = GRID_DIR / GRID_SDR_FILES["a1n0"]
+AL5_FILE = GRID_DIR / GRID_SDR_FILES["a5n05"]
 needs_published = pytest.mark.skipif(
     not (PLACES_FILE.is_file() and AL1_FILE.is_file() and AL5_FILE.is_file()),
     reason=f"published grid-world data not found in {GRID_DIR} (set CORTEXLOC_SHARED_DATA)",

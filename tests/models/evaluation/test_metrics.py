@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from models.evaluation import metrics
-from models.evaluation.datasets import grid_dir
+from models.evaluation.datasets import GRID_PLACES_FILE, GRID_SDR_FILES, grid_dir
 from models.evaluation.gridworld import generate, load_published
 from models.evaluation.metrics import (
     apply_tolerance,
@@ -18,10 +18,15 @@ from models.evaluation.metrics import (
     recall_at_k,
     soft_ground_truth,
 )
-from models.sdr import as_sdr, dice_matrix
+from models.sdr import INDEX_DTYPE, dice_matrix
 
 GRID_DIR = grid_dir()
-PLACES_FILE = GRID_DIR / "seq_multi_loop_noNoise_gt.txt"
+PLACES_FILE = GRID_DIR / GRID_PLACES_FILE
+
+
+def as_sdr(indices: list[int]) -> np.ndarray:
+    """A sorted, unique int32 SDR of `indices`."""
+    return np.unique(np.asarray(indices, dtype=np.int64)).astype(INDEX_DTYPE)
 
 
 def _reference_create_pr(S: np.ndarray, GT: np.ndarray, n: int = 100) -> tuple[list[float], list[float]]:
@@ -261,16 +266,15 @@ def test_generated_grid_scores_are_sane() -> None:
     assert grid_evaluation(data.sdrs, data.places, "clean")["auc"] == pytest.approx(1.0)
 
 
-@pytest.mark.skipif(not all((GRID_DIR / name).is_file() for name in (
-    "seq_multi_loop_noNoise_gt.txt", "seq_multi_loop_noise0_al1.txt", "seq_multi_loop_noise05_al5.txt")),
+@pytest.mark.skipif(not all((GRID_DIR / n).is_file() for n in (GRID_PLACES_FILE, *GRID_SDR_FILES.values())),
                     reason=f"published grid-world data not found in {GRID_DIR} (set CORTEXLOC_SHARED_DATA)")
-@pytest.mark.parametrize(("sdr_file", "paper", "clean"), [
-    ("seq_multi_loop_noise0_al1.txt", 0.911734, 0.944444),
-    ("seq_multi_loop_noise05_al5.txt", 0.738555, 0.596987),
+@pytest.mark.parametrize(("key", "paper", "clean"), [
+    ("a1n0", 0.911734, 0.944444),
+    ("a5n05", 0.738555, 0.596987),
 ])
-def test_input_sdr_check_values(sdr_file: str, paper: float, clean: float) -> None:
+def test_input_sdr_check_values(key: str, paper: float, clean: float) -> None:
     """§8.4 check values: InputSDR on the published files, to 6 decimals."""
-    data = load_published(GRID_DIR / sdr_file, PLACES_FILE)
+    data = load_published(GRID_DIR / GRID_SDR_FILES[key], PLACES_FILE)
     paper_result = grid_evaluation(data.sdrs, data.places, "paper")
     clean_result = grid_evaluation(data.sdrs, data.places, "clean")
     assert round(paper_result["auc"], 6) == paper

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
+from models.frontend import slsbh
 from models.frontend.backbones.alexnet import (
-    ALEXNET_CONV3_DIM,
     AlexNetConv3,
     alexnet_conv3,
     load_alexnet_state,
@@ -38,7 +38,7 @@ def random_model() -> AlexNetConv3:
 def test_output_is_64896_floats_of_unit_norm(random_model: AlexNetConv3) -> None:
     with torch.inference_mode():
         out = random_model(_batch(3))
-    assert out.shape == (3, ALEXNET_CONV3_DIM) == (3, 384 * 13 * 13)
+    assert out.shape == (3, slsbh.D_CONV3) == (3, 384 * 13 * 13)
     assert out.dtype == torch.float32
     np.testing.assert_allclose(out.norm(dim=1).numpy(), 1.0, rtol=1e-5)
 

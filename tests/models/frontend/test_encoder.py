@@ -54,7 +54,7 @@ def test_codes_have_exactly_2n_sorted_ones_and_are_deterministic(encoder):
     assert a.codes.shape == (2, 2 * n) and a.codes.dtype == np.int32
     assert all((np.diff(c) > 0).all() and c.max() < 256 for c in a.codes)
     np.testing.assert_array_equal(a.codes, b.codes)
-    assert set(a.timings_ms) == set(STAGES) and all(v >= 0 for v in a.timings_ms.values())
+    assert set(a.timings_ms) == set(STAGES)
     assert a.features is None
 
 
@@ -63,7 +63,7 @@ def test_batched_and_single_encoding_agree(encoder):
     batch = encoder.encode(data, return_features=True)
     single = [encoder.encode([d], return_features=True) for d in data]
     np.testing.assert_allclose(batch.features, np.concatenate([s.features for s in single]), atol=1e-5)
-    assert batch.features.shape == (10, backbones.ALEXNET_CONV3_DIM)
+    assert batch.features.shape == (10, slsbh.D_CONV3)
     np.testing.assert_allclose(np.linalg.norm(batch.features, axis=1), 1.0, atol=1e-5)
 
 

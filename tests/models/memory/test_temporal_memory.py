@@ -8,6 +8,7 @@ import pytest
 
 from models import presets
 from models.evaluation.bench import random_sequence
+from models.memory import _tm_synapses as syn
 from models.memory.temporal_memory import TemporalMemory
 
 CPC = 4
@@ -43,6 +44,21 @@ def cells_of(columns: np.ndarray) -> np.ndarray:
 
 def columns_of(cells: np.ndarray) -> np.ndarray:
     return np.unique(np.asarray(cells) // CPC)
+
+
+def cell_segments(tm: TemporalMemory, cell: int) -> list[dict]:
+    """Live segments of `cell` with their synapses, in slot order, read from the TM's slot arrays:
+    [{"slot", "last_used", "presyn": (n,) int64, "perm": (n,) float32}, ...]."""
+    S, Kc = int(tm._ip[syn.I_S]), int(tm._ip[syn.I_K])
+    out = []
+    for s in range(S):
+        g = cell * S + s
+        n = int(tm.nsyn[g])
+        if n:
+            q = g * Kc
+            out.append({"slot": s, "last_used": int(tm.last_used[g]),
+                        "presyn": tm.presyn[q:q + n].astype(np.int64), "perm": tm.perm[q:q + n].copy()})
+    return out
 
 
 def learn_sequence(tm: TemporalMemory, seq, times: int = 1) -> list[np.ndarray]:
@@ -104,12 +120,12 @@ def test_new_segment_grows_to_previous_winners_up_to_max_new():
     wa = tm.compute(A)
     wb = tm.compute(B)
     for cell in wb:
-        (seg,) = tm.cell_segments(int(cell))
+        (seg,) = cell_segments(tm, int(cell))
         assert len(seg["presyn"]) == 3
         assert set(seg["presyn"]) <= set(wa)
         np.testing.assert_allclose(seg["perm"], np.float32(0.6))
     for cell in set(cells_of(B)) - set(wb):
-        assert tm.cell_segments(int(cell)) == []
+        assert cell_segments(tm, int(cell)) == []
 
 
 def test_active_segment_reinforced_and_inactive_synapses_decremented():
@@ -118,7 +134,7 @@ def test_active_segment_reinforced_and_inactive_synapses_decremented():
     tm.reset()
     tm.compute(A, learn=False)
     cell = int(tm.predictive_cells()[0])
-    (seg,) = tm.cell_segments(cell)
+    (seg,) = cell_segments(tm, cell)
     # Make one synapse come from a cell that will not be active: swap A for a pattern sharing 3 columns.
     tm.reset()
     partial = np.array([A[0], A[1], A[2], E[0]])
@@ -126,7 +142,7 @@ def test_active_segment_reinforced_and_inactive_synapses_decremented():
     active_prev = set(tm.context.active_cells)
     assert cell in tm.predictive_cells()  # 3 active connected synapses >= activationThreshold 3
     tm.compute(B, learn=True)
-    (after,) = tm.cell_segments(cell)
+    (after,) = cell_segments(tm, cell)
     by_cell = dict(zip(after["presyn"].tolist(), after["perm"].tolist(), strict=False))
     for pre, p0 in zip(seg["presyn"].tolist(), seg["perm"].tolist(), strict=True):
         expected = p0 + 0.1 if pre in active_prev else p0 - 0.05
@@ -159,12 +175,12 @@ def test_least_used_tie_break_is_lowest_cell_when_not_learning():
 def test_matching_segments_in_inactive_columns_are_punished():
     tm = small(predictedSegmentDecrement=0.05, initialPermanence=0.3, activationThreshold=4, minThreshold=2)
     wb = learn_sequence(tm, [A, B])[1]
-    before = {int(c): tm.cell_segments(int(c))[0]["perm"].copy() for c in wb}
+    before = {int(c): cell_segments(tm, int(c))[0]["perm"].copy() for c in wb}
     tm.reset()
     tm.compute(A, learn=True)
     tm.compute(C, learn=True)  # B's matching segments predicted wrongly
     for c, p0 in before.items():
-        np.testing.assert_allclose(tm.cell_segments(c)[0]["perm"], p0 - np.float32(0.05), atol=1e-6)
+        np.testing.assert_allclose(cell_segments(tm, c)[0]["perm"], p0 - np.float32(0.05), atol=1e-6)
 
 
 def test_decayed_synapses_and_empty_segments_are_destroyed():
@@ -174,7 +190,7 @@ def test_decayed_synapses_and_empty_segments_are_destroyed():
     tm.compute(A, learn=True)
     tm.compute(C, learn=True)  # 0.25 - 0.3 < 1e-5: every synapse dies, then the segment
     for c in wb:
-        assert tm.cell_segments(int(c)) == []
+        assert cell_segments(tm, int(c)) == []
     size = tm.size()
     assert size["decay_destroyed"] == 16 and size["empty_destroyed"] == 4
 
@@ -195,7 +211,7 @@ def test_caps_hold_and_least_recently_used_segment_is_evicted():
     tm.reset()
     tm.compute(contexts[2])
     tm.compute(target)
-    kept = [set(s["presyn"].tolist()) for s in tm.cell_segments(31)]
+    kept = [set(s["presyn"].tolist()) for s in cell_segments(tm, 31)]
     assert len(kept) == 2
     assert set(contexts[0].tolist()) in kept and set(contexts[2].tolist()) in kept
     assert tm.size()["evictions"] == 1
@@ -214,7 +230,7 @@ def test_caps_are_never_exceeded_on_random_input():
     assert tm.size()["evictions"] > 0 and tm.size()["overrun_destroyed"] > 0
     # no segment holds the same presynaptic cell twice
     for cell in range(tm.n_cells):
-        for seg in tm.cell_segments(cell):
+        for seg in cell_segments(tm, cell):
             assert len(set(seg["presyn"].tolist())) == len(seg["presyn"])
 
 
@@ -224,7 +240,7 @@ def test_overrun_destroys_lowest_permanence_never_previous_winners():
     target = np.array([31])
     tm.compute(np.array([0, 1, 2, 3]))
     tm.compute(target)
-    (seg,) = tm.cell_segments(31)
+    (seg,) = cell_segments(tm, 31)
     assert sorted(seg["presyn"].tolist()) == [0, 1, 2, 3]
     q = (31 * 8 + seg["slot"]) * 4  # flattened synapse slot of the segment's first synapse
     start = {0: 0.05, 1: 0.3, 2: 0.25, 3: 0.9}
@@ -234,7 +250,7 @@ def test_overrun_destroys_lowest_permanence_never_previous_winners():
     tm.compute(target)
     # adapt: 0 -> 0.15, 1 -> 0.4, 2 -> 0.15, 3 -> 0.8; growing 8 and 9 overruns the cap by two.
     # Synapse 0 ties with 2 at the lowest permanence and is older, but comes from a previous winner.
-    (seg,) = tm.cell_segments(31)
+    (seg,) = cell_segments(tm, 31)
     got = dict(zip(seg["presyn"].tolist(), seg["perm"].tolist(), strict=True))
     assert got == pytest.approx({0: 0.15, 1: 0.4, 8: 0.3, 9: 0.3}, abs=1e-6)
     assert tm.size()["overrun_destroyed"] == 2

@@ -1,0 +1,71 @@
+"""Where everything lives in one data directory: the one layout every writer and reader uses
+(docs/design/service.md §4.1).
+
+    <root>/catalog.sqlite
+    <root>/projections/<sha256>.npy             (`models.frontend.slsbh.save_projection`'s naming)
+    <root>/maps/<map_id>/map.sqlite
+    <root>/maps/<map_id>/snapshots/<snapshot_id>/
+
+Example:
+    >>> Layout("var").map_db("default")
+    PosixPath('var/maps/default/map.sqlite')
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+__all__ = ["DB_FILE", "Layout"]
+
+#: A map's database, in its map directory and, under the same name, in each of its snapshots.
+DB_FILE = "map.sqlite"
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The paths of one data directory `root` (nothing is created or checked here)."""
+
+    root: Path
+
+    def __init__(self, root: str | os.PathLike[str]) -> None:
+        object.__setattr__(self, "root", Path(root))
+
+    @property
+    def catalog(self) -> Path:
+        """The catalog database (`storage.catalog.Catalog`)."""
+        return self.root / "catalog.sqlite"
+
+    @property
+    def projections(self) -> Path:
+        """The content-addressed projection files, shared by every map."""
+        return self.root / "projections"
+
+    def projection(self, sha256: str) -> Path:
+        """The projection whose SHA-256 (`models.frontend.slsbh.projection_sha256`) is `sha256`."""
+        return self.projections / f"{sha256}.npy"
+
+    @property
+    def maps(self) -> Path:
+        """The parent of every map directory (and of an import's staging directory)."""
+        return self.root / "maps"
+
+    def map_dir(self, map_id: str) -> Path:
+        return self.maps / map_id
+
+    def map_db(self, map_id: str) -> Path:
+        """The map's live database (`storage.mapstore.MapStore`)."""
+        return self.map_dir(map_id) / DB_FILE
+
+    def snapshots_dir(self, map_id: str) -> Path:
+        return self.map_dir(map_id) / "snapshots"
+
+    def snapshot_dir(self, map_id: str, snapshot_id: str) -> Path:
+        return self.snapshots_dir(map_id) / snapshot_id
+
+    @staticmethod
+    def snapshot_relpath(map_id: str, snapshot_id: str) -> str:
+        """A snapshot's directory relative to the data directory, as the catalog records it (so a data
+        directory can be moved or copied whole)."""
+        return Layout("").snapshot_dir(map_id, snapshot_id).as_posix()
