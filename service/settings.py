@@ -31,7 +31,7 @@ from pydantic import Field, ValidationError, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, EnvSettingsSource, PydanticBaseSettingsSource, SettingsConfigDict
 from pydantic_settings.sources.utils import parse_env_vars
 
-from models.frontend import images
+from models.frontend import limits
 
 __all__ = ["ENV_PREFIX", "OTHER_KNOWN_VARIABLES", "ConfigError", "Settings", "env_name"]
 
@@ -101,8 +101,8 @@ class Settings(BaseSettings):
     torch_threads: int = Field(1, ge=1)
     encoder_workers: int = Field(1, ge=1, description="encoder executor size")
     encoder_queue: int = Field(32, ge=1, description="encoder queue length (full: 503 overloaded)")
-    max_upload_bytes: int = Field(images.DEFAULT_MAX_BYTES, ge=1, description="request body limit")
-    max_pixels: int = Field(images.DEFAULT_MAX_PIXELS, ge=1,
+    max_upload_bytes: int = Field(limits.DEFAULT_MAX_BYTES, ge=1, description="request body limit")
+    max_pixels: int = Field(limits.DEFAULT_MAX_PIXELS, ge=1,
                             description="decoded-image limit (width x height)")
     default_preset: str = Field("cortexloc-default", min_length=1)
     max_map_bytes: int = Field(2**31, ge=1, description="cap on a map's preallocated TM arrays")

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from models import presets
-from models.frontend import backbones, images, slsbh
+from models.frontend import backbones, images, limits, slsbh
 
 log = logging.getLogger("cortexloc.encoder")
 
@@ -40,8 +40,8 @@ default_conf: dict[str, Any] = {
     "random_seed": 0,  # seed of the NumPy-generated fallback weights
     "torch_threads": 1,
     "decode_threads": 2,  # OpenCV releases the GIL: a batch decodes and resizes in parallel
-    "max_bytes": 10 * 2**20,
-    "max_pixels": 25_000_000,
+    "max_bytes": limits.DEFAULT_MAX_BYTES,
+    "max_pixels": limits.DEFAULT_MAX_PIXELS,
     # projection: dense (docs/design/science.md §7) | sparse (very sparse random projection, measured in
     # docs/results.md before it may become a default)
     # k and s: the map defaults (presets.SlsbhParams); the encoder's own projection has seed 0.

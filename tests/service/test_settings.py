@@ -170,3 +170,15 @@ def test_serve_passes_options_to_uvicorn(monkeypatch, tmp_path):
     assert seen["kwargs"]["workers"] == 1
     settings = seen["app"].state.settings
     assert settings.data_dir == tmp_path / "d" and settings.port == 8123
+
+
+def test_reading_settings_loads_no_opencv():
+    """`cortexloc serve` sets OPENCV_IO_MAX_IMAGE_PIXELS from the settings, so they must be read before cv2
+    is imported (docs/design/service.md §3): the settings module takes its defaults from a cv2-free home."""
+    import subprocess
+    import sys
+
+    code = ("import sys, service.settings as s; s.Settings.from_env({}); "
+            "print('cv2' in sys.modules, 'torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "False"]

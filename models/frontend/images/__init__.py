@@ -37,11 +37,13 @@ from __future__ import annotations
 
 import os
 
+from models.frontend import limits
+
 # OpenCV's own decompression-bomb guard, read once when cv2 is loaded (docs/design/service.md §3: "set to the
 # same value before OpenCV is imported"). It is the second line of defence behind the header check below;
 # setdefault so that a deployment (or a test) that sets it first keeps its value. If cv2 was already
 # imported elsewhere this is a harmless no-op.
-os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", "25000000")
+os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(limits.DEFAULT_MAX_PIXELS))
 
 # The submodules come after the line above: decode and preprocess import cv2.
 from models.frontend.images.common import (

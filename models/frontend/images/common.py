@@ -6,13 +6,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
+# Re-exported: the limits live where the settings can read them without loading cv2.
+from models.frontend.limits import DEFAULT_MAX_ASPECT as DEFAULT_MAX_ASPECT
+from models.frontend.limits import DEFAULT_MAX_BYTES as DEFAULT_MAX_BYTES
+from models.frontend.limits import DEFAULT_MAX_PIXELS as DEFAULT_MAX_PIXELS
+
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-DEFAULT_MAX_BYTES = 10 * 2**20
-DEFAULT_MAX_PIXELS = 25_000_000
-# docs/design/service.md §1.2: "long side more than 16× the short side" is a degenerate image. The cap also
-# bounds the Resize(256) intermediate: a 1×4000 upload would otherwise become a 256×1,024,000 array (786 MB).
-DEFAULT_MAX_ASPECT = 16.0
 
 FORMATS = ("jpeg", "png", "bmp", "webp")
 MODES = ("crop", "squash")

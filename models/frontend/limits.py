@@ -1,0 +1,11 @@
+"""The default limits on one upload, in a module that imports nothing heavy (docs/design/service.md §3).
+
+`service.settings` reads its defaults from here before OpenCV is loaded: `cortexloc serve` must set
+`OPENCV_IO_MAX_IMAGE_PIXELS` from the settings first, and importing `models.frontend.images` loads cv2.
+"""
+
+DEFAULT_MAX_BYTES = 10 * 2**20
+DEFAULT_MAX_PIXELS = 25_000_000
+# docs/design/service.md §1.2: "long side more than 16× the short side" is a degenerate image. The cap also
+# bounds the Resize(256) intermediate: a 1×4000 upload would otherwise become a 256×1,024,000 array (786 MB).
+DEFAULT_MAX_ASPECT = 16.0
