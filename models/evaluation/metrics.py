@@ -323,8 +323,8 @@ def query_metrics(S: np.ndarray, GT: np.ndarray, confidence: np.ndarray | None =
     Args:
         S: (n_db, n_q) similarities (for R@5 and, by default, the answers).
         GT: (n_db, n_q) bool; with a tolerance pass the soft ground truth (a hit within ±t counts).
-        confidence, best: (n_q,) a method's own answers and confidences (OpenSeqSLAM's match score);
-            default `best_matches(S)`.
+        confidence, best: (n_q,) a method's own answers and confidences (OpenSeqSLAM's match score;
+            best -1 = no answer, counted wrong); default `best_matches(S)`.
 
     Returns:
         {"best", "confidence", "correct" (n_q,), "P", "R", "query_auc", "recall_at_1", "recall_at_5",
@@ -334,7 +334,8 @@ def query_metrics(S: np.ndarray, GT: np.ndarray, confidence: np.ndarray | None =
     if best is None or confidence is None:
         best, confidence = best_matches(S)
     cols = np.arange(gt.shape[1])
-    correct = gt[best, cols]
+    best = np.asarray(best, dtype=np.int64)
+    correct = (best >= 0) & gt[np.maximum(best, 0), cols]  # best -1: no answer (a warm-up), wrong
     has_pos = gt.any(axis=0)
     P, R = query_pr_curve(confidence, correct, has_pos)
     return {"best": best, "confidence": np.asarray(confidence, dtype=np.float64), "correct": correct,

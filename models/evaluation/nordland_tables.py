@@ -60,11 +60,15 @@ def markdown(result: dict[str, Any], metric: str) -> str:
     windows = result["windows"]
     some = next(iter(windows.values()))
     ds_list = list(some)
+    methods = result.get("methods", METHODS)
     fmt = "{:.4f}" if metric == "auc" else "{:.3f}"
-    single = [m for m in METHODS if m in ("cosine", "slsbh", "htm")]
-    multi = [m for m in METHODS if m not in single]
+    single = [m for m in methods if m in ("cosine", "slsbh", "htm")]
+    multi = [m for m in methods if m not in single]
+    # What the memory adds: each memory method against the same matcher on its own codes.
+    gains = [(m, m.replace("htm", "slsbh")) for m in multi
+             if "htm" in m and m.replace("htm", "slsbh") in multi]
     ds_label = " / ".join(map(str, ds_list))
-    head = ["files", *single, *(f"{m} (ds {ds_label})" for m in multi), "htm-seq − slsbh-seq"]
+    head = ["files", *single, *(f"{m} (ds {ds_label})" for m in multi), *(f"{a} − {b}" for a, b in gains)]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for window, by_ds in windows.items():
         first = by_ds[ds_list[0]]
@@ -72,9 +76,9 @@ def markdown(result: dict[str, Any], metric: str) -> str:
         for m in multi:
             vals = [fmt.format(by_ds[d][m][f"{metric}_mean"]) for d in ds_list]
             cells.append(" / ".join(vals))
-        gain = [by_ds[d]["htm-seq"][f"{metric}_mean"] - by_ds[d]["slsbh-seq"][f"{metric}_mean"]
-                for d in ds_list]
-        cells.append(" / ".join(f"{g:+.3f}" for g in gain))
+        for a, b in gains:
+            gain = [by_ds[d][a][f"{metric}_mean"] - by_ds[d][b][f"{metric}_mean"] for d in ds_list]
+            cells.append(" / ".join(f"{g:+.3f}" for g in gain))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -84,6 +88,8 @@ def main() -> None:
     ap.add_argument("--backbone", default="efficientnet-lite0", choices=backbones.names())
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--ds", default="10,20", help="comma-separated path lengths")
+    ap.add_argument("--methods", default=",".join(METHODS), help="comma-separated methods of "
+                    "models.evaluation.sequences.METHODS, e.g. openseqslam,online-htm (its ablations join)")
     ap.add_argument("--windows", default=",".join(WINDOWS), help="comma-separated names of WINDOWS")
     ap.add_argument("--reverse-query", action="store_true", help="drive the query route backwards")
     ap.add_argument("--crossing", action="store_true", help="sequence methods answer the row where the best "
@@ -106,15 +112,17 @@ def main() -> None:
     frames = {season: seq.load_frames([root / season / n for n in names]) for season in ("summer", "winter")}
     codes = presets.get(PRESET)["slsbh"]
     _memoised_run_tm()
+    methods = sequences.with_ablations(args.methods.split(","))
     out: dict[str, Any] = {"backbone": enc.identity, "preset": PRESET, "seeds": args.seeds,
-                           "reverse_query": args.reverse_query, "crossing": args.crossing, "windows": {}}
+                           "methods": methods, "reverse_query": args.reverse_query, "crossing": args.crossing,
+                           "windows": {}}
     for window in args.windows.split(","):
         o, n = WINDOWS[window]
         sl = slice(o, o + n)
         out["windows"][window] = {}
         for ds in (int(v) for v in args.ds.split(",")):
             r = sequences.image_experiment(
-                feats["summer"][sl], feats["winter"][sl], methods=METHODS, preset=PRESET, k=codes["k"],
+                feats["summer"][sl], feats["winter"][sl], methods=methods, preset=PRESET, k=codes["k"],
                 s=codes["s"], seeds=args.seeds, reset=True, ds=ds, reverse_query=args.reverse_query,
                 crossing=args.crossing,
                 frames=(frames["summer"][sl], frames["winter"][sl]))

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from models import presets, sdr
-from models.evaluation import metrics
+from models.evaluation import metrics, online
 from models.evaluation import seqslam as seq
 from models.files import atomic_write, sha256_file
 from models.frontend import slsbh
@@ -29,11 +29,15 @@ from models.memory.temporal_memory import TemporalMemory
 # seqslam: contrast enhancement, full straight paths of ds frames centred on the query); `openseqslam` is
 # that matcher on its own pixel front end with its own match score, the reference
 # (docs/design/science.md §10.1).
+# "online-X" is method X's similarity through the causal sequence localiser (models.evaluation.online,
+# docs/design/science.md §11): what the service answers per stream.
 SEQUENCE_FILTERED = ("cosine", "slsbh", "mcn", "htm")
-METHODS = ("cosine", "slsbh", "mcn", "htm", "openseqslam", *(f"{m}-seq" for m in SEQUENCE_FILTERED))
+METHODS = ("cosine", "slsbh", "mcn", "htm", "openseqslam", *(f"{m}-seq" for m in SEQUENCE_FILTERED),
+           *(f"online-{m}" for m in SEQUENCE_FILTERED))
 # What always runs beside a memory method (seqslam.with_ablations).
 ABLATIONS = {"htm": ("cosine", "slsbh"), "mcn": ("cosine", "slsbh"),
-             "htm-seq": ("cosine-seq", "slsbh-seq"), "mcn-seq": ("cosine-seq", "slsbh-seq")}
+             "htm-seq": ("cosine-seq", "slsbh-seq"), "mcn-seq": ("cosine-seq", "slsbh-seq"),
+             "online-htm": ("online-cosine", "online-slsbh"), "online-mcn": ("online-cosine", "online-slsbh")}
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
 
 
@@ -170,7 +174,12 @@ def with_ablations(methods: Sequence[str]) -> list[str]:
 
 def is_sequence(method: str) -> bool:
     """A method that matches sequences of ds frames (scored only on queries with a full window)."""
-    return method == "openseqslam" or method.endswith("-seq")
+    return method == "openseqslam" or method.endswith("-seq") or method.startswith("online-")
+
+
+def base_method(method: str) -> str:
+    """The single-image method whose similarity a sequence method runs on ("online-htm" -> "htm")."""
+    return method.removesuffix("-seq").removeprefix("online-")
 
 
 def evaluate(S: np.ndarray, tolerance: int, gt: np.ndarray | None = None, columns: np.ndarray | None = None,
@@ -221,6 +230,7 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
                      adapt_tau: int = 0, tm_overrides: dict[str, Any] | None = None,
                      reverse_query: bool = False, ds: int = seq.DS, gt: np.ndarray | None = None,
                      frames: tuple[np.ndarray, np.ndarray] | None = None, crossing: bool = False,
+                     localiser: dict[str, Any] | None = None,
                      progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """All methods on one database/query pair of feature sequences, over seeds.
 
@@ -242,6 +252,7 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
         frames: (db, query) patch-normalised grey frames (`seqslam.load_frames`), for `openseqslam`.
         crossing: every sequence method answers the row where its best path crosses the query instead
             of OpenSeqSLAM's start row + ds // 2 (seqslam.path_sums); a measurement, not a default.
+        localiser: options of the `online-X` methods over `models.localisation.default_conf`.
 
     Returns:
         {"methods": {name: {"auc_mean", "auc_min", "auc_max", "query_auc_mean", ..., "recall_at_1_mean",
@@ -274,23 +285,21 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
     children = np.random.SeedSequence(seed).spawn(seeds)
     for i, child in enumerate(children):
         proj_seed, tm_seed, mcn_seed = (int(v) for v in child.generate_state(3))
-        bases = {m.removesuffix("-seq") for m in methods}
+        bases = {base_method(m) for m in methods}
         if bases & {"slsbh", "mcn", "htm"}:
             hasher = slsbh.Hasher(slsbh.make_projection(db_feats.shape[1], k, proj_seed), s)
             db_codes, q_codes = (codes(hasher, raw[key], adapt_tau) for key in ("db", "q"))
         single: dict[str, tuple[np.ndarray, dict[str, Any], float]] = {}  # this seed's S per base method
         for m in methods:
-            if i > 0 and m in ("cosine", "cosine-seq", "openseqslam"):
+            if i > 0 and m in ("cosine", "cosine-seq", "online-cosine", "openseqslam"):
                 continue  # deterministic given the features and frames
-            base = m.removesuffix("-seq")
+            base = base_method(m)
             t0 = time.perf_counter()
             answers = None
             info: dict[str, Any] = {}
             if m == "openseqslam":
                 found = seq.openseqslam(*frames, ds=ds, crossing=crossing)
                 S, answers = found.S, (found.best, found.confidence)
-                if reverse_query:
-                    answers = (answers[0][::-1], answers[1][::-1])
             else:
                 if base not in single:
                     if base == "cosine":
@@ -308,11 +317,16 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
                     t0 = time.perf_counter()
                 S, info, base_seconds = single[base]
                 info = {**info, "seconds": base_seconds}
-                if m != base:
+                if m.endswith("-seq"):
                     S = seq.seqslam(S, ds, crossing=crossing)
+                elif m != base:
+                    found = online.localise(S, localiser)
+                    S, answers = found.S, (found.best, found.confidence)
+                    info["support_mean"] = float(found.support[found.best >= 0].mean())
             info["seconds"] = info.get("seconds", 0.0) + time.perf_counter() - t0
             if reverse_query:
                 S = S[:, ::-1]  # back to file order: column j is query place j again
+                answers = None if answers is None else (answers[0][::-1], answers[1][::-1])
             r = evaluate(S, tolerance, gt, columns, answers)
             if m not in first:
                 first[m] = {key: r[key] for key in ("P", "R", "query_P", "query_R", "best", "confidence",
@@ -328,12 +342,12 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
             vals = np.array([r[key] for r in rs])
             entry.update({f"{key}_mean": float(vals.mean()), f"{key}_min": float(vals.min()),
                           f"{key}_max": float(vals.max())})
-        if m.removesuffix("-seq") == "htm":
+        if base_method(m) == "htm":
             entry["preset"] = preset
             for key in ("query_predicted_fraction", "chance_predicted_fraction"):
                 entry[f"{key}_mean"] = float(np.mean([r[key] for r in rs]))
             entry["bytes"] = rs[0]["bytes"]
-        if m.removesuffix("-seq") == "mcn":
+        if base_method(m) == "mcn":
             entry["preset"] = mcn_preset
             entry["columns_mean"] = float(np.mean([r["columns"] for r in rs]))
         if is_sequence(m):

@@ -3,4 +3,5 @@
     sweep.py              grid world search behind `cortexloc-grid`
     nordland_sweep.py     cross-season search behind `cortexloc-default`
     projection_parity.py  dense against sparse sLSBH projection AUC
+    localiser_sweep.py    the online localiser's defaults and the EfficientNet block (docs/results.md §8)
 """

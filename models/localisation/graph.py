@@ -1,0 +1,110 @@
+"""The map's learned sequence structure: each stored row's predecessor link (docs/design/science.md §11.1).
+
+A row's predecessor is `context_prev_seq`, the row its stream learned just before it (none: -1, the
+start of a traverse). Successor links are the inverse. Several traverses, loops and branches are all
+just rows with links; the localiser walks them forwards (successors) or backwards (predecessors).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+NONE = -1
+
+
+class SequenceGraph:
+    """Predecessor and successor links of the stored rows, indexed by row id (seq).
+
+    Args:
+        prev: (N,) int, prev[r] = the row learned just before row r in the same stream sequence, or
+            -1. Row ids are 0..N-1; a row that is not stored has prev -1 and no successor.
+
+    Raises:
+        ValueError: a link points outside 0..N-1 or to the row itself.
+
+    Where two rows name the same predecessor (a stream that resumed from an older row), the later row
+    is the successor a forward walk takes; the earlier branch is still reached backwards. Memory is
+    two int64 per row, held once per map (not per stream).
+    """
+
+    def __init__(self, prev: np.ndarray | None = None) -> None:
+        prev = np.zeros(0, np.int64) if prev is None else np.asarray(prev, dtype=np.int64)
+        if prev.ndim != 1:
+            raise ValueError(f"prev must be 1-D, got shape {prev.shape}")
+        n = prev.size
+        rows = np.arange(n)
+        if np.any((prev < NONE) | (prev >= n) | (prev == rows)):
+            raise ValueError("prev links must be -1 or another row id in 0..N-1")
+        self._prev = prev.copy()
+        self._next = np.full(n, NONE, dtype=np.int64)
+        linked = prev >= 0
+        self._next[prev[linked]] = rows[linked]  # later rows overwrite earlier: the later branch wins
+        self._n = n
+
+    @classmethod
+    def chain(cls, n: int, start: int = 0) -> SequenceGraph:
+        """One traverse of n rows learned in order (row r's predecessor is r - 1), from row `start`."""
+        prev = np.arange(-1, n - 1, dtype=np.int64)
+        prev[:start + 1] = NONE
+        return cls(prev)
+
+    def __len__(self) -> int:
+        return self._n
+
+    def append(self, row: int, prev: int = NONE) -> None:
+        """Add row `row` (a new seq, >= len(self)) learned after `prev` (-1: none); amortised O(1)."""
+        if row < self._n:
+            raise ValueError(f"row {row} is already in the graph (size {self._n})")
+        if prev != NONE and not 0 <= prev < self._n:
+            raise ValueError(f"predecessor {prev} is not a stored row")
+        if row >= self._prev.size:
+            cap = max(2 * self._prev.size, row + 1, 16)
+            self._prev = np.concatenate([self._prev, np.full(cap - self._prev.size, NONE, np.int64)])
+            self._next = np.concatenate([self._next, np.full(cap - self._next.size, NONE, np.int64)])
+        self._prev[row] = prev
+        if prev != NONE:
+            self._next[prev] = row
+        self._n = row + 1
+
+    @property
+    def prev(self) -> np.ndarray:
+        """(N,) int64 predecessor of each row (-1: none); a view, do not modify."""
+        return self._prev[:self._n]
+
+    @property
+    def next(self) -> np.ndarray:
+        """(N,) int64 successor of each row (-1: none); a view, do not modify."""
+        return self._next[:self._n]
+
+    def walk(self, rows: np.ndarray, direction: np.ndarray, steps: int) -> np.ndarray:
+        """Rows reached by `steps` links from `rows`, forwards (direction +1) or backwards (-1).
+
+        Args:
+            rows: (H,) int64 start rows (-1 allowed: stays -1).
+            direction: (H,) int8 or int, +1 = follow successors, -1 = follow predecessors.
+            steps: links to follow, >= 0.
+
+        Returns:
+            (H,) int64 rows reached; -1 where a link ran out. O(H * steps), independent of N.
+        """
+        out = np.asarray(rows, dtype=np.int64).copy()
+        fwd = np.asarray(direction) > 0
+        for _ in range(steps):
+            ok = out >= 0
+            nxt = np.full_like(out, NONE)
+            nxt[ok & fwd] = self._next[out[ok & fwd]]
+            nxt[ok & ~fwd] = self._prev[out[ok & ~fwd]]
+            out = nxt
+        return out
+
+    def within(self, row: int, links: int) -> np.ndarray:
+        """Sorted rows at most `links` links from `row` either way, `row` included: O(links)."""
+        found = [row]
+        for table in (self._next, self._prev):
+            r = row
+            for _ in range(links):
+                r = int(table[r])
+                if r < 0:
+                    break
+                found.append(r)
+        return np.unique(np.array(found, dtype=np.int64))

@@ -1,0 +1,262 @@
+"""Online, causal sequence localisation over the map's links (docs/design/science.md §11).
+
+A stream's place is the end of the best path of stored rows that explains its recent frames: an HMM
+over the topological graph of stored rows (Hansen & Browning 2014), filtered online with a bounded
+Viterbi beam, scored like SeqSLAM (Milford & Wyeth 2012) but causally: the answer at frame t uses
+frames <= t only. The confidence is OpenSeqSLAM's best-over-rival idea made causal: the best path's
+score against the best path ending more than `exclusion` links away, as odds mapped to [0, 1].
+
+    loc = SequenceLocaliser({"beam": 128})
+    state = loc.new_state()
+    for frame in stream:
+        seqs, scores = index.rank(frame)               # or loc.step_dense(state, graph, sims)
+        place = loc.step(state, graph, seqs, scores)   # None during warm-up
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from models.localisation.graph import NONE, SequenceGraph
+
+# Every parameter, its default and meaning: docs/design/science.md §11.3.
+default_conf: dict[str, Any] = {
+    "top_k": 100,           # candidates per frame that carry evidence and seed new hypotheses
+    "beam": 256,            # hypotheses kept per stream (the state's fixed size)
+    "move_costs": (3.0, 0.0, 3.0),  # cost of advancing 0, 1, 2, ... stored rows in one frame
+    "backward": True,       # also hypothesise the route driven against its stored direction
+    "decay": 0.95,          # weight of the past per frame: memory of about 1 / (1 - decay) frames
+    "jump_cost": 20.0,      # cost of a new hypothesis (relocalisation) below the best one's score
+    "warmup": 5,            # frames before the first answer
+    "exclusion": 10,        # rows (links, both ways) around the best that a rival may not end in
+    "temperature": 4.0,     # score gap per unit of log-odds in the confidence
+}
+
+
+class Place(NamedTuple):
+    """One answer: the stored row the stream is at, how sure, and how many frames lie behind it.
+
+    Attributes:
+        seq: the stored row id.
+        confidence: in [0, 1]; tanh(gap / (2 temperature)), gap = best path score minus the best
+            rival's more than exclusion // 2 links away (docs/design/science.md §11.2).
+        support: frames on the best path (its age), <= frames seen by the stream.
+    """
+
+    seq: int
+    confidence: float
+    support: int
+
+
+@dataclass
+class LocaliserState:
+    """One stream's hypotheses, fixed size `beam` (independent of the map; docs/design/science.md §11.2).
+
+    Attributes:
+        rows: (beam,) int64 the row each hypothesis ends at (-1: empty slot).
+        dirs: (beam,) int8 +1 = walking successor links, -1 = predecessor links (route driven backwards).
+        scores: (beam,) float64 decayed path score (higher = better; -inf in empty slots).
+        ages: (beam,) int64 frames on the path.
+        frames: frames seen since the last reset.
+    """
+
+    rows: np.ndarray
+    dirs: np.ndarray
+    scores: np.ndarray
+    ages: np.ndarray
+    frames: int = 0
+
+    @classmethod
+    def empty(cls, beam: int) -> LocaliserState:
+        return cls(np.full(beam, NONE, np.int64), np.ones(beam, np.int8), np.full(beam, -np.inf),
+                   np.zeros(beam, np.int64))
+
+    def reset(self) -> None:
+        """Forget every hypothesis (a new traverse, a kidnapped robot); the size stays."""
+        self.rows[:] = NONE
+        self.dirs[:] = 1
+        self.scores[:] = -np.inf
+        self.ages[:] = 0
+        self.frames = 0
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Plain numpy arrays for a snapshot (`np.savez`); `from_arrays` restores them."""
+        return {"rows": self.rows.copy(), "dirs": self.dirs.copy(), "scores": self.scores.copy(),
+                "ages": self.ages.copy(), "frames": np.array(self.frames, np.int64)}
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> LocaliserState:
+        """The state saved by `to_arrays`.
+
+        Raises:
+            ValueError: the arrays are missing or of different lengths.
+        """
+        try:
+            rows, dirs = np.asarray(arrays["rows"], np.int64), np.asarray(arrays["dirs"], np.int8)
+            scores, ages = np.asarray(arrays["scores"], np.float64), np.asarray(arrays["ages"], np.int64)
+            frames = int(arrays["frames"])
+        except KeyError as e:
+            raise ValueError(f"localiser state lacks {e}") from None
+        if not rows.ndim == 1 or not rows.shape == dirs.shape == scores.shape == ages.shape:
+            raise ValueError("localiser state arrays differ in shape")
+        return cls(rows.copy(), dirs.copy(), scores.copy(), ages.copy(), frames)
+
+
+def top_candidates(sims: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The k most similar rows of a dense (N,) similarity vector: (seqs, scores), best first.
+
+    Ties go to the lower row, so the result is deterministic.
+    """
+    sims = np.asarray(sims, dtype=np.float64)
+    k = min(k, sims.size)
+    part = np.argpartition(-sims, k - 1)[:k] if k < sims.size else np.arange(sims.size)
+    order = np.lexsort((part, -sims[part]))
+    return part[order].astype(np.int64), sims[part[order]]
+
+
+def evidence(seqs: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame evidence of the candidates: how far each stands above the weakest, in units of the
+    candidates' spread (docs/design/science.md §11.2). Rows that are not candidates have evidence 0.
+
+    Args:
+        seqs: (K,) candidate rows; scores: (K,) their similarities, higher = more similar.
+
+    Returns:
+        (rows sorted, evidence in that order), each (K,), evidence >= 0.
+    """
+    seqs = np.asarray(seqs, dtype=np.int64)
+    scores = np.asarray(scores, dtype=np.float64)
+    if seqs.shape != scores.shape or seqs.ndim != 1:
+        raise ValueError(f"seqs and scores must be 1-D of one length, got {seqs.shape}, {scores.shape}")
+    if not np.all(np.isfinite(scores)):
+        raise ValueError("candidate scores must be finite")
+    if seqs.size == 0:
+        return seqs, scores
+    order = np.argsort(seqs, kind="stable")  # first, so the sums do not depend on the index's order
+    seqs, scores = seqs[order], scores[order]
+    return seqs, (scores - scores.min()) / (scores.std() + 1e-9)
+
+
+class SequenceLocaliser:
+    """The per-frame step of docs/design/science.md §11; configuration merged over `default_conf`.
+
+    Per frame the cost is O(top_k + beam * (max move + 1)) plus O(exclusion) link walks, whatever the
+    map's size. Deterministic: ties are broken by row id and direction.
+    """
+
+    default_conf = default_conf
+
+    def __init__(self, conf: Mapping[str, Any] | None = None) -> None:
+        unknown = set(conf or {}) - set(default_conf)
+        if unknown:
+            raise ValueError(f"unknown localiser option(s) {sorted(unknown)}; known: {sorted(default_conf)}")
+        self.conf = {**default_conf, **(conf or {})}
+        c = self.conf
+        self.move_costs = np.asarray(c["move_costs"], dtype=np.float64)
+        if self.move_costs.ndim != 1 or self.move_costs.size < 1:
+            raise ValueError("move_costs needs a cost for 0, 1, ... rows per frame")
+        if not 0.0 <= float(c["decay"]) < 1.0:
+            raise ValueError(f"decay must be in [0, 1), got {c['decay']}")
+        if int(c["beam"]) < 1 or int(c["top_k"]) < 1 or int(c["warmup"]) < 1:
+            raise ValueError("beam, top_k and warmup must be >= 1")
+        if float(c["temperature"]) <= 0:
+            raise ValueError("temperature must be > 0")
+
+    def new_state(self) -> LocaliserState:
+        """An empty state for one stream (`beam` hypotheses)."""
+        return LocaliserState.empty(int(self.conf["beam"]))
+
+    def step_dense(self, state: LocaliserState, graph: SequenceGraph, sims: np.ndarray) -> Place | None:
+        """`step` on a dense (N,) similarity vector (its `top_k` best rows are the candidates)."""
+        return self.step(state, graph, *top_candidates(sims, int(self.conf["top_k"])))
+
+    def step(self, state: LocaliserState, graph: SequenceGraph, seqs: np.ndarray,
+             scores: np.ndarray) -> Place | None:
+        """Advance one stream by one frame and answer its place.
+
+        Args:
+            state: the stream's state, updated in place.
+            graph: the map's links (`SequenceGraph`); every candidate must be a row of it.
+            seqs, scores: (K,) candidate rows of this frame and their similarities (higher = more
+                similar), e.g. an index's top-K; only the `top_k` best are used.
+
+        Returns:
+            The place, or None while fewer than `warmup` frames were seen or no candidate was ever given.
+        """
+        c = self.conf
+        seqs, scores = np.asarray(seqs, np.int64), np.asarray(scores, np.float64)
+        if seqs.size and (seqs.min() < 0 or seqs.max() >= len(graph)):
+            raise ValueError("a candidate row is not in the graph")
+        if seqs.size > int(c["top_k"]):
+            keep = np.lexsort((seqs, -scores))[:int(c["top_k"])]
+            seqs, scores = seqs[keep], scores[keep]
+        ev_rows, ev = evidence(seqs, scores)
+        decay = float(c["decay"])
+        live = state.rows >= 0
+        rows, dirs = state.rows[live], state.dirs[live]
+        past = decay * state.scores[live]
+        ages = state.ages[live]
+        # The implicit level of every row outside the beam: the best path so far, then a jump.
+        jump = (past.max() if past.size else 0.0) - float(c["jump_cost"])
+
+        new_rows, new_dirs, new_scores, new_ages = [], [], [], []
+        cur = rows
+        for m, cost in enumerate(self.move_costs):
+            if m:
+                cur = graph.walk(cur, dirs, 1)
+            ok = cur >= 0
+            new_rows.append(cur[ok])
+            new_dirs.append(dirs[ok])
+            new_scores.append(past[ok] - cost)
+            new_ages.append(ages[ok] + 1)
+        born_dirs = (1, -1) if c["backward"] else (1,)
+        for d in born_dirs:
+            new_rows.append(seqs)
+            new_dirs.append(np.full(seqs.size, d, np.int8))
+            new_scores.append(np.full(seqs.size, jump))
+            new_ages.append(np.ones(seqs.size, np.int64))
+        r = np.concatenate(new_rows)
+        d = np.concatenate(new_dirs).astype(np.int8)
+        s = np.concatenate(new_scores) + _lookup(ev_rows, ev, r)
+        a = np.concatenate(new_ages)
+
+        # Viterbi: one survivor per (row, direction), the best score; ties to the older path.
+        key = r * 2 + (d > 0)
+        order = np.lexsort((-a, -s, key))
+        first = np.ones(order.size, bool)
+        first[1:] = key[order][1:] != key[order][:-1]
+        idx = order[first]
+        idx = idx[np.lexsort((key[idx], -s[idx]))][:state.rows.size]  # best first, ties by row
+
+        n = idx.size
+        state.rows[:] = NONE
+        state.dirs[:] = 1
+        state.scores[:] = -np.inf
+        state.ages[:] = 0
+        state.rows[:n], state.dirs[:n], state.scores[:n], state.ages[:n] = r[idx], d[idx], s[idx], a[idx]
+        state.frames += 1
+        if state.frames < int(c["warmup"]) or n == 0:
+            return None
+        return self._answer(state, graph, n, jump)
+
+    def _answer(self, state: LocaliserState, graph: SequenceGraph, n: int, background: float) -> Place:
+        best = int(state.rows[0])
+        near = graph.within(best, int(self.conf["exclusion"]) // 2)
+        rivals = state.scores[:n][~np.isin(state.rows[:n], near)]
+        # Rows outside the beam stand at the background level: a rival at least that strong exists.
+        rival = max(float(rivals.max()) if rivals.size else -np.inf, background)
+        gap = max(float(state.scores[0]) - rival, 0.0)
+        conf = float(np.tanh(gap / (2.0 * float(self.conf["temperature"]))))
+        return Place(best, conf, int(min(state.ages[0], state.frames)))
+
+
+def _lookup(sorted_rows: np.ndarray, values: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """values[i] where sorted_rows[i] == rows[j], else 0, for each j: O(len(rows) log K)."""
+    if sorted_rows.size == 0:
+        return np.zeros(rows.size)
+    pos = np.clip(np.searchsorted(sorted_rows, rows), 0, sorted_rows.size - 1)
+    return np.where(sorted_rows[pos] == rows, values[pos], 0.0)
