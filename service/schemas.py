@@ -12,8 +12,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from service.maps import results
 
 __all__ = ["CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel", "ObservationModel",
-           "Readiness", "RestoreModel", "SequenceModel", "SnapshotList", "SnapshotModel", "StreamResetModel",
-           "Versions"]
+           "PatchMap", "PlaceModel", "Readiness", "RestoreModel", "SequenceModel", "SnapshotList",
+           "SnapshotModel", "StreamResetModel", "Versions"]
 
 MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"
 
@@ -45,6 +45,21 @@ class CreateMap(BaseModel):
     tm: dict[str, Any] | None = Field(default=None, description="Temporal Memory overrides, NuPIC names")
     slsbh: dict[str, Any] | None = Field(default=None, description="sLSBH overrides: k, s, seed, adapt_tau")
     exclude_recent: int = Field(default=0, ge=0)
+    backbone: str | None = Field(default=None, description="alexnet | efficientnet-lite0 (default: the "
+                                 "service's, resolved at startup); frozen with the map")
+    memory: Literal["tm", "none"] = Field(default="tm", description="none: the sLSBH code is the "
+                                          "winner-cell SDR (the Temporal Memory left out)")
+    revisit_threshold: float | None = Field(default=None, description="confidence at which `place.revisit`"
+                                            " is true, in [0, 1]; changeable with PATCH")
+    localiser: dict[str, Any] | None = Field(default=None, description="sequence localiser options "
+                                             "(docs/design/science.md §11.3)")
+
+
+class PatchMap(BaseModel):
+    """The map settings that may change after creation (docs/design/service.md §1.2)."""
+
+    model_config = ConfigDict(extra="forbid")
+    revisit_threshold: float = Field(ge=0.0, le=1.0, description="confidence at which an answer is a revisit")
 
 
 class MapParams(_Out):
@@ -52,6 +67,8 @@ class MapParams(_Out):
     slsbh: dict[str, Any]
     seed: int
     exclude_recent: int
+    memory: Literal["tm", "none"]
+    localiser: dict[str, Any]
 
 
 class MapModel(_Out):
@@ -71,6 +88,8 @@ class MapModel(_Out):
     warnings: list[str]
     recovery: dict[str, Any] | None
     snapshot_error: dict[str, Any] | None
+    backbone: str
+    revisit_threshold: float
 
 
 class MapList(_Out):
@@ -119,9 +138,24 @@ class MatchModel(_Out):
     score: float = Field(description="Dice of the winner-cell sets")
 
 
+class PlaceModel(_Out):
+    """The stream's place on the map's learned sequences (docs/design/science.md §11.2): `confidence` in
+    [0, 1], `revisit` = confidence >= the map's `revisit_threshold`, `support` = frames behind it."""
+
+    seq: int
+    observation_id: str
+    stream: str
+    label: str | None
+    confidence: float
+    revisit: bool
+    support: int
+    metadata: dict[str, Any] | None = None
+
+
 class Versions(_Out):
     api: str
     code: str
+    backbone: str
     encoder: str
     weights: str
     projection: str
@@ -139,6 +173,7 @@ class ObservationModel(_Out):
     seq: int | None
     sequence: SequenceModel
     matches: list[MatchModel]
+    place: PlaceModel | None = Field(description="null during the stream's warm-up")
     timings_ms: dict[str, float]
     versions: Versions
 

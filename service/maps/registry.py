@@ -91,7 +91,9 @@ class MapRegistry:
         return rt
 
     def create(self, map_id: str, *, preset: str, seed: int | None = None, tm: dict[str, Any] | None = None,
-               slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0) -> MapRuntime:
+               slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
+               backbone: str | None = None, memory: str = "tm", revisit_threshold: float | None = None,
+               localiser: dict[str, Any] | None = None) -> MapRuntime:
         """Create a map: resolve and freeze parameters, persist the projection, then the store (§1.1).
 
         Raises:
@@ -99,8 +101,10 @@ class MapRegistry:
         """
         if not MAP_ID_RE.match(map_id):
             raise InvalidMapId(map_id, MAP_ID_RE.pattern)
-        params = resolve_params(preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf,
-                                exclude_recent=exclude_recent)
+        params = resolve_params(
+            preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf, exclude_recent=exclude_recent,
+            backbone=backbone or self.encoder.conf["backbone"], memory=memory, localiser=localiser,
+            **({} if revisit_threshold is None else {"revisit_threshold": revisit_threshold}))
         need = planned_bytes(params["tm"])
         if need > self.settings.max_map_bytes:
             raise MapTooLarge(need, self.settings.max_map_bytes)

@@ -40,6 +40,8 @@ from service.maps import snapshots as map_snapshots
 from service.maps.encoder_pool import EncoderPool
 from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable
 from service.maps.index import IndexFull, InvertedIndex
+from service.maps.localisation import Localisation, place_result
+from service.maps.params import check_revisit_threshold, map_option
 from service.maps.results import (
     IndexMemory,
     MapInfo,
@@ -54,7 +56,7 @@ from service.maps.results import (
     StreamsMemory,
     TmMemory,
 )
-from service.maps.state import Stream, memory_state
+from service.maps.state import Stream, memory_state, tm_digest, winner_cells
 from storage import snapshots
 from storage._common import StorageFull, utc_now
 from storage.catalog import Catalog, MapRecord
@@ -106,6 +108,9 @@ class MapRuntime:
             self._projection_error = str(e)
         self.tm = TemporalMemory(self.params["tm"])
         self.index = InvertedIndex(self.tm.n_cells, max_observations)
+        self.memory_kind, self.backbone = (map_option(self.params, k) for k in ("memory", "backbone"))
+        self.revisit_threshold = float(map_option(self.params, "revisit_threshold"))
+        self.localisation = Localisation(map_option(self.params, "localiser"))
         self.store: MapStore | None = None
 
     # ------------------------------------------------------------------ writer
@@ -222,10 +227,11 @@ class MapRuntime:
             self._fail("database-corrupt", str(e))
             return
         done, note = recovery.recover(self.store, self.catalog, self.map_id, self.params["tm"],
-                                      adapt_tau=self.adapt_tau)
+                                      adapt_tau=self.adapt_tau, memory=self.memory_kind)
         self.tm, self.streams = done.tm, done.streams
         self.index = InvertedIndex(self.tm.n_cells, self.index.max_observations)
         self.index.rebuild(self.store.rows())
+        self.localisation.rebuild(self.store.rows())
         self.recovery = note
         self.state, self.state_reason = "ready", None
         log.info("map %s ready: %s", self.map_id, note)
@@ -255,6 +261,7 @@ class MapRuntime:
         if st is not None:
             st.context.reset()
             st.step, st.last_learned_seq = 0, None
+            st.localiser = None
         return StreamReset(stream=name, had_context=bool(had))
 
     # ------------------------------------------------------------------ observations
@@ -326,12 +333,17 @@ class MapRuntime:
             st.step, st.last_learned_seq = 0, None
         if st.context.active_cells.size == 0:
             st.step, st.last_learned_seq = 0, None
-        winners = self.tm.compute(code, learn=learn, context=st.context)
+        winners = winner_cells(self.tm, code, learn=learn, context=st.context, memory=self.memory_kind)
         stats = st.context.stats.as_dict()
         t2 = time.perf_counter()
         exclude_recent = int(self.params.get("exclude_recent", 0))
-        ranked = self.index.rank(winners, top_k, exclude_recent_stream=stream if exclude_recent else None,
-                                 exclude_recent=exclude_recent) if top_k > 0 else []
+        # One index pass serves the matches and the localiser's candidates (docs/design/science.md §11.2).
+        ranked = self.index.rank(winners, self.localisation.candidates_wanted(top_k, learn),
+                                 exclude_recent_stream=stream if exclude_recent else None,
+                                 exclude_recent=exclude_recent)
+        st.localiser = st.localiser or self.localisation.new_state()
+        place = self.localisation.step(st.localiser, ranked, st.last_learned_seq, learn)
+        ranked = ranked[:top_k]
         t3 = time.perf_counter()
         seq = obs_id = None
         if learn:
@@ -347,7 +359,7 @@ class MapRuntime:
         if learn and self.snapshot_every and seq is not None and seq % self.snapshot_every == 0:
             self._auto_snapshot()
         t4 = time.perf_counter()
-        rows = self.store.get_many(m.seq for m in ranked) if ranked else {}
+        rows = self.store.get_many([*(m.seq for m in ranked), *([place.seq] if place else [])])
         return ObservationResult(
             map_id=self.map_id, stream=stream, learned=learn, observation_id=obs_id, seq=seq,
             sequence=SequenceStats(step=st.step - 1, active_columns=stats["active_columns"],
@@ -360,7 +372,9 @@ class MapRuntime:
                      for i, m in enumerate(ranked)],
             timings_ms={"hash": (t1 - t0) * 1e3, "tm": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3,
                         "store": (t4 - t3) * 1e3},
-            map_seq=self.store.last_seq(), projection_sha256=self.params["projection_sha256"])
+            map_seq=self.store.last_seq(), projection_sha256=self.params["projection_sha256"],
+            backbone=self.backbone,
+            place=None if place is None else place_result(place, rows[place.seq], self.revisit_threshold))
 
     def _commit(self, row: NewObservation) -> tuple[int, str]:
         """Writer: the row on disk, then in the index: (seq, observation id).
@@ -381,6 +395,7 @@ class MapRuntime:
             raise
         with contextlib.suppress(IndexFull):  # checked in `apply`; the row is durable either way
             self.index.add(seq, row.winner_cells, row.stream)
+        self.localisation.add(seq, row.context_prev_seq)
         return seq, row.observation_id
 
     # ------------------------------------------------------------------ resources
@@ -391,11 +406,21 @@ class MapRuntime:
             map_id=self.map_id, created_at=self.record.created_at, state=self.state,
             state_reason=self.state_reason, preset=p["preset"],
             params={"tm": p["tm"], "slsbh": p["slsbh"], "seed": p["seed"],
-                    "exclude_recent": p["exclude_recent"]},
+                    "exclude_recent": p["exclude_recent"], "memory": self.memory_kind,
+                    "localiser": self.localisation.localiser.conf},
             encoder=p["encoder_id"], projection_sha256=p["projection_sha256"],
             observations=len(self.index),
             last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),
-            warnings=p.get("warnings", []), recovery=self.recovery, snapshot_error=self.snapshot_error)
+            warnings=p.get("warnings", []), recovery=self.recovery, snapshot_error=self.snapshot_error,
+            backbone=self.backbone, revisit_threshold=self.revisit_threshold)
+
+    def set_revisit_threshold(self, value: float) -> MapInfo:
+        """Writer: the map's revisit threshold, durable in the catalog (docs/design/service.md §1.2);
+        InvalidConfiguration outside [0, 1] (nothing changes)."""
+        value = check_revisit_threshold(value)
+        self.record = self.catalog.update_params(self.map_id, revisit_threshold=value)
+        self.params, self.revisit_threshold = self.record.params, value
+        return self.info()
 
     def memory(self) -> MemoryInfo:
         size = self.tm.size()
@@ -421,9 +446,4 @@ class MapRuntime:
 
     def tm_digest(self) -> str:
         """SHA-256 over the learned arrays and generator state (tests: 'nothing changed')."""
-        h = hashlib.sha256()
-        for k, v in sorted(self.tm.state_dict().items()):
-            if not k.startswith("ctx."):
-                h.update(k.encode())
-                h.update(np.ascontiguousarray(v).tobytes())
-        return h.hexdigest()
+        return tm_digest(self.tm)
