@@ -47,8 +47,8 @@ class CreateMap(BaseModel):
     exclude_recent: int = Field(default=0, ge=0)
     backbone: str | None = Field(default=None, description="alexnet | efficientnet-lite0 (default: the "
                                  "service's, resolved at startup); frozen with the map")
-    memory: Literal["tm", "none"] = Field(default="tm", description="none: the sLSBH code is the "
-                                          "winner-cell SDR (the Temporal Memory left out)")
+    memory: str = Field(default="tm", description="tm | none (the sLSBH code is the winner-cell SDR: the "
+                        "Temporal Memory left out)")
     revisit_threshold: float | None = Field(default=None, description="confidence at which `place.revisit`"
                                             " is true, in [0, 1]; changeable with PATCH")
     localiser: dict[str, Any] | None = Field(default=None, description="sequence localiser options "
@@ -59,7 +59,8 @@ class PatchMap(BaseModel):
     """The map settings that may change after creation (docs/design/service.md §1.2)."""
 
     model_config = ConfigDict(extra="forbid")
-    revisit_threshold: float = Field(ge=0.0, le=1.0, description="confidence at which an answer is a revisit")
+    revisit_threshold: float = Field(description="confidence at which an answer is a revisit, in [0, 1] "
+                                     "(422 outside)")
 
 
 class MapParams(_Out):
@@ -67,7 +68,7 @@ class MapParams(_Out):
     slsbh: dict[str, Any]
     seed: int
     exclude_recent: int
-    memory: Literal["tm", "none"]
+    memory: str
     localiser: dict[str, Any]
 
 
