@@ -331,7 +331,7 @@ class MapRuntime:
         if learn and st.learning is False:
             st.context.reset()  # a switch to mapping starts a new sequence: replay relies on it
             st.step, st.last_learned_seq = 0, None
-        if st.context.active_cells.size == 0:
+        if st.context.active_cells.size == 0 and self.memory_kind == "tm":  # without a TM: only `step`
             st.step, st.last_learned_seq = 0, None
         winners = winner_cells(self.tm, code, learn=learn, context=st.context, memory=self.memory_kind)
         stats = st.context.stats.as_dict()
