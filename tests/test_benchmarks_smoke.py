@@ -16,6 +16,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import bench_index
+import bench_localiser
 from bench_longrun import noisy
 
 
@@ -61,3 +62,9 @@ def test_startup_benchmark_builds_a_map_and_reopens_it_from_its_snapshot(tmp_pat
     opened = bench_startup.open_once(tmp_path / "data")
     assert opened["state"] == "ready" and opened["observations"] == 60
     assert opened["replayed"] == 5  # only the rows after the newest snapshot
+
+
+def test_localiser_benchmark_follows_its_route_with_a_state_that_ignores_the_map_size() -> None:
+    small, large = bench_localiser.bench_size(500, 40), bench_localiser.bench_size(50_000, 40)
+    assert small["recall_at_1"] > 0.9 and large["recall_at_1"] > 0.9
+    assert small["state_bytes"] == large["state_bytes"]

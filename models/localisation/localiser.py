@@ -1,7 +1,7 @@
 """Online, causal sequence localisation over the map's links (docs/design/science.md §11).
 
 A stream's place is the end of the best path of stored rows that explains its recent frames: an HMM
-over the topological graph of stored rows (Hansen & Browning 2014), filtered online with a bounded
+over the topological graph of stored rows (Hansen & Browning, IROS 2014), filtered online with a bounded
 Viterbi beam, scored like SeqSLAM (Milford & Wyeth 2012) but causally: the answer at frame t uses
 frames <= t only. The confidence is OpenSeqSLAM's best-over-rival idea made causal: the best path's
 score against the best path ending more than `exclusion` links away, as odds mapped to [0, 1].
@@ -109,7 +109,7 @@ class LocaliserState:
 def top_candidates(sims: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """The k most similar rows of a dense (N,) similarity vector: (seqs, scores), best first.
 
-    Ties go to the lower row, so the result is deterministic.
+    Deterministic for a given vector; within the k, equal scores are ordered by row.
     """
     sims = np.asarray(sims, dtype=np.float64)
     k = min(k, sims.size)
