@@ -69,6 +69,8 @@ class MapParams(_Out):
     seed: int
     exclude_recent: int
     memory: str
+    projection: str = Field(description="dense | sparse (the very sparse projection, where dense would "
+                            "break the map's size budget)")
     localiser: dict[str, Any]
 
 

@@ -16,13 +16,14 @@ import hashlib
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from models.evaluation.online import OnlineAnswers
+from service.maps.encoders import Encoders
 from service.maps.registry import MapRegistry
 from service.maps.runtime import MapRuntime
 from service.settings import Settings
@@ -39,7 +40,6 @@ class FeaturesOnly:
 
     identity: str
     feature_dim: int
-    conf: dict[str, Any] = field(default_factory=dict)
 
 
 def _step(rt: MapRuntime, y: np.ndarray, *, learn: bool, stream: str) -> Any:
@@ -67,8 +67,8 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
     n_db, n_q = len(db_feats), len(q_feats)
     with tempfile.TemporaryDirectory(prefix="cortexloc-eval-") as tmp:
         settings = Settings(data_dir=Path(tmp), snapshot_every=0, max_observations=max(n_db, 1))
-        registry = MapRegistry(Path(tmp), FeaturesOnly(encoder_id, int(db_feats.shape[1]),
-                                                       {"backbone": backbone}), settings)
+        features_only = FeaturesOnly(encoder_id, int(db_feats.shape[1]))
+        registry = MapRegistry(Path(tmp), Encoders.one(features_only, backbone), settings)
         try:
             rt = registry.create("eval", preset=preset, seed=seed, memory=memory, backbone=backbone,
                                  localiser=localiser, **(create or {}))

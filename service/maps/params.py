@@ -29,7 +29,7 @@ MEMORY_KINDS = ("tm", "none")
 
 # What maps made before an option existed run with (their params lack the key).
 _LEGACY = {"backbone": "alexnet", "memory": "tm", "revisit_threshold": DEFAULT_REVISIT_THRESHOLD,
-           "localiser": {}}
+           "localiser": {}, "projection": "dense"}
 
 
 def map_option(params: dict[str, Any], name: str) -> Any:

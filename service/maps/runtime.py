@@ -35,6 +35,7 @@ import numpy as np
 from models.frontend import slsbh
 from models.frontend.adaptation import RunningMean
 from models.memory.temporal_memory import TemporalMemory
+from service.maps import projection as map_projection
 from service.maps import recovery
 from service.maps import snapshots as map_snapshots
 from service.maps.encoder_pool import EncoderPool
@@ -101,8 +102,8 @@ class MapRuntime:
         self._projection_error: str | None = None
         # the checksum is verified on load: a map never runs on another matrix (docs/design/science.md §7)
         try:
-            projection = slsbh.load_projection(self.projection_path, sha,
-                                               shape=(feature_dim, int(self.params["slsbh"]["k"])))
+            projection = map_projection.load(self.projection_path, sha,
+                                             shape=(feature_dim, int(self.params["slsbh"]["k"])))
             self.hasher = slsbh.Hasher(projection, float(self.params["slsbh"]["s"]))
         except (slsbh.ProjectionError, OSError) as e:
             self._projection_error = str(e)
@@ -281,7 +282,7 @@ class MapRuntime:
         """
         self.require_ready()
         t0 = time.perf_counter()
-        encoding = pool.submit(body, hasher=self.hasher)
+        encoding = pool.submit(body, hasher=self.hasher, backbone=self.backbone)
         before, mine = self._turn, asyncio.Event()
         self._turn = mine
         try:
@@ -407,7 +408,7 @@ class MapRuntime:
             state_reason=self.state_reason, preset=p["preset"],
             params={"tm": p["tm"], "slsbh": p["slsbh"], "seed": p["seed"],
                     "exclude_recent": p["exclude_recent"], "memory": self.memory_kind,
-                    "localiser": self.localisation.localiser.conf},
+                    "projection": map_option(p, "projection"), "localiser": self.localisation.localiser.conf},
             encoder=p["encoder_id"], projection_sha256=p["projection_sha256"],
             observations=len(self.index),
             last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),

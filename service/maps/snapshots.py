@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.frontend import slsbh
+from service.maps import projection as map_projection
 from service.maps.errors import InsufficientStorage, SnapshotNotFound
 from service.maps.results import SnapshotInfo
 from storage import snapshots
@@ -107,7 +107,7 @@ def import_snapshot(data_dir: Path, catalog: Catalog, projections: Path, tar_pat
         sha = manifest.projection_sha256
         target = projections / f"{sha}.npy"
         if (staging / "projection.npy").exists():
-            slsbh.load_projection(staging / "projection.npy", sha)  # refuses another matrix
+            map_projection.load(staging / "projection.npy", sha)  # refuses another matrix
             if not target.exists():
                 (staging / "projection.npy").replace(target)
             else:

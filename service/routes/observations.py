@@ -69,7 +69,7 @@ async def post_observation(
         if stage != "total":
             metrics.observe_stage(stage, ms / 1e3)
     metrics.observations.labels(map=map_id, learned=str(learn).lower()).inc()
-    desc = encoder.describe()
+    desc = registry.encoders.get(result.backbone).describe()  # the map's own backbone's encoder
     return ObservationModel(
         request_id=getattr(request.state, "request_id", None), map_id=result.map_id, stream=result.stream,
         learned=result.learned, observation_id=result.observation_id, seq=result.seq,

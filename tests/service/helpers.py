@@ -29,6 +29,8 @@ def tiny_encoder(settings: Settings):
 
 def make_app(data_dir: Path | None, **overrides) -> FastAPI:
     """The app on `data_dir` with `overrides` of the settings; None: settings read at startup."""
+    # AlexNet unless a test says otherwise: without its weights the service default would be EfficientNet.
+    overrides = {"backbone": "alexnet", **overrides}
     settings = None if data_dir is None else Settings(data_dir=data_dir, **overrides)
     return create_app(settings, encoder_factory=tiny_encoder)
 
