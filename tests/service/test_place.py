@@ -97,3 +97,17 @@ def test_backbone_is_frozen_with_the_map_and_shown(tmp_path):
         assert bad.status_code == 422 and bad.json()["errors"][0]["name"] == "backbone"
         assert c.post("/v1/maps", json={"map_id": "bad", "memory": "lstm"}).status_code == 422
         assert c.get("/v1/maps/bad").status_code == 404
+
+
+def test_the_default_backbone_is_resolved_once_at_startup(tmp_path):
+    from service.app import resolve_backbone
+    from service.maps.params import map_option
+    from service.settings import Settings
+
+    # no AlexNet weights are installed in the tests (conftest): EfficientNet-Lite0
+    assert resolve_backbone(Settings(data_dir=tmp_path)).backbone == "efficientnet-lite0"
+    weights = tmp_path / "alexnet.pth"
+    weights.write_bytes(b"not read here")
+    assert resolve_backbone(Settings(data_dir=tmp_path, weights_path=weights)).backbone == "alexnet"
+    assert resolve_backbone(Settings(data_dir=tmp_path, backbone="alexnet")).backbone == "alexnet"
+    assert map_option({}, "backbone") == "alexnet"  # a map made before the option keeps AlexNet
