@@ -4,6 +4,7 @@ docs/design/science.md §11), the revisit threshold (PATCH) and the backbone fro
 from __future__ import annotations
 
 from models.localisation import default_conf
+from service.maps.params import DEFAULT_REVISIT_THRESHOLD
 from tests.service.helpers import frame, make_client, post
 
 ROUTE = list(range(12))
@@ -36,7 +37,7 @@ def test_a_revisit_of_a_learned_route_answers_its_rows(tmp_path):
     assert len(answered) == len(ROUTE) - WARMUP + 1
     for i, p in answered[2:]:  # two frames after the warm-up the path is established
         assert p["seq"] == seqs[i] and p["stream"] == "mapper", (i, p)
-        assert p["revisit"] is True and 0.5 <= p["confidence"] <= 1.0
+        assert p["revisit"] is True and DEFAULT_REVISIT_THRESHOLD <= p["confidence"] <= 1.0
         assert 1 <= p["support"] <= i + 1
     assert body["versions"]["backbone"] == "alexnet"
     assert set(body["place"]) == {"seq", "observation_id", "stream", "label", "confidence", "revisit",
