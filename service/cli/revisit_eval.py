@@ -67,6 +67,7 @@ def main() -> None:
     found = service_eval.replay(db, q, encoder_id=enc.identity, backbone=args.backbone, preset=preset,
                                 seed=args.seed)
     answered = found.best >= 0
+    off_by = np.abs(found.best - np.arange(len(paths)))[answered]
     right = found.best == np.arange(len(paths))
     conf = found.confidence[answered]
     ok = right[answered]
@@ -74,7 +75,9 @@ def main() -> None:
     out = {"frames": len(paths), "answered": int(answered.sum()), "recall_at_1": float(ok.mean()),
            "confidence_right_mean": float(conf[ok].mean()) if ok.any() else None,
            "confidence_wrong_mean": float(conf[~ok].mean()) if (~ok).any() else None,
-           "wrong": int((~ok).sum()), "roc_auc_right_vs_wrong": separability(conf[ok], conf[~ok]),
+           "wrong": int((~ok).sum()),
+           "wrong_within_one_row": int((off_by[~ok] <= 1).sum()),
+           "roc_auc_right_vs_wrong": separability(conf[ok], conf[~ok]),
            "default_threshold": DEFAULT_REVISIT_THRESHOLD,
            "precision_at_default": float(ok[at].mean()) if at.any() else None,
            "recall_at_default": float(ok[at].sum() / ok.size),
