@@ -12,7 +12,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from service.maps import results
 
 __all__ = ["CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel", "ObservationModel",
-           "PatchMap", "PlaceModel", "Readiness", "RestoreModel", "SequenceModel", "SnapshotList",
+           "PatchMap", "Readiness", "RestoreModel", "SequenceModel", "SnapshotList",
            "SnapshotModel", "StreamResetModel", "Versions"]
 
 MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"
@@ -141,20 +141,6 @@ class MatchModel(_Out):
     score: float = Field(description="Dice of the winner-cell sets")
 
 
-class PlaceModel(_Out):
-    """The stream's place on the map's learned sequences (docs/design/science.md §11.2): `confidence` in
-    [0, 1], `revisit` = confidence >= the map's `revisit_threshold`, `support` = frames behind it."""
-
-    seq: int
-    observation_id: str
-    stream: str
-    label: str | None
-    confidence: float
-    revisit: bool
-    support: int
-    metadata: dict[str, Any] | None = None
-
-
 class Versions(_Out):
     api: str
     code: str
@@ -176,7 +162,8 @@ class ObservationModel(_Out):
     seq: int | None
     sequence: SequenceModel
     matches: list[MatchModel]
-    place: PlaceModel | None = Field(description="null during the stream's warm-up")
+    place: results.PlaceResult | None = Field(description="the stream's place on the learned routes "
+                                              "(docs/design/service.md §1.2); null during its warm-up")
     timings_ms: dict[str, float]
     versions: Versions
 

@@ -18,7 +18,7 @@ from fastapi import APIRouter, Path, Query, Request
 from models.frontend import images
 from service.deps import ApiKeyDep, EncoderDep, MetricsDep, RegistryDep, SettingsDep
 from service.errors import IMAGE_MEDIA_TYPES, Problem, problem_responses
-from service.schemas import MAP_ID_PATTERN, MatchModel, ObservationModel, PlaceModel, SequenceModel, Versions
+from service.schemas import MAP_ID_PATTERN, MatchModel, ObservationModel, SequenceModel, Versions
 
 router = APIRouter(prefix="/v1/maps", tags=["observations"])
 
@@ -75,7 +75,7 @@ async def post_observation(
         learned=result.learned, observation_id=result.observation_id, seq=result.seq,
         sequence=SequenceModel.from_result(result.sequence),
         matches=[MatchModel.from_result(m) for m in result.matches],
-        place=None if result.place is None else PlaceModel.from_result(result.place),
+        place=result.place,
         timings_ms={k: round(v, 3) for k, v in timings.items()},
         versions=Versions(api="v1", code=request.app.version, backbone=result.backbone,
                           encoder=desc["encoder"], weights=desc["weights"],
