@@ -38,7 +38,8 @@ async def post_observation(
     settings: SettingsDep,
     metrics: MetricsDep,
     learn: Annotated[bool, Query(description="true: mapping (stored, learned); false: localisation")] = True,
-    top_k: Annotated[int, Query(ge=0, description="matches to return (0 skips ranking)")] = 5,
+    top_k: Annotated[int, Query(ge=0, description="matches to return (0: none; `place` is still answered)")]
+    = 5,
     stream: Annotated[str, Query(pattern=r"^[A-Za-z0-9._-]{1,64}$")] = "default",
     label: Annotated[str | None, Query(max_length=200)] = None,
 ) -> ObservationModel:
