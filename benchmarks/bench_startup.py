@@ -44,6 +44,7 @@ import service.maps.registry as registry_mod
 from models.frontend import slsbh
 from models.memory.temporal_memory import TemporalMemory
 from service.maps import recovery
+from service.maps.encoders import Encoders
 from service.maps.index import InvertedIndex
 from service.settings import Settings
 from storage import snapshots
@@ -99,7 +100,7 @@ def settings_for(data_dir: Path) -> Settings:
 
 def build(data_dir: Path, n: int, short_tail: int, long_tail: int, seed: int = 0) -> dict[str, Any]:
     """Create map `default` with n observations and snapshots at n - long_tail and n - short_tail."""
-    reg = registry_mod.MapRegistry(data_dir, StubEncoder(), settings_for(data_dir))
+    reg = registry_mod.MapRegistry(data_dir, Encoders.one(StubEncoder()), settings_for(data_dir))
     reg.start()  # creates `default` with the default preset (and its 266 MB projection)
     rt = reg.get("default")
     assert rt.store is not None and rt.hasher is not None
@@ -145,7 +146,7 @@ def open_once(data_dir: Path) -> dict[str, Any]:
     rss0 = rss_mib()
     try:
         t0 = time.perf_counter()
-        reg = registry_mod.MapRegistry(data_dir, StubEncoder(), settings_for(data_dir))
+        reg = registry_mod.MapRegistry(data_dir, Encoders.one(StubEncoder()), settings_for(data_dir))
         reg.start()
         total = time.perf_counter() - t0
     finally:

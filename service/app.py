@@ -110,7 +110,8 @@ def configure_logging(settings: Settings) -> None:
 
 
 def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
-    """The service's encoder: AlexNet conv3 with the configured weights, seed, threads and input limits.
+    """The encoder of `settings.backbone` (resolved at startup; AlexNet conv3 with the configured weights
+    and seed, or EfficientNet-Lite0 with its package's), threads and input limits.
 
     Args:
         settings: the settings.
@@ -128,13 +129,26 @@ def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
         if path is None and not settings.allow_random_weights:
             log.error("no AlexNet weights: CORTEXLOC_WEIGHTS_PATH is unset, none are installed, and "
                       "CORTEXLOC_ALLOW_RANDOM_WEIGHTS=false; the service will not be ready")
-        conf = {"backbone": "alexnet", "weights_path": str(path) if path is not None else None,
+        conf = {"backbone": resolve_backbone(settings).backbone,
+                "weights_path": str(path) if path is not None else None,
                 "random_seed": settings.random_weights_seed, "torch_threads": settings.torch_threads,
                 "max_bytes": settings.max_upload_bytes, "max_pixels": settings.max_pixels, **overrides}
         return Encoder(conf)
     except weights.WeightsError as e:
         shown = f"={str(settings.weights_path)!r}" if settings.weights_path is not None else " (unset)"
         raise ConfigError([("CORTEXLOC_WEIGHTS_PATH", f"{shown}: {e}")]) from e
+
+
+def resolve_backbone(settings: Settings) -> Settings:
+    """The settings with `backbone` resolved once: the configured one, else AlexNet when its real
+    weights are installed (CORTEXLOC_WEIGHTS_PATH or the cache), else EfficientNet-Lite0."""
+    from models.frontend import weights
+    from service.maps.encoders import default_backbone
+
+    if settings.backbone is not None:
+        return settings
+    installed = settings.weights_path is not None or weights.find_alexnet() is not None
+    return settings.model_copy(update={"backbone": default_backbone(None, installed)})
 
 
 def encoder_weights_info(encoder: Encoder) -> dict[str, Any]:
@@ -199,11 +213,14 @@ def _openapi_with_problems(app: FastAPI) -> Callable[[], dict[str, Any]]:
 async def map_registry(app: FastAPI) -> AsyncIterator[None]:
     """The maps of the data directory: opened and recovered by replay at start, closed at shutdown."""
     from service.maps.encoder_pool import EncoderPool
+    from service.maps.encoders import Encoders
     from service.maps.registry import MapRegistry
 
     s = app.state.settings
     try:
-        registry = await anyio.to_thread.run_sync(MapRegistry, s.data_dir, app.state.encoder, s)
+        encoders = Encoders(lambda name: app.state.encoder_factory(s.model_copy(update={"backbone": name})),
+                            s.backbone, {s.backbone: app.state.encoder})
+        registry = await anyio.to_thread.run_sync(MapRegistry, s.data_dir, encoders, s)
         await anyio.to_thread.run_sync(registry.start)
     except Exception as e:
         # /readyz says why; the process stays alive for /healthz.
@@ -213,7 +230,7 @@ async def map_registry(app: FastAPI) -> AsyncIterator[None]:
         return
     app.state.registry = registry
     app.state.maps = registry.maps
-    app.state.encoder_pool = EncoderPool(app.state.encoder, s.encoder_workers, s.encoder_queue)
+    app.state.encoder_pool = EncoderPool(encoders, s.encoder_workers, s.encoder_queue)
     try:
         yield
     finally:
@@ -239,7 +256,7 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFact
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        s = settings if settings is not None else Settings.from_env()
+        s = resolve_backbone(settings if settings is not None else Settings.from_env())
         configure_logging(s)
         app.state.settings = s
         app.state.maps = {}
@@ -270,6 +287,7 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFact
                          description="Visual place recognition with a Hierarchical Temporal Memory.",
                          responses=problem_responses(500))
     app.state.metrics = metrics
+    app.state.encoder_factory = factory
     if settings is not None:
         app.state.settings = settings
     install_error_handlers(app)

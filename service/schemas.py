@@ -12,8 +12,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from service.maps import results
 
 __all__ = ["CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel", "ObservationModel",
-           "Readiness", "RecentList", "RecentModel", "RestoreModel", "SequenceModel", "SnapshotList",
-           "SnapshotModel", "StreamResetModel", "Versions"]
+           "PatchMap", "Readiness", "RecentList", "RecentModel", "RestoreModel", "SequenceModel",
+           "SnapshotList", "SnapshotModel", "StreamResetModel", "Versions"]
 
 MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"
 
@@ -45,6 +45,22 @@ class CreateMap(BaseModel):
     tm: dict[str, Any] | None = Field(default=None, description="Temporal Memory overrides, NuPIC names")
     slsbh: dict[str, Any] | None = Field(default=None, description="sLSBH overrides: k, s, seed, adapt_tau")
     exclude_recent: int = Field(default=0, ge=0)
+    backbone: str | None = Field(default=None, description="alexnet | efficientnet-lite0 (default: the "
+                                 "service's, resolved at startup); frozen with the map")
+    memory: str = Field(default="tm", description="tm | none (the sLSBH code is the winner-cell SDR: the "
+                        "Temporal Memory left out)")
+    revisit_threshold: float | None = Field(default=None, description="confidence at which `place.revisit`"
+                                            " is true, in [0, 1]; changeable with PATCH")
+    localiser: dict[str, Any] | None = Field(default=None, description="sequence localiser options "
+                                             "(docs/design/science.md §11.3)")
+
+
+class PatchMap(BaseModel):
+    """The map settings that may change after creation (docs/design/service.md §1.2)."""
+
+    model_config = ConfigDict(extra="forbid")
+    revisit_threshold: float = Field(description="confidence at which an answer is a revisit, in [0, 1] "
+                                     "(422 outside)")
 
 
 class MapParams(_Out):
@@ -52,6 +68,10 @@ class MapParams(_Out):
     slsbh: dict[str, Any]
     seed: int
     exclude_recent: int
+    memory: str
+    projection: str = Field(description="dense | sparse (the very sparse projection, where dense would "
+                            "break the map's size budget)")
+    localiser: dict[str, Any]
 
 
 class MapModel(_Out):
@@ -71,6 +91,8 @@ class MapModel(_Out):
     warnings: list[str]
     recovery: dict[str, Any] | None
     snapshot_error: dict[str, Any] | None
+    backbone: str
+    revisit_threshold: float
 
 
 class MapList(_Out):
@@ -122,6 +144,7 @@ class MatchModel(_Out):
 class Versions(_Out):
     api: str
     code: str
+    backbone: str
     encoder: str
     weights: str
     projection: str
@@ -139,6 +162,8 @@ class ObservationModel(_Out):
     seq: int | None
     sequence: SequenceModel
     matches: list[MatchModel]
+    place: results.PlaceResult | None = Field(description="the stream's place on the learned routes "
+                                              "(docs/design/service.md §1.2); null during its warm-up")
     timings_ms: dict[str, float]
     versions: Versions
 

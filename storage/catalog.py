@@ -326,6 +326,18 @@ class Catalog:
             db["maps"].update(map_id, {"state": state, "state_reason": reason})
             return _map(db["maps"].get(map_id))
 
+    def update_params(self, map_id: str, **changes: Any) -> MapRecord:
+        """Change a map's settings that may change after creation (e.g. `revisit_threshold`), in its
+        params, in one transaction.
+
+        Raises:
+            MapNotFound: unknown map.
+        """
+        with self._write() as db:
+            params = {**json.loads(_get_map(db, map_id)["params"]), **changes}
+            db["maps"].update(map_id, {"params": json.dumps(params, sort_keys=True)})
+            return _map(db["maps"].get(map_id))
+
     def delete_map(self, map_id: str) -> list[SnapshotRecord]:
         """Remove a map, its snapshot registrations and its high-water mark from the catalog.
 

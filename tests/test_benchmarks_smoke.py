@@ -17,6 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import bench_index
 import bench_localiser
+import bench_place
 from bench_longrun import noisy
 
 
@@ -68,3 +69,10 @@ def test_localiser_benchmark_follows_its_route_with_a_state_that_ignores_the_map
     small, large = bench_localiser.bench_size(500, 40), bench_localiser.bench_size(50_000, 40)
     assert small["recall_at_1"] > 0.9 and large["recall_at_1"] > 0.9
     assert small["state_bytes"] == large["state_bytes"]
+
+
+def test_place_benchmark_localises_through_the_index_with_a_fixed_state() -> None:
+    small, large = bench_place.bench_size(500, 30), bench_place.bench_size(20_000, 30)
+    assert small["recall_at_1"] > 0.9 and large["recall_at_1"] > 0.9
+    assert small["state_bytes"] == large["state_bytes"]
+    assert large["candidates"] == 100 and large["graph_bytes"] == 2 * 8 * (20_000 + 1)

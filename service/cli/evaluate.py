@@ -133,8 +133,14 @@ def eval_images(
     methods: Annotated[str, typer.Option(help="Comma-separated: cosine,slsbh,mcn,htm (one frame); "
                                           "openseqslam (the reference on grey pixels); cosine-seq,"
                                           "slsbh-seq,mcn-seq,htm-seq (the same sequence matcher on each "
-                                          "single-image similarity). Memory methods bring their ablations.")]
+                                          "single-image similarity); online-X (the causal localiser on X); "
+                                          "service, service-without-tm (the service's own path: a real map, "
+                                          "learn db, localise the query stream). Memory methods bring their "
+                                          "ablations.")]
     = "cosine,slsbh,htm,openseqslam,cosine-seq,slsbh-seq,htm-seq",
+    operating_point: Annotated[str | None, typer.Option(
+        help="precision=P: print, per method, the confidence threshold whose answers reach precision P "
+             "(per query, first seed)")] = None,
     ds: Annotated[int, typer.Option(min=2, help="Frames per sequence path, centred on the query.")] = 10,
     preset: Annotated[str | None, typer.Option(help="Temporal Memory preset (default: the service's; the "
                                                     "paper's is cba2020-nordland).")] = None,
@@ -170,6 +176,7 @@ def eval_images(
     from models.evaluation import ground_truth, plots, sequences
     from models.evaluation import seqslam as seq
     from models.frontend import encoder as encoder_mod
+    from service.cli import service_eval
     from service.settings import Settings
 
     # The service's defaults, read from their one home each (docs/design/service.md §8,
@@ -178,10 +185,14 @@ def eval_images(
     backbone = backbone or encoder_mod.default_conf["backbone"]
     resize = resize or encoder_mod.default_conf["resize"]
     method_list = [m.strip() for m in methods.split(",") if m.strip()]
+    service_list = [m for m in method_list if m in service_eval.METHODS]
+    method_list = [m for m in method_list if m not in service_eval.METHODS]
     bad = set(method_list) - set(sequences.METHODS)
-    if bad or not method_list:
-        raise typer.BadParameter(f"must be among {', '.join(sequences.METHODS)}", param_hint="--methods")
+    if bad or not (method_list or service_list):
+        known = ", ".join((*sequences.METHODS, *service_eval.METHODS))
+        raise typer.BadParameter(f"must be among {known}", param_hint="--methods")
     method_list = sequences.with_ablations(method_list)
+    wanted_precision = _operating_point(operating_point)
     check_presets(preset, mcn_preset)
     check_backbone(backbone)
     if resize not in ("crop", "squash"):
@@ -208,7 +219,7 @@ def eval_images(
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     cache_dir = cache or Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc"))
-    if method_list == ["openseqslam"]:  # it reads pixels: no backbone to run
+    if method_list == ["openseqslam"] and not service_list:  # it reads pixels: no backbone to run
         enc = None
         feats = {label: np.zeros((len(names), 0), np.float32)
                  for label, names in (("db", db_names), ("query", q_names))}
@@ -231,13 +242,27 @@ def eval_images(
     db_paths, q_paths = [db / n for n in db_names], [query / n for n in q_names]
     frames = ((seq.load_frames(db_paths), seq.load_frames(q_paths)) if "openseqslam" in method_list
               else None)
+    n_q = len(feats["query"])
+    columns = seq.full_window(n_q, ds)  # the service answers causally, scored on the others' queries
+    result: dict[str, Any] = {"methods": {}, "queries": np.flatnonzero(columns).tolist(), "first": {}}
     try:
-        with progress("runs", show=seeds > 1) as tick:
-            result = sequences.image_experiment(
-                feats["db"], feats["query"], methods=method_list, preset=preset, mcn_preset=mcn_preset,
-                k=int(s_conf["k"]), s=sparsity, seeds=seeds, seed=seed, tolerance=tolerance, reset=reset,
-                adapt_tau=adapt, reverse_query=reverse_query, ds=ds, gt=gt_matrix, frames=frames,
-                progress=tick)
+        if method_list:
+            with progress("runs", show=seeds > 1) as tick:
+                result = sequences.image_experiment(
+                    feats["db"], feats["query"], methods=method_list, preset=preset, mcn_preset=mcn_preset,
+                    k=int(s_conf["k"]), s=sparsity, seeds=seeds, seed=seed, tolerance=tolerance, reset=reset,
+                    adapt_tau=adapt, reverse_query=reverse_query, ds=ds, gt=gt_matrix, frames=frames,
+                    progress=tick)
+        if service_list:
+            assert enc is not None
+            with progress("service") as tick:
+                summary, first = service_eval.experiment(
+                    feats["db"], feats["query"], methods=service_list, columns=columns, tolerance=tolerance,
+                    gt=gt_matrix, seeds=seeds, seed=seed, reverse_query=reverse_query, progress=tick,
+                    map_conf={"encoder_id": enc.identity, "backbone": backbone, "preset": preset,
+                              "create": {"slsbh_conf": {"s": sparsity, "adapt_tau": adapt}}})
+            result["methods"].update(summary)
+            result["first"].update(first)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     first = result.pop("first")
@@ -264,8 +289,30 @@ def eval_images(
                         "drop_dark": drop_dark, "reverse_query": reverse_query, "tolerance": tolerance,
                         "reset": reset, "seeds": seeds, "seed": seed}
     result["provenance"] = provenance()
+    if wanted_precision is not None:
+        result["operating_points"] = {
+            m: service_eval.operating_point(r["confidence"], r["correct"], wanted_precision)
+            for m, r in first.items()}
     write_json(json_out, result)
     typer.echo(format_images_table(result))
+    for m, point in result.get("operating_points", {}).items():
+        typer.echo(f"operating point {m}: " + (
+            f"confidence >= {point['threshold']:.4f} gives precision {point['precision']:.3f}, recall "
+            f"{point['recall']:.3f}" if point else f"no threshold reaches precision {wanted_precision}"))
+
+
+def _operating_point(value: str | None) -> float | None:
+    """`precision=P` -> P in (0, 1]."""
+    if value is None:
+        return None
+    name, _, number = value.partition("=")
+    try:
+        p = float(number)
+    except ValueError:
+        p = -1.0
+    if name.strip() != "precision" or not 0 < p <= 1:
+        raise typer.BadParameter("expected precision=P with P in (0, 1]", param_hint="--operating-point")
+    return p
 
 
 def format_images_table(result: dict[str, Any]) -> str:

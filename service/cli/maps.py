@@ -23,12 +23,13 @@ def import_map(
     declares more than CORTEXLOC_MAX_IMPORT_BYTES or than the free space."""
     from types import SimpleNamespace
 
+    from service.maps.encoders import Encoders
     from service.maps.registry import MapRegistry
     from storage.snapshots import SnapshotInvalid
 
     settings = process_settings(data_dir=data_dir)
     root = settings.data_dir
-    registry = MapRegistry(root, SimpleNamespace(identity="", feature_dim=0), settings=settings)
+    registry = MapRegistry(root, Encoders.one(SimpleNamespace(identity="", feature_dim=0)), settings=settings)
     try:
         map_id = registry.import_snapshot(tar, settings.max_import_bytes)
     except (SnapshotInvalid, ValueError, OSError) as e:

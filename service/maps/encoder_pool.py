@@ -6,6 +6,9 @@ else arrives within a few milliseconds (up to `max_batch`), and runs one backbon
 them, so throughput under load approaches the backbone's batch throughput. A full queue answers 503
 `overloaded` at once instead of letting latency grow without bound.
 
+Batches are per backbone: a request names its map's backbone, and a batch holding several runs one
+backbone call per backbone present (`service.maps.encoders.Encoders` holds one encoder each).
+
 A request brings its map's sLSBH hasher (`MapRuntime.observe` passes it): the batch is then also
 projected here (y = x·P), one matrix product per map present in the batch. The dense projection is
 64,896 x 1,024 float32 (266 MB) and the product is bound by reading it, so projecting image by image in
@@ -25,9 +28,10 @@ from concurrent.futures import Future
 
 import numpy as np
 
-from models.frontend.encoder import Encoder, EncodeResult
+from models.frontend.encoder import EncodeResult
 from models.frontend.images import ImageError
 from models.frontend.slsbh import Hasher
+from service.maps.encoders import Encoders
 from service.maps.errors import Overloaded
 
 _STOP = object()
@@ -37,16 +41,16 @@ class EncoderPool:
     """`submit(image bytes) -> Future[EncodeResult]` with at most `workers + queue` in flight.
 
     Args:
-        encoder: the service's encoder (`embed` is called with a list of image bytes).
+        encoders: the service's encoders by backbone (`embed` is called with a list of image bytes).
         workers: threads running backbone calls.
         queue: requests that may wait beyond those being encoded.
         max_batch: images per backbone call at most.
         wait_ms: how long a worker waits for more images once it has one.
     """
 
-    def __init__(self, encoder: Encoder, workers: int, queue: int, max_batch: int = 16,
+    def __init__(self, encoders: Encoders, workers: int, queue: int, max_batch: int = 16,
                  wait_ms: float = 2.0) -> None:
-        self.encoder = encoder
+        self.encoders = encoders
         self.limit = workers + queue
         self.max_batch = max_batch
         self.wait_s = wait_ms / 1e3
@@ -58,9 +62,10 @@ class EncoderPool:
         for t in self._threads:
             t.start()
 
-    def submit(self, body: bytes, hasher: Hasher | None = None) -> Future[EncodeResult]:
-        """Queue one image; the future's `EncodeResult` has `features` (1, D) and, with `hasher`,
-        `projected` (1, k) = features · that hasher's projection (else None).
+    def submit(self, body: bytes, hasher: Hasher | None = None, backbone: str | None = None
+               ) -> Future[EncodeResult]:
+        """Queue one image for `backbone` (None: the default); the future's `EncodeResult` has `features`
+        (1, D) and, with `hasher`, `projected` (1, k) = features · that hasher's projection (else None).
 
         Raises:
             Overloaded: `workers + queue` requests are already in flight.
@@ -70,7 +75,7 @@ class EncoderPool:
                 raise Overloaded(self.limit)
             self.pending += 1
         fut: Future[EncodeResult] = Future()
-        self._queue.put((body, fut, hasher))
+        self._queue.put((body, fut, hasher, backbone or self.encoders.default))
         return fut
 
     def _run(self) -> None:
@@ -90,9 +95,13 @@ class EncoderPool:
                     self._queue.put(_STOP)  # let the other workers see it too
                     break
                 batch.append(nxt)
-            self._encode(batch)
+            groups: dict[str, list[tuple[bytes, Future[EncodeResult], Hasher | None]]] = {}
+            for body, fut, hasher, backbone in batch:
+                groups.setdefault(backbone, []).append((body, fut, hasher))
+            for backbone, group in groups.items():
+                self._encode(backbone, group)
 
-    def _encode(self, batch: list[tuple[bytes, Future[EncodeResult], Hasher | None]]) -> None:
+    def _encode(self, backbone: str, batch: list[tuple[bytes, Future[EncodeResult], Hasher | None]]) -> None:
         taken = len(batch)
         # A request whose client went away cancelled its future while it waited: it costs no encoding.
         batch = [item for item in batch if item[1].set_running_or_notify_cancel()]
@@ -100,7 +109,8 @@ class EncoderPool:
             if not batch:
                 return
             try:
-                out = self.encoder.embed([body for body, _, _ in batch])
+                encoder = self.encoders.get(backbone)
+                out = encoder.embed([body for body, _, _ in batch])
                 projected, ms = self._project(out.features, [h for _, _, h in batch])
                 for i, (_, fut, _) in enumerate(batch):
                     fut.set_result(EncodeResult(codes=None, features=out.features[i:i + 1],
@@ -110,7 +120,7 @@ class EncoderPool:
                 # One bad image must not fail the others: encode each alone to attribute the error.
                 for body, fut, hasher in batch:
                     try:
-                        one = self.encoder.embed([body])
+                        one = encoder.embed([body])
                         projected, one.timings_ms["project"] = self._project(one.features, [hasher])
                         one.projected = projected[0]
                         fut.set_result(one)

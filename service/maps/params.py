@@ -11,11 +11,39 @@ from __future__ import annotations
 from typing import Any
 
 from models import presets
-from models.frontend import slsbh
+from models.frontend import backbones, slsbh
+from models.localisation import SequenceLocaliser
 from models.memory.temporal_memory import validate
 from service.maps.errors import InvalidConfiguration
 
-__all__ = ["resolve_params"]
+__all__ = ["DEFAULT_REVISIT_THRESHOLD", "MEMORY_KINDS", "check_revisit_threshold", "map_option",
+           "resolve_params"]
+
+#: A new map's `revisit_threshold` (docs/design/service.md §1.2): the confidence at which an answer is
+#: called a revisit. docs/results.md §9.2: on Nordland `tune` (EfficientNet-Lite0, the service's path,
+#: `--operating-point precision=0.99`) precision 0.99 is reached at confidence 0.855; changeable per map
+#: with PATCH.
+DEFAULT_REVISIT_THRESHOLD = 0.86
+
+#: `memory`: `tm` (the Temporal Memory's winner cells) or `none` (the sLSBH code itself: the ablation).
+MEMORY_KINDS = ("tm", "none")
+
+# What maps made before an option existed run with (their params lack the key).
+_LEGACY = {"backbone": "alexnet", "memory": "tm", "revisit_threshold": DEFAULT_REVISIT_THRESHOLD,
+           "localiser": {}, "projection": "dense"}
+
+
+def map_option(params: dict[str, Any], name: str) -> Any:
+    """A map's option, or what a map made before it existed runs with (`alexnet`, `tm`, ...)."""
+    return params.get(name, _LEGACY[name])
+
+
+def check_revisit_threshold(value: float) -> float:
+    """Raises InvalidConfiguration unless 0 <= value <= 1."""
+    if not 0.0 <= float(value) <= 1.0:
+        msg = f"revisit_threshold must be in [0, 1], got {value}"
+        raise InvalidConfiguration(msg, [_body("revisit_threshold", msg)])
+    return float(value)
 
 
 def _body(name: str, message: str) -> dict[str, str]:
@@ -23,7 +51,10 @@ def _body(name: str, message: str) -> dict[str, str]:
 
 
 def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] | None = None,
-                   slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0) -> dict[str, Any]:
+                   slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
+                   backbone: str = "alexnet", memory: str = "tm",
+                   revisit_threshold: float = DEFAULT_REVISIT_THRESHOLD,
+                   localiser: dict[str, Any] | None = None) -> dict[str, Any]:
     """Freeze a map's parameters: preset <- overrides, every value checked before anything is
     converted or allocated.
 
@@ -32,9 +63,13 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
         seed: overrides `tm.seed` (and so the projection's seed unless `slsbh.seed` is given).
         tm, slsbh_conf: the request's overrides, as sent.
         exclude_recent: frozen into the map.
+        backbone: a registered backbone (`models.frontend.backbones`), frozen into the map.
+        memory: `tm` | `none` (MEMORY_KINDS). revisit_threshold: in [0, 1] (changeable later).
+        localiser: options over `models.localisation.default_conf` (docs/design/science.md §11.3).
 
     Returns:
-        {"preset", "tm", "slsbh", "seed", "exclude_recent", "warnings"}.
+        {"preset", "tm", "slsbh", "seed", "exclude_recent", "backbone", "memory", "revisit_threshold",
+        "localiser", "warnings"}.
 
     Raises:
         InvalidConfiguration: `errors` names each offending parameter (`tm.<name>`, `slsbh.<name>`),
@@ -70,7 +105,18 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
         errors.append(_body("slsbh.s", str(e)))
     if s_conf["k"] * 2 != tm_params["columnDimensions"]:
         errors.append(_body("slsbh.k", f"2k must equal columnDimensions ({tm_params['columnDimensions']})"))
+    if backbone not in backbones.names():
+        known = ", ".join(backbones.names())
+        errors.append(_body("backbone", f"unknown backbone {backbone!r}; known: {known}"))
+    if memory not in MEMORY_KINDS:
+        errors.append(_body("memory", f"memory must be one of {', '.join(MEMORY_KINDS)}"))
+    try:
+        SequenceLocaliser(localiser)
+    except ValueError as e:
+        errors.append(_body("localiser", str(e)))
     if errors:
         raise InvalidConfiguration("; ".join(e["message"] for e in errors), errors)
     return {"preset": preset, "tm": tm_params, "slsbh": s_conf, "seed": tm_params["seed"],
-            "exclude_recent": int(exclude_recent), "warnings": warnings}
+            "exclude_recent": int(exclude_recent), "backbone": backbone, "memory": memory,
+            "revisit_threshold": check_revisit_threshold(revisit_threshold),
+            "localiser": dict(localiser or {}), "warnings": warnings}

@@ -20,7 +20,8 @@ import numpy as np
 
 from models.frontend import slsbh
 from models.memory.temporal_memory import TemporalMemory
-from service.maps.state import Stream, load_memory_state
+from service.maps import projection as map_projection
+from service.maps.state import Stream, load_memory_state, winner_cells
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, StorageError
 from storage.mapstore import MapStore, Observation
@@ -50,17 +51,19 @@ class Rebuilt:
 
 
 def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Observation], *,
-            adapt_tau: int = 0, stop_at_mismatch: bool = True,
+            adapt_tau: int = 0, memory: str = "tm", stop_at_mismatch: bool = True,
             progress: Callable[[int], None] | None = None) -> Rebuilt:
     """Replay `rows` (in seq order) on a fresh memory or a snapshot's arrays, checking each step.
 
-    A localisation stream's context was never durable: one held by the snapshot is dropped, so its
-    next step starts afresh exactly as after a restart without the snapshot (docs/design/service.md §1.2).
+    A localisation stream lives only in snapshots (its frames are not rows): one held by the snapshot
+    comes back with its context and its localiser state, so it answers as it would have without the
+    restart; after a replay from the first row it starts afresh (docs/design/service.md §1.2).
 
     Args:
         start: a fresh `TemporalMemory` (used in place) or the arrays of a snapshot's `memory.npz`.
         rows: the observations after the start (all of them for a fresh memory).
         adapt_tau: the map's adaptation time constant (restores the streams' running means).
+        memory: the map's `memory` option (`tm`, or `none`: the stored winner cells are the codes).
         stop_at_mismatch: stop at the first divergent row (recovery tries an older start then);
             False replays every row and lists every divergent seq (`cortexloc verify`, the last resort).
         progress: called with the number of rows replayed so far, once per row.
@@ -72,14 +75,14 @@ def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Obs
         out = Rebuilt(start, OrderedDict())
     else:
         tm, streams = load_memory_state(start, adapt_tau)
-        out = Rebuilt(tm, OrderedDict((n, st) for n, st in streams.items() if st.learning is not False))
+        out = Rebuilt(tm, streams)
     for row in rows:
         st = out.streams.get(row.stream)
         if st is None:
             st = out.streams[row.stream] = Stream()
         if row.context_prev_seq is None:
             st.context.reset()
-        winners = out.tm.compute(row.input_sdr, learn=True, context=st.context)
+        winners = winner_cells(out.tm, row.input_sdr, learn=True, context=st.context, memory=memory)
         out.replayed += 1
         out.last_seq = row.seq
         if not np.array_equal(winners, row.winner_cells):
@@ -94,7 +97,7 @@ def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Obs
 
 
 def recover(store: MapStore, catalog: Catalog, map_id: str, tm_params: dict[str, Any], *,
-            adapt_tau: int = 0) -> tuple[Rebuilt, dict[str, Any]]:
+            adapt_tau: int = 0, memory: str = "tm") -> tuple[Rebuilt, dict[str, Any]]:
     """The memory of `store`: the newest usable snapshot, then a verified replay of the rows after it.
 
     A snapshot that does not verify, cannot be loaded, or whose replay does not reproduce the stored
@@ -109,6 +112,7 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, tm_params: dict[str,
         map_id: the map.
         tm_params: the map's frozen TM parameters (for the fresh memory of the last resort).
         adapt_tau: the map's adaptation time constant.
+        memory: the map's `memory` option (`rebuild`).
 
     Returns:
         (the rebuilt memory, the note the map resource shows as `recovery`).
@@ -123,7 +127,8 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, tm_params: dict[str,
                 row = store.get(m.seq)
                 if row is None or row.observation_id != m.last_observation_id:
                     continue  # from a branch a restore abandoned
-            done = rebuild(snapshots.load_memory(path), store.rows(after_seq=m.seq), adapt_tau=adapt_tau)
+            done = rebuild(snapshots.load_memory(path), store.rows(after_seq=m.seq), adapt_tau=adapt_tau,
+                           memory=memory)
         except Exception as e:  # an unusable snapshot is passed over, never fatal
             reason = str(e) or type(e).__name__
         else:
@@ -136,7 +141,7 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, tm_params: dict[str,
         skipped.append({"snapshot_id": rec.snapshot_id, "reason": reason})
         log.warning("map %s: snapshot %s passed over: %s", map_id, rec.snapshot_id, reason)
     else:
-        done = rebuild(TemporalMemory(tm_params), store.rows(), stop_at_mismatch=False)
+        done = rebuild(TemporalMemory(tm_params), store.rows(), memory=memory, stop_at_mismatch=False)
         note = {"source": "replay", "mismatches": len(done.mismatches),
                 "mismatched_seqs": done.mismatches[:_LISTED]}
         if done.mismatches:
@@ -191,7 +196,7 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
     sha = str(record.params.get("projection_sha256", ""))
     projection = layout.projection(sha)
     try:
-        slsbh.load_projection(projection, sha)  # the same check a starting server makes
+        map_projection.load(projection, sha)  # the same check a starting server makes
     except slsbh.ProjectionError as e:
         out.problems.append(f"projection: {e}")
     for rec in catalog.list_snapshots(record.map_id):
@@ -206,6 +211,7 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
                 out.problems.append("map.sqlite fails PRAGMA integrity_check")
             total = store.count()
             done = rebuild(TemporalMemory(record.params["tm"]), store.rows(), stop_at_mismatch=False,
+                           memory=record.params.get("memory", "tm"),
                            progress=None if progress is None else lambda n: progress(n, total))
             out.rows, out.mismatches = done.replayed, done.mismatches
     except (StorageError, OSError) as e:

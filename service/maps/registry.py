@@ -11,12 +11,20 @@ from typing import Any
 
 import numpy as np
 
-from models.frontend import slsbh
 from models.memory.temporal_memory import TemporalMemory, planned_bytes
+from service.maps import projection as map_projection
 from service.maps import snapshots as map_snapshots
-from service.maps.errors import InvalidMapId, MapAlreadyExists, MapLimit, MapNotFound, MapTooLarge
+from service.maps.encoders import Encoders
+from service.maps.errors import (
+    InvalidConfiguration,
+    InvalidMapId,
+    MapAlreadyExists,
+    MapLimit,
+    MapNotFound,
+    MapTooLarge,
+)
 from service.maps.index import warm_up as index_warm_up
-from service.maps.params import resolve_params
+from service.maps.params import map_option, resolve_params
 from service.maps.runtime import MapRuntime
 from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord
 from storage.mapstore import MapMeta, MapStore, cell_dtype_for
@@ -42,13 +50,14 @@ class MapRegistry:
 
     Args:
         data_dir: CORTEXLOC_DATA_DIR.
-        encoder: has `identity` and `feature_dim` (the service's `Encoder`).
+        encoders: the service's encoders by backbone (`service.maps.encoders.Encoders`; each has
+            `identity` and `feature_dim`); a map uses its frozen backbone's.
         settings: the service's settings (map caps, snapshot cadence, default preset).
     """
 
-    def __init__(self, data_dir: Path, encoder: Any, settings: Any) -> None:
+    def __init__(self, data_dir: Path, encoders: Encoders, settings: Any) -> None:
         self.data_dir = Path(data_dir)
-        self.encoder = encoder
+        self.encoders = encoders
         self.settings = settings
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self.catalog = Catalog.open(self.data_dir / "catalog.sqlite")
@@ -57,22 +66,28 @@ class MapRegistry:
         self.maps: dict[str, MapRuntime] = {}
         self._create_lock = threading.Lock()
 
-    def _runtime(self, record: MapRecord) -> MapRuntime:
+    def _runtime(self, record: MapRecord, feature_dim: int) -> MapRuntime:
         s = self.settings
         return MapRuntime(record, self.data_dir / "maps" / record.map_id, self.projections, self.catalog,
-                          self.encoder.feature_dim, s.max_streams, s.max_observations,
-                          s.snapshot_every, s.snapshot_keep)
+                          feature_dim, s.max_streams, s.max_observations, s.snapshot_every, s.snapshot_keep)
 
     def start(self) -> None:
         """Open every map and recover it by replay; create `default` on a fresh install."""
         warm_up()
         for record in self.catalog.list_maps():
-            rt = self._runtime(record)
-            self.maps[record.map_id] = rt
-            if record.params.get("encoder_id") != self.encoder.identity:
+            backbone = map_option(record.params, "backbone")
+            try:
+                encoder = self.encoders.get(backbone)
+            except ValueError as e:
+                rt = self.maps[record.map_id] = self._runtime(record, 0)
+                rt.state, rt.state_reason = "failed", "encoder-unavailable"
+                log.error("map %s: %s", record.map_id, e)
+                continue
+            rt = self.maps[record.map_id] = self._runtime(record, encoder.feature_dim)
+            if record.params.get("encoder_id") != encoder.identity:
                 rt.state, rt.state_reason = "failed", "encoder-mismatch"
                 log.error("map %s was built with encoder %s, this server runs %s", record.map_id,
-                          record.params.get("encoder_id"), self.encoder.identity)
+                          record.params.get("encoder_id"), encoder.identity)
                 continue
             rt.recover()
         if not self.maps:
@@ -91,7 +106,9 @@ class MapRegistry:
         return rt
 
     def create(self, map_id: str, *, preset: str, seed: int | None = None, tm: dict[str, Any] | None = None,
-               slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0) -> MapRuntime:
+               slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
+               backbone: str | None = None, memory: str = "tm", revisit_threshold: float | None = None,
+               localiser: dict[str, Any] | None = None) -> MapRuntime:
         """Create a map: resolve and freeze parameters, persist the projection, then the store (§1.1).
 
         Raises:
@@ -99,8 +116,15 @@ class MapRegistry:
         """
         if not MAP_ID_RE.match(map_id):
             raise InvalidMapId(map_id, MAP_ID_RE.pattern)
-        params = resolve_params(preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf,
-                                exclude_recent=exclude_recent)
+        params = resolve_params(
+            preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf, exclude_recent=exclude_recent,
+            backbone=backbone or self.encoders.default, memory=memory, localiser=localiser,
+            **({} if revisit_threshold is None else {"revisit_threshold": revisit_threshold}))
+        try:
+            encoder = self.encoders.get(params["backbone"])
+        except ValueError as e:
+            raise InvalidConfiguration(str(e), [{"location": "body", "name": "backbone",
+                                                 "message": str(e)}]) from e
         need = planned_bytes(params["tm"])
         if need > self.settings.max_map_bytes:
             raise MapTooLarge(need, self.settings.max_map_bytes)
@@ -110,19 +134,22 @@ class MapRegistry:
             if len(self.maps) >= self.settings.max_maps:
                 raise MapLimit(self.settings.max_maps)
             s_conf = params["slsbh"]
-            P = slsbh.make_projection(self.encoder.feature_dim, int(s_conf["k"]), int(s_conf["seed"]))
-            _, sha = slsbh.save_projection(P, self.projections)
+            # Projection plus memory within the map budget: the very sparse projection where dense breaks it.
+            params["projection"] = map_projection.projection_kind(encoder.feature_dim, int(s_conf["k"]), need)
+            P = map_projection.make(params["projection"], encoder.feature_dim, int(s_conf["k"]),
+                                    int(s_conf["seed"]))
+            _, sha = map_projection.save(P, self.projections)
             del P
             params["projection_sha256"] = sha
-            params["encoder_id"] = self.encoder.identity
-            if self.encoder.identity.split("/")[1].startswith("random"):
-                log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, self.encoder.identity)
+            params["encoder_id"] = encoder.identity
+            if encoder.identity.split("/")[1].startswith("random"):
+                log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, encoder.identity)
             map_dir = self.data_dir / "maps" / map_id
             if map_dir.exists():
                 shutil.rmtree(map_dir)  # leftovers of a creation that never reached the catalog
             map_dir.mkdir(parents=True)
             store = MapStore.create(map_dir / "map.sqlite", MapMeta(
-                map_id=map_id, params=params, projection_sha256=sha, encoder_id=self.encoder.identity,
+                map_id=map_id, params=params, projection_sha256=sha, encoder_id=encoder.identity,
                 cell_dtype=cell_dtype_for(int(params["tm"]["columnDimensions"])
                                           * int(params["tm"]["cellsPerColumn"]))))
             store.close()
@@ -130,7 +157,7 @@ class MapRegistry:
                 record = self.catalog.create_map(map_id, params, preset=preset, state="ready")
             except MapExists as e:
                 raise MapAlreadyExists(map_id) from e
-            rt = self._runtime(record)
+            rt = self._runtime(record, encoder.feature_dim)
             rt.recover()
             self.maps[map_id] = rt
             return rt

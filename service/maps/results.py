@@ -6,7 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["IndexMemory", "MapInfo", "Match", "MemoryInfo", "ObservationResult", "RestoreResult",
+__all__ = ["IndexMemory", "MapInfo", "Match", "MemoryInfo", "ObservationResult", "PlaceResult",
+           "RestoreResult",
            "SequenceStats", "SnapshotInfo", "StorageMemory", "StreamReset", "StreamsMemory", "TmMemory"]
 
 
@@ -36,6 +37,22 @@ class SequenceStats:
 
 
 @dataclass(frozen=True)
+class PlaceResult:
+    """The stream's sequence-level answer (docs/design/science.md §11.2, docs/design/service.md §1.2):
+    the stored row it is at, `confidence` in [0, 1], `revisit` = confidence >= the map's threshold,
+    `support` = frames on the path behind the answer; `metadata` when the row has any."""
+
+    seq: int
+    observation_id: str
+    stream: str
+    label: str | None
+    confidence: float
+    revisit: bool
+    support: int
+    metadata: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
 class ObservationResult:
     """One frame's outcome. `timings_ms`: decode, encode (event loop), hash, tm, search, store (writer)."""
 
@@ -49,6 +66,8 @@ class ObservationResult:
     timings_ms: dict[str, float]
     map_seq: int
     projection_sha256: str
+    backbone: str
+    place: PlaceResult | None
 
 
 @dataclass(frozen=True)
@@ -69,6 +88,8 @@ class MapInfo:
     warnings: list[str]
     recovery: dict[str, Any] | None
     snapshot_error: dict[str, Any] | None
+    backbone: str
+    revisit_threshold: float
 
 
 @dataclass(frozen=True)

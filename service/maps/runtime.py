@@ -10,8 +10,8 @@ Which thread runs what:
 
     event loop     observe (queues the image, awaits the features, then queues the step), run,
                    require_ready
-    writer         apply, snapshot, restore, reset_stream, info, memory, snapshots, snapshot_dir,
-                   tm_digest (reach them through `run` / `submit`)
+    writer         apply, snapshot, restore, reset_stream, info, memory, snapshots, snapshot_dir
+                   (reach them through `run` / `submit`)
     start-up       recover (before the writer takes work; in the writer on the commit-failure path), close
 """
 
@@ -35,11 +35,14 @@ import numpy as np
 from models.frontend import slsbh
 from models.frontend.adaptation import RunningMean
 from models.memory.temporal_memory import TemporalMemory
+from service.maps import projection as map_projection
 from service.maps import recovery
 from service.maps import snapshots as map_snapshots
 from service.maps.encoder_pool import EncoderPool
 from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable
 from service.maps.index import IndexFull, InvertedIndex
+from service.maps.localisation import Localisation, place_result
+from service.maps.params import check_revisit_threshold, map_option
 from service.maps.recent import RecentAnswers
 from service.maps.results import (
     IndexMemory,
@@ -55,7 +58,7 @@ from service.maps.results import (
     StreamsMemory,
     TmMemory,
 )
-from service.maps.state import Stream, memory_state
+from service.maps.state import Stream, memory_state, winner_cells
 from storage import snapshots
 from storage._common import StorageFull, utc_now
 from storage.catalog import Catalog, MapRecord
@@ -100,13 +103,16 @@ class MapRuntime:
         self._projection_error: str | None = None
         # the checksum is verified on load: a map never runs on another matrix (docs/design/science.md §7)
         try:
-            projection = slsbh.load_projection(self.projection_path, sha,
-                                               shape=(feature_dim, int(self.params["slsbh"]["k"])))
+            projection = map_projection.load(self.projection_path, sha,
+                                             shape=(feature_dim, int(self.params["slsbh"]["k"])))
             self.hasher = slsbh.Hasher(projection, float(self.params["slsbh"]["s"]))
         except (slsbh.ProjectionError, OSError) as e:
             self._projection_error = str(e)
         self.tm = TemporalMemory(self.params["tm"])
         self.index = InvertedIndex(self.tm.n_cells, max_observations)
+        self.memory_kind, self.backbone = (map_option(self.params, k) for k in ("memory", "backbone"))
+        self.revisit_threshold = float(map_option(self.params, "revisit_threshold"))
+        self.localisation = Localisation(map_option(self.params, "localiser"))
         self.store: MapStore | None = None
         self.recent: RecentAnswers[Any] = RecentAnswers()  # the replies as sent (the route fills it)
 
@@ -224,10 +230,11 @@ class MapRuntime:
             self._fail("database-corrupt", str(e))
             return
         done, note = recovery.recover(self.store, self.catalog, self.map_id, self.params["tm"],
-                                      adapt_tau=self.adapt_tau)
+                                      adapt_tau=self.adapt_tau, memory=self.memory_kind)
         self.tm, self.streams = done.tm, done.streams
         self.index = InvertedIndex(self.tm.n_cells, self.index.max_observations)
         self.index.rebuild(self.store.rows())
+        self.localisation.rebuild(self.store.rows())
         self.recovery = note
         self.state, self.state_reason = "ready", None
         log.info("map %s ready: %s", self.map_id, note)
@@ -257,6 +264,7 @@ class MapRuntime:
         if st is not None:
             st.context.reset()
             st.step, st.last_learned_seq = 0, None
+            st.localiser = None
         return StreamReset(stream=name, had_context=bool(had))
 
     # ------------------------------------------------------------------ observations
@@ -276,7 +284,7 @@ class MapRuntime:
         """
         self.require_ready()
         t0 = time.perf_counter()
-        encoding = pool.submit(body, hasher=self.hasher)
+        encoding = pool.submit(body, hasher=self.hasher, backbone=self.backbone)
         before, mine = self._turn, asyncio.Event()
         self._turn = mine
         try:
@@ -326,14 +334,19 @@ class MapRuntime:
         if learn and st.learning is False:
             st.context.reset()  # a switch to mapping starts a new sequence: replay relies on it
             st.step, st.last_learned_seq = 0, None
-        if st.context.active_cells.size == 0:
+        if st.context.active_cells.size == 0 and self.memory_kind == "tm":  # without a TM: only `step`
             st.step, st.last_learned_seq = 0, None
-        winners = self.tm.compute(code, learn=learn, context=st.context)
+        winners = winner_cells(self.tm, code, learn=learn, context=st.context, memory=self.memory_kind)
         stats = st.context.stats.as_dict()
         t2 = time.perf_counter()
         exclude_recent = int(self.params.get("exclude_recent", 0))
-        ranked = self.index.rank(winners, top_k, exclude_recent_stream=stream if exclude_recent else None,
-                                 exclude_recent=exclude_recent) if top_k > 0 else []
+        # One index pass serves the matches and the localiser's candidates (docs/design/science.md §11.2).
+        ranked = self.index.rank(winners, self.localisation.candidates_wanted(top_k, learn),
+                                 exclude_recent_stream=stream if exclude_recent else None,
+                                 exclude_recent=exclude_recent)
+        st.localiser = st.localiser or self.localisation.new_state()
+        place = self.localisation.step(st.localiser, ranked, st.last_learned_seq, learn)
+        ranked = ranked[:top_k]
         t3 = time.perf_counter()
         seq = obs_id = None
         if learn:
@@ -349,7 +362,7 @@ class MapRuntime:
         if learn and self.snapshot_every and seq is not None and seq % self.snapshot_every == 0:
             self._auto_snapshot()
         t4 = time.perf_counter()
-        rows = self.store.get_many(m.seq for m in ranked) if ranked else {}
+        rows = self.store.get_many([*(m.seq for m in ranked), *([place.seq] if place else [])])
         return ObservationResult(
             map_id=self.map_id, stream=stream, learned=learn, observation_id=obs_id, seq=seq,
             sequence=SequenceStats(step=st.step - 1, active_columns=stats["active_columns"],
@@ -362,7 +375,9 @@ class MapRuntime:
                      for i, m in enumerate(ranked)],
             timings_ms={"hash": (t1 - t0) * 1e3, "tm": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3,
                         "store": (t4 - t3) * 1e3},
-            map_seq=self.store.last_seq(), projection_sha256=self.params["projection_sha256"])
+            map_seq=self.store.last_seq(), projection_sha256=self.params["projection_sha256"],
+            backbone=self.backbone,
+            place=None if place is None else place_result(place, rows[place.seq], self.revisit_threshold))
 
     def _commit(self, row: NewObservation) -> tuple[int, str]:
         """Writer: the row on disk, then in the index: (seq, observation id).
@@ -383,6 +398,7 @@ class MapRuntime:
             raise
         with contextlib.suppress(IndexFull):  # checked in `apply`; the row is durable either way
             self.index.add(seq, row.winner_cells, row.stream)
+        self.localisation.add(seq, row.context_prev_seq)
         return seq, row.observation_id
 
     # ------------------------------------------------------------------ resources
@@ -393,11 +409,21 @@ class MapRuntime:
             map_id=self.map_id, created_at=self.record.created_at, state=self.state,
             state_reason=self.state_reason, preset=p["preset"],
             params={"tm": p["tm"], "slsbh": p["slsbh"], "seed": p["seed"],
-                    "exclude_recent": p["exclude_recent"]},
+                    "exclude_recent": p["exclude_recent"], "memory": self.memory_kind,
+                    "projection": map_option(p, "projection"), "localiser": self.localisation.localiser.conf},
             encoder=p["encoder_id"], projection_sha256=p["projection_sha256"],
             observations=len(self.index),
             last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),
-            warnings=p.get("warnings", []), recovery=self.recovery, snapshot_error=self.snapshot_error)
+            warnings=p.get("warnings", []), recovery=self.recovery, snapshot_error=self.snapshot_error,
+            backbone=self.backbone, revisit_threshold=self.revisit_threshold)
+
+    def set_revisit_threshold(self, value: float) -> MapInfo:
+        """Writer: the map's revisit threshold, durable in the catalog (docs/design/service.md §1.2);
+        InvalidConfiguration outside [0, 1] (nothing changes)."""
+        value = check_revisit_threshold(value)
+        self.record = self.catalog.update_params(self.map_id, revisit_threshold=value)
+        self.params, self.revisit_threshold = self.record.params, value
+        return self.info()
 
     def memory(self) -> MemoryInfo:
         size = self.tm.size()
@@ -420,12 +446,3 @@ class MapRuntime:
             storage=StorageMemory(db_bytes=store.db_bytes() if store else 0,
                                   wal_bytes=store.wal_bytes() if store else 0,
                                   snapshots_bytes=self.catalog.snapshots_bytes(self.map_id)))
-
-    def tm_digest(self) -> str:
-        """SHA-256 over the learned arrays and generator state (tests: 'nothing changed')."""
-        h = hashlib.sha256()
-        for k, v in sorted(self.tm.state_dict().items()):
-            if not k.startswith("ctx."):
-                h.update(k.encode())
-                h.update(np.ascontiguousarray(v).tobytes())
-        return h.hexdigest()

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.frontend import slsbh
+from service.maps import projection as map_projection
 from service.maps.errors import InsufficientStorage, SnapshotNotFound
 from service.maps.results import SnapshotInfo
 from storage import snapshots
@@ -113,7 +113,7 @@ def import_snapshot(data_dir: Path, catalog: Catalog, projections: Path, tar_pat
         target = layout.projection(sha)
         staged = staging / snapshots.PROJECTION_FILE
         if staged.exists():
-            slsbh.load_projection(staged, sha)  # refuses another matrix
+            map_projection.load(staged, sha)  # refuses another matrix
             if not target.exists():
                 staged.replace(target)
             else:

@@ -10,9 +10,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from models.frontend.adaptation import RunningMean
+from models.localisation import LocaliserState
 from models.memory.temporal_memory import StreamContext, TemporalMemory
 
-__all__ = ["Stream", "load_memory_state", "memory_state"]
+__all__ = ["Stream", "load_memory_state", "memory_state", "winner_cells"]
+
+
+def winner_cells(tm: TemporalMemory, code: np.ndarray, *, learn: bool, context: StreamContext,
+                 memory: str) -> np.ndarray:
+    """The frame's winner-cell SDR: the TM's step, or with the map option `memory: none` the sLSBH
+    code itself (the ablation of docs/design/service.md §1.2; the one place the switch is read)."""
+    if memory == "none":
+        return np.asarray(code, dtype=np.int64)
+    return tm.compute(code, learn=learn, context=context)
 
 
 @dataclass
@@ -24,6 +34,7 @@ class Stream:
     last_learned_seq: int | None = None  # the learned observation the context continues
     learning: bool | None = None  # mode of the last step (a switch to learning starts a new sequence)
     adapt: RunningMean | None = None  # the stream's running mean of projections (models.frontend.adaptation)
+    localiser: LocaliserState | None = None  # where the stream is on the map (docs/design/science.md §11)
 
 
 def memory_state(tm: TemporalMemory, streams: Mapping[str, Stream]) -> dict[str, np.ndarray]:
@@ -37,6 +48,9 @@ def memory_state(tm: TemporalMemory, streams: Mapping[str, Stream]) -> dict[str,
              -1 if st.learning is None else int(st.learning)], dtype=np.int64)
         if st.adapt is not None:
             state[f"streamadapt.{h}"] = st.adapt.state()
+        if st.localiser is not None:
+            for key, value in st.localiser.to_arrays().items():
+                state[f"streamloc.{h}.{key}"] = value
     return state
 
 
@@ -49,6 +63,9 @@ def load_memory_state(state: Mapping[str, np.ndarray], adapt_tau: int
         step, last, learning = (int(v) for v in state[f"streammeta.{h}"])
         adapt = (RunningMean.from_state(adapt_tau, state[f"streamadapt.{h}"])
                  if adapt_tau and f"streamadapt.{h}" in state else None)
+        prefix = f"streamloc.{h}."
+        loc = {k.removeprefix(prefix): v for k, v in state.items() if k.startswith(prefix)}
         streams[bytes.fromhex(h).decode()] = Stream(
-            ctx, step, None if last < 0 else last, None if learning < 0 else bool(learning), adapt)
+            ctx, step, None if last < 0 else last, None if learning < 0 else bool(learning), adapt,
+            LocaliserState.from_arrays(loc) if loc else None)
     return tm, streams

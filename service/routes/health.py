@@ -62,7 +62,11 @@ def check_encoder(app: FastAPI) -> Check:
         return {"status": "fail", "error": "encoder not loaded"}
     info: dict[str, Any] = dict(getattr(app.state, "encoder_weights", None) or {})
     desc = encoder.describe()
-    out: Check = {"status": "pass", "encoder": desc["encoder"], "weights": desc["weights"], **info}
+    out: Check = {"status": "pass", "encoder": desc["encoder"], "weights": desc["weights"], **info,
+                  "backbone": app.state.settings.backbone}  # of new maps (service.app.resolve_backbone)
+    registry = getattr(app.state, "registry", None)
+    if registry is not None:  # one encoder per backbone in use
+        out["backbones"] = {name: e.identity for name, e in registry.encoders.built().items()}
     if desc["weights"] == "random":
         settings = app.state.settings
         out["seed"] = settings.random_weights_seed
@@ -84,7 +88,8 @@ def check_maps(maps: dict[str, Any]) -> Check:
     states = {}
     notes = []
     for map_id, m in sorted(maps.items()):
-        states[map_id] = {"state": str(m.state), "state_reason": m.state_reason}
+        states[map_id] = {"state": str(m.state), "state_reason": m.state_reason,
+                          "backbone": getattr(m, "backbone", None)}
         recovery, snap_error = getattr(m, "recovery", None), getattr(m, "snapshot_error", None)
         skipped = list((recovery or {}).get("skipped_snapshots") or [])
         if skipped:

@@ -11,7 +11,15 @@ from fastapi import APIRouter, Path, Response
 from models.evaluation.bench import rss_mb
 from service.deps import ApiKeyDep, RegistryDep, SettingsDep
 from service.errors import problem_responses
-from service.schemas import MAP_ID_PATTERN, CreateMap, MapList, MapModel, MemoryModel, StreamResetModel
+from service.schemas import (
+    MAP_ID_PATTERN,
+    CreateMap,
+    MapList,
+    MapModel,
+    MemoryModel,
+    PatchMap,
+    StreamResetModel,
+)
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
 
@@ -26,7 +34,8 @@ async def create_map(body: CreateMap, registry: RegistryDep, settings: SettingsD
     map_id = body.map_id or f"map-{uuid.uuid4().hex[:12]}"
     rt = await anyio.to_thread.run_sync(lambda: registry.create(
         map_id, preset=body.preset or settings.default_preset, seed=body.seed, tm=body.tm,
-        slsbh_conf=body.slsbh, exclude_recent=body.exclude_recent))
+        slsbh_conf=body.slsbh, exclude_recent=body.exclude_recent, backbone=body.backbone,
+        memory=body.memory, revisit_threshold=body.revisit_threshold, localiser=body.localiser))
     response.headers["Location"] = f"/v1/maps/{map_id}"
     return MapModel.from_result(await rt.run(rt.info))
 
@@ -40,6 +49,13 @@ async def list_maps(registry: RegistryDep) -> MapList:
 async def get_map(map_id: MapId, registry: RegistryDep) -> MapModel:
     rt = registry.get(map_id)
     return MapModel.from_result(await rt.run(rt.info))
+
+
+@router.patch("/{map_id}", dependencies=[ApiKeyDep], responses=problem_responses(401, 404, 422))
+async def patch_map(map_id: MapId, body: PatchMap, registry: RegistryDep) -> MapModel:
+    """Change the map's settings that may change after creation: `revisit_threshold` (durable)."""
+    rt = registry.get(map_id)
+    return MapModel.from_result(await rt.run(rt.set_revisit_threshold, body.revisit_threshold))
 
 
 @router.delete("/{map_id}", status_code=204, dependencies=[ApiKeyDep], responses=problem_responses(401, 404))

@@ -38,7 +38,8 @@ async def post_observation(
     settings: SettingsDep,
     metrics: MetricsDep,
     learn: Annotated[bool, Query(description="true: mapping (stored, learned); false: localisation")] = True,
-    top_k: Annotated[int, Query(ge=0, description="matches to return (0 skips ranking)")] = 5,
+    top_k: Annotated[int, Query(ge=0, description="matches to return (0: none; `place` is still answered)")]
+    = 5,
     stream: Annotated[str, Query(pattern=r"^[A-Za-z0-9._-]{1,64}$")] = "default",
     label: Annotated[str | None, Query(max_length=200)] = None,
 ) -> ObservationModel:
@@ -69,15 +70,16 @@ async def post_observation(
         if stage != "total":
             metrics.observe_stage(stage, ms / 1e3)
     metrics.observations.labels(map=map_id, learned=str(learn).lower()).inc()
-    desc = encoder.describe()
+    desc = registry.encoders.get(result.backbone).describe()  # the map's own backbone's encoder
     reply = ObservationModel(
         request_id=getattr(request.state, "request_id", None), map_id=result.map_id, stream=result.stream,
         learned=result.learned, observation_id=result.observation_id, seq=result.seq,
         sequence=SequenceModel.from_result(result.sequence),
         matches=[MatchModel.from_result(m) for m in result.matches],
+        place=result.place,
         timings_ms={k: round(v, 3) for k, v in timings.items()},
-        versions=Versions(api="v1", code=request.app.version, encoder=desc["encoder"],
-                          weights=desc["weights"], projection=f"sha256:{result.projection_sha256}",
-                          map_seq=result.map_seq))
+        versions=Versions(api="v1", code=request.app.version, backbone=result.backbone,
+                          encoder=desc["encoder"], weights=desc["weights"],
+                          projection=f"sha256:{result.projection_sha256}", map_seq=result.map_seq))
     rt.recent.add(result.stream, reply)  # the viewer's window (GET .../recent): the reply as sent
     return reply

@@ -6,6 +6,7 @@ data directory.
 
 from __future__ import annotations
 
+import hashlib
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -29,6 +30,8 @@ def tiny_encoder(settings: Settings):
 
 def make_app(data_dir: Path | None, **overrides) -> FastAPI:
     """The app on `data_dir` with `overrides` of the settings; None: settings read at startup."""
+    # AlexNet unless a test says otherwise: without its weights the service default would be EfficientNet.
+    overrides = {"backbone": "alexnet", **overrides}
     settings = None if data_dir is None else Settings(data_dir=data_dir, **overrides)
     return create_app(settings, encoder_factory=tiny_encoder)
 
@@ -55,10 +58,20 @@ def post(c: TestClient, body: bytes, map_id: str = "default", ctype: str = "imag
                   params=params)
 
 
+def tm_digest(tm) -> str:
+    """SHA-256 over the learned arrays and generator state, stream contexts left out ('nothing changed')."""
+    h = hashlib.sha256()
+    for k, v in sorted(tm.state_dict().items()):
+        if not k.startswith("ctx."):
+            h.update(k.encode())
+            h.update(np.ascontiguousarray(v).tobytes())
+    return h.hexdigest()
+
+
 def state_of(c: TestClient, map_id: str = "default") -> tuple:
     """Everything a 4xx or a localisation must leave as it was: rows, last seq, learned arrays, index."""
     rt = c.app.state.registry.get(map_id)
-    return rt.store.count(), rt.store.last_seq(), rt.tm_digest(), len(rt.index)
+    return rt.store.count(), rt.store.last_seq(), tm_digest(rt.tm), len(rt.index)
 
 
 @contextmanager

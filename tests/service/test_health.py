@@ -59,11 +59,13 @@ def test_readyz_ready_with_a_random_weights_warning(client, tmp_path):
     enc = checks["encoder"]
     assert enc["status"] == "warn" and enc["weights"] == "random" and enc["seed"] == 0
     assert enc["encoder"] == "alexnet-conv3/random-seed0:crop"
+    assert enc["backbone"] == "alexnet" and enc["backbones"] == {"alexnet": enc["encoder"]}
     assert "random weights" in enc["warning"]
     assert body["warnings"] == [enc["warning"]]
     # a fresh install serves the `default` map with no other step
     assert checks["maps"] == {"status": "pass", "count": 1,
-                              "maps": {"default": {"state": "ready", "state_reason": None}}}
+                              "maps": {"default": {"state": "ready", "state_reason": None,
+                                                   "backbone": "alexnet"}}}
     names = {p.name for p in (tmp_path / "data").iterdir()}
     assert {"catalog.sqlite", "maps", "projections"} <= names
     assert not [n for n in names if "probe" in n]  # the writability probe file is gone
@@ -114,14 +116,16 @@ def test_readyz_not_ready_when_data_dir_disappears(client, app, tmp_path):
 
 def test_readyz_reports_map_states(client, app):
     app.state.maps = {}  # the states /readyz reads, apart from the runtime's own maps
-    app.state.maps["lab"] = SimpleNamespace(state="ready", state_reason=None)
-    app.state.maps["old"] = SimpleNamespace(state="failed", state_reason="database-corrupt")
+    app.state.maps["lab"] = SimpleNamespace(state="ready", state_reason=None, backbone="alexnet")
+    app.state.maps["old"] = SimpleNamespace(state="failed", state_reason="database-corrupt",
+                                           backbone="efficientnet-lite0")
     r = client.get("/readyz")
     assert r.status_code == 200  # a failed map does not make the service unready
     maps = r.json()["checks"]["maps"]
     assert maps["status"] == "warn" and maps["count"] == 2
-    assert maps["maps"]["old"] == {"state": "failed", "state_reason": "database-corrupt"}
-    assert maps["maps"]["lab"] == {"state": "ready", "state_reason": None}
+    assert maps["maps"]["old"] == {"state": "failed", "state_reason": "database-corrupt",
+                                   "backbone": "efficientnet-lite0"}
+    assert maps["maps"]["lab"] == {"state": "ready", "state_reason": None, "backbone": "alexnet"}
 
     app.state.maps["new"] = SimpleNamespace(state="recovering", state_reason="replaying")
     body = assert_not_ready(client.get("/readyz"))

@@ -69,7 +69,7 @@ def test_a_client_gone_mid_upload_is_no_server_error(client, caplog):
 
 
 @pytest.mark.parametrize(("method", "path", "allowed"), [
-    ("PUT", "/v1/maps/default", ["DELETE", "GET"]),
+    ("PUT", "/v1/maps/default", ["DELETE", "GET", "PATCH"]),
     ("PATCH", "/v1/maps", ["GET", "POST"]),
     ("DELETE", "/v1/maps/default/snapshots", ["GET", "POST"]),
 ])

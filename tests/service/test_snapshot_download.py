@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 
 from service.errors import PROBLEM_MEDIA_TYPE
 from service.settings import ConfigError, Settings
-from tests.service.helpers import frame, make_client
+from tests.service.helpers import frame, make_client, tm_digest
 
 
 def snapshot_with_frames(c: TestClient, n: int = 3, headers: dict | None = None) -> tuple[str, Path]:
@@ -147,7 +147,7 @@ def test_a_damaged_snapshot_is_refused_with_its_reason(client, damage):
     else:
         _flip_byte(snap_dir / damage)
     rt = client.app.state.registry.get("default")
-    before = (rt.store.count(), rt.tm_digest(), [s["snapshot_id"] for s in client.get(
+    before = (rt.store.count(), tm_digest(rt.tm), [s["snapshot_id"] for s in client.get(
         "/v1/maps/default/snapshots").json()["snapshots"]])
     for r in (client.get(f"/v1/maps/default/snapshots/{sid}/download"),
               client.post(f"/v1/maps/default/snapshots/{sid}/restore")):
@@ -160,7 +160,7 @@ def test_a_damaged_snapshot_is_refused_with_its_reason(client, damage):
                 "manifest garbage": "manifest is not JSON", "manifest missing": "manifest.json"}[damage]
         assert word in body["detail"]
         assert str(client.app.state.settings.data_dir.resolve()) not in body["detail"]
-    after = (rt.store.count(), rt.tm_digest(), [s["snapshot_id"] for s in client.get(
+    after = (rt.store.count(), tm_digest(rt.tm), [s["snapshot_id"] for s in client.get(
         "/v1/maps/default/snapshots").json()["snapshots"]])
     assert after == before  # no pre-restore snapshot, nothing rolled back
     assert json.loads(client.get("/v1/maps/default").text)["state"] == "ready"

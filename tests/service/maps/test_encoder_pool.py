@@ -13,6 +13,7 @@ import pytest
 from models.frontend.images import ImageError
 from models.frontend.slsbh import Hasher, make_projection
 from service.maps.encoder_pool import EncoderPool
+from service.maps.encoders import Encoders
 from tests.service.helpers import frame, held_encoder, make_client
 
 
@@ -37,7 +38,7 @@ def test_pool_projects_each_request_with_its_own_hasher() -> None:
     h1 = Hasher(make_projection(32, 16, seed=1), 0.25)
     h2 = Hasher(make_projection(32, 16, seed=2), 0.25)
     enc = FakeEncoder()
-    pool = EncoderPool(enc, workers=1, queue=64)
+    pool = EncoderPool(Encoders.one(enc), workers=1, queue=64)
     try:
         bodies = [bytes(10 + i) for i in range(9)]
         hashers = [h1, h2, None] * 3
@@ -62,6 +63,33 @@ def test_pool_projects_each_request_with_its_own_hasher() -> None:
         ok = futs[1].result(timeout=30)
         np.testing.assert_allclose(ok.projected, h1.project(enc.embed([bytes(5)]).features), rtol=1e-5,
                                    atol=1e-6)
+    finally:
+        pool.close()
+
+
+def test_pool_batches_per_backbone_and_builds_each_encoder_once() -> None:
+    built: dict[str, FakeEncoder] = {}
+
+    def build(name: str) -> FakeEncoder:
+        assert name not in built  # at most one encoder per backbone
+        built[name] = FakeEncoder()
+        return built[name]
+
+    first = FakeEncoder()
+    encoders = Encoders(build, "alexnet", {"alexnet": first})
+    pool = EncoderPool(encoders, workers=1, queue=64)
+    try:
+        with held_encoder(first) as (gate, _):
+            futs = [pool.submit(bytes(10 + i), backbone=("alexnet", "efficientnet-lite0")[i % 2])
+                    for i in range(6)]
+            gate.set()
+            for f in futs:
+                f.result(timeout=30)
+        other = built["efficientnet-lite0"]
+        assert sum(first.calls) == 3 and sum(other.calls) == 3  # each image on its map's backbone only
+        assert list(built) == ["efficientnet-lite0"] and encoders.get("efficientnet-lite0") is other
+        with pytest.raises(ValueError, match="unknown backbone"):
+            pool.submit(b"x", backbone="vgg").result(timeout=30)
     finally:
         pool.close()
 

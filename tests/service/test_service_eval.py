@@ -1,0 +1,51 @@
+"""`--methods service` is the service's path: the same answers as HTTP for the same route
+(service/cli/service_eval.py), and the operating point read from per-query answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.cli import service_eval
+from tests.service.helpers import frame, make_client, post
+
+DB = list(range(14))
+QUERY = [2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13]
+
+
+@pytest.mark.parametrize("memory", ["tm", "none"])
+def test_http_and_eval_give_the_same_places(tmp_path, memory):
+    db_bodies = [frame(p) for p in DB]
+    q_bodies = [frame(p, noise=4.0) for p in QUERY]
+    with make_client(tmp_path / "data") as c:
+        r = c.post("/v1/maps", json={"map_id": "route", "seed": 7, "memory": memory})
+        assert r.status_code == 201
+        for b in db_bodies:
+            post(c, b, map_id="route", stream="database", top_k=0)
+        http = [post(c, b, map_id="route", stream="query", learn="false", top_k=0).json()["place"]
+                for b in q_bodies]
+        enc = c.app.state.encoder
+        preset = c.app.state.settings.default_preset
+        # one image per call, as the pool embeds a lone request
+        db_feats = np.concatenate([enc.embed([b]).features for b in db_bodies])
+        q_feats = np.concatenate([enc.embed([b]).features for b in q_bodies])
+    found = service_eval.replay(db_feats, q_feats, encoder_id=enc.identity, backbone="alexnet",
+                                preset=preset, seed=7, memory=memory)
+    want = [None if p is None else (p["seq"] - 1, p["confidence"], p["support"]) for p in http]
+    got = [None if b < 0 else (int(b), float(cf), int(s))
+           for b, cf, s in zip(found.best, found.confidence, found.support, strict=True)]
+    assert got == want
+    assert sum(p is not None for p in want) >= len(QUERY) - 4
+
+
+def test_operating_point_is_the_lowest_threshold_reaching_the_precision():
+    conf = np.array([0.9, 0.8, 0.7, 0.6, 0.5, 0.4])
+    right = np.array([True, True, True, False, True, False])
+    assert service_eval.operating_point(conf, right, 1.0) == {"threshold": 0.7, "precision": 1.0,
+                                                              "recall": 0.5}
+    point = service_eval.operating_point(conf, right, 0.8)
+    assert point is not None and point["threshold"] == 0.5 and point["precision"] == 0.8
+    assert service_eval.operating_point(conf, ~right, 0.99) is None
+    # equal confidences stand or fall together
+    tied = service_eval.operating_point(np.array([0.9, 0.9]), np.array([True, False]), 0.9)
+    assert tied is None
