@@ -9,8 +9,8 @@ import torch
 
 from models import presets
 from models.frontend import backbones, slsbh
-from models.frontend.backbones.alexnet import ALEXNET_CONV3_DIM
 from models.frontend.backbones.efficientnet_lite0 import EfficientNetLite0
+from models.frontend.slsbh import D_CONV3
 from models.memory.temporal_memory import planned_bytes
 from service.maps import projection
 from tests.service.helpers import frame, make_client
@@ -19,7 +19,7 @@ from tests.service.helpers import frame, make_client
 def feature_dim(name: str) -> int:
     """The descriptor length of a backbone from its shapes (no weights loaded)."""
     if name == "alexnet":
-        return ALEXNET_CONV3_DIM
+        return D_CONV3
     with torch.inference_mode():
         return int(EfficientNetLite0().eval().descriptor(torch.zeros(1, 3, 224, 224)).shape[1])
 
