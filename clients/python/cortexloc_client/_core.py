@@ -81,7 +81,16 @@ class RetryPolicy:
 
 @dataclass(frozen=True)
 class Settings:
-    """A client's settings (`Client(...)` and `AsyncClient(...)` take the same keywords)."""
+    """A client's settings (`Client(...)` and `AsyncClient(...)` take the same keywords).
+
+    Attributes:
+        base_url: the service, e.g. `http://robot-server:8000`.
+        api_key: the server's `CORTEXLOC_API_KEY`, sent as `X-API-Key` on every request.
+        timeout: seconds for connecting, and between bytes of the reply.
+        retry: when to send a request again (`RetryPolicy(attempts=1)`: never).
+        idempotency_keys: give each observation post a fresh `Idempotency-Key` (kept across its
+            retries), so that a retried post is not learned twice.
+    """
 
     base_url: str = "http://127.0.0.1:8000"
     api_key: str | None = None

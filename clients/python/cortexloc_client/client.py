@@ -35,14 +35,8 @@ T = TypeVar("T")
 class Client:
     """A synchronous cortexloc client over one `httpx.Client` (connections are kept alive).
 
-    Args:
-        base_url: the service, e.g. `http://robot-server:8000`.
-        api_key: the server's `CORTEXLOC_API_KEY`, sent as `X-API-Key` on every request.
-        timeout: seconds for connecting, and between bytes of the reply.
-        retry: when to send a request again (`RetryPolicy`; `RetryPolicy(attempts=1)`: never).
-        idempotency_keys: give each observation post a fresh `Idempotency-Key` (kept across its
-            retries), so a retried post is not learned twice.
-        transport: an httpx transport instead of the network (tests, `httpx.ASGITransport` is async only).
+    Keywords as `Settings` (base URL, API key, timeout, retry policy, idempotency keys), plus `transport`:
+    an httpx transport instead of the network (tests; `httpx.MockTransport`).
     """
 
     def __init__(self, base_url: str = Settings.base_url, *, api_key: str | None = None,
