@@ -1,19 +1,22 @@
 """The client against the real thing: one `cortexloc serve` subprocess for the session, on a free loopback
 port with a temporary data directory and an API key; each test makes its own small map.
 
-The server is the repository's (`python -m service.cli serve`, run from the repository root), so these
-tests need the service's dependencies; outside the repository they skip.
+The server is the repository's (`python -m service.cli serve`, run from the repository root) under this
+interpreter, or under `CLIENT_TESTS_SERVER_PYTHON` (the client tested on Python 3.10 against a service
+on 3.11); outside the repository they skip.
 """
 
 from __future__ import annotations
 
 import os
 import socket
+import struct
 import subprocess
 import sys
 import time
 import types
 import uuid
+import zlib
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Union, get_args, get_origin
@@ -28,6 +31,9 @@ from cortexloc_client import Client, models
 REPO = Path(__file__).resolve().parents[3]
 API_KEY = "client-tests-key"
 JSON, PROBLEM = "application/json", "application/problem+json"
+#: The interpreter that runs the server: this one, or another (the service's, when the client is tested
+#: on an older Python than the service runs on).
+SERVER_PYTHON = os.environ.get("CLIENT_TESTS_SERVER_PYTHON") or sys.executable
 #: `cortexloc-default` shrunk like the service tests' `tiny_default_preset` (128 columns, k = 64): the real
 #: code paths at a fraction of the memory and time.
 TINY_MAP = {"tm": {"columnDimensions": 128, "maxSegmentsPerCell": 8, "maxSynapsesPerSegment": 16,
@@ -54,7 +60,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
                 "PYTHONPATH": os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH")) if p)})
     log_path = tmp / "server.log"
     with log_path.open("a") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port),
+        proc = subprocess.Popen([SERVER_PYTHON, "-m", "service.cli", "serve", "--port", str(port),
                                  "--data-dir", str(tmp / "var")], env=env, stdout=log, stderr=log, cwd=REPO)
     base = f"http://127.0.0.1:{port}"
     try:
@@ -122,17 +128,23 @@ def make_picture() -> Callable[[int], np.ndarray]:
     return picture
 
 
+def png(image: np.ndarray) -> bytes:
+    """An (H, W, 3) uint8 RGB array as PNG bytes (zlib only: the tests need no image library)."""
+    height, width, _ = image.shape
+    raw = b"".join(b"\x00" + image[row].tobytes() for row in range(height))  # filter 0 on every row
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)  # 8-bit RGB, no interlace
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw))
+            + chunk(b"IEND", b""))
+
+
 @pytest.fixture
-def make_jpeg() -> Callable[[int], bytes]:
-    """`make_jpeg(place) -> JPEG bytes` of `make_picture(place)`."""
-    cv2 = pytest.importorskip("cv2")
-
-    def encode(place: int) -> bytes:
-        ok, buf = cv2.imencode(".jpg", picture(place)[:, :, ::-1])
-        assert ok
-        return buf.tobytes()
-
-    return encode
+def make_frame() -> Callable[[int], bytes]:
+    """`make_frame(place) -> PNG bytes` of `make_picture(place)`."""
+    return lambda place: png(picture(place))
 
 
 # ------------------------------------------------------------------------------- the OpenAPI contract

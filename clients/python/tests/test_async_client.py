@@ -12,7 +12,7 @@ from cortexloc_client import AsyncClient, NotFoundError, UnauthorizedError, Unsu
 
 
 def test_the_async_client_maps_localises_and_snapshots(server: str, api_key: str, tiny_params: dict,
-                                                       make_jpeg, tmp_path) -> None:
+                                                       make_frame, tmp_path) -> None:
     map_id = f"a-{uuid.uuid4().hex[:10]}"
 
     async def session() -> None:
@@ -21,13 +21,13 @@ def test_the_async_client_maps_localises_and_snapshots(server: str, api_key: str
             assert (await c.ready()).status == "ready"
             created = await c.create_map(map_id, **tiny_params)
             assert created.map_id == map_id and created.observations == 0
-            seqs = [(await c.observe(map_id, make_jpeg(place), top_k=2)).seq for place in range(4)]
+            seqs = [(await c.observe(map_id, make_frame(place), top_k=2)).seq for place in range(4)]
             snap = await c.create_snapshot(map_id)
             assert snap.seq == seqs[-1]
             assert [s.snapshot_id for s in await c.list_snapshots(map_id)] == [snap.snapshot_id]
             assert (await c.reset_stream(map_id, "default")).had_context
             for place in range(3):
-                answer = await c.observe(map_id, make_jpeg(place), learn=False, top_k=2)
+                answer = await c.observe(map_id, make_frame(place), learn=False, top_k=2)
             assert answer.matches[0].seq == seqs[2]
             assert (await c.memory(map_id)).index.observations == 4
 
@@ -51,12 +51,12 @@ def test_the_async_client_maps_localises_and_snapshots(server: str, api_key: str
 
 
 def test_concurrent_streams_each_get_their_answer(server: str, api_key: str, tiny_params: dict,
-                                                  make_jpeg) -> None:
+                                                  make_frame) -> None:
     """Two cameras posting at once through one client: each answer names its own stream."""
     map_id = f"a-{uuid.uuid4().hex[:10]}"
 
     async def camera(c: AsyncClient, stream: str, places: range) -> list[str]:
-        return [(await c.observe(map_id, make_jpeg(p), stream=stream)).stream for p in places]
+        return [(await c.observe(map_id, make_frame(p), stream=stream)).stream for p in places]
 
     async def session() -> tuple[list[str], list[str]]:
         async with AsyncClient(server, api_key=api_key) as c:

@@ -42,15 +42,15 @@ def test_a_map_is_created_listed_read_and_deleted(client: Client, tiny_map: str)
     client.create_map(tiny_map, tm={"columnDimensions": 128}, slsbh={"k": 64})  # for the fixture's delete
 
 
-def test_a_revisited_place_is_the_first_match(client: Client, tiny_map: str, make_jpeg) -> None:
+def test_a_revisited_place_is_the_first_match(client: Client, tiny_map: str, make_frame) -> None:
     seqs = {}
     for place in range(5):
-        answer = client.observe(tiny_map, make_jpeg(place), top_k=3, label=f"place {place}")
+        answer = client.observe(tiny_map, make_frame(place), top_k=3, label=f"place {place}")
         assert answer.learned and answer.seq is not None and answer.observation_id is not None
         seqs[place] = answer.seq
     client.reset_stream(tiny_map, "default")
     for place in range(3):  # the robot drives the loop again, localising
-        answer = client.observe(tiny_map, make_jpeg(place), learn=False, top_k=3)
+        answer = client.observe(tiny_map, make_frame(place), learn=False, top_k=3)
         assert not answer.learned and answer.seq is None
         if place > 0:  # the first frame after a reset has no context to recall its successor with
             assert answer.matches[0].seq == seqs[place] and answer.matches[0].label == f"place {place}"
@@ -59,11 +59,11 @@ def test_a_revisited_place_is_the_first_match(client: Client, tiny_map: str, mak
     assert client.get_map(tiny_map).observations == 5
 
 
-def test_a_stream_reset_ends_its_context(client: Client, tiny_map: str, make_jpeg) -> None:
-    client.observe(tiny_map, make_jpeg(0), stream="cam0")
+def test_a_stream_reset_ends_its_context(client: Client, tiny_map: str, make_frame) -> None:
+    client.observe(tiny_map, make_frame(0), stream="cam0")
     assert client.reset_stream(tiny_map, "cam0") == models.StreamReset(stream="cam0", had_context=True)
     assert client.reset_stream(tiny_map, "cam0").had_context is False
-    assert client.observe(tiny_map, make_jpeg(1), stream="cam0").sequence.step == 0
+    assert client.observe(tiny_map, make_frame(1), stream="cam0").sequence.step == 0
 
 
 def test_refusals_become_typed_exceptions(client: Client, server: str, tiny_map: str) -> None:
@@ -91,13 +91,13 @@ def test_refusals_become_typed_exceptions(client: Client, server: str, tiny_map:
     assert client.list_snapshots(tiny_map) == []  # nothing was taken
 
 
-def test_snapshots_round_trip(client: Client, tiny_map: str, make_jpeg, tmp_path) -> None:
+def test_snapshots_round_trip(client: Client, tiny_map: str, make_frame, tmp_path) -> None:
     for place in range(3):
-        client.observe(tiny_map, make_jpeg(place))
+        client.observe(tiny_map, make_frame(place))
     snap = client.create_snapshot(tiny_map)
     assert (snap.seq, snap.kind) == (3, "manual")
     for place in range(3, 5):
-        client.observe(tiny_map, make_jpeg(place))
+        client.observe(tiny_map, make_frame(place))
     assert [s.snapshot_id for s in client.list_snapshots(tiny_map)] == [snap.snapshot_id]
 
     tar_path = client.download_snapshot(tiny_map, snap.snapshot_id, tmp_path / "snap.tar")

@@ -18,21 +18,21 @@ def test_every_reply_matches_the_servers_schema(openapi, contract) -> None:
     assert contract(openapi) == []
 
 
-def _drive_a_loop(client: Client, map_id: str, make_jpeg, **kw) -> dict[int, int]:
+def _drive_a_loop(client: Client, map_id: str, make_frame, **kw) -> dict[int, int]:
     seqs = {}
     for place in range(5):
         pose = {"x": float(place), "y": 0.0, "yaw": 0.0, "frame_id": "map"}
-        answer = client.observe(map_id, make_jpeg(place), label=f"place {place}",
+        answer = client.observe(map_id, make_frame(place), label=f"place {place}",
                                 metadata={"stamp": 100.0 + place, "pose": pose}, **kw)
         seqs[place] = answer.seq
     client.reset_stream(map_id, "default")
     return seqs
 
 
-def test_a_revisit_names_its_place(client: Client, tiny_map: str, make_jpeg) -> None:
-    seqs = _drive_a_loop(client, tiny_map, make_jpeg)
+def test_a_revisit_names_its_place(client: Client, tiny_map: str, make_frame) -> None:
+    seqs = _drive_a_loop(client, tiny_map, make_frame)
     for place in range(3):
-        answer = client.observe(tiny_map, make_jpeg(place), learn=False)
+        answer = client.observe(tiny_map, make_frame(place), learn=False)
     place = answer.place
     assert isinstance(place, models.Place)
     assert place.seq == seqs[2] and place.label == "place 2" and place.stream == "default"
@@ -40,29 +40,29 @@ def test_a_revisit_names_its_place(client: Client, tiny_map: str, make_jpeg) -> 
     assert place.metadata is not None and place.metadata.pose is not None and place.metadata.pose.x == 2.0
 
 
-def test_metadata_is_stored_and_returned(client: Client, tiny_map: str, make_jpeg) -> None:
-    seqs = _drive_a_loop(client, tiny_map, make_jpeg)
-    answer = client.observe(tiny_map, make_jpeg(9), metadata=models.Metadata(stamp=7.5, note="dock"))
+def test_metadata_is_stored_and_returned(client: Client, tiny_map: str, make_frame) -> None:
+    seqs = _drive_a_loop(client, tiny_map, make_frame)
+    answer = client.observe(tiny_map, make_frame(9), metadata=models.Metadata(stamp=7.5, note="dock"))
     assert answer.metadata is not None and answer.metadata.stamp == 7.5
     assert answer.metadata.model_extra == {"note": "dock"}
     for place in range(3):
-        answer = client.observe(tiny_map, make_jpeg(place), learn=False)
+        answer = client.observe(tiny_map, make_frame(place), learn=False)
     best = answer.matches[0]
     assert best.seq == seqs[2] and best.metadata is not None and best.metadata.stamp == 102.0
     assert best.metadata.pose == models.Pose(x=2.0, y=0.0, yaw=0.0, frame_id="map")
 
 
-def test_a_repeated_idempotency_key_learns_once(client: Client, tiny_map: str, make_jpeg) -> None:
+def test_a_repeated_idempotency_key_learns_once(client: Client, tiny_map: str, make_frame) -> None:
     key = uuid.uuid4().hex
-    first = client.observe(tiny_map, make_jpeg(0), idempotency_key=key)
-    again = client.observe(tiny_map, make_jpeg(0), idempotency_key=key)
+    first = client.observe(tiny_map, make_frame(0), idempotency_key=key)
+    again = client.observe(tiny_map, make_frame(0), idempotency_key=key)
     assert (again.observation_id, again.seq) == (first.observation_id, first.seq)
     assert client.get_map(tiny_map).observations == 1
-    other = client.observe(tiny_map, make_jpeg(0))  # a fresh key: a new observation
+    other = client.observe(tiny_map, make_frame(0))  # a fresh key: a new observation
     assert other.seq != first.seq
 
 
-def test_arrays_are_accepted_as_raw_frames(client: Client, tiny_map: str, make_jpeg, make_picture) -> None:
+def test_arrays_are_accepted_as_raw_frames(client: Client, tiny_map: str, make_frame, make_picture) -> None:
     rgb = make_picture(3)
     learned = client.observe(tiny_map, rgb)
     assert learned.learned
@@ -77,11 +77,11 @@ def test_arrays_are_accepted_as_raw_frames(client: Client, tiny_map: str, make_j
 
 
 def test_a_stored_observation_and_its_thumbnail(client: Client, server: str, api_key: str,
-                                               tiny_params: dict, make_jpeg) -> None:
+                                               tiny_params: dict, make_frame) -> None:
     map_id = f"t-{uuid.uuid4().hex[:10]}"
     client.create_map(map_id, thumbnails=True, **tiny_params)
     try:
-        posted = client.observe(map_id, make_jpeg(1), label="dock", metadata={"stamp": 1.5})
+        posted = client.observe(map_id, make_frame(1), label="dock", metadata={"stamp": 1.5})
         assert posted.seq is not None
         stored = client.get_observation(map_id, posted.seq)
         assert (stored.observation_id, stored.seq) == (posted.observation_id, posted.seq)
@@ -100,8 +100,8 @@ def test_the_revisit_threshold_can_be_changed(client: Client, tiny_map: str) -> 
     assert client.get_map(tiny_map).revisit_threshold == 0.7
 
 
-def test_ros_stream_names_with_a_slash(client: Client, tiny_map: str, make_jpeg) -> None:
-    answer = client.observe(tiny_map, make_jpeg(0), stream="robot1/cam0")
+def test_ros_stream_names_with_a_slash(client: Client, tiny_map: str, make_frame) -> None:
+    answer = client.observe(tiny_map, make_frame(0), stream="robot1/cam0")
     assert answer.stream == "robot1/cam0"
     assert client.reset_stream(tiny_map, "robot1/cam0").had_context is True
     assert "robot1/cam0" in client.get_map(tiny_map).streams
