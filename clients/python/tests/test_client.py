@@ -1,0 +1,117 @@
+"""`Client` against a real `cortexloc serve` (tests/conftest.py): maps, observations, snapshots, errors."""
+
+from __future__ import annotations
+
+import tarfile
+
+import pytest
+
+from cortexloc_client import (
+    BadRequestError,
+    Client,
+    ConflictError,
+    NotFoundError,
+    UnauthorizedError,
+    UnprocessableError,
+    UnsupportedMediaTypeError,
+    models,
+)
+
+
+def test_health_and_readiness(client: Client) -> None:
+    assert client.health().status == "ok"
+    ready = client.ready()
+    assert ready.status == "ready"
+    assert ready.checks["encoder"].status == "warn"  # the tests' server runs on random weights
+    assert ready.checks["encoder"].model_extra["weights"] == "random"
+
+
+def test_a_map_is_created_listed_read_and_deleted(client: Client, tiny_map: str) -> None:
+    got = client.get_map(tiny_map)
+    assert isinstance(got, models.Map)
+    assert (got.map_id, got.state, got.observations, got.last_seq) == (tiny_map, "ready", 0, 0)
+    assert got.params.tm["columnDimensions"] == 128 and got.params.slsbh["k"] == 64
+    assert tiny_map in [m.map_id for m in client.list_maps()]
+    memory = client.memory(tiny_map)
+    assert memory.tm.columns == 128 and memory.index.observations == 0 and memory.process_rss_bytes > 0
+
+    client.delete_map(tiny_map)
+    with pytest.raises(NotFoundError) as e:
+        client.get_map(tiny_map)
+    assert (e.value.status, e.value.slug, e.value.extra["map_id"]) == (404, "map-not-found", tiny_map)
+    client.create_map(tiny_map, tm={"columnDimensions": 128}, slsbh={"k": 64})  # for the fixture's delete
+
+
+def test_a_revisited_place_is_the_first_match(client: Client, tiny_map: str, make_frame) -> None:
+    seqs = {}
+    for place in range(5):
+        answer = client.observe(tiny_map, make_frame(place), top_k=3, label=f"place {place}")
+        assert answer.learned and answer.seq is not None and answer.observation_id is not None
+        seqs[place] = answer.seq
+    client.reset_stream(tiny_map, "default")
+    for place in range(3):  # the robot drives the loop again, localising
+        answer = client.observe(tiny_map, make_frame(place), learn=False, top_k=3)
+        assert not answer.learned and answer.seq is None
+        if place > 0:  # the first frame after a reset has no context to recall its successor with
+            assert answer.matches[0].seq == seqs[place] and answer.matches[0].label == f"place {place}"
+    assert [m.rank for m in answer.matches] == [1, 2, 3]
+    assert answer.versions.api == "v1" and answer.versions.map_seq == seqs[4]
+    assert client.get_map(tiny_map).observations == 5
+
+
+def test_a_stream_reset_ends_its_context(client: Client, tiny_map: str, make_frame) -> None:
+    client.observe(tiny_map, make_frame(0), stream="cam0")
+    assert client.reset_stream(tiny_map, "cam0") == models.StreamReset(stream="cam0", had_context=True)
+    assert client.reset_stream(tiny_map, "cam0").had_context is False
+    assert client.observe(tiny_map, make_frame(1), stream="cam0").sequence.step == 0
+
+
+def test_refusals_become_typed_exceptions(client: Client, server: str, tiny_map: str) -> None:
+    with pytest.raises(UnsupportedMediaTypeError) as e:
+        client.observe(tiny_map, b"not an image")
+    assert e.value.status == 415 and e.value.slug == "unsupported-media-type"
+    assert "image/jpeg" in e.value.extra["allowed"] and e.value.request_id
+    assert e.value.problem is not None and e.value.problem.instance == f"/v1/maps/{tiny_map}/observations"
+
+    with pytest.raises(ConflictError) as e:
+        client.create_map(tiny_map)
+    assert e.value.slug == "map-exists"
+
+    with pytest.raises(UnprocessableError) as e:
+        client.create_map(tm={"activationThreshold": 2, "minThreshold": 9})
+    assert e.value.slug == "invalid-configuration" and e.value.extra["errors"]
+
+    with pytest.raises(BadRequestError) as e:
+        client.observe(tiny_map, b"", top_k=10_000)
+    assert e.value.extra["errors"][0]["name"] == "top_k"
+
+    with Client(server) as anonymous, pytest.raises(UnauthorizedError) as e:
+        anonymous.create_snapshot(tiny_map)
+    assert e.value.slug == "unauthorized"
+    assert client.list_snapshots(tiny_map) == []  # nothing was taken
+
+
+def test_snapshots_round_trip(client: Client, tiny_map: str, make_frame, tmp_path) -> None:
+    for place in range(3):
+        client.observe(tiny_map, make_frame(place))
+    snap = client.create_snapshot(tiny_map)
+    assert (snap.seq, snap.kind) == (3, "manual")
+    for place in range(3, 5):
+        client.observe(tiny_map, make_frame(place))
+    assert [s.snapshot_id for s in client.list_snapshots(tiny_map)] == [snap.snapshot_id]
+
+    tar_path = client.download_snapshot(tiny_map, snap.snapshot_id, tmp_path / "snap.tar")
+    assert not (tmp_path / "snap.tar.part").exists()
+    with tarfile.open(tar_path) as tar:
+        assert {"manifest.json", "map.sqlite", "memory.npz", "projection.npy"} <= set(tar.getnames())
+
+    restored = client.restore_snapshot(tiny_map, snap.snapshot_id)
+    assert (restored.map_id, restored.observations, restored.discarded_observations) == (tiny_map, 3, 2)
+    kinds = sorted(s.kind for s in client.list_snapshots(tiny_map))
+    assert kinds == ["manual", "pre-restore"]
+    with pytest.raises(NotFoundError) as e:
+        client.restore_snapshot(tiny_map, "no-such-snapshot")
+    assert e.value.slug == "snapshot-not-found"
+    with pytest.raises(NotFoundError):
+        client.download_snapshot(tiny_map, "no-such-snapshot", tmp_path / "none.tar")
+    assert not (tmp_path / "none.tar").exists() and not (tmp_path / "none.tar.part").exists()
