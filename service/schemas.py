@@ -12,10 +12,12 @@ from pydantic import BaseModel, ConfigDict, Field
 from service.maps import results
 
 __all__ = ["CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel", "ObservationModel",
-           "Readiness", "RestoreModel", "SequenceModel", "SnapshotList", "SnapshotModel", "StreamResetModel",
-           "Versions"]
+           "Readiness", "RestoreModel", "SequenceModel", "SnapshotList", "SnapshotModel",
+           "StoredObservationList", "StoredObservationModel", "StreamResetModel", "Versions"]
 
 MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"
+#: A stream name: ROS-style segments joined by '/' (`robot1/cam0`), at most 8 of 64 characters.
+STREAM_PATTERN = r"^[A-Za-z0-9._-]{1,64}(/[A-Za-z0-9._-]{1,64}){0,7}$"
 
 
 class _Out(BaseModel):
@@ -45,6 +47,7 @@ class CreateMap(BaseModel):
     tm: dict[str, Any] | None = Field(default=None, description="Temporal Memory overrides, NuPIC names")
     slsbh: dict[str, Any] | None = Field(default=None, description="sLSBH overrides: k, s, seed, adapt_tau")
     exclude_recent: int = Field(default=0, ge=0)
+    thumbnails: bool = Field(default=False, description="keep a small JPEG of each learned frame")
 
 
 class MapParams(_Out):
@@ -71,6 +74,7 @@ class MapModel(_Out):
     warnings: list[str]
     recovery: dict[str, Any] | None
     snapshot_error: dict[str, Any] | None
+    thumbnails: bool = Field(description="a small JPEG is kept with each learned observation")
 
 
 class MapList(_Out):
@@ -117,6 +121,7 @@ class MatchModel(_Out):
     created_at: str
     overlap: int
     score: float = Field(description="Dice of the winner-cell sets")
+    metadata: dict[str, Any] | None = Field(description="as stored with that observation")
 
 
 class Versions(_Out):
@@ -141,6 +146,27 @@ class ObservationModel(_Out):
     matches: list[MatchModel]
     timings_ms: dict[str, float]
     versions: Versions
+    metadata: dict[str, Any] | None = Field(default=None, description="the frame's, as posted")
+
+
+class StoredObservationModel(_Out):
+    """A learned observation as stored (`GET /v1/maps/{id}/observations/{seq}`)."""
+
+    seq: int
+    observation_id: str
+    stream: str
+    label: str | None
+    created_at: str
+    image_sha256: str
+    metadata: dict[str, Any] | None
+    has_thumbnail: bool
+
+
+class StoredObservationList(_Out):
+    """A page in seq order; `next_after_seq` continues it (None: nothing after this page)."""
+
+    observations: list[StoredObservationModel]
+    next_after_seq: int | None
 
 
 # -------------------------------------------------------------------------------------- snapshots

@@ -61,7 +61,8 @@ class MapRegistry:
         s = self.settings
         return MapRuntime(record, self.data_dir / "maps" / record.map_id, self.projections, self.catalog,
                           self.encoder.feature_dim, s.max_streams, s.max_observations,
-                          s.snapshot_every, s.snapshot_keep)
+                          s.snapshot_every, s.snapshot_keep, max_keys=s.idempotency_keys,
+                          key_cache=s.idempotency_cache)
 
     def start(self) -> None:
         """Open every map and recover it by replay; create `default` on a fresh install."""
@@ -91,7 +92,8 @@ class MapRegistry:
         return rt
 
     def create(self, map_id: str, *, preset: str, seed: int | None = None, tm: dict[str, Any] | None = None,
-               slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0) -> MapRuntime:
+               slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
+               thumbnails: bool = False) -> MapRuntime:
         """Create a map: resolve and freeze parameters, persist the projection, then the store (§1.1).
 
         Raises:
@@ -115,6 +117,7 @@ class MapRegistry:
             del P
             params["projection_sha256"] = sha
             params["encoder_id"] = self.encoder.identity
+            params["thumbnails"] = bool(thumbnails)  # frozen like the rest (docs/design/service.md §1.1)
             if self.encoder.identity.split("/")[1].startswith("random"):
                 log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, self.encoder.identity)
             map_dir = self.data_dir / "maps" / map_id

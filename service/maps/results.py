@@ -7,7 +7,8 @@ from dataclasses import dataclass
 from typing import Any
 
 __all__ = ["IndexMemory", "MapInfo", "Match", "MemoryInfo", "ObservationResult", "RestoreResult",
-           "SequenceStats", "SnapshotInfo", "StorageMemory", "StreamReset", "StreamsMemory", "TmMemory"]
+           "SequenceStats", "SnapshotInfo", "StorageMemory", "StoredObservation", "StreamReset",
+           "StreamsMemory", "TmMemory"]
 
 
 @dataclass(frozen=True)
@@ -22,6 +23,7 @@ class Match:
     created_at: str
     overlap: int
     score: float  # Dice of the two winner-cell sets
+    metadata: dict[str, Any] | None = None  # as stored with it (stamp, pose, ...)
 
 
 @dataclass(frozen=True)
@@ -49,6 +51,7 @@ class ObservationResult:
     timings_ms: dict[str, float]
     map_seq: int
     projection_sha256: str
+    metadata: dict[str, Any] | None = None  # the frame's, as posted (stored with a learned row)
 
 
 @dataclass(frozen=True)
@@ -69,11 +72,26 @@ class MapInfo:
     warnings: list[str]
     recovery: dict[str, Any] | None
     snapshot_error: dict[str, Any] | None
+    thumbnails: bool  # a small JPEG is kept with each learned row (frozen with the map)
 
 
 @dataclass(frozen=True)
 class RestoreResult(MapInfo):
     discarded_observations: int
+
+
+@dataclass(frozen=True)
+class StoredObservation:
+    """A learned observation as stored, without its codes (docs/design/service.md §1.2)."""
+
+    seq: int
+    observation_id: str
+    stream: str
+    label: str | None
+    created_at: str
+    image_sha256: str
+    metadata: dict[str, Any] | None
+    has_thumbnail: bool
 
 
 @dataclass(frozen=True)
