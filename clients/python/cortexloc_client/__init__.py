@@ -34,6 +34,7 @@ from cortexloc_client.models import (
     RestoredMap,
     Snapshot,
     StoredObservation,
+    StoredObservationList,
 )
 
 __all__ = [
@@ -61,6 +62,7 @@ __all__ = [
     "Settings",
     "Snapshot",
     "StoredObservation",
+    "StoredObservationList",
     "UnauthorizedError",
     "UnprocessableError",
     "UnsupportedMediaTypeError",

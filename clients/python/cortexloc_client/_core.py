@@ -212,6 +212,11 @@ def get_observation(map_id: str, seq: int) -> Call[models.StoredObservation]:
                 idempotent=True)
 
 
+def list_observations(map_id: str, after_seq: int, limit: int) -> Call[models.StoredObservationList]:
+    return Call("GET", f"{_map(map_id)}/observations", _model(models.StoredObservationList),
+                params={"after_seq": str(int(after_seq)), "limit": str(int(limit))}, idempotent=True)
+
+
 def thumbnail(map_id: str, seq: int) -> Call[bytes]:
     return Call("GET", f"{_map(map_id)}/observations/{int(seq)}/thumbnail", _content, idempotent=True)
 

@@ -146,6 +146,12 @@ class Client:
         """`GET /v1/maps/{map_id}/observations/{seq}`: a learned observation."""
         return self._send(_core.get_observation(map_id, seq))
 
+    def list_observations(self, map_id: str, *, after_seq: int = 0,
+                          limit: int = 100) -> models.StoredObservationList:
+        """`GET /v1/maps/{map_id}/observations`: learned observations with seq > `after_seq`, in seq
+        order, at most `limit` (<= 500); continue with `after_seq=page.next_after_seq`."""
+        return self._send(_core.list_observations(map_id, after_seq, limit))
+
     def thumbnail(self, map_id: str, seq: int) -> bytes:
         """`GET /v1/maps/{map_id}/observations/{seq}/thumbnail`: the stored JPEG thumbnail."""
         return self._send(_core.thumbnail(map_id, seq))

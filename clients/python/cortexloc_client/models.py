@@ -33,6 +33,7 @@ __all__ = [
     "SnapshotList",
     "StorageMemory",
     "StoredObservation",
+    "StoredObservationList",
     "StreamReset",
     "StreamsMemory",
     "TmMemory",
@@ -111,6 +112,8 @@ class Map(_Reply):
     snapshot_error: dict[str, Any] | None = None
     #: Confidence at or above which a place is called a revisit; None where the server has no such knob.
     revisit_threshold: float | None = None
+    #: A small JPEG is kept with each learned observation (chosen at creation, frozen).
+    thumbnails: bool = False
 
 
 class MapList(_Reply):
@@ -275,6 +278,14 @@ class StoredObservation(_Reply):
     image_sha256: str | None = None
     metadata: Metadata | None = None
     has_thumbnail: bool | None = None
+
+
+class StoredObservationList(_Reply):
+    """`GET /v1/maps/{map_id}/observations`: a page in seq order; `next_after_seq` continues it (None:
+    nothing after this page)."""
+
+    observations: list[StoredObservation]
+    next_after_seq: int | None = None
 
 
 # ------------------------------------------------------------------------------------- snapshots

@@ -50,7 +50,7 @@ def _free_port() -> int:
 @pytest.fixture(scope="session")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """The base URL of a running `cortexloc serve` (random weights, `CORTEXLOC_API_KEY` = `API_KEY`)."""
-    if not (REPO / "service" / "cli.py").exists():
+    if not (REPO / "service" / "cli").is_dir():
         pytest.skip("the cortexloc service is not next to the client (not a repository checkout)")
     tmp = tmp_path_factory.mktemp("serve")
     port = _free_port()
@@ -158,16 +158,24 @@ CONTRACT: list[tuple[type[BaseModel], str, str, int, str]] = [
     (models.Map, "/v1/maps", "post", 201, JSON),
     (models.MapList, "/v1/maps", "get", 200, JSON),
     (models.Map, "/v1/maps/{map_id}", "get", 200, JSON),
-    (models.Map, "/v1/maps/{map_id}", "patch", 200, JSON),
     (models.Problem, "/v1/maps/{map_id}", "get", 404, PROBLEM),
     (models.Memory, "/v1/maps/{map_id}/memory", "get", 200, JSON),
     (models.StreamReset, "/v1/maps/{map_id}/streams/{stream}/reset", "post", 200, JSON),
     (models.Observation, "/v1/maps/{map_id}/observations", "post", 200, JSON),
     (models.Problem, "/v1/maps/{map_id}/observations", "post", 415, PROBLEM),
     (models.StoredObservation, "/v1/maps/{map_id}/observations/{seq}", "get", 200, JSON),
+    (models.StoredObservationList, "/v1/maps/{map_id}/observations", "get", 200, JSON),
+    (models.Problem, "/v1/maps/{map_id}/observations/{seq}", "get", 404, PROBLEM),
     (models.Snapshot, "/v1/maps/{map_id}/snapshots", "post", 201, JSON),
     (models.SnapshotList, "/v1/maps/{map_id}/snapshots", "get", 200, JSON),
     (models.RestoredMap, "/v1/maps/{map_id}/snapshots/{snapshot_id}/restore", "post", 200, JSON),
+]
+
+
+#: Rows of routes the service does not serve yet (issue 15: `PATCH` of a map); checked in
+#: test_pending_server_features.py, moved into `CONTRACT` when served.
+PENDING_CONTRACT: list[tuple[type[BaseModel], str, str, int, str]] = [
+    (models.Map, "/v1/maps/{map_id}", "patch", 200, JSON),
 ]
 
 
@@ -254,6 +262,12 @@ def contract() -> Callable[[dict[str, Any], type[BaseModel] | None], list[str]]:
     """`contract(spec, model=None) -> mismatches` of the `CONTRACT` rows (those of `model`, or all)."""
     return lambda spec, model=None: contract_mismatches(
         spec, [row for row in CONTRACT if model is None or row[0] is model])
+
+
+@pytest.fixture
+def pending_contract() -> Callable[[dict[str, Any]], list[str]]:
+    """`pending_contract(spec) -> mismatches` of the `PENDING_CONTRACT` rows."""
+    return lambda spec: contract_mismatches(spec, PENDING_CONTRACT)
 
 
 @pytest.fixture

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import tarfile
+import uuid
 
+import numpy as np
 import pytest
 
 from cortexloc_client import (
@@ -115,3 +117,87 @@ def test_snapshots_round_trip(client: Client, tiny_map: str, make_frame, tmp_pat
     with pytest.raises(NotFoundError):
         client.download_snapshot(tiny_map, "no-such-snapshot", tmp_path / "none.tar")
     assert not (tmp_path / "none.tar").exists() and not (tmp_path / "none.tar.part").exists()
+
+
+# ------------------------------------------------------------------ where and what, raw frames, retries
+
+
+def _drive_a_loop(client: Client, map_id: str, make_frame) -> dict[int, int]:
+    seqs = {}
+    for place in range(5):
+        pose = {"x": float(place), "y": 0.0, "yaw": 0.0, "frame_id": "map"}
+        answer = client.observe(map_id, make_frame(place), label=f"place {place}",
+                                metadata={"stamp": 100.0 + place, "pose": pose})
+        seqs[place] = answer.seq
+    client.reset_stream(map_id, "default")
+    return seqs
+
+
+def test_metadata_is_stored_and_returned(client: Client, tiny_map: str, make_frame) -> None:
+    seqs = _drive_a_loop(client, tiny_map, make_frame)
+    answer = client.observe(tiny_map, make_frame(9), metadata=models.Metadata(stamp=7.5, note="dock"))
+    assert answer.metadata is not None and answer.metadata.stamp == 7.5
+    assert answer.metadata.model_extra == {"note": "dock"}
+    for place in range(3):
+        answer = client.observe(tiny_map, make_frame(place), learn=False)
+    best = answer.matches[0]
+    assert best.seq == seqs[2] and best.metadata is not None and best.metadata.stamp == 102.0
+    assert best.metadata.pose == models.Pose(x=2.0, y=0.0, yaw=0.0, frame_id="map")
+    page = client.list_observations(tiny_map, after_seq=seqs[0], limit=2)
+    assert [o.seq for o in page.observations] == [seqs[1], seqs[2]] and page.next_after_seq == seqs[2]
+    assert [o.metadata.pose.x for o in page.observations if o.metadata and o.metadata.pose] == [1.0, 2.0]
+
+
+def test_a_repeated_idempotency_key_learns_once(client: Client, tiny_map: str, make_frame) -> None:
+    key = uuid.uuid4().hex
+    first = client.observe(tiny_map, make_frame(0), idempotency_key=key)
+    again = client.observe(tiny_map, make_frame(0), idempotency_key=key)
+    assert again == first  # the first reply, as it was sent
+    assert client.get_map(tiny_map).observations == 1
+    other = client.observe(tiny_map, make_frame(0))  # a fresh key: a new observation
+    assert other.seq != first.seq
+    with pytest.raises(UnprocessableError) as refused:  # the key with another frame
+        client.observe(tiny_map, make_frame(1), idempotency_key=key)
+    assert refused.value.slug == "idempotency-key-reused"
+    assert client.get_map(tiny_map).observations == 2
+
+
+def test_arrays_are_accepted_as_raw_frames(client: Client, tiny_map: str, make_picture) -> None:
+    rgb = make_picture(3)
+    learned = client.observe(tiny_map, rgb)
+    assert learned.learned
+    client.reset_stream(tiny_map, "default")
+    as_rgb = client.observe(tiny_map, rgb, learn=False)
+    client.reset_stream(tiny_map, "default")
+    # The same picture as BGR with colour="bgr8" is the same frame: the same answer.
+    as_bgr = client.observe(tiny_map, np.ascontiguousarray(rgb[:, :, ::-1]), colour="bgr8", learn=False)
+    assert as_bgr.matches[0].seq == learned.seq
+    assert as_bgr.sequence == as_rgb.sequence and as_bgr.matches == as_rgb.matches
+    grey = rgb.mean(axis=2)
+    assert client.observe(tiny_map, grey.astype(np.uint8)).learned
+    assert client.observe(tiny_map, (grey * 257).astype(np.uint16)).learned
+    assert client.get_map(tiny_map).observations == 3
+
+
+def test_a_stored_observation_and_its_thumbnail(client: Client, tiny_params: dict, make_frame) -> None:
+    map_id = f"t-{uuid.uuid4().hex[:10]}"
+    assert client.create_map(map_id, thumbnails=True, **tiny_params).thumbnails is True
+    try:
+        posted = client.observe(map_id, make_frame(1), label="dock", metadata={"stamp": 1.5})
+        assert posted.seq is not None
+        stored = client.get_observation(map_id, posted.seq)
+        assert (stored.observation_id, stored.seq) == (posted.observation_id, posted.seq)
+        assert stored.label == "dock" and stored.has_thumbnail is True
+        assert stored.metadata is not None and stored.metadata.stamp == 1.5
+        assert client.thumbnail(map_id, posted.seq)[:3] == b"\xff\xd8\xff"
+        with pytest.raises(NotFoundError):
+            client.get_observation(map_id, posted.seq + 100)
+    finally:
+        client.delete_map(map_id)
+
+
+def test_ros_stream_names_with_a_slash(client: Client, tiny_map: str, make_frame) -> None:
+    answer = client.observe(tiny_map, make_frame(0), stream="robot1/cam0")
+    assert answer.stream == "robot1/cam0"
+    assert client.reset_stream(tiny_map, "robot1/cam0").had_context is True
+    assert "robot1/cam0" in client.get_map(tiny_map).streams
