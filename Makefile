@@ -9,8 +9,9 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-$(STAMP): $(BIN)/python pyproject.toml constraints.txt
-	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev]'
+# The Python client (clients/python) too: its tests run against this checkout's service.
+$(STAMP): $(BIN)/python pyproject.toml constraints.txt clients/python/pyproject.toml
+	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev]' -e 'clients/python[numpy]'
 	touch $(STAMP)
 
 install: $(STAMP)

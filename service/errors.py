@@ -13,9 +13,6 @@ errors, mapped in one table, `DOMAIN_PROBLEMS` (e.g. a damaged snapshot is 409 `
 (`request_id_var`), and turns an exception that escaped everything else into a 500 `internal-error`
 that leaks nothing (the traceback goes to the log with the request id). A client that goes away
 before its request was read is no server error: logged at info and counted as 499 (nobody receives it).
-
-Example:
-    >>> raise Problem(404, "map-not-found", "map 'lab' does not exist", map_id="lab")
 """
 
 from __future__ import annotations
@@ -56,13 +53,13 @@ PROBLEM_MEDIA_TYPE = "application/problem+json"
 TYPE_PREFIX = "urn:cortexloc:problem:"
 REQUEST_ID_HEADER = "X-Request-ID"
 #: Media types the observation route accepts (the `allowed` member of 415 unsupported-media-type).
-IMAGE_MEDIA_TYPES = ("image/jpeg", "image/png", "application/octet-stream")
+IMAGE_MEDIA_TYPES = ("image/jpeg", "image/png", "image/webp", "image/bmp", "application/octet-stream")
 
 #: slug -> (usual status, fixed title): the docs/design/service.md §2 table plus `unauthorized`.
 PROBLEMS: dict[str, tuple[int, str]] = {
     "invalid-parameter": (400, "Invalid parameter"),
     "unauthorized": (401, "Unauthorized"),
-    "map-not-found": (404, "Map not found"),
+    "map-not-found": (404, "Map not found"), "observation-not-found": (404, "Observation not found"),
     "snapshot-not-found": (404, "Snapshot not found"),
     "snapshot-invalid": (409, "Snapshot invalid"),
     "not-found": (404, "Not found"),
@@ -76,6 +73,8 @@ PROBLEMS: dict[str, tuple[int, str]] = {
     "undecodable-image": (422, "Undecodable image"),
     "degenerate-image": (422, "Degenerate image"),
     "decompression-bomb": (422, "Decompression bomb"),
+    "raw-frame-size-mismatch": (422, "Raw frame size mismatch"),
+    "invalid-metadata": (422, "Invalid metadata"), "idempotency-key-reused": (422, "Idempotency key reused"),
     "map-too-large": (422, "Map too large"),
     "invalid-configuration": (422, "Invalid configuration"),
     "not-ready": (503, "Not ready"),
@@ -145,11 +144,7 @@ class ProblemDetails(BaseModel):
 
 
 def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
-    """OpenAPI `responses=` entries documenting problem+json bodies for these statuses.
-
-    Example:
-        >>> @router.get("/v1/maps/{map_id}", responses=problem_responses(404))
-    """
+    """OpenAPI `responses=` entries documenting problem+json bodies for these statuses."""
     schema = ProblemDetails.model_json_schema()
     return {s: {"description": HTTPStatus(s).phrase, "content": {PROBLEM_MEDIA_TYPE: {"schema": schema}}}
             for s in statuses}
@@ -213,7 +208,8 @@ _IMAGE_SLUGS: dict[str, tuple[int, str]] = {
     "not-an-image": (422, "undecodable-image"),
     "truncated": (422, "undecodable-image"),
     "degenerate": (422, "degenerate-image"),
-    "bomb": (422, "decompression-bomb"),
+    "bomb": (422, "decompression-bomb"), "size-mismatch": (422, "raw-frame-size-mismatch"),
+    "unsupported-encoding": (415, "unsupported-media-type"),
 }
 
 
@@ -279,6 +275,8 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
     maps_errors.InvalidMapId: DomainProblem(400, "invalid-parameter", ("errors",)),
     maps_errors.MapNotFound: DomainProblem(404, "map-not-found", ("map_id",)),
     maps_errors.SnapshotNotFound: DomainProblem(404, "snapshot-not-found", ("map_id",)),
+    maps_errors.ObservationNotFound: DomainProblem(404, "observation-not-found", ("map_id", "seq")),
+    maps_errors.IdempotencyKeyReused: DomainProblem(422, "idempotency-key-reused", ("key",)),
     SnapshotInvalid: DomainProblem(409, "snapshot-invalid"),
     maps_errors.MapAlreadyExists: DomainProblem(409, "map-exists", ("map_id",)),
     maps_errors.MapLimit: DomainProblem(409, "map-limit", ("max_maps",)),

@@ -13,9 +13,12 @@ from service.maps import results
 
 __all__ = ["CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel", "ObservationModel",
            "PatchMap", "Readiness", "RecentList", "RecentModel", "RestoreModel", "SequenceModel",
-           "SnapshotList", "SnapshotModel", "StreamResetModel", "Versions"]
+           "SnapshotList", "SnapshotModel", "StoredObservationList", "StoredObservationModel",
+           "StreamResetModel", "Versions"]
 
 MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"
+#: A stream name: ROS-style segments joined by '/' (`robot1/cam0`), at most 8 of 64 characters.
+STREAM_PATTERN = r"^[A-Za-z0-9._-]{1,64}(/[A-Za-z0-9._-]{1,64}){0,7}$"
 
 
 class _Out(BaseModel):
@@ -54,6 +57,7 @@ class CreateMap(BaseModel):
     localiser: dict[str, Any] | None = Field(default=None, description="sequence localiser options "
                                              "(docs/design/science.md §11.3)")
 
+    thumbnails: bool = Field(default=False, description="keep a small JPEG of each learned frame")
 
 class PatchMap(BaseModel):
     """The map settings that may change after creation (docs/design/service.md §1.2)."""
@@ -93,6 +97,7 @@ class MapModel(_Out):
     snapshot_error: dict[str, Any] | None
     backbone: str
     revisit_threshold: float
+    thumbnails: bool = Field(description="a small JPEG is kept with each learned observation")
 
 
 class MapList(_Out):
@@ -139,6 +144,7 @@ class MatchModel(_Out):
     created_at: str
     overlap: int
     score: float = Field(description="Dice of the winner-cell sets")
+    metadata: dict[str, Any] | None = Field(description="as stored with that observation")
 
 
 class Versions(_Out):
@@ -166,6 +172,27 @@ class ObservationModel(_Out):
                                               "(docs/design/service.md §1.2); null during its warm-up")
     timings_ms: dict[str, float]
     versions: Versions
+    metadata: dict[str, Any] | None = Field(default=None, description="the frame's, as posted")
+
+
+class StoredObservationModel(_Out):
+    """A learned observation as stored (`GET /v1/maps/{id}/observations/{seq}`)."""
+
+    seq: int
+    observation_id: str
+    stream: str
+    label: str | None
+    created_at: str
+    image_sha256: str
+    metadata: dict[str, Any] | None
+    has_thumbnail: bool
+
+
+class StoredObservationList(_Out):
+    """A page in seq order; `next_after_seq` continues it (None: nothing after this page)."""
+
+    observations: list[StoredObservationModel]
+    next_after_seq: int | None
 
 
 class RecentModel(_Out):

@@ -113,6 +113,10 @@ class Settings(BaseSettings):
     max_observations: int = Field(1_000_000, ge=1)
     max_streams: int = Field(64, ge=1)
     max_top_k: int = Field(100, ge=0)
+    idempotency_keys: int = Field(100_000, ge=1, description="Idempotency-Keys kept per map: those of the "
+                                  "learned posts of the last N seqs, in map.sqlite")
+    idempotency_cache: int = Field(1024, ge=0, description="replies of localisation posts (learn=false) "
+                                   "kept in memory per map for their Idempotency-Key")
     snapshot_every: int = Field(1000, ge=0, description="automatic snapshot period (0 = off)")
     snapshot_keep: int = Field(3, ge=0, description="automatic snapshots kept (0 = off)")
     max_import_bytes: int = Field(2**33, ge=1, description="most bytes a snapshot tar may unpack to "

@@ -2,12 +2,17 @@
 (docs/design/service.md §4.2). `storage.mapstore` reads and appends; this module says what is stored.
 
 A row, once committed, is never changed or removed: triggers in the file refuse UPDATE and DELETE on
-`observations`, and the frozen `meta` likewise.
+`observations` and `thumbnails`, and the frozen `meta` likewise. `idempotency_keys` is the one table
+rows leave: the oldest keys are pruned (docs/design/service.md §4.2).
+
+Version 2 added a row's `metadata`, the `thumbnails` and `idempotency_keys` tables; a version 1 file is
+brought up to date when it is opened for writing (`migrate`), in one transaction.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import sqlite3
@@ -30,6 +35,7 @@ __all__ = [
     "INPUT_DTYPE",
     "SCHEMA_VERSION",
     "DuplicateObservation",
+    "KeyRecord",
     "MapMeta",
     "NewObservation",
     "Observation",
@@ -38,11 +44,12 @@ __all__ = [
     "create_file",
     "decode",
     "encode",
+    "migrate",
     "read_meta",
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -63,7 +70,8 @@ CREATE TABLE observations (
     created_at       TEXT NOT NULL,
     image_sha256     TEXT NOT NULL,
     input_sdr        BLOB NOT NULL,  -- sorted little-endian uint16 active columns
-    winner_cells     BLOB NOT NULL   -- sorted little-endian uint16 or uint32 (meta.cell_dtype) cells
+    winner_cells     BLOB NOT NULL,  -- sorted little-endian uint16 or uint32 (meta.cell_dtype) cells
+    metadata         TEXT NULL       -- the client's small JSON object (stamp, pose, ...), compact
 );
 -- The append-only rule enforced by the file itself, not only by this module's API.
 CREATE TRIGGER observations_no_update BEFORE UPDATE ON observations
@@ -78,9 +86,55 @@ CREATE TRIGGER meta_no_delete BEFORE DELETE ON meta
 BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
 """
 
+# What version 2 added beside `observations.metadata`; created with a new file and by `migrate`.
+_V2_TABLES = """
+CREATE TABLE thumbnails (
+    seq  INTEGER PRIMARY KEY REFERENCES observations (seq),
+    jpeg BLOB NOT NULL               -- a small JPEG of the frame, for people (never replayed)
+);
+CREATE TRIGGER thumbnails_no_update BEFORE UPDATE ON thumbnails
+BEGIN SELECT RAISE(ABORT, 'thumbnails are append-only'); END;
+CREATE TRIGGER thumbnails_no_delete BEFORE DELETE ON thumbnails
+BEGIN SELECT RAISE(ABORT, 'thumbnails are append-only'); END;
+-- A learned post's Idempotency-Key, committed with its row: a repeat is answered from here.
+CREATE TABLE idempotency_keys (
+    key         TEXT PRIMARY KEY,
+    fingerprint TEXT NOT NULL,       -- SHA-256 of what the request asked (body and parameters)
+    seq         INTEGER NOT NULL UNIQUE REFERENCES observations (seq),
+    reply       TEXT NOT NULL,       -- the reply's JSON as first sent
+    created_at  TEXT NOT NULL
+);
+"""
+
+#: Version 1 -> 2 (`migrate`), run as one script inside one transaction. ADD COLUMN changes no row (the
+#: new column reads NULL), so the append-only triggers stay as they are; the frozen meta's trigger is
+#: lifted for the version number alone and put back in the same transaction.
+_MIGRATE_V2 = ("ALTER TABLE observations ADD COLUMN metadata TEXT NULL;" + _V2_TABLES + """
+DROP TRIGGER meta_no_update;
+UPDATE meta SET value = '2' WHERE key = 'schema_version';
+CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
+BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
+""")
+
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
-            "input_sdr, winner_cells")
+            "input_sdr, winner_cells, metadata")
+#: The same for a version 1 file opened read-only (it has no metadata column: it reads as NULL).
+COLUMNS_V1 = COLUMNS.replace("metadata", "NULL")
+
+
+def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
+    """Bring an open version 1 file to `SCHEMA_VERSION` in one transaction (all or nothing); the meta
+    as it then is. A current file is returned as it is."""
+    if meta.schema_version >= SCHEMA_VERSION:
+        return meta
+    try:
+        conn.executescript("BEGIN IMMEDIATE;" + _MIGRATE_V2 + "COMMIT;")
+    except BaseException:
+        if conn.in_transaction:
+            conn.execute("ROLLBACK")
+        raise
+    return dataclasses.replace(meta, schema_version=SCHEMA_VERSION)
 
 
 class StoreCorrupt(StorageError):  # noqa: N818
@@ -139,6 +193,9 @@ class NewObservation:
         label: optional client text.
         observation_id: UUID (generated when not given).
         created_at: ISO 8601 UTC (now when not given).
+        metadata: the client's small JSON object (stamp, pose, ...), stored as compact JSON.
+        thumbnail: a small JPEG of the frame (`thumbnails` table), for maps that keep them.
+        key: the post's Idempotency-Key and reply, committed in the row's transaction.
     """
 
     stream: str
@@ -149,6 +206,9 @@ class NewObservation:
     label: str | None = None
     observation_id: str = field(default_factory=lambda: str(uuid.uuid4()))
     created_at: str = field(default_factory=utc_now)
+    metadata: dict[str, Any] | None = None
+    thumbnail: bytes | None = None
+    key: KeyRecord | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -167,6 +227,17 @@ class Observation:
     image_sha256: str
     input_sdr: np.ndarray
     winner_cells: np.ndarray
+    metadata: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class KeyRecord:
+    """An idempotent post as stored (`idempotency_keys`): its key, what it asked (`fingerprint`) and the
+    reply's JSON as first sent."""
+
+    key: str
+    fingerprint: str
+    reply: str
 
 
 def encode(values: np.ndarray | Sequence[int], dtype: str, what: str) -> bytes:
@@ -220,7 +291,7 @@ def create_file(path: Path, meta: MapMeta) -> None:
         try:
             # A temporary file: atomicity comes from the rename below, not from one transaction
             # (executescript would commit a pending transaction anyway).
-            conn.executescript(_SCHEMA)
+            conn.executescript(_SCHEMA + _V2_TABLES)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

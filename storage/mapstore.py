@@ -10,17 +10,12 @@ refuse UPDATE and DELETE on `observations`, and a restore replaces the whole fil
 Sequence numbers: `seq` is assigned here, strictly increasing and never reused. SQLite's own choice
 (max(rowid)+1) would reuse seqs after a restore rolls the file back, so the caller passes the
 catalog's high-water mark as `seq_floor` and the next seq is `max(last_seq, seq_floor) + 1`.
-
-Example:
-    >>> store = MapStore.create(path, MapMeta("lab", params, sha, "alexnet-conv3:…", "uint16"))
-    >>> seq = store.append(NewObservation("default", image_sha, columns, winners))
-    >>> [row.seq for row in store.rows()]
-    [1]
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import sqlite3
@@ -34,9 +29,11 @@ from storage._common import StorageError, StorageFull, connect, is_full_error, t
 from storage.mapschema import (
     CELL_DTYPES,
     COLUMNS,
+    COLUMNS_V1,
     INPUT_DTYPE,
     SCHEMA_VERSION,
     DuplicateObservation,
+    KeyRecord,
     MapMeta,
     NewObservation,
     Observation,
@@ -45,6 +42,7 @@ from storage.mapschema import (
     create_file,
     decode,
     encode,
+    migrate,
     read_meta,
 )
 
@@ -53,6 +51,7 @@ __all__ = [
     "INPUT_DTYPE",
     "SCHEMA_VERSION",
     "DuplicateObservation",
+    "KeyRecord",
     "MapMeta",
     "MapStore",
     "NewObservation",
@@ -81,10 +80,16 @@ class MapStore:
     its own transactions or retries would blur exactly that.
     """
 
-    def __init__(self, path: Path, conn: sqlite3.Connection, meta: MapMeta, seq_floor: int) -> None:
+    def __init__(self, path: Path, conn: sqlite3.Connection, meta: MapMeta, seq_floor: int,
+                 max_keys: int | None = None) -> None:
         """Use `MapStore.create` or `MapStore.open`."""
         self.path = path
         self.meta = meta
+        self.max_keys = max_keys
+        # A version 1 file opened read-only is not migrated: its rows read with metadata NULL, and it
+        # has no thumbnails or keys.
+        self._v2 = meta.schema_version >= 2
+        self._cols = COLUMNS if self._v2 else COLUMNS_V1
         self._conn: sqlite3.Connection | None = conn
         self._lock = threading.RLock()
         self._cell_dtype = meta.cell_dtype
@@ -96,23 +101,25 @@ class MapStore:
     # ------------------------------------------------------------------ lifecycle
 
     @classmethod
-    def create(cls, path: str | os.PathLike[str], meta: MapMeta, *, seq_floor: int = 0) -> MapStore:
+    def create(cls, path: str | os.PathLike[str], meta: MapMeta, *, seq_floor: int = 0,
+               max_keys: int | None = None) -> MapStore:
         """Create a new `map.sqlite` atomically (`storage.mapschema.create_file`: a crash leaves no map
         file or a complete one) and open it.
 
         Args:
             path: the file to create; its directory must exist.
             meta: what is frozen into the map.
-            seq_floor: see `open`.
+            seq_floor, max_keys: see `open`.
 
         Raises:
             FileExistsError: `path` exists.
         """
         create_file(Path(path), meta)
-        return cls.open(path, seq_floor=seq_floor)
+        return cls.open(path, seq_floor=seq_floor, max_keys=max_keys)
 
     @classmethod
-    def open(cls, path: str | os.PathLike[str], *, seq_floor: int = 0, readonly: bool = False) -> MapStore:
+    def open(cls, path: str | os.PathLike[str], *, seq_floor: int = 0, readonly: bool = False,
+             max_keys: int | None = None) -> MapStore:
         """Open an existing `map.sqlite`.
 
         Args:
@@ -120,7 +127,9 @@ class MapStore:
             seq_floor: the lowest seq that counts as used (the catalog's high-water mark): the next
                 append gets `max(last_seq, seq_floor) + 1`, so a restored (older) file never hands out a
                 seq again.
-            readonly: inspect only (`cortexloc verify`): nothing on disk changes, appends fail.
+            readonly: inspect only (`cortexloc verify`): nothing on disk changes, appends fail. An
+                older file is migrated (`storage.mapschema.migrate`) unless opened read-only.
+            max_keys: idempotency keys kept: those of the last `max_keys` seqs (None: all).
 
         Raises:
             FileNotFoundError: no such file (SQLite would silently create an empty one).
@@ -139,7 +148,9 @@ class MapStore:
             if meta.schema_version > SCHEMA_VERSION:
                 raise StorageError(f"{path}: schema version {meta.schema_version} is newer than "
                                    f"this code's {SCHEMA_VERSION}")
-            return cls(path, conn, meta, seq_floor)
+            if not readonly:
+                meta = migrate(conn, meta)
+            return cls(path, conn, meta, seq_floor, max_keys)
         except sqlite3.DatabaseError as exc:
             conn.close()
             raise StoreCorrupt(f"{path}: {exc}") from exc
@@ -221,15 +232,26 @@ class MapStore:
                 params.append((seq, str(r.observation_id), str(r.stream),
                                None if prev is None else int(prev), r.label, str(r.created_at),
                                str(r.image_sha256), encode(r.input_sdr, INPUT_DTYPE, "input_sdr"),
-                               encode(r.winner_cells, self._cell_dtype, "winner_cells")))
+                               encode(r.winner_cells, self._cell_dtype, "winner_cells"),
+                               None if r.metadata is None else json.dumps(r.metadata, separators=(",", ":"))))
             if not params:
                 return []
+            thumbs = [(first + i, r.thumbnail) for i, r in enumerate(rows) if r.thumbnail is not None]
+            keys = [(r.key.key, r.key.fingerprint, first + i, r.key.reply, str(r.created_at))
+                    for i, r in enumerate(rows) if r.key is not None]
             try:
                 with transaction(conn):
-                    conn.executemany(f"INSERT INTO observations ({COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?)",
+                    conn.executemany(f"INSERT INTO observations ({COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?)",
                                      params)
+                    # The row's thumbnail and idempotency key commit with it, or nothing does.
+                    conn.executemany("INSERT INTO thumbnails (seq, jpeg) VALUES (?, ?)", thumbs)
+                    conn.executemany("INSERT INTO idempotency_keys (key, fingerprint, seq, reply, created_at)"
+                                     " VALUES (?, ?, ?, ?, ?)", keys)
+                    if keys and self.max_keys is not None:  # the keys of the last max_keys seqs stay
+                        conn.execute("DELETE FROM idempotency_keys WHERE seq <= ?",
+                                     (first + len(params) - 1 - self.max_keys,))
             except sqlite3.IntegrityError as exc:
-                if "observation_id" in str(exc):
+                if "observation_id" in str(exc) or "idempotency_keys.key" in str(exc):
                     raise DuplicateObservation(str(exc)) from exc
                 raise
             # Only after COMMIT returned: a failed commit consumes no seq and changes no counter.
@@ -252,7 +274,7 @@ class MapStore:
     def get(self, seq: int) -> Observation | None:
         """The observation with this seq, or None."""
         with self._lock:
-            r = self._db().execute(f"SELECT {COLUMNS} FROM observations WHERE seq = ?",
+            r = self._db().execute(f"SELECT {self._cols} FROM observations WHERE seq = ?",
                                    (int(seq),)).fetchone()
         return None if r is None else self._row(r)
 
@@ -266,7 +288,7 @@ class MapStore:
             marks = ",".join("?" * len(chunk))
             with self._lock:
                 found = self._db().execute(
-                    f"SELECT {COLUMNS} FROM observations WHERE seq IN ({marks})", chunk).fetchall()
+                    f"SELECT {self._cols} FROM observations WHERE seq IN ({marks})", chunk).fetchall()
             out.update((int(r[0]), self._row(r)) for r in found)
         return out
 
@@ -277,22 +299,52 @@ class MapStore:
         the caller works on a row.
         """
         last = int(after_seq)
-        while True:
-            with self._lock:
-                page = self._db().execute(
-                    f"SELECT {COLUMNS} FROM observations WHERE seq > ? ORDER BY seq LIMIT ?",
-                    (last, _PAGE)).fetchall()
-            if not page:
-                return
-            for r in page:
-                yield self._row(r)
-            last = int(page[-1][0])
+        while page := self.page(last, _PAGE):
+            yield from page
+            last = page[-1].seq
+
+    def page(self, after_seq: int, limit: int) -> list[Observation]:
+        """At most `limit` observations with seq > `after_seq`, in seq order."""
+        with self._lock:
+            found = self._db().execute(
+                f"SELECT {self._cols} FROM observations WHERE seq > ? ORDER BY seq LIMIT ?",
+                (int(after_seq), int(limit))).fetchall()
+        return [self._row(r) for r in found]
 
     def _row(self, r: tuple[Any, ...]) -> Observation:
         return Observation(seq=int(r[0]), observation_id=r[1], stream=r[2],
                            context_prev_seq=None if r[3] is None else int(r[3]), label=r[4],
                            created_at=r[5], image_sha256=r[6], input_sdr=decode(r[7], INPUT_DTYPE),
-                           winner_cells=decode(r[8], self._cell_dtype))
+                           winner_cells=decode(r[8], self._cell_dtype),
+                           metadata=None if r[9] is None else json.loads(r[9]))
+
+    def thumbnail(self, seq: int) -> bytes | None:
+        """The JPEG thumbnail stored with this seq, or None."""
+        if not self._v2:
+            return None
+        with self._lock:
+            r = self._db().execute("SELECT jpeg FROM thumbnails WHERE seq = ?", (int(seq),)).fetchone()
+        return None if r is None else bytes(r[0])
+
+    def with_thumbnails(self, seqs: Iterable[int]) -> set[int]:
+        """Those of `seqs` (at most 500) that have a thumbnail."""
+        wanted = sorted({int(s) for s in seqs})
+        if not self._v2 or not wanted:
+            return set()
+        with self._lock:
+            marks = ",".join("?" * len(wanted))
+            found = self._db().execute(f"SELECT seq FROM thumbnails WHERE seq IN ({marks})",
+                                       wanted).fetchall()
+        return {int(r[0]) for r in found}
+
+    def key_record(self, key: str) -> KeyRecord | None:
+        """The idempotent post stored under `key`, or None (never stored, or pruned)."""
+        if not self._v2:
+            return None
+        with self._lock:
+            r = self._db().execute("SELECT key, fingerprint, reply FROM idempotency_keys WHERE key = ?",
+                                   (key,)).fetchone()
+        return None if r is None else KeyRecord(*r)
 
     # ------------------------------------------------------------------ checks and sizes
 

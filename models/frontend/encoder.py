@@ -80,12 +80,15 @@ class EncodeResult:
         timings_ms: wall time per stage for the whole batch (decode, preprocess, backbone, hash).
         projected: (N, k) float32 projections x·P, when a caller projected for a map
             (service.maps.encoder_pool).
+        thumbnails: per image, a small JPEG of the decoded frame where `embed` was asked for one
+            (`images.thumbnail`), else None; None when none was asked for.
     """
 
     codes: np.ndarray | None
     features: np.ndarray | None = None
     projected: np.ndarray | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
+    thumbnails: list[bytes | None] | None = None
 
 
 class Encoder:
@@ -204,11 +207,14 @@ class Encoder:
             out.features = None
         return out
 
-    def embed(self, data: Sequence[bytes]) -> EncodeResult:
+    def embed(self, data: Sequence[bytes | images.RawFrame],
+              thumbnails: Sequence[bool] | None = None) -> EncodeResult:
         """Backbone features of a batch of uploaded images (no hashing: `codes` is None).
 
         Args:
-            data: N encoded images (JPEG, PNG, BMP, WebP).
+            data: N encoded images (JPEG, PNG, BMP, WebP) or raw frames.
+            thumbnails: per image, whether to keep a small JPEG of the decoded frame
+                (`EncodeResult.thumbnails`), made in the decode threads from the frame already decoded.
 
         Returns:
             EncodeResult with features (N, D) and the decode, preprocess and backbone timings.
@@ -221,10 +227,13 @@ class Encoder:
         limits = {"max_bytes": int(self.conf["max_bytes"]), "max_pixels": int(self.conf["max_pixels"])}
         kw = {"mode": self.conf["resize"], "mean": self.input_mean, "std": self.input_std}
         timings = dict.fromkeys(STAGES[:3], 0.0)
+        thumbs: list[bytes | None] | None = [None] * len(data) if thumbnails is not None else None
 
-        def prepare(b: bytes) -> tuple[np.ndarray, float, float]:
+        def prepare(b: bytes | images.RawFrame, i: int = 0) -> tuple[np.ndarray, float, float]:
             t0 = time.perf_counter()
             rgb = images.decode(b, **limits)
+            if thumbs is not None and thumbnails is not None and thumbnails[i]:
+                thumbs[i] = images.thumbnail(rgb)
             t1 = time.perf_counter()
             x = images.preprocess(rgb, **kw)
             return x, (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3
@@ -239,7 +248,7 @@ class Encoder:
         if self._pool is not None and len(data) > 1:
             # Pipelined: the pool decodes and resizes (OpenCV, no GIL) while the backbone runs on the
             # chunks already prepared, so the two cores overlap instead of taking turns.
-            futures = [self._pool.submit(prepare, b) for b in data]
+            futures = [self._pool.submit(prepare, b, i) for i, b in enumerate(data)]
             try:
                 for start in range(0, len(futures), self.CHUNK):
                     batch = collect([f.result() for f in futures[start:start + self.CHUNK]])
@@ -251,9 +260,10 @@ class Encoder:
                     f.cancel()
                 raise
         else:
-            batch = collect([prepare(b) for b in data]) if data else np.zeros((0, 3, 224, 224), np.float32)
+            batch = (collect([prepare(b, i) for i, b in enumerate(data)]) if data
+                     else np.zeros((0, 3, 224, 224), np.float32))
             t0 = time.perf_counter()
             feats_parts.append(self.features(batch))
             timings["backbone"] += (time.perf_counter() - t0) * 1e3
         feats = np.concatenate(feats_parts) if len(feats_parts) > 1 else feats_parts[0]
-        return EncodeResult(codes=None, features=feats, timings_ms=timings)
+        return EncodeResult(codes=None, features=feats, timings_ms=timings, thumbnails=thumbs)

@@ -21,6 +21,7 @@ then posts the source's frames **one at a time, in source order**:
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -248,7 +249,10 @@ async def _ensure_map(client: httpx.AsyncClient, opts: Options, headers: dict[st
 
 async def _post_frame(client: httpx.AsyncClient, frame: Frame, opts: Options, headers: dict[str, str],
                       summary: Summary, sleep: Sleep) -> Record:
-    params: dict[str, str] = {"learn": "true" if opts.learn else "false", "stream": opts.stream}
+    params: dict[str, str] = {"learn": "true" if opts.learn else "false", "stream": opts.stream,
+                              **frame.params}
+    if frame.stamp_ns is not None:  # where in time: the observation's `stamp` (seconds since the epoch)
+        params["metadata"] = json.dumps({"stamp": frame.stamp_ns / 1e9}, separators=(",", ":"))
     if opts.label_stamp and frame.stamp_ns is not None:
         params["label"] = f"{frame.stamp_ns // 1_000_000_000}.{frame.stamp_ns % 1_000_000_000:09d}"
     t = time.perf_counter()

@@ -5,10 +5,12 @@ and returns a `Source`; `Source.frames()` then reads lazily, so a long bag is ne
 frames skipped by `every` are never converted.
 
 Bags are read with `rosbags` (pure Python, no ROS install). From `sensor_msgs/msg/CompressedImage` the
-`data` is posted as it is (the service tells JPEG from PNG by the bytes). `sensor_msgs/msg/Image` is
-converted here to a lossless PNG of the same pixels (`RAW_ENCODINGS`), so the answer equals that of posting
-those pixels as PNG. A message's stamp is its `header.stamp` (when the sensor took it), or the time the bag
-recorded it when the header carries none.
+`data` is posted as it is (the service tells JPEG from PNG by the bytes). `sensor_msgs/msg/Image` is posted
+as a raw frame (`application/octet-stream` with `encoding`, `width`, `height`; docs/design/service.md
+§1.2): its rows without padding, 16-bit samples little-endian, alpha dropped (`RAW_ENCODINGS`). Nothing is
+re-encoded, and the service decodes it to the same RGB as a lossless PNG of those pixels, so the answer
+is the same. A message's stamp is its `header.stamp` (when the sensor took it), or the time the bag
+recorded it when the header carries none; the poster sends it as the observation's `stamp` metadata.
 
 Example:
     >>> src = open_source(Path("run1"), topic="/cam0/image_raw", every=5)
@@ -19,17 +21,16 @@ Example:
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from models.frontend import images
 
 __all__ = ["COMPRESSED_TYPE", "IMAGE_SUFFIXES", "IMAGE_TYPE", "RAW_ENCODINGS", "Frame", "Source",
-           "SourceError", "image_to_png", "open_source"]
+           "SourceError", "image_to_raw", "open_source"]
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
@@ -40,15 +41,14 @@ _SUFFIXES_BY_FORMAT = {"jpeg": (".jpg", ".jpeg", ".jpe"), "png": (".png",), "bmp
                        "webp": (".webp",)}
 IMAGE_SUFFIXES = tuple(s for fmt in images.FORMATS for s in _SUFFIXES_BY_FORMAT[fmt])
 
-#: ROS `sensor_msgs/Image` encodings -> (channels, bytes per sample, OpenCV conversion to its B,G,R(,A)
-#: order or None). PNG keeps 16-bit samples and alpha, so nothing is lost on the way.
-RAW_ENCODINGS: dict[str, tuple[int, int, int | None]] = {
-    "rgb8": (3, 1, cv2.COLOR_RGB2BGR), "bgr8": (3, 1, None), "mono8": (1, 1, None),
-    "mono16": (1, 2, None), "rgba8": (4, 1, cv2.COLOR_RGBA2BGRA), "bgra8": (4, 1, None),
+#: ROS `sensor_msgs/Image` encodings -> (channels, bytes per sample, the service's raw encoding). Alpha
+#: is dropped, as the service's decoder drops it from a PNG (docs/design/science.md §6).
+RAW_ENCODINGS: dict[str, tuple[int, int, str]] = {
+    "rgb8": (3, 1, "rgb8"), "bgr8": (3, 1, "bgr8"), "mono8": (1, 1, "mono8"), "mono16": (1, 2, "mono16"),
+    "rgba8": (4, 1, "rgb8"), "bgra8": (4, 1, "bgr8"),
 }
 
-#: What a body made here is posted as; bytes posted as they are go as octet-stream (the service sniffs).
-PNG_MEDIA = "image/png"
+#: Both an encoded image posted as it is (the service sniffs it) and a raw frame (with its parameters).
 AS_IS_MEDIA = "application/octet-stream"
 
 
@@ -66,6 +66,7 @@ class Frame:
         stamp_ns: the message time in nanoseconds since the epoch; None for files.
         data: the body to post.
         media_type: its Content-Type.
+        params: the query parameters it needs (a raw frame's `encoding`, `width`, `height`).
     """
 
     index: int
@@ -73,6 +74,7 @@ class Frame:
     stamp_ns: int | None
     data: bytes
     media_type: str
+    params: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -196,24 +198,24 @@ def _bag_frames(src: Source) -> Iterator[Frame]:
                 yield Frame(i, name, stamp_ns, bytes(msg.data), AS_IS_MEDIA)
             else:
                 try:
-                    png = image_to_png(msg.data, height=msg.height, width=msg.width, step=msg.step,
-                                       encoding=msg.encoding, is_bigendian=bool(msg.is_bigendian))
+                    body, params = image_to_raw(msg.data, height=msg.height, width=msg.width, step=msg.step,
+                                                encoding=msg.encoding, is_bigendian=bool(msg.is_bigendian))
                 except SourceError as e:
                     raise SourceError(f"{name}: {e}") from e
-                yield Frame(i, name, stamp_ns, png, PNG_MEDIA)
+                yield Frame(i, name, stamp_ns, body, AS_IS_MEDIA, params)
 
 
-def image_to_png(data: bytes | np.ndarray, *, height: int, width: int, step: int, encoding: str,
-                 is_bigendian: bool = False) -> bytes:
-    """A `sensor_msgs/Image` payload as a lossless PNG of the same pixels.
+def image_to_raw(data: bytes | np.ndarray, *, height: int, width: int, step: int, encoding: str,
+                 is_bigendian: bool = False) -> tuple[bytes, dict[str, str]]:
+    """A `sensor_msgs/Image` payload as the service's raw frame: (body, query parameters).
 
     Args:
         data: `height` rows of `step` bytes each (a row may be padded past `width` pixels).
         encoding: one of `RAW_ENCODINGS`.
-        is_bigendian: the byte order of 16-bit samples.
+        is_bigendian: the byte order of 16-bit samples (the body is always little-endian).
 
     Returns:
-        PNG bytes: 8-bit grey, B,G,R or B,G,R,A as OpenCV writes them, or 16-bit grey for mono16.
+        The pixels row after row without padding, and `{"encoding", "width", "height"}`.
 
     Raises:
         SourceError: an unknown encoding, or a payload shorter than its shape says.
@@ -221,7 +223,7 @@ def image_to_png(data: bytes | np.ndarray, *, height: int, width: int, step: int
     if encoding not in RAW_ENCODINGS:
         raise SourceError(f"image encoding {encoding!r} is not supported; supported: "
                           f"{', '.join(RAW_ENCODINGS)}")
-    channels, sample, convert = RAW_ENCODINGS[encoding]
+    channels, sample, sent_as = RAW_ENCODINGS[encoding]
     row = width * channels * sample
     buf = np.frombuffer(data, np.uint8) if isinstance(data, bytes | bytearray) else np.asarray(data, np.uint8)
     if height < 1 or width < 1 or step < row or buf.size < step * height:
@@ -229,13 +231,10 @@ def image_to_png(data: bytes | np.ndarray, *, height: int, width: int, step: int
                           f"(step {step}); the message holds {buf.size} bytes")
     rows = buf[: step * height].reshape(height, step)[:, :row]
     if sample == 2:
-        pixels = rows.copy().view(">u2" if is_bigendian else "<u2").astype(np.uint16)
+        pixels = rows.copy().view(">u2" if is_bigendian else "<u2").astype("<u2")
+    elif channels == 4:
+        pixels = rows.reshape(height, width, 4)[:, :, :3]
     else:
         pixels = rows
-    pixels = pixels.reshape(height, width, channels) if channels > 1 else pixels.reshape(height, width)
-    if convert is not None:
-        pixels = cv2.cvtColor(np.ascontiguousarray(pixels), convert)
-    ok, out = cv2.imencode(".png", np.ascontiguousarray(pixels))
-    if not ok:  # pragma: no cover - OpenCV encodes every shape and depth above
-        raise SourceError(f"OpenCV could not write a PNG of this {encoding} image")
-    return out.tobytes()
+    return (np.ascontiguousarray(pixels).tobytes(),
+            {"encoding": sent_as, "width": str(width), "height": str(height)})

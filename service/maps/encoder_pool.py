@@ -28,8 +28,8 @@ from concurrent.futures import Future
 
 import numpy as np
 
-from models.frontend.encoder import EncodeResult
-from models.frontend.images import ImageError
+from models.frontend.encoder import Encoder, EncodeResult
+from models.frontend.images import ImageError, RawFrame
 from models.frontend.slsbh import Hasher
 from service.maps.encoders import Encoders
 from service.maps.errors import Overloaded
@@ -62,10 +62,11 @@ class EncoderPool:
         for t in self._threads:
             t.start()
 
-    def submit(self, body: bytes, hasher: Hasher | None = None, backbone: str | None = None
-               ) -> Future[EncodeResult]:
-        """Queue one image for `backbone` (None: the default); the future's `EncodeResult` has `features`
-        (1, D) and, with `hasher`, `projected` (1, k) = features · that hasher's projection (else None).
+    def submit(self, body: bytes | RawFrame, hasher: Hasher | None = None, backbone: str | None = None,
+               thumbnail: bool = False) -> Future[EncodeResult]:
+        """Queue one image (encoded bytes or a raw frame) for `backbone` (None: the default); the future's
+        `EncodeResult` has `features` (1, D), with `hasher` `projected` (1, k) = features · that hasher's
+        projection (else None), and with `thumbnail` `thumbnails` = [a small JPEG of the decoded frame].
 
         Raises:
             Overloaded: `workers + queue` requests are already in flight.
@@ -75,7 +76,7 @@ class EncoderPool:
                 raise Overloaded(self.limit)
             self.pending += 1
         fut: Future[EncodeResult] = Future()
-        self._queue.put((body, fut, hasher, backbone or self.encoders.default))
+        self._queue.put((body, fut, hasher, thumbnail, backbone or self.encoders.default))
         return fut
 
     def _run(self) -> None:
@@ -95,13 +96,14 @@ class EncoderPool:
                     self._queue.put(_STOP)  # let the other workers see it too
                     break
                 batch.append(nxt)
-            groups: dict[str, list[tuple[bytes, Future[EncodeResult], Hasher | None]]] = {}
-            for body, fut, hasher, backbone in batch:
-                groups.setdefault(backbone, []).append((body, fut, hasher))
+            groups: dict[str, list[tuple[bytes | RawFrame, Future[EncodeResult], Hasher | None, bool]]] = {}
+            for body, fut, hasher, thumb, backbone in batch:
+                groups.setdefault(backbone, []).append((body, fut, hasher, thumb))
             for backbone, group in groups.items():
                 self._encode(backbone, group)
 
-    def _encode(self, backbone: str, batch: list[tuple[bytes, Future[EncodeResult], Hasher | None]]) -> None:
+    def _encode(self, backbone: str,
+                batch: list[tuple[bytes | RawFrame, Future[EncodeResult], Hasher | None, bool]]) -> None:
         taken = len(batch)
         # A request whose client went away cancelled its future while it waited: it costs no encoding.
         batch = [item for item in batch if item[1].set_running_or_notify_cancel()]
@@ -110,24 +112,25 @@ class EncoderPool:
                 return
             try:
                 encoder = self.encoders.get(backbone)
-                out = encoder.embed([body for body, _, _ in batch])
-                projected, ms = self._project(out.features, [h for _, _, h in batch])
-                for i, (_, fut, _) in enumerate(batch):
+                out = _embed(encoder, [item[0] for item in batch], [item[3] for item in batch])
+                projected, ms = self._project(out.features, [item[2] for item in batch])
+                for i, (_, fut, _, _) in enumerate(batch):
                     fut.set_result(EncodeResult(codes=None, features=out.features[i:i + 1],
                                                 projected=projected[i],
-                                                timings_ms={**out.timings_ms, "project": ms}))
+                                                timings_ms={**out.timings_ms, "project": ms},
+                                                thumbnails=out.thumbnails and out.thumbnails[i:i + 1]))
             except ImageError:
                 # One bad image must not fail the others: encode each alone to attribute the error.
-                for body, fut, hasher in batch:
+                for body, fut, hasher, thumb in batch:
                     try:
-                        one = encoder.embed([body])
+                        one = _embed(encoder, [body], [thumb])
                         projected, one.timings_ms["project"] = self._project(one.features, [hasher])
                         one.projected = projected[0]
                         fut.set_result(one)
                     except Exception as e:
                         fut.set_exception(e)
             except Exception as e:
-                for _, fut, _ in batch:
+                for _, fut, _, _ in batch:
                     if not fut.done():
                         fut.set_exception(e)
         finally:
@@ -160,3 +163,8 @@ class EncoderPool:
         self._queue.put(_STOP)
         for t in self._threads:
             t.join(timeout=30)
+
+
+def _embed(encoder: Encoder, bodies: list[bytes | RawFrame], thumbs: list[bool]) -> EncodeResult:
+    # Only maps that keep thumbnails ask for them; the others' batches are encoded as before.
+    return encoder.embed(bodies, thumbnails=thumbs) if any(thumbs) else encoder.embed(bodies)

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["InsufficientStorage", "InvalidConfiguration", "InvalidMapId", "MapAlreadyExists", "MapError",
-           "MapFull", "MapLimit", "MapNotFound", "MapTooLarge", "MapUnavailable", "Overloaded",
-           "SnapshotNotFound"]
+__all__ = ["IdempotencyKeyReused", "InsufficientStorage", "InvalidConfiguration", "InvalidMapId",
+           "MapAlreadyExists", "MapError", "MapFull", "MapLimit", "MapNotFound", "MapTooLarge",
+           "MapUnavailable", "ObservationNotFound", "Overloaded", "SnapshotNotFound"]
 
 
 class MapError(Exception):
@@ -87,3 +87,18 @@ class Overloaded(MapError):  # noqa: N818
     def __init__(self, limit: int, retry_after: int = 1) -> None:
         super().__init__(f"the encoder queue is full ({limit} requests in flight)")
         self.retry_after = retry_after
+
+
+class ObservationNotFound(MapError):  # noqa: N818
+    def __init__(self, map_id: str, seq: int, what: str = "observation") -> None:
+        super().__init__(f"map {map_id!r} has no {what} with seq {seq}")
+        self.map_id, self.seq = map_id, seq
+
+
+class IdempotencyKeyReused(MapError):  # noqa: N818
+    """An Idempotency-Key seen before with another request (body or parameters); nothing was done."""
+
+    def __init__(self, key: str) -> None:
+        super().__init__(f"Idempotency-Key {key!r} was used for another request on this map; a retry must "
+                         "send the same body and parameters, a new request a new key")
+        self.key = key

@@ -69,7 +69,8 @@ class MapRegistry:
     def _runtime(self, record: MapRecord, feature_dim: int) -> MapRuntime:
         s = self.settings
         return MapRuntime(record, self.data_dir / "maps" / record.map_id, self.projections, self.catalog,
-                          feature_dim, s.max_streams, s.max_observations, s.snapshot_every, s.snapshot_keep)
+                          feature_dim, s.max_streams, s.max_observations, s.snapshot_every, s.snapshot_keep,
+                          max_keys=s.idempotency_keys, key_cache=s.idempotency_cache)
 
     def start(self) -> None:
         """Open every map and recover it by replay; create `default` on a fresh install."""
@@ -108,7 +109,7 @@ class MapRegistry:
     def create(self, map_id: str, *, preset: str, seed: int | None = None, tm: dict[str, Any] | None = None,
                slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
                backbone: str | None = None, memory: str = "tm", revisit_threshold: float | None = None,
-               localiser: dict[str, Any] | None = None) -> MapRuntime:
+               localiser: dict[str, Any] | None = None, thumbnails: bool = False) -> MapRuntime:
         """Create a map: resolve and freeze parameters, persist the projection, then the store (§1.1).
 
         Raises:
@@ -142,6 +143,7 @@ class MapRegistry:
             del P
             params["projection_sha256"] = sha
             params["encoder_id"] = encoder.identity
+            params["thumbnails"] = bool(thumbnails)  # frozen like the rest (docs/design/service.md §1.1)
             if encoder.identity.split("/")[1].startswith("random"):
                 log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, encoder.identity)
             map_dir = self.data_dir / "maps" / map_id

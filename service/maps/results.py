@@ -7,8 +7,8 @@ from dataclasses import dataclass
 from typing import Any
 
 __all__ = ["IndexMemory", "MapInfo", "Match", "MemoryInfo", "ObservationResult", "PlaceResult",
-           "RestoreResult",
-           "SequenceStats", "SnapshotInfo", "StorageMemory", "StreamReset", "StreamsMemory", "TmMemory"]
+           "RestoreResult", "SequenceStats", "SnapshotInfo", "StorageMemory", "StoredObservation",
+           "StreamReset", "StreamsMemory", "TmMemory"]
 
 
 @dataclass(frozen=True)
@@ -23,6 +23,7 @@ class Match:
     created_at: str
     overlap: int
     score: float  # Dice of the two winner-cell sets
+    metadata: dict[str, Any] | None = None  # as stored with it (stamp, pose, ...)
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,7 @@ class ObservationResult:
     projection_sha256: str
     backbone: str
     place: PlaceResult | None
+    metadata: dict[str, Any] | None = None  # the frame's, as posted (stored with a learned row)
 
 
 @dataclass(frozen=True)
@@ -90,11 +92,26 @@ class MapInfo:
     snapshot_error: dict[str, Any] | None
     backbone: str
     revisit_threshold: float
+    thumbnails: bool  # a small JPEG is kept with each learned row (frozen with the map)
 
 
 @dataclass(frozen=True)
 class RestoreResult(MapInfo):
     discarded_observations: int
+
+
+@dataclass(frozen=True)
+class StoredObservation:
+    """A learned observation as stored, without its codes (docs/design/service.md §1.2)."""
+
+    seq: int
+    observation_id: str
+    stream: str
+    label: str | None
+    created_at: str
+    image_sha256: str
+    metadata: dict[str, Any] | None
+    has_thumbnail: bool
 
 
 @dataclass(frozen=True)

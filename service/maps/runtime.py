@@ -34,9 +34,10 @@ import numpy as np
 
 from models.frontend import slsbh
 from models.frontend.adaptation import RunningMean
+from models.frontend.images import RawFrame
 from models.memory.temporal_memory import TemporalMemory
+from service.maps import idempotency, recovery, sizes
 from service.maps import projection as map_projection
-from service.maps import recovery
 from service.maps import snapshots as map_snapshots
 from service.maps.encoder_pool import EncoderPool
 from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable
@@ -45,7 +46,6 @@ from service.maps.localisation import Localisation, place_result
 from service.maps.params import check_revisit_threshold, map_option
 from service.maps.recent import RecentAnswers
 from service.maps.results import (
-    IndexMemory,
     MapInfo,
     Match,
     MemoryInfo,
@@ -53,12 +53,9 @@ from service.maps.results import (
     RestoreResult,
     SequenceStats,
     SnapshotInfo,
-    StorageMemory,
     StreamReset,
-    StreamsMemory,
-    TmMemory,
 )
-from service.maps.state import Stream, memory_state, winner_cells
+from service.maps.state import Stream, memory_state, touch, winner_cells
 from storage import snapshots
 from storage._common import StorageFull, utc_now
 from storage.catalog import Catalog, MapRecord
@@ -76,7 +73,8 @@ class MapRuntime:
 
     def __init__(self, record: MapRecord, map_dir: Path, projections_dir: Path, catalog: Catalog,
                  feature_dim: int, max_streams: int, max_observations: int,
-                 snapshot_every: int = 0, snapshot_keep: int = 3) -> None:
+                 snapshot_every: int = 0, snapshot_keep: int = 3, *, max_keys: int | None = None,
+                 key_cache: int = 0) -> None:
         self.record = record
         self.map_id = record.map_id
         self.params = record.params
@@ -85,6 +83,11 @@ class MapRuntime:
         self.max_streams = max_streams
         self.snapshot_every = snapshot_every
         self.snapshot_keep = snapshot_keep
+        # Idempotency keys: those of learned posts in the store (the last `max_keys` seqs), those of
+        # localisations in memory (service.maps.idempotency).
+        self.max_keys = max_keys
+        self.keys = idempotency.KeyCache(key_cache)
+        self.thumbnails = bool(self.params.get("thumbnails", False))  # frozen with the map
         self.state = "recovering"
         self.state_reason: str | None = None
         # What the last recovery did (`recover`); the last automatic snapshot's failure, if it failed.
@@ -222,7 +225,7 @@ class MapRuntime:
         if (self.dir / "snapshots").is_dir():  # a crash during a snapshot leaves only a temporary dir
             snapshots.remove_stale_temp(self.dir / "snapshots")
         try:
-            self.store = MapStore.open(self.dir / "map.sqlite",
+            self.store = MapStore.open(self.dir / "map.sqlite", max_keys=self.max_keys,
                                        seq_floor=self.catalog.get_high_water(self.map_id))
             if not self.store.quick_check():
                 raise StoreCorrupt("quick_check failed")
@@ -246,31 +249,21 @@ class MapRuntime:
 
     # ------------------------------------------------------------------ streams
 
-    def _stream(self, name: str) -> Stream:
-        st = self.streams.get(name)
-        if st is None:
-            st = Stream()
-            self.streams[name] = st
-            while len(self.streams) > self.max_streams:
-                self.streams.popitem(last=False)  # the least recently used context is dropped (a reset)
-        self.streams.move_to_end(name)
-        return st
-
     def reset_stream(self, name: str) -> StreamReset:
         """Break the stream's sequence (the next frame starts a new one); its adaptation is kept,
         because it describes the camera and the conditions, not where the robot is."""
         st = self.streams.get(name)
         had = st is not None and st.context.active_cells.size > 0
         if st is not None:
-            st.context.reset()
-            st.step, st.last_learned_seq = 0, None
-            st.localiser = None
+            st.break_sequence()
         return StreamReset(stream=name, had_context=bool(had))
 
     # ------------------------------------------------------------------ observations
 
-    async def observe(self, pool: EncoderPool, body: bytes, *, learn: bool, stream: str, top_k: int,
-                      label: str | None) -> ObservationResult:
+    async def observe(self, pool: EncoderPool, body: bytes | RawFrame, *, learn: bool, stream: str,
+                      top_k: int, label: str | None, metadata: dict[str, Any] | None = None,
+                      post: idempotency.IdempotentPost | None = None
+                      ) -> ObservationResult | idempotency.Reply:
         """Event loop: one checked image through the map (docs/design/service.md §1.2, §6).
 
         The pool encodes and projects it with this map's matrix, batched with other requests; the step
@@ -278,13 +271,17 @@ class MapRuntime:
         this one, so the memory sees frames in arrival order while the writer never waits for an
         encoding.
 
+        With a `post` (an Idempotency-Key) the answer is its `Reply`: the earlier one for a repeated
+        key, else the sealed reply of this step (service.maps.idempotency).
+
         Raises:
             MapUnavailable, Overloaded (nothing queued); ImageError (the decode failed, nothing
-            changed); MapFull, InsufficientStorage (from `apply`).
+            changed); MapFull, InsufficientStorage (from `apply`); IdempotencyKeyReused.
         """
         self.require_ready()
         t0 = time.perf_counter()
-        encoding = pool.submit(body, hasher=self.hasher, backbone=self.backbone)
+        encoding = pool.submit(body, hasher=self.hasher, backbone=self.backbone,
+                               thumbnail=learn and self.thumbnails)
         before, mine = self._turn, asyncio.Event()
         self._turn = mine
         try:
@@ -292,22 +289,34 @@ class MapRuntime:
             t_encoded = time.perf_counter()
             await before.wait()
             assert encoded.projected is not None  # the pool projects when given a hasher
-            step = self.submit(functools.partial(
-                self.apply, encoded.projected[0], hashlib.sha256(body).hexdigest(), learn=learn,
-                stream=stream, top_k=top_k, label=label))
+            front = {"decode": encoded.timings_ms["decode"], "encode": (t_encoded - t0) * 1e3}
+            apply = functools.partial(
+                self.apply, encoded.projected[0], hashlib.sha256(getattr(body, "data", body)).hexdigest(),
+                learn=learn, stream=stream, top_k=top_k, label=label, metadata=metadata,
+                thumbnail=encoded.thumbnails[0] if encoded.thumbnails else None, post=post)
+            if post is not None:
+                post.front_ms = front
+                assert self.store is not None  # a ready map has its store
+                once = self.submit(idempotency.apply_once, self.store, self.keys, post, learn, apply)
+            else:
+                step = self.submit(apply)
         finally:
             mine.set()
+        if post is not None:
+            return await asyncio.wrap_future(once)
         result = await asyncio.wrap_future(step)
-        return dataclasses.replace(result, timings_ms={
-            "decode": encoded.timings_ms["decode"], "encode": (t_encoded - t0) * 1e3, **result.timings_ms})
+        return dataclasses.replace(result, timings_ms={**front, **result.timings_ms})
 
     def apply(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
-              label: str | None) -> ObservationResult:
+              label: str | None, metadata: dict[str, Any] | None = None, thumbnail: bytes | None = None,
+              post: idempotency.IdempotentPost | None = None) -> ObservationResult:
         """Writer: one frame's TM step on the stream's context, ranking, and for learning the commit.
 
         Args:
             projected: (k,) the frame's features · this map's projection (docs/design/science.md §7).
             image_sha256: hex digest of the image bytes (stored, never the image).
+            metadata, thumbnail: stored with a learned row (docs/design/service.md §4.2).
+            post: an idempotent post: a learned row commits with its sealed reply.
 
         Returns:
             The result; `timings_ms` holds hash, tm, search and store.
@@ -323,7 +332,7 @@ class MapRuntime:
         if projected.shape != (self.hasher.k,):
             raise ValueError(f"projection has shape {projected.shape}, this map's are ({self.hasher.k},)")
         t0 = time.perf_counter()
-        st = self._stream(stream)
+        st = touch(self.streams, stream, self.max_streams)
         if self.adapt_tau:
             # The adapted stream's code; a crash loses the means since the last snapshot (they are
             # not in the store), which costs about tau frames of weaker codes, never a stored row.
@@ -348,11 +357,32 @@ class MapRuntime:
         place = self.localisation.step(st.localiser, ranked, st.last_learned_seq, learn)
         ranked = ranked[:top_k]
         t3 = time.perf_counter()
-        seq = obs_id = None
-        if learn:
-            seq, obs_id = self._commit(NewObservation(
-                stream=stream, image_sha256=image_sha256, input_sdr=code.astype(np.int64),
-                winner_cells=winners, context_prev_seq=st.last_learned_seq, label=label))
+        rows = self.store.get_many([*(m.seq for m in ranked), *([place.seq] if place else [])])
+        row = NewObservation(stream=stream, image_sha256=image_sha256, input_sdr=code.astype(np.int64),
+                             winner_cells=winners, context_prev_seq=st.last_learned_seq, label=label,
+                             metadata=metadata, thumbnail=thumbnail) if learn else None
+        # The answer is whole before the commit, so an idempotent post's reply commits with its row.
+        seq = self.store.next_seq() if row is not None else None
+        result = ObservationResult(
+            map_id=self.map_id, stream=stream, learned=learn, observation_id=row and row.observation_id,
+            seq=seq, sequence=SequenceStats(step=st.step, active_columns=stats["active_columns"],
+                                            predicted_columns=stats["predicted_columns"],
+                                            bursting_columns=stats["bursting_columns"],
+                                            winner_cells=stats["winner_cells"]),
+            matches=[Match(rank=i + 1, observation_id=rows[m.seq].observation_id, seq=m.seq,
+                           stream=rows[m.seq].stream, label=rows[m.seq].label,
+                           created_at=rows[m.seq].created_at, overlap=int(m.overlap), score=float(m.score),
+                           metadata=rows[m.seq].metadata)
+                     for i, m in enumerate(ranked)],
+            timings_ms={"hash": (t1 - t0) * 1e3, "tm": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3},
+            map_seq=seq or self.store.last_seq(), projection_sha256=self.params["projection_sha256"],
+            backbone=self.backbone, metadata=metadata,
+            place=None if place is None else place_result(place, rows[place.seq], self.revisit_threshold))
+        if row is not None:
+            if post is not None:
+                row = dataclasses.replace(row, key=post.record(result))
+            committed, _ = self._commit(row)
+            assert committed == seq  # this thread is the store's only writer
             st.last_learned_seq = seq
         # The step is recorded before the automatic snapshot, so the snapshot holds the stream as it
         # is after this frame (a snapshot taken before would hold a stream that just switched back to
@@ -362,22 +392,7 @@ class MapRuntime:
         if learn and self.snapshot_every and seq is not None and seq % self.snapshot_every == 0:
             self._auto_snapshot()
         t4 = time.perf_counter()
-        rows = self.store.get_many([*(m.seq for m in ranked), *([place.seq] if place else [])])
-        return ObservationResult(
-            map_id=self.map_id, stream=stream, learned=learn, observation_id=obs_id, seq=seq,
-            sequence=SequenceStats(step=st.step - 1, active_columns=stats["active_columns"],
-                                   predicted_columns=stats["predicted_columns"],
-                                   bursting_columns=stats["bursting_columns"],
-                                   winner_cells=stats["winner_cells"]),
-            matches=[Match(rank=i + 1, observation_id=rows[m.seq].observation_id, seq=m.seq,
-                           stream=rows[m.seq].stream, label=rows[m.seq].label,
-                           created_at=rows[m.seq].created_at, overlap=int(m.overlap), score=float(m.score))
-                     for i, m in enumerate(ranked)],
-            timings_ms={"hash": (t1 - t0) * 1e3, "tm": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3,
-                        "store": (t4 - t3) * 1e3},
-            map_seq=self.store.last_seq(), projection_sha256=self.params["projection_sha256"],
-            backbone=self.backbone,
-            place=None if place is None else place_result(place, rows[place.seq], self.revisit_threshold))
+        return dataclasses.replace(result, timings_ms={**result.timings_ms, "store": (t4 - t3) * 1e3})
 
     def _commit(self, row: NewObservation) -> tuple[int, str]:
         """Writer: the row on disk, then in the index: (seq, observation id).
@@ -415,7 +430,7 @@ class MapRuntime:
             observations=len(self.index),
             last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),
             warnings=p.get("warnings", []), recovery=self.recovery, snapshot_error=self.snapshot_error,
-            backbone=self.backbone, revisit_threshold=self.revisit_threshold)
+            backbone=self.backbone, revisit_threshold=self.revisit_threshold, thumbnails=self.thumbnails)
 
     def set_revisit_threshold(self, value: float) -> MapInfo:
         """Writer: the map's revisit threshold, durable in the catalog (docs/design/service.md §1.2);
@@ -426,23 +441,4 @@ class MapRuntime:
         return self.info()
 
     def memory(self) -> MemoryInfo:
-        size = self.tm.size()
-        store = self.store
-        return MemoryInfo(
-            tm=TmMemory(columns=size["columns"], cells_per_column=self.tm.cells_per_column,
-                        cells=size["cells"],
-                        max_segments_per_cell=int(self.params["tm"]["maxSegmentsPerCell"]),
-                        max_synapses_per_segment=int(self.params["tm"]["maxSynapsesPerSegment"]),
-                        segments=size["segments"], segment_capacity=size["segment_capacity"],
-                        synapses=size["synapses"], synapse_capacity=size["synapse_capacity"],
-                        allocated_bytes=size["bytes"], evicted_segments_total=size["evictions"],
-                        overrun_synapses_total=size["overrun_destroyed"]),
-            index=IndexMemory(observations=len(self.index), max_observations=self.index.max_observations,
-                              postings=self.index.postings(), bytes=self.index.nbytes()),
-            streams=StreamsMemory(count=len(self.streams), max=self.max_streams,
-                                  bytes=sum(sum(v.nbytes for v in s.context.state_dict().values())
-                                            for s in self.streams.values())),
-            projection_bytes=self.projection_path.stat().st_size if self.projection_path.exists() else 0,
-            storage=StorageMemory(db_bytes=store.db_bytes() if store else 0,
-                                  wal_bytes=store.wal_bytes() if store else 0,
-                                  snapshots_bytes=self.catalog.snapshots_bytes(self.map_id)))
+        return sizes.memory_info(self)

@@ -13,7 +13,7 @@ from models.frontend.adaptation import RunningMean
 from models.localisation import LocaliserState
 from models.memory.temporal_memory import StreamContext, TemporalMemory
 
-__all__ = ["Stream", "load_memory_state", "memory_state", "winner_cells"]
+__all__ = ["Stream", "load_memory_state", "memory_state", "touch", "winner_cells"]
 
 
 def winner_cells(tm: TemporalMemory, code: np.ndarray, *, learn: bool, context: StreamContext,
@@ -35,6 +35,24 @@ class Stream:
     learning: bool | None = None  # mode of the last step (a switch to learning starts a new sequence)
     adapt: RunningMean | None = None  # the stream's running mean of projections (models.frontend.adaptation)
     localiser: LocaliserState | None = None  # where the stream is on the map (docs/design/science.md §11)
+
+    def break_sequence(self) -> None:
+        """The next frame starts a new sequence (and a new search for the place); the adaptation is
+        kept, because it describes the camera and the conditions, not where the robot is."""
+        self.context.reset()
+        self.step, self.last_learned_seq, self.localiser = 0, None, None
+
+
+def touch(streams: OrderedDict[str, Stream], name: str, max_streams: int) -> Stream:
+    """The stream `name` as the most recently used, created if new; beyond `max_streams` the least
+    recently used context is dropped (for it, a reset: docs/design/service.md §1.3)."""
+    st = streams.get(name)
+    if st is None:
+        st = streams[name] = Stream()
+        while len(streams) > max_streams:
+            streams.popitem(last=False)
+    streams.move_to_end(name)
+    return st
 
 
 def memory_state(tm: TemporalMemory, streams: Mapping[str, Stream]) -> dict[str, np.ndarray]:

@@ -13,6 +13,7 @@ from service.deps import ApiKeyDep, RegistryDep, SettingsDep
 from service.errors import problem_responses
 from service.schemas import (
     MAP_ID_PATTERN,
+    STREAM_PATTERN,
     CreateMap,
     MapList,
     MapModel,
@@ -24,7 +25,7 @@ from service.schemas import (
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
 
 MapId = Annotated[str, Path(pattern=MAP_ID_PATTERN, description="map identifier")]
-StreamName = Annotated[str, Path(pattern=r"^[A-Za-z0-9._-]{1,64}$", description="stream name")]
+StreamName = Annotated[str, Path(pattern=STREAM_PATTERN, description="stream name ('/' allowed)")]
 
 
 @router.post("", status_code=201, dependencies=[ApiKeyDep],
@@ -35,7 +36,8 @@ async def create_map(body: CreateMap, registry: RegistryDep, settings: SettingsD
     rt = await anyio.to_thread.run_sync(lambda: registry.create(
         map_id, preset=body.preset or settings.default_preset, seed=body.seed, tm=body.tm,
         slsbh_conf=body.slsbh, exclude_recent=body.exclude_recent, backbone=body.backbone,
-        memory=body.memory, revisit_threshold=body.revisit_threshold, localiser=body.localiser))
+        memory=body.memory, revisit_threshold=body.revisit_threshold, localiser=body.localiser,
+        thumbnails=body.thumbnails))
     response.headers["Location"] = f"/v1/maps/{map_id}"
     return MapModel.from_result(await rt.run(rt.info))
 
@@ -71,7 +73,8 @@ async def map_memory(map_id: MapId, registry: RegistryDep) -> MemoryModel:
     return MemoryModel.from_result(await rt.run(rt.memory), process_rss_bytes=int(rss_mb() * 2**20))
 
 
-@router.post("/{map_id}/streams/{stream}/reset", dependencies=[ApiKeyDep],
+# `{stream:path}`: a ROS-style name holds '/', which arrives percent-decoded in the path.
+@router.post("/{map_id}/streams/{stream:path}/reset", dependencies=[ApiKeyDep],
              responses=problem_responses(401, 404))
 async def reset_stream(map_id: MapId, stream: StreamName, registry: RegistryDep) -> StreamResetModel:
     rt = registry.get(map_id)

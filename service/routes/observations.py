@@ -1,85 +1,261 @@
-"""Observations: image in, ranked matches out (docs/design/service.md §1.2).
+"""Observations: image in, ranked matches out; stored observations and their thumbnails read back
+(docs/design/service.md §1.2).
 
-The route checks the request and the image's header, hands the bytes to the map
+The route checks the request and the image's header, hands the frame to the map
 (`MapRuntime.observe`: encoder pool, then the map's writer) and turns its `ObservationResult` into the
 reply, adding what only the HTTP layer knows: the request id, the code's and encoder's versions, the
-total time.
+total time. A post with an `Idempotency-Key` is answered with its sealed reply, the first one's for a
+repeat (`service.maps.idempotency`).
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
+import json
 import time
-from typing import Annotated
+from typing import Annotated, Any
 
 import anyio
-from fastapi import APIRouter, Path, Query, Request
+from fastapi import APIRouter, Header, Path, Query, Request, Response
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 from models.frontend import images
-from service.deps import ApiKeyDep, EncoderDep, MetricsDep, RegistryDep, SettingsDep
+from service.deps import ApiKeyDep, MapReadKeyDep, MetricsDep, RegistryDep, SettingsDep
 from service.errors import IMAGE_MEDIA_TYPES, Problem, problem_responses
-from service.schemas import MAP_ID_PATTERN, MatchModel, ObservationModel, SequenceModel, Versions
+from service.maps import idempotency, stored
+from service.maps.results import ObservationResult
+from service.schemas import (
+    MAP_ID_PATTERN,
+    STREAM_PATTERN,
+    MatchModel,
+    ObservationModel,
+    SequenceModel,
+    StoredObservationList,
+    StoredObservationModel,
+    Versions,
+)
 
 router = APIRouter(prefix="/v1/maps", tags=["observations"])
 
-_DECLARED = {"image/jpeg": "jpeg", "image/png": "png"}
+MapId = Annotated[str, Path(pattern=MAP_ID_PATTERN)]
+Seq = Annotated[int, Path(ge=1)]
+
+_DECLARED = {"image/jpeg": "jpeg", "image/png": "png", "image/webp": "webp", "image/bmp": "bmp"}
+#: Per-observation metadata (docs/design/service.md §1.2): compact JSON in the `metadata` query parameter.
+METADATA_MAX_BYTES = 4096
+METADATA_MAX_DEPTH = 8
+#: Stored observations per page of `GET /v1/maps/{id}/observations`.
+MAX_PAGE = 500
+REPLAY_HEADER = "Idempotent-Replayed"
 
 _BINARY_BODY = {"requestBody": {"required": True, "content": {
     t: {"schema": {"type": "string", "format": "binary"}} for t in IMAGE_MEDIA_TYPES}}}
 
 
+class _Pose(BaseModel):
+    model_config = ConfigDict(extra="allow")
+    x: float
+    y: float
+    yaw: float | None = None
+    frame_id: str | None = None
+
+
+class _Metadata(BaseModel):
+    """What the service reads in metadata; any other small JSON members are kept as they are."""
+
+    model_config = ConfigDict(extra="allow")
+    stamp: float | str | None = None
+    pose: _Pose | None = None
+
+
+def _depth(value: Any) -> int:
+    if isinstance(value, dict):
+        return 1 + max(map(_depth, value.values()), default=0)
+    if isinstance(value, list):
+        return 1 + max(map(_depth, value), default=0)
+    return 0
+
+
+def parse_metadata(text: str) -> dict[str, Any]:
+    """The `metadata` query parameter as a JSON object. Raises Problem 422 invalid-metadata: longer than
+    `METADATA_MAX_BYTES`, not JSON, not an object, nested deeper than `METADATA_MAX_DEPTH`, or a
+    `stamp` / `pose` of the wrong shape."""
+    def bad(message: str, **members: Any) -> Problem:
+        return Problem(422, "invalid-metadata", f"metadata: {message}", **members)
+
+    size = len(text.encode())
+    if size > METADATA_MAX_BYTES:
+        raise bad(f"{size} bytes, more than {METADATA_MAX_BYTES}", max_bytes=METADATA_MAX_BYTES)
+    try:
+        value = json.loads(text)
+    except ValueError as e:
+        raise bad(f"not JSON ({e})") from e
+    if not isinstance(value, dict):
+        raise bad(f"must be a JSON object, not {type(value).__name__}")
+    if _depth(value) > METADATA_MAX_DEPTH:
+        raise bad(f"nested deeper than {METADATA_MAX_DEPTH} levels", max_depth=METADATA_MAX_DEPTH)
+    try:
+        _Metadata.model_validate(value)
+    except ValidationError as e:
+        raise bad("; ".join(f"{'.'.join(map(str, err['loc']))}: {err['msg']}" for err in e.errors()),
+                  errors=[{"location": "query", "name": "metadata." + ".".join(map(str, err["loc"])),
+                           "message": err["msg"]} for err in e.errors()]) from e
+    return value
+
+
+def _frame(body: bytes, media: str, encoding: str | None, width: int | None,
+           height: int | None) -> bytes | images.RawFrame:
+    """The body as the decoder takes it: a raw frame when `encoding` is given, else encoded bytes."""
+    if encoding is None:
+        if width is not None or height is not None:
+            raise Problem(400, "invalid-parameter", "width and height describe a raw frame: send encoding",
+                          errors=[{"location": "query", "name": "encoding", "message": "required"}])
+        return body
+    missing = [name for name, v in (("width", width), ("height", height)) if v is None]
+    if missing or media != "application/octet-stream":
+        raise Problem(400, "invalid-parameter",
+                      f"a raw frame is sent as application/octet-stream with encoding, width and height"
+                      f" (missing: {', '.join(missing) or 'none'}; Content-Type {media!r})",
+                      errors=[{"location": "query", "name": n, "message": "required"} for n in missing])
+    assert width is not None and height is not None
+    return images.RawFrame(body, encoding, width, height)
+
+
 @router.post("/{map_id}/observations", dependencies=[ApiKeyDep], openapi_extra=_BINARY_BODY,
+             response_model=ObservationModel,
              responses=problem_responses(400, 401, 404, 409, 413, 415, 422, 503, 507))
 async def post_observation(
     request: Request,
-    map_id: Annotated[str, Path(pattern=MAP_ID_PATTERN)],
+    map_id: MapId,
     registry: RegistryDep,
-    encoder: EncoderDep,
     settings: SettingsDep,
     metrics: MetricsDep,
     learn: Annotated[bool, Query(description="true: mapping (stored, learned); false: localisation")] = True,
     top_k: Annotated[int, Query(ge=0, description="matches to return (0: none; `place` is still answered)")]
     = 5,
-    stream: Annotated[str, Query(pattern=r"^[A-Za-z0-9._-]{1,64}$")] = "default",
+    stream: Annotated[str, Query(pattern=STREAM_PATTERN)] = "default",
     label: Annotated[str | None, Query(max_length=200)] = None,
-) -> ObservationModel:
-    """Post one camera frame as the raw body (`image/jpeg`, `image/png` or `application/octet-stream`)."""
+    encoding: Annotated[str | None, Query(max_length=16, description="a raw frame's pixels: "
+                                          + " | ".join(images.RAW_ENCODINGS))] = None,
+    width: Annotated[int | None, Query(description="a raw frame's width in pixels")] = None,
+    height: Annotated[int | None, Query(description="a raw frame's height in pixels")] = None,
+    metadata: Annotated[str | None, Query(description="a compact JSON object stored with the "
+                                          "observation: stamp, pose {x, y, yaw, frame_id}, ...")] = None,
+    idempotency_key: Annotated[str | None, Header(
+        alias="Idempotency-Key", pattern=idempotency.KEY_PATTERN,
+        description="a repeat with this key returns the first reply and learns nothing")] = None,
+) -> ObservationModel | Response:
+    """Post one camera frame as the raw body: `image/jpeg`, `image/png`, `image/webp`, `image/bmp`, or
+    `application/octet-stream` (sniffed; a raw frame with `encoding`, `width` and `height`)."""
     t_start = time.perf_counter()
     if top_k > settings.max_top_k:
         raise Problem(400, "invalid-parameter", f"top_k must be at most {settings.max_top_k}",
                       errors=[{"location": "query", "name": "top_k", "message": f"<= {settings.max_top_k}"}])
+    meta = parse_metadata(metadata) if metadata is not None else None
     rt = registry.get(map_id)
     rt.require_ready()
     media = (request.headers.get("content-type") or "").split(";")[0].strip().lower()
     if media not in IMAGE_MEDIA_TYPES:
         raise Problem(415, "unsupported-media-type", f"Content-Type {media or '(none)'!r} is not accepted",
                       allowed=list(IMAGE_MEDIA_TYPES), detected=media or None)
-    body = await request.body()
+    frame = _frame(await request.body(), media, encoding, width, height)
     # Every input check runs before anything stateful: the header (size, pixels, aspect, decoding cost)
     # here, off the event loop (a chunk walk may take milliseconds), the full decode in the encoder pool.
     info = await anyio.to_thread.run_sync(functools.partial(
-        images.probe, body, max_bytes=settings.max_upload_bytes, max_pixels=settings.max_pixels,
-        formats=("jpeg", "png")))
+        images.probe, frame, max_bytes=settings.max_upload_bytes, max_pixels=settings.max_pixels))
     if media in _DECLARED and _DECLARED[media] != info.format:
         raise Problem(415, "unsupported-media-type", f"declared {media} but the bytes are {info.format}",
                       allowed=list(IMAGE_MEDIA_TYPES), detected=info.format)
-    result = await rt.observe(request.app.state.encoder_pool, body, learn=learn, stream=stream,
-                              top_k=top_k, label=label)
-    timings = {**result.timings_ms, "total": (time.perf_counter() - t_start) * 1e3}
+    rid = getattr(request.state, "request_id", None)
+
+    def reply(result: ObservationResult) -> ObservationModel:
+        timings = {**result.timings_ms, "total": (time.perf_counter() - t_start) * 1e3}
+        desc = registry.encoders.get(result.backbone).describe()  # the map's own backbone's encoder
+        return ObservationModel(
+            request_id=rid, map_id=result.map_id, stream=result.stream, learned=result.learned,
+            observation_id=result.observation_id, seq=result.seq,
+            sequence=SequenceModel.from_result(result.sequence),
+            matches=[MatchModel.from_result(m) for m in result.matches], place=result.place,
+            timings_ms={k: round(v, 3) for k, v in timings.items()},
+            versions=Versions(api="v1", code=request.app.version, backbone=result.backbone,
+                              encoder=desc["encoder"], weights=desc["weights"],
+                              projection=f"sha256:{result.projection_sha256}", map_seq=result.map_seq),
+            metadata=result.metadata)
+
+    post = None
+    if idempotency_key is not None:
+        data = frame.data if isinstance(frame, images.RawFrame) else frame
+        digest = await anyio.to_thread.run_sync(lambda: hashlib.sha256(data).hexdigest())
+        post = idempotency.IdempotentPost(
+            idempotency_key, idempotency.fingerprint(
+                digest, learn=learn, top_k=top_k, stream=stream, label=label, metadata=meta, media=media,
+                encoding=encoding, width=width, height=height),
+            seal=lambda result: reply(result).model_dump_json())
+        assert rt.store is not None  # a ready map has its store
+        # A retry of a stored post is answered before any encoding (the writer checks again: two in
+        # flight at once).
+        earlier = await anyio.to_thread.run_sync(idempotency.lookup, rt.store, None, post)
+        if earlier is not None:
+            return _replayed(earlier)
+    out = await rt.observe(request.app.state.encoder_pool, frame, learn=learn, stream=stream, top_k=top_k,
+                           label=label, metadata=meta, post=post)
+    if isinstance(out, idempotency.Reply):
+        if out.replayed:
+            return _replayed(out)
+        first = ObservationModel.model_validate_json(out.body)
+        _count(metrics, map_id, learn, first.timings_ms)
+        rt.recent.add(first.stream, first)  # the viewer's window (GET .../recent); replays are not added
+        return Response(out.body, media_type="application/json")
+    model = reply(out)
+    _count(metrics, map_id, learn, model.timings_ms)
+    rt.recent.add(model.stream, model)  # the viewer's window (GET .../recent): the reply as sent
+    return model
+
+
+def _replayed(earlier: idempotency.Reply) -> Response:
+    return Response(earlier.body, media_type="application/json", headers={REPLAY_HEADER: "true"})
+
+
+def _count(metrics: Any, map_id: str, learn: bool, timings: dict[str, float]) -> None:
     for stage, ms in timings.items():
         if stage != "total":
             metrics.observe_stage(stage, ms / 1e3)
     metrics.observations.labels(map=map_id, learned=str(learn).lower()).inc()
-    desc = registry.encoders.get(result.backbone).describe()  # the map's own backbone's encoder
-    reply = ObservationModel(
-        request_id=getattr(request.state, "request_id", None), map_id=result.map_id, stream=result.stream,
-        learned=result.learned, observation_id=result.observation_id, seq=result.seq,
-        sequence=SequenceModel.from_result(result.sequence),
-        matches=[MatchModel.from_result(m) for m in result.matches],
-        place=result.place,
-        timings_ms={k: round(v, 3) for k, v in timings.items()},
-        versions=Versions(api="v1", code=request.app.version, backbone=result.backbone,
-                          encoder=desc["encoder"], weights=desc["weights"],
-                          projection=f"sha256:{result.projection_sha256}", map_seq=result.map_seq))
-    rt.recent.add(result.stream, reply)  # the viewer's window (GET .../recent): the reply as sent
-    return reply
+
+
+@router.get("/{map_id}/observations", dependencies=[MapReadKeyDep], responses=problem_responses(404, 503))
+async def list_observations(
+    map_id: MapId, registry: RegistryDep,
+    after_seq: Annotated[int, Query(ge=0, description="the page starts after this seq")] = 0,
+    limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 100,
+) -> StoredObservationList:
+    """Stored observations in seq order, without their codes (a map's trajectory, from the poses)."""
+    rt = registry.get(map_id)
+    rt.require_ready()
+    assert rt.store is not None
+    found = await anyio.to_thread.run_sync(stored.page, rt.store, after_seq, limit)
+    return StoredObservationList(observations=[StoredObservationModel.from_result(o) for o in found],
+                                 next_after_seq=found[-1].seq if len(found) == limit else None)
+
+
+@router.get("/{map_id}/observations/{seq}", dependencies=[MapReadKeyDep],
+            responses=problem_responses(404, 503))
+async def get_observation(map_id: MapId, seq: Seq, registry: RegistryDep) -> StoredObservationModel:
+    rt = registry.get(map_id)
+    rt.require_ready()
+    assert rt.store is not None
+    found = await anyio.to_thread.run_sync(stored.observation, map_id, rt.store, seq)
+    return StoredObservationModel.from_result(found)
+
+
+@router.get("/{map_id}/observations/{seq}/thumbnail", dependencies=[MapReadKeyDep],
+            response_class=Response, responses={**problem_responses(404, 503), 200: {
+                "content": {"image/jpeg": {"schema": {"type": "string", "format": "binary"}}}}})
+async def get_thumbnail(map_id: MapId, seq: Seq, registry: RegistryDep) -> Response:
+    """The small JPEG kept with a learned observation of a map made with `thumbnails: true`."""
+    rt = registry.get(map_id)
+    rt.require_ready()
+    assert rt.store is not None
+    jpeg = await anyio.to_thread.run_sync(stored.thumbnail, map_id, rt.store, seq)
+    return Response(jpeg, media_type="image/jpeg")

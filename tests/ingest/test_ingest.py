@@ -84,6 +84,27 @@ def test_every_topic_of_a_ros2_bag_answers_as_its_frames_posted_one_by_one(tmp_p
         assert got[topic][6].answer["matches"][0]["label"] == labels[2]  # the loop closes
 
 
+def test_message_stamps_arrive_as_the_observations_stamp(tmp_path):
+    bag = write_ros2_bag(tmp_path / "bag", topics=["/cam/bgr"])
+    records: list[poster.Record] = []
+    stored: list[dict[str, Any]] = []
+
+    async def run() -> None:
+        settings = Settings(data_dir=tmp_path / "a", log_level="WARNING")
+        async with poster.in_process_client(settings) as client:
+            await poster.ingest(client, open_source(bag), poster.Options(map_id="m", stream="robot1/cam0"),
+                                on_record=records.append)
+            r = await client.get("/v1/maps/m/observations", params={"limit": 100})
+            stored.extend(r.json()["observations"])
+
+    anyio.run(run)
+    stamps = [stamp(i) / 1e9 for i in range(len(ROUTE))]  # header.stamp, in seconds
+    assert [r.answer["metadata"]["stamp"] for r in records] == stamps
+    assert [o["metadata"]["stamp"] for o in stored] == stamps
+    assert {o["stream"] for o in stored} == {"robot1/cam0"}
+    assert records[6].answer["matches"][0]["metadata"]["stamp"] == stamps[2]  # where the loop closes
+
+
 def test_bad_sources_and_options_exit_2_with_the_reason(tmp_path):
     bag = write_ros2_bag(tmp_path / "bag", topics=["/cam/rgb", "/cam/mono"])
     run = CliRunner().invoke

@@ -1,12 +1,12 @@
-"""The readers of `cortexloc ingest`: folders, ROS 2 bags (.db3, .mcap), ROS 1 bags, raw image conversion."""
+"""The readers of `cortexloc ingest`: folders, ROS 2 bags (.db3, .mcap), ROS 1 bags, raw frames."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 
-from service.ingest.sources import RAW_ENCODINGS, SourceError, image_to_png, open_source
+from models.frontend import images
+from service.ingest.sources import RAW_ENCODINGS, SourceError, image_to_raw, open_source
 from tests.ingest.data import ROUTE, TOPICS, png, stamp, write_folder, write_ros1_bag, write_ros2_bag
 
 
@@ -30,15 +30,20 @@ def test_every_keeps_the_first_frame_and_every_nth_after_it(tmp_path):
 
 
 @pytest.mark.parametrize("topic", list(TOPICS))
-def test_a_ros2_bag_gives_the_pixels_posted_as_png_or_the_compressed_bytes_as_they_are(tmp_path, topic):
+def test_a_ros2_bag_gives_raw_frames_or_the_compressed_bytes_as_they_are(tmp_path, topic):
     src = open_source(write_ros2_bag(tmp_path / "bag"), topic=topic)
     frames = list(src.frames())
     assert src.kind == "ros2" and src.topic == topic and src.total == len(ROUTE)
-    # Byte for byte the PNG (or JPEG) a user would post of the same pixels: rgb8 is swapped to OpenCV's order.
-    assert [f.data for f in frames] == [TOPICS[topic][1](p) for p in ROUTE]
     assert [f.stamp_ns for f in frames] == [stamp(i) for i in range(len(ROUTE))]  # header.stamp, not record
-    assert {f.media_type for f in frames} == {"application/octet-stream" if "compressed" in topic
-                                              else "image/png"}
+    assert {f.media_type for f in frames} == {"application/octet-stream"}
+    if "compressed" in topic:  # the JPEG a user would post, byte for byte
+        assert [f.data for f in frames] == [TOPICS[topic][1](p) for p in ROUTE]
+        assert all(f.params == {} for f in frames)
+        return
+    # A raw frame that the service decodes to the RGB of the PNG a user would post of the same pixels.
+    for f, p in zip(frames, ROUTE, strict=True):
+        raw = images.RawFrame(f.data, f.params["encoding"], int(f.params["width"]), int(f.params["height"]))
+        assert np.array_equal(images.decode(raw), images.decode(TOPICS[topic][1](p)))
 
 
 def _frames(src):
@@ -92,11 +97,12 @@ def test_sources_that_cannot_be_read_say_why(tmp_path):
         open_source(tmp_path / "frames", every=0)
 
 
-def _decoded(data: bytes) -> np.ndarray:
-    return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+def _rgb_of(body: bytes, params: dict[str, str]) -> np.ndarray:
+    return images.decode(images.RawFrame(body, params["encoding"], int(params["width"]),
+                                         int(params["height"])))
 
 
-def test_raw_encodings_become_lossless_pngs_of_the_same_pixels():
+def test_raw_encodings_become_raw_frames_of_the_same_pixels():
     rng = np.random.default_rng(0)
     bgra = rng.integers(0, 256, (5, 7, 4), dtype=np.uint8)
     bgr, grey = bgra[..., :3].copy(), bgra[..., 0].copy()
@@ -111,20 +117,22 @@ def test_raw_encodings_become_lossless_pngs_of_the_same_pixels():
                                    ("mono8", grey, grey), ("bgra8", bgra, bgra),
                                    ("rgba8", bgra[..., [2, 1, 0, 3]].copy(), bgra)):
         data, step = padded(pixels)
-        got = image_to_png(data, height=5, width=7, step=step, encoding=encoding)
-        assert np.array_equal(_decoded(got), want), encoding
-        assert got == png(want), encoding
+        body, params = image_to_raw(data, height=5, width=7, step=step, encoding=encoding)
+        assert (params["width"], params["height"]) == ("7", "5")
+        # The decoder's RGB of the same pixels as a PNG (alpha dropped there as here).
+        assert np.array_equal(_rgb_of(body, params), images.decode(png(want))), encoding
     deep = rng.integers(0, 65536, (5, 7), dtype=np.uint16)
     for big in (False, True):
         raw = deep.astype(">u2" if big else "<u2").tobytes()
-        got = _decoded(image_to_png(raw, height=5, width=7, step=14, encoding="mono16", is_bigendian=big))
-        assert got.dtype == np.uint16 and np.array_equal(got, deep)
+        body, params = image_to_raw(raw, height=5, width=7, step=14, encoding="mono16", is_bigendian=big)
+        assert params["encoding"] == "mono16" and body == deep.astype("<u2").tobytes()
+        assert np.array_equal(_rgb_of(body, params), images.decode(png(deep)))
     assert set(RAW_ENCODINGS) == {"rgb8", "bgr8", "mono8", "mono16", "rgba8", "bgra8"}
 
 
 def test_raw_images_that_cannot_be_converted_say_why():
     with pytest.raises(SourceError, match=r"encoding 'bayer_rggb8' is not supported; supported: rgb8"):
-        image_to_png(b"\0" * 12, height=2, width=2, step=2, encoding="bayer_rggb8")
+        image_to_raw(b"\0" * 12, height=2, width=2, step=2, encoding="bayer_rggb8")
     with pytest.raises(SourceError, match=r"rgb8 image 4x2 needs 2 rows of >= 12 bytes \(step 12\); the "
                                           r"message holds 20 bytes"):
-        image_to_png(b"\0" * 20, height=2, width=4, step=12, encoding="rgb8")
+        image_to_raw(b"\0" * 20, height=2, width=4, step=12, encoding="rgb8")

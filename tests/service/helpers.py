@@ -80,10 +80,10 @@ def held_encoder(encoder: Any) -> Iterator[tuple[threading.Event, list[int]]]:
     The gate opens at the latest when the block ends."""
     gate, sizes, real = threading.Event(), [], encoder.embed
 
-    def held(data):
+    def held(data, **kw):
         sizes.append(len(data))
         gate.wait(30)
-        return real(data)
+        return real(data, **kw)
 
     encoder.embed = held
     try:

@@ -158,6 +158,8 @@ def test_image_error_raised_by_a_route_is_mapped(client):
     ("not-an-image", 422, "undecodable-image"),
     ("truncated", 422, "undecodable-image"),
     ("degenerate", 422, "degenerate-image"),
+    ("size-mismatch", 422, "raw-frame-size-mismatch"),
+    ("unsupported-encoding", 415, "unsupported-media-type"),
 ])
 def test_image_error_mapping(code, status, slug):
     p = image_error_problem(ImageError(code, "message", width=3, height=4, received_bytes=9), max_pixels=10)
@@ -166,7 +168,8 @@ def test_image_error_mapping(code, status, slug):
     if slug == "image-too-large":
         assert p.members["max_pixels"] == 10
     if slug == "unsupported-media-type":
-        assert p.members["allowed"] == ["image/jpeg", "image/png", "application/octet-stream"]
+        assert p.members["allowed"] == ["image/jpeg", "image/png", "image/webp", "image/bmp",
+                                        "application/octet-stream"]
         assert "detected" in p.members
 
 
@@ -189,6 +192,8 @@ def test_registry_covers_the_spec_table():
             "invalid-configuration", "not-ready", "map-unavailable", "overloaded", "insufficient-storage",
             "internal-error", "unauthorized"}
     spec |= {"decompression-bomb", "snapshot-invalid"}  # issue 11: beyond the spec table
+    spec |= {"observation-not-found", "raw-frame-size-mismatch", "invalid-metadata",
+             "idempotency-key-reused"}  # issue 15
     assert set(TITLES) == spec
 
 

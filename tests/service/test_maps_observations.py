@@ -4,6 +4,7 @@ bad input, and what every one of them leaves stored."""
 from __future__ import annotations
 
 import io
+import json
 import tarfile
 
 import cv2
@@ -123,11 +124,35 @@ def bad_inputs() -> list[tuple[str, bytes, str, dict, int, str]]:
         ("truncated png", png[: len(png) // 2], "image/png", {}, 422, "undecodable-image"),
         ("jpeg declared as png", jpg, "image/png", {}, 415, "unsupported-media-type"),
         ("text/plain", png, "text/plain", {}, 415, "unsupported-media-type"),
-        ("bmp", frame(1, fmt=".bmp"), "application/octet-stream", {}, 415, "unsupported-media-type"),
+        ("gif", b"GIF89a" + bytes(64), "application/octet-stream", {}, 415, "unsupported-media-type"),
+        ("bmp declared as webp", frame(1, fmt=".bmp"), "image/webp", {}, 415, "unsupported-media-type"),
         ("learn=maybe", png, "image/png", {"learn": "maybe"}, 400, "invalid-parameter"),
         ("top_k=-1", png, "image/png", {"top_k": -1}, 400, "invalid-parameter"),
         ("top_k too big", png, "image/png", {"top_k": 10_000}, 400, "invalid-parameter"),
-        ("stream with /", png, "image/png", {"stream": "a/b"}, 400, "invalid-parameter"),
+        ("stream with //", png, "image/png", {"stream": "a//b"}, 400, "invalid-parameter"),
+        ("stream with a leading /", png, "image/png", {"stream": "/a"}, 400, "invalid-parameter"),
+        ("raw: one byte short", bytes(8 * 8 * 3 - 1), "application/octet-stream",
+         {"encoding": "rgb8", "width": 8, "height": 8}, 422, "raw-frame-size-mismatch"),
+        ("raw: mono16 as mono8", bytes(16 * 16), "application/octet-stream",
+         {"encoding": "mono16", "width": 16, "height": 16}, 422, "raw-frame-size-mismatch"),
+        ("raw: zero width", b"", "application/octet-stream",
+         {"encoding": "mono8", "width": 0, "height": 16}, 422, "raw-frame-size-mismatch"),
+        ("raw: unknown encoding", bytes(64), "application/octet-stream",
+         {"encoding": "yuv422", "width": 4, "height": 8}, 415, "unsupported-media-type"),
+        ("raw: no height", bytes(64), "application/octet-stream", {"encoding": "mono8", "width": 8}, 400,
+         "invalid-parameter"),
+        ("raw: declared as png", bytes(64), "image/png", {"encoding": "mono8", "width": 8, "height": 8},
+         400, "invalid-parameter"),
+        ("raw: width without encoding", png, "image/png", {"width": 8}, 400, "invalid-parameter"),
+        ("raw: 1x4000", bytes(4000), "application/octet-stream",
+         {"encoding": "mono8", "width": 1, "height": 4000}, 422, "degenerate-image"),
+        ("metadata not JSON", png, "image/png", {"metadata": "{stamp"}, 422, "invalid-metadata"),
+        ("metadata a list", png, "image/png", {"metadata": "[1,2]"}, 422, "invalid-metadata"),
+        ("metadata too large", png, "image/png", {"metadata": json.dumps({"note": "x" * 5000})}, 422,
+         "invalid-metadata"),
+        ("metadata too deep", png, "image/png", {"metadata": '{"a":' * 9 + "1" + "}" * 9}, 422,
+         "invalid-metadata"),
+        ("pose without y", png, "image/png", {"metadata": '{"pose":{"x":1}}'}, 422, "invalid-metadata"),
         ("png header claiming 100000x100000", huge_png_header(), "image/png", {}, 413, "image-too-large"),
         ("1x4000", frame_of_size(1, 4000), "image/png", {}, 422, "degenerate-image"),
     ]

@@ -1,5 +1,6 @@
 """/openapi.json describes every successful reply: each 2xx of /v1 and of /healthz, /readyz has a
-schema with properties, or a binary media type (downloads); a 204 has no body (docs/design/service.md §1)."""
+schema with properties, or a binary media type (downloads, thumbnails); a 204 has no body
+(docs/design/service.md §1)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from fastapi.testclient import TestClient
 
 from tests.service.helpers import make_app
 
-BINARY = {"application/x-tar", "application/octet-stream"}
+BINARY = {"application/x-tar", "application/octet-stream", "image/jpeg"}
 
 
 def _resolve(schema: dict[str, Any], spec: dict[str, Any]) -> dict[str, Any]:

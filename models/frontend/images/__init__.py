@@ -26,7 +26,9 @@ bilinear when shrinking, plus the `squash` mode (straight to 224×224).
 
 Modules: `common` (limits, formats, `ImageError`), `probing` (magic bytes, dispatch to a header parser,
 the checks in order), one parser per format (`jpeg`, `png` with the bounded inflate, `bmp_webp`),
-`decoding` (`decode`: OpenCV) and `preprocessing` (`preprocess_batch`). Import from this package.
+`raw` (uncompressed sensor frames: `RawFrame`, rgb8 | bgr8 | mono8 | mono16), `decoding` (`decode`:
+OpenCV), `preprocessing` (`preprocess_batch`) and `thumbnails` (a small JPEG for people). Import from
+this package.
 
 Example:
     >>> rgb = decode(open("frame.jpg", "rb").read())      # (H, W, 3) uint8 RGB
@@ -62,6 +64,8 @@ from models.frontend.images.decoding import decode
 from models.frontend.images.jpeg import JPEG_MAX_SCANS
 from models.frontend.images.preprocessing import preprocess, preprocess_batch
 from models.frontend.images.probing import probe, sniff
+from models.frontend.images.raw import RAW_ENCODINGS, RawFrame
+from models.frontend.images.thumbnails import THUMBNAIL_SIDE, thumbnail
 
 __all__ = [
     "DEFAULT_MAX_ASPECT",
@@ -73,11 +77,15 @@ __all__ = [
     "IMAGENET_STD",
     "JPEG_MAX_SCANS",
     "MODES",
+    "RAW_ENCODINGS",
+    "THUMBNAIL_SIDE",
     "ImageError",
     "ImageInfo",
+    "RawFrame",
     "decode",
     "preprocess",
     "preprocess_batch",
     "probe",
     "sniff",
+    "thumbnail",
 ]

@@ -18,7 +18,7 @@ FORMATS = ("jpeg", "png", "bmp", "webp")
 MODES = ("crop", "squash")
 ERROR_CODES = frozenset(
     {"empty", "too-large", "not-an-image", "truncated", "too-many-pixels", "unsupported-format", "degenerate",
-     "bomb"}
+     "bomb", "size-mismatch", "unsupported-encoding"}
 )
 
 _FORMAT_NAMES = {"jpeg": "JPEG", "png": "PNG", "bmp": "BMP", "webp": "WebP"}
@@ -30,11 +30,14 @@ class ImageError(ValueError):
     The HTTP service maps `code` to a 4xx problem+json (docs/design/service.md §2): `too-large` -> 413
     payload-too-large, `too-many-pixels` -> 413 image-too-large, `unsupported-format` -> 415,
     `degenerate` -> 422 degenerate-image, `bomb` -> 422 decompression-bomb, `empty` / `not-an-image` /
-    `truncated` -> 422 undecodable-image.
+    `truncated` -> 422 undecodable-image; for raw frames (`raw.py`) `size-mismatch` -> 422
+    raw-frame-size-mismatch, `unsupported-encoding` -> 415.
 
     Attributes:
         code: one of `ERROR_CODES`: "empty", "too-large", "not-an-image", "truncated", "too-many-pixels",
-            "unsupported-format", "degenerate", "bomb" (a small file whose decoding would cost far more
+            "unsupported-format", "degenerate", "size-mismatch" and "unsupported-encoding" (raw
+            frames: the body is not width x height x channels x bytes long; an encoding not known),
+            "bomb" (a small file whose decoding would cost far more
             than its declared size needs: PNG data that inflates past its raster, a JPEG with too many
             progressive scans).
         message: the human sentence, also `str(error)`.
@@ -59,7 +62,7 @@ class ImageInfo:
     """What the header says, read without decoding.
 
     Attributes:
-        format: "jpeg", "png", "bmp" or "webp".
+        format: "jpeg", "png", "bmp", "webp", or "raw" (an uncompressed frame, `raw.RawFrame`).
         width: stored width in pixels (before any EXIF rotation, which may swap it with height).
         height: stored height in pixels.
     """

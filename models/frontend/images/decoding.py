@@ -17,11 +17,14 @@ from models.frontend.images.common import (
 )
 from models.frontend.images.png import _png_check_inflate
 from models.frontend.images.probing import probe
+from models.frontend.images.raw import RawFrame, decode_raw
 
 
-def decode(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = DEFAULT_MAX_PIXELS,
-           max_aspect: float | None = DEFAULT_MAX_ASPECT, formats: Collection[str] = FORMATS) -> np.ndarray:
-    """Decode an uploaded JPEG, PNG, BMP or WebP to 8-bit RGB (docs/design/science.md §6).
+def decode(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES,
+           max_pixels: int = DEFAULT_MAX_PIXELS, max_aspect: float | None = DEFAULT_MAX_ASPECT,
+           formats: Collection[str] = FORMATS) -> np.ndarray:
+    """Decode an uploaded JPEG, PNG, BMP or WebP, or a raw frame (`raw.decode_raw`), to 8-bit RGB
+    (docs/design/science.md §6).
 
     Grey images are replicated to three channels, alpha is dropped (not composited), 16-bit PNGs are
     scaled to 8 bits with rounding (v × 255 / 65535), and the EXIF orientation is applied, as OpenCV's
@@ -41,6 +44,8 @@ def decode(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int =
         ImageError: see `probe`; also "not-an-image" when OpenCV cannot decode a structurally complete
             file (corrupt data), "bomb" when PNG image data inflates past its raster.
     """
+    if isinstance(data, RawFrame):
+        return decode_raw(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect)
     if not isinstance(data, bytes):
         data = bytes(data)
     info = probe(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect, formats=formats)

@@ -18,6 +18,7 @@ from models.frontend.images.common import (
 )
 from models.frontend.images.jpeg import _jpeg_header
 from models.frontend.images.png import _png_header
+from models.frontend.images.raw import RawFrame, probe_raw
 
 # ----------------------------------------------------------------------------------------------- sniffing
 
@@ -111,12 +112,12 @@ def _accepted_list(formats: Collection[str]) -> str:
     return ", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1 else names[0]
 
 
-def probe(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = DEFAULT_MAX_PIXELS,
+def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = DEFAULT_MAX_PIXELS,
           max_aspect: float | None = DEFAULT_MAX_ASPECT, formats: Collection[str] = FORMATS) -> ImageInfo:
     """Every check `decode` makes, without decoding a pixel (docs/design/service.md §1.2 order of work).
 
     Args:
-        data: the uploaded bytes.
+        data: the uploaded bytes, or a raw frame (`raw.probe_raw`: its format is "raw").
         max_bytes: refuse longer inputs ("too-large").
         max_pixels: refuse images whose header gives width × height above this ("too-many-pixels").
         max_aspect: refuse images whose long side exceeds `max_aspect` × the short side ("degenerate");
@@ -133,6 +134,9 @@ def probe(data: bytes, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = 
     unknown = set(formats) - set(FORMATS)
     if unknown or not formats:
         raise ValueError(f"formats must be a non-empty subset of {FORMATS}, got {tuple(formats)}")
+    if isinstance(data, RawFrame):
+        probe_raw(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect)
+        return ImageInfo("raw", data.width, data.height)
     if not isinstance(data, bytes):
         data = bytes(data)
     n = len(data)

@@ -1,0 +1,71 @@
+"""Typed Python client for the cortexloc HTTP API: `Client` (sync) and `AsyncClient` (asyncio).
+
+Replies are pydantic models (`cortexloc_client.models`); refusals are `CortexlocError` and its
+subclasses; 503s are retried after `Retry-After` (`RetryPolicy`); observation posts carry an
+`Idempotency-Key`, the same across their retries.
+"""
+
+from cortexloc_client._core import RetryPolicy, Settings, __version__
+from cortexloc_client.aio import AsyncClient
+from cortexloc_client.client import Client
+from cortexloc_client.errors import (
+    BadRequestError,
+    ConflictError,
+    CortexlocError,
+    InsufficientStorageError,
+    NotFoundError,
+    PayloadTooLargeError,
+    ServerError,
+    ServiceUnavailableError,
+    UnauthorizedError,
+    UnprocessableError,
+    UnsupportedMediaTypeError,
+)
+from cortexloc_client.frames import ColourOrder, frame_body
+from cortexloc_client.models import (
+    Map,
+    Match,
+    Memory,
+    Metadata,
+    Observation,
+    Place,
+    Pose,
+    Readiness,
+    RestoredMap,
+    Snapshot,
+    StoredObservation,
+    StoredObservationList,
+)
+
+__all__ = [
+    "AsyncClient",
+    "BadRequestError",
+    "Client",
+    "ColourOrder",
+    "ConflictError",
+    "CortexlocError",
+    "InsufficientStorageError",
+    "Map",
+    "Match",
+    "Memory",
+    "Metadata",
+    "NotFoundError",
+    "Observation",
+    "PayloadTooLargeError",
+    "Place",
+    "Pose",
+    "Readiness",
+    "RestoredMap",
+    "RetryPolicy",
+    "ServerError",
+    "ServiceUnavailableError",
+    "Settings",
+    "Snapshot",
+    "StoredObservation",
+    "StoredObservationList",
+    "UnauthorizedError",
+    "UnprocessableError",
+    "UnsupportedMediaTypeError",
+    "__version__",
+    "frame_body",
+]

@@ -1,0 +1,263 @@
+"""What the sync and async clients share: each route as a `Call` (method, path, body, how to read the
+reply), the retry policy, and the client's settings. No I/O here; `Client` and `AsyncClient` send.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import uuid
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Generic, TypeVar
+from urllib.parse import quote
+
+import httpx
+from pydantic import BaseModel
+
+from cortexloc_client import models
+from cortexloc_client.errors import error_from_response, retry_after_seconds
+from cortexloc_client.frames import ColourOrder, frame_body
+
+__all__ = ["Call", "RetryPolicy", "Settings"]
+
+__version__ = "0.1.0"
+
+T = TypeVar("T")
+M = TypeVar("M", bound=BaseModel)
+
+IDEMPOTENCY_HEADER = "Idempotency-Key"
+#: Query parameter carrying an observation's metadata as compact JSON (the body is the image).
+METADATA_PARAM = "metadata"
+
+
+@dataclass(frozen=True)
+class RetryPolicy:
+    """When a request is sent again.
+
+    - 503 (`overloaded`, `not-ready`, `map-unavailable`): the service refused before doing anything, so
+      any request is retried, after `Retry-After` seconds when the reply has them, else after
+      `backoff_s`, 2 x `backoff_s`, 4 x ...; never longer than `max_wait_s`.
+    - a connection that could not be opened: the request was never sent; retried like a 503.
+    - any other transport failure (reset, timeout while reading the reply): the service may have done
+      the work, so only idempotent requests are retried (GET, DELETE, PATCH, a stream reset, and an
+      observation that carries an `Idempotency-Key`).
+
+    Args:
+        attempts: tries in all, the first included (1: never retry).
+        max_wait_s: cap on one wait, whatever `Retry-After` asks.
+        backoff_s: the first wait when the reply gives none.
+    """
+
+    attempts: int = 4
+    max_wait_s: float = 30.0
+    backoff_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.attempts < 1 or self.max_wait_s < 0 or self.backoff_s < 0:
+            raise ValueError(f"invalid retry policy {self}")
+
+    def wait(self, call: Call[Any], attempt: int, *, response: httpx.Response | None = None,
+             error: httpx.TransportError | None = None) -> float:
+        """Seconds to wait before try `attempt + 1` (0-based) after this failed try.
+
+        Raises:
+            CortexlocError: the reply's error, when it is not retried (its body must have been read).
+            httpx.TransportError: `error`, when it is not retried.
+        """
+        last = attempt + 1 >= self.attempts or not call.retry
+        if error is not None:
+            unsent = isinstance(error, (httpx.ConnectError, httpx.ConnectTimeout))
+            if last or not (unsent or call.idempotent):
+                raise error
+            return min(self.backoff_s * 2**attempt, self.max_wait_s)
+        assert response is not None
+        if last or response.status_code != 503:
+            raise error_from_response(response)
+        asked = retry_after_seconds(response.headers.get("Retry-After"))
+        return min(self.backoff_s * 2**attempt if asked is None else asked, self.max_wait_s)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """A client's settings (`Client(...)` and `AsyncClient(...)` take the same keywords).
+
+    Attributes:
+        base_url: the service, e.g. `http://robot-server:8000`.
+        api_key: the server's `CORTEXLOC_API_KEY`, sent as `X-API-Key` on every request.
+        timeout: seconds for connecting, and between bytes of the reply.
+        retry: when to send a request again (`RetryPolicy(attempts=1)`: never).
+        idempotency_keys: give each observation post a fresh `Idempotency-Key` (kept across its
+            retries), so that a retried post is not learned twice.
+    """
+
+    base_url: str = "http://127.0.0.1:8000"
+    api_key: str | None = None
+    timeout: float = 30.0
+    retry: RetryPolicy = field(default_factory=RetryPolicy)
+    idempotency_keys: bool = True
+
+    def headers(self) -> dict[str, str]:
+        out = {"User-Agent": f"cortexloc-client/{__version__}"}
+        if self.api_key is not None:
+            out["X-API-Key"] = self.api_key
+        return out
+
+
+@dataclass(frozen=True)
+class Call(Generic[T]):
+    """One request and how to read its successful reply."""
+
+    method: str
+    path: str
+    decode: Callable[[httpx.Response], T]
+    params: dict[str, str] | None = None
+    json: Any = None
+    content: bytes | None = None
+    headers: dict[str, str] = field(default_factory=dict)
+    #: Sending it twice leaves the service as sending it once (retried after any transport failure).
+    idempotent: bool = False
+    #: Retried at all (a readiness probe is not: its 503 is the answer).
+    retry: bool = True
+
+
+def _model(cls: type[M]) -> Callable[[httpx.Response], M]:
+    return lambda r: cls.model_validate_json(r.content)
+
+
+def _nothing(r: httpx.Response) -> None:
+    return None
+
+
+def _content(r: httpx.Response) -> bytes:
+    return r.content
+
+
+def _seg(value: str) -> str:
+    return quote(value, safe="")
+
+
+def _map(map_id: str) -> str:
+    return f"/v1/maps/{_seg(map_id)}"
+
+
+# ------------------------------------------------------------------------------------------ routes
+
+
+def health() -> Call[models.Health]:
+    return Call("GET", "/healthz", _model(models.Health), idempotent=True)
+
+
+def ready() -> Call[models.Readiness]:
+    return Call("GET", "/readyz", _model(models.Readiness), idempotent=True, retry=False)
+
+
+def create_map(map_id: str | None, **fields: Any) -> Call[models.Map]:
+    """Fields left None are not sent (the server's preset decides them)."""
+    body = {"map_id": map_id, **fields}
+    return Call("POST", "/v1/maps", _model(models.Map), json={k: v for k, v in body.items() if v is not None})
+
+
+def list_maps() -> Call[list[models.Map]]:
+    return Call("GET", "/v1/maps", lambda r: models.MapList.model_validate_json(r.content).maps,
+                idempotent=True)
+
+
+def get_map(map_id: str) -> Call[models.Map]:
+    return Call("GET", _map(map_id), _model(models.Map), idempotent=True)
+
+
+def update_map(map_id: str, revisit_threshold: float | None) -> Call[models.Map]:
+    body = {"revisit_threshold": revisit_threshold}
+    # Absolute values: a repeat sets the same thing again.
+    return Call("PATCH", _map(map_id), _model(models.Map),
+                json={k: v for k, v in body.items() if v is not None}, idempotent=True)
+
+
+def delete_map(map_id: str) -> Call[None]:
+    return Call("DELETE", _map(map_id), _nothing, idempotent=True)
+
+
+def memory(map_id: str) -> Call[models.Memory]:
+    return Call("GET", f"{_map(map_id)}/memory", _model(models.Memory), idempotent=True)
+
+
+def reset_stream(map_id: str, stream: str) -> Call[models.StreamReset]:
+    return Call("POST", f"{_map(map_id)}/streams/{_seg(stream)}/reset", _model(models.StreamReset),
+                idempotent=True)
+
+
+def observe(settings: Settings, map_id: str, image: Any, *, learn: bool, top_k: int, stream: str,
+            label: str | None, metadata: models.Metadata | Mapping[str, Any] | None, colour: ColourOrder,
+            idempotency_key: str | None) -> Call[models.Observation]:
+    frame = frame_body(image, colour)
+    params = {"learn": "true" if learn else "false", "top_k": str(top_k), "stream": stream, **frame.params}
+    if label is not None:
+        params["label"] = label
+    if metadata is not None:
+        meta = metadata.model_dump(exclude_none=True) if isinstance(metadata, BaseModel) else dict(metadata)
+        params[METADATA_PARAM] = json.dumps(meta, separators=(",", ":"))
+    headers = {"Content-Type": frame.media_type}
+    # One key per logical post, made here once: every retry of this Call sends the same key.
+    key = idempotency_key or (uuid.uuid4().hex if settings.idempotency_keys else None)
+    if key is not None:
+        headers[IDEMPOTENCY_HEADER] = key
+    return Call("POST", f"{_map(map_id)}/observations", _model(models.Observation), params=params,
+                content=frame.content, headers=headers, idempotent=key is not None)
+
+
+def get_observation(map_id: str, seq: int) -> Call[models.StoredObservation]:
+    return Call("GET", f"{_map(map_id)}/observations/{int(seq)}", _model(models.StoredObservation),
+                idempotent=True)
+
+
+def list_observations(map_id: str, after_seq: int, limit: int) -> Call[models.StoredObservationList]:
+    return Call("GET", f"{_map(map_id)}/observations", _model(models.StoredObservationList),
+                params={"after_seq": str(int(after_seq)), "limit": str(int(limit))}, idempotent=True)
+
+
+def thumbnail(map_id: str, seq: int) -> Call[bytes]:
+    return Call("GET", f"{_map(map_id)}/observations/{int(seq)}/thumbnail", _content, idempotent=True)
+
+
+def create_snapshot(map_id: str) -> Call[models.Snapshot]:
+    return Call("POST", f"{_map(map_id)}/snapshots", _model(models.Snapshot))
+
+
+def list_snapshots(map_id: str) -> Call[list[models.Snapshot]]:
+    return Call("GET", f"{_map(map_id)}/snapshots",
+                lambda r: models.SnapshotList.model_validate_json(r.content).snapshots, idempotent=True)
+
+
+def restore_snapshot(map_id: str, snapshot_id: str) -> Call[models.RestoredMap]:
+    return Call("POST", f"{_map(map_id)}/snapshots/{_seg(snapshot_id)}/restore", _model(models.RestoredMap))
+
+
+def download_snapshot(map_id: str, snapshot_id: str) -> Call[None]:
+    """Streamed by the client (`Client.download_snapshot`), so `decode` is not used."""
+    return Call("GET", f"{_map(map_id)}/snapshots/{_seg(snapshot_id)}/download", _nothing, idempotent=True)
+
+
+# -------------------------------------------------------------------------------------- downloads
+
+
+def part_path(dest: str | os.PathLike[str]) -> tuple[Path, Path]:
+    """(destination, its temporary `.part` sibling): a download lands whole or not at all."""
+    path = Path(dest)
+    return path, path.with_name(path.name + ".part")
+
+
+def finish_download(response: httpx.Response, written: int, path: Path, part: Path) -> Path:
+    """Move the finished `.part` into place after checking its length against `Content-Length`.
+
+    Raises:
+        httpx.ReadError: fewer (or more) bytes than announced; the part is removed.
+    """
+    expected = response.headers.get("Content-Length")
+    if expected is not None and int(expected) != written:
+        part.unlink(missing_ok=True)
+        raise httpx.ReadError(f"snapshot download cut short: {written} of {expected} bytes",
+                              request=response.request)
+    os.replace(part, path)
+    return path

@@ -1,0 +1,190 @@
+"""The synchronous client: one method per route of the cortexloc HTTP API (the service's
+docs/design/service.md §1), typed replies (`cortexloc_client.models`), refusals raised as
+`CortexlocError` (§2), 503s and unsent requests retried (`RetryPolicy`).
+
+Example:
+    >>> with Client("http://127.0.0.1:8000") as c:
+    ...     c.create_map("lab")
+    ...     answer = c.observe("lab", open("frame.jpg", "rb").read(), stream="robot1")
+    ...     answer.matches[0].seq if answer.matches else None
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from itertools import count
+from pathlib import Path
+from time import sleep
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import httpx
+
+from cortexloc_client import _core, models
+from cortexloc_client._core import Call, RetryPolicy, Settings
+from cortexloc_client.frames import ColourOrder
+
+if TYPE_CHECKING:
+    import numpy as np
+
+__all__ = ["Client"]
+
+T = TypeVar("T")
+
+
+class Client:
+    """A synchronous cortexloc client over one `httpx.Client` (connections are kept alive).
+
+    Keywords as `Settings` (base URL, API key, timeout, retry policy, idempotency keys), plus `transport`:
+    an httpx transport instead of the network (tests; `httpx.MockTransport`).
+    """
+
+    def __init__(self, base_url: str = Settings.base_url, *, api_key: str | None = None,
+                 timeout: float = Settings.timeout, retry: RetryPolicy | None = None,
+                 idempotency_keys: bool = True, transport: httpx.BaseTransport | None = None) -> None:
+        self.settings = Settings(base_url.rstrip("/"), api_key, timeout, retry or RetryPolicy(),
+                                 idempotency_keys)
+        self._http = httpx.Client(base_url=self.settings.base_url, headers=self.settings.headers(),
+                                  timeout=timeout, transport=transport)
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._http.close()
+
+    # ------------------------------------------------------------------------------- sending
+
+    def _request(self, call: Call[Any], *, stream: bool = False) -> httpx.Response:
+        request = self._http.build_request(call.method, call.path, params=call.params, json=call.json,
+                                           content=call.content, headers=call.headers)
+        for attempt in count():
+            try:
+                response = self._http.send(request, stream=stream)
+            except httpx.TransportError as e:
+                sleep(self.settings.retry.wait(call, attempt, error=e))
+                continue
+            if response.status_code < 400:
+                return response
+            response.read()
+            response.close()
+            sleep(self.settings.retry.wait(call, attempt, response=response))
+        raise AssertionError("unreachable")
+
+    def _send(self, call: Call[T]) -> T:
+        return call.decode(self._request(call))
+
+    # ---------------------------------------------------------------------------- operations
+
+    def health(self) -> models.Health:
+        """`GET /healthz`."""
+        return self._send(_core.health())
+
+    def ready(self) -> models.Readiness:
+        """`GET /readyz`; not retried. Raises `ServiceUnavailableError` (checks in `extra`) when not ready."""
+        return self._send(_core.ready())
+
+    # ---------------------------------------------------------------------------------- maps
+
+    def create_map(self, map_id: str | None = None, *, preset: str | None = None,
+                   seed: int | None = None, tm: Mapping[str, Any] | None = None,
+                   slsbh: Mapping[str, Any] | None = None, exclude_recent: int | None = None,
+                   revisit_threshold: float | None = None, thumbnails: bool | None = None) -> models.Map:
+        """`POST /v1/maps`: a new map; unset fields take the server's preset (a generated id if no id)."""
+        return self._send(_core.create_map(map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh,
+                                           exclude_recent=exclude_recent, revisit_threshold=revisit_threshold,
+                                           thumbnails=thumbnails))
+
+    def list_maps(self) -> list[models.Map]:
+        return self._send(_core.list_maps())
+
+    def get_map(self, map_id: str) -> models.Map:
+        return self._send(_core.get_map(map_id))
+
+    def update_map(self, map_id: str, *, revisit_threshold: float | None = None) -> models.Map:
+        """`PATCH /v1/maps/{map_id}`: change what may change after creation (the revisit threshold)."""
+        return self._send(_core.update_map(map_id, revisit_threshold))
+
+    def delete_map(self, map_id: str) -> None:
+        """`DELETE /v1/maps/{map_id}`, with its observations and snapshots."""
+        self._send(_core.delete_map(map_id))
+
+    def memory(self, map_id: str) -> models.Memory:
+        return self._send(_core.memory(map_id))
+
+    def reset_stream(self, map_id: str, stream: str) -> models.StreamReset:
+        """Break the stream's sequence: its next frame starts a new one."""
+        return self._send(_core.reset_stream(map_id, stream))
+
+    # -------------------------------------------------------------------------- observations
+
+    def observe(self, map_id: str, image: bytes | np.ndarray, *, learn: bool = True, top_k: int = 5,
+                stream: str = "default", label: str | None = None,
+                metadata: models.Metadata | Mapping[str, Any] | None = None, colour: ColourOrder = "rgb8",
+                idempotency_key: str | None = None) -> models.Observation:
+        """`POST /v1/maps/{map_id}/observations`: one frame in, ranked matches (and the place) out.
+
+        Args:
+            image: JPEG, PNG, WebP or BMP bytes, or a raw frame as an array: (H, W, 3) uint8 in `colour`
+                order, (H, W) uint8 (mono8) or (H, W) uint16 (mono16).
+            learn: True maps (stored, learned); False localises (nothing stored changes).
+            top_k: matches to return (0 skips ranking).
+            stream: one per camera or robot; frames of a stream must be posted in order, one at a time.
+            label: stored and returned with matches (<= 200 characters).
+            metadata: `{"stamp": ..., "pose": {"x", "y", "yaw", "frame_id"}}` or any small JSON object.
+            colour: channel order of an (H, W, 3) array: `rgb8` or `bgr8` (OpenCV, ROS `bgr8` images).
+            idempotency_key: this post's key; default a fresh UUID (unless `idempotency_keys=False`).
+        """
+        return self._send(_core.observe(self.settings, map_id, image, learn=learn, top_k=top_k,
+                                        stream=stream, label=label, metadata=metadata, colour=colour,
+                                        idempotency_key=idempotency_key))
+
+    def get_observation(self, map_id: str, seq: int) -> models.StoredObservation:
+        """`GET /v1/maps/{map_id}/observations/{seq}`: a learned observation."""
+        return self._send(_core.get_observation(map_id, seq))
+
+    def list_observations(self, map_id: str, *, after_seq: int = 0,
+                          limit: int = 100) -> models.StoredObservationList:
+        """`GET /v1/maps/{map_id}/observations`: learned observations with seq > `after_seq`, in seq
+        order, at most `limit` (<= 500); continue with `after_seq=page.next_after_seq`."""
+        return self._send(_core.list_observations(map_id, after_seq, limit))
+
+    def thumbnail(self, map_id: str, seq: int) -> bytes:
+        """`GET /v1/maps/{map_id}/observations/{seq}/thumbnail`: the stored JPEG thumbnail."""
+        return self._send(_core.thumbnail(map_id, seq))
+
+    # ----------------------------------------------------------------------------- snapshots
+
+    def create_snapshot(self, map_id: str) -> models.Snapshot:
+        return self._send(_core.create_snapshot(map_id))
+
+    def list_snapshots(self, map_id: str) -> list[models.Snapshot]:
+        """Newest first."""
+        return self._send(_core.list_snapshots(map_id))
+
+    def restore_snapshot(self, map_id: str, snapshot_id: str) -> models.RestoredMap:
+        """Roll the map back (the present is kept in a `pre-restore` snapshot first)."""
+        return self._send(_core.restore_snapshot(map_id, snapshot_id))
+
+    def download_snapshot(self, map_id: str, snapshot_id: str, dest: str | os.PathLike[str]) -> Path:
+        """Stream the snapshot's tar into `dest` (through `dest.part`, moved into place when complete).
+
+        Returns:
+            `dest` as a Path.
+        """
+        path, part = _core.part_path(dest)
+        response = self._request(_core.download_snapshot(map_id, snapshot_id), stream=True)
+        written = 0
+        try:
+            with part.open("wb") as f:
+                for chunk in response.iter_bytes():
+                    written += f.write(chunk)
+        except BaseException:
+            part.unlink(missing_ok=True)
+            raise
+        finally:
+            response.close()
+        return _core.finish_download(response, written, path, part)

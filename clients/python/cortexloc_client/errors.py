@@ -1,0 +1,144 @@
+"""Refusals of the service as exceptions: an `application/problem+json` reply (the service's
+docs/design/service.md §2) becomes a `CortexlocError`, or the subclass of its status.
+
+Example:
+    >>> try:
+    ...     client.get_map("nowhere")
+    ... except NotFoundError as e:
+    ...     print(e.status, e.slug, e.detail, e.extra.get("map_id"))
+    404 map-not-found no map 'nowhere' nowhere
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import httpx
+from pydantic import ValidationError
+
+from cortexloc_client.models import Problem
+
+__all__ = [
+    "BadRequestError",
+    "ConflictError",
+    "CortexlocError",
+    "InsufficientStorageError",
+    "NotFoundError",
+    "PayloadTooLargeError",
+    "ServerError",
+    "ServiceUnavailableError",
+    "UnauthorizedError",
+    "UnprocessableError",
+    "UnsupportedMediaTypeError",
+    "error_from_response",
+]
+
+TYPE_PREFIX = "urn:cortexloc:problem:"
+
+
+class CortexlocError(Exception):
+    """A refusal by the service.
+
+    Attributes:
+        status: the HTTP status.
+        problem: the problem+json body, or None for a reply that was not one (e.g. a proxy's HTML page).
+        type: the problem type (`urn:cortexloc:problem:<slug>`), or None.
+        slug: the last part of `type` (`map-not-found`, `overloaded`, ...), or None.
+        title: fixed per slug, or None.
+        detail: the specific, human-readable sentence (the body's text when not problem+json).
+        instance: the request path, or None.
+        request_id: the service's id of the request (quote it when reporting a 500).
+        extra: the slug's members (`errors`, `map_id`, `max_bytes`, `retry_after`, ...).
+        retry_after: seconds from the `Retry-After` header, when it holds a number.
+    """
+
+    def __init__(self, status: int, problem: Problem | None = None, *, detail: str = "",
+                 request_id: str | None = None, retry_after: float | None = None) -> None:
+        self.status = status
+        self.problem = problem
+        self.type = problem.type if problem else None
+        self.slug = self.type[len(TYPE_PREFIX):] if self.type and self.type.startswith(TYPE_PREFIX) else None
+        self.title = problem.title if problem else None
+        self.detail = problem.detail if problem else detail
+        self.instance = problem.instance if problem else None
+        self.request_id = (problem.request_id if problem else None) or request_id
+        self.extra: dict[str, Any] = dict(problem.model_extra or {}) if problem else {}
+        self.retry_after = retry_after
+        super().__init__(f"{status} {self.slug or self.title or 'error'}: {self.detail}")
+
+
+class BadRequestError(CortexlocError):
+    """400 `invalid-parameter`: `extra["errors"]` lists `{location, name, message}`."""
+
+
+class UnauthorizedError(CortexlocError):
+    """401 `unauthorized`: a write (or a download) without the server's API key."""
+
+
+class NotFoundError(CortexlocError):
+    """404 `map-not-found`, `snapshot-not-found`, `observation-not-found`, `not-found`."""
+
+
+class ConflictError(CortexlocError):
+    """409 `map-exists`, `map-limit`, `map-full`, `snapshot-invalid`."""
+
+
+class PayloadTooLargeError(CortexlocError):
+    """413 `payload-too-large`, `image-too-large`."""
+
+
+class UnsupportedMediaTypeError(CortexlocError):
+    """415 `unsupported-media-type`: `extra["allowed"]`, `extra["detected"]`."""
+
+
+class UnprocessableError(CortexlocError):
+    """422: an undecodable or degenerate image, a decompression bomb, an invalid map configuration."""
+
+
+class ServerError(CortexlocError):
+    """5xx not covered below (500 `internal-error`: quote `request_id`)."""
+
+
+class ServiceUnavailableError(ServerError):
+    """503 `not-ready`, `map-unavailable`, `overloaded`, still refused after the client's retries."""
+
+
+class InsufficientStorageError(ServerError):
+    """507 `insufficient-storage`: the server's disk is full; nothing was stored."""
+
+
+#: status -> exception class; anything else >= 500 is a `ServerError`, < 500 a `CortexlocError`.
+STATUS_ERRORS: dict[int, type[CortexlocError]] = {
+    400: BadRequestError,
+    401: UnauthorizedError,
+    404: NotFoundError,
+    409: ConflictError,
+    413: PayloadTooLargeError,
+    415: UnsupportedMediaTypeError,
+    422: UnprocessableError,
+    503: ServiceUnavailableError,
+    507: InsufficientStorageError,
+}
+
+
+def retry_after_seconds(value: str | None) -> float | None:
+    """The `Retry-After` header as seconds (the service sends seconds); None if absent or a date."""
+    if value is None:
+        return None
+    try:
+        return max(float(value), 0.0)
+    except ValueError:
+        return None
+
+
+def error_from_response(response: httpx.Response) -> CortexlocError:
+    """The exception for a reply with status >= 400 (its body must have been read)."""
+    status = response.status_code
+    cls = STATUS_ERRORS.get(status, ServerError if status >= 500 else CortexlocError)
+    try:
+        problem: Problem | None = Problem.model_validate_json(response.content)
+    except ValidationError:
+        problem = None
+    return cls(status, problem, detail=response.text[:500] or response.reason_phrase,
+               request_id=response.headers.get("X-Request-ID"),
+               retry_after=retry_after_seconds(response.headers.get("Retry-After")))

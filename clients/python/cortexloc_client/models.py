@@ -1,0 +1,308 @@
+"""Typed replies of the cortexloc HTTP API (the service's docs/design/service.md §1, §2), in one module so
+they can be aligned with the server's schemas (`/openapi.json`) in one place.
+
+Every model accepts fields it does not declare (`extra="allow"`, kept in `model_extra`): a newer server
+may add members without breaking an older client. Fields the server may not send yet (the sequence-level
+`place`, per-observation `metadata`, a map's `revisit_threshold`) are optional and default to None.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+__all__ = [
+    "CheckResult",
+    "Health",
+    "IndexMemory",
+    "Map",
+    "MapList",
+    "MapParams",
+    "Match",
+    "Memory",
+    "Metadata",
+    "Observation",
+    "Place",
+    "Pose",
+    "Problem",
+    "Readiness",
+    "RestoredMap",
+    "SequenceStats",
+    "Snapshot",
+    "SnapshotList",
+    "StorageMemory",
+    "StoredObservation",
+    "StoredObservationList",
+    "StreamReset",
+    "StreamsMemory",
+    "TmMemory",
+    "Versions",
+]
+
+
+class _Reply(BaseModel):
+    model_config = ConfigDict(extra="allow", frozen=True)
+
+
+# ------------------------------------------------------------------------------------ operations
+
+
+class Health(_Reply):
+    """`GET /healthz`: the process answers."""
+
+    status: str
+
+
+class CheckResult(_Reply):
+    """One readiness check: `status` is `pass`, `warn` or `fail`; its details are extra fields."""
+
+    status: Literal["pass", "warn", "fail"]
+    warning: str | None = None
+    error: str | None = None
+
+
+class Readiness(_Reply):
+    """`GET /readyz` when ready (a 503 `not-ready` problem otherwise)."""
+
+    status: str
+    checks: dict[str, CheckResult]
+    warnings: list[str] = Field(default_factory=list)
+
+
+class Problem(_Reply):
+    """RFC 9457 `application/problem+json`; the slug's members (`errors`, `map_id`, ...) are extra."""
+
+    type: str
+    title: str
+    status: int
+    detail: str
+    instance: str | None = None
+    request_id: str | None = None
+
+
+# ------------------------------------------------------------------------------------------ maps
+
+
+class MapParams(_Reply):
+    """The parameters frozen into a map: TM and sLSBH sections with NuPIC names."""
+
+    tm: dict[str, Any]
+    slsbh: dict[str, Any]
+    seed: int
+    exclude_recent: int
+
+
+class Map(_Reply):
+    """A map resource (`POST /v1/maps`, `GET /v1/maps/{map_id}`, `PATCH ...`)."""
+
+    map_id: str
+    created_at: str
+    state: Literal["ready", "recovering", "failed"]
+    state_reason: str | None = None
+    preset: str
+    params: MapParams
+    encoder: str
+    projection_sha256: str
+    observations: int
+    last_seq: int
+    streams: list[str]
+    warnings: list[str] = Field(default_factory=list)
+    recovery: dict[str, Any] | None = None
+    snapshot_error: dict[str, Any] | None = None
+    #: Confidence at or above which a place is called a revisit; None where the server has no such knob.
+    revisit_threshold: float | None = None
+    #: A small JPEG is kept with each learned observation (chosen at creation, frozen).
+    thumbnails: bool = False
+
+
+class MapList(_Reply):
+    maps: list[Map]
+
+
+class RestoredMap(Map):
+    """`POST .../snapshots/{snapshot_id}/restore`: the map as restored."""
+
+    discarded_observations: int
+
+
+class StreamReset(_Reply):
+    """`POST /v1/maps/{map_id}/streams/{stream}/reset`."""
+
+    stream: str
+    had_context: bool
+
+
+class TmMemory(_Reply):
+    columns: int
+    cells_per_column: int
+    cells: int
+    max_segments_per_cell: int
+    max_synapses_per_segment: int
+    segments: int
+    segment_capacity: int
+    synapses: int
+    synapse_capacity: int
+    allocated_bytes: int
+    evicted_segments_total: int
+    overrun_synapses_total: int
+
+
+class IndexMemory(_Reply):
+    observations: int
+    max_observations: int
+    postings: int
+    bytes: int
+
+
+class StreamsMemory(_Reply):
+    count: int
+    max: int
+    bytes: int
+
+
+class StorageMemory(_Reply):
+    db_bytes: int
+    wal_bytes: int
+    snapshots_bytes: int
+
+
+class Memory(_Reply):
+    """`GET /v1/maps/{map_id}/memory`: exact sizes, counts and caps."""
+
+    tm: TmMemory
+    index: IndexMemory
+    streams: StreamsMemory
+    projection_bytes: int
+    storage: StorageMemory
+    process_rss_bytes: int
+
+
+# ---------------------------------------------------------------------------------- observations
+
+
+class Pose(_Reply):
+    """A planar pose in a named frame (metres, radians)."""
+
+    x: float
+    y: float
+    yaw: float | None = None
+    frame_id: str | None = None
+
+
+class Metadata(_Reply):
+    """Per-observation metadata: a `stamp`, a `pose`, or any other small JSON members (extra fields).
+
+    Sent with `Client.observe(..., metadata=...)`; stored with the row and returned in matches and places.
+    """
+
+    stamp: float | str | None = None
+    pose: Pose | None = None
+
+
+class SequenceStats(_Reply):
+    """The stream's Temporal Memory step for this frame."""
+
+    step: int
+    active_columns: int
+    predicted_columns: int
+    bursting_columns: int
+    winner_cells: int
+
+
+class Match(_Reply):
+    """One earlier observation, ranked by the Dice score of shared winner cells."""
+
+    rank: int
+    observation_id: str
+    seq: int
+    stream: str
+    label: str | None = None
+    created_at: str
+    overlap: int
+    score: float
+    metadata: Metadata | None = None
+
+
+class Place(_Reply):
+    """The sequence-level answer: where the stream is, how sure, and whether it is a revisit."""
+
+    seq: int | None = None
+    observation_id: str | None = None
+    stream: str | None = None
+    label: str | None = None
+    confidence: float
+    revisit: bool
+    support: int | None = None
+    metadata: Metadata | None = None
+
+
+class Versions(_Reply):
+    api: str
+    code: str
+    encoder: str
+    weights: str
+    projection: str
+    map_seq: int
+
+
+class Observation(_Reply):
+    """`POST /v1/maps/{map_id}/observations`: the frame's matches and, with learning, its identity.
+
+    `observation_id` and `seq` are None unless the frame was learned. `timings_ms` has one entry per
+    stage (decode, encode, hash, tm, search, store, total).
+    """
+
+    request_id: str | None = None
+    map_id: str
+    stream: str
+    learned: bool
+    observation_id: str | None = None
+    seq: int | None = None
+    sequence: SequenceStats
+    matches: list[Match]
+    timings_ms: dict[str, float]
+    versions: Versions
+    place: Place | None = None
+    metadata: Metadata | None = None
+
+
+class StoredObservation(_Reply):
+    """`GET /v1/maps/{map_id}/observations/{seq}`: one learned observation as stored."""
+
+    observation_id: str
+    seq: int
+    stream: str
+    label: str | None = None
+    created_at: str
+    image_sha256: str | None = None
+    metadata: Metadata | None = None
+    has_thumbnail: bool | None = None
+
+
+class StoredObservationList(_Reply):
+    """`GET /v1/maps/{map_id}/observations`: a page in seq order; `next_after_seq` continues it (None:
+    nothing after this page)."""
+
+    observations: list[StoredObservation]
+    next_after_seq: int | None = None
+
+
+# ------------------------------------------------------------------------------------- snapshots
+
+
+class Snapshot(_Reply):
+    """A snapshot resource: a consistent cut of the map at `seq`."""
+
+    snapshot_id: str
+    seq: int
+    kind: Literal["manual", "auto", "pre-restore"]
+    created_at: str
+    bytes: int
+    manifest_sha256: str
+
+
+class SnapshotList(_Reply):
+    """Newest first."""
+
+    snapshots: list[Snapshot]

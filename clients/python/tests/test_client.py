@@ -1,0 +1,205 @@
+"""`Client` against a real `cortexloc serve` (tests/conftest.py): maps, observations, snapshots, errors."""
+
+from __future__ import annotations
+
+import tarfile
+import uuid
+
+import numpy as np
+import pytest
+
+from cortexloc_client import (
+    BadRequestError,
+    Client,
+    ConflictError,
+    NotFoundError,
+    UnauthorizedError,
+    UnprocessableError,
+    UnsupportedMediaTypeError,
+    models,
+)
+
+
+def test_health_and_readiness(client: Client) -> None:
+    assert client.health().status == "ok"
+    ready = client.ready()
+    assert ready.status == "ready"
+    # No AlexNet weights are installed for the tests' server, so its default backbone is the pretrained
+    # EfficientNet-Lite0 (docs/design/service.md §8): nothing to warn about.
+    assert ready.checks["encoder"].status == "pass"
+    assert ready.checks["encoder"].model_extra["weights"] == "pretrained"
+
+
+def test_a_map_is_created_listed_read_and_deleted(client: Client, tiny_map: str) -> None:
+    got = client.get_map(tiny_map)
+    assert isinstance(got, models.Map)
+    assert (got.map_id, got.state, got.observations, got.last_seq) == (tiny_map, "ready", 0, 0)
+    assert got.params.tm["columnDimensions"] == 128 and got.params.slsbh["k"] == 64
+    assert tiny_map in [m.map_id for m in client.list_maps()]
+    memory = client.memory(tiny_map)
+    assert memory.tm.columns == 128 and memory.index.observations == 0 and memory.process_rss_bytes > 0
+
+    client.delete_map(tiny_map)
+    with pytest.raises(NotFoundError) as e:
+        client.get_map(tiny_map)
+    assert (e.value.status, e.value.slug, e.value.extra["map_id"]) == (404, "map-not-found", tiny_map)
+    client.create_map(tiny_map, tm={"columnDimensions": 128}, slsbh={"k": 64})  # for the fixture's delete
+
+
+def test_a_revisited_place_is_the_first_match(client: Client, tiny_map: str, make_frame) -> None:
+    seqs = {}
+    for place in range(5):
+        answer = client.observe(tiny_map, make_frame(place), top_k=3, label=f"place {place}")
+        assert answer.learned and answer.seq is not None and answer.observation_id is not None
+        seqs[place] = answer.seq
+    client.reset_stream(tiny_map, "default")
+    for place in range(3):  # the robot drives the loop again, localising
+        answer = client.observe(tiny_map, make_frame(place), learn=False, top_k=3)
+        assert not answer.learned and answer.seq is None
+        if place > 0:  # the first frame after a reset has no context to recall its successor with
+            assert answer.matches[0].seq == seqs[place] and answer.matches[0].label == f"place {place}"
+    assert [m.rank for m in answer.matches] == [1, 2, 3]
+    assert answer.versions.api == "v1" and answer.versions.map_seq == seqs[4]
+    assert client.get_map(tiny_map).observations == 5
+
+
+def test_a_stream_reset_ends_its_context(client: Client, tiny_map: str, make_frame) -> None:
+    client.observe(tiny_map, make_frame(0), stream="cam0")
+    assert client.reset_stream(tiny_map, "cam0") == models.StreamReset(stream="cam0", had_context=True)
+    assert client.reset_stream(tiny_map, "cam0").had_context is False
+    assert client.observe(tiny_map, make_frame(1), stream="cam0").sequence.step == 0
+
+
+def test_refusals_become_typed_exceptions(client: Client, server: str, tiny_map: str) -> None:
+    with pytest.raises(UnsupportedMediaTypeError) as e:
+        client.observe(tiny_map, b"not an image")
+    assert e.value.status == 415 and e.value.slug == "unsupported-media-type"
+    assert "image/jpeg" in e.value.extra["allowed"] and e.value.request_id
+    assert e.value.problem is not None and e.value.problem.instance == f"/v1/maps/{tiny_map}/observations"
+
+    with pytest.raises(ConflictError) as e:
+        client.create_map(tiny_map)
+    assert e.value.slug == "map-exists"
+
+    with pytest.raises(UnprocessableError) as e:
+        client.create_map(tm={"activationThreshold": 2, "minThreshold": 9})
+    assert e.value.slug == "invalid-configuration" and e.value.extra["errors"]
+
+    with pytest.raises(BadRequestError) as e:
+        client.observe(tiny_map, b"", top_k=10_000)
+    assert e.value.extra["errors"][0]["name"] == "top_k"
+
+    with Client(server) as anonymous, pytest.raises(UnauthorizedError) as e:
+        anonymous.create_snapshot(tiny_map)
+    assert e.value.slug == "unauthorized"
+    assert client.list_snapshots(tiny_map) == []  # nothing was taken
+
+
+def test_snapshots_round_trip(client: Client, tiny_map: str, make_frame, tmp_path) -> None:
+    for place in range(3):
+        client.observe(tiny_map, make_frame(place))
+    snap = client.create_snapshot(tiny_map)
+    assert (snap.seq, snap.kind) == (3, "manual")
+    for place in range(3, 5):
+        client.observe(tiny_map, make_frame(place))
+    assert [s.snapshot_id for s in client.list_snapshots(tiny_map)] == [snap.snapshot_id]
+
+    tar_path = client.download_snapshot(tiny_map, snap.snapshot_id, tmp_path / "snap.tar")
+    assert not (tmp_path / "snap.tar.part").exists()
+    with tarfile.open(tar_path) as tar:
+        assert {"manifest.json", "map.sqlite", "memory.npz", "projection.npy"} <= set(tar.getnames())
+
+    restored = client.restore_snapshot(tiny_map, snap.snapshot_id)
+    assert (restored.map_id, restored.observations, restored.discarded_observations) == (tiny_map, 3, 2)
+    kinds = sorted(s.kind for s in client.list_snapshots(tiny_map))
+    assert kinds == ["manual", "pre-restore"]
+    with pytest.raises(NotFoundError) as e:
+        client.restore_snapshot(tiny_map, "no-such-snapshot")
+    assert e.value.slug == "snapshot-not-found"
+    with pytest.raises(NotFoundError):
+        client.download_snapshot(tiny_map, "no-such-snapshot", tmp_path / "none.tar")
+    assert not (tmp_path / "none.tar").exists() and not (tmp_path / "none.tar.part").exists()
+
+
+# ------------------------------------------------------------------ where and what, raw frames, retries
+
+
+def _drive_a_loop(client: Client, map_id: str, make_frame) -> dict[int, int]:
+    seqs = {}
+    for place in range(5):
+        pose = {"x": float(place), "y": 0.0, "yaw": 0.0, "frame_id": "map"}
+        answer = client.observe(map_id, make_frame(place), label=f"place {place}",
+                                metadata={"stamp": 100.0 + place, "pose": pose})
+        seqs[place] = answer.seq
+    client.reset_stream(map_id, "default")
+    return seqs
+
+
+def test_metadata_is_stored_and_returned(client: Client, tiny_map: str, make_frame) -> None:
+    seqs = _drive_a_loop(client, tiny_map, make_frame)
+    answer = client.observe(tiny_map, make_frame(9), metadata=models.Metadata(stamp=7.5, note="dock"))
+    assert answer.metadata is not None and answer.metadata.stamp == 7.5
+    assert answer.metadata.model_extra == {"note": "dock"}
+    for place in range(3):
+        answer = client.observe(tiny_map, make_frame(place), learn=False)
+    best = answer.matches[0]
+    assert best.seq == seqs[2] and best.metadata is not None and best.metadata.stamp == 102.0
+    assert best.metadata.pose == models.Pose(x=2.0, y=0.0, yaw=0.0, frame_id="map")
+    page = client.list_observations(tiny_map, after_seq=seqs[0], limit=2)
+    assert [o.seq for o in page.observations] == [seqs[1], seqs[2]] and page.next_after_seq == seqs[2]
+    assert [o.metadata.pose.x for o in page.observations if o.metadata and o.metadata.pose] == [1.0, 2.0]
+
+
+def test_a_repeated_idempotency_key_learns_once(client: Client, tiny_map: str, make_frame) -> None:
+    key = uuid.uuid4().hex
+    first = client.observe(tiny_map, make_frame(0), idempotency_key=key)
+    again = client.observe(tiny_map, make_frame(0), idempotency_key=key)
+    assert again == first  # the first reply, as it was sent
+    assert client.get_map(tiny_map).observations == 1
+    other = client.observe(tiny_map, make_frame(0))  # a fresh key: a new observation
+    assert other.seq != first.seq
+    with pytest.raises(UnprocessableError) as refused:  # the key with another frame
+        client.observe(tiny_map, make_frame(1), idempotency_key=key)
+    assert refused.value.slug == "idempotency-key-reused"
+    assert client.get_map(tiny_map).observations == 2
+
+
+def test_arrays_are_accepted_as_raw_frames(client: Client, tiny_map: str, make_picture) -> None:
+    rgb = make_picture(3)
+    learned = client.observe(tiny_map, rgb)
+    assert learned.learned
+    client.reset_stream(tiny_map, "default")
+    as_rgb = client.observe(tiny_map, rgb, learn=False)
+    client.reset_stream(tiny_map, "default")
+    # The same picture as BGR with colour="bgr8" is the same frame: the same answer.
+    as_bgr = client.observe(tiny_map, np.ascontiguousarray(rgb[:, :, ::-1]), colour="bgr8", learn=False)
+    assert as_bgr.matches[0].seq == learned.seq
+    assert as_bgr.sequence == as_rgb.sequence and as_bgr.matches == as_rgb.matches
+    grey = rgb.mean(axis=2)
+    assert client.observe(tiny_map, grey.astype(np.uint8)).learned
+    assert client.observe(tiny_map, (grey * 257).astype(np.uint16)).learned
+    assert client.get_map(tiny_map).observations == 3
+
+
+def test_a_stored_observation_and_its_thumbnail(client: Client, tiny_params: dict, make_frame) -> None:
+    map_id = f"t-{uuid.uuid4().hex[:10]}"
+    assert client.create_map(map_id, thumbnails=True, **tiny_params).thumbnails is True
+    try:
+        posted = client.observe(map_id, make_frame(1), label="dock", metadata={"stamp": 1.5})
+        assert posted.seq is not None
+        stored = client.get_observation(map_id, posted.seq)
+        assert (stored.observation_id, stored.seq) == (posted.observation_id, posted.seq)
+        assert stored.label == "dock" and stored.has_thumbnail is True
+        assert stored.metadata is not None and stored.metadata.stamp == 1.5
+        assert client.thumbnail(map_id, posted.seq)[:3] == b"\xff\xd8\xff"
+        with pytest.raises(NotFoundError):
+            client.get_observation(map_id, posted.seq + 100)
+    finally:
+        client.delete_map(map_id)
+
+
+def test_ros_stream_names_with_a_slash(client: Client, tiny_map: str, make_frame) -> None:
+    answer = client.observe(tiny_map, make_frame(0), stream="robot1/cam0")
+    assert answer.stream == "robot1/cam0"
+    assert client.reset_stream(tiny_map, "robot1/cam0").had_context is True
+    assert "robot1/cam0" in client.get_map(tiny_map).streams

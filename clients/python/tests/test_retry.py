@@ -1,0 +1,210 @@
+"""Retries, idempotency keys and request shapes, against `httpx.MockTransport` (no server): what is sent
+again, after how long, with which key; what is never sent again."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import httpx
+import numpy as np
+import pytest
+
+from cortexloc_client import (
+    AsyncClient,
+    Client,
+    CortexlocError,
+    RetryPolicy,
+    ServerError,
+    ServiceUnavailableError,
+    aio,
+    client,
+)
+
+OBSERVATION = {"map_id": "lab", "stream": "default", "learned": True, "observation_id": "o-1", "seq": 1,
+               "sequence": {"step": 0, "active_columns": 8, "predicted_columns": 0, "bursting_columns": 8,
+                            "winner_cells": 8},
+               "matches": [], "timings_ms": {"total": 1.0},
+               "versions": {"api": "v1", "code": "0", "encoder": "e", "weights": "random",
+                            "projection": "sha256:0", "map_seq": 1}}
+SNAPSHOT = {"snapshot_id": "s1", "seq": 1, "kind": "manual", "created_at": "now", "bytes": 1,
+            "manifest_sha256": "0"}
+OVERLOADED = {"type": "urn:cortexloc:problem:overloaded", "title": "Overloaded", "status": 503,
+              "detail": "the encoder queue is full", "instance": "/v1/maps/lab/observations",
+              "request_id": "r-1", "retry_after": 2}
+JPEG = b"\xff\xd8\xff\xe0 not really a jpeg"
+
+
+class Script:
+    """A MockTransport handler answering from a list (the last answer repeats); records the requests."""
+
+    def __init__(self, *answers: httpx.Response | Exception) -> None:
+        self.answers = list(answers)
+        self.requests: list[httpx.Request] = []
+
+    def __call__(self, request: httpx.Request) -> httpx.Response:
+        self.requests.append(request)
+        answer = self.answers.pop(0) if len(self.answers) > 1 else self.answers[0]
+        if isinstance(answer, Exception):
+            raise answer
+        return answer
+
+    def keys(self) -> list[str | None]:
+        return [r.headers.get("Idempotency-Key") for r in self.requests]
+
+
+def busy(retry_after: str | None = "2") -> httpx.Response:
+    headers = {"Retry-After": retry_after} if retry_after is not None else {}
+    return httpx.Response(503, json=OVERLOADED,
+                          headers={**headers, "Content-Type": "application/problem+json"})
+
+
+@pytest.fixture
+def waits(monkeypatch: pytest.MonkeyPatch) -> list[float]:
+    """The client's sleeps, recorded instead of slept (sync and async)."""
+    out: list[float] = []
+
+    async def asleep(s: float) -> None:
+        out.append(s)
+
+    monkeypatch.setattr(client, "sleep", out.append)
+    monkeypatch.setattr(aio, "sleep", asleep)
+    return out
+
+
+def make(script: Script, **kw) -> Client:
+    return Client("http://cortexloc.test", transport=httpx.MockTransport(script), **kw)
+
+
+def test_a_503_is_retried_after_retry_after_with_the_same_idempotency_key(waits) -> None:
+    script = Script(busy("2"), busy("3"), httpx.Response(200, json=OBSERVATION))
+    answer = make(script).observe("lab", JPEG)
+    assert answer.seq == 1
+    assert waits == [2.0, 3.0]
+    keys = script.keys()
+    assert len(keys) == 3 and keys[0] and len(set(keys)) == 1
+    assert all(r.content == JPEG and r.headers["Content-Type"] == "image/jpeg" for r in script.requests)
+
+
+def test_each_post_has_its_own_key_unless_given_or_turned_off(waits) -> None:
+    script = Script(httpx.Response(200, json=OBSERVATION))
+    c = make(script)
+    c.observe("lab", JPEG)
+    c.observe("lab", JPEG)
+    c.observe("lab", JPEG, idempotency_key="frame-0042")
+    make(script, idempotency_keys=False).observe("lab", JPEG)
+    first, second, given, off = script.keys()
+    assert first and second and first != second
+    assert (given, off) == ("frame-0042", None)
+
+
+def test_waits_are_capped_and_attempts_bounded(waits) -> None:
+    script = Script(busy("3600"))
+    with pytest.raises(ServiceUnavailableError) as e:
+        make(script, retry=RetryPolicy(attempts=3, max_wait_s=5.0)).create_snapshot("lab")
+    assert len(script.requests) == 3 and waits == [5.0, 5.0]
+    assert (e.value.status, e.value.slug, e.value.retry_after) == (503, "overloaded", 3600.0)
+    assert e.value.extra["retry_after"] == 2 and e.value.request_id == "r-1"
+
+
+def test_without_retry_after_the_waits_back_off(waits) -> None:
+    script = Script(busy(None), busy("soon"), busy(None), httpx.Response(200, json=SNAPSHOT))
+    make(script, retry=RetryPolicy(backoff_s=0.5)).create_snapshot("lab")
+    assert waits == [0.5, 1.0, 2.0]
+
+
+def test_other_refusals_and_readiness_are_not_retried(waits) -> None:
+    script = Script(httpx.Response(409, json={**OVERLOADED, "type": "urn:cortexloc:problem:map-full",
+                                              "status": 409}))
+    with pytest.raises(CortexlocError) as e:
+        make(script).observe("lab", JPEG)
+    assert e.value.status == 409 and len(script.requests) == 1
+    script = Script(busy("1"))
+    with pytest.raises(ServiceUnavailableError):
+        make(script).ready()
+    assert len(script.requests) == 1 and waits == []
+
+
+def test_transport_failures_are_retried_only_where_safe(waits) -> None:
+    reset = httpx.ReadError("connection reset")
+    refused = httpx.ConnectError("connection refused")
+    # A GET, and an observation with its key, may be sent again after the connection broke mid-way.
+    script = Script(reset, httpx.Response(200, json={"snapshots": [SNAPSHOT]}))
+    assert make(script).list_snapshots("lab")[0].snapshot_id == "s1"
+    assert len(script.requests) == 2
+    script = Script(reset, httpx.Response(200, json=OBSERVATION))
+    assert make(script).observe("lab", JPEG).seq == 1
+    assert len(script.requests) == 2 and len(set(script.keys())) == 1
+    # A POST without a key may have been done: never sent twice...
+    script = Script(reset)
+    with pytest.raises(httpx.ReadError):
+        make(script).create_snapshot("lab")
+    assert len(script.requests) == 1
+    script = Script(reset)
+    with pytest.raises(httpx.ReadError):
+        make(script, idempotency_keys=False).observe("lab", JPEG)
+    assert len(script.requests) == 1
+    # ...unless it never left: a refused connection is retried for any request.
+    script = Script(refused, httpx.Response(201, json=SNAPSHOT))
+    assert make(script).create_snapshot("lab").snapshot_id == "s1"
+    assert len(script.requests) == 2
+
+
+def test_a_reply_that_is_not_a_problem_still_raises(waits) -> None:
+    script = Script(httpx.Response(502, text="<html>Bad Gateway</html>"))
+    with pytest.raises(ServerError) as e:
+        make(script).get_map("lab")
+    assert e.value.status == 502 and e.value.slug is None and e.value.problem is None
+    assert "Bad Gateway" in e.value.detail
+
+
+def test_the_api_key_and_the_metadata_are_sent(waits) -> None:
+    script = Script(httpx.Response(200, json=OBSERVATION))
+    make(script, api_key="k3y").observe("lab", JPEG, stream="robot1/cam0", label="dock",
+                                        metadata={"stamp": 12.5, "pose": {"x": 1, "y": 2, "yaw": 0.5}})
+    sent = script.requests[0]
+    assert sent.headers["X-API-Key"] == "k3y"
+    assert sent.url.params["stream"] == "robot1/cam0" and sent.url.params["label"] == "dock"
+    assert json.loads(sent.url.params["metadata"]) == {"stamp": 12.5, "pose": {"x": 1, "y": 2, "yaw": 0.5}}
+
+
+@pytest.mark.parametrize(("array", "colour", "encoding"), [
+    (np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3), "rgb8", "rgb8"),
+    (np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3), "bgr8", "bgr8"),
+    (np.arange(6, dtype=np.uint8).reshape(2, 3), "rgb8", "mono8"),
+    (np.arange(6, dtype=np.uint16).reshape(2, 3) * 1000, "rgb8", "mono16"),
+    (np.arange(6, dtype=">u2").reshape(2, 3) * 1000, "rgb8", "mono16"),
+    (np.arange(2 * 3 * 3, dtype=np.uint8).reshape(3, 2, 3).transpose(1, 0, 2), "rgb8", "rgb8"),
+])
+def test_an_array_is_sent_as_a_raw_frame(waits, array: np.ndarray, colour, encoding: str) -> None:
+    script = Script(httpx.Response(200, json=OBSERVATION))
+    make(script).observe("lab", array, colour=colour)
+    sent = script.requests[0]
+    assert sent.headers["Content-Type"] == "application/octet-stream"
+    params = sent.url.params
+    assert (params["encoding"], params["width"], params["height"]) == (encoding, "3", "2")
+    expected = np.ascontiguousarray(array.astype("<u2") if array.dtype.itemsize == 2 else array).tobytes()
+    assert sent.content == expected
+
+
+@pytest.mark.parametrize("array", [np.zeros((2, 3, 4), np.uint8), np.zeros((2, 3), np.float32),
+                                   np.zeros((2, 3, 3), np.uint16)])
+def test_an_array_of_another_shape_or_type_is_refused_before_sending(waits, array: np.ndarray) -> None:
+    script = Script(httpx.Response(200, json=OBSERVATION))
+    with pytest.raises(ValueError, match="frame is an"):
+        make(script).observe("lab", array)
+    assert script.requests == []
+
+
+def test_the_async_client_retries_alike(waits) -> None:
+    script = Script(busy("1"), httpx.ReadError("reset"), httpx.Response(200, json=OBSERVATION))
+
+    async def post() -> str | None:
+        async with AsyncClient("http://cortexloc.test", transport=httpx.MockTransport(script)) as c:
+            return (await c.observe("lab", JPEG)).observation_id
+
+    assert asyncio.run(post()) == "o-1"
+    assert waits == [1.0, 1.0]  # Retry-After, then the second backoff step (0.5 x 2)
+    keys = script.keys()
+    assert len(keys) == 3 and keys[0] and len(set(keys)) == 1
+
