@@ -217,6 +217,11 @@ def list_observations(map_id: str, after_seq: int, limit: int) -> Call[models.St
                 params={"after_seq": str(int(after_seq)), "limit": str(int(limit))}, idempotent=True)
 
 
+def recent(map_id: str, limit: int, stream: str | None) -> Call[models.RecentAnswers]:
+    params = {"limit": str(int(limit)), **({"stream": stream} if stream is not None else {})}
+    return Call("GET", f"{_map(map_id)}/recent", _model(models.RecentAnswers), params=params, idempotent=True)
+
+
 def thumbnail(map_id: str, seq: int) -> Call[bytes]:
     return Call("GET", f"{_map(map_id)}/observations/{int(seq)}/thumbnail", _content, idempotent=True)
 

@@ -139,6 +139,12 @@ class AsyncClient:
         order, at most `limit` (<= 500); continue with `after_seq=page.next_after_seq`."""
         return await self._send(_core.list_observations(map_id, after_seq, limit))
 
+    async def recent(self, map_id: str, *, limit: int = 50,
+                     stream: str | None = None) -> models.RecentAnswers:
+        """`GET /v1/maps/{map_id}/recent`: the map's last answers (at most `limit`, of one `stream` if
+        given), oldest first; the service keeps them in memory only."""
+        return await self._send(_core.recent(map_id, limit, stream))
+
     async def thumbnail(self, map_id: str, seq: int) -> bytes:
         """`GET /v1/maps/{map_id}/observations/{seq}/thumbnail`: the stored JPEG thumbnail."""
         return await self._send(_core.thumbnail(map_id, seq))

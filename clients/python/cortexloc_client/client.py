@@ -152,6 +152,11 @@ class Client:
         order, at most `limit` (<= 500); continue with `after_seq=page.next_after_seq`."""
         return self._send(_core.list_observations(map_id, after_seq, limit))
 
+    def recent(self, map_id: str, *, limit: int = 50, stream: str | None = None) -> models.RecentAnswers:
+        """`GET /v1/maps/{map_id}/recent`: the map's last answers (at most `limit`, of one `stream` if
+        given), oldest first; the service keeps them in memory only."""
+        return self._send(_core.recent(map_id, limit, stream))
+
     def thumbnail(self, map_id: str, seq: int) -> bytes:
         """`GET /v1/maps/{map_id}/observations/{seq}/thumbnail`: the stored JPEG thumbnail."""
         return self._send(_core.thumbnail(map_id, seq))

@@ -91,6 +91,12 @@ class MapParams(_Reply):
     slsbh: dict[str, Any]
     seed: int
     exclude_recent: int
+    #: "tm", or "none" (the sLSBH code stands in for the winner cells: the memory's ablation).
+    memory: str | None = None
+    #: "dense" or "very-sparse": the sLSBH projection the map's size budget allowed.
+    projection: str | None = None
+    #: The sequence localiser's options, frozen with the map.
+    localiser: dict[str, Any] | None = None
 
 
 class Map(_Reply):
@@ -110,7 +116,9 @@ class Map(_Reply):
     warnings: list[str] = Field(default_factory=list)
     recovery: dict[str, Any] | None = None
     snapshot_error: dict[str, Any] | None = None
-    #: Confidence at or above which a place is called a revisit; None where the server has no such knob.
+    #: The backbone the map was made with (frozen): e.g. "alexnet", "efficientnet-lite0".
+    backbone: str | None = None
+    #: Confidence at or above which a place is called a revisit (changeable with `update_map`).
     revisit_threshold: float | None = None
     #: A small JPEG is kept with each learned observation (chosen at creation, frozen).
     thumbnails: bool = False
@@ -240,6 +248,7 @@ class Place(_Reply):
 class Versions(_Reply):
     api: str
     code: str
+    backbone: str | None = None
     encoder: str
     weights: str
     projection: str
@@ -306,3 +315,18 @@ class SnapshotList(_Reply):
     """Newest first."""
 
     snapshots: list[Snapshot]
+
+
+class RecentAnswer(_Reply):
+    """One answer of a map's recent ring: the observation reply as it was sent, and when."""
+
+    received_at: str
+    reply: Observation
+
+
+class RecentAnswers(_Reply):
+    """`GET /v1/maps/{map_id}/recent`: the map's latest answers, oldest first (in the service's memory)."""
+
+    map_id: str
+    capacity: int
+    answers: list[RecentAnswer]

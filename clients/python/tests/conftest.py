@@ -169,14 +169,10 @@ CONTRACT: list[tuple[type[BaseModel], str, str, int, str]] = [
     (models.Snapshot, "/v1/maps/{map_id}/snapshots", "post", 201, JSON),
     (models.SnapshotList, "/v1/maps/{map_id}/snapshots", "get", 200, JSON),
     (models.RestoredMap, "/v1/maps/{map_id}/snapshots/{snapshot_id}/restore", "post", 200, JSON),
-]
-
-
-#: Rows of routes the service does not serve yet (issue 15: `PATCH` of a map); checked in
-#: test_pending_server_features.py, moved into `CONTRACT` when served.
-PENDING_CONTRACT: list[tuple[type[BaseModel], str, str, int, str]] = [
     (models.Map, "/v1/maps/{map_id}", "patch", 200, JSON),
+    (models.RecentAnswers, "/v1/maps/{map_id}/recent", "get", 200, JSON),
 ]
+
 
 
 def _resolve(schema: dict[str, Any], spec: dict[str, Any]) -> dict[str, Any]:
@@ -262,12 +258,6 @@ def contract() -> Callable[[dict[str, Any], type[BaseModel] | None], list[str]]:
     """`contract(spec, model=None) -> mismatches` of the `CONTRACT` rows (those of `model`, or all)."""
     return lambda spec, model=None: contract_mismatches(
         spec, [row for row in CONTRACT if model is None or row[0] is model])
-
-
-@pytest.fixture
-def pending_contract() -> Callable[[dict[str, Any]], list[str]]:
-    """`pending_contract(spec) -> mismatches` of the `PENDING_CONTRACT` rows."""
-    return lambda spec: contract_mismatches(spec, PENDING_CONTRACT)
 
 
 @pytest.fixture

@@ -203,3 +203,37 @@ def test_ros_stream_names_with_a_slash(client: Client, tiny_map: str, make_frame
     assert answer.stream == "robot1/cam0"
     assert client.reset_stream(tiny_map, "robot1/cam0").had_context is True
     assert "robot1/cam0" in client.get_map(tiny_map).streams
+
+
+def _drive_a_route(client: Client, map_id: str, make_frame, places: int) -> dict[int, int]:
+    """Learn `places` frames as one route with poses; then break the stream's sequence."""
+    seqs = {}
+    for place in range(places):
+        pose = {"x": float(place), "y": 0.0, "yaw": 0.0, "frame_id": "map"}
+        answer = client.observe(map_id, make_frame(place), label=f"place {place}",
+                                metadata={"stamp": 100.0 + place, "pose": pose})
+        seqs[place] = answer.seq
+    client.reset_stream(map_id, "default")
+    return seqs
+
+
+def test_a_revisit_names_its_place(client: Client, tiny_map: str, make_frame) -> None:
+    seqs = _drive_a_route(client, tiny_map, make_frame, 12)
+    answers = [client.observe(tiny_map, make_frame(place), learn=False) for place in range(9)]
+    assert answers[0].place is None  # a stream's first frame claims nothing (warm-up)
+    place = answers[-1].place
+    assert isinstance(place, models.Place)
+    assert place.seq == seqs[8] and place.label == "place 8" and place.stream == "default"
+    assert 0.0 <= place.confidence <= 1.0 and place.support is not None and place.support >= 1
+    assert place.revisit is (place.confidence >= client.get_map(tiny_map).revisit_threshold)
+    assert place.metadata is not None and place.metadata.pose is not None and place.metadata.pose.x == 8.0
+    window = client.recent(tiny_map, limit=3)
+    assert [a.reply.place.seq if a.reply.place else None for a in window.answers][-1] == seqs[8]
+
+
+def test_the_revisit_threshold_can_be_changed(client: Client, tiny_map: str) -> None:
+    changed = client.update_map(tiny_map, revisit_threshold=0.7)
+    assert changed.revisit_threshold == 0.7
+    assert client.get_map(tiny_map).revisit_threshold == 0.7
+    with pytest.raises(UnprocessableError):
+        client.update_map(tiny_map, revisit_threshold=1.5)
