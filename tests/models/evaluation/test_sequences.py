@@ -162,10 +162,12 @@ def test_memory_methods_bring_their_ablations():
 def test_eval_images_command(tmp_path):
     db, q = write_sequences(tmp_path, n=20)
     out = tmp_path / "r.json"
+    # AlexNet without its weights (none in the tests): random ones, labelled so in the results
     r = CliRunner().invoke(app, ["eval", "images", "--db", str(db), "--query", str(q), "--resize", "squash",
                                  "--methods", "cosine,htm,openseqslam,cosine-seq", "--preset",
                                  "cortexloc-grid", "--s", "0.02", "--seeds", "2", "--ds", "6", "--cache",
-                                 str(tmp_path / "c"), "--json", str(out), "--plots", str(tmp_path / "p")])
+                                 str(tmp_path / "c"), "--json", str(out), "--plots", str(tmp_path / "p"),
+                                 "--backbone", "alexnet"])
     assert r.exit_code == 0, r.output
     payload = json.loads(out.read_text())
     assert list(payload["methods"]) == ["cosine", "slsbh", "htm", "openseqslam", "cosine-seq"]
