@@ -48,8 +48,9 @@ class CreateMap(BaseModel):
     tm: dict[str, Any] | None = Field(default=None, description="Temporal Memory overrides, NuPIC names")
     slsbh: dict[str, Any] | None = Field(default=None, description="sLSBH overrides: k, s, seed, adapt_tau")
     exclude_recent: int = Field(default=0, ge=0)
-    backbone: str | None = Field(default=None, description="alexnet | efficientnet-lite0 (default: the "
-                                 "service's, resolved at startup); frozen with the map")
+    backbone: str | None = Field(default=None, description="alexnet | efficientnet-lite0-s5 | "
+                                 "efficientnet-lite0 (default: the service's, resolved at startup); "
+                                 "frozen with the map")
     memory: str = Field(default="tm", description="tm | none (the sLSBH code is the winner-cell SDR: the "
                         "Temporal Memory left out)")
     revisit_threshold: float | None = Field(default=None, description="confidence at which `place.revisit`"

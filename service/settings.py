@@ -95,9 +95,9 @@ class Settings(BaseSettings):
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"] = "INFO"
     log_format: Literal["json", "text"] = "json"
     weights_path: Path | None = Field(None, description="AlexNet weights file (full or trimmed)")
-    backbone: str | None = Field(None, description="backbone of new maps (alexnet | efficientnet-lite0); "
-                                 "unset: alexnet when its real weights are installed, else "
-                                 "efficientnet-lite0 (resolved at startup)")
+    backbone: str | None = Field(None, description="backbone of new maps (alexnet | efficientnet-lite0-s5 | "
+                                 "efficientnet-lite0); unset: alexnet when its real weights are installed, "
+                                 "else efficientnet-lite0-s5 (resolved at startup)")
     allow_random_weights: bool = Field(True, description="serve (with a warning) on random weights")
     random_weights_seed: int = Field(0, ge=0, description="seed of the random fallback weights")
     device: Literal["cpu", "cuda"] = "cpu"

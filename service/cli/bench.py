@@ -45,7 +45,8 @@ def bench_tm(
 
 @app.command("encoder")
 def bench_encoder(
-    backbone: Annotated[str, typer.Option(help="a registered backbone: alexnet | efficientnet-lite0")]
+    backbone: Annotated[str, typer.Option(help="a registered backbone: alexnet | efficientnet-lite0-s5 | "
+                                                  "efficientnet-lite0")]
     = "alexnet",
     repeats: Annotated[int, typer.Option(min=1)] = 15,
     threads: Annotated[int, typer.Option(min=1, help="torch threads")] = 1,

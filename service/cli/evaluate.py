@@ -127,8 +127,10 @@ def eval_images(
                                             "ground_truth_new.npy (models/evaluation/ground_truth.py); "
                                             "indices count in each folder's sorted names, whole folders.",
                                             exists=True, dir_okay=False)] = None,
-    backbone: Annotated[str | None, typer.Option(help="a registered backbone: alexnet | efficientnet-lite0 "
-                                                      "(default: the service's)")] = None,
+    backbone: Annotated[str | None, typer.Option(help="a registered backbone: alexnet | "
+                                                      "efficientnet-lite0-s5 | efficientnet-lite0 "
+                                                      "(default: the service's, resolved as serve "
+                                                      "does)")] = None,
     resize: Annotated[str | None, typer.Option(help="crop | squash (default: the service's)")] = None,
     methods: Annotated[str, typer.Option(help="Comma-separated: cosine,slsbh,mcn,htm (one frame); "
                                           "openseqslam (the reference on grey pixels); cosine-seq,"
@@ -176,13 +178,14 @@ def eval_images(
     from models.evaluation import ground_truth, plots, sequences
     from models.evaluation import seqslam as seq
     from models.frontend import encoder as encoder_mod
+    from service.app import resolve_backbone
     from service.cli import service_eval
     from service.settings import Settings
 
     # The service's defaults, read from their one home each (docs/design/service.md §8,
     # models.frontend.encoder).
     preset = preset or Settings.model_fields["default_preset"].default
-    backbone = backbone or encoder_mod.default_conf["backbone"]
+    backbone = backbone or resolve_backbone(Settings.from_env()).backbone
     resize = resize or encoder_mod.default_conf["resize"]
     method_list = [m.strip() for m in methods.split(",") if m.strip()]
     service_list = [m for m in method_list if m in service_eval.METHODS]

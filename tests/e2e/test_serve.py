@@ -11,9 +11,9 @@ def test_a_looping_route_finds_its_revisit_first(server, http, make_frame):
         status, body = call(obs, frame(place))
         assert status == 200, body
         seqs[place] = body["seq"]
-        # no AlexNet weights installed: the service's default backbone is EfficientNet-Lite0, pretrained
+        # no AlexNet weights installed: the default backbone is EfficientNet-Lite0's stage 5, pretrained
         versions = body["versions"]
-        assert (versions["backbone"], versions["weights"]) == ("efficientnet-lite0", "pretrained")
+        assert (versions["backbone"], versions["weights"]) == ("efficientnet-lite0-s5", "pretrained")
     for place in range(3):  # the robot drives the loop again
         status, body = call(obs, frame(place))
         assert status == 200, body

@@ -105,8 +105,8 @@ def test_the_default_backbone_is_resolved_once_at_startup(tmp_path):
     from service.maps.params import map_option
     from service.settings import Settings
 
-    # no AlexNet weights are installed in the tests (conftest): EfficientNet-Lite0
-    assert resolve_backbone(Settings(data_dir=tmp_path)).backbone == "efficientnet-lite0"
+    # no AlexNet weights are installed in the tests (conftest): EfficientNet-Lite0's stage 5, pooled 2x2
+    assert resolve_backbone(Settings(data_dir=tmp_path)).backbone == "efficientnet-lite0-s5"
     weights = tmp_path / "alexnet.pth"
     weights.write_bytes(b"not read here")
     assert resolve_backbone(Settings(data_dir=tmp_path, weights_path=weights)).backbone == "alexnet"

@@ -11,8 +11,10 @@ one module:
         model = MyNet().eval().requires_grad_(False)
         return Backbone(model, model, "imagenet-0123abcd", "my-net", IMAGENET_MEAN, IMAGENET_STD)
 
-Registered here: `alexnet` (conv1-conv3, the paper's front end, `alexnet.py`) and `efficientnet-lite0`
-(evaluation, `efficientnet_lite0.py`).
+Registered here: `alexnet` (conv1-conv3, the paper's front end, `alexnet.py`), and in
+`efficientnet_lite0.py` two blocks of one pretrained network: `efficientnet-lite0-s5` (stage 5 pooled
+2x2, the service default without AlexNet's weights) and `efficientnet-lite0` (stage 7, kept for the
+maps that recorded it).
 
 Example:
     >>> bb = get("alexnet")({"weights_path": None, "random_seed": 0})
@@ -85,7 +87,7 @@ def _discover() -> None:
 
 
 def names() -> tuple[str, ...]:
-    """The registered backbone names, sorted (`alexnet`, `efficientnet-lite0`)."""
+    """The registered backbone names, sorted (`alexnet`, `efficientnet-lite0`, `efficientnet-lite0-s5`)."""
     _discover()
     return tuple(sorted(_REGISTRY))
 

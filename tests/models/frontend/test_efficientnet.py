@@ -172,6 +172,32 @@ def test_descriptor_shape_norm_and_determinism(model: effnet.EfficientNetLite0) 
     torch.testing.assert_close(single[0], d[1], atol=1e-5, rtol=1e-4)
 
 
+def test_the_two_registered_blocks_differ_in_descriptor_and_identity(model: effnet.EfficientNetLite0) -> None:
+    from models.frontend import backbones
+
+    x = _input(skdata.chelsea(), skdata.coffee())
+    s5 = backbones.get("efficientnet-lite0-s5")({})
+    s7 = backbones.get("efficientnet-lite0")({})
+    # Each identity names its block, so maps and snapshots never mix descriptors of the two.
+    assert (s7.arch, s5.arch) == ("efficientnet-lite0-stage7", "efficientnet-lite0-stage5-pool2")
+    assert s5.weights_id == s7.weights_id == "imagenet-57934424"
+    with torch.inference_mode():
+        d = s5.describe(x)
+        single = s5.describe(x[1:])
+        f5 = model.forward_features(x, "stage5")  # (2, 112, 14, 14)
+        # What a map that recorded `efficientnet-lite0` computes is unchanged: stage 7 as it was.
+        torch.testing.assert_close(s7.describe(x), model.descriptor(x))
+    # Stage 5 averaged over 2x2 cells by hand: (2, 112, 7, 7), flattened in (C, H, W) order.
+    by_hand = (f5[:, :, 0::2, 0::2] + f5[:, :, 1::2, 0::2] + f5[:, :, 0::2, 1::2] + f5[:, :, 1::2, 1::2]) / 4
+    by_hand = by_hand.flatten(1) / by_hand.flatten(1).norm(dim=1, keepdim=True)
+    assert d.shape == (2, 112 * 7 * 7) and d.dtype == torch.float32
+    torch.testing.assert_close(d, by_hand)
+    torch.testing.assert_close(d.norm(dim=1), torch.ones(2))
+    torch.testing.assert_close(single[0], d[1], atol=1e-5, rtol=1e-4)
+    with pytest.raises(ValueError, match="descriptor_pool"):
+        effnet.EfficientNetLite0(descriptor_pool=0)
+
+
 def test_noised_photo_is_closer_than_a_different_photo(model: effnet.EfficientNetLite0) -> None:
     cat, coffee = skdata.chelsea(), skdata.coffee()
     rng = np.random.default_rng(0)

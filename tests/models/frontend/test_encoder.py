@@ -138,6 +138,9 @@ def test_efficientnet_backbone_encodes():
     out = enc.encode(synthetic_jpegs(2), return_features=True)
     assert out.codes.shape == (2, 2 * slsbh.n_ones(32, 0.25))
     assert out.features.shape[1] == enc.feature_dim
+    s5 = Encoder({"backbone": "efficientnet-lite0-s5", "slsbh": {"k": 32}})
+    assert s5.identity.startswith("efficientnet-lite0-stage5-pool2/imagenet-") and s5.feature_dim == 5488
+    assert s5.encode(synthetic_jpegs(2), return_features=True).features.shape == (2, 5488)
 
 
 def test_weights_import_command_installs_and_refuses(tmp_path):

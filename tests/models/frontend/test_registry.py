@@ -38,12 +38,13 @@ def tiny_backbone() -> Iterator[str]:
     del backbones._REGISTRY["tiny-test"]
 
 
-def test_the_two_backbones_are_registered():
-    assert backbones.names() == ("alexnet", "efficientnet-lite0")
+def test_the_three_backbones_are_registered():
+    assert backbones.names() == ("alexnet", "efficientnet-lite0", "efficientnet-lite0-s5")
 
 
 def test_unknown_name_lists_the_known_ones():
-    with pytest.raises(ValueError, match="unknown backbone 'vgg'; known: alexnet, efficientnet-lite0"):
+    with pytest.raises(ValueError, match="unknown backbone 'vgg'; known: alexnet, efficientnet-lite0, "
+                                         "efficientnet-lite0-s5"):
         backbones.get("vgg")
 
 
@@ -70,4 +71,5 @@ def test_a_registered_backbone_is_usable_by_name_in_the_encoder(tiny_backbone):
 def test_cli_refuses_a_backbone_the_registry_does_not_know():
     r = CliRunner().invoke(app, ["bench", "encoder", "--backbone", "vgg"])
     assert r.exit_code == 2
-    assert "must be one of alexnet, efficientnet-lite0" in r.output
+    said = " ".join(r.output.replace("│", " ").split())  # the error box wraps long lines
+    assert "must be one of alexnet, efficientnet-lite0, efficientnet-lite0-s5" in said
