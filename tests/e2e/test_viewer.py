@@ -1,31 +1,28 @@
-"""The map viewer at /ui in a real headless browser (Debian's `chromium`): what a person sees.
+"""The map viewer at /ui in a real headless browser (Debian's `chromium`) against a real `cortexloc serve`:
+what a person sees (docs/design/service.md §1.7).
 
-Two services: a real `cortexloc serve` with frames posted (the maps, the recent answers, their order
-and columns), and a stub API that answers with the fields other parts of the service add (a sequence
-`place`, per-observation `metadata` poses, thumbnails, the stored rows), so the page is checked with them
-present as well as absent. Each test saves the browser's screenshot under `out/` for a person to look at.
+A robot maps a loop with poses on a map that keeps thumbnails, then drives its first part again,
+localising; the page must show the map, every answer in order with its sequence place (— while it
+has none), the thumbnails of learned rows and places, the trajectory with the revisit links and the
+sequence-match picture, each counted against the replies the service sent. The screenshot is saved as
+`out/viewer.png` for a person to look at.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 import subprocess
-import threading
-from collections.abc import Iterator
 from html.parser import HTMLParser
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
-from urllib.parse import parse_qs, urlparse
+from urllib.parse import quote
 
-import cv2
-import numpy as np
 import pytest
 
-from service.ui import STATIC_DIR
-
 OUT = Path(__file__).resolve().parents[2] / "out"
+NONE = "—"
 
 
 @pytest.fixture
@@ -46,110 +43,178 @@ def browse(chromium: str, url: str, profile: Path, screenshot: Path | None = Non
     if screenshot is not None:
         screenshot.parent.mkdir(parents=True, exist_ok=True)
         screenshot.unlink(missing_ok=True)
-        subprocess.run([*base, f"--screenshot={screenshot}", "--window-size=1280,1000", url],
+        subprocess.run([*base, f"--screenshot={screenshot}", "--window-size=1280,1100", url],
                        capture_output=True, timeout=120, check=True)
         assert screenshot.stat().st_size > 10_000
     return dom.stdout
 
 
-class Rows(HTMLParser):
-    """The rows of one table (by id) of a DOM dump: each row's attributes and its cells' text."""
+class Table(HTMLParser):
+    """One table (by id) of a DOM dump: each body row as {column: text}, a column named by its group
+    header where it has one ("sequence place/label"); an <img> cell reads "[img]"."""
 
     def __init__(self, html: str, table_id: str) -> None:
         super().__init__()
-        self.table_id, self.depth, self.in_body = table_id, 0, False
-        self.rows: list[tuple[dict[str, str | None], list[str]]] = []
-        self.header: list[str] = []
+        self.table_id, self.inside, self.part = table_id, False, ""
+        self.head: list[list[tuple[str, int]]] = []
+        self.body: list[list[str]] = []
         self._cell: list[str] | None = None
-        self._head = False
+        self._span = 1
         self.feed(html)
 
     def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
         a = dict(attrs)
         if tag == "table":
-            self.depth += 1 if (self.depth or a.get("id") == self.table_id) else 0
-        elif self.depth and tag in ("thead", "tbody"):
-            self._head = tag == "thead"
-        elif self.depth and tag == "tr" and not self._head:
-            self.rows.append((a, []))
-        elif self.depth and tag in ("td", "th"):
-            self._cell = []
-        elif self.depth and tag == "img" and self._cell is not None:
+            self.inside = a.get("id") == self.table_id
+        elif self.inside and tag in ("thead", "tbody"):
+            self.part = tag
+        elif self.inside and tag == "tr":
+            (self.head if self.part == "thead" else self.body).append([])
+        elif self.inside and tag in ("td", "th"):
+            self._cell, self._span = [], int(a.get("colspan") or 1)
+        elif self.inside and tag == "img" and self._cell is not None:
             self._cell.append("[img]")
 
     def handle_endtag(self, tag: str) -> None:
-        if tag == "table" and self.depth:
-            self.depth -= 1
-        elif self.depth and tag in ("td", "th") and self._cell is not None:
+        if tag == "table":
+            self.inside = False
+        elif self.inside and tag in ("td", "th") and self._cell is not None:
             value = " ".join("".join(self._cell).split())
-            if tag == "th" and self._head:
-                self.header.append(value)
-            elif self.rows:
-                self.rows[-1][1].append(value)
+            rows = self.head if self.part == "thead" else self.body
+            rows[-1].append((value, self._span) if self.part == "thead" else value)
             self._cell = None
 
     def handle_data(self, data: str) -> None:
         if self._cell is not None:
             self._cell.append(data)
 
+    @property
+    def columns(self) -> list[str]:
+        names = [n for n, _ in self.head[-1]]
+        if len(self.head) == 2:
+            groups = [g for g, span in self.head[0] for _ in range(span)]
+            names = [f"{g}/{n}" if g else n for g, n in zip(groups, names, strict=True)]
+        return names
 
-def by_header(rows: Rows) -> list[dict[str, str]]:
-    """Each data row as {column: text}; the recent table's two header rows name the last columns."""
-    names = rows.header[-len(rows.rows[0][1]):] if rows.rows else []
-    out = []
-    for _, cells in rows.rows:
-        row: dict[str, str] = {}
-        for name, cell in zip(names, cells, strict=True):
-            row[name if name not in row else f"match {name}"] = cell
-        out.append(row)
-    return out
-
-
-# ------------------------------------------------------------------------------- a real service
+    @property
+    def rows(self) -> list[dict[str, str]]:
+        return [dict(zip(self.columns, cells, strict=True)) for cells in self.body]
 
 
-def test_the_viewer_shows_a_running_services_map_and_its_answers_in_order(chromium, server, http,
-                                                                       make_frame, tmp_path):
-    assert http(f"{server}/v1/maps", json.dumps({"map_id": "yard"}).encode(), "application/json")[0] == 201
-    sent = []
-    for place in range(5):  # a mapping run, then a revisit of places 1-3 without learning
-        status, body = http(f"{server}/v1/maps/yard/observations?learn=true&stream=robot1&label=p{place}",
-                            make_frame(place))
-        assert status == 200
-        sent.append(body)
-    for place in (1, 2, 3):
-        status, body = http(f"{server}/v1/maps/yard/observations?learn=false&stream=robot1",
-                            make_frame(place))
-        assert status == 200
-        sent.append(body)
+def svg_elements(dom: str, svg_id: str, cls: str) -> list[str]:
+    """The tags of class `cls` inside the <svg id=svg_id> of a DOM dump."""
+    inner = re.search(rf'<svg id="{svg_id}".*?</svg>', dom, re.S)
+    assert inner is not None, svg_id
+    return re.findall(rf'<\w+ [^>]*class="{cls}"[^>]*>', inner.group(0))
+
+
+def post(http, base: str, map_id: str, frame: bytes, **query) -> dict:
+    meta = query.pop("metadata", None)
+    q = "&".join(f"{k}={v}" for k, v in query.items())
+    if meta is not None:
+        q += "&metadata=" + quote(json.dumps(meta, separators=(",", ":")))
+    status, body = http(f"{base}/v1/maps/{map_id}/observations?{q}", frame)
+    assert status == 200, body
+    return body
+
+
+def loop_pose(i: int, radius: float) -> dict:
+    """The i-th of 12 poses on a loop around the origin, heading along it (the map frame, metres)."""
+    t = 2 * math.pi * i / 12
+    return {"x": round(radius * math.cos(t), 3), "y": round(radius * math.sin(t), 3),
+            "yaw": round(t + math.pi / 2, 3), "frame_id": "map"}
+
+
+def _bytes(v: int) -> str:
+    """The page's size spelling (format.js `bytes`)."""
+    units, f, i = ["B", "KiB", "MiB", "GiB", "TiB"], float(v), 0
+    while f >= 1024 and i < len(units) - 1:
+        f, i = f / 1024, i + 1
+    return f"{f:.{0 if i == 0 else 1}f} {units[i]}"
+
+
+def test_the_viewer_shows_a_mapped_loop_its_revisits_poses_and_thumbnails(chromium, server, http,
+                                                                        make_frame, tmp_path):
+    body = {"map_id": "yard", "thumbnails": True, "revisit_threshold": 0.5}
+    assert http(f"{server}/v1/maps", json.dumps(body).encode(), "application/json")[0] == 201
+    sent = [post(http, server, "yard", make_frame(i), learn="true", stream="robot1", label=f"p{i}",
+                 metadata={"stamp": 100.0 + i, "pose": loop_pose(i, 10.0)}) for i in range(12)]
+    # the same robot drives the loop's first part again, a little wider, localising: its stream is past
+    # the warm-up, so each answer has a place, a new one until the path behind it is long enough
+    sent += [post(http, server, "yard", make_frame(i), learn="false", stream="robot1",
+                  metadata={"stamp": 200.0 + i, "pose": loop_pose(i, 12.0)}) for i in range(8)]
+    places = [b["place"] for b in sent]
+    revisits = [b for b in sent if b["place"] and b["place"]["revisit"]]
+    assert None in places and revisits and any(p and not p["revisit"] for p in places)  # every kind shown
+    _, the_map = http(f"{server}/v1/maps/yard")
+    _, memory = http(f"{server}/v1/maps/yard/memory")
 
     dom = browse(chromium, f"{server}/ui/?map=yard", tmp_path / "profile", OUT / "viewer.png")
+    assert f"{len(sent)} recent answer(s)" in dom
 
-    maps = {a["data-map-id"]: cells for a, cells in Rows(dom, "maps").rows}
+    # the maps, the selected one with its backbone, revisit threshold, count and sizes
+    maps = {r["map"]: r for r in Table(dom, "maps").rows}
     assert set(maps) == {"default", "yard"}
-    header = Rows(dom, "maps").header
-    assert maps["yard"][header.index("observations")] == "5"
-    assert maps["yard"][header.index("state")] == "ready"
-    assert maps["yard"][header.index("preset")] == "cortexloc-default"
-    assert maps["yard"][header.index("TM")].endswith("MiB")  # sizes from /memory
+    yard = maps["yard"]
+    assert (yard["state"], yard["backbone"], yard["observations"], yard["streams"]) == \
+        ("ready", the_map["backbone"], "12", "1")
+    assert yard["revisit at"] == "0.50"
+    assert (yard["TM"], yard["index"], yard["projection"]) == (
+        _bytes(memory["tm"]["allocated_bytes"]), _bytes(memory["index"]["bytes"]),
+        _bytes(memory["projection_bytes"]))
+    assert re.fullmatch(r"\d+(\.\d)? (B|KiB|MiB)", yard["store"])
 
-    recent = Rows(dom, "recent")
-    assert {"time", "stream", "mode", "seq", "place", "confidence", "revisit", "match", "score", "query",
-            "matched"} <= set(recent.header)
-    rows = by_header(recent)
+    # every answer, newest first, with its place where the reply had one and — where it was null
+    rows = Table(dom, "recent").rows
     assert len(rows) == len(sent)
-    # newest first: the three localisations, then the learned frames from the last to the first
-    assert [r["mode"] for r in rows] == ["localised"] * 3 + ["learned"] * 5
-    assert [r["seq"] for r in rows[3:]] == [str(b["seq"]) for b in reversed(sent[:5])]
     for row, body in zip(rows, reversed(sent), strict=True):
-        assert row["stream"] == "robot1"
-        top = body["matches"][0] if body["matches"] else None
-        assert row["match"] == (str(top["seq"]) if top else "—")
-        assert row["score"] == (f"{top['score']:.3f}" if top else "—")
-        if "place" not in body:  # a service without the sequence place: shown as absent
-            assert row["place"] == row["confidence"] == row["revisit"] == "—"
-    assert "trajectory-panel" in dom and 'class="panel empty"' in dom  # no poses: the panel says why
-    assert dom.count('class="match-point"') == sum(1 for b in sent if b["matches"])
+        place, top = body["place"], body["matches"][0] if body["matches"] else None
+        assert (row["stream"], row["mode"]) == (body["stream"], "learned" if body["learned"] else "localised")
+        assert row["seq"] == (str(body["seq"]) if body["learned"] else NONE)
+        got = [row[f"sequence place/{c}"] for c in ("place", "label", "confidence", "revisit", "support")]
+        assert got == ([str(place["seq"]), place["label"] or NONE, f"{place['confidence']:.2f}",
+                        "revisit" if place["revisit"] else "new", str(place["support"])]
+                       if place else [NONE] * 5)
+        assert row["top frame match/match"] == (str(top["seq"]) if top else NONE)
+        assert row["top frame match/score"] == (f"{top['score']:.3f}" if top else NONE)
+        # the thumbnails: the learned row's own, and the place's (a localisation's image is not stored)
+        assert row["thumbnails/query"] == ("[img]" if body["learned"] else NONE)
+        assert row["thumbnails/place"] == ("[img]" if place else NONE)
+    thumbs = set(re.findall(r'<img [^>]*data-thumb="([^"]+)"', dom))
+    wanted = {b["seq"] for b in sent if b["learned"]} | {p["seq"] for p in places if p}
+    assert thumbs == {f"/v1/maps/yard/observations/{s}/thumbnail" for s in wanted}
+    assert all(src.startswith("blob:") for src in re.findall(r'<img [^>]*src="([^"]+)"', dom))  # loaded
+
+    # the trajectory: the 12 stored poses of one stream, the 8 localised poses, a link per revisit
+    assert len(svg_elements(dom, "trajectory", "stored-pose")) == 12
+    assert len(svg_elements(dom, "trajectory", "query-pose")) == 8
+    assert len(svg_elements(dom, "trajectory", "revisit-link")) == len(revisits)
+    assert (f"12 stored pose(s) in 1 stream(s) · 8 localised pose(s) · {len(revisits)} revisit link(s)"
+            in dom)
+
+    # the sequence-match picture (all streams): a square per learned answer at its seq, a dot per
+    # answer with a place at the place's seq, in the answers' order, a ring per revisit
+    assert len(svg_elements(dom, "seqmatch", "learned-point")) == 12
+    dots = svg_elements(dom, "seqmatch", "match-point")
+    assert [re.search(r'data-seq="(\d+)"', d).group(1) for d in dots] == [str(p["seq"]) for p in places if p]
+    assert len(svg_elements(dom, "seqmatch", "revisit-ring")) == len(revisits)
+
+
+def test_the_viewer_shows_a_map_without_thumbnails_or_poses_as_such(chromium, server, http, make_frame,
+                                                                    tmp_path):
+    sent = [post(http, server, "default", make_frame(i), learn="true", stream="robot1") for i in range(2)]
+    sent.append(post(http, server, "default", make_frame(0), learn="false", stream="robot2"))
+    assert not any(b["place"] or b["metadata"] for b in sent)  # all in their warm-up, nothing posed
+    dom = browse(chromium, f"{server}/ui/?map=default", tmp_path / "profile")
+    rows = Table(dom, "recent").rows
+    assert [(r["mode"], r["seq"]) for r in rows] == [("localised", NONE), ("learned", "2"), ("learned", "1")]
+    for row in rows:
+        assert row["sequence place/place"] == row["thumbnails/query"] == row["thumbnails/place"] == NONE
+    assert len(svg_elements(dom, "seqmatch", "learned-point")) == 2
+    assert not svg_elements(dom, "seqmatch", "match-point")
+    assert len(svg_elements(dom, "seqmatch", "no-place")) == 1  # the localised answer without a place
+    assert "Thumbnails are off for this map." in dom and "the stream is in its warm-up" in dom
+    assert 'class="panel empty"' in dom and "No poses yet" in dom  # the trajectory panel says why
 
 
 def test_the_viewer_asks_for_the_key_when_reads_need_one(chromium, server_proc, tmp_path):
@@ -158,121 +223,3 @@ def test_the_viewer_asks_for_the_key_when_reads_need_one(chromium, server_proc, 
     dom = browse(chromium, f"{base}/ui/", tmp_path / "profile")
     assert 'data-state="error"' in dom and "the service needs the API key for reads" in dom
     assert 'id="api-key"' in dom  # where the person types it
-
-
-# ---------------------------------------------------------------------- a service with every field
-
-
-def _thumb(seq: int) -> bytes:
-    img = np.zeros((48, 64, 3), np.uint8)
-    img[:] = ((seq * 37) % 200 + 40, (seq * 11) % 200 + 40, 120)
-    cv2.putText(img, str(seq), (6, 34), cv2.FONT_HERSHEY_SIMPLEX, 0.9, (255, 255, 255), 2)
-    return cv2.imencode(".jpg", img)[1].tobytes()
-
-
-def _stub_data() -> dict:
-    """A loop driven once while mapping (seqs 1-24 on a circle), then localised along its first part."""
-    def pose(t: float) -> dict:
-        return {"x": round(10 * math.cos(t), 3), "y": round(6 * math.sin(t), 3), "yaw": t + math.pi / 2,
-                "frame_id": "map"}
-
-    rows, answers = [], []
-    for seq in range(1, 25):
-        meta = {"stamp": 1700000000.0 + seq, "pose": pose(2 * math.pi * (seq - 1) / 24)}
-        rows.append({"seq": seq, "stream": "robot1", "label": f"p{seq}", "metadata": meta})
-        answers.append({"received_at": f"2026-01-01T10:00:{seq:02d}.000+00:00", "reply": {
-            "stream": "robot1", "learned": True, "seq": seq, "observation_id": f"o{seq}", "metadata": meta,
-            "sequence": {"step": seq - 1}, "place": None,
-            "matches": [{"rank": 1, "seq": max(seq - 1, 1), "label": f"p{max(seq - 1, 1)}", "score": 0.55,
-                         "metadata": rows[max(seq - 2, 0)]["metadata"]}] if seq > 1 else []}})
-    for i, (target, conf, revisit) in enumerate([(3, 0.31, False), (4, 0.62, True), (5, 0.81, True),
-                                                 (6, 0.9, True), (7, 0.93, True), (8, 0.95, True)]):
-        near = pose(2 * math.pi * (target - 1) / 24 + 0.05)  # the second lap runs a little wider
-        meta = {"stamp": 1700000100.0 + i, "pose": {**near, "x": near["x"] * 1.15, "y": near["y"] * 1.25}}
-        place = {"seq": target, "observation_id": f"o{target}", "stream": "robot1", "label": f"p{target}",
-                 "confidence": conf, "revisit": revisit, "support": 3 + i}
-        answers.append({"received_at": f"2026-01-01T10:01:{i:02d}.000+00:00", "reply": {
-            "stream": "robot1", "learned": False, "seq": None, "observation_id": None, "metadata": meta,
-            "sequence": {"step": i}, "place": place,
-            "matches": [{"rank": 1, "seq": target, "label": f"p{target}", "score": conf}]}})
-    maps = [{"map_id": "yard", "state": "ready", "state_reason": None, "preset": "cortexloc-default",
-             "backbone": "alexnet", "encoder": "alexnet-conv3/imagenet:crop", "observations": 24,
-             "last_seq": 24, "streams": ["robot1"], "thumbnails": True}]
-    memory = {"tm": {"allocated_bytes": 65_536_000}, "index": {"bytes": 38_000},
-              "projection_bytes": 265_000_000, "storage": {"db_bytes": 120_000, "wal_bytes": 4_096}}
-    return {"rows": rows, "answers": answers, "maps": maps, "memory": memory}
-
-
-@pytest.fixture
-def stub_service() -> Iterator[str]:
-    """The viewer's files and an API that answers with every optional field, on a free loopback port."""
-    data = _stub_data()
-
-    class Handler(BaseHTTPRequestHandler):
-        def log_message(self, *args) -> None:  # quiet
-            pass
-
-        def _send(self, status: int, body: bytes, ctype: str) -> None:
-            self.send_response(status)
-            self.send_header("Content-Type", ctype)
-            self.send_header("Content-Length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
-
-        def do_GET(self) -> None:
-            url = urlparse(self.path)
-            q = parse_qs(url.query)
-            parts = url.path.strip("/").split("/")
-            if url.path.startswith("/ui/"):
-                f = STATIC_DIR / (url.path[4:] or "index.html")
-                types = {".html": "text/html", ".css": "text/css", ".js": "text/javascript"}
-                if f.is_file():
-                    return self._send(200, f.read_bytes(), types[f.suffix])
-                return self._send(404, b"{}", "application/json")
-            if parts == ["v1", "maps"]:
-                return self._send(200, json.dumps({"maps": data["maps"]}).encode(), "application/json")
-            if parts[:3] == ["v1", "maps", "yard"]:
-                rest = parts[3:]
-                if rest == ["memory"]:
-                    return self._send(200, json.dumps(data["memory"]).encode(), "application/json")
-                if rest == ["recent"]:
-                    body = {"map_id": "yard", "capacity": 256, "answers": data["answers"]}
-                    return self._send(200, json.dumps(body).encode(), "application/json")
-                if rest == ["observations"]:
-                    after, limit = int(q["after_seq"][0]), int(q["limit"][0])
-                    page = [r for r in data["rows"] if r["seq"] > after][:limit]
-                    return self._send(200, json.dumps({"observations": page}).encode(), "application/json")
-                if len(rest) == 3 and rest[0] == "observations" and rest[2] == "thumbnail":
-                    return self._send(200, _thumb(int(rest[1])), "image/jpeg")
-            return self._send(404, b'{"type": "urn:cortexloc:problem:not-found"}', "application/problem+json")
-
-    httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{httpd.server_address[1]}"
-    finally:
-        httpd.shutdown()
-        httpd.server_close()
-
-
-def test_the_viewer_shows_places_poses_and_thumbnails_when_the_service_gives_them(chromium, stub_service,
-                                                                                 tmp_path):
-    dom = browse(chromium, f"{stub_service}/ui/?map=yard", tmp_path / "profile", OUT / "viewer-full.png")
-
-    maps = Rows(dom, "maps")
-    assert maps.rows[0][1][maps.header.index("backbone")] == "alexnet"
-    rows = by_header(Rows(dom, "recent"))
-    newest = rows[0]  # the last localisation: place 8, confident, a revisit, with both thumbnails
-    assert (newest["mode"], newest["place"], newest["label"], newest["revisit"], newest["support"]) == \
-        ("localised", "8", "p8", "revisit", "8")
-    assert newest["confidence"] == "0.95"
-    assert (newest["query"], newest["matched"]) == ("—", "[img]")  # a localisation stores no image
-    first_localisation = rows[5]
-    assert (first_localisation["place"], first_localisation["revisit"]) == ("3", "new")
-    learned = rows[6]
-    assert (learned["mode"], learned["seq"], learned["query"], learned["matched"]) == \
-        ("learned", "24", "[img]", "[img]")
-    assert 'class="panel empty"' not in dom  # poses exist: the trajectory is drawn
-    assert dom.count("<polyline") == 1  # one stream's path
-    assert "24 stored pose(s) in 1 stream(s); 5 link(s) from recent answers, 5 revisit(s)" in dom

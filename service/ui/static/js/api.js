@@ -1,5 +1,5 @@
 // The viewer's only way to the service: same-origin fetches that carry the API key the user typed
-// (kept in sessionStorage: gone when the tab closes), and a cache of which optional routes exist.
+// (kept in sessionStorage: gone when the tab closes).
 
 const KEY = "cortexloc.apiKey";
 
@@ -37,12 +37,4 @@ export async function getImageUrl(path) {
   const r = await fetch(path, { headers: headers() });
   if (!r.ok) return null;
   return URL.createObjectURL(await r.blob());
-}
-
-/** A route the service may not have yet (another version): 404 or 405 without a map-not-found means
- *  "not here", which the caller shows as a note instead of an error. */
-export function isMissingRoute(err) {
-  if (!(err instanceof HttpError)) return false;
-  const slug = err.problem && typeof err.problem.type === "string" ? err.problem.type : "";
-  return (err.status === 404 && !slug.endsWith(":map-not-found")) || err.status === 405;
 }

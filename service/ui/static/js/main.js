@@ -1,7 +1,7 @@
 // The map viewer: polls the API and redraws four panels (maps, recent answers, trajectory, sequence
 // match). Selecting a map: click its row, or open /ui/?map=ID.
 
-import { apiKey, getImageUrl, getJson, HttpError, isMissingRoute, setApiKey } from "./api.js";
+import { apiKey, getImageUrl, getJson, HttpError, setApiKey } from "./api.js";
 import * as A from "./answers.js";
 import { NONE, bytes, clock, el, level, num, text } from "./format.js";
 import { drawSeqMatch } from "./seqmatch.js";
@@ -11,11 +11,11 @@ const POLL_MS = 2000;         // the recent answers and the map list
 const MEMORY_EVERY = 3;       // memory sizes every third poll: they run on the map's writer
 const RECENT_LIMIT = 100;     // answers asked for (the service keeps at most its ring's capacity)
 const ROWS_SHOWN = 60;        // rows of the recent table
-const OBS_PAGE = 500;         // stored rows per page of /observations
+const OBS_PAGE = 500;         // stored rows per page of /observations (the route's most)
 
 const state = {
   maps: [], memory: {}, selected: new URLSearchParams(location.search).get("map"), stream: "",
-  recent: [], rows: new Map(), rowsAfter: 0, rowsRoute: true, thumbs: new Map(), tick: 0, busy: false,
+  recent: [], recentSig: "", rows: new Map(), rowsAfter: 0, thumbs: new Map(), tick: 0, busy: false,
 };
 
 const $ = (id) => document.getElementById(id);
@@ -40,6 +40,7 @@ function renderMaps() {
       el("td", { class: `state-${m.state}`, title: m.state_reason || "" }, m.state),
       el("td", { title: m.encoder || "" }, text(m.backbone)),
       el("td", {}, text(m.preset)),
+      el("td", { class: "num" }, num(m.revisit_threshold, 2)),
       el("td", { class: "num obs-count" }, num(m.observations)),
       el("td", { class: "num" }, num(m.streams ? m.streams.length : undefined)),
       el("td", { class: "num" }, bytes(mem && mem.tm ? mem.tm.allocated_bytes : undefined)),
@@ -55,7 +56,7 @@ function renderMaps() {
 function forget(mapId) {
   // What was read of the map shown before: its answers and stored rows.
   state.selected = mapId;
-  state.recent = []; state.rows = new Map(); state.rowsAfter = 0; state.rowsRoute = true; state.stream = "";
+  state.recent = []; state.rows = new Map(); state.rowsAfter = 0; state.stream = "";
 }
 
 function select(mapId) {
@@ -82,25 +83,32 @@ function renderStreams(map) {
 
 // ---------------------------------------------------------------------------------------- answers
 
-function thumbnailsOn(map) {
-  return Boolean(map && (map.thumbnails === true || (map.params && map.params.thumbnails === true)));
-}
+function thumbnailsOn(map) { return Boolean(map && map.thumbnails); }
 
-function thumb(map, seq) {
+/** A cell with the thumbnail of stored row `seq` (fetched once, kept while a row shows it), or "—". */
+function thumb(map, seq, shown) {
   const cell = el("td", { class: "thumb" });
   if (!thumbnailsOn(map) || typeof seq !== "number") { cell.textContent = NONE; return cell; }
-  const key = `${map.map_id}/${seq}`;
-  if (!state.thumbs.has(key)) {
-    state.thumbs.set(key, null);
-    getImageUrl(`/v1/maps/${enc(map.map_id)}/observations/${seq}/thumbnail`).then((url) => {
-      state.thumbs.set(key, url || NONE);
-      renderRecent();
-    }).catch(() => state.thumbs.set(key, NONE));
+  const route = `/v1/maps/${enc(map.map_id)}/observations/${seq}/thumbnail`;
+  shown.add(route);
+  if (!state.thumbs.has(route)) {
+    state.thumbs.set(route, null);
+    getImageUrl(route).then((url) => { state.thumbs.set(route, url || NONE); renderRecent(); })
+      .catch(() => state.thumbs.set(route, NONE));
   }
-  const url = state.thumbs.get(key);
-  if (url && url !== NONE) cell.append(el("img", { src: url, alt: `seq ${seq}` }));
+  const url = state.thumbs.get(route);
+  if (url && url !== NONE) cell.append(el("img", { src: url, "data-thumb": route, alt: `seq ${seq}` }));
   else cell.textContent = url === NONE ? NONE : "…";
   return cell;
+}
+
+function forgetThumbs(shown) {
+  // Object URLs hold their image until revoked: keep those of the rows on screen only.
+  for (const [route, url] of state.thumbs) {
+    if (shown.has(route)) continue;
+    if (url && url !== NONE) URL.revokeObjectURL(url);
+    state.thumbs.delete(route);
+  }
 }
 
 function confidenceCell(v) {
@@ -111,7 +119,7 @@ function confidenceCell(v) {
 }
 
 function revisitCell(place) {
-  if (place === undefined || place === null || typeof place.revisit !== "boolean") {
+  if (!place || typeof place.revisit !== "boolean") {
     return el("td", { class: "none" }, NONE);
   }
   return el("td", {}, place.revisit ? el("span", { class: "badge revisit" }, "revisit")
@@ -122,8 +130,15 @@ function renderRecent() {
   const map = selectedMap();
   $("recent-map").textContent = map ? map.map_id : "";
   const shown = state.recent.filter((e) => !state.stream || e.reply.stream === state.stream);
+  // Redrawn only when something shown changed: a new <img> decodes again, and would blink every poll.
+  const loaded = [...state.thumbs.values()].filter((u) => u !== null).length;
+  const sig = JSON.stringify([map && map.map_id, map && map.thumbnails, state.stream, shown.length,
+                              shown.length ? shown[shown.length - 1].received_at : null, loaded]);
+  if (sig === state.recentSig) return;
+  state.recentSig = sig;
   const rows = shown.slice(-ROWS_SHOWN).map((e, i) => ({ e, i: shown.length - Math.min(shown.length, ROWS_SHOWN) + i }))
     .reverse();
+  const shownThumbs = new Set();
   $("recent").tBodies[0].replaceChildren(...rows.map(({ e, i }) => {
     const r = e.reply;
     const p = A.place(r);
@@ -143,13 +158,14 @@ function renderRecent() {
       el("td", { class: "num match-seq" }, m ? num(m.seq) : NONE),
       el("td", {}, m ? text(m.label) : NONE),
       el("td", { class: `num ${level(m ? m.score : undefined)}` }, m ? num(m.score, 3) : NONE),
-      thumb(map, r.learned ? r.seq : null),
-      thumb(map, A.matchedSeq(r) ?? (m ? m.seq : null)));
+      thumb(map, r.learned ? r.seq : null, shownThumbs),
+      thumb(map, p ? p.seq : null, shownThumbs));
   }));
+  forgetThumbs(shownThumbs);
   const notes = [];
   if (!state.recent.length) notes.push("No answers since the service started (the list is kept in memory only).");
-  if (state.recent.length && state.recent.every((e) => e.reply.place === undefined)) {
-    notes.push("This service sends no sequence place: place columns show —.");
+  if (shown.some((e) => !A.place(e.reply))) {
+    notes.push("Place — : the stream is in its warm-up (its first frames), or the map had nothing stored.");
   }
   if (map && !thumbnailsOn(map)) notes.push("Thumbnails are off for this map.");
   $("recent-note").textContent = notes.join(" ");
@@ -158,22 +174,14 @@ function renderRecent() {
 // ----------------------------------------------------------------------------------------- poses
 
 async function loadRows(map) {
-  // Stored rows with their metadata, paged from the last seq seen; a service without the route says so once.
-  if (!state.rowsRoute) return;
+  // Stored rows with their metadata, paged on from the last seq read (later polls read only new rows).
   for (let page = 0; page < 20; page += 1) {
-    let body;
-    try {
-      body = await getJson(`/v1/maps/${enc(map.map_id)}/observations?after_seq=${state.rowsAfter}&limit=${OBS_PAGE}`);
-    } catch (err) {
-      if (isMissingRoute(err)) { state.rowsRoute = false; return; }
-      throw err;
-    }
-    const items = Array.isArray(body) ? body : body.observations || body.items || [];
-    for (const row of items) {
+    const body = await getJson(`/v1/maps/${enc(map.map_id)}/observations?after_seq=${state.rowsAfter}&limit=${OBS_PAGE}`);
+    for (const row of body.observations) {
       state.rows.set(row.seq, row);
       state.rowsAfter = Math.max(state.rowsAfter, row.seq);
     }
-    if (items.length < OBS_PAGE) return;
+    if (body.next_after_seq === null) return;
   }
 }
 
@@ -182,25 +190,12 @@ function renderTrajectory() {
   const stored = [...state.rows.values()].map((row) => ({ seq: row.seq, stream: row.stream, pose: A.pose(row.metadata) }))
     .filter((r) => r.pose);
   const queries = state.recent.map((e) => ({ e, pose: A.pose(e.reply.metadata) })).filter((q) => q.pose);
-  const poseOf = (seq) => {
-    const row = state.rows.get(seq);
-    if (row && A.pose(row.metadata)) return A.pose(row.metadata);
-    const hit = state.recent.find((e) => e.reply.seq === seq && A.pose(e.reply.metadata));
-    if (hit) return A.pose(hit.reply.metadata);
-    for (const e of state.recent) {  // a match or place that carries its own metadata
-      for (const m of [e.reply.place, ...(e.reply.matches || [])]) {
-        if (m && m.seq === seq && A.pose(m.metadata)) return A.pose(m.metadata);
-      }
-    }
-    return null;
-  };
+  const poseOf = (seq, place) => A.pose(state.rows.get(seq)?.metadata) ?? A.pose(place?.metadata);
   if (!stored.length && !queries.length) {
     panel.classList.add("empty");
     $("trajectory").replaceChildren();
-    const why = !state.rowsRoute && state.recent.every((e) => e.reply.metadata === undefined)
-      ? "This service returns no observation metadata; the trajectory needs poses."
-      : "No poses yet: post observations with metadata.pose {x, y} to draw the trajectory.";
-    $("trajectory-note").textContent = why;
+    $("trajectory-note").textContent =
+      "No poses yet: post observations with metadata {\"pose\": {\"x\": …, \"y\": …}} to draw the trajectory.";
     return;
   }
   panel.classList.remove("empty");
@@ -226,15 +221,17 @@ async function poll() {
     if (map) {
       const recent = await getJson(`/v1/maps/${enc(map.map_id)}/recent?limit=${RECENT_LIMIT}`);
       state.recent = recent.answers;
-      await loadRows(map);
+      if (map.last_seq < state.rowsAfter) {  // restored to a snapshot: later seqs are gone, and may come back
+        state.rows = new Map(); state.rowsAfter = 0; forgetThumbs(new Set());
+      }
+      if (map.state === "ready") await loadRows(map);  // a recovering map's rows are not readable yet
     }
     renderMaps();
     renderStreams(map);
     renderRecent();
     renderTrajectory();
-    const stream = state.stream || (state.recent.length ? state.recent[state.recent.length - 1].reply.stream : "");
-    $("seqmatch-stream").textContent = stream;
-    drawSeqMatch($("seqmatch"), state.recent.filter((e) => e.reply.stream === stream), map);
+    $("seqmatch-stream").textContent = state.stream || "all streams";
+    drawSeqMatch($("seqmatch"), state.recent.filter((e) => !state.stream || e.reply.stream === state.stream), map);
     const last = state.recent.length ? clock(state.recent[state.recent.length - 1].received_at) : NONE;
     setStatus("live", `${state.maps.length} map(s) · ${state.recent.length} recent answer(s) · last ${last} · ` +
                       `polling every ${POLL_MS / 1000} s`);

@@ -1,14 +1,16 @@
-// The robot's path from the stored rows' poses (metadata.pose x, y), the poses of recent queries, and a
-// link from each recent answer's pose to the pose of the place it matched: violet for a revisit of the
-// sequence place, dashed grey for a top frame match when the service gives no place.
+// The robot's path (docs/design/service.md §1.7): the stored rows' poses (metadata.pose x, y) as one line
+// per stream with every few seqs labelled, the localised answers' poses coloured by the place's
+// confidence (grey: no place yet) on a dashed line per stream, and a violet link from each revisit's pose to the pose of the place.
 
 import * as A from "./answers.js";
 import { level, svg } from "./format.js";
 import { COLOURS, STREAM_COLOURS, frame } from "./plot.js";
 
-const LINKS = 64;  // the newest answers drawn as links
+const LINKS = 64;      // the newest answers drawn as links
+const SEQ_LABELS = 12; // about this many seq labels along the stored path
 
-/** Draws into `root`; returns a short note for under the picture. */
+/** Draws into `root`; `stored` [{seq, stream, pose}], `queries` [{e, pose}] oldest first, `poseOf(seq)`
+ *  the pose of a stored row or null. Returns a short note for under the picture. */
 export function drawTrajectory(root, stored, queries, poseOf) {
   root.replaceChildren();
   const pts = [...stored.map((s) => s.pose), ...queries.map((q) => q.pose)];
@@ -19,30 +21,36 @@ export function drawTrajectory(root, stored, queries, poseOf) {
                          [Math.min(...ys) - pad, Math.max(...ys) + pad],
                          { xLabel: `x${unit ? ` (${unit})` : ""}`, yLabel: "y", equal: true });
   const streams = [...new Set(stored.map((s) => s.stream))].sort();
+  const every = Math.max(1, Math.ceil(stored.length / SEQ_LABELS));
   for (const [i, name] of streams.entries()) {
     const own = stored.filter((s) => s.stream === name).sort((a, b) => a.seq - b.seq);
     const colour = STREAM_COLOURS[i % STREAM_COLOURS.length];
     root.append(svg("polyline", { points: own.map((s) => `${X(s.pose.x)},${Y(s.pose.y)}`).join(" "),
                                   fill: "none", stroke: colour, "stroke-width": 1.5, opacity: 0.8 }));
-    for (const s of own) root.append(svg("circle", { cx: X(s.pose.x), cy: Y(s.pose.y), r: 2, fill: colour }));
+    own.forEach((s, k) => {
+      root.append(svg("circle", { class: "stored-pose", cx: X(s.pose.x), cy: Y(s.pose.y), r: 2.5, fill: colour }));
+      if (k % every === 0 || k === own.length - 1) {
+        root.append(svg("text", { class: "seq-label", x: X(s.pose.x) + 5, y: Y(s.pose.y) - 5 }, String(s.seq)));
+      }
+    });
   }
-  let links = 0, revisits = 0;
+  const localised = queries.filter((q) => !q.e.reply.learned);
+  for (const name of new Set(localised.map((q) => q.e.reply.stream))) {  // each localising robot's own line
+    const own = localised.filter((q) => q.e.reply.stream === name);
+    root.append(svg("polyline", { points: own.map((q) => `${X(q.pose.x)},${Y(q.pose.y)}`).join(" "), fill: "none",
+                                  stroke: COLOURS.none, "stroke-width": 1, "stroke-dasharray": "3 3" }));
+  }
+  let links = 0;
   for (const q of queries.slice(-LINKS)) {
-    // With sequence places, only a revisit is a link (a new place links nowhere, whatever the frame
-    // matched); without them, the top frame match is drawn dashed.
-    const r = q.e.reply;
-    const rv = r.place === undefined ? null : Boolean(r.place && r.place.revisit);
-    if (rv === false) continue;
-    const seq = A.matchedSeq(r);
-    const to = seq === null ? null : poseOf(seq);
-    if (!to || seq === r.seq) continue;
-    links += 1; revisits += rv ? 1 : 0;
-    root.append(svg("line", { x1: X(q.pose.x), y1: Y(q.pose.y), x2: X(to.x), y2: Y(to.y),
-                              stroke: rv ? COLOURS.revisit : COLOURS.none, "stroke-width": rv ? 1.5 : 1,
-                              "stroke-dasharray": rv ? null : "4 3", opacity: 0.9 }));
+    const p = A.place(q.e.reply);
+    const to = p && p.revisit ? poseOf(p.seq, p) : null;
+    if (!to) continue;
+    links += 1;
+    root.append(svg("line", { class: "revisit-link", x1: X(q.pose.x), y1: Y(q.pose.y), x2: X(to.x), y2: Y(to.y),
+                              stroke: COLOURS.revisit, "stroke-width": 2 }));
   }
-  for (const q of queries.filter((v) => !v.e.reply.learned)) {
-    root.append(svg("circle", { cx: X(q.pose.x), cy: Y(q.pose.y), r: 3,
+  for (const q of localised) {
+    root.append(svg("circle", { class: "query-pose", cx: X(q.pose.x), cy: Y(q.pose.y), r: 3.5,
                                 fill: COLOURS[level(A.confidence(q.e.reply))] }));
   }
   const now = queries[queries.length - 1];
@@ -55,6 +63,6 @@ export function drawTrajectory(root, stored, queries, poseOf) {
                                 stroke: "#ffffff", "stroke-width": 2 }));
     }
   }
-  return `${stored.length} stored pose(s) in ${streams.length} stream(s); ${links} link(s) from recent ` +
-         `answers, ${revisits} revisit(s). White ring: the latest answer's pose.`;
+  return `${stored.length} stored pose(s) in ${streams.length} stream(s) · ${localised.length} localised ` +
+         `pose(s) · ${links} revisit link(s) · white ring: the latest answer's pose and heading.`;
 }
