@@ -10,13 +10,14 @@ from typing import Any, Literal, Self
 from pydantic import BaseModel, ConfigDict, Field
 
 from service.maps import results
+from storage.catalog import MAP_ID_RE
 
 __all__ = ["CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel", "ObservationModel",
            "PatchMap", "Readiness", "RecentList", "RecentModel", "RestoreModel", "SequenceModel",
            "SnapshotList", "SnapshotModel", "StoredObservationList", "StoredObservationModel",
            "StreamResetModel", "Versions"]
 
-MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"
+MAP_ID_PATTERN = MAP_ID_RE.pattern  # one home: the catalog enforces it
 #: A stream name: ROS-style segments joined by '/' (`robot1/cam0`), at most 8 of 64 characters.
 STREAM_PATTERN = r"^[A-Za-z0-9._-]{1,64}(/[A-Za-z0-9._-]{1,64}){0,7}$"
 

@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 import uuid
-from typing import Annotated
 
 import anyio
-from fastapi import APIRouter, Path, Response
+from fastapi import APIRouter, Response
 
 from models.evaluation.bench import rss_mb
 from service.deps import ApiKeyDep, RegistryDep, SettingsDep
 from service.errors import problem_responses
+from service.routes.params import MapId, StreamName
 from service.schemas import (
-    MAP_ID_PATTERN,
-    STREAM_PATTERN,
     CreateMap,
     MapList,
     MapModel,
@@ -24,8 +22,6 @@ from service.schemas import (
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
 
-MapId = Annotated[str, Path(pattern=MAP_ID_PATTERN, description="map identifier")]
-StreamName = Annotated[str, Path(pattern=STREAM_PATTERN, description="stream name ('/' allowed)")]
 
 
 @router.post("", status_code=201, dependencies=[ApiKeyDep],

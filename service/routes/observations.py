@@ -17,7 +17,7 @@ import time
 from typing import Annotated, Any
 
 import anyio
-from fastapi import APIRouter, Header, Path, Query, Request, Response
+from fastapi import APIRouter, Header, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from models.frontend import images
@@ -25,9 +25,8 @@ from service.deps import ApiKeyDep, MapReadKeyDep, MetricsDep, RegistryDep, Sett
 from service.errors import IMAGE_MEDIA_TYPES, Problem, problem_responses
 from service.maps import idempotency, stored
 from service.maps.results import ObservationResult
+from service.routes.params import MapId, Seq, StreamQuery
 from service.schemas import (
-    MAP_ID_PATTERN,
-    STREAM_PATTERN,
     MatchModel,
     ObservationModel,
     SequenceModel,
@@ -38,8 +37,6 @@ from service.schemas import (
 
 router = APIRouter(prefix="/v1/maps", tags=["observations"])
 
-MapId = Annotated[str, Path(pattern=MAP_ID_PATTERN)]
-Seq = Annotated[int, Path(ge=1)]
 
 _DECLARED = {"image/jpeg": "jpeg", "image/png": "png", "image/webp": "webp", "image/bmp": "bmp"}
 #: Per-observation metadata (docs/design/service.md §1.2): compact JSON in the `metadata` query parameter.
@@ -134,7 +131,7 @@ async def post_observation(
     learn: Annotated[bool, Query(description="true: mapping (stored, learned); false: localisation")] = True,
     top_k: Annotated[int, Query(ge=0, description="matches to return (0: none; `place` is still answered)")]
     = 5,
-    stream: Annotated[str, Query(pattern=STREAM_PATTERN)] = "default",
+    stream: StreamQuery = "default",
     label: Annotated[str | None, Query(max_length=200)] = None,
     encoding: Annotated[str | None, Query(max_length=16, description="a raw frame's pixels: "
                                           + " | ".join(images.RAW_ENCODINGS))] = None,

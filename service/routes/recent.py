@@ -5,22 +5,23 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Path, Query
+from fastapi import APIRouter, Query
 
 from service.deps import MapReadKeyDep, RegistryDep
 from service.errors import problem_responses
 from service.maps.recent import RECENT_CAPACITY
-from service.schemas import MAP_ID_PATTERN, RecentList, RecentModel
+from service.routes.params import MapId
+from service.schemas import STREAM_PATTERN, RecentList, RecentModel
 
 router = APIRouter(prefix="/v1/maps", tags=["observations"])
 
 
 @router.get("/{map_id}/recent", dependencies=[MapReadKeyDep], responses=problem_responses(400, 401, 404))
 async def recent_answers(
-    map_id: Annotated[str, Path(pattern=MAP_ID_PATTERN)],
+    map_id: MapId,
     registry: RegistryDep,
     limit: Annotated[int, Query(ge=1, le=RECENT_CAPACITY, description="newest answers to return")] = 50,
-    stream: Annotated[str | None, Query(pattern=r"^[A-Za-z0-9._-]{1,64}$",
+    stream: Annotated[str | None, Query(pattern=STREAM_PATTERN,
                                         description="only this stream's answers")] = None,
 ) -> RecentList:
     """The map's newest answers (learned and localised), oldest first. Not durable: empty after a

@@ -3,23 +3,20 @@
 from __future__ import annotations
 
 import functools
-from typing import Annotated
 
 import anyio
-from fastapi import APIRouter, Path, Response
+from fastapi import APIRouter, Response
 from fastapi.responses import StreamingResponse
 from starlette.types import Receive, Scope, Send
 
 from service.deps import ApiKeyDep, MapReadKeyDep, RegistryDep
 from service.errors import problem_responses
-from service.schemas import MAP_ID_PATTERN, RestoreModel, SnapshotList, SnapshotModel
+from service.routes.params import MapId, SnapshotId
+from service.schemas import RestoreModel, SnapshotList, SnapshotModel
 from storage import snapshots
-from storage.catalog import SNAPSHOT_ID_RE
 
 router = APIRouter(prefix="/v1/maps/{map_id}/snapshots", tags=["snapshots"])
 
-MapId = Annotated[str, Path(pattern=MAP_ID_PATTERN)]
-SnapshotId = Annotated[str, Path(pattern=SNAPSHOT_ID_RE.pattern)]
 
 
 @router.post("", status_code=201, dependencies=[ApiKeyDep], responses=problem_responses(401, 404, 503, 507))

@@ -42,3 +42,12 @@ def test_recent_is_in_memory_only_and_follows_the_read_key_rule(tmp_path):
     with make_client(tmp_path / "var", api_key="k3y") as c:  # restarted; reads open without the setting
         assert c.get("/v1/maps/default/recent").json()["answers"] == []
         assert c.get("/v1/maps/default").json()["observations"] == 1
+
+
+def test_recent_takes_the_same_stream_names_as_posts(tmp_path):
+    """A ROS-style stream name ('/') is accepted wherever a stream is named (one pattern)."""
+    with make_client(tmp_path) as c:
+        assert post(c, frame(1), stream="robot1/cam0").status_code == 200
+        r = c.get("/v1/maps/default/recent", params={"stream": "robot1/cam0"})
+        assert r.status_code == 200, r.text
+        assert [a["reply"]["stream"] for a in r.json()["answers"]] == ["robot1/cam0"]
