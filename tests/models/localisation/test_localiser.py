@@ -198,13 +198,17 @@ def test_the_answer_at_frame_t_does_not_depend_on_later_frames() -> None:
     assert a[t + 1:] != b[t + 1:]
 
 
-def test_state_round_trips_through_plain_arrays_and_reset_forgets() -> None:
-    n = 80
-    S = place_similarity(np.arange(n), np.arange(n), noise=0.4, seed=2)
-    graph = SequenceGraph.chain(n)
-    loc = SequenceLocaliser()
+def half_way(noise: float) -> tuple[np.ndarray, SequenceGraph, SequenceLocaliser, LocaliserState]:
+    """An 80-row route and a stream that has driven its first 40 frames: (S, graph, localiser, state)."""
+    S = place_similarity(np.arange(80), np.arange(80), noise=noise, seed=2)
+    graph, loc = SequenceGraph.chain(80), SequenceLocaliser()
     state = loc.new_state()
     run(S[:, :40], graph, loc=loc, state=state)
+    return S, graph, loc, state
+
+
+def test_state_round_trips_through_plain_arrays_and_reset_forgets() -> None:
+    S, graph, loc, state = half_way(0.4)
     arrays = state.to_arrays()
     assert all(isinstance(v, np.ndarray) for v in arrays.values())
     copy = LocaliserState.from_arrays({k: v.copy() for k, v in arrays.items()})
@@ -220,17 +224,12 @@ def test_state_round_trips_through_plain_arrays_and_reset_forgets() -> None:
 
 
 def test_a_state_saved_before_the_null_loads_with_the_null_at_its_prior() -> None:
-    n = 80
-    S = place_similarity(np.arange(n), np.arange(n), noise=0.3, seed=2)
-    graph = SequenceGraph.chain(n)
-    loc = SequenceLocaliser()
-    state = loc.new_state()
-    run(S[:, :40], graph, loc=loc, state=state)
+    S, graph, loc, state = half_way(0.3)
     old = {k: v for k, v in state.to_arrays().items() if k != "null"}  # the array set before the null
     restored = LocaliserState.from_arrays(old)
     assert restored.null == NULL_PRIOR and np.array_equal(restored.scores, state.scores)
     # The null is born again at the jump level: the answers go on as on the stream that kept it.
-    assert rows_of(run(S[:, 40:], graph, loc=loc, state=restored)).tolist() == list(range(40, n))
+    assert rows_of(run(S[:, 40:], graph, loc=loc, state=restored)).tolist() == list(range(40, 80))
 
 
 def test_sparse_candidates_give_the_dense_answers() -> None:
