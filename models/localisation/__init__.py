@@ -2,6 +2,7 @@
 
 from models.localisation.graph import SequenceGraph
 from models.localisation.localiser import (
+    NULL_PRIOR,
     LocaliserState,
     Place,
     SequenceLocaliser,
@@ -9,4 +10,5 @@ from models.localisation.localiser import (
     top_candidates,
 )
 
-__all__ = ["LocaliserState", "Place", "SequenceGraph", "SequenceLocaliser", "default_conf", "top_candidates"]
+__all__ = ["NULL_PRIOR", "LocaliserState", "Place", "SequenceGraph", "SequenceLocaliser", "default_conf",
+           "top_candidates"]

@@ -3,8 +3,10 @@
 A stream's place is the end of the best path of stored rows that explains its recent frames: an HMM
 over the topological graph of stored rows (Hansen & Browning, IROS 2014), filtered online with a bounded
 Viterbi beam, scored like SeqSLAM (Milford & Wyeth 2012) but causally: the answer at frame t uses
-frames <= t only. The confidence is OpenSeqSLAM's best-over-rival idea made causal: the best path's
-score against the best path ending more than `exclusion` links away, as odds mapped to [0, 1].
+frames <= t only. Beside the stored rows the filter holds one more state, the null ("a place the map
+has not stored", docs/design/science.md §11.5). The confidence is the posterior of the best path's
+neighbourhood against both the best path ending more than `exclusion // 2` links away (OpenSeqSLAM's
+best-over-rival idea made causal) and the null, mapped to [0, 1].
 
     loc = SequenceLocaliser({"beam": 128})
     state = loc.new_state()
@@ -23,6 +25,10 @@ import numpy as np
 
 from models.localisation.graph import NONE, SequenceGraph
 
+#: The null's score before a stream's first frame: not yet born. It is born on the first frame at the
+#: jump level, like every candidate row, so it starts on an equal footing (docs/design/science.md §11.5).
+NULL_PRIOR = -np.inf
+
 # Every parameter, its default and meaning: docs/design/science.md §11.3.
 default_conf: dict[str, Any] = {
     "top_k": 100,           # candidates per frame that carry evidence and seed new hypotheses
@@ -34,6 +40,7 @@ default_conf: dict[str, Any] = {
     "warmup": 5,            # frames before the first answer
     "exclusion": 10,        # rows (links, both ways) around the best that a rival may not end in
     "temperature": 4.0,     # score gap per unit of log-odds in the confidence
+    "null_quantile": 0.5,   # the null's evidence: this quantile of the frame's candidates' evidence
 }
 
 
@@ -42,8 +49,9 @@ class Place(NamedTuple):
 
     Attributes:
         seq: the stored row id.
-        confidence: in [0, 1]; tanh(gap / (2 temperature)), gap = best path score minus the best
-            rival's more than exclusion // 2 links away (docs/design/science.md §11.2).
+        confidence: in [0, 1]; max(0, 2 p - 1), p = the posterior of the best path against the best
+            rival more than exclusion // 2 links away and the null (docs/design/science.md §11.5);
+            with the null far below it is tanh(gap / (2 temperature)), gap = best minus rival.
         support: frames on the best path (its age), <= frames seen by the stream.
     """
 
@@ -62,6 +70,8 @@ class LocaliserState:
         scores: (beam,) float64 decayed path score (higher = better; -inf in empty slots).
         ages: (beam,) int64 frames on the path.
         frames: frames seen since the last reset.
+        null: the null hypothesis' decayed score ("a place the map has not stored",
+            docs/design/science.md §11.5); NULL_PRIOR (-inf, not yet born) at the start of a stream.
     """
 
     rows: np.ndarray
@@ -69,6 +79,7 @@ class LocaliserState:
     scores: np.ndarray
     ages: np.ndarray
     frames: int = 0
+    null: float = NULL_PRIOR
 
     @classmethod
     def empty(cls, beam: int) -> LocaliserState:
@@ -82,15 +93,19 @@ class LocaliserState:
         self.scores[:] = -np.inf
         self.ages[:] = 0
         self.frames = 0
+        self.null = NULL_PRIOR
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain numpy arrays for a snapshot (`np.savez`); `from_arrays` restores them."""
         return {"rows": self.rows.copy(), "dirs": self.dirs.copy(), "scores": self.scores.copy(),
-                "ages": self.ages.copy(), "frames": np.array(self.frames, np.int64)}
+                "ages": self.ages.copy(), "frames": np.array(self.frames, np.int64),
+                "null": np.array(self.null, np.float64)}
 
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> LocaliserState:
-        """The state saved by `to_arrays`.
+        """The state saved by `to_arrays`. A state saved before the null existed (no "null" array) loads
+        with the null at its prior, NULL_PRIOR: it is born at the jump level on the next frame, as on
+        a stream's first (docs/design/science.md §11.5).
 
         Raises:
             ValueError: the arrays are missing or of different lengths.
@@ -99,11 +114,14 @@ class LocaliserState:
             rows, dirs = np.asarray(arrays["rows"], np.int64), np.asarray(arrays["dirs"], np.int8)
             scores, ages = np.asarray(arrays["scores"], np.float64), np.asarray(arrays["ages"], np.int64)
             frames = int(arrays["frames"])
+            null = float(arrays["null"]) if "null" in arrays else NULL_PRIOR
         except KeyError as e:
             raise ValueError(f"localiser state lacks {e}") from None
+        if np.isnan(null) or null == np.inf:
+            raise ValueError("localiser state's null score must be finite or -inf")
         if not rows.ndim == 1 or not rows.shape == dirs.shape == scores.shape == ages.shape:
             raise ValueError("localiser state arrays differ in shape")
-        return cls(rows.copy(), dirs.copy(), scores.copy(), ages.copy(), frames)
+        return cls(rows.copy(), dirs.copy(), scores.copy(), ages.copy(), frames, null)
 
 
 def top_candidates(sims: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -141,6 +159,16 @@ def evidence(seqs: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return seqs, (scores - scores.min()) / (scores.std() + 1e-9)
 
 
+def null_evidence(ev: np.ndarray, quantile: float) -> float:
+    """The null's evidence for one frame: what a stored row that does not show the frame earns, read
+    as the `quantile` of the candidates' evidence (docs/design/science.md §11.5); 0 without candidates.
+
+    Args:
+        ev: (K,) the frame's candidate evidence (`evidence`); quantile: in [0, 1].
+    """
+    return float(np.quantile(ev, quantile)) if ev.size else 0.0
+
+
 class SequenceLocaliser:
     """The per-frame step of docs/design/science.md §11; configuration merged over `default_conf`.
 
@@ -165,6 +193,8 @@ class SequenceLocaliser:
             raise ValueError("beam, top_k and warmup must be >= 1")
         if float(c["temperature"]) <= 0:
             raise ValueError("temperature must be > 0")
+        if not 0.0 <= float(c["null_quantile"]) <= 1.0:
+            raise ValueError(f"null_quantile must be in [0, 1], got {c['null_quantile']}")
 
     def new_state(self) -> LocaliserState:
         """An empty state for one stream (`beam` hypotheses)."""
@@ -202,6 +232,9 @@ class SequenceLocaliser:
         ages = state.ages[live]
         # The implicit level of every row outside the beam: the best path so far, then a jump.
         jump = (past.max() if past.size else 0.0) - float(c["jump_cost"])
+        # The null stays (no move cost) or is entered by that same jump; rows are not born from the null,
+        # so which row is best does not depend on it (§11.5).
+        state.null = max(decay * state.null, jump) + null_evidence(ev, float(c["null_quantile"]))
 
         new_rows, new_dirs, new_scores, new_ages = [], [], [], []
         cur = rows
@@ -249,9 +282,12 @@ class SequenceLocaliser:
         rivals = state.scores[:n][~np.isin(state.rows[:n], near)]
         # Rows outside the beam stand at the background level: a rival at least that strong exists.
         rival = max(float(rivals.max()) if rivals.size else -np.inf, background)
-        gap = max(float(state.scores[0]) - rival, 0.0)
-        conf = float(np.tanh(gap / (2.0 * float(self.conf["temperature"]))))
-        return Place(best, conf, int(min(state.ages[0], state.frames)))
+        # Scores as log-likelihoods at `temperature`: p = P(best | best, rival, null); 2p - 1 is
+        # P(best) minus the rest, tanh(gap / 2T) when the null is far below (§11.2, §11.5).
+        t, top = float(self.conf["temperature"]), float(state.scores[0])
+        others = np.logaddexp((rival - top) / t, (state.null - top) / t)
+        p = float(np.exp(-np.logaddexp(0.0, others)))
+        return Place(best, max(2.0 * p - 1.0, 0.0), int(min(state.ages[0], state.frames)))
 
 
 def _lookup(sorted_rows: np.ndarray, values: np.ndarray, rows: np.ndarray) -> np.ndarray:

@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.localisation import LocaliserState, SequenceGraph, SequenceLocaliser, top_candidates
+from models.localisation import NULL_PRIOR, LocaliserState, SequenceGraph, SequenceLocaliser, top_candidates
 from models.localisation.localiser import evidence
+
+REVISIT = 0.86  # the service's default revisit_threshold (service/maps/params.py); models cannot import it
 
 
 def place_similarity(db_places: np.ndarray, q_places: np.ndarray, seed: int = 0, noise: float = 0.3,
@@ -26,6 +28,81 @@ def run(S: np.ndarray, graph: SequenceGraph, conf: dict | None = None,
 
 def rows_of(places: list) -> np.ndarray:
     return np.array([-1 if p is None else p.seq for p in places])
+
+
+def route_frames(n_db: int, route: list[int | None], seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """A stream's candidates (seqs, scores) per frame on a map of n_db rows learned as one chain: route[j]
+    is the stored row frame j shows, None for a place the map never stored (every row scores alike, noisy).
+
+    The first frame has one weak candidate (the place's row if stored, else another), as the service's
+    Temporal Memory gives on a stream's first frame (no context yet): the case that made the old
+    confidence start near 1 on a place never stored.
+    """
+    rng = np.random.default_rng(seed)
+    frames = [(np.array([1 if route[0] is None else route[0]]), np.array([0.12]))]
+    for place in route[1:]:
+        scores = 0.62 + 0.01 * rng.standard_normal(n_db)
+        if place is not None:
+            scores[place] += 0.3
+        frames.append((np.arange(n_db), scores))
+    return frames
+
+
+def confidences(frames: list[tuple[np.ndarray, np.ndarray]], n_db: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, confidence) per frame through the default localiser; -1 and nan during the warm-up."""
+    loc, graph = SequenceLocaliser(), SequenceGraph.chain(n_db)
+    state = loc.new_state()
+    places = [loc.step(state, graph, seqs, scores) for seqs, scores in frames]
+    return (np.array([-1 if p is None else p.seq for p in places]),
+            np.array([np.nan if p is None else p.confidence for p in places]))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_never_learned_route_is_not_a_revisit_from_the_first_answer_on(seed: int) -> None:
+    # The map holds route A (40 rows); the robot drives route B, which it never stored.
+    _, conf = confidences(route_frames(40, [None] * 60, seed), 40)
+    answered = conf[~np.isnan(conf)]
+    assert answered.size == 56
+    assert np.all(answered < REVISIT), answered[:10]
+    assert answered.mean() < 0.3
+
+
+def test_a_never_learned_route_on_a_large_map_is_rarely_a_revisit() -> None:
+    n = 600
+    S = place_similarity(np.arange(n), np.full(300, -1), noise=0.3, seed=4)  # no row shows any frame
+    conf = np.array([p.confidence for p in run(S, SequenceGraph.chain(n)) if p is not None])
+    assert np.mean(conf >= REVISIT) <= 0.01
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_revisit_is_confident_from_the_first_answer_on(seed: int) -> None:
+    route = list(range(5, 35))
+    rows, conf = confidences(route_frames(40, route, seed), 40)
+    first = int(np.flatnonzero(rows >= 0)[0])
+    assert np.all(rows[first:] == route[first:])
+    assert np.all(conf[first:] >= REVISIT), conf[first:first + 5]
+
+
+def test_leaving_the_map_lowers_confidence_and_returning_restores_it() -> None:
+    away = 30
+    route = [*range(0, 15), *[None] * away, *range(15, 35)]
+    rows, conf = confidences(route_frames(40, route, seed=5), 40)
+    before, during, after = conf[8:15], conf[15:15 + away], conf[15 + away:]
+    assert np.all(before >= REVISIT)
+    assert during[0] > during[-1]  # it falls while the robot is away ...
+    assert np.all(during[away // 2:] < REVISIT) and during[-5:].max() < 0.5
+    back = np.flatnonzero(after >= REVISIT)  # ... and recovers within a few frames of the return
+    assert back.size and back[0] <= 5 and np.all(after[back[0]:] >= REVISIT)
+    assert np.all(rows[15 + away + back[0]:] == np.array(route[15 + away + back[0]:]))
+
+
+def test_the_null_changes_the_confidence_not_the_answered_row() -> None:
+    n = 150
+    truth = np.concatenate([np.arange(0, 60), np.full(30, -1), np.arange(90, 150)])
+    S = place_similarity(np.arange(n), truth, noise=0.4, seed=6)
+    low, high = (run(S, SequenceGraph.chain(n), {"null_quantile": q}) for q in (0.0, 1.0))
+    assert np.array_equal(rows_of(low), rows_of(high))
+    assert sum(a.confidence > b.confidence for a, b in zip(low[10:], high[10:], strict=True)) > 50
 
 
 def test_aliased_stretch_is_resolved_by_the_sequence_where_single_frames_fail() -> None:
@@ -121,22 +198,38 @@ def test_the_answer_at_frame_t_does_not_depend_on_later_frames() -> None:
     assert a[t + 1:] != b[t + 1:]
 
 
-def test_state_round_trips_through_plain_arrays_and_reset_forgets() -> None:
-    n = 80
-    S = place_similarity(np.arange(n), np.arange(n), noise=0.4, seed=2)
-    graph = SequenceGraph.chain(n)
-    loc = SequenceLocaliser()
+def half_way(noise: float) -> tuple[np.ndarray, SequenceGraph, SequenceLocaliser, LocaliserState]:
+    """An 80-row route and a stream that has driven its first 40 frames: (S, graph, localiser, state)."""
+    S = place_similarity(np.arange(80), np.arange(80), noise=noise, seed=2)
+    graph, loc = SequenceGraph.chain(80), SequenceLocaliser()
     state = loc.new_state()
     run(S[:, :40], graph, loc=loc, state=state)
+    return S, graph, loc, state
+
+
+def test_state_round_trips_through_plain_arrays_and_reset_forgets() -> None:
+    S, graph, loc, state = half_way(0.4)
     arrays = state.to_arrays()
     assert all(isinstance(v, np.ndarray) for v in arrays.values())
     copy = LocaliserState.from_arrays({k: v.copy() for k, v in arrays.items()})
+    assert np.isfinite(arrays["null"]) and copy.null == float(arrays["null"])
     assert run(S[:, 40:], graph, loc=loc, state=state) == run(S[:, 40:], graph, loc=loc, state=copy)
     state.reset()
     assert state.frames == 0
     assert loc.step_dense(state, graph, S[:, 0]) is None
     with pytest.raises(ValueError, match="lacks"):
         LocaliserState.from_arrays({"rows": arrays["rows"]})
+    with pytest.raises(ValueError, match="null"):
+        LocaliserState.from_arrays({**arrays, "null": np.array(np.nan)})
+
+
+def test_a_state_saved_before_the_null_loads_with_the_null_at_its_prior() -> None:
+    S, graph, loc, state = half_way(0.3)
+    old = {k: v for k, v in state.to_arrays().items() if k != "null"}  # the array set before the null
+    restored = LocaliserState.from_arrays(old)
+    assert restored.null == NULL_PRIOR and np.array_equal(restored.scores, state.scores)
+    # The null is born again at the jump level: the answers go on as on the stream that kept it.
+    assert rows_of(run(S[:, 40:], graph, loc=loc, state=restored)).tolist() == list(range(40, 80))
 
 
 def test_sparse_candidates_give_the_dense_answers() -> None:
