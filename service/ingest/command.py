@@ -47,9 +47,6 @@ def ingest_command(
     label_stamp: Annotated[bool, typer.Option("--label-stamp", help="Send each bag message's stamp "
                                                                     "(sec.nanosec) as the observation's "
                                                                     "label.")] = False,
-    revisit_score: Annotated[float | None, typer.Option(min=0.0, max=1.0, help="A revisit, in the summary: "
-                                                        "the top match's score reaches this (default "
-                                                        "0.9, see service.ingest.poster).")] = None,
     api_key: Annotated[str | None, typer.Option(help="API key of the service (X-API-Key); in process "
                                                      "the configured CORTEXLOC_API_KEY is used.")] = None,
 ) -> None:
@@ -73,10 +70,8 @@ def ingest_command(
     except SourceError as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from e
-    if revisit_score is None:
-        revisit_score = poster.REVISIT_SCORE
     opts = poster.Options(map_id=map_id, stream=stream, learn=learn, label_stamp=label_stamp,
-                          api_key=api_key, prefetch=prefetch, revisit_score=revisit_score)
+                          api_key=api_key, prefetch=prefetch)
     progress = _progress(src.total, src.describe())
 
     def on_record(rec: Record) -> None:
@@ -88,7 +83,7 @@ def ingest_command(
         elif rec.status != 200:
             progress.console.print(f"frame {rec.name}: {rec.status} {rec.answer.get('detail', '')}")
         task = progress.tasks[0]
-        progress.update(task.id, advance=1, revisits=task.fields["revisits"] + rec.is_revisit(revisit_score),
+        progress.update(task.id, advance=1, revisits=task.fields["revisits"] + rec.is_revisit(),
                         errors=task.fields["errors"] + (rec.status != 200))
 
     async def run() -> poster.Summary:

@@ -38,15 +38,9 @@ from service.ingest.sources import Frame, Source
 if TYPE_CHECKING:
     from service.settings import Settings
 
-__all__ = ["MAX_RETRIES", "MAX_WAIT_S", "REVISIT_SCORE", "IngestError", "Options", "Record", "Summary",
+__all__ = ["MAX_RETRIES", "MAX_WAIT_S", "IngestError", "Options", "Record", "Summary",
            "in_process_client", "ingest", "remote_client"]
 
-#: The default revisit: the top match's Dice score of winner cells reaches this (`Options.revisit_score`).
-#: The same frame seen again in the same context scores 1; a revisit of a place on new footage scores less,
-#: and with random weights unrelated frames reach 0.84 (12 synthetic 640x480 frames, default preset: distinct
-#: ones 0.80-0.84, repeats 1.0), so the default sits above that. With the map's default `exclude_recent=0`
-#: the previous frame of a slow robot can count too.
-REVISIT_SCORE = 0.9
 MAX_RETRIES = 5
 MAX_WAIT_S = 30.0
 #: Refusals of one frame's bytes: recorded, and the ingest goes on.
@@ -72,7 +66,6 @@ class Options:
     label_stamp: bool = False
     api_key: str | None = None
     prefetch: int = 2
-    revisit_score: float = REVISIT_SCORE
 
 
 @dataclass(frozen=True)
@@ -86,10 +79,11 @@ class Record:
     latency_ms: float
     answer: dict[str, Any]
 
-    def is_revisit(self, threshold: float = REVISIT_SCORE) -> bool:
-        """The top match scores at least `threshold`."""
-        matches = (self.answer.get("matches") or []) if self.status == 200 else []
-        return bool(matches) and float(matches[0]["score"]) >= threshold
+    def is_revisit(self) -> bool:
+        """The service's own decision: the stream's `place` is a revisit (its confidence reached the
+        map's `revisit_threshold`, docs/design/service.md §1.2)."""
+        place = self.answer.get("place") if self.status == 200 else None
+        return bool(place and place.get("revisit"))
 
 
 @dataclass
@@ -101,7 +95,6 @@ class Summary:
     stream: str
     learn: bool
     total: int
-    revisit_score: float = REVISIT_SCORE
     created_map: bool = False
     frames: int = 0
     learned: int = 0
@@ -115,7 +108,7 @@ class Summary:
         if rec.status == 200:
             self.frames += 1
             self.learned += bool(rec.answer.get("learned"))
-            self.revisits += rec.is_revisit(self.revisit_score)
+            self.revisits += rec.is_revisit()
             self.latencies_ms.append(rec.latency_ms)
         else:
             self.errors += 1
@@ -136,7 +129,7 @@ class Summary:
         return (f"{self.source} -> map {self.map_id!r}, stream {self.stream!r} "
                 f"({'learn' if self.learn else 'localise'}{', map created' if self.created_map else ''})\n"
                 f"posted {self.frames}/{self.total} frames, learned {self.learned}, revisits {self.revisits} "
-                f"(top score >= {self.revisit_score}), errors {self.errors}, retries {self.retries}\n"
+                f"(the stream's place, the map's threshold), errors {self.errors}, retries {self.retries}\n"
                 f"latency {lat}; {rate} over {self.elapsed_s:.1f} s")
 
 
@@ -185,7 +178,7 @@ async def ingest(client: httpx.AsyncClient, source: Source, opts: Options, *,
         IngestError: the service cannot be reached, refuses the map, or answers 503 past the retries.
     """
     summary = Summary(source=source.describe(), map_id=opts.map_id, stream=opts.stream, learn=opts.learn,
-                      total=source.total, revisit_score=opts.revisit_score)
+                      total=source.total)
     headers = {"X-API-Key": opts.api_key} if opts.api_key else {}
     t0 = time.perf_counter()
     try:
