@@ -3,7 +3,7 @@
 docs/design/science.md §11.4: the database traverse is learned in order (row r's predecessor is r - 1),
 then the query frames are fed one at a time, learning off; the answer for query frame j uses columns
 <= j (in driven order) only. The `online-X` methods of `models.evaluation.sequences` are this on method
-X's single-image similarity. `loop_closure` is the grid world's form (§11.4): one learning stream
+X's single-image similarity. `loop_closure` is the grid world's form (§2.4): one learning stream
 localised against its own past steps.
 """
 
