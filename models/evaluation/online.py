@@ -3,17 +3,18 @@
 docs/design/science.md §11.4: the database traverse is learned in order (row r's predecessor is r - 1),
 then the query frames are fed one at a time, learning off; the answer for query frame j uses columns
 <= j (in driven order) only. The `online-X` methods of `models.evaluation.sequences` are this on method
-X's single-image similarity.
+X's single-image similarity. `loop_closure` is the grid world's form (§2.4): one learning stream
+localised against its own past steps.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
 import numpy as np
 
-from models.localisation import SequenceGraph, SequenceLocaliser
+from models.localisation import SequenceGraph, SequenceLocaliser, top_candidates
 
 
 class OnlineAnswers(NamedTuple):
@@ -44,17 +45,60 @@ def localise(S: np.ndarray, conf: Mapping[str, Any] | None = None,
     """
     S = np.asarray(S, dtype=np.float64)
     n_db, n_q = S.shape
-    graph = SequenceGraph.chain(n_db) if graph is None else graph
     loc = SequenceLocaliser(conf)
+    top_k = int(loc.conf["top_k"])
+    graph = SequenceGraph.chain(n_db) if graph is None else graph
+    return _drive(loc, graph, n_db, n_q, lambda j: top_candidates(S[:, j], top_k), grow=False)
+
+
+def loop_closure(S: np.ndarray, conf: Mapping[str, Any] | None = None) -> OnlineAnswers:
+    """One learning stream localised against its own past: the grid protocol (docs/design/science.md §2.4)
+    through the service's localiser (§11).
+
+    Step i is localised before it is stored: the map then holds steps 0 … i − 1, linked in order (row r's
+    predecessor r − 1), and, as in the service for a learning stream (`service/maps/localisation.py`),
+    the stream's own last `exclusion` + 1 rows are not candidates (they would always match best), nor
+    rows of similarity <= 0 (the index returns only rows sharing a cell). Then step i joins the map.
+    One stream, one state, no reset.
+
+    Args:
+        S: (T, T) single-image similarity of step j (rows) and step i (columns), higher = more similar;
+            only entries j < i − exclusion − 1 are read, so any symmetric matrix of causal descriptors
+            (input SDRs, TM winner cells learned online) gives a causal answer.
+        conf: localiser options over `models.localisation.default_conf`.
+
+    Returns:
+        OnlineAnswers over T steps against T rows; S[j, i] is -inf unless j < i and j is in the beam.
+    """
+    S = np.asarray(S, dtype=np.float64)
+    T = S.shape[0]
+    if S.shape != (T, T):
+        raise ValueError(f"S must be square (T, T), got {S.shape}")
+    loc = SequenceLocaliser(conf)
+    top_k, own = int(loc.conf["top_k"]), int(loc.conf["exclusion"]) + 1
+
+    def candidates(i: int) -> tuple[np.ndarray, np.ndarray]:
+        seqs, scores = top_candidates(S[:max(i - own, 0), i], top_k)  # not the own recent rows
+        return seqs[scores > 0], scores[scores > 0]  # the index's min_overlap 1
+
+    return _drive(loc, SequenceGraph(), T, T, candidates, grow=True)
+
+
+def _drive(loc: SequenceLocaliser, graph: SequenceGraph, n_db: int, n_q: int,
+           candidates: Callable[[int], tuple[np.ndarray, np.ndarray]], grow: bool) -> OnlineAnswers:
+    """One stream through `loc`: frame j's candidates (rows, scores) from `candidates(j)`; with `grow`,
+    frame j is then appended to `graph` as row j after row j − 1 (a learning stream)."""
     state = loc.new_state()
     best = np.full(n_q, -1, np.int64)
     confidence = np.zeros(n_q)
     support = np.zeros(n_q, np.int64)
     out = np.full((n_db, n_q), -np.inf)
     for j in range(n_q):
-        place = loc.step_dense(state, graph, S[:, j])
+        place = loc.step(state, graph, *candidates(j))
         live = state.rows >= 0
         np.maximum.at(out[:, j], state.rows[live], state.scores[live])
         if place is not None:
             best[j], confidence[j], support[j] = place
+        if grow:
+            graph.append(j, j - 1 if j else -1)
     return OnlineAnswers(best, confidence, support, out)

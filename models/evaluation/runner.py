@@ -14,16 +14,17 @@ from typing import Any
 import numpy as np
 
 from models import presets
-from models.evaluation import metrics, plots, seqslam
+from models.evaluation import metrics, online, plots, seqslam
 from models.evaluation.gridworld import GridData
 from models.memory.mcn import MCN, resolve_in_con
 from models.memory.temporal_memory import TemporalMemory
 from models.sdr import dice_matrix
 
-METHODS = ("pairwise", "pairwise-seq", "mcn", "htm")
+METHODS = ("pairwise", "pairwise-seq", "mcn", "htm", "online-pairwise", "online-htm")
 # What the memory adds beyond any sequence matcher: the same matcher on the input codes runs beside it.
-ABLATIONS = {"htm": ("pairwise", "pairwise-seq"), "mcn": ("pairwise", "pairwise-seq")}
-_METRICS = ("auc", "recall_at_1", "recall_at_5", "recall_at_100p")
+ABLATIONS = {"htm": ("pairwise", "pairwise-seq"), "mcn": ("pairwise", "pairwise-seq"),
+             "online-htm": ("online-pairwise",)}
+_METRICS = ("auc", "recall_at_1", "recall_at_5", "recall_at_100p", "query_auc", "query_recall_at_100p")
 
 
 def run_htm(data: GridData, preset: str, seed: int) -> tuple[list[np.ndarray], dict[str, Any]]:
@@ -70,11 +71,17 @@ def run_grid_once(data: GridData, scoring: str, preset: str, mcn_preset: str, tm
 
     `pairwise-seq` is the OpenSeqSLAM matcher (models.evaluation.seqslam, ds steps centred on each step,
     full paths only) over the Dice of the input SDRs: what a plain sequence filter gets from the codes,
-    beside what the Temporal Memory gets (docs/design/science.md §10.1).
+    beside what the Temporal Memory gets (docs/design/science.md §10.1). `online-X` is the service's
+    localiser run as loop closure over the Dice of X's descriptors (`online.loop_closure`): each step
+    localised against the steps before it, linked in order; its all-pairs AUC reads the beam's scores.
+    Per query (every method): step i's answer among the steps j < i, scored by `metrics.query_metrics`
+    (R@1, query_auc, query_recall_at_100p); the online methods answer with the localiser's place and
+    confidence, the others with their best match and its similarity.
     """
     out: dict[str, dict[str, Any]] = {}
+    tm: tuple[list[np.ndarray], dict[str, Any]] | None = None  # one TM run serves htm and online-htm
     for method in methods:
-        similarity = None
+        similarity, answers = None, None
         if method == "pairwise":
             descriptors, info = data.sdrs, {}
         elif method == "pairwise-seq":
@@ -82,14 +89,43 @@ def run_grid_once(data: GridData, scoring: str, preset: str, mcn_preset: str, tm
             similarity = seqslam.seqslam(dice_matrix(data.sdrs), ds)
         elif method == "mcn":
             descriptors, info = run_mcn(data, mcn_preset, mcn_seed)
-        elif method == "htm":
-            descriptors, info = run_htm(data, preset, tm_seed)
+        elif method in ("htm", "online-htm"):
+            tm = tm or run_htm(data, preset, tm_seed)
+            descriptors, info = tm
+        elif method == "online-pairwise":
+            descriptors, info = data.sdrs, {}
         else:
             raise ValueError(f"unknown method {method!r}; known: {', '.join(METHODS)}")
+        if method.startswith("online-"):
+            answers = online.loop_closure(dice_matrix(descriptors))
+            similarity = answers.S
         result = metrics.grid_evaluation(descriptors, data.places, scoring, similarity)
+        result.update(_per_query(dice_matrix(descriptors) if similarity is None else similarity,
+                                 data.places, answers))
         result["info"] = info
         out[method] = result
     return out
+
+
+def _per_query(S: np.ndarray, places: np.ndarray, answers: online.OnlineAnswers | None) -> dict[str, float]:
+    """Per-query metrics of online loop closure: step i against the steps j < i (docs/design/science.md
+    §8.3, §8.4). S: (T, T), rows the older steps; answers: the localiser's (else each step's best match).
+    Steps without an older step (the first) answer nothing; steps with no same-place older step count
+    only as wrong answers in the query PR curve."""
+    T = len(places)
+    older = np.triu(np.ones((T, T), dtype=bool), k=1)
+    gt = metrics.place_ground_truth(places) & older
+    s = np.where(older, np.asarray(S, dtype=np.float64), -np.inf)
+    if answers is None:
+        best, confidence = metrics.best_matches(s)
+    else:
+        best, confidence = answers.best, answers.confidence
+    answered = (best >= 0) & np.isfinite(confidence)
+    floor = confidence[answered].min() if answered.any() else 0.0
+    best, confidence = np.where(answered, best, -1), np.where(answered, confidence, floor)
+    q = metrics.query_metrics(np.where(np.isfinite(s), s, floor), gt, confidence, best)
+    return {"recall_at_1": q["recall_at_1"], "query_auc": q["query_auc"],
+            "query_recall_at_100p": q["query_recall_at_100p"]}
 
 
 def _summary(values: list[float]) -> dict[str, float]:

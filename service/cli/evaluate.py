@@ -39,9 +39,12 @@ def eval_grid(
     mcn_preset: Annotated[str, typer.Option(help="MCN preset.")] = "mcn-grid",
     seeds: Annotated[int, typer.Option(min=1, help="Runs; seeds spawned from --seed.")] = 10,
     seed: Annotated[int, typer.Option(help="Experiment seed.")] = 0,
-    methods: Annotated[str, typer.Option(help="Comma-separated: pairwise,pairwise-seq,mcn,htm (pairwise-seq: "
-                                          "the sequence matcher on the input codes; it and pairwise always "
-                                          "run beside mcn and htm).")] = "pairwise,pairwise-seq,mcn,htm",
+    methods: Annotated[str, typer.Option(help="Comma-separated: "
+                                          "pairwise,pairwise-seq,mcn,htm,online-pairwise,"
+                                          "online-htm (pairwise-seq: the sequence matcher on the input "
+                                          "codes; it and pairwise always run beside mcn and htm; online-X: "
+                                          "the service's localiser, online-pairwise beside online-htm)."
+                                          )] = "pairwise,pairwise-seq,mcn,htm",
     ds: Annotated[int, typer.Option(min=2, help="Steps per sequence path of pairwise-seq.")] = 10,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write results as JSON here.")] = None,
     plots_dir: Annotated[Path | None, typer.Option("--plots", help="Write PR and similarity PNGs here.")]
@@ -92,12 +95,13 @@ def format_grid_table(result: dict[str, Any]) -> str:
     else:
         what = f"published {Path(str(data.get('sdr_file', '?'))).name}"
     lines = [f"grid world: {what}; scoring={result['scoring']}; seeds={result['seeds']}",
-             f"{'method':<12} {'AUC mean':>9} {'sd':>7} {'min':>8} {'max':>8} {'R@1':>7} {'R@5':>7} "
-             f"{'R@100P':>7}  notes"]
+             f"{'method':<15} {'AUC mean':>9} {'sd':>7} {'min':>8} {'max':>8} {'R@1':>7} {'R@5':>7} "
+             f"{'R@100P':>7} {'qAUC':>7} {'qR@100P':>7}  notes"]
     for m, e in result["methods"].items():
-        lines.append(f"{m:<12} {e['auc_mean']:>9.6f} {e['auc_sd']:>7.4f} {e['auc_min']:>8.4f} "
+        lines.append(f"{m:<15} {e['auc_mean']:>9.6f} {e['auc_sd']:>7.4f} {e['auc_min']:>8.4f} "
                      f"{e['auc_max']:>8.4f} {e['recall_at_1_mean']:>7.3f} {e['recall_at_5_mean']:>7.3f} "
-                     f"{e['recall_at_100p_mean']:>7.3f}  {_method_notes(m, e)}")
+                     f"{e['recall_at_100p_mean']:>7.3f} {e['query_auc_mean']:>7.3f} "
+                     f"{e['query_recall_at_100p_mean']:>7.3f}  {_method_notes(m, e)}")
     return "\n".join(lines)
 
 
