@@ -1,7 +1,9 @@
 """Encoder: a batch of image bytes -> sLSBH SDRs (docs/design/science.md §1, §6, §7).
 
-One entry point, `Encoder.encode(images)`, stateless across calls and batch-first, so the service can
-batch concurrent requests. Configuration is a `default_conf` merged with the caller's (presets as
+Two entry points, stateless across calls and batch-first, so the service can batch concurrent requests:
+`Encoder.embed(images)` gives backbone features (the service projects them with each map's own matrix,
+service.maps.encoder_pool) and `Encoder.encode(images)` goes on to the sLSBH codes with the encoder's own
+projection (evaluation, benchmarks). Configuration is a `default_conf` merged with the caller's (presets as
 data); the encoder's identity string says which backbone, weights and resize mode it runs on, because
 descriptors from different encoders are not comparable.
 
@@ -221,8 +223,8 @@ class Encoder:
 
         Raises:
             images.ImageError: an input is not a decodable image within the limits (the whole batch is
-                refused; the service decodes per request before batching, so one bad upload never
-                fails another's).
+                refused; the service's encoder pool then encodes each image of that batch alone, so one
+                bad upload fails only its own request).
         """
         limits = {"max_bytes": int(self.conf["max_bytes"]), "max_pixels": int(self.conf["max_pixels"])}
         kw = {"mode": self.conf["resize"], "mean": self.input_mean, "std": self.input_std}

@@ -151,8 +151,8 @@ def eval_images(
     preset: Annotated[str | None, typer.Option(help="Temporal Memory preset (default: the service's; the "
                                                     "paper's is cba2020-nordland).")] = None,
     mcn_preset: Annotated[str, typer.Option(help="MCN preset.")] = "mcn-nordland",
-    s: Annotated[float | None, typer.Option(min=0.0, max=0.5, help="sLSBH sparsity (default: the "
-                                                                    "preset's, else 0.25).")] = None,
+    s: Annotated[float | None, typer.Option(help="sLSBH sparsity in (0, 0.5] (default: the preset's, else "
+                                                 "0.25).")] = None,
     tolerance: Annotated[int, typer.Option(min=0, help="±database images that count as the same place.")]
     = 0,
     reset: Annotated[bool, typer.Option("--reset/--no-reset",
@@ -179,9 +179,12 @@ def eval_images(
     query."""
     import os
 
+    from pydantic import ValidationError
+
     from models.evaluation import ground_truth, plots, sequences
     from models.evaluation import seqslam as seq
     from models.frontend import encoder as encoder_mod
+    from models.frontend import images
     from service.app import resolve_backbone
     from service.cli import service_eval
     from service.settings import Settings
@@ -202,12 +205,14 @@ def eval_images(
     wanted_precision = _operating_point(operating_point)
     check_presets(preset, mcn_preset)
     check_backbone(backbone)
-    if resize not in ("crop", "squash"):
-        raise typer.BadParameter("must be crop or squash", param_hint="--resize")
+    if resize not in images.MODES:
+        raise typer.BadParameter(f"must be one of {', '.join(images.MODES)}", param_hint="--resize")
     s_conf = presets.slsbh_params(preset)
     sparsity = float(s if s is not None else s_conf["s"])
-    if not 0 < sparsity <= 0.5:
-        raise typer.BadParameter("must be in (0, 0.5]", param_hint="--s")
+    try:  # the sLSBH rules have one home: presets.SlsbhParams
+        presets.SlsbhParams(**{**s_conf, "s": sparsity})
+    except ValidationError as e:
+        raise typer.BadParameter("; ".join(err["msg"] for err in e.errors()), param_hint="--s") from e
     gt_matrix = None
     try:
         if gt is not None:

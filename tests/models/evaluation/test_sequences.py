@@ -268,3 +268,15 @@ def test_eval_images_openseqslam_alone_runs_no_backbone(tmp_path):
     payload = json.loads(out.read_text())
     assert payload["config"]["encoder"] == "none" and not (tmp_path / "c").exists()
     assert payload["methods"]["openseqslam"]["recall_at_1_mean"] > 0.9
+
+
+def test_eval_images_refuses_a_sparsity_outside_the_slsbh_rules(tmp_path):
+    """--s is checked by the one home of the sLSBH rules (presets.SlsbhParams), before any image is read."""
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    for bad in ("0.7", "0"):
+        result = CliRunner().invoke(app, ["eval", "images", "--db", str(tmp_path), "--query", str(tmp_path),
+                                          "--s", bad])
+        assert result.exit_code == 2 and "--s" in result.output
