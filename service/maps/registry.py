@@ -27,6 +27,7 @@ from service.maps.index import warm_up as index_warm_up
 from service.maps.params import map_option, resolve_params
 from service.maps.runtime import MapRuntime
 from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord
+from storage.layout import Layout
 from storage.mapstore import MapMeta, MapStore, cell_dtype_for
 
 __all__ = ["MapRegistry", "warm_up"]
@@ -60,17 +61,18 @@ class MapRegistry:
         self.encoders = encoders
         self.settings = settings
         self.data_dir.mkdir(parents=True, exist_ok=True)
-        self.catalog = Catalog.open(self.data_dir / "catalog.sqlite")
-        self.projections = self.data_dir / "projections"
+        self.layout = Layout(data_dir)  # every path of the data directory (storage.layout)
+        self.catalog = Catalog.open(self.layout.catalog)
+        self.projections = self.layout.projections
         self.projections.mkdir(parents=True, exist_ok=True)
         self.maps: dict[str, MapRuntime] = {}
         self._create_lock = threading.Lock()
 
     def _runtime(self, record: MapRecord, feature_dim: int) -> MapRuntime:
         s = self.settings
-        return MapRuntime(record, self.data_dir / "maps" / record.map_id, self.projections, self.catalog,
-                          feature_dim, s.max_streams, s.max_observations, s.snapshot_every, s.snapshot_keep,
-                          max_keys=s.idempotency_keys, key_cache=s.idempotency_cache)
+        return MapRuntime(record, self.catalog, feature_dim, s.max_streams, s.max_observations,
+                          s.snapshot_every, s.snapshot_keep, max_keys=s.idempotency_keys,
+                          key_cache=s.idempotency_cache)
 
     def start(self) -> None:
         """Open every map and recover it by replay; create `default` on a fresh install."""
@@ -146,11 +148,11 @@ class MapRegistry:
             params["thumbnails"] = bool(thumbnails)  # frozen like the rest (docs/design/service.md §1.1)
             if encoder.identity.split("/")[1].startswith("random"):
                 log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, encoder.identity)
-            map_dir = self.data_dir / "maps" / map_id
+            map_dir = self.layout.map_dir(map_id)
             if map_dir.exists():
                 shutil.rmtree(map_dir)  # leftovers of a creation that never reached the catalog
             map_dir.mkdir(parents=True)
-            store = MapStore.create(map_dir / "map.sqlite", MapMeta(
+            store = MapStore.create(self.layout.map_db(map_id), MapMeta(
                 map_id=map_id, params=params, projection_sha256=sha, encoder_id=encoder.identity,
                 cell_dtype=cell_dtype_for(int(params["tm"]["columnDimensions"])
                                           * int(params["tm"]["cellsPerColumn"]))))
@@ -166,8 +168,7 @@ class MapRegistry:
 
     def import_snapshot(self, tar_path: Path, max_bytes: int) -> str:
         """Create a map from a downloaded snapshot tar (`service.maps.snapshots.import_snapshot`)."""
-        return map_snapshots.import_snapshot(self.data_dir, self.catalog, self.projections, tar_path,
-                                             max_bytes)
+        return map_snapshots.import_snapshot(self.data_dir, self.catalog, tar_path, max_bytes)
 
     def delete(self, map_id: str) -> None:
         """Raises MapNotFound."""
@@ -176,4 +177,4 @@ class MapRegistry:
             self.maps.pop(map_id, None)
             rt.close(snapshot=False)
             self.catalog.delete_map(map_id)
-            shutil.rmtree(self.data_dir / "maps" / map_id, ignore_errors=True)
+            shutil.rmtree(self.layout.map_dir(map_id), ignore_errors=True)

@@ -71,14 +71,14 @@ class MapRuntime:
     """One map in memory, with its single writer thread; `state` is `ready` | `recovering` | `failed`
     and `state_reason` says why (module docstring: which thread runs which method)."""
 
-    def __init__(self, record: MapRecord, map_dir: Path, projections_dir: Path, catalog: Catalog,
+    def __init__(self, record: MapRecord, catalog: Catalog,
                  feature_dim: int, max_streams: int, max_observations: int,
                  snapshot_every: int = 0, snapshot_keep: int = 3, *, max_keys: int | None = None,
                  key_cache: int = 0) -> None:
         self.record = record
         self.map_id = record.map_id
         self.params = record.params
-        self.dir = map_dir
+        self.layout = catalog.layout  # every path of the map (storage.layout)
         self.catalog = catalog
         self.max_streams = max_streams
         self.snapshot_every = snapshot_every
@@ -100,7 +100,7 @@ class MapRuntime:
         self._turn = asyncio.Event()
         self._turn.set()
         sha = self.params["projection_sha256"]
-        self.projection_path = projections_dir / f"{sha}.npy"
+        self.projection_path = self.layout.projection(sha)
         self.hasher: slsbh.Hasher | None = None
         self.adapt_tau = int(self.params["slsbh"].get("adapt_tau", 0))  # maps made before it: none
         self._projection_error: str | None = None
@@ -174,7 +174,7 @@ class MapRuntime:
         """
         assert self.store is not None
         return map_snapshots.take(self.store, memory_state(self.tm, self.streams), self.catalog, self.map_id,
-                                  self.dir, self.projection_path, kind)
+                                  self.projection_path, kind)
 
     def _auto_snapshot(self) -> None:
         """The periodic snapshot after a commit. It only shortens the next recovery, so a failure
@@ -208,7 +208,7 @@ class MapRuntime:
         self.snapshot("pre-restore")
         self.catalog.bump_high_water(self.map_id, self.store.next_seq() - 1)
         self.store.close()
-        MapStore.install_copy(path / snapshots.DB_FILE, self.dir / "map.sqlite")
+        MapStore.install_copy(path / snapshots.DB_FILE, self.layout.map_db(self.map_id))
         self.recover()
         after = self.store.count() if self.store is not None else 0
         return RestoreResult(**vars(self.info()), discarded_observations=before - after)
@@ -222,10 +222,10 @@ class MapRuntime:
         if self.hasher is None:
             self._fail("projection-invalid", self._projection_error or "no projection")
             return
-        if (self.dir / "snapshots").is_dir():  # a crash during a snapshot leaves only a temporary dir
-            snapshots.remove_stale_temp(self.dir / "snapshots")
+        if self.layout.snapshots_dir(self.map_id).is_dir():  # a crash during a snapshot leaves a temp dir
+            snapshots.remove_stale_temp(self.layout.snapshots_dir(self.map_id))
         try:
-            self.store = MapStore.open(self.dir / "map.sqlite", max_keys=self.max_keys,
+            self.store = MapStore.open(self.layout.map_db(self.map_id), max_keys=self.max_keys,
                                        seq_floor=self.catalog.get_high_water(self.map_id))
             if not self.store.quick_check():
                 raise StoreCorrupt("quick_check failed")

@@ -43,11 +43,10 @@ def locate(catalog: Catalog, map_id: str, snapshot_id: str) -> tuple[SnapshotRec
     return rec, catalog.snapshot_dir(rec)
 
 
-def take(store: MapStore, memory: Mapping[str, np.ndarray], catalog: Catalog, map_id: str, map_dir: Path,
+def take(store: MapStore, memory: Mapping[str, np.ndarray], catalog: Catalog, map_id: str,
          projection_path: Path, kind: str) -> SnapshotInfo:
     """A consistent cut at the store's current seq, with the memory's arrays; registered in the catalog.
-    It goes where the catalog's `Layout` puts the map's snapshots (`map_dir` is not read: the caller,
-    `MapRuntime.snapshot`, still passes it).
+    It goes where the catalog's `Layout` puts the map's snapshots.
 
     Raises:
         InsufficientStorage: the disk is full (nothing is left behind).
@@ -76,8 +75,7 @@ def prune_auto(catalog: Catalog, map_id: str, keep: int) -> None:
         shutil.rmtree(catalog.snapshot_dir(rec), ignore_errors=True)
 
 
-def import_snapshot(data_dir: Path, catalog: Catalog, projections: Path, tar_path: Path,
-                    max_bytes: int) -> str:
+def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes: int) -> str:
     """Create a map from a downloaded snapshot tar (`cortexloc import`, server stopped).
 
     The manifest (the tar's first member) is checked before anything is written: its ids follow
@@ -85,8 +83,7 @@ def import_snapshot(data_dir: Path, catalog: Catalog, projections: Path, tar_pat
     `max_bytes` and in the free space of the data directory. Every checksum is then verified (the
     snapshot's files, and the projection against the map's recorded SHA-256) before anything is
     registered; the map recovers from that snapshot when the server starts. Every path comes from
-    `Layout(data_dir)` (`projections` is not read: the caller, `MapRegistry.import_snapshot`, still
-    passes it).
+    `Layout(data_dir)`.
 
     Returns:
         The imported map's id.

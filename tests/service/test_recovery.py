@@ -195,7 +195,7 @@ def test_a_full_disk_during_an_automatic_snapshot_acknowledges_the_durable_row(t
         assert 'cortexloc_map_snapshot_failures{map="default"} 1.0' in c.get("/metrics").text
         manual = c.post("/v1/maps/default/snapshots")
         assert manual.status_code == 507 and manual.json()["type"].endswith("insufficient-storage")
-        assert not [p for p in (rt.dir / "snapshots").iterdir()]  # nothing half-written is left
+        assert not [p for p in rt.layout.snapshots_dir(rt.map_id).iterdir()]  # nothing half-written is left
         monkeypatch.undo()
         post(c, frame(2))
         assert post(c, frame(3)).json()["seq"] == 4  # the next automatic snapshot succeeds...
