@@ -85,6 +85,10 @@ class KeyCache:
         while len(self._records) > self.size:
             self._records.popitem(last=False)
 
+    def clear(self) -> None:
+        """Forget every reply (a restore: they may name observations it dropped)."""
+        self._records.clear()
+
 
 def lookup(store: MapStore, cache: KeyCache | None, post: IdempotentPost) -> Reply | None:
     """The earlier reply to `post`'s key in the store or `cache` (None: the store only), or None.

@@ -55,5 +55,10 @@ class RecentAnswers(Generic[R]):
             entries = [e for e in entries if e.stream == stream]
         return entries[-limit:] if limit > 0 else []
 
+    def clear(self) -> None:
+        """Forget every answer (a restore: they may name observations it dropped)."""
+        with self._lock:
+            self._ring.clear()
+
     def __len__(self) -> int:
         return len(self._ring)

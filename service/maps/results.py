@@ -25,6 +25,13 @@ class Match:
     score: float  # Dice of the two winner-cell sets
     metadata: dict[str, Any] | None = None  # as stored with it (stamp, pose, ...)
 
+    @classmethod
+    def of(cls, rank: int, row: Any, overlap: int, score: float) -> Match:
+        """The match of rank `rank` (1 = best) on the stored `row` (storage.mapstore.Observation)."""
+        return cls(rank=rank, observation_id=row.observation_id, seq=row.seq, stream=row.stream,
+                   label=row.label, created_at=row.created_at, overlap=int(overlap), score=float(score),
+                   metadata=row.metadata)
+
 
 @dataclass(frozen=True)
 class SequenceStats:
@@ -35,6 +42,12 @@ class SequenceStats:
     predicted_columns: int
     bursting_columns: int
     winner_cells: int
+
+    @classmethod
+    def of(cls, step: int, stats: dict[str, int]) -> SequenceStats:
+        """From `StreamContext.stats.as_dict()` (models.memory.temporal_memory)."""
+        return cls(step=step, **{k: int(stats[k]) for k in ("active_columns", "predicted_columns",
+                                                             "bursting_columns", "winner_cells")})
 
 
 @dataclass(frozen=True)

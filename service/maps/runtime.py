@@ -210,6 +210,8 @@ class MapRuntime:
         self.store.close()
         MapStore.install_copy(path / snapshots.DB_FILE, self.layout.map_db(self.map_id))
         self.recover()
+        self.keys.clear()  # answers given before may name the observations the restore dropped
+        self.recent.clear()
         after = self.store.count() if self.store is not None else 0
         return RestoreResult(**vars(self.info()), discarded_observations=before - after)
 
@@ -331,6 +333,29 @@ class MapRuntime:
             raise MapFull(self.map_id, self.index.max_observations)
         if projected.shape != (self.hasher.k,):
             raise ValueError(f"projection has shape {projected.shape}, this map's are ({self.hasher.k},)")
+        try:
+            return self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k, label=label,
+                              metadata=metadata, thumbnail=thumbnail, post=post)
+        except Exception as e:
+            if not learn:
+                raise  # a localisation learns nothing: the memory and the store still agree
+            # The TM may hold a learned step the store does not (a failed commit, or a failure anywhere
+            # between the step and the commit): rebuild from the store before anything else runs, so
+            # no later row is learned on a memory that replay cannot reproduce (docs/design/service.md §4.3).
+            assert self.store is not None
+            self.state, self.state_reason = "recovering", "step-failed"
+            self.store.close()
+            self.recover()
+            if isinstance(e, StorageFull):
+                raise InsufficientStorage("the observation could not be stored: the disk is full; nothing "
+                                          "was learned") from e
+            raise
+
+    def _step(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
+              label: str | None, metadata: dict[str, Any] | None, thumbnail: bytes | None,
+              post: idempotency.IdempotentPost | None) -> ObservationResult:
+        """Writer: `apply` after its checks; an exception here while learning is rebuilt from by `apply`."""
+        assert self.store is not None and self.hasher is not None
         t0 = time.perf_counter()
         st = touch(self.streams, stream, self.max_streams)
         if self.adapt_tau:
@@ -365,15 +390,8 @@ class MapRuntime:
         seq = self.store.next_seq() if row is not None else None
         result = ObservationResult(
             map_id=self.map_id, stream=stream, learned=learn, observation_id=row and row.observation_id,
-            seq=seq, sequence=SequenceStats(step=st.step, active_columns=stats["active_columns"],
-                                            predicted_columns=stats["predicted_columns"],
-                                            bursting_columns=stats["bursting_columns"],
-                                            winner_cells=stats["winner_cells"]),
-            matches=[Match(rank=i + 1, observation_id=rows[m.seq].observation_id, seq=m.seq,
-                           stream=rows[m.seq].stream, label=rows[m.seq].label,
-                           created_at=rows[m.seq].created_at, overlap=int(m.overlap), score=float(m.score),
-                           metadata=rows[m.seq].metadata)
-                     for i, m in enumerate(ranked)],
+            seq=seq, sequence=SequenceStats.of(st.step, stats),
+            matches=[Match.of(i + 1, rows[m.seq], m.overlap, m.score) for i, m in enumerate(ranked)],
             timings_ms={"hash": (t1 - t0) * 1e3, "tm": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3},
             map_seq=seq or self.store.last_seq(), projection_sha256=self.params["projection_sha256"],
             backbone=self.backbone, metadata=metadata,
@@ -395,22 +413,10 @@ class MapRuntime:
         return dataclasses.replace(result, timings_ms={**result.timings_ms, "store": (t4 - t3) * 1e3})
 
     def _commit(self, row: NewObservation) -> tuple[int, str]:
-        """Writer: the row on disk, then in the index: (seq, observation id).
-
-        A failed commit leaves the TM one learned step ahead of the store: the memory is rebuilt from
-        the store (`recover`) before anything else runs, then the error is raised.
-        """
+        """Writer: the row on disk, then in the index and the links: (seq, observation id). A failed
+        append raises; `apply` rebuilds the memory from the store."""
         assert self.store is not None
-        try:
-            seq = self.store.append(row)
-        except Exception as e:
-            self.state, self.state_reason = "recovering", "commit-failed"
-            self.store.close()
-            self.recover()
-            if isinstance(e, StorageFull):
-                raise InsufficientStorage("the observation could not be stored: the disk is full; nothing "
-                                          "was learned") from e
-            raise
+        seq = self.store.append(row)
         with contextlib.suppress(IndexFull):  # checked in `apply`; the row is durable either way
             self.index.add(seq, row.winner_cells, row.stream)
         self.localisation.add(seq, row.context_prev_seq)

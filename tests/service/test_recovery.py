@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.service.helpers import frame, make_client, post, state_of
+from tests.service.helpers import frame, make_client, post, state_of, tm_digest
 
 
 def crash(c) -> None:
@@ -288,3 +288,36 @@ def test_crashes_at_random_points_of_random_drives_come_back_as_if_nothing_happe
         # A localising stream comes back as of the last snapshot (its frames are not rows): only learned
         # steps compare.
         assert got == expected, (trial, cut, drive)
+
+
+# ------------------------------------------------------------------ a failure between the step and the commit
+
+
+def test_a_failure_between_the_tm_step_and_the_commit_leaves_no_row_replay_cannot_reproduce(tmp_path,
+                                                                                             monkeypatch):
+    """The TM learns in the step, before the commit; anything failing in between (here the localiser)
+    must not leave a learned step the store does not hold, or every later row would be stored with winner
+    cells that no replay reproduces (found by review: 6 mismatches after 6 more frames)."""
+    with make_client(tmp_path / "data", snapshot_every=0) as c:
+        for i in range(3):
+            assert post(c, frame(i)).status_code == 200
+        rt = c.app.state.registry.get("default")
+        real, calls = rt.localisation.step, []
+
+        def fails_once(*args, **kwargs):
+            calls.append(1)
+            if len(calls) == 1:
+                raise RuntimeError("injected after the TM step")
+            return real(*args, **kwargs)
+
+        monkeypatch.setattr(rt.localisation, "step", fails_once)
+        r = post(c, frame(3))
+        assert r.status_code == 500 and rt.store.count() == 3  # nothing stored, and the map still serves
+        monkeypatch.setattr(rt.localisation, "step", real)
+        for i in range(4, 10):
+            assert post(c, frame(i)).status_code == 200
+        live = tm_digest(rt.tm)
+    with make_client(tmp_path / "data", snapshot_every=0) as c:  # no snapshot: replay from the first row
+        rt = c.app.state.registry.get("default")
+        assert rt.recovery["source"] == "replay" and rt.recovery["mismatches"] == 0
+        assert tm_digest(rt.tm) == live
