@@ -64,7 +64,7 @@ class CreateMap(BaseModel):
 class PatchMap(BaseModel):
     """The map settings that may change after creation (docs/design/service.md §1.2)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)  # strict: "0.5" and true are not numbers
     revisit_threshold: float = Field(description="confidence at which an answer is a revisit, in [0, 1] "
                                      "(422 outside)")
 

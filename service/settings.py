@@ -127,6 +127,13 @@ class Settings(BaseSettings):
     api_key_reads: bool = Field(False, description="reads of whole maps (snapshot downloads) need the key "
                                                    "too; requires CORTEXLOC_API_KEY")
 
+    @field_validator("data_dir")
+    @classmethod
+    def _absolute(cls, v: Path) -> Path:
+        # Read once at startup, so relative means relative to where the service was started; stored
+        # paths are relative to this root, and a root that is itself relative would be applied twice.
+        return v.expanduser().resolve()
+
     @field_validator("log_level", mode="before")
     @classmethod
     def _upper_level(cls, v: Any) -> Any:

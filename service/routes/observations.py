@@ -13,6 +13,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import math
 import time
 from typing import Annotated, Any
 
@@ -25,7 +26,7 @@ from service.deps import ApiKeyDep, MapReadKeyDep, MetricsDep, RegistryDep, Sett
 from service.errors import IMAGE_MEDIA_TYPES, Problem, problem_responses
 from service.maps import idempotency, stored
 from service.maps.results import ObservationResult
-from service.routes.params import MapId, Seq, StreamQuery
+from service.routes.params import MAX_SEQ, MapId, Seq, StreamQuery
 from service.schemas import (
     MatchModel,
     ObservationModel,
@@ -51,7 +52,7 @@ _BINARY_BODY = {"requestBody": {"required": True, "content": {
 
 
 class _Pose(BaseModel):
-    model_config = ConfigDict(extra="allow")
+    model_config = ConfigDict(extra="allow", strict=True)  # strict: `true` is not a coordinate
     x: float
     y: float
     yaw: float | None = None
@@ -61,17 +62,38 @@ class _Pose(BaseModel):
 class _Metadata(BaseModel):
     """What the service reads in metadata; any other small JSON members are kept as they are."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = ConfigDict(extra="allow", strict=True)
     stamp: float | str | None = None
     pose: _Pose | None = None
 
 
-def _depth(value: Any) -> int:
-    if isinstance(value, dict):
-        return 1 + max(map(_depth, value.values()), default=0)
-    if isinstance(value, list):
-        return 1 + max(map(_depth, value), default=0)
-    return 0
+def _depth(text: str) -> int:
+    """The deepest nesting of objects and arrays in JSON `text`, read before parsing it (a parser
+    recursing 2,000 brackets deep is itself the failure)."""
+    depth = deepest = 0
+    in_string = escaped = False
+    for ch in text:
+        if in_string:
+            escaped, in_string = (False, True) if escaped else (ch == "\\", ch != '"')
+        elif ch == '"':
+            in_string = True
+        elif ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif ch in "]}":
+            depth -= 1
+    return deepest
+
+
+def _finite(literal: str) -> float:
+    value = float(literal)
+    if not math.isfinite(value):
+        raise ValueError(f"{literal} is not a finite number")
+    return value
+
+
+def _no_constant(name: str) -> float:
+    raise ValueError(f"{name} is not JSON")
 
 
 def parse_metadata(text: str) -> dict[str, Any]:
@@ -84,14 +106,17 @@ def parse_metadata(text: str) -> dict[str, Any]:
     size = len(text.encode())
     if size > METADATA_MAX_BYTES:
         raise bad(f"{size} bytes, more than {METADATA_MAX_BYTES}", max_bytes=METADATA_MAX_BYTES)
+    if _depth(text) > METADATA_MAX_DEPTH:
+        raise bad(f"nested deeper than {METADATA_MAX_DEPTH} levels", max_depth=METADATA_MAX_DEPTH)
     try:
-        value = json.loads(text)
-    except ValueError as e:
-        raise bad(f"not JSON ({e})") from e
+        # Only finite numbers (NaN, Infinity and 1e400 would be stored as null) and only text that is
+        # valid UTF-8 once stored (a lone surrogate escape such as "\ud800" is not).
+        value = json.loads(text, parse_float=_finite, parse_constant=_no_constant)
+        json.dumps(value, ensure_ascii=False).encode()
+    except (ValueError, UnicodeEncodeError) as e:
+        raise bad(f"not JSON that can be stored ({e})") from e
     if not isinstance(value, dict):
         raise bad(f"must be a JSON object, not {type(value).__name__}")
-    if _depth(value) > METADATA_MAX_DEPTH:
-        raise bad(f"nested deeper than {METADATA_MAX_DEPTH} levels", max_depth=METADATA_MAX_DEPTH)
     try:
         _Metadata.model_validate(value)
     except ValidationError as e:
@@ -224,7 +249,7 @@ def _count(metrics: Any, map_id: str, learn: bool, timings: dict[str, float]) ->
 @router.get("/{map_id}/observations", dependencies=[MapReadKeyDep], responses=problem_responses(404, 503))
 async def list_observations(
     map_id: MapId, registry: RegistryDep,
-    after_seq: Annotated[int, Query(ge=0, description="the page starts after this seq")] = 0,
+    after_seq: Annotated[int, Query(ge=0, le=MAX_SEQ, description="the page starts after this seq")] = 0,
     limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 100,
 ) -> StoredObservationList:
     """Stored observations in seq order, without their codes (a map's trajectory, from the poses)."""

@@ -239,3 +239,26 @@ def test_an_old_map_file_still_opens_and_learns(tmp_path):
     conn = sqlite3.connect(path)
     assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == "2"
     conn.close()
+
+
+@pytest.mark.parametrize("metadata", [
+    '{"s": "\\ud800x"}',                       # a lone surrogate: not storable as UTF-8
+    '{"a": ' + "[" * 2000 + "]" * 2000 + "}",  # deeper than any parser should recurse
+    '{"stamp": NaN}', '{"pose": {"x": Infinity, "y": 1}}', '{"pose": {"x": 1e400, "y": 2}}',
+    '{"pose": {"x": true, "y": 1}}', '{"stamp": true}',
+])
+def test_metadata_that_cannot_be_stored_as_sent_is_refused_and_changes_nothing(client, metadata):
+    """Found from outside: a lone surrogate stored a row no read could serve (500 on every read of it),
+    2,000 brackets were a 500, NaN and 1e400 were stored as null."""
+    before = state_of(client)
+    r = post(client, frame(1), metadata=metadata)
+    assert r.status_code == 422 and r.json()["type"].endswith("invalid-metadata"), r.text
+    assert state_of(client) == before
+    assert client.get("/v1/maps/default/recent").status_code == 200
+
+
+def test_seqs_beyond_sqlites_integers_are_a_400(client):
+    for path in ("/v1/maps/default/observations/9223372036854775808",
+                 "/v1/maps/default/observations?after_seq=9223372036854775808"):
+        r = client.get(path)
+        assert r.status_code == 400 and r.headers["content-type"].startswith("application/problem+json")

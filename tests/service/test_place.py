@@ -70,7 +70,8 @@ def test_patch_revisit_threshold_is_durable_and_checked(tmp_path):
             r = c.patch("/v1/maps/default", json={"revisit_threshold": bad})
             assert r.status_code == 422, bad
             assert r.headers["content-type"].startswith("application/problem+json")
-        assert c.patch("/v1/maps/default", json={"revisit_threshold": "x"}).status_code == 400
+        for not_a_number in ("x", "0.5", True):  # strict: a string or a boolean is not a threshold
+            assert c.patch("/v1/maps/default", json={"revisit_threshold": not_a_number}).status_code == 400
         assert c.get("/v1/maps/default").json()["revisit_threshold"] == 0.97
         assert c.patch("/v1/maps/nope", json={"revisit_threshold": 0.2}).status_code == 404
         learn_route(c)

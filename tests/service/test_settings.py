@@ -22,7 +22,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 def test_defaults_match_the_spec_table():
     s = Settings.from_env({})
-    assert s.data_dir == Path("./var")
+    assert s.data_dir == Path("./var").resolve()  # relative to where the service starts, made absolute
     assert (s.host, s.port) == ("127.0.0.1", 8000)
     assert (s.log_level, s.log_format) == ("INFO", "json")
     assert s.weights_path is None
@@ -182,3 +182,25 @@ def test_reading_settings_loads_no_opencv():
             "print('cv2' in sys.modules, 'torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "False"]
+
+
+def test_a_relative_data_directory_is_made_absolute_once_and_snapshots_work(tmp_path, monkeypatch):
+    """Found from outside: with `--data-dir ./rel` (the default `./var` is relative too) every snapshot was
+    unreadable (409) and recovery looked under rel/rel; with `../data` snapshots were a 500."""
+    from tests.service.helpers import frame, make_client, post
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "cwd").mkdir()
+    monkeypatch.chdir(tmp_path / "cwd")
+    for rel in ("rel", "../data"):
+        with make_client(Path(rel)) as c:
+            assert c.app.state.settings.data_dir == (tmp_path / "cwd" / rel).resolve()
+            assert post(c, frame(0)).status_code == 200
+            snap = c.post("/v1/maps/default/snapshots")
+            assert snap.status_code == 201, snap.text
+            assert post(c, frame(1)).status_code == 200
+            sid = snap.json()["snapshot_id"]
+            assert c.get(f"/v1/maps/default/snapshots/{sid}/download").status_code == 200
+            assert c.post(f"/v1/maps/default/snapshots/{sid}/restore").status_code == 200
+        with make_client(Path(rel)) as c:  # recovery finds the snapshots where they are
+            assert not c.app.state.registry.get("default").recovery["skipped_snapshots"]
