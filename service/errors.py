@@ -39,6 +39,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from models.frontend.images import ImageError
 from service.maps import errors as maps_errors
+from storage._common import StoreClosed
 from storage.snapshots import SnapshotInvalid
 
 __all__ = ["CLIENT_CLOSED_REQUEST", "DOMAIN_PROBLEMS", "IMAGE_MEDIA_TYPES", "PROBLEM_MEDIA_TYPE",
@@ -285,6 +286,7 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
     maps_errors.InvalidConfiguration: DomainProblem(422, "invalid-configuration", ("errors",)),
     maps_errors.MapUnavailable: DomainProblem(503, "map-unavailable", ("state", "state_reason")),
     maps_errors.Overloaded: DomainProblem(503, "overloaded", ("retry_after",), {"Retry-After": "1"}),
+    StoreClosed: DomainProblem(503, "map-unavailable", (), {"Retry-After": "1"}),  # mid-restore or delete
     maps_errors.InsufficientStorage: DomainProblem(507, "insufficient-storage"),
 }
 

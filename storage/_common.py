@@ -23,6 +23,11 @@ class StorageFull(StorageError):  # noqa: N818
     """A write failed for lack of space (SQLITE_FULL or ENOSPC); nothing of that write is committed."""
 
 
+class StoreClosed(StorageError):  # noqa: N818
+    """A read or write reached a store or catalog that is closed (a restore, a deletion or a shutdown is
+    swapping it): nothing was done, and the same request may succeed a moment later."""
+
+
 def utc_now() -> str:
     """Current UTC time as ISO 8601 with microseconds and a `Z` suffix (sortable as text)."""
     return datetime.now(UTC).isoformat(timespec="microseconds").replace("+00:00", "Z")

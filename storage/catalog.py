@@ -30,7 +30,7 @@ from typing import Any, Literal, get_args
 import sqlite_utils
 from sqlite_utils.db import NotFoundError
 
-from storage._common import StorageError, connect, transaction, utc_now
+from storage._common import StorageError, StoreClosed, connect, transaction, utc_now
 from storage.layout import Layout
 
 __all__ = [
@@ -254,7 +254,7 @@ class Catalog:
         """The tables, inside one `BEGIN IMMEDIATE` ... `COMMIT` under the lock."""
         with self._lock:
             if self._conn is None:
-                raise StorageError(f"{self.path}: catalog is closed")
+                raise StoreClosed(f"{self.path}: catalog is closed")
             with transaction(self._conn):
                 yield self._db
 
@@ -263,7 +263,7 @@ class Catalog:
         """The tables, to read, under the lock."""
         with self._lock:
             if self._conn is None:
-                raise StorageError(f"{self.path}: catalog is closed")
+                raise StoreClosed(f"{self.path}: catalog is closed")
             yield self._db
 
     def check(self) -> dict[str, Any]:

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from models.files import atomic_write
-from storage._common import StorageError, StorageFull, connect, is_full_error, transaction
+from storage._common import StorageError, StorageFull, StoreClosed, connect, is_full_error, transaction
 from storage.mapschema import (
     CELL_DTYPES,
     COLUMNS,
@@ -178,7 +178,7 @@ class MapStore:
 
     def _db(self) -> sqlite3.Connection:
         if self._conn is None:
-            raise StorageError(f"{self.path}: store is closed")
+            raise StoreClosed(f"{self.path}: store is closed")
         return self._conn
 
     # ------------------------------------------------------------------ writes

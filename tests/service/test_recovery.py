@@ -321,3 +321,14 @@ def test_a_failure_between_the_tm_step_and_the_commit_leaves_no_row_replay_canno
         rt = c.app.state.registry.get("default")
         assert rt.recovery["source"] == "replay" and rt.recovery["mismatches"] == 0
         assert tm_digest(rt.tm) == live
+
+
+def test_a_read_that_meets_a_closed_store_is_a_503_to_retry(tmp_path):
+    """Found by review: a read in a request thread while a restore has the store closed was a 500."""
+    with make_client(tmp_path / "data", snapshot_every=0) as c:
+        assert post(c, frame(0)).status_code == 200
+        rt = c.app.state.registry.get("default")
+        rt.store.close()  # what a restore does between closing the old store and opening the snapshot's
+        r = c.get("/v1/maps/default/observations/1")
+        assert r.status_code == 503 and r.json()["type"].endswith("map-unavailable")
+        assert r.headers["retry-after"] == "1"
