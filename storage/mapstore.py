@@ -153,6 +153,8 @@ class MapStore:
             return cls(path, conn, meta, seq_floor, max_keys)
         except sqlite3.DatabaseError as exc:
             conn.close()
+            if is_full_error(exc):  # the migration found no room: the file is whole, the disk is not
+                raise StorageFull(f"{path}: no room to migrate to schema {SCHEMA_VERSION}") from exc
             raise StoreCorrupt(f"{path}: {exc}") from exc
         except BaseException:
             conn.close()

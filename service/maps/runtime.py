@@ -231,8 +231,8 @@ class MapRuntime:
                                        seq_floor=self.catalog.get_high_water(self.map_id))
             if not self.store.quick_check():
                 raise StoreCorrupt("quick_check failed")
-        except StoreCorrupt as e:
-            self._fail("database-corrupt", str(e))
+        except (StoreCorrupt, StorageFull) as e:  # full (a migration): the file is whole, a restart recovers
+            self._fail("disk-full" if isinstance(e, StorageFull) else "database-corrupt", str(e))
             return
         done, note = recovery.recover(self.store, self.catalog, self.map_id, self.params["tm"],
                                       adapt_tau=self.adapt_tau, memory=self.memory_kind)

@@ -289,3 +289,23 @@ def test_sigkill_mid_stream_loses_nothing_acknowledged(tmp_path: Path, meta: Map
             acked = [(seq, r.observation_id) for seq, r in rows.items()]
     with MapStore.open(path) as s:
         assert s.append(row_factory(len(acked) + 1)) == len(acked) + 1
+
+
+def test_a_migration_without_room_is_a_full_disk_not_corruption(tmp_path: Path, meta: MapMeta,
+                                                                  monkeypatch) -> None:
+    """Found by review: SQLITE_FULL during the v1 -> v2 migration was reported as a corrupt database, so
+    the map was failed as `database-corrupt` although its file is whole (the migration is one transaction)."""
+    from storage import mapstore
+
+    MapStore.create(tmp_path / "map.sqlite", meta).close()
+
+    def no_room(conn, m):
+        exc = sqlite3.OperationalError("database or disk is full")
+        exc.sqlite_errorname = "SQLITE_FULL"
+        raise exc
+
+    monkeypatch.setattr(mapstore, "migrate", no_room)
+    with pytest.raises(mapstore.StorageFull):
+        MapStore.open(tmp_path / "map.sqlite")
+    monkeypatch.undo()
+    MapStore.open(tmp_path / "map.sqlite").close()  # the file is whole
