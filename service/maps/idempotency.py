@@ -70,24 +70,35 @@ class Reply:
     replayed: bool
 
 
+#: The most reply text a map's cache holds: a reply with 100 matches of 4 KiB metadata each is ~400 KB,
+#: so a count alone would let 1,024 of them hold 400 MB per map.
+CACHE_MAX_CHARS = 32 * 2**20
+
+
 class KeyCache:
-    """The replies of the last `size` localisation posts with a key (writer only; 0 keeps none)."""
+    """The replies of the last `size` localisation posts with a key, at most `CACHE_MAX_CHARS` of reply
+    text in all (writer only; 0 keeps none)."""
 
     def __init__(self, size: int) -> None:
         self.size = size
         self._records: OrderedDict[str, KeyRecord] = OrderedDict()
+        self._chars = 0
 
     def get(self, key: str) -> KeyRecord | None:
         return self._records.get(key)
 
     def put(self, record: KeyRecord) -> None:
+        old = self._records.pop(record.key, None)
+        self._chars -= len(old.reply) if old is not None else 0
         self._records[record.key] = record
-        while len(self._records) > self.size:
-            self._records.popitem(last=False)
+        self._chars += len(record.reply)
+        while self._records and (len(self._records) > self.size or self._chars > CACHE_MAX_CHARS):
+            self._chars -= len(self._records.popitem(last=False)[1].reply)
 
     def clear(self) -> None:
         """Forget every reply (a restore: they may name observations it dropped)."""
         self._records.clear()
+        self._chars = 0
 
 
 def lookup(store: MapStore, cache: KeyCache | None, post: IdempotentPost) -> Reply | None:

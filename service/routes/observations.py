@@ -227,12 +227,18 @@ async def post_observation(
             return _replayed(out)
         first = ObservationModel.model_validate_json(out.body)
         _count(metrics, map_id, learn, first.timings_ms)
-        rt.recent.add(first.stream, first)  # the viewer's window (GET .../recent); replays are not added
+        rt.recent.add(first.stream, _recent(first))  # replays are not added
         return Response(out.body, media_type="application/json")
     model = reply(out)
     _count(metrics, map_id, learn, model.timings_ms)
-    rt.recent.add(model.stream, model)  # the viewer's window (GET .../recent): the reply as sent
+    rt.recent.add(model.stream, _recent(model))
     return model
+
+
+def _recent(reply: ObservationModel) -> ObservationModel:
+    """The reply as the viewer's window keeps it (GET .../recent): as sent, with its top match only, so
+    256 replies of up to 100 matches with 4 KiB of metadata each cannot hold 100 MB per map."""
+    return reply.model_copy(update={"matches": reply.matches[:1]})
 
 
 def _replayed(earlier: idempotency.Reply) -> Response:

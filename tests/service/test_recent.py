@@ -14,14 +14,15 @@ def test_recent_gives_back_each_reply_as_sent_in_arrival_order(tmp_path):
         assert r.status_code == 200
         body = r.json()
         assert body["map_id"] == "default" and body["capacity"] == RECENT_CAPACITY
-        assert [a["reply"] for a in body["answers"]] == sent  # every field, as the client got it
+        top_only = [{**reply, "matches": reply["matches"][:1]} for reply in sent]
+        assert [a["reply"] for a in body["answers"]] == top_only  # every field as sent, the top match only
         times = [a["received_at"] for a in body["answers"]]
         assert times == sorted(times)
 
         assert [a["reply"]["seq"] for a in c.get("/v1/maps/default/recent?limit=2").json()["answers"]] == \
             [sent[2]["seq"], None]
         cam1 = c.get("/v1/maps/default/recent?stream=cam1").json()["answers"]
-        assert [a["reply"] for a in cam1] == [sent[3]]
+        assert [a["reply"] for a in cam1] == [top_only[3]]
 
 
 def test_recent_refuses_bad_parameters_and_unknown_maps(tmp_path):
@@ -51,3 +52,27 @@ def test_recent_takes_the_same_stream_names_as_posts(tmp_path):
         r = c.get("/v1/maps/default/recent", params={"stream": "robot1/cam0"})
         assert r.status_code == 200, r.text
         assert [a["reply"]["stream"] for a in r.json()["answers"]] == ["robot1/cam0"]
+
+
+def test_the_window_keeps_the_top_match_only_and_a_restore_empties_it(tmp_path):
+    with make_client(tmp_path) as c:
+        for i in range(3):
+            assert post(c, frame(i)).status_code == 200
+        sid = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        sent = post(c, frame(1), learn="false", top_k=3).json()
+        assert len(sent["matches"]) == 3
+        kept = c.get("/v1/maps/default/recent").json()["answers"][-1]["reply"]
+        assert kept["matches"] == sent["matches"][:1] and kept["place"] == sent["place"]
+        assert c.post(f"/v1/maps/default/snapshots/{sid}/restore").status_code == 200
+        assert c.get("/v1/maps/default/recent").json()["answers"] == []
+
+
+def test_the_key_cache_is_bounded_by_reply_text_too():
+    from service.maps import idempotency
+    from storage.mapschema import KeyRecord
+
+    cache = idempotency.KeyCache(1000)
+    big = "x" * (idempotency.CACHE_MAX_CHARS // 3)
+    for i in range(5):
+        cache.put(KeyRecord(f"key-{i}", "f", big))
+    assert cache.get("key-0") is None and cache.get("key-4") is not None
