@@ -124,9 +124,10 @@ def test_snapshots_round_trip(client: Client, tiny_map: str, make_frame, tmp_pat
 # ------------------------------------------------------------------ where and what, raw frames, retries
 
 
-def _drive_a_loop(client: Client, map_id: str, make_frame) -> dict[int, int]:
+def _drive_a_route(client: Client, map_id: str, make_frame, places: int = 5) -> dict[int, int]:
+    """Learn `places` frames as one route with poses; then break the stream's sequence."""
     seqs = {}
-    for place in range(5):
+    for place in range(places):
         pose = {"x": float(place), "y": 0.0, "yaw": 0.0, "frame_id": "map"}
         answer = client.observe(map_id, make_frame(place), label=f"place {place}",
                                 metadata={"stamp": 100.0 + place, "pose": pose})
@@ -136,7 +137,7 @@ def _drive_a_loop(client: Client, map_id: str, make_frame) -> dict[int, int]:
 
 
 def test_metadata_is_stored_and_returned(client: Client, tiny_map: str, make_frame) -> None:
-    seqs = _drive_a_loop(client, tiny_map, make_frame)
+    seqs = _drive_a_route(client, tiny_map, make_frame)
     answer = client.observe(tiny_map, make_frame(9), metadata=models.Metadata(stamp=7.5, note="dock"))
     assert answer.metadata is not None and answer.metadata.stamp == 7.5
     assert answer.metadata.model_extra == {"note": "dock"}
@@ -203,18 +204,6 @@ def test_ros_stream_names_with_a_slash(client: Client, tiny_map: str, make_frame
     assert answer.stream == "robot1/cam0"
     assert client.reset_stream(tiny_map, "robot1/cam0").had_context is True
     assert "robot1/cam0" in client.get_map(tiny_map).streams
-
-
-def _drive_a_route(client: Client, map_id: str, make_frame, places: int) -> dict[int, int]:
-    """Learn `places` frames as one route with poses; then break the stream's sequence."""
-    seqs = {}
-    for place in range(places):
-        pose = {"x": float(place), "y": 0.0, "yaw": 0.0, "frame_id": "map"}
-        answer = client.observe(map_id, make_frame(place), label=f"place {place}",
-                                metadata={"stamp": 100.0 + place, "pose": pose})
-        seqs[place] = answer.seq
-    client.reset_stream(map_id, "default")
-    return seqs
 
 
 def test_a_revisit_names_its_place(client: Client, tiny_map: str, make_frame) -> None:
