@@ -8,12 +8,13 @@ optionally override individual parameters.
 from __future__ import annotations
 
 import copy
-from typing import Any
+from typing import Any, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 _COUNT = 65535  # synapse and segment counts are stored as uint16
 _SEED = 2**63 - 1
+M = TypeVar("M", bound=BaseModel)
 
 
 class TmParams(BaseModel):
@@ -65,14 +66,14 @@ class ParamsError(ValueError):
         super().__init__("; ".join(f"{section}.{name}: {message}" for name, message in errors))
 
 
-def check_section(model: type[BaseModel], section: str, values: dict[str, Any]) -> None:
-    """Check a section's values against its model (names, types, ranges).
+def check_section(model: type[M], section: str, values: dict[str, Any]) -> M:
+    """Check a section's values against its model (names, types, ranges): the validated model.
 
     Raises:
         ParamsError: every offending parameter, with what was given.
     """
     try:
-        model.model_validate(values)
+        return model.model_validate(values)
     except ValidationError as e:
         errors = []
         for err in e.errors(include_url=False):

@@ -2,7 +2,9 @@
 
 from models.localisation.graph import SequenceGraph
 from models.localisation.localiser import (
+    HYPOTHESIS_BYTES,
     NULL_PRIOR,
+    LocaliserParams,
     LocaliserState,
     Place,
     SequenceLocaliser,
@@ -10,5 +12,6 @@ from models.localisation.localiser import (
     top_candidates,
 )
 
-__all__ = ["NULL_PRIOR", "LocaliserState", "Place", "SequenceGraph", "SequenceLocaliser", "default_conf",
+__all__ = ["HYPOTHESIS_BYTES", "NULL_PRIOR", "LocaliserParams", "LocaliserState", "Place", "SequenceGraph",
+           "SequenceLocaliser", "default_conf",
            "top_candidates"]

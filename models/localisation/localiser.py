@@ -19,29 +19,52 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Annotated, Any, NamedTuple
 
 import numpy as np
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from models.localisation.graph import NONE, SequenceGraph
+from models.presets import check_section
 
 #: The null's score before a stream's first frame: not yet born. It is born on the first frame at the
 #: jump level, like every candidate row, so it starts on an equal footing (docs/design/science.md §11.5).
 NULL_PRIOR = -np.inf
 
-# Every parameter, its default and meaning: docs/design/science.md §11.3.
-default_conf: dict[str, Any] = {
-    "top_k": 100,           # candidates per frame that carry evidence and seed new hypotheses
-    "beam": 256,            # hypotheses kept per stream (the state's fixed size)
-    "move_costs": (3.0, 0.0, 3.0),  # cost of advancing 0, 1, 2, ... stored rows in one frame
-    "backward": True,       # also hypothesise the route driven against its stored direction
-    "decay": 0.95,          # weight of the past per frame: memory of about 1 / (1 - decay) frames
-    "jump_cost": 20.0,      # cost of a new hypothesis (relocalisation) below the best one's score
-    "warmup": 5,            # frames before the first answer
-    "exclusion": 10,        # rows (links, both ways) around the best that a rival may not end in
-    "temperature": 4.0,     # score gap per unit of log-odds in the confidence
-    "null_quantile": 0.5,   # the null's evidence: this quantile of the frame's candidates' evidence
-}
+def _tuple(v: Any) -> Any:
+    return tuple(v) if isinstance(v, list) else v  # JSON (a map's stored params) has lists, not tuples
+
+
+class LocaliserParams(BaseModel):
+    """The localiser's options: the one home of their names, defaults, types and ranges
+    (docs/design/science.md §11.3). Strict: ints where ints, finite floats, a bool `backward`.
+
+    The upper bounds keep one stream's state and step small whatever a client asks for: the state is
+    `beam` hypotheses of HYPOTHESIS_BYTES each (4,096 of them: 100 KiB a stream); a step costs
+    O(top_k + beam * len(move_costs)) plus an O(exclusion) walk over the links.
+    """
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
+
+    top_k: int = Field(100, ge=1, le=1000)  # candidates per frame that carry evidence and seed hypotheses
+    beam: int = Field(256, ge=1, le=4096)  # hypotheses kept per stream (the state's fixed size)
+    # cost of advancing 0, 1, 2, ... stored rows in one frame (up to 15 rows a frame)
+    move_costs: Annotated[tuple[Annotated[float, Field(ge=0.0, le=1e6)], ...],
+                          BeforeValidator(_tuple)] = Field((3.0, 0.0, 3.0), min_length=1, max_length=16)
+    backward: bool = True  # also hypothesise the route driven against its stored direction
+    decay: float = Field(0.95, ge=0.0, lt=1.0)  # weight of the past per frame: memory of 1 / (1 - decay)
+    jump_cost: float = Field(20.0, ge=0.0, le=1e6)  # a new hypothesis's cost below the best one's score
+    warmup: int = Field(5, ge=1, le=1000)  # frames before the first answer
+    exclusion: int = Field(10, ge=0, le=1000)  # rows (links, both ways) around the best no rival may end in
+    temperature: float = Field(4.0, gt=0.0, le=1e6)  # score gap per unit of log-odds in the confidence
+    null_quantile: float = Field(0.5, ge=0.0, le=1.0)  # the null's evidence: this quantile of the candidates'
+
+
+#: Every option's default (LocaliserParams; meanings and why: docs/design/science.md §11.3).
+default_conf: dict[str, Any] = LocaliserParams().model_dump()
+
+#: Bytes of one hypothesis in a stream's state (LocaliserState: row, direction, score, age).
+HYPOTHESIS_BYTES = sum(np.dtype(t).itemsize for t in (np.int64, np.int8, np.float64, np.int64))
 
 
 class Place(NamedTuple):
@@ -170,7 +193,8 @@ def null_evidence(ev: np.ndarray, quantile: float) -> float:
 
 
 class SequenceLocaliser:
-    """The per-frame step of docs/design/science.md §11; configuration merged over `default_conf`.
+    """The per-frame step of docs/design/science.md §11; configuration merged over `default_conf`
+    and checked by LocaliserParams.
 
     Per frame the cost is O(top_k + beam * (max move + 1)) plus O(exclusion) link walks, whatever the
     map's size. Deterministic: ties are broken by row id and direction.
@@ -179,22 +203,13 @@ class SequenceLocaliser:
     default_conf = default_conf
 
     def __init__(self, conf: Mapping[str, Any] | None = None) -> None:
-        unknown = set(conf or {}) - set(default_conf)
-        if unknown:
-            raise ValueError(f"unknown localiser option(s) {sorted(unknown)}; known: {sorted(default_conf)}")
-        self.conf = {**default_conf, **(conf or {})}
-        c = self.conf
-        self.move_costs = np.asarray(c["move_costs"], dtype=np.float64)
-        if self.move_costs.ndim != 1 or self.move_costs.size < 1:
-            raise ValueError("move_costs needs a cost for 0, 1, ... rows per frame")
-        if not 0.0 <= float(c["decay"]) < 1.0:
-            raise ValueError(f"decay must be in [0, 1), got {c['decay']}")
-        if int(c["beam"]) < 1 or int(c["top_k"]) < 1 or int(c["warmup"]) < 1:
-            raise ValueError("beam, top_k and warmup must be >= 1")
-        if float(c["temperature"]) <= 0:
-            raise ValueError("temperature must be > 0")
-        if not 0.0 <= float(c["null_quantile"]) <= 1.0:
-            raise ValueError(f"null_quantile must be in [0, 1], got {c['null_quantile']}")
+        """Raises presets.ParamsError (a ValueError) naming every bad option (LocaliserParams)."""
+        self.conf: dict[str, Any] = check_section(LocaliserParams, "localiser", dict(conf or {})).model_dump()
+        self.move_costs = np.asarray(self.conf["move_costs"], dtype=np.float64)
+
+    def state_bytes(self) -> int:
+        """Bytes of one stream's state (`new_state`): `beam` hypotheses of HYPOTHESIS_BYTES."""
+        return int(self.conf["beam"]) * HYPOTHESIS_BYTES
 
     def new_state(self) -> LocaliserState:
         """An empty state for one stream (`beam` hypotheses)."""

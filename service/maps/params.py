@@ -1,8 +1,9 @@
 """A map's parameters, resolved once and frozen (docs/design/service.md §1.1).
 
 One validation path: the preset, then the request's overrides merged over it, each section checked by
-its pydantic model (`models.presets.TmParams`, `models.presets.SlsbhParams`: names, types, ranges), then
-the rules between sections. `CreateMap` (service/schemas.py) only shapes the request; every value is
+its pydantic model (`models.presets.TmParams`, `models.presets.SlsbhParams`,
+`models.localisation.LocaliserParams`: names, types, ranges), then the rules between sections.
+`CreateMap` (service/schemas.py) only shapes the request; every value is
 judged here, so a map created by the API and one created at startup (`default`) pass the same checks.
 """
 
@@ -12,7 +13,7 @@ from typing import Any
 
 from models import presets
 from models.frontend import backbones, slsbh
-from models.localisation import SequenceLocaliser
+from models.localisation import LocaliserParams
 from models.memory.temporal_memory import validate
 from service.maps.errors import InvalidConfiguration
 
@@ -72,8 +73,8 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
         "localiser", "warnings"}.
 
     Raises:
-        InvalidConfiguration: `errors` names each offending parameter (`tm.<name>`, `slsbh.<name>`),
-            or the unknown preset.
+        InvalidConfiguration: `errors` names each offending parameter (`tm.<name>`, `slsbh.<name>`,
+            `localiser.<name>`), or the unknown preset.
     """
     errors: list[dict[str, str]] = []
 
@@ -91,10 +92,12 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
         msg = str(e).strip("'\"")
         raise InvalidConfiguration(msg, [_body("preset", msg)]) from e
     s_conf = {**presets.slsbh_params(preset), **(slsbh_conf or {})}
-    try:
-        presets.check_section(presets.SlsbhParams, "slsbh", s_conf)
-    except presets.ParamsError as e:
-        collect(e)
+    for model, section, values in ((presets.SlsbhParams, "slsbh", s_conf),
+                                   (LocaliserParams, "localiser", localiser or {})):
+        try:
+            presets.check_section(model, section, values)
+        except presets.ParamsError as e:
+            collect(e)
     if errors:
         raise InvalidConfiguration("; ".join(f"{e['name']}: {e['message']}" for e in errors), errors)
     if s_conf["seed"] is None:
@@ -110,10 +113,6 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
         errors.append(_body("backbone", f"unknown backbone {backbone!r}; known: {known}"))
     if memory not in MEMORY_KINDS:
         errors.append(_body("memory", f"memory must be one of {', '.join(MEMORY_KINDS)}"))
-    try:
-        SequenceLocaliser(localiser)
-    except ValueError as e:
-        errors.append(_body("localiser", str(e)))
     if errors:
         raise InvalidConfiguration("; ".join(e["message"] for e in errors), errors)
     return {"preset": preset, "tm": tm_params, "slsbh": s_conf, "seed": tm_params["seed"],

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from models.localisation import SequenceLocaliser
 from models.memory.temporal_memory import TemporalMemory, planned_bytes
 from service.maps import projection as map_projection
 from service.maps import snapshots as map_snapshots
@@ -23,6 +24,7 @@ from service.maps.errors import (
     MapNotFound,
     MapTooLarge,
 )
+from service.maps.failed import FailedMap
 from service.maps.index import warm_up as index_warm_up
 from service.maps.params import map_option, resolve_params
 from service.maps.runtime import MapRuntime
@@ -65,7 +67,7 @@ class MapRegistry:
         self.catalog = Catalog.open(self.layout.catalog)
         self.projections = self.layout.projections
         self.projections.mkdir(parents=True, exist_ok=True)
-        self.maps: dict[str, MapRuntime] = {}
+        self.maps: dict[str, MapRuntime | FailedMap] = {}
         self._create_lock = threading.Lock()
 
     def _runtime(self, record: MapRecord, feature_dim: int) -> MapRuntime:
@@ -75,33 +77,52 @@ class MapRegistry:
                           key_cache=s.idempotency_cache)
 
     def start(self) -> None:
-        """Open every map and recover it by replay; create `default` on a fresh install."""
+        """Open every map and recover it by replay; create `default` on a fresh install.
+
+        A map that cannot be opened at all (stored parameters this version rejects, anything that
+        raises) is `failed` (`open-failed`, the error in the log) and the others still open
+        (docs/design/service.md §4.4).
+        """
         warm_up()
         for record in self.catalog.list_maps():
-            backbone = map_option(record.params, "backbone")
             try:
-                encoder = self.encoders.get(backbone)
-            except ValueError as e:
-                rt = self.maps[record.map_id] = self._runtime(record, 0)
-                rt.state, rt.state_reason = "failed", "encoder-unavailable"
-                log.error("map %s: %s", record.map_id, e)
-                continue
-            rt = self.maps[record.map_id] = self._runtime(record, encoder.feature_dim)
-            if record.params.get("encoder_id") != encoder.identity:
-                rt.state, rt.state_reason = "failed", "encoder-mismatch"
-                log.error("map %s was built with encoder %s, this server runs %s", record.map_id,
-                          record.params.get("encoder_id"), encoder.identity)
-                continue
-            rt.recover()
+                self.maps[record.map_id] = self._open(record)
+            except Exception:  # anything: one map's failure must not take the others down
+                log.exception("map %s cannot be opened; it is served as failed", record.map_id)
+                self.catalog.set_state(record.map_id, "failed", "open-failed")
+                self.maps[record.map_id] = FailedMap(record, self.catalog, "open-failed")
         if not self.maps:
             self.create("default", preset=self.settings.default_preset)
+
+    def _open(self, record: MapRecord) -> MapRuntime:
+        """A stored map's runtime, recovered, or failed for a reason recovery knows."""
+        backbone = map_option(record.params, "backbone")
+        try:
+            encoder = self.encoders.get(backbone)
+        except ValueError as e:
+            rt = self._runtime(record, 0)
+            rt.state, rt.state_reason = "failed", "encoder-unavailable"
+            log.error("map %s: %s", record.map_id, e)
+            return rt
+        rt = self._runtime(record, encoder.feature_dim)
+        if record.params.get("encoder_id") != encoder.identity:
+            rt.state, rt.state_reason = "failed", "encoder-mismatch"
+            log.error("map %s was built with encoder %s, this server runs %s", record.map_id,
+                      record.params.get("encoder_id"), encoder.identity)
+            return rt
+        try:
+            rt.recover()
+        except BaseException:
+            rt.close(snapshot=False)  # its writer thread and store
+            raise
+        return rt
 
     def close(self) -> None:
         for rt in self.maps.values():
             rt.close()
         self.catalog.close()
 
-    def get(self, map_id: str) -> MapRuntime:
+    def get(self, map_id: str) -> MapRuntime | FailedMap:
         """Raises MapNotFound."""
         rt = self.maps.get(map_id)
         if rt is None:
@@ -123,19 +144,23 @@ class MapRegistry:
             preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf, exclude_recent=exclude_recent,
             backbone=backbone or self.encoders.default, memory=memory, localiser=localiser,
             **({} if revisit_threshold is None else {"revisit_threshold": revisit_threshold}))
-        try:
-            encoder = self.encoders.get(params["backbone"])
-        except ValueError as e:
-            raise InvalidConfiguration(str(e), [{"location": "body", "name": "backbone",
-                                                 "message": str(e)}]) from e
-        need = planned_bytes(params["tm"])
+        # The memory and every stream's localiser state (beam x HYPOTHESIS_BYTES, docs/design/science.md
+        # §11.3) at the stream cap: what the map may hold, before its projection.
+        need = (planned_bytes(params["tm"])
+                + self.settings.max_streams * SequenceLocaliser(params["localiser"]).state_bytes())
         if need > self.settings.max_map_bytes:
             raise MapTooLarge(need, self.settings.max_map_bytes)
         with self._create_lock:
+            # Refused before a backbone's network is built or loaded.
             if map_id in self.maps:
                 raise MapAlreadyExists(map_id)
             if len(self.maps) >= self.settings.max_maps:
                 raise MapLimit(self.settings.max_maps)
+            try:
+                encoder = self.encoders.get(params["backbone"])
+            except ValueError as e:
+                raise InvalidConfiguration(str(e), [{"location": "body", "name": "backbone",
+                                                     "message": str(e)}]) from e
             s_conf = params["slsbh"]
             # Projection plus memory within the map budget: the very sparse projection where dense breaks it.
             params["projection"] = map_projection.projection_kind(encoder.feature_dim, int(s_conf["k"]), need)

@@ -1,6 +1,6 @@
-"""Map creation overrides at the HTTP edge (issue 11, item 9): every `tm` and `slsbh` override is checked
-for name, type and range where parameters are resolved, and a bad one is a 422 invalid-configuration
-naming it, never a 500, and creates nothing."""
+"""Map creation overrides at the HTTP edge (issue 11, item 9): every `tm`, `slsbh` and `localiser`
+override is checked for name, type and range where parameters are resolved, and a bad one is a 422
+invalid-configuration naming it, never a 500, and creates nothing."""
 
 from __future__ import annotations
 
@@ -10,9 +10,11 @@ import pytest
 from fastapi.testclient import TestClient
 
 from models import presets
+from models.localisation import HYPOTHESIS_BYTES, SequenceLocaliser
+from models.memory.temporal_memory import planned_bytes
 from service.errors import PROBLEM_MEDIA_TYPE
 from service.maps.params import resolve_params
-from tests.service.helpers import make_app
+from tests.service.helpers import frame, make_app, post
 
 
 @pytest.fixture
@@ -47,6 +49,17 @@ BAD_OVERRIDES = [
     ({"slsbh": {"projection": "sparse"}}, "slsbh.projection"),
     ({"slsbh": {"k": 32}}, "slsbh.k"),  # 2k must equal columnDimensions (128 in the tests' preset)
     ({"tm": {"minThreshold": 20, "activationThreshold": 4}}, "tm.minThreshold"),
+    # The localiser's options (models.localisation.LocaliserParams, docs/design/science.md §11.3): each of
+    # these once reached the catalog, then failed every learned frame, every restart or the memory.
+    ({"localiser": {"exclusion": "x"}}, "localiser.exclusion"),
+    ({"localiser": {"exclusion": -5}}, "localiser.exclusion"),
+    ({"localiser": {"beam": 10**9}}, "localiser.beam"),
+    ({"localiser": {"top_k": 10**6}}, "localiser.top_k"),
+    ({"localiser": {"temperature": float("inf")}}, "localiser.temperature"),
+    ({"localiser": {"jump_cost": float("inf")}}, "localiser.jump_cost"),
+    ({"localiser": {"backward": "no"}}, "localiser.backward"),
+    ({"localiser": {"move_costs": [3, "x"]}}, "localiser.move_costs.1"),
+    ({"localiser": {"beams": 3}}, "localiser.beams"),
 ]
 
 
@@ -61,12 +74,15 @@ def test_every_bad_override_is_a_422_naming_it(client, payload, name):
     assert name in [e["name"] for e in body["errors"]], body
     assert name.split(".")[-1] in body["detail"]
     assert [m["map_id"] for m in client.get("/v1/maps").json()["maps"]] == ["default"]
+    assert client.get("/v1/maps/lab").status_code == 404
 
 
 def test_every_bad_parameter_is_reported_at_once(client):
-    r = client.post("/v1/maps", json={"tm": {"columnDimensions": "x", "seed": -1}, "slsbh": {"s": 2}})
+    r = client.post("/v1/maps", json={"tm": {"columnDimensions": "x", "seed": -1}, "slsbh": {"s": 2},
+                                      "localiser": {"warmup": 0}})
     assert r.status_code == 422
-    assert {e["name"] for e in r.json()["errors"]} == {"tm.columnDimensions", "tm.seed", "slsbh.s"}
+    assert {e["name"] for e in r.json()["errors"]} == {"tm.columnDimensions", "tm.seed", "slsbh.s",
+                                                       "localiser.warmup"}
 
 
 def test_good_overrides_are_frozen_as_given(client):
@@ -78,6 +94,35 @@ def test_good_overrides_are_frozen_as_given(client):
     assert params["seed"] == 7 and params["tm"]["seed"] == 7 and params["slsbh"]["seed"] == 7
     assert params["tm"]["cellsPerColumn"] == 2 and params["tm"]["permanenceDecrement"] == 0
     assert params["slsbh"] == {"k": 64, "s": 0.2, "seed": 7, "adapt_tau": 3}
+
+
+def test_good_localiser_options_serve_and_come_back_after_a_restart(tmp_path):
+    data = tmp_path / "data"
+    options = {"exclusion": 0, "beam": 4096, "move_costs": [1, 0, 1], "backward": False, "warmup": 1}
+    with TestClient(make_app(data)) as c:
+        r = c.post("/v1/maps", json={"map_id": "lab", "localiser": options})
+        assert r.status_code == 201, r.text
+        for place in range(3):
+            assert post(c, frame(place), map_id="lab").status_code == 200
+    with TestClient(make_app(data)) as c:
+        m = c.get("/v1/maps/lab").json()
+        assert m["state"] == "ready" and m["params"]["localiser"]["beam"] == 4096
+        assert m["params"]["localiser"]["move_costs"] == [1.0, 0.0, 1.0]
+        assert post(c, frame(1), map_id="lab", learn="false").json()["place"] is not None
+
+
+def test_every_streams_localiser_state_counts_in_the_map_size(tmp_path):
+    # The beam is the state of each of max_streams streams (docs/design/service.md §1.1): a map whose
+    # memory fits but whose streams' hypotheses would not is refused before anything is written.
+    tm = resolve_params("cortexloc-default")["tm"]
+    default_streams = 64 * SequenceLocaliser().state_bytes()
+    with TestClient(make_app(tmp_path / "data", max_streams=64,
+                             max_map_bytes=planned_bytes(tm) + default_streams)) as c:
+        r = c.post("/v1/maps", json={"map_id": "lab", "localiser": {"beam": 4096}})
+        assert r.status_code == 422 and r.json()["type"] == "urn:cortexloc:problem:map-too-large", r.text
+        assert str(planned_bytes(tm) + 64 * 4096 * HYPOTHESIS_BYTES) in r.json()["detail"]
+        assert c.get("/v1/maps/lab").status_code == 404
+        assert c.post("/v1/maps", json={"map_id": "lab", "localiser": {"beam": 256}}).status_code == 201
 
 
 def test_one_home_for_the_parameter_rules():

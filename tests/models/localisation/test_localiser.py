@@ -5,7 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.localisation import NULL_PRIOR, LocaliserState, SequenceGraph, SequenceLocaliser, top_candidates
+from models import presets
+from models.localisation import (
+    HYPOTHESIS_BYTES,
+    NULL_PRIOR,
+    LocaliserParams,
+    LocaliserState,
+    SequenceGraph,
+    SequenceLocaliser,
+    default_conf,
+    top_candidates,
+)
 from models.localisation.localiser import evidence
 
 REVISIT = 0.86  # the service's default revisit_threshold (service/maps/params.py); models cannot import it
@@ -252,8 +262,34 @@ def test_evidence_and_bad_input() -> None:
     loc = SequenceLocaliser()
     with pytest.raises(ValueError, match="not in the graph"):
         loc.step(loc.new_state(), SequenceGraph.chain(5), np.array([9]), np.array([1.0]))
-    with pytest.raises(ValueError, match="unknown localiser option"):
+    with pytest.raises(ValueError, match=r"localiser\.beams: unknown parameter"):
         SequenceLocaliser({"beams": 3})
+
+
+BAD_OPTIONS = [("exclusion", "x"), ("exclusion", -5), ("exclusion", 10.0), ("beam", 10**9), ("beam", 0),
+               ("top_k", 10**6), ("warmup", 0), ("temperature", float("nan")), ("temperature", 0.0),
+               ("jump_cost", float("inf")), ("decay", 1.0), ("null_quantile", 1.5), ("backward", "no"),
+               ("backward", 1), ("move_costs", ()), ("move_costs", (3.0, float("nan"))),
+               ("move_costs", (1.0,) * 17), ("move_costs", "303")]
+
+
+@pytest.mark.parametrize(("name", "value"), BAD_OPTIONS, ids=[f"{n}={v!r}" for n, v in BAD_OPTIONS])
+def test_every_bad_option_is_refused_naming_it(name, value) -> None:
+    # A wrong type, a non-finite float or a value out of range never reaches the arrays (np.full(-4), a
+    # 25 GB beam, NaN confidences): LocaliserParams (docs/design/science.md §11.3) refuses it by name.
+    with pytest.raises(ValueError, match=rf"localiser\.{name}\b") as info:
+        SequenceLocaliser({name: value})
+    assert isinstance(info.value, presets.ParamsError) and info.value.errors[0][0].startswith(name)
+
+
+def test_options_are_normalised_and_the_state_size_is_bounded() -> None:
+    # JSON gives lists and ints where the defaults are tuples and floats; both mean the same map.
+    loc = SequenceLocaliser({"move_costs": [1, 0, 1], "jump_cost": 20, "beam": 4096})
+    assert loc.conf["move_costs"] == (1.0, 0.0, 1.0) and loc.conf["jump_cost"] == 20.0
+    assert loc.conf == {**default_conf, "move_costs": (1.0, 0.0, 1.0), "beam": 4096}
+    assert loc.state_bytes() == 4096 * HYPOTHESIS_BYTES == sum(
+        v.nbytes for k, v in loc.new_state().to_arrays().items() if k not in ("frames", "null"))
+    assert SequenceLocaliser().conf == LocaliserParams().model_dump() == default_conf
 
 
 def test_graph_links_walks_and_appends() -> None:
