@@ -20,7 +20,6 @@ import numpy as np
 
 from models.frontend import slsbh
 from models.memory.temporal_memory import TemporalMemory
-from service.maps import projection as map_projection
 from service.maps.state import Stream, load_memory_state, winner_cells
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, StorageError
@@ -196,7 +195,7 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
     sha = str(record.params.get("projection_sha256", ""))
     projection = layout.projection(sha)
     try:
-        map_projection.load(projection, sha)  # the same check a starting server makes
+        slsbh.load_projection(projection, sha)  # the same check a starting server makes
     except slsbh.ProjectionError as e:
         out.problems.append(f"projection: {e}")
     for rec in catalog.list_snapshots(record.map_id):

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from models.frontend import slsbh
 from models.localisation import SequenceLocaliser
 from models.memory.temporal_memory import TemporalMemory, planned_bytes
 from service.maps import projection as map_projection
@@ -166,7 +167,7 @@ class MapRegistry:
             params["projection"] = map_projection.projection_kind(encoder.feature_dim, int(s_conf["k"]), need)
             P = map_projection.make(params["projection"], encoder.feature_dim, int(s_conf["k"]),
                                     int(s_conf["seed"]))
-            _, sha = map_projection.save(P, self.projections)
+            _, sha = slsbh.save_projection(P, self.projections)
             del P
             params["projection_sha256"] = sha
             params["encoder_id"] = encoder.identity

@@ -37,7 +37,6 @@ from models.frontend.adaptation import RunningMean
 from models.frontend.images import RawFrame
 from models.memory.temporal_memory import TemporalMemory
 from service.maps import idempotency, recovery, sizes
-from service.maps import projection as map_projection
 from service.maps import snapshots as map_snapshots
 from service.maps.encoder_pool import EncoderPool
 from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable
@@ -106,7 +105,7 @@ class MapRuntime:
         self._projection_error: str | None = None
         # the checksum is verified on load: a map never runs on another matrix (docs/design/science.md §7)
         try:
-            projection = map_projection.load(self.projection_path, sha,
+            projection = slsbh.load_projection(self.projection_path, sha,
                                              shape=(feature_dim, int(self.params["slsbh"]["k"])))
             self.hasher = slsbh.Hasher(projection, float(self.params["slsbh"]["s"]))
         except (slsbh.ProjectionError, OSError) as e:

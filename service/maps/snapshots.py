@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.maps import projection as map_projection
+from models.frontend import slsbh
 from service.maps.errors import InsufficientStorage, SnapshotNotFound
 from service.maps.results import SnapshotInfo
 from storage import snapshots
@@ -110,7 +110,7 @@ def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes:
         target = layout.projection(sha)
         staged = staging / snapshots.PROJECTION_FILE
         if staged.exists():
-            map_projection.load(staged, sha)  # refuses another matrix
+            slsbh.load_projection(staged, sha)  # refuses another matrix
             if not target.exists():
                 staged.replace(target)
             else:

@@ -108,8 +108,10 @@ def projection_sha256(P: np.ndarray) -> str:
     return h.hexdigest()
 
 
-def save_projection(P: np.ndarray, directory: str | os.PathLike[str]) -> tuple[Path, str]:
-    """Store P content-addressed as `<directory>/<sha256>.npy` (docs/design/science.md §7, DECISION).
+def save_projection(P: np.ndarray | SparseProjection, directory: str | os.PathLike[str]) -> tuple[Path, str]:
+    """Store P content-addressed as `<directory>/<sha256>.npy` (docs/design/science.md §7, DECISION): a
+    dense matrix as a `.npy` array, a `SparseProjection` as NumPy's `.npz` container of its arrays (no
+    pickle), under the same name, so snapshots and imports carry either unchanged.
 
     Written atomically: a temporary file in the same directory, fsync, `os.replace`, then an fsync of
     the directory, so a reader never sees a partial file under the final name. If the file already
@@ -117,7 +119,7 @@ def save_projection(P: np.ndarray, directory: str | os.PathLike[str]) -> tuple[P
     that name is replaced with a warning, since the correct bytes are at hand.
 
     Args:
-        P: (d, k) float32 projection.
+        P: (d, k) float32 projection, or its very sparse counterpart.
         directory: created if missing.
 
     Returns:
@@ -126,8 +128,10 @@ def save_projection(P: np.ndarray, directory: str | os.PathLike[str]) -> tuple[P
     Raises:
         ProjectionError: P is not a 2-D float32 array.
     """
-    _check_dense_dtype(P)
-    sha = projection_sha256(P)
+    sparse = isinstance(P, SparseProjection)
+    if not sparse:
+        _check_dense_dtype(P)
+    sha = P.sha256() if sparse else projection_sha256(P)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"{sha}.npy"
@@ -137,6 +141,11 @@ def save_projection(P: np.ndarray, directory: str | os.PathLike[str]) -> tuple[P
             return path, sha
         except ProjectionError as exc:
             warnings.warn(f"replacing corrupt projection file {path}: {exc}", RuntimeWarning, stacklevel=2)
+    if sparse:
+        arrays = {"d": np.array(P.d, np.int64), "k": np.array(P.k, np.int64), "indptr": P.indptr,
+                  "indices": P.indices, "signs": P.signs}
+        atomic_write(path, lambda f: np.savez(f, **arrays))
+        return path, sha
     arr = np.ascontiguousarray(P, dtype=_LE_F4)
     atomic_write(path, lambda f: np.lib.format.write_array(f, arr, version=(1, 0), allow_pickle=False))
     return path, sha
@@ -148,11 +157,12 @@ def load_projection(
     *,
     shape: tuple[int, int] | None = None,
     mmap: bool = True,
-) -> np.ndarray:
+) -> np.ndarray | SparseProjection:
     """Load a stored projection and refuse anything but the expected bytes (docs/design/science.md §7).
 
     Args:
-        path: a `.npy` file written by `save_projection`.
+        path: a file written by `save_projection` (a dense `.npy` or a sparse `.npz`, told apart by
+            the file's own format).
         expected_sha256: the checksum recorded in the map.
         shape: expected (d, k), checked when given.
         mmap: map the file read-only instead of reading it: processes serving maps with the same
@@ -160,7 +170,7 @@ def load_projection(
             verify the checksum.
 
     Returns:
-        P: (d, k) float32, C-contiguous (a read-only `np.memmap` when `mmap`).
+        P: (d, k) float32, C-contiguous (a read-only `np.memmap` when `mmap`), or a `SparseProjection`.
 
     Raises:
         ProjectionError: unreadable file, not little-endian float32, not 2-D, Fortran order, wrong
@@ -170,9 +180,21 @@ def load_projection(
     if not _SHA_RE.match(expected):
         raise ProjectionError(f"expected_sha256 must be 64 hex digits, got {expected_sha256!r}")
     try:
-        P = np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:
+        with open(path, "rb") as f:
+            is_zip = f.read(4) == b"PK\x03\x04"
+        if is_zip:
+            with np.load(path, allow_pickle=False) as z:
+                S = SparseProjection(int(z["d"]), int(z["k"]), z["indptr"], z["indices"], z["signs"])
+        else:
+            P = np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
+    except (OSError, ValueError, EOFError, KeyError) as exc:
         raise ProjectionError(f"cannot read projection {path}: {exc}") from exc
+    if is_zip:
+        if shape is not None and tuple(S.shape) != tuple(shape):
+            raise ProjectionError(f"{path}: shape {S.shape}, expected {tuple(shape)}")
+        if S.sha256() != expected:
+            raise ProjectionError(f"{path}: SHA-256 {S.sha256()} does not match the map's {expected}")
+        return S
     if P.dtype != _LE_F4:
         raise ProjectionError(f"{path}: dtype {P.dtype.str}, expected <f4")
     if P.ndim != 2:

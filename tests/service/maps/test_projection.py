@@ -48,17 +48,17 @@ def test_the_default_map_of_every_backbone_fits_the_budget(name, monkeypatch):
 @pytest.mark.parametrize("kind", ["dense", "sparse"])
 def test_save_and_load_refuse_another_projection(tmp_path, kind):
     P = projection.make(kind, 300, 16, seed=1)
-    path, sha = projection.save(P, tmp_path)
-    back = projection.load(path, sha, shape=(300, 16))
+    path, sha = slsbh.save_projection(P, tmp_path)
+    back = slsbh.load_projection(path, sha, shape=(300, 16))
     x = np.random.default_rng(0).standard_normal((2, 300)).astype(np.float32)
     np.testing.assert_allclose(slsbh.Hasher(back, 0.25).project(x), slsbh.Hasher(P, 0.25).project(x),
                                rtol=1e-5, atol=1e-6)
     other = projection.make(kind, 300, 16, seed=2)
     other_sha = other.sha256() if kind == "sparse" else slsbh.projection_sha256(other)
     with pytest.raises(slsbh.ProjectionError):
-        projection.load(path, other_sha)
+        slsbh.load_projection(path, other_sha)
     with pytest.raises(slsbh.ProjectionError):
-        projection.load(path, sha, shape=(300, 8))
+        slsbh.load_projection(path, sha, shape=(300, 8))
 
 
 def test_a_map_whose_dense_projection_breaks_the_budget_gets_the_sparse_one(tmp_path):
