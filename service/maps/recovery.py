@@ -14,6 +14,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -25,9 +26,10 @@ from models.pipeline import MapModel, Stream, load_memory_state
 from service.maps.params import map_model
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, StorageError
+from storage.layout import Layout
 from storage.mapstore import MapStore, Observation
 
-__all__ = ["MapCheck", "Rebuilt", "rebuild", "recover", "verify_map"]
+__all__ = ["MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover", "verify_map"]
 
 log = logging.getLogger("cortexloc.recovery")
 _LISTED = 20  # divergent seqs listed in a recovery note (the count says how many there are)
@@ -173,6 +175,11 @@ class MapCheck:
     @property
     def ok(self) -> bool:
         return not (self.mismatches or self.snapshots_bad or self.problems)
+
+
+def open_catalog(data_dir: Path) -> Catalog:
+    """The catalog of a data directory, read-only (`cortexloc verify` while the server may run)."""
+    return Catalog.open(Layout(data_dir).catalog, readonly=True)
 
 
 def verify_map(catalog: Catalog, record: MapRecord, *,

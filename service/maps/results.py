@@ -197,3 +197,4 @@ class MemoryInfo:
     streams: StreamsMemory
     projection_bytes: int
     storage: StorageMemory
+    process_rss_bytes: int

@@ -55,9 +55,8 @@ from service.maps.results import (
     StreamReset,
 )
 from storage import snapshots
-from storage._common import StorageFull, utc_now
-from storage.catalog import Catalog, MapRecord
-from storage.mapstore import MapStore, NewObservation, StoreCorrupt
+from storage.catalog import Catalog, MapRecord, utc_now
+from storage.mapstore import MapStore, NewObservation, StorageFull, StoreCorrupt
 
 __all__ = ["MapRuntime"]
 
@@ -419,4 +418,6 @@ class MapRuntime:
         return self.info()
 
     def memory(self) -> MemoryInfo:
-        return sizes.memory_info(self)
+        return sizes.memory_info(self.model, self.streams, tm_params=self.params["tm"],
+                                 max_streams=self.max_streams, projection=self.projection_path,
+                                 store=self.store, snapshots_bytes=self.catalog.snapshots_bytes(self.map_id))
