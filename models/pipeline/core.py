@@ -23,8 +23,9 @@ import numpy as np
 from models.frontend import slsbh
 from models.frontend.adaptation import RunningMean
 from models.localisation import InvertedIndex, Localisation, Match, Place
+from models.memory import registry as memories
 from models.memory.temporal_memory import TemporalMemory
-from models.pipeline.state import Stream, winner_cells
+from models.pipeline.state import Stream
 
 __all__ = ["MapModel", "Step", "observe", "replay"]
 
@@ -38,7 +39,7 @@ class MapModel:
         tm: the Temporal Memory (unused with `memory: none`).
         index: winner cells -> stored seqs, ranked by Dice (docs/design/service.md §5).
         links: the learned links and the localiser (docs/design/science.md §11).
-        memory: `tm` | `none` (the map option; `none` is the ablation: the code is the winner cells).
+        memory: a registered memory (`models.memory.registry`: `tm`, or `none`, the ablation).
         s: the sLSBH sparsity (the fraction of the k projections kept on each side, §7).
         adapt_tau: the streams' adaptation time constant (0: none).
         exclude_recent: a stream's own last rows left out of its ranking (0: none).
@@ -99,7 +100,7 @@ def _remember(model: MapModel, st: Stream, code: np.ndarray, *, learn: bool, sta
     if starts:
         st.context.reset()
         st.step, st.last_learned_seq = 0, None
-    return winner_cells(model.tm, code, learn=learn, context=st.context, memory=model.memory)
+    return memories.get(model.memory).winners(model.tm, code, learn, st.context)
 
 
 def _advance(st: Stream, learn: bool, seq: int | None) -> None:
@@ -139,13 +140,13 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         projected = st.adapt.subtract(projected)
     code = slsbh.hash_projected(projected[None, :], model.s)[0].astype(np.int64)
     t1 = time.perf_counter()
-    # A switch to mapping starts a new sequence (replay relies on it); with a TM, so does an empty
-    # context (without one, only `step` counts).
+    # A switch to mapping starts a new sequence (replay relies on it); with a sequential memory, so
+    # does an empty context (without one, only `step` counts).
     if learn and st.learning is False:
         starts = True
     else:
         starts = False
-        if st.context.active_cells.size == 0 and model.memory == "tm":
+        if st.context.active_cells.size == 0 and memories.get(model.memory).sequential:
             st.step, st.last_learned_seq = 0, None
     winners = _remember(model, st, code, learn=learn, starts=starts)
     stats = st.context.stats.as_dict()

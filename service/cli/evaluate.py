@@ -272,7 +272,7 @@ def eval_images(
                     feats["db"], feats["query"], methods=service_list, columns=columns, tolerance=tolerance,
                     gt=gt_matrix, seeds=seeds, seed=seed, reverse_query=reverse_query, progress=tick,
                     map_conf={"encoder_id": enc.identity, "backbone": backbone, "preset": preset,
-                              "create": {"slsbh_conf": {"s": sparsity, "adapt_tau": adapt}}})
+                              "create": {"slsbh": {"s": sparsity, "adapt_tau": adapt}}})
             result["methods"].update(summary)
             result["first"].update(first)
     except ValueError as e:

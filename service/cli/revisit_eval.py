@@ -24,7 +24,7 @@ import numpy as np
 from models.evaluation import sequences
 from models.frontend.encoder import Encoder
 from service.cli import service_eval
-from service.maps.params import DEFAULT_REVISIT_THRESHOLD
+from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 from service.settings import Settings
 
 

@@ -2,10 +2,10 @@
 database traverse (learned) then a query traverse (localised, one stream), scored per query
 (docs/design/service.md §1.2, docs/design/science.md §11.4).
 
-Not a re-implementation: the map's parameters are resolved and checked as a created map's
-(`service.maps.params.resolve_params`), its projection is made as the registry makes it
+Not a re-implementation: the map's configuration is resolved and checked as a created map's
+(`service.maps.config.resolve`), its projection is made as the registry makes it
 (`service.maps.projection.for_map`), and every frame goes through `models.pipeline.observe`, the step the
-map's writer runs (`MapRuntime._step`), on a `MapModel` built as a served map's (`params.map_model`).
+map's writer runs (`MapRuntime._step`), on a `MapModel` built as a served map's (`config.map_model`).
 Nothing is stored: the rows' seqs are 1, 2, ... as a fresh map's would be. Only the decoding and the
 backbone are done before, once per folder (the feature cache), with the same encoder.
 """
@@ -22,7 +22,7 @@ from models.evaluation.online import OnlineAnswers
 from models.frontend import slsbh
 from models.pipeline import Stream, observe
 from service.maps import projection as map_projection
-from service.maps.params import map_model, resolve_params
+from service.maps.config import MapOptions, map_model, resolve
 from service.settings import Settings
 
 __all__ = ["METHODS", "experiment", "operating_point", "replay"]
@@ -50,12 +50,12 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
     """
     del encoder_id  # the features are the encoder's; a map would freeze its identity
     n_db, n_q = len(db_feats), len(q_feats)
-    extra = dict(create or {})
-    params = resolve_params(preset, seed=seed, memory=memory, backbone=backbone, localiser=localiser,
-                            tm=extra.pop("tm", None), slsbh_conf=extra.pop("slsbh_conf", None), **extra)
-    _, P = map_projection.for_map(params, int(db_feats.shape[1]), Settings().max_streams)
-    hasher = slsbh.Hasher(P, float(params["slsbh"]["s"]))
-    model = map_model(params, max_observations=max(n_db, 1))
+    options = MapOptions(preset=preset, seed=seed, memory=memory, backbone=backbone, localiser=localiser,
+                         **(create or {}))
+    config = resolve(options, default_preset=preset, default_backbone=backbone)
+    _, P = map_projection.for_map(config, int(db_feats.shape[1]), Settings().max_streams)
+    hasher = slsbh.Hasher(P, float(config.slsbh["s"]))
+    model = map_model(config, max_observations=max(n_db, 1))
     database, query = Stream(), Stream()
     for i, y in enumerate(hasher.project(db_feats)):
         observe(model, database, y, learn=True, stream="database", top_k=0, seq=i + 1)

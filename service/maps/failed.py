@@ -15,8 +15,8 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 
 from service.maps import snapshots as map_snapshots
+from service.maps.config import MapConfig
 from service.maps.errors import MapUnavailable
-from service.maps.params import DEFAULT_REVISIT_THRESHOLD, map_option
 from service.maps.recent import RecentAnswers
 from service.maps.results import MapInfo, SnapshotInfo
 from storage.catalog import Catalog, MapRecord
@@ -24,11 +24,6 @@ from storage.catalog import Catalog, MapRecord
 __all__ = ["FailedMap"]
 
 T = TypeVar("T")
-
-
-def _as(value: Any, kind: type, default: Any) -> Any:
-    """`value` when it is a `kind`, else `default`: stored params may be anything."""
-    return value if isinstance(value, kind) else default
 
 
 class FailedMap:
@@ -60,22 +55,9 @@ class FailedMap:
         """Nothing is open."""
 
     def info(self) -> MapInfo:
-        p = self.params if isinstance(self.params, dict) else {}
-        text = {k: _as(map_option(p, k), str, "") for k in ("memory", "projection", "backbone")}
-        return MapInfo(
-            map_id=self.map_id, created_at=self.record.created_at, state=self.state,
-            state_reason=self.state_reason, preset=self.record.preset,
-            params={"tm": _as(p.get("tm"), dict, {}), "slsbh": _as(p.get("slsbh"), dict, {}),
-                    "seed": _as(p.get("seed"), int, 0),
-                    "exclude_recent": _as(p.get("exclude_recent"), int, 0),
-                    "memory": text["memory"], "projection": text["projection"],
-                    "localiser": _as(map_option(p, "localiser"), dict, {})},
-            encoder=_as(p.get("encoder_id"), str, ""),
-            projection_sha256=_as(p.get("projection_sha256"), str, ""),
-            observations=0, last_seq=0, streams=[], warnings=_as(p.get("warnings"), list, []),
-            recovery=None, snapshot_error=None, backbone=text["backbone"],
-            revisit_threshold=_as(map_option(p, "revisit_threshold"), float, DEFAULT_REVISIT_THRESHOLD),
-            thumbnails=_as(p.get("thumbnails", False), bool, False))
+        # The stored options as far as they can be read (the map failed because some cannot).
+        return MapInfo.of(MapConfig.salvage(self.params), self.record, state=self.state,
+                          state_reason=self.state_reason)
 
     def snapshots(self) -> list[SnapshotInfo]:
         return map_snapshots.listing(self.catalog, self.map_id)

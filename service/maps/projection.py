@@ -12,13 +12,14 @@ Both are stored content-addressed by `slsbh.save_projection` and read back, chec
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
 from models.frontend import slsbh
 from models.localisation import SequenceLocaliser
 from models.memory.temporal_memory import planned_bytes
+from service.maps.config import MapConfig
 
 __all__ = ["MAP_MODEL_BYTES", "Projection", "for_map", "make", "model_bytes", "nbytes", "projection_kind"]
 
@@ -34,17 +35,17 @@ def projection_kind(feature_dim: int, k: int, tm_bytes: int) -> Kind:
     return "dense" if feature_dim * k * 4 + tm_bytes <= MAP_MODEL_BYTES else "sparse"
 
 
-def model_bytes(params: dict[str, Any], max_streams: int) -> int:
-    """What a map of these parameters may hold besides its projection: the memory and every stream's
+def model_bytes(config: MapConfig, max_streams: int) -> int:
+    """What a map of this configuration may hold besides its projection: the memory and every stream's
     localiser state (beam x HYPOTHESIS_BYTES, docs/design/science.md §11.3) at the stream cap."""
-    return planned_bytes(params["tm"]) + max_streams * SequenceLocaliser(params["localiser"]).state_bytes()
+    return planned_bytes(config.tm) + max_streams * SequenceLocaliser(config.localiser).state_bytes()
 
 
-def for_map(params: dict[str, Any], feature_dim: int, max_streams: int) -> tuple[Kind, Projection]:
+def for_map(config: MapConfig, feature_dim: int, max_streams: int) -> tuple[Kind, Projection]:
     """A new map's projection kind and matrix (the kind by `projection_kind`, the seed `slsbh.seed`)."""
-    k = int(params["slsbh"]["k"])
-    kind = projection_kind(feature_dim, k, model_bytes(params, max_streams))
-    return kind, make(kind, feature_dim, k, int(params["slsbh"]["seed"]))
+    k = int(config.slsbh["k"])
+    kind = projection_kind(feature_dim, k, model_bytes(config, max_streams))
+    return kind, make(kind, feature_dim, k, int(config.slsbh["seed"]))
 
 
 def make(kind: Kind, feature_dim: int, k: int, seed: int) -> Projection:

@@ -16,6 +16,7 @@ from models.localisation.index import warm_up as index_warm_up
 from models.memory.temporal_memory import TemporalMemory
 from service.maps import projection as map_projection
 from service.maps import snapshots as map_snapshots
+from service.maps.config import MapConfig, MapOptions, resolve
 from service.maps.encoders import Encoders
 from service.maps.errors import (
     InvalidConfiguration,
@@ -26,7 +27,6 @@ from service.maps.errors import (
     MapTooLarge,
 )
 from service.maps.failed import FailedMap
-from service.maps.params import map_option, resolve_params
 from service.maps.runtime import MapRuntime
 from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord
 from storage.layout import Layout
@@ -92,23 +92,23 @@ class MapRegistry:
                 self.catalog.set_state(record.map_id, "failed", "open-failed")
                 self.maps[record.map_id] = FailedMap(record, self.catalog, "open-failed")
         if not self.maps:
-            self.create("default", preset=self.settings.default_preset)
+            self.create("default")
 
     def _open(self, record: MapRecord) -> MapRuntime:
         """A stored map's runtime, recovered, or failed for a reason recovery knows."""
-        backbone = map_option(record.params, "backbone")
+        config = MapConfig.parse(record.params)  # InvalidConfiguration: `start` serves it as failed
         try:
-            encoder = self.encoders.get(backbone)
+            encoder = self.encoders.get(config.backbone)
         except ValueError as e:
             rt = self._runtime(record, 0)
             rt.state, rt.state_reason = "failed", "encoder-unavailable"
             log.error("map %s: %s", record.map_id, e)
             return rt
         rt = self._runtime(record, encoder.feature_dim)
-        if record.params.get("encoder_id") != encoder.identity:
+        if config.encoder_id != encoder.identity:
             rt.state, rt.state_reason = "failed", "encoder-mismatch"
             log.error("map %s was built with encoder %s, this server runs %s", record.map_id,
-                      record.params.get("encoder_id"), encoder.identity)
+                      config.encoder_id, encoder.identity)
             return rt
         try:
             rt.recover()
@@ -129,22 +129,18 @@ class MapRegistry:
             raise MapNotFound(map_id)
         return rt
 
-    def create(self, map_id: str, *, preset: str, seed: int | None = None, tm: dict[str, Any] | None = None,
-               slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
-               backbone: str | None = None, memory: str = "tm", revisit_threshold: float | None = None,
-               localiser: dict[str, Any] | None = None, thumbnails: bool = False) -> MapRuntime:
-        """Create a map: resolve and freeze parameters, persist the projection, then the store (§1.1).
+    def create(self, map_id: str, options: MapOptions | None = None) -> MapRuntime:
+        """Create a map: resolve and freeze its configuration, persist the projection, then the store
+        (docs/design/service.md §1.1).
 
         Raises:
             InvalidMapId, InvalidConfiguration, MapTooLarge, MapAlreadyExists, MapLimit.
         """
         if not MAP_ID_RE.match(map_id):
             raise InvalidMapId(map_id, MAP_ID_RE.pattern)
-        params = resolve_params(
-            preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf, exclude_recent=exclude_recent,
-            backbone=backbone or self.encoders.default, memory=memory, localiser=localiser,
-            **({} if revisit_threshold is None else {"revisit_threshold": revisit_threshold}))
-        need = map_projection.model_bytes(params, self.settings.max_streams)
+        config = resolve(options or MapOptions(), default_preset=self.settings.default_preset,
+                         default_backbone=self.encoders.default)
+        need = map_projection.model_bytes(config, self.settings.max_streams)
         if need > self.settings.max_map_bytes:
             raise MapTooLarge(need, self.settings.max_map_bytes)
         with self._create_lock:
@@ -154,18 +150,17 @@ class MapRegistry:
             if len(self.maps) >= self.settings.max_maps:
                 raise MapLimit(self.settings.max_maps)
             try:
-                encoder = self.encoders.get(params["backbone"])
+                encoder = self.encoders.get(config.backbone)
             except ValueError as e:
                 raise InvalidConfiguration(str(e), [{"location": "body", "name": "backbone",
                                                      "message": str(e)}]) from e
             # Projection plus memory within the map budget: the very sparse projection where dense breaks it.
-            params["projection"], P = map_projection.for_map(params, encoder.feature_dim,
-                                                             self.settings.max_streams)
+            kind, P = map_projection.for_map(config, encoder.feature_dim, self.settings.max_streams)
             _, sha = slsbh.save_projection(P, self.projections)
             del P
-            params["projection_sha256"] = sha
-            params["encoder_id"] = encoder.identity
-            params["thumbnails"] = bool(thumbnails)  # frozen like the rest (docs/design/service.md §1.1)
+            config = config.model_copy(update={"projection": kind, "projection_sha256": sha,
+                                               "encoder_id": encoder.identity})
+            params = config.stored()
             if encoder.identity.split("/")[1].startswith("random"):
                 log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, encoder.identity)
             map_dir = self.layout.map_dir(map_id)
@@ -174,11 +169,11 @@ class MapRegistry:
             map_dir.mkdir(parents=True)
             store = MapStore.create(self.layout.map_db(map_id), MapMeta(
                 map_id=map_id, params=params, projection_sha256=sha, encoder_id=encoder.identity,
-                cell_dtype=cell_dtype_for(int(params["tm"]["columnDimensions"])
-                                          * int(params["tm"]["cellsPerColumn"]))))
+                cell_dtype=cell_dtype_for(int(config.tm["columnDimensions"])
+                                          * int(config.tm["cellsPerColumn"]))))
             store.close()
             try:
-                record = self.catalog.create_map(map_id, params, preset=preset, state="ready")
+                record = self.catalog.create_map(map_id, params, preset=config.preset, state="ready")
             except MapExists as e:
                 raise MapAlreadyExists(map_id) from e
             rt = self._runtime(record, encoder.feature_dim)

@@ -6,6 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from service.maps.config import MapConfig
+
 __all__ = ["IndexMemory", "MapInfo", "Match", "MemoryInfo", "ObservationResult", "PlaceResult",
            "RestoreResult", "SequenceStats", "SnapshotInfo", "StorageMemory", "StoredObservation",
            "StreamReset", "StreamsMemory", "TmMemory"]
@@ -113,6 +115,19 @@ class MapInfo:
     backbone: str
     revisit_threshold: float
     thumbnails: bool  # a small JPEG is kept with each learned row (frozen with the map)
+
+
+    @classmethod
+    def of(cls, config: MapConfig, record: Any, *, state: str, state_reason: str | None,
+           observations: int = 0, last_seq: int = 0, streams: list[str] | None = None,
+           recovery: dict[str, Any] | None = None, snapshot_error: dict[str, Any] | None = None) -> MapInfo:
+        """The map resource of a map with this configuration and catalog `record` (created_at, map_id)."""
+        return cls(map_id=record.map_id, created_at=record.created_at, state=state, state_reason=state_reason,
+                   preset=config.preset, params=config.shown(), encoder=config.encoder_id,
+                   projection_sha256=config.projection_sha256, observations=observations, last_seq=last_seq,
+                   streams=streams or [], warnings=list(config.warnings), recovery=recovery,
+                   snapshot_error=snapshot_error, backbone=config.backbone,
+                   revisit_threshold=config.revisit_threshold, thumbnails=config.thumbnails)
 
 
 @dataclass(frozen=True)

@@ -39,9 +39,9 @@ from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import Stream, memory_state, touch
 from service.maps import idempotency, recovery, sizes
 from service.maps import snapshots as map_snapshots
+from service.maps.config import MapConfig, map_model
 from service.maps.encoder_pool import EncoderPool
 from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable
-from service.maps.params import check_revisit_threshold, map_model, map_option
 from service.maps.recent import RecentAnswers
 from service.maps.results import (
     MapInfo,
@@ -74,7 +74,8 @@ class MapRuntime:
                  key_cache: int = 0) -> None:
         self.record = record
         self.map_id = record.map_id
-        self.params = record.params
+        # Stored options this version rejects raise InvalidConfiguration: the registry serves a FailedMap.
+        self.config = MapConfig.parse(record.params)
         self.layout = catalog.layout  # every path of the map (storage.layout)
         self.catalog = catalog
         self.max_streams = max_streams
@@ -84,7 +85,6 @@ class MapRuntime:
         # localisations in memory (service.maps.idempotency).
         self.max_keys = max_keys
         self.keys = idempotency.KeyCache(key_cache)
-        self.thumbnails = bool(self.params.get("thumbnails", False))  # frozen with the map
         self.state = "recovering"
         self.state_reason: str | None = None
         # What the last recovery did (`recover`); the last automatic snapshot's failure, if it failed.
@@ -96,22 +96,20 @@ class MapRuntime:
         # The order in which observations reach the writer: each waits for the one before to be queued.
         self._turn = asyncio.Event()
         self._turn.set()
-        sha = self.params["projection_sha256"]
+        sha = self.config.projection_sha256
         self.projection_path = self.layout.projection(sha)
         self.hasher: slsbh.Hasher | None = None
         self._projection_error: str | None = None
         # the checksum is verified on load: a map never runs on another matrix (docs/design/science.md §7)
         try:
             projection = slsbh.load_projection(self.projection_path, sha,
-                                             shape=(feature_dim, int(self.params["slsbh"]["k"])))
-            self.hasher = slsbh.Hasher(projection, float(self.params["slsbh"]["s"]))
+                                               shape=(feature_dim, int(self.config.slsbh["k"])))
+            self.hasher = slsbh.Hasher(projection, float(self.config.slsbh["s"]))
         except (slsbh.ProjectionError, OSError) as e:
             self._projection_error = str(e)
-        self.memory_kind, self.backbone = (map_option(self.params, k) for k in ("memory", "backbone"))
-        self.revisit_threshold = float(map_option(self.params, "revisit_threshold"))
         # The memory, index and links the pure pipeline steps (models.pipeline); this runtime keeps
         # their order, their persistence and their snapshots.
-        self.model = map_model(self.params, max_observations=max_observations)
+        self.model = map_model(self.config, max_observations=max_observations)
         self.store: MapStore | None = None
         self.recent: RecentAnswers[Any] = RecentAnswers()  # the replies as sent (the route fills it)
 
@@ -288,8 +286,8 @@ class MapRuntime:
         """
         self.require_ready()
         t0 = time.perf_counter()
-        encoding = pool.submit(body, hasher=self.hasher, backbone=self.backbone,
-                               thumbnail=learn and self.thumbnails)
+        encoding = pool.submit(body, hasher=self.hasher, backbone=self.config.backbone,
+                               thumbnail=learn and self.config.thumbnails)
         before, mine = self._turn, asyncio.Event()
         self._turn = mine
         try:
@@ -379,8 +377,9 @@ class MapRuntime:
             seq=seq, sequence=SequenceStats.of(step.step, step.stats),
             matches=[Match.of(i + 1, rows[m.seq], m.overlap, m.score) for i, m in enumerate(step.ranked)],
             timings_ms=step.timings_ms, map_seq=seq or self.store.last_seq(),
-            projection_sha256=self.params["projection_sha256"], backbone=self.backbone, metadata=metadata,
-            place=None if place is None else PlaceResult.of(place, rows[place.seq], self.revisit_threshold))
+            projection_sha256=self.config.projection_sha256, backbone=self.config.backbone, metadata=metadata,
+            place=None if place is None else PlaceResult.of(place, rows[place.seq],
+                                                            self.config.revisit_threshold))
         if row is not None:
             if post is not None:
                 row = dataclasses.replace(row, key=post.record(result))
@@ -396,28 +395,20 @@ class MapRuntime:
     # ------------------------------------------------------------------ resources
 
     def info(self) -> MapInfo:
-        p = self.params
-        return MapInfo(
-            map_id=self.map_id, created_at=self.record.created_at, state=self.state,
-            state_reason=self.state_reason, preset=p["preset"],
-            params={"tm": p["tm"], "slsbh": p["slsbh"], "seed": p["seed"],
-                    "exclude_recent": p["exclude_recent"], "memory": self.memory_kind,
-                    "projection": map_option(p, "projection"), "localiser": self.localisation.localiser.conf},
-            encoder=p["encoder_id"], projection_sha256=p["projection_sha256"],
-            observations=len(self.index),
-            last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),
-            warnings=p.get("warnings", []), recovery=self.recovery, snapshot_error=self.snapshot_error,
-            backbone=self.backbone, revisit_threshold=self.revisit_threshold, thumbnails=self.thumbnails)
+        return MapInfo.of(self.config, self.record, state=self.state, state_reason=self.state_reason,
+                          observations=len(self.index),
+                          last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),
+                          recovery=self.recovery, snapshot_error=self.snapshot_error)
 
     def set_revisit_threshold(self, value: float) -> MapInfo:
         """Writer: the map's revisit threshold, durable in the catalog (docs/design/service.md §1.2);
         InvalidConfiguration outside [0, 1] (nothing changes)."""
-        value = check_revisit_threshold(value)
-        self.record = self.catalog.update_params(self.map_id, revisit_threshold=value)
-        self.params, self.revisit_threshold = self.record.params, value
+        config = self.config.with_revisit_threshold(value)
+        self.record = self.catalog.update_params(self.map_id, revisit_threshold=config.revisit_threshold)
+        self.config = config
         return self.info()
 
     def memory(self) -> MemoryInfo:
-        return sizes.memory_info(self.model, self.streams, tm_params=self.params["tm"],
+        return sizes.memory_info(self.model, self.streams, tm_params=self.config.tm,
                                  max_streams=self.max_streams, projection=self.projection_path,
                                  store=self.store, snapshots_bytes=self.catalog.snapshots_bytes(self.map_id))
