@@ -36,7 +36,7 @@ log = logging.getLogger("cortexloc.encoder")
 _SLSBH = presets.SlsbhParams()
 
 default_conf: dict[str, Any] = {
-    "backbone": "alexnet",  # a name registered in models.frontend.backbones: alexnet | efficientnet-lite0
+    "backbone": backbones.PAPER,  # a name registered in models.frontend.backbones
     "resize": "crop",  # crop (Resize 256 + CenterCrop 224, as the paper) | squash (straight to 224)
     "weights_path": None,  # AlexNet conv1..conv3 file; None: look in the weights cache, else random
     "random_seed": 0,  # seed of the NumPy-generated fallback weights

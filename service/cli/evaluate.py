@@ -131,8 +131,7 @@ def eval_images(
                                             "ground_truth_new.npy (models/evaluation/ground_truth.py); "
                                             "indices count in each folder's sorted names, whole folders.",
                                             exists=True, dir_okay=False)] = None,
-    backbone: Annotated[str | None, typer.Option(help="a registered backbone: alexnet | "
-                                                      "efficientnet-lite0-s5 | efficientnet-lite0 "
+    backbone: Annotated[str | None, typer.Option(help="a backbone registered in models.frontend.backbones "
                                                       "(default: the service's, resolved as serve "
                                                       "does)")] = None,
     resize: Annotated[str | None, typer.Option(help="crop | squash (default: the service's)")] = None,
@@ -185,8 +184,8 @@ def eval_images(
     from models.evaluation import seqslam as seq
     from models.frontend import encoder as encoder_mod
     from models.frontend import images
-    from service.app import resolve_backbone
     from service.cli import service_eval
+    from service.encoder import resolve_backbone
     from service.settings import Settings
 
     # The service's defaults, read from their one home each (docs/design/service.md §8,

@@ -53,7 +53,9 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
     options = MapOptions(preset=preset, seed=seed, memory=memory, backbone=backbone, localiser=localiser,
                          **(create or {}))
     config = resolve(options, default_preset=preset, default_backbone=backbone)
-    _, P = map_projection.for_map(config, int(db_feats.shape[1]), Settings().max_streams)
+    defaults = Settings()  # a served map's caps, as the registry applies them
+    _, P = map_projection.for_map(config, int(db_feats.shape[1]), defaults.max_streams,
+                                  defaults.max_map_bytes)
     hasher = slsbh.Hasher(P, float(config.slsbh["s"]))
     model = map_model(config, max_observations=max(n_db, 1))
     database, query = Stream(), Stream()

@@ -34,7 +34,7 @@ def main() -> None:
     ap.add_argument("--backbone", default=None, help="default: the service's")
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
-    from service.app import resolve_backbone  # the service's own resolution of its default
+    from service.encoder import resolve_backbone  # the service's own resolution of its default
 
     settings = Settings.from_env()
     backbone = args.backbone or resolve_backbone(settings).backbone

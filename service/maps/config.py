@@ -120,7 +120,7 @@ class MapConfig(BaseModel):
     slsbh: dict[str, Any] = Field(frozen=True, description="sLSBH: k, s, seed, adapt_tau")
     seed: int = Field(frozen=True)
     exclude_recent: int = Field(default=0, ge=0, frozen=True)
-    backbone: str = Field(default="alexnet", frozen=True)
+    backbone: str = Field(default=backbones.PAPER, frozen=True)
     memory: str = Field(default="tm", frozen=True)
     revisit_threshold: float = Field(default=DEFAULT_REVISIT_THRESHOLD, ge=0.0, le=1.0)
     localiser: dict[str, Any] = Field(default_factory=dict, frozen=True,

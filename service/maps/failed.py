@@ -37,6 +37,8 @@ class FailedMap:
     def __init__(self, record: MapRecord, catalog: Catalog, reason: str) -> None:
         self.record, self.catalog = record, catalog
         self.map_id, self.params = record.map_id, record.params
+        # The stored options as far as they can be read (the map failed because some cannot).
+        self.config = MapConfig.salvage(record.params)
         self.state, self.state_reason = "failed", reason
         self.recovery: dict[str, Any] | None = None
         self.snapshot_error: dict[str, Any] | None = None
@@ -55,8 +57,7 @@ class FailedMap:
         """Nothing is open."""
 
     def info(self) -> MapInfo:
-        # The stored options as far as they can be read (the map failed because some cannot).
-        return MapInfo.of(MapConfig.salvage(self.params), self.record, state=self.state,
+        return MapInfo.of(self.config, self.record, state=self.state,
                           state_reason=self.state_reason)
 
     def snapshots(self) -> list[SnapshotInfo]:

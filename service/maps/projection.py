@@ -1,10 +1,12 @@
 """A map's sLSBH projection: dense or very sparse by the map's size budget, persisted by SHA-256
 (docs/design/science.md §7, docs/design/service.md §1.1).
 
-A map holds its projection and its Temporal Memory; together they stay within `MAP_MODEL_BYTES`. The
-dense matrix is D × k float32 (AlexNet conv3: 64,896 × 1,024 = 266 MB); where it would break the
-budget the map gets the very sparse projection (Li, Hastie & Church 2006; `slsbh.make_sparse_projection`,
-at parity with the dense one in docs/results.md §6), about √D · k nonzeros (1.3 MB for AlexNet).
+A map holds its projection, its Temporal Memory and its streams' localiser states; together they stay
+within the one map-size budget, CORTEXLOC_MAX_MAP_BYTES (`model_bytes` is refused above it before
+anything is written; the projection takes what is left). The dense matrix is D × k float32 (AlexNet
+conv3: 64,896 × 1,024 = 266 MB); where it would break the budget the map gets the very sparse
+projection (Li, Hastie & Church 2006; `slsbh.make_sparse_projection`, at parity with the dense one in
+docs/results.md §6), about √D · k nonzeros (1.3 MB for AlexNet).
 
 Both are stored content-addressed by `slsbh.save_projection` and read back, checksum verified, by
 `slsbh.load_projection` (docs/design/science.md §7).
@@ -21,18 +23,15 @@ from models.localisation import SequenceLocaliser
 from models.memory.temporal_memory import planned_bytes
 from service.maps.config import MapConfig
 
-__all__ = ["MAP_MODEL_BYTES", "Projection", "for_map", "make", "model_bytes", "nbytes", "projection_kind"]
-
-#: Projection plus Temporal Memory bytes per map at most (issue 14).
-MAP_MODEL_BYTES = 100_000_000
+__all__ = ["Projection", "for_map", "make", "model_bytes", "nbytes", "projection_kind"]
 
 Projection = np.ndarray | slsbh.SparseProjection
 Kind = Literal["dense", "sparse"]
 
 
-def projection_kind(feature_dim: int, k: int, tm_bytes: int) -> Kind:
-    """`dense` when D × k float32 plus the memory fit in MAP_MODEL_BYTES, else `sparse`."""
-    return "dense" if feature_dim * k * 4 + tm_bytes <= MAP_MODEL_BYTES else "sparse"
+def projection_kind(feature_dim: int, k: int, model_bytes: int, budget: int) -> Kind:
+    """`dense` when D × k float32 plus the rest of the map (`model_bytes`) fit in `budget`, else `sparse`."""
+    return "dense" if feature_dim * k * 4 + model_bytes <= budget else "sparse"
 
 
 def model_bytes(config: MapConfig, max_streams: int) -> int:
@@ -41,10 +40,11 @@ def model_bytes(config: MapConfig, max_streams: int) -> int:
     return planned_bytes(config.tm) + max_streams * SequenceLocaliser(config.localiser).state_bytes()
 
 
-def for_map(config: MapConfig, feature_dim: int, max_streams: int) -> tuple[Kind, Projection]:
-    """A new map's projection kind and matrix (the kind by `projection_kind`, the seed `slsbh.seed`)."""
+def for_map(config: MapConfig, feature_dim: int, max_streams: int, budget: int) -> tuple[Kind, Projection]:
+    """A new map's projection kind and matrix (the kind by `projection_kind` within `budget`,
+    CORTEXLOC_MAX_MAP_BYTES; the seed `slsbh.seed`)."""
     k = int(config.slsbh["k"])
-    kind = projection_kind(feature_dim, k, model_bytes(config, max_streams))
+    kind = projection_kind(feature_dim, k, model_bytes(config, max_streams), budget)
     return kind, make(kind, feature_dim, k, int(config.slsbh["seed"]))
 
 

@@ -155,7 +155,8 @@ class MapRegistry:
                 raise InvalidConfiguration(str(e), [{"location": "body", "name": "backbone",
                                                      "message": str(e)}]) from e
             # Projection plus memory within the map budget: the very sparse projection where dense breaks it.
-            kind, P = map_projection.for_map(config, encoder.feature_dim, self.settings.max_streams)
+            kind, P = map_projection.for_map(config, encoder.feature_dim, self.settings.max_streams,
+                                             self.settings.max_map_bytes)
             _, sha = slsbh.save_projection(P, self.projections)
             del P
             config = config.model_copy(update={"projection": kind, "projection_sha256": sha,

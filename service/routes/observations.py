@@ -23,9 +23,10 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from models.frontend import images
 from service.deps import ApiKeyDep, MapReadKeyDep, MetricsDep, RegistryDep, SettingsDep
-from service.errors import IMAGE_MEDIA_TYPES, Problem, problem_responses
+from service.errors import Problem, problem_responses
 from service.maps import idempotency, stored
 from service.maps.results import ObservationResult
+from service.media_types import IMAGE_MEDIA_TYPES
 from service.routes.params import MAX_SEQ, MapId, Seq, StreamQuery
 from service.schemas import (
     MatchModel,

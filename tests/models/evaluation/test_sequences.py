@@ -218,7 +218,7 @@ def test_sequence_filtered_methods_gain_from_order_and_keep_their_base():
 
 def test_eval_images_defaults_follow_the_service(tmp_path):
     from models.frontend.encoder import default_conf
-    from service.app import resolve_backbone
+    from service.encoder import resolve_backbone
     from service.settings import Settings
 
     db, q = write_sequences(tmp_path, n=14)
