@@ -76,8 +76,8 @@ def _prepare_data_dir(data_dir: Path) -> None:
 @asynccontextmanager
 async def map_registry(app: FastAPI) -> AsyncIterator[None]:
     """The maps of the data directory: opened and recovered by replay at start, closed at shutdown."""
-    from service.maps.encoder_pool import EncoderPool
-    from service.maps.encoders import Encoders
+    from service.maps.encoding.encoders import Encoders
+    from service.maps.encoding.pool import EncoderPool
     from service.maps.registry import MapRegistry
 
     s = app.state.settings

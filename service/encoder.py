@@ -51,9 +51,9 @@ def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
 def resolve_backbone(settings: Settings) -> Settings:
     """The settings with `backbone` resolved once: the configured one, else AlexNet when its real
     weights are installed (CORTEXLOC_WEIGHTS_PATH or the cache), else `efficientnet-lite0-s5`
-    (`service.maps.encoders.default_backbone`)."""
+    (`service.maps.encoding.encoders.default_backbone`)."""
     from models.frontend import weights
-    from service.maps.encoders import default_backbone
+    from service.maps.encoding.encoders import default_backbone
 
     if settings.backbone is not None:
         return settings

@@ -4,10 +4,11 @@ database traverse (learned) then a query traverse (localised, one stream), score
 
 Not a re-implementation: the map's configuration is resolved and checked as a created map's
 (`service.maps.config.resolve`), its projection is made as the registry makes it
-(`service.maps.projection.for_map`), and every frame goes through `models.pipeline.observe`, the step the
-map's writer runs (`MapRuntime._step`), on a `MapModel` built as a served map's (`config.map_model`).
-Nothing is stored: the rows' seqs are 1, 2, ... as a fresh map's would be. Only the decoding and the
-backbone are done before, once per folder (the feature cache), with the same encoder.
+(`service.maps.encoding.projection.for_map`), and every frame goes through `models.pipeline.observe`,
+the step the map's writer runs (`MapRuntime._step`), on a `MapModel` built as a served map's
+(`config.map_model`). Nothing is stored: the rows' seqs are 1, 2, ... as a fresh map's would be. Only
+the decoding and the backbone are done before, once per folder (the feature cache), with the same
+encoder.
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ import numpy as np
 from models.evaluation.online import OnlineAnswers
 from models.frontend import slsbh
 from models.pipeline import Stream, observe
-from service.maps import projection as map_projection
 from service.maps.config import MapOptions, map_model, resolve
+from service.maps.encoding import projection as map_projection
 from service.settings import Settings
 
 __all__ = ["METHODS", "experiment", "operating_point", "replay"]

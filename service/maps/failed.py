@@ -14,11 +14,11 @@ from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from service.maps import snapshots as map_snapshots
 from service.maps.config import MapConfig
 from service.maps.errors import MapUnavailable
-from service.maps.recent import RecentAnswers
+from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import MapInfo, SnapshotInfo
+from service.maps.runtime.recent import RecentAnswers
 from storage.catalog import Catalog, MapRecord
 
 __all__ = ["FailedMap"]

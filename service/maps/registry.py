@@ -14,10 +14,9 @@ import numpy as np
 from models.frontend import slsbh
 from models.localisation.index import warm_up as index_warm_up
 from models.memory.temporal_memory import TemporalMemory
-from service.maps import projection as map_projection
-from service.maps import snapshots as map_snapshots
 from service.maps.config import MapConfig, MapOptions, resolve
-from service.maps.encoders import Encoders
+from service.maps.encoding import projection as map_projection
+from service.maps.encoding.encoders import Encoders
 from service.maps.errors import (
     InvalidConfiguration,
     InvalidMapId,
@@ -27,6 +26,7 @@ from service.maps.errors import (
     MapTooLarge,
 )
 from service.maps.failed import FailedMap
+from service.maps.recovery import snapshots as map_snapshots
 from service.maps.runtime import MapRuntime
 from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord
 from storage.layout import Layout
@@ -53,7 +53,7 @@ class MapRegistry:
 
     Args:
         data_dir: CORTEXLOC_DATA_DIR.
-        encoders: the service's encoders by backbone (`service.maps.encoders.Encoders`; each has
+        encoders: the service's encoders by backbone (`service.maps.encoding.encoders.Encoders`; each has
             `identity` and `feature_dim`); a map uses its frozen backbone's.
         settings: the service's settings (map caps, snapshot cadence, default preset).
     """
@@ -183,7 +183,7 @@ class MapRegistry:
             return rt
 
     def import_snapshot(self, tar_path: Path, max_bytes: int) -> str:
-        """Create a map from a downloaded snapshot tar (`service.maps.snapshots.import_snapshot`)."""
+        """Create a map from a downloaded snapshot tar (`service.maps.recovery.snapshots.import_snapshot`)."""
         return map_snapshots.import_snapshot(self.data_dir, self.catalog, tar_path, max_bytes)
 
     def delete(self, map_id: str) -> None:

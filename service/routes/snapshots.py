@@ -9,7 +9,7 @@ from starlette.types import Receive, Scope, Send
 
 from service.deps import ApiKeyDep, MapReadKeyDep, RegistryDep
 from service.errors import problem_responses
-from service.maps import snapshots
+from service.maps.recovery import snapshots
 from service.media_types import TAR_MEDIA_TYPE
 from service.routes.params import MapId, SnapshotId
 from service.schemas import RestoreModel, SnapshotList, SnapshotModel

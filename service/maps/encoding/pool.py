@@ -7,7 +7,7 @@ them, so throughput under load approaches the backbone's batch throughput. A ful
 `overloaded` at once instead of letting latency grow without bound.
 
 Batches are per backbone: a request names its map's backbone, and a batch holding several runs one
-backbone call per backbone present (`service.maps.encoders.Encoders` holds one encoder each).
+backbone call per backbone present (`service.maps.encoding.encoders.Encoders` holds one encoder each).
 
 A request brings its map's sLSBH hasher (`MapRuntime.observe` passes it): the batch is then also
 projected here (y = x·P), one matrix product per map present in the batch. The dense projection is
@@ -31,7 +31,7 @@ import numpy as np
 from models.frontend.encoder import Encoder, EncodeResult
 from models.frontend.images import ImageError, RawFrame
 from models.frontend.slsbh import Hasher
-from service.maps.encoders import Encoders
+from service.maps.encoding.encoders import Encoders
 from service.maps.errors import Overloaded
 
 _STOP = object()

@@ -1,5 +1,5 @@
 """A map's projection: dense or very sparse by the size budget, stored and loaded by SHA-256
-(service/maps/projection.py)."""
+(service/maps/encoding/projection.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from models.frontend import backbones, slsbh
 from models.frontend.backbones.efficientnet_lite0 import BLOCKS, EfficientNetLite0
 from models.frontend.slsbh.projection import D_CONV3
 from models.memory.temporal_memory import planned_bytes
-from service.maps import projection
+from service.maps.encoding import projection
 from service.settings import Settings
 from tests.service.helpers import frame, make_client
 

@@ -37,12 +37,11 @@ from models.frontend.images import RawFrame
 from models.localisation import InvertedIndex, Localisation
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import Stream, memory_state, touch
-from service.maps import idempotency, recovery, sizes
-from service.maps import snapshots as map_snapshots
+from service.maps import recovery
 from service.maps.config import MapConfig, map_model
-from service.maps.encoder_pool import EncoderPool
+from service.maps.encoding.pool import EncoderPool
 from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable
-from service.maps.recent import RecentAnswers
+from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import (
     MapInfo,
     Match,
@@ -54,6 +53,8 @@ from service.maps.results import (
     SnapshotInfo,
     StreamReset,
 )
+from service.maps.runtime import idempotency, sizes
+from service.maps.runtime.recent import RecentAnswers
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, utc_now
 from storage.mapstore import MapStore, NewObservation, StorageFull, StoreCorrupt
@@ -82,7 +83,7 @@ class MapRuntime:
         self.snapshot_every = snapshot_every
         self.snapshot_keep = snapshot_keep
         # Idempotency keys: those of learned posts in the store (the last `max_keys` seqs), those of
-        # localisations in memory (service.maps.idempotency).
+        # localisations in memory (service.maps.runtime.idempotency).
         self.max_keys = max_keys
         self.keys = idempotency.KeyCache(key_cache)
         self.state = "recovering"
@@ -278,7 +279,7 @@ class MapRuntime:
         encoding.
 
         With a `post` (an Idempotency-Key) the answer is its `Reply`: the earlier one for a repeated
-        key, else the sealed reply of this step (service.maps.idempotency).
+        key, else the sealed reply of this step (service.maps.runtime.idempotency).
 
         Raises:
             MapUnavailable, Overloaded (nothing queued); ImageError (the decode failed, nothing
