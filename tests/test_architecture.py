@@ -150,3 +150,13 @@ def test_the_private_import_check_finds_one(tmp_path):
     assert private_imports(tmp_path) == ["service.errors: storage._common.X",
                                          "service.maps: models.memory._tm_kernels.step",
                                          "service.maps: storage.catalog._private"]
+
+
+def test_one_command_line_library_in_the_service():
+    """`cortexloc` is typer; no service module parses arguments another way (the experiments included:
+    `cortexloc eval revisit | unknown`)."""
+    offenders = [str(p.relative_to(ROOT)) for p in sorted((ROOT / "service").rglob("*.py"))
+                 if any(isinstance(n, (ast.Import, ast.ImportFrom))
+                        and "argparse" in {a.name for a in n.names} | {getattr(n, "module", None)}
+                        for n in ast.walk(ast.parse(p.read_text())))]
+    assert offenders == []

@@ -184,8 +184,8 @@ def eval_images(
     from models.evaluation import seqslam as seq
     from models.frontend import encoder as encoder_mod
     from models.frontend import images
-    from service.cli import service_eval
     from service.encoder import resolve_backbone
+    from service.evaluation import service_path
     from service.settings import Settings
 
     # The service's defaults, read from their one home each (docs/design/service.md §8,
@@ -194,11 +194,11 @@ def eval_images(
     backbone = backbone or resolve_backbone(Settings.from_env()).backbone
     resize = resize or encoder_mod.default_conf["resize"]
     method_list = [m.strip() for m in methods.split(",") if m.strip()]
-    service_list = [m for m in method_list if m in service_eval.METHODS]
-    method_list = [m for m in method_list if m not in service_eval.METHODS]
+    service_list = [m for m in method_list if m in service_path.METHODS]
+    method_list = [m for m in method_list if m not in service_path.METHODS]
     bad = set(method_list) - set(sequences.METHODS)
     if bad or not (method_list or service_list):
-        known = ", ".join((*sequences.METHODS, *service_eval.METHODS))
+        known = ", ".join((*sequences.METHODS, *service_path.METHODS))
         raise typer.BadParameter(f"must be among {known}", param_hint="--methods")
     method_list = sequences.with_ablations(method_list)
     wanted_precision = _operating_point(operating_point)
@@ -267,7 +267,7 @@ def eval_images(
         if service_list:
             assert enc is not None
             with progress("service") as tick:
-                summary, first = service_eval.experiment(
+                summary, first = service_path.experiment(
                     feats["db"], feats["query"], methods=service_list, columns=columns, tolerance=tolerance,
                     gt=gt_matrix, seeds=seeds, seed=seed, reverse_query=reverse_query, progress=tick,
                     map_conf={"encoder_id": enc.identity, "backbone": backbone, "preset": preset,
@@ -302,7 +302,7 @@ def eval_images(
     result["provenance"] = provenance()
     if wanted_precision is not None:
         result["operating_points"] = {
-            m: service_eval.operating_point(r["confidence"], r["correct"], wanted_precision)
+            m: service_path.operating_point(r["confidence"], r["correct"], wanted_precision)
             for m, r in first.items()}
     write_json(json_out, result)
     typer.echo(format_images_table(result))
@@ -344,3 +344,38 @@ def format_images_table(result: dict[str, Any]) -> str:
                      f"{e['recall_at_5_mean']:>6.3f} {e['query_recall_at_100p_mean']:>7.3f} "
                      f"{e['seconds_mean']:>7.2f}  {_method_notes(m, e)}")
     return "\n".join(lines)
+
+
+@app.command("revisit")
+def eval_revisit(
+    folder: Annotated[Path, typer.Option(help="the traverse's image folder", exists=True, file_okay=False)],
+    offset: Annotated[int, typer.Option(min=0)] = 0,
+    limit: Annotated[int, typer.Option(min=1)] = 894,
+    noise: Annotated[float, typer.Option(help="pixel noise, grey levels (std)")] = 8.0,
+    backbone: Annotated[str, typer.Option(help="a backbone registered in models.frontend.backbones")]
+    = "efficientnet-lite0",
+    resize: Annotated[str, typer.Option(help="crop | squash")] = "squash",
+    seed: int = 0,
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the summary here too")] = None,
+) -> None:
+    """Corridor-like revisits through the service's path (service/evaluation/revisit.py)."""
+    from service.evaluation.revisit import revisit
+
+    revisit(folder, offset=offset, limit=limit, noise=noise, backbone=backbone, resize=resize, seed=seed,
+            json_path=json_out)
+
+
+@app.command("unknown")
+def eval_unknown(
+    db: Annotated[Path, typer.Option(help="the database traverse's folder", exists=True, file_okay=False)],
+    query: Annotated[Path, typer.Option(help="the query traverse's folder", exists=True, file_okay=False)],
+    split: Annotated[int, typer.Option(help="first row of the second half")],
+    thresholds: Annotated[str, typer.Option(help="confidence thresholds, comma-separated")],
+    backbone: Annotated[str | None, typer.Option(help="default: the service's")] = None,
+    seed: int = 1,
+) -> None:
+    """False revisits on places never stored, through the service's path (service/evaluation/unknown.py)."""
+    from service.evaluation.unknown import unknown
+
+    unknown(db, query, split=split, thresholds=[float(t) for t in thresholds.split(",")], backbone=backbone,
+            seed=seed)
