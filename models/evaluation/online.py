@@ -56,7 +56,7 @@ def loop_closure(S: np.ndarray, conf: Mapping[str, Any] | None = None) -> Online
     through the service's localiser (§11).
 
     Step i is localised before it is stored: the map then holds steps 0 … i − 1, linked in order (row r's
-    predecessor r − 1), and, as in the service for a learning stream (`service/maps/localisation.py`),
+    predecessor r − 1), and, as in the service for a learning stream (`models/localisation/links.py`),
     the stream's own last `exclusion` + 1 rows are not candidates (they would always match best), nor
     rows of similarity <= 0 (the index returns only rows sharing a cell). Then step i joins the map.
     One stream, one state, no reset.
