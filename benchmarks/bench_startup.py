@@ -45,7 +45,7 @@ from models.frontend import slsbh
 from models.localisation.index import InvertedIndex
 from models.memory.temporal_memory import TemporalMemory
 from service.maps.encoding.encoders import Encoders
-from service.maps.recovery import rebuild as recovery
+from service.maps.recovery import memory as recovery
 from service.settings import Settings
 from storage import snapshots
 from storage.mapstore import MapStore

@@ -3,8 +3,9 @@ hash, the memory, one index pass and the localiser, and for a learned frame into
 (docs/design/service.md §1.2, §6; docs/design/science.md §7, §11.2).
 
 No SQLite, no threads: the service's map writer (`service.maps.runtime.MapRuntime.apply`), the
-recovery's replay (`service.maps.recovery.rebuild`) and the evaluation (`service.evaluation.service_path`)
-call these functions on the same `MapModel`, so what is measured and replayed is what is served.
+recovery's replay (`service.maps.recovery.memory.rebuild`) and the evaluation
+(`service.evaluation.service_path`) call these functions on the same `MapModel`, so what is measured and
+replayed is what is served.
 Ordering, persistence (the row, its seq) and snapshots are the caller's.
 
 `observe` is one frame online; `replay` is one stored row again (its code is stored, so no hash, no

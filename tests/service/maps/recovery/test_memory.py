@@ -1,4 +1,4 @@
-"""The one rebuild path without HTTP (service/maps/recovery/rebuild.py): a replay checks every row's
+"""The one rebuild path without HTTP (service/maps/recovery/memory.py): a replay checks every row's
 winner cells through the pipeline core, and recovery takes the newest snapshot whose replay reproduces
 the rows, else replays from the first row (docs/design/service.md §4.4)."""
 
