@@ -68,6 +68,7 @@ PROBLEMS: dict[str, tuple[int, str]] = {
     "map-exists": (409, "Map already exists"),
     "map-limit": (409, "Too many maps"),
     "map-full": (409, "Map is full"),
+    "memory-budget": (409, "Memory budget exceeded"),
     "payload-too-large": (413, "Payload too large"),
     "image-too-large": (413, "Image too large"),
     "unsupported-media-type": (415, "Unsupported media type"),
@@ -282,6 +283,8 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
     maps_errors.MapAlreadyExists: DomainProblem(409, "map-exists", ("map_id",)),
     maps_errors.MapLimit: DomainProblem(409, "map-limit", ("max_maps",)),
     maps_errors.MapFull: DomainProblem(409, "map-full", ("max_observations",)),
+    maps_errors.MemoryBudgetExceeded: DomainProblem(409, "memory-budget", (
+        "map_id", "used_bytes", "asked_bytes", "total_bytes", "free_bytes")),
     maps_errors.MapTooLarge: DomainProblem(422, "map-too-large", ("required_bytes", "max_bytes")),
     maps_errors.InvalidConfiguration: DomainProblem(422, "invalid-configuration", ("errors",)),
     maps_errors.MapUnavailable: DomainProblem(503, "map-unavailable", ("state", "state_reason")),

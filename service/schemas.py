@@ -12,7 +12,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from service.maps import results
 from storage.catalog import MAP_ID_RE
 
-__all__ = ["CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel", "ObservationModel",
+__all__ = ["BudgetModel", "CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel",
+           "ObservationModel",
            "PatchMap", "Readiness", "RecentList", "RecentModel", "RestoreModel", "SequenceModel",
            "SnapshotList", "SnapshotModel", "StoredObservationList", "StoredObservationModel",
            "StreamResetModel", "Versions"]
@@ -123,6 +124,19 @@ class MemoryModel(_Out):
     streams: results.StreamsMemory
     projection_bytes: int
     storage: results.StorageMemory
+    process_rss_bytes: int
+
+
+class BudgetModel(_Out):
+    """The process-wide memory budget over every map and the encoders (docs/design/service.md §1.8)."""
+
+    total_bytes: int = Field(description="CORTEXLOC_MEMORY_BUDGET_BYTES, or its default")
+    source: str = Field(description="`setting`, or the share of `host` or `cgroup` memory it defaults to")
+    used_bytes: int
+    free_bytes: int
+    encoders_bytes: int = Field(description="the encoders' networks, counted once")
+    maps: list[results.MapReservation] = Field(description="open maps' reservations, then the maps left "
+                                               "closed at start (`open` false) with what they asked")
     process_rss_bytes: int
 
 

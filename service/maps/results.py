@@ -6,7 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["IndexMemory", "MapInfo", "Match", "MemoryInfo", "ObservationResult", "PlaceResult",
+__all__ = ["BudgetInfo", "IndexMemory", "MapInfo", "MapReservation", "Match", "MemoryInfo",
+           "ObservationResult", "PlaceResult",
            "RestoreResult", "SequenceStats", "SnapshotInfo", "StorageMemory", "StoredObservation",
            "StreamReset", "StreamsMemory", "TmMemory"]
 
@@ -190,3 +191,26 @@ class MemoryInfo:
     streams: StreamsMemory
     projection_bytes: int
     storage: StorageMemory
+
+
+@dataclass(frozen=True)
+class MapReservation:
+    """What one map holds (or, closed, would hold) of the memory budget (docs/design/service.md §1.8)."""
+
+    map_id: str
+    open: bool
+    reason: str | None  # why a map stays closed (`memory-budget`)
+    bytes: int  # held, or asked by a closed map
+    parts: dict[str, int]  # tm, projection (0 when another map holds the same one), localiser, caches, index
+
+
+@dataclass(frozen=True)
+class BudgetInfo:
+    """The process-wide memory budget: `GET /v1/memory` (docs/design/service.md §1.8)."""
+
+    total_bytes: int
+    source: str  # `setting`, or the share of `host` or `cgroup` memory it defaults to
+    used_bytes: int
+    free_bytes: int
+    encoders_bytes: int
+    maps: list[MapReservation]

@@ -38,6 +38,7 @@ from models.frontend.images import RawFrame
 from models.memory.temporal_memory import TemporalMemory
 from service.maps import idempotency, recovery, sizes
 from service.maps import snapshots as map_snapshots
+from service.maps.budget import MemoryBudget, index_row_bytes
 from service.maps.encoder_pool import EncoderPool
 from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable
 from service.maps.index import IndexFull, InvertedIndex
@@ -73,7 +74,7 @@ class MapRuntime:
     def __init__(self, record: MapRecord, catalog: Catalog,
                  feature_dim: int, max_streams: int, max_observations: int,
                  snapshot_every: int = 0, snapshot_keep: int = 3, *, max_keys: int | None = None,
-                 key_cache: int = 0) -> None:
+                 key_cache: int = 0, budget: MemoryBudget | None = None) -> None:
         self.record = record
         self.map_id = record.map_id
         self.params = record.params
@@ -86,6 +87,10 @@ class MapRuntime:
         # localisations in memory (service.maps.idempotency).
         self.max_keys = max_keys
         self.keys = idempotency.KeyCache(key_cache)
+        # The process-wide budget that holds this map's reservation (docs/design/service.md §1.8): each
+        # learned row reserves its index bytes first. None: a runtime built alone (tools, tests).
+        self.budget = budget
+        self.row_bytes = index_row_bytes(self.params)
         self.thumbnails = bool(self.params.get("thumbnails", False))  # frozen with the map
         self.state = "recovering"
         self.state_reason: str | None = None
@@ -204,6 +209,9 @@ class MapRuntime:
         _, path = map_snapshots.locate(self.catalog, self.map_id, snapshot_id)
         snapshots.verify(path)  # refuse a damaged snapshot before touching anything
         before = self.store.count()
+        if self.budget is not None:  # the snapshot's rows must fit in the budget (set exactly by recover)
+            with MapStore.open(path / snapshots.DB_FILE, readonly=True) as copy:
+                self.budget.grow_index(self.map_id, (copy.count() - len(self.index)) * self.row_bytes)
         self.snapshot("pre-restore")
         self.catalog.bump_high_water(self.map_id, self.store.next_seq() - 1)
         self.store.close()
@@ -239,6 +247,8 @@ class MapRuntime:
         self.index = InvertedIndex(self.tm.n_cells, self.index.max_observations)
         self.index.rebuild(self.store.rows())
         self.localisation.rebuild(self.store.rows())
+        if self.budget is not None:
+            self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
         self.recovery = note
         self.state, self.state_reason = "ready", None
         log.info("map %s ready: %s", self.map_id, note)
@@ -332,6 +342,8 @@ class MapRuntime:
             raise MapFull(self.map_id, self.index.max_observations)
         if projected.shape != (self.hasher.k,):
             raise ValueError(f"projection has shape {projected.shape}, this map's are ({self.hasher.k},)")
+        if learn and self.budget is not None:  # the row's index bytes, before the step (a failed one is
+            self.budget.grow_index(self.map_id, self.row_bytes)  # set right by the recovery it causes)
         try:
             return self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k, label=label,
                               metadata=metadata, thumbnail=thumbnail, post=post)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import logging
 import shutil
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -75,7 +75,8 @@ def prune_auto(catalog: Catalog, map_id: str, keep: int) -> None:
         shutil.rmtree(catalog.snapshot_dir(rec), ignore_errors=True)
 
 
-def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes: int) -> str:
+def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes: int,
+                    fits: Callable[[snapshots.Manifest], None] = lambda m: None) -> str:
     """Create a map from a downloaded snapshot tar (`cortexloc import`, server stopped).
 
     The manifest (the tar's first member) is checked before anything is written: its ids follow
@@ -90,6 +91,7 @@ def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes:
 
     Raises:
         SnapshotInvalid: a bad or too large tar. ValueError: the map exists, or no projection.
+        MemoryBudgetExceeded: from `fits`, which sees the manifest before anything is written.
     """
     layout = Layout(data_dir)
 
@@ -100,6 +102,7 @@ def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes:
         free = shutil.disk_usage(data_dir).free
         if need > free:
             raise ValueError(f"the snapshot needs {need} bytes, {data_dir} has {free} free")
+        fits(m)
 
     staging = layout.maps / f".import-{snapshots.new_snapshot_id()}"
     with tar_path.open("rb") as f:
