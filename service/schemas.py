@@ -101,6 +101,8 @@ class MapModel(_Out):
     backbone: str
     revisit_threshold: float
     thumbnails: bool = Field(description="a small JPEG is kept with each learned observation")
+    snapshot_count: int = Field(description="snapshots of every kind")
+    snapshots_bytes: int = Field(description="their bytes on disk")
 
 
 class MapList(_Out):

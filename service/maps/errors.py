@@ -8,9 +8,25 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["IdempotencyKeyReused", "InsufficientStorage", "InvalidConfiguration", "InvalidMapId",
-           "MapAlreadyExists", "MapError", "MapFull", "MapLimit", "MapNotFound", "MapTooLarge",
-           "MapUnavailable", "MemoryBudgetExceeded", "ObservationNotFound", "Overloaded", "SnapshotNotFound"]
+__all__ = [
+    "IdempotencyKeyReused",
+    "InsufficientStorage",
+    "InvalidConfiguration",
+    "InvalidMapId",
+    "MapAlreadyExists",
+    "MapError",
+    "MapFull",
+    "MapLimit",
+    "MapNotFound",
+    "MapTooLarge",
+    "MapUnavailable",
+    "MemoryBudgetExceeded",
+    "ObservationNotFound",
+    "Overloaded",
+    "SnapshotInUse",
+    "SnapshotNotFound",
+    "StreamLimit",
+]
 
 
 class MapError(Exception):
@@ -90,6 +106,16 @@ class SnapshotNotFound(MapError):  # noqa: N818
         self.map_id = map_id
 
 
+class SnapshotInUse(MapError):  # noqa: N818
+    """The snapshot the map's next recovery starts from (the newest on its branch): deleting it before
+    a newer one exists would make that recovery replay from an older one (docs/design/service.md §1.5)."""
+
+    def __init__(self, map_id: str, snapshot_id: str) -> None:
+        super().__init__(f"snapshot {snapshot_id!r} is the one map {map_id!r} recovers from (the newest on "
+                         "its branch); take a newer snapshot first")
+        self.map_id, self.snapshot_id = map_id, snapshot_id
+
+
 class InsufficientStorage(MapError):  # noqa: N818
     """The disk is full; what the message names was not written and the map is unchanged."""
 
@@ -100,6 +126,17 @@ class Overloaded(MapError):  # noqa: N818
     def __init__(self, limit: int, retry_after: int = 1) -> None:
         super().__init__(f"the encoder queue is full ({limit} requests in flight)")
         self.retry_after = retry_after
+
+
+class StreamLimit(MapError):  # noqa: N818
+    """A new stream, while each of the map's `max_streams` streams posted within `keep_seconds`: none may
+    be evicted yet; `retry_after` seconds until the least recently used one may."""
+
+    def __init__(self, max_streams: int, keep_seconds: float, retry_after: int) -> None:
+        super().__init__(f"this map holds its maximum of {max_streams} streams and each posted within the "
+                         f"last {keep_seconds:g} s (CORTEXLOC_STREAM_KEEP_SECONDS); a new stream may "
+                         f"replace the least recently used one in {retry_after} s")
+        self.max_streams, self.keep_seconds, self.retry_after = max_streams, keep_seconds, retry_after
 
 
 class ObservationNotFound(MapError):  # noqa: N818

@@ -95,7 +95,9 @@ class MapRegistry:
         s = self.settings
         return MapRuntime(record, self.catalog, feature_dim, s.max_streams, s.max_observations,
                           s.snapshot_every, s.snapshot_keep, max_keys=s.idempotency_keys,
-                          key_cache=s.idempotency_cache, budget=self.budget)
+                          key_cache=s.idempotency_cache, budget=self.budget,
+                          stream_keep_seconds=s.stream_keep_seconds, manual_keep=s.snapshot_manual_keep,
+                          manual_bytes=s.snapshot_manual_bytes)
 
     def start(self) -> None:
         """Open every map and recover it by replay; create `default` on a fresh install.

@@ -107,6 +107,8 @@ class MapInfo:
     backbone: str
     revisit_threshold: float
     thumbnails: bool  # a small JPEG is kept with each learned row (frozen with the map)
+    snapshot_count: int  # snapshots of every kind, and their bytes on disk (docs/design/service.md §1.5)
+    snapshots_bytes: int
 
 
 @dataclass(frozen=True)

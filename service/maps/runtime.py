@@ -55,7 +55,7 @@ from service.maps.results import (
     SnapshotInfo,
     StreamReset,
 )
-from service.maps.state import Stream, memory_state, touch, winner_cells
+from service.maps.state import Stream, admit, memory_state, touch, winner_cells
 from storage import snapshots
 from storage._common import StorageFull, utc_now
 from storage.catalog import Catalog, MapRecord
@@ -74,15 +74,20 @@ class MapRuntime:
     def __init__(self, record: MapRecord, catalog: Catalog,
                  feature_dim: int, max_streams: int, max_observations: int,
                  snapshot_every: int = 0, snapshot_keep: int = 3, *, max_keys: int | None = None,
-                 key_cache: int = 0, budget: MemoryBudget | None = None) -> None:
+                 key_cache: int = 0, budget: MemoryBudget | None = None,
+                 stream_keep_seconds: float = 0.0, manual_keep: int = 0, manual_bytes: int = 0) -> None:
         self.record = record
         self.map_id = record.map_id
         self.params = record.params
         self.layout = catalog.layout  # every path of the map (storage.layout)
         self.catalog = catalog
         self.max_streams = max_streams
+        # A stream that posted within this window is never evicted for a new one (§1.3); evictions counted.
+        self.stream_keep_seconds = stream_keep_seconds
+        self.stream_evictions = 0
         self.snapshot_every = snapshot_every
         self.snapshot_keep = snapshot_keep
+        self.manual_keep, self.manual_bytes = manual_keep, manual_bytes  # manual snapshots kept (0: no limit)
         # Idempotency keys: those of learned posts in the store (the last `max_keys` seqs), those of
         # localisations in memory (service.maps.idempotency).
         self.max_keys = max_keys
@@ -170,6 +175,11 @@ class MapRuntime:
     def snapshot_dir(self, snapshot_id: str) -> Path:
         return map_snapshots.locate(self.catalog, self.map_id, snapshot_id)[1]
 
+    def delete_snapshot(self, snapshot_id: str) -> None:
+        """Writer: delete one snapshot; SnapshotNotFound, SnapshotInUse (the one recovery starts from)."""
+        assert self.store is not None
+        map_snapshots.delete(self.catalog, self.map_id, snapshot_id, self.store)
+
     def snapshot(self, kind: str = "manual") -> SnapshotInfo:
         """A consistent cut at the current seq (docs/design/service.md §1.5, §4.4).
 
@@ -177,8 +187,12 @@ class MapRuntime:
             InsufficientStorage: the disk is full (nothing is left behind).
         """
         assert self.store is not None
-        return map_snapshots.take(self.store, memory_state(self.tm, self.streams), self.catalog, self.map_id,
+        snap = map_snapshots.take(self.store, memory_state(self.tm, self.streams), self.catalog, self.map_id,
                                   self.projection_path, kind)
+        if kind == "manual":  # retention (docs/design/service.md §1.5); the new one is never deleted
+            map_snapshots.prune_manual(self.catalog, self.map_id, self.store, self.manual_keep,
+                                       self.manual_bytes)
+        return snap
 
     def _auto_snapshot(self) -> None:
         """The periodic snapshot after a commit. It only shortens the next recovery, so a failure
@@ -286,10 +300,12 @@ class MapRuntime:
         key, else the sealed reply of this step (service.maps.idempotency).
 
         Raises:
-            MapUnavailable, Overloaded (nothing queued); ImageError (the decode failed, nothing
+            MapUnavailable, StreamLimit, Overloaded (nothing queued); ImageError (the decode failed, nothing
             changed); MapFull, InsufficientStorage (from `apply`); IdempotencyKeyReused.
         """
         self.require_ready()
+        # Refused before its encoding too; `apply` checks again in the writer, where it is exact.
+        admit(self.streams, stream, self.max_streams, self.stream_keep_seconds, time.monotonic())
         t0 = time.perf_counter()
         encoding = pool.submit(body, hasher=self.hasher, backbone=self.backbone,
                                thumbnail=learn and self.thumbnails)
@@ -333,7 +349,8 @@ class MapRuntime:
             The result; `timings_ms` holds hash, tm, search and store.
 
         Raises:
-            ValueError: `projected` is not (k,) (before any state change). MapUnavailable, MapFull.
+            ValueError: `projected` is not (k,) (before any state change). MapUnavailable, MapFull,
+            StreamLimit, MemoryBudgetExceeded (nothing changed).
             InsufficientStorage: the disk is full; the memory was rebuilt from the store, nothing learned.
         """
         self.require_ready()
@@ -342,6 +359,7 @@ class MapRuntime:
             raise MapFull(self.map_id, self.index.max_observations)
         if projected.shape != (self.hasher.k,):
             raise ValueError(f"projection has shape {projected.shape}, this map's are ({self.hasher.k},)")
+        admit(self.streams, stream, self.max_streams, self.stream_keep_seconds, time.monotonic())
         if learn and self.budget is not None:  # the row's index bytes, before the step (a failed one is
             self.budget.grow_index(self.map_id, self.row_bytes)  # set right by the recovery it causes)
         try:
@@ -368,7 +386,8 @@ class MapRuntime:
         """Writer: `apply` after its checks; an exception here while learning is rebuilt from by `apply`."""
         assert self.store is not None and self.hasher is not None
         t0 = time.perf_counter()
-        st = touch(self.streams, stream, self.max_streams)
+        st, evicted = touch(self.streams, stream, self.max_streams, time.monotonic())
+        self.stream_evictions += evicted
         if self.adapt_tau:
             # The adapted stream's code; a crash loses the means since the last snapshot (they are
             # not in the store), which costs about tau frames of weaker codes, never a stored row.
@@ -447,7 +466,8 @@ class MapRuntime:
             observations=len(self.index),
             last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),
             warnings=p.get("warnings", []), recovery=self.recovery, snapshot_error=self.snapshot_error,
-            backbone=self.backbone, revisit_threshold=self.revisit_threshold, thumbnails=self.thumbnails)
+            backbone=self.backbone, revisit_threshold=self.revisit_threshold, thumbnails=self.thumbnails,
+            **map_snapshots.disk_use(self.catalog, self.map_id))
 
     def set_revisit_threshold(self, value: float) -> MapInfo:
         """Writer: the map's revisit threshold, durable in the catalog (docs/design/service.md §1.2);

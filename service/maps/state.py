@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -12,8 +13,9 @@ import numpy as np
 from models.frontend.adaptation import RunningMean
 from models.localisation import LocaliserState
 from models.memory.temporal_memory import StreamContext, TemporalMemory
+from service.maps.errors import StreamLimit
 
-__all__ = ["Stream", "load_memory_state", "memory_state", "touch", "winner_cells"]
+__all__ = ["Stream", "admit", "load_memory_state", "memory_state", "touch", "winner_cells"]
 
 
 def winner_cells(tm: TemporalMemory, code: np.ndarray, *, learn: bool, context: StreamContext,
@@ -35,6 +37,7 @@ class Stream:
     learning: bool | None = None  # mode of the last step (a switch to learning starts a new sequence)
     adapt: RunningMean | None = None  # the stream's running mean of projections (models.frontend.adaptation)
     localiser: LocaliserState | None = None  # where the stream is on the map (docs/design/science.md §11)
+    posted_at: float = 0.0  # time.monotonic() of its last frame (0: none since this process started)
 
     def break_sequence(self) -> None:
         """The next frame starts a new sequence (and a new search for the place); the adaptation is
@@ -43,16 +46,37 @@ class Stream:
         self.step, self.last_learned_seq, self.localiser = 0, None, None
 
 
-def touch(streams: OrderedDict[str, Stream], name: str, max_streams: int) -> Stream:
-    """The stream `name` as the most recently used, created if new; beyond `max_streams` the least
-    recently used context is dropped (for it, a reset: docs/design/service.md §1.3)."""
+def admit(streams: OrderedDict[str, Stream], name: str, max_streams: int, keep_seconds: float,
+          now: float) -> None:
+    """Refuse a new stream `name` while every one of the `max_streams` slots posted within the last
+    `keep_seconds` (docs/design/service.md §1.3): one misconfigured node, or anyone without an API key,
+    must not reset every robot's context by posting new stream names.
+
+    Raises:
+        StreamLimit: with the seconds until the least recently used stream may be evicted.
+    """
+    if name in streams or len(streams) < max_streams:
+        return
+    oldest = next(iter(streams.values()))  # least recently used first
+    wait = oldest.posted_at + keep_seconds - now if oldest.posted_at else 0.0
+    if wait > 0:
+        raise StreamLimit(max_streams, keep_seconds, max(1, math.ceil(wait)))
+
+
+def touch(streams: OrderedDict[str, Stream], name: str, max_streams: int, now: float) -> tuple[Stream, int]:
+    """(the stream `name` as the most recently used and posted at `now`, created if new; how many
+    streams were evicted for it): beyond `max_streams` the least recently used context is dropped (for
+    it, a reset: docs/design/service.md §1.3). `admit` decides first whether it may be."""
     st = streams.get(name)
+    evicted = 0
     if st is None:
         st = streams[name] = Stream()
         while len(streams) > max_streams:
             streams.popitem(last=False)
+            evicted += 1
     streams.move_to_end(name)
-    return st
+    st.posted_at = now
+    return st, evicted
 
 
 def memory_state(tm: TemporalMemory, streams: Mapping[str, Stream]) -> dict[str, np.ndarray]:
