@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import pytest
 
-from service.maps import budget as map_budget
 from tests.service.helpers import frame, make_client, post
 
 HUGE = 2**40
@@ -139,6 +138,8 @@ def test_restore_is_checked_against_the_budget(tmp_path, sizes):
 
 
 def test_the_default_is_a_share_of_the_smaller_of_host_and_cgroup(tmp_path):
+    from service.maps import budget as map_budget
+
     host, source = map_budget.memory_limit(cgroup_files=())
     assert source == "host" and host > 0
     v2 = tmp_path / "memory.max"
