@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import os
 import threading
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -132,12 +132,14 @@ class MemoryBudget:
     Args:
         total: the budget (CORTEXLOC_MEMORY_BUDGET_BYTES, or `default_total`).
         source: where `total` came from (`setting`, `0.5 x host`, `0.5 x cgroup`).
-        encoders: the bytes of the encoders built so far (counted once, whatever the maps).
+
+    The encoders' bytes (counted once, whatever the maps) are told by `set_encoders`, outside the lock:
+    an encoder being built must not hold up the writers that reserve their rows.
     """
 
-    def __init__(self, total: int, source: str = "setting", encoders: Callable[[], int] = lambda: 0) -> None:
+    def __init__(self, total: int, source: str = "setting") -> None:
         self.total, self.source = int(total), source
-        self._encoders = encoders
+        self._encoders = 0
         self._held: dict[str, _Held] = {}
         self._lock = threading.Lock()
 
@@ -147,7 +149,7 @@ class MemoryBudget:
 
     def _used(self) -> int:
         shared: set[str] = set()
-        used = self._encoders()
+        used = self._encoders
         for h in self._held.values():
             key = h.need.projection_key
             if key is None or key not in shared:
@@ -206,6 +208,11 @@ class MemoryBudget:
             if map_id in self._held:
                 self._held[map_id].index = nbytes
 
+    def set_encoders(self, nbytes: int) -> None:
+        """The bytes of the encoders built so far (`encoder_bytes` of each)."""
+        with self._lock:
+            self._encoders = int(nbytes)
+
     def release(self, map_id: str) -> None:
         with self._lock:
             self._held.pop(map_id, None)
@@ -224,4 +231,4 @@ class MemoryBudget:
                 if key is not None:
                     seen.add(key)
                 maps[map_id] = parts
-            return self._encoders(), maps
+            return self._encoders, maps

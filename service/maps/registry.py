@@ -80,14 +80,17 @@ class MapRegistry:
         self._create_lock = threading.Lock()
         total = getattr(settings, "memory_budget_bytes", None)
         total, source = (total, "setting") if total is not None else map_budget.default_total()
-        self.budget = map_budget.MemoryBudget(total, source, lambda: sum(
-            map_budget.encoder_bytes(e) for e in self.encoders.built().values()))
+        self.budget = map_budget.MemoryBudget(total, source)
         #: Maps left closed at start because they did not fit in the budget: map_id -> bytes asked.
         self.unfitted: dict[str, int] = {}
 
     def _need(self, params: dict[str, Any], feature_dim: int, rows: int) -> map_budget.MapNeed:
-        projection = map_budget.projection_bytes(str(map_option(params, "projection")), feature_dim,
-                                                 int(params["slsbh"]["k"]))
+        """The map's share of the budget; the encoders built by now are told to the budget first."""
+        self.budget.set_encoders(sum(map_budget.encoder_bytes(e) for e in self.encoders.built().values()))
+        return self._need_of(params, rows, map_budget.projection_bytes(
+            str(map_option(params, "projection")), feature_dim, int(params["slsbh"]["k"])))
+
+    def _need_of(self, params: dict[str, Any], rows: int, projection: int) -> map_budget.MapNeed:
         return map_budget.map_need(params, projection, rows, max_streams=self.settings.max_streams,
                                    key_cache=self.settings.idempotency_cache)
 
@@ -277,19 +280,15 @@ class MapRegistry:
         """Raises MemoryBudgetExceeded unless the imported map fits beside the maps here, each at its
         stored rows (the server is stopped: no encoder says the feature dimension, so projections count
         by their files' sizes, and the encoders are not counted)."""
-        def need(params: dict[str, Any], rows: int, projection: int) -> map_budget.MapNeed:
-            return map_budget.map_need(params, projection, rows, max_streams=self.settings.max_streams,
-                                       key_cache=self.settings.idempotency_cache)
-
         budget = map_budget.MemoryBudget(self.budget.total, self.budget.source)
         for record in self.catalog.list_maps():
             path = self.layout.projection(str(record.params.get("projection_sha256")))
             # A map that cannot be opened, or does not fit, holds nothing at start.
             with contextlib.suppress(MemoryBudgetExceeded, KeyError, TypeError, ValueError):
-                budget.reserve(record.map_id, need(record.params, self._stored_rows(record.map_id),
+                budget.reserve(record.map_id, self._need_of(record.params, self._stored_rows(record.map_id),
                                                    path.stat().st_size if path.exists() else 0))
         projection = m.external.get(snapshots.PROJECTION_FILE)
-        budget.reserve(m.map_id, need(m.params, m.seq, projection.bytes if projection else 0))
+        budget.reserve(m.map_id, self._need_of(m.params, m.seq, projection.bytes if projection else 0))
 
     def delete(self, map_id: str) -> None:
         """Raises MapNotFound."""

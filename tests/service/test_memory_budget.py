@@ -152,3 +152,27 @@ def test_the_default_is_a_share_of_the_smaller_of_host_and_cgroup(tmp_path):
     assert map_budget.memory_limit([tmp_path / "absent", v1]) == (host, "host")
     total, why = map_budget.default_total()
     assert total == int(map_budget.DEFAULT_SHARE * map_budget.memory_limit()[0]) and "x" in why
+
+
+def test_import_is_checked_against_the_maps_already_there(tmp_path, sizes, monkeypatch):
+    from typer.testing import CliRunner
+
+    from service.cli import app as cli_app
+
+    with make_client(tmp_path / "source", memory_budget_bytes=HUGE) as c:
+        assert c.post("/v1/maps", json={"map_id": "lab", "seed": 1}).status_code == 201
+        assert post(c, frame(0), map_id="lab").status_code == 200
+        sid = c.post("/v1/maps/lab/snapshots").json()["snapshot_id"]
+        tar = tmp_path / "lab.tar"
+        tar.write_bytes(c.get(f"/v1/maps/lab/snapshots/{sid}/download").content)
+    data = tmp_path / "data"
+    with make_client(data):  # a data directory holding `default`
+        pass
+    # Room for the imported map alone, not beside `default` (offline: no encoders are counted).
+    monkeypatch.setenv("CORTEXLOC_MEMORY_BUDGET_BYTES", str(sizes["map"] + sizes["map"] // 2))
+    r = CliRunner().invoke(cli_app, ["import", str(tar), "--data-dir", str(data)])
+    assert r.exit_code == 1 and "CORTEXLOC_MEMORY_BUDGET_BYTES" in r.output, r.output
+    assert not (data / "maps" / "lab").exists()
+    monkeypatch.setenv("CORTEXLOC_MEMORY_BUDGET_BYTES", str(3 * sizes["map"]))
+    r = CliRunner().invoke(cli_app, ["import", str(tar), "--data-dir", str(data)])
+    assert r.exit_code == 0, r.output
