@@ -11,7 +11,8 @@ backbone, a temporary data directory. Two scenarios, each on a fresh server:
 - `big`: `--big` maps created with the issue's TM (`cellsPerColumn` 16, `maxSegmentsPerCell` 64,
   `maxSynapsesPerSegment` 64: 2.03 GB each), RSS after each request;
 - `many`: up to `--many` maps created with the defaults, one learned frame each, RSS after each; then
-  the server is restarted on the same data directory and the RSS and the maps left closed are read.
+  the server is restarted on the same data directory (with `--restart-budget`, e.g. a smaller
+  container) and the RSS and the maps left closed are read.
 
 Each request's status (and problem type) is recorded; a scenario stops at its first refusal.
 """
@@ -90,6 +91,8 @@ def main() -> None:
     ap.add_argument("--budget", type=int, default=None, help="CORTEXLOC_MEMORY_BUDGET_BYTES (default: unset)")
     ap.add_argument("--big", type=int, default=3, help="big maps to try")
     ap.add_argument("--many", type=int, default=63, help="default maps to try")
+    ap.add_argument("--restart-budget", type=int, default=None,
+                    help="CORTEXLOC_MEMORY_BUDGET_BYTES at the restart (default: as --budget)")
     ap.add_argument("--server-cmd", default=None, help="the CLI to run instead of this build's")
     ap.add_argument("--out", default="memory")
     args = ap.parse_args()
@@ -102,7 +105,9 @@ def main() -> None:
         out["big"] = scenario(Path(d), env, command, 1 if quick else args.big, {"tm": BIG_TM}, None)
     with tempfile.TemporaryDirectory() as d:
         out["many"] = scenario(Path(d), env, command, 3 if quick else args.many, {}, frame)
-        out["many_restart"] = restart(Path(d), env, command)
+        again = env if args.restart_budget is None else {
+            "CORTEXLOC_MEMORY_BUDGET_BYTES": str(args.restart_budget)}
+        out["many_restart"] = restart(Path(d), again, command)
     write_json(f"{args.out}.json", out)
     print({k: out[k] for k in ("big", "many_restart")})
 

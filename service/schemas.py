@@ -10,7 +10,7 @@ from typing import Any, Literal, Self
 from pydantic import BaseModel, ConfigDict, Field
 
 from service.maps import results
-from storage.catalog import MAP_ID_RE
+from service.maps.ids import MAP_ID_RE
 
 __all__ = ["BudgetModel", "CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel",
            "ObservationModel",
@@ -126,7 +126,7 @@ class MemoryModel(_Out):
     streams: results.StreamsMemory
     projection_bytes: int
     storage: results.StorageMemory
-    process_rss_bytes: int
+    process_rss_bytes: int  # the whole service process's resident size
 
 
 class BudgetModel(_Out):

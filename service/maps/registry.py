@@ -13,9 +13,10 @@ from typing import Any
 
 import numpy as np
 
+from common.process import rss_bytes
 from models.frontend import slsbh
-from models.localisation import SequenceLocaliser
-from models.memory.temporal_memory import TemporalMemory, planned_bytes
+from models.localisation.index import warm_up as index_warm_up
+from models.memory.temporal_memory import TemporalMemory
 from service.maps import budget as map_budget
 from service.maps import projection as map_projection
 from service.maps import snapshots as map_snapshots
@@ -30,15 +31,13 @@ from service.maps.errors import (
     MemoryBudgetExceeded,
 )
 from service.maps.failed import FailedMap
-from service.maps.index import warm_up as index_warm_up
 from service.maps.params import map_option, resolve_params
 from service.maps.results import BudgetInfo, MapReservation
 from service.maps.runtime import MapRuntime
 from storage import snapshots
-from storage._common import StorageError
 from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord
 from storage.layout import Layout
-from storage.mapstore import MapMeta, MapStore, cell_dtype_for
+from storage.mapstore import MapMeta, MapStore, StorageError, cell_dtype_for
 from storage.snapshots import Manifest
 
 __all__ = ["MapRegistry", "warm_up"]
@@ -101,6 +100,7 @@ class MapRegistry:
                           key_cache=s.idempotency_cache, budget=self.budget,
                           stream_keep_seconds=s.stream_keep_seconds, manual_keep=s.snapshot_manual_keep,
                           manual_bytes=s.snapshot_manual_bytes)
+
 
     def start(self) -> None:
         """Open every map and recover it by replay; create `default` on a fresh install.
@@ -198,10 +198,7 @@ class MapRegistry:
             preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf, exclude_recent=exclude_recent,
             backbone=backbone or self.encoders.default, memory=memory, localiser=localiser,
             **({} if revisit_threshold is None else {"revisit_threshold": revisit_threshold}))
-        # The memory and every stream's localiser state (beam x HYPOTHESIS_BYTES, docs/design/science.md
-        # §11.3) at the stream cap: what the map may hold, before its projection.
-        need = (planned_bytes(params["tm"])
-                + self.settings.max_streams * SequenceLocaliser(params["localiser"]).state_bytes())
+        need = map_projection.model_bytes(params, self.settings.max_streams)
         if need > self.settings.max_map_bytes:
             raise MapTooLarge(need, self.settings.max_map_bytes)
         with self._create_lock:
@@ -215,9 +212,9 @@ class MapRegistry:
             except ValueError as e:
                 raise InvalidConfiguration(str(e), [{"location": "body", "name": "backbone",
                                                      "message": str(e)}]) from e
-            s_conf = params["slsbh"]
             # Projection plus memory within the map budget: the very sparse projection where dense breaks it.
-            params["projection"] = map_projection.projection_kind(encoder.feature_dim, int(s_conf["k"]), need)
+            params["projection"] = map_projection.projection_kind(
+                encoder.feature_dim, int(params["slsbh"]["k"]), need)
             # The process-wide budget, before the projection or the memory is allocated (§1.8); the
             # projection counts in full until its checksum says whether another map shares it.
             self.budget.reserve(map_id, self._need(params, encoder.feature_dim, 0))
@@ -269,7 +266,8 @@ class MapRegistry:
         maps += [MapReservation(map_id, False, "memory-budget", asked, {})
                  for map_id, asked in self.unfitted.items()]
         return BudgetInfo(total_bytes=self.budget.total, source=self.budget.source, used_bytes=used,
-                          free_bytes=max(0, self.budget.total - used), encoders_bytes=encoders, maps=maps)
+                          free_bytes=max(0, self.budget.total - used), encoders_bytes=encoders, maps=maps,
+                          process_rss_bytes=rss_bytes())
 
     def import_snapshot(self, tar_path: Path, max_bytes: int) -> str:
         """Create a map from a downloaded snapshot tar (`service.maps.snapshots.import_snapshot`)."""

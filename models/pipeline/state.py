@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import math
 from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -13,9 +12,8 @@ import numpy as np
 from models.frontend.adaptation import RunningMean
 from models.localisation import LocaliserState
 from models.memory.temporal_memory import StreamContext, TemporalMemory
-from service.maps.errors import StreamLimit
 
-__all__ = ["Stream", "admit", "load_memory_state", "memory_state", "touch", "winner_cells"]
+__all__ = ["Stream", "eviction_wait", "load_memory_state", "memory_state", "touch", "winner_cells"]
 
 
 def winner_cells(tm: TemporalMemory, code: np.ndarray, *, learn: bool, context: StreamContext,
@@ -46,27 +44,22 @@ class Stream:
         self.step, self.last_learned_seq, self.localiser = 0, None, None
 
 
-def admit(streams: OrderedDict[str, Stream], name: str, max_streams: int, keep_seconds: float,
-          now: float) -> None:
-    """Refuse a new stream `name` while every one of the `max_streams` slots posted within the last
-    `keep_seconds` (docs/design/service.md §1.3): one misconfigured node, or anyone without an API key,
-    must not reset every robot's context by posting new stream names.
-
-    Raises:
-        StreamLimit: with the seconds until the least recently used stream may be evicted.
-    """
+def eviction_wait(streams: OrderedDict[str, Stream], name: str, max_streams: int, keep_seconds: float,
+                  now: float) -> float:
+    """Seconds before the stream `name` may be taken in (0: now): a new stream while all `max_streams`
+    slots are held waits until the least recently used one has not posted for `keep_seconds`
+    (docs/design/service.md §1.3). A stream with no post since the process started (`posted_at` 0)
+    may go at once."""
     if name in streams or len(streams) < max_streams:
-        return
+        return 0.0
     oldest = next(iter(streams.values()))  # least recently used first
-    wait = oldest.posted_at + keep_seconds - now if oldest.posted_at else 0.0
-    if wait > 0:
-        raise StreamLimit(max_streams, keep_seconds, max(1, math.ceil(wait)))
+    return max(0.0, oldest.posted_at + keep_seconds - now) if oldest.posted_at else 0.0
 
 
 def touch(streams: OrderedDict[str, Stream], name: str, max_streams: int, now: float) -> tuple[Stream, int]:
     """(the stream `name` as the most recently used and posted at `now`, created if new; how many
     streams were evicted for it): beyond `max_streams` the least recently used context is dropped (for
-    it, a reset: docs/design/service.md §1.3). `admit` decides first whether it may be."""
+    it, a reset: docs/design/service.md §1.3). `eviction_wait` says first whether it may be."""
     st = streams.get(name)
     evicted = 0
     if st is None:
