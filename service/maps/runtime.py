@@ -18,6 +18,7 @@ Which thread runs what:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -319,8 +320,10 @@ class MapRuntime:
             changed); MapFull, InsufficientStorage (from `apply`); IdempotencyKeyReused.
         """
         self.require_ready()
-        # Refused before its encoding too; `apply` checks again in the writer, where it is exact.
-        self._admit(stream)
+        # Refused before its encoding too; `apply` checks again in the writer, where it is exact (here
+        # the writer may be changing the streams: a look that meets it is left to that check).
+        with contextlib.suppress(RuntimeError):
+            self._admit(stream)
         t0 = time.perf_counter()
         encoding = pool.submit(body, hasher=self.hasher, backbone=self.backbone,
                                thumbnail=learn and self.thumbnails)
