@@ -125,7 +125,8 @@ class Settings(BaseSettings):
     idempotency_cache: int = Field(1024, ge=0, description="replies of localisation posts (learn=false) "
                                    "kept in memory per map for their Idempotency-Key")
     snapshot_every: int = Field(1000, ge=0, description="automatic snapshot period (0 = off)")
-    snapshot_keep: int = Field(3, ge=0, description="automatic snapshots kept (0 = off)")
+    snapshot_keep: int = Field(3, ge=0, description="automatic snapshots kept, and whatever their number "
+                               "the one recovery starts from (0: only that one)")
     snapshot_manual_keep: int = Field(10, ge=0, description="manual snapshots kept per map, oldest "
                                       "deleted first (0: no count limit)")
     snapshot_manual_bytes: int = Field(2**31, ge=0, description="bytes of manual snapshots kept per map, "

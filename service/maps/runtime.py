@@ -168,7 +168,7 @@ class MapRuntime:
         if snapshot and self.state == "ready" and self.snapshot_every and (new_rows or switched):
             try:
                 self.snapshot("auto")
-                map_snapshots.prune_auto(self.catalog, self.map_id, self.snapshot_keep)
+                map_snapshots.prune_auto(self.catalog, self.map_id, self.store, self.snapshot_keep)
             except Exception:  # the rows are durable; a snapshot only shortens the next replay
                 log.exception("map %s: shutdown snapshot failed", self.map_id)
         self.store.close()
@@ -211,7 +211,7 @@ class MapRuntime:
         the row it follows is durable and acknowledged."""
         try:
             self.snapshot("auto")
-            map_snapshots.prune_auto(self.catalog, self.map_id, self.snapshot_keep)
+            map_snapshots.prune_auto(self.catalog, self.map_id, self.store, self.snapshot_keep)
         except Exception as e:  # any failure: see the docstring
             self.snapshot_failures += 1
             self.snapshot_error = {"seq": self.store.last_seq() if self.store else 0, "at": utc_now(),

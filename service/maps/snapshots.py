@@ -91,10 +91,14 @@ def _remove(catalog: Catalog, rec: SnapshotRecord) -> None:
     shutil.rmtree(catalog.snapshot_dir(rec), ignore_errors=True)
 
 
-def prune_auto(catalog: Catalog, map_id: str, keep: int) -> None:
-    """Keep the `keep` newest automatic snapshots; manual and pre-restore ones stay."""
-    for rec in catalog.list_snapshots(map_id, kind="auto")[keep:]:
-        _remove(catalog, rec)
+def prune_auto(catalog: Catalog, map_id: str, store: MapStore, keep: int) -> None:
+    """Keep the `keep` newest automatic snapshots, and the `recovery_base` whatever its age; manual and
+    pre-restore ones stay."""
+    old = catalog.list_snapshots(map_id, kind="auto")[keep:]
+    base = recovery_base(catalog, map_id, store) if old else None
+    for rec in old:
+        if rec.snapshot_id != base:
+            _remove(catalog, rec)
 
 
 def recovery_base(catalog: Catalog, map_id: str, store: MapStore) -> str | None:

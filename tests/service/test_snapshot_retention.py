@@ -87,3 +87,11 @@ def test_snapshot_disk_use_is_in_the_map_resource_and_metrics(tmp_path):
         files = (tmp_path / "data" / "maps" / "default" / "snapshots").rglob("*")
         on_disk = sum(f.stat().st_size for f in files if f.is_file())
         assert on_disk == sum(sizes)
+
+
+def test_automatic_pruning_keeps_the_snapshot_recovery_starts_from(tmp_path):
+    with make_client(tmp_path / "data", snapshot_every=2, snapshot_keep=0) as c:
+        for i in range(4):
+            assert post(c, frame(i)).status_code == 200
+        snaps = c.get("/v1/maps/default/snapshots").json()["snapshots"]
+        assert [(s["kind"], s["seq"]) for s in snaps] == [("auto", 4)]  # the older one went
