@@ -71,6 +71,9 @@ class MapRuntime:
     """One map in memory, with its single writer thread; `state` is `ready` | `recovering` | `failed`
     and `state_reason` says why (module docstring: which thread runs which method)."""
 
+    #: The clock of the streams' last posts (the stream window, §1.3); tests set their own.
+    clock: Callable[[], float] = staticmethod(time.monotonic)
+
     def __init__(self, record: MapRecord, catalog: Catalog,
                  feature_dim: int, max_streams: int, max_observations: int,
                  snapshot_every: int = 0, snapshot_keep: int = 3, *, max_keys: int | None = None,
@@ -286,7 +289,7 @@ class MapRuntime:
     def _admit(self, name: str) -> None:
         """Raises StreamLimit while a new stream `name` would evict one that posted within the window
         (docs/design/service.md §1.3)."""
-        wait = eviction_wait(self.streams, name, self.max_streams, self.stream_keep_seconds, time.monotonic())
+        wait = eviction_wait(self.streams, name, self.max_streams, self.stream_keep_seconds, self.clock())
         if wait > 0:
             raise StreamLimit(self.max_streams, self.stream_keep_seconds, max(1, math.ceil(wait)))
 
@@ -405,7 +408,7 @@ class MapRuntime:
         from the stored rows it names and, for learning, the row on disk. An exception here while
         learning is rebuilt from by `apply` (the step already holds the row in the index and links)."""
         assert self.store is not None
-        st, evicted = touch(self.streams, stream, self.max_streams, time.monotonic())
+        st, evicted = touch(self.streams, stream, self.max_streams, self.clock())
         self.stream_evictions += evicted
         seq = self.store.next_seq() if learn else None  # this thread is the store's only writer
         step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq)
