@@ -15,6 +15,9 @@ backbone, a temporary data directory. Two scenarios, each on a fresh server:
   container) and the RSS and the maps left closed are read.
 
 Each request's status (and problem type) is recorded; a scenario stops at its first refusal.
+
+`index`, in process: the budget's per-row index estimate (`service.maps.budget.index_row_bytes`) beside
+what `InvertedIndex.nbytes()` measures with N random rows of the default map's 308 winner cells.
 """
 
 from __future__ import annotations
@@ -27,10 +30,14 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 from _common import quick_mode, write_json
 from bench_http import Server
 
 from models.evaluation.bench import synthetic_jpegs
+from models.localisation import InvertedIndex
+from service.maps.budget import index_row_bytes
+from service.maps.params import resolve_params
 
 BIG_TM = {"cellsPerColumn": 16, "maxSegmentsPerCell": 64, "maxSynapsesPerSegment": 64}
 
@@ -85,6 +92,23 @@ def restart(tmp: Path, env: dict[str, str], command: list[str] | None) -> dict[s
     return out
 
 
+def index_estimate(sizes: list[int]) -> list[dict[str, float]]:
+    """Measured index bytes per row against the budget's estimate, for the default map's rows."""
+    params = resolve_params("cortexloc-default", backbone="efficientnet-lite0-s5")
+    cells = int(params["tm"]["columnDimensions"]) * int(params["tm"]["cellsPerColumn"])
+    rng = np.random.default_rng(0)
+    out = []
+    for n in sizes:
+        index = InvertedIndex(cells, 10**6)
+        for i in range(n):
+            index.add(i + 1, np.sort(rng.choice(cells, 308, replace=False)), "robot1")
+        index.rank(np.sort(rng.choice(cells, 308, replace=False)), 10)  # its scratch, sized to the rows
+        out.append({"rows": n, "measured_bytes_per_row": round(index.nbytes() / n, 1),
+                    "estimate_bytes_per_row": index_row_bytes(params)})
+        print(out[-1], flush=True)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
@@ -101,6 +125,7 @@ def main() -> None:
     env = {} if args.budget is None else {"CORTEXLOC_MEMORY_BUDGET_BYTES": str(args.budget)}
     frame = synthetic_jpegs(1, 640, 480)[0]
     out: dict[str, Any] = {"budget_setting": args.budget, "server_cmd": args.server_cmd}
+    out["index"] = index_estimate([1000] if quick else [1000, 10_000, 50_000])
     with tempfile.TemporaryDirectory() as d:
         out["big"] = scenario(Path(d), env, command, 1 if quick else args.big, {"tm": BIG_TM}, None)
     with tempfile.TemporaryDirectory() as d:
