@@ -15,9 +15,10 @@ working memory, request bodies, SQLite's page caches).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -140,6 +141,7 @@ class MemoryBudget:
     def __init__(self, total: int, source: str = "setting") -> None:
         self.total, self.source = int(total), source
         self._encoders = 0
+        self._transient = 0  # held while a restore builds a map's new memory beside the old one
         self._held: dict[str, _Held] = {}
         self._lock = threading.Lock()
 
@@ -149,7 +151,7 @@ class MemoryBudget:
 
     def _used(self) -> int:
         shared: set[str] = set()
-        used = self._encoders
+        used = self._encoders + self._transient
         for h in self._held.values():
             key = h.need.projection_key
             if key is None or key not in shared:
@@ -201,6 +203,21 @@ class MemoryBudget:
             if nbytes > 0 and used + nbytes > self.total:
                 raise MemoryBudgetExceeded(map_id, used, nbytes, self.total)
             held.index = max(0, held.index + nbytes)
+
+    @contextlib.contextmanager
+    def transient(self, map_id: str, nbytes: int) -> Iterator[None]:
+        """Hold `nbytes` more while the block runs: a restore rebuilds the map's memory and index beside
+        the ones it replaces. Raises MemoryBudgetExceeded before the block (nothing held changes)."""
+        with self._lock:
+            used = self._used()
+            if used + nbytes > self.total:
+                raise MemoryBudgetExceeded(map_id, used, nbytes, self.total)
+            self._transient += nbytes
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._transient -= nbytes
 
     def set_index(self, map_id: str, nbytes: int) -> None:
         """The index estimate of `map_id` after a recovery rebuilt it (its rows as they are now)."""

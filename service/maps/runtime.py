@@ -26,7 +26,7 @@ import logging
 import math
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, TypeVar
@@ -237,18 +237,34 @@ class MapRuntime:
         _, path = map_snapshots.locate(self.catalog, self.map_id, snapshot_id)
         snapshots.verify(path)  # refuse a damaged snapshot before touching anything
         before = self.store.count()
-        if self.budget is not None:  # the snapshot's rows must fit in the budget (set exactly by recover)
-            with MapStore.open(path / snapshots.DB_FILE, readonly=True) as copy:
-                self.budget.grow_index(self.map_id, (copy.count() - len(self.index)) * self.row_bytes)
-        self.snapshot("pre-restore")
-        self.catalog.bump_high_water(self.map_id, self.store.next_seq() - 1)
-        self.store.close()
-        MapStore.install_copy(path / snapshots.DB_FILE, self.layout.map_db(self.map_id))
-        self.recover()
+        with self._restore_budget(path):
+            self.snapshot("pre-restore")
+            self.catalog.bump_high_water(self.map_id, self.store.next_seq() - 1)
+            self.store.close()
+            MapStore.install_copy(path / snapshots.DB_FILE, self.layout.map_db(self.map_id))
+            self.recover()
         self.keys.clear()  # answers given before may name the observations the restore dropped
         self.recent.clear()
         after = self.store.count() if self.store is not None else 0
         return RestoreResult(**vars(self.info()), discarded_observations=before - after)
+
+    @contextlib.contextmanager
+    def _restore_budget(self, snapshot: Path) -> Iterator[None]:
+        """The memory budget of a restore (docs/design/service.md §1.8): while it runs, the new memory is
+        built beside the old one (held as transient bytes), and the snapshot's rows must fit (the index
+        estimate, set exactly by the recovery). Raises MemoryBudgetExceeded before anything changes."""
+        if self.budget is None:
+            yield
+            return
+        with MapStore.open(snapshot / snapshots.DB_FILE, readonly=True) as copy:
+            rows = copy.count()
+        old_index = len(self.index) * self.row_bytes
+        with self.budget.transient(self.map_id, self.tm.size()["bytes"] + old_index):
+            self.budget.grow_index(self.map_id, rows * self.row_bytes - old_index)
+            try:
+                yield
+            finally:  # the index as it is now: the restored one, or the old one if the restore failed
+                self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
 
     # ------------------------------------------------------------------ recovery
 

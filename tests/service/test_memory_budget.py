@@ -29,7 +29,7 @@ def sizes(tmp_path):
         b = budget_of(c)
         rt = c.app.state.registry.get("a")
         return {"encoders": b["encoders_bytes"], "map": held(c, "a"), "default": held(c, "default"),
-                "row": rt.row_bytes}
+                "row": rt.row_bytes, "tm": rt.tm.size()["bytes"]}
 
 
 def test_memory_resource_adds_up(tmp_path):
@@ -119,22 +119,31 @@ def test_learning_stops_at_the_budget_and_localisation_goes_on(tmp_path, sizes):
 
 
 def test_restore_is_checked_against_the_budget(tmp_path, sizes):
-    total = sizes["encoders"] + sizes["default"] + 3 * sizes["row"]
+    # A restore builds the new memory beside the old one: the memory and the index twice for a while.
+    tm, row = sizes["tm"], sizes["row"]
+    total = sizes["encoders"] + sizes["default"] + tm + 6 * row
     with make_client(tmp_path / "data", memory_budget_bytes=total) as c:
+        budget = c.app.state.registry.budget
         assert post(c, frame(0)).status_code == 200
         one = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
         for i in (1, 2):
             assert post(c, frame(i)).status_code == 200
         assert c.post(f"/v1/maps/default/snapshots/{one}/restore").status_code == 200
-        assert budget_of(c)["used_bytes"] == total - 2 * sizes["row"]  # the restored rows, exactly
+        assert budget_of(c)["used_bytes"] == total - tm - 5 * row  # the restored rows, exactly
         three = next(s["snapshot_id"] for s in c.get("/v1/maps/default/snapshots").json()["snapshots"]
                      if s["kind"] == "pre-restore")
-        c.app.state.registry.budget.total -= sizes["row"]  # room for two rows now
+        budget.total = total - 3 * row  # room for the old and new memory, not for the two rows more
         r = c.post(f"/v1/maps/default/snapshots/{three}/restore")
         assert r.status_code == 409, r.text
         assert r.json()["type"] == "urn:cortexloc:problem:memory-budget"
-        assert r.json()["asked_bytes"] == 2 * sizes["row"]
+        assert r.json()["asked_bytes"] == 2 * row
+        budget.total = total - tm // 2  # no room for a second memory
+        r = c.post(f"/v1/maps/default/snapshots/{three}/restore")
+        assert r.status_code == 409 and r.json()["asked_bytes"] == tm + row
         assert c.get("/v1/maps/default").json()["observations"] == 1  # unchanged
+        assert budget_of(c)["used_bytes"] == total - tm - 5 * row  # nothing left held
+        budget.total = total
+        assert c.post(f"/v1/maps/default/snapshots/{three}/restore").status_code == 200
 
 
 def test_the_default_is_a_share_of_the_smaller_of_host_and_cgroup(tmp_path):
