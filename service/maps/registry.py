@@ -136,10 +136,13 @@ class MapRegistry:
         except ValueError as e:
             encoder, unavailable = None, e
         # Reserved before the runtime allocates its memory; a map that cannot be opened holds nothing.
-        self.budget.reserve(record.map_id, self._need(record.params, encoder.feature_dim if encoder else 0,
-                                                      self._stored_rows(record.map_id)))
+        need = self._need(record.params, encoder.feature_dim if encoder else 0,
+                          self._stored_rows(record.map_id))
+        self.budget.reserve(record.map_id, need)
         try:
-            return self._open_reserved(record, encoder, unavailable)
+            # The runtime's empty memory stays until the recovered one replaces it: two for a while.
+            with self.budget.transient(record.map_id, need.tm):
+                return self._open_reserved(record, encoder, unavailable)
         except BaseException:
             self.budget.release(record.map_id)
             raise
@@ -217,9 +220,12 @@ class MapRegistry:
                 encoder.feature_dim, int(params["slsbh"]["k"]), need)
             # The process-wide budget, before the projection or the memory is allocated (§1.8); the
             # projection counts in full until its checksum says whether another map shares it.
-            self.budget.reserve(map_id, self._need(params, encoder.feature_dim, 0))
+            need = self._need(params, encoder.feature_dim, 0)
+            self.budget.reserve(map_id, need)
             try:
-                return self._create_reserved(map_id, params, preset, encoder, thumbnails)
+                # Its first recovery builds a second memory beside the runtime's empty one (§1.8).
+                with self.budget.transient(map_id, need.tm):
+                    return self._create_reserved(map_id, params, preset, encoder, thumbnails)
             except BaseException:
                 self.budget.release(map_id)
                 raise
