@@ -57,8 +57,8 @@ class FailedMap:
         """Nothing is open."""
 
     def info(self) -> MapInfo:
-        return MapInfo.of(self.config, self.record, state=self.state,
-                          state_reason=self.state_reason)
+        return MapInfo.of(self.config, self.record, state=self.state, state_reason=self.state_reason,
+                          **map_snapshots.disk_use(self.catalog, self.map_id))
 
     def snapshots(self) -> list[SnapshotInfo]:
         return map_snapshots.listing(self.catalog, self.map_id)
@@ -68,3 +68,4 @@ class FailedMap:
 
     # Everything else needs the memory, the store or the writer.
     memory = reset_stream = set_revisit_threshold = snapshot = restore = snapshot_dir = _unavailable
+    delete_snapshot = _unavailable

@@ -8,7 +8,8 @@ from typing import Any
 
 from service.maps.config import MapConfig
 
-__all__ = ["IndexMemory", "MapInfo", "Match", "MemoryInfo", "ObservationResult", "PlaceResult",
+__all__ = ["BudgetInfo", "IndexMemory", "MapInfo", "MapReservation", "Match", "MemoryInfo",
+           "ObservationResult", "PlaceResult",
            "RestoreResult", "SequenceStats", "SnapshotInfo", "StorageMemory", "StoredObservation",
            "StreamReset", "StreamsMemory", "TmMemory"]
 
@@ -115,19 +116,23 @@ class MapInfo:
     backbone: str
     revisit_threshold: float
     thumbnails: bool  # a small JPEG is kept with each learned row (frozen with the map)
-
+    snapshot_count: int  # snapshots of every kind, and their bytes on disk (docs/design/service.md §1.5)
+    snapshots_bytes: int
 
     @classmethod
     def of(cls, config: MapConfig, record: Any, *, state: str, state_reason: str | None,
            observations: int = 0, last_seq: int = 0, streams: list[str] | None = None,
-           recovery: dict[str, Any] | None = None, snapshot_error: dict[str, Any] | None = None) -> MapInfo:
-        """The map resource of a map with this configuration and catalog `record` (created_at, map_id)."""
+           recovery: dict[str, Any] | None = None, snapshot_error: dict[str, Any] | None = None,
+           snapshot_count: int = 0, snapshots_bytes: int = 0) -> MapInfo:
+        """The map resource of a map with this configuration and catalog `record` (created_at, map_id);
+        `snapshot_count`, `snapshots_bytes`: `service.maps.recovery.snapshots.disk_use`."""
         return cls(map_id=record.map_id, created_at=record.created_at, state=state, state_reason=state_reason,
                    preset=config.preset, params=config.shown(), encoder=config.encoder_id,
                    projection_sha256=config.projection_sha256, observations=observations, last_seq=last_seq,
                    streams=streams or [], warnings=list(config.warnings), recovery=recovery,
                    snapshot_error=snapshot_error, backbone=config.backbone,
-                   revisit_threshold=config.revisit_threshold, thumbnails=config.thumbnails)
+                   revisit_threshold=config.revisit_threshold, thumbnails=config.thumbnails,
+                   snapshot_count=snapshot_count, snapshots_bytes=snapshots_bytes)
 
 
 @dataclass(frozen=True)
@@ -212,4 +217,28 @@ class MemoryInfo:
     streams: StreamsMemory
     projection_bytes: int
     storage: StorageMemory
+    process_rss_bytes: int
+
+
+@dataclass(frozen=True)
+class MapReservation:
+    """What one map holds (or, closed, would hold) of the memory budget (docs/design/service.md §1.8)."""
+
+    map_id: str
+    open: bool
+    reason: str | None  # why a map stays closed (`memory-budget`)
+    bytes: int  # held, or asked by a closed map
+    parts: dict[str, int]  # tm, projection (0 when another map holds the same one), localiser, caches, index
+
+
+@dataclass(frozen=True)
+class BudgetInfo:
+    """The process-wide memory budget: `GET /v1/memory` (docs/design/service.md §1.8)."""
+
+    total_bytes: int
+    source: str  # `setting`, or the share of `host` or `cgroup` memory it defaults to
+    used_bytes: int
+    free_bytes: int
+    encoders_bytes: int
+    maps: list[MapReservation]
     process_rss_bytes: int
