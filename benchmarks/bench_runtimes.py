@@ -80,8 +80,9 @@ def main() -> None:
         r = bench_backbone(name, args.threads, repeats)
         results.append(r)
         for k, v in r["runtimes"].items():
-            print(f"{name} {k}: batch 1 {v['batch1_ms']:.1f} ms, batch 16 {v['batch16_images_per_s']:.1f} img/s "
-                  f"({v['batch16_vs_torch']:.2f}x torch), max |Δ| {v['max_abs_diff_to_torch']:.1e}", flush=True)
+            print(f"{name} {k}: batch 1 {v['batch1_ms']:.1f} ms, batch 16 "
+                  f"{v['batch16_images_per_s']:.1f} img/s ({v['batch16_vs_torch']:.2f}x torch), "
+                  f"max |Δ| {v['max_abs_diff_to_torch']:.1e}", flush=True)
     write_json("runtimes.json", {"threads": args.threads, "repeats": repeats, "results": results})
 
 

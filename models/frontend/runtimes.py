@@ -17,7 +17,7 @@ checks the exported graph's TF-'SAME' padding and inference-mode BatchNorm, and 
 Devices: `cpu`, `cuda` or `auto`. CUDA is ONNX Runtime's CUDA execution provider (the `gpu` extra
 installs `onnxruntime-gpu`); the torch reference stays on the CPU (the pinned wheel is the CPU build).
 `auto` takes CUDA where a session really runs on it and falls back to the CPU with a log line; `cuda`
-refuses to start without it (`DeviceUnavailable`), because a team that asked for a GPU must not be
+refuses to start without it (`DeviceUnavailableError`), because a team that asked for a GPU must not be
 served from the CPU without knowing.
 
 Example:
@@ -42,7 +42,7 @@ import torch
 from models.files import atomic_write
 from models.frontend.backbones import Backbone
 
-__all__ = ["DEVICES", "OPSET", "RUNTIMES", "DeviceUnavailable", "OnnxRunner", "Runner", "TorchRunner",
+__all__ = ["DEVICES", "OPSET", "RUNTIMES", "DeviceUnavailableError", "OnnxRunner", "Runner", "TorchRunner",
            "export_onnx", "make_runner", "onnx_model"]
 
 log = logging.getLogger("cortexloc.encoder")
@@ -64,7 +64,7 @@ _CPU = "CPUExecutionProvider"
 _SHA_RE = re.compile(r"[0-9a-f]{64}")
 
 
-class DeviceUnavailable(RuntimeError):
+class DeviceUnavailableError(RuntimeError):
     """`device="cuda"` was asked for and cannot be given here (the message says why and what to do)."""
 
 
@@ -165,7 +165,8 @@ def _stored(directory: Path, backbone: Backbone) -> tuple[bytes, str] | None:
         return None
     want = {"format": MANIFEST_FORMAT, "torch": torch.__version__, "opset": OPSET}
     sha = meta.get("sha256") if isinstance(meta, dict) else None
-    if not isinstance(sha, str) or not _SHA_RE.fullmatch(sha) or any(meta.get(k) != v for k, v in want.items()):
+    if (not isinstance(sha, str) or not _SHA_RE.fullmatch(sha)
+            or any(meta.get(k) != v for k, v in want.items())):
         return None
     try:
         data = (directory / f"{sha}.onnx").read_bytes()
@@ -219,7 +220,7 @@ def providers_for(device: str, available: Sequence[str]) -> list[str]:
     """ONNX Runtime execution providers for `device`, given the ones this install offers.
 
     Raises:
-        DeviceUnavailable: `cuda` asked for and this ONNX Runtime has no CUDA provider.
+        DeviceUnavailableError: `cuda` asked for and this ONNX Runtime has no CUDA provider.
         ValueError: not one of `DEVICES`.
     """
     if device not in DEVICES:
@@ -229,7 +230,7 @@ def providers_for(device: str, available: Sequence[str]) -> list[str]:
     if _CUDA in available:
         return [_CUDA, _CPU]
     if device == "cuda":
-        raise DeviceUnavailable(
+        raise DeviceUnavailableError(
             f"CORTEXLOC_DEVICE=cuda but this ONNX Runtime offers only {', '.join(available)}: install the "
             f"`gpu` extra (onnxruntime-gpu in place of onnxruntime) on a machine with CUDA, or use auto/cpu")
     return [_CPU]
@@ -248,7 +249,7 @@ def make_runner(backbone: Backbone, runtime: str, device: str, threads: int,
         available: ONNX Runtime's available providers (None: ask it; tests pass a list).
 
     Raises:
-        DeviceUnavailable: `cuda` asked for, and no CUDA here (not installed, or the session fell back).
+        DeviceUnavailableError: `cuda` asked for, and no CUDA here (not installed, or the session fell back).
         ValueError: unknown runtime or device.
     """
     if runtime not in RUNTIMES:
@@ -257,8 +258,8 @@ def make_runner(backbone: Backbone, runtime: str, device: str, threads: int,
         raise ValueError(f"device must be one of {', '.join(DEVICES)}, got {device!r}")
     if runtime == "torch":
         if device == "cuda":
-            raise DeviceUnavailable("CORTEXLOC_DEVICE=cuda needs the onnxruntime runtime: the torch "
-                                    "reference runs on the CPU (the pinned torch wheel is the CPU build)")
+            raise DeviceUnavailableError("CORTEXLOC_DEVICE=cuda needs the onnxruntime runtime: the torch "
+                                         "reference runs on the CPU (the pinned wheel is the CPU build)")
         if device == "auto":
             log.info("device auto: the torch reference runtime runs on the CPU")
         return TorchRunner(backbone.describe)
@@ -272,8 +273,8 @@ def make_runner(backbone: Backbone, runtime: str, device: str, threads: int,
         why = ("no CUDA execution provider in this install" if _CUDA not in providers
                else "ONNX Runtime could not start its CUDA provider (driver or CUDA libraries missing)")
         if device == "cuda":
-            raise DeviceUnavailable(f"CORTEXLOC_DEVICE=cuda: {why}; install the `gpu` extra on a machine "
-                                    f"with CUDA, or use auto/cpu")
+            raise DeviceUnavailableError(f"CORTEXLOC_DEVICE=cuda: {why}; install the `gpu` extra on a "
+                                         f"machine with CUDA, or use auto/cpu")
         log.info("device auto: %s; the encoder runs on the CPU", why)
     log.debug("backbone %s on onnxruntime (%s), export sha256 %s", backbone.arch, runner.device, sha)
     return runner

@@ -103,7 +103,7 @@ def test_device_cpu_uses_only_the_cpu_provider():
 
 
 def test_device_cuda_without_a_cuda_provider_refuses_and_says_how_to_fix():
-    with pytest.raises(runtimes.DeviceUnavailable, match="gpu` extra"):
+    with pytest.raises(runtimes.DeviceUnavailableError, match="gpu` extra"):
         runtimes.providers_for("cuda", ["CPUExecutionProvider"])
 
 
@@ -123,12 +123,12 @@ def test_a_cuda_provider_that_cannot_start_is_detected_not_assumed(alexnet, tmp_
     with caplog.at_level(logging.INFO, "cortexloc.encoder"):
         runner = runtimes.make_runner(alexnet, "onnxruntime", "auto", 1, tmp_path, available=offered)
     assert runner.device == "cpu" and "could not start its CUDA provider" in caplog.text
-    with pytest.raises(runtimes.DeviceUnavailable, match="could not start its CUDA provider"):
+    with pytest.raises(runtimes.DeviceUnavailableError, match="could not start its CUDA provider"):
         runtimes.make_runner(alexnet, "onnxruntime", "cuda", 1, tmp_path, available=offered)
 
 
 def test_the_torch_reference_runs_on_the_cpu_only(alexnet):
-    with pytest.raises(runtimes.DeviceUnavailable, match="onnxruntime runtime"):
+    with pytest.raises(runtimes.DeviceUnavailableError, match="onnxruntime runtime"):
         runtimes.make_runner(alexnet, "torch", "cuda", 1)
     assert runtimes.make_runner(alexnet, "torch", "auto", 1).device == "cpu"
 
