@@ -166,5 +166,6 @@ def test_bench_encoder_reports_the_contract(tmp_path, monkeypatch):
                                  "--json", str(out)])
     assert r.exit_code == 0, r.output
     payload = json.loads(out.read_text())
-    for key in ("batch1_ms_median", "batch16_images_per_s", "bare_conv3_batch16_images_per_s"):
+    for key in ("batch1_ms_median", "batch16_images_per_s", "bare_batch16_images_per_s"):
         assert payload[key] > 0
+    assert (payload["runtime"], payload["device"]) == ("onnxruntime", "cpu")
