@@ -41,7 +41,7 @@ default_conf: dict[str, Any] = {
     "weights_path": None,  # AlexNet conv1..conv3 file; None: look in the weights cache, else random
     "random_seed": 0,  # seed of the NumPy-generated fallback weights
     "torch_threads": 1,  # the backbone's intra-op threads, on either runtime
-    # onnxruntime (the torch module exported to ONNX, same codes, measured faster: docs/benchmarks.md §6)
+    # onnxruntime (the torch module exported to ONNX, same codes, measured faster: docs/benchmarks.md §9)
     # | torch (the reference); models.frontend.runtimes
     "runtime": runtimes.RUNTIMES[0],
     "device": "cpu",  # cpu | cuda | auto (CUDA through ONNX Runtime; auto falls back to the CPU)

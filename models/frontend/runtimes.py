@@ -39,7 +39,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from models.files import atomic_write
+from common.files import atomic_write
 from models.frontend.backbones import Backbone
 
 __all__ = ["DEVICES", "OPSET", "RUNTIMES", "DeviceUnavailableError", "OnnxRunner", "Runner", "TorchRunner",
@@ -48,7 +48,7 @@ __all__ = ["DEVICES", "OPSET", "RUNTIMES", "DeviceUnavailableError", "OnnxRunner
 log = logging.getLogger("cortexloc.encoder")
 
 #: Backbone runtimes; the first is the default (the fastest that computes the same codes,
-#: docs/benchmarks.md §6).
+#: docs/benchmarks.md §9).
 RUNTIMES = ("onnxruntime", "torch")
 DEVICES = ("cpu", "cuda", "auto")
 #: ONNX opset of the exports (torch 2.13's exporter supports 18 natively).

@@ -12,7 +12,7 @@ pytestmark = pytest.mark.skipif(not (nordland_dir() / "winter").is_dir(),
                                        "(set CORTEXLOC_SHARED_DATA)")
 
 #: The five 200-frame windows of the cross-season tables; tune and test (894 frames each) are run by
-#: `python -m service.cli.runtime_parity` (docs/benchmarks.md §6).
+#: `python -m service.cli.runtime_parity` (docs/benchmarks.md §9).
 WINDOWS = ["1-200", "401-600", "801-1000", "1201-1400", "1589-1788"]
 
 
