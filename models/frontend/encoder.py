@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import threadpoolctl
 import torch
 
 from models import presets
@@ -116,6 +117,11 @@ class Encoder:
                  projection: np.ndarray | slsbh.SparseProjection | None = None) -> None:
         self.conf = merge_conf(conf)
         torch.set_num_threads(int(self.conf["torch_threads"]))
+        # The same budget for the BLAS behind the sLSBH projection (NumPy's OpenBLAS starts one thread per
+        # core): on cores shared with the decode threads and the map writers its threads wait on each
+        # other; one thread measured 12.6 ms against 54-94 ms (median) for a batch-16 x·P at D = 5,488,
+        # with the same codes (docs/benchmarks.md §9).
+        threadpoolctl.threadpool_limits(int(self.conf["torch_threads"]), user_api="blas")
         self.backbone = backbones.get(self.conf["backbone"])(self.conf)
         export_dir = self.conf["export_dir"]
         self.runner = runtimes.make_runner(
