@@ -149,3 +149,23 @@ def test_the_encoder_reports_its_runtime_and_device_and_keeps_its_identity(tmp_p
     assert onnx_enc.identity == torch_enc.identity  # same codes: maps do not care which runtime
     x = torch.randn(2, 3, 224, 224).numpy()
     np.testing.assert_allclose(onnx_enc.features(x), torch_enc.features(x), atol=1e-5)
+
+
+def test_weights_export_builds_every_backbones_export_into_the_store(tmp_path, monkeypatch):
+    """`cortexloc weights export` (run by the image build): what the encoder would export on first use."""
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    monkeypatch.setenv("CORTEXLOC_WEIGHTS_DIR", str(tmp_path / "weights"))
+    r = CliRunner().invoke(app, ["weights", "export"])
+    assert r.exit_code == 0, r.output
+    store = tmp_path / "weights" / "onnx"
+    manifests = sorted(p.name for p in store.glob("*.json"))
+    assert len(manifests) == len(backbones.names()), manifests
+    for p in store.glob("*.onnx"):
+        assert hashlib.sha256(p.read_bytes()).hexdigest() == p.stem
+    enc = Encoder({"backbone": "efficientnet-lite0-s5", "slsbh": {"k": 16}})
+    monkeypatch.setattr(runtimes, "export_onnx", lambda backbone: pytest.fail("exported again"))
+    monkeypatch.setattr(runtimes, "_EXPORTS", {})
+    assert Encoder({"backbone": "efficientnet-lite0-s5", "slsbh": {"k": 16}}).identity == enc.identity
