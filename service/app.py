@@ -137,7 +137,8 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFact
         app.state.encoder = encoder
         desc = encoder.describe()
         metrics.set_encoder(weights=desc["weights"], encoder=desc["encoder"])
-        log.info("encoder %s loaded (%s weights)", desc["encoder"], desc["weights"])
+        log.info("encoder %s loaded (%s weights) on %s, %s", desc["encoder"], desc["weights"],
+                 desc["runtime"], desc["device"])
         async with AsyncExitStack() as stack:
             for component in components:
                 await stack.enter_async_context(component(app))

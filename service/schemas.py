@@ -148,6 +148,8 @@ class Versions(_Out):
     backbone: str
     encoder: str
     weights: str
+    runtime: str = Field(description="the backbone's runtime: onnxruntime or torch (the same codes)")
+    device: str = Field(description="where the backbone ran: cpu or cuda")
     projection: str
     map_seq: int
 

@@ -100,7 +100,12 @@ class Settings(BaseSettings):
                                  f"weights are installed, else {backbones.PRETRAINED} (resolved at startup)")
     allow_random_weights: bool = Field(True, description="serve (with a warning) on random weights")
     random_weights_seed: int = Field(0, ge=0, description="seed of the random fallback weights")
-    device: Literal["cpu", "cuda"] = "cpu"
+    device: Literal["cpu", "cuda", "auto"] = Field(
+        "auto", description="where the backbone runs: cuda (ONNX Runtime's CUDA provider, the `gpu` extra; "
+        "refuses to start without it), cpu, or auto (CUDA where it runs, else the CPU with a log line)")
+    runtime: Literal["onnxruntime", "torch"] = Field(
+        "onnxruntime", description="the backbone's runtime: onnxruntime (its ONNX export, same codes, "
+        "faster) or torch (the reference)")
     torch_threads: int = Field(1, ge=1)
     encoder_workers: int = Field(1, ge=1, description="encoder executor size")
     encoder_queue: int = Field(32, ge=1, description="encoder queue length (full: 503 overloaded)")
@@ -153,7 +158,7 @@ class Settings(BaseSettings):
     def _upper_level(cls, v: Any) -> Any:
         return v.strip().upper() if isinstance(v, str) else v
 
-    @field_validator("log_format", "device", mode="before")
+    @field_validator("log_format", "device", "runtime", mode="before")
     @classmethod
     def _lower(cls, v: Any) -> Any:
         return v.strip().lower() if isinstance(v, str) else v

@@ -379,3 +379,17 @@ def eval_unknown(
 
     unknown(db, query, split=split, thresholds=[float(t) for t in thresholds.split(",")], backbone=backbone,
             seed=seed)
+
+
+@app.command("runtime-parity")
+def eval_runtime_parity(
+    windows: Annotated[str | None, typer.Option(help="comma-separated Nordland windows (default: all)")]
+    = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the result here too")] = None,
+) -> None:
+    """The backbone's runtimes against each other on the Nordland route
+    (service/evaluation/runtime_parity.py)."""
+    from models.evaluation.nordland_tables import WINDOWS
+    from service.evaluation.runtime_parity import report
+
+    report(windows.split(",") if windows else list(WINDOWS), json_out)

@@ -5,6 +5,7 @@ configuration resolved as a created map's and every frame through `models.pipeli
                      `service-without-tm`), scored per query; the operating point of a precision
     revisit.py       corridor-like revisits: the same frames again with pixel noise
     unknown.py       false revisits on places never stored, and the decision on the places stored
+    runtime_parity.py  the backbone's runtimes (torch, ONNX Runtime) give the same codes and answers
 
 The pure measures (metrics, datasets, the other methods) are `models.evaluation`'s; the command line of
 all of them is `cortexloc eval` (service/cli/evaluate.py, typer).

@@ -279,6 +279,8 @@ class Versions(_Reply):
     backbone: str | None = None
     encoder: str
     weights: str
+    runtime: str | None = None  # the service's backbone runtime and device (servers before issue 24: None)
+    device: str | None = None
     projection: str
     map_seq: int
 
