@@ -31,7 +31,8 @@ def spec_table() -> dict[str, str]:
         if len(cells) < 3 or not cells[0].startswith("`CORTEXLOC_"):
             continue
         names = re.findall(r"`(CORTEXLOC_[A-Z_]+)`", cells[0])
-        defaults = ["unset"] if cells[1] == "unset" else re.findall(r"`([^`]*)`", cells[1])
+        # `unset` (or `unset: what it means then`): no value; else each default in backticks
+        defaults = ["unset"] if cells[1].startswith("unset") else re.findall(r"`([^`]*)`", cells[1])
         assert len(names) == len(defaults), line
         table.update(zip(names, defaults, strict=True))
     return table
