@@ -103,8 +103,9 @@ def _finite(literal: str) -> float:
 def _safe_int(literal: str) -> int:
     value = int(literal)
     if abs(value) > METADATA_MAX_INT:
-        raise ValueError(f"integer {literal[:24]}{'...' if len(literal) > 24 else ''} is beyond +-(2^53 - 1), "
-                         "which a JSON reader using doubles cannot hold exactly; send it as a string")
+        shown = literal if len(literal) <= 24 else literal[:24] + "..."
+        raise ValueError(f"integer {shown} is beyond +-(2^53 - 1), which a JSON reader using doubles "
+                         "cannot hold exactly; send it as a string")
     return value
 
 

@@ -76,9 +76,10 @@ def test_patch_revisit_threshold_is_durable_and_checked(tmp_path):
             assert c.patch("/v1/maps/default", json={"revisit_threshold": not_a_number}).status_code == 400
         assert c.get("/v1/maps/default").json()["revisit_threshold"] == 0.97
         assert c.patch("/v1/maps/nope", json={"revisit_threshold": 0.2}).status_code == 404
-        negative_zero = c.patch("/v1/maps/default", json={"revisit_threshold": -0.0})  # in range, stored as 0.0
-        assert negative_zero.status_code == 200 and '"revisit_threshold":0.0' in negative_zero.text
-        assert math.copysign(1.0, c.app.state.registry.get("default").record.params["revisit_threshold"]) == 1.0
+        zero = c.patch("/v1/maps/default", json={"revisit_threshold": -0.0})  # in range, stored as 0.0
+        assert zero.status_code == 200 and '"revisit_threshold":0.0' in zero.text
+        stored = c.app.state.registry.get("default").record.params["revisit_threshold"]
+        assert math.copysign(1.0, stored) == 1.0
         c.patch("/v1/maps/default", json={"revisit_threshold": 0.97})
         learn_route(c)
         places = drive(c, ROUTE)

@@ -18,7 +18,9 @@ HUGE = 1.7e308
 # A stand-in for the few DOM calls the plot modules make; the script prints one JSON line.
 _PRELUDE = """
 class N { constructor(t) { this.t = t; this.a = {}; this.c = []; }
-  setAttribute(k, v) { this.a[k] = v; } append(...c) { this.c.push(...c); } replaceChildren() { this.c = []; } }
+  setAttribute(k, v) { this.a[k] = v; }
+  append(...c) { this.c.push(...c); }
+  replaceChildren() { this.c = []; } }
 globalThis.document = { createElementNS: (ns, t) => new N(t), createElement: (t) => new N(t),
                         querySelector: () => ({ namespaceURI: "svg" }) };
 const all = (n, t) => (n.t === t ? [n] : []).concat(...(n.c || []).map((c) => all(c, t)));
@@ -46,7 +48,8 @@ RANGES = [(1e16 - 1, 1e16 + 1), (1e16, 1e16), (0, 1e16), (-HUGE, HUGE), (HUGE, H
 def test_the_axes_are_bounded_and_drawn_for_any_finite_range(lo, hi):
     out = run_js(f"""
 const root = new N("svg");
-const {{ X, Y }} = plot.frame(root, [{lo!r}, {hi!r}], [{lo!r}, {hi!r}], {{ xLabel: "x", yLabel: "y", equal: true }});
+const {{ X, Y }} = plot.frame(root, [{lo!r}, {hi!r}], [{lo!r}, {hi!r}],
+                            {{ xLabel: "x", yLabel: "y", equal: true }});
 const labels = all(root, "text").map((t) => t.c[0]);
 console.log(JSON.stringify({{ x: [X({lo!r}), X({hi!r})], y: [Y({lo!r}), Y({hi!r})], labels,
                               ticks: plot.ticks({lo!r}, {hi!r}, 8) }}));
