@@ -124,8 +124,8 @@ class Settings(BaseSettings):
                                   "266 MB projection and a million ~3 KB rows fit in 8 GiB")
     api_key: str | None = Field(None, min_length=1, repr=False,
                                 description="when set, every write needs it (X-API-Key or Bearer)")
-    api_key_reads: bool = Field(False, description="reads of whole maps (snapshot downloads) need the key "
-                                                   "too; requires CORTEXLOC_API_KEY")
+    api_key_reads: bool = Field(False, description="every /v1 read and /metrics need the key too (/healthz "
+                                                   "and /readyz stay open); requires CORTEXLOC_API_KEY")
 
     @field_validator("data_dir")
     @classmethod

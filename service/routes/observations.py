@@ -22,7 +22,7 @@ from fastapi import APIRouter, Header, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from models.frontend import images
-from service.deps import ApiKeyDep, MapReadKeyDep, MetricsDep, RegistryDep, SettingsDep
+from service.deps import ApiKeyDep, MetricsDep, RegistryDep, SettingsDep
 from service.errors import IMAGE_MEDIA_TYPES, Problem, problem_responses
 from service.maps import idempotency, stored
 from service.maps.results import ObservationResult
@@ -270,7 +270,7 @@ def _count(metrics: Any, map_id: str, learn: bool, timings: dict[str, float]) ->
     metrics.observations.labels(map=map_id, learned=str(learn).lower()).inc()
 
 
-@router.get("/{map_id}/observations", dependencies=[MapReadKeyDep], responses=problem_responses(404, 503))
+@router.get("/{map_id}/observations", responses=problem_responses(404, 503))
 async def list_observations(
     map_id: MapId, registry: RegistryDep,
     after_seq: Annotated[int, Query(ge=0, le=MAX_SEQ, description="the page starts after this seq")] = 0,
@@ -285,7 +285,7 @@ async def list_observations(
                                  next_after_seq=found[-1].seq if len(found) == limit else None)
 
 
-@router.get("/{map_id}/observations/{seq}", dependencies=[MapReadKeyDep],
+@router.get("/{map_id}/observations/{seq}",
             responses=problem_responses(404, 503))
 async def get_observation(map_id: MapId, seq: Seq, registry: RegistryDep) -> StoredObservationModel:
     rt = registry.get(map_id)
@@ -295,7 +295,7 @@ async def get_observation(map_id: MapId, seq: Seq, registry: RegistryDep) -> Sto
     return StoredObservationModel.from_result(found)
 
 
-@router.get("/{map_id}/observations/{seq}/thumbnail", dependencies=[MapReadKeyDep],
+@router.get("/{map_id}/observations/{seq}/thumbnail",
             response_class=Response, responses={**problem_responses(404, 503), 200: {
                 "content": {"image/jpeg": {"schema": {"type": "string", "format": "binary"}}}}})
 async def get_thumbnail(map_id: MapId, seq: Seq, registry: RegistryDep) -> Response:
