@@ -3,7 +3,7 @@
 Progress (rate, ETA) and the summary's warnings go to stderr; the summary to stdout, or with `--json` one
 JSON object per frame to stdout (`{"frame", "name", "stamp_ns", "status", "latency_ms", "answer"}`) and the
 summary to stderr. Exit status: 0 all frames answered 200; 1 some frame refused or the ingest stopped;
-2 the source or the options cannot be used.
+2 the source or the options cannot be used (a damaged bag included: one `error:` line, no traceback).
 """
 
 from __future__ import annotations

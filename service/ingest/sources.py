@@ -21,6 +21,7 @@ Example:
 from __future__ import annotations
 
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -136,7 +137,7 @@ def open_source(path: Path, *, topic: str | None = None, every: int = 1) -> Sour
     if path.is_file() and path.suffix != ".bag":
         raise SourceError(f"{path}: not a folder of images, a ROS 1 .bag or a ROS 2 bag")
     kind = "ros1" if path.suffix == ".bag" else "ros2"
-    with _reader(path) as reader:
+    with _damaged(path), _reader(path) as reader:
         chosen, count = _choose_topic(path, reader, topic)
     return Source(path, kind, every, _subsampled(count, every), topic=chosen)
 
@@ -145,15 +146,28 @@ def _subsampled(n: int, every: int) -> int:
     return (n + every - 1) // every
 
 
+@contextmanager
+def _damaged(path: Path) -> Iterator[None]:
+    """Any failure to read the bag is a `SourceError` naming it. A bag is input from outside: a truncated
+    file, broken metadata.yaml or random bytes make the reader fail in ways of its own (its own errors,
+    UnicodeDecodeError, sqlite3, struct, KeyError, ...), and each is the same answer: this bag cannot be
+    read (one line, exit 2; never a traceback)."""
+    try:
+        yield
+    except SourceError:
+        raise
+    except Exception as e:
+        raise SourceError(f"{path}: cannot read the bag (damaged or not a bag?): {type(e).__name__}: "
+                          f"{' '.join(str(e).split())[:300]}") from e
+
+
 def _reader(path: Path) -> Any:
-    """An opened-on-enter `rosbags` AnyReader; bags without type definitions fall back to the latest LTS."""
-    from rosbags.highlevel import AnyReader, AnyReaderError
+    """An opened-on-enter `rosbags` AnyReader; bags without type definitions fall back to the latest LTS.
+    Used inside `_damaged`, which turns its failures into a `SourceError`."""
+    from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
-    try:
-        return AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
-    except (AnyReaderError, OSError) as e:
-        raise SourceError(f"{path}: cannot read the bag: {e}") from e
+    return AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
 
 
 def _choose_topic(path: Path, reader: Any, topic: str | None) -> tuple[str, int]:
@@ -185,7 +199,7 @@ def _choose_topic(path: Path, reader: Any, topic: str | None) -> tuple[str, int]
 
 
 def _bag_frames(src: Source) -> Iterator[Frame]:
-    with _reader(src.path) as reader:
+    with _damaged(src.path), _reader(src.path) as reader:
         conns = [c for c in reader.connections if c.topic == src.topic]
         for i, (conn, recorded_ns, raw) in enumerate(reader.messages(connections=conns)):
             if i % src.every:

@@ -7,7 +7,17 @@ import pytest
 
 from models.frontend import images
 from service.ingest.sources import RAW_ENCODINGS, SourceError, image_to_raw, open_source
-from tests.ingest.data import ROUTE, TOPICS, png, stamp, write_folder, write_ros1_bag, write_ros2_bag
+from tests.ingest.data import (
+    DAMAGE,
+    ROUTE,
+    TOPICS,
+    png,
+    stamp,
+    write_damaged_bag,
+    write_folder,
+    write_ros1_bag,
+    write_ros2_bag,
+)
 
 
 def test_a_folder_is_read_in_name_order_skipping_what_is_not_an_image(tmp_path):
@@ -136,3 +146,26 @@ def test_raw_images_that_cannot_be_converted_say_why():
     with pytest.raises(SourceError, match=r"rgb8 image 4x2 needs 2 rows of >= 12 bytes \(step 12\); the "
                                           r"message holds 20 bytes"):
         image_to_raw(b"\0" * 20, height=2, width=4, step=12, encoding="rgb8")
+
+
+@pytest.mark.parametrize("kind", DAMAGE)
+def test_a_damaged_bag_is_a_source_error_naming_it(tmp_path, kind):
+    bag = write_damaged_bag(kind, tmp_path)
+    with pytest.raises(SourceError, match=r"cannot read the bag") as e:
+        open_source(bag)
+    assert str(bag) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_message_that_cannot_be_read_mid_bag_is_a_source_error(tmp_path, monkeypatch):
+    import struct
+
+    from rosbags.highlevel import AnyReader
+
+    src = open_source(write_ros2_bag(tmp_path / "bag", topics=["/cam/rgb"]))
+
+    def broken(self, raw, msgtype):
+        raise struct.error("unpack requires a buffer of 4 bytes")
+
+    monkeypatch.setattr(AnyReader, "deserialize", broken)
+    with pytest.raises(SourceError, match=r"cannot read the bag .*: error: unpack requires"):
+        list(src.frames())
