@@ -68,6 +68,7 @@ PROBLEMS: dict[str, tuple[int, str]] = {
     "map-exists": (409, "Map already exists"),
     "map-limit": (409, "Too many maps"),
     "map-full": (409, "Map is full"),
+    "request-timeout": (408, "Request timeout"),
     "payload-too-large": (413, "Payload too large"),
     "image-too-large": (413, "Image too large"),
     "unsupported-media-type": (415, "Unsupported media type"),
