@@ -259,5 +259,6 @@ class UploadLimitMiddleware:
             await _timed_out(scope, exceeded)(scope, receive, send)
             return
         _count(scope, "too-large")
-        await _drain(receive, DRAIN_MAX_BYTES, deadline)
+        if not body_done:  # past the end of a body, receive() waits for the client to go away
+            await _drain(receive, DRAIN_MAX_BYTES, deadline)
         await _too_large(scope, limit, exceeded.received_bytes, declared=False)(scope, receive, send)

@@ -185,7 +185,7 @@ def test_declared_length_is_refused_before_the_app_and_the_body_dropped_unheld()
 
 def test_chunks_are_counted_and_cut_at_the_limit():
     got: list[int] = []
-    chunks = [{"type": "http.request", "body": b"a" * 400, "more_body": True} for _ in range(10)]
+    chunks = [{"type": "http.request", "body": b"a" * 400, "more_body": i < 9} for i in range(10)]
     sent, reads = _run(UploadLimitMiddleware(_reader_app(got)), _scope([]), chunks)
     assert reads == 10  # the third chunk crosses 1000 bytes; the rest is dropped before the 413
     assert got == [400, 800]  # the app never saw the chunk that crossed the limit
@@ -209,3 +209,11 @@ def test_invalid_content_length_is_400():
     sent, reads = _run(UploadLimitMiddleware(app), _scope([(b"content-length", b"12abc")]), [])
     assert reads == 0 and sent[0]["status"] == 400
     assert json.loads(sent[1]["body"])["type"] == "urn:cortexloc:problem:invalid-parameter"
+
+
+def test_a_body_whose_last_chunk_crosses_the_limit_is_answered_at_once():
+    """Nothing is left to drop: a further receive() would wait for the client to go away (the deadline)."""
+    got: list[int] = []
+    chunks = [{"type": "http.request", "body": b"a" * 600, "more_body": i < 1} for i in range(2)]
+    sent, reads = _run(UploadLimitMiddleware(_reader_app(got)), _scope([]), chunks)
+    assert reads == 2 and sent[0]["status"] == 413
