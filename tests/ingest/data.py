@@ -178,3 +178,17 @@ def write_damaged_bag(kind: str, root: Path) -> Path:
     bag = write_ros2_bag(root / "bag", topics=["/cam/rgb"], storage="mcap" if mcap else "sqlite3")
     next(bag.glob("*.mcap" if mcap else "*.db3")).write_bytes(noise)
     return bag
+
+
+def write_ros2_bag_with(path: Path, sizes: Sequence[tuple[int, int]], topic: str = "/cam/rgb") -> Path:
+    """A ROS 2 bag of rgb8 frames of the given (height, width): place i's picture, resized."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    with Writer(path, version=9) as w:
+        conn = w.add_connection(topic, "sensor_msgs/msg/Image", typestore=ts)
+        for i, (h, w_) in enumerate(sizes):
+            pixels = cv2.resize(place_bgr(i), (w_, h), interpolation=cv2.INTER_NEAREST)
+            w.write(conn, stamp(i), ts.serialize_cdr(image_msg(ts, pixels, "rgb8", stamp(i)), conn.msgtype))
+    return path
