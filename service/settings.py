@@ -106,7 +106,8 @@ class Settings(BaseSettings):
     encoder_queue: int = Field(32, ge=1, description="encoder queue length (full: 503 overloaded)")
     max_upload_bytes: int = Field(limits.DEFAULT_MAX_BYTES, ge=1, description="request body limit")
     body_timeout_s: float = Field(60.0, gt=0, le=3600, description="a request's whole body must arrive "
-                                  "within this many seconds of its start (408 and the connection closed "
+                                  "within this many seconds of its start, its head within as many of the "
+                                  "connection's opening or previous reply (408 and the connection closed "
                                   "otherwise); 10 MiB at 2 Mbit/s takes 42 s")
     max_inflight_upload_bytes: int = Field(128 * 2**20, ge=1, description="bytes all requests being read "
                                            "or served may hold in bodies at once (each reserves its "

@@ -166,3 +166,35 @@ def test_the_budget_must_hold_one_upload_of_the_largest_size():
                            "CORTEXLOC_MAX_INFLIGHT_UPLOAD_BYTES": "999"})
     with pytest.raises(ConfigError, match="CORTEXLOC_BODY_TIMEOUT_S"):
         Settings.from_env({"CORTEXLOC_BODY_TIMEOUT_S": "0"})
+
+
+@pytest.mark.parametrize("keep_alive_first", [False, True])
+def test_a_head_sent_a_byte_at_a_time_is_answered_408_and_closed(live, keep_alive_first):
+    """The same for the head (uvicorn bounds only idle keep-alive connections, and any byte resets that):
+    on a new connection, and after a first request answered on it."""
+    port = int(live.rsplit(":", 1)[1])
+    sock = socket.create_connection(("127.0.0.1", port))
+    if keep_alive_first:
+        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: t\r\n\r\n")
+        assert sock.recv(65536).startswith(b"HTTP/1.1 200")
+    t0 = time.monotonic()
+    sock.settimeout(0.25)
+    raw = b""
+    for byte in b"POST /v1/maps/default/observations HTTP/1.1\r\nHost: t\r\nX-Slow: " + b"a" * 200:
+        if time.monotonic() - t0 > DEADLINE_S + 8:
+            break
+        try:
+            sock.send(bytes([byte]))
+            chunk = sock.recv(65536)
+        except TimeoutError:
+            continue
+        except (BrokenPipeError, ConnectionResetError):
+            break
+        if not chunk:
+            break
+        raw += chunk
+    elapsed = time.monotonic() - t0
+    status, problem, head = status_and_problem(raw + answer(sock, 5)[0])
+    assert status == 408 and problem["type"].endswith("request-timeout") and "connection: close" in head
+    assert DEADLINE_S * 0.9 <= elapsed <= DEADLINE_S + 5
+    sock.close()
