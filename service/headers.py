@@ -1,5 +1,5 @@
 """Security headers on every response, and a Content-Security-Policy on every page (docs/design/service.md
-§1.8).
+§1.9).
 
 `SecurityHeadersMiddleware` is pure ASGI (outermost, so the last-resort 500 has them too). Every response
 gets `X-Content-Type-Options: nosniff`, `X-Frame-Options: DENY` and `Referrer-Policy: no-referrer`. An

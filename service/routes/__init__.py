@@ -38,6 +38,6 @@ api_router.include_router(health.router)  # /healthz, /readyz: open to probes, w
 # route added to these routers is guarded without naming it (writes check the key anyway).
 api_router.include_router(metrics.router, dependencies=[ReadKeyDep], responses=problem_responses(401))
 v1 = APIRouter(dependencies=[ReadKeyDep], responses=problem_responses(401))
-for resource in (maps, observations, recent, snapshots):
-    v1.include_router(resource.router)
+for resource in (maps.router, maps.process_router, observations.router, recent.router, snapshots.router):
+    v1.include_router(resource)
 api_router.include_router(v1)

@@ -236,7 +236,7 @@ def csp_violations(chromium: str, url: str, profile: Path) -> tuple[str, list[st
 
 
 def test_the_pages_work_under_their_content_security_policy(chromium, server, http, make_frame, tmp_path):
-    """Issue 19 item 6 (docs/design/service.md §1.8): /ui/, /docs and /redoc served offline run with a
+    """Issue 19 item 6 (docs/design/service.md §1.9): /ui/, /docs and /redoc served offline run with a
     self-only policy: nothing the pages need is refused; only ReDoc's logo from its CDN is (offline, it
     would not load anyway, and a page that fetches nothing outside is the point)."""
     body = {"map_id": "yard", "thumbnails": True}

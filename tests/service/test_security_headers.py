@@ -1,4 +1,4 @@
-"""Security headers (issue 19 item 6; docs/design/service.md §1.8): every response is not to be sniffed,
+"""Security headers (issue 19 item 6; docs/design/service.md §1.9): every response is not to be sniffed,
 framed or referred from; every page has a self-only Content-Security-Policy whose only inline code is
 the page's own, by hash. `tests/e2e/test_viewer.py` loads the pages in Chromium under it."""
 
