@@ -16,7 +16,15 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    TypeAdapter,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from models import presets
 from models.frontend import backbones, slsbh
@@ -133,6 +141,13 @@ class MapConfig(BaseModel):
     encoder_id: str = Field(default="", frozen=True)
     thumbnails: bool = Field(default=False, frozen=True)
     warnings: list[str] = Field(default_factory=list, frozen=True)
+
+    @field_validator("revisit_threshold")
+    @classmethod
+    def _no_negative_zero(cls, value: float) -> float:
+        """-0.0 is stored as 0.0: it passes the range check, and a reader that prints or divides by it
+        sees a sign it never meant."""
+        return value + 0.0
 
     @model_validator(mode="after")
     def _check(self) -> MapConfig:

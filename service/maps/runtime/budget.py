@@ -38,7 +38,7 @@ __all__ = ["CGROUP_LIMIT_FILES", "DEFAULT_SHARE", "INDEX_ROW_OVERHEAD_BYTES", "P
 DEFAULT_SHARE = 0.5
 #: cgroup v2, then v1: the container's memory limit ("max" or a huge number: none).
 CGROUP_LIMIT_FILES = (Path("/sys/fs/cgroup/memory.max"), Path("/sys/fs/cgroup/memory/memory.limit_in_bytes"))
-#: An index posting (an int32 row number) with the slack of its doubling array (`service.maps.index`).
+#: An index posting (an int32 row number) with the slack of its doubling array (`models.localisation.index`).
 POSTING_BYTES = 8
 #: Per stored row besides its postings: seq, weight, stream row, the ranking scratch, the localiser's
 #: graph links (int64 prev and next), each with its doubling slack.
