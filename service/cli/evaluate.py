@@ -87,6 +87,34 @@ def eval_grid(
     typer.echo(format_grid_table(result))
 
 
+def _legend(query_auc: str, recall_100p: str, spread: str) -> list[str]:
+    """The lines under a result table that say what its columns are (docs/design/science.md §8.2, §8.3);
+    "AUC pairs" near 0.5 beside R@1 1.000 is not a contradiction, and says why."""
+    return ["AUC pairs = the paper's AUC (§8.2): precision-recall over all pairs (database row, query) at "
+            "one threshold shared by every query;",
+            "  it also asks that scores compare across queries, so it can sit near 0.5 beside R@1 1.000 "
+            "(right answers, scores on different scales);",
+            f"{query_auc} = per query: each query's best match ranked by its confidence; R@1 / R@5 = the "
+            "right place is the best match / among the 5 best;",
+            f"{recall_100p}; {spread} over the seeds"]
+
+
+def _table(entries: dict[str, dict[str, Any]], columns: list[tuple[str, str, str]]) -> list[str]:
+    """Header and one row per method, every column as wide as its widest cell (method names differ in
+    length: `service-without-tm`). `columns`: (header, key of the entry, format spec)."""
+    cells = {m: [format(e[key], spec) for _, key, spec in columns] for m, e in entries.items()}
+    name_w = max([len("method"), *map(len, entries)])
+    widths = [max([len(head), *(len(c[i]) for c in cells.values())])
+              for i, (head, _, _) in enumerate(columns)]
+
+    def line(name: str, values: list[str], notes: str) -> str:
+        padded = (f"{v:>{w}}" for v, w in zip(values, widths, strict=True))
+        return " ".join([f"{name:<{name_w}}", *padded]) + f"  {notes}"
+
+    return [line("method", [head for head, _, _ in columns], "notes"),
+            *(line(m, cells[m], _method_notes(m, e)) for m, e in entries.items())]
+
+
 def format_grid_table(result: dict[str, Any]) -> str:
     """A readable table of a grid result (stdout)."""
     data = result["data"]
@@ -94,15 +122,14 @@ def format_grid_table(result: dict[str, Any]) -> str:
         what = f"generated a={data['aliasing']} n={data['noise']} loops={data['loops']} ({data['mode']})"
     else:
         what = f"published {Path(str(data.get('sdr_file', '?'))).name}"
-    lines = [f"grid world: {what}; scoring={result['scoring']}; seeds={result['seeds']}",
-             f"{'method':<15} {'AUC mean':>9} {'sd':>7} {'min':>8} {'max':>8} {'R@1':>7} {'R@5':>7} "
-             f"{'R@100P':>7} {'qAUC':>7} {'qR@100P':>7}  notes"]
-    for m, e in result["methods"].items():
-        lines.append(f"{m:<15} {e['auc_mean']:>9.6f} {e['auc_sd']:>7.4f} {e['auc_min']:>8.4f} "
-                     f"{e['auc_max']:>8.4f} {e['recall_at_1_mean']:>7.3f} {e['recall_at_5_mean']:>7.3f} "
-                     f"{e['recall_at_100p_mean']:>7.3f} {e['query_auc_mean']:>7.3f} "
-                     f"{e['query_recall_at_100p_mean']:>7.3f}  {_method_notes(m, e)}")
-    return "\n".join(lines)
+    columns = [("AUC pairs", "auc_mean", ".6f"), ("sd", "auc_sd", ".4f"), ("min", "auc_min", ".4f"),
+               ("max", "auc_max", ".4f"), ("R@1", "recall_at_1_mean", ".3f"),
+               ("R@5", "recall_at_5_mean", ".3f"), ("R@100P", "recall_at_100p_mean", ".3f"),
+               ("qAUC", "query_auc_mean", ".3f"), ("qR@100P", "query_recall_at_100p_mean", ".3f")]
+    return "\n".join([f"grid world: {what}; scoring={result['scoring']}; seeds={result['seeds']}",
+                      *_table(result["methods"], columns),
+                      *_legend("qAUC", "R@100P / qR@100P = recall at 100 % precision, all pairs / per query",
+                               "sd, min, max")])
 
 
 def _method_notes(method: str, entry: dict[str, Any]) -> str:
@@ -221,13 +248,15 @@ def eval_images(
                                          "--drop-dark", param_hint="--gt")
             db_names, q_names = sequences.image_names(db), sequences.image_names(query)
             gt_matrix = ground_truth.load(gt, len(db_names), len(q_names), q_names)
-            db_keep = q_keep = None
         else:
-            # Features are computed (and cached) for the whole paired route once; a window is a slice.
-            db_names = q_names = sequences.paired_names(db, query)
-            db_keep = q_keep = np.arange(len(q_names))[offset: None if limit is None else offset + limit]
-            if db_keep.size == 0:
-                raise ValueError(f"offset {offset} leaves no pair of the {len(q_names)} in common")
+            # Only the window's frames (less the dark ones) are read and encoded, cached under their own key.
+            db_names = q_names = sequences.paired_names(db, query, offset, limit)
+            if drop_dark > 0:
+                dark = (sequences.dark_frames([db / n for n in db_names], drop_dark)
+                        | sequences.dark_frames([query / n for n in q_names], drop_dark))
+                db_names = q_names = [n for n, d in zip(q_names, dark, strict=True) if not d]
+                if len(q_names) < 2:
+                    raise typer.BadParameter("fewer than two pairs are left", param_hint="--drop-dark")
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     cache_dir = cache or Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc"))
@@ -242,15 +271,6 @@ def eval_images(
             with progress(f"features {label}") as tick:
                 feats[label] = sequences.cached_features(enc, [folder / n for n in names],
                                                          cache_dir / "features", progress=tick)
-    if db_keep is not None:
-        if drop_dark > 0:
-            dark = (sequences.dark_frames([db / db_names[i] for i in db_keep], drop_dark)
-                    | sequences.dark_frames([query / q_names[i] for i in q_keep], drop_dark))
-            db_keep = q_keep = db_keep[~dark]
-            if len(db_keep) < 2:
-                raise typer.BadParameter("fewer than two pairs are left", param_hint="--drop-dark")
-        feats = {"db": feats["db"][db_keep], "query": feats["query"][q_keep]}
-        db_names = q_names = [q_names[i] for i in q_keep]
     db_paths, q_paths = [db / n for n in db_names], [query / n for n in q_names]
     frames = ((seq.load_frames(db_paths), seq.load_frames(q_paths)) if "openseqslam" in method_list
               else None)
@@ -328,20 +348,18 @@ def _operating_point(value: str | None) -> float | None:
 
 
 def format_images_table(result: dict[str, Any]) -> str:
-    """A readable table of an image result (stdout): the settings it ran with, then both metrics."""
+    """A readable table of an image result (stdout): the settings it ran with, both metrics, a legend."""
     c = result["config"]
-    lines = [f"{Path(c['db']).name} -> {Path(c['query']).name}: {c['pairs']} queries ({c['first']} .. "
-             f"{c['last']}), ground truth {c['gt']}, tolerance ±{c['tolerance']}",
-             f"preset {c['preset']}, backbone {c['backbone']} [{c['weights']} weights], "
-             f"resize {c['resize']}, s={c['s']}, adapt={c['adapt_tau']}, "
-             f"{'reset' if c['reset'] else 'no reset'}, seeds={c['seeds']}, ds={c['ds']}; "
-             f"{len(result['queries'])} queries scored",
-             "all pairs = the paper's AUC (§8.2); per query = each query's best match and its confidence",
-             f"{'method':<12} {'AUC pairs':>9} {'min':>7} {'max':>7} {'AUC query':>9} {'R@1':>6} {'R@5':>6} "
-             f"{'R@100P':>7} {'s/run':>7}  notes"]
-    for m, e in result["methods"].items():
-        lines.append(f"{m:<12} {e['auc_mean']:>9.4f} {e['auc_min']:>7.4f} {e['auc_max']:>7.4f} "
-                     f"{e['query_auc_mean']:>9.4f} {e['recall_at_1_mean']:>6.3f} "
-                     f"{e['recall_at_5_mean']:>6.3f} {e['query_recall_at_100p_mean']:>7.3f} "
-                     f"{e['seconds_mean']:>7.2f}  {_method_notes(m, e)}")
-    return "\n".join(lines)
+    columns = [("AUC pairs", "auc_mean", ".4f"), ("min", "auc_min", ".4f"), ("max", "auc_max", ".4f"),
+               ("AUC query", "query_auc_mean", ".4f"), ("R@1", "recall_at_1_mean", ".3f"),
+               ("R@5", "recall_at_5_mean", ".3f"), ("R@100P", "query_recall_at_100p_mean", ".3f"),
+               ("s/run", "seconds_mean", ".2f")]
+    return "\n".join([
+        f"{Path(c['db']).name} -> {Path(c['query']).name}: {c['pairs']} queries "
+        f"({c['first']} .. {c['last']}), ground truth {c['gt']}, tolerance ±{c['tolerance']}",
+        f"preset {c['preset']}, backbone {c['backbone']} [{c['weights']} weights], resize {c['resize']}, "
+        f"s={c['s']}, adapt={c['adapt_tau']}, {'reset' if c['reset'] else 'no reset'}, seeds={c['seeds']}, "
+        f"ds={c['ds']}; {len(result['queries'])} queries scored",
+        *_table(result["methods"], columns),
+        *_legend("AUC query", "R@100P = recall at 100 % precision, per query", "min, max"),
+        "s/run = seconds per seed"])
