@@ -4,7 +4,12 @@
                         [--ds N] [--json OUT] [--plots DIR]
     cortexloc eval grid --generate --aliasing A --noise N [--loops L] [...same options]
     cortexloc eval images --db DIR --query DIR [--methods M,...] [--ds N] [--gt FILE] [--preset NAME]
-                          [--backbone B] [--resize R] [--seeds K] [--json OUT] [--plots DIR]
+                          [--backbone B] [--resize R] [--seeds K] [--reset|--no-reset] [--json OUT]
+                          [--plots DIR]
+
+Defaults: grid --seeds 10; images --seeds 3 and --no-reset (the paper's protocol; the tables of
+docs/results.md pass --reset, docs/design/science.md §8.5). The README's command list says the same
+(tests/models/evaluation/test_sequences.py checks it against these options).
 
 Tables go to stdout, progress and warnings to stderr, machine-readable results to --json.
 """
@@ -192,7 +197,8 @@ def eval_images(
                                                 "backwards (a route driven the other way).")] = False,
     drop_dark: Annotated[float, typer.Option(min=0.0, help="Drop pairs where either frame's mean grey is "
                                                           "below this (0 = keep all; §8.5 uses 20).")] = 0.0,
-    seeds: Annotated[int, typer.Option(min=1)] = 3,
+    seeds: Annotated[int, typer.Option(min=1, help="Runs; seeds spawned from --seed (a claim wants 10, "
+                                                   "docs/design/science.md §8.6).")] = 3,
     seed: Annotated[int, typer.Option(help="Experiment seed.")] = 0,
     cache: Annotated[Path | None, typer.Option(help="Feature cache folder (default: "
                                                     "$CORTEXLOC_CACHE_DIR or ~/.cache/cortexloc).")] = None,

@@ -329,3 +329,35 @@ def test_eval_images_refuses_a_sparsity_outside_the_slsbh_rules(tmp_path):
         result = CliRunner().invoke(app, ["eval", "images", "--db", str(tmp_path), "--query", str(tmp_path),
                                           "--s", bad])
         assert result.exit_code == 2 and "--s" in result.output
+
+
+def _readme_defaults(command: str) -> dict[str, str | bool]:
+    """The options the README's command list states as defaults for `cortexloc eval COMMAND`: its
+    `# defaults: --opt value --flag ...` comment, up to the first parenthesis."""
+    from pathlib import Path
+
+    lines = (Path(__file__).resolve().parents[3] / "README.md").read_text().splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(f"cortexloc eval {command} "))
+    stated = next(line for line in lines[start:] if "# defaults:" in line)
+    tokens = stated.split("# defaults:", 1)[1].split("(", 1)[0].replace(",", " ").split()
+    out: dict[str, str | bool] = {}
+    for i, token in enumerate(tokens):
+        if token.startswith("--"):
+            value = tokens[i + 1] if i + 1 < len(tokens) and not tokens[i + 1].startswith("--") else None
+            out[token] = value if value is not None else True
+    return out
+
+
+@pytest.mark.parametrize("command", ["grid", "images"])
+def test_the_readme_states_the_eval_defaults(command):
+    import typer.main
+
+    params = typer.main.get_command(app).commands["eval"].commands[command].params
+    stated = _readme_defaults(command)
+    assert {"--seeds"} <= set(stated) and (command == "grid" or "--no-reset" in stated)
+    for option, value in stated.items():
+        param = next(p for p in params if option in (*p.opts, *p.secondary_opts))
+        if value is True:  # a flag: --reset or --no-reset
+            assert param.default is (option in param.opts), option
+        else:
+            assert str(param.default) == value, option
