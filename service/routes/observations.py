@@ -227,11 +227,11 @@ async def post_observation(
             return _replayed(out)
         first = ObservationModel.model_validate_json(out.body)
         _count(metrics, map_id, learn, first.timings_ms)
-        rt.recent.add(first.stream, _recent(first))  # replays are not added
+        rt.recent.add(first.stream, _recent(first), out.thumbnail)  # replays are not added
         return Response(out.body, media_type="application/json")
     model = reply(out)
     _count(metrics, map_id, learn, model.timings_ms)
-    rt.recent.add(model.stream, _recent(model))
+    rt.recent.add(model.stream, _recent(model), out.thumbnail)
     return model
 
 

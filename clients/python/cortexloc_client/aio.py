@@ -152,6 +152,10 @@ class AsyncClient:
         """`GET /v1/maps/{map_id}/observations/{seq}/thumbnail`: the stored JPEG thumbnail."""
         return await self._send(_core.thumbnail(map_id, seq))
 
+    async def recent_thumbnail(self, map_id: str, answer_id: int) -> bytes:
+        """`GET /v1/maps/{map_id}/recent/{answer_id}/thumbnail`: see `Client.recent_thumbnail`."""
+        return await self._send(_core.recent_thumbnail(map_id, answer_id))
+
     # ----------------------------------------------------------------------------- snapshots
 
     async def create_snapshot(self, map_id: str) -> models.Snapshot:

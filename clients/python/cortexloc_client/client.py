@@ -180,6 +180,11 @@ class Client:
         """`GET /v1/maps/{map_id}/observations/{seq}/thumbnail`: the stored JPEG thumbnail."""
         return self._send(_core.thumbnail(map_id, seq))
 
+    def recent_thumbnail(self, map_id: str, answer_id: int) -> bytes:
+        """`GET /v1/maps/{map_id}/recent/{answer_id}/thumbnail`: the query frame's JPEG kept with a recent
+        answer (`RecentAnswer.has_thumbnail`; in the service's memory only)."""
+        return self._send(_core.recent_thumbnail(map_id, answer_id))
+
     # ----------------------------------------------------------------------------- snapshots
 
     def create_snapshot(self, map_id: str) -> models.Snapshot:

@@ -320,7 +320,11 @@ class SnapshotList(_Reply):
 class RecentAnswer(_Reply):
     """One answer of a map's recent ring: the observation reply as it was sent, and when."""
 
+    #: The answer's number in the map's ring (`Client.recent_thumbnail`); None from an older server.
+    answer_id: int | None = None
     received_at: str
+    #: The query frame's small JPEG is kept with it (maps created with `thumbnails=True`).
+    has_thumbnail: bool = False
     reply: Observation
 
 

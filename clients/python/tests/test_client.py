@@ -212,6 +212,10 @@ def test_a_stored_observation_and_its_thumbnail(client: Client, tiny_params: dic
         assert stored.label == "dock" and stored.has_thumbnail is True
         assert stored.metadata is not None and stored.metadata.stamp == 1.5
         assert client.thumbnail(map_id, posted.seq)[:3] == b"\xff\xd8\xff"
+        client.observe(map_id, make_frame(2), learn=False)  # a localisation: its image kept in memory only
+        answer = client.recent(map_id).answers[-1]
+        assert answer.has_thumbnail and answer.answer_id is not None
+        assert client.recent_thumbnail(map_id, answer.answer_id)[:3] == b"\xff\xd8\xff"
         with pytest.raises(NotFoundError):
             client.get_observation(map_id, posted.seq + 100)
     finally:
