@@ -44,8 +44,9 @@ default_conf: dict[str, Any] = {
     "decode_threads": 2,  # OpenCV releases the GIL: a batch decodes and resizes in parallel
     "max_bytes": limits.DEFAULT_MAX_BYTES,
     "max_pixels": limits.DEFAULT_MAX_PIXELS,
-    # projection: dense (docs/design/science.md §7) | sparse (very sparse random projection, measured in
-    # docs/results.md before it may become a default)
+    # projection: the encoder's own (evaluation, benchmarks): dense (docs/design/science.md §7) | sparse
+    # (the very sparse random projection, at parity in docs/results.md §6). A map's is chosen by the
+    # service, sparse where dense would break its size budget (service/maps/projection.py: AlexNet).
     # k and s: the map defaults (presets.SlsbhParams); the encoder's own projection has seed 0.
     "slsbh": {"k": _SLSBH.k, "s": _SLSBH.s, "seed": 0, "projection": "dense"},
     "projection_dir": None,  # where projections are stored content-addressed; None: keep in memory

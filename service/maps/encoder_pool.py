@@ -10,11 +10,12 @@ Batches are per backbone: a request names its map's backbone, and a batch holdin
 backbone call per backbone present (`service.maps.encoders.Encoders` holds one encoder each).
 
 A request brings its map's sLSBH hasher (`MapRuntime.observe` passes it): the batch is then also
-projected here (y = x·P), one matrix product per map present in the batch. The dense projection is
-64,896 x 1,024 float32 (266 MB) and the product is bound by reading it, so projecting image by image in
-the map's writer costs the same ~15-20 ms per image as projecting 16 at once costs per batch
-(benchmarks/bench_http.py, docs/benchmarks.md); in the writer it also serialises behind the TM step and
-the commit. The projection is stateless (a map's matrix never changes), so doing it before the writer
+projected here (y = x·P), one matrix product per map present in the batch. A dense projection is
+D x 1,024 float32 (21.4 MiB for the default `efficientnet-lite0-s5`, D = 5,488; an AlexNet map gets the
+very sparse one, service/maps/projection.py) and the product is bound by reading it, so projecting
+image by image in the map's writer would read the matrix once per image where a batch reads it once
+(docs/scaling.md has the sizes and the command); in the writer it would also serialise behind the TM
+step and the commit. The projection is stateless (a map's matrix never changes), so doing it before the writer
 changes no ordering; what depends on the stream (adaptation, models.frontend.adaptation) and the top-n
 selection of the code stay in the writer, on k values.
 """

@@ -168,3 +168,7 @@ def test_bench_encoder_reports_the_contract(tmp_path, monkeypatch):
     payload = json.loads(out.read_text())
     for key in ("batch1_ms_median", "batch16_images_per_s", "bare_conv3_batch16_images_per_s"):
         assert payload[key] > 0
+    # the size a map's dense projection would take (docs/scaling.md quotes it from this command)
+    assert (payload["feature_dim"], payload["k"]) == (64_896, 1_024)  # AlexNet conv3, the default k
+    assert payload["dense_projection_bytes"] == 64_896 * 1_024 * 4
+    assert "D = 64,896 features, k = 1,024, dense projection 253.5 MiB" in r.output
