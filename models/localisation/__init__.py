@@ -1,6 +1,8 @@
 """Sequence-level localisation of a stream over the map's links (docs/design/science.md §11)."""
 
 from models.localisation.graph import SequenceGraph
+from models.localisation.index import IndexFull, InvertedIndex, Match
+from models.localisation.links import Localisation, graph_from_rows
 from models.localisation.localiser import (
     HYPOTHESIS_BYTES,
     NULL_PRIOR,
@@ -12,6 +14,6 @@ from models.localisation.localiser import (
     top_candidates,
 )
 
-__all__ = ["HYPOTHESIS_BYTES", "NULL_PRIOR", "LocaliserParams", "LocaliserState", "Place", "SequenceGraph",
-           "SequenceLocaliser", "default_conf",
-           "top_candidates"]
+__all__ = ["HYPOTHESIS_BYTES", "NULL_PRIOR", "IndexFull", "InvertedIndex", "Localisation", "LocaliserParams",
+           "LocaliserState", "Match", "Place", "SequenceGraph", "SequenceLocaliser", "default_conf",
+           "graph_from_rows", "top_candidates"]

@@ -2,50 +2,33 @@
 database traverse (learned) then a query traverse (localised, one stream), scored per query
 (docs/design/service.md §1.2, docs/design/science.md §11.4).
 
-Not a re-implementation: a real `MapRegistry` on a temporary data directory creates the map (the same
-parameters, projection, Temporal Memory, store, index and localiser as a served map), and every frame
-goes through `MapRuntime.apply` in the map's writer thread, the step `MapRuntime.observe` queues once
-the encoder pool has projected the image. Only the decoding and the backbone are done before, once per
-folder (the feature cache), with the same encoder; the projection is the map's own (`rt.hasher`).
+Not a re-implementation: the map's parameters are resolved and checked as a created map's
+(`service.maps.params.resolve_params`), its projection is made as the registry makes it
+(`service.maps.projection.for_map`), and every frame goes through `models.pipeline.observe`, the step the
+map's writer runs (`MapRuntime._step`), on a `MapModel` built as a served map's (`params.map_model`).
+Nothing is stored: the rows' seqs are 1, 2, ... as a fresh map's would be. Only the decoding and the
+backbone are done before, once per folder (the feature cache), with the same encoder.
 """
 
 from __future__ import annotations
 
-import functools
-import hashlib
-import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from models.evaluation.online import OnlineAnswers
-from service.maps.encoders import Encoders
-from service.maps.registry import MapRegistry
-from service.maps.runtime import MapRuntime
+from models.frontend import slsbh
+from models.pipeline import Stream, observe
+from service.maps import projection as map_projection
+from service.maps.params import map_model, resolve_params
 from service.settings import Settings
 
-__all__ = ["METHODS", "FeaturesOnly", "experiment", "operating_point", "replay"]
+__all__ = ["METHODS", "experiment", "operating_point", "replay"]
 
 #: The service's methods and their map option `memory`.
 METHODS = {"service": "tm", "service-without-tm": "none"}
-
-
-@dataclass(frozen=True)
-class FeaturesOnly:
-    """What a `MapRegistry` reads of an encoder when the features come from elsewhere (the cache)."""
-
-    identity: str
-    feature_dim: int
-
-
-def _step(rt: MapRuntime, y: np.ndarray, *, learn: bool, stream: str) -> Any:
-    sha = hashlib.sha256(np.ascontiguousarray(y).tobytes()).hexdigest()
-    step = functools.partial(rt.apply, y, sha, learn=learn, stream=stream, top_k=0, label=None)
-    return rt.submit(step).result()
 
 
 def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbone: str, preset: str,
@@ -56,7 +39,8 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
 
     Args:
         db_feats, q_feats: (n_db, D), (n_q, D) backbone features in driven order (`Encoder.embed`).
-        encoder_id, backbone: the encoder they came from (frozen into the map as a served map's are).
+        encoder_id, backbone: the encoder they came from (a served map freezes them; here the backbone
+            is checked like a created map's, `encoder_id` only names them).
         preset, seed, memory, localiser: the map's `CreateMap` fields; `create`: any further ones.
         progress: called with (frames done, frames in all).
 
@@ -64,34 +48,31 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
         `OnlineAnswers` over database rows 0..n_db-1: the `place` answers (best -1 during warm-up,
         confidence, support) and S, the query stream's beam scores after each frame (-inf elsewhere).
     """
+    del encoder_id  # the features are the encoder's; a map would freeze its identity
     n_db, n_q = len(db_feats), len(q_feats)
-    with tempfile.TemporaryDirectory(prefix="cortexloc-eval-") as tmp:
-        settings = Settings(data_dir=Path(tmp), snapshot_every=0, max_observations=max(n_db, 1))
-        features_only = FeaturesOnly(encoder_id, int(db_feats.shape[1]))
-        registry = MapRegistry(Path(tmp), Encoders.one(features_only, backbone), settings)
-        try:
-            rt = registry.create("eval", preset=preset, seed=seed, memory=memory, backbone=backbone,
-                                 localiser=localiser, **(create or {}))
-            assert rt.hasher is not None
-            row_of = np.full(n_db + 2, -1, np.int64)  # seq -> database row
-            for i, y in enumerate(rt.hasher.project(db_feats)):
-                row_of[_step(rt, y, learn=True, stream="database").seq] = i
-                if progress:
-                    progress(i + 1, n_db + n_q)
-            best, confidence = np.full(n_q, -1, np.int64), np.zeros(n_q)
-            support, S = np.zeros(n_q, np.int64), np.full((n_db, n_q), -np.inf)
-            for j, y in enumerate(rt.hasher.project(q_feats)):
-                place = _step(rt, y, learn=False, stream="query").place
-                state = rt.streams["query"].localiser
-                assert state is not None
-                live = state.rows >= 0
-                np.maximum.at(S[:, j], row_of[state.rows[live]], state.scores[live])
-                if place is not None:
-                    best[j], confidence[j], support[j] = row_of[place.seq], place.confidence, place.support
-                if progress:
-                    progress(n_db + j + 1, n_db + n_q)
-        finally:
-            registry.close()
+    extra = dict(create or {})
+    params = resolve_params(preset, seed=seed, memory=memory, backbone=backbone, localiser=localiser,
+                            tm=extra.pop("tm", None), slsbh_conf=extra.pop("slsbh_conf", None), **extra)
+    _, P = map_projection.for_map(params, int(db_feats.shape[1]), Settings().max_streams)
+    hasher = slsbh.Hasher(P, float(params["slsbh"]["s"]))
+    model = map_model(params, max_observations=max(n_db, 1))
+    database, query = Stream(), Stream()
+    for i, y in enumerate(hasher.project(db_feats)):
+        observe(model, database, y, learn=True, stream="database", top_k=0, seq=i + 1)
+        if progress:
+            progress(i + 1, n_db + n_q)
+    best, confidence = np.full(n_q, -1, np.int64), np.zeros(n_q)
+    support, S = np.zeros(n_q, np.int64), np.full((n_db, n_q), -np.inf)
+    for j, y in enumerate(hasher.project(q_feats)):
+        place = observe(model, query, y, learn=False, stream="query", top_k=0).place
+        state = query.localiser
+        assert state is not None
+        live = state.rows >= 0
+        np.maximum.at(S[:, j], state.rows[live] - 1, state.scores[live])  # seq s is database row s - 1
+        if place is not None:
+            best[j], confidence[j], support[j] = place.seq - 1, place.confidence, place.support
+        if progress:
+            progress(n_db + j + 1, n_db + n_q)
     return OnlineAnswers(best, confidence, support, S)
 
 
