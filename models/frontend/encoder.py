@@ -68,9 +68,14 @@ def merge_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
             out["slsbh"].update(value)
         else:
             out[key] = value
-    if out["resize"] not in ("crop", "squash"):
-        raise ValueError(f"resize must be crop or squash, got {out['resize']!r}")
+    _check_resize(out["resize"])
     return out
+
+
+def _check_resize(mode: str) -> str:
+    if mode not in images.MODES:
+        raise ValueError(f"resize must be one of {', '.join(images.MODES)}, got {mode!r}")
+    return mode
 
 
 @dataclass
@@ -173,8 +178,13 @@ class Encoder:
     @property
     def identity(self) -> str:
         """e.g. `alexnet-conv3/imagenet-7be5be79:crop` or `alexnet-conv3/random-seed0:crop`."""
+        return self.identity_for(self.conf["resize"])
+
+    def identity_for(self, resize: str) -> str:
+        """The identity of this encoder's features under another resize mode (`embed(resize=...)`): a
+        map made with `resize: squash` records `...:squash`."""
         # The architecture names its descriptor layer: that is part of what makes codes comparable.
-        return f"{self.backbone.arch}/{self.weights_id}:{self.conf['resize']}"
+        return f"{self.backbone.arch}/{self.weights_id}:{_check_resize(resize)}"
 
     def describe(self) -> dict[str, Any]:
         """What the service reports in /readyz and every response: the backbone and its weights.
@@ -211,13 +221,15 @@ class Encoder:
         return out
 
     def embed(self, data: Sequence[bytes | images.RawFrame],
-              thumbnails: Sequence[bool] | None = None) -> EncodeResult:
+              thumbnails: Sequence[bool] | None = None, resize: str | None = None) -> EncodeResult:
         """Backbone features of a batch of uploaded images (no hashing: `codes` is None).
 
         Args:
             data: N encoded images (JPEG, PNG, BMP, WebP) or raw frames.
             thumbnails: per image, whether to keep a small JPEG of the decoded frame
                 (`EncodeResult.thumbnails`), made in the decode threads from the frame already decoded.
+            resize: crop | squash for this batch (a map's frozen option, docs/design/science.md §6);
+                None: the encoder's own `resize`. The features are those of `identity_for(resize)`.
 
         Returns:
             EncodeResult with features (N, D) and the decode, preprocess and backbone timings.
@@ -228,7 +240,8 @@ class Encoder:
                 bad upload fails only its own request).
         """
         limits = {"max_bytes": int(self.conf["max_bytes"]), "max_pixels": int(self.conf["max_pixels"])}
-        kw = {"mode": self.conf["resize"], "mean": self.input_mean, "std": self.input_std}
+        kw = {"mode": _check_resize(resize or self.conf["resize"]), "mean": self.input_mean,
+              "std": self.input_std}
         timings = dict.fromkeys(STAGES[:3], 0.0)
         thumbs: list[bytes | None] | None = [None] * len(data) if thumbnails is not None else None
 
