@@ -100,7 +100,12 @@ class Settings(BaseSettings):
                                  "else efficientnet-lite0-s5 (resolved at startup)")
     allow_random_weights: bool = Field(True, description="serve (with a warning) on random weights")
     random_weights_seed: int = Field(0, ge=0, description="seed of the random fallback weights")
-    device: Literal["cpu", "cuda"] = "cpu"
+    device: Literal["cpu", "cuda", "auto"] = Field(
+        "auto", description="where the backbone runs: cuda (ONNX Runtime's CUDA provider, the `gpu` extra; "
+        "refuses to start without it), cpu, or auto (CUDA where it runs, else the CPU with a log line)")
+    runtime: Literal["onnxruntime", "torch"] = Field(
+        "onnxruntime", description="the backbone's runtime: onnxruntime (its ONNX export, same codes, "
+        "faster) or torch (the reference)")
     torch_threads: int = Field(1, ge=1)
     encoder_workers: int = Field(1, ge=1, description="encoder executor size")
     encoder_queue: int = Field(32, ge=1, description="encoder queue length (full: 503 overloaded)")
@@ -112,13 +117,25 @@ class Settings(BaseSettings):
     max_maps: int = Field(64, ge=1)
     max_observations: int = Field(1_000_000, ge=1)
     max_streams: int = Field(64, ge=1)
+    stream_keep_seconds: float = Field(600.0, ge=0, allow_inf_nan=False,
+                                       description="a stream that posted within this many seconds is never "
+                                       "evicted for a new one; a new stream is refused (429) while every "
+                                       "slot is that recent (0: least recently used evicted at once)")
+    memory_budget_bytes: int | None = Field(None, ge=1, description="RAM all maps and encoders may hold "
+                                            "together; unset: half the smaller of host memory and the "
+                                            "cgroup limit (service/maps/budget.py)")
     max_top_k: int = Field(100, ge=0)
     idempotency_keys: int = Field(100_000, ge=1, description="Idempotency-Keys kept per map: those of the "
                                   "learned posts of the last N seqs, in map.sqlite")
     idempotency_cache: int = Field(1024, ge=0, description="replies of localisation posts (learn=false) "
                                    "kept in memory per map for their Idempotency-Key")
     snapshot_every: int = Field(1000, ge=0, description="automatic snapshot period (0 = off)")
-    snapshot_keep: int = Field(3, ge=0, description="automatic snapshots kept (0 = off)")
+    snapshot_keep: int = Field(3, ge=0, description="automatic snapshots kept, and whatever their number "
+                               "the one recovery starts from (0: only that one)")
+    snapshot_manual_keep: int = Field(10, ge=0, description="manual snapshots kept per map, oldest "
+                                      "deleted first (0: no count limit)")
+    snapshot_manual_bytes: int = Field(2**31, ge=0, description="bytes of manual snapshots kept per map, "
+                                       "oldest deleted first (0: no byte limit)")
     max_import_bytes: int = Field(2**33, ge=1, description="most bytes a snapshot tar may unpack to "
                                   "(`cortexloc import`); about 2 GiB of TM arrays (max_map_bytes), the "
                                   "266 MB projection and a million ~3 KB rows fit in 8 GiB")
@@ -139,7 +156,7 @@ class Settings(BaseSettings):
     def _upper_level(cls, v: Any) -> Any:
         return v.strip().upper() if isinstance(v, str) else v
 
-    @field_validator("log_format", "device", mode="before")
+    @field_validator("log_format", "device", "runtime", mode="before")
     @classmethod
     def _lower(cls, v: Any) -> Any:
         return v.strip().lower() if isinstance(v, str) else v

@@ -26,12 +26,14 @@ from cortexloc_client.errors import (
     PayloadTooLargeError,
     ServerError,
     ServiceUnavailableError,
+    TooManyRequestsError,
     UnauthorizedError,
     UnprocessableError,
     UnsupportedMediaTypeError,
 )
 from cortexloc_client.frames import ColourOrder, frame_body
 from cortexloc_client.models import (
+    Budget,
     Map,
     Match,
     Memory,
@@ -49,6 +51,7 @@ from cortexloc_client.models import (
 __all__ = [
     "AsyncClient",
     "BadRequestError",
+    "Budget",
     "Client",
     "ColourOrder",
     "ConflictError",
@@ -72,6 +75,7 @@ __all__ = [
     "Snapshot",
     "StoredObservation",
     "StoredObservationList",
+    "TooManyRequestsError",
     "UnauthorizedError",
     "UnprocessableError",
     "UnsupportedMediaTypeError",
