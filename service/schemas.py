@@ -61,6 +61,9 @@ class CreateMap(BaseModel):
                                              "(docs/design/science.md §11.3)")
 
     thumbnails: bool = Field(default=False, description="keep a small JPEG of each learned frame")
+    resize: str | None = Field(default=None, description="crop | squash: how a frame becomes the backbone's "
+                               "square input (crop: the middle, as the paper; squash: the whole frame; "
+                               "default: service.maps.params.DEFAULT_RESIZE); frozen with the map")
 
 class PatchMap(BaseModel):
     """The map settings that may change after creation (docs/design/service.md §1.2)."""
@@ -79,6 +82,8 @@ class MapParams(_Out):
     projection: str = Field(description="dense | sparse (the very sparse projection, where dense would "
                             "break the map's size budget)")
     localiser: dict[str, Any]
+    resize: str = Field(description="crop | squash: how the map's frames become the backbone's square "
+                        "input (crop: the middle of a wide frame; squash: all of it, distorted)")
 
 
 class MapModel(_Out):
@@ -169,7 +174,8 @@ class Versions(_Out):
     api: str
     code: str
     backbone: str
-    encoder: str
+    encoder: str = Field(description="the map's encoder: backbone, weights and resize mode")
+    resize: str = Field(description="the map's resize mode, crop | squash (frozen with the map)")
     weights: str
     runtime: str = Field(description="the backbone's runtime: onnxruntime or torch (the same codes)")
     device: str = Field(description="where the backbone ran: cpu or cuda")

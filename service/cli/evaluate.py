@@ -167,7 +167,8 @@ def eval_images(
                                                       "efficientnet-lite0-s5 | efficientnet-lite0 "
                                                       "(default: the service's, resolved as serve "
                                                       "does)")] = None,
-    resize: Annotated[str | None, typer.Option(help="crop | squash (default: the service's)")] = None,
+    resize: Annotated[str | None, typer.Option(help="crop | squash (default: a new map's, "
+                                                    "service.maps.params.DEFAULT_RESIZE)")] = None,
     methods: Annotated[str, typer.Option(help="Comma-separated: cosine,slsbh,mcn,htm (one frame); "
                                           "openseqslam (the reference on grey pixels); cosine-seq,"
                                           "slsbh-seq,mcn-seq,htm-seq (the same sequence matcher on each "
@@ -220,13 +221,14 @@ def eval_images(
     from models.frontend import images
     from service.app import resolve_backbone
     from service.cli import service_eval
+    from service.maps.params import DEFAULT_RESIZE
     from service.settings import Settings
 
     # The service's defaults, read from their one home each (docs/design/service.md §8,
     # models.frontend.encoder).
     preset = preset or Settings.model_fields["default_preset"].default
     backbone = backbone or resolve_backbone(Settings.from_env()).backbone
-    resize = resize or encoder_mod.default_conf["resize"]
+    resize = resize or DEFAULT_RESIZE  # a new map's (service.maps.params)
     method_list = [m.strip() for m in methods.split(",") if m.strip()]
     service_list = [m for m in method_list if m in service_eval.METHODS]
     method_list = [m for m in method_list if m not in service_eval.METHODS]
@@ -298,7 +300,8 @@ def eval_images(
                     feats["db"], feats["query"], methods=service_list, columns=columns, tolerance=tolerance,
                     gt=gt_matrix, seeds=seeds, seed=seed, reverse_query=reverse_query, progress=tick,
                     map_conf={"encoder_id": enc.identity, "backbone": backbone, "preset": preset,
-                              "create": {"slsbh_conf": {"s": sparsity, "adapt_tau": adapt}}})
+                              "create": {"slsbh_conf": {"s": sparsity, "adapt_tau": adapt},
+                                         "resize": resize}})
             result["methods"].update(summary)
             result["first"].update(first)
     except ValueError as e:

@@ -123,6 +123,7 @@ class MapRuntime:
         except (slsbh.ProjectionError, OSError) as e:
             self._projection_error = str(e)
         self.memory_kind, self.backbone = (map_option(self.params, k) for k in ("memory", "backbone"))
+        self.resize: str = map_option(self.params, "resize")  # crop | squash, frozen with the map
         self.revisit_threshold = float(map_option(self.params, "revisit_threshold"))
         # The memory, index and links the pure pipeline steps (models.pipeline); this runtime keeps
         # their order, their persistence and their snapshots.
@@ -345,7 +346,8 @@ class MapRuntime:
             self._admit(stream)
         t0 = time.perf_counter()
         # Localised frames too: their thumbnail is kept in the recent ring only (never stored).
-        encoding = pool.submit(body, hasher=self.hasher, backbone=self.backbone, thumbnail=self.thumbnails)
+        encoding = pool.submit(body, hasher=self.hasher, backbone=self.backbone, thumbnail=self.thumbnails,
+                               resize=self.resize)
         before, mine = self._turn, asyncio.Event()
         self._turn = mine
         try:
@@ -443,6 +445,7 @@ class MapRuntime:
             matches=[Match.of(i + 1, rows[m.seq], m.overlap, m.score) for i, m in enumerate(step.ranked)],
             timings_ms=step.timings_ms, map_seq=seq or self.store.last_seq(),
             projection_sha256=self.params["projection_sha256"], backbone=self.backbone, metadata=metadata,
+            encoder=self.params["encoder_id"], resize=self.resize,
             place=None if place is None else PlaceResult.of(place, rows[place.seq], self.revisit_threshold))
         if row is not None:
             if post is not None:
@@ -465,7 +468,8 @@ class MapRuntime:
             state_reason=self.state_reason, preset=p["preset"],
             params={"tm": p["tm"], "slsbh": p["slsbh"], "seed": p["seed"],
                     "exclude_recent": p["exclude_recent"], "memory": self.memory_kind,
-                    "projection": map_option(p, "projection"), "localiser": self.localisation.localiser.conf},
+                    "projection": map_option(p, "projection"), "localiser": self.localisation.localiser.conf,
+                    "resize": self.resize},
             encoder=p["encoder_id"], projection_sha256=p["projection_sha256"],
             observations=len(self.index),
             last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),

@@ -201,7 +201,8 @@ async def post_observation(
             matches=[MatchModel.from_result(m) for m in result.matches], place=result.place,
             timings_ms={k: round(v, 3) for k, v in timings.items()},
             versions=Versions(api="v1", code=request.app.version, backbone=result.backbone,
-                              encoder=desc["encoder"], weights=desc["weights"], runtime=desc["runtime"],
+                              encoder=result.encoder, resize=result.resize, weights=desc["weights"],
+                              runtime=desc["runtime"],
                               device=desc["device"],
                               projection=f"sha256:{result.projection_sha256}", map_seq=result.map_seq),
             metadata=result.metadata)

@@ -93,12 +93,12 @@ class AsyncClient:
                          slsbh: Mapping[str, Any] | None = None, exclude_recent: int | None = None,
                          backbone: str | None = None, memory: str | None = None,
                          revisit_threshold: float | None = None, localiser: Mapping[str, Any] | None = None,
-                         thumbnails: bool | None = None) -> models.Map:
+                         thumbnails: bool | None = None, resize: str | None = None) -> models.Map:
         """`POST /v1/maps`: as `Client.create_map`."""
         return await self._send(_core.create_map(
             map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh, exclude_recent=exclude_recent,
             backbone=backbone, memory=memory, revisit_threshold=revisit_threshold, localiser=localiser,
-            thumbnails=thumbnails))
+            thumbnails=thumbnails, resize=resize))
 
     async def list_maps(self) -> list[models.Map]:
         return await self._send(_core.list_maps())

@@ -94,7 +94,7 @@ class Client:
                    slsbh: Mapping[str, Any] | None = None, exclude_recent: int | None = None,
                    backbone: str | None = None, memory: str | None = None,
                    revisit_threshold: float | None = None, localiser: Mapping[str, Any] | None = None,
-                   thumbnails: bool | None = None) -> models.Map:
+                   thumbnails: bool | None = None, resize: str | None = None) -> models.Map:
         """`POST /v1/maps`: a new map; unset fields take the server's preset (a generated id if no id).
 
         Args:
@@ -107,13 +107,15 @@ class Client:
             revisit_threshold: confidence at which a place is a revisit, in [0, 1] (`update_map` changes it).
             localiser: the sequence localiser's options (the service's docs/design/science.md §11.3).
             thumbnails: keep a small JPEG of each learned frame.
+            resize: `crop` (the middle of a wide frame, as the paper) or `squash` (the whole frame,
+                distorted to a square; the server's default): how frames become the backbone's input.
 
         All but `revisit_threshold` are frozen with the map.
         """
         return self._send(_core.create_map(
             map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh, exclude_recent=exclude_recent,
             backbone=backbone, memory=memory, revisit_threshold=revisit_threshold, localiser=localiser,
-            thumbnails=thumbnails))
+            thumbnails=thumbnails, resize=resize))
 
     def list_maps(self) -> list[models.Map]:
         return self._send(_core.list_maps())

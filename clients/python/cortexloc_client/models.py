@@ -99,6 +99,9 @@ class MapParams(_Reply):
     projection: str | None = None
     #: The sequence localiser's options, frozen with the map.
     localiser: dict[str, Any] | None = None
+    #: How the map's frames become the backbone's square input: "crop" (the middle) or "squash" (all of
+    #: it); frozen with the map (None from an older server).
+    resize: str | None = None
 
 
 class Map(_Reply):
@@ -278,6 +281,8 @@ class Versions(_Reply):
     code: str
     backbone: str | None = None
     encoder: str
+    #: The map's resize mode, "crop" or "squash" (None from an older server).
+    resize: str | None = None
     weights: str
     runtime: str | None = None  # the service's backbone runtime and device (servers before issue 24: None)
     device: str | None = None

@@ -48,10 +48,11 @@ def test_a_map_is_created_listed_read_and_deleted(client: Client, tiny_map: str)
 
 def test_create_map_sends_the_memory_and_localiser_options(client: Client, tiny_params: dict) -> None:
     map_id = f"t-{uuid.uuid4().hex[:10]}"
-    made = client.create_map(map_id, memory="none", localiser={"beam": 64, "warmup": 2},
+    made = client.create_map(map_id, memory="none", localiser={"beam": 64, "warmup": 2}, resize="crop",
                              backbone=client.ready().checks["encoder"].model_extra["backbone"], **tiny_params)
     try:
         assert made.params.memory == "none" and made == client.get_map(map_id)
+        assert made.params.resize == "crop" and made.encoder.endswith(":crop")
         assert (made.params.localiser["beam"], made.params.localiser["warmup"]) == (64, 2)
         with pytest.raises(UnprocessableError):
             client.create_map(f"{map_id}-b", backbone="resnet-9000", **tiny_params)
