@@ -24,10 +24,10 @@ from typing import Any
 import numpy as np
 from _common import quick_mode, write_json
 
-from models.files import sha256_file
+from common.files import sha256_file
 from models.memory.temporal_memory import TemporalMemory
+from models.pipeline.state import memory_state
 from service.maps.params import resolve_params
-from service.maps.state import memory_state
 from storage import snapshots
 from storage.mapstore import MapMeta, MapStore, NewObservation, cell_dtype_for
 

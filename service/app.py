@@ -13,7 +13,8 @@ Nothing is read or built at import time. At startup the lifespan:
 
 `/docs` and `/redoc` load their assets from the service itself (`fastapi_offline`), never from a CDN.
 
-Middleware, outermost first (all pure ASGI): `RequestContextMiddleware` (request id, last-resort 500),
+Middleware, outermost first (all pure ASGI): `SecurityHeadersMiddleware` (nosniff, no framing, no
+referrer; a Content-Security-Policy on pages), `RequestContextMiddleware` (request id, last-resort 500),
 `MetricsMiddleware`, `UploadLimitMiddleware` (413 before routing). Errors are problem+json everywhere
 (`service.errors`).
 
@@ -41,6 +42,7 @@ from fastapi_offline import FastAPIOffline
 
 from models.frontend.encoder import Encoder
 from service.errors import RequestContextMiddleware, install_error_handlers, problem_responses, request_id_var
+from service.headers import SecurityHeadersMiddleware
 from service.limits import UploadLimitMiddleware
 from service.metrics import Metrics, MetricsMiddleware
 from service.routes import api_router
@@ -299,6 +301,7 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFact
     app.add_middleware(UploadLimitMiddleware)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(RequestContextMiddleware)
+    app.add_middleware(SecurityHeadersMiddleware)
     app.include_router(api_router)
     app.mount(UI_PATH, static_files(), name="ui")  # the map viewer: static files, no API of its own
     app.openapi = _openapi_with_problems(app)  # type: ignore[method-assign]

@@ -69,6 +69,7 @@ PROBLEMS: dict[str, tuple[int, str]] = {
     "map-exists": (409, "Map already exists"),
     "map-limit": (409, "Too many maps"),
     "map-full": (409, "Map is full"),
+    "request-timeout": (408, "Request timeout"),
     "memory-budget": (409, "Memory budget exceeded"),
     "payload-too-large": (413, "Payload too large"),
     "stream-limit": (429, "Too many streams"),

@@ -9,7 +9,9 @@ several apps. What is here:
   for paths no route knows, so label values stay bounded;
 - `cortexloc_requests_in_flight`;
 - `cortexloc_encoder_info{weights,encoder} 1`;
-- `cortexloc_stage_duration_seconds{stage}`, fed by `Metrics.observe_stage` / `Metrics.time_stage`.
+- `cortexloc_stage_duration_seconds{stage}`, fed by `Metrics.observe_stage` / `Metrics.time_stage`;
+- `cortexloc_upload_inflight_bytes` and `cortexloc_upload_refusals_total{reason}`, fed by
+  `service.limits.UploadLimitMiddleware`.
 
 Other components register their own collectors on `metrics.registry` (e.g. per-map gauges).
 
@@ -64,6 +66,13 @@ class Metrics:
                                         ["stage"], buckets=STAGE_BUCKETS, registry=self.registry)
         self.encoder_info = Gauge(PREFIX + "encoder_info", "The loaded encoder (value always 1)",
                                   ["weights", "encoder"], registry=self.registry)
+        self.upload_inflight_bytes = Gauge(
+            PREFIX + "upload_inflight_bytes",
+            "Body bytes reserved by the requests being read or served (CORTEXLOC_MAX_INFLIGHT_UPLOAD_BYTES)",
+            registry=self.registry)
+        self.upload_refusals = Counter(
+            PREFIX + "upload_refusals", "Requests refused for their body: too-large (413), timeout (408, the "
+            "body-read deadline), budget (503, the in-flight bytes)", ["reason"], registry=self.registry)
         self.observations = Counter(PREFIX + "observations", "Observations answered, by map and mode",
                                     ["map", "learned"], registry=self.registry)
         self.memory_budget = Gauge(PREFIX + "memory_budget_bytes", "CORTEXLOC_MEMORY_BUDGET_BYTES or its "

@@ -110,6 +110,14 @@ class Settings(BaseSettings):
     encoder_workers: int = Field(1, ge=1, description="encoder executor size")
     encoder_queue: int = Field(32, ge=1, description="encoder queue length (full: 503 overloaded)")
     max_upload_bytes: int = Field(limits.DEFAULT_MAX_BYTES, ge=1, description="request body limit")
+    body_timeout_s: float = Field(60.0, gt=0, le=3600, description="a request's whole body must arrive "
+                                  "within this many seconds of its start, its head within as many of the "
+                                  "connection's opening or previous reply (408 and the connection closed "
+                                  "otherwise); 10 MiB at 2 Mbit/s takes 42 s")
+    max_inflight_upload_bytes: int = Field(128 * 2**20, ge=1, description="bytes all requests being read "
+                                           "or served may hold in bodies at once (each reserves its "
+                                           "Content-Length; a chunked one its limit); past it 503 "
+                                           "overloaded with Retry-After before the body is read")
     max_pixels: int = Field(limits.DEFAULT_MAX_PIXELS, ge=1,
                             description="decoded-image limit (width x height)")
     default_preset: str = Field("cortexloc-default", min_length=1)
@@ -141,8 +149,8 @@ class Settings(BaseSettings):
                                   "266 MB projection and a million ~3 KB rows fit in 8 GiB")
     api_key: str | None = Field(None, min_length=1, repr=False,
                                 description="when set, every write needs it (X-API-Key or Bearer)")
-    api_key_reads: bool = Field(False, description="reads of whole maps (snapshot downloads) need the key "
-                                                   "too; requires CORTEXLOC_API_KEY")
+    api_key_reads: bool = Field(False, description="every /v1 read and /metrics need the key too (/healthz "
+                                                   "and /readyz stay open); requires CORTEXLOC_API_KEY")
 
     @field_validator("data_dir")
     @classmethod
@@ -160,6 +168,15 @@ class Settings(BaseSettings):
     @classmethod
     def _lower(cls, v: Any) -> Any:
         return v.strip().lower() if isinstance(v, str) else v
+
+    @field_validator("max_inflight_upload_bytes")
+    @classmethod
+    def _room_for_one_upload(cls, v: int, info: ValidationInfo) -> int:
+        largest = info.data.get("max_upload_bytes")
+        if largest is not None and v < largest:
+            raise ValueError(f"must be at least CORTEXLOC_MAX_UPLOAD_BYTES ({largest}): an upload of the "
+                             "largest size would never be let in")
+        return v
 
     @field_validator("api_key_reads")
     @classmethod

@@ -7,7 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Response
 
-from service.deps import MapReadKeyDep, RegistryDep
+from service.deps import RegistryDep
 from service.errors import problem_responses
 from service.maps.recent import RECENT_CAPACITY, kept_thumbnail
 from service.routes.params import AnswerId, MapId
@@ -16,7 +16,7 @@ from service.schemas import STREAM_PATTERN, RecentList, RecentModel
 router = APIRouter(prefix="/v1/maps", tags=["observations"])
 
 
-@router.get("/{map_id}/recent", dependencies=[MapReadKeyDep], responses=problem_responses(400, 401, 404))
+@router.get("/{map_id}/recent", responses=problem_responses(400, 401, 404))
 async def recent_answers(
     map_id: MapId,
     registry: RegistryDep,
@@ -35,7 +35,7 @@ async def recent_answers(
                                for e in entries])
 
 
-@router.get("/{map_id}/recent/{answer_id}/thumbnail", dependencies=[MapReadKeyDep], response_class=Response,
+@router.get("/{map_id}/recent/{answer_id}/thumbnail", response_class=Response,
             responses={**problem_responses(400, 401, 404), 200: {
                 "content": {"image/jpeg": {"schema": {"type": "string", "format": "binary"}}}}})
 async def recent_thumbnail(map_id: MapId, answer_id: AnswerId, registry: RegistryDep) -> Response:

@@ -7,7 +7,7 @@ from fastapi import APIRouter, Response
 from fastapi.responses import StreamingResponse
 from starlette.types import Receive, Scope, Send
 
-from service.deps import ApiKeyDep, MapReadKeyDep, RegistryDep
+from service.deps import ApiKeyDep, RegistryDep
 from service.errors import problem_responses
 from service.maps import snapshots
 from service.routes.params import MapId, SnapshotId
@@ -65,7 +65,7 @@ class TarExportResponse(StreamingResponse):
             self.export.close()
 
 
-@router.get("/{snapshot_id}/download", dependencies=[MapReadKeyDep],
+@router.get("/{snapshot_id}/download",
             responses={**problem_responses(401, 404, 409), 200: {"content": {"application/x-tar": {}}}})
 async def download_snapshot(map_id: MapId, snapshot_id: SnapshotId,
                             registry: RegistryDep) -> TarExportResponse:
