@@ -39,6 +39,7 @@ def test_recent_is_in_memory_only_and_follows_the_read_key_rule(tmp_path):
         assert c.post("/v1/maps/default/observations", content=frame(0), headers={
             "Content-Type": "image/png", "X-API-Key": "k3y"}).status_code == 200
         assert c.get("/v1/maps/default/recent").status_code == 401
+        assert c.get("/v1/maps/default/recent/1/thumbnail").status_code == 401  # a frame is map content
         assert len(c.get("/v1/maps/default/recent", headers={"X-API-Key": "k3y"}).json()["answers"]) == 1
     with make_client(tmp_path / "var", api_key="k3y") as c:  # restarted; reads open without the setting
         assert c.get("/v1/maps/default/recent").json()["answers"] == []
