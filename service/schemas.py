@@ -146,7 +146,8 @@ class Versions(_Out):
     api: str
     code: str
     backbone: str
-    encoder: str
+    encoder: str = Field(description="the map's encoder: backbone, weights and resize mode")
+    resize: str = Field(description="the map's resize mode, crop | squash (frozen with the map)")
     weights: str
     runtime: str = Field(description="the backbone's runtime: onnxruntime or torch (the same codes)")
     device: str = Field(description="where the backbone ran: cpu or cuda")
@@ -195,7 +196,11 @@ class StoredObservationList(_Out):
 class RecentModel(_Out):
     """One answer of the recent ring: the observation reply as it was sent, and when."""
 
+    answer_id: int = Field(description="the answer's number in the map's ring (from 1 since the service "
+                           "opened the map; `.../recent/{answer_id}/thumbnail`)")
     received_at: str = Field(description="when the reply was sent (UTC, ISO 8601)")
+    has_thumbnail: bool = Field(description="the query frame's small JPEG is kept with it (maps with "
+                                "thumbnails; the newest answers within the ring's byte budget)")
     reply: ObservationModel
 
 

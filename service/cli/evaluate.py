@@ -4,7 +4,12 @@
                         [--ds N] [--json OUT] [--plots DIR]
     cortexloc eval grid --generate --aliasing A --noise N [--loops L] [...same options]
     cortexloc eval images --db DIR --query DIR [--methods M,...] [--ds N] [--gt FILE] [--preset NAME]
-                          [--backbone B] [--resize R] [--seeds K] [--json OUT] [--plots DIR]
+                          [--backbone B] [--resize R] [--seeds K] [--reset|--no-reset] [--json OUT]
+                          [--plots DIR]
+
+Defaults: grid --seeds 10; images --seeds 3 and --no-reset (the paper's protocol; the tables of
+docs/results.md pass --reset, docs/design/science.md §8.5). The README's command list says the same
+(tests/models/evaluation/test_sequences.py checks it against these options).
 
 Tables go to stdout, progress and warnings to stderr, machine-readable results to --json.
 """
@@ -87,6 +92,34 @@ def eval_grid(
     typer.echo(format_grid_table(result))
 
 
+def _legend(query_auc: str, recall_100p: str, spread: str) -> list[str]:
+    """The lines under a result table that say what its columns are (docs/design/science.md §8.2, §8.3);
+    "AUC pairs" near 0.5 beside R@1 1.000 is not a contradiction, and says why."""
+    return ["AUC pairs = the paper's AUC (§8.2): precision-recall over all pairs (database row, query) at "
+            "one threshold shared by every query;",
+            "  it also asks that scores compare across queries, so it can sit near 0.5 beside R@1 1.000 "
+            "(right answers, scores on different scales);",
+            f"{query_auc} = per query: each query's best match ranked by its confidence; R@1 / R@5 = the "
+            "right place is the best match / among the 5 best;",
+            f"{recall_100p}; {spread} over the seeds"]
+
+
+def _table(entries: dict[str, dict[str, Any]], columns: list[tuple[str, str, str]]) -> list[str]:
+    """Header and one row per method, every column as wide as its widest cell (method names differ in
+    length: `service-without-tm`). `columns`: (header, key of the entry, format spec)."""
+    cells = {m: [format(e[key], spec) for _, key, spec in columns] for m, e in entries.items()}
+    name_w = max([len("method"), *map(len, entries)])
+    widths = [max([len(head), *(len(c[i]) for c in cells.values())])
+              for i, (head, _, _) in enumerate(columns)]
+
+    def line(name: str, values: list[str], notes: str) -> str:
+        padded = (f"{v:>{w}}" for v, w in zip(values, widths, strict=True))
+        return " ".join([f"{name:<{name_w}}", *padded]) + f"  {notes}"
+
+    return [line("method", [head for head, _, _ in columns], "notes"),
+            *(line(m, cells[m], _method_notes(m, e)) for m, e in entries.items())]
+
+
 def format_grid_table(result: dict[str, Any]) -> str:
     """A readable table of a grid result (stdout)."""
     data = result["data"]
@@ -94,15 +127,14 @@ def format_grid_table(result: dict[str, Any]) -> str:
         what = f"generated a={data['aliasing']} n={data['noise']} loops={data['loops']} ({data['mode']})"
     else:
         what = f"published {Path(str(data.get('sdr_file', '?'))).name}"
-    lines = [f"grid world: {what}; scoring={result['scoring']}; seeds={result['seeds']}",
-             f"{'method':<15} {'AUC mean':>9} {'sd':>7} {'min':>8} {'max':>8} {'R@1':>7} {'R@5':>7} "
-             f"{'R@100P':>7} {'qAUC':>7} {'qR@100P':>7}  notes"]
-    for m, e in result["methods"].items():
-        lines.append(f"{m:<15} {e['auc_mean']:>9.6f} {e['auc_sd']:>7.4f} {e['auc_min']:>8.4f} "
-                     f"{e['auc_max']:>8.4f} {e['recall_at_1_mean']:>7.3f} {e['recall_at_5_mean']:>7.3f} "
-                     f"{e['recall_at_100p_mean']:>7.3f} {e['query_auc_mean']:>7.3f} "
-                     f"{e['query_recall_at_100p_mean']:>7.3f}  {_method_notes(m, e)}")
-    return "\n".join(lines)
+    columns = [("AUC pairs", "auc_mean", ".6f"), ("sd", "auc_sd", ".4f"), ("min", "auc_min", ".4f"),
+               ("max", "auc_max", ".4f"), ("R@1", "recall_at_1_mean", ".3f"),
+               ("R@5", "recall_at_5_mean", ".3f"), ("R@100P", "recall_at_100p_mean", ".3f"),
+               ("qAUC", "query_auc_mean", ".3f"), ("qR@100P", "query_recall_at_100p_mean", ".3f")]
+    return "\n".join([f"grid world: {what}; scoring={result['scoring']}; seeds={result['seeds']}",
+                      *_table(result["methods"], columns),
+                      *_legend("qAUC", "R@100P / qR@100P = recall at 100 % precision, all pairs / per query",
+                               "sd, min, max")])
 
 
 def _method_notes(method: str, entry: dict[str, Any]) -> str:
@@ -134,7 +166,8 @@ def eval_images(
     backbone: Annotated[str | None, typer.Option(help="a backbone registered in models.frontend.backbones "
                                                       "(default: the service's, resolved as serve "
                                                       "does)")] = None,
-    resize: Annotated[str | None, typer.Option(help="crop | squash (default: the service's)")] = None,
+    resize: Annotated[str | None, typer.Option(help="crop | squash (default: a new map's, "
+                                                    "service.maps.params.DEFAULT_RESIZE)")] = None,
     methods: Annotated[str, typer.Option(help="Comma-separated: cosine,slsbh,mcn,htm (one frame); "
                                           "openseqslam (the reference on grey pixels); cosine-seq,"
                                           "slsbh-seq,mcn-seq,htm-seq (the same sequence matcher on each "
@@ -164,7 +197,8 @@ def eval_images(
                                                 "backwards (a route driven the other way).")] = False,
     drop_dark: Annotated[float, typer.Option(min=0.0, help="Drop pairs where either frame's mean grey is "
                                                           "below this (0 = keep all; §8.5 uses 20).")] = 0.0,
-    seeds: Annotated[int, typer.Option(min=1)] = 3,
+    seeds: Annotated[int, typer.Option(min=1, help="Runs; seeds spawned from --seed (a claim wants 10, "
+                                                   "docs/design/science.md §8.6).")] = 3,
     seed: Annotated[int, typer.Option(help="Experiment seed.")] = 0,
     cache: Annotated[Path | None, typer.Option(help="Feature cache folder (default: "
                                                     "$CORTEXLOC_CACHE_DIR or ~/.cache/cortexloc).")] = None,
@@ -186,13 +220,14 @@ def eval_images(
     from models.frontend import images
     from service.encoder import resolve_backbone
     from service.evaluation import service_path
+    from service.maps.config import DEFAULT_RESIZE
     from service.settings import Settings
 
     # The service's defaults, read from their one home each (docs/design/service.md §8,
     # models.frontend.encoder).
     preset = preset or Settings.model_fields["default_preset"].default
     backbone = backbone or resolve_backbone(Settings.from_env()).backbone
-    resize = resize or encoder_mod.default_conf["resize"]
+    resize = resize or DEFAULT_RESIZE  # a new map's (service.maps.params)
     method_list = [m.strip() for m in methods.split(",") if m.strip()]
     service_list = [m for m in method_list if m in service_path.METHODS]
     method_list = [m for m in method_list if m not in service_path.METHODS]
@@ -220,13 +255,15 @@ def eval_images(
                                          "--drop-dark", param_hint="--gt")
             db_names, q_names = sequences.image_names(db), sequences.image_names(query)
             gt_matrix = ground_truth.load(gt, len(db_names), len(q_names), q_names)
-            db_keep = q_keep = None
         else:
-            # Features are computed (and cached) for the whole paired route once; a window is a slice.
-            db_names = q_names = sequences.paired_names(db, query)
-            db_keep = q_keep = np.arange(len(q_names))[offset: None if limit is None else offset + limit]
-            if db_keep.size == 0:
-                raise ValueError(f"offset {offset} leaves no pair of the {len(q_names)} in common")
+            # Only the window's frames (less the dark ones) are read and encoded, cached under their own key.
+            db_names = q_names = sequences.paired_names(db, query, offset, limit)
+            if drop_dark > 0:
+                dark = (sequences.dark_frames([db / n for n in db_names], drop_dark)
+                        | sequences.dark_frames([query / n for n in q_names], drop_dark))
+                db_names = q_names = [n for n, d in zip(q_names, dark, strict=True) if not d]
+                if len(q_names) < 2:
+                    raise typer.BadParameter("fewer than two pairs are left", param_hint="--drop-dark")
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     cache_dir = cache or Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc"))
@@ -241,15 +278,6 @@ def eval_images(
             with progress(f"features {label}") as tick:
                 feats[label] = sequences.cached_features(enc, [folder / n for n in names],
                                                          cache_dir / "features", progress=tick)
-    if db_keep is not None:
-        if drop_dark > 0:
-            dark = (sequences.dark_frames([db / db_names[i] for i in db_keep], drop_dark)
-                    | sequences.dark_frames([query / q_names[i] for i in q_keep], drop_dark))
-            db_keep = q_keep = db_keep[~dark]
-            if len(db_keep) < 2:
-                raise typer.BadParameter("fewer than two pairs are left", param_hint="--drop-dark")
-        feats = {"db": feats["db"][db_keep], "query": feats["query"][q_keep]}
-        db_names = q_names = [q_names[i] for i in q_keep]
     db_paths, q_paths = [db / n for n in db_names], [query / n for n in q_names]
     frames = ((seq.load_frames(db_paths), seq.load_frames(q_paths)) if "openseqslam" in method_list
               else None)
@@ -271,7 +299,7 @@ def eval_images(
                     feats["db"], feats["query"], methods=service_list, columns=columns, tolerance=tolerance,
                     gt=gt_matrix, seeds=seeds, seed=seed, reverse_query=reverse_query, progress=tick,
                     map_conf={"encoder_id": enc.identity, "backbone": backbone, "preset": preset,
-                              "create": {"slsbh": {"s": sparsity, "adapt_tau": adapt}}})
+                              "create": {"slsbh": {"s": sparsity, "adapt_tau": adapt}, "resize": resize}})
             result["methods"].update(summary)
             result["first"].update(first)
     except ValueError as e:
@@ -327,23 +355,21 @@ def _operating_point(value: str | None) -> float | None:
 
 
 def format_images_table(result: dict[str, Any]) -> str:
-    """A readable table of an image result (stdout): the settings it ran with, then both metrics."""
+    """A readable table of an image result (stdout): the settings it ran with, both metrics, a legend."""
     c = result["config"]
-    lines = [f"{Path(c['db']).name} -> {Path(c['query']).name}: {c['pairs']} queries ({c['first']} .. "
-             f"{c['last']}), ground truth {c['gt']}, tolerance ±{c['tolerance']}",
-             f"preset {c['preset']}, backbone {c['backbone']} [{c['weights']} weights], "
-             f"resize {c['resize']}, s={c['s']}, adapt={c['adapt_tau']}, "
-             f"{'reset' if c['reset'] else 'no reset'}, seeds={c['seeds']}, ds={c['ds']}; "
-             f"{len(result['queries'])} queries scored",
-             "all pairs = the paper's AUC (§8.2); per query = each query's best match and its confidence",
-             f"{'method':<12} {'AUC pairs':>9} {'min':>7} {'max':>7} {'AUC query':>9} {'R@1':>6} {'R@5':>6} "
-             f"{'R@100P':>7} {'s/run':>7}  notes"]
-    for m, e in result["methods"].items():
-        lines.append(f"{m:<12} {e['auc_mean']:>9.4f} {e['auc_min']:>7.4f} {e['auc_max']:>7.4f} "
-                     f"{e['query_auc_mean']:>9.4f} {e['recall_at_1_mean']:>6.3f} "
-                     f"{e['recall_at_5_mean']:>6.3f} {e['query_recall_at_100p_mean']:>7.3f} "
-                     f"{e['seconds_mean']:>7.2f}  {_method_notes(m, e)}")
-    return "\n".join(lines)
+    columns = [("AUC pairs", "auc_mean", ".4f"), ("min", "auc_min", ".4f"), ("max", "auc_max", ".4f"),
+               ("AUC query", "query_auc_mean", ".4f"), ("R@1", "recall_at_1_mean", ".3f"),
+               ("R@5", "recall_at_5_mean", ".3f"), ("R@100P", "query_recall_at_100p_mean", ".3f"),
+               ("s/run", "seconds_mean", ".2f")]
+    return "\n".join([
+        f"{Path(c['db']).name} -> {Path(c['query']).name}: {c['pairs']} queries "
+        f"({c['first']} .. {c['last']}), ground truth {c['gt']}, tolerance ±{c['tolerance']}",
+        f"preset {c['preset']}, backbone {c['backbone']} [{c['weights']} weights], resize {c['resize']}, "
+        f"s={c['s']}, adapt={c['adapt_tau']}, {'reset' if c['reset'] else 'no reset'}, seeds={c['seeds']}, "
+        f"ds={c['ds']}; {len(result['queries'])} queries scored",
+        *_table(result["methods"], columns),
+        *_legend("AUC query", "R@100P = recall at 100 % precision, per query", "min, max"),
+        "s/run = seconds per seed"])
 
 
 @app.command("revisit")
@@ -354,15 +380,16 @@ def eval_revisit(
     noise: Annotated[float, typer.Option(help="pixel noise, grey levels (std)")] = 8.0,
     backbone: Annotated[str, typer.Option(help="a backbone registered in models.frontend.backbones")]
     = "efficientnet-lite0",
-    resize: Annotated[str, typer.Option(help="crop | squash")] = "squash",
+    resize: Annotated[str | None, typer.Option(help="crop | squash (default: a new map's)")] = None,
     seed: int = 0,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the summary here too")] = None,
 ) -> None:
     """Corridor-like revisits through the service's path (service/evaluation/revisit.py)."""
     from service.evaluation.revisit import revisit
+    from service.maps.config import DEFAULT_RESIZE
 
-    revisit(folder, offset=offset, limit=limit, noise=noise, backbone=backbone, resize=resize, seed=seed,
-            json_path=json_out)
+    revisit(folder, offset=offset, limit=limit, noise=noise, backbone=backbone,
+            resize=resize or DEFAULT_RESIZE, seed=seed, json_path=json_out)
 
 
 @app.command("unknown")
@@ -393,3 +420,21 @@ def eval_runtime_parity(
     from service.evaluation.runtime_parity import report
 
     report(windows.split(",") if windows else list(WINDOWS), json_out)
+
+
+@app.command("resize")
+def eval_resize(
+    db: Annotated[Path, typer.Option(help="the database traverse's folder", exists=True, file_okay=False)],
+    query: Annotated[Path, typer.Option(help="the query traverse's folder", exists=True, file_okay=False)],
+    offset: Annotated[int, typer.Option(min=0)] = 0,
+    limit: Annotated[int, typer.Option(min=1)] = 300,
+    shapes: Annotated[str, typer.Option(help="frame shapes, comma-separated")] = "2:1,4:3",
+    backbone: Annotated[str | None, typer.Option(help="default: the service's")] = None,
+    seeds: Annotated[str, typer.Option(help="map seeds, comma-separated")] = "1",
+) -> None:
+    """Crop or squash through the service's path on frames of several shapes
+    (service/evaluation/resize.py)."""
+    from service.evaluation.resize import resize_runs
+
+    resize_runs(db, query, offset=offset, limit=limit, shapes=shapes.split(","), backbone=backbone,
+                seeds=[int(x) for x in seeds.split(",")])

@@ -6,6 +6,7 @@ configuration resolved as a created map's and every frame through `models.pipeli
     revisit.py       corridor-like revisits: the same frames again with pixel noise
     unknown.py       false revisits on places never stored, and the decision on the places stored
     runtime_parity.py  the backbone's runtimes (torch, ONNX Runtime) give the same codes and answers
+    resize.py        crop or squash on frames of several shapes cut from the same footage
 
 The pure measures (metrics, datasets, the other methods) are `models.evaluation`'s; the command line of
 all of them is `cortexloc eval` (service/cli/evaluate.py, typer).

@@ -25,7 +25,7 @@ import numpy as np
 from models.evaluation import sequences
 from models.frontend.encoder import Encoder
 from service.evaluation import service_path
-from service.maps.config import DEFAULT_REVISIT_THRESHOLD
+from service.maps.config import DEFAULT_RESIZE, DEFAULT_REVISIT_THRESHOLD
 from service.settings import Settings
 
 
@@ -47,7 +47,7 @@ def separability(right: np.ndarray, wrong: np.ndarray) -> float | None:
 
 
 def revisit(folder: Path, *, offset: int = 0, limit: int = 894, noise: float = 8.0,
-            backbone: str = "efficientnet-lite0", resize: str = "squash", seed: int = 0,
+            backbone: str = "efficientnet-lite0", resize: str = DEFAULT_RESIZE, seed: int = 0,
             json_path: Path | None = None) -> dict[str, Any]:
     """The experiment (module docstring); its summary, printed and written to `json_path` if given."""
     args = SimpleNamespace(folder=folder, offset=offset, limit=limit, noise=noise, backbone=backbone,

@@ -27,14 +27,15 @@ from pydantic import (
 )
 
 from models import presets
-from models.frontend import backbones, slsbh
+from models.frontend import backbones, images, slsbh
 from models.localisation import LocaliserParams, default_conf
 from models.memory import registry as memories
 from models.memory.temporal_memory import validate
 from models.pipeline import MapModel
 from service.maps.errors import InvalidConfiguration
 
-__all__ = ["DEFAULT_REVISIT_THRESHOLD", "SHOWN_PARAMS", "MapConfig", "MapOptions", "map_model", "resolve"]
+__all__ = ["DEFAULT_RESIZE", "DEFAULT_REVISIT_THRESHOLD", "SHOWN_PARAMS", "MapConfig", "MapOptions",
+           "map_model", "resolve"]
 
 #: A new map's `revisit_threshold` (docs/design/service.md §1.2): the confidence at which an answer is
 #: called a revisit. docs/results.md §9.2: on Nordland `tune` (EfficientNet-Lite0, the service's path,
@@ -42,8 +43,14 @@ __all__ = ["DEFAULT_REVISIT_THRESHOLD", "SHOWN_PARAMS", "MapConfig", "MapOptions
 #: precision 0.99 is reached at confidence 0.951; changeable per map with PATCH.
 DEFAULT_REVISIT_THRESHOLD = 0.951
 
+#: A new map's `resize` (crop | squash: how a frame of any shape becomes the backbone's 224 x 224 input,
+#: docs/design/science.md §6). docs/results.md §9.6: through the service's path on Nordland, on 2:1
+#: frames and on 4:3 frames cut from the same footage, squash gave more right places and more revisits
+#: than crop on both shapes, in every seed. Maps made before the option keep `crop` (the field's default).
+DEFAULT_RESIZE = "squash"
+
 #: The options the map resource shows under `params` (the others are its top-level fields).
-SHOWN_PARAMS = ("tm", "slsbh", "seed", "exclude_recent", "memory", "projection", "localiser")
+SHOWN_PARAMS = ("tm", "slsbh", "seed", "exclude_recent", "memory", "projection", "localiser", "resize")
 
 
 def _body(name: str, message: str) -> dict[str, str]:
@@ -117,6 +124,9 @@ class MapOptions(BaseModel):
     localiser: dict[str, Any] | None = Field(default=None, description="sequence localiser options "
                                              "(docs/design/science.md §11.3)")
     thumbnails: bool = Field(default=False, description="keep a small JPEG of each learned frame")
+    resize: str | None = Field(default=None, description=f"{' | '.join(images.MODES)}: how a frame becomes "
+                               "the backbone's square input (crop: the middle, as the paper; squash: the "
+                               f"whole frame; default: {DEFAULT_RESIZE}); frozen with the map")
 
 
 class MapConfig(BaseModel):
@@ -141,6 +151,9 @@ class MapConfig(BaseModel):
     encoder_id: str = Field(default="", frozen=True)
     thumbnails: bool = Field(default=False, frozen=True)
     warnings: list[str] = Field(default_factory=list, frozen=True)
+    resize: str = Field(default="crop", frozen=True,
+                        description="crop | squash: how the map's frames become the backbone's square "
+                                    "input (crop: the middle of a wide frame; squash: all of it, distorted)")
 
     @field_validator("revisit_threshold")
     @classmethod
@@ -173,6 +186,8 @@ class MapConfig(BaseModel):
                                 f"{', '.join(backbones.names())}"))
         if self.memory not in memories.names():
             errors.append(_body("memory", f"memory must be one of {', '.join(memories.names())}"))
+        if self.resize not in images.MODES:
+            errors.append(_body("resize", f"resize must be one of {', '.join(images.MODES)}"))
         if errors:
             raise _OptionsError(errors)
         return self
@@ -256,7 +271,8 @@ def resolve(options: MapOptions, *, default_preset: str, default_backbone: str) 
         "preset": preset, "tm": tm, "slsbh": s_conf, "seed": tm["seed"],
         "exclude_recent": options.exclude_recent,
         "backbone": options.backbone or default_backbone, "memory": options.memory,
-        "localiser": dict(options.localiser or {}), "thumbnails": options.thumbnails, "warnings": warnings}
+        "localiser": dict(options.localiser or {}), "thumbnails": options.thumbnails, "warnings": warnings,
+        "resize": options.resize or DEFAULT_RESIZE}
     if options.revisit_threshold is not None:
         values["revisit_threshold"] = options.revisit_threshold
     return MapConfig.parse(values)

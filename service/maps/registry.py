@@ -162,10 +162,10 @@ class MapRegistry:
             log.error("map %s: %s", record.map_id, unavailable)
             return rt
         rt = self._runtime(record, encoder.feature_dim)
-        if config.encoder_id != encoder.identity:
+        if config.encoder_id != encoder.identity_for(config.resize):  # one network serves both modes
             rt.state, rt.state_reason = "failed", "encoder-mismatch"
             log.error("map %s was built with encoder %s, this server runs %s", record.map_id,
-                      config.encoder_id, encoder.identity)
+                      config.encoder_id, encoder.identity_for(config.resize))
             return rt
         try:
             rt.recover()
@@ -233,7 +233,9 @@ class MapRegistry:
                                 int(config.slsbh["seed"]))
         _, sha = slsbh.save_projection(P, self.projections)
         del P
-        config = config.model_copy(update={"projection_sha256": sha, "encoder_id": encoder.identity})
+        # the encoder identity names the backbone, its weights and the map's resize mode
+        config = config.model_copy(update={"projection_sha256": sha,
+                                           "encoder_id": encoder.identity_for(config.resize)})
         self.budget.reserve(map_id, self._need(config, encoder.feature_dim, 0))  # shared: less
         if encoder.identity.split("/")[1].startswith("random"):
             log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, encoder.identity)
@@ -243,7 +245,7 @@ class MapRegistry:
         map_dir.mkdir(parents=True)
         params = config.stored()
         store = MapStore.create(self.layout.map_db(map_id), MapMeta(
-            map_id=map_id, params=params, projection_sha256=sha, encoder_id=encoder.identity,
+            map_id=map_id, params=params, projection_sha256=sha, encoder_id=config.encoder_id,
             cell_dtype=cell_dtype_for(int(config.tm["columnDimensions"]) * int(config.tm["cellsPerColumn"]))))
         store.close()
         try:

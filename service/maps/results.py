@@ -93,6 +93,11 @@ class ObservationResult:
     backbone: str
     place: PlaceResult | None
     metadata: dict[str, Any] | None = None  # the frame's, as posted (stored with a learned row)
+    encoder: str = ""  # the map's encoder identity (backbone, weights, resize mode)
+    resize: str = "crop"  # the map's resize mode (crop | squash)
+    # The frame's small JPEG on a map that keeps thumbnails, learned or not: for the recent ring (the
+    # viewer's query thumbnail, docs/design/service.md §1.7), never part of a reply.
+    thumbnail: bytes | None = None
 
 
 @dataclass(frozen=True)

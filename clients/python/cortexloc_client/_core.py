@@ -230,6 +230,10 @@ def thumbnail(map_id: str, seq: int) -> Call[bytes]:
     return Call("GET", f"{_map(map_id)}/observations/{int(seq)}/thumbnail", _content, idempotent=True)
 
 
+def recent_thumbnail(map_id: str, answer_id: int) -> Call[bytes]:
+    return Call("GET", f"{_map(map_id)}/recent/{int(answer_id)}/thumbnail", _content, idempotent=True)
+
+
 def create_snapshot(map_id: str) -> Call[models.Snapshot]:
     return Call("POST", f"{_map(map_id)}/snapshots", _model(models.Snapshot))
 

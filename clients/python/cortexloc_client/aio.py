@@ -89,13 +89,16 @@ class AsyncClient:
     # ---------------------------------------------------------------------------------- maps
 
     async def create_map(self, map_id: str | None = None, *, preset: str | None = None,
-                   seed: int | None = None, tm: Mapping[str, Any] | None = None,
-                   slsbh: Mapping[str, Any] | None = None, exclude_recent: int | None = None,
-                   revisit_threshold: float | None = None, thumbnails: bool | None = None) -> models.Map:
-        """`POST /v1/maps`: a new map; unset fields take the server's preset (a generated id if no id)."""
-        return await self._send(_core.create_map(map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh,
-                                           exclude_recent=exclude_recent, revisit_threshold=revisit_threshold,
-                                           thumbnails=thumbnails))
+                         seed: int | None = None, tm: Mapping[str, Any] | None = None,
+                         slsbh: Mapping[str, Any] | None = None, exclude_recent: int | None = None,
+                         backbone: str | None = None, memory: str | None = None,
+                         revisit_threshold: float | None = None, localiser: Mapping[str, Any] | None = None,
+                         thumbnails: bool | None = None, resize: str | None = None) -> models.Map:
+        """`POST /v1/maps`: as `Client.create_map`."""
+        return await self._send(_core.create_map(
+            map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh, exclude_recent=exclude_recent,
+            backbone=backbone, memory=memory, revisit_threshold=revisit_threshold, localiser=localiser,
+            thumbnails=thumbnails, resize=resize))
 
     async def list_maps(self) -> list[models.Map]:
         return await self._send(_core.list_maps())
@@ -152,6 +155,10 @@ class AsyncClient:
     async def thumbnail(self, map_id: str, seq: int) -> bytes:
         """`GET /v1/maps/{map_id}/observations/{seq}/thumbnail`: the stored JPEG thumbnail."""
         return await self._send(_core.thumbnail(map_id, seq))
+
+    async def recent_thumbnail(self, map_id: str, answer_id: int) -> bytes:
+        """`GET /v1/maps/{map_id}/recent/{answer_id}/thumbnail`: see `Client.recent_thumbnail`."""
+        return await self._send(_core.recent_thumbnail(map_id, answer_id))
 
     # ----------------------------------------------------------------------------- snapshots
 

@@ -99,6 +99,9 @@ class MapParams(_Reply):
     projection: str | None = None
     #: The sequence localiser's options, frozen with the map.
     localiser: dict[str, Any] | None = None
+    #: How the map's frames become the backbone's square input: "crop" (the middle) or "squash" (all of
+    #: it); frozen with the map (None from an older server).
+    resize: str | None = None
 
 
 class Map(_Reply):
@@ -278,6 +281,8 @@ class Versions(_Reply):
     code: str
     backbone: str | None = None
     encoder: str
+    #: The map's resize mode, "crop" or "squash" (None from an older server).
+    resize: str | None = None
     weights: str
     runtime: str | None = None  # the service's backbone runtime and device (servers before issue 24: None)
     device: str | None = None
@@ -350,7 +355,11 @@ class SnapshotList(_Reply):
 class RecentAnswer(_Reply):
     """One answer of a map's recent ring: the observation reply as it was sent, and when."""
 
+    #: The answer's number in the map's ring (`Client.recent_thumbnail`); None from an older server.
+    answer_id: int | None = None
     received_at: str
+    #: The query frame's small JPEG is kept with it (maps created with `thumbnails=True`).
+    has_thumbnail: bool = False
     reply: Observation
 
 

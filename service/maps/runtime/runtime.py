@@ -343,8 +343,9 @@ class MapRuntime:
         with contextlib.suppress(RuntimeError):
             self._admit(stream)
         t0 = time.perf_counter()
+        # Localised frames too: their thumbnail is kept in the recent ring only (never stored).
         encoding = pool.submit(body, hasher=self.hasher, backbone=self.config.backbone,
-                               thumbnail=learn and self.config.thumbnails)
+                               thumbnail=self.config.thumbnails, resize=self.config.resize)
         before, mine = self._turn, asyncio.Event()
         self._turn = mine
         try:
@@ -353,10 +354,11 @@ class MapRuntime:
             await before.wait()
             assert encoded.projected is not None  # the pool projects when given a hasher
             front = {"decode": encoded.timings_ms["decode"], "encode": (t_encoded - t0) * 1e3}
+            thumb = encoded.thumbnails[0] if encoded.thumbnails else None
             apply = functools.partial(
                 self.apply, encoded.projected[0], hashlib.sha256(getattr(body, "data", body)).hexdigest(),
                 learn=learn, stream=stream, top_k=top_k, label=label, metadata=metadata,
-                thumbnail=encoded.thumbnails[0] if encoded.thumbnails else None, post=post)
+                thumbnail=thumb if learn else None, post=post)
             if post is not None:
                 post.front_ms = front
                 assert self.store is not None  # a ready map has its store
@@ -366,9 +368,10 @@ class MapRuntime:
         finally:
             mine.set()
         if post is not None:
-            return await asyncio.wrap_future(once)
+            answer = await asyncio.wrap_future(once)
+            return answer if answer.replayed else dataclasses.replace(answer, thumbnail=thumb)
         result = await asyncio.wrap_future(step)
-        return dataclasses.replace(result, timings_ms={**front, **result.timings_ms})
+        return dataclasses.replace(result, timings_ms={**front, **result.timings_ms}, thumbnail=thumb)
 
     def apply(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None = None, thumbnail: bytes | None = None,
@@ -440,6 +443,7 @@ class MapRuntime:
             matches=[Match.of(i + 1, rows[m.seq], m.overlap, m.score) for i, m in enumerate(step.ranked)],
             timings_ms=step.timings_ms, map_seq=seq or self.store.last_seq(),
             projection_sha256=self.config.projection_sha256, backbone=self.config.backbone, metadata=metadata,
+            encoder=self.config.encoder_id, resize=self.config.resize,
             place=None if place is None else PlaceResult.of(place, rows[place.seq],
                                                             self.config.revisit_threshold))
         if row is not None:

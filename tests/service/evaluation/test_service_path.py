@@ -27,10 +27,11 @@ def test_http_and_eval_give_the_same_places(tmp_path, memory):
         enc = c.app.state.encoder
         preset = c.app.state.settings.default_preset
         # one image per call, as the pool embeds a lone request
-        db_feats = np.concatenate([enc.embed([b]).features for b in db_bodies])
-        q_feats = np.concatenate([enc.embed([b]).features for b in q_bodies])
-    found = service_path.replay(db_feats, q_feats, encoder_id=enc.identity, backbone="alexnet",
-                                preset=preset, seed=7, memory=memory)
+        resize = c.app.state.registry.get("route").config.resize  # the map's mode, as the pool uses it
+        db_feats = np.concatenate([enc.embed([b], resize=resize).features for b in db_bodies])
+        q_feats = np.concatenate([enc.embed([b], resize=resize).features for b in q_bodies])
+    found = service_path.replay(db_feats, q_feats, encoder_id=enc.identity_for(resize), backbone="alexnet",
+                                preset=preset, seed=7, memory=memory, create={"resize": resize})
     want = [None if p is None else (p["seq"] - 1, p["confidence"], p["support"]) for p in http]
     got = [None if b < 0 else (int(b), float(cf), int(s))
            for b, cf, s in zip(found.best, found.confidence, found.support, strict=True)]
