@@ -272,7 +272,7 @@ def resolve(options: MapOptions, *, default_preset: str, default_backbone: str) 
         "exclude_recent": options.exclude_recent,
         "backbone": options.backbone or default_backbone, "memory": options.memory,
         "localiser": dict(options.localiser or {}), "thumbnails": options.thumbnails, "warnings": warnings,
-        "resize": options.resize or DEFAULT_RESIZE}
+        "resize": DEFAULT_RESIZE if options.resize is None else options.resize}
     if options.revisit_threshold is not None:
         values["revisit_threshold"] = options.revisit_threshold
     return MapConfig.parse(values)

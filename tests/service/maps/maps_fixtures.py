@@ -16,7 +16,8 @@ from service.maps.runtime import MapRuntime
 from service.settings import Settings
 
 D = 96  # feature dimension of the stand-in encoder
-ENCODER = SimpleNamespace(identity="alexnet-conv3/test-features:crop", feature_dim=D)
+ENCODER = SimpleNamespace(identity="alexnet-conv3/test-features:crop", feature_dim=D,
+                          identity_for=lambda resize: f"alexnet-conv3/test-features:{resize}")
 
 
 @contextmanager
