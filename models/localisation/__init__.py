@@ -6,12 +6,24 @@ from models.localisation.localiser import (
     NULL_PRIOR,
     LocaliserParams,
     LocaliserState,
+    OwnTrail,
     Place,
     SequenceLocaliser,
     default_conf,
     top_candidates,
 )
+from models.localisation.trail import CodeStats
 
-__all__ = ["HYPOTHESIS_BYTES", "NULL_PRIOR", "LocaliserParams", "LocaliserState", "Place", "SequenceGraph",
-           "SequenceLocaliser", "default_conf",
-           "top_candidates"]
+__all__ = [
+    "HYPOTHESIS_BYTES",
+    "NULL_PRIOR",
+    "CodeStats",
+    "LocaliserParams",
+    "LocaliserState",
+    "OwnTrail",
+    "Place",
+    "SequenceGraph",
+    "SequenceLocaliser",
+    "default_conf",
+    "top_candidates",
+]

@@ -114,7 +114,7 @@ class MapRuntime:
         self.index = InvertedIndex(self.tm.n_cells, max_observations)
         self.memory_kind, self.backbone = (map_option(self.params, k) for k in ("memory", "backbone"))
         self.revisit_threshold = float(map_option(self.params, "revisit_threshold"))
-        self.localisation = Localisation(map_option(self.params, "localiser"))
+        self.localisation = Localisation(map_option(self.params, "localiser"), self.tm.n_columns)
         self.store: MapStore | None = None
         self.recent: RecentAnswers[Any] = RecentAnswers()  # the replies as sent (the route fills it)
 
@@ -372,13 +372,13 @@ class MapRuntime:
         winners = winner_cells(self.tm, code, learn=learn, context=st.context, memory=self.memory_kind)
         stats = st.context.stats.as_dict()
         t2 = time.perf_counter()
-        exclude_recent = int(self.params.get("exclude_recent", 0))
-        # One index pass serves the matches and the localiser's candidates (docs/design/science.md §11.2).
-        ranked = self.index.rank(winners, self.localisation.candidates_wanted(top_k, learn),
-                                 exclude_recent_stream=stream if exclude_recent else None,
-                                 exclude_recent=exclude_recent)
         st.localiser = st.localiser or self.localisation.new_state()
-        place = self.localisation.step(st.localiser, ranked, st.last_learned_seq, learn)
+        # The stream's own rows it has not left are no answer (docs/design/science.md §11.6); one index
+        # pass without them serves the matches and the localiser's candidates (§11.2).
+        own = self.localisation.own_trail(st.localiser, st.last_learned_seq, code, self._code_of)
+        ranked = self.index.rank(winners, self.localisation.candidates_wanted(top_k),
+                                 exclude_own=None if own is None else (stream, own.first))
+        place = self.localisation.step(st.localiser, ranked, own)
         ranked = ranked[:top_k]
         t3 = time.perf_counter()
         rows = self.store.get_many([*(m.seq for m in ranked), *([place.seq] if place else [])])
@@ -411,6 +411,13 @@ class MapRuntime:
         t4 = time.perf_counter()
         return dataclasses.replace(result, timings_ms={**result.timings_ms, "store": (t4 - t3) * 1e3})
 
+    def _code_of(self, seq: int) -> np.ndarray:
+        """Writer: a stored row's frame code (its sLSBH input SDR), for the own-trail rule."""
+        assert self.store is not None
+        row = self.store.get(seq)
+        assert row is not None  # the rows of a stream's trail are stored (the rule walks committed rows)
+        return row.input_sdr
+
     def _commit(self, row: NewObservation) -> tuple[int, str]:
         """Writer: the row on disk, then in the index and the links: (seq, observation id). A failed
         append raises; `apply` rebuilds the memory from the store."""
@@ -418,7 +425,7 @@ class MapRuntime:
         seq = self.store.append(row)
         with contextlib.suppress(IndexFull):  # checked in `apply`; the row is durable either way
             self.index.add(seq, row.winner_cells, row.stream)
-        self.localisation.add(seq, row.context_prev_seq)
+        self.localisation.add(seq, row.context_prev_seq, row.input_sdr)
         return seq, row.observation_id
 
     # ------------------------------------------------------------------ resources
