@@ -11,11 +11,12 @@ folder (the feature cache), with the same encoder; the projection is the map's o
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,10 +29,13 @@ from service.maps.registry import MapRegistry
 from service.maps.runtime import MapRuntime
 from service.settings import Settings
 
-__all__ = ["METHODS", "FeaturesOnly", "experiment", "operating_point", "replay"]
+__all__ = ["METHODS", "SLAM_METHODS", "FeaturesOnly", "experiment", "operating_point", "replay",
+           "slam_replay"]
 
 #: The service's methods and their map option `memory`.
 METHODS = {"service": "tm", "service-without-tm": "none"}
+#: The same as one learning stream (loop closure while mapping, docs/design/science.md §11.6).
+SLAM_METHODS = {"service-slam": "tm", "service-slam-without-tm": "none"}
 
 
 @dataclass(frozen=True)
@@ -46,6 +50,54 @@ def _step(rt: MapRuntime, y: np.ndarray, *, learn: bool, stream: str) -> Any:
     sha = hashlib.sha256(np.ascontiguousarray(y).tobytes()).hexdigest()
     step = functools.partial(rt.apply, y, sha, learn=learn, stream=stream, top_k=0, label=None)
     return rt.submit(step).result()
+
+
+@contextlib.contextmanager
+def _eval_map(n_rows: int, feature_dim: int, *, encoder_id: str, backbone: str, preset: str, seed: int,
+              memory: str, localiser: dict[str, Any] | None, create: dict[str, Any] | None
+              ) -> Iterator[MapRuntime]:
+    """A served map on a temporary data directory (the service's registry, store, index, localiser)."""
+    with tempfile.TemporaryDirectory(prefix="cortexloc-eval-") as tmp:
+        settings = Settings(data_dir=Path(tmp), snapshot_every=0, max_observations=max(n_rows, 1))
+        encoders = Encoders.one(FeaturesOnly(encoder_id, feature_dim), backbone)
+        registry = MapRegistry(Path(tmp), encoders, settings)
+        try:
+            rt = registry.create("eval", preset=preset, seed=seed, memory=memory, backbone=backbone,
+                                 localiser=localiser, **(create or {}))
+            assert rt.hasher is not None
+            yield rt
+        finally:
+            registry.close()
+
+
+def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: str, seed: int,
+                memory: str = "tm", localiser: dict[str, Any] | None = None,
+                create: dict[str, Any] | None = None, stream: str = "robot",
+                progress: Callable[[int, int], None] | None = None) -> tuple[OnlineAnswers, float]:
+    """Post a whole route as ONE learning stream (`learn=true` every frame): loop closure while mapping.
+
+    Args:
+        feats: (T, D) backbone features in driven order (all laps). Other arguments as `replay`.
+
+    Returns:
+        (answers over the route's own frames: best = the frame the `place` names, -1 in warm-up; S is
+        empty (0, T)), and the map's `revisit_threshold`.
+    """
+    T = len(feats)
+    with _eval_map(T, int(feats.shape[1]), encoder_id=encoder_id, backbone=backbone, preset=preset,
+                   seed=seed, memory=memory, localiser=localiser, create=create) as rt:
+        assert rt.hasher is not None
+        frame_of = np.full(T + 2, -1, np.int64)  # seq -> frame
+        best, confidence, support = np.full(T, -1, np.int64), np.zeros(T), np.zeros(T, np.int64)
+        for i, y in enumerate(rt.hasher.project(feats)):
+            result = _step(rt, y, learn=True, stream=stream)
+            frame_of[result.seq] = i
+            if result.place is not None:
+                best[i], confidence[i], support[i] = (frame_of[result.place.seq], result.place.confidence,
+                                                      result.place.support)
+            if progress:
+                progress(i + 1, T)
+        return OnlineAnswers(best, confidence, support, np.zeros((0, T))), rt.revisit_threshold
 
 
 def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbone: str, preset: str,
@@ -65,33 +117,26 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
         confidence, support) and S, the query stream's beam scores after each frame (-inf elsewhere).
     """
     n_db, n_q = len(db_feats), len(q_feats)
-    with tempfile.TemporaryDirectory(prefix="cortexloc-eval-") as tmp:
-        settings = Settings(data_dir=Path(tmp), snapshot_every=0, max_observations=max(n_db, 1))
-        features_only = FeaturesOnly(encoder_id, int(db_feats.shape[1]))
-        registry = MapRegistry(Path(tmp), Encoders.one(features_only, backbone), settings)
-        try:
-            rt = registry.create("eval", preset=preset, seed=seed, memory=memory, backbone=backbone,
-                                 localiser=localiser, **(create or {}))
-            assert rt.hasher is not None
-            row_of = np.full(n_db + 2, -1, np.int64)  # seq -> database row
-            for i, y in enumerate(rt.hasher.project(db_feats)):
-                row_of[_step(rt, y, learn=True, stream="database").seq] = i
-                if progress:
-                    progress(i + 1, n_db + n_q)
-            best, confidence = np.full(n_q, -1, np.int64), np.zeros(n_q)
-            support, S = np.zeros(n_q, np.int64), np.full((n_db, n_q), -np.inf)
-            for j, y in enumerate(rt.hasher.project(q_feats)):
-                place = _step(rt, y, learn=False, stream="query").place
-                state = rt.streams["query"].localiser
-                assert state is not None
-                live = state.rows >= 0
-                np.maximum.at(S[:, j], row_of[state.rows[live]], state.scores[live])
-                if place is not None:
-                    best[j], confidence[j], support[j] = row_of[place.seq], place.confidence, place.support
-                if progress:
-                    progress(n_db + j + 1, n_db + n_q)
-        finally:
-            registry.close()
+    with _eval_map(n_db, int(db_feats.shape[1]), encoder_id=encoder_id, backbone=backbone, preset=preset,
+                   seed=seed, memory=memory, localiser=localiser, create=create) as rt:
+        assert rt.hasher is not None
+        row_of = np.full(n_db + 2, -1, np.int64)  # seq -> database row
+        for i, y in enumerate(rt.hasher.project(db_feats)):
+            row_of[_step(rt, y, learn=True, stream="database").seq] = i
+            if progress:
+                progress(i + 1, n_db + n_q)
+        best, confidence = np.full(n_q, -1, np.int64), np.zeros(n_q)
+        support, S = np.zeros(n_q, np.int64), np.full((n_db, n_q), -np.inf)
+        for j, y in enumerate(rt.hasher.project(q_feats)):
+            place = _step(rt, y, learn=False, stream="query").place
+            state = rt.streams["query"].localiser
+            assert state is not None
+            live = state.rows >= 0
+            np.maximum.at(S[:, j], row_of[state.rows[live]], state.scores[live])
+            if place is not None:
+                best[j], confidence[j], support[j] = row_of[place.seq], place.confidence, place.support
+            if progress:
+                progress(n_db + j + 1, n_db + n_q)
     return OnlineAnswers(best, confidence, support, S)
 
 
