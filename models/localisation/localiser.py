@@ -100,7 +100,9 @@ class LocaliserState:
         null: the null hypothesis' decayed score ("a place the map has not stored",
             docs/design/science.md §11.5); NULL_PRIOR (-inf, not yet born) at the start of a stream.
         here: the oldest row of the stream's own current trail it has not left (docs/design/science.md
-            §11.6): NONE without one, UNKNOWN in a state saved before the rule (read as the trail's start).
+            §11.6): NONE without one; UNKNOWN in a new state and one saved before the rule, read as the
+            start of the stream's current trail (a stream that resumes after a restart without its
+            state, or mid-stop, has left nothing until a frame unlike its trail is seen).
         here_code: the sorted code of row `here` (a cache, not saved; None: not read yet).
     """
 
@@ -110,7 +112,7 @@ class LocaliserState:
     ages: np.ndarray
     frames: int = 0
     null: float = NULL_PRIOR
-    here: int = NONE
+    here: int = UNKNOWN
     here_code: np.ndarray | None = None
 
     @classmethod
@@ -126,7 +128,7 @@ class LocaliserState:
         self.ages[:] = 0
         self.frames = 0
         self.null = NULL_PRIOR
-        self.here, self.here_code = NONE, None
+        self.here, self.here_code = UNKNOWN, None
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain numpy arrays for a snapshot (`np.savez`); `from_arrays` restores them."""

@@ -75,7 +75,7 @@ class MapRegistry:
         s = self.settings
         return MapRuntime(record, self.catalog, feature_dim, s.max_streams, s.max_observations,
                           s.snapshot_every, s.snapshot_keep, max_keys=s.idempotency_keys,
-                          key_cache=s.idempotency_cache)
+                          key_cache=s.idempotency_cache, max_closures=s.loop_closures)
 
     def start(self) -> None:
         """Open every map and recover it by replay; create `default` on a fresh install.

@@ -58,7 +58,7 @@ from service.maps.state import Stream, memory_state, touch, winner_cells
 from storage import snapshots
 from storage._common import StorageFull, utc_now
 from storage.catalog import Catalog, MapRecord
-from storage.mapstore import MapStore, NewObservation, StoreCorrupt
+from storage.mapstore import MapStore, NewClosure, NewObservation, StoreCorrupt
 
 __all__ = ["MapRuntime"]
 
@@ -73,7 +73,7 @@ class MapRuntime:
     def __init__(self, record: MapRecord, catalog: Catalog,
                  feature_dim: int, max_streams: int, max_observations: int,
                  snapshot_every: int = 0, snapshot_keep: int = 3, *, max_keys: int | None = None,
-                 key_cache: int = 0) -> None:
+                 key_cache: int = 0, max_closures: int | None = None) -> None:
         self.record = record
         self.map_id = record.map_id
         self.params = record.params
@@ -85,6 +85,7 @@ class MapRuntime:
         # Idempotency keys: those of learned posts in the store (the last `max_keys` seqs), those of
         # localisations in memory (service.maps.idempotency).
         self.max_keys = max_keys
+        self.max_closures = max_closures  # loop closures kept in the store's log (the last N)
         self.keys = idempotency.KeyCache(key_cache)
         self.thumbnails = bool(self.params.get("thumbnails", False))  # frozen with the map
         self.state = "recovering"
@@ -227,6 +228,7 @@ class MapRuntime:
             snapshots.remove_stale_temp(self.layout.snapshots_dir(self.map_id))
         try:
             self.store = MapStore.open(self.layout.map_db(self.map_id), max_keys=self.max_keys,
+                                       max_closures=self.max_closures,
                                        seq_floor=self.catalog.get_high_water(self.map_id))
             if not self.store.quick_check():
                 raise StoreCorrupt("quick_check failed")
@@ -336,8 +338,10 @@ class MapRuntime:
             return self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k, label=label,
                               metadata=metadata, thumbnail=thumbnail, post=post)
         except Exception as e:
-            if not learn:
-                raise  # a localisation learns nothing: the memory and the store still agree
+            if not learn:  # a localisation learns nothing: the memory and the store still agree
+                if isinstance(e, StorageFull):  # its loop closure could not be logged: no answer either
+                    raise InsufficientStorage("the loop closure could not be logged: the disk is full") from e
+                raise
             # The TM may hold a learned step the store does not (a failed commit, or a failure anywhere
             # between the step and the commit): rebuild from the store before anything else runs, so
             # no later row is learned on a memory that replay cannot reproduce (docs/design/service.md §4.3).
@@ -395,12 +399,19 @@ class MapRuntime:
             map_seq=seq or self.store.last_seq(), projection_sha256=self.params["projection_sha256"],
             backbone=self.backbone, metadata=metadata,
             place=None if place is None else place_result(place, rows[place.seq], self.revisit_threshold))
+        # A revisit is a loop closure, logged durably: with the learned row in its transaction, or alone
+        # for a localising stream (it stores no observation and changes no memory; §11.6).
+        closure = None if result.place is None or not result.place.revisit else NewClosure(
+            stream=stream, place_seq=result.place.seq, confidence=result.place.confidence,
+            support=result.place.support, metadata=metadata, key=post.key if post is not None else None)
         if row is not None:
             if post is not None:
                 row = dataclasses.replace(row, key=post.record(result))
-            committed, _ = self._commit(row)
+            committed, _ = self._commit(dataclasses.replace(row, closure=closure))
             assert committed == seq  # this thread is the store's only writer
             st.last_learned_seq = seq
+        elif closure is not None:
+            self.store.add_closure(closure)
         # The step is recorded before the automatic snapshot, so the snapshot holds the stream as it
         # is after this frame (a snapshot taken before would hold a stream that just switched back to
         # mapping as localising, and recovery would drop the context the next row continues).

@@ -9,7 +9,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Request
 
 from service.errors import Problem
-from service.routes import health, maps, metrics, observations, recent, snapshots
+from service.routes import closures, health, maps, metrics, observations, recent, snapshots
 
 __all__ = ["api_router", "refuse_repeated_query_parameters"]
 
@@ -37,3 +37,4 @@ api_router.include_router(maps.router)
 api_router.include_router(observations.router)
 api_router.include_router(recent.router)
 api_router.include_router(snapshots.router)
+api_router.include_router(closures.router)
