@@ -7,7 +7,7 @@ default 2048x4 TM with 40 active columns), uniform at random. Queries are noisy 
 descriptors (`--keep` of their 40 cells kept, the rest replaced), so every top-10 holds a real match
 and a long tail of chance overlaps, as in a map. For each size:
 
-- the index (`service.maps.index.InvertedIndex.rank`, top-10): median and p90 latency;
+- the index (`models.localisation.index.InvertedIndex.rank`, top-10): median and p90 latency;
 - the brute-force baseline: every descriptor as a packed bit row ((n, 8192/64) uint64), the query's
   bits ANDed with all rows and counted with `np.bitwise_count` (chunked, so temporaries stay small),
   then the same top-10 selection (overlap = Dice order for constant weight, ties to the older row);
@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from _common import RESULTS, quick_mode, rss_mib, write_json  # also puts the repo on sys.path
 
-from service.maps.index import InvertedIndex
+from models.localisation.index import InvertedIndex
 
 N_CELLS, WEIGHT, TOP_K = 8192, 40, 10
 _CHUNK = 1 << 16  # rows per popcount chunk: (65536, 128) uint64 = 64 MiB of temporaries at most

@@ -38,8 +38,8 @@ from _common import RESULTS, quick_mode, rss_mib, write_json  # also puts the re
 
 from models import presets
 from models.frontend import slsbh
+from models.localisation.index import InvertedIndex
 from models.memory.temporal_memory import StreamContext, TemporalMemory
-from service.maps.index import InvertedIndex
 
 CHECK_EVERY = 100  # steps between looks at the eviction/overrun counters
 

@@ -3,7 +3,7 @@
 Run: `python benchmarks/bench_place.py [--sizes 1000 100000 1000000] [--frames 300] [--quick]`.
 
 Setup: N stored rows of synthetic winner cells (40 of 8,192, as bench_index.py), stored as one traverse
-(seqs 1..N, each row's predecessor the one before, the links `service.maps.localisation.Localisation`
+(seqs 1..N, each row's predecessor the one before, the links `models.localisation.links.Localisation`
 rebuilds from the store). A stream drives `--frames` consecutive stored rows, each frame a noisy copy
 (`--keep` of 40 cells kept). Per frame, what `MapRuntime.apply` runs for the answer
 (docs/design/science.md §11.2): one `InvertedIndex.rank` pass for the frame's cells (top
@@ -23,7 +23,7 @@ import numpy as np
 from _common import RESULTS, quick_mode, write_json  # also puts the repo on sys.path
 from bench_index import build_index, noisy_query, random_sets
 
-from service.maps.localisation import Localisation
+from models.localisation.links import Localisation
 
 
 def bench_size(n: int, frames: int, keep: int = 30, seed: int = 0) -> dict[str, Any]:

@@ -42,10 +42,10 @@ from _common import RESULTS, quick_mode, rss_mib, write_json  # also puts the re
 
 import service.maps.registry as registry_mod
 from models.frontend import slsbh
+from models.localisation.index import InvertedIndex
 from models.memory.temporal_memory import TemporalMemory
 from service.maps import recovery
 from service.maps.encoders import Encoders
-from service.maps.index import InvertedIndex
 from service.settings import Settings
 from storage import snapshots
 from storage.mapstore import MapStore

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-INDEX_DTYPE = np.int32
+from common.dtypes import INDEX_DTYPE  # one home, shared with storage (common/dtypes.py)
 
 
 def from_dense(dense: np.ndarray) -> np.ndarray:

@@ -39,8 +39,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from models.frontend.images import ImageError
 from service.maps import errors as maps_errors
-from storage._common import StoreClosed
-from storage.snapshots import SnapshotInvalid
+from service.maps.errors import SnapshotInvalid, StoreClosed
 
 __all__ = ["CLIENT_CLOSED_REQUEST", "DOMAIN_PROBLEMS", "IMAGE_MEDIA_TYPES", "PROBLEM_MEDIA_TYPE",
            "REQUEST_ID_HEADER", "TITLES", "DomainProblem", "Problem", "ProblemDetails",

@@ -10,7 +10,7 @@ from typing import Any, Literal, Self
 from pydantic import BaseModel, ConfigDict, Field
 
 from service.maps import results
-from storage.catalog import MAP_ID_RE
+from service.maps.ids import MAP_ID_RE
 
 __all__ = ["CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel", "ObservationModel",
            "PatchMap", "Readiness", "RecentList", "RecentModel", "RestoreModel", "SequenceModel",
@@ -123,7 +123,7 @@ class MemoryModel(_Out):
     streams: results.StreamsMemory
     projection_bytes: int
     storage: results.StorageMemory
-    process_rss_bytes: int
+    process_rss_bytes: int  # the whole service process's resident size
 
 
 # ----------------------------------------------------------------------------------- observations

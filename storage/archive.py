@@ -20,7 +20,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import IO, BinaryIO
 
-from models.files import atomic_write, fsync_dir
+from common.files import atomic_write, fsync_dir
 from storage._common import StorageFull, is_full_error
 from storage.manifest import (
     MANIFEST_FILE,

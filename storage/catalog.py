@@ -44,6 +44,8 @@ __all__ = [
     "MapRecord",
     "SnapshotRecord",
     "StorageError",
+    "StoreClosed",
+    "utc_now",
 ]
 
 #: A map id (the API's rule; also a directory name under `maps/`, so never `.`, `..` or a path).

@@ -24,7 +24,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from models.files import atomic_write
+from common.files import atomic_write
 from storage._common import StorageError, StorageFull, StoreClosed, connect, is_full_error, transaction
 from storage.mapschema import (
     CELL_DTYPES,
@@ -62,6 +62,7 @@ __all__ = [
     "Observation",
     "StorageError",
     "StorageFull",
+    "StoreClosed",
     "StoreCorrupt",
     "cell_dtype_for",
 ]

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.files import atomic_write, fsync_dir, sha256_file
+from common.files import atomic_write, fsync_dir, sha256_file
 from storage._common import StorageFull, connect, is_full_error, utc_now
 from storage.archive import TarExport, import_tar
 from storage.catalog import SNAPSHOT_KINDS

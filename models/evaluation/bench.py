@@ -6,24 +6,18 @@ Timings on shared machines are noisy: report medians, and compare in ratios with
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from common.process import rss_bytes
 from models import presets
 from models.memory.temporal_memory import TemporalMemory
 
 
 def rss_mb() -> float:
     """Resident set size of this process in MiB (Linux /proc; 0.0 where unavailable)."""
-    try:
-        pages = int(Path("/proc/self/statm").read_text().split()[1])
-    except (OSError, IndexError, ValueError):
-        return 0.0
-    import os
-
-    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+    return rss_bytes() / 2**20
 
 
 def random_sequence(n: int, columns: int, active: int, seed: int = 0) -> list[np.ndarray]:

@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
+from common.files import atomic_write, sha256_file
 from models import presets, sdr
 from models.evaluation import metrics, online
 from models.evaluation import seqslam as seq
-from models.files import atomic_write, sha256_file
 from models.frontend import slsbh
 from models.frontend.adaptation import running_mean_subtract
 from models.frontend.encoder import Encoder

@@ -1,29 +1,20 @@
 """Sequence-level localisation of a stream over the map's links (docs/design/science.md §11)."""
 
 from models.localisation.graph import SequenceGraph
+from models.localisation.index import IndexFull, InvertedIndex, Match
+from models.localisation.links import Localisation, graph_from_rows
 from models.localisation.localiser import (
     HYPOTHESIS_BYTES,
     NULL_PRIOR,
     LocaliserParams,
     LocaliserState,
-    OwnTrail,
     Place,
     SequenceLocaliser,
     default_conf,
     top_candidates,
 )
-from models.localisation.trail import CodeStats
+from models.localisation.trail import CodeStats, OwnTrail
 
-__all__ = [
-    "HYPOTHESIS_BYTES",
-    "NULL_PRIOR",
-    "CodeStats",
-    "LocaliserParams",
-    "LocaliserState",
-    "OwnTrail",
-    "Place",
-    "SequenceGraph",
-    "SequenceLocaliser",
-    "default_conf",
-    "top_candidates",
-]
+__all__ = ["HYPOTHESIS_BYTES", "NULL_PRIOR", "CodeStats", "IndexFull", "InvertedIndex", "Localisation",
+           "LocaliserParams", "LocaliserState", "Match", "OwnTrail", "Place", "SequenceGraph",
+           "SequenceLocaliser", "default_conf", "graph_from_rows", "top_candidates"]

@@ -233,7 +233,7 @@ class SequenceLocaliser:
 
     def step_dense(self, state: LocaliserState, graph: SequenceGraph, sims: np.ndarray,
                    own: OwnTrail | None = None) -> Place | None:
-        """`step` on a dense (N,) similarity vector: its `top_k` best rows outside `own` are the candidates."""
+        """`step` on a dense (N,) similarity vector: its `top_k` best rows outside `own` are candidates."""
         if own is not None:
             sims = np.where(own.holds(graph, np.arange(len(sims))), -np.inf, sims)
             keep = np.isfinite(sims)

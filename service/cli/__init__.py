@@ -9,7 +9,7 @@
     cortexloc verify [--map M] [--data-dir DIR]                       service.cli.maps
     cortexloc ingest SOURCE --map M [--stream S] [--learn | --localise] [--url URL | --data-dir DIR]
                      [--topic T] [--every N] [--json] [--prefetch K] [--label-stamp] [--api-key KEY]
-                                                                      service.ingest.command
+                                                                      service.cli.ingest
 
 Tables go to stdout, progress and warnings to stderr, machine-readable results to --json. Importing this
 package imports no heavy library (torch, cv2, rosbags): each command imports what it needs when it runs,
@@ -22,8 +22,8 @@ import typer
 
 from models import presets
 from service.cli import bench, evaluate, maps, weights
+from service.cli.ingest import ingest_command
 from service.cli.serve import process_settings, serve
-from service.ingest.command import ingest_command
 
 __all__ = ["app", "main", "process_settings", "serve"]
 

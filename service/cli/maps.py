@@ -24,8 +24,8 @@ def import_map(
     from types import SimpleNamespace
 
     from service.maps.encoders import Encoders
+    from service.maps.errors import SnapshotInvalid
     from service.maps.registry import MapRegistry
-    from storage.snapshots import SnapshotInvalid
 
     settings = process_settings(data_dir=data_dir)
     root = settings.data_dir
@@ -47,13 +47,11 @@ def verify(
 ) -> None:
     """Check maps offline, changing nothing: replay every row from the first and compare its stored
     winner cells, verify every snapshot's checksums and the projection. Exit 1 on any problem."""
-    from service.maps.recovery import verify_map
-    from storage.catalog import Catalog
-    from storage.layout import Layout
+    from service.maps.recovery import open_catalog, verify_map
 
     root = process_settings(data_dir=data_dir).data_dir
     try:
-        catalog = Catalog.open(Layout(root).catalog, readonly=True)
+        catalog = open_catalog(root)
         records = [r for r in catalog.list_maps() if map_id is None or r.map_id == map_id]
     except Exception as e:  # a missing or garbage catalog: say so, as a failed check
         typer.echo(f"error: cannot read the catalog in {root}: {e}", err=True)

@@ -2,35 +2,30 @@
 database traverse (learned) then a query traverse (localised, one stream), scored per query
 (docs/design/service.md §1.2, docs/design/science.md §11.4).
 
-Not a re-implementation: a real `MapRegistry` on a temporary data directory creates the map (the same
-parameters, projection, Temporal Memory, store, index and localiser as a served map), and every frame
-goes through `MapRuntime.apply` in the map's writer thread, the step `MapRuntime.observe` queues once
-the encoder pool has projected the image. Only the decoding and the backbone are done before, once per
-folder (the feature cache), with the same encoder; the projection is the map's own (`rt.hasher`).
+Not a re-implementation: the map's parameters are resolved and checked as a created map's
+(`service.maps.params.resolve_params`), its projection is made as the registry makes it
+(`service.maps.projection.for_map`), and every frame goes through `models.pipeline.observe`, the step the
+map's writer runs (`MapRuntime._step`), on a `MapModel` built as a served map's (`params.map_model`).
+Nothing is stored: the rows' seqs are 1, 2, ... as a fresh map's would be. Only the decoding and the
+backbone are done before, once per folder (the feature cache), with the same encoder.
 """
 
 from __future__ import annotations
 
-import contextlib
-import functools
-import hashlib
-import tempfile
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
-from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from models.evaluation.online import OnlineAnswers
-from service.maps.encoders import Encoders
-from service.maps.registry import MapRegistry
-from service.maps.runtime import MapRuntime
+from models.frontend import slsbh
+from models.pipeline import MapModel, Stream, observe
+from service.maps import projection as map_projection
+from service.maps.params import map_model, resolve_params
 from service.settings import Settings
 
-__all__ = ["METHODS", "SLAM_METHODS", "FeaturesOnly", "experiment", "operating_point", "replay",
-           "slam_replay"]
+__all__ = ["METHODS", "SLAM_METHODS", "experiment", "operating_point", "replay", "slam_replay"]
 
 #: The service's methods and their map option `memory`.
 METHODS = {"service": "tm", "service-without-tm": "none"}
@@ -38,43 +33,24 @@ METHODS = {"service": "tm", "service-without-tm": "none"}
 SLAM_METHODS = {"service-slam": "tm", "service-slam-without-tm": "none"}
 
 
-@dataclass(frozen=True)
-class FeaturesOnly:
-    """What a `MapRegistry` reads of an encoder when the features come from elsewhere (the cache)."""
-
-    identity: str
-    feature_dim: int
-
-
-def _step(rt: MapRuntime, y: np.ndarray, *, learn: bool, stream: str) -> Any:
-    sha = hashlib.sha256(np.ascontiguousarray(y).tobytes()).hexdigest()
-    step = functools.partial(rt.apply, y, sha, learn=learn, stream=stream, top_k=0, label=None)
-    return rt.submit(step).result()
-
-
-@contextlib.contextmanager
-def _eval_map(n_rows: int, feature_dim: int, *, encoder_id: str, backbone: str, preset: str, seed: int,
-              memory: str, localiser: dict[str, Any] | None, create: dict[str, Any] | None
-              ) -> Iterator[MapRuntime]:
-    """A served map on a temporary data directory (the service's registry, store, index, localiser)."""
-    with tempfile.TemporaryDirectory(prefix="cortexloc-eval-") as tmp:
-        settings = Settings(data_dir=Path(tmp), snapshot_every=0, max_observations=max(n_rows, 1))
-        encoders = Encoders.one(FeaturesOnly(encoder_id, feature_dim), backbone)
-        registry = MapRegistry(Path(tmp), encoders, settings)
-        try:
-            rt = registry.create("eval", preset=preset, seed=seed, memory=memory, backbone=backbone,
-                                 localiser=localiser, **(create or {}))
-            assert rt.hasher is not None
-            yield rt
-        finally:
-            registry.close()
+def _model(n_rows: int, feature_dim: int, *, backbone: str, preset: str, seed: int, memory: str,
+           localiser: dict[str, Any] | None, create: dict[str, Any] | None
+           ) -> tuple[MapModel, slsbh.Hasher, dict[str, Any]]:
+    """A served map's pipeline model and projection, from the same parameters (`resolve_params`)."""
+    extra = dict(create or {})
+    params = resolve_params(preset, seed=seed, memory=memory, backbone=backbone, localiser=localiser,
+                            tm=extra.pop("tm", None), slsbh_conf=extra.pop("slsbh_conf", None), **extra)
+    _, P = map_projection.for_map(params, feature_dim, Settings().max_streams)
+    hasher = slsbh.Hasher(P, float(params["slsbh"]["s"]))
+    return map_model(params, max_observations=max(n_rows, 1)), hasher, params
 
 
 def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: str, seed: int,
                 memory: str = "tm", localiser: dict[str, Any] | None = None,
-                create: dict[str, Any] | None = None, stream: str = "robot",
+                create: dict[str, Any] | None = None,
                 progress: Callable[[int, int], None] | None = None) -> tuple[OnlineAnswers, float]:
-    """Post a whole route as ONE learning stream (`learn=true` every frame): loop closure while mapping.
+    """A whole route as ONE learning stream (every frame learned, `models.pipeline.observe` as the map
+    writer calls it): loop closure while mapping (docs/design/science.md §11.6).
 
     Args:
         feats: (T, D) backbone features in driven order (all laps). Other arguments as `replay`.
@@ -83,21 +59,21 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
         (answers over the route's own frames: best = the frame the `place` names, -1 in warm-up; S is
         empty (0, T)), and the map's `revisit_threshold`.
     """
+    del encoder_id
     T = len(feats)
-    with _eval_map(T, int(feats.shape[1]), encoder_id=encoder_id, backbone=backbone, preset=preset,
-                   seed=seed, memory=memory, localiser=localiser, create=create) as rt:
-        assert rt.hasher is not None
-        frame_of = np.full(T + 2, -1, np.int64)  # seq -> frame
-        best, confidence, support = np.full(T, -1, np.int64), np.zeros(T), np.zeros(T, np.int64)
-        for i, y in enumerate(rt.hasher.project(feats)):
-            result = _step(rt, y, learn=True, stream=stream)
-            frame_of[result.seq] = i
-            if result.place is not None:
-                best[i], confidence[i], support[i] = (frame_of[result.place.seq], result.place.confidence,
-                                                      result.place.support)
-            if progress:
-                progress(i + 1, T)
-        return OnlineAnswers(best, confidence, support, np.zeros((0, T))), rt.revisit_threshold
+    model, hasher, params = _model(T, int(feats.shape[1]), backbone=backbone, preset=preset, seed=seed,
+                                   memory=memory, localiser=localiser, create=create)
+    robot, codes = Stream(), {}
+    best, confidence, support = np.full(T, -1, np.int64), np.zeros(T), np.zeros(T, np.int64)
+    for i, y in enumerate(hasher.project(feats)):  # seq i + 1 is frame i
+        step = observe(model, robot, y, learn=True, stream="robot", top_k=0, seq=i + 1,
+                       code_of=codes.__getitem__)
+        codes[i + 1] = step.code
+        if step.place is not None:
+            best[i], confidence[i], support[i] = step.place.seq - 1, step.place.confidence, step.place.support
+        if progress:
+            progress(i + 1, T)
+    return OnlineAnswers(best, confidence, support, np.zeros((0, T))), float(params["revisit_threshold"])
 
 
 def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbone: str, preset: str,
@@ -108,7 +84,8 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
 
     Args:
         db_feats, q_feats: (n_db, D), (n_q, D) backbone features in driven order (`Encoder.embed`).
-        encoder_id, backbone: the encoder they came from (frozen into the map as a served map's are).
+        encoder_id, backbone: the encoder they came from (a served map freezes them; here the backbone
+            is checked like a created map's, `encoder_id` only names them).
         preset, seed, memory, localiser: the map's `CreateMap` fields; `create`: any further ones.
         progress: called with (frames done, frames in all).
 
@@ -116,27 +93,30 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
         `OnlineAnswers` over database rows 0..n_db-1: the `place` answers (best -1 during warm-up,
         confidence, support) and S, the query stream's beam scores after each frame (-inf elsewhere).
     """
+    del encoder_id  # the features are the encoder's; a map would freeze its identity
     n_db, n_q = len(db_feats), len(q_feats)
-    with _eval_map(n_db, int(db_feats.shape[1]), encoder_id=encoder_id, backbone=backbone, preset=preset,
-                   seed=seed, memory=memory, localiser=localiser, create=create) as rt:
-        assert rt.hasher is not None
-        row_of = np.full(n_db + 2, -1, np.int64)  # seq -> database row
-        for i, y in enumerate(rt.hasher.project(db_feats)):
-            row_of[_step(rt, y, learn=True, stream="database").seq] = i
-            if progress:
-                progress(i + 1, n_db + n_q)
-        best, confidence = np.full(n_q, -1, np.int64), np.zeros(n_q)
-        support, S = np.zeros(n_q, np.int64), np.full((n_db, n_q), -np.inf)
-        for j, y in enumerate(rt.hasher.project(q_feats)):
-            place = _step(rt, y, learn=False, stream="query").place
-            state = rt.streams["query"].localiser
-            assert state is not None
-            live = state.rows >= 0
-            np.maximum.at(S[:, j], row_of[state.rows[live]], state.scores[live])
-            if place is not None:
-                best[j], confidence[j], support[j] = row_of[place.seq], place.confidence, place.support
-            if progress:
-                progress(n_db + j + 1, n_db + n_q)
+    model, hasher, _ = _model(n_db, int(db_feats.shape[1]), backbone=backbone, preset=preset, seed=seed,
+                                   memory=memory, localiser=localiser, create=create)
+    codes: dict[int, np.ndarray] = {}
+    database, query = Stream(), Stream()
+    for i, y in enumerate(hasher.project(db_feats)):
+        codes[i + 1] = observe(model, database, y, learn=True, stream="database", top_k=0, seq=i + 1,
+                               code_of=codes.__getitem__).code
+        if progress:
+            progress(i + 1, n_db + n_q)
+    best, confidence = np.full(n_q, -1, np.int64), np.zeros(n_q)
+    support, S = np.zeros(n_q, np.int64), np.full((n_db, n_q), -np.inf)
+    for j, y in enumerate(hasher.project(q_feats)):
+        place = observe(model, query, y, learn=False, stream="query", top_k=0,
+                        code_of=codes.__getitem__).place
+        state = query.localiser
+        assert state is not None
+        live = state.rows >= 0
+        np.maximum.at(S[:, j], state.rows[live] - 1, state.scores[live])  # seq s is database row s - 1
+        if place is not None:
+            best[j], confidence[j], support[j] = place.seq - 1, place.confidence, place.support
+        if progress:
+            progress(n_db + j + 1, n_db + n_q)
     return OnlineAnswers(best, confidence, support, S)
 
 

@@ -5,7 +5,7 @@
 - `service.ingest.poster`: the HTTP side, one code path for a running service (`--url`) and the app run in
   this process (httpx's ASGI transport around the app's lifespan): map check, ordered posts, retries on 503,
   per-frame records and the summary;
-- `service.ingest.command`: the typer command registered by `service.cli`.
+- the typer command is `service.cli.ingest` (the command line is one package).
 
 The ingest is a client of the HTTP API: it imports nothing of the runtime or the stores.
 """

@@ -8,9 +8,16 @@ from __future__ import annotations
 
 from typing import Any
 
+# Two refusals of the storage layer reach the client as they are, so the domain names them as its own
+# (the HTTP layer imports no storage): a snapshot that does not verify (409 snapshot-invalid) and a
+# store a restore or a deletion has closed under a reader (503 map-unavailable, retry).
+from storage.mapstore import StoreClosed
+from storage.snapshots import SnapshotInvalid
+
 __all__ = ["IdempotencyKeyReused", "InsufficientStorage", "InvalidConfiguration", "InvalidMapId",
            "MapAlreadyExists", "MapError", "MapFull", "MapLimit", "MapNotFound", "MapTooLarge",
-           "MapUnavailable", "ObservationNotFound", "Overloaded", "SnapshotNotFound"]
+           "MapUnavailable", "ObservationNotFound", "Overloaded", "SnapshotInvalid", "SnapshotNotFound",
+           "StoreClosed"]
 
 
 class MapError(Exception):

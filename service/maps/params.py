@@ -15,9 +15,10 @@ from models import presets
 from models.frontend import backbones, slsbh
 from models.localisation import LocaliserParams
 from models.memory.temporal_memory import validate
+from models.pipeline import MapModel
 from service.maps.errors import InvalidConfiguration
 
-__all__ = ["DEFAULT_REVISIT_THRESHOLD", "MEMORY_KINDS", "check_revisit_threshold", "map_option",
+__all__ = ["DEFAULT_REVISIT_THRESHOLD", "MEMORY_KINDS", "check_revisit_threshold", "map_model", "map_option",
            "resolve_params"]
 
 #: A new map's `revisit_threshold` (docs/design/service.md §1.2): the confidence at which an answer is
@@ -39,6 +40,13 @@ _LEGACY = {"backbone": "alexnet", "memory": "tm", "revisit_threshold": DEFAULT_R
 def map_option(params: dict[str, Any], name: str) -> Any:
     """A map's option, or what a map made before it existed runs with (`alexnet`, `tm`, ...)."""
     return params.get(name, _LEGACY[name])
+
+
+def map_model(params: dict[str, Any], *, max_observations: int) -> MapModel:
+    """A fresh pipeline model (models.pipeline) of a map with these frozen parameters."""
+    return MapModel.new(params["tm"], map_option(params, "localiser"), max_observations=max_observations,
+                        memory=map_option(params, "memory"), s=float(params["slsbh"]["s"]),
+                        adapt_tau=int(params["slsbh"].get("adapt_tau", 0)))  # maps made before it: none
 
 
 def check_revisit_threshold(value: float) -> float:

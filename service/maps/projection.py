@@ -12,13 +12,15 @@ Both are stored content-addressed by `slsbh.save_projection` and read back, chec
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
 from models.frontend import slsbh
+from models.localisation import SequenceLocaliser
+from models.memory.temporal_memory import planned_bytes
 
-__all__ = ["MAP_MODEL_BYTES", "Projection", "make", "nbytes", "projection_kind"]
+__all__ = ["MAP_MODEL_BYTES", "Projection", "for_map", "make", "model_bytes", "nbytes", "projection_kind"]
 
 #: Projection plus Temporal Memory bytes per map at most (issue 14).
 MAP_MODEL_BYTES = 100_000_000
@@ -30,6 +32,19 @@ Kind = Literal["dense", "sparse"]
 def projection_kind(feature_dim: int, k: int, tm_bytes: int) -> Kind:
     """`dense` when D × k float32 plus the memory fit in MAP_MODEL_BYTES, else `sparse`."""
     return "dense" if feature_dim * k * 4 + tm_bytes <= MAP_MODEL_BYTES else "sparse"
+
+
+def model_bytes(params: dict[str, Any], max_streams: int) -> int:
+    """What a map of these parameters may hold besides its projection: the memory and every stream's
+    localiser state (beam x HYPOTHESIS_BYTES, docs/design/science.md §11.3) at the stream cap."""
+    return planned_bytes(params["tm"]) + max_streams * SequenceLocaliser(params["localiser"]).state_bytes()
+
+
+def for_map(params: dict[str, Any], feature_dim: int, max_streams: int) -> tuple[Kind, Projection]:
+    """A new map's projection kind and matrix (the kind by `projection_kind`, the seed `slsbh.seed`)."""
+    k = int(params["slsbh"]["k"])
+    kind = projection_kind(feature_dim, k, model_bytes(params, max_streams))
+    return kind, make(kind, feature_dim, k, int(params["slsbh"]["seed"]))
 
 
 def make(kind: Kind, feature_dim: int, k: int, seed: int) -> Projection:

@@ -14,18 +14,22 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from models import pipeline
 from models.frontend import slsbh
 from models.memory.temporal_memory import TemporalMemory
-from service.maps.state import Stream, load_memory_state, winner_cells
+from models.pipeline import MapModel, Stream, load_memory_state
+from service.maps.params import map_model
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, StorageError
+from storage.layout import Layout
 from storage.mapstore import MapStore, Observation
 
-__all__ = ["MapCheck", "Rebuilt", "rebuild", "recover", "verify_map"]
+__all__ = ["MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover", "verify_map"]
 
 log = logging.getLogger("cortexloc.recovery")
 _LISTED = 20  # divergent seqs listed in a recovery note (the count says how many there are)
@@ -36,67 +40,65 @@ class Rebuilt:
     """The outcome of `rebuild`.
 
     Attributes:
-        tm, streams: the rebuilt memory and stream states.
+        model, streams: the rebuilt memory (its index and links empty: rebuilt from the rows by the
+            caller) and stream states.
         replayed: rows replayed (after the snapshot, if any).
         mismatches: seqs whose replayed winner cells differ from the stored ones, in seq order.
         last_seq: the last row replayed (the start's seq when none was).
     """
 
-    tm: TemporalMemory
+    model: MapModel
     streams: OrderedDict[str, Stream]
     replayed: int = 0
     mismatches: list[int] = field(default_factory=list)
     last_seq: int = 0
 
 
-def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Observation], *,
-            adapt_tau: int = 0, memory: str = "tm", stop_at_mismatch: bool = True,
-            progress: Callable[[int], None] | None = None) -> Rebuilt:
+def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Observation], like: MapModel, *,
+            stop_at_mismatch: bool = True, progress: Callable[[int], None] | None = None) -> Rebuilt:
     """Replay `rows` (in seq order) on a fresh memory or a snapshot's arrays, checking each step.
 
-    A localisation stream lives only in snapshots (its frames are not rows): one held by the snapshot
-    comes back with its context and its localiser state, so it answers as it would have without the
-    restart; after a replay from the first row it starts afresh (docs/design/service.md §1.2).
+    Each row goes through `models.pipeline.replay`, the step and the stream bookkeeping the writer's
+    `models.pipeline.observe` gave it. A localisation stream lives only in snapshots (its frames are not
+    rows): one held by the snapshot comes back with its context and its localiser state, so it answers as
+    it would have without the restart; after a replay from the first row it starts afresh
+    (docs/design/service.md §1.2).
 
     Args:
         start: a fresh `TemporalMemory` (used in place) or the arrays of a snapshot's `memory.npz`.
         rows: the observations after the start (all of them for a fresh memory).
-        adapt_tau: the map's adaptation time constant (restores the streams' running means).
-        memory: the map's `memory` option (`tm`, or `none`: the stored winner cells are the codes).
+        like: the map's model whose options (memory kind, adaptation, ...) and index and links sizes the
+            rebuilt one takes; it is not changed.
         stop_at_mismatch: stop at the first divergent row (recovery tries an older start then);
             False replays every row and lists every divergent seq (`cortexloc verify`, the last resort).
         progress: called with the number of rows replayed so far, once per row.
 
     Returns:
-        The rebuilt memory, and what the replay found.
+        The rebuilt memory (empty index and links), and what the replay found.
     """
     if isinstance(start, TemporalMemory):
-        out = Rebuilt(start, OrderedDict())
+        tm, streams = start, OrderedDict()
     else:
-        tm, streams = load_memory_state(start, adapt_tau)
-        out = Rebuilt(tm, streams)
+        tm, streams = load_memory_state(start, like.adapt_tau)
+    model = like.fresh(tm)
+    out = Rebuilt(model, streams)
     for row in rows:
         st = out.streams.get(row.stream)
         if st is None:
             st = out.streams[row.stream] = Stream()
-        if row.context_prev_seq is None:
-            st.context.reset()
-        winners = winner_cells(out.tm, row.input_sdr, learn=True, context=st.context, memory=memory)
+        winners = pipeline.replay(model, st, row.input_sdr, seq=row.seq, prev_seq=row.context_prev_seq)
         out.replayed += 1
         out.last_seq = row.seq
         if not np.array_equal(winners, row.winner_cells):
             out.mismatches.append(row.seq)
             if stop_at_mismatch:
                 break
-        st.step = 1 if row.context_prev_seq is None else st.step + 1  # steps taken, as in observe
-        st.last_learned_seq, st.learning = row.seq, True
         if progress is not None:
             progress(out.replayed)
     return out
 
 
-def recover(store: MapStore, catalog: Catalog, map_id: str, tm_params: dict[str, Any], *,
-            adapt_tau: int = 0, memory: str = "tm") -> tuple[Rebuilt, dict[str, Any]]:
+def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> tuple[Rebuilt, dict[str, Any]]:
     """The memory of `store`: the newest usable snapshot, then a verified replay of the rows after it.
 
     A snapshot that does not verify, cannot be loaded, or whose replay does not reproduce the stored
@@ -109,9 +111,7 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, tm_params: dict[str,
         store: the map's open store (the system of record).
         catalog: lists the map's snapshots, newest first.
         map_id: the map.
-        tm_params: the map's frozen TM parameters (for the fresh memory of the last resort).
-        adapt_tau: the map's adaptation time constant.
-        memory: the map's `memory` option (`rebuild`).
+        like: the map's model (`rebuild`); its TM's parameters make the fresh memory of the last resort.
 
     Returns:
         (the rebuilt memory, the note the map resource shows as `recovery`).
@@ -126,8 +126,7 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, tm_params: dict[str,
                 row = store.get(m.seq)
                 if row is None or row.observation_id != m.last_observation_id:
                     continue  # from a branch a restore abandoned
-            done = rebuild(snapshots.load_memory(path), store.rows(after_seq=m.seq), adapt_tau=adapt_tau,
-                           memory=memory)
+            done = rebuild(snapshots.load_memory(path), store.rows(after_seq=m.seq), like)
         except Exception as e:  # an unusable snapshot is passed over, never fatal
             reason = str(e) or type(e).__name__
         else:
@@ -140,7 +139,7 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, tm_params: dict[str,
         skipped.append({"snapshot_id": rec.snapshot_id, "reason": reason})
         log.warning("map %s: snapshot %s passed over: %s", map_id, rec.snapshot_id, reason)
     else:
-        done = rebuild(TemporalMemory(tm_params), store.rows(), memory=memory, stop_at_mismatch=False)
+        done = rebuild(TemporalMemory(like.tm.params), store.rows(), like, stop_at_mismatch=False)
         note = {"source": "replay", "mismatches": len(done.mismatches),
                 "mismatched_seqs": done.mismatches[:_LISTED]}
         if done.mismatches:
@@ -178,6 +177,11 @@ class MapCheck:
         return not (self.mismatches or self.snapshots_bad or self.problems)
 
 
+def open_catalog(data_dir: Path) -> Catalog:
+    """The catalog of a data directory, read-only (`cortexloc verify` while the server may run)."""
+    return Catalog.open(Layout(data_dir).catalog, readonly=True)
+
+
 def verify_map(catalog: Catalog, record: MapRecord, *,
                progress: Callable[[int, int], None] | None = None) -> MapCheck:
     """The offline full check of one map (`cortexloc verify`), changing nothing on disk: the store's
@@ -209,8 +213,8 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
             if not store.integrity_check():
                 out.problems.append("map.sqlite fails PRAGMA integrity_check")
             total = store.count()
-            done = rebuild(TemporalMemory(record.params["tm"]), store.rows(), stop_at_mismatch=False,
-                           memory=record.params.get("memory", "tm"),
+            like = map_model(record.params, max_observations=max(total, 1))
+            done = rebuild(like.tm, store.rows(), like, stop_at_mismatch=False,
                            progress=None if progress is None else lambda n: progress(n, total))
             out.rows, out.mismatches = done.replayed, done.mismatches
     except (StorageError, OSError) as e:

@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from models.frontend import slsbh
-from models.localisation import SequenceLocaliser
-from models.memory.temporal_memory import TemporalMemory, planned_bytes
+from models.localisation.index import warm_up as index_warm_up
+from models.memory.temporal_memory import TemporalMemory
 from service.maps import projection as map_projection
 from service.maps import snapshots as map_snapshots
 from service.maps.encoders import Encoders
@@ -26,7 +26,6 @@ from service.maps.errors import (
     MapTooLarge,
 )
 from service.maps.failed import FailedMap
-from service.maps.index import warm_up as index_warm_up
 from service.maps.params import map_option, resolve_params
 from service.maps.runtime import MapRuntime
 from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord
@@ -145,10 +144,7 @@ class MapRegistry:
             preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf, exclude_recent=exclude_recent,
             backbone=backbone or self.encoders.default, memory=memory, localiser=localiser,
             **({} if revisit_threshold is None else {"revisit_threshold": revisit_threshold}))
-        # The memory and every stream's localiser state (beam x HYPOTHESIS_BYTES, docs/design/science.md
-        # §11.3) at the stream cap: what the map may hold, before its projection.
-        need = (planned_bytes(params["tm"])
-                + self.settings.max_streams * SequenceLocaliser(params["localiser"]).state_bytes())
+        need = map_projection.model_bytes(params, self.settings.max_streams)
         if need > self.settings.max_map_bytes:
             raise MapTooLarge(need, self.settings.max_map_bytes)
         with self._create_lock:
@@ -162,11 +158,9 @@ class MapRegistry:
             except ValueError as e:
                 raise InvalidConfiguration(str(e), [{"location": "body", "name": "backbone",
                                                      "message": str(e)}]) from e
-            s_conf = params["slsbh"]
             # Projection plus memory within the map budget: the very sparse projection where dense breaks it.
-            params["projection"] = map_projection.projection_kind(encoder.feature_dim, int(s_conf["k"]), need)
-            P = map_projection.make(params["projection"], encoder.feature_dim, int(s_conf["k"]),
-                                    int(s_conf["seed"]))
+            params["projection"], P = map_projection.for_map(params, encoder.feature_dim,
+                                                             self.settings.max_streams)
             _, sha = slsbh.save_projection(P, self.projections)
             del P
             params["projection_sha256"] = sha

@@ -66,6 +66,13 @@ class PlaceResult:
     support: int
     metadata: dict[str, Any] | None = None
 
+    @classmethod
+    def of(cls, place: Any, row: Any, revisit_threshold: float) -> PlaceResult:
+        """The reply's `place`: the localiser's `Place`, its stored row, and the map's revisit decision."""
+        return cls(seq=place.seq, observation_id=row.observation_id, stream=row.stream, label=row.label,
+                   confidence=place.confidence, revisit=place.confidence >= revisit_threshold,
+                   support=place.support, metadata=getattr(row, "metadata", None))
+
 
 @dataclass(frozen=True)
 class ObservationResult:
@@ -218,3 +225,4 @@ class MemoryInfo:
     streams: StreamsMemory
     projection_bytes: int
     storage: StorageMemory
+    process_rss_bytes: int

@@ -18,7 +18,6 @@ Which thread runs what:
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -32,33 +31,32 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from models import pipeline
 from models.frontend import slsbh
-from models.frontend.adaptation import RunningMean
 from models.frontend.images import RawFrame
+from models.localisation import InvertedIndex, Localisation
 from models.memory.temporal_memory import TemporalMemory
+from models.pipeline import Stream, memory_state, touch
 from service.maps import idempotency, recovery, sizes
 from service.maps import snapshots as map_snapshots
 from service.maps.encoder_pool import EncoderPool
 from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable
-from service.maps.index import IndexFull, InvertedIndex
-from service.maps.localisation import Localisation, place_result
-from service.maps.params import check_revisit_threshold, map_option
+from service.maps.params import check_revisit_threshold, map_model, map_option
 from service.maps.recent import RecentAnswers
 from service.maps.results import (
     MapInfo,
     Match,
     MemoryInfo,
     ObservationResult,
+    PlaceResult,
     RestoreResult,
     SequenceStats,
     SnapshotInfo,
     StreamReset,
 )
-from service.maps.state import Stream, memory_state, touch, winner_cells
 from storage import snapshots
-from storage._common import StorageFull, utc_now
-from storage.catalog import Catalog, MapRecord
-from storage.mapstore import MapStore, NewClosure, NewObservation, StoreCorrupt
+from storage.catalog import Catalog, MapRecord, utc_now
+from storage.mapstore import MapStore, NewClosure, NewObservation, StorageFull, StoreCorrupt
 
 __all__ = ["MapRuntime"]
 
@@ -102,7 +100,6 @@ class MapRuntime:
         sha = self.params["projection_sha256"]
         self.projection_path = self.layout.projection(sha)
         self.hasher: slsbh.Hasher | None = None
-        self.adapt_tau = int(self.params["slsbh"].get("adapt_tau", 0))  # maps made before it: none
         self._projection_error: str | None = None
         # the checksum is verified on load: a map never runs on another matrix (docs/design/science.md §7)
         try:
@@ -111,13 +108,25 @@ class MapRuntime:
             self.hasher = slsbh.Hasher(projection, float(self.params["slsbh"]["s"]))
         except (slsbh.ProjectionError, OSError) as e:
             self._projection_error = str(e)
-        self.tm = TemporalMemory(self.params["tm"])
-        self.index = InvertedIndex(self.tm.n_cells, max_observations)
         self.memory_kind, self.backbone = (map_option(self.params, k) for k in ("memory", "backbone"))
         self.revisit_threshold = float(map_option(self.params, "revisit_threshold"))
-        self.localisation = Localisation(map_option(self.params, "localiser"), self.tm.n_columns)
+        # The memory, index and links the pure pipeline steps (models.pipeline); this runtime keeps
+        # their order, their persistence and their snapshots.
+        self.model = map_model(self.params, max_observations=max_observations)
         self.store: MapStore | None = None
         self.recent: RecentAnswers[Any] = RecentAnswers()  # the replies as sent (the route fills it)
+
+    @property
+    def tm(self) -> TemporalMemory:
+        return self.model.tm
+
+    @property
+    def index(self) -> InvertedIndex:
+        return self.model.index
+
+    @property
+    def localisation(self) -> Localisation:
+        return self.model.links
 
     # ------------------------------------------------------------------ writer
 
@@ -235,12 +244,10 @@ class MapRuntime:
         except (StoreCorrupt, StorageFull) as e:  # full (a migration): the file is whole, a restart recovers
             self._fail("disk-full" if isinstance(e, StorageFull) else "database-corrupt", str(e))
             return
-        done, note = recovery.recover(self.store, self.catalog, self.map_id, self.params["tm"],
-                                      adapt_tau=self.adapt_tau, memory=self.memory_kind)
-        self.tm, self.streams = done.tm, done.streams
-        self.index = InvertedIndex(self.tm.n_cells, self.index.max_observations)
-        self.index.rebuild(self.store.rows())
-        self.localisation.rebuild(self.store.rows())
+        done, note = recovery.recover(self.store, self.catalog, self.map_id, self.model)
+        self.model, self.streams = done.model, done.streams
+        self.model.index.rebuild(self.store.rows())
+        self.model.links.rebuild(self.store.rows())
         self.recovery = note
         self.state, self.state_reason = "ready", None
         log.info("map %s ready: %s", self.map_id, note)
@@ -357,87 +364,53 @@ class MapRuntime:
     def _step(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None, thumbnail: bytes | None,
               post: idempotency.IdempotentPost | None) -> ObservationResult:
-        """Writer: `apply` after its checks; an exception here while learning is rebuilt from by `apply`."""
-        assert self.store is not None and self.hasher is not None
-        t0 = time.perf_counter()
+        """Writer: `apply` after its checks: the pure step (`models.pipeline.observe`), then the reply
+        from the stored rows it names and, for learning, the row on disk. An exception here while
+        learning is rebuilt from by `apply` (the step already holds the row in the index and links)."""
+        assert self.store is not None
         st = touch(self.streams, stream, self.max_streams)
-        if self.adapt_tau:
-            # The adapted stream's code; a crash loses the means since the last snapshot (they are
-            # not in the store), which costs about tau frames of weaker codes, never a stored row.
-            st.adapt = st.adapt or RunningMean(self.adapt_tau)
-            projected = st.adapt.subtract(projected)
-        code = slsbh.hash_projected(projected[None, :], self.hasher.s)[0]
-        t1 = time.perf_counter()
-        if learn and st.learning is False:
-            st.context.reset()  # a switch to mapping starts a new sequence: replay relies on it
-            st.step, st.last_learned_seq = 0, None
-        if st.context.active_cells.size == 0 and self.memory_kind == "tm":  # without a TM: only `step`
-            st.step, st.last_learned_seq = 0, None
-        winners = winner_cells(self.tm, code, learn=learn, context=st.context, memory=self.memory_kind)
-        stats = st.context.stats.as_dict()
-        t2 = time.perf_counter()
-        st.localiser = st.localiser or self.localisation.new_state()
-        # The stream's own rows it has not left are no answer (docs/design/science.md §11.6); one index
-        # pass without them serves the matches and the localiser's candidates (§11.2).
-        own = self.localisation.own_trail(st.localiser, st.last_learned_seq, code, self._code_of)
-        ranked = self.index.rank(winners, self.localisation.candidates_wanted(top_k),
-                                 exclude_own=None if own is None else (stream, own.first))
-        place = self.localisation.step(st.localiser, ranked, own)
-        ranked = ranked[:top_k]
+        seq = self.store.next_seq() if learn else None  # this thread is the store's only writer
+        step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq,
+                                code_of=self._code_of)
         t3 = time.perf_counter()
-        rows = self.store.get_many([*(m.seq for m in ranked), *([place.seq] if place else [])])
-        row = NewObservation(stream=stream, image_sha256=image_sha256, input_sdr=code.astype(np.int64),
-                             winner_cells=winners, context_prev_seq=st.last_learned_seq, label=label,
+        place = step.place
+        rows = self.store.get_many([*(m.seq for m in step.ranked), *([place.seq] if place else [])])
+        row = NewObservation(stream=stream, image_sha256=image_sha256, input_sdr=step.code,
+                             winner_cells=step.winners, context_prev_seq=step.prev_seq, label=label,
                              metadata=metadata, thumbnail=thumbnail) if learn else None
         # The answer is whole before the commit, so an idempotent post's reply commits with its row.
-        seq = self.store.next_seq() if row is not None else None
         result = ObservationResult(
             map_id=self.map_id, stream=stream, learned=learn, observation_id=row and row.observation_id,
-            seq=seq, sequence=SequenceStats.of(st.step, stats),
-            matches=[Match.of(i + 1, rows[m.seq], m.overlap, m.score) for i, m in enumerate(ranked)],
-            timings_ms={"hash": (t1 - t0) * 1e3, "tm": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3},
-            map_seq=seq or self.store.last_seq(), projection_sha256=self.params["projection_sha256"],
-            backbone=self.backbone, metadata=metadata,
-            place=None if place is None else place_result(place, rows[place.seq], self.revisit_threshold))
+            seq=seq, sequence=SequenceStats.of(step.step, step.stats),
+            matches=[Match.of(i + 1, rows[m.seq], m.overlap, m.score) for i, m in enumerate(step.ranked)],
+            timings_ms=step.timings_ms, map_seq=seq or self.store.last_seq(),
+            projection_sha256=self.params["projection_sha256"], backbone=self.backbone, metadata=metadata,
+            place=None if place is None else PlaceResult.of(place, rows[place.seq], self.revisit_threshold))
         # A revisit is a loop closure, logged durably: with the learned row in its transaction, or alone
         # for a localising stream (it stores no observation and changes no memory; §11.6).
         closure = None if result.place is None or not result.place.revisit else NewClosure(
             stream=stream, place_seq=result.place.seq, confidence=result.place.confidence,
             support=result.place.support, metadata=metadata, key=post.key if post is not None else None)
+        if row is None and closure is not None:
+            self.store.add_closure(closure)
         if row is not None:
             if post is not None:
                 row = dataclasses.replace(row, key=post.record(result))
-            committed, _ = self._commit(dataclasses.replace(row, closure=closure))
+            committed = self.store.append(dataclasses.replace(row, closure=closure))
             assert committed == seq  # this thread is the store's only writer
-            st.last_learned_seq = seq
-        elif closure is not None:
-            self.store.add_closure(closure)
-        # The step is recorded before the automatic snapshot, so the snapshot holds the stream as it
-        # is after this frame (a snapshot taken before would hold a stream that just switched back to
-        # mapping as localising, and recovery would drop the context the next row continues).
-        st.learning = learn
-        st.step += 1
-        if learn and self.snapshot_every and seq is not None and seq % self.snapshot_every == 0:
-            self._auto_snapshot()
+            # The stream's step is recorded before the automatic snapshot, so the snapshot holds the
+            # stream as it is after this frame.
+            if self.snapshot_every and committed % self.snapshot_every == 0:
+                self._auto_snapshot()
         t4 = time.perf_counter()
         return dataclasses.replace(result, timings_ms={**result.timings_ms, "store": (t4 - t3) * 1e3})
 
     def _code_of(self, seq: int) -> np.ndarray:
-        """Writer: a stored row's frame code (its sLSBH input SDR), for the own-trail rule."""
+        """Writer: a stored row's frame code (its sLSBH input SDR), for the own-trail rule (§11.6)."""
         assert self.store is not None
         row = self.store.get(seq)
-        assert row is not None  # the rows of a stream's trail are stored (the rule walks committed rows)
+        assert row is not None  # the rule walks the stream's committed rows
         return row.input_sdr
-
-    def _commit(self, row: NewObservation) -> tuple[int, str]:
-        """Writer: the row on disk, then in the index and the links: (seq, observation id). A failed
-        append raises; `apply` rebuilds the memory from the store."""
-        assert self.store is not None
-        seq = self.store.append(row)
-        with contextlib.suppress(IndexFull):  # checked in `apply`; the row is durable either way
-            self.index.add(seq, row.winner_cells, row.stream)
-        self.localisation.add(seq, row.context_prev_seq, row.input_sdr)
-        return seq, row.observation_id
 
     # ------------------------------------------------------------------ resources
 
@@ -464,4 +437,6 @@ class MapRuntime:
         return self.info()
 
     def memory(self) -> MemoryInfo:
-        return sizes.memory_info(self)
+        return sizes.memory_info(self.model, self.streams, tm_params=self.params["tm"],
+                                 max_streams=self.max_streams, projection=self.projection_path,
+                                 store=self.store, snapshots_bytes=self.catalog.snapshots_bytes(self.map_id))

@@ -15,12 +15,14 @@ from models.frontend import slsbh
 from service.maps.errors import InsufficientStorage, SnapshotNotFound
 from service.maps.results import SnapshotInfo
 from storage import snapshots
-from storage._common import StorageFull
 from storage.catalog import Catalog, SnapshotRecord
 from storage.layout import Layout
-from storage.mapstore import MapStore
+from storage.mapstore import MapStore, StorageFull
 
-__all__ = ["import_snapshot", "info", "listing", "locate", "prune_auto", "take"]
+__all__ = ["TarExport", "export", "import_snapshot", "info", "listing", "locate", "prune_auto", "take"]
+
+#: A snapshot as a tar stream: `size`, `chunks()`, `close()` (storage.archive).
+TarExport = snapshots.TarExport
 
 log = logging.getLogger("cortexloc.snapshots")
 
@@ -41,6 +43,13 @@ def locate(catalog: Catalog, map_id: str, snapshot_id: str) -> tuple[SnapshotRec
     if rec is None:
         raise SnapshotNotFound(map_id, snapshot_id)
     return rec, catalog.snapshot_dir(rec)
+
+
+def export(directory: Path, projection: Path) -> TarExport:
+    """The snapshot at `directory` (`locate`) with the map's projection as a tar, streamed from the
+    files with no copy. Blocks while every checksum is verified, before the first byte (a worker thread,
+    not the writer). Raises SnapshotInvalid."""
+    return TarExport(directory, {snapshots.PROJECTION_FILE: projection})
 
 
 def take(store: MapStore, memory: Mapping[str, np.ndarray], catalog: Catalog, map_id: str,

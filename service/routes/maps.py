@@ -7,7 +7,6 @@ import uuid
 import anyio
 from fastapi import APIRouter, Response
 
-from models.evaluation.bench import rss_mb
 from service.deps import ApiKeyDep, RegistryDep, SettingsDep
 from service.errors import problem_responses
 from service.routes.params import MapId, StreamName
@@ -66,7 +65,7 @@ async def delete_map(map_id: MapId, registry: RegistryDep) -> Response:
 @router.get("/{map_id}/memory", responses=problem_responses(404))
 async def map_memory(map_id: MapId, registry: RegistryDep) -> MemoryModel:
     rt = registry.get(map_id)
-    return MemoryModel.from_result(await rt.run(rt.memory), process_rss_bytes=int(rss_mb() * 2**20))
+    return MemoryModel.from_result(await rt.run(rt.memory))
 
 
 # `{stream:path}`: a ROS-style name holds '/', which arrives percent-decoded in the path.

@@ -10,8 +10,8 @@ from typing import Annotated
 
 from fastapi import Path, Query
 
+from service.maps.ids import SNAPSHOT_ID_RE
 from service.schemas import MAP_ID_PATTERN, STREAM_PATTERN
-from storage.catalog import SNAPSHOT_ID_RE
 
 __all__ = ["MAX_SEQ", "MapId", "Seq", "SnapshotId", "StreamName", "StreamQuery"]
 

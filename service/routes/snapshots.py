@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import functools
-
 import anyio
 from fastapi import APIRouter, Response
 from fastapi.responses import StreamingResponse
@@ -11,9 +9,9 @@ from starlette.types import Receive, Scope, Send
 
 from service.deps import ApiKeyDep, MapReadKeyDep, RegistryDep
 from service.errors import problem_responses
+from service.maps import snapshots
 from service.routes.params import MapId, SnapshotId
 from service.schemas import RestoreModel, SnapshotList, SnapshotModel
-from storage import snapshots
 
 router = APIRouter(prefix="/v1/maps/{map_id}/snapshots", tags=["snapshots"])
 
@@ -66,6 +64,5 @@ async def download_snapshot(map_id: MapId, snapshot_id: SnapshotId,
     files with no copy; every checksum is verified before the first byte (409 snapshot-invalid if not)."""
     rt = registry.get(map_id)
     directory = await rt.run(rt.snapshot_dir, snapshot_id)
-    export = await anyio.to_thread.run_sync(functools.partial(
-        snapshots.TarExport, directory, {snapshots.PROJECTION_FILE: rt.projection_path}))
+    export = await anyio.to_thread.run_sync(snapshots.export, directory, rt.projection_path)
     return TarExportResponse(export, f"{map_id}-{snapshot_id}.tar")

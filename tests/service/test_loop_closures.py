@@ -14,7 +14,8 @@ THRESHOLD = 0.5  # the synthetic maps are small: confidence earns less per frame
 
 
 def drive(c, places, stream="mapper", learn="true", noise=3.0, **params) -> list[dict]:
-    return [post(c, frame(p, noise=noise), stream=stream, learn=learn, top_k=0, **params).json() for p in places]
+    return [post(c, frame(p, noise=noise), stream=stream, learn=learn, top_k=0, **params).json()
+            for p in places]
 
 
 def revisits(bodies: list[dict]) -> list[dict]:
@@ -47,7 +48,7 @@ def test_a_lap_on_ones_own_trail_is_a_revisit_and_names_the_first_lap(tmp_path):
     first = {p: b["seq"] for p, b in zip(LAP, lap1, strict=True)}
     called = revisits(lap2)
     assert len(called) >= len(LAP) - 10
-    for i, b in enumerate(lap2):
+    for b in lap2:
         assert b["place"] is None or b["place"]["seq"] != b["seq"]  # never the row the frame created
     for b in called:
         place = LAP[[x["seq"] for x in lap2].index(b["seq"])]
@@ -117,7 +118,8 @@ def test_the_loop_closure_log_pages_exports_and_survives_a_restart(tmp_path):
     with make_client(data) as c:
         again = c.get("/v1/maps/default/loop-closures", params={"limit": 500}).json()["loop_closures"]
         two = c.get("/v1/maps/default/loop-closures", params={"limit": 2}).json()
-        rest = c.get("/v1/maps/default/loop-closures", params={"after": two["next_after"], "limit": 500}).json()
+        rest = c.get("/v1/maps/default/loop-closures",
+                     params={"after": two["next_after"], "limit": 500}).json()
         text = c.get("/v1/maps/default/loop-closures/export", params={"format": "csv"})
         lines = c.get("/v1/maps/default/loop-closures/export", params={"format": "jsonl"})
         assert c.get("/v1/maps/default/loop-closures", params={"limit": 0}).status_code == 400

@@ -65,7 +65,7 @@ import torch
 from torch import nn
 from torch.nn import functional
 
-from models.files import sha256_file
+from common.files import sha256_file
 from models.frontend.backbones import Backbone, register
 
 __all__ = [

@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch.nn import functional
 
-from models.files import sha256_file
+from common.files import sha256_file
 from models.frontend import images
 from models.frontend.backbones import efficientnet_lite0 as effnet
 

@@ -11,7 +11,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from service.maps.index import InvertedIndex, Match, warm_up
+from models.localisation.index import InvertedIndex, Match, warm_up
 
 
 def random_sets(rng: np.random.Generator, n: int, w: int, n_cells: int) -> list[np.ndarray]:

@@ -111,7 +111,7 @@ def _in_process_settings(data_dir: Path | None) -> Settings:
     """`cortexloc serve`'s settings for the app run here; its log quiet (WARNING) unless configured."""
     import os
 
-    from service.cli import process_settings
+    from service.cli.serve import process_settings
 
     env = {} if os.environ.get("CORTEXLOC_LOG_LEVEL") else {"CORTEXLOC_LOG_LEVEL": "WARNING"}
     return process_settings(data_dir=data_dir, **env)

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from service.maps.index import IndexFull, InvertedIndex, Match
+from models.localisation.index import IndexFull, InvertedIndex, Match
 
 
 def random_sets(rng: np.random.Generator, n: int, w: int, n_cells: int) -> np.ndarray:

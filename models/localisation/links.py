@@ -2,8 +2,8 @@
 (docs/design/science.md §11, docs/design/service.md §1.2).
 
 The map holds one `SequenceGraph` (each stored row's `context_prev_seq`, rebuilt from the store on
-recovery, appended on every commit) and one `SequenceLocaliser`; each stream holds its own
-`LocaliserState` (`service.maps.state.Stream.localiser`, in snapshots). The step reads the candidates of
+recovery, appended on every learned step) and one `SequenceLocaliser`; each stream holds its own
+`LocaliserState` (`models.pipeline.state.Stream.localiser`, in snapshots). The step reads the candidates of
 the inverted index's one pass for the frame's winner cells, so its cost does not grow with the map
 beyond that pass (benchmarks/bench_index.py, docs/benchmarks.md).
 """
@@ -15,18 +15,12 @@ from typing import Any
 
 import numpy as np
 
-from models.localisation import CodeStats, LocaliserState, OwnTrail, Place, SequenceGraph, SequenceLocaliser
-from service.maps.index import Match
-from service.maps.results import PlaceResult
+from models.localisation.graph import SequenceGraph
+from models.localisation.index import Match
+from models.localisation.localiser import LocaliserState, Place, SequenceLocaliser
+from models.localisation.trail import CodeStats, OwnTrail
 
-__all__ = ["Localisation", "graph_from_rows", "place_result"]
-
-
-def place_result(place: Place, row: Any, revisit_threshold: float) -> PlaceResult:
-    """The reply's `place`: the answer, its stored row, and the map's revisit decision."""
-    return PlaceResult(seq=place.seq, observation_id=row.observation_id, stream=row.stream, label=row.label,
-                       confidence=place.confidence, revisit=place.confidence >= revisit_threshold,
-                       support=place.support, metadata=getattr(row, "metadata", None))
+__all__ = ["Localisation", "graph_from_rows"]
 
 
 def graph_from_rows(rows: Iterable[Any]) -> SequenceGraph:
@@ -58,7 +52,7 @@ class Localisation:
             self.add(int(row.seq), row.context_prev_seq, row.input_sdr)
 
     def add(self, seq: int, prev: int | None, code: np.ndarray) -> None:
-        """A row just committed, learned after `prev` (None: the start of a sequence), its frame code."""
+        """A row just learned, after `prev` (None: the start of a sequence), and its frame code."""
         self.graph.append(seq, -1 if prev is None else prev)
         self.codes.add(code)
 

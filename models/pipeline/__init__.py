@@ -1,0 +1,8 @@
+"""A map's per-frame pipeline, pure (docs/design/service.md §1.2, §6): the stream's state and the step
+that the service's writer, the recovery's replay and the evaluation share."""
+
+from models.pipeline.core import MapModel, Step, observe, replay
+from models.pipeline.state import Stream, load_memory_state, memory_state, touch, winner_cells
+
+__all__ = ["MapModel", "Step", "Stream", "load_memory_state", "memory_state", "observe", "replay", "touch",
+           "winner_cells"]

@@ -1,0 +1,187 @@
+"""The per-frame pipeline of a map, pure: a projected frame through the stream's adaptation, the sLSBH
+hash, the memory, one index pass and the localiser, and for a learned frame into the index and the links
+(docs/design/service.md §1.2, §6; docs/design/science.md §7, §11.2).
+
+No SQLite, no threads: the service's map writer (`service.maps.runtime.MapRuntime.apply`), the
+recovery's replay (`service.maps.recovery.rebuild`) and the evaluation (`service.cli.service_eval`)
+call these functions on the same `MapModel`, so what is measured and replayed is what is served.
+Ordering, persistence (the row, its seq) and snapshots are the caller's.
+
+`observe` is one frame online; `replay` is one stored row again (its code is stored, so no hash, no
+index pass: the index and the links are rebuilt in bulk from the rows afterwards). Both keep a stream's
+sequence bookkeeping through `_remember`, the one place its rules live.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from models.frontend import slsbh
+from models.frontend.adaptation import RunningMean
+from models.localisation import InvertedIndex, Localisation, Match, Place
+from models.memory.temporal_memory import TemporalMemory
+from models.pipeline.state import Stream, winner_cells
+
+__all__ = ["MapModel", "Step", "observe", "replay"]
+
+
+@dataclass
+class MapModel:
+    """What a frame's step reads and changes: the map's memory, index and links, and the frozen options
+    the step needs (docs/design/service.md §1.1).
+
+    Attributes:
+        tm: the Temporal Memory (unused with `memory: none`).
+        index: winner cells -> stored seqs, ranked by Dice (docs/design/service.md §5).
+        links: the learned links and the localiser (docs/design/science.md §11).
+        memory: `tm` | `none` (the map option; `none` is the ablation: the code is the winner cells).
+        s: the sLSBH sparsity (the fraction of the k projections kept on each side, §7).
+        adapt_tau: the streams' adaptation time constant (0: none).
+    """
+
+    tm: TemporalMemory
+    index: InvertedIndex
+    links: Localisation
+    memory: str = "tm"
+    s: float = 0.0
+    adapt_tau: int = 0
+
+    @classmethod
+    def new(cls, tm_params: dict[str, Any], localiser: dict[str, Any], *, max_observations: int,
+            memory: str = "tm", s: float = 0.0, adapt_tau: int = 0) -> MapModel:
+        """A fresh model: an empty memory with `tm_params`, an empty index of `max_observations` rows,
+        no links, the localiser with the `localiser` options (its code statistics over the TM's columns,
+        the sLSBH code's width)."""
+        tm = TemporalMemory(tm_params)
+        return cls(tm, InvertedIndex(tm.n_cells, max_observations), Localisation(localiser, tm.n_columns),
+                   memory, s, adapt_tau)
+
+    def fresh(self, tm: TemporalMemory | None = None) -> MapModel:
+        """The same options over `tm` (default: this model's), with an empty index and no links."""
+        tm = self.tm if tm is None else tm
+        return MapModel(tm, InvertedIndex(tm.n_cells, self.index.max_observations),
+                        Localisation(self.links.localiser.conf, tm.n_columns), self.memory, self.s,
+                        self.adapt_tau)
+
+
+@dataclass(frozen=True)
+class Step:
+    """One frame's outcome, before anything is stored.
+
+    Attributes:
+        code: (2n,) int64 sorted sLSBH columns (what a learned row stores as `input_sdr`).
+        winners: (w,) int64 sorted winner cells (stored as `winner_cells`).
+        prev_seq: the learned row this frame continues (None: a new sequence), the row's `context_prev_seq`.
+        step: steps of the stream since its context was last empty, before this one.
+        stats: the TM step's column counts (`StreamContext.stats.as_dict()`).
+        ranked: the best `top_k` stored rows by Dice, best first.
+        place: the stream's place on the map, or None (warm-up).
+        timings_ms: hash, tm, search.
+    """
+
+    code: np.ndarray
+    winners: np.ndarray
+    prev_seq: int | None
+    step: int
+    stats: dict[str, int]
+    ranked: list[Match]
+    place: Place | None
+    timings_ms: dict[str, float]
+
+
+def _remember(model: MapModel, st: Stream, code: np.ndarray, *, learn: bool, starts: bool) -> np.ndarray:
+    """The memory's step on the stream's context; `starts`: the frame begins a new sequence."""
+    if starts:
+        st.context.reset()
+        st.step, st.last_learned_seq = 0, None
+    return winner_cells(model.tm, code, learn=learn, context=st.context, memory=model.memory)
+
+
+def _advance(st: Stream, learn: bool, seq: int | None) -> None:
+    """The stream after its step: a learned frame is the row `seq` the next one continues."""
+    if learn:
+        st.last_learned_seq = seq
+    st.learning = learn
+    st.step += 1
+
+
+def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, stream: str, top_k: int,
+            code_of: Callable[[int], np.ndarray], seq: int | None = None) -> Step:
+    """One frame of one stream (docs/design/service.md §1.2, §6).
+
+    Args:
+        model: the map's memory, index and links; changed in place when learning.
+        st: the stream's state, changed in place.
+        projected: (k,) the frame's features · the map's projection (docs/design/science.md §7).
+        learn: learn the frame: the memory learns, and the frame joins the index and the links as `seq`.
+        stream: the stream's name (its own rows it has not left are left out of the ranking, §11.6).
+        top_k: ranked rows wanted in `Step.ranked`.
+        code_of: a stored row's code (its `input_sdr`), read by the own-trail rule (§11.6): about one
+            row per frame.
+        seq: the seq the learned row gets (required with `learn`; the caller stores it under that seq).
+
+    Returns:
+        The step. The stream's bookkeeping is done; the caller stores a learned row after it.
+
+    Raises:
+        IndexFull: learning into a full index (the caller checks first; see `InvertedIndex.add`).
+    """
+    if learn and seq is None:
+        raise ValueError("a learned frame needs its seq")
+    t0 = time.perf_counter()
+    if model.adapt_tau:
+        # The adapted stream's code; a crash loses the means since the last snapshot (they are not in
+        # the store), which costs about tau frames of weaker codes, never a stored row.
+        st.adapt = st.adapt or RunningMean(model.adapt_tau)
+        projected = st.adapt.subtract(projected)
+    code = slsbh.hash_projected(projected[None, :], model.s)[0].astype(np.int64)
+    t1 = time.perf_counter()
+    # A switch to mapping starts a new sequence (replay relies on it); with a TM, so does an empty
+    # context (without one, only `step` counts).
+    if learn and st.learning is False:
+        starts = True
+    else:
+        starts = False
+        if st.context.active_cells.size == 0 and model.memory == "tm":
+            st.step, st.last_learned_seq = 0, None
+    winners = _remember(model, st, code, learn=learn, starts=starts)
+    stats = st.context.stats.as_dict()
+    t2 = time.perf_counter()
+    st.localiser = st.localiser or model.links.new_state()
+    prev, step = st.last_learned_seq, st.step
+    # The stream's own rows it has not left are no answer (docs/design/science.md §11.6); one index pass
+    # without them serves the matches and the localiser's candidates (§11.2).
+    own = model.links.own_trail(st.localiser, prev, code, code_of)
+    ranked = model.index.rank(winners, model.links.candidates_wanted(top_k),
+                              exclude_own=None if own is None else (stream, own.first))
+    place = model.links.step(st.localiser, ranked, own)
+    if learn:
+        assert seq is not None
+        model.index.add(seq, winners, stream)
+        model.links.add(seq, prev, code)
+    _advance(st, learn, seq)
+    t3 = time.perf_counter()
+    timings = {"hash": (t1 - t0) * 1e3, "tm": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3}
+    return Step(code=code, winners=winners, prev_seq=prev, step=step, stats=stats,
+                ranked=list(ranked[:top_k]), place=place, timings_ms=timings)
+
+
+def replay(model: MapModel, st: Stream, code: np.ndarray, *, seq: int, prev_seq: int | None) -> np.ndarray:
+    """A stored row's step again (docs/design/service.md §4.4): its code through the memory on the
+    stream's context, learning, with the bookkeeping `observe` gave it. The index and the links are not
+    touched (rebuilt from the rows in one pass).
+
+    Args:
+        code: (2n,) the row's `input_sdr`; seq, prev_seq: the row's `seq` and `context_prev_seq`.
+
+    Returns:
+        (w,) the replayed winner cells (the caller compares them with the stored ones).
+    """
+    winners = _remember(model, st, code, learn=True, starts=prev_seq is None)
+    _advance(st, True, seq)
+    return winners

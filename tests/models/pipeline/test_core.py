@@ -1,0 +1,80 @@
+"""The pure per-frame pipeline (models/pipeline/core.py): one frame online (`observe`) and one stored
+row again (`replay`) share the memory step and the stream bookkeeping, with no store and no thread."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.pipeline import MapModel, Stream, observe, replay
+
+TM = {"columnDimensions": 128, "cellsPerColumn": 4, "maxSegmentsPerCell": 4, "maxSynapsesPerSegment": 16,
+      "activationThreshold": 3, "minThreshold": 2, "seed": 3}
+K, S = 64, 0.1  # 2k = columnDimensions; n = 6 ones per half
+
+
+def model(memory: str = "tm", adapt_tau: int = 0) -> MapModel:
+    return MapModel.new(TM, {}, max_observations=100, memory=memory, s=S, adapt_tau=adapt_tau)
+
+
+def route(n: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).normal(size=(n, K)).astype(np.float32)
+
+
+def learn_route(m: MapModel, frames: np.ndarray, st: Stream, first_seq: int = 1) -> list:
+    return [observe(m, st, y, learn=True, stream="a", top_k=3, seq=first_seq + i)
+            for i, y in enumerate(frames)]
+
+
+@pytest.mark.parametrize("memory", ["tm", "none"])
+def test_replay_of_the_stored_codes_reproduces_every_step(memory):
+    """What recovery relies on: the rows `observe` learned, replayed on a fresh memory, give the same
+    winner cells, and the stream ends with the same bookkeeping."""
+    m, st = model(memory), Stream()
+    frames = route(12)
+    steps = learn_route(m, frames[:6], st)
+    st.break_sequence()  # a new sequence part-way: its first row has no predecessor
+    steps += learn_route(m, frames[6:], st, first_seq=7)
+    assert [s.prev_seq for s in steps] == [None, 1, 2, 3, 4, 5, None, 7, 8, 9, 10, 11]
+    again, st2 = m.fresh(model(memory).tm), Stream()
+    for seq, s in enumerate(steps, start=1):
+        assert np.array_equal(replay(again, st2, s.code, seq=seq, prev_seq=s.prev_seq), s.winners)
+    assert (st2.step, st2.last_learned_seq, st2.learning) == (st.step, st.last_learned_seq, st.learning)
+
+
+def test_a_learned_frame_joins_the_index_and_the_links_and_a_localisation_changes_neither():
+    m, st = model(), Stream()
+    frames = route(8)
+    learn_route(m, frames, st)
+    assert len(m.index) == 8 and m.links.graph.prev[5] == 4  # row 5 continues row 4
+    before = (len(m.index), m.tm.size()["segments"])
+    q = Stream()
+    found = [observe(m, q, y + 0.01, learn=False, stream="q", top_k=1) for y in frames]
+    assert (len(m.index), m.tm.size()["segments"]) == before
+    assert found[0].ranked[0].seq == 1 and found[-1].ranked[0].seq == 8  # each frame finds itself
+    assert found[-1].place is not None and found[-1].place.seq == 8
+    assert q.last_learned_seq is None and q.learning is False
+
+
+def test_a_switch_to_mapping_starts_a_new_sequence():
+    m, st = model(), Stream()
+    learn_route(m, route(3), st)
+    observe(m, st, route(1, 5)[0], learn=False, stream="a", top_k=0)
+    step = observe(m, st, route(1, 6)[0], learn=True, stream="a", top_k=0, seq=4)
+    assert step.prev_seq is None and step.step == 0
+
+
+def test_a_learned_frame_needs_its_seq_and_nothing_changes_without_it():
+    m, st = model(), Stream()
+    with pytest.raises(ValueError, match="seq"):
+        observe(m, st, route(1)[0], learn=True, stream="a", top_k=0)
+    assert len(m.index) == 0 and st.step == 0
+
+
+def test_adaptation_subtracts_the_streams_running_mean_before_hashing():
+    """With adapt_tau the first frame (no history) is hashed as it is, the later ones less the mean."""
+    frames = route(6)
+    adapted = [s.code for s in learn_route(model(adapt_tau=2), frames, Stream())]
+    plain = [s.code for s in learn_route(model(), frames, Stream())]
+    assert np.array_equal(adapted[0], plain[0])
+    assert any(not np.array_equal(a, b) for a, b in zip(adapted[1:], plain[1:], strict=True))
