@@ -48,7 +48,6 @@ class CreateMap(BaseModel):
     seed: int | None = Field(default=None, description="the TM's seed (and the projection's); >= 0")
     tm: dict[str, Any] | None = Field(default=None, description="Temporal Memory overrides, NuPIC names")
     slsbh: dict[str, Any] | None = Field(default=None, description="sLSBH overrides: k, s, seed, adapt_tau")
-    exclude_recent: int = Field(default=0, ge=0)
     backbone: str | None = Field(default=None, description="alexnet | efficientnet-lite0-s5 | "
                                  "efficientnet-lite0 (default: the service's, resolved at startup); "
                                  "frozen with the map")
@@ -73,7 +72,6 @@ class MapParams(_Out):
     tm: dict[str, Any]
     slsbh: dict[str, Any]
     seed: int
-    exclude_recent: int
     memory: str
     projection: str = Field(description="dense | sparse (the very sparse projection, where dense would "
                             "break the map's size budget)")

@@ -193,7 +193,7 @@ class MapMeta:
 
     Attributes:
         map_id: the map's identifier.
-        params: resolved parameters (`tm`, `slsbh`, `encoder`, `seed`, `exclude_recent`), JSON-able.
+        params: resolved parameters (`tm`, `slsbh`, `encoder`, `seed`, ...), JSON-able.
         projection_sha256: checksum of the map's sLSBH projection.
         encoder_id: identity of the encoder whose codes the map holds.
         cell_dtype: `uint16` or `uint32` (see `cell_dtype_for`).

@@ -11,20 +11,24 @@ row), so they are one range on one chain of links (`OwnTrail`).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
 from models.localisation.graph import NONE, SequenceGraph
-
-if TYPE_CHECKING:
-    from models.localisation.localiser import LocaliserState
 
 __all__ = ["UNKNOWN", "CodeStats", "OwnTrail", "code_dice", "own_trail"]
 
 #: `LocaliserState.here` of a state saved before the own-trail rule: the stream's whole current trail
 #: counts as not left until a frame unlike it is seen (§11.6).
 UNKNOWN = -2
+
+
+class TrailState(Protocol):
+    """What the rule keeps in a stream's state (`LocaliserState.here` and its code cache)."""
+
+    here: int
+    here_code: np.ndarray | None
 
 
 class OwnTrail(NamedTuple):
@@ -92,7 +96,7 @@ class CodeStats:
         return float(2.0 * shared / (code.size + self.bits / self.n))
 
 
-def own_trail(state: LocaliserState, graph: SequenceGraph, last: int | None, code: np.ndarray,
+def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: np.ndarray,
               code_of: Callable[[int], np.ndarray], stats: CodeStats, departure: float,
               margin: int) -> OwnTrail | None:
     """The rows of the stream's own trail it has not left, after this frame (§11.6).

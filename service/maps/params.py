@@ -62,7 +62,7 @@ def _body(name: str, message: str) -> dict[str, str]:
 
 
 def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] | None = None,
-                   slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
+                   slsbh_conf: dict[str, Any] | None = None,
                    backbone: str = "alexnet", memory: str = "tm",
                    revisit_threshold: float = DEFAULT_REVISIT_THRESHOLD,
                    localiser: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -73,13 +73,12 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
         preset: a preset name with a `tm` section.
         seed: overrides `tm.seed` (and so the projection's seed unless `slsbh.seed` is given).
         tm, slsbh_conf: the request's overrides, as sent.
-        exclude_recent: frozen into the map.
         backbone: a registered backbone (`models.frontend.backbones`), frozen into the map.
         memory: `tm` | `none` (MEMORY_KINDS). revisit_threshold: in [0, 1] (changeable later).
         localiser: options over `models.localisation.default_conf` (docs/design/science.md §11.3).
 
     Returns:
-        {"preset", "tm", "slsbh", "seed", "exclude_recent", "backbone", "memory", "revisit_threshold",
+        {"preset", "tm", "slsbh", "seed", "backbone", "memory", "revisit_threshold",
         "localiser", "warnings"}.
 
     Raises:
@@ -126,6 +125,6 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
     if errors:
         raise InvalidConfiguration("; ".join(e["message"] for e in errors), errors)
     return {"preset": preset, "tm": tm_params, "slsbh": s_conf, "seed": tm_params["seed"],
-            "exclude_recent": int(exclude_recent), "backbone": backbone, "memory": memory,
+            "backbone": backbone, "memory": memory,
             "revisit_threshold": check_revisit_threshold(revisit_threshold),
             "localiser": dict(localiser or {}), "warnings": warnings}

@@ -130,7 +130,7 @@ class MapRegistry:
         return rt
 
     def create(self, map_id: str, *, preset: str, seed: int | None = None, tm: dict[str, Any] | None = None,
-               slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
+               slsbh_conf: dict[str, Any] | None = None,
                backbone: str | None = None, memory: str = "tm", revisit_threshold: float | None = None,
                localiser: dict[str, Any] | None = None, thumbnails: bool = False) -> MapRuntime:
         """Create a map: resolve and freeze parameters, persist the projection, then the store (§1.1).
@@ -141,7 +141,7 @@ class MapRegistry:
         if not MAP_ID_RE.match(map_id):
             raise InvalidMapId(map_id, MAP_ID_RE.pattern)
         params = resolve_params(
-            preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf, exclude_recent=exclude_recent,
+            preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf,
             backbone=backbone or self.encoders.default, memory=memory, localiser=localiser,
             **({} if revisit_threshold is None else {"revisit_threshold": revisit_threshold}))
         need = map_projection.model_bytes(params, self.settings.max_streams)

@@ -420,7 +420,7 @@ class MapRuntime:
             map_id=self.map_id, created_at=self.record.created_at, state=self.state,
             state_reason=self.state_reason, preset=p["preset"],
             params={"tm": p["tm"], "slsbh": p["slsbh"], "seed": p["seed"],
-                    "exclude_recent": p["exclude_recent"], "memory": self.memory_kind,
+                    "memory": self.memory_kind,
                     "projection": map_option(p, "projection"), "localiser": self.localisation.localiser.conf},
             encoder=p["encoder_id"], projection_sha256=p["projection_sha256"],
             observations=len(self.index),

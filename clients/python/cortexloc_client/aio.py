@@ -90,11 +90,11 @@ class AsyncClient:
 
     async def create_map(self, map_id: str | None = None, *, preset: str | None = None,
                    seed: int | None = None, tm: Mapping[str, Any] | None = None,
-                   slsbh: Mapping[str, Any] | None = None, exclude_recent: int | None = None,
-                   revisit_threshold: float | None = None, thumbnails: bool | None = None) -> models.Map:
+                   slsbh: Mapping[str, Any] | None = None, revisit_threshold: float | None = None,
+                   thumbnails: bool | None = None) -> models.Map:
         """`POST /v1/maps`: a new map; unset fields take the server's preset (a generated id if no id)."""
         return await self._send(_core.create_map(map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh,
-                                           exclude_recent=exclude_recent, revisit_threshold=revisit_threshold,
+                                           revisit_threshold=revisit_threshold,
                                            thumbnails=thumbnails))
 
     async def list_maps(self) -> list[models.Map]:

@@ -90,7 +90,6 @@ class MapParams(_Reply):
     tm: dict[str, Any]
     slsbh: dict[str, Any]
     seed: int
-    exclude_recent: int
     #: "tm", or "none" (the sLSBH code stands in for the winner cells: the memory's ablation).
     memory: str | None = None
     #: "dense" or "very-sparse": the sLSBH projection the map's size budget allowed.
