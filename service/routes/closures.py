@@ -40,7 +40,8 @@ async def list_loop_closures(
 
 @router.get("/{map_id}/loop-closures/export", dependencies=[MapReadKeyDep],
             response_class=StreamingResponse, responses={**problem_responses(404, 503), 200: {
-                "content": {t: {"schema": {"type": "string"}} for t in closures.EXPORT_FORMATS.values()}}})
+                "content": {t.split(";")[0]: {"schema": {"type": "string"}}
+                            for t in closures.EXPORT_FORMATS.values()}}})
 async def export_loop_closures(
     map_id: MapId, registry: RegistryDep,
     format: Annotated[Literal["csv", "jsonl"], Query(description="csv | jsonl")] = "csv",
