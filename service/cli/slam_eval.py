@@ -10,6 +10,10 @@ Routes, from the Nordland half (`tune`: files 1-894, `test`: 895-1788), labels =
 - `short-lap`: 40 summer frames driven three times;
 - `stop`: 200 summer frames with a stop of 40 near-identical frames (σ 2 noise) in the middle;
 - `excursion`: 150 summer frames out, then back the same way (driven backwards).
+`--grid DIR` instead: the grid world's multi-loop walk (CBA 2020, both published SDR files) through the
+same localiser as one learning stream (`models.evaluation.online.loop_closure`: the input SDRs, and the
+Temporal Memory's winner cells learned online), labels = cells, tolerance 0.
+
 Methods: `service-slam` and `service-slam-without-tm` (`service_eval.slam_replay`: every frame posted
 with learn=true on one stream), the localise mode on the same lap-2 frames (`service`: lap 1 learned,
 lap 2 localised, `service_eval.replay`), and `openseqslam` as an online loop-closure detector
@@ -153,9 +157,31 @@ def evaluate(r: dict[str, Any], methods: list[str], map_conf: dict[str, Any], th
     return out
 
 
+def grid(folder: Path, thresholds: list[float]) -> dict[str, Any]:
+    """The grid world's loops as one learning stream, with and without the Temporal Memory, and
+    OpenSeqSLAM's online detector on 1 − Dice of the SDRs."""
+    from models.evaluation import gridworld, online, runner
+    from models.sdr import dice_matrix
+
+    out: dict[str, Any] = {}
+    for name in ("seq_multi_loop_noise0_al1.txt", "seq_multi_loop_noise05_al5.txt"):
+        data = gridworld.load_published(folder / name, folder / "seq_multi_loop_noNoise_gt.txt")
+        ids = {cell: i for i, cell in enumerate(sorted({tuple(p) for p in data.places}))}
+        labels = np.array([ids[tuple(p)] for p in data.places])
+        winners, _ = runner.run_htm(data, "cortexloc-grid", 1)
+        methods = {"service-slam-without-tm": dice_matrix(data.sdrs), "service-slam": dice_matrix(winners)}
+        for m, S in methods.items():
+            found = online.loop_closure(S, data.sdrs)
+            out[f"{name} {m}"] = {f"{t:.4f}": slam.score(found.best, found.confidence, labels, t, 0)
+                                  for t in thresholds}
+        best, conf = slam.openseqslam_online(1.0 - dice_matrix(data.sdrs))
+        out[f"{name} openseqslam"] = {f"{t:.4f}": slam.score(best, conf, labels, t, 0) for t in thresholds}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, required=True)
+    ap.add_argument("--data", type=Path, default=None)
     ap.add_argument("--half", choices=sorted(HALVES), default="tune")
     ap.add_argument("--routes", default=",".join(ROUTES))
     ap.add_argument("--methods", default="service-slam,service-slam-without-tm,service,openseqslam")
@@ -165,13 +191,25 @@ def main() -> None:
     ap.add_argument("--backbone", default=None, help="default: the service's")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--grid", type=Path, default=None, help="the grid world's folder instead of --data")
     args = ap.parse_args()
+    if args.grid is not None:
+        found = grid(args.grid, [DEFAULT_REVISIT_THRESHOLD, *args.thresholds])
+        for key, by_t in found.items():
+            for t, s in by_t.items():
+                d = s["lap"][0]
+                print(key, "at", t, {k: round(v, 3) if isinstance(v, float) else v for k, v in d.items()})
+        if args.json:
+            args.json.write_text(json.dumps(found) + "\n")
+        return
     from service.app import resolve_backbone  # the service's own resolution of its default
 
     settings = Settings.from_env()
     backbone = args.backbone or resolve_backbone(settings).backbone
     enc = Encoder({"backbone": backbone, "resize": "squash"})
     cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
+    if args.data is None:
+        ap.error("--data (or --grid) is required")
     frames = Frames(args.data, args.half, enc, cache)
     map_conf = {"encoder_id": enc.identity, "backbone": backbone, "preset": settings.default_preset,
                 "seed": args.seed}
