@@ -57,8 +57,9 @@ class Localisation:
         self.codes.add(code)
 
     def candidates_wanted(self, top_k: int) -> int:
-        """How many ranked rows one index pass must return for `top_k` matches and the localiser."""
-        return max(top_k, self.top_k)
+        """How many ranked rows one index pass must return for `top_k` matches and the localiser (whose
+        candidates leave out up to `exclusion` of them: the stream's own rows behind those not left)."""
+        return max(top_k, self.top_k + int(self.localiser.conf["exclusion"]))
 
     def new_state(self) -> LocaliserState:
         return self.localiser.new_state()
@@ -75,13 +76,13 @@ class Localisation:
         Args:
             state: the stream's localiser state, updated in place.
             ranked: the index's pass for the frame's winner cells, best first (Dice scores), without
-                the rows of `own`.
-            own: the stream's own rows it has not left (`own_trail`).
+                the rows the stream has not left; the localiser leaves out the rest of `own` and keeps
+                its `top_k` best.
+            own: the stream's own rows (`own_trail`).
 
         Returns:
             The place, or None during warm-up.
         """
-        kept = ranked[:self.top_k]
-        seqs = np.fromiter((m.seq for m in kept), np.int64, len(kept))
-        scores = np.fromiter((m.score for m in kept), np.float64, len(kept))
+        seqs = np.fromiter((m.seq for m in ranked), np.int64, len(ranked))
+        scores = np.fromiter((m.score for m in ranked), np.float64, len(ranked))
         return self.localiser.step(state, self.graph, seqs, scores, own)

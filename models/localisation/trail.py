@@ -32,15 +32,18 @@ class TrailState(Protocol):
 
 
 class OwnTrail(NamedTuple):
-    """The rows of a stream's own current trail it has not left: the chain of links from `first` to
-    `last` (§11.6). They are neither candidates nor states of the stream's filter.
+    """The rows of a stream's own current trail that are its own: the chain of links from `first` to
+    `last` (§11.6). They are neither candidates nor states of the stream's filter; those from `here` on
+    (the rows it has not left) are not its frame-level matches either.
 
     Attributes:
-        first: the oldest such row (`LocaliserState.here`). last: the stream's last stored row.
-        trail: `SequenceGraph.trail` of `last`, the chain both lie on.
+        first: `margin` links before `here` (the localiser's rival window). here: the oldest row the
+        stream has not left (`LocaliserState.here`). last: the stream's last stored row.
+        trail: `SequenceGraph.trail` of `last`, the chain they lie on.
     """
 
     first: int
+    here: int
     last: int
     trail: int
 
@@ -102,13 +105,14 @@ def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: n
     """The rows of the stream's own trail it has not left, after this frame (§11.6).
 
     Walking from `state.here` along the trail, every row the current frame is unlike is left (the
-    stream passed a frame unlike it: this one), up to the first row it is like; the stream's last row
-    is never left before the next one is stored. Like: Dice(frame, row) >= b + departure · (1 − b), b
+    stream passed a frame unlike it: this one), up to the first row it is like, or past the last row
+    (`here` = last + 1: the frame is unlike every row of its trail it had not left). Like: Dice(frame, row) >= b + departure · (1 − b), b
     the frame's background likeness (`CodeStats.background`). Frame counts and clock time play no part:
     standing still keeps every row of the stop; a lap of any length is a revisit once it passed frames
-    unlike its start. The rows not left are widened by `margin` links back along the trail (the
-    localiser's `exclusion`, its rival window, §11.2): a path a few rows behind the stream on its own
-    trail is where it is, not a revisit. O(margin) per frame
+    unlike its start. For the filter the rows not left are widened by `margin` links back along the trail
+    (the localiser's `exclusion`, its rival window, §11.2): a path a few rows behind the stream on its own
+    trail is where it is, not a revisit; a frame may still match such a row (a loop shorter than the
+    window shows in the frame-level ranking, not as a place). O(margin) per frame
     plus one `code_of` per row passed (each row is passed once).
 
     Args:
@@ -121,7 +125,7 @@ def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: n
         margin: links before `here` that are still the stream's own (>= 0).
 
     Returns:
-        OwnTrail(first, last, trail), first = `margin` links before `here` (or the trail's start), or
+        OwnTrail(first, here, last, trail), first = `margin` links before `here` (or the trail's start), or
         None without a last row.
     """
     if last is None or last < 0:
@@ -131,22 +135,24 @@ def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: n
     here = state.here
     if here == UNKNOWN:
         here, state.here_code = trail, None
-    elif here < 0 or here > last or int(graph.trail[here]) != trail:
-        here, state.here_code = last, None  # a new trail (a new sequence): only its last row is its own
+    elif here < 0 or here > last + 1 or (here <= last and int(graph.trail[here]) != trail):
+        # A new trail (a new sequence, or rows of others in between): only its last row may be its own.
+        here, state.here_code = last, None
     b = stats.background(code)
     level = b + departure * (1.0 - b)
-    while here != last:
+    while here <= last:
         if state.here_code is None:
             state.here_code = np.asarray(code_of(here))
         if code_dice(code, state.here_code) >= level:
             break
         nxt = int(graph.next[here])
-        here = nxt if nxt >= 0 and graph.trail[nxt] == trail else last
+        here = last + 1 if here == last else (nxt if nxt >= 0 and graph.trail[nxt] == trail else last)
         state.here_code = None
-    state.here = first = here
+    state.here = here  # last + 1: every stored row of the trail is left (this frame is unlike them all)
+    first = min(here, last)
     for _ in range(margin):
         prev = int(graph.prev[first])
         if prev < 0:
             break
         first = prev
-    return OwnTrail(first, int(last), trail)
+    return OwnTrail(first, here, int(last), trail)

@@ -155,10 +155,11 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     st.localiser = st.localiser or model.links.new_state()
     prev, step = st.last_learned_seq, st.step
     # The stream's own rows it has not left are no answer (docs/design/science.md §11.6); one index pass
-    # without them serves the matches and the localiser's candidates (§11.2).
+    # without them serves the matches and the localiser's candidates (§11.2), which also leaves out the
+    # rival window behind them.
     own = model.links.own_trail(st.localiser, prev, code, code_of)
     ranked = model.index.rank(winners, model.links.candidates_wanted(top_k),
-                              exclude_own=None if own is None else (stream, own.first))
+                              exclude_own=None if own is None else (stream, own.here))
     place = model.links.step(st.localiser, ranked, own)
     if learn:
         assert seq is not None

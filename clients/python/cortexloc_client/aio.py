@@ -139,6 +139,16 @@ class AsyncClient:
         order, at most `limit` (<= 500); continue with `after_seq=page.next_after_seq`."""
         return await self._send(_core.list_observations(map_id, after_seq, limit))
 
+    async def loop_closures(self, map_id: str, *, after: int = 0, limit: int = 100) -> models.LoopClosureList:
+        """`GET /v1/maps/{map_id}/loop-closures`: the revisits streams were told of, oldest first, after
+        log id `after`, at most `limit` (<= 500); continue with `after=page.next_after`."""
+        return await self._send(_core.loop_closures(map_id, after, limit))
+
+    async def export_loop_closures(self, map_id: str, fmt: str = "csv") -> bytes:
+        """`GET /v1/maps/{map_id}/loop-closures/export`: the whole log as candidate pairs (`csv` or
+        `jsonl`): both stamps in seconds, both ids, the confidence, both poses where given."""
+        return await self._send(_core.export_loop_closures(map_id, fmt))
+
     async def recent(self, map_id: str, *, limit: int = 50,
                      stream: str | None = None) -> models.RecentAnswers:
         """`GET /v1/maps/{map_id}/recent`: the map's last answers (at most `limit`, of one `stream` if

@@ -44,7 +44,7 @@ def test_standing_still_keeps_every_row_of_the_stop_however_long():
     assert all(t[0] == 19 for t in trail[21:])  # `here` stays at the first row of the stop
     # A frame unlike the stop leaves it all at once.
     after = walk(before + stop + [place()])
-    assert after[-1][0] == len(before) + len(stop) - 1
+    assert after[-1][0] == len(before) + len(stop)  # past the last row: here = last + 1
 
 
 def test_every_frame_unlike_the_last_leaves_it_and_the_margin_is_the_rival_window():
@@ -52,7 +52,7 @@ def test_every_frame_unlike_the_last_leaves_it_and_the_margin_is_the_rival_windo
     trail = walk(codes)
     exclusion = int(SequenceLocaliser().conf["exclusion"])
     for i, (here, first, last) in enumerate(trail[1:], start=1):
-        assert here == last == i - 1 and first == max(0, last - exclusion)
+        assert here == last + 1 == i and first == max(0, last - exclusion)
 
 
 def test_a_state_without_the_rule_starts_from_the_trail_and_a_new_trail_from_its_last_row():
@@ -79,7 +79,7 @@ def test_background_likeness_sets_the_level_a_weak_backbone_shares_much():
         stats.add(c)
     assert 0.6 < stats.background(codes[0]) < 0.75
     trail = walk(codes)
-    assert all(t[0] == t[2] for t in trail[1:])  # unrelated places are left at once despite the overlap
+    assert all(t[0] == t[2] + 1 for t in trail[1:])  # unrelated places are left at once despite the overlap
 
 
 def test_a_loop_closes_on_ones_own_trail_and_a_stop_does_not():
