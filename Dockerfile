@@ -20,6 +20,8 @@ RUN pip install --extra-index-url https://download.pytorch.org/whl/cpu -c constr
     && mkdir -p /data && chown cortexloc /data
 
 USER cortexloc
+# The backbones' ONNX exports, built from the installed weights now rather than at the first start.
+RUN cortexloc weights export
 VOLUME ["/data"]
 EXPOSE 8000
 HEALTHCHECK --interval=30s --timeout=5s --start-period=120s --retries=3 \

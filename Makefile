@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install test lint run bench bench-quick clean
+.PHONY: install install-gpu test lint run bench bench-quick clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -15,6 +15,12 @@ $(STAMP): $(BIN)/python pyproject.toml constraints.txt clients/python/pyproject.
 	touch $(STAMP)
 
 install: $(STAMP)
+
+# CUDA for the encoder (CORTEXLOC_DEVICE=cuda|auto): onnxruntime-gpu replaces the CPU wheel, since both
+# install the same `onnxruntime` module and pip cannot swap a dependency through an extra.
+install-gpu: $(STAMP)
+	$(BIN)/pip uninstall --quiet -y onnxruntime
+	$(BIN)/pip install --quiet -c constraints.txt -e '.[gpu]'
 
 lint: install
 	$(BIN)/ruff check .

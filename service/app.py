@@ -13,7 +13,8 @@ Nothing is read or built at import time. At startup the lifespan:
 
 `/docs` and `/redoc` load their assets from the service itself (`fastapi_offline`), never from a CDN.
 
-Middleware, outermost first (all pure ASGI): `RequestContextMiddleware` (request id, last-resort 500),
+Middleware, outermost first (all pure ASGI): `SecurityHeadersMiddleware` (nosniff, no framing, no
+referrer; a Content-Security-Policy on pages), `RequestContextMiddleware` (request id, last-resort 500),
 `MetricsMiddleware`, `UploadLimitMiddleware` (413 before routing). Errors are problem+json everywhere
 (`service.errors`).
 
@@ -41,6 +42,7 @@ from fastapi_offline import FastAPIOffline
 
 from models.frontend.encoder import Encoder
 from service.errors import RequestContextMiddleware, install_error_handlers, problem_responses, request_id_var
+from service.headers import SecurityHeadersMiddleware
 from service.limits import UploadLimitMiddleware
 from service.metrics import Metrics, MetricsMiddleware
 from service.routes import api_router
@@ -121,9 +123,8 @@ def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
         ConfigError: naming CORTEXLOC_WEIGHTS_PATH when the weights cannot be used.
     """
     from models.frontend import weights
+    from models.frontend.runtimes import DeviceUnavailableError
 
-    if settings.device != "cpu":
-        log.warning("CORTEXLOC_DEVICE=%s: the encoder runs on the CPU in this version", settings.device)
     try:
         path = settings.weights_path if settings.weights_path is not None else weights.find_alexnet()
         if path is None and not settings.allow_random_weights:
@@ -132,8 +133,11 @@ def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
         conf = {"backbone": resolve_backbone(settings).backbone,
                 "weights_path": str(path) if path is not None else None,
                 "random_seed": settings.random_weights_seed, "torch_threads": settings.torch_threads,
-                "max_bytes": settings.max_upload_bytes, "max_pixels": settings.max_pixels, **overrides}
+                "max_bytes": settings.max_upload_bytes, "max_pixels": settings.max_pixels,
+                "runtime": settings.runtime, "device": settings.device, **overrides}
         return Encoder(conf)
+    except DeviceUnavailableError as e:
+        raise ConfigError([("CORTEXLOC_DEVICE", f"={settings.device!r}: {e}")]) from e
     except weights.WeightsError as e:
         shown = f"={str(settings.weights_path)!r}" if settings.weights_path is not None else " (unset)"
         raise ConfigError([("CORTEXLOC_WEIGHTS_PATH", f"{shown}: {e}")]) from e
@@ -274,7 +278,8 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFact
         app.state.encoder = encoder
         desc = encoder.describe()
         metrics.set_encoder(weights=desc["weights"], encoder=desc["encoder"])
-        log.info("encoder %s loaded (%s weights)", desc["encoder"], desc["weights"])
+        log.info("encoder %s loaded (%s weights) on %s, %s", desc["encoder"], desc["weights"],
+                 desc["runtime"], desc["device"])
         async with AsyncExitStack() as stack:
             for component in components:
                 await stack.enter_async_context(component(app))
@@ -296,6 +301,7 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFact
     app.add_middleware(UploadLimitMiddleware)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(RequestContextMiddleware)
+    app.add_middleware(SecurityHeadersMiddleware)
     app.include_router(api_router)
     app.mount(UI_PATH, static_files(), name="ui")  # the map viewer: static files, no API of its own
     app.openapi = _openapi_with_problems(app)  # type: ignore[method-assign]

@@ -5,7 +5,7 @@
     MetricsDep    the app's `Metrics` (per-app Prometheus registry)
     RegistryDep   the `MapRegistry` (503 not-ready until the maps are open)
     require_api_key / ApiKeyDep   guard for write routes when `CORTEXLOC_API_KEY` is set
-    MapReadKeyDep   the same guard for reads of whole maps (downloads), when `CORTEXLOC_API_KEY_READS`
+    ReadKeyDep    the same guard for every /v1 read and /metrics, when `CORTEXLOC_API_KEY_READS`
 
 Example:
     >>> @router.post("/v1/maps", dependencies=[ApiKeyDep])
@@ -29,8 +29,8 @@ from service.settings import Settings
 __all__ = [
     "ApiKeyDep",
     "EncoderDep",
-    "MapReadKeyDep",
     "MetricsDep",
+    "ReadKeyDep",
     "RegistryDep",
     "SettingsDep",
     "get_encoder",
@@ -38,7 +38,7 @@ __all__ = [
     "get_registry",
     "get_settings",
     "require_api_key",
-    "require_api_key_for_map_reads",
+    "require_api_key_for_reads",
 ]
 
 
@@ -105,15 +105,16 @@ def require_api_key(
 ApiKeyDep = Depends(require_api_key)
 
 
-def require_api_key_for_map_reads(
+def require_api_key_for_reads(
     settings: SettingsDep,
     api_key: Annotated[str | None, Security(_api_key_header)] = None,
     bearer: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)] = None,
 ) -> None:
-    """`require_api_key` for reads of a whole map (a snapshot download), when `CORTEXLOC_API_KEY_READS`."""
+    """`require_api_key` for reads too, when `CORTEXLOC_API_KEY_READS` (docs/design/service.md §8)."""
     if settings.api_key_reads:
         require_api_key(settings, api_key, bearer)
 
 
-#: `dependencies=[MapReadKeyDep]` on a route that hands out a whole map.
-MapReadKeyDep = Depends(require_api_key_for_map_reads)
+#: `dependencies=[ReadKeyDep]` on a router whose reads are guarded: every `/v1` route and `/metrics`
+#: (`service.routes`), which name maps, robots (stream names) and map contents; never /healthz or /readyz.
+ReadKeyDep = Depends(require_api_key_for_reads)

@@ -62,12 +62,16 @@ PROBLEMS: dict[str, tuple[int, str]] = {
     "map-not-found": (404, "Map not found"), "observation-not-found": (404, "Observation not found"),
     "snapshot-not-found": (404, "Snapshot not found"),
     "snapshot-invalid": (409, "Snapshot invalid"),
+    "snapshot-in-use": (409, "Snapshot in use"),
     "not-found": (404, "Not found"),
     "method-not-allowed": (405, "Method not allowed"),
     "map-exists": (409, "Map already exists"),
     "map-limit": (409, "Too many maps"),
     "map-full": (409, "Map is full"),
+    "request-timeout": (408, "Request timeout"),
+    "memory-budget": (409, "Memory budget exceeded"),
     "payload-too-large": (413, "Payload too large"),
+    "stream-limit": (429, "Too many streams"),
     "image-too-large": (413, "Image too large"),
     "unsupported-media-type": (415, "Unsupported media type"),
     "undecodable-image": (422, "Undecodable image"),
@@ -278,25 +282,33 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
     maps_errors.ObservationNotFound: DomainProblem(404, "observation-not-found", ("map_id", "seq")),
     maps_errors.IdempotencyKeyReused: DomainProblem(422, "idempotency-key-reused", ("key",)),
     SnapshotInvalid: DomainProblem(409, "snapshot-invalid"),
+    maps_errors.SnapshotInUse: DomainProblem(409, "snapshot-in-use", ("map_id", "snapshot_id")),
     maps_errors.MapAlreadyExists: DomainProblem(409, "map-exists", ("map_id",)),
     maps_errors.MapLimit: DomainProblem(409, "map-limit", ("max_maps",)),
     maps_errors.MapFull: DomainProblem(409, "map-full", ("max_observations",)),
+    maps_errors.MemoryBudgetExceeded: DomainProblem(409, "memory-budget", (
+        "map_id", "used_bytes", "asked_bytes", "total_bytes", "free_bytes")),
     maps_errors.MapTooLarge: DomainProblem(422, "map-too-large", ("required_bytes", "max_bytes")),
     maps_errors.InvalidConfiguration: DomainProblem(422, "invalid-configuration", ("errors",)),
     maps_errors.MapUnavailable: DomainProblem(503, "map-unavailable", ("state", "state_reason")),
     maps_errors.Overloaded: DomainProblem(503, "overloaded", ("retry_after",), {"Retry-After": "1"}),
+    maps_errors.StreamLimit: DomainProblem(429, "stream-limit",
+                                           ("max_streams", "keep_seconds", "retry_after")),
     StoreClosed: DomainProblem(503, "map-unavailable", (), {"Retry-After": "1"}),  # mid-restore or delete
     maps_errors.InsufficientStorage: DomainProblem(507, "insufficient-storage"),
 }
 
 
 def domain_problem(exc: Exception, data_dir: Path | None = None) -> Problem:
-    """The `Problem` for a domain error of `DOMAIN_PROBLEMS` (its nearest listed class)."""
+    """The `Problem` for a domain error of `DOMAIN_PROBLEMS` (its nearest listed class); an error with a
+    `retry_after` (seconds) says it in the `Retry-After` header too."""
     entry = next(DOMAIN_PROBLEMS[cls] for cls in type(exc).__mro__ if cls in DOMAIN_PROBLEMS)
     detail = str(exc)
     for root in {str(data_dir.resolve()), str(data_dir)} if data_dir is not None else ():
         detail = detail.replace(root.rstrip("/") + "/", "")
-    return Problem(entry.status, entry.slug, detail, headers=entry.headers,
+    retry = getattr(exc, "retry_after", None)
+    headers = {**entry.headers, **({"Retry-After": str(retry)} if retry is not None else {})}
+    return Problem(entry.status, entry.slug, detail, headers=headers,
                    **{name: getattr(exc, name) for name in entry.members})
 
 

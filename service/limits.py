@@ -3,15 +3,26 @@
 `UploadLimitMiddleware` is a pure ASGI middleware (no `BaseHTTPMiddleware`, which would buffer and run
 the app in another task):
 
-- a `Content-Length` above the limit is answered 413 `payload-too-large` at once, without reading a
-  byte of the body;
+- a `Content-Length` above the limit is answered 413 `payload-too-large` before the app runs; the body
+  is read and dropped first (never held) when it is at most `DRAIN_MAX_BYTES`, within the body deadline,
+  so that a client still sending receives the answer instead of a reset connection (what stopped
+  `cortexloc ingest` at a 12 MB frame); a larger one is answered at once;
 - otherwise the body is counted as it arrives (chunked uploads too): the chunk that crosses the limit is
   not handed to the app, which sees `BodyTooLargeError` from `receive()`; whatever the app then does, its
-  response is replaced by the 413 (a route that already started streaming its reply is only cut off).
+  response is replaced by the 413 (a route that already started streaming its reply is only cut off);
+- **deadline**: the whole body must arrive within `CORTEXLOC_BODY_TIMEOUT_S` of the request's start; a
+  `receive()` past it raises `BodyTimeoutError` and the answer is 408 `request-timeout` (a half-sent
+  upload no longer holds its connection and bytes for ever);
+- **in-flight budget**: a request with a body reserves its declared length (a chunked one: its limit)
+  until it is answered; one that would take the reservations of all requests past
+  `CORTEXLOC_MAX_INFLIGHT_UPLOAD_BYTES` is answered 503 `overloaded` with `Retry-After` before its body
+  is read (50 uploads of 9 MB held 450 MB before).
 
 The limit is `CORTEXLOC_MAX_UPLOAD_BYTES`, read per request from `app.state.settings`, and 64 KiB for
-JSON bodies (`application/json` or `application/*+json`). 413 responses carry `Connection: close`
-because the rest of the body is left unread.
+JSON bodies (`application/json` or `application/*+json`). 413, 408 and 503 responses carry
+`Connection: close` because the rest of the body is left unread. Metrics (`app.state.metrics`):
+`cortexloc_upload_inflight_bytes` (reserved now) and `cortexloc_upload_refusals_total{reason}`
+(`too-large`, `timeout`, `budget`).
 
 The request line and headers are limited to `HEAD_MAX_BYTES` (16 KiB, h11's own limit, which
 `cortexloc serve` passes to uvicorn): h11 enforces it only while a head is incomplete, so a larger head
@@ -21,8 +32,11 @@ same 400 `invalid-parameter` that `service.server.ProblemH11Protocol` writes in 
 
 from __future__ import annotations
 
+from typing import Any
+
+import anyio
 from starlette.datastructures import Headers
-from starlette.requests import Request
+from starlette.requests import ClientDisconnect, Request
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -30,12 +44,16 @@ from service.errors import problem_response
 from service.settings import Settings
 
 __all__ = [
-    "HEAD_MAX_BYTES", "JSON_MAX_BYTES", "BodyTooLargeError", "UploadLimitMiddleware", "body_limit",
-    "head_bytes",
+    "DRAIN_MAX_BYTES", "HEAD_MAX_BYTES", "JSON_MAX_BYTES", "BodyTimeoutError", "BodyTooLargeError",
+    "UploadLimitMiddleware", "body_limit", "head_bytes",
 ]
 
 JSON_MAX_BYTES = 64 * 1024
 HEAD_MAX_BYTES = 16 * 1024
+#: A refused body up to this size is read and dropped before the 413, so the client gets the answer:
+#: closing on unread bytes resets the connection, and the client loses the reply with it. Larger ones
+#: (no camera frame is near it) are answered at once.
+DRAIN_MAX_BYTES = 64 * 1024 * 1024
 
 
 class BodyTooLargeError(Exception):
@@ -47,6 +65,16 @@ class BodyTooLargeError(Exception):
         self.received_bytes = received_bytes
 
 
+class BodyTimeoutError(ClientDisconnect):
+    """Raised from `receive()` once the body-read deadline passed: from the app's side, the rest of the
+    body is never coming (as with a client that went away; the middleware answers 408)."""
+
+    def __init__(self, timeout_s: float, received_bytes: int) -> None:
+        super().__init__(f"request body not received within {timeout_s:g} s")
+        self.timeout_s = timeout_s
+        self.received_bytes = received_bytes
+
+
 def _is_json(content_type: str | None) -> bool:
     if not content_type:
         return False
@@ -54,10 +82,18 @@ def _is_json(content_type: str | None) -> bool:
     return media == "application/json" or (media.startswith("application/") and media.endswith("+json"))
 
 
+def _state(scope: Scope, name: str) -> Any:
+    return getattr(getattr(scope.get("app"), "state", None), name, None)
+
+
+def _setting(scope: Scope, name: str) -> Any:
+    """A setting of the app serving `scope` (its default before startup or without an app)."""
+    return getattr(_state(scope, "settings"), name, Settings.model_fields[name].default)
+
+
 def body_limit(scope: Scope, headers: Headers) -> int:
     """The byte limit of this request's body."""
-    settings = getattr(getattr(scope.get("app"), "state", None), "settings", None)
-    limit = int(getattr(settings, "max_upload_bytes", Settings.model_fields["max_upload_bytes"].default))
+    limit = int(_setting(scope, "max_upload_bytes"))
     if _is_json(headers.get("content-type")):
         limit = min(limit, JSON_MAX_BYTES)
     return limit
@@ -70,6 +106,25 @@ def head_bytes(scope: Scope) -> int:
     return line + sum(len(k) + len(v) + 4 for k, v in scope.get("headers", ())) + 2
 
 
+async def _drain(receive: Receive, max_bytes: int, deadline: float) -> None:
+    """Read and drop the body (at most `max_bytes` of it, until `deadline`): nothing is held."""
+    got = 0
+    with anyio.move_on_after(max(deadline - anyio.current_time(), 0.0)):
+        while got <= max_bytes:
+            message = await receive()
+            if message["type"] != "http.request":
+                return
+            got += len(message.get("body", b""))
+            if not message.get("more_body", False):
+                return
+
+
+def _count(scope: Scope, reason: str) -> None:
+    metrics = _state(scope, "metrics")
+    if metrics is not None:
+        metrics.upload_refusals.labels(reason=reason).inc()
+
+
 def _too_large(scope: Scope, max_bytes: int, received: int, *, declared: bool) -> JSONResponse:
     what = f"Content-Length: {received}" if declared else f"cut off after {received} bytes"
     detail = f"request body is larger than the limit of {max_bytes} bytes ({what})"
@@ -77,11 +132,33 @@ def _too_large(scope: Scope, max_bytes: int, received: int, *, declared: bool) -
                             max_bytes=max_bytes, received_bytes=received)
 
 
+def _timed_out(scope: Scope, e: BodyTimeoutError) -> JSONResponse:
+    return problem_response(Request(scope), 408, "request-timeout",
+                            f"the request body did not arrive within {e.timeout_s:g} s ({e.received_bytes} "
+                            "bytes came)", headers={"Connection": "close"}, timeout_s=e.timeout_s,
+                            received_bytes=e.received_bytes)
+
+
+def _over_budget(scope: Scope, asked: int, held: int, budget: int) -> JSONResponse:
+    return problem_response(Request(scope), 503, "overloaded",
+                            f"uploads in flight hold {held} bytes; this one would take {asked} more, past "
+                            f"the limit of {budget}; retry shortly",
+                            headers={"Retry-After": "1", "Connection": "close"}, retry_after=1,
+                            requested_bytes=asked, inflight_bytes=held, max_inflight_bytes=budget)
+
+
 class UploadLimitMiddleware:
-    """Pure ASGI body limit; see the module docstring."""
+    """Pure ASGI body limit, deadline and in-flight budget; see the module docstring."""
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
+        self.inflight = 0  # bytes reserved by the requests being read or served (one event loop: no lock)
+
+    def _reserve(self, scope: Scope, n: int) -> None:
+        self.inflight += n
+        metrics = _state(scope, "metrics")
+        if metrics is not None:
+            metrics.upload_inflight_bytes.set(self.inflight)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -98,7 +175,10 @@ class UploadLimitMiddleware:
             return
         headers = Headers(scope=scope)
         limit = body_limit(scope, headers)
+        timeout_s = float(_setting(scope, "body_timeout_s"))
+        deadline = anyio.current_time() + timeout_s
         declared = headers.get("content-length")
+        length = None
         if declared is not None:
             try:
                 length = int(declared)
@@ -114,18 +194,44 @@ class UploadLimitMiddleware:
                 await response(scope, receive, send)
                 return
             if length > limit:
+                _count(scope, "too-large")
+                if length <= DRAIN_MAX_BYTES:
+                    await _drain(receive, length, deadline)
                 await _too_large(scope, limit, length, declared=True)(scope, receive, send)
                 return
+        chunked = "chunked" in headers.get("transfer-encoding", "").lower()
+        reserve = length if length is not None else (limit if chunked else 0)
+        budget = int(_setting(scope, "max_inflight_upload_bytes"))
+        if reserve and self.inflight + reserve > budget:
+            _count(scope, "budget")
+            await _over_budget(scope, reserve, self.inflight, budget)(scope, receive, send)
+            return
+        self._reserve(scope, reserve)
+        try:
+            await self._limited(scope, receive, send, limit, timeout_s, deadline)
+        finally:
+            self._reserve(scope, -reserve)
 
+    async def _limited(self, scope: Scope, receive: Receive, send: Send, limit: int, timeout_s: float,
+                       deadline: float) -> None:
+        """The app, its `receive()` cut at the limit and the deadline, its reply replaced then."""
         received = 0
-        exceeded: BodyTooLargeError | None = None
-        app_started = False
+        exceeded: BodyTooLargeError | BodyTimeoutError | None = None
+        app_started = body_done = False
 
         async def limited_receive() -> Message:
-            nonlocal received, exceeded
+            nonlocal received, exceeded, body_done
             if exceeded is not None:
                 raise exceeded
-            message = await receive()
+            if body_done:  # waiting for a disconnect (a streamed reply): no deadline on that
+                return await receive()
+            try:
+                with anyio.fail_after(max(deadline - anyio.current_time(), 0.0)):
+                    message = await receive()
+            except TimeoutError:
+                exceeded = BodyTimeoutError(timeout_s, received)
+                raise exceeded from None
+            body_done = message["type"] != "http.request" or not message.get("more_body", False)
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > limit:
@@ -146,5 +252,13 @@ class UploadLimitMiddleware:
         except Exception:
             if exceeded is None or app_started:
                 raise
-        if exceeded is not None and not app_started:
-            await _too_large(scope, limit, exceeded.received_bytes, declared=False)(scope, receive, send)
+        if exceeded is None or app_started:
+            return
+        if isinstance(exceeded, BodyTimeoutError):
+            _count(scope, "timeout")
+            await _timed_out(scope, exceeded)(scope, receive, send)
+            return
+        _count(scope, "too-large")
+        if not body_done:  # past the end of a body, receive() waits for the client to go away
+            await _drain(receive, DRAIN_MAX_BYTES, deadline)
+        await _too_large(scope, limit, exceeded.received_bytes, declared=False)(scope, receive, send)

@@ -9,7 +9,9 @@ several apps. What is here:
   for paths no route knows, so label values stay bounded;
 - `cortexloc_requests_in_flight`;
 - `cortexloc_encoder_info{weights,encoder} 1`;
-- `cortexloc_stage_duration_seconds{stage}`, fed by `Metrics.observe_stage` / `Metrics.time_stage`.
+- `cortexloc_stage_duration_seconds{stage}`, fed by `Metrics.observe_stage` / `Metrics.time_stage`;
+- `cortexloc_upload_inflight_bytes` and `cortexloc_upload_refusals_total{reason}`, fed by
+  `service.limits.UploadLimitMiddleware`.
 
 Other components register their own collectors on `metrics.registry` (e.g. per-map gauges).
 
@@ -35,6 +37,7 @@ from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.errors import iter_routes
+from service.maps.snapshots import disk_use
 
 __all__ = ["Metrics", "MetricsMiddleware"]
 
@@ -63,8 +66,19 @@ class Metrics:
                                         ["stage"], buckets=STAGE_BUCKETS, registry=self.registry)
         self.encoder_info = Gauge(PREFIX + "encoder_info", "The loaded encoder (value always 1)",
                                   ["weights", "encoder"], registry=self.registry)
+        self.upload_inflight_bytes = Gauge(
+            PREFIX + "upload_inflight_bytes",
+            "Body bytes reserved by the requests being read or served (CORTEXLOC_MAX_INFLIGHT_UPLOAD_BYTES)",
+            registry=self.registry)
+        self.upload_refusals = Counter(
+            PREFIX + "upload_refusals", "Requests refused for their body: too-large (413), timeout (408, the "
+            "body-read deadline), budget (503, the in-flight bytes)", ["reason"], registry=self.registry)
         self.observations = Counter(PREFIX + "observations", "Observations answered, by map and mode",
                                     ["map", "learned"], registry=self.registry)
+        self.memory_budget = Gauge(PREFIX + "memory_budget_bytes", "CORTEXLOC_MEMORY_BUDGET_BYTES or its "
+                                   "default", registry=self.registry)
+        self.memory_used = Gauge(PREFIX + "memory_used_bytes", "Bytes of the memory budget the maps and "
+                                 "encoders hold", registry=self.registry)
         labels = ["map"]
         self.map_gauges = {
             name: Gauge(PREFIX + "map_" + name, help_, labels, registry=self.registry)
@@ -73,6 +87,11 @@ class Metrics:
                                 ("overruns", "TM synapses destroyed by overrun so far"),
                                 ("observations", "Learned observations stored"),
                                 ("memory_bytes", "Preallocated TM bytes"),
+                                ("snapshots", "Snapshots of every kind on disk"),
+                                ("snapshots_bytes", "Bytes of the snapshots on disk"),
+                                ("stream_evictions", "Streams evicted (least recently used, idle "
+                                                     "beyond CORTEXLOC_STREAM_KEEP_SECONDS) for a new one "
+                                                     "since start"),
                                 ("snapshot_failures", "Automatic snapshots that failed since start (the "
                                                       "rows stay durable; /readyz says why)"))}
 
@@ -81,6 +100,11 @@ class Metrics:
         for g in self.map_gauges.values():
             g.clear()
         for map_id, rt in maps.items():
+            catalog = getattr(rt, "catalog", None)
+            if catalog is not None:  # failed maps too: their snapshots take the same disk
+                use = disk_use(catalog, map_id)
+                self.map_gauges["snapshots"].labels(map=map_id).set(use["snapshot_count"])
+                self.map_gauges["snapshots_bytes"].labels(map=map_id).set(use["snapshots_bytes"])
             tm = getattr(rt, "tm", None)
             if tm is None:
                 continue
@@ -88,9 +112,15 @@ class Metrics:
             values = {"segments": size["segments"], "synapses": size["synapses"],
                       "evictions": size["evictions"], "overruns": size["overrun_destroyed"],
                       "observations": len(rt.index), "memory_bytes": size["bytes"],
-                      "snapshot_failures": getattr(rt, "snapshot_failures", 0)}
+                      "snapshot_failures": getattr(rt, "snapshot_failures", 0),
+                      "stream_evictions": getattr(rt, "stream_evictions", 0)}
             for name, v in values.items():
                 self.map_gauges[name].labels(map=map_id).set(v)
+
+    def update_budget(self, total: int, used: int) -> None:
+        """The process-wide memory budget and what the maps and encoders hold of it (§1.8)."""
+        self.memory_budget.set(total)
+        self.memory_used.set(used)
 
     def observe_stage(self, stage: str, seconds: float) -> None:
         """Record one duration of `stage` (seconds)."""

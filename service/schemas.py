@@ -12,7 +12,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from service.maps import results
 from service.maps.ids import MAP_ID_RE
 
-__all__ = ["CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel", "ObservationModel",
+__all__ = ["BudgetModel", "CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel",
+           "ObservationModel",
            "PatchMap", "Readiness", "RecentList", "RecentModel", "RestoreModel", "SequenceModel",
            "SnapshotList", "SnapshotModel", "StoredObservationList", "StoredObservationModel",
            "StreamResetModel", "Versions"]
@@ -98,6 +99,8 @@ class MapModel(_Out):
     backbone: str
     revisit_threshold: float
     thumbnails: bool = Field(description="a small JPEG is kept with each learned observation")
+    snapshot_count: int = Field(description="snapshots of every kind")
+    snapshots_bytes: int = Field(description="their bytes on disk")
 
 
 class MapList(_Out):
@@ -122,6 +125,19 @@ class MemoryModel(_Out):
     projection_bytes: int
     storage: results.StorageMemory
     process_rss_bytes: int  # the whole service process's resident size
+
+
+class BudgetModel(_Out):
+    """The process-wide memory budget over every map and the encoders (docs/design/service.md §1.8)."""
+
+    total_bytes: int = Field(description="CORTEXLOC_MEMORY_BUDGET_BYTES, or its default")
+    source: str = Field(description="`setting`, or the share of `host` or `cgroup` memory it defaults to")
+    used_bytes: int
+    free_bytes: int
+    encoders_bytes: int = Field(description="the encoders' networks, counted once")
+    maps: list[results.MapReservation] = Field(description="open maps' reservations, then the maps left "
+                                               "closed at start (`open` false) with what they asked")
+    process_rss_bytes: int
 
 
 # ----------------------------------------------------------------------------------- observations
@@ -153,6 +169,8 @@ class Versions(_Out):
     backbone: str
     encoder: str
     weights: str
+    runtime: str = Field(description="the backbone's runtime: onnxruntime or torch (the same codes)")
+    device: str = Field(description="where the backbone ran: cpu or cuda")
     projection: str
     map_seq: int
 

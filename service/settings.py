@@ -100,11 +100,24 @@ class Settings(BaseSettings):
                                  "else efficientnet-lite0-s5 (resolved at startup)")
     allow_random_weights: bool = Field(True, description="serve (with a warning) on random weights")
     random_weights_seed: int = Field(0, ge=0, description="seed of the random fallback weights")
-    device: Literal["cpu", "cuda"] = "cpu"
+    device: Literal["cpu", "cuda", "auto"] = Field(
+        "auto", description="where the backbone runs: cuda (ONNX Runtime's CUDA provider, the `gpu` extra; "
+        "refuses to start without it), cpu, or auto (CUDA where it runs, else the CPU with a log line)")
+    runtime: Literal["onnxruntime", "torch"] = Field(
+        "onnxruntime", description="the backbone's runtime: onnxruntime (its ONNX export, same codes, "
+        "faster) or torch (the reference)")
     torch_threads: int = Field(1, ge=1)
     encoder_workers: int = Field(1, ge=1, description="encoder executor size")
     encoder_queue: int = Field(32, ge=1, description="encoder queue length (full: 503 overloaded)")
     max_upload_bytes: int = Field(limits.DEFAULT_MAX_BYTES, ge=1, description="request body limit")
+    body_timeout_s: float = Field(60.0, gt=0, le=3600, description="a request's whole body must arrive "
+                                  "within this many seconds of its start, its head within as many of the "
+                                  "connection's opening or previous reply (408 and the connection closed "
+                                  "otherwise); 10 MiB at 2 Mbit/s takes 42 s")
+    max_inflight_upload_bytes: int = Field(128 * 2**20, ge=1, description="bytes all requests being read "
+                                           "or served may hold in bodies at once (each reserves its "
+                                           "Content-Length; a chunked one its limit); past it 503 "
+                                           "overloaded with Retry-After before the body is read")
     max_pixels: int = Field(limits.DEFAULT_MAX_PIXELS, ge=1,
                             description="decoded-image limit (width x height)")
     default_preset: str = Field("cortexloc-default", min_length=1)
@@ -112,6 +125,13 @@ class Settings(BaseSettings):
     max_maps: int = Field(64, ge=1)
     max_observations: int = Field(1_000_000, ge=1)
     max_streams: int = Field(64, ge=1)
+    stream_keep_seconds: float = Field(600.0, ge=0, allow_inf_nan=False,
+                                       description="a stream that posted within this many seconds is never "
+                                       "evicted for a new one; a new stream is refused (429) while every "
+                                       "slot is that recent (0: least recently used evicted at once)")
+    memory_budget_bytes: int | None = Field(None, ge=1, description="RAM all maps and encoders may hold "
+                                            "together; unset: half the smaller of host memory and the "
+                                            "cgroup limit (service/maps/budget.py)")
     max_top_k: int = Field(100, ge=0)
     idempotency_keys: int = Field(100_000, ge=1, description="Idempotency-Keys kept per map: those of the "
                                   "learned posts of the last N seqs, in map.sqlite")
@@ -120,14 +140,19 @@ class Settings(BaseSettings):
     idempotency_cache: int = Field(1024, ge=0, description="replies of localisation posts (learn=false) "
                                    "kept in memory per map for their Idempotency-Key")
     snapshot_every: int = Field(1000, ge=0, description="automatic snapshot period (0 = off)")
-    snapshot_keep: int = Field(3, ge=0, description="automatic snapshots kept (0 = off)")
+    snapshot_keep: int = Field(3, ge=0, description="automatic snapshots kept, and whatever their number "
+                               "the one recovery starts from (0: only that one)")
+    snapshot_manual_keep: int = Field(10, ge=0, description="manual snapshots kept per map, oldest "
+                                      "deleted first (0: no count limit)")
+    snapshot_manual_bytes: int = Field(2**31, ge=0, description="bytes of manual snapshots kept per map, "
+                                       "oldest deleted first (0: no byte limit)")
     max_import_bytes: int = Field(2**33, ge=1, description="most bytes a snapshot tar may unpack to "
                                   "(`cortexloc import`); about 2 GiB of TM arrays (max_map_bytes), the "
                                   "266 MB projection and a million ~3 KB rows fit in 8 GiB")
     api_key: str | None = Field(None, min_length=1, repr=False,
                                 description="when set, every write needs it (X-API-Key or Bearer)")
-    api_key_reads: bool = Field(False, description="reads of whole maps (snapshot downloads) need the key "
-                                                   "too; requires CORTEXLOC_API_KEY")
+    api_key_reads: bool = Field(False, description="every /v1 read and /metrics need the key too (/healthz "
+                                                   "and /readyz stay open); requires CORTEXLOC_API_KEY")
 
     @field_validator("data_dir")
     @classmethod
@@ -141,10 +166,19 @@ class Settings(BaseSettings):
     def _upper_level(cls, v: Any) -> Any:
         return v.strip().upper() if isinstance(v, str) else v
 
-    @field_validator("log_format", "device", mode="before")
+    @field_validator("log_format", "device", "runtime", mode="before")
     @classmethod
     def _lower(cls, v: Any) -> Any:
         return v.strip().lower() if isinstance(v, str) else v
+
+    @field_validator("max_inflight_upload_bytes")
+    @classmethod
+    def _room_for_one_upload(cls, v: int, info: ValidationInfo) -> int:
+        largest = info.data.get("max_upload_bytes")
+        if largest is not None and v < largest:
+            raise ValueError(f"must be at least CORTEXLOC_MAX_UPLOAD_BYTES ({largest}): an upload of the "
+                             "largest size would never be let in")
+        return v
 
     @field_validator("api_key_reads")
     @classmethod

@@ -76,3 +76,19 @@ def test_place_benchmark_localises_through_the_index_with_a_fixed_state() -> Non
     assert small["recall_at_1"] > 0.9 and large["recall_at_1"] > 0.9
     assert small["state_bytes"] == large["state_bytes"]
     assert large["candidates"] == 100 and large["graph_bytes"] == 2 * 8 * (20_000 + 1)
+
+
+def test_every_benchmark_script_imports() -> None:
+    """A module moved by a refactor breaks a benchmark only at `make bench` time; importing each script
+    here (their work is under `main()`, nothing runs at import) catches it in `make test`."""
+    import importlib
+
+    scripts = sorted(p.stem for p in (Path(__file__).resolve().parents[1] / "benchmarks").glob("bench_*.py"))
+    assert scripts, "no benchmark scripts found"
+    failed = {}
+    for name in scripts:
+        try:
+            importlib.import_module(name)
+        except Exception as exc:  # every failure is reported by name
+            failed[name] = f"{type(exc).__name__}: {exc}"
+    assert not failed, failed

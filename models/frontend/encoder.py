@@ -26,10 +26,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import threadpoolctl
 import torch
 
 from models import presets
-from models.frontend import backbones, images, limits, slsbh
+from models.frontend import backbones, images, limits, runtimes, slsbh, weights
 
 log = logging.getLogger("cortexloc.encoder")
 
@@ -40,7 +41,12 @@ default_conf: dict[str, Any] = {
     "resize": "crop",  # crop (Resize 256 + CenterCrop 224, as the paper) | squash (straight to 224)
     "weights_path": None,  # AlexNet conv1..conv3 file; None: look in the weights cache, else random
     "random_seed": 0,  # seed of the NumPy-generated fallback weights
-    "torch_threads": 1,
+    "torch_threads": 1,  # the backbone's intra-op threads, on either runtime
+    # onnxruntime (the torch module exported to ONNX, same codes, measured faster: docs/benchmarks.md §10)
+    # | torch (the reference); models.frontend.runtimes
+    "runtime": runtimes.RUNTIMES[0],
+    "device": "cpu",  # cpu | cuda | auto (CUDA through ONNX Runtime; auto falls back to the CPU)
+    "export_dir": None,  # the ONNX exports' content-addressed store; None: <weights cache>/onnx
     "decode_threads": 2,  # OpenCV releases the GIL: a batch decodes and resizes in parallel
     "max_bytes": limits.DEFAULT_MAX_BYTES,
     "max_pixels": limits.DEFAULT_MAX_PIXELS,
@@ -111,7 +117,16 @@ class Encoder:
                  projection: np.ndarray | slsbh.SparseProjection | None = None) -> None:
         self.conf = merge_conf(conf)
         torch.set_num_threads(int(self.conf["torch_threads"]))
+        # The same budget for the BLAS behind the sLSBH projection (NumPy's OpenBLAS starts one thread per
+        # core): on cores shared with the decode threads and the map writers its threads wait on each
+        # other; one thread measured 12.6 ms against 54-94 ms (median) for a batch-16 x·P at D = 5,488,
+        # with the same codes (docs/benchmarks.md §10).
+        threadpoolctl.threadpool_limits(int(self.conf["torch_threads"]), user_api="blas")
         self.backbone = backbones.get(self.conf["backbone"])(self.conf)
+        export_dir = self.conf["export_dir"]
+        self.runner = runtimes.make_runner(
+            self.backbone, self.conf["runtime"], self.conf["device"], int(self.conf["torch_threads"]),
+            Path(export_dir) if export_dir is not None else weights.default_cache_dir() / "onnx")
         self.weights_id = self.backbone.weights_id
         self.input_mean, self.input_std = self.backbone.input_mean, self.backbone.input_std
         self.pretrained = self.weights_id.startswith("imagenet")
@@ -176,13 +191,15 @@ class Encoder:
         return f"{self.backbone.arch}/{self.weights_id}:{self.conf['resize']}"
 
     def describe(self) -> dict[str, Any]:
-        """What the service reports in /readyz and every response: the backbone and its weights.
+        """What the service reports in /readyz and every response: the backbone, its weights, and the
+        runtime and device it runs on (`models.frontend.runtimes`; the identity does not name them: both
+        runtimes compute the same codes).
 
         The projection is not part of it: in the service every map hashes with its own persisted
         projection, and building this encoder's would cost 266 MB and a SHA-256 per call.
         """
         weights = "pretrained" if self.pretrained else self.weights_id.split("-", 1)[0]  # random | file
-        return {"encoder": self.identity, "weights": weights}
+        return {"encoder": self.identity, "weights": weights, **runtimes.describe_runner(self.runner)}
 
     # ------------------------------------------------------------------ encoding
 
@@ -195,9 +212,9 @@ class Encoder:
                                        std=self.input_std)
 
     def features(self, batch: np.ndarray) -> np.ndarray:
-        """(N, D) float32 L2-normalised descriptors of a preprocessed batch (N, 3, 224, 224)."""
-        with torch.inference_mode():
-            return self._forward(torch.from_numpy(np.ascontiguousarray(batch))).numpy()
+        """(N, D) float32 L2-normalised descriptors of a preprocessed batch (N, 3, 224, 224), on the
+        encoder's runtime and device."""
+        return self.runner(batch)
 
     def encode(self, data: Sequence[bytes], return_features: bool = False) -> EncodeResult:
         """Encode a batch of uploaded images into sLSBH codes; see `embed` for the errors."""

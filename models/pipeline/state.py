@@ -13,7 +13,7 @@ from models.frontend.adaptation import RunningMean
 from models.localisation import LocaliserState
 from models.memory.temporal_memory import StreamContext, TemporalMemory
 
-__all__ = ["Stream", "load_memory_state", "memory_state", "touch", "winner_cells"]
+__all__ = ["Stream", "eviction_wait", "load_memory_state", "memory_state", "touch", "winner_cells"]
 
 
 def winner_cells(tm: TemporalMemory, code: np.ndarray, *, learn: bool, context: StreamContext,
@@ -35,6 +35,7 @@ class Stream:
     learning: bool | None = None  # mode of the last step (a switch to learning starts a new sequence)
     adapt: RunningMean | None = None  # the stream's running mean of projections (models.frontend.adaptation)
     localiser: LocaliserState | None = None  # where the stream is on the map (docs/design/science.md §11)
+    posted_at: float = 0.0  # time.monotonic() of its last frame (0: none since this process started)
 
     def break_sequence(self) -> None:
         """The next frame starts a new sequence (and a new search for the place); the adaptation is
@@ -43,16 +44,32 @@ class Stream:
         self.step, self.last_learned_seq, self.localiser = 0, None, None
 
 
-def touch(streams: OrderedDict[str, Stream], name: str, max_streams: int) -> Stream:
-    """The stream `name` as the most recently used, created if new; beyond `max_streams` the least
-    recently used context is dropped (for it, a reset: docs/design/service.md §1.3)."""
+def eviction_wait(streams: OrderedDict[str, Stream], name: str, max_streams: int, keep_seconds: float,
+                  now: float) -> float:
+    """Seconds before the stream `name` may be taken in (0: now): a new stream while all `max_streams`
+    slots are held waits until the least recently used one has not posted for `keep_seconds`
+    (docs/design/service.md §1.3). A stream with no post since the process started (`posted_at` 0)
+    may go at once."""
+    if name in streams or len(streams) < max_streams:
+        return 0.0
+    oldest = next(iter(streams.values()))  # least recently used first
+    return max(0.0, oldest.posted_at + keep_seconds - now) if oldest.posted_at else 0.0
+
+
+def touch(streams: OrderedDict[str, Stream], name: str, max_streams: int, now: float) -> tuple[Stream, int]:
+    """(the stream `name` as the most recently used and posted at `now`, created if new; how many
+    streams were evicted for it): beyond `max_streams` the least recently used context is dropped (for
+    it, a reset: docs/design/service.md §1.3). `eviction_wait` says first whether it may be."""
     st = streams.get(name)
+    evicted = 0
     if st is None:
         st = streams[name] = Stream()
         while len(streams) > max_streams:
             streams.popitem(last=False)
+            evicted += 1
     streams.move_to_end(name)
-    return st
+    st.posted_at = now
+    return st, evicted
 
 
 def memory_state(tm: TemporalMemory, streams: Mapping[str, Stream]) -> dict[str, np.ndarray]:

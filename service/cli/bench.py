@@ -49,23 +49,28 @@ def bench_encoder(
                                                   "efficientnet-lite0")]
     = "alexnet",
     repeats: Annotated[int, typer.Option(min=1)] = 15,
-    threads: Annotated[int, typer.Option(min=1, help="torch threads")] = 1,
+    threads: Annotated[int, typer.Option(min=1, help="the backbone's threads")] = 1,
     projection: Annotated[str, typer.Option(help="dense | sparse")] = "dense",
+    runtime: Annotated[str | None, typer.Option(help="onnxruntime | torch (default: the encoder's)")] = None,
     json_out: Annotated[Path | None, typer.Option("--json")] = None,
 ) -> None:
     """Whole-encoder batch-1 latency and batch-16 throughput beside a bare backbone forward."""
     from models.evaluation.bench import bench_encoder as run
+    from models.frontend.runtimes import RUNTIMES
 
     check_backbone(backbone)
     if projection not in ("dense", "sparse"):
         raise typer.BadParameter("must be dense or sparse", param_hint="--projection")
-    result = run(backbone=backbone, repeats=repeats, threads=threads, projection=projection)
+    if runtime is not None and runtime not in RUNTIMES:
+        raise typer.BadParameter(f"must be one of {', '.join(RUNTIMES)}", param_hint="--runtime")
+    result = run(backbone=backbone, repeats=repeats, threads=threads, projection=projection, runtime=runtime)
     result["provenance"] = provenance()
     write_json(json_out, result)
     st = result["batch16_stage_ms_median"]
-    typer.echo(f"encoder {result['encoder']} ({projection} projection, {threads} thread(s)): batch 1 "
+    typer.echo(f"encoder {result['encoder']} on {result['runtime']} ({result['device']}, {projection} "
+               f"projection, {threads} thread(s)): batch 1 "
                f"{result['batch1_ms_median']:.1f} ms; batch 16 {result['batch16_images_per_s']:.1f} img/s "
-               f"vs bare backbone {result['bare_conv3_batch16_images_per_s']:.1f} img/s "
+               f"vs bare backbone {result['bare_batch16_images_per_s']:.1f} img/s "
                f"(ratio {result['ratio_to_bare']:.2f}); stages at batch 16 (ms): "
                + ", ".join(f"{k} {v:.1f}" for k, v in st.items()))
 

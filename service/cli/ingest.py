@@ -3,7 +3,7 @@
 Progress (rate, ETA) and the summary's warnings go to stderr; the summary to stdout, or with `--json` one
 JSON object per frame to stdout (`{"frame", "name", "stamp_ns", "status", "latency_ms", "answer"}`) and the
 summary to stderr. Exit status: 0 all frames answered 200; 1 some frame refused or the ingest stopped;
-2 the source or the options cannot be used.
+2 the source or the options cannot be used (a damaged bag included: one `error:` line, no traceback).
 """
 
 from __future__ import annotations
@@ -49,6 +49,11 @@ def ingest_command(
                                                                     "label.")] = False,
     api_key: Annotated[str | None, typer.Option(help="API key of the service (X-API-Key); in process "
                                                      "the configured CORTEXLOC_API_KEY is used.")] = None,
+    max_bytes: Annotated[int | None, typer.Option(min=1, help="Frames larger than this are not read or "
+                                                  "sent, and counted as refused (413). Default: the "
+                                                  "service's CORTEXLOC_MAX_UPLOAD_BYTES; with --url, its "
+                                                  "default (10 MiB): give the server's if it differs.")]
+    = None,
 ) -> None:
     """Post a folder of images or a ROS bag to a map in source order, with progress and a summary."""
     if url is not None and data_dir is not None:
@@ -61,12 +66,15 @@ def ingest_command(
 
     import anyio
 
+    from models.frontend.limits import DEFAULT_MAX_BYTES
     from service.ingest import poster
     from service.ingest.sources import SourceError, open_source
     from service.settings import ConfigError
 
+    if max_bytes is None:
+        max_bytes = settings.max_upload_bytes if settings is not None else DEFAULT_MAX_BYTES
     try:
-        src = open_source(source, topic=topic, every=every)
+        src = open_source(source, topic=topic, every=every, max_bytes=max_bytes)
     except SourceError as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from e

@@ -24,7 +24,7 @@ def import_map(
     from types import SimpleNamespace
 
     from service.maps.encoders import Encoders
-    from service.maps.errors import SnapshotInvalid
+    from service.maps.errors import MemoryBudgetExceeded, SnapshotInvalid
     from service.maps.registry import MapRegistry
 
     settings = process_settings(data_dir=data_dir)
@@ -32,7 +32,7 @@ def import_map(
     registry = MapRegistry(root, Encoders.one(SimpleNamespace(identity="", feature_dim=0)), settings=settings)
     try:
         map_id = registry.import_snapshot(tar, settings.max_import_bytes)
-    except (SnapshotInvalid, ValueError, OSError) as e:
+    except (SnapshotInvalid, MemoryBudgetExceeded, ValueError, OSError) as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from e
     finally:

@@ -1,4 +1,5 @@
-"""`cortexloc weights download | import`: install AlexNet conv1..conv3 weights, checksummed."""
+"""`cortexloc weights download | import | export`: install AlexNet conv1..conv3 weights, checksummed, and
+build the backbones' ONNX exports from the installed weights (docs/design/science.md §6.1)."""
 
 from __future__ import annotations
 
@@ -31,6 +32,21 @@ def weights_import(
     from models.frontend import weights
 
     _install(lambda: weights.import_alexnet(path, dest))
+
+
+@app.command("export")
+def weights_export(
+    dest: Annotated[Path | None, typer.Option(help="Export store (default: <weights cache>/onnx).")] = None,
+) -> None:
+    """Build the ONNX export of every registered backbone from its installed weights, as the encoder
+    would on first use (an image build runs it, so a container starts without exporting)."""
+    from models.frontend import backbones, runtimes, weights
+
+    store = dest if dest is not None else weights.default_cache_dir() / "onnx"
+    for name in backbones.names():
+        backbone = backbones.get(name)({"weights_path": weights.find_alexnet(), "random_seed": 0})
+        _, sha = runtimes.onnx_model(backbone, store)
+        typer.echo(f"{name}: {backbone.arch}/{backbone.weights_id} -> {store / (sha + '.onnx')}")
 
 
 def _install(run: Any) -> None:

@@ -15,6 +15,8 @@ then posts the source's frames **one at a time, in source order**:
   service has no idempotency key yet.
 - a frame the service refuses for its bytes (413, 415, 422) is recorded as an error and the ingest goes
   on; any other refusal (401, 404, 409 map full, 5xx) stops it (`IngestError`, with the summary so far).
+  A frame over the upload limit the source was opened with (`Frame.oversize`) is recorded as a 413 the
+  same way without being posted (or, for a file, read).
 - a missing map is created with the server's default preset when learning (`Summary.created_map`);
   localising against a missing map stops.
 """
@@ -242,6 +244,8 @@ async def _ensure_map(client: httpx.AsyncClient, opts: Options, headers: dict[st
 
 async def _post_frame(client: httpx.AsyncClient, frame: Frame, opts: Options, headers: dict[str, str],
                       summary: Summary, sleep: Sleep) -> Record:
+    if frame.oversize is not None:
+        return Record(frame.index, frame.name, frame.stamp_ns, 413, 0.0, _not_sent(frame))
     params: dict[str, str] = {"learn": "true" if opts.learn else "false", "stream": opts.stream,
                               **frame.params}
     if frame.stamp_ns is not None:  # where in time: the observation's `stamp` (seconds since the epoch)
@@ -262,6 +266,13 @@ async def _post_frame(client: httpx.AsyncClient, frame: Frame, opts: Options, he
         summary.add(rec)
         raise IngestError(f"frame {frame.name}: {_problem_text(r)}", summary)
     return rec
+
+
+def _not_sent(frame: Frame) -> dict[str, Any]:
+    """The service's 413 problem for a frame over the limit, answered here: it is not worth sending."""
+    return {"type": "urn:cortexloc:problem:payload-too-large", "title": "Payload too large", "status": 413,
+            "detail": f"{frame.oversize} bytes, more than the upload limit; not sent",
+            "received_bytes": frame.oversize, "sent": False}
 
 
 def retry_after_s(value: str | None, attempt: int) -> float:

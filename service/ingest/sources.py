@@ -21,6 +21,7 @@ Example:
 from __future__ import annotations
 
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -64,9 +65,11 @@ class Frame:
         index: position in the source (0-based, before `every`): file order or message order on the topic.
         name: the file name, or `topic#index`.
         stamp_ns: the message time in nanoseconds since the epoch; None for files.
-        data: the body to post.
+        data: the body to post (empty when `oversize`).
         media_type: its Content-Type.
         params: the query parameters it needs (a raw frame's `encoding`, `width`, `height`).
+        oversize: the frame's size in bytes when it is over the source's `max_bytes`: it was not read
+            (a file) or not kept (a bag message), and is not to be posted; None otherwise.
     """
 
     index: int
@@ -75,18 +78,24 @@ class Frame:
     data: bytes
     media_type: str
     params: dict[str, str] = field(default_factory=dict)
+    oversize: int | None = None
 
 
 @dataclass(frozen=True)
 class Source:
-    """A checked source: `kind` folder | ros1 | ros2, `topic` (bags), `total` frames after `every`."""
+    """A checked source: `kind` folder | ros1 | ros2, `topic` (bags), `total` frames after `every`; frames
+    over `max_bytes` come as `Frame.oversize` (None: no limit)."""
 
     path: Path
     kind: str
     every: int
     total: int
     topic: str | None = None
+    max_bytes: int | None = None
     _files: tuple[Path, ...] = ()
+
+    def _over(self, size: int) -> bool:
+        return self.max_bytes is not None and size > self.max_bytes
 
     def describe(self) -> str:
         where = f"{self.path} ({self.kind}" + (f", topic {self.topic}" if self.topic else "") + ")"
@@ -96,13 +105,19 @@ class Source:
         """The frames in source order, every `every`-th from the first; read lazily."""
         if self.kind == "folder":
             for i, f in enumerate(self._files):
-                if i % self.every == 0:
+                if i % self.every:
+                    continue
+                size = f.stat().st_size  # before reading: a 1.5 GB file is never loaded
+                if self._over(size):
+                    yield Frame(i, f.name, None, b"", AS_IS_MEDIA, oversize=size)
+                else:
                     yield Frame(i, f.name, None, f.read_bytes(), AS_IS_MEDIA)
             return
         yield from _bag_frames(self)
 
 
-def open_source(path: Path, *, topic: str | None = None, every: int = 1) -> Source:
+def open_source(path: Path, *, topic: str | None = None, every: int = 1,
+                max_bytes: int | None = None) -> Source:
     """Check `path` and say what will be read.
 
     Args:
@@ -110,6 +125,7 @@ def open_source(path: Path, *, topic: str | None = None, every: int = 1) -> Sour
             bag (its folder with `metadata.yaml`, or a `.db3` / `.mcap` file in it).
         topic: the image topic of a bag; None: the bag's only image topic.
         every: keep the first frame and every `every`-th after it.
+        max_bytes: frames larger than this (the service's upload limit) come as `Frame.oversize`, unread.
 
     Raises:
         SourceError: with what was found (the image topics, the files) when it cannot be read as asked.
@@ -132,28 +148,42 @@ def open_source(path: Path, *, topic: str | None = None, every: int = 1) -> Sour
         if not files:
             raise SourceError(f"{path}: no image files ({', '.join(IMAGE_SUFFIXES)}) and no metadata.yaml "
                               "(a ROS 2 bag)")
-        return Source(path, "folder", every, _subsampled(len(files), every), _files=files)
+        return Source(path, "folder", every, _subsampled(len(files), every), max_bytes=max_bytes,
+                      _files=files)
     if path.is_file() and path.suffix != ".bag":
         raise SourceError(f"{path}: not a folder of images, a ROS 1 .bag or a ROS 2 bag")
     kind = "ros1" if path.suffix == ".bag" else "ros2"
-    with _reader(path) as reader:
+    with _damaged(path), _reader(path) as reader:
         chosen, count = _choose_topic(path, reader, topic)
-    return Source(path, kind, every, _subsampled(count, every), topic=chosen)
+    return Source(path, kind, every, _subsampled(count, every), topic=chosen, max_bytes=max_bytes)
 
 
 def _subsampled(n: int, every: int) -> int:
     return (n + every - 1) // every
 
 
+@contextmanager
+def _damaged(path: Path) -> Iterator[None]:
+    """Any failure to read the bag is a `SourceError` naming it. A bag is input from outside: a truncated
+    file, broken metadata.yaml or random bytes make the reader fail in ways of its own (its own errors,
+    UnicodeDecodeError, sqlite3, struct, KeyError, ...), and each is the same answer: this bag cannot be
+    read (one line, exit 2; never a traceback)."""
+    try:
+        yield
+    except SourceError:
+        raise
+    except Exception as e:
+        raise SourceError(f"{path}: cannot read the bag (damaged or not a bag?): {type(e).__name__}: "
+                          f"{' '.join(str(e).split())[:300]}") from e
+
+
 def _reader(path: Path) -> Any:
-    """An opened-on-enter `rosbags` AnyReader; bags without type definitions fall back to the latest LTS."""
-    from rosbags.highlevel import AnyReader, AnyReaderError
+    """An opened-on-enter `rosbags` AnyReader; bags without type definitions fall back to the latest LTS.
+    Used inside `_damaged`, which turns its failures into a `SourceError`."""
+    from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
-    try:
-        return AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
-    except (AnyReaderError, OSError) as e:
-        raise SourceError(f"{path}: cannot read the bag: {e}") from e
+    return AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
 
 
 def _choose_topic(path: Path, reader: Any, topic: str | None) -> tuple[str, int]:
@@ -185,23 +215,31 @@ def _choose_topic(path: Path, reader: Any, topic: str | None) -> tuple[str, int]
 
 
 def _bag_frames(src: Source) -> Iterator[Frame]:
-    with _reader(src.path) as reader:
+    with _damaged(src.path), _reader(src.path) as reader:
         conns = [c for c in reader.connections if c.topic == src.topic]
         for i, (conn, recorded_ns, raw) in enumerate(reader.messages(connections=conns)):
             if i % src.every:
                 continue
+            name = f"{src.topic}#{i}"
+            # Surely over the limit, so not even deserialised: a body is at least 3/4 of its message's
+            # bytes (rgba8 posts 3 bytes of 4), more than the limit once the message is twice it.
+            if src._over(len(raw) // 2):
+                yield Frame(i, name, int(recorded_ns), b"", AS_IS_MEDIA, oversize=len(raw))
+                continue
             msg = reader.deserialize(raw, conn.msgtype)
             stamp = msg.header.stamp
             stamp_ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec) or int(recorded_ns)
-            name = f"{src.topic}#{i}"
             if conn.msgtype == COMPRESSED_TYPE:
-                yield Frame(i, name, stamp_ns, bytes(msg.data), AS_IS_MEDIA)
+                body, params = bytes(msg.data), {}
             else:
                 try:
                     body, params = image_to_raw(msg.data, height=msg.height, width=msg.width, step=msg.step,
                                                 encoding=msg.encoding, is_bigendian=bool(msg.is_bigendian))
                 except SourceError as e:
                     raise SourceError(f"{name}: {e}") from e
+            if src._over(len(body)):
+                yield Frame(i, name, stamp_ns, b"", AS_IS_MEDIA, oversize=len(body))
+            else:
                 yield Frame(i, name, stamp_ns, body, AS_IS_MEDIA, params)
 
 

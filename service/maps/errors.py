@@ -16,8 +16,8 @@ from storage.snapshots import SnapshotInvalid
 
 __all__ = ["IdempotencyKeyReused", "InsufficientStorage", "InvalidConfiguration", "InvalidMapId",
            "MapAlreadyExists", "MapError", "MapFull", "MapLimit", "MapNotFound", "MapTooLarge",
-           "MapUnavailable", "ObservationNotFound", "Overloaded", "SnapshotInvalid", "SnapshotNotFound",
-           "StoreClosed"]
+           "MapUnavailable", "MemoryBudgetExceeded", "ObservationNotFound", "Overloaded", "SnapshotInUse",
+           "SnapshotInvalid", "SnapshotNotFound", "StoreClosed", "StreamLimit"]
 
 
 class MapError(Exception):
@@ -64,6 +64,19 @@ class MapTooLarge(MapError):  # noqa: N818
         self.required_bytes, self.max_bytes = required_bytes, max_bytes
 
 
+class MemoryBudgetExceeded(MapError):  # noqa: N818
+    """What `map_id` asks for does not fit in the process-wide memory budget (docs/design/service.md
+    §1.8): `used_bytes` are held, `asked_bytes` more were asked, `total_bytes` is the budget."""
+
+    def __init__(self, map_id: str, used_bytes: int, asked_bytes: int, total_bytes: int) -> None:
+        super().__init__(f"map {map_id!r} asks for {asked_bytes} bytes of memory; {used_bytes} of the "
+                         f"{total_bytes} of CORTEXLOC_MEMORY_BUDGET_BYTES are in use, "
+                         f"{max(0, total_bytes - used_bytes)} free; delete a map or raise the budget")
+        self.map_id = map_id
+        self.used_bytes, self.asked_bytes, self.total_bytes = used_bytes, asked_bytes, total_bytes
+        self.free_bytes = max(0, total_bytes - used_bytes)
+
+
 class InvalidMapId(MapError):  # noqa: N818
     def __init__(self, map_id: str, pattern: str) -> None:
         super().__init__(f"map_id {map_id!r} must match {pattern}")
@@ -84,6 +97,16 @@ class SnapshotNotFound(MapError):  # noqa: N818
         self.map_id = map_id
 
 
+class SnapshotInUse(MapError):  # noqa: N818
+    """The snapshot the map's next recovery starts from (the newest on its branch): deleting it before
+    a newer one exists would make that recovery replay from an older one (docs/design/service.md §1.5)."""
+
+    def __init__(self, map_id: str, snapshot_id: str) -> None:
+        super().__init__(f"snapshot {snapshot_id!r} is the one map {map_id!r} recovers from (the newest on "
+                         "its branch); take a newer snapshot first")
+        self.map_id, self.snapshot_id = map_id, snapshot_id
+
+
 class InsufficientStorage(MapError):  # noqa: N818
     """The disk is full; what the message names was not written and the map is unchanged."""
 
@@ -94,6 +117,17 @@ class Overloaded(MapError):  # noqa: N818
     def __init__(self, limit: int, retry_after: int = 1) -> None:
         super().__init__(f"the encoder queue is full ({limit} requests in flight)")
         self.retry_after = retry_after
+
+
+class StreamLimit(MapError):  # noqa: N818
+    """A new stream, while each of the map's `max_streams` streams posted within `keep_seconds`: none may
+    be evicted yet; `retry_after` seconds until the least recently used one may."""
+
+    def __init__(self, max_streams: int, keep_seconds: float, retry_after: int) -> None:
+        super().__init__(f"this map holds its maximum of {max_streams} streams and each posted within the "
+                         f"last {keep_seconds:g} s (CORTEXLOC_STREAM_KEEP_SECONDS); a new stream may "
+                         f"replace the least recently used one in {retry_after} s")
+        self.max_streams, self.keep_seconds, self.retry_after = max_streams, keep_seconds, retry_after
 
 
 class ObservationNotFound(MapError):  # noqa: N818

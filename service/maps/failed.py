@@ -74,7 +74,8 @@ class FailedMap:
             observations=0, last_seq=0, streams=[], warnings=_as(p.get("warnings"), list, []),
             recovery=None, snapshot_error=None, backbone=text["backbone"],
             revisit_threshold=_as(map_option(p, "revisit_threshold"), float, DEFAULT_REVISIT_THRESHOLD),
-            thumbnails=_as(p.get("thumbnails", False), bool, False))
+            thumbnails=_as(p.get("thumbnails", False), bool, False),
+            **map_snapshots.disk_use(self.catalog, self.map_id))
 
     def snapshots(self) -> list[SnapshotInfo]:
         return map_snapshots.listing(self.catalog, self.map_id)
@@ -84,3 +85,4 @@ class FailedMap:
 
     # Everything else needs the memory, the store or the writer.
     memory = reset_stream = set_revisit_threshold = snapshot = restore = snapshot_dir = _unavailable
+    delete_snapshot = _unavailable

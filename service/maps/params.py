@@ -50,11 +50,12 @@ def map_model(params: dict[str, Any], *, max_observations: int) -> MapModel:
 
 
 def check_revisit_threshold(value: float) -> float:
-    """Raises InvalidConfiguration unless 0 <= value <= 1."""
+    """The threshold as stored: raises InvalidConfiguration unless 0 <= value <= 1; -0.0 is stored as 0.0
+    (it passes the range check, and a reader that prints or divides by it sees a sign it never meant)."""
     if not 0.0 <= float(value) <= 1.0:
         msg = f"revisit_threshold must be in [0, 1], got {value}"
         raise InvalidConfiguration(msg, [_body("revisit_threshold", msg)])
-    return float(value)
+    return float(value) + 0.0  # -0.0 + 0.0 == +0.0
 
 
 def _body(name: str, message: str) -> dict[str, str]:

@@ -2,8 +2,9 @@
 `/ui`, `GET /v1/maps/{map_id}/recent`; docs/design/service.md §1.7).
 
 It holds each observation's reply as the client received it, whatever that reply holds, with the time it
-was answered. It is not durable: a restart or a delete starts it empty (a restore keeps it: those
-answers were given). The store (docs/design/service.md §4) is the record of what was learned; this is
+was answered. It is not durable: a restart, a delete or a restore starts it empty (after a restore
+the answers describe a map state that no longer exists: their seqs may be reused by new
+observations). The store (docs/design/service.md §4) is the record of what was learned; this is
 only a window onto the last answers, localisations included.
 """
 

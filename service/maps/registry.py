@@ -3,17 +3,21 @@ warm-up before the first request (docs/design/service.md §1.1, §4.4)."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import shutil
+import sqlite3
 import threading
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from common.process import rss_bytes
 from models.frontend import slsbh
 from models.localisation.index import warm_up as index_warm_up
 from models.memory.temporal_memory import TemporalMemory
+from service.maps import budget as map_budget
 from service.maps import projection as map_projection
 from service.maps import snapshots as map_snapshots
 from service.maps.encoders import Encoders
@@ -24,13 +28,17 @@ from service.maps.errors import (
     MapLimit,
     MapNotFound,
     MapTooLarge,
+    MemoryBudgetExceeded,
 )
 from service.maps.failed import FailedMap
 from service.maps.params import map_option, resolve_params
+from service.maps.results import BudgetInfo, MapReservation
 from service.maps.runtime import MapRuntime
+from storage import snapshots
 from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord
 from storage.layout import Layout
-from storage.mapstore import MapMeta, MapStore, cell_dtype_for
+from storage.mapstore import MapMeta, MapStore, StorageError, cell_dtype_for
+from storage.snapshots import Manifest
 
 __all__ = ["MapRegistry", "warm_up"]
 
@@ -69,24 +77,47 @@ class MapRegistry:
         self.projections.mkdir(parents=True, exist_ok=True)
         self.maps: dict[str, MapRuntime | FailedMap] = {}
         self._create_lock = threading.Lock()
+        total = getattr(settings, "memory_budget_bytes", None)
+        total, source = (total, "setting") if total is not None else map_budget.default_total()
+        self.budget = map_budget.MemoryBudget(total, source)
+        #: Maps left closed at start because they did not fit in the budget: map_id -> bytes asked.
+        self.unfitted: dict[str, int] = {}
+
+    def _need(self, params: dict[str, Any], feature_dim: int, rows: int) -> map_budget.MapNeed:
+        """The map's share of the budget; the encoders built by now are told to the budget first."""
+        self.budget.set_encoders(sum(map_budget.encoder_bytes(e) for e in self.encoders.built().values()))
+        return self._need_of(params, rows, map_budget.projection_bytes(
+            str(map_option(params, "projection")), feature_dim, int(params["slsbh"]["k"])))
+
+    def _need_of(self, params: dict[str, Any], rows: int, projection: int) -> map_budget.MapNeed:
+        return map_budget.map_need(params, projection, rows, max_streams=self.settings.max_streams,
+                                   key_cache=self.settings.idempotency_cache)
 
     def _runtime(self, record: MapRecord, feature_dim: int) -> MapRuntime:
         s = self.settings
         return MapRuntime(record, self.catalog, feature_dim, s.max_streams, s.max_observations,
                           s.snapshot_every, s.snapshot_keep, max_keys=s.idempotency_keys,
-                          key_cache=s.idempotency_cache, max_closures=s.loop_closures)
+                          key_cache=s.idempotency_cache, budget=self.budget,
+                          stream_keep_seconds=s.stream_keep_seconds, manual_keep=s.snapshot_manual_keep,
+                          manual_bytes=s.snapshot_manual_bytes, max_closures=s.loop_closures)
+
 
     def start(self) -> None:
         """Open every map and recover it by replay; create `default` on a fresh install.
 
         A map that cannot be opened at all (stored parameters this version rejects, anything that
         raises) is `failed` (`open-failed`, the error in the log) and the others still open
-        (docs/design/service.md §4.4).
+        (docs/design/service.md §4.4). A map that does not fit in the memory budget beside those opened
+        before it stays closed, `failed` (`memory-budget`), listed in `unfitted` (§1.8).
         """
         warm_up()
         for record in self.catalog.list_maps():
             try:
                 self.maps[record.map_id] = self._open(record)
+            except MemoryBudgetExceeded as e:
+                log.error("map %s stays closed: %s", record.map_id, e)
+                self.unfitted[record.map_id] = e.asked_bytes
+                self.maps[record.map_id] = FailedMap(record, self.catalog, "memory-budget")
             except Exception:  # anything: one map's failure must not take the others down
                 log.exception("map %s cannot be opened; it is served as failed", record.map_id)
                 self.catalog.set_state(record.map_id, "failed", "open-failed")
@@ -95,14 +126,40 @@ class MapRegistry:
             self.create("default", preset=self.settings.default_preset)
 
     def _open(self, record: MapRecord) -> MapRuntime:
-        """A stored map's runtime, recovered, or failed for a reason recovery knows."""
-        backbone = map_option(record.params, "backbone")
+        """A stored map's runtime, recovered, or failed for a reason recovery knows.
+
+        Raises:
+            MemoryBudgetExceeded: it does not fit beside the maps opened before it (nothing allocated).
+        """
         try:
-            encoder = self.encoders.get(backbone)
+            encoder, unavailable = self.encoders.get(map_option(record.params, "backbone")), None
         except ValueError as e:
+            encoder, unavailable = None, e
+        # Reserved before the runtime allocates its memory; a map that cannot be opened holds nothing.
+        need = self._need(record.params, encoder.feature_dim if encoder else 0,
+                          self._stored_rows(record.map_id))
+        self.budget.reserve(record.map_id, need)
+        try:
+            # The runtime's empty memory stays until the recovered one replaces it: two for a while.
+            with self.budget.transient(record.map_id, need.tm):
+                return self._open_reserved(record, encoder, unavailable)
+        except BaseException:
+            self.budget.release(record.map_id)
+            raise
+
+    def _stored_rows(self, map_id: str) -> int:
+        """Rows in the map's store (0 when it cannot be read: its recovery says why)."""
+        try:
+            with MapStore.open(self.layout.map_db(map_id), readonly=True) as store:
+                return store.count()
+        except (OSError, StorageError, sqlite3.DatabaseError):
+            return 0
+
+    def _open_reserved(self, record: MapRecord, encoder: Any, unavailable: ValueError | None) -> MapRuntime:
+        if encoder is None:
             rt = self._runtime(record, 0)
             rt.state, rt.state_reason = "failed", "encoder-unavailable"
-            log.error("map %s: %s", record.map_id, e)
+            log.error("map %s: %s", record.map_id, unavailable)
             return rt
         rt = self._runtime(record, encoder.feature_dim)
         if record.params.get("encoder_id") != encoder.identity:
@@ -159,42 +216,91 @@ class MapRegistry:
                 raise InvalidConfiguration(str(e), [{"location": "body", "name": "backbone",
                                                      "message": str(e)}]) from e
             # Projection plus memory within the map budget: the very sparse projection where dense breaks it.
-            params["projection"], P = map_projection.for_map(params, encoder.feature_dim,
-                                                             self.settings.max_streams)
-            _, sha = slsbh.save_projection(P, self.projections)
-            del P
-            params["projection_sha256"] = sha
-            params["encoder_id"] = encoder.identity
-            params["thumbnails"] = bool(thumbnails)  # frozen like the rest (docs/design/service.md §1.1)
-            if encoder.identity.split("/")[1].startswith("random"):
-                log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, encoder.identity)
-            map_dir = self.layout.map_dir(map_id)
-            if map_dir.exists():
-                shutil.rmtree(map_dir)  # leftovers of a creation that never reached the catalog
-            map_dir.mkdir(parents=True)
-            store = MapStore.create(self.layout.map_db(map_id), MapMeta(
-                map_id=map_id, params=params, projection_sha256=sha, encoder_id=encoder.identity,
-                cell_dtype=cell_dtype_for(int(params["tm"]["columnDimensions"])
-                                          * int(params["tm"]["cellsPerColumn"]))))
-            store.close()
+            params["projection"] = map_projection.projection_kind(
+                encoder.feature_dim, int(params["slsbh"]["k"]), need)
+            # The process-wide budget, before the projection or the memory is allocated (§1.8); the
+            # projection counts in full until its checksum says whether another map shares it.
+            need = self._need(params, encoder.feature_dim, 0)
+            self.budget.reserve(map_id, need)
             try:
-                record = self.catalog.create_map(map_id, params, preset=preset, state="ready")
-            except MapExists as e:
-                raise MapAlreadyExists(map_id) from e
-            rt = self._runtime(record, encoder.feature_dim)
-            rt.recover()
-            self.maps[map_id] = rt
-            return rt
+                # Its first recovery builds a second memory beside the runtime's empty one (§1.8).
+                with self.budget.transient(map_id, need.tm):
+                    return self._create_reserved(map_id, params, preset, encoder, thumbnails)
+            except BaseException:
+                self.budget.release(map_id)
+                raise
+
+    def _create_reserved(self, map_id: str, params: dict[str, Any], preset: str, encoder: Any,
+                         thumbnails: bool) -> MapRuntime:
+        """`create` after its checks and its reservation (under the creation lock)."""
+        s_conf = params["slsbh"]
+        P = map_projection.make(params["projection"], encoder.feature_dim, int(s_conf["k"]),
+                                int(s_conf["seed"]))
+        _, sha = slsbh.save_projection(P, self.projections)
+        del P
+        params["projection_sha256"] = sha
+        self.budget.reserve(map_id, self._need(params, encoder.feature_dim, 0))  # shared: less
+        params["encoder_id"] = encoder.identity
+        params["thumbnails"] = bool(thumbnails)  # frozen like the rest (docs/design/service.md §1.1)
+        if encoder.identity.split("/")[1].startswith("random"):
+            log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, encoder.identity)
+        map_dir = self.layout.map_dir(map_id)
+        if map_dir.exists():
+            shutil.rmtree(map_dir)  # leftovers of a creation that never reached the catalog
+        map_dir.mkdir(parents=True)
+        store = MapStore.create(self.layout.map_db(map_id), MapMeta(
+            map_id=map_id, params=params, projection_sha256=sha, encoder_id=encoder.identity,
+            cell_dtype=cell_dtype_for(int(params["tm"]["columnDimensions"])
+                                      * int(params["tm"]["cellsPerColumn"]))))
+        store.close()
+        try:
+            record = self.catalog.create_map(map_id, params, preset=preset, state="ready")
+        except MapExists as e:
+            raise MapAlreadyExists(map_id) from e
+        rt = self._runtime(record, encoder.feature_dim)
+        rt.recover()
+        self.maps[map_id] = rt
+        return rt
+
+    def memory_budget(self) -> BudgetInfo:
+        """The budget: total, used, free, the encoders, and every map's reservation (§1.8); a map left
+        closed at start shows what it asked."""
+        encoders, held = self.budget.report()
+        used = encoders + sum(sum(parts.values()) for parts in held.values())
+        maps = [MapReservation(map_id, True, None, sum(parts.values()), parts)
+                for map_id, parts in held.items()]
+        maps += [MapReservation(map_id, False, "memory-budget", asked, {})
+                 for map_id, asked in self.unfitted.items()]
+        return BudgetInfo(total_bytes=self.budget.total, source=self.budget.source, used_bytes=used,
+                          free_bytes=max(0, self.budget.total - used), encoders_bytes=encoders, maps=maps,
+                          process_rss_bytes=rss_bytes())
 
     def import_snapshot(self, tar_path: Path, max_bytes: int) -> str:
         """Create a map from a downloaded snapshot tar (`service.maps.snapshots.import_snapshot`)."""
-        return map_snapshots.import_snapshot(self.data_dir, self.catalog, tar_path, max_bytes)
+        return map_snapshots.import_snapshot(self.data_dir, self.catalog, tar_path, max_bytes,
+                                             fits=self._import_fits)
+
+    def _import_fits(self, m: Manifest) -> None:
+        """Raises MemoryBudgetExceeded unless the imported map fits beside the maps here, each at its
+        stored rows (the server is stopped: no encoder says the feature dimension, so projections count
+        by their files' sizes, and the encoders are not counted)."""
+        budget = map_budget.MemoryBudget(self.budget.total, self.budget.source)
+        for record in self.catalog.list_maps():
+            path = self.layout.projection(str(record.params.get("projection_sha256")))
+            # A map that cannot be opened, or does not fit, holds nothing at start.
+            with contextlib.suppress(MemoryBudgetExceeded, KeyError, TypeError, ValueError):
+                budget.reserve(record.map_id, self._need_of(record.params, self._stored_rows(record.map_id),
+                                                   path.stat().st_size if path.exists() else 0))
+        projection = m.external.get(snapshots.PROJECTION_FILE)
+        budget.reserve(m.map_id, self._need_of(m.params, m.seq, projection.bytes if projection else 0))
 
     def delete(self, map_id: str) -> None:
         """Raises MapNotFound."""
         rt = self.get(map_id)
         with self._create_lock:
             self.maps.pop(map_id, None)
+            self.budget.release(map_id)
+            self.unfitted.pop(map_id, None)
             rt.close(snapshot=False)
             self.catalog.delete_map(map_id)
             shutil.rmtree(self.layout.map_dir(map_id), ignore_errors=True)

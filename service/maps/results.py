@@ -6,10 +6,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["IndexMemory", "LoopClosureResult", "MapInfo", "Match", "MemoryInfo", "ObservationResult",
-           "PlaceResult", "RestoreResult", "SequenceStats", "SnapshotInfo", "StorageMemory",
-           "StoredObservation",
-           "StoredRow", "StreamReset", "StreamsMemory", "TmMemory"]
+__all__ = ["BudgetInfo", "IndexMemory", "LoopClosureResult", "MapInfo", "MapReservation", "Match",
+           "MemoryInfo", "ObservationResult", "PlaceResult", "RestoreResult", "SequenceStats", "SnapshotInfo",
+           "StorageMemory", "StoredObservation", "StoredRow", "StreamReset", "StreamsMemory", "TmMemory"]
 
 
 @dataclass(frozen=True)
@@ -114,6 +113,8 @@ class MapInfo:
     backbone: str
     revisit_threshold: float
     thumbnails: bool  # a small JPEG is kept with each learned row (frozen with the map)
+    snapshot_count: int  # snapshots of every kind, and their bytes on disk (docs/design/service.md §1.5)
+    snapshots_bytes: int
 
 
 @dataclass(frozen=True)
@@ -225,4 +226,28 @@ class MemoryInfo:
     streams: StreamsMemory
     projection_bytes: int
     storage: StorageMemory
+    process_rss_bytes: int
+
+
+@dataclass(frozen=True)
+class MapReservation:
+    """What one map holds (or, closed, would hold) of the memory budget (docs/design/service.md §1.8)."""
+
+    map_id: str
+    open: bool
+    reason: str | None  # why a map stays closed (`memory-budget`)
+    bytes: int  # held, or asked by a closed map
+    parts: dict[str, int]  # tm, projection (0 when another map holds the same one), localiser, caches, index
+
+
+@dataclass(frozen=True)
+class BudgetInfo:
+    """The process-wide memory budget: `GET /v1/memory` (docs/design/service.md §1.8)."""
+
+    total_bytes: int
+    source: str  # `setting`, or the share of `host` or `cgroup` memory it defaults to
+    used_bytes: int
+    free_bytes: int
+    encoders_bytes: int
+    maps: list[MapReservation]
     process_rss_bytes: int

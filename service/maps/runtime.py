@@ -18,13 +18,15 @@ Which thread runs what:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import functools
 import hashlib
 import logging
+import math
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, TypeVar
@@ -36,11 +38,12 @@ from models.frontend import slsbh
 from models.frontend.images import RawFrame
 from models.localisation import InvertedIndex, Localisation
 from models.memory.temporal_memory import TemporalMemory
-from models.pipeline import Stream, memory_state, touch
+from models.pipeline import Stream, eviction_wait, memory_state, touch
 from service.maps import idempotency, recovery, sizes
 from service.maps import snapshots as map_snapshots
+from service.maps.budget import MemoryBudget, index_row_bytes
 from service.maps.encoder_pool import EncoderPool
-from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable
+from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable, StreamLimit
 from service.maps.params import check_revisit_threshold, map_model, map_option
 from service.maps.recent import RecentAnswers
 from service.maps.results import (
@@ -68,23 +71,36 @@ class MapRuntime:
     """One map in memory, with its single writer thread; `state` is `ready` | `recovering` | `failed`
     and `state_reason` says why (module docstring: which thread runs which method)."""
 
+    #: The clock of the streams' last posts (the stream window, §1.3); tests set their own.
+    clock: Callable[[], float] = staticmethod(time.monotonic)
+
     def __init__(self, record: MapRecord, catalog: Catalog,
                  feature_dim: int, max_streams: int, max_observations: int,
                  snapshot_every: int = 0, snapshot_keep: int = 3, *, max_keys: int | None = None,
-                 key_cache: int = 0, max_closures: int | None = None) -> None:
+                 key_cache: int = 0, budget: MemoryBudget | None = None,
+                 stream_keep_seconds: float = 0.0, manual_keep: int = 0, manual_bytes: int = 0,
+                 max_closures: int | None = None) -> None:
         self.record = record
         self.map_id = record.map_id
         self.params = record.params
         self.layout = catalog.layout  # every path of the map (storage.layout)
         self.catalog = catalog
         self.max_streams = max_streams
+        # A stream that posted within this window is never evicted for a new one (§1.3); evictions counted.
+        self.stream_keep_seconds = stream_keep_seconds
+        self.stream_evictions = 0
         self.snapshot_every = snapshot_every
         self.snapshot_keep = snapshot_keep
+        self.manual_keep, self.manual_bytes = manual_keep, manual_bytes  # manual snapshots kept (0: no limit)
         # Idempotency keys: those of learned posts in the store (the last `max_keys` seqs), those of
         # localisations in memory (service.maps.idempotency).
         self.max_keys = max_keys
         self.max_closures = max_closures  # loop closures kept in the store's log (the last N)
         self.keys = idempotency.KeyCache(key_cache)
+        # The process-wide budget that holds this map's reservation (docs/design/service.md §1.8): each
+        # learned row reserves its index bytes first. None: a runtime built alone (tools, tests).
+        self.budget = budget
+        self.row_bytes = index_row_bytes(self.params)
         self.thumbnails = bool(self.params.get("thumbnails", False))  # frozen with the map
         self.state = "recovering"
         self.state_reason: str | None = None
@@ -157,7 +173,7 @@ class MapRuntime:
         if snapshot and self.state == "ready" and self.snapshot_every and (new_rows or switched):
             try:
                 self.snapshot("auto")
-                map_snapshots.prune_auto(self.catalog, self.map_id, self.snapshot_keep)
+                map_snapshots.prune_auto(self.catalog, self.map_id, self.store, self.snapshot_keep)
             except Exception:  # the rows are durable; a snapshot only shortens the next replay
                 log.exception("map %s: shutdown snapshot failed", self.map_id)
         self.store.close()
@@ -175,6 +191,11 @@ class MapRuntime:
     def snapshot_dir(self, snapshot_id: str) -> Path:
         return map_snapshots.locate(self.catalog, self.map_id, snapshot_id)[1]
 
+    def delete_snapshot(self, snapshot_id: str) -> None:
+        """Writer: delete one snapshot; SnapshotNotFound, SnapshotInUse (the one recovery starts from)."""
+        assert self.store is not None
+        map_snapshots.delete(self.catalog, self.map_id, snapshot_id, self.store)
+
     def snapshot(self, kind: str = "manual") -> SnapshotInfo:
         """A consistent cut at the current seq (docs/design/service.md §1.5, §4.4).
 
@@ -182,8 +203,12 @@ class MapRuntime:
             InsufficientStorage: the disk is full (nothing is left behind).
         """
         assert self.store is not None
-        return map_snapshots.take(self.store, memory_state(self.tm, self.streams), self.catalog, self.map_id,
+        snap = map_snapshots.take(self.store, memory_state(self.tm, self.streams), self.catalog, self.map_id,
                                   self.projection_path, kind)
+        if kind == "manual":  # retention (docs/design/service.md §1.5); the new one is never deleted
+            map_snapshots.prune_manual(self.catalog, self.map_id, self.store, self.manual_keep,
+                                       self.manual_bytes)
+        return snap
 
     def _auto_snapshot(self) -> None:
         """The periodic snapshot after a commit. It only shortens the next recovery, so a failure
@@ -191,7 +216,7 @@ class MapRuntime:
         the row it follows is durable and acknowledged."""
         try:
             self.snapshot("auto")
-            map_snapshots.prune_auto(self.catalog, self.map_id, self.snapshot_keep)
+            map_snapshots.prune_auto(self.catalog, self.map_id, self.store, self.snapshot_keep)
         except Exception as e:  # any failure: see the docstring
             self.snapshot_failures += 1
             self.snapshot_error = {"seq": self.store.last_seq() if self.store else 0, "at": utc_now(),
@@ -214,15 +239,34 @@ class MapRuntime:
         _, path = map_snapshots.locate(self.catalog, self.map_id, snapshot_id)
         snapshots.verify(path)  # refuse a damaged snapshot before touching anything
         before = self.store.count()
-        self.snapshot("pre-restore")
-        self.catalog.bump_high_water(self.map_id, self.store.next_seq() - 1)
-        self.store.close()
-        MapStore.install_copy(path / snapshots.DB_FILE, self.layout.map_db(self.map_id))
-        self.recover()
+        with self._restore_budget(path):
+            self.snapshot("pre-restore")
+            self.catalog.bump_high_water(self.map_id, self.store.next_seq() - 1)
+            self.store.close()
+            MapStore.install_copy(path / snapshots.DB_FILE, self.layout.map_db(self.map_id))
+            self.recover()
         self.keys.clear()  # answers given before may name the observations the restore dropped
         self.recent.clear()
         after = self.store.count() if self.store is not None else 0
         return RestoreResult(**vars(self.info()), discarded_observations=before - after)
+
+    @contextlib.contextmanager
+    def _restore_budget(self, snapshot: Path) -> Iterator[None]:
+        """The memory budget of a restore (docs/design/service.md §1.8): while it runs, the new memory is
+        built beside the old one (held as transient bytes), and the snapshot's rows must fit (the index
+        estimate, set exactly by the recovery). Raises MemoryBudgetExceeded before anything changes."""
+        if self.budget is None:
+            yield
+            return
+        with MapStore.open(snapshot / snapshots.DB_FILE, readonly=True) as copy:
+            rows = copy.count()
+        old_index = len(self.index) * self.row_bytes
+        with self.budget.transient(self.map_id, self.tm.size()["bytes"] + old_index):
+            self.budget.grow_index(self.map_id, rows * self.row_bytes - old_index)
+            try:
+                yield
+            finally:  # the index as it is now: the restored one, or the old one if the restore failed
+                self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
 
     # ------------------------------------------------------------------ recovery
 
@@ -248,6 +292,8 @@ class MapRuntime:
         self.model, self.streams = done.model, done.streams
         self.model.index.rebuild(self.store.rows())
         self.model.links.rebuild(self.store.rows())
+        if self.budget is not None:
+            self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
         self.recovery = note
         self.state, self.state_reason = "ready", None
         log.info("map %s ready: %s", self.map_id, note)
@@ -258,6 +304,13 @@ class MapRuntime:
         log.error("map %s failed (%s): %s", self.map_id, reason, detail)
 
     # ------------------------------------------------------------------ streams
+
+    def _admit(self, name: str) -> None:
+        """Raises StreamLimit while a new stream `name` would evict one that posted within the window
+        (docs/design/service.md §1.3)."""
+        wait = eviction_wait(self.streams, name, self.max_streams, self.stream_keep_seconds, self.clock())
+        if wait > 0:
+            raise StreamLimit(self.max_streams, self.stream_keep_seconds, max(1, math.ceil(wait)))
 
     def reset_stream(self, name: str) -> StreamReset:
         """Break the stream's sequence (the next frame starts a new one); its adaptation is kept,
@@ -285,10 +338,14 @@ class MapRuntime:
         key, else the sealed reply of this step (service.maps.idempotency).
 
         Raises:
-            MapUnavailable, Overloaded (nothing queued); ImageError (the decode failed, nothing
+            MapUnavailable, StreamLimit, Overloaded (nothing queued); ImageError (the decode failed, nothing
             changed); MapFull, InsufficientStorage (from `apply`); IdempotencyKeyReused.
         """
         self.require_ready()
+        # Refused before its encoding too; `apply` checks again in the writer, where it is exact (here
+        # the writer may be changing the streams: a look that meets it is left to that check).
+        with contextlib.suppress(RuntimeError):
+            self._admit(stream)
         t0 = time.perf_counter()
         encoding = pool.submit(body, hasher=self.hasher, backbone=self.backbone,
                                thumbnail=learn and self.thumbnails)
@@ -332,7 +389,8 @@ class MapRuntime:
             The result; `timings_ms` holds hash, tm, search and store.
 
         Raises:
-            ValueError: `projected` is not (k,) (before any state change). MapUnavailable, MapFull.
+            ValueError: `projected` is not (k,) (before any state change). MapUnavailable, MapFull,
+            StreamLimit, MemoryBudgetExceeded (nothing changed).
             InsufficientStorage: the disk is full; the memory was rebuilt from the store, nothing learned.
         """
         self.require_ready()
@@ -341,6 +399,9 @@ class MapRuntime:
             raise MapFull(self.map_id, self.index.max_observations)
         if projected.shape != (self.hasher.k,):
             raise ValueError(f"projection has shape {projected.shape}, this map's are ({self.hasher.k},)")
+        self._admit(stream)
+        if learn and self.budget is not None:  # the row's index bytes, before the step (a failed one is
+            self.budget.grow_index(self.map_id, self.row_bytes)  # set right by the recovery it causes)
         try:
             return self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k, label=label,
                               metadata=metadata, thumbnail=thumbnail, post=post)
@@ -368,7 +429,8 @@ class MapRuntime:
         from the stored rows it names and, for learning, the row on disk. An exception here while
         learning is rebuilt from by `apply` (the step already holds the row in the index and links)."""
         assert self.store is not None
-        st = touch(self.streams, stream, self.max_streams)
+        st, evicted = touch(self.streams, stream, self.max_streams, self.clock())
+        self.stream_evictions += evicted
         seq = self.store.next_seq() if learn else None  # this thread is the store's only writer
         step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq,
                                 code_of=self._code_of)
@@ -426,7 +488,8 @@ class MapRuntime:
             observations=len(self.index),
             last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),
             warnings=p.get("warnings", []), recovery=self.recovery, snapshot_error=self.snapshot_error,
-            backbone=self.backbone, revisit_threshold=self.revisit_threshold, thumbnails=self.thumbnails)
+            backbone=self.backbone, revisit_threshold=self.revisit_threshold, thumbnails=self.thumbnails,
+            **map_snapshots.disk_use(self.catalog, self.map_id))
 
     def set_revisit_threshold(self, value: float) -> MapInfo:
         """Writer: the map's revisit threshold, durable in the catalog (docs/design/service.md §1.2);

@@ -6,20 +6,22 @@ from __future__ import annotations
 import logging
 import shutil
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
 
 from models.frontend import slsbh
-from service.maps.errors import InsufficientStorage, SnapshotNotFound
+from service.maps.errors import InsufficientStorage, SnapshotInUse, SnapshotNotFound
 from service.maps.results import SnapshotInfo
 from storage import snapshots
 from storage.catalog import Catalog, SnapshotRecord
 from storage.layout import Layout
+from storage.manifest import parse_manifest
 from storage.mapstore import MapStore, StorageFull
 
-__all__ = ["TarExport", "export", "import_snapshot", "info", "listing", "locate", "prune_auto", "take"]
+__all__ = ["TarExport", "delete", "disk_use", "export", "import_snapshot", "info", "listing", "locate",
+           "prune_auto", "prune_manual", "recovery_base", "take"]
 
 #: A snapshot as a tar stream: `size`, `chunks()`, `close()` (storage.archive).
 TarExport = snapshots.TarExport
@@ -30,6 +32,12 @@ log = logging.getLogger("cortexloc.snapshots")
 def info(rec: SnapshotRecord) -> SnapshotInfo:
     return SnapshotInfo(snapshot_id=rec.snapshot_id, seq=rec.seq, kind=rec.kind, created_at=rec.created_at,
                         bytes=rec.bytes, manifest_sha256=rec.manifest_sha256)
+
+
+def disk_use(catalog: Catalog, map_id: str) -> dict[str, int]:
+    """`snapshot_count` and `snapshots_bytes` of the map (every kind), for its resource and /metrics."""
+    recs = catalog.list_snapshots(map_id)
+    return {"snapshot_count": len(recs), "snapshots_bytes": sum(r.bytes for r in recs)}
 
 
 def listing(catalog: Catalog, map_id: str) -> list[SnapshotInfo]:
@@ -77,14 +85,66 @@ def take(store: MapStore, memory: Mapping[str, np.ndarray], catalog: Catalog, ma
     return info(rec)
 
 
-def prune_auto(catalog: Catalog, map_id: str, keep: int) -> None:
-    """Keep the `keep` newest automatic snapshots; manual and pre-restore ones stay."""
-    for rec in catalog.list_snapshots(map_id, kind="auto")[keep:]:
-        catalog.delete_snapshot(map_id, rec.snapshot_id)
-        shutil.rmtree(catalog.snapshot_dir(rec), ignore_errors=True)
+def _remove(catalog: Catalog, rec: SnapshotRecord) -> None:
+    """Unregister first: a crash between the two leaves an unlisted directory, never a listed hole."""
+    catalog.delete_snapshot(rec.map_id, rec.snapshot_id)
+    shutil.rmtree(catalog.snapshot_dir(rec), ignore_errors=True)
 
 
-def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes: int) -> str:
+def prune_auto(catalog: Catalog, map_id: str, store: MapStore, keep: int) -> None:
+    """Keep the `keep` newest automatic snapshots, and the `recovery_base` whatever its age; manual and
+    pre-restore ones stay."""
+    old = catalog.list_snapshots(map_id, kind="auto")[keep:]
+    base = recovery_base(catalog, map_id, store) if old else None
+    for rec in old:
+        if rec.snapshot_id != base:
+            _remove(catalog, rec)
+
+
+def recovery_base(catalog: Catalog, map_id: str, store: MapStore) -> str | None:
+    """The id of the snapshot the map's next recovery starts from: the newest whose cut is a row of
+    `store` (one from a branch a restore abandoned is not, docs/design/service.md §4.4); None: none is."""
+    for rec in catalog.list_snapshots(map_id):
+        directory = catalog.snapshot_dir(rec)
+        try:
+            m = parse_manifest((directory / snapshots.MANIFEST_FILE).read_bytes(), str(directory))
+        except (OSError, snapshots.SnapshotInvalid):
+            continue  # recovery passes over it too
+        row = store.get(m.seq) if m.seq > 0 else None
+        if m.seq == 0 or (row is not None and row.observation_id == m.last_observation_id):
+            return rec.snapshot_id
+    return None
+
+
+def delete(catalog: Catalog, map_id: str, snapshot_id: str, store: MapStore) -> None:
+    """Delete one snapshot of any kind (`DELETE /v1/maps/{id}/snapshots/{sid}`).
+
+    Raises:
+        SnapshotNotFound. SnapshotInUse: it is the `recovery_base` (nothing is deleted).
+    """
+    rec, _ = locate(catalog, map_id, snapshot_id)
+    if snapshot_id == recovery_base(catalog, map_id, store):
+        raise SnapshotInUse(map_id, snapshot_id)
+    _remove(catalog, rec)
+
+
+def prune_manual(catalog: Catalog, map_id: str, store: MapStore, keep: int, max_bytes: int) -> list[str]:
+    """Delete the oldest manual snapshots beyond the newest `keep` or `max_bytes` in all (0: no such
+    limit), never the `recovery_base`. Returns the ids deleted."""
+    base = recovery_base(catalog, map_id, store)
+    kept = total = 0
+    deleted = []
+    for rec in catalog.list_snapshots(map_id, kind="manual"):  # newest first
+        kept, total = kept + 1, total + rec.bytes
+        if rec.snapshot_id != base and ((keep and kept > keep) or (max_bytes and total > max_bytes)):
+            _remove(catalog, rec)
+            deleted.append(rec.snapshot_id)
+            kept, total = kept - 1, total - rec.bytes
+    return deleted
+
+
+def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes: int,
+                    fits: Callable[[snapshots.Manifest], None] = lambda m: None) -> str:
     """Create a map from a downloaded snapshot tar (`cortexloc import`, server stopped).
 
     The manifest (the tar's first member) is checked before anything is written: its ids follow
@@ -99,6 +159,7 @@ def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes:
 
     Raises:
         SnapshotInvalid: a bad or too large tar. ValueError: the map exists, or no projection.
+        MemoryBudgetExceeded: from `fits`, which sees the manifest before anything is written.
     """
     layout = Layout(data_dir)
 
@@ -109,6 +170,7 @@ def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes:
         free = shutil.disk_usage(data_dir).free
         if need > free:
             raise ValueError(f"the snapshot needs {need} bytes, {data_dir} has {free} free")
+        fits(m)
 
     staging = layout.maps / f".import-{snapshots.new_snapshot_id()}"
     with tar_path.open("rb") as f:

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Request
 
-from service.errors import Problem
+from service.deps import ReadKeyDep
+from service.errors import Problem, problem_responses
 from service.routes import closures, health, maps, metrics, observations, recent, snapshots
 
 __all__ = ["api_router", "refuse_repeated_query_parameters"]
@@ -31,10 +32,13 @@ def refuse_repeated_query_parameters(request: Request) -> None:
 
 # Every route: `?learn=false&learn=true` is a 400, not a guess.
 api_router = APIRouter(dependencies=[Depends(refuse_repeated_query_parameters)])
-api_router.include_router(health.router)
-api_router.include_router(metrics.router)
-api_router.include_router(maps.router)
-api_router.include_router(observations.router)
-api_router.include_router(recent.router)
-api_router.include_router(snapshots.router)
-api_router.include_router(closures.router)
+api_router.include_router(health.router)  # /healthz, /readyz: open to probes, whatever the key rules
+# With CORTEXLOC_API_KEY_READS every /v1 route and /metrics need the key: map lists, stream names (robot
+# names), sizes, snapshot lists and the metrics' map ids are not for anyone on the network either. A
+# route added to these routers is guarded without naming it (writes check the key anyway).
+api_router.include_router(metrics.router, dependencies=[ReadKeyDep], responses=problem_responses(401))
+v1 = APIRouter(dependencies=[ReadKeyDep], responses=problem_responses(401))
+for resource in (maps.router, maps.process_router, observations.router, recent.router, snapshots.router,
+                 closures.router):
+    v1.include_router(resource)
+api_router.include_router(v1)

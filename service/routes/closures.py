@@ -9,7 +9,7 @@ import anyio
 from fastapi import APIRouter, Query
 from fastapi.responses import StreamingResponse
 
-from service.deps import MapReadKeyDep, RegistryDep
+from service.deps import RegistryDep
 from service.errors import problem_responses
 from service.maps import closures
 from service.routes.params import MapId
@@ -23,7 +23,7 @@ MAX_PAGE = 500
 MAX_ID = 2**63 - 1
 
 
-@router.get("/{map_id}/loop-closures", dependencies=[MapReadKeyDep], responses=problem_responses(404, 503))
+@router.get("/{map_id}/loop-closures", responses=problem_responses(404, 503))
 async def list_loop_closures(
     map_id: MapId, registry: RegistryDep,
     after: Annotated[int, Query(ge=0, le=MAX_ID, description="the page starts after this log id")] = 0,
@@ -38,7 +38,7 @@ async def list_loop_closures(
                            next_after=found[-1].id if len(found) == limit else None)
 
 
-@router.get("/{map_id}/loop-closures/export", dependencies=[MapReadKeyDep],
+@router.get("/{map_id}/loop-closures/export",
             response_class=StreamingResponse, responses={**problem_responses(404, 503), 200: {
                 "content": {t.split(";")[0]: {"schema": {"type": "string"}}
                             for t in closures.EXPORT_FORMATS.values()}}})

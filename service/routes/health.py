@@ -7,7 +7,7 @@ iff no check fails: 200 `{"status": "ready", "checks": ..., "warnings": [...]}`,
 
 - `data_dir`: a probe file is written, fsynced and deleted in `CORTEXLOC_DATA_DIR`;
 - `encoder`: loaded, with its weights (`pretrained` + SHA-256, or `random` + seed: `warn`, or `fail`
-  when `CORTEXLOC_ALLOW_RANDOM_WEIGHTS=false`);
+  when `CORTEXLOC_ALLOW_RANDOM_WEIGHTS=false`), and the runtime and device its backbone runs on;
 - `maps`: the state of each map in `app.state.maps` (objects with `state`, `state_reason`, `recovery`
   and `snapshot_error`): ready iff none is `recovering`; `failed` maps, recoveries that passed over
   snapshots or rows, and failed automatic snapshots are warnings;
@@ -63,6 +63,7 @@ def check_encoder(app: FastAPI) -> Check:
     info: dict[str, Any] = dict(getattr(app.state, "encoder_weights", None) or {})
     desc = encoder.describe()
     out: Check = {"status": "pass", "encoder": desc["encoder"], "weights": desc["weights"], **info,
+                  "runtime": desc["runtime"], "device": desc["device"],
                   "backbone": app.state.settings.backbone}  # of new maps (service.app.resolve_backbone)
     registry = getattr(app.state, "registry", None)
     if registry is not None:  # one encoder per backbone in use

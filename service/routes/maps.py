@@ -11,6 +11,7 @@ from service.deps import ApiKeyDep, RegistryDep, SettingsDep
 from service.errors import problem_responses
 from service.routes.params import MapId, StreamName
 from service.schemas import (
+    BudgetModel,
     CreateMap,
     MapList,
     MapModel,
@@ -20,8 +21,14 @@ from service.schemas import (
 )
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"])
+#: Resources of the whole process beside the maps (`GET /v1/memory`).
+process_router = APIRouter(prefix="/v1", tags=["maps"])
 
 
+@process_router.get("/memory")
+async def process_memory(registry: RegistryDep) -> BudgetModel:
+    """The memory budget: total, used, free, the encoders and each map's share (§1.8)."""
+    return BudgetModel.from_result(await anyio.to_thread.run_sync(registry.memory_budget))
 
 @router.post("", status_code=201, dependencies=[ApiKeyDep],
              responses=problem_responses(400, 401, 409, 422))

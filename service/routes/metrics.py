@@ -19,4 +19,7 @@ def metrics(request: Request) -> Response:
     """Prometheus text format (`cortexloc_*`)."""
     m: Metrics = request.app.state.metrics
     m.update_maps(getattr(request.app.state, "maps", None) or {})
+    registry = getattr(request.app.state, "registry", None)
+    if registry is not None:
+        m.update_budget(registry.budget.total, registry.budget.used())
     return Response(m.render(), media_type=CONTENT_TYPE_LATEST)

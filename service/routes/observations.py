@@ -19,10 +19,10 @@ from typing import Annotated, Any
 
 import anyio
 from fastapi import APIRouter, Header, Query, Request, Response
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from models.frontend import images
-from service.deps import ApiKeyDep, MapReadKeyDep, MetricsDep, RegistryDep, SettingsDep
+from service.deps import ApiKeyDep, MetricsDep, RegistryDep, SettingsDep
 from service.errors import IMAGE_MEDIA_TYPES, Problem, problem_responses
 from service.maps import idempotency, stored
 from service.maps.results import ObservationResult
@@ -43,6 +43,14 @@ _DECLARED = {"image/jpeg": "jpeg", "image/png": "png", "image/webp": "webp", "im
 #: Per-observation metadata (docs/design/service.md §1.2): compact JSON in the `metadata` query parameter.
 METADATA_MAX_BYTES = 4096
 METADATA_MAX_DEPTH = 8
+#: The largest integer magnitude metadata may hold: 2^53 - 1, JavaScript's `Number.MAX_SAFE_INTEGER` and
+#: I-JSON's bound (RFC 7493 §2.2). A larger integer reaches a JSON reader that uses doubles (the viewer,
+#: most clients) rounded, or as Infinity past ~1.8e308: send it as a string (a nanosecond stamp, an id).
+METADATA_MAX_INT = 2**53 - 1
+#: The accepted pose coordinates, |x| and |y| at most this (docs/design/service.md §1.2): 10^6 km covers
+#: every Earth frame in metres (UTM northings reach 10^7, ECEF 6.4 x 10^6) with room; a larger value is a
+#: unit or sensor fault, and at 10^16 the doubles are 2 m apart, so it could not say where anyway.
+POSE_MAX_ABS = 1e9
 #: Stored observations per page of `GET /v1/maps/{id}/observations`.
 MAX_PAGE = 500
 REPLAY_HEADER = "Idempotent-Replayed"
@@ -53,8 +61,8 @@ _BINARY_BODY = {"requestBody": {"required": True, "content": {
 
 class _Pose(BaseModel):
     model_config = ConfigDict(extra="allow", strict=True)  # strict: `true` is not a coordinate
-    x: float
-    y: float
+    x: float = Field(ge=-POSE_MAX_ABS, le=POSE_MAX_ABS)
+    y: float = Field(ge=-POSE_MAX_ABS, le=POSE_MAX_ABS)
     yaw: float | None = None
     frame_id: str | None = None
 
@@ -92,6 +100,15 @@ def _finite(literal: str) -> float:
     return value
 
 
+def _safe_int(literal: str) -> int:
+    value = int(literal)
+    if abs(value) > METADATA_MAX_INT:
+        shown = literal if len(literal) <= 24 else literal[:24] + "..."
+        raise ValueError(f"integer {shown} is beyond +-(2^53 - 1), which a JSON reader using doubles "
+                         "cannot hold exactly; send it as a string")
+    return value
+
+
 def _no_constant(name: str) -> float:
     raise ValueError(f"{name} is not JSON")
 
@@ -109,9 +126,10 @@ def parse_metadata(text: str) -> dict[str, Any]:
     if _depth(text) > METADATA_MAX_DEPTH:
         raise bad(f"nested deeper than {METADATA_MAX_DEPTH} levels", max_depth=METADATA_MAX_DEPTH)
     try:
-        # Only finite numbers (NaN, Infinity and 1e400 would be stored as null) and only text that is
-        # valid UTF-8 once stored (a lone surrogate escape such as "\ud800" is not).
-        value = json.loads(text, parse_float=_finite, parse_constant=_no_constant)
+        # Only numbers every JSON reader holds as sent (NaN, Infinity and 1e400 would be stored as null, a
+        # 400-digit integer read as Infinity by JavaScript) and only text that is valid UTF-8 once stored
+        # (a lone surrogate escape such as "\ud800" is not).
+        value = json.loads(text, parse_float=_finite, parse_int=_safe_int, parse_constant=_no_constant)
         json.dumps(value, ensure_ascii=False).encode()
     except (ValueError, UnicodeEncodeError) as e:
         raise bad(f"not JSON that can be stored ({e})") from e
@@ -201,7 +219,8 @@ async def post_observation(
             matches=[MatchModel.from_result(m) for m in result.matches], place=result.place,
             timings_ms={k: round(v, 3) for k, v in timings.items()},
             versions=Versions(api="v1", code=request.app.version, backbone=result.backbone,
-                              encoder=desc["encoder"], weights=desc["weights"],
+                              encoder=desc["encoder"], weights=desc["weights"], runtime=desc["runtime"],
+                              device=desc["device"],
                               projection=f"sha256:{result.projection_sha256}", map_seq=result.map_seq),
             metadata=result.metadata)
 
@@ -252,7 +271,7 @@ def _count(metrics: Any, map_id: str, learn: bool, timings: dict[str, float]) ->
     metrics.observations.labels(map=map_id, learned=str(learn).lower()).inc()
 
 
-@router.get("/{map_id}/observations", dependencies=[MapReadKeyDep], responses=problem_responses(404, 503))
+@router.get("/{map_id}/observations", responses=problem_responses(404, 503))
 async def list_observations(
     map_id: MapId, registry: RegistryDep,
     after_seq: Annotated[int, Query(ge=0, le=MAX_SEQ, description="the page starts after this seq")] = 0,
@@ -267,7 +286,7 @@ async def list_observations(
                                  next_after_seq=found[-1].seq if len(found) == limit else None)
 
 
-@router.get("/{map_id}/observations/{seq}", dependencies=[MapReadKeyDep],
+@router.get("/{map_id}/observations/{seq}",
             responses=problem_responses(404, 503))
 async def get_observation(map_id: MapId, seq: Seq, registry: RegistryDep) -> StoredObservationModel:
     rt = registry.get(map_id)
@@ -277,7 +296,7 @@ async def get_observation(map_id: MapId, seq: Seq, registry: RegistryDep) -> Sto
     return StoredObservationModel.from_result(found)
 
 
-@router.get("/{map_id}/observations/{seq}/thumbnail", dependencies=[MapReadKeyDep],
+@router.get("/{map_id}/observations/{seq}/thumbnail",
             response_class=Response, responses={**problem_responses(404, 503), 200: {
                 "content": {"image/jpeg": {"schema": {"type": "string", "format": "binary"}}}}})
 async def get_thumbnail(map_id: MapId, seq: Seq, registry: RegistryDep) -> Response:

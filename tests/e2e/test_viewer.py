@@ -223,3 +223,32 @@ def test_the_viewer_asks_for_the_key_when_reads_need_one(chromium, server_proc, 
     dom = browse(chromium, f"{base}/ui/", tmp_path / "profile")
     assert 'data-state="error"' in dom and "the service needs the API key for reads" in dom
     assert 'id="api-key"' in dom  # where the person types it
+
+
+def csp_violations(chromium: str, url: str, profile: Path) -> tuple[str, list[str]]:
+    """The page's DOM after its scripts ran, and the policy violations the browser logged."""
+    args = [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
+            "--disable-background-networking", "--disable-component-update", "--disable-sync",
+            f"--user-data-dir={profile}", "--virtual-time-budget=8000", "--enable-logging=stderr", "--v=0",
+            "--dump-dom", url]
+    done = subprocess.run(args, capture_output=True, text=True, timeout=120, check=True)
+    return done.stdout, [line for line in done.stderr.splitlines() if "Content Security Policy" in line]
+
+
+def test_the_pages_work_under_their_content_security_policy(chromium, server, http, make_frame, tmp_path):
+    """Issue 19 item 6 (docs/design/service.md §1.9): /ui/, /docs and /redoc served offline run with a
+    self-only policy: nothing the pages need is refused; only ReDoc's logo from its CDN is (offline, it
+    would not load anyway, and a page that fetches nothing outside is the point)."""
+    body = {"map_id": "yard", "thumbnails": True}
+    assert http(f"{server}/v1/maps", json.dumps(body).encode(), "application/json")[0] == 201
+    for i in range(10):
+        post(http, server, "yard", make_frame(i), learn="true", stream="robot1")
+    for i in range(10):  # localised answers with a place: confidence bars (a style) and thumbnails (blob:)
+        post(http, server, "yard", make_frame(i), learn="false", stream="robot2")
+    dom, refused = csp_violations(chromium, f"{server}/ui/?map=yard", tmp_path / "ui")
+    assert refused == [] and 'class="bar"' in dom and "blob:" in dom, refused
+    dom, refused = csp_violations(chromium, f"{server}/docs", tmp_path / "docs")
+    assert refused == [] and 'id="operations-tag-maps"' in dom, refused
+    dom, refused = csp_violations(chromium, f"{server}/redoc", tmp_path / "redoc")
+    assert 'id="tag/maps"' in dom and "Something went wrong" not in dom
+    assert all("cdn.redoc.ly" in line for line in refused), refused

@@ -137,3 +137,58 @@ def comparable(answer: dict[str, Any]) -> dict[str, Any]:
             "matches": [(m["rank"], m["seq"], m["overlap"], m["score"], m["label"])
                         for m in answer["matches"]],
             "projection": answer["versions"]["projection"]}
+
+
+#: Damaged bags as found in the field (issue 19 item 5): `write_damaged_bag` makes each.
+DAMAGE = ["truncated-db3-0.5", "truncated-db3-0.05", "truncated-mcap-0.5", "truncated-bag-0.5",
+          "truncated-bag-0.05", "metadata-syntax", "metadata-shape", "random-bag", "random-metadata",
+          "random-mcap", "random-db3"]
+
+
+def write_damaged_bag(kind: str, root: Path) -> Path:
+    """A bag under `root` damaged as `kind` (one of `DAMAGE`): cut to a fraction of its bytes, a broken
+    metadata.yaml, or random bytes in place of the bag, its metadata or its storage file."""
+    def cut(p: Path, keep: float) -> None:
+        p.write_bytes(p.read_bytes()[: int(p.stat().st_size * keep)])
+
+    if kind.startswith("truncated"):
+        _, fmt, keep = kind.split("-")
+        if fmt == "bag":
+            bag = write_ros1_bag(root / "run.bag", topics=["/cam/rgb"])
+            cut(bag, float(keep))
+            return bag
+        storage = "mcap" if fmt == "mcap" else "sqlite3"
+        bag = write_ros2_bag(root / "bag", topics=["/cam/rgb"], storage=storage)
+        cut(next(bag.glob(f"*.{fmt}")), float(keep))
+        return bag
+    if kind.startswith("metadata"):
+        bag = write_ros2_bag(root / "bag", topics=["/cam/rgb"])
+        text = "rosbag2_bagfile_information: [\n  : :" if kind == "metadata-syntax" else "just a string\n"
+        (bag / "metadata.yaml").write_text(text)
+        return bag
+    noise = np.random.default_rng(7).bytes(100_000)
+    if kind == "random-bag":
+        (root / "x.bag").write_bytes(noise)
+        return root / "x.bag"
+    if kind == "random-metadata":
+        (root / "bag").mkdir()
+        (root / "bag" / "metadata.yaml").write_bytes(noise[:5_000])
+        return root / "bag"
+    mcap = kind == "random-mcap"
+    bag = write_ros2_bag(root / "bag", topics=["/cam/rgb"], storage="mcap" if mcap else "sqlite3")
+    next(bag.glob("*.mcap" if mcap else "*.db3")).write_bytes(noise)
+    return bag
+
+
+def write_ros2_bag_with(path: Path, sizes: Sequence[tuple[int, int]], topic: str = "/cam/rgb") -> Path:
+    """A ROS 2 bag of rgb8 frames of the given (height, width): place i's picture, resized."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    with Writer(path, version=9) as w:
+        conn = w.add_connection(topic, "sensor_msgs/msg/Image", typestore=ts)
+        for i, (h, w_) in enumerate(sizes):
+            pixels = cv2.resize(place_bgr(i), (w_, h), interpolation=cv2.INTER_NEAREST)
+            w.write(conn, stamp(i), ts.serialize_cdr(image_msg(ts, pixels, "rgb8", stamp(i)), conn.msgtype))
+    return path

@@ -17,7 +17,16 @@ from service.app import create_app
 from service.ingest import poster
 from service.ingest.sources import open_source
 from service.settings import Settings
-from tests.ingest.data import ROUTE, TOPICS, comparable, stamp, write_folder, write_ros2_bag
+from tests.ingest.data import (
+    DAMAGE,
+    ROUTE,
+    TOPICS,
+    comparable,
+    stamp,
+    write_damaged_bag,
+    write_folder,
+    write_ros2_bag,
+)
 
 
 @pytest.fixture(autouse=True)
@@ -116,6 +125,16 @@ def test_bad_sources_and_options_exit_2_with_the_reason(tmp_path):
     r = run(cli.app, ["ingest", str(bag), "--map", "m", "--url", "http://x", "--data-dir", str(tmp_path)])
     assert r.exit_code == 2 and "--data-dir" in r.stderr
     assert not (tmp_path / "a").exists()  # nothing started
+
+
+@pytest.mark.parametrize("kind", DAMAGE)
+def test_a_damaged_bag_exits_2_with_one_line(tmp_path, kind):
+    """Found from outside: a truncated or random bag printed a 43-line traceback and exited 1."""
+    bag = write_damaged_bag(kind, tmp_path)
+    r = CliRunner().invoke(cli.app, ["ingest", str(bag), "--map", "m", "--data-dir", str(tmp_path / "a")])
+    assert r.exit_code == 2, (r.exit_code, r.output, r.exception)
+    assert r.stderr.startswith("error: ") and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "cannot read the bag" in r.stderr and "Traceback" not in r.output
 
 
 # ----------------------------------------------------------------- against a scripted service

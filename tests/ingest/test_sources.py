@@ -2,12 +2,25 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from models.frontend import images
 from service.ingest.sources import RAW_ENCODINGS, SourceError, image_to_raw, open_source
-from tests.ingest.data import ROUTE, TOPICS, png, stamp, write_folder, write_ros1_bag, write_ros2_bag
+from tests.ingest.data import (
+    DAMAGE,
+    ROUTE,
+    TOPICS,
+    png,
+    stamp,
+    write_damaged_bag,
+    write_folder,
+    write_ros1_bag,
+    write_ros2_bag,
+    write_ros2_bag_with,
+)
 
 
 def test_a_folder_is_read_in_name_order_skipping_what_is_not_an_image(tmp_path):
@@ -136,3 +149,54 @@ def test_raw_images_that_cannot_be_converted_say_why():
     with pytest.raises(SourceError, match=r"rgb8 image 4x2 needs 2 rows of >= 12 bytes \(step 12\); the "
                                           r"message holds 20 bytes"):
         image_to_raw(b"\0" * 20, height=2, width=4, step=12, encoding="rgb8")
+
+
+@pytest.mark.parametrize("kind", DAMAGE)
+def test_a_damaged_bag_is_a_source_error_naming_it(tmp_path, kind):
+    bag = write_damaged_bag(kind, tmp_path)
+    with pytest.raises(SourceError, match=r"cannot read the bag") as e:
+        open_source(bag)
+    assert str(bag) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_message_that_cannot_be_read_mid_bag_is_a_source_error(tmp_path, monkeypatch):
+    import struct
+
+    from rosbags.highlevel import AnyReader
+
+    src = open_source(write_ros2_bag(tmp_path / "bag", topics=["/cam/rgb"]))
+
+    def broken(self, raw, msgtype):
+        raise struct.error("unpack requires a buffer of 4 bytes")
+
+    monkeypatch.setattr(AnyReader, "deserialize", broken)
+    with pytest.raises(SourceError, match=r"cannot read the bag .*: error: unpack requires"):
+        list(src.frames())
+
+
+def test_a_file_over_the_limit_is_not_read(tmp_path, monkeypatch):
+    """Its size is checked first: a 1.5 GB file took the ingest to 4.8 GB (issue 19 item 3)."""
+    write_folder(tmp_path / "frames")
+    big = tmp_path / "frames" / "frame_0003_big.jpg"
+    with big.open("wb") as f:
+        f.truncate(1_500_000_000)  # sparse: no disk, and it must not be read either
+    read: list[str] = []
+    original = Path.read_bytes
+    monkeypatch.setattr(Path, "read_bytes", lambda self: read.append(self.name) or original(self))
+    frames = list(open_source(tmp_path / "frames", max_bytes=10 * 2**20).frames())
+    assert [f.name for f in frames if f.oversize is not None] == [big.name]
+    assert frames[4].oversize == 1_500_000_000 and frames[4].data == b""
+    assert big.name not in read and len(read) == len(ROUTE)
+    assert all(f.oversize is None for f in open_source(tmp_path / "frames").frames() if f.name != big.name)
+
+
+def test_bag_messages_over_the_limit_are_not_posted(tmp_path):
+    """A 2600x4000 rgb8 message (31 MB) is not even deserialised; a 2000x2000 one (12 MB) is converted and
+    then found too large; the frames around them come as before."""
+    sizes = [(240, 320), (4000, 2600), (240, 320), (2000, 2000), (240, 320)]
+    bag = write_ros2_bag_with(tmp_path / "bag", sizes)
+    frames = list(open_source(bag, max_bytes=10 * 2**20).frames())
+    assert [f.index for f in frames] == [0, 1, 2, 3, 4]
+    assert frames[1].oversize is not None and frames[1].oversize > 4000 * 2600 * 3 and frames[1].data == b""
+    assert frames[3].oversize == 2000 * 2000 * 3 and frames[3].data == b""
+    assert all(f.oversize is None and len(f.data) == 240 * 320 * 3 for f in (frames[0], frames[2], frames[4]))

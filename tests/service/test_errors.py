@@ -194,6 +194,8 @@ def test_registry_covers_the_spec_table():
     spec |= {"decompression-bomb", "snapshot-invalid"}  # issue 11: beyond the spec table
     spec |= {"observation-not-found", "raw-frame-size-mismatch", "invalid-metadata",
              "idempotency-key-reused"}  # issue 15
+    spec |= {"request-timeout"}  # issue 19: the body-read deadline
+    spec |= {"memory-budget", "stream-limit", "snapshot-in-use"}  # issue 19 items 1, 8 and 10
     assert set(TITLES) == spec
 
 

@@ -60,6 +60,7 @@ def test_readyz_ready_with_a_random_weights_warning(client, tmp_path):
     assert enc["status"] == "warn" and enc["weights"] == "random" and enc["seed"] == 0
     assert enc["encoder"] == "alexnet-conv3/random-seed0:crop"
     assert enc["backbone"] == "alexnet" and enc["backbones"] == {"alexnet": enc["encoder"]}
+    assert (enc["runtime"], enc["device"]) == ("onnxruntime", "cpu")  # the defaults, without CUDA
     assert "random weights" in enc["warning"]
     assert body["warnings"] == [enc["warning"]]
     # a fresh install serves the `default` map with no other step

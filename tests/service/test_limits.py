@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 from pydantic import BaseModel
 
 from service.errors import PROBLEM_MEDIA_TYPE
-from service.limits import JSON_MAX_BYTES, UploadLimitMiddleware
+from service.limits import DRAIN_MAX_BYTES, JSON_MAX_BYTES, UploadLimitMiddleware
 from service.settings import Settings
 from tests.service.helpers import make_app
 
@@ -168,22 +168,26 @@ def _reader_app(got: list[int]):
     return app
 
 
-def test_declared_length_is_refused_without_reading_the_body():
+def test_declared_length_is_refused_before_the_app_and_the_body_dropped_unheld():
+    """The body is read and dropped before the 413 (a client still sending gets the answer, not a reset:
+    issue 19 item 3); past DRAIN_MAX_BYTES it is not read at all."""
     async def app(scope, receive, send):  # pragma: no cover - must not run
         raise AssertionError("the app ran")
 
-    sent, reads = _run(UploadLimitMiddleware(app), _scope([(b"content-length", b"1000000")]),
-                       [{"type": "http.request", "body": b"x", "more_body": True}])
-    assert reads == 0
-    assert sent[0]["status"] == 413
+    body = [{"type": "http.request", "body": b"x" * 250_000, "more_body": i < 3} for i in range(4)]
+    sent, reads = _run(UploadLimitMiddleware(app), _scope([(b"content-length", b"1000000")]), body)
+    assert reads == 4 and sent[0]["status"] == 413
     assert json.loads(sent[1]["body"])["received_bytes"] == 1_000_000
+    huge = str(DRAIN_MAX_BYTES + 1).encode()
+    sent, reads = _run(UploadLimitMiddleware(app), _scope([(b"content-length", huge)]), body)
+    assert reads == 0 and sent[0]["status"] == 413
 
 
 def test_chunks_are_counted_and_cut_at_the_limit():
     got: list[int] = []
-    chunks = [{"type": "http.request", "body": b"a" * 400, "more_body": True} for _ in range(10)]
+    chunks = [{"type": "http.request", "body": b"a" * 400, "more_body": i < 9} for i in range(10)]
     sent, reads = _run(UploadLimitMiddleware(_reader_app(got)), _scope([]), chunks)
-    assert reads == 3  # the third chunk crosses 1000 bytes: nothing more is read
+    assert reads == 10  # the third chunk crosses 1000 bytes; the rest is dropped before the 413
     assert got == [400, 800]  # the app never saw the chunk that crossed the limit
     assert sent[0]["status"] == 413 and len(sent) == 2
     body = json.loads(sent[1]["body"])
@@ -205,3 +209,11 @@ def test_invalid_content_length_is_400():
     sent, reads = _run(UploadLimitMiddleware(app), _scope([(b"content-length", b"12abc")]), [])
     assert reads == 0 and sent[0]["status"] == 400
     assert json.loads(sent[1]["body"])["type"] == "urn:cortexloc:problem:invalid-parameter"
+
+
+def test_a_body_whose_last_chunk_crosses_the_limit_is_answered_at_once():
+    """Nothing is left to drop: a further receive() would wait for the client to go away (the deadline)."""
+    got: list[int] = []
+    chunks = [{"type": "http.request", "body": b"a" * 600, "more_body": i < 1} for i in range(2)]
+    sent, reads = _run(UploadLimitMiddleware(_reader_app(got)), _scope([]), chunks)
+    assert reads == 2 and sent[0]["status"] == 413

@@ -31,6 +31,7 @@ def test_fresh_install_serves_the_default_map(client):
     body = r.json()
     assert body["learned"] is True and body["seq"] == 1 and body["observation_id"]
     assert body["matches"] == [] and body["versions"]["weights"] == "random"
+    assert (body["versions"]["runtime"], body["versions"]["device"]) == ("onnxruntime", "cpu")
     assert set(body["timings_ms"]) >= {"decode", "encode", "tm", "search", "store", "total"}
     assert body["sequence"]["step"] == 0
     text = client.get("/metrics").text

@@ -246,6 +246,9 @@ def test_an_old_map_file_still_opens_and_learns(tmp_path):
     '{"a": ' + "[" * 2000 + "]" * 2000 + "}",  # deeper than any parser should recurse
     '{"stamp": NaN}', '{"pose": {"x": Infinity, "y": 1}}', '{"pose": {"x": 1e400, "y": 2}}',
     '{"pose": {"x": true, "y": 1}}', '{"stamp": true}',
+    # beyond 2^53 - 1: JavaScript rounds them, or reads Infinity
+    '{"n": ' + "9" * 400 + '}', '{"a": [-9007199254740992]}',
+    '{"pose": {"x": 1e16, "y": 0}}', '{"pose": {"x": 0, "y": -1000000001}}',  # beyond the pose range
 ])
 def test_metadata_that_cannot_be_stored_as_sent_is_refused_and_changes_nothing(client, metadata):
     """Found from outside: a lone surrogate stored a row no read could serve (500 on every read of it),
@@ -255,6 +258,14 @@ def test_metadata_that_cannot_be_stored_as_sent_is_refused_and_changes_nothing(c
     assert r.status_code == 422 and r.json()["type"].endswith("invalid-metadata"), r.text
     assert state_of(client) == before
     assert client.get("/v1/maps/default/recent").status_code == 200
+
+
+def test_metadata_at_the_edges_of_its_ranges_is_stored_exactly(client):
+    """Integers up to 2^53 - 1 (what a double holds exactly) and poses up to 1e9 are kept as sent."""
+    meta = {"id": 2**53 - 1, "low": -(2**53 - 1), "pose": {"x": 1e9, "y": -1e9, "yaw": 3.0}}
+    r = post(client, frame(1), metadata=json.dumps(meta))
+    assert r.status_code == 200, r.text
+    assert client.get(f"/v1/maps/default/observations/{r.json()['seq']}").json()["metadata"] == meta
 
 
 def test_seqs_beyond_sqlites_integers_are_a_400(client):

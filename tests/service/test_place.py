@@ -3,6 +3,8 @@ docs/design/science.md §11), the revisit threshold (PATCH) and the backbone fro
 
 from __future__ import annotations
 
+import math
+
 from models.localisation import default_conf
 from service.maps.params import DEFAULT_REVISIT_THRESHOLD
 from tests.service.helpers import frame, make_client, post
@@ -74,6 +76,11 @@ def test_patch_revisit_threshold_is_durable_and_checked(tmp_path):
             assert c.patch("/v1/maps/default", json={"revisit_threshold": not_a_number}).status_code == 400
         assert c.get("/v1/maps/default").json()["revisit_threshold"] == 0.97
         assert c.patch("/v1/maps/nope", json={"revisit_threshold": 0.2}).status_code == 404
+        zero = c.patch("/v1/maps/default", json={"revisit_threshold": -0.0})  # in range, stored as 0.0
+        assert zero.status_code == 200 and '"revisit_threshold":0.0' in zero.text
+        stored = c.app.state.registry.get("default").record.params["revisit_threshold"]
+        assert math.copysign(1.0, stored) == 1.0
+        c.patch("/v1/maps/default", json={"revisit_threshold": 0.97})
         learn_route(c)
         places = drive(c, ROUTE)
     assert all(p["revisit"] == (p["confidence"] >= 0.97) for p in places if p is not None)

@@ -27,7 +27,7 @@ def test_defaults_match_the_spec_table():
     assert (s.log_level, s.log_format) == ("INFO", "json")
     assert s.weights_path is None
     assert (s.allow_random_weights, s.random_weights_seed) == (True, 0)
-    assert s.device == "cpu"
+    assert (s.device, s.runtime) == ("auto", "onnxruntime")
     assert (s.torch_threads, s.encoder_workers, s.encoder_queue) == (1, 1, 32)
     assert s.max_upload_bytes == 10_485_760
     assert s.max_pixels == 25_000_000
@@ -68,6 +68,7 @@ def test_empty_value_means_unset():
     ("CORTEXLOC_LOG_LEVEL", "LOUD"),
     ("CORTEXLOC_LOG_FORMAT", "xml"),
     ("CORTEXLOC_DEVICE", "tpu"),
+    ("CORTEXLOC_RUNTIME", "tensorrt"),
     ("CORTEXLOC_MAX_UPLOAD_BYTES", "-1"),
     ("CORTEXLOC_TORCH_THREADS", "0"),
     ("CORTEXLOC_SNAPSHOT_KEEP", "three"),
@@ -204,3 +205,27 @@ def test_a_relative_data_directory_is_made_absolute_once_and_snapshots_work(tmp_
             assert c.post(f"/v1/maps/default/snapshots/{sid}/restore").status_code == 200
         with make_client(Path(rel)) as c:  # recovery finds the snapshots where they are
             assert not c.app.state.registry.get("default").recovery["skipped_snapshots"]
+
+
+@pytest.mark.parametrize(("value", "device"), [("CUDA", "cuda"), (" cpu ", "cpu"), ("Auto", "auto")])
+def test_device_is_read_case_insensitively(value, device):
+    assert Settings.from_env({"CORTEXLOC_DEVICE": value}).device == device
+
+
+def test_device_cuda_without_cuda_stops_startup_naming_the_variable(tmp_path):
+    """This machine (and CI) has no CUDA provider: `cuda` must not quietly serve from the CPU."""
+    app = create_app(Settings(data_dir=tmp_path, backbone="alexnet", device="cuda"),
+                     encoder_factory=tiny_encoder)
+    with pytest.raises(ConfigError) as info, TestClient(app):
+        pass
+    assert info.value.variables == ["CORTEXLOC_DEVICE"] and "gpu` extra" in str(info.value)
+
+
+@pytest.mark.parametrize("runtime", ["onnxruntime", "torch"])
+def test_device_auto_falls_back_to_the_cpu_and_says_so(tmp_path, caplog, runtime):
+    app = create_app(Settings(data_dir=tmp_path, backbone="alexnet", device="auto", runtime=runtime),
+                     encoder_factory=tiny_encoder)
+    with caplog.at_level(logging.INFO, "cortexloc"), TestClient(app) as c:
+        enc = c.get("/readyz").json()["checks"]["encoder"]
+    assert (enc["runtime"], enc["device"]) == (runtime, "cpu")
+    assert any("device auto" in r.getMessage() and "CPU" in r.getMessage() for r in caplog.records)

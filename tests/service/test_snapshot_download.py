@@ -126,7 +126,8 @@ def test_api_key_reads_guards_downloads(tmp_path):
         assert r.json()["type"].endswith("unauthorized")
         r = c.get(f"/v1/maps/default/snapshots/{sid}/download", headers={"Authorization": "Bearer s3cret"})
         assert r.status_code == 200 and r.content[:512].startswith(b"manifest.json")
-        assert c.get("/v1/maps/default/snapshots").status_code == 200  # listing is not a whole map
+        assert c.get("/v1/maps/default/snapshots").status_code == 401  # the listing too (issue 19 item 7)
+        assert c.get("/v1/maps/default/snapshots", headers=key).status_code == 200
     with pytest.raises(ConfigError, match="CORTEXLOC_API_KEY_READS"):
         Settings.from_env({"CORTEXLOC_API_KEY_READS": "true"})
 

@@ -17,12 +17,14 @@ from cortexloc_client.errors import (
     PayloadTooLargeError,
     ServerError,
     ServiceUnavailableError,
+    TooManyRequestsError,
     UnauthorizedError,
     UnprocessableError,
     UnsupportedMediaTypeError,
 )
 from cortexloc_client.frames import ColourOrder, frame_body
 from cortexloc_client.models import (
+    Budget,
     Map,
     Match,
     Memory,
@@ -40,6 +42,7 @@ from cortexloc_client.models import (
 __all__ = [
     "AsyncClient",
     "BadRequestError",
+    "Budget",
     "Client",
     "ColourOrder",
     "ConflictError",
@@ -63,6 +66,7 @@ __all__ = [
     "Snapshot",
     "StoredObservation",
     "StoredObservationList",
+    "TooManyRequestsError",
     "UnauthorizedError",
     "UnprocessableError",
     "UnsupportedMediaTypeError",

@@ -183,6 +183,10 @@ def memory(map_id: str) -> Call[models.Memory]:
     return Call("GET", f"{_map(map_id)}/memory", _model(models.Memory), idempotent=True)
 
 
+def memory_budget() -> Call[models.Budget]:
+    return Call("GET", "/v1/memory", _model(models.Budget), idempotent=True)
+
+
 def reset_stream(map_id: str, stream: str) -> Call[models.StreamReset]:
     return Call("POST", f"{_map(map_id)}/streams/{_seg(stream)}/reset", _model(models.StreamReset),
                 idempotent=True)
@@ -247,6 +251,10 @@ def list_snapshots(map_id: str) -> Call[list[models.Snapshot]]:
 
 def restore_snapshot(map_id: str, snapshot_id: str) -> Call[models.RestoredMap]:
     return Call("POST", f"{_map(map_id)}/snapshots/{_seg(snapshot_id)}/restore", _model(models.RestoredMap))
+
+
+def delete_snapshot(map_id: str, snapshot_id: str) -> Call[None]:
+    return Call("DELETE", f"{_map(map_id)}/snapshots/{_seg(snapshot_id)}", _nothing, idempotent=True)
 
 
 def download_snapshot(map_id: str, snapshot_id: str) -> Call[None]:

@@ -115,6 +115,10 @@ class Client:
     def memory(self, map_id: str) -> models.Memory:
         return self._send(_core.memory(map_id))
 
+    def memory_budget(self) -> models.Budget:
+        """The process-wide memory budget: total, used, free, each map's share."""
+        return self._send(_core.memory_budget())
+
     def reset_stream(self, map_id: str, stream: str) -> models.StreamReset:
         """Break the stream's sequence: its next frame starts a new one."""
         return self._send(_core.reset_stream(map_id, stream))
@@ -183,6 +187,10 @@ class Client:
     def restore_snapshot(self, map_id: str, snapshot_id: str) -> models.RestoredMap:
         """Roll the map back (the present is kept in a `pre-restore` snapshot first)."""
         return self._send(_core.restore_snapshot(map_id, snapshot_id))
+
+    def delete_snapshot(self, map_id: str, snapshot_id: str) -> None:
+        """Delete one snapshot (not the one the map recovers from: 409 snapshot-in-use)."""
+        self._send(_core.delete_snapshot(map_id, snapshot_id))
 
     def download_snapshot(self, map_id: str, snapshot_id: str, dest: str | os.PathLike[str]) -> Path:
         """Stream the snapshot's tar into `dest` (through `dest.part`, moved into place when complete).

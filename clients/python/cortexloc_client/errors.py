@@ -27,6 +27,7 @@ __all__ = [
     "PayloadTooLargeError",
     "ServerError",
     "ServiceUnavailableError",
+    "TooManyRequestsError",
     "UnauthorizedError",
     "UnprocessableError",
     "UnsupportedMediaTypeError",
@@ -80,7 +81,8 @@ class NotFoundError(CortexlocError):
 
 
 class ConflictError(CortexlocError):
-    """409 `map-exists`, `map-limit`, `map-full`, `snapshot-invalid`."""
+    """409 `map-exists`, `map-limit`, `map-full`, `snapshot-invalid`, `snapshot-in-use`, `memory-budget`
+    (`extra` holds `used_bytes`, `asked_bytes`, `total_bytes`, `free_bytes`)."""
 
 
 class PayloadTooLargeError(CortexlocError):
@@ -89,6 +91,11 @@ class PayloadTooLargeError(CortexlocError):
 
 class UnsupportedMediaTypeError(CortexlocError):
     """415 `unsupported-media-type`: `extra["allowed"]`, `extra["detected"]`."""
+
+
+class TooManyRequestsError(CortexlocError):
+    """429 `stream-limit`: every stream slot of the map posted recently; a new stream may come in after
+    `retry_after` seconds (not retried by the client: the wait may be minutes)."""
 
 
 class UnprocessableError(CortexlocError):
@@ -116,6 +123,7 @@ STATUS_ERRORS: dict[int, type[CortexlocError]] = {
     413: PayloadTooLargeError,
     415: UnsupportedMediaTypeError,
     422: UnprocessableError,
+    429: TooManyRequestsError,
     503: ServiceUnavailableError,
     507: InsufficientStorageError,
 }

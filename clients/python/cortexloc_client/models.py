@@ -13,6 +13,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 __all__ = [
+    "Budget",
     "CheckResult",
     "Health",
     "IndexMemory",
@@ -21,6 +22,7 @@ __all__ = [
     "Map",
     "MapList",
     "MapParams",
+    "MapReservation",
     "Match",
     "Memory",
     "Metadata",
@@ -124,6 +126,9 @@ class Map(_Reply):
     revisit_threshold: float | None = None
     #: A small JPEG is kept with each learned observation (chosen at creation, frozen).
     thumbnails: bool = False
+    #: The map's snapshots (every kind) and their bytes on disk.
+    snapshot_count: int = 0
+    snapshots_bytes: int = 0
 
 
 class MapList(_Reply):
@@ -185,6 +190,29 @@ class Memory(_Reply):
     streams: StreamsMemory
     projection_bytes: int
     storage: StorageMemory
+    process_rss_bytes: int
+
+
+class MapReservation(_Reply):
+    """One map's share of the process-wide memory budget (`open` false: left closed at start)."""
+
+    map_id: str
+    open: bool
+    reason: str | None = None
+    bytes: int
+    #: tm, projection (0 where another map holds the same one), localiser, caches, index.
+    parts: dict[str, int]
+
+
+class Budget(_Reply):
+    """`GET /v1/memory`: the process-wide memory budget over every map and the encoders."""
+
+    total_bytes: int
+    source: str
+    used_bytes: int
+    free_bytes: int
+    encoders_bytes: int
+    maps: list[MapReservation]
     process_rss_bytes: int
 
 
@@ -253,6 +281,8 @@ class Versions(_Reply):
     backbone: str | None = None
     encoder: str
     weights: str
+    runtime: str | None = None  # the service's backbone runtime and device (servers before issue 24: None)
+    device: str | None = None
     projection: str
     map_seq: int
 

@@ -172,6 +172,7 @@ CONTRACT: list[tuple[type[BaseModel], str, str, int, str]] = [
     (models.RestoredMap, "/v1/maps/{map_id}/snapshots/{snapshot_id}/restore", "post", 200, JSON),
     (models.Map, "/v1/maps/{map_id}", "patch", 200, JSON),
     (models.RecentAnswers, "/v1/maps/{map_id}/recent", "get", 200, JSON),
+    (models.Budget, "/v1/memory", "get", 200, JSON),
 ]
 
 

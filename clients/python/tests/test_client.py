@@ -119,6 +119,14 @@ def test_snapshots_round_trip(client: Client, tiny_map: str, make_frame, tmp_pat
     with pytest.raises(NotFoundError):
         client.download_snapshot(tiny_map, "no-such-snapshot", tmp_path / "none.tar")
     assert not (tmp_path / "none.tar").exists() and not (tmp_path / "none.tar.part").exists()
+    # The pre-restore snapshot is on the branch the restore left: it may go; the restored one may not.
+    pre = next(s.snapshot_id for s in client.list_snapshots(tiny_map) if s.kind == "pre-restore")
+    client.delete_snapshot(tiny_map, pre)
+    assert [s.snapshot_id for s in client.list_snapshots(tiny_map)] == [snap.snapshot_id]
+    assert client.get_map(tiny_map).snapshot_count == 1
+    budget = client.memory_budget()
+    assert budget.used_bytes + budget.free_bytes == budget.total_bytes
+    assert tiny_map in {m.map_id for m in budget.maps}
 
 
 # ------------------------------------------------------------------ where and what, raw frames, retries

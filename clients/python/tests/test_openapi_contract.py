@@ -11,6 +11,7 @@ from cortexloc_client import models
 
 #: Served routes the client has no reply model for: Prometheus text, the docs, a tar or JPEG stream.
 NOT_MODELLED = {("/metrics", "get"), ("/v1/maps/{map_id}", "delete"),
+                ("/v1/maps/{map_id}/snapshots/{snapshot_id}", "delete"),
                 ("/v1/maps/{map_id}/snapshots/{snapshot_id}/download", "get"),
                 ("/v1/maps/{map_id}/observations/{seq}/thumbnail", "get"),
                 ("/v1/maps/{map_id}/loop-closures/export", "get")}  # files, not JSON

@@ -166,5 +166,16 @@ def test_bench_encoder_reports_the_contract(tmp_path, monkeypatch):
                                  "--json", str(out)])
     assert r.exit_code == 0, r.output
     payload = json.loads(out.read_text())
-    for key in ("batch1_ms_median", "batch16_images_per_s", "bare_conv3_batch16_images_per_s"):
+    for key in ("batch1_ms_median", "batch16_images_per_s", "bare_batch16_images_per_s"):
         assert payload[key] > 0
+    assert (payload["runtime"], payload["device"]) == ("onnxruntime", "cpu")
+
+
+def test_the_thread_budget_covers_the_blas_of_the_projection():
+    """`torch_threads` bounds NumPy's BLAS too (the sLSBH projection), not only the backbone."""
+    import threadpoolctl
+
+    with threadpoolctl.threadpool_limits(2, user_api="blas"):
+        Encoder({"slsbh": {"k": 16}, "torch_threads": 1})
+        blas = [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"]
+        assert blas and all(n == 1 for n in blas)

@@ -33,7 +33,10 @@ export function el(tag, attrs = {}, ...children) {
   const node = document.createElement(tag);
   for (const [k, v] of Object.entries(attrs)) {
     if (v === null || v === undefined || v === false) continue;
-    if (k === "class") node.className = v; else node.setAttribute(k, v === true ? "" : String(v));
+    // A style through the CSSOM: the page's Content-Security-Policy refuses style attributes.
+    if (k === "class") node.className = v;
+    else if (k === "style") node.style.cssText = String(v);
+    else node.setAttribute(k, v === true ? "" : String(v));
   }
   for (const c of children) if (c !== null && c !== undefined) node.append(c);
   return node;

@@ -15,10 +15,11 @@ export function drawTrajectory(root, stored, queries, poseOf) {
   root.replaceChildren();
   const pts = [...stored.map((s) => s.pose), ...queries.map((q) => q.pose)];
   const xs = pts.map((p) => p.x), ys = pts.map((p) => p.y);
-  const pad = 0.05 * Math.max(Math.max(...xs) - Math.min(...xs), Math.max(...ys) - Math.min(...ys), 1);
+  const [x0, x1, y0, y1] = [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)];
+  const pad = 0.1 * Math.max(x1 / 2 - x0 / 2, y1 / 2 - y0 / 2, 1);  // halves: no overflow at ±1.8e308
   const unit = (pts.find((p) => p.frame_id) || {}).frame_id;
-  const { X, Y } = frame(root, [Math.min(...xs) - pad, Math.max(...xs) + pad],
-                         [Math.min(...ys) - pad, Math.max(...ys) + pad],
+  const { X, Y } = frame(root, [Math.max(x0 - pad, -Number.MAX_VALUE), Math.min(x1 + pad, Number.MAX_VALUE)],
+                         [Math.max(y0 - pad, -Number.MAX_VALUE), Math.min(y1 + pad, Number.MAX_VALUE)],
                          { xLabel: `x${unit ? ` (${unit})` : ""}`, yLabel: "y", equal: true });
   const streams = [...new Set(stored.map((s) => s.stream))].sort();
   const every = Math.max(1, Math.ceil(stored.length / SEQ_LABELS));

@@ -1,0 +1,79 @@
+"""`CORTEXLOC_API_KEY_READS` (issue 19 item 7; docs/design/service.md §8): every `/v1` read and `/metrics`
+need the key, the probes (/healthz, /readyz), the viewer's page and the API description stay open.
+Found from outside: map lists, stream names (robot names), memory, the snapshot list and the map ids
+in /metrics were open with the setting on."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from service.errors import iter_routes
+from tests.service.helpers import frame, make_client
+
+KEY = {"X-API-Key": "k3y"}
+#: Reads that stay open with the setting: the probes, the page of the viewer, the API's description.
+OPEN = {"/healthz", "/readyz", "/docs", "/redoc", "/openapi.json", "/docs/oauth2-redirect"}
+
+
+def _filled(path: str, values: dict[str, str]) -> str:
+    return re.sub(r"\{(\w+)(?::path)?\}", lambda m: values[m.group(1)], path)
+
+
+@pytest.fixture(scope="module")
+def guarded(tmp_path_factory):
+    with make_client(tmp_path_factory.mktemp("reads") / "var", api_key="k3y", api_key_reads=True) as c:
+        assert c.post("/v1/maps", json={"map_id": "yard", "thumbnails": True}, headers=KEY).status_code == 201
+        r = c.post("/v1/maps/yard/observations", content=frame(0), params={"stream": "robot7/cam0"},
+                   headers={"Content-Type": "image/png", **KEY})
+        assert r.status_code == 200, r.text
+        snap = c.post("/v1/maps/yard/snapshots", headers=KEY)
+        assert snap.status_code == 201, snap.text
+        values = {"map_id": "yard", "seq": str(r.json()["seq"]), "snapshot_id": snap.json()["snapshot_id"],
+                  "stream": "robot7/cam0"}
+        yield c, values
+
+
+def _get_paths(c) -> list[str]:
+    return sorted({route.path for route in iter_routes(c.app.router.routes)
+                   if "GET" in (getattr(route, "methods", None) or ())})
+
+
+def test_every_v1_read_and_metrics_need_the_key(guarded):
+    c, values = guarded
+    paths = _get_paths(c)
+    assert {"/v1/maps", "/v1/maps/{map_id}/memory", "/v1/maps/{map_id}/snapshots", "/metrics"} <= set(paths)
+    for path in paths:
+        url = _filled(path, values)
+        without = c.get(url)
+        if path in OPEN:
+            assert without.status_code == 200, (path, without.text)
+            assert "robot7" not in without.text, path
+            continue
+        assert without.status_code == 401, (path, without.status_code)
+        assert without.headers["content-type"].startswith("application/problem+json")
+        assert "robot7" not in without.text and "yard" not in without.text.replace("/v1/maps/yard", "")
+        wrong = c.get(url, headers={"X-API-Key": "nope"})
+        assert wrong.status_code == 401, path
+        assert c.get(url, headers=KEY).status_code == 200, path
+        assert c.get(url, headers={"Authorization": "Bearer k3y"}).status_code == 200, path
+
+
+def test_an_unknown_map_is_a_401_without_the_key_not_a_404(guarded):
+    c, _ = guarded
+    assert c.get("/v1/maps/nosuchmap").status_code == 401
+    assert c.get("/v1/maps/nosuchmap", headers=KEY).status_code == 404
+
+
+def test_the_viewer_page_stays_open(guarded):
+    c, _ = guarded
+    assert c.get("/ui/").status_code == 200
+
+
+def test_without_the_setting_reads_stay_open_and_writes_need_the_key(tmp_path):
+    with make_client(tmp_path / "var", api_key="k3y") as c:
+        for url in ("/v1/maps", "/v1/maps/default", "/v1/maps/default/memory", "/v1/maps/default/snapshots",
+                    "/metrics"):
+            assert c.get(url).status_code == 200, url
+        assert c.post("/v1/maps", json={"map_id": "x"}).status_code == 401

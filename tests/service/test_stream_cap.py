@@ -1,0 +1,51 @@
+"""The per-map stream cap (docs/design/service.md §1.3, issue 19 item 8): a stream that posted within
+CORTEXLOC_STREAM_KEEP_SECONDS is never evicted for a new one; the new one is refused (429 stream-limit,
+Retry-After) and every robot keeps its context; idle streams are evicted, and counted in /metrics."""
+
+from __future__ import annotations
+
+import re
+
+from tests.service.helpers import frame, make_client, post, state_of
+
+
+def evictions(c, map_id: str = "default") -> float:
+    m = re.search(rf'cortexloc_map_stream_evictions\{{map="{map_id}"\}} (\S+)', c.get("/metrics").text)
+    assert m, "no stream eviction metric"
+    return float(m.group(1))
+
+
+def test_a_recent_stream_is_not_evicted_for_a_new_one(tmp_path):
+    with make_client(tmp_path / "data", max_streams=2, stream_keep_seconds=600) as c:
+        now = [1000.0]
+        c.app.state.registry.get("default").clock = lambda: now[0]  # the window without waiting for it
+        for i, robot in enumerate(("robot1", "robot2")):
+            now[0] += 10
+            assert post(c, frame(i), stream=robot).status_code == 200
+        before = state_of(c)
+        for learn in ("true", "false"):
+            r = post(c, frame(5), stream="intruder", learn=learn)
+            assert r.status_code == 429, r.text
+            p = r.json()
+            assert p["type"] == "urn:cortexloc:problem:stream-limit"
+            assert (p["max_streams"], p["keep_seconds"]) == (2, 600)
+            assert int(r.headers["Retry-After"]) == p["retry_after"] == 590  # robot1 posted 10 s ago
+        assert state_of(c) == before
+        assert c.get("/v1/maps/default").json()["streams"] == ["robot1", "robot2"]
+        assert evictions(c) == 0
+        # Both robots go on in their sequences.
+        now[0] += 300
+        assert post(c, frame(2), stream="robot1").json()["sequence"]["step"] == 1
+        now[0] += 301  # robot2 idle past the window now; robot1 posted since
+        assert post(c, frame(3), stream="intruder").status_code == 200
+        assert c.get("/v1/maps/default").json()["streams"] == ["robot1", "intruder"]
+        assert evictions(c) == 1
+        assert post(c, frame(4), stream="robot1").json()["sequence"]["step"] == 2  # context kept
+
+
+def test_without_a_window_the_least_recently_used_stream_goes_at_once(tmp_path):
+    with make_client(tmp_path / "data", max_streams=2, stream_keep_seconds=0) as c:
+        for i, robot in enumerate(("a", "b", "c")):
+            assert post(c, frame(i), stream=robot).status_code == 200
+        assert c.get("/v1/maps/default").json()["streams"] == ["b", "c"]
+        assert evictions(c) == 1

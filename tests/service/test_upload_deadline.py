@@ -1,0 +1,200 @@
+"""Stalled and oversized uploads against a real uvicorn server on loopback (issue 19 items 2 and 3;
+docs/design/service.md §3), with small settings so that each test runs in seconds: a half-sent body
+is answered 408 and its connection closed at the deadline; uploads past the in-flight byte budget are
+answered 503 before their body is read; a body over the limit gets its 413 although the client is still
+sending it (a reset connection instead stopped `cortexloc ingest`)."""
+
+from __future__ import annotations
+
+import json
+import re
+import socket
+import threading
+import time
+from collections.abc import AsyncIterator, Iterator
+
+import anyio
+import httpx
+import pytest
+import uvicorn
+
+from service.limits import HEAD_MAX_BYTES
+from service.server import ProblemH11Protocol
+from service.settings import ConfigError, Settings
+from tests.service.helpers import frame, make_app
+
+LIMIT = 100_000
+DEADLINE_S = 2.0
+BUDGET = 250_000  # two uploads of the largest size
+
+
+@pytest.fixture
+def live(tmp_path) -> Iterator[str]:
+    """`cortexloc serve`'s uvicorn (its protocol and head limit) in a thread; yields the base URL."""
+    app = make_app(tmp_path / "var", max_upload_bytes=LIMIT, body_timeout_s=DEADLINE_S,
+                   max_inflight_upload_bytes=BUDGET)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, http=ProblemH11Protocol,
+                                           h11_max_incomplete_event_size=HEAD_MAX_BYTES, lifespan="on",
+                                           log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 60
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "the server did not start"
+        time.sleep(0.05)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(timeout=30)
+
+
+def half_sent(base: str, declared: int, sent: int) -> socket.socket:
+    """A connection that sent the head of an observation post declaring `declared` bytes, then `sent`."""
+    port = int(base.rsplit(":", 1)[1])
+    sock = socket.create_connection(("127.0.0.1", port))
+    sock.sendall(b"POST /v1/maps/default/observations HTTP/1.1\r\nHost: t\r\nContent-Type: image/png\r\n"
+                 b"Content-Length: %d\r\n\r\n" % declared + b"\x89PNG" + b"\0" * (sent - 4))
+    return sock
+
+
+def answer(sock: socket.socket, timeout: float) -> tuple[bytes, bool]:
+    """What the server sent until it closed the connection or `timeout` passed: (bytes, closed)."""
+    sock.settimeout(timeout)
+    got = b""
+    try:
+        while chunk := sock.recv(65536):
+            got += chunk
+    except TimeoutError:
+        return got, False
+    except ConnectionResetError:
+        return got, True
+    return got, True
+
+
+def status_and_problem(raw: bytes) -> tuple[int, dict, str]:
+    head, _, body = raw.partition(b"\r\n\r\n")
+    status = int(head.split(b" ", 2)[1])
+    return status, json.loads(body) if body else {}, head.decode("latin-1").lower()
+
+
+def metric(base: str, line: str) -> float:
+    text = httpx.get(f"{base}/metrics").text
+    found = re.search("^" + re.escape(line) + r" (\S+)$", text, re.M)
+    return float(found.group(1)) if found else 0.0
+
+
+def test_half_sent_uploads_are_answered_408_and_closed_at_the_deadline(live):
+    """Slow-loris style: the head and 1 KB of a declared 10 KB body, then nothing, on 20 connections
+    (200 KB reserved: within the budget, so only the deadline ends them)."""
+    t0 = time.monotonic()
+    socks = [half_sent(live, 10_000, 1_000) for _ in range(20)]
+    for sock in socks:
+        raw, closed = answer(sock, DEADLINE_S + 10)
+        elapsed = time.monotonic() - t0
+        assert closed and raw, f"still open after {elapsed:.1f} s"
+        status, problem, head = status_and_problem(raw)
+        assert status == 408 and problem["type"].endswith("request-timeout"), raw[:300]
+        assert problem["received_bytes"] == 1_000 and problem["timeout_s"] == DEADLINE_S
+        assert "connection: close" in head
+        sock.close()
+    assert DEADLINE_S * 0.9 <= time.monotonic() - t0 <= DEADLINE_S + 8
+    assert metric(live, 'cortexloc_upload_refusals_total{reason="timeout"}') == 20
+    assert metric(live, "cortexloc_upload_inflight_bytes") == 0
+
+
+def test_uploads_past_the_in_flight_budget_are_503_before_their_body(live):
+    held = [half_sent(live, LIMIT, 1_000), half_sent(live, LIMIT, 1_000)]  # 200 KB reserved of 250
+    time.sleep(0.3)
+    assert metric(live, "cortexloc_upload_inflight_bytes") == 2 * LIMIT
+    third = half_sent(live, LIMIT, 4)  # its body never comes: it is refused without being read
+    t0 = time.monotonic()
+    raw, closed = answer(third, DEADLINE_S + 5)
+    status, problem, head = status_and_problem(raw)
+    assert closed and status == 503 and problem["type"].endswith("overloaded") and "retry-after: 1" in head
+    assert time.monotonic() - t0 < DEADLINE_S / 2  # at once, not at the deadline
+    assert (problem["requested_bytes"], problem["inflight_bytes"], problem["max_inflight_bytes"]) == (
+        LIMIT, 2 * LIMIT, BUDGET)
+    small = httpx.post(f"{live}/v1/maps/default/observations", content=frame(1),
+                       headers={"Content-Type": "image/png"})
+    assert small.status_code == 200  # a small upload still fits beside them
+    for sock in held:  # they time out, and their reservations go with them
+        assert status_and_problem(answer(sock, DEADLINE_S + 10)[0])[0] == 408
+        sock.close()
+    assert metric(live, "cortexloc_upload_inflight_bytes") == 0
+    assert metric(live, 'cortexloc_upload_refusals_total{reason="budget"}') == 1
+    big = httpx.post(f"{live}/v1/maps/default/observations", content=frame(2) + b"\0" * (LIMIT - 30_000),
+                     headers={"Content-Type": "image/png"})
+    assert big.status_code != 503, big.text
+
+
+@pytest.mark.parametrize("chunked", [False, True])
+def test_a_body_over_the_limit_gets_its_413_while_the_client_is_still_sending(live, chunked):
+    """The 12 MB frame of the issue, posted as `cortexloc ingest` posts (httpx's async client): before,
+    each post ended in `ReadError` (the connection reset on the unread body), 5 times out of 5."""
+    body = b"\xff\xd8\xff\xe0" + b"\0" * (12 * 2**20)
+
+    async def chunks() -> AsyncIterator[bytes]:
+        for i in range(0, len(body), 2**20):
+            yield body[i:i + 2**20]
+
+    async def posts() -> list[int | str]:
+        out: list[int | str] = []
+        async with httpx.AsyncClient(base_url=live, timeout=60) as c:
+            for _ in range(3):
+                content = chunks() if chunked else body
+                try:
+                    r = await c.post("/v1/maps/default/observations", content=content,
+                                     headers={"Content-Type": "image/jpeg"})
+                except httpx.TransportError as e:
+                    out.append(repr(e))
+                else:
+                    assert r.json()["max_bytes"] == LIMIT, r.text
+                    out.append(r.status_code)
+        return out
+
+    assert anyio.run(posts) == [413, 413, 413]
+    assert metric(live, 'cortexloc_upload_refusals_total{reason="too-large"}') == 3
+
+
+def test_the_budget_must_hold_one_upload_of_the_largest_size():
+    with pytest.raises(ConfigError, match="CORTEXLOC_MAX_INFLIGHT_UPLOAD_BYTES"):
+        Settings.from_env({"CORTEXLOC_MAX_UPLOAD_BYTES": "1000",
+                           "CORTEXLOC_MAX_INFLIGHT_UPLOAD_BYTES": "999"})
+    with pytest.raises(ConfigError, match="CORTEXLOC_BODY_TIMEOUT_S"):
+        Settings.from_env({"CORTEXLOC_BODY_TIMEOUT_S": "0"})
+
+
+@pytest.mark.parametrize("keep_alive_first", [False, True])
+def test_a_head_sent_a_byte_at_a_time_is_answered_408_and_closed(live, keep_alive_first):
+    """The same for the head (uvicorn bounds only idle keep-alive connections, and any byte resets that):
+    on a new connection, and after a first request answered on it."""
+    port = int(live.rsplit(":", 1)[1])
+    sock = socket.create_connection(("127.0.0.1", port))
+    if keep_alive_first:
+        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: t\r\n\r\n")
+        assert sock.recv(65536).startswith(b"HTTP/1.1 200")
+    t0 = time.monotonic()
+    sock.settimeout(0.25)
+    raw = b""
+    for byte in b"POST /v1/maps/default/observations HTTP/1.1\r\nHost: t\r\nX-Slow: " + b"a" * 200:
+        if time.monotonic() - t0 > DEADLINE_S + 8:
+            break
+        try:
+            sock.send(bytes([byte]))
+            chunk = sock.recv(65536)
+        except TimeoutError:
+            continue
+        except (BrokenPipeError, ConnectionResetError):
+            break
+        if not chunk:
+            break
+        raw += chunk
+    elapsed = time.monotonic() - t0
+    status, problem, head = status_and_problem(raw + answer(sock, 5)[0])
+    assert status == 408 and problem["type"].endswith("request-timeout") and "connection: close" in head
+    assert DEADLINE_S * 0.9 <= elapsed <= DEADLINE_S + 5
+    sock.close()
