@@ -107,7 +107,8 @@ def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: n
     Walking from `state.here` along the trail, every row the current frame is unlike is left (the
     stream passed a frame unlike it: this one), up to the first row it is like, or past the last row
     (`here` = last + 1: the frame is unlike every row of its trail it had not left). Like:
-    Dice(frame, row) >= b + departure · (1 − b), b the frame's background likeness (`CodeStats.background`). Frame counts and clock time play no part:
+    Dice(frame, row) >= b + departure · (1 − b), b the frame's background likeness
+    (`CodeStats.background`). Frame counts and clock time play no part:
     standing still keeps every row of the stop; a lap of any length is a revisit once it passed frames
     unlike its start. For the filter the rows not left are widened by `margin` links back along the trail
     (the localiser's `exclusion`, its rival window, §11.2): a path a few rows behind the stream on its own
