@@ -193,6 +193,37 @@ class StoredObservationList(_Out):
     next_after_seq: int | None
 
 
+class StoredRowModel(_Out):
+    """A stored row's identity and the metadata stored with it."""
+
+    seq: int
+    observation_id: str
+    stream: str
+    label: str | None
+    metadata: dict[str, Any] | None
+
+
+class LoopClosureModel(_Out):
+    """One logged loop closure (docs/design/science.md §11.6): a revisit a stream was told of."""
+
+    id: int = Field(description="its place in the map's log; pages continue `after` it")
+    stream: str
+    seq: int | None = Field(description="the frame's stored row (null: the stream was localising)")
+    observation_id: str | None
+    metadata: dict[str, Any] | None = Field(description="the frame's metadata (stamp, pose)")
+    place: StoredRowModel = Field(description="the stored row its `place` named")
+    confidence: float
+    support: int
+    created_at: str
+
+
+class LoopClosureList(_Out):
+    """A page of the log, oldest first; `next_after` continues it (None: nothing after this page)."""
+
+    loop_closures: list[LoopClosureModel]
+    next_after: int | None
+
+
 class RecentModel(_Out):
     """One answer of the recent ring: the observation reply as it was sent, and when."""
 

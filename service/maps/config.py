@@ -38,10 +38,12 @@ __all__ = ["DEFAULT_RESIZE", "DEFAULT_REVISIT_THRESHOLD", "SHOWN_PARAMS", "MapCo
            "map_model", "resolve"]
 
 #: A new map's `revisit_threshold` (docs/design/service.md §1.2): the confidence at which an answer is
-#: called a revisit. docs/results.md §9.2: on Nordland `tune` (EfficientNet-Lite0, the service's path,
-#: `--operating-point precision=0.99`, the confidence with the null of docs/design/science.md §11.5)
-#: precision 0.99 is reached at confidence 0.951; changeable per map with PATCH.
-DEFAULT_REVISIT_THRESHOLD = 0.951
+#: called a revisit. docs/results.md §10: chosen on the Nordland `tune` half only, per route (two laps
+#: across seasons, the same lap twice with pixel noise, a short lap, a stop, an excursion; learning
+#: streams and the localise mode, with and without the Temporal Memory): the lowest confidence with no
+#: false revisit in lap 1 and precision >= 0.99 on every route is 0.915 (the map without the memory on
+#: the stop, excursion and two-season routes; 0.86 with it), rounded up; changeable per map with PATCH.
+DEFAULT_REVISIT_THRESHOLD = 0.92
 
 #: A new map's `resize` (crop | squash: how a frame of any shape becomes the backbone's 224 x 224 input,
 #: docs/design/science.md §6). docs/results.md §9.6: through the service's path on Nordland, on 2:1
@@ -50,7 +52,11 @@ DEFAULT_REVISIT_THRESHOLD = 0.951
 DEFAULT_RESIZE = "squash"
 
 #: The options the map resource shows under `params` (the others are its top-level fields).
-SHOWN_PARAMS = ("tm", "slsbh", "seed", "exclude_recent", "memory", "projection", "localiser", "resize")
+SHOWN_PARAMS = ("tm", "slsbh", "seed", "memory", "projection", "localiser", "resize")
+
+#: Options a map once had and no longer has: a stored value is ignored (`exclude_recent`: the own-trail
+#: rule of docs/design/science.md §11.6 replaced it).
+RETIRED = ("exclude_recent",)
 
 
 def _body(name: str, message: str) -> dict[str, str]:
@@ -114,7 +120,6 @@ class MapOptions(BaseModel):
     seed: int | None = Field(default=None, description="the TM's seed (and the projection's); >= 0")
     tm: dict[str, Any] | None = Field(default=None, description="Temporal Memory overrides, NuPIC names")
     slsbh: dict[str, Any] | None = Field(default=None, description="sLSBH overrides: k, s, seed, adapt_tau")
-    exclude_recent: int = Field(default=0, ge=0)
     backbone: str | None = Field(default=None, description=f"{' | '.join(backbones.names())} (default: "
                                  "the service's, resolved at startup); frozen with the map")
     memory: str = Field(default="tm", description=f"{' | '.join(memories.names())} (`none`: the sLSBH "
@@ -137,7 +142,6 @@ class MapConfig(BaseModel):
     tm: dict[str, Any] = Field(frozen=True, description="Temporal Memory parameters, NuPIC names")
     slsbh: dict[str, Any] = Field(frozen=True, description="sLSBH: k, s, seed, adapt_tau")
     seed: int = Field(frozen=True)
-    exclude_recent: int = Field(default=0, ge=0, frozen=True)
     backbone: str = Field(default=backbones.PAPER, frozen=True)
     memory: str = Field(default="tm", frozen=True)
     revisit_threshold: float = Field(default=DEFAULT_REVISIT_THRESHOLD, ge=0.0, le=1.0)
@@ -161,6 +165,11 @@ class MapConfig(BaseModel):
         """-0.0 is stored as 0.0: it passes the range check, and a reader that prints or divides by it
         sees a sign it never meant."""
         return value + 0.0
+
+    @model_validator(mode="before")
+    @classmethod
+    def _drop_retired(cls, values: Any) -> Any:
+        return {k: v for k, v in values.items() if k not in RETIRED} if isinstance(values, dict) else values
 
     @model_validator(mode="after")
     def _check(self) -> MapConfig:
@@ -269,7 +278,6 @@ def resolve(options: MapOptions, *, default_preset: str, default_backbone: str) 
         s_conf["seed"] = tm["seed"]
     values: dict[str, Any] = {
         "preset": preset, "tm": tm, "slsbh": s_conf, "seed": tm["seed"],
-        "exclude_recent": options.exclude_recent,
         "backbone": options.backbone or default_backbone, "memory": options.memory,
         "localiser": dict(options.localiser or {}), "thumbnails": options.thumbnails, "warnings": warnings,
         "resize": DEFAULT_RESIZE if options.resize is None else options.resize}
@@ -281,5 +289,4 @@ def resolve(options: MapOptions, *, default_preset: str, default_backbone: str) 
 def map_model(config: MapConfig, *, max_observations: int) -> MapModel:
     """A fresh pipeline model (models.pipeline) of a map with this configuration."""
     return MapModel.new(config.tm, config.localiser, max_observations=max_observations, memory=config.memory,
-                        s=float(config.slsbh["s"]), adapt_tau=config.adapt_tau,
-                        exclude_recent=config.exclude_recent)
+                        s=float(config.slsbh["s"]), adapt_tau=config.adapt_tau)

@@ -60,7 +60,7 @@ from service.maps.runtime.budget import MemoryBudget, index_row_bytes
 from service.maps.runtime.recent import RecentAnswers
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, utc_now
-from storage.mapstore import MapStore, NewObservation, StorageFull, StoreCorrupt
+from storage.mapstore import MapStore, NewClosure, NewObservation, StorageFull, StoreCorrupt
 
 __all__ = ["MapRuntime"]
 
@@ -79,7 +79,8 @@ class MapRuntime:
                  feature_dim: int, max_streams: int, max_observations: int,
                  snapshot_every: int = 0, snapshot_keep: int = 3, *, max_keys: int | None = None,
                  key_cache: int = 0, budget: MemoryBudget | None = None,
-                 stream_keep_seconds: float = 0.0, manual_keep: int = 0, manual_bytes: int = 0) -> None:
+                 stream_keep_seconds: float = 0.0, manual_keep: int = 0, manual_bytes: int = 0,
+                 max_closures: int | None = None) -> None:
         self.record = record
         self.map_id = record.map_id
         # Stored options this version rejects raise InvalidConfiguration: the registry serves a FailedMap.
@@ -96,6 +97,7 @@ class MapRuntime:
         # Idempotency keys: those of learned posts in the store (the last `max_keys` seqs), those of
         # localisations in memory (service.maps.runtime.idempotency).
         self.max_keys = max_keys
+        self.max_closures = max_closures  # loop closures kept in the store's log (the last N)
         self.keys = idempotency.KeyCache(key_cache)
         # The process-wide budget that holds this map's reservation (docs/design/service.md §1.8): each
         # learned row reserves its index bytes first. None: a runtime built alone (tools, tests).
@@ -278,6 +280,7 @@ class MapRuntime:
             snapshots.remove_stale_temp(self.layout.snapshots_dir(self.map_id))
         try:
             self.store = MapStore.open(self.layout.map_db(self.map_id), max_keys=self.max_keys,
+                                       max_closures=self.max_closures,
                                        seq_floor=self.catalog.get_high_water(self.map_id))
             if not self.store.quick_check():
                 raise StoreCorrupt("quick_check failed")
@@ -405,8 +408,10 @@ class MapRuntime:
             return self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k, label=label,
                               metadata=metadata, thumbnail=thumbnail, post=post)
         except Exception as e:
-            if not learn:
-                raise  # a localisation learns nothing: the memory and the store still agree
+            if not learn:  # a localisation learns nothing: the memory and the store still agree
+                if isinstance(e, StorageFull):  # its loop closure could not be logged: no answer either
+                    raise InsufficientStorage("the loop closure could not be logged: the disk is full") from e
+                raise
             # The TM may hold a learned step the store does not (a failed commit, or a failure anywhere
             # between the step and the commit): rebuild from the store before anything else runs, so
             # no later row is learned on a memory that replay cannot reproduce (docs/design/service.md §4.3).
@@ -429,7 +434,8 @@ class MapRuntime:
         st, evicted = touch(self.streams, stream, self.max_streams, self.clock())
         self.stream_evictions += evicted
         seq = self.store.next_seq() if learn else None  # this thread is the store's only writer
-        step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq)
+        step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq,
+                                code_of=self._code_of)
         t3 = time.perf_counter()
         place = step.place
         rows = self.store.get_many([*(m.seq for m in step.ranked), *([place.seq] if place else [])])
@@ -446,10 +452,17 @@ class MapRuntime:
             encoder=self.config.encoder_id, resize=self.config.resize,
             place=None if place is None else PlaceResult.of(place, rows[place.seq],
                                                             self.config.revisit_threshold))
+        # A revisit is a loop closure, logged durably: with the learned row in its transaction, or alone
+        # for a localising stream (it stores no observation and changes no memory; §11.6).
+        closure = None if result.place is None or not result.place.revisit else NewClosure(
+            stream=stream, place_seq=result.place.seq, confidence=result.place.confidence,
+            support=result.place.support, metadata=metadata, key=post.key if post is not None else None)
+        if row is None and closure is not None:
+            self.store.add_closure(closure)
         if row is not None:
             if post is not None:
                 row = dataclasses.replace(row, key=post.record(result))
-            committed = self.store.append(row)
+            committed = self.store.append(dataclasses.replace(row, closure=closure))
             assert committed == seq  # this thread is the store's only writer
             # The stream's step is recorded before the automatic snapshot, so the snapshot holds the
             # stream as it is after this frame.
@@ -457,6 +470,13 @@ class MapRuntime:
                 self._auto_snapshot()
         t4 = time.perf_counter()
         return dataclasses.replace(result, timings_ms={**result.timings_ms, "store": (t4 - t3) * 1e3})
+
+    def _code_of(self, seq: int) -> np.ndarray:
+        """Writer: a stored row's frame code (its sLSBH input SDR), for the own-trail rule (§11.6)."""
+        assert self.store is not None
+        row = self.store.get(seq)
+        assert row is not None  # the rule walks the stream's committed rows
+        return row.input_sdr
 
     # ------------------------------------------------------------------ resources
 
