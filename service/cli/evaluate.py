@@ -167,7 +167,7 @@ def eval_images(
                                                       "(default: the service's, resolved as serve "
                                                       "does)")] = None,
     resize: Annotated[str | None, typer.Option(help="crop | squash (default: a new map's, "
-                                                    "service.maps.params.DEFAULT_RESIZE)")] = None,
+                                                    "service.maps.config.DEFAULT_RESIZE)")] = None,
     methods: Annotated[str, typer.Option(help="Comma-separated: cosine,slsbh,mcn,htm (one frame); "
                                           "openseqslam (the reference on grey pixels); cosine-seq,"
                                           "slsbh-seq,mcn-seq,htm-seq (the same sequence matcher on each "
@@ -229,7 +229,7 @@ def eval_images(
     # models.frontend.encoder).
     preset = preset or Settings.model_fields["default_preset"].default
     backbone = backbone or resolve_backbone(Settings.from_env()).backbone
-    resize = resize or DEFAULT_RESIZE  # a new map's (service.maps.params)
+    resize = resize or DEFAULT_RESIZE  # a new map's (service.maps.config)
     method_list = [m.strip() for m in methods.split(",") if m.strip()]
     service_list = [m for m in method_list if m in service_path.METHODS]
     slam_list = [m for m in method_list if m in service_path.SLAM_METHODS]

@@ -39,7 +39,7 @@ from models.evaluation import seqslam, sequences, slam
 from models.frontend.encoder import Encoder
 from service.evaluation import service_path
 from service.evaluation.revisit import noisy_png
-from service.maps.params import DEFAULT_REVISIT_THRESHOLD
+from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 from service.settings import Settings
 
 HALVES = {"tune": (0, 894), "test": (894, 1788)}
