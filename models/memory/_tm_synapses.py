@@ -171,11 +171,16 @@ def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip
         scratch_mask[presyn[base + k]] = False
     n_actual = min(n_desired, m)
     overrun = n + n_actual - K
+    destroyed = 0
     while overrun > 0:
         # Lowest permanence, never a synapse from a current previous winner; ties: the oldest.
+        # A victim leaves the index at once but keeps its slot, marked by an infinite permanence
+        # that no later scan picks; the survivors close ranks in one pass below, in creation order.
+        # Same victims, same order, same final arrays as destroying each at once (one shift per
+        # victim was most of the cost when the caps bind, issue 25).
         best = -1
         best_v = np.inf
-        for k in range(np.int64(nsyn[g])):
+        for k in range(n):
             q = base + k
             if prev_winner_mask[presyn[q]]:
                 continue
@@ -184,9 +189,23 @@ def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip
                 best_v = perm[q]
         if best == -1:
             break
-        _destroy_synapse(g, best, K, presyn, perm, nsyn, rev, rpos, bprev, bfill, tail, pool)
+        q = base + best
+        # The entry moved into the hole belongs to another segment (this one has one synapse per
+        # presynaptic cell), so this segment's unshifted slots are what the removal expects.
+        _rx_remove(q, np.int64(presyn[q]), K, presyn, nsyn, rev, rpos, bprev, bfill, tail, pool)
+        perm[q] = np.inf
+        destroyed += 1
         counters[C_OVERRUN] += 1
         overrun -= 1
+    if destroyed:
+        j = base
+        for q in range(base, base + n):
+            if perm[q] != np.inf:
+                presyn[j] = presyn[q]
+                perm[j] = perm[q]
+                rpos[j] = rpos[q]
+                j += 1
+        nsyn[g] = j - base
     n_actual = min(n_actual, K - np.int64(nsyn[g]))
     if n_actual <= 0:
         return
