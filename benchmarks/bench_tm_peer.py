@@ -24,6 +24,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from _common import quick_mode, write_json  # also puts the repo on sys.path
 
 from models.evaluation.bench import bench_tm, random_sequence
@@ -64,10 +65,9 @@ def bench_peer(python: Path, steps: int, seed: int = 0) -> dict[str, Any]:
                           text=True, timeout=1800, check=False)
     if proc.returncode != 0:
         return {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "peer failed"}
-    import numpy as np
-
     t = np.array(json.loads(proc.stdout)["times"][50:])  # the first steps include the peer's warm-up
-    return {"ms_per_step_median": float(np.median(t) * 1e3), "ms_per_step_p90": float(np.percentile(t, 90) * 1e3)}
+    return {"ms_per_step_median": float(np.median(t) * 1e3),
+            "ms_per_step_p90": float(np.percentile(t, 90) * 1e3)}
 
 
 def main() -> None:
@@ -86,8 +86,9 @@ def main() -> None:
           + (f"{peer['ms_per_step_median']:.3f} ms/step, ratio {ratio:.2f}" if ratio else peer["error"]))
     print(f"service preset (308 active): {service['ms_per_step_median']:.3f} ms/step "
           f"(p90 {service['ms_per_step_p90']:.3f})")
-    path = write_json("tm_peer.json", {"like_for_like": ours, "brainblocks": peer, "ratio_cortexloc_over_peer": ratio,
-                                       "service_preset": service}, args.out)
+    path = write_json("tm_peer.json", {"like_for_like": ours, "brainblocks": peer,
+                                       "ratio_cortexloc_over_peer": ratio, "service_preset": service},
+                      args.out)
     print(f"wrote {path}")
 
 
