@@ -123,6 +123,7 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
     dec = p[P_DEC]
     pdec = p[P_PDEC]
     zero = np.float32(0.0)
+    hit = np.empty(Kc, np.int64)  # a punished segment's active synapses
     for i in range(prev_active.size):
         prev_active_mask[prev_active[i]] = True
     for i in range(prev_winner.size):
@@ -229,28 +230,33 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
             # This runs for every chance match, so the common case (nothing decays below EPS) is
             # written out here; a segment that would lose a synapse takes the general path.
             changed = changed or ims > m0
+            # The first pass lists the segment's active synapses (a few of its K), so the second
+            # touches only those.
             for t in range(m0, ims):
                 g = match_segs[t]
                 base = g * Kc
                 n = np.int64(nsyn[g])
                 dies = False
+                n_hit = 0
                 for k in range(n):
                     q = base + k
-                    if prev_active_mask[presyn[q]] and perm[q] - pdec < EPS:
-                        dies = True
-                        break
+                    if prev_active_mask[presyn[q]]:
+                        if perm[q] - pdec < EPS:
+                            dies = True
+                            break
+                        hit[n_hit] = q
+                        n_hit += 1
                 if dies:
                     _adapt(g, -pdec, zero, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count,
                            rev, rpos, bprev, bfill, tail, pool, counters)
                     continue
-                for k in range(n):
-                    q = base + k
-                    if prev_active_mask[presyn[q]]:
-                        old = perm[q]
-                        v = old - pdec
-                        if (v >= conn) != (old >= conn):
-                            rev[rpos[q]] ^= 1
-                        perm[q] = v
+                for i in range(n_hit):
+                    q = hit[i]
+                    old = perm[q]
+                    v = old - pdec
+                    if (v >= conn) != (old >= conn):
+                        rev[rpos[q]] ^= 1
+                    perm[q] = v
 
     for i in range(prev_active.size):
         prev_active_mask[prev_active[i]] = False
