@@ -59,6 +59,9 @@ class StubEncoder:
     feature_dim = FEATURE_DIM
     identity = "alexnet-conv3/bench-stub:crop"
 
+    def identity_for(self, resize: str) -> str:
+        return f"alexnet-conv3/bench-stub:{resize}"
+
 
 class PhaseTimer:
     """Wraps functions so every call adds its wall time to a named phase (nested calls excluded)."""

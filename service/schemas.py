@@ -49,7 +49,6 @@ class CreateMap(BaseModel):
     seed: int | None = Field(default=None, description="the TM's seed (and the projection's); >= 0")
     tm: dict[str, Any] | None = Field(default=None, description="Temporal Memory overrides, NuPIC names")
     slsbh: dict[str, Any] | None = Field(default=None, description="sLSBH overrides: k, s, seed, adapt_tau")
-    exclude_recent: int = Field(default=0, ge=0)
     backbone: str | None = Field(default=None, description="alexnet | efficientnet-lite0-s5 | "
                                  "efficientnet-lite0 (default: the service's, resolved at startup); "
                                  "frozen with the map")
@@ -61,6 +60,9 @@ class CreateMap(BaseModel):
                                              "(docs/design/science.md §11.3)")
 
     thumbnails: bool = Field(default=False, description="keep a small JPEG of each learned frame")
+    resize: str | None = Field(default=None, description="crop | squash: how a frame becomes the backbone's "
+                               "square input (crop: the middle, as the paper; squash: the whole frame; "
+                               "default: service.maps.params.DEFAULT_RESIZE); frozen with the map")
 
 class PatchMap(BaseModel):
     """The map settings that may change after creation (docs/design/service.md §1.2)."""
@@ -74,11 +76,12 @@ class MapParams(_Out):
     tm: dict[str, Any]
     slsbh: dict[str, Any]
     seed: int
-    exclude_recent: int
     memory: str
     projection: str = Field(description="dense | sparse (the very sparse projection, where dense would "
                             "break the map's size budget)")
     localiser: dict[str, Any]
+    resize: str = Field(description="crop | squash: how the map's frames become the backbone's square "
+                        "input (crop: the middle of a wide frame; squash: all of it, distorted)")
 
 
 class MapModel(_Out):
@@ -169,7 +172,8 @@ class Versions(_Out):
     api: str
     code: str
     backbone: str
-    encoder: str
+    encoder: str = Field(description="the map's encoder: backbone, weights and resize mode")
+    resize: str = Field(description="the map's resize mode, crop | squash (frozen with the map)")
     weights: str
     runtime: str = Field(description="the backbone's runtime: onnxruntime or torch (the same codes)")
     device: str = Field(description="where the backbone ran: cpu or cuda")
@@ -215,10 +219,45 @@ class StoredObservationList(_Out):
     next_after_seq: int | None
 
 
+class StoredRowModel(_Out):
+    """A stored row's identity and the metadata stored with it."""
+
+    seq: int
+    observation_id: str
+    stream: str
+    label: str | None
+    metadata: dict[str, Any] | None
+
+
+class LoopClosureModel(_Out):
+    """One logged loop closure (docs/design/science.md §11.6): a revisit a stream was told of."""
+
+    id: int = Field(description="its place in the map's log; pages continue `after` it")
+    stream: str
+    seq: int | None = Field(description="the frame's stored row (null: the stream was localising)")
+    observation_id: str | None
+    metadata: dict[str, Any] | None = Field(description="the frame's metadata (stamp, pose)")
+    place: StoredRowModel = Field(description="the stored row its `place` named")
+    confidence: float
+    support: int
+    created_at: str
+
+
+class LoopClosureList(_Out):
+    """A page of the log, oldest first; `next_after` continues it (None: nothing after this page)."""
+
+    loop_closures: list[LoopClosureModel]
+    next_after: int | None
+
+
 class RecentModel(_Out):
     """One answer of the recent ring: the observation reply as it was sent, and when."""
 
+    answer_id: int = Field(description="the answer's number in the map's ring (from 1 since the service "
+                           "opened the map; `.../recent/{answer_id}/thumbnail`)")
     received_at: str = Field(description="when the reply was sent (UTC, ISO 8601)")
+    has_thumbnail: bool = Field(description="the query frame's small JPEG is kept with it (maps with "
+                                "thumbnails; the newest answers within the ring's byte budget)")
     reply: ObservationModel
 
 

@@ -5,8 +5,10 @@ A row, once committed, is never changed or removed: triggers in the file refuse 
 `observations` and `thumbnails`, and the frozen `meta` likewise. `idempotency_keys` is the one table
 rows leave: the oldest keys are pruned (docs/design/service.md §4.2).
 
-Version 2 added a row's `metadata`, the `thumbnails` and `idempotency_keys` tables; a version 1 file is
-brought up to date when it is opened for writing (`migrate`), in one transaction.
+Version 2 added a row's `metadata`, the `thumbnails` and `idempotency_keys` tables; version 3 the
+`loop_closures` log (docs/design/service.md §4.2: every revisit a stream was told of, bounded, the
+oldest pruned like the keys). An older file is brought up to date when it is opened for writing
+(`migrate`), in one transaction.
 """
 
 from __future__ import annotations
@@ -36,7 +38,9 @@ __all__ = [
     "SCHEMA_VERSION",
     "DuplicateObservation",
     "KeyRecord",
+    "LoopClosure",
     "MapMeta",
+    "NewClosure",
     "NewObservation",
     "Observation",
     "StoreCorrupt",
@@ -49,7 +53,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -106,15 +110,42 @@ CREATE TABLE idempotency_keys (
 );
 """
 
+# What version 3 added: the loop-closure log (docs/design/science.md §11.6). A learning stream's entry
+# commits with its row (`seq`); a localising stream's alone (it stores no observation). `place_seq` is a
+# stored row; `idempotency_key` keeps a repeated post from logging twice. Pruned oldest first.
+_V3_TABLES = """
+CREATE TABLE loop_closures (
+    id              INTEGER PRIMARY KEY,   -- log order: the page cursor
+    stream          TEXT NOT NULL,
+    seq             INTEGER NULL REFERENCES observations (seq),   -- the frame's row, if learned
+    place_seq       INTEGER NOT NULL REFERENCES observations (seq),
+    confidence      REAL NOT NULL,
+    support         INTEGER NOT NULL,
+    metadata        TEXT NULL,             -- the frame's metadata (stamp, pose), compact JSON
+    idempotency_key TEXT NULL UNIQUE,
+    created_at      TEXT NOT NULL
+);
+CREATE TRIGGER loop_closures_no_update BEFORE UPDATE ON loop_closures
+BEGIN SELECT RAISE(ABORT, 'loop closures are append-only'); END;
+"""
+
+
+def _version_step(version: int) -> str:
+    """The script that lifts the frozen meta's trigger for the version number alone."""
+    return f"""
+DROP TRIGGER meta_no_update;
+UPDATE meta SET value = '{version}' WHERE key = 'schema_version';
+CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
+BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
+"""
+
+
 #: Version 1 -> 2 (`migrate`), run as one script inside one transaction. ADD COLUMN changes no row (the
 #: new column reads NULL), so the append-only triggers stay as they are; the frozen meta's trigger is
 #: lifted for the version number alone and put back in the same transaction.
-_MIGRATE_V2 = ("ALTER TABLE observations ADD COLUMN metadata TEXT NULL;" + _V2_TABLES + """
-DROP TRIGGER meta_no_update;
-UPDATE meta SET value = '2' WHERE key = 'schema_version';
-CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
-BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
-""")
+_MIGRATE_V2 = "ALTER TABLE observations ADD COLUMN metadata TEXT NULL;" + _V2_TABLES + _version_step(2)
+#: Version 2 -> 3: a new table, no row changes.
+_MIGRATE_V3 = _V3_TABLES + _version_step(3)
 
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
@@ -128,8 +159,9 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
     as it then is. A current file is returned as it is."""
     if meta.schema_version >= SCHEMA_VERSION:
         return meta
+    steps = {1: _MIGRATE_V2 + _MIGRATE_V3, 2: _MIGRATE_V3}[meta.schema_version]
     try:
-        conn.executescript("BEGIN IMMEDIATE;" + _MIGRATE_V2 + "COMMIT;")
+        conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
     except BaseException:
         if conn.in_transaction:
             conn.execute("ROLLBACK")
@@ -161,7 +193,7 @@ class MapMeta:
 
     Attributes:
         map_id: the map's identifier.
-        params: resolved parameters (`tm`, `slsbh`, `encoder`, `seed`, `exclude_recent`), JSON-able.
+        params: resolved parameters (`tm`, `slsbh`, `encoder`, `seed`, ...), JSON-able.
         projection_sha256: checksum of the map's sLSBH projection.
         encoder_id: identity of the encoder whose codes the map holds.
         cell_dtype: `uint16` or `uint32` (see `cell_dtype_for`).
@@ -209,6 +241,52 @@ class NewObservation:
     metadata: dict[str, Any] | None = None
     thumbnail: bytes | None = None
     key: KeyRecord | None = None
+    closure: NewClosure | None = None
+
+
+@dataclass(frozen=True)
+class NewClosure:
+    """A revisit a stream was told of, about to be logged (`loop_closures`; docs/design/science.md §11.6).
+    With a learned row it commits in the row's transaction and names it; alone (a localising stream),
+    it names no row.
+
+    Attributes:
+        stream: the stream. place_seq: the stored row its `place` named. confidence, support: the answer's.
+        metadata: the frame's metadata (stamp, pose). key: the post's Idempotency-Key (a repeat logs
+        nothing). created_at: ISO 8601 UTC.
+    """
+
+    stream: str
+    place_seq: int
+    confidence: float
+    support: int
+    metadata: dict[str, Any] | None = None
+    key: str | None = None
+    created_at: str = field(default_factory=utc_now)
+
+
+@dataclass(frozen=True)
+class LoopClosure:
+    """One logged loop closure with both rows' identities (`MapStore.closures`).
+
+    Attributes:
+        id: its place in the log (pages go `after` it). seq, observation_id: the frame's row (None when
+        the stream was localising). place_*: the row its place named.
+    """
+
+    id: int
+    stream: str
+    seq: int | None
+    observation_id: str | None
+    metadata: dict[str, Any] | None
+    place_seq: int
+    place_observation_id: str
+    place_stream: str
+    place_label: str | None
+    place_metadata: dict[str, Any] | None
+    confidence: float
+    support: int
+    created_at: str
 
 
 @dataclass(frozen=True, eq=False)
@@ -291,7 +369,7 @@ def create_file(path: Path, meta: MapMeta) -> None:
         try:
             # A temporary file: atomicity comes from the rename below, not from one transaction
             # (executescript would commit a pending transaction anyway).
-            conn.executescript(_SCHEMA + _V2_TABLES)
+            conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

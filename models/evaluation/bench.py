@@ -189,6 +189,11 @@ def bench_encoder(backbone: str = "alexnet", repeats: int = 15, threads: int = 1
         "batch16_stage_ms_median": {k: float(np.median(v)) for k, v in stages.items()},
         "encoder": enc.identity,
         **enc.describe(),
+        # What a map on this backbone holds: the dense D x k float32 projection (a map gets the sparse
+        # one where that would break its size budget, service/maps/projection.py).
+        "feature_dim": enc.feature_dim,
+        "k": int(enc.conf["slsbh"]["k"]),
+        "dense_projection_bytes": enc.feature_dim * int(enc.conf["slsbh"]["k"]) * 4,
         "config": {"backbone": backbone, "repeats": repeats, "threads": threads, "image": "640x480 JPEG",
                    "projection": projection},
     }

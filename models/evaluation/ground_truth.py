@@ -6,7 +6,9 @@ Two formats, chosen by the file's suffix; indices count from 0 in the sorted ima
 - **CSV** (`.csv`): one row per query, `query_index,query_file,matching_ref_indices`, an optional header
   row with those names; `matching_ref_indices` holds database indices separated by spaces or semicolons
   (empty: the query has no match, so any answer to it is a false positive). `query_file` is checked
-  against the query folder's name at that index, so a file for other images is refused.
+  against the query folder's name at that index, so a file for other images is refused; it may carry a
+  folder (`query/0000000.jpg`, `query\\0000000.jpg`), which is not compared (the query folder may be
+  named otherwise here).
 
       query_index,query_file,matching_ref_indices
       0,images-00010.png,0 1
@@ -25,7 +27,7 @@ import io
 import pickle
 import re
 from collections.abc import Sequence
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
@@ -74,10 +76,12 @@ def _read_csv(path: Path, n_db: int, n_q: int, query_names: Sequence[str] | None
                 refs = [int(t) for t in re.split(r"[;\s]+", row[2].strip()) if t]
             except ValueError:
                 raise ValueError(f"{where}: indices must be whole numbers, got {row!r}") from None
-            name = row[1].strip()
+            # The file column may carry the folder, as VPR data sets write it: `query/0000000.jpg`.
+            given = row[1].strip()
+            name = PurePosixPath(given.replace("\\", "/")).name
             if query_names is not None and 0 <= q < len(query_names) and name != query_names[q]:
                 raise ValueError(f"{where}: query {q} is {query_names[q]!r} in the query folder, "
-                                 f"not {name!r}")
+                                 f"not {given!r}")
             pairs.append((q, refs))
     if not pairs:
         raise ValueError(f"{path}: no ground-truth rows")

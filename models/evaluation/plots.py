@@ -60,8 +60,63 @@ def plot_pr_curves(curves: Mapping[str, Curve], path: str | Path, title: str) ->
     return _save(fig, path)
 
 
+def similarity_caption(S: np.ndarray) -> str:
+    """What a reader of the similarity image would misread, said under it: its white cells (no score:
+    -inf or NaN) and its values below 0 (scores, not anticorrelations); "" when it has neither.
+
+    Args:
+        S: (n_db, n_query) similarities as drawn by `plot_similarity`.
+    """
+    s = np.asarray(S, dtype=np.float64)
+    finite = np.isfinite(s)
+    lines = []
+    if not finite.all():
+        lines.append(f"White: no score ({int((~finite).sum()):,} of {s.size:,} cells), not a similarity "
+                     "of 0: the method never weighed that pair (a sequence method: no full path of ds "
+                     "frames there, as at the route's ends; an online method or the service: no hypothesis "
+                     "ended on that row).")
+    if finite.any() and s[finite].min() < 0:
+        lines.append("Below 0: scores, not anticorrelations. A sequence method gives minus a contrast-"
+                     "normalised difference (0 = the local mean of its database window), an online method "
+                     "a decayed path score less its move costs, cosine after mean subtraction (--adapt) "
+                     "any sign; only the order down a query column decides the answer.")
+    return "\n".join(lines)
+
+
+def similarity_figure(S: np.ndarray, title: str) -> Figure:
+    """A similarity matrix as an image (the paper's Fig. 4 style, §8.1), captioned by
+    `similarity_caption`.
+
+    Args:
+        S: (n_db, n_query) similarities; database rows, query columns.
+        title: figure title.
+    """
+    import textwrap
+
+    from matplotlib.figure import Figure
+
+    s = np.asarray(S, dtype=np.float64)
+    if s.ndim != 2:
+        raise ValueError(f"S must be 2-D, got shape {s.shape}")
+    caption = [textwrap.fill(line, 95) for line in similarity_caption(s).splitlines()]
+    lines = sum(c.count("\n") + 1 for c in caption)
+    fig = Figure(figsize=(6.0, 5.0 + 0.12 * lines))
+    ax = fig.add_subplot()
+    image = ax.imshow(s, cmap="viridis", interpolation="nearest", aspect="auto", origin="upper")
+    fig.colorbar(image, ax=ax, label="similarity")
+    ax.set_xlabel("query")
+    ax.set_ylabel("database")
+    ax.set_title(title)
+    if caption:
+        fig.text(0.01, 0.01, "\n".join(caption), fontsize=6.5, va="bottom", ha="left")
+        fig.tight_layout(rect=(0.0, (0.12 * lines + 0.05) / (5.0 + 0.12 * lines), 1.0, 1.0))
+    else:
+        fig.tight_layout()
+    return fig
+
+
 def plot_similarity(S: np.ndarray, path: str | Path, title: str) -> Path:
-    """Draw a similarity matrix as an image (the paper's Fig. 4 style, §8.1).
+    """Draw a similarity matrix as an image with its caption (`similarity_figure`).
 
     Args:
         S: (n_db, n_query) similarities; database rows, query columns.
@@ -71,20 +126,7 @@ def plot_similarity(S: np.ndarray, path: str | Path, title: str) -> Path:
     Returns:
         The written path.
     """
-    from matplotlib.figure import Figure
-
-    s = np.asarray(S, dtype=np.float64)
-    if s.ndim != 2:
-        raise ValueError(f"S must be 2-D, got shape {s.shape}")
-    fig = Figure(figsize=(6.0, 5.0))
-    ax = fig.add_subplot()
-    image = ax.imshow(s, cmap="viridis", interpolation="nearest", aspect="auto", origin="upper")
-    fig.colorbar(image, ax=ax, label="similarity")
-    ax.set_xlabel("query")
-    ax.set_ylabel("database")
-    ax.set_title(title)
-    fig.tight_layout()
-    return _save(fig, path)
+    return _save(similarity_figure(S, title), path)
 
 
 # Match gallery layout (pixels): every image is shown at TILE = (width, height); a pair is framed by

@@ -50,8 +50,9 @@ default_conf: dict[str, Any] = {
     "decode_threads": 2,  # OpenCV releases the GIL: a batch decodes and resizes in parallel
     "max_bytes": limits.DEFAULT_MAX_BYTES,
     "max_pixels": limits.DEFAULT_MAX_PIXELS,
-    # projection: dense (docs/design/science.md §7) | sparse (very sparse random projection, measured in
-    # docs/results.md before it may become a default)
+    # projection: the encoder's own (evaluation, benchmarks): dense (docs/design/science.md §7) | sparse
+    # (the very sparse random projection, at parity in docs/results.md §6). A map's is chosen by the
+    # service, sparse where dense would break its size budget (service/maps/projection.py: AlexNet).
     # k and s: the map defaults (presets.SlsbhParams); the encoder's own projection has seed 0.
     "slsbh": {"k": _SLSBH.k, "s": _SLSBH.s, "seed": 0, "projection": "dense"},
     "projection_dir": None,  # where projections are stored content-addressed; None: keep in memory
@@ -73,9 +74,14 @@ def merge_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
             out["slsbh"].update(value)
         else:
             out[key] = value
-    if out["resize"] not in ("crop", "squash"):
-        raise ValueError(f"resize must be crop or squash, got {out['resize']!r}")
+    _check_resize(out["resize"])
     return out
+
+
+def _check_resize(mode: str) -> str:
+    if mode not in images.MODES:
+        raise ValueError(f"resize must be one of {', '.join(images.MODES)}, got {mode!r}")
+    return mode
 
 
 @dataclass
@@ -187,8 +193,13 @@ class Encoder:
     @property
     def identity(self) -> str:
         """e.g. `alexnet-conv3/imagenet-7be5be79:crop` or `alexnet-conv3/random-seed0:crop`."""
+        return self.identity_for(self.conf["resize"])
+
+    def identity_for(self, resize: str) -> str:
+        """The identity of this encoder's features under another resize mode (`embed(resize=...)`): a
+        map made with `resize: squash` records `...:squash`."""
         # The architecture names its descriptor layer: that is part of what makes codes comparable.
-        return f"{self.backbone.arch}/{self.weights_id}:{self.conf['resize']}"
+        return f"{self.backbone.arch}/{self.weights_id}:{_check_resize(resize)}"
 
     def describe(self) -> dict[str, Any]:
         """What the service reports in /readyz and every response: the backbone, its weights, and the
@@ -227,13 +238,15 @@ class Encoder:
         return out
 
     def embed(self, data: Sequence[bytes | images.RawFrame],
-              thumbnails: Sequence[bool] | None = None) -> EncodeResult:
+              thumbnails: Sequence[bool] | None = None, resize: str | None = None) -> EncodeResult:
         """Backbone features of a batch of uploaded images (no hashing: `codes` is None).
 
         Args:
             data: N encoded images (JPEG, PNG, BMP, WebP) or raw frames.
             thumbnails: per image, whether to keep a small JPEG of the decoded frame
                 (`EncodeResult.thumbnails`), made in the decode threads from the frame already decoded.
+            resize: crop | squash for this batch (a map's frozen option, docs/design/science.md §6);
+                None: the encoder's own `resize`. The features are those of `identity_for(resize)`.
 
         Returns:
             EncodeResult with features (N, D) and the decode, preprocess and backbone timings.
@@ -244,7 +257,8 @@ class Encoder:
                 bad upload fails only its own request).
         """
         limits = {"max_bytes": int(self.conf["max_bytes"]), "max_pixels": int(self.conf["max_pixels"])}
-        kw = {"mode": self.conf["resize"], "mean": self.input_mean, "std": self.input_std}
+        kw = {"mode": _check_resize(resize or self.conf["resize"]), "mean": self.input_mean,
+              "std": self.input_std}
         timings = dict.fromkeys(STAGES[:3], 0.0)
         thumbs: list[bytes | None] | None = [None] * len(data) if thumbnails is not None else None
 

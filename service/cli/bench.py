@@ -67,6 +67,8 @@ def bench_encoder(
     result["provenance"] = provenance()
     write_json(json_out, result)
     st = result["batch16_stage_ms_median"]
+    typer.echo(f"encoder {result['encoder']}: D = {result['feature_dim']:,} features, k = {result['k']:,}, "
+               f"dense projection {result['dense_projection_bytes'] / 2**20:.1f} MiB")
     typer.echo(f"encoder {result['encoder']} on {result['runtime']} ({result['device']}, {projection} "
                f"projection, {threads} thread(s)): batch 1 "
                f"{result['batch1_ms_median']:.1f} ms; batch 16 {result['batch16_images_per_s']:.1f} img/s "

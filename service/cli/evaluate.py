@@ -4,7 +4,12 @@
                         [--ds N] [--json OUT] [--plots DIR]
     cortexloc eval grid --generate --aliasing A --noise N [--loops L] [...same options]
     cortexloc eval images --db DIR --query DIR [--methods M,...] [--ds N] [--gt FILE] [--preset NAME]
-                          [--backbone B] [--resize R] [--seeds K] [--json OUT] [--plots DIR]
+                          [--backbone B] [--resize R] [--seeds K] [--reset|--no-reset] [--json OUT]
+                          [--plots DIR]
+
+Defaults: grid --seeds 10; images --seeds 3 and --no-reset (the paper's protocol; the tables of
+docs/results.md pass --reset, docs/design/science.md §8.5). The README's command list says the same
+(tests/models/evaluation/test_sequences.py checks it against these options).
 
 Tables go to stdout, progress and warnings to stderr, machine-readable results to --json.
 """
@@ -87,6 +92,34 @@ def eval_grid(
     typer.echo(format_grid_table(result))
 
 
+def _legend(query_auc: str, recall_100p: str, spread: str) -> list[str]:
+    """The lines under a result table that say what its columns are (docs/design/science.md §8.2, §8.3);
+    "AUC pairs" near 0.5 beside R@1 1.000 is not a contradiction, and says why."""
+    return ["AUC pairs = the paper's AUC (§8.2): precision-recall over all pairs (database row, query) at "
+            "one threshold shared by every query;",
+            "  it also asks that scores compare across queries, so it can sit near 0.5 beside R@1 1.000 "
+            "(right answers, scores on different scales);",
+            f"{query_auc} = per query: each query's best match ranked by its confidence; R@1 / R@5 = the "
+            "right place is the best match / among the 5 best;",
+            f"{recall_100p}; {spread} over the seeds"]
+
+
+def _table(entries: dict[str, dict[str, Any]], columns: list[tuple[str, str, str]]) -> list[str]:
+    """Header and one row per method, every column as wide as its widest cell (method names differ in
+    length: `service-without-tm`). `columns`: (header, key of the entry, format spec)."""
+    cells = {m: [format(e[key], spec) for _, key, spec in columns] for m, e in entries.items()}
+    name_w = max([len("method"), *map(len, entries)])
+    widths = [max([len(head), *(len(c[i]) for c in cells.values())])
+              for i, (head, _, _) in enumerate(columns)]
+
+    def line(name: str, values: list[str], notes: str) -> str:
+        padded = (f"{v:>{w}}" for v, w in zip(values, widths, strict=True))
+        return " ".join([f"{name:<{name_w}}", *padded]) + f"  {notes}"
+
+    return [line("method", [head for head, _, _ in columns], "notes"),
+            *(line(m, cells[m], _method_notes(m, e)) for m, e in entries.items())]
+
+
 def format_grid_table(result: dict[str, Any]) -> str:
     """A readable table of a grid result (stdout)."""
     data = result["data"]
@@ -94,15 +127,14 @@ def format_grid_table(result: dict[str, Any]) -> str:
         what = f"generated a={data['aliasing']} n={data['noise']} loops={data['loops']} ({data['mode']})"
     else:
         what = f"published {Path(str(data.get('sdr_file', '?'))).name}"
-    lines = [f"grid world: {what}; scoring={result['scoring']}; seeds={result['seeds']}",
-             f"{'method':<15} {'AUC mean':>9} {'sd':>7} {'min':>8} {'max':>8} {'R@1':>7} {'R@5':>7} "
-             f"{'R@100P':>7} {'qAUC':>7} {'qR@100P':>7}  notes"]
-    for m, e in result["methods"].items():
-        lines.append(f"{m:<15} {e['auc_mean']:>9.6f} {e['auc_sd']:>7.4f} {e['auc_min']:>8.4f} "
-                     f"{e['auc_max']:>8.4f} {e['recall_at_1_mean']:>7.3f} {e['recall_at_5_mean']:>7.3f} "
-                     f"{e['recall_at_100p_mean']:>7.3f} {e['query_auc_mean']:>7.3f} "
-                     f"{e['query_recall_at_100p_mean']:>7.3f}  {_method_notes(m, e)}")
-    return "\n".join(lines)
+    columns = [("AUC pairs", "auc_mean", ".6f"), ("sd", "auc_sd", ".4f"), ("min", "auc_min", ".4f"),
+               ("max", "auc_max", ".4f"), ("R@1", "recall_at_1_mean", ".3f"),
+               ("R@5", "recall_at_5_mean", ".3f"), ("R@100P", "recall_at_100p_mean", ".3f"),
+               ("qAUC", "query_auc_mean", ".3f"), ("qR@100P", "query_recall_at_100p_mean", ".3f")]
+    return "\n".join([f"grid world: {what}; scoring={result['scoring']}; seeds={result['seeds']}",
+                      *_table(result["methods"], columns),
+                      *_legend("qAUC", "R@100P / qR@100P = recall at 100 % precision, all pairs / per query",
+                               "sd, min, max")])
 
 
 def _method_notes(method: str, entry: dict[str, Any]) -> str:
@@ -135,13 +167,16 @@ def eval_images(
                                                       "efficientnet-lite0-s5 | efficientnet-lite0 "
                                                       "(default: the service's, resolved as serve "
                                                       "does)")] = None,
-    resize: Annotated[str | None, typer.Option(help="crop | squash (default: the service's)")] = None,
+    resize: Annotated[str | None, typer.Option(help="crop | squash (default: a new map's, "
+                                                    "service.maps.params.DEFAULT_RESIZE)")] = None,
     methods: Annotated[str, typer.Option(help="Comma-separated: cosine,slsbh,mcn,htm (one frame); "
                                           "openseqslam (the reference on grey pixels); cosine-seq,"
                                           "slsbh-seq,mcn-seq,htm-seq (the same sequence matcher on each "
                                           "single-image similarity); online-X (the causal localiser on X); "
                                           "service, service-without-tm (the service's own path: a real map, "
-                                          "learn db, localise the query stream). Memory methods bring their "
+                                          "learn db, localise the query stream); service-slam, "
+                                          "service-slam-without-tm (db then query as ONE learning stream: "
+                                          "loop closure while mapping). Memory methods bring their "
                                           "ablations.")]
     = "cosine,slsbh,htm,openseqslam,cosine-seq,slsbh-seq,htm-seq",
     operating_point: Annotated[str | None, typer.Option(
@@ -165,7 +200,8 @@ def eval_images(
                                                 "backwards (a route driven the other way).")] = False,
     drop_dark: Annotated[float, typer.Option(min=0.0, help="Drop pairs where either frame's mean grey is "
                                                           "below this (0 = keep all; §8.5 uses 20).")] = 0.0,
-    seeds: Annotated[int, typer.Option(min=1)] = 3,
+    seeds: Annotated[int, typer.Option(min=1, help="Runs; seeds spawned from --seed (a claim wants 10, "
+                                                   "docs/design/science.md §8.6).")] = 3,
     seed: Annotated[int, typer.Option(help="Experiment seed.")] = 0,
     cache: Annotated[Path | None, typer.Option(help="Feature cache folder (default: "
                                                     "$CORTEXLOC_CACHE_DIR or ~/.cache/cortexloc).")] = None,
@@ -187,19 +223,21 @@ def eval_images(
     from models.frontend import images
     from service.app import resolve_backbone
     from service.cli import service_eval
+    from service.maps.params import DEFAULT_RESIZE
     from service.settings import Settings
 
     # The service's defaults, read from their one home each (docs/design/service.md §8,
     # models.frontend.encoder).
     preset = preset or Settings.model_fields["default_preset"].default
     backbone = backbone or resolve_backbone(Settings.from_env()).backbone
-    resize = resize or encoder_mod.default_conf["resize"]
+    resize = resize or DEFAULT_RESIZE  # a new map's (service.maps.params)
     method_list = [m.strip() for m in methods.split(",") if m.strip()]
     service_list = [m for m in method_list if m in service_eval.METHODS]
-    method_list = [m for m in method_list if m not in service_eval.METHODS]
+    slam_list = [m for m in method_list if m in service_eval.SLAM_METHODS]
+    method_list = [m for m in method_list if m not in service_eval.METHODS and m not in slam_list]
     bad = set(method_list) - set(sequences.METHODS)
-    if bad or not (method_list or service_list):
-        known = ", ".join((*sequences.METHODS, *service_eval.METHODS))
+    if bad or not (method_list or service_list or slam_list):
+        known = ", ".join((*sequences.METHODS, *service_eval.METHODS, *service_eval.SLAM_METHODS))
         raise typer.BadParameter(f"must be among {known}", param_hint="--methods")
     method_list = sequences.with_ablations(method_list)
     wanted_precision = _operating_point(operating_point)
@@ -221,17 +259,22 @@ def eval_images(
                                          "--drop-dark", param_hint="--gt")
             db_names, q_names = sequences.image_names(db), sequences.image_names(query)
             gt_matrix = ground_truth.load(gt, len(db_names), len(q_names), q_names)
-            db_keep = q_keep = None
         else:
-            # Features are computed (and cached) for the whole paired route once; a window is a slice.
-            db_names = q_names = sequences.paired_names(db, query)
-            db_keep = q_keep = np.arange(len(q_names))[offset: None if limit is None else offset + limit]
-            if db_keep.size == 0:
-                raise ValueError(f"offset {offset} leaves no pair of the {len(q_names)} in common")
+            # Only the window's frames (less the dark ones) are read and encoded, cached under their own key.
+            db_names = q_names = sequences.paired_names(db, query, offset, limit)
+            if drop_dark > 0:
+                dark = (sequences.dark_frames([db / n for n in db_names], drop_dark)
+                        | sequences.dark_frames([query / n for n in q_names], drop_dark))
+                db_names = q_names = [n for n, d in zip(q_names, dark, strict=True) if not d]
+                if len(q_names) < 2:
+                    raise typer.BadParameter("fewer than two pairs are left", param_hint="--drop-dark")
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     cache_dir = cache or Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc"))
-    if method_list == ["openseqslam"] and not service_list:  # it reads pixels: no backbone to run
+    if slam_list and gt is not None:
+        raise typer.BadParameter("the service-slam methods pair the folders by file name: leave out "
+                                 "--gt", param_hint="--methods")
+    if method_list == ["openseqslam"] and not (service_list or slam_list):  # pixels only: no backbone
         enc = None
         feats = {label: np.zeros((len(names), 0), np.float32)
                  for label, names in (("db", db_names), ("query", q_names))}
@@ -242,15 +285,6 @@ def eval_images(
             with progress(f"features {label}") as tick:
                 feats[label] = sequences.cached_features(enc, [folder / n for n in names],
                                                          cache_dir / "features", progress=tick)
-    if db_keep is not None:
-        if drop_dark > 0:
-            dark = (sequences.dark_frames([db / db_names[i] for i in db_keep], drop_dark)
-                    | sequences.dark_frames([query / q_names[i] for i in q_keep], drop_dark))
-            db_keep = q_keep = db_keep[~dark]
-            if len(db_keep) < 2:
-                raise typer.BadParameter("fewer than two pairs are left", param_hint="--drop-dark")
-        feats = {"db": feats["db"][db_keep], "query": feats["query"][q_keep]}
-        db_names = q_names = [q_names[i] for i in q_keep]
     db_paths, q_paths = [db / n for n in db_names], [query / n for n in q_names]
     frames = ((seq.load_frames(db_paths), seq.load_frames(q_paths)) if "openseqslam" in method_list
               else None)
@@ -272,9 +306,16 @@ def eval_images(
                     feats["db"], feats["query"], methods=service_list, columns=columns, tolerance=tolerance,
                     gt=gt_matrix, seeds=seeds, seed=seed, reverse_query=reverse_query, progress=tick,
                     map_conf={"encoder_id": enc.identity, "backbone": backbone, "preset": preset,
-                              "create": {"slsbh_conf": {"s": sparsity, "adapt_tau": adapt}}})
+                              "create": {"slsbh_conf": {"s": sparsity, "adapt_tau": adapt},
+                                         "resize": resize}})
             result["methods"].update(summary)
             result["first"].update(first)
+        if slam_list:
+            assert enc is not None
+            result["loop_closure"] = _loop_closure(
+                feats, slam_list, tolerance=tolerance, seed=seed,
+                map_conf={"encoder_id": enc.identity, "backbone": backbone, "preset": preset,
+                          "create": {"slsbh_conf": {"s": sparsity, "adapt_tau": adapt}}})
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     first = result.pop("first")
@@ -306,11 +347,45 @@ def eval_images(
             m: service_eval.operating_point(r["confidence"], r["correct"], wanted_precision)
             for m, r in first.items()}
     write_json(json_out, result)
-    typer.echo(format_images_table(result))
+    if result["methods"]:
+        typer.echo(format_images_table(result))
+    for m, s in result.get("loop_closure", {}).items():
+        lap1, lap2 = s["lap"][0], s["lap"][1]
+        typer.echo(f"{m} (lap 1 = --db, lap 2 = --query, one learning stream, at the map's threshold "
+                   f"{s['threshold']}): lap 1 false revisits {lap1['false_revisits']}; lap 2 precision "
+                   f"{_fmt(lap2['precision'])}, recall {_fmt(lap2['recall'])}, "
+                   f"R@1 {_fmt(lap2['recall_at_1'])}, "
+                   f"query AUC {_fmt(lap2.get('query_auc'))}, recall at 100% precision "
+                   f"{_fmt(lap2.get('recall_at_100p'))}")
     for m, point in result.get("operating_points", {}).items():
         typer.echo(f"operating point {m}: " + (
             f"confidence >= {point['threshold']:.4f} gives precision {point['precision']:.3f}, recall "
             f"{point['recall']:.3f}" if point else f"no threshold reaches precision {wanted_precision}"))
+
+
+def _fmt(v: float | None) -> str:
+    return "-" if v is None else f"{v:.3f}"
+
+
+def _loop_closure(feats: dict[str, np.ndarray], methods: list[str], *, tolerance: int, seed: int,
+                  map_conf: dict[str, Any]) -> dict[str, Any]:
+    """`service-slam*`: the database then the query traverse posted as ONE learning stream
+    (`service_eval.slam_replay`), scored per lap (`models.evaluation.slam.score`; file i of either
+    folder is place i) at the map's threshold."""
+    from models.evaluation import slam
+    from service.cli import service_eval
+
+    n_db, n_q = len(feats["db"]), len(feats["query"])
+    labels = np.r_[np.arange(n_db), np.arange(n_q)]
+    laps = np.r_[np.zeros(n_db, np.int64), np.ones(n_q, np.int64)]
+    out = {}
+    for m in methods:
+        run = np.concatenate([feats["db"], feats["query"]])
+        found, threshold = service_eval.slam_replay(run, seed=seed, memory=service_eval.SLAM_METHODS[m],
+                                                    **map_conf)
+        out[m] = {"threshold": threshold,
+                  **slam.score(found.best, found.confidence, labels, threshold, tolerance, laps)}
+    return out
 
 
 def _operating_point(value: str | None) -> float | None:
@@ -328,20 +403,18 @@ def _operating_point(value: str | None) -> float | None:
 
 
 def format_images_table(result: dict[str, Any]) -> str:
-    """A readable table of an image result (stdout): the settings it ran with, then both metrics."""
+    """A readable table of an image result (stdout): the settings it ran with, both metrics, a legend."""
     c = result["config"]
-    lines = [f"{Path(c['db']).name} -> {Path(c['query']).name}: {c['pairs']} queries ({c['first']} .. "
-             f"{c['last']}), ground truth {c['gt']}, tolerance ±{c['tolerance']}",
-             f"preset {c['preset']}, backbone {c['backbone']} [{c['weights']} weights], "
-             f"resize {c['resize']}, s={c['s']}, adapt={c['adapt_tau']}, "
-             f"{'reset' if c['reset'] else 'no reset'}, seeds={c['seeds']}, ds={c['ds']}; "
-             f"{len(result['queries'])} queries scored",
-             "all pairs = the paper's AUC (§8.2); per query = each query's best match and its confidence",
-             f"{'method':<12} {'AUC pairs':>9} {'min':>7} {'max':>7} {'AUC query':>9} {'R@1':>6} {'R@5':>6} "
-             f"{'R@100P':>7} {'s/run':>7}  notes"]
-    for m, e in result["methods"].items():
-        lines.append(f"{m:<12} {e['auc_mean']:>9.4f} {e['auc_min']:>7.4f} {e['auc_max']:>7.4f} "
-                     f"{e['query_auc_mean']:>9.4f} {e['recall_at_1_mean']:>6.3f} "
-                     f"{e['recall_at_5_mean']:>6.3f} {e['query_recall_at_100p_mean']:>7.3f} "
-                     f"{e['seconds_mean']:>7.2f}  {_method_notes(m, e)}")
-    return "\n".join(lines)
+    columns = [("AUC pairs", "auc_mean", ".4f"), ("min", "auc_min", ".4f"), ("max", "auc_max", ".4f"),
+               ("AUC query", "query_auc_mean", ".4f"), ("R@1", "recall_at_1_mean", ".3f"),
+               ("R@5", "recall_at_5_mean", ".3f"), ("R@100P", "query_recall_at_100p_mean", ".3f"),
+               ("s/run", "seconds_mean", ".2f")]
+    return "\n".join([
+        f"{Path(c['db']).name} -> {Path(c['query']).name}: {c['pairs']} queries "
+        f"({c['first']} .. {c['last']}), ground truth {c['gt']}, tolerance ±{c['tolerance']}",
+        f"preset {c['preset']}, backbone {c['backbone']} [{c['weights']} weights], resize {c['resize']}, "
+        f"s={c['s']}, adapt={c['adapt_tau']}, {'reset' if c['reset'] else 'no reset'}, seeds={c['seeds']}, "
+        f"ds={c['ds']}; {len(result['queries'])} queries scored",
+        *_table(result["methods"], columns),
+        *_legend("AUC query", "R@100P = recall at 100 % precision, per query", "min, max"),
+        "s/run = seconds per seed"])

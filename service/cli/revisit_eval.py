@@ -24,7 +24,7 @@ import numpy as np
 from models.evaluation import sequences
 from models.frontend.encoder import Encoder
 from service.cli import service_eval
-from service.maps.params import DEFAULT_REVISIT_THRESHOLD
+from service.maps.params import DEFAULT_RESIZE, DEFAULT_REVISIT_THRESHOLD
 from service.settings import Settings
 
 
@@ -52,7 +52,7 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=894)
     ap.add_argument("--noise", type=float, default=8.0, help="pixel noise, grey levels (std)")
     ap.add_argument("--backbone", default="efficientnet-lite0")
-    ap.add_argument("--resize", default="squash")
+    ap.add_argument("--resize", default=DEFAULT_RESIZE, help="default: a new map's")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()

@@ -22,6 +22,7 @@ import numpy as np
 from models.evaluation import sequences
 from models.frontend.encoder import Encoder
 from service.cli import service_eval
+from service.maps.params import DEFAULT_RESIZE
 from service.settings import Settings
 
 
@@ -39,7 +40,7 @@ def main() -> None:
     settings = Settings.from_env()
     backbone = args.backbone or resolve_backbone(settings).backbone
     names = sequences.paired_names(args.db, args.query)
-    enc = Encoder({"backbone": backbone, "resize": "squash"})
+    enc = Encoder({"backbone": backbone, "resize": DEFAULT_RESIZE})  # a new map's
     cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
     db = sequences.cached_features(enc, [args.db / n for n in names], cache)
     q = sequences.cached_features(enc, [args.query / n for n in names], cache)

@@ -6,15 +6,17 @@ else arrives within a few milliseconds (up to `max_batch`), and runs one backbon
 them, so throughput under load approaches the backbone's batch throughput. A full queue answers 503
 `overloaded` at once instead of letting latency grow without bound.
 
-Batches are per backbone: a request names its map's backbone, and a batch holding several runs one
-backbone call per backbone present (`service.maps.encoders.Encoders` holds one encoder each).
+Batches are per backbone and resize mode: a request names its map's backbone and `resize` (crop |
+squash, frozen with the map), and a batch holding several runs one backbone call per pair present
+(`service.maps.encoders.Encoders` holds one encoder per backbone; the mode is a per-call argument).
 
 A request brings its map's sLSBH hasher (`MapRuntime.observe` passes it): the batch is then also
-projected here (y = x·P), one matrix product per map present in the batch. The dense projection is
-64,896 x 1,024 float32 (266 MB) and the product is bound by reading it, so projecting image by image in
-the map's writer costs the same ~15-20 ms per image as projecting 16 at once costs per batch
-(benchmarks/bench_http.py, docs/benchmarks.md); in the writer it also serialises behind the TM step and
-the commit. The projection is stateless (a map's matrix never changes), so doing it before the writer
+projected here (y = x·P), one matrix product per map present in the batch. A dense projection is
+D x 1,024 float32 (21.4 MiB for the default `efficientnet-lite0-s5`, D = 5,488; an AlexNet map gets the
+very sparse one, service/maps/projection.py) and the product is bound by reading it, so projecting
+image by image in the map's writer would read the matrix once per image where a batch reads it once
+(docs/scaling.md has the sizes and the command); in the writer it would also serialise behind the TM
+step and the commit. The projection is stateless (a map's matrix never changes), so doing it before the writer
 changes no ordering; what depends on the stream (adaptation, models.frontend.adaptation) and the top-n
 selection of the code stay in the writer, on k values.
 """
@@ -63,8 +65,9 @@ class EncoderPool:
             t.start()
 
     def submit(self, body: bytes | RawFrame, hasher: Hasher | None = None, backbone: str | None = None,
-               thumbnail: bool = False) -> Future[EncodeResult]:
-        """Queue one image (encoded bytes or a raw frame) for `backbone` (None: the default); the future's
+               thumbnail: bool = False, resize: str | None = None) -> Future[EncodeResult]:
+        """Queue one image (encoded bytes or a raw frame) for `backbone` (None: the default) resized by
+        `resize` (None: the encoder's own mode); the future's
         `EncodeResult` has `features` (1, D), with `hasher` `projected` (1, k) = features · that hasher's
         projection (else None), and with `thumbnail` `thumbnails` = [a small JPEG of the decoded frame].
 
@@ -76,7 +79,7 @@ class EncoderPool:
                 raise Overloaded(self.limit)
             self.pending += 1
         fut: Future[EncodeResult] = Future()
-        self._queue.put((body, fut, hasher, thumbnail, backbone or self.encoders.default))
+        self._queue.put((body, fut, hasher, thumbnail, (backbone or self.encoders.default, resize)))
         return fut
 
     def _run(self) -> None:
@@ -96,13 +99,14 @@ class EncoderPool:
                     self._queue.put(_STOP)  # let the other workers see it too
                     break
                 batch.append(nxt)
-            groups: dict[str, list[tuple[bytes | RawFrame, Future[EncodeResult], Hasher | None, bool]]] = {}
-            for body, fut, hasher, thumb, backbone in batch:
-                groups.setdefault(backbone, []).append((body, fut, hasher, thumb))
-            for backbone, group in groups.items():
-                self._encode(backbone, group)
+            groups: dict[tuple[str, str | None],
+                         list[tuple[bytes | RawFrame, Future[EncodeResult], Hasher | None, bool]]] = {}
+            for body, fut, hasher, thumb, how in batch:
+                groups.setdefault(how, []).append((body, fut, hasher, thumb))
+            for (backbone, resize), group in groups.items():
+                self._encode(backbone, resize, group)
 
-    def _encode(self, backbone: str,
+    def _encode(self, backbone: str, resize: str | None,
                 batch: list[tuple[bytes | RawFrame, Future[EncodeResult], Hasher | None, bool]]) -> None:
         taken = len(batch)
         # A request whose client went away cancelled its future while it waited: it costs no encoding.
@@ -112,7 +116,7 @@ class EncoderPool:
                 return
             try:
                 encoder = self.encoders.get(backbone)
-                out = _embed(encoder, [item[0] for item in batch], [item[3] for item in batch])
+                out = _embed(encoder, [item[0] for item in batch], [item[3] for item in batch], resize)
                 projected, ms = self._project(out.features, [item[2] for item in batch])
                 for i, (_, fut, _, _) in enumerate(batch):
                     fut.set_result(EncodeResult(codes=None, features=out.features[i:i + 1],
@@ -123,7 +127,7 @@ class EncoderPool:
                 # One bad image must not fail the others: encode each alone to attribute the error.
                 for body, fut, hasher, thumb in batch:
                     try:
-                        one = _embed(encoder, [body], [thumb])
+                        one = _embed(encoder, [body], [thumb], resize)
                         projected, one.timings_ms["project"] = self._project(one.features, [hasher])
                         one.projected = projected[0]
                         fut.set_result(one)
@@ -165,6 +169,8 @@ class EncoderPool:
             t.join(timeout=30)
 
 
-def _embed(encoder: Encoder, bodies: list[bytes | RawFrame], thumbs: list[bool]) -> EncodeResult:
+def _embed(encoder: Encoder, bodies: list[bytes | RawFrame], thumbs: list[bool],
+           resize: str | None) -> EncodeResult:
     # Only maps that keep thumbnails ask for them; the others' batches are encoded as before.
-    return encoder.embed(bodies, thumbnails=thumbs) if any(thumbs) else encoder.embed(bodies)
+    how = {"resize": resize} if resize is not None else {}
+    return encoder.embed(bodies, thumbnails=thumbs, **how) if any(thumbs) else encoder.embed(bodies, **how)

@@ -16,8 +16,9 @@ from storage.snapshots import SnapshotInvalid
 
 __all__ = ["IdempotencyKeyReused", "InsufficientStorage", "InvalidConfiguration", "InvalidMapId",
            "MapAlreadyExists", "MapError", "MapFull", "MapLimit", "MapNotFound", "MapTooLarge",
-           "MapUnavailable", "MemoryBudgetExceeded", "ObservationNotFound", "Overloaded", "SnapshotInUse",
-           "SnapshotInvalid", "SnapshotNotFound", "StoreClosed", "StreamLimit"]
+           "MapUnavailable", "MemoryBudgetExceeded", "ObservationNotFound", "Overloaded",
+           "RecentAnswerNotFound", "SnapshotInUse", "SnapshotInvalid", "SnapshotNotFound", "StoreClosed",
+           "StreamLimit"]
 
 
 class MapError(Exception):
@@ -134,6 +135,15 @@ class ObservationNotFound(MapError):  # noqa: N818
     def __init__(self, map_id: str, seq: int, what: str = "observation") -> None:
         super().__init__(f"map {map_id!r} has no {what} with seq {seq}")
         self.map_id, self.seq = map_id, seq
+
+
+class RecentAnswerNotFound(MapError):  # noqa: N818
+    """No query thumbnail kept with that recent answer (none taken, over the ring's budget, or fallen off
+    the ring)."""
+
+    def __init__(self, map_id: str, answer_id: int) -> None:
+        super().__init__(f"map {map_id!r} keeps no thumbnail of recent answer {answer_id}")
+        self.map_id, self.answer_id = map_id, answer_id
 
 
 class IdempotencyKeyReused(MapError):  # noqa: N818

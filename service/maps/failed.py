@@ -61,15 +61,14 @@ class FailedMap:
 
     def info(self) -> MapInfo:
         p = self.params if isinstance(self.params, dict) else {}
-        text = {k: _as(map_option(p, k), str, "") for k in ("memory", "projection", "backbone")}
+        text = {k: _as(map_option(p, k), str, "") for k in ("memory", "projection", "backbone", "resize")}
         return MapInfo(
             map_id=self.map_id, created_at=self.record.created_at, state=self.state,
             state_reason=self.state_reason, preset=self.record.preset,
             params={"tm": _as(p.get("tm"), dict, {}), "slsbh": _as(p.get("slsbh"), dict, {}),
                     "seed": _as(p.get("seed"), int, 0),
-                    "exclude_recent": _as(p.get("exclude_recent"), int, 0),
                     "memory": text["memory"], "projection": text["projection"],
-                    "localiser": _as(map_option(p, "localiser"), dict, {})},
+                    "localiser": _as(map_option(p, "localiser"), dict, {}), "resize": text["resize"]},
             encoder=_as(p.get("encoder_id"), str, ""),
             projection_sha256=_as(p.get("projection_sha256"), str, ""),
             observations=0, last_seq=0, streams=[], warnings=_as(p.get("warnings"), list, []),

@@ -64,10 +64,12 @@ class IdempotentPost:
 
 @dataclass(frozen=True)
 class Reply:
-    """An idempotent post's answer: the reply's JSON; `replayed` when it is an earlier post's."""
+    """An idempotent post's answer: the reply's JSON; `replayed` when it is an earlier post's;
+    `thumbnail` as `ObservationResult.thumbnail` (None for a replay)."""
 
     body: str
     replayed: bool
+    thumbnail: bytes | None = None
 
 
 #: The most reply text a map's cache holds: a reply with 100 matches of 4 KiB metadata each is ~400 KB,

@@ -12,27 +12,35 @@ from __future__ import annotations
 from typing import Any
 
 from models import presets
-from models.frontend import backbones, slsbh
+from models.frontend import backbones, images, slsbh
 from models.localisation import LocaliserParams
 from models.memory.temporal_memory import validate
 from models.pipeline import MapModel
 from service.maps.errors import InvalidConfiguration
 
-__all__ = ["DEFAULT_REVISIT_THRESHOLD", "MEMORY_KINDS", "check_revisit_threshold", "map_model", "map_option",
-           "resolve_params"]
+__all__ = ["DEFAULT_RESIZE", "DEFAULT_REVISIT_THRESHOLD", "MEMORY_KINDS", "check_revisit_threshold",
+           "map_model", "map_option", "resolve_params"]
 
 #: A new map's `revisit_threshold` (docs/design/service.md §1.2): the confidence at which an answer is
-#: called a revisit. docs/results.md §9.2: on Nordland `tune` (EfficientNet-Lite0, the service's path,
-#: `--operating-point precision=0.99`, the confidence with the null of docs/design/science.md §11.5)
-#: precision 0.99 is reached at confidence 0.951; changeable per map with PATCH.
-DEFAULT_REVISIT_THRESHOLD = 0.951
+#: called a revisit. docs/results.md §10: chosen on the Nordland `tune` half only, per route (two laps
+#: across seasons, the same lap twice with pixel noise, a short lap, a stop, an excursion; learning
+#: streams and the localise mode, with and without the Temporal Memory): the lowest confidence with no
+#: false revisit in lap 1 and precision >= 0.99 on every route is 0.915 (the map without the memory on
+#: the stop, excursion and two-season routes; 0.86 with it), rounded up; changeable per map with PATCH.
+DEFAULT_REVISIT_THRESHOLD = 0.92
+
+#: A new map's `resize` (crop | squash: how a frame of any shape becomes the backbone's 224 x 224 input,
+#: docs/design/science.md §6). docs/results.md §9.6: through the service's path on Nordland, on 2:1
+#: frames and on 4:3 frames cut from the same footage, squash gave more right places and more revisits
+#: than crop on both shapes, in every seed. Maps made before the option keep `crop` (_LEGACY).
+DEFAULT_RESIZE = "squash"
 
 #: `memory`: `tm` (the Temporal Memory's winner cells) or `none` (the sLSBH code itself: the ablation).
 MEMORY_KINDS = ("tm", "none")
 
 # What maps made before an option existed run with (their params lack the key).
 _LEGACY = {"backbone": "alexnet", "memory": "tm", "revisit_threshold": DEFAULT_REVISIT_THRESHOLD,
-           "localiser": {}, "projection": "dense"}
+           "localiser": {}, "projection": "dense", "resize": "crop"}
 
 
 def map_option(params: dict[str, Any], name: str) -> Any:
@@ -44,8 +52,7 @@ def map_model(params: dict[str, Any], *, max_observations: int) -> MapModel:
     """A fresh pipeline model (models.pipeline) of a map with these frozen parameters."""
     return MapModel.new(params["tm"], map_option(params, "localiser"), max_observations=max_observations,
                         memory=map_option(params, "memory"), s=float(params["slsbh"]["s"]),
-                        adapt_tau=int(params["slsbh"].get("adapt_tau", 0)),  # maps made before it: none
-                        exclude_recent=int(params.get("exclude_recent", 0)))
+                        adapt_tau=int(params["slsbh"].get("adapt_tau", 0)))  # maps made before it: none
 
 
 def check_revisit_threshold(value: float) -> float:
@@ -62,10 +69,10 @@ def _body(name: str, message: str) -> dict[str, str]:
 
 
 def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] | None = None,
-                   slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
+                   slsbh_conf: dict[str, Any] | None = None,
                    backbone: str = "alexnet", memory: str = "tm",
                    revisit_threshold: float = DEFAULT_REVISIT_THRESHOLD,
-                   localiser: dict[str, Any] | None = None) -> dict[str, Any]:
+                   localiser: dict[str, Any] | None = None, resize: str = DEFAULT_RESIZE) -> dict[str, Any]:
     """Freeze a map's parameters: preset <- overrides, every value checked before anything is
     converted or allocated.
 
@@ -73,18 +80,18 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
         preset: a preset name with a `tm` section.
         seed: overrides `tm.seed` (and so the projection's seed unless `slsbh.seed` is given).
         tm, slsbh_conf: the request's overrides, as sent.
-        exclude_recent: frozen into the map.
         backbone: a registered backbone (`models.frontend.backbones`), frozen into the map.
         memory: `tm` | `none` (MEMORY_KINDS). revisit_threshold: in [0, 1] (changeable later).
         localiser: options over `models.localisation.default_conf` (docs/design/science.md §11.3).
+        resize: crop | squash (`models.frontend.images.MODES`), frozen into the map.
 
     Returns:
-        {"preset", "tm", "slsbh", "seed", "exclude_recent", "backbone", "memory", "revisit_threshold",
-        "localiser", "warnings"}.
+        {"preset", "tm", "slsbh", "seed", "backbone", "memory", "revisit_threshold",
+        "localiser", "resize", "warnings"}.
 
     Raises:
         InvalidConfiguration: `errors` names each offending parameter (`tm.<name>`, `slsbh.<name>`,
-            `localiser.<name>`), or the unknown preset.
+            `localiser.<name>`, `backbone`, `memory`, `resize`), or the unknown preset.
     """
     errors: list[dict[str, str]] = []
 
@@ -123,9 +130,11 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
         errors.append(_body("backbone", f"unknown backbone {backbone!r}; known: {known}"))
     if memory not in MEMORY_KINDS:
         errors.append(_body("memory", f"memory must be one of {', '.join(MEMORY_KINDS)}"))
+    if resize not in images.MODES:
+        errors.append(_body("resize", f"resize must be one of {', '.join(images.MODES)}"))
     if errors:
         raise InvalidConfiguration("; ".join(e["message"] for e in errors), errors)
     return {"preset": preset, "tm": tm_params, "slsbh": s_conf, "seed": tm_params["seed"],
-            "exclude_recent": int(exclude_recent), "backbone": backbone, "memory": memory,
+            "backbone": backbone, "memory": memory,
             "revisit_threshold": check_revisit_threshold(revisit_threshold),
-            "localiser": dict(localiser or {}), "warnings": warnings}
+            "localiser": dict(localiser or {}), "resize": resize, "warnings": warnings}

@@ -99,7 +99,7 @@ class MapRegistry:
                           s.snapshot_every, s.snapshot_keep, max_keys=s.idempotency_keys,
                           key_cache=s.idempotency_cache, budget=self.budget,
                           stream_keep_seconds=s.stream_keep_seconds, manual_keep=s.snapshot_manual_keep,
-                          manual_bytes=s.snapshot_manual_bytes)
+                          manual_bytes=s.snapshot_manual_bytes, max_closures=s.loop_closures)
 
 
     def start(self) -> None:
@@ -162,10 +162,11 @@ class MapRegistry:
             log.error("map %s: %s", record.map_id, unavailable)
             return rt
         rt = self._runtime(record, encoder.feature_dim)
-        if record.params.get("encoder_id") != encoder.identity:
+        resize = map_option(record.params, "resize")  # the map's mode: one network serves both
+        if record.params.get("encoder_id") != encoder.identity_for(resize):
             rt.state, rt.state_reason = "failed", "encoder-mismatch"
             log.error("map %s was built with encoder %s, this server runs %s", record.map_id,
-                      record.params.get("encoder_id"), encoder.identity)
+                      record.params.get("encoder_id"), encoder.identity_for(resize))
             return rt
         try:
             rt.recover()
@@ -187,9 +188,10 @@ class MapRegistry:
         return rt
 
     def create(self, map_id: str, *, preset: str, seed: int | None = None, tm: dict[str, Any] | None = None,
-               slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
+               slsbh_conf: dict[str, Any] | None = None,
                backbone: str | None = None, memory: str = "tm", revisit_threshold: float | None = None,
-               localiser: dict[str, Any] | None = None, thumbnails: bool = False) -> MapRuntime:
+               localiser: dict[str, Any] | None = None, thumbnails: bool = False,
+               resize: str | None = None) -> MapRuntime:
         """Create a map: resolve and freeze parameters, persist the projection, then the store (§1.1).
 
         Raises:
@@ -198,9 +200,10 @@ class MapRegistry:
         if not MAP_ID_RE.match(map_id):
             raise InvalidMapId(map_id, MAP_ID_RE.pattern)
         params = resolve_params(
-            preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf, exclude_recent=exclude_recent,
+            preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf,
             backbone=backbone or self.encoders.default, memory=memory, localiser=localiser,
-            **({} if revisit_threshold is None else {"revisit_threshold": revisit_threshold}))
+            **({} if revisit_threshold is None else {"revisit_threshold": revisit_threshold}),
+            **({} if resize is None else {"resize": resize}))
         need = map_projection.model_bytes(params, self.settings.max_streams)
         if need > self.settings.max_map_bytes:
             raise MapTooLarge(need, self.settings.max_map_bytes)
@@ -240,7 +243,7 @@ class MapRegistry:
         del P
         params["projection_sha256"] = sha
         self.budget.reserve(map_id, self._need(params, encoder.feature_dim, 0))  # shared: less
-        params["encoder_id"] = encoder.identity
+        params["encoder_id"] = encoder.identity_for(params["resize"])  # backbone, weights, resize mode
         params["thumbnails"] = bool(thumbnails)  # frozen like the rest (docs/design/service.md §1.1)
         if encoder.identity.split("/")[1].startswith("random"):
             log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, encoder.identity)
@@ -249,7 +252,7 @@ class MapRegistry:
             shutil.rmtree(map_dir)  # leftovers of a creation that never reached the catalog
         map_dir.mkdir(parents=True)
         store = MapStore.create(self.layout.map_db(map_id), MapMeta(
-            map_id=map_id, params=params, projection_sha256=sha, encoder_id=encoder.identity,
+            map_id=map_id, params=params, projection_sha256=sha, encoder_id=params["encoder_id"],
             cell_dtype=cell_dtype_for(int(params["tm"]["columnDimensions"])
                                       * int(params["tm"]["cellsPerColumn"]))))
         store.close()

@@ -6,10 +6,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["BudgetInfo", "IndexMemory", "MapInfo", "MapReservation", "Match", "MemoryInfo",
-           "ObservationResult", "PlaceResult",
-           "RestoreResult", "SequenceStats", "SnapshotInfo", "StorageMemory", "StoredObservation",
-           "StreamReset", "StreamsMemory", "TmMemory"]
+__all__ = ["BudgetInfo", "IndexMemory", "LoopClosureResult", "MapInfo", "MapReservation", "Match",
+           "MemoryInfo", "ObservationResult", "PlaceResult", "RestoreResult", "SequenceStats", "SnapshotInfo",
+           "StorageMemory", "StoredObservation", "StoredRow", "StreamReset", "StreamsMemory", "TmMemory"]
 
 
 @dataclass(frozen=True)
@@ -91,6 +90,11 @@ class ObservationResult:
     backbone: str
     place: PlaceResult | None
     metadata: dict[str, Any] | None = None  # the frame's, as posted (stored with a learned row)
+    encoder: str = ""  # the map's encoder identity (backbone, weights, resize mode)
+    resize: str = "crop"  # the map's resize mode (crop | squash)
+    # The frame's small JPEG on a map that keeps thumbnails, learned or not: for the recent ring (the
+    # viewer's query thumbnail, docs/design/service.md §1.7), never part of a reply.
+    thumbnail: bytes | None = None
 
 
 @dataclass(frozen=True)
@@ -135,6 +139,33 @@ class StoredObservation:
     image_sha256: str
     metadata: dict[str, Any] | None
     has_thumbnail: bool
+
+
+@dataclass(frozen=True)
+class LoopClosureResult:
+    """One logged loop closure (docs/design/science.md §11.6): the frame (its row when it was learned)
+    and the stored row its place named, as `place` answered."""
+
+    id: int
+    stream: str
+    seq: int | None
+    observation_id: str | None
+    metadata: dict[str, Any] | None
+    place: StoredRow
+    confidence: float
+    support: int
+    created_at: str
+
+
+@dataclass(frozen=True)
+class StoredRow:
+    """A stored row's identity and what the client stored with it."""
+
+    seq: int
+    observation_id: str
+    stream: str
+    label: str | None
+    metadata: dict[str, Any] | None
 
 
 @dataclass(frozen=True)

@@ -59,7 +59,7 @@ from service.maps.results import (
 )
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, utc_now
-from storage.mapstore import MapStore, NewObservation, StorageFull, StoreCorrupt
+from storage.mapstore import MapStore, NewClosure, NewObservation, StorageFull, StoreCorrupt
 
 __all__ = ["MapRuntime"]
 
@@ -78,7 +78,8 @@ class MapRuntime:
                  feature_dim: int, max_streams: int, max_observations: int,
                  snapshot_every: int = 0, snapshot_keep: int = 3, *, max_keys: int | None = None,
                  key_cache: int = 0, budget: MemoryBudget | None = None,
-                 stream_keep_seconds: float = 0.0, manual_keep: int = 0, manual_bytes: int = 0) -> None:
+                 stream_keep_seconds: float = 0.0, manual_keep: int = 0, manual_bytes: int = 0,
+                 max_closures: int | None = None) -> None:
         self.record = record
         self.map_id = record.map_id
         self.params = record.params
@@ -94,6 +95,7 @@ class MapRuntime:
         # Idempotency keys: those of learned posts in the store (the last `max_keys` seqs), those of
         # localisations in memory (service.maps.idempotency).
         self.max_keys = max_keys
+        self.max_closures = max_closures  # loop closures kept in the store's log (the last N)
         self.keys = idempotency.KeyCache(key_cache)
         # The process-wide budget that holds this map's reservation (docs/design/service.md §1.8): each
         # learned row reserves its index bytes first. None: a runtime built alone (tools, tests).
@@ -123,6 +125,7 @@ class MapRuntime:
         except (slsbh.ProjectionError, OSError) as e:
             self._projection_error = str(e)
         self.memory_kind, self.backbone = (map_option(self.params, k) for k in ("memory", "backbone"))
+        self.resize: str = map_option(self.params, "resize")  # crop | squash, frozen with the map
         self.revisit_threshold = float(map_option(self.params, "revisit_threshold"))
         # The memory, index and links the pure pipeline steps (models.pipeline); this runtime keeps
         # their order, their persistence and their snapshots.
@@ -279,6 +282,7 @@ class MapRuntime:
             snapshots.remove_stale_temp(self.layout.snapshots_dir(self.map_id))
         try:
             self.store = MapStore.open(self.layout.map_db(self.map_id), max_keys=self.max_keys,
+                                       max_closures=self.max_closures,
                                        seq_floor=self.catalog.get_high_water(self.map_id))
             if not self.store.quick_check():
                 raise StoreCorrupt("quick_check failed")
@@ -344,8 +348,9 @@ class MapRuntime:
         with contextlib.suppress(RuntimeError):
             self._admit(stream)
         t0 = time.perf_counter()
-        encoding = pool.submit(body, hasher=self.hasher, backbone=self.backbone,
-                               thumbnail=learn and self.thumbnails)
+        # Localised frames too: their thumbnail is kept in the recent ring only (never stored).
+        encoding = pool.submit(body, hasher=self.hasher, backbone=self.backbone, thumbnail=self.thumbnails,
+                               resize=self.resize)
         before, mine = self._turn, asyncio.Event()
         self._turn = mine
         try:
@@ -354,10 +359,11 @@ class MapRuntime:
             await before.wait()
             assert encoded.projected is not None  # the pool projects when given a hasher
             front = {"decode": encoded.timings_ms["decode"], "encode": (t_encoded - t0) * 1e3}
+            thumb = encoded.thumbnails[0] if encoded.thumbnails else None
             apply = functools.partial(
                 self.apply, encoded.projected[0], hashlib.sha256(getattr(body, "data", body)).hexdigest(),
                 learn=learn, stream=stream, top_k=top_k, label=label, metadata=metadata,
-                thumbnail=encoded.thumbnails[0] if encoded.thumbnails else None, post=post)
+                thumbnail=thumb if learn else None, post=post)
             if post is not None:
                 post.front_ms = front
                 assert self.store is not None  # a ready map has its store
@@ -367,9 +373,10 @@ class MapRuntime:
         finally:
             mine.set()
         if post is not None:
-            return await asyncio.wrap_future(once)
+            answer = await asyncio.wrap_future(once)
+            return answer if answer.replayed else dataclasses.replace(answer, thumbnail=thumb)
         result = await asyncio.wrap_future(step)
-        return dataclasses.replace(result, timings_ms={**front, **result.timings_ms})
+        return dataclasses.replace(result, timings_ms={**front, **result.timings_ms}, thumbnail=thumb)
 
     def apply(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None = None, thumbnail: bytes | None = None,
@@ -403,8 +410,10 @@ class MapRuntime:
             return self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k, label=label,
                               metadata=metadata, thumbnail=thumbnail, post=post)
         except Exception as e:
-            if not learn:
-                raise  # a localisation learns nothing: the memory and the store still agree
+            if not learn:  # a localisation learns nothing: the memory and the store still agree
+                if isinstance(e, StorageFull):  # its loop closure could not be logged: no answer either
+                    raise InsufficientStorage("the loop closure could not be logged: the disk is full") from e
+                raise
             # The TM may hold a learned step the store does not (a failed commit, or a failure anywhere
             # between the step and the commit): rebuild from the store before anything else runs, so
             # no later row is learned on a memory that replay cannot reproduce (docs/design/service.md §4.3).
@@ -427,7 +436,8 @@ class MapRuntime:
         st, evicted = touch(self.streams, stream, self.max_streams, self.clock())
         self.stream_evictions += evicted
         seq = self.store.next_seq() if learn else None  # this thread is the store's only writer
-        step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq)
+        step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq,
+                                code_of=self._code_of)
         t3 = time.perf_counter()
         place = step.place
         rows = self.store.get_many([*(m.seq for m in step.ranked), *([place.seq] if place else [])])
@@ -441,11 +451,19 @@ class MapRuntime:
             matches=[Match.of(i + 1, rows[m.seq], m.overlap, m.score) for i, m in enumerate(step.ranked)],
             timings_ms=step.timings_ms, map_seq=seq or self.store.last_seq(),
             projection_sha256=self.params["projection_sha256"], backbone=self.backbone, metadata=metadata,
+            encoder=self.params["encoder_id"], resize=self.resize,
             place=None if place is None else PlaceResult.of(place, rows[place.seq], self.revisit_threshold))
+        # A revisit is a loop closure, logged durably: with the learned row in its transaction, or alone
+        # for a localising stream (it stores no observation and changes no memory; §11.6).
+        closure = None if result.place is None or not result.place.revisit else NewClosure(
+            stream=stream, place_seq=result.place.seq, confidence=result.place.confidence,
+            support=result.place.support, metadata=metadata, key=post.key if post is not None else None)
+        if row is None and closure is not None:
+            self.store.add_closure(closure)
         if row is not None:
             if post is not None:
                 row = dataclasses.replace(row, key=post.record(result))
-            committed = self.store.append(row)
+            committed = self.store.append(dataclasses.replace(row, closure=closure))
             assert committed == seq  # this thread is the store's only writer
             # The stream's step is recorded before the automatic snapshot, so the snapshot holds the
             # stream as it is after this frame.
@@ -453,6 +471,13 @@ class MapRuntime:
                 self._auto_snapshot()
         t4 = time.perf_counter()
         return dataclasses.replace(result, timings_ms={**result.timings_ms, "store": (t4 - t3) * 1e3})
+
+    def _code_of(self, seq: int) -> np.ndarray:
+        """Writer: a stored row's frame code (its sLSBH input SDR), for the own-trail rule (§11.6)."""
+        assert self.store is not None
+        row = self.store.get(seq)
+        assert row is not None  # the rule walks the stream's committed rows
+        return row.input_sdr
 
     # ------------------------------------------------------------------ resources
 
@@ -462,8 +487,9 @@ class MapRuntime:
             map_id=self.map_id, created_at=self.record.created_at, state=self.state,
             state_reason=self.state_reason, preset=p["preset"],
             params={"tm": p["tm"], "slsbh": p["slsbh"], "seed": p["seed"],
-                    "exclude_recent": p["exclude_recent"], "memory": self.memory_kind,
-                    "projection": map_option(p, "projection"), "localiser": self.localisation.localiser.conf},
+                    "memory": self.memory_kind,
+                    "projection": map_option(p, "projection"), "localiser": self.localisation.localiser.conf,
+                    "resize": self.resize},
             encoder=p["encoder_id"], projection_sha256=p["projection_sha256"],
             observations=len(self.index),
             last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),

@@ -219,7 +219,8 @@ async def post_observation(
             matches=[MatchModel.from_result(m) for m in result.matches], place=result.place,
             timings_ms={k: round(v, 3) for k, v in timings.items()},
             versions=Versions(api="v1", code=request.app.version, backbone=result.backbone,
-                              encoder=desc["encoder"], weights=desc["weights"], runtime=desc["runtime"],
+                              encoder=result.encoder, resize=result.resize, weights=desc["weights"],
+                              runtime=desc["runtime"],
                               device=desc["device"],
                               projection=f"sha256:{result.projection_sha256}", map_seq=result.map_seq),
             metadata=result.metadata)
@@ -246,11 +247,11 @@ async def post_observation(
             return _replayed(out)
         first = ObservationModel.model_validate_json(out.body)
         _count(metrics, map_id, learn, first.timings_ms)
-        rt.recent.add(first.stream, _recent(first))  # replays are not added
+        rt.recent.add(first.stream, _recent(first), out.thumbnail)  # replays are not added
         return Response(out.body, media_type="application/json")
     model = reply(out)
     _count(metrics, map_id, learn, model.timings_ms)
-    rt.recent.add(model.stream, _recent(model))
+    rt.recent.add(model.stream, _recent(model), out.thumbnail)
     return model
 
 

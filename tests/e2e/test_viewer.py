@@ -2,10 +2,11 @@
 what a person sees (docs/design/service.md §1.7).
 
 A robot maps a loop with poses on a map that keeps thumbnails, then drives its first part again,
-localising; the page must show the map, every answer in order with its sequence place (— while it
-has none), the thumbnails of learned rows and places, the trajectory with the revisit links and the
-sequence-match picture, each counted against the replies the service sent. The screenshot is saved as
-`out/viewer.png` for a person to look at.
+localising; the page must show the map with its exact revisit threshold, every answer in order with its
+sequence place (— while it has none; "below threshold" when it is not a revisit), the query frames'
+thumbnails (localised ones from the recent ring) beside their places', the trajectory with the revisit
+links and the sequence-match picture, each counted against the replies the service sent. The screenshot
+is saved as `out/viewer.png` for a person to look at.
 """
 
 from __future__ import annotations
@@ -135,7 +136,9 @@ def _bytes(v: int) -> str:
 
 def test_the_viewer_shows_a_mapped_loop_its_revisits_poses_and_thumbnails(chromium, server, http,
                                                                         make_frame, tmp_path):
-    body = {"map_id": "yard", "thumbnails": True, "revisit_threshold": 0.5}
+    # A threshold that two decimals would misquote ("0.50"): the page shows it as it is.
+    threshold = 0.5049
+    body = {"map_id": "yard", "thumbnails": True, "revisit_threshold": threshold}
     assert http(f"{server}/v1/maps", json.dumps(body).encode(), "application/json")[0] == 201
     sent = [post(http, server, "yard", make_frame(i), learn="true", stream="robot1", label=f"p{i}",
                  metadata={"stamp": 100.0 + i, "pose": loop_pose(i, 10.0)}) for i in range(12)]
@@ -158,7 +161,7 @@ def test_the_viewer_shows_a_mapped_loop_its_revisits_poses_and_thumbnails(chromi
     yard = maps["yard"]
     assert (yard["state"], yard["backbone"], yard["observations"], yard["streams"]) == \
         ("ready", the_map["backbone"], "12", "1")
-    assert yard["revisit at"] == "0.50"
+    assert yard["revisit at"] == "0.5049"
     assert (yard["TM"], yard["index"], yard["projection"]) == (
         _bytes(memory["tm"]["allocated_bytes"]), _bytes(memory["index"]["bytes"]),
         _bytes(memory["projection_bytes"]))
@@ -171,18 +174,25 @@ def test_the_viewer_shows_a_mapped_loop_its_revisits_poses_and_thumbnails(chromi
         place, top = body["place"], body["matches"][0] if body["matches"] else None
         assert (row["stream"], row["mode"]) == (body["stream"], "learned" if body["learned"] else "localised")
         assert row["seq"] == (str(body["seq"]) if body["learned"] else NONE)
-        got = [row[f"sequence place/{c}"] for c in ("place", "label", "confidence", "revisit", "support")]
-        assert got == ([str(place["seq"]), place["label"] or NONE, f"{place['confidence']:.2f}",
-                        "revisit" if place["revisit"] else "new", str(place["support"])]
-                       if place else [NONE] * 5)
+        got = [row[f"sequence place/{c}"] for c in ("place", "label", "revisit", "support")]
+        assert got == ([str(place["seq"]), place["label"] or NONE,
+                        "revisit" if place["revisit"] else "below threshold", str(place["support"])]
+                       if place else [NONE] * 4)
+        if place:  # two decimals at least, as many more as keep it on its side of the threshold
+            shown = row["sequence place/confidence"]
+            assert re.fullmatch(r"\d\.\d{2,}", shown) and abs(float(shown) - place["confidence"]) < 0.005
+            assert (float(shown) >= threshold) is place["revisit"], (shown, place)
         assert row["top frame match/match"] == (str(top["seq"]) if top else NONE)
         assert row["top frame match/score"] == (f"{top['score']:.3f}" if top else NONE)
-        # the thumbnails: the learned row's own, and the place's (a localisation's image is not stored)
-        assert row["thumbnails/query"] == ("[img]" if body["learned"] else NONE)
+        # the thumbnails: the query frame's (localised ones too: the recent ring keeps it), the place's
+        assert row["thumbnails/query"] == "[img]"
         assert row["thumbnails/place"] == ("[img]" if place else NONE)
-    thumbs = set(re.findall(r'<img [^>]*data-thumb="([^"]+)"', dom))
-    wanted = {b["seq"] for b in sent if b["learned"]} | {p["seq"] for p in places if p}
-    assert thumbs == {f"/v1/maps/yard/observations/{s}/thumbnail" for s in wanted}
+    thumbs = re.findall(r'<img [^>]*data-thumb="([^"]+)"', dom)
+    _, recent = http(f"{server}/v1/maps/yard/recent?limit={len(sent)}")
+    queries = {f"/v1/maps/yard/recent/{a['answer_id']}/thumbnail" for a in recent["answers"]}
+    assert all(a["has_thumbnail"] for a in recent["answers"]) and len(queries) == len(sent)
+    assert set(thumbs) == queries | {f"/v1/maps/yard/observations/{p['seq']}/thumbnail" for p in places if p}
+    assert "Below threshold: the map's best place" in dom and "(0.5049)" in dom
     assert all(src.startswith("blob:") for src in re.findall(r'<img [^>]*src="([^"]+)"', dom))  # loaded
 
     # the trajectory: the 12 stored poses of one stream, the 8 localised poses, a link per revisit

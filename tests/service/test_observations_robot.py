@@ -237,7 +237,7 @@ def test_an_old_map_file_still_opens_and_learns(tmp_path):
         assert r.json()["seq"] == 4 and c.get("/v1/maps/default/observations/4").json()["metadata"] == {
             "stamp": 9.0}
     conn = sqlite3.connect(path)
-    assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == "2"
+    assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == "3"
     conn.close()
 
 

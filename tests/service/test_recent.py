@@ -39,6 +39,7 @@ def test_recent_is_in_memory_only_and_follows_the_read_key_rule(tmp_path):
         assert c.post("/v1/maps/default/observations", content=frame(0), headers={
             "Content-Type": "image/png", "X-API-Key": "k3y"}).status_code == 200
         assert c.get("/v1/maps/default/recent").status_code == 401
+        assert c.get("/v1/maps/default/recent/1/thumbnail").status_code == 401  # a frame is map content
         assert len(c.get("/v1/maps/default/recent", headers={"X-API-Key": "k3y"}).json()["answers"]) == 1
     with make_client(tmp_path / "var", api_key="k3y") as c:  # restarted; reads open without the setting
         assert c.get("/v1/maps/default/recent").json()["answers"] == []
@@ -65,6 +66,33 @@ def test_the_window_keeps_the_top_match_only_and_a_restore_empties_it(tmp_path):
         assert kept["matches"] == sent["matches"][:1] and kept["place"] == sent["place"]
         assert c.post(f"/v1/maps/default/snapshots/{sid}/restore").status_code == 200
         assert c.get("/v1/maps/default/recent").json()["answers"] == []
+
+
+def test_the_query_frame_thumbnail_is_kept_with_its_answer(tmp_path):
+    """A localised frame's image is stored nowhere: the ring keeps its thumbnail, for the viewer."""
+    with make_client(tmp_path) as c:
+        assert c.post("/v1/maps", json={"map_id": "album", "thumbnails": True}).status_code == 201
+        learned = post(c, frame(1), map_id="album").json()
+        post(c, frame(2), map_id="album", learn="false")
+        keyed = {"Content-Type": "image/png", "Idempotency-Key": "key-0001"}
+        for _ in range(2):  # a keyed post keeps its thumbnail too; its replay adds no answer
+            assert c.post("/v1/maps/album/observations?learn=false", content=frame(3),
+                          headers=keyed).status_code == 200
+        post(c, frame(2), learn="false")  # a map without thumbnails keeps none
+        answers = c.get("/v1/maps/album/recent").json()["answers"]
+        assert [a["has_thumbnail"] for a in answers] == [True, True, True]
+        first, second, _ = (c.get(f"/v1/maps/album/recent/{a['answer_id']}/thumbnail") for a in answers)
+        assert first.status_code == second.status_code == 200
+        assert first.headers["content-type"] == "image/jpeg" and second.content[:3] == b"\xff\xd8\xff"
+        # The learned frame's is the one stored with its row; the localised frame's differs from it.
+        assert first.content == c.get(f"/v1/maps/album/observations/{learned['seq']}/thumbnail").content
+        assert second.content != first.content
+        plain = c.get("/v1/maps/default/recent").json()["answers"]
+        assert [a["has_thumbnail"] for a in plain] == [False]
+        gone = c.get(f"/v1/maps/default/recent/{plain[0]['answer_id']}/thumbnail")
+        assert gone.status_code == 404 and gone.json()["type"].endswith(":recent-answer-not-found")
+        assert gone.json()["answer_id"] == plain[0]["answer_id"]
+        assert c.get("/v1/maps/album/recent/0/thumbnail").status_code == 400
 
 
 def test_the_key_cache_is_bounded_by_reply_text_too():

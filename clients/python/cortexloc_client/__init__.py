@@ -5,6 +5,15 @@ subclasses; 503s are retried after `Retry-After` (`RetryPolicy`); observation po
 `Idempotency-Key`, the same across their retries.
 """
 
+import pydantic
+
+if not pydantic.VERSION.startswith("2."):
+    # ROS 2's apt packages (Ubuntu 22.04 and 24.04) ship pydantic 1, which fails deep inside the models
+    # with an error that does not name the cause.
+    raise ImportError(f"cortexloc_client needs pydantic 2, found pydantic {pydantic.VERSION} at "
+                      f"{pydantic.__file__}: install the client in a virtual environment (its README: "
+                      f"'Beside ROS 2')")
+
 from cortexloc_client._core import RetryPolicy, Settings, __version__
 from cortexloc_client.aio import AsyncClient
 from cortexloc_client.client import Client

@@ -221,6 +221,16 @@ def list_observations(map_id: str, after_seq: int, limit: int) -> Call[models.St
                 params={"after_seq": str(int(after_seq)), "limit": str(int(limit))}, idempotent=True)
 
 
+def loop_closures(map_id: str, after: int, limit: int) -> Call[models.LoopClosureList]:
+    return Call("GET", f"{_map(map_id)}/loop-closures", _model(models.LoopClosureList),
+                params={"after": str(int(after)), "limit": str(int(limit))}, idempotent=True)
+
+
+def export_loop_closures(map_id: str, fmt: str) -> Call[bytes]:
+    return Call("GET", f"{_map(map_id)}/loop-closures/export", _content, params={"format": fmt},
+                idempotent=True)
+
+
 def recent(map_id: str, limit: int, stream: str | None) -> Call[models.RecentAnswers]:
     params = {"limit": str(int(limit)), **({"stream": stream} if stream is not None else {})}
     return Call("GET", f"{_map(map_id)}/recent", _model(models.RecentAnswers), params=params, idempotent=True)
@@ -228,6 +238,10 @@ def recent(map_id: str, limit: int, stream: str | None) -> Call[models.RecentAns
 
 def thumbnail(map_id: str, seq: int) -> Call[bytes]:
     return Call("GET", f"{_map(map_id)}/observations/{int(seq)}/thumbnail", _content, idempotent=True)
+
+
+def recent_thumbnail(map_id: str, answer_id: int) -> Call[bytes]:
+    return Call("GET", f"{_map(map_id)}/recent/{int(answer_id)}/thumbnail", _content, idempotent=True)
 
 
 def create_snapshot(map_id: str) -> Call[models.Snapshot]:

@@ -91,12 +91,30 @@ class Client:
 
     def create_map(self, map_id: str | None = None, *, preset: str | None = None,
                    seed: int | None = None, tm: Mapping[str, Any] | None = None,
-                   slsbh: Mapping[str, Any] | None = None, exclude_recent: int | None = None,
-                   revisit_threshold: float | None = None, thumbnails: bool | None = None) -> models.Map:
-        """`POST /v1/maps`: a new map; unset fields take the server's preset (a generated id if no id)."""
-        return self._send(_core.create_map(map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh,
-                                           exclude_recent=exclude_recent, revisit_threshold=revisit_threshold,
-                                           thumbnails=thumbnails))
+                   slsbh: Mapping[str, Any] | None = None,
+                   backbone: str | None = None, memory: str | None = None,
+                   revisit_threshold: float | None = None, localiser: Mapping[str, Any] | None = None,
+                   thumbnails: bool | None = None, resize: str | None = None) -> models.Map:
+        """`POST /v1/maps`: a new map; unset fields take the server's preset (a generated id if no id).
+
+        Args:
+            preset: the parameter preset (the server's default preset if None).
+            seed: the Temporal Memory's and the projection's seed.
+            tm, slsbh: Temporal Memory and sLSBH overrides (NuPIC names), merged over the preset.
+            backbone: `alexnet`, `efficientnet-lite0-s5` or `efficientnet-lite0` (the server's default).
+            memory: `tm` (default) or `none` (the Temporal Memory left out: the ablation).
+            revisit_threshold: confidence at which a place is a revisit, in [0, 1] (`update_map` changes it).
+            localiser: the sequence localiser's options (the service's docs/design/science.md §11.3).
+            thumbnails: keep a small JPEG of each learned frame.
+            resize: `crop` (the middle of a wide frame, as the paper) or `squash` (the whole frame,
+                distorted to a square; the server's default): how frames become the backbone's input.
+
+        All but `revisit_threshold` are frozen with the map.
+        """
+        return self._send(_core.create_map(
+            map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh,
+            backbone=backbone, memory=memory, revisit_threshold=revisit_threshold, localiser=localiser,
+            thumbnails=thumbnails, resize=resize))
 
     def list_maps(self) -> list[models.Map]:
         return self._send(_core.list_maps())
@@ -133,13 +151,15 @@ class Client:
 
         Args:
             image: JPEG, PNG, WebP or BMP bytes, or a raw frame as an array: (H, W, 3) uint8 in `colour`
-                order, (H, W) uint8 (mono8) or (H, W) uint16 (mono16).
+                order, (H, W, 4) uint8 in `colour` order with alpha last (dropped), (H, W) or (H, W, 1)
+                uint8 (mono8), (H, W) or (H, W, 1) uint16 (mono16).
             learn: True maps (stored, learned); False localises (nothing stored changes).
             top_k: matches to return (0 skips ranking).
             stream: one per camera or robot; frames of a stream must be posted in order, one at a time.
             label: stored and returned with matches (<= 200 characters).
             metadata: `{"stamp": ..., "pose": {"x", "y", "yaw", "frame_id"}}` or any small JSON object.
-            colour: channel order of an (H, W, 3) array: `rgb8` or `bgr8` (OpenCV, ROS `bgr8` images).
+            colour: channel order of an (H, W, 3) or (H, W, 4) array: `rgb8`, `bgr8` (OpenCV), `rgba8`
+                or `bgra8` (ROS encoding names; `rgba8` orders the colours as `rgb8`).
             idempotency_key: this post's key; default a fresh UUID (unless `idempotency_keys=False`).
         """
         return self._send(_core.observe(self.settings, map_id, image, learn=learn, top_k=top_k,
@@ -156,6 +176,16 @@ class Client:
         order, at most `limit` (<= 500); continue with `after_seq=page.next_after_seq`."""
         return self._send(_core.list_observations(map_id, after_seq, limit))
 
+    def loop_closures(self, map_id: str, *, after: int = 0, limit: int = 100) -> models.LoopClosureList:
+        """`GET /v1/maps/{map_id}/loop-closures`: the revisits streams were told of, oldest first, after
+        log id `after`, at most `limit` (<= 500); continue with `after=page.next_after`."""
+        return self._send(_core.loop_closures(map_id, after, limit))
+
+    def export_loop_closures(self, map_id: str, fmt: str = "csv") -> bytes:
+        """`GET /v1/maps/{map_id}/loop-closures/export`: the whole log as candidate pairs (`csv` or
+        `jsonl`): both stamps in seconds, both ids, the confidence, both poses where given."""
+        return self._send(_core.export_loop_closures(map_id, fmt))
+
     def recent(self, map_id: str, *, limit: int = 50, stream: str | None = None) -> models.RecentAnswers:
         """`GET /v1/maps/{map_id}/recent`: the map's last answers (at most `limit`, of one `stream` if
         given), oldest first; the service keeps them in memory only."""
@@ -164,6 +194,11 @@ class Client:
     def thumbnail(self, map_id: str, seq: int) -> bytes:
         """`GET /v1/maps/{map_id}/observations/{seq}/thumbnail`: the stored JPEG thumbnail."""
         return self._send(_core.thumbnail(map_id, seq))
+
+    def recent_thumbnail(self, map_id: str, answer_id: int) -> bytes:
+        """`GET /v1/maps/{map_id}/recent/{answer_id}/thumbnail`: the query frame's JPEG kept with a recent
+        answer (`RecentAnswer.has_thumbnail`; in the service's memory only)."""
+        return self._send(_core.recent_thumbnail(map_id, answer_id))
 
     # ----------------------------------------------------------------------------- snapshots
 

@@ -77,7 +77,8 @@ class UnauthorizedError(CortexlocError):
 
 
 class NotFoundError(CortexlocError):
-    """404 `map-not-found`, `snapshot-not-found`, `observation-not-found`, `not-found`."""
+    """404 `map-not-found`, `snapshot-not-found`, `observation-not-found`, `recent-answer-not-found`,
+    `not-found`."""
 
 
 class ConflictError(CortexlocError):

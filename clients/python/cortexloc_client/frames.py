@@ -14,8 +14,11 @@ if TYPE_CHECKING:
 
 __all__ = ["ColourOrder", "Frame", "frame_body", "sniff_media_type"]
 
-#: Channel order of an HxWx3 uint8 array: `rgb8` (PIL, imageio) or `bgr8` (OpenCV, most ROS cameras).
-ColourOrder = Literal["rgb8", "bgr8"]
+#: Channel order of an (H, W, 3) or (H, W, 4) uint8 array, named as ROS `sensor_msgs/Image` encodings (so a
+#: node may pass `msg.encoding`): `rgb8` / `rgba8` (PIL, imageio) or `bgr8` / `bgra8` (OpenCV, most ROS
+#: cameras). The alpha channel is dropped (a camera's is padding), so `rgba8` means the same as `rgb8`.
+ColourOrder = Literal["rgb8", "bgr8", "rgba8", "bgra8"]
+_ORDER: dict[str, str] = {"rgb8": "rgb8", "rgba8": "rgb8", "bgr8": "bgr8", "bgra8": "bgr8"}
 
 _MAGIC: tuple[tuple[bytes, int, str], ...] = (
     (b"\xff\xd8\xff", 0, "image/jpeg"),
@@ -47,13 +50,14 @@ def frame_body(image: bytes | bytearray | memoryview | np.ndarray, colour: Colou
     """The request body for an image.
 
     Args:
-        image: encoded bytes, or an array: (H, W, 3) uint8 in `colour` order, (H, W) uint8 (`mono8`) or
-            (H, W) uint16 of either byte order (`mono16`, sent little-endian). Any memory layout (it is
-            sent as a contiguous copy).
-        colour: the channel order of an (H, W, 3) array; ignored otherwise.
+        image: encoded bytes, or an array: (H, W, 3) uint8 in `colour` order, (H, W, 4) uint8 in `colour`
+            order with alpha last (the alpha channel is dropped), (H, W) or (H, W, 1) uint8 (`mono8`),
+            or (H, W) or (H, W, 1) uint16 of either byte order (`mono16`, sent little-endian). Any
+            memory layout (it is sent as a contiguous copy).
+        colour: the channel order of an (H, W, 3) or (H, W, 4) array; ignored otherwise.
 
     Raises:
-        ValueError: an array of another shape or dtype.
+        ValueError: an array of another shape or dtype, or an unknown `colour`.
     """
     if isinstance(image, (bytes, bytearray, memoryview)):
         data = bytes(image)
@@ -61,18 +65,21 @@ def frame_body(image: bytes | bytearray | memoryview | np.ndarray, colour: Colou
     import numpy as np
 
     arr: Any = np.asarray(image)
+    shape = arr.shape
     kind = (arr.dtype.kind, arr.dtype.itemsize)  # any byte order: (H, W) '>u2' from a big-endian camera
-    if arr.ndim == 3 and arr.shape[2] == 3 and kind == ("u", 1):
-        if colour not in ("rgb8", "bgr8"):
-            raise ValueError(f"colour must be 'rgb8' or 'bgr8', not {colour!r}")
-        encoding = colour
+    if arr.ndim == 3 and arr.shape[2] == 1:  # a one-channel image as OpenCV and cv_bridge may hand it
+        arr = arr[:, :, 0]
+    if arr.ndim == 3 and arr.shape[2] in (3, 4) and kind == ("u", 1):
+        if colour not in _ORDER:
+            raise ValueError(f"colour must be one of {', '.join(_ORDER)}, not {colour!r}")
+        encoding, arr = _ORDER[colour], arr[:, :, :3]
     elif arr.ndim == 2 and kind == ("u", 1):
         encoding = "mono8"
     elif arr.ndim == 2 and kind == ("u", 2):
         encoding, arr = "mono16", arr.astype("<u2", copy=False)
     else:
-        raise ValueError(f"a frame is an (H, W, 3) uint8, (H, W) uint8 or (H, W) uint16 array, not "
-                         f"{arr.shape} {arr.dtype}")
+        raise ValueError(f"a frame is an (H, W, 3) or (H, W, 4) uint8, or an (H, W) or (H, W, 1) uint8 or "
+                         f"uint16 array, not {shape} {arr.dtype}")
     height, width = arr.shape[:2]
     return Frame(np.ascontiguousarray(arr).tobytes(), "application/octet-stream",
                  {"encoding": encoding, "width": str(width), "height": str(height)})

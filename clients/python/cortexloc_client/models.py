@@ -17,6 +17,8 @@ __all__ = [
     "CheckResult",
     "Health",
     "IndexMemory",
+    "LoopClosure",
+    "LoopClosureList",
     "Map",
     "MapList",
     "MapParams",
@@ -36,6 +38,7 @@ __all__ = [
     "StorageMemory",
     "StoredObservation",
     "StoredObservationList",
+    "StoredRow",
     "StreamReset",
     "StreamsMemory",
     "TmMemory",
@@ -92,13 +95,15 @@ class MapParams(_Reply):
     tm: dict[str, Any]
     slsbh: dict[str, Any]
     seed: int
-    exclude_recent: int
     #: "tm", or "none" (the sLSBH code stands in for the winner cells: the memory's ablation).
     memory: str | None = None
     #: "dense" or "very-sparse": the sLSBH projection the map's size budget allowed.
     projection: str | None = None
     #: The sequence localiser's options, frozen with the map.
     localiser: dict[str, Any] | None = None
+    #: How the map's frames become the backbone's square input: "crop" (the middle) or "squash" (all of
+    #: it); frozen with the map (None from an older server).
+    resize: str | None = None
 
 
 class Map(_Reply):
@@ -278,6 +283,8 @@ class Versions(_Reply):
     code: str
     backbone: str | None = None
     encoder: str
+    #: The map's resize mode, "crop" or "squash" (None from an older server).
+    resize: str | None = None
     weights: str
     runtime: str | None = None  # the service's backbone runtime and device (servers before issue 24: None)
     device: str | None = None
@@ -319,6 +326,38 @@ class StoredObservation(_Reply):
     has_thumbnail: bool | None = None
 
 
+class StoredRow(_Reply):
+    """A stored row's identity and what was stored with it (a loop closure's place)."""
+
+    seq: int
+    observation_id: str
+    stream: str
+    label: str | None = None
+    metadata: Metadata | None = None
+
+
+class LoopClosure(_Reply):
+    """One logged loop closure: a revisit a stream was told of (`seq` None: the stream was localising)."""
+
+    id: int
+    stream: str
+    seq: int | None = None
+    observation_id: str | None = None
+    metadata: Metadata | None = None
+    place: StoredRow
+    confidence: float
+    support: int
+    created_at: str
+
+
+class LoopClosureList(_Reply):
+    """`GET /v1/maps/{map_id}/loop-closures`: a page, oldest first; `next_after` continues it (None: the
+    end)."""
+
+    loop_closures: list[LoopClosure]
+    next_after: int | None = None
+
+
 class StoredObservationList(_Reply):
     """`GET /v1/maps/{map_id}/observations`: a page in seq order; `next_after_seq` continues it (None:
     nothing after this page)."""
@@ -350,7 +389,11 @@ class SnapshotList(_Reply):
 class RecentAnswer(_Reply):
     """One answer of a map's recent ring: the observation reply as it was sent, and when."""
 
+    #: The answer's number in the map's ring (`Client.recent_thumbnail`); None from an older server.
+    answer_id: int | None = None
     received_at: str
+    #: The query frame's small JPEG is kept with it (maps created with `thumbnails=True`).
+    has_thumbnail: bool = False
     reply: Observation
 
 

@@ -46,6 +46,20 @@ def test_a_map_is_created_listed_read_and_deleted(client: Client, tiny_map: str)
     client.create_map(tiny_map, tm={"columnDimensions": 128}, slsbh={"k": 64})  # for the fixture's delete
 
 
+def test_create_map_sends_the_memory_and_localiser_options(client: Client, tiny_params: dict) -> None:
+    map_id = f"t-{uuid.uuid4().hex[:10]}"
+    made = client.create_map(map_id, memory="none", localiser={"beam": 64, "warmup": 2}, resize="crop",
+                             backbone=client.ready().checks["encoder"].model_extra["backbone"], **tiny_params)
+    try:
+        assert made.params.memory == "none" and made == client.get_map(map_id)
+        assert made.params.resize == "crop" and made.encoder.endswith(":crop")
+        assert (made.params.localiser["beam"], made.params.localiser["warmup"]) == (64, 2)
+        with pytest.raises(UnprocessableError):
+            client.create_map(f"{map_id}-b", backbone="resnet-9000", **tiny_params)
+    finally:
+        client.delete_map(map_id)
+
+
 def test_a_revisited_place_is_the_first_match(client: Client, tiny_map: str, make_frame) -> None:
     seqs = {}
     for place in range(5):
@@ -184,10 +198,16 @@ def test_arrays_are_accepted_as_raw_frames(client: Client, tiny_map: str, make_p
     as_bgr = client.observe(tiny_map, np.ascontiguousarray(rgb[:, :, ::-1]), colour="bgr8", learn=False)
     assert as_bgr.matches[0].seq == learned.seq
     assert as_bgr.sequence == as_rgb.sequence and as_bgr.matches == as_rgb.matches
+    # BGRA from a camera driver (alpha is padding, here noise): the same frame again.
+    alpha = np.random.default_rng(0).integers(0, 256, rgb.shape[:2], dtype=np.uint8)
+    client.reset_stream(tiny_map, "default")
+    as_bgra = client.observe(tiny_map, np.dstack([rgb[:, :, ::-1], alpha]), colour="bgra8", learn=False)
+    assert as_bgra.sequence == as_rgb.sequence and as_bgra.matches == as_rgb.matches
     grey = rgb.mean(axis=2)
     assert client.observe(tiny_map, grey.astype(np.uint8)).learned
     assert client.observe(tiny_map, (grey * 257).astype(np.uint16)).learned
-    assert client.get_map(tiny_map).observations == 3
+    assert client.observe(tiny_map, grey.astype(np.uint8)[:, :, None]).learned  # (H, W, 1)
+    assert client.get_map(tiny_map).observations == 4
 
 
 def test_a_stored_observation_and_its_thumbnail(client: Client, tiny_params: dict, make_frame) -> None:
@@ -201,6 +221,10 @@ def test_a_stored_observation_and_its_thumbnail(client: Client, tiny_params: dic
         assert stored.label == "dock" and stored.has_thumbnail is True
         assert stored.metadata is not None and stored.metadata.stamp == 1.5
         assert client.thumbnail(map_id, posted.seq)[:3] == b"\xff\xd8\xff"
+        client.observe(map_id, make_frame(2), learn=False)  # a localisation: its image kept in memory only
+        answer = client.recent(map_id).answers[-1]
+        assert answer.has_thumbnail and answer.answer_id is not None
+        assert client.recent_thumbnail(map_id, answer.answer_id)[:3] == b"\xff\xd8\xff"
         with pytest.raises(NotFoundError):
             client.get_observation(map_id, posted.seq + 100)
     finally:
@@ -234,3 +258,20 @@ def test_the_revisit_threshold_can_be_changed(client: Client, tiny_map: str) -> 
     assert client.get_map(tiny_map).revisit_threshold == 0.7
     with pytest.raises(UnprocessableError):
         client.update_map(tiny_map, revisit_threshold=1.5)
+
+
+def test_loop_closures_are_paged_and_exported(client: Client, tiny_map: str, make_frame) -> None:
+    seqs = _drive_a_route(client, tiny_map, make_frame, 12)
+    client.update_map(tiny_map, revisit_threshold=0.0)  # every answer a revisit: the log fills
+    answers = [client.observe(tiny_map, make_frame(place), learn=False, stream="robot") for place in range(9)]
+    told = [a for a in answers if a.place is not None and a.place.revisit]
+    page = client.loop_closures(tiny_map, limit=2)
+    assert len(page.loop_closures) == 2 and page.next_after == page.loop_closures[-1].id
+    rest = client.loop_closures(tiny_map, after=page.next_after, limit=500)
+    log = page.loop_closures + rest.loop_closures
+    assert [(c.stream, c.seq, c.place.seq) for c in log] == [("robot", None, a.place.seq) for a in told]
+    assert all(c.place.seq in seqs for c in log)
+    csv_text = client.export_loop_closures(tiny_map, "csv").decode()
+    assert csv_text.splitlines()[0].startswith("stamp,observation_id,seq,stream,place_stamp")
+    assert len(csv_text.splitlines()) == len(log) + 1
+    assert len(client.export_loop_closures(tiny_map, "jsonl").decode().splitlines()) == len(log)

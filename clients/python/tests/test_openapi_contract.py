@@ -3,17 +3,21 @@ tests/conftest.py): every typed reply, success and problem+json."""
 
 from __future__ import annotations
 
+import inspect
 from typing import Any
 
+import pytest
 from pydantic import BaseModel
 
-from cortexloc_client import models
+from cortexloc_client import AsyncClient, Client, models
 
 #: Served routes the client has no reply model for: Prometheus text, the docs, a tar or JPEG stream.
 NOT_MODELLED = {("/metrics", "get"), ("/v1/maps/{map_id}", "delete"),
                 ("/v1/maps/{map_id}/snapshots/{snapshot_id}", "delete"),
                 ("/v1/maps/{map_id}/snapshots/{snapshot_id}/download", "get"),
-                ("/v1/maps/{map_id}/observations/{seq}/thumbnail", "get")}
+                ("/v1/maps/{map_id}/observations/{seq}/thumbnail", "get"),
+                ("/v1/maps/{map_id}/recent/{answer_id}/thumbnail", "get"),
+                ("/v1/maps/{map_id}/loop-closures/export", "get")}  # files, not JSON
 
 
 def test_every_reply_matches_the_servers_schema(openapi: dict[str, Any], contract) -> None:
@@ -30,6 +34,13 @@ def test_every_route_the_server_serves_has_a_client_model(openapi: dict[str, Any
     modelled = {(path, method) for _, path, method, _, _ in contract_rows}
     assert served - modelled - NOT_MODELLED == set()
     assert ("/v1/maps/{map_id}/observations/{seq}/thumbnail", "get") in served
+
+
+@pytest.mark.parametrize("method", [Client.create_map, AsyncClient.create_map])
+def test_create_map_takes_every_option_the_server_does(openapi: dict[str, Any], method) -> None:
+    body = openapi["paths"]["/v1/maps"]["post"]["requestBody"]["content"]["application/json"]["schema"]
+    options = openapi["components"]["schemas"][body["$ref"].rsplit("/", 1)[-1]]["properties"]
+    assert set(inspect.signature(method).parameters) - {"self"} == set(options)
 
 
 class Inner(BaseModel):

@@ -177,18 +177,42 @@ def test_the_api_key_and_the_metadata_are_sent(waits) -> None:
     (np.arange(2 * 3 * 3, dtype=np.uint8).reshape(3, 2, 3).transpose(1, 0, 2), "rgb8", "rgb8"),
 ])
 def test_an_array_is_sent_as_a_raw_frame(waits, array: np.ndarray, colour, encoding: str) -> None:
+    expected = np.ascontiguousarray(array.astype("<u2") if array.dtype.itemsize == 2 else array).tobytes()
+    assert _sent(array, colour) == (encoding, expected)
+
+
+def _sent(array: np.ndarray, colour) -> tuple[str, bytes]:
+    """(encoding, body) of the raw frame `observe` posts for a 2 x 3 `array`."""
     script = Script(httpx.Response(200, json=OBSERVATION))
     make(script).observe("lab", array, colour=colour)
     sent = script.requests[0]
     assert sent.headers["Content-Type"] == "application/octet-stream"
     params = sent.url.params
-    assert (params["encoding"], params["width"], params["height"]) == (encoding, "3", "2")
-    expected = np.ascontiguousarray(array.astype("<u2") if array.dtype.itemsize == 2 else array).tobytes()
-    assert sent.content == expected
+    assert (params["width"], params["height"]) == ("3", "2")
+    return params["encoding"], sent.content
 
 
-@pytest.mark.parametrize("array", [np.zeros((2, 3, 4), np.uint8), np.zeros((2, 3), np.float32),
-                                   np.zeros((2, 3, 3), np.uint16)])
+RGBA = np.arange(2 * 3 * 4, dtype=np.uint8).reshape(2, 3, 4)
+GREY = np.arange(6, dtype=np.uint8).reshape(2, 3)
+
+
+@pytest.mark.parametrize(("array", "colour", "same_as"), [
+    (GREY[:, :, None], "rgb8", (GREY, "rgb8")),  # (H, W, 1): cv_bridge's mono8, OpenCV's grey
+    (GREY[:, :, None].astype(">u2") * 1000, "rgb8", (GREY.astype(np.uint16) * 1000, "rgb8")),
+    (RGBA, "rgb8", (RGBA[:, :, :3], "rgb8")),  # alpha dropped, the colour order kept
+    (RGBA, "rgba8", (RGBA[:, :, :3], "rgb8")),  # ROS encoding names are accepted as they are
+    (RGBA, "bgra8", (RGBA[:, :, :3], "bgr8")),
+    (RGBA, "bgr8", (RGBA[:, :, :3], "bgr8")),
+    (RGBA[:, :, :3], "bgra8", (RGBA[:, :, :3], "bgr8")),
+])
+def test_one_channel_and_alpha_arrays_are_sent_as_the_frame_they_show(waits, array: np.ndarray, colour,
+                                                                       same_as) -> None:
+    assert _sent(array, colour) == _sent(*same_as)
+
+
+@pytest.mark.parametrize("array", [np.zeros((2, 3, 2), np.uint8), np.zeros((2, 3), np.float32),
+                                   np.zeros((2, 3, 3), np.uint16), np.zeros((2, 3, 4), np.uint16),
+                                   np.zeros((2, 3, 1, 1), np.uint8)])
 def test_an_array_of_another_shape_or_type_is_refused_before_sending(waits, array: np.ndarray) -> None:
     script = Script(httpx.Response(200, json=OBSERVATION))
     with pytest.raises(ValueError, match="frame is an"):

@@ -20,7 +20,15 @@ def test_csv_with_header_spaces_and_semicolons(tmp_path):
     assert not gt[:, 2].any()  # a query without a match
 
 
+def test_csv_query_files_may_carry_their_folder(tmp_path):
+    """VPR data sets write the file column as `query/0000000.jpg`: the folder is not the query's name."""
+    f = tmp_path / "gt.csv"
+    f.write_text("query_index,query_file,matching_ref_indices\n0,query/a.png,0\n1,winter\\b.png,1\n")
+    assert np.flatnonzero(ground_truth.load(f, 4, 2, ["a.png", "b.png"])).tolist() == [0, 3]
+
+
 @pytest.mark.parametrize(("text", "message"), [
+    ("0,query/b.png,0\n", "'a.png' in the query folder, not 'query/b.png'"),
     ("0,a.png,5\n", "outside the 4"),
     ("7,a.png,0\n", "query index 7"),
     ("0,b.png,0\n", "'a.png' in the query folder"),

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from models.evaluation.metrics import pr_curve
-from models.evaluation.plots import plot_pr_curves, plot_similarity
+from models.evaluation.plots import plot_pr_curves, plot_similarity, similarity_caption, similarity_figure
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -42,6 +42,21 @@ def test_plot_similarity_writes_a_png(tmp_path: Path) -> None:
     out = plot_similarity(S, str(tmp_path / "S.png"), "InputSDR Dice")
     assert Path(out).is_file() and Path(out).stat().st_size > 1000
     _png_size(Path(out))
+
+
+def test_the_similarity_image_explains_its_holes_and_negative_values(tmp_path: Path) -> None:
+    S = np.random.default_rng(1).normal(size=(30, 40))  # negative values, as a sequence score has
+    S[:, :5] = -np.inf  # no full path at the route's start
+    S[3, 20] = np.nan
+    caption = similarity_caption(S)
+    assert "White: no score (151 of 1,200 cells)" in caption and "not a similarity of 0" in caption
+    assert "Below 0: scores, not anticorrelations" in caption
+    fig = similarity_figure(S, "htm-seq")
+    assert [" ".join(t.get_text().split()) for t in fig.texts] == [" ".join(caption.split())]
+    assert plot_similarity(S, tmp_path / "S.png", "htm-seq").stat().st_size > 1000
+    # A plain similarity (Dice in [0, 1], every cell scored) needs no caption.
+    assert similarity_caption(np.random.default_rng(2).random((4, 5))) == ""
+    assert similarity_figure(np.eye(3), "t").texts == []
 
 
 def test_plot_similarity_rejects_non_matrices(tmp_path: Path) -> None:

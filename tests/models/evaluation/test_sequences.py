@@ -217,8 +217,8 @@ def test_sequence_filtered_methods_gain_from_order_and_keep_their_base():
 
 
 def test_eval_images_defaults_follow_the_service(tmp_path):
-    from models.frontend.encoder import default_conf
     from service.app import resolve_backbone
+    from service.maps.params import DEFAULT_RESIZE, resolve_params
     from service.settings import Settings
 
     db, q = write_sequences(tmp_path, n=14)
@@ -230,7 +230,8 @@ def test_eval_images_defaults_follow_the_service(tmp_path):
     assert config["preset"] == Settings().default_preset
     # no AlexNet weights are installed in the tests (conftest): the default is EfficientNet-Lite0's block
     assert config["backbone"] == resolve_backbone(Settings()).backbone == "efficientnet-lite0-s5"
-    assert config["resize"] == default_conf["resize"]
+    # a new map's resize, as the service resolves it
+    assert config["resize"] == DEFAULT_RESIZE == resolve_params(config["preset"])["resize"]
     assert f"preset {config['preset']}, backbone {config['backbone']}" in r.output
     assert f"resize {config['resize']}" in r.output
 
@@ -241,7 +242,8 @@ def test_eval_images_reads_ground_truth_from_a_csv(tmp_path):
     gt = tmp_path / "gt.csv"
     # The database folder holds one file more than the query folder: indices count in each own list.
     db_names = sequences.image_names(db)
-    rows = [f"{i},{n},{db_names.index(n)}" for i, n in enumerate(names)]
+    # As VPR data sets write it, some rows name the file with its folder: `query/images-00000.png`.
+    rows = [f"{i},{'query/' * (i % 2)}{n},{db_names.index(n)}" for i, n in enumerate(names)]
     gt.write_text("query_index,query_file,matching_ref_indices\n" + "\n".join(rows) + "\n")
     out = tmp_path / "r.json"
     args = ["eval", "images", "--db", str(db), "--query", str(q), "--methods", "cosine", "--resize", "squash",
@@ -256,6 +258,54 @@ def test_eval_images_reads_ground_truth_from_a_csv(tmp_path):
     assert r.exit_code == 2 and "not-images-00000.png" in r.output
     r = CliRunner().invoke(app, [*args, "--limit", "5"])
     assert r.exit_code == 2
+
+
+def test_eval_images_encodes_only_the_window(tmp_path):
+    db, q = write_sequences(tmp_path, n=20)
+    out, cache = tmp_path / "r.json", tmp_path / "c"
+    r = CliRunner().invoke(app, ["eval", "images", "--db", str(db), "--query", str(q), "--methods", "cosine",
+                                 "--offset", "3", "--limit", "6", "--seeds", "1", "--ds", "4", "--cache",
+                                 str(cache), "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    config = json.loads(out.read_text())["config"]
+    assert (config["pairs"], config["first"]) == (6, "images-00003.png")
+    cached = sorted(cache.glob("features/features-*.npy"))
+    assert [np.load(f).shape[0] for f in cached] == [6, 6]  # the database's window and the query's
+
+
+def _entry(auc: float) -> dict[str, float]:
+    keys = ("auc_mean", "auc_sd", "auc_min", "auc_max", "recall_at_1_mean", "recall_at_5_mean",
+            "recall_at_100p_mean", "query_auc_mean", "query_recall_at_100p_mean", "seconds_mean")
+    return dict.fromkeys(keys, auc)
+
+
+def _right_edges(line: str, header: str, labels: list[str]) -> list[str]:
+    """The character of `line` at each header label's last column, and the one after it."""
+    ends = [header.index(label) + len(label) for label in labels]
+    return [line[e - 1:e + 1] for e in ends]
+
+
+def test_result_tables_align_their_columns_and_explain_auc_pairs():
+    from service.cli.evaluate import format_grid_table, format_images_table
+
+    methods = {"cosine": _entry(0.5), "service-without-tm": _entry(0.9876), "online-cosine": _entry(12345.0)}
+    config = {"db": "summer", "query": "winter", "pairs": 20, "first": "a", "last": "b",
+              "gt": "same file name", "tolerance": 0, "preset": "p", "backbone": "b", "weights": "random",
+              "resize": "crop", "s": 0.25, "adapt_tau": 0, "reset": False, "seeds": 1, "ds": 10}
+    images = format_images_table({"config": config, "methods": methods, "queries": [1, 2]})
+    grid = format_grid_table({"data": {"source": "published", "sdr_file": "x.txt"}, "scoring": "paper",
+                              "seeds": 1, "methods": methods})
+    image_labels = ["AUC pairs", "min", "max", "AUC query", "R@1", "R@5", "R@100P", "s/run"]
+    grid_labels = ["AUC pairs", "sd", "min", "max", "R@1", "R@5", "R@100P", "qAUC", "qR@100P"]
+    for text, labels in ((images, image_labels), (grid, grid_labels)):
+        lines = text.splitlines()
+        header = next(line for line in lines if line.startswith("method "))
+        rows = [line for line in lines if line.split(" ")[0] in methods]
+        assert len(rows) == 3
+        for row in rows:  # every number ends where its column's label ends, a blank after it
+            assert all(pair[0] != " " and pair[1] == " " for pair in _right_edges(row, header, labels)), (
+                f"{row!r} against {header!r}")
+        assert "AUC pairs = the paper's AUC" in text and "near 0.5 beside R@1 1.000" in text
 
 
 def test_eval_images_openseqslam_alone_runs_no_backbone(tmp_path):
@@ -280,3 +330,35 @@ def test_eval_images_refuses_a_sparsity_outside_the_slsbh_rules(tmp_path):
         result = CliRunner().invoke(app, ["eval", "images", "--db", str(tmp_path), "--query", str(tmp_path),
                                           "--s", bad])
         assert result.exit_code == 2 and "--s" in result.output
+
+
+def _readme_defaults(command: str) -> dict[str, str | bool]:
+    """The options the README's command list states as defaults for `cortexloc eval COMMAND`: its
+    `# defaults: --opt value --flag ...` comment, up to the first parenthesis."""
+    from pathlib import Path
+
+    lines = (Path(__file__).resolve().parents[3] / "README.md").read_text().splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(f"cortexloc eval {command} "))
+    stated = next(line for line in lines[start:] if "# defaults:" in line)
+    tokens = stated.split("# defaults:", 1)[1].split("(", 1)[0].replace(",", " ").split()
+    out: dict[str, str | bool] = {}
+    for i, token in enumerate(tokens):
+        if token.startswith("--"):
+            value = tokens[i + 1] if i + 1 < len(tokens) and not tokens[i + 1].startswith("--") else None
+            out[token] = value if value is not None else True
+    return out
+
+
+@pytest.mark.parametrize("command", ["grid", "images"])
+def test_the_readme_states_the_eval_defaults(command):
+    import typer.main
+
+    params = typer.main.get_command(app).commands["eval"].commands[command].params
+    stated = _readme_defaults(command)
+    assert {"--seeds"} <= set(stated) and (command == "grid" or "--no-reset" in stated)
+    for option, value in stated.items():
+        param = next(p for p in params if option in (*p.opts, *p.secondary_opts))
+        if value is True:  # a flag: --reset or --no-reset
+            assert param.default is (option in param.opts), option
+        else:
+            assert str(param.default) == value, option

@@ -67,6 +67,18 @@ def test_batched_and_single_encoding_agree(encoder):
     np.testing.assert_allclose(np.linalg.norm(batch.features, axis=1), 1.0, atol=1e-5)
 
 
+def test_a_batch_takes_its_resize_mode_as_an_encoder_made_with_it_would(encoder):
+    """One network serves maps of both resize modes (a map's `resize` option): the mode is per call."""
+    wide = png(np.ascontiguousarray(np.hstack([scene(4), scene(5)])))  # 640 x 240: crop and squash differ
+    squashing = Encoder({"resize": "squash", "slsbh": {"k": 128, "s": 0.25, "seed": 3}})
+    np.testing.assert_allclose(encoder.embed([wide], resize="squash").features,
+                               squashing.embed([wide]).features, atol=1e-6)
+    assert not np.allclose(encoder.embed([wide]).features, squashing.embed([wide]).features, atol=1e-3)
+    assert encoder.identity_for("squash") == squashing.identity and encoder.identity.endswith(":crop")
+    with pytest.raises(ValueError, match="resize must be one of crop, squash"):
+        encoder.embed([wide], resize="stretch")
+
+
 def test_similar_images_share_more_bits_than_different_ones(encoder):
     codes = encoder.encode([png(scene(5)), png(scene(5, noise=8.0)), png(scene(6))]).codes
     same, other = sdr.overlap(codes[0], codes[1]), sdr.overlap(codes[0], codes[2])
@@ -169,6 +181,10 @@ def test_bench_encoder_reports_the_contract(tmp_path, monkeypatch):
     for key in ("batch1_ms_median", "batch16_images_per_s", "bare_batch16_images_per_s"):
         assert payload[key] > 0
     assert (payload["runtime"], payload["device"]) == ("onnxruntime", "cpu")
+    # the size a map's dense projection would take (docs/scaling.md quotes it from this command)
+    assert (payload["feature_dim"], payload["k"]) == (64_896, 1_024)  # AlexNet conv3, the default k
+    assert payload["dense_projection_bytes"] == 64_896 * 1_024 * 4
+    assert "D = 64,896 features, k = 1,024, dense projection 253.5 MiB" in r.output
 
 
 def test_the_thread_budget_covers_the_blas_of_the_projection():

@@ -22,11 +22,13 @@ class FakeEncoder:
 
     def __init__(self) -> None:
         self.calls: list[int] = []
+        self.modes: list[tuple[bytes, str | None]] = []  # each image with the mode it was embedded with
 
-    def embed(self, data):
+    def embed(self, data, resize=None):
         from models.frontend.encoder import EncodeResult
 
         self.calls.append(len(data))
+        self.modes.extend((b, resize) for b in data)
         if any(b == b"bad" for b in data):
             raise ImageError("truncated", "the image data ends early")
         feats = np.stack([np.random.default_rng(len(b)).standard_normal(32).astype(np.float32)
@@ -90,6 +92,22 @@ def test_pool_batches_per_backbone_and_builds_each_encoder_once() -> None:
         assert list(built) == ["efficientnet-lite0"] and encoders.get("efficientnet-lite0") is other
         with pytest.raises(ValueError, match="unknown backbone"):
             pool.submit(b"x", backbone="vgg").result(timeout=30)
+    finally:
+        pool.close()
+
+
+def test_pool_encodes_each_image_with_its_maps_resize_mode() -> None:
+    enc = FakeEncoder()
+    pool = EncoderPool(Encoders.one(enc), workers=1, queue=64)
+    try:
+        wanted = {bytes(10 + i): (None, "squash", "crop")[i % 3] for i in range(9)}
+        with held_encoder(enc) as (gate, sizes):
+            futs = [pool.submit(b, resize=mode) for b, mode in wanted.items()]
+            gate.set()
+            for f in futs:
+                f.result(timeout=30)
+        assert sorted(enc.modes, key=str) == sorted(wanted.items(), key=str)
+        assert len(sizes) >= 3  # one backbone call per mode present at least
     finally:
         pool.close()
 

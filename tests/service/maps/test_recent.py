@@ -20,3 +20,20 @@ def test_the_ring_keeps_the_newest_answers_oldest_first_up_to_its_capacity():
 
 def test_the_default_capacity_is_the_one_number():
     assert RecentAnswers().capacity == RECENT_CAPACITY
+
+
+def test_query_thumbnails_fall_off_with_their_answers_and_stay_within_the_byte_budget():
+    ring: RecentAnswers[int] = RecentAnswers(capacity=3, thumbnail_bytes=10)
+    for i in range(3):
+        ring.add("a", i, thumbnail=bytes([i]) * 4)
+    ids = [e.answer_id for e in ring.last(10)]
+    assert ids == [1, 2, 3]
+    assert ring.with_thumbnails(ids) == {2, 3}  # 12 bytes would be over the 10: the oldest went first
+    assert ring.thumbnail(3) == b"\x02" * 4 and ring.thumbnail(1) is None
+    ring.add("a", 3, thumbnail=b"x" * 11)  # larger than the whole budget: not kept, nothing evicted for it
+    ring.add("a", 4)  # answer 3 falls off the ring, with its thumbnail
+    assert [e.answer_id for e in ring.last(10)] == [3, 4, 5] and ring.with_thumbnails([3, 4, 5]) == {3}
+    assert ring.thumbnail(2) is None and ring._thumbs_size == 4
+    ring.clear()
+    ring.add("a", 5, thumbnail=b"y")
+    assert [e.answer_id for e in ring.last(10)] == [6] and ring.thumbnail(6) == b"y"  # ids never reused

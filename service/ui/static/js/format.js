@@ -6,6 +6,24 @@ export function num(v, digits = 0) {
   return typeof v === "number" && Number.isFinite(v) ? v.toFixed(digits) : NONE;
 }
 
+/** A number as JavaScript spells it exactly (the shortest that reads back the same: 0.95, 0.9496), where
+ * rounding would hide the value that decides something, like a revisit threshold. */
+export function exact(v) {
+  return typeof v === "number" && Number.isFinite(v) ? String(v) : NONE;
+}
+
+/** `v` with `digits` decimals, or as many more as it takes to stay on its own side of `threshold`:
+ * 0.9496 beside a threshold of 0.95 reads "0.9496", never "0.95". */
+export function beside(v, threshold, digits = 2) {
+  if (typeof v !== "number" || !Number.isFinite(v)) return NONE;
+  if (typeof threshold !== "number" || !Number.isFinite(threshold)) return v.toFixed(digits);
+  for (let d = digits; d <= 15; d += 1) {
+    const shown = v.toFixed(d);
+    if ((Number(shown) >= threshold) === (v >= threshold)) return shown;
+  }
+  return exact(v);
+}
+
 export function bytes(v) {
   if (typeof v !== "number" || !Number.isFinite(v)) return NONE;
   const units = ["B", "KiB", "MiB", "GiB", "TiB"];

@@ -3,7 +3,8 @@
 
 import { apiKey, getImageUrl, getJson, HttpError, setApiKey } from "./api.js";
 import * as A from "./answers.js";
-import { NONE, bytes, clock, el, level, num, text } from "./format.js";
+import { closureRows, loadClosures, saveExport } from "./closures.js";
+import { NONE, beside, bytes, clock, el, exact, level, num, text } from "./format.js";
 import { drawSeqMatch } from "./seqmatch.js";
 import { drawTrajectory } from "./trajectory.js";
 
@@ -16,6 +17,7 @@ const OBS_PAGE = 500;         // stored rows per page of /observations (the rout
 const state = {
   maps: [], memory: {}, selected: new URLSearchParams(location.search).get("map"), stream: "",
   recent: [], recentSig: "", rows: new Map(), rowsAfter: 0, thumbs: new Map(), tick: 0, busy: false,
+  closures: { entries: [], after: 0 },
 };
 
 const $ = (id) => document.getElementById(id);
@@ -40,7 +42,7 @@ function renderMaps() {
       el("td", { class: `state-${m.state}`, title: m.state_reason || "" }, m.state),
       el("td", { title: m.encoder || "" }, text(m.backbone)),
       el("td", {}, text(m.preset)),
-      el("td", { class: "num" }, num(m.revisit_threshold, 2)),
+      el("td", { class: "num revisit-threshold" }, exact(m.revisit_threshold)),
       el("td", { class: "num obs-count" }, num(m.observations)),
       el("td", { class: "num" }, num(m.streams ? m.streams.length : undefined)),
       el("td", { class: "num" }, bytes(mem && mem.tm ? mem.tm.allocated_bytes : undefined)),
@@ -57,6 +59,7 @@ function forget(mapId) {
   // What was read of the map shown before: its answers and stored rows.
   state.selected = mapId;
   state.recent = []; state.rows = new Map(); state.rowsAfter = 0; state.stream = "";
+  state.closures = { entries: [], after: 0 };
 }
 
 function select(mapId) {
@@ -85,45 +88,64 @@ function renderStreams(map) {
 
 function thumbnailsOn(map) { return Boolean(map && map.thumbnails); }
 
-/** A cell with the thumbnail of stored row `seq` (fetched once, kept while a row shows it), or "—". */
-function thumb(map, seq, shown) {
+/** A cell with the thumbnail at `route` (fetched once, kept while a row shows it; `key` tells apart
+ * images that may come back under one route, as a recent answer's after a restart), or "—". */
+function thumb(map, route, alt, shown, key = route) {
   const cell = el("td", { class: "thumb" });
-  if (!thumbnailsOn(map) || typeof seq !== "number") { cell.textContent = NONE; return cell; }
-  const route = `/v1/maps/${enc(map.map_id)}/observations/${seq}/thumbnail`;
-  shown.add(route);
-  if (!state.thumbs.has(route)) {
-    state.thumbs.set(route, null);
-    getImageUrl(route).then((url) => { state.thumbs.set(route, url || NONE); renderRecent(); })
-      .catch(() => state.thumbs.set(route, NONE));
+  if (!thumbnailsOn(map) || !route) { cell.textContent = NONE; return cell; }
+  shown.add(key);
+  if (!state.thumbs.has(key)) {
+    state.thumbs.set(key, null);
+    getImageUrl(route).then((url) => { state.thumbs.set(key, url || NONE); renderRecent(); })
+      .catch(() => state.thumbs.set(key, NONE));
   }
-  const url = state.thumbs.get(route);
-  if (url && url !== NONE) cell.append(el("img", { src: url, "data-thumb": route, alt: `seq ${seq}` }));
+  const url = state.thumbs.get(key);
+  if (url && url !== NONE) cell.append(el("img", { src: url, "data-thumb": route, alt }));
   else cell.textContent = url === NONE ? NONE : "…";
   return cell;
 }
 
+/** The stored row's thumbnail route, or null. */
+function storedThumb(map, seq) {
+  return typeof seq === "number" ? `/v1/maps/${enc(map.map_id)}/observations/${seq}/thumbnail` : null;
+}
+
+/** The query frame's thumbnail: the one the recent ring keeps (localised frames too), else a learned
+ * row's stored one (an older service), else none. */
+function queryThumb(map, e, shown) {
+  if (e.has_thumbnail && typeof e.answer_id === "number") {
+    const route = `/v1/maps/${enc(map.map_id)}/recent/${e.answer_id}/thumbnail`;
+    return thumb(map, route, "query frame", shown, `${route}@${e.received_at}`);
+  }
+  return thumb(map, map && e.reply.learned ? storedThumb(map, e.reply.seq) : null, "query frame", shown);
+}
+
 function forgetThumbs(shown) {
   // Object URLs hold their image until revoked: keep those of the rows on screen only.
-  for (const [route, url] of state.thumbs) {
-    if (shown.has(route)) continue;
+  for (const [key, url] of state.thumbs) {
+    if (shown.has(key)) continue;
     if (url && url !== NONE) URL.revokeObjectURL(url);
-    state.thumbs.delete(route);
+    state.thumbs.delete(key);
   }
 }
 
-function confidenceCell(v) {
+function confidenceCell(v, threshold) {
   const cls = level(v);
   if (cls === "none") return el("td", { class: "num none" }, NONE);
   const bar = el("span", { class: "bar" }, el("i", { class: cls, style: `width:${Math.round(v * 100)}%` }));
-  return el("td", { class: "num" }, el("span", { class: `conf ${cls}` }, bar, num(v, 2)));
+  return el("td", { class: "num" }, el("span", { class: `conf ${cls}` }, bar, beside(v, threshold)));
 }
 
-function revisitCell(place) {
+/** "revisit" (confidence at or above the map's revisit threshold when the answer was given) or "below
+ * threshold": a place the map knows, not a new one (docs/design/service.md §1.2). */
+function revisitCell(place, threshold) {
   if (!place || typeof place.revisit !== "boolean") {
     return el("td", { class: "none" }, NONE);
   }
-  return el("td", {}, place.revisit ? el("span", { class: "badge revisit" }, "revisit")
-                                    : el("span", { class: "badge new" }, "new"));
+  const at = `the map's revisit threshold, now ${exact(threshold)}`;
+  return el("td", { title: place.revisit ? `confidence at or above ${at}` : `confidence below ${at}` },
+            place.revisit ? el("span", { class: "badge revisit" }, "revisit")
+                          : el("span", { class: "badge below" }, "below threshold"));
 }
 
 function renderRecent() {
@@ -132,7 +154,8 @@ function renderRecent() {
   const shown = state.recent.filter((e) => !state.stream || e.reply.stream === state.stream);
   // Redrawn only when something shown changed: a new <img> decodes again, and would blink every poll.
   const loaded = [...state.thumbs.values()].filter((u) => u !== null).length;
-  const sig = JSON.stringify([map && map.map_id, map && map.thumbnails, state.stream, shown.length,
+  const sig = JSON.stringify([map && map.map_id, map && map.thumbnails, map && map.revisit_threshold,
+                              state.stream, shown.length,
                               shown.length ? shown[shown.length - 1].received_at : null, loaded]);
   if (sig === state.recentSig) return;
   state.recentSig = sig;
@@ -152,20 +175,24 @@ function renderRecent() {
       el("td", { class: "num" }, num(r.sequence ? r.sequence.step : undefined)),
       el("td", { class: "num place-seq" }, p ? num(p.seq) : NONE),
       el("td", {}, p ? text(p.label) : NONE),
-      confidenceCell(p ? p.confidence : undefined),
-      revisitCell(p),
+      confidenceCell(p ? p.confidence : undefined, map ? map.revisit_threshold : undefined),
+      revisitCell(p, map ? map.revisit_threshold : undefined),
       el("td", { class: "num" }, p ? num(p.support) : NONE),
       el("td", { class: "num match-seq" }, m ? num(m.seq) : NONE),
       el("td", {}, m ? text(m.label) : NONE),
       el("td", { class: `num ${level(m ? m.score : undefined)}` }, m ? num(m.score, 3) : NONE),
-      thumb(map, r.learned ? r.seq : null, shownThumbs),
-      thumb(map, p ? p.seq : null, shownThumbs));
+      queryThumb(map, e, shownThumbs),
+      thumb(map, p && map ? storedThumb(map, p.seq) : null, `place ${p ? p.seq : ""}`, shownThumbs));
   }));
   forgetThumbs(shownThumbs);
   const notes = [];
   if (!state.recent.length) notes.push("No answers since the service started (the list is kept in memory only).");
   if (shown.some((e) => !A.place(e.reply))) {
     notes.push("Place — : the stream is in its warm-up (its first frames), or the map had nothing stored.");
+  }
+  if (map && shown.some((e) => A.place(e.reply) && !A.revisit(e.reply))) {
+    notes.push(`Below threshold: the map's best place, at a confidence under its revisit threshold ` +
+               `(${exact(map.revisit_threshold)}), so not claimed as a revisit.`);
   }
   if (map && !thumbnailsOn(map)) notes.push("Thumbnails are off for this map.");
   $("recent-note").textContent = notes.join(" ");
@@ -223,13 +250,20 @@ async function poll() {
       state.recent = recent.answers;
       if (map.last_seq < state.rowsAfter) {  // restored to a snapshot: later seqs are gone, and may come back
         state.rows = new Map(); state.rowsAfter = 0; forgetThumbs(new Set());
+        state.closures = { entries: [], after: 0 };  // the restore's log is the snapshot's
       }
-      if (map.state === "ready") await loadRows(map);  // a recovering map's rows are not readable yet
+      if (map.state === "ready") {  // a recovering map's rows are not readable yet
+        await loadRows(map);
+        await loadClosures(map.map_id, state.closures);
+      }
     }
     renderMaps();
     renderStreams(map);
     renderRecent();
     renderTrajectory();
+    $("closures").tBodies[0].replaceChildren(...closureRows(state.closures));
+    $("closures-note").textContent = state.closures.entries.length ? "" :
+      "No loop closure yet: a revisit (place.revisit) of any stream, learning or localising, is logged here.";
     $("seqmatch-stream").textContent = state.stream || "all streams";
     drawSeqMatch($("seqmatch"), state.recent.filter((e) => !state.stream || e.reply.stream === state.stream), map);
     const last = state.recent.length ? clock(state.recent[state.recent.length - 1].received_at) : NONE;
@@ -251,6 +285,9 @@ $("key-form").addEventListener("submit", (ev) => {
   $("api-key").value = "";
   poll();
 });
+for (const format of ["csv", "jsonl"]) {
+  $(`export-${format}`).addEventListener("click", () => { const m = selectedMap(); if (m) saveExport(m.map_id, format); });
+}
 $("stream").addEventListener("change", () => { state.stream = $("stream").value; poll(); });
 
 poll();
