@@ -97,7 +97,7 @@ def test_maps_that_do_not_fit_at_start_stay_closed_and_listed(tmp_path, sizes):
         assert states == {"default": ("ready", None), "a": ("ready", None), "b": ("failed", "memory-budget")}
         r = post(c, frame(1), map_id="b")
         assert r.status_code == 503 and r.json()["state_reason"] == "memory-budget"
-        assert post(c, frame(0), map_id="a", learn="false").json()["matches"][0]["seq"] == 1
+        assert post(c, frame(0), map_id="a", learn="false", stream="other").json()["matches"][0]["seq"] == 1
         ready = c.get("/readyz")
         assert ready.status_code == 200, ready.text
         b = budget_of(c)
