@@ -74,8 +74,9 @@ def test_http_and_slam_replay_give_the_same_places_for_one_learning_stream(tmp_p
         preset = c.app.state.settings.default_preset
         resize = c.app.state.registry.get("route").config.resize  # the map's mode, as the pool uses it
         feats = np.concatenate([enc.embed([b], resize=resize).features for b in laps])
-    found, threshold = service_path.slam_replay(feats, encoder_id=enc.identity_for(resize), backbone="alexnet",
-                                                preset=preset, seed=7, memory=memory, create={"resize": resize})
+    found, threshold = service_path.slam_replay(
+        feats, encoder_id=enc.identity_for(resize), backbone="alexnet", preset=preset, seed=7, memory=memory,
+        create={"resize": resize})
     want = [None if b["place"] is None else (b["place"]["seq"] - 1, b["place"]["confidence"],
                                              b["place"]["support"]) for b in http]
     got = [None if b < 0 else (int(b), float(cf), int(s))
