@@ -7,7 +7,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from service.maps import results
 from service.maps.ids import MAP_ID_RE
@@ -64,13 +64,26 @@ class CreateMap(BaseModel):
     resize: str | None = Field(default=None, description="crop | squash: how a frame becomes the backbone's "
                                "square input (crop: the middle, as the paper; squash: the whole frame; "
                                "default: service.maps.params.DEFAULT_RESIZE); frozen with the map")
+    keyframes: dict[str, Any] | None = Field(default=None, description="keep each learned frame's local "
+                                             "features for verifying revisits: {\"features\": orb | sift | "
+                                             "akaze, \"max\": N} (docs/design/science.md §12); frozen")
+    verify_revisit: bool = Field(default=False, description="`place.revisit` needs a verified keyframe "
+                                 "(needs keyframes); changeable with PATCH")
 
 class PatchMap(BaseModel):
     """The map settings that may change after creation (docs/design/service.md §1.2)."""
 
     model_config = ConfigDict(extra="forbid", strict=True)  # strict: "0.5" and true are not numbers
-    revisit_threshold: float = Field(description="confidence at which an answer is a revisit, in [0, 1] "
-                                     "(422 outside)")
+    revisit_threshold: float | None = Field(default=None, description="confidence at which an answer is a "
+                                            "revisit, in [0, 1] (422 outside)")
+    verify_revisit: bool | None = Field(default=None, description="a revisit needs a verified keyframe "
+                                        "(422 on a map without keyframes)")
+
+    @model_validator(mode="after")
+    def _something(self) -> Self:
+        if self.revisit_threshold is None and self.verify_revisit is None:
+            raise ValueError("give revisit_threshold or verify_revisit")
+        return self
 
 
 class MapParams(_Out):
@@ -84,6 +97,8 @@ class MapParams(_Out):
     localiser: dict[str, Any]
     resize: str = Field(description="crop | squash: how the map's frames become the backbone's square "
                         "input (crop: the middle of a wide frame; squash: all of it, distorted)")
+    keyframes: dict[str, Any] | None = Field(default=None, description="{features, max}: the local "
+                                             "features kept per learned frame; null: none kept")
 
 
 class MapModel(_Out):
@@ -105,6 +120,8 @@ class MapModel(_Out):
     snapshot_error: dict[str, Any] | None
     backbone: str
     revisit_threshold: float
+    verify_revisit: bool = Field(description="a revisit needs a verified keyframe "
+                                 "(docs/design/science.md §12)")
     thumbnails: bool = Field(description="a small JPEG is kept with each learned observation")
     snapshot_count: int = Field(description="snapshots of every kind")
     snapshots_bytes: int = Field(description="their bytes on disk")

@@ -5,8 +5,9 @@ A row, once committed, is never changed or removed: triggers in the file refuse 
 `observations` and `thumbnails`, and the frozen `meta` likewise. `idempotency_keys` is the one table
 rows leave: the oldest keys are pruned (docs/design/service.md §4.2).
 
-Version 2 added a row's `metadata`, the `thumbnails` and `idempotency_keys` tables; a version 1 file is
-brought up to date when it is opened for writing (`migrate`), in one transaction.
+Version 2 added a row's `metadata`, the `thumbnails` and `idempotency_keys` tables; version 3 the
+`keyframes` table (a learned row's local features and camera, docs/design/science.md §12.1). An older
+file is brought up to date when it is opened for writing (`migrate`), in one transaction.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -106,15 +107,37 @@ CREATE TABLE idempotency_keys (
 );
 """
 
+# What version 3 added: a learned row's keyframe (maps with the `keyframes` option only): its local
+# features packed by `models.geometry.pack` and the camera it was taken with, for verifying revisits.
+_V3_TABLES = """
+CREATE TABLE keyframes (
+    seq      INTEGER PRIMARY KEY REFERENCES observations (seq),
+    features BLOB NOT NULL,          -- models.geometry.pack: header, xy float32, descriptors uint8
+    camera   TEXT NULL               -- {fx, fy, cx, cy, distortion} of the frame, compact JSON
+);
+CREATE TRIGGER keyframes_no_update BEFORE UPDATE ON keyframes
+BEGIN SELECT RAISE(ABORT, 'keyframes are append-only'); END;
+CREATE TRIGGER keyframes_no_delete BEFORE DELETE ON keyframes
+BEGIN SELECT RAISE(ABORT, 'keyframes are append-only'); END;
+"""
+
+
+def _version_step(version: int) -> str:
+    """The script that lifts the frozen meta's trigger for the version number alone."""
+    return f"""
+DROP TRIGGER meta_no_update;
+UPDATE meta SET value = '{version}' WHERE key = 'schema_version';
+CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
+BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
+"""
+
+
 #: Version 1 -> 2 (`migrate`), run as one script inside one transaction. ADD COLUMN changes no row (the
 #: new column reads NULL), so the append-only triggers stay as they are; the frozen meta's trigger is
 #: lifted for the version number alone and put back in the same transaction.
-_MIGRATE_V2 = ("ALTER TABLE observations ADD COLUMN metadata TEXT NULL;" + _V2_TABLES + """
-DROP TRIGGER meta_no_update;
-UPDATE meta SET value = '2' WHERE key = 'schema_version';
-CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
-BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
-""")
+_MIGRATE_V2 = "ALTER TABLE observations ADD COLUMN metadata TEXT NULL;" + _V2_TABLES + _version_step(2)
+#: Version 2 -> 3: a new table, no row changes.
+_MIGRATE_V3 = _V3_TABLES + _version_step(3)
 
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
@@ -128,8 +151,9 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
     as it then is. A current file is returned as it is."""
     if meta.schema_version >= SCHEMA_VERSION:
         return meta
+    steps = {1: _MIGRATE_V2 + _MIGRATE_V3, 2: _MIGRATE_V3}[meta.schema_version]
     try:
-        conn.executescript("BEGIN IMMEDIATE;" + _MIGRATE_V2 + "COMMIT;")
+        conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
     except BaseException:
         if conn.in_transaction:
             conn.execute("ROLLBACK")
@@ -196,6 +220,8 @@ class NewObservation:
         metadata: the client's small JSON object (stamp, pose, ...), stored as compact JSON.
         thumbnail: a small JPEG of the frame (`thumbnails` table), for maps that keep them.
         key: the post's Idempotency-Key and reply, committed in the row's transaction.
+        keyframe: the frame's packed local features (`models.geometry.pack`) and its camera (or None),
+            `keyframes` table, for maps with the `keyframes` option.
     """
 
     stream: str
@@ -209,6 +235,7 @@ class NewObservation:
     metadata: dict[str, Any] | None = None
     thumbnail: bytes | None = None
     key: KeyRecord | None = None
+    keyframe: tuple[bytes, dict[str, Any] | None] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -291,7 +318,7 @@ def create_file(path: Path, meta: MapMeta) -> None:
         try:
             # A temporary file: atomicity comes from the rename below, not from one transaction
             # (executescript would commit a pending transaction anyway).
-            conn.executescript(_SCHEMA + _V2_TABLES)
+            conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

@@ -242,12 +242,16 @@ class MapStore:
             thumbs = [(first + i, r.thumbnail) for i, r in enumerate(rows) if r.thumbnail is not None]
             keys = [(r.key.key, r.key.fingerprint, first + i, r.key.reply, str(r.created_at))
                     for i, r in enumerate(rows) if r.key is not None]
+            frames = [(first + i, r.keyframe[0], None if r.keyframe[1] is None
+                       else json.dumps(r.keyframe[1], separators=(",", ":")))
+                      for i, r in enumerate(rows) if r.keyframe is not None]
             try:
                 with transaction(conn):
                     conn.executemany(f"INSERT INTO observations ({COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?)",
                                      params)
                     # The row's thumbnail and idempotency key commit with it, or nothing does.
                     conn.executemany("INSERT INTO thumbnails (seq, jpeg) VALUES (?, ?)", thumbs)
+                    conn.executemany("INSERT INTO keyframes (seq, features, camera) VALUES (?, ?, ?)", frames)
                     conn.executemany("INSERT INTO idempotency_keys (key, fingerprint, seq, reply, created_at)"
                                      " VALUES (?, ?, ?, ?, ?)", keys)
                     if keys and self.max_keys is not None:  # the keys of the last max_keys seqs stay
@@ -339,6 +343,27 @@ class MapStore:
             found = self._db().execute(f"SELECT seq FROM thumbnails WHERE seq IN ({marks})",
                                        wanted).fetchall()
         return {int(r[0]) for r in found}
+
+    def keyframes(self, seqs: Iterable[int]) -> dict[int, tuple[bytes, dict[str, Any] | None]]:
+        """The keyframes (packed features, camera or None) stored with those of `seqs` (at most 500)
+        that have one (docs/design/science.md §12.1)."""
+        wanted = sorted({int(s) for s in seqs})
+        if self.meta.schema_version < 3 or not wanted:
+            return {}
+        with self._lock:
+            marks = ",".join("?" * len(wanted))
+            found = self._db().execute(f"SELECT seq, features, camera FROM keyframes WHERE seq IN ({marks})",
+                                       wanted).fetchall()
+        return {int(r[0]): (bytes(r[1]), None if r[2] is None else json.loads(r[2])) for r in found}
+
+    def keyframe_bytes(self) -> tuple[int, int]:
+        """(keyframes stored, bytes of their features and cameras): what the option costs on disk."""
+        if self.meta.schema_version < 3:
+            return 0, 0
+        with self._lock:
+            n, b = self._db().execute("SELECT count(*), coalesce(sum(length(features) + "
+                                      "coalesce(length(camera), 0)), 0) FROM keyframes").fetchone()
+        return int(n), int(b)
 
     def key_record(self, key: str) -> KeyRecord | None:
         """The idempotent post stored under `key`, or None (never stored, or pruned)."""

@@ -69,21 +69,23 @@ class FailedMap:
                     "seed": _as(p.get("seed"), int, 0),
                     "exclude_recent": _as(p.get("exclude_recent"), int, 0),
                     "memory": text["memory"], "projection": text["projection"],
-                    "localiser": _as(map_option(p, "localiser"), dict, {}), "resize": text["resize"]},
+                    "localiser": _as(map_option(p, "localiser"), dict, {}), "resize": text["resize"],
+                    "keyframes": _as(map_option(p, "keyframes"), dict, None)},
             encoder=_as(p.get("encoder_id"), str, ""),
             projection_sha256=_as(p.get("projection_sha256"), str, ""),
             observations=0, last_seq=0, streams=[], warnings=_as(p.get("warnings"), list, []),
             recovery=None, snapshot_error=None, backbone=text["backbone"],
             revisit_threshold=_as(map_option(p, "revisit_threshold"), float, DEFAULT_REVISIT_THRESHOLD),
+            verify_revisit=_as(map_option(p, "verify_revisit"), bool, False),
             thumbnails=_as(p.get("thumbnails", False), bool, False),
             **map_snapshots.disk_use(self.catalog, self.map_id))
 
     def snapshots(self) -> list[SnapshotInfo]:
         return map_snapshots.listing(self.catalog, self.map_id)
 
-    def _unavailable(self, *args: Any) -> Any:
+    def _unavailable(self, *args: Any, **kwargs: Any) -> Any:
         raise MapUnavailable(self.map_id, self.state, self.state_reason)
 
     # Everything else needs the memory, the store or the writer.
-    memory = reset_stream = set_revisit_threshold = snapshot = restore = snapshot_dir = _unavailable
+    memory = reset_stream = patch = snapshot = restore = snapshot_dir = _unavailable
     delete_snapshot = _unavailable

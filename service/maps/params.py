@@ -11,15 +11,17 @@ from __future__ import annotations
 
 from typing import Any
 
-from models import presets
+from pydantic import ValidationError
+
+from models import geometry, presets
 from models.frontend import backbones, images, slsbh
 from models.localisation import LocaliserParams
 from models.memory.temporal_memory import validate
 from models.pipeline import MapModel
 from service.maps.errors import InvalidConfiguration
 
-__all__ = ["DEFAULT_RESIZE", "DEFAULT_REVISIT_THRESHOLD", "MEMORY_KINDS", "check_revisit_threshold",
-           "map_model", "map_option", "resolve_params"]
+__all__ = ["DEFAULT_RESIZE", "DEFAULT_REVISIT_THRESHOLD", "MEMORY_KINDS", "check_keyframes",
+           "check_revisit_threshold", "check_verify_revisit", "map_model", "map_option", "resolve_params"]
 
 #: A new map's `revisit_threshold` (docs/design/service.md §1.2): the confidence at which an answer is
 #: called a revisit. docs/results.md §9.2: on Nordland `tune` (EfficientNet-Lite0, the service's path,
@@ -38,7 +40,8 @@ MEMORY_KINDS = ("tm", "none")
 
 # What maps made before an option existed run with (their params lack the key).
 _LEGACY = {"backbone": "alexnet", "memory": "tm", "revisit_threshold": DEFAULT_REVISIT_THRESHOLD,
-           "localiser": {}, "projection": "dense", "resize": "crop"}
+           "localiser": {}, "projection": "dense", "resize": "crop", "keyframes": None,
+           "verify_revisit": False}
 
 
 def map_option(params: dict[str, Any], name: str) -> Any:
@@ -63,6 +66,29 @@ def check_revisit_threshold(value: float) -> float:
     return float(value) + 0.0  # -0.0 + 0.0 == +0.0
 
 
+def check_keyframes(value: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The `keyframes` option as stored ({"features", "max"}, docs/design/science.md §12.1), None = off;
+    raises InvalidConfiguration naming `keyframes.<field>` for a bad value or an extractor this OpenCV
+    build lacks (`models.geometry.KeyframeParams`)."""
+    if value is None:
+        return None
+    try:
+        kf = geometry.KeyframeParams.model_validate(value)
+    except ValidationError as e:
+        errors = [_body("keyframes." + ".".join(map(str, err["loc"])), err["msg"]) for err in e.errors()]
+        raise InvalidConfiguration("; ".join(f"{x['name']}: {x['message']}" for x in errors), errors) from e
+    return kf.model_dump()
+
+
+def check_verify_revisit(value: bool, keyframes: dict[str, Any] | None) -> bool:
+    """`verify_revisit` as stored: true (a revisit needs a verified keyframe) only on a map that keeps
+    keyframes, else InvalidConfiguration (it could never be met: no revisit at all)."""
+    if value and keyframes is None:
+        msg = "verify_revisit needs keyframes: create the map with the keyframes option"
+        raise InvalidConfiguration(msg, [_body("verify_revisit", msg)])
+    return bool(value)
+
+
 def _body(name: str, message: str) -> dict[str, str]:
     return {"location": "body", "name": name, "message": message}
 
@@ -71,7 +97,8 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
                    slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
                    backbone: str = "alexnet", memory: str = "tm",
                    revisit_threshold: float = DEFAULT_REVISIT_THRESHOLD,
-                   localiser: dict[str, Any] | None = None, resize: str = DEFAULT_RESIZE) -> dict[str, Any]:
+                   localiser: dict[str, Any] | None = None, resize: str = DEFAULT_RESIZE,
+                   keyframes: dict[str, Any] | None = None, verify_revisit: bool = False) -> dict[str, Any]:
     """Freeze a map's parameters: preset <- overrides, every value checked before anything is
     converted or allocated.
 
@@ -84,15 +111,19 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
         memory: `tm` | `none` (MEMORY_KINDS). revisit_threshold: in [0, 1] (changeable later).
         localiser: options over `models.localisation.default_conf` (docs/design/science.md §11.3).
         resize: crop | squash (`models.frontend.images.MODES`), frozen into the map.
+        keyframes: {"features": orb | sift | akaze, "max": N} (`check_keyframes`), frozen; None = off.
+        verify_revisit: a revisit needs a verified keyframe (changeable later; needs keyframes).
 
     Returns:
         {"preset", "tm", "slsbh", "seed", "exclude_recent", "backbone", "memory", "revisit_threshold",
-        "localiser", "resize", "warnings"}.
+        "localiser", "resize", "keyframes", "verify_revisit", "warnings"}.
 
     Raises:
         InvalidConfiguration: `errors` names each offending parameter (`tm.<name>`, `slsbh.<name>`,
             `localiser.<name>`, `backbone`, `memory`, `resize`), or the unknown preset.
     """
+    keyframes = check_keyframes(keyframes)
+    verify_revisit = check_verify_revisit(verify_revisit, keyframes)
     errors: list[dict[str, str]] = []
 
     def collect(e: presets.ParamsError) -> None:
@@ -137,4 +168,5 @@ def resolve_params(preset: str, *, seed: int | None = None, tm: dict[str, Any] |
     return {"preset": preset, "tm": tm_params, "slsbh": s_conf, "seed": tm_params["seed"],
             "exclude_recent": int(exclude_recent), "backbone": backbone, "memory": memory,
             "revisit_threshold": check_revisit_threshold(revisit_threshold),
-            "localiser": dict(localiser or {}), "resize": resize, "warnings": warnings}
+            "localiser": dict(localiser or {}), "resize": resize, "keyframes": keyframes,
+            "verify_revisit": verify_revisit, "warnings": warnings}

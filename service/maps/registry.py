@@ -99,7 +99,7 @@ class MapRegistry:
                           s.snapshot_every, s.snapshot_keep, max_keys=s.idempotency_keys,
                           key_cache=s.idempotency_cache, budget=self.budget,
                           stream_keep_seconds=s.stream_keep_seconds, manual_keep=s.snapshot_manual_keep,
-                          manual_bytes=s.snapshot_manual_bytes)
+                          manual_bytes=s.snapshot_manual_bytes, verify_neighbours=s.verify_neighbours)
 
 
     def start(self) -> None:
@@ -191,7 +191,8 @@ class MapRegistry:
                slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
                backbone: str | None = None, memory: str = "tm", revisit_threshold: float | None = None,
                localiser: dict[str, Any] | None = None, thumbnails: bool = False,
-               resize: str | None = None) -> MapRuntime:
+               resize: str | None = None, keyframes: dict[str, Any] | None = None,
+               verify_revisit: bool = False) -> MapRuntime:
         """Create a map: resolve and freeze parameters, persist the projection, then the store (§1.1).
 
         Raises:
@@ -203,7 +204,8 @@ class MapRegistry:
             preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf, exclude_recent=exclude_recent,
             backbone=backbone or self.encoders.default, memory=memory, localiser=localiser,
             **({} if revisit_threshold is None else {"revisit_threshold": revisit_threshold}),
-            **({} if resize is None else {"resize": resize}))
+            **({} if resize is None else {"resize": resize}), keyframes=keyframes,
+            verify_revisit=verify_revisit)
         need = map_projection.model_bytes(params, self.settings.max_streams)
         if need > self.settings.max_map_bytes:
             raise MapTooLarge(need, self.settings.max_map_bytes)

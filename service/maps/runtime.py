@@ -33,18 +33,18 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from models import pipeline
+from models import geometry, pipeline
 from models.frontend import slsbh
 from models.frontend.images import RawFrame
 from models.localisation import InvertedIndex, Localisation
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import Stream, eviction_wait, memory_state, touch
-from service.maps import idempotency, recovery, sizes
+from service.maps import idempotency, keyframes, recovery, sizes
 from service.maps import snapshots as map_snapshots
 from service.maps.budget import MemoryBudget, index_row_bytes
 from service.maps.encoder_pool import EncoderPool
 from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable, StreamLimit
-from service.maps.params import check_revisit_threshold, map_model, map_option
+from service.maps.params import check_revisit_threshold, check_verify_revisit, map_model, map_option
 from service.maps.recent import RecentAnswers
 from service.maps.results import (
     MapInfo,
@@ -56,6 +56,7 @@ from service.maps.results import (
     SequenceStats,
     SnapshotInfo,
     StreamReset,
+    VerificationResult,
 )
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, utc_now
@@ -78,7 +79,8 @@ class MapRuntime:
                  feature_dim: int, max_streams: int, max_observations: int,
                  snapshot_every: int = 0, snapshot_keep: int = 3, *, max_keys: int | None = None,
                  key_cache: int = 0, budget: MemoryBudget | None = None,
-                 stream_keep_seconds: float = 0.0, manual_keep: int = 0, manual_bytes: int = 0) -> None:
+                 stream_keep_seconds: float = 0.0, manual_keep: int = 0, manual_bytes: int = 0,
+                 verify_neighbours: int = 2) -> None:
         self.record = record
         self.map_id = record.map_id
         self.params = record.params
@@ -125,6 +127,12 @@ class MapRuntime:
         self.memory_kind, self.backbone = (map_option(self.params, k) for k in ("memory", "backbone"))
         self.resize: str = map_option(self.params, "resize")  # crop | squash, frozen with the map
         self.revisit_threshold = float(map_option(self.params, "revisit_threshold"))
+        # Keyframes (docs/design/science.md §12): the extractor option (None: off), whether a revisit
+        # needs a verified one, how many route neighbours a verification tries, each stream's camera.
+        self.keyframes: dict[str, Any] | None = map_option(self.params, "keyframes")
+        self.verify_revisit = bool(map_option(self.params, "verify_revisit"))
+        self.verify_neighbours = verify_neighbours
+        self.cameras: dict[str, dict[str, Any]] = {}  # given once per stream (or with each frame)
         # The memory, index and links the pure pipeline steps (models.pipeline); this runtime keeps
         # their order, their persistence and their snapshots.
         self.model = map_model(self.params, max_observations=max_observations)
@@ -348,19 +356,26 @@ class MapRuntime:
         # Localised frames too: their thumbnail is kept in the recent ring only (never stored).
         encoding = pool.submit(body, hasher=self.hasher, backbone=self.backbone, thumbnail=self.thumbnails,
                                resize=self.resize)
+        # Local features at the native resolution, while the backbone encodes (docs/design/science.md
+        # §12.1); bounded by the pool's admission above. The stream's camera: this frame's, else the last.
+        camera = (metadata or {}).get("camera") or self.cameras.get(stream)
+        frame = None if self.keyframes is None else asyncio.ensure_future(asyncio.to_thread(
+            keyframes.extract_frame, body, self.keyframes, camera))
         before, mine = self._turn, asyncio.Event()
         self._turn = mine
         try:
             encoded = await asyncio.wrap_future(encoding)
+            query = None if frame is None else await frame
             t_encoded = time.perf_counter()
             await before.wait()
             assert encoded.projected is not None  # the pool projects when given a hasher
-            front = {"decode": encoded.timings_ms["decode"], "encode": (t_encoded - t0) * 1e3}
+            front = {"decode": encoded.timings_ms["decode"], "encode": (t_encoded - t0) * 1e3,
+                     **({} if query is None else {"features": query.ms})}
             thumb = encoded.thumbnails[0] if encoded.thumbnails else None
             apply = functools.partial(
                 self.apply, encoded.projected[0], hashlib.sha256(getattr(body, "data", body)).hexdigest(),
                 learn=learn, stream=stream, top_k=top_k, label=label, metadata=metadata,
-                thumbnail=thumb if learn else None, post=post)
+                thumbnail=thumb if learn else None, post=post, query=query)
             if post is not None:
                 post.front_ms = front
                 assert self.store is not None  # a ready map has its store
@@ -377,7 +392,8 @@ class MapRuntime:
 
     def apply(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None = None, thumbnail: bytes | None = None,
-              post: idempotency.IdempotentPost | None = None) -> ObservationResult:
+              post: idempotency.IdempotentPost | None = None,
+              query: keyframes.QueryFrame | None = None) -> ObservationResult:
         """Writer: one frame's TM step on the stream's context, ranking, and for learning the commit.
 
         Args:
@@ -385,6 +401,8 @@ class MapRuntime:
             image_sha256: hex digest of the image bytes (stored, never the image).
             metadata, thumbnail: stored with a learned row (docs/design/service.md §4.2).
             post: an idempotent post: a learned row commits with its sealed reply.
+            query: the frame's local features and camera (maps with keyframes): a learned row stores
+                them; a revisit candidate is verified with them (docs/design/science.md §12).
 
         Returns:
             The result; `timings_ms` holds hash, tm, search and store.
@@ -405,7 +423,7 @@ class MapRuntime:
             self.budget.grow_index(self.map_id, self.row_bytes)  # set right by the recovery it causes)
         try:
             return self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k, label=label,
-                              metadata=metadata, thumbnail=thumbnail, post=post)
+                              metadata=metadata, thumbnail=thumbnail, post=post, query=query)
         except Exception as e:
             if not learn:
                 raise  # a localisation learns nothing: the memory and the store still agree
@@ -423,7 +441,8 @@ class MapRuntime:
 
     def _step(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None, thumbnail: bytes | None,
-              post: idempotency.IdempotentPost | None) -> ObservationResult:
+              post: idempotency.IdempotentPost | None,
+              query: keyframes.QueryFrame | None = None) -> ObservationResult:
         """Writer: `apply` after its checks: the pure step (`models.pipeline.observe`), then the reply
         from the stored rows it names and, for learning, the row on disk. An exception here while
         learning is rebuilt from by `apply` (the step already holds the row in the index and links)."""
@@ -435,9 +454,14 @@ class MapRuntime:
         t3 = time.perf_counter()
         place = step.place
         rows = self.store.get_many([*(m.seq for m in step.ranked), *([place.seq] if place else [])])
+        if query is not None and query.camera is not None:
+            self.cameras[stream] = query.camera
+        kf = None if query is None else (geometry.pack(query.features), query.camera)
         row = NewObservation(stream=stream, image_sha256=image_sha256, input_sdr=step.code,
                              winner_cells=step.winners, context_prev_seq=step.prev_seq, label=label,
-                             metadata=metadata, thumbnail=thumbnail) if learn else None
+                             metadata=metadata, thumbnail=thumbnail, keyframe=kf) if learn else None
+        answer = None if place is None else self._verified(
+            PlaceResult.of(place, rows[place.seq], self.revisit_threshold), query, stream)
         # The answer is whole before the commit, so an idempotent post's reply commits with its row.
         result = ObservationResult(
             map_id=self.map_id, stream=stream, learned=learn, observation_id=row and row.observation_id,
@@ -445,8 +469,7 @@ class MapRuntime:
             matches=[Match.of(i + 1, rows[m.seq], m.overlap, m.score) for i, m in enumerate(step.ranked)],
             timings_ms=step.timings_ms, map_seq=seq or self.store.last_seq(),
             projection_sha256=self.params["projection_sha256"], backbone=self.backbone, metadata=metadata,
-            encoder=self.params["encoder_id"], resize=self.resize,
-            place=None if place is None else PlaceResult.of(place, rows[place.seq], self.revisit_threshold))
+            encoder=self.params["encoder_id"], resize=self.resize, place=answer)
         if row is not None:
             if post is not None:
                 row = dataclasses.replace(row, key=post.record(result))
@@ -459,6 +482,19 @@ class MapRuntime:
         t4 = time.perf_counter()
         return dataclasses.replace(result, timings_ms={**result.timings_ms, "store": (t4 - t3) * 1e3})
 
+    def _verified(self, place: PlaceResult, query: keyframes.QueryFrame | None, stream: str) -> PlaceResult:
+        """Writer: a revisit candidate's geometric verification (docs/design/science.md §12.2), on maps
+        with keyframes only; with `verify_revisit` an unverified candidate is no revisit."""
+        if not place.revisit or self.keyframes is None or self.store is None:
+            return place
+        if query is None:  # the frame could not be decoded for features (the encoder decoded it)
+            v = VerificationResult(verified=False, reason="no-features")
+        else:
+            v = keyframes.verify_place(self.store, place.seq, place.stream, query, stream=stream,
+                                       neighbours=self.verify_neighbours)
+        revisit = place.revisit and (v.verified or not self.verify_revisit)
+        return dataclasses.replace(place, verification=v, revisit=revisit)
+
     # ------------------------------------------------------------------ resources
 
     def info(self) -> MapInfo:
@@ -469,20 +505,30 @@ class MapRuntime:
             params={"tm": p["tm"], "slsbh": p["slsbh"], "seed": p["seed"],
                     "exclude_recent": p["exclude_recent"], "memory": self.memory_kind,
                     "projection": map_option(p, "projection"), "localiser": self.localisation.localiser.conf,
-                    "resize": self.resize},
+                    "resize": self.resize, "keyframes": self.keyframes},
             encoder=p["encoder_id"], projection_sha256=p["projection_sha256"],
             observations=len(self.index),
             last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),
             warnings=p.get("warnings", []), recovery=self.recovery, snapshot_error=self.snapshot_error,
-            backbone=self.backbone, revisit_threshold=self.revisit_threshold, thumbnails=self.thumbnails,
+            backbone=self.backbone, revisit_threshold=self.revisit_threshold,
+            verify_revisit=self.verify_revisit, thumbnails=self.thumbnails,
             **map_snapshots.disk_use(self.catalog, self.map_id))
 
-    def set_revisit_threshold(self, value: float) -> MapInfo:
-        """Writer: the map's revisit threshold, durable in the catalog (docs/design/service.md §1.2);
-        InvalidConfiguration outside [0, 1] (nothing changes)."""
-        value = check_revisit_threshold(value)
-        self.record = self.catalog.update_params(self.map_id, revisit_threshold=value)
-        self.params, self.revisit_threshold = self.record.params, value
+    def patch(self, *, revisit_threshold: float | None = None, verify_revisit: bool | None = None) -> MapInfo:
+        """Writer: the settings that may change after creation, durable in the catalog in one update
+        (docs/design/service.md §1.2): the revisit threshold, and whether a revisit needs a verified
+        keyframe. InvalidConfiguration (nothing changes): a threshold outside [0, 1], verify_revisit on a
+        map without keyframes."""
+        changes: dict[str, Any] = {}
+        if revisit_threshold is not None:
+            changes["revisit_threshold"] = check_revisit_threshold(revisit_threshold)
+        if verify_revisit is not None:
+            changes["verify_revisit"] = check_verify_revisit(verify_revisit, self.keyframes)
+        if changes:
+            self.record = self.catalog.update_params(self.map_id, **changes)
+            self.params = self.record.params
+            self.revisit_threshold = float(map_option(self.params, "revisit_threshold"))
+            self.verify_revisit = bool(map_option(self.params, "verify_revisit"))
         return self.info()
 
     def memory(self) -> MemoryInfo:
