@@ -39,9 +39,9 @@ SIGMA_PX = 1.5
 #: line fits repeated texture (bricks against a rocket's gantry, with 49 "inliers") and is no revisit.
 MIN_SPREAD = 0.02
 MAX_SCALE = 10.0
-#: Below this |t| / depth, the homography's decomposition has no translation to tell: a pure rotation
-#: (or a plane at infinity) leaves the direction unobservable.
-MIN_TRANSLATION = 0.02
+#: A homography whose inliers a pure rotation also explains (this fraction of them within RANSAC_PX)
+#: has no translation to tell: the direction is unobservable (a rotation, or a plane far away).
+ROTATION_ONLY = 0.9
 
 
 @dataclass(frozen=True)
@@ -183,7 +183,8 @@ def verify(query: Features, keyframe: Features, query_camera: Camera | None = No
     if query_camera is None or keyframe_camera is None:
         return Verification(True, **base, reason="no-camera")
     nk, nq = keyframe_camera.normalise(p[inl]), query_camera.normalise(q[inl])
-    R, t = (_pose_h(nk, nq) if model == "homography" else _pose_e(nk, nq, query_camera))
+    f_px = (query_camera.fx + query_camera.fy) / 2
+    R, t = _pose_h(nk, nq, f_px) if model == "homography" else _pose_e(nk, nq, f_px)
     return Verification(True, **base, rotation=R, translation=t,
                         reason=None if t is not None or R is None else "translation-unobservable")
 
@@ -201,9 +202,10 @@ def _degenerate(H: np.ndarray | None, p: np.ndarray, q: np.ndarray, size_p: tupl
     return not 1 / MAX_SCALE**2 <= det <= MAX_SCALE**2
 
 
-def _pose_e(nk: np.ndarray, nq: np.ndarray, camera: Camera) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """R, unit t from the essential matrix of normalised inlier points (X_q = R X_k + t)."""
-    thr = RANSAC_PX / ((camera.fx + camera.fy) / 2)
+def _pose_e(nk: np.ndarray, nq: np.ndarray, f_px: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """R, unit t from the essential matrix of normalised inlier points (X_q = R X_k + t); `f_px`: the
+    query camera's focal length, to put RANSAC's pixel threshold in normalised units."""
+    thr = RANSAC_PX / f_px
     E, mask = cv2.findEssentialMat(nk, nq, np.eye(3), cv2.RANSAC, 0.999, thr)
     if E is None or E.shape != (3, 3):
         return None, None
@@ -211,10 +213,27 @@ def _pose_e(nk: np.ndarray, nq: np.ndarray, camera: Camera) -> tuple[np.ndarray 
     return R, t.ravel() / max(float(np.linalg.norm(t)), 1e-12)
 
 
-def _pose_h(nk: np.ndarray, nq: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """R and, when observable, unit t from the homography between normalised inlier points: the
-    decompositions that put the points in front of both cameras; R when they agree on it, t when
-    they also agree on a direction and |t| / depth >= MIN_TRANSLATION."""
+def _rotation_only(nk: np.ndarray, nq: np.ndarray) -> np.ndarray:
+    """(3, 3) the rotation that best turns the keyframe's bearings onto the query's (Kabsch)."""
+    bk = np.c_[nk, np.ones(len(nk))]
+    bq = np.c_[nq, np.ones(len(nq))]
+    bk /= np.linalg.norm(bk, axis=1, keepdims=True)
+    bq /= np.linalg.norm(bq, axis=1, keepdims=True)
+    u, _, vt = np.linalg.svd(bq.T @ bk)
+    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+
+
+def _pose_h(nk: np.ndarray, nq: np.ndarray, f_px: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """R and, when observable, unit t from the homography between normalised inlier points.
+
+    When a pure rotation explains ROTATION_ONLY of the inliers within RANSAC_PX (`f_px`: the query
+    camera's focal length), that rotation, and no translation. Otherwise the decompositions of H that
+    put the points in front of both cameras: R when they agree on it, t when they also agree on it."""
+    R0 = _rotation_only(nk, nq)
+    moved = np.c_[nk, np.ones(len(nk))] @ R0.T
+    err = f_px * np.linalg.norm(moved[:, :2] / moved[:, 2:] - nq, axis=1)
+    if np.mean(err <= RANSAC_PX) >= ROTATION_ONLY:
+        return R0, None
     Hn, _ = cv2.findHomography(nk, nq, 0)
     if Hn is None:
         return None, None
@@ -225,9 +244,7 @@ def _pose_h(nk: np.ndarray, nq: np.ndarray) -> tuple[np.ndarray | None, np.ndarr
     R = Rs[idx[0]]
     if any(rotation_angle(Rs[i] @ R.T) > 2.0 for i in idx):
         return None, None
-    norms = [float(np.linalg.norm(ts[i])) for i in idx]
-    if max(norms) < MIN_TRANSLATION:
-        return R, None
+    norms = [max(float(np.linalg.norm(ts[i])), 1e-12) for i in idx]
     units = [ts[i].ravel() / n for i, n in zip(idx, norms, strict=True)]
     if any(float(u @ units[0]) < math.cos(math.radians(5)) for u in units):
         return R, None
