@@ -14,7 +14,7 @@ from models.geometry.verify import rotation_angle
 
 pytest.importorskip("skimage", reason="scikit-image (dev extra) ships the real images")
 
-from models.evaluation.geometry import PHOTOS, photo, photo_camera, rotation, stereo, warp  # noqa: E402
+from models.evaluation.geometry import PHOTOS, photo, photo_camera, rotation, stereo, warp
 
 EXTRACTORS = [k for k in ("orb", "sift") if k in available()]
 
@@ -94,7 +94,8 @@ def test_keyframe_bytes_round_trip_exactly_and_are_compact(kind):
         unpack(blob[:-1])
     # uint8 SIFT descriptors verify as the float ones did
     left, right, cam_l, cam_r = stereo()
-    assert verify(unpack(pack(extract(right, kind))), unpack(pack(extract(left, kind))), cam_r, cam_l).verified
+    again = verify(unpack(pack(extract(right, kind))), unpack(pack(extract(left, kind))), cam_r, cam_l)
+    assert again.verified
 
 
 def test_an_extractor_outside_the_build_or_the_registry_is_refused():
