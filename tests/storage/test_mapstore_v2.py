@@ -73,7 +73,8 @@ def test_a_version_1_file_opens_migrates_and_learns(tmp_path: Path, meta: MapMet
                                                thumbnail=b"jpeg", key=KeyRecord("key-00000003", "f", "{}")))
         assert seq == 3 and store.get(3).metadata == {"stamp": 3.0} and store.thumbnail(3) == b"jpeg"
     conn = sqlite3.connect(path)
-    assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == str(SCHEMA_VERSION)
+    version = conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0]
+    assert version == str(SCHEMA_VERSION)
     # The append-only and frozen-meta rules hold after the migration.
     for sql in ("UPDATE observations SET label = 'x'", "DELETE FROM observations",
                 "UPDATE meta SET value = '3'", "DELETE FROM meta"):
