@@ -31,9 +31,10 @@ def bench_size(n: int, frames: int, keep: int = 30, seed: int = 0) -> dict[str, 
     sets = random_sets(rng, n)
     idx, _ = build_index(sets)
     loc = Localisation()
-    loc.rebuild(SimpleNamespace(seq=i + 1, context_prev_seq=i or None) for i in range(n))
+    loc.rebuild(SimpleNamespace(seq=i + 1, context_prev_seq=i or None, input_sdr=np.zeros(0, np.int64))
+                for i in range(n))
     state = loc.new_state()
-    wanted = loc.candidates_wanted(0, learn=False)
+    wanted = loc.candidates_wanted(0)
     start = int(rng.integers(0, max(n - frames, 1)))
     route = [start + t for t in range(min(frames, n))]
     queries = [noisy_query(rng, sets[r], keep) for r in route]
@@ -43,7 +44,7 @@ def bench_size(n: int, frames: int, keep: int = 30, seed: int = 0) -> dict[str, 
         t0 = clock()
         ranked = idx.rank(q, wanted)
         t1 = clock()
-        place = loc.step(state, ranked, None, learn=False)
+        place = loc.step(state, ranked, None)  # a localising stream: no own trail
         t_step.append(clock() - t1)
         t_rank.append(t1 - t0)
         if place is not None:
@@ -56,7 +57,7 @@ def bench_size(n: int, frames: int, keep: int = 30, seed: int = 0) -> dict[str, 
             "step_ms_median": float(np.median(step)), "step_ms_p90": float(np.percentile(step, 90)),
             "total_ms_median": float(np.median(both)), "total_ms_p90": float(np.percentile(both, 90)),
             "state_bytes": int(sum(v.nbytes for v in state.to_arrays().values())),
-            "graph_bytes": int(loc.graph.prev.nbytes + loc.graph.next.nbytes),
+            "graph_bytes": int(loc.graph.prev.nbytes + loc.graph.next.nbytes + loc.graph.trail.nbytes),
             "recall_at_1": right / max(answered, 1)}
 
 

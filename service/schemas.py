@@ -49,7 +49,6 @@ class CreateMap(BaseModel):
     seed: int | None = Field(default=None, description="the TM's seed (and the projection's); >= 0")
     tm: dict[str, Any] | None = Field(default=None, description="Temporal Memory overrides, NuPIC names")
     slsbh: dict[str, Any] | None = Field(default=None, description="sLSBH overrides: k, s, seed, adapt_tau")
-    exclude_recent: int = Field(default=0, ge=0)
     backbone: str | None = Field(default=None, description="alexnet | efficientnet-lite0-s5 | "
                                  "efficientnet-lite0 (default: the service's, resolved at startup); "
                                  "frozen with the map")
@@ -90,7 +89,6 @@ class MapParams(_Out):
     tm: dict[str, Any]
     slsbh: dict[str, Any]
     seed: int
-    exclude_recent: int
     memory: str
     projection: str = Field(description="dense | sparse (the very sparse projection, where dense would "
                             "break the map's size budget)")
@@ -236,6 +234,37 @@ class StoredObservationList(_Out):
 
     observations: list[StoredObservationModel]
     next_after_seq: int | None
+
+
+class StoredRowModel(_Out):
+    """A stored row's identity and the metadata stored with it."""
+
+    seq: int
+    observation_id: str
+    stream: str
+    label: str | None
+    metadata: dict[str, Any] | None
+
+
+class LoopClosureModel(_Out):
+    """One logged loop closure (docs/design/science.md §11.6): a revisit a stream was told of."""
+
+    id: int = Field(description="its place in the map's log; pages continue `after` it")
+    stream: str
+    seq: int | None = Field(description="the frame's stored row (null: the stream was localising)")
+    observation_id: str | None
+    metadata: dict[str, Any] | None = Field(description="the frame's metadata (stamp, pose)")
+    place: StoredRowModel = Field(description="the stored row its `place` named")
+    confidence: float
+    support: int
+    created_at: str
+
+
+class LoopClosureList(_Out):
+    """A page of the log, oldest first; `next_after` continues it (None: nothing after this page)."""
+
+    loop_closures: list[LoopClosureModel]
+    next_after: int | None
 
 
 class RecentModel(_Out):

@@ -135,6 +135,8 @@ class Settings(BaseSettings):
     max_top_k: int = Field(100, ge=0)
     idempotency_keys: int = Field(100_000, ge=1, description="Idempotency-Keys kept per map: those of the "
                                   "learned posts of the last N seqs, in map.sqlite")
+    loop_closures: int = Field(100_000, ge=1, description="loop closures kept per map in its log (the "
+                               "revisits streams were told of, map.sqlite): the last N, oldest pruned")
     idempotency_cache: int = Field(1024, ge=0, description="replies of localisation posts (learn=false) "
                                    "kept in memory per map for their Idempotency-Key")
     verify_neighbours: int = Field(2, ge=0, le=10, description="a revisit candidate is verified against "

@@ -34,7 +34,9 @@ from storage.mapschema import (
     SCHEMA_VERSION,
     DuplicateObservation,
     KeyRecord,
+    LoopClosure,
     MapMeta,
+    NewClosure,
     NewObservation,
     Observation,
     StoreCorrupt,
@@ -52,8 +54,10 @@ __all__ = [
     "SCHEMA_VERSION",
     "DuplicateObservation",
     "KeyRecord",
+    "LoopClosure",
     "MapMeta",
     "MapStore",
+    "NewClosure",
     "NewObservation",
     "Observation",
     "StorageError",
@@ -82,15 +86,17 @@ class MapStore:
     """
 
     def __init__(self, path: Path, conn: sqlite3.Connection, meta: MapMeta, seq_floor: int,
-                 max_keys: int | None = None) -> None:
+                 max_keys: int | None = None, max_closures: int | None = None) -> None:
         """Use `MapStore.create` or `MapStore.open`."""
         self.path = path
         self.meta = meta
         self.max_keys = max_keys
+        self.max_closures = max_closures
         # A version 1 file opened read-only is not migrated: its rows read with metadata NULL, and it
         # has no thumbnails or keys.
         self._v2 = meta.schema_version >= 2
         self._cols = COLUMNS if self._v2 else COLUMNS_V1
+        self._v3 = meta.schema_version >= 3  # a version 2 file opened read-only has no loop-closure log
         self._conn: sqlite3.Connection | None = conn
         self._lock = threading.RLock()
         self._cell_dtype = meta.cell_dtype
@@ -103,24 +109,24 @@ class MapStore:
 
     @classmethod
     def create(cls, path: str | os.PathLike[str], meta: MapMeta, *, seq_floor: int = 0,
-               max_keys: int | None = None) -> MapStore:
+               max_keys: int | None = None, max_closures: int | None = None) -> MapStore:
         """Create a new `map.sqlite` atomically (`storage.mapschema.create_file`: a crash leaves no map
         file or a complete one) and open it.
 
         Args:
             path: the file to create; its directory must exist.
             meta: what is frozen into the map.
-            seq_floor, max_keys: see `open`.
+            seq_floor, max_keys, max_closures: see `open`.
 
         Raises:
             FileExistsError: `path` exists.
         """
         create_file(Path(path), meta)
-        return cls.open(path, seq_floor=seq_floor, max_keys=max_keys)
+        return cls.open(path, seq_floor=seq_floor, max_keys=max_keys, max_closures=max_closures)
 
     @classmethod
     def open(cls, path: str | os.PathLike[str], *, seq_floor: int = 0, readonly: bool = False,
-             max_keys: int | None = None) -> MapStore:
+             max_keys: int | None = None, max_closures: int | None = None) -> MapStore:
         """Open an existing `map.sqlite`.
 
         Args:
@@ -131,6 +137,7 @@ class MapStore:
             readonly: inspect only (`cortexloc verify`): nothing on disk changes, appends fail. An
                 older file is migrated (`storage.mapschema.migrate`) unless opened read-only.
             max_keys: idempotency keys kept: those of the last `max_keys` seqs (None: all).
+            max_closures: loop closures kept: the last `max_closures` (None: all).
 
         Raises:
             FileNotFoundError: no such file (SQLite would silently create an empty one).
@@ -151,7 +158,7 @@ class MapStore:
                                    f"this code's {SCHEMA_VERSION}")
             if not readonly:
                 meta = migrate(conn, meta)
-            return cls(path, conn, meta, seq_floor, max_keys)
+            return cls(path, conn, meta, seq_floor, max_keys, max_closures)
         except sqlite3.DatabaseError as exc:
             conn.close()
             if is_full_error(exc):  # the migration found no room: the file is whole, the disk is not
@@ -245,6 +252,8 @@ class MapStore:
             frames = [(first + i, r.keyframe[0], None if r.keyframe[1] is None
                        else json.dumps(r.keyframe[1], separators=(",", ":")))
                       for i, r in enumerate(rows) if r.keyframe is not None]
+            closures = [_closure_params(r.closure, first + i)
+                        for i, r in enumerate(rows) if r.closure is not None]
             try:
                 with transaction(conn):
                     conn.executemany(f"INSERT INTO observations ({COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?)",
@@ -257,6 +266,7 @@ class MapStore:
                     if keys and self.max_keys is not None:  # the keys of the last max_keys seqs stay
                         conn.execute("DELETE FROM idempotency_keys WHERE seq <= ?",
                                      (first + len(params) - 1 - self.max_keys,))
+                    self._log_closures(conn, closures)
             except sqlite3.IntegrityError as exc:
                 if "observation_id" in str(exc) or "idempotency_keys.key" in str(exc):
                     raise DuplicateObservation(str(exc)) from exc
@@ -265,6 +275,58 @@ class MapStore:
             self._last_seq = first + len(params) - 1
             self._count += len(params)
             return list(range(first, first + len(params)))
+
+    def add_closure(self, closure: NewClosure) -> bool:
+        """Log a localising stream's loop closure alone (it stores no observation) and COMMIT.
+
+        Returns:
+            False when its idempotency key is already logged (nothing written).
+
+        Raises:
+            StorageFull: the disk is full; nothing was written.
+        """
+        with self._lock:
+            conn = self._db()
+            with transaction(conn):
+                return self._log_closures(conn, [_closure_params(closure, None)]) > 0
+
+    def _log_closures(self, conn: sqlite3.Connection, params: list[tuple[Any, ...]]) -> int:
+        """In a transaction: insert (a repeated key inserts nothing), then keep the last `max_closures`."""
+        if not params:
+            return 0
+        before = conn.total_changes
+        conn.executemany("INSERT OR IGNORE INTO loop_closures (stream, seq, place_seq, confidence, support, "
+                         "metadata, idempotency_key, created_at, verification) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                         params)
+        added = conn.total_changes - before
+        if added and self.max_closures is not None:
+            conn.execute("DELETE FROM loop_closures WHERE id <= (SELECT max(id) FROM loop_closures) - ?",
+                         (self.max_closures,))
+        return added
+
+    def closures(self, after: int, limit: int) -> list[LoopClosure]:
+        """At most `limit` logged loop closures with id > `after`, oldest first, with both rows."""
+        if not self._v3:
+            return []
+        with self._lock:
+            found = self._db().execute(
+                "SELECT c.id, c.stream, c.seq, o.observation_id, c.metadata, c.place_seq, p.observation_id, "
+                "p.stream, p.label, p.metadata, c.confidence, c.support, c.created_at, "
+                f"{'c.verification' if self.meta.schema_version >= 4 else 'NULL'} FROM loop_closures c "
+                "JOIN observations p ON p.seq = c.place_seq LEFT JOIN observations o ON o.seq = c.seq "
+                "WHERE c.id > ? ORDER BY c.id LIMIT ?", (int(after), int(limit))).fetchall()
+        return [LoopClosure(id=int(r[0]), stream=r[1], seq=None if r[2] is None else int(r[2]),
+                            observation_id=r[3], metadata=_json(r[4]), place_seq=int(r[5]),
+                            place_observation_id=r[6], place_stream=r[7], place_label=r[8],
+                            place_metadata=_json(r[9]), confidence=float(r[10]), support=int(r[11]),
+                            created_at=r[12], verification=_json(r[13])) for r in found]
+
+    def closure_count(self) -> int:
+        """Loop closures in the log."""
+        if not self._v3:
+            return 0
+        with self._lock:
+            return int(self._db().execute("SELECT count(*) FROM loop_closures").fetchone()[0])
 
     # ------------------------------------------------------------------ reads
 
@@ -348,7 +410,7 @@ class MapStore:
         """The keyframes (packed features, camera or None) stored with those of `seqs` (at most 500)
         that have one (docs/design/science.md §12.1)."""
         wanted = sorted({int(s) for s in seqs})
-        if self.meta.schema_version < 3 or not wanted:
+        if self.meta.schema_version < 4 or not wanted:
             return {}
         with self._lock:
             marks = ",".join("?" * len(wanted))
@@ -358,7 +420,7 @@ class MapStore:
 
     def keyframe_bytes(self) -> tuple[int, int]:
         """(keyframes stored, bytes of their features and cameras): what the option costs on disk."""
-        if self.meta.schema_version < 3:
+        if self.meta.schema_version < 4:
             return 0, 0
         with self._lock:
             n, b = self._db().execute("SELECT count(*), coalesce(sum(length(features) + "
@@ -464,6 +526,17 @@ class MapStore:
                     stale.unlink()
 
         atomic_write(dest, copy, before_replace=drop_stale_wal)
+
+
+def _json(text: str | None) -> Any:
+    return None if text is None else json.loads(text)
+
+
+def _closure_params(c: NewClosure, seq: int | None) -> tuple[Any, ...]:
+    meta = None if c.metadata is None else json.dumps(c.metadata, separators=(",", ":"))
+    verification = None if c.verification is None else json.dumps(c.verification, separators=(",", ":"))
+    return (str(c.stream), seq, int(c.place_seq), float(c.confidence), int(c.support), meta, c.key,
+            str(c.created_at), verification)
 
 
 def _size(p: Path) -> int:

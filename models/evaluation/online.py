@@ -9,12 +9,12 @@ localised against its own past steps.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
 
-from models.localisation import SequenceGraph, SequenceLocaliser, top_candidates
+from models.localisation import CodeStats, SequenceGraph, SequenceLocaliser, top_candidates
 
 
 class OnlineAnswers(NamedTuple):
@@ -48,46 +48,63 @@ def localise(S: np.ndarray, conf: Mapping[str, Any] | None = None,
     loc = SequenceLocaliser(conf)
     top_k = int(loc.conf["top_k"])
     graph = SequenceGraph.chain(n_db) if graph is None else graph
-    return _drive(loc, graph, n_db, n_q, lambda j: top_candidates(S[:, j], top_k), grow=False)
+    return _drive(loc, graph, n_db, n_q, lambda j: top_candidates(S[:, j], top_k))
 
 
-def loop_closure(S: np.ndarray, conf: Mapping[str, Any] | None = None) -> OnlineAnswers:
-    """One learning stream localised against its own past: the grid protocol (docs/design/science.md §2.4)
-    through the service's localiser (§11).
+def loop_closure(S: np.ndarray, codes: Sequence[np.ndarray], conf: Mapping[str, Any] | None = None,
+                 width: int | None = None) -> OnlineAnswers:
+    """One learning stream localised against its own past: the grid protocol (docs/design/science.md
+    §2.4) and a robot mapping a route (§11.6), through the service's localiser and its own-trail rule.
 
     Step i is localised before it is stored: the map then holds steps 0 … i − 1, linked in order (row r's
-    predecessor r − 1), and, as in the service for a learning stream (`service/maps/localisation.py`),
-    the stream's own last `exclusion` + 1 rows are not candidates (they would always match best), nor
-    rows of similarity <= 0 (the index returns only rows sharing a cell). Then step i joins the map.
-    One stream, one state, no reset.
+    predecessor r − 1). As in the service (`service/maps/runtime.py`), the stream's own rows it has not
+    left (`SequenceLocaliser.own_trail`, measured on the steps' frame codes) are not candidates, nor rows
+    of similarity <= 0 (the index returns only rows sharing a cell). Then step i joins the map. One
+    stream, one state, no reset.
 
     Args:
         S: (T, T) single-image similarity of step j (rows) and step i (columns), higher = more similar;
-            only entries j < i − exclusion − 1 are read, so any symmetric matrix of causal descriptors
-            (input SDRs, TM winner cells learned online) gives a causal answer.
+            only entries j < i are read, so any symmetric matrix of causal descriptors (input SDRs, TM
+            winner cells learned online) gives a causal answer.
+        codes: T sorted index arrays, each step's frame code (its input SDR: what it looks like).
         conf: localiser options over `models.localisation.default_conf`.
+        width: the codes' bit space (default: the largest index + 1).
 
     Returns:
         OnlineAnswers over T steps against T rows; S[j, i] is -inf unless j < i and j is in the beam.
     """
     S = np.asarray(S, dtype=np.float64)
     T = S.shape[0]
-    if S.shape != (T, T):
-        raise ValueError(f"S must be square (T, T), got {S.shape}")
+    if S.shape != (T, T) or len(codes) != T:
+        raise ValueError(f"S must be square (T, T) with T codes, got {S.shape} and {len(codes)}")
     loc = SequenceLocaliser(conf)
-    top_k, own = int(loc.conf["top_k"]), int(loc.conf["exclusion"]) + 1
-
-    def candidates(i: int) -> tuple[np.ndarray, np.ndarray]:
-        seqs, scores = top_candidates(S[:max(i - own, 0), i], top_k)  # not the own recent rows
-        return seqs[scores > 0], scores[scores > 0]  # the index's min_overlap 1
-
-    return _drive(loc, SequenceGraph(), T, T, candidates, grow=True)
+    top_k = int(loc.conf["top_k"])
+    codes = [np.unique(np.asarray(c, np.int64)) for c in codes]
+    stats = CodeStats(width or 1 + max((int(c.max()) for c in codes if c.size), default=0))
+    graph = SequenceGraph()
+    state = loc.new_state()
+    best, confidence = np.full(T, -1, np.int64), np.zeros(T)
+    support, out = np.zeros(T, np.int64), np.full((T, T), -np.inf)
+    for i in range(T):
+        own = loc.own_trail(state, graph, i - 1 if i else None, codes[i], codes.__getitem__, stats)
+        sims = S[:i, i].copy()
+        if own is not None:
+            sims[own.holds(graph, np.arange(i))] = -np.inf
+        seqs, scores = top_candidates(sims, top_k)
+        ok = scores > 0  # the index's min_overlap 1; -inf: the stream's own rows
+        place = loc.step(state, graph, seqs[ok], scores[ok], own)
+        live = state.rows >= 0
+        np.maximum.at(out[:, i], state.rows[live], state.scores[live])
+        if place is not None:
+            best[i], confidence[i], support[i] = place
+        graph.append(i, i - 1 if i else -1)
+        stats.add(codes[i])
+    return OnlineAnswers(best, confidence, support, out)
 
 
 def _drive(loc: SequenceLocaliser, graph: SequenceGraph, n_db: int, n_q: int,
-           candidates: Callable[[int], tuple[np.ndarray, np.ndarray]], grow: bool) -> OnlineAnswers:
-    """One stream through `loc`: frame j's candidates (rows, scores) from `candidates(j)`; with `grow`,
-    frame j is then appended to `graph` as row j after row j − 1 (a learning stream)."""
+           candidates: Callable[[int], tuple[np.ndarray, np.ndarray]]) -> OnlineAnswers:
+    """One localising stream through `loc`: frame j's candidates (rows, scores) from `candidates(j)`."""
     state = loc.new_state()
     best = np.full(n_q, -1, np.int64)
     confidence = np.zeros(n_q)
@@ -99,6 +116,4 @@ def _drive(loc: SequenceLocaliser, graph: SequenceGraph, n_db: int, n_q: int,
         np.maximum.at(out[:, j], state.rows[live], state.scores[live])
         if place is not None:
             best[j], confidence[j], support[j] = place
-        if grow:
-            graph.append(j, j - 1 if j else -1)
     return OnlineAnswers(best, confidence, support, out)

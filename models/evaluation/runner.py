@@ -97,7 +97,7 @@ def run_grid_once(data: GridData, scoring: str, preset: str, mcn_preset: str, tm
         else:
             raise ValueError(f"unknown method {method!r}; known: {', '.join(METHODS)}")
         if method.startswith("online-"):
-            answers = online.loop_closure(dice_matrix(descriptors))
+            answers = online.loop_closure(dice_matrix(descriptors), data.sdrs)
             similarity = answers.S
         result = metrics.grid_evaluation(descriptors, data.places, scoring, similarity)
         result.update(_per_query(dice_matrix(descriptors) if similarity is None else similarity,

@@ -13,7 +13,8 @@ from models.localisation.localiser import (
     default_conf,
     top_candidates,
 )
+from models.localisation.trail import CodeStats, OwnTrail
 
-__all__ = ["HYPOTHESIS_BYTES", "NULL_PRIOR", "IndexFull", "InvertedIndex", "Localisation", "LocaliserParams",
-           "LocaliserState", "Match", "Place", "SequenceGraph", "SequenceLocaliser", "default_conf",
-           "graph_from_rows", "top_candidates"]
+__all__ = ["HYPOTHESIS_BYTES", "NULL_PRIOR", "CodeStats", "IndexFull", "InvertedIndex", "Localisation",
+           "LocaliserParams", "LocaliserState", "Match", "OwnTrail", "Place", "SequenceGraph",
+           "SequenceLocaliser", "default_conf", "graph_from_rows", "top_candidates"]

@@ -3,6 +3,8 @@
 A row's predecessor is `context_prev_seq`, the row its stream learned just before it (none: -1, the
 start of a traverse). Successor links are the inverse. Several traverses, loops and branches are all
 just rows with links; the localiser walks them forwards (successors) or backwards (predecessors).
+Each row also knows its trail: the first row of the chain of links it ends (`trail`), so "is this row on
+a stream's own trail since row s" is one comparison (docs/design/science.md §11.6).
 """
 
 from __future__ import annotations
@@ -39,6 +41,15 @@ class SequenceGraph:
         self._next = np.full(n, NONE, dtype=np.int64)
         linked = prev >= 0
         self._next[prev[linked]] = rows[linked]  # later rows overwrite earlier: the later branch wins
+        # Pointer doubling (O(N log depth)): a chain's rows all reach its first row. A hand-made cycle has
+        # no first row; its rows get one of its rows after the bounded doubling.
+        head = np.where(linked, prev, rows)
+        for _ in range(64):
+            nxt = head[head]
+            if np.array_equal(nxt, head):
+                break
+            head = nxt
+        self._trail = head
         self._n = n
 
     @classmethod
@@ -61,7 +72,9 @@ class SequenceGraph:
             cap = max(2 * self._prev.size, row + 1, 16)
             self._prev = np.concatenate([self._prev, np.full(cap - self._prev.size, NONE, np.int64)])
             self._next = np.concatenate([self._next, np.full(cap - self._next.size, NONE, np.int64)])
+            self._trail = np.concatenate([self._trail, np.full(cap - self._trail.size, NONE, np.int64)])
         self._prev[row] = prev
+        self._trail[row] = row if prev == NONE else self._trail[prev]
         if prev != NONE:
             self._next[prev] = row
         self._n = row + 1
@@ -75,6 +88,12 @@ class SequenceGraph:
     def next(self) -> np.ndarray:
         """(N,) int64 successor of each row (-1: none); a view, do not modify."""
         return self._next[:self._n]
+
+    @property
+    def trail(self) -> np.ndarray:
+        """(N,) int64 the first row of each row's chain of predecessor links (itself at a chain's start):
+        rows learned in one unbroken sequence of a stream share it; a view, do not modify."""
+        return self._trail[:self._n]
 
     def walk(self, rows: np.ndarray, direction: np.ndarray, steps: int) -> np.ndarray:
         """Rows reached by `steps` links from `rows`, forwards (direction +1) or backwards (-1).

@@ -240,7 +240,7 @@ class InvertedIndex:
         Args:
             seq: its seq; must exceed every stored seq.
             cells: its winner cells, sorted and distinct.
-            stream: its stream (for `exclude_recent`).
+            stream: its stream (for `exclude_own`).
 
         Returns:
             Its row number.
@@ -350,17 +350,15 @@ class InvertedIndex:
     # ------------------------------------------------------------------ queries
 
     def rank(self, cells: np.ndarray | Sequence[int], top_k: int, *, exclude_seqs: Iterable[int] = (),
-             exclude_recent_stream: str | None = None, exclude_recent: int = 0,
-             min_overlap: int = 1) -> list[Match]:
+             exclude_own: tuple[str, int] | None = None, min_overlap: int = 1) -> list[Match]:
         """The `top_k` stored observations most similar to `cells`, best first.
 
         Args:
             cells: the query's winner cells (distinct; order free).
             top_k: how many to return (0 → none; more than available → all that qualify).
             exclude_seqs: seqs never returned.
-            exclude_recent_stream: with `exclude_recent` = N > 0, the last N observations of this stream
-                are skipped (docs/design/service.md §1.2).
-            exclude_recent: see above.
+            exclude_own: (stream, seq): that stream's observations from seq on are skipped (the rows of its
+                own trail it has not left, docs/design/science.md §11.6); O(their number) per query.
             min_overlap: rows sharing fewer cells are not candidates. The default 1 returns only rows
                 that share something with the query; 0 ranks every row (zero-overlap rows last).
 
@@ -381,7 +379,7 @@ class InvertedIndex:
             if not parts:
                 return []
             flat = np.concatenate(parts) if len(parts) > 1 else parts[0]
-            excluded = self._excluded_rows(exclude_seqs, exclude_recent_stream, exclude_recent)
+            excluded = self._excluded_rows(exclude_seqs, exclude_own)
             cap = self._seq.data.size  # scratch grows with the row arrays, not row by row
             with self._scratch_lock:
                 if self._touched.size < n:
@@ -401,7 +399,7 @@ class InvertedIndex:
         # min_overlap <= 0: every row not excluded is a candidate, zero-overlap rows included.
         counts = np.bincount(np.concatenate(parts), minlength=n) if parts else np.zeros(n, dtype=np.int64)
         keep = np.ones(n, dtype=bool)
-        keep[self._excluded_rows(exclude_seqs, exclude_recent_stream, exclude_recent)] = False
+        keep[self._excluded_rows(exclude_seqs, exclude_own)] = False
         cand = np.flatnonzero(keep)
         if cand.size == 0:
             return []
@@ -426,7 +424,7 @@ class InvertedIndex:
         seqs = self._seq.data[cand[pick]]
         return [Match(int(s), int(o), float(x)) for s, o, x in zip(seqs, ov[pick], score[pick], strict=True)]
 
-    def _excluded_rows(self, exclude_seqs: Iterable[int], stream: str | None, recent: int) -> np.ndarray:
+    def _excluded_rows(self, exclude_seqs: Iterable[int], own: tuple[str, int] | None) -> np.ndarray:
         parts = []
         ex = np.fromiter((int(s) for s in exclude_seqs), dtype=np.int64)
         if ex.size:
@@ -435,8 +433,10 @@ class InvertedIndex:
             hit = pos < seqs.size
             pos = pos[hit]
             parts.append(pos[seqs[pos] == ex[hit]])
-        if stream is not None and recent > 0:
-            sid = self._stream_id.get(stream)
+        if own is not None:
+            sid = self._stream_id.get(own[0])
             if sid is not None:
-                parts.append(self._stream_rows[sid].view()[-int(recent):].astype(np.int64))
+                rows = self._stream_rows[sid].view()  # ascending rows, so ascending seqs
+                first = int(np.searchsorted(self._seq.data[rows], int(own[1])))
+                parts.append(rows[first:].astype(np.int64))
         return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)

@@ -10,7 +10,7 @@ beyond that pass (benchmarks/bench_index.py, docs/benchmarks.md).
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import numpy as np
@@ -18,6 +18,7 @@ import numpy as np
 from models.localisation.graph import SequenceGraph
 from models.localisation.index import Match
 from models.localisation.localiser import LocaliserState, Place, SequenceLocaliser
+from models.localisation.trail import CodeStats, OwnTrail
 
 __all__ = ["Localisation", "graph_from_rows"]
 
@@ -31,57 +32,57 @@ def graph_from_rows(rows: Iterable[Any]) -> SequenceGraph:
 
 
 class Localisation:
-    """The map's localiser and links (docs/design/science.md §11.1, §11.2).
+    """The map's localiser and links (docs/design/science.md §11.1, §11.2, §11.6).
 
     Args:
         conf: localiser options over `models.localisation.default_conf` (the map's `localiser` params).
     """
 
-    def __init__(self, conf: dict[str, Any] | None = None) -> None:
+    def __init__(self, conf: dict[str, Any] | None = None, code_width: int = 0) -> None:
         self.localiser = SequenceLocaliser(conf)
         self.graph = SequenceGraph()
+        self.codes = CodeStats(code_width)  # the stored frame codes' bit counts (§11.6)
         self.top_k = int(self.localiser.conf["top_k"])
-        # A learning stream's own last rows would always be its best candidates (the frame before this
-        # one, just stored); they are left out, as far back as the rival window reaches.
-        self.own_recent = int(self.localiser.conf["exclusion"])
 
     def rebuild(self, rows: Iterable[Any]) -> None:
-        """The links of the store's rows (recovery)."""
-        self.graph = graph_from_rows(rows)
+        """The links and code statistics of the store's rows (recovery)."""
+        self.graph = SequenceGraph()
+        self.codes.rebuild([])
+        for row in rows:
+            self.add(int(row.seq), row.context_prev_seq, row.input_sdr)
 
-    def add(self, seq: int, prev: int | None) -> None:
-        """A row just learned, after `prev` (None: the start of a sequence)."""
+    def add(self, seq: int, prev: int | None, code: np.ndarray) -> None:
+        """A row just learned, after `prev` (None: the start of a sequence), and its frame code."""
         self.graph.append(seq, -1 if prev is None else prev)
+        self.codes.add(code)
 
-    def candidates_wanted(self, top_k: int, learn: bool) -> int:
-        """How many ranked rows one index pass must return for `top_k` matches and the localiser."""
-        return max(top_k, self.top_k + (self.own_recent if learn else 0))
+    def candidates_wanted(self, top_k: int) -> int:
+        """How many ranked rows one index pass must return for `top_k` matches and the localiser (whose
+        candidates leave out up to `exclusion` of them: the stream's own rows behind those not left)."""
+        return max(top_k, self.top_k + int(self.localiser.conf["exclusion"]))
 
     def new_state(self) -> LocaliserState:
         return self.localiser.new_state()
 
-    def step(self, state: LocaliserState, ranked: Sequence[Match], last_learned: int | None,
-             learn: bool) -> Place | None:
+    def own_trail(self, state: LocaliserState, last_learned: int | None, code: np.ndarray,
+                  code_of: Callable[[int], np.ndarray]) -> OwnTrail | None:
+        """The stream's own rows it has not left, after this frame (`SequenceLocaliser.own_trail`,
+        docs/design/science.md §11.6): not candidates of the index pass, not states of the filter."""
+        return self.localiser.own_trail(state, self.graph, last_learned, code, code_of, self.codes)
+
+    def step(self, state: LocaliserState, ranked: Sequence[Match], own: OwnTrail | None) -> Place | None:
         """One frame of one stream (docs/design/science.md §11.2), before this frame is stored.
 
         Args:
             state: the stream's localiser state, updated in place.
-            ranked: the index's pass for the frame's winner cells, best first (Dice scores).
-            last_learned: the stream's last stored row; with `learn`, it and the `own_recent` rows
-                before it are not candidates.
-            learn: the frame is being learned.
+            ranked: the index's pass for the frame's winner cells, best first (Dice scores), without
+                the rows the stream has not left; the localiser leaves out the rest of `own` and keeps
+                its `top_k` best.
+            own: the stream's own rows (`own_trail`).
 
         Returns:
             The place, or None during warm-up.
         """
-        own: set[int] = set()
-        if learn and last_learned is not None:
-            back = np.full(self.own_recent + 1, -1, np.int64)
-            back[0] = last_learned
-            for i in range(1, back.size):
-                back[i] = self.graph.prev[back[i - 1]] if back[i - 1] >= 0 else -1
-            own = {int(r) for r in back if r >= 0}
-        kept = [m for m in ranked if m.seq not in own][:self.top_k]
-        seqs = np.fromiter((m.seq for m in kept), np.int64, len(kept))
-        scores = np.fromiter((m.score for m in kept), np.float64, len(kept))
-        return self.localiser.step(state, self.graph, seqs, scores)
+        seqs = np.fromiter((m.seq for m in ranked), np.int64, len(ranked))
+        scores = np.fromiter((m.score for m in ranked), np.float64, len(ranked))
+        return self.localiser.step(state, self.graph, seqs, scores, own)

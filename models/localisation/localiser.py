@@ -17,7 +17,7 @@ best-over-rival idea made causal) and the null, mapped to [0, 1].
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any, NamedTuple
 
@@ -25,6 +25,7 @@ import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from models.localisation.graph import NONE, SequenceGraph
+from models.localisation.trail import UNKNOWN, CodeStats, OwnTrail, own_trail
 from models.presets import check_section
 
 #: The null's score before a stream's first frame: not yet born. It is born on the first frame at the
@@ -58,6 +59,9 @@ class LocaliserParams(BaseModel):
     exclusion: int = Field(10, ge=0, le=1000)  # rows (links, both ways) around the best no rival may end in
     temperature: float = Field(4.0, gt=0.0, le=1e6)  # score gap per unit of log-odds in the confidence
     null_quantile: float = Field(0.5, ge=0.0, le=1.0)  # the null's evidence: this quantile of the candidates'
+    # a stream has left its own stored row once a frame's code is less like it than this far from the
+    # map's background likeness to the identical code (0: background, 1: identical; §11.6)
+    departure: float = Field(0.5, ge=0.0, le=1.0)
 
 
 #: Every option's default (LocaliserParams; meanings and why: docs/design/science.md §11.3).
@@ -95,6 +99,11 @@ class LocaliserState:
         frames: frames seen since the last reset.
         null: the null hypothesis' decayed score ("a place the map has not stored",
             docs/design/science.md §11.5); NULL_PRIOR (-inf, not yet born) at the start of a stream.
+        here: the oldest row of the stream's own current trail it has not left (docs/design/science.md
+            §11.6): NONE without one; UNKNOWN in a new state and one saved before the rule, read as the
+            start of the stream's current trail (a stream that resumes after a restart without its
+            state, or mid-stop, has left nothing until a frame unlike its trail is seen).
+        here_code: the sorted code of row `here` (a cache, not saved; None: not read yet).
     """
 
     rows: np.ndarray
@@ -103,6 +112,8 @@ class LocaliserState:
     ages: np.ndarray
     frames: int = 0
     null: float = NULL_PRIOR
+    here: int = UNKNOWN
+    here_code: np.ndarray | None = None
 
     @classmethod
     def empty(cls, beam: int) -> LocaliserState:
@@ -117,18 +128,20 @@ class LocaliserState:
         self.ages[:] = 0
         self.frames = 0
         self.null = NULL_PRIOR
+        self.here, self.here_code = UNKNOWN, None
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain numpy arrays for a snapshot (`np.savez`); `from_arrays` restores them."""
         return {"rows": self.rows.copy(), "dirs": self.dirs.copy(), "scores": self.scores.copy(),
                 "ages": self.ages.copy(), "frames": np.array(self.frames, np.int64),
-                "null": np.array(self.null, np.float64)}
+                "null": np.array(self.null, np.float64), "here": np.array(self.here, np.int64)}
 
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> LocaliserState:
         """The state saved by `to_arrays`. A state saved before the null existed (no "null" array) loads
         with the null at its prior, NULL_PRIOR: it is born at the jump level on the next frame, as on
-        a stream's first (docs/design/science.md §11.5).
+        a stream's first (docs/design/science.md §11.5); one saved before the own-trail rule (no "here")
+        loads with `here` UNKNOWN: its whole current trail counts as not left (§11.6).
 
         Raises:
             ValueError: the arrays are missing or of different lengths.
@@ -138,13 +151,16 @@ class LocaliserState:
             scores, ages = np.asarray(arrays["scores"], np.float64), np.asarray(arrays["ages"], np.int64)
             frames = int(arrays["frames"])
             null = float(arrays["null"]) if "null" in arrays else NULL_PRIOR
+            here = int(arrays["here"]) if "here" in arrays else UNKNOWN
         except KeyError as e:
             raise ValueError(f"localiser state lacks {e}") from None
         if np.isnan(null) or null == np.inf:
             raise ValueError("localiser state's null score must be finite or -inf")
         if not rows.ndim == 1 or not rows.shape == dirs.shape == scores.shape == ages.shape:
             raise ValueError("localiser state arrays differ in shape")
-        return cls(rows.copy(), dirs.copy(), scores.copy(), ages.copy(), frames, null)
+        if here < UNKNOWN:
+            raise ValueError("localiser state's `here` must be a row, -1 or -2")
+        return cls(rows.copy(), dirs.copy(), scores.copy(), ages.copy(), frames, null, here)
 
 
 def top_candidates(sims: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -215,12 +231,26 @@ class SequenceLocaliser:
         """An empty state for one stream (`beam` hypotheses)."""
         return LocaliserState.empty(int(self.conf["beam"]))
 
-    def step_dense(self, state: LocaliserState, graph: SequenceGraph, sims: np.ndarray) -> Place | None:
-        """`step` on a dense (N,) similarity vector (its `top_k` best rows are the candidates)."""
+    def step_dense(self, state: LocaliserState, graph: SequenceGraph, sims: np.ndarray,
+                   own: OwnTrail | None = None) -> Place | None:
+        """`step` on a dense (N,) similarity vector: its `top_k` best rows outside `own` are candidates."""
+        if own is not None:
+            sims = np.where(own.holds(graph, np.arange(len(sims))), -np.inf, sims)
+            keep = np.isfinite(sims)
+            seqs, scores = top_candidates(sims[keep], int(self.conf["top_k"]))
+            return self.step(state, graph, np.flatnonzero(keep)[seqs], scores, own)
         return self.step(state, graph, *top_candidates(sims, int(self.conf["top_k"])))
 
+    def own_trail(self, state: LocaliserState, graph: SequenceGraph, last: int | None, code: np.ndarray,
+                  code_of: Callable[[int], np.ndarray], stats: CodeStats) -> OwnTrail | None:
+        """The rows of the stream's own trail it has not left, after this frame (`trail.own_trail`,
+        docs/design/science.md §11.6, at this localiser's `departure`, widened by `exclusion` links);
+        call it before `step`, learning or not."""
+        return own_trail(state, graph, last, code, code_of, stats, float(self.conf["departure"]),
+                         int(self.conf["exclusion"]))
+
     def step(self, state: LocaliserState, graph: SequenceGraph, seqs: np.ndarray,
-             scores: np.ndarray) -> Place | None:
+             scores: np.ndarray, own: OwnTrail | None = None) -> Place | None:
         """Advance one stream by one frame and answer its place.
 
         Args:
@@ -228,6 +258,8 @@ class SequenceLocaliser:
             graph: the map's links (`SequenceGraph`); every candidate must be a row of it.
             seqs, scores: (K,) candidate rows of this frame and their similarities (higher = more
                 similar), e.g. an index's top-K; only the `top_k` best are used.
+            own: the stream's own rows it has not left (`own_trail`): neither candidates nor states of
+                the filter, so never the answer (docs/design/science.md §11.6).
 
         Returns:
             The place, or None while fewer than `warmup` frames were seen or no candidate was ever given.
@@ -236,6 +268,9 @@ class SequenceLocaliser:
         seqs, scores = np.asarray(seqs, np.int64), np.asarray(scores, np.float64)
         if seqs.size and (seqs.min() < 0 or seqs.max() >= len(graph)):
             raise ValueError("a candidate row is not in the graph")
+        if own is not None and seqs.size:
+            mine = own.holds(graph, seqs)
+            seqs, scores = seqs[~mine], scores[~mine]
         if seqs.size > int(c["top_k"]):
             keep = np.lexsort((seqs, -scores))[:int(c["top_k"])]
             seqs, scores = seqs[keep], scores[keep]
@@ -271,6 +306,9 @@ class SequenceLocaliser:
         d = np.concatenate(new_dirs).astype(np.int8)
         s = np.concatenate(new_scores) + _lookup(ev_rows, ev, r)
         a = np.concatenate(new_ages)
+        if own is not None and r.size:  # a path that walks onto the stream's own trail ends there
+            keep = ~own.holds(graph, r)
+            r, d, s, a = r[keep], d[keep], s[keep], a[keep]
 
         # Viterbi: one survivor per (row, direction), the best score; ties to the older path.
         key = r * 2 + (d > 0)

@@ -15,6 +15,7 @@ sequence bookkeeping through `_remember`, the one place its rules live.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,7 +42,6 @@ class MapModel:
         memory: `tm` | `none` (the map option; `none` is the ablation: the code is the winner cells).
         s: the sLSBH sparsity (the fraction of the k projections kept on each side, §7).
         adapt_tau: the streams' adaptation time constant (0: none).
-        exclude_recent: a stream's own last rows left out of its ranking (0: none).
     """
 
     tm: TemporalMemory
@@ -50,23 +50,23 @@ class MapModel:
     memory: str = "tm"
     s: float = 0.0
     adapt_tau: int = 0
-    exclude_recent: int = 0
 
     @classmethod
     def new(cls, tm_params: dict[str, Any], localiser: dict[str, Any], *, max_observations: int,
-            memory: str = "tm", s: float = 0.0, adapt_tau: int = 0, exclude_recent: int = 0) -> MapModel:
+            memory: str = "tm", s: float = 0.0, adapt_tau: int = 0) -> MapModel:
         """A fresh model: an empty memory with `tm_params`, an empty index of `max_observations` rows,
-        no links, the localiser with the `localiser` options."""
+        no links, the localiser with the `localiser` options (its code statistics over the TM's columns,
+        the sLSBH code's width)."""
         tm = TemporalMemory(tm_params)
-        return cls(tm, InvertedIndex(tm.n_cells, max_observations), Localisation(localiser), memory, s,
-                   adapt_tau, exclude_recent)
+        return cls(tm, InvertedIndex(tm.n_cells, max_observations), Localisation(localiser, tm.n_columns),
+                   memory, s, adapt_tau)
 
     def fresh(self, tm: TemporalMemory | None = None) -> MapModel:
         """The same options over `tm` (default: this model's), with an empty index and no links."""
         tm = self.tm if tm is None else tm
         return MapModel(tm, InvertedIndex(tm.n_cells, self.index.max_observations),
-                        Localisation(self.links.localiser.conf), self.memory, self.s, self.adapt_tau,
-                        self.exclude_recent)
+                        Localisation(self.links.localiser.conf, tm.n_columns), self.memory, self.s,
+                        self.adapt_tau)
 
 
 @dataclass(frozen=True)
@@ -111,7 +111,7 @@ def _advance(st: Stream, learn: bool, seq: int | None) -> None:
 
 
 def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, stream: str, top_k: int,
-            seq: int | None = None) -> Step:
+            code_of: Callable[[int], np.ndarray], seq: int | None = None) -> Step:
     """One frame of one stream (docs/design/service.md §1.2, §6).
 
     Args:
@@ -119,8 +119,10 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         st: the stream's state, changed in place.
         projected: (k,) the frame's features · the map's projection (docs/design/science.md §7).
         learn: learn the frame: the memory learns, and the frame joins the index and the links as `seq`.
-        stream: the stream's name (its own recent rows may be left out of the ranking).
+        stream: the stream's name (its own rows it has not left are left out of the ranking, §11.6).
         top_k: ranked rows wanted in `Step.ranked`.
+        code_of: a stored row's code (its `input_sdr`), read by the own-trail rule (§11.6): about one
+            row per frame.
         seq: the seq the learned row gets (required with `learn`; the caller stores it under that seq).
 
     Returns:
@@ -150,17 +152,19 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     winners = _remember(model, st, code, learn=learn, starts=starts)
     stats = st.context.stats.as_dict()
     t2 = time.perf_counter()
-    # One index pass serves the matches and the localiser's candidates (docs/design/science.md §11.2).
-    ranked = model.index.rank(winners, model.links.candidates_wanted(top_k, learn),
-                              exclude_recent_stream=stream if model.exclude_recent else None,
-                              exclude_recent=model.exclude_recent)
     st.localiser = st.localiser or model.links.new_state()
     prev, step = st.last_learned_seq, st.step
-    place = model.links.step(st.localiser, ranked, prev, learn)
+    # The stream's own rows it has not left are no answer (docs/design/science.md §11.6); one index pass
+    # without them serves the matches and the localiser's candidates (§11.2), which also leaves out the
+    # rival window behind them.
+    own = model.links.own_trail(st.localiser, prev, code, code_of)
+    ranked = model.index.rank(winners, model.links.candidates_wanted(top_k),
+                              exclude_own=None if own is None else (stream, own.here))
+    place = model.links.step(st.localiser, ranked, own)
     if learn:
         assert seq is not None
         model.index.add(seq, winners, stream)
-        model.links.add(seq, prev)
+        model.links.add(seq, prev, code)
     _advance(st, learn, seq)
     t3 = time.perf_counter()
     timings = {"hash": (t1 - t0) * 1e3, "tm": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3}

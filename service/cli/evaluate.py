@@ -174,7 +174,9 @@ def eval_images(
                                           "slsbh-seq,mcn-seq,htm-seq (the same sequence matcher on each "
                                           "single-image similarity); online-X (the causal localiser on X); "
                                           "service, service-without-tm (the service's own path: a real map, "
-                                          "learn db, localise the query stream). Memory methods bring their "
+                                          "learn db, localise the query stream); service-slam, "
+                                          "service-slam-without-tm (db then query as ONE learning stream: "
+                                          "loop closure while mapping). Memory methods bring their "
                                           "ablations.")]
     = "cosine,slsbh,htm,openseqslam,cosine-seq,slsbh-seq,htm-seq",
     operating_point: Annotated[str | None, typer.Option(
@@ -231,10 +233,11 @@ def eval_images(
     resize = resize or DEFAULT_RESIZE  # a new map's (service.maps.params)
     method_list = [m.strip() for m in methods.split(",") if m.strip()]
     service_list = [m for m in method_list if m in service_eval.METHODS]
-    method_list = [m for m in method_list if m not in service_eval.METHODS]
+    slam_list = [m for m in method_list if m in service_eval.SLAM_METHODS]
+    method_list = [m for m in method_list if m not in service_eval.METHODS and m not in slam_list]
     bad = set(method_list) - set(sequences.METHODS)
-    if bad or not (method_list or service_list):
-        known = ", ".join((*sequences.METHODS, *service_eval.METHODS))
+    if bad or not (method_list or service_list or slam_list):
+        known = ", ".join((*sequences.METHODS, *service_eval.METHODS, *service_eval.SLAM_METHODS))
         raise typer.BadParameter(f"must be among {known}", param_hint="--methods")
     method_list = sequences.with_ablations(method_list)
     wanted_precision = _operating_point(operating_point)
@@ -268,7 +271,10 @@ def eval_images(
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     cache_dir = cache or Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc"))
-    if method_list == ["openseqslam"] and not service_list:  # it reads pixels: no backbone to run
+    if slam_list and gt is not None:
+        raise typer.BadParameter("the service-slam methods pair the folders by file name: leave out "
+                                 "--gt", param_hint="--methods")
+    if method_list == ["openseqslam"] and not (service_list or slam_list):  # pixels only: no backbone
         enc = None
         feats = {label: np.zeros((len(names), 0), np.float32)
                  for label, names in (("db", db_names), ("query", q_names))}
@@ -304,6 +310,12 @@ def eval_images(
                                          "resize": resize}})
             result["methods"].update(summary)
             result["first"].update(first)
+        if slam_list:
+            assert enc is not None
+            result["loop_closure"] = _loop_closure(
+                feats, slam_list, tolerance=tolerance, seed=seed,
+                map_conf={"encoder_id": enc.identity, "backbone": backbone, "preset": preset,
+                          "create": {"slsbh_conf": {"s": sparsity, "adapt_tau": adapt}}})
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     first = result.pop("first")
@@ -335,11 +347,45 @@ def eval_images(
             m: service_eval.operating_point(r["confidence"], r["correct"], wanted_precision)
             for m, r in first.items()}
     write_json(json_out, result)
-    typer.echo(format_images_table(result))
+    if result["methods"]:
+        typer.echo(format_images_table(result))
+    for m, s in result.get("loop_closure", {}).items():
+        lap1, lap2 = s["lap"][0], s["lap"][1]
+        typer.echo(f"{m} (lap 1 = --db, lap 2 = --query, one learning stream, at the map's threshold "
+                   f"{s['threshold']}): lap 1 false revisits {lap1['false_revisits']}; lap 2 precision "
+                   f"{_fmt(lap2['precision'])}, recall {_fmt(lap2['recall'])}, "
+                   f"R@1 {_fmt(lap2['recall_at_1'])}, "
+                   f"query AUC {_fmt(lap2.get('query_auc'))}, recall at 100% precision "
+                   f"{_fmt(lap2.get('recall_at_100p'))}")
     for m, point in result.get("operating_points", {}).items():
         typer.echo(f"operating point {m}: " + (
             f"confidence >= {point['threshold']:.4f} gives precision {point['precision']:.3f}, recall "
             f"{point['recall']:.3f}" if point else f"no threshold reaches precision {wanted_precision}"))
+
+
+def _fmt(v: float | None) -> str:
+    return "-" if v is None else f"{v:.3f}"
+
+
+def _loop_closure(feats: dict[str, np.ndarray], methods: list[str], *, tolerance: int, seed: int,
+                  map_conf: dict[str, Any]) -> dict[str, Any]:
+    """`service-slam*`: the database then the query traverse posted as ONE learning stream
+    (`service_eval.slam_replay`), scored per lap (`models.evaluation.slam.score`; file i of either
+    folder is place i) at the map's threshold."""
+    from models.evaluation import slam
+    from service.cli import service_eval
+
+    n_db, n_q = len(feats["db"]), len(feats["query"])
+    labels = np.r_[np.arange(n_db), np.arange(n_q)]
+    laps = np.r_[np.zeros(n_db, np.int64), np.ones(n_q, np.int64)]
+    out = {}
+    for m in methods:
+        run = np.concatenate([feats["db"], feats["query"]])
+        found, threshold = service_eval.slam_replay(run, seed=seed, memory=service_eval.SLAM_METHODS[m],
+                                                    **map_conf)
+        out[m] = {"threshold": threshold,
+                  **slam.score(found.best, found.confidence, labels, threshold, tolerance, laps)}
+    return out
 
 
 def _operating_point(value: str | None) -> float | None:

@@ -20,15 +20,60 @@ import numpy as np
 
 from models.evaluation.online import OnlineAnswers
 from models.frontend import slsbh
-from models.pipeline import Stream, observe
+from models.pipeline import MapModel, Stream, observe
 from service.maps import projection as map_projection
 from service.maps.params import map_model, resolve_params
 from service.settings import Settings
 
-__all__ = ["METHODS", "experiment", "operating_point", "replay"]
+__all__ = ["METHODS", "SLAM_METHODS", "experiment", "operating_point", "replay", "slam_replay"]
 
 #: The service's methods and their map option `memory`.
 METHODS = {"service": "tm", "service-without-tm": "none"}
+#: The same as one learning stream (loop closure while mapping, docs/design/science.md §11.6).
+SLAM_METHODS = {"service-slam": "tm", "service-slam-without-tm": "none"}
+
+
+def _model(n_rows: int, feature_dim: int, *, backbone: str, preset: str, seed: int, memory: str,
+           localiser: dict[str, Any] | None, create: dict[str, Any] | None
+           ) -> tuple[MapModel, slsbh.Hasher, dict[str, Any]]:
+    """A served map's pipeline model and projection, from the same parameters (`resolve_params`)."""
+    extra = dict(create or {})
+    params = resolve_params(preset, seed=seed, memory=memory, backbone=backbone, localiser=localiser,
+                            tm=extra.pop("tm", None), slsbh_conf=extra.pop("slsbh_conf", None), **extra)
+    _, P = map_projection.for_map(params, feature_dim, Settings().max_streams)
+    hasher = slsbh.Hasher(P, float(params["slsbh"]["s"]))
+    return map_model(params, max_observations=max(n_rows, 1)), hasher, params
+
+
+def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: str, seed: int,
+                memory: str = "tm", localiser: dict[str, Any] | None = None,
+                create: dict[str, Any] | None = None,
+                progress: Callable[[int, int], None] | None = None) -> tuple[OnlineAnswers, float]:
+    """A whole route as ONE learning stream (every frame learned, `models.pipeline.observe` as the map
+    writer calls it): loop closure while mapping (docs/design/science.md §11.6).
+
+    Args:
+        feats: (T, D) backbone features in driven order (all laps). Other arguments as `replay`.
+
+    Returns:
+        (answers over the route's own frames: best = the frame the `place` names, -1 in warm-up; S is
+        empty (0, T)), and the map's `revisit_threshold`.
+    """
+    del encoder_id
+    T = len(feats)
+    model, hasher, params = _model(T, int(feats.shape[1]), backbone=backbone, preset=preset, seed=seed,
+                                   memory=memory, localiser=localiser, create=create)
+    robot, codes = Stream(), {}
+    best, confidence, support = np.full(T, -1, np.int64), np.zeros(T), np.zeros(T, np.int64)
+    for i, y in enumerate(hasher.project(feats)):  # seq i + 1 is frame i
+        step = observe(model, robot, y, learn=True, stream="robot", top_k=0, seq=i + 1,
+                       code_of=codes.__getitem__)
+        codes[i + 1] = step.code
+        if step.place is not None:
+            best[i], confidence[i], support[i] = step.place.seq - 1, step.place.confidence, step.place.support
+        if progress:
+            progress(i + 1, T)
+    return OnlineAnswers(best, confidence, support, np.zeros((0, T))), float(params["revisit_threshold"])
 
 
 def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbone: str, preset: str,
@@ -50,21 +95,20 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
     """
     del encoder_id  # the features are the encoder's; a map would freeze its identity
     n_db, n_q = len(db_feats), len(q_feats)
-    extra = dict(create or {})
-    params = resolve_params(preset, seed=seed, memory=memory, backbone=backbone, localiser=localiser,
-                            tm=extra.pop("tm", None), slsbh_conf=extra.pop("slsbh_conf", None), **extra)
-    _, P = map_projection.for_map(params, int(db_feats.shape[1]), Settings().max_streams)
-    hasher = slsbh.Hasher(P, float(params["slsbh"]["s"]))
-    model = map_model(params, max_observations=max(n_db, 1))
+    model, hasher, _ = _model(n_db, int(db_feats.shape[1]), backbone=backbone, preset=preset, seed=seed,
+                                   memory=memory, localiser=localiser, create=create)
+    codes: dict[int, np.ndarray] = {}
     database, query = Stream(), Stream()
     for i, y in enumerate(hasher.project(db_feats)):
-        observe(model, database, y, learn=True, stream="database", top_k=0, seq=i + 1)
+        codes[i + 1] = observe(model, database, y, learn=True, stream="database", top_k=0, seq=i + 1,
+                               code_of=codes.__getitem__).code
         if progress:
             progress(i + 1, n_db + n_q)
     best, confidence = np.full(n_q, -1, np.int64), np.zeros(n_q)
     support, S = np.zeros(n_q, np.int64), np.full((n_db, n_q), -np.inf)
     for j, y in enumerate(hasher.project(q_feats)):
-        place = observe(model, query, y, learn=False, stream="query", top_k=0).place
+        place = observe(model, query, y, learn=False, stream="query", top_k=0,
+                        code_of=codes.__getitem__).place
         state = query.localiser
         assert state is not None
         live = state.rows >= 0

@@ -67,7 +67,6 @@ class FailedMap:
             state_reason=self.state_reason, preset=self.record.preset,
             params={"tm": _as(p.get("tm"), dict, {}), "slsbh": _as(p.get("slsbh"), dict, {}),
                     "seed": _as(p.get("seed"), int, 0),
-                    "exclude_recent": _as(p.get("exclude_recent"), int, 0),
                     "memory": text["memory"], "projection": text["projection"],
                     "localiser": _as(map_option(p, "localiser"), dict, {}), "resize": text["resize"],
                     "keyframes": _as(map_option(p, "keyframes"), dict, None)},

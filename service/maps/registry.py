@@ -99,7 +99,8 @@ class MapRegistry:
                           s.snapshot_every, s.snapshot_keep, max_keys=s.idempotency_keys,
                           key_cache=s.idempotency_cache, budget=self.budget,
                           stream_keep_seconds=s.stream_keep_seconds, manual_keep=s.snapshot_manual_keep,
-                          manual_bytes=s.snapshot_manual_bytes, verify_neighbours=s.verify_neighbours)
+                          manual_bytes=s.snapshot_manual_bytes, max_closures=s.loop_closures,
+                          verify_neighbours=s.verify_neighbours)
 
 
     def start(self) -> None:
@@ -188,7 +189,7 @@ class MapRegistry:
         return rt
 
     def create(self, map_id: str, *, preset: str, seed: int | None = None, tm: dict[str, Any] | None = None,
-               slsbh_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
+               slsbh_conf: dict[str, Any] | None = None,
                backbone: str | None = None, memory: str = "tm", revisit_threshold: float | None = None,
                localiser: dict[str, Any] | None = None, thumbnails: bool = False,
                resize: str | None = None, keyframes: dict[str, Any] | None = None,
@@ -201,7 +202,7 @@ class MapRegistry:
         if not MAP_ID_RE.match(map_id):
             raise InvalidMapId(map_id, MAP_ID_RE.pattern)
         params = resolve_params(
-            preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf, exclude_recent=exclude_recent,
+            preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf,
             backbone=backbone or self.encoders.default, memory=memory, localiser=localiser,
             **({} if revisit_threshold is None else {"revisit_threshold": revisit_threshold}),
             **({} if resize is None else {"resize": resize}), keyframes=keyframes,

@@ -8,10 +8,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["BudgetInfo", "IndexMemory", "MapInfo", "MapReservation", "Match", "MemoryInfo",
-           "ObservationResult", "PlaceResult",
-           "RestoreResult", "SequenceStats", "SnapshotInfo", "StorageMemory", "StoredObservation",
-           "StreamReset", "StreamsMemory", "TmMemory"]
+__all__ = ["BudgetInfo", "IndexMemory", "LoopClosureResult", "MapInfo", "MapReservation", "Match",
+           "MemoryInfo", "ObservationResult", "PlaceResult", "RestoreResult", "SequenceStats", "SnapshotInfo",
+           "StorageMemory", "StoredObservation", "StoredRow", "StreamReset", "StreamsMemory", "TmMemory",
+           "VerificationResult"]
 
 
 @dataclass(frozen=True)
@@ -180,6 +180,33 @@ class StoredObservation:
     image_sha256: str
     metadata: dict[str, Any] | None
     has_thumbnail: bool
+
+
+@dataclass(frozen=True)
+class LoopClosureResult:
+    """One logged loop closure (docs/design/science.md §11.6): the frame (its row when it was learned)
+    and the stored row its place named, as `place` answered."""
+
+    id: int
+    stream: str
+    seq: int | None
+    observation_id: str | None
+    metadata: dict[str, Any] | None
+    place: StoredRow
+    confidence: float
+    support: int
+    created_at: str
+
+
+@dataclass(frozen=True)
+class StoredRow:
+    """A stored row's identity and what the client stored with it."""
+
+    seq: int
+    observation_id: str
+    stream: str
+    label: str | None
+    metadata: dict[str, Any] | None
 
 
 @dataclass(frozen=True)

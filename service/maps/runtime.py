@@ -60,7 +60,7 @@ from service.maps.results import (
 )
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, utc_now
-from storage.mapstore import MapStore, NewObservation, StorageFull, StoreCorrupt
+from storage.mapstore import MapStore, NewClosure, NewObservation, StorageFull, StoreCorrupt
 
 __all__ = ["MapRuntime"]
 
@@ -80,7 +80,7 @@ class MapRuntime:
                  snapshot_every: int = 0, snapshot_keep: int = 3, *, max_keys: int | None = None,
                  key_cache: int = 0, budget: MemoryBudget | None = None,
                  stream_keep_seconds: float = 0.0, manual_keep: int = 0, manual_bytes: int = 0,
-                 verify_neighbours: int = 2) -> None:
+                 verify_neighbours: int = 2, max_closures: int | None = None) -> None:
         self.record = record
         self.map_id = record.map_id
         self.params = record.params
@@ -96,6 +96,7 @@ class MapRuntime:
         # Idempotency keys: those of learned posts in the store (the last `max_keys` seqs), those of
         # localisations in memory (service.maps.idempotency).
         self.max_keys = max_keys
+        self.max_closures = max_closures  # loop closures kept in the store's log (the last N)
         self.keys = idempotency.KeyCache(key_cache)
         # The process-wide budget that holds this map's reservation (docs/design/service.md §1.8): each
         # learned row reserves its index bytes first. None: a runtime built alone (tools, tests).
@@ -288,6 +289,7 @@ class MapRuntime:
             snapshots.remove_stale_temp(self.layout.snapshots_dir(self.map_id))
         try:
             self.store = MapStore.open(self.layout.map_db(self.map_id), max_keys=self.max_keys,
+                                       max_closures=self.max_closures,
                                        seq_floor=self.catalog.get_high_water(self.map_id))
             if not self.store.quick_check():
                 raise StoreCorrupt("quick_check failed")
@@ -425,8 +427,10 @@ class MapRuntime:
             return self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k, label=label,
                               metadata=metadata, thumbnail=thumbnail, post=post, query=query)
         except Exception as e:
-            if not learn:
-                raise  # a localisation learns nothing: the memory and the store still agree
+            if not learn:  # a localisation learns nothing: the memory and the store still agree
+                if isinstance(e, StorageFull):  # its loop closure could not be logged: no answer either
+                    raise InsufficientStorage("the loop closure could not be logged: the disk is full") from e
+                raise
             # The TM may hold a learned step the store does not (a failed commit, or a failure anywhere
             # between the step and the commit): rebuild from the store before anything else runs, so
             # no later row is learned on a memory that replay cannot reproduce (docs/design/service.md §4.3).
@@ -450,7 +454,8 @@ class MapRuntime:
         st, evicted = touch(self.streams, stream, self.max_streams, self.clock())
         self.stream_evictions += evicted
         seq = self.store.next_seq() if learn else None  # this thread is the store's only writer
-        step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq)
+        step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq,
+                                code_of=self._code_of)
         t3 = time.perf_counter()
         place = step.place
         rows = self.store.get_many([*(m.seq for m in step.ranked), *([place.seq] if place else [])])
@@ -470,10 +475,21 @@ class MapRuntime:
             timings_ms=step.timings_ms, map_seq=seq or self.store.last_seq(),
             projection_sha256=self.params["projection_sha256"], backbone=self.backbone, metadata=metadata,
             encoder=self.params["encoder_id"], resize=self.resize, place=answer)
+        # A revisit is a loop closure, logged durably: with the learned row in its transaction, or alone
+        # for a localising stream (it stores no observation and changes no memory; §11.6). It carries
+        # the place's geometric verification where there is one (docs/design/science.md §12).
+        verified = None if answer is None or answer.verification is None else dataclasses.asdict(
+            answer.verification)
+        closure = None if result.place is None or not result.place.revisit else NewClosure(
+            stream=stream, place_seq=result.place.seq, confidence=result.place.confidence,
+            support=result.place.support, metadata=metadata, key=post.key if post is not None else None,
+            verification=verified)
+        if row is None and closure is not None:
+            self.store.add_closure(closure)
         if row is not None:
             if post is not None:
                 row = dataclasses.replace(row, key=post.record(result))
-            committed = self.store.append(row)
+            committed = self.store.append(dataclasses.replace(row, closure=closure))
             assert committed == seq  # this thread is the store's only writer
             # The stream's step is recorded before the automatic snapshot, so the snapshot holds the
             # stream as it is after this frame.
@@ -495,6 +511,13 @@ class MapRuntime:
         revisit = place.revisit and (v.verified or not self.verify_revisit)
         return dataclasses.replace(place, verification=v, revisit=revisit)
 
+    def _code_of(self, seq: int) -> np.ndarray:
+        """Writer: a stored row's frame code (its sLSBH input SDR), for the own-trail rule (§11.6)."""
+        assert self.store is not None
+        row = self.store.get(seq)
+        assert row is not None  # the rule walks the stream's committed rows
+        return row.input_sdr
+
     # ------------------------------------------------------------------ resources
 
     def info(self) -> MapInfo:
@@ -503,7 +526,7 @@ class MapRuntime:
             map_id=self.map_id, created_at=self.record.created_at, state=self.state,
             state_reason=self.state_reason, preset=p["preset"],
             params={"tm": p["tm"], "slsbh": p["slsbh"], "seed": p["seed"],
-                    "exclude_recent": p["exclude_recent"], "memory": self.memory_kind,
+                    "memory": self.memory_kind,
                     "projection": map_option(p, "projection"), "localiser": self.localisation.localiser.conf,
                     "resize": self.resize, "keyframes": self.keyframes},
             encoder=p["encoder_id"], projection_sha256=p["projection_sha256"],

@@ -38,7 +38,7 @@ async def create_map(body: CreateMap, registry: RegistryDep, settings: SettingsD
     map_id = body.map_id or f"map-{uuid.uuid4().hex[:12]}"
     rt = await anyio.to_thread.run_sync(lambda: registry.create(
         map_id, preset=body.preset or settings.default_preset, seed=body.seed, tm=body.tm,
-        slsbh_conf=body.slsbh, exclude_recent=body.exclude_recent, backbone=body.backbone,
+        slsbh_conf=body.slsbh, backbone=body.backbone,
         memory=body.memory, revisit_threshold=body.revisit_threshold, localiser=body.localiser,
         thumbnails=body.thumbnails, resize=body.resize, keyframes=body.keyframes,
         verify_revisit=body.verify_revisit))

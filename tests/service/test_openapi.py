@@ -10,7 +10,8 @@ from fastapi.testclient import TestClient
 
 from tests.service.helpers import make_app
 
-BINARY = {"application/x-tar", "application/octet-stream", "image/jpeg"}
+# Files a reply may be instead of a JSON document (a snapshot, a thumbnail, the loop-closure export).
+BINARY = {"application/x-tar", "application/octet-stream", "image/jpeg", "text/csv", "application/jsonl"}
 
 
 def _resolve(schema: dict[str, Any], spec: dict[str, Any]) -> dict[str, Any]:

@@ -30,8 +30,9 @@ def guarded(tmp_path_factory):
         assert r.status_code == 200, r.text
         snap = c.post("/v1/maps/yard/snapshots", headers=KEY)
         assert snap.status_code == 201, snap.text
+        recent = c.get("/v1/maps/yard/recent", headers=KEY).json()["answers"]
         values = {"map_id": "yard", "seq": str(r.json()["seq"]), "snapshot_id": snap.json()["snapshot_id"],
-                  "stream": "robot7/cam0"}
+                  "stream": "robot7/cam0", "answer_id": str(recent[0]["answer_id"])}
         yield c, values
 
 

@@ -50,3 +50,28 @@ def test_operating_point_is_the_lowest_threshold_reaching_the_precision():
     # equal confidences stand or fall together
     tied = service_eval.operating_point(np.array([0.9, 0.9]), np.array([True, False]), 0.9)
     assert tied is None
+
+
+@pytest.mark.parametrize("memory", ["tm", "none"])
+def test_http_and_slam_replay_give_the_same_places_for_one_learning_stream(tmp_path, memory):
+    """`service-slam`: two laps posted as one learning stream over HTTP and through `slam_replay` answer
+    alike, frame for frame (the own-trail rule included)."""
+    laps = [frame(p) for p in DB] + [frame(p, noise=4.0) for p in DB]
+    with make_client(tmp_path / "data") as c:
+        assert c.post("/v1/maps", json={"map_id": "route", "seed": 7, "memory": memory}).status_code == 201
+        http = [post(c, b, map_id="route", stream="robot", top_k=0).json() for b in laps]
+        map_threshold = c.get("/v1/maps/route").json()["revisit_threshold"]
+        enc = c.app.state.encoder
+        preset = c.app.state.settings.default_preset
+        feats = np.concatenate([enc.embed([b]).features for b in laps])
+    found, threshold = service_eval.slam_replay(feats, encoder_id=enc.identity, backbone="alexnet",
+                                                preset=preset, seed=7, memory=memory)
+    want = [None if b["place"] is None else (b["place"]["seq"] - 1, b["place"]["confidence"],
+                                             b["place"]["support"]) for b in http]
+    got = [None if b < 0 else (int(b), float(cf), int(s))
+           for b, cf, s in zip(found.best, found.confidence, found.support, strict=True)]
+    assert got == want
+    assert threshold == map_threshold
+    assert all(b < i for i, b in enumerate(found.best))  # never the frame's own row, nor a later one
+    second = found.best[len(DB) + 6:]
+    assert np.mean(second == np.arange(6, len(DB))) > 0.8  # lap 2 names lap 1

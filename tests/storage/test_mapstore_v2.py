@@ -77,7 +77,7 @@ def test_a_version_1_file_opens_migrates_and_learns(tmp_path: Path, meta: MapMet
     assert version == str(SCHEMA_VERSION)
     # The append-only and frozen-meta rules hold after the migration.
     for sql in ("UPDATE observations SET label = 'x'", "DELETE FROM observations",
-                "UPDATE meta SET value = '3'", "DELETE FROM meta"):
+                "UPDATE meta SET value = '9'", "DELETE FROM meta"):
         with pytest.raises(sqlite3.IntegrityError):
             conn.execute(sql)
     conn.close()

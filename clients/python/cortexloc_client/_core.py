@@ -222,6 +222,16 @@ def list_observations(map_id: str, after_seq: int, limit: int) -> Call[models.St
                 params={"after_seq": str(int(after_seq)), "limit": str(int(limit))}, idempotent=True)
 
 
+def loop_closures(map_id: str, after: int, limit: int) -> Call[models.LoopClosureList]:
+    return Call("GET", f"{_map(map_id)}/loop-closures", _model(models.LoopClosureList),
+                params={"after": str(int(after)), "limit": str(int(limit))}, idempotent=True)
+
+
+def export_loop_closures(map_id: str, fmt: str) -> Call[bytes]:
+    return Call("GET", f"{_map(map_id)}/loop-closures/export", _content, params={"format": fmt},
+                idempotent=True)
+
+
 def recent(map_id: str, limit: int, stream: str | None) -> Call[models.RecentAnswers]:
     params = {"limit": str(int(limit)), **({"stream": stream} if stream is not None else {})}
     return Call("GET", f"{_map(map_id)}/recent", _model(models.RecentAnswers), params=params, idempotent=True)

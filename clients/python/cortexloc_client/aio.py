@@ -90,7 +90,7 @@ class AsyncClient:
 
     async def create_map(self, map_id: str | None = None, *, preset: str | None = None,
                          seed: int | None = None, tm: Mapping[str, Any] | None = None,
-                         slsbh: Mapping[str, Any] | None = None, exclude_recent: int | None = None,
+                         slsbh: Mapping[str, Any] | None = None,
                          backbone: str | None = None, memory: str | None = None,
                          revisit_threshold: float | None = None, localiser: Mapping[str, Any] | None = None,
                          thumbnails: bool | None = None, resize: str | None = None,
@@ -98,7 +98,7 @@ class AsyncClient:
                          verify_revisit: bool | None = None) -> models.Map:
         """`POST /v1/maps`: as `Client.create_map`."""
         return await self._send(_core.create_map(
-            map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh, exclude_recent=exclude_recent,
+            map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh,
             backbone=backbone, memory=memory, revisit_threshold=revisit_threshold, localiser=localiser,
             thumbnails=thumbnails, resize=resize, keyframes=keyframes, verify_revisit=verify_revisit))
 
@@ -148,6 +148,16 @@ class AsyncClient:
         """`GET /v1/maps/{map_id}/observations`: learned observations with seq > `after_seq`, in seq
         order, at most `limit` (<= 500); continue with `after_seq=page.next_after_seq`."""
         return await self._send(_core.list_observations(map_id, after_seq, limit))
+
+    async def loop_closures(self, map_id: str, *, after: int = 0, limit: int = 100) -> models.LoopClosureList:
+        """`GET /v1/maps/{map_id}/loop-closures`: the revisits streams were told of, oldest first, after
+        log id `after`, at most `limit` (<= 500); continue with `after=page.next_after`."""
+        return await self._send(_core.loop_closures(map_id, after, limit))
+
+    async def export_loop_closures(self, map_id: str, fmt: str = "csv") -> bytes:
+        """`GET /v1/maps/{map_id}/loop-closures/export`: the whole log as candidate pairs (`csv` or
+        `jsonl`): both stamps in seconds, both ids, the confidence, both poses where given."""
+        return await self._send(_core.export_loop_closures(map_id, fmt))
 
     async def recent(self, map_id: str, *, limit: int = 50,
                      stream: str | None = None) -> models.RecentAnswers:

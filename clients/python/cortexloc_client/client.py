@@ -91,7 +91,7 @@ class Client:
 
     def create_map(self, map_id: str | None = None, *, preset: str | None = None,
                    seed: int | None = None, tm: Mapping[str, Any] | None = None,
-                   slsbh: Mapping[str, Any] | None = None, exclude_recent: int | None = None,
+                   slsbh: Mapping[str, Any] | None = None,
                    backbone: str | None = None, memory: str | None = None,
                    revisit_threshold: float | None = None, localiser: Mapping[str, Any] | None = None,
                    thumbnails: bool | None = None, resize: str | None = None,
@@ -103,7 +103,6 @@ class Client:
             preset: the parameter preset (the server's default preset if None).
             seed: the Temporal Memory's and the projection's seed.
             tm, slsbh: Temporal Memory and sLSBH overrides (NuPIC names), merged over the preset.
-            exclude_recent: the newest observations a query never matches (the robot's own trail).
             backbone: `alexnet`, `efficientnet-lite0-s5` or `efficientnet-lite0` (the server's default).
             memory: `tm` (default) or `none` (the Temporal Memory left out: the ablation).
             revisit_threshold: confidence at which a place is a revisit, in [0, 1] (`update_map` changes it).
@@ -118,7 +117,7 @@ class Client:
         All but `revisit_threshold` and `verify_revisit` are frozen with the map.
         """
         return self._send(_core.create_map(
-            map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh, exclude_recent=exclude_recent,
+            map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh,
             backbone=backbone, memory=memory, revisit_threshold=revisit_threshold, localiser=localiser,
             thumbnails=thumbnails, resize=resize, keyframes=keyframes, verify_revisit=verify_revisit))
 
@@ -183,6 +182,16 @@ class Client:
         """`GET /v1/maps/{map_id}/observations`: learned observations with seq > `after_seq`, in seq
         order, at most `limit` (<= 500); continue with `after_seq=page.next_after_seq`."""
         return self._send(_core.list_observations(map_id, after_seq, limit))
+
+    def loop_closures(self, map_id: str, *, after: int = 0, limit: int = 100) -> models.LoopClosureList:
+        """`GET /v1/maps/{map_id}/loop-closures`: the revisits streams were told of, oldest first, after
+        log id `after`, at most `limit` (<= 500); continue with `after=page.next_after`."""
+        return self._send(_core.loop_closures(map_id, after, limit))
+
+    def export_loop_closures(self, map_id: str, fmt: str = "csv") -> bytes:
+        """`GET /v1/maps/{map_id}/loop-closures/export`: the whole log as candidate pairs (`csv` or
+        `jsonl`): both stamps in seconds, both ids, the confidence, both poses where given."""
+        return self._send(_core.export_loop_closures(map_id, fmt))
 
     def recent(self, map_id: str, *, limit: int = 50, stream: str | None = None) -> models.RecentAnswers:
         """`GET /v1/maps/{map_id}/recent`: the map's last answers (at most `limit`, of one `stream` if

@@ -17,6 +17,8 @@ __all__ = [
     "CheckResult",
     "Health",
     "IndexMemory",
+    "LoopClosure",
+    "LoopClosureList",
     "Map",
     "MapList",
     "MapParams",
@@ -36,6 +38,7 @@ __all__ = [
     "StorageMemory",
     "StoredObservation",
     "StoredObservationList",
+    "StoredRow",
     "StreamReset",
     "StreamsMemory",
     "TmMemory",
@@ -93,7 +96,6 @@ class MapParams(_Reply):
     tm: dict[str, Any]
     slsbh: dict[str, Any]
     seed: int
-    exclude_recent: int
     #: "tm", or "none" (the sLSBH code stands in for the winner cells: the memory's ablation).
     memory: str | None = None
     #: "dense" or "very-sparse": the sLSBH projection the map's size budget allowed.
@@ -351,6 +353,38 @@ class StoredObservation(_Reply):
     image_sha256: str | None = None
     metadata: Metadata | None = None
     has_thumbnail: bool | None = None
+
+
+class StoredRow(_Reply):
+    """A stored row's identity and what was stored with it (a loop closure's place)."""
+
+    seq: int
+    observation_id: str
+    stream: str
+    label: str | None = None
+    metadata: Metadata | None = None
+
+
+class LoopClosure(_Reply):
+    """One logged loop closure: a revisit a stream was told of (`seq` None: the stream was localising)."""
+
+    id: int
+    stream: str
+    seq: int | None = None
+    observation_id: str | None = None
+    metadata: Metadata | None = None
+    place: StoredRow
+    confidence: float
+    support: int
+    created_at: str
+
+
+class LoopClosureList(_Reply):
+    """`GET /v1/maps/{map_id}/loop-closures`: a page, oldest first; `next_after` continues it (None: the
+    end)."""
+
+    loop_closures: list[LoopClosure]
+    next_after: int | None = None
 
 
 class StoredObservationList(_Reply):

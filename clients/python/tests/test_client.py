@@ -270,3 +270,20 @@ def test_the_revisit_threshold_can_be_changed(client: Client, tiny_map: str) -> 
     assert client.get_map(tiny_map).revisit_threshold == 0.7
     with pytest.raises(UnprocessableError):
         client.update_map(tiny_map, revisit_threshold=1.5)
+
+
+def test_loop_closures_are_paged_and_exported(client: Client, tiny_map: str, make_frame) -> None:
+    seqs = _drive_a_route(client, tiny_map, make_frame, 12)
+    client.update_map(tiny_map, revisit_threshold=0.0)  # every answer a revisit: the log fills
+    answers = [client.observe(tiny_map, make_frame(place), learn=False, stream="robot") for place in range(9)]
+    told = [a for a in answers if a.place is not None and a.place.revisit]
+    page = client.loop_closures(tiny_map, limit=2)
+    assert len(page.loop_closures) == 2 and page.next_after == page.loop_closures[-1].id
+    rest = client.loop_closures(tiny_map, after=page.next_after, limit=500)
+    log = page.loop_closures + rest.loop_closures
+    assert [(c.stream, c.seq, c.place.seq) for c in log] == [("robot", None, a.place.seq) for a in told]
+    assert all(c.place.seq in seqs for c in log)
+    csv_text = client.export_loop_closures(tiny_map, "csv").decode()
+    assert csv_text.splitlines()[0].startswith("stamp,observation_id,seq,stream,place_stamp")
+    assert len(csv_text.splitlines()) == len(log) + 1
+    assert len(client.export_loop_closures(tiny_map, "jsonl").decode().splitlines()) == len(log)

@@ -100,19 +100,21 @@ def test_ties_go_to_the_older_observation() -> None:
     assert idx2.rank([0, 1, 50, 51], 2) == [Match(1, 2, 0.4), Match(2, 1, 0.4)]
 
 
-def test_exclude_recent_per_stream() -> None:
+def test_exclude_own_skips_one_streams_rows_from_a_seq_on() -> None:
     idx = InvertedIndex(16, 100)
     cells = [1, 2, 3]
     for seq, stream in [(1, "a"), (2, "b"), (3, "a"), (4, "a"), (5, "b"), (6, "a")]:
         idx.add(seq, cells, stream)
     seqs = lambda **kw: [m.seq for m in idx.rank(cells, 10, **kw)]  # noqa: E731
     assert seqs() == [1, 2, 3, 4, 5, 6]
-    assert seqs(exclude_recent_stream="a", exclude_recent=2) == [1, 2, 3, 5]
-    assert seqs(exclude_recent_stream="b", exclude_recent=1) == [1, 2, 3, 4, 6]
-    assert seqs(exclude_recent_stream="a", exclude_recent=99) == [2, 5]
-    assert seqs(exclude_recent_stream="zzz", exclude_recent=3) == [1, 2, 3, 4, 5, 6]
-    assert seqs(exclude_recent_stream="a", exclude_recent=0) == [1, 2, 3, 4, 5, 6]
-    assert seqs(exclude_recent_stream="a", exclude_recent=1, exclude_seqs=[1, 2]) == [3, 4, 5]
+    # The own-trail rule (docs/design/science.md §11.6): rows of stream "a" from seq 4 on; others stay.
+    assert seqs(exclude_own=("a", 4)) == [1, 2, 3, 5]
+    assert seqs(exclude_own=("a", 2)) == [1, 2, 5]  # seq 2 is b's: a's rows from 2 on are 3, 4, 6
+    assert seqs(exclude_own=("b", 5)) == [1, 2, 3, 4, 6]
+    assert seqs(exclude_own=("a", 0)) == [2, 5]
+    assert seqs(exclude_own=("zzz", 3)) == [1, 2, 3, 4, 5, 6]
+    assert seqs(exclude_own=("a", 7)) == [1, 2, 3, 4, 5, 6]
+    assert seqs(exclude_own=("a", 6), exclude_seqs=[1, 2]) == [3, 4, 5]
 
 
 def test_top_k_bounds_and_empty() -> None:
@@ -166,7 +168,7 @@ def test_rebuild_equals_incremental_and_sizes() -> None:
     assert other.last_seq() == idx.last_seq() == rows[-1][0]
     for _ in range(30):
         q = rng.choice(256, size=10, replace=False)
-        kw = {"exclude_recent_stream": "a", "exclude_recent": 3}
+        kw = {"exclude_own": ("a", rows[-40][0])}
         assert other.rank(q, 8, **kw) == idx.rank(q, 8, **kw)
     # Adding after a rebuild continues where it left off.
     other.add(10**6, [1, 2, 3], "a")

@@ -21,9 +21,16 @@ def route(n: int, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).normal(size=(n, K)).astype(np.float32)
 
 
+CODES: dict[int, np.ndarray] = {}  # the stored rows' codes, as a store would give them (code_of)
+
+
 def learn_route(m: MapModel, frames: np.ndarray, st: Stream, first_seq: int = 1) -> list:
-    return [observe(m, st, y, learn=True, stream="a", top_k=3, seq=first_seq + i)
-            for i, y in enumerate(frames)]
+    steps = []
+    for i, y in enumerate(frames):
+        steps.append(observe(m, st, y, learn=True, stream="a", top_k=3, seq=first_seq + i,
+                             code_of=CODES.__getitem__))
+        CODES[first_seq + i] = steps[-1].code
+    return steps
 
 
 @pytest.mark.parametrize("memory", ["tm", "none"])
@@ -49,7 +56,8 @@ def test_a_learned_frame_joins_the_index_and_the_links_and_a_localisation_change
     assert len(m.index) == 8 and m.links.graph.prev[5] == 4  # row 5 continues row 4
     before = (len(m.index), m.tm.size()["segments"])
     q = Stream()
-    found = [observe(m, q, y + 0.01, learn=False, stream="q", top_k=1) for y in frames]
+    found = [observe(m, q, y + 0.01, learn=False, stream="q", top_k=1, code_of=CODES.__getitem__)
+             for y in frames]
     assert (len(m.index), m.tm.size()["segments"]) == before
     assert found[0].ranked[0].seq == 1 and found[-1].ranked[0].seq == 8  # each frame finds itself
     assert found[-1].place is not None and found[-1].place.seq == 8
@@ -59,15 +67,15 @@ def test_a_learned_frame_joins_the_index_and_the_links_and_a_localisation_change
 def test_a_switch_to_mapping_starts_a_new_sequence():
     m, st = model(), Stream()
     learn_route(m, route(3), st)
-    observe(m, st, route(1, 5)[0], learn=False, stream="a", top_k=0)
-    step = observe(m, st, route(1, 6)[0], learn=True, stream="a", top_k=0, seq=4)
+    observe(m, st, route(1, 5)[0], learn=False, stream="a", top_k=0, code_of=CODES.__getitem__)
+    step = observe(m, st, route(1, 6)[0], learn=True, stream="a", top_k=0, seq=4, code_of=CODES.__getitem__)
     assert step.prev_seq is None and step.step == 0
 
 
 def test_a_learned_frame_needs_its_seq_and_nothing_changes_without_it():
     m, st = model(), Stream()
     with pytest.raises(ValueError, match="seq"):
-        observe(m, st, route(1)[0], learn=True, stream="a", top_k=0)
+        observe(m, st, route(1)[0], learn=True, stream="a", top_k=0, code_of=CODES.__getitem__)
     assert len(m.index) == 0 and st.step == 0
 
 

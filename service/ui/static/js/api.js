@@ -32,6 +32,12 @@ export async function getJson(path) {
   return r.json();
 }
 
+/** A file of the API as a Blob (a download cannot send the key), or null if there is none. */
+export async function getBlob(path) {
+  const r = await fetch(path, { headers: headers(), cache: "no-store" });
+  return r.ok ? r.blob() : null;
+}
+
 /** An image of the API as an object URL (an <img src> cannot send the key), or null if there is none. */
 export async function getImageUrl(path) {
   const r = await fetch(path, { headers: headers() });

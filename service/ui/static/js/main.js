@@ -3,6 +3,7 @@
 
 import { apiKey, getImageUrl, getJson, HttpError, setApiKey } from "./api.js";
 import * as A from "./answers.js";
+import { closureRows, loadClosures, saveExport } from "./closures.js";
 import { NONE, beside, bytes, clock, el, exact, level, num, text } from "./format.js";
 import { drawSeqMatch } from "./seqmatch.js";
 import { drawTrajectory } from "./trajectory.js";
@@ -16,6 +17,7 @@ const OBS_PAGE = 500;         // stored rows per page of /observations (the rout
 const state = {
   maps: [], memory: {}, selected: new URLSearchParams(location.search).get("map"), stream: "",
   recent: [], recentSig: "", rows: new Map(), rowsAfter: 0, thumbs: new Map(), tick: 0, busy: false,
+  closures: { entries: [], after: 0 },
 };
 
 const $ = (id) => document.getElementById(id);
@@ -57,6 +59,7 @@ function forget(mapId) {
   // What was read of the map shown before: its answers and stored rows.
   state.selected = mapId;
   state.recent = []; state.rows = new Map(); state.rowsAfter = 0; state.stream = "";
+  state.closures = { entries: [], after: 0 };
 }
 
 function select(mapId) {
@@ -247,13 +250,20 @@ async function poll() {
       state.recent = recent.answers;
       if (map.last_seq < state.rowsAfter) {  // restored to a snapshot: later seqs are gone, and may come back
         state.rows = new Map(); state.rowsAfter = 0; forgetThumbs(new Set());
+        state.closures = { entries: [], after: 0 };  // the restore's log is the snapshot's
       }
-      if (map.state === "ready") await loadRows(map);  // a recovering map's rows are not readable yet
+      if (map.state === "ready") {  // a recovering map's rows are not readable yet
+        await loadRows(map);
+        await loadClosures(map.map_id, state.closures);
+      }
     }
     renderMaps();
     renderStreams(map);
     renderRecent();
     renderTrajectory();
+    $("closures").tBodies[0].replaceChildren(...closureRows(state.closures));
+    $("closures-note").textContent = state.closures.entries.length ? "" :
+      "No loop closure yet: a revisit (place.revisit) of any stream, learning or localising, is logged here.";
     $("seqmatch-stream").textContent = state.stream || "all streams";
     drawSeqMatch($("seqmatch"), state.recent.filter((e) => !state.stream || e.reply.stream === state.stream), map);
     const last = state.recent.length ? clock(state.recent[state.recent.length - 1].received_at) : NONE;
@@ -275,6 +285,9 @@ $("key-form").addEventListener("submit", (ev) => {
   $("api-key").value = "";
   poll();
 });
+for (const format of ["csv", "jsonl"]) {
+  $(`export-${format}`).addEventListener("click", () => { const m = selectedMap(); if (m) saveExport(m.map_id, format); });
+}
 $("stream").addEventListener("change", () => { state.stream = $("stream").value; poll(); });
 
 poll();

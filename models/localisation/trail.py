@@ -1,0 +1,159 @@
+"""A stream's own trail: which of its own stored rows it has left (docs/design/science.md §11.6).
+
+A learning stream stores a row per frame, so its own last rows are always its best candidates: a stream
+that continues along its trail, or stands still, would "revisit" the frame it stored a moment ago. The
+rule: the stream's own rows it has not left are no answer. It has left row r once a frame since r was
+unlike r: its code is nearer the map's background likeness than to r's code (`departure`). The
+rows not left are always a tail of the current trail (from `LocaliserState.here` to the last stored
+row), so they are one range on one chain of links (`OwnTrail`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from typing import NamedTuple, Protocol
+
+import numpy as np
+
+from models.localisation.graph import NONE, SequenceGraph
+
+__all__ = ["UNKNOWN", "CodeStats", "OwnTrail", "code_dice", "own_trail"]
+
+#: `LocaliserState.here` of a state saved before the own-trail rule: the stream's whole current trail
+#: counts as not left until a frame unlike it is seen (§11.6).
+UNKNOWN = -2
+
+
+class TrailState(Protocol):
+    """What the rule keeps in a stream's state (`LocaliserState.here` and its code cache)."""
+
+    here: int
+    here_code: np.ndarray | None
+
+
+class OwnTrail(NamedTuple):
+    """The rows of a stream's own current trail that are its own: the chain of links from `first` to
+    `last` (§11.6). They are neither candidates nor states of the stream's filter; those from `here` on
+    (the rows it has not left) are not its frame-level matches either.
+
+    Attributes:
+        first: `margin` links before `here` (the localiser's rival window). here: the oldest row the
+        stream has not left (`LocaliserState.here`). last: the stream's last stored row.
+        trail: `SequenceGraph.trail` of `last`, the chain they lie on.
+    """
+
+    first: int
+    here: int
+    last: int
+    trail: int
+
+    def holds(self, graph: SequenceGraph, rows: np.ndarray) -> np.ndarray:
+        """(H,) bool: which of `rows` (H,) lie on this trail between `first` and `last`. A stream's
+        rows on one trail are learned in seq order, so it is a range test: O(H)."""
+        rows = np.asarray(rows, np.int64)
+        ok = (rows >= self.first) & (rows <= self.last)
+        ok[ok] = graph.trail[rows[ok]] == self.trail
+        return ok
+
+
+def code_dice(a: np.ndarray, b: np.ndarray) -> float:
+    """Dice of two sorted, duplicate-free codes (index arrays): 2 |a ∩ b| / (|a| + |b|); 0 for two empty."""
+    n = a.size + b.size
+    return 2.0 * np.intersect1d(a, b, assume_unique=True).size / n if n else 0.0
+
+
+class CodeStats:
+    """How often each bit is on in a map's stored frame codes: the background likeness of a code
+    (`background`), what a frame shares with a stored frame of another place on average. Codes of a
+    weak or untrained backbone share a large common part (Dice 0.6 between unrelated places), those of a
+    good one little (§11.6); the departure level is read above it. One int64 per bit, per map.
+
+    Args:
+        width: the code's bit space (2k for sLSBH codes).
+    """
+
+    def __init__(self, width: int) -> None:
+        self.counts = np.zeros(int(width), np.int64)
+        self.n = 0
+        self.bits = 0
+
+    def add(self, code: np.ndarray) -> None:
+        """One stored code (index array)."""
+        self.counts[np.asarray(code, np.int64)] += 1
+        self.n += 1
+        self.bits += int(np.asarray(code).size)
+
+    def rebuild(self, codes: Iterable[np.ndarray]) -> None:
+        self.counts[:] = 0
+        self.n = self.bits = 0
+        for c in codes:
+            self.add(c)
+
+    def background(self, code: np.ndarray) -> float:
+        """Expected Dice of `code` with a stored code drawn at random: sum of its bits' frequencies over
+        the mean of the two sizes; 0 before anything is stored."""
+        if self.n == 0:
+            return 0.0
+        code = np.asarray(code, np.int64)
+        shared = self.counts[code].sum() / self.n
+        return float(2.0 * shared / (code.size + self.bits / self.n))
+
+
+def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: np.ndarray,
+              code_of: Callable[[int], np.ndarray], stats: CodeStats, departure: float,
+              margin: int) -> OwnTrail | None:
+    """The rows of the stream's own trail it has not left, after this frame (§11.6).
+
+    Walking from `state.here` along the trail, every row the current frame is unlike is left (the
+    stream passed a frame unlike it: this one), up to the first row it is like, or past the last row
+    (`here` = last + 1: the frame is unlike every row of its trail it had not left). Like:
+    Dice(frame, row) >= b + departure · (1 − b), b the frame's background likeness
+    (`CodeStats.background`). Frame counts and clock time play no part:
+    standing still keeps every row of the stop; a lap of any length is a revisit once it passed frames
+    unlike its start. For the filter the rows not left are widened by `margin` links back along the trail
+    (the localiser's `exclusion`, its rival window, §11.2): a path a few rows behind the stream on its own
+    trail is where it is, not a revisit; a frame may still match such a row (a loop shorter than the
+    window shows in the frame-level ranking, not as a place). O(margin) per frame
+    plus one `code_of` per row passed (each row is passed once).
+
+    Args:
+        state: the stream's state; `here` (and its code cache) are updated in place.
+        graph: the map's links; `last` must be a row of it.
+        last: the stream's last stored row in its current sequence (None: none, no own trail).
+        code: (n,) sorted int, the frame's code (the sLSBH code: what the frame looks like, whatever
+            its context); code_of: a stored row's code in the same form.
+        stats: the map's code statistics. departure: in [0, 1] (`LocaliserParams.departure`).
+        margin: links before `here` that are still the stream's own (>= 0).
+
+    Returns:
+        OwnTrail(first, here, last, trail), first = `margin` links before `here` (or the trail's start), or
+        None without a last row.
+    """
+    if last is None or last < 0:
+        state.here, state.here_code = NONE, None
+        return None
+    trail = int(graph.trail[last])
+    here = state.here
+    if here == UNKNOWN:
+        here, state.here_code = trail, None
+    elif here < 0 or here > last + 1 or (here <= last and int(graph.trail[here]) != trail):
+        # A new trail (a new sequence, or rows of others in between): only its last row may be its own.
+        here, state.here_code = last, None
+    b = stats.background(code)
+    level = b + departure * (1.0 - b)
+    while here <= last:
+        if state.here_code is None:
+            state.here_code = np.asarray(code_of(here))
+        if code_dice(code, state.here_code) >= level:
+            break
+        nxt = int(graph.next[here])
+        here = last + 1 if here == last else (nxt if nxt >= 0 and graph.trail[nxt] == trail else last)
+        state.here_code = None
+    state.here = here  # last + 1: every stored row of the trail is left (this frame is unlike them all)
+    first = min(here, last)
+    for _ in range(margin):
+        prev = int(graph.prev[first])
+        if prev < 0:
+            break
+        first = prev
+    return OwnTrail(first, here, int(last), trail)

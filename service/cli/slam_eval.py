@@ -1,0 +1,234 @@
+"""Loop closure while mapping through the service's path: routes driven as ONE learning stream
+(docs/results.md §10, docs/design/science.md §11.6).
+
+    python -m service.cli.slam_eval --data ../shared/data/nordland_tiny_64x32 --half tune \
+        --routes seasons,noise,short-lap,stop,excursion --json out.json
+
+Routes, from the Nordland half (`tune`: files 1-894, `test`: 895-1788), labels = file index:
+- `seasons`: the summer traverse then the winter one (lap 1, lap 2);
+- `noise`: the summer traverse twice, the second with the pixel noise of `revisit_eval` (σ 8);
+- `short-lap`: 40 summer frames driven three times;
+- `stop`: 200 summer frames with a stop of 40 near-identical frames (σ 2 noise) in the middle;
+- `excursion`: 150 summer frames out, then back the same way (driven backwards).
+`--grid DIR` instead: the grid world's multi-loop walk (CBA 2020, both published SDR files) through the
+same localiser as one learning stream (`models.evaluation.online.loop_closure`: the input SDRs, and the
+Temporal Memory's winner cells learned online), labels = cells, tolerance 0.
+
+Methods: `service-slam` and `service-slam-without-tm` (`service_eval.slam_replay`: every frame posted
+with learn=true on one stream), the localise mode on the same lap-2 frames (`service`: lap 1 learned,
+lap 2 localised, `service_eval.replay`), and `openseqslam` as an online loop-closure detector
+(`models.evaluation.slam.openseqslam_online`). Scored per route by `models.evaluation.slam.score` at
+the map's threshold and the `--thresholds`; `operating_point`: the lowest threshold with precision
+>= 0.99 over every call of the route; `calibrated`: the per-map calibration tried (the `--rate`
+quantile of the stream's own lap-1 confidences).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from models.evaluation import seqslam, sequences, slam
+from models.frontend.encoder import Encoder
+from service.cli import service_eval
+from service.cli.revisit_eval import noisy_png
+from service.maps.params import DEFAULT_REVISIT_THRESHOLD
+from service.settings import Settings
+
+HALVES = {"tune": (0, 894), "test": (894, 1788)}
+ROUTES = ("seasons", "noise", "short-lap", "stop", "excursion")
+
+
+class Frames:
+    """One Nordland half: features and OpenSeqSLAM frames of summer, winter and noisy summer."""
+
+    def __init__(self, data: Path, half: str, enc: Encoder, cache: Path) -> None:
+        lo, hi = HALVES[half]
+        names = sequences.paired_names(data / "summer", data / "winter")[lo:hi]
+        self.lo, self.enc, self.cache = lo, enc, cache
+        self.paths = {s: [data / s / n for n in names] for s in ("summer", "winter")}
+        self.feats = {s: sequences.cached_features(enc, p, cache) for s, p in self.paths.items()}
+        self.images = {s: [p.read_bytes() for p in ps] for s, ps in self.paths.items()}
+
+    def noisy(self, idx: np.ndarray, sigma: float, seed: int) -> tuple[np.ndarray, list[bytes]]:
+        """Features and PNGs of summer frames `idx` (half-relative) plus pixel noise, cached by content."""
+        what = f"{self.enc.identity}|{self.lo}|{sigma}|{seed}|{idx.tolist()}"
+        key = hashlib.sha256(what.encode()).hexdigest()
+        pngs = [noisy_png(self.paths["summer"][i], sigma, seed + self.lo + int(i)) for i in idx]
+        path = self.cache / f"features-noisy-{key}.npy"
+        if path.exists():
+            return np.load(path), pngs
+        feats = np.concatenate([self.enc.embed(pngs[i:i + 32]).features for i in range(0, len(pngs), 32)])
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.save(path, feats.astype(np.float32))
+        return feats, pngs
+
+
+def route(frames: Frames, name: str) -> dict[str, Any]:
+    """{"feats" (T, D), "images" T PNGs, "labels" (T,), "laps" (T,)} of one route."""
+    n = len(frames.paths["summer"])
+    s_f, s_i = frames.feats["summer"], frames.images["summer"]
+    idx = np.arange(n)
+    if name == "seasons":
+        parts = [(s_f, s_i, idx), (frames.feats["winter"], frames.images["winter"], idx)]
+    elif name == "noise":
+        q_f, q_i = frames.noisy(idx, 8.0, 0)
+        parts = [(s_f, s_i, idx), (q_f, q_i, idx)]
+    elif name == "short-lap":
+        lap = np.arange(100, 140)
+        parts = [(s_f[lap], [s_i[i] for i in lap], lap)] * 3
+    elif name == "stop":
+        before, after, at = np.arange(0, 101), np.arange(101, 200), np.full(40, 100)
+        q_f, q_i = frames.noisy(at, 2.0, 1000)
+        parts = [(s_f[before], [s_i[i] for i in before], before), (q_f, q_i, at),
+                 (s_f[after], [s_i[i] for i in after], after)]
+        parts = [(np.concatenate([p[0] for p in parts]), [b for p in parts for b in p[1]],
+                  np.concatenate([p[2] for p in parts]))]
+    elif name == "excursion":
+        out_, back = np.arange(0, 150), np.arange(149, -1, -1)
+        parts = [(s_f[out_], [s_i[i] for i in out_], out_), (s_f[back], [s_i[i] for i in back], back)]
+    else:
+        raise ValueError(f"unknown route {name!r}; known: {', '.join(ROUTES)}")
+    return {"feats": np.concatenate([p[0] for p in parts]), "images": [b for p in parts for b in p[1]],
+            "labels": np.concatenate([p[2] for p in parts]) + frames.lo,
+            "laps": np.concatenate([np.full(len(p[2]), k) for k, p in enumerate(parts)])}
+
+
+def grey(images: list[bytes]) -> np.ndarray:
+    """OpenSeqSLAM's patch-normalised grey frames of PNG bytes (`seqslam.load_frames` on bytes)."""
+    out = []
+    for b in images:
+        img = cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_GRAYSCALE)
+        if (img.shape[1], img.shape[0]) != seqslam.FRAME_SIZE:
+            img = cv2.resize(img, seqslam.FRAME_SIZE, interpolation=cv2.INTER_AREA)
+        out.append(img)
+    return seqslam.patch_normalise(np.stack(out))
+
+
+def evaluate(r: dict[str, Any], methods: list[str], map_conf: dict[str, Any], thresholds: list[float],
+             tolerance: int, rate: float) -> dict[str, Any]:
+    """Every method on one route: its scores at the map's threshold and at each of `thresholds`."""
+    out: dict[str, Any] = {}
+    labels, laps = r["labels"], r["laps"]
+    for m in methods:
+        if m in service_eval.SLAM_METHODS:
+            found, default = service_eval.slam_replay(r["feats"], memory=service_eval.SLAM_METHODS[m],
+                                                      **map_conf)
+            best, conf = found.best, found.confidence
+        elif m in service_eval.METHODS:  # the localise mode: lap 1 learned, the rest localised
+            if laps.max() < 1:
+                continue
+            n1 = int((laps == 0).sum())
+            found = service_eval.replay(r["feats"][:n1], r["feats"][n1:], memory=service_eval.METHODS[m],
+                                        **map_conf)
+            best = np.r_[np.full(n1, -1), found.best]
+            conf = np.r_[np.zeros(n1), found.confidence]
+            default = DEFAULT_REVISIT_THRESHOLD
+        elif m == "openseqslam":
+            F = grey(r["images"])
+            best, conf = slam.openseqslam_online(seqslam.mean_abs_difference(F, F))
+            default = None
+        else:
+            raise ValueError(f"unknown method {m!r}")
+        entry: dict[str, Any] = {"default_threshold": default}
+        default = None if default is None else float(default)
+        truth = slam.revisit_truth(labels, tolerance)
+        right = truth & (best >= 0) & (np.abs(labels[np.maximum(best, 0)] - labels) <= tolerance)
+        answered = best >= 0
+        entry["operating_point"] = service_eval.operating_point(conf[answered], right[answered], 0.99)
+        at = [t for t in ([default] if default is not None else []) + thresholds]
+        if entry["operating_point"]:
+            at.append(entry["operating_point"]["threshold"])
+        if m in service_eval.SLAM_METHODS:
+            lap1 = conf[(laps == 0) & answered]
+            entry["calibrated"] = float(np.quantile(lap1, 1.0 - rate)) if lap1.size else None
+            if entry["calibrated"] is not None:
+                at.append(entry["calibrated"])
+        entry["at"] = {f"{t:.4f}": slam.score(best, conf, labels, t, tolerance, laps) for t in at}
+        entry["answers"] = {"best": best.tolist(), "confidence": np.round(conf, 6).tolist()}
+        out[m] = entry
+    return out
+
+
+def grid(folder: Path, thresholds: list[float]) -> dict[str, Any]:
+    """The grid world's loops as one learning stream, with and without the Temporal Memory, and
+    OpenSeqSLAM's online detector on 1 − Dice of the SDRs."""
+    from models.evaluation import gridworld, online, runner
+    from models.sdr import dice_matrix
+
+    out: dict[str, Any] = {}
+    for name in ("seq_multi_loop_noise0_al1.txt", "seq_multi_loop_noise05_al5.txt"):
+        data = gridworld.load_published(folder / name, folder / "seq_multi_loop_noNoise_gt.txt")
+        ids = {cell: i for i, cell in enumerate(sorted({tuple(p) for p in data.places}))}
+        labels = np.array([ids[tuple(p)] for p in data.places])
+        winners, _ = runner.run_htm(data, "cortexloc-grid", 1)
+        methods = {"service-slam-without-tm": dice_matrix(data.sdrs), "service-slam": dice_matrix(winners)}
+        for m, S in methods.items():
+            found = online.loop_closure(S, data.sdrs)
+            out[f"{name} {m}"] = {f"{t:.4f}": slam.score(found.best, found.confidence, labels, t, 0)
+                                  for t in thresholds}
+        best, conf = slam.openseqslam_online(1.0 - dice_matrix(data.sdrs))
+        out[f"{name} openseqslam"] = {f"{t:.4f}": slam.score(best, conf, labels, t, 0) for t in thresholds}
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=None)
+    ap.add_argument("--half", choices=sorted(HALVES), default="tune")
+    ap.add_argument("--routes", default=",".join(ROUTES))
+    ap.add_argument("--methods", default="service-slam,service-slam-without-tm,service,openseqslam")
+    ap.add_argument("--thresholds", type=float, nargs="*", default=[])
+    ap.add_argument("--tolerance", type=int, default=1)
+    ap.add_argument("--rate", type=float, default=0.001, help="false-revisit rate of the calibration")
+    ap.add_argument("--backbone", default=None, help="default: the service's")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--grid", type=Path, default=None, help="the grid world's folder instead of --data")
+    args = ap.parse_args()
+    if args.grid is not None:
+        found = grid(args.grid, [DEFAULT_REVISIT_THRESHOLD, *args.thresholds])
+        for key, by_t in found.items():
+            for t, s in by_t.items():
+                d = s["lap"][0]
+                print(key, "at", t, {k: round(v, 3) if isinstance(v, float) else v for k, v in d.items()})
+        if args.json:
+            args.json.write_text(json.dumps(found) + "\n")
+        return
+    from service.app import resolve_backbone  # the service's own resolution of its default
+
+    settings = Settings.from_env()
+    backbone = args.backbone or resolve_backbone(settings).backbone
+    enc = Encoder({"backbone": backbone, "resize": "squash"})
+    cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
+    if args.data is None:
+        ap.error("--data (or --grid) is required")
+    frames = Frames(args.data, args.half, enc, cache)
+    map_conf = {"encoder_id": enc.identity, "backbone": backbone, "preset": settings.default_preset,
+                "seed": args.seed}
+    result: dict[str, Any] = {"config": {**{k: str(v) for k, v in vars(args).items()}, "backbone": backbone},
+                              "routes": {}}
+    for name in args.routes.split(","):
+        r = route(frames, name)
+        result["routes"][name] = evaluate(r, args.methods.split(","), map_conf, args.thresholds,
+                                          args.tolerance, args.rate)
+        for m, e in result["routes"][name].items():
+            summary = {t: {k: v for k, v in s["lap"].items()} for t, s in e["at"].items()}
+            print(name, m, "op", e["operating_point"], "cal", e.get("calibrated"), flush=True)
+            for t, s in summary.items():
+                short = {lap: {k: round(v, 3) if isinstance(v, float) else v for k, v in d.items()}
+                         for lap, d in s.items()}
+                print("   at", t, short, flush=True)
+        if args.json:
+            args.json.write_text(json.dumps(result) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,56 @@
+"""A map's loop-closure log (docs/design/service.md §1.2, docs/design/science.md §11.6): a typed page, and
+the export of candidate pairs (CSV or JSON lines) for pose-graph back ends that verify pairs themselves."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import anyio
+from fastapi import APIRouter, Query
+from fastapi.responses import StreamingResponse
+
+from service.deps import RegistryDep
+from service.errors import problem_responses
+from service.maps import closures
+from service.routes.params import MapId
+from service.schemas import LoopClosureList, LoopClosureModel
+
+router = APIRouter(prefix="/v1/maps", tags=["loop closures"])
+
+#: Loop closures per page of `GET /v1/maps/{id}/loop-closures`.
+MAX_PAGE = 500
+#: The most log ids a cursor can name (SQLite's INTEGER).
+MAX_ID = 2**63 - 1
+
+
+@router.get("/{map_id}/loop-closures", responses=problem_responses(404, 503))
+async def list_loop_closures(
+    map_id: MapId, registry: RegistryDep,
+    after: Annotated[int, Query(ge=0, le=MAX_ID, description="the page starts after this log id")] = 0,
+    limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 100,
+) -> LoopClosureList:
+    """The revisits streams were told of, oldest first: learning streams' with the row that saw them."""
+    rt = registry.get(map_id)
+    rt.require_ready()
+    assert rt.store is not None
+    found = await anyio.to_thread.run_sync(closures.page, rt.store, after, limit)
+    return LoopClosureList(loop_closures=[LoopClosureModel.from_result(c) for c in found],
+                           next_after=found[-1].id if len(found) == limit else None)
+
+
+@router.get("/{map_id}/loop-closures/export",
+            response_class=StreamingResponse, responses={**problem_responses(404, 503), 200: {
+                "content": {t.split(";")[0]: {"schema": {"type": "string"}}
+                            for t in closures.EXPORT_FORMATS.values()}}})
+async def export_loop_closures(
+    map_id: MapId, registry: RegistryDep,
+    format: Annotated[Literal["csv", "jsonl"], Query(description="csv | jsonl")] = "csv",
+) -> StreamingResponse:
+    """Every logged loop closure as a candidate pair: both stamps in seconds, both ids, the confidence,
+    both poses where given (`closures.EXPORT_COLUMNS`)."""
+    rt = registry.get(map_id)
+    rt.require_ready()
+    assert rt.store is not None
+    return StreamingResponse(closures.export(rt.store, format), media_type=closures.EXPORT_FORMATS[format],
+                             headers={"Content-Disposition": f'attachment; filename="{map_id}-loop-closures.'
+                                                             f'{format}"'})

@@ -1,0 +1,173 @@
+"""Loop closure while mapping (docs/design/science.md §11.6, docs/design/service.md §1.2): a learning stream
+knows when it is back, never by its own trail, and every revisit is logged durably."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+
+from tests.service.helpers import frame, make_client, post
+
+LAP = list(range(30))
+THRESHOLD = 0.5  # the synthetic maps are small: confidence earns less per frame than on a real route
+
+
+def drive(c, places, stream="mapper", learn="true", noise=3.0, **params) -> list[dict]:
+    return [post(c, frame(p, noise=noise), stream=stream, learn=learn, top_k=0, **params).json()
+            for p in places]
+
+
+def revisits(bodies: list[dict]) -> list[dict]:
+    return [b for b in bodies if b["place"] is not None and b["place"]["revisit"]]
+
+
+def patched(c) -> None:
+    assert c.patch("/v1/maps/default", json={"revisit_threshold": THRESHOLD}).status_code == 200
+
+
+def test_standing_still_is_not_a_revisit(tmp_path):
+    # 40 near-identical frames of a stopped robot: each is the best match of the next, and none is a
+    # revisit however many pass (the old rule hid the last 10 rows only: the 11th back was "a revisit").
+    with make_client(tmp_path / "data") as c:
+        patched(c)
+        before = drive(c, LAP[:20])
+        stop = drive(c, [20] * 40)
+        after = drive(c, range(21, 40))
+    stop_seqs = {b["seq"] for b in stop}
+    assert revisits(before + stop + after) == []
+    assert all(b["place"] is None or b["place"]["seq"] not in stop_seqs for b in stop)
+
+
+def test_a_lap_on_ones_own_trail_is_a_revisit_and_names_the_first_lap(tmp_path):
+    with make_client(tmp_path / "data") as c:
+        patched(c)
+        lap1 = drive(c, LAP, noise=0.0)
+        lap2 = drive(c, LAP)
+    assert revisits(lap1) == []  # continuing along one's own trail is not a revisit
+    first = {p: b["seq"] for p, b in zip(LAP, lap1, strict=True)}
+    called = revisits(lap2)
+    assert len(called) >= len(LAP) - 10
+    for b in lap2:
+        assert b["place"] is None or b["place"]["seq"] != b["seq"]  # never the row the frame created
+    for b in called:
+        place = LAP[[x["seq"] for x in lap2].index(b["seq"])]
+        assert b["place"]["seq"] == first[place]
+
+
+def test_an_excursion_of_any_length_then_back_is_a_revisit(tmp_path):
+    with make_client(tmp_path / "data") as c:
+        patched(c)
+        start = drive(c, LAP[:20], noise=0.0)
+        drive(c, range(100, 112))  # a short excursion through places never seen
+        back = drive(c, LAP[:20])
+    seqs = {b["seq"] for b in start}
+    called = revisits(back)
+    assert len(called) >= 8 and all(b["place"]["seq"] in seqs for b in called)
+
+
+def test_two_robots_on_one_map_recognise_each_others_rows_at_once(tmp_path):
+    # Rows of other streams are always candidates: robot b, learning, is back on a's trail from its start.
+    with make_client(tmp_path / "data") as c:
+        patched(c)
+        a = drive(c, LAP, stream="a", noise=0.0)
+        b = drive(c, LAP, stream="b")
+    a_seqs = {x["seq"] for x in a}
+    called = revisits(b)
+    assert revisits(a) == [] and len(called) >= len(LAP) - 10
+    assert all(x["place"]["seq"] in a_seqs and x["place"]["stream"] == "a" for x in called)
+
+
+def test_a_restart_between_laps_keeps_the_stream_and_its_trail(tmp_path):
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        patched(c)
+        lap1 = drive(c, LAP, noise=0.0)
+    with make_client(data) as c:
+        lap2 = drive(c, LAP)
+        stop = drive(c, [LAP[-1]] * 40)  # after the restart, standing still is still not a revisit
+    assert len(revisits(lap2)) >= len(LAP) - 10
+    assert {b["place"]["seq"] for b in revisits(lap2)} <= {b["seq"] for b in lap1}
+    stop_seqs = {b["seq"] for b in stop}
+    assert all(b["place"]["seq"] not in stop_seqs for b in revisits(stop))
+
+
+def test_the_loop_closure_log_pages_exports_and_survives_a_restart(tmp_path):
+    data = tmp_path / "data"
+    meta = {"stamp": 1700000000.5, "pose": {"x": 1.0, "y": 2.0, "yaw": 0.1}}
+    with make_client(data) as c:
+        patched(c)
+        lap1 = drive(c, LAP, noise=0.0, metadata=json.dumps(meta))
+        lap2 = drive(c, LAP, metadata=json.dumps({"stamp": "1700000100.25"}))
+        localised = drive(c, LAP, stream="robot", learn="false")
+        page = c.get("/v1/maps/default/loop-closures", params={"limit": 500}).json()
+    learned, loc = revisits(lap2), revisits(localised)
+    assert learned and loc
+    log = page["loop_closures"]
+    assert page["next_after"] is None
+    # Every revisit told, in order: a learning stream's with its row, a localising stream's without.
+    assert [(e["stream"], e["seq"], e["place"]["seq"]) for e in log] == (
+        [("mapper", b["seq"], b["place"]["seq"]) for b in learned]
+        + [("robot", None, b["place"]["seq"]) for b in loc])
+    first = log[0]
+    assert first["confidence"] >= THRESHOLD and first["support"] >= 1
+    assert first["place"]["metadata"] == meta and first["metadata"] == {"stamp": "1700000100.25"}
+    assert first["observation_id"] == learned[0]["observation_id"]
+    assert first["place"]["observation_id"] == next(b["observation_id"] for b in lap1
+                                                    if b["seq"] == first["place"]["seq"])
+    with make_client(data) as c:
+        again = c.get("/v1/maps/default/loop-closures", params={"limit": 500}).json()["loop_closures"]
+        two = c.get("/v1/maps/default/loop-closures", params={"limit": 2}).json()
+        rest = c.get("/v1/maps/default/loop-closures",
+                     params={"after": two["next_after"], "limit": 500}).json()
+        text = c.get("/v1/maps/default/loop-closures/export", params={"format": "csv"})
+        lines = c.get("/v1/maps/default/loop-closures/export", params={"format": "jsonl"})
+        assert c.get("/v1/maps/default/loop-closures", params={"limit": 0}).status_code == 400
+        assert c.get("/v1/maps/nope/loop-closures").status_code == 404
+    assert again == log  # durable across a restart
+    assert two["loop_closures"] + rest["loop_closures"] == log and len(two["loop_closures"]) == 2
+    assert text.headers["content-type"].startswith("text/csv")
+    rows = list(csv.DictReader(io.StringIO(text.text)))
+    records = [json.loads(line) for line in lines.text.splitlines()]
+    assert len(rows) == len(records) == len(log)
+    assert records[0]["stamp"] == 1700000100.25 and records[0]["place_stamp"] == 1700000000.5
+    assert (records[0]["place_x"], records[0]["place_y"], records[0]["place_yaw"]) == (1.0, 2.0, 0.1)
+    assert records[0]["x"] is None and rows[0]["x"] == ""
+    assert float(rows[0]["stamp"]) == 1700000100.25 and rows[0]["place_observation_id"] == \
+        log[0]["place"]["observation_id"]
+    assert records[-1]["seq"] is None and records[-1]["stream"] == "robot"
+
+
+def test_the_log_is_carried_by_a_snapshot_and_a_restore_and_is_bounded(tmp_path):
+    with make_client(tmp_path / "data", loop_closures=5) as c:
+        patched(c)
+        drive(c, LAP, noise=0.0)
+        drive(c, LAP[:15])
+        kept = c.get("/v1/maps/default/loop-closures").json()["loop_closures"]
+        snap = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        drive(c, LAP[15:])
+        later = c.get("/v1/maps/default/loop-closures").json()["loop_closures"]
+        assert c.post(f"/v1/maps/default/snapshots/{snap}/restore").status_code == 200
+        restored = c.get("/v1/maps/default/loop-closures").json()["loop_closures"]
+    assert len(kept) == 5 and len(later) == 5  # the last 5 (the setting), oldest pruned
+    assert later[0]["id"] > kept[-1]["id"]
+    assert restored == kept  # the restore's file holds the log as it was at the snapshot
+
+
+def test_a_repeated_localisation_post_logs_its_closure_once(tmp_path):
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        patched(c)
+        drive(c, LAP, noise=0.0)
+        bodies = drive(c, LAP[:12], stream="robot", learn="false")
+        assert bodies[-1]["place"]["revisit"]
+        body = frame(LAP[12], noise=3.0)
+        headers = {"Content-Type": "image/png", "Idempotency-Key": "closure-key-0001"}
+        for _ in range(2):
+            c.post("/v1/maps/default/observations", content=body, headers=headers,
+                   params={"stream": "robot", "learn": "false"})
+        n = len(c.get("/v1/maps/default/loop-closures").json()["loop_closures"])
+    with make_client(data) as c:  # after a restart the key's reply is gone, its closure is not logged twice
+        c.post("/v1/maps/default/observations", content=body, headers=headers,
+               params={"stream": "robot", "learn": "false"})
+        assert len(c.get("/v1/maps/default/loop-closures").json()["loop_closures"]) == n
