@@ -258,6 +258,9 @@ class LoopClosureModel(_Out):
     confidence: float
     support: int
     created_at: str
+    verification: results.VerificationResult | None = Field(
+        default=None, description="the place's geometric verification as the reply gave it, with the "
+        "relative pose (maps with keyframes; docs/design/science.md §12); null elsewhere")
 
 
 class LoopClosureList(_Out):

@@ -296,8 +296,8 @@ class MapStore:
             return 0
         before = conn.total_changes
         conn.executemany("INSERT OR IGNORE INTO loop_closures (stream, seq, place_seq, confidence, support, "
-                         "metadata, idempotency_key, created_at, verification) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                         params)
+                         "metadata, idempotency_key, created_at, verification) "
+                         "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)", params)
         added = conn.total_changes - before
         if added and self.max_closures is not None:
             conn.execute("DELETE FROM loop_closures WHERE id <= (SELECT max(id) FROM loop_closures) - ?",

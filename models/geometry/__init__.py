@@ -11,7 +11,7 @@ from models.geometry.features import (
     pack,
     unpack,
 )
-from models.geometry.verify import Camera, Verification, verify
+from models.geometry.verify import Camera, Verification, quaternion, verify
 
 __all__ = ["EXTRACTORS", "Camera", "Features", "KeyframeParams", "Verification", "available", "extract",
-           "pack", "unpack", "verify"]
+           "pack", "quaternion", "unpack", "verify"]

@@ -16,7 +16,7 @@ import numpy as np
 
 from models.geometry.features import NORMS, Features
 
-__all__ = ["Camera", "Verification", "gric", "match", "verify"]
+__all__ = ["Camera", "Verification", "gric", "match", "quaternion", "verify"]
 
 #: Lowe's ratio: a match is kept when its best distance is below this fraction of the second best.
 RATIO = 0.8
@@ -98,6 +98,17 @@ class Verification:
 def rotation_angle(R: np.ndarray) -> float:
     """The angle of rotation matrix `R` (3, 3) in degrees."""
     return math.degrees(math.acos(float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+
+
+def quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
+    """The unit quaternion (x, y, z, w), w >= 0, of rotation matrix `R` (3, 3)."""
+    m = np.asarray(R, np.float64)
+    w = math.sqrt(max(0.0, 1 + m[0, 0] + m[1, 1] + m[2, 2])) / 2
+    x = math.copysign(math.sqrt(max(0.0, 1 + m[0, 0] - m[1, 1] - m[2, 2])) / 2, m[2, 1] - m[1, 2])
+    y = math.copysign(math.sqrt(max(0.0, 1 - m[0, 0] + m[1, 1] - m[2, 2])) / 2, m[0, 2] - m[2, 0])
+    z = math.copysign(math.sqrt(max(0.0, 1 - m[0, 0] - m[1, 1] + m[2, 2])) / 2, m[1, 0] - m[0, 1])
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    return x / n, y / n, z / n, w / n
 
 
 def match(a: Features, b: Features, ratio: float = RATIO) -> np.ndarray:

@@ -196,6 +196,7 @@ class LoopClosureResult:
     confidence: float
     support: int
     created_at: str
+    verification: VerificationResult | None = None  # the place's, as the reply gave it (maps with keyframes)
 
 
 @dataclass(frozen=True)

@@ -1,10 +1,13 @@
 """Keyframes and the verification of a revisit over HTTP (issue 27 items 1 and 2; docs/design/science.md
 §12, docs/design/service.md §1.1–§1.2): the `keyframes` option, `place.verification` with the relative
 rotation from a camera given once per stream, refusal of unrelated frames and of frames too small, the
-`verify_revisit` option (PATCH), the sizes, and keyframes through a snapshot, a restore and a restart."""
+`verify_revisit` option (PATCH), the sizes, keyframes through a snapshot, a restore and a restart, and
+(item 3) the loop-closure log and its exports, g2o included, carrying the verified relative pose."""
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 
 import cv2
@@ -179,3 +182,47 @@ def test_keyframes_travel_with_a_snapshot_its_restore_and_a_restart(tmp_path):
     for places in (restored, restarted):
         v = places[-1]["verification"]
         assert v["verified"] and v["keyframe_seq"] == seqs[-1] and abs(v["rotation_deg"] - 8.0) < 1.0, v
+
+
+def test_the_loop_closure_log_and_its_exports_carry_the_verified_relative_pose(tmp_path):
+    turn = rotation(5, 0, 0)
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        make_map(c)
+        learn(c, [sized(n) for n in ROUTE])
+        # A second robot maps the same route with its camera turned: its rows close loops on the first's.
+        second = [post(c, png(warp(sized(n), CAMERA, turn)), map_id="kf", stream="second", top_k=0,
+                       metadata=json.dumps(CAMERA_META)).json() for n in ROUTE]
+        drive(c, [warp(sized(n), CAMERA, turn) for n in ROUTE])  # and a localising stream's closures
+    with make_client(data) as c:  # durable: read back after a restart
+        log = c.get("/v1/maps/kf/loop-closures", params={"limit": 500}).json()["loop_closures"]
+        rows = list(csv.DictReader(io.StringIO(c.get("/v1/maps/kf/loop-closures/export",
+                                                     params={"format": "csv"}).text)))
+        g2o = c.get("/v1/maps/kf/loop-closures/export", params={"format": "g2o"})
+    told = [b for b in second if b["place"] is not None and b["place"]["revisit"]]
+    assert told and [e["verification"] for e in log if e["stream"] == "second"] == [
+        b["place"]["verification"] for b in told]  # the log keeps what the reply said
+    verified = [e for e in log if e["verification"]["verified"]]
+    # Against the first robot's rows the camera is turned 5 degrees; against the second's, not at all.
+    expect = {"mapper": 5.0, "second": 0.0}
+    assert verified and all(abs(e["verification"]["rotation_deg"] - expect[e["place"]["stream"]]) < 1.0
+                            for e in verified), [(e["place"]["stream"], e["verification"]) for e in verified]
+    assert len(rows) == len(log) and {r["verified"] for r in rows} <= {"True", "False"}
+    row = next(r for r, e in zip(rows, log, strict=True)
+               if e["verification"]["verified"] and e["place"]["stream"] == "mapper")
+    q = np.array([float(row[k]) for k in ("qx", "qy", "qz", "qw")])
+    assert abs(np.degrees(2 * np.arccos(min(1.0, abs(q[3])))) - 5.0) < 1.0 and row["tx"] == ""
+    # g2o: one edge per verified closure between two stored rows (the learning stream's), none for
+    # the localising stream's (no row: no vertex).
+    edges = [line.split() for line in g2o.text.splitlines()]
+    want = [e for e in verified if e["seq"] is not None]
+    assert all(e["place"]["stream"] == "mapper" for e in want)
+    assert g2o.headers["content-type"].startswith("text/plain") and len(edges) == len(want) > 0
+    for edge, e in zip(edges, want, strict=True):
+        assert edge[0] == "EDGE_SE3:QUAT" and len(edge) == 3 + 7 + 21
+        assert (int(edge[1]), int(edge[2])) == (e["verification"]["keyframe_seq"], e["seq"])
+        _, qy, _, qw = map(float, edge[6:10])
+        # The query camera's pose in the keyframe's frame: turned by R^T, i.e. yaw -5 degrees about y.
+        assert qy < 0 and abs(np.degrees(2 * np.arctan2(abs(qy), qw)) - 5.0) < 1.0
+        info = list(map(float, edge[10:]))
+        assert info[0] == 0.0 and info[-1] == 1e4  # translation unknown in length, rotation weighted
