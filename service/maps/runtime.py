@@ -461,6 +461,8 @@ class MapRuntime:
         rows = self.store.get_many([*(m.seq for m in step.ranked), *([place.seq] if place else [])])
         if query is not None and query.camera is not None:
             self.cameras[stream] = query.camera
+            if len(self.cameras) > self.max_streams:  # bounded: the cameras of the streams held
+                self.cameras = {k: v for k, v in self.cameras.items() if k in self.streams}
         kf = None if query is None else (geometry.pack(query.features), query.camera)
         row = NewObservation(stream=stream, image_sha256=image_sha256, input_sdr=step.code,
                              winner_cells=step.winners, context_prev_seq=step.prev_seq, label=label,

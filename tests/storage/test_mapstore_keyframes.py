@@ -1,6 +1,6 @@
 """The `keyframes` table of map.sqlite (schema 3; issue 27 item 1, docs/design/science.md §12.1): a learned
-row's packed features and camera commit with it, are append-only, are counted, and a version 2 file is
-migrated to hold them."""
+row's packed features and camera commit with it, are append-only, are counted, and an older file is
+migrated to hold them and a logged closure's verification (schema 4)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from storage.mapschema import SCHEMA_VERSION
+from storage.mapschema import SCHEMA_VERSION, NewClosure
 from storage.mapstore import MapMeta, MapStore
 from tests.storage.conftest import make_row
 
@@ -36,23 +36,34 @@ def test_keyframes_are_append_only(store: MapStore) -> None:
     conn.close()
 
 
-def test_a_version_2_file_is_migrated_to_hold_keyframes(tmp_path: Path, meta: MapMeta) -> None:
+@pytest.mark.parametrize("version", [2, 3])
+def test_an_older_file_is_migrated_to_hold_keyframes_and_closure_verifications(tmp_path: Path, meta: MapMeta,
+                                                                              version: int) -> None:
     path = tmp_path / "map.sqlite"
     with MapStore.create(path, meta) as made:
         made.append(make_row(1))
-    # Version 2's layout: today's without the keyframes table.
+    # Version 3's layout is today's without the keyframes table and the closures' verification column;
+    # version 2's has no loop_closures either.
+    older = ("DROP TABLE loop_closures;" if version == 2
+             else "ALTER TABLE loop_closures DROP COLUMN verification;")
     conn = sqlite3.connect(path)
-    conn.executescript("""
+    conn.executescript(f"""
         DROP TABLE keyframes;
+        {older}
         DROP TRIGGER meta_no_update;
-        UPDATE meta SET value = '2' WHERE key = 'schema_version';
+        UPDATE meta SET value = '{version}' WHERE key = 'schema_version';
         CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
         BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
     """)
     conn.close()
     with MapStore.open(path, readonly=True) as ro:  # read-only: not migrated, reads as none stored
-        assert ro.meta.schema_version == 2 and ro.keyframes([1]) == {} and ro.keyframe_bytes() == (0, 0)
+        assert ro.meta.schema_version == version and ro.keyframes([1]) == {} and ro.keyframe_bytes() == (0, 0)
+        assert ro.closures(0, 10) == []
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 3
-        seq = store.append(dataclasses.replace(make_row(2, prev=1), keyframe=(b"f" * 16, CAMERA)))
+        assert store.meta.schema_version == SCHEMA_VERSION == 4
+        closure = NewClosure(stream="s", place_seq=1, confidence=0.99, support=3,
+                             verification={"verified": True, "inliers": 40})
+        seq = store.append(dataclasses.replace(make_row(2, prev=1), keyframe=(b"f" * 16, CAMERA),
+                                               closure=closure))
         assert store.keyframes([1, seq]) == {seq: (b"f" * 16, CAMERA)} and store.count() == 2
+        assert [c.verification for c in store.closures(0, 10)] == [{"verified": True, "inliers": 40}]

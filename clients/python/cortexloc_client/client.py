@@ -190,7 +190,9 @@ class Client:
 
     def export_loop_closures(self, map_id: str, fmt: str = "csv") -> bytes:
         """`GET /v1/maps/{map_id}/loop-closures/export`: the whole log as candidate pairs (`csv` or
-        `jsonl`): both stamps in seconds, both ids, the confidence, both poses where given."""
+        `jsonl`): both stamps in seconds, both ids, the confidence, both poses where given, and the
+        verified relative pose on maps with keyframes; or (`g2o`) the verified closures as
+        `EDGE_SE3:QUAT` lines."""
         return self._send(_core.export_loop_closures(map_id, fmt))
 
     def recent(self, map_id: str, *, limit: int = 50, stream: str | None = None) -> models.RecentAnswers:

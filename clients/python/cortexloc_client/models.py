@@ -377,6 +377,8 @@ class LoopClosure(_Reply):
     confidence: float
     support: int
     created_at: str
+    #: The place's geometric verification as the reply gave it (maps with keyframes; None elsewhere).
+    verification: Verification | None = None
 
 
 class LoopClosureList(_Reply):
