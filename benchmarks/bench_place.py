@@ -8,8 +8,8 @@ rebuilds from the store). A stream drives `--frames` consecutive stored rows, ea
 (`--keep` of 40 cells kept). Per frame, what `MapRuntime.apply` runs for the answer
 (docs/design/science.md §11.2): one `InvertedIndex.rank` pass for the frame's cells (top
 `candidates_wanted`) and `Localisation.step` on its candidates. Reported per size: medians and p90 of the
-pass, the step and both, the ratio of the medians to the smallest size's, the stream state's bytes and
-R@1 after the warm-up.
+pass, the step and both, the ratio of the medians to the smallest size's, the stream state's bytes, the
+index's bytes per stored row (`InvertedIndex.nbytes`, capacity included) and R@1 after the warm-up.
 """
 
 from __future__ import annotations
@@ -58,6 +58,7 @@ def bench_size(n: int, frames: int, keep: int = 30, seed: int = 0) -> dict[str, 
             "total_ms_median": float(np.median(both)), "total_ms_p90": float(np.percentile(both, 90)),
             "state_bytes": int(sum(v.nbytes for v in state.to_arrays().values())),
             "graph_bytes": int(loc.graph.prev.nbytes + loc.graph.next.nbytes + loc.graph.trail.nbytes),
+            "index_bytes_per_row": idx.nbytes() / n,
             "recall_at_1": right / max(answered, 1)}
 
 
@@ -79,6 +80,7 @@ def main() -> None:
         print(f"{n:>9} rows: rank {r['rank_ms_median']:.3f} ms (p90 {r['rank_ms_p90']:.3f}), step "
               f"{r['step_ms_median']:.3f} ms (p90 {r['step_ms_p90']:.3f}), total "
               f"{r['total_ms_median']:.3f} ms ({r['ratio_to_smallest']:.2f}x), state {r['state_bytes']} B, "
+              f"index {r['index_bytes_per_row']:.0f} B/row, "
               f"R@1 {r['recall_at_1']:.3f}",
               flush=True)
     write_json("place.json", {"config": {"frames": frames, "keep": args.keep, "quick": quick},

@@ -27,12 +27,20 @@ from models.memory._tm_synapses import (
 )
 
 
+@njit(cache=True, inline="always")
+def count_bits(K):
+    """Bits per count in `activity`'s packed per-segment word (a count never exceeds K)."""
+    return 8 if K < 256 else 16
+
+
 @njit(cache=True)
 def activity(active_cells, learn, iteration, ip, last_used, rx, seg_act, epoch, matching):
     """activateDendrites (docs/design/science.md §3.3): active and matching segments for `active_cells`.
 
-    `seg_act[g]` packs (epoch << 32 | connected << 16 | potential) so that one random access per
+    `seg_act[g]` packs (epoch << 2w | connected << w | potential) so that one random access per
     synapse both tests "first touch in this call" and counts, and no pass is needed to clear counts.
+    The count width w is 8 bits in a uint32 when maxSynapsesPerSegment < 256 (every preset), else 16
+    bits in an int64 (`count_bits`): half the bytes keep more of these random accesses in cache.
 
     Returns:
         active_segs (a,), active_pot (a,), matching_segs (m,), matching_pot (m,): segment ids sorted
@@ -43,11 +51,13 @@ def activity(active_cells, learn, iteration, ip, last_used, rx, seg_act, epoch, 
     S = ip[I_S]
     thr_act = ip[I_ACT]
     thr_min = ip[I_MIN]
+    w = count_bits(ip[I_K])
+    cmask = (1 << w) - 1
     epoch[0] += 1
-    if epoch[0] >= 2**31:  # wrap-around: forget every stamp once in 2**31 calls
+    if epoch[0] >= 1 << (seg_act.itemsize * 8 - 1 - 2 * w):  # wrap-around: forget every stamp
         seg_act[:] = 0
         epoch[0] = 1
-    stamp = epoch[0] << 32
+    stamp = epoch[0] << (2 * w)
     n_m = 0
     for i in range(active_cells.size):
         t = tail[active_cells[i]]
@@ -59,16 +69,16 @@ def activity(active_cells, learn, iteration, ip, last_used, rx, seg_act, epoch, 
                 v = seg_act[g]
                 if v < stamp:
                     v = stamp
-                v += 1 + ((e & 1) << 16)
+                v += 1 + ((e & 1) << w)
                 seg_act[g] = v
-                if (v & 0xFFFF) == thr_min:
+                if (v & cmask) == thr_min:
                     matching[n_m] = g
                     n_m += 1
             t = bprev[t]
     segs = np.sort(matching[:n_m]).astype(np.int64)
     n_act = 0
     for i in range(n_m):
-        if (seg_act[segs[i]] >> 16) & 0xFFFF >= thr_act:
+        if (seg_act[segs[i]] >> w) & cmask >= thr_act:
             n_act += 1
     active_segs = np.empty(n_act, np.int64)
     active_pot = np.empty(n_act, np.int32)
@@ -79,9 +89,9 @@ def activity(active_cells, learn, iteration, ip, last_used, rx, seg_act, epoch, 
     for i in range(n_m):
         g = segs[i]
         v = seg_act[g]
-        pot = v & 0xFFFF
+        pot = v & cmask
         matching_pot[i] = pot
-        if (v >> 16) & 0xFFFF >= thr_act:
+        if (v >> w) & cmask >= thr_act:
             active_segs[a] = g
             active_pot[a] = pot
             a += 1
@@ -113,6 +123,7 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
     dec = p[P_DEC]
     pdec = p[P_PDEC]
     zero = np.float32(0.0)
+    hit = np.empty(Kc, np.int64)  # a punished segment's active synapses
     for i in range(prev_active.size):
         prev_active_mask[prev_active[i]] = True
     for i in range(prev_winner.size):
@@ -219,28 +230,33 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
             # This runs for every chance match, so the common case (nothing decays below EPS) is
             # written out here; a segment that would lose a synapse takes the general path.
             changed = changed or ims > m0
+            # The first pass lists the segment's active synapses (a few of its K), so the second
+            # touches only those.
             for t in range(m0, ims):
                 g = match_segs[t]
                 base = g * Kc
                 n = np.int64(nsyn[g])
                 dies = False
+                n_hit = 0
                 for k in range(n):
                     q = base + k
-                    if prev_active_mask[presyn[q]] and perm[q] - pdec < EPS:
-                        dies = True
-                        break
+                    if prev_active_mask[presyn[q]]:
+                        if perm[q] - pdec < EPS:
+                            dies = True
+                            break
+                        hit[n_hit] = q
+                        n_hit += 1
                 if dies:
                     _adapt(g, -pdec, zero, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count,
                            rev, rpos, bprev, bfill, tail, pool, counters)
                     continue
-                for k in range(n):
-                    q = base + k
-                    if prev_active_mask[presyn[q]]:
-                        old = perm[q]
-                        v = old - pdec
-                        if (v >= conn) != (old >= conn):
-                            rev[rpos[q]] ^= 1
-                        perm[q] = v
+                for i in range(n_hit):
+                    q = hit[i]
+                    old = perm[q]
+                    v = old - pdec
+                    if (v >= conn) != (old >= conn):
+                        rev[rpos[q]] ^= 1
+                    perm[q] = v
 
     for i in range(prev_active.size):
         prev_active_mask[prev_active[i]] = False

@@ -70,6 +70,35 @@ def test_rank_equals_brute_force(seed: int) -> None:
         assert idx.rank(q, 7, exclude_seqs=ex) == brute(rows, q, 7, ex, 1)
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_rank_equals_brute_force_when_single_overlap_rows_are_skipped(seed: int) -> None:
+    """Rows of equal weight: once k rows share two cells, the rows sharing one are never looked at
+    (the bound of `_top_k_touched`); the ranking must not change, exclusions and ties included."""
+    rng = np.random.default_rng(seed)
+    n_cells, w = 200, 12
+    idx = InvertedIndex(n_cells, 10_000)
+    rows = []
+    for i, cells in enumerate(random_sets(rng, 2_000, w, n_cells)):
+        idx.add(i + 1, cells, "a")
+        rows.append((i + 1, cells, "a"))
+    for _ in range(30):
+        q = rng.choice(n_cells, size=w, replace=False)
+        for top_k in (1, 5, 40):
+            assert idx.rank(q, top_k) == brute(rows, q, top_k, set(), 1)
+        ex = {m.seq for m in idx.rank(q, 3)}
+        assert idx.rank(q, 5, exclude_seqs=ex) == brute(rows, q, 5, ex, 1)
+
+
+def test_a_small_row_sharing_one_cell_beats_large_rows_sharing_two() -> None:
+    idx = InvertedIndex(1_000, 100)
+    q = np.arange(10)
+    for seq in range(1, 21):  # 100 cells each, two shared: Dice 4 / 110
+        idx.add(seq, np.concatenate([[0, 1], np.arange(100, 198) + seq]), "a")
+    idx.add(21, [5], "a")  # one cell, shared: Dice 2 / 11
+    got = idx.rank(q, 3)
+    assert [m.seq for m in got] == [21, 1, 2] and got[0].overlap == 1
+
+
 def test_scores_are_dice() -> None:
     idx = InvertedIndex(100, 10)
     idx.add(1, [1, 2, 3, 4], "s")

@@ -1,0 +1,149 @@
+"""The Temporal Memory against BrainBlocks 0.7.1, like for like, in one run (issue 25; `make bench`).
+
+Run: `python benchmarks/bench_tm_peer.py [--steps 5000] [--peer-python /tmp/bbenv/bin/python] [--quick]`.
+
+Setup (the issue's): 2048 columns x 4 cells, 40 active columns, NuPIC's thresholds (activation 13,
+20 new synapses; preset `numenta-defaults`) with 32 segments x 32 synapses per cell, `--steps` learning
+steps on a never-repeating random SDR sequence; and the service preset (`cortexloc-default`, 308 active
+columns). The peer is BrainBlocks' SequenceLearner with the same sizes (num_c 2048, num_spc 4, num_dps 32,
+num_rpd 32, d_thresh 13, permanences in BrainBlocks' 0..99 scale: connected 50, +10, -10), fed the same
+sequence through a BlankBlock, timed per step (BlankBlock + SequenceLearner feedforward). BrainBlocks is a
+peer, not a dependency: it runs in its own environment (`--peer-python`, built from the sdist with cmake,
+g++, pybind11 and setuptools < 72) through a subprocess. Without it the peer row says why.
+
+Reported: median and p90 ms/step of each, the ratio cortexloc / BrainBlocks of the medians, measured one
+after the other in this run, and where the service preset's step goes (`service_breakdown`;
+docs/benchmarks.md §12).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from _common import quick_mode, write_json  # also puts the repo on sys.path
+
+from models.evaluation.bench import bench_tm, random_sequence
+
+LIKE_FOR_LIKE = {"columns": 2048, "cells": 4, "active": 40, "preset": "numenta-defaults",
+                 "overrides": {"maxSegmentsPerCell": 32, "maxSynapsesPerSegment": 32}}
+SERVICE = {"columns": 2048, "cells": 4, "active": 308, "preset": "cortexloc-default"}
+
+# Runs inside the peer's interpreter: reads {"steps", "seqs"} as JSON on stdin, prints the step times.
+PEER = """
+import json, sys, time
+import numpy as np
+from brainblocks.blocks import BlankBlock, SequenceLearner
+job = json.load(sys.stdin)
+blank = BlankBlock(num_s=2048)
+sl = SequenceLearner(num_c=2048, num_spc=4, num_dps=32, num_rpd=32, d_thresh=13, perm_thr=50,
+                     perm_inc=10, perm_dec=10, seed=0)
+sl.input.add_child(blank.output, 0)
+sl.init()
+times = []
+for x in job["seqs"]:
+    t0 = time.perf_counter()
+    blank.output.bits = np.zeros(2048, dtype=np.uint8)
+    blank.output.acts = x
+    blank.feedforward()
+    sl.feedforward(learn=True)
+    times.append(time.perf_counter() - t0)
+print(json.dumps({"times": times}))
+"""
+
+
+def bench_peer(python: Path, steps: int, seed: int = 0) -> dict[str, Any]:
+    """BrainBlocks' SequenceLearner on the same random sequence, in `python` (its own environment)."""
+    if not python.exists():
+        return {"error": f"peer interpreter {python} not found (see this script's docstring to build it)"}
+    seqs = [x.tolist() for x in random_sequence(steps, 2048, 40, seed + 1)]
+    proc = subprocess.run([str(python), "-c", PEER], input=json.dumps({"seqs": seqs}), capture_output=True,
+                          text=True, timeout=1800, check=False)
+    if proc.returncode != 0:
+        return {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "peer failed"}
+    t = np.array(json.loads(proc.stdout)["times"][50:])  # the first steps include the peer's warm-up
+    return {"ms_per_step_median": float(np.median(t) * 1e3),
+            "ms_per_step_p90": float(np.percentile(t, 90) * 1e3)}
+
+
+def service_breakdown(warm: int = 300, steps: int = 60, seed: int = 0) -> dict[str, float]:
+    """Where the service preset's step goes: one saved state (after `warm` random steps) stepped `steps`
+    times with learning, with learning but predictedSegmentDecrement 0 (no punishment), and without
+    learning; each the median ms of the step kernel and of dendrite activation (docs/benchmarks.md §12)."""
+    import time
+
+    from models import presets
+    from models.memory import _tm_kernels as kern
+    from models.memory import _tm_synapses as syn
+    from models.memory.temporal_memory import TemporalMemory
+
+    tm = TemporalMemory(presets.tm_params(SERVICE["preset"]))
+    for x in random_sequence(warm, 2048, SERVICE["active"], seed + 1):
+        tm.compute(x)
+    state = {k: np.copy(v) for k, v in tm.state_dict().items()}
+    seq = random_sequence(steps, 2048, SERVICE["active"], seed + 2)
+    out: dict[str, float] = {}
+    saved = kern.step, kern.activity
+    try:
+        for variant in ("learn", "learn_without_punishment", "infer"):
+            times: dict[str, list[float]] = {"step": [], "activity": []}
+
+            def timed(name: str, fn: Any) -> Any:
+                def call(*a: Any) -> Any:
+                    t0 = time.perf_counter()
+                    r = fn(*a)
+                    times[name].append(time.perf_counter() - t0)  # noqa: B023 - used within the loop
+                    return r
+                return call
+
+            kern.step, kern.activity = timed("step", saved[0]), timed("activity", saved[1])
+            t = TemporalMemory.from_state(state)
+            if variant == "learn_without_punishment":
+                t._p[syn.P_PDEC] = 0
+            c0 = t.counters.copy()
+            for x in seq:
+                t.compute(x, learn=variant != "infer")
+            out[f"{variant}_step_ms"] = float(np.median(times["step"]) * 1e3)
+            out[f"{variant}_activity_ms"] = float(np.median(times["activity"]) * 1e3)
+            out[f"{variant}_overrun_per_step"] = float((t.counters - c0)[syn.C_OVERRUN] / steps)
+    finally:
+        kern.step, kern.activity = saved
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--steps", type=int, default=5000)
+    ap.add_argument("--peer-python", type=Path, default=Path("/tmp/bbenv/bin/python"))
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    steps = 300 if quick_mode(args.quick) else args.steps
+    ours = bench_tm(steps=steps, **LIKE_FOR_LIKE)
+    peer = bench_peer(args.peer_python, steps)
+    service = bench_tm(steps=max(steps // 5, 100), **SERVICE)
+    breakdown = service_breakdown(warm=50 if quick_mode(args.quick) else 300,
+                                  steps=10 if quick_mode(args.quick) else 60)
+    ratio = (ours["ms_per_step_median"] / peer["ms_per_step_median"]) if "error" not in peer else None
+    print(f"like for like, {steps} steps: cortexloc {ours['ms_per_step_median']:.3f} ms/step, BrainBlocks "
+          + (f"{peer['ms_per_step_median']:.3f} ms/step, ratio {ratio:.2f}" if ratio else peer["error"]))
+    b = breakdown
+    print(f"service preset (308 active): {service['ms_per_step_median']:.3f} ms/step "
+          f"(p90 {service['ms_per_step_p90']:.3f}); its step kernel on one saved state: learning "
+          f"{b['learn_step_ms']:.2f} ms, without punishment {b['learn_without_punishment_step_ms']:.2f} ms, "
+          f"not learning {b['infer_step_ms']:.2f} ms; activation {b['learn_activity_ms']:.2f} ms; "
+          f"{b['learn_overrun_per_step']:.0f} synapses overrun per step")
+    path = write_json("tm_peer.json", {"like_for_like": ours, "brainblocks": peer,
+                                       "ratio_cortexloc_over_peer": ratio, "service_preset": service,
+                                       "service_breakdown": breakdown},
+                      args.out)
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
