@@ -4,12 +4,13 @@ pure geometry of `models.geometry`.
 
 The query's features are taken in a worker thread while the backbone encodes the frame (`extract_frame`);
 the writer verifies only a revisit candidate (`verify_place`), against the place's keyframe first and then
-its route neighbours, stopping at the first that verifies.
+its route neighbours (along the map's links), stopping at the first that verifies.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,19 +54,18 @@ def camera_of(value: dict[str, Any] | None) -> geometry.Camera | None:
                            tuple(float(d) for d in value.get("distortion") or ()))
 
 
-def verify_place(store: MapStore, place_seq: int, place_stream: str, query: QueryFrame, *,
-                 stream: str, neighbours: int) -> VerificationResult:
-    """Writer: verify the query against the keyframe of `place_seq`, then those of up to `neighbours`
-    rows each side of it on the place's stream, nearest first; the first verified one is the answer,
-    else the candidate with the most inliers (docs/design/science.md §12.2).
+def verify_place(store: MapStore, place_seq: int, place_stream: str, route: Iterable[int],
+                 query: QueryFrame, *, stream: str) -> VerificationResult:
+    """Writer: verify the query against the keyframe of `place_seq`, then those of its `route`
+    neighbours (the rows within `CORTEXLOC_VERIFY_NEIGHBOURS` links of it, `SequenceGraph.within`),
+    nearest first; the first verified one is the answer, else the candidate with the most inliers
+    (docs/design/science.md §12.2).
 
     A keyframe without a camera is taken with the query's when both come from one stream (one robot's
     camera); otherwise the pose is left out (`no-camera`). `stream`: the query's."""
     t0 = time.perf_counter()
-    span = range(place_seq - neighbours, place_seq + neighbours + 1)
-    rows = store.get_many([s for s in span if s > 0])
-    order = sorted((s for s, r in rows.items() if r.stream == place_stream),
-                   key=lambda s: (abs(s - place_seq), s))
+    # Along a link chain seqs increase, so |seq - place_seq| orders each side by links.
+    order = sorted({place_seq, *(int(s) for s in route)}, key=lambda s: (abs(s - place_seq), s))
     stored = store.keyframes(order)
     q_cam = camera_of(query.camera)
     best: tuple[int, geometry.Verification] | None = None

@@ -508,8 +508,8 @@ class MapRuntime:
         if query is None:  # the frame could not be decoded for features (the encoder decoded it)
             v = VerificationResult(verified=False, reason="no-features")
         else:
-            v = keyframes.verify_place(self.store, place.seq, place.stream, query, stream=stream,
-                                       neighbours=self.verify_neighbours)
+            route = self.localisation.graph.within(place.seq, self.verify_neighbours)
+            v = keyframes.verify_place(self.store, place.seq, place.stream, route, query, stream=stream)
         revisit = place.revisit and (v.verified or not self.verify_revisit)
         return dataclasses.replace(place, verification=v, revisit=revisit)
 

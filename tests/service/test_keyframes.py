@@ -7,6 +7,7 @@ rotation from a camera given once per stream, refusal of unrelated frames and of
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 
@@ -226,3 +227,25 @@ def test_the_loop_closure_log_and_its_exports_carry_the_verified_relative_pose(t
         assert qy < 0 and abs(np.degrees(2 * np.arctan2(abs(qy), qw)) - 5.0) < 1.0
         info = list(map(float, edge[10:]))
         assert info[0] == 0.0 and info[-1] == 1e4  # translation unknown in length, rotation weighted
+
+
+def test_a_route_neighbour_verifies_when_the_place_itself_does_not(tmp_path):
+    """The place is a sequence answer: the right keyframe may be a link away (CORTEXLOC_VERIFY_NEIGHBOURS);
+    the nearest verified one answers, and a row off the route is never tried."""
+    from models.geometry import extract, pack
+    from service.maps.keyframes import QueryFrame, verify_place
+    from storage.mapstore import MapMeta
+    from tests.storage.conftest import make_row
+
+    scenes = {1: "coins", 2: "clock", 3: "astronaut", 4: "coffee"}  # 2: the place, featureless
+    meta = MapMeta(map_id="kf", params={}, projection_sha256="ab" * 32, encoder_id="e", cell_dtype="uint32")
+    with MapStore.create(tmp_path / "map.sqlite", meta) as store:
+        for seq, name in scenes.items():
+            kf = (pack(extract(sized(name))), CAMERA_META["camera"])
+            store.append(dataclasses.replace(make_row(seq, prev=seq - 1 if seq > 1 else None), keyframe=kf))
+        query = QueryFrame(extract(warp(sized("astronaut"), CAMERA, rotation(3, 0, 0))),
+                           CAMERA_META["camera"], 0.0)
+        on_route = verify_place(store, 2, "default", [1, 2, 3], query, stream="robot")
+        off_route = verify_place(store, 2, "default", [1, 2], query, stream="robot")
+    assert on_route.verified and on_route.keyframe_seq == 3 and abs(on_route.rotation_deg - 3.0) < 1.0
+    assert not off_route.verified and off_route.keyframe_seq in (1, 2)
