@@ -16,8 +16,9 @@ backbone, a temporary data directory. Two scenarios, each on a fresh server:
 
 Each request's status (and problem type) is recorded; a scenario stops at its first refusal.
 
-`index`, in process: the budget's per-row index estimate (`service.maps.budget.index_row_bytes`) beside
-what `InvertedIndex.nbytes()` measures with N random rows of the default map's 308 winner cells.
+`index`, in process: the budget's per-row index estimate
+(`service.maps.runtime.budget.index_row_bytes`) beside what `InvertedIndex.nbytes()` measures with N
+random rows of the default map's 308 winner cells.
 """
 
 from __future__ import annotations
@@ -36,8 +37,8 @@ from bench_http import Server
 
 from models.evaluation.bench import synthetic_jpegs
 from models.localisation import InvertedIndex
-from service.maps.budget import index_row_bytes
-from service.maps.params import resolve_params
+from service.maps.config import MapOptions, resolve
+from service.maps.runtime.budget import index_row_bytes
 
 BIG_TM = {"cellsPerColumn": 16, "maxSegmentsPerCell": 64, "maxSynapsesPerSegment": 64}
 
@@ -94,7 +95,9 @@ def restart(tmp: Path, env: dict[str, str], command: list[str] | None) -> dict[s
 
 def index_estimate(sizes: list[int]) -> list[dict[str, float]]:
     """Measured index bytes per row against the budget's estimate, for the default map's rows."""
-    params = resolve_params("cortexloc-default", backbone="efficientnet-lite0-s5")
+    config = resolve(MapOptions(preset="cortexloc-default", backbone="efficientnet-lite0-s5"),
+                     default_preset="cortexloc-default", default_backbone="efficientnet-lite0-s5")
+    params = config.stored()
     cells = int(params["tm"]["columnDimensions"]) * int(params["tm"]["cellsPerColumn"])
     rng = np.random.default_rng(0)
     out = []
@@ -104,7 +107,7 @@ def index_estimate(sizes: list[int]) -> list[dict[str, float]]:
             index.add(i + 1, np.sort(rng.choice(cells, 308, replace=False)), "robot1")
         index.rank(np.sort(rng.choice(cells, 308, replace=False)), 10)  # its scratch, sized to the rows
         out.append({"rows": n, "measured_bytes_per_row": round(index.nbytes() / n, 1),
-                    "estimate_bytes_per_row": index_row_bytes(params)})
+                    "estimate_bytes_per_row": index_row_bytes(config)})
         print(out[-1], flush=True)
     return out
 

@@ -26,8 +26,8 @@ from _common import quick_mode, write_json
 
 from common.files import sha256_file
 from models.memory.temporal_memory import TemporalMemory
-from models.pipeline.state import memory_state
-from service.maps.params import resolve_params
+from models.pipeline import memory_state
+from service.maps.config import MapOptions, resolve
 from storage import snapshots
 from storage.mapstore import MapMeta, MapStore, NewObservation, cell_dtype_for
 
@@ -57,7 +57,8 @@ def timed(fn: Any) -> float:
 
 
 def measure(root: Path, rows: int, repeats: int) -> dict[str, Any]:
-    params = resolve_params("cortexloc-default", backbone="efficientnet-lite0-s5")
+    params = resolve(MapOptions(preset="cortexloc-default", backbone="efficientnet-lite0-s5"),
+                     default_preset="cortexloc-default", default_backbone="efficientnet-lite0-s5").stored()
     cells = int(params["tm"]["columnDimensions"]) * int(params["tm"]["cellsPerColumn"])
     store = MapStore.create(root / "map.sqlite", MapMeta(map_id="bench", params=params,
                                                          projection_sha256="0" * 64, encoder_id="bench",

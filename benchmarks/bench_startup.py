@@ -44,8 +44,8 @@ import service.maps.registry as registry_mod
 from models.frontend import slsbh
 from models.localisation.index import InvertedIndex
 from models.memory.temporal_memory import TemporalMemory
-from service.maps import recovery
-from service.maps.encoders import Encoders
+from service.maps.encoding.encoders import Encoders
+from service.maps.recovery import memory as recovery
 from service.settings import Settings
 from storage import snapshots
 from storage.mapstore import MapStore

@@ -26,12 +26,10 @@ Example:
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import AbstractAsyncContextManager, AsyncExitStack, asynccontextmanager
-from datetime import UTC, datetime
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -40,21 +38,22 @@ import anyio
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
-from models.frontend.encoder import Encoder
-from service.errors import RequestContextMiddleware, install_error_handlers, problem_responses, request_id_var
+from service.encoder import EncoderFactory, build_encoder, encoder_weights_info, resolve_backbone
+from service.errors import install_error_handlers, problem_responses
 from service.headers import SecurityHeadersMiddleware
 from service.limits import UploadLimitMiddleware
+from service.logs import configure_logging
 from service.metrics import Metrics, MetricsMiddleware
+from service.openapi import openapi_with_problems
+from service.request_context import RequestContextMiddleware
 from service.routes import api_router
-from service.settings import ConfigError, Settings
+from service.settings import Settings
 from service.ui import UI_PATH, static_files
 
-__all__ = ["Component", "EncoderFactory", "build_encoder", "configure_logging", "create_app",
-           "encoder_weights_info"]
+__all__ = ["Component", "create_app", "map_registry"]
 
 log = logging.getLogger("cortexloc.service")
 
-EncoderFactory = Callable[[Settings], Encoder]
 #: A startup/shutdown step: `async with component(app): ...` around the app's life.
 Component = Callable[[FastAPI], AbstractAsyncContextManager[Any]]
 
@@ -64,118 +63,6 @@ def _version() -> str:
         return metadata.version("cortexloc")
     except metadata.PackageNotFoundError:  # pragma: no cover - running from a bare checkout
         return "0.0.0"
-
-
-# -------------------------------------------------------------------------------------- logging
-
-
-class _RequestIdFilter(logging.Filter):
-    def filter(self, record: logging.LogRecord) -> bool:
-        record.request_id = request_id_var.get() or "-"
-        return True
-
-
-class JsonFormatter(logging.Formatter):
-    """One JSON object per line: ts, level, logger, message, request_id, exc."""
-
-    def format(self, record: logging.LogRecord) -> str:
-        out: dict[str, Any] = {
-            "ts": datetime.fromtimestamp(record.created, UTC).isoformat(timespec="milliseconds"),
-            "level": record.levelname, "logger": record.name, "message": record.getMessage()}
-        rid = getattr(record, "request_id", "-")
-        if rid != "-":
-            out["request_id"] = rid
-        if record.exc_info:
-            out["exc"] = self.formatException(record.exc_info)
-        return json.dumps(out, default=str)
-
-
-def configure_logging(settings: Settings) -> None:
-    """One stderr handler on the `cortexloc` logger with the configured level and format (idempotent)."""
-    logger = logging.getLogger("cortexloc")
-    for h in list(logger.handlers):
-        if getattr(h, "_cortexloc", False):
-            logger.removeHandler(h)
-    handler = logging.StreamHandler()
-    handler._cortexloc = True  # type: ignore[attr-defined]
-    handler.addFilter(_RequestIdFilter())
-    if settings.log_format == "json":
-        handler.setFormatter(JsonFormatter())
-    else:
-        handler.setFormatter(
-            logging.Formatter("%(asctime)s %(levelname)s %(name)s [%(request_id)s] %(message)s"))
-    logger.addHandler(handler)
-    logger.setLevel(settings.log_level)
-
-
-# -------------------------------------------------------------------------------------- encoder
-
-
-def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
-    """The encoder of `settings.backbone` (resolved at startup; AlexNet conv3 with the configured weights
-    and seed, or EfficientNet-Lite0 with its package's), threads and input limits.
-
-    Args:
-        settings: the settings.
-        **overrides: `models.frontend.encoder.default_conf` keys merged last (tests: `slsbh={"k": 16}`).
-
-    Raises:
-        ConfigError: naming CORTEXLOC_WEIGHTS_PATH when the weights cannot be used.
-    """
-    from models.frontend import weights
-    from models.frontend.runtimes import DeviceUnavailableError
-
-    try:
-        path = settings.weights_path if settings.weights_path is not None else weights.find_alexnet()
-        if path is None and not settings.allow_random_weights:
-            log.error("no AlexNet weights: CORTEXLOC_WEIGHTS_PATH is unset, none are installed, and "
-                      "CORTEXLOC_ALLOW_RANDOM_WEIGHTS=false; the service will not be ready")
-        conf = {"backbone": resolve_backbone(settings).backbone,
-                "weights_path": str(path) if path is not None else None,
-                "random_seed": settings.random_weights_seed, "torch_threads": settings.torch_threads,
-                "max_bytes": settings.max_upload_bytes, "max_pixels": settings.max_pixels,
-                "runtime": settings.runtime, "device": settings.device, **overrides}
-        return Encoder(conf)
-    except DeviceUnavailableError as e:
-        raise ConfigError([("CORTEXLOC_DEVICE", f"={settings.device!r}: {e}")]) from e
-    except weights.WeightsError as e:
-        shown = f"={str(settings.weights_path)!r}" if settings.weights_path is not None else " (unset)"
-        raise ConfigError([("CORTEXLOC_WEIGHTS_PATH", f"{shown}: {e}")]) from e
-
-
-def resolve_backbone(settings: Settings) -> Settings:
-    """The settings with `backbone` resolved once: the configured one, else AlexNet when its real
-    weights are installed (CORTEXLOC_WEIGHTS_PATH or the cache), else `efficientnet-lite0-s5`
-    (`service.maps.encoders.default_backbone`)."""
-    from models.frontend import weights
-    from service.maps.encoders import default_backbone
-
-    if settings.backbone is not None:
-        return settings
-    installed = settings.weights_path is not None or weights.find_alexnet() is not None
-    return settings.model_copy(update={"backbone": default_backbone(None, installed)})
-
-
-def encoder_weights_info(encoder: Encoder) -> dict[str, Any]:
-    """What /readyz reports about the weights: `weights_id`, and the file's SHA-256 (or the seed)."""
-    from common.files import sha256_file
-    from models.frontend import weights
-
-    info: dict[str, Any] = {"weights_id": encoder.weights_id}
-    if encoder.weights_id.startswith("random"):
-        info["seed"] = int(encoder.conf["random_seed"])
-        return info
-    path = encoder.conf.get("weights_path") or weights.find_alexnet()
-    if path is None:  # pragma: no cover - a non-AlexNet backbone
-        return info
-    info["path"] = str(path)
-    meta = weights.read_sidecar(path)
-    if meta is not None:
-        info["sha256"] = meta["trimmed_sha256"]
-        info["original_sha256"] = meta["original_sha256"]
-    else:
-        info["sha256"] = sha256_file(path)
-    return info
 
 
 # ------------------------------------------------------------------------------------------ app
@@ -188,37 +75,11 @@ def _prepare_data_dir(data_dir: Path) -> None:
         log.error("cannot create CORTEXLOC_DATA_DIR %s: %s; the service will not be ready", data_dir, e)
 
 
-def _openapi_with_problems(app: FastAPI) -> Callable[[], dict[str, Any]]:
-    """FastAPI documents validation errors as 422 HTTPValidationError; they are 400 problem+json here."""
-    original = app.openapi
-    invalid = problem_responses(400)[400]
-
-    def openapi() -> dict[str, Any]:
-        schema = original()
-        for path_item in schema.get("paths", {}).values():
-            for op in path_item.values():
-                responses = op.get("responses") if isinstance(op, dict) else None
-                if not responses or "422" not in responses:
-                    continue
-                if "HTTPValidationError" in json.dumps(responses["422"]):
-                    del responses["422"]
-                    responses.setdefault("400", invalid)
-        components = schema.get("components", {}).get("schemas", {})
-        for name in ("HTTPValidationError", "ValidationError"):
-            if name in components:
-                rest = {k: v for k, v in components.items() if k != name}
-                if f"#/components/schemas/{name}" not in json.dumps({"paths": schema["paths"], "c": rest}):
-                    del components[name]
-        return schema
-
-    return openapi
-
-
 @asynccontextmanager
 async def map_registry(app: FastAPI) -> AsyncIterator[None]:
     """The maps of the data directory: opened and recovered by replay at start, closed at shutdown."""
-    from service.maps.encoder_pool import EncoderPool
-    from service.maps.encoders import Encoders
+    from service.maps.encoding.encoders import Encoders
+    from service.maps.encoding.pool import EncoderPool
     from service.maps.registry import MapRegistry
 
     s = app.state.settings
@@ -304,5 +165,5 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFact
     app.add_middleware(SecurityHeadersMiddleware)
     app.include_router(api_router)
     app.mount(UI_PATH, static_files(), name="ui")  # the map viewer: static files, no API of its own
-    app.openapi = _openapi_with_problems(app)  # type: ignore[method-assign]
+    app.openapi = openapi_with_problems(app)  # type: ignore[method-assign]
     return app

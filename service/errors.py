@@ -8,20 +8,15 @@ errors, mapped in one table, `DOMAIN_PROBLEMS` (e.g. a damaged snapshot is 409 `
     {"type": "urn:cortexloc:problem:<slug>", "title": <fixed per slug>, "status": ..., "detail": ...,
      "instance": <request path>, "request_id": ..., <members>}
 
-`RequestContextMiddleware` (pure ASGI, outermost) gives every request an id (a valid incoming
-`X-Request-ID`, else a UUID4), echoes it in the `X-Request-ID` response header, exposes it to logging
-(`request_id_var`), and turns an exception that escaped everything else into a 500 `internal-error`
-that leaks nothing (the traceback goes to the log with the request id). A client that goes away
-before its request was read is no server error: logged at info and counted as 499 (nobody receives it).
+A client that goes away before its request was read is no server error: logged at info and counted as
+499 (nobody receives it). The request id is `service.request_ids`'s; the last-resort 500 for what
+escapes everything is `service.request_context.RequestContextMiddleware`'s.
 """
 
 from __future__ import annotations
 
-import contextvars
 import logging
-import re
-import uuid
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Mapping
 from http import HTTPStatus
 from pathlib import Path
 from types import MappingProxyType
@@ -31,29 +26,23 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, ConfigDict
-from starlette.datastructures import MutableHeaders
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
-from starlette.routing import Match
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from models.frontend.images import ImageError
 from service.maps import errors as maps_errors
 from service.maps.errors import SnapshotInvalid, StoreClosed
+from service.media_types import IMAGE_MEDIA_TYPES, PROBLEM_MEDIA_TYPE
+from service.request_ids import REQUEST_ID_HEADER, request_id_of
+from service.routing import allowed_methods
 
-__all__ = ["CLIENT_CLOSED_REQUEST", "DOMAIN_PROBLEMS", "IMAGE_MEDIA_TYPES", "PROBLEM_MEDIA_TYPE",
-           "REQUEST_ID_HEADER", "TITLES", "DomainProblem", "Problem", "ProblemDetails",
-           "RequestContextMiddleware", "domain_problem", "image_error_problem", "install_error_handlers",
-           "iter_routes", "new_request_id", "problem_body", "problem_response", "problem_responses",
-           "request_id_of", "request_id_var"]
+__all__ = ["CLIENT_CLOSED_REQUEST", "DOMAIN_PROBLEMS", "PROBLEM_MEDIA_TYPE", "TITLES", "DomainProblem",
+           "Problem", "ProblemDetails", "domain_problem", "image_error_problem", "install_error_handlers",
+           "internal_error_response", "problem_body", "problem_response", "problem_responses"]
 
 log = logging.getLogger("cortexloc.errors")
 
-PROBLEM_MEDIA_TYPE = "application/problem+json"
 TYPE_PREFIX = "urn:cortexloc:problem:"
-REQUEST_ID_HEADER = "X-Request-ID"
-#: Media types the observation route accepts (the `allowed` member of 415 unsupported-media-type).
-IMAGE_MEDIA_TYPES = ("image/jpeg", "image/png", "image/webp", "image/bmp", "application/octet-stream")
 
 #: slug -> (usual status, fixed title): the docs/design/service.md §2 table plus `unauthorized`.
 PROBLEMS: dict[str, tuple[int, str]] = {
@@ -97,9 +86,6 @@ RESERVED_MEMBERS = frozenset({"type", "title", "status", "detail", "instance", "
 _STATUS_SLUGS = {400: "invalid-parameter", 401: "unauthorized", 404: "not-found", 405: "method-not-allowed",
                  413: "payload-too-large", 415: "unsupported-media-type", 503: "not-ready"}
 
-request_id_var: contextvars.ContextVar[str | None] = contextvars.ContextVar("cortexloc_request_id",
-                                                                            default=None)
-_REQUEST_ID_RE = re.compile(r"[A-Za-z0-9._:-]{1,128}")
 
 
 class Problem(Exception):  # noqa: N818 - the RFC 9457 name
@@ -155,17 +141,7 @@ def problem_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
             for s in statuses}
 
 
-# ------------------------------------------------------------------------------------ request ids
-
-
-def request_id_of(scope_or_request: Scope | Request) -> str:
-    """The request's id (set by `RequestContextMiddleware`); a fresh one if the middleware did not run."""
-    scope = scope_or_request.scope if isinstance(scope_or_request, Request) else scope_or_request
-    state = scope.setdefault("state", {})
-    rid = state.get("request_id")
-    if rid is None:
-        rid = state["request_id"] = new_request_id()
-    return rid
+# ------------------------------------------------------------------------------------ problem bodies
 
 
 def problem_body(status: int, slug: str, detail: str, *, instance: str, request_id: str,
@@ -177,10 +153,6 @@ def problem_body(status: int, slug: str, detail: str, *, instance: str, request_
             "instance": instance, "request_id": request_id}
     body.update({k: v for k, v in members.items() if k not in RESERVED_MEMBERS})
     return body
-
-
-def new_request_id() -> str:
-    return str(uuid.uuid4())
 
 
 def problem_response(request: Request, status: int, slug: str, detail: str, *,
@@ -329,30 +301,6 @@ async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:
                             errors=errors)
 
 
-def iter_routes(routes: Iterable[Any]) -> Iterator[Any]:
-    """Every route of a router, included routers flattened (FastAPI >= 0.16x keeps an included router as
-    one entry whose `effective_candidates()` are its routes with the prefixes applied)."""
-    for route in routes:
-        candidates = getattr(route, "effective_candidates", None)
-        if callable(candidates):
-            yield from iter_routes(candidates())
-        else:
-            yield route
-
-
-def allowed_methods(request: Request) -> list[str]:
-    """Methods of every route whose path matches the request (Starlette's 405 names only the first)."""
-    methods: set[str] = set()
-    for route in iter_routes(request.app.router.routes):
-        route_methods = getattr(route, "methods", None)
-        if not route_methods:
-            continue
-        match, _ = route.matches(request.scope)
-        if match in (Match.FULL, Match.PARTIAL):
-            methods |= set(route_methods)
-    return sorted(methods)
-
-
 #: Status recorded for a request whose client went away before it was read (nginx's "client closed
 #: request"): nobody receives it, the metrics count it apart from the server's errors.
 CLIENT_CLOSED_REQUEST = 499
@@ -409,54 +357,3 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(ClientDisconnect, _client_disconnect_handler)
     app.add_exception_handler(StarletteHTTPException, _http_exception_handler)
     app.add_exception_handler(Exception, _internal_error_handler)
-
-
-# ----------------------------------------------------------------------------- request context
-
-
-class RequestContextMiddleware:
-    """Pure ASGI, outermost: request id in, `X-Request-ID` out, and the last-resort 500.
-
-    The id is a valid incoming `X-Request-ID` (1-128 of `A-Za-z0-9._:-`), else a new UUID4; it is stored
-    in `scope["state"]["request_id"]` (so `request.state.request_id`) and in `request_id_var` for logs.
-    An exception that reaches this middleware before the response started is logged with its traceback
-    and answered with a 500 `internal-error` carrying no internals; it is not re-raised (the server
-    would log it a second time, without the request id).
-    """
-
-    def __init__(self, app: ASGIApp) -> None:
-        self.app = app
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        incoming = None
-        for key, value in scope.get("headers", ()):
-            if key == b"x-request-id":
-                incoming = value.decode("latin-1").strip()
-                break
-        rid = incoming if incoming and _REQUEST_ID_RE.fullmatch(incoming) else new_request_id()
-        scope.setdefault("state", {})["request_id"] = rid
-        token = request_id_var.set(rid)
-        started = False
-
-        async def send_with_id(message: Message) -> None:
-            nonlocal started
-            if message["type"] == "http.response.start":
-                started = True
-                headers = MutableHeaders(scope=message)
-                if REQUEST_ID_HEADER not in headers:
-                    headers[REQUEST_ID_HEADER] = rid
-            await send(message)
-
-        try:
-            await self.app(scope, receive, send_with_id)
-        except Exception as exc:
-            request = Request(scope)
-            log.error("unhandled exception in %s %s", scope.get("method"), scope.get("path"), exc_info=exc)
-            if started:
-                raise
-            await internal_error_response(request)(scope, receive, send)
-        finally:
-            request_id_var.reset(token)

@@ -36,8 +36,8 @@ from prometheus_client import (
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.errors import iter_routes
-from service.maps.snapshots import disk_use
+from service.maps.recovery.snapshots import disk_use
+from service.routing import iter_routes
 
 __all__ = ["Metrics", "MetricsMiddleware"]
 

@@ -7,9 +7,10 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
 from service.maps import results
+from service.maps.config import SHOWN_PARAMS, MapConfig, MapOptions
 from service.maps.ids import MAP_ID_RE
 
 __all__ = ["BudgetModel", "CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel",
@@ -35,39 +36,13 @@ class _Out(BaseModel):
 # ------------------------------------------------------------------------------------------- maps
 
 
-class CreateMap(BaseModel):
-    """Every field optional; overrides are merged over the preset and frozen into the map.
+class CreateMap(MapOptions):
+    """A new map: its id (default: `map-` and 12 hex digits) and its options
+    (`service.maps.config.MapOptions`, the one home of a map's options: every value is judged where the
+    configuration is resolved, a bad one is 422 invalid-configuration naming it)."""
 
-    `tm` and `slsbh` are checked parameter by parameter (names, types, ranges: `models.presets.TmParams`
-    and `SlsbhParams`, with the rules between them) where the map's parameters are resolved
-    (`service.maps.params.resolve_params`): a bad value is 422 invalid-configuration naming it.
-    """
-
-    model_config = ConfigDict(extra="forbid")
     map_id: str | None = Field(default=None, pattern=MAP_ID_PATTERN)
-    preset: str | None = None
-    seed: int | None = Field(default=None, description="the TM's seed (and the projection's); >= 0")
-    tm: dict[str, Any] | None = Field(default=None, description="Temporal Memory overrides, NuPIC names")
-    slsbh: dict[str, Any] | None = Field(default=None, description="sLSBH overrides: k, s, seed, adapt_tau")
-    backbone: str | None = Field(default=None, description="alexnet | efficientnet-lite0-s5 | "
-                                 "efficientnet-lite0 (default: the service's, resolved at startup); "
-                                 "frozen with the map")
-    memory: str = Field(default="tm", description="tm | none (the sLSBH code is the winner-cell SDR: the "
-                        "Temporal Memory left out)")
-    revisit_threshold: float | None = Field(default=None, description="confidence at which `place.revisit`"
-                                            " is true, in [0, 1]; changeable with PATCH")
-    localiser: dict[str, Any] | None = Field(default=None, description="sequence localiser options "
-                                             "(docs/design/science.md §11.3)")
 
-    thumbnails: bool = Field(default=False, description="keep a small JPEG of each learned frame")
-    resize: str | None = Field(default=None, description="crop | squash: how a frame becomes the backbone's "
-                               "square input (crop: the middle, as the paper; squash: the whole frame; "
-                               "default: service.maps.params.DEFAULT_RESIZE); frozen with the map")
-    keyframes: dict[str, Any] | None = Field(default=None, description="keep each learned frame's local "
-                                             "features for verifying revisits: {\"features\": orb | sift | "
-                                             "akaze, \"max\": N} (docs/design/science.md §12); frozen")
-    verify_revisit: bool = Field(default=False, description="`place.revisit` needs a verified keyframe "
-                                 "(needs keyframes); changeable with PATCH")
 
 class PatchMap(BaseModel):
     """The map settings that may change after creation (docs/design/service.md §1.2)."""
@@ -85,18 +60,10 @@ class PatchMap(BaseModel):
         return self
 
 
-class MapParams(_Out):
-    tm: dict[str, Any]
-    slsbh: dict[str, Any]
-    seed: int
-    memory: str
-    projection: str = Field(description="dense | sparse (the very sparse projection, where dense would "
-                            "break the map's size budget)")
-    localiser: dict[str, Any]
-    resize: str = Field(description="crop | squash: how the map's frames become the backbone's square "
-                        "input (crop: the middle of a wide frame; squash: all of it, distorted)")
-    keyframes: dict[str, Any] | None = Field(default=None, description="{features, max}: the local "
-                                             "features kept per learned frame; null: none kept")
+#: The map resource's `params`: the configuration's SHOWN_PARAMS, typed and described as there.
+MapParams = create_model("MapParams", __base__=_Out, **{
+    name: (MapConfig.model_fields[name].annotation,
+           Field(description=MapConfig.model_fields[name].description)) for name in SHOWN_PARAMS})
 
 
 class MapModel(_Out):
@@ -107,7 +74,7 @@ class MapModel(_Out):
     state: Literal["ready", "recovering", "failed"]
     state_reason: str | None
     preset: str | None
-    params: MapParams
+    params: MapParams  # type: ignore[valid-type]
     encoder: str
     projection_sha256: str
     observations: int

@@ -22,7 +22,8 @@ import json
 import h11
 from uvicorn.protocols.http.h11_impl import DEFAULT_MAX_INCOMPLETE_EVENT_SIZE, H11Protocol
 
-from service.errors import PROBLEM_MEDIA_TYPE, REQUEST_ID_HEADER, new_request_id, problem_body
+from service.errors import PROBLEM_MEDIA_TYPE, problem_body
+from service.request_ids import REQUEST_ID_HEADER, new_request_id
 from service.settings import Settings
 
 __all__ = ["ProblemH11Protocol"]

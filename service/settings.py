@@ -31,7 +31,7 @@ from pydantic import Field, ValidationError, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, EnvSettingsSource, PydanticBaseSettingsSource, SettingsConfigDict
 from pydantic_settings.sources.utils import parse_env_vars
 
-from models.frontend import limits
+from models.frontend import backbones, limits
 
 __all__ = ["ENV_PREFIX", "OTHER_KNOWN_VARIABLES", "ConfigError", "Settings", "env_name"]
 
@@ -95,9 +95,9 @@ class Settings(BaseSettings):
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"] = "INFO"
     log_format: Literal["json", "text"] = "json"
     weights_path: Path | None = Field(None, description="AlexNet weights file (full or trimmed)")
-    backbone: str | None = Field(None, description="backbone of new maps (alexnet | efficientnet-lite0-s5 | "
-                                 "efficientnet-lite0); unset: alexnet when its real weights are installed, "
-                                 "else efficientnet-lite0-s5 (resolved at startup)")
+    backbone: str | None = Field(None, description="backbone of new maps (a name registered in "
+                                 f"models.frontend.backbones); unset: {backbones.PAPER} when its real "
+                                 f"weights are installed, else {backbones.PRETRAINED} (resolved at startup)")
     allow_random_weights: bool = Field(True, description="serve (with a warning) on random weights")
     random_weights_seed: int = Field(0, ge=0, description="seed of the random fallback weights")
     device: Literal["cpu", "cuda", "auto"] = Field(
@@ -121,7 +121,9 @@ class Settings(BaseSettings):
     max_pixels: int = Field(limits.DEFAULT_MAX_PIXELS, ge=1,
                             description="decoded-image limit (width x height)")
     default_preset: str = Field("cortexloc-default", min_length=1)
-    max_map_bytes: int = Field(2**31, ge=1, description="cap on a map's preallocated TM arrays")
+    max_map_bytes: int = Field(100_000_000, ge=1, description="a map's preallocated bytes at most: its "
+                               "memory, every stream's localiser state and its projection (very sparse "
+                               "where the dense one would break the budget)")
     max_maps: int = Field(64, ge=1)
     max_observations: int = Field(1_000_000, ge=1)
     max_streams: int = Field(64, ge=1)
@@ -150,8 +152,8 @@ class Settings(BaseSettings):
     snapshot_manual_bytes: int = Field(2**31, ge=0, description="bytes of manual snapshots kept per map, "
                                        "oldest deleted first (0: no byte limit)")
     max_import_bytes: int = Field(2**33, ge=1, description="most bytes a snapshot tar may unpack to "
-                                  "(`cortexloc import`); about 2 GiB of TM arrays (max_map_bytes), the "
-                                  "266 MB projection and a million ~3 KB rows fit in 8 GiB")
+                                  "(`cortexloc import`); a map within max_map_bytes and a million ~3 KB rows "
+                                  "fit in 8 GiB")
     api_key: str | None = Field(None, min_length=1, repr=False,
                                 description="when set, every write needs it (X-API-Key or Bearer)")
     api_key_reads: bool = Field(False, description="every /v1 read and /metrics need the key too (/healthz "

@@ -2,7 +2,7 @@
 
 Two entry points, stateless across calls and batch-first, so the service can batch concurrent requests:
 `Encoder.embed(images)` gives backbone features (the service projects them with each map's own matrix,
-service.maps.encoder_pool) and `Encoder.encode(images)` goes on to the sLSBH codes with the encoder's own
+service.maps.encoding.pool) and `Encoder.encode(images)` goes on to the sLSBH codes with the encoder's own
 projection (evaluation, benchmarks). Configuration is a `default_conf` merged with the caller's (presets as
 data); the encoder's identity string says which backbone, weights and resize mode it runs on, because
 descriptors from different encoders are not comparable.
@@ -37,7 +37,7 @@ log = logging.getLogger("cortexloc.encoder")
 _SLSBH = presets.SlsbhParams()
 
 default_conf: dict[str, Any] = {
-    "backbone": "alexnet",  # a name registered in models.frontend.backbones: alexnet | efficientnet-lite0
+    "backbone": backbones.PAPER,  # a name registered in models.frontend.backbones
     "resize": "crop",  # crop (Resize 256 + CenterCrop 224, as the paper) | squash (straight to 224)
     "weights_path": None,  # AlexNet conv1..conv3 file; None: look in the weights cache, else random
     "random_seed": 0,  # seed of the NumPy-generated fallback weights
@@ -93,7 +93,7 @@ class EncodeResult:
         features: (N, D) float32 L2-normalised backbone features, when asked for.
         timings_ms: wall time per stage for the whole batch (decode, preprocess, backbone, hash).
         projected: (N, k) float32 projections x·P, when a caller projected for a map
-            (service.maps.encoder_pool).
+            (service.maps.encoding.pool).
         thumbnails: per image, a small JPEG of the decoded frame where `embed` was asked for one
             (`images.thumbnail`), else None; None when none was asked for.
     """

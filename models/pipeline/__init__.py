@@ -2,7 +2,7 @@
 that the service's writer, the recovery's replay and the evaluation share."""
 
 from models.pipeline.core import MapModel, Step, observe, replay
-from models.pipeline.state import Stream, eviction_wait, load_memory_state, memory_state, touch, winner_cells
+from models.pipeline.state import Stream, eviction_wait, load_memory_state, memory_state, touch
 
 __all__ = ["MapModel", "Step", "Stream", "eviction_wait", "load_memory_state", "memory_state", "observe",
-           "replay", "touch", "winner_cells"]
+           "replay", "touch"]

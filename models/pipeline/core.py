@@ -3,8 +3,9 @@ hash, the memory, one index pass and the localiser, and for a learned frame into
 (docs/design/service.md §1.2, §6; docs/design/science.md §7, §11.2).
 
 No SQLite, no threads: the service's map writer (`service.maps.runtime.MapRuntime.apply`), the
-recovery's replay (`service.maps.recovery.rebuild`) and the evaluation (`service.cli.service_eval`)
-call these functions on the same `MapModel`, so what is measured and replayed is what is served.
+recovery's replay (`service.maps.recovery.memory.rebuild`) and the evaluation
+(`service.evaluation.service_path`) call these functions on the same `MapModel`, so what is measured and
+replayed is what is served.
 Ordering, persistence (the row, its seq) and snapshots are the caller's.
 
 `observe` is one frame online; `replay` is one stored row again (its code is stored, so no hash, no
@@ -24,8 +25,9 @@ import numpy as np
 from models.frontend import slsbh
 from models.frontend.adaptation import RunningMean
 from models.localisation import InvertedIndex, Localisation, Match, Place
+from models.memory import registry as memories
 from models.memory.temporal_memory import TemporalMemory
-from models.pipeline.state import Stream, winner_cells
+from models.pipeline.state import Stream
 
 __all__ = ["MapModel", "Step", "observe", "replay"]
 
@@ -39,7 +41,7 @@ class MapModel:
         tm: the Temporal Memory (unused with `memory: none`).
         index: winner cells -> stored seqs, ranked by Dice (docs/design/service.md §5).
         links: the learned links and the localiser (docs/design/science.md §11).
-        memory: `tm` | `none` (the map option; `none` is the ablation: the code is the winner cells).
+        memory: a registered memory (`models.memory.registry`: `tm`, or `none`, the ablation).
         s: the sLSBH sparsity (the fraction of the k projections kept on each side, §7).
         adapt_tau: the streams' adaptation time constant (0: none).
     """
@@ -99,7 +101,7 @@ def _remember(model: MapModel, st: Stream, code: np.ndarray, *, learn: bool, sta
     if starts:
         st.context.reset()
         st.step, st.last_learned_seq = 0, None
-    return winner_cells(model.tm, code, learn=learn, context=st.context, memory=model.memory)
+    return memories.get(model.memory).winners(model.tm, code, learn, st.context)
 
 
 def _advance(st: Stream, learn: bool, seq: int | None) -> None:
@@ -141,13 +143,13 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         projected = st.adapt.subtract(projected)
     code = slsbh.hash_projected(projected[None, :], model.s)[0].astype(np.int64)
     t1 = time.perf_counter()
-    # A switch to mapping starts a new sequence (replay relies on it); with a TM, so does an empty
-    # context (without one, only `step` counts).
+    # A switch to mapping starts a new sequence (replay relies on it); with a sequential memory, so
+    # does an empty context (without one, only `step` counts).
     if learn and st.learning is False:
         starts = True
     else:
         starts = False
-        if st.context.active_cells.size == 0 and model.memory == "tm":
+        if st.context.active_cells.size == 0 and memories.get(model.memory).sequential:
             st.step, st.last_learned_seq = 0, None
     winners = _remember(model, st, code, learn=learn, starts=starts)
     stats = st.context.stats.as_dict()

@@ -13,16 +13,7 @@ from models.frontend.adaptation import RunningMean
 from models.localisation import LocaliserState
 from models.memory.temporal_memory import StreamContext, TemporalMemory
 
-__all__ = ["Stream", "eviction_wait", "load_memory_state", "memory_state", "touch", "winner_cells"]
-
-
-def winner_cells(tm: TemporalMemory, code: np.ndarray, *, learn: bool, context: StreamContext,
-                 memory: str) -> np.ndarray:
-    """The frame's winner-cell SDR: the TM's step, or with the map option `memory: none` the sLSBH
-    code itself (the ablation of docs/design/service.md §1.2; the one place the switch is read)."""
-    if memory == "none":
-        return np.asarray(code, dtype=np.int64)
-    return tm.compute(code, learn=learn, context=context)
+__all__ = ["Stream", "eviction_wait", "load_memory_state", "memory_state", "touch"]
 
 
 @dataclass

@@ -8,6 +8,7 @@ from typing import Annotated
 
 import typer
 
+from models.frontend import backbones
 from service.cli.common import check_backbone, check_presets, provenance, write_json
 
 app = typer.Typer(no_args_is_help=True, help="Benchmarks (medians; run on demand).")
@@ -45,9 +46,8 @@ def bench_tm(
 
 @app.command("encoder")
 def bench_encoder(
-    backbone: Annotated[str, typer.Option(help="a registered backbone: alexnet | efficientnet-lite0-s5 | "
-                                                  "efficientnet-lite0")]
-    = "alexnet",
+    backbone: Annotated[str, typer.Option(help="a backbone registered in models.frontend.backbones")]
+    = backbones.PAPER,
     repeats: Annotated[int, typer.Option(min=1)] = 15,
     threads: Annotated[int, typer.Option(min=1, help="the backbone's threads")] = 1,
     projection: Annotated[str, typer.Option(help="dense | sparse")] = "dense",

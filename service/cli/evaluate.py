@@ -163,12 +163,11 @@ def eval_images(
                                             "ground_truth_new.npy (models/evaluation/ground_truth.py); "
                                             "indices count in each folder's sorted names, whole folders.",
                                             exists=True, dir_okay=False)] = None,
-    backbone: Annotated[str | None, typer.Option(help="a registered backbone: alexnet | "
-                                                      "efficientnet-lite0-s5 | efficientnet-lite0 "
+    backbone: Annotated[str | None, typer.Option(help="a backbone registered in models.frontend.backbones "
                                                       "(default: the service's, resolved as serve "
                                                       "does)")] = None,
     resize: Annotated[str | None, typer.Option(help="crop | squash (default: a new map's, "
-                                                    "service.maps.params.DEFAULT_RESIZE)")] = None,
+                                                    "service.maps.config.DEFAULT_RESIZE)")] = None,
     methods: Annotated[str, typer.Option(help="Comma-separated: cosine,slsbh,mcn,htm (one frame); "
                                           "openseqslam (the reference on grey pixels); cosine-seq,"
                                           "slsbh-seq,mcn-seq,htm-seq (the same sequence matcher on each "
@@ -221,23 +220,23 @@ def eval_images(
     from models.evaluation import seqslam as seq
     from models.frontend import encoder as encoder_mod
     from models.frontend import images
-    from service.app import resolve_backbone
-    from service.cli import service_eval
-    from service.maps.params import DEFAULT_RESIZE
+    from service.encoder import resolve_backbone
+    from service.evaluation import service_path
+    from service.maps.config import DEFAULT_RESIZE
     from service.settings import Settings
 
     # The service's defaults, read from their one home each (docs/design/service.md §8,
     # models.frontend.encoder).
     preset = preset or Settings.model_fields["default_preset"].default
     backbone = backbone or resolve_backbone(Settings.from_env()).backbone
-    resize = resize or DEFAULT_RESIZE  # a new map's (service.maps.params)
+    resize = resize or DEFAULT_RESIZE  # a new map's (service.maps.config)
     method_list = [m.strip() for m in methods.split(",") if m.strip()]
-    service_list = [m for m in method_list if m in service_eval.METHODS]
-    slam_list = [m for m in method_list if m in service_eval.SLAM_METHODS]
-    method_list = [m for m in method_list if m not in service_eval.METHODS and m not in slam_list]
+    service_list = [m for m in method_list if m in service_path.METHODS]
+    slam_list = [m for m in method_list if m in service_path.SLAM_METHODS]
+    method_list = [m for m in method_list if m not in service_path.METHODS and m not in slam_list]
     bad = set(method_list) - set(sequences.METHODS)
     if bad or not (method_list or service_list or slam_list):
-        known = ", ".join((*sequences.METHODS, *service_eval.METHODS, *service_eval.SLAM_METHODS))
+        known = ", ".join((*sequences.METHODS, *service_path.METHODS, *service_path.SLAM_METHODS))
         raise typer.BadParameter(f"must be among {known}", param_hint="--methods")
     method_list = sequences.with_ablations(method_list)
     wanted_precision = _operating_point(operating_point)
@@ -302,12 +301,11 @@ def eval_images(
         if service_list:
             assert enc is not None
             with progress("service") as tick:
-                summary, first = service_eval.experiment(
+                summary, first = service_path.experiment(
                     feats["db"], feats["query"], methods=service_list, columns=columns, tolerance=tolerance,
                     gt=gt_matrix, seeds=seeds, seed=seed, reverse_query=reverse_query, progress=tick,
                     map_conf={"encoder_id": enc.identity, "backbone": backbone, "preset": preset,
-                              "create": {"slsbh_conf": {"s": sparsity, "adapt_tau": adapt},
-                                         "resize": resize}})
+                              "create": {"slsbh": {"s": sparsity, "adapt_tau": adapt}, "resize": resize}})
             result["methods"].update(summary)
             result["first"].update(first)
         if slam_list:
@@ -315,7 +313,7 @@ def eval_images(
             result["loop_closure"] = _loop_closure(
                 feats, slam_list, tolerance=tolerance, seed=seed,
                 map_conf={"encoder_id": enc.identity, "backbone": backbone, "preset": preset,
-                          "create": {"slsbh_conf": {"s": sparsity, "adapt_tau": adapt}}})
+                          "create": {"slsbh": {"s": sparsity, "adapt_tau": adapt}}})
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
     first = result.pop("first")
@@ -344,7 +342,7 @@ def eval_images(
     result["provenance"] = provenance()
     if wanted_precision is not None:
         result["operating_points"] = {
-            m: service_eval.operating_point(r["confidence"], r["correct"], wanted_precision)
+            m: service_path.operating_point(r["confidence"], r["correct"], wanted_precision)
             for m, r in first.items()}
     write_json(json_out, result)
     if result["methods"]:
@@ -370,10 +368,10 @@ def _fmt(v: float | None) -> str:
 def _loop_closure(feats: dict[str, np.ndarray], methods: list[str], *, tolerance: int, seed: int,
                   map_conf: dict[str, Any]) -> dict[str, Any]:
     """`service-slam*`: the database then the query traverse posted as ONE learning stream
-    (`service_eval.slam_replay`), scored per lap (`models.evaluation.slam.score`; file i of either
+    (`service_path.slam_replay`), scored per lap (`models.evaluation.slam.score`; file i of either
     folder is place i) at the map's threshold."""
     from models.evaluation import slam
-    from service.cli import service_eval
+    from service.evaluation import service_path
 
     n_db, n_q = len(feats["db"]), len(feats["query"])
     labels = np.r_[np.arange(n_db), np.arange(n_q)]
@@ -381,7 +379,7 @@ def _loop_closure(feats: dict[str, np.ndarray], methods: list[str], *, tolerance
     out = {}
     for m in methods:
         run = np.concatenate([feats["db"], feats["query"]])
-        found, threshold = service_eval.slam_replay(run, seed=seed, memory=service_eval.SLAM_METHODS[m],
+        found, threshold = service_path.slam_replay(run, seed=seed, memory=service_path.SLAM_METHODS[m],
                                                     **map_conf)
         out[m] = {"threshold": threshold,
                   **slam.score(found.best, found.confidence, labels, threshold, tolerance, laps)}
@@ -418,3 +416,97 @@ def format_images_table(result: dict[str, Any]) -> str:
         *_table(result["methods"], columns),
         *_legend("AUC query", "R@100P = recall at 100 % precision, per query", "min, max"),
         "s/run = seconds per seed"])
+
+
+@app.command("revisit")
+def eval_revisit(
+    folder: Annotated[Path, typer.Option(help="the traverse's image folder", exists=True, file_okay=False)],
+    offset: Annotated[int, typer.Option(min=0)] = 0,
+    limit: Annotated[int, typer.Option(min=1)] = 894,
+    noise: Annotated[float, typer.Option(help="pixel noise, grey levels (std)")] = 8.0,
+    backbone: Annotated[str, typer.Option(help="a backbone registered in models.frontend.backbones")]
+    = "efficientnet-lite0",
+    resize: Annotated[str | None, typer.Option(help="crop | squash (default: a new map's)")] = None,
+    seed: int = 0,
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the summary here too")] = None,
+) -> None:
+    """Corridor-like revisits through the service's path (service/evaluation/revisit.py)."""
+    from service.evaluation.revisit import revisit
+    from service.maps.config import DEFAULT_RESIZE
+
+    revisit(folder, offset=offset, limit=limit, noise=noise, backbone=backbone,
+            resize=resize or DEFAULT_RESIZE, seed=seed, json_path=json_out)
+
+
+@app.command("unknown")
+def eval_unknown(
+    db: Annotated[Path, typer.Option(help="the database traverse's folder", exists=True, file_okay=False)],
+    query: Annotated[Path, typer.Option(help="the query traverse's folder", exists=True, file_okay=False)],
+    split: Annotated[int, typer.Option(help="first row of the second half")],
+    thresholds: Annotated[str, typer.Option(help="confidence thresholds, comma-separated")],
+    backbone: Annotated[str | None, typer.Option(help="default: the service's")] = None,
+    seed: int = 1,
+) -> None:
+    """False revisits on places never stored, through the service's path (service/evaluation/unknown.py)."""
+    from service.evaluation.unknown import unknown
+
+    unknown(db, query, split=split, thresholds=[float(t) for t in thresholds.split(",")], backbone=backbone,
+            seed=seed)
+
+
+@app.command("runtime-parity")
+def eval_runtime_parity(
+    windows: Annotated[str | None, typer.Option(help="comma-separated Nordland windows (default: all)")]
+    = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the result here too")] = None,
+) -> None:
+    """The backbone's runtimes against each other on the Nordland route
+    (service/evaluation/runtime_parity.py)."""
+    from models.evaluation.nordland_tables import WINDOWS
+    from service.evaluation.runtime_parity import report
+
+    report(windows.split(",") if windows else list(WINDOWS), json_out)
+
+
+@app.command("resize")
+def eval_resize(
+    db: Annotated[Path, typer.Option(help="the database traverse's folder", exists=True, file_okay=False)],
+    query: Annotated[Path, typer.Option(help="the query traverse's folder", exists=True, file_okay=False)],
+    offset: Annotated[int, typer.Option(min=0)] = 0,
+    limit: Annotated[int, typer.Option(min=1)] = 300,
+    shapes: Annotated[str, typer.Option(help="frame shapes, comma-separated")] = "2:1,4:3",
+    backbone: Annotated[str | None, typer.Option(help="default: the service's")] = None,
+    seeds: Annotated[str, typer.Option(help="map seeds, comma-separated")] = "1",
+) -> None:
+    """Crop or squash through the service's path on frames of several shapes
+    (service/evaluation/resize.py)."""
+    from service.evaluation.resize import resize_runs
+
+    resize_runs(db, query, offset=offset, limit=limit, shapes=shapes.split(","), backbone=backbone,
+                seeds=[int(x) for x in seeds.split(",")])
+
+
+@app.command("slam")
+def eval_slam(
+    data: Annotated[Path | None, typer.Option(help="the Nordland folder (summer/, winter/)")] = None,
+    half: Annotated[str, typer.Option(help="tune | test")] = "tune",
+    routes: Annotated[str | None, typer.Option(help="comma-separated routes (default: all)")] = None,
+    methods: str = "service-slam,service-slam-without-tm,service,openseqslam",
+    thresholds: Annotated[str, typer.Option(help="revisit thresholds, comma-separated")] = "",
+    tolerance: int = 1,
+    rate: Annotated[float, typer.Option(help="false-revisit rate of the calibration")] = 0.001,
+    backbone: Annotated[str | None, typer.Option(help="default: the service's")] = None,
+    seed: int = 1,
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the result here too")] = None,
+    grid: Annotated[Path | None, typer.Option(help="the grid world's folder instead of --data")] = None,
+) -> None:
+    """Loop closure while mapping on routes made from the Nordland halves, or the grid world's loops
+    (service/evaluation/slam.py)."""
+    from service.evaluation import slam
+
+    try:
+        slam.slam_runs(data=data, half=half, routes=routes or ",".join(slam.ROUTES), methods=methods,
+                       thresholds=[float(t) for t in thresholds.split(",") if t], tolerance=tolerance,
+                       rate=rate, backbone=backbone, seed=seed, json_path=json_out, grid_dir=grid)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from e

@@ -23,7 +23,7 @@ def import_map(
     declares more than CORTEXLOC_MAX_IMPORT_BYTES or than the free space."""
     from types import SimpleNamespace
 
-    from service.maps.encoders import Encoders
+    from service.maps.encoding.encoders import Encoders
     from service.maps.errors import MemoryBudgetExceeded, SnapshotInvalid
     from service.maps.registry import MapRegistry
 

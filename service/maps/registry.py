@@ -17,10 +17,9 @@ from common.process import rss_bytes
 from models.frontend import slsbh
 from models.localisation.index import warm_up as index_warm_up
 from models.memory.temporal_memory import TemporalMemory
-from service.maps import budget as map_budget
-from service.maps import projection as map_projection
-from service.maps import snapshots as map_snapshots
-from service.maps.encoders import Encoders
+from service.maps.config import MapConfig, MapOptions, resolve
+from service.maps.encoding import projection as map_projection
+from service.maps.encoding.encoders import Encoders
 from service.maps.errors import (
     InvalidConfiguration,
     InvalidMapId,
@@ -31,9 +30,10 @@ from service.maps.errors import (
     MemoryBudgetExceeded,
 )
 from service.maps.failed import FailedMap
-from service.maps.params import map_option, resolve_params
+from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import BudgetInfo, MapReservation
 from service.maps.runtime import MapRuntime
+from service.maps.runtime import budget as map_budget
 from storage import snapshots
 from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord
 from storage.layout import Layout
@@ -61,7 +61,7 @@ class MapRegistry:
 
     Args:
         data_dir: CORTEXLOC_DATA_DIR.
-        encoders: the service's encoders by backbone (`service.maps.encoders.Encoders`; each has
+        encoders: the service's encoders by backbone (`service.maps.encoding.encoders.Encoders`; each has
             `identity` and `feature_dim`); a map uses its frozen backbone's.
         settings: the service's settings (map caps, snapshot cadence, default preset).
     """
@@ -83,14 +83,14 @@ class MapRegistry:
         #: Maps left closed at start because they did not fit in the budget: map_id -> bytes asked.
         self.unfitted: dict[str, int] = {}
 
-    def _need(self, params: dict[str, Any], feature_dim: int, rows: int) -> map_budget.MapNeed:
+    def _need(self, config: MapConfig, feature_dim: int, rows: int) -> map_budget.MapNeed:
         """The map's share of the budget; the encoders built by now are told to the budget first."""
         self.budget.set_encoders(sum(map_budget.encoder_bytes(e) for e in self.encoders.built().values()))
-        return self._need_of(params, rows, map_budget.projection_bytes(
-            str(map_option(params, "projection")), feature_dim, int(params["slsbh"]["k"])))
+        return self._need_of(config, rows, map_budget.projection_bytes(
+            config.projection, feature_dim, int(config.slsbh["k"])))
 
-    def _need_of(self, params: dict[str, Any], rows: int, projection: int) -> map_budget.MapNeed:
-        return map_budget.map_need(params, projection, rows, max_streams=self.settings.max_streams,
+    def _need_of(self, config: MapConfig, rows: int, projection: int) -> map_budget.MapNeed:
+        return map_budget.map_need(config, projection, rows, max_streams=self.settings.max_streams,
                                    key_cache=self.settings.idempotency_cache)
 
     def _runtime(self, record: MapRecord, feature_dim: int) -> MapRuntime:
@@ -101,7 +101,6 @@ class MapRegistry:
                           stream_keep_seconds=s.stream_keep_seconds, manual_keep=s.snapshot_manual_keep,
                           manual_bytes=s.snapshot_manual_bytes, max_closures=s.loop_closures,
                           verify_neighbours=s.verify_neighbours)
-
 
     def start(self) -> None:
         """Open every map and recover it by replay; create `default` on a fresh install.
@@ -124,7 +123,7 @@ class MapRegistry:
                 self.catalog.set_state(record.map_id, "failed", "open-failed")
                 self.maps[record.map_id] = FailedMap(record, self.catalog, "open-failed")
         if not self.maps:
-            self.create("default", preset=self.settings.default_preset)
+            self.create("default")
 
     def _open(self, record: MapRecord) -> MapRuntime:
         """A stored map's runtime, recovered, or failed for a reason recovery knows.
@@ -132,18 +131,18 @@ class MapRegistry:
         Raises:
             MemoryBudgetExceeded: it does not fit beside the maps opened before it (nothing allocated).
         """
+        config = MapConfig.parse(record.params)  # InvalidConfiguration: `start` serves it as failed
         try:
-            encoder, unavailable = self.encoders.get(map_option(record.params, "backbone")), None
+            encoder, unavailable = self.encoders.get(config.backbone), None
         except ValueError as e:
             encoder, unavailable = None, e
         # Reserved before the runtime allocates its memory; a map that cannot be opened holds nothing.
-        need = self._need(record.params, encoder.feature_dim if encoder else 0,
-                          self._stored_rows(record.map_id))
+        need = self._need(config, encoder.feature_dim if encoder else 0, self._stored_rows(record.map_id))
         self.budget.reserve(record.map_id, need)
         try:
             # The runtime's empty memory stays until the recovered one replaces it: two for a while.
             with self.budget.transient(record.map_id, need.tm):
-                return self._open_reserved(record, encoder, unavailable)
+                return self._open_reserved(record, config, encoder, unavailable)
         except BaseException:
             self.budget.release(record.map_id)
             raise
@@ -156,18 +155,18 @@ class MapRegistry:
         except (OSError, StorageError, sqlite3.DatabaseError):
             return 0
 
-    def _open_reserved(self, record: MapRecord, encoder: Any, unavailable: ValueError | None) -> MapRuntime:
+    def _open_reserved(self, record: MapRecord, config: MapConfig, encoder: Any,
+                       unavailable: ValueError | None) -> MapRuntime:
         if encoder is None:
             rt = self._runtime(record, 0)
             rt.state, rt.state_reason = "failed", "encoder-unavailable"
             log.error("map %s: %s", record.map_id, unavailable)
             return rt
         rt = self._runtime(record, encoder.feature_dim)
-        resize = map_option(record.params, "resize")  # the map's mode: one network serves both
-        if record.params.get("encoder_id") != encoder.identity_for(resize):
+        if config.encoder_id != encoder.identity_for(config.resize):  # one network serves both modes
             rt.state, rt.state_reason = "failed", "encoder-mismatch"
             log.error("map %s was built with encoder %s, this server runs %s", record.map_id,
-                      record.params.get("encoder_id"), encoder.identity_for(resize))
+                      config.encoder_id, encoder.identity_for(config.resize))
             return rt
         try:
             rt.recover()
@@ -188,26 +187,19 @@ class MapRegistry:
             raise MapNotFound(map_id)
         return rt
 
-    def create(self, map_id: str, *, preset: str, seed: int | None = None, tm: dict[str, Any] | None = None,
-               slsbh_conf: dict[str, Any] | None = None,
-               backbone: str | None = None, memory: str = "tm", revisit_threshold: float | None = None,
-               localiser: dict[str, Any] | None = None, thumbnails: bool = False,
-               resize: str | None = None, keyframes: dict[str, Any] | None = None,
-               verify_revisit: bool = False) -> MapRuntime:
-        """Create a map: resolve and freeze parameters, persist the projection, then the store (§1.1).
+    def create(self, map_id: str, options: MapOptions | None = None) -> MapRuntime:
+        """Create a map: resolve and freeze its configuration, persist the projection, then the store
+        (docs/design/service.md §1.1).
 
         Raises:
-            InvalidMapId, InvalidConfiguration, MapTooLarge, MapAlreadyExists, MapLimit.
+            InvalidMapId, InvalidConfiguration, MapTooLarge, MapAlreadyExists, MapLimit,
+            MemoryBudgetExceeded.
         """
         if not MAP_ID_RE.match(map_id):
             raise InvalidMapId(map_id, MAP_ID_RE.pattern)
-        params = resolve_params(
-            preset, seed=seed, tm=tm, slsbh_conf=slsbh_conf,
-            backbone=backbone or self.encoders.default, memory=memory, localiser=localiser,
-            **({} if revisit_threshold is None else {"revisit_threshold": revisit_threshold}),
-            **({} if resize is None else {"resize": resize}), keyframes=keyframes,
-            verify_revisit=verify_revisit)
-        need = map_projection.model_bytes(params, self.settings.max_streams)
+        config = resolve(options or MapOptions(), default_preset=self.settings.default_preset,
+                         default_backbone=self.encoders.default)
+        need = map_projection.model_bytes(config, self.settings.max_streams)
         if need > self.settings.max_map_bytes:
             raise MapTooLarge(need, self.settings.max_map_bytes)
         with self._create_lock:
@@ -217,50 +209,48 @@ class MapRegistry:
             if len(self.maps) >= self.settings.max_maps:
                 raise MapLimit(self.settings.max_maps)
             try:
-                encoder = self.encoders.get(params["backbone"])
+                encoder = self.encoders.get(config.backbone)
             except ValueError as e:
                 raise InvalidConfiguration(str(e), [{"location": "body", "name": "backbone",
                                                      "message": str(e)}]) from e
             # Projection plus memory within the map budget: the very sparse projection where dense breaks it.
-            params["projection"] = map_projection.projection_kind(
-                encoder.feature_dim, int(params["slsbh"]["k"]), need)
+            config = config.model_copy(update={"projection": map_projection.projection_kind(
+                encoder.feature_dim, int(config.slsbh["k"]), need, self.settings.max_map_bytes)})
             # The process-wide budget, before the projection or the memory is allocated (§1.8); the
             # projection counts in full until its checksum says whether another map shares it.
-            need = self._need(params, encoder.feature_dim, 0)
-            self.budget.reserve(map_id, need)
+            reserved = self._need(config, encoder.feature_dim, 0)
+            self.budget.reserve(map_id, reserved)
             try:
                 # Its first recovery builds a second memory beside the runtime's empty one (§1.8).
-                with self.budget.transient(map_id, need.tm):
-                    return self._create_reserved(map_id, params, preset, encoder, thumbnails)
+                with self.budget.transient(map_id, reserved.tm):
+                    return self._create_reserved(map_id, config, encoder)
             except BaseException:
                 self.budget.release(map_id)
                 raise
 
-    def _create_reserved(self, map_id: str, params: dict[str, Any], preset: str, encoder: Any,
-                         thumbnails: bool) -> MapRuntime:
+    def _create_reserved(self, map_id: str, config: MapConfig, encoder: Any) -> MapRuntime:
         """`create` after its checks and its reservation (under the creation lock)."""
-        s_conf = params["slsbh"]
-        P = map_projection.make(params["projection"], encoder.feature_dim, int(s_conf["k"]),
-                                int(s_conf["seed"]))
+        P = map_projection.make(config.projection, encoder.feature_dim, int(config.slsbh["k"]),
+                                int(config.slsbh["seed"]))
         _, sha = slsbh.save_projection(P, self.projections)
         del P
-        params["projection_sha256"] = sha
-        self.budget.reserve(map_id, self._need(params, encoder.feature_dim, 0))  # shared: less
-        params["encoder_id"] = encoder.identity_for(params["resize"])  # backbone, weights, resize mode
-        params["thumbnails"] = bool(thumbnails)  # frozen like the rest (docs/design/service.md §1.1)
+        # the encoder identity names the backbone, its weights and the map's resize mode
+        config = config.model_copy(update={"projection_sha256": sha,
+                                           "encoder_id": encoder.identity_for(config.resize)})
+        self.budget.reserve(map_id, self._need(config, encoder.feature_dim, 0))  # shared: less
         if encoder.identity.split("/")[1].startswith("random"):
             log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, encoder.identity)
         map_dir = self.layout.map_dir(map_id)
         if map_dir.exists():
             shutil.rmtree(map_dir)  # leftovers of a creation that never reached the catalog
         map_dir.mkdir(parents=True)
+        params = config.stored()
         store = MapStore.create(self.layout.map_db(map_id), MapMeta(
-            map_id=map_id, params=params, projection_sha256=sha, encoder_id=params["encoder_id"],
-            cell_dtype=cell_dtype_for(int(params["tm"]["columnDimensions"])
-                                      * int(params["tm"]["cellsPerColumn"]))))
+            map_id=map_id, params=params, projection_sha256=sha, encoder_id=config.encoder_id,
+            cell_dtype=cell_dtype_for(int(config.tm["columnDimensions"]) * int(config.tm["cellsPerColumn"]))))
         store.close()
         try:
-            record = self.catalog.create_map(map_id, params, preset=preset, state="ready")
+            record = self.catalog.create_map(map_id, params, preset=config.preset, state="ready")
         except MapExists as e:
             raise MapAlreadyExists(map_id) from e
         rt = self._runtime(record, encoder.feature_dim)
@@ -282,7 +272,7 @@ class MapRegistry:
                           process_rss_bytes=rss_bytes())
 
     def import_snapshot(self, tar_path: Path, max_bytes: int) -> str:
-        """Create a map from a downloaded snapshot tar (`service.maps.snapshots.import_snapshot`)."""
+        """Create a map from a downloaded snapshot tar (`service.maps.recovery.snapshots.import_snapshot`)."""
         return map_snapshots.import_snapshot(self.data_dir, self.catalog, tar_path, max_bytes,
                                              fits=self._import_fits)
 
@@ -294,11 +284,16 @@ class MapRegistry:
         for record in self.catalog.list_maps():
             path = self.layout.projection(str(record.params.get("projection_sha256")))
             # A map that cannot be opened, or does not fit, holds nothing at start.
-            with contextlib.suppress(MemoryBudgetExceeded, KeyError, TypeError, ValueError):
-                budget.reserve(record.map_id, self._need_of(record.params, self._stored_rows(record.map_id),
-                                                   path.stat().st_size if path.exists() else 0))
+            with contextlib.suppress(MemoryBudgetExceeded, InvalidConfiguration):
+                budget.reserve(record.map_id, self._need_of(MapConfig.parse(record.params),
+                                                            self._stored_rows(record.map_id),
+                                                            path.stat().st_size if path.exists() else 0))
+        try:
+            config = MapConfig.parse(m.params)
+        except InvalidConfiguration as e:  # the same gate as a created map's
+            raise snapshots.SnapshotInvalid(f"the snapshot's map configuration: {e}") from e
         projection = m.external.get(snapshots.PROJECTION_FILE)
-        budget.reserve(m.map_id, self._need_of(m.params, m.seq, projection.bytes if projection else 0))
+        budget.reserve(m.map_id, self._need_of(config, m.seq, projection.bytes if projection else 0))
 
     def delete(self, map_id: str) -> None:
         """Raises MapNotFound."""

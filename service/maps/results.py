@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from service.maps.config import MapConfig
+
 __all__ = ["BudgetInfo", "IndexMemory", "LoopClosureResult", "MapInfo", "MapReservation", "Match",
            "MemoryInfo", "ObservationResult", "PlaceResult", "RestoreResult", "SequenceStats", "SnapshotInfo",
            "StorageMemory", "StoredObservation", "StoredRow", "StreamReset", "StreamsMemory", "TmMemory",
@@ -161,6 +163,22 @@ class MapInfo:
     thumbnails: bool  # a small JPEG is kept with each learned row (frozen with the map)
     snapshot_count: int  # snapshots of every kind, and their bytes on disk (docs/design/service.md §1.5)
     snapshots_bytes: int
+
+    @classmethod
+    def of(cls, config: MapConfig, record: Any, *, state: str, state_reason: str | None,
+           observations: int = 0, last_seq: int = 0, streams: list[str] | None = None,
+           recovery: dict[str, Any] | None = None, snapshot_error: dict[str, Any] | None = None,
+           snapshot_count: int = 0, snapshots_bytes: int = 0) -> MapInfo:
+        """The map resource of a map with this configuration and catalog `record` (created_at, map_id);
+        `snapshot_count`, `snapshots_bytes`: `service.maps.recovery.snapshots.disk_use`."""
+        return cls(map_id=record.map_id, created_at=record.created_at, state=state, state_reason=state_reason,
+                   preset=config.preset, params=config.shown(), encoder=config.encoder_id,
+                   projection_sha256=config.projection_sha256, observations=observations, last_seq=last_seq,
+                   streams=streams or [], warnings=list(config.warnings), recovery=recovery,
+                   snapshot_error=snapshot_error, backbone=config.backbone,
+                   revisit_threshold=config.revisit_threshold, verify_revisit=config.verify_revisit,
+                   thumbnails=config.thumbnails,
+                   snapshot_count=snapshot_count, snapshots_bytes=snapshots_bytes)
 
 
 @dataclass(frozen=True)

@@ -64,7 +64,7 @@ def check_encoder(app: FastAPI) -> Check:
     desc = encoder.describe()
     out: Check = {"status": "pass", "encoder": desc["encoder"], "weights": desc["weights"], **info,
                   "runtime": desc["runtime"], "device": desc["device"],
-                  "backbone": app.state.settings.backbone}  # of new maps (service.app.resolve_backbone)
+                  "backbone": app.state.settings.backbone}  # of new maps (service.encoder.resolve_backbone)
     registry = getattr(app.state, "registry", None)
     if registry is not None:  # one encoder per backbone in use
         out["backbones"] = {name: e.identity for name, e in registry.encoders.built().items()}
@@ -90,7 +90,7 @@ def check_maps(maps: dict[str, Any]) -> Check:
     notes = []
     for map_id, m in sorted(maps.items()):
         states[map_id] = {"state": str(m.state), "state_reason": m.state_reason,
-                          "backbone": getattr(m, "backbone", None)}
+                          "backbone": m.config.backbone}
         recovery, snap_error = getattr(m, "recovery", None), getattr(m, "snapshot_error", None)
         skipped = list((recovery or {}).get("skipped_snapshots") or [])
         if skipped:

@@ -8,8 +8,9 @@ import uuid
 import anyio
 from fastapi import APIRouter, Response
 
-from service.deps import ApiKeyDep, RegistryDep, SettingsDep
+from service.deps import ApiKeyDep, RegistryDep
 from service.errors import problem_responses
+from service.maps.config import MapOptions
 from service.routes.params import MapId, StreamName
 from service.schemas import (
     BudgetModel,
@@ -33,15 +34,10 @@ async def process_memory(registry: RegistryDep) -> BudgetModel:
 
 @router.post("", status_code=201, dependencies=[ApiKeyDep],
              responses=problem_responses(400, 401, 409, 422))
-async def create_map(body: CreateMap, registry: RegistryDep, settings: SettingsDep,
-                     response: Response) -> MapModel:
+async def create_map(body: CreateMap, registry: RegistryDep, response: Response) -> MapModel:
     map_id = body.map_id or f"map-{uuid.uuid4().hex[:12]}"
-    rt = await anyio.to_thread.run_sync(lambda: registry.create(
-        map_id, preset=body.preset or settings.default_preset, seed=body.seed, tm=body.tm,
-        slsbh_conf=body.slsbh, backbone=body.backbone,
-        memory=body.memory, revisit_threshold=body.revisit_threshold, localiser=body.localiser,
-        thumbnails=body.thumbnails, resize=body.resize, keyframes=body.keyframes,
-        verify_revisit=body.verify_revisit))
+    options = MapOptions.model_validate(body.model_dump(exclude={"map_id"}))
+    rt = await anyio.to_thread.run_sync(registry.create, map_id, options)
     response.headers["Location"] = f"/v1/maps/{map_id}"
     return MapModel.from_result(await rt.run(rt.info))
 

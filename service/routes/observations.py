@@ -5,7 +5,7 @@ The route checks the request and the image's header, hands the frame to the map
 (`MapRuntime.observe`: encoder pool, then the map's writer) and turns its `ObservationResult` into the
 reply, adding what only the HTTP layer knows: the request id, the code's and encoder's versions, the
 total time. A post with an `Idempotency-Key` is answered with its sealed reply, the first one's for a
-repeat (`service.maps.idempotency`).
+repeat (`service.maps.runtime.idempotency`).
 """
 
 from __future__ import annotations
@@ -23,9 +23,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from models.frontend import images
 from service.deps import ApiKeyDep, MetricsDep, RegistryDep, SettingsDep
-from service.errors import IMAGE_MEDIA_TYPES, Problem, problem_responses
-from service.maps import idempotency, stored
+from service.errors import Problem, problem_responses
 from service.maps.results import ObservationResult
+from service.maps.runtime import idempotency, stored
+from service.media_types import IMAGE_MEDIA_TYPES
 from service.routes.params import MAX_SEQ, MapId, Seq, StreamQuery
 from service.schemas import (
     MatchModel,

@@ -1,5 +1,6 @@
 """The latest answers of a map, for watching it work (docs/design/service.md §1.7): the observation
-replies as they were sent, from the map's in-memory ring (`service.maps.recent`), not from the store."""
+replies as they were sent, from the map's in-memory ring (`service.maps.runtime.recent`), not from the
+store."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from fastapi import APIRouter, Query, Response
 
 from service.deps import RegistryDep
 from service.errors import problem_responses
-from service.maps.recent import RECENT_CAPACITY, kept_thumbnail
+from service.maps.runtime.recent import RECENT_CAPACITY, kept_thumbnail
 from service.routes.params import AnswerId, MapId
 from service.schemas import STREAM_PATTERN, RecentList, RecentModel
 

@@ -9,7 +9,8 @@ from starlette.types import Receive, Scope, Send
 
 from service.deps import ApiKeyDep, RegistryDep
 from service.errors import problem_responses
-from service.maps import snapshots
+from service.maps.recovery import snapshots
+from service.media_types import TAR_MEDIA_TYPE
 from service.routes.params import MapId, SnapshotId
 from service.schemas import RestoreModel, SnapshotList, SnapshotModel
 
@@ -53,8 +54,10 @@ class TarExportResponse(StreamingResponse):
     """Streams a `TarExport` chunk by chunk (file reads in worker threads) and releases its file
     descriptors however the response ends: sent, client gone (Starlette cancels the stream), or error."""
 
+    media_type = TAR_MEDIA_TYPE  # what the OpenAPI declares for the route (`response_class`)
+
     def __init__(self, export: snapshots.TarExport, filename: str) -> None:
-        super().__init__(export.chunks(), media_type="application/x-tar", headers={
+        super().__init__(export.chunks(), media_type=TAR_MEDIA_TYPE, headers={
             "Content-Length": str(export.size), "Content-Disposition": f'attachment; filename="{filename}"'})
         self.export = export
 
@@ -65,8 +68,10 @@ class TarExportResponse(StreamingResponse):
             self.export.close()
 
 
-@router.get("/{snapshot_id}/download",
-            responses={**problem_responses(401, 404, 409), 200: {"content": {"application/x-tar": {}}}})
+@router.get("/{snapshot_id}/download", response_class=TarExportResponse, status_code=200,
+            responses={**problem_responses(401, 404, 409), 200: {
+                "description": "the snapshot as a tar", "content": {TAR_MEDIA_TYPE: {
+                    "schema": {"type": "string", "format": "binary"}}}}})
 async def download_snapshot(map_id: MapId, snapshot_id: SnapshotId,
                             registry: RegistryDep) -> TarExportResponse:
     """The snapshot as a tar (manifest.json, map.sqlite, memory.npz, projection.npy), streamed from its

@@ -18,7 +18,8 @@ import numpy as np
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from service.app import build_encoder, create_app
+from service.app import create_app
+from service.encoder import build_encoder
 from service.settings import Settings
 
 __all__ = ["frame", "held_encoder", "make_app", "make_client", "post", "state_of", "tiny_encoder"]

@@ -117,9 +117,10 @@ def test_readyz_not_ready_when_data_dir_disappears(client, app, tmp_path):
 
 def test_readyz_reports_map_states(client, app):
     app.state.maps = {}  # the states /readyz reads, apart from the runtime's own maps
-    app.state.maps["lab"] = SimpleNamespace(state="ready", state_reason=None, backbone="alexnet")
+    app.state.maps["lab"] = SimpleNamespace(state="ready", state_reason=None,
+                                           config=SimpleNamespace(backbone="alexnet"))
     app.state.maps["old"] = SimpleNamespace(state="failed", state_reason="database-corrupt",
-                                           backbone="efficientnet-lite0")
+                                           config=SimpleNamespace(backbone="efficientnet-lite0"))
     r = client.get("/readyz")
     assert r.status_code == 200  # a failed map does not make the service unready
     maps = r.json()["checks"]["maps"]
@@ -128,7 +129,8 @@ def test_readyz_reports_map_states(client, app):
                                    "backbone": "efficientnet-lite0"}
     assert maps["maps"]["lab"] == {"state": "ready", "state_reason": None, "backbone": "alexnet"}
 
-    app.state.maps["new"] = SimpleNamespace(state="recovering", state_reason="replaying")
+    app.state.maps["new"] = SimpleNamespace(state="recovering", state_reason="replaying",
+                                           config=SimpleNamespace(backbone="alexnet"))
     body = assert_not_ready(client.get("/readyz"))
     assert body["checks"]["maps"]["status"] == "fail" and "new" in body["checks"]["maps"]["error"]
 

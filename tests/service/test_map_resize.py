@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from service.maps.params import DEFAULT_RESIZE
+from service.maps.config import DEFAULT_RESIZE
 from tests.service.helpers import make_app, make_client, post
 
 
@@ -78,9 +78,9 @@ def test_a_crop_map_cannot_tell_apart_frames_that_differ_outside_the_crop_and_a_
 
 
 def test_a_map_made_before_the_option_keeps_cropping():
-    from service.maps.params import map_option, resolve_params
+    from service.maps.config import MapConfig, MapOptions, resolve
 
-    params = resolve_params("cortexloc-default")
+    params = resolve(MapOptions(), default_preset="cortexloc-default", default_backbone="alexnet").stored()
     assert params["resize"] == DEFAULT_RESIZE
     del params["resize"]  # stored before the option existed
-    assert map_option(params, "resize") == "crop"  # what the service did then
+    assert MapConfig.parse(params).resize == "crop"  # what the service did then

@@ -212,7 +212,7 @@ def test_each_stream_is_adapted_on_its_own_as_the_evaluation_does(tmp_path):
         rows = list(rt.store.rows())
         enc = c.app.state.encoder
         for name, frames in (("a", a_frames), ("b", b_frames)):
-            feats = np.concatenate([enc.embed([f], resize=rt.resize).features for f in frames])
+            feats = np.concatenate([enc.embed([f], resize=rt.config.resize).features for f in frames])
             expected = sequences.codes(rt.hasher, feats, 4)  # what `cortexloc eval images --adapt 4` hashes
             got = [r.input_sdr for r in rows if r.stream == name]
             assert len(got) == len(frames)

@@ -97,7 +97,7 @@ def test_maps_that_do_not_fit_at_start_stay_closed_and_listed(tmp_path, sizes):
         assert states == {"default": ("ready", None), "a": ("ready", None), "b": ("failed", "memory-budget")}
         r = post(c, frame(1), map_id="b")
         assert r.status_code == 503 and r.json()["state_reason"] == "memory-budget"
-        assert post(c, frame(0), map_id="a", learn="false").json()["matches"][0]["seq"] == 1
+        assert post(c, frame(0), map_id="a", learn="false", stream="other").json()["matches"][0]["seq"] == 1
         ready = c.get("/readyz")
         assert ready.status_code == 200, ready.text
         b = budget_of(c)
@@ -155,7 +155,7 @@ def test_restore_is_checked_against_the_budget(tmp_path, sizes):
 
 
 def test_the_default_is_a_share_of_the_smaller_of_host_and_cgroup(tmp_path):
-    from service.maps import budget as map_budget
+    from service.maps.runtime import budget as map_budget
 
     host, source = map_budget.memory_limit(cgroup_files=())
     assert source == "host" and host > 0

@@ -56,3 +56,11 @@ def test_the_walk_finds_a_reply_without_a_schema(tmp_path):
 
     spec = TestClient(app).get("/openapi.json").json()
     assert undescribed(spec) == ["GET /v1/test/untyped 200"]
+
+
+def test_a_binary_reply_is_declared_as_what_it_sends_and_nothing_else(tmp_path):
+    """The snapshot download is a tar: no `application/json` with an empty schema beside it."""
+    spec = TestClient(make_app(tmp_path / "data")).get("/openapi.json").json()
+    reply = spec["paths"]["/v1/maps/{map_id}/snapshots/{snapshot_id}/download"]["get"]["responses"]["200"]
+    assert set(reply["content"]) == {"application/x-tar"}
+    assert reply["content"]["application/x-tar"]["schema"] == {"type": "string", "format": "binary"}

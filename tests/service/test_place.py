@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 
 from models.localisation import default_conf
-from service.maps.params import DEFAULT_REVISIT_THRESHOLD
+from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 from tests.service.helpers import frame, make_client, post
 
 ROUTE = list(range(12))
@@ -119,8 +119,8 @@ def test_backbone_is_frozen_with_the_map_and_shown(tmp_path):
 
 
 def test_the_default_backbone_is_resolved_once_at_startup(tmp_path):
-    from service.app import resolve_backbone
-    from service.maps.params import map_option
+    from service.encoder import resolve_backbone
+    from service.maps.config import MapConfig
     from service.settings import Settings
 
     # no AlexNet weights are installed in the tests (conftest): EfficientNet-Lite0's stage 5, pooled 2x2
@@ -129,7 +129,7 @@ def test_the_default_backbone_is_resolved_once_at_startup(tmp_path):
     weights.write_bytes(b"not read here")
     assert resolve_backbone(Settings(data_dir=tmp_path, weights_path=weights)).backbone == "alexnet"
     assert resolve_backbone(Settings(data_dir=tmp_path, backbone="alexnet")).backbone == "alexnet"
-    assert map_option({}, "backbone") == "alexnet"  # a map made before the option keeps AlexNet
+    assert MapConfig.model_fields["backbone"].default == "alexnet"  # a map made before the option
 
 
 def test_a_never_learned_route_is_never_a_revisit(tmp_path):

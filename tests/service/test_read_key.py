@@ -9,7 +9,7 @@ import re
 
 import pytest
 
-from service.errors import iter_routes
+from service.routing import iter_routes
 from tests.service.helpers import frame, make_client
 
 KEY = {"X-API-Key": "k3y"}

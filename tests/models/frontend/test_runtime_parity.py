@@ -1,5 +1,6 @@
 """ONNX Runtime computes the torch reference's codes on real frames (issue 24): the shared Nordland route,
-the service default backbone and preset (service/cli/runtime_parity.py, docs/design/science.md §6.1)."""
+the service default backbone and preset (service/evaluation/runtime_parity.py,
+docs/design/science.md §6.1)."""
 
 from __future__ import annotations
 
@@ -12,13 +13,13 @@ pytestmark = pytest.mark.skipif(not (nordland_dir() / "winter").is_dir(),
                                        "(set CORTEXLOC_SHARED_DATA)")
 
 #: The five 200-frame windows of the cross-season tables; tune and test (894 frames each) are run by
-#: `python -m service.cli.runtime_parity` (docs/benchmarks.md §10).
+#: `cortexloc eval runtime-parity` (docs/benchmarks.md §10).
 WINDOWS = ["1-200", "401-600", "801-1000", "1201-1400", "1589-1788"]
 
 
 @pytest.fixture(scope="module")
 def result():
-    from service.cli.runtime_parity import parity
+    from service.evaluation.runtime_parity import parity
 
     return parity(WINDOWS)
 

@@ -18,7 +18,7 @@ from models.localisation import (
 )
 from models.localisation.localiser import evidence
 
-REVISIT = 0.86  # the service's default revisit_threshold (service/maps/params.py); models cannot import it
+REVISIT = 0.86  # the service's default revisit_threshold (service/maps/config.py); models cannot import it
 
 
 def place_similarity(db_places: np.ndarray, q_places: np.ndarray, seed: int = 0, noise: float = 0.3,

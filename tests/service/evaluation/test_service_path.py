@@ -1,12 +1,12 @@
 """`--methods service` is the service's path: the same answers as HTTP for the same route
-(service/cli/service_eval.py), and the operating point read from per-query answers."""
+(service/evaluation/service_path.py), and the operating point read from per-query answers."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from service.cli import service_eval
+from service.evaluation import service_path
 from tests.service.helpers import frame, make_client, post
 
 DB = list(range(14))
@@ -27,10 +27,10 @@ def test_http_and_eval_give_the_same_places(tmp_path, memory):
         enc = c.app.state.encoder
         preset = c.app.state.settings.default_preset
         # one image per call, as the pool embeds a lone request
-        resize = c.app.state.registry.get("route").resize  # the map's mode, as the pool uses it
+        resize = c.app.state.registry.get("route").config.resize  # the map's mode, as the pool uses it
         db_feats = np.concatenate([enc.embed([b], resize=resize).features for b in db_bodies])
         q_feats = np.concatenate([enc.embed([b], resize=resize).features for b in q_bodies])
-    found = service_eval.replay(db_feats, q_feats, encoder_id=enc.identity_for(resize), backbone="alexnet",
+    found = service_path.replay(db_feats, q_feats, encoder_id=enc.identity_for(resize), backbone="alexnet",
                                 preset=preset, seed=7, memory=memory, create={"resize": resize})
     want = [None if p is None else (p["seq"] - 1, p["confidence"], p["support"]) for p in http]
     got = [None if b < 0 else (int(b), float(cf), int(s))
@@ -42,14 +42,23 @@ def test_http_and_eval_give_the_same_places(tmp_path, memory):
 def test_operating_point_is_the_lowest_threshold_reaching_the_precision():
     conf = np.array([0.9, 0.8, 0.7, 0.6, 0.5, 0.4])
     right = np.array([True, True, True, False, True, False])
-    assert service_eval.operating_point(conf, right, 1.0) == {"threshold": 0.7, "precision": 1.0,
+    assert service_path.operating_point(conf, right, 1.0) == {"threshold": 0.7, "precision": 1.0,
                                                               "recall": 0.5}
-    point = service_eval.operating_point(conf, right, 0.8)
+    point = service_path.operating_point(conf, right, 0.8)
     assert point is not None and point["threshold"] == 0.5 and point["precision"] == 0.8
-    assert service_eval.operating_point(conf, ~right, 0.99) is None
+    assert service_path.operating_point(conf, ~right, 0.99) is None
     # equal confidences stand or fall together
-    tied = service_eval.operating_point(np.array([0.9, 0.9]), np.array([True, False]), 0.9)
+    tied = service_path.operating_point(np.array([0.9, 0.9]), np.array([True, False]), 0.9)
     assert tied is None
+
+
+def test_the_service_path_experiments_are_eval_commands():
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    out = CliRunner().invoke(app, ["eval", "--help"]).output
+    assert all(name in out for name in ("grid", "images", "revisit", "unknown"))
 
 
 @pytest.mark.parametrize("memory", ["tm", "none"])
@@ -63,9 +72,11 @@ def test_http_and_slam_replay_give_the_same_places_for_one_learning_stream(tmp_p
         map_threshold = c.get("/v1/maps/route").json()["revisit_threshold"]
         enc = c.app.state.encoder
         preset = c.app.state.settings.default_preset
-        feats = np.concatenate([enc.embed([b]).features for b in laps])
-    found, threshold = service_eval.slam_replay(feats, encoder_id=enc.identity, backbone="alexnet",
-                                                preset=preset, seed=7, memory=memory)
+        resize = c.app.state.registry.get("route").config.resize  # the map's mode, as the pool uses it
+        feats = np.concatenate([enc.embed([b], resize=resize).features for b in laps])
+    found, threshold = service_path.slam_replay(
+        feats, encoder_id=enc.identity_for(resize), backbone="alexnet", preset=preset, seed=7, memory=memory,
+        create={"resize": resize})
     want = [None if b["place"] is None else (b["place"]["seq"] - 1, b["place"]["confidence"],
                                              b["place"]["support"]) for b in http]
     got = [None if b < 0 else (int(b), float(cf), int(s))

@@ -1,10 +1,10 @@
 """The service's encoders: one per backbone in use, built on first use (docs/design/service.md §1.1, §6).
 
-A map freezes its `backbone` (`alexnet`, `efficientnet-lite0-s5`, ... the names registered in
-`models.frontend.backbones`); its projection is sized to that backbone's feature dimension and its
-`encoder_id` is that encoder's identity. The service builds the default backbone's encoder at startup
-and any other when a map first needs it, so a server whose maps all use one backbone holds one
-network. The count is bounded by the registered backbones (at most one encoder each).
+A map freezes its `backbone` (a name registered in `models.frontend.backbones`); its projection is
+sized to that backbone's feature dimension and its `encoder_id` is that encoder's identity. The
+service builds the default backbone's encoder at startup and any other when a map first needs it, so a
+server whose maps all use one backbone holds one network. The count is bounded by the registered
+backbones (at most one encoder each).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ def default_backbone(configured: str | None, alexnet_weights_installed: bool) ->
     §6); resolved once at startup. Maps keep the backbone they recorded, `efficientnet-lite0` included."""
     if configured is not None:
         return configured
-    return "alexnet" if alexnet_weights_installed else "efficientnet-lite0-s5"
+    return backbones.PAPER if alexnet_weights_installed else backbones.PRETRAINED
 
 
 class Encoders:
@@ -45,7 +45,7 @@ class Encoders:
         self._lock = threading.Lock()
 
     @classmethod
-    def one(cls, encoder: Any, name: str = "alexnet") -> Encoders:
+    def one(cls, encoder: Any, name: str = backbones.PAPER) -> Encoders:
         """A holder of one ready encoder as the default `name` (evaluation, tools, tests)."""
         def refuse(other: str) -> Any:
             raise ValueError(f"backbone {other!r} is not available here (only {name!r})")

@@ -13,7 +13,7 @@ from models import presets
 from models.localisation import HYPOTHESIS_BYTES, SequenceLocaliser
 from models.memory.temporal_memory import planned_bytes
 from service.errors import PROBLEM_MEDIA_TYPE
-from service.maps.params import resolve_params
+from service.maps.config import MapOptions, resolve
 from tests.service.helpers import frame, make_app, post
 
 
@@ -114,7 +114,7 @@ def test_good_localiser_options_serve_and_come_back_after_a_restart(tmp_path):
 def test_every_streams_localiser_state_counts_in_the_map_size(tmp_path):
     # The beam is the state of each of max_streams streams (docs/design/service.md §1.1): a map whose
     # memory fits but whose streams' hypotheses would not is refused before anything is written.
-    tm = resolve_params("cortexloc-default")["tm"]
+    tm = resolve(MapOptions(), default_preset="cortexloc-default", default_backbone="alexnet").tm
     default_streams = 64 * SequenceLocaliser().state_bytes()
     with TestClient(make_app(tmp_path / "data", max_streams=64,
                              max_map_bytes=planned_bytes(tm) + default_streams)) as c:
@@ -131,5 +131,6 @@ def test_one_home_for_the_parameter_rules():
     with pytest.raises(presets.ParamsError) as info:
         presets.check_section(presets.TmParams, "tm", {"columnDimensions": "x"})
     assert info.value.errors[0][0] == "columnDimensions"
-    assert resolve_params("cortexloc-grid", seed=3)["slsbh"] == {"k": 1024, "s": 0.25, "seed": 3,
-                                                                 "adapt_tau": 0}
+    grid = resolve(MapOptions(preset="cortexloc-grid", seed=3), default_preset="x",
+                   default_backbone="alexnet")
+    assert grid.slsbh == {"k": 1024, "s": 0.25, "seed": 3, "adapt_tau": 0}

@@ -2,12 +2,13 @@
 database traverse (learned) then a query traverse (localised, one stream), scored per query
 (docs/design/service.md §1.2, docs/design/science.md §11.4).
 
-Not a re-implementation: the map's parameters are resolved and checked as a created map's
-(`service.maps.params.resolve_params`), its projection is made as the registry makes it
-(`service.maps.projection.for_map`), and every frame goes through `models.pipeline.observe`, the step the
-map's writer runs (`MapRuntime._step`), on a `MapModel` built as a served map's (`params.map_model`).
-Nothing is stored: the rows' seqs are 1, 2, ... as a fresh map's would be. Only the decoding and the
-backbone are done before, once per folder (the feature cache), with the same encoder.
+Not a re-implementation: the map's configuration is resolved and checked as a created map's
+(`service.maps.config.resolve`), its projection is made as the registry makes it
+(`service.maps.encoding.projection.for_map`), and every frame goes through `models.pipeline.observe`,
+the step the map's writer runs (`MapRuntime._step`), on a `MapModel` built as a served map's
+(`config.map_model`). Nothing is stored: the rows' seqs are 1, 2, ... as a fresh map's would be. Only
+the decoding and the backbone are done before, once per folder (the feature cache), with the same
+encoder.
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ import numpy as np
 from models.evaluation.online import OnlineAnswers
 from models.frontend import slsbh
 from models.pipeline import MapModel, Stream, observe
-from service.maps import projection as map_projection
-from service.maps.params import map_model, resolve_params
+from service.maps.config import MapConfig, MapOptions, map_model, resolve
+from service.maps.encoding import projection as map_projection
 from service.settings import Settings
 
 __all__ = ["METHODS", "SLAM_METHODS", "experiment", "operating_point", "replay", "slam_replay"]
@@ -35,14 +36,15 @@ SLAM_METHODS = {"service-slam": "tm", "service-slam-without-tm": "none"}
 
 def _model(n_rows: int, feature_dim: int, *, backbone: str, preset: str, seed: int, memory: str,
            localiser: dict[str, Any] | None, create: dict[str, Any] | None
-           ) -> tuple[MapModel, slsbh.Hasher, dict[str, Any]]:
-    """A served map's pipeline model and projection, from the same parameters (`resolve_params`)."""
-    extra = dict(create or {})
-    params = resolve_params(preset, seed=seed, memory=memory, backbone=backbone, localiser=localiser,
-                            tm=extra.pop("tm", None), slsbh_conf=extra.pop("slsbh_conf", None), **extra)
-    _, P = map_projection.for_map(params, feature_dim, Settings().max_streams)
-    hasher = slsbh.Hasher(P, float(params["slsbh"]["s"]))
-    return map_model(params, max_observations=max(n_rows, 1)), hasher, params
+           ) -> tuple[MapModel, slsbh.Hasher, MapConfig]:
+    """A served map's pipeline model and projection, from the same configuration (`resolve`)."""
+    options = MapOptions(preset=preset, seed=seed, memory=memory, backbone=backbone, localiser=localiser,
+                         **(create or {}))
+    config = resolve(options, default_preset=preset, default_backbone=backbone)
+    defaults = Settings()  # a served map's caps, as the registry applies them
+    _, P = map_projection.for_map(config, feature_dim, defaults.max_streams, defaults.max_map_bytes)
+    hasher = slsbh.Hasher(P, float(config.slsbh["s"]))
+    return map_model(config, max_observations=max(n_rows, 1)), hasher, config
 
 
 def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: str, seed: int,
@@ -61,7 +63,7 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
     """
     del encoder_id
     T = len(feats)
-    model, hasher, params = _model(T, int(feats.shape[1]), backbone=backbone, preset=preset, seed=seed,
+    model, hasher, config = _model(T, int(feats.shape[1]), backbone=backbone, preset=preset, seed=seed,
                                    memory=memory, localiser=localiser, create=create)
     robot, codes = Stream(), {}
     best, confidence, support = np.full(T, -1, np.int64), np.zeros(T), np.zeros(T, np.int64)
@@ -73,7 +75,7 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
             best[i], confidence[i], support[i] = step.place.seq - 1, step.place.confidence, step.place.support
         if progress:
             progress(i + 1, T)
-    return OnlineAnswers(best, confidence, support, np.zeros((0, T))), float(params["revisit_threshold"])
+    return OnlineAnswers(best, confidence, support, np.zeros((0, T))), config.revisit_threshold
 
 
 def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbone: str, preset: str,

@@ -1,30 +1,31 @@
 """Corridor-like revisits through the service's path: a second pass of the same frames under the same
 conditions, with small image noise (docs/results.md §9.3).
 
-    python -m service.cli.revisit_eval --folder ../shared/data/nordland_tiny_64x32/summer \
+    cortexloc eval revisit --folder ../shared/data/nordland_tiny_64x32/summer \
         --offset 0 --limit 894 --noise 8 --backbone efficientnet-lite0
 
 The first pass (clean frames) is learned, the second (each frame plus Gaussian pixel noise of
-`--noise` grey levels, re-encoded as PNG) is localised as one stream, by `service_eval.replay` (a real
-map, `MapRuntime.apply`). Printed: R@1, the mean confidence of right and wrong answers, the ROC AUC of
-confidence separating them, the precision and recall at the map's default `revisit_threshold`, and the
-threshold that reaches precision 0.99.
+`--noise` grey levels, re-encoded as PNG) is localised as one stream, by `service_path.replay` (the
+service's path, `models.pipeline.observe`). Printed: R@1, the mean confidence of right and wrong
+answers, the ROC AUC of confidence separating them, the precision and recall at the map's default
+`revisit_threshold`, and the threshold that reaches precision 0.99.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
 
 import cv2
 import numpy as np
 
 from models.evaluation import sequences
 from models.frontend.encoder import Encoder
-from service.cli import service_eval
-from service.maps.params import DEFAULT_RESIZE, DEFAULT_REVISIT_THRESHOLD
+from service.evaluation import service_path
+from service.maps.config import DEFAULT_RESIZE, DEFAULT_REVISIT_THRESHOLD
 from service.settings import Settings
 
 
@@ -45,17 +46,12 @@ def separability(right: np.ndarray, wrong: np.ndarray) -> float | None:
     return float(greater + 0.5 * ties)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--folder", type=Path, required=True)
-    ap.add_argument("--offset", type=int, default=0)
-    ap.add_argument("--limit", type=int, default=894)
-    ap.add_argument("--noise", type=float, default=8.0, help="pixel noise, grey levels (std)")
-    ap.add_argument("--backbone", default="efficientnet-lite0")
-    ap.add_argument("--resize", default=DEFAULT_RESIZE, help="default: a new map's")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--json", type=Path, default=None)
-    args = ap.parse_args()
+def revisit(folder: Path, *, offset: int = 0, limit: int = 894, noise: float = 8.0,
+            backbone: str = "efficientnet-lite0", resize: str = DEFAULT_RESIZE, seed: int = 0,
+            json_path: Path | None = None) -> dict[str, Any]:
+    """The experiment (module docstring); its summary, printed and written to `json_path` if given."""
+    args = SimpleNamespace(folder=folder, offset=offset, limit=limit, noise=noise, backbone=backbone,
+                           resize=resize, seed=seed, json=json_path)
     names = sequences.image_names(args.folder)[args.offset:args.offset + args.limit]
     paths = [args.folder / n for n in names]
     enc = Encoder({"backbone": args.backbone, "resize": args.resize})
@@ -64,7 +60,7 @@ def main() -> None:
     q = np.concatenate([enc.embed([noisy_png(p, args.noise, args.seed + i) for p in paths[i:i + 16]]).features
                         for i in range(0, len(paths), 16)])
     preset = Settings.model_fields["default_preset"].default
-    found = service_eval.replay(db, q, encoder_id=enc.identity, backbone=args.backbone, preset=preset,
+    found = service_path.replay(db, q, encoder_id=enc.identity, backbone=args.backbone, preset=preset,
                                 seed=args.seed)
     answered = found.best >= 0
     off_by = np.abs(found.best - np.arange(len(paths)))[answered]
@@ -81,12 +77,9 @@ def main() -> None:
            "default_threshold": DEFAULT_REVISIT_THRESHOLD,
            "precision_at_default": float(ok[at].mean()) if at.any() else None,
            "recall_at_default": float(ok[at].sum() / ok.size),
-           "operating_point_0.99": service_eval.operating_point(conf, ok, 0.99),
+           "operating_point_0.99": service_path.operating_point(conf, ok, 0.99),
            "config": {**{k: str(v) for k, v in vars(args).items()}, "encoder": enc.identity}}
     print(json.dumps(out, indent=2))
     if args.json is not None:
         args.json.write_text(json.dumps(out, indent=2) + "\n")
-
-
-if __name__ == "__main__":
-    main()
+    return out

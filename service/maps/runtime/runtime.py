@@ -39,13 +39,11 @@ from models.frontend.images import RawFrame
 from models.localisation import InvertedIndex, Localisation
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import Stream, eviction_wait, memory_state, touch
-from service.maps import idempotency, keyframes, recovery, sizes
-from service.maps import snapshots as map_snapshots
-from service.maps.budget import MemoryBudget, index_row_bytes
-from service.maps.encoder_pool import EncoderPool
+from service.maps import keyframes, recovery
+from service.maps.config import MapConfig, map_model
+from service.maps.encoding.pool import EncoderPool
 from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable, StreamLimit
-from service.maps.params import check_revisit_threshold, check_verify_revisit, map_model, map_option
-from service.maps.recent import RecentAnswers
+from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import (
     MapInfo,
     Match,
@@ -58,6 +56,9 @@ from service.maps.results import (
     StreamReset,
     VerificationResult,
 )
+from service.maps.runtime import idempotency, sizes
+from service.maps.runtime.budget import MemoryBudget, index_row_bytes
+from service.maps.runtime.recent import RecentAnswers
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, utc_now
 from storage.mapstore import MapStore, NewClosure, NewObservation, StorageFull, StoreCorrupt
@@ -83,7 +84,8 @@ class MapRuntime:
                  verify_neighbours: int = 2, max_closures: int | None = None) -> None:
         self.record = record
         self.map_id = record.map_id
-        self.params = record.params
+        # Stored options this version rejects raise InvalidConfiguration: the registry serves a FailedMap.
+        self.config = MapConfig.parse(record.params)
         self.layout = catalog.layout  # every path of the map (storage.layout)
         self.catalog = catalog
         self.max_streams = max_streams
@@ -94,15 +96,14 @@ class MapRuntime:
         self.snapshot_keep = snapshot_keep
         self.manual_keep, self.manual_bytes = manual_keep, manual_bytes  # manual snapshots kept (0: no limit)
         # Idempotency keys: those of learned posts in the store (the last `max_keys` seqs), those of
-        # localisations in memory (service.maps.idempotency).
+        # localisations in memory (service.maps.runtime.idempotency).
         self.max_keys = max_keys
         self.max_closures = max_closures  # loop closures kept in the store's log (the last N)
         self.keys = idempotency.KeyCache(key_cache)
         # The process-wide budget that holds this map's reservation (docs/design/service.md §1.8): each
         # learned row reserves its index bytes first. None: a runtime built alone (tools, tests).
         self.budget = budget
-        self.row_bytes = index_row_bytes(self.params)
-        self.thumbnails = bool(self.params.get("thumbnails", False))  # frozen with the map
+        self.row_bytes = index_row_bytes(self.config)
         self.state = "recovering"
         self.state_reason: str | None = None
         # What the last recovery did (`recover`); the last automatic snapshot's failure, if it failed.
@@ -114,29 +115,24 @@ class MapRuntime:
         # The order in which observations reach the writer: each waits for the one before to be queued.
         self._turn = asyncio.Event()
         self._turn.set()
-        sha = self.params["projection_sha256"]
+        sha = self.config.projection_sha256
         self.projection_path = self.layout.projection(sha)
         self.hasher: slsbh.Hasher | None = None
         self._projection_error: str | None = None
         # the checksum is verified on load: a map never runs on another matrix (docs/design/science.md §7)
         try:
             projection = slsbh.load_projection(self.projection_path, sha,
-                                             shape=(feature_dim, int(self.params["slsbh"]["k"])))
-            self.hasher = slsbh.Hasher(projection, float(self.params["slsbh"]["s"]))
+                                               shape=(feature_dim, int(self.config.slsbh["k"])))
+            self.hasher = slsbh.Hasher(projection, float(self.config.slsbh["s"]))
         except (slsbh.ProjectionError, OSError) as e:
             self._projection_error = str(e)
-        self.memory_kind, self.backbone = (map_option(self.params, k) for k in ("memory", "backbone"))
-        self.resize: str = map_option(self.params, "resize")  # crop | squash, frozen with the map
-        self.revisit_threshold = float(map_option(self.params, "revisit_threshold"))
-        # Keyframes (docs/design/science.md §12): the extractor option (None: off), whether a revisit
-        # needs a verified one, how many route neighbours a verification tries, each stream's camera.
-        self.keyframes: dict[str, Any] | None = map_option(self.params, "keyframes")
-        self.verify_revisit = bool(map_option(self.params, "verify_revisit"))
+        # Keyframes (docs/design/science.md §12): how many route neighbours a verification tries, each
+        # stream's camera (the options themselves are the config's: keyframes, verify_revisit).
         self.verify_neighbours = verify_neighbours
         self.cameras: dict[str, dict[str, Any]] = {}  # given once per stream (or with each frame)
         # The memory, index and links the pure pipeline steps (models.pipeline); this runtime keeps
         # their order, their persistence and their snapshots.
-        self.model = map_model(self.params, max_observations=max_observations)
+        self.model = map_model(self.config, max_observations=max_observations)
         self.store: MapStore | None = None
         self.recent: RecentAnswers[Any] = RecentAnswers()  # the replies as sent (the route fills it)
 
@@ -343,7 +339,7 @@ class MapRuntime:
         encoding.
 
         With a `post` (an Idempotency-Key) the answer is its `Reply`: the earlier one for a repeated
-        key, else the sealed reply of this step (service.maps.idempotency).
+        key, else the sealed reply of this step (service.maps.runtime.idempotency).
 
         Raises:
             MapUnavailable, StreamLimit, Overloaded (nothing queued); ImageError (the decode failed, nothing
@@ -356,13 +352,13 @@ class MapRuntime:
             self._admit(stream)
         t0 = time.perf_counter()
         # Localised frames too: their thumbnail is kept in the recent ring only (never stored).
-        encoding = pool.submit(body, hasher=self.hasher, backbone=self.backbone, thumbnail=self.thumbnails,
-                               resize=self.resize)
+        encoding = pool.submit(body, hasher=self.hasher, backbone=self.config.backbone,
+                               thumbnail=self.config.thumbnails, resize=self.config.resize)
         # Local features at the native resolution, while the backbone encodes (docs/design/science.md
         # §12.1); bounded by the pool's admission above. The stream's camera: this frame's, else the last.
         camera = (metadata or {}).get("camera") or self.cameras.get(stream)
-        frame = None if self.keyframes is None else asyncio.ensure_future(asyncio.to_thread(
-            keyframes.extract_frame, body, self.keyframes, camera))
+        frame = None if self.config.keyframes is None else asyncio.ensure_future(asyncio.to_thread(
+            keyframes.extract_frame, body, self.config.keyframes, camera))
         before, mine = self._turn, asyncio.Event()
         self._turn = mine
         try:
@@ -468,15 +464,15 @@ class MapRuntime:
                              winner_cells=step.winners, context_prev_seq=step.prev_seq, label=label,
                              metadata=metadata, thumbnail=thumbnail, keyframe=kf) if learn else None
         answer = None if place is None else self._verified(
-            PlaceResult.of(place, rows[place.seq], self.revisit_threshold), query, stream)
+            PlaceResult.of(place, rows[place.seq], self.config.revisit_threshold), query, stream)
         # The answer is whole before the commit, so an idempotent post's reply commits with its row.
         result = ObservationResult(
             map_id=self.map_id, stream=stream, learned=learn, observation_id=row and row.observation_id,
             seq=seq, sequence=SequenceStats.of(step.step, step.stats),
             matches=[Match.of(i + 1, rows[m.seq], m.overlap, m.score) for i, m in enumerate(step.ranked)],
             timings_ms=step.timings_ms, map_seq=seq or self.store.last_seq(),
-            projection_sha256=self.params["projection_sha256"], backbone=self.backbone, metadata=metadata,
-            encoder=self.params["encoder_id"], resize=self.resize, place=answer)
+            projection_sha256=self.config.projection_sha256, backbone=self.config.backbone, metadata=metadata,
+            encoder=self.config.encoder_id, resize=self.config.resize, place=answer)
         # A revisit is a loop closure, logged durably: with the learned row in its transaction, or alone
         # for a localising stream (it stores no observation and changes no memory; §11.6). It carries
         # the place's geometric verification where there is one (docs/design/science.md §12).
@@ -503,14 +499,14 @@ class MapRuntime:
     def _verified(self, place: PlaceResult, query: keyframes.QueryFrame | None, stream: str) -> PlaceResult:
         """Writer: a revisit candidate's geometric verification (docs/design/science.md §12.2), on maps
         with keyframes only; with `verify_revisit` an unverified candidate is no revisit."""
-        if not place.revisit or self.keyframes is None or self.store is None:
+        if not place.revisit or self.config.keyframes is None or self.store is None:
             return place
         if query is None:  # the frame could not be decoded for features (the encoder decoded it)
             v = VerificationResult(verified=False, reason="no-features")
         else:
             route = self.localisation.graph.within(place.seq, self.verify_neighbours)
             v = keyframes.verify_place(self.store, place.seq, place.stream, route, query, stream=stream)
-        revisit = place.revisit and (v.verified or not self.verify_revisit)
+        revisit = place.revisit and (v.verified or not self.config.verify_revisit)
         return dataclasses.replace(place, verification=v, revisit=revisit)
 
     def _code_of(self, seq: int) -> np.ndarray:
@@ -523,40 +519,31 @@ class MapRuntime:
     # ------------------------------------------------------------------ resources
 
     def info(self) -> MapInfo:
-        p = self.params
-        return MapInfo(
-            map_id=self.map_id, created_at=self.record.created_at, state=self.state,
-            state_reason=self.state_reason, preset=p["preset"],
-            params={"tm": p["tm"], "slsbh": p["slsbh"], "seed": p["seed"],
-                    "memory": self.memory_kind,
-                    "projection": map_option(p, "projection"), "localiser": self.localisation.localiser.conf,
-                    "resize": self.resize, "keyframes": self.keyframes},
-            encoder=p["encoder_id"], projection_sha256=p["projection_sha256"],
-            observations=len(self.index),
-            last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),
-            warnings=p.get("warnings", []), recovery=self.recovery, snapshot_error=self.snapshot_error,
-            backbone=self.backbone, revisit_threshold=self.revisit_threshold,
-            verify_revisit=self.verify_revisit, thumbnails=self.thumbnails,
-            **map_snapshots.disk_use(self.catalog, self.map_id))
+        return MapInfo.of(self.config, self.record, state=self.state, state_reason=self.state_reason,
+                          observations=len(self.index),
+                          last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),
+                          recovery=self.recovery, snapshot_error=self.snapshot_error,
+                          **map_snapshots.disk_use(self.catalog, self.map_id))
+
+    def set_revisit_threshold(self, value: float) -> MapInfo:
+        """Writer: the map's revisit threshold (`patch`)."""
+        return self.patch(revisit_threshold=value)
 
     def patch(self, *, revisit_threshold: float | None = None, verify_revisit: bool | None = None) -> MapInfo:
-        """Writer: the settings that may change after creation, durable in the catalog in one update
+        """Writer: the options that may change after creation, durable in the catalog in one update
         (docs/design/service.md §1.2): the revisit threshold, and whether a revisit needs a verified
         keyframe. InvalidConfiguration (nothing changes): a threshold outside [0, 1], verify_revisit on a
         map without keyframes."""
-        changes: dict[str, Any] = {}
-        if revisit_threshold is not None:
-            changes["revisit_threshold"] = check_revisit_threshold(revisit_threshold)
-        if verify_revisit is not None:
-            changes["verify_revisit"] = check_verify_revisit(verify_revisit, self.keyframes)
+        changes = {k: v for k, v in (("revisit_threshold", revisit_threshold),
+                                     ("verify_revisit", verify_revisit)) if v is not None}
         if changes:
-            self.record = self.catalog.update_params(self.map_id, **changes)
-            self.params = self.record.params
-            self.revisit_threshold = float(map_option(self.params, "revisit_threshold"))
-            self.verify_revisit = bool(map_option(self.params, "verify_revisit"))
+            config = self.config.with_changes(**changes)
+            self.record = self.catalog.update_params(
+                self.map_id, **{k: getattr(config, k) for k in changes})
+            self.config = config
         return self.info()
 
     def memory(self) -> MemoryInfo:
-        return sizes.memory_info(self.model, self.streams, tm_params=self.params["tm"],
+        return sizes.memory_info(self.model, self.streams, tm_params=self.config.tm,
                                  max_streams=self.max_streams, projection=self.projection_path,
                                  store=self.store, snapshots_bytes=self.catalog.snapshots_bytes(self.map_id))

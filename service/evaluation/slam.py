@@ -1,7 +1,7 @@
 """Loop closure while mapping through the service's path: routes driven as ONE learning stream
 (docs/results.md §10, docs/design/science.md §11.6).
 
-    python -m service.cli.slam_eval --data ../shared/data/nordland_tiny_64x32 --half tune \
+    cortexloc eval slam --data ../shared/data/nordland_tiny_64x32 --half tune \
         --routes seasons,noise,short-lap,stop,excursion --json out.json
 
 Routes, from the Nordland half (`tune`: files 1-894, `test`: 895-1788), labels = file index:
@@ -14,9 +14,9 @@ Routes, from the Nordland half (`tune`: files 1-894, `test`: 895-1788), labels =
 same localiser as one learning stream (`models.evaluation.online.loop_closure`: the input SDRs, and the
 Temporal Memory's winner cells learned online), labels = cells, tolerance 0.
 
-Methods: `service-slam` and `service-slam-without-tm` (`service_eval.slam_replay`: every frame posted
+Methods: `service-slam` and `service-slam-without-tm` (`service_path.slam_replay`: every frame posted
 with learn=true on one stream), the localise mode on the same lap-2 frames (`service`: lap 1 learned,
-lap 2 localised, `service_eval.replay`), and `openseqslam` as an online loop-closure detector
+lap 2 localised, `service_path.replay`), and `openseqslam` as an online loop-closure detector
 (`models.evaluation.slam.openseqslam_online`). Scored per route by `models.evaluation.slam.score` at
 the map's threshold and the `--thresholds`; `operating_point`: the lowest threshold with precision
 >= 0.99 over every call of the route; `calibrated`: the per-map calibration tried (the `--rate`
@@ -25,11 +25,11 @@ quantile of the stream's own lap-1 confidences).
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import os
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import cv2
@@ -37,9 +37,9 @@ import numpy as np
 
 from models.evaluation import seqslam, sequences, slam
 from models.frontend.encoder import Encoder
-from service.cli import service_eval
-from service.cli.revisit_eval import noisy_png
-from service.maps.params import DEFAULT_REVISIT_THRESHOLD
+from service.evaluation import service_path
+from service.evaluation.revisit import noisy_png
+from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 from service.settings import Settings
 
 HALVES = {"tune": (0, 894), "test": (894, 1788)}
@@ -118,15 +118,15 @@ def evaluate(r: dict[str, Any], methods: list[str], map_conf: dict[str, Any], th
     out: dict[str, Any] = {}
     labels, laps = r["labels"], r["laps"]
     for m in methods:
-        if m in service_eval.SLAM_METHODS:
-            found, default = service_eval.slam_replay(r["feats"], memory=service_eval.SLAM_METHODS[m],
+        if m in service_path.SLAM_METHODS:
+            found, default = service_path.slam_replay(r["feats"], memory=service_path.SLAM_METHODS[m],
                                                       **map_conf)
             best, conf = found.best, found.confidence
-        elif m in service_eval.METHODS:  # the localise mode: lap 1 learned, the rest localised
+        elif m in service_path.METHODS:  # the localise mode: lap 1 learned, the rest localised
             if laps.max() < 1:
                 continue
             n1 = int((laps == 0).sum())
-            found = service_eval.replay(r["feats"][:n1], r["feats"][n1:], memory=service_eval.METHODS[m],
+            found = service_path.replay(r["feats"][:n1], r["feats"][n1:], memory=service_path.METHODS[m],
                                         **map_conf)
             best = np.r_[np.full(n1, -1), found.best]
             conf = np.r_[np.zeros(n1), found.confidence]
@@ -142,11 +142,11 @@ def evaluate(r: dict[str, Any], methods: list[str], map_conf: dict[str, Any], th
         truth = slam.revisit_truth(labels, tolerance)
         right = truth & (best >= 0) & (np.abs(labels[np.maximum(best, 0)] - labels) <= tolerance)
         answered = best >= 0
-        entry["operating_point"] = service_eval.operating_point(conf[answered], right[answered], 0.99)
+        entry["operating_point"] = service_path.operating_point(conf[answered], right[answered], 0.99)
         at = [t for t in ([default] if default is not None else []) + thresholds]
         if entry["operating_point"]:
             at.append(entry["operating_point"]["threshold"])
-        if m in service_eval.SLAM_METHODS:
+        if m in service_path.SLAM_METHODS:
             lap1 = conf[(laps == 0) & answered]
             entry["calibrated"] = float(np.quantile(lap1, 1.0 - rate)) if lap1.size else None
             if entry["calibrated"] is not None:
@@ -179,20 +179,21 @@ def grid(folder: Path, thresholds: list[float]) -> dict[str, Any]:
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, default=None)
-    ap.add_argument("--half", choices=sorted(HALVES), default="tune")
-    ap.add_argument("--routes", default=",".join(ROUTES))
-    ap.add_argument("--methods", default="service-slam,service-slam-without-tm,service,openseqslam")
-    ap.add_argument("--thresholds", type=float, nargs="*", default=[])
-    ap.add_argument("--tolerance", type=int, default=1)
-    ap.add_argument("--rate", type=float, default=0.001, help="false-revisit rate of the calibration")
-    ap.add_argument("--backbone", default=None, help="default: the service's")
-    ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--grid", type=Path, default=None, help="the grid world's folder instead of --data")
-    args = ap.parse_args()
+def slam_runs(*, data: Path | None = None, half: str = "tune", routes: str = ",".join(ROUTES),
+              methods: str = "service-slam,service-slam-without-tm,service,openseqslam",
+              thresholds: list[float] | None = None, tolerance: int = 1, rate: float = 0.001,
+              backbone: str | None = None, seed: int = 1, json_path: Path | None = None,
+              grid_dir: Path | None = None) -> None:
+    """The experiment (module docstring), printed; `grid_dir`: the grid world's folder instead of `data`.
+
+    Raises:
+        ValueError: neither `data` nor `grid_dir`, or an unknown `half`.
+    """
+    if half not in HALVES:
+        raise ValueError(f"--half must be one of {', '.join(sorted(HALVES))}")
+    args = SimpleNamespace(data=data, half=half, routes=routes, methods=methods, thresholds=thresholds or [],
+                           tolerance=tolerance, rate=rate, backbone=backbone, seed=seed, json=json_path,
+                           grid=grid_dir)
     if args.grid is not None:
         found = grid(args.grid, [DEFAULT_REVISIT_THRESHOLD, *args.thresholds])
         for key, by_t in found.items():
@@ -202,14 +203,14 @@ def main() -> None:
         if args.json:
             args.json.write_text(json.dumps(found) + "\n")
         return
-    from service.app import resolve_backbone  # the service's own resolution of its default
+    from service.encoder import resolve_backbone  # the service's own resolution of its default
 
     settings = Settings.from_env()
     backbone = args.backbone or resolve_backbone(settings).backbone
     enc = Encoder({"backbone": backbone, "resize": "squash"})
     cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
     if args.data is None:
-        ap.error("--data (or --grid) is required")
+        raise ValueError("--data (or --grid) is required")
     frames = Frames(args.data, args.half, enc, cache)
     map_conf = {"encoder_id": enc.identity, "backbone": backbone, "preset": settings.default_preset,
                 "seed": args.seed}
@@ -229,6 +230,3 @@ def main() -> None:
         if args.json:
             args.json.write_text(json.dumps(result) + "\n")
 
-
-if __name__ == "__main__":
-    main()

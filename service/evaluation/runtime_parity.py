@@ -1,18 +1,17 @@
 """Do the backbone runtimes compute the same codes? The torch reference against ONNX Runtime on the real
 Nordland route (issue 24, docs/design/science.md §6.1).
 
-Run: `python -m service.cli.runtime_parity [--windows 1-200,401-600,...] [--json OUT]` (default: every
+Run: `cortexloc eval runtime-parity [--windows 1-200,401-600,...] [--json OUT]` (default: every
 window of `models.evaluation.nordland_tables.WINDOWS`). nordland_tiny_64x32, summer learned, winter
 localised, squash resize, the service default backbone and preset, one seed. Per frame, the overlap
 |a AND b| / |a| of the sLSBH codes the two runtimes' features give under the same projection (the
-preset's k, s and seed); per window, the `service` method's R@1 (`service_eval.experiment`: a real map,
-the writer's own step) on each runtime's features, with the same map seed. The parity test
-(tests/models/frontend/test_runtime_parity.py) runs the five 200-frame windows.
+preset's k, s and seed); per window, the `service` method's R@1 (`service_path.experiment`: the
+writer's own step, `models.pipeline.observe`) on each runtime's features, with the same map seed. The
+parity test (tests/models/frontend/test_runtime_parity.py) runs the five 200-frame windows.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 from collections.abc import Sequence
 from pathlib import Path
@@ -26,7 +25,7 @@ from models.evaluation.datasets import nordland_dir
 from models.evaluation.nordland_tables import WINDOWS
 from models.frontend import slsbh
 from models.frontend.encoder import Encoder
-from service.cli import service_eval
+from service.evaluation import service_path
 
 __all__ = ["BACKBONE", "PRESET", "code_overlap", "encode_route", "parity", "route_features"]
 
@@ -95,7 +94,7 @@ def parity(windows: Sequence[str], ds: int = 10, seed: int = 0,
         out["windows"][w] = {}
         for runtime in RUNTIMES:
             db, q = feats[runtime]["summer"][rows], feats[runtime]["winter"][rows]
-            summary, _ = service_eval.experiment(
+            summary, _ = service_path.experiment(
                 db, q, methods=["service"], columns=seqslam.full_window(len(q), ds), tolerance=0, gt=None,
                 seeds=1, seed=seed, reverse_query=False,
                 map_conf={"encoder_id": identity, "backbone": BACKBONE, "preset": PRESET})
@@ -103,19 +102,13 @@ def parity(windows: Sequence[str], ds: int = 10, seed: int = 0,
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--windows", default=",".join(WINDOWS), help="comma-separated names of WINDOWS")
-    ap.add_argument("--json", type=Path, default=None)
-    args = ap.parse_args()
-    result = parity(args.windows.split(","))
+def report(windows: list[str], json_path: Path | None = None) -> dict[str, Any]:
+    """`parity` over `windows`, printed, and written to `json_path` if given."""
+    result = parity(windows)
     print(f"{result['backbone']}: code overlap mean {result['overlap_mean']:.4f}, "
           f"min {result['overlap_min']:.4f} over {result['frames']} frames")
     for w, r in result["windows"].items():
         print(f"{w}: service R@1 torch {r['torch']:.3f}, onnxruntime {r['onnxruntime']:.3f}")
-    if args.json:
-        args.json.write_text(json.dumps(result, indent=1))
-
-
-if __name__ == "__main__":
-    main()
+    if json_path:
+        json_path.write_text(json.dumps(result, indent=1))
+    return result

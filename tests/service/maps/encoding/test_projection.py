@@ -1,5 +1,5 @@
 """A map's projection: dense or very sparse by the size budget, stored and loaded by SHA-256
-(service/maps/projection.py)."""
+(service/maps/encoding/projection.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ from models.frontend import backbones, slsbh
 from models.frontend.backbones.efficientnet_lite0 import BLOCKS, EfficientNetLite0
 from models.frontend.slsbh.projection import D_CONV3
 from models.memory.temporal_memory import planned_bytes
-from service.maps import projection
+from service.maps.encoding import projection
+from service.settings import Settings
 from tests.service.helpers import frame, make_client
 
 
@@ -29,6 +30,7 @@ def feature_dim(name: str) -> int:
 # What issue 14 asks of the default map (cortexloc-default, k = 1,024, 65.5 MB of memory): the dense
 # projection where it fits the budget. AlexNet conv3 (266 MB dense) and stage 7 (64 MB) do not;
 # the service default's 5,488 x 1,024 float32 (22.5 MB) does.
+BUDGET = Settings().max_map_bytes  # the one map-size budget (CORTEXLOC_MAX_MAP_BYTES)
 EXPECTED_KIND = {"alexnet": "sparse", "efficientnet-lite0": "sparse", "efficientnet-lite0-s5": "dense"}
 
 
@@ -38,10 +40,10 @@ def test_the_default_map_of_every_backbone_fits_the_budget(name, monkeypatch):
     tm = planned_bytes(presets.tm_params("cortexloc-default", {}))
     k = int(presets.slsbh_params("cortexloc-default")["k"])
     d = feature_dim(name)
-    kind = projection.projection_kind(d, k, tm)
+    kind = projection.projection_kind(d, k, tm, BUDGET)
     P = projection.make(kind, d, k, seed=42)
-    assert tm + projection.nbytes(P) <= projection.MAP_MODEL_BYTES, (name, d, kind)
-    assert kind == ("dense" if d * k * 4 + tm <= projection.MAP_MODEL_BYTES else "sparse")
+    assert tm + projection.nbytes(P) <= BUDGET, (name, d, kind)
+    assert kind == ("dense" if d * k * 4 + tm <= BUDGET else "sparse")
     assert kind == EXPECTED_KIND[name], (name, d, tm)
 
 
@@ -70,7 +72,7 @@ def test_a_map_whose_dense_projection_breaks_the_budget_gets_the_sparse_one(tmp_
         mem = c.get("/v1/maps/big/memory").json()
         c.post("/v1/maps/big/observations", content=frame(1), headers={"Content-Type": "image/png"})
         c.post("/v1/maps/big/snapshots")
-    assert mem["tm"]["allocated_bytes"] + mem["projection_bytes"] <= projection.MAP_MODEL_BYTES
+    assert mem["tm"]["allocated_bytes"] + mem["projection_bytes"] <= BUDGET
     with make_client(tmp_path / "data") as c:  # the sparse projection loads again, by its checksum
         m = c.get("/v1/maps/big").json()
         assert m["state"] == "ready" and m["observations"] == 1, m

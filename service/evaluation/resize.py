@@ -1,13 +1,13 @@
 """Crop or squash: the two resize modes through the service's path, on frames of several shapes cut
 from the same footage (issue 23; docs/results.md §9.6).
 
-    python -m service.cli.resize_eval --db ../shared/data/nordland_tiny_64x32/summer \
-        --query ../shared/data/nordland_tiny_64x32/winter --offset 894 --limit 300 --shapes 2:1 4:3
+    cortexloc eval resize --db ../shared/data/nordland_tiny_64x32/summer \
+        --query ../shared/data/nordland_tiny_64x32/winter --offset 894 --limit 300 --shapes 2:1,4:3
 
 Each frame is cut to each shape by a centre crop of the stored frame (2:1 is the 64 x 32 frame itself;
 4:3 keeps its middle 43 x 32), so the shapes show the same places. For each shape and mode the window
 of the database traverse is learned and the same window of the query traverse localised as one stream
-(`service_eval.replay`: the step a served map's writer runs), with the map's features computed as a map
+(`service_path.replay`: the step a served map's writer runs), with the map's features computed as a map
 with that `resize` option computes them. Reported per run: the answers (a place once the warm-up is
 over), right places (answers at the query's own row, tolerance 0) as a fraction of the answers, R@1
 over the scored queries, and revisits (answers at or above the default revisit threshold) with how
@@ -16,10 +16,10 @@ many of them are right.
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import os
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -28,8 +28,8 @@ from common.files import sha256_file
 from models.evaluation import sequences
 from models.frontend.encoder import Encoder
 from models.frontend.images import RawFrame
-from service.cli import service_eval
-from service.maps.params import DEFAULT_REVISIT_THRESHOLD
+from service.evaluation import service_path
+from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 from service.settings import Settings
 
 MODES = ("crop", "squash")
@@ -66,18 +66,14 @@ def features(enc: Encoder, paths: list[Path], shape: str, cache: Path) -> np.nda
     return out.astype(np.float32)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--db", type=Path, required=True)
-    ap.add_argument("--query", type=Path, required=True)
-    ap.add_argument("--offset", type=int, default=0)
-    ap.add_argument("--limit", type=int, default=300)
-    ap.add_argument("--shapes", nargs="+", default=["2:1", "4:3"])
-    ap.add_argument("--backbone", default=None, help="default: the service's")
-    ap.add_argument("--seeds", type=int, nargs="+", default=[1], help="map seeds")
-    args = ap.parse_args()
-    from service.app import resolve_backbone  # the service's own resolution of its default
+def resize_runs(db_dir: Path, query_dir: Path, *, offset: int = 0, limit: int = 300,
+                shapes: list[str] | None = None, backbone: str | None = None,
+                seeds: list[int] | None = None) -> None:
+    """The experiment (module docstring), printed."""
+    from service.encoder import resolve_backbone  # the service's own resolution of its default
 
+    args = SimpleNamespace(db=db_dir, query=query_dir, offset=offset, limit=limit,
+                           shapes=shapes or ["2:1", "4:3"], backbone=backbone, seeds=seeds or [1])
     settings = Settings.from_env()
     backbone = args.backbone or resolve_backbone(settings).backbone
     names = sequences.paired_names(args.db, args.query, args.offset, args.limit)
@@ -95,7 +91,7 @@ def main() -> None:
             db = features(enc, [args.db / x for x in names], shape, cache)
             q = features(enc, [args.query / x for x in names], shape, cache)
             for seed in args.seeds:
-                found = service_eval.replay(db, q, encoder_id=enc.identity, backbone=backbone,
+                found = service_path.replay(db, q, encoder_id=enc.identity, backbone=backbone,
                                             preset=settings.default_preset, seed=seed,
                                             create={"resize": mode})
                 answered = found.best >= 0
@@ -105,6 +101,3 @@ def main() -> None:
                       f"{right.sum() / max(int(answered.sum()), 1):>6.3f} {right[scored].mean():>6.3f} "
                       f"{int(revisit.sum()):>8} {int((revisit & right).sum()):>14}")
 
-
-if __name__ == "__main__":
-    main()

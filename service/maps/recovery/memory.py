@@ -23,7 +23,8 @@ from models import pipeline
 from models.frontend import slsbh
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import MapModel, Stream, load_memory_state
-from service.maps.params import map_model
+from service.maps.config import MapConfig, map_model
+from service.maps.errors import InvalidConfiguration
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, StorageError
 from storage.layout import Layout
@@ -213,11 +214,13 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
             if not store.integrity_check():
                 out.problems.append("map.sqlite fails PRAGMA integrity_check")
             total = store.count()
-            like = map_model(record.params, max_observations=max(total, 1))
+            like = map_model(MapConfig.parse(record.params), max_observations=max(total, 1))
             done = rebuild(like.tm, store.rows(), like, stop_at_mismatch=False,
                            progress=None if progress is None else lambda n: progress(n, total))
             out.rows, out.mismatches = done.replayed, done.mismatches
     except (StorageError, OSError) as e:
         out.problems.append(f"map.sqlite unreadable: {e}")
+    except InvalidConfiguration as e:
+        out.problems.append(f"configuration: {e}")
     out.seconds = time.perf_counter() - t0
     return out

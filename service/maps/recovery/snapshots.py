@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from models.frontend import slsbh
-from service.maps.errors import InsufficientStorage, SnapshotInUse, SnapshotNotFound
+from service.maps.config import MapConfig
+from service.maps.errors import InsufficientStorage, InvalidConfiguration, SnapshotInUse, SnapshotNotFound
 from service.maps.results import SnapshotInfo
 from storage import snapshots
 from storage.catalog import Catalog, SnapshotRecord
@@ -177,6 +178,10 @@ def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes:
         manifest = snapshots.import_tar(f, staging, max_bytes=max_bytes, check=acceptable)
     try:
         map_id = manifest.map_id
+        try:  # the same gate as a created map's: an option this version rejects is refused here
+            config = MapConfig.parse(manifest.params)
+        except InvalidConfiguration as e:
+            raise snapshots.SnapshotInvalid(f"the snapshot's map configuration: {e}") from e
         sha = manifest.projection_sha256
         target = layout.projection(sha)
         staged = staging / snapshots.PROJECTION_FILE
@@ -193,7 +198,7 @@ def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes:
         snap_dir = layout.snapshot_dir(map_id, manifest.snapshot_id)
         snap_dir.parent.mkdir(parents=True)
         staging.replace(snap_dir)
-        catalog.create_map(map_id, manifest.params, preset=manifest.params.get("preset"), state="ready")
+        catalog.create_map(map_id, config.stored(), preset=config.preset, state="ready")
         catalog.register_snapshot(SnapshotRecord(
             snapshot_id=manifest.snapshot_id, map_id=map_id, seq=manifest.seq, kind=manifest.kind,
             created_at=manifest.created_at, bytes=manifest.bytes,

@@ -12,8 +12,8 @@ import pytest
 
 from models.frontend.images import ImageError
 from models.frontend.slsbh import Hasher, make_projection
-from service.maps.encoder_pool import EncoderPool
-from service.maps.encoders import Encoders
+from service.maps.encoding.encoders import Encoders
+from service.maps.encoding.pool import EncoderPool
 from tests.service.helpers import frame, held_encoder, make_client
 
 

@@ -1,41 +1,37 @@
 """False revisits on places the map never stored, and the decision on the places it did, through the
 service's path (docs/results.md §9.2).
 
-    python -m service.cli.unknown_eval --db ../shared/data/nordland_tiny_64x32/summer \
-        --query ../shared/data/nordland_tiny_64x32/winter --split 894 --thresholds 0.639 0.8 0.951
+    cortexloc eval unknown --db ../shared/data/nordland_tiny_64x32/summer \
+        --query ../shared/data/nordland_tiny_64x32/winter --split 894 --thresholds 0.639,0.8,0.951
 
 The route is cut at `--split` into two halves of different places. For each half, the database half is
-learned and the query traverse of the OTHER half is localised as one stream (`service_eval.replay`: a
-real map, `MapRuntime.apply`): every answer with confidence >= a threshold is a false revisit. Then the
-same half of both traverses (the places the map stored): precision and recall of `revisit` per
-threshold, recall = right answers called revisits / right answers.
+learned and the query traverse of the OTHER half is localised as one stream (`service_path.replay`: the
+service's path, `models.pipeline.observe`): every answer with confidence >= a threshold is a false
+revisit. Then the same half of both traverses (the places the map stored): precision and recall of
+`revisit` per threshold, recall = right answers called revisits / right answers.
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 from models.evaluation import sequences
 from models.frontend.encoder import Encoder
-from service.cli import service_eval
-from service.maps.params import DEFAULT_RESIZE
+from service.evaluation import service_path
+from service.maps.config import DEFAULT_RESIZE
 from service.settings import Settings
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--db", type=Path, required=True)
-    ap.add_argument("--query", type=Path, required=True)
-    ap.add_argument("--split", type=int, required=True, help="first row of the second half")
-    ap.add_argument("--thresholds", type=float, nargs="+", required=True)
-    ap.add_argument("--backbone", default=None, help="default: the service's")
-    ap.add_argument("--seed", type=int, default=1)
-    args = ap.parse_args()
-    from service.app import resolve_backbone  # the service's own resolution of its default
+def unknown(db: Path, query: Path, *, split: int, thresholds: list[float], backbone: str | None = None,
+            seed: int = 1) -> None:
+    """The experiment (module docstring), printed."""
+    args = SimpleNamespace(db=db, query=query, split=split, thresholds=thresholds, backbone=backbone,
+                           seed=seed)
+    from service.encoder import resolve_backbone  # the service's own resolution of its default
 
     settings = Settings.from_env()
     backbone = args.backbone or resolve_backbone(settings).backbone
@@ -46,8 +42,8 @@ def main() -> None:
     q = sequences.cached_features(enc, [args.query / n for n in names], cache)
     halves = (slice(0, args.split), slice(args.split, len(names)))
 
-    def replay(a: slice, b: slice) -> service_eval.OnlineAnswers:
-        return service_eval.replay(db[a], q[b], encoder_id=enc.identity, backbone=backbone,
+    def replay(a: slice, b: slice) -> service_path.OnlineAnswers:
+        return service_path.replay(db[a], q[b], encoder_id=enc.identity, backbone=backbone,
                                    preset=settings.default_preset, seed=args.seed)
 
     print(f"backbone {backbone}, preset {settings.default_preset}, map seed {args.seed}")
@@ -67,6 +63,3 @@ def main() -> None:
             print(f"stored (rows {h.start}-{h.stop}) at {t}: precision {precision:.3f}, recall "
                   f"{said[right].sum() / max(int(right.sum()), 1):.3f} (R@1 {right.mean():.3f})")
 
-
-if __name__ == "__main__":
-    main()

@@ -18,7 +18,7 @@ from __future__ import annotations
 import contextlib
 import os
 import threading
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,9 +26,9 @@ from typing import Any
 from models.frontend import slsbh
 from models.localisation import SequenceLocaliser
 from models.memory.temporal_memory import planned_bytes
+from service.maps.config import MapConfig
 from service.maps.errors import MemoryBudgetExceeded
-from service.maps.idempotency import CACHE_MAX_CHARS
-from service.maps.params import map_option
+from service.maps.runtime.idempotency import CACHE_MAX_CHARS
 
 __all__ = ["CGROUP_LIMIT_FILES", "DEFAULT_SHARE", "INDEX_ROW_OVERHEAD_BYTES", "POSTING_BYTES", "MapNeed",
            "MemoryBudget", "default_total", "encoder_bytes", "index_row_bytes", "map_need", "memory_limit",
@@ -38,7 +38,7 @@ __all__ = ["CGROUP_LIMIT_FILES", "DEFAULT_SHARE", "INDEX_ROW_OVERHEAD_BYTES", "P
 DEFAULT_SHARE = 0.5
 #: cgroup v2, then v1: the container's memory limit ("max" or a huge number: none).
 CGROUP_LIMIT_FILES = (Path("/sys/fs/cgroup/memory.max"), Path("/sys/fs/cgroup/memory/memory.limit_in_bytes"))
-#: An index posting (an int32 row number) with the slack of its doubling array (`service.maps.index`).
+#: An index posting (an int32 row number) with the slack of its doubling array (`models.localisation.index`).
 POSTING_BYTES = 8
 #: Per stored row besides its postings: seq, weight, stream row, the ranking scratch, the localiser's
 #: graph links (int64 prev and next), each with its doubling slack.
@@ -75,10 +75,10 @@ def encoder_bytes(encoder: Any) -> int:
     return int(sum(t.numel() * t.element_size() for t in tensors))
 
 
-def index_row_bytes(params: Mapping[str, Any]) -> int:
-    """Estimated index bytes of one stored row of a map with `params`: its 2n winner cells (one per
+def index_row_bytes(config: MapConfig) -> int:
+    """Estimated index bytes of one stored row of a map with `config`: its 2n winner cells (one per
     active column of the sLSBH code, docs/design/science.md §7.3) as postings, plus the row's overhead."""
-    s_conf = params["slsbh"]
+    s_conf = config.slsbh
     return 2 * slsbh.n_ones(int(s_conf["k"]), float(s_conf["s"])) * POSTING_BYTES + INDEX_ROW_OVERHEAD_BYTES
 
 
@@ -107,17 +107,16 @@ def projection_bytes(kind: str, feature_dim: int, k: int) -> int:
     return (k + 1) * 8 + round(feature_dim ** 0.5 * k) * 5
 
 
-def map_need(params: Mapping[str, Any], projection: int, rows: int, *, max_streams: int,
+def map_need(config: MapConfig, projection: int, rows: int, *, max_streams: int,
              key_cache: int) -> MapNeed:
-    """The `MapNeed` of a map with resolved `params` (its `projection` kind chosen), `rows` stored rows
+    """The `MapNeed` of a map with this configuration (its `projection` kind chosen), `rows` stored rows
     and a projection of `projection` bytes (`projection_bytes`, or its file's size where no encoder
     says the feature dimension)."""
-    kind = str(map_option(params, "projection"))
     return MapNeed(
-        tm=planned_bytes(params["tm"]), projection=int(projection),
-        localiser=max_streams * SequenceLocaliser(map_option(params, "localiser")).state_bytes(),
-        caches=CACHE_MAX_CHARS if key_cache else 0, index=rows * index_row_bytes(params),
-        projection_key=params.get("projection_sha256") if kind == "dense" else None)
+        tm=planned_bytes(config.tm), projection=int(projection),
+        localiser=max_streams * SequenceLocaliser(config.localiser).state_bytes(),
+        caches=CACHE_MAX_CHARS if key_cache else 0, index=rows * index_row_bytes(config),
+        projection_key=(config.projection_sha256 or None) if config.projection == "dense" else None)
 
 
 @dataclass

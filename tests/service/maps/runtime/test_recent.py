@@ -1,8 +1,8 @@
-"""The recent-answers ring (service/maps/recent.py): bounded, oldest first, filtered by stream."""
+"""The recent-answers ring (service/maps/runtime/recent.py): bounded, oldest first, filtered by stream."""
 
 from __future__ import annotations
 
-from service.maps.recent import RECENT_CAPACITY, RecentAnswers
+from service.maps.runtime.recent import RECENT_CAPACITY, RecentAnswers
 
 
 def test_the_ring_keeps_the_newest_answers_oldest_first_up_to_its_capacity():

@@ -8,7 +8,8 @@ them, so throughput under load approaches the backbone's batch throughput. A ful
 
 Batches are per backbone and resize mode: a request names its map's backbone and `resize` (crop |
 squash, frozen with the map), and a batch holding several runs one backbone call per pair present
-(`service.maps.encoders.Encoders` holds one encoder per backbone; the mode is a per-call argument).
+(`service.maps.encoding.encoders.Encoders` holds one encoder per backbone; the mode is a per-call
+argument).
 
 A request brings its map's sLSBH hasher (`MapRuntime.observe` passes it): the batch is then also
 projected here (y = x·P), one matrix product per map present in the batch. A dense projection is
@@ -33,7 +34,7 @@ import numpy as np
 from models.frontend.encoder import Encoder, EncodeResult
 from models.frontend.images import ImageError, RawFrame
 from models.frontend.slsbh import Hasher
-from service.maps.encoders import Encoders
+from service.maps.encoding.encoders import Encoders
 from service.maps.errors import Overloaded
 
 _STOP = object()

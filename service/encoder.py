@@ -1,0 +1,85 @@
+"""The service's encoder and the choice of the backbone of new maps, made once at startup
+(docs/design/service.md §1.1, §7): `resolve_backbone`, `build_encoder`, and what /readyz says of the
+weights (`encoder_weights_info`)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from models.frontend.encoder import Encoder
+from service.settings import ConfigError, Settings
+
+__all__ = ["EncoderFactory", "build_encoder", "encoder_weights_info", "resolve_backbone"]
+
+log = logging.getLogger("cortexloc.service")
+
+EncoderFactory = Callable[[Settings], Encoder]
+
+
+def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
+    """The encoder of `settings.backbone` (resolved at startup; AlexNet conv3 with the configured weights
+    and seed, or EfficientNet-Lite0 with its package's), threads and input limits.
+
+    Args:
+        settings: the settings.
+        **overrides: `models.frontend.encoder.default_conf` keys merged last (tests: `slsbh={"k": 16}`).
+
+    Raises:
+        ConfigError: naming CORTEXLOC_WEIGHTS_PATH when the weights cannot be used.
+    """
+    from models.frontend import weights
+    from models.frontend.runtimes import DeviceUnavailableError
+
+    try:
+        path = settings.weights_path if settings.weights_path is not None else weights.find_alexnet()
+        if path is None and not settings.allow_random_weights:
+            log.error("no AlexNet weights: CORTEXLOC_WEIGHTS_PATH is unset, none are installed, and "
+                      "CORTEXLOC_ALLOW_RANDOM_WEIGHTS=false; the service will not be ready")
+        conf = {"backbone": resolve_backbone(settings).backbone,
+                "weights_path": str(path) if path is not None else None,
+                "random_seed": settings.random_weights_seed, "torch_threads": settings.torch_threads,
+                "max_bytes": settings.max_upload_bytes, "max_pixels": settings.max_pixels,
+                "runtime": settings.runtime, "device": settings.device, **overrides}
+        return Encoder(conf)
+    except DeviceUnavailableError as e:
+        raise ConfigError([("CORTEXLOC_DEVICE", f"={settings.device!r}: {e}")]) from e
+    except weights.WeightsError as e:
+        shown = f"={str(settings.weights_path)!r}" if settings.weights_path is not None else " (unset)"
+        raise ConfigError([("CORTEXLOC_WEIGHTS_PATH", f"{shown}: {e}")]) from e
+
+
+def resolve_backbone(settings: Settings) -> Settings:
+    """The settings with `backbone` resolved once: the configured one, else AlexNet when its real
+    weights are installed (CORTEXLOC_WEIGHTS_PATH or the cache), else `efficientnet-lite0-s5`
+    (`service.maps.encoding.encoders.default_backbone`)."""
+    from models.frontend import weights
+    from service.maps.encoding.encoders import default_backbone
+
+    if settings.backbone is not None:
+        return settings
+    installed = settings.weights_path is not None or weights.find_alexnet() is not None
+    return settings.model_copy(update={"backbone": default_backbone(None, installed)})
+
+
+def encoder_weights_info(encoder: Encoder) -> dict[str, Any]:
+    """What /readyz reports about the weights: `weights_id`, and the file's SHA-256 (or the seed)."""
+    from common.files import sha256_file
+    from models.frontend import weights
+
+    info: dict[str, Any] = {"weights_id": encoder.weights_id}
+    if encoder.weights_id.startswith("random"):
+        info["seed"] = int(encoder.conf["random_seed"])
+        return info
+    path = encoder.conf.get("weights_path") or weights.find_alexnet()
+    if path is None:  # pragma: no cover - a non-AlexNet backbone
+        return info
+    info["path"] = str(path)
+    meta = weights.read_sidecar(path)
+    if meta is not None:
+        info["sha256"] = meta["trimmed_sha256"]
+        info["original_sha256"] = meta["original_sha256"]
+    else:
+        info["sha256"] = sha256_file(path)
+    return info

@@ -1,0 +1,7 @@
+"""A map's memory rebuilt from its store, and its snapshots (docs/design/service.md §1.5, §4.4): the one
+rebuild path (memory.py: recover, rebuild, verify_map) and snapshots at the map level (snapshots.py:
+take, list, locate, prune, export, import)."""
+
+from service.maps.recovery.memory import MapCheck, Rebuilt, open_catalog, rebuild, recover, verify_map
+
+__all__ = ["MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover", "verify_map"]
