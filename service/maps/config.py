@@ -8,7 +8,8 @@ a snapshot's manifest: `stored()`), what a stored map is read back as (`MapConfi
 so a map created by the API, the `default` map made at startup and an imported snapshot pass one gate),
 and what the map resource shows (`shown()`). It is frozen except `revisit_threshold` and
 `verify_revisit`, which `PATCH` changes (`with_changes`: every check again). A field's default is also
-what a map made before the option existed runs with (`backbone: alexnet`, `memory: tm`, `projection: dense`, ...).
+what a map made before the option existed runs with (`backbone: alexnet`, `memory: tm`, `projection:
+dense`, ...).
 """
 
 from __future__ import annotations
