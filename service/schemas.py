@@ -7,7 +7,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, create_model
+from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
 from service.maps import results
 from service.maps.config import SHOWN_PARAMS, MapConfig, MapOptions
@@ -48,8 +48,16 @@ class PatchMap(BaseModel):
     """The map settings that may change after creation (docs/design/service.md §1.2)."""
 
     model_config = ConfigDict(extra="forbid", strict=True)  # strict: "0.5" and true are not numbers
-    revisit_threshold: float = Field(description="confidence at which an answer is a revisit, in [0, 1] "
-                                     "(422 outside)")
+    revisit_threshold: float | None = Field(default=None, description="confidence at which an answer is a "
+                                            "revisit, in [0, 1] (422 outside)")
+    verify_revisit: bool | None = Field(default=None, description="a revisit needs a verified keyframe "
+                                        "(422 on a map without keyframes)")
+
+    @model_validator(mode="after")
+    def _something(self) -> Self:
+        if self.revisit_threshold is None and self.verify_revisit is None:
+            raise ValueError("give revisit_threshold or verify_revisit")
+        return self
 
 
 #: The map resource's `params`: the configuration's SHOWN_PARAMS, typed and described as there.
@@ -77,6 +85,8 @@ class MapModel(_Out):
     snapshot_error: dict[str, Any] | None
     backbone: str
     revisit_threshold: float
+    verify_revisit: bool = Field(description="a revisit needs a verified keyframe "
+                                 "(docs/design/science.md §12)")
     thumbnails: bool = Field(description="a small JPEG is kept with each learned observation")
     snapshot_count: int = Field(description="snapshots of every kind")
     snapshots_bytes: int = Field(description="their bytes on disk")
@@ -215,6 +225,9 @@ class LoopClosureModel(_Out):
     confidence: float
     support: int
     created_at: str
+    verification: results.VerificationResult | None = Field(
+        default=None, description="the place's geometric verification as the reply gave it, with the "
+        "relative pose (maps with keyframes; docs/design/science.md §12); null elsewhere")
 
 
 class LoopClosureList(_Out):

@@ -141,6 +141,9 @@ class Settings(BaseSettings):
                                "revisits streams were told of, map.sqlite): the last N, oldest pruned")
     idempotency_cache: int = Field(1024, ge=0, description="replies of localisation posts (learn=false) "
                                    "kept in memory per map for their Idempotency-Key")
+    verify_neighbours: int = Field(2, ge=0, le=10, description="a revisit candidate is verified against "
+                                   "its place's keyframe, then up to N route neighbours each side "
+                                   "(docs/design/science.md §12.2); maps with the keyframes option only")
     snapshot_every: int = Field(1000, ge=0, description="automatic snapshot period (0 = off)")
     snapshot_keep: int = Field(3, ge=0, description="automatic snapshots kept, and whatever their number "
                                "the one recovery starts from (0: only that one)")

@@ -7,8 +7,9 @@ rows leave: the oldest keys are pruned (docs/design/service.md §4.2).
 
 Version 2 added a row's `metadata`, the `thumbnails` and `idempotency_keys` tables; version 3 the
 `loop_closures` log (docs/design/service.md §4.2: every revisit a stream was told of, bounded, the
-oldest pruned like the keys). An older file is brought up to date when it is opened for writing
-(`migrate`), in one transaction.
+oldest pruned like the keys); version 4 the `keyframes` table (a learned row's local features and
+camera, docs/design/science.md §12.1) and a logged closure's `verification`. An older file is brought
+up to date when it is opened for writing (`migrate`), in one transaction.
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -129,6 +130,21 @@ CREATE TRIGGER loop_closures_no_update BEFORE UPDATE ON loop_closures
 BEGIN SELECT RAISE(ABORT, 'loop closures are append-only'); END;
 """
 
+# What version 4 added: a learned row's keyframe (maps with the `keyframes` option only): its local
+# features packed by `models.geometry.pack` and the camera it was taken with, for verifying revisits;
+# and a logged loop closure's geometric verification (docs/design/science.md §12), compact JSON.
+_V4_TABLES = """
+CREATE TABLE keyframes (
+    seq      INTEGER PRIMARY KEY REFERENCES observations (seq),
+    features BLOB NOT NULL,          -- models.geometry.pack: header, xy float32, descriptors uint8
+    camera   TEXT NULL               -- {fx, fy, cx, cy, distortion} of the frame, compact JSON
+);
+CREATE TRIGGER keyframes_no_update BEFORE UPDATE ON keyframes
+BEGIN SELECT RAISE(ABORT, 'keyframes are append-only'); END;
+CREATE TRIGGER keyframes_no_delete BEFORE DELETE ON keyframes
+BEGIN SELECT RAISE(ABORT, 'keyframes are append-only'); END;
+"""
+
 
 def _version_step(version: int) -> str:
     """The script that lifts the frozen meta's trigger for the version number alone."""
@@ -146,6 +162,9 @@ BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
 _MIGRATE_V2 = "ALTER TABLE observations ADD COLUMN metadata TEXT NULL;" + _V2_TABLES + _version_step(2)
 #: Version 2 -> 3: a new table, no row changes.
 _MIGRATE_V3 = _V3_TABLES + _version_step(3)
+#: Version 3 -> 4: a new table, and a column no row has yet (ADD COLUMN: reads NULL, no row changes).
+_CLOSURE_VERIFICATION = "ALTER TABLE loop_closures ADD COLUMN verification TEXT NULL;"
+_MIGRATE_V4 = _V4_TABLES + _CLOSURE_VERIFICATION + _version_step(4)
 
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
@@ -159,7 +178,8 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
     as it then is. A current file is returned as it is."""
     if meta.schema_version >= SCHEMA_VERSION:
         return meta
-    steps = {1: _MIGRATE_V2 + _MIGRATE_V3, 2: _MIGRATE_V3}[meta.schema_version]
+    steps = {1: _MIGRATE_V2 + _MIGRATE_V3 + _MIGRATE_V4, 2: _MIGRATE_V3 + _MIGRATE_V4,
+             3: _MIGRATE_V4}[meta.schema_version]
     try:
         conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
     except BaseException:
@@ -228,6 +248,8 @@ class NewObservation:
         metadata: the client's small JSON object (stamp, pose, ...), stored as compact JSON.
         thumbnail: a small JPEG of the frame (`thumbnails` table), for maps that keep them.
         key: the post's Idempotency-Key and reply, committed in the row's transaction.
+        keyframe: the frame's packed local features (`models.geometry.pack`) and its camera (or None),
+            `keyframes` table, for maps with the `keyframes` option.
     """
 
     stream: str
@@ -241,6 +263,7 @@ class NewObservation:
     metadata: dict[str, Any] | None = None
     thumbnail: bytes | None = None
     key: KeyRecord | None = None
+    keyframe: tuple[bytes, dict[str, Any] | None] | None = None
     closure: NewClosure | None = None
 
 
@@ -253,7 +276,8 @@ class NewClosure:
     Attributes:
         stream: the stream. place_seq: the stored row its `place` named. confidence, support: the answer's.
         metadata: the frame's metadata (stamp, pose). key: the post's Idempotency-Key (a repeat logs
-        nothing). created_at: ISO 8601 UTC.
+        nothing). created_at: ISO 8601 UTC. verification: the place's geometric verification
+        (`place.verification`, docs/design/science.md §12) on a map with keyframes, else None.
     """
 
     stream: str
@@ -263,6 +287,7 @@ class NewClosure:
     metadata: dict[str, Any] | None = None
     key: str | None = None
     created_at: str = field(default_factory=utc_now)
+    verification: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -271,7 +296,8 @@ class LoopClosure:
 
     Attributes:
         id: its place in the log (pages go `after` it). seq, observation_id: the frame's row (None when
-        the stream was localising). place_*: the row its place named.
+        the stream was localising). place_*: the row its place named. verification: as logged (None:
+        none, or a file before version 4).
     """
 
     id: int
@@ -287,6 +313,7 @@ class LoopClosure:
     confidence: float
     support: int
     created_at: str
+    verification: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -369,7 +396,7 @@ def create_file(path: Path, meta: MapMeta) -> None:
         try:
             # A temporary file: atomicity comes from the rename below, not from one transaction
             # (executescript would commit a pending transaction anyway).
-            conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES)
+            conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

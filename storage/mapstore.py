@@ -249,6 +249,9 @@ class MapStore:
             thumbs = [(first + i, r.thumbnail) for i, r in enumerate(rows) if r.thumbnail is not None]
             keys = [(r.key.key, r.key.fingerprint, first + i, r.key.reply, str(r.created_at))
                     for i, r in enumerate(rows) if r.key is not None]
+            frames = [(first + i, r.keyframe[0], None if r.keyframe[1] is None
+                       else json.dumps(r.keyframe[1], separators=(",", ":")))
+                      for i, r in enumerate(rows) if r.keyframe is not None]
             closures = [_closure_params(r.closure, first + i)
                         for i, r in enumerate(rows) if r.closure is not None]
             try:
@@ -257,6 +260,7 @@ class MapStore:
                                      params)
                     # The row's thumbnail and idempotency key commit with it, or nothing does.
                     conn.executemany("INSERT INTO thumbnails (seq, jpeg) VALUES (?, ?)", thumbs)
+                    conn.executemany("INSERT INTO keyframes (seq, features, camera) VALUES (?, ?, ?)", frames)
                     conn.executemany("INSERT INTO idempotency_keys (key, fingerprint, seq, reply, created_at)"
                                      " VALUES (?, ?, ?, ?, ?)", keys)
                     if keys and self.max_keys is not None:  # the keys of the last max_keys seqs stay
@@ -292,7 +296,8 @@ class MapStore:
             return 0
         before = conn.total_changes
         conn.executemany("INSERT OR IGNORE INTO loop_closures (stream, seq, place_seq, confidence, support, "
-                         "metadata, idempotency_key, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)", params)
+                         "metadata, idempotency_key, created_at, verification) "
+                         "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)", params)
         added = conn.total_changes - before
         if added and self.max_closures is not None:
             conn.execute("DELETE FROM loop_closures WHERE id <= (SELECT max(id) FROM loop_closures) - ?",
@@ -306,14 +311,15 @@ class MapStore:
         with self._lock:
             found = self._db().execute(
                 "SELECT c.id, c.stream, c.seq, o.observation_id, c.metadata, c.place_seq, p.observation_id, "
-                "p.stream, p.label, p.metadata, c.confidence, c.support, c.created_at FROM loop_closures c "
+                "p.stream, p.label, p.metadata, c.confidence, c.support, c.created_at, "
+                f"{'c.verification' if self.meta.schema_version >= 4 else 'NULL'} FROM loop_closures c "
                 "JOIN observations p ON p.seq = c.place_seq LEFT JOIN observations o ON o.seq = c.seq "
                 "WHERE c.id > ? ORDER BY c.id LIMIT ?", (int(after), int(limit))).fetchall()
         return [LoopClosure(id=int(r[0]), stream=r[1], seq=None if r[2] is None else int(r[2]),
                             observation_id=r[3], metadata=_json(r[4]), place_seq=int(r[5]),
                             place_observation_id=r[6], place_stream=r[7], place_label=r[8],
                             place_metadata=_json(r[9]), confidence=float(r[10]), support=int(r[11]),
-                            created_at=r[12]) for r in found]
+                            created_at=r[12], verification=_json(r[13])) for r in found]
 
     def closure_count(self) -> int:
         """Loop closures in the log."""
@@ -399,6 +405,27 @@ class MapStore:
             found = self._db().execute(f"SELECT seq FROM thumbnails WHERE seq IN ({marks})",
                                        wanted).fetchall()
         return {int(r[0]) for r in found}
+
+    def keyframes(self, seqs: Iterable[int]) -> dict[int, tuple[bytes, dict[str, Any] | None]]:
+        """The keyframes (packed features, camera or None) stored with those of `seqs` (at most 500)
+        that have one (docs/design/science.md §12.1)."""
+        wanted = sorted({int(s) for s in seqs})
+        if self.meta.schema_version < 4 or not wanted:
+            return {}
+        with self._lock:
+            marks = ",".join("?" * len(wanted))
+            found = self._db().execute(f"SELECT seq, features, camera FROM keyframes WHERE seq IN ({marks})",
+                                       wanted).fetchall()
+        return {int(r[0]): (bytes(r[1]), None if r[2] is None else json.loads(r[2])) for r in found}
+
+    def keyframe_bytes(self) -> tuple[int, int]:
+        """(keyframes stored, bytes of their features and cameras): what the option costs on disk."""
+        if self.meta.schema_version < 4:
+            return 0, 0
+        with self._lock:
+            n, b = self._db().execute("SELECT count(*), coalesce(sum(length(features) + "
+                                      "coalesce(length(camera), 0)), 0) FROM keyframes").fetchone()
+        return int(n), int(b)
 
     def key_record(self, key: str) -> KeyRecord | None:
         """The idempotent post stored under `key`, or None (never stored, or pruned)."""
@@ -507,8 +534,9 @@ def _json(text: str | None) -> Any:
 
 def _closure_params(c: NewClosure, seq: int | None) -> tuple[Any, ...]:
     meta = None if c.metadata is None else json.dumps(c.metadata, separators=(",", ":"))
+    verification = None if c.verification is None else json.dumps(c.verification, separators=(",", ":"))
     return (str(c.stream), seq, int(c.place_seq), float(c.confidence), int(c.support), meta, c.key,
-            str(c.created_at))
+            str(c.created_at), verification)
 
 
 def _size(p: Path) -> int:

@@ -6,9 +6,10 @@ request's overrides over the preset and freezes the result as a `MapConfig`, eve
 anything is converted or allocated. A `MapConfig` is what is stored (the catalog row, `map.sqlite`'s meta,
 a snapshot's manifest: `stored()`), what a stored map is read back as (`MapConfig.parse`, the same checks,
 so a map created by the API, the `default` map made at startup and an imported snapshot pass one gate),
-and what the map resource shows (`shown()`). It is frozen except `revisit_threshold`, which `PATCH`
-changes (validated on assignment). A field's default is also what a map made before the option existed
-runs with (`backbone: alexnet`, `memory: tm`, `projection: dense`, ...).
+and what the map resource shows (`shown()`). It is frozen except `revisit_threshold` and
+`verify_revisit`, which `PATCH` changes (`with_changes`: every check again). A field's default is also
+what a map made before the option existed runs with (`backbone: alexnet`, `memory: tm`, `projection:
+dense`, ...).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from pydantic import (
     model_validator,
 )
 
-from models import presets
+from models import geometry, presets
 from models.frontend import backbones, images, slsbh
 from models.localisation import LocaliserParams, default_conf
 from models.memory import registry as memories
@@ -52,7 +53,7 @@ DEFAULT_REVISIT_THRESHOLD = 0.92
 DEFAULT_RESIZE = "squash"
 
 #: The options the map resource shows under `params` (the others are its top-level fields).
-SHOWN_PARAMS = ("tm", "slsbh", "seed", "memory", "projection", "localiser", "resize")
+SHOWN_PARAMS = ("tm", "slsbh", "seed", "memory", "projection", "localiser", "resize", "keyframes")
 
 #: Options a map once had and no longer has: a stored value is ignored (`exclude_recent`: the own-trail
 #: rule of docs/design/science.md §11.6 replaced it).
@@ -132,6 +133,11 @@ class MapOptions(BaseModel):
     resize: str | None = Field(default=None, description=f"{' | '.join(images.MODES)}: how a frame becomes "
                                "the backbone's square input (crop: the middle, as the paper; squash: the "
                                f"whole frame; default: {DEFAULT_RESIZE}); frozen with the map")
+    keyframes: dict[str, Any] | None = Field(default=None, description="keep each learned frame's local "
+                                             "features for verifying revisits: {\"features\": orb | sift | "
+                                             "akaze, \"max\": N} (docs/design/science.md §12); frozen")
+    verify_revisit: bool = Field(default=False, description="`place.revisit` needs a verified keyframe "
+                                 "(needs keyframes); changeable with PATCH")
 
 
 class MapConfig(BaseModel):
@@ -158,6 +164,25 @@ class MapConfig(BaseModel):
     resize: str = Field(default="crop", frozen=True,
                         description="crop | squash: how the map's frames become the backbone's square "
                                     "input (crop: the middle of a wide frame; squash: all of it, distorted)")
+    keyframes: dict[str, Any] | None = Field(
+        default=None, frozen=True,
+        description="{features, max}: the local features kept per learned frame (docs/design/science.md "
+                    "§12.1); null: none kept")
+    verify_revisit: bool = Field(default=False, description="a revisit needs a verified keyframe "
+                                 "(docs/design/science.md §12.2); changeable with PATCH")
+
+    @field_validator("keyframes")
+    @classmethod
+    def _keyframes(cls, value: dict[str, Any] | None) -> dict[str, Any] | None:
+        """`models.geometry.KeyframeParams`: names, types, ranges, an extractor this OpenCV build has;
+        stored with its defaults filled in."""
+        if value is None:
+            return None
+        try:
+            return geometry.KeyframeParams.model_validate(value).model_dump()
+        except ValidationError as e:
+            raise _OptionsError([_body("keyframes." + ".".join(map(str, err["loc"])), err["msg"])
+                                 for err in e.errors(include_url=False)]) from None
 
     @field_validator("revisit_threshold")
     @classmethod
@@ -197,6 +222,9 @@ class MapConfig(BaseModel):
             errors.append(_body("memory", f"memory must be one of {', '.join(memories.names())}"))
         if self.resize not in images.MODES:
             errors.append(_body("resize", f"resize must be one of {', '.join(images.MODES)}"))
+        if self.verify_revisit and self.keyframes is None:  # it could never be met: no revisit at all
+            errors.append(_body("verify_revisit", "verify_revisit needs keyframes: create the map with "
+                                "the keyframes option"))
         if errors:
             raise _OptionsError(errors)
         return self
@@ -228,14 +256,17 @@ class MapConfig(BaseModel):
         return cls.model_construct(**kept)
 
     def with_revisit_threshold(self, value: float) -> MapConfig:
-        """A copy with another `revisit_threshold` (the one option PATCH changes). Raises
-        InvalidConfiguration outside [0, 1]."""
-        new = self.model_copy()
+        """A copy with another `revisit_threshold`. Raises InvalidConfiguration outside [0, 1]."""
+        return self.with_changes(revisit_threshold=value)
+
+    def with_changes(self, **changes: Any) -> MapConfig:
+        """A copy with the options PATCH changes (`revisit_threshold`, `verify_revisit`), all checked
+        before any is applied. Raises InvalidConfiguration (a threshold outside [0, 1], verify_revisit
+        on a map without keyframes)."""
         try:
-            new.revisit_threshold = value
+            return MapConfig.model_validate({**self.model_dump(), **changes})
         except ValidationError as e:
             raise _invalid(e) from None
-        return new
 
     def stored(self) -> dict[str, Any]:
         """The values as stored (catalog row, map.sqlite meta, manifest): JSON types."""
@@ -280,7 +311,8 @@ def resolve(options: MapOptions, *, default_preset: str, default_backbone: str) 
         "preset": preset, "tm": tm, "slsbh": s_conf, "seed": tm["seed"],
         "backbone": options.backbone or default_backbone, "memory": options.memory,
         "localiser": dict(options.localiser or {}), "thumbnails": options.thumbnails, "warnings": warnings,
-        "resize": DEFAULT_RESIZE if options.resize is None else options.resize}
+        "resize": DEFAULT_RESIZE if options.resize is None else options.resize,
+        "keyframes": options.keyframes, "verify_revisit": options.verify_revisit}
     if options.revisit_threshold is not None:
         values["revisit_threshold"] = options.revisit_threshold
     return MapConfig.parse(values)

@@ -63,9 +63,9 @@ class FailedMap:
     def snapshots(self) -> list[SnapshotInfo]:
         return map_snapshots.listing(self.catalog, self.map_id)
 
-    def _unavailable(self, *args: Any) -> Any:
+    def _unavailable(self, *args: Any, **kwargs: Any) -> Any:
         raise MapUnavailable(self.map_id, self.state, self.state_reason)
 
     # Everything else needs the memory, the store or the writer.
-    memory = reset_stream = set_revisit_threshold = snapshot = restore = snapshot_dir = _unavailable
+    memory = reset_stream = set_revisit_threshold = patch = snapshot = restore = snapshot_dir = _unavailable
     delete_snapshot = _unavailable

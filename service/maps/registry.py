@@ -99,7 +99,8 @@ class MapRegistry:
                           s.snapshot_every, s.snapshot_keep, max_keys=s.idempotency_keys,
                           key_cache=s.idempotency_cache, budget=self.budget,
                           stream_keep_seconds=s.stream_keep_seconds, manual_keep=s.snapshot_manual_keep,
-                          manual_bytes=s.snapshot_manual_bytes, max_closures=s.loop_closures)
+                          manual_bytes=s.snapshot_manual_bytes, max_closures=s.loop_closures,
+                          verify_neighbours=s.verify_neighbours)
 
     def start(self) -> None:
         """Open every map and recover it by replay; create `default` on a fresh install.

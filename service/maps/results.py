@@ -6,11 +6,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from service.maps.config import MapConfig
 
 __all__ = ["BudgetInfo", "IndexMemory", "LoopClosureResult", "MapInfo", "MapReservation", "Match",
            "MemoryInfo", "ObservationResult", "PlaceResult", "RestoreResult", "SequenceStats", "SnapshotInfo",
-           "StorageMemory", "StoredObservation", "StoredRow", "StreamReset", "StreamsMemory", "TmMemory"]
+           "StorageMemory", "StoredObservation", "StoredRow", "StreamReset", "StreamsMemory", "TmMemory",
+           "VerificationResult"]
 
 
 @dataclass(frozen=True)
@@ -53,6 +56,41 @@ class SequenceStats:
 
 
 @dataclass(frozen=True)
+class VerificationResult:
+    """`place.verification` (docs/design/science.md §12, docs/design/service.md §1.2): the query's local
+    features against a stored keyframe (the place's or a route neighbour's, `keyframe_seq`).
+
+    `model` is GRIC's choice (homography | fundamental); `rotation` (3 x 3, row-major) and `translation`
+    (a unit vector) give X_query = R X_keyframe + t in camera frames when both cameras are known and the
+    pose is observable; `reason` says why not verified or why no pose (`too-small`, `too-few-features`,
+    `too-few-matches`, `too-few-inliers`, `no-keyframe`, `no-camera`, `translation-unobservable`);
+    `ms` is the time it took in the map's writer."""
+
+    verified: bool
+    keyframe_seq: int | None = None
+    matches: int = 0
+    inliers: int = 0
+    inlier_ratio: float = 0.0
+    model: str | None = None
+    rotation: list[list[float]] | None = None
+    rotation_deg: float | None = None
+    translation: list[float] | None = None
+    reason: str | None = None
+    ms: float = 0.0
+
+    @classmethod
+    def of(cls, v: Any, *, keyframe_seq: int, ms: float) -> VerificationResult:
+        """From a `models.geometry.Verification`."""
+        def rounded(a: Any) -> Any:
+            return None if a is None else np.round(np.asarray(a, float), 6).tolist()
+
+        return cls(verified=v.verified, keyframe_seq=keyframe_seq, matches=v.matches, inliers=v.inliers,
+                   inlier_ratio=round(float(v.inlier_ratio), 4), model=v.model, rotation=rounded(v.rotation),
+                   rotation_deg=None if v.rotation_deg is None else round(v.rotation_deg, 3),
+                   translation=rounded(v.translation), reason=v.reason, ms=round(ms, 3))
+
+
+@dataclass(frozen=True)
 class PlaceResult:
     """The stream's sequence-level answer (docs/design/science.md §11.2, docs/design/service.md §1.2):
     the stored row it is at, `confidence` in [0, 1], `revisit` = confidence >= the map's threshold,
@@ -66,6 +104,8 @@ class PlaceResult:
     revisit: bool
     support: int
     metadata: dict[str, Any] | None = None
+    # On a map with keyframes, for a revisit candidate (confidence >= threshold) only; None otherwise.
+    verification: VerificationResult | None = None
 
     @classmethod
     def of(cls, place: Any, row: Any, revisit_threshold: float) -> PlaceResult:
@@ -119,6 +159,7 @@ class MapInfo:
     snapshot_error: dict[str, Any] | None
     backbone: str
     revisit_threshold: float
+    verify_revisit: bool  # a revisit needs a verified keyframe (docs/design/science.md §12.2)
     thumbnails: bool  # a small JPEG is kept with each learned row (frozen with the map)
     snapshot_count: int  # snapshots of every kind, and their bytes on disk (docs/design/service.md §1.5)
     snapshots_bytes: int
@@ -135,7 +176,8 @@ class MapInfo:
                    projection_sha256=config.projection_sha256, observations=observations, last_seq=last_seq,
                    streams=streams or [], warnings=list(config.warnings), recovery=recovery,
                    snapshot_error=snapshot_error, backbone=config.backbone,
-                   revisit_threshold=config.revisit_threshold, thumbnails=config.thumbnails,
+                   revisit_threshold=config.revisit_threshold, verify_revisit=config.verify_revisit,
+                   thumbnails=config.thumbnails,
                    snapshot_count=snapshot_count, snapshots_bytes=snapshots_bytes)
 
 
@@ -172,6 +214,7 @@ class LoopClosureResult:
     confidence: float
     support: int
     created_at: str
+    verification: VerificationResult | None = None  # the place's, as the reply gave it (maps with keyframes)
 
 
 @dataclass(frozen=True)
@@ -237,6 +280,8 @@ class StorageMemory:
     db_bytes: int
     wal_bytes: int
     snapshots_bytes: int
+    keyframes: int = 0  # rows with a keyframe, and their features' and cameras' bytes (within db_bytes)
+    keyframe_bytes: int = 0
 
 
 @dataclass(frozen=True)

@@ -44,10 +44,12 @@ async def list_loop_closures(
                             for t in closures.EXPORT_FORMATS.values()}}})
 async def export_loop_closures(
     map_id: MapId, registry: RegistryDep,
-    format: Annotated[Literal["csv", "jsonl"], Query(description="csv | jsonl")] = "csv",
+    format: Annotated[Literal["csv", "jsonl", "g2o"], Query(
+        description="csv | jsonl | g2o (the verified closures as EDGE_SE3:QUAT lines)")] = "csv",
 ) -> StreamingResponse:
     """Every logged loop closure as a candidate pair: both stamps in seconds, both ids, the confidence,
-    both poses where given (`closures.EXPORT_COLUMNS`)."""
+    both poses where given, the geometric verification and relative pose where the map keeps keyframes
+    (`closures.EXPORT_COLUMNS`); or, as g2o, the verified ones with a pose (`closures.g2o_edge`)."""
     rt = registry.get(map_id)
     rt.require_ready()
     assert rt.store is not None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import uuid
 
 import anyio
@@ -54,9 +55,11 @@ async def get_map(map_id: MapId, registry: RegistryDep) -> MapModel:
 
 @router.patch("/{map_id}", dependencies=[ApiKeyDep], responses=problem_responses(401, 404, 422))
 async def patch_map(map_id: MapId, body: PatchMap, registry: RegistryDep) -> MapModel:
-    """Change the map's settings that may change after creation: `revisit_threshold` (durable)."""
+    """Change the map's settings that may change after creation (durable): `revisit_threshold`,
+    `verify_revisit` (a revisit needs a verified keyframe; maps with keyframes only)."""
     rt = registry.get(map_id)
-    return MapModel.from_result(await rt.run(rt.set_revisit_threshold, body.revisit_threshold))
+    return MapModel.from_result(await rt.run(functools.partial(
+        rt.patch, revisit_threshold=body.revisit_threshold, verify_revisit=body.verify_revisit)))
 
 
 @router.delete("/{map_id}", status_code=204, dependencies=[ApiKeyDep], responses=problem_responses(401, 404))

@@ -19,7 +19,7 @@ from typing import Annotated, Any
 
 import anyio
 from fastapi import APIRouter, Header, Query, Request, Response
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from models.frontend import images
 from service.deps import ApiKeyDep, MetricsDep, RegistryDep, SettingsDep
@@ -68,12 +68,42 @@ class _Pose(BaseModel):
     frame_id: str | None = None
 
 
+#: A camera's focal lengths and principal point, in pixels, are at most this (a 100-megapixel sensor's
+#: focal length in pixels is ~10^4; more is a unit fault).
+CAMERA_MAX_PX = 1e6
+#: OpenCV's distortion vector lengths: none, (k1 k2 p1 p2), + k3, + k4 k5 k6, + s1..s4, + taux tauy.
+DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
+
+
+class _Camera(BaseModel):
+    """The stream's pinhole camera (docs/design/science.md §12.3), given once per stream or with each
+    frame: pixels of the frame as posted, OpenCV's distortion coefficients."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+    fx: float = Field(gt=0, le=CAMERA_MAX_PX)
+    fy: float = Field(gt=0, le=CAMERA_MAX_PX)
+    cx: float = Field(ge=-CAMERA_MAX_PX, le=CAMERA_MAX_PX)
+    cy: float = Field(ge=-CAMERA_MAX_PX, le=CAMERA_MAX_PX)
+    distortion: list[float] = Field(default_factory=list)
+
+    @field_validator("distortion")
+    @classmethod
+    def _lengths(cls, v: list[float]) -> list[float]:
+        if len(v) not in DISTORTION_LENGTHS:
+            raise ValueError(f"distortion has {len(v)} coefficients; OpenCV takes "
+                             f"{', '.join(map(str, DISTORTION_LENGTHS))}")
+        if not all(math.isfinite(x) and abs(x) <= 1e3 for x in v):
+            raise ValueError("distortion coefficients must be finite, |k| <= 1000")
+        return v
+
+
 class _Metadata(BaseModel):
     """What the service reads in metadata; any other small JSON members are kept as they are."""
 
     model_config = ConfigDict(extra="allow", strict=True)
     stamp: float | str | None = None
     pose: _Pose | None = None
+    camera: _Camera | None = None
 
 
 def _depth(text: str) -> int:

@@ -48,7 +48,8 @@ def test_a_revisit_of_a_learned_route_answers_its_rows(tmp_path):
     assert answered[-1][1]["revisit"] is True
     assert body["versions"]["backbone"] == "alexnet"
     assert set(body["place"]) == {"seq", "observation_id", "stream", "label", "confidence", "revisit",
-                                  "support", "metadata"}
+                                  "support", "metadata", "verification"}
+    assert body["place"]["verification"] is None  # a map without keyframes verifies nothing
 
 
 def test_a_learning_stream_localises_against_what_was_stored_before(tmp_path):

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
+from storage.mapschema import SCHEMA_VERSION
 from tests.service.helpers import frame, held_encoder, make_client, post, state_of
 from tests.storage.v1_files import downgrade
 
@@ -237,7 +238,8 @@ def test_an_old_map_file_still_opens_and_learns(tmp_path):
         assert r.json()["seq"] == 4 and c.get("/v1/maps/default/observations/4").json()["metadata"] == {
             "stamp": 9.0}
     conn = sqlite3.connect(path)
-    assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == "3"
+    assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == str(
+        SCHEMA_VERSION)
     conn.close()
 
 

@@ -46,6 +46,7 @@ from cortexloc_client.models import (
     Snapshot,
     StoredObservation,
     StoredObservationList,
+    Verification,
 )
 
 __all__ = [
@@ -79,6 +80,7 @@ __all__ = [
     "UnauthorizedError",
     "UnprocessableError",
     "UnsupportedMediaTypeError",
+    "Verification",
     "__version__",
     "frame_body",
 ]

@@ -168,8 +168,9 @@ def get_map(map_id: str) -> Call[models.Map]:
     return Call("GET", _map(map_id), _model(models.Map), idempotent=True)
 
 
-def update_map(map_id: str, revisit_threshold: float | None) -> Call[models.Map]:
-    body = {"revisit_threshold": revisit_threshold}
+def update_map(map_id: str, revisit_threshold: float | None,
+               verify_revisit: bool | None = None) -> Call[models.Map]:
+    body = {"revisit_threshold": revisit_threshold, "verify_revisit": verify_revisit}
     # Absolute values: a repeat sets the same thing again.
     return Call("PATCH", _map(map_id), _model(models.Map),
                 json={k: v for k, v in body.items() if v is not None}, idempotent=True)

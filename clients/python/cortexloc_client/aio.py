@@ -93,12 +93,14 @@ class AsyncClient:
                          slsbh: Mapping[str, Any] | None = None,
                          backbone: str | None = None, memory: str | None = None,
                          revisit_threshold: float | None = None, localiser: Mapping[str, Any] | None = None,
-                         thumbnails: bool | None = None, resize: str | None = None) -> models.Map:
+                         thumbnails: bool | None = None, resize: str | None = None,
+                         keyframes: Mapping[str, Any] | None = None,
+                         verify_revisit: bool | None = None) -> models.Map:
         """`POST /v1/maps`: as `Client.create_map`."""
         return await self._send(_core.create_map(
             map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh,
             backbone=backbone, memory=memory, revisit_threshold=revisit_threshold, localiser=localiser,
-            thumbnails=thumbnails, resize=resize))
+            thumbnails=thumbnails, resize=resize, keyframes=keyframes, verify_revisit=verify_revisit))
 
     async def list_maps(self) -> list[models.Map]:
         return await self._send(_core.list_maps())
@@ -106,9 +108,10 @@ class AsyncClient:
     async def get_map(self, map_id: str) -> models.Map:
         return await self._send(_core.get_map(map_id))
 
-    async def update_map(self, map_id: str, *, revisit_threshold: float | None = None) -> models.Map:
-        """`PATCH /v1/maps/{map_id}`: change what may change after creation (the revisit threshold)."""
-        return await self._send(_core.update_map(map_id, revisit_threshold))
+    async def update_map(self, map_id: str, *, revisit_threshold: float | None = None,
+                         verify_revisit: bool | None = None) -> models.Map:
+        """`PATCH /v1/maps/{map_id}`: as `Client.update_map`."""
+        return await self._send(_core.update_map(map_id, revisit_threshold, verify_revisit))
 
     async def delete_map(self, map_id: str) -> None:
         """`DELETE /v1/maps/{map_id}`, with its observations and snapshots."""

@@ -94,7 +94,9 @@ class Client:
                    slsbh: Mapping[str, Any] | None = None,
                    backbone: str | None = None, memory: str | None = None,
                    revisit_threshold: float | None = None, localiser: Mapping[str, Any] | None = None,
-                   thumbnails: bool | None = None, resize: str | None = None) -> models.Map:
+                   thumbnails: bool | None = None, resize: str | None = None,
+                   keyframes: Mapping[str, Any] | None = None,
+                   verify_revisit: bool | None = None) -> models.Map:
         """`POST /v1/maps`: a new map; unset fields take the server's preset (a generated id if no id).
 
         Args:
@@ -108,13 +110,16 @@ class Client:
             thumbnails: keep a small JPEG of each learned frame.
             resize: `crop` (the middle of a wide frame, as the paper) or `squash` (the whole frame,
                 distorted to a square; the server's default): how frames become the backbone's input.
+            keyframes: `{"features": "orb" | "sift" | "akaze", "max": N}`: keep each learned frame's local
+                features, so revisits are verified geometrically (`Place.verification`).
+            verify_revisit: a revisit needs a verified keyframe (`update_map` changes it).
 
-        All but `revisit_threshold` are frozen with the map.
+        All but `revisit_threshold` and `verify_revisit` are frozen with the map.
         """
         return self._send(_core.create_map(
             map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh,
             backbone=backbone, memory=memory, revisit_threshold=revisit_threshold, localiser=localiser,
-            thumbnails=thumbnails, resize=resize))
+            thumbnails=thumbnails, resize=resize, keyframes=keyframes, verify_revisit=verify_revisit))
 
     def list_maps(self) -> list[models.Map]:
         return self._send(_core.list_maps())
@@ -122,9 +127,11 @@ class Client:
     def get_map(self, map_id: str) -> models.Map:
         return self._send(_core.get_map(map_id))
 
-    def update_map(self, map_id: str, *, revisit_threshold: float | None = None) -> models.Map:
-        """`PATCH /v1/maps/{map_id}`: change what may change after creation (the revisit threshold)."""
-        return self._send(_core.update_map(map_id, revisit_threshold))
+    def update_map(self, map_id: str, *, revisit_threshold: float | None = None,
+                   verify_revisit: bool | None = None) -> models.Map:
+        """`PATCH /v1/maps/{map_id}`: change what may change after creation (the revisit threshold,
+        whether a revisit needs a verified keyframe)."""
+        return self._send(_core.update_map(map_id, revisit_threshold, verify_revisit))
 
     def delete_map(self, map_id: str) -> None:
         """`DELETE /v1/maps/{map_id}`, with its observations and snapshots."""
@@ -183,7 +190,9 @@ class Client:
 
     def export_loop_closures(self, map_id: str, fmt: str = "csv") -> bytes:
         """`GET /v1/maps/{map_id}/loop-closures/export`: the whole log as candidate pairs (`csv` or
-        `jsonl`): both stamps in seconds, both ids, the confidence, both poses where given."""
+        `jsonl`): both stamps in seconds, both ids, the confidence, both poses where given, and the
+        verified relative pose on maps with keyframes; or (`g2o`) the verified closures as
+        `EDGE_SE3:QUAT` lines."""
         return self._send(_core.export_loop_closures(map_id, fmt))
 
     def recent(self, map_id: str, *, limit: int = 50, stream: str | None = None) -> models.RecentAnswers:

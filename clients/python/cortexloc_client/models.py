@@ -42,6 +42,7 @@ __all__ = [
     "StreamReset",
     "StreamsMemory",
     "TmMemory",
+    "Verification",
     "Versions",
 ]
 
@@ -104,6 +105,8 @@ class MapParams(_Reply):
     #: How the map's frames become the backbone's square input: "crop" (the middle) or "squash" (all of
     #: it); frozen with the map (None from an older server).
     resize: str | None = None
+    #: {"features", "max"}: the local features kept per learned frame (None: none kept, or an older server).
+    keyframes: dict[str, Any] | None = None
 
 
 class Map(_Reply):
@@ -127,6 +130,8 @@ class Map(_Reply):
     backbone: str | None = None
     #: Confidence at or above which a place is called a revisit (changeable with `update_map`).
     revisit_threshold: float | None = None
+    #: A revisit needs a verified keyframe (changeable with `update_map`; False from an older server).
+    verify_revisit: bool = False
     #: A small JPEG is kept with each learned observation (chosen at creation, frozen).
     thumbnails: bool = False
     #: The map's snapshots (every kind) and their bytes on disk.
@@ -183,6 +188,9 @@ class StorageMemory(_Reply):
     db_bytes: int
     wal_bytes: int
     snapshots_bytes: int
+    #: Rows with keyframes and the bytes of their features and cameras, within db_bytes (0: older server).
+    keyframes: int = 0
+    keyframe_bytes: int = 0
 
 
 class Memory(_Reply):
@@ -265,6 +273,25 @@ class Match(_Reply):
     metadata: Metadata | None = None
 
 
+class Verification(_Reply):
+    """A revisit candidate's geometric check against a stored keyframe (maps with keyframes): inliers of
+    the chosen model (homography | fundamental) and, with the stream's camera, the relative pose
+    X_query = rotation @ X_keyframe + translation (a unit vector); `reason` says why not verified or why
+    no pose."""
+
+    verified: bool
+    keyframe_seq: int | None = None
+    matches: int = 0
+    inliers: int = 0
+    inlier_ratio: float = 0.0
+    model: str | None = None
+    rotation: list[list[float]] | None = None
+    rotation_deg: float | None = None
+    translation: list[float] | None = None
+    reason: str | None = None
+    ms: float = 0.0
+
+
 class Place(_Reply):
     """The sequence-level answer: where the stream is, how sure, and whether it is a revisit."""
 
@@ -276,6 +303,8 @@ class Place(_Reply):
     revisit: bool
     support: int | None = None
     metadata: Metadata | None = None
+    #: The geometric check of a revisit candidate (None: not checked, or an older server).
+    verification: Verification | None = None
 
 
 class Versions(_Reply):
@@ -348,6 +377,8 @@ class LoopClosure(_Reply):
     confidence: float
     support: int
     created_at: str
+    #: The place's geometric verification as the reply gave it (maps with keyframes; None elsewhere).
+    verification: Verification | None = None
 
 
 class LoopClosureList(_Reply):

@@ -60,6 +60,18 @@ def test_create_map_sends_the_memory_and_localiser_options(client: Client, tiny_
         client.delete_map(map_id)
 
 
+def test_keyframes_and_verify_revisit_round_trip(client: Client, tiny_params: dict) -> None:
+    map_id = f"t-{uuid.uuid4().hex[:10]}"
+    made = client.create_map(map_id, keyframes={"features": "orb", "max": 300}, **tiny_params)
+    try:
+        assert made.params.keyframes == {"features": "orb", "max": 300} and made.verify_revisit is False
+        assert client.update_map(map_id, verify_revisit=True).verify_revisit is True
+        assert client.get_map(map_id).revisit_threshold == made.revisit_threshold  # untouched
+        assert client.memory(map_id).storage.keyframes == 0
+    finally:
+        client.delete_map(map_id)
+
+
 def test_a_revisited_place_is_the_first_match(client: Client, tiny_map: str, make_frame) -> None:
     seqs = {}
     for place in range(5):

@@ -33,13 +33,13 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from models import pipeline
+from models import geometry, pipeline
 from models.frontend import slsbh
 from models.frontend.images import RawFrame
 from models.localisation import InvertedIndex, Localisation
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import Stream, eviction_wait, memory_state, touch
-from service.maps import recovery
+from service.maps import keyframes, recovery
 from service.maps.config import MapConfig, map_model
 from service.maps.encoding.pool import EncoderPool
 from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable, StreamLimit
@@ -54,6 +54,7 @@ from service.maps.results import (
     SequenceStats,
     SnapshotInfo,
     StreamReset,
+    VerificationResult,
 )
 from service.maps.runtime import idempotency, sizes
 from service.maps.runtime.budget import MemoryBudget, index_row_bytes
@@ -80,7 +81,7 @@ class MapRuntime:
                  snapshot_every: int = 0, snapshot_keep: int = 3, *, max_keys: int | None = None,
                  key_cache: int = 0, budget: MemoryBudget | None = None,
                  stream_keep_seconds: float = 0.0, manual_keep: int = 0, manual_bytes: int = 0,
-                 max_closures: int | None = None) -> None:
+                 verify_neighbours: int = 2, max_closures: int | None = None) -> None:
         self.record = record
         self.map_id = record.map_id
         # Stored options this version rejects raise InvalidConfiguration: the registry serves a FailedMap.
@@ -125,6 +126,10 @@ class MapRuntime:
             self.hasher = slsbh.Hasher(projection, float(self.config.slsbh["s"]))
         except (slsbh.ProjectionError, OSError) as e:
             self._projection_error = str(e)
+        # Keyframes (docs/design/science.md §12): how many route neighbours a verification tries, each
+        # stream's camera (the options themselves are the config's: keyframes, verify_revisit).
+        self.verify_neighbours = verify_neighbours
+        self.cameras: dict[str, dict[str, Any]] = {}  # given once per stream (or with each frame)
         # The memory, index and links the pure pipeline steps (models.pipeline); this runtime keeps
         # their order, their persistence and their snapshots.
         self.model = map_model(self.config, max_observations=max_observations)
@@ -349,19 +354,26 @@ class MapRuntime:
         # Localised frames too: their thumbnail is kept in the recent ring only (never stored).
         encoding = pool.submit(body, hasher=self.hasher, backbone=self.config.backbone,
                                thumbnail=self.config.thumbnails, resize=self.config.resize)
+        # Local features at the native resolution, while the backbone encodes (docs/design/science.md
+        # §12.1); bounded by the pool's admission above. The stream's camera: this frame's, else the last.
+        camera = (metadata or {}).get("camera") or self.cameras.get(stream)
+        frame = None if self.config.keyframes is None else asyncio.ensure_future(asyncio.to_thread(
+            keyframes.extract_frame, body, self.config.keyframes, camera))
         before, mine = self._turn, asyncio.Event()
         self._turn = mine
         try:
             encoded = await asyncio.wrap_future(encoding)
+            query = None if frame is None else await frame
             t_encoded = time.perf_counter()
             await before.wait()
             assert encoded.projected is not None  # the pool projects when given a hasher
-            front = {"decode": encoded.timings_ms["decode"], "encode": (t_encoded - t0) * 1e3}
+            front = {"decode": encoded.timings_ms["decode"], "encode": (t_encoded - t0) * 1e3,
+                     **({} if query is None else {"features": query.ms})}
             thumb = encoded.thumbnails[0] if encoded.thumbnails else None
             apply = functools.partial(
                 self.apply, encoded.projected[0], hashlib.sha256(getattr(body, "data", body)).hexdigest(),
                 learn=learn, stream=stream, top_k=top_k, label=label, metadata=metadata,
-                thumbnail=thumb if learn else None, post=post)
+                thumbnail=thumb if learn else None, post=post, query=query)
             if post is not None:
                 post.front_ms = front
                 assert self.store is not None  # a ready map has its store
@@ -378,7 +390,8 @@ class MapRuntime:
 
     def apply(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None = None, thumbnail: bytes | None = None,
-              post: idempotency.IdempotentPost | None = None) -> ObservationResult:
+              post: idempotency.IdempotentPost | None = None,
+              query: keyframes.QueryFrame | None = None) -> ObservationResult:
         """Writer: one frame's TM step on the stream's context, ranking, and for learning the commit.
 
         Args:
@@ -386,6 +399,8 @@ class MapRuntime:
             image_sha256: hex digest of the image bytes (stored, never the image).
             metadata, thumbnail: stored with a learned row (docs/design/service.md §4.2).
             post: an idempotent post: a learned row commits with its sealed reply.
+            query: the frame's local features and camera (maps with keyframes): a learned row stores
+                them; a revisit candidate is verified with them (docs/design/science.md §12).
 
         Returns:
             The result; `timings_ms` holds hash, tm, search and store.
@@ -406,7 +421,7 @@ class MapRuntime:
             self.budget.grow_index(self.map_id, self.row_bytes)  # set right by the recovery it causes)
         try:
             return self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k, label=label,
-                              metadata=metadata, thumbnail=thumbnail, post=post)
+                              metadata=metadata, thumbnail=thumbnail, post=post, query=query)
         except Exception as e:
             if not learn:  # a localisation learns nothing: the memory and the store still agree
                 if isinstance(e, StorageFull):  # its loop closure could not be logged: no answer either
@@ -426,7 +441,8 @@ class MapRuntime:
 
     def _step(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None, thumbnail: bytes | None,
-              post: idempotency.IdempotentPost | None) -> ObservationResult:
+              post: idempotency.IdempotentPost | None,
+              query: keyframes.QueryFrame | None = None) -> ObservationResult:
         """Writer: `apply` after its checks: the pure step (`models.pipeline.observe`), then the reply
         from the stored rows it names and, for learning, the row on disk. An exception here while
         learning is rebuilt from by `apply` (the step already holds the row in the index and links)."""
@@ -439,9 +455,16 @@ class MapRuntime:
         t3 = time.perf_counter()
         place = step.place
         rows = self.store.get_many([*(m.seq for m in step.ranked), *([place.seq] if place else [])])
+        if query is not None and query.camera is not None:
+            self.cameras[stream] = query.camera
+            if len(self.cameras) > self.max_streams:  # bounded: the cameras of the streams held
+                self.cameras = {k: v for k, v in self.cameras.items() if k in self.streams}
+        kf = None if query is None else (geometry.pack(query.features), query.camera)
         row = NewObservation(stream=stream, image_sha256=image_sha256, input_sdr=step.code,
                              winner_cells=step.winners, context_prev_seq=step.prev_seq, label=label,
-                             metadata=metadata, thumbnail=thumbnail) if learn else None
+                             metadata=metadata, thumbnail=thumbnail, keyframe=kf) if learn else None
+        answer = None if place is None else self._verified(
+            PlaceResult.of(place, rows[place.seq], self.config.revisit_threshold), query, stream)
         # The answer is whole before the commit, so an idempotent post's reply commits with its row.
         result = ObservationResult(
             map_id=self.map_id, stream=stream, learned=learn, observation_id=row and row.observation_id,
@@ -449,14 +472,16 @@ class MapRuntime:
             matches=[Match.of(i + 1, rows[m.seq], m.overlap, m.score) for i, m in enumerate(step.ranked)],
             timings_ms=step.timings_ms, map_seq=seq or self.store.last_seq(),
             projection_sha256=self.config.projection_sha256, backbone=self.config.backbone, metadata=metadata,
-            encoder=self.config.encoder_id, resize=self.config.resize,
-            place=None if place is None else PlaceResult.of(place, rows[place.seq],
-                                                            self.config.revisit_threshold))
+            encoder=self.config.encoder_id, resize=self.config.resize, place=answer)
         # A revisit is a loop closure, logged durably: with the learned row in its transaction, or alone
-        # for a localising stream (it stores no observation and changes no memory; §11.6).
+        # for a localising stream (it stores no observation and changes no memory; §11.6). It carries
+        # the place's geometric verification where there is one (docs/design/science.md §12).
+        verified = None if answer is None or answer.verification is None else dataclasses.asdict(
+            answer.verification)
         closure = None if result.place is None or not result.place.revisit else NewClosure(
             stream=stream, place_seq=result.place.seq, confidence=result.place.confidence,
-            support=result.place.support, metadata=metadata, key=post.key if post is not None else None)
+            support=result.place.support, metadata=metadata, key=post.key if post is not None else None,
+            verification=verified)
         if row is None and closure is not None:
             self.store.add_closure(closure)
         if row is not None:
@@ -470,6 +495,19 @@ class MapRuntime:
                 self._auto_snapshot()
         t4 = time.perf_counter()
         return dataclasses.replace(result, timings_ms={**result.timings_ms, "store": (t4 - t3) * 1e3})
+
+    def _verified(self, place: PlaceResult, query: keyframes.QueryFrame | None, stream: str) -> PlaceResult:
+        """Writer: a revisit candidate's geometric verification (docs/design/science.md §12.2), on maps
+        with keyframes only; with `verify_revisit` an unverified candidate is no revisit."""
+        if not place.revisit or self.config.keyframes is None or self.store is None:
+            return place
+        if query is None:  # the frame could not be decoded for features (the encoder decoded it)
+            v = VerificationResult(verified=False, reason="no-features")
+        else:
+            route = self.localisation.graph.within(place.seq, self.verify_neighbours)
+            v = keyframes.verify_place(self.store, place.seq, place.stream, route, query, stream=stream)
+        revisit = place.revisit and (v.verified or not self.config.verify_revisit)
+        return dataclasses.replace(place, verification=v, revisit=revisit)
 
     def _code_of(self, seq: int) -> np.ndarray:
         """Writer: a stored row's frame code (its sLSBH input SDR), for the own-trail rule (§11.6)."""
@@ -488,11 +526,21 @@ class MapRuntime:
                           **map_snapshots.disk_use(self.catalog, self.map_id))
 
     def set_revisit_threshold(self, value: float) -> MapInfo:
-        """Writer: the map's revisit threshold, durable in the catalog (docs/design/service.md §1.2);
-        InvalidConfiguration outside [0, 1] (nothing changes)."""
-        config = self.config.with_revisit_threshold(value)
-        self.record = self.catalog.update_params(self.map_id, revisit_threshold=config.revisit_threshold)
-        self.config = config
+        """Writer: the map's revisit threshold (`patch`)."""
+        return self.patch(revisit_threshold=value)
+
+    def patch(self, *, revisit_threshold: float | None = None, verify_revisit: bool | None = None) -> MapInfo:
+        """Writer: the options that may change after creation, durable in the catalog in one update
+        (docs/design/service.md §1.2): the revisit threshold, and whether a revisit needs a verified
+        keyframe. InvalidConfiguration (nothing changes): a threshold outside [0, 1], verify_revisit on a
+        map without keyframes."""
+        changes = {k: v for k, v in (("revisit_threshold", revisit_threshold),
+                                     ("verify_revisit", verify_revisit)) if v is not None}
+        if changes:
+            config = self.config.with_changes(**changes)
+            self.record = self.catalog.update_params(
+                self.map_id, **{k: getattr(config, k) for k in changes})
+            self.config = config
         return self.info()
 
     def memory(self) -> MemoryInfo:

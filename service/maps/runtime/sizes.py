@@ -20,6 +20,7 @@ def memory_info(model: MapModel, streams: Mapping[str, Stream], *, tm_params: Ma
     """Writer: exact sizes, counts and caps of a map's memory, index, streams and files."""
     tm, index = model.tm, model.index
     size = tm.size()
+    keyframes, keyframe_bytes = store.keyframe_bytes() if store else (0, 0)
     return MemoryInfo(
         tm=TmMemory(columns=size["columns"], cells_per_column=tm.cells_per_column,
                     cells=size["cells"],
@@ -37,5 +38,6 @@ def memory_info(model: MapModel, streams: Mapping[str, Stream], *, tm_params: Ma
         projection_bytes=projection.stat().st_size if projection.exists() else 0,
         storage=StorageMemory(db_bytes=store.db_bytes() if store else 0,
                               wal_bytes=store.wal_bytes() if store else 0,
-                              snapshots_bytes=snapshots_bytes),
+                              snapshots_bytes=snapshots_bytes, keyframes=keyframes,
+                              keyframe_bytes=keyframe_bytes),
         process_rss_bytes=rss_bytes())

@@ -31,7 +31,7 @@ export function closureRows(log) {
     el("td", { class: "num" }, num(c.support))));
 }
 
-/** Save the whole log as `format` (csv | jsonl). */
+/** Save the whole log as `format` (csv | jsonl | g2o: the verified closures as edges). */
 export async function saveExport(mapId, format) {
   const blob = await getBlob(`/v1/maps/${encodeURIComponent(mapId)}/loop-closures/export?format=${format}`);
   if (!blob) return;

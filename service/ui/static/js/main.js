@@ -285,7 +285,7 @@ $("key-form").addEventListener("submit", (ev) => {
   $("api-key").value = "";
   poll();
 });
-for (const format of ["csv", "jsonl"]) {
+for (const format of ["csv", "jsonl", "g2o"]) {
   $(`export-${format}`).addEventListener("click", () => { const m = selectedMap(); if (m) saveExport(m.map_id, format); });
 }
 $("stream").addEventListener("change", () => { state.stream = $("stream").value; poll(); });

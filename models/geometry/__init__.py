@@ -1,0 +1,17 @@
+"""Geometric verification of a revisit (docs/design/science.md §12): local features per frame
+(`features`), matching, RANSAC with model selection and the relative pose (`verify`). Pure numpy and
+OpenCV: no storage, no threads."""
+
+from models.geometry.features import (
+    EXTRACTORS,
+    Features,
+    KeyframeParams,
+    available,
+    extract,
+    pack,
+    unpack,
+)
+from models.geometry.verify import Camera, Verification, quaternion, verify
+
+__all__ = ["EXTRACTORS", "Camera", "Features", "KeyframeParams", "Verification", "available", "extract",
+           "pack", "quaternion", "unpack", "verify"]
