@@ -24,11 +24,11 @@ from typing import Any
 import numpy as np
 from _common import quick_mode, write_json
 
-from common.files import sha256_file
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import memory_state
 from service.maps.config import MapOptions, resolve
 from storage import snapshots
+from storage.base.files import sha256_file
 from storage.mapstore import MapMeta, MapStore, NewObservation, cell_dtype_for
 
 

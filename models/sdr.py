@@ -11,7 +11,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from common.dtypes import INDEX_DTYPE  # one home, shared with storage (common/dtypes.py)
+from storage.base.dtypes import INDEX_DTYPE  # one home, shared with the store (storage/base/dtypes.py)
 
 
 def from_dense(dense: np.ndarray) -> np.ndarray:

@@ -65,8 +65,8 @@ def resolve_backbone(settings: Settings) -> Settings:
 
 def encoder_weights_info(encoder: Encoder) -> dict[str, Any]:
     """What /readyz reports about the weights: `weights_id`, and the file's SHA-256 (or the seed)."""
-    from common.files import sha256_file
     from models.frontend import weights
+    from storage.base.files import sha256_file
 
     info: dict[str, Any] = {"weights_id": encoder.weights_id}
     if encoder.weights_id.startswith("random"):

@@ -20,8 +20,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import IO, BinaryIO
 
-from common.files import atomic_write, fsync_dir
 from storage._common import StorageFull, is_full_error
+from storage.base.files import atomic_write, fsync_dir
 from storage.manifest import (
     MANIFEST_FILE,
     PROJECTION_FILE,

@@ -188,7 +188,7 @@ def parse_manifest(body: bytes, where: str) -> Manifest:
 
 
 def _digest(path: Path) -> str:
-    # Deliberately not common.files.sha256_file: its cache is keyed by (path, mtime, size), so bit rot
+    # Deliberately not storage.base.files.sha256_file: its cache is keyed by (path, mtime, size), so bit rot
     # or a same-size overwrite within one clock tick would be answered from the cache. Verification
     # must read the bytes.
     with path.open("rb") as f:

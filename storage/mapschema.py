@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from common.dtypes import INDEX_DTYPE
-from common.files import fsync_dir
 from storage._common import StorageError, connect, transaction, utc_now
+from storage.base.dtypes import INDEX_DTYPE
+from storage.base.files import fsync_dir
 
 __all__ = [
     "CELL_DTYPES",
@@ -318,7 +318,7 @@ class LoopClosure:
 
 @dataclass(frozen=True, eq=False)
 class Observation:
-    """A stored observation; arrays are decoded to `common.dtypes.INDEX_DTYPE` (int32), sorted.
+    """A stored observation; arrays are decoded to `storage.base.dtypes.INDEX_DTYPE` (int32), sorted.
 
     `eq=False` because numpy arrays do not compare to a single bool; compare fields explicitly.
     """

@@ -24,8 +24,8 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from common.files import atomic_write
 from storage._common import StorageError, StorageFull, StoreClosed, connect, is_full_error, transaction
+from storage.base.files import atomic_write
 from storage.mapschema import (
     CELL_DTYPES,
     COLUMNS,

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from common.files import atomic_write, fsync_dir, sha256_file
 from storage._common import StorageFull, connect, is_full_error, utc_now
 from storage.archive import TarExport, import_tar
+from storage.base.files import atomic_write, fsync_dir, sha256_file
 from storage.catalog import SNAPSHOT_KINDS
 from storage.manifest import (
     DB_FILE,

@@ -14,7 +14,7 @@ import grimp
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("common", "models", "storage", "service")
+PACKAGES = ("models", "storage", "service")
 
 
 @pytest.fixture(scope="module")
@@ -27,9 +27,10 @@ def graph() -> grimp.ImportGraph:
 
 
 def test_the_layer_contracts_hold():
-    """routes -> domain -> models | storage -> common; no HTTP module imports storage; storage and
-    models independent; the models' stages apart (each contract is named in pyproject.toml). In a child
-    process: import-linter reconfigures logging, which later tests' log captures would miss."""
+    """routes -> domain -> models -> storage.base; no HTTP module imports storage's stores; storage
+    imports nothing of the models; the models use only storage.base; the models' stages apart (each
+    contract is named in pyproject.toml). In a child process: import-linter reconfigures logging, which
+    later tests' log captures would miss."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     code = ("import sys; from importlinter.cli import lint_imports; "
             "sys.exit(lint_imports(config_filename='pyproject.toml', no_cache=True))")

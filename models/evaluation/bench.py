@@ -10,9 +10,9 @@ from typing import Any
 
 import numpy as np
 
-from common.process import rss_bytes
 from models import presets
 from models.memory.temporal_memory import TemporalMemory
+from storage.base.process import rss_bytes
 
 
 def rss_mb() -> float:

@@ -15,7 +15,6 @@ from typing import Any
 
 import numpy as np
 
-from common.files import atomic_write, sha256_file
 from models import presets, sdr
 from models.evaluation import metrics, online
 from models.evaluation import seqslam as seq
@@ -24,6 +23,7 @@ from models.frontend.adaptation import running_mean_subtract
 from models.frontend.encoder import Encoder
 from models.memory.mcn import MCN
 from models.memory.temporal_memory import TemporalMemory
+from storage.base.files import atomic_write, sha256_file
 
 # "X-seq" is method X's single-image similarity through the OpenSeqSLAM matcher (models.evaluation.
 # seqslam: contrast enhancement, full straight paths of ds frames centred on the query); `openseqslam` is

@@ -39,8 +39,8 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from common.files import atomic_write
 from models.frontend.backbones import Backbone
+from storage.base.files import atomic_write
 
 __all__ = ["DEVICES", "OPSET", "RUNTIMES", "DeviceUnavailableError", "OnnxRunner", "Runner", "TorchRunner",
            "export_onnx", "make_runner", "onnx_model"]

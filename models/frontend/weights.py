@@ -50,7 +50,7 @@ from typing import Any, BinaryIO
 
 import torch
 
-from common.files import atomic_write, sha256_file
+from storage.base.files import atomic_write, sha256_file
 
 ALEXNET_URL = "https://download.pytorch.org/models/alexnet-owt-7be5be79.pth"
 ALEXNET_SHA256_PREFIX = "7be5be79"

@@ -50,7 +50,7 @@ def write_json(path: Path | None, payload: dict[str, Any]) -> None:
     """Write `payload` to `path` atomically (nothing when `path` is None); NumPy values as plain JSON."""
     if path is None:
         return
-    from common.files import atomic_write
+    from storage.base.files import atomic_write
 
     path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(payload, indent=2, default=_jsonable).encode()

@@ -24,13 +24,13 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 
-from common.files import sha256_file
 from models.evaluation import sequences
 from models.frontend.encoder import Encoder
 from models.frontend.images import RawFrame
 from service.evaluation import service_path
 from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 from service.settings import Settings
+from storage.base.files import sha256_file
 
 MODES = ("crop", "squash")
 

@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 
-from common.process import rss_bytes
 from models.frontend import slsbh
 from models.localisation.index import warm_up as index_warm_up
 from models.memory.temporal_memory import TemporalMemory
@@ -35,6 +34,7 @@ from service.maps.results import BudgetInfo, MapReservation
 from service.maps.runtime import MapRuntime
 from service.maps.runtime import budget as map_budget
 from storage import snapshots
+from storage.base.process import rss_bytes
 from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord
 from storage.layout import Layout
 from storage.mapstore import MapMeta, MapStore, StorageError, cell_dtype_for

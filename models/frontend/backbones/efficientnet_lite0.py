@@ -65,8 +65,8 @@ import torch
 from torch import nn
 from torch.nn import functional
 
-from common.files import sha256_file
 from models.frontend.backbones import Backbone, register
+from storage.base.files import sha256_file
 
 __all__ = [
     "BLOCKS",

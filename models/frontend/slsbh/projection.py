@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
-from common.files import atomic_write
 from models import presets
+from storage.base.files import atomic_write
 
 D_CONV3 = 64_896  # 384×13×13 AlexNet conv3 values (docs/design/science.md §6)
 

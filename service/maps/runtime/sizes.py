@@ -6,9 +6,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from common.process import rss_bytes
 from models.pipeline import MapModel, Stream
 from service.maps.results import IndexMemory, MemoryInfo, StorageMemory, StreamsMemory, TmMemory
+from storage.base.process import rss_bytes
 from storage.mapstore import MapStore
 
 __all__ = ["memory_info"]

@@ -9,9 +9,9 @@ import pytest
 import torch
 from torch.nn import functional
 
-from common.files import sha256_file
 from models.frontend import images
 from models.frontend.backbones import efficientnet_lite0 as effnet
+from storage.base.files import sha256_file
 
 skdata = pytest.importorskip("skimage.data")
 
