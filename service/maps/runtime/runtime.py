@@ -33,6 +33,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+import service.maps.runtime.idempotency as idempotency  # the module, not the package: no cycle via __init__
+import service.maps.runtime.sizes as sizes
 from models import geometry, pipeline
 from models.frontend import slsbh
 from models.frontend.images import RawFrame
@@ -56,7 +58,6 @@ from service.maps.results import (
     StreamReset,
     VerificationResult,
 )
-from service.maps.runtime import idempotency, sizes
 from service.maps.runtime.budget import MemoryBudget, index_row_bytes
 from service.maps.runtime.recent import RecentAnswers
 from storage import snapshots
