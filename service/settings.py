@@ -133,7 +133,7 @@ class Settings(BaseSettings):
                                        "slot is that recent (0: least recently used evicted at once)")
     memory_budget_bytes: int | None = Field(None, ge=1, description="RAM all maps and encoders may hold "
                                             "together; unset: half the smaller of host memory and the "
-                                            "cgroup limit (service/maps/budget.py)")
+                                            "cgroup limit (service/maps/runtime/budget.py)")
     max_top_k: int = Field(100, ge=0)
     idempotency_keys: int = Field(100_000, ge=1, description="Idempotency-Keys kept per map: those of the "
                                   "learned posts of the last N seqs, in map.sqlite")

@@ -237,6 +237,16 @@ class Encoder:
             out.features = None
         return out
 
+    @property
+    def decode_limits(self) -> dict[str, int]:
+        """The byte and pixel limits every decode of this encoder applies (its `max_bytes`, `max_pixels`)."""
+        return {"max_bytes": int(self.conf["max_bytes"]), "max_pixels": int(self.conf["max_pixels"])}
+
+    def decode(self, data: bytes | images.RawFrame) -> np.ndarray:
+        """One upload to (H, W, 3) uint8 RGB at its native resolution, within this encoder's limits (what
+        `embed` decodes, for work beside the backbone such as local features)."""
+        return images.decode(data, **self.decode_limits)
+
     def embed(self, data: Sequence[bytes | images.RawFrame],
               thumbnails: Sequence[bool] | None = None, resize: str | None = None) -> EncodeResult:
         """Backbone features of a batch of uploaded images (no hashing: `codes` is None).
@@ -256,7 +266,7 @@ class Encoder:
                 refused; the service's encoder pool then encodes each image of that batch alone, so one
                 bad upload fails only its own request).
         """
-        limits = {"max_bytes": int(self.conf["max_bytes"]), "max_pixels": int(self.conf["max_pixels"])}
+        limits = self.decode_limits
         kw = {"mode": _check_resize(resize or self.conf["resize"]), "mean": self.input_mean,
               "std": self.input_std}
         timings = dict.fromkeys(STAGES[:3], 0.0)

@@ -11,7 +11,7 @@ import io
 import json
 import math
 from collections.abc import Iterator
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
@@ -34,9 +34,10 @@ EXPORT_COLUMNS = ("stamp", "observation_id", "seq", "stream", "place_stamp", "pl
 #: Export media types by format.
 EXPORT_FORMATS = {"csv": "text/csv; charset=utf-8", "jsonl": "application/jsonl",
                   "g2o": "text/plain; charset=utf-8"}
-#: The g2o edges' information for the rotation (per radian^2 of each quaternion-vector component): a
-#: standard deviation of 0.01 rad (0.57 degrees), above the worst rotation error of docs/results.md §12
-#: (0.13 degrees, ORB) with room for scenes harder than those. Translation carries no information: two
+#: The g2o edges' information for the rotation, per component of the quaternion's vector part (g2o's
+#: EdgeSE3 error, about half the angle for small rotations): a standard deviation of 0.01 there is 0.02
+#: rad (1.15 degrees) of rotation, above the worst rotation error of docs/results.md §12 (0.13 degrees,
+#: ORB) with room for scenes harder than those. Translation carries no information: two
 #: views give its direction, never its length, so a back end takes the length from odometry.
 G2O_ROTATION_INFORMATION = 1e4
 _EXPORT_PAGE = 1000  # log entries read per query while streaming an export
@@ -64,16 +65,16 @@ def stamp_seconds(metadata: dict[str, Any] | None) -> float | None:
     stamp = (metadata or {}).get("stamp")
     if isinstance(stamp, bool) or stamp is None:
         return None
-    if isinstance(stamp, int | float):
-        return float(stamp) if math.isfinite(stamp) else None
     try:
-        return float(stamp)
+        seconds = float(stamp)  # a number, or a numeric string ("NaN" and "1e999" included)
     except ValueError:
-        pass
-    try:
-        return datetime.fromisoformat(str(stamp)).timestamp()
-    except ValueError:
-        return None
+        try:
+            when = datetime.fromisoformat(str(stamp))
+        except ValueError:
+            return None
+        # ISO text without an offset is UTC: the export must not depend on the server's time zone
+        seconds = (when if when.tzinfo else when.replace(tzinfo=UTC)).timestamp()
+    return seconds if math.isfinite(seconds) else None  # JSON has no NaN or Infinity
 
 
 def _pose(metadata: dict[str, Any] | None) -> tuple[Any, Any, Any]:

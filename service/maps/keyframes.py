@@ -10,12 +10,13 @@ its route neighbours (along the map's links), stopping at the first that verifie
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from models import geometry
-from models.frontend import images
 from models.frontend.images import ImageError, RawFrame
 from service.maps.results import VerificationResult
 from storage.mapstore import MapStore
@@ -33,13 +34,14 @@ class QueryFrame:
     ms: float
 
 
-def extract_frame(body: bytes | RawFrame, keyframes: dict[str, Any], camera: dict[str, Any] | None
-                  ) -> QueryFrame | None:
-    """Worker thread: decode the frame at its native resolution and take its features (the map's
-    `keyframes` option). None when it cannot be decoded: the encoder reports that error."""
+def extract_frame(decode: Callable[[bytes | RawFrame], np.ndarray], body: bytes | RawFrame,
+                  keyframes: dict[str, Any], camera: dict[str, Any] | None) -> QueryFrame | None:
+    """Worker thread: decode the frame at its native resolution with the map's encoder (`decode`: its
+    byte and pixel limits, the service's settings) and take its features (the map's `keyframes` option).
+    None when it cannot be decoded: the encoder reports that error."""
     t0 = time.perf_counter()
     try:
-        rgb = images.decode(body)  # checked by the route's probe before (sizes, pixels)
+        rgb = decode(body)
     except ImageError:
         return None
     f = geometry.extract(rgb, keyframes["features"], int(keyframes["max"]))

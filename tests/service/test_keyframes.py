@@ -249,3 +249,17 @@ def test_a_route_neighbour_verifies_when_the_place_itself_does_not(tmp_path):
         off_route = verify_place(store, 2, "default", [1, 2], query, stream="robot")
     assert on_route.verified and on_route.keyframe_seq == 3 and abs(on_route.rotation_deg - 3.0) < 1.0
     assert not off_route.verified and off_route.keyframe_seq in (1, 2)
+
+
+def test_a_frame_within_raised_upload_limits_keeps_its_keyframe(tmp_path):
+    """The keyframe is decoded within the service's own limits (the encoder's), not the defaults: with
+    `CORTEXLOC_MAX_UPLOAD_BYTES` raised, a frame over the default 10 MiB is learned with its features."""
+    rgb = np.random.default_rng(5).integers(0, 256, (1900, 2000, 3), dtype=np.uint8)  # noise: PNG > 10 MiB
+    body = png(rgb)
+    assert len(body) > 10 * 2**20
+    with make_client(tmp_path / "data", max_upload_bytes=16 * 2**20) as c:
+        make_map(c)
+        r = post(c, body, map_id="kf", stream="mapper", top_k=0)
+        assert r.status_code == 200, r.text
+        sizes = c.get("/v1/maps/kf/memory").json()["storage"]
+        assert sizes["keyframes"] == 1 and sizes["keyframe_bytes"] > 16

@@ -359,7 +359,8 @@ class MapRuntime:
         # §12.1); bounded by the pool's admission above. The stream's camera: this frame's, else the last.
         camera = (metadata or {}).get("camera") or self.cameras.get(stream)
         frame = None if self.config.keyframes is None else asyncio.ensure_future(asyncio.to_thread(
-            keyframes.extract_frame, body, self.config.keyframes, camera))
+            keyframes.extract_frame, pool.encoders.get(self.config.backbone).decode, body,
+            self.config.keyframes, camera))
         before, mine = self._turn, asyncio.Event()
         self._turn = mine
         try:
