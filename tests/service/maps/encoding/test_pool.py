@@ -5,11 +5,13 @@ measured why the pool projects: docs/benchmarks.md §1)."""
 
 from __future__ import annotations
 
+from concurrent.futures import Future
 from functools import partial
 
 import numpy as np
 import pytest
 
+from models.frontend.encoder import EncodeResult, Prepared
 from models.frontend.images import ImageError
 from models.frontend.slsbh import Hasher, make_projection
 from service.maps.encoding.encoders import Encoders
@@ -18,15 +20,25 @@ from tests.service.helpers import frame, held_encoder, make_client
 
 
 class FakeEncoder:
-    """`embed` returns one fixed feature row per image (derived from its bytes); b"bad" fails."""
+    """`embed` returns one fixed feature row per image (derived from its bytes); b"bad" fails.
+    `prepare` + `embed_prepared` (what the pool calls) give the same rows."""
 
     def __init__(self) -> None:
         self.calls: list[int] = []
         self.modes: list[tuple[bytes, str | None]] = []  # each image with the mode it was embedded with
 
-    def embed(self, data, resize=None):
-        from models.frontend.encoder import EncodeResult
+    def prepare(self, body, thumbnail=False, resize=None):
+        fut = Future()
+        if body == b"bad":
+            fut.set_exception(ImageError("truncated", "the image data ends early"))
+        else:
+            fut.set_result(Prepared((body, resize), None, 0.0, 0.0))
+        return fut
 
+    def embed_prepared(self, prepared):
+        return self.embed([f.result().x[0] for f in prepared], resize=prepared[0].result().x[1])
+
+    def embed(self, data, resize=None):
         self.calls.append(len(data))
         self.modes.extend((b, resize) for b in data)
         if any(b == b"bad" for b in data):
