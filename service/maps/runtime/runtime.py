@@ -405,7 +405,8 @@ class MapRuntime:
                 them; a revisit candidate is verified with them (docs/design/science.md §12).
 
         Returns:
-            The result; `timings_ms` holds hash, tm, search and store.
+            The result; `timings_ms` holds hash, tm, search (of which localiser), store and, for a
+            learned row, commit (its durable write, within store).
 
         Raises:
             ValueError: `projected` is not (k,) (before any state change). MapUnavailable, MapFull,
@@ -489,14 +490,18 @@ class MapRuntime:
         if row is not None:
             if post is not None:
                 row = dataclasses.replace(row, key=post.record(result))
+            t_commit = time.perf_counter()
             committed = self.store.append(dataclasses.replace(row, closure=closure))
+            commit_ms = (time.perf_counter() - t_commit) * 1e3
             assert committed == seq  # this thread is the store's only writer
             # The stream's step is recorded before the automatic snapshot, so the snapshot holds the
             # stream as it is after this frame.
             if self.snapshot_every and committed % self.snapshot_every == 0:
                 self._auto_snapshot()
         t4 = time.perf_counter()
-        return dataclasses.replace(result, timings_ms={**result.timings_ms, "store": (t4 - t3) * 1e3})
+        # store: the reply's stored rows, verification and the durable write; commit: the write alone.
+        stored = {"store": (t4 - t3) * 1e3, **({"commit": commit_ms} if row is not None else {})}
+        return dataclasses.replace(result, timings_ms={**result.timings_ms, **stored})
 
     def _verified(self, place: PlaceResult, query: keyframes.QueryFrame | None, stream: str) -> PlaceResult:
         """Writer: a revisit candidate's geometric verification (docs/design/science.md §12.2), on maps
