@@ -378,11 +378,15 @@ class MapRuntime:
         frame = None if self.config.keyframes is None else asyncio.ensure_future(asyncio.to_thread(
             keyframes.extract_frame, pool.encoders.get(self.config.backbone).decode, body,
             self.config.keyframes, camera))
+        # The digest stored with the row, off the event loop (a 10 MB raw frame takes ~20 ms to hash)
+        # and beside the encoding.
+        digest = asyncio.ensure_future(asyncio.to_thread(_sha256, getattr(body, "data", body)))
         before, mine = self._turn, asyncio.Event()
         self._turn = mine
         try:
             encoded = await asyncio.wrap_future(encoding)
             query = None if frame is None else await frame
+            image_sha256 = await digest
             t_encoded = time.perf_counter()
             await before.wait()
             assert encoded.projected is not None  # the pool projects when given a hasher
@@ -390,7 +394,7 @@ class MapRuntime:
                      **({} if query is None else {"features": query.ms})}
             thumb = encoded.thumbnails[0] if encoded.thumbnails else None
             apply = functools.partial(
-                self.apply, encoded.projected[0], hashlib.sha256(getattr(body, "data", body)).hexdigest(),
+                self.apply, encoded.projected[0], image_sha256,
                 learn=learn, stream=stream, top_k=top_k, label=label, metadata=metadata,
                 thumbnail=thumb if learn else None, post=post, query=query, durable=False)
             if post is not None:
@@ -581,3 +585,7 @@ class MapRuntime:
         return sizes.memory_info(self.model, self.streams, tm_params=self.config.tm,
                                  max_streams=self.max_streams, projection=self.projection_path,
                                  store=self.store, snapshots_bytes=self.catalog.snapshots_bytes(self.map_id))
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
