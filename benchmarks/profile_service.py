@@ -116,7 +116,8 @@ def main() -> None:
     print("map writer's py-spy samples by function (running or waiting on I/O): " + ", ".join(
         f"{k} {v / total_w:.0%}" for k, v in writer.most_common(8)), flush=True)
     payload: dict[str, Any] = {
-        "server_cmd": args.server_cmd or "cortexloc", "clients": args.clients, "images_per_s": r["images_per_s"], "replies": r["replies"],
+        "server_cmd": args.server_cmd or "cortexloc", "clients": args.clients,
+        "images_per_s": r["images_per_s"], "replies": r["replies"],
         "server_cpu_ms_per_image": server_ms, "client_cpu_ms_per_image": client_ms,
         "server_cpu_ms_per_image_by_thread": dict(by_group.most_common()),
         "writer_samples_by_function": {k: v / total_w for k, v in writer.most_common(12)},
