@@ -21,6 +21,7 @@ import numpy as np
 
 from models.evaluation.online import OnlineAnswers
 from models.frontend import slsbh
+from models.localisation import Place
 from models.pipeline import MapModel, Stream, observe
 from service.maps.config import MapConfig, MapOptions, map_model, resolve
 from service.maps.encoding import projection as map_projection
@@ -49,7 +50,7 @@ def _model(n_rows: int, feature_dim: int, *, backbone: str, preset: str, seed: i
 
 def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: str, seed: int,
                 memory: str = "tm", localiser: dict[str, Any] | None = None,
-                create: dict[str, Any] | None = None,
+                create: dict[str, Any] | None = None, contrast: np.ndarray | None = None,
                 progress: Callable[[int, int], None] | None = None) -> tuple[OnlineAnswers, float]:
     """A whole route as ONE learning stream (every frame learned, `models.pipeline.observe` as the map
     writer calls it): loop closure while mapping (docs/design/science.md §11.6).
@@ -58,8 +59,9 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
         feats: (T, D) backbone features in driven order (all laps). Other arguments as `replay`.
 
     Returns:
-        (answers over the route's own frames: best = the frame the `place` names, -1 in warm-up; S is
-        empty (0, T)), and the map's `revisit_threshold`.
+        (answers over the route's own frames: best = the frame the `place` names, -1 in warm-up;
+        confidence 0 where the frame is too flat to be a revisit, §11.7; S is empty (0, T)), and the
+        map's `revisit_threshold`.
     """
     del encoder_id
     T = len(feats)
@@ -69,18 +71,28 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
     best, confidence, support = np.full(T, -1, np.int64), np.zeros(T), np.zeros(T, np.int64)
     for i, y in enumerate(hasher.project(feats)):  # seq i + 1 is frame i
         step = observe(model, robot, y, learn=True, stream="robot", top_k=0, seq=i + 1,
-                       code_of=codes.__getitem__)
+                       code_of=codes.__getitem__, contrast=_at(contrast, i))
         codes[i + 1] = step.code
         if step.place is not None:
-            best[i], confidence[i], support[i] = step.place.seq - 1, step.place.confidence, step.place.support
+            best[i], confidence[i], support[i] = step.place.seq - 1, _decided(step.place), step.place.support
         if progress:
             progress(i + 1, T)
     return OnlineAnswers(best, confidence, support, np.zeros((0, T))), config.revisit_threshold
 
 
+def _at(contrast: np.ndarray | None, i: int) -> float | None:
+    return None if contrast is None else float(contrast[i])
+
+
+def _decided(place: Place) -> float:
+    """The confidence the revisit decision compares: 0 for a frame too flat to be a revisit at any
+    threshold (`Place.is_revisit`, docs/design/science.md §11.7)."""
+    return place.confidence if place.informative else 0.0
+
+
 def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbone: str, preset: str,
            seed: int, memory: str = "tm", localiser: dict[str, Any] | None = None,
-           create: dict[str, Any] | None = None,
+           create: dict[str, Any] | None = None, contrast: np.ndarray | None = None,
            progress: Callable[[int, int], None] | None = None) -> OnlineAnswers:
     """Learn `db_feats` as one traverse (stream `database`), then localise `q_feats` (stream `query`).
 
@@ -89,11 +101,13 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
         encoder_id, backbone: the encoder they came from (a served map freezes them; here the backbone
             is checked like a created map's, `encoder_id` only names them).
         preset, seed, memory, localiser: the map's `CreateMap` fields; `create`: any further ones.
+        contrast: (n_db + n_q,) each frame's contrast (`models.frontend.images.contrast`), or None.
         progress: called with (frames done, frames in all).
 
     Returns:
         `OnlineAnswers` over database rows 0..n_db-1: the `place` answers (best -1 during warm-up,
-        confidence, support) and S, the query stream's beam scores after each frame (-inf elsewhere).
+        confidence (0 for a frame too flat to be a revisit, §11.7), support) and S, the query stream's
+        beam scores after each frame (-inf elsewhere).
     """
     del encoder_id  # the features are the encoder's; a map would freeze its identity
     n_db, n_q = len(db_feats), len(q_feats)
@@ -103,20 +117,20 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
     database, query = Stream(), Stream()
     for i, y in enumerate(hasher.project(db_feats)):
         codes[i + 1] = observe(model, database, y, learn=True, stream="database", top_k=0, seq=i + 1,
-                               code_of=codes.__getitem__).code
+                               code_of=codes.__getitem__, contrast=_at(contrast, i)).code
         if progress:
             progress(i + 1, n_db + n_q)
     best, confidence = np.full(n_q, -1, np.int64), np.zeros(n_q)
     support, S = np.zeros(n_q, np.int64), np.full((n_db, n_q), -np.inf)
     for j, y in enumerate(hasher.project(q_feats)):
         place = observe(model, query, y, learn=False, stream="query", top_k=0,
-                        code_of=codes.__getitem__).place
+                        code_of=codes.__getitem__, contrast=_at(contrast, n_db + j)).place
         state = query.localiser
         assert state is not None
         live = state.rows >= 0
         np.maximum.at(S[:, j], state.rows[live] - 1, state.scores[live])  # seq s is database row s - 1
         if place is not None:
-            best[j], confidence[j], support[j] = place.seq - 1, place.confidence, place.support
+            best[j], confidence[j], support[j] = place.seq - 1, _decided(place), place.support
         if progress:
             progress(n_db + j + 1, n_db + n_q)
     return OnlineAnswers(best, confidence, support, S)

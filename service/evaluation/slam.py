@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 
 from models.evaluation import seqslam, sequences, slam
+from models.frontend import images
 from models.frontend.encoder import Encoder
 from service.evaluation import service_path
 from service.evaluation.revisit import noisy_png
@@ -72,7 +73,8 @@ class Frames:
 
 
 def route(frames: Frames, name: str) -> dict[str, Any]:
-    """{"feats" (T, D), "images" T PNGs, "labels" (T,), "laps" (T,)} of one route."""
+    """{"feats" (T, D), "images" T PNGs, "contrast" (T,) (`images.contrast`, what the service measures
+    at decode), "labels" (T,), "laps" (T,)} of one route."""
     n = len(frames.paths["summer"])
     s_f, s_i = frames.feats["summer"], frames.images["summer"]
     idx = np.arange(n)
@@ -96,7 +98,9 @@ def route(frames: Frames, name: str) -> dict[str, Any]:
         parts = [(s_f[out_], [s_i[i] for i in out_], out_), (s_f[back], [s_i[i] for i in back], back)]
     else:
         raise ValueError(f"unknown route {name!r}; known: {', '.join(ROUTES)}")
-    return {"feats": np.concatenate([p[0] for p in parts]), "images": [b for p in parts for b in p[1]],
+    pngs = [b for p in parts for b in p[1]]
+    return {"feats": np.concatenate([p[0] for p in parts]), "images": pngs,
+            "contrast": np.array([images.contrast(images.decode(b)) for b in pngs]),
             "labels": np.concatenate([p[2] for p in parts]) + frames.lo,
             "laps": np.concatenate([np.full(len(p[2]), k) for k, p in enumerate(parts)])}
 
@@ -120,14 +124,14 @@ def evaluate(r: dict[str, Any], methods: list[str], map_conf: dict[str, Any], th
     for m in methods:
         if m in service_path.SLAM_METHODS:
             found, default = service_path.slam_replay(r["feats"], memory=service_path.SLAM_METHODS[m],
-                                                      **map_conf)
+                                                      contrast=r["contrast"], **map_conf)
             best, conf = found.best, found.confidence
         elif m in service_path.METHODS:  # the localise mode: lap 1 learned, the rest localised
             if laps.max() < 1:
                 continue
             n1 = int((laps == 0).sum())
             found = service_path.replay(r["feats"][:n1], r["feats"][n1:], memory=service_path.METHODS[m],
-                                        **map_conf)
+                                        contrast=r["contrast"], **map_conf)
             best = np.r_[np.full(n1, -1), found.best]
             conf = np.r_[np.zeros(n1), found.confidence]
             default = DEFAULT_REVISIT_THRESHOLD
