@@ -499,6 +499,7 @@ def eval_slam(
     seed: int = 1,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the result here too")] = None,
     grid: Annotated[Path | None, typer.Option(help="the grid world's folder instead of --data")] = None,
+    adapt_tau: Annotated[int, typer.Option(help="the maps' slsbh.adapt_tau (0: none)")] = 0,
 ) -> None:
     """Loop closure while mapping on routes made from the Nordland halves, or the grid world's loops
     (service/evaluation/slam.py)."""
@@ -507,6 +508,7 @@ def eval_slam(
     try:
         slam.slam_runs(data=data, half=half, routes=routes or ",".join(slam.ROUTES), methods=methods,
                        thresholds=[float(t) for t in thresholds.split(",") if t], tolerance=tolerance,
-                       rate=rate, backbone=backbone, seed=seed, json_path=json_out, grid_dir=grid)
+                       rate=rate, backbone=backbone, seed=seed, json_path=json_out, grid_dir=grid,
+                       adapt_tau=adapt_tau)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e

@@ -187,8 +187,9 @@ def slam_runs(*, data: Path | None = None, half: str = "tune", routes: str = ","
               methods: str = "service-slam,service-slam-without-tm,service,openseqslam",
               thresholds: list[float] | None = None, tolerance: int = 1, rate: float = 0.001,
               backbone: str | None = None, seed: int = 1, json_path: Path | None = None,
-              grid_dir: Path | None = None) -> None:
-    """The experiment (module docstring), printed; `grid_dir`: the grid world's folder instead of `data`.
+              grid_dir: Path | None = None, adapt_tau: int = 0) -> None:
+    """The experiment (module docstring), printed; `grid_dir`: the grid world's folder instead of `data`;
+    `adapt_tau`: the maps made with that stream adaptation (docs/results.md §10.6).
 
     Raises:
         ValueError: neither `data` nor `grid_dir`, or an unknown `half`.
@@ -217,7 +218,7 @@ def slam_runs(*, data: Path | None = None, half: str = "tune", routes: str = ","
         raise ValueError("--data (or --grid) is required")
     frames = Frames(args.data, args.half, enc, cache)
     map_conf = {"encoder_id": enc.identity, "backbone": backbone, "preset": settings.default_preset,
-                "seed": args.seed}
+                "seed": args.seed, "create": {"slsbh": {"adapt_tau": adapt_tau}} if adapt_tau else None}
     result: dict[str, Any] = {"config": {**{k: str(v) for k, v in vars(args).items()}, "backbone": backbone},
                               "routes": {}}
     for name in args.routes.split(","):
