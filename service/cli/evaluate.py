@@ -486,6 +486,20 @@ def eval_resize(
                 seeds=[int(x) for x in seeds.split(",")])
 
 
+@app.command("slam-ablation")
+def eval_slam_ablation(
+    data: Annotated[Path, typer.Option(help="the Nordland folder (summer/, winter/)")],
+    seeds: Annotated[int, typer.Option(min=1, help="map seeds 1..N")] = 3,
+    backbone: str = "efficientnet-lite0-s5",
+    json_out: Annotated[Path | None, typer.Option("--json", help="write every run here too")] = None,
+) -> None:
+    """The Temporal Memory in its own setting on short, unsaturated routes over seeds
+    (service/evaluation/slam_ablation.py, docs/results.md §10.2)."""
+    from service.evaluation import slam_ablation
+
+    slam_ablation.ablation(data, seeds=seeds, backbone=backbone, json_path=json_out)
+
+
 @app.command("slam")
 def eval_slam(
     data: Annotated[Path | None, typer.Option(help="the Nordland folder (summer/, winter/)")] = None,

@@ -1,7 +1,7 @@
 """The Temporal Memory in its own setting, on routes that are not saturated (docs/results.md §10.2):
 `service-slam` against `service-slam-without-tm` over several map seeds on harder, shorter routes.
 
-    python -m service.evaluation.slam_ablation --data ../shared/data/nordland_tiny_64x32 --seeds 3
+    cortexloc eval slam-ablation --data ../shared/data/nordland_tiny_64x32 --seeds 3
 
 Routes, each ONE learning stream (`service_path.slam_replay`), from each Nordland half (`tune`, `test`):
 - `seasons@o`: 100 summer frames from half-relative file o, then the same 100 winter frames (o = 0,
@@ -15,7 +15,6 @@ none) and how many of the route-seed pairs the memory wins, ties and loses on R@
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 from pathlib import Path
@@ -52,25 +51,21 @@ def routes(frames: Frames) -> dict[str, dict[str, Any]]:
     return out
 
 
-def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, required=True)
-    ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--backbone", default="efficientnet-lite0-s5")
-    ap.add_argument("--json", type=Path)
-    args = ap.parse_args(argv)
-    enc = Encoder({"backbone": args.backbone, "resize": "squash"})
-    cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
+def ablation(data: Path, seeds: int = 3, backbone: str = "efficientnet-lite0-s5",
+             json_path: Path | None = None) -> None:
+    """The experiment (module docstring), printed per run and summarised; `json_path`: every run too."""
     from service.settings import Settings
 
+    enc = Encoder({"backbone": backbone, "resize": "squash"})
+    cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
     preset = Settings.from_env().default_preset
     rows: list[dict[str, Any]] = []
     for half in HALVES:
-        for name, r in routes(Frames(args.data, half, enc, cache)).items():
-            for seed in range(1, args.seeds + 1):
+        for name, r in routes(Frames(data, half, enc, cache)).items():
+            for seed in range(1, seeds + 1):
                 for memory in ("tm", "none"):
                     found, t = service_path.slam_replay(r["feats"], encoder_id=enc.identity,
-                                                        backbone=args.backbone, preset=preset, seed=seed,
+                                                        backbone=backbone, preset=preset, seed=seed,
                                                         memory=memory, contrast=r["contrast"])
                     s = slam.score(found.best, found.confidence, r["labels"], t, 1, r["laps"])
                     lap2 = s["lap"][1]
@@ -81,8 +76,8 @@ def main(argv: list[str] | None = None) -> None:
                     rows.append(row)
                     print(json.dumps(row), flush=True)
     _summary(rows)
-    if args.json:
-        args.json.write_text(json.dumps(rows) + "\n")
+    if json_path:
+        json_path.write_text(json.dumps(rows) + "\n")
 
 
 def _summary(rows: list[dict[str, Any]]) -> None:
@@ -104,7 +99,3 @@ def _summary(rows: list[dict[str, Any]]) -> None:
                   f"{wins} of {len(pairs)}; "
                   f"lap-1 false revisits tm {sum(a['lap1_false'] for a, _ in pairs)} "
                   f"none {sum(b['lap1_false'] for _, b in pairs)}")
-
-
-if __name__ == "__main__":
-    main()
