@@ -285,6 +285,9 @@ def eval_images(
                 feats[label] = sequences.cached_features(enc, [folder / n for n in names],
                                                          cache_dir / "features", progress=tick)
     db_paths, q_paths = [db / n for n in db_names], [query / n for n in q_names]
+    # Each frame's contrast, as the service measures it at decode (docs/design/science.md §11.7).
+    contrast = (service_path.contrasts(p.read_bytes() for p in [*db_paths, *q_paths])
+                if service_list or slam_list else None)
     frames = ((seq.load_frames(db_paths), seq.load_frames(q_paths)) if "openseqslam" in method_list
               else None)
     n_q = len(feats["query"])
@@ -304,6 +307,7 @@ def eval_images(
                 summary, first = service_path.experiment(
                     feats["db"], feats["query"], methods=service_list, columns=columns, tolerance=tolerance,
                     gt=gt_matrix, seeds=seeds, seed=seed, reverse_query=reverse_query, progress=tick,
+                    contrast=contrast,
                     map_conf={"encoder_id": enc.identity, "backbone": backbone, "preset": preset,
                               "create": {"slsbh": {"s": sparsity, "adapt_tau": adapt}, "resize": resize}})
             result["methods"].update(summary)
@@ -311,7 +315,7 @@ def eval_images(
         if slam_list:
             assert enc is not None
             result["loop_closure"] = _loop_closure(
-                feats, slam_list, tolerance=tolerance, seed=seed,
+                feats, slam_list, tolerance=tolerance, seed=seed, contrast=contrast,
                 map_conf={"encoder_id": enc.identity, "backbone": backbone, "preset": preset,
                           "create": {"slsbh": {"s": sparsity, "adapt_tau": adapt}}})
     except ValueError as e:
@@ -366,7 +370,7 @@ def _fmt(v: float | None) -> str:
 
 
 def _loop_closure(feats: dict[str, np.ndarray], methods: list[str], *, tolerance: int, seed: int,
-                  map_conf: dict[str, Any]) -> dict[str, Any]:
+                  map_conf: dict[str, Any], contrast: np.ndarray | None = None) -> dict[str, Any]:
     """`service-slam*`: the database then the query traverse posted as ONE learning stream
     (`service_path.slam_replay`), scored per lap (`models.evaluation.slam.score`; file i of either
     folder is place i) at the map's threshold."""
@@ -380,7 +384,7 @@ def _loop_closure(feats: dict[str, np.ndarray], methods: list[str], *, tolerance
     for m in methods:
         run = np.concatenate([feats["db"], feats["query"]])
         found, threshold = service_path.slam_replay(run, seed=seed, memory=service_path.SLAM_METHODS[m],
-                                                    **map_conf)
+                                                    contrast=contrast, **map_conf)
         out[m] = {"threshold": threshold,
                   **slam.score(found.best, found.confidence, labels, threshold, tolerance, laps)}
     return out

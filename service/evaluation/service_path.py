@@ -14,12 +14,13 @@ encoder.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
 
 from models.evaluation.online import OnlineAnswers
+from models.frontend import images as frontend_images
 from models.frontend import slsbh
 from models.localisation import Place
 from models.pipeline import MapModel, Stream, observe
@@ -78,6 +79,12 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
         if progress:
             progress(i + 1, T)
     return OnlineAnswers(best, confidence, support, np.zeros((0, T))), config.revisit_threshold
+
+
+def contrasts(images: Iterable[bytes]) -> np.ndarray:
+    """(n,) each encoded image's contrast as the service measures it at decode (`images.contrast`,
+    docs/design/science.md §11.7), for the `contrast` of `replay` and `slam_replay`."""
+    return np.array([frontend_images.contrast(frontend_images.decode(b)) for b in images])
 
 
 def _at(contrast: np.ndarray | None, i: int) -> float | None:
@@ -162,13 +169,14 @@ def operating_point(confidence: np.ndarray, correct: np.ndarray, precision: floa
 
 def experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: list[str], columns: np.ndarray,
                tolerance: int, gt: np.ndarray | None, seeds: int, seed: int, reverse_query: bool,
-               map_conf: dict[str, Any], progress: Callable[[int, int], None] | None = None
-               ) -> tuple[dict[str, Any], dict[str, Any]]:
+               map_conf: dict[str, Any], progress: Callable[[int, int], None] | None = None,
+               contrast: np.ndarray | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
     """The service methods over seeds, scored like the others (`sequences.evaluate`).
 
     Args:
         methods: keys of METHODS. columns: (n_q,) bool, the scored queries (file order).
         map_conf: `replay`'s map keywords (encoder_id, backbone, preset, localiser, create).
+        contrast: (n_db + n_q,) each frame's contrast in file order (`contrasts`), or None.
         Other arguments as `models.evaluation.sequences.image_experiment`.
 
     Returns:
@@ -180,13 +188,15 @@ def experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: list[str],
     first: dict[str, Any] = {}
     children = np.random.SeedSequence(seed).spawn(seeds)
     q_driven = q_feats[::-1] if reverse_query else q_feats
+    if contrast is not None and reverse_query:
+        contrast = np.r_[contrast[:len(db_feats)], contrast[len(db_feats):][::-1]]
     for m in methods:
         runs = []
         for child in children:
             run_seed = int(child.generate_state(1)[0]) % 2**31
             t0 = time.perf_counter()
             found = replay(db_feats, q_driven, seed=run_seed, memory=METHODS[m], progress=progress,
-                           **map_conf)
+                           contrast=contrast, **map_conf)
             seconds = time.perf_counter() - t0
             S, best, conf = found.S, found.best, found.confidence
             if reverse_query:

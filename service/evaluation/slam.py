@@ -36,7 +36,6 @@ import cv2
 import numpy as np
 
 from models.evaluation import seqslam, sequences, slam
-from models.frontend import images
 from models.frontend.encoder import Encoder
 from service.evaluation import service_path
 from service.evaluation.revisit import noisy_png
@@ -100,7 +99,7 @@ def route(frames: Frames, name: str) -> dict[str, Any]:
         raise ValueError(f"unknown route {name!r}; known: {', '.join(ROUTES)}")
     pngs = [b for p in parts for b in p[1]]
     return {"feats": np.concatenate([p[0] for p in parts]), "images": pngs,
-            "contrast": np.array([images.contrast(images.decode(b)) for b in pngs]),
+            "contrast": service_path.contrasts(pngs),
             "labels": np.concatenate([p[2] for p in parts]) + frames.lo,
             "laps": np.concatenate([np.full(len(p[2]), k) for k, p in enumerate(parts)])}
 

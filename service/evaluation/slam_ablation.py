@@ -23,7 +23,6 @@ from typing import Any
 import numpy as np
 
 from models.evaluation import slam
-from models.frontend import images
 from models.frontend.encoder import Encoder
 from service.evaluation import service_path
 from service.evaluation.slam import HALVES, Frames
@@ -45,7 +44,7 @@ def routes(frames: Frames) -> dict[str, dict[str, Any]]:
         for name, (f2, png2) in laps.items():
             pngs = summer[1] + list(png2)
             out[name] = {"feats": np.concatenate([summer[0], f2]),
-                         "contrast": np.array([images.contrast(images.decode(b)) for b in pngs]),
+                         "contrast": service_path.contrasts(pngs),
                          "labels": np.r_[idx, idx] + frames.lo,
                          "laps": np.r_[np.zeros(WINDOW, np.int64), np.ones(WINDOW, np.int64)]}
     return out
