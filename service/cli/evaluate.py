@@ -518,6 +518,7 @@ def eval_slam(
     json_out: Annotated[Path | None, typer.Option("--json", help="write the result here too")] = None,
     grid: Annotated[Path | None, typer.Option(help="the grid world's folder instead of --data")] = None,
     adapt_tau: Annotated[int, typer.Option(help="the maps' slsbh.adapt_tau (0: none)")] = 0,
+    seeds: Annotated[int, typer.Option(min=1, help="with --grid: the memory over TM seeds 1..N")] = 1,
 ) -> None:
     """Loop closure while mapping on routes made from the Nordland halves, or the grid world's loops
     (service/evaluation/slam.py)."""
@@ -527,6 +528,6 @@ def eval_slam(
         slam.slam_runs(data=data, half=half, routes=routes or ",".join(slam.ROUTES), methods=methods,
                        thresholds=[float(t) for t in thresholds.split(",") if t], tolerance=tolerance,
                        rate=rate, backbone=backbone, seed=seed, json_path=json_out, grid_dir=grid,
-                       adapt_tau=adapt_tau)
+                       adapt_tau=adapt_tau, seeds=seeds)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e

@@ -160,9 +160,11 @@ def evaluate(r: dict[str, Any], methods: list[str], map_conf: dict[str, Any], th
     return out
 
 
-def grid(folder: Path, thresholds: list[float]) -> dict[str, Any]:
+def grid(folder: Path, thresholds: list[float], seeds: int = 1) -> dict[str, Any]:
     """The grid world's loops as one learning stream, with and without the Temporal Memory, and
-    OpenSeqSLAM's online detector on 1 − Dice of the SDRs."""
+    OpenSeqSLAM's online detector on 1 − Dice of the SDRs; the memory over TM seeds 1..`seeds` (keys
+    "... service-slam" for seed 1, "... service-slam seed N" for the others; without it the input SDRs
+    are the codes, so one run)."""
     from models.evaluation import gridworld, online, runner
     from models.sdr import dice_matrix
 
@@ -171,8 +173,10 @@ def grid(folder: Path, thresholds: list[float]) -> dict[str, Any]:
         data = gridworld.load_published(folder / name, folder / "seq_multi_loop_noNoise_gt.txt")
         ids = {cell: i for i, cell in enumerate(sorted({tuple(p) for p in data.places}))}
         labels = np.array([ids[tuple(p)] for p in data.places])
-        winners, _ = runner.run_htm(data, "cortexloc-grid", 1)
-        methods = {"service-slam-without-tm": dice_matrix(data.sdrs), "service-slam": dice_matrix(winners)}
+        methods = {"service-slam-without-tm": dice_matrix(data.sdrs)}
+        for seed in range(1, seeds + 1):
+            winners, _ = runner.run_htm(data, "cortexloc-grid", seed)
+            methods["service-slam" + (f" seed {seed}" if seed > 1 else "")] = dice_matrix(winners)
         for m, S in methods.items():
             found = online.loop_closure(S, data.sdrs)
             out[f"{name} {m}"] = {f"{t:.4f}": slam.score(found.best, found.confidence, labels, t, 0)
@@ -186,9 +190,10 @@ def slam_runs(*, data: Path | None = None, half: str = "tune", routes: str = ","
               methods: str = "service-slam,service-slam-without-tm,service,openseqslam",
               thresholds: list[float] | None = None, tolerance: int = 1, rate: float = 0.001,
               backbone: str | None = None, seed: int = 1, json_path: Path | None = None,
-              grid_dir: Path | None = None, adapt_tau: int = 0) -> None:
+              grid_dir: Path | None = None, adapt_tau: int = 0, seeds: int = 1) -> None:
     """The experiment (module docstring), printed; `grid_dir`: the grid world's folder instead of `data`;
-    `adapt_tau`: the maps made with that stream adaptation (docs/results.md §10.6).
+    `adapt_tau`: the maps made with that stream adaptation (docs/results.md §10.6); `seeds`: the grid
+    world's memory over that many seeds.
 
     Raises:
         ValueError: neither `data` nor `grid_dir`, or an unknown `half`.
@@ -199,7 +204,7 @@ def slam_runs(*, data: Path | None = None, half: str = "tune", routes: str = ","
                            tolerance=tolerance, rate=rate, backbone=backbone, seed=seed, json=json_path,
                            grid=grid_dir)
     if args.grid is not None:
-        found = grid(args.grid, [DEFAULT_REVISIT_THRESHOLD, *args.thresholds])
+        found = grid(args.grid, [DEFAULT_REVISIT_THRESHOLD, *args.thresholds], seeds)
         for key, by_t in found.items():
             for t, s in by_t.items():
                 d = s["lap"][0]
