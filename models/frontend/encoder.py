@@ -96,6 +96,8 @@ class EncodeResult:
             (service.maps.encoding.pool).
         thumbnails: per image, a small JPEG of the decoded frame where `embed` was asked for one
             (`images.thumbnail`), else None; None when none was asked for.
+        contrast: (N,) float64 each decoded frame's contrast (`images.contrast`, docs/design/science.md
+            §11.7: how much it can say about where it was taken), from `embed`.
     """
 
     codes: np.ndarray | None
@@ -103,6 +105,7 @@ class EncodeResult:
     projected: np.ndarray | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     thumbnails: list[bytes | None] | None = None
+    contrast: np.ndarray | None = None
 
 
 class Encoder:
@@ -274,9 +277,10 @@ class Encoder:
             t0 = time.perf_counter()
             rgb = images.decode(data, **limits)
             thumb = images.thumbnail(rgb) if thumbnail else None
+            contrast = images.contrast(rgb)
             t1 = time.perf_counter()
             x = images.preprocess(rgb, out=out, **kw)
-            return Prepared(x, thumb, (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3)
+            return Prepared(x, thumb, contrast, (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3)
 
         return self._pool.submit(run)
 
@@ -288,8 +292,8 @@ class Encoder:
             prepared: N futures from `prepare` (all of the same resize mode).
 
         Returns:
-            EncodeResult with features (N, D) and the timings decode and preprocess (summed over the
-            frames) and backbone (wall).
+            EncodeResult with features (N, D), contrast (N,) and the timings decode and preprocess
+            (summed over the frames) and backbone (wall).
 
         Raises:
             images.ImageError: a frame did not decode (the first such, in order); the remaining futures
@@ -304,12 +308,14 @@ class Encoder:
         the backbone runs the next chunk (`encode`: the sLSBH codes, concatenated into `codes`, their
         summed time as `hash`)."""
         timings = dict.fromkeys(STAGES[:3], 0.0)
+        contrast = np.zeros(len(prepared))
         feats_parts: list[np.ndarray] = []
         after: list[Future[tuple[np.ndarray, float]]] = []
         try:
             for start in range(0, len(prepared), self.CHUNK):
                 ready = [f.result() for f in prepared[start:start + self.CHUNK]]
-                for p in ready:
+                for j, p in enumerate(ready):
+                    contrast[start + j] = p.contrast
                     timings["decode"] += p.decode_ms
                     timings["preprocess"] += p.preprocess_ms
                 # Rows prepared in place into the batch are already the chunk: no second copy.
@@ -328,7 +334,7 @@ class Encoder:
         if not feats_parts:
             feats_parts.append(self.features(np.zeros((0, 3, 224, 224), np.float32)))
         out = EncodeResult(codes=None, features=np.concatenate(feats_parts) if len(feats_parts) > 1
-                           else feats_parts[0], timings_ms=timings)
+                           else feats_parts[0], timings_ms=timings, contrast=contrast)
         if then is not None:
             done = [f.result() for f in after]
             out.codes = np.concatenate([c for c, _ in done]) if done else then(out.features)
@@ -383,10 +389,12 @@ class Prepared:
     Attributes:
         x: (3, 224, 224) float32 network input (docs/design/science.md §6).
         thumbnail: a small JPEG of the decoded frame, where asked for.
+        contrast: the decoded frame's contrast (`images.contrast`, docs/design/science.md §11.7).
         decode_ms, preprocess_ms: the time each step took.
     """
 
     x: np.ndarray
     thumbnail: bytes | None
+    contrast: float
     decode_ms: float
     preprocess_ms: float

@@ -151,7 +151,8 @@ class EncoderPool:
                     item.fut.set_result(EncodeResult(
                         codes=None, features=out.features[i:i + 1], projected=projected[i],
                         timings_ms={**out.timings_ms, "project": ms},
-                        thumbnails=[frame.thumbnail] if item.thumbnail else None))
+                        thumbnails=[frame.thumbnail] if item.thumbnail else None,
+                        contrast=out.contrast[i:i + 1] if out.contrast is not None else None))
             except Exception as e:
                 for item in live:
                     if not item.fut.done():
