@@ -68,8 +68,8 @@ def test_batched_and_single_encoding_agree(encoder):
 
 
 def test_frames_decoded_beside_the_backbone_encode_as_one_at_a_time(encoder):
-    """The decode threads (frames prepared into the batch, chunks forwarded as they are ready, each
-    chunk hashed in a thread) give the codes and features of the plain sequential path."""
+    """The decode threads (frames prepared into their rows of the batch, chunks forwarded as they are
+    ready) give the codes and features of the plain sequential path."""
     data = [png(scene(s)) for s in range(2 * Encoder.CHUNK + 1)]  # three chunks, the last short
     rgbs = [images.decode(d) for d in data]
     ref_feats = np.concatenate([encoder.features(images.preprocess_batch([r])) for r in rgbs])
