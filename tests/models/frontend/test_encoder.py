@@ -79,7 +79,9 @@ def test_frames_decoded_beside_the_backbone_encode_as_one_at_a_time(encoder):
     np.testing.assert_allclose(out.features, ref_feats, atol=1e-6)
     assert set(out.timings_ms) == set(STAGES) and out.timings_ms["hash"] > 0
     prepared = [encoder.prepare(d) for d in data]
-    np.testing.assert_allclose(encoder.embed_prepared(prepared).features, ref_feats, atol=1e-6)
+    got = encoder.embed_prepared(prepared)
+    np.testing.assert_allclose(got.features, ref_feats, atol=1e-6)
+    np.testing.assert_array_equal(got.contrast, [images.contrast(r) for r in rgbs])  # each frame's, in order
     # A thumbnail is made from the frame already decoded, for the frames that ask for one.
     asked = [i % 2 == 0 for i in range(len(data))]
     thumbs = encoder.embed(data, thumbnails=asked).thumbnails

@@ -34,7 +34,7 @@ class FakeEncoder:
         if body == b"bad":
             fut.set_exception(ImageError("truncated", "the image data ends early"))
         else:
-            fut.set_result(Prepared((body, resize), None, 0.0, 0.0))
+            fut.set_result(Prepared((body, resize), None, 1.0, 0.0, 0.0))
         return fut
 
     def embed_prepared(self, prepared):
