@@ -90,3 +90,36 @@ def test_a_learned_row_is_acknowledged_only_after_its_group_is_synced(tmp_path) 
         assert [r.status_code for r in replies] == [200] * 6
         assert all(r.json()["timings_ms"]["sync"] >= 0 for r in replies)
         assert rt._commits.syncs - syncs <= 3 < 6  # the six rows needed two or three fsyncs, not six
+
+
+def test_a_replayed_reply_waits_for_the_sync_of_its_row(tmp_path) -> None:
+    """A retry (same Idempotency-Key) that finds the first post's row committed but not yet synced is
+    answered only once that row is durable, like the first."""
+    with make_client(tmp_path / "d") as c:
+        rt = c.app.state.registry.get("default")
+        assert post(c, frame(0), stream="warm").status_code == 200
+        gate, real = threading.Event(), rt.store.sync
+
+        def held() -> None:
+            gate.wait(30)
+            real()
+
+        def keyed():
+            return c.post("/v1/maps/default/observations", content=frame(1), params={"stream": "k"},
+                          headers={"Content-Type": "image/png", "Idempotency-Key": "retry-0001"})
+
+        rt.store.sync = held
+        try:
+            with ThreadPoolExecutor(2) as ex:
+                first = ex.submit(keyed)
+                assert _until(lambda: rt.store.count() == 2)  # committed, its sync held
+                retry = ex.submit(keyed)
+                time.sleep(0.5)
+                assert not first.done() and not retry.done()
+                gate.set()
+                a, b = first.result(timeout=60), retry.result(timeout=60)
+        finally:
+            gate.set()
+            rt.store.sync = real
+        assert a.status_code == b.status_code == 200 and a.json()["seq"] == b.json()["seq"]
+        assert rt.store.count() == 2  # learned once
