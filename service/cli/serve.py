@@ -42,9 +42,27 @@ def serve(
                                              help="Bind port (default: $CORTEXLOC_PORT or 8000).")] = None,
     data_dir: Annotated[Path | None, typer.Option(help="Root of all state (default: $CORTEXLOC_DATA_DIR "
                                                        "or ./var).")] = None,
+    ray: Annotated[bool, typer.Option("--ray", help="Run on Ray Serve instead (the `ray` extra): an "
+                                                    "encoder deployment, map shards and an ingress; "
+                                                    "docs/scaling.md.")]
+    = False,
+    shards: Annotated[int, typer.Option(min=1, help="--ray: map shards (one replica each).")] = 2,
+    encoder_replicas: Annotated[int, typer.Option(min=1, help="--ray: encoder replicas (the most, with "
+                                                               "--autoscale).")] = 1,
+    autoscale: Annotated[bool, typer.Option(help="--ray: scale the encoder on its queue.")] = False,
+    ray_address: Annotated[str, typer.Option(help="--ray: the cluster's address, or `local` to start one.")]
+    = "local",
 ) -> None:
-    """Run the HTTP service (one uvicorn worker: maps live in process memory). Other settings: CORTEXLOC_*."""
+    """Run the HTTP service (one uvicorn worker: maps live in process memory). Other settings: CORTEXLOC_*.
+
+    With --ray the same API runs on Ray Serve (service.scaleout), each shard in `DATA_DIR/shard-<i>`."""
     settings = process_settings(host=host, port=port, data_dir=data_dir)
+    if ray:
+        from service.cli.shards import serve_ray
+
+        serve_ray(settings.host, settings.port, settings.data_dir, shards, encoder_replicas, autoscale,
+                  ray_address)
+        return
 
     import uvicorn
 
