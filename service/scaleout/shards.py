@@ -56,7 +56,7 @@ class ShardSet:
         call: `call(shard, method, *args)` awaits a shard deployment's method.
         table_path: the map -> shard table's SQLite file (on the ingress's volume).
         call_timeout_s: a forwarded request not answered within it is a 503 (the client retries).
-        down_s: after a failed call, how long a shard is answered as unavailable before it is tried again.
+        down_s: how often a shard that did not answer is probed; its maps are answered 503 until it does.
     """
 
     def __init__(self, shards: list[str], call: ShardCall, table_path: Path, *,
@@ -66,7 +66,8 @@ class ShardSet:
         self.table = ShardTable(table_path)
         self.call_timeout_s = call_timeout_s
         self.down_s = down_s
-        self._down_until: dict[str, float] = {}
+        self._down: set[str] = set()
+        self._probes: dict[str, asyncio.Task[None]] = {}
         self._in_flight: Counter[str] = Counter()
         self._create_lock = asyncio.Lock()
         self._errors = unavailable_errors()
@@ -88,7 +89,7 @@ class ShardSet:
             raise MapNotFound(map_id)
         if route.state == "moving":
             raise ShardUnavailable(map_id, route.shard, "it is moving between shards")
-        if self._down_until.get(route.shard, 0.0) > time.monotonic():
+        if route.shard in self._down:
             raise ShardUnavailable(map_id, route.shard, f"its shard {route.shard} is restarting")
         return route
 
@@ -100,14 +101,33 @@ class ShardSet:
     # ------------------------------------------------------------------ calls
 
     async def call(self, shard: str, method: str, *args: Any, map_id: str = "") -> Any:
-        """A shard's method; ShardUnavailable when its replica does not answer (it is marked down for
-        `down_s`, so that the requests behind this one are answered at once)."""
+        """A shard's method; ShardUnavailable when its replica does not answer (it is then marked down,
+        so that the requests behind this one are answered at once)."""
         try:
             return await asyncio.wait_for(self._call(shard, method, *args), self.call_timeout_s)
         except self._errors as e:
-            self._down_until[shard] = time.monotonic() + self.down_s
             log.warning("shard %s did not answer %s: %s", shard, method, type(e).__name__)
+            self._mark_down(shard)
             raise ShardUnavailable(map_id or "*", shard, f"its shard {shard} is restarting") from e
+
+    def _mark_down(self, shard: str) -> None:
+        """Answer the shard's maps 503 at once until a probe finds its (restarted) replica serving: a call
+        meanwhile would wait in Ray's queue for the new replica for as long as recovery takes."""
+        self._down.add(shard)
+        if shard not in self._probes:
+            self._probes[shard] = asyncio.get_running_loop().create_task(self._probe(shard))
+
+    async def _probe(self, shard: str) -> None:
+        try:
+            while True:
+                await asyncio.sleep(self.down_s)
+                with contextlib.suppress(*self._errors):
+                    await asyncio.wait_for(self._call(shard, "map_ids"), self.down_s * 5)
+                    log.info("shard %s answers again", shard)
+                    self._down.discard(shard)
+                    return
+        finally:
+            self._probes.pop(shard, None)
 
     @contextlib.asynccontextmanager
     async def _counted(self, map_id: str) -> AsyncIterator[None]:
@@ -140,6 +160,8 @@ class ShardSet:
                    ) -> dict[str, ForwardedReply | ShardUnavailable]:
         """The same request to every shard (lists, /metrics, /readyz): each reply or why there is none."""
         async def one(shard: str) -> ForwardedReply | ShardUnavailable:
+            if shard in self._down:
+                return ShardUnavailable("*", shard, f"shard {shard} is restarting")
             try:
                 return await self.call(shard, "request", method, path, query, headers, b"")
             except ShardUnavailable as e:
