@@ -85,11 +85,6 @@ class Shard:
         """The replica's process id (the failure test kills it)."""
         return os.getpid()
 
-    async def check_health(self) -> None:
-        """Ray restarts the replica when this raises: the maps could not be opened at all."""
-        if getattr(self.host.app.state, "registry_error", None):
-            raise RuntimeError(self.host.app.state.registry_error)
-
     async def __del__(self) -> None:
         await self.host.stop()
 
