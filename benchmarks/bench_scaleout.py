@@ -17,7 +17,10 @@ falls on both:
   and `GET /v1/maps/bench` (no encoder, no writer: the forwarding alone): median and p95 latency, and
   the Ray path's extra milliseconds per request (median of the Ray path minus median of the single
   process);
-- `--clients` robots at once (each its own stream), posting `learn=true`: images/s of each path.
+- `--clients` robots at once (each its own stream), posting `learn=true`: images/s of each path;
+- after the runs, the resident memory of the single process and of the whole Ray cluster, and a
+  failover: the replica of the shard owning `bench` killed with SIGKILL, the seconds until the ingress
+  answers 503 for the map and until it serves it again (Ray's replacement replica recovered it).
 
 On the 2 shared cores of the development machine the encoder is CPU-bound: a second encoder replica
 would share the same cores with the first, the shards and the ingress, so replica scaling is not
@@ -29,6 +32,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -115,6 +119,26 @@ def _concurrent(base: str, frames: list[bytes], clients: int, per_client: int, t
     return sum(done) / (time.perf_counter() - t0)
 
 
+def _failover(cluster: Any, base: str) -> dict[str, float]:
+    """SIGKILL the replica of the shard that owns `bench`; seconds until the ingress answers 503 for it,
+    and until its map is served again (Ray replaces the replica, which recovers the map)."""
+    shard = cluster.routes()["bench"][0]
+    pid = cluster.shard_pid(shard)
+    t0 = time.perf_counter()
+    os.kill(pid, signal.SIGKILL)
+    first_503 = None
+    while time.perf_counter() - t0 < 600:
+        r = httpx.get(f"{base}/v1/maps/bench", timeout=60)
+        if r.status_code == 503 and first_503 is None:
+            first_503 = time.perf_counter() - t0
+        if r.status_code == 200 and first_503 is not None:
+            return {"shard": shard, "first_503_s": round(first_503, 2),
+                    "served_again_s": round(time.perf_counter() - t0, 2),
+                    "observations": r.json()["observations"]}
+        time.sleep(0.2)
+    raise RuntimeError("the killed shard was not served again within 600 s")
+
+
 def _single(tmp: Path, env: dict[str, str]) -> tuple[subprocess.Popen, str]:
     from tests.e2e.scaleout_cluster import free_port
 
@@ -171,6 +195,7 @@ def run(requests: int, clients: int, rounds: int) -> dict[str, Any]:
             out["paths"][path] = {"post": _stats(seq[path]["post"]), "get": _stats(seq[path]["get"]),
                                   "images_per_s": [round(x, 2) for x in rates[path]],
                                   "images_per_s_median": round(float(np.median(rates[path])), 2)}
+        out["failover"] = _failover(cluster, ray_base)
         # Memory after the runs: the single process, and the whole Ray cluster (head, workers, replicas).
         assert cluster.head is not None
         ray_rss = tree_rss_mib(cluster.head.pid)
@@ -215,10 +240,13 @@ def main() -> None:
     extra = out["ray_extra_ms"]
     print(f"ray extra per request: post {extra['post_p50']} ms, get {extra['get_p50']} ms; ray/single "
           f"img/s {out['ray_over_single']['images_per_s']}; ray start {out['ray_start_s']} s")
+    print(f"failover: 503 after {out['failover']['first_503_s']} s, served again after "
+          f"{out['failover']['served_again_s']} s ({out['failover']['observations']} observations)")
     print(f"RSS: single {out['rss_mib']['single']} MiB, Ray cluster {out['rss_mib']['ray_total']} MiB")
     print(f"wrote {path}")
 
 
 if __name__ == "__main__":
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # `finally` tears the cluster down
     main()

@@ -103,6 +103,25 @@ class RayCluster:
         return subprocess.run([sys.executable, "-m", "service.cli", *args], env=self.env, cwd=ROOT,
                               capture_output=True, text=True, timeout=timeout)
 
+    def shard_pid(self, shard: str) -> int:
+        """The process id of a shard's replica (asked through Ray, from a separate driver)."""
+        code = ("import ray, sys; from ray import serve; "
+                "ray.init(address=sys.argv[1], logging_level='ERROR', log_to_driver=False); "
+                "print(serve.get_deployment_handle(sys.argv[2], 'cortexloc')"
+                ".pid.remote().result(timeout_s=120))")
+        out = subprocess.run([sys.executable, "-c", code, self.address, shard], env=self.env,
+                             capture_output=True, text=True, timeout=300)
+        if out.returncode != 0:
+            raise RuntimeError(out.stderr[-2000:])
+        return int(out.stdout.strip().splitlines()[-1])
+
+    def routes(self) -> dict[str, tuple[str, str]]:
+        """`cortexloc shards list`: map -> (shard, state)."""
+        out = self.cli("shards", "list", "--address", self.address)
+        if out.returncode != 0:
+            raise RuntimeError(out.stderr[-2000:])
+        return {m: (s, st) for m, s, st in (line.split("\t") for line in out.stdout.splitlines())}
+
     def stop(self) -> None:
         _stop(self.server)
         self.server = None

@@ -14,8 +14,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 from collections import Counter
@@ -74,22 +72,6 @@ def cluster(tmp_path_factory, request):
     return c
 
 
-def shard_pid(c: RayCluster, shard: str) -> int:
-    code = ("import ray, sys; from ray import serve; ray.init(address=sys.argv[1], logging_level='ERROR', "
-            "log_to_driver=False); print(serve.get_deployment_handle(sys.argv[2], 'cortexloc')"
-            ".pid.remote().result(timeout_s=120))")
-    out = subprocess.run([sys.executable, "-c", code, c.address, shard], env=c.env, capture_output=True,
-                         text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-2000:]
-    return int(out.stdout.strip().splitlines()[-1])
-
-
-def routes(c: RayCluster) -> dict[str, tuple[str, str]]:
-    out = c.cli("shards", "list", "--address", c.address)
-    assert out.returncode == 0, out.stderr[-2000:]
-    return {m: (s, st) for m, s, st in (line.split("\t") for line in out.stdout.splitlines())}
-
-
 def test_a_shard_killed_mid_stream_loses_nothing_acknowledged(cluster):
     c = cluster
     seen = Recording()
@@ -97,11 +79,11 @@ def test_a_shard_killed_mid_stream_loses_nothing_acknowledged(cluster):
                     timeout=120, transport=seen)
     for m in MAPS:
         assert client.create_map(m, tm=TINY["tm"], slsbh=TINY["slsbh"]).map_id == m
-    owners = routes(c)
+    owners = c.routes()
     assert {owners[m][0] for m in MAPS} == {"shard-0", "shard-1"}  # both shards own test maps
     victim = owners["m0"][0]
     victim_maps = [m for m in MAPS if owners[m][0] == victim]
-    pid = shard_pid(c, victim)
+    pid = c.shard_pid(victim)
 
     acked: dict[str, dict[str, tuple[int, str]]] = {m: {} for m in MAPS}  # map -> key -> (seq, obs id)
     errors: list[BaseException] = []
@@ -129,7 +111,7 @@ def test_a_shard_killed_mid_stream_loses_nothing_acknowledged(cluster):
     assert killed_at < len(MAPS) * len(STREAMS) * FRAMES, "the kill came after the streams ended"
 
     # Ray restarted the shard (a new process) on its data directory.
-    assert shard_pid(c, victim) != pid
+    assert c.shard_pid(victim) != pid
     # Meanwhile the victim's maps were answered 503 map-unavailable with Retry-After, as problem+json.
     unavailable = [s for s in seen.seen if s[0] == 503]
     assert unavailable, f"no 503 seen ({Counter(s[0] for s in seen.seen)})"
@@ -177,7 +159,7 @@ def test_a_shard_killed_mid_stream_loses_nothing_acknowledged(cluster):
     assert out.returncode == 0, out.stderr[-2000:]
     moved = json.loads(out.stdout.strip().splitlines()[-1])
     assert moved["from"] == victim and moved["to"] == target and moved["observations"] == len(acked["m0"])
-    assert routes(c)["m0"] == (target, "serving")
+    assert c.routes()["m0"] == (target, "serving")
     assert client.get_map("m0").observations == len(acked["m0"])
     assert client.observe("m0", tiny_frame(99), stream="left").seq == len(acked["m0"]) + 1
     client.close()
