@@ -19,8 +19,10 @@ falls on both:
   process);
 - `--clients` robots at once (each its own stream), posting `learn=true`: images/s of each path;
 - after the runs, the resident memory of the single process and of the whole Ray cluster, and a
-  failover: the replica of the shard owning `bench` killed with SIGKILL, the seconds until the ingress
-  answers 503 for the map and until it serves it again (Ray's replacement replica recovered it).
+  failover: the replica of the shard owning `bench` killed with SIGKILL, the seconds until the map is
+  served again (Ray's replacement replica recovered it) and the 503s answered meanwhile; then
+  `cortexloc shards move bench --to <the other shard>`: the seconds the move took (the map unavailable)
+  and the command's wall time (its Ray client start included).
 
 On the 2 shared cores of the development machine the encoder is CPU-bound: a second encoder replica
 would share the same cores with the first, the shards and the ingress, so replica scaling is not
@@ -119,24 +121,42 @@ def _concurrent(base: str, frames: list[bytes], clients: int, per_client: int, t
     return sum(done) / (time.perf_counter() - t0)
 
 
-def _failover(cluster: Any, base: str) -> dict[str, float]:
-    """SIGKILL the replica of the shard that owns `bench`; seconds until the ingress answers 503 for it,
-    and until its map is served again (Ray replaces the replica, which recovers the map)."""
+def _failover(cluster: Any, base: str) -> dict[str, Any]:
+    """SIGKILL the replica of the shard that owns `bench`, then read the map once every 0.2 s: the
+    seconds until it is served again (by Ray's replacement replica, which recovered it) and what the
+    reads got meanwhile (503s while the ingress knows the shard down; a read that Ray queued for the
+    replacement waits instead)."""
     shard = cluster.routes()["bench"][0]
     pid = cluster.shard_pid(shard)
     t0 = time.perf_counter()
     os.kill(pid, signal.SIGKILL)
-    first_503 = None
+    statuses: list[int] = []
     while time.perf_counter() - t0 < 600:
-        r = httpx.get(f"{base}/v1/maps/bench", timeout=60)
-        if r.status_code == 503 and first_503 is None:
-            first_503 = time.perf_counter() - t0
-        if r.status_code == 200 and first_503 is not None:
-            return {"shard": shard, "first_503_s": round(first_503, 2),
-                    "served_again_s": round(time.perf_counter() - t0, 2),
-                    "observations": r.json()["observations"]}
+        t1 = time.perf_counter()
+        r = httpx.get(f"{base}/v1/maps/bench", timeout=300)
+        statuses.append(r.status_code)
+        if r.status_code == 200:
+            return {"shard": shard, "served_again_s": round(time.perf_counter() - t0, 2),
+                    "longest_read_s": round(time.perf_counter() - t1, 2), "reads": len(statuses),
+                    "reads_503": statuses.count(503), "observations": r.json()["observations"],
+                    "new_pid": cluster.shard_pid(shard) != pid}
         time.sleep(0.2)
     raise RuntimeError("the killed shard was not served again within 600 s")
+
+
+def _move(cluster: Any) -> dict[str, Any]:
+    """`cortexloc shards move bench --to <the other shard>`: its own timing (drain, snapshot, download,
+    import, recovery, switch) and the command's wall time."""
+    shard = cluster.routes()["bench"][0]
+    target = "shard-1" if shard == "shard-0" else "shard-0"
+    t0 = time.perf_counter()
+    done = cluster.cli("shards", "move", "bench", "--to", target, "--address", cluster.address)
+    if done.returncode != 0:
+        raise RuntimeError(done.stderr[-2000:])
+    import json
+
+    return {**json.loads(done.stdout.strip().splitlines()[-1]),
+            "command_s": round(time.perf_counter() - t0, 2)}
 
 
 def _single(tmp: Path, env: dict[str, str]) -> tuple[subprocess.Popen, str]:
@@ -196,6 +216,7 @@ def run(requests: int, clients: int, rounds: int) -> dict[str, Any]:
                                   "images_per_s": [round(x, 2) for x in rates[path]],
                                   "images_per_s_median": round(float(np.median(rates[path])), 2)}
         out["failover"] = _failover(cluster, ray_base)
+        out["move"] = _move(cluster)
         # Memory after the runs: the single process, and the whole Ray cluster (head, workers, replicas).
         assert cluster.head is not None
         ray_rss = tree_rss_mib(cluster.head.pid)
@@ -240,8 +261,11 @@ def main() -> None:
     extra = out["ray_extra_ms"]
     print(f"ray extra per request: post {extra['post_p50']} ms, get {extra['get_p50']} ms; ray/single "
           f"img/s {out['ray_over_single']['images_per_s']}; ray start {out['ray_start_s']} s")
-    print(f"failover: 503 after {out['failover']['first_503_s']} s, served again after "
-          f"{out['failover']['served_again_s']} s ({out['failover']['observations']} observations)")
+    f = out["failover"]
+    print(f"failover: served again after {f['served_again_s']} s ({f['reads_503']} of {f['reads']} reads "
+          f"503, {f['observations']} observations)")
+    print(f"move: {out['move']['observations']} observations in {out['move']['seconds']} s "
+          f"(command {out['move']['command_s']} s)")
     print(f"RSS: single {out['rss_mib']['single']} MiB, Ray cluster {out['rss_mib']['ray_total']} MiB")
     print(f"wrote {path}")
 

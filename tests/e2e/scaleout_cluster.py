@@ -29,7 +29,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def _stop(proc: subprocess.Popen | None, timeout: float = 30) -> None:
+def _stop(proc: subprocess.Popen | None, timeout: float = 60) -> None:
     """End a process we started and everything in its session."""
     if proc is None:
         return
