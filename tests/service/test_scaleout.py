@@ -205,3 +205,29 @@ def test_the_ingress_lists_only_what_the_table_routes(cluster):
         listed = [m["map_id"] for m in c.get("/v1/maps").json()["maps"]]
         assert listed == ["default"] and cluster.shards.table.get("default").shard == "shard-0"
         assert json.loads(c.get("/readyz").text)["status"] == "ready"
+
+
+def test_the_encoder_deployment_fails_only_the_bad_image_of_a_batch(cluster):
+    """One undecodable upload among good ones (batched together by `@serve.batch`) fails only itself,
+    and a shard's `RemoteEncoder` raises it as the `ImageError` that the routes answer with a 4xx."""
+    from models.frontend.images import ImageError
+    from service.scaleout.encoding import RemoteEncoder
+
+    enc = cluster.encoder
+    backbone = enc.encoders.default
+    replies = enc.embed_batch([(backbone, None, frame(1), False), (backbone, None, b"not an image", False),
+                               (backbone, "squash", frame(2), True)])
+    assert [r[0] for r in replies] == ["ok", "error", "ok"]
+    assert replies[0][1].shape == (1, enc.info(backbone)["feature_dim"]) and replies[2][2] is not None
+    remote = RemoteEncoder(enc.info(backbone), cluster._embed)
+    out = remote.embed([frame(1), frame(2)])
+    assert out.features.shape == (2, remote.feature_dim) and set(out.timings_ms) >= {"decode", "backbone"}
+    assert remote.identity_for("squash") == enc.encoders.get(backbone).identity_for("squash")
+    with pytest.raises(ImageError):
+        remote.embed([frame(1), b"not an image"])
+    with cluster.client() as c:
+        assert c.post("/v1/maps", json={"map_id": "m0", **TINY}).status_code == 201
+        r = c.post("/v1/maps/m0/observations", content=b"not an image", headers={"Content-Type": "image/png"})
+        assert r.status_code in (400, 415, 422) and r.headers["content-type"] == "application/problem+json"
+        assert c.get("/v1/maps/m0").json()["observations"] == 0
+        assert c.get("/openapi.json").json()["paths"]["/v1/maps/{map_id}/observations"]
