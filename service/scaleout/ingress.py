@@ -12,6 +12,7 @@ sample labelled with its shard) and `/readyz` (ready when every shard is).
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import uuid
@@ -125,8 +126,9 @@ def _router() -> APIRouter:
             checks[shard] = {"status": "pass" if ok else "fail", "checks": body.get("checks", {}),
                              **({} if ok else {"error": body.get("detail", f"HTTP {r[0]}")})}
             warnings += [f"{shard}: {w}" for w in body.get("warnings", [])]
-        if getattr(request.app.state, "shards_error", None):
-            checks["routes"] = {"status": "fail", "error": request.app.state.shards_error}
+        if not shards.reconciled:  # the map table does not know every shard's maps yet
+            checks["routes"] = {"status": "fail", "error": getattr(request.app.state, "shards_error", None)
+                                or "the shards' maps are being read"}
         failing = [name for name, c in checks.items() if c["status"] == "fail"]
         if not failing:
             return Readiness(status="ready", checks=checks, warnings=warnings)
@@ -149,6 +151,7 @@ def _router() -> APIRouter:
     @v1.get("/maps", responses=problem_responses(503))
     async def list_maps(request: Request, shards: ShardsDep) -> MapList:
         """Every shard's maps, each listed by the shard that owns it."""
+        shards.require_reconciled()
         bodies = _ok_json(await shards.each("GET", "/v1/maps", request.url.query, _out_headers(request)))
         owner = {r.map_id: r.shard for r in shards.table.all()}
         maps = [m for shard, b in bodies.items() for m in b["maps"] if owner.get(m["map_id"]) == shard]
@@ -174,12 +177,14 @@ def _router() -> APIRouter:
     @v1.get("/memory", responses=problem_responses(503))
     async def memory(request: Request, shards: ShardsDep) -> BudgetModel:
         """Every shard's budget summed; the maps' reservations of each (by the shard that owns them)."""
-        bodies = list(_ok_json(await shards.each("GET", "/v1/memory", "", _out_headers(request))).values())
-        owner = {r.map_id for r in shards.table.all()}
-        summed = {k: sum(b[k] for b in bodies) for k in ("total_bytes", "used_bytes", "free_bytes",
-                                                         "encoders_bytes", "process_rss_bytes")}
-        maps = [m for b in bodies for m in b["maps"] if m["map_id"] in owner]
-        return BudgetModel.model_validate({**summed, "source": bodies[0]["source"], "maps": maps})
+        shards.require_reconciled()
+        bodies = _ok_json(await shards.each("GET", "/v1/memory", "", _out_headers(request)))
+        owner = {r.map_id: r.shard for r in shards.table.all()}
+        summed = {k: sum(b[k] for b in bodies.values()) for k in (
+            "total_bytes", "used_bytes", "free_bytes", "encoders_bytes", "process_rss_bytes")}
+        maps = [m for shard, b in bodies.items() for m in b["maps"] if owner.get(m["map_id"]) == shard]
+        first = next(iter(bodies.values()))
+        return BudgetModel.model_validate({**summed, "source": first["source"], "maps": maps})
 
     async def one_map(request: Request, shards: ShardsDep, map_id: str, rest: str = "") -> Response:
         """A request about one map, answered by its shard."""
@@ -209,12 +214,22 @@ def create_ingress_app(settings: Settings, make_shards: Callable[[], ShardSet]) 
         shards = make_shards()
         app.state.shards = shards
         app.state.shards_error = None
-        try:
-            await shards.reconcile()
-        except Exception as e:  # /readyz says so; the shards may still be starting
-            log.exception("cannot read the shards' maps")
-            app.state.shards_error = f"the shards' maps could not be read: {type(e).__name__}: {e}"
+
+        async def reconcile() -> None:
+            """Until it succeeds (a shard may still be starting); /readyz fails meanwhile."""
+            while True:
+                try:
+                    await shards.reconcile()
+                    app.state.shards_error = None
+                    return
+                except Exception as e:
+                    log.warning("cannot read the shards' maps yet: %s", e)
+                    app.state.shards_error = f"the shards' maps could not be read: {type(e).__name__}: {e}"
+                    await asyncio.sleep(5)
+
+        task = asyncio.get_running_loop().create_task(reconcile())
         yield
+        task.cancel()
         shards.table.close()
 
     app = FastAPI(title="cortexloc (Ray Serve ingress)", version=metadata.version("cortexloc"),

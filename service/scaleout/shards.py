@@ -70,6 +70,8 @@ class ShardSet:
         self._probes: dict[str, asyncio.Task[None]] = {}
         self._in_flight: Counter[str] = Counter()
         self._create_lock = asyncio.Lock()
+        #: Every shard's maps are in the table (`reconcile` done): an unknown id is then a 404, not a 503.
+        self.reconciled = False
         self._errors = unavailable_errors()
 
     # ------------------------------------------------------------------ table
@@ -81,17 +83,25 @@ class ShardSet:
             for map_id in await self.call(shard, "map_ids"):
                 if self.table.add_missing(map_id, shard):
                     log.info("map %s routed to %s (found there)", map_id, shard)
+        self.reconciled = True
 
     def owner(self, map_id: str) -> ShardRoute:
         """Raises MapNotFound (no route), ShardUnavailable (moving, or its shard is down)."""
         route = self.table.get(map_id)
         if route is None:
+            self.require_reconciled()
             raise MapNotFound(map_id)
         if route.state == "moving":
             raise ShardUnavailable(map_id, route.shard, "it is moving between shards")
         if route.shard in self._down:
             raise ShardUnavailable(map_id, route.shard, f"its shard {route.shard} is restarting")
         return route
+
+    def require_reconciled(self) -> None:
+        """Raises ShardUnavailable until every shard's maps are in the table (a map not yet read may
+        exist: a list would miss it, a new map could take its id)."""
+        if not self.reconciled:
+            raise ShardUnavailable("*", "*", "the shards' maps are not read yet")
 
     def least_loaded(self) -> str:
         """The shard with the fewest maps in the table (new maps go there)."""
@@ -148,6 +158,7 @@ class ShardSet:
                      body: bytes) -> ForwardedReply:
         """`POST /v1/maps` on the least loaded shard; routed there once the shard created it. A map id
         already routed goes to its owner, which answers 409 `map-exists`."""
+        self.require_reconciled()
         async with self._create_lock:
             route = self.table.get(map_id)
             shard = route.shard if route is not None else self.least_loaded()

@@ -62,10 +62,14 @@ class Cluster:
 
     @contextmanager
     def client(self, **settings) -> Iterator[TestClient]:
-        """The ingress app's client, its shards stopped after (also on failure)."""
+        """The ingress app's client, once its routes are read (unless a shard is dead), its shards
+        stopped after (also on failure)."""
         app = create_ingress_app(Settings(data_dir=self.root, **self.settings, **settings), self.make_shards)
         with TestClient(app) as c:
             try:
+                deadline = time.monotonic() + 60
+                while not self.dead and not self.shards.reconciled and time.monotonic() < deadline:
+                    time.sleep(0.05)
                 yield c
             finally:
                 self.stop(c.portal)
@@ -231,3 +235,20 @@ def test_the_encoder_deployment_fails_only_the_bad_image_of_a_batch(cluster):
         assert r.status_code in (400, 415, 422) and r.headers["content-type"] == "application/problem+json"
         assert c.get("/v1/maps/m0").json()["observations"] == 0
         assert c.get("/openapi.json").json()["paths"]["/v1/maps/{map_id}/observations"]
+
+
+def test_a_shard_down_at_the_ingress_start_is_read_when_it_answers(cluster):
+    """Until every shard's maps are in the table, an id without a route is 503 (it may be on the shard
+    not read yet), not 404; the ingress keeps trying and is ready once the shard answers."""
+    cluster.dead.add("shard-1")
+    with cluster.client() as c:
+        r = c.get("/readyz")
+        assert r.status_code == 503 and "routes" in r.json()["checks"]
+        r = c.get("/v1/maps/anything")
+        assert r.status_code == 503 and r.headers["Retry-After"] == "2"
+        cluster.dead.clear()
+        deadline = time.monotonic() + 30
+        while c.get("/readyz").status_code != 200 and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert c.get("/readyz").status_code == 200
+        assert c.get("/v1/maps/anything").status_code == 404
