@@ -70,7 +70,9 @@ def serve(
     from service.limits import HEAD_MAX_BYTES
     from service.server import ProblemH11Protocol
 
+    # loop="asyncio": the `ray` extra installs uvloop, which uvicorn would otherwise pick; the single
+    # process keeps the loop it is tested and measured with, whatever extras are installed.
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, workers=1, lifespan="on",
-                log_level=settings.log_level.lower(), http=ProblemH11Protocol,
+                log_level=settings.log_level.lower(), http=ProblemH11Protocol, loop="asyncio",
                 h11_max_incomplete_event_size=HEAD_MAX_BYTES)
 
