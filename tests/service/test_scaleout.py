@@ -252,3 +252,39 @@ def test_a_shard_down_at_the_ingress_start_is_read_when_it_answers(cluster):
             time.sleep(0.5)
         assert c.get("/readyz").status_code == 200
         assert c.get("/v1/maps/anything").status_code == 404
+
+
+def test_a_stalled_body_meets_the_deadline_at_the_ingress(cluster):
+    """A body that stops arriving is answered 408 by the ingress at CORTEXLOC_BODY_TIMEOUT_S, before any
+    shard is asked: the ingress holds no request longer than the single process would."""
+    import anyio
+
+    with cluster.client(body_timeout_s=1.0) as c:
+        assert c.post("/v1/maps", json={"map_id": "m0", **TINY}).status_code == 201
+        sent: list[dict] = []
+        first = [{"type": "http.request", "body": b"\x89PNG" + b"\0" * 60, "more_body": True}]
+
+        async def receive() -> dict:
+            if first:
+                return first.pop()
+            await anyio.sleep(30)  # the rest never comes
+            return {"type": "http.disconnect"}
+
+        async def send(message: dict) -> None:
+            sent.append(message)
+
+        async def drive() -> None:
+            path = "/v1/maps/m0/observations"
+            scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "POST",
+                     "scheme": "http", "path": path, "raw_path": path.encode(), "query_string": b"learn=true",
+                     "root_path": "", "client": ("127.0.0.1", 1), "server": ("t", 80),
+                     "headers": [(b"host", b"t"), (b"content-type", b"image/png"),
+                                 (b"content-length", b"5000")]}
+            with anyio.fail_after(15):
+                await c.app(scope, receive, send)
+
+        t0 = time.monotonic()
+        c.portal.call(drive)
+        start = next(m for m in sent if m["type"] == "http.response.start")
+        assert start["status"] == 408 and time.monotonic() - t0 < 10
+        assert c.get("/v1/maps/m0").json()["observations"] == 0
