@@ -175,7 +175,7 @@ def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip
     if overrun > 0:
         # The scans below read a local copy of the permanences, +inf for a synapse from a current
         # previous winner (never a victim), instead of the mask through presyn for every victim
-        # (0.7 ms of the service preset's 4.4 ms step, issue 25; benchmarks/profile_tm_step.py).
+        # (0.7 ms of the service preset's 4.4 ms step, issue 25; benchmarks/bench_tm_profile.py).
         vals = np.empty(n, np.float32)
         for k in range(n):
             vals[k] = np.inf if prev_winner_mask[presyn[base + k]] else perm[base + k]
