@@ -1,6 +1,6 @@
 """Where the service preset's learning step goes, by ablation (issue 25; docs/benchmarks.md §12).
 
-Run: `python benchmarks/bench_tm_profile.py [--warm 300] [--steps 30] [--repeats 3] [--before main]`.
+Run: `python benchmarks/bench_tm_profile.py [--warm 300] [--steps 30] [--repeats 3] [--before main ...]`.
 Writes benchmarks/results/tm_profile.json.
 
 The kernels are compiled (numba, with the small helpers inlined), so no profiler attributes time to
@@ -16,7 +16,7 @@ imports the copy:
 each with predictedSegmentDecrement as set and 0 (no punishment). One saved state (the service preset
 `cortexloc-default` after `--warm` random 308-of-2048 steps) is restored in place before every timed
 step, so each variant steps from the same state; the differences between variants are the parts'
-costs; `--before REF` adds the kernel of commit REF (`git archive`) for a same-run comparison. The
+costs; `--before REF ...` adds the kernel of each commit REF (`git archive`) for a same-run comparison. The
 variants run in turn, `--repeats` rounds of `--steps` steps each (after one untimed pass that warms the
 caches). Times are the thread's CPU time (`time.thread_time`), so that time spent waiting for one of the
 2 shared cores is not counted; medians over all the rounds' steps; the activation of
@@ -118,7 +118,7 @@ def main() -> None:
     ap.add_argument("--warm", type=int, default=300)
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--before", default=None, help="also time the kernel of this git commit (e.g. main)")
+    ap.add_argument("--before", nargs="*", default=[], help="also time these commits' kernels (main ...)")
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
     if quick_mode(args.quick):
@@ -140,12 +140,12 @@ def main() -> None:
         variants = dict(VARIANTS)
         for name, edits in VARIANTS.items():
             patched_copy(Path(tmp) / name, edits)
-        if args.before:
+        for ref in args.before:
             # The kernel of another commit, for a same-run before/after comparison.
-            variants[f"before ({args.before})"] = []
-            dest = Path(tmp) / f"before ({args.before})"
+            variants[f"before ({ref})"] = []
+            dest = Path(tmp) / f"before ({ref})"
             dest.mkdir()
-            archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.before, "models"],
+            archive = subprocess.run(["git", "-C", str(ROOT), "archive", ref, "models"],
                                      capture_output=True, check=True).stdout
             subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
         samples: dict[str, dict[str, list[float]]] = {}
