@@ -44,9 +44,9 @@ DOC_REMOVE = '    """Drop synapse q (from `cell`) from the index; the cell\'s la
 REMOVE = (DOC_REMOVE, DOC_REMOVE + "    return\n")
 # The load-time rebuild keeps a working copy of `_rx_add`, so every variant starts from a right index.
 REBUILD = ("_rx_add(q, np.int64(presyn[q]), g,", "_rx_add_kept(q, np.int64(presyn[q]), g,")
-SELECT = ("            if vals[k] < best_v - EPS:\n                best = k\n"
-          "                best_v = vals[k]\n",
-          "            if vals[k] != np.inf:\n                best = k\n                break\n")
+SELECT = ("            if perm[q] < best_v - EPS:\n                best = k\n"
+          "                best_v = perm[q]\n",
+          "            if perm[q] != np.inf:\n                best = k\n                break\n")
 DRAW = ("        j = rng.integers(i, m)\n", "        j = i\n")
 VARIANTS: dict[str, list[tuple[str, str]]] = {
     "full": [],

@@ -172,13 +172,6 @@ def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip
     n_actual = min(n_desired, m)
     overrun = n + n_actual - K
     destroyed = 0
-    if overrun > 0:
-        # The scans below read a local copy of the permanences, +inf for a synapse from a current
-        # previous winner (never a victim), instead of the mask through presyn for every victim
-        # (0.7 ms of the service preset's 4.4 ms step, issue 25; benchmarks/bench_tm_profile.py).
-        vals = np.empty(n, np.float32)
-        for k in range(n):
-            vals[k] = np.inf if prev_winner_mask[presyn[base + k]] else perm[base + k]
     while overrun > 0:
         # Lowest permanence, never a synapse from a current previous winner; ties: the oldest.
         # A victim leaves the index at once but keeps its slot, marked by an infinite permanence
@@ -188,12 +181,14 @@ def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip
         best = -1
         best_v = np.inf
         for k in range(n):
-            if vals[k] < best_v - EPS:
+            q = base + k
+            if prev_winner_mask[presyn[q]]:
+                continue
+            if perm[q] < best_v - EPS:
                 best = k
-                best_v = vals[k]
+                best_v = perm[q]
         if best == -1:
             break
-        vals[best] = np.inf
         q = base + best
         # The entry moved into the hole belongs to another segment (this one has one synapse per
         # presynaptic cell), so this segment's unshifted slots are what the removal expects.

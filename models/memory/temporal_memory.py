@@ -31,20 +31,10 @@ _EMPTY = np.zeros(0, dtype=np.int64)
 _EMPTY32 = np.zeros(0, dtype=np.int32)
 
 
-_LINE = 64  # bytes in a cache line
-
-
 def _alloc(n: int, dtype: type, value: int | float = 0) -> np.ndarray:
     """Allocate and touch every page now: a map's memory is committed when it is created, so it can
-    neither grow later nor fail later (np.zeros would leave pages to be faulted in during learning).
-
-    The array starts on a cache line: a large allocation is otherwise 16 bytes past a page, so each
-    segment's 32 presynaptic cells (64 bytes) spanned two lines and its permanences three (issue 25).
-    """
-    itemsize = np.dtype(dtype).itemsize
-    raw = np.empty(n * itemsize + _LINE, dtype=np.uint8)
-    skip = -raw.ctypes.data % _LINE
-    a = raw[skip:skip + n * itemsize].view(dtype)
+    neither grow later nor fail later (np.zeros would leave pages to be faulted in during learning)."""
+    a = np.empty(n, dtype=dtype)
     a.fill(value)
     return a
 
