@@ -113,6 +113,28 @@ def patched_copy(dest: Path, edits: list[tuple[str, str]]) -> None:
     path.write_text(src)
 
 
+def split(f: dict[str, Any]) -> dict[str, float]:
+    """The parts' costs (ms) from the variants' medians. Each part is the median of its differences over
+    every pair of variants that differ by it alone (with and without punishment), which is steadier
+    than one difference on the shared cores."""
+    import numpy as np
+
+    def part(pairs: list[tuple[str, str]]) -> float:
+        return float(np.median([f[a]["step_ms"] - f[b]["step_ms"] for a, b in pairs]))
+
+    np_ = "_no_punishment"
+    chain = ["full", "no_index", "no_index_no_select", "no_index_no_select_no_draw"]
+    out = {
+        "activation (in the step)": f["full"]["activity_ms"],
+        "punishment of chance matches": part([(v, v + np_) for v in chain]),
+        "reverse-index upkeep": part([("full", "no_index"), ("full" + np_, "no_index" + np_)]),
+        "overrun victim scan": part([(chain[1], chain[2]), (chain[1] + np_, chain[2] + np_)]),
+        "draws for new synapses": part([(chain[2], chain[3]), (chain[2] + np_, chain[3] + np_)]),
+    }
+    out["the rest (adapt, candidates, compaction, calls)"] = f["full"]["step_ms"] - sum(out.values())
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--warm", type=int, default=300)
@@ -168,16 +190,7 @@ def main() -> None:
                             "overrun_per_step": got["overrun"][0]}
             print(f"{key:>42}: step (compute) {results[key]['step_ms']:.2f} ms CPU, activation alone "
                   f"{results[key]['activity_ms']:.2f} ms, {got['overrun'][0]} synapses overrun", flush=True)
-    f = results
-    parts = {
-        "activation (in the step)": f["full"]["activity_ms"],
-        "punishment of chance matches": f["full"]["step_ms"] - f["full_no_punishment"]["step_ms"],
-        "reverse-index upkeep": f["full"]["step_ms"] - f["no_index"]["step_ms"],
-        "overrun victim scan": f["no_index"]["step_ms"] - f["no_index_no_select"]["step_ms"],
-        "draws for new synapses": (f["no_index_no_select"]["step_ms"]
-                                   - f["no_index_no_select_no_draw"]["step_ms"]),
-    }
-    parts["the rest (adapt, candidates, compaction, calls)"] = f["full"]["step_ms"] - sum(parts.values())
+    parts = split(results)
     print("parts of the full step (ms CPU): " + ", ".join(f"{k} {v:.2f}" for k, v in parts.items()))
     path = write_json("tm_profile.json", {
         "config": {**vars(args), "preset": "cortexloc-default"},
