@@ -18,7 +18,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.memory import _tm_synapses as syn
 from models.memory.temporal_memory import TemporalMemory
 
 __all__ = ["Recall", "fate", "learn", "recall", "route_segments"]
@@ -54,7 +53,7 @@ def route_segments(tm: TemporalMemory, route: list[np.ndarray]) -> dict[int, np.
     """The segments that predict `route`'s steps on a replay (learning off): segment id -> (n,) sorted
     presynaptic cells of its connected synapses when listed."""
     ctx = tm.new_context()
-    S = int(tm._ip[syn.I_S])
+    S = int(tm.params["maxSegmentsPerCell"])
     cpc = tm.cells_per_column
     out: dict[int, np.ndarray] = {}
     for t, x in enumerate(route):
@@ -63,25 +62,18 @@ def route_segments(tm: TemporalMemory, route: list[np.ndarray]) -> dict[int, np.
             nxt = route[t + 1]
             for g in ctx.active_segs:
                 if np.isin((g // S) // cpc, nxt):
-                    out[int(g)] = _connected(tm, int(g))
+                    out[int(g)] = tm.connected_presyn(int(g))
     return out
-
-
-def _connected(tm: TemporalMemory, g: int) -> np.ndarray:
-    K = int(tm._ip[syn.I_K])
-    n = int(tm.nsyn[g])
-    pre = tm.presyn[g * K:g * K + n].astype(np.int64)
-    return np.sort(pre[tm.perm[g * K:g * K + n] >= tm._p[syn.P_CONN]])
 
 
 def fate(tm: TemporalMemory, segments: dict[int, np.ndarray]) -> dict[str, int]:
     """What became of `segments` (from `route_segments`): counts of intact, overwritten, destroyed."""
-    thr = int(tm._ip[syn.I_ACT])
+    thr = int(tm.params["activationThreshold"])
     out = {"listed": len(segments), "intact": 0, "overwritten": 0, "destroyed": 0}
     for g, cells in segments.items():
         if tm.nsyn[g] == 0:
             out["destroyed"] += 1
-        elif np.intersect1d(_connected(tm, g), cells, assume_unique=True).size >= thr:
+        elif np.intersect1d(tm.connected_presyn(g), cells, assume_unique=True).size >= thr:
             out["intact"] += 1
         else:
             out["overwritten"] += 1
