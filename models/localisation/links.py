@@ -65,12 +65,14 @@ class Localisation:
         return self.localiser.new_state()
 
     def own_trail(self, state: LocaliserState, last_learned: int | None, code: np.ndarray,
-                  code_of: Callable[[int], np.ndarray]) -> OwnTrail | None:
+                  code_of: Callable[[int], np.ndarray], informative: bool = True) -> OwnTrail | None:
         """The stream's own rows it has not left, after this frame (`SequenceLocaliser.own_trail`,
         docs/design/science.md §11.6): not candidates of the index pass, not states of the filter."""
-        return self.localiser.own_trail(state, self.graph, last_learned, code, code_of, self.codes)
+        return self.localiser.own_trail(state, self.graph, last_learned, code, code_of, self.codes,
+                                        informative)
 
-    def step(self, state: LocaliserState, ranked: Sequence[Match], own: OwnTrail | None) -> Place | None:
+    def step(self, state: LocaliserState, ranked: Sequence[Match], own: OwnTrail | None,
+             informative: bool = True) -> Place | None:
         """One frame of one stream (docs/design/science.md §11.2), before this frame is stored.
 
         Args:
@@ -78,11 +80,12 @@ class Localisation:
             ranked: the index's pass for the frame's winner cells, best first (Dice scores), without
                 the rows the stream has not left; the localiser leaves out the rest of `own` and keeps
                 its `top_k` best.
-            own: the stream's own rows (`own_trail`).
+            own: the stream's own rows (`own_trail`). informative: False for a frame too flat to say
+                where it is (`localiser.informative`, §11.7): no evidence, no revisit.
 
         Returns:
             The place, or None during warm-up.
         """
         seqs = np.fromiter((m.seq for m in ranked), np.int64, len(ranked))
         scores = np.fromiter((m.score for m in ranked), np.float64, len(ranked))
-        return self.localiser.step(state, self.graph, seqs, scores, own)
+        return self.localiser.step(state, self.graph, seqs, scores, own, informative)

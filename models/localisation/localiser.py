@@ -32,6 +32,17 @@ from models.presets import check_section
 #: jump level, like every candidate row, so it starts on an equal footing (docs/design/science.md §11.5).
 NULL_PRIOR = -np.inf
 
+#: A frame whose contrast (`models.frontend.images.contrast`: the p5-p95 spread of its luma over the 8-bit
+#: range) is under this carries no evidence of where it is, and is never a revisit (docs/design/science.md
+#: §11.7): near-black tunnel frames measure 0-0.02 on Nordland, frames with any visible structure >= 0.04.
+MIN_CONTRAST = 0.03
+
+
+def informative(contrast: float | None) -> bool:
+    """Whether a frame of this contrast can say where it is (§11.7); None (not measured) is taken as yes."""
+    return contrast is None or contrast >= MIN_CONTRAST
+
+
 def _tuple(v: Any) -> Any:
     return tuple(v) if isinstance(v, list) else v  # JSON (a map's stored params) has lists, not tuples
 
@@ -80,11 +91,18 @@ class Place(NamedTuple):
             rival more than exclusion // 2 links away and the null (docs/design/science.md §11.5);
             with the null far below it is tanh(gap / (2 temperature)), gap = best minus rival.
         support: frames on the best path (its age), <= frames seen by the stream.
+        informative: False for a frame with too little contrast to say where it is (§11.7): it gave the
+            filter no evidence, and whatever the confidence it is no revisit (`is_revisit`).
     """
 
     seq: int
     confidence: float
     support: int
+    informative: bool = True
+
+    def is_revisit(self, threshold: float) -> bool:
+        """The revisit decision (docs/design/science.md §11.7): confident enough, the frame informative."""
+        return self.informative and self.confidence >= threshold
 
 
 @dataclass
@@ -242,15 +260,16 @@ class SequenceLocaliser:
         return self.step(state, graph, *top_candidates(sims, int(self.conf["top_k"])))
 
     def own_trail(self, state: LocaliserState, graph: SequenceGraph, last: int | None, code: np.ndarray,
-                  code_of: Callable[[int], np.ndarray], stats: CodeStats) -> OwnTrail | None:
+                  code_of: Callable[[int], np.ndarray], stats: CodeStats,
+                  informative: bool = True) -> OwnTrail | None:
         """The rows of the stream's own trail it has not left, after this frame (`trail.own_trail`,
         docs/design/science.md §11.6, at this localiser's `departure`, widened by `exclusion` links);
         call it before `step`, learning or not."""
         return own_trail(state, graph, last, code, code_of, stats, float(self.conf["departure"]),
-                         int(self.conf["exclusion"]))
+                         int(self.conf["exclusion"]), informative)
 
     def step(self, state: LocaliserState, graph: SequenceGraph, seqs: np.ndarray,
-             scores: np.ndarray, own: OwnTrail | None = None) -> Place | None:
+             scores: np.ndarray, own: OwnTrail | None = None, informative: bool = True) -> Place | None:
         """Advance one stream by one frame and answer its place.
 
         Args:
@@ -260,6 +279,9 @@ class SequenceLocaliser:
                 similar), e.g. an index's top-K; only the `top_k` best are used.
             own: the stream's own rows it has not left (`own_trail`): neither candidates nor states of
                 the filter, so never the answer (docs/design/science.md §11.6).
+            informative: False for a frame too flat to say where it is (`informative`, §11.7): its
+                candidates are no evidence (every row and the null earn 0: the filter only moves the
+                paths along, as with a missing observation), and its answer is no revisit.
 
         Returns:
             The place, or None while fewer than `warmup` frames were seen or no candidate was ever given.
@@ -268,6 +290,8 @@ class SequenceLocaliser:
         seqs, scores = np.asarray(seqs, np.int64), np.asarray(scores, np.float64)
         if seqs.size and (seqs.min() < 0 or seqs.max() >= len(graph)):
             raise ValueError("a candidate row is not in the graph")
+        if not informative:
+            seqs, scores = seqs[:0], scores[:0]
         if own is not None and seqs.size:
             mine = own.holds(graph, seqs)
             seqs, scores = seqs[~mine], scores[~mine]
@@ -327,7 +351,8 @@ class SequenceLocaliser:
         state.frames += 1
         if state.frames < int(c["warmup"]) or n == 0:
             return None
-        return self._answer(state, graph, n, jump)
+        place = self._answer(state, graph, n, jump)
+        return place if informative else place._replace(informative=False)
 
     def _answer(self, state: LocaliserState, graph: SequenceGraph, n: int, background: float) -> Place:
         best = int(state.rows[0])

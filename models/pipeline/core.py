@@ -24,7 +24,7 @@ import numpy as np
 
 from models.frontend import slsbh
 from models.frontend.adaptation import RunningMean
-from models.localisation import InvertedIndex, Localisation, Match, Place
+from models.localisation import InvertedIndex, Localisation, Match, Place, informative
 from models.memory import registry as memories
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline.state import Stream
@@ -113,7 +113,8 @@ def _advance(st: Stream, learn: bool, seq: int | None) -> None:
 
 
 def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, stream: str, top_k: int,
-            code_of: Callable[[int], np.ndarray], seq: int | None = None) -> Step:
+            code_of: Callable[[int], np.ndarray], seq: int | None = None,
+            contrast: float | None = None) -> Step:
     """One frame of one stream (docs/design/service.md §1.2, §6).
 
     Args:
@@ -126,6 +127,10 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         code_of: a stored row's code (its `input_sdr`), read by the own-trail rule (§11.6): about one
             row per frame.
         seq: the seq the learned row gets (required with `learn`; the caller stores it under that seq).
+        contrast: the decoded frame's contrast (`models.frontend.images.contrast`; None: not measured).
+            Under `localisation.MIN_CONTRAST` the frame says nothing of where it is (§11.7): it is no
+            evidence to the localiser, leaves no row of the stream's trail, and its place is no revisit.
+            It is still learned and ranked like any frame.
 
     Returns:
         The step. The stream's bookkeeping is done; the caller stores a learned row after it.
@@ -159,10 +164,11 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     # The stream's own rows it has not left are no answer (docs/design/science.md §11.6); one index pass
     # without them serves the matches and the localiser's candidates (§11.2), which also leaves out the
     # rival window behind them.
-    own = model.links.own_trail(st.localiser, prev, code, code_of)
+    flat = not informative(contrast)
+    own = model.links.own_trail(st.localiser, prev, code, code_of, not flat)
     ranked = model.index.rank(winners, model.links.candidates_wanted(top_k),
                               exclude_own=None if own is None else (stream, own.here))
-    place = model.links.step(st.localiser, ranked, own)
+    place = model.links.step(st.localiser, ranked, own, not flat)
     if learn:
         assert seq is not None
         model.index.add(seq, winners, stream)

@@ -93,8 +93,10 @@ class VerificationResult:
 @dataclass(frozen=True)
 class PlaceResult:
     """The stream's sequence-level answer (docs/design/science.md §11.2, docs/design/service.md §1.2):
-    the stored row it is at, `confidence` in [0, 1], `revisit` = confidence >= the map's threshold,
-    `support` = frames on the path behind the answer; `metadata` when the row has any."""
+    the stored row it is at, `confidence` in [0, 1], `revisit` = confidence >= the map's threshold and
+    the frame informative, `support` = frames on the path behind the answer; `metadata` when the row has
+    any; `low_information`: the frame was too flat (near-black, blank, overexposed) to say where it is,
+    so it is no revisit whatever the confidence (docs/design/science.md §11.7)."""
 
     seq: int
     observation_id: str
@@ -106,13 +108,15 @@ class PlaceResult:
     metadata: dict[str, Any] | None = None
     # On a map with keyframes, for a revisit candidate (confidence >= threshold) only; None otherwise.
     verification: VerificationResult | None = None
+    low_information: bool = False
 
     @classmethod
     def of(cls, place: Any, row: Any, revisit_threshold: float) -> PlaceResult:
         """The reply's `place`: the localiser's `Place`, its stored row, and the map's revisit decision."""
         return cls(seq=place.seq, observation_id=row.observation_id, stream=row.stream, label=row.label,
-                   confidence=place.confidence, revisit=place.confidence >= revisit_threshold,
-                   support=place.support, metadata=getattr(row, "metadata", None))
+                   confidence=place.confidence, revisit=place.is_revisit(revisit_threshold),
+                   support=place.support, metadata=getattr(row, "metadata", None),
+                   low_information=not place.informative)
 
 
 @dataclass(frozen=True)

@@ -375,7 +375,8 @@ class MapRuntime:
             apply = functools.partial(
                 self.apply, encoded.projected[0], hashlib.sha256(getattr(body, "data", body)).hexdigest(),
                 learn=learn, stream=stream, top_k=top_k, label=label, metadata=metadata,
-                thumbnail=thumb if learn else None, post=post, query=query)
+                thumbnail=thumb if learn else None, post=post, query=query,
+                contrast=None if encoded.contrast is None else float(encoded.contrast[0]))
             if post is not None:
                 post.front_ms = front
                 assert self.store is not None  # a ready map has its store
@@ -393,7 +394,7 @@ class MapRuntime:
     def apply(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None = None, thumbnail: bytes | None = None,
               post: idempotency.IdempotentPost | None = None,
-              query: keyframes.QueryFrame | None = None) -> ObservationResult:
+              query: keyframes.QueryFrame | None = None, contrast: float | None = None) -> ObservationResult:
         """Writer: one frame's TM step on the stream's context, ranking, and for learning the commit.
 
         Args:
@@ -403,6 +404,8 @@ class MapRuntime:
             post: an idempotent post: a learned row commits with its sealed reply.
             query: the frame's local features and camera (maps with keyframes): a learned row stores
                 them; a revisit candidate is verified with them (docs/design/science.md §12).
+            contrast: the decoded frame's contrast (`models.frontend.images.contrast`; None: not
+                measured): a frame too flat to say where it is is no revisit (docs/design/science.md §11.7).
 
         Returns:
             The result; `timings_ms` holds hash, tm, search and store.
@@ -423,7 +426,8 @@ class MapRuntime:
             self.budget.grow_index(self.map_id, self.row_bytes)  # set right by the recovery it causes)
         try:
             return self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k, label=label,
-                              metadata=metadata, thumbnail=thumbnail, post=post, query=query)
+                              metadata=metadata, thumbnail=thumbnail, post=post, query=query,
+                              contrast=contrast)
         except Exception as e:
             if not learn:  # a localisation learns nothing: the memory and the store still agree
                 if isinstance(e, StorageFull):  # its loop closure could not be logged: no answer either
@@ -444,7 +448,7 @@ class MapRuntime:
     def _step(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None, thumbnail: bytes | None,
               post: idempotency.IdempotentPost | None,
-              query: keyframes.QueryFrame | None = None) -> ObservationResult:
+              query: keyframes.QueryFrame | None = None, contrast: float | None = None) -> ObservationResult:
         """Writer: `apply` after its checks: the pure step (`models.pipeline.observe`), then the reply
         from the stored rows it names and, for learning, the row on disk. An exception here while
         learning is rebuilt from by `apply` (the step already holds the row in the index and links)."""
@@ -453,7 +457,7 @@ class MapRuntime:
         self.stream_evictions += evicted
         seq = self.store.next_seq() if learn else None  # this thread is the store's only writer
         step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq,
-                                code_of=self._code_of)
+                                code_of=self._code_of, contrast=contrast)
         t3 = time.perf_counter()
         place = step.place
         rows = self.store.get_many([*(m.seq for m in step.ranked), *([place.seq] if place else [])])
