@@ -13,6 +13,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -24,12 +25,14 @@ from service.encoder import build_encoder, resolve_backbone
 from service.maps.encoding.encoders import Encoders
 from service.settings import Settings
 
-__all__ = ["EmbedRequest", "EncoderService", "RemoteEncoder"]
+__all__ = ["EmbedRequest", "Embedded", "EncoderService", "PendingReply", "RemoteEncoder"]
 
 #: One image for the encoder deployment: (backbone, resize or None, encoded bytes or raw frame, thumbnail?).
 EmbedRequest = tuple[str, str | None, "bytes | images.RawFrame", bool]
-#: Its answer: ("ok", features (1, D), thumbnail JPEG or None, timings ms) or ("error", the ImageError).
-EmbedReply = tuple[str, Any, Any, dict[str, float]]
+#: Its answer: ("ok", features (1, D), thumbnail JPEG or None, timings ms, contrast) or ("error", the
+#: ImageError, None, {}, None). The contrast (`images.contrast`) carries the low-information rule
+#: (docs/design/science.md §11.7) across the process boundary.
+EmbedReply = tuple[str, Any, Any, dict[str, float], Any]
 
 
 class EncoderService:
@@ -75,12 +78,13 @@ class EncoderService:
                     try:
                         parts.append(([i], embed([i])))
                     except ImageError as e:
-                        out[i] = ("error", e, None, {})
+                        out[i] = ("error", e, None, {}, None)
             for idx, res in parts:
                 assert res.features is not None
                 for j, i in enumerate(idx):
                     thumb = res.thumbnails[j] if res.thumbnails else None
-                    out[i] = ("ok", res.features[j:j + 1], thumb, res.timings_ms)
+                    contrast = float(res.contrast[j]) if res.contrast is not None else None
+                    out[i] = ("ok", res.features[j:j + 1], thumb, res.timings_ms, contrast)
         return [o for o in out if o is not None]
 
 
@@ -122,6 +126,36 @@ class RemoteEncoder:
         """(H, W, 3) uint8 RGB, decoded here (keyframes' local features are the shard's work)."""
         return images.decode(data, **self.decode_limits)
 
+    def prepare(self, data: bytes | images.RawFrame, *, thumbnail: bool = False,
+                resize: str | None = None) -> PendingReply:
+        """Send one image to the encoder deployment now (`Encoder.prepare`'s place in the shard's encoder
+        pool: the decode, and here the forward too, start when the request arrives); returns at once.
+
+        Returns:
+            The pending reply (`result()` blocks: the pool's worker threads call it, never the event
+            loop); its `result()` raises the deployment's `ImageError` for a bad upload.
+        """
+        return PendingReply(self._call((self.conf["backbone"], resize, data, bool(thumbnail))))
+
+    def embed_prepared(self, prepared: Sequence[PendingReply]) -> EncodeResult:
+        """Features (N, D) of images sent by `prepare`, in their order (`Encoder.embed_prepared`).
+
+        Raises:
+            ImageError: the first image the deployment could not decode.
+        """
+        replies = [f.result() for f in prepared]
+        feats = (np.concatenate([r.features for r in replies]) if replies
+                 else np.zeros((0, self.feature_dim), np.float32))
+        # The deployment's batch timings (a batch may hold other shards' images too), and the round trip.
+        timings = {"decode": 0.0, "preprocess": 0.0, "backbone": 0.0}
+        for r in replies:
+            for k, v in r.timings_ms.items():
+                timings[k] = max(timings.get(k, 0.0), v)
+        timings["remote"] = max((r.remote_ms for r in replies), default=0.0)
+        contrast = np.array([np.nan if r.contrast is None else r.contrast for r in replies])
+        return EncodeResult(codes=None, features=feats, timings_ms=timings,
+                            contrast=None if np.isnan(contrast).any() else contrast)
+
     def embed(self, data: Sequence[bytes | images.RawFrame], thumbnails: Sequence[bool] | None = None,
               resize: str | None = None) -> EncodeResult:
         """Features (N, D) of N images, each sent alone so that the deployment batches across shards.
@@ -130,21 +164,55 @@ class RemoteEncoder:
             ImageError: the first image the deployment could not decode (the pool then retries each
                 image alone, so that only its own request fails).
         """
-        t0 = time.perf_counter()
-        backbone = self.conf["backbone"]
-        futures = [self._call((backbone, resize, d, bool(thumbnails[i]) if thumbnails else False))
-                   for i, d in enumerate(data)]
-        replies = [f.result() for f in futures]
-        for kind, value, _, _ in replies:
+        prepared = [self.prepare(d, thumbnail=bool(thumbnails[i]) if thumbnails else False, resize=resize)
+                    for i, d in enumerate(data)]
+        out = self.embed_prepared(prepared)
+        if thumbnails is not None:
+            out.thumbnails = [f.result().thumbnail for f in prepared]
+        return out
+
+
+class PendingReply:
+    """One image's call into the encoder deployment, read once (the pool's stand-in for
+    `Future[Prepared]`: `result()` and `cancel()`).
+
+    Args:
+        call: the deployment handle's response (or any object with `result()`), started at `prepare`.
+    """
+
+    def __init__(self, call: Any) -> None:
+        self._call = call
+        self._t0 = time.perf_counter()
+        self._reply: Embedded | None = None
+
+    def result(self) -> Embedded:
+        """The reply; raises the deployment's `ImageError` for an image it could not decode."""
+        if self._reply is None:
+            kind, value, thumb, timings, contrast = self._call.result()
             if kind == "error":
                 raise value
-        feats = (np.concatenate([r[1] for r in replies]) if replies
-                 else np.zeros((0, self.feature_dim), np.float32))
-        # The deployment's batch timings (a batch may hold other shards' images too), and the round trip.
-        timings = {"decode": 0.0, "preprocess": 0.0, "backbone": 0.0}
-        for r in replies:
-            for k, v in r[3].items():
-                timings[k] = max(timings.get(k, 0.0), v)
-        timings["remote"] = (time.perf_counter() - t0) * 1e3
-        thumbs = [r[2] for r in replies] if thumbnails is not None else None
-        return EncodeResult(codes=None, features=feats, timings_ms=timings, thumbnails=thumbs)
+            remote_ms = (time.perf_counter() - self._t0) * 1e3
+            self._reply = Embedded(value, thumb, contrast, dict(timings), remote_ms)
+        return self._reply
+
+    def cancel(self) -> bool:
+        """Cancel the call where it has not run (a request whose client went away)."""
+        cancel = getattr(self._call, "cancel", None)
+        return bool(cancel()) if cancel is not None else False
+
+
+@dataclass
+class Embedded:
+    """One image's reply from the encoder deployment (the shard's `Prepared`, already forwarded).
+
+    Attributes:
+        features: (1, D) float32 descriptor; thumbnail: a small JPEG where asked for, else None;
+        contrast: the decoded frame's contrast (docs/design/science.md §11.7), None from an older
+        deployment; timings_ms: the deployment's batch timings; remote_ms: the round trip.
+    """
+
+    features: np.ndarray
+    thumbnail: bytes | None
+    contrast: float | None
+    timings_ms: dict[str, float]
+    remote_ms: float
