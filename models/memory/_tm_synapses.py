@@ -13,9 +13,9 @@ permanence, so activation never touches the permanence array). `rpos[q]` is the 
 O(1) removal: the cell's last entry fills the hole, and because entries name their synapse slot, its
 `rpos` is fixed up directly (issue 25: finding the moved synapse by scanning its segment's presynaptic
 cells was most of the index upkeep, 1.84 ms of the service preset's 4.38 ms step); the price is that a
-synapse that shifts within its segment (decay, overrun compaction) rewrites its entry. All blocks come from one pool
-sized ceil(C*S*K / B) + C, enough because only a cell's last block can be partly filled; the index is
-fixed-capacity, rebuilt from the canonical arrays on load, and counted in the reported bytes.
+synapse that shifts within its segment (decay, overrun compaction) rewrites its entry. All blocks come
+from one pool sized ceil(C*S*K / B) + C, enough because only a cell's last block can be partly filled;
+the index is fixed-capacity, rebuilt from the canonical arrays on load, and counted in the reported bytes.
 Block size: walking a cell's chain is a dependent pointer chase with a cache miss per block, and it,
 not the per-segment counters, dominated activation (issue 25: 490 entries per cell, 16 per block,
 0.73 ms for 160 active cells; 128 per block, 0.12 ms). Entries beyond a cell's fill cost at most

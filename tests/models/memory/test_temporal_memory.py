@@ -260,7 +260,7 @@ def test_reverse_index_kept_equal_to_one_rebuilt_from_the_synapses(K):
     for x in random_sequence(400, 32, 6, seed=5):
         tm.compute(x)
     size = tm.size()
-    assert size["evictions"] and size["overrun_destroyed"] and size["decay_destroyed"] and size["empty_destroyed"]
+    assert all(size[k] for k in ("evictions", "overrun_destroyed", "decay_destroyed", "empty_destroyed"))
     kept = reverse_index(tm)
     again = TemporalMemory.from_state(tm.state_dict())
     assert kept == reverse_index(again)
