@@ -233,14 +233,11 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
             # written out here; a segment that would lose a synapse takes the general path.
             changed = changed or ims > m0
             # The first pass lists the segment's active synapses (a few of its K), so the second
-            # touches only those; it stops at the last of them, since their number is the segment's
-            # count from the activation of the previous active cells (no step changes a segment of a
-            # silent column before this).
+            # touches only those.
             for t in range(m0, ims):
                 g = match_segs[t]
                 base = g * Kc
                 n = np.int64(nsyn[g])
-                n_act = np.int64(match_pot[t])
                 dies = False
                 n_hit = 0
                 for k in range(n):
@@ -251,8 +248,6 @@ def step(columns, learn, prev_active, prev_winner, act_segs, act_pot, match_segs
                             break
                         hit[n_hit] = q
                         n_hit += 1
-                        if n_hit == n_act:
-                            break
                 if dies:
                     _adapt(g, -pdec, zero, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count,
                            rev, rpos, bprev, bfill, tail, pool, counters)
