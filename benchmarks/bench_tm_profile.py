@@ -38,12 +38,12 @@ from typing import Any
 from _common import ROOT, quick_mode, write_json
 
 SYN = "models/memory/_tm_synapses.py"
-SIG_ADD = "def _rx_add(q, cell, g, connected, rev, rpos, bprev, bfill, tail, pool):\n"
+SIG_ADD = "def _rx_add(q, cell, e, rev, rpos, bprev, bfill, tail, pool):\n"
 ADD = (SIG_ADD, SIG_ADD + "    rpos[q] = 0\n    return\n")
 DOC_REMOVE = '    """Drop synapse q (from `cell`) from the index; the cell\'s last entry fills the hole."""\n'
 REMOVE = (DOC_REMOVE, DOC_REMOVE + "    return\n")
 # The load-time rebuild keeps a working copy of `_rx_add`, so every variant starts from a right index.
-REBUILD = ("_rx_add(q, np.int64(presyn[q]), g,", "_rx_add_kept(q, np.int64(presyn[q]), g,")
+REBUILD = ("_rx_add(q, np.int64(presyn[q]), _entry(", "_rx_add_kept(q, np.int64(presyn[q]), _entry(")
 SELECT = ("            if perm[q] < best_v - EPS:\n                best = k\n"
           "                best_v = perm[q]\n",
           "            if perm[q] != np.inf:\n                best = k\n                break\n")

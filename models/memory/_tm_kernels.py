@@ -13,6 +13,7 @@ from models.memory._tm_synapses import (
     I_ACT,
     I_CPC,
     I_K,
+    I_KB,
     I_MIN,
     I_NEW,
     I_S,
@@ -49,6 +50,7 @@ def activity(active_cells, learn, iteration, ip, last_used, rx, seg_act, epoch, 
     """
     rev, _, bprev, bfill, tail, _ = rx
     S = ip[I_S]
+    sh = ip[I_KB] + 1  # an entry's segment: entry >> sh
     thr_act = ip[I_ACT]
     thr_min = ip[I_MIN]
     w = count_bits(ip[I_K])
@@ -65,7 +67,7 @@ def activity(active_cells, learn, iteration, ip, last_used, rx, seg_act, epoch, 
             start = t * B
             for pos in range(start, start + bfill[t]):
                 e = rev[pos]
-                g = e >> 1
+                g = e >> sh
                 v = seg_act[g]
                 if v < stamp:
                     v = stamp

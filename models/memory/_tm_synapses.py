@@ -7,11 +7,15 @@ Layout (flattened so that one integer names a segment or a synapse slot):
     synapse q = g * K + k,                  q in [0, C*S*K), k < nsyn[g] (creation order)
 The reverse index `rx` makes segment activation cost proportional to the synapses of the active cells
 rather than to all synapses, and reads memory contiguously: each presynaptic cell owns a chain of
-blocks of B entries, each entry `g*2 + connected` for one synapse from that cell (the connected bit is
-kept in step with the permanence, so activation never touches the permanence array). `rpos[q]` is the
-entry of synapse q, for O(1) removal (swap with the cell's last entry). All blocks come from one pool
-sized ceil(C*S*K / B) + C, enough because only a cell's last block can be partly filled; the index is
-fixed-capacity, rebuilt from the canonical arrays on load, and counted in the reported bytes.
+blocks of B entries, each entry `((g << kb | k) << 1) | connected` for synapse k of segment g from that
+cell (kb = `slot_bits(K)`, so g = entry >> (kb + 1); the connected bit is kept in step with the
+permanence, so activation never touches the permanence array). `rpos[q]` is the entry of synapse q, for
+O(1) removal: the cell's last entry fills the hole, and because entries name their synapse slot, its
+`rpos` is fixed up directly (issue 25: finding the moved synapse by scanning its segment's presynaptic
+cells was most of the index upkeep, 1.84 ms of the service preset's 4.38 ms step); the price is that a
+synapse that shifts within its segment (decay, overrun compaction) rewrites its entry. All blocks come
+from one pool sized ceil(C*S*K / B) + C, enough because only a cell's last block can be partly filled;
+the index is fixed-capacity, rebuilt from the canonical arrays on load, and counted in the reported bytes.
 Block size: walking a cell's chain is a dependent pointer chase with a cache miss per block, and it,
 not the per-segment counters, dominated activation (issue 25: 490 entries per cell, 16 per block,
 0.73 ms for 160 active cells; 128 per block, 0.12 ms). Entries beyond a cell's fill cost at most
@@ -22,7 +26,7 @@ index never changes a result (counts are sums, segment lists are sorted).
 `p` (float32): initialPermanence, connectedPermanence - EPS, permanenceIncrement,
 permanenceDecrement, predictedSegmentDecrement.
 `ip` (int64): cellsPerColumn, maxSegmentsPerCell, maxSynapsesPerSegment, activationThreshold,
-minThreshold, maxNewSynapseCount.
+minThreshold, maxNewSynapseCount, slot_bits(maxSynapsesPerSegment).
 `counters` (int64): 0 segments evicted (LRU), 1 synapses destroyed by overrun, 2 synapses destroyed by
 decay, 3 segments destroyed empty.
 """
@@ -36,7 +40,7 @@ from numba import njit
 EPS = 1e-5
 
 P_INIT, P_CONN, P_INC, P_DEC, P_PDEC = 0, 1, 2, 3, 4
-I_CPC, I_S, I_K, I_ACT, I_MIN, I_NEW = 0, 1, 2, 3, 4, 5
+I_CPC, I_S, I_K, I_ACT, I_MIN, I_NEW, I_KB = 0, 1, 2, 3, 4, 5, 6
 C_EVICT, C_OVERRUN, C_DECAY, C_EMPTY = 0, 1, 2, 3
 
 
@@ -51,8 +55,22 @@ def pool_blocks(n_slot: int, n_cells: int) -> int:
     return -(-n_slot // B) + n_cells
 
 
+@njit(cache=True)
+def slot_bits(K):
+    """Bits of a synapse's slot k < K in a reverse-index entry (see module docstring)."""
+    kb = 1
+    while (1 << kb) < K:
+        kb += 1
+    return kb
+
+
 @njit(cache=True, inline="always")
-def _rx_add(q, cell, g, connected, rev, rpos, bprev, bfill, tail, pool):
+def _entry(g, k, kb, connected):
+    return (((g << kb) | k) << 1) | (1 if connected else 0)
+
+
+@njit(cache=True, inline="always")
+def _rx_add(q, cell, e, rev, rpos, bprev, bfill, tail, pool):
     t = tail[cell]
     if t == -1 or bfill[t] == B:
         b = pool[0]
@@ -62,27 +80,22 @@ def _rx_add(q, cell, g, connected, rev, rpos, bprev, bfill, tail, pool):
         tail[cell] = b
         t = b
     pos = t * B + bfill[t]
-    rev[pos] = g * 2 + (1 if connected else 0)
+    rev[pos] = e
     rpos[q] = pos
     bfill[t] += 1
 
 
 @njit(cache=True, inline="always")
-def _rx_remove(q, cell, K, presyn, nsyn, rev, rpos, bprev, bfill, tail, pool):
+def _rx_remove(q, cell, K, kb, rev, rpos, bprev, bfill, tail, pool):
     """Drop synapse q (from `cell`) from the index; the cell's last entry fills the hole."""
     pos = rpos[q]
     t = tail[cell]
     last = t * B + bfill[t] - 1
     if pos != last:
-        moved = rev[last]
+        moved = np.int64(rev[last])
         rev[pos] = moved
-        # A segment holds at most one synapse per presynaptic cell: find the moved entry's slot.
-        g2 = np.int64(moved >> 1)
-        base = g2 * K
-        for k in range(np.int64(nsyn[g2])):
-            if presyn[base + k] == cell:
-                rpos[base + k] = pos
-                break
+        # The moved entry names its synapse: segment and slot.
+        rpos[(moved >> (kb + 1)) * K + ((moved >> 1) & ((1 << kb) - 1))] = pos
     bfill[t] -= 1
     if bfill[t] == 0:
         tail[cell] = bprev[t]
@@ -91,26 +104,27 @@ def _rx_remove(q, cell, K, presyn, nsyn, rev, rpos, bprev, bfill, tail, pool):
 
 
 @njit(cache=True, inline="always")
-def _destroy_synapse(g, k, K, presyn, perm, nsyn, rev, rpos, bprev, bfill, tail, pool):
+def _destroy_synapse(g, k, K, kb, presyn, perm, nsyn, rev, rpos, bprev, bfill, tail, pool):
     """Remove synapse k of segment g; later synapses shift down so creation order is kept."""
     base = g * K
     n = np.int64(nsyn[g])
     q = base + k
-    _rx_remove(q, np.int64(presyn[q]), K, presyn, nsyn, rev, rpos, bprev, bfill, tail, pool)
+    _rx_remove(q, np.int64(presyn[q]), K, kb, rev, rpos, bprev, bfill, tail, pool)
     for j in range(k + 1, n):
         src = base + j
         presyn[src - 1] = presyn[src]
         perm[src - 1] = perm[src]
-        rpos[src - 1] = rpos[src]  # the entry (segment id + connected bit) itself is unchanged
+        rpos[src - 1] = rpos[src]
+        rev[rpos[src]] -= 2  # its entry names slot j - 1 now
     nsyn[g] = n - 1
 
 
 @njit(cache=True, inline="always")
-def _destroy_segment(g, S, K, presyn, nsyn, seg_count, rev, rpos, bprev, bfill, tail, pool):
+def _destroy_segment(g, S, K, kb, presyn, nsyn, seg_count, rev, rpos, bprev, bfill, tail, pool):
     base = g * K
     for k in range(np.int64(nsyn[g])):
         q = base + k
-        _rx_remove(q, np.int64(presyn[q]), K, presyn, nsyn, rev, rpos, bprev, bfill, tail, pool)
+        _rx_remove(q, np.int64(presyn[q]), K, kb, rev, rpos, bprev, bfill, tail, pool)
     nsyn[g] = 0
     seg_count[g // S] -= 1
 
@@ -121,6 +135,7 @@ def _adapt(g, inc, dec, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count,
     """NuPIC _adaptSegment: +inc for synapses from previously active cells, -dec for the others."""
     S = ip[I_S]
     K = ip[I_K]
+    kb = ip[I_KB]
     conn = p[P_CONN]
     base = g * K
     # Descending so that destroying slot k only shifts slots already visited.
@@ -136,7 +151,7 @@ def _adapt(g, inc, dec, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count,
         elif v > 1:
             v = np.float32(1.0)
         if v < EPS:
-            _destroy_synapse(g, k, K, presyn, perm, nsyn, rev, rpos, bprev, bfill, tail, pool)
+            _destroy_synapse(g, k, K, kb, presyn, perm, nsyn, rev, rpos, bprev, bfill, tail, pool)
             counters[C_DECAY] += 1
         else:
             # Keep the reverse-index entry's connected bit in step with the permanence (written out
@@ -145,7 +160,7 @@ def _adapt(g, inc, dec, prev_active_mask, p, ip, presyn, perm, nsyn, seg_count,
                 rev[rpos[q]] ^= 1
             perm[q] = v
     if nsyn[g] == 0:
-        _destroy_segment(g, S, K, presyn, nsyn, seg_count, rev, rpos, bprev, bfill, tail, pool)
+        _destroy_segment(g, S, K, kb, presyn, nsyn, seg_count, rev, rpos, bprev, bfill, tail, pool)
         counters[C_EMPTY] += 1
 
 
@@ -157,6 +172,7 @@ def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip
     if n_desired <= 0:
         return
     K = ip[I_K]
+    kb = ip[I_KB]
     base = g * K
     n = np.int64(nsyn[g])
     for k in range(n):
@@ -190,9 +206,7 @@ def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip
         if best == -1:
             break
         q = base + best
-        # The entry moved into the hole belongs to another segment (this one has one synapse per
-        # presynaptic cell), so this segment's unshifted slots are what the removal expects.
-        _rx_remove(q, np.int64(presyn[q]), K, presyn, nsyn, rev, rpos, bprev, bfill, tail, pool)
+        _rx_remove(q, np.int64(presyn[q]), K, kb, rev, rpos, bprev, bfill, tail, pool)
         perm[q] = np.inf
         destroyed += 1
         counters[C_OVERRUN] += 1
@@ -201,9 +215,11 @@ def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip
         j = base
         for q in range(base, base + n):
             if perm[q] != np.inf:
-                presyn[j] = presyn[q]
-                perm[j] = perm[q]
-                rpos[j] = rpos[q]
+                if j != q:
+                    presyn[j] = presyn[q]
+                    perm[j] = perm[q]
+                    rpos[j] = rpos[q]
+                    rev[rpos[q]] -= (q - j) << 1  # its entry names slot j now
                 j += 1
         nsyn[g] = j - base
     n_actual = min(n_actual, K - np.int64(nsyn[g]))
@@ -223,7 +239,7 @@ def _grow(g, n_desired, prev_winner, prev_winner_mask, scratch_mask, cand, p, ip
         cell = cand[i]
         presyn[q] = cell
         perm[q] = init
-        _rx_add(q, cell, g, connected, rev, rpos, bprev, bfill, tail, pool)
+        _rx_add(q, cell, _entry(g, n + i, kb, connected), rev, rpos, bprev, bfill, tail, pool)
     nsyn[g] = n + n_actual
 
 
@@ -232,6 +248,7 @@ def _create_segment(cell, iteration, ip, presyn, nsyn, last_used, seg_count,
                     rev, rpos, bprev, bfill, tail, pool, counters):
     S = ip[I_S]
     K = ip[I_K]
+    kb = ip[I_KB]
     base = cell * S
     while seg_count[cell] >= S:
         lru = -1
@@ -241,7 +258,7 @@ def _create_segment(cell, iteration, ip, presyn, nsyn, last_used, seg_count,
             if nsyn[g] > 0 and last_used[g] < lru_t:
                 lru = g
                 lru_t = last_used[g]
-        _destroy_segment(lru, S, K, presyn, nsyn, seg_count, rev, rpos, bprev, bfill, tail, pool)
+        _destroy_segment(lru, S, K, kb, presyn, nsyn, seg_count, rev, rpos, bprev, bfill, tail, pool)
         counters[C_EVICT] += 1
     for s in range(S):
         g = base + s
@@ -262,8 +279,10 @@ def rebuild_index(nsyn, presyn, perm, p, K, rx):
     bfill[:] = 0
     pool[0] = 0
     conn = p[P_CONN]
+    kb = slot_bits(K)
     for g in range(nsyn.size):
         base = g * K
         for k in range(np.int64(nsyn[g])):
             q = base + k
-            _rx_add(q, np.int64(presyn[q]), g, perm[q] >= conn, rev, rpos, bprev, bfill, tail, pool)
+            _rx_add(q, np.int64(presyn[q]), _entry(g, k, kb, perm[q] >= conn), rev, rpos, bprev, bfill, tail,
+                    pool)

@@ -149,7 +149,8 @@ def _layout(params: dict[str, Any]) -> dict[str, tuple[int, Any, int]]:
     """
     cells = int(params["columnDimensions"]) * int(params["cellsPerColumn"])
     n_seg = cells * int(params["maxSegmentsPerCell"])
-    n_slot = n_seg * int(params["maxSynapsesPerSegment"])
+    k = int(params["maxSynapsesPerSegment"])
+    n_slot = n_seg * k
     n_blocks = syn.pool_blocks(n_slot, cells)
     return {
         "presyn": (n_slot, np.uint16 if cells <= 65536 else np.uint32, 0),
@@ -157,7 +158,7 @@ def _layout(params: dict[str, Any]) -> dict[str, tuple[int, Any, int]]:
         "nsyn": (n_seg, np.uint16, 0),
         "last_used": (n_seg, np.int64, 0),
         "seg_count": (cells, np.uint16, 0),
-        "rev": (n_blocks * syn.B, np.int32 if 2 * n_seg < 2**31 else np.int64, 0),
+        "rev": (n_blocks * syn.B, np.int32 if n_seg << (syn.slot_bits(k) + 1) < 2**31 else np.int64, 0),
         "rpos": (n_slot, np.int32 if n_blocks * syn.B < 2**31 else np.int64, 0),
         "blk_prev": (n_blocks, np.int64, -1),
         "blk_fill": (n_blocks, np.int32, 0),
@@ -180,7 +181,7 @@ def planned_bytes(params: dict[str, Any]) -> int:
     merged = {**presets.TM_DEFAULTS, **params}
     validate(merged)
     arrays = sum(n * np.dtype(dtype).itemsize for n, dtype, _ in _layout(merged).values())
-    return arrays + 5 * 4 + 6 * 8  # plus the float32 and int64 parameter vectors
+    return arrays + 5 * 4 + 7 * 8  # plus the float32 and int64 parameter vectors
 
 
 class TemporalMemory:
@@ -216,7 +217,7 @@ class TemporalMemory:
              merged["predictedSegmentDecrement"]], dtype=f32)
         self._ip = np.array(
             [self.cells_per_column, S, Kc, merged["activationThreshold"], merged["minThreshold"],
-             merged["maxNewSynapseCount"]], dtype=np.int64)
+             merged["maxNewSynapseCount"], syn.slot_bits(Kc)], dtype=np.int64)
         a = {name: _alloc(n, dtype, fill) for name, (n, dtype, fill) in _layout(merged).items()}
         # Canonical state (docs/design/science.md §3.5 table).
         self.presyn, self.perm, self.nsyn, self.last_used = a["presyn"], a["perm"], a["nsyn"], a["last_used"]

@@ -234,6 +234,44 @@ def test_caps_are_never_exceeded_on_random_input():
             assert len(set(seg["presyn"].tolist())) == len(seg["presyn"])
 
 
+def reverse_index(tm: TemporalMemory) -> tuple[dict[int, list[int]], dict[int, int]]:
+    """The reverse index as the kernels left it: {cell: sorted entries of its chain} and
+    {synapse q: the entry at rpos[q]} for every live synapse."""
+    rev, rpos, bprev, bfill, tail, _ = tm._rx
+    chains = {}
+    for cell in range(tm.n_cells):
+        got, t = [], int(tail[cell])
+        while t != -1:
+            got += rev[t * syn.B:t * syn.B + int(bfill[t])].tolist()
+            t = int(bprev[t])
+        chains[cell] = sorted(got)
+    K = int(tm._ip[syn.I_K])
+    live = [g * K + k for g in np.flatnonzero(tm.nsyn) for k in range(int(tm.nsyn[g]))]
+    return chains, {int(q): int(rev[rpos[q]]) for q in live}
+
+
+@pytest.mark.parametrize("K", [5, 8])
+def test_reverse_index_kept_equal_to_one_rebuilt_from_the_synapses(K):
+    """Every removal (overrun, decay, eviction) and every shift within a segment keeps each presynaptic
+    cell's entries and each synapse's `rpos` what a rebuild from the canonical arrays gives (the
+    entries name their synapse slot, docs/design/science.md §3.5), for K a power of two or not."""
+    tm = small(maxSegmentsPerCell=3, maxSynapsesPerSegment=K, maxNewSynapseCount=4, minThreshold=2,
+               activationThreshold=2, initialPermanence=0.21, predictedSegmentDecrement=0.2)
+    for x in random_sequence(400, 32, 6, seed=5):
+        tm.compute(x)
+    size = tm.size()
+    assert all(size[k] for k in ("evictions", "overrun_destroyed", "decay_destroyed", "empty_destroyed"))
+    kept = reverse_index(tm)
+    again = TemporalMemory.from_state(tm.state_dict())
+    assert kept == reverse_index(again)
+    # Each live synapse's entry names its own segment and slot, with its connected bit.
+    kb = syn.slot_bits(K)
+    conn = tm._p[syn.P_CONN]
+    for q, e in kept[1].items():
+        g, k = divmod(q, K)
+        assert (e >> (kb + 1), (e >> 1) & ((1 << kb) - 1), e & 1) == (g, k, int(tm.perm[q] >= conn))
+
+
 def test_overrun_destroys_lowest_permanence_never_previous_winners():
     tm = small(cellsPerColumn=1, maxSynapsesPerSegment=4, maxNewSynapseCount=4, initialPermanence=0.3,
                activationThreshold=4, minThreshold=1, permanenceIncrement=0.1, permanenceDecrement=0.1)
