@@ -4,7 +4,9 @@ A row's predecessor is `context_prev_seq`, the row its stream learned just befor
 start of a traverse). Successor links are the inverse. Several traverses, loops and branches are all
 just rows with links; the localiser walks them forwards (successors) or backwards (predecessors).
 Each row also knows its trail: the first row of the chain of links it ends (`trail`), so "is this row on
-a stream's own trail since row s" is one comparison (docs/design/science.md §11.6).
+a stream's own trail since row s" is one comparison (docs/design/science.md §11.6), and its place: rows the
+map knows to show one place (a learning stream's revisit joins its new row to the place it revisited) share
+a place id, the id of the place's first row (docs/design/science.md §11.7).
 """
 
 from __future__ import annotations
@@ -50,6 +52,8 @@ class SequenceGraph:
                 break
             head = nxt
         self._trail = head
+        self._place = rows.astype(np.int64)  # each row its own place until told otherwise (`join`)
+        self._members: dict[int, list[int]] = {}  # place -> its rows still held (absent: just itself)
         self._n = n
 
     @classmethod
@@ -62,8 +66,15 @@ class SequenceGraph:
     def __len__(self) -> int:
         return self._n
 
-    def append(self, row: int, prev: int = NONE) -> None:
-        """Add row `row` (a new seq, >= len(self)) learned after `prev` (-1: none); amortised O(1)."""
+    def append(self, row: int, prev: int = NONE, *, place: int = NONE, joins: bool = True) -> None:
+        """Add row `row` (a new seq, >= len(self)) learned after `prev` (-1: none); amortised O(1).
+
+        Args:
+            place: the place the row shows (-1: a new place, its id the row's own).
+            joins: the row continues `prev`'s trail (False: `prev` is a row its stream only visited, a
+                consolidated frame, so the row starts a trail of its own, linked back to `prev`; `prev`'s
+                successor changes only if it had none: the route it lies on stays whole; §11.7).
+        """
         if row < self._n:
             raise ValueError(f"row {row} is already in the graph (size {self._n})")
         if prev != NONE and not 0 <= prev < self._n:
@@ -73,9 +84,13 @@ class SequenceGraph:
             self._prev = np.concatenate([self._prev, np.full(cap - self._prev.size, NONE, np.int64)])
             self._next = np.concatenate([self._next, np.full(cap - self._next.size, NONE, np.int64)])
             self._trail = np.concatenate([self._trail, np.full(cap - self._trail.size, NONE, np.int64)])
+            self._place = np.concatenate([self._place, np.full(cap - self._place.size, NONE, np.int64)])
         self._prev[row] = prev
-        self._trail[row] = row if prev == NONE else self._trail[prev]
-        if prev != NONE:
+        self._trail[row] = self._trail[prev] if prev != NONE and joins else row
+        self._place[row] = row
+        if place != NONE:
+            self.join(row, place)
+        if prev != NONE and (joins or self._next[prev] == NONE):
             self._next[prev] = row
         self._n = row + 1
 
@@ -94,6 +109,43 @@ class SequenceGraph:
         """(N,) int64 the first row of each row's chain of predecessor links (itself at a chain's start):
         rows learned in one unbroken sequence of a stream share it; a view, do not modify."""
         return self._trail[:self._n]
+
+    def link(self, prev: int, row: int) -> None:
+        """A stream moved from row `prev` onto the stored row `row` (a consolidated frame, §11.7): `row`
+        becomes `prev`'s successor if it had none, so a path walks on from a new appearance to the
+        route it rejoined."""
+        if 0 <= prev < self._n and 0 <= row < self._n and prev != row and self._next[prev] == NONE:
+            self._next[prev] = row
+
+    @property
+    def place(self) -> np.ndarray:
+        """(N,) int64 the place id of each row (the id of the place's first row); a view, do not modify."""
+        return self._place[:self._n]
+
+    def join(self, row: int, place: int) -> None:
+        """Row `row` shows place `place` (a place id, or any row of it): O(1)."""
+        place = int(self._place[place])
+        if place == row:
+            return
+        members = self._members.get(place)
+        if members is None:
+            members = self._members[place] = [place]
+        members.append(row)
+        self._place[row] = place
+
+    def members(self, place: int) -> list[int]:
+        """The rows of place `place` (a place id) still held, oldest first (`drop` removes one)."""
+        return list(self._members.get(place, [place]))
+
+    def drop(self, row: int) -> None:
+        """Row `row` is no longer an appearance of its place (dropped or forgotten, §11.8); its links stay,
+        so paths still walk through it."""
+        place = int(self._place[row])
+        members = self._members.get(place)
+        if members is None:
+            self._members[place] = []
+        elif row in members:
+            members.remove(row)
 
     def walk(self, rows: np.ndarray, direction: np.ndarray, steps: int) -> np.ndarray:
         """Rows reached by `steps` links from `rows`, forwards (direction +1) or backwards (-1).
