@@ -359,6 +359,16 @@ class MapStore:
                                            "FROM visits").fetchone()
         return int(n), int(lo), int(hi)
 
+    def visit_mark(self, visit_id: int) -> str | None:
+        """What tells visit `visit_id` from another that got its id on another branch (a restore rolls
+        the log back and ids are handed out again): its stream and created_at; None: no such visit."""
+        if not self._v5:
+            return None
+        with self._lock:
+            r = self._db().execute("SELECT stream, created_at FROM visits WHERE id = ?",
+                                   (int(visit_id),)).fetchone()
+        return None if r is None else f"{r[0]}|{r[1]}"
+
     def prune_visits(self, covered: int, keep: int) -> int:
         """Delete the oldest visits beyond the last `keep`, but only those with id <= `covered` (a
         snapshot holds the memory they taught; the replay after it never needs them). Returns how many."""

@@ -4,6 +4,7 @@ take, list, locate, prune, export, import)."""
 
 from service.maps.recovery.memory import (
     VISIT_CURSOR,
+    VISIT_MARK,
     MapCheck,
     Rebuilt,
     open_catalog,
@@ -12,4 +13,4 @@ from service.maps.recovery.memory import (
     verify_map,
 )
 
-__all__ = ["VISIT_CURSOR", "MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover", "verify_map"]
+__all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover", "verify_map"]

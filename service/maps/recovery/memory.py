@@ -31,10 +31,12 @@ from storage.catalog import Catalog, MapRecord, StorageError
 from storage.layout import Layout
 from storage.mapstore import MapStore, Observation, Visit
 
-__all__ = ["VISIT_CURSOR", "MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover", "verify_map"]
+__all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover", "verify_map"]
 
-#: The snapshot array holding the last visit id its memory learned (0 in a snapshot made before visits).
+#: The snapshot array holding the last visit id its memory learned (0 in a snapshot made before visits),
+#: and that visit's `MapStore.visit_mark` (the branch check of visits, as a row's observation id is).
 VISIT_CURSOR = "visit_cursor"
+VISIT_MARK = "visit_mark"
 
 log = logging.getLogger("cortexloc.recovery")
 _LISTED = 20  # divergent seqs listed in a recovery note (the count says how many there are)
@@ -161,7 +163,10 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> t
             memory = snapshots.load_memory(path)
             cursor = int(memory.get(VISIT_CURSOR, 0))
             _, first, last = store.visit_stats()
-            if first > cursor + 1 and last > cursor:  # visits it did not learn were pruned meanwhile
+            if cursor and store.visit_mark(cursor) != str(memory.get(VISIT_MARK, "")):
+                if cursor > last or store.visit_mark(cursor) is not None:
+                    continue  # its visits are from a branch a restore abandoned
+            if first > cursor + 1:  # visits it did not learn were pruned meanwhile
                 raise ValueError(f"visits after {cursor} were pruned (the oldest kept is {first})")
             done = rebuild(memory, store.rows(after_seq=m.seq), like, visits=store.visits(after_id=cursor))
         except Exception as e:  # an unusable snapshot is passed over, never fatal

@@ -222,7 +222,8 @@ class MapRuntime:
         """
         assert self.store is not None
         cursor = self.store.visit_stats()[2]  # the visits this memory has learned (§11.7)
-        memory = {**memory_state(self.tm, self.streams), recovery.VISIT_CURSOR: np.array(cursor, np.int64)}
+        memory = {**memory_state(self.tm, self.streams), recovery.VISIT_CURSOR: np.array(cursor, np.int64),
+                  recovery.VISIT_MARK: np.array(self.store.visit_mark(cursor) or "")}
         snap = map_snapshots.take(self.store, memory, self.catalog, self.map_id, self.projection_path, kind)
         self.covered, self.since_snapshot = cursor, 0
         if kind == "manual":  # retention (docs/design/service.md §1.5); the new one is never deleted
