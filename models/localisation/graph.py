@@ -54,6 +54,13 @@ class SequenceGraph:
         self._trail = head
         self._place = rows.astype(np.int64)  # each row its own place until told otherwise (`join`)
         self._members: dict[int, list[int]] = {}  # place -> its rows still held (absent: just itself)
+        # Links the prev/next arrays do not hold (a branch: a row whose predecessor's successor is
+        # another; a consolidated stream's move onto a row that has a predecessor): both ends, for
+        # `within` (a neighbourhood is every row a few links away, whichever way; §11.7).
+        self._extra: dict[int, list[int]] = {}
+        for r in rows[linked]:
+            if self._next[prev[r]] != r:
+                self._branch(int(prev[r]), int(r))
         self._n = n
 
     @classmethod
@@ -90,8 +97,14 @@ class SequenceGraph:
         self._place[row] = row
         if place != NONE:
             self.join(row, place)
-        if prev != NONE and (joins or self._next[prev] == NONE):
-            self._next[prev] = row
+        if prev != NONE:
+            if joins or self._next[prev] == NONE:
+                old = int(self._next[prev])
+                self._next[prev] = row
+                if old != NONE:
+                    self._branch(prev, old)  # the earlier branch is still a neighbour
+            else:
+                self._branch(prev, row)
         self._n = row + 1
 
     @property
@@ -114,8 +127,16 @@ class SequenceGraph:
         """A stream moved from row `prev` onto the stored row `row` (a consolidated frame, §11.7): `row`
         becomes `prev`'s successor if it had none, so a path walks on from a new appearance to the
         route it rejoined."""
-        if 0 <= prev < self._n and 0 <= row < self._n and prev != row and self._next[prev] == NONE:
+        if not (0 <= prev < self._n and 0 <= row < self._n) or prev == row:
+            return
+        if self._next[prev] == NONE:
             self._next[prev] = row
+        if self._next[prev] != row and self._prev[row] != prev and row not in self._extra.get(prev, ()):
+            self._branch(prev, row)
+
+    def _branch(self, a: int, b: int) -> None:
+        self._extra.setdefault(a, []).append(b)
+        self._extra.setdefault(b, []).append(a)
 
     @property
     def place(self) -> np.ndarray:
@@ -169,13 +190,17 @@ class SequenceGraph:
         return out
 
     def within(self, row: int, links: int) -> np.ndarray:
-        """Sorted rows at most `links` links from `row` either way, `row` included: O(links)."""
-        found = [row]
-        for table in (self._next, self._prev):
-            r = row
-            for _ in range(links):
-                r = int(table[r])
-                if r < 0:
-                    break
-                found.append(r)
-        return np.unique(np.array(found, dtype=np.int64))
+        """Sorted rows at most `links` links from `row`, along any link either way (branches included),
+        `row` included: O(links) on a chain, O(rows reached) where routes branch."""
+        found, frontier = {row}, [row]
+        for _ in range(links):
+            step = []
+            for r in frontier:
+                for n in (int(self._next[r]), int(self._prev[r]), *self._extra.get(r, ())):
+                    if n >= 0 and n not in found:
+                        found.add(n)
+                        step.append(n)
+            if not step:
+                break
+            frontier = step
+        return np.array(sorted(found), dtype=np.int64)

@@ -189,10 +189,13 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     if learn:
         assert seq is not None
         links = model.links
-        if place is not None and threshold is not None and place.confidence >= threshold:
-            links.touch(place.seq, seq)  # a learning stream used the place (§11.8)
-            joined = place.place
+        if place is not None and threshold is not None:
+            # Well represented: like an appearance of the place its best path names, confident or not
+            # (a pass's unconfident frames would otherwise become parallel places, each a rival, §11.7).
             visit = links.consolidation(place.place, code, code_of)
+            if visit is not None or place.confidence >= threshold:
+                links.touch(place.seq, seq)  # a learning stream used the place (§11.8)
+                joined = place.place
         if visit is not None:
             links.visit(prev, visit, seq)
             links.visits += 1
