@@ -193,7 +193,11 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             # Well represented: like an appearance of the place its best path names, confident or not
             # (a pass's unconfident frames would otherwise become parallel places, each a rival, §11.7).
             visit = links.consolidation(place.place, code, code_of)
-            if visit is not None or place.confidence >= threshold:
+            confident = place.confidence >= threshold
+            if visit is not None and not confident and st.own_seq is not None and \
+                    links.graph.trail[visit] == links.graph.trail[st.own_seq]:
+                visit = None  # the stream's own trail is left to the confident rule (§11.6)
+            if visit is not None or confident:
                 links.touch(place.seq, seq)  # a learning stream used the place (§11.8)
                 joined = place.place
         if visit is not None:
