@@ -123,14 +123,14 @@ class SequenceGraph:
         rows learned in one unbroken sequence of a stream share it; a view, do not modify."""
         return self._trail[:self._n]
 
-    def link(self, prev: int, row: int) -> None:
-        """A stream moved from row `prev` onto the stored row `row` (a consolidated frame, §11.7): `row`
-        becomes `prev`'s successor if it had none, so a path walks on from a new appearance to the
-        route it rejoined."""
+    def link(self, prev: int, row: int, successor: bool = False) -> None:
+        """A stream moved from row `prev` to row `row` (a consolidated frame, §11.7): a neighbour of it
+        (`within`); with `successor`, also `prev`'s successor if it had none."""
         if not (0 <= prev < self._n and 0 <= row < self._n) or prev == row:
             return
-        if self._next[prev] == NONE:
+        if successor and self._next[prev] == NONE:
             self._next[prev] = row
+            return
         if self._next[prev] != row and self._prev[row] != prev and row not in self._extra.get(prev, ()):
             self._branch(prev, row)
 

@@ -88,9 +88,14 @@ class Localisation:
     def add(self, seq: int, prev: int | None, code: np.ndarray, *, stream: str = "", place: int = -1) -> None:
         """A row just learned, after `prev` (None: the start of a sequence), its frame code, and the place
         it shows (-1: a new place). It continues `prev`'s trail only when `prev` is its stream's last made
-        row; after a consolidated frame `prev` is a row it visited, and a new trail starts (§11.7)."""
-        joins = prev is not None and self._last_row.get(stream) == prev
+        row; after a consolidated frame `prev` is a row it visited, and a new trail starts (§11.7), and
+        the stream's last made row, if it had no successor, gets this one."""
+        own = self._last_row.get(stream)
+        joins = prev is not None and own == prev
         self.graph.append(seq, -1 if prev is None else prev, place=place, joins=joins)
+        if prev is not None and not joins and own is not None:
+            # its own rows stay one route: the last it made leads on to this one if it led nowhere
+            self.graph.link(own, seq, successor=True)
         self._last_row[stream] = seq
         self.codes.add(code)
         if seq >= self.used.size:

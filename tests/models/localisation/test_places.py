@@ -41,8 +41,10 @@ def test_a_place_s_rows_join_drop_and_link_as_told():
     assert g.place.tolist() == [0, 1, 2, 3, 4, 2] and g.members(2) == [2, 5]
     assert g.trail[5] == 5 and g.next[2] == 3  # its own trail; row 2's route stays whole
     g.append(6, 5)
-    g.link(6, 4)  # then it moved onto row 4
-    assert g.next[6] == 4 and g.walk(np.array([5]), np.array([1]), 2).tolist() == [4]
+    g.link(6, 4)  # then it moved onto row 4: a neighbour, not a successor
+    assert g.next[6] == -1 and 4 in g.within(6, 1).tolist()
+    g.link(6, 3, successor=True)  # a successor where it had none
+    assert g.next[6] == 3 and g.walk(np.array([5]), np.array([1]), 2).tolist() == [3]
     g.drop(2)
     assert g.members(2) == [5] and g.place[2] == 2  # its links stay: paths still walk through it
 
