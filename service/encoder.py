@@ -31,6 +31,7 @@ def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
     """
     from models.frontend import weights
     from models.frontend.runtimes import DeviceUnavailableError
+    from service.maps.config import DEFAULT_RESIZE
 
     try:
         path = settings.weights_path if settings.weights_path is not None else weights.find_alexnet()
@@ -41,7 +42,10 @@ def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
                 "weights_path": str(path) if path is not None else None,
                 "random_seed": settings.random_weights_seed, "torch_threads": settings.torch_threads,
                 "max_bytes": settings.max_upload_bytes, "max_pixels": settings.max_pixels,
-                "runtime": settings.runtime, "device": settings.device, **overrides}
+                "runtime": settings.runtime, "device": settings.device,
+                # the resize a new map gets, so the identity /readyz and /metrics show is a new map's
+                # (each map embeds with its own: `Encoder.identity_for`)
+                "resize": DEFAULT_RESIZE, **overrides}
         return Encoder(conf)
     except DeviceUnavailableError as e:
         raise ConfigError([("CORTEXLOC_DEVICE", f"={settings.device!r}: {e}")]) from e

@@ -86,11 +86,11 @@ class Metrics:
                                 ("evictions", "TM segments evicted (least recently used) so far"),
                                 ("overruns", "TM synapses destroyed by overrun so far"),
                                 ("observations", "Rows held (in the index and their places)"),
-                                ("places", "Places with a row held (docs/design/science.md §11.7)"),
+                                ("places", "Places with a row held (docs/design/science.md §11.8)"),
                                 ("appearances", "Rows held: the appearances of the places"),
                                 ("visits", "Consolidated frames in the visit log (no row made)"),
                                 ("forgotten", "Rows of places forgotten because the row cap bound, since "
-                                              "start (docs/design/science.md §11.8)"),
+                                              "start (docs/design/science.md §11.9)"),
                                 ("memory_bytes", "Preallocated TM bytes"),
                                 ("snapshots", "Snapshots of every kind on disk"),
                                 ("snapshots_bytes", "Bytes of the snapshots on disk"),

@@ -91,7 +91,7 @@ class MapModel(_Out):
     snapshot_count: int = Field(description="snapshots of every kind")
     snapshots_bytes: int = Field(description="their bytes on disk")
     places: results.PlacesInfo | None = Field(default=None, description="places, appearances, visits and "
-                                              "the forgetting rule (docs/design/science.md §11.7, §11.8); "
+                                              "the forgetting rule (docs/design/science.md §11.8, §11.9); "
                                               "null while the map is not open")
 
 
@@ -186,7 +186,7 @@ class ObservationModel(_Out):
     metadata: dict[str, Any] | None = Field(default=None, description="the frame's, as posted")
     consolidated_into: int | None = Field(default=None, description="a learned frame the map already "
                                           "represents: the stored row it was consolidated into (no new "
-                                          "row: seq is null; docs/design/science.md §11.7)")
+                                          "row: seq is null; docs/design/science.md §11.8)")
 
 
 class StoredObservationModel(_Out):

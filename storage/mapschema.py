@@ -9,7 +9,7 @@ Version 2 added a row's `metadata`, the `thumbnails` and `idempotency_keys` tabl
 `loop_closures` log (docs/design/service.md §4.2: every revisit a stream was told of, bounded, the
 oldest pruned like the keys); version 4 the `keyframes` table (a learned row's local features and
 camera, docs/design/science.md §12.1) and a logged closure's `verification`; version 5 places
-(docs/design/science.md §11.7, §11.8): a row's `place` (the row whose place it joined), the `visits` log
+(docs/design/science.md §11.8, §11.9): a row's `place` (the row whose place it joined), the `visits` log
 (a consolidated frame: the memory learned it, no row was made; replayed like a row) and the `dropped`
 rows (out of the index and their places: an appearance over its place's cap, a forgotten place). An older
 file is brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep
@@ -152,7 +152,7 @@ BEGIN SELECT RAISE(ABORT, 'keyframes are append-only'); END;
 """
 
 
-# What version 5 added (docs/design/science.md §11.7, §11.8; docs/design/service.md §4.2). `visits`: a
+# What version 5 added (docs/design/science.md §11.8, §11.9; docs/design/service.md §4.2). `visits`: a
 # learning stream's consolidated frame, committed before its reply, replayed after the snapshot that does
 # not cover it (`after_seq`: the last row stored before it, the replay order), pruned to a bound once a
 # snapshot covers it. `dropped`: rows no longer held (their data stays: the replay and the snapshots
@@ -313,7 +313,7 @@ class NewObservation:
 
 @dataclass(frozen=True, eq=False)
 class NewVisit:
-    """A learning stream's consolidated frame about to be logged (`visits`, docs/design/science.md §11.7):
+    """A learning stream's consolidated frame about to be logged (`visits`, docs/design/science.md §11.8):
     what the replay needs (its code and winner cells, the row its stream continued), the row it was
     consolidated into, and what its reply needs (metadata, the idempotency key and reply).
 

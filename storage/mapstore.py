@@ -294,7 +294,7 @@ class MapStore:
             return list(range(first, first + len(params)))
 
     def add_visit(self, visit: NewVisit) -> int:
-        """Log a consolidated frame (docs/design/science.md §11.7) with its loop closure and idempotency
+        """Log a consolidated frame (docs/design/science.md §11.8) with its loop closure and idempotency
         key, and COMMIT: durable when this returns, before its reply (docs/design/service.md §4.3).
 
         Returns:
@@ -382,7 +382,7 @@ class MapStore:
             return int(cur.rowcount)
 
     def drop(self, seqs: Iterable[int], reason: str) -> None:
-        """Record rows as no longer held (a forgotten place, docs/design/science.md §11.8) and COMMIT."""
+        """Record rows as no longer held (a forgotten place, docs/design/science.md §11.9) and COMMIT."""
         with self._lock:
             conn = self._db()
             with transaction(conn):
@@ -402,7 +402,7 @@ class MapStore:
 
     def joined(self) -> dict[int, int]:
         """Learned row -> the row its loop closure named, from the log (the place of a row stored before
-        version 5, docs/design/science.md §11.7)."""
+        version 5, docs/design/science.md §11.8)."""
         if not self._v3:
             return {}
         with self._lock:
@@ -568,7 +568,7 @@ class MapStore:
         with self._lock:
             r = self._db().execute("SELECT key, fingerprint, reply FROM idempotency_keys WHERE key = ?",
                                    (key,)).fetchone()
-            if r is None and self._v5:  # a consolidated frame's post (docs/design/science.md §11.7)
+            if r is None and self._v5:  # a consolidated frame's post (docs/design/science.md §11.8)
                 r = self._db().execute("SELECT idempotency_key, fingerprint, reply FROM visits "
                                        "WHERE idempotency_key = ?", (key,)).fetchone()
         return None if r is None else KeyRecord(*r)

@@ -96,7 +96,7 @@ def loop_closure(S: np.ndarray, codes: Sequence[np.ndarray], conf: Mapping[str, 
         live = state.rows >= 0
         np.maximum.at(out[:, i], state.rows[live], state.scores[live])
         if place is not None:
-            best[i], confidence[i], support[i] = place[:3]
+            best[i], confidence[i], support[i] = place.seq, place.confidence, place.support
         graph.append(i, i - 1 if i else -1)
         stats.add(codes[i])
     return OnlineAnswers(best, confidence, support, out)
@@ -115,5 +115,5 @@ def _drive(loc: SequenceLocaliser, graph: SequenceGraph, n_db: int, n_q: int,
         live = state.rows >= 0
         np.maximum.at(out[:, j], state.rows[live], state.scores[live])
         if place is not None:
-            best[j], confidence[j], support[j] = place[:3]
+            best[j], confidence[j], support[j] = place.seq, place.confidence, place.support
     return OnlineAnswers(best, confidence, support, out)

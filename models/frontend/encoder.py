@@ -96,6 +96,8 @@ class EncodeResult:
             (service.maps.encoding.pool).
         thumbnails: per image, a small JPEG of the decoded frame where `embed` was asked for one
             (`images.thumbnail`), else None; None when none was asked for.
+        contrast: (N,) float64 each decoded frame's contrast (`images.contrast`, docs/design/science.md
+            §11.7: how much it can say about where it was taken), from `embed`.
     """
 
     codes: np.ndarray | None
@@ -103,6 +105,7 @@ class EncodeResult:
     projected: np.ndarray | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     thumbnails: list[bytes | None] | None = None
+    contrast: np.ndarray | None = None
 
 
 class Encoder:
@@ -271,12 +274,14 @@ class Encoder:
               "std": self.input_std}
         timings = dict.fromkeys(STAGES[:3], 0.0)
         thumbs: list[bytes | None] | None = [None] * len(data) if thumbnails is not None else None
+        contrast = np.zeros(len(data))
 
         def prepare(b: bytes | images.RawFrame, i: int = 0) -> tuple[np.ndarray, float, float]:
             t0 = time.perf_counter()
             rgb = images.decode(b, **limits)
             if thumbs is not None and thumbnails is not None and thumbnails[i]:
                 thumbs[i] = images.thumbnail(rgb)
+            contrast[i] = images.contrast(rgb)
             t1 = time.perf_counter()
             x = images.preprocess(rgb, **kw)
             return x, (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3
@@ -309,4 +314,5 @@ class Encoder:
             feats_parts.append(self.features(batch))
             timings["backbone"] += (time.perf_counter() - t0) * 1e3
         feats = np.concatenate(feats_parts) if len(feats_parts) > 1 else feats_parts[0]
-        return EncodeResult(codes=None, features=feats, timings_ms=timings, thumbnails=thumbs)
+        return EncodeResult(codes=None, features=feats, timings_ms=timings, thumbnails=thumbs,
+                            contrast=contrast)

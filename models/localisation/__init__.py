@@ -5,16 +5,19 @@ from models.localisation.index import IndexFull, InvertedIndex, Match
 from models.localisation.links import Localisation, graph_from_rows
 from models.localisation.localiser import (
     HYPOTHESIS_BYTES,
+    MIN_CONTRAST,
     NULL_PRIOR,
     LocaliserParams,
     LocaliserState,
     Place,
     SequenceLocaliser,
     default_conf,
+    informative,
     top_candidates,
 )
 from models.localisation.trail import CodeStats, OwnTrail
 
-__all__ = ["HYPOTHESIS_BYTES", "NULL_PRIOR", "CodeStats", "IndexFull", "InvertedIndex", "Localisation",
+__all__ = ["HYPOTHESIS_BYTES", "MIN_CONTRAST", "NULL_PRIOR", "CodeStats", "IndexFull", "InvertedIndex",
+           "Localisation",
            "LocaliserParams", "LocaliserState", "Match", "OwnTrail", "Place", "SequenceGraph",
-           "SequenceLocaliser", "default_conf", "graph_from_rows", "top_candidates"]
+           "SequenceLocaliser", "default_conf", "graph_from_rows", "informative", "top_candidates"]

@@ -6,7 +6,7 @@ just rows with links; the localiser walks them forwards (successors) or backward
 Each row also knows its trail: the first row of the chain of links it ends (`trail`), so "is this row on
 a stream's own trail since row s" is one comparison (docs/design/science.md §11.6), and its place: rows the
 map knows to show one place (a learning stream's revisit joins its new row to the place it revisited) share
-a place id, the id of the place's first row (docs/design/science.md §11.7).
+a place id, the id of the place's first row (docs/design/science.md §11.8).
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ class SequenceGraph:
         self._members: dict[int, list[int]] = {}  # place -> its rows still held (absent: just itself)
         # Links the prev/next arrays do not hold (a branch: a row whose predecessor's successor is
         # another; a consolidated stream's move onto a row that has a predecessor): both ends, for
-        # `within` (a neighbourhood is every row a few links away, whichever way; §11.7).
+        # `within` (a neighbourhood is every row a few links away, whichever way; §11.8).
         self._extra: dict[int, list[int]] = {}
         for r in rows[linked]:
             if self._next[prev[r]] != r:
@@ -80,7 +80,7 @@ class SequenceGraph:
             place: the place the row shows (-1: a new place, its id the row's own).
             joins: the row continues `prev`'s trail (False: `prev` is a row its stream only visited, a
                 consolidated frame, so the row starts a trail of its own, linked back to `prev`; `prev`'s
-                successor changes only if it had none: the route it lies on stays whole; §11.7).
+                successor changes only if it had none: the route it lies on stays whole; §11.8).
         """
         if row < self._n:
             raise ValueError(f"row {row} is already in the graph (size {self._n})")
@@ -124,7 +124,7 @@ class SequenceGraph:
         return self._trail[:self._n]
 
     def link(self, prev: int, row: int, successor: bool = False) -> None:
-        """A stream moved from row `prev` to row `row` (a consolidated frame, §11.7): a neighbour of it
+        """A stream moved from row `prev` to row `row` (a consolidated frame, §11.8): a neighbour of it
         (`within`); with `successor`, also `prev`'s successor if it had none."""
         if not (0 <= prev < self._n and 0 <= row < self._n) or prev == row:
             return
@@ -159,7 +159,7 @@ class SequenceGraph:
         return list(self._members.get(place, [place]))
 
     def drop(self, row: int) -> None:
-        """Row `row` is no longer an appearance of its place (dropped or forgotten, §11.8); its links stay,
+        """Row `row` is no longer an appearance of its place (dropped or forgotten, §11.9); its links stay,
         so paths still walk through it."""
         place = int(self._place[row])
         members = self._members.get(place)

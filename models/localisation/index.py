@@ -17,7 +17,7 @@ scanning the per-row vector, about 11 ms per query at 10^6 rows here against the
 
 The index is derived data: it is rebuilt from `map.sqlite` (`rebuild`) and appended after each commit
 (`add`). It is bounded: `max_observations` rows, then `IndexFull`. A row leaves it with `remove` (an
-appearance dropped by its place's cap, a forgotten place: docs/design/science.md §11.8): it is no
+appearance dropped by its place's cap, a forgotten place: docs/design/science.md §11.9): it is no
 candidate at once, and its postings are reclaimed when the removed rows reach a quarter of the rows, or
 when an add finds the index full (`compact`, O(postings)).
 Not thread-safe for concurrent writers; the map's single writer owns it. `rank` shares one scratch

@@ -32,7 +32,7 @@ def graph_from_rows(rows: Iterable[Any]) -> SequenceGraph:
 
 
 class Localisation:
-    """The map's localiser, links and places (docs/design/science.md §11.1, §11.2, §11.6, §11.7, §11.8).
+    """The map's localiser, links and places (docs/design/science.md §11.1, §11.2, §11.6, §11.8, §11.9).
 
     Args:
         conf: localiser options over `models.localisation.default_conf` (the map's `localiser` params).
@@ -41,7 +41,7 @@ class Localisation:
     Attributes:
         used: (seq,) int64 when each row was last used (made, visited, or the place a learning stream's
             new row joined): the seq-space clock, -1 for rows not held; the drop and forgetting rules
-            read it (§11.8).
+            read it (§11.9).
     """
 
     def __init__(self, conf: dict[str, Any] | None = None, code_width: int = 0) -> None:
@@ -61,8 +61,8 @@ class Localisation:
         Args:
             rows: the stored rows in seq order (`seq`, `context_prev_seq`, `input_sdr`, `stream`, and
                 `place`: the place the row joined, None for its own or a row stored before places).
-            dropped: seqs no longer held (§11.8). joined: seq -> the row its learning stream revisited,
-                from the loop-closure log (the place of a row stored before places, §11.7).
+            dropped: seqs no longer held (§11.9). joined: seq -> the row its learning stream revisited,
+                from the loop-closure log (the place of a row stored before places, §11.8).
             visited: (previous row or None, row, clock) of the visits kept, in log order: their links and
                 the rows' recency.
         """
@@ -88,7 +88,7 @@ class Localisation:
     def add(self, seq: int, prev: int | None, code: np.ndarray, *, stream: str = "", place: int = -1) -> None:
         """A row just learned, after `prev` (None: the start of a sequence), its frame code, and the place
         it shows (-1: a new place). It continues `prev`'s trail only when `prev` is its stream's last made
-        row; after a consolidated frame `prev` is a row it visited, and a new trail starts (§11.7), and
+        row; after a consolidated frame `prev` is a row it visited, and a new trail starts (§11.8), and
         the stream's last made row, if it had no successor, gets this one."""
         own = self._last_row.get(stream)
         joins = prev is not None and own == prev
@@ -111,13 +111,13 @@ class Localisation:
 
     def visit(self, prev: int | None, row: int, clock: int) -> None:
         """A learning stream's frame consolidated into `row` after `prev` (its last row, None: none), at
-        `clock`: the link, and the row's recency (§11.7)."""
+        `clock`: the link, and the row's recency (§11.8)."""
         if prev is not None:
             self.graph.link(prev, row)
         self.touch(row, clock)
 
     def drop(self, seq: int) -> None:
-        """Row `seq` is no longer held: not an appearance of its place, never touched again (§11.8)."""
+        """Row `seq` is no longer held: not an appearance of its place, never touched again (§11.9)."""
         if self.used[seq] >= 0:
             self.graph.drop(seq)
             self.used[seq] = -1
@@ -138,7 +138,7 @@ class Localisation:
     def consolidation(self, place: int, code: np.ndarray, code_of: Callable[[int], np.ndarray]) -> int | None:
         """The appearance of `place` that already represents a frame of code `code`, or None: the one
         most like it, when its Dice reaches b + consolidate · (1 − b), b the frame's background likeness
-        (`CodeStats.background`, the scale of `departure`); `consolidate` 1 never consolidates (§11.7).
+        (`CodeStats.background`, the scale of `departure`); `consolidate` 1 never consolidates (§11.8).
         O(appearances) code reads."""
         c = float(self.localiser.conf["consolidate"])
         rows = self.appearances(place)
@@ -151,7 +151,7 @@ class Localisation:
 
     def over_cap(self, place: int, keep: int) -> list[int]:
         """The appearances to drop so that `place` holds at most `appearances` rows: the least recently
-        used first (ties: the older row), never `keep` (the row just made) (§11.8)."""
+        used first (ties: the older row), never `keep` (the row just made) (§11.9)."""
         rows = [r for r in self.appearances(place) if r != keep]
         extra = len(rows) + 1 - int(self.localiser.conf["appearances"])
         if extra <= 0:
@@ -159,7 +159,7 @@ class Localisation:
         return sorted(rows, key=lambda r: (int(self.used[r]), r))[:extra]
 
     def least_recent(self, n: int) -> list[int]:
-        """Rows of the least recently used places, whole places, at least `n` rows (forgetting, §11.8):
+        """Rows of the least recently used places, whole places, at least `n` rows (forgetting, §11.9):
         a place's recency is its most recently used row's."""
         held = np.flatnonzero(self.used[:len(self.graph)] >= 0)
         if not held.size or n <= 0:
@@ -187,12 +187,14 @@ class Localisation:
         return self.localiser.new_state()
 
     def own_trail(self, state: LocaliserState, last_learned: int | None, code: np.ndarray,
-                  code_of: Callable[[int], np.ndarray]) -> OwnTrail | None:
+                  code_of: Callable[[int], np.ndarray], informative: bool = True) -> OwnTrail | None:
         """The stream's own rows it has not left, after this frame (`SequenceLocaliser.own_trail`,
         docs/design/science.md §11.6): not candidates of the index pass, not states of the filter."""
-        return self.localiser.own_trail(state, self.graph, last_learned, code, code_of, self.codes)
+        return self.localiser.own_trail(state, self.graph, last_learned, code, code_of, self.codes,
+                                        informative)
 
-    def step(self, state: LocaliserState, ranked: Sequence[Match], own: OwnTrail | None) -> Place | None:
+    def step(self, state: LocaliserState, ranked: Sequence[Match], own: OwnTrail | None,
+             informative: bool = True) -> Place | None:
         """One frame of one stream (docs/design/science.md §11.2), before this frame is stored.
 
         Args:
@@ -200,11 +202,12 @@ class Localisation:
             ranked: the index's pass for the frame's winner cells, best first (Dice scores), without
                 the rows the stream has not left; the localiser leaves out the rest of `own` and keeps
                 its `top_k` best.
-            own: the stream's own rows (`own_trail`).
+            own: the stream's own rows (`own_trail`). informative: False for a frame too flat to say
+                where it is (`localiser.informative`, §11.7): no evidence, no revisit.
 
         Returns:
             The place, or None during warm-up.
         """
         seqs = np.fromiter((m.seq for m in ranked), np.int64, len(ranked))
         scores = np.fromiter((m.score for m in ranked), np.float64, len(ranked))
-        return self.localiser.step(state, self.graph, seqs, scores, own)
+        return self.localiser.step(state, self.graph, seqs, scores, own, informative)

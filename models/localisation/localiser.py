@@ -7,7 +7,7 @@ frames <= t only. Beside the stored rows the filter holds one more state, the nu
 has not stored", docs/design/science.md §11.5). The confidence is the posterior of the best path's
 place against both the best path ending more than `exclusion // 2` links away from every row of that place
 (OpenSeqSLAM's best-over-rival idea made causal, over places rather than rows: another pass of the same
-place is no rival, §11.7) and the null, mapped to [0, 1].
+place is no rival, §11.8) and the null, mapped to [0, 1].
 
     loc = SequenceLocaliser({"beam": 128})
     state = loc.new_state()
@@ -32,6 +32,17 @@ from models.presets import check_section
 #: The null's score before a stream's first frame: not yet born. It is born on the first frame at the
 #: jump level, like every candidate row, so it starts on an equal footing (docs/design/science.md §11.5).
 NULL_PRIOR = -np.inf
+
+#: A frame whose contrast (`models.frontend.images.contrast`: the p5-p95 spread of its luma over the 8-bit
+#: range) is under this carries no evidence of where it is, and is never a revisit (docs/design/science.md
+#: §11.7): near-black tunnel frames measure 0-0.02 on Nordland, frames with any visible structure >= 0.04.
+MIN_CONTRAST = 0.03
+
+
+def informative(contrast: float | None) -> bool:
+    """Whether a frame of this contrast can say where it is (§11.7); None (not measured) is taken as yes."""
+    return contrast is None or contrast >= MIN_CONTRAST
+
 
 def _tuple(v: Any) -> Any:
     return tuple(v) if isinstance(v, list) else v  # JSON (a map's stored params) has lists, not tuples
@@ -64,7 +75,7 @@ class LocaliserParams(BaseModel):
     # map's background likeness to the identical code (0: background, 1: identical; §11.6)
     departure: float = Field(0.5, ge=0.0, le=1.0)
     # A learning stream's confident revisit stores no new row when its code is at least this like the
-    # place's most similar appearance, on the same scale as `departure` (1: never, every frame a row; §11.7)
+    # place's most similar appearance, on the same scale as `departure` (1: never, every frame a row; §11.8)
     consolidate: float = Field(0.25, ge=0.0, le=1.0)
     appearances: int = Field(8, ge=1, le=1024)  # rows a place keeps; beyond, the least recently used goes
 
@@ -83,16 +94,23 @@ class Place(NamedTuple):
         seq: the stored row id the best path ends on (the row that matched best).
         confidence: in [0, 1]; max(0, 2 p - 1), p = the posterior of the best path against the best
             rival more than exclusion // 2 links away from every row of its place, and the null
-            (docs/design/science.md §11.5, §11.7); with the null far below it is
+            (docs/design/science.md §11.5, §11.8); with the null far below it is
             tanh(gap / (2 temperature)), gap = best minus rival.
         support: frames on the best path (its age), <= frames seen by the stream.
-        place: the place id of `seq` (`SequenceGraph.place`, §11.7); -1 where not given.
+        informative: False for a frame with too little contrast to say where it is (§11.7): it gave the
+            filter no evidence, and whatever the confidence it is no revisit (`is_revisit`).
+        place: the place id of `seq` (`SequenceGraph.place`, §11.9); -1 where not given.
     """
 
     seq: int
     confidence: float
     support: int
+    informative: bool = True
     place: int = -1
+
+    def is_revisit(self, threshold: float) -> bool:
+        """The revisit decision (docs/design/science.md §11.7): confident enough, the frame informative."""
+        return self.informative and self.confidence >= threshold
 
 
 @dataclass
@@ -250,15 +268,16 @@ class SequenceLocaliser:
         return self.step(state, graph, *top_candidates(sims, int(self.conf["top_k"])))
 
     def own_trail(self, state: LocaliserState, graph: SequenceGraph, last: int | None, code: np.ndarray,
-                  code_of: Callable[[int], np.ndarray], stats: CodeStats) -> OwnTrail | None:
+                  code_of: Callable[[int], np.ndarray], stats: CodeStats,
+                  informative: bool = True) -> OwnTrail | None:
         """The rows of the stream's own trail it has not left, after this frame (`trail.own_trail`,
         docs/design/science.md §11.6, at this localiser's `departure`, widened by `exclusion` links);
         call it before `step`, learning or not."""
         return own_trail(state, graph, last, code, code_of, stats, float(self.conf["departure"]),
-                         int(self.conf["exclusion"]))
+                         int(self.conf["exclusion"]), informative)
 
     def step(self, state: LocaliserState, graph: SequenceGraph, seqs: np.ndarray,
-             scores: np.ndarray, own: OwnTrail | None = None) -> Place | None:
+             scores: np.ndarray, own: OwnTrail | None = None, informative: bool = True) -> Place | None:
         """Advance one stream by one frame and answer its place.
 
         Args:
@@ -268,6 +287,9 @@ class SequenceLocaliser:
                 similar), e.g. an index's top-K; only the `top_k` best are used.
             own: the stream's own rows it has not left (`own_trail`): neither candidates nor states of
                 the filter, so never the answer (docs/design/science.md §11.6).
+            informative: False for a frame too flat to say where it is (`informative`, §11.7): its
+                candidates are no evidence (every row and the null earn 0: the filter only moves the
+                paths along, as with a missing observation), and its answer is no revisit.
 
         Returns:
             The place, or None while fewer than `warmup` frames were seen or no candidate was ever given.
@@ -276,6 +298,8 @@ class SequenceLocaliser:
         seqs, scores = np.asarray(seqs, np.int64), np.asarray(scores, np.float64)
         if seqs.size and (seqs.min() < 0 or seqs.max() >= len(graph)):
             raise ValueError("a candidate row is not in the graph")
+        if not informative:
+            seqs, scores = seqs[:0], scores[:0]
         if own is not None and seqs.size:
             mine = own.holds(graph, seqs)
             seqs, scores = seqs[~mine], scores[~mine]
@@ -335,12 +359,13 @@ class SequenceLocaliser:
         state.frames += 1
         if state.frames < int(c["warmup"]) or n == 0:
             return None
-        return self._answer(state, graph, n, jump)
+        place = self._answer(state, graph, n, jump)
+        return place if informative else place._replace(informative=False)
 
     def _answer(self, state: LocaliserState, graph: SequenceGraph, n: int, background: float) -> Place:
         best = int(state.rows[0])
         # The rival is another place: the rows of the best's place (its other passes and appearances)
-        # and their neighbourhoods are not rivals (§11.7).
+        # and their neighbourhoods are not rivals (§11.8).
         place, links = int(graph.place[best]), int(self.conf["exclusion"]) // 2
         near = np.unique(np.concatenate([graph.within(r, links) for r in {best, *graph.members(place)}]))
         rivals = state.scores[:n][~np.isin(state.rows[:n], near)]
@@ -351,7 +376,7 @@ class SequenceLocaliser:
         t, top = float(self.conf["temperature"]), float(state.scores[0])
         others = np.logaddexp((rival - top) / t, (state.null - top) / t)
         p = float(np.exp(-np.logaddexp(0.0, others)))
-        return Place(best, max(2.0 * p - 1.0, 0.0), int(min(state.ages[0], state.frames)), place)
+        return Place(best, max(2.0 * p - 1.0, 0.0), int(min(state.ages[0], state.frames)), place=place)
 
 
 def _lookup(sorted_rows: np.ndarray, values: np.ndarray, rows: np.ndarray) -> np.ndarray:

@@ -101,7 +101,7 @@ class CodeStats:
 
 def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: np.ndarray,
               code_of: Callable[[int], np.ndarray], stats: CodeStats, departure: float,
-              margin: int) -> OwnTrail | None:
+              margin: int, informative: bool = True) -> OwnTrail | None:
     """The rows of the stream's own trail it has not left, after this frame (§11.6).
 
     Walking from `state.here` along the trail, every row the current frame is unlike is left (the
@@ -124,6 +124,8 @@ def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: n
             its context); code_of: a stored row's code in the same form.
         stats: the map's code statistics. departure: in [0, 1] (`LocaliserParams.departure`).
         margin: links before `here` that are still the stream's own (>= 0).
+        informative: False for a frame too flat to say where it is (§11.7): it leaves no row (a dark
+            tunnel is unlike everything, but says nothing about whether the stream moved on).
 
     Returns:
         OwnTrail(first, here, last, trail), first = `margin` links before `here` (or the trail's start), or
@@ -141,7 +143,7 @@ def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: n
         here, state.here_code = last, None
     b = stats.background(code)
     level = b + departure * (1.0 - b)
-    while here <= last:
+    while informative and here <= last:
         if state.here_code is None:
             state.here_code = np.asarray(code_of(here))
         if code_dice(code, state.here_code) >= level:

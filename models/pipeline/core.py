@@ -10,7 +10,7 @@ Ordering, persistence (the row, its seq) and snapshots are the caller's.
 
 `observe` is one frame online; `replay` is one stored row again (its code is stored, so no hash, no
 index pass: the index and the links are rebuilt in bulk from the rows afterwards), `revisit` one stored
-visit again (a consolidated frame: the memory learned it, no row was made, docs/design/science.md §11.7).
+visit again (a consolidated frame: the memory learned it, no row was made, docs/design/science.md §11.8).
 All keep a stream's sequence bookkeeping through `_remember`, the one place its rules live.
 """
 
@@ -25,7 +25,7 @@ import numpy as np
 
 from models.frontend import slsbh
 from models.frontend.adaptation import RunningMean
-from models.localisation import InvertedIndex, Localisation, Match, Place
+from models.localisation import InvertedIndex, Localisation, Match, Place, informative
 from models.memory import registry as memories
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline.state import Stream
@@ -87,9 +87,9 @@ class Step:
         place: the stream's place on the map, or None (warm-up).
         timings_ms: hash, tm, search.
         visit: a learned frame consolidated into this stored row (no row made, docs/design/science.md
-            §11.7); None: a row was made (learning) or nothing is learned.
+            §11.8); None: a row was made (learning) or nothing is learned.
         place: for a made row, the place it joined (-1: a new place of its own).
-        dropped: rows the made row's place dropped over its cap (§11.8), least recently used first.
+        dropped: rows the made row's place dropped over its cap (§11.9), least recently used first.
     """
 
     code: np.ndarray
@@ -115,7 +115,7 @@ def _remember(model: MapModel, st: Stream, code: np.ndarray, *, learn: bool, sta
 
 def _advance(st: Stream, learn: bool, seq: int | None, made: bool = True) -> None:
     """The stream after its step: a learned frame is the row `seq` the next one continues (`made`: the
-    stream's own new row; else a row it visited, §11.7)."""
+    stream's own new row; else a row it visited, §11.8)."""
     if learn:
         st.last_learned_seq = seq
         if made:
@@ -126,7 +126,7 @@ def _advance(st: Stream, learn: bool, seq: int | None, made: bool = True) -> Non
 
 def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, stream: str, top_k: int,
             code_of: Callable[[int], np.ndarray], seq: int | None = None,
-            threshold: float | None = None) -> Step:
+            threshold: float | None = None, contrast: float | None = None) -> Step:
     """One frame of one stream (docs/design/service.md §1.2, §6).
 
     Args:
@@ -139,11 +139,15 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         code_of: a stored row's code (its `input_sdr`), read by the own-trail rule (§11.6): about one
             row per frame.
         seq: the seq the learned row gets (required with `learn`; the caller stores it under that seq).
-            It is also the clock of the places' recency (§11.8).
+            It is also the clock of the places' recency (§11.9).
         threshold: the map's revisit threshold. A learning frame whose place is a revisit (confidence
             >= it) joins that place, and is consolidated into it when one of its appearances already
-            represents the frame (`Localisation.consolidation`, docs/design/science.md §11.7): the
+            represents the frame (`Localisation.consolidation`, docs/design/science.md §11.8): the
             memory learns it, no row is made (`Step.visit`). None: no frame is a revisit.
+        contrast: the decoded frame's contrast (`models.frontend.images.contrast`; None: not measured).
+            Under `localisation.MIN_CONTRAST` the frame says nothing of where it is (§11.7): it is no
+            evidence to the localiser, leaves no row of the stream's trail, and its place is no revisit.
+            It is still learned and ranked like any frame.
 
     Returns:
         The step. The stream's bookkeeping is done; the caller stores a learned row (or the visit) after
@@ -178,27 +182,28 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     # The stream's own rows it has not left are no answer (docs/design/science.md §11.6); one index pass
     # without them serves the matches and the localiser's candidates (§11.2), which also leaves out the
     # rival window behind them.
-    # The trail is the stream's own made rows: after a consolidated frame it is not where `prev` is (§11.7).
-    own = model.links.own_trail(st.localiser, st.own_seq, code, code_of)
+    # The trail is the stream's own made rows: after a consolidated frame it is not where `prev` is (§11.9).
+    flat = not informative(contrast)
+    own = model.links.own_trail(st.localiser, st.own_seq, code, code_of, not flat)
     if own is not None and own.here > own.last and st.last_learned_seq != st.own_seq:
         own = None  # it left every row it made and travels on rows it visited: none is where it is
     ranked = model.index.rank(winners, model.links.candidates_wanted(top_k),
                               exclude_own=None if own is None else (stream, own.here))
-    place = model.links.step(st.localiser, ranked, own)
+    place = model.links.step(st.localiser, ranked, own, not flat)
     visit, joined, dropped = None, -1, ()
     if learn:
         assert seq is not None
         links = model.links
-        if place is not None and threshold is not None:
+        if place is not None and threshold is not None and place.informative:  # a flat frame says nothing
             # Well represented: like an appearance of the place its best path names, confident or not
-            # (a pass's unconfident frames would otherwise become parallel places, each a rival, §11.7).
+            # (a pass's unconfident frames would otherwise become parallel places, each a rival, §11.8).
             visit = links.consolidation(place.place, code, code_of)
-            confident = place.confidence >= threshold
+            confident = place.is_revisit(threshold)
             if visit is not None and not confident and st.own_seq is not None and \
                     links.graph.trail[visit] == links.graph.trail[st.own_seq]:
                 visit = None  # the stream's own trail is left to the confident rule (§11.6)
             if visit is not None or confident:
-                links.touch(place.seq, seq)  # a learning stream used the place (§11.8)
+                links.touch(place.seq, seq)  # a learning stream used the place (§11.9)
                 joined = place.place
         if visit is not None:
             links.visit(prev, visit, seq)
@@ -218,7 +223,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
 
 def drop(model: MapModel, seqs: tuple[int, ...] | list[int]) -> None:
     """Rows that are no longer held (an appearance over its place's cap, a forgotten place,
-    docs/design/science.md §11.8): out of the index and their places; their links stay."""
+    docs/design/science.md §11.9): out of the index and their places; their links stay."""
     model.index.remove(seqs)
     for s in seqs:
         model.links.drop(int(s))
@@ -241,7 +246,7 @@ def replay(model: MapModel, st: Stream, code: np.ndarray, *, seq: int, prev_seq:
 
 
 def revisit(model: MapModel, st: Stream, code: np.ndarray, *, row: int, prev_seq: int | None) -> np.ndarray:
-    """A stored visit's step again (a consolidated frame, docs/design/science.md §11.7; service.md §4.4):
+    """A stored visit's step again (a consolidated frame, docs/design/science.md §11.8; service.md §4.4):
     its code through the memory on the stream's context, learning, and the stream moved onto the visited
     `row` as `observe` did. Nothing else is touched.
 

@@ -29,7 +29,7 @@ class Stream:
     posted_at: float = 0.0  # time.monotonic() of its last frame (0: none since this process started)
     # The last row the stream made in its current sequence (its own trail, docs/design/science.md §11.6);
     # it differs from `last_learned_seq` after a consolidated frame, which moves the stream onto a row
-    # it visited (§11.7).
+    # it visited (§11.8).
     own_seq: int | None = None
 
     def break_sequence(self) -> None:

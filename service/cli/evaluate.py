@@ -285,6 +285,9 @@ def eval_images(
                 feats[label] = sequences.cached_features(enc, [folder / n for n in names],
                                                          cache_dir / "features", progress=tick)
     db_paths, q_paths = [db / n for n in db_names], [query / n for n in q_names]
+    # Each frame's contrast, as the service measures it at decode (docs/design/science.md §11.7).
+    contrast = (service_path.contrasts(p.read_bytes() for p in [*db_paths, *q_paths])
+                if service_list or slam_list else None)
     frames = ((seq.load_frames(db_paths), seq.load_frames(q_paths)) if "openseqslam" in method_list
               else None)
     n_q = len(feats["query"])
@@ -304,6 +307,7 @@ def eval_images(
                 summary, first = service_path.experiment(
                     feats["db"], feats["query"], methods=service_list, columns=columns, tolerance=tolerance,
                     gt=gt_matrix, seeds=seeds, seed=seed, reverse_query=reverse_query, progress=tick,
+                    contrast=contrast,
                     map_conf={"encoder_id": enc.identity, "backbone": backbone, "preset": preset,
                               "create": {"slsbh": {"s": sparsity, "adapt_tau": adapt}, "resize": resize}})
             result["methods"].update(summary)
@@ -311,7 +315,7 @@ def eval_images(
         if slam_list:
             assert enc is not None
             result["loop_closure"] = _loop_closure(
-                feats, slam_list, tolerance=tolerance, seed=seed,
+                feats, slam_list, tolerance=tolerance, seed=seed, contrast=contrast,
                 map_conf={"encoder_id": enc.identity, "backbone": backbone, "preset": preset,
                           "create": {"slsbh": {"s": sparsity, "adapt_tau": adapt}}})
     except ValueError as e:
@@ -366,7 +370,7 @@ def _fmt(v: float | None) -> str:
 
 
 def _loop_closure(feats: dict[str, np.ndarray], methods: list[str], *, tolerance: int, seed: int,
-                  map_conf: dict[str, Any]) -> dict[str, Any]:
+                  map_conf: dict[str, Any], contrast: np.ndarray | None = None) -> dict[str, Any]:
     """`service-slam*`: the database then the query traverse posted as ONE learning stream
     (`service_path.slam_replay`), scored per lap (`models.evaluation.slam.score`; file i of either
     folder is place i) at the map's threshold."""
@@ -380,7 +384,7 @@ def _loop_closure(feats: dict[str, np.ndarray], methods: list[str], *, tolerance
     for m in methods:
         run = np.concatenate([feats["db"], feats["query"]])
         found, threshold = service_path.slam_replay(run, seed=seed, memory=service_path.SLAM_METHODS[m],
-                                                    **map_conf)
+                                                    contrast=contrast, **map_conf)
         out[m] = {"threshold": threshold,
                   **slam.score(found.best, found.confidence, labels, threshold, tolerance, laps)}
     return out
@@ -486,6 +490,19 @@ def eval_resize(
                 seeds=[int(x) for x in seeds.split(",")])
 
 
+@app.command("slam-ablation")
+def eval_slam_ablation(
+    data: Annotated[Path, typer.Option(help="the Nordland folder (summer/, winter/)")],
+    seeds: Annotated[int, typer.Option(min=1, help="map seeds 1..N")] = 3,
+    backbone: str = "efficientnet-lite0-s5",
+    json_out: Annotated[Path | None, typer.Option("--json", help="write every run here too")] = None,
+) -> None:
+    """The Temporal Memory in its own setting on short, unsaturated routes over seeds
+    (service/evaluation/slam_ablation.py, docs/results.md §10.2)."""
+    from service.evaluation import slam_ablation
+
+    slam_ablation.ablation(data, seeds=seeds, backbone=backbone, json_path=json_out)
+
 @app.command("passes")
 def eval_passes(
     data: Annotated[Path, typer.Option(help="the Nordland folder (summer/, winter/)")],
@@ -527,6 +544,8 @@ def eval_slam(
     seed: int = 1,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the result here too")] = None,
     grid: Annotated[Path | None, typer.Option(help="the grid world's folder instead of --data")] = None,
+    adapt_tau: Annotated[int, typer.Option(help="the maps' slsbh.adapt_tau (0: none)")] = 0,
+    seeds: Annotated[int, typer.Option(min=1, help="with --grid: the memory over TM seeds 1..N")] = 1,
 ) -> None:
     """Loop closure while mapping on routes made from the Nordland halves, or the grid world's loops
     (service/evaluation/slam.py)."""
@@ -535,6 +554,7 @@ def eval_slam(
     try:
         slam.slam_runs(data=data, half=half, routes=routes or ",".join(slam.ROUTES), methods=methods,
                        thresholds=[float(t) for t in thresholds.split(",") if t], tolerance=tolerance,
-                       rate=rate, backbone=backbone, seed=seed, json_path=json_out, grid_dir=grid)
+                       rate=rate, backbone=backbone, seed=seed, json_path=json_out, grid_dir=grid,
+                       adapt_tau=adapt_tau, seeds=seeds)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e

@@ -1,5 +1,5 @@
 """Many passes of one route through the service's path: place identity, consolidation and the map's
-growth (docs/results.md §11, docs/design/science.md §11.7, §11.8).
+growth (docs/results.md §11, docs/design/science.md §11.8, §11.9).
 
     cortexloc eval passes --data ../shared/data/nordland_tiny_64x32 --half test --frames 200 \
         --passes 1,2,3,5,10 --json out.json

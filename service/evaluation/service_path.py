@@ -14,13 +14,15 @@ encoder.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
 
 from models.evaluation.online import OnlineAnswers
+from models.frontend import images as frontend_images
 from models.frontend import slsbh
+from models.localisation import Place
 from models.pipeline import MapModel, Stream, observe
 from service.maps.config import MapConfig, MapOptions, map_model, resolve
 from service.maps.encoding import projection as map_projection
@@ -49,7 +51,7 @@ def _model(n_rows: int, feature_dim: int, *, backbone: str, preset: str, seed: i
 
 def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: str, seed: int,
                 memory: str = "tm", localiser: dict[str, Any] | None = None,
-                create: dict[str, Any] | None = None,
+                create: dict[str, Any] | None = None, contrast: np.ndarray | None = None,
                 progress: Callable[[int, int], None] | None = None) -> tuple[OnlineAnswers, float]:
     """A whole route as ONE learning stream (every frame learned, `models.pipeline.observe` as the map
     writer calls it): loop closure while mapping (docs/design/science.md §11.6).
@@ -58,8 +60,9 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
         feats: (T, D) backbone features in driven order (all laps). Other arguments as `replay`.
 
     Returns:
-        (answers over the route's own frames: best = the frame the `place` names, -1 in warm-up; S is
-        empty (0, T)), and the map's `revisit_threshold`.
+        (answers over the route's own frames: best = the frame the `place` names, -1 in warm-up;
+        confidence 0 where the frame is too flat to be a revisit, §11.7; S is empty (0, T)), and the
+        map's `revisit_threshold`.
     """
     del encoder_id
     T = len(feats)
@@ -67,23 +70,40 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
                                    memory=memory, localiser=localiser, create=create)
     robot, codes, frame_of = Stream(), {}, {}
     best, confidence, support = np.full(T, -1, np.int64), np.zeros(T), np.zeros(T, np.int64)
-    for i, y in enumerate(hasher.project(feats)):  # a consolidated frame makes no row (§11.7)
+    for i, y in enumerate(hasher.project(feats)):  # a consolidated frame makes no row (§11.9)
         seq = len(codes) + 1
         step = observe(model, robot, y, learn=True, stream="robot", top_k=0, seq=seq,
-                       code_of=codes.__getitem__, threshold=config.revisit_threshold)
+                       code_of=codes.__getitem__, threshold=config.revisit_threshold,
+                       contrast=_at(contrast, i))
         if step.visit is None:
             codes[seq], frame_of[seq] = step.code, i
         if step.place is not None:
-            best[i], confidence[i] = frame_of[step.place.seq], step.place.confidence
+            best[i], confidence[i] = frame_of[step.place.seq], _decided(step.place)
             support[i] = step.place.support
         if progress:
             progress(i + 1, T)
     return OnlineAnswers(best, confidence, support, np.zeros((0, T))), config.revisit_threshold
 
 
+def contrasts(images: Iterable[bytes]) -> np.ndarray:
+    """(n,) each encoded image's contrast as the service measures it at decode (`images.contrast`,
+    docs/design/science.md §11.7), for the `contrast` of `replay` and `slam_replay`."""
+    return np.array([frontend_images.contrast(frontend_images.decode(b)) for b in images])
+
+
+def _at(contrast: np.ndarray | None, i: int) -> float | None:
+    return None if contrast is None else float(contrast[i])
+
+
+def _decided(place: Place) -> float:
+    """The confidence the revisit decision compares: 0 for a frame too flat to be a revisit at any
+    threshold (`Place.is_revisit`, docs/design/science.md §11.7)."""
+    return place.confidence if place.informative else 0.0
+
+
 def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbone: str, preset: str,
            seed: int, memory: str = "tm", localiser: dict[str, Any] | None = None,
-           create: dict[str, Any] | None = None,
+           create: dict[str, Any] | None = None, contrast: np.ndarray | None = None,
            progress: Callable[[int, int], None] | None = None) -> OnlineAnswers:
     """Learn `db_feats` as one traverse (stream `database`), then localise `q_feats` (stream `query`).
 
@@ -92,11 +112,13 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
         encoder_id, backbone: the encoder they came from (a served map freezes them; here the backbone
             is checked like a created map's, `encoder_id` only names them).
         preset, seed, memory, localiser: the map's `CreateMap` fields; `create`: any further ones.
+        contrast: (n_db + n_q,) each frame's contrast (`models.frontend.images.contrast`), or None.
         progress: called with (frames done, frames in all).
 
     Returns:
         `OnlineAnswers` over database rows 0..n_db-1: the `place` answers (best -1 during warm-up,
-        confidence, support) and S, the query stream's beam scores after each frame (-inf elsewhere).
+        confidence (0 for a frame too flat to be a revisit, §11.7), support) and S, the query stream's
+        beam scores after each frame (-inf elsewhere).
     """
     del encoder_id  # the features are the encoder's; a map would freeze its identity
     n_db, n_q = len(db_feats), len(q_feats)
@@ -106,20 +128,20 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
     database, query = Stream(), Stream()
     for i, y in enumerate(hasher.project(db_feats)):
         codes[i + 1] = observe(model, database, y, learn=True, stream="database", top_k=0, seq=i + 1,
-                               code_of=codes.__getitem__).code
+                               code_of=codes.__getitem__, contrast=_at(contrast, i)).code
         if progress:
             progress(i + 1, n_db + n_q)
     best, confidence = np.full(n_q, -1, np.int64), np.zeros(n_q)
     support, S = np.zeros(n_q, np.int64), np.full((n_db, n_q), -np.inf)
     for j, y in enumerate(hasher.project(q_feats)):
         place = observe(model, query, y, learn=False, stream="query", top_k=0,
-                        code_of=codes.__getitem__).place
+                        code_of=codes.__getitem__, contrast=_at(contrast, n_db + j)).place
         state = query.localiser
         assert state is not None
         live = state.rows >= 0
         np.maximum.at(S[:, j], state.rows[live] - 1, state.scores[live])  # seq s is database row s - 1
         if place is not None:
-            best[j], confidence[j], support[j] = place.seq - 1, place.confidence, place.support
+            best[j], confidence[j], support[j] = place.seq - 1, _decided(place), place.support
         if progress:
             progress(n_db + j + 1, n_db + n_q)
     return OnlineAnswers(best, confidence, support, S)
@@ -151,13 +173,14 @@ def operating_point(confidence: np.ndarray, correct: np.ndarray, precision: floa
 
 def experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: list[str], columns: np.ndarray,
                tolerance: int, gt: np.ndarray | None, seeds: int, seed: int, reverse_query: bool,
-               map_conf: dict[str, Any], progress: Callable[[int, int], None] | None = None
-               ) -> tuple[dict[str, Any], dict[str, Any]]:
+               map_conf: dict[str, Any], progress: Callable[[int, int], None] | None = None,
+               contrast: np.ndarray | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
     """The service methods over seeds, scored like the others (`sequences.evaluate`).
 
     Args:
         methods: keys of METHODS. columns: (n_q,) bool, the scored queries (file order).
         map_conf: `replay`'s map keywords (encoder_id, backbone, preset, localiser, create).
+        contrast: (n_db + n_q,) each frame's contrast in file order (`contrasts`), or None.
         Other arguments as `models.evaluation.sequences.image_experiment`.
 
     Returns:
@@ -169,13 +192,15 @@ def experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: list[str],
     first: dict[str, Any] = {}
     children = np.random.SeedSequence(seed).spawn(seeds)
     q_driven = q_feats[::-1] if reverse_query else q_feats
+    if contrast is not None and reverse_query:
+        contrast = np.r_[contrast[:len(db_feats)], contrast[len(db_feats):][::-1]]
     for m in methods:
         runs = []
         for child in children:
             run_seed = int(child.generate_state(1)[0]) % 2**31
             t0 = time.perf_counter()
             found = replay(db_feats, q_driven, seed=run_seed, memory=METHODS[m], progress=progress,
-                           **map_conf)
+                           contrast=contrast, **map_conf)
             seconds = time.perf_counter() - t0
             S, best, conf = found.S, found.best, found.confidence
             if reverse_query:

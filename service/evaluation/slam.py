@@ -72,7 +72,8 @@ class Frames:
 
 
 def route(frames: Frames, name: str) -> dict[str, Any]:
-    """{"feats" (T, D), "images" T PNGs, "labels" (T,), "laps" (T,)} of one route."""
+    """{"feats" (T, D), "images" T PNGs, "contrast" (T,) (`images.contrast`, what the service measures
+    at decode), "labels" (T,), "laps" (T,)} of one route."""
     n = len(frames.paths["summer"])
     s_f, s_i = frames.feats["summer"], frames.images["summer"]
     idx = np.arange(n)
@@ -96,7 +97,9 @@ def route(frames: Frames, name: str) -> dict[str, Any]:
         parts = [(s_f[out_], [s_i[i] for i in out_], out_), (s_f[back], [s_i[i] for i in back], back)]
     else:
         raise ValueError(f"unknown route {name!r}; known: {', '.join(ROUTES)}")
-    return {"feats": np.concatenate([p[0] for p in parts]), "images": [b for p in parts for b in p[1]],
+    pngs = [b for p in parts for b in p[1]]
+    return {"feats": np.concatenate([p[0] for p in parts]), "images": pngs,
+            "contrast": service_path.contrasts(pngs),
             "labels": np.concatenate([p[2] for p in parts]) + frames.lo,
             "laps": np.concatenate([np.full(len(p[2]), k) for k, p in enumerate(parts)])}
 
@@ -120,14 +123,14 @@ def evaluate(r: dict[str, Any], methods: list[str], map_conf: dict[str, Any], th
     for m in methods:
         if m in service_path.SLAM_METHODS:
             found, default = service_path.slam_replay(r["feats"], memory=service_path.SLAM_METHODS[m],
-                                                      **map_conf)
+                                                      contrast=r["contrast"], **map_conf)
             best, conf = found.best, found.confidence
         elif m in service_path.METHODS:  # the localise mode: lap 1 learned, the rest localised
             if laps.max() < 1:
                 continue
             n1 = int((laps == 0).sum())
             found = service_path.replay(r["feats"][:n1], r["feats"][n1:], memory=service_path.METHODS[m],
-                                        **map_conf)
+                                        contrast=r["contrast"], **map_conf)
             best = np.r_[np.full(n1, -1), found.best]
             conf = np.r_[np.zeros(n1), found.confidence]
             default = DEFAULT_REVISIT_THRESHOLD
@@ -157,9 +160,11 @@ def evaluate(r: dict[str, Any], methods: list[str], map_conf: dict[str, Any], th
     return out
 
 
-def grid(folder: Path, thresholds: list[float]) -> dict[str, Any]:
+def grid(folder: Path, thresholds: list[float], seeds: int = 1) -> dict[str, Any]:
     """The grid world's loops as one learning stream, with and without the Temporal Memory, and
-    OpenSeqSLAM's online detector on 1 − Dice of the SDRs."""
+    OpenSeqSLAM's online detector on 1 − Dice of the SDRs; the memory over TM seeds 1..`seeds` (keys
+    "... service-slam" for seed 1, "... service-slam seed N" for the others; without it the input SDRs
+    are the codes, so one run)."""
     from models.evaluation import gridworld, online, runner
     from models.sdr import dice_matrix
 
@@ -168,8 +173,10 @@ def grid(folder: Path, thresholds: list[float]) -> dict[str, Any]:
         data = gridworld.load_published(folder / name, folder / "seq_multi_loop_noNoise_gt.txt")
         ids = {cell: i for i, cell in enumerate(sorted({tuple(p) for p in data.places}))}
         labels = np.array([ids[tuple(p)] for p in data.places])
-        winners, _ = runner.run_htm(data, "cortexloc-grid", 1)
-        methods = {"service-slam-without-tm": dice_matrix(data.sdrs), "service-slam": dice_matrix(winners)}
+        methods = {"service-slam-without-tm": dice_matrix(data.sdrs)}
+        for seed in range(1, seeds + 1):
+            winners, _ = runner.run_htm(data, "cortexloc-grid", seed)
+            methods["service-slam" + (f" seed {seed}" if seed > 1 else "")] = dice_matrix(winners)
         for m, S in methods.items():
             found = online.loop_closure(S, data.sdrs)
             out[f"{name} {m}"] = {f"{t:.4f}": slam.score(found.best, found.confidence, labels, t, 0)
@@ -183,8 +190,10 @@ def slam_runs(*, data: Path | None = None, half: str = "tune", routes: str = ","
               methods: str = "service-slam,service-slam-without-tm,service,openseqslam",
               thresholds: list[float] | None = None, tolerance: int = 1, rate: float = 0.001,
               backbone: str | None = None, seed: int = 1, json_path: Path | None = None,
-              grid_dir: Path | None = None) -> None:
-    """The experiment (module docstring), printed; `grid_dir`: the grid world's folder instead of `data`.
+              grid_dir: Path | None = None, adapt_tau: int = 0, seeds: int = 1) -> None:
+    """The experiment (module docstring), printed; `grid_dir`: the grid world's folder instead of `data`;
+    `adapt_tau`: the maps made with that stream adaptation (docs/results.md §10.6); `seeds`: the grid
+    world's memory over that many seeds.
 
     Raises:
         ValueError: neither `data` nor `grid_dir`, or an unknown `half`.
@@ -195,7 +204,7 @@ def slam_runs(*, data: Path | None = None, half: str = "tune", routes: str = ","
                            tolerance=tolerance, rate=rate, backbone=backbone, seed=seed, json=json_path,
                            grid=grid_dir)
     if args.grid is not None:
-        found = grid(args.grid, [DEFAULT_REVISIT_THRESHOLD, *args.thresholds])
+        found = grid(args.grid, [DEFAULT_REVISIT_THRESHOLD, *args.thresholds], seeds)
         for key, by_t in found.items():
             for t, s in by_t.items():
                 d = s["lap"][0]
@@ -213,7 +222,7 @@ def slam_runs(*, data: Path | None = None, half: str = "tune", routes: str = ","
         raise ValueError("--data (or --grid) is required")
     frames = Frames(args.data, args.half, enc, cache)
     map_conf = {"encoder_id": enc.identity, "backbone": backbone, "preset": settings.default_preset,
-                "seed": args.seed}
+                "seed": args.seed, "create": {"slsbh": {"adapt_tau": adapt_tau}} if adapt_tau else None}
     result: dict[str, Any] = {"config": {**{k: str(v) for k, v in vars(args).items()}, "backbone": backbone},
                               "routes": {}}
     for name in args.routes.split(","):

@@ -41,10 +41,14 @@ def unknown(db: Path, query: Path, *, split: int, thresholds: list[float], backb
     db = sequences.cached_features(enc, [args.db / n for n in names], cache)
     q = sequences.cached_features(enc, [args.query / n for n in names], cache)
     halves = (slice(0, args.split), slice(args.split, len(names)))
+    # each frame's contrast, as the service measures it at decode (docs/design/science.md §11.7)
+    db_c = service_path.contrasts((args.db / n).read_bytes() for n in names)
+    q_c = service_path.contrasts((args.query / n).read_bytes() for n in names)
 
     def replay(a: slice, b: slice) -> service_path.OnlineAnswers:
         return service_path.replay(db[a], q[b], encoder_id=enc.identity, backbone=backbone,
-                                   preset=settings.default_preset, seed=args.seed)
+                                   preset=settings.default_preset, seed=args.seed,
+                                   contrast=np.r_[db_c[a], q_c[b]])
 
     print(f"backbone {backbone}, preset {settings.default_preset}, map seed {args.seed}")
     for a, b in (halves, halves[::-1]):

@@ -93,8 +93,10 @@ class VerificationResult:
 @dataclass(frozen=True)
 class PlaceResult:
     """The stream's sequence-level answer (docs/design/science.md §11.2, docs/design/service.md §1.2):
-    the stored row it is at, `confidence` in [0, 1], `revisit` = confidence >= the map's threshold,
-    `support` = frames on the path behind the answer; `metadata` when the row has any."""
+    the stored row it is at, `confidence` in [0, 1], `revisit` = confidence >= the map's threshold and
+    the frame informative, `support` = frames on the path behind the answer; `metadata` when the row has
+    any; `low_information`: the frame was too flat (near-black, blank, overexposed) to say where it is,
+    so it is no revisit whatever the confidence (docs/design/science.md §11.7)."""
 
     seq: int
     observation_id: str
@@ -106,16 +108,18 @@ class PlaceResult:
     metadata: dict[str, Any] | None = None
     # On a map with keyframes, for a revisit candidate (confidence >= threshold) only; None otherwise.
     verification: VerificationResult | None = None
+    low_information: bool = False
     # The place `seq` shows: the id of the place's first row; every pass and appearance of one place
-    # answers the same id (docs/design/science.md §11.7). `seq` is the row that matched best.
+    # answers the same id (docs/design/science.md §11.9). `seq` is the row that matched best.
     place_id: int = 0
 
     @classmethod
     def of(cls, place: Any, row: Any, revisit_threshold: float) -> PlaceResult:
         """The reply's `place`: the localiser's `Place`, its stored row, and the map's revisit decision."""
         return cls(seq=place.seq, observation_id=row.observation_id, stream=row.stream, label=row.label,
-                   confidence=place.confidence, revisit=place.confidence >= revisit_threshold,
+                   confidence=place.confidence, revisit=place.is_revisit(revisit_threshold),
                    support=place.support, metadata=getattr(row, "metadata", None),
+                   low_information=not place.informative,
                    place_id=int(place.place) if place.place >= 0 else int(place.seq))
 
 
@@ -142,13 +146,13 @@ class ObservationResult:
     # viewer's query thumbnail, docs/design/service.md §1.7), never part of a reply.
     thumbnail: bytes | None = None
     # A learned frame consolidated into this stored row: the memory learned it, no row was made (`seq`
-    # and `observation_id` are null; docs/design/science.md §11.7).
+    # and `observation_id` are null; docs/design/science.md §11.8).
     consolidated_into: int | None = None
 
 
 @dataclass(frozen=True)
 class PlacesInfo:
-    """A map's places and their bounds (docs/design/science.md §11.7, §11.8)."""
+    """A map's places and their bounds (docs/design/science.md §11.8, §11.9)."""
 
     places: int  # places with a row held
     appearances: int  # rows held (in the index and their places)

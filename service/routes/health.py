@@ -10,7 +10,8 @@ iff no check fails: 200 `{"status": "ready", "checks": ..., "warnings": [...]}`,
   when `CORTEXLOC_ALLOW_RANDOM_WEIGHTS=false`), and the runtime and device its backbone runs on;
 - `maps`: the state of each map in `app.state.maps` (objects with `state`, `state_reason`, `recovery`
   and `snapshot_error`): ready iff none is `recovering`; `failed` maps, recoveries that passed over
-  snapshots or rows, and failed automatic snapshots are warnings;
+  snapshots or rows, and failed automatic snapshots are warnings. With `CORTEXLOC_API_KEY_READS` the
+  probe stays open but names no map: it gives the counts by state (map ids are reads that need the key);
 - `catalog`: once the map registry started, its catalog's own check (`Catalog.check`); if the registry
   could not start, `app.state.registry_error` says why (a failure).
 """
@@ -82,10 +83,13 @@ def check_encoder(app: FastAPI) -> Check:
     return out
 
 
-def check_maps(maps: dict[str, Any]) -> Check:
+def check_maps(maps: dict[str, Any], named: bool = True) -> Check:
     """Each map's state, how it recovered and whether its last automatic snapshot failed; fails while
     a map is still recovering, warns about failed maps and about recoveries or snapshots that went
-    wrong (the map serves, but an operator should look)."""
+    wrong (the map serves, but an operator should look). `named=False` (reads need the key): the same
+    status from counts by state alone, no map id, reason or error text."""
+    if not named:
+        return _anonymous(check_maps(maps))
     states = {}
     notes = []
     for map_id, m in sorted(maps.items()):
@@ -116,6 +120,20 @@ def check_maps(maps: dict[str, Any]) -> Check:
     return out
 
 
+def _anonymous(check: Check) -> Check:
+    """`check_maps`'s result without what names a map: its status and the number of maps per state."""
+    by_state: dict[str, int] = {}
+    for m in check["maps"].values():
+        by_state[m["state"]] = by_state.get(m["state"], 0) + 1
+    out: Check = {"status": check["status"], "count": check["count"],
+                  "states": dict(sorted(by_state.items()))}
+    if check["status"] == "warn":
+        out["warning"] = "a map needs an operator's look (details with the read key: GET /v1/maps)"
+    elif check["status"] == "fail":
+        out["error"] = f"{by_state.get('recovering', 0)} map(s) still recovering"
+    return out
+
+
 def check_catalog(app: FastAPI) -> Check | None:
     """The map registry's catalog; None while no registry was started (an app without maps)."""
     error = getattr(app.state, "registry_error", None)
@@ -138,7 +156,7 @@ def readiness(app: FastAPI) -> tuple[bool, dict[str, Check]]:
         return False, {"startup": {"status": "fail", "error": "startup has not finished"}}
     checks["data_dir"] = check_data_dir(settings.data_dir)
     checks["encoder"] = check_encoder(app)
-    checks["maps"] = check_maps(getattr(app.state, "maps", None) or {})
+    checks["maps"] = check_maps(getattr(app.state, "maps", None) or {}, named=not settings.api_key_reads)
     catalog = check_catalog(app)
     if catalog is not None:
         checks["catalog"] = catalog

@@ -177,7 +177,8 @@ def test_the_viewer_shows_a_mapped_loop_its_revisits_poses_and_thumbnails(chromi
         assert row["seq"] == (str(body["seq"]) if body["learned"] else NONE)
         got = [row[f"sequence place/{c}"] for c in ("place", "label", "revisit", "support")]
         assert got == ([str(place["seq"]), place["label"] or NONE,
-                        "revisit" if place["revisit"] else "below threshold", str(place["support"])]
+                        "low information" if place["low_information"]
+                        else "revisit" if place["revisit"] else "below threshold", str(place["support"])]
                        if place else [NONE] * 4)
         if place:  # two decimals at least, as many more as keep it on its side of the threshold
             shown = row["sequence place/confidence"]

@@ -58,7 +58,7 @@ def test_readyz_ready_with_a_random_weights_warning(client, tmp_path):
     assert checks["data_dir"] == {"status": "pass", "path": str(tmp_path / "data")}
     enc = checks["encoder"]
     assert enc["status"] == "warn" and enc["weights"] == "random" and enc["seed"] == 0
-    assert enc["encoder"] == "alexnet-conv3/random-seed0:crop"
+    assert enc["encoder"] == "alexnet-conv3/random-seed0:squash"
     assert enc["backbone"] == "alexnet" and enc["backbones"] == {"alexnet": enc["encoder"]}
     assert (enc["runtime"], enc["device"]) == ("onnxruntime", "cpu")  # the defaults, without CUDA
     assert "random weights" in enc["warning"]
@@ -162,7 +162,7 @@ def test_metrics_count_requests_and_report_the_encoder(client):
     bucket = ('cortexloc_request_duration_seconds_bucket{le="0.001",method="GET",route="/healthz",'
               'status="200"}')
     assert bucket in text
-    assert 'cortexloc_encoder_info{encoder="alexnet-conv3/random-seed0:crop",weights="random"} 1.0' in text
+    assert 'cortexloc_encoder_info{encoder="alexnet-conv3/random-seed0:squash",weights="random"} 1.0' in text
     assert "cortexloc_requests_in_flight" in text
 
 

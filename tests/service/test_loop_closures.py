@@ -7,6 +7,9 @@ import csv
 import io
 import json
 
+import cv2
+import numpy as np
+
 from tests.service.helpers import frame, make_client, post
 
 LAP = list(range(30))
@@ -50,7 +53,7 @@ def test_a_lap_on_ones_own_trail_is_a_revisit_and_names_the_first_lap(tmp_path):
     assert len(called) >= len(LAP) - 10
     for b in lap2:
         assert b["place"] is None or b["place"]["seq"] != b["seq"]  # never the row the frame created
-    for place, b in zip(LAP, lap2, strict=True):  # the place is lap 1's (science.md §11.7)
+    for place, b in zip(LAP, lap2, strict=True):  # the place is lap 1's (science.md §11.8)
         if b in called:
             assert b["place"]["place_id"] == first[place]
 
@@ -171,3 +174,33 @@ def test_a_repeated_localisation_post_logs_its_closure_once(tmp_path):
         c.post("/v1/maps/default/observations", content=body, headers=headers,
                params={"stream": "robot", "learn": "false"})
         assert len(c.get("/v1/maps/default/loop-closures").json()["loop_closures"]) == n
+
+
+def dark(k: int) -> bytes:
+    """A near-black tunnel frame: a flat level, sensor noise and a small bright speck (a lamp, the
+    camera's timestamp overlay): no place can be told from it (docs/design/science.md §11.7)."""
+    rng = np.random.default_rng(500 + k)
+    img = np.clip(6.0 + rng.normal(0, 1.5, (96, 128, 3)), 0, 255)
+    img[4:8, 110:124] = 230
+    img[46:50, 62:66] = 200
+    ok, buf = cv2.imencode(".png", img.astype(np.uint8))
+    assert ok
+    return buf.tobytes()
+
+
+def test_frames_with_no_information_are_never_revisits(tmp_path):
+    # Two tunnels on one lap: the second one's dark frames are the first's best match by far, yet they
+    # say nothing about where the robot is, so no answer in or after them is a revisit, and none is
+    # logged; the dark frames say why.
+    with make_client(tmp_path / "data") as c:
+        patched(c)
+        bodies = drive(c, LAP[:10])
+        bodies += [post(c, dark(k), stream="mapper", learn="true", top_k=0).json() for k in range(6)]
+        bodies += drive(c, range(40, 52))
+        tunnel2 = [post(c, dark(10 + k), stream="mapper", learn="true", top_k=0).json() for k in range(6)]
+        after = drive(c, range(60, 66))
+        log = c.get("/v1/maps/default/loop-closures").json()
+    assert revisits(bodies + tunnel2 + after) == []
+    assert log["loop_closures"] == []
+    assert all(b["place"]["low_information"] for b in tunnel2)
+    assert not any(b["place"]["low_information"] for b in after)

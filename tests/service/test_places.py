@@ -1,4 +1,4 @@
-"""Places over many passes (docs/design/science.md §11.7, §11.8; docs/design/service.md §4.4): a known
+"""Places over many passes (docs/design/science.md §11.8, §11.9; docs/design/service.md §4.4): a known
 pass is consolidated into visits, other passes of a place are no rivals, a place keeps at most its cap,
 and visits come back after a crash, a snapshot and a restore exactly as rows do."""
 

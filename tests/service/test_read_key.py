@@ -67,6 +67,15 @@ def test_an_unknown_map_is_a_401_without_the_key_not_a_404(guarded):
     assert c.get("/v1/maps/nosuchmap", headers=KEY).status_code == 404
 
 
+def test_readyz_stays_open_but_names_no_map_or_stream(guarded):
+    c, values = guarded
+    r = c.get("/readyz")
+    assert r.status_code == 200, r.text
+    maps = r.json()["checks"]["maps"]
+    assert maps["count"] == 2 and maps["states"] == {"ready": 2}  # `yard` and the `default` map
+    assert values["map_id"] not in r.text and "robot7" not in r.text and "default" not in r.text
+
+
 def test_the_viewer_page_stays_open(guarded):
     c, _ = guarded
     assert c.get("/ui/").status_code == 200

@@ -1,4 +1,4 @@
-"""map.sqlite schema 5 (docs/design/science.md §11.7, §11.8; docs/design/service.md §4.2): a row's place,
+"""map.sqlite schema 5 (docs/design/science.md §11.8, §11.9; docs/design/service.md §4.2): a row's place,
 the visit log (consolidated frames, replayed), dropped rows, and the migration of an older map whose
 places come from its loop-closure log."""
 

@@ -61,6 +61,7 @@ from models.frontend.images.common import (
     ImageInfo,
 )
 from models.frontend.images.decoding import decode
+from models.frontend.images.information import contrast
 from models.frontend.images.jpeg import JPEG_MAX_SCANS
 from models.frontend.images.preprocessing import preprocess, preprocess_batch
 from models.frontend.images.probing import probe, sniff
@@ -82,6 +83,7 @@ __all__ = [
     "ImageError",
     "ImageInfo",
     "RawFrame",
+    "contrast",
     "decode",
     "preprocess",
     "preprocess_batch",

@@ -123,7 +123,9 @@ class EncoderPool:
                     fut.set_result(EncodeResult(codes=None, features=out.features[i:i + 1],
                                                 projected=projected[i],
                                                 timings_ms={**out.timings_ms, "project": ms},
-                                                thumbnails=out.thumbnails and out.thumbnails[i:i + 1]))
+                                                thumbnails=out.thumbnails and out.thumbnails[i:i + 1],
+                                                contrast=None if out.contrast is None
+                                                else out.contrast[i:i + 1]))
             except ImageError:
                 # One bad image must not fail the others: encode each alone to attribute the error.
                 for body, fut, hasher, thumb in batch:

@@ -2,7 +2,7 @@
 commit-failure path and `cortexloc verify` share (docs/design/service.md §4.4).
 
 A rebuild starts from a fresh memory (replay from the first row) or from a snapshot's arrays, then
-replays the store's rows and visits (consolidated frames, docs/design/science.md §11.7) after that point,
+replays the store's rows and visits (consolidated frames, docs/design/science.md §11.8) after that point,
 in the order they were learned, comparing every replayed step's winner cells with the stored ones
 (`rebuild`). `recover` picks the start: the newest snapshot on the store's branch that
 verifies, loads and reproduces the rows after it, else a replay from the first row.
@@ -31,7 +31,8 @@ from storage.catalog import Catalog, MapRecord, StorageError
 from storage.layout import Layout
 from storage.mapstore import MapStore, Observation, Visit
 
-__all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover", "verify_map"]
+__all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover",
+           "verify_map"]
 
 #: The snapshot array holding the last visit id its memory learned (0 in a snapshot made before visits),
 #: and that visit's `MapStore.visit_mark` (the branch check of visits, as a row's observation id is).
@@ -163,9 +164,9 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> t
             memory = snapshots.load_memory(path)
             cursor = int(memory.get(VISIT_CURSOR, 0))
             _, first, last = store.visit_stats()
-            if cursor and store.visit_mark(cursor) != str(memory.get(VISIT_MARK, "")):
-                if cursor > last or store.visit_mark(cursor) is not None:
-                    continue  # its visits are from a branch a restore abandoned
+            mark = store.visit_mark(cursor) if cursor else None
+            if cursor and mark != str(memory.get(VISIT_MARK, "")) and (cursor > last or mark is not None):
+                continue  # its visits are from a branch a restore abandoned
             if first > cursor + 1:  # visits it did not learn were pruned meanwhile
                 raise ValueError(f"visits after {cursor} were pruned (the oldest kept is {first})")
             done = rebuild(memory, store.rows(after_seq=m.seq), like, visits=store.visits(after_id=cursor))

@@ -67,7 +67,7 @@ from storage.mapstore import MapStore, NewClosure, NewObservation, NewVisit, Sto
 
 __all__ = ["FORGETTING", "MapRuntime"]
 
-#: The forgetting rule as the map resource states it (docs/design/science.md §11.8).
+#: The forgetting rule as the map resource states it (docs/design/science.md §11.9).
 FORGETTING = ("when the rows held reach max_rows, the least recently used places (made, visited or joined "
               "by a learning stream) are forgotten whole, at least 1% of max_rows at a time; a place over "
               "max_appearances drops its least recently used appearance")
@@ -100,7 +100,7 @@ class MapRuntime:
         # A stream that posted within this window is never evicted for a new one (§1.3); evictions counted.
         self.stream_keep_seconds = stream_keep_seconds
         self.stream_evictions = 0
-        self.forgotten = 0  # rows forgotten since start (the hard cap, docs/design/science.md §11.8)
+        self.forgotten = 0  # rows forgotten since start (the hard cap, docs/design/science.md §11.9)
         self.snapshot_every = snapshot_every
         self.snapshot_keep = snapshot_keep
         self.manual_keep, self.manual_bytes = manual_keep, manual_bytes  # manual snapshots kept (0: no limit)
@@ -108,7 +108,7 @@ class MapRuntime:
         # localisations in memory (service.maps.runtime.idempotency).
         self.max_keys = max_keys
         self.max_closures = max_closures  # loop closures kept in the store's log (the last N)
-        # Visits (consolidated frames, docs/design/science.md §11.7) kept once a snapshot covers them;
+        # Visits (consolidated frames, docs/design/science.md §11.8) kept once a snapshot covers them;
         # `covered`: the last visit id the newest snapshot holds (visits after it are replayed).
         self.max_visits = max_visits
         self.covered = 0
@@ -221,7 +221,7 @@ class MapRuntime:
             InsufficientStorage: the disk is full (nothing is left behind).
         """
         assert self.store is not None
-        cursor = self.store.visit_stats()[2]  # the visits this memory has learned (§11.7)
+        cursor = self.store.visit_stats()[2]  # the visits this memory has learned (§11.8)
         memory = {**memory_state(self.tm, self.streams), recovery.VISIT_CURSOR: np.array(cursor, np.int64),
                   recovery.VISIT_MARK: np.array(self.store.visit_mark(cursor) or "")}
         snap = map_snapshots.take(self.store, memory, self.catalog, self.map_id, self.projection_path, kind)
@@ -394,7 +394,8 @@ class MapRuntime:
             apply = functools.partial(
                 self.apply, encoded.projected[0], hashlib.sha256(getattr(body, "data", body)).hexdigest(),
                 learn=learn, stream=stream, top_k=top_k, label=label, metadata=metadata,
-                thumbnail=thumb if learn else None, post=post, query=query)
+                thumbnail=thumb if learn else None, post=post, query=query,
+                contrast=None if encoded.contrast is None else float(encoded.contrast[0]))
             if post is not None:
                 post.front_ms = front
                 assert self.store is not None  # a ready map has its store
@@ -412,7 +413,7 @@ class MapRuntime:
     def apply(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None = None, thumbnail: bytes | None = None,
               post: idempotency.IdempotentPost | None = None,
-              query: keyframes.QueryFrame | None = None) -> ObservationResult:
+              query: keyframes.QueryFrame | None = None, contrast: float | None = None) -> ObservationResult:
         """Writer: one frame's TM step on the stream's context, ranking, and for learning the commit.
 
         Args:
@@ -422,6 +423,8 @@ class MapRuntime:
             post: an idempotent post: a learned row commits with its sealed reply.
             query: the frame's local features and camera (maps with keyframes): a learned row stores
                 them; a revisit candidate is verified with them (docs/design/science.md §12).
+            contrast: the decoded frame's contrast (`models.frontend.images.contrast`; None: not
+                measured): a frame too flat to say where it is is no revisit (docs/design/science.md §11.7).
 
         Returns:
             The result; `timings_ms` holds hash, tm, search and store.
@@ -442,7 +445,8 @@ class MapRuntime:
             self.budget.grow_index(self.map_id, self.row_bytes)  # set right by the recovery it causes)
         try:
             return self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k, label=label,
-                              metadata=metadata, thumbnail=thumbnail, post=post, query=query)
+                              metadata=metadata, thumbnail=thumbnail, post=post, query=query,
+                              contrast=contrast)
         except Exception as e:
             if not learn:  # a localisation learns nothing: the memory and the store still agree
                 if isinstance(e, StorageFull):  # its loop closure could not be logged: no answer either
@@ -463,7 +467,7 @@ class MapRuntime:
     def _step(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None, thumbnail: bytes | None,
               post: idempotency.IdempotentPost | None,
-              query: keyframes.QueryFrame | None = None) -> ObservationResult:
+              query: keyframes.QueryFrame | None = None, contrast: float | None = None) -> ObservationResult:
         """Writer: `apply` after its checks: the pure step (`models.pipeline.observe`), then the reply
         from the stored rows it names and, for learning, the row on disk. An exception here while
         learning is rebuilt from by `apply` (the step already holds the row in the index and links)."""
@@ -472,8 +476,9 @@ class MapRuntime:
         self.stream_evictions += evicted
         seq = self.store.next_seq() if learn else None  # this thread is the store's only writer
         step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq,
-                                code_of=self._code_of, threshold=self.config.revisit_threshold)
-        if step.visit is not None:  # consolidated (§11.7): the memory learned it, no row is made
+                                code_of=self._code_of, threshold=self.config.revisit_threshold,
+                                contrast=contrast)
+        if step.visit is not None:  # consolidated (§11.9): the memory learned it, no row is made
             seq = None
         t3 = time.perf_counter()
         place = step.place
@@ -528,7 +533,7 @@ class MapRuntime:
     def _committed(self) -> None:
         """Writer: after a row or a visit is durable. Every `snapshot_every` of them the automatic snapshot
         (the stream's step is recorded first, so it holds the stream as it is after this frame); then the
-        visits it covers beyond the last `max_visits` are pruned (docs/design/science.md §11.7)."""
+        visits it covers beyond the last `max_visits` are pruned (docs/design/science.md §11.8)."""
         assert self.store is not None
         self.since_snapshot += 1
         if self.snapshot_every and self.since_snapshot >= self.snapshot_every:
@@ -539,7 +544,7 @@ class MapRuntime:
     def _forget(self) -> None:
         """Writer: the hard cap binds (`max_observations` rows held): forget the least recently used
         places, whole, at least 1 % of the cap, durably before the row that needed the room
-        (docs/design/science.md §11.8). Their rows stay in map.sqlite (the replay and snapshots read them)
+        (docs/design/science.md §11.9). Their rows stay in map.sqlite (the replay and snapshots read them)
         but leave the index, the places and every answer."""
         assert self.store is not None
         gone = self.localisation.least_recent(max(1, self.index.max_observations // 100))
@@ -582,7 +587,7 @@ class MapRuntime:
                           **map_snapshots.disk_use(self.catalog, self.map_id))
 
     def places(self) -> PlacesInfo:
-        """Writer: the map's places, appearances and visits (docs/design/science.md §11.7, §11.8)."""
+        """Writer: the map's places, appearances and visits (docs/design/science.md §11.8, §11.9)."""
         assert self.store is not None
         dropped = self.store.dropped()
         conf = self.localisation.localiser.conf

@@ -304,3 +304,44 @@ def test_graph_links_walks_and_appends() -> None:
         g.append(3, 1)
     with pytest.raises(ValueError):
         SequenceGraph(np.array([0]))
+
+
+def test_a_frame_with_no_information_is_no_evidence_and_never_a_revisit() -> None:
+    # A stream on ground the map never stored drives through a short tunnel; its dark frames match a
+    # stored dark stretch (rows 50-54) far better than anything else, as two tunnels do. Taken as
+    # evidence they make a confident, wrong revisit; as frames with no information (§11.7) they move the
+    # paths along and add nothing, so neither they nor the frames after them are revisits.
+    route = [None] * 30 + [50, 51, 52, 53, 54] + [None] * 4
+    frames = route_frames(80, route, seed=3)
+    dark = np.zeros(len(route), bool)
+    dark[30:35] = True
+    graph = SequenceGraph.chain(80)
+    by_rule = {}
+    for told in (False, True):
+        loc = SequenceLocaliser()
+        state = loc.new_state()
+        by_rule[told] = [loc.step(state, graph, s, c, informative=not (told and d))
+                         for (s, c), d in zip(frames, dark, strict=True)]
+    assert max(p.confidence for p in by_rule[False][30:]) >= REVISIT  # the failure the rule prevents
+    told = by_rule[True]
+    assert not any(p.is_revisit(REVISIT) for p in told[30:])
+    assert [p.informative for p in told[30:]] == [False] * 5 + [True] * 4
+    assert not told[32].is_revisit(0.0)  # whatever the threshold
+
+
+def test_a_frame_with_no_information_leaves_no_row_of_the_own_trail() -> None:
+    from models.localisation import CodeStats
+    rng = np.random.default_rng(2)
+    codes = [np.sort(rng.choice(2048, 300, replace=False)) for _ in range(12)]
+    loc, graph, stats = SequenceLocaliser(), SequenceGraph(), CodeStats(2048)
+    state = loc.new_state()
+    for i in range(6):  # a stop: six rows of one place
+        loc.own_trail(state, graph, i - 1 if i else None, codes[0], lambda r: codes[0], stats)
+        graph.append(i, i - 1 if i else -1)
+        stats.add(codes[0])
+    state_here = state.here
+    assert state_here == 0
+    loc.own_trail(state, graph, 5, codes[9], lambda r: codes[0], stats, informative=False)
+    assert state.here == state_here  # unlike every row, but a flat frame says nothing of leaving
+    loc.own_trail(state, graph, 5, codes[9], lambda r: codes[0], stats)
+    assert state.here == 6  # an informative frame unlike the stop leaves it all

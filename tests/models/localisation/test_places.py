@@ -1,4 +1,4 @@
-"""Places (docs/design/science.md §11.7, §11.8): rows of one place are no rivals of each other, a place
+"""Places (docs/design/science.md §11.8, §11.9): rows of one place are no rivals of each other, a place
 keeps at most `appearances` rows (the least recently used goes), forgetting takes whole places least
 recently used first, and the index drops rows it no longer holds."""
 

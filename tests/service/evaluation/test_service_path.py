@@ -86,3 +86,30 @@ def test_http_and_slam_replay_give_the_same_places_for_one_learning_stream(tmp_p
     assert all(b < i for i, b in enumerate(found.best))  # never the frame's own row, nor a later one
     second = found.best[len(DB) + 6:]
     assert np.mean(second == np.arange(6, len(DB))) > 0.8  # lap 2 names lap 1
+
+
+def test_the_evaluation_measures_and_decides_low_information_frames_as_the_service_does(tmp_path):
+    """Dark frames in both laps: `slam_replay` with `contrasts` of the same images answers as HTTP, and
+    scores a frame the service marks `low_information` at confidence 0 (never a revisit, §11.7)."""
+    from tests.service.test_loop_closures import dark
+
+    lap2 = [frame(p, noise=4.0) for p in DB]
+    laps = ([frame(p) for p in DB[:7]] + [dark(0), dark(1)] + [frame(p) for p in DB[7:]]
+            + lap2[:7] + [dark(2), dark(3)] + lap2[7:])
+    with make_client(tmp_path / "data") as c:
+        assert c.post("/v1/maps", json={"map_id": "route", "seed": 7}).status_code == 201
+        http = [post(c, b, map_id="route", stream="robot", top_k=0).json()["place"] for b in laps]
+        enc = c.app.state.encoder
+        preset = c.app.state.settings.default_preset
+        resize = c.app.state.registry.get("route").config.resize
+        feats = np.concatenate([enc.embed([b], resize=resize).features for b in laps])
+    contrast = service_path.contrasts(laps)
+    found, _ = service_path.slam_replay(feats, encoder_id=enc.identity_for(resize), backbone="alexnet",
+                                        preset=preset, seed=7, create={"resize": resize}, contrast=contrast)
+    flat = [i for i, p in enumerate(http) if p is not None and p["low_information"]]
+    assert flat == [i for i in (7, 8, 23, 24) if http[i] is not None] and flat[-2:] == [23, 24]
+    want = [None if p is None else (p["seq"] - 1, 0.0 if p["low_information"] else p["confidence"],
+                                    p["support"]) for p in http]
+    got = [None if b < 0 else (int(b), float(cf), int(s))
+           for b, cf, s in zip(found.best, found.confidence, found.support, strict=True)]
+    assert got == want

@@ -142,6 +142,11 @@ function revisitCell(place, threshold) {
   if (!place || typeof place.revisit !== "boolean") {
     return el("td", { class: "none" }, NONE);
   }
+  if (place.low_information) {  // too flat to say where it is: never a revisit (science.md §11.7)
+    return el("td", { title: "the frame is too flat (dark, blank or overexposed) to say where it is: "
+                              + "never a revisit, whatever its confidence" },
+              el("span", { class: "badge below" }, "low information"));
+  }
   const at = `the map's revisit threshold, now ${exact(threshold)}`;
   return el("td", { title: place.revisit ? `confidence at or above ${at}` : `confidence below ${at}` },
             place.revisit ? el("span", { class: "badge revisit" }, "revisit")

@@ -27,7 +27,7 @@ def test_learned_frames_are_rows_in_order_and_a_localisation_stores_nothing(tmp_
 
 
 def test_a_full_map_forgets_the_least_recently_used_place_and_learns(tmp_path):
-    # science.md §11.8: the hard cap binds -> the least recently used places go (whole), never map-full
+    # science.md §11.9: the hard cap binds -> the least recently used places go (whole), never map-full
     with registry(tmp_path, max_observations=3) as reg:
         rt = reg.create("flat", MapOptions(memory="none"))
         frames = route(4)
