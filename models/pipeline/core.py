@@ -199,9 +199,10 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             # (a pass's unconfident frames would otherwise become parallel places, each a rival, §11.8).
             visit = links.consolidation(place.place, code, code_of)
             confident = place.is_revisit(threshold)
-            if visit is not None and not confident and st.own_seq is not None and \
-                    links.graph.trail[visit] == links.graph.trail[st.own_seq]:
-                visit = None  # the stream's own trail is left to the confident rule (§11.6)
+            mine = own is not None and visit is not None and bool(own.holds(links.graph, [visit])[0])
+            if visit is not None and not confident and (place.confidence < threshold / 2 or mine):
+                # unconfident: it needs some sequence evidence, and never a row the stream has not left
+                visit = None
             if visit is not None or confident:
                 links.touch(place.seq, seq)  # a learning stream used the place (§11.9)
                 joined = place.place
