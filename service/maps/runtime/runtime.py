@@ -225,7 +225,7 @@ class MapRuntime:
         memory = {**memory_state(self.tm, self.streams), recovery.VISIT_CURSOR: np.array(cursor, np.int64),
                   recovery.VISIT_MARK: np.array(self.store.visit_mark(cursor) or "")}
         snap = map_snapshots.take(self.store, memory, self.catalog, self.map_id, self.projection_path, kind)
-        self.covered, self.since_snapshot = cursor, 0
+        self.covered = cursor
         if kind == "manual":  # retention (docs/design/service.md §1.5); the new one is never deleted
             map_snapshots.prune_manual(self.catalog, self.map_id, self.store, self.manual_keep,
                                        self.manual_bytes)
@@ -237,6 +237,7 @@ class MapRuntime:
         the row it follows is durable and acknowledged."""
         try:
             self.snapshot("auto")
+            self.since_snapshot = 0  # counted from the last automatic one, whatever manual ones came between
             map_snapshots.prune_auto(self.catalog, self.map_id, self.store, self.snapshot_keep)
         except Exception as e:  # any failure: see the docstring
             self.snapshot_failures += 1
