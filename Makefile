@@ -9,9 +9,10 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-# The Python client (clients/python) too: its tests run against this checkout's service.
+# The Python client (clients/python) too: its tests run against this checkout's service. The `ray` extra
+# too: the scale-out's failure test (tests/e2e/test_scaleout.py) runs on a real local Ray cluster in CI.
 $(STAMP): $(BIN)/python pyproject.toml constraints.txt clients/python/pyproject.toml
-	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev]' -e 'clients/python[numpy]'
+	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev,ray]' -e 'clients/python[numpy]'
 	touch $(STAMP)
 
 install: $(STAMP)

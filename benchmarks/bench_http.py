@@ -64,6 +64,15 @@ def proc_rss_mib(pid: int) -> float:
     return 0.0
 
 
+def proc_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system, all threads) of another process (0.0 where /proc is unavailable)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 class Server:
     """`cortexloc serve` in a subprocess on a free loopback port with its own data directory."""
 
@@ -196,13 +205,21 @@ def main() -> None:
         asyncio.run(drive(server.base, frames, 4, 16, 60))
         levels = []
         for c in args.clients:
+            cpu0, own0 = proc_cpu_s(server.proc.pid), time.process_time()
             r = asyncio.run(drive(server.base, frames, c, max(total, c), args.max_seconds))
+            # CPU per image, server and this client: on a machine of n free cores, n * 1000 / their sum
+            # bounds images/s whatever the overlap (benchmarks/profile_service.py splits it by thread).
+            n = max(r["replies"], 1)
+            r["server_cpu_ms_per_image"] = (proc_cpu_s(server.proc.pid) - cpu0) * 1e3 / n
+            r["client_cpu_ms_per_image"] = (time.process_time() - own0) * 1e3 / n
             r["server_rss_mib"] = server.rss_mib()
             levels.append(r)
             st = r["server_stage_ms_median"]
             print(f"{c:>3} clients: {r['images_per_s']:.1f} img/s, latency p50 {r['latency_ms']['p50']:.1f} "
                   f"p95 {r['latency_ms']['p95']:.1f} p99 {r['latency_ms']['p99']:.1f} ms; server stages "
                   "(median ms) " + ", ".join(f"{k} {v:.1f}" for k, v in st.items())
+                  + f"; CPU per image: server {r['server_cpu_ms_per_image']:.1f} ms, client "
+                    f"{r['client_cpu_ms_per_image']:.1f} ms"
                   + (f"; errors {r['errors']}" if r["errors"] else ""), flush=True)
         enc_after = encoder_alone(backbone, repeats)
         memory = httpx.get(f"{server.base}/v1/maps/default/memory", timeout=30).json()
@@ -221,6 +238,12 @@ def main() -> None:
         summary["ratio_http16_to_bare_batch16"] = by_c[16]["images_per_s"] / enc["bare_batch16_images_per_s"]
         summary["ratio_http16_to_encoder_batch16"] = by_c[16]["images_per_s"] / enc["batch16_images_per_s"]
         summary["target_ratio_http16_to_bare_batch16"] = TARGET_RATIO_16
+        # What CPU alone allows: 2 free cores over the CPU one image costs (server + client), against
+        # the bare forward's rate: above the target, the shortfall is the machine's other load.
+        cpu_ms = by_c[16]["server_cpu_ms_per_image"] + by_c[16]["client_cpu_ms_per_image"]
+        if cpu_ms > 0:
+            summary["cpu_bound_images_per_s_2_cores"] = 2000.0 / cpu_ms
+            summary["cpu_bound_ratio_2_cores"] = 2000.0 / cpu_ms / enc["bare_batch16_images_per_s"]
         summary["met_ratio_16"] = summary["ratio_http16_to_bare_batch16"] >= TARGET_RATIO_16
     if 1 in by_c:
         p50 = by_c[1]["latency_ms"]["p50"]
@@ -238,6 +261,9 @@ def main() -> None:
               f"(target >= {TARGET_RATIO_16}: "
               f"{'met' if summary['met_ratio_16'] else 'NOT met'}), "
               f"{summary['ratio_http16_to_encoder_batch16']:.2f} x the whole encoder", flush=True)
+        if "cpu_bound_ratio_2_cores" in summary:
+            print(f"CPU bound on 2 free cores: {summary['cpu_bound_images_per_s_2_cores']:.1f} img/s = "
+                  f"{summary['cpu_bound_ratio_2_cores']:.2f} x the bare forward", flush=True)
     if 1 in by_c:
         met = "met" if summary["met_p50_ms_1"] else "NOT met"
         ratio = summary["ratio_http1_p50_to_encoder_batch1"]

@@ -33,7 +33,7 @@ from storage._common import (
     transaction,
     utc_now,
 )
-from storage.base.files import atomic_write
+from storage.base.files import atomic_write, fsync_dir
 from storage.mapschema import (
     CELL_DTYPES,
     COLUMNS,
@@ -118,6 +118,7 @@ class MapStore:
         self._last_seq = int(last)
         self._count = int(count)
         self._seq_floor = max(0, int(seq_floor))
+        self._synced_wal: int | None = None  # the inode of the WAL file whose directory entry `sync` synced
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -222,8 +223,13 @@ class MapStore:
         with self._lock:
             return max(self._last_seq, self._seq_floor) + 1
 
-    def append(self, row: NewObservation) -> int:
+    def append(self, row: NewObservation, *, durable: bool = True) -> int:
         """INSERT one observation and COMMIT; durable (WAL, synchronous=FULL) when this returns.
+
+        Args:
+            durable: False: COMMIT without its fsync (synchronous=NORMAL for this transaction): the row
+                is visible and survives a crash of the process, and is durable once a later `sync`
+                returns (group commit, docs/design/service.md §4.3): acknowledge it only then.
 
         Returns:
             Its seq.
@@ -233,10 +239,10 @@ class MapStore:
             DuplicateObservation: the observation_id is already stored.
             StorageFull: the disk is full; nothing was written and the seq is not consumed.
         """
-        return self.append_many([row])[0]
+        return self.append_many([row], durable=durable)[0]
 
-    def append_many(self, rows: Iterable[NewObservation]) -> list[int]:
-        """Group commit: INSERT several observations in one transaction (all or none).
+    def append_many(self, rows: Iterable[NewObservation], *, durable: bool = True) -> list[int]:
+        """INSERT several observations in one transaction (all or none); `durable` as in `append`.
 
         Each reply of the service must still wait for this commit (docs/design/service.md §4.3).
 
@@ -270,6 +276,8 @@ class MapStore:
             closures = [_closure_params(r.closure, first + i)
                         for i, r in enumerate(rows) if r.closure is not None]
             drops = [(int(d), "appearance-cap", first + i) for i, r in enumerate(rows) for d in r.drops]
+            if not durable:  # per connection, outside a transaction: this commit alone skips its fsync
+                conn.execute("PRAGMA synchronous=NORMAL")
             try:
                 with transaction(conn):
                     conn.executemany(f"INSERT INTO observations ({COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?,?)",
@@ -288,6 +296,9 @@ class MapStore:
                 if "observation_id" in str(exc) or "idempotency_keys.key" in str(exc):
                     raise DuplicateObservation(str(exc)) from exc
                 raise
+            finally:
+                if not durable:
+                    conn.execute("PRAGMA synchronous=FULL")
             # Only after COMMIT returned: a failed commit consumes no seq and changes no counter.
             self._last_seq = first + len(params) - 1
             self._count += len(params)
@@ -408,6 +419,31 @@ class MapStore:
         with self._lock:
             return {int(r[0]): int(r[1]) for r in self._db().execute(
                 "SELECT seq, place_seq FROM loop_closures WHERE seq IS NOT NULL")}
+
+    def sync(self) -> None:
+        """Make every commit so far durable, those made with `durable=False` included: one fsync of the
+        WAL (and of the directory the first time a WAL file is seen, so its entry is on disk too) for
+        all of them, the group commit of docs/design/service.md §4.3.
+
+        Runs without the store's lock, so the writer goes on committing meanwhile; what it commits
+        after this call began is covered by the next one. A closed store, or one without a WAL file,
+        has nothing to sync: SQLite checkpoints the WAL into the database file and syncs it on close.
+        """
+        if self._conn is None:
+            return
+        wal = Path(f"{self.path}-wal")
+        try:
+            fd = os.open(wal, os.O_RDONLY)
+        except FileNotFoundError:
+            return
+        try:
+            os.fsync(fd)
+            inode = os.fstat(fd).st_ino
+        finally:
+            os.close(fd)
+        if inode != self._synced_wal:
+            fsync_dir(wal.parent)
+            self._synced_wal = inode
 
     def add_closure(self, closure: NewClosure) -> bool:
         """Log a localising stream's loop closure alone (it stores no observation) and COMMIT.

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
@@ -98,3 +99,18 @@ def test_every_benchmark_script_imports() -> None:
         except Exception as exc:  # every failure is reported by name
             failed[name] = f"{type(exc).__name__}: {exc}"
     assert not failed, failed
+
+
+def test_the_tm_profile_still_ablates_the_kernel(tmp_path: Path) -> None:
+    """bench_tm_profile.py removes parts of the step by editing a copy of the kernel's source; a kernel
+    edit that moves one of those lines must fail here, not leave a variant that times the full step."""
+    import bench_tm_profile
+
+    for name, edits in bench_tm_profile.VARIANTS.items():
+        bench_tm_profile.patched_copy(tmp_path / name, edits)
+        src = (tmp_path / name / bench_tm_profile.SYN).read_text()
+        for _, new in edits:
+            assert new in src
+    broken = [(bench_tm_profile.SELECT[0] + "# gone", "")]
+    with pytest.raises(RuntimeError, match="cannot ablate"):
+        bench_tm_profile.patched_copy(tmp_path / "broken", broken)

@@ -20,7 +20,7 @@ import functools
 import logging
 import time
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,7 +47,7 @@ default_conf: dict[str, Any] = {
     "runtime": runtimes.RUNTIMES[0],
     "device": "cpu",  # cpu | cuda | auto (CUDA through ONNX Runtime; auto falls back to the CPU)
     "export_dir": None,  # the ONNX exports' content-addressed store; None: <weights cache>/onnx
-    "decode_threads": 2,  # OpenCV releases the GIL: a batch decodes and resizes in parallel
+    "decode_threads": 2,  # OpenCV releases the GIL: frames decode and resize beside the backbone
     "max_bytes": limits.DEFAULT_MAX_BYTES,
     "max_pixels": limits.DEFAULT_MAX_PIXELS,
     # projection: the encoder's own (evaluation, benchmarks): dense (docs/design/science.md §7) | sparse
@@ -120,7 +120,9 @@ class Encoder:
             instead of generating one (a map's).
     """
 
-    CHUNK = 8  # images per backbone call while the pool prepares the next ones
+    # Images per backbone call while the pool prepares the next ones: the forward's cost per image is flat
+    # from batch 1 to 16 on ONNX Runtime (1 thread), so small chunks start the backbone sooner.
+    CHUNK = 4
 
     def __init__(self, conf: dict[str, Any] | None = None,
                  projection: np.ndarray | slsbh.SparseProjection | None = None) -> None:
@@ -150,8 +152,9 @@ class Encoder:
         if projection is not None:
             self._check_projection(projection)
             self.__dict__["hasher"] = slsbh.Hasher(projection, float(s_conf["s"]))
-        threads = int(self.conf["decode_threads"])
-        self._pool = ThreadPoolExecutor(threads, thread_name_prefix="decode") if threads > 1 else None
+        # Always a pool, even of one thread: `prepare` never decodes on its caller's thread (the service's
+        # event loop), and the backbone runs beside the decoding.
+        self._pool = ThreadPoolExecutor(max(1, int(self.conf["decode_threads"])), thread_name_prefix="decode")
 
     # ------------------------------------------------------------------ projection
 
@@ -233,6 +236,8 @@ class Encoder:
     def encode(self, data: Sequence[bytes], return_features: bool = False) -> EncodeResult:
         """Encode a batch of uploaded images into sLSBH codes; see `embed` for the errors."""
         out = self.embed(data)
+        # Once for the batch, not per chunk: x·P is bound by reading P (21 MB for the default backbone),
+        # so hashing each chunk of 4 read it four times (measured 18 ms of CPU against 5 for the batch).
         t0 = time.perf_counter()
         out.codes = self.hasher(out.features)
         out.timings_ms["hash"] = (time.perf_counter() - t0) * 1e3
@@ -250,6 +255,85 @@ class Encoder:
         `embed` decodes, for work beside the backbone such as local features)."""
         return images.decode(data, **self.decode_limits)
 
+    def prepare(self, data: bytes | images.RawFrame, *, thumbnail: bool = False, resize: str | None = None,
+                out: np.ndarray | None = None) -> Future[Prepared]:
+        """Start decoding and preprocessing one upload in the encoder's decode threads, for
+        `embed_prepared`; returns at once.
+
+        The service's encoder pool calls this when a request arrives, so a frame decodes while the
+        backbone runs on the batch before it (docs/design/service.md §6); OpenCV releases the GIL.
+
+        Args:
+            data: one encoded image (JPEG, PNG, BMP, WebP) or raw frame.
+            thumbnail: also keep a small JPEG of the decoded frame (`images.thumbnail`).
+            resize: crop | squash; None: the encoder's own `resize`.
+            out: (3, 224, 224) float32 row of the batch the backbone will run on, written in place (no
+                second copy); None: a new array.
+
+        Returns:
+            A future of the `Prepared` frame; its exception is the `images.ImageError` of a bad upload.
+        """
+        kw = {"mode": _check_resize(resize or self.conf["resize"]), "mean": self.input_mean,
+              "std": self.input_std}
+        limits = self.decode_limits
+
+        def run() -> Prepared:
+            t0 = time.perf_counter()
+            rgb = images.decode(data, **limits)
+            thumb = images.thumbnail(rgb) if thumbnail else None
+            contrast = images.contrast(rgb)
+            t1 = time.perf_counter()
+            x = images.preprocess(rgb, out=out, **kw)
+            return Prepared(x, thumb, contrast, (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3)
+
+        return self._pool.submit(run)
+
+    def embed_prepared(self, prepared: Sequence[Future[Prepared]]) -> EncodeResult:
+        """Backbone features of frames from `prepare`, in their order, forwarded in chunks of `CHUNK` as
+        they become ready, so the backbone starts on the first frames while the others still decode.
+
+        Args:
+            prepared: N futures from `prepare` (all of the same resize mode).
+
+        Returns:
+            EncodeResult with features (N, D), contrast (N,) and the timings decode and preprocess
+            (summed over the frames) and backbone (wall).
+
+        Raises:
+            images.ImageError: a frame did not decode (the first such, in order); the remaining futures
+                are cancelled.
+        """
+        return self._forward_chunks(prepared, None)
+
+    def _forward_chunks(self, prepared: Sequence[Future[Prepared]], batch: np.ndarray | None) -> EncodeResult:
+        """`embed_prepared`, where `batch` (N, 3, 224, 224) is the buffer the frames were prepared into
+        (None: stack them)."""
+        timings = dict.fromkeys(STAGES[:3], 0.0)
+        contrast = np.zeros(len(prepared))
+        feats_parts: list[np.ndarray] = []
+        try:
+            for start in range(0, len(prepared), self.CHUNK):
+                ready = [f.result() for f in prepared[start:start + self.CHUNK]]
+                for j, p in enumerate(ready):
+                    contrast[start + j] = p.contrast
+                    timings["decode"] += p.decode_ms
+                    timings["preprocess"] += p.preprocess_ms
+                # Rows prepared in place into the batch are already the chunk: no second copy.
+                chunk = (batch[start:start + len(ready)] if batch is not None
+                         else np.stack([p.x for p in ready]))
+                t0 = time.perf_counter()
+                feats = self.features(chunk)
+                timings["backbone"] += (time.perf_counter() - t0) * 1e3
+                feats_parts.append(feats)
+        except BaseException:
+            for f in prepared:
+                f.cancel()
+            raise
+        if not feats_parts:
+            feats_parts.append(self.features(np.zeros((0, 3, 224, 224), np.float32)))
+        return EncodeResult(codes=None, features=np.concatenate(feats_parts) if len(feats_parts) > 1
+                            else feats_parts[0], timings_ms=timings, contrast=contrast)
+
     def embed(self, data: Sequence[bytes | images.RawFrame],
               thumbnails: Sequence[bool] | None = None, resize: str | None = None) -> EncodeResult:
         """Backbone features of a batch of uploaded images (no hashing: `codes` is None).
@@ -266,53 +350,32 @@ class Encoder:
 
         Raises:
             images.ImageError: an input is not a decodable image within the limits (the whole batch is
-                refused; the service's encoder pool then encodes each image of that batch alone, so one
-                bad upload fails only its own request).
+                refused; the service's encoder pool prepares each image on its own, so one bad upload
+                fails only its own request).
         """
-        limits = self.decode_limits
-        kw = {"mode": _check_resize(resize or self.conf["resize"]), "mean": self.input_mean,
-              "std": self.input_std}
-        timings = dict.fromkeys(STAGES[:3], 0.0)
-        thumbs: list[bytes | None] | None = [None] * len(data) if thumbnails is not None else None
-        contrast = np.zeros(len(data))
+        # Each frame is preprocessed straight into its row of the batch the backbone runs on.
+        batch = np.empty((len(data), 3, 224, 224), np.float32)
+        prepared = [self.prepare(b, thumbnail=bool(thumbnails and thumbnails[i]), resize=resize, out=batch[i])
+                    for i, b in enumerate(data)]
+        out = self._forward_chunks(prepared, batch)
+        if thumbnails is not None:
+            out.thumbnails = [f.result().thumbnail for f in prepared]
+        return out
 
-        def prepare(b: bytes | images.RawFrame, i: int = 0) -> tuple[np.ndarray, float, float]:
-            t0 = time.perf_counter()
-            rgb = images.decode(b, **limits)
-            if thumbs is not None and thumbnails is not None and thumbnails[i]:
-                thumbs[i] = images.thumbnail(rgb)
-            contrast[i] = images.contrast(rgb)
-            t1 = time.perf_counter()
-            x = images.preprocess(rgb, **kw)
-            return x, (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3
 
-        def collect(prepared: list[tuple[np.ndarray, float, float]]) -> np.ndarray:
-            for _, dt_decode, dt_pre in prepared:
-                timings["decode"] += dt_decode
-                timings["preprocess"] += dt_pre
-            return np.stack([x for x, _, _ in prepared])
+@dataclass
+class Prepared:
+    """One frame ready for the backbone (`Encoder.prepare`).
 
-        feats_parts = []
-        if self._pool is not None and len(data) > 1:
-            # Pipelined: the pool decodes and resizes (OpenCV, no GIL) while the backbone runs on the
-            # chunks already prepared, so the two cores overlap instead of taking turns.
-            futures = [self._pool.submit(prepare, b, i) for i, b in enumerate(data)]
-            try:
-                for start in range(0, len(futures), self.CHUNK):
-                    batch = collect([f.result() for f in futures[start:start + self.CHUNK]])
-                    t0 = time.perf_counter()
-                    feats_parts.append(self.features(batch))
-                    timings["backbone"] += (time.perf_counter() - t0) * 1e3
-            except BaseException:
-                for f in futures:
-                    f.cancel()
-                raise
-        else:
-            batch = (collect([prepare(b, i) for i, b in enumerate(data)]) if data
-                     else np.zeros((0, 3, 224, 224), np.float32))
-            t0 = time.perf_counter()
-            feats_parts.append(self.features(batch))
-            timings["backbone"] += (time.perf_counter() - t0) * 1e3
-        feats = np.concatenate(feats_parts) if len(feats_parts) > 1 else feats_parts[0]
-        return EncodeResult(codes=None, features=feats, timings_ms=timings, thumbnails=thumbs,
-                            contrast=contrast)
+    Attributes:
+        x: (3, 224, 224) float32 network input (docs/design/science.md §6).
+        thumbnail: a small JPEG of the decoded frame, where asked for.
+        contrast: the decoded frame's contrast (`images.contrast`, docs/design/science.md §11.7).
+        decode_ms, preprocess_ms: the time each step took.
+    """
+
+    x: np.ndarray
+    thumbnail: bytes | None
+    contrast: float
+    decode_ms: float
+    preprocess_ms: float

@@ -99,7 +99,7 @@ class Place(NamedTuple):
         support: frames on the best path (its age), <= frames seen by the stream.
         informative: False for a frame with too little contrast to say where it is (§11.7): it gave the
             filter no evidence, and whatever the confidence it is no revisit (`is_revisit`).
-        place: the place id of `seq` (`SequenceGraph.place`, §11.9); -1 where not given.
+        place: the place id of `seq` (`SequenceGraph.place`, §11.8); -1 where not given.
     """
 
     seq: int

@@ -293,6 +293,14 @@ class TemporalMemory:
         ctx.version = self.version
         return int(n_predictive)
 
+    def connected_presyn(self, segment: int) -> np.ndarray:
+        """(n,) int64 sorted presynaptic cells of `segment`'s connected synapses (permanence >=
+        connectedPermanence, as the kernels test it; docs/design/science.md §3.3); empty for a free slot."""
+        K = int(self._ip[syn.I_K])
+        lo = int(segment) * K
+        hi = lo + int(self.nsyn[segment])
+        return np.sort(self.presyn[lo:hi][self.perm[lo:hi] >= self._p[syn.P_CONN]].astype(np.int64))
+
     def predictive_cells(self, context: StreamContext | None = None) -> np.ndarray:
         """(p,) int64 sorted cells predicted for the next step of `context`."""
         ctx = context or self.context

@@ -85,10 +85,10 @@ class Step:
         stats: the TM step's column counts (`StreamContext.stats.as_dict()`).
         ranked: the best `top_k` stored rows by Dice, best first.
         place: the stream's place on the map, or None (warm-up).
-        timings_ms: hash, tm, search.
+        timings_ms: hash, tm, search (ranking and localiser), localiser.
         visit: a learned frame consolidated into this stored row (no row made, docs/design/science.md
             §11.8); None: a row was made (learning) or nothing is learned.
-        place: for a made row, the place it joined (-1: a new place of its own).
+        joined: for a made row, the place it joined (-1: a new place of its own).
         dropped: rows the made row's place dropped over its cap (§11.9), least recently used first.
     """
 
@@ -182,13 +182,14 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     # The stream's own rows it has not left are no answer (docs/design/science.md §11.6); one index pass
     # without them serves the matches and the localiser's candidates (§11.2), which also leaves out the
     # rival window behind them.
-    # The trail is the stream's own made rows: after a consolidated frame it is not where `prev` is (§11.9).
+    # The trail is the stream's own made rows: after a consolidated frame it is not where `prev` is (§11.8).
     flat = not informative(contrast)
     own = model.links.own_trail(st.localiser, st.own_seq, code, code_of, not flat)
     if own is not None and own.here > own.last and st.last_learned_seq != st.own_seq:
         own = None  # it left every row it made and travels on rows it visited: none is where it is
     ranked = model.index.rank(winners, model.links.candidates_wanted(top_k),
                               exclude_own=None if own is None else (stream, own.here))
+    t_ranked = time.perf_counter()
     place = model.links.step(st.localiser, ranked, own, not flat)
     visit, joined, dropped = None, -1, ()
     if learn:
@@ -216,7 +217,9 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             drop(model, dropped)
     _advance(st, learn, seq if visit is None else visit, made=visit is None)
     t3 = time.perf_counter()
-    timings = {"hash": (t1 - t0) * 1e3, "tm": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3}
+    # search = the index's ranking (with the own-trail rule) + `localiser` (its step and the row's adds).
+    timings = {"hash": (t1 - t0) * 1e3, "tm": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3,
+               "localiser": (t3 - t_ranked) * 1e3}
     return Step(code=code, winners=winners, prev_seq=prev, step=step, stats=stats,
                 ranked=list(ranked[:top_k]), place=place, timings_ms=timings, visit=visit, joined=joined,
                 dropped=dropped)

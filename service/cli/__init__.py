@@ -4,7 +4,9 @@
     cortexloc eval grid | images ...            service.cli.evaluate
     cortexloc bench tm | encoder ...            service.cli.bench
     cortexloc weights download | import ...     service.cli.weights
-    cortexloc serve [--host H] [--port P] [--data-dir DIR]            service.cli.serve
+    cortexloc serve [--host H] [--port P] [--data-dir DIR] [--ray [--shards N] [--encoder-replicas N]]
+                                                                      service.cli.serve
+    cortexloc shards list | move MAP --to SHARD [--address A]         service.cli.shards
     cortexloc import FILE.tar [--data-dir DIR]                        service.cli.maps
     cortexloc verify [--map M] [--data-dir DIR]                       service.cli.maps
     cortexloc ingest SOURCE --map M [--stream S] [--learn | --localise] [--url URL | --data-dir DIR]
@@ -21,7 +23,7 @@ from __future__ import annotations
 import typer
 
 from models import presets
-from service.cli import bench, evaluate, maps, weights
+from service.cli import bench, evaluate, maps, shards, weights
 from service.cli.ingest import ingest_command
 from service.cli.serve import process_settings, serve
 
@@ -32,6 +34,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
 app.add_typer(evaluate.app, name="eval")
 app.add_typer(bench.app, name="bench")
 app.add_typer(weights.app, name="weights")
+app.add_typer(shards.app, name="shards")
 
 
 @app.command("presets")

@@ -42,9 +42,27 @@ def serve(
                                              help="Bind port (default: $CORTEXLOC_PORT or 8000).")] = None,
     data_dir: Annotated[Path | None, typer.Option(help="Root of all state (default: $CORTEXLOC_DATA_DIR "
                                                        "or ./var).")] = None,
+    ray: Annotated[bool, typer.Option("--ray", help="Run on Ray Serve instead (the `ray` extra): an "
+                                                    "encoder deployment, map shards and an ingress; "
+                                                    "docs/scaling.md.")]
+    = False,
+    shards: Annotated[int, typer.Option(min=1, help="--ray: map shards (one replica each).")] = 2,
+    encoder_replicas: Annotated[int, typer.Option(min=1, help="--ray: encoder replicas (the most, with "
+                                                               "--autoscale).")] = 1,
+    autoscale: Annotated[bool, typer.Option(help="--ray: scale the encoder on its queue.")] = False,
+    ray_address: Annotated[str, typer.Option(help="--ray: the cluster's address, or `local` to start one.")]
+    = "local",
 ) -> None:
-    """Run the HTTP service (one uvicorn worker: maps live in process memory). Other settings: CORTEXLOC_*."""
+    """Run the HTTP service (one uvicorn worker: maps live in process memory). Other settings: CORTEXLOC_*.
+
+    With --ray the same API runs on Ray Serve (service.scaleout), each shard in `DATA_DIR/shard-<i>`."""
     settings = process_settings(host=host, port=port, data_dir=data_dir)
+    if ray:
+        from service.cli.shards import serve_ray
+
+        serve_ray(settings.host, settings.port, settings.data_dir, shards, encoder_replicas, autoscale,
+                  ray_address)
+        return
 
     import uvicorn
 
@@ -52,7 +70,9 @@ def serve(
     from service.limits import HEAD_MAX_BYTES
     from service.server import ProblemH11Protocol
 
+    # loop="asyncio": the `ray` extra installs uvloop, which uvicorn would otherwise pick; the single
+    # process keeps the loop it is tested and measured with, whatever extras are installed.
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, workers=1, lifespan="on",
-                log_level=settings.log_level.lower(), http=ProblemH11Protocol,
+                log_level=settings.log_level.lower(), http=ProblemH11Protocol, loop="asyncio",
                 h11_max_incomplete_event_size=HEAD_MAX_BYTES)
 

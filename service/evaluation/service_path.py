@@ -70,7 +70,7 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
                                    memory=memory, localiser=localiser, create=create)
     robot, codes, frame_of = Stream(), {}, {}
     best, confidence, support = np.full(T, -1, np.int64), np.zeros(T), np.zeros(T, np.int64)
-    for i, y in enumerate(hasher.project(feats)):  # a consolidated frame makes no row (§11.9)
+    for i, y in enumerate(hasher.project(feats)):  # a consolidated frame makes no row (§11.8)
         seq = len(codes) + 1
         step = observe(model, robot, y, learn=True, stream="robot", top_k=0, seq=seq,
                        code_of=codes.__getitem__, threshold=config.revisit_threshold,

@@ -17,8 +17,8 @@ from storage.snapshots import SnapshotInvalid
 __all__ = ["IdempotencyKeyReused", "InsufficientStorage", "InvalidConfiguration", "InvalidMapId",
            "MapAlreadyExists", "MapError", "MapFull", "MapLimit", "MapNotFound", "MapTooLarge",
            "MapUnavailable", "MemoryBudgetExceeded", "ObservationNotFound", "Overloaded",
-           "RecentAnswerNotFound", "SnapshotInUse", "SnapshotInvalid", "SnapshotNotFound", "StoreClosed",
-           "StreamLimit"]
+           "RecentAnswerNotFound", "ShardUnavailable", "SnapshotInUse", "SnapshotInvalid",
+           "SnapshotNotFound", "StoreClosed", "StreamLimit"]
 
 
 class MapError(Exception):
@@ -118,6 +118,16 @@ class Overloaded(MapError):  # noqa: N818
     def __init__(self, limit: int, retry_after: int = 1) -> None:
         super().__init__(f"the encoder queue is full ({limit} requests in flight)")
         self.retry_after = retry_after
+
+
+class ShardUnavailable(MapError):  # noqa: N818
+    """The scale-out's shard that owns the map is restarting, or the map is moving between shards
+    (service.scaleout; docs/scaling.md): retry after `retry_after` seconds, with the same
+    Idempotency-Key (a post the shard committed before it died is replayed, not learned twice)."""
+
+    def __init__(self, map_id: str, shard: str, why: str, retry_after: int = 2) -> None:
+        super().__init__(f"map {map_id!r} is unavailable: {why}")
+        self.map_id, self.shard, self.retry_after = map_id, shard, retry_after
 
 
 class StreamLimit(MapError):  # noqa: N818

@@ -305,3 +305,26 @@ class MapRegistry:
             rt.close(snapshot=False)
             self.catalog.delete_map(map_id)
             shutil.rmtree(self.layout.map_dir(map_id), ignore_errors=True)
+
+    def import_live(self, tar_path: Path, max_bytes: int) -> MapRuntime:
+        """Import a snapshot tar into this running registry and open the map: the receiving end of a
+        move between shards (service.scaleout; docs/scaling.md). The map recovers from the snapshot
+        as it would at a start.
+
+        Raises:
+            MapLimit, SnapshotInvalid, MemoryBudgetExceeded (nothing of the map is left behind).
+        """
+        with self._create_lock:
+            if len(self.maps) >= self.settings.max_maps:
+                raise MapLimit(self.settings.max_maps)
+            map_id = self.import_snapshot(tar_path, max_bytes)
+            record = self.catalog.get_map(map_id)
+            assert record is not None
+            try:
+                rt = self._open(record)
+            except BaseException:
+                self.catalog.delete_map(map_id)
+                shutil.rmtree(self.layout.map_dir(map_id), ignore_errors=True)
+                raise
+            self.maps[map_id] = rt
+        return rt

@@ -110,7 +110,7 @@ class PlaceResult:
     verification: VerificationResult | None = None
     low_information: bool = False
     # The place `seq` shows: the id of the place's first row; every pass and appearance of one place
-    # answers the same id (docs/design/science.md §11.9). `seq` is the row that matched best.
+    # answers the same id (docs/design/science.md §11.8). `seq` is the row that matched best.
     place_id: int = 0
 
     @classmethod

@@ -270,6 +270,7 @@ async def post_observation(
         # flight at once).
         earlier = await anyio.to_thread.run_sync(idempotency.lookup, rt.store, None, post)
         if earlier is not None:
+            await rt.durable()  # its row may be in a group not yet synced: a reply waits for it
             return _replayed(earlier)
     out = await rt.observe(request.app.state.encoder_pool, frame, learn=learn, stream=stream, top_k=top_k,
                            label=label, metadata=meta, post=post)

@@ -77,18 +77,18 @@ def state_of(c: TestClient, map_id: str = "default") -> tuple:
 
 @contextmanager
 def held_encoder(encoder: Any) -> Iterator[tuple[threading.Event, list[int]]]:
-    """`encoder.embed` records each call's batch size, then waits for the gate: (gate, sizes).
-    The gate opens at the latest when the block ends."""
-    gate, sizes, real = threading.Event(), [], encoder.embed
+    """`encoder.embed_prepared` (the encoder pool's backbone call) records each call's batch size, then
+    waits for the gate: (gate, sizes). The gate opens at the latest when the block ends."""
+    gate, sizes, real = threading.Event(), [], encoder.embed_prepared
 
-    def held(data, **kw):
-        sizes.append(len(data))
+    def held(prepared, **kw):
+        sizes.append(len(prepared))
         gate.wait(30)
-        return real(data, **kw)
+        return real(prepared, **kw)
 
-    encoder.embed = held
+    encoder.embed_prepared = held
     try:
         yield gate, sizes
     finally:
         gate.set()
-        encoder.embed = real
+        encoder.embed_prepared = real

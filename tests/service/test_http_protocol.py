@@ -156,6 +156,7 @@ def test_the_serve_command_uses_the_problem_protocol(monkeypatch, tmp_path):
     monkeypatch.setenv("CORTEXLOC_DATA_DIR", str(tmp_path))
     cli.serve(host=None, port=0, data_dir=None)
     assert seen["http"] is ProblemH11Protocol and seen["h11_max_incomplete_event_size"] == HEAD_MAX_BYTES
+    assert seen["loop"] == "asyncio"  # not uvloop, which the `ray` extra installs (issue 26)
 
 
 def test_oversized_headers_are_refused_however_they_arrive(client):

@@ -73,7 +73,7 @@ def _check_params(mode: str, size: int, resize: int, mean: Sequence[float],
 
 def preprocess_batch(images: Sequence[np.ndarray], mode: str = "crop", size: int = 224,
                      mean: Sequence[float] = IMAGENET_MEAN, std: Sequence[float] = IMAGENET_STD,
-                     resize: int = 256) -> np.ndarray:
+                     resize: int = 256, out: np.ndarray | None = None) -> np.ndarray:
     """Network input for a batch of decoded images (docs/design/science.md §6, Preprocessing).
 
     Per image: "crop" = Resize(`resize`) (short side to `resize`, long side int(resize·long/short)) then
@@ -89,15 +89,22 @@ def preprocess_batch(images: Sequence[np.ndarray], mode: str = "crop", size: int
         mean: per-channel mean of the [0, 1] input (ImageNet by default).
         std: per-channel standard deviation.
         resize: short side before the centre crop (256); ignored in "squash" mode.
+        out: (N, 3, size, size) float32 C-contiguous buffer to write into (e.g. rows of the batch the
+            backbone will run on, so no image is copied twice); None: a new array.
 
     Returns:
-        (N, 3, size, size) float32, C-contiguous (CHW per image, channels R, G, B).
+        (N, 3, size, size) float32, C-contiguous (CHW per image, channels R, G, B): `out` when given.
 
     Raises:
-        ValueError: an image is not (H, W, 3) uint8, or a parameter is invalid.
+        ValueError: an image is not (H, W, 3) uint8, or a parameter (or `out`) is invalid.
     """
     m, s = _check_params(mode, size, resize, mean, std)
-    out = np.empty((len(images), 3, size, size), dtype=np.float32)
+    shape = (len(images), 3, size, size)
+    if out is None:
+        out = np.empty(shape, dtype=np.float32)
+    elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous float32 array of shape {shape}, got {out.shape} "
+                         f"{out.dtype}")
     for i, rgb in enumerate(images):
         # HWC uint8 -> CHW float32 in one casting copy into the batch buffer.
         out[i] = _fit(np.asarray(rgb), mode, size, resize).transpose(2, 0, 1)
@@ -110,7 +117,7 @@ def preprocess_batch(images: Sequence[np.ndarray], mode: str = "crop", size: int
 
 def preprocess(rgb: np.ndarray, mode: str = "crop", size: int = 224,
                mean: Sequence[float] = IMAGENET_MEAN, std: Sequence[float] = IMAGENET_STD,
-               resize: int = 256) -> np.ndarray:
+               resize: int = 256, out: np.ndarray | None = None) -> np.ndarray:
     """Network input for one decoded image; see `preprocess_batch` for the steps (docs/design/science.md §6).
 
     Args:
@@ -120,8 +127,10 @@ def preprocess(rgb: np.ndarray, mode: str = "crop", size: int = 224,
         mean: per-channel mean of the [0, 1] input.
         std: per-channel standard deviation.
         resize: short side before the centre crop (256).
+        out: (3, size, size) float32 C-contiguous buffer to write into (a row of a batch); None: new.
 
     Returns:
-        (3, size, size) float32, C-contiguous.
+        (3, size, size) float32, C-contiguous: `out` when given.
     """
-    return preprocess_batch([rgb], mode=mode, size=size, mean=mean, std=std, resize=resize)[0]
+    rows = None if out is None else out[np.newaxis]
+    return preprocess_batch([rgb], mode=mode, size=size, mean=mean, std=std, resize=resize, out=rows)[0]

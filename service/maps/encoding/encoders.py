@@ -70,6 +70,12 @@ class Encoders:
                 self._encoders[name] = encoder
             return encoder
 
+    def ready(self, name: str) -> Any | None:
+        """The encoder of backbone `name` if it is built, else None (never builds: callers on the event
+        loop must not wait for a network to load)."""
+        with self._lock:
+            return self._encoders.get(name)
+
     def built(self) -> dict[str, Any]:
         """The encoders built so far, by backbone name."""
         with self._lock:

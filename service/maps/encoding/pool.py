@@ -6,6 +6,10 @@ else arrives within a few milliseconds (up to `max_batch`), and runs one backbon
 them, so throughput under load approaches the backbone's batch throughput. A full queue answers 503
 `overloaded` at once instead of letting latency grow without bound.
 
+Each image starts decoding when it is submitted (`Encoder.prepare`, in the encoder's decode threads),
+not when its batch is taken: the next batch decodes while the backbone runs the current one, so the
+forward never waits for a decode it could have overlapped. A bad image fails its own request alone.
+
 Batches are per backbone and resize mode: a request names its map's backbone and `resize` (crop |
 squash, frozen with the map), and a batch holding several runs one backbone call per pair present
 (`service.maps.encoding.encoders.Encoders` holds one encoder per backbone; the mode is a per-call
@@ -28,10 +32,11 @@ import queue as queues
 import threading
 import time
 from concurrent.futures import Future
+from dataclasses import dataclass
 
 import numpy as np
 
-from models.frontend.encoder import Encoder, EncodeResult
+from models.frontend.encoder import EncodeResult, Prepared
 from models.frontend.images import ImageError, RawFrame
 from models.frontend.slsbh import Hasher
 from service.maps.encoding.encoders import Encoders
@@ -80,7 +85,12 @@ class EncoderPool:
                 raise Overloaded(self.limit)
             self.pending += 1
         fut: Future[EncodeResult] = Future()
-        self._queue.put((body, fut, hasher, thumbnail, (backbone or self.encoders.default, resize)))
+        how = (backbone or self.encoders.default, resize)
+        # The decode starts now where the encoder is built; one that is not yet is built, and the image
+        # prepared, by the worker (never here: the caller is the event loop).
+        encoder = self.encoders.ready(how[0])
+        prepared = None if encoder is None else encoder.prepare(body, thumbnail=thumbnail, resize=resize)
+        self._queue.put(_Item(body, fut, hasher, thumbnail, how, prepared))
         return fut
 
     def _run(self) -> None:
@@ -100,46 +110,53 @@ class EncoderPool:
                     self._queue.put(_STOP)  # let the other workers see it too
                     break
                 batch.append(nxt)
-            groups: dict[tuple[str, str | None],
-                         list[tuple[bytes | RawFrame, Future[EncodeResult], Hasher | None, bool]]] = {}
-            for body, fut, hasher, thumb, how in batch:
-                groups.setdefault(how, []).append((body, fut, hasher, thumb))
+            groups: dict[tuple[str, str | None], list[_Item]] = {}
+            for one in batch:
+                groups.setdefault(one.how, []).append(one)
             for (backbone, resize), group in groups.items():
                 self._encode(backbone, resize, group)
 
-    def _encode(self, backbone: str, resize: str | None,
-                batch: list[tuple[bytes | RawFrame, Future[EncodeResult], Hasher | None, bool]]) -> None:
+    def _encode(self, backbone: str, resize: str | None, batch: list[_Item]) -> None:
         taken = len(batch)
-        # A request whose client went away cancelled its future while it waited: it costs no encoding.
-        batch = [item for item in batch if item[1].set_running_or_notify_cancel()]
         try:
-            if not batch:
+            # A request whose client went away cancelled its future while it waited: its decode is
+            # cancelled too where it has not started, and it costs no backbone time.
+            live = []
+            for item in batch:
+                if item.fut.set_running_or_notify_cancel():
+                    live.append(item)
+                elif item.prepared is not None:
+                    item.prepared.cancel()
+            if not live:
                 return
             try:
                 encoder = self.encoders.get(backbone)
-                out = _embed(encoder, [item[0] for item in batch], [item[3] for item in batch], resize)
-                projected, ms = self._project(out.features, [item[2] for item in batch])
-                for i, (_, fut, _, _) in enumerate(batch):
-                    fut.set_result(EncodeResult(codes=None, features=out.features[i:i + 1],
-                                                projected=projected[i],
-                                                timings_ms={**out.timings_ms, "project": ms},
-                                                thumbnails=out.thumbnails and out.thumbnails[i:i + 1],
-                                                contrast=None if out.contrast is None
-                                                else out.contrast[i:i + 1]))
-            except ImageError:
-                # One bad image must not fail the others: encode each alone to attribute the error.
-                for body, fut, hasher, thumb in batch:
+                ok, frames = [], []
+                for item in live:
+                    prepared = item.prepared or encoder.prepare(item.body, thumbnail=item.thumbnail,
+                                                                resize=resize)
                     try:
-                        one = _embed(encoder, [body], [thumb], resize)
-                        projected, one.timings_ms["project"] = self._project(one.features, [hasher])
-                        one.projected = projected[0]
-                        fut.set_result(one)
-                    except Exception as e:
-                        fut.set_exception(e)
+                        prepared.result()
+                    except ImageError as e:  # this image alone fails; its batch-mates go on
+                        item.fut.set_exception(e)
+                        continue
+                    ok.append(item)
+                    frames.append(prepared)
+                if not ok:
+                    return
+                out = encoder.embed_prepared(frames)
+                projected, ms = self._project(out.features, [item.hasher for item in ok])
+                for i, (item, prepared) in enumerate(zip(ok, frames, strict=True)):
+                    frame = prepared.result()
+                    item.fut.set_result(EncodeResult(
+                        codes=None, features=out.features[i:i + 1], projected=projected[i],
+                        timings_ms={**out.timings_ms, "project": ms},
+                        thumbnails=[frame.thumbnail] if item.thumbnail else None,
+                        contrast=out.contrast[i:i + 1] if out.contrast is not None else None))
             except Exception as e:
-                for _, fut, _, _ in batch:
-                    if not fut.done():
-                        fut.set_exception(e)
+                for item in live:
+                    if not item.fut.done():
+                        item.fut.set_exception(e)
         finally:
             with self._lock:
                 self.pending -= taken
@@ -172,8 +189,14 @@ class EncoderPool:
             t.join(timeout=30)
 
 
-def _embed(encoder: Encoder, bodies: list[bytes | RawFrame], thumbs: list[bool],
-           resize: str | None) -> EncodeResult:
-    # Only maps that keep thumbnails ask for them; the others' batches are encoded as before.
-    how = {"resize": resize} if resize is not None else {}
-    return encoder.embed(bodies, thumbnails=thumbs, **how) if any(thumbs) else encoder.embed(bodies, **how)
+@dataclass
+class _Item:
+    """One submitted image: its body, its request's future, its map's hasher, whether it wants a
+    thumbnail, (backbone, resize), and its decode, started at submission (None: by the worker)."""
+
+    body: bytes | RawFrame
+    fut: Future[EncodeResult]
+    hasher: Hasher | None
+    thumbnail: bool
+    how: tuple[str, str | None]
+    prepared: Future[Prepared] | None

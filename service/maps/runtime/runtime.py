@@ -60,6 +60,7 @@ from service.maps.results import (
     VerificationResult,
 )
 from service.maps.runtime.budget import MemoryBudget, index_row_bytes
+from service.maps.runtime.durability import GroupCommit
 from service.maps.runtime.recent import RecentAnswers
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, utc_now
@@ -126,6 +127,9 @@ class MapRuntime:
         self.snapshot_failures = 0
         self.streams: OrderedDict[str, Stream] = OrderedDict()
         self._writer = ThreadPoolExecutor(1, thread_name_prefix=f"map-{self.map_id}")
+        # Learned rows are committed by the writer without their fsync and acknowledged once this has
+        # synced them, one fsync per group (service.maps.runtime.durability).
+        self._commits = GroupCommit(self._sync_store, f"sync-{self.map_id}")
         # The order in which observations reach the writer: each waits for the one before to be queued.
         self._turn = asyncio.Event()
         self._turn.set()
@@ -183,6 +187,7 @@ class MapRuntime:
         new sequence as it would have without the restart).
         """
         self._writer.shutdown(wait=True)
+        self._commits.close()  # the requests still waiting get their sync first
         if self.store is None:
             return
         latest = self.catalog.list_snapshots(self.map_id)
@@ -195,6 +200,18 @@ class MapRuntime:
             except Exception:  # the rows are durable; a snapshot only shortens the next replay
                 log.exception("map %s: shutdown snapshot failed", self.map_id)
         self.store.close()
+
+    def _sync_store(self) -> None:
+        """Group commit's thread: fsync what the writer committed (the store in use now; one that
+        recovery closed was checkpointed and synced by SQLite on close)."""
+        store = self.store
+        if store is not None:
+            store.sync()
+
+    async def durable(self) -> None:
+        """Event loop: wait until every row committed so far is durable (an acknowledgement waits for
+        it: docs/design/service.md §4.3)."""
+        await asyncio.wrap_future(self._commits.durable())
 
     def require_ready(self) -> None:
         """Raises MapUnavailable unless the map is ready."""
@@ -381,11 +398,15 @@ class MapRuntime:
         frame = None if self.config.keyframes is None else asyncio.ensure_future(asyncio.to_thread(
             keyframes.extract_frame, pool.encoders.get(self.config.backbone).decode, body,
             self.config.keyframes, camera))
+        # The digest stored with the row, off the event loop (a 10 MB raw frame takes ~20 ms to hash)
+        # and beside the encoding.
+        digest = asyncio.ensure_future(asyncio.to_thread(_sha256, getattr(body, "data", body)))
         before, mine = self._turn, asyncio.Event()
         self._turn = mine
         try:
             encoded = await asyncio.wrap_future(encoding)
             query = None if frame is None else await frame
+            image_sha256 = await digest
             t_encoded = time.perf_counter()
             await before.wait()
             assert encoded.projected is not None  # the pool projects when given a hasher
@@ -393,10 +414,10 @@ class MapRuntime:
                      **({} if query is None else {"features": query.ms})}
             thumb = encoded.thumbnails[0] if encoded.thumbnails else None
             apply = functools.partial(
-                self.apply, encoded.projected[0], hashlib.sha256(getattr(body, "data", body)).hexdigest(),
+                self.apply, encoded.projected[0], image_sha256,
                 learn=learn, stream=stream, top_k=top_k, label=label, metadata=metadata,
                 thumbnail=thumb if learn else None, post=post, query=query,
-                contrast=None if encoded.contrast is None else float(encoded.contrast[0]))
+                contrast=None if encoded.contrast is None else float(encoded.contrast[0]), durable=False)
             if post is not None:
                 post.front_ms = front
                 assert self.store is not None  # a ready map has its store
@@ -405,16 +426,25 @@ class MapRuntime:
                 step = self.submit(apply)
         finally:
             mine.set()
+        # A learned row (and the earlier reply of a repeated key, whose row may be in the same group) is
+        # acknowledged only once durable: the writer committed it without its fsync (group commit).
         if post is not None:
             answer = await asyncio.wrap_future(once)
+            if learn:
+                await self.durable()
             return answer if answer.replayed else dataclasses.replace(answer, thumbnail=thumb)
         result = await asyncio.wrap_future(step)
-        return dataclasses.replace(result, timings_ms={**front, **result.timings_ms}, thumbnail=thumb)
+        t_step = time.perf_counter()
+        if learn:
+            await self.durable()
+        sync = {"sync": (time.perf_counter() - t_step) * 1e3} if learn else {}
+        return dataclasses.replace(result, timings_ms={**front, **result.timings_ms, **sync}, thumbnail=thumb)
 
     def apply(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None = None, thumbnail: bytes | None = None,
               post: idempotency.IdempotentPost | None = None,
-              query: keyframes.QueryFrame | None = None, contrast: float | None = None) -> ObservationResult:
+              query: keyframes.QueryFrame | None = None, contrast: float | None = None,
+              durable: bool = True) -> ObservationResult:
         """Writer: one frame's TM step on the stream's context, ranking, and for learning the commit.
 
         Args:
@@ -426,9 +456,12 @@ class MapRuntime:
                 them; a revisit candidate is verified with them (docs/design/science.md §12).
             contrast: the decoded frame's contrast (`models.frontend.images.contrast`; None: not
                 measured): a frame too flat to say where it is is no revisit (docs/design/science.md §11.7).
+            durable: False: the row is committed without its fsync; the caller acknowledges it only
+                after `durable()` (group commit, docs/design/service.md §4.3).
 
         Returns:
-            The result; `timings_ms` holds hash, tm, search and store.
+            The result; `timings_ms` holds hash, tm, search (of which localiser), store and, for a
+            learned row, commit (its durable write, within store).
 
         Raises:
             ValueError: `projected` is not (k,) (before any state change). MapUnavailable, MapFull,
@@ -447,7 +480,7 @@ class MapRuntime:
         try:
             return self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k, label=label,
                               metadata=metadata, thumbnail=thumbnail, post=post, query=query,
-                              contrast=contrast)
+                              contrast=contrast, durable=durable)
         except Exception as e:
             if not learn:  # a localisation learns nothing: the memory and the store still agree
                 if isinstance(e, StorageFull):  # its loop closure could not be logged: no answer either
@@ -468,7 +501,8 @@ class MapRuntime:
     def _step(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None, thumbnail: bytes | None,
               post: idempotency.IdempotentPost | None,
-              query: keyframes.QueryFrame | None = None, contrast: float | None = None) -> ObservationResult:
+              query: keyframes.QueryFrame | None = None, contrast: float | None = None,
+              durable: bool = True) -> ObservationResult:
         """Writer: `apply` after its checks: the pure step (`models.pipeline.observe`), then the reply
         from the stored rows it names and, for learning, the row on disk. An exception here while
         learning is rebuilt from by `apply` (the step already holds the row in the index and links)."""
@@ -479,7 +513,7 @@ class MapRuntime:
         step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq,
                                 code_of=self._code_of, threshold=self.config.revisit_threshold,
                                 contrast=contrast)
-        if step.visit is not None:  # consolidated (§11.9): the memory learned it, no row is made
+        if step.visit is not None:  # consolidated (§11.8): the memory learned it, no row is made
             seq = None
         t3 = time.perf_counter()
         place = step.place
@@ -525,11 +559,15 @@ class MapRuntime:
         if row is not None:
             if post is not None:
                 row = dataclasses.replace(row, key=post.record(result))
-            committed = self.store.append(dataclasses.replace(row, closure=closure))
+            t_commit = time.perf_counter()
+            committed = self.store.append(dataclasses.replace(row, closure=closure), durable=durable)
+            commit_ms = (time.perf_counter() - t_commit) * 1e3
             assert committed == seq  # this thread is the store's only writer
             self._committed()
         t4 = time.perf_counter()
-        return dataclasses.replace(result, timings_ms={**result.timings_ms, "store": (t4 - t3) * 1e3})
+        # store: the reply's stored rows, verification and the durable write; commit: the write alone.
+        stored = {"store": (t4 - t3) * 1e3, **({"commit": commit_ms} if row is not None else {})}
+        return dataclasses.replace(result, timings_ms={**result.timings_ms, **stored})
 
     def _committed(self) -> None:
         """Writer: after a row or a visit is durable. Every `snapshot_every` of them the automatic snapshot
@@ -621,3 +659,7 @@ class MapRuntime:
         return sizes.memory_info(self.model, self.streams, tm_params=self.config.tm,
                                  max_streams=self.max_streams, projection=self.projection_path,
                                  store=self.store, snapshots_bytes=self.catalog.snapshots_bytes(self.map_id))
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()

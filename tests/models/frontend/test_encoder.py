@@ -67,6 +67,33 @@ def test_batched_and_single_encoding_agree(encoder):
     np.testing.assert_allclose(np.linalg.norm(batch.features, axis=1), 1.0, atol=1e-5)
 
 
+def test_frames_decoded_beside_the_backbone_encode_as_one_at_a_time(encoder):
+    """The decode threads (frames prepared into their rows of the batch, chunks forwarded as they are
+    ready) give the codes and features of the plain sequential path."""
+    data = [png(scene(s)) for s in range(2 * Encoder.CHUNK + 1)]  # three chunks, the last short
+    rgbs = [images.decode(d) for d in data]
+    ref_feats = np.concatenate([encoder.features(images.preprocess_batch([r])) for r in rgbs])
+    ref_codes = encoder.hasher(ref_feats)
+    out = encoder.encode(data, return_features=True)
+    np.testing.assert_array_equal(out.codes, ref_codes)
+    np.testing.assert_allclose(out.features, ref_feats, atol=1e-6)
+    assert set(out.timings_ms) == set(STAGES) and out.timings_ms["hash"] > 0
+    prepared = [encoder.prepare(d) for d in data]
+    got = encoder.embed_prepared(prepared)
+    np.testing.assert_allclose(got.features, ref_feats, atol=1e-6)
+    np.testing.assert_array_equal(got.contrast, [images.contrast(r) for r in rgbs])  # each frame's, in order
+    # A thumbnail is made from the frame already decoded, for the frames that ask for one.
+    asked = [i % 2 == 0 for i in range(len(data))]
+    thumbs = encoder.embed(data, thumbnails=asked).thumbnails
+    assert thumbs == [images.thumbnail(r) if a else None for r, a in zip(rgbs, asked, strict=True)]
+    # A bad frame among prepared ones is its own future's error; embed_prepared raises it.
+    bad = encoder.prepare(data[0][:100])
+    with pytest.raises(images.ImageError):
+        bad.result(timeout=30)
+    with pytest.raises(images.ImageError):
+        encoder.embed_prepared([encoder.prepare(data[1]), bad])
+
+
 def test_a_batch_takes_its_resize_mode_as_an_encoder_made_with_it_would(encoder):
     """One network serves maps of both resize modes (a map's `resize` option): the mode is per call."""
     wide = png(np.ascontiguousarray(np.hstack([scene(4), scene(5)])))  # 640 x 240: crop and squash differ

@@ -346,6 +346,22 @@ def test_preprocess_matches_the_float32_tensor_arithmetic():
     np.testing.assert_array_equal(x, expected)
 
 
+def test_preprocess_writes_into_a_row_of_the_batch_it_is_given():
+    """The encoder prepares each frame straight into its row of the backbone's batch (no second copy)."""
+    batch = np.full((3, 3, 224, 224), 7.0, np.float32)
+    rgb = _random_rgb(300, 451)
+    x = preprocess(rgb, mode="crop", out=batch[1])
+    assert np.shares_memory(x, batch)
+    np.testing.assert_array_equal(batch[1], preprocess(rgb, mode="crop"))
+    assert (batch[0] == 7.0).all() and (batch[2] == 7.0).all()  # its neighbours untouched
+    rows = preprocess_batch([rgb, rgb], mode="squash", out=batch[1:])
+    assert rows.base is batch and np.array_equal(batch[2], preprocess(rgb, mode="squash"))
+    for wrong in (np.empty((3, 224, 224), np.float64), np.empty((3, 224, 225), np.float32),
+                  np.empty((3, 448, 224), np.float32)[:, ::2]):
+        with pytest.raises(ValueError, match="out must be"):
+            preprocess(rgb, out=wrong)
+
+
 def _gradient(h: int, w: int) -> np.ndarray:
     """Channel 0 = 4·x, channel 1 = 8·y (the layout of a 64 wide × 32 high Nordland frame)."""
     y, x = np.mgrid[0:h, 0:w]

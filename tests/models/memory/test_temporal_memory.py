@@ -418,3 +418,19 @@ def test_planned_bytes_equal_the_allocated_bytes():
     assert planned_bytes(small_params) == TemporalMemory(small_params).size()["bytes"]
     # the paper's Nordland preset is sized without being allocated
     assert planned_bytes(presets.tm_params("cba2020-nordland")) > 3_997_696_000
+
+
+def test_connected_presyn_lists_a_segments_connected_cells() -> None:
+    tm = TemporalMemory(presets.tm_params("cortexloc-grid", {"columnDimensions": 64}))
+    first = tm.compute(np.array([1, 5, 9]))
+    tm.compute(np.array([20, 30, 40]))
+    segs = np.flatnonzero(tm.nsyn)
+    assert segs.size == 3  # one per bursting column, grown to the previous winners (one-shot: connected)
+    g = int(segs[0])
+    cells = tm.connected_presyn(g)
+    np.testing.assert_array_equal(cells, first)
+    K = int(tm.params["maxSynapsesPerSegment"])
+    weak = int(np.flatnonzero(tm.presyn[g * K:g * K + int(tm.nsyn[g])] == first[0])[0])
+    tm.perm[g * K + weak] = 0.1  # below connectedPermanence
+    np.testing.assert_array_equal(tm.connected_presyn(g), first[1:])
+    assert tm.connected_presyn(int(np.flatnonzero(tm.nsyn == 0)[0])).size == 0

@@ -5,11 +5,15 @@ measured why the pool projects: docs/benchmarks.md §1)."""
 
 from __future__ import annotations
 
+import time
+from concurrent.futures import Future
 from functools import partial
 
 import numpy as np
 import pytest
 
+from models.frontend import images
+from models.frontend.encoder import EncodeResult, Prepared
 from models.frontend.images import ImageError
 from models.frontend.slsbh import Hasher, make_projection
 from service.maps.encoding.encoders import Encoders
@@ -18,15 +22,25 @@ from tests.service.helpers import frame, held_encoder, make_client
 
 
 class FakeEncoder:
-    """`embed` returns one fixed feature row per image (derived from its bytes); b"bad" fails."""
+    """`embed` returns one fixed feature row per image (derived from its bytes); b"bad" fails.
+    `prepare` + `embed_prepared` (what the pool calls) give the same rows."""
 
     def __init__(self) -> None:
         self.calls: list[int] = []
         self.modes: list[tuple[bytes, str | None]] = []  # each image with the mode it was embedded with
 
-    def embed(self, data, resize=None):
-        from models.frontend.encoder import EncodeResult
+    def prepare(self, body, thumbnail=False, resize=None):
+        fut = Future()
+        if body == b"bad":
+            fut.set_exception(ImageError("truncated", "the image data ends early"))
+        else:
+            fut.set_result(Prepared((body, resize), None, 1.0, 0.0, 0.0))
+        return fut
 
+    def embed_prepared(self, prepared):
+        return self.embed([f.result().x[0] for f in prepared], resize=prepared[0].result().x[1])
+
+    def embed(self, data, resize=None):
         self.calls.append(len(data))
         self.modes.extend((b, resize) for b in data)
         if any(b == b"bad" for b in data):
@@ -67,6 +81,59 @@ def test_pool_projects_each_request_with_its_own_hasher() -> None:
                                    atol=1e-6)
     finally:
         pool.close()
+
+
+def test_a_bad_image_fails_alone_and_its_batch_mates_are_encoded_once() -> None:
+    enc = FakeEncoder()
+    pool = EncoderPool(Encoders.one(enc), workers=1, queue=64)
+    try:
+        with held_encoder(enc) as (gate, sizes):
+            first = pool.submit(bytes(3))
+            deadline = time.monotonic() + 30
+            while not sizes and time.monotonic() < deadline:  # the worker is in the backbone call
+                time.sleep(0.01)
+            bodies = [bytes(4), b"bad", bytes(6), bytes(7)]
+            futs = [pool.submit(b) for b in bodies]
+            gate.set()
+            first.result(timeout=30)
+            with pytest.raises(ImageError):
+                futs[1].result(timeout=30)
+            for b, f in zip(bodies, futs, strict=True):
+                if b != b"bad":
+                    np.testing.assert_array_equal(f.result(timeout=30).features, enc.embed([b]).features)
+        assert enc.calls[:2] == [1, 3]  # one backbone call for the three good ones, none image by image
+    finally:
+        pool.close()
+
+
+def test_an_image_decodes_while_the_backbone_runs_the_batch_before_it(tmp_path, monkeypatch) -> None:
+    """Decoding starts when a request is submitted, not when the worker takes its batch: the frames
+    that queue behind a running backbone call are decoded by the time it ends."""
+    decoded: list[bytes] = []
+    real = images.decode
+
+    def decode(data, **kw):
+        decoded.append(data)
+        return real(data, **kw)
+
+    monkeypatch.setattr(images, "decode", decode)
+    with make_client(tmp_path) as c:
+        pool, encoder = c.app.state.encoder_pool, c.app.state.encoder
+        with held_encoder(encoder) as (gate, sizes):
+            first = pool.submit(frame(0))
+            deadline = time.monotonic() + 30
+            while not sizes and time.monotonic() < deadline:  # the worker is in the backbone call
+                time.sleep(0.01)
+            mark, queued = len(decoded), [frame(p) for p in (1, 2, 3)]
+            futs = [pool.submit(b) for b in queued]
+            while len(decoded) < mark + 3 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert sorted(decoded[mark:]) == sorted(queued) and sizes == [1]  # decoded, backbone held
+            gate.set()
+            first.result(timeout=60)
+            for f in futs:
+                assert f.result(timeout=60).features.shape[0] == 1
+        assert sizes == [1, 3]
 
 
 def test_pool_batches_per_backbone_and_builds_each_encoder_once() -> None:

@@ -55,7 +55,7 @@ def test_a_failed_commit_leaves_the_memory_the_store_can_replay(tmp_path, monkey
             step(rt, f)
         live = tm_digest(rt.tm)
 
-        def full(row):
+        def full(row, **kw):
             raise StorageFull("disk full")
 
         monkeypatch.setattr(rt.store, "append", full)

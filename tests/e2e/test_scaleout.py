@@ -1,0 +1,172 @@
+"""The Ray Serve scale-out on a real local Ray cluster (issue 26, items 1-4): `cortexloc serve --ray` with
+1 encoder replica and 2 shards; 4 maps, 2 streams each, posted through the typed client; one shard's
+replica killed with SIGKILL mid-stream. Ray restarts it from its data directory; meanwhile clients get
+503 + Retry-After (problem+json); their retries with the same Idempotency-Key are replayed, not learned
+twice; then acknowledged == stored on every map, a map moves between shards with one command, and
+`cortexloc verify` finds every shard's maps clean.
+
+Kept light for 2 shared cores: tiny maps (128 columns, k = 64), 64x48 frames, the torch runtime (no
+ONNX export per replica), a cluster of 4 logical CPUs, an 80 MB object store and no dashboard.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+import time
+from collections import Counter
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+pytest.importorskip("ray", reason="the `ray` extra is not installed (pip install '.[ray]'; `make test` "
+                                  "installs it)")
+
+from cortexloc_client import Client, RetryPolicy
+from tests.e2e.scaleout_cluster import RayCluster
+
+KEY = "scaleout-test-key"
+MAPS = ("m0", "m1", "m2", "m3")
+STREAMS = ("left", "right")
+FRAMES = 10  # per stream
+TINY = {"tm": {"columnDimensions": 128, "maxSegmentsPerCell": 8, "maxSynapsesPerSegment": 16,
+               "maxNewSynapseCount": 8, "activationThreshold": 4, "minThreshold": 2}, "slsbh": {"k": 64}}
+
+
+def tiny_frame(place: int) -> bytes:
+    rng = np.random.default_rng(place)
+    img = cv2.resize(rng.integers(0, 256, (6, 8, 3), dtype=np.uint8), (64, 48), interpolation=cv2.INTER_CUBIC)
+    return cv2.imencode(".jpg", img)[1].tobytes()
+
+
+class Recording(httpx.HTTPTransport):
+    """Every reply's status, content type and Retry-After (the client retries on its own)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: list[tuple[int, str, str | None]] = []
+        self.lock = threading.Lock()
+
+    def handle_request(self, request: httpx.Request) -> httpx.Response:
+        r = super().handle_request(request)
+        with self.lock:
+            self.seen.append((r.status_code, r.headers.get("content-type", ""), r.headers.get("retry-after")))
+        return r
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory, request):
+    work = tmp_path_factory.mktemp("scaleout")
+    c = RayCluster(work, {"CORTEXLOC_WEIGHTS_DIR": str(work / "no-weights"), "CORTEXLOC_RUNTIME": "torch",
+                          "CORTEXLOC_API_KEY": KEY, "CORTEXLOC_LOG_FORMAT": "text"})
+    request.addfinalizer(c.stop)  # torn down whatever happens below
+    c.start()
+    try:
+        c.serve(shards=2, encoder_replicas=1)
+    except RuntimeError as e:
+        pytest.fail(str(e))
+    return c
+
+
+def test_a_shard_killed_mid_stream_loses_nothing_acknowledged(cluster):
+    c = cluster
+    seen = Recording()
+    client = Client(c.base, api_key=KEY, retry=RetryPolicy(attempts=200, max_wait_s=3, backoff_s=0.5),
+                    timeout=120, transport=seen)
+    for m in MAPS:
+        assert client.create_map(m, tm=TINY["tm"], slsbh=TINY["slsbh"]).map_id == m
+    owners = c.routes()
+    assert {owners[m][0] for m in MAPS} == {"shard-0", "shard-1"}  # both shards own test maps
+    victim = owners["m0"][0]
+    victim_maps = [m for m in MAPS if owners[m][0] == victim]
+    pid = c.shard_pid(victim)
+
+    acked: dict[str, dict[str, tuple[int, str]]] = {m: {} for m in MAPS}  # map -> key -> (seq, obs id)
+    errors: list[BaseException] = []
+
+    def robot(map_id: str, stream: str) -> None:
+        try:
+            for i in range(FRAMES):
+                key = f"{map_id}-{stream}-{i:04d}"
+                obs = client.observe(map_id, tiny_frame(i), stream=stream, top_k=1, idempotency_key=key)
+                acked[map_id][key] = (obs.seq, obs.observation_id)
+        except BaseException as e:
+            errors.append(e)
+
+    robots = [threading.Thread(target=robot, args=(m, s)) for m in MAPS for s in STREAMS]
+    for t in robots:
+        t.start()
+    deadline = time.monotonic() + 300
+    while sum(len(v) for v in acked.values()) < 12 and time.monotonic() < deadline and not errors:
+        time.sleep(0.05)
+    os.kill(pid, signal.SIGKILL)  # the victim shard's replica: no shutdown hook, no flush
+    killed_at = sum(len(v) for v in acked.values())
+    for t in robots:
+        t.join(timeout=600)
+    assert not errors, errors
+    assert killed_at < len(MAPS) * len(STREAMS) * FRAMES, "the kill came after the streams ended"
+
+    # Ray restarted the shard (a new process) on its data directory.
+    assert c.shard_pid(victim) != pid
+    # Meanwhile the victim's maps were answered 503 map-unavailable with Retry-After, as problem+json.
+    unavailable = [s for s in seen.seen if s[0] == 503]
+    assert unavailable, f"no 503 seen ({Counter(s[0] for s in seen.seen)})"
+    assert all(ct == "application/problem+json" and ra is not None for _, ct, ra in unavailable)
+
+    for m in MAPS:
+        # Every frame acknowledged once, each with its own seq; stored == acknowledged: nothing lost and
+        # nothing learned twice (a retry of a committed post was replayed).
+        assert len(acked[m]) == len(STREAMS) * FRAMES
+        assert len({seq for seq, _ in acked[m].values()}) == len(acked[m])
+        info = client.get_map(m)
+        assert info.state == "ready" and info.observations == len(acked[m]), m
+        stored = {o.seq: o.observation_id for o in client.list_observations(m, limit=500).observations}
+        assert stored == dict(acked[m].values()), m
+    # A retry now is replayed, on a restarted shard's map too.
+    key = f"{victim_maps[0]}-left-0000"  # frame 0 of stream `left`, posted as the client did
+    seq = acked[victim_maps[0]][key][0]
+    r = httpx.post(f"{c.base}/v1/maps/{victim_maps[0]}/observations", content=tiny_frame(0),
+                   params={"learn": "true", "stream": "left", "top_k": 1}, timeout=60,
+                   headers={"X-API-Key": KEY, "Idempotency-Key": key, "Content-Type": "image/jpeg"})
+    assert r.status_code == 200 and r.headers["Idempotent-Replayed"] == "true" and r.json()["seq"] == seq
+
+    # The cluster's views: every map listed once, metrics and readiness of both shards.
+    assert sorted(m.map_id for m in client.list_maps()) == ["default", *MAPS]
+    metrics = httpx.get(f"{c.base}/metrics", headers={"X-API-Key": KEY}).text
+    assert 'shard="shard-0"' in metrics and 'shard="shard-1"' in metrics
+    assert set(httpx.get(f"{c.base}/readyz").json()["checks"]) == {"shard-0", "shard-1"}
+    assert httpx.post(f"{c.base}/v1/maps/m1/observations", content=tiny_frame(1),
+                      headers={"Content-Type": "image/jpeg"}).status_code == 401  # the key, at the ingress
+
+    # `cortexloc ingest` and the viewer, unchanged, against the ingress.
+    frames = c.work / "frames"
+    frames.mkdir()
+    for i in range(3):
+        (frames / f"{i:03d}.jpg").write_bytes(tiny_frame(50 + i))
+    out = c.cli("ingest", str(frames), "--map", "m3", "--stream", "ingest", "--url", c.base, "--api-key", KEY)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert client.get_map("m3").observations == len(acked["m3"]) + 3
+    page = httpx.get(f"{c.base}/ui/")
+    assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
+
+    # Moving a map with one command: the same rows on the other shard, the table switched.
+    target = "shard-1" if victim == "shard-0" else "shard-0"
+    out = c.cli("shards", "move", "m0", "--to", target, "--address", c.address)
+    assert out.returncode == 0, out.stderr[-2000:]
+    moved = json.loads(out.stdout.strip().splitlines()[-1])
+    assert moved["from"] == victim and moved["to"] == target and moved["observations"] == len(acked["m0"])
+    assert c.routes()["m0"] == (target, "serving")
+    assert client.get_map("m0").observations == len(acked["m0"])
+    assert client.observe("m0", tiny_frame(99), stream="left").seq == len(acked["m0"]) + 1
+    client.close()
+
+    # Offline, after the cluster is gone: every shard's maps replay to their stored winner cells.
+    c.stop()
+    for shard in ("shard-0", "shard-1"):
+        done = c.cli("verify", "--data-dir", str(c.data_dir / shard))
+        assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+        assert "0 with problems" in done.stdout

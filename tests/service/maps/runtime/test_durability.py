@@ -1,0 +1,125 @@
+"""Group commit (service/maps/runtime/durability.py, docs/design/service.md §4.3): a learned row is
+acknowledged only once an fsync that started after its commit returned; the rows committed meanwhile
+share one fsync. The SIGKILL test of the deferred commits is tests/storage/test_mapstore.py
+(test_group_commit_loses_nothing_acknowledged_at_a_sigkill)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+
+from service.maps.runtime.durability import GroupCommit
+from tests.service.helpers import frame, make_client, post
+
+
+def _until(cond, seconds: float = 30.0) -> bool:
+    deadline = time.monotonic() + seconds
+    while not cond() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return cond()
+
+
+def test_every_request_waiting_during_a_sync_shares_the_next_one() -> None:
+    gate, calls = threading.Event(), []
+
+    def sync() -> None:
+        calls.append(1)
+        gate.wait(30)
+
+    commits = GroupCommit(sync, "sync-test")
+    try:
+        first = commits.durable()
+        assert _until(lambda: len(calls) == 1)  # the first sync runs, held
+        later = [commits.durable() for _ in range(5)]
+        assert commits.waiting == 5 and not first.done() and not any(f.done() for f in later)
+        gate.set()
+        first.result(timeout=30)
+        for f in later:
+            f.result(timeout=30)
+        assert len(calls) == 2 and commits.syncs == 2  # one fsync for the five that waited
+    finally:
+        gate.set()
+        commits.close()
+    with pytest.raises(RuntimeError, match="closed"):
+        commits.durable()
+
+
+def test_a_failed_sync_acknowledges_none_of_its_group_and_close_serves_the_waiting() -> None:
+    fail = [True]
+
+    def sync() -> None:
+        if fail[0]:
+            raise OSError(5, "Input/output error")
+
+    commits = GroupCommit(sync, "sync-test")
+    with pytest.raises(OSError, match="Input/output"):
+        commits.durable().result(timeout=30)
+    fail[0] = False
+    waiting = commits.durable()
+    commits.close()
+    assert waiting.result(timeout=30) is None
+
+
+def test_a_learned_row_is_acknowledged_only_after_its_group_is_synced(tmp_path) -> None:
+    with make_client(tmp_path / "d") as c:
+        rt = c.app.state.registry.get("default")
+        assert post(c, frame(0), stream="warm").status_code == 200  # every lazy start-up done
+        gate, real, syncs = threading.Event(), rt.store.sync, rt._commits.syncs
+
+        def held() -> None:
+            gate.wait(30)
+            real()
+
+        rt.store.sync = held
+        try:
+            with ThreadPoolExecutor(6) as ex:
+                futs = [ex.submit(post, c, frame(p), stream=f"s{p}") for p in range(1, 7)]
+                # Every row is committed (visible, in the WAL) while the first fsync is held...
+                assert _until(lambda: rt.store.count() == 7)
+                _until(lambda: rt._commits.waiting >= 5, 3.0)  # ...and the others wait for the next
+                time.sleep(0.2)
+                assert not any(f.done() for f in futs)  # ...but none is acknowledged
+                gate.set()
+                replies = [f.result(timeout=60) for f in futs]
+        finally:
+            gate.set()
+            rt.store.sync = real
+        assert [r.status_code for r in replies] == [200] * 6
+        assert all(r.json()["timings_ms"]["sync"] >= 0 for r in replies)
+        assert rt._commits.syncs - syncs <= 3 < 6  # the six rows needed two or three fsyncs, not six
+
+
+def test_a_replayed_reply_waits_for_the_sync_of_its_row(tmp_path) -> None:
+    """A retry (same Idempotency-Key) that finds the first post's row committed but not yet synced is
+    answered only once that row is durable, like the first."""
+    with make_client(tmp_path / "d") as c:
+        rt = c.app.state.registry.get("default")
+        assert post(c, frame(0), stream="warm").status_code == 200
+        gate, real = threading.Event(), rt.store.sync
+
+        def held() -> None:
+            gate.wait(30)
+            real()
+
+        def keyed():
+            return c.post("/v1/maps/default/observations", content=frame(1), params={"stream": "k"},
+                          headers={"Content-Type": "image/png", "Idempotency-Key": "retry-0001"})
+
+        rt.store.sync = held
+        try:
+            with ThreadPoolExecutor(2) as ex:
+                first = ex.submit(keyed)
+                assert _until(lambda: rt.store.count() == 2)  # committed, its sync held
+                retry = ex.submit(keyed)
+                time.sleep(0.5)
+                assert not first.done() and not retry.done()
+                gate.set()
+                a, b = first.result(timeout=60), retry.result(timeout=60)
+        finally:
+            gate.set()
+            rt.store.sync = real
+        assert a.status_code == b.status_code == 200 and a.json()["seq"] == b.json()["seq"]
+        assert rt.store.count() == 2  # learned once

@@ -1,0 +1,290 @@
+"""The scale-out's ingress, shard set and shard host in one process (issue 26, items 1-3), Ray left out:
+two shards (the single-process app each, on its own data directory) behind the ingress app, with the
+encoder deployment's work (`EncoderService`) called directly. tests/e2e/test_scaleout.py runs the
+same on a real Ray cluster with a shard killed."""
+
+from __future__ import annotations
+
+import inspect
+import json
+import time
+from collections.abc import Iterator
+from concurrent.futures import Future
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.scaleout.encoding import EncoderService
+from service.scaleout.ingress import create_ingress_app
+from service.scaleout.shard import ShardHost
+from service.scaleout.shards import MoveFailed, ShardSet
+from service.settings import Settings
+from storage.shardtable import ShardTable
+from tests.service.helpers import frame
+
+TINY = {"tm": {"columnDimensions": 128, "maxSegmentsPerCell": 8, "maxSynapsesPerSegment": 16,
+               "maxNewSynapseCount": 8, "activationThreshold": 4, "minThreshold": 2}, "slsbh": {"k": 64}}
+
+
+class Cluster:
+    """Two `ShardHost`s started on first use in the ingress's event loop; `dead` shards do not answer."""
+
+    def __init__(self, root: Path, **settings) -> None:
+        self.root = root
+        self.settings = {"backbone": "alexnet", "runtime": "torch", **settings}
+        self.encoder = EncoderService(Settings(data_dir=root, **self.settings))
+        self.hosts: dict[str, ShardHost] = {}
+        self.dead: set[str] = set()
+        self.shards: ShardSet | None = None
+
+    def _embed(self, req):
+        f: Future = Future()
+        f.set_result(self.encoder.embed_batch([req])[0])
+        return f
+
+    async def call(self, shard: str, method: str, *args):
+        if shard in self.dead:
+            raise ConnectionError(f"{shard} is dead")
+        host = self.hosts.get(shard)
+        if host is None:
+            host = ShardHost(Settings(data_dir=self.root / shard, **self.settings), self.encoder.info,
+                             self._embed)
+            await host.start()
+            self.hosts[shard] = host
+        out = getattr(host, method)(*args)
+        return await out if inspect.isawaitable(out) else out
+
+    def make_shards(self) -> ShardSet:
+        self.shards = ShardSet(["shard-0", "shard-1"], self.call, self.root / "shards.sqlite", down_s=0.2)
+        return self.shards
+
+    @contextmanager
+    def client(self, **settings) -> Iterator[TestClient]:
+        """The ingress app's client, once its routes are read (unless a shard is dead), its shards
+        stopped after (also on failure)."""
+        app = create_ingress_app(Settings(data_dir=self.root, **self.settings, **settings), self.make_shards)
+        with TestClient(app) as c:
+            try:
+                deadline = time.monotonic() + 60
+                while not self.dead and not self.shards.reconciled and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                yield c
+            finally:
+                self.stop(c.portal)
+
+    def stop(self, portal) -> None:
+        for host in self.hosts.values():
+            portal.call(host.stop)
+        self.hosts.clear()
+
+
+@pytest.fixture
+def cluster(tmp_path):
+    return Cluster(tmp_path)
+
+
+def post(c: TestClient, map_id: str, place: int, key: str | None = None, **params):
+    headers = {"Content-Type": "image/png", **({"Idempotency-Key": key} if key else {})}
+    return c.post(f"/v1/maps/{map_id}/observations", content=frame(place), headers=headers,
+                  params={"learn": "true", **params})
+
+
+def test_maps_spread_over_shards_and_are_served_through_the_ingress(cluster):
+    with cluster.client() as c:
+        for m in ("m0", "m1", "m2"):
+            r = c.post("/v1/maps", json={"map_id": m, **TINY})
+            assert r.status_code == 201, r.text
+        owners = {r.map_id: r.shard for r in cluster.shards.table.all()}
+        # `default` (made by shard-0 at its first start) is routed where it was found; the new maps go
+        # to the shard with fewer maps each time.
+        assert owners == {"default": "shard-0", "m0": "shard-1", "m1": "shard-0", "m2": "shard-1"}
+        assert sorted(cluster.hosts["shard-1"].map_ids()) == ["default", "m0", "m2"]  # its own default
+        for i in range(3):
+            r = post(c, "m0", i)
+            assert r.status_code == 200 and r.json()["seq"] == i + 1
+        # One list over both shards, each map once (shard-1's own `default` is not routed: not listed).
+        listed = c.get("/v1/maps").json()["maps"]
+        assert [m["map_id"] for m in listed] == ["default", "m0", "m1", "m2"]
+        assert next(m for m in listed if m["map_id"] == "m0")["observations"] == 3
+        # Reads of one map, the viewer's pages and an id without a route.
+        assert c.get("/v1/maps/m0/observations").json()["observations"][0]["seq"] == 1
+        assert c.get("/ui/").status_code == 200
+        r = c.get("/v1/maps/nowhere")
+        assert r.status_code == 404 and r.headers["content-type"] == "application/problem+json"
+        assert r.json()["type"] == "urn:cortexloc:problem:map-not-found"
+        # A second create of a routed id goes to its owner, which refuses it.
+        assert c.post("/v1/maps", json={"map_id": "m0", **TINY}).status_code == 409
+        # Deleting a map removes its route.
+        assert c.delete("/v1/maps/m2").status_code == 204
+        assert cluster.shards.table.get("m2") is None
+
+
+def test_metrics_readiness_and_memory_cover_every_shard(cluster):
+    with cluster.client() as c:
+        assert c.post("/v1/maps", json={"map_id": "m0", **TINY}).status_code == 201
+        assert post(c, "m0", 1).status_code == 200
+        text = c.get("/metrics").text
+        assert 'shard="shard-0"' in text and 'shard="shard-1"' in text
+        assert text.count("# TYPE cortexloc_requests_total counter") == 1  # one family, both shards
+        ready = c.get("/readyz")
+        assert ready.status_code == 200 and set(ready.json()["checks"]) == {"shard-0", "shard-1"}
+        budget = c.get("/v1/memory").json()
+        assert {m["map_id"] for m in budget["maps"]} == {"default", "m0"}
+        cluster.dead.add("shard-1")
+        r = c.get("/readyz")
+        assert r.status_code == 503 and r.json()["checks"]["shard-1"]["status"] == "fail"
+
+
+def test_a_dead_shard_answers_503_with_retry_after_and_a_retry_is_replayed(cluster):
+    with cluster.client() as c:
+        assert c.post("/v1/maps", json={"map_id": "m0", **TINY}).status_code == 201  # on shard-1
+        first = post(c, "m0", 1, key="key-00000001")
+        assert first.status_code == 200
+        cluster.dead.add("shard-1")
+        r = post(c, "m0", 2, key="key-00000002")
+        assert r.status_code == 503 and r.headers["Retry-After"] == "2"
+        assert r.headers["content-type"] == "application/problem+json"
+        body = r.json()
+        assert body["type"] == "urn:cortexloc:problem:map-unavailable" and body["shard"] == "shard-1"
+        # Marked down for a while: the next request is answered without trying the shard.
+        assert c.get("/v1/maps/m0").status_code == 503
+        # The shard comes back (as Ray restarts it): the same key is replayed, not learned twice.
+        cluster.dead.clear()
+        cluster.stop(c.portal)  # a restarted replica opens its data directory again
+        time.sleep(0.25)
+        again = post(c, "m0", 1, key="key-00000001")
+        assert again.status_code == 200 and again.headers["Idempotent-Replayed"] == "true"
+        assert again.json()["observation_id"] == first.json()["observation_id"]
+        assert c.get("/v1/maps/m0").json()["observations"] == 1
+
+
+def test_the_edge_rules_hold_at_the_ingress(cluster):
+    """API keys, upload limits: refused at the ingress, before any shard is asked."""
+    with cluster.client(api_key="s3cret-key", max_upload_bytes=100_000) as c:
+        r = c.post("/v1/maps", json={"map_id": "m0", **TINY})
+        assert r.status_code == 401 and r.headers["content-type"] == "application/problem+json"
+        r = c.post("/v1/maps", json={"map_id": "m0", **TINY}, headers={"X-API-Key": "s3cret-key"})
+        assert r.status_code == 201
+        assert post(c, "m0", 1).status_code == 401
+        big = c.post("/v1/maps/m0/observations", content=b"\xff" * 200_000,
+                     headers={"Content-Type": "image/jpeg", "X-API-Key": "s3cret-key"})
+        assert big.status_code == 413 and big.json()["type"] == "urn:cortexloc:problem:payload-too-large"
+
+
+def test_moving_a_map_keeps_every_row_and_switches_the_route(cluster):
+    with cluster.client() as c:
+        assert c.post("/v1/maps", json={"map_id": "m0", **TINY}).status_code == 201  # shard-1
+        acked = [post(c, "m0", i, key=f"move-key-{i:04d}").json()["observation_id"] for i in range(4)]
+        out = c.portal.call(cluster.shards.move, "m0", "shard-0", [])
+        assert out["from"] == "shard-1" and out["to"] == "shard-0" and out["observations"] == 4
+        assert cluster.shards.table.get("m0").shard == "shard-0"
+        assert "m0" not in cluster.hosts["shard-1"].map_ids()
+        rows = c.get("/v1/maps/m0/observations").json()["observations"]
+        assert [r["observation_id"] for r in rows] == acked
+        # The moved map learns on: the next seq, and a key of before the move is still replayed.
+        assert post(c, "m0", 9).json()["seq"] == 5
+        assert post(c, "m0", 0, key="move-key-0000").headers["Idempotent-Replayed"] == "true"
+        with pytest.raises(MoveFailed):
+            c.portal.call(cluster.shards.move, "m0", "shard-0", [])
+        with pytest.raises(MoveFailed):
+            c.portal.call(cluster.shards.move, "m0", "shard-9", [])
+
+
+def test_the_map_table_is_durable(tmp_path):
+    t = ShardTable(tmp_path / "shards.sqlite")
+    t.set("a", "shard-1")
+    assert t.add_missing("a", "shard-0") is False and t.add_missing("b", "shard-0") is True
+    t.set("a", "shard-1", "moving")
+    t.close()
+    t = ShardTable(tmp_path / "shards.sqlite")
+    assert [tuple(r) for r in t.all()] == [("a", "shard-1", "moving"), ("b", "shard-0", "serving")]
+    t.close()
+
+
+def test_the_ingress_lists_only_what_the_table_routes(cluster):
+    """A map found on two shards (a move cut short before its old copy went) is served by its route."""
+    with cluster.client() as c:
+        listed = [m["map_id"] for m in c.get("/v1/maps").json()["maps"]]
+        assert listed == ["default"] and cluster.shards.table.get("default").shard == "shard-0"
+        assert json.loads(c.get("/readyz").text)["status"] == "ready"
+
+
+def test_the_encoder_deployment_fails_only_the_bad_image_of_a_batch(cluster):
+    """One undecodable upload among good ones (batched together by `@serve.batch`) fails only itself,
+    and a shard's `RemoteEncoder` raises it as the `ImageError` that the routes answer with a 4xx."""
+    from models.frontend.images import ImageError
+    from service.scaleout.encoding import RemoteEncoder
+
+    enc = cluster.encoder
+    backbone = enc.encoders.default
+    replies = enc.embed_batch([(backbone, None, frame(1), False), (backbone, None, b"not an image", False),
+                               (backbone, "squash", frame(2), True)])
+    assert [r[0] for r in replies] == ["ok", "error", "ok"]
+    assert replies[0][1].shape == (1, enc.info(backbone)["feature_dim"]) and replies[2][2] is not None
+    remote = RemoteEncoder(enc.info(backbone), cluster._embed)
+    out = remote.embed([frame(1), frame(2)])
+    assert out.features.shape == (2, remote.feature_dim) and set(out.timings_ms) >= {"decode", "backbone"}
+    assert remote.identity_for("squash") == enc.encoders.get(backbone).identity_for("squash")
+    with pytest.raises(ImageError):
+        remote.embed([frame(1), b"not an image"])
+    with cluster.client() as c:
+        assert c.post("/v1/maps", json={"map_id": "m0", **TINY}).status_code == 201
+        r = c.post("/v1/maps/m0/observations", content=b"not an image", headers={"Content-Type": "image/png"})
+        assert r.status_code in (400, 415, 422) and r.headers["content-type"] == "application/problem+json"
+        assert c.get("/v1/maps/m0").json()["observations"] == 0
+        assert c.get("/openapi.json").json()["paths"]["/v1/maps/{map_id}/observations"]
+
+
+def test_a_shard_down_at_the_ingress_start_is_read_when_it_answers(cluster):
+    """Until every shard's maps are in the table, an id without a route is 503 (it may be on the shard
+    not read yet), not 404; the ingress keeps trying and is ready once the shard answers."""
+    cluster.dead.add("shard-1")
+    with cluster.client() as c:
+        r = c.get("/readyz")
+        assert r.status_code == 503 and "routes" in r.json()["checks"]
+        r = c.get("/v1/maps/anything")
+        assert r.status_code == 503 and r.headers["Retry-After"] == "2"
+        cluster.dead.clear()
+        deadline = time.monotonic() + 30
+        while c.get("/readyz").status_code != 200 and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert c.get("/readyz").status_code == 200
+        assert c.get("/v1/maps/anything").status_code == 404
+
+
+def test_a_stalled_body_meets_the_deadline_at_the_ingress(cluster):
+    """A body that stops arriving is answered 408 by the ingress at CORTEXLOC_BODY_TIMEOUT_S, before any
+    shard is asked: the ingress holds no request longer than the single process would."""
+    import anyio
+
+    with cluster.client(body_timeout_s=1.0) as c:
+        assert c.post("/v1/maps", json={"map_id": "m0", **TINY}).status_code == 201
+        sent: list[dict] = []
+        first = [{"type": "http.request", "body": b"\x89PNG" + b"\0" * 60, "more_body": True}]
+
+        async def receive() -> dict:
+            if first:
+                return first.pop()
+            await anyio.sleep(30)  # the rest never comes
+            return {"type": "http.disconnect"}
+
+        async def send(message: dict) -> None:
+            sent.append(message)
+
+        async def drive() -> None:
+            path = "/v1/maps/m0/observations"
+            scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "POST",
+                     "scheme": "http", "path": path, "raw_path": path.encode(), "query_string": b"learn=true",
+                     "root_path": "", "client": ("127.0.0.1", 1), "server": ("t", 80),
+                     "headers": [(b"host", b"t"), (b"content-type", b"image/png"),
+                                 (b"content-length", b"5000")]}
+            with anyio.fail_after(15):
+                await c.app(scope, receive, send)
+
+        t0 = time.monotonic()
+        c.portal.call(drive)
+        start = next(m for m in sent if m["type"] == "http.response.start")
+        assert start["status"] == 408 and time.monotonic() - t0 < 10
+        assert c.get("/v1/maps/m0").json()["observations"] == 0
