@@ -143,3 +143,14 @@ def test_a_snapshot_and_a_restore_carry_the_visits_and_a_repeated_post_is_one_vi
         again = c.post("/v1/maps/default/observations", content=body, headers=headers,
                        params={"stream": "b", "learn": "true", "top_k": 0})
         assert again.json() == first.json() and places(c, "default")["visits_logged"] == n
+
+
+def test_consolidated_frames_hold_no_index_bytes_of_the_memory_budget(tmp_path):
+    with make_client(tmp_path / "data") as c:
+        c.patch("/v1/maps/default", json={"revisit_threshold": THRESHOLD})
+        drive(c, LAP, stream="a", noise=0.0)
+        lap2 = drive(c, LAP, stream="b")
+        rt = c.app.state.registry.get("default")
+        held = next(m for m in c.get("/v1/memory").json()["maps"] if m["map_id"] == "default")
+    assert any(b["consolidated_into"] for b in lap2)
+    assert held["parts"]["index"] == len(rt.index) * rt.row_bytes  # a reservation per row made, not per frame

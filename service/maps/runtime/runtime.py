@@ -564,6 +564,9 @@ class MapRuntime:
             commit_ms = (time.perf_counter() - t_commit) * 1e3
             assert committed == seq  # this thread is the store's only writer
             self._committed()
+        if learn and self.budget is not None and (step.visit is not None or step.dropped):
+            # the row reserved before the step was not made, or its place dropped rows (§11.9)
+            self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
         t4 = time.perf_counter()
         # store: the reply's stored rows, verification and the durable write; commit: the write alone.
         stored = {"store": (t4 - t3) * 1e3, **({"commit": commit_ms} if row is not None else {})}
