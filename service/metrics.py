@@ -85,7 +85,12 @@ class Metrics:
             for name, help_ in (("segments", "Live TM segments"), ("synapses", "Live TM synapses"),
                                 ("evictions", "TM segments evicted (least recently used) so far"),
                                 ("overruns", "TM synapses destroyed by overrun so far"),
-                                ("observations", "Learned observations stored"),
+                                ("observations", "Rows held (in the index and their places)"),
+                                ("places", "Places with a row held (docs/design/science.md §11.8)"),
+                                ("appearances", "Rows held: the appearances of the places"),
+                                ("visits", "Consolidated frames in the visit log (no row made)"),
+                                ("forgotten", "Rows of places forgotten because the row cap bound, since "
+                                              "start (docs/design/science.md §11.9)"),
                                 ("memory_bytes", "Preallocated TM bytes"),
                                 ("snapshots", "Snapshots of every kind on disk"),
                                 ("snapshots_bytes", "Bytes of the snapshots on disk"),
@@ -114,6 +119,10 @@ class Metrics:
                       "observations": len(rt.index), "memory_bytes": size["bytes"],
                       "snapshot_failures": getattr(rt, "snapshot_failures", 0),
                       "stream_evictions": getattr(rt, "stream_evictions", 0)}
+            store, links = getattr(rt, "store", None), getattr(rt, "localisation", None)
+            if store is not None and links is not None and not store.closed:
+                values.update(places=links.places(), appearances=len(rt.index),
+                              visits=store.visit_stats()[0], forgotten=getattr(rt, "forgotten", 0))
             for name, v in values.items():
                 self.map_gauges[name].labels(map=map_id).set(v)
 

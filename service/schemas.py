@@ -90,6 +90,9 @@ class MapModel(_Out):
     thumbnails: bool = Field(description="a small JPEG is kept with each learned observation")
     snapshot_count: int = Field(description="snapshots of every kind")
     snapshots_bytes: int = Field(description="their bytes on disk")
+    places: results.PlacesInfo | None = Field(default=None, description="places, appearances, visits and "
+                                              "the forgetting rule (docs/design/science.md §11.8, §11.9); "
+                                              "null while the map is not open")
 
 
 class MapList(_Out):
@@ -181,6 +184,9 @@ class ObservationModel(_Out):
     timings_ms: dict[str, float]
     versions: Versions
     metadata: dict[str, Any] | None = Field(default=None, description="the frame's, as posted")
+    consolidated_into: int | None = Field(default=None, description="a learned frame the map already "
+                                          "represents: the stored row it was consolidated into (no new "
+                                          "row: seq is null; docs/design/science.md §11.8)")
 
 
 class StoredObservationModel(_Out):

@@ -139,6 +139,8 @@ class Settings(BaseSettings):
                                   "learned posts of the last N seqs, in map.sqlite")
     loop_closures: int = Field(100_000, ge=1, description="loop closures kept per map in its log (the "
                                "revisits streams were told of, map.sqlite): the last N, oldest pruned")
+    visits: int = Field(100_000, ge=1, description="consolidated frames kept per map in its visit log "
+                        "(map.sqlite): the last N once a snapshot covers them (docs/design/science.md §11.8)")
     idempotency_cache: int = Field(1024, ge=0, description="replies of localisation posts (learn=false) "
                                    "kept in memory per map for their Idempotency-Key")
     verify_neighbours: int = Field(2, ge=0, le=10, description="a revisit candidate is verified against "

@@ -8,8 +8,12 @@ rows leave: the oldest keys are pruned (docs/design/service.md §4.2).
 Version 2 added a row's `metadata`, the `thumbnails` and `idempotency_keys` tables; version 3 the
 `loop_closures` log (docs/design/service.md §4.2: every revisit a stream was told of, bounded, the
 oldest pruned like the keys); version 4 the `keyframes` table (a learned row's local features and
-camera, docs/design/science.md §12.1) and a logged closure's `verification`. An older file is brought
-up to date when it is opened for writing (`migrate`), in one transaction.
+camera, docs/design/science.md §12.1) and a logged closure's `verification`; version 5 places
+(docs/design/science.md §11.8, §11.9): a row's `place` (the row whose place it joined), the `visits` log
+(a consolidated frame: the memory learned it, no row was made; replayed like a row) and the `dropped`
+rows (out of the index and their places: an appearance over its place's cap, a forgotten place). An older
+file is brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep
+`place` NULL (read as the place its learning stream's logged loop closure names, else its own).
 """
 
 from __future__ import annotations
@@ -43,8 +47,10 @@ __all__ = [
     "MapMeta",
     "NewClosure",
     "NewObservation",
+    "NewVisit",
     "Observation",
     "StoreCorrupt",
+    "Visit",
     "cell_dtype_for",
     "create_file",
     "decode",
@@ -54,7 +60,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -146,6 +152,36 @@ BEGIN SELECT RAISE(ABORT, 'keyframes are append-only'); END;
 """
 
 
+# What version 5 added (docs/design/science.md §11.8, §11.9; docs/design/service.md §4.2). `visits`: a
+# learning stream's consolidated frame, committed before its reply, replayed after the snapshot that does
+# not cover it (`after_seq`: the last row stored before it, the replay order), pruned to a bound once a
+# snapshot covers it. `dropped`: rows no longer held (their data stays: the replay and the snapshots
+# need them).
+_V5_TABLES = """
+CREATE TABLE visits (
+    id               INTEGER PRIMARY KEY,   -- log order
+    after_seq        INTEGER NOT NULL,      -- the last row stored before it
+    stream           TEXT NOT NULL,
+    seq              INTEGER NOT NULL REFERENCES observations (seq),   -- the row it was consolidated into
+    context_prev_seq INTEGER NULL,          -- the row its stream continued (NULL: a new sequence)
+    input_sdr        BLOB NOT NULL,
+    winner_cells     BLOB NOT NULL,
+    metadata         TEXT NULL,
+    created_at       TEXT NOT NULL,
+    idempotency_key  TEXT NULL UNIQUE,
+    fingerprint      TEXT NULL,
+    reply            TEXT NULL
+);
+CREATE TABLE dropped (
+    seq        INTEGER PRIMARY KEY REFERENCES observations (seq),
+    reason     TEXT NOT NULL,               -- appearance-cap | forgotten
+    after_seq  INTEGER NOT NULL,
+    created_at TEXT NOT NULL
+);
+"""
+_PLACE_COLUMN = "ALTER TABLE observations ADD COLUMN place INTEGER NULL;"
+
+
 def _version_step(version: int) -> str:
     """The script that lifts the frozen meta's trigger for the version number alone."""
     return f"""
@@ -165,12 +201,16 @@ _MIGRATE_V3 = _V3_TABLES + _version_step(3)
 #: Version 3 -> 4: a new table, and a column no row has yet (ADD COLUMN: reads NULL, no row changes).
 _CLOSURE_VERIFICATION = "ALTER TABLE loop_closures ADD COLUMN verification TEXT NULL;"
 _MIGRATE_V4 = _V4_TABLES + _CLOSURE_VERIFICATION + _version_step(4)
+#: Version 4 -> 5: new tables, and a column no row has yet (every older row reads NULL: no row changes).
+_MIGRATE_V5 = _V5_TABLES + _PLACE_COLUMN + _version_step(5)
 
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
-            "input_sdr, winner_cells, metadata")
-#: The same for a version 1 file opened read-only (it has no metadata column: it reads as NULL).
-COLUMNS_V1 = COLUMNS.replace("metadata", "NULL")
+            "input_sdr, winner_cells, metadata, place")
+#: The same for a version 2-4 file opened read-only (no place column: it reads as NULL).
+COLUMNS_V4 = COLUMNS.replace("place", "NULL")
+#: The same for a version 1 file opened read-only (no metadata column either).
+COLUMNS_V1 = COLUMNS_V4.replace("metadata", "NULL")
 
 
 def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
@@ -178,8 +218,8 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
     as it then is. A current file is returned as it is."""
     if meta.schema_version >= SCHEMA_VERSION:
         return meta
-    steps = {1: _MIGRATE_V2 + _MIGRATE_V3 + _MIGRATE_V4, 2: _MIGRATE_V3 + _MIGRATE_V4,
-             3: _MIGRATE_V4}[meta.schema_version]
+    chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5]  # chain[v - 1]: version v -> v + 1
+    steps = "".join(chain[meta.schema_version - 1:])
     try:
         conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
     except BaseException:
@@ -250,6 +290,8 @@ class NewObservation:
         key: the post's Idempotency-Key and reply, committed in the row's transaction.
         keyframe: the frame's packed local features (`models.geometry.pack`) and its camera (or None),
             `keyframes` table, for maps with the `keyframes` option.
+        closure: the revisit logged with it. place: the row whose place it joined (None: its own place).
+        drops: rows its place dropped over its cap, recorded in its transaction (`dropped`).
     """
 
     stream: str
@@ -265,6 +307,46 @@ class NewObservation:
     key: KeyRecord | None = None
     keyframe: tuple[bytes, dict[str, Any] | None] | None = None
     closure: NewClosure | None = None
+    place: int | None = None
+    drops: tuple[int, ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
+class NewVisit:
+    """A learning stream's consolidated frame about to be logged (`visits`, docs/design/science.md §11.8):
+    what the replay needs (its code and winner cells, the row its stream continued), the row it was
+    consolidated into, and what its reply needs (metadata, the idempotency key and reply).
+
+    Attributes:
+        stream: the stream. seq: the stored row it was consolidated into. context_prev_seq: the row the
+        stream continued (None: a new sequence). input_sdr, winner_cells: as a row's. metadata: the
+        frame's. key: the post's Idempotency-Key and reply. closure: its revisit, logged with it.
+    """
+
+    stream: str
+    seq: int
+    context_prev_seq: int | None
+    input_sdr: np.ndarray
+    winner_cells: np.ndarray
+    metadata: dict[str, Any] | None = None
+    created_at: str = field(default_factory=utc_now)
+    key: KeyRecord | None = None
+    closure: NewClosure | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Visit:
+    """A logged visit (`MapStore.visits`): `id` its log order, `after_seq` the last row before it."""
+
+    id: int
+    after_seq: int
+    stream: str
+    seq: int
+    context_prev_seq: int | None
+    input_sdr: np.ndarray
+    winner_cells: np.ndarray
+    created_at: str
+    metadata: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -333,6 +415,7 @@ class Observation:
     input_sdr: np.ndarray
     winner_cells: np.ndarray
     metadata: dict[str, Any] | None = None
+    place: int | None = None  # the row whose place it joined (None: its own, or a row before version 5)
 
 
 @dataclass(frozen=True)
@@ -396,7 +479,8 @@ def create_file(path: Path, meta: MapMeta) -> None:
         try:
             # A temporary file: atomicity comes from the rename below, not from one transaction
             # (executescript would commit a pending transaction anyway).
-            conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION)
+            conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION
+                               + _V5_TABLES + _PLACE_COLUMN)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

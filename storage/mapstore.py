@@ -24,12 +24,21 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from storage._common import StorageError, StorageFull, StoreClosed, connect, is_full_error, transaction
+from storage._common import (
+    StorageError,
+    StorageFull,
+    StoreClosed,
+    connect,
+    is_full_error,
+    transaction,
+    utc_now,
+)
 from storage.base.files import atomic_write, fsync_dir
 from storage.mapschema import (
     CELL_DTYPES,
     COLUMNS,
     COLUMNS_V1,
+    COLUMNS_V4,
     INPUT_DTYPE,
     SCHEMA_VERSION,
     DuplicateObservation,
@@ -38,8 +47,10 @@ from storage.mapschema import (
     MapMeta,
     NewClosure,
     NewObservation,
+    NewVisit,
     Observation,
     StoreCorrupt,
+    Visit,
     cell_dtype_for,
     create_file,
     decode,
@@ -59,11 +70,13 @@ __all__ = [
     "MapStore",
     "NewClosure",
     "NewObservation",
+    "NewVisit",
     "Observation",
     "StorageError",
     "StorageFull",
     "StoreClosed",
     "StoreCorrupt",
+    "Visit",
     "cell_dtype_for",
 ]
 
@@ -95,7 +108,8 @@ class MapStore:
         # A version 1 file opened read-only is not migrated: its rows read with metadata NULL, and it
         # has no thumbnails or keys.
         self._v2 = meta.schema_version >= 2
-        self._cols = COLUMNS if self._v2 else COLUMNS_V1
+        self._v5 = meta.schema_version >= 5  # places: a row's place, visits, dropped rows
+        self._cols = COLUMNS if self._v5 else COLUMNS_V4 if self._v2 else COLUMNS_V1
         self._v3 = meta.schema_version >= 3  # a version 2 file opened read-only has no loop-closure log
         self._conn: sqlite3.Connection | None = conn
         self._lock = threading.RLock()
@@ -249,7 +263,8 @@ class MapStore:
                                None if prev is None else int(prev), r.label, str(r.created_at),
                                str(r.image_sha256), encode(r.input_sdr, INPUT_DTYPE, "input_sdr"),
                                encode(r.winner_cells, self._cell_dtype, "winner_cells"),
-                               None if r.metadata is None else json.dumps(r.metadata, separators=(",", ":"))))
+                               None if r.metadata is None else json.dumps(r.metadata, separators=(",", ":")),
+                               None if r.place is None else int(r.place)))
             if not params:
                 return []
             thumbs = [(first + i, r.thumbnail) for i, r in enumerate(rows) if r.thumbnail is not None]
@@ -260,12 +275,14 @@ class MapStore:
                       for i, r in enumerate(rows) if r.keyframe is not None]
             closures = [_closure_params(r.closure, first + i)
                         for i, r in enumerate(rows) if r.closure is not None]
+            drops = [(int(d), "appearance-cap", first + i) for i, r in enumerate(rows) for d in r.drops]
             if not durable:  # per connection, outside a transaction: this commit alone skips its fsync
                 conn.execute("PRAGMA synchronous=NORMAL")
             try:
                 with transaction(conn):
-                    conn.executemany(f"INSERT INTO observations ({COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?)",
+                    conn.executemany(f"INSERT INTO observations ({COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?,?)",
                                      params)
+                    self._drop(conn, drops)
                     # The row's thumbnail and idempotency key commit with it, or nothing does.
                     conn.executemany("INSERT INTO thumbnails (seq, jpeg) VALUES (?, ?)", thumbs)
                     conn.executemany("INSERT INTO keyframes (seq, features, camera) VALUES (?, ?, ?)", frames)
@@ -286,6 +303,122 @@ class MapStore:
             self._last_seq = first + len(params) - 1
             self._count += len(params)
             return list(range(first, first + len(params)))
+
+    def add_visit(self, visit: NewVisit) -> int:
+        """Log a consolidated frame (docs/design/science.md §11.8) with its loop closure and idempotency
+        key, and COMMIT: durable when this returns, before its reply (docs/design/service.md §4.3).
+
+        Returns:
+            Its id (the visits' log order).
+
+        Raises:
+            DuplicateObservation: its idempotency key is already stored. StorageFull: nothing was written.
+        """
+        meta = None if visit.metadata is None else json.dumps(visit.metadata, separators=(",", ":"))
+        key = visit.key
+        with self._lock:
+            conn = self._db()
+            if key is not None and conn.execute("SELECT 1 FROM idempotency_keys WHERE key = ?",
+                                                (key.key,)).fetchone():
+                raise DuplicateObservation(f"idempotency key {key.key} is already stored")
+            try:
+                with transaction(conn):
+                    cur = conn.execute(
+                        "INSERT INTO visits (after_seq, stream, seq, context_prev_seq, input_sdr, "
+                        "winner_cells, metadata, created_at, idempotency_key, fingerprint, reply) "
+                        "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        (self._last_seq, str(visit.stream), int(visit.seq),
+                         None if visit.context_prev_seq is None else int(visit.context_prev_seq),
+                         encode(visit.input_sdr, INPUT_DTYPE, "input_sdr"),
+                         encode(visit.winner_cells, self._cell_dtype, "winner_cells"), meta,
+                         str(visit.created_at), None if key is None else key.key,
+                         None if key is None else key.fingerprint, None if key is None else key.reply))
+                    if visit.closure is not None:
+                        self._log_closures(conn, [_closure_params(visit.closure, None)])
+            except sqlite3.IntegrityError as exc:
+                if "idempotency_key" in str(exc):
+                    raise DuplicateObservation(str(exc)) from exc
+                raise
+            return int(cur.lastrowid or 0)
+
+    def visits(self, after_id: int = 0) -> Iterator[Visit]:
+        """Logged visits with id > `after_id`, in log order, read in pages (replay)."""
+        if not self._v5:
+            return
+        last = int(after_id)
+        while True:
+            with self._lock:
+                found = self._db().execute(
+                    "SELECT id, after_seq, stream, seq, context_prev_seq, input_sdr, winner_cells, "
+                    "created_at, metadata FROM visits WHERE id > ? ORDER BY id LIMIT ?",
+                    (last, _PAGE)).fetchall()
+            if not found:
+                return
+            for r in found:
+                yield Visit(id=int(r[0]), after_seq=int(r[1]), stream=r[2], seq=int(r[3]),
+                            context_prev_seq=None if r[4] is None else int(r[4]),
+                            input_sdr=decode(r[5], INPUT_DTYPE), winner_cells=decode(r[6], self._cell_dtype),
+                            created_at=r[7], metadata=_json(r[8]))
+            last = int(found[-1][0])
+
+    def visit_stats(self) -> tuple[int, int, int]:
+        """(visits logged, the first id kept (0: none), the last id ever logged (0: none))."""
+        if not self._v5:
+            return 0, 0, 0
+        with self._lock:
+            n, lo, hi = self._db().execute("SELECT count(*), coalesce(min(id), 0), coalesce(max(id), 0) "
+                                           "FROM visits").fetchone()
+        return int(n), int(lo), int(hi)
+
+    def visit_mark(self, visit_id: int) -> str | None:
+        """What tells visit `visit_id` from another that got its id on another branch (a restore rolls
+        the log back and ids are handed out again): its stream and created_at; None: no such visit."""
+        if not self._v5:
+            return None
+        with self._lock:
+            r = self._db().execute("SELECT stream, created_at FROM visits WHERE id = ?",
+                                   (int(visit_id),)).fetchone()
+        return None if r is None else f"{r[0]}|{r[1]}"
+
+    def prune_visits(self, covered: int, keep: int) -> int:
+        """Delete the oldest visits beyond the last `keep`, but only those with id <= `covered` (a
+        snapshot holds the memory they taught; the replay after it never needs them). Returns how many."""
+        if not self._v5:
+            return 0
+        with self._lock:
+            conn = self._db()
+            with transaction(conn):
+                cur = conn.execute("DELETE FROM visits WHERE id <= ? AND "
+                                   "id <= (SELECT max(id) FROM visits) - ?", (int(covered), int(keep)))
+            return int(cur.rowcount)
+
+    def drop(self, seqs: Iterable[int], reason: str) -> None:
+        """Record rows as no longer held (a forgotten place, docs/design/science.md §11.9) and COMMIT."""
+        with self._lock:
+            conn = self._db()
+            with transaction(conn):
+                self._drop(conn, [(int(s), reason, self._last_seq) for s in seqs])
+
+    def _drop(self, conn: sqlite3.Connection, drops: list[tuple[int, str, int]]) -> None:
+        if drops:
+            conn.executemany("INSERT OR IGNORE INTO dropped (seq, reason, after_seq, created_at) "
+                             "VALUES (?, ?, ?, ?)", [(*d, utc_now()) for d in drops])
+
+    def dropped(self) -> dict[int, str]:
+        """The rows no longer held and why (`appearance-cap` | `forgotten`)."""
+        if not self._v5:
+            return {}
+        with self._lock:
+            return {int(r[0]): r[1] for r in self._db().execute("SELECT seq, reason FROM dropped")}
+
+    def joined(self) -> dict[int, int]:
+        """Learned row -> the row its loop closure named, from the log (the place of a row stored before
+        version 5, docs/design/science.md §11.8)."""
+        if not self._v3:
+            return {}
+        with self._lock:
+            return {int(r[0]): int(r[1]) for r in self._db().execute(
+                "SELECT seq, place_seq FROM loop_closures WHERE seq IS NOT NULL")}
 
     def sync(self) -> None:
         """Make every commit so far durable, those made with `durable=False` included: one fsync of the
@@ -421,7 +554,8 @@ class MapStore:
                            context_prev_seq=None if r[3] is None else int(r[3]), label=r[4],
                            created_at=r[5], image_sha256=r[6], input_sdr=decode(r[7], INPUT_DTYPE),
                            winner_cells=decode(r[8], self._cell_dtype),
-                           metadata=None if r[9] is None else json.loads(r[9]))
+                           metadata=None if r[9] is None else json.loads(r[9]),
+                           place=None if r[10] is None else int(r[10]))
 
     def thumbnail(self, seq: int) -> bytes | None:
         """The JPEG thumbnail stored with this seq, or None."""
@@ -470,6 +604,9 @@ class MapStore:
         with self._lock:
             r = self._db().execute("SELECT key, fingerprint, reply FROM idempotency_keys WHERE key = ?",
                                    (key,)).fetchone()
+            if r is None and self._v5:  # a consolidated frame's post (docs/design/science.md §11.8)
+                r = self._db().execute("SELECT idempotency_key, fingerprint, reply FROM visits "
+                                       "WHERE idempotency_key = ?", (key,)).fetchone()
         return None if r is None else KeyRecord(*r)
 
     # ------------------------------------------------------------------ checks and sizes

@@ -4,7 +4,9 @@ A row's predecessor is `context_prev_seq`, the row its stream learned just befor
 start of a traverse). Successor links are the inverse. Several traverses, loops and branches are all
 just rows with links; the localiser walks them forwards (successors) or backwards (predecessors).
 Each row also knows its trail: the first row of the chain of links it ends (`trail`), so "is this row on
-a stream's own trail since row s" is one comparison (docs/design/science.md §11.6).
+a stream's own trail since row s" is one comparison (docs/design/science.md §11.6), and its place: rows the
+map knows to show one place (a learning stream's revisit joins its new row to the place it revisited) share
+a place id, the id of the place's first row (docs/design/science.md §11.8).
 """
 
 from __future__ import annotations
@@ -50,6 +52,15 @@ class SequenceGraph:
                 break
             head = nxt
         self._trail = head
+        self._place = rows.astype(np.int64)  # each row its own place until told otherwise (`join`)
+        self._members: dict[int, list[int]] = {}  # place -> its rows still held (absent: just itself)
+        # Links the prev/next arrays do not hold (a branch: a row whose predecessor's successor is
+        # another; a consolidated stream's move onto a row that has a predecessor): both ends, for
+        # `within` (a neighbourhood is every row a few links away, whichever way; §11.8).
+        self._extra: dict[int, list[int]] = {}
+        for r in rows[linked]:
+            if self._next[prev[r]] != r:
+                self._branch(int(prev[r]), int(r))
         self._n = n
 
     @classmethod
@@ -62,8 +73,15 @@ class SequenceGraph:
     def __len__(self) -> int:
         return self._n
 
-    def append(self, row: int, prev: int = NONE) -> None:
-        """Add row `row` (a new seq, >= len(self)) learned after `prev` (-1: none); amortised O(1)."""
+    def append(self, row: int, prev: int = NONE, *, place: int = NONE, joins: bool = True) -> None:
+        """Add row `row` (a new seq, >= len(self)) learned after `prev` (-1: none); amortised O(1).
+
+        Args:
+            place: the place the row shows (-1: a new place, its id the row's own).
+            joins: the row continues `prev`'s trail (False: `prev` is a row its stream only visited, a
+                consolidated frame, so the row starts a trail of its own, linked back to `prev`; `prev`'s
+                successor changes only if it had none: the route it lies on stays whole; §11.8).
+        """
         if row < self._n:
             raise ValueError(f"row {row} is already in the graph (size {self._n})")
         if prev != NONE and not 0 <= prev < self._n:
@@ -73,10 +91,20 @@ class SequenceGraph:
             self._prev = np.concatenate([self._prev, np.full(cap - self._prev.size, NONE, np.int64)])
             self._next = np.concatenate([self._next, np.full(cap - self._next.size, NONE, np.int64)])
             self._trail = np.concatenate([self._trail, np.full(cap - self._trail.size, NONE, np.int64)])
+            self._place = np.concatenate([self._place, np.full(cap - self._place.size, NONE, np.int64)])
         self._prev[row] = prev
-        self._trail[row] = row if prev == NONE else self._trail[prev]
+        self._trail[row] = self._trail[prev] if prev != NONE and joins else row
+        self._place[row] = row
+        if place != NONE:
+            self.join(row, place)
         if prev != NONE:
-            self._next[prev] = row
+            if joins or self._next[prev] == NONE:
+                old = int(self._next[prev])
+                self._next[prev] = row
+                if old != NONE:
+                    self._branch(prev, old)  # the earlier branch is still a neighbour
+            else:
+                self._branch(prev, row)
         self._n = row + 1
 
     @property
@@ -94,6 +122,51 @@ class SequenceGraph:
         """(N,) int64 the first row of each row's chain of predecessor links (itself at a chain's start):
         rows learned in one unbroken sequence of a stream share it; a view, do not modify."""
         return self._trail[:self._n]
+
+    def link(self, prev: int, row: int, successor: bool = False) -> None:
+        """A stream moved from row `prev` to row `row` (a consolidated frame, §11.8): a neighbour of it
+        (`within`); with `successor`, also `prev`'s successor if it had none."""
+        if not (0 <= prev < self._n and 0 <= row < self._n) or prev == row:
+            return
+        if successor and self._next[prev] == NONE:
+            self._next[prev] = row
+            return
+        if self._next[prev] != row and self._prev[row] != prev and row not in self._extra.get(prev, ()):
+            self._branch(prev, row)
+
+    def _branch(self, a: int, b: int) -> None:
+        self._extra.setdefault(a, []).append(b)
+        self._extra.setdefault(b, []).append(a)
+
+    @property
+    def place(self) -> np.ndarray:
+        """(N,) int64 the place id of each row (the id of the place's first row); a view, do not modify."""
+        return self._place[:self._n]
+
+    def join(self, row: int, place: int) -> None:
+        """Row `row` shows place `place` (a place id, or any row of it): O(1)."""
+        place = int(self._place[place])
+        if place == row:
+            return
+        members = self._members.get(place)
+        if members is None:
+            members = self._members[place] = [place]
+        members.append(row)
+        self._place[row] = place
+
+    def members(self, place: int) -> list[int]:
+        """The rows of place `place` (a place id) still held, oldest first (`drop` removes one)."""
+        return list(self._members.get(place, [place]))
+
+    def drop(self, row: int) -> None:
+        """Row `row` is no longer an appearance of its place (dropped or forgotten, §11.9); its links stay,
+        so paths still walk through it."""
+        place = int(self._place[row])
+        members = self._members.get(place)
+        if members is None:
+            self._members[place] = []
+        elif row in members:
+            members.remove(row)
 
     def walk(self, rows: np.ndarray, direction: np.ndarray, steps: int) -> np.ndarray:
         """Rows reached by `steps` links from `rows`, forwards (direction +1) or backwards (-1).
@@ -117,13 +190,17 @@ class SequenceGraph:
         return out
 
     def within(self, row: int, links: int) -> np.ndarray:
-        """Sorted rows at most `links` links from `row` either way, `row` included: O(links)."""
-        found = [row]
-        for table in (self._next, self._prev):
-            r = row
-            for _ in range(links):
-                r = int(table[r])
-                if r < 0:
-                    break
-                found.append(r)
-        return np.unique(np.array(found, dtype=np.int64))
+        """Sorted rows at most `links` links from `row`, along any link either way (branches included),
+        `row` included: O(links) on a chain, O(rows reached) where routes branch."""
+        found, frontier = {row}, [row]
+        for _ in range(links):
+            step = []
+            for r in frontier:
+                for n in (int(self._next[r]), int(self._prev[r]), *self._extra.get(r, ())):
+                    if n >= 0 and n not in found:
+                        found.add(n)
+                        step.append(n)
+            if not step:
+                break
+            frontier = step
+        return np.array(sorted(found), dtype=np.int64)

@@ -16,7 +16,10 @@ scanning the per-row vector, about 11 ms per query at 10^6 rows here against the
 (benchmarks/bench_index.py, docs/benchmarks.md). `min_overlap=0` (rank every row) keeps the NumPy path.
 
 The index is derived data: it is rebuilt from `map.sqlite` (`rebuild`) and appended after each commit
-(`add`). It is bounded: `max_observations` rows, then `IndexFull` (→ 409 `map-full`).
+(`add`). It is bounded: `max_observations` rows, then `IndexFull`. A row leaves it with `remove` (an
+appearance dropped by its place's cap, a forgotten place: docs/design/science.md §11.9): it is no
+candidate at once, and its postings are reclaimed when the removed rows reach a quarter of the rows, or
+when an add finds the index full (`compact`, O(postings)).
 Not thread-safe for concurrent writers; the map's single writer owns it. `rank` shares one scratch
 counter, guarded by a lock, so concurrent readers are safe. `nbytes`/`postings`/`len` read plain
 counters and may be called from other threads.
@@ -228,6 +231,7 @@ class InvertedIndex:
         self._w_min = 0  # least weight of a non-empty row (the bound of `_top_k_touched`; 0 when none)
         self._stream_id: dict[str, int] = {}
         self._stream_rows: list[_Grow] = []
+        self._dead: set[int] = set()  # rows removed but not yet compacted away (`remove`)
         # Scratch of `rank`, grown with the rows and all zero between queries: per-row overlap counters
         # (uint8 for queries of at most 255 cells, whose overlaps cannot overflow it: 1 MB at 10^6 rows
         # stays in a 2 MiB L2 cache, which makes the random increments about 3x faster than int32;
@@ -240,8 +244,8 @@ class InvertedIndex:
     # ------------------------------------------------------------------ sizes
 
     def __len__(self) -> int:
-        """Number of stored observations."""
-        return self._seq.n
+        """Number of observations held (removed ones not counted)."""
+        return self._seq.n - len(self._dead)
 
     def postings(self) -> int:
         """Total number of (cell, row) entries."""
@@ -279,6 +283,8 @@ class InvertedIndex:
             IndexFull: already `max_observations` rows.
             ValueError: seq not increasing, or bad cells.
         """
+        if self._seq.n >= self.max_observations and self._dead:
+            self.compact()
         if self._seq.n >= self.max_observations:
             raise IndexFull(self.max_observations)
         seq = int(seq)
@@ -306,6 +312,63 @@ class InvertedIndex:
             self._w_min = int(c.size)
         self._rows_of(stream).append(row)
         return row
+
+    def remove(self, seqs: Iterable[int]) -> int:
+        """Take stored seqs out of the ranking (seqs not held are ignored); returns how many left.
+        Compacts once removed rows are a quarter of the rows."""
+        ex = np.fromiter((int(s) for s in seqs), dtype=np.int64)
+        if not ex.size or not self._seq.n:
+            return 0
+        view = self._seq.view()
+        pos = np.clip(np.searchsorted(view, ex), 0, view.size - 1)
+        new = {int(p) for p in pos[view[pos] == ex]} - self._dead
+        self._dead |= new
+        if 4 * len(self._dead) >= self._seq.n:
+            self.compact()
+        return len(new)
+
+    def compact(self) -> None:
+        """Reclaim the postings and rows of removed rows, renumbering the rest in order (so ties still go
+        to the older seq): O(postings)."""
+        if not self._dead:
+            return
+        n = self._seq.n
+        keep = np.ones(n, bool)
+        keep[np.fromiter(self._dead, np.int64)] = False
+        new_row = (np.cumsum(keep) - 1).astype(_ROW)
+        total = postings = 0
+        for cell in range(self.n_cells):
+            arr = self._post[cell]
+            if arr is None:
+                continue
+            rows = arr[:self._plen[cell]]
+            rows = new_row[rows[keep[rows]]]
+            if rows.size == 0:
+                self._post[cell], self._plen[cell] = None, 0
+                continue
+            out = np.empty(max(_MIN_CAP, rows.size + rows.size // 4), dtype=_ROW)
+            out[:rows.size] = rows
+            self._post[cell], self._plen[cell] = out, int(rows.size)
+            total += out.nbytes
+            postings += int(rows.size)
+        self._post_bytes, self._postings = total, postings
+        for name in ("_seq", "_weight"):
+            old: _Grow = getattr(self, name)
+            kept = old.view()[keep]
+            g = _Grow(old.data.dtype.type, max(1024, kept.size))
+            g.data[:kept.size] = kept
+            g.n = int(kept.size)
+            setattr(self, name, g)
+        w = self._weight.view()
+        self._w_min = int(w[w > 0].min()) if bool(np.any(w > 0)) else 0
+        for i, g in enumerate(self._stream_rows):
+            rows = g.view()
+            rows = new_row[rows[keep[rows]]]
+            fresh = _Grow(_ROW, max(_MIN_CAP, rows.size))
+            fresh.data[:rows.size] = rows
+            fresh.n = int(rows.size)
+            self._stream_rows[i] = fresh
+        self._dead.clear()
 
     def _rows_of(self, stream: str) -> _Grow:
         sid = self._stream_id.get(stream)
@@ -459,7 +522,7 @@ class InvertedIndex:
         return [Match(int(s), int(o), float(x)) for s, o, x in zip(seqs, ov[pick], score[pick], strict=True)]
 
     def _excluded_rows(self, exclude_seqs: Iterable[int], own: tuple[str, int] | None) -> np.ndarray:
-        parts = []
+        parts = [np.fromiter(self._dead, np.int64, len(self._dead))] if self._dead else []
         ex = np.fromiter((int(s) for s in exclude_seqs), dtype=np.int64)
         if ex.size:
             seqs = self._seq.view()

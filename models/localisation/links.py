@@ -18,7 +18,7 @@ import numpy as np
 from models.localisation.graph import SequenceGraph
 from models.localisation.index import Match
 from models.localisation.localiser import LocaliserState, Place, SequenceLocaliser
-from models.localisation.trail import CodeStats, OwnTrail
+from models.localisation.trail import CodeStats, OwnTrail, code_dice
 
 __all__ = ["Localisation", "graph_from_rows"]
 
@@ -32,10 +32,16 @@ def graph_from_rows(rows: Iterable[Any]) -> SequenceGraph:
 
 
 class Localisation:
-    """The map's localiser and links (docs/design/science.md §11.1, §11.2, §11.6).
+    """The map's localiser, links and places (docs/design/science.md §11.1, §11.2, §11.6, §11.8, §11.9).
 
     Args:
         conf: localiser options over `models.localisation.default_conf` (the map's `localiser` params).
+        code_width: the frame code's bit space (the code statistics, §11.6).
+
+    Attributes:
+        used: (seq,) int64 when each row was last used (made, visited, or the place a learning stream's
+            new row joined): the seq-space clock, -1 for rows not held; the drop and forgetting rules
+            read it (§11.9).
     """
 
     def __init__(self, conf: dict[str, Any] | None = None, code_width: int = 0) -> None:
@@ -43,18 +49,134 @@ class Localisation:
         self.graph = SequenceGraph()
         self.codes = CodeStats(code_width)  # the stored frame codes' bit counts (§11.6)
         self.top_k = int(self.localiser.conf["top_k"])
+        self.used = np.zeros(0, np.int64)
+        self._last_row: dict[str, int] = {}  # each stream's last made row (its trail goes on from there)
+        self.held = 0  # rows held (not dropped)
+        self.visits = 0  # consolidated frames seen since the map was loaded
 
-    def rebuild(self, rows: Iterable[Any]) -> None:
-        """The links and code statistics of the store's rows (recovery)."""
+    def rebuild(self, rows: Iterable[Any], dropped: Iterable[int] = (), joined: dict[int, int] | None = None,
+                visited: Iterable[tuple[int | None, int, int]] = ()) -> None:
+        """The links, places and code statistics of the store's rows (recovery).
+
+        Args:
+            rows: the stored rows in seq order (`seq`, `context_prev_seq`, `input_sdr`, `stream`, and
+                `place`: the place the row joined, None for its own or a row stored before places).
+            dropped: seqs no longer held (§11.9). joined: seq -> the row its learning stream revisited,
+                from the loop-closure log (the place of a row stored before places, §11.8).
+            visited: (previous row or None, row, clock) of the visits kept, in log order: their links and
+                the rows' recency.
+        """
         self.graph = SequenceGraph()
         self.codes.rebuild([])
+        self.used = np.zeros(0, np.int64)
+        self._last_row, self.held = {}, 0
+        joined = joined or {}
+        gone = set(dropped)
         for row in rows:
-            self.add(int(row.seq), row.context_prev_seq, row.input_sdr)
+            seq = int(row.seq)
+            place = getattr(row, "place", None)
+            if place is None and seq in joined:
+                place = int(self.graph.place[joined[seq]])
+            self.add(seq, row.context_prev_seq, row.input_sdr, stream=row.stream,
+                     place=-1 if place is None else int(place))
+        for seq in sorted(gone):
+            if seq < len(self.graph):
+                self.drop(seq)
+        for prev, row, clock in visited:
+            self.visit(prev, row, clock)
 
-    def add(self, seq: int, prev: int | None, code: np.ndarray) -> None:
-        """A row just learned, after `prev` (None: the start of a sequence), and its frame code."""
-        self.graph.append(seq, -1 if prev is None else prev)
+    def add(self, seq: int, prev: int | None, code: np.ndarray, *, stream: str = "", place: int = -1) -> None:
+        """A row just learned, after `prev` (None: the start of a sequence), its frame code, and the place
+        it shows (-1: a new place). It continues `prev`'s trail only when `prev` is its stream's last made
+        row; after a consolidated frame `prev` is a row it visited, and a new trail starts (§11.8), and
+        the stream's last made row, if it had no successor, gets this one."""
+        own = self._last_row.get(stream)
+        joins = prev is not None and own == prev
+        self.graph.append(seq, -1 if prev is None else prev, place=place, joins=joins)
+        if prev is not None and not joins and own is not None:
+            # its own rows stay one route: the last it made leads on to this one if it led nowhere
+            self.graph.link(own, seq, successor=True)
+        self._last_row[stream] = seq
         self.codes.add(code)
+        if seq >= self.used.size:
+            grow = max(seq + 1, 2 * self.used.size, 16) - self.used.size
+            self.used = np.concatenate([self.used, np.full(grow, -1, np.int64)])
+        self.used[seq] = seq
+        self.held += 1
+
+    def touch(self, row: int, clock: int) -> None:
+        """Row `row` was used at `clock` (a seq-space time)."""
+        if 0 <= row < self.used.size and self.used[row] >= 0:
+            self.used[row] = max(int(self.used[row]), int(clock))
+
+    def visit(self, prev: int | None, row: int, clock: int) -> None:
+        """A learning stream's frame consolidated into `row` after `prev` (its last row, None: none), at
+        `clock`: the link, and the row's recency (§11.8)."""
+        if prev is not None:
+            self.graph.link(prev, row)
+        self.touch(row, clock)
+
+    def drop(self, seq: int) -> None:
+        """Row `seq` is no longer held: not an appearance of its place, never touched again (§11.9)."""
+        if self.used[seq] >= 0:
+            self.graph.drop(seq)
+            self.used[seq] = -1
+            self.held -= 1
+
+    def place_of(self, seq: int) -> int:
+        return int(self.graph.place[seq])
+
+    def appearances(self, place: int) -> list[int]:
+        """The rows place `place` holds."""
+        return [r for r in self.graph.members(place) if self.used[r] >= 0]
+
+    def places(self) -> int:
+        """Places with at least one row held."""
+        held = np.flatnonzero(self.used[:len(self.graph)] >= 0)
+        return int(np.unique(self.graph.place[held]).size)
+
+    def consolidation(self, place: int, code: np.ndarray, code_of: Callable[[int], np.ndarray]) -> int | None:
+        """The appearance of `place` that already represents a frame of code `code`, or None: the one
+        most like it, when its Dice reaches b + consolidate · (1 − b), b the frame's background likeness
+        (`CodeStats.background`, the scale of `departure`); `consolidate` 1 never consolidates (§11.8).
+        O(appearances) code reads."""
+        c = float(self.localiser.conf["consolidate"])
+        rows = self.appearances(place)
+        if c >= 1.0 or not rows:
+            return None
+        b = self.codes.background(code)
+        sims = [code_dice(code, np.asarray(code_of(r))) for r in rows]
+        best = int(np.argmax(sims))
+        return rows[best] if sims[best] >= b + c * (1.0 - b) else None
+
+    def over_cap(self, place: int, keep: int) -> list[int]:
+        """The appearances to drop so that `place` holds at most `appearances` rows: the least recently
+        used first (ties: the older row), never `keep` (the row just made) (§11.9)."""
+        rows = [r for r in self.appearances(place) if r != keep]
+        extra = len(rows) + 1 - int(self.localiser.conf["appearances"])
+        if extra <= 0:
+            return []
+        return sorted(rows, key=lambda r: (int(self.used[r]), r))[:extra]
+
+    def least_recent(self, n: int) -> list[int]:
+        """Rows of the least recently used places, whole places, at least `n` rows (forgetting, §11.9):
+        a place's recency is its most recently used row's."""
+        held = np.flatnonzero(self.used[:len(self.graph)] >= 0)
+        if not held.size or n <= 0:
+            return []
+        places = self.graph.place[held]
+        order = np.lexsort((held, places))
+        places, rows = places[order], held[order]
+        starts = np.r_[0, np.flatnonzero(places[1:] != places[:-1]) + 1]
+        recency = np.maximum.reduceat(self.used[rows], starts)
+        out: list[int] = []
+        for i in np.lexsort((places[starts], recency)):
+            lo = starts[i]
+            hi = starts[i + 1] if i + 1 < starts.size else rows.size
+            out.extend(int(r) for r in rows[lo:hi])
+            if len(out) >= n:
+                break
+        return out
 
     def candidates_wanted(self, top_k: int) -> int:
         """How many ranked rows one index pass must return for `top_k` matches and the localiser (whose

@@ -5,8 +5,9 @@ over the topological graph of stored rows (Hansen & Browning, IROS 2014), filter
 Viterbi beam, scored like SeqSLAM (Milford & Wyeth 2012) but causally: the answer at frame t uses
 frames <= t only. Beside the stored rows the filter holds one more state, the null ("a place the map
 has not stored", docs/design/science.md §11.5). The confidence is the posterior of the best path's
-neighbourhood against both the best path ending more than `exclusion // 2` links away (OpenSeqSLAM's
-best-over-rival idea made causal) and the null, mapped to [0, 1].
+place against both the best path ending more than `exclusion // 2` links away from every row of that place
+(OpenSeqSLAM's best-over-rival idea made causal, over places rather than rows: another pass of the same
+place is no rival, §11.8) and the null, mapped to [0, 1].
 
     loc = SequenceLocaliser({"beam": 128})
     state = loc.new_state()
@@ -73,6 +74,10 @@ class LocaliserParams(BaseModel):
     # a stream has left its own stored row once a frame's code is less like it than this far from the
     # map's background likeness to the identical code (0: background, 1: identical; §11.6)
     departure: float = Field(0.5, ge=0.0, le=1.0)
+    # A learning stream's confident revisit stores no new row when its code is at least this like the
+    # place's most similar appearance, on the same scale as `departure` (1: never, every frame a row; §11.8)
+    consolidate: float = Field(0.25, ge=0.0, le=1.0)
+    appearances: int = Field(8, ge=1, le=1024)  # rows a place keeps; beyond, the least recently used goes
 
 
 #: Every option's default (LocaliserParams; meanings and why: docs/design/science.md §11.3).
@@ -86,19 +91,22 @@ class Place(NamedTuple):
     """One answer: the stored row the stream is at, how sure, and how many frames lie behind it.
 
     Attributes:
-        seq: the stored row id.
+        seq: the stored row id the best path ends on (the row that matched best).
         confidence: in [0, 1]; max(0, 2 p - 1), p = the posterior of the best path against the best
-            rival more than exclusion // 2 links away and the null (docs/design/science.md §11.5);
-            with the null far below it is tanh(gap / (2 temperature)), gap = best minus rival.
+            rival more than exclusion // 2 links away from every row of its place, and the null
+            (docs/design/science.md §11.5, §11.8); with the null far below it is
+            tanh(gap / (2 temperature)), gap = best minus rival.
         support: frames on the best path (its age), <= frames seen by the stream.
         informative: False for a frame with too little contrast to say where it is (§11.7): it gave the
             filter no evidence, and whatever the confidence it is no revisit (`is_revisit`).
+        place: the place id of `seq` (`SequenceGraph.place`, §11.8); -1 where not given.
     """
 
     seq: int
     confidence: float
     support: int
     informative: bool = True
+    place: int = -1
 
     def is_revisit(self, threshold: float) -> bool:
         """The revisit decision (docs/design/science.md §11.7): confident enough, the frame informative."""
@@ -356,7 +364,10 @@ class SequenceLocaliser:
 
     def _answer(self, state: LocaliserState, graph: SequenceGraph, n: int, background: float) -> Place:
         best = int(state.rows[0])
-        near = graph.within(best, int(self.conf["exclusion"]) // 2)
+        # The rival is another place: the rows of the best's place (its other passes and appearances)
+        # and their neighbourhoods are not rivals (§11.8).
+        place, links = int(graph.place[best]), int(self.conf["exclusion"]) // 2
+        near = np.unique(np.concatenate([graph.within(r, links) for r in {best, *graph.members(place)}]))
         rivals = state.scores[:n][~np.isin(state.rows[:n], near)]
         # Rows outside the beam stand at the background level: a rival at least that strong exists.
         rival = max(float(rivals.max()) if rivals.size else -np.inf, background)
@@ -365,7 +376,7 @@ class SequenceLocaliser:
         t, top = float(self.conf["temperature"]), float(state.scores[0])
         others = np.logaddexp((rival - top) / t, (state.null - top) / t)
         p = float(np.exp(-np.logaddexp(0.0, others)))
-        return Place(best, max(2.0 * p - 1.0, 0.0), int(min(state.ages[0], state.frames)))
+        return Place(best, max(2.0 * p - 1.0, 0.0), int(min(state.ages[0], state.frames)), place=place)
 
 
 def _lookup(sorted_rows: np.ndarray, values: np.ndarray, rows: np.ndarray) -> np.ndarray:

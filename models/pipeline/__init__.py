@@ -1,8 +1,8 @@
 """A map's per-frame pipeline, pure (docs/design/service.md §1.2, §6): the stream's state and the step
 that the service's writer, the recovery's replay and the evaluation share."""
 
-from models.pipeline.core import MapModel, Step, observe, replay
+from models.pipeline.core import MapModel, Step, drop, observe, replay, revisit
 from models.pipeline.state import Stream, eviction_wait, load_memory_state, memory_state, touch
 
-__all__ = ["MapModel", "Step", "Stream", "eviction_wait", "load_memory_state", "memory_state", "observe",
-           "replay", "touch"]
+__all__ = ["MapModel", "Step", "Stream", "drop", "eviction_wait", "load_memory_state", "memory_state",
+           "observe", "replay", "revisit", "touch"]

@@ -9,8 +9,9 @@ replayed is what is served.
 Ordering, persistence (the row, its seq) and snapshots are the caller's.
 
 `observe` is one frame online; `replay` is one stored row again (its code is stored, so no hash, no
-index pass: the index and the links are rebuilt in bulk from the rows afterwards). Both keep a stream's
-sequence bookkeeping through `_remember`, the one place its rules live.
+index pass: the index and the links are rebuilt in bulk from the rows afterwards), `revisit` one stored
+visit again (a consolidated frame: the memory learned it, no row was made, docs/design/science.md §11.8).
+All keep a stream's sequence bookkeeping through `_remember`, the one place its rules live.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from models.memory import registry as memories
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline.state import Stream
 
-__all__ = ["MapModel", "Step", "observe", "replay"]
+__all__ = ["MapModel", "Step", "observe", "replay", "revisit"]
 
 
 @dataclass
@@ -78,12 +79,17 @@ class Step:
     Attributes:
         code: (2n,) int64 sorted sLSBH columns (what a learned row stores as `input_sdr`).
         winners: (w,) int64 sorted winner cells (stored as `winner_cells`).
-        prev_seq: the learned row this frame continues (None: a new sequence), the row's `context_prev_seq`.
+        prev_seq: the learned row this frame continues (None: a new sequence), the row's `context_prev_seq`
+            (or the visit's).
         step: steps of the stream since its context was last empty, before this one.
         stats: the TM step's column counts (`StreamContext.stats.as_dict()`).
         ranked: the best `top_k` stored rows by Dice, best first.
         place: the stream's place on the map, or None (warm-up).
         timings_ms: hash, tm, search (ranking and localiser), localiser.
+        visit: a learned frame consolidated into this stored row (no row made, docs/design/science.md
+            §11.8); None: a row was made (learning) or nothing is learned.
+        joined: for a made row, the place it joined (-1: a new place of its own).
+        dropped: rows the made row's place dropped over its cap (§11.9), least recently used first.
     """
 
     code: np.ndarray
@@ -94,27 +100,33 @@ class Step:
     ranked: list[Match]
     place: Place | None
     timings_ms: dict[str, float]
+    visit: int | None = None
+    joined: int = -1
+    dropped: tuple[int, ...] = ()
 
 
 def _remember(model: MapModel, st: Stream, code: np.ndarray, *, learn: bool, starts: bool) -> np.ndarray:
     """The memory's step on the stream's context; `starts`: the frame begins a new sequence."""
     if starts:
         st.context.reset()
-        st.step, st.last_learned_seq = 0, None
+        st.step, st.last_learned_seq, st.own_seq = 0, None, None
     return memories.get(model.memory).winners(model.tm, code, learn, st.context)
 
 
-def _advance(st: Stream, learn: bool, seq: int | None) -> None:
-    """The stream after its step: a learned frame is the row `seq` the next one continues."""
+def _advance(st: Stream, learn: bool, seq: int | None, made: bool = True) -> None:
+    """The stream after its step: a learned frame is the row `seq` the next one continues (`made`: the
+    stream's own new row; else a row it visited, §11.8)."""
     if learn:
         st.last_learned_seq = seq
+        if made:
+            st.own_seq = seq
     st.learning = learn
     st.step += 1
 
 
 def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, stream: str, top_k: int,
             code_of: Callable[[int], np.ndarray], seq: int | None = None,
-            contrast: float | None = None) -> Step:
+            threshold: float | None = None, contrast: float | None = None) -> Step:
     """One frame of one stream (docs/design/service.md §1.2, §6).
 
     Args:
@@ -127,13 +139,19 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         code_of: a stored row's code (its `input_sdr`), read by the own-trail rule (§11.6): about one
             row per frame.
         seq: the seq the learned row gets (required with `learn`; the caller stores it under that seq).
+            It is also the clock of the places' recency (§11.9).
+        threshold: the map's revisit threshold. A learning frame whose place is a revisit (confidence
+            >= it) joins that place, and is consolidated into it when one of its appearances already
+            represents the frame (`Localisation.consolidation`, docs/design/science.md §11.8): the
+            memory learns it, no row is made (`Step.visit`). None: no frame is a revisit.
         contrast: the decoded frame's contrast (`models.frontend.images.contrast`; None: not measured).
             Under `localisation.MIN_CONTRAST` the frame says nothing of where it is (§11.7): it is no
             evidence to the localiser, leaves no row of the stream's trail, and its place is no revisit.
             It is still learned and ranked like any frame.
 
     Returns:
-        The step. The stream's bookkeeping is done; the caller stores a learned row after it.
+        The step. The stream's bookkeeping is done; the caller stores a learned row (or the visit) after
+        it, and drops `Step.dropped`.
 
     Raises:
         IndexFull: learning into a full index (the caller checks first; see `InvertedIndex.add`).
@@ -155,7 +173,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     else:
         starts = False
         if st.context.active_cells.size == 0 and memories.get(model.memory).sequential:
-            st.step, st.last_learned_seq = 0, None
+            st.step, st.last_learned_seq, st.own_seq = 0, None, None
     winners = _remember(model, st, code, learn=learn, starts=starts)
     stats = st.context.stats.as_dict()
     t2 = time.perf_counter()
@@ -164,23 +182,55 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     # The stream's own rows it has not left are no answer (docs/design/science.md §11.6); one index pass
     # without them serves the matches and the localiser's candidates (§11.2), which also leaves out the
     # rival window behind them.
+    # The trail is the stream's own made rows: after a consolidated frame it is not where `prev` is (§11.8).
     flat = not informative(contrast)
-    own = model.links.own_trail(st.localiser, prev, code, code_of, not flat)
+    own = model.links.own_trail(st.localiser, st.own_seq, code, code_of, not flat)
+    if own is not None and own.here > own.last and st.last_learned_seq != st.own_seq:
+        own = None  # it left every row it made and travels on rows it visited: none is where it is
     ranked = model.index.rank(winners, model.links.candidates_wanted(top_k),
                               exclude_own=None if own is None else (stream, own.here))
     t_ranked = time.perf_counter()
     place = model.links.step(st.localiser, ranked, own, not flat)
+    visit, joined, dropped = None, -1, ()
     if learn:
         assert seq is not None
-        model.index.add(seq, winners, stream)
-        model.links.add(seq, prev, code)
-    _advance(st, learn, seq)
+        links = model.links
+        if place is not None and threshold is not None and place.informative:  # a flat frame says nothing
+            # Well represented: like an appearance of the place its best path names, confident or not
+            # (a pass's unconfident frames would otherwise become parallel places, each a rival, §11.8).
+            visit = links.consolidation(place.place, code, code_of)
+            confident = place.is_revisit(threshold)
+            mine = own is not None and visit is not None and bool(own.holds(links.graph, [visit])[0])
+            if visit is not None and not confident and (place.confidence < threshold / 2 or mine):
+                # unconfident: it needs some sequence evidence, and never a row the stream has not left
+                visit = None
+            if visit is not None or confident:
+                links.touch(place.seq, seq)  # a learning stream used the place (§11.9)
+                joined = place.place
+        if visit is not None:
+            links.visit(prev, visit, seq)
+            links.visits += 1
+        else:
+            model.index.add(seq, winners, stream)
+            links.add(seq, prev, code, stream=stream, place=joined)
+            dropped = tuple(links.over_cap(joined, seq)) if joined >= 0 else ()
+            drop(model, dropped)
+    _advance(st, learn, seq if visit is None else visit, made=visit is None)
     t3 = time.perf_counter()
     # search = the index's ranking (with the own-trail rule) + `localiser` (its step and the row's adds).
     timings = {"hash": (t1 - t0) * 1e3, "tm": (t2 - t1) * 1e3, "search": (t3 - t2) * 1e3,
                "localiser": (t3 - t_ranked) * 1e3}
     return Step(code=code, winners=winners, prev_seq=prev, step=step, stats=stats,
-                ranked=list(ranked[:top_k]), place=place, timings_ms=timings)
+                ranked=list(ranked[:top_k]), place=place, timings_ms=timings, visit=visit, joined=joined,
+                dropped=dropped)
+
+
+def drop(model: MapModel, seqs: tuple[int, ...] | list[int]) -> None:
+    """Rows that are no longer held (an appearance over its place's cap, a forgotten place,
+    docs/design/science.md §11.9): out of the index and their places; their links stay."""
+    model.index.remove(seqs)
+    for s in seqs:
+        model.links.drop(int(s))
 
 
 def replay(model: MapModel, st: Stream, code: np.ndarray, *, seq: int, prev_seq: int | None) -> np.ndarray:
@@ -196,4 +246,17 @@ def replay(model: MapModel, st: Stream, code: np.ndarray, *, seq: int, prev_seq:
     """
     winners = _remember(model, st, code, learn=True, starts=prev_seq is None)
     _advance(st, True, seq)
+    return winners
+
+
+def revisit(model: MapModel, st: Stream, code: np.ndarray, *, row: int, prev_seq: int | None) -> np.ndarray:
+    """A stored visit's step again (a consolidated frame, docs/design/science.md §11.8; service.md §4.4):
+    its code through the memory on the stream's context, learning, and the stream moved onto the visited
+    `row` as `observe` did. Nothing else is touched.
+
+    Returns:
+        (w,) the replayed winner cells (the caller compares them with the stored ones).
+    """
+    winners = _remember(model, st, code, learn=True, starts=prev_seq is None)
+    _advance(st, True, row, made=False)
     return winners

@@ -27,12 +27,16 @@ class Stream:
     adapt: RunningMean | None = None  # the stream's running mean of projections (models.frontend.adaptation)
     localiser: LocaliserState | None = None  # where the stream is on the map (docs/design/science.md §11)
     posted_at: float = 0.0  # time.monotonic() of its last frame (0: none since this process started)
+    # The last row the stream made in its current sequence (its own trail, docs/design/science.md §11.6);
+    # it differs from `last_learned_seq` after a consolidated frame, which moves the stream onto a row
+    # it visited (§11.8).
+    own_seq: int | None = None
 
     def break_sequence(self) -> None:
         """The next frame starts a new sequence (and a new search for the place); the adaptation is
         kept, because it describes the camera and the conditions, not where the robot is."""
         self.context.reset()
-        self.step, self.last_learned_seq, self.localiser = 0, None, None
+        self.step, self.last_learned_seq, self.localiser, self.own_seq = 0, None, None, None
 
 
 def eviction_wait(streams: OrderedDict[str, Stream], name: str, max_streams: int, keep_seconds: float,
@@ -71,7 +75,8 @@ def memory_state(tm: TemporalMemory, streams: Mapping[str, Stream]) -> dict[str,
         st = streams[n]
         state[f"streammeta.{h}"] = np.array(
             [st.step, -1 if st.last_learned_seq is None else st.last_learned_seq,
-             -1 if st.learning is None else int(st.learning)], dtype=np.int64)
+             -1 if st.learning is None else int(st.learning),
+             -1 if st.own_seq is None else st.own_seq], dtype=np.int64)
         if st.adapt is not None:
             state[f"streamadapt.{h}"] = st.adapt.state()
         if st.localiser is not None:
@@ -86,12 +91,14 @@ def load_memory_state(state: Mapping[str, np.ndarray], adapt_tau: int
     tm = TemporalMemory.from_state(dict(state))
     streams: OrderedDict[str, Stream] = OrderedDict()
     for h, ctx in TemporalMemory.load_streams(dict(state)).items():
-        step, last, learning = (int(v) for v in state[f"streammeta.{h}"])
+        meta = [int(v) for v in state[f"streammeta.{h}"]]
+        step, last, learning = meta[:3]
+        own = meta[3] if len(meta) > 3 else last  # a snapshot before places: every learned row was made
         adapt = (RunningMean.from_state(adapt_tau, state[f"streamadapt.{h}"])
                  if adapt_tau and f"streamadapt.{h}" in state else None)
         prefix = f"streamloc.{h}."
         loc = {k.removeprefix(prefix): v for k, v in state.items() if k.startswith(prefix)}
         streams[bytes.fromhex(h).decode()] = Stream(
             ctx, step, None if last < 0 else last, None if learning < 0 else bool(learning), adapt,
-            LocaliserState.from_arrays(loc) if loc else None)
+            LocaliserState.from_arrays(loc) if loc else None, own_seq=None if own < 0 else own)
     return tm, streams

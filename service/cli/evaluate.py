@@ -503,6 +503,33 @@ def eval_slam_ablation(
 
     slam_ablation.ablation(data, seeds=seeds, backbone=backbone, json_path=json_out)
 
+@app.command("passes")
+def eval_passes(
+    data: Annotated[Path, typer.Option(help="the Nordland folder (summer/, winter/)")],
+    half: Annotated[str, typer.Option(help="tune | test")] = "test",
+    start: Annotated[int, typer.Option(min=0, help="the route's first frame in the half")] = 0,
+    frames: Annotated[int, typer.Option(min=20, help="frames of the route")] = 200,
+    passes: Annotated[str, typer.Option(help="numbers of learned passes, comma-separated")] = "1,2,3,5,10",
+    kinds: Annotated[str, typer.Option(help="same,alternating conditions")] = "same,alternating",
+    memory: Annotated[str, typer.Option(help="tm | none")] = "tm",
+    month: Annotated[int, typer.Option(min=0, help="days of the three-robot month (0: none)")] = 0,
+    stream: Annotated[bool, typer.Option(help="also one learning stream driving three laps")] = True,
+    tolerance: int = 2,
+    backbone: Annotated[str | None, typer.Option(help="default: the service's")] = None,
+    seed: int = 1,
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the result here too")] = None,
+) -> None:
+    """A route learned over many passes, then localised: place identity, consolidation and the map's
+    growth, beside the same without consolidation (service/evaluation/passes.py)."""
+    from service.evaluation.passes import passes_runs
+
+    try:
+        passes_runs(data=data, half=half, start=start, frames_n=frames, passes=passes, kinds=kinds,
+                    memory=memory, month_days=month, stream=stream, tolerance=tolerance, backbone=backbone,
+                    seed=seed, json_path=json_out)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from e
+
 
 @app.command("slam")
 def eval_slam(

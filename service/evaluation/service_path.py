@@ -68,14 +68,18 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
     T = len(feats)
     model, hasher, config = _model(T, int(feats.shape[1]), backbone=backbone, preset=preset, seed=seed,
                                    memory=memory, localiser=localiser, create=create)
-    robot, codes = Stream(), {}
+    robot, codes, frame_of = Stream(), {}, {}
     best, confidence, support = np.full(T, -1, np.int64), np.zeros(T), np.zeros(T, np.int64)
-    for i, y in enumerate(hasher.project(feats)):  # seq i + 1 is frame i
-        step = observe(model, robot, y, learn=True, stream="robot", top_k=0, seq=i + 1,
-                       code_of=codes.__getitem__, contrast=_at(contrast, i))
-        codes[i + 1] = step.code
+    for i, y in enumerate(hasher.project(feats)):  # a consolidated frame makes no row (§11.8)
+        seq = len(codes) + 1
+        step = observe(model, robot, y, learn=True, stream="robot", top_k=0, seq=seq,
+                       code_of=codes.__getitem__, threshold=config.revisit_threshold,
+                       contrast=_at(contrast, i))
+        if step.visit is None:
+            codes[seq], frame_of[seq] = step.code, i
         if step.place is not None:
-            best[i], confidence[i], support[i] = step.place.seq - 1, _decided(step.place), step.place.support
+            best[i], confidence[i] = frame_of[step.place.seq], _decided(step.place)
+            support[i] = step.place.support
         if progress:
             progress(i + 1, T)
     return OnlineAnswers(best, confidence, support, np.zeros((0, T))), config.revisit_threshold

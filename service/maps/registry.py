@@ -100,7 +100,7 @@ class MapRegistry:
                           key_cache=s.idempotency_cache, budget=self.budget,
                           stream_keep_seconds=s.stream_keep_seconds, manual_keep=s.snapshot_manual_keep,
                           manual_bytes=s.snapshot_manual_bytes, max_closures=s.loop_closures,
-                          verify_neighbours=s.verify_neighbours)
+                          verify_neighbours=s.verify_neighbours, max_visits=s.visits)
 
     def start(self) -> None:
         """Open every map and recover it by replay; create `default` on a fresh install.

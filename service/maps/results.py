@@ -109,6 +109,9 @@ class PlaceResult:
     # On a map with keyframes, for a revisit candidate (confidence >= threshold) only; None otherwise.
     verification: VerificationResult | None = None
     low_information: bool = False
+    # The place `seq` shows: the id of the place's first row; every pass and appearance of one place
+    # answers the same id (docs/design/science.md §11.8). `seq` is the row that matched best.
+    place_id: int = 0
 
     @classmethod
     def of(cls, place: Any, row: Any, revisit_threshold: float) -> PlaceResult:
@@ -116,7 +119,8 @@ class PlaceResult:
         return cls(seq=place.seq, observation_id=row.observation_id, stream=row.stream, label=row.label,
                    confidence=place.confidence, revisit=place.is_revisit(revisit_threshold),
                    support=place.support, metadata=getattr(row, "metadata", None),
-                   low_information=not place.informative)
+                   low_information=not place.informative,
+                   place_id=int(place.place) if place.place >= 0 else int(place.seq))
 
 
 @dataclass(frozen=True)
@@ -141,6 +145,25 @@ class ObservationResult:
     # The frame's small JPEG on a map that keeps thumbnails, learned or not: for the recent ring (the
     # viewer's query thumbnail, docs/design/service.md §1.7), never part of a reply.
     thumbnail: bytes | None = None
+    # A learned frame consolidated into this stored row: the memory learned it, no row was made (`seq`
+    # and `observation_id` are null; docs/design/science.md §11.8).
+    consolidated_into: int | None = None
+
+
+@dataclass(frozen=True)
+class PlacesInfo:
+    """A map's places and their bounds (docs/design/science.md §11.8, §11.9)."""
+
+    places: int  # places with a row held
+    appearances: int  # rows held (in the index and their places)
+    rows_stored: int  # rows in map.sqlite (held and dropped)
+    dropped: int  # rows no longer held: over a place's cap, or forgotten
+    forgotten: int  # of those, rows of forgotten places
+    visits_logged: int  # consolidated frames in the visit log (bounded; pruned once a snapshot covers them)
+    max_appearances: int  # rows a place keeps (the map's localiser option `appearances`)
+    max_rows: int  # the hard cap on rows held (CORTEXLOC_MAX_OBSERVATIONS)
+    consolidate: float  # the map's localiser option `consolidate`
+    forgetting: str  # the rule, in words
 
 
 @dataclass(frozen=True)
@@ -167,12 +190,13 @@ class MapInfo:
     thumbnails: bool  # a small JPEG is kept with each learned row (frozen with the map)
     snapshot_count: int  # snapshots of every kind, and their bytes on disk (docs/design/service.md §1.5)
     snapshots_bytes: int
+    places: PlacesInfo | None  # None: a map that is not open
 
     @classmethod
     def of(cls, config: MapConfig, record: Any, *, state: str, state_reason: str | None,
            observations: int = 0, last_seq: int = 0, streams: list[str] | None = None,
            recovery: dict[str, Any] | None = None, snapshot_error: dict[str, Any] | None = None,
-           snapshot_count: int = 0, snapshots_bytes: int = 0) -> MapInfo:
+           snapshot_count: int = 0, snapshots_bytes: int = 0, places: PlacesInfo | None = None) -> MapInfo:
         """The map resource of a map with this configuration and catalog `record` (created_at, map_id);
         `snapshot_count`, `snapshots_bytes`: `service.maps.recovery.snapshots.disk_use`."""
         return cls(map_id=record.map_id, created_at=record.created_at, state=state, state_reason=state_reason,
@@ -182,7 +206,7 @@ class MapInfo:
                    snapshot_error=snapshot_error, backbone=config.backbone,
                    revisit_threshold=config.revisit_threshold, verify_revisit=config.verify_revisit,
                    thumbnails=config.thumbnails,
-                   snapshot_count=snapshot_count, snapshots_bytes=snapshots_bytes)
+                   snapshot_count=snapshot_count, snapshots_bytes=snapshots_bytes, places=places)
 
 
 @dataclass(frozen=True)

@@ -254,7 +254,7 @@ async def post_observation(
                               runtime=desc["runtime"],
                               device=desc["device"],
                               projection=f"sha256:{result.projection_sha256}", map_seq=result.map_seq),
-            metadata=result.metadata)
+            metadata=result.metadata, consolidated_into=result.consolidated_into)
 
     post = None
     if idempotency_key is not None:

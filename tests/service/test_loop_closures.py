@@ -53,9 +53,9 @@ def test_a_lap_on_ones_own_trail_is_a_revisit_and_names_the_first_lap(tmp_path):
     assert len(called) >= len(LAP) - 10
     for b in lap2:
         assert b["place"] is None or b["place"]["seq"] != b["seq"]  # never the row the frame created
-    for b in called:
-        place = LAP[[x["seq"] for x in lap2].index(b["seq"])]
-        assert b["place"]["seq"] == first[place]
+    for place, b in zip(LAP, lap2, strict=True):  # the place is lap 1's (science.md §11.8)
+        if b in called:
+            assert b["place"]["place_id"] == first[place]
 
 
 def test_an_excursion_of_any_length_then_back_is_a_revisit(tmp_path):

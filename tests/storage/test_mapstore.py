@@ -45,7 +45,7 @@ def test_schema_is_the_spec(store: MapStore) -> None:
     conn = sqlite3.connect(store.path)
     cols = {r[1]: (r[2], r[3], r[5]) for r in conn.execute("PRAGMA table_info(observations)")}
     assert list(cols) == ["seq", "observation_id", "stream", "context_prev_seq", "label", "created_at",
-                          "image_sha256", "input_sdr", "winner_cells", "metadata"]
+                          "image_sha256", "input_sdr", "winner_cells", "metadata", "place"]
     assert cols["metadata"] == ("TEXT", 0, 0)  # nullable
     assert cols["seq"] == ("INTEGER", 0, 1)  # INTEGER PRIMARY KEY: the rowid itself
     assert cols["context_prev_seq"][1] == 0 and cols["label"][1] == 0  # nullable

@@ -2,6 +2,16 @@
 rebuild path (memory.py: recover, rebuild, verify_map) and snapshots at the map level (snapshots.py:
 take, list, locate, prune, export, import)."""
 
-from service.maps.recovery.memory import MapCheck, Rebuilt, open_catalog, rebuild, recover, verify_map
+from service.maps.recovery.memory import (
+    VISIT_CURSOR,
+    VISIT_MARK,
+    MapCheck,
+    Rebuilt,
+    open_catalog,
+    rebuild,
+    recover,
+    verify_map,
+)
 
-__all__ = ["MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover", "verify_map"]
+__all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover",
+           "verify_map"]

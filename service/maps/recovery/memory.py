@@ -2,8 +2,9 @@
 commit-failure path and `cortexloc verify` share (docs/design/service.md §4.4).
 
 A rebuild starts from a fresh memory (replay from the first row) or from a snapshot's arrays, then
-replays the store's rows after that point, comparing every replayed step's winner cells with the
-stored ones (`rebuild`). `recover` picks the start: the newest snapshot on the store's branch that
+replays the store's rows and visits (consolidated frames, docs/design/science.md §11.8) after that point,
+in the order they were learned, comparing every replayed step's winner cells with the stored ones
+(`rebuild`). `recover` picks the start: the newest snapshot on the store's branch that
 verifies, loads and reproduces the rows after it, else a replay from the first row.
 """
 
@@ -28,9 +29,15 @@ from service.maps.errors import InvalidConfiguration
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, StorageError
 from storage.layout import Layout
-from storage.mapstore import MapStore, Observation
+from storage.mapstore import MapStore, Observation, Visit
 
-__all__ = ["MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover", "verify_map"]
+__all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover",
+           "verify_map"]
+
+#: The snapshot array holding the last visit id its memory learned (0 in a snapshot made before visits),
+#: and that visit's `MapStore.visit_mark` (the branch check of visits, as a row's observation id is).
+VISIT_CURSOR = "visit_cursor"
+VISIT_MARK = "visit_mark"
 
 log = logging.getLogger("cortexloc.recovery")
 _LISTED = 20  # divergent seqs listed in a recovery note (the count says how many there are)
@@ -46,6 +53,8 @@ class Rebuilt:
         replayed: rows replayed (after the snapshot, if any).
         mismatches: seqs whose replayed winner cells differ from the stored ones, in seq order.
         last_seq: the last row replayed (the start's seq when none was).
+        covered: the last visit id the start's memory had learned (a snapshot's `VISIT_CURSOR`).
+        visits: visits replayed.
     """
 
     model: MapModel
@@ -53,10 +62,28 @@ class Rebuilt:
     replayed: int = 0
     mismatches: list[int] = field(default_factory=list)
     last_seq: int = 0
+    covered: int = 0
+    visits: int = 0
+
+
+def _in_order(rows: Iterable[Observation], visits: Iterable[Visit]) -> Iterable[Observation | Visit]:
+    """Rows (seq order) and visits (log order) merged as they were learned: a visit after the row
+    `after_seq` and before the next."""
+    pending = iter(visits)
+    visit = next(pending, None)
+    for row in rows:
+        while visit is not None and visit.after_seq < row.seq:
+            yield visit
+            visit = next(pending, None)
+        yield row
+    while visit is not None:
+        yield visit
+        visit = next(pending, None)
 
 
 def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Observation], like: MapModel, *,
-            stop_at_mismatch: bool = True, progress: Callable[[int], None] | None = None) -> Rebuilt:
+            stop_at_mismatch: bool = True, progress: Callable[[int], None] | None = None,
+            visits: Iterable[Visit] = ()) -> Rebuilt:
     """Replay `rows` (in seq order) on a fresh memory or a snapshot's arrays, checking each step.
 
     Each row goes through `models.pipeline.replay`, the step and the stream bookkeeping the writer's
@@ -68,6 +95,8 @@ def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Obs
     Args:
         start: a fresh `TemporalMemory` (used in place) or the arrays of a snapshot's `memory.npz`.
         rows: the observations after the start (all of them for a fresh memory).
+        visits: the visits after the start (`models.pipeline.revisit`; a mismatch is listed by the seq of
+            the row it was consolidated into).
         like: the map's model whose options (memory kind, adaptation, ...) and index and links sizes the
             rebuilt one takes; it is not changed.
         stop_at_mismatch: stop at the first divergent row (recovery tries an older start then);
@@ -78,18 +107,23 @@ def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Obs
         The rebuilt memory (empty index and links), and what the replay found.
     """
     if isinstance(start, TemporalMemory):
-        tm, streams = start, OrderedDict()
+        tm, streams, covered = start, OrderedDict(), 0
     else:
         tm, streams = load_memory_state(start, like.adapt_tau)
+        covered = int(start.get(VISIT_CURSOR, 0))
     model = like.fresh(tm)
-    out = Rebuilt(model, streams)
-    for row in rows:
+    out = Rebuilt(model, streams, covered=covered)
+    for row in _in_order(rows, visits):
         st = out.streams.get(row.stream)
         if st is None:
             st = out.streams[row.stream] = Stream()
-        winners = pipeline.replay(model, st, row.input_sdr, seq=row.seq, prev_seq=row.context_prev_seq)
-        out.replayed += 1
-        out.last_seq = row.seq
+        if isinstance(row, Visit):
+            winners = pipeline.revisit(model, st, row.input_sdr, row=row.seq, prev_seq=row.context_prev_seq)
+            out.visits += 1
+        else:
+            winners = pipeline.replay(model, st, row.input_sdr, seq=row.seq, prev_seq=row.context_prev_seq)
+            out.replayed += 1
+            out.last_seq = row.seq
         if not np.array_equal(winners, row.winner_cells):
             out.mismatches.append(row.seq)
             if stop_at_mismatch:
@@ -127,7 +161,15 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> t
                 row = store.get(m.seq)
                 if row is None or row.observation_id != m.last_observation_id:
                     continue  # from a branch a restore abandoned
-            done = rebuild(snapshots.load_memory(path), store.rows(after_seq=m.seq), like)
+            memory = snapshots.load_memory(path)
+            cursor = int(memory.get(VISIT_CURSOR, 0))
+            _, first, last = store.visit_stats()
+            mark = store.visit_mark(cursor) if cursor else None
+            if cursor and mark != str(memory.get(VISIT_MARK, "")) and (cursor > last or mark is not None):
+                continue  # its visits are from a branch a restore abandoned
+            if first > cursor + 1:  # visits it did not learn were pruned meanwhile
+                raise ValueError(f"visits after {cursor} were pruned (the oldest kept is {first})")
+            done = rebuild(memory, store.rows(after_seq=m.seq), like, visits=store.visits(after_id=cursor))
         except Exception as e:  # an unusable snapshot is passed over, never fatal
             reason = str(e) or type(e).__name__
         else:
@@ -140,14 +182,16 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> t
         skipped.append({"snapshot_id": rec.snapshot_id, "reason": reason})
         log.warning("map %s: snapshot %s passed over: %s", map_id, rec.snapshot_id, reason)
     else:
-        done = rebuild(TemporalMemory(like.tm.params), store.rows(), like, stop_at_mismatch=False)
+        done = rebuild(TemporalMemory(like.tm.params), store.rows(), like, stop_at_mismatch=False,
+                       visits=store.visits())
         note = {"source": "replay", "mismatches": len(done.mismatches),
                 "mismatched_seqs": done.mismatches[:_LISTED]}
         if done.mismatches:
             log.error("map %s: the replay from the first row did not reproduce the stored winner cells "
                       "of %d row(s), first seq %d; serving the replayed memory (run `cortexloc verify`)",
                       map_id, len(done.mismatches), done.mismatches[0])
-    note.update(replayed=done.replayed, skipped_snapshots=skipped, seconds=round(time.perf_counter() - t0, 3))
+    note.update(replayed=done.replayed, visits_replayed=done.visits,
+                skipped_snapshots=skipped, seconds=round(time.perf_counter() - t0, 3))
     return done, note
 
 
@@ -215,7 +259,7 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
                 out.problems.append("map.sqlite fails PRAGMA integrity_check")
             total = store.count()
             like = map_model(MapConfig.parse(record.params), max_observations=max(total, 1))
-            done = rebuild(like.tm, store.rows(), like, stop_at_mismatch=False,
+            done = rebuild(like.tm, store.rows(), like, stop_at_mismatch=False, visits=store.visits(),
                            progress=None if progress is None else lambda n: progress(n, total))
             out.rows, out.mismatches = done.replayed, done.mismatches
     except (StorageError, OSError) as e:

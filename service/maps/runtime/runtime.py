@@ -44,7 +44,7 @@ from models.pipeline import Stream, eviction_wait, memory_state, touch
 from service.maps import keyframes, recovery
 from service.maps.config import MapConfig, map_model
 from service.maps.encoding.pool import EncoderPool
-from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable, StreamLimit
+from service.maps.errors import InsufficientStorage, MapNotFound, MapUnavailable, StreamLimit
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import (
     MapInfo,
@@ -52,6 +52,7 @@ from service.maps.results import (
     MemoryInfo,
     ObservationResult,
     PlaceResult,
+    PlacesInfo,
     RestoreResult,
     SequenceStats,
     SnapshotInfo,
@@ -63,9 +64,14 @@ from service.maps.runtime.durability import GroupCommit
 from service.maps.runtime.recent import RecentAnswers
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, utc_now
-from storage.mapstore import MapStore, NewClosure, NewObservation, StorageFull, StoreCorrupt
+from storage.mapstore import MapStore, NewClosure, NewObservation, NewVisit, StorageFull, StoreCorrupt
 
-__all__ = ["MapRuntime"]
+__all__ = ["FORGETTING", "MapRuntime"]
+
+#: The forgetting rule as the map resource states it (docs/design/science.md §11.9).
+FORGETTING = ("when the rows held reach max_rows, the least recently used places (made, visited or joined "
+              "by a learning stream) are forgotten whole, at least 1% of max_rows at a time; a place over "
+              "max_appearances drops its least recently used appearance")
 
 log = logging.getLogger("cortexloc.runtime")
 T = TypeVar("T")
@@ -83,7 +89,8 @@ class MapRuntime:
                  snapshot_every: int = 0, snapshot_keep: int = 3, *, max_keys: int | None = None,
                  key_cache: int = 0, budget: MemoryBudget | None = None,
                  stream_keep_seconds: float = 0.0, manual_keep: int = 0, manual_bytes: int = 0,
-                 verify_neighbours: int = 2, max_closures: int | None = None) -> None:
+                 verify_neighbours: int = 2, max_closures: int | None = None,
+                 max_visits: int = 100_000) -> None:
         self.record = record
         self.map_id = record.map_id
         # Stored options this version rejects raise InvalidConfiguration: the registry serves a FailedMap.
@@ -94,6 +101,7 @@ class MapRuntime:
         # A stream that posted within this window is never evicted for a new one (§1.3); evictions counted.
         self.stream_keep_seconds = stream_keep_seconds
         self.stream_evictions = 0
+        self.forgotten = 0  # rows forgotten since start (the hard cap, docs/design/science.md §11.9)
         self.snapshot_every = snapshot_every
         self.snapshot_keep = snapshot_keep
         self.manual_keep, self.manual_bytes = manual_keep, manual_bytes  # manual snapshots kept (0: no limit)
@@ -101,6 +109,11 @@ class MapRuntime:
         # localisations in memory (service.maps.runtime.idempotency).
         self.max_keys = max_keys
         self.max_closures = max_closures  # loop closures kept in the store's log (the last N)
+        # Visits (consolidated frames, docs/design/science.md §11.8) kept once a snapshot covers them;
+        # `covered`: the last visit id the newest snapshot holds (visits after it are replayed).
+        self.max_visits = max_visits
+        self.covered = 0
+        self.since_snapshot = 0  # rows and visits committed since the last automatic snapshot
         self.keys = idempotency.KeyCache(key_cache)
         # The process-wide budget that holds this map's reservation (docs/design/service.md §1.8): each
         # learned row reserves its index bytes first. None: a runtime built alone (tools, tests).
@@ -178,7 +191,7 @@ class MapRuntime:
         if self.store is None:
             return
         latest = self.catalog.list_snapshots(self.map_id)
-        new_rows = self.store.last_seq() > (latest[0].seq if latest else 0)
+        new_rows = self.store.last_seq() > (latest[0].seq if latest else 0) or self.since_snapshot > 0
         switched = any(st.learning is False for st in self.streams.values())
         if snapshot and self.state == "ready" and self.snapshot_every and (new_rows or switched):
             try:
@@ -225,8 +238,11 @@ class MapRuntime:
             InsufficientStorage: the disk is full (nothing is left behind).
         """
         assert self.store is not None
-        snap = map_snapshots.take(self.store, memory_state(self.tm, self.streams), self.catalog, self.map_id,
-                                  self.projection_path, kind)
+        cursor = self.store.visit_stats()[2]  # the visits this memory has learned (§11.8)
+        memory = {**memory_state(self.tm, self.streams), recovery.VISIT_CURSOR: np.array(cursor, np.int64),
+                  recovery.VISIT_MARK: np.array(self.store.visit_mark(cursor) or "")}
+        snap = map_snapshots.take(self.store, memory, self.catalog, self.map_id, self.projection_path, kind)
+        self.covered = cursor
         if kind == "manual":  # retention (docs/design/service.md §1.5); the new one is never deleted
             map_snapshots.prune_manual(self.catalog, self.map_id, self.store, self.manual_keep,
                                        self.manual_bytes)
@@ -238,6 +254,7 @@ class MapRuntime:
         the row it follows is durable and acknowledged."""
         try:
             self.snapshot("auto")
+            self.since_snapshot = 0  # counted from the last automatic one, whatever manual ones came between
             map_snapshots.prune_auto(self.catalog, self.map_id, self.store, self.snapshot_keep)
         except Exception as e:  # any failure: see the docstring
             self.snapshot_failures += 1
@@ -312,8 +329,11 @@ class MapRuntime:
             return
         done, note = recovery.recover(self.store, self.catalog, self.map_id, self.model)
         self.model, self.streams = done.model, done.streams
-        self.model.index.rebuild(self.store.rows())
-        self.model.links.rebuild(self.store.rows())
+        self.covered, self.since_snapshot = done.covered, 0
+        dropped = self.store.dropped()
+        self.model.index.rebuild(r for r in self.store.rows() if r.seq not in dropped)
+        self.model.links.rebuild(self.store.rows(), dropped, self.store.joined(),
+                                 ((v.context_prev_seq, v.seq, v.after_seq + 1) for v in self.store.visits()))
         if self.budget is not None:
             self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
         self.recovery = note
@@ -450,11 +470,11 @@ class MapRuntime:
         """
         self.require_ready()
         assert self.store is not None and self.hasher is not None  # a map without them is never ready
-        if learn and len(self.index) >= self.index.max_observations:
-            raise MapFull(self.map_id, self.index.max_observations)
         if projected.shape != (self.hasher.k,):
             raise ValueError(f"projection has shape {projected.shape}, this map's are ({self.hasher.k},)")
         self._admit(stream)
+        if learn and len(self.index) >= self.index.max_observations:
+            self._forget()
         if learn and self.budget is not None:  # the row's index bytes, before the step (a failed one is
             self.budget.grow_index(self.map_id, self.row_bytes)  # set right by the recovery it causes)
         try:
@@ -491,7 +511,10 @@ class MapRuntime:
         self.stream_evictions += evicted
         seq = self.store.next_seq() if learn else None  # this thread is the store's only writer
         step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq,
-                                code_of=self._code_of, contrast=contrast)
+                                code_of=self._code_of, threshold=self.config.revisit_threshold,
+                                contrast=contrast)
+        if step.visit is not None:  # consolidated (§11.8): the memory learned it, no row is made
+            seq = None
         t3 = time.perf_counter()
         place = step.place
         rows = self.store.get_many([*(m.seq for m in step.ranked), *([place.seq] if place else [])])
@@ -502,7 +525,9 @@ class MapRuntime:
         kf = None if query is None else (geometry.pack(query.features), query.camera)
         row = NewObservation(stream=stream, image_sha256=image_sha256, input_sdr=step.code,
                              winner_cells=step.winners, context_prev_seq=step.prev_seq, label=label,
-                             metadata=metadata, thumbnail=thumbnail, keyframe=kf) if learn else None
+                             metadata=metadata, thumbnail=thumbnail, keyframe=kf,
+                             place=step.joined if step.joined >= 0 else None,
+                             drops=step.dropped) if seq is not None else None
         answer = None if place is None else self._verified(
             PlaceResult.of(place, rows[place.seq], self.config.revisit_threshold), query, stream)
         # The answer is whole before the commit, so an idempotent post's reply commits with its row.
@@ -512,7 +537,8 @@ class MapRuntime:
             matches=[Match.of(i + 1, rows[m.seq], m.overlap, m.score) for i, m in enumerate(step.ranked)],
             timings_ms=step.timings_ms, map_seq=seq or self.store.last_seq(),
             projection_sha256=self.config.projection_sha256, backbone=self.config.backbone, metadata=metadata,
-            encoder=self.config.encoder_id, resize=self.config.resize, place=answer)
+            encoder=self.config.encoder_id, resize=self.config.resize, place=answer,
+            consolidated_into=step.visit)
         # A revisit is a loop closure, logged durably: with the learned row in its transaction, or alone
         # for a localising stream (it stores no observation and changes no memory; §11.6). It carries
         # the place's geometric verification where there is one (docs/design/science.md §12).
@@ -522,7 +548,13 @@ class MapRuntime:
             stream=stream, place_seq=result.place.seq, confidence=result.place.confidence,
             support=result.place.support, metadata=metadata, key=post.key if post is not None else None,
             verification=verified)
-        if row is None and closure is not None:
+        if step.visit is not None:  # durable before the reply: the replay needs it (service.md §4.4)
+            self.store.add_visit(NewVisit(
+                stream=stream, seq=step.visit, context_prev_seq=step.prev_seq, input_sdr=step.code,
+                winner_cells=step.winners, metadata=metadata, closure=closure,
+                key=None if post is None else post.record(result)))
+            self._committed()
+        elif row is None and closure is not None:
             self.store.add_closure(closure)
         if row is not None:
             if post is not None:
@@ -531,14 +563,40 @@ class MapRuntime:
             committed = self.store.append(dataclasses.replace(row, closure=closure), durable=durable)
             commit_ms = (time.perf_counter() - t_commit) * 1e3
             assert committed == seq  # this thread is the store's only writer
-            # The stream's step is recorded before the automatic snapshot, so the snapshot holds the
-            # stream as it is after this frame.
-            if self.snapshot_every and committed % self.snapshot_every == 0:
-                self._auto_snapshot()
+            self._committed()
+        if learn and self.budget is not None and (step.visit is not None or step.dropped):
+            # the row reserved before the step was not made, or its place dropped rows (§11.9)
+            self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
         t4 = time.perf_counter()
         # store: the reply's stored rows, verification and the durable write; commit: the write alone.
         stored = {"store": (t4 - t3) * 1e3, **({"commit": commit_ms} if row is not None else {})}
         return dataclasses.replace(result, timings_ms={**result.timings_ms, **stored})
+
+    def _committed(self) -> None:
+        """Writer: after a row or a visit is durable. Every `snapshot_every` of them the automatic snapshot
+        (the stream's step is recorded first, so it holds the stream as it is after this frame); then the
+        visits it covers beyond the last `max_visits` are pruned (docs/design/science.md §11.8)."""
+        assert self.store is not None
+        self.since_snapshot += 1
+        if self.snapshot_every and self.since_snapshot >= self.snapshot_every:
+            self._auto_snapshot()
+            if self.since_snapshot == 0:  # it was taken
+                self.store.prune_visits(self.covered, self.max_visits)
+
+    def _forget(self) -> None:
+        """Writer: the hard cap binds (`max_observations` rows held): forget the least recently used
+        places, whole, at least 1 % of the cap, durably before the row that needed the room
+        (docs/design/science.md §11.9). Their rows stay in map.sqlite (the replay and snapshots read them)
+        but leave the index, the places and every answer."""
+        assert self.store is not None
+        gone = self.localisation.least_recent(max(1, self.index.max_observations // 100))
+        self.store.drop(gone, "forgotten")
+        pipeline.drop(self.model, gone)
+        self.forgotten += len(gone)
+        if self.budget is not None:
+            self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
+        log.info("map %s: the row cap binds; forgot %d rows of the least recently used places",
+                 self.map_id, len(gone))
 
     def _verified(self, place: PlaceResult, query: keyframes.QueryFrame | None, stream: str) -> PlaceResult:
         """Writer: a revisit candidate's geometric verification (docs/design/science.md §12.2), on maps
@@ -567,7 +625,20 @@ class MapRuntime:
                           observations=len(self.index),
                           last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),
                           recovery=self.recovery, snapshot_error=self.snapshot_error,
+                          places=self.places() if self.store is not None and self.state == "ready" else None,
                           **map_snapshots.disk_use(self.catalog, self.map_id))
+
+    def places(self) -> PlacesInfo:
+        """Writer: the map's places, appearances and visits (docs/design/science.md §11.8, §11.9)."""
+        assert self.store is not None
+        dropped = self.store.dropped()
+        conf = self.localisation.localiser.conf
+        return PlacesInfo(
+            places=self.localisation.places(), appearances=len(self.index), rows_stored=self.store.count(),
+            dropped=len(dropped), forgotten=sum(1 for r in dropped.values() if r == "forgotten"),
+            visits_logged=self.store.visit_stats()[0], max_appearances=int(conf["appearances"]),
+            max_rows=self.index.max_observations, consolidate=float(conf["consolidate"]),
+            forgetting=FORGETTING)
 
     def set_revisit_threshold(self, value: float) -> MapInfo:
         """Writer: the map's revisit threshold (`patch`)."""

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from service.maps.config import MapOptions
-from service.maps.errors import InsufficientStorage, InvalidConfiguration, MapFull
+from service.maps.errors import InsufficientStorage, InvalidConfiguration
 from service.maps.recovery import verify_map
 from storage.mapstore import StorageFull
 from tests.service.helpers import tm_digest
@@ -26,16 +26,25 @@ def test_learned_frames_are_rows_in_order_and_a_localisation_stores_nothing(tmp_
         assert (rt.store.count(), tm_digest(rt.tm)) == before
 
 
-def test_a_full_map_refuses_to_learn_and_still_localises(tmp_path):
-    with registry(tmp_path, max_observations=2) as reg:
-        rt = reg.get("default")
-        frames = route(3)
-        step(rt, frames[0])
-        step(rt, frames[1])
-        with pytest.raises(MapFull):
-            step(rt, frames[2])
-        # another stream: the learning stream's own trail is never its match (science.md §11.6)
-        assert rt.store.count() == 2 and step(rt, frames[1], learn=False, stream="q").matches
+def test_a_full_map_forgets_the_least_recently_used_place_and_learns(tmp_path):
+    # science.md §11.9: the hard cap binds -> the least recently used places go (whole), never map-full
+    with registry(tmp_path, max_observations=3) as reg:
+        rt = reg.create("flat", MapOptions(memory="none"))
+        frames = route(4)
+        for f in frames[:3]:
+            step(rt, f)
+        assert step(rt, frames[3]).seq == 4  # learned, no MapFull
+        assert rt.store.count() == 4 and len(rt.index) <= 3 and rt.store.dropped() == {1: "forgotten"}
+        places = rt.info().places
+        assert places.forgotten == 1 and places.appearances == len(rt.index) and "least recently" in \
+            places.forgetting
+        # the forgotten row is no answer any more; the others still are
+        assert all(m.seq != 1 for m in step(rt, frames[0], learn=False, stream="q").matches)
+        assert step(rt, frames[2], learn=False, stream="q2").matches[0].seq == 3
+    with registry(tmp_path, max_observations=3) as reg:  # durable: a restart forgets the same rows
+        rt = reg.get("flat")
+        assert rt.store.dropped() == {1: "forgotten"} and len(rt.index) == 3
+        assert all(m.seq != 1 for m in step(rt, frames[0], learn=False, stream="q").matches)
 
 
 def test_a_failed_commit_leaves_the_memory_the_store_can_replay(tmp_path, monkeypatch):

@@ -1,0 +1,117 @@
+"""Places (docs/design/science.md §11.8, §11.9): rows of one place are no rivals of each other, a place
+keeps at most `appearances` rows (the least recently used goes), forgetting takes whole places least
+recently used first, and the index drops rows it no longer holds."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from models.localisation import InvertedIndex, Localisation, SequenceGraph, SequenceLocaliser
+from tests.models.localisation.test_localiser import place_similarity, run
+
+
+def three_passes(n: int, joined: bool) -> SequenceGraph:
+    """Rows 0..3n-1: the same route of n places stored three times (passes 1, 2, 3), each a chain; with
+    `joined` every row of passes 2 and 3 is known to show pass 1's place."""
+    g = SequenceGraph()
+    for p in range(3):
+        for i in range(n):
+            g.append(p * n + i, -1 if i == 0 else p * n + i - 1, place=i if joined and p else -1)
+    return g
+
+
+def test_other_passes_of_a_place_are_no_rivals():
+    n = 40
+    db = np.tile(np.arange(n), 3)
+    S = place_similarity(db, np.arange(n), seed=3)
+    alone = run(S, three_passes(n, joined=False))  # rows: each pass's row a rival of the others
+    places = run(S, three_passes(n, joined=True))
+    conf_rows = np.array([p.confidence for p in alone[10:]])
+    conf_places = np.array([p.confidence for p in places[10:]])
+    assert np.median(conf_rows) < 0.7 and conf_rows.max() < 0.9 < conf_places.min()
+    for i, p in enumerate(places):
+        if p is not None:
+            assert p.place == int(p.seq) % n  # the place names pass 1's row, whichever pass matched
+            assert abs(p.place - i) <= 1
+
+
+def test_a_place_s_rows_join_drop_and_link_as_told():
+    g = SequenceGraph.chain(5)
+    g.append(5, 2, place=2, joins=False)  # a consolidated stream made row 5 after visiting row 2
+    assert g.place.tolist() == [0, 1, 2, 3, 4, 2] and g.members(2) == [2, 5]
+    assert g.trail[5] == 5 and g.next[2] == 3  # its own trail; row 2's route stays whole
+    g.append(6, 5)
+    g.link(6, 4)  # then it moved onto row 4: a neighbour, not a successor
+    assert g.next[6] == -1 and 4 in g.within(6, 1).tolist()
+    g.link(6, 3, successor=True)  # a successor where it had none
+    assert g.next[6] == 3 and g.walk(np.array([5]), np.array([1]), 2).tolist() == [3]
+    g.drop(2)
+    assert g.members(2) == [5] and g.place[2] == 2  # its links stay: paths still walk through it
+
+
+def localisation_with(appearances: int) -> Localisation:
+    loc = Localisation({"appearances": appearances}, 64)
+    for seq in range(1, 4):  # places 1, 2, 3
+        loc.add(seq, None if seq == 1 else seq - 1, np.array([seq]), stream="a")
+    return loc
+
+
+def test_the_cap_drops_the_least_recently_used_appearance_never_the_new_one():
+    loc = localisation_with(appearances=2)
+    loc.add(4, None, np.array([1]), stream="b", place=1)  # place 1: rows 1, 4
+    loc.touch(1, 10)  # row 1 used later than row 4
+    loc.add(5, None, np.array([1]), stream="c", place=1)
+    assert loc.over_cap(1, keep=5) == [4]  # the least recently used of 1 and 4; never 5
+    loc.drop(4)
+    assert loc.appearances(1) == [1, 5] and loc.over_cap(1, keep=5) == [] and loc.held == 4
+
+
+def test_forgetting_takes_whole_places_least_recently_used_first():
+    loc = localisation_with(appearances=8)
+    loc.add(4, None, np.array([1]), stream="b", place=1)  # place 1 used at 4
+    loc.touch(2, 9)  # place 2 used last
+    # place 3 (used at 3) goes first, then place 1 (its latest row used at 4), whole
+    assert loc.least_recent(1) == [3]
+    assert loc.least_recent(2) == [3, 1, 4]
+    for s in loc.least_recent(2):
+        loc.drop(s)
+    assert loc.places() == 1 and loc.least_recent(5) == [2]
+
+
+def test_removed_rows_are_no_candidates_and_compaction_ranks_as_a_fresh_index():
+    rng = np.random.default_rng(0)
+    cells = [np.sort(rng.choice(512, 20, replace=False)) for _ in range(40)]
+    idx = InvertedIndex(512, 40)
+    for seq, c in enumerate(cells, 1):
+        idx.add(seq, c, "a" if seq % 2 else "b")
+    gone = list(range(1, 40, 3))
+    idx.remove(gone[:5])  # below a quarter: marked, not compacted
+    assert len(idx) == 35 and all(m.seq not in gone[:5] for m in idx.rank(cells[0], 40))
+    idx.remove(gone)  # a quarter or more: compacted
+    fresh = InvertedIndex(512, 40)
+    for seq, c in enumerate(cells, 1):
+        if seq not in gone:
+            fresh.add(seq, c, "a" if seq % 2 else "b")
+    for q in cells[:10]:
+        assert idx.rank(q, 10) == fresh.rank(q, 10)
+        assert idx.rank(q, 10, exclude_own=("a", 20)) == fresh.rank(q, 10, exclude_own=("a", 20))
+    assert len(idx) == len(fresh) and idx.postings() == fresh.postings()
+    idx.add(41, cells[0], "a")  # room again after the compaction
+    assert idx.rank(cells[0], 1)[0].seq in (1, 41)
+
+
+def test_a_full_index_compacts_its_removed_rows_before_refusing():
+    idx = InvertedIndex(64, 3)
+    for seq in (1, 2, 3):
+        idx.add(seq, [seq], "a")
+    idx.remove([1])
+    idx.add(4, [4], "a")
+    assert len(idx) == 3 and [m.seq for m in idx.rank([4], 3)] == [4]
+
+
+def test_the_localiser_answers_the_place_of_its_best_row():
+    g = three_passes(10, joined=True)
+    state = SequenceLocaliser({"warmup": 1}).new_state()
+    loc = SequenceLocaliser({"warmup": 1})
+    place = loc.step(state, g, np.array([25]), np.array([1.0]))
+    assert place is not None and place.seq == 25 and place.place == 5

@@ -1,0 +1,108 @@
+"""map.sqlite schema 5 (docs/design/science.md §11.8, §11.9; docs/design/service.md §4.2): a row's place,
+the visit log (consolidated frames, replayed), dropped rows, and the migration of an older map whose
+places come from its loop-closure log."""
+
+from __future__ import annotations
+
+import dataclasses
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from models.localisation import Localisation
+from storage.mapschema import SCHEMA_VERSION, KeyRecord, NewClosure, NewVisit
+from storage.mapstore import DuplicateObservation, MapMeta, MapStore
+from tests.storage.conftest import make_row
+
+
+def visit(i: int, seq: int, prev: int | None, key: str | None = None) -> NewVisit:
+    row = make_row(i)
+    return NewVisit(stream="b", seq=seq, context_prev_seq=prev, input_sdr=row.input_sdr,
+                    winner_cells=row.winner_cells, metadata={"stamp": float(i)},
+                    key=None if key is None else KeyRecord(key, "f" * 64, '{"reply": 1}'))
+
+
+def test_a_visit_commits_in_order_after_its_rows_and_reads_back(store: MapStore) -> None:
+    store.append(make_row(1))
+    store.append(make_row(2, prev=1))
+    closure = NewClosure(stream="b", place_seq=1, confidence=0.99, support=6)
+    first = store.add_visit(dataclasses.replace(visit(10, 1, None), closure=closure))
+    second = store.add_visit(visit(11, 2, 1))
+    store.append(make_row(3, prev=2))
+    got = list(store.visits())
+    assert [v.id for v in got] == [first, second] and [v.after_seq for v in got] == [2, 2]
+    assert (got[1].seq, got[1].context_prev_seq, got[1].metadata) == (2, 1, {"stamp": 11.0})
+    assert np.array_equal(got[0].input_sdr, make_row(10).input_sdr)
+    assert np.array_equal(got[0].winner_cells, make_row(10).winner_cells)
+    assert [(c.seq, c.place_seq) for c in store.closures(0, 10)] == [(None, 1)]  # logged with it
+    assert list(store.visits(after_id=first)) and store.visit_stats() == (2, first, second)
+
+
+def test_a_visit_key_answers_a_repeat_and_is_never_stored_twice(store: MapStore) -> None:
+    store.append(make_row(1))
+    store.add_visit(visit(10, 1, None, key="visit-key-0001"))
+    assert store.key_record("visit-key-0001") == KeyRecord("visit-key-0001", "f" * 64, '{"reply": 1}')
+    with pytest.raises(DuplicateObservation):
+        store.add_visit(visit(11, 1, None, key="visit-key-0001"))
+    assert store.visit_stats()[0] == 1
+
+
+def test_visits_are_pruned_only_once_a_snapshot_covers_them(store: MapStore) -> None:
+    store.append(make_row(1))
+    ids = [store.add_visit(visit(10 + i, 1, None)) for i in range(6)]
+    assert store.prune_visits(covered=0, keep=2) == 0  # none covered: the replay needs them all
+    assert store.prune_visits(covered=ids[2], keep=2) == 3  # covered and beyond the last 2
+    assert [v.id for v in store.visits()] == ids[3:]
+    assert store.prune_visits(covered=ids[-1], keep=2) == 1 and [v.id for v in store.visits()] == ids[4:]
+
+
+def test_a_row_s_place_and_the_rows_it_dropped_commit_with_it(store: MapStore) -> None:
+    store.append(make_row(1))
+    store.append(make_row(2))
+    store.append(dataclasses.replace(make_row(3), place=1, drops=(2,)))
+    store.drop([1], "forgotten")
+    assert [r.place for r in store.rows()] == [None, None, 1]
+    assert store.dropped() == {2: "appearance-cap", 1: "forgotten"}
+    assert store.count() == 3  # the rows stay: the replay and the snapshots read them
+
+
+def _as_version_4(path: Path) -> None:
+    """Today's file as schema 4 wrote it: no visits, no dropped rows, no place column."""
+    conn = sqlite3.connect(path)
+    conn.executescript("""
+        DROP TABLE visits;
+        DROP TABLE dropped;
+        ALTER TABLE observations DROP COLUMN place;
+        DROP TRIGGER meta_no_update;
+        UPDATE meta SET value = '4' WHERE key = 'schema_version';
+        CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
+        BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
+    """)
+    conn.close()
+
+
+def test_an_old_map_is_migrated_and_its_places_come_from_its_loop_closures(tmp_path: Path,
+                                                                           meta: MapMeta) -> None:
+    path = tmp_path / "map.sqlite"
+    with MapStore.create(path, meta) as made:
+        for i in range(1, 4):  # a first lap, rows 1-3
+            made.append(make_row(i, stream="a", prev=i - 1 or None))
+        for i in range(4, 7):  # a second lap that revisited rows 1-3 (a closure logged with each row)
+            made.append(dataclasses.replace(make_row(i, stream="a", prev=i - 1), closure=NewClosure(
+                stream="a", place_seq=i - 3, confidence=0.99, support=5)))
+        made.append(make_row(7, stream="a", prev=6))  # no revisit: its own place
+    _as_version_4(path)
+    with MapStore.open(path, readonly=True) as ro:  # read-only: not migrated, reads as before
+        assert ro.meta.schema_version == 4 and ro.dropped() == {} and list(ro.visits()) == []
+        assert [r.place for r in ro.rows()] == [None] * 7
+    with MapStore.open(path) as store:
+        assert store.meta.schema_version == SCHEMA_VERSION == 5
+        assert [r.place for r in store.rows()] == [None] * 7 and store.joined() == {4: 1, 5: 2, 6: 3}
+        links = Localisation(None, 4096)
+        links.rebuild(store.rows(), store.dropped(), store.joined())
+        assert [links.place_of(s) for s in range(1, 8)] == [1, 2, 3, 1, 2, 3, 7]
+        assert links.appearances(2) == [2, 5] and links.places() == 4
+        store.append(dataclasses.replace(make_row(8, stream="a", prev=7), place=7))  # and it goes on
+        assert store.get(8).place == 7
