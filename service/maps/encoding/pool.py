@@ -88,8 +88,13 @@ class EncoderPool:
         how = (backbone or self.encoders.default, resize)
         # The decode starts now where the encoder is built; one that is not yet is built, and the image
         # prepared, by the worker (never here: the caller is the event loop).
-        encoder = self.encoders.ready(how[0])
-        prepared = None if encoder is None else encoder.prepare(body, thumbnail=thumbnail, resize=resize)
+        try:
+            encoder = self.encoders.ready(how[0])
+            prepared = None if encoder is None else encoder.prepare(body, thumbnail=thumbnail, resize=resize)
+        except BaseException:  # never queued: no worker will give the slot back
+            with self._lock:
+                self.pending -= 1
+            raise
         self._queue.put(_Item(body, fut, hasher, thumbnail, how, prepared))
         return fut
 

@@ -31,6 +31,9 @@ class GroupCommit:
         self._cond = threading.Condition()
         self._waiting: list[Future[None]] = []
         self._closed = False
+        # Resolved by the thread's last sync at `close`, which follows every commit (the writer is
+        # drained first): what a request that asks after `close` waits for.
+        self._final: Future[None] = Future()
         self.syncs = 0  # fsyncs run (each served every request waiting when it started)
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
@@ -44,13 +47,14 @@ class GroupCommit:
     def durable(self) -> Future[None]:
         """A future resolved once every commit made before this call is durable.
 
-        Raises:
-            RuntimeError: after `close`.
+        After `close` (a map deleted or the service stopping while a learned row's request waits), the
+        future of the final sync that `close` runs after the writer is drained: it covers that row
+        too, so the row is acknowledged as any other, never failed for a race it did not lose.
         """
         fut: Future[None] = Future()
         with self._cond:
             if self._closed:
-                raise RuntimeError("group commit is closed")
+                return self._final
             self._waiting.append(fut)
             self._cond.notify()
         return fut
@@ -60,9 +64,10 @@ class GroupCommit:
             with self._cond:
                 while not self._waiting and not self._closed:
                     self._cond.wait()
-                if not self._waiting:
-                    return
+                closing = self._closed
                 group, self._waiting = self._waiting, []
+            if closing:  # the last sync: it serves whoever asks from now on too
+                group.append(self._final)
             try:
                 self._sync()
             except BaseException as e:  # the rows' durability is unknown: none is acknowledged
@@ -72,9 +77,12 @@ class GroupCommit:
                 for fut in group:
                     fut.set_result(None)
             self.syncs += 1
+            if closing:
+                return
 
     def close(self) -> None:
-        """Serve the requests already waiting, then stop (idempotent)."""
+        """Run a last sync (it serves the requests already waiting and every later `durable()`), then
+        stop (idempotent). The caller has stopped committing: the last sync covers every commit."""
         with self._cond:
             self._closed = True
             self._cond.notify()

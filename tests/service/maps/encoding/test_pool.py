@@ -198,3 +198,25 @@ def test_the_pools_projections_store_the_same_as_projecting_image_by_image(tmp_p
                                   top_k=0, label=None)).result(timeout=60)
             assert rt.store.count() == len(frames)
     assert stored[0] == stored[1]
+
+
+def test_a_prepare_that_raises_gives_its_slot_back() -> None:
+    """`prepare` raising at submission (a remote encoder whose send fails, a decoder refusing the
+    input) never queues the item, so no worker frees its slot: the pool must, or each such failure
+    takes a slot for good and the pool ends up refusing everything (a permanent 503)."""
+
+    class Failing(FakeEncoder):
+        def prepare(self, body, thumbnail=False, resize=None):
+            if body == b"boom":
+                raise OSError(104, "Connection reset by peer")
+            return super().prepare(body, thumbnail, resize)
+
+    pool = EncoderPool(Encoders.one(Failing()), workers=1, queue=1)
+    try:
+        for _ in range(5):  # more failures than the pool has slots
+            with pytest.raises(OSError, match="reset"):
+                pool.submit(b"boom")
+        assert pool.pending == 0
+        assert pool.submit(bytes(3)).result(timeout=30).features.shape == (1, 32)
+    finally:
+        pool.close()
