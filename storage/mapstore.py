@@ -380,11 +380,23 @@ class MapStore:
                                    (int(visit_id),)).fetchone()
         return None if r is None else f"{r[0]}|{r[1]}"
 
+    def visits_pruned_through(self) -> int:
+        """The last visit id pruned from the log (0: none ever was): a replay that starts before it
+        cannot reproduce the memory (docs/design/service.md §4.4).
+
+        Durable as the log itself: ids start at 1 and are never reused (SQLite hands out max(id) + 1,
+        and `prune_visits` always keeps the newest), so the oldest id kept minus one is how far the log
+        was pruned."""
+        _, first, _ = self.visit_stats()
+        return max(first - 1, 0)
+
     def prune_visits(self, covered: int, keep: int) -> int:
-        """Delete the oldest visits beyond the last `keep`, but only those with id <= `covered` (a
-        snapshot holds the memory they taught; the replay after it never needs them). Returns how many."""
+        """Delete the oldest visits beyond the last `keep` (at least 1: `visits_pruned_through` reads
+        the oldest kept), but only those with id <= `covered` (a snapshot holds the memory they taught;
+        the replay after it never needs them). Returns how many."""
         if not self._v5:
             return 0
+        keep = max(int(keep), 1)
         with self._lock:
             conn = self._db()
             with transaction(conn):

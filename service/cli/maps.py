@@ -71,6 +71,9 @@ def verify(
                        f"replayed in {check.seconds:.2f} s ({rate:.0f} rows/s), "
                        f"{len(check.mismatches)} mismatched; snapshots {len(check.snapshots_ok)} ok, "
                        f"{len(check.snapshots_bad)} bad")
+            if check.start is not None:
+                typer.echo(f"  the visit log was pruned: replayed from snapshot {check.start}, the earliest "
+                           "usable one that covers the pruned visits")
             if check.mismatches:
                 seqs = ", ".join(map(str, check.mismatches))
                 typer.echo(f"  stored winner cells differ from the replay at seq {seqs}")

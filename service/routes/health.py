@@ -99,7 +99,7 @@ def check_maps(maps: dict[str, Any], named: bool = True) -> Check:
         skipped = list((recovery or {}).get("skipped_snapshots") or [])
         if skipped:
             states[map_id]["skipped_snapshots"] = skipped
-        if recovery and (skipped or recovery.get("mismatches")):
+        if recovery and (skipped or recovery.get("mismatches") or recovery.get("complete") is False):
             states[map_id]["recovery"] = recovery  # only when it went wrong: the usual case stays short
             notes.append(f"map {map_id} recovered by {recovery.get('source')} after passing over "
                          f"{len(skipped)} snapshot(s) (a damaged snapshot, or one whose replay diverged), "

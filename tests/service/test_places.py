@@ -4,6 +4,11 @@ and visits come back after a crash, a snapshot and a restore exactly as rows do.
 
 from __future__ import annotations
 
+import json
+import shutil
+
+from service.maps.recovery import VISIT_CURSOR, open_catalog, verify_map
+from storage import snapshots
 from tests.service.helpers import frame, make_client, post, state_of
 from tests.service.test_loop_closures import LAP, THRESHOLD, drive, revisits
 
@@ -154,3 +159,62 @@ def test_consolidated_frames_hold_no_index_bytes_of_the_memory_budget(tmp_path):
         held = next(m for m in c.get("/v1/memory").json()["maps"] if m["map_id"] == "default")
     assert any(b["consolidated_into"] for b in lap2)
     assert held["parts"]["index"] == len(rt.index) * rt.row_bytes  # a reservation per row made, not per frame
+
+
+def _pruned_map(data) -> tuple:
+    """A map whose visit log was pruned (`visits=1`: all but the newest, once a snapshot covers them),
+    closed as a kill -9 leaves it. Returns (its state, the last visit id pruned, its snapshots folder)."""
+    with make_client(data, snapshot_every=5, visits=1) as c:
+        c.patch("/v1/maps/default", json={"revisit_threshold": THRESHOLD})
+        drive(c, LAP, stream="a", noise=0.0)
+        assert any(b["consolidated_into"] for b in drive(c, LAP, stream="b"))
+        rt = c.app.state.registry.get("default")
+        pruned = rt.store.visits_pruned_through()
+        assert pruned > 0 and rt.store.visit_stats()[0] == 1
+        crash(c)
+        return state_of(c), pruned, c.app.state.registry.layout.snapshots_dir("default")
+
+
+def test_with_every_snapshot_gone_a_pruned_visit_log_is_no_complete_replay(tmp_path):
+    """Pruned visits taught the memory; the replay from the first row cannot repeat them (their rows'
+    winner cells still match, so a mismatch count of 0 proves nothing). Recovery serves every row and
+    says the memory is incomplete, in the note and in /readyz (docs/design/service.md §4.4)."""
+    before, pruned, snaps = _pruned_map(tmp_path / "d")
+    for d in snaps.iterdir():  # every snapshot unusable (a damaged disk, deleted by hand, ...)
+        shutil.rmtree(d)
+    with make_client(tmp_path / "d", snapshot_every=5, visits=1) as c:
+        note = c.get("/v1/maps/default").json()["recovery"]
+        assert note["source"] == "replay" and note["complete"] is False
+        assert note["visits_pruned_through"] == pruned
+        after = state_of(c)
+        assert after[:2] == before[:2] and after[3] == before[3]  # every acknowledged row is served
+        ready = c.get("/readyz").json()
+        assert "recovery" in json.dumps(ready)
+
+
+def test_recovery_starts_at_a_snapshot_that_covers_the_pruned_visits(tmp_path):
+    before, _, _ = _pruned_map(tmp_path / "d")
+    with make_client(tmp_path / "d", snapshot_every=5, visits=1) as c:
+        note = c.get("/v1/maps/default").json()["recovery"]
+        assert note["source"] == "snapshot" and "complete" not in note
+        assert state_of(c) == before
+
+
+def test_verify_starts_at_the_earliest_snapshot_that_covers_the_pruned_visits(tmp_path):
+    """`cortexloc verify` on a healthy map whose visit log was pruned: a replay from the first row would
+    miss those visits and flag rows after them; the check starts at the earliest usable snapshot that
+    covers them and says so, and with none left it reports that the memory cannot be replayed."""
+    _, pruned, snaps = _pruned_map(tmp_path / "d")
+    catalog = open_catalog(tmp_path / "d")
+    try:
+        record = catalog.get_map("default")
+        covering = [r.snapshot_id for r in reversed(catalog.list_snapshots("default"))
+                    if int(snapshots.load_memory(catalog.snapshot_dir(r))[VISIT_CURSOR]) >= pruned]
+        check = verify_map(catalog, record)
+        assert check.ok and check.mismatches == [] and check.start == covering[0]
+        for d in snaps.iterdir():
+            shutil.rmtree(d)
+        check = verify_map(catalog, record)
+        assert not check.ok and check.start is None and any("pruned" in p for p in check.problems)
+    finally:
+        catalog.close()

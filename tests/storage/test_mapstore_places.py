@@ -58,6 +58,20 @@ def test_visits_are_pruned_only_once_a_snapshot_covers_them(store: MapStore) -> 
     assert store.prune_visits(covered=ids[-1], keep=2) == 1 and [v.id for v in store.visits()] == ids[4:]
 
 
+def test_the_prune_cursor_survives_every_prune_and_the_ids_go_on(store: MapStore) -> None:
+    """`visits_pruned_through` (what recovery and verify read to refuse a replay that needs pruned visits)
+    is the oldest id kept minus one: a prune keeps the newest even when asked to keep none, so ids are
+    never handed out again and the cursor never falls back."""
+    store.append(make_row(1))
+    assert store.visits_pruned_through() == 0
+    ids = [store.add_visit(visit(10 + i, 1, None)) for i in range(4)]
+    assert store.visits_pruned_through() == 0
+    assert store.prune_visits(covered=ids[-1], keep=0) == 3
+    assert [v.id for v in store.visits()] == ids[3:] and store.visits_pruned_through() == ids[2]
+    nxt = store.add_visit(visit(20, 1, None))
+    assert nxt == ids[-1] + 1 and store.visits_pruned_through() == ids[2]
+
+
 def test_a_row_s_place_and_the_rows_it_dropped_commit_with_it(store: MapStore) -> None:
     store.append(make_row(1))
     store.append(make_row(2))

@@ -27,7 +27,7 @@ from models.pipeline import MapModel, Stream, load_memory_state
 from service.maps.config import MapConfig, map_model
 from service.maps.errors import InvalidConfiguration
 from storage import snapshots
-from storage.catalog import Catalog, MapRecord, StorageError
+from storage.catalog import Catalog, MapRecord, SnapshotRecord, StorageError
 from storage.layout import Layout
 from storage.mapstore import MapStore, Observation, Visit
 
@@ -133,6 +133,33 @@ def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Obs
     return out
 
 
+def _snapshot_start(store: MapStore, catalog: Catalog, rec: SnapshotRecord
+                    ) -> tuple[snapshots.Manifest, dict[str, np.ndarray]] | None:
+    """Snapshot `rec` as the start of a replay of `store`: (its manifest, its memory arrays); None when it
+    is from a branch a restore abandoned (its last row, or its last visit, is not this store's).
+
+    Raises:
+        SnapshotInvalid, OSError, ValueError: it cannot be used (damaged, unreadable, or the visits
+            after it were pruned: the store's `visits_pruned_through` is past its visit cursor).
+    """
+    path = catalog.snapshot_dir(rec)
+    m = snapshots.verify(path)
+    if m.seq > 0:
+        row = store.get(m.seq)
+        if row is None or row.observation_id != m.last_observation_id:
+            return None
+    memory = snapshots.load_memory(path)
+    cursor = int(memory.get(VISIT_CURSOR, 0))
+    last = store.visit_stats()[2]
+    mark = store.visit_mark(cursor) if cursor else None
+    if cursor and mark != str(memory.get(VISIT_MARK, "")) and (cursor > last or mark is not None):
+        return None  # its visits are from a branch a restore abandoned
+    pruned = store.visits_pruned_through()
+    if pruned > cursor:  # visits it did not learn were pruned meanwhile
+        raise ValueError(f"visits after {cursor} were pruned (through {pruned})")
+    return m, memory
+
+
 def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> tuple[Rebuilt, dict[str, Any]]:
     """The memory of `store`: the newest usable snapshot, then a verified replay of the rows after it.
 
@@ -154,22 +181,13 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> t
     t0 = time.perf_counter()
     skipped: list[dict[str, str]] = []
     for rec in catalog.list_snapshots(map_id):
-        path = catalog.snapshot_dir(rec)
         try:
-            m = snapshots.verify(path)
-            if m.seq > 0:
-                row = store.get(m.seq)
-                if row is None or row.observation_id != m.last_observation_id:
-                    continue  # from a branch a restore abandoned
-            memory = snapshots.load_memory(path)
-            cursor = int(memory.get(VISIT_CURSOR, 0))
-            _, first, last = store.visit_stats()
-            mark = store.visit_mark(cursor) if cursor else None
-            if cursor and mark != str(memory.get(VISIT_MARK, "")) and (cursor > last or mark is not None):
-                continue  # its visits are from a branch a restore abandoned
-            if first > cursor + 1:  # visits it did not learn were pruned meanwhile
-                raise ValueError(f"visits after {cursor} were pruned (the oldest kept is {first})")
-            done = rebuild(memory, store.rows(after_seq=m.seq), like, visits=store.visits(after_id=cursor))
+            start = _snapshot_start(store, catalog, rec)
+            if start is None:
+                continue  # from a branch a restore abandoned
+            m, memory = start
+            done = rebuild(memory, store.rows(after_seq=m.seq), like,
+                           visits=store.visits(after_id=int(memory.get(VISIT_CURSOR, 0))))
         except Exception as e:  # an unusable snapshot is passed over, never fatal
             reason = str(e) or type(e).__name__
         else:
@@ -186,6 +204,15 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> t
                        visits=store.visits())
         note = {"source": "replay", "mismatches": len(done.mismatches),
                 "mismatched_seqs": done.mismatches[:_LISTED]}
+        pruned = store.visits_pruned_through()
+        if pruned:
+            # The visits that taught the memory before the prune cursor are gone (a snapshot covered
+            # them, and none that does is usable now): the replay serves every row, but its memory
+            # lacks what they taught, which matching winner cells do not show (§4.4).
+            note.update(complete=False, visits_pruned_through=pruned)
+            log.error("map %s: no usable snapshot covers the visits pruned through id %d; the replay from "
+                      "the first row serves every row but cannot reproduce what those visits taught",
+                      map_id, pruned)
         if done.mismatches:
             log.error("map %s: the replay from the first row did not reproduce the stored winner cells "
                       "of %d row(s), first seq %d; serving the replayed memory (run `cortexloc verify`)",
@@ -205,7 +232,11 @@ class MapCheck:
         mismatches: seqs whose stored winner cells the replay from the first row did not reproduce.
         snapshots_ok: ids of the snapshots whose every checksum verified.
         snapshots_bad: snapshot id -> why it does not verify.
-        problems: anything else wrong (store unreadable or damaged, projection missing or changed).
+        problems: anything else wrong (store unreadable or damaged, projection missing or changed, a
+            pruned visit log that no usable snapshot covers).
+        start: the snapshot the replay started from (None: the first row): once visits were pruned
+            (`MapStore.visits_pruned_through`), the earliest usable one that covers them (§4.4); the rows
+            up to its seq are then not replayed.
         seconds: wall time of the check.
     """
 
@@ -215,11 +246,26 @@ class MapCheck:
     snapshots_ok: list[str] = field(default_factory=list)
     snapshots_bad: dict[str, str] = field(default_factory=dict)
     problems: list[str] = field(default_factory=list)
+    start: str | None = None
     seconds: float = 0.0
 
     @property
     def ok(self) -> bool:
         return not (self.mismatches or self.snapshots_bad or self.problems)
+
+
+def _covering(store: MapStore, catalog: Catalog, map_id: str
+              ) -> tuple[str, snapshots.Manifest, dict[str, np.ndarray]] | None:
+    """The earliest usable snapshot of `store` that covers its pruned visits: (its id, manifest, memory
+    arrays); None: there is none."""
+    for rec in reversed(catalog.list_snapshots(map_id)):
+        try:
+            start = _snapshot_start(store, catalog, rec)
+        except Exception:  # damaged (listed in snapshots_bad), unreadable, or before the prune cursor
+            continue
+        if start is not None:
+            return rec.snapshot_id, *start
+    return None
 
 
 def open_catalog(data_dir: Path) -> Catalog:
@@ -230,8 +276,9 @@ def open_catalog(data_dir: Path) -> Catalog:
 def verify_map(catalog: Catalog, record: MapRecord, *,
                progress: Callable[[int, int], None] | None = None) -> MapCheck:
     """The offline full check of one map (`cortexloc verify`), changing nothing on disk: the store's
-    integrity, a replay from the first row comparing every row's stored winner cells, every snapshot's
-    checksums, and the projection's SHA-256.
+    integrity, a replay from the first row comparing every row's stored winner cells (from the earliest
+    usable snapshot that covers the pruned visits once some were: `MapCheck.start`, §4.4), every
+    snapshot's checksums, and the projection's SHA-256.
 
     Args:
         catalog: the data directory's catalog (opened read-only).
@@ -259,9 +306,23 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
                 out.problems.append("map.sqlite fails PRAGMA integrity_check")
             total = store.count()
             like = map_model(MapConfig.parse(record.params), max_observations=max(total, 1))
-            done = rebuild(like.tm, store.rows(), like, stop_at_mismatch=False, visits=store.visits(),
-                           progress=None if progress is None else lambda n: progress(n, total))
-            out.rows, out.mismatches = done.replayed, done.mismatches
+            start: TemporalMemory | Mapping[str, np.ndarray] | None = like.tm
+            after_seq = after_id = 0
+            pruned = store.visits_pruned_through()
+            if pruned:  # a replay from the first row would lack them: start at a snapshot that covers them
+                found = _covering(store, catalog, record.map_id)
+                if found is None:
+                    out.problems.append(f"the visit log was pruned through id {pruned} and no usable "
+                                        "snapshot covers it: the memory cannot be replayed")
+                    start = None
+                else:
+                    out.start, m, memory = found
+                    start, after_seq, after_id = memory, m.seq, int(memory.get(VISIT_CURSOR, 0))
+            if start is not None:
+                done = rebuild(start, store.rows(after_seq=after_seq), like, stop_at_mismatch=False,
+                               visits=store.visits(after_id=after_id),
+                               progress=None if progress is None else lambda n: progress(n, total))
+                out.rows, out.mismatches = done.replayed, done.mismatches
     except (StorageError, OSError) as e:
         out.problems.append(f"map.sqlite unreadable: {e}")
     except InvalidConfiguration as e:
