@@ -60,7 +60,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -181,6 +181,17 @@ CREATE TABLE dropped (
 """
 _PLACE_COLUMN = "ALTER TABLE observations ADD COLUMN place INTEGER NULL;"
 
+# What version 6 added (docs/design/science.md §11.9; docs/design/service.md §4.2): when each row was last
+# used (the appearance cap and forgetting read it), written in the transaction of the row or visit that
+# used it, so a recovery gives every row the recency the live map had (a row's own making and the visits
+# kept do not say which row a step's answer was, nor the clock of a visit after a restore).
+_V6_TABLES = """
+CREATE TABLE recency (
+    seq  INTEGER PRIMARY KEY REFERENCES observations (seq),
+    used INTEGER NOT NULL                   -- the seq-space clock of its last use
+);
+"""
+
 
 def _version_step(version: int) -> str:
     """The script that lifts the frozen meta's trigger for the version number alone."""
@@ -203,6 +214,8 @@ _CLOSURE_VERIFICATION = "ALTER TABLE loop_closures ADD COLUMN verification TEXT 
 _MIGRATE_V4 = _V4_TABLES + _CLOSURE_VERIFICATION + _version_step(4)
 #: Version 4 -> 5: new tables, and a column no row has yet (every older row reads NULL: no row changes).
 _MIGRATE_V5 = _V5_TABLES + _PLACE_COLUMN + _version_step(5)
+#: Version 5 -> 6: a new table (an older file's recency is rebuilt as before: rows and visits kept).
+_MIGRATE_V6 = _V6_TABLES + _version_step(6)
 
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
@@ -218,7 +231,8 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
     as it then is. A current file is returned as it is."""
     if meta.schema_version >= SCHEMA_VERSION:
         return meta
-    chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5]  # chain[v - 1]: version v -> v + 1
+    # chain[v - 1]: version v -> v + 1
+    chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6]
     steps = "".join(chain[meta.schema_version - 1:])
     try:
         conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
@@ -292,6 +306,8 @@ class NewObservation:
             `keyframes` table, for maps with the `keyframes` option.
         closure: the revisit logged with it. place: the row whose place it joined (None: its own place).
         drops: rows its place dropped over its cap, recorded in its transaction (`dropped`).
+        touched: rows its step used (the answer's row of the place it joined), at the clock of its seq
+            (`recency`).
     """
 
     stream: str
@@ -309,6 +325,7 @@ class NewObservation:
     closure: NewClosure | None = None
     place: int | None = None
     drops: tuple[int, ...] = ()
+    touched: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -321,6 +338,8 @@ class NewVisit:
         stream: the stream. seq: the stored row it was consolidated into. context_prev_seq: the row the
         stream continued (None: a new sequence). input_sdr, winner_cells: as a row's. metadata: the
         frame's. key: the post's Idempotency-Key and reply. closure: its revisit, logged with it.
+        touched: rows its step used (`seq` and the answer's row), at the clock of the seq the store
+            would have given it (`MapStore.next_seq`: the live map's clock, `recency`).
     """
 
     stream: str
@@ -332,6 +351,7 @@ class NewVisit:
     created_at: str = field(default_factory=utc_now)
     key: KeyRecord | None = None
     closure: NewClosure | None = None
+    touched: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -480,7 +500,7 @@ def create_file(path: Path, meta: MapMeta) -> None:
             # A temporary file: atomicity comes from the rename below, not from one transaction
             # (executescript would commit a pending transaction anyway).
             conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION
-                               + _V5_TABLES + _PLACE_COLUMN)
+                               + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

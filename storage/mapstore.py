@@ -109,6 +109,7 @@ class MapStore:
         # has no thumbnails or keys.
         self._v2 = meta.schema_version >= 2
         self._v5 = meta.schema_version >= 5  # places: a row's place, visits, dropped rows
+        self._v6 = meta.schema_version >= 6  # rows' recency
         self._cols = COLUMNS if self._v5 else COLUMNS_V4 if self._v2 else COLUMNS_V1
         self._v3 = meta.schema_version >= 3  # a version 2 file opened read-only has no loop-closure log
         self._conn: sqlite3.Connection | None = conn
@@ -276,6 +277,7 @@ class MapStore:
             closures = [_closure_params(r.closure, first + i)
                         for i, r in enumerate(rows) if r.closure is not None]
             drops = [(int(d), "appearance-cap", first + i) for i, r in enumerate(rows) for d in r.drops]
+            touches = [(int(t), first + i) for i, r in enumerate(rows) for t in r.touched]
             if not durable:  # per connection, outside a transaction: this commit alone skips its fsync
                 conn.execute("PRAGMA synchronous=NORMAL")
             try:
@@ -283,6 +285,7 @@ class MapStore:
                     conn.executemany(f"INSERT INTO observations ({COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?,?)",
                                      params)
                     self._drop(conn, drops)
+                    self._touch(conn, touches)
                     # The row's thumbnail and idempotency key commit with it, or nothing does.
                     conn.executemany("INSERT INTO thumbnails (seq, jpeg) VALUES (?, ?)", thumbs)
                     conn.executemany("INSERT INTO keyframes (seq, features, camera) VALUES (?, ?, ?)", frames)
@@ -333,6 +336,8 @@ class MapStore:
                          encode(visit.winner_cells, self._cell_dtype, "winner_cells"), meta,
                          str(visit.created_at), None if key is None else key.key,
                          None if key is None else key.fingerprint, None if key is None else key.reply))
+                    clock = max(self._last_seq, self._seq_floor) + 1  # the seq the live step was given
+                    self._touch(conn, [(int(t), clock) for t in visit.touched])
                     if visit.closure is not None:
                         self._log_closures(conn, [_closure_params(visit.closure, None)])
             except sqlite3.IntegrityError as exc:
@@ -379,6 +384,20 @@ class MapStore:
             r = self._db().execute("SELECT stream, created_at FROM visits WHERE id = ?",
                                    (int(visit_id),)).fetchone()
         return None if r is None else f"{r[0]}|{r[1]}"
+
+    def _touch(self, conn: sqlite3.Connection, touches: list[tuple[int, int]]) -> None:
+        """Within the caller's transaction: rows used at a clock (`recency`, kept at the latest)."""
+        if touches and self._v6:
+            conn.executemany("INSERT INTO recency (seq, used) VALUES (?, ?) ON CONFLICT (seq) DO UPDATE "
+                             "SET used = max(used, excluded.used)", touches)
+
+    def recency(self) -> dict[int, int]:
+        """Row -> the clock of its last use by a later step (a row's own making is its seq; not here),
+        docs/design/science.md §11.9. Empty for a file before version 6."""
+        if not self._v6:
+            return {}
+        with self._lock:
+            return {int(r[0]): int(r[1]) for r in self._db().execute("SELECT seq, used FROM recency")}
 
     def visits_pruned_through(self) -> int:
         """The last visit id pruned from the log (0: none ever was): a replay that starts before it

@@ -10,7 +10,7 @@ beyond that pass (benchmarks/bench_index.py, docs/benchmarks.md).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -55,7 +55,8 @@ class Localisation:
         self.visits = 0  # consolidated frames seen since the map was loaded
 
     def rebuild(self, rows: Iterable[Any], dropped: Iterable[int] = (), joined: dict[int, int] | None = None,
-                visited: Iterable[tuple[int | None, int, int]] = ()) -> None:
+                visited: Iterable[tuple[int | None, int, int]] = (), used: Mapping[int, int] | None = None
+                ) -> None:
         """The links, places and code statistics of the store's rows (recovery).
 
         Args:
@@ -64,7 +65,9 @@ class Localisation:
             dropped: seqs no longer held (§11.9). joined: seq -> the row its learning stream revisited,
                 from the loop-closure log (the place of a row stored before places, §11.8).
             visited: (previous row or None, row, clock) of the visits kept, in log order: their links and
-                the rows' recency.
+                the rows' recency (the clock a visit's `after_seq` + 1, a lower bound of the live one).
+            used: row -> the clock of its last use by a later step, as the live map recorded it (the
+                store's `recency`): with it the rows' recency is the live map's exactly (§11.9).
         """
         self.graph = SequenceGraph()
         self.codes.rebuild([])
@@ -84,6 +87,8 @@ class Localisation:
                 self.drop(seq)
         for prev, row, clock in visited:
             self.visit(prev, row, clock)
+        for row, clock in (used or {}).items():
+            self.touch(row, clock)
 
     def add(self, seq: int, prev: int | None, code: np.ndarray, *, stream: str = "", place: int = -1) -> None:
         """A row just learned, after `prev` (None: the start of a sequence), its frame code, and the place

@@ -90,6 +90,8 @@ class Step:
             §11.8); None: a row was made (learning) or nothing is learned.
         joined: for a made row, the place it joined (-1: a new place of its own).
         dropped: rows the made row's place dropped over its cap (§11.9), least recently used first.
+        touched: rows this learned step used at the clock `seq` (the answer's row, the visited row):
+            stored with the row or visit, so a recovery gives them the same recency (§11.9).
     """
 
     code: np.ndarray
@@ -103,6 +105,7 @@ class Step:
     visit: int | None = None
     joined: int = -1
     dropped: tuple[int, ...] = ()
+    touched: tuple[int, ...] = ()
 
 
 def _remember(model: MapModel, st: Stream, code: np.ndarray, *, learn: bool, starts: bool) -> np.ndarray:
@@ -191,7 +194,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                               exclude_own=None if own is None else (stream, own.here))
     t_ranked = time.perf_counter()
     place = model.links.step(st.localiser, ranked, own, not flat)
-    visit, joined, dropped = None, -1, ()
+    visit, joined, dropped, touched = None, -1, (), []
     if learn:
         assert seq is not None
         links = model.links
@@ -206,9 +209,11 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                 visit = None
             if visit is not None or confident:
                 links.touch(place.seq, seq)  # a learning stream used the place (§11.9)
+                touched.append(place.seq)
                 joined = place.place
         if visit is not None:
             links.visit(prev, visit, seq)
+            touched.append(visit)
             links.visits += 1
         else:
             model.index.add(seq, winners, stream)
@@ -222,7 +227,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                "localiser": (t3 - t_ranked) * 1e3}
     return Step(code=code, winners=winners, prev_seq=prev, step=step, stats=stats,
                 ranked=list(ranked[:top_k]), place=place, timings_ms=timings, visit=visit, joined=joined,
-                dropped=dropped)
+                dropped=dropped, touched=tuple(touched))
 
 
 def drop(model: MapModel, seqs: tuple[int, ...] | list[int]) -> None:

@@ -218,3 +218,34 @@ def test_verify_starts_at_the_earliest_snapshot_that_covers_the_pruned_visits(tm
         assert not check.ok and check.start is None and any("pruned" in p for p in check.problems)
     finally:
         catalog.close()
+
+
+def test_after_a_crash_the_cap_drops_the_rows_the_map_that_did_not_crash_drops(tmp_path):
+    """Per-row recency (what the appearance cap and forgetting read, docs/design/science.md §11.9) is the
+    live map's after a recovery: a step that joins or consolidates into a place uses the answer's row,
+    which neither the rows nor the visits say; the store's `recency` does. Without it the recovered map
+    drops other appearances than the one that never crashed."""
+    parts = [("p0", LAP, 0.0), ("p1", LAP, 3.0), ("p2", LAP, 2.0), ("p3", LAP, 4.0)]
+
+    def run(c, part) -> None:
+        for stream, places_, noise in part:
+            drive(c, places_, stream=stream, noise=noise, map_id="m")
+
+    def state(c) -> tuple:
+        rt = c.app.state.registry.get("m")
+        return sorted(rt.store.dropped().items()), rt.localisation.used[:len(rt.localisation.graph)].tolist()
+
+    with make_client(tmp_path / "twin", snapshot_every=7) as c:
+        make(c, "m", consolidate=1.0, appearances=2)
+        run(c, parts[:2])
+        run(c, parts[2:])
+        twin = state(c)
+    with make_client(tmp_path / "crashed", snapshot_every=7) as c:
+        make(c, "m", consolidate=1.0, appearances=2)
+        run(c, parts[:2])
+        live = state(c)
+        crash(c)
+    with make_client(tmp_path / "crashed", snapshot_every=7) as c:
+        assert state(c) == live
+        run(c, parts[2:])
+        assert state(c) == twin and twin[0]

@@ -1,6 +1,6 @@
-"""map.sqlite schema 5 (docs/design/science.md §11.8, §11.9; docs/design/service.md §4.2): a row's place,
-the visit log (consolidated frames, replayed), dropped rows, and the migration of an older map whose
-places come from its loop-closure log."""
+"""map.sqlite schemas 5 and 6 (docs/design/science.md §11.8, §11.9; docs/design/service.md §4.2): a row's
+place, the visit log (consolidated frames, replayed), dropped rows, rows' recency (schema 6), and the
+migration of an older map whose places come from its loop-closure log."""
 
 from __future__ import annotations
 
@@ -38,6 +38,27 @@ def test_a_visit_commits_in_order_after_its_rows_and_reads_back(store: MapStore)
     assert np.array_equal(got[0].winner_cells, make_row(10).winner_cells)
     assert [(c.seq, c.place_seq) for c in store.closures(0, 10)] == [(None, 1)]  # logged with it
     assert list(store.visits(after_id=first)) and store.visit_stats() == (2, first, second)
+
+
+def test_recency_commits_with_the_row_or_visit_that_used_it_at_the_live_clock(tmp_path: Path,
+                                                                             meta: MapMeta) -> None:
+    """Schema 6 `recency`: the rows a step used, at its seq (a row) or at the seq the store would have
+    given it (a visit: the high-water mark after a restore counts, as it does for the live step), kept
+    at the latest; the recovery reads it back (docs/design/science.md §11.9)."""
+    path = tmp_path / "map.sqlite"
+    with MapStore.create(path, meta) as store:
+        store.append(make_row(1))
+        store.append(dataclasses.replace(make_row(2, prev=1), touched=(1,)))
+        assert store.recency() == {1: 2}
+        store.add_visit(dataclasses.replace(visit(10, 2, 1), touched=(1, 2)))  # clock 3: the next seq
+        assert store.recency() == {1: 3, 2: 3}
+    with MapStore.open(path, seq_floor=40) as store:  # a restored file: the next seq is 41
+        store.add_visit(dataclasses.replace(visit(11, 1, None), touched=(1,)))
+        store.append(dataclasses.replace(make_row(3, prev=2), touched=(2,)))
+        assert store.recency() == {1: 41, 2: 41}
+        links = Localisation(None, 4096)
+        links.rebuild(store.rows(), used=store.recency())
+        assert links.used[[1, 2, 41]].tolist() == [41, 41, 41]
 
 
 def test_a_visit_key_answers_a_repeat_and_is_never_stored_twice(store: MapStore) -> None:
@@ -88,6 +109,7 @@ def _as_version_4(path: Path) -> None:
     conn.executescript("""
         DROP TABLE visits;
         DROP TABLE dropped;
+        DROP TABLE recency;
         ALTER TABLE observations DROP COLUMN place;
         DROP TRIGGER meta_no_update;
         UPDATE meta SET value = '4' WHERE key = 'schema_version';
@@ -112,7 +134,7 @@ def test_an_old_map_is_migrated_and_its_places_come_from_its_loop_closures(tmp_p
         assert ro.meta.schema_version == 4 and ro.dropped() == {} and list(ro.visits()) == []
         assert [r.place for r in ro.rows()] == [None] * 7
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 5
+        assert store.meta.schema_version == SCHEMA_VERSION == 6
         assert [r.place for r in store.rows()] == [None] * 7 and store.joined() == {4: 1, 5: 2, 6: 3}
         links = Localisation(None, 4096)
         links.rebuild(store.rows(), store.dropped(), store.joined())

@@ -333,7 +333,8 @@ class MapRuntime:
         dropped = self.store.dropped()
         self.model.index.rebuild(r for r in self.store.rows() if r.seq not in dropped)
         self.model.links.rebuild(self.store.rows(), dropped, self.store.joined(),
-                                 ((v.context_prev_seq, v.seq, v.after_seq + 1) for v in self.store.visits()))
+                                 ((v.context_prev_seq, v.seq, v.after_seq + 1) for v in self.store.visits()),
+                                 self.store.recency())
         if self.budget is not None:
             self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
         self.recovery = note
@@ -527,7 +528,7 @@ class MapRuntime:
                              winner_cells=step.winners, context_prev_seq=step.prev_seq, label=label,
                              metadata=metadata, thumbnail=thumbnail, keyframe=kf,
                              place=step.joined if step.joined >= 0 else None,
-                             drops=step.dropped) if seq is not None else None
+                             drops=step.dropped, touched=step.touched) if seq is not None else None
         answer = None if place is None else self._verified(
             PlaceResult.of(place, rows[place.seq], self.config.revisit_threshold), query, stream)
         # The answer is whole before the commit, so an idempotent post's reply commits with its row.
@@ -551,7 +552,7 @@ class MapRuntime:
         if step.visit is not None:  # durable before the reply: the replay needs it (service.md §4.4)
             self.store.add_visit(NewVisit(
                 stream=stream, seq=step.visit, context_prev_seq=step.prev_seq, input_sdr=step.code,
-                winner_cells=step.winners, metadata=metadata, closure=closure,
+                winner_cells=step.winners, metadata=metadata, closure=closure, touched=step.touched,
                 key=None if post is None else post.record(result)))
             self._committed()
         elif row is None and closure is not None:
