@@ -31,7 +31,8 @@ def bench_size(n: int, frames: int, keep: int = 30, seed: int = 0) -> dict[str, 
     sets = random_sets(rng, n)
     idx, _ = build_index(sets)
     loc = Localisation()
-    loc.rebuild(SimpleNamespace(seq=i + 1, context_prev_seq=i or None, input_sdr=np.zeros(0, np.int64))
+    loc.rebuild(SimpleNamespace(seq=i + 1, context_prev_seq=i or None, input_sdr=np.zeros(0, np.int64),
+                                stream="bench")
                 for i in range(n))
     state = loc.new_state()
     wanted = loc.candidates_wanted(0)

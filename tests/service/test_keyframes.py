@@ -200,14 +200,20 @@ def test_the_loop_closure_log_and_its_exports_carry_the_verified_relative_pose(t
         rows = list(csv.DictReader(io.StringIO(c.get("/v1/maps/kf/loop-closures/export",
                                                      params={"format": "csv"}).text)))
         g2o = c.get("/v1/maps/kf/loop-closures/export", params={"format": "g2o"})
+        # whose keyframe each verification used (the place's row or a route neighbour of it, which
+        # since places may be another robot's appearance of the same place)
+        keyframe_stream = {e["verification"]["keyframe_seq"]: c.get(
+            f"/v1/maps/kf/observations/{e['verification']['keyframe_seq']}").json()["stream"]
+            for e in log if e["verification"]["verified"]}
     told = [b for b in second if b["place"] is not None and b["place"]["revisit"]]
     assert told and [e["verification"] for e in log if e["stream"] == "second"] == [
         b["place"]["verification"] for b in told]  # the log keeps what the reply said
     verified = [e for e in log if e["verification"]["verified"]]
-    # Against the first robot's rows the camera is turned 5 degrees; against the second's, not at all.
+    # Against the first robot's keyframes the camera is turned 5 degrees; against the second's, not at all.
     expect = {"mapper": 5.0, "second": 0.0}
-    assert verified and all(abs(e["verification"]["rotation_deg"] - expect[e["place"]["stream"]]) < 1.0
-                            for e in verified), [(e["place"]["stream"], e["verification"]) for e in verified]
+    turned = [(e["verification"]["rotation_deg"], expect[keyframe_stream[e["verification"]["keyframe_seq"]]])
+              for e in verified]
+    assert verified and all(abs(got - want) < 1.0 for got, want in turned), turned
     assert len(rows) == len(log) and {r["verified"] for r in rows} <= {"True", "False"}
     row = next(r for r, e in zip(rows, log, strict=True)
                if e["verification"]["verified"] and e["place"]["stream"] == "mapper")

@@ -137,6 +137,25 @@ class Map(_Reply):
     #: The map's snapshots (every kind) and their bytes on disk.
     snapshot_count: int = 0
     snapshots_bytes: int = 0
+    #: Places, appearances, visits and their bounds (None from an older server).
+    places: PlacesInfo | None = None
+
+
+class PlacesInfo(_Reply):
+    """A map's places and their bounds: repeated passes are consolidated into visits of known places,
+    each place keeps at most `max_appearances` rows, and at `max_rows` the least recently used places
+    are forgotten (`forgetting` says the rule)."""
+
+    places: int
+    appearances: int
+    rows_stored: int
+    dropped: int
+    forgotten: int
+    visits_logged: int
+    max_appearances: int
+    max_rows: int
+    consolidate: float
+    forgetting: str
 
 
 class MapList(_Reply):
@@ -305,6 +324,11 @@ class Place(_Reply):
     metadata: Metadata | None = None
     #: The geometric check of a revisit candidate (None: not checked, or an older server).
     verification: Verification | None = None
+    #: The place `seq` belongs to: every pass and appearance of one place answers the same id
+    #: (None from an older server).
+    place_id: int | None = None
+    #: The frame was too flat (near-black, blank, overexposed) to say where it is: never a revisit.
+    low_information: bool = False
 
 
 class Versions(_Reply):
@@ -340,6 +364,9 @@ class Observation(_Reply):
     versions: Versions
     place: Place | None = None
     metadata: Metadata | None = None
+    #: A learned frame consolidated into this stored row (a visit of a known place): the memory learned
+    #: it, no row was made, so `seq` and `observation_id` are None.
+    consolidated_into: int | None = None
 
 
 class StoredObservation(_Reply):

@@ -262,6 +262,20 @@ def test_a_revisit_names_its_place(client: Client, tiny_map: str, make_frame) ->
     assert place.metadata is not None and place.metadata.pose is not None and place.metadata.pose.x == 8.0
     window = client.recent(tiny_map, limit=3)
     assert [a.reply.place.seq if a.reply.place else None for a in window.answers][-1] == seqs[8]
+    # the place's id and the frame's information are typed fields, as is the map's places block
+    assert place.place_id == place.seq and place.low_information is False
+    places = client.get_map(tiny_map).places
+    assert isinstance(places, models.PlacesInfo)
+    assert places.appearances == len(seqs) and places.visits_logged == 0
+
+
+def test_a_second_pass_is_consolidated_into_known_rows(client: Client, tiny_map: str, make_frame) -> None:
+    seqs = _drive_a_route(client, tiny_map, make_frame, 12)
+    again = [client.observe(tiny_map, make_frame(place), stream="second") for place in range(12)]
+    visits = [o for o in again if o.consolidated_into is not None]
+    assert visits and all(o.seq is None and o.observation_id is None and o.consolidated_into in seqs.values()
+                          for o in visits)
+    assert client.get_map(tiny_map).places.visits_logged == len(visits)
 
 
 def test_the_revisit_threshold_can_be_changed(client: Client, tiny_map: str) -> None:

@@ -191,7 +191,10 @@ class MapRuntime:
         if self.store is None:
             return
         latest = self.catalog.list_snapshots(self.map_id)
-        new_rows = self.store.last_seq() > (latest[0].seq if latest else 0) or self.since_snapshot > 0
+        # Rows or visits the newest snapshot (of any kind) does not hold: a shutdown snapshot shortens
+        # the next start; one right after a manual snapshot would only duplicate it.
+        new_rows = (self.store.last_seq() > (latest[0].seq if latest else 0)
+                    or self.store.visit_stats()[2] > self.covered)
         switched = any(st.learning is False for st in self.streams.values())
         if snapshot and self.state == "ready" and self.snapshot_every and (new_rows or switched):
             try:
