@@ -50,7 +50,10 @@ class RayCluster:
         self.work = work
         self.env = {**{k: v for k, v in os.environ.items() if not k.startswith("CORTEXLOC_")}, **env,
                     "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
-                    "RAY_USAGE_STATS_ENABLED": "0", "RAY_DEDUP_LOGS": "0"}
+                    "RAY_USAGE_STATS_ENABLED": "0", "RAY_DEDUP_LOGS": "0",
+                    # a throwaway loopback cluster: a token the user keeps in ~/.ray (token
+                    # authentication) is not this cluster's, and with it the CLI could not connect
+                    "RAY_AUTH_MODE": "disabled"}
         self.temp = Path(tempfile.mkdtemp(prefix="cxray-", dir="/tmp"))
         self.head: subprocess.Popen | None = None
         self.server: subprocess.Popen | None = None
