@@ -157,13 +157,20 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFact
     app.state.encoder_factory = factory
     if settings is not None:
         app.state.settings = settings
+    install_edge(app, metrics)
+    app.include_router(api_router)
+    app.mount(UI_PATH, static_files(), name="ui")  # the map viewer: static files, no API of its own
+    app.openapi = openapi_with_problems(app)  # type: ignore[method-assign]
+    return app
+
+
+def install_edge(app: FastAPI, metrics: Metrics) -> None:
+    """The edge every HTTP entry point of cortexloc has (this app, and the Ray Serve ingress): the
+    problem+json handlers, then security headers, request ids, metrics and the upload limits, outermost
+    first (docs/design/service.md §1.9, §2, §3, §9)."""
     install_error_handlers(app)
     # add_middleware puts each one outside the previous: the last added runs first.
     app.add_middleware(UploadLimitMiddleware)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(RequestContextMiddleware)
     app.add_middleware(SecurityHeadersMiddleware)
-    app.include_router(api_router)
-    app.mount(UI_PATH, static_files(), name="ui")  # the map viewer: static files, no API of its own
-    app.openapi = openapi_with_problems(app)  # type: ignore[method-assign]
-    return app

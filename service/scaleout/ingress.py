@@ -29,13 +29,11 @@ from prometheus_client.exposition import generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 from prometheus_client.registry import CollectorRegistry
 
+from service.app import install_edge
 from service.deps import ApiKeyDep, ReadKeyDep
-from service.errors import install_error_handlers, problem_response, problem_responses
-from service.headers import SecurityHeadersMiddleware
-from service.limits import UploadLimitMiddleware
+from service.errors import problem_response, problem_responses
 from service.maps.errors import ShardUnavailable
-from service.metrics import Metrics, MetricsMiddleware
-from service.request_context import RequestContextMiddleware
+from service.metrics import Metrics
 from service.request_ids import REQUEST_ID_HEADER, request_id_var
 from service.scaleout.shards import ShardSet
 from service.schemas import BudgetModel, Health, MapList, Readiness
@@ -236,11 +234,7 @@ def create_ingress_app(settings: Settings, make_shards: Callable[[], ShardSet]) 
                   lifespan=lifespan, openapi_url=None, docs_url=None, redoc_url=None)
     app.state.settings = settings
     app.state.metrics = metrics
-    install_error_handlers(app)
-    app.add_middleware(UploadLimitMiddleware)
-    app.add_middleware(MetricsMiddleware, metrics=metrics)
-    app.add_middleware(RequestContextMiddleware)
-    app.add_middleware(SecurityHeadersMiddleware)
+    install_edge(app, metrics)  # the single process's edge: the same limits, ids, metrics, headers
     app.include_router(_router())
 
     @app.get("/openapi.json", include_in_schema=False)
