@@ -2,6 +2,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+RAY_STAMP := $(VENV)/.installed-ray
 
 .PHONY: install install-gpu test lint run bench bench-quick clean
 
@@ -9,11 +10,16 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-# The Python client (clients/python) too: its tests run against this checkout's service. The `ray` extra
-# too: the scale-out's failure test (tests/e2e/test_scaleout.py) runs on a real local Ray cluster in CI.
+# The Python client (clients/python) too: its tests run against this checkout's service.
 $(STAMP): $(BIN)/python pyproject.toml constraints.txt clients/python/pyproject.toml
-	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev,ray]' -e 'clients/python[numpy]'
+	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev]' -e 'clients/python[numpy]'
 	touch $(STAMP)
+
+# The `ray` extra for the tests and benchmarks only (the scale-out's failure test, tests/e2e/test_scaleout.py,
+# runs on a real local Ray cluster in CI); `make run` serves the single process and does not need it.
+$(RAY_STAMP): $(STAMP)
+	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev,ray]'
+	touch $(RAY_STAMP)
 
 install: $(STAMP)
 
@@ -26,16 +32,16 @@ install-gpu: $(STAMP)
 lint: install
 	$(BIN)/ruff check .
 
-test: install lint
+test: $(RAY_STAMP) lint
 	$(BIN)/pytest -q
 
 run: install
 	$(BIN)/cortexloc serve
 
-bench: install
+bench: $(RAY_STAMP)
 	$(BIN)/python benchmarks/run_all.py
 
-bench-quick: install
+bench-quick: $(RAY_STAMP)
 	$(BIN)/python benchmarks/run_all.py --quick
 
 clean:
