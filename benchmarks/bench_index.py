@@ -13,6 +13,9 @@ and a long tail of chance overlaps, as in a map. For each size:
   then the same top-10 selection (overlap = Dice order for constant weight, ties to the older row);
 - the index's previous NumPy ranking (`bincount` over every row; `bincount_top`), as a reference for
   the compiled pass that replaced it;
+- the index ranking with a weight per query cell (a stream's condition, docs/design/science.md §11.10:
+  about a third of the cells at 0, the rest in (0, 1]), the pass every stream's frame now takes: its
+  median and its ratio to the unweighted pass;
 - the ratios of the medians, and whether all three returned the same top-10 (seq and overlap) for
   every query: the benchmark is also a correctness check at sizes the unit tests never reach.
 
@@ -130,12 +133,17 @@ def bench_size(n: int, queries: int, keep: int, seed: int = 0, brute: bool = Tru
     qs = [noisy_query(rng, sets[t], keep) for t in targets]
     for q in qs[:3]:  # warm-up: allocator, caches
         idx.rank(q, TOP_K)
-    t_idx, t_brute, t_old, agree, found = [], [], [], 0, 0
+    weights = [np.where(rng.random(q.size) < 0.33, 0.0, rng.random(q.size)) for q in qs]
+    idx.rank(qs[0], TOP_K, weights=weights[0])
+    t_idx, t_brute, t_old, t_w, agree, found = [], [], [], [], 0, 0
     clock = time.perf_counter
-    for q, target in zip(qs, targets, strict=True):
+    for q, target, w in zip(qs, targets, weights, strict=True):
         t0 = clock()
         got = idx.rank(q, TOP_K)
         t_idx.append(clock() - t0)
+        t0 = clock()
+        idx.rank(q, TOP_K, weights=w)
+        t_w.append(clock() - t0)
         found += int(any(m.seq == target + 1 for m in got))
         t0 = clock()
         old = bincount_top(idx, q)
@@ -153,6 +161,8 @@ def bench_size(n: int, queries: int, keep: int, seed: int = 0, brute: bool = Tru
                   "rebuild_s": rebuild_s, "bytes": idx.nbytes(), "postings": idx.postings(),
                   "rss_growth_mib": round(rss_index, 1)},
         "previous_numpy_rank_ms_median": float(np.median(t_old) * 1e3),
+        "weighted_rank_ms_median": float(np.median(t_w) * 1e3),
+        "ratio_weighted_to_index": float(np.median(t_w) / np.median(t_idx)),
         "target_in_top10": found,
     }
     out["ratio_previous_to_index"] = out["previous_numpy_rank_ms_median"] / out["index"]["rank_ms_median"]
@@ -184,7 +194,8 @@ def main() -> None:
               f"brute-force popcount {r['brute']['ms_median']:.2f} ms, "
               f"ratio {r['ratio_brute_to_index']:.1f}x; previous NumPy rank "
               f"{r['previous_numpy_rank_ms_median']:.2f} ms ({r['ratio_previous_to_index']:.1f}x); "
-              f"same top-10 {r['same_top10']}/{queries}; "
+              f"same top-10 {r['same_top10']}/{queries}; weighted rank {r['weighted_rank_ms_median']:.3f} ms "
+              f"({r['ratio_weighted_to_index']:.2f}x the unweighted); "
               f"rebuild {r['index']['rebuild_s']:.2f} s, index {r['index']['bytes'] / 2**20:.1f} MiB, "
               f"packed {r['brute']['packed_bytes'] / 2**20:.1f} MiB", flush=True)
     write_json(args.out.name, {"config": {"n_cells": N_CELLS, "weight": WEIGHT, "top_k": TOP_K,

@@ -151,7 +151,9 @@ class MatchModel(_Out):
     label: str | None
     created_at: str
     overlap: int
-    score: float = Field(description="Dice of the winner-cell sets")
+    score: float = Field(description="Dice of the winner-cell sets, each cell weighed by how rarely the "
+                                     "stream's recent frames had it (docs/design/science.md §11.10); "
+                                     "1: the same cells")
     metadata: dict[str, Any] | None = Field(description="as stored with that observation")
 
 

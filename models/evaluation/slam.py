@@ -45,14 +45,27 @@ def revisit_truth(labels: np.ndarray, tolerance: int, away: int = AWAY) -> np.nd
     return out
 
 
+def localise_truth(labels: np.ndarray, laps: np.ndarray, tolerance: int) -> np.ndarray:
+    """(T,) bool: frames of laps >= 1 whose place lap 0 stored. A localising stream is another robot on
+    the learned map: every such frame is at a stored place, "left" or not (the turn of an excursion)."""
+    lab, laps = np.asarray(labels, np.int64), np.asarray(laps, np.int64)
+    first = lab[laps == 0]
+    return (laps >= 1) & (np.abs(lab[:, None] - first[None, :]) <= tolerance).any(axis=1)
+
+
 def score(best: np.ndarray, confidence: np.ndarray, labels: np.ndarray, threshold: float,
-          tolerance: int, laps: np.ndarray | None = None) -> dict[str, Any]:
+          tolerance: int, laps: np.ndarray | None = None, also_true: np.ndarray | None = None
+          ) -> dict[str, Any]:
     """One method's revisit decisions on a route, per query.
 
     Args:
         best: (T,) the frame each answer names (-1: no answer); confidence: (T,) its confidence.
         labels: (T,) place labels; threshold: confidence at which an answer is a revisit.
         tolerance: labels within it are one place. laps: (T,) int lap of each frame (default all 0).
+        also_true: (T,) bool frames where a right answer is no false revisit though the route's truth
+            counts none (a localising stream's `localise_truth`); "recall" and "recall_at_1" stay over the
+            route's truth, so methods are compared on the same frames; the PR curve (query AUC, R@100P)
+            is over both.
 
     Returns:
         {"false_revisits" (revisits called on frames that are no true revisit, whatever the lap),
@@ -64,21 +77,25 @@ def score(best: np.ndarray, confidence: np.ndarray, labels: np.ndarray, threshol
     lab = np.asarray(labels, np.int64)
     laps = np.zeros(lab.size, np.int64) if laps is None else np.asarray(laps, np.int64)
     truth = revisit_truth(lab, tolerance)
-    right = truth & (best >= 0) & (np.abs(lab[np.maximum(best, 0)] - lab) <= tolerance)
+    named = (best >= 0) & (np.abs(lab[np.maximum(best, 0)] - lab) <= tolerance)
+    right = truth & named
+    either = truth | (np.zeros(lab.size, bool) if also_true is None else np.asarray(also_true, bool))
+    fine = either & named
     called = (best >= 0) & (conf >= threshold)
-    out: dict[str, Any] = {"false_revisits": int((called & ~right).sum()), "lap": {}}
+    out: dict[str, Any] = {"false_revisits": int((called & ~fine).sum()), "lap": {}}
     for lap in np.unique(laps):
         m = laps == lap
         n_true, n_called, n_right = int(truth[m].sum()), int(called[m].sum()), int(right[m].sum())
         hit = int((called & right)[m].sum())
+        ok = int((called & fine)[m].sum())
         entry = {"frames": int(m.sum()), "revisits_true": n_true, "revisits_called": n_called,
-                 "false_revisits": n_called - hit,
-                 "precision": hit / n_called if n_called else None,
+                 "false_revisits": n_called - ok,
+                 "precision": ok / n_called if n_called else None,
                  "recall": hit / n_true if n_true else None,
                  "right_called": hit / n_right if n_right else None,
                  "recall_at_1": n_right / n_true if n_true else None}
         if n_true:
-            P, R = metrics.query_pr_curve(np.where(best[m] >= 0, conf[m], 0.0), right[m], truth[m])
+            P, R = metrics.query_pr_curve(np.where(best[m] >= 0, conf[m], 0.0), fine[m], either[m])
             entry.update(query_auc=metrics.auc(P, R), recall_at_100p=metrics.recall_at_100_precision(P, R))
         out["lap"][int(lap)] = entry
     return out

@@ -8,7 +8,9 @@ so "older" is simply "lower row" and ties go to the older observation for free i
 A query gathers the postings of its cells and, in one compiled pass (`_top_k_touched`, numba), counts
 overlaps per row in a reusable counter, turns them into Dice = 2·overlap / (|query| + |stored|) and
 keeps the k best in a small sorted buffer (score descending, ties to the lower row); rows sharing a
-single cell are looked at only when a bound says one could still enter the k best. The cost is the
+single cell are looked at only when a bound says one could still enter the k best. A stream's query may
+weigh its cells (its condition, docs/design/science.md §11.10): the same pass then also sums the weights
+per row, and the score is the weighted Dice. The cost is the
 postings touched (≈ |query| · rows · |cells| / n_cells: about 20,000 for 10^5 rows of 40 of 8,192
 cells, 200,000 for 10^6) and nothing proportional to the number of rows: the earlier NumPy version
 (`bincount` over all rows, then a pass over that vector) spent most of its time allocating and
@@ -38,6 +40,7 @@ __all__ = ["IndexFull", "IndexRow", "InvertedIndex", "Match"]
 
 _ROW = np.int32  # row numbers; max_observations is capped below 2**31
 _MIN_CAP = 4  # first allocation of a cell's postings; doubled when full
+_NO_WEIGHTS = np.zeros(0, dtype=np.float64)  # `_top_k_touched` without weights: plain Dice
 
 
 class IndexFull(Exception):  # noqa: N818 - named after the problem slug `map-full`
@@ -130,8 +133,9 @@ def _offer(r, o, s, k, nb, best_row, best_ov, best_sc):  # pragma: no cover
 
 
 @njit(cache=True)
-def _top_k_touched(flat: np.ndarray, weight: np.ndarray, q_size: int, k: int, min_overlap: int,
-                   w_min: int, excluded: np.ndarray, counts: np.ndarray,
+def _top_k_touched(flat: np.ndarray, flat_w: np.ndarray, weight: np.ndarray, q_size: int,
+                   w_total: float, w_max: float, k: int, min_overlap: int, w_min: int, excluded: np.ndarray,
+                   counts: np.ndarray, acc: np.ndarray,
                    multi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
     """Overlap counting and top-k Dice selection over the rows a query touches (compiled).
 
@@ -141,16 +145,24 @@ def _top_k_touched(flat: np.ndarray, weight: np.ndarray, q_size: int, k: int, mi
     offered only when the bound 2 / (w_min + q_size) could still enter the k best. That skips a write
     per touched row and a random read of its count and weight (issue 25).
 
+    With a weight per query cell (a stream's condition, docs/design/science.md §11.10) the score is the
+    weighted Dice, (shared cells' weight / the query's weight) · 2|q| / (|q| + |stored|), and the bound
+    of a single-overlap row w_max / w_total · 2|q| / (w_min + |q|).
+
     Args:
         flat: (p,) int32 rows from the query cells' postings (a row appears once per shared cell).
+        flat_w: (p,) float64 the weight of the query cell each entry of `flat` came from; empty: every
+            cell weighs 1 (plain Dice, no per-row sums).
         weight: (>= rows,) int32 |cells| of each stored row.
-        q_size: |query|.
+        q_size: |query|. w_total, w_max: the query cells' weights summed (> 0) and their largest (with
+            `flat_w`; ignored without).
         k: results wanted (>= 1).
         min_overlap: rows sharing fewer cells are skipped (>= 1 here: untouched rows never qualify).
         w_min: a lower bound of the weights of the rows in `flat` (the bound above).
         excluded: (e,) int64 rows never returned.
         counts: (>= rows,) uint8 or int32 scratch, all zero on entry and left all zero on exit; uint8
             only when q_size <= 255 (an overlap never exceeds q_size).
+        acc: (>= rows,) float64 scratch of the weighted sums (with `flat_w`), all zero on entry and exit.
         multi: (>= rows,) int32 scratch for the rows whose count reaches max(min_overlap, 2).
 
     Returns:
@@ -158,12 +170,16 @@ def _top_k_touched(flat: np.ndarray, weight: np.ndarray, q_size: int, k: int, mi
         descending, ties to the lower row. The score is the same float64 expression as the NumPy path,
         2.0 * overlap / (weight + q_size), so equal fractions tie exactly.
     """
+    weighted = flat_w.size > 0
+    share = 2.0 * q_size / w_total if weighted else 2.0
     listed = max(min_overlap, 2)
     m = 0
     for i in range(flat.size):
         r = flat[i]
         c = counts[r] + 1
         counts[r] = c
+        if weighted:
+            acc[r] += flat_w[i]
         if c == listed:
             multi[m] = r
             m += 1
@@ -179,19 +195,23 @@ def _top_k_touched(flat: np.ndarray, weight: np.ndarray, q_size: int, k: int, mi
         if o < min_overlap:
             continue
         d = weight[r] + q_size
-        nb = _offer(r, o, 2.0 * o / d if d > 0 else 0.0, k, nb, best_row, best_ov, best_sc)
+        x = share * acc[r] if weighted else 2.0 * o
+        nb = _offer(r, o, x / d if d > 0 else 0.0, k, nb, best_row, best_ov, best_sc)
     if min_overlap <= 1:
         d_min = w_min + q_size
-        bound = 2.0 / d_min if d_min > 0 else np.inf
+        bound = (share * w_max if weighted else 2.0) / d_min if d_min > 0 else np.inf
         if nb < k or bound >= best_sc[k - 1]:
             # Single-overlap rows could still enter: each appears exactly once in `flat`.
             for i in range(flat.size):
                 r = flat[i]
                 if counts[r] == 1:
                     d = weight[r] + q_size
-                    nb = _offer(r, 1, 2.0 / d if d > 0 else 0.0, k, nb, best_row, best_ov, best_sc)
+                    x = share * acc[r] if weighted else 2.0
+                    nb = _offer(r, 1, x / d if d > 0 else 0.0, k, nb, best_row, best_ov, best_sc)
     for i in range(flat.size):
         counts[flat[i]] = 0  # leave the scratch clean for the next query
+        if weighted:
+            acc[flat[i]] = 0.0
     return best_row[:nb], best_ov[:nb], best_sc[:nb]
 
 
@@ -201,6 +221,8 @@ def warm_up() -> None:
     idx.add(1, [1, 2], "s")
     idx.rank([1, 3], 1)  # the uint8 counters
     idx.rank(np.arange(300), 1)  # the int32 counters
+    idx.rank([1, 3], 1, weights=np.array([0.5, 1.0]))  # the weighted pass
+    idx.rank(np.arange(300), 1, weights=np.ones(300))
 
 
 class InvertedIndex:
@@ -239,6 +261,7 @@ class InvertedIndex:
         self._counts8 = np.zeros(0, dtype=np.uint8)
         self._counts32 = np.zeros(0, dtype=np.int32)
         self._touched = np.zeros(0, dtype=np.int32)
+        self._acc = np.zeros(0, dtype=np.float64)  # the weighted pass's per-row sums (all zero between)
         self._scratch_lock = threading.Lock()
 
     # ------------------------------------------------------------------ sizes
@@ -259,7 +282,7 @@ class InvertedIndex:
         """
         rows = self._seq.data.nbytes + self._weight.data.nbytes
         streams = sum(g.data.nbytes for g in self._stream_rows)
-        scratch = self._counts8.nbytes + self._counts32.nbytes + self._touched.nbytes
+        scratch = self._counts8.nbytes + self._counts32.nbytes + self._touched.nbytes + self._acc.nbytes
         return int(self._post_bytes + rows + streams + scratch)
 
     def last_seq(self) -> int:
@@ -446,7 +469,8 @@ class InvertedIndex:
     # ------------------------------------------------------------------ queries
 
     def rank(self, cells: np.ndarray | Sequence[int], top_k: int, *, exclude_seqs: Iterable[int] = (),
-             exclude_own: tuple[str, int] | None = None, min_overlap: int = 1) -> list[Match]:
+             exclude_own: tuple[str, int] | None = None, min_overlap: int = 1,
+             weights: np.ndarray | None = None) -> list[Match]:
         """The `top_k` stored observations most similar to `cells`, best first.
 
         Args:
@@ -457,17 +481,29 @@ class InvertedIndex:
                 own trail it has not left, docs/design/science.md §11.6); O(their number) per query.
             min_overlap: rows sharing fewer cells are not candidates. The default 1 returns only rows
                 that share something with the query; 0 ranks every row (zero-overlap rows last).
+            weights: (len(cells),) each query cell's weight in [0, 1], in the order of `cells` (a stream's
+                condition, docs/design/science.md §11.10); None: every cell 1.
 
         Returns:
-            `Match(seq, overlap, score)` tuples, score = Dice = 2·overlap / (|query| + |stored|), sorted
-            by score descending, ties to the lower (older) seq.
+            `Match(seq, overlap, score)` tuples, score = Dice = 2·overlap / (|query| + |stored|) or, with
+            `weights`, the weighted Dice (shared cells' weight / all query cells' weight) · 2|query| /
+            (|query| + |stored|), which is Dice when every weight is 1 and 1 for a stored row equal to the
+            query; sorted by score descending, ties to the lower (older) seq. `overlap` counts cells.
         """
         n = self._seq.n
         if top_k <= 0 or n == 0:
             return []
-        q = np.unique(np.asarray(cells, dtype=np.int64))
+        q, first = np.unique(np.asarray(cells, dtype=np.int64), return_index=True)
         if q.size and (q[0] < 0 or q[-1] >= self.n_cells):
             raise ValueError(f"cells must lie in [0, {self.n_cells})")
+        w = None
+        if weights is not None:
+            w = np.asarray(weights, dtype=np.float64)
+            if w.shape != (np.asarray(cells).size,) or not np.all((w >= 0.0) & (w <= 1.0)):
+                raise ValueError("weights must be one value in [0, 1] per query cell")
+            w = w[first]
+            if not w.any():
+                w = None  # nothing to rank by: plain Dice
         post, plen = self._post, self._plen
         parts = [post[c][: plen[c]] for c in q.tolist() if plen[c]]
         if min_overlap >= 1:
@@ -488,9 +524,16 @@ class InvertedIndex:
                     if self._counts32.size < n:
                         self._counts32 = np.zeros(cap, dtype=np.int32)
                     counts = self._counts32
-                rows, ovs, scores = _top_k_touched(flat, self._weight.data, int(q.size), min(int(top_k), n),
-                                                   int(min_overlap), self._w_min, excluded, counts,
-                                                   self._touched)
+                if w is None:
+                    flat_w, w_total, w_max = _NO_WEIGHTS, 0.0, 0.0
+                else:
+                    if self._acc.size < n:
+                        self._acc = np.zeros(cap, dtype=np.float64)
+                    flat_w = np.repeat(w[[plen[c] > 0 for c in q.tolist()]], [len(p) for p in parts])
+                    w_total, w_max = float(w.sum()), float(w.max())
+                rows, ovs, scores = _top_k_touched(
+                    flat, flat_w, self._weight.data, int(q.size), w_total, w_max, min(int(top_k), n),
+                    int(min_overlap), self._w_min, excluded, counts, self._acc, self._touched)
             seqs = self._seq.data[rows]
             return [Match(int(s), int(o), float(x)) for s, o, x in zip(seqs, ovs, scores, strict=True)]
         # min_overlap <= 0: every row not excluded is a candidate, zero-overlap rows included.
@@ -504,7 +547,15 @@ class InvertedIndex:
         denom = (self._weight.data[cand] + q.size).astype(np.float64)
         # Dice is 0 when both sets are empty (models.sdr.dice's convention). Equal fractions give
         # bit-identical doubles (IEEE division is correctly rounded), so ties are exact.
-        score = np.divide(2.0 * ov, denom, out=np.zeros(cand.size), where=denom > 0)
+        if w is not None:  # the compiled pass's expression, so both rank equal rows alike
+            acc = np.zeros(n)
+            for c, wc in zip(q.tolist(), w.tolist(), strict=True):
+                if plen[c]:
+                    acc[post[c][: plen[c]]] += wc
+            score = np.divide(2.0 * q.size / float(w.sum()) * acc[cand], denom, out=np.zeros(cand.size),
+                              where=denom > 0)
+        else:
+            score = np.divide(2.0 * ov, denom, out=np.zeros(cand.size), where=denom > 0)
 
         k = min(int(top_k), cand.size)
         if k < cand.size:

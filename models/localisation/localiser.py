@@ -78,6 +78,10 @@ class LocaliserParams(BaseModel):
     # place's most similar appearance, on the same scale as `departure` (1: never, every frame a row; §11.8)
     consolidate: float = Field(0.25, ge=0.0, le=1.0)
     appearances: int = Field(8, ge=1, le=1024)  # rows a place keeps; beyond, the least recently used goes
+    # A stream's condition (§11.10): the index weighs each query bit by max(0, 1 - discount * how often it
+    # was on in the stream's recent frames), over a time constant of `condition_frames` (0: plain Dice)
+    condition_frames: int = Field(100, ge=0, le=100_000)
+    condition_discount: float = Field(2.0, ge=0.0, le=100.0)
 
 
 #: Every option's default (LocaliserParams; meanings and why: docs/design/science.md §11.3).

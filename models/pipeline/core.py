@@ -26,6 +26,7 @@ import numpy as np
 from models.frontend import slsbh
 from models.frontend.adaptation import RunningMean
 from models.localisation import InvertedIndex, Localisation, Match, Place, informative
+from models.localisation.condition import Condition
 from models.memory import registry as memories
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline.state import Stream
@@ -71,6 +72,15 @@ class MapModel:
                         Localisation(self.links.localiser.conf, tm.n_columns), self.memory, self.s,
                         self.adapt_tau)
 
+    @property
+    def condition_frames(self) -> int:
+        """The streams' condition time constant (docs/design/science.md §11.10; 0: none)."""
+        return int(self.links.localiser.conf["condition_frames"])
+
+    def cells_per_column(self) -> int:
+        """Winner cells per code bit: the TM's cells per column, 1 where the code is the winners."""
+        return int(self.tm.cells_per_column) if memories.get(self.memory).sequential else 1
+
 
 @dataclass(frozen=True)
 class Step:
@@ -83,7 +93,8 @@ class Step:
             (or the visit's).
         step: steps of the stream since its context was last empty, before this one.
         stats: the TM step's column counts (`StreamContext.stats.as_dict()`).
-        ranked: the best `top_k` stored rows by Dice, best first.
+        ranked: the best `top_k` stored rows by Dice (weighted by the stream's condition, docs/design/
+            science.md §11.10), best first.
         place: the stream's place on the map, or None (warm-up).
         timings_ms: hash, tm, search (ranking and localiser), localiser.
         visit: a learned frame consolidated into this stored row (no row made, docs/design/science.md
@@ -114,6 +125,15 @@ def _remember(model: MapModel, st: Stream, code: np.ndarray, *, learn: bool, sta
         st.context.reset()
         st.step, st.last_learned_seq, st.own_seq = 0, None, None
     return memories.get(model.memory).winners(model.tm, code, learn, st.context)
+
+
+def _condition(model: MapModel, st: Stream, code: np.ndarray) -> None:
+    """The frame's code into the stream's condition (docs/design/science.md §11.10), after its ranking:
+    every frame, so a replay of a learning stream's rows and visits gives the live condition again."""
+    if model.condition_frames:
+        if st.condition is None:
+            st.condition = Condition(model.links.codes.counts.size, model.condition_frames)
+        st.condition.add(code)
 
 
 def _advance(st: Stream, learn: bool, seq: int | None, made: bool = True) -> None:
@@ -190,8 +210,11 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     own = model.links.own_trail(st.localiser, st.own_seq, code, code_of, not flat)
     if own is not None and own.here > own.last and st.last_learned_seq != st.own_seq:
         own = None  # it left every row it made and travels on rows it visited: none is where it is
+    # Bits the stream's recent frames share say what its conditions are, not where it is (§11.10).
+    weights = None if st.condition is None else st.condition.weights(
+        winners, model.cells_per_column(), float(model.links.localiser.conf["condition_discount"]))
     ranked = model.index.rank(winners, model.links.candidates_wanted(top_k),
-                              exclude_own=None if own is None else (stream, own.here))
+                              exclude_own=None if own is None else (stream, own.here), weights=weights)
     t_ranked = time.perf_counter()
     place = model.links.step(st.localiser, ranked, own, not flat)
     visit, joined, dropped, touched = None, -1, (), []
@@ -220,6 +243,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             links.add(seq, prev, code, stream=stream, place=joined)
             dropped = tuple(links.over_cap(joined, seq)) if joined >= 0 else ()
             drop(model, dropped)
+    _condition(model, st, code)
     _advance(st, learn, seq if visit is None else visit, made=visit is None)
     t3 = time.perf_counter()
     # search = the index's ranking (with the own-trail rule) + `localiser` (its step and the row's adds).
@@ -250,6 +274,7 @@ def replay(model: MapModel, st: Stream, code: np.ndarray, *, seq: int, prev_seq:
         (w,) the replayed winner cells (the caller compares them with the stored ones).
     """
     winners = _remember(model, st, code, learn=True, starts=prev_seq is None)
+    _condition(model, st, code)
     _advance(st, True, seq)
     return winners
 
@@ -263,5 +288,6 @@ def revisit(model: MapModel, st: Stream, code: np.ndarray, *, row: int, prev_seq
         (w,) the replayed winner cells (the caller compares them with the stored ones).
     """
     winners = _remember(model, st, code, learn=True, starts=prev_seq is None)
+    _condition(model, st, code)
     _advance(st, True, row, made=False)
     return winners

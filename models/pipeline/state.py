@@ -11,6 +11,7 @@ import numpy as np
 
 from models.frontend.adaptation import RunningMean
 from models.localisation import LocaliserState
+from models.localisation.condition import Condition
 from models.memory.temporal_memory import StreamContext, TemporalMemory
 
 __all__ = ["Stream", "eviction_wait", "load_memory_state", "memory_state", "touch"]
@@ -31,10 +32,12 @@ class Stream:
     # it differs from `last_learned_seq` after a consolidated frame, which moves the stream onto a row
     # it visited (§11.8).
     own_seq: int | None = None
+    # How often each code bit was on in the stream's recent frames (docs/design/science.md §11.10).
+    condition: Condition | None = None
 
     def break_sequence(self) -> None:
-        """The next frame starts a new sequence (and a new search for the place); the adaptation is
-        kept, because it describes the camera and the conditions, not where the robot is."""
+        """The next frame starts a new sequence (and a new search for the place); the adaptation and the
+        condition are kept, because they describe the camera and the conditions, not where the robot is."""
         self.context.reset()
         self.step, self.last_learned_seq, self.localiser, self.own_seq = 0, None, None, None
 
@@ -79,15 +82,18 @@ def memory_state(tm: TemporalMemory, streams: Mapping[str, Stream]) -> dict[str,
              -1 if st.own_seq is None else st.own_seq], dtype=np.int64)
         if st.adapt is not None:
             state[f"streamadapt.{h}"] = st.adapt.state()
+        if st.condition is not None:
+            state[f"streamcond.{h}"] = st.condition.state()
         if st.localiser is not None:
             for key, value in st.localiser.to_arrays().items():
                 state[f"streamloc.{h}.{key}"] = value
     return state
 
 
-def load_memory_state(state: Mapping[str, np.ndarray], adapt_tau: int
+def load_memory_state(state: Mapping[str, np.ndarray], adapt_tau: int, condition_frames: int = 0
                       ) -> tuple[TemporalMemory, OrderedDict[str, Stream]]:
-    """The reverse of `memory_state`: (memory, streams by name)."""
+    """The reverse of `memory_state`: (memory, streams by name). A stream saved without its condition
+    (before §11.10, or with it off) starts one afresh at its next frame."""
     tm = TemporalMemory.from_state(dict(state))
     streams: OrderedDict[str, Stream] = OrderedDict()
     for h, ctx in TemporalMemory.load_streams(dict(state)).items():
@@ -96,9 +102,12 @@ def load_memory_state(state: Mapping[str, np.ndarray], adapt_tau: int
         own = meta[3] if len(meta) > 3 else last  # a snapshot before places: every learned row was made
         adapt = (RunningMean.from_state(adapt_tau, state[f"streamadapt.{h}"])
                  if adapt_tau and f"streamadapt.{h}" in state else None)
+        cond = (Condition.from_state(condition_frames, state[f"streamcond.{h}"])
+                if condition_frames and f"streamcond.{h}" in state else None)
         prefix = f"streamloc.{h}."
         loc = {k.removeprefix(prefix): v for k, v in state.items() if k.startswith(prefix)}
         streams[bytes.fromhex(h).decode()] = Stream(
             ctx, step, None if last < 0 else last, None if learning < 0 else bool(learning), adapt,
-            LocaliserState.from_arrays(loc) if loc else None, own_seq=None if own < 0 else own)
+            LocaliserState.from_arrays(loc) if loc else None, own_seq=None if own < 0 else own,
+            condition=cond)
     return tm, streams

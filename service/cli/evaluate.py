@@ -16,6 +16,7 @@ Tables go to stdout, progress and warnings to stderr, machine-readable results t
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -531,6 +532,19 @@ def eval_passes(
         raise typer.BadParameter(str(e)) from e
 
 
+def _json_object(text: str, option: str) -> dict[str, Any] | None:
+    """An option's JSON object (None for an empty option); raises typer.BadParameter otherwise."""
+    if not text:
+        return None
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise typer.BadParameter(f"{option}: not JSON ({e})") from None
+    if not isinstance(value, dict):
+        raise typer.BadParameter(f"{option}: a JSON object is wanted")
+    return value
+
+
 @app.command("slam")
 def eval_slam(
     data: Annotated[Path | None, typer.Option(help="the Nordland folder (summer/, winter/)")] = None,
@@ -546,6 +560,8 @@ def eval_slam(
     grid: Annotated[Path | None, typer.Option(help="the grid world's folder instead of --data")] = None,
     adapt_tau: Annotated[int, typer.Option(help="the maps' slsbh.adapt_tau (0: none)")] = 0,
     seeds: Annotated[int, typer.Option(min=1, help="with --grid: the memory over TM seeds 1..N")] = 1,
+    localiser: Annotated[str, typer.Option(help='the maps\' localiser options as JSON, e.g. '
+                                                '\'{"condition_frames": 0}\'')] = "",
 ) -> None:
     """Loop closure while mapping on routes made from the Nordland halves, or the grid world's loops
     (service/evaluation/slam.py)."""
@@ -555,6 +571,6 @@ def eval_slam(
         slam.slam_runs(data=data, half=half, routes=routes or ",".join(slam.ROUTES), methods=methods,
                        thresholds=[float(t) for t in thresholds.split(",") if t], tolerance=tolerance,
                        rate=rate, backbone=backbone, seed=seed, json_path=json_out, grid_dir=grid,
-                       adapt_tau=adapt_tau, seeds=seeds)
+                       adapt_tau=adapt_tau, seeds=seeds, localiser=_json_object(localiser, "--localiser"))
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e

@@ -142,7 +142,9 @@ def evaluate(r: dict[str, Any], methods: list[str], map_conf: dict[str, Any], th
             raise ValueError(f"unknown method {m!r}")
         entry: dict[str, Any] = {"default_threshold": default}
         default = None if default is None else float(default)
-        truth = slam.revisit_truth(labels, tolerance)
+        # A localising stream is another robot: at a stored place, a right answer is no false revisit.
+        extra = slam.localise_truth(labels, laps, tolerance) if m in service_path.METHODS else None
+        truth = slam.revisit_truth(labels, tolerance) | (False if extra is None else extra)
         right = truth & (best >= 0) & (np.abs(labels[np.maximum(best, 0)] - labels) <= tolerance)
         answered = best >= 0
         entry["operating_point"] = service_path.operating_point(conf[answered], right[answered], 0.99)
@@ -154,7 +156,7 @@ def evaluate(r: dict[str, Any], methods: list[str], map_conf: dict[str, Any], th
             entry["calibrated"] = float(np.quantile(lap1, 1.0 - rate)) if lap1.size else None
             if entry["calibrated"] is not None:
                 at.append(entry["calibrated"])
-        entry["at"] = {f"{t:.4f}": slam.score(best, conf, labels, t, tolerance, laps) for t in at}
+        entry["at"] = {f"{t:.4f}": slam.score(best, conf, labels, t, tolerance, laps, extra) for t in at}
         entry["answers"] = {"best": best.tolist(), "confidence": np.round(conf, 6).tolist()}
         out[m] = entry
     return out
@@ -190,10 +192,12 @@ def slam_runs(*, data: Path | None = None, half: str = "tune", routes: str = ","
               methods: str = "service-slam,service-slam-without-tm,service,openseqslam",
               thresholds: list[float] | None = None, tolerance: int = 1, rate: float = 0.001,
               backbone: str | None = None, seed: int = 1, json_path: Path | None = None,
-              grid_dir: Path | None = None, adapt_tau: int = 0, seeds: int = 1) -> None:
+              grid_dir: Path | None = None, adapt_tau: int = 0, seeds: int = 1,
+              localiser: dict[str, Any] | None = None) -> None:
     """The experiment (module docstring), printed; `grid_dir`: the grid world's folder instead of `data`;
     `adapt_tau`: the maps made with that stream adaptation (docs/results.md §10.6); `seeds`: the grid
-    world's memory over that many seeds.
+    world's memory over that many seeds; `localiser`: the maps' localiser options over the defaults
+    (an ablation: `{"condition_frames": 0}` is the index without a stream's condition, §10.6).
 
     Raises:
         ValueError: neither `data` nor `grid_dir`, or an unknown `half`.
@@ -222,7 +226,8 @@ def slam_runs(*, data: Path | None = None, half: str = "tune", routes: str = ","
         raise ValueError("--data (or --grid) is required")
     frames = Frames(args.data, args.half, enc, cache)
     map_conf = {"encoder_id": enc.identity, "backbone": backbone, "preset": settings.default_preset,
-                "seed": args.seed, "create": {"slsbh": {"adapt_tau": adapt_tau}} if adapt_tau else None}
+                "seed": args.seed, "create": {"slsbh": {"adapt_tau": adapt_tau}} if adapt_tau else None,
+                "localiser": localiser}
     result: dict[str, Any] = {"config": {**{k: str(v) for k, v in vars(args).items()}, "backbone": backbone},
                               "routes": {}}
     for name in args.routes.split(","):

@@ -279,7 +279,8 @@ class SequenceStats(_Reply):
 
 
 class Match(_Reply):
-    """One earlier observation, ranked by the Dice score of shared winner cells."""
+    """One earlier observation, ranked by the Dice score of shared winner cells (weighed by the stream's
+    conditions: cells its recent frames share count less)."""
 
     rank: int
     observation_id: str

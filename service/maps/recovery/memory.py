@@ -109,7 +109,7 @@ def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Obs
     if isinstance(start, TemporalMemory):
         tm, streams, covered = start, OrderedDict(), 0
     else:
-        tm, streams = load_memory_state(start, like.adapt_tau)
+        tm, streams = load_memory_state(start, like.adapt_tau, like.condition_frames)
         covered = int(start.get(VISIT_CURSOR, 0))
     model = like.fresh(tm)
     out = Rebuilt(model, streams, covered=covered)

@@ -34,6 +34,24 @@ def test_score_counts_false_revisits_per_lap_and_recall_of_true_ones():
     assert lap2["right_called"] == 1.0
 
 
+def test_a_localising_robot_at_a_stored_place_near_the_turn_is_no_false_revisit():
+    """Out and back: the learning stream has not left the places near the turn, but a localising stream is
+    another robot, and a right answer there is no false revisit; recall is still over the route's truth."""
+    out, back = np.arange(30), np.arange(29, -1, -1)
+    labels, laps = np.r_[out, back], np.r_[np.zeros(30, int), np.ones(30, int)]
+    best = np.r_[np.full(30, -1), back]  # every lap-2 answer right
+    conf = np.r_[np.zeros(30), np.full(30, 0.95)]
+    extra = slam.localise_truth(labels, laps, 0)
+    assert not extra[:30].any() and extra[30:].all()
+    plain = slam.score(best, conf, labels, 0.9, 0, laps)
+    local = slam.score(best, conf, labels, 0.9, 0, laps, extra)
+    near_turn = int((~slam.revisit_truth(labels, 0))[30:].sum())
+    assert near_turn > 0 and plain["lap"][1]["false_revisits"] == near_turn
+    assert local["false_revisits"] == 0 and local["lap"][1]["precision"] == 1.0
+    assert local["lap"][1]["recall"] == plain["lap"][1]["recall"] == 1.0
+    assert local["lap"][1]["recall_at_100p"] == 1.0 > plain["lap"][1]["recall_at_100p"]
+
+
 def test_openseqslam_online_is_causal_and_finds_a_repeated_lap():
     rng = np.random.default_rng(0)
     frames = rng.random((60, 32))

@@ -222,3 +222,95 @@ def test_rank_at_1e5_descriptors() -> None:
     assert idx.postings() == n * w
     # A stored descriptor finds itself first.
     assert idx.rank(cells[1234], 1)[0] == Match(1235, 40, 1.0)
+
+
+def brute_weighted(rows: list[tuple[int, np.ndarray, str]], q: np.ndarray, w: np.ndarray, top_k: int,
+                   exclude: set[int], min_overlap: int) -> list[tuple[int, int, float]]:
+    """The weighted Dice of `rank(weights=...)` over every row: (shared weight / query weight) ·
+    2|q| / (|q| + |row|), sorted by score, then older first."""
+    weight = {int(c): float(x) for c, x in zip(q, w, strict=True)}
+    total = sum(weight.values())
+    out = []
+    for seq, cells, _ in rows:
+        shared = set(weight) & {int(c) for c in cells}
+        if seq in exclude or len(shared) < min_overlap:
+            continue
+        denom = len(weight) + len(cells)
+        acc = sum(weight[c] for c in sorted(shared))  # in cell order, as the index sums
+        out.append((seq, len(shared), 0.0 if denom == 0 else 2.0 * len(weight) / total * acc / denom))
+    out.sort(key=lambda m: (-m[2], m[0]))
+    return out[:top_k]
+
+
+def _same(got: list[Match], want: list[tuple[int, int, float]]) -> bool:
+    return [(m.seq, m.overlap) for m in got] == [(s, o) for s, o, _ in want] and np.allclose(
+        [m.score for m in got], [x for _, _, x in want], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_weighted_rank_equals_brute_force(seed: int) -> None:
+    """A stream's condition weighs the query's cells (docs/design/science.md §11.10): the compiled pass
+    and the every-row pass rank by the weighted Dice, exclusions and min_overlap as without weights."""
+    rng = np.random.default_rng(seed)
+    n_cells = 48
+    idx, rows = build(rng, 300, n_cells)
+    for _ in range(30):
+        q = rng.choice(n_cells, size=int(rng.integers(1, 12)), replace=False)
+        # Quantised weights (zeros included) so that equal scores are equal floats and ties are exact.
+        w = rng.integers(0, 5, q.size) / 4.0
+        if not w.any():
+            w[0] = 1.0
+        for top_k in (1, 3, 10, 1000):
+            for min_overlap in (0, 1, 2):
+                got = idx.rank(q, top_k, min_overlap=min_overlap, weights=w)
+                want = brute_weighted(rows, q, w, top_k, set(), min_overlap)
+                if min_overlap == 0:  # the every-row pass also lists rows sharing nothing, last
+                    got = [m for m in got if m.overlap > 0]
+                    want = [m for m in want if m[1] > 0][:len(got)]
+                assert _same(got, want)
+        ex = set(rng.choice([r[0] for r in rows], size=20, replace=False).tolist())
+        assert _same(idx.rank(q, 7, exclude_seqs=ex, weights=w), brute_weighted(rows, q, w, 7, ex, 1))
+
+
+def test_weighted_rank_skips_single_overlap_rows_only_when_they_cannot_enter() -> None:
+    """The bound of the weighted pass: a small row sharing one heavily weighted cell beats large rows
+    sharing two light ones, and is found although k rows share two cells."""
+    idx = InvertedIndex(1_000, 100)
+    q = np.arange(10)
+    w = np.full(10, 0.1)
+    w[5] = 1.0
+    for seq in range(1, 21):  # 100 cells each, cells 0 and 1 shared
+        idx.add(seq, np.concatenate([[0, 1], np.arange(100, 198) + seq]), "a")
+    idx.add(21, [5], "a")
+    got = idx.rank(q, 3, weights=w)
+    assert [m.seq for m in got] == [21, 1, 2] and got[0].overlap == 1
+    # Cell 5 discounted to nothing: the one-cell row scores 0 and the large rows come first.
+    w[5] = 0.0
+    assert [m.seq for m in idx.rank(q, 3, weights=w)] == [1, 2, 3]
+
+
+def test_weights_of_one_are_plain_dice_and_an_equal_row_scores_one() -> None:
+    rng = np.random.default_rng(7)
+    idx, _ = build(rng, 200, 64)
+    for _ in range(20):
+        q = rng.choice(64, size=8, replace=False)
+        plain, ones = idx.rank(q, 20), idx.rank(q, 20, weights=np.ones(8))
+        assert [(m.seq, m.overlap) for m in plain] == [(m.seq, m.overlap) for m in ones]
+        assert np.allclose([m.score for m in plain], [m.score for m in ones], atol=1e-12)
+    idx.add(10**6, [3, 9, 20], "b")
+    top = idx.rank([20, 3, 9], 1, weights=np.array([0.2, 0.9, 0.5]))[0]
+    assert top.seq == 10**6 and top.score == pytest.approx(1.0)
+
+
+def test_weights_are_per_query_cell_in_the_callers_order_and_checked() -> None:
+    idx = InvertedIndex(100, 10)
+    idx.add(1, [1, 2], "a")
+    idx.add(2, [3, 4], "a")
+    # cells given unsorted: weight 1 goes with cell 3, weight 0 with cell 1
+    assert [m.seq for m in idx.rank([3, 1], 2, weights=np.array([1.0, 0.0]))] == [2, 1]
+    assert [m.seq for m in idx.rank([3, 1], 2, weights=np.array([0.0, 1.0]))] == [1, 2]
+    # every weight 0: nothing to rank by, plain Dice
+    assert idx.rank([3, 1], 2, weights=np.zeros(2)) == idx.rank([3, 1], 2)
+    for bad in (np.ones(3), np.array([0.5, 1.5]), np.array([-0.1, 1.0]), np.array([np.nan, 1.0])):
+        with pytest.raises(ValueError, match="weights"):
+            idx.rank([3, 1], 2, weights=bad)

@@ -6,15 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.pipeline import MapModel, Stream, observe, replay
+from models.pipeline import MapModel, Stream, load_memory_state, memory_state, observe, replay
 
 TM = {"columnDimensions": 128, "cellsPerColumn": 4, "maxSegmentsPerCell": 4, "maxSynapsesPerSegment": 16,
       "activationThreshold": 3, "minThreshold": 2, "seed": 3}
 K, S = 64, 0.1  # 2k = columnDimensions; n = 6 ones per half
 
 
-def model(memory: str = "tm", adapt_tau: int = 0) -> MapModel:
-    return MapModel.new(TM, {}, max_observations=100, memory=memory, s=S, adapt_tau=adapt_tau)
+def model(memory: str = "tm", adapt_tau: int = 0, localiser: dict | None = None) -> MapModel:
+    return MapModel.new(TM, localiser or {}, max_observations=1000, memory=memory, s=S, adapt_tau=adapt_tau)
 
 
 def route(n: int, seed: int = 0) -> np.ndarray:
@@ -47,6 +47,9 @@ def test_replay_of_the_stored_codes_reproduces_every_step(memory):
     for seq, s in enumerate(steps, start=1):
         assert np.array_equal(replay(again, st2, s.code, seq=seq, prev_seq=s.prev_seq), s.winners)
     assert (st2.step, st2.last_learned_seq, st2.learning) == (st.step, st.last_learned_seq, st.learning)
+    # the stream's condition (docs/design/science.md §11.10) is rebuilt too: the next ranking is the same
+    assert st2.condition is not None and st2.condition.seen == 12
+    assert np.array_equal(st2.condition.rates, st.condition.rates)
 
 
 def test_a_learned_frame_joins_the_index_and_the_links_and_a_localisation_changes_neither():
@@ -86,3 +89,52 @@ def test_adaptation_subtracts_the_streams_running_mean_before_hashing():
     plain = [s.code for s in learn_route(model(), frames, Stream())]
     assert np.array_equal(adapted[0], plain[0])
     assert any(not np.array_equal(a, b) for a, b in zip(adapted[1:], plain[1:], strict=True))
+
+
+def two_conditions(n: int, alpha: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(n, K) projections of n places seen in condition A, and the same places in condition B: each
+    frame is its place's vector plus `alpha` times its condition's (what every frame of a season or a
+    light shares) plus a little noise."""
+    rng = np.random.default_rng(seed)
+    places = rng.normal(size=(n, K))
+    a, b = rng.normal(size=K), rng.normal(size=K)
+    seen = [places + alpha * c + 0.3 * rng.normal(size=(n, K)) for c in (a, b)]
+    return seen[0].astype(np.float32), seen[1].astype(np.float32)
+
+
+def second_lap(localiser: dict) -> tuple[int, int]:
+    """One learning stream drives 200 places in condition A, then the same places in condition B:
+    (lap-2 answers naming the lap-1 row of their place, lap-2 answers naming the stream's own lap-2
+    rows, i.e. other places seen in B)."""
+    m, st = model("none", localiser=localiser), Stream()
+    lap1, lap2 = two_conditions(200, 1.0)
+    learn_route(m, lap1, st, first_seq=1)
+    places = [s.place for s in learn_route(m, lap2, st, first_seq=201)]
+    right = sum(p is not None and p.seq == i + 1 for i, p in enumerate(places))
+    return right, sum(p is not None and p.seq > 200 for p in places)
+
+
+def test_a_streams_condition_keeps_its_own_rows_of_the_new_condition_from_outranking_the_place():
+    """docs/design/science.md §11.10: once the stream drives in condition B, its own B rows of other
+    places share B's bits with every B frame; ranked by plain Dice they are its answers (the season bias
+    of docs/results.md §10.6); with the bits its recent frames share discounted, it names the lap-1 row
+    of the place it is at."""
+    right, own = second_lap({"condition_frames": 0})
+    assert right < 20 and own > 150
+    right, own = second_lap({"condition_frames": 20})
+    assert right > 150 and own < 20
+
+
+def test_the_condition_survives_a_snapshot_of_the_streams_and_weighs_columns_of_cells():
+    m, st = model(), Stream()
+    learn_route(m, route(6), st)
+    _, streams = load_memory_state(memory_state(m.tm, {"a": st}), 0, m.condition_frames)
+    back = streams["a"].condition
+    assert back is not None and back.seen == 6 and np.array_equal(back.rates, st.condition.rates)
+    # off (condition_frames 0): not loaded, and a stream keeps none
+    assert load_memory_state(memory_state(m.tm, {"a": st}), 0, 0)[1]["a"].condition is None
+    off, st_off = model(localiser={"condition_frames": 0}), Stream()
+    learn_route(off, route(3), st_off)
+    assert st_off.condition is None
+    # the TM's winner cells are weighed by their column (4 cells each), the code itself bit by bit
+    assert (model().cells_per_column(), model("none").cells_per_column()) == (4, 1)
