@@ -257,6 +257,13 @@ class SequenceLocaliser:
         """Bytes of one stream's state (`new_state`): `beam` hypotheses of HYPOTHESIS_BYTES."""
         return int(self.conf["beam"]) * HYPOTHESIS_BYTES
 
+    def stream_bytes(self, code_width: int) -> int:
+        """Bytes one stream holds in a map at most: its state (`state_bytes`) and, with
+        `condition_frames`, its condition over a code of `code_width` bits (docs/design/science.md
+        §11.10: the rates, width float64, and the last code taken in, at most width int64)."""
+        condition = 8 * (2 * int(code_width) + 2) if int(self.conf["condition_frames"]) else 0
+        return self.state_bytes() + condition
+
     def new_state(self) -> LocaliserState:
         """An empty state for one stream (`beam` hypotheses)."""
         return LocaliserState.empty(int(self.conf["beam"]))

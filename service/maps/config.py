@@ -29,7 +29,7 @@ from pydantic import (
 
 from models import geometry, presets
 from models.frontend import backbones, images, slsbh
-from models.localisation import LocaliserParams, default_conf
+from models.localisation import LocaliserParams, SequenceLocaliser, default_conf
 from models.memory import registry as memories
 from models.memory.temporal_memory import validate
 from models.pipeline import MapModel
@@ -170,6 +170,12 @@ class MapConfig(BaseModel):
                     "§12.1); null: none kept")
     verify_revisit: bool = Field(default=False, description="a revisit needs a verified keyframe "
                                  "(docs/design/science.md §12.2); changeable with PATCH")
+
+    def streams_bytes(self, max_streams: int) -> int:
+        """What `max_streams` streams hold in this map: each one's localiser state and condition
+        (`SequenceLocaliser.stream_bytes` over the TM's columns, the code's width)."""
+        width = int({**presets.TM_DEFAULTS, **self.tm}["columnDimensions"])
+        return int(max_streams) * SequenceLocaliser(self.localiser).stream_bytes(width)
 
     @field_validator("keyframes")
     @classmethod

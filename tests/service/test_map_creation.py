@@ -115,12 +115,14 @@ def test_every_streams_localiser_state_counts_in_the_map_size(tmp_path):
     # The beam is the state of each of max_streams streams (docs/design/service.md §1.1): a map whose
     # memory fits but whose streams' hypotheses would not is refused before anything is written.
     tm = resolve(MapOptions(), default_preset="cortexloc-default", default_backbone="alexnet").tm
-    default_streams = 64 * SequenceLocaliser().state_bytes()
+    # each stream also keeps its condition: at most 2 + 2 x columns 8-byte values (science.md §11.10)
+    condition = 8 * (2 * tm["columnDimensions"] + 2)
+    default_streams = 64 * (SequenceLocaliser().state_bytes() + condition)
     with TestClient(make_app(tmp_path / "data", max_streams=64,
                              max_map_bytes=planned_bytes(tm) + default_streams)) as c:
         r = c.post("/v1/maps", json={"map_id": "lab", "localiser": {"beam": 4096}})
         assert r.status_code == 422 and r.json()["type"] == "urn:cortexloc:problem:map-too-large", r.text
-        assert str(planned_bytes(tm) + 64 * 4096 * HYPOTHESIS_BYTES) in r.json()["detail"]
+        assert str(planned_bytes(tm) + 64 * (4096 * HYPOTHESIS_BYTES + condition)) in r.json()["detail"]
         assert c.get("/v1/maps/lab").status_code == 404
         assert c.post("/v1/maps", json={"map_id": "lab", "localiser": {"beam": 256}}).status_code == 201
 

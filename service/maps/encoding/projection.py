@@ -19,7 +19,6 @@ from typing import Literal
 import numpy as np
 
 from models.frontend import slsbh
-from models.localisation import SequenceLocaliser
 from models.memory.temporal_memory import planned_bytes
 from service.maps.config import MapConfig
 
@@ -36,8 +35,9 @@ def projection_kind(feature_dim: int, k: int, model_bytes: int, budget: int) -> 
 
 def model_bytes(config: MapConfig, max_streams: int) -> int:
     """What a map of this configuration may hold besides its projection: the memory and every stream's
-    localiser state (beam x HYPOTHESIS_BYTES, docs/design/science.md §11.3) at the stream cap."""
-    return planned_bytes(config.tm) + max_streams * SequenceLocaliser(config.localiser).state_bytes()
+    localiser state and condition (`MapConfig.streams_bytes`, docs/design/science.md §11.3, §11.10) at
+    the stream cap."""
+    return planned_bytes(config.tm) + config.streams_bytes(max_streams)
 
 
 def for_map(config: MapConfig, feature_dim: int, max_streams: int, budget: int) -> tuple[Kind, Projection]:

@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import Any
 
 from models.frontend import slsbh
-from models.localisation import SequenceLocaliser
 from models.memory.temporal_memory import planned_bytes
 from service.maps.config import MapConfig
 from service.maps.errors import MemoryBudgetExceeded
@@ -114,7 +113,7 @@ def map_need(config: MapConfig, projection: int, rows: int, *, max_streams: int,
     says the feature dimension)."""
     return MapNeed(
         tm=planned_bytes(config.tm), projection=int(projection),
-        localiser=max_streams * SequenceLocaliser(config.localiser).state_bytes(),
+        localiser=config.streams_bytes(max_streams),
         caches=CACHE_MAX_CHARS if key_cache else 0, index=rows * index_row_bytes(config),
         projection_key=(config.projection_sha256 or None) if config.projection == "dense" else None)
 

@@ -6,23 +6,37 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.localisation.condition import Condition
+from models.localisation.condition import REPEAT, Condition
 
 
-def test_rates_are_the_mean_of_the_first_frames_then_an_exponential_average() -> None:
-    c = Condition(6, frames=2)
-    c.add(np.array([0, 1]))
-    assert c.rates.tolist() == [1, 1, 0, 0, 0, 0]
-    c.add(np.array([1, 2]))  # the mean of two frames
-    assert c.rates.tolist() == [0.5, 1, 0.5, 0, 0, 0]
-    c.add(np.array([3]))  # from the third on, weight 1 / frames for the newest
-    assert c.rates.tolist() == [0.25, 0.5, 0.25, 0.5, 0, 0]
-    assert c.seen == 3
+def test_rates_are_an_exponential_average_from_zero() -> None:
+    # Few frames say little about a condition: the rates start at 0 and grow by 1 / frames per frame.
+    c = Condition(6, frames=4)
+    assert c.add(np.array([0, 1]))
+    assert c.rates.tolist() == [0.25, 0.25, 0, 0, 0, 0]
+    assert c.add(np.array([1, 2]))
+    assert c.rates.tolist() == [0.1875, 0.4375, 0.25, 0, 0, 0]
+    assert c.seen == 2 and c.last.tolist() == [1, 2]
+
+
+def test_a_repeated_view_is_not_taken_in() -> None:
+    """A stopped robot posts the same view again and again: the condition is what frames of different
+    places share, so a repeat (Dice >= REPEAT with the last frame taken in) changes nothing."""
+    c = Condition(40, frames=10)
+    code = np.arange(20)
+    assert c.add(code)
+    before = c.rates.copy()
+    nearly = np.r_[np.arange(19), 39]  # 19 of 20 bits shared: Dice 0.95
+    assert REPEAT <= 0.95
+    assert not c.add(code) and not c.add(nearly)
+    assert np.array_equal(c.rates, before) and c.seen == 1
+    assert c.add(np.arange(10, 30))  # half new: another view
+    assert c.seen == 2
 
 
 def test_a_bit_every_frame_shares_weighs_nothing_and_an_unseen_bit_weighs_one() -> None:
     c = Condition(8, frames=10)
-    for _ in range(30):
+    for _ in range(60):
         c.add(np.array([0, 1, 5]))  # the condition: bits 0, 1 always on
         c.add(np.array([0, 1, 6]))
     w = c.weights(np.array([0, 1, 5, 7]), 1, discount=2.0)
@@ -34,7 +48,7 @@ def test_a_bit_every_frame_shares_weighs_nothing_and_an_unseen_bit_weighs_one() 
 
 
 def test_no_weights_before_a_frame_without_discount_or_when_every_cell_would_weigh_nothing() -> None:
-    c = Condition(4, frames=5)
+    c = Condition(4, frames=1)
     assert c.weights(np.array([1]), 1, 2.0) is None
     c.add(np.array([1, 2]))
     assert c.weights(np.array([1, 3]), 1, 0.0) is None
@@ -47,11 +61,12 @@ def test_state_round_trip_and_checks() -> None:
     for code in ([0, 1], [1, 4], [2]):
         c.add(np.array(code))
     back = Condition.from_state(3, c.state())
-    assert back.seen == 3 and np.array_equal(back.rates, c.rates)
-    back.add(np.array([0]))
-    c.add(np.array([0]))
+    assert back.seen == 3 and np.array_equal(back.rates, c.rates) and back.last.tolist() == [2]
+    for code in ([2], [0, 3]):  # the repeat rule reads the restored last code too
+        assert back.add(np.array(code)) == c.add(np.array(code))
     assert np.array_equal(back.rates, c.rates)
-    for bad in (np.array([1.0, 2.0]), np.array([1.0, -0.5]), np.array([np.nan, 0.0]), np.zeros((2, 2))):
+    for bad in (np.array([1.0]), np.array([1.0, 2.0, 0.5]), np.array([1.0, 2.0, 0.5, -0.5]),
+                np.array([1.0, 1.0, 0.5, 7.0]), np.array([np.nan, 1.0, 0.0]), np.zeros((2, 2))):
         with pytest.raises(ValueError):
             Condition.from_state(3, bad)
     with pytest.raises(ValueError):

@@ -226,8 +226,8 @@ def test_rank_at_1e5_descriptors() -> None:
 
 def brute_weighted(rows: list[tuple[int, np.ndarray, str]], q: np.ndarray, w: np.ndarray, top_k: int,
                    exclude: set[int], min_overlap: int) -> list[tuple[int, int, float]]:
-    """The weighted Dice of `rank(weights=...)` over every row: (shared weight / query weight) ·
-    2|q| / (|q| + |row|), sorted by score, then older first."""
+    """The weighted Dice of `rank(weights=...)` over every row: 2 S / (W + S + (|row| - overlap) W / |q|),
+    S the shared cells' weight, W the query's; sorted by score, then older first."""
     weight = {int(c): float(x) for c, x in zip(q, w, strict=True)}
     total = sum(weight.values())
     out = []
@@ -235,9 +235,9 @@ def brute_weighted(rows: list[tuple[int, np.ndarray, str]], q: np.ndarray, w: np
         shared = set(weight) & {int(c) for c in cells}
         if seq in exclude or len(shared) < min_overlap:
             continue
-        denom = len(weight) + len(cells)
         acc = sum(weight[c] for c in sorted(shared))  # in cell order, as the index sums
-        out.append((seq, len(shared), 0.0 if denom == 0 else 2.0 * len(weight) / total * acc / denom))
+        rest = (len(cells) - len(shared)) * (total / len(weight))  # the row's other cells at the mean weight
+        out.append((seq, len(shared), 2.0 * acc / (total + acc + rest)))
     out.sort(key=lambda m: (-m[2], m[0]))
     return out[:top_k]
 

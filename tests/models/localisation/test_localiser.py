@@ -16,6 +16,7 @@ from models.localisation import (
     default_conf,
     top_candidates,
 )
+from models.localisation.condition import Condition
 from models.localisation.localiser import evidence
 
 REVISIT = 0.86  # the service's default revisit_threshold (service/maps/config.py); models cannot import it
@@ -290,6 +291,12 @@ def test_options_are_normalised_and_the_state_size_is_bounded() -> None:
     assert loc.state_bytes() == 4096 * HYPOTHESIS_BYTES == sum(
         v.nbytes for k, v in loc.new_state().to_arrays().items() if k not in ("frames", "null", "here"))
     assert SequenceLocaliser().conf == LocaliserParams().model_dump() == default_conf
+    # a stream's condition (§11.10) is at most 2 + 2 width 8-byte values on top, nothing when it is off
+    assert loc.stream_bytes(2048) == loc.state_bytes() + 8 * (2 * 2048 + 2)
+    held = Condition(2048, 10)
+    held.add(np.arange(0, 2048, 3))
+    assert held.state().nbytes <= 8 * (2 * 2048 + 2)
+    assert SequenceLocaliser({"condition_frames": 0}).stream_bytes(2048) == SequenceLocaliser().state_bytes()
 
 
 def test_graph_links_walks_and_appends() -> None:

@@ -122,7 +122,7 @@ def test_a_streams_condition_keeps_its_own_rows_of_the_new_condition_from_outran
     right, own = second_lap({"condition_frames": 0})
     assert right < 20 and own > 150
     right, own = second_lap({"condition_frames": 20})
-    assert right > 150 and own < 20
+    assert right > 150 and own < 40
 
 
 def test_the_condition_survives_a_snapshot_of_the_streams_and_weighs_columns_of_cells():
