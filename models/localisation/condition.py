@@ -21,15 +21,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.localisation.trail import code_dice
-
 __all__ = ["REPEAT", "Condition"]
 
-#: A frame whose code shares at least this Dice with the last frame taken in is the same view again (a
-#: stopped robot, a slow train) and is not taken in: the condition is what frames of different places
-#: share, and 40 frames of one stop would otherwise make that place's own bits "the condition" and
-#: discount them in whatever comes next. Nordland's consecutive frames share 0.43 (median; 0.95 at the
-#: 95th percentile, where the train is slow), its stopped frames 1.0 (docs/results.md §10.7).
+#: A frame whose code shares at least this (condition-weighted) Dice with the last frame taken in is the
+#: same view again (a stopped robot) and is not taken in: the condition is what frames of different
+#: places share, and 40 frames of one stop would otherwise make that place's own bits "the condition"
+#: and discount them in whatever comes next (`Condition.repeats`).
 REPEAT = 0.9
 
 
@@ -56,11 +53,11 @@ class Condition:
         self.seen = int(seen)
         self.last = np.zeros(0, np.int64) if last is None else np.asarray(last, np.int64)
 
-    def add(self, code: np.ndarray) -> bool:
-        """Take in one frame's code (sorted indices of its on bits, distinct) unless it repeats the last
-        one taken in (`REPEAT`); O(width). Returns whether it was taken in."""
+    def add(self, code: np.ndarray, discount: float) -> bool:
+        """Take in one frame's code (sorted indices of its on bits, distinct) unless it shows the same view
+        as the last one taken in (`repeats`); O(width). Returns whether it was taken in."""
         code = np.asarray(code, np.int64)
-        if self.seen and code_dice(code, self.last) >= REPEAT:
+        if self.seen and self.repeats(code, discount):
             return False
         self.seen += 1
         a = 1.0 / self.frames
@@ -68,6 +65,19 @@ class Condition:
         self.rates[code] += a
         self.last = code.copy()
         return True
+
+    def repeats(self, code: np.ndarray, discount: float) -> bool:
+        """Whether `code` shows the same view as the last code taken in: their Dice over the bits the
+        condition leaves weight to (each bit at `max(0, 1 - discount * rate)`) is at least `REPEAT`.
+        Plain Dice would not do: winter frames of different places share most of their bits, the
+        condition's, and would all look like repeats of one another. A code of nothing but the condition
+        is no repeat."""
+        w = np.clip(1.0 - discount * self.rates, 0.0, 1.0)
+        total = float(w[code].sum() + w[self.last].sum())
+        if total <= 0.0:
+            return False
+        shared = np.intersect1d(code, self.last, assume_unique=True)
+        return 2.0 * float(w[shared].sum()) / total >= REPEAT
 
     def weights(self, cells: np.ndarray, cells_per_column: int, discount: float) -> np.ndarray | None:
         """(q,) float64 weight in [0, 1] of each query cell: `max(0, 1 - discount * rate)` of its column

@@ -146,10 +146,11 @@ def _top_k_touched(flat: np.ndarray, flat_w: np.ndarray, weight: np.ndarray, q_s
     per touched row and a random read of its count and weight (issue 25).
 
     With a weight per query cell (a stream's condition, docs/design/science.md §11.10) the score is the
-    weighted Dice 2 S / (W + S + (|stored| − overlap) · W / |q|): S the shared cells' weight, W the
-    query's, the stored row's cells outside the query at the query's mean weight (their own weights are
-    not held). It is Dice when every weight is 1, in [0, 1], and 1 only for a row equal to the query. A
-    single-overlap row scores at most 2 w_max / (W + w_max + (w_min − 1) · W / |q|).
+    weighted Dice (2|q| / W) · min(S, |stored| · W / |q|) / (|q| + |stored|): S the shared cells'
+    weight, W the query's. For rows of the query's size (every code of a map has one size) it is S / W,
+    the share of the query's weight the row holds; a row holds at most its size's share of the query's
+    weight, which keeps the score in [0, 1] (1 for a row equal to the query), and with every weight 1
+    it is Dice. A single-overlap row scores at most (2|q| / W) · w_max / (w_min + |q|).
 
     Args:
         flat: (p,) int32 rows from the query cells' postings (a row appears once per shared cell).
@@ -173,6 +174,7 @@ def _top_k_touched(flat: np.ndarray, flat_w: np.ndarray, weight: np.ndarray, q_s
         2.0 * overlap / (weight + q_size), so equal fractions tie exactly.
     """
     weighted = flat_w.size > 0
+    share = 2.0 * q_size / w_total if weighted else 2.0
     w_mean = w_total / q_size if weighted else 1.0
     listed = max(min_overlap, 2)
     m = 0
@@ -196,29 +198,20 @@ def _top_k_touched(flat: np.ndarray, flat_w: np.ndarray, weight: np.ndarray, q_s
         o = counts[r]
         if o < min_overlap:
             continue
-        if weighted:
-            sc = 2.0 * acc[r] / (w_total + acc[r] + (weight[r] - o) * w_mean)
-        else:
-            d = weight[r] + q_size
-            sc = 2.0 * o / d if d > 0 else 0.0
-        nb = _offer(r, o, sc, k, nb, best_row, best_ov, best_sc)
+        d = weight[r] + q_size
+        x = share * min(acc[r], weight[r] * w_mean) if weighted else 2.0 * o
+        nb = _offer(r, o, x / d if d > 0 else 0.0, k, nb, best_row, best_ov, best_sc)
     if min_overlap <= 1:
-        if weighted:  # the score grows with the shared weight and falls with the row's size
-            bound = 2.0 * w_max / (w_total + w_max + (max(w_min, 1) - 1) * w_mean)
-        else:
-            d_min = w_min + q_size
-            bound = 2.0 / d_min if d_min > 0 else np.inf
+        d_min = w_min + q_size
+        bound = (share * w_max if weighted else 2.0) / d_min if d_min > 0 else np.inf
         if nb < k or bound >= best_sc[k - 1]:
             # Single-overlap rows could still enter: each appears exactly once in `flat`.
             for i in range(flat.size):
                 r = flat[i]
                 if counts[r] == 1:
-                    if weighted:
-                        sc = 2.0 * acc[r] / (w_total + acc[r] + (weight[r] - 1) * w_mean)
-                    else:
-                        d = weight[r] + q_size
-                        sc = 2.0 / d if d > 0 else 0.0
-                    nb = _offer(r, 1, sc, k, nb, best_row, best_ov, best_sc)
+                    d = weight[r] + q_size
+                    x = share * min(acc[r], weight[r] * w_mean) if weighted else 2.0
+                    nb = _offer(r, 1, x / d if d > 0 else 0.0, k, nb, best_row, best_ov, best_sc)
     for i in range(flat.size):
         counts[flat[i]] = 0  # leave the scratch clean for the next query
         if weighted:
@@ -564,7 +557,8 @@ class InvertedIndex:
                 if plen[c]:
                     acc[post[c][: plen[c]]] += wc
             total = float(w.sum())
-            score = 2.0 * acc[cand] / (total + acc[cand] + (self._weight.data[cand] - ov) * (total / q.size))
+            held = np.minimum(acc[cand], self._weight.data[cand] * (total / q.size))
+            score = np.divide(2.0 * q.size / total * held, denom, out=np.zeros(cand.size), where=denom > 0)
         else:
             score = np.divide(2.0 * ov, denom, out=np.zeros(cand.size), where=denom > 0)
 

@@ -133,7 +133,7 @@ def _condition(model: MapModel, st: Stream, code: np.ndarray) -> None:
     if model.condition_frames:
         if st.condition is None:
             st.condition = Condition(model.links.codes.counts.size, model.condition_frames)
-        st.condition.add(code)
+        st.condition.add(code, float(model.links.localiser.conf["condition_discount"]))
 
 
 def _advance(st: Stream, learn: bool, seq: int | None, made: bool = True) -> None:

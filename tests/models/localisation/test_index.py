@@ -226,8 +226,8 @@ def test_rank_at_1e5_descriptors() -> None:
 
 def brute_weighted(rows: list[tuple[int, np.ndarray, str]], q: np.ndarray, w: np.ndarray, top_k: int,
                    exclude: set[int], min_overlap: int) -> list[tuple[int, int, float]]:
-    """The weighted Dice of `rank(weights=...)` over every row: 2 S / (W + S + (|row| - overlap) W / |q|),
-    S the shared cells' weight, W the query's; sorted by score, then older first."""
+    """The weighted Dice of `rank(weights=...)` over every row: (2|q| / W) min(S, |row| W / |q|) /
+    (|q| + |row|), S the shared cells' weight, W the query's; sorted by score, then older first."""
     weight = {int(c): float(x) for c, x in zip(q, w, strict=True)}
     total = sum(weight.values())
     out = []
@@ -236,8 +236,9 @@ def brute_weighted(rows: list[tuple[int, np.ndarray, str]], q: np.ndarray, w: np
         if seq in exclude or len(shared) < min_overlap:
             continue
         acc = sum(weight[c] for c in sorted(shared))  # in cell order, as the index sums
-        rest = (len(cells) - len(shared)) * (total / len(weight))  # the row's other cells at the mean weight
-        out.append((seq, len(shared), 2.0 * acc / (total + acc + rest)))
+        held = min(acc, len(cells) * (total / len(weight)))  # at most its size's share of the weight
+        denom = len(weight) + len(cells)
+        out.append((seq, len(shared), 0.0 if denom == 0 else 2.0 * len(weight) / total * held / denom))
     out.sort(key=lambda m: (-m[2], m[0]))
     return out[:top_k]
 
@@ -287,6 +288,15 @@ def test_weighted_rank_skips_single_overlap_rows_only_when_they_cannot_enter() -
     # Cell 5 discounted to nothing: the one-cell row scores 0 and the large rows come first.
     w[5] = 0.0
     assert [m.seq for m in idx.rank(q, 3, weights=w)] == [1, 2, 3]
+
+
+def test_weighted_scores_stay_within_zero_and_one() -> None:
+    """A row smaller than the query that holds its heaviest cells must not score above an equal row."""
+    idx = InvertedIndex(100, 10)
+    idx.add(1, [1, 2], "a")  # two of the query's three cells, the heavy ones
+    idx.add(2, [1, 2, 3], "a")  # the query itself
+    got = idx.rank([1, 2, 3], 2, weights=np.array([1.0, 1.0, 0.1]))
+    assert [m.seq for m in got] == [2, 1] and got[0].score == pytest.approx(1.0) and got[1].score < 1.0
 
 
 def test_weights_of_one_are_plain_dice_and_an_equal_row_scores_one() -> None:

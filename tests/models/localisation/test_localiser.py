@@ -294,7 +294,7 @@ def test_options_are_normalised_and_the_state_size_is_bounded() -> None:
     # a stream's condition (§11.10) is at most 2 + 2 width 8-byte values on top, nothing when it is off
     assert loc.stream_bytes(2048) == loc.state_bytes() + 8 * (2 * 2048 + 2)
     held = Condition(2048, 10)
-    held.add(np.arange(0, 2048, 3))
+    held.add(np.arange(0, 2048, 3), 2.0)
     assert held.state().nbytes <= 8 * (2 * 2048 + 2)
     assert SequenceLocaliser({"condition_frames": 0}).stream_bytes(2048) == SequenceLocaliser().state_bytes()
 
