@@ -129,7 +129,8 @@ def _remember(model: MapModel, st: Stream, code: np.ndarray, *, learn: bool, sta
 
 def _condition(model: MapModel, st: Stream, code: np.ndarray) -> None:
     """The frame's code into the stream's condition (docs/design/science.md §11.10), after its ranking:
-    every frame, so a replay of a learning stream's rows and visits gives the live condition again."""
+    every frame; a replay of the rows and visits gives a stream that only learned its live condition
+    again (learn=false frames are not stored: after a crash they are lost to it)."""
     if model.condition_frames:
         if st.condition is None:
             st.condition = Condition(model.links.codes.counts.size, model.condition_frames)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import re
 
 from tests.service.helpers import frame, make_client, post, state_of
+from tests.service.test_recovery import crash
 
 
 def evictions(c, map_id: str = "default") -> float:
@@ -49,3 +50,22 @@ def test_without_a_window_the_least_recently_used_stream_goes_at_once(tmp_path):
             assert post(c, frame(i), stream=robot).status_code == 200
         assert c.get("/v1/maps/default").json()["streams"] == ["b", "c"]
         assert evictions(c) == 1
+
+
+def test_a_restart_holds_no_more_streams_than_the_cap_and_counts_their_conditions(tmp_path):
+    """A replay meets every stream that ever learned: the restarted map keeps the `max_streams` most
+    recently used, as the live one did, and `GET .../memory` counts each one's condition (docs/design/
+    science.md §11.10) in the streams' bytes."""
+    data = tmp_path / "data"
+    with make_client(data, max_streams=2, stream_keep_seconds=0) as c:
+        for i, robot in enumerate(("a", "b", "c", "d")):
+            assert post(c, frame(i), stream=robot).status_code == 200
+        live = c.get("/v1/maps/default/memory").json()["streams"]
+        crash(c)  # no shutdown snapshot: the restart replays every row, of all four streams
+    with make_client(data, max_streams=2, stream_keep_seconds=0) as c:
+        assert c.get("/v1/maps/default").json()["streams"] == ["c", "d"]
+        mem = c.get("/v1/maps/default/memory").json()["streams"]
+        rt = c.app.state.registry.get("default")
+        conditions = sum(s.condition.state().nbytes for s in rt.streams.values())
+    assert mem["count"] == 2 and conditions > 0 and mem["bytes"] > conditions
+    assert live["count"] == 2 and live["bytes"] > conditions

@@ -117,6 +117,7 @@ def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Obs
         st = out.streams.get(row.stream)
         if st is None:
             st = out.streams[row.stream] = Stream()
+        out.streams.move_to_end(row.stream)  # most recently used last, as the live map keeps them
         if isinstance(row, Visit):
             winners = pipeline.revisit(model, st, row.input_sdr, row=row.seq, prev_seq=row.context_prev_seq)
             out.visits += 1

@@ -332,6 +332,8 @@ class MapRuntime:
             return
         done, note = recovery.recover(self.store, self.catalog, self.map_id, self.model)
         self.model, self.streams = done.model, done.streams
+        while len(self.streams) > self.max_streams:  # a replay meets every stream that ever learned
+            self.streams.popitem(last=False)  # the least recently used go, as `touch` evicts them live
         self.covered, self.since_snapshot = done.covered, 0
         dropped = self.store.dropped()
         self.model.index.rebuild(r for r in self.store.rows() if r.seq not in dropped)

@@ -34,6 +34,7 @@ def memory_info(model: MapModel, streams: Mapping[str, Stream], *, tm_params: Ma
                           postings=index.postings(), bytes=index.nbytes()),
         streams=StreamsMemory(count=len(streams), max=max_streams,
                               bytes=sum(sum(v.nbytes for v in s.context.state_dict().values())
+                                        + (s.condition.state().nbytes if s.condition else 0)
                                         for s in streams.values())),
         projection_bytes=projection.stat().st_size if projection.exists() else 0,
         storage=StorageMemory(db_bytes=store.db_bytes() if store else 0,
