@@ -72,12 +72,15 @@ class Condition:
         Plain Dice would not do: winter frames of different places share most of their bits, the
         condition's, and would all look like repeats of one another. A code of nothing but the condition
         is no repeat."""
-        w = np.clip(1.0 - discount * self.rates, 0.0, 1.0)
-        total = float(w[code].sum() + w[self.last].sum())
+        total = float(self._weight(code, discount).sum() + self._weight(self.last, discount).sum())
         if total <= 0.0:
             return False
         shared = np.intersect1d(code, self.last, assume_unique=True)
-        return 2.0 * float(w[shared].sum()) / total >= REPEAT
+        return 2.0 * float(self._weight(shared, discount).sum()) / total >= REPEAT
+
+    def _weight(self, columns: np.ndarray, discount: float) -> np.ndarray:
+        """The one rule of a bit's weight: max(0, 1 - discount * its rate), for each of `columns`."""
+        return np.clip(1.0 - discount * self.rates[columns], 0.0, 1.0)
 
     def weights(self, cells: np.ndarray, cells_per_column: int, discount: float) -> np.ndarray | None:
         """(q,) float64 weight in [0, 1] of each query cell: `max(0, 1 - discount * rate)` of its column
@@ -85,8 +88,7 @@ class Condition:
         without a discount, or when every cell would count 0 (nothing left to rank by)."""
         if self.seen == 0 or discount <= 0.0:
             return None
-        columns = np.asarray(cells, np.int64) // int(cells_per_column)
-        w = np.clip(1.0 - discount * self.rates[columns], 0.0, 1.0)
+        w = self._weight(np.asarray(cells, np.int64) // int(cells_per_column), discount)
         return w if w.any() else None
 
     def state(self) -> np.ndarray:
