@@ -66,7 +66,7 @@ class LocaliserParams(BaseModel):
                           BeforeValidator(_tuple)] = Field((3.0, 0.0, 3.0), min_length=1, max_length=16)
     backward: bool = True  # also hypothesise the route driven against its stored direction
     decay: float = Field(0.95, ge=0.0, lt=1.0)  # weight of the past per frame: memory of 1 / (1 - decay)
-    jump_cost: float = Field(20.0, ge=0.0, le=1e6)  # a new hypothesis's cost below the best one's score
+    jump_cost: float = Field(20.0, ge=0.0, le=1e6)  # a new hypothesis's cost below the best state's score
     warmup: int = Field(5, ge=1, le=1000)  # frames before the first answer
     exclusion: int = Field(10, ge=0, le=1000)  # rows (links, both ways) around the best no rival may end in
     temperature: float = Field(4.0, gt=0.0, le=1e6)  # score gap per unit of log-odds in the confidence
@@ -323,10 +323,15 @@ class SequenceLocaliser:
         rows, dirs = state.rows[live], state.dirs[live]
         past = decay * state.scores[live]
         ages = state.ages[live]
-        # The implicit level of every row outside the beam: the best path so far, then a jump.
-        jump = (past.max() if past.size else 0.0) - float(c["jump_cost"])
-        # The null stays (no move cost) or is entered by that same jump; rows are not born from the null,
-        # so which row is best does not depend on it (§11.5).
+        # The implicit level of every row outside the beam: the best state so far, a row path or the
+        # null, then a jump. The null is a state like the rows (§11.5): a robot back on the map after
+        # ground it never stored enters the map from the null, not from the best of the wrong paths
+        # that trailed it (a loop closure after a short lap, docs/design/science.md §11.5).
+        levels = [float(past.max())] if past.size else []
+        if np.isfinite(state.null):  # -inf (NULL_PRIOR) before a stream's first frame: not a state yet
+            levels.append(decay * state.null)
+        jump = max(levels, default=0.0) - float(c["jump_cost"])
+        # The null stays (no move cost) or is entered by that same jump.
         state.null = max(decay * state.null, jump) + null_evidence(ev, float(c["null_quantile"]))
 
         new_rows, new_dirs, new_scores, new_ages = [], [], [], []

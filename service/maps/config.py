@@ -39,12 +39,13 @@ __all__ = ["DEFAULT_RESIZE", "DEFAULT_REVISIT_THRESHOLD", "SHOWN_PARAMS", "MapCo
            "map_model", "resolve"]
 
 #: A new map's `revisit_threshold` (docs/design/service.md §1.2): the confidence at which an answer is
-#: called a revisit. docs/results.md §10: chosen on the Nordland `tune` half only, per route (two laps
+#: called a revisit. docs/results.md §10.1: chosen on the Nordland `tune` half only, per route (two laps
 #: across seasons, the same lap twice with pixel noise, a short lap, a stop, an excursion; learning
-#: streams and the localise mode, with and without the Temporal Memory): the lowest confidence with no
-#: false revisit in lap 1 and precision >= 0.99 on every route is 0.915 (the map without the memory on
-#: the stop, excursion and two-season routes; 0.86 with it), rounded up; changeable per map with PATCH.
-DEFAULT_REVISIT_THRESHOLD = 0.92
+#: streams and the localise mode) for the default map: the lowest confidence with no false revisit in
+#: lap 1 and precision >= 0.99 on every route is 0.905 (one stretch of lap 1 that four routes share),
+#: rounded up. A map without the memory needs 0.965 there (README). Changeable per map with PATCH; a map
+#: keeps the threshold it was made with.
+DEFAULT_REVISIT_THRESHOLD = 0.91
 
 #: A new map's `resize` (crop | squash: how a frame of any shape becomes the backbone's 224 x 224 input,
 #: docs/design/science.md §6). docs/results.md §9.6: through the service's path on Nordland, on 2:1
