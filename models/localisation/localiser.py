@@ -323,16 +323,16 @@ class SequenceLocaliser:
         rows, dirs = state.rows[live], state.dirs[live]
         past = decay * state.scores[live]
         ages = state.ages[live]
+        # The null decayed; -inf (NULL_PRIOR) before a stream's first frame stays -inf (0 * -inf is nan).
+        null = decay * state.null if np.isfinite(state.null) else NULL_PRIOR
         # The implicit level of every row outside the beam: the best state so far, a row path or the
         # null, then a jump. The null is a state like the rows (§11.5): a robot back on the map after
         # ground it never stored enters the map from the null, not from the best of the wrong paths
-        # that trailed it (a loop closure after a short lap, docs/design/science.md §11.5).
-        levels = [float(past.max())] if past.size else []
-        if np.isfinite(state.null):  # -inf (NULL_PRIOR) before a stream's first frame: not a state yet
-            levels.append(decay * state.null)
-        jump = max(levels, default=0.0) - float(c["jump_cost"])
+        # that trailed it. With no row path (a stream's first frames, or frames too flat to give
+        # candidates before them) rows start where a stream's first frame starts them, as before.
+        jump = (max(float(past.max()), null) if past.size else 0.0) - float(c["jump_cost"])
         # The null stays (no move cost) or is entered by that same jump.
-        state.null = max(decay * state.null, jump) + null_evidence(ev, float(c["null_quantile"]))
+        state.null = max(null, jump) + null_evidence(ev, float(c["null_quantile"]))
 
         new_rows, new_dirs, new_scores, new_ages = [], [], [], []
         cur = rows

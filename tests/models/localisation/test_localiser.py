@@ -118,32 +118,60 @@ def test_the_null_changes_the_confidence_not_the_answered_row_where_a_path_leads
     assert sum(a.confidence > b.confidence for a, b in zip(without[10:], default[10:], strict=True)) > 50
 
 
-def test_a_null_that_leads_every_path_reseeds_the_rows_from_itself() -> None:
-    # The null earning the best candidate's evidence leads every row path: rows are born from it, the
-    # answer follows the frames (the place is right where the frame's best row is), confidence stays 0.
-    n = 150
-    truth = np.concatenate([np.arange(0, 60), np.full(30, -1), np.arange(90, 150)])
-    S = place_similarity(np.arange(n), truth, noise=0.1, seed=6)
-    places = run(S, SequenceGraph.chain(n), {"null_quantile": 1.0})
-    stored = np.flatnonzero(truth >= 0)[5:]
-    assert np.mean(rows_of(places)[stored] == truth[stored]) > 0.95
-    assert max(p.confidence for p in places if p is not None) < 0.5
+def first_revisit(S: np.ndarray, flat: int = 0) -> int | None:
+    """The first frame j (counted from the first informative one) whose confidence reaches REVISIT, on
+    a chain of S's rows, after `flat` frames too flat to give candidates; None if none."""
+    loc, graph = SequenceLocaliser(), SequenceGraph.chain(S.shape[0])
+    state = loc.new_state()
+    for _ in range(flat):
+        loc.step(state, graph, np.arange(0), np.zeros(0), informative=False)
+    places = [loc.step_dense(state, graph, S[:, j]) for j in range(S.shape[1])]
+    hit = [j for j, p in enumerate(places) if p is not None and p.confidence >= REVISIT]
+    return hit[0] if hit else None
 
 
-@pytest.mark.parametrize("seed", range(6))
-def test_back_on_the_map_after_ground_never_stored_is_a_revisit_within_a_few_frames(seed: int) -> None:
+def test_back_on_the_map_after_ground_never_stored_is_a_revisit_within_a_few_frames() -> None:
     # 60 frames the map never stored lie between two stored stretches of a 600-row map: the null leads
     # and the best row paths trail far below it. The way back enters the map from the null (one jump),
-    # not from those paths (§11.5): before, 3 of these 6 seeds were no revisit 40 frames after the return.
+    # not from those paths (§11.5). Born from the best row path, 16 of these 20 seeds were no revisit
+    # in the 40 frames after the return; now 19 are, at a median of 16 frames.
     n, away = 600, 60
     truth = np.concatenate([np.arange(0, 40), np.full(away, -1), np.arange(300, 340)])
-    S = place_similarity(np.arange(n), truth, noise=0.4, seed=seed)
-    places = run(S, SequenceGraph.chain(n))
-    conf = np.array([0.0 if p is None else p.confidence for p in places])
-    assert np.all(conf[50:40 + away] < REVISIT)  # off the map: no revisit
-    back = np.flatnonzero(conf[40 + away:] >= REVISIT)
-    assert back.size and back[0] <= 25, conf[40 + away:]
-    assert np.all(rows_of(places)[40 + away + back[0]:] == truth[40 + away + back[0]:])
+    back = []
+    for seed in range(20):
+        S = place_similarity(np.arange(n), truth, noise=0.4, seed=seed)
+        places = run(S, SequenceGraph.chain(n))
+        conf = np.array([0.0 if p is None else p.confidence for p in places])
+        assert np.all(conf[50:40 + away] < REVISIT)  # off the map: no revisit
+        hit = np.flatnonzero(conf[40 + away:] >= REVISIT)
+        if hit.size:
+            back.append(int(hit[0]))
+            after = slice(40 + away + hit[0], None)  # named right from there, to a row (as scored)
+            assert np.all(np.abs(rows_of(places)[after] - truth[after]) <= 1)
+    assert len(back) >= 17 and np.median(back) <= 20, back
+
+
+def test_a_stream_that_starts_on_flat_frames_is_sure_about_as_soon_as_one_that_does_not() -> None:
+    # Frames too flat to give candidates (a tunnel, a lens cap) before the first real one: no row path
+    # exists, so the first rows start where a fresh stream's do (0 - jump_cost), not jump_cost below the
+    # null born on those frames (§11.5). The null, born on the first flat frame, rises a little as its
+    # negative score decays, so a few flat frames may cost a frame or so; 1 costs nothing.
+    delays = {1: [], 3: []}
+    for seed in range(12):
+        S = place_similarity(np.arange(300), np.arange(50, 110), noise=0.4, seed=seed)
+        fresh = first_revisit(S)
+        assert fresh is not None
+        for flat, out in delays.items():
+            out.append(first_revisit(S, flat=flat) - fresh)
+    assert delays[1] == [0] * 12, delays
+    assert max(delays[3]) <= 3 and np.mean(delays[3]) <= 1.0, delays
+
+
+def test_no_memory_of_the_past_still_gives_finite_answers() -> None:
+    # decay 0 (allowed: every frame judged alone) must not turn the unborn null's -inf into nan.
+    S = place_similarity(np.arange(50), np.arange(50), noise=0.3, seed=1)
+    places = [p for p in run(S, SequenceGraph.chain(50), {"decay": 0.0}) if p is not None]
+    assert places and all(np.isfinite(p.confidence) and 0.0 <= p.confidence <= 1.0 for p in places)
 
 
 def test_aliased_stretch_is_resolved_by_the_sequence_where_single_frames_fail() -> None:
