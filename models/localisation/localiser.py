@@ -325,12 +325,7 @@ class SequenceLocaliser:
         ages = state.ages[live]
         # The null decayed; -inf (NULL_PRIOR) before a stream's first frame stays -inf (0 * -inf is nan).
         null = decay * state.null if np.isfinite(state.null) else NULL_PRIOR
-        # The implicit level of every row outside the beam: the best state so far, a row path or the
-        # null, then a jump. The null is a state like the rows (§11.5): a robot back on the map after
-        # ground it never stored enters the map from the null, not from the best of the wrong paths
-        # that trailed it. With no row path (a stream's first frames, or frames too flat to give
-        # candidates before them) rows start where a stream's first frame starts them, as before.
-        jump = (max(float(past.max()), null) if past.size else 0.0) - float(c["jump_cost"])
+        jump = self._jump_level(past, null)
         # The null stays (no move cost) or is entered by that same jump.
         state.null = max(null, jump) + null_evidence(ev, float(c["null_quantile"]))
 
@@ -377,6 +372,22 @@ class SequenceLocaliser:
             return None
         place = self._answer(state, graph, n, jump)
         return place if informative else place._replace(informative=False)
+
+    def _jump_level(self, past: np.ndarray, null: float) -> float:
+        """J, the level of every row outside the beam and of every row born this frame (§11.2 step 3,
+        §11.5): the best state's decayed score, a row path or the null, less `jump_cost`.
+
+        The null is a state like the rows: a robot back on the map after ground it never stored enters
+        the map from the null, not from the best of the wrong row paths that trailed it. With no row
+        path (a stream's first frames, or frames too flat to give candidates before them) rows start
+        at 0 - `jump_cost`, where a stream's first frame starts them.
+
+        Args:
+            past: (H,) the live hypotheses' decayed scores (may be empty).
+            null: the null's decayed score (-inf before it is born).
+        """
+        best = max(float(past.max()), null) if past.size else 0.0
+        return best - float(self.conf["jump_cost"])
 
     def _answer(self, state: LocaliserState, graph: SequenceGraph, n: int, background: float) -> Place:
         best = int(state.rows[0])
