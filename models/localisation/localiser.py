@@ -53,7 +53,7 @@ class LocaliserParams(BaseModel):
     (docs/design/science.md §11.3). Strict: ints where ints, finite floats, a bool `backward`.
 
     The upper bounds keep one stream's state and step small whatever a client asks for: the state is
-    `beam` hypotheses of HYPOTHESIS_BYTES each (4,096 of them: 100 KiB a stream); a step costs
+    `beam` hypotheses of HYPOTHESIS_BYTES each (4,096 of them: 132 KiB a stream); a step costs
     O(top_k + beam * len(move_costs)) plus an O(exclusion) walk over the links.
     """
 
@@ -87,8 +87,8 @@ class LocaliserParams(BaseModel):
 #: Every option's default (LocaliserParams; meanings and why: docs/design/science.md §11.3).
 default_conf: dict[str, Any] = LocaliserParams().model_dump()
 
-#: Bytes of one hypothesis in a stream's state (LocaliserState: row, direction, score, age).
-HYPOTHESIS_BYTES = sum(np.dtype(t).itemsize for t in (np.int64, np.int8, np.float64, np.int64))
+#: Bytes of one hypothesis in a stream's state (LocaliserState: row, direction, score, age, born).
+HYPOTHESIS_BYTES = sum(np.dtype(t).itemsize for t in (np.int64, np.int8, np.float64, np.int64, np.int64))
 
 
 class Place(NamedTuple):
@@ -126,6 +126,8 @@ class LocaliserState:
         dirs: (beam,) int8 +1 = walking successor links, -1 = predecessor links (route driven backwards).
         scores: (beam,) float64 decayed path score (higher = better; -inf in empty slots).
         ages: (beam,) int64 frames on the path.
+        born: (beam,) int64 the map's row count when the path began (`len(graph)`): rows from it on were
+            stored while it was followed (`OwnTrail.laid_behind`, §11.6).
         frames: frames seen since the last reset.
         null: the null hypothesis' decayed score ("a place the map has not stored",
             docs/design/science.md §11.5); NULL_PRIOR (-inf, not yet born) at the start of a stream.
@@ -140,6 +142,7 @@ class LocaliserState:
     dirs: np.ndarray
     scores: np.ndarray
     ages: np.ndarray
+    born: np.ndarray
     frames: int = 0
     null: float = NULL_PRIOR
     here: int = UNKNOWN
@@ -148,7 +151,7 @@ class LocaliserState:
     @classmethod
     def empty(cls, beam: int) -> LocaliserState:
         return cls(np.full(beam, NONE, np.int64), np.ones(beam, np.int8), np.full(beam, -np.inf),
-                   np.zeros(beam, np.int64))
+                   np.zeros(beam, np.int64), np.zeros(beam, np.int64))
 
     def reset(self) -> None:
         """Forget every hypothesis (a new traverse, a kidnapped robot); the size stays."""
@@ -156,6 +159,7 @@ class LocaliserState:
         self.dirs[:] = 1
         self.scores[:] = -np.inf
         self.ages[:] = 0
+        self.born[:] = 0
         self.frames = 0
         self.null = NULL_PRIOR
         self.here, self.here_code = UNKNOWN, None
@@ -163,7 +167,7 @@ class LocaliserState:
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain numpy arrays for a snapshot (`np.savez`); `from_arrays` restores them."""
         return {"rows": self.rows.copy(), "dirs": self.dirs.copy(), "scores": self.scores.copy(),
-                "ages": self.ages.copy(), "frames": np.array(self.frames, np.int64),
+                "ages": self.ages.copy(), "born": self.born.copy(), "frames": np.array(self.frames, np.int64),
                 "null": np.array(self.null, np.float64), "here": np.array(self.here, np.int64)}
 
     @classmethod
@@ -171,7 +175,9 @@ class LocaliserState:
         """The state saved by `to_arrays`. A state saved before the null existed (no "null" array) loads
         with the null at its prior, NULL_PRIOR: it is born at the jump level on the next frame, as on
         a stream's first (docs/design/science.md §11.5); one saved before the own-trail rule (no "here")
-        loads with `here` UNKNOWN: its whole current trail counts as not left (§11.6).
+        loads with `here` UNKNOWN: its whole current trail counts as not left (§11.6); one saved before
+        paths knew when they began (no "born") loads them as begun before every row, so a path on the
+        stream's own trail ends at its next step and starts again from there (§11.6).
 
         Raises:
             ValueError: the arrays are missing or of different lengths.
@@ -182,15 +188,16 @@ class LocaliserState:
             frames = int(arrays["frames"])
             null = float(arrays["null"]) if "null" in arrays else NULL_PRIOR
             here = int(arrays["here"]) if "here" in arrays else UNKNOWN
+            born = np.asarray(arrays["born"], np.int64) if "born" in arrays else np.zeros_like(rows)
         except KeyError as e:
             raise ValueError(f"localiser state lacks {e}") from None
         if np.isnan(null) or null == np.inf:
             raise ValueError("localiser state's null score must be finite or -inf")
-        if not rows.ndim == 1 or not rows.shape == dirs.shape == scores.shape == ages.shape:
+        if not rows.ndim == 1 or not rows.shape == dirs.shape == scores.shape == ages.shape == born.shape:
             raise ValueError("localiser state arrays differ in shape")
         if here < UNKNOWN:
             raise ValueError("localiser state's `here` must be a row, -1 or -2")
-        return cls(rows.copy(), dirs.copy(), scores.copy(), ages.copy(), frames, null, here)
+        return cls(rows.copy(), dirs.copy(), scores.copy(), ages.copy(), born.copy(), frames, null, here)
 
 
 def top_candidates(sims: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -322,14 +329,14 @@ class SequenceLocaliser:
         live = state.rows >= 0
         rows, dirs = state.rows[live], state.dirs[live]
         past = decay * state.scores[live]
-        ages = state.ages[live]
+        ages, born = state.ages[live], state.born[live]
         # The null decayed; -inf (NULL_PRIOR) before a stream's first frame stays -inf (0 * -inf is nan).
         null = decay * state.null if np.isfinite(state.null) else NULL_PRIOR
         jump = self._jump_level(past, null)
         # The null stays (no move cost) or is entered by that same jump.
         state.null = max(null, jump) + null_evidence(ev, float(c["null_quantile"]))
 
-        new_rows, new_dirs, new_scores, new_ages = [], [], [], []
+        new_rows, new_dirs, new_scores, new_ages, new_born = [], [], [], [], []
         cur = rows
         for m, cost in enumerate(self.move_costs):
             if m:
@@ -339,19 +346,24 @@ class SequenceLocaliser:
             new_dirs.append(dirs[ok])
             new_scores.append(past[ok] - cost)
             new_ages.append(ages[ok] + 1)
+            new_born.append(born[ok])
         born_dirs = (1, -1) if c["backward"] else (1,)
         for d in born_dirs:
             new_rows.append(seqs)
             new_dirs.append(np.full(seqs.size, d, np.int8))
             new_scores.append(np.full(seqs.size, jump))
             new_ages.append(np.ones(seqs.size, np.int64))
+            new_born.append(np.full(seqs.size, len(graph), np.int64))
         r = np.concatenate(new_rows)
         d = np.concatenate(new_dirs).astype(np.int8)
         s = np.concatenate(new_scores) + _lookup(ev_rows, ev, r)
-        a = np.concatenate(new_ages)
-        if own is not None and r.size:  # a path that walks onto the stream's own trail ends there
-            keep = ~own.holds(graph, r)
-            r, d, s, a = r[keep], d[keep], s[keep], a[keep]
+        a, b = np.concatenate(new_ages), np.concatenate(new_born)
+        if own is not None and r.size:
+            # A path ends where it walks onto the rows the stream has not left, or onto the trail the
+            # stream laid while the path was followed, unless the frame is more like that row than like
+            # where the stream just was: an echo of where it just was is no place it came back to (§11.6).
+            keep = ~(own.holds(graph, r) | own.laid_behind(graph, r, b))
+            r, d, s, a, b = r[keep], d[keep], s[keep], a[keep], b[keep]
 
         # Viterbi: one survivor per (row, direction), the best score; ties to the older path.
         key = r * 2 + (d > 0)
@@ -366,7 +378,9 @@ class SequenceLocaliser:
         state.dirs[:] = 1
         state.scores[:] = -np.inf
         state.ages[:] = 0
+        state.born[:] = 0
         state.rows[:n], state.dirs[:n], state.scores[:n], state.ages[:n] = r[idx], d[idx], s[idx], a[idx]
+        state.born[:n] = b[idx]
         state.frames += 1
         if state.frames < int(c["warmup"]) or n == 0:
             return None

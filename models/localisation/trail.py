@@ -5,7 +5,8 @@ that continues along its trail, or stands still, would "revisit" the frame it st
 rule: the stream's own rows it has not left are no answer. It has left row r once a frame since r was
 unlike r: its code is nearer the map's background likeness than to r's code (`departure`). The
 rows not left are always a tail of the current trail (from `LocaliserState.here` to the last stored
-row), so they are one range on one chain of links (`OwnTrail`).
+row), so they are one range on one chain of links (`OwnTrail`). A path of the filter that follows the
+trail as the stream lays it is no revisit either (`OwnTrail.laid_behind`).
 """
 
 from __future__ import annotations
@@ -40,12 +41,19 @@ class OwnTrail(NamedTuple):
         first: `margin` links before `here` (the localiser's rival window). here: the oldest row the
         stream has not left (`LocaliserState.here`). last: the stream's last stored row.
         trail: `SequenceGraph.trail` of `last`, the chain they lie on.
+        code: (n,) sorted int, the frame's code; code_of: a stored row's code in the same form (None:
+            not given: no row is then more like the frame than where it just was).
+        recent: the frame's highest Dice with the stream's last `margin` + 1 rows of the trail (where it
+            just was).
     """
 
     first: int
     here: int
     last: int
     trail: int
+    code: np.ndarray | None = None
+    code_of: Callable[[int], np.ndarray] | None = None
+    recent: float = 1.0
 
     def holds(self, graph: SequenceGraph, rows: np.ndarray) -> np.ndarray:
         """(H,) bool: which of `rows` (H,) lie on this trail between `first` and `last`. A stream's
@@ -54,6 +62,26 @@ class OwnTrail(NamedTuple):
         ok = (rows >= self.first) & (rows <= self.last)
         ok[ok] = graph.trail[rows[ok]] == self.trail
         return ok
+
+    def laid_behind(self, graph: SequenceGraph, rows: np.ndarray, began: np.ndarray) -> np.ndarray:
+        """(H,) bool: which paths, now at `rows` (H,), follow the trail the stream laid while they were
+        followed (§11.6): the row is on this trail, was stored after the path began (`began`, (H,): the
+        map's row count then), shows no place known before it began (a confident revisit joins its row
+        to the place revisited, §11.8), and the frame is no more like it than like where the stream
+        just was (`recent`). Such a path is an echo of where the stream just was (frames along a route
+        stay faintly alike), not a place it came back to; a loop driven again looks more like its last
+        lap than like the frames just before, and goes on. O(H) plus one Dice per distinct row of such
+        paths."""
+        rows = np.asarray(rows, np.int64)
+        laid = (graph.trail[rows] == self.trail) & (graph.place[rows] >= np.asarray(began, np.int64))
+        if laid.any():
+            if self.code is None or self.code_of is None:
+                return laid
+            unique, inverse = np.unique(rows[laid], return_inverse=True)
+            unlike = np.array([code_dice(self.code, np.asarray(self.code_of(int(r)))) < self.recent
+                               for r in unique])
+            laid[laid] = unlike[inverse]
+        return laid
 
 
 def code_dice(a: np.ndarray, b: np.ndarray) -> float:
@@ -128,8 +156,9 @@ def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: n
             tunnel is unlike everything, but says nothing about whether the stream moved on).
 
     Returns:
-        OwnTrail(first, here, last, trail), first = `margin` links before `here` (or the trail's start), or
-        None without a last row.
+        OwnTrail(first, here, last, trail, code, code_of, recent), first = `margin` links before `here`
+        (or the trail's start), recent = the frame's highest Dice with the trail's last `margin` + 1 rows,
+        or None without a last row.
     """
     if last is None or last < 0:
         state.here, state.here_code = NONE, None
@@ -158,4 +187,11 @@ def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: n
         if prev < 0:
             break
         first = prev
-    return OwnTrail(first, here, int(last), trail)
+    # Where the stream just was: its last margin + 1 rows (amortised O(margin) Dice a frame).
+    recent, row = 0.0, int(last)
+    for _ in range(margin + 1):
+        recent = max(recent, code_dice(code, np.asarray(code_of(row))))
+        row = int(graph.prev[row])
+        if row < 0 or graph.trail[row] != trail:
+            break
+    return OwnTrail(first, here, int(last), trail, np.asarray(code), code_of, recent)

@@ -447,8 +447,10 @@ def eval_revisit(
 def eval_unknown(
     db: Annotated[Path, typer.Option(help="the database traverse's folder", exists=True, file_okay=False)],
     query: Annotated[Path, typer.Option(help="the query traverse's folder", exists=True, file_okay=False)],
-    split: Annotated[int, typer.Option(help="first row of the second half")],
+    split: Annotated[int, typer.Option(help="first row of the second half, counted from --offset")],
     thresholds: Annotated[str, typer.Option(help="confidence thresholds, comma-separated")],
+    offset: Annotated[int, typer.Option(min=0, help="first paired frame of the route")] = 0,
+    limit: Annotated[int | None, typer.Option(min=2, help="frames of the route (default: all)")] = None,
     backbone: Annotated[str | None, typer.Option(help="default: the service's")] = None,
     seed: int = 1,
 ) -> None:
@@ -456,7 +458,7 @@ def eval_unknown(
     from service.evaluation.unknown import unknown
 
     unknown(db, query, split=split, thresholds=[float(t) for t in thresholds.split(",")], backbone=backbone,
-            seed=seed)
+            seed=seed, offset=offset, limit=limit)
 
 
 @app.command("runtime-parity")

@@ -3,6 +3,9 @@ service's path (docs/results.md §9.2).
 
     cortexloc eval unknown --db ../shared/data/nordland_tiny_64x32/summer \
         --query ../shared/data/nordland_tiny_64x32/winter --split 894 --thresholds 0.639,0.8,0.951
+    cortexloc eval unknown ... --limit 894 --split 447 --thresholds 0.9   # inside `tune` only
+
+The route is the paired frames `--offset` to `--offset + --limit` (default: all).
 
 The route is cut at `--split` into two halves of different places. For each half, the database half is
 learned and the query traverse of the OTHER half is localised as one stream (`service_path.replay`: the
@@ -27,8 +30,12 @@ from service.settings import Settings
 
 
 def unknown(db: Path, query: Path, *, split: int, thresholds: list[float], backbone: str | None = None,
-            seed: int = 1) -> None:
-    """The experiment (module docstring), printed."""
+            seed: int = 1, offset: int = 0, limit: int | None = None) -> None:
+    """The experiment (module docstring), printed.
+
+    Raises:
+        ValueError: `split` does not cut the route into two non-empty halves.
+    """
     args = SimpleNamespace(db=db, query=query, split=split, thresholds=thresholds, backbone=backbone,
                            seed=seed)
     from service.encoder import resolve_backbone  # the service's own resolution of its default
@@ -36,6 +43,9 @@ def unknown(db: Path, query: Path, *, split: int, thresholds: list[float], backb
     settings = Settings.from_env()
     backbone = args.backbone or resolve_backbone(settings).backbone
     names = sequences.paired_names(args.db, args.query)
+    names = names[offset:] if limit is None else names[offset:offset + limit]
+    if not 0 < split < len(names):
+        raise ValueError(f"--split {split} must cut the route's {len(names)} frames into two halves")
     enc = Encoder({"backbone": backbone, "resize": DEFAULT_RESIZE})  # a new map's
     cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
     db = sequences.cached_features(enc, [args.db / n for n in names], cache)
@@ -55,7 +65,8 @@ def unknown(db: Path, query: Path, *, split: int, thresholds: list[float], backb
         found = replay(a, b)
         c = found.confidence[found.best >= 0]
         counts = ", ".join(f">= {t}: {int((c >= t).sum())}" for t in args.thresholds)
-        print(f"never stored (rows {a.start}-{a.stop} learned, {b.start}-{b.stop} driven): {c.size} answers, "
+        print(f"never stored (rows {offset + a.start}-{offset + a.stop} learned, "
+              f"{offset + b.start}-{offset + b.stop} driven): {c.size} answers, "
               f"max confidence {c.max():.3f}, mean {c.mean():.3f}; false revisits {counts}")
     for h in halves:
         found = replay(h, h)
@@ -64,6 +75,6 @@ def unknown(db: Path, query: Path, *, split: int, thresholds: list[float], backb
         for t in args.thresholds:
             said = answered & (found.confidence >= t)
             precision = right[said].mean() if said.any() else float("nan")
-            print(f"stored (rows {h.start}-{h.stop}) at {t}: precision {precision:.3f}, recall "
-                  f"{said[right].sum() / max(int(right.sum()), 1):.3f} (R@1 {right.mean():.3f})")
+            print(f"stored (rows {offset + h.start}-{offset + h.stop}) at {t}: precision {precision:.3f}, "
+                  f"recall {said[right].sum() / max(int(right.sum()), 1):.3f} (R@1 {right.mean():.3f})")
 

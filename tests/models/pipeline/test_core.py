@@ -120,7 +120,7 @@ def test_a_streams_condition_keeps_its_own_rows_of_the_new_condition_from_outran
     of docs/results.md §10.6); with the bits its recent frames share discounted, it names the lap-1 row
     of the place it is at."""
     right, own = second_lap({"condition_frames": 0})
-    assert right < 20 and own > 150
+    assert right < 40 and own > 150  # (a path chasing the trail just laid ends, §11.6: a few right)
     right, own = second_lap({"condition_frames": 20})
     assert right > 150 and own < 40
 

@@ -1,0 +1,97 @@
+"""Experiments of docs/results.md §10.9: the echo, a path that follows the trail a learning stream lays
+(docs/design/science.md §11.6), and what was tried against it, on the `cortexloc eval` commands. Not the
+service's code: each variant replaces `OwnTrail.laid_behind` (or the step's candidates) for the run only,
+so the rest of the path is the service's.
+
+    PYTHONPATH=$PWD python benchmarks/experiments/echo.py off eval slam --data $D --half tune
+    PYTHONPATH=$PWD python benchmarks/experiments/echo.py kill eval slam --grid $G --thresholds 0.5
+
+Variants:
+- `adopted`: the service's rule: a path ends on a row of the stream's own trail stored after it began,
+  unless the row shows a place known before it began or the frame is more like the row than like the
+  trail's last `exclusion` + 1 rows;
+- `off`: no such rule (before §10.9): only the rows the stream has not left end a path;
+- `kill`: the rule without its likeness test (every such row ends the path);
+- `absolute`: the likeness test at an absolute level, Dice >= b + `consolidate` * (1 - b) (§11.8's);
+- `between`: no path rule; instead an own-trail row behind the window is a candidate only if the frame
+  is more like it than the least alike trail frame stored since it (went away and came back by looks).
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from models.localisation import localiser as loc
+from models.localisation import trail
+
+
+def install(variant: str) -> None:
+    adopted = trail.OwnTrail.laid_behind
+
+    def no_test(self, graph, rows, began):
+        return adopted(self._replace(code_of=None), graph, rows, began)
+
+    def absolute(self, graph, rows, began):
+        laid = adopted(self._replace(code_of=None), graph, rows, began)
+        if laid.any():
+            c = float(loc.default_conf["consolidate"])
+            # `recent` holds the trail's likeness; the absolute level needs the frame's background,
+            # read back from the map's statistics captured at `own_trail` (below)
+            level = STATS["b"] + c * (1.0 - STATS["b"])
+            laid[laid] = [trail.code_dice(self.code, np.asarray(self.code_of(int(r)))) < level
+                          for r in np.asarray(rows)[laid]]
+        return laid
+
+    if variant == "adopted":
+        return
+    if variant in ("off", "between"):
+        trail.OwnTrail.laid_behind = lambda self, graph, rows, began: np.zeros(len(rows), bool)
+    elif variant == "kill":
+        trail.OwnTrail.laid_behind = no_test
+    elif variant == "absolute":
+        trail.OwnTrail.laid_behind = absolute
+    else:
+        raise SystemExit(f"unknown variant {variant!r}; see the module docstring")
+    own_trail = loc.SequenceLocaliser.own_trail
+
+    def capture(self, state, graph, last, code, code_of, stats, informative=True):
+        STATS["b"] = stats.background(code)
+        return own_trail(self, state, graph, last, code, code_of, stats, informative)
+
+    loc.SequenceLocaliser.own_trail = capture
+    if variant == "between":
+        step = loc.SequenceLocaliser.step
+
+        def filtered(self, state, graph, seqs, scores, own=None, informative=True):
+            seqs, scores = np.asarray(seqs, np.int64), np.asarray(scores, np.float64)
+            if own is not None and own.code_of is not None and seqs.size:
+                keep = np.ones(seqs.size, bool)
+                for i in np.flatnonzero((graph.trail[seqs] == own.trail) & (seqs < own.first)):
+                    row = np.asarray(own.code_of(int(seqs[i])))
+                    now, u, back = trail.code_dice(own.code, row), int(graph.next[seqs[i]]), False
+                    while 0 <= u <= own.last and graph.trail[u] == own.trail and not back:
+                        back = trail.code_dice(np.asarray(own.code_of(u)), row) < now
+                        u = int(graph.next[u])
+                    keep[i] = back
+                seqs, scores = seqs[keep], scores[keep]
+            return step(self, state, graph, seqs, scores, own, informative)
+
+        loc.SequenceLocaliser.step = filtered
+
+
+STATS: dict[str, float] = {"b": 0.0}
+
+
+def main() -> None:
+    if len(sys.argv) < 3:
+        raise SystemExit(__doc__)
+    install(sys.argv[1])
+    from service.cli import app
+
+    app(sys.argv[2:])
+
+
+if __name__ == "__main__":
+    main()
