@@ -54,7 +54,8 @@ class LocaliserParams(BaseModel):
 
     The upper bounds keep one stream's state and step small whatever a client asks for: the state is
     `beam` hypotheses of HYPOTHESIS_BYTES each (4,096 of them: 132 KiB a stream); a step costs
-    O(top_k + beam * len(move_costs)) plus an O(exclusion) walk over the links.
+    O(top_k + beam * len(move_costs)) plus an O(exclusion) walk over the links, and for a learning
+    stream at most `exclusion` + 1 code reads where a path reaches the trail it laid (§11.6).
     """
 
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
@@ -176,8 +177,9 @@ class LocaliserState:
         with the null at its prior, NULL_PRIOR: it is born at the jump level on the next frame, as on
         a stream's first (docs/design/science.md §11.5); one saved before the own-trail rule (no "here")
         loads with `here` UNKNOWN: its whole current trail counts as not left (§11.6); one saved before
-        paths knew when they began (no "born") loads them as begun before every row, so a path on the
-        stream's own trail ends at its next step and starts again from there (§11.6).
+        paths knew when they began (no "born") loads them as begun before every row: a path on the
+        stream's own trail ends at its next step unless the frame is more like the row it reaches than
+        like where the stream just was (§11.6).
 
         Raises:
             ValueError: the arrays are missing or of different lengths.
@@ -371,7 +373,17 @@ class SequenceLocaliser:
         first = np.ones(order.size, bool)
         first[1:] = key[order][1:] != key[order][:-1]
         idx = order[first]
-        idx = idx[np.lexsort((key[idx], -s[idx]))][:state.rows.size]  # best first, ties by row
+        idx = idx[np.lexsort((key[idx], -s[idx]))]  # best first, ties by row
+        beam = state.rows.size
+        if idx.size > beam and seqs.size:
+            # The frame's best candidate row keeps its hypotheses (§11.2 step 4): a beam full of older
+            # paths, all above the jump level, would otherwise cut every path that starts there, and a
+            # stream back on its map after a long lap could not begin the right one for ~100 frames.
+            mine = r[idx] == seqs[np.lexsort((seqs, -scores))[0]]
+            if mine[beam:].any():
+                others = np.flatnonzero(~mine)[:beam - int(mine.sum())]
+                idx = idx[np.sort(np.concatenate([others, np.flatnonzero(mine)]))]
+        idx = idx[:beam]
 
         n = idx.size
         state.rows[:] = NONE

@@ -43,8 +43,7 @@ class OwnTrail(NamedTuple):
         trail: `SequenceGraph.trail` of `last`, the chain they lie on.
         code: (n,) sorted int, the frame's code; code_of: a stored row's code in the same form (None:
             not given: no row is then more like the frame than where it just was).
-        recent: the frame's highest Dice with the stream's last `margin` + 1 rows of the trail (where it
-            just was).
+        window: how many of the trail's last rows are where the stream just was (`margin` + 1).
     """
 
     first: int
@@ -53,7 +52,7 @@ class OwnTrail(NamedTuple):
     trail: int
     code: np.ndarray | None = None
     code_of: Callable[[int], np.ndarray] | None = None
-    recent: float = 1.0
+    window: int = 1
 
     def holds(self, graph: SequenceGraph, rows: np.ndarray) -> np.ndarray:
         """(H,) bool: which of `rows` (H,) lie on this trail between `first` and `last`. A stream's
@@ -64,23 +63,28 @@ class OwnTrail(NamedTuple):
         return ok
 
     def laid_behind(self, graph: SequenceGraph, rows: np.ndarray, began: np.ndarray) -> np.ndarray:
-        """(H,) bool: which paths, now at `rows` (H,), follow the trail the stream laid while they were
-        followed (§11.6): the row is on this trail, was stored after the path began (`began`, (H,): the
-        map's row count then), shows no place known before it began (a confident revisit joins its row
-        to the place revisited, §11.8), and the frame is no more like it than like where the stream
-        just was (`recent`). Such a path is an echo of where the stream just was (frames along a route
-        stay faintly alike), not a place it came back to; a loop driven again looks more like its last
-        lap than like the frames just before, and goes on. O(H) plus one Dice per distinct row of such
-        paths."""
+        """(H,) bool: which paths, now at `rows` (H,) outside `holds`, follow the trail the stream laid
+        while they were followed (§11.6): the row is on this trail, was stored after the path began
+        (`began`, (H,): the map's row count then), and the frame is no more like it than like where the
+        stream just was (its highest Dice with the trail's last `window` rows). Such a path is an echo
+        of where the stream just was (frames along a route stay faintly alike), not a place it came back
+        to; a loop driven again looks more like its last lap than like the frames just before, and goes
+        on. O(H); only where such a path exists, `window` + one Dice per distinct row of them (each a
+        `code_of` read)."""
         rows = np.asarray(rows, np.int64)
-        laid = (graph.trail[rows] == self.trail) & (graph.place[rows] >= np.asarray(began, np.int64))
-        if laid.any():
-            if self.code is None or self.code_of is None:
-                return laid
-            unique, inverse = np.unique(rows[laid], return_inverse=True)
-            unlike = np.array([code_dice(self.code, np.asarray(self.code_of(int(r)))) < self.recent
-                               for r in unique])
-            laid[laid] = unlike[inverse]
+        laid = (graph.trail[rows] == self.trail) & (rows >= np.asarray(began, np.int64))
+        laid &= ~self.holds(graph, rows)
+        if not laid.any() or self.code is None or self.code_of is None:
+            return laid
+        recent, row = 0.0, self.last
+        for _ in range(self.window):
+            recent = max(recent, code_dice(self.code, np.asarray(self.code_of(row))))
+            row = int(graph.prev[row])
+            if row < 0 or graph.trail[row] != self.trail:
+                break
+        unique, inverse = np.unique(rows[laid], return_inverse=True)
+        unlike = np.array([code_dice(self.code, np.asarray(self.code_of(int(r)))) < recent for r in unique])
+        laid[laid] = unlike[inverse]
         return laid
 
 
@@ -156,9 +160,8 @@ def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: n
             tunnel is unlike everything, but says nothing about whether the stream moved on).
 
     Returns:
-        OwnTrail(first, here, last, trail, code, code_of, recent), first = `margin` links before `here`
-        (or the trail's start), recent = the frame's highest Dice with the trail's last `margin` + 1 rows,
-        or None without a last row.
+        OwnTrail(first, here, last, trail, code, code_of, margin + 1), first = `margin` links before
+        `here` (or the trail's start), or None without a last row.
     """
     if last is None or last < 0:
         state.here, state.here_code = NONE, None
@@ -187,11 +190,4 @@ def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: n
         if prev < 0:
             break
         first = prev
-    # Where the stream just was: its last margin + 1 rows (amortised O(margin) Dice a frame).
-    recent, row = 0.0, int(last)
-    for _ in range(margin + 1):
-        recent = max(recent, code_dice(code, np.asarray(code_of(row))))
-        row = int(graph.prev[row])
-        if row < 0 or graph.trail[row] != trail:
-            break
-    return OwnTrail(first, here, int(last), trail, np.asarray(code), code_of, recent)
+    return OwnTrail(first, here, int(last), trail, np.asarray(code), code_of, margin + 1)

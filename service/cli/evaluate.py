@@ -457,8 +457,11 @@ def eval_unknown(
     """False revisits on places never stored, through the service's path (service/evaluation/unknown.py)."""
     from service.evaluation.unknown import unknown
 
-    unknown(db, query, split=split, thresholds=[float(t) for t in thresholds.split(",")], backbone=backbone,
-            seed=seed, offset=offset, limit=limit)
+    try:
+        unknown(db, query, split=split, thresholds=[float(t) for t in thresholds.split(",")],
+                backbone=backbone, seed=seed, offset=offset, limit=limit)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from e
 
 
 @app.command("runtime-parity")

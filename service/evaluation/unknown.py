@@ -34,7 +34,8 @@ def unknown(db: Path, query: Path, *, split: int, thresholds: list[float], backb
     """The experiment (module docstring), printed.
 
     Raises:
-        ValueError: `split` does not cut the route into two non-empty halves.
+        ValueError: the folders share no frame, `offset` leaves none, or `split` does not cut the
+            route into two non-empty halves.
     """
     args = SimpleNamespace(db=db, query=query, split=split, thresholds=thresholds, backbone=backbone,
                            seed=seed)
@@ -42,8 +43,7 @@ def unknown(db: Path, query: Path, *, split: int, thresholds: list[float], backb
 
     settings = Settings.from_env()
     backbone = args.backbone or resolve_backbone(settings).backbone
-    names = sequences.paired_names(args.db, args.query)
-    names = names[offset:] if limit is None else names[offset:offset + limit]
+    names = sequences.paired_names(args.db, args.query, offset, limit)
     if not 0 < split < len(names):
         raise ValueError(f"--split {split} must cut the route's {len(names)} frames into two halves")
     enc = Encoder({"backbone": backbone, "resize": DEFAULT_RESIZE})  # a new map's
@@ -64,6 +64,10 @@ def unknown(db: Path, query: Path, *, split: int, thresholds: list[float], backb
     for a, b in (halves, halves[::-1]):
         found = replay(a, b)
         c = found.confidence[found.best >= 0]
+        if not c.size:
+            print(f"never stored (rows {offset + a.start}-{offset + a.stop} learned): no answer (too few "
+                  "frames for the localiser's warm-up)")
+            continue
         counts = ", ".join(f">= {t}: {int((c >= t).sum())}" for t in args.thresholds)
         print(f"never stored (rows {offset + a.start}-{offset + a.stop} learned, "
               f"{offset + b.start}-{offset + b.stop} driven): {c.size} answers, "
