@@ -55,7 +55,8 @@ class LocaliserParams(BaseModel):
     The upper bounds keep one stream's state and step small whatever a client asks for: the state is
     `beam` hypotheses of HYPOTHESIS_BYTES each (4,096 of them: 132 KiB a stream); a step costs
     O(top_k + beam * len(move_costs)) plus an O(exclusion) walk over the links, and for a learning
-    stream at most `exclusion` + 1 code reads where a path reaches the trail it laid (§11.6).
+    stream, where a path reaches the trail it laid, `exclusion` + 1 code reads plus one per distinct
+    row so reached (at most beam * len(move_costs); §11.6).
     """
 
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
@@ -380,7 +381,8 @@ class SequenceLocaliser:
             # paths, all above the jump level, would otherwise cut every path that starts there, and a
             # stream back on its map after a long lap could not begin the right one for ~100 frames.
             mine = r[idx] == seqs[np.lexsort((seqs, -scores))[0]]
-            if mine[beam:].any():
+            # (at most 2: one per direction; a beam of 1 or 2 keeps its best path instead)
+            if mine[beam:].any() and beam > int(mine.sum()):
                 others = np.flatnonzero(~mine)[:beam - int(mine.sum())]
                 idx = idx[np.sort(np.concatenate([others, np.flatnonzero(mine)]))]
         idx = idx[:beam]

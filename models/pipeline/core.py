@@ -161,8 +161,8 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         stream: the stream's name (its own rows it has not left are left out of the ranking, §11.6).
         top_k: ranked rows wanted in `Step.ranked`.
         code_of: a stored row's code (its `input_sdr`), read by the own-trail rule (§11.6): about one
-            row per frame, and `exclusion` + 1 more on a frame where a path reaches a row of the
-            stream's own trail laid since the path began.
+            row per frame, and `exclusion` + 1 more plus one per such row on a frame where paths reach
+            rows of the stream's own trail laid since they began.
         seq: the seq the learned row gets (required with `learn`; the caller stores it under that seq).
             It is also the clock of the places' recency (§11.9).
         threshold: the map's revisit threshold. A learning frame whose place is a revisit (confidence

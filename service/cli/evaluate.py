@@ -455,13 +455,14 @@ def eval_unknown(
     seed: int = 1,
 ) -> None:
     """False revisits on places never stored, through the service's path (service/evaluation/unknown.py)."""
-    from service.evaluation.unknown import unknown
+    from service.evaluation.unknown import route_names, unknown
 
     try:
-        unknown(db, query, split=split, thresholds=[float(t) for t in thresholds.split(",")],
-                backbone=backbone, seed=seed, offset=offset, limit=limit)
+        route_names(db, query, split=split, offset=offset, limit=limit)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
+    unknown(db, query, split=split, thresholds=[float(t) for t in thresholds.split(",")], backbone=backbone,
+            seed=seed, offset=offset, limit=limit)
 
 
 @app.command("runtime-parity")

@@ -29,13 +29,25 @@ from service.maps.config import DEFAULT_RESIZE
 from service.settings import Settings
 
 
+def route_names(db: Path, query: Path, *, split: int, offset: int = 0, limit: int | None = None) -> list[str]:
+    """The route's paired frame names, `offset` to `offset + limit`, checked to cut at `split`.
+
+    Raises:
+        ValueError: the folders share no frame, `offset` leaves none, or `split` does not cut the
+            route into two non-empty halves.
+    """
+    names = sequences.paired_names(db, query, offset, limit)
+    if not 0 < split < len(names):
+        raise ValueError(f"--split {split} must cut the route's {len(names)} frames into two halves")
+    return names
+
+
 def unknown(db: Path, query: Path, *, split: int, thresholds: list[float], backbone: str | None = None,
             seed: int = 1, offset: int = 0, limit: int | None = None) -> None:
     """The experiment (module docstring), printed.
 
     Raises:
-        ValueError: the folders share no frame, `offset` leaves none, or `split` does not cut the
-            route into two non-empty halves.
+        ValueError: as `route_names`.
     """
     args = SimpleNamespace(db=db, query=query, split=split, thresholds=thresholds, backbone=backbone,
                            seed=seed)
@@ -43,9 +55,7 @@ def unknown(db: Path, query: Path, *, split: int, thresholds: list[float], backb
 
     settings = Settings.from_env()
     backbone = args.backbone or resolve_backbone(settings).backbone
-    names = sequences.paired_names(args.db, args.query, offset, limit)
-    if not 0 < split < len(names):
-        raise ValueError(f"--split {split} must cut the route's {len(names)} frames into two halves")
+    names = route_names(args.db, args.query, split=split, offset=offset, limit=limit)
     enc = Encoder({"backbone": backbone, "resize": DEFAULT_RESIZE})  # a new map's
     cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
     db = sequences.cached_features(enc, [args.db / n for n in names], cache)

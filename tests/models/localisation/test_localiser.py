@@ -153,7 +153,7 @@ def test_back_on_the_map_after_ground_never_stored_is_a_revisit_within_a_few_fra
     # map from the null (one jump), not from those paths (§11.5). Born from the best row path, 16 of
     # these 20 seeds were no revisit in the 40 frames after the return; now all are, median 12.5 frames.
     back = [b for b in (back_on_the_map(seed) for seed in range(20)) if b is not None]
-    assert len(back) >= 17 and np.median(back) <= 20, back
+    assert len(back) >= 19 and np.median(back) <= 16, back
 
 
 def test_a_beam_full_of_older_paths_does_not_keep_the_way_back_out() -> None:
@@ -163,6 +163,24 @@ def test_a_beam_full_of_older_paths_does_not_keep_the_way_back_out() -> None:
     # frame's best candidate row keeps its hypotheses (§11.2 step 4).
     back = [back_on_the_map(seed, {"beam": 16}) for seed in range(10)]
     assert None not in back and max(back) <= 30 and np.median(back) <= 16, back
+
+
+@pytest.mark.parametrize("beam", [2, 3, 16])
+def test_a_full_beam_stays_best_first_and_keeps_its_best_path_through_an_outlier_frame(beam: int) -> None:
+    # One frame (the 13th) looks most like a row far off the route: its hypotheses are kept in a full
+    # beam, but never in place of the path the stream is on, and the beam stays best first (the answer
+    # reads its first entry).
+    S = place_similarity(np.arange(60), np.arange(30), noise=0.2, seed=3)
+    S[:, 12] = 0.0
+    S[40, 12] = 5.0
+    loc, graph = SequenceLocaliser({"beam": beam}), SequenceGraph.chain(60)
+    state = loc.new_state()
+    for j in range(30):
+        place = loc.step_dense(state, graph, S[:, j])
+        live = state.scores[state.rows >= 0]
+        assert np.all(np.diff(live) <= 0)
+        if j >= 13:  # the same path, through the outlier: its support counts the frames before it
+            assert place is not None and abs(place.seq - j) <= 1 and place.support > 10, (j, place)
 
 
 def test_a_stream_that_starts_on_flat_frames_is_sure_about_as_soon_as_one_that_does_not() -> None:

@@ -8,7 +8,7 @@ import pytest
 
 from models.evaluation import online
 from models.localisation import CodeStats, SequenceGraph, SequenceLocaliser
-from models.localisation.trail import UNKNOWN
+from models.localisation.trail import UNKNOWN, code_dice
 from models.sdr import dice_matrix
 
 W, N = 2048, 300
@@ -144,7 +144,9 @@ def test_rows_laid_while_the_path_was_followed_end_it_unless_the_frame_came_back
     state = loc.new_state()
     state.here = 60  # every row left
     began = np.full(3, 20)
-    own = loc.own_trail(state, graph, 59, noisy(codes[59], 0.3), codes.__getitem__, stats)
+    frame = noisy(codes[59], 0.3)
+    assert code_dice(frame, codes[59]) > 0.6  # like where the stream just was
+    own = loc.own_trail(state, graph, 59, frame, codes.__getitem__, stats)
     assert own.laid_behind(graph, np.array([19, 20, 25]), began).tolist() == [False, True, True]
     # A frame more like row 25 (far behind the rows it just left) than like where it just was came back
     # to it: the path goes on there, not at row 20.

@@ -35,6 +35,12 @@ def test_a_slice_of_the_route_is_cut_at_split_counted_from_its_offset(route):
     assert re.search(r"stored \(rows 2-9\) at 0\.5: precision", r.output)
 
 
+def test_halves_too_short_for_the_warm_up_say_so(route):
+    r = invoke(route, "--limit", "8", "--split", "4")
+    assert r.exit_code == 0, r.output
+    assert r.output.count("no answer (too few frames for the localiser's warm-up)") == 2
+
+
 @pytest.mark.parametrize("args, says", [(("--split", "0"), "split"),
                                         (("--limit", "4", "--split", "4"), "split"),
                                         (("--offset", "16", "--split", "1"), "offset")])
