@@ -5,6 +5,16 @@ so the rest of the path is the service's.
 
     PYTHONPATH=$PWD python benchmarks/experiments/echo.py off eval slam --data $D --half tune
     PYTHONPATH=$PWD python benchmarks/experiments/echo.py kill eval slam --grid $G --thresholds 0.5
+    PYTHONPATH=$PWD python benchmarks/experiments/echo.py off synthetic
+    PYTHONPATH=$PWD python benchmarks/experiments/echo.py codes:61 eval slam --data $D --half tune \
+        --routes stop --methods service-slam --thresholds 0.9
+
+`codes:N`: the service's rule, and after the run the Dice of the last stream's frame N (0-based) with
+the 20 rows stored before it, nearest first, beside its background likeness (§10.9).
+
+`synthetic`: the synthetic echo of tests/models/localisation/test_trail.py (`drifting`: 120 frames, a
+pool of 100 of 300 bits swapping 2 or 5 a frame, no revisit) through `online.loop_closure`, 12 seeds:
+the lowest and highest of each seed's highest confidence.
 
 Variants:
 - `adopted`: the service's rule: a path ends on a row of the stream's own trail stored after it began,
@@ -46,6 +56,24 @@ def install(variant: str) -> None:
 
     if variant == "adopted":
         return
+    if variant.startswith("codes:"):
+        frame, own_trail = int(variant.partition(":")[2]), loc.SequenceLocaliser.own_trail
+
+        def record(self, state, graph, last, code, code_of, stats, informative=True):
+            if last is None:  # a stream's first frame: count again
+                SEEN.clear()
+            if len(SEEN) == frame:
+                behind, row = [], last if last is not None else -1
+                while row >= 0 and len(behind) < 20:  # the rows stored before it, nearest first
+                    behind.append(np.asarray(code_of(row)))
+                    row = int(graph.prev[row])
+                SEEN.append((np.asarray(code), stats.background(code), behind))
+            elif len(SEEN) < frame:
+                SEEN.append(None)
+            return own_trail(self, state, graph, last, code, code_of, stats, informative)
+
+        loc.SequenceLocaliser.own_trail = record
+        return
     if variant in ("off", "between"):
         trail.OwnTrail.laid_behind = lambda self, graph, rows, began: np.zeros(len(rows), bool)
     elif variant == "kill":
@@ -82,15 +110,38 @@ def install(variant: str) -> None:
 
 
 STATS: dict[str, float] = {"b": 0.0}
+SEEN: list = []  # `codes:N`: None for a stream's frames before N, then (code, background, rows' codes)
+
+
+def synthetic() -> None:
+    from models.evaluation import online
+    from models.sdr import dice_matrix
+    from tests.models.localisation.test_trail import drifting
+
+    for drift in (2, 5):
+        highest = []
+        for seed in range(12):
+            codes = drifting(120, seed, drift=drift)
+            highest.append(online.loop_closure(dice_matrix(codes), codes).confidence.max())
+        print(f"{drift} bits a frame: highest confidence {min(highest):.3f}-{max(highest):.3f} over 12 seeds")
 
 
 def main() -> None:
     if len(sys.argv) < 3:
         raise SystemExit(__doc__)
     install(sys.argv[1])
+    if sys.argv[2] == "synthetic":
+        synthetic()
+        return
     from service.cli import app
 
-    app(sys.argv[2:])
+    try:
+        app(sys.argv[2:])
+    finally:
+        if sys.argv[1].startswith("codes:") and len(SEEN) > int(sys.argv[1].partition(":")[2]) and SEEN[-1]:
+            code, background, behind = SEEN[-1]
+            print(f"frame {len(SEEN) - 1}: background likeness {background:.3f}; Dice with the rows 1..20 "
+                  "behind it: " + " ".join(f"{trail.code_dice(code, c):.2f}" for c in behind))
 
 
 if __name__ == "__main__":
