@@ -365,8 +365,9 @@ class SequenceLocaliser:
             # A path ends where it walks onto the rows the stream has not left, or onto the trail the
             # stream laid while the path was followed, unless the frame is more like that row than like
             # where the stream just was: an echo of where it just was is no place it came back to (§11.6).
-            keep = ~(own.holds(graph, r) | own.laid_behind(graph, r, b))
-            r, d, s, a, b = r[keep], d[keep], s[keep], a[keep], b[keep]
+            ends = own.holds(graph, r)
+            ends[~ends] = own.laid_behind(graph, r[~ends], b[~ends])
+            r, d, s, a, b = r[~ends], d[~ends], s[~ends], a[~ends], b[~ends]
 
         # Viterbi: one survivor per (row, direction), the best score; ties to the older path.
         key = r * 2 + (d > 0)

@@ -63,7 +63,7 @@ class OwnTrail(NamedTuple):
         return ok
 
     def laid_behind(self, graph: SequenceGraph, rows: np.ndarray, began: np.ndarray) -> np.ndarray:
-        """(H,) bool: which paths, now at `rows` (H,) outside `holds`, follow the trail the stream laid
+        """(H,) bool: which paths, now at `rows` (H,; none in `holds`), follow the trail the stream laid
         while they were followed (§11.6): the row is on this trail, was stored after the path began
         (`began`, (H,): the map's row count then), and the frame is no more like it than like where the
         stream just was (its highest Dice with the trail's last `window` rows). Such a path is an echo
@@ -73,7 +73,6 @@ class OwnTrail(NamedTuple):
         `code_of` read)."""
         rows = np.asarray(rows, np.int64)
         laid = (graph.trail[rows] == self.trail) & (rows >= np.asarray(began, np.int64))
-        laid &= ~self.holds(graph, rows)
         if not laid.any() or self.code is None or self.code_of is None:
             return laid
         recent, row = 0.0, self.last
