@@ -18,8 +18,7 @@ the lowest and highest of each seed's highest confidence.
 
 Variants:
 - `adopted`: the service's rule: a path ends on a row of the stream's own trail stored after it began,
-  unless the row shows a place known before it began or the frame is more like the row than like the
-  trail's last `exclusion` + 1 rows;
+  unless the frame is more like the row than like the trail's last `exclusion` + 1 rows;
 - `off`: no such rule (before §10.9): only the rows the stream has not left end a path;
 - `kill`: the rule without its likeness test (every such row ends the path);
 - `absolute`: the likeness test at an absolute level, Dice >= b + `consolidate` * (1 - b) (§11.8's);
@@ -47,8 +46,7 @@ def install(variant: str) -> None:
         laid = adopted(self._replace(code_of=None), graph, rows, began)
         if laid.any():
             c = float(loc.default_conf["consolidate"])
-            # `recent` holds the trail's likeness; the absolute level needs the frame's background,
-            # read back from the map's statistics captured at `own_trail` (below)
+            # the absolute level needs the frame's background likeness, captured at `own_trail` (below)
             level = STATS["b"] + c * (1.0 - STATS["b"])
             laid[laid] = [trail.code_dice(self.code, np.asarray(self.code_of(int(r)))) < level
                           for r in np.asarray(rows)[laid]]
