@@ -114,3 +114,17 @@ def test_the_tm_profile_still_ablates_the_kernel(tmp_path: Path) -> None:
     broken = [(bench_tm_profile.SELECT[0] + "# gone", "")]
     with pytest.raises(RuntimeError, match="cannot ablate"):
         bench_tm_profile.patched_copy(tmp_path / "broken", broken)
+
+
+def test_bench_gpu_says_it_needs_a_gpu_where_there_is_none(monkeypatch: pytest.MonkeyPatch) -> None:
+    """bench_gpu (docs/benchmarks.md §15) runs on a GPU machine only; on the CPU machines of CI and
+    development it stops with a message, not a traceback, and writes nothing."""
+    import sys
+
+    import bench_gpu
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(sys, "argv", ["bench_gpu.py"])
+    with pytest.raises(SystemExit, match="no CUDA device"):
+        bench_gpu.main()
