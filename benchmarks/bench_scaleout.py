@@ -127,7 +127,7 @@ def _failover(cluster: Any, base: str) -> dict[str, Any]:
     reads got meanwhile (503s while the ingress knows the shard down; a read that Ray queued for the
     replacement waits instead)."""
     shard = cluster.routes()["bench"][0]
-    pid = cluster.shard_pid(shard)
+    pid = cluster.pids(shard)[shard]
     t0 = time.perf_counter()
     os.kill(pid, signal.SIGKILL)
     statuses: list[int] = []
@@ -139,7 +139,7 @@ def _failover(cluster: Any, base: str) -> dict[str, Any]:
             return {"shard": shard, "served_again_s": round(time.perf_counter() - t0, 2),
                     "longest_read_s": round(time.perf_counter() - t1, 2), "reads": len(statuses),
                     "reads_503": statuses.count(503), "observations": r.json()["observations"],
-                    "new_pid": cluster.shard_pid(shard) != pid}
+                    "new_pid": cluster.pids(shard)[shard] != pid}
         time.sleep(0.2)
     raise RuntimeError("the killed shard was not served again within 600 s")
 

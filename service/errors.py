@@ -267,6 +267,7 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
     maps_errors.MapUnavailable: DomainProblem(503, "map-unavailable", ("state", "state_reason")),
     maps_errors.ShardUnavailable: DomainProblem(503, "map-unavailable", ("map_id", "shard", "retry_after")),
     maps_errors.Overloaded: DomainProblem(503, "overloaded", ("retry_after",), {"Retry-After": "1"}),
+    maps_errors.EncoderUnavailable: DomainProblem(503, "not-ready", ("retry_after",)),
     maps_errors.StreamLimit: DomainProblem(429, "stream-limit",
                                            ("max_streams", "keep_seconds", "retry_after")),
     StoreClosed: DomainProblem(503, "map-unavailable", (), {"Retry-After": "1"}),  # mid-restore or delete

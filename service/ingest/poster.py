@@ -10,9 +10,15 @@ then posts the source's frames **one at a time, in source order**:
   predicts next) depends on the order, so a stream is posted sequentially: frame i+1 leaves after frame
   i's answer. What runs alongside the post in flight is the reading and PNG conversion of the next
   `prefetch` frames (a reader thread and a bounded buffer).
-- 503 (overloaded, map recovering, starting): retried after `Retry-After` (capped at `MAX_WAIT_S`), at most
-  `MAX_RETRIES` times. Nothing else is retried: a post lost to a timeout may have been learned, and the
-  service has no idempotency key yet.
+- each post carries an `Idempotency-Key` (a fresh UUID per frame, the same on each of its retries), so
+  that a retry of a post the service already learned is answered with its first reply, never learned
+  twice (docs/design/service.md §1.2).
+- retried at most `MAX_RETRIES` times, after `Retry-After` where the reply has one, else after 1, 2, 4 s
+  (capped at `MAX_WAIT_S`): a 503 (overloaded, map recovering, starting); a 500 that is not
+  problem+json, which is a proxy's, not the service's (Ray Serve's proxy answers so for a request whose
+  ingress replica died with it, docs/scaling.md); and a connection lost mid-request. The service's own
+  problem+json 500 is a bug, not retried; a post with no answer within `REMOTE_TIMEOUT_S` stops the
+  ingest (the service is stuck, not restarting).
 - a frame the service refuses for its bytes (413, 415, 422) is recorded as an error and the ingest goes
   on; any other refusal (401, 404, 409 map full, 5xx) stops it (`IngestError`, with the summary so far).
   A frame over the upload limit the source was opened with (`Frame.oversize`) is recorded as a 413 the
@@ -26,6 +32,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+import uuid
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from dataclasses import asdict, dataclass, field
@@ -36,6 +43,7 @@ import httpx
 import numpy as np
 
 from service.ingest.sources import Frame, Source
+from service.media_types import PROBLEM_MEDIA_TYPE
 
 if TYPE_CHECKING:
     from service.settings import Settings
@@ -48,6 +56,7 @@ MAX_WAIT_S = 30.0
 #: Refusals of one frame's bytes: recorded, and the ingest goes on.
 FRAME_ERRORS = frozenset({413, 415, 422})
 REMOTE_TIMEOUT_S = 120.0
+IDEMPOTENCY_HEADER = "Idempotency-Key"
 
 
 class IngestError(RuntimeError):
@@ -252,20 +261,41 @@ async def _post_frame(client: httpx.AsyncClient, frame: Frame, opts: Options, he
         params["metadata"] = json.dumps({"stamp": frame.stamp_ns / 1e9}, separators=(",", ":"))
     if opts.label_stamp and frame.stamp_ns is not None:
         params["label"] = f"{frame.stamp_ns // 1_000_000_000}.{frame.stamp_ns % 1_000_000_000:09d}"
+    # One key per frame, made once: each retry sends the same (a post learned already is replayed).
+    headers = {**headers, "Content-Type": frame.media_type, IDEMPOTENCY_HEADER: uuid.uuid4().hex}
     t = time.perf_counter()
     for attempt in range(MAX_RETRIES + 1):
-        r = await _request(client, "POST", f"/v1/maps/{opts.map_id}/observations", summary, params=params,
-                           content=frame.data, headers={**headers, "Content-Type": frame.media_type})
-        if r.status_code != 503 or attempt == MAX_RETRIES:
+        last = attempt == MAX_RETRIES
+        try:
+            r: httpx.Response | None = await _request(
+                client, "POST", f"/v1/maps/{opts.map_id}/observations", summary, params=params,
+                content=frame.data, headers=headers)
+        except IngestError as e:  # the connection broke mid-request: safe to resend with the key
+            if last or not _connection_lost(e.__cause__):
+                raise
+            r = None
+        if r is not None and (last or not _retried(r)):
             break
         summary.retries += 1
-        await sleep(retry_after_s(r.headers.get("Retry-After"), attempt))
+        await sleep(retry_after_s(None if r is None else r.headers.get("Retry-After"), attempt))
+    assert r is not None
     latency_ms = (time.perf_counter() - t) * 1e3
     rec = Record(frame.index, frame.name, frame.stamp_ns, r.status_code, round(latency_ms, 3), _json(r))
     if r.status_code != 200 and r.status_code not in FRAME_ERRORS:
         summary.add(rec)
         raise IngestError(f"frame {frame.name}: {_problem_text(r)}", summary)
     return rec
+
+
+def _retried(r: httpx.Response) -> bool:
+    """A 503, or a proxy's 500 (not the service's problem+json): the post is sent again."""
+    problem = r.headers.get("Content-Type", "").split(";")[0].strip() == PROBLEM_MEDIA_TYPE
+    return r.status_code == 503 or (r.status_code == 500 and not problem)
+
+
+def _connection_lost(e: BaseException | None) -> bool:
+    """A transport failure other than a timeout (a reset, a refused or dropped connection)."""
+    return isinstance(e, httpx.TransportError) and not isinstance(e, httpx.TimeoutException)
 
 
 def _not_sent(frame: Frame) -> dict[str, Any]:

@@ -14,9 +14,9 @@ from typing import Any
 from storage.mapstore import StoreClosed
 from storage.snapshots import SnapshotInvalid
 
-__all__ = ["IdempotencyKeyReused", "InsufficientStorage", "InvalidConfiguration", "InvalidMapId",
-           "MapAlreadyExists", "MapError", "MapFull", "MapLimit", "MapNotFound", "MapTooLarge",
-           "MapUnavailable", "MemoryBudgetExceeded", "ObservationNotFound", "Overloaded",
+__all__ = ["EncoderUnavailable", "IdempotencyKeyReused", "InsufficientStorage", "InvalidConfiguration",
+           "InvalidMapId", "MapAlreadyExists", "MapError", "MapFull", "MapLimit", "MapNotFound",
+           "MapTooLarge", "MapUnavailable", "MemoryBudgetExceeded", "ObservationNotFound", "Overloaded",
            "RecentAnswerNotFound", "ShardUnavailable", "SnapshotInUse", "SnapshotInvalid",
            "SnapshotNotFound", "StoreClosed", "StreamLimit"]
 
@@ -128,6 +128,16 @@ class ShardUnavailable(MapError):  # noqa: N818
     def __init__(self, map_id: str, shard: str, why: str, retry_after: int = 2) -> None:
         super().__init__(f"map {map_id!r} is unavailable: {why}")
         self.map_id, self.shard, self.retry_after = map_id, shard, retry_after
+
+
+class EncoderUnavailable(MapError):  # noqa: N818
+    """The scale-out's encoder replica died or is being replaced while it held this frame
+    (service.scaleout; docs/scaling.md): nothing was stored; retry after `retry_after` seconds with the
+    same Idempotency-Key."""
+
+    def __init__(self, why: str, retry_after: int = 2) -> None:
+        super().__init__(f"the encoder deployment did not answer ({why}); it is being replaced")
+        self.retry_after = retry_after
 
 
 class StreamLimit(MapError):  # noqa: N818

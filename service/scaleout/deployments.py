@@ -41,8 +41,14 @@ def _settings(env: dict[str, str], data_dir: Path) -> Settings:
     return Settings.from_env({**env, "CORTEXLOC_DATA_DIR": str(data_dir)})
 
 
+class _Replica:
+    def pid(self) -> int:
+        """The replica's process id (the failure tests kill it: tests/e2e/test_scaleout.py)."""
+        return os.getpid()
+
+
 @serve.deployment(health_check_period_s=1, health_check_timeout_s=30)
-class Encoder:
+class Encoder(_Replica):
     """Images -> features (1, D), batched across shards."""
 
     def __init__(self, env: dict[str, str], data_dir: str, max_batch: int) -> None:
@@ -61,7 +67,7 @@ class Encoder:
 
 @serve.deployment(num_replicas=1, health_check_period_s=1, health_check_timeout_s=30,
                   max_ongoing_requests=64, graceful_shutdown_timeout_s=10)
-class Shard:
+class Shard(_Replica):
     """One shard: the single-process app on `data_dir` (service.scaleout.shard)."""
 
     async def __init__(self, env: dict[str, str], data_dir: str, encoder: DeploymentHandle) -> None:
@@ -81,17 +87,13 @@ class Shard:
     async def import_tar(self, tar: bytes) -> str:
         return await self.host.import_tar(tar)
 
-    def pid(self) -> int:
-        """The replica's process id (the failure test kills it)."""
-        return os.getpid()
-
     async def __del__(self) -> None:
         await self.host.stop()
 
 
 @serve.deployment(health_check_period_s=1, health_check_timeout_s=30, max_ongoing_requests=256)
 @serve.ingress()
-class Ingress:
+class Ingress(_Replica):
     """The HTTP API over the shards (service.scaleout.ingress); `move` is `cortexloc shards move`."""
 
     def __init__(self, env: dict[str, str], data_dir: str, shards: dict[str, DeploymentHandle]) -> None:

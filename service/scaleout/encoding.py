@@ -23,6 +23,8 @@ from models.frontend.encoder import EncodeResult
 from models.frontend.images import ImageError
 from service.encoder import build_encoder, resolve_backbone
 from service.maps.encoding.encoders import Encoders
+from service.maps.errors import EncoderUnavailable
+from service.scaleout.replicas import unavailable_errors
 from service.settings import Settings
 
 __all__ = ["EmbedRequest", "Embedded", "EncoderService", "PendingReply", "RemoteEncoder"]
@@ -186,9 +188,13 @@ class PendingReply:
         self._reply: Embedded | None = None
 
     def result(self) -> Embedded:
-        """The reply; raises the deployment's `ImageError` for an image it could not decode."""
+        """The reply; raises the deployment's `ImageError` for an image it could not decode, and
+        `EncoderUnavailable` when the replica died with the call (a 503, never the app's 500)."""
         if self._reply is None:
-            kind, value, thumb, timings, contrast = self._call.result()
+            try:
+                kind, value, thumb, timings, contrast = self._call.result()
+            except unavailable_errors() as e:
+                raise EncoderUnavailable(type(e).__name__) from e
             if kind == "error":
                 raise value
             remote_ms = (time.perf_counter() - self._t0) * 1e3

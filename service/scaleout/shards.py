@@ -21,27 +21,16 @@ from pathlib import Path
 from typing import Any
 
 from service.maps.errors import MapNotFound, ShardUnavailable
+from service.scaleout.replicas import unavailable_errors
 from service.scaleout.shard import ForwardedReply
 from storage.shardtable import ShardRoute, ShardTable
 
-__all__ = ["MoveFailed", "ShardSet", "unavailable_errors"]
+__all__ = ["MoveFailed", "ShardSet"]
 
 log = logging.getLogger("cortexloc.scaleout")
 
 #: `call(shard, method, *args)`: a shard deployment's method by its handle (or a test's stand-in).
 ShardCall = Callable[..., Awaitable[Any]]
-
-
-def unavailable_errors() -> tuple[type[BaseException], ...]:
-    """What a call to a shard raises while its replica is dead or not yet replaced (Ray's errors when
-    Ray is installed), beside a timeout."""
-    errors: tuple[type[BaseException], ...] = (asyncio.TimeoutError, ConnectionError)
-    with contextlib.suppress(ImportError):
-        from ray.exceptions import ActorUnavailableError, RayActorError
-        from ray.serve.exceptions import DeploymentUnavailableError, RequestCancelledError
-
-        errors += (RayActorError, ActorUnavailableError, DeploymentUnavailableError, RequestCancelledError)
-    return errors
 
 
 class MoveFailed(Exception):  # noqa: N818

@@ -106,17 +106,18 @@ class RayCluster:
         return subprocess.run([sys.executable, "-m", "service.cli", *args], env=self.env, cwd=ROOT,
                               capture_output=True, text=True, timeout=timeout)
 
-    def shard_pid(self, shard: str) -> int:
-        """The process id of a shard's replica (asked through Ray, from a separate driver)."""
+    def pids(self, *deployments: str) -> dict[str, int]:
+        """The process id of each deployment's replica (`shard-<i>`, `Encoder`, `Ingress`: one replica
+        each here), asked through Ray from one separate driver."""
         code = ("import ray, sys; from ray import serve; "
                 "ray.init(address=sys.argv[1], logging_level='ERROR', log_to_driver=False); "
-                "print(serve.get_deployment_handle(sys.argv[2], 'cortexloc')"
-                ".pid.remote().result(timeout_s=120))")
-        out = subprocess.run([sys.executable, "-c", code, self.address, shard], env=self.env,
+                "print(*(serve.get_deployment_handle(d, 'cortexloc').pid.remote().result(timeout_s=120) "
+                "for d in sys.argv[2:]))")
+        out = subprocess.run([sys.executable, "-c", code, self.address, *deployments], env=self.env,
                              capture_output=True, text=True, timeout=300)
         if out.returncode != 0:
             raise RuntimeError(out.stderr[-2000:])
-        return int(out.stdout.strip().splitlines()[-1])
+        return dict(zip(deployments, map(int, out.stdout.strip().splitlines()[-1].split()), strict=True))
 
     def routes(self) -> dict[str, tuple[str, str]]:
         """`cortexloc shards list`: map -> (shard, state)."""

@@ -143,10 +143,12 @@ def test_a_damaged_bag_exits_2_with_one_line(tmp_path, kind):
 class Scripted:
     """A fake service: GET map -> 200; observation posts answered by `answers` in turn (then 200)."""
 
-    def __init__(self, answers: list[tuple[int, dict[str, str]]] | None = None) -> None:
+    def __init__(self, answers: list[tuple[int, dict[str, str]] | httpx.Response | Exception] | None = None
+                 ) -> None:
         self.answers = list(answers or [])
         self.bodies: list[bytes] = []
         self.keys: set[str | None] = set()
+        self.idempotency_keys: list[str | None] = []  # of each post, in order
         self.in_flight = self.max_in_flight = 0
 
     async def __call__(self, request: httpx.Request) -> httpx.Response:
@@ -159,7 +161,13 @@ class Scripted:
         await anyio.wait_all_tasks_blocked()
         self.in_flight -= 1
         self.bodies.append(request.content)
-        status, headers = self.answers.pop(0) if self.answers else (200, {})
+        self.idempotency_keys.append(request.headers.get("Idempotency-Key"))
+        answer = self.answers.pop(0) if self.answers else (200, {})
+        if isinstance(answer, Exception):
+            raise answer
+        if isinstance(answer, httpx.Response):
+            return answer
+        status, headers = answer
         body = {"learned": True, "matches": []} if status == 200 else {"title": "T", "detail": f"d{status}"}
         return httpx.Response(status, json=body, headers=headers)
 
@@ -204,6 +212,39 @@ def test_retries_are_bounded(tmp_path):
     with pytest.raises(poster.IngestError, match=r"frame frame_0000\.png: 503 T: d503") as e:
         anyio.run(run)
     assert sleeps == [1.0] * poster.MAX_RETRIES and e.value.summary.errors == 1
+
+
+def test_a_proxys_plain_500_and_a_lost_connection_are_retried_with_the_frames_key(tmp_path):
+    """Ray Serve's proxy answers a plain-text 500 for a post whose ingress replica died with it, and a
+    connection may break mid-request: the frame is sent again with the same Idempotency-Key (the service
+    replays it if it was learned), within the retry budget (issue 34, item 5)."""
+    plain = httpx.Response(500, text="Internal Server Error", headers={"Content-Type": "text/plain"})
+    service = Scripted([plain, httpx.ReadError("connection reset"), (200, {})])
+    bodies, sleeps, run = _ingest(tmp_path, service)
+    summary = anyio.run(run)
+    assert service.bodies == [bodies[0]] * 3 + bodies[1:] and sleeps == [1.0, 2.0]  # the backoff
+    first = service.idempotency_keys[0]
+    assert first and service.idempotency_keys[:3] == [first] * 3  # the same key on every attempt
+    others = service.idempotency_keys[3:]
+    assert None not in others and len({first, *others}) == len(ROUTE)  # each frame its own key
+    assert summary.retries == 2 and summary.frames == len(ROUTE) and summary.errors == 0
+
+
+def test_the_services_own_500_is_not_retried(tmp_path):
+    """A problem+json 500 is the service's answer (a bug), not a proxy's: the ingest stops there."""
+    problem = httpx.Response(500, json={"title": "Internal error", "detail": "quote request id r"},
+                             headers={"Content-Type": "application/problem+json"})
+    service = Scripted([problem])
+    _, sleeps, run = _ingest(tmp_path, service)
+    with pytest.raises(poster.IngestError, match=r"frame frame_0000\.png: 500 Internal error"):
+        anyio.run(run)
+    assert len(service.bodies) == 1 and sleeps == []
+    service = Scripted([httpx.Response(500, text="down", headers={"Content-Type": "text/plain"})]
+                       * (poster.MAX_RETRIES + 1))
+    _, sleeps, run = _ingest(tmp_path / "again", service)
+    with pytest.raises(poster.IngestError, match="500"):  # a proxy's 500 too, once the retries are spent
+        anyio.run(run)
+    assert len(service.bodies) == poster.MAX_RETRIES + 1 and len(set(service.idempotency_keys)) == 1
 
 
 def test_a_refused_frame_is_counted_and_the_ingest_goes_on_but_a_refused_map_stops_it(tmp_path):

@@ -39,16 +39,23 @@ class Cluster:
         self.hosts: dict[str, ShardHost] = {}
         self.starting: dict[str, asyncio.Task] = {}  # one start per shard, as Ray starts one replica
         self.dead: set[str] = set()
+        self.failures: dict[str, BaseException] = {}  # shard -> what a call to it raises (Ray's errors)
+        self.embed_failure: BaseException | None = None  # what the encoder deployment's call raises
         self.shards: ShardSet | None = None
 
     def _embed(self, req):
         f: Future = Future()
-        f.set_result(self.encoder.embed_batch([req])[0])
+        if self.embed_failure is not None:
+            f.set_exception(self.embed_failure)
+        else:
+            f.set_result(self.encoder.embed_batch([req])[0])
         return f
 
     async def call(self, shard: str, method: str, *args):
         if shard in self.dead:
             raise ConnectionError(f"{shard} is dead")
+        if shard in self.failures:
+            raise self.failures[shard]
         host = self.hosts.get(shard)
         if host is None:  # concurrent first calls (the ingress's probe and a request) share one start
             if shard not in self.starting:
@@ -167,6 +174,40 @@ def test_a_dead_shard_answers_503_with_retry_after_and_a_retry_is_replayed(clust
         assert again.status_code == 200 and again.headers["Idempotent-Replayed"] == "true"
         assert again.json()["observation_id"] == first.json()["observation_id"]
         assert c.get("/v1/maps/m0").json()["observations"] == 1
+
+
+def test_a_replica_that_dies_with_a_call_answers_503_never_500(cluster):
+    """Issue 34, item 5: what Ray raises for a replica that died with the call (the encoder's, seen by a
+    shard; a shard's, seen by the ingress) is a 503 problem+json with Retry-After, which clients retry
+    with the same key, never the app's 500 `internal-error`; nothing is stored meanwhile."""
+    pytest.importorskip("ray")
+    from ray.exceptions import ActorDiedError
+    from ray.serve.exceptions import RayServeException, ReplicaUnavailableError
+
+    def refused(r, slug: str) -> None:
+        assert r.status_code == 503 and r.headers["Retry-After"] == "2", r.text
+        assert r.headers["content-type"] == "application/problem+json"
+        assert r.json()["type"] == f"urn:cortexloc:problem:{slug}" and r.json()["retry_after"] == 2
+
+    with cluster.client() as c:
+        assert c.post("/v1/maps", json={"map_id": "m0", **TINY}).status_code == 201  # on shard-1
+        # The encoder deployment's replica dies with the frame in its batch.
+        cluster.embed_failure = ActorDiedError()
+        refused(post(c, "m0", 1, key="key-00000001"), "not-ready")
+        assert c.get("/v1/maps/m0").json()["observations"] == 0
+        cluster.embed_failure = None
+        r = post(c, "m0", 1, key="key-00000001")
+        assert r.status_code == 200 and r.json()["seq"] == 1
+        # The shard's replica: Serve's errors for a replica gone, and for an upstream actor that died.
+        for error in (ReplicaUnavailableError("shard-1#x"), RayServeException("an upstream actor died")):
+            cluster.failures["shard-1"] = error
+            refused(post(c, "m0", 2, key="key-00000002"), "map-unavailable")
+            cluster.failures.clear()
+            deadline = time.monotonic() + 30  # until the ingress's probe finds the shard serving again
+            while c.get("/v1/maps/m0").status_code == 503 and time.monotonic() < deadline:
+                time.sleep(0.05)
+        assert c.get("/v1/maps/m0").json()["observations"] == 1
+        assert post(c, "m0", 2, key="key-00000002").json()["seq"] == 2
 
 
 def test_the_edge_rules_hold_at_the_ingress(cluster):

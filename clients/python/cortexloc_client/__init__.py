@@ -2,7 +2,7 @@
 
 Replies are pydantic models (`cortexloc_client.models`); refusals are `CortexlocError` and its
 subclasses; 503s are retried after `Retry-After` (`RetryPolicy`); observation posts carry an
-`Idempotency-Key`, the same across their retries.
+`Idempotency-Key`, the same across their retries, and are resent with it on a proxy's plain 500.
 """
 
 import pydantic

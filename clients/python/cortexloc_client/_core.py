@@ -17,7 +17,7 @@ import httpx
 from pydantic import BaseModel
 
 from cortexloc_client import models
-from cortexloc_client.errors import error_from_response, retry_after_seconds
+from cortexloc_client.errors import error_from_response, is_problem, retry_after_seconds
 from cortexloc_client.frames import ColourOrder, frame_body
 
 __all__ = ["Call", "RetryPolicy", "Settings"]
@@ -43,6 +43,11 @@ class RetryPolicy:
     - any other transport failure (reset, timeout while reading the reply): the service may have done
       the work, so only idempotent requests are retried (GET, DELETE, PATCH, a stream reset, and an
       observation that carries an `Idempotency-Key`).
+    - a 500 that is not problem+json: a proxy's page, not the service's answer (Ray Serve's proxy sends
+      a plain-text 500 for a request whose ingress replica died with it), so it is a transport failure
+      after the request left: idempotent requests only, the same key, the backoff above. A
+      problem+json 500 is the service's own `internal-error` (a bug to report with its `request_id`):
+      never retried.
 
     Args:
         attempts: tries in all, the first included (1: never retry).
@@ -73,7 +78,8 @@ class RetryPolicy:
                 raise error
             return min(self.backoff_s * 2**attempt, self.max_wait_s)
         assert response is not None
-        if last or response.status_code != 503:
+        lost = response.status_code == 500 and not is_problem(response)  # a proxy's, on a dead replica
+        if last or not (response.status_code == 503 or (lost and call.idempotent)):
             raise error_from_response(response)
         asked = retry_after_seconds(response.headers.get("Retry-After"))
         return min(self.backoff_s * 2**attempt if asked is None else asked, self.max_wait_s)

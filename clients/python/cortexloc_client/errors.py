@@ -32,6 +32,7 @@ __all__ = [
     "UnprocessableError",
     "UnsupportedMediaTypeError",
     "error_from_response",
+    "is_problem",
 ]
 
 TYPE_PREFIX = "urn:cortexloc:problem:"
@@ -138,6 +139,14 @@ def retry_after_seconds(value: str | None) -> float | None:
         return max(float(value), 0.0)
     except ValueError:
         return None
+
+
+PROBLEM_MEDIA_TYPE = "application/problem+json"
+
+
+def is_problem(response: httpx.Response) -> bool:
+    """The reply is the service's problem+json (not a proxy's page)."""
+    return response.headers.get("Content-Type", "").split(";")[0].strip().lower() == PROBLEM_MEDIA_TYPE
 
 
 def error_from_response(response: httpx.Response) -> CortexlocError:

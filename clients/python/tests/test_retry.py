@@ -150,6 +150,64 @@ def test_transport_failures_are_retried_only_where_safe(waits) -> None:
     assert len(script.requests) == 2
 
 
+def proxy_500() -> httpx.Response:
+    """What Ray Serve's proxy answers for a request whose ingress replica died with it."""
+    return httpx.Response(500, text="Internal Server Error", headers={"Content-Type": "text/plain"})
+
+
+def internal_500() -> httpx.Response:
+    """The service's own 500: problem+json `internal-error`."""
+    return httpx.Response(500, json={**OVERLOADED, "type": "urn:cortexloc:problem:internal-error",
+                                     "title": "Internal error", "status": 500},
+                          headers={"Content-Type": "application/problem+json"})
+
+
+def test_a_proxys_plain_500_is_retried_for_a_keyed_post_with_the_same_key(waits) -> None:
+    script = Script(proxy_500(), proxy_500(), httpx.Response(200, json=OBSERVATION))
+    assert make(script).observe("lab", JPEG, idempotency_key="frame-0001").seq == 1
+    assert script.keys() == ["frame-0001"] * 3 and waits == [0.5, 1.0]  # the backoff: no Retry-After
+    assert all(r.content == JPEG for r in script.requests)
+    # ...with the key the client made, too; and a read (idempotent) likewise.
+    script = Script(proxy_500(), httpx.Response(200, json=OBSERVATION))
+    assert make(script).observe("lab", JPEG).seq == 1
+    assert len(script.requests) == 2 and script.keys()[0] and len(set(script.keys())) == 1
+    script = Script(proxy_500(), httpx.Response(200, json={"snapshots": [SNAPSHOT]}))
+    assert make(script).list_snapshots("lab")[0].snapshot_id == "s1" and len(script.requests) == 2
+
+
+def test_an_unkeyed_post_or_the_services_own_500_is_not_retried(waits) -> None:
+    # Without a key the post may have been learned before the replica died: never sent twice.
+    script = Script(proxy_500(), httpx.Response(200, json=OBSERVATION))
+    with pytest.raises(ServerError) as e:
+        make(script, idempotency_keys=False).observe("lab", JPEG)
+    assert e.value.status == 500 and e.value.problem is None and len(script.requests) == 1
+    script = Script(proxy_500(), httpx.Response(201, json=SNAPSHOT))
+    with pytest.raises(ServerError):
+        make(script).create_snapshot("lab")
+    assert len(script.requests) == 1
+    # A problem+json 500 is the service's answer (a bug, quote its request id), not a lost request.
+    script = Script(internal_500(), httpx.Response(200, json=OBSERVATION))
+    with pytest.raises(ServerError) as e:
+        make(script).observe("lab", JPEG)
+    assert e.value.slug == "internal-error" and e.value.request_id == "r-1" and len(script.requests) == 1
+    assert waits == []
+
+
+def test_the_async_client_retries_a_proxys_500_alike(waits) -> None:
+    script = Script(proxy_500(), httpx.Response(200, json=OBSERVATION))
+
+    async def post(**kw) -> str | None:
+        async with AsyncClient("http://cortexloc.test", transport=httpx.MockTransport(script), **kw) as c:
+            return (await c.observe("lab", JPEG)).observation_id
+
+    assert asyncio.run(post()) == "o-1"
+    assert waits == [0.5] and len(script.requests) == 2 and len(set(script.keys())) == 1
+    script = Script(proxy_500(), httpx.Response(200, json=OBSERVATION))
+    with pytest.raises(ServerError):
+        asyncio.run(post(idempotency_keys=False))
+    assert len(script.requests) == 1
+
+
 def test_a_reply_that_is_not_a_problem_still_raises(waits) -> None:
     script = Script(httpx.Response(502, text="<html>Bad Gateway</html>"))
     with pytest.raises(ServerError) as e:
