@@ -294,16 +294,17 @@ class MapRuntime:
 
     @contextlib.contextmanager
     def _restore_budget(self, snapshot: Path) -> Iterator[None]:
-        """The memory budget of a restore (docs/design/service.md §1.8): while it runs, the new memory is
-        built beside the old one (held as transient bytes), and the snapshot's rows must fit (the index
-        estimate, set exactly by the recovery). Raises MemoryBudgetExceeded before anything changes."""
+        """The memory budget of a restore (docs/design/service.md §1.8): while it runs, the new memory and
+        index are built beside the old ones (the memory in the budget's recovery room, the old index
+        held as transient bytes), and the snapshot's rows must fit (the index estimate, set exactly by
+        the recovery). Raises MemoryBudgetExceeded before anything changes."""
         if self.budget is None:
             yield
             return
         with MapStore.open(snapshot / snapshots.DB_FILE, readonly=True) as copy:
             rows = copy.count()
         old_index = len(self.index) * self.row_bytes
-        with self.budget.transient(self.map_id, self.tm.size()["bytes"] + old_index):
+        with self.budget.transient(self.map_id, old_index):
             self.budget.grow_index(self.map_id, rows * self.row_bytes - old_index)
             try:
                 yield
