@@ -11,8 +11,10 @@ oldest pruned like the keys); version 4 the `keyframes` table (a learned row's l
 camera, docs/design/science.md §12.1) and a logged closure's `verification`; version 5 places
 (docs/design/science.md §11.8, §11.9): a row's `place` (the row whose place it joined), the `visits` log
 (a consolidated frame: the memory learned it, no row was made; replayed like a row) and the `dropped`
-rows (out of the index and their places: an appearance over its place's cap, a forgotten place). An older
-file is brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep
+rows (out of the index and their places: an appearance over its place's cap, a forgotten place); version
+6 the rows' `recency`; version 7 `visit_keys`, a consolidated frame's Idempotency-Key and reply, kept
+for the keys' window whatever the visit log's pruning. An older file is brought up to date when it is
+opened for writing (`migrate`), in one transaction: its rows keep
 `place` NULL (read as the place its learning stream's logged loop closure names, else its own).
 """
 
@@ -60,7 +62,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -193,6 +195,25 @@ CREATE TABLE recency (
 """
 
 
+# What version 7 added (docs/design/service.md §4.2): a consolidated frame's Idempotency-Key and reply,
+# committed with its visit, bounded like the row keys (those of the last `max_keys` visits), and kept when
+# the visit log is pruned: a retry is answered for the keys' window, not only while its visit is logged.
+_V7_TABLES = """
+CREATE TABLE visit_keys (
+    key         TEXT PRIMARY KEY,
+    fingerprint TEXT NOT NULL,
+    visit       INTEGER NOT NULL UNIQUE,   -- the visit's id (its log order; it may be pruned since)
+    reply       TEXT NOT NULL,
+    created_at  TEXT NOT NULL
+);
+"""
+#: An older file's visit keys, those of the visits still logged (the pruned ones are gone with them).
+_COPY_VISIT_KEYS = """
+INSERT INTO visit_keys (key, fingerprint, visit, reply, created_at)
+SELECT idempotency_key, fingerprint, id, reply, created_at FROM visits WHERE idempotency_key IS NOT NULL;
+"""
+
+
 def _version_step(version: int) -> str:
     """The script that lifts the frozen meta's trigger for the version number alone."""
     return f"""
@@ -216,6 +237,8 @@ _MIGRATE_V4 = _V4_TABLES + _CLOSURE_VERIFICATION + _version_step(4)
 _MIGRATE_V5 = _V5_TABLES + _PLACE_COLUMN + _version_step(5)
 #: Version 5 -> 6: a new table (an older file's recency is rebuilt as before: rows and visits kept).
 _MIGRATE_V6 = _V6_TABLES + _version_step(6)
+#: Version 6 -> 7: a new table, filled from the keys the visit log holds (no row changes).
+_MIGRATE_V7 = _V7_TABLES + _COPY_VISIT_KEYS + _version_step(7)
 
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
@@ -232,7 +255,7 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
     if meta.schema_version >= SCHEMA_VERSION:
         return meta
     # chain[v - 1]: version v -> v + 1
-    chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6]
+    chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6, _MIGRATE_V7]
     steps = "".join(chain[meta.schema_version - 1:])
     try:
         conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
@@ -500,7 +523,7 @@ def create_file(path: Path, meta: MapMeta) -> None:
             # A temporary file: atomicity comes from the rename below, not from one transaction
             # (executescript would commit a pending transaction anyway).
             conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION
-                               + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES)
+                               + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES + _V7_TABLES)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

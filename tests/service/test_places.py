@@ -249,3 +249,28 @@ def test_after_a_crash_the_cap_drops_the_rows_the_map_that_did_not_crash_drops(t
         assert state(c) == live
         run(c, parts[2:])
         assert state(c) == twin and twin[0]
+
+
+def test_retry_keys_of_consolidated_posts_outlive_the_pruned_visit_log(tmp_path):
+    """Issue 34 item 6: a consolidated post's Idempotency-Key replays for the keys' window
+    (CORTEXLOC_IDEMPOTENCY_KEYS), not only while its visit is logged (`visits=1` prunes all but one)."""
+    def keyed(c, p: int, i: int):
+        headers = {"Content-Type": "image/png", "Idempotency-Key": f"lap-b-key-{i:04d}"}
+        return c.post("/v1/maps/default/observations", content=frame(p, noise=3.0), headers=headers,
+                      params={"stream": "b", "learn": "true", "top_k": 0})
+
+    data = tmp_path / "data"
+    with make_client(data, snapshot_every=5, visits=1) as c:
+        c.patch("/v1/maps/default", json={"revisit_threshold": THRESHOLD})
+        drive(c, LAP, stream="a", noise=0.0)
+        first = {i: keyed(c, p, i).json() for i, p in enumerate(LAP)}
+        kept = [i for i, b in first.items() if b["consolidated_into"] is not None]
+        rt = c.app.state.registry.get("default")
+        assert len(kept) > 5 and rt.store.visits_pruned_through() > 0  # their visits were pruned
+        before = state_of(c), places(c, "default")["visits_logged"]
+        for i in kept:
+            assert keyed(c, LAP[i], i).json() == first[i]
+        assert (state_of(c), places(c, "default")["visits_logged"]) == before  # nothing learned again
+    with make_client(data, snapshot_every=5, visits=1) as c:  # and after a restart
+        assert all(keyed(c, LAP[i], i).json() == first[i] for i in kept)
+        assert state_of(c) == before[0]
