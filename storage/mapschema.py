@@ -13,9 +13,10 @@ camera, docs/design/science.md §12.1) and a logged closure's `verification`; ve
 (a consolidated frame: the memory learned it, no row was made; replayed like a row) and the `dropped`
 rows (out of the index and their places: an appearance over its place's cap, a forgotten place); version
 6 the rows' `recency`; version 7 `visit_keys`, a consolidated frame's Idempotency-Key and reply, kept
-for the keys' window whatever the visit log's pruning. An older file is brought up to date when it is
-opened for writing (`migrate`), in one transaction: its rows keep
-`place` NULL (read as the place its learning stream's logged loop closure names, else its own).
+for the keys' window whatever the visit log's pruning, and `stream_states`, what a replay cannot give
+back of a learning stream (its localiser state), written with each learned step. An older file is
+brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep `place`
+NULL (read as the place its learning stream's logged loop closure names, else its own).
 """
 
 from __future__ import annotations
@@ -195,9 +196,12 @@ CREATE TABLE recency (
 """
 
 
-# What version 7 added (docs/design/service.md §4.2): a consolidated frame's Idempotency-Key and reply,
-# committed with its visit, bounded like the row keys (those of the last `max_keys` visits), and kept when
-# the visit log is pruned: a retry is answered for the keys' window, not only while its visit is logged.
+# What version 7 added (docs/design/service.md §4.2, §4.4): a consolidated frame's Idempotency-Key and
+# reply, committed with its visit, bounded like the row keys (those of the last `max_keys` visits), and kept
+# when the visit log is pruned: a retry is answered for the keys' window, not only while its visit is
+# logged. And each learning stream's state after its last learned step that a replay cannot rebuild,
+# upserted in that step's transaction, pruned once a snapshot holds it: a stream resumes its place after
+# a crash as after a clean shutdown.
 _V7_TABLES = """
 CREATE TABLE visit_keys (
     key         TEXT PRIMARY KEY,
@@ -205,6 +209,11 @@ CREATE TABLE visit_keys (
     visit       INTEGER NOT NULL UNIQUE,   -- the visit's id (its log order; it may be pruned since)
     reply       TEXT NOT NULL,
     created_at  TEXT NOT NULL
+);
+CREATE TABLE stream_states (
+    stream  TEXT PRIMARY KEY,
+    clock   INTEGER NOT NULL,          -- the seq-space clock of the stream's last learned step
+    state   BLOB NOT NULL              -- models.pipeline.resume_state: npz of its localiser, adaptation
 );
 """
 #: An older file's visit keys, those of the visits still logged (the pruned ones are gone with them).
@@ -327,6 +336,8 @@ class NewObservation:
         key: the post's Idempotency-Key and reply, committed in the row's transaction.
         keyframe: the frame's packed local features (`models.geometry.pack`) and its camera (or None),
             `keyframes` table, for maps with the `keyframes` option.
+        resume: its stream's state after the step that a replay cannot rebuild
+            (`models.pipeline.resume_state`), `stream_states`.
         closure: the revisit logged with it. place: the row whose place it joined (None: its own place).
         drops: rows its place dropped over its cap, recorded in its transaction (`dropped`).
         touched: rows its step used (the answer's row of the place it joined), at the clock of its seq
@@ -345,6 +356,7 @@ class NewObservation:
     thumbnail: bytes | None = None
     key: KeyRecord | None = None
     keyframe: tuple[bytes, dict[str, Any] | None] | None = None
+    resume: bytes | None = None
     closure: NewClosure | None = None
     place: int | None = None
     drops: tuple[int, ...] = ()
@@ -363,6 +375,7 @@ class NewVisit:
         frame's. key: the post's Idempotency-Key and reply. closure: its revisit, logged with it.
         touched: rows its step used (`seq` and the answer's row), at the clock of the seq the store
             would have given it (`MapStore.next_seq`: the live map's clock, `recency`).
+        resume: as a row's (`NewObservation.resume`).
     """
 
     stream: str
@@ -375,6 +388,7 @@ class NewVisit:
     key: KeyRecord | None = None
     closure: NewClosure | None = None
     touched: tuple[int, ...] = ()
+    resume: bytes | None = None
 
 
 @dataclass(frozen=True, eq=False)

@@ -278,6 +278,8 @@ class MapStore:
             closures = [_closure_params(r.closure, first + i)
                         for i, r in enumerate(rows) if r.closure is not None]
             drops = [(int(d), "appearance-cap", first + i) for i, r in enumerate(rows) for d in r.drops]
+            resumes = [(str(r.stream), first + i, r.resume)
+                       for i, r in enumerate(rows) if r.resume is not None]
             touches = [(int(t), first + i) for i, r in enumerate(rows) for t in r.touched]
             if not durable:  # per connection, outside a transaction: this commit alone skips its fsync
                 conn.execute("PRAGMA synchronous=NORMAL")
@@ -287,6 +289,7 @@ class MapStore:
                                      params)
                     self._drop(conn, drops)
                     self._touch(conn, touches)
+                    self._resume(conn, resumes)
                     # The row's thumbnail and idempotency key commit with it, or nothing does.
                     conn.executemany("INSERT INTO thumbnails (seq, jpeg) VALUES (?, ?)", thumbs)
                     conn.executemany("INSERT INTO keyframes (seq, features, camera) VALUES (?, ?, ?)", frames)
@@ -345,6 +348,8 @@ class MapStore:
                                          (visit_id - self.max_keys,))
                     clock = max(self._last_seq, self._seq_floor) + 1  # the seq the live step was given
                     self._touch(conn, [(int(t), clock) for t in visit.touched])
+                    if visit.resume is not None:
+                        self._resume(conn, [(str(visit.stream), clock, visit.resume)])
                     if visit.closure is not None:
                         self._log_closures(conn, [_closure_params(visit.closure, None)])
             except sqlite3.IntegrityError as exc:
@@ -397,6 +402,31 @@ class MapStore:
         if touches and self._v6:
             conn.executemany("INSERT INTO recency (seq, used) VALUES (?, ?) ON CONFLICT (seq) DO UPDATE "
                              "SET used = max(used, excluded.used)", touches)
+
+    def _resume(self, conn: sqlite3.Connection, states: list[tuple[str, int, bytes]]) -> None:
+        """Within the caller's transaction: streams' states after their learned steps (`stream_states`)."""
+        if states and self._v7:
+            conn.executemany("INSERT INTO stream_states (stream, clock, state) VALUES (?, ?, ?) ON CONFLICT "
+                             "(stream) DO UPDATE SET clock = excluded.clock, state = excluded.state", states)
+
+    def stream_states(self) -> dict[str, bytes]:
+        """Stream -> its state after its last learned step, as written with that step
+        (`NewObservation.resume`); those a snapshot holds may have been pruned (`prune_stream_states`)."""
+        if not self._v7:
+            return {}
+        with self._lock:
+            return {r[0]: bytes(r[1]) for r in self._db().execute("SELECT stream, state FROM stream_states")}
+
+    def prune_stream_states(self, through: int) -> int:
+        """Delete the stream states written at a clock <= `through` (a snapshot at that seq holds them:
+        the replay after it meets none of their steps). Returns how many."""
+        if not self._v7:
+            return 0
+        with self._lock:
+            conn = self._db()
+            with transaction(conn):
+                cur = conn.execute("DELETE FROM stream_states WHERE clock <= ?", (int(through),))
+            return int(cur.rowcount)
 
     def recency(self) -> dict[int, int]:
         """Row -> the clock of its last use by a later step (a row's own making is its seq; not here),

@@ -53,6 +53,7 @@ def test_an_older_file_is_migrated_to_hold_keyframes_and_closure_verifications(t
         DROP TABLE dropped;
         DROP TABLE recency;
         DROP TABLE visit_keys;
+        DROP TABLE stream_states;
         ALTER TABLE observations DROP COLUMN place;
         {older}
         DROP TRIGGER meta_no_update;

@@ -111,6 +111,7 @@ def _as_version_4(path: Path) -> None:
         DROP TABLE dropped;
         DROP TABLE recency;
         DROP TABLE visit_keys;
+        DROP TABLE stream_states;
         ALTER TABLE observations DROP COLUMN place;
         DROP TRIGGER meta_no_update;
         UPDATE meta SET value = '4' WHERE key = 'schema_version';
@@ -169,6 +170,7 @@ def test_a_version_6_file_keeps_its_logged_visit_keys(tmp_path: Path, meta: MapM
         UPDATE visits SET idempotency_key = 'visit-key-0001', fingerprint = (SELECT fingerprint FROM
             visit_keys), reply = (SELECT reply FROM visit_keys);
         DROP TABLE visit_keys;
+        DROP TABLE stream_states;
         DROP TRIGGER meta_no_update;
         UPDATE meta SET value = '6' WHERE key = 'schema_version';
         CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
@@ -182,3 +184,15 @@ def test_a_version_6_file_keeps_its_logged_visit_keys(tmp_path: Path, meta: MapM
         assert store.meta.schema_version == SCHEMA_VERSION == 7
         assert store.prune_visits(covered=10**6, keep=0) == 0  # the only visit stays (the newest)
         assert store.key_record("visit-key-0001") == record
+
+
+def test_a_stream_s_state_commits_with_its_learned_step_and_is_pruned_once_a_snapshot_holds_it(
+        store: MapStore) -> None:
+    """Schema 7 `stream_states` (issue 34 item 7): the last learned step's state of each stream."""
+    store.append(dataclasses.replace(make_row(1), resume=b"a1"))
+    store.append(dataclasses.replace(make_row(2, stream="c"), resume=b"c2"))
+    store.add_visit(dataclasses.replace(visit(10, 1, None), resume=b"b3"))
+    store.append(dataclasses.replace(make_row(3), resume=b"a4"))
+    assert store.stream_states() == {make_row(1).stream: b"a4", "c": b"c2", "b": b"b3"}
+    assert store.prune_stream_states(through=2) == 1  # c's, at seq 2; b's visit is at clock 3
+    assert set(store.stream_states()) == {make_row(1).stream, "b"}

@@ -522,6 +522,8 @@ class MapRuntime:
                                 contrast=contrast)
         if step.visit is not None:  # consolidated (§11.8): the memory learned it, no row is made
             seq = None
+        # What a replay cannot rebuild of the stream, durable with its step: it resumes after a crash (§4.4).
+        resume = pipeline.resume_state(st) if learn else None
         t3 = time.perf_counter()
         place = step.place
         rows = self.store.get_many([*(m.seq for m in step.ranked), *([place.seq] if place else [])])
@@ -534,7 +536,8 @@ class MapRuntime:
                              winner_cells=step.winners, context_prev_seq=step.prev_seq, label=label,
                              metadata=metadata, thumbnail=thumbnail, keyframe=kf,
                              place=step.joined if step.joined >= 0 else None,
-                             drops=step.dropped, touched=step.touched) if seq is not None else None
+                             drops=step.dropped, touched=step.touched,
+                             resume=resume) if seq is not None else None
         answer = None if place is None else self._verified(
             PlaceResult.of(place, rows[place.seq], self.config.revisit_threshold), query, stream)
         # The answer is whole before the commit, so an idempotent post's reply commits with its row.
@@ -559,7 +562,7 @@ class MapRuntime:
             self.store.add_visit(NewVisit(
                 stream=stream, seq=step.visit, context_prev_seq=step.prev_seq, input_sdr=step.code,
                 winner_cells=step.winners, metadata=metadata, closure=closure, touched=step.touched,
-                key=None if post is None else post.record(result)))
+                key=None if post is None else post.record(result), resume=resume))
             self._committed()
         elif row is None and closure is not None:
             self.store.add_closure(closure)
@@ -582,13 +585,15 @@ class MapRuntime:
     def _committed(self) -> None:
         """Writer: after a row or a visit is durable. Every `snapshot_every` of them the automatic snapshot
         (the stream's step is recorded first, so it holds the stream as it is after this frame); then the
-        visits it covers beyond the last `max_visits` are pruned (docs/design/science.md §11.8)."""
+        visits it covers beyond the last `max_visits` are pruned (docs/design/science.md §11.8), and the
+        stream states it holds (docs/design/service.md §4.4)."""
         assert self.store is not None
         self.since_snapshot += 1
         if self.snapshot_every and self.since_snapshot >= self.snapshot_every:
             self._auto_snapshot()
             if self.since_snapshot == 0:  # it was taken
                 self.store.prune_visits(self.covered, self.max_visits)
+                self.store.prune_stream_states(self.store.last_seq())
 
     def _forget(self) -> None:
         """Writer: the hard cap binds (`max_observations` rows held): forget the least recently used
