@@ -2,8 +2,9 @@
 (docs/design/service.md §4.2). `storage.mapstore` reads and appends; this module says what is stored.
 
 A row, once committed, is never changed or removed: triggers in the file refuse UPDATE and DELETE on
-`observations` and `thumbnails`, and the frozen `meta` likewise. `idempotency_keys` is the one table
-rows leave: the oldest keys are pruned (docs/design/service.md §4.2).
+`observations` and `thumbnails`, and the frozen `meta` likewise. The logs and keys are bounded: the
+oldest keys, loop closures and covered visits are pruned, and a stream's state once a snapshot holds it
+(docs/design/service.md §4.2).
 
 Version 2 added a row's `metadata`, the `thumbnails` and `idempotency_keys` tables; version 3 the
 `loop_closures` log (docs/design/service.md §4.2: every revisit a stream was told of, bounded, the

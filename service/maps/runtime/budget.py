@@ -10,7 +10,7 @@ before its step; a reservation that does not fit raises `MemoryBudgetExceeded` a
 
 One accounting for create, open and restart: the recovery that builds a map's memory (at its creation
 and at every start) holds a second memory beside the runtime's empty one for a while, so every check
-also keeps room for the largest memory of the maps held (`MemoryBudget.recovery_room`). A map that
+also keeps room for the largest memory of the maps held (the recovery room, `MemoryBudget._room`). A map that
 learned within the budget therefore reopens under it: opened one after another, the maps never hold
 more than they held while they learned, plus one second memory at a time.
 
@@ -170,14 +170,10 @@ class MemoryBudget:
         return need.tm + need.localiser + need.caches + need.index + (0 if shared else need.projection)
 
     def _room(self) -> int:
+        """The recovery room: bytes every check keeps free beyond what is held, the largest memory of the
+        maps held, for the second memory a recovery builds beside a map's empty one (at its creation, at
+        each start; docs/design/service.md §1.8)."""
         return max((h.need.tm for h in self._held.values()), default=0)
-
-    def recovery_room(self) -> int:
-        """Bytes every check keeps free beyond what is held: the largest memory of the maps held, for
-        the second memory a recovery builds beside a map's empty one (at its creation, at each start;
-        docs/design/service.md §1.8)."""
-        with self._lock:
-            return self._room()
 
     def used(self) -> int:
         with self._lock:
@@ -186,7 +182,7 @@ class MemoryBudget:
     def fits(self, map_id: str, need: MapNeed) -> tuple[bool, int, int]:
         """(fits, used, asked) for reserving `need` as `map_id` (its own reservation not counted):
         `used` is what the others hold plus the recovery room they keep, `asked` the map's parts plus
-        what its own memory adds to that room (its recovery's second memory, `recovery_room`)."""
+        what its own memory adds to that room (its recovery's second memory, `_room`)."""
         with self._lock:
             return self._fits(map_id, need)
 
