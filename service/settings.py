@@ -136,7 +136,8 @@ class Settings(BaseSettings):
                                             "cgroup limit (service/maps/runtime/budget.py)")
     max_top_k: int = Field(100, ge=0)
     idempotency_keys: int = Field(100_000, ge=1, description="Idempotency-Keys kept per map: those of the "
-                                  "learned posts of the last N seqs, in map.sqlite")
+                                  "learned posts of the last N seqs and the consolidated posts of the "
+                                  "last N visits, in map.sqlite")
     loop_closures: int = Field(100_000, ge=1, description="loop closures kept per map in its log (the "
                                "revisits streams were told of, map.sqlite): the last N, oldest pruned")
     visits: int = Field(100_000, ge=1, description="consolidated frames kept per map in its visit log "

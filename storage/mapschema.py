@@ -2,8 +2,9 @@
 (docs/design/service.md §4.2). `storage.mapstore` reads and appends; this module says what is stored.
 
 A row, once committed, is never changed or removed: triggers in the file refuse UPDATE and DELETE on
-`observations` and `thumbnails`, and the frozen `meta` likewise. `idempotency_keys` is the one table
-rows leave: the oldest keys are pruned (docs/design/service.md §4.2).
+`observations` and `thumbnails`, and the frozen `meta` likewise. The logs and keys are bounded: the
+oldest keys, loop closures and covered visits are pruned, and a stream's state once a snapshot holds it
+(docs/design/service.md §4.2).
 
 Version 2 added a row's `metadata`, the `thumbnails` and `idempotency_keys` tables; version 3 the
 `loop_closures` log (docs/design/service.md §4.2: every revisit a stream was told of, bounded, the
@@ -11,9 +12,12 @@ oldest pruned like the keys); version 4 the `keyframes` table (a learned row's l
 camera, docs/design/science.md §12.1) and a logged closure's `verification`; version 5 places
 (docs/design/science.md §11.8, §11.9): a row's `place` (the row whose place it joined), the `visits` log
 (a consolidated frame: the memory learned it, no row was made; replayed like a row) and the `dropped`
-rows (out of the index and their places: an appearance over its place's cap, a forgotten place). An older
-file is brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep
-`place` NULL (read as the place its learning stream's logged loop closure names, else its own).
+rows (out of the index and their places: an appearance over its place's cap, a forgotten place); version
+6 the rows' `recency`; version 7 `visit_keys`, a consolidated frame's Idempotency-Key and reply, kept
+for the keys' window whatever the visit log's pruning, and `stream_states`, what a replay cannot give
+back of a learning stream (its localiser state), written with each learned step. An older file is
+brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep `place`
+NULL (read as the place its learning stream's logged loop closure names, else its own).
 """
 
 from __future__ import annotations
@@ -60,7 +64,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -193,6 +197,33 @@ CREATE TABLE recency (
 """
 
 
+# What version 7 added (docs/design/service.md §4.2, §4.4): a consolidated frame's Idempotency-Key and
+# reply, committed with its visit, bounded like the row keys (those of the last `max_keys` visits), and kept
+# when the visit log is pruned: a retry is answered for the keys' window, not only while its visit is
+# logged. And each learning stream's state after its last learned step that a replay cannot rebuild,
+# upserted in that step's transaction, pruned once a snapshot holds it: a stream resumes its place after
+# a crash as after a clean shutdown.
+_V7_TABLES = """
+CREATE TABLE visit_keys (
+    key         TEXT PRIMARY KEY,
+    fingerprint TEXT NOT NULL,
+    visit       INTEGER NOT NULL UNIQUE,   -- the visit's id (its log order; it may be pruned since)
+    reply       TEXT NOT NULL,
+    created_at  TEXT NOT NULL
+);
+CREATE TABLE stream_states (
+    stream  TEXT PRIMARY KEY,
+    clock   INTEGER NOT NULL,          -- the seq-space clock of the stream's last learned step
+    state   BLOB NOT NULL              -- models.pipeline.resume_state: npz of its localiser, adaptation
+);
+"""
+#: An older file's visit keys, those of the visits still logged (the pruned ones are gone with them).
+_COPY_VISIT_KEYS = """
+INSERT INTO visit_keys (key, fingerprint, visit, reply, created_at)
+SELECT idempotency_key, fingerprint, id, reply, created_at FROM visits WHERE idempotency_key IS NOT NULL;
+"""
+
+
 def _version_step(version: int) -> str:
     """The script that lifts the frozen meta's trigger for the version number alone."""
     return f"""
@@ -216,6 +247,8 @@ _MIGRATE_V4 = _V4_TABLES + _CLOSURE_VERIFICATION + _version_step(4)
 _MIGRATE_V5 = _V5_TABLES + _PLACE_COLUMN + _version_step(5)
 #: Version 5 -> 6: a new table (an older file's recency is rebuilt as before: rows and visits kept).
 _MIGRATE_V6 = _V6_TABLES + _version_step(6)
+#: Version 6 -> 7: a new table, filled from the keys the visit log holds (no row changes).
+_MIGRATE_V7 = _V7_TABLES + _COPY_VISIT_KEYS + _version_step(7)
 
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
@@ -232,7 +265,7 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
     if meta.schema_version >= SCHEMA_VERSION:
         return meta
     # chain[v - 1]: version v -> v + 1
-    chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6]
+    chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6, _MIGRATE_V7]
     steps = "".join(chain[meta.schema_version - 1:])
     try:
         conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
@@ -304,6 +337,8 @@ class NewObservation:
         key: the post's Idempotency-Key and reply, committed in the row's transaction.
         keyframe: the frame's packed local features (`models.geometry.pack`) and its camera (or None),
             `keyframes` table, for maps with the `keyframes` option.
+        resume: its stream's state after the step that a replay cannot rebuild
+            (`models.pipeline.resume_state`), `stream_states`.
         closure: the revisit logged with it. place: the row whose place it joined (None: its own place).
         drops: rows its place dropped over its cap, recorded in its transaction (`dropped`).
         touched: rows its step used (the answer's row of the place it joined), at the clock of its seq
@@ -322,6 +357,7 @@ class NewObservation:
     thumbnail: bytes | None = None
     key: KeyRecord | None = None
     keyframe: tuple[bytes, dict[str, Any] | None] | None = None
+    resume: bytes | None = None
     closure: NewClosure | None = None
     place: int | None = None
     drops: tuple[int, ...] = ()
@@ -340,6 +376,7 @@ class NewVisit:
         frame's. key: the post's Idempotency-Key and reply. closure: its revisit, logged with it.
         touched: rows its step used (`seq` and the answer's row), at the clock of the seq the store
             would have given it (`MapStore.next_seq`: the live map's clock, `recency`).
+        resume: as a row's (`NewObservation.resume`).
     """
 
     stream: str
@@ -352,6 +389,7 @@ class NewVisit:
     key: KeyRecord | None = None
     closure: NewClosure | None = None
     touched: tuple[int, ...] = ()
+    resume: bytes | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -500,7 +538,7 @@ def create_file(path: Path, meta: MapMeta) -> None:
             # A temporary file: atomicity comes from the rename below, not from one transaction
             # (executescript would commit a pending transaction anyway).
             conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION
-                               + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES)
+                               + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES + _V7_TABLES)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

@@ -110,6 +110,7 @@ class MapStore:
         self._v2 = meta.schema_version >= 2
         self._v5 = meta.schema_version >= 5  # places: a row's place, visits, dropped rows
         self._v6 = meta.schema_version >= 6  # rows' recency
+        self._v7 = meta.schema_version >= 7  # visit keys apart from the visit log
         self._cols = COLUMNS if self._v5 else COLUMNS_V4 if self._v2 else COLUMNS_V1
         self._v3 = meta.schema_version >= 3  # a version 2 file opened read-only has no loop-closure log
         self._conn: sqlite3.Connection | None = conn
@@ -277,6 +278,8 @@ class MapStore:
             closures = [_closure_params(r.closure, first + i)
                         for i, r in enumerate(rows) if r.closure is not None]
             drops = [(int(d), "appearance-cap", first + i) for i, r in enumerate(rows) for d in r.drops]
+            resumes = [(str(r.stream), first + i, r.resume)
+                       for i, r in enumerate(rows) if r.resume is not None]
             touches = [(int(t), first + i) for i, r in enumerate(rows) for t in r.touched]
             if not durable:  # per connection, outside a transaction: this commit alone skips its fsync
                 conn.execute("PRAGMA synchronous=NORMAL")
@@ -286,6 +289,7 @@ class MapStore:
                                      params)
                     self._drop(conn, drops)
                     self._touch(conn, touches)
+                    self._resume(conn, resumes)
                     # The row's thumbnail and idempotency key commit with it, or nothing does.
                     conn.executemany("INSERT INTO thumbnails (seq, jpeg) VALUES (?, ?)", thumbs)
                     conn.executemany("INSERT INTO keyframes (seq, features, camera) VALUES (?, ?, ?)", frames)
@@ -328,23 +332,31 @@ class MapStore:
                 with transaction(conn):
                     cur = conn.execute(
                         "INSERT INTO visits (after_seq, stream, seq, context_prev_seq, input_sdr, "
-                        "winner_cells, metadata, created_at, idempotency_key, fingerprint, reply) "
-                        "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        "winner_cells, metadata, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                         (self._last_seq, str(visit.stream), int(visit.seq),
                          None if visit.context_prev_seq is None else int(visit.context_prev_seq),
                          encode(visit.input_sdr, INPUT_DTYPE, "input_sdr"),
                          encode(visit.winner_cells, self._cell_dtype, "winner_cells"), meta,
-                         str(visit.created_at), None if key is None else key.key,
-                         None if key is None else key.fingerprint, None if key is None else key.reply))
+                         str(visit.created_at)))
+                    visit_id = int(cur.lastrowid or 0)
+                    if key is not None:  # kept apart from the log, which is pruned (§4.2)
+                        conn.execute("INSERT INTO visit_keys (key, fingerprint, visit, reply, created_at) "
+                                     "VALUES (?, ?, ?, ?, ?)",
+                                     (key.key, key.fingerprint, visit_id, key.reply, str(visit.created_at)))
+                        if self.max_keys is not None:  # the keys of the last max_keys visits stay
+                            conn.execute("DELETE FROM visit_keys WHERE visit <= ?",
+                                         (visit_id - self.max_keys,))
                     clock = max(self._last_seq, self._seq_floor) + 1  # the seq the live step was given
                     self._touch(conn, [(int(t), clock) for t in visit.touched])
+                    if visit.resume is not None:
+                        self._resume(conn, [(str(visit.stream), clock, visit.resume)])
                     if visit.closure is not None:
                         self._log_closures(conn, [_closure_params(visit.closure, None)])
             except sqlite3.IntegrityError as exc:
-                if "idempotency_key" in str(exc):
+                if "visit_keys.key" in str(exc):
                     raise DuplicateObservation(str(exc)) from exc
                 raise
-            return int(cur.lastrowid or 0)
+            return visit_id
 
     def visits(self, after_id: int = 0) -> Iterator[Visit]:
         """Logged visits with id > `after_id`, in log order, read in pages (replay)."""
@@ -390,6 +402,31 @@ class MapStore:
         if touches and self._v6:
             conn.executemany("INSERT INTO recency (seq, used) VALUES (?, ?) ON CONFLICT (seq) DO UPDATE "
                              "SET used = max(used, excluded.used)", touches)
+
+    def _resume(self, conn: sqlite3.Connection, states: list[tuple[str, int, bytes]]) -> None:
+        """Within the caller's transaction: streams' states after their learned steps (`stream_states`)."""
+        if states and self._v7:
+            conn.executemany("INSERT INTO stream_states (stream, clock, state) VALUES (?, ?, ?) ON CONFLICT "
+                             "(stream) DO UPDATE SET clock = excluded.clock, state = excluded.state", states)
+
+    def stream_states(self) -> dict[str, bytes]:
+        """Stream -> its state after its last learned step, as written with that step
+        (`NewObservation.resume`); those a snapshot holds may have been pruned (`prune_stream_states`)."""
+        if not self._v7:
+            return {}
+        with self._lock:
+            return {r[0]: bytes(r[1]) for r in self._db().execute("SELECT stream, state FROM stream_states")}
+
+    def prune_stream_states(self, through: int) -> int:
+        """Delete the stream states written at a clock <= `through` (a snapshot at that seq holds them:
+        the replay after it meets none of their steps). Returns how many."""
+        if not self._v7:
+            return 0
+        with self._lock:
+            conn = self._db()
+            with transaction(conn):
+                cur = conn.execute("DELETE FROM stream_states WHERE clock <= ?", (int(through),))
+            return int(cur.rowcount)
 
     def recency(self) -> dict[int, int]:
         """Row -> the clock of its last use by a later step (a row's own making is its seq; not here),
@@ -635,7 +672,10 @@ class MapStore:
         with self._lock:
             r = self._db().execute("SELECT key, fingerprint, reply FROM idempotency_keys WHERE key = ?",
                                    (key,)).fetchone()
-            if r is None and self._v5:  # a consolidated frame's post (docs/design/science.md §11.8)
+            if r is None and self._v7:  # a consolidated frame's post (docs/design/science.md §11.8)
+                r = self._db().execute("SELECT key, fingerprint, reply FROM visit_keys WHERE key = ?",
+                                       (key,)).fetchone()
+            elif r is None and self._v5:  # a version 5-6 file opened read-only: its visit log holds them
                 r = self._db().execute("SELECT idempotency_key, fingerprint, reply FROM visits "
                                        "WHERE idempotency_key = ?", (key,)).fetchone()
         return None if r is None else KeyRecord(*r)

@@ -2,7 +2,15 @@
 that the service's writer, the recovery's replay and the evaluation share."""
 
 from models.pipeline.core import MapModel, Step, drop, observe, replay, revisit
-from models.pipeline.state import Stream, eviction_wait, load_memory_state, memory_state, touch
+from models.pipeline.state import (
+    Stream,
+    eviction_wait,
+    load_memory_state,
+    memory_state,
+    resume,
+    resume_state,
+    touch,
+)
 
 __all__ = ["MapModel", "Step", "Stream", "drop", "eviction_wait", "load_memory_state", "memory_state",
-           "observe", "replay", "revisit", "touch"]
+           "observe", "replay", "resume", "resume_state", "revisit", "touch"]

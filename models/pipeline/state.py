@@ -1,8 +1,11 @@
 """A map's memory as arrays and back: the TM, its generator, every stream's context and bookkeeping
-(docs/design/service.md §1.3, §4.4). Snapshots store these arrays; recovery loads them."""
+(docs/design/service.md §1.3, §4.4). Snapshots store these arrays; recovery loads them. A learned step
+also stores what a replay of its stream cannot give back (`resume_state`), so a stream resumes its place
+after a crash (§4.4)."""
 
 from __future__ import annotations
 
+import io
 from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -14,7 +17,7 @@ from models.localisation import LocaliserState
 from models.localisation.condition import Condition
 from models.memory.temporal_memory import StreamContext, TemporalMemory
 
-__all__ = ["Stream", "eviction_wait", "load_memory_state", "memory_state", "touch"]
+__all__ = ["Stream", "eviction_wait", "load_memory_state", "memory_state", "resume", "resume_state", "touch"]
 
 
 @dataclass
@@ -111,3 +114,26 @@ def load_memory_state(state: Mapping[str, np.ndarray], adapt_tau: int, condition
             LocaliserState.from_arrays(loc) if loc else None, own_seq=None if own < 0 else own,
             condition=cond)
     return tm, streams
+
+
+def resume_state(st: Stream) -> bytes:
+    """What a replay of the stream's rows and visits cannot give back, packed (npz, no pickle): its
+    localiser state (where it is on the map, docs/design/science.md §11) and its adaptation mean (its
+    frames' projections are not stored). The context, the step bookkeeping and the condition are
+    replayed (docs/design/service.md §4.4). A few KB: beam × 33 bytes, plus k floats with adaptation."""
+    arrays = {} if st.localiser is None else {f"loc.{k}": v for k, v in st.localiser.to_arrays().items()}
+    if st.adapt is not None:
+        arrays["adapt"] = st.adapt.state()
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def resume(st: Stream, packed: bytes, adapt_tau: int) -> None:
+    """Give a replayed stream back what `resume_state` packed after its last learned step."""
+    with np.load(io.BytesIO(packed), allow_pickle=False) as z:
+        arrays = {name: z[name] for name in z.files}
+    loc = {k.removeprefix("loc."): v for k, v in arrays.items() if k.startswith("loc.")}
+    st.localiser = LocaliserState.from_arrays(loc) if loc else None
+    if adapt_tau and "adapt" in arrays:
+        st.adapt = RunningMean.from_state(adapt_tau, arrays["adapt"])

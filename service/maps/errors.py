@@ -67,11 +67,13 @@ class MapTooLarge(MapError):  # noqa: N818
 
 class MemoryBudgetExceeded(MapError):  # noqa: N818
     """What `map_id` asks for does not fit in the process-wide memory budget (docs/design/service.md
-    §1.8): `used_bytes` are held, `asked_bytes` more were asked, `total_bytes` is the budget."""
+    §1.8): `used_bytes` are held (with the room kept for a recovery's second memory), `asked_bytes`
+    more were asked, `total_bytes` is the budget."""
 
     def __init__(self, map_id: str, used_bytes: int, asked_bytes: int, total_bytes: int) -> None:
         super().__init__(f"map {map_id!r} asks for {asked_bytes} bytes of memory; {used_bytes} of the "
-                         f"{total_bytes} of CORTEXLOC_MEMORY_BUDGET_BYTES are in use, "
+                         f"{total_bytes} of CORTEXLOC_MEMORY_BUDGET_BYTES are in use or kept for a "
+                         "recovery's second memory, "
                          f"{max(0, total_bytes - used_bytes)} free; delete a map or raise the budget")
         self.map_id = map_id
         self.used_bytes, self.asked_bytes, self.total_bytes = used_bytes, asked_bytes, total_bytes

@@ -108,22 +108,33 @@ class MapRegistry:
         A map that cannot be opened at all (stored parameters this version rejects, anything that
         raises) is `failed` (`open-failed`, the error in the log) and the others still open
         (docs/design/service.md §4.4). A map that does not fit in the memory budget beside those opened
-        before it stays closed, `failed` (`memory-budget`), listed in `unfitted` (§1.8).
+        before it stays closed, `failed` (`memory-budget`), listed in `unfitted` (§1.8); so does a
+        fresh install's `default` that does not fit: it is made on disk, not opened, and the service
+        starts ready.
         """
         warm_up()
         for record in self.catalog.list_maps():
             try:
                 self.maps[record.map_id] = self._open(record)
             except MemoryBudgetExceeded as e:
-                log.error("map %s stays closed: %s", record.map_id, e)
-                self.unfitted[record.map_id] = e.asked_bytes
-                self.maps[record.map_id] = FailedMap(record, self.catalog, "memory-budget")
+                self._unfit(record, e)
             except Exception:  # anything: one map's failure must not take the others down
                 log.exception("map %s cannot be opened; it is served as failed", record.map_id)
                 self.catalog.set_state(record.map_id, "failed", "open-failed")
                 self.maps[record.map_id] = FailedMap(record, self.catalog, "open-failed")
         if not self.maps:
-            self.create("default")
+            try:
+                self.create("default")
+            except MemoryBudgetExceeded as e:
+                # As if it had been made before and did not fit at this start: it opens at one where it does.
+                config, encoder = self._encoder_for(self._resolve(None))
+                self._unfit(self._make("default", config, encoder)[0], e)
+
+    def _unfit(self, record: MapRecord, e: MemoryBudgetExceeded) -> None:
+        """`record` stays closed: it does not fit in the budget (§1.8)."""
+        log.error("map %s stays closed: %s", record.map_id, e)
+        self.unfitted[record.map_id] = e.asked_bytes
+        self.maps[record.map_id] = FailedMap(record, self.catalog, "memory-budget")
 
     def _open(self, record: MapRecord) -> MapRuntime:
         """A stored map's runtime, recovered, or failed for a reason recovery knows.
@@ -136,13 +147,12 @@ class MapRegistry:
             encoder, unavailable = self.encoders.get(config.backbone), None
         except ValueError as e:
             encoder, unavailable = None, e
-        # Reserved before the runtime allocates its memory; a map that cannot be opened holds nothing.
+        # Reserved before the runtime allocates its memory (its recovery's second memory in the budget's
+        # recovery room, as at creation); a map that cannot be opened holds nothing.
         need = self._need(config, encoder.feature_dim if encoder else 0, self._stored_rows(record.map_id))
         self.budget.reserve(record.map_id, need)
         try:
-            # The runtime's empty memory stays until the recovered one replaces it: two for a while.
-            with self.budget.transient(record.map_id, need.tm):
-                return self._open_reserved(record, config, encoder, unavailable)
+            return self._open_reserved(record, config, encoder, unavailable)
         except BaseException:
             self.budget.release(record.map_id)
             raise
@@ -197,39 +207,69 @@ class MapRegistry:
         """
         if not MAP_ID_RE.match(map_id):
             raise InvalidMapId(map_id, MAP_ID_RE.pattern)
-        config = resolve(options or MapOptions(), default_preset=self.settings.default_preset,
-                         default_backbone=self.encoders.default)
-        need = map_projection.model_bytes(config, self.settings.max_streams)
-        if need > self.settings.max_map_bytes:
-            raise MapTooLarge(need, self.settings.max_map_bytes)
+        config = self._resolve(options)
         with self._create_lock:
             # Refused before a backbone's network is built or loaded.
             if map_id in self.maps:
                 raise MapAlreadyExists(map_id)
             if len(self.maps) >= self.settings.max_maps:
                 raise MapLimit(self.settings.max_maps)
-            try:
-                encoder = self.encoders.get(config.backbone)
-            except ValueError as e:
-                raise InvalidConfiguration(str(e), [{"location": "body", "name": "backbone",
-                                                     "message": str(e)}]) from e
-            # Projection plus memory within the map budget: the very sparse projection where dense breaks it.
-            config = config.model_copy(update={"projection": map_projection.projection_kind(
-                encoder.feature_dim, int(config.slsbh["k"]), need, self.settings.max_map_bytes)})
+            config, encoder = self._encoder_for(config)
             # The process-wide budget, before the projection or the memory is allocated (§1.8); the
-            # projection counts in full until its checksum says whether another map shares it.
-            reserved = self._need(config, encoder.feature_dim, 0)
-            self.budget.reserve(map_id, reserved)
+            # projection counts in full until its checksum says whether another map shares it, and the
+            # budget keeps room for the second memory its first recovery builds.
+            self.budget.reserve(map_id, self._need(config, encoder.feature_dim, 0))
             try:
-                # Its first recovery builds a second memory beside the runtime's empty one (§1.8).
-                with self.budget.transient(map_id, reserved.tm):
-                    return self._create_reserved(map_id, config, encoder)
+                return self._create_reserved(map_id, config, encoder)
             except BaseException:
                 self.budget.release(map_id)
                 raise
 
+    def _resolve(self, options: MapOptions | None) -> MapConfig:
+        """A new map's configuration, resolved and checked against the map cap.
+
+        Raises:
+            InvalidConfiguration, MapTooLarge.
+        """
+        config = resolve(options or MapOptions(), default_preset=self.settings.default_preset,
+                         default_backbone=self.encoders.default)
+        need = map_projection.model_bytes(config, self.settings.max_streams)
+        if need > self.settings.max_map_bytes:
+            raise MapTooLarge(need, self.settings.max_map_bytes)
+        return config
+
+    def _encoder_for(self, config: MapConfig) -> tuple[MapConfig, Any]:
+        """(the new map's configuration with its projection kind, its encoder), built or loaded now.
+
+        Raises:
+            InvalidConfiguration: an unknown or unavailable backbone.
+        """
+        need = map_projection.model_bytes(config, self.settings.max_streams)
+        try:
+            encoder = self.encoders.get(config.backbone)
+        except ValueError as e:
+            raise InvalidConfiguration(str(e), [{"location": "body", "name": "backbone",
+                                                 "message": str(e)}]) from e
+        # Projection plus memory within the map budget: the very sparse projection where dense breaks it.
+        return config.model_copy(update={"projection": map_projection.projection_kind(
+            encoder.feature_dim, int(config.slsbh["k"]), need, self.settings.max_map_bytes)}), encoder
+
     def _create_reserved(self, map_id: str, config: MapConfig, encoder: Any) -> MapRuntime:
         """`create` after its checks and its reservation (under the creation lock)."""
+        record, config = self._make(map_id, config, encoder)
+        self.budget.reserve(map_id, self._need(config, encoder.feature_dim, 0))  # shared: less
+        rt = self._runtime(record, encoder.feature_dim)
+        rt.recover()
+        self.maps[map_id] = rt
+        return rt
+
+    def _make(self, map_id: str, config: MapConfig, encoder: Any) -> tuple[MapRecord, MapConfig]:
+        """A new map on disk, not opened: its projection, its store, its catalog row (§1.1); (the row,
+        the configuration as frozen).
+
+        Raises:
+            MapAlreadyExists.
+        """
         P = map_projection.make(config.projection, encoder.feature_dim, int(config.slsbh["k"]),
                                 int(config.slsbh["seed"]))
         _, sha = slsbh.save_projection(P, self.projections)
@@ -237,7 +277,6 @@ class MapRegistry:
         # the encoder identity names the backbone, its weights and the map's resize mode
         config = config.model_copy(update={"projection_sha256": sha,
                                            "encoder_id": encoder.identity_for(config.resize)})
-        self.budget.reserve(map_id, self._need(config, encoder.feature_dim, 0))  # shared: less
         if encoder.identity.split("/")[1].startswith("random"):
             log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, encoder.identity)
         map_dir = self.layout.map_dir(map_id)
@@ -250,13 +289,9 @@ class MapRegistry:
             cell_dtype=cell_dtype_for(int(config.tm["columnDimensions"]) * int(config.tm["cellsPerColumn"]))))
         store.close()
         try:
-            record = self.catalog.create_map(map_id, params, preset=config.preset, state="ready")
+            return self.catalog.create_map(map_id, params, preset=config.preset, state="ready"), config
         except MapExists as e:
             raise MapAlreadyExists(map_id) from e
-        rt = self._runtime(record, encoder.feature_dim)
-        rt.recover()
-        self.maps[map_id] = rt
-        return rt
 
     def memory_budget(self) -> BudgetInfo:
         """The budget: total, used, free, the encoders, and every map's reservation (§1.8); a map left

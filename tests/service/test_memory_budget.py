@@ -58,7 +58,9 @@ def test_maps_with_one_projection_count_it_once(tmp_path):
 
 
 def test_create_beyond_the_budget_is_refused_with_used_and_asked(tmp_path, sizes):
-    total = sizes["encoders"] + sizes["default"] + sizes["map"] + sizes["map"] // 2
+    # Every check keeps room for one recovery's second memory (the largest map's tm) beside what is held.
+    tm = sizes["tm"]
+    total = sizes["encoders"] + sizes["default"] + sizes["map"] + tm + sizes["map"] // 2
     data = tmp_path / "data"
     with make_client(data, memory_budget_bytes=total) as c:
         assert c.post("/v1/maps", json={"map_id": "a", "seed": 1}).status_code == 201
@@ -67,21 +69,21 @@ def test_create_beyond_the_budget_is_refused_with_used_and_asked(tmp_path, sizes
         assert r.status_code == 409, r.text
         p = r.json()
         assert p["type"] == "urn:cortexloc:problem:memory-budget"
-        assert (p["used_bytes"], p["asked_bytes"], p["total_bytes"]) == (used, sizes["map"], total)
-        assert p["free_bytes"] == total - used
+        assert (p["used_bytes"], p["asked_bytes"], p["total_bytes"]) == (used + tm, sizes["map"], total)
+        assert p["free_bytes"] == total - used - tm
         assert "CORTEXLOC_MEMORY_BUDGET_BYTES" in p["detail"]
         # Nothing of it was made: no map, no directory, nothing held.
         assert c.get("/v1/maps/b").status_code == 404
         assert not (data / "maps" / "b").exists()
         assert budget_of(c)["used_bytes"] == used
-        # Deleting a map gives its share back; its creation also needs room for a second memory while
-        # the new map's first recovery builds one beside the runtime's empty one.
+        # Deleting a map gives its share back; the room for a second memory (its first recovery builds
+        # one beside the runtime's empty one) stays kept.
         assert c.delete("/v1/maps/a").status_code == 204
-        c.app.state.registry.budget.total = budget_of(c)["used_bytes"] + sizes["map"]
+        c.app.state.registry.budget.total = budget_of(c)["used_bytes"] + sizes["map"] + tm - 1
         r = c.post("/v1/maps", json={"map_id": "b", "seed": 2})
-        assert r.status_code == 409 and r.json()["asked_bytes"] == sizes["tm"], r.text
+        assert r.status_code == 409 and r.json()["asked_bytes"] == sizes["map"], r.text
         assert not (data / "maps" / "b").exists() and c.get("/v1/maps/b").status_code == 404
-        c.app.state.registry.budget.total += sizes["tm"]
+        c.app.state.registry.budget.total += 1
         assert c.post("/v1/maps", json={"map_id": "b", "seed": 2}).status_code == 201
 
 
@@ -91,7 +93,7 @@ def test_maps_that_do_not_fit_at_start_stay_closed_and_listed(tmp_path, sizes):
         for i, map_id in enumerate(("a", "b")):
             assert c.post("/v1/maps", json={"map_id": map_id, "seed": i + 1}).status_code == 201
             assert post(c, frame(i), map_id=map_id).status_code == 200
-    total = sizes["encoders"] + sizes["default"] + sizes["map"] + sizes["map"] // 2
+    total = sizes["encoders"] + sizes["default"] + sizes["map"] + sizes["tm"] + sizes["map"] // 2
     with make_client(data, memory_budget_bytes=total) as c:
         states = {m["map_id"]: (m["state"], m["state_reason"]) for m in c.get("/v1/maps").json()["maps"]}
         assert states == {"default": ("ready", None), "a": ("ready", None), "b": ("failed", "memory-budget")}
@@ -112,10 +114,9 @@ def test_maps_that_do_not_fit_at_start_stay_closed_and_listed(tmp_path, sizes):
 
 
 def test_learning_stops_at_the_budget_and_localisation_goes_on(tmp_path, sizes):
-    # Room for the default map's second memory while it is created, then for three rows.
-    total = sizes["encoders"] + sizes["default"] + 3 * sizes["row"]
-    with make_client(tmp_path / "data", memory_budget_bytes=total + sizes["tm"]) as c:
-        c.app.state.registry.budget.total = total
+    # Room for the default map's second memory (kept for its recovery), then for three rows.
+    total = sizes["encoders"] + sizes["default"] + sizes["tm"] + 3 * sizes["row"]
+    with make_client(tmp_path / "data", memory_budget_bytes=total) as c:
         for i in range(3):
             assert post(c, frame(i)).status_code == 200
         r = post(c, frame(3))
@@ -127,7 +128,8 @@ def test_learning_stops_at_the_budget_and_localisation_goes_on(tmp_path, sizes):
 
 
 def test_restore_is_checked_against_the_budget(tmp_path, sizes):
-    # A restore builds the new memory beside the old one: the memory and the index twice for a while.
+    # A restore builds the new memory beside the old one (in the room kept for a recovery's second
+    # memory) and the new index beside the old.
     tm, row = sizes["tm"], sizes["row"]
     total = sizes["encoders"] + sizes["default"] + tm + 6 * row
     with make_client(tmp_path / "data", memory_budget_bytes=total) as c:
@@ -145,9 +147,9 @@ def test_restore_is_checked_against_the_budget(tmp_path, sizes):
         assert r.status_code == 409, r.text
         assert r.json()["type"] == "urn:cortexloc:problem:memory-budget"
         assert r.json()["asked_bytes"] == 2 * row
-        budget.total = total - tm // 2  # no room for a second memory
+        budget.total = total - tm // 2  # no room for a second memory beside the old index
         r = c.post(f"/v1/maps/default/snapshots/{three}/restore")
-        assert r.status_code == 409 and r.json()["asked_bytes"] == tm + row
+        assert r.status_code == 409 and r.json()["asked_bytes"] == row
         assert c.get("/v1/maps/default").json()["observations"] == 1  # unchanged
         assert budget_of(c)["used_bytes"] == total - tm - 5 * row  # nothing left held
         budget.total = total
@@ -193,3 +195,47 @@ def test_import_is_checked_against_the_maps_already_there(tmp_path, sizes, monke
     monkeypatch.setenv("CORTEXLOC_MEMORY_BUDGET_BYTES", str(3 * sizes["map"]))
     r = CliRunner().invoke(cli_app, ["import", str(tar), "--data-dir", str(data)])
     assert r.exit_code == 0, r.output
+
+
+SMALL = {"map_id": "small", "seed": 3, "tm": {"columnDimensions": 64, "cellsPerColumn": 4},
+         "slsbh": {"k": 32}}
+
+
+def test_a_fresh_start_one_byte_short_is_ready_with_default_closed(tmp_path, sizes):
+    # Issue 34 item 4: the default map needs its share and, while its first recovery runs, a second memory.
+    edge = sizes["encoders"] + sizes["default"] + sizes["tm"]
+    with make_client(tmp_path / "exact", memory_budget_bytes=edge) as c:
+        assert c.get("/v1/maps/default").json()["state"] == "ready"
+        assert budget_of(c)["used_bytes"] == edge - sizes["tm"]
+    data = tmp_path / "short"
+    with make_client(data, memory_budget_bytes=edge - 1) as c:
+        # Ready, the default made on disk and closed, saying why; a map that fits can still be made.
+        ready = c.get("/readyz")
+        assert ready.status_code == 200, ready.text
+        m = c.get("/v1/maps/default").json()
+        assert (m["state"], m["state_reason"]) == ("failed", "memory-budget")
+        closed = [(x["map_id"], x["open"], x["bytes"]) for x in budget_of(c)["maps"]]
+        assert closed == [("default", False, sizes["default"] + sizes["tm"])]
+        assert post(c, frame(0)).status_code == 503
+        assert c.post("/v1/maps", json=SMALL).status_code == 201
+        assert c.delete("/v1/maps/small").status_code == 204
+    with make_client(data, memory_budget_bytes=edge) as c:  # it opens where it fits
+        assert c.get("/v1/maps/default").json()["state"] == "ready"
+        assert post(c, frame(0)).status_code == 409  # no room for a row beside the second memory
+
+
+def test_a_map_that_learned_within_the_budget_reopens_under_it(tmp_path, sizes):
+    # One accounting for learning and the next start: a row is taken only while the map could reopen.
+    total = sizes["encoders"] + sizes["default"] + sizes["tm"] + 3 * sizes["row"]
+    data = tmp_path / "data"
+    with make_client(data, memory_budget_bytes=total) as c:
+        assert [post(c, frame(i)).status_code for i in range(4)] == [200, 200, 200, 409]
+        assert budget_of(c)["used_bytes"] == total - sizes["tm"]
+    with make_client(data, memory_budget_bytes=total) as c:  # exactly enough
+        m = c.get("/v1/maps/default").json()
+        assert (m["state"], m["observations"]) == ("ready", 3)
+        assert post(c, frame(0), learn="false", stream="other").json()["matches"][0]["seq"] == 1
+    with make_client(data, memory_budget_bytes=total - 1) as c:  # one byte short
+        assert c.get("/readyz").status_code == 200
+        m = c.get("/v1/maps/default").json()
+        assert (m["state"], m["state_reason"]) == ("failed", "memory-budget")

@@ -98,9 +98,10 @@ def shape(c) -> tuple:
             rt.localisation.graph.place.tolist(), rt.localisation.graph.next.tolist())
 
 
-def test_a_crash_after_acknowledged_visits_comes_back_as_if_nothing_happened(tmp_path):
-    drive_ = [("a", LAP, 0.0), ("b", LAP, 3.0), ("c", LAP[:20], 2.0)]
-
+def twin_and_crashed(tmp_path, drive_: list[tuple], crash_at: int) -> tuple[list, list, tuple, dict]:
+    """`drive_` ((stream, places, noise) parts) on a map that never crashed and on one that crashed as a
+    kill -9 leaves it after the first `crash_at` parts. Returns (the twin's replies, the crashed one's,
+    whether its final `shape` is the twin's, its recovery note)."""
     def run(c, part) -> list:
         return [b for stream, places_, noise in part for b in drive(c, places_, stream=stream, noise=noise)]
 
@@ -111,15 +112,21 @@ def test_a_crash_after_acknowledged_visits_comes_back_as_if_nothing_happened(tmp
     data = tmp_path / "crashed"
     with make_client(data, snapshot_every=7) as c:
         c.patch("/v1/maps/default", json={"revisit_threshold": THRESHOLD})
-        got = run(c, drive_[:2])
-        assert any(b["consolidated_into"] for b in got)
-        crash(c)  # acknowledged visits after the last snapshot: only the store has them
+        got = run(c, drive_[:crash_at])
+        crash(c)  # what the steps after the last snapshot did: only the store has it
     with make_client(data, snapshot_every=7) as c:
         note = c.get("/v1/maps/default").json()["recovery"]
-        assert note["source"] == "snapshot" and note["visits_replayed"] > 0
-        got += run(c, drive_[2:])
-        assert shape(c) == twin
-    assert answers(got) == answers(expected)
+        got += run(c, drive_[crash_at:])
+        same = shape(c) == twin
+    return expected, got, same, note
+
+
+def test_a_crash_after_acknowledged_visits_comes_back_as_if_nothing_happened(tmp_path):
+    expected, got, same, note = twin_and_crashed(
+        tmp_path, [("a", LAP, 0.0), ("b", LAP, 3.0), ("c", LAP[:20], 2.0)], 2)
+    assert any(b["consolidated_into"] for b in got[:2 * len(LAP)])  # visits before the crash
+    assert note["source"] == "snapshot" and note["visits_replayed"] > 0
+    assert same and answers(got) == answers(expected)
 
 
 def test_a_snapshot_and_a_restore_carry_the_visits_and_a_repeated_post_is_one_visit(tmp_path):
@@ -249,3 +256,40 @@ def test_after_a_crash_the_cap_drops_the_rows_the_map_that_did_not_crash_drops(t
         assert state(c) == live
         run(c, parts[2:])
         assert state(c) == twin and twin[0]
+
+
+def test_retry_keys_of_consolidated_posts_outlive_the_pruned_visit_log(tmp_path):
+    """Issue 34 item 6: a consolidated post's Idempotency-Key replays for the keys' window
+    (CORTEXLOC_IDEMPOTENCY_KEYS), not only while its visit is logged (`visits=1` prunes all but one)."""
+    def keyed(c, p: int, i: int):
+        headers = {"Content-Type": "image/png", "Idempotency-Key": f"lap-b-key-{i:04d}"}
+        return c.post("/v1/maps/default/observations", content=frame(p, noise=3.0), headers=headers,
+                      params={"stream": "b", "learn": "true", "top_k": 0})
+
+    data = tmp_path / "data"
+    with make_client(data, snapshot_every=5, visits=1) as c:
+        c.patch("/v1/maps/default", json={"revisit_threshold": THRESHOLD})
+        drive(c, LAP, stream="a", noise=0.0)
+        first = {i: keyed(c, p, i).json() for i, p in enumerate(LAP)}
+        kept = [i for i, b in first.items() if b["consolidated_into"] is not None]
+        rt = c.app.state.registry.get("default")
+        assert len(kept) > 5 and rt.store.visits_pruned_through() > 0  # their visits were pruned
+        before = state_of(c), places(c, "default")["visits_logged"]
+        for i in kept:
+            assert keyed(c, LAP[i], i).json() == first[i]
+        assert (state_of(c), places(c, "default")["visits_logged"]) == before  # nothing learned again
+    with make_client(data, snapshot_every=5, visits=1) as c:  # and after a restart
+        assert all(keyed(c, LAP[i], i).json() == first[i] for i in kept)
+        assert state_of(c) == before[0]
+
+
+def test_a_learning_stream_resumes_its_place_after_a_crash_mid_pass(tmp_path):
+    """Issue 34 item 7: kill -9 in the middle of a known pass. The stream's localiser state is not in its
+    rows; it is kept with each learned step, so the stream carries on where it was, as after SIGTERM,
+    instead of warming up again and making rows its uncrashed twin consolidates."""
+    expected, got, same, note = twin_and_crashed(
+        tmp_path, [("a", LAP, 0.0), ("b", LAP[:17], 3.0), ("b", LAP[17:], 3.0)], 2)
+    assert note["source"] == "snapshot" and note["resumed_streams"] == 1
+    made = sum(b["seq"] is not None for b in got) - sum(b["seq"] is not None for b in expected)
+    assert made == 0  # no duplicate rows against the twin (5 before issue 34)
+    assert same and answers(got) == answers(expected)

@@ -110,6 +110,8 @@ def _as_version_4(path: Path) -> None:
         DROP TABLE visits;
         DROP TABLE dropped;
         DROP TABLE recency;
+        DROP TABLE visit_keys;
+        DROP TABLE stream_states;
         ALTER TABLE observations DROP COLUMN place;
         DROP TRIGGER meta_no_update;
         UPDATE meta SET value = '4' WHERE key = 'schema_version';
@@ -134,7 +136,7 @@ def test_an_old_map_is_migrated_and_its_places_come_from_its_loop_closures(tmp_p
         assert ro.meta.schema_version == 4 and ro.dropped() == {} and list(ro.visits()) == []
         assert [r.place for r in ro.rows()] == [None] * 7
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 6
+        assert store.meta.schema_version == SCHEMA_VERSION == 7
         assert [r.place for r in store.rows()] == [None] * 7 and store.joined() == {4: 1, 5: 2, 6: 3}
         links = Localisation(None, 4096)
         links.rebuild(store.rows(), store.dropped(), store.joined())
@@ -142,3 +144,55 @@ def test_an_old_map_is_migrated_and_its_places_come_from_its_loop_closures(tmp_p
         assert links.appearances(2) == [2, 5] and links.places() == 4
         store.append(dataclasses.replace(make_row(8, stream="a", prev=7), place=7))  # and it goes on
         assert store.get(8).place == 7
+
+
+def test_visit_keys_outlive_the_pruned_visits_and_are_bounded_like_row_keys(tmp_path: Path,
+                                                                             meta: MapMeta) -> None:
+    """Schema 7 `visit_keys` (issue 34 item 6): kept whatever the visit log's pruning, the keys of the
+    last `max_keys` visits."""
+    with MapStore.create(tmp_path / "map.sqlite", meta, max_keys=3) as store:
+        store.append(make_row(1))
+        ids = [store.add_visit(visit(10 + i, 1, None, key=f"visit-key-{i:04d}")) for i in range(5)]
+        assert store.prune_visits(covered=ids[-1], keep=1) == 4 and store.visit_stats()[0] == 1
+        assert [store.key_record(f"visit-key-{i:04d}") is not None for i in range(5)] == [False, False,
+                                                                                           True, True, True]
+        with pytest.raises(DuplicateObservation):
+            store.add_visit(visit(20, 1, None, key="visit-key-0004"))
+
+
+def test_a_version_6_file_keeps_its_logged_visit_keys(tmp_path: Path, meta: MapMeta) -> None:
+    path = tmp_path / "map.sqlite"
+    with MapStore.create(path, meta) as made:
+        made.append(make_row(1))
+        made.add_visit(visit(10, 1, None, key="visit-key-0001"))
+    conn = sqlite3.connect(path)  # as schema 6 wrote it: the key in the visit log
+    conn.executescript("""
+        UPDATE visits SET idempotency_key = 'visit-key-0001', fingerprint = (SELECT fingerprint FROM
+            visit_keys), reply = (SELECT reply FROM visit_keys);
+        DROP TABLE visit_keys;
+        DROP TABLE stream_states;
+        DROP TRIGGER meta_no_update;
+        UPDATE meta SET value = '6' WHERE key = 'schema_version';
+        CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
+        BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
+    """)
+    conn.close()
+    record = KeyRecord("visit-key-0001", "f" * 64, '{"reply": 1}')
+    with MapStore.open(path, readonly=True) as ro:  # read-only: not migrated, read from the log
+        assert ro.meta.schema_version == 6 and ro.key_record("visit-key-0001") == record
+    with MapStore.open(path) as store:
+        assert store.meta.schema_version == SCHEMA_VERSION == 7
+        assert store.prune_visits(covered=10**6, keep=0) == 0  # the only visit stays (the newest)
+        assert store.key_record("visit-key-0001") == record
+
+
+def test_a_stream_s_state_commits_with_its_learned_step_and_is_pruned_once_a_snapshot_holds_it(
+        store: MapStore) -> None:
+    """Schema 7 `stream_states` (issue 34 item 7): the last learned step's state of each stream."""
+    store.append(dataclasses.replace(make_row(1), resume=b"a1"))
+    store.append(dataclasses.replace(make_row(2, stream="c"), resume=b"c2"))
+    store.add_visit(dataclasses.replace(visit(10, 1, None), resume=b"b3"))
+    store.append(dataclasses.replace(make_row(3), resume=b"a4"))
+    assert store.stream_states() == {make_row(1).stream: b"a4", "c": b"c2", "b": b"b3"}
+    assert store.prune_stream_states(through=2) == 1  # c's, at seq 2; b's visit is at clock 3
+    assert set(store.stream_states()) == {make_row(1).stream, "b"}

@@ -5,7 +5,8 @@ A rebuild starts from a fresh memory (replay from the first row) or from a snaps
 replays the store's rows and visits (consolidated frames, docs/design/science.md §11.8) after that point,
 in the order they were learned, comparing every replayed step's winner cells with the stored ones
 (`rebuild`). `recover` picks the start: the newest snapshot on the store's branch that
-verifies, loads and reproduces the rows after it, else a replay from the first row.
+verifies, loads and reproduces the rows after it, else a replay from the first row; then each replayed
+stream resumes its place from the state its last learned step stored (`MapStore.stream_states`).
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ class Rebuilt:
         last_seq: the last row replayed (the start's seq when none was).
         covered: the last visit id the start's memory had learned (a snapshot's `VISIT_CURSOR`).
         visits: visits replayed.
+        replayed_streams: the streams whose rows or visits were replayed.
     """
 
     model: MapModel
@@ -64,6 +66,7 @@ class Rebuilt:
     last_seq: int = 0
     covered: int = 0
     visits: int = 0
+    replayed_streams: set[str] = field(default_factory=set)
 
 
 def _in_order(rows: Iterable[Observation], visits: Iterable[Visit]) -> Iterable[Observation | Visit]:
@@ -118,6 +121,7 @@ def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Obs
         if st is None:
             st = out.streams[row.stream] = Stream()
         out.streams.move_to_end(row.stream)  # most recently used last, as the live map keeps them
+        out.replayed_streams.add(row.stream)
         if isinstance(row, Visit):
             winners = pipeline.revisit(model, st, row.input_sdr, row=row.seq, prev_seq=row.context_prev_seq)
             out.visits += 1
@@ -219,8 +223,25 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> t
                       "of %d row(s), first seq %d; serving the replayed memory (run `cortexloc verify`)",
                       map_id, len(done.mismatches), done.mismatches[0])
     note.update(replayed=done.replayed, visits_replayed=done.visits,
-                skipped_snapshots=skipped, seconds=round(time.perf_counter() - t0, 3))
+                resumed_streams=_resume(store, done, like), skipped_snapshots=skipped,
+                seconds=round(time.perf_counter() - t0, 3))
     return done, note
+
+
+def _resume(store: MapStore, done: Rebuilt, like: MapModel) -> int:
+    """Give each replayed stream back what its replay cannot (its localiser state, its adaptation),
+    as its last learned step stored it: it resumes its place as after a clean shutdown, whose snapshot
+    holds it (docs/design/service.md §4.4). Returns how many streams resumed. A stream without one (its
+    state pruned with an older snapshot the recovery passed over, or a file before schema 7) keeps the
+    start's state and finds its place again (a warm-up)."""
+    states = store.stream_states()
+    resumed = 0
+    for name in done.replayed_streams:
+        st, packed = done.streams.get(name), states.get(name)
+        if st is not None and packed is not None:
+            pipeline.resume(st, packed, like.adapt_tau)
+            resumed += 1
+    return resumed
 
 
 @dataclass

@@ -8,6 +8,12 @@ map), its localiser states at the stream cap, its cache of keyed replies at its 
 reserved before anything of it is allocated (create, open at start, restore) and a learned row
 before its step; a reservation that does not fit raises `MemoryBudgetExceeded` and changes nothing.
 
+One accounting for create, open and restart: the recovery that builds a map's memory (at its creation
+and at every start) holds a second memory beside the runtime's empty one for a while, so every check
+also keeps room for the largest memory of the maps held (the recovery room, `MemoryBudget._room`). A map that
+learned within the budget therefore reopens under it: opened one after another, the maps never hold
+more than they held while they learned, plus one second memory at a time.
+
 The default total is `DEFAULT_SHARE` of the smaller of the host's memory and the cgroup limit of the
 container (`CGROUP_LIMIT_FILES`, v2 then v1): the rest is for what no map owns (Python, torch's
 working memory, request bodies, SQLite's page caches).
@@ -139,7 +145,7 @@ class MemoryBudget:
     def __init__(self, total: int, source: str = "setting") -> None:
         self.total, self.source = int(total), source
         self._encoders = 0
-        self._transient = 0  # held while a restore builds a map's new memory beside the old one
+        self._transient = 0  # held while a restore builds a map's new index beside the old one
         self._held: dict[str, _Held] = {}
         self._lock = threading.Lock()
 
@@ -163,19 +169,28 @@ class MemoryBudget:
         shared = need.projection_key is not None and need.projection_key in self._shared_keys(map_id)
         return need.tm + need.localiser + need.caches + need.index + (0 if shared else need.projection)
 
+    def _room(self) -> int:
+        """The recovery room: bytes every check keeps free beyond what is held, the largest memory of the
+        maps held, for the second memory a recovery builds beside a map's empty one (at its creation, at
+        each start; docs/design/service.md §1.8)."""
+        return max((h.need.tm for h in self._held.values()), default=0)
+
     def used(self) -> int:
         with self._lock:
             return self._used()
 
     def fits(self, map_id: str, need: MapNeed) -> tuple[bool, int, int]:
-        """(fits, used, asked) for reserving `need` as `map_id` (its own reservation not counted)."""
+        """(fits, used, asked) for reserving `need` as `map_id` (its own reservation not counted):
+        `used` is what the others hold plus the recovery room they keep, `asked` the map's parts plus
+        what its own memory adds to that room (its recovery's second memory, `_room`)."""
         with self._lock:
             return self._fits(map_id, need)
 
     def _fits(self, map_id: str, need: MapNeed) -> tuple[bool, int, int]:
         held = self._held.pop(map_id, None)
         try:
-            used, asked = self._used(), self._asked(map_id, need)
+            room = self._room()
+            used, asked = self._used() + room, self._asked(map_id, need) + max(0, need.tm - room)
         finally:
             if held is not None:
                 self._held[map_id] = held
@@ -192,22 +207,24 @@ class MemoryBudget:
 
     def grow_index(self, map_id: str, nbytes: int) -> None:
         """`nbytes` more (or, negative, fewer) index bytes for `map_id`: a learned row, a restore.
-        Raises MemoryBudgetExceeded when growing does not fit (nothing held changes)."""
+        Raises MemoryBudgetExceeded when growing does not fit beside the recovery room (nothing held
+        changes): a row that would keep a map from reopening at the next start is refused now."""
         with self._lock:
             held = self._held.get(map_id)
             if held is None:
                 return  # a map the budget does not hold (tools and tests build runtimes alone)
-            used = self._used()
+            used = self._used() + self._room()
             if nbytes > 0 and used + nbytes > self.total:
                 raise MemoryBudgetExceeded(map_id, used, nbytes, self.total)
             held.index = max(0, held.index + nbytes)
 
     @contextlib.contextmanager
     def transient(self, map_id: str, nbytes: int) -> Iterator[None]:
-        """Hold `nbytes` more while the block runs: a restore rebuilds the map's memory and index beside
-        the ones it replaces. Raises MemoryBudgetExceeded before the block (nothing held changes)."""
+        """Hold `nbytes` more while the block runs, beside the recovery room: a restore rebuilds the
+        map's index beside the one it replaces (its second memory is the room's). Raises
+        MemoryBudgetExceeded before the block (nothing held changes)."""
         with self._lock:
-            used = self._used()
+            used = self._used() + self._room()
             if used + nbytes > self.total:
                 raise MemoryBudgetExceeded(map_id, used, nbytes, self.total)
             self._transient += nbytes

@@ -294,16 +294,17 @@ class MapRuntime:
 
     @contextlib.contextmanager
     def _restore_budget(self, snapshot: Path) -> Iterator[None]:
-        """The memory budget of a restore (docs/design/service.md §1.8): while it runs, the new memory is
-        built beside the old one (held as transient bytes), and the snapshot's rows must fit (the index
-        estimate, set exactly by the recovery). Raises MemoryBudgetExceeded before anything changes."""
+        """The memory budget of a restore (docs/design/service.md §1.8): while it runs, the new memory and
+        index are built beside the old ones (the memory in the budget's recovery room, the old index
+        held as transient bytes), and the snapshot's rows must fit (the index estimate, set exactly by
+        the recovery). Raises MemoryBudgetExceeded before anything changes."""
         if self.budget is None:
             yield
             return
         with MapStore.open(snapshot / snapshots.DB_FILE, readonly=True) as copy:
             rows = copy.count()
         old_index = len(self.index) * self.row_bytes
-        with self.budget.transient(self.map_id, self.tm.size()["bytes"] + old_index):
+        with self.budget.transient(self.map_id, old_index):
             self.budget.grow_index(self.map_id, rows * self.row_bytes - old_index)
             try:
                 yield
@@ -521,6 +522,8 @@ class MapRuntime:
                                 contrast=contrast)
         if step.visit is not None:  # consolidated (§11.8): the memory learned it, no row is made
             seq = None
+        # What a replay cannot rebuild of the stream, durable with its step: it resumes after a crash (§4.4).
+        resume = pipeline.resume_state(st) if learn else None
         t3 = time.perf_counter()
         place = step.place
         rows = self.store.get_many([*(m.seq for m in step.ranked), *([place.seq] if place else [])])
@@ -533,7 +536,8 @@ class MapRuntime:
                              winner_cells=step.winners, context_prev_seq=step.prev_seq, label=label,
                              metadata=metadata, thumbnail=thumbnail, keyframe=kf,
                              place=step.joined if step.joined >= 0 else None,
-                             drops=step.dropped, touched=step.touched) if seq is not None else None
+                             drops=step.dropped, touched=step.touched,
+                             resume=resume) if seq is not None else None
         answer = None if place is None else self._verified(
             PlaceResult.of(place, rows[place.seq], self.config.revisit_threshold), query, stream)
         # The answer is whole before the commit, so an idempotent post's reply commits with its row.
@@ -558,7 +562,7 @@ class MapRuntime:
             self.store.add_visit(NewVisit(
                 stream=stream, seq=step.visit, context_prev_seq=step.prev_seq, input_sdr=step.code,
                 winner_cells=step.winners, metadata=metadata, closure=closure, touched=step.touched,
-                key=None if post is None else post.record(result)))
+                key=None if post is None else post.record(result), resume=resume))
             self._committed()
         elif row is None and closure is not None:
             self.store.add_closure(closure)
@@ -581,13 +585,15 @@ class MapRuntime:
     def _committed(self) -> None:
         """Writer: after a row or a visit is durable. Every `snapshot_every` of them the automatic snapshot
         (the stream's step is recorded first, so it holds the stream as it is after this frame); then the
-        visits it covers beyond the last `max_visits` are pruned (docs/design/science.md §11.8)."""
+        visits it covers beyond the last `max_visits` are pruned (docs/design/science.md §11.8), and the
+        stream states it holds (docs/design/service.md §4.4)."""
         assert self.store is not None
         self.since_snapshot += 1
         if self.snapshot_every and self.since_snapshot >= self.snapshot_every:
             self._auto_snapshot()
             if self.since_snapshot == 0:  # it was taken
                 self.store.prune_visits(self.covered, self.max_visits)
+                self.store.prune_stream_states(self.store.last_seq())
 
     def _forget(self) -> None:
         """Writer: the hard cap binds (`max_observations` rows held): forget the least recently used
