@@ -102,7 +102,7 @@ class Stamp:
 
 
 #: An Idempotency-Key is `[A-Za-z0-9._:-]{8,128}` (docs/design/service.md §1.2).
-_KEY_UNSAFE = re.compile(r"[^A-Za-z0-9_:-]")
+_KEY_UNSAFE = re.compile(r"[^A-Za-z0-9._-]")
 _KEY_MAX = 128
 
 
