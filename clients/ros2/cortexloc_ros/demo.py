@@ -138,6 +138,8 @@ def main(argv: list[str] | None = None) -> int:
             _spin_until(demo, lambda: False, FRAME_PERIOD_S)
         answered = _spin_until(demo, lambda: len(demo.answers) >= len(frames), args.timeout, node)
         revisits = sum(bool(a["place"] and a["place"]["revisit"]) for a in demo.answers)
+        # the last answer's closure is published just after its place: let it arrive
+        _spin_until(demo, lambda: len(demo.closures) >= revisits, 10, node)
         print(f"{len(demo.answers)}/{len(frames)} frames answered, {revisits} revisits, "
               f"{len(demo.closures)} loop closures on /cortexloc/loop_closures", flush=True)
         return 0 if answered and demo.closures else 1

@@ -91,7 +91,7 @@ def in_loopback_netns(test: Callable[..., None]) -> Callable[..., None]:
         env.pop("ROS_LOCALHOST_ONLY", None)
         env.pop("ROS_STATIC_PEERS", None)
         cmd = ["unshare", "-rn", "sh", "-c", 'ip link set lo up && exec "$@"', "sh",
-               sys.executable, "-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider", nodeid]
+               sys.executable, "-m", "pytest", "-q", "-rsP", "-p", "no:cacheprovider", nodeid]
         p = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
         out = p.stdout + p.stderr
         skipped = re.search(r"SKIPPED \[\d+\] [^:]+:\d+: (.*)", out)
@@ -99,7 +99,7 @@ def in_loopback_netns(test: Callable[..., None]) -> Callable[..., None]:
             pytest.skip(skipped.group(1))
         if p.returncode != 0 or " passed" not in out:
             pytest.fail(f"in the loopback namespace (exit {p.returncode}):\n{out[-12000:]}", pytrace=False)
-        print(out[-3000:])  # the inner run's figures (pytest -s shows them)
+        print(out[-3000:])  # the inner run's printed figures (-rP; pytest -s shows them here)
 
     return wrapper
 
@@ -286,7 +286,7 @@ def node_params(url: str, map_id: str, **overrides: Any) -> dict[str, Any]:
     params = {"service_url": url, "map": map_id, "stream": "test/cam", "topics.image": "/cam/image_raw",
               "topics.camera_info": "/cam/camera_info", "topics.odometry": "/odom", "request_timeout": 60.0,
               "queue.size": 100}
-    for topic in ("/cam/image_raw", "/cam/camera_info", "/odom"):
+    for topic in ("/cam/image_raw", "/cam/image_raw/compressed", "/cam/camera_info", "/odom"):
         params[f"qos_overrides.{topic}.subscription.reliability"] = "reliable"
     params.update({k.replace("__", "."): v for k, v in overrides.items()})
     return params

@@ -14,7 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
@@ -29,6 +29,7 @@ class Probe(Node):
     def __init__(self) -> None:
         super().__init__("cortexloc_test_probe")
         self.images = self.create_publisher(Image, "/cam/image_raw", 100)
+        self.compressed = self.create_publisher(CompressedImage, "/cam/image_raw/compressed", 100)
         self.infos = self.create_publisher(CameraInfo, "/cam/camera_info", 100)
         self.odom = self.create_publisher(Odometry, "/odom", 100)
         self.places: list[dict[str, Any]] = []
@@ -59,15 +60,17 @@ class Probe(Node):
     def last_diagnostics(self) -> dict[str, str]:
         return self.diagnostics[-1][1] if self.diagnostics else {}
 
-    def wait_connected(self, timeout_s: float = 60) -> None:
+    def wait_connected(self, timeout_s: float = 60, compressed: bool = False) -> None:
         """Until the node subscribes to the camera and its diagnostics arrive (DDS discovery done)."""
-        self.wait(lambda: self.images.get_subscription_count() > 0 and self.odom.get_subscription_count() > 0
+        images = self.compressed if compressed else self.images
+        self.wait(lambda: images.get_subscription_count() > 0 and self.odom.get_subscription_count() > 0
                   and self.infos.get_subscription_count() > 0 and bool(self.diagnostics), timeout_s,
                   "the node to subscribe and publish diagnostics")
 
     def publish(self, frame: np.ndarray, stamp_ns: int, x: float, y: float, yaw: float = 0.0,
-                encoding: str = "rgb8", pad: int = 0) -> None:
-        """Odometry, camera_info and the frame, all stamped `stamp_ns`; rows padded by `pad` bytes."""
+                encoding: str = "rgb8", pad: int = 0, png: bool = False) -> None:
+        """Odometry, camera_info and the frame, all stamped `stamp_ns`: a raw `Image` with rows padded by
+        `pad` bytes, or (`png`) a `CompressedImage` of an RGB frame."""
         sec, nanosec = divmod(stamp_ns, 1_000_000_000)
         odom = Odometry()
         odom.header.stamp.sec, odom.header.stamp.nanosec = sec, nanosec
@@ -79,6 +82,15 @@ class Probe(Node):
         info.header.stamp.sec, info.header.stamp.nanosec = sec, nanosec
         info.header.frame_id = "cam_optical"
         self.infos.publish(info)
+        if png:
+            import cv2
+
+            _, buf = cv2.imencode(".png", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+            msg = CompressedImage(format="png", data=buf.tobytes())
+            msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+            msg.header.frame_id = "cam_optical"
+            self.compressed.publish(msg)
+            return
         rows = frame.reshape(frame.shape[0], -1).view(np.uint8)
         if pad:
             rows = np.concatenate([rows, np.full((rows.shape[0], pad), 0xAB, np.uint8)], axis=1)
