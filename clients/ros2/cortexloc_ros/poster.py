@@ -180,7 +180,11 @@ class Poster:
                     self.stats.last_latency_ms = latency
                     self.stats.latencies_ms.append(latency)
                 self._state("up", "")
-                self.on_answer(frame, pose, answer, latency)
+                try:
+                    self.on_answer(frame, pose, answer, latency)
+                except Exception as e:  # e.g. publishing while SIGTERM shuts the context down
+                    if not self._stop.is_set():
+                        self.log.error(f"publishing the answer of frame {frame.stamp.ns} failed: {e!r}")
                 return
             with self.stats.lock:
                 self.stats.retries += 1
