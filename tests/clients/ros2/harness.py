@@ -106,9 +106,14 @@ def in_loopback_netns(test: Callable[..., None]) -> Callable[..., None]:
 
 @functools.cache
 def _weights_dir() -> Path:
+    """One folder per pytest session for the service's backbone export, removed when the session ends."""
+    import atexit
+    import shutil
     import tempfile
 
-    return Path(tempfile.mkdtemp(prefix="cortexloc-ros-weights-"))
+    path = Path(tempfile.mkdtemp(prefix="cortexloc-ros-weights-"))
+    atexit.register(shutil.rmtree, path, True)
+    return path
 
 
 # -------------------------------------------------------------------------------------------- service
