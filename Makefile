@@ -3,8 +3,9 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 RAY_STAMP := $(VENV)/.installed-ray
+ROS_STAMP := $(VENV)/.installed-ros
 
-.PHONY: install install-gpu test lint run bench bench-quick clean
+.PHONY: install install-gpu install-ros test lint run bench bench-quick clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -21,6 +22,15 @@ $(RAY_STAMP): $(STAMP)
 	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev,ray]'
 	touch $(RAY_STAMP)
 
+# The `ros` extra (ROS 2 Kilted's wheels) and the ROS 2 node (clients/ros2) for its tests, which run it on
+# real rclpy (tests/clients/ros2); `make run` does not need them. `make install-ros` is the README's first
+# step of "With ROS 2".
+$(ROS_STAMP): $(STAMP) clients/ros2/setup.py
+	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev,ros]' -e clients/ros2
+	touch $(ROS_STAMP)
+
+install-ros: $(ROS_STAMP)
+
 install: $(STAMP)
 
 # CUDA for the encoder (CORTEXLOC_DEVICE=cuda|auto): onnxruntime-gpu replaces the CPU wheel, since both
@@ -32,7 +42,7 @@ install-gpu: $(STAMP)
 lint: install
 	$(BIN)/ruff check .
 
-test: $(RAY_STAMP) lint
+test: $(RAY_STAMP) $(ROS_STAMP) lint
 	$(BIN)/pytest -q
 
 run: install

@@ -1,0 +1,304 @@
+"""The node's parts that need no ROS: frames from `sensor_msgs/Image` fields, stamps, planar poses, the
+odometry buffer that matches a frame's stamp, the rate filter, the bounded queue and the idempotency key.
+
+Kept apart from `cortexloc_ros.node` so that they are tested without rclpy, and so that the node reads as
+what it does with messages. Frames are posted through the typed client (`cortexloc_client`), whose raw
+frames are the service's (docs/design/service.md §1.2: rows unpadded, mono16 little-endian).
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import re
+import threading
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Generic, Literal, TypeVar
+
+import numpy as np
+
+__all__ = ["ENCODINGS", "DropPolicy", "FrameQueue", "OdometryBuffer", "Pose2D", "RateFilter", "Stamp",
+           "idempotency_key", "image_array", "quaternion_from_matrix", "relative_pose", "yaw_from_quaternion"]
+
+#: `sensor_msgs/Image` encodings the service takes as raw frames -> (sample dtype, channels). rgba8 and
+#: bgra8 are sent without their alpha channel (the client drops it); mono16 is sent little-endian.
+ENCODINGS: dict[str, tuple[str, int]] = {
+    "rgb8": ("u1", 3), "bgr8": ("u1", 3), "rgba8": ("u1", 4), "bgra8": ("u1", 4),
+    "mono8": ("u1", 1), "mono16": ("u2", 1),
+}
+
+
+def image_array(data: Any, *, height: int, width: int, step: int, encoding: str,
+                is_bigendian: bool) -> np.ndarray:
+    """A `sensor_msgs/Image` payload as the array `Client.observe` posts as a raw frame.
+
+    Args:
+        data: the message's `data` (bytes, `array.array('B')` or a uint8 array): `height` rows of `step`
+            bytes, each row possibly padded past `width` pixels.
+        encoding: one of `ENCODINGS`.
+        is_bigendian: the byte order of 16-bit samples.
+
+    Returns:
+        (height, width, channels) uint8 for colour, (height, width) uint8 or uint16 (native order) for mono;
+        a view of `data` where no copy is needed (the client copies it contiguously when it sends).
+
+    Raises:
+        ValueError: an encoding the service does not take, or fewer bytes than the header says.
+    """
+    if encoding not in ENCODINGS:
+        raise ValueError(f"image encoding {encoding!r} is not one the service takes "
+                         f"({', '.join(ENCODINGS)})")
+    sample, channels = ENCODINGS[encoding]
+    itemsize = np.dtype(sample).itemsize
+    row = width * channels * itemsize
+    buf = np.frombuffer(data, np.uint8)
+    if height < 1 or width < 1 or step < row or buf.size < step * height:
+        raise ValueError(f"{encoding} image {width}x{height} needs {height} rows of at least {row} bytes "
+                         f"(step {step}); the message holds {buf.size} bytes")
+    rows = buf[: step * height].reshape(height, step)[:, :row]  # drops each row's padding
+    if itemsize == 2:
+        pixels = np.ascontiguousarray(rows).view(">u2" if is_bigendian else "<u2").astype(np.uint16)
+        return pixels.reshape(height, width)
+    return rows.reshape(height, width, channels) if channels > 1 else rows.reshape(height, width)
+
+
+# ------------------------------------------------------------------------------------------ stamps
+
+
+@dataclass(frozen=True, order=True)
+class Stamp:
+    """A ROS time (`builtin_interfaces/Time`) as integer nanoseconds: exact, ordered, hashable."""
+
+    ns: int
+
+    @classmethod
+    def of(cls, sec: int, nanosec: int) -> Stamp:
+        return cls(int(sec) * 1_000_000_000 + int(nanosec))
+
+    @classmethod
+    def parse(cls, value: Any) -> Stamp | None:
+        """A stamp read back from metadata: integer nanoseconds as text (`stamp_ns`, exact) or seconds."""
+        if isinstance(value, str) and value.isdigit():
+            return cls(int(value))
+        if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
+            return cls(round(value * 1e9))
+        return None
+
+    @property
+    def sec(self) -> int:
+        return self.ns // 1_000_000_000
+
+    @property
+    def nanosec(self) -> int:
+        return self.ns % 1_000_000_000
+
+    @property
+    def seconds(self) -> float:
+        return self.ns / 1e9
+
+    def as_json(self) -> dict[str, int]:
+        return {"sec": self.sec, "nanosec": self.nanosec}
+
+
+#: An Idempotency-Key is `[A-Za-z0-9._:-]{8,128}` (docs/design/service.md §1.2).
+_KEY_UNSAFE = re.compile(r"[^A-Za-z0-9._-]")
+_KEY_MAX = 128
+
+
+def idempotency_key(run_id: str, topic: str, stamp: Stamp) -> str:
+    """The post's key: one per (run, topic, stamp), so a retry is deduplicated by the service and a bag
+    replayed under another run id is a second drive.
+
+    ROS names hold letters, digits, `_`, `/` and `~`; `/` becomes `.` (which no ROS name holds), anything
+    else `-`. A key that would pass 128 characters keeps its stamp and a hash of the rest.
+    """
+    key = f"{run_id}:{_KEY_UNSAFE.sub('-', topic.replace('/', '.'))}:{stamp.ns}"
+    if len(key) <= _KEY_MAX:
+        return key
+    import hashlib
+
+    return f"h:{hashlib.sha256(f'{run_id}:{topic}'.encode()).hexdigest()[:40]}:{stamp.ns}"
+
+
+# ------------------------------------------------------------------------------------------- poses
+
+
+@dataclass(frozen=True)
+class Pose2D:
+    """A planar pose (metres, radians) in a named frame: what the service stores (`metadata.pose`)."""
+
+    x: float
+    y: float
+    yaw: float
+    frame_id: str
+
+    def compose(self, mount: tuple[float, float, float]) -> Pose2D:
+        """This base pose followed by the camera's planar mounting (x, y, yaw on the base)."""
+        mx, my, myaw = mount
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        return Pose2D(self.x + c * mx - s * my, self.y + s * mx + c * my,
+                      math.atan2(math.sin(self.yaw + myaw), math.cos(self.yaw + myaw)), self.frame_id)
+
+    def distance(self, other: Pose2D) -> float:
+        return math.hypot(self.x - other.x, self.y - other.y)
+
+    def as_metadata(self) -> dict[str, Any]:
+        return {"x": self.x, "y": self.y, "yaw": self.yaw, "frame_id": self.frame_id}
+
+    @classmethod
+    def from_metadata(cls, pose: Any, default_frame: str) -> Pose2D | None:
+        """A stored pose (the client's `Pose` or a dict) back; None where there is none."""
+        if pose is None:
+            return None
+        get = pose.get if isinstance(pose, dict) else lambda k: getattr(pose, k, None)
+        x, y = get("x"), get("y")
+        if x is None or y is None:
+            return None
+        return cls(float(x), float(y), float(get("yaw") or 0.0), get("frame_id") or default_frame)
+
+
+def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
+    """The heading (rotation about z) of a quaternion, in (-pi, pi]."""
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def quaternion_from_matrix(R: np.ndarray) -> tuple[float, float, float, float]:
+    """(x, y, z, w), w >= 0, of a 3 x 3 rotation matrix (Shepperd's method: stable for every angle)."""
+    R = np.asarray(R, np.float64)
+    tr = float(np.trace(R))
+    if tr > 0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        q = ((R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s)
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 0.0))
+        v = [0.0, 0.0, 0.0]
+        v[i] = 0.25 * s
+        v[j] = (R[j, i] + R[i, j]) / s
+        v[k] = (R[k, i] + R[i, k]) / s
+        q = (v[0], v[1], v[2], (R[k, j] - R[j, k]) / s)
+    n = math.sqrt(sum(c * c for c in q))
+    sign = -1.0 if q[3] < 0 else 1.0
+    return tuple(sign * c / n for c in q)  # type: ignore[return-value]
+
+
+def relative_pose(rotation: list[list[float]], translation: list[float] | None
+                  ) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
+    """The query camera's pose in the keyframe camera's frame (optical axes: x right, y down, z ahead),
+    from the service's verification X_query = R X_keyframe + t: position -R^T t (a unit direction, or zero
+    where unobservable: two views give no scale) and orientation R^T as (x, y, z, w). The convention of
+    the service's g2o export (docs/design/service.md §1.2)."""
+    R = np.asarray(rotation, np.float64)
+    t = np.asarray(translation if translation is not None else (0.0, 0.0, 0.0), np.float64)
+    p = -R.T @ t
+    return (float(p[0]), float(p[1]), float(p[2])), quaternion_from_matrix(R.T)
+
+
+class OdometryBuffer:
+    """Recent odometry poses by stamp; a frame takes the pose nearest its stamp within `tolerance_ns`
+    (message_filters' ApproximateTime for two topics, which pip-installed ROS 2 lacks). Thread-safe: the
+    executor adds, the poster matches late frames.
+
+    Odometry arriving out of order is inserted in order; the oldest entries go past `capacity`.
+    """
+
+    def __init__(self, tolerance_ns: int, capacity: int = 4096) -> None:
+        self.tolerance_ns = tolerance_ns
+        self._stamps: list[int] = []
+        self._poses: list[Pose2D] = []
+        self._capacity = capacity
+        self._lock = threading.Lock()
+
+    def add(self, stamp: Stamp, pose: Pose2D) -> None:
+        with self._lock:
+            i = bisect.bisect_right(self._stamps, stamp.ns)
+            self._stamps.insert(i, stamp.ns)
+            self._poses.insert(i, pose)
+            if len(self._stamps) > self._capacity:
+                del self._stamps[0], self._poses[0]
+
+    def match(self, stamp: Stamp) -> Pose2D | None:
+        """The pose whose stamp is nearest `stamp`, if within the tolerance."""
+        with self._lock:
+            i = bisect.bisect_left(self._stamps, stamp.ns)
+            best: tuple[int, Pose2D] | None = None
+            for j in (i - 1, i):
+                if 0 <= j < len(self._stamps):
+                    gap = abs(self._stamps[j] - stamp.ns)
+                    if gap <= self.tolerance_ns and (best is None or gap < best[0]):
+                        best = (gap, self._poses[j])
+            return None if best is None else best[1]
+
+    def latest(self) -> Pose2D | None:
+        with self._lock:
+            return self._poses[-1] if self._poses else None
+
+
+@dataclass
+class RateFilter:
+    """Which frames are posted: every `every_n`-th frame, and, with `min_distance` > 0, only once the
+    camera moved that far from the last frame taken (frames without a pose then wait for one)."""
+
+    every_n: int = 1
+    min_distance: float = 0.0
+    _count: int = 0
+    _last: Pose2D | None = None
+
+    def take(self, pose: Pose2D | None) -> bool:
+        self._count += 1
+        if self._count < self.every_n:
+            return False
+        if self.min_distance > 0:
+            if pose is None:
+                return False
+            if self._last is not None and pose.distance(self._last) < self.min_distance:
+                return False
+            self._last = pose
+        self._count = 0
+        return True
+
+
+# ------------------------------------------------------------------------------------------- queue
+
+DropPolicy = Literal["drop_oldest", "drop_newest"]
+DROP_POLICIES: tuple[str, ...] = ("drop_oldest", "drop_newest")
+T = TypeVar("T")
+
+
+@dataclass
+class FrameQueue(Generic[T]):
+    """The frames waiting for the poster, at most `size`. Full, `drop_oldest` drops the oldest waiting
+    frame for the new one (freshest answers: localising), `drop_newest` refuses the new one (the
+    sequence keeps its first frames whole: mapping a short burst). Thread-safe."""
+
+    size: int
+    policy: DropPolicy = "drop_oldest"
+    dropped: int = 0
+    _items: deque[T] = field(default_factory=deque)
+    _cond: threading.Condition = field(default_factory=threading.Condition)
+
+    def put(self, item: T) -> T | None:
+        """Queue `item`; returns the frame dropped for it (the oldest, or `item` itself), if any."""
+        with self._cond:
+            out = None
+            if len(self._items) >= self.size:
+                self.dropped += 1
+                if self.policy == "drop_newest":
+                    return item
+                out = self._items.popleft()
+            self._items.append(item)
+            self._cond.notify()
+            return out
+
+    def get(self, timeout: float) -> T | None:
+        """The oldest waiting frame, or None after `timeout` seconds without one."""
+        with self._cond:
+            if not self._items:
+                self._cond.wait(timeout)
+            return self._items.popleft() if self._items else None
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._items)

@@ -1,0 +1,295 @@
+"""`cortexloc_node`: camera frames (and odometry, camera_info) in, places and loop closures out.
+
+The executor only converts and queues: each image callback turns the message into a raw frame (step
+padding dropped, 16-bit samples in the host's order), matches its stamp against the odometry buffer,
+applies the rate filter and puts it on the bounded queue. The poster thread (`cortexloc_ros.poster`)
+posts the queue through the typed client and publishes each answer. A 1 Hz timer on the executor
+publishes diagnostics, so they keep coming while the service is down.
+
+Topics and parameters: `cortexloc_ros.params.PARAMETERS`; the JSON documents: `cortexloc_ros.answers`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import threading
+from collections import deque
+from dataclasses import replace
+from typing import Any
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from std_msgs.msg import ColorRGBA, String
+from visualization_msgs.msg import Marker, MarkerArray
+
+from cortexloc_client import Client, Observation, RetryPolicy
+from cortexloc_ros.answers import loop_closure_json, place_json, place_pose
+from cortexloc_ros.core import (
+    FrameQueue,
+    OdometryBuffer,
+    Pose2D,
+    RateFilter,
+    Stamp,
+    idempotency_key,
+    image_array,
+    yaw_from_quaternion,
+)
+from cortexloc_ros.params import PARAMETERS, Config, ConfigError, read_config
+from cortexloc_ros.poster import Frame, Poster, Stats
+
+__all__ = ["CortexlocNode", "main"]
+
+NODE_NAME = "cortexloc_node"
+#: Loop-closure edges kept for the markers (the oldest go first).
+MAX_EDGES = 1000
+#: The frame of poses that were posted without one.
+DEFAULT_FRAME = "map"
+#: Distortion models the service's pinhole camera takes (OpenCV's coefficients, in ROS's order).
+PINHOLE_MODELS = ("plumb_bob", "rational_polynomial", "")
+DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
+
+# Sensor data as camera drivers publish it: best effort (a reliable subscriber would not hear a
+# best-effort camera; a best-effort one hears both). `qos_overrides.<topic>.subscription.reliability`
+# changes it (ROS 2's QoS override parameters).
+_SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+_QOS_OVERRIDES = QoSOverridingOptions.with_default_policies()
+
+
+class CortexlocNode(Node):
+    """The node; `ConfigError` from the constructor when its parameters cannot be used."""
+
+    def __init__(self) -> None:
+        super().__init__(NODE_NAME)
+        self.cfg = self._read_parameters()
+        cfg = self.cfg
+        self.stats = Stats()
+        self.queue: FrameQueue[Frame] = FrameQueue(cfg.queue_size, cfg.queue_policy)  # type: ignore[arg-type]
+        self.rate = RateFilter(cfg.every_n, cfg.min_distance)
+        self.odometry = OdometryBuffer(cfg.odom_tolerance_ns) if cfg.topics["odometry"] else None
+        self._camera: dict[str, Any] | None = None
+        self._edges: deque[tuple[Pose2D, Pose2D, float]] = deque(maxlen=MAX_EDGES)
+        self._warned: set[str] = set()
+        self._lock = threading.Lock()
+
+        image_topic = cfg.topics["image"] + ("/compressed" if cfg.compressed else "")
+        self.image_topic = self.resolve_topic_name(image_topic)
+        stream = cfg.stream or self.image_topic.lstrip("/")
+        self.cfg = cfg = replace(cfg, stream=stream)
+        self.create_subscription(CompressedImage if cfg.compressed else Image, image_topic, self._on_image,
+                                 _SENSOR_QOS, qos_overriding_options=_QOS_OVERRIDES)
+        if cfg.topics["camera_info"]:
+            self.create_subscription(CameraInfo, cfg.topics["camera_info"], self._on_camera_info, _SENSOR_QOS,
+                                     qos_overriding_options=_QOS_OVERRIDES)
+        if self.odometry is not None:
+            self.create_subscription(Odometry, cfg.topics["odometry"], self._on_odometry,
+                                     QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT),
+                                     qos_overriding_options=_QOS_OVERRIDES)
+        self.pub_place = self.create_publisher(String, cfg.topics["place"], 10)
+        self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, cfg.topics["place_pose"], 10)
+        self.pub_closures = self.create_publisher(String, cfg.topics["loop_closures"], 100)
+        self.pub_markers = self.create_publisher(MarkerArray, cfg.topics["markers"], 1)
+        self.pub_diagnostics = self.create_publisher(DiagnosticArray, cfg.topics["diagnostics"], 10)
+
+        # The poster is the only retry loop: the client tries once, so each failure reaches diagnostics.
+        self.client = Client(cfg.service_url, api_key=cfg.api_key, timeout=cfg.request_timeout,
+                             retry=RetryPolicy(attempts=1))
+        self.poster = Poster(cfg, self.client, self.queue, self.stats, self.odometry, self._camera_now,
+                             self._publish_answer, self.get_logger())
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.poster.start()
+        self.get_logger().info(
+            f"{image_topic} -> {cfg.service_url} map {cfg.map_id!r} stream {cfg.stream!r} "
+            f"({'learn' if cfg.learn else 'localise'}), run id {cfg.run_id}")
+
+    # ---------------------------------------------------------------------------------- parameters
+
+    def _read_parameters(self) -> Config:
+        values: dict[str, Any] = {}
+        for name, (default, description) in PARAMETERS.items():
+            # dynamic typing: `read_config` checks the types itself and says which parameter is wrong
+            # (rclpy would refuse `-p odom_tolerance:=1` for a double with a terse type error)
+            descriptor = ParameterDescriptor(description=description, read_only=True, dynamic_typing=True)
+            values[name] = self.declare_parameter(name, default, descriptor).value
+        overrides = getattr(self, "_parameter_overrides", {})  # what --ros-args and params files gave
+        unknown = [n for n in overrides if not self.has_parameter(n) and not n.startswith("qos_overrides.")]
+        return read_config(values, unknown=unknown)
+
+    # ----------------------------------------------------------------------------------- callbacks
+
+    def _warn_once(self, what: str, text: str) -> None:
+        if what not in self._warned:
+            self._warned.add(what)
+            self.get_logger().warning(text)
+
+    def _on_odometry(self, msg: Odometry) -> None:
+        assert self.odometry is not None
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        base = Pose2D(p.x, p.y, yaw_from_quaternion(q.x, q.y, q.z, q.w), msg.header.frame_id or "odom")
+        self.odometry.add(Stamp.of(msg.header.stamp.sec, msg.header.stamp.nanosec),
+                          base.compose(self.cfg.camera_mount))
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        k, d = list(msg.k), list(msg.d)
+        if k[0] <= 0 or k[4] <= 0:  # an uncalibrated camera publishes zeros
+            self._warn_once("uncalibrated", "camera_info holds no intrinsics (K is zero): frames go without")
+            camera = None
+        elif msg.distortion_model not in PINHOLE_MODELS or len(d) not in DISTORTION_LENGTHS:
+            self._warn_once("model", f"camera_info's distortion model {msg.distortion_model!r} ({len(d)} "
+                                     f"coefficients) is not OpenCV's pinhole model: frames go without "
+                                     f"a camera")
+            camera = None
+        else:
+            camera = {"fx": k[0], "fy": k[4], "cx": k[2], "cy": k[5], "distortion": d}
+        with self._lock:
+            self._camera = camera
+
+    def _camera_now(self) -> dict[str, Any] | None:
+        with self._lock:
+            return self._camera
+
+    def _on_image(self, msg: Image | CompressedImage) -> None:
+        with self.stats.lock:
+            self.stats.received += 1
+        stamp = Stamp.of(msg.header.stamp.sec, msg.header.stamp.nanosec)
+        try:
+            if isinstance(msg, CompressedImage):
+                image: Any = bytes(msg.data)
+                colour = "rgb8"
+            else:
+                image = image_array(msg.data, height=msg.height, width=msg.width, step=msg.step,
+                                    encoding=msg.encoding, is_bigendian=bool(msg.is_bigendian))
+                colour = msg.encoding if msg.encoding in ("rgb8", "bgr8", "rgba8", "bgra8") else "rgb8"
+        except ValueError as e:
+            with self.stats.lock:
+                self.stats.unsupported += 1
+                self.stats.last_error = str(e)
+            self._warn_once(f"image:{getattr(msg, 'encoding', '')}", f"frame skipped: {e}")
+            return
+        pose = self.odometry.match(stamp) if self.odometry is not None else None
+        if not self.rate.take(pose or (self.odometry.latest() if self.odometry is not None else None)):
+            with self.stats.lock:
+                self.stats.skipped_rate += 1
+            return
+        frame = Frame(stamp, msg.header.frame_id, image, colour,
+                      idempotency_key(self.cfg.run_id, self.image_topic, stamp), pose)
+        if self.queue.put(frame) is not None:
+            self._warn_once("drop", f"queue full ({self.cfg.queue_size}): frames dropped by "
+                                    f"{self.cfg.queue_policy} (counted in diagnostics)")
+
+    # ---------------------------------------------------------------------------------- publishing
+
+    def _publish_answer(self, frame: Frame, pose: Pose2D | None, answer: Observation,
+                        latency_ms: float) -> None:
+        """On the poster's thread: the place JSON, the place's stored pose, a loop closure and its edge."""
+        doc = place_json(answer, frame.stamp, frame.frame_id, pose, latency_ms, DEFAULT_FRAME)
+        self.pub_place.publish(String(data=json.dumps(doc, separators=(",", ":"))))
+        stored = place_pose(answer.place, DEFAULT_FRAME)
+        if stored is not None:
+            self.pub_pose.publish(self._pose_message(frame.stamp, stored))
+        closure = loop_closure_json(answer, frame.stamp, frame.frame_id, pose, DEFAULT_FRAME)
+        if closure is None:
+            return
+        self.pub_closures.publish(String(data=json.dumps(closure, separators=(",", ":"))))
+        if pose is not None and stored is not None and pose.frame_id == stored.frame_id:
+            self._edges.append((pose, stored, float(closure["confidence"])))
+            self.pub_markers.publish(self._markers())
+
+    def _pose_message(self, stamp: Stamp, pose: Pose2D) -> PoseWithCovarianceStamped:
+        msg = PoseWithCovarianceStamped()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = stamp.sec, stamp.nanosec
+        msg.header.frame_id = pose.frame_id
+        msg.pose.pose.position.x, msg.pose.pose.position.y = pose.x, pose.y
+        q = msg.pose.pose.orientation
+        q.z, q.w = math.sin(pose.yaw / 2), math.cos(pose.yaw / 2)
+        vx, vy, vyaw = self.cfg.place_covariance
+        cov = [0.0] * 36
+        for i, var in enumerate((vx, vy, 1e6, 1e6, 1e6, vyaw)):  # x y z roll pitch yaw
+            cov[i * 7] = var
+        msg.pose.covariance = cov
+        return msg
+
+    def _markers(self) -> MarkerArray:
+        """Every kept loop-closure edge (frame's pose -> the place's stored pose) as one LINE_LIST in the
+        first edge's frame, coloured from red (confidence at the threshold) to green (1)."""
+        edges = list(self._edges)
+        frame_id = edges[0][0].frame_id
+        m = Marker()
+        m.header.frame_id = frame_id  # stamp zero: drawn with the latest transform
+        m.ns, m.id, m.type, m.action = "cortexloc_loop_closures", 0, Marker.LINE_LIST, Marker.ADD
+        m.pose.orientation.w = 1.0
+        m.scale.x = 0.2
+        for a, b, confidence in edges:
+            if a.frame_id != frame_id:
+                continue
+            colour = ColorRGBA(r=float(1.0 - confidence), g=float(confidence), b=0.2, a=1.0)
+            m.points.extend([Point(x=a.x, y=a.y), Point(x=b.x, y=b.y)])
+            m.colors.extend([colour, colour])
+        return MarkerArray(markers=[m])
+
+    def _publish_diagnostics(self) -> None:
+        s = self.stats
+        median = s.median_latency_ms()
+        with s.lock:
+            service, error = s.service, s.last_error
+            values = {"service": service, "service_url": self.cfg.service_url, "map": self.cfg.map_id,
+                      "stream": self.cfg.stream, "mode": "learn" if self.cfg.learn else "localise",
+                      "received": s.received, "skipped_rate": s.skipped_rate, "unsupported": s.unsupported,
+                      "queue_depth": len(self.queue), "queue_size": self.cfg.queue_size,
+                      "queue_policy": self.cfg.queue_policy, "dropped": self.queue.dropped,
+                      "answered": s.answered, "refused": s.refused, "retries": s.retries,
+                      "revisits": s.revisits, "no_pose": s.no_pose,
+                      "latency_ms": "" if s.last_latency_ms is None else f"{s.last_latency_ms:.1f}",
+                      "latency_ms_median": "" if median is None else f"{median:.1f}", "last_error": error}
+        if service in ("down", "error"):
+            level, message = DiagnosticStatus.ERROR, f"service {service}: {error}"
+        elif self.queue.dropped or s.refused or s.unsupported:
+            level, message = DiagnosticStatus.WARN, (f"service {service}; dropped {self.queue.dropped}, "
+                                                     f"refused {s.refused}, unsupported {s.unsupported}")
+        else:
+            level, message = DiagnosticStatus.OK, f"service {service}"
+        status = DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: cortexloc",
+                                  message=message, hardware_id=self.cfg.service_url,
+                                  values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.pub_diagnostics.publish(msg)
+
+    def close(self) -> None:
+        self.poster.stop()
+        self.client.close()
+
+
+def main(args: list[str] | None = None) -> int:
+    """`cortexloc-ros [--ros-args -p name:=value ... --params-file params.yaml]`: run the node until
+    SIGINT or SIGTERM. Exit status 0; 2 with one line per problem when the parameters cannot be used."""
+    rclpy.init(args=args)
+    try:
+        node = CortexlocNode()
+    except ConfigError as e:
+        print(f"cortexloc-ros: {e}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def run() -> None:
+    """The console entry point."""
+    sys.exit(main())

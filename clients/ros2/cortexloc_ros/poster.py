@@ -1,0 +1,202 @@
+"""The poster: one thread that takes frames from the bounded queue and posts them, in order, through the
+typed client; the ROS executor never waits on the service.
+
+- Order: a stream's frames go one at a time, frame i+1 after frame i's answer (the map's memory depends
+  on the order; docs/design/service.md §1.3).
+- Retries: a frame is posted until the service answers it or refuses its bytes. The service down (no
+  connection, a reply cut short, a timeout), a 503 or a 429: the same post again after `Retry-After` or
+  a backoff of 0.5 s doubling to 5 s, with the **same Idempotency-Key** (run id + topic + stamp), so a
+  post that was stored before its reply was lost is answered from the store, never learned twice. An
+  answered frame is done: it is never posted again. Meanwhile the camera's frames queue, and the queue
+  drops by its policy.
+- Refused: 400, 413, 415, 422 (the frame or its metadata) are counted and logged; the poster goes on. A
+  missing map is created (service defaults) when learning.
+- Idle, it checks the service's readiness every `PROBE_S`, so diagnostics say "down" without frames.
+"""
+
+from __future__ import annotations
+
+import statistics
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import httpx
+import numpy as np
+
+from cortexloc_client import Client, CortexlocError, Observation
+from cortexloc_ros.core import FrameQueue, OdometryBuffer, Pose2D, Stamp
+from cortexloc_ros.params import Config
+
+__all__ = ["Frame", "Poster", "Stats"]
+
+#: Refusals of one frame (its bytes, size, metadata): counted, and the next frame is posted.
+FRAME_REFUSALS = frozenset({400, 413, 415, 422})
+BACKOFF_S, MAX_BACKOFF_S = 0.5, 5.0
+PROBE_S = 1.0
+#: Latencies kept for the diagnostics' median.
+LATENCY_WINDOW = 100
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One camera frame on its way: the body (a raw-frame array or encoded bytes), its stamp and frame,
+    the key of its post, and its pose if odometry gave one when it arrived."""
+
+    stamp: Stamp
+    frame_id: str
+    image: np.ndarray | bytes
+    colour: str
+    key: str
+    pose: Pose2D | None = None
+
+
+@dataclass
+class Stats:
+    """What the diagnostics report; written by the executor (received, skipped) and the poster."""
+
+    received: int = 0
+    skipped_rate: int = 0
+    unsupported: int = 0
+    answered: int = 0
+    refused: int = 0
+    retries: int = 0
+    revisits: int = 0
+    no_pose: int = 0
+    service: str = "unknown"  # up | down | error | unknown
+    last_error: str = ""
+    last_latency_ms: float | None = None
+    latencies_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def median_latency_ms(self) -> float | None:
+        with self.lock:
+            return statistics.median(self.latencies_ms) if self.latencies_ms else None
+
+
+Answered = Callable[[Frame, Pose2D | None, Observation, float], None]
+
+
+class Poster:
+    """Posts queued frames through `client`, one at a time; `on_answer(frame, pose, answer, latency_ms)`
+    runs on the poster's thread for each answered frame (it publishes)."""
+
+    def __init__(self, cfg: Config, client: Client, queue: FrameQueue[Frame], stats: Stats,
+                 odometry: OdometryBuffer | None, camera: Callable[[], dict[str, Any] | None],
+                 on_answer: Answered, log: Any) -> None:
+        self.cfg, self.client, self.queue, self.stats = cfg, client, queue, stats
+        self.odometry, self.camera, self.on_answer, self.log = odometry, camera, on_answer, log
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="cortexloc-poster", daemon=True)
+        self._last_probe = 0.0
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        self._thread.join(timeout)
+
+    # -------------------------------------------------------------------------------------- thread
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            frame = self.queue.get(timeout=0.2)
+            if frame is not None:
+                self._post(frame)
+            elif time.monotonic() - self._last_probe >= PROBE_S:
+                self._probe()
+
+    def _probe(self) -> None:
+        self._last_probe = time.monotonic()
+        try:
+            self.client.ready()
+        except CortexlocError as e:
+            self._state("error", f"not ready: {e}")
+        except httpx.HTTPError as e:
+            self._state("down", f"{e.__class__.__name__}: {e}")
+        else:
+            self._state("up", "")
+
+    def _state(self, service: str, error: str) -> None:
+        with self.stats.lock:
+            if service != self.stats.service and service != "up":
+                self.log.warning(f"cortexloc service {service}: {error}; retrying")
+            elif service != self.stats.service:
+                self.log.info(f"cortexloc service up at {self.cfg.service_url}")
+            self.stats.service = service
+            if error:
+                self.stats.last_error = error
+
+    def _metadata(self, frame: Frame, pose: Pose2D | None) -> dict[str, Any]:
+        # `stamp` in seconds is what the service's export reads; `stamp_ns` (text: past 2^53) is exact.
+        meta: dict[str, Any] = {"stamp": frame.stamp.seconds, "stamp_ns": str(frame.stamp.ns),
+                                "frame_id": frame.frame_id}
+        if pose is not None:
+            meta["pose"] = pose.as_metadata()
+        camera = self.camera()
+        if camera is not None:
+            meta["camera"] = camera
+        return meta
+
+    def _post(self, frame: Frame) -> None:
+        pose = frame.pose
+        if pose is None and self.odometry is not None:  # odometry that arrived after the frame
+            pose = self.odometry.match(frame.stamp)
+            if pose is None:
+                with self.stats.lock:
+                    self.stats.no_pose += 1
+        meta = self._metadata(frame, pose)
+        delay = BACKOFF_S
+        while not self._stop.is_set():
+            t0 = time.perf_counter()
+            try:
+                answer = self.client.observe(
+                    self.cfg.map_id, frame.image, colour=frame.colour,  # type: ignore[arg-type]
+                    stream=self.cfg.stream, learn=self.cfg.learn, top_k=self.cfg.top_k, metadata=meta,
+                    idempotency_key=frame.key)
+            except CortexlocError as e:
+                if e.status in FRAME_REFUSALS:
+                    with self.stats.lock:
+                        self.stats.refused += 1
+                        self.stats.last_error = str(e)
+                    self.log.warning(f"frame {frame.stamp.ns} refused: {e}")
+                    return
+                if e.status == 404 and e.slug == "map-not-found" and self.cfg.learn and self._create_map():
+                    continue
+                self._state("error", str(e))
+                wait = e.retry_after if e.retry_after is not None else delay
+            except httpx.HTTPError as e:
+                self._state("down", f"{e.__class__.__name__}: {e}")
+                wait = delay
+            else:
+                latency = (time.perf_counter() - t0) * 1e3
+                with self.stats.lock:
+                    self.stats.answered += 1
+                    self.stats.revisits += bool(answer.place and answer.place.revisit)
+                    self.stats.last_latency_ms = latency
+                    self.stats.latencies_ms.append(latency)
+                self._state("up", "")
+                try:
+                    self.on_answer(frame, pose, answer, latency)
+                except Exception as e:  # e.g. publishing while SIGTERM shuts the context down
+                    if not self._stop.is_set():
+                        self.log.error(f"publishing the answer of frame {frame.stamp.ns} failed: {e!r}")
+                return
+            with self.stats.lock:
+                self.stats.retries += 1
+            self._stop.wait(min(wait, MAX_BACKOFF_S))
+            delay = min(delay * 2, MAX_BACKOFF_S)
+
+    def _create_map(self) -> bool:
+        try:
+            self.client.create_map(self.cfg.map_id)
+        except CortexlocError as e:
+            if e.status != 409:  # 409: another node created it meanwhile
+                self._state("error", f"cannot create map {self.cfg.map_id!r}: {e}")
+                return False
+        self.log.info(f"created map {self.cfg.map_id!r} (the service's defaults)")
+        return True

@@ -1,0 +1,172 @@
+"""The node's parts that need no ROS (cortexloc_ros.core, .params, .answers): raw frames from Image fields,
+idempotency keys, odometry matching, the rate filter, the queue's drop policies, the parameters' checks
+and the loop-closure document's relative pose (the service's g2o convention)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("cortexloc_ros.core", reason="the ROS 2 node is not installed (make install-ros)")
+
+from cortexloc_ros.answers import loop_closure_json, place_json
+from cortexloc_ros.core import (
+    FrameQueue,
+    OdometryBuffer,
+    Pose2D,
+    RateFilter,
+    Stamp,
+    idempotency_key,
+    image_array,
+)
+from cortexloc_ros.params import PARAMETERS, ConfigError, read_config
+
+from cortexloc_client import Observation
+
+DEFAULTS = {name: default for name, (default, _) in PARAMETERS.items()}
+
+
+def _padded(pixels: np.ndarray, pad: int) -> tuple[bytes, int]:
+    rows = pixels.reshape(pixels.shape[0], -1).view(np.uint8)
+    rows = np.concatenate([rows, np.full((rows.shape[0], pad), 0xEE, np.uint8)], axis=1)
+    return rows.tobytes(), rows.shape[1]
+
+
+@pytest.mark.parametrize("encoding,dtype,channels", [("rgb8", "u1", 3), ("bgra8", "u1", 4),
+                                                     ("mono8", "u1", 1), ("mono16", ">u2", 1),
+                                                     ("mono16", "<u2", 1)])
+def test_an_image_with_padded_rows_of_either_byte_order_gives_its_pixels(encoding, dtype, channels):
+    rng = np.random.default_rng(0)
+    shape = (5, 7, channels) if channels > 1 else (5, 7)
+    pixels = rng.integers(0, 65535 if "2" in dtype else 255, shape).astype(dtype)
+    data, step = _padded(pixels, 6)
+    out = image_array(data, height=5, width=7, step=step, encoding=encoding, is_bigendian=dtype == ">u2")
+    assert out.shape == shape and np.array_equal(out, pixels)  # values, whatever the byte order
+    assert out.dtype == (np.uint16 if "2" in dtype else np.uint8)
+
+
+def test_an_image_shorter_than_its_header_or_of_another_encoding_is_refused():
+    with pytest.raises(ValueError, match="needs 4 rows of at least 12 bytes"):
+        image_array(b"\0" * 40, height=4, width=4, step=12, encoding="rgb8", is_bigendian=False)
+    with pytest.raises(ValueError, match="32FC1"):
+        image_array(b"\0" * 64, height=4, width=4, step=16, encoding="32FC1", is_bigendian=False)
+
+
+def test_the_key_is_run_topic_and_stamp_so_a_replayed_bag_is_a_second_drive():
+    stamp = Stamp.of(1_700_000_000, 5)
+    key = idempotency_key("run1", "/robot/cam/image_raw", stamp)
+    assert key == "run1:.robot.cam.image_raw:1700000000000000005"
+    assert key == idempotency_key("run1", "/robot/cam/image_raw", stamp)  # a retry: the same key
+    assert key != idempotency_key("run2", "/robot/cam/image_raw", stamp)  # the bag replayed: another
+    assert key != idempotency_key("run1", "/robot/cam2/image_raw", stamp)
+    long = idempotency_key("r", "/" + "x" * 200, stamp)
+    assert len(long) <= 128 and long.endswith(":1700000000000000005")
+    import re
+
+    assert re.fullmatch(r"[A-Za-z0-9._:-]{8,128}", long) and re.fullmatch(r"[A-Za-z0-9._:-]{8,128}", key)
+
+
+def test_a_frame_takes_the_odometry_pose_nearest_its_stamp_within_the_tolerance():
+    odom = OdometryBuffer(tolerance_ns=50_000_000)
+    for i in (0, 2, 1, 3):  # out of order too
+        odom.add(Stamp(i * 100_000_000), Pose2D(float(i), 0.0, 0.0, "odom"))
+    assert odom.match(Stamp(140_000_000)).x == 1.0
+    assert odom.match(Stamp(160_000_000)).x == 2.0
+    assert odom.match(Stamp(250_000_000)).x == 2.0  # a tie: the earlier
+    assert odom.match(Stamp(360_000_000)) is None  # 60 ms past the last: beyond the tolerance
+    assert odom.latest().x == 3.0
+
+
+def test_the_camera_mount_moves_the_pose_with_the_robots_heading():
+    pose = Pose2D(1.0, 2.0, math.pi / 2, "odom").compose((0.5, 0.0, math.pi / 2))
+    assert (round(pose.x, 9), round(pose.y, 9), round(pose.yaw, 9)) == (1.0, 2.5, round(math.pi, 9))
+
+
+def test_the_rate_filter_takes_every_nth_frame_and_only_after_the_minimum_distance():
+    every = RateFilter(every_n=3)
+    assert [every.take(None) for _ in range(7)] == [False, False, True, False, False, True, False]
+    far = RateFilter(min_distance=1.0)
+    poses = [Pose2D(x, 0.0, 0.0, "odom") for x in (0.0, 0.4, 0.9, 1.1, 1.5, 2.2)]
+    assert [far.take(p) for p in poses] == [True, False, False, True, False, True]
+    assert far.take(None) is False  # no pose: cannot tell how far
+
+
+@pytest.mark.parametrize("policy,kept", [("drop_oldest", [3, 4]), ("drop_newest", [0, 1])])
+def test_a_full_queue_drops_by_its_policy(policy, kept):
+    q: FrameQueue[int] = FrameQueue(2, policy)
+    dropped = [q.put(i) for i in range(5)]
+    assert q.dropped == 3 and len(q) == 2
+    assert dropped == ([None, None, 0, 1, 2] if policy == "drop_oldest" else [None, None, 2, 3, 4])
+    assert [q.get(0), q.get(0), q.get(0)] == [*kept, None]
+
+
+def test_the_parameters_yaml_declares_every_parameter_with_its_default():
+    yaml = pytest.importorskip("yaml")
+    path = Path(__file__).resolve().parents[3] / "clients" / "ros2" / "config" / "params.yaml"
+    doc = yaml.safe_load(path.read_text())["cortexloc_node"]["ros__parameters"]
+
+    def flat(d: dict, prefix: str = "") -> dict:
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
+    assert flat(doc) == DEFAULTS
+    assert all(description for _, description in PARAMETERS.values())
+
+
+def test_bad_parameters_are_all_named_at_once(monkeypatch, tmp_path):
+    bad = {**DEFAULTS, "service_url": "127.0.0.1:8000", "queue.size": 0, "queue.policy": "lifo",
+           "odom_tolerance": 0.0, "camera_mount": [1.0, 2.0], "image_transport": "theora"}
+    with pytest.raises(ConfigError) as e:
+        read_config(bad)
+    assert [p.split(":")[0] for p in e.value.problems] == [
+        "service_url", "image_transport", "odom_tolerance", "camera_mount", "queue.size", "queue.policy"]
+    with pytest.raises(ConfigError, match="api_key: the API key is never a parameter"):
+        read_config(DEFAULTS, unknown=["api_key"])
+    monkeypatch.setenv("ROBOT_KEY", "from-env")
+    assert read_config({**DEFAULTS, "api_key_env": "ROBOT_KEY"}).api_key == "from-env"
+    (tmp_path / "key").write_text("from-file\n")
+    assert read_config({**DEFAULTS, "api_key_file": str(tmp_path / "key")}).api_key == "from-file"
+    cfg = read_config({**DEFAULTS, "odom_tolerance": 1, "camera_mount": [0, 0, 1]})  # integers as numbers
+    assert cfg.odom_tolerance_ns == 1_000_000_000 and cfg.camera_mount == (0.0, 0.0, 1.0)
+
+
+def _answer(place: dict | None) -> Observation:
+    return Observation.model_validate({
+        "map_id": "m", "stream": "s", "learned": True, "seq": 9, "sequence": {
+            "step": 1, "active_columns": 1, "predicted_columns": 0, "bursting_columns": 1, "winner_cells": 1},
+        "matches": [], "timings_ms": {},
+        "versions": {"api": "v1", "code": "x", "encoder": "e", "weights": "w", "projection": "p",
+                     "map_seq": 9},
+        "place": place})
+
+
+def test_a_verified_loop_closure_carries_the_relative_pose_of_the_services_g2o_export():
+    from types import SimpleNamespace
+
+    from service.maps.closures import g2o_edge
+
+    a = 0.3
+    R = [[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]]
+    t = [0.6, 0.0, 0.8]
+    place = {"seq": 4, "confidence": 0.95, "revisit": True, "support": 12, "place_id": 4,
+             "metadata": {"stamp": 12.5, "stamp_ns": "12500000000", "pose": {"x": 1.0, "y": 2.0, "yaw": 0.1,
+                                                                             "frame_id": "odom"}},
+             "verification": {"verified": True, "keyframe_seq": 4, "inliers": 80, "model": "fundamental",
+                              "rotation": R, "translation": t, "rotation_deg": math.degrees(a)}}
+    doc = loop_closure_json(_answer(place), Stamp.of(20, 1), "cam", Pose2D(1.5, 2.0, 0.0, "odom"), "map")
+    assert doc["stamp"] == {"sec": 20, "nanosec": 1}
+    assert doc["place_stamp"] == {"sec": 12, "nanosec": 500000000}
+    assert doc["place_pose"] == {"x": 1.0, "y": 2.0, "yaw": 0.1, "frame_id": "odom"}
+    assert doc["pose"]["x"] == 1.5 and doc["confidence"] == 0.95 and doc["verified"] is True
+    edge = g2o_edge(SimpleNamespace(verification=place["verification"], seq=9, place_seq=4))
+    want = [float(v) for v in edge.split()[3:10]]  # x y z qx qy qz qw
+    rel = doc["relative_pose"]
+    got = [rel["position"][k] for k in "xyz"] + [rel["orientation"][k] for k in "xyzw"]
+    assert np.allclose(got, want, atol=1e-8)
+    assert loop_closure_json(_answer({**place, "revisit": False}), Stamp(1), "cam", None, "map") is None
+    assert place_json(_answer(None), Stamp(1), "cam", None, 3.0, "map")["place"] is None

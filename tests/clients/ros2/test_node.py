@@ -1,0 +1,243 @@
+"""`cortexloc_node` on real rclpy against a real `cortexloc serve`, all inside a loopback-only network
+namespace (harness.py): a real Nordland route with odometry and camera_info gives places and loop
+closures on the output topics; a service stopped and started again is recovered from without posting an
+answered frame twice; a slow service makes the queue drop by its policy, reported on diagnostics; bad
+parameters stop the node at start with a clear error. The README's three commands: test_readme_ros.py.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import Counter
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tests.clients.ros2.harness import TINY_MAP, NodeProcess, Relay, Service, in_loopback_netns, node_params
+
+NORDLAND = (Path(os.environ["CORTEXLOC_SHARED_DATA"]) if os.environ.get("CORTEXLOC_SHARED_DATA")
+            else Path(__file__).resolve().parents[3].parent / "shared" / "data") / "nordland_tiny_64x32"
+#: 30 places of the line, driven in summer then in winter (the frames are aligned by name).
+PLACES = range(100, 130)
+T0_NS = 1_700_000_000 * 1_000_000_000
+PERIOD_NS = 100_000_000
+SPACING_M, DRIFT_M = 10.0, 5.0
+PORT = 18000
+
+
+def _frame(season: str, place: int) -> np.ndarray:
+    path = NORDLAND / season / f"images-{(place + 1) * 10:05d}.png"
+    if not path.is_file():
+        pytest.skip(f"the Nordland route is not in {NORDLAND} (set CORTEXLOC_SHARED_DATA)")
+    return cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
+
+
+def _route(n: int | None = None) -> list[tuple[np.ndarray, int, float, float]]:
+    """(frame, stamp_ns, x, y): the summer pass then the winter pass, 5 m to the side (odometry drift)."""
+    out = []
+    for lap, season in enumerate(("summer", "winter")):
+        for j, place in enumerate(PLACES):
+            i = lap * len(PLACES) + j
+            out.append((_frame(season, place), T0_NS + i * PERIOD_NS, j * SPACING_M, lap * DRIFT_M))
+    return out[:n]
+
+
+class World:
+    """The service, a relay in front of it, a tiny map, the probe; closed in reverse."""
+
+    def __init__(self, tmp: Path, map_params: dict | None = None) -> None:
+        """`map_params`: the map's creation parameters (default `TINY_MAP`)."""
+        from cortexloc_client import Client
+        from tests.clients.ros2.probe import start_probe
+
+        self.tmp = tmp
+        self.service = Service(tmp, PORT).start()
+        self.relay = Relay(self.service.url)
+        self.client = Client(self.service.url)
+        self.map_id = "ros-test"
+        self.client.create_map(self.map_id, **(TINY_MAP if map_params is None else map_params))
+        self.probe = start_probe()
+        self.nodes: list[NodeProcess] = []
+
+    def node(self, **params: object) -> NodeProcess:
+        node = NodeProcess(self.tmp, node_params(self.relay.url, self.map_id, **params),
+                           f"node{len(self.nodes)}")
+        self.nodes.append(node)
+        return node
+
+    def close(self) -> None:
+        from tests.clients.ros2.probe import stop_probe
+
+        for node in self.nodes:
+            node.stop()
+        stop_probe(self.probe)
+        self.relay.close()
+        self.client.close()
+        self.service.stop()
+
+
+def _stamps(docs: list[dict]) -> list[int]:
+    return [d["stamp"]["sec"] * 1_000_000_000 + d["stamp"]["nanosec"] for d in docs]
+
+
+@in_loopback_netns
+def test_a_route_with_odometry_and_camera_info_gives_places_and_loop_closures_on_topics(tmp_path):
+    route = _route()
+    # the service's default map: the tiny one closes these loops at some seeds only
+    w = World(tmp_path, map_params={})
+    try:
+        node = w.node()
+        w.probe.wait_connected()
+        for i, (frame, stamp, x, y) in enumerate(route):
+            if i < len(PLACES):  # summer: rgb8, rows padded past the width
+                w.probe.publish(frame, stamp, x, y, encoding="rgb8", pad=8)
+            else:  # winter: mono16 from a big-endian camera, padded too (the service reads it as 8-bit x 257)
+                grey = (frame[:, :, 0].astype(np.uint16) * 257).astype(">u2")
+                w.probe.publish(grey, stamp, x, y, encoding="mono16", pad=6)
+            w.probe.spin(0.01)
+        w.probe.wait(lambda: len(w.probe.places) >= len(route), 120, "an answer per frame")
+        w.probe.wait(lambda: w.probe.last_diagnostics().get("answered") == str(len(route)), 10,
+                     "diagnostics counting every answer")
+        places, closures = w.probe.places, w.probe.closures
+        revisits = [p for p in places if p["place"] and p["place"]["revisit"]]
+        w.probe.wait(lambda: len(closures) >= len(revisits), 10, "a loop closure per revisit")
+        assert _stamps(places) == [s for _, s, _, _ in route]  # every frame once, in order
+        assert all(p["frame_id"] == "cam_optical" and p["map_id"] == w.map_id for p in places)
+        assert [(p["pose"]["x"], p["pose"]["y"], p["pose"]["frame_id"]) for p in places] == \
+            [(x, y, "odom") for _, _, x, y in route]  # each frame's odometry, matched by stamp
+
+        # loop closures: winter frames naming summer rows, with both stamps and both poses
+        assert len(closures) >= 3, [p["place"] for p in places[len(PLACES):]]
+        summer = {s: x for _, s, x, y in route[: len(PLACES)]}
+        print(f"{len(closures)} loop closures of {len(PLACES)} winter frames; place error (m): "
+              f"{[round(c['pose']['x'] - c['place_pose']['x']) for c in closures]}")
+        for c in closures:
+            stamp, place_stamp = _stamps([c])[0], _stamps([{"stamp": c["place_stamp"]}])[0]
+            assert stamp >= route[len(PLACES)][1] and place_stamp in summer
+            assert c["pose"]["y"] == DRIFT_M and c["place_pose"]["y"] == 0.0
+            assert c["place_pose"]["x"] == summer[place_stamp]
+            assert abs(c["pose"]["x"] - c["place_pose"]["x"]) <= 2 * SPACING_M  # the same place, +-2 frames
+            assert c["confidence"] >= 0.5 and c["stream"] == "test/cam"
+        assert _stamps(closures) == _stamps(revisits)
+
+        # the place's stored pose as PoseWithCovarianceStamped, stamped with the frame's stamp
+        with_pose = [p for p in places if p["place"] and p["place"]["pose"]]
+        assert [(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m.pose.pose.position.x,
+                 m.pose.pose.position.y, m.header.frame_id) for m in w.probe.poses] == \
+            [(s, p["place"]["pose"]["x"], p["place"]["pose"]["y"], "odom")
+             for s, p in zip(_stamps(with_pose), with_pose, strict=True)]
+        # RViz: every closure's edge in the last marker array
+        w.probe.wait(lambda: len(w.probe.markers) == len(closures), 10, "a marker array per closure")
+        marker = w.probe.markers[-1].markers[0]
+        assert marker.header.frame_id == "odom" and len(marker.points) == 2 * len(closures)
+        # camera_info's intrinsics stored with the learned rows (what geometric verification reads)
+        stored = w.client.list_observations(w.map_id, limit=5).observations[0].metadata
+        assert stored.model_extra["camera"] == {"fx": 60.0, "fy": 60.0, "cx": 32.0, "cy": 16.0,
+                                                "distortion": [0.01, -0.02, 0.0, 0.0, 0.0]}
+        assert stored.model_extra["stamp_ns"] == str(route[0][1])
+        d = w.probe.last_diagnostics()
+        assert (d["service"], d["dropped"], d["refused"], d["unsupported"]) == ("up", "0", "0", "0")
+        assert node.stop() == 0
+    finally:
+        w.close()
+
+
+@in_loopback_netns
+def test_the_node_recovers_from_a_service_restart_and_posts_no_answered_frame_twice(tmp_path):
+    route = _route(20)
+    w = World(tmp_path)
+    try:
+        node = w.node(image_transport="compressed")  # PNGs as CompressedImage, posted as they are
+        w.probe.wait_connected(compressed=True)
+        for frame, stamp, x, y in route[:10]:
+            w.probe.publish(frame, stamp, x, y, png=True)
+        w.probe.wait(lambda: len(w.probe.places) == 10, 60, "answers before the outage")
+
+        w.service.stop()
+        down_from = len(w.probe.diagnostics)
+        for frame, stamp, x, y in route[10:]:
+            w.probe.publish(frame, stamp, x, y, png=True)
+        # while it is down the executor is free: diagnostics keep coming, saying so
+        w.probe.wait(lambda: sum(d[1].get("service") == "down" for d in w.probe.diagnostics[down_from:]) >= 4,
+                     30, "diagnostics during the outage")
+        down = [d for d in w.probe.diagnostics[down_from:] if d[1].get("service") == "down"]
+        gaps = np.diff([t for t, _, _ in down])
+        print(f"diagnostics while the service was down: {len(down)}, "
+              f"intervals {np.round(gaps, 3).tolist()} s")
+        assert all(level == 2 for _, _, level in down)  # ERROR
+        assert int(down[-1][1]["received"]) == 20 and int(down[-1][1]["retries"]) >= 1
+
+        w.relay.lose_next_reply()  # the first post after the restart is stored, its reply lost
+        w.service.start()
+        w.probe.wait(lambda: len(w.probe.places) == 20, 120, "answers after the restart")
+        w.probe.spin(0.5)
+        assert _stamps(w.probe.places) == [s for _, s, _, _ in route]  # each frame answered once
+
+        posts = w.relay.posts
+        outcomes = Counter(o for _, o in posts)
+        assert outcomes["lost"] == 1 and outcomes["down"] >= 1 and outcomes["200"] == 20, outcomes
+        for i, (key, outcome) in enumerate(posts):
+            if outcome == "200":  # answered: never posted again
+                assert key not in [k for k, _ in posts[i + 1:]], key
+        lost = next(k for k, o in posts if o == "lost")
+        tries = [o for k, o in posts if k == lost]  # the frame in flight: refused while down, then ...
+        assert tries[-2:] == ["lost", "200"] and set(tries[:-2]) <= {"down"}  # retried with its key: replayed
+        stamps = [o.metadata.model_extra["stamp_ns"]
+                  for o in w.client.list_observations(w.map_id, limit=100).observations]
+        assert len(stamps) == len(set(stamps))  # no frame learned twice
+        assert node.stop() == 0
+    finally:
+        w.close()
+
+
+@in_loopback_netns
+def test_a_slow_service_makes_the_queue_drop_by_its_policy_and_diagnostics_say_so(tmp_path):
+    route = _route(8)
+    w = World(tmp_path)
+    try:
+        w.node(queue__size=2, queue__policy="drop_oldest")
+        w.probe.wait_connected()
+        w.relay.hold()  # the service takes its time
+        w.probe.publish(*route[0])
+        w.probe.wait(lambda: w.relay.held == 1, 30, "the first frame in flight")
+        for r in route[1:]:
+            w.probe.publish(*r)
+        w.probe.wait(lambda: w.probe.last_diagnostics().get("received") == "8", 30, "every frame received")
+        d = w.probe.last_diagnostics()
+        assert (d["queue_depth"], d["queue_size"], d["dropped"], d["answered"]) == ("2", "2", "5", "0")
+        assert w.probe.diagnostics[-1][2] == 1  # WARN
+        w.relay.release()
+        w.probe.wait(lambda: len(w.probe.places) == 3, 60, "the frames kept")
+        # drop_oldest: the one in flight, then the newest two
+        assert _stamps(w.probe.places) == [route[0][1], route[6][1], route[7][1]]
+        w.probe.wait(lambda: w.probe.last_diagnostics().get("answered") == "3", 10, "diagnostics")
+        assert w.probe.last_diagnostics()["dropped"] == "5"
+    finally:
+        w.close()
+
+
+@in_loopback_netns
+def test_bad_parameters_stop_the_node_at_start_with_a_clear_error(tmp_path):
+    runs = iter(range(100))
+
+    def start(**params: object) -> tuple[int, str]:
+        node = NodeProcess(tmp_path, {k.replace("__", "."): v for k, v in params.items()}, f"bad{next(runs)}")
+        node.proc.wait(timeout=60)
+        return node.proc.returncode, node.log()
+
+    rc, log = start(service_url="ftp://robot", map="Bad Map", top_k=-1, queue__policy="sometimes",
+                    **{"rate.every_n": 0, "rate.min_distance": 2.0})
+    assert rc == 2, log
+    for line in ("service_url: 'ftp://robot' is not an http(s)://host[:port] URL", "map: 'Bad Map'",
+                 "top_k: -1 must be >= 0", "queue.policy: 'sometimes' is not one of drop_oldest, drop_newest",
+                 "rate.every_n: 0 must be >= 1", "rate.min_distance needs odometry"):
+        assert line in log, log
+    rc, log = start(api_key="s3cret")
+    assert rc == 2 and "api_key: the API key is never a parameter" in log, log
+    rc, log = start(**{"queue.size": "ten", "qeue.size": 3})
+    assert rc == 2 and "queue.size: 'ten' is not an integer" in log and "qeue.size: no such parameter" in log
+    rc, log = start(api_key_file=str(tmp_path / "missing-key"))
+    assert rc == 2 and "api_key_file: cannot read a key from" in log, log
+    assert "Traceback" not in log
