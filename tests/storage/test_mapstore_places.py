@@ -1,6 +1,7 @@
-"""map.sqlite schemas 5 and 6 (docs/design/science.md §11.8, §11.9; docs/design/service.md §4.2): a row's
-place, the visit log (consolidated frames, replayed), dropped rows, rows' recency (schema 6), and the
-migration of an older map whose places come from its loop-closure log."""
+"""map.sqlite schemas 5 to 7 (docs/design/science.md §11.8, §11.9; docs/design/service.md §4.2): a row's
+place, the visit log (consolidated frames, replayed), dropped rows, rows' recency (schema 6), a visit's
+closure naming the row it joined (schema 7), and the migration of an older map whose places come from
+its loop-closure log."""
 
 from __future__ import annotations
 
@@ -36,7 +37,8 @@ def test_a_visit_commits_in_order_after_its_rows_and_reads_back(store: MapStore)
     assert (got[1].seq, got[1].context_prev_seq, got[1].metadata) == (2, 1, {"stamp": 11.0})
     assert np.array_equal(got[0].input_sdr, make_row(10).input_sdr)
     assert np.array_equal(got[0].winner_cells, make_row(10).winner_cells)
-    assert [(c.seq, c.place_seq) for c in store.closures(0, 10)] == [(None, 1)]  # logged with it
+    # logged with it, naming the row the frame was consolidated into (schema 7)
+    assert [(c.seq, c.place_seq, c.consolidated_into) for c in store.closures(0, 10)] == [(None, 1, 1)]
     assert list(store.visits(after_id=first)) and store.visit_stats() == (2, first, second)
 
 
@@ -103,20 +105,27 @@ def test_a_row_s_place_and_the_rows_it_dropped_commit_with_it(store: MapStore) -
     assert store.count() == 3  # the rows stay: the replay and the snapshots read them
 
 
-def _as_version_4(path: Path) -> None:
-    """Today's file as schema 4 wrote it: no visits, no dropped rows, no place column."""
+def _as_version(path: Path, version: int, changes: str) -> None:
+    """Today's file as schema `version` wrote it: `changes` (SQL) undone from it, and its version."""
     conn = sqlite3.connect(path)
-    conn.executescript("""
-        DROP TABLE visits;
-        DROP TABLE dropped;
-        DROP TABLE recency;
-        ALTER TABLE observations DROP COLUMN place;
+    conn.executescript(changes + f"""
         DROP TRIGGER meta_no_update;
-        UPDATE meta SET value = '4' WHERE key = 'schema_version';
+        UPDATE meta SET value = '{version}' WHERE key = 'schema_version';
         CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
         BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
     """)
     conn.close()
+
+
+def _as_version_4(path: Path) -> None:
+    """No visits, no dropped rows, no place column, no recency, no visit closures' rows."""
+    _as_version(path, 4, """
+        DROP TABLE visits;
+        DROP TABLE dropped;
+        DROP TABLE recency;
+        ALTER TABLE loop_closures DROP COLUMN consolidated_into;
+        ALTER TABLE observations DROP COLUMN place;
+    """)
 
 
 def test_an_old_map_is_migrated_and_its_places_come_from_its_loop_closures(tmp_path: Path,
@@ -134,7 +143,7 @@ def test_an_old_map_is_migrated_and_its_places_come_from_its_loop_closures(tmp_p
         assert ro.meta.schema_version == 4 and ro.dropped() == {} and list(ro.visits()) == []
         assert [r.place for r in ro.rows()] == [None] * 7
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 6
+        assert store.meta.schema_version == SCHEMA_VERSION == 7
         assert [r.place for r in store.rows()] == [None] * 7 and store.joined() == {4: 1, 5: 2, 6: 3}
         links = Localisation(None, 4096)
         links.rebuild(store.rows(), store.dropped(), store.joined())
@@ -142,3 +151,19 @@ def test_an_old_map_is_migrated_and_its_places_come_from_its_loop_closures(tmp_p
         assert links.appearances(2) == [2, 5] and links.places() == 4
         store.append(dataclasses.replace(make_row(8, stream="a", prev=7), place=7))  # and it goes on
         assert store.get(8).place == 7
+
+
+def test_a_version_6_file_gains_the_visits_closure_column(tmp_path: Path, meta: MapMeta) -> None:
+    path = tmp_path / "map.sqlite"
+    with MapStore.create(path, meta) as made:
+        made.append(make_row(1))
+        made.add_closure(NewClosure(stream="loc", place_seq=1, confidence=0.9, support=2))
+    _as_version(path, 6, "ALTER TABLE loop_closures DROP COLUMN consolidated_into;")
+    with MapStore.open(path, readonly=True) as ro:  # read-only: not migrated, reads as before
+        assert ro.meta.schema_version == 6 and [c.consolidated_into for c in ro.closures(0, 10)] == [None]
+    with MapStore.open(path) as store:
+        assert store.meta.schema_version == 7
+        closure = NewClosure(stream="b", place_seq=1, confidence=0.99, support=6)
+        store.add_visit(dataclasses.replace(visit(10, 1, None), closure=closure))
+        assert [(c.stream, c.seq, c.consolidated_into) for c in store.closures(0, 10)] == [
+            ("loc", None, None), ("b", None, 1)]
