@@ -51,7 +51,7 @@ t0 = time.perf_counter()
 q = extract_frame(decode, body, {"features": kind, "max": 500}, None)
 dt = time.perf_counter() - t0
 print(json.dumps({"seconds": dt, "peak_growth_mb": (status("VmHWM") - rss) / 2**20,
-                  "features": len(q.features), "size": list(q.features.size)}))
+                  "kept": len(q.features), "size": list(q.features.size)}))
 """
 
 
@@ -86,7 +86,7 @@ def main() -> None:
             row = {"frame": name, "jpeg_mib": round(path.stat().st_size / 2**20, 2), "features": kind,
                    **json.loads(out.stdout.strip().splitlines()[-1])}
             print(f"{name} {kind}: {row['seconds']:.2f} s, peak RSS +{row['peak_growth_mb']:.0f} MB, "
-                  f"{row['features']} features ({row['jpeg_mib']} MiB)", flush=True)
+                  f"{row['kept']} features ({row['jpeg_mib']} MiB)", flush=True)
             rows.append(row)
     write_json("keyframes.json", {"cases": rows}, args.out)
 

@@ -68,7 +68,7 @@ def extract_frame(decode: Callable[..., np.ndarray], body: bytes | RawFrame,
 class Extractions:
     """Keyframe extractions of all maps, at most `limit` in flight (waiting or running) in `limit`
     threads: each holds a decoded frame and a feature pyramid (~300 MB for a 25 MP SIFT frame,
-    docs/benchmarks.md §13), so their number bounds that memory."""
+    docs/benchmarks.md §13.1), so their number bounds that memory."""
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
