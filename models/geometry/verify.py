@@ -16,7 +16,8 @@ import numpy as np
 
 from models.geometry.features import NORMS, Features
 
-__all__ = ["Camera", "Verification", "camera_problems", "gric", "match", "quaternion", "verify"]
+__all__ = ["Camera", "Verification", "camera_problems", "gric", "is_rotation", "match", "quaternion",
+           "verify"]
 
 #: Lowe's ratio: a match is kept when its best distance is below this fraction of the second best.
 RATIO = 0.8
@@ -46,6 +47,9 @@ MAX_SCALE = 10.0
 #: invert there makes every normalised point, and so the pose, wrong; docs/design/science.md §12.3).
 FOCAL_RANGE = (0.05, 50.0)
 ROUND_TRIP_PX = 0.5
+#: How far from orthonormal (R R^T - I, det R - 1) a rotation may be: numerical noise (and the 6 decimals a
+#: logged one keeps) pass, a NaN, zero or scaled matrix does not.
+ROTATION_TOLERANCE = 1e-3
 #: The iterations of `Camera.normalise`'s undistortion (OpenCV's default of 5 leaves strong real lenses,
 #: k1 ~ -0.4 at a wide frame's corners, pixels off).
 _UNDISTORT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
@@ -265,17 +269,18 @@ def _verify(query: Features, keyframe: Features, query_camera: Camera | None, ke
     nk, nq = keyframe_camera.normalise(p[inl]), query_camera.normalise(q[inl])
     f_px = (query_camera.fx + query_camera.fy) / 2
     R, t = _pose_h(nk, nq, f_px) if model == "homography" else _pose_e(nk, nq, f_px)
-    if not _is_rotation(R) or (t is not None and not np.all(np.isfinite(t))):
+    if not is_rotation(R) or (t is not None and not np.all(np.isfinite(t))):
         return Verification(False, **base, reason="no-pose")
     return Verification(True, **base, rotation=R, translation=t,
                         reason=None if t is not None else "translation-unobservable")
 
 
-def _is_rotation(R: np.ndarray | None) -> bool:
-    """`R` is a finite (3, 3) proper rotation (orthonormal, determinant 1, within 1e-6)."""
+def is_rotation(R: np.ndarray | None) -> bool:
+    """`R` is a finite (3, 3) proper rotation (orthonormal, determinant 1, within ROTATION_TOLERANCE)."""
     if R is None or R.shape != (3, 3) or not np.all(np.isfinite(R)):
         return False
-    return bool(np.allclose(R @ R.T, np.eye(3), atol=1e-6) and abs(np.linalg.det(R) - 1) < 1e-6)
+    return bool(np.allclose(R @ R.T, np.eye(3), atol=ROTATION_TOLERANCE)
+                and abs(np.linalg.det(R) - 1) < ROTATION_TOLERANCE)
 
 
 def _degenerate(H: np.ndarray | None, p: np.ndarray, q: np.ndarray, size_p: tuple[int, int],

@@ -23,6 +23,7 @@ from typing import IO, Any
 import numpy as np
 
 from models.geometry import quaternion
+from models.geometry.verify import is_rotation
 from service.maps.results import LoopClosureResult, StoredRow, VerificationResult
 from storage.mapstore import LoopClosure, MapStore
 
@@ -128,11 +129,7 @@ def _rotation(v: dict[str, Any]) -> np.ndarray | None:
         R = np.array(v.get("rotation"), np.float64)
     except (TypeError, ValueError):
         return None
-    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
-        return None
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or abs(float(np.linalg.det(R)) - 1) > 1e-5:
-        return None
-    return R
+    return R if is_rotation(R) else None
 
 
 def _translation(v: dict[str, Any]) -> np.ndarray | None:
