@@ -89,6 +89,36 @@ def test_a_post_whose_client_went_away_is_skipped_before_the_writer(tmp_path, mo
         assert ran == [] and rt.store.count() == 0 and c.app.state.extractions.pending == 0
 
 
+def test_a_client_that_hangs_up_during_its_extraction_changes_nothing(live, monkeypatch):
+    """Over a real connection: the client closes it while its frame's features are being taken; the post
+    never reaches the writer, and the next one is learned as usual."""
+    base, app = live
+    made = httpx.post(f"{base}/v1/maps", json={"map_id": "kf", "keyframes": {"features": "orb"}})
+    assert made.status_code == 201, made.text
+    started, release = threading.Event(), threading.Event()
+    extract = keyframes.extract_frame
+
+    def held(*args):
+        started.set()
+        assert release.wait(60)
+        return extract(*args)
+
+    monkeypatch.setattr(keyframes, "extract_frame", held)
+    body = png(sized("astronaut"))
+    port = int(base.rsplit(":", 1)[1])
+    with socket.create_connection(("127.0.0.1", port)) as sock:
+        sock.sendall(b"POST /v1/maps/kf/observations HTTP/1.1\r\nHost: t\r\nContent-Type: image/png\r\n"
+                     b"Content-Length: %d\r\n\r\n" % len(body) + body)
+        assert started.wait(60)
+    time.sleep(1.0)  # the disconnect reaches the server (loopback: well within this)
+    monkeypatch.setattr(keyframes, "extract_frame", extract)
+    release.set()
+    after = httpx.post(f"{base}/v1/maps/kf/observations", content=png(sized("coffee")),
+                       headers={"Content-Type": "image/png"}, timeout=60)  # queued behind the first's turn
+    assert after.status_code == 200 and after.json()["seq"] == 1, after.text
+    assert app.state.registry.get("kf").store.count() == 1
+
+
 # ---------------------------------------------------------------------------------------------- item 2
 
 
