@@ -34,7 +34,7 @@ MIN_SIDE = 96
 #: their positions scaled back to native pixels (RANSAC's threshold and the intrinsics are in native
 #: pixels). SIFT's is smaller: its pyramid starts from the image doubled (a 1024 px frame is a 2048 px
 #: base) and holds ~250 bytes per pixel it is given, so 1024 px keep a 25 MP frame's extraction within
-#: ~300 MB; at native resolution it took 14 s and 5.7 GB (docs/benchmarks.md §13.1).
+#: ~300 MB; at native resolution it took 12-14 s and 5.7 GB (docs/benchmarks.md §13.1).
 EXTRACT_MAX_SIDE = {"orb": 1600, "sift": 1024, "akaze": 1600}
 _HEADER = struct.Struct("<BBHHHHxxxxxx")  # code, descriptor bytes % 256 flag, n, D, width, height
 assert _HEADER.size == 16
