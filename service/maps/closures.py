@@ -147,8 +147,9 @@ def _verification(v: dict[str, Any] | None) -> dict[str, Any]:
     v = v or {}
     R, t = _rotation(v), _translation(v)
     q = quaternion(R) if R is not None else (None,) * 4
-    return {"verified": v.get("verified"), "keyframe_seq": v.get("keyframe_seq"), "inliers": v.get("inliers"),
-            "model": v.get("model"), **dict(zip(("qx", "qy", "qz", "qw"), q, strict=True)),
+    return {"verified": v.get("verified"), "keyframe_seq": _finite(v.get("keyframe_seq")),
+            "inliers": _finite(v.get("inliers")), "model": v.get("model"),
+            **dict(zip(("qx", "qy", "qz", "qw"), q, strict=True)),
             **dict(zip(("tx", "ty", "tz"), (None,) * 3 if t is None else t.tolist(), strict=True))}
 
 
@@ -179,7 +180,8 @@ def g2o_lines(c: LoopClosure) -> str | None:
     R = _rotation(v)
     vertex = vertex_id(c)
     keyframe = v.get("keyframe_seq") or c.place_seq
-    if not v.get("verified") or R is None or vertex is None or keyframe >= VISIT_VERTEX_BASE:
+    if (not v.get("verified") or R is None or vertex is None or not isinstance(keyframe, int)
+            or not 0 < keyframe < VISIT_VERTEX_BASE):
         return None
     t_dir = _translation(v)
     t = -R.T @ (np.zeros(3) if t_dir is None else t_dir)
