@@ -8,7 +8,8 @@ Nothing is read or built at import time. At startup the lifespan:
    `cortexloc_encoder_info`; an unusable weights file stops startup with a `ConfigError`;
 4. enters each component (async context managers taking the app, in order; left in reverse order at
    shutdown): the place for the map registry (`map_registry`), which fills `app.state.registry`,
-   `app.state.maps` (map_id -> `MapRuntime`) and `app.state.encoder_pool`, or `app.state.registry_error`
+   `app.state.maps` (map_id -> `MapRuntime`), `app.state.encoder_pool` and `app.state.extractions` (the
+   keyframe extractions, `service.maps.keyframes.Extractions`), or `app.state.registry_error`
    when the maps cannot be opened (/readyz reports it).
 
 `/docs` and `/redoc` load their assets from the service itself (`fastapi_offline`), never from a CDN.
@@ -80,6 +81,7 @@ async def map_registry(app: FastAPI) -> AsyncIterator[None]:
     """The maps of the data directory: opened and recovered by replay at start, closed at shutdown."""
     from service.maps.encoding.encoders import Encoders
     from service.maps.encoding.pool import EncoderPool
+    from service.maps.keyframes import Extractions
     from service.maps.registry import MapRegistry
 
     s = app.state.settings
@@ -97,10 +99,12 @@ async def map_registry(app: FastAPI) -> AsyncIterator[None]:
     app.state.registry = registry
     app.state.maps = registry.maps
     app.state.encoder_pool = EncoderPool(encoders, s.encoder_workers, s.encoder_queue)
+    app.state.extractions = Extractions(s.max_extractions)
     try:
         yield
     finally:
         await anyio.to_thread.run_sync(app.state.encoder_pool.close)
+        await anyio.to_thread.run_sync(app.state.extractions.close)
         await anyio.to_thread.run_sync(registry.close)
 
 

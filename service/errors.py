@@ -264,6 +264,7 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
         "map_id", "used_bytes", "asked_bytes", "total_bytes", "free_bytes")),
     maps_errors.MapTooLarge: DomainProblem(422, "map-too-large", ("required_bytes", "max_bytes")),
     maps_errors.InvalidConfiguration: DomainProblem(422, "invalid-configuration", ("errors",)),
+    maps_errors.InvalidCamera: DomainProblem(422, "invalid-metadata", ("errors",)),
     maps_errors.MapUnavailable: DomainProblem(503, "map-unavailable", ("state", "state_reason")),
     maps_errors.ShardUnavailable: DomainProblem(503, "map-unavailable", ("map_id", "shard", "retry_after")),
     maps_errors.Overloaded: DomainProblem(503, "overloaded", ("retry_after",), {"Retry-After": "1"}),
@@ -309,8 +310,9 @@ CLIENT_CLOSED_REQUEST = 499
 
 
 async def _client_disconnect_handler(request: Request, exc: Exception) -> Response:
-    """The client closed the connection mid-request (e.g. during an upload): not a server error."""
-    log.info("client went away before %s %s was read", request.method, request.url.path)
+    """The client closed the connection mid-request (e.g. during an upload, or before its post reached
+    the map's writer: `ClientGone`): not a server error."""
+    log.info("client went away before %s %s was answered", request.method, request.url.path)
     return Response(status_code=CLIENT_CLOSED_REQUEST)
 
 
@@ -357,5 +359,6 @@ def install_error_handlers(app: FastAPI) -> None:
         app.add_exception_handler(domain_error, _domain_error_handler)
     app.add_exception_handler(RequestValidationError, _validation_handler)
     app.add_exception_handler(ClientDisconnect, _client_disconnect_handler)
+    app.add_exception_handler(maps_errors.ClientGone, _client_disconnect_handler)
     app.add_exception_handler(StarletteHTTPException, _http_exception_handler)
     app.add_exception_handler(Exception, _internal_error_handler)

@@ -226,7 +226,8 @@ class LoopClosureModel(_Out):
 
     id: int = Field(description="its place in the map's log; pages continue `after` it")
     stream: str
-    seq: int | None = Field(description="the frame's stored row (null: the stream was localising)")
+    seq: int | None = Field(description="the frame's stored row (null: the stream was localising, or the "
+                            "frame was consolidated: `consolidated_into`)")
     observation_id: str | None
     metadata: dict[str, Any] | None = Field(description="the frame's metadata (stamp, pose)")
     place: StoredRowModel = Field(description="the stored row its `place` named")
@@ -236,6 +237,10 @@ class LoopClosureModel(_Out):
     verification: results.VerificationResult | None = Field(
         default=None, description="the place's geometric verification as the reply gave it, with the "
         "relative pose (maps with keyframes; docs/design/science.md §12); null elsewhere")
+    consolidated_into: int | None = Field(default=None, description="a learning stream's consolidated "
+                                          "frame (a visit, docs/design/science.md §11.8): the row it was "
+                                          "consolidated into; null for a frame with its own row, a "
+                                          "localising stream's, and one logged before this was recorded")
 
 
 class LoopClosureList(_Out):

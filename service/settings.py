@@ -109,6 +109,8 @@ class Settings(BaseSettings):
     torch_threads: int = Field(1, ge=1)
     encoder_workers: int = Field(1, ge=1, description="encoder executor size")
     encoder_queue: int = Field(32, ge=1, description="encoder queue length (full: 503 overloaded)")
+    max_extractions: int = Field(4, ge=1, description="keyframe extractions in flight, all maps together "
+                                 "(full: 503 overloaded); each holds ~300 MB at most (a 25 MP SIFT frame)")
     max_upload_bytes: int = Field(limits.DEFAULT_MAX_BYTES, ge=1, description="request body limit")
     body_timeout_s: float = Field(60.0, gt=0, le=3600, description="a request's whole body must arrive "
                                   "within this many seconds of its start, its head within as many of the "

@@ -15,9 +15,11 @@ camera, docs/design/science.md §12.1) and a logged closure's `verification`; ve
 rows (out of the index and their places: an appearance over its place's cap, a forgotten place); version
 6 the rows' `recency`; version 7 `visit_keys`, a consolidated frame's Idempotency-Key and reply, kept
 for the keys' window whatever the visit log's pruning, and `stream_states`, what a replay cannot give
-back of a learning stream (its localiser state), written with each learned step. An older file is
-brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep `place`
-NULL (read as the place its learning stream's logged loop closure names, else its own).
+back of a learning stream (its localiser state), written with each learned step; version 8 a logged
+closure's `consolidated_into` (the closure of a consolidated frame, a visit, names the row it was
+consolidated into: it has no row of its own, and a localising stream's closure has neither). An older
+file is brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep
+`place` NULL (read as the place its learning stream's logged loop closure names, else its own).
 """
 
 from __future__ import annotations
@@ -64,7 +66,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -249,6 +251,9 @@ _MIGRATE_V5 = _V5_TABLES + _PLACE_COLUMN + _version_step(5)
 _MIGRATE_V6 = _V6_TABLES + _version_step(6)
 #: Version 6 -> 7: a new table, filled from the keys the visit log holds (no row changes).
 _MIGRATE_V7 = _V7_TABLES + _COPY_VISIT_KEYS + _version_step(7)
+#: Version 7 -> 8: a column no row has yet (an older visit's closure reads NULL, as a localising one's).
+_CLOSURE_VISIT = "ALTER TABLE loop_closures ADD COLUMN consolidated_into INTEGER NULL;"
+_MIGRATE_V8 = _CLOSURE_VISIT + _version_step(8)
 
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
@@ -265,7 +270,7 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
     if meta.schema_version >= SCHEMA_VERSION:
         return meta
     # chain[v - 1]: version v -> v + 1
-    chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6, _MIGRATE_V7]
+    chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6, _MIGRATE_V7, _MIGRATE_V8]
     steps = "".join(chain[meta.schema_version - 1:])
     try:
         conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
@@ -436,8 +441,10 @@ class LoopClosure:
 
     Attributes:
         id: its place in the log (pages go `after` it). seq, observation_id: the frame's row (None when
-        the stream was localising). place_*: the row its place named. verification: as logged (None:
-        none, or a file before version 4).
+        the stream was localising, or the frame was consolidated). place_*: the row its place named.
+        verification: as logged (None: none, or a file before version 4). consolidated_into: for a
+        consolidated frame (a visit), the row it was consolidated into (None: it has a row, or it was
+        a localising stream's, or it was logged before version 8).
     """
 
     id: int
@@ -454,6 +461,7 @@ class LoopClosure:
     support: int
     created_at: str
     verification: dict[str, Any] | None = None
+    consolidated_into: int | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -538,7 +546,7 @@ def create_file(path: Path, meta: MapMeta) -> None:
             # A temporary file: atomicity comes from the rename below, not from one transaction
             # (executescript would commit a pending transaction anyway).
             conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION
-                               + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES + _V7_TABLES)
+                               + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES + _V7_TABLES + _CLOSURE_VISIT)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

@@ -351,7 +351,7 @@ class MapStore:
                     if visit.resume is not None:
                         self._resume(conn, [(str(visit.stream), clock, visit.resume)])
                     if visit.closure is not None:
-                        self._log_closures(conn, [_closure_params(visit.closure, None)])
+                        self._log_closures(conn, [_closure_params(visit.closure, None, visit.seq)])
             except sqlite3.IntegrityError as exc:
                 if "visit_keys.key" in str(exc):
                     raise DuplicateObservation(str(exc)) from exc
@@ -533,8 +533,8 @@ class MapStore:
             return 0
         before = conn.total_changes
         conn.executemany("INSERT OR IGNORE INTO loop_closures (stream, seq, place_seq, confidence, support, "
-                         "metadata, idempotency_key, created_at, verification) "
-                         "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)", params)
+                         "metadata, idempotency_key, created_at, verification, consolidated_into) "
+                         "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", params)
         added = conn.total_changes - before
         if added and self.max_closures is not None:
             conn.execute("DELETE FROM loop_closures WHERE id <= (SELECT max(id) FROM loop_closures) - ?",
@@ -549,14 +549,16 @@ class MapStore:
             found = self._db().execute(
                 "SELECT c.id, c.stream, c.seq, o.observation_id, c.metadata, c.place_seq, p.observation_id, "
                 "p.stream, p.label, p.metadata, c.confidence, c.support, c.created_at, "
-                f"{'c.verification' if self.meta.schema_version >= 4 else 'NULL'} FROM loop_closures c "
+                f"{'c.verification' if self.meta.schema_version >= 4 else 'NULL'}, "
+                f"{'c.consolidated_into' if self.meta.schema_version >= 8 else 'NULL'} FROM loop_closures c "
                 "JOIN observations p ON p.seq = c.place_seq LEFT JOIN observations o ON o.seq = c.seq "
                 "WHERE c.id > ? ORDER BY c.id LIMIT ?", (int(after), int(limit))).fetchall()
         return [LoopClosure(id=int(r[0]), stream=r[1], seq=None if r[2] is None else int(r[2]),
                             observation_id=r[3], metadata=_json(r[4]), place_seq=int(r[5]),
                             place_observation_id=r[6], place_stream=r[7], place_label=r[8],
                             place_metadata=_json(r[9]), confidence=float(r[10]), support=int(r[11]),
-                            created_at=r[12], verification=_json(r[13])) for r in found]
+                            created_at=r[12], verification=_json(r[13]),
+                            consolidated_into=None if r[14] is None else int(r[14])) for r in found]
 
     def closure_count(self) -> int:
         """Loop closures in the log."""
@@ -776,11 +778,11 @@ def _json(text: str | None) -> Any:
     return None if text is None else json.loads(text)
 
 
-def _closure_params(c: NewClosure, seq: int | None) -> tuple[Any, ...]:
+def _closure_params(c: NewClosure, seq: int | None, consolidated_into: int | None = None) -> tuple[Any, ...]:
     meta = None if c.metadata is None else json.dumps(c.metadata, separators=(",", ":"))
     verification = None if c.verification is None else json.dumps(c.verification, separators=(",", ":"))
     return (str(c.stream), seq, int(c.place_seq), float(c.confidence), int(c.support), meta, c.key,
-            str(c.created_at), verification)
+            str(c.created_at), verification, consolidated_into)
 
 
 def _size(p: Path) -> int:

@@ -250,10 +250,10 @@ class Encoder:
         """The byte and pixel limits every decode of this encoder applies (its `max_bytes`, `max_pixels`)."""
         return {"max_bytes": int(self.conf["max_bytes"]), "max_pixels": int(self.conf["max_pixels"])}
 
-    def decode(self, data: bytes | images.RawFrame) -> np.ndarray:
-        """One upload to (H, W, 3) uint8 RGB at its native resolution, within this encoder's limits (what
-        `embed` decodes, for work beside the backbone such as local features)."""
-        return images.decode(data, **self.decode_limits)
+    def decode(self, data: bytes | images.RawFrame, *, grey: bool = False) -> np.ndarray:
+        """One upload to (H, W, 3) uint8 RGB (`grey`: (H, W)) at its native resolution, within this
+        encoder's limits (what `embed` decodes, for work beside the backbone such as local features)."""
+        return images.decode(data, grey=grey, **self.decode_limits)
 
     def prepare(self, data: bytes | images.RawFrame, *, thumbnail: bool = False, resize: str | None = None,
                 out: np.ndarray | None = None) -> Future[Prepared]:

@@ -3,6 +3,7 @@
 OpenCV: no storage, no threads."""
 
 from models.geometry.features import (
+    EXTRACT_MAX_SIDE,
     EXTRACTORS,
     Features,
     KeyframeParams,
@@ -11,7 +12,7 @@ from models.geometry.features import (
     pack,
     unpack,
 )
-from models.geometry.verify import Camera, Verification, quaternion, verify
+from models.geometry.verify import Camera, Verification, camera_problems, quaternion, verify
 
-__all__ = ["EXTRACTORS", "Camera", "Features", "KeyframeParams", "Verification", "available", "extract",
-           "pack", "quaternion", "unpack", "verify"]
+__all__ = ["EXTRACTORS", "EXTRACT_MAX_SIDE", "Camera", "Features", "KeyframeParams", "Verification",
+           "available", "camera_problems", "extract", "pack", "quaternion", "unpack", "verify"]

@@ -1,4 +1,4 @@
-"""Local features of a frame at its native resolution, and their compact bytes
+"""Local features of a frame, in its native pixels, and their compact bytes
 (docs/design/science.md §12.1).
 
 A small registry of OpenCV extractors (`EXTRACTORS`: orb, sift, akaze). Every descriptor is stored as
@@ -17,7 +17,8 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-__all__ = ["EXTRACTORS", "MIN_SIDE", "Features", "KeyframeParams", "available", "extract", "pack", "unpack"]
+__all__ = ["EXTRACTORS", "EXTRACT_MAX_SIDE", "MIN_SIDE", "Features", "KeyframeParams", "available", "extract",
+           "pack", "unpack"]
 
 #: Registered extractors, in their stored code order (the code is the header's first byte).
 EXTRACTORS = ("orb", "sift", "akaze")
@@ -29,6 +30,12 @@ NORMS = {"orb": cv2.NORM_HAMMING, "sift": cv2.NORM_L2, "akaze": cv2.NORM_HAMMING
 #: (31 px patches) leave almost nothing of it, and the few features left could not tell a wrong match
 #: from a right one. 64 x 32 thumbnails fall here and are refused with a reason, never matched.
 MIN_SIDE = 96
+#: Features are taken on the frame scaled down to this longer side at most (as RTAB-Map and hloc do), then
+#: their positions scaled back to native pixels (RANSAC's threshold and the intrinsics are in native
+#: pixels). SIFT's is smaller: its pyramid starts from the image doubled (a 1024 px frame is a 2048 px
+#: base) and holds ~250 bytes per pixel it is given, so 1024 px keep a 25 MP frame's extraction within
+#: ~300 MB; at native resolution it took 12-14 s and 5.7 GB (docs/benchmarks.md §13.1).
+EXTRACT_MAX_SIDE = {"orb": 1600, "sift": 1024, "akaze": 1600}
 _HEADER = struct.Struct("<BBHHHHxxxxxx")  # code, descriptor bytes % 256 flag, n, D, width, height
 assert _HEADER.size == 16
 
@@ -97,7 +104,8 @@ def extract(image: np.ndarray, kind: str = "orb", max_n: int = 500) -> Features:
 
     Args:
         image: (H, W) uint8 grey or (H, W, 3) uint8 RGB, at the frame's native resolution (before any
-            backbone resize: docs/design/science.md §12.1).
+            backbone resize: docs/design/science.md §12.1). Features are taken on it scaled to
+            `EXTRACT_MAX_SIDE[kind]` at most and their positions given in its native pixels.
         kind: an extractor of `available()` (ValueError otherwise).
         max_n: the strongest `max_n` are kept (by response).
 
@@ -110,11 +118,19 @@ def extract(image: np.ndarray, kind: str = "orb", max_n: int = 500) -> Features:
     empty = Features(kind, np.zeros((0, 2), np.float32), np.zeros((0, _DIMS[kind]), np.uint8), (w, h))
     if min(h, w) < MIN_SIDE:
         return empty
+    scale = min(1.0, EXTRACT_MAX_SIDE[kind] / max(h, w))
+    if scale < 1.0:  # INTER_AREA: the average of the pixels each one covers (no aliasing)
+        small = (max(1, round(w * scale)), max(1, round(h * scale)))
+        grey = cv2.resize(grey, small, interpolation=cv2.INTER_AREA)
     kps, desc = det.detectAndCompute(np.ascontiguousarray(grey), None)
+    del grey
     if desc is None or not kps:
         return empty
     order = np.argsort([-k.response for k in kps], kind="stable")[:max_n]
     xy = np.array([kps[i].pt for i in order], np.float32).reshape(-1, 2)
+    if scale < 1.0:  # back to native pixels: (x + 0.5) / s - 0.5, OpenCV's pixel-centre convention
+        small_w, small_h = small
+        xy = ((xy + 0.5) * np.array([w / small_w, h / small_h], np.float32) - 0.5).astype(np.float32)
     d = desc[order]
     if d.dtype != np.uint8:  # SIFT: integer values in [0, 255] held as float32
         d = np.clip(np.rint(d), 0, 255).astype(np.uint8)

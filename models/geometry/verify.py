@@ -16,7 +16,8 @@ import numpy as np
 
 from models.geometry.features import NORMS, Features
 
-__all__ = ["Camera", "Verification", "gric", "match", "quaternion", "verify"]
+__all__ = ["Camera", "Verification", "camera_problems", "gric", "is_rotation", "match", "quaternion",
+           "verify"]
 
 #: Lowe's ratio: a match is kept when its best distance is below this fraction of the second best.
 RATIO = 0.8
@@ -39,6 +40,19 @@ SIGMA_PX = 1.5
 #: line fits repeated texture (bricks against a rocket's gantry, with 49 "inliers") and is no revisit.
 MIN_SPREAD = 0.02
 MAX_SCALE = 10.0
+#: A camera makes geometric sense for a frame whose longer side is L pixels when its focal lengths are
+#: within FOCAL_RANGE times L (a 170-degree fisheye's is ~0.1 L, a 1-degree telephoto's ~57 L... at 50 L
+#: the view is 1.1 degrees wide), its principal point is inside the frame, and its distortion, undone
+#: and done again, brings a grid over the frame back within ROUND_TRIP_PX (a distortion OpenCV cannot
+#: invert there makes every normalised point, and so the pose, wrong; docs/design/science.md §12.3).
+FOCAL_RANGE = (0.05, 50.0)
+ROUND_TRIP_PX = 0.5
+#: How far from orthonormal (R R^T - I, det R - 1) a rotation may be: numerical noise (and the 6 decimals a
+#: logged one keeps) pass, a NaN, zero or scaled matrix does not.
+ROTATION_TOLERANCE = 1e-3
+#: The iterations of `Camera.normalise`'s undistortion (OpenCV's default of 5 leaves strong real lenses,
+#: k1 ~ -0.4 at a wide frame's corners, pixels off).
+_UNDISTORT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
 #: A homography whose inliers a pure rotation also explains (this fraction of them within RANSAC_PX)
 #: has no translation to tell: the direction is unobservable (a rotation, or a plane far away).
 ROTATION_ONLY = 0.9
@@ -60,8 +74,53 @@ class Camera:
 
     def normalise(self, xy: np.ndarray) -> np.ndarray:
         """(n, 2) pixels -> (n, 2) undistorted normalised image coordinates."""
-        dist = np.array(self.distortion, np.float64) if self.distortion else None
-        return cv2.undistortPoints(xy.reshape(-1, 1, 2).astype(np.float64), self.K, dist).reshape(-1, 2)
+        dist = np.array(self.distortion, np.float64) if self.distortion else np.zeros(4)
+        return cv2.undistortPoints(xy.reshape(-1, 1, 2).astype(np.float64), self.K, dist,
+                                   criteria=_UNDISTORT).reshape(-1, 2)
+
+    def project(self, normalised: np.ndarray) -> np.ndarray:
+        """(n, 2) undistorted normalised image coordinates -> (n, 2) pixels (the inverse of `normalise`)."""
+        dist = np.array(self.distortion, np.float64) if self.distortion else np.zeros(4)
+        rays = np.c_[normalised, np.ones(len(normalised))].reshape(-1, 1, 3)
+        out, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), self.K, dist)
+        return out.reshape(-1, 2)
+
+
+def camera_problems(camera: Camera, size: tuple[int, int]) -> list[tuple[str, str]]:
+    """What makes `camera` no camera of a (width, height) frame (FOCAL_RANGE, ROUND_TRIP_PX), as
+    (field, message) pairs with field one of fx, fy, cx, cy, distortion; [] for a sensible one."""
+    w, h = size
+    side = max(w, h)
+    lo, hi = FOCAL_RANGE[0] * side, FOCAL_RANGE[1] * side
+    out = []
+    values = {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy}
+    for name, v in values.items():
+        if not math.isfinite(v):
+            out.append((name, f"{v} is not finite"))
+    for name in ("fx", "fy"):
+        if math.isfinite(values[name]) and not lo <= values[name] <= hi:
+            out.append((name, f"{values[name]:g} px is outside {FOCAL_RANGE[0]:g}..{FOCAL_RANGE[1]:g} times "
+                              f"the frame's longer side ({side} px): {lo:g}..{hi:g} px"))
+    for name, extent in (("cx", w), ("cy", h)):
+        if math.isfinite(values[name]) and not 0 <= values[name] <= extent:
+            out.append((name, f"{values[name]:g} px is outside the {w}x{h} frame (0..{extent})"))
+    if not all(math.isfinite(d) for d in camera.distortion):
+        out.append(("distortion", "coefficients must be finite"))
+    if out or not camera.distortion:
+        return out
+    gx, gy = np.meshgrid(np.linspace(0, w, 9), np.linspace(0, h, 9))
+    grid = np.c_[gx.ravel(), gy.ravel()]
+    with np.errstate(all="ignore"):
+        try:
+            back = camera.project(camera.normalise(grid))
+            err = float(np.max(np.linalg.norm(back - grid, axis=1)))
+        except cv2.error:
+            err = math.inf
+    if not err <= ROUND_TRIP_PX:  # NaN too
+        moved = f"by up to {err:.3g} px" if math.isfinite(err) else "off any finite position"
+        out.append(("distortion", f"undistorting and distorting again moves points of the frame {moved} (at "
+                                  f"most {ROUND_TRIP_PX:g} px): OpenCV cannot invert it there"))
+    return out
 
 
 @dataclass(frozen=True)
@@ -76,8 +135,9 @@ class Verification:
             None without cameras (rotation) or where it is unobservable (translation, a homography
             of a pure rotation).
         reason: why it is not verified or has no pose (`too-small`, `too-few-features`,
-            `too-few-matches`, `too-few-inliers`, `degenerate`, `no-camera`, `translation-unobservable`),
-            else None.
+            `too-few-matches`, `too-few-inliers`, `degenerate`, `no-pose`: with both cameras no finite
+            rotation came out, `geometry-failed`: OpenCV or numpy failed on the pair, `no-camera`,
+            `translation-unobservable`), else None.
     """
 
     verified: bool
@@ -156,10 +216,23 @@ def verify(query: Features, keyframe: Features, query_camera: Camera | None = No
         min_inliers, min_inlier_ratio: what a verified revisit needs.
 
     Returns:
-        Verification; never raises on frames that cannot be verified (the reason says why).
+        Verification; never raises on frames that cannot be verified (the reason says why), nor where
+        the fits fail (OpenCV's "SVD did not converge" on points a wild distortion threw far away:
+        `geometry-failed`). With both cameras a verified answer has a finite rotation, else it is not
+        verified (`no-pose`): a pose graph cannot take a closure without one.
     """
     if query.kind != keyframe.kind:
         raise ValueError(f"features of {query.kind} and {keyframe.kind} cannot be matched")
+    try:
+        with np.errstate(all="ignore"):  # non-finite points are caught below, not warned about
+            return _verify(query, keyframe, query_camera, keyframe_camera, min_inliers, min_inlier_ratio)
+    except (cv2.error, np.linalg.LinAlgError, ArithmeticError):
+        return Verification(False, reason="geometry-failed")
+
+
+def _verify(query: Features, keyframe: Features, query_camera: Camera | None, keyframe_camera: Camera | None,
+            min_inliers: int, min_inlier_ratio: float) -> Verification:
+    """`verify` without its guard against the fits' failures."""
     if query.too_small or keyframe.too_small:
         return Verification(False, reason="too-small")
     if min(len(query), len(keyframe)) < min_inliers:
@@ -196,8 +269,18 @@ def verify(query: Features, keyframe: Features, query_camera: Camera | None = No
     nk, nq = keyframe_camera.normalise(p[inl]), query_camera.normalise(q[inl])
     f_px = (query_camera.fx + query_camera.fy) / 2
     R, t = _pose_h(nk, nq, f_px) if model == "homography" else _pose_e(nk, nq, f_px)
+    if not is_rotation(R) or (t is not None and not np.all(np.isfinite(t))):
+        return Verification(False, **base, reason="no-pose")
     return Verification(True, **base, rotation=R, translation=t,
-                        reason=None if t is not None or R is None else "translation-unobservable")
+                        reason=None if t is not None else "translation-unobservable")
+
+
+def is_rotation(R: np.ndarray | None) -> bool:
+    """`R` is a finite (3, 3) proper rotation (orthonormal, determinant 1, within ROTATION_TOLERANCE)."""
+    if R is None or R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        return False
+    return bool(np.allclose(R @ R.T, np.eye(3), atol=ROTATION_TOLERANCE)
+                and abs(np.linalg.det(R) - 1) < ROTATION_TOLERANCE)
 
 
 def _degenerate(H: np.ndarray | None, p: np.ndarray, q: np.ndarray, size_p: tuple[int, int],

@@ -2,7 +2,12 @@
 in log order, and the export of candidate pairs for pose-graph back ends (CSV or JSON lines, with the
 geometric verification and relative pose where the map keeps keyframes, docs/design/science.md §12), or
 of the verified ones as g2o edges. Reads only: `MapStore` is safe to read from any thread while the
-writer appends."""
+writer appends.
+
+An export is rendered whole, every entry checked, before its body starts (`render`): what is not a
+finite number is left empty, so no entry can fail it halfway, and a failure to render answers an
+error instead of a short file. Its text cells are neutralised against spreadsheet formulas
+(`csv_cell`)."""
 
 from __future__ import annotations
 
@@ -10,27 +15,31 @@ import csv
 import io
 import json
 import math
+import tempfile
 from collections.abc import Iterator
 from datetime import UTC, datetime
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 
 from models.geometry import quaternion
+from models.geometry.verify import is_rotation
 from service.maps.results import LoopClosureResult, StoredRow, VerificationResult
 from storage.mapstore import LoopClosure, MapStore
 
-__all__ = ["EXPORT_COLUMNS", "EXPORT_FORMATS", "export", "g2o_edge", "page"]
+__all__ = ["EXPORT_COLUMNS", "EXPORT_FORMATS", "VISIT_VERTEX_BASE", "chunks", "csv_cell", "g2o_lines", "page",
+           "render"]
 
 #: The export's fields, in CSV column order: both stamps in seconds, both ids, the confidence, both
 #: poses where the client gave them (x, y, yaw); empty (CSV) or null (JSON) where not.
 #: Then the geometric verification (maps with keyframes; empty elsewhere): verified, the keyframe row it
 #: verified against, inliers, model, and the relative pose X_query = R X_keyframe + t as a quaternion
-#: (qx, qy, qz, qw) and a unit translation (tx, ty, tz; empty where unobservable).
+#: (qx, qy, qz, qw) and a unit translation (tx, ty, tz; empty where unobservable). Last, the frame's
+#: vertex id in the g2o export (`vertex_id`; empty for a localising stream's frame).
 EXPORT_COLUMNS = ("stamp", "observation_id", "seq", "stream", "place_stamp", "place_observation_id",
                   "place_seq", "place_stream", "confidence", "support", "x", "y", "yaw", "place_x",
                   "place_y", "place_yaw", "verified", "keyframe_seq", "inliers", "model", "qx", "qy", "qz",
-                  "qw", "tx", "ty", "tz")
+                  "qw", "tx", "ty", "tz", "vertex")
 #: Export media types by format.
 EXPORT_FORMATS = {"csv": "text/csv; charset=utf-8", "jsonl": "application/jsonl",
                   "g2o": "text/plain; charset=utf-8"}
@@ -40,7 +49,19 @@ EXPORT_FORMATS = {"csv": "text/csv; charset=utf-8", "jsonl": "application/jsonl"
 #: ORB) with room for scenes harder than those. Translation carries no information: two
 #: views give its direction, never its length, so a back end takes the length from odometry.
 G2O_ROTATION_INFORMATION = 1e4
-_EXPORT_PAGE = 1000  # log entries read per query while streaming an export
+#: The g2o vertex of a consolidated frame (a visit: it has no row) is this plus its closure's log id; a
+#: stored row's is its seq. g2o reads ids as 32-bit ints, so both
+#: stay below 2^31: a map's seqs below 10^9 (decades of learning at 1 row a second), log ids below
+#: 2^31 - 10^9. An entry past them is in the CSV and JSON exports only.
+VISIT_VERTEX_BASE = 1_000_000_000
+_G2O_MAX_ID = 2**31 - 1
+#: A CSV text cell starting with one of these is read as a formula by spreadsheets (OWASP's CSV
+#: injection guidance): it is written with a leading single quote.
+_FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+_EXPORT_PAGE = 1000  # log entries read per query while rendering an export
+#: An export is rendered into memory up to this many bytes, into a temporary file beyond.
+_SPOOL_BYTES = 8 * 2**20
+_CHUNK = 64 * 1024
 
 
 def _result(c: LoopClosure) -> LoopClosureResult:
@@ -51,7 +72,8 @@ def _result(c: LoopClosure) -> LoopClosureResult:
                                              stream=c.place_stream, label=c.place_label,
                                              metadata=c.place_metadata),
                              verification=None if c.verification is None
-                             else VerificationResult(**c.verification))
+                             else VerificationResult(**c.verification),
+                             consolidated_into=c.consolidated_into)
 
 
 def page(store: MapStore, after: int, limit: int) -> list[LoopClosureResult]:
@@ -77,9 +99,16 @@ def stamp_seconds(metadata: dict[str, Any] | None) -> float | None:
     return seconds if math.isfinite(seconds) else None  # JSON has no NaN or Infinity
 
 
+def _finite(value: Any) -> Any:
+    """`value` where it is JSON with finite numbers only: a non-finite float is None (JSON has no NaN)."""
+    return None if isinstance(value, float) and not math.isfinite(value) else value
+
+
 def _pose(metadata: dict[str, Any] | None) -> tuple[Any, Any, Any]:
     pose = (metadata or {}).get("pose")
-    return (pose.get("x"), pose.get("y"), pose.get("yaw")) if isinstance(pose, dict) else (None, None, None)
+    if not isinstance(pose, dict):
+        return None, None, None
+    return _finite(pose.get("x")), _finite(pose.get("y")), _finite(pose.get("yaw"))
 
 
 def _record(c: LoopClosure) -> dict[str, Any]:
@@ -88,62 +117,139 @@ def _record(c: LoopClosure) -> dict[str, Any]:
     return {"stamp": stamp_seconds(c.metadata), "observation_id": c.observation_id, "seq": c.seq,
             "stream": c.stream, "place_stamp": stamp_seconds(c.place_metadata),
             "place_observation_id": c.place_observation_id, "place_seq": c.place_seq,
-            "place_stream": c.place_stream, "confidence": c.confidence, "support": c.support,
+            "place_stream": c.place_stream, "confidence": _finite(c.confidence), "support": c.support,
             "x": x, "y": y, "yaw": yaw, "place_x": px, "place_y": py, "place_yaw": pyaw,
-            **_verification(c.verification)}
+            **_verification(c.verification), "vertex": vertex_id(c)}
+
+
+def _rotation(v: dict[str, Any]) -> np.ndarray | None:
+    """A logged verification's rotation where it is a finite proper rotation (3, 3), else None: entries
+    logged before verification refused non-finite poses (`no-pose`) may hold nulls or worse."""
+    try:
+        R = np.array(v.get("rotation"), np.float64)
+    except (TypeError, ValueError):
+        return None
+    return R if is_rotation(R) else None
+
+
+def _translation(v: dict[str, Any]) -> np.ndarray | None:
+    """A logged verification's unit translation where it is 3 finite numbers, else None."""
+    try:
+        t = np.array(v.get("translation"), np.float64)
+    except (TypeError, ValueError):
+        return None
+    return t if t.shape == (3,) and np.all(np.isfinite(t)) else None
 
 
 def _verification(v: dict[str, Any] | None) -> dict[str, Any]:
-    """The export's verification fields of a logged closure (None everywhere without one)."""
+    """The export's verification fields of a logged closure (None everywhere without one; the pose
+    fields None where they are not finite)."""
     v = v or {}
-    q = quaternion(np.array(v["rotation"])) if v.get("rotation") else (None,) * 4
-    t = v.get("translation") or (None,) * 3
-    return {"verified": v.get("verified"), "keyframe_seq": v.get("keyframe_seq"), "inliers": v.get("inliers"),
-            "model": v.get("model"), **dict(zip(("qx", "qy", "qz", "qw"), q, strict=True)),
-            **dict(zip(("tx", "ty", "tz"), t, strict=True))}
+    R, t = _rotation(v), _translation(v)
+    q = quaternion(R) if R is not None else (None,) * 4
+    return {"verified": v.get("verified"), "keyframe_seq": _finite(v.get("keyframe_seq")),
+            "inliers": _finite(v.get("inliers")), "model": v.get("model"),
+            **dict(zip(("qx", "qy", "qz", "qw"), q, strict=True)),
+            **dict(zip(("tx", "ty", "tz"), (None,) * 3 if t is None else t.tolist(), strict=True))}
 
 
-def g2o_edge(c: LoopClosure) -> str | None:
-    """A verified closure with a relative rotation, between two stored rows, as a g2o
-    `EDGE_SE3:QUAT keyframe_seq seq  x y z  qx qy qz qw  information` line; None otherwise.
-
-    Vertex ids are the map's seqs (a localising stream's closure has no row: it is in the CSV and JSON
-    exports, with its stamp). The measurement is the query camera's pose in the keyframe camera's frame
-    (camera axes: x right, y down, z ahead): X_keyframe = R^T X_query - R^T t. Its translation is the
-    unit direction where observable, else zero, and carries zero information either way; the rotation's
-    information is G2O_ROTATION_INFORMATION (upper triangle of the 6 x 6 matrix, row-major)."""
-    v = c.verification or {}
-    if not v.get("verified") or not v.get("rotation") or c.seq is None:
+def vertex_id(c: LoopClosure) -> int | None:
+    """The frame's g2o vertex id: its seq where it has a row, VISIT_VERTEX_BASE + its log id for a
+    consolidated frame (a visit); None for a localising stream's frame (not part of the map's graph),
+    and where the id would not be below 2^31 and apart from every row's (`VISIT_VERTEX_BASE`)."""
+    if c.seq is not None:
+        return c.seq if c.seq < VISIT_VERTEX_BASE else None
+    if c.consolidated_into is None:
         return None
-    R = np.array(v["rotation"], np.float64)
-    t = -R.T @ np.array(v.get("translation") or (0.0, 0.0, 0.0), np.float64)
+    return VISIT_VERTEX_BASE + c.id if VISIT_VERTEX_BASE + c.id <= _G2O_MAX_ID else None
+
+
+def g2o_lines(c: LoopClosure) -> str | None:
+    """A verified closure with a finite relative rotation as g2o text; None otherwise.
+
+    The edge: `EDGE_SE3:QUAT keyframe_seq vertex  x y z  qx qy qz qw  information`, from the keyframe's
+    row (its seq) to the frame's vertex (`vertex_id`: its seq, or for a consolidated frame, a visit,
+    VISIT_VERTEX_BASE + the closure's log id; a localising stream's frame has none and no edge). A
+    visit is declared first, `VERTEX_SE3:QUAT id x y 0 0 0 qz qw`, at its metadata pose (x, y, yaw about
+    z; the origin without one): a back end has it from nowhere else (its stamp is in the CSV and JSON
+    exports, column `vertex`). The measurement is the query camera's pose in the keyframe camera's
+    frame (camera axes: x right, y down, z ahead): X_keyframe = R^T X_query - R^T t. Its translation is
+    the unit direction where observable, else zero, and carries zero information either way; the
+    rotation's information is G2O_ROTATION_INFORMATION (upper triangle of the 6 x 6 matrix, row-major)."""
+    v = c.verification or {}
+    R = _rotation(v)
+    vertex = vertex_id(c)
+    keyframe = v.get("keyframe_seq") or c.place_seq
+    if (not v.get("verified") or R is None or vertex is None or not isinstance(keyframe, int)
+            or not 0 < keyframe < VISIT_VERTEX_BASE):
+        return None
+    t_dir = _translation(v)
+    t = -R.T @ (np.zeros(3) if t_dir is None else t_dir)
     info = np.diag([0.0, 0.0, 0.0] + [G2O_ROTATION_INFORMATION] * 3)[np.triu_indices(6)]
     values = [*t, *quaternion(R.T), *info]
-    return (f"EDGE_SE3:QUAT {int(v.get('keyframe_seq') or c.place_seq)} {c.seq} "
-            + " ".join(f"{x:.9g}" for x in values) + "\n")
+    edge = f"EDGE_SE3:QUAT {int(keyframe)} {vertex} " + " ".join(f"{x:.9g}" for x in values) + "\n"
+    if c.seq is not None:
+        return edge
+    x, y, yaw = (p if isinstance(p, int | float) and not isinstance(p, bool) else 0.0
+                 for p in _pose(c.metadata))
+    estimate = (x, y, 0.0, 0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
+    return f"VERTEX_SE3:QUAT {vertex} " + " ".join(f"{e:.9g}" for e in estimate) + "\n" + edge
 
 
-def export(store: MapStore, fmt: str) -> Iterator[str]:
-    """The whole log as candidate pairs, oldest first, in `fmt` (`csv`: a header line, then one line per
-    closure; `jsonl`: one JSON object per line; `g2o`: one `EDGE_SE3:QUAT` line per verified closure with
-    a pose between two stored rows, `g2o_edge`), read a page at a time (bounded memory)."""
-    if fmt not in EXPORT_FORMATS:
-        raise ValueError(f"format must be one of {', '.join(EXPORT_FORMATS)}")
+def csv_cell(value: Any) -> Any:
+    """One CSV cell: None empty; a text starting with =, +, -, @, tab or CR prefixed with a single quote
+    (OWASP: a spreadsheet would read it as a formula); numbers as they are (x = -1.5 stays -1.5)."""
+    if value is None:
+        return ""
+    if isinstance(value, str) and value.startswith(_FORMULA_STARTS):
+        return "'" + value
+    return value
+
+
+def _lines(store: MapStore, fmt: str) -> Iterator[str]:
+    """The export's text, a line at a time, read a page of the log at a time."""
     if fmt == "csv":
         yield ",".join(EXPORT_COLUMNS) + "\n"
     after = 0
     while found := store.closures(after, _EXPORT_PAGE):
         for c in found:
             if fmt == "g2o":
-                if (edge := g2o_edge(c)) is not None:
-                    yield edge
+                if (lines := g2o_lines(c)) is not None:
+                    yield lines
                 continue
             rec = _record(c)
             if fmt == "jsonl":
-                yield json.dumps(rec, separators=(",", ":")) + "\n"
+                yield json.dumps(rec, separators=(",", ":"), allow_nan=False) + "\n"
             else:
                 buf = io.StringIO()
-                csv.writer(buf, lineterminator="\n").writerow(["" if rec[k] is None else rec[k]
-                                                             for k in EXPORT_COLUMNS])
+                csv.writer(buf, lineterminator="\n").writerow([csv_cell(rec[k]) for k in EXPORT_COLUMNS])
                 yield buf.getvalue()
         after = found[-1].id
+
+
+def render(store: MapStore, fmt: str) -> IO[bytes]:
+    """Worker thread: the whole log as candidate pairs, oldest first, in `fmt` (`csv`: a header line,
+    then one line per closure; `jsonl`: one JSON object per line; `g2o`: the verified closures with a
+    finite pose, `g2o_lines`), rendered into a file (in memory up to _SPOOL_BYTES, on disk beyond),
+    rewound, for `chunks`. Every entry is rendered before the body starts, so an entry that cannot be
+    rendered fails the request with an error, never a short file; the export holds the log as it was."""
+    if fmt not in EXPORT_FORMATS:
+        raise ValueError(f"format must be one of {', '.join(EXPORT_FORMATS)}")
+    spool = tempfile.SpooledTemporaryFile(max_size=_SPOOL_BYTES)  # noqa: SIM115 - `chunks` closes it
+    try:
+        for text in _lines(store, fmt):
+            spool.write(text.encode())
+        spool.seek(0)
+    except BaseException:
+        spool.close()
+        raise
+    return spool
+
+
+def chunks(spool: IO[bytes]) -> Iterator[bytes]:
+    """A rendered export's bytes (`render`), closed once read or abandoned. Should a read fail anyway,
+    the exception ends the response without its final chunk: the client sees a broken transfer, never
+    a short file passing for a whole one."""
+    with spool:
+        while data := spool.read(_CHUNK):
+            yield data

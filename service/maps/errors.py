@@ -94,6 +94,17 @@ class InvalidConfiguration(MapError):  # noqa: N818
         self.errors = errors
 
 
+class InvalidCamera(MapError):  # noqa: N818
+    """`metadata.camera` makes no geometric sense for the frame it came with (`models.geometry.
+    camera_problems`, checked once the frame is decoded); `errors` names each field
+    ([{location, name, message}]). Nothing changed."""
+
+    def __init__(self, problems: list[tuple[str, str]]) -> None:
+        super().__init__("metadata: " + "; ".join(f"camera.{name}: {why}" for name, why in problems))
+        self.errors = [{"location": "query", "name": f"metadata.camera.{name}", "message": why}
+                       for name, why in problems]
+
+
 class SnapshotNotFound(MapError):  # noqa: N818
     def __init__(self, map_id: str, snapshot_id: str) -> None:
         super().__init__(f"no snapshot {snapshot_id!r} of map {map_id!r}")
@@ -115,11 +126,18 @@ class InsufficientStorage(MapError):  # noqa: N818
 
 
 class Overloaded(MapError):  # noqa: N818
-    """The encoder pool has `limit` requests in flight; retry after `retry_after` seconds."""
+    """`what` (the encoder pool, the keyframe extractions) has `limit` requests in flight; retry after
+    `retry_after` seconds."""
 
-    def __init__(self, limit: int, retry_after: int = 1) -> None:
-        super().__init__(f"the encoder queue is full ({limit} requests in flight)")
+    def __init__(self, limit: int, retry_after: int = 1, what: str = "the encoder queue") -> None:
+        super().__init__(f"{what} is full ({limit} requests in flight)")
         self.retry_after = retry_after
+
+
+class ClientGone(Exception):  # noqa: N818
+    """The client went away before its post reached the map's writer: the work not yet started was
+    skipped and nothing changed (docs/design/service.md §6). No `MapError`: no problem+json answers it,
+    nobody is left to read one (the HTTP layer records 499, as for a client gone mid-upload)."""
 
 
 class ShardUnavailable(MapError):  # noqa: N818

@@ -2,15 +2,19 @@
 docs/design/service.md §1.2): the glue between the map runtime, the store's `keyframes` table and the
 pure geometry of `models.geometry`.
 
-The query's features are taken in a worker thread while the backbone encodes the frame (`extract_frame`);
-the writer verifies only a revisit candidate (`verify_place`), against the place's keyframe first and then
+The query's features are taken in a worker thread while the backbone encodes the frame (`extract_frame`),
+at most `CORTEXLOC_MAX_EXTRACTIONS` at once over all maps (`Extractions`: past it a post is refused
+503 `overloaded`, and one whose client went away before its extraction started is skipped); the writer
+verifies only a revisit candidate (`verify_place`), against the place's keyframe first and then
 its route neighbours (along the map's links), stopping at the first that verifies.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Iterable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,10 +22,11 @@ import numpy as np
 
 from models import geometry
 from models.frontend.images import ImageError, RawFrame
+from service.maps.errors import ClientGone, InvalidCamera, Overloaded
 from service.maps.results import VerificationResult
 from storage.mapstore import MapStore
 
-__all__ = ["QueryFrame", "camera_of", "extract_frame", "verify_place"]
+__all__ = ["Extractions", "QueryFrame", "camera_of", "extract_frame", "verify_place"]
 
 
 @dataclass(frozen=True)
@@ -34,18 +39,75 @@ class QueryFrame:
     ms: float
 
 
-def extract_frame(decode: Callable[[bytes | RawFrame], np.ndarray], body: bytes | RawFrame,
-                  keyframes: dict[str, Any], camera: dict[str, Any] | None) -> QueryFrame | None:
-    """Worker thread: decode the frame at its native resolution with the map's encoder (`decode`: its
-    byte and pixel limits, the service's settings) and take its features (the map's `keyframes` option).
-    None when it cannot be decoded: the encoder reports that error."""
+def extract_frame(decode: Callable[..., np.ndarray], body: bytes | RawFrame,
+                  keyframes: dict[str, Any], camera: dict[str, Any] | None,
+                  given: bool = False) -> QueryFrame | None:
+    """Worker thread: decode the frame in grey at its native resolution with the map's encoder
+    (`decode(body, grey=True)`: its byte and pixel limits, the service's settings) and take its features
+    (the map's `keyframes` option) at a bounded resolution (`geometry.EXTRACT_MAX_SIDE`), in native
+    pixels. None when it cannot be decoded: the encoder reports that error.
+
+    A camera `given` with this frame is checked against the decoded frame's size here, the first place
+    that size is known after the EXIF rotation (`geometry.camera_problems`); a stream's earlier camera
+    was checked with its own frame.
+
+    Raises:
+        InvalidCamera: the given camera makes no sense for this frame.
+    """
     t0 = time.perf_counter()
     try:
-        rgb = decode(body)
+        grey = decode(body, grey=True)
     except ImageError:
         return None
-    f = geometry.extract(rgb, keyframes["features"], int(keyframes["max"]))
+    if given and (problems := geometry.camera_problems(camera_of(camera), (grey.shape[1], grey.shape[0]))):
+        raise InvalidCamera(problems)
+    f = geometry.extract(grey, keyframes["features"], int(keyframes["max"]))
     return QueryFrame(f, camera, (time.perf_counter() - t0) * 1e3)
+
+
+class Extractions:
+    """Keyframe extractions of all maps, at most `limit` in flight (waiting or running) in `limit`
+    threads: each holds a decoded frame and a feature pyramid (~300 MB for a 25 MP SIFT frame,
+    docs/benchmarks.md §13.1), so their number bounds that memory."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.pending = 0
+        self._lock = threading.Lock()
+        self._threads = ThreadPoolExecutor(limit, thread_name_prefix="keyframes")
+
+    def submit(self, decode: Callable[..., np.ndarray], body: bytes | RawFrame, keyframes: dict[str, Any],
+               camera: dict[str, Any] | None, given: bool,
+               gone: threading.Event) -> Future[QueryFrame | None]:
+        """`extract_frame` in a worker; its future raises ClientGone where `gone` was set before it
+        started (the work is skipped).
+
+        Raises:
+            Overloaded: `limit` extractions are in flight (nothing queued).
+        """
+        with self._lock:
+            if self.pending >= self.limit:
+                raise Overloaded(self.limit, what="keyframe extraction")
+            self.pending += 1
+
+        def run() -> QueryFrame | None:
+            try:
+                if gone.is_set():
+                    raise ClientGone("the client went away before its keyframe extraction started")
+                return extract_frame(decode, body, keyframes, camera, given)
+            finally:
+                with self._lock:
+                    self.pending -= 1
+
+        try:
+            return self._threads.submit(run)
+        except BaseException:  # never queued (shut down): no worker gives the slot back
+            with self._lock:
+                self.pending -= 1
+            raise
+
+    def close(self) -> None:
+        self._threads.shutdown(wait=True, cancel_futures=True)
 
 
 def camera_of(value: dict[str, Any] | None) -> geometry.Camera | None:

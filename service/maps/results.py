@@ -63,7 +63,8 @@ class VerificationResult:
     `model` is GRIC's choice (homography | fundamental); `rotation` (3 x 3, row-major) and `translation`
     (a unit vector) give X_query = R X_keyframe + t in camera frames when both cameras are known and the
     pose is observable; `reason` says why not verified or why no pose (`too-small`, `too-few-features`,
-    `too-few-matches`, `too-few-inliers`, `no-keyframe`, `no-camera`, `translation-unobservable`);
+    `too-few-matches`, `too-few-inliers`, `degenerate`, `no-pose`, `geometry-failed`, `no-keyframe`,
+    `no-features`, `no-camera`, `translation-unobservable`);
     `ms` is the time it took in the map's writer."""
 
     verified: bool
@@ -243,6 +244,7 @@ class LoopClosureResult:
     support: int
     created_at: str
     verification: VerificationResult | None = None  # the place's, as the reply gave it (maps with keyframes)
+    consolidated_into: int | None = None  # a visit's (a consolidated frame): the row it joined
 
 
 @dataclass(frozen=True)

@@ -49,10 +49,12 @@ async def export_loop_closures(
 ) -> StreamingResponse:
     """Every logged loop closure as a candidate pair: both stamps in seconds, both ids, the confidence,
     both poses where given, the geometric verification and relative pose where the map keeps keyframes
-    (`closures.EXPORT_COLUMNS`); or, as g2o, the verified ones with a pose (`closures.g2o_edge`)."""
+    (`closures.EXPORT_COLUMNS`); or, as g2o, the verified ones with a pose (`closures.g2o_lines`)."""
     rt = registry.get(map_id)
     rt.require_ready()
     assert rt.store is not None
-    return StreamingResponse(closures.export(rt.store, format), media_type=closures.EXPORT_FORMATS[format],
+    # Rendered whole first: a failure is an error answer, never a 200 with a short body.
+    spool = await anyio.to_thread.run_sync(closures.render, rt.store, format)
+    return StreamingResponse(closures.chunks(spool), media_type=closures.EXPORT_FORMATS[format],
                              headers={"Content-Disposition": f'attachment; filename="{map_id}-loop-closures.'
                                                              f'{format}"'})

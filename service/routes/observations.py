@@ -10,11 +10,15 @@ repeat (`service.maps.runtime.idempotency`).
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import functools
 import hashlib
 import json
 import math
+import threading
 import time
+from collections.abc import AsyncIterator
 from typing import Annotated, Any
 
 import anyio
@@ -272,8 +276,10 @@ async def post_observation(
         if earlier is not None:
             await rt.durable()  # its row may be in a group not yet synced: a reply waits for it
             return _replayed(earlier)
-    out = await rt.observe(request.app.state.encoder_pool, frame, learn=learn, stream=stream, top_k=top_k,
-                           label=label, metadata=meta, post=post)
+    async with _departure(request) as gone:
+        out = await rt.observe(request.app.state.encoder_pool, request.app.state.extractions, frame,
+                               learn=learn, stream=stream, top_k=top_k, label=label, metadata=meta, post=post,
+                               gone=gone)
     if isinstance(out, idempotency.Reply):
         if out.replayed:
             return _replayed(out)
@@ -285,6 +291,27 @@ async def post_observation(
     _count(metrics, map_id, learn, model.timings_ms)
     rt.recent.add(model.stream, _recent(model), out.thumbnail)
     return model
+
+
+@contextlib.asynccontextmanager
+async def _departure(request: Request) -> AsyncIterator[threading.Event]:
+    """An event set once the client goes away (the ASGI `http.disconnect`, which `receive()` gives once
+    the body was read), watched while the post is worked on, so the work not yet started is skipped
+    (`MapRuntime.observe`)."""
+    gone = threading.Event()
+
+    async def watch() -> None:
+        while (await request.receive())["type"] != "http.disconnect":
+            pass
+        gone.set()
+
+    watcher = asyncio.ensure_future(watch())
+    try:
+        yield gone
+    finally:
+        watcher.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await watcher
 
 
 def _recent(reply: ObservationModel) -> ObservationModel:

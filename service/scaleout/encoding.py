@@ -124,9 +124,9 @@ class RemoteEncoder:
     def decode_limits(self) -> dict[str, int]:
         return {"max_bytes": int(self.conf["max_bytes"]), "max_pixels": int(self.conf["max_pixels"])}
 
-    def decode(self, data: bytes | images.RawFrame) -> np.ndarray:
+    def decode(self, data: bytes | images.RawFrame, *, grey: bool = False) -> np.ndarray:
         """(H, W, 3) uint8 RGB, decoded here (keyframes' local features are the shard's work)."""
-        return images.decode(data, **self.decode_limits)
+        return images.decode(data, grey=grey, **self.decode_limits)
 
     def prepare(self, data: bytes | images.RawFrame, *, thumbnail: bool = False,
                 resize: str | None = None) -> PendingReply:

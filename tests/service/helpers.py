@@ -7,7 +7,9 @@ data directory.
 from __future__ import annotations
 
 import hashlib
+import socket
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -22,7 +24,31 @@ from service.app import create_app
 from service.encoder import build_encoder
 from service.settings import Settings
 
-__all__ = ["frame", "held_encoder", "make_app", "make_client", "post", "state_of", "tiny_encoder"]
+__all__ = ["frame", "held_encoder", "make_app", "make_client", "post", "served", "state_of", "tiny_encoder"]
+
+
+@contextmanager
+def served(app: FastAPI, **config: Any) -> Iterator[str]:
+    """`app` on a real uvicorn server on loopback (a free port, `config` for `uvicorn.Config`), in a
+    thread; yields its base URL."""
+    import uvicorn
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, lifespan="on",
+                                           **{"log_level": "warning", **config}))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 60
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "the server did not start"
+        time.sleep(0.05)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(timeout=30)
 
 
 def tiny_encoder(settings: Settings):

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
+from service.maps.closures import VISIT_VERTEX_BASE
 from storage.mapstore import MapStore
 from tests.service.helpers import make_client, post
 
@@ -50,17 +51,18 @@ def make_map(c, map_id: str = "kf", **more) -> dict:
     return r.json()
 
 
-def learn(c, frames, map_id: str = "kf") -> list[int]:
+def learn(c, frames, map_id: str = "kf", meta: dict = CAMERA_META) -> list[int]:
     return [post(c, png(f), map_id=map_id, stream="mapper", top_k=0,
-                 metadata=json.dumps(CAMERA_META)).json()["seq"] for f in frames]
+                 metadata=json.dumps(meta)).json()["seq"] for f in frames]
 
 
-def drive(c, frames, map_id: str = "kf", camera_once: bool = True) -> list[dict | None]:
+def drive(c, frames, map_id: str = "kf", camera_once: bool = True,
+          meta: dict = CAMERA_META) -> list[dict | None]:
     """Localise `frames` on stream `robot`; the camera rides on the first frame only (once per stream)."""
     out = []
     for i, f in enumerate(frames):
-        meta = {} if (camera_once and i) else {"metadata": json.dumps(CAMERA_META)}
-        r = post(c, png(f), map_id=map_id, stream="robot", learn="false", top_k=0, **meta)
+        given = {} if (camera_once and i) else {"metadata": json.dumps(meta)}
+        r = post(c, png(f), map_id=map_id, stream="robot", learn="false", top_k=0, **given)
         assert r.status_code == 200, r.text
         out.append(r.json()["place"])
     return out
@@ -137,16 +139,18 @@ def test_a_bad_keyframes_option_is_refused_naming_it(tmp_path, value, name):
 
 def test_frames_too_small_are_not_verifiable(tmp_path):
     frames = [sized(n, 64, 32) for n in ROUTE]
+    # The camera of these frames (one for 320 x 240 ones is refused: its principal point is outside).
+    meta = {"camera": {"fx": 57.6, "fy": 57.6, "cx": 32.0, "cy": 16.0, "distortion": [0.0, 0.0, 0.0, 0.0]}}
     with make_client(tmp_path / "data") as c:
         make_map(c)
-        learn(c, frames)
-        places = drive(c, frames)
+        learn(c, frames, meta=meta)
+        places = drive(c, frames, meta=meta)
         sizes = c.get("/v1/maps/kf/memory").json()["storage"]
     answered = [p for p in places if p is not None]
     assert answered and all(not p["verification"]["verified"] and p["verification"]["reason"] == "too-small"
                             for p in answered), answered
     # Stored with a header and no features (and the camera).
-    camera = len(json.dumps(CAMERA_META["camera"], separators=(",", ":")))
+    camera = len(json.dumps(meta["camera"], separators=(",", ":")))
     assert sizes["keyframes"] == len(ROUTE) and sizes["keyframe_bytes"] == (16 + camera) * len(ROUTE)
 
 
@@ -219,15 +223,21 @@ def test_the_loop_closure_log_and_its_exports_carry_the_verified_relative_pose(t
                if e["verification"]["verified"] and e["place"]["stream"] == "mapper")
     q = np.array([float(row[k]) for k in ("qx", "qy", "qz", "qw")])
     assert abs(np.degrees(2 * np.arccos(min(1.0, abs(q[3])))) - 5.0) < 1.0 and row["tx"] == ""
-    # g2o: one edge per verified closure between two stored rows (the learning stream's), none for
-    # the localising stream's (no row: no vertex).
-    edges = [line.split() for line in g2o.text.splitlines()]
-    want = [e for e in verified if e["seq"] is not None]
+    # g2o: one edge per verified closure of the learning stream, to its row or, for a consolidated
+    # frame (a visit: no row), to a vertex of its own declared before it (issue 34 item 9); none for the
+    # localising stream's.
+    lines = [line.split() for line in g2o.text.splitlines()]
+    edges = [line for line in lines if line[0] == "EDGE_SE3:QUAT"]
+    want = [e for e in verified if e["seq"] is not None or e["consolidated_into"] is not None]
     assert all(e["place"]["stream"] == "mapper" for e in want)
     assert g2o.headers["content-type"].startswith("text/plain") and len(edges) == len(want) > 0
+    visits = {VISIT_VERTEX_BASE + e["id"] for e in want if e["seq"] is None}
+    assert visits  # the second robot's consolidated frames
+    assert [int(line[1]) for line in lines if line[0] == "VERTEX_SE3:QUAT"] == sorted(visits)
     for edge, e in zip(edges, want, strict=True):
         assert edge[0] == "EDGE_SE3:QUAT" and len(edge) == 3 + 7 + 21
-        assert (int(edge[1]), int(edge[2])) == (e["verification"]["keyframe_seq"], e["seq"])
+        vertex = e["seq"] if e["seq"] is not None else VISIT_VERTEX_BASE + e["id"]
+        assert (int(edge[1]), int(edge[2])) == (e["verification"]["keyframe_seq"], vertex)
         _, qy, _, qw = map(float, edge[6:10])
         # The query camera's pose in the keyframe's frame: turned by R^T, i.e. yaw -5 degrees about y.
         assert qy < 0 and abs(np.degrees(2 * np.arctan2(abs(qy), qw)) - 5.0) < 1.0

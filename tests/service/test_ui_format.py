@@ -33,3 +33,11 @@ def test_a_threshold_is_shown_exactly_and_a_confidence_on_its_own_side_of_it():
                       ("beside", [None, 0.95])]) == [
         "0.95", "0.9496", "0.5049", "—",
         "0.9496", "0.94999999", "0.95", "0.95", "0.50", "0.50", "—"]
+
+
+def test_a_closure_of_a_consolidated_frame_reads_visit_not_localising():
+    """Issue 34 item 9: a learning stream's consolidated frame has no row, and it is no localising one."""
+    assert formatted([("closureFrame", [{"seq": 7, "consolidated_into": None}]),
+                      ("closureFrame", [{"seq": None, "consolidated_into": 3}]),
+                      ("closureFrame", [{"seq": None, "consolidated_into": None}]),
+                      ("closureFrame", [{"seq": None}])]) == ["7", "visit", "localising", "localising"]

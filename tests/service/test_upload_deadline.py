@@ -9,19 +9,17 @@ from __future__ import annotations
 import json
 import re
 import socket
-import threading
 import time
 from collections.abc import AsyncIterator, Iterator
 
 import anyio
 import httpx
 import pytest
-import uvicorn
 
 from service.limits import HEAD_MAX_BYTES
 from service.server import ProblemH11Protocol
 from service.settings import ConfigError, Settings
-from tests.service.helpers import frame, make_app
+from tests.service.helpers import frame, make_app, served
 
 LIMIT = 100_000
 DEADLINE_S = 2.0
@@ -33,23 +31,8 @@ def live(tmp_path) -> Iterator[str]:
     """`cortexloc serve`'s uvicorn (its protocol and head limit) in a thread; yields the base URL."""
     app = make_app(tmp_path / "var", max_upload_bytes=LIMIT, body_timeout_s=DEADLINE_S,
                    max_inflight_upload_bytes=BUDGET)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, http=ProblemH11Protocol,
-                                           h11_max_incomplete_event_size=HEAD_MAX_BYTES, lifespan="on",
-                                           log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "the server did not start"
-        time.sleep(0.05)
-    try:
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        server.should_exit = True
-        thread.join(timeout=30)
+    with served(app, http=ProblemH11Protocol, h11_max_incomplete_event_size=HEAD_MAX_BYTES) as base:
+        yield base
 
 
 def half_sent(base: str, declared: int, sent: int) -> socket.socket:

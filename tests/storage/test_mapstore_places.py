@@ -1,6 +1,7 @@
-"""map.sqlite schemas 5 and 6 (docs/design/science.md §11.8, §11.9; docs/design/service.md §4.2): a row's
-place, the visit log (consolidated frames, replayed), dropped rows, rows' recency (schema 6), and the
-migration of an older map whose places come from its loop-closure log."""
+"""map.sqlite schemas 5 to 8 (docs/design/science.md §11.8, §11.9; docs/design/service.md §4.2): a row's
+place, the visit log (consolidated frames, replayed), dropped rows, rows' recency (schema 6), visit keys
+and streams' states (schema 7), a visit's closure naming the row it joined (schema 8), and the migration
+of an older map whose places come from its loop-closure log."""
 
 from __future__ import annotations
 
@@ -36,7 +37,8 @@ def test_a_visit_commits_in_order_after_its_rows_and_reads_back(store: MapStore)
     assert (got[1].seq, got[1].context_prev_seq, got[1].metadata) == (2, 1, {"stamp": 11.0})
     assert np.array_equal(got[0].input_sdr, make_row(10).input_sdr)
     assert np.array_equal(got[0].winner_cells, make_row(10).winner_cells)
-    assert [(c.seq, c.place_seq) for c in store.closures(0, 10)] == [(None, 1)]  # logged with it
+    # logged with it, naming the row the frame was consolidated into (schema 8)
+    assert [(c.seq, c.place_seq, c.consolidated_into) for c in store.closures(0, 10)] == [(None, 1, 1)]
     assert list(store.visits(after_id=first)) and store.visit_stats() == (2, first, second)
 
 
@@ -103,22 +105,30 @@ def test_a_row_s_place_and_the_rows_it_dropped_commit_with_it(store: MapStore) -
     assert store.count() == 3  # the rows stay: the replay and the snapshots read them
 
 
-def _as_version_4(path: Path) -> None:
-    """Today's file as schema 4 wrote it: no visits, no dropped rows, no place column."""
+def _as_version(path: Path, version: int, changes: str) -> None:
+    """Today's file as schema `version` wrote it: `changes` (SQL) undone from it, and its version."""
     conn = sqlite3.connect(path)
-    conn.executescript("""
+    conn.executescript(changes + f"""
+        DROP TRIGGER meta_no_update;
+        UPDATE meta SET value = '{version}' WHERE key = 'schema_version';
+        CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
+        BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
+    """)
+    conn.close()
+
+
+def _as_version_4(path: Path) -> None:
+    """No visits, no dropped rows, no place column, no recency, no visit keys or streams' states, no
+    closures' `consolidated_into`."""
+    _as_version(path, 4, """
         DROP TABLE visits;
         DROP TABLE dropped;
         DROP TABLE recency;
         DROP TABLE visit_keys;
         DROP TABLE stream_states;
+        ALTER TABLE loop_closures DROP COLUMN consolidated_into;
         ALTER TABLE observations DROP COLUMN place;
-        DROP TRIGGER meta_no_update;
-        UPDATE meta SET value = '4' WHERE key = 'schema_version';
-        CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
-        BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
     """)
-    conn.close()
 
 
 def test_an_old_map_is_migrated_and_its_places_come_from_its_loop_closures(tmp_path: Path,
@@ -136,7 +146,7 @@ def test_an_old_map_is_migrated_and_its_places_come_from_its_loop_closures(tmp_p
         assert ro.meta.schema_version == 4 and ro.dropped() == {} and list(ro.visits()) == []
         assert [r.place for r in ro.rows()] == [None] * 7
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 7
+        assert store.meta.schema_version == SCHEMA_VERSION == 8
         assert [r.place for r in store.rows()] == [None] * 7 and store.joined() == {4: 1, 5: 2, 6: 3}
         links = Localisation(None, 4096)
         links.rebuild(store.rows(), store.dropped(), store.joined())
@@ -165,23 +175,19 @@ def test_a_version_6_file_keeps_its_logged_visit_keys(tmp_path: Path, meta: MapM
     with MapStore.create(path, meta) as made:
         made.append(make_row(1))
         made.add_visit(visit(10, 1, None, key="visit-key-0001"))
-    conn = sqlite3.connect(path)  # as schema 6 wrote it: the key in the visit log
-    conn.executescript("""
+    # As schema 6 wrote it: the key in the visit log.
+    _as_version(path, 6, """
         UPDATE visits SET idempotency_key = 'visit-key-0001', fingerprint = (SELECT fingerprint FROM
             visit_keys), reply = (SELECT reply FROM visit_keys);
         DROP TABLE visit_keys;
         DROP TABLE stream_states;
-        DROP TRIGGER meta_no_update;
-        UPDATE meta SET value = '6' WHERE key = 'schema_version';
-        CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
-        BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
+        ALTER TABLE loop_closures DROP COLUMN consolidated_into;
     """)
-    conn.close()
     record = KeyRecord("visit-key-0001", "f" * 64, '{"reply": 1}')
     with MapStore.open(path, readonly=True) as ro:  # read-only: not migrated, read from the log
         assert ro.meta.schema_version == 6 and ro.key_record("visit-key-0001") == record
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 7
+        assert store.meta.schema_version == SCHEMA_VERSION == 8
         assert store.prune_visits(covered=10**6, keep=0) == 0  # the only visit stays (the newest)
         assert store.key_record("visit-key-0001") == record
 
@@ -196,3 +202,24 @@ def test_a_stream_s_state_commits_with_its_learned_step_and_is_pruned_once_a_sna
     assert store.stream_states() == {make_row(1).stream: b"a4", "c": b"c2", "b": b"b3"}
     assert store.prune_stream_states(through=2) == 1  # c's, at seq 2; b's visit is at clock 3
     assert set(store.stream_states()) == {make_row(1).stream, "b"}
+
+
+@pytest.mark.parametrize("version", [6, 7])
+def test_an_older_file_gains_the_visits_closure_column(tmp_path: Path, meta: MapMeta, version: int) -> None:
+    """Schema 8 `loop_closures.consolidated_into`: a version 7 file gains it, a version 6 file goes
+    through 7 (visit keys, streams' states) to it."""
+    path = tmp_path / "map.sqlite"
+    with MapStore.create(path, meta) as made:
+        made.append(make_row(1))
+        made.add_closure(NewClosure(stream="loc", place_seq=1, confidence=0.9, support=2))
+    _as_version(path, version, "ALTER TABLE loop_closures DROP COLUMN consolidated_into;"
+                + ("DROP TABLE visit_keys; DROP TABLE stream_states;" if version == 6 else ""))
+    with MapStore.open(path, readonly=True) as ro:  # read-only: not migrated, reads as before
+        assert ro.meta.schema_version == version
+        assert [c.consolidated_into for c in ro.closures(0, 10)] == [None]
+    with MapStore.open(path) as store:
+        assert store.meta.schema_version == SCHEMA_VERSION == 8
+        closure = NewClosure(stream="b", place_seq=1, confidence=0.99, support=6)
+        store.add_visit(dataclasses.replace(visit(10, 1, None), closure=closure))
+        assert [(c.stream, c.seq, c.consolidated_into) for c in store.closures(0, 10)] == [
+            ("loc", None, None), ("b", None, 1)]

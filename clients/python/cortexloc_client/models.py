@@ -394,7 +394,8 @@ class StoredRow(_Reply):
 
 
 class LoopClosure(_Reply):
-    """One logged loop closure: a revisit a stream was told of (`seq` None: the stream was localising)."""
+    """One logged loop closure: a revisit a stream was told of (`seq` None: the stream was localising, or
+    the frame was consolidated into row `consolidated_into`, a visit)."""
 
     id: int
     stream: str
@@ -407,6 +408,9 @@ class LoopClosure(_Reply):
     created_at: str
     #: The place's geometric verification as the reply gave it (maps with keyframes; None elsewhere).
     verification: Verification | None = None
+    #: A consolidated frame's (a visit's): the row it joined (None: a frame with its own row, a
+    #: localising stream's, or one logged before the server recorded it).
+    consolidated_into: int | None = None
 
 
 class LoopClosureList(_Reply):

@@ -1,4 +1,5 @@
-"""Bytes -> (H, W, 3) uint8 RGB: `probe`'s checks, the bounded PNG inflate, then `cv2.imdecode`."""
+"""Bytes -> (H, W, 3) uint8 RGB (or (H, W) grey): `probe`'s checks, the bounded PNG inflate, then
+`cv2.imdecode`."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ from models.frontend.images.raw import RawFrame, decode_raw
 
 def decode(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES,
            max_pixels: int = DEFAULT_MAX_PIXELS, max_aspect: float | None = DEFAULT_MAX_ASPECT,
-           formats: Collection[str] = FORMATS) -> np.ndarray:
+           formats: Collection[str] = FORMATS, grey: bool = False) -> np.ndarray:
     """Decode an uploaded JPEG, PNG, BMP or WebP, or a raw frame (`raw.decode_raw`), to 8-bit RGB
     (docs/design/science.md §6).
 
@@ -36,16 +37,20 @@ def decode(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES,
         max_pixels: pixel cap, checked on the header before decoding ("too-many-pixels").
         max_aspect: long side / short side limit ("degenerate"); None disables it.
         formats: accepted formats, a subset of `FORMATS`.
+        grey: decode to one grey channel instead (a third of the memory of RGB, and the codec skips its
+            colour conversion: what local features take, docs/design/science.md §12.1).
 
     Returns:
-        (H, W, 3) uint8 RGB, C-contiguous; H and W after the EXIF rotation.
+        (H, W, 3) uint8 RGB, or (H, W) uint8 grey with `grey`, C-contiguous; H and W after the EXIF
+        rotation.
 
     Raises:
         ImageError: see `probe`; also "not-an-image" when OpenCV cannot decode a structurally complete
             file (corrupt data), "bomb" when PNG image data inflates past its raster.
     """
     if isinstance(data, RawFrame):
-        return decode_raw(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect)
+        rgb = decode_raw(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect)
+        return np.ascontiguousarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)) if grey else rgb
     if not isinstance(data, bytes):
         data = bytes(data)
     info = probe(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect, formats=formats)
@@ -55,7 +60,7 @@ def decode(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES,
     # For PNG also ask for 16-bit samples (IMREAD_ANYDEPTH keeps the orientation handling) so that 16-bit
     # files are scaled with rounding below instead of OpenCV's truncating `>> 8`. Only PNG: a 12-bit JPEG
     # would come back as 0..4095 in uint16 and need another scale.
-    flags = cv2.IMREAD_COLOR_RGB
+    flags = cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR_RGB
     if info.format == "png":
         flags |= cv2.IMREAD_ANYDEPTH
     try:
@@ -79,7 +84,7 @@ def decode(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES,
         rgb = cv2.convertScaleAbs(rgb, alpha=255.0 / 65535.0)  # round(v / 257), saturating
     elif rgb.dtype != np.uint8:  # not expected from these four codecs; refuse rather than guess a scale
         raise ImageError("not-an-image", f"unexpected decoded sample type {rgb.dtype}", format=info.format)
-    if rgb.ndim == 2:
+    if rgb.ndim == 2 and not grey:
         rgb = cv2.cvtColor(rgb, cv2.COLOR_GRAY2RGB)
     return np.ascontiguousarray(rgb)
 

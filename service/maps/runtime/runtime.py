@@ -24,6 +24,7 @@ import functools
 import hashlib
 import logging
 import math
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
@@ -44,7 +45,7 @@ from models.pipeline import Stream, eviction_wait, memory_state, touch
 from service.maps import keyframes, recovery
 from service.maps.config import MapConfig, map_model
 from service.maps.encoding.pool import EncoderPool
-from service.maps.errors import InsufficientStorage, MapNotFound, MapUnavailable, StreamLimit
+from service.maps.errors import ClientGone, InsufficientStorage, MapNotFound, MapUnavailable, StreamLimit
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import (
     MapInfo,
@@ -372,10 +373,10 @@ class MapRuntime:
 
     # ------------------------------------------------------------------ observations
 
-    async def observe(self, pool: EncoderPool, body: bytes | RawFrame, *, learn: bool, stream: str,
-                      top_k: int, label: str | None, metadata: dict[str, Any] | None = None,
-                      post: idempotency.IdempotentPost | None = None
-                      ) -> ObservationResult | idempotency.Reply:
+    async def observe(self, pool: EncoderPool, extractions: keyframes.Extractions, body: bytes | RawFrame, *,
+                      learn: bool, stream: str, top_k: int, label: str | None,
+                      metadata: dict[str, Any] | None = None, post: idempotency.IdempotentPost | None = None,
+                      gone: threading.Event | None = None) -> ObservationResult | idempotency.Reply:
         """Event loop: one checked image through the map (docs/design/service.md §1.2, §6).
 
         The pool encodes and projects it with this map's matrix, batched with other requests; the step
@@ -386,10 +387,17 @@ class MapRuntime:
         With a `post` (an Idempotency-Key) the answer is its `Reply`: the earlier one for a repeated
         key, else the sealed reply of this step (service.maps.runtime.idempotency).
 
+        On a map with keyframes the frame's features are taken in `extractions`, beside the encoding.
+        `gone` is set once the client went away: an extraction not yet started is skipped, and a post
+        whose client is gone by the time its turn comes is not handed to the writer; one the writer has
+        is never aborted.
+
         Raises:
             MapUnavailable, StreamLimit, Overloaded (nothing queued); ImageError (the decode failed, nothing
-            changed); MapFull, InsufficientStorage (from `apply`); IdempotencyKeyReused.
+            changed); ClientGone, InvalidCamera (nothing changed); MapFull, InsufficientStorage (from
+            `apply`); IdempotencyKeyReused.
         """
+        gone = gone or threading.Event()
         self.require_ready()
         # Refused before its encoding too; `apply` checks again in the writer, where it is exact (here
         # the writer may be changing the streams: a look that meets it is left to that check).
@@ -399,12 +407,17 @@ class MapRuntime:
         # Localised frames too: their thumbnail is kept in the recent ring only (never stored).
         encoding = pool.submit(body, hasher=self.hasher, backbone=self.config.backbone,
                                thumbnail=self.config.thumbnails, resize=self.config.resize)
-        # Local features at the native resolution, while the backbone encodes (docs/design/science.md
-        # §12.1); bounded by the pool's admission above. The stream's camera: this frame's, else the last.
-        camera = (metadata or {}).get("camera") or self.cameras.get(stream)
-        frame = None if self.config.keyframes is None else asyncio.ensure_future(asyncio.to_thread(
-            keyframes.extract_frame, pool.encoders.get(self.config.backbone).decode, body,
-            self.config.keyframes, camera))
+        # Local features in native pixels, while the backbone encodes (docs/design/science.md §12.1).
+        # The stream's camera: this frame's, else the last.
+        given = (metadata or {}).get("camera")
+        camera = given or self.cameras.get(stream)
+        try:
+            frame = None if self.config.keyframes is None else asyncio.wrap_future(extractions.submit(
+                pool.encoders.get(self.config.backbone).decode, body, self.config.keyframes, camera,
+                given is not None, gone))
+        except BaseException:
+            encoding.cancel()  # refused (Overloaded): the pool skips the encoding where it has not started
+            raise
         # The digest stored with the row, off the event loop (a 10 MB raw frame takes ~20 ms to hash)
         # and beside the encoding.
         digest = asyncio.ensure_future(asyncio.to_thread(_sha256, getattr(body, "data", body)))
@@ -416,6 +429,8 @@ class MapRuntime:
             image_sha256 = await digest
             t_encoded = time.perf_counter()
             await before.wait()
+            if gone.is_set():  # nobody waits for the answer: the writer never gets it (nothing changes)
+                raise ClientGone("the client went away before its post reached the map's writer")
             assert encoded.projected is not None  # the pool projects when given a hasher
             front = {"decode": encoded.timings_ms["decode"], "encode": (t_encoded - t0) * 1e3,
                      **({} if query is None else {"features": query.ms})}

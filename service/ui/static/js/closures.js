@@ -2,7 +2,7 @@
 // seen, the newest first; and its export as a file (fetched with the key, saved from a blob).
 
 import { getBlob, getJson } from "./api.js";
-import { el, num, text } from "./format.js";
+import { closureFrame, el, num, text } from "./format.js";
 
 const PAGE = 500;    // the route's most
 const SHOWN = 50;    // rows of the table
@@ -23,7 +23,7 @@ export function closureRows(log) {
     el("td", { class: "num" }, num(c.id)),
     el("td", {}, c.created_at.slice(11, 19)),
     el("td", {}, c.stream),
-    el("td", { class: "num" }, c.seq === null ? "localising" : num(c.seq)),
+    el("td", { class: "num" }, closureFrame(c)),
     el("td", { class: "num" }, num(c.place.seq)),
     el("td", {}, c.place.stream),
     el("td", {}, text(c.place.label)),

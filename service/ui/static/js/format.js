@@ -32,6 +32,13 @@ export function bytes(v) {
   return `${v.toFixed(i === 0 ? 0 : 1)} ${units[i]}`;
 }
 
+/** A logged loop closure's frame: its row, else "visit" (a learning stream's consolidated frame, which
+ * joined row `consolidated_into`) or "localising" (a localising stream's: no row at all). */
+export function closureFrame(c) {
+  if (c.seq !== null && c.seq !== undefined) return num(c.seq);
+  return c.consolidated_into !== null && c.consolidated_into !== undefined ? "visit" : "localising";
+}
+
 export function text(v) { return v === null || v === undefined || v === "" ? NONE : String(v); }
 
 export function clock(iso) {
