@@ -10,14 +10,16 @@ beyond that pass (benchmarks/bench_index.py, docs/benchmarks.md).
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
-from models.localisation.graph import SequenceGraph
+from models.localisation.graph import NONE, SequenceGraph
 from models.localisation.index import Match
 from models.localisation.localiser import LocaliserState, Place, SequenceLocaliser
+from models.localisation.short_term import ShortTerm
 from models.localisation.trail import CodeStats, OwnTrail, code_dice
 
 __all__ = ["Localisation", "graph_from_rows"]
@@ -49,13 +51,15 @@ class Localisation:
         self.graph = SequenceGraph()
         self.codes = CodeStats(code_width)  # the stored frame codes' bit counts (§11.6)
         self.top_k = int(self.localiser.conf["top_k"])
+        self.short_term = int(self.localiser.conf["short_term"])
         self.used = np.zeros(0, np.int64)
         self._last_row: dict[str, int] = {}  # each stream's last made row (its trail goes on from there)
+        self._short: dict[str, ShortTerm] = {}  # each stream's short-term memory (§11.6)
         self.held = 0  # rows held (not dropped)
         self.visits = 0  # consolidated frames seen since the map was loaded
 
     def rebuild(self, rows: Iterable[Any], dropped: Iterable[int] = (), joined: dict[int, int] | None = None,
-                visited: Iterable[tuple[int | None, int, int]] = (), used: Mapping[int, int] | None = None
+                visited: Iterable[tuple[Any, ...]] = (), used: Mapping[int, int] | None = None
                 ) -> None:
         """The links, places and code statistics of the store's rows (recovery).
 
@@ -64,19 +68,26 @@ class Localisation:
                 `place`: the place the row joined, None for its own or a row stored before places).
             dropped: seqs no longer held (§11.9). joined: seq -> the row its learning stream revisited,
                 from the loop-closure log (the place of a row stored before places, §11.8).
-            visited: (previous row or None, row, clock) of the visits kept, in log order: their links and
-                the rows' recency (the clock a visit's `after_seq` + 1, a lower bound of the live one).
+            visited: (previous row or None, row, clock[, stream, code]) of the visits kept, in log order:
+                their links and the rows' recency (the clock a visit's `after_seq` + 1, a lower bound of
+                the live one), and with the stream and the frame's code its short-term memory (§11.6):
+                rows and visits are taken in the order they were learned.
             used: row -> the clock of its last use by a later step, as the live map recorded it (the
                 store's `recency`): with it the rows' recency is the live map's exactly (§11.9).
         """
         self.graph = SequenceGraph()
         self.codes.rebuild([])
         self.used = np.zeros(0, np.int64)
-        self._last_row, self.held = {}, 0
+        self._last_row, self._short, self.held = {}, {}, 0
         joined = joined or {}
         gone = set(dropped)
+        # Rows and visits in the order they were learned (a visit's clock is its `after_seq` + 1), so each
+        # stream's short-term memory is the live map's.
+        pending = deque(visited)
         for row in rows:
             seq = int(row.seq)
+            while pending and pending[0][2] <= seq:
+                self.visit(*pending.popleft())
             place = getattr(row, "place", None)
             if place is None and seq in joined:
                 place = int(self.graph.place[joined[seq]])
@@ -85,8 +96,8 @@ class Localisation:
         for seq in sorted(gone):
             if seq < len(self.graph):
                 self.drop(seq)
-        for prev, row, clock in visited:
-            self.visit(prev, row, clock)
+        for v in pending:
+            self.visit(*v)
         for row, clock in (used or {}).items():
             self.touch(row, clock)
 
@@ -102,6 +113,7 @@ class Localisation:
             # its own rows stay one route: the last it made leads on to this one if it led nowhere
             self.graph.link(own, seq, successor=True)
         self._last_row[stream] = seq
+        self._learned(stream, seq, code)
         self.codes.add(code)
         if seq >= self.used.size:
             grow = max(seq + 1, 2 * self.used.size, 16) - self.used.size
@@ -114,12 +126,37 @@ class Localisation:
         if 0 <= row < self.used.size and self.used[row] >= 0:
             self.used[row] = max(int(self.used[row]), int(clock))
 
-    def visit(self, prev: int | None, row: int, clock: int) -> None:
+    def visit(self, prev: int | None, row: int, clock: int, stream: str | None = None,
+              code: np.ndarray | None = None) -> None:
         """A learning stream's frame consolidated into `row` after `prev` (its last row, None: none), at
-        `clock`: the link, and the row's recency (§11.8)."""
+        `clock`: the link, and the row's recency (§11.8); with `stream` and the frame's `code`, a learned
+        frame of that stream that made no row (its short-term memory, §11.6)."""
         if prev is not None:
             self.graph.link(prev, row)
         self.touch(row, clock)
+        if stream is not None and code is not None:
+            self._learned(stream, NONE, code)
+
+    def _learned(self, stream: str, row: int, code: np.ndarray) -> None:
+        """A learned frame of `stream` into its short-term memory, before its code joins the statistics
+        (so a rebuild, which adds the rows in the same order, gives the same moves)."""
+        if not self.short_term:
+            return
+        memory = self._short.get(stream)
+        if memory is None:
+            memory = self._short[stream] = ShortTerm(self.short_term)
+        code = np.asarray(code, np.int64)
+        b = self.codes.background(code)
+        memory.step(row, code, b + float(self.localiser.conf["departure"]) * (1.0 - b))
+
+    def short_term_rows(self, stream: str) -> np.ndarray:
+        """(m,) int64 ascending: the rows `stream` made over its last `short_term` moves and still holds,
+        its short-term memory (`ShortTerm`, docs/design/science.md §11.6)."""
+        memory = self._short.get(stream)
+        if memory is None:
+            return np.zeros(0, np.int64)
+        rows = memory.rows()
+        return rows[self.used[rows] >= 0] if rows.size else rows
 
     def drop(self, seq: int) -> None:
         """Row `seq` is no longer held: not an appearance of its place, never touched again (§11.9)."""
@@ -186,7 +223,7 @@ class Localisation:
     def candidates_wanted(self, top_k: int) -> int:
         """How many ranked rows one index pass must return for `top_k` matches and the localiser (whose
         candidates leave out up to `exclusion` of them: the stream's own rows behind those not left)."""
-        return max(top_k, self.top_k + int(self.localiser.conf["exclusion"]))
+        return max(top_k, self.top_k + int(self.localiser.conf["exclusion"]) + self.short_term)
 
     def new_state(self) -> LocaliserState:
         return self.localiser.new_state()

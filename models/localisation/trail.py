@@ -23,6 +23,8 @@ __all__ = ["UNKNOWN", "CodeStats", "OwnTrail", "code_dice", "own_trail"]
 #: `LocaliserState.here` of a state saved before the own-trail rule: the stream's whole current trail
 #: counts as not left until a frame unlike it is seen (§11.6).
 UNKNOWN = -2
+#: `OwnTrail.trail` of a stream with no current trail, only its short-term memory (§11.6).
+NO_TRAIL = -3
 
 
 class TrailState(Protocol):
@@ -53,6 +55,28 @@ class OwnTrail(NamedTuple):
     code: np.ndarray | None = None
     code_of: Callable[[int], np.ndarray] | None = None
     window: int = 1
+    short_term: np.ndarray = np.zeros(0, np.int64)
+
+    @classmethod
+    def short_term_only(cls, rows: np.ndarray) -> OwnTrail:
+        """A stream with no current trail of its own (a new sequence, or travelling on rows it visited)
+        whose short-term memory still holds the rows `rows` it made (§11.6)."""
+        return cls(first=1, here=0, last=0, trail=NO_TRAIL, short_term=np.asarray(rows, np.int64))
+
+    @property
+    def has_trail(self) -> bool:
+        """Whether the stream has a current trail (else only its short-term memory is its own)."""
+        return self.trail != NO_TRAIL
+
+    def with_short_term(self, rows: np.ndarray) -> OwnTrail:
+        """This trail with the stream's short-term memory `rows` (ascending seqs)."""
+        return self._replace(short_term=np.asarray(rows, np.int64))
+
+    def born(self, rows: int) -> int:
+        """`born` of a path that starts now, `rows` the map's row count: the oldest row of the stream's
+        short-term memory where it has one, so a path that starts just behind it, on the trail the
+        stream laid, is followed as an echo (`laid_behind`) however far behind it runs."""
+        return int(min(rows, self.short_term[0])) if self.short_term.size else int(rows)
 
     def holds(self, graph: SequenceGraph, rows: np.ndarray) -> np.ndarray:
         """(H,) bool: which of `rows` (H,) lie on this trail between `first` and `last`. A stream's
@@ -60,6 +84,8 @@ class OwnTrail(NamedTuple):
         rows = np.asarray(rows, np.int64)
         ok = (rows >= self.first) & (rows <= self.last)
         ok[ok] = graph.trail[rows[ok]] == self.trail
+        if self.short_term.size:
+            ok |= np.isin(rows, self.short_term)
         return ok
 
     def laid_behind(self, graph: SequenceGraph, rows: np.ndarray, began: np.ndarray) -> np.ndarray:
@@ -72,6 +98,8 @@ class OwnTrail(NamedTuple):
         on. O(H); only where such a path exists, `window` + one Dice per distinct row of them (each a
         `code_of` read)."""
         rows = np.asarray(rows, np.int64)
+        if not self.has_trail:
+            return np.zeros(rows.size, bool)
         laid = (graph.trail[rows] == self.trail) & (rows >= np.asarray(began, np.int64))
         if not laid.any() or self.code is None or self.code_of is None:
             return laid
@@ -81,6 +109,8 @@ class OwnTrail(NamedTuple):
             row = int(graph.prev[row])
             if row < 0 or graph.trail[row] != self.trail:
                 break
+        for row in self.short_term:  # where it just was includes its short-term memory
+            recent = max(recent, code_dice(self.code, np.asarray(self.code_of(int(row)))))
         unique, inverse = np.unique(rows[laid], return_inverse=True)
         unlike = np.array([code_dice(self.code, np.asarray(self.code_of(int(r)))) < recent for r in unique])
         laid[laid] = unlike[inverse]

@@ -27,6 +27,7 @@ from models.frontend import slsbh
 from models.frontend.adaptation import RunningMean
 from models.localisation import InvertedIndex, Localisation, Match, Place, informative
 from models.localisation.condition import Condition
+from models.localisation.trail import OwnTrail
 from models.memory import registry as memories
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline.state import Stream
@@ -212,11 +213,17 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     own = model.links.own_trail(st.localiser, st.own_seq, code, code_of, not flat)
     if own is not None and own.here > own.last and st.last_learned_seq != st.own_seq:
         own = None  # it left every row it made and travels on rows it visited: none is where it is
+    # Its short-term memory, the rows it made in its last learned frames whatever its trail, is no loop
+    # candidate; the map keeps it, so a restart, an eviction or a switch of mode keeps it too (§11.6).
+    stm = model.links.short_term_rows(stream)
+    if stm.size:
+        own = OwnTrail.short_term_only(stm) if own is None else own.with_short_term(stm)
     # Bits the stream's recent frames share say what its conditions are, not where it is (§11.10).
     weights = None if st.condition is None else st.condition.weights(
         winners, model.cells_per_column(), float(model.links.localiser.conf["condition_discount"]))
     ranked = model.index.rank(winners, model.links.candidates_wanted(top_k),
-                              exclude_own=None if own is None else (stream, own.here), weights=weights)
+                              exclude_own=None if own is None or not own.has_trail else (stream, own.here),
+                              weights=weights)
     t_ranked = time.perf_counter()
     place = model.links.step(st.localiser, ranked, own, not flat)
     visit, joined, dropped, touched = None, -1, (), []
@@ -229,15 +236,20 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             visit = links.consolidation(place.place, code, code_of)
             confident = place.is_revisit(threshold)
             mine = own is not None and visit is not None and bool(own.holds(links.graph, [visit])[0])
-            if visit is not None and not confident and (place.confidence < threshold / 2 or mine):
-                # unconfident: it needs some sequence evidence, and never a row the stream has not left
+            trail = visit is not None and st.own_seq is not None and bool(
+                links.graph.trail[visit] == links.graph.trail[st.own_seq])
+            unsure = not confident and (place.confidence < threshold / 2 or trail)
+            if visit is not None and (mine or unsure):
+                # never into the stream's own recent rows (its short-term memory, or a row it has not
+                # left); unconfident, it needs some sequence evidence, and never a row of the trail it is
+                # laying (just behind its short-term memory a path in step with it is an echo, §11.6)
                 visit = None
             if visit is not None or confident:
                 links.touch(place.seq, seq)  # a learning stream used the place (§11.9)
                 touched.append(place.seq)
                 joined = place.place
         if visit is not None:
-            links.visit(prev, visit, seq)
+            links.visit(prev, visit, seq, stream, code)
             touched.append(visit)
             links.visits += 1
         else:

@@ -568,11 +568,22 @@ def eval_slam(
     seeds: Annotated[int, typer.Option(min=1, help="with --grid: the memory over TM seeds 1..N")] = 1,
     localiser: Annotated[str, typer.Option(help='the maps\' localiser options as JSON, e.g. '
                                                 '\'{"condition_frames": 0}\'')] = "",
+    suite: Annotated[bool, typer.Option(help="the stress suite instead (service/evaluation/stress.py): "
+                                             "every window of both halves, 3 seeds")] = False,
+    quick: Annotated[bool, typer.Option(help="with --suite: one window, four cases, two seeds")] = False,
 ) -> None:
     """Loop closure while mapping on routes made from the Nordland halves, or the grid world's loops
-    (service/evaluation/slam.py)."""
+    (service/evaluation/slam.py); `--suite`: the loop-closure stress suite (service/evaluation/stress.py)."""
     from service.evaluation import slam
 
+    if suite:
+        from service.evaluation import stress
+
+        if data is None:
+            raise typer.BadParameter("--suite needs --data (the Nordland folder)")
+        stress.suite_runs(data=data, quick=quick, backbone=backbone, json_path=json_out,
+                          localiser=_json_object(localiser, "--localiser"))
+        return
     try:
         slam.slam_runs(data=data, half=half, routes=routes or ",".join(slam.ROUTES), methods=methods,
                        thresholds=[float(t) for t in thresholds.split(",") if t], tolerance=tolerance,

@@ -52,12 +52,16 @@ def _model(n_rows: int, feature_dim: int, *, backbone: str, preset: str, seed: i
 def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: str, seed: int,
                 memory: str = "tm", localiser: dict[str, Any] | None = None,
                 create: dict[str, Any] | None = None, contrast: np.ndarray | None = None,
-                progress: Callable[[int, int], None] | None = None) -> tuple[OnlineAnswers, float]:
+                progress: Callable[[int, int], None] | None = None,
+                trace: dict[str, Any] | None = None) -> tuple[OnlineAnswers, float]:
     """A whole route as ONE learning stream (every frame learned, `models.pipeline.observe` as the map
     writer calls it): loop closure while mapping (docs/design/science.md §11.6).
 
     Args:
         feats: (T, D) backbone features in driven order (all laps). Other arguments as `replay`.
+        trace: filled, where given, with what the map made of the frames: "row_frame" (R,) the frame
+            each made row came from (row seq - 1), "row_place" (R,) each row's place id at the end,
+            "visit" (T,) the row a consolidated frame went into (-1: it made a row).
 
     Returns:
         (answers over the route's own frames: best = the frame the `place` names, -1 in warm-up;
@@ -70,6 +74,7 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
                                    memory=memory, localiser=localiser, create=create)
     robot, codes, frame_of = Stream(), {}, {}
     best, confidence, support = np.full(T, -1, np.int64), np.zeros(T), np.zeros(T, np.int64)
+    visit = np.full(T, -1, np.int64)
     for i, y in enumerate(hasher.project(feats)):  # a consolidated frame makes no row (§11.8)
         seq = len(codes) + 1
         step = observe(model, robot, y, learn=True, stream="robot", top_k=0, seq=seq,
@@ -77,11 +82,18 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
                        contrast=_at(contrast, i))
         if step.visit is None:
             codes[seq], frame_of[seq] = step.code, i
+        else:
+            visit[i] = step.visit
         if step.place is not None:
             best[i], confidence[i] = frame_of[step.place.seq], _decided(step.place)
             support[i] = step.place.support
         if progress:
             progress(i + 1, T)
+    if trace is not None:
+        seqs = np.array(sorted(frame_of), np.int64)
+        trace["row_frame"] = np.array([frame_of[q] for q in seqs], np.int64)
+        trace["row_place"] = model.links.graph.place[seqs].astype(np.int64)
+        trace["visit"] = visit
     return OnlineAnswers(best, confidence, support, np.zeros((0, T))), config.revisit_threshold
 
 

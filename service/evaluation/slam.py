@@ -188,6 +188,20 @@ def grid(folder: Path, thresholds: list[float], seeds: int = 1) -> dict[str, Any
     return out
 
 
+def encoder_setup(backbone: str | None, localiser: dict[str, Any] | None
+                  ) -> tuple[Encoder, Path, dict[str, Any]]:
+    """(the encoder of `backbone`, default the service's; the feature cache; the maps' keywords of
+    `service_path.slam_replay` and `replay` but the seed: the service's preset, `localiser`)."""
+    from service.encoder import resolve_backbone  # the service's own resolution of its default
+
+    settings = Settings.from_env()
+    backbone = backbone or resolve_backbone(settings).backbone
+    enc = Encoder({"backbone": backbone, "resize": "squash"})
+    cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
+    return enc, cache, {"encoder_id": enc.identity, "backbone": backbone, "preset": settings.default_preset,
+                        "localiser": localiser}
+
+
 def slam_runs(*, data: Path | None = None, half: str = "tune", routes: str = ",".join(ROUTES),
               methods: str = "service-slam,service-slam-without-tm,service,openseqslam",
               thresholds: list[float] | None = None, tolerance: int = 1, rate: float = 0.001,
@@ -216,20 +230,13 @@ def slam_runs(*, data: Path | None = None, half: str = "tune", routes: str = ","
         if args.json:
             args.json.write_text(json.dumps(found) + "\n")
         return
-    from service.encoder import resolve_backbone  # the service's own resolution of its default
-
-    settings = Settings.from_env()
-    backbone = args.backbone or resolve_backbone(settings).backbone
-    enc = Encoder({"backbone": backbone, "resize": "squash"})
-    cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
     if args.data is None:
         raise ValueError("--data (or --grid) is required")
+    enc, cache, map_conf = encoder_setup(args.backbone, localiser)
     frames = Frames(args.data, args.half, enc, cache)
-    map_conf = {"encoder_id": enc.identity, "backbone": backbone, "preset": settings.default_preset,
-                "seed": args.seed, "create": {"slsbh": {"adapt_tau": adapt_tau}} if adapt_tau else None,
-                "localiser": localiser}
-    result: dict[str, Any] = {"config": {**{k: str(v) for k, v in vars(args).items()}, "backbone": backbone},
-                              "routes": {}}
+    map_conf |= {"seed": args.seed, "create": {"slsbh": {"adapt_tau": adapt_tau}} if adapt_tau else None}
+    result: dict[str, Any] = {"config": {**{k: str(v) for k, v in vars(args).items()},
+                                         "backbone": map_conf["backbone"]}, "routes": {}}
     for name in args.routes.split(","):
         r = route(frames, name)
         result["routes"][name] = evaluate(r, args.methods.split(","), map_conf, args.thresholds,

@@ -54,15 +54,18 @@ def test_a_revisit_of_a_learned_route_answers_its_rows(tmp_path):
 
 
 def test_a_learning_stream_localises_against_what_was_stored_before(tmp_path):
+    # a lap longer than the stream's short-term memory (docs/design/science.md §11.6)
+    route = list(range(30))
     with make_client(tmp_path / "data") as c:
-        first = learn_route(c)
-        again = [post(c, frame(p, noise=3.0), stream="mapper", top_k=0).json() for p in ROUTE]
+        first = learn_route(c, route)
+        again = [post(c, frame(p, noise=3.0), stream="mapper", top_k=0).json() for p in route]
     late = [(b["place"], first[i]) for i, b in enumerate(again) if i >= WARMUP + 1]
     assert all(p is not None and p["seq"] == want for p, want in late), late
     # The stream's null led through the first traverse (nothing stored yet was a match): confidence
     # has to be earned again over the second (docs/design/science.md §11.5).
     conf = [p["confidence"] for p, _ in late]
-    assert conf == sorted(conf) and conf[-1] > conf[0] + 0.5
+    rising = conf[:8]  # (once sure, it stays sure: small moves near 1)
+    assert rising == sorted(rising) and min(conf[8:]) > conf[0] + 0.5
 
 
 def test_patch_revisit_threshold_is_durable_and_checked(tmp_path):

@@ -339,8 +339,9 @@ class MapRuntime:
         self.covered, self.since_snapshot = done.covered, 0
         dropped = self.store.dropped()
         self.model.index.rebuild(r for r in self.store.rows() if r.seq not in dropped)
-        self.model.links.rebuild(self.store.rows(), dropped, self.store.joined(),
-                                 ((v.context_prev_seq, v.seq, v.after_seq + 1) for v in self.store.visits()),
+        visits = ((v.context_prev_seq, v.seq, v.after_seq + 1, v.stream, v.input_sdr)
+                  for v in self.store.visits())
+        self.model.links.rebuild(self.store.rows(), dropped, self.store.joined(), visits,
                                  self.store.recency())
         if self.budget is not None:
             self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)

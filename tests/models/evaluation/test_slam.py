@@ -19,6 +19,19 @@ def test_a_revisit_needs_the_run_to_have_left_the_place():
     assert not t[30:36].any() and t[50:].all()
 
 
+def test_one_pass_has_no_true_revisit_at_any_frame_rate_and_a_loop_needs_the_run_to_go_away():
+    """The truth is defined on the route (issue 35): a frame is a true revisit only after the route went
+    more than `AWAY` labels away and came back, whatever the frame rate; a loop shorter than that is no
+    revisit (the service's short-term memory, docs/design/science.md §11.6, does not close it)."""
+    for rate in (1, 3, 10):
+        one_pass = np.repeat(np.arange(200), rate)  # each place posted `rate` times
+        assert not slam.revisit_truth(one_pass, 1).any()
+        lap = np.repeat(np.arange(40), rate)
+        assert slam.revisit_truth(np.r_[lap, lap], 1)[lap.size:].all()
+    short = np.arange(slam.AWAY + 1)  # back at the start having gone AWAY labels away: not yet gone
+    assert not slam.revisit_truth(np.r_[short, short], 1).any()
+
+
 def test_score_counts_false_revisits_per_lap_and_recall_of_true_ones():
     n = 40  # long enough that every lap-2 frame was left (AWAY labels) before it comes back
     labels, laps = np.r_[np.arange(n), np.arange(n)], np.r_[np.zeros(n, int), np.ones(n, int)]

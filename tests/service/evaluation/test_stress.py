@@ -1,0 +1,62 @@
+"""The loop-closure stress suite (service/evaluation/stress.py, issue 35): its `--quick` part on a real
+Nordland window, through the service's path at the service's defaults and a new map's seed (42) beside
+the evaluations' (1). Skips without ../shared/data."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from models.evaluation import datasets
+from service.cli import app
+from service.evaluation import stress
+
+NORDLAND = datasets.nordland_dir()
+
+
+@pytest.fixture(autouse=True)
+def _tiny_default_preset():
+    """The suite measures the service's defaults: the map preset too, not the tiny one of the other
+    service tests (tests/service/conftest.py)."""
+needs_data = pytest.mark.skipif(not (NORDLAND / "summer").is_dir(), reason=f"no Nordland data at {NORDLAND}")
+
+
+def test_merges_count_places_whose_rows_show_other_labels_and_frames_consolidated_elsewhere() -> None:
+    labels = np.array([0, 1, 2, 30, 31, 3])
+    trace = {"row_frame": np.array([0, 1, 2, 3, 4]), "row_place": np.array([1, 1, 3, 1, 5]),
+             "visit": np.array([-1, -1, -1, -1, -1, 3])}  # rows 1, 2 and 4 one place; frame 5 into row 3
+    assert stress.merges(labels, trace) == {"merged_places": 1, "wrong_consolidations": 0}
+    trace["visit"][5] = 1  # frame 5 (label 3) into row 1 (label 0): another place
+    assert stress.merges(labels, trace)["wrong_consolidations"] == 1
+
+
+def test_every_case_builds_its_route_and_the_windows_cover_both_halves(tmp_path) -> None:
+    assert list(stress.windows(True)) == [("tune", 100)]
+    full = list(stress.windows(False))
+    assert len(full) == 14 and full[0] == ("tune", 0) and full[-1] == ("test", 1494)
+    with pytest.raises(ValueError, match="unknown case"):
+        stress.route(None, "nope", 0)  # type: ignore[arg-type]
+
+
+@needs_data
+def test_the_quick_suite_maps_without_a_false_revisit_or_a_merged_place_and_closes_real_loops(tmp_path):
+    """One robot mapping while it drives: a slower robot (each frame 3 times) and a low-texture stretch
+    make no false revisit and merge no places (before the short-term memory: 3-14 false revisits and
+    5-53 merged places per such run, docs/results.md §10.11); a short loop and a noisy second lap still
+    close, at precision 1."""
+    out = tmp_path / "quick.json"
+    r = CliRunner().invoke(app, ["eval", "slam", "--suite", "--quick", "--data", str(NORDLAND),
+                                 "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    summary = json.loads(out.read_text())["summary"]
+    assert set(summary) == set(stress.QUICK_CASES)
+    for case, per_method in summary.items():
+        s = per_method["service-slam"]
+        assert s["runs"] == len(stress.QUICK_SEEDS)
+        assert s["false_revisits"] == 0 and s["merged_places"] == 0, (case, s)
+    for case in ("short-loop", "noise"):
+        s = summary[case]["service-slam"]
+        assert s["precision_worst"] >= 0.99 and s["recall_worst"] >= 0.5, (case, s)
