@@ -10,7 +10,7 @@ beyond that pass (benchmarks/bench_index.py, docs/benchmarks.md).
 
 from __future__ import annotations
 
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
@@ -19,7 +19,7 @@ import numpy as np
 from models.localisation.graph import NONE, SequenceGraph
 from models.localisation.index import Match
 from models.localisation.localiser import LocaliserState, Place, SequenceLocaliser
-from models.localisation.short_term import ShortTerm
+from models.localisation.short_term import KEPT, ShortTerm
 from models.localisation.trail import CodeStats, OwnTrail, code_dice
 
 __all__ = ["Localisation", "graph_from_rows"]
@@ -54,7 +54,8 @@ class Localisation:
         self.short_term = int(self.localiser.conf["short_term"])
         self.used = np.zeros(0, np.int64)
         self._last_row: dict[str, int] = {}  # each stream's last made row (its trail goes on from there)
-        self._short: dict[str, ShortTerm] = {}  # each stream's short-term memory (§11.6)
+        # each stream's short-term memory (§11.6), the KEPT most recently learning streams', oldest first
+        self._short: OrderedDict[str, ShortTerm] = OrderedDict()
         self.held = 0  # rows held (not dropped)
         self.visits = 0  # consolidated frames seen since the map was loaded
 
@@ -78,7 +79,7 @@ class Localisation:
         self.graph = SequenceGraph()
         self.codes.rebuild([])
         self.used = np.zeros(0, np.int64)
-        self._last_row, self._short, self.held = {}, {}, 0
+        self._last_row, self._short, self.held = {}, OrderedDict(), 0
         joined = joined or {}
         gone = set(dropped)
         # Rows and visits in the order they were learned (a visit's clock is its `after_seq` + 1), so each
@@ -145,6 +146,9 @@ class Localisation:
         memory = self._short.get(stream)
         if memory is None:
             memory = self._short[stream] = ShortTerm(self.short_term)
+            if len(self._short) > KEPT:
+                self._short.popitem(last=False)
+        self._short.move_to_end(stream)
         code = np.asarray(code, np.int64)
         b = self.codes.background(code)
         memory.step(row, code, b + float(self.localiser.conf["departure"]) * (1.0 - b))

@@ -26,6 +26,7 @@ import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from models.localisation.graph import NONE, SequenceGraph
+from models.localisation.short_term import ShortTerm
 from models.localisation.trail import UNKNOWN, CodeStats, OwnTrail, own_trail
 from models.presets import check_section
 
@@ -272,11 +273,15 @@ class SequenceLocaliser:
         return int(self.conf["beam"]) * HYPOTHESIS_BYTES
 
     def stream_bytes(self, code_width: int) -> int:
-        """Bytes one stream holds in a map at most: its state (`state_bytes`) and, with
-        `condition_frames`, its condition over a code of `code_width` bits (docs/design/science.md
-        §11.10: the rates, width float64, and the last code taken in, at most width int64)."""
+        """Bytes one stream holds in a map at most: its state (`state_bytes`), with `condition_frames`
+        its condition over a code of `code_width` bits (docs/design/science.md §11.10: the rates, width
+        float64, and the last code taken in, at most width int64), and with `short_term` its short-term
+        memory (§11.6, `ShortTerm.nbytes`)."""
         condition = 8 * (2 * int(code_width) + 2) if int(self.conf["condition_frames"]) else 0
-        return self.state_bytes() + condition
+        moves = int(self.conf["short_term"])
+        # the map keeps the memories of up to KEPT (twice the default stream cap) streams: two per stream
+        short = 2 * ShortTerm.nbytes(moves, code_width) if moves else 0
+        return self.state_bytes() + condition + short
 
     def new_state(self) -> LocaliserState:
         """An empty state for one stream (`beam` hypotheses)."""

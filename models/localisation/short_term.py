@@ -13,23 +13,26 @@ and frames of other streams do not age it either. A learned frame consolidated i
 
 from __future__ import annotations
 
-from collections import deque
-
 import numpy as np
 
 from models.localisation.graph import NONE
 from models.localisation.trail import code_dice
 
-__all__ = ["SPAN", "ShortTerm"]
+__all__ = ["KEPT", "SPAN", "ShortTerm"]
 
 #: The most learned frames a stream's memory remembers, as a multiple of its moves: a robot that stays
 #: in one place (its frames all alike) for longer than SPAN x `short_term` learned frames loses the rows
-#: from before its stop from the memory (which bounds it: about 36 bytes a frame).
+#: from before its stop from the memory. It bounds the memory: 8 bytes a frame (`nbytes`).
 SPAN = 50
+#: How many streams' memories a map keeps, the most recently learning first: twice the default
+#: `CORTEXLOC_MAX_STREAMS`, so a stream evicted for another (or renamed back) finds its memory again,
+#: and a map fed a new stream name every drive stays bounded (at most KEPT x `ShortTerm.nbytes`).
+KEPT = 128
 
 
 class ShortTerm:
-    """One stream's short-term memory.
+    """One stream's short-term memory: a ring of its last SPAN x `moves` learned frames, each the row it
+    made (or NONE) and whether it was a move, and the code of its last move (the anchor).
 
     Args:
         moves: how many moves it spans (`LocaliserParams.short_term`, >= 1).
@@ -37,9 +40,15 @@ class ShortTerm:
 
     def __init__(self, moves: int) -> None:
         self.moves = int(moves)
-        # each learned frame: (row made + 1) * 2 + moved, row NONE for a frame that made no row
-        self._frames: deque[int] = deque(maxlen=SPAN * self.moves)
+        # each learned frame: (row made + 1) * 2 + moved (row NONE: a frame that made no row); 0: empty
+        self._frames = np.zeros(SPAN * self.moves, np.int64)
+        self._n = 0  # frames taken in, ever (the ring's write position is _n % size)
         self._anchor: np.ndarray | None = None
+
+    @staticmethod
+    def nbytes(moves: int, code_width: int) -> int:
+        """Bytes one stream's memory holds at most: the ring and an anchor of up to `code_width` bits."""
+        return 8 * (SPAN * int(moves) + int(code_width))
 
     def step(self, row: int, code: np.ndarray, level: float) -> None:
         """One learned frame of the stream: `row` the row it made (NONE: consolidated), `code` (n,) its
@@ -47,18 +56,17 @@ class ShortTerm:
         moved = self._anchor is None or code_dice(code, self._anchor) < level
         if moved:
             self._anchor = np.asarray(code)
-        self._frames.append((int(row) + 1) * 2 + int(moved))
+        self._frames[self._n % self._frames.size] = (int(row) + 1) * 2 + int(moved)
+        self._n += 1
 
     def rows(self) -> np.ndarray:
         """(m,) int64 ascending: the rows made over the last `moves` moves (the frames since the oldest
-        of them, the frames alike to it included)."""
-        out: list[int] = []
-        seen = 0
-        for entry in reversed(self._frames):
-            row, moved = entry // 2 - 1, entry % 2
-            if row != NONE:
-                out.append(row)
-            seen += moved
-            if seen >= self.moves:
-                break
-        return np.asarray(out[::-1], np.int64)
+        of them, the frames alike to it included). O(frames remembered), vectorised."""
+        size = self._frames.size
+        held = min(self._n, size)
+        idx = (self._n - 1 - np.arange(held)) % size  # newest first
+        entries = self._frames[idx]
+        moved = np.cumsum(entries % 2)
+        upto = int(np.searchsorted(moved, self.moves)) + 1  # through the frame of the moves-th move
+        rows = entries[:upto] // 2 - 1
+        return np.sort(rows[rows != NONE])
