@@ -85,9 +85,9 @@ class LocaliserParams(BaseModel):
     # was on in the stream's recent frames), over a time constant of `condition_frames` (0: plain Dice)
     condition_frames: int = Field(100, ge=0, le=100_000)
     condition_discount: float = Field(2.0, ge=0.0, le=100.0)
-    # A stream's short-term memory (§11.6): the rows it made in its last `short_term` learned frames are
-    # never loop candidates, states of its paths or rows its frames are consolidated into, and a path
-    # born while they were is an echo wherever it walks onto the trail (0: none, the rule before issue 35)
+    # A stream's short-term memory (§11.6): the rows it made over its last `short_term` moves are
+    # never loop candidates, states of its paths or rows its frames are consolidated into (0: none, the
+    # rule before issue 35)
     short_term: int = Field(20, ge=0, le=1000)
 
 
@@ -365,7 +365,7 @@ class SequenceLocaliser:
             new_dirs.append(np.full(seqs.size, d, np.int8))
             new_scores.append(np.full(seqs.size, jump))
             new_ages.append(np.ones(seqs.size, np.int64))
-            new_born.append(np.full(seqs.size, len(graph) if own is None else own.born(len(graph)), np.int64))
+            new_born.append(np.full(seqs.size, len(graph), np.int64))
         r = np.concatenate(new_rows)
         d = np.concatenate(new_dirs).astype(np.int8)
         s = np.concatenate(new_scores) + _lookup(ev_rows, ev, r)

@@ -72,12 +72,6 @@ class OwnTrail(NamedTuple):
         """This trail with the stream's short-term memory `rows` (ascending seqs)."""
         return self._replace(short_term=np.asarray(rows, np.int64))
 
-    def born(self, rows: int) -> int:
-        """`born` of a path that starts now, `rows` the map's row count: the oldest row of the stream's
-        short-term memory where it has one, so a path that starts just behind it, on the trail the
-        stream laid, is followed as an echo (`laid_behind`) however far behind it runs."""
-        return int(min(rows, self.short_term[0])) if self.short_term.size else int(rows)
-
     def holds(self, graph: SequenceGraph, rows: np.ndarray) -> np.ndarray:
         """(H,) bool: which of `rows` (H,) lie on this trail between `first` and `last`. A stream's
         rows on one trail are learned in seq order, so it is a range test: O(H)."""
