@@ -18,6 +18,7 @@ from models.localisation import (
 )
 from models.localisation.condition import Condition
 from models.localisation.localiser import evidence
+from models.localisation.short_term import ShortTerm
 from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 
 REVISIT = DEFAULT_REVISIT_THRESHOLD  # the service's default: the answers these tests pin are its decisions
@@ -395,11 +396,14 @@ def test_options_are_normalised_and_the_state_size_is_bounded() -> None:
         v.nbytes for k, v in loc.new_state().to_arrays().items() if k not in ("frames", "null", "here"))
     assert SequenceLocaliser().conf == LocaliserParams().model_dump() == default_conf
     # a stream's condition (§11.10) is at most 2 + 2 width 8-byte values on top, nothing when it is off
-    assert loc.stream_bytes(2048) == loc.state_bytes() + 8 * (2 * 2048 + 2)
+    # and its short-term memory (§11.6), two per stream slot (tests/models/localisation/test_short_term.py)
+    short = 2 * ShortTerm.nbytes(int(default_conf["short_term"]), 2048)
+    assert loc.stream_bytes(2048) == loc.state_bytes() + 8 * (2 * 2048 + 2) + short
     held = Condition(2048, 10)
     held.add(np.arange(0, 2048, 3), 2.0)
     assert held.state().nbytes <= 8 * (2 * 2048 + 2)
-    assert SequenceLocaliser({"condition_frames": 0}).stream_bytes(2048) == SequenceLocaliser().state_bytes()
+    assert SequenceLocaliser({"condition_frames": 0, "short_term": 0}).stream_bytes(2048) == \
+        SequenceLocaliser().state_bytes()
 
 
 def test_graph_links_walks_and_appends() -> None:
