@@ -10,7 +10,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from models import presets
-from models.localisation import HYPOTHESIS_BYTES, SequenceLocaliser
+from models.localisation import HYPOTHESIS_BYTES, SequenceLocaliser, default_conf
+from models.localisation.short_term import ShortTerm
 from models.memory.temporal_memory import planned_bytes
 from service.errors import PROBLEM_MEDIA_TYPE
 from service.maps.config import MapOptions, resolve
@@ -108,7 +109,8 @@ def test_good_localiser_options_serve_and_come_back_after_a_restart(tmp_path):
         m = c.get("/v1/maps/lab").json()
         assert m["state"] == "ready" and m["params"]["localiser"]["beam"] == 4096
         assert m["params"]["localiser"]["move_costs"] == [1.0, 0.0, 1.0]
-        assert post(c, frame(1), map_id="lab", learn="false").json()["place"] is not None
+        # (another robot: the stream that learned them has them in its short-term memory, §11.6)
+        assert post(c, frame(1), map_id="lab", learn="false", stream="other").json()["place"] is not None
 
 
 def test_every_streams_localiser_state_counts_in_the_map_size(tmp_path):
@@ -117,6 +119,8 @@ def test_every_streams_localiser_state_counts_in_the_map_size(tmp_path):
     tm = resolve(MapOptions(), default_preset="cortexloc-default", default_backbone="alexnet").tm
     # each stream also keeps its condition: at most 2 + 2 x columns 8-byte values (science.md §11.10)
     condition = 8 * (2 * tm["columnDimensions"] + 2)
+    # and its short-term memory (§11.6), two per stream slot
+    condition += 2 * ShortTerm.nbytes(int(default_conf["short_term"]), tm["columnDimensions"])
     default_streams = 64 * (SequenceLocaliser().state_bytes() + condition)
     with TestClient(make_app(tmp_path / "data", max_streams=64,
                              max_map_bytes=planned_bytes(tm) + default_streams)) as c:
