@@ -365,7 +365,8 @@ class SequenceLocaliser:
             new_dirs.append(np.full(seqs.size, d, np.int8))
             new_scores.append(np.full(seqs.size, jump))
             new_ages.append(np.ones(seqs.size, np.int64))
-            new_born.append(np.full(seqs.size, len(graph), np.int64))
+            new_born.append(np.full(seqs.size, len(graph), np.int64) if own is None else
+                            own.born(graph, seqs, len(graph), int(c["exclusion"]) // 2))
         r = np.concatenate(new_rows)
         d = np.concatenate(new_dirs).astype(np.int8)
         s = np.concatenate(new_scores) + _lookup(ev_rows, ev, r)

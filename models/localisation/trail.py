@@ -72,6 +72,28 @@ class OwnTrail(NamedTuple):
         """This trail with the stream's short-term memory `rows` (ascending seqs)."""
         return self._replace(short_term=np.asarray(rows, np.int64))
 
+    def born(self, graph: SequenceGraph, rows: np.ndarray, now: int, margin: int) -> np.ndarray:
+        """(H,) `born` of paths that start now on `rows` (H,), `now` the map's row count: the oldest row of
+        the stream's short-term memory for a path that starts on its trail within `margin` links behind
+        that row (just behind the memory: where an echo of it starts, §11.6), so `laid_behind` follows it
+        over the rows it walks onto; `now` for every other."""
+        rows = np.asarray(rows, np.int64)
+        out = np.full(rows.size, int(now), np.int64)
+        if not self.short_term.size or not self.has_trail or not rows.size:
+            return out
+        oldest = int(self.short_term[0])
+        near = (rows < oldest) & (graph.trail[rows] == self.trail)
+        if near.any():
+            behind, row = set(), oldest
+            for _ in range(margin):  # the rows up to `margin` links before the memory's oldest
+                row = int(graph.prev[row])
+                if row < 0 or graph.trail[row] != self.trail:
+                    break
+                behind.add(row)
+            near &= np.isin(rows, np.fromiter(behind, np.int64, len(behind)))
+            out[near] = oldest
+        return out
+
     def holds(self, graph: SequenceGraph, rows: np.ndarray) -> np.ndarray:
         """(H,) bool: which of `rows` (H,) lie on this trail between `first` and `last`. A stream's
         rows on one trail are learned in seq order, so it is a range test: O(H)."""

@@ -41,3 +41,20 @@ def test_the_map_keeps_the_memories_of_the_most_recently_learning_streams_and_co
     assert len(links._short) == KEPT
     with_memory, without = SequenceLocaliser({}), SequenceLocaliser({"short_term": 0})
     assert with_memory.stream_bytes(256) - without.stream_bytes(256) == 2 * ShortTerm.nbytes(20, 256)
+
+
+def test_a_path_that_starts_just_behind_the_memory_is_followed_as_an_echo_and_one_farther_back_is_not():
+    """`OwnTrail.born`: a path born within `margin` links behind the memory's oldest row, on the stream's
+    trail, gets that row as its `born` (so `laid_behind` follows it as it walks on); a path born farther
+    back (a loop a little longer than the memory, driven again in another season) keeps the map's row
+    count, as every path did before the memory."""
+    from models.localisation import SequenceGraph
+    from models.localisation.trail import OwnTrail
+
+    graph = SequenceGraph()
+    for r in range(40):
+        graph.append(r, r - 1 if r else -1)
+    own = OwnTrail(first=30, here=40, last=39, trail=int(graph.trail[39])).with_short_term(np.arange(20, 40))
+    born = own.born(graph, np.array([19, 16, 15, 14, 2, 25]), now=40, margin=5)
+    assert born.tolist() == [20, 20, 20, 40, 40, 40]  # 19..15: 1-5 links behind; 14 and 2 farther
+    assert OwnTrail.short_term_only(np.arange(20, 40)).born(graph, np.array([19]), 40, 5).tolist() == [40]
