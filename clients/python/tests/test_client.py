@@ -252,7 +252,8 @@ def test_ros_stream_names_with_a_slash(client: Client, tiny_map: str, make_frame
 
 def test_a_revisit_names_its_place(client: Client, tiny_map: str, make_frame) -> None:
     seqs = _drive_a_route(client, tiny_map, make_frame, 12)
-    answers = [client.observe(tiny_map, make_frame(place), learn=False) for place in range(9)]
+    # another robot (the stream that learned the route has it in its short-term memory, science §11.6)
+    answers = [client.observe(tiny_map, make_frame(place), learn=False, stream="query") for place in range(9)]
     assert answers[0].place is None  # a stream's first frame claims nothing (warm-up)
     place = answers[-1].place
     assert isinstance(place, models.Place)

@@ -148,7 +148,7 @@ def _answer(place: dict | None) -> Observation:
 def test_a_verified_loop_closure_carries_the_relative_pose_of_the_services_g2o_export():
     from types import SimpleNamespace
 
-    from service.maps.closures import g2o_edge
+    from service.maps.closures import g2o_lines
 
     a = 0.3
     R = [[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]]
@@ -163,7 +163,8 @@ def test_a_verified_loop_closure_carries_the_relative_pose_of_the_services_g2o_e
     assert doc["place_stamp"] == {"sec": 12, "nanosec": 500000000}
     assert doc["place_pose"] == {"x": 1.0, "y": 2.0, "yaw": 0.1, "frame_id": "odom"}
     assert doc["pose"]["x"] == 1.5 and doc["confidence"] == 0.95 and doc["verified"] is True
-    edge = g2o_edge(SimpleNamespace(verification=place["verification"], seq=9, place_seq=4))
+    edge = g2o_lines(SimpleNamespace(verification=place["verification"], seq=9, place_seq=4, id=1,
+                                     consolidated_into=None, metadata=None))
     want = [float(v) for v in edge.split()[3:10]]  # x y z qx qy qz qw
     rel = doc["relative_pose"]
     got = [rel["position"][k] for k in "xyz"] + [rel["orientation"][k] for k in "xyzw"]
