@@ -1,7 +1,7 @@
 """The Temporal Memory against BrainBlocks 0.7.1, like for like, in one run (issue 25; `make bench`).
 
 Run: `python benchmarks/bench_tm_peer.py [--steps 5000] [--rounds 3] [--before REF ...]
-[--peer-python /tmp/bbenv/bin/python] [--quick]`.
+[--peer-python .venv-peer/bin/python] [--quick]`.
 
 Setup (the issue's): 2048 columns x 4 cells, 40 active columns, NuPIC's thresholds (activation 13,
 20 new synapses; preset `numenta-defaults`) with 32 segments x 32 synapses per cell, `--steps` learning
@@ -9,8 +9,9 @@ steps on a never-repeating random SDR sequence; and the service preset (`cortexl
 columns). The peer is BrainBlocks' SequenceLearner with the same sizes (num_c 2048, num_spc 4, num_dps 32,
 num_rpd 32, d_thresh 13, permanences in BrainBlocks' 0..99 scale: connected 50, +10, -10), fed the same
 sequence through a BlankBlock, timed per step (BlankBlock + SequenceLearner feedforward). BrainBlocks is a
-peer, not a dependency: it runs in its own environment (`--peer-python`, built from the sdist with cmake,
-g++, pybind11 and setuptools < 72) through a subprocess. Without it the peer row says why.
+peer, not a dependency: it runs in its own environment (`--peer-python`; `make .venv-peer/.installed`
+builds it from the sdist with cmake, g++, pybind11 and setuptools < 72, and `make bench` does first)
+through a subprocess. Without it the peer row says why.
 
 Both sides run in child processes, `--rounds` rounds of: this tree's memory, the memory of each commit
 `--before REF` (`git archive`, for a before/after in the same run), then BrainBlocks, in reverse order
@@ -179,7 +180,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=5000)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--before", nargs="*", default=[], help="also time these commits' memory (main ...)")
-    ap.add_argument("--peer-python", type=Path, default=Path("/tmp/bbenv/bin/python"))
+    ap.add_argument("--peer-python", type=Path, default=ROOT / ".venv-peer" / "bin" / "python")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
