@@ -4,6 +4,8 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 RAY_STAMP := $(VENV)/.installed-ray
 ROS_STAMP := $(VENV)/.installed-ros
+PEER := .venv-peer
+PEER_STAMP := $(PEER)/.installed
 
 .PHONY: install install-gpu install-ros test lint run bench bench-quick clean
 
@@ -31,6 +33,17 @@ $(ROS_STAMP): $(STAMP) clients/ros2/setup.py
 
 install-ros: $(ROS_STAMP)
 
+# BrainBlocks 0.7.1, the Temporal Memory's peer in benchmarks/bench_tm_peer.py (docs/benchmarks.md §12), so
+# that `make bench` writes the memory's ratio with its reference measured in the same run. A peer, not a
+# dependency: its own environment, built from the sdist with cmake and g++, which needs `wheel` and
+# pybind11's CMake files (and setuptools < 72 for its setup.py).
+$(PEER_STAMP):
+	$(PYTHON) -m venv $(PEER) || python3 -m venv $(PEER)
+	$(PEER)/bin/pip install --quiet 'setuptools<72' wheel pybind11 numpy
+	CMAKE_PREFIX_PATH=$$($(PEER)/bin/python -m pybind11 --cmakedir) \
+		$(PEER)/bin/pip install --quiet --no-build-isolation brainblocks==0.7.1
+	touch $(PEER_STAMP)
+
 install: $(STAMP)
 
 # CUDA for the encoder (CORTEXLOC_DEVICE=cuda|auto): onnxruntime-gpu replaces the CPU wheel, since both
@@ -48,11 +61,11 @@ test: $(RAY_STAMP) $(ROS_STAMP) lint
 run: install
 	$(BIN)/cortexloc serve
 
-bench: $(RAY_STAMP)
+bench: $(RAY_STAMP) $(PEER_STAMP)
 	$(BIN)/python benchmarks/run_all.py
 
 bench-quick: $(RAY_STAMP)
 	$(BIN)/python benchmarks/run_all.py --quick
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache
+	rm -rf $(VENV) $(PEER) .pytest_cache .ruff_cache

@@ -1,6 +1,7 @@
 """The Temporal Memory against BrainBlocks 0.7.1, like for like, in one run (issue 25; `make bench`).
 
-Run: `python benchmarks/bench_tm_peer.py [--steps 5000] [--peer-python /tmp/bbenv/bin/python] [--quick]`.
+Run: `python benchmarks/bench_tm_peer.py [--steps 5000] [--rounds 3] [--before REF ...]
+[--peer-python .venv-peer/bin/python] [--quick]`.
 
 Setup (the issue's): 2048 columns x 4 cells, 40 active columns, NuPIC's thresholds (activation 13,
 20 new synapses; preset `numenta-defaults`) with 32 segments x 32 synapses per cell, `--steps` learning
@@ -8,25 +9,31 @@ steps on a never-repeating random SDR sequence; and the service preset (`cortexl
 columns). The peer is BrainBlocks' SequenceLearner with the same sizes (num_c 2048, num_spc 4, num_dps 32,
 num_rpd 32, d_thresh 13, permanences in BrainBlocks' 0..99 scale: connected 50, +10, -10), fed the same
 sequence through a BlankBlock, timed per step (BlankBlock + SequenceLearner feedforward). BrainBlocks is a
-peer, not a dependency: it runs in its own environment (`--peer-python`, built from the sdist with cmake,
-g++, pybind11 and setuptools < 72) through a subprocess. Without it the peer row says why.
+peer, not a dependency: it runs in its own environment (`--peer-python`; `make .venv-peer/.installed`
+builds it from the sdist with cmake, g++, pybind11 and setuptools < 72, and `make bench` does first)
+through a subprocess. Without it the peer row says why.
 
-Reported: median and p90 ms/step of each, the ratio cortexloc / BrainBlocks of the medians, measured one
-after the other in this run, and where the service preset's step goes (`service_breakdown`;
-docs/benchmarks.md §12).
+Both sides run in child processes, `--rounds` rounds of: this tree's memory, the memory of each commit
+`--before REF` (`git archive`, for a before/after in the same run), then BrainBlocks, in reverse order
+every other round, so that what else the shared cores run weighs on all alike. Reported: each side's
+median ms/step per round and the median over the rounds, and the ratio cortexloc / BrainBlocks as the
+median of the per-round ratios (each round's two medians measured minutes apart at most); and where the
+service preset's step goes (`service_breakdown`; docs/benchmarks.md §12).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _common import quick_mode, write_json  # also puts the repo on sys.path
+from _common import ROOT, quick_mode, write_json  # also puts the repo on sys.path
 
 from models.evaluation.bench import bench_tm, random_sequence
 
@@ -55,6 +62,58 @@ for x in job["seqs"]:
     times.append(time.perf_counter() - t0)
 print(json.dumps({"times": times}))
 """
+
+
+# Runs in a child with the memory under test first on sys.path: prints bench_tm's result as JSON.
+OURS = """
+import json, sys
+from models.evaluation.bench import bench_tm
+print(json.dumps(bench_tm(**json.loads(sys.argv[1]))))
+"""
+
+
+def bench_ours(models_root: Path, steps: int) -> dict[str, Any]:
+    """`bench_tm` like for like in a child process importing `models` from `models_root`."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(models_root), str(ROOT)])}
+    proc = subprocess.run([sys.executable, "-c", OURS, json.dumps({"steps": steps, **LIKE_FOR_LIKE})],
+                          env=env, cwd=models_root, capture_output=True, text=True, timeout=1800, check=True)
+    return json.loads(proc.stdout)
+
+
+def side_by_side(steps: int, rounds: int, peer_python: Path, before: list[str]) -> dict[str, Any]:
+    """`rounds` interleaved rounds of this tree, each `before` commit and the peer (see the docstring)."""
+    with tempfile.TemporaryDirectory(prefix="cortexloc-tm-peer-") as tmp:
+        roots = {"cortexloc": ROOT}
+        for ref in before:
+            dest = Path(tmp) / ref.replace("/", "_")
+            dest.mkdir()
+            archive = subprocess.run(["git", "-C", str(ROOT), "archive", ref, "models"],
+                                     capture_output=True, check=True).stdout
+            subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+            roots[f"before ({ref})"] = dest
+        runs: dict[str, list[dict[str, Any]]] = {name: [] for name in [*roots, "brainblocks"]}
+        for r in range(rounds):
+            order = [*roots, "brainblocks"]
+            for name in order if r % 2 == 0 else order[::-1]:
+                got = (bench_peer(peer_python, steps) if name == "brainblocks"
+                       else bench_ours(roots[name], steps))
+                runs[name].append(got)
+                ms = got.get("ms_per_step_median")
+                print(f"round {r + 1}/{rounds} {name}: " + (f"{ms:.3f} ms/step" if ms else got["error"]),
+                      flush=True)
+    out: dict[str, Any] = {}
+    peer_ok = all("error" not in g for g in runs["brainblocks"])
+    for name, got in runs.items():
+        if "error" in got[0]:
+            out[name] = got[0]
+            continue
+        medians = [g["ms_per_step_median"] for g in got]
+        out[name] = {**got[-1], "ms_per_step_median": float(np.median(medians)), "round_medians": medians}
+        if name != "brainblocks" and peer_ok:
+            ratios = [a / b["ms_per_step_median"] for a, b in zip(medians, runs["brainblocks"], strict=True)]
+            out[name]["round_ratios_over_peer"] = ratios
+            out[name]["ratio_over_peer"] = float(np.median(ratios))
+    return out
 
 
 def bench_peer(python: Path, steps: int, seed: int = 0) -> dict[str, Any]:
@@ -119,19 +178,28 @@ def service_breakdown(warm: int = 300, steps: int = 60, seed: int = 0) -> dict[s
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--steps", type=int, default=5000)
-    ap.add_argument("--peer-python", type=Path, default=Path("/tmp/bbenv/bin/python"))
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--before", nargs="*", default=[], help="also time these commits' memory (main ...)")
+    ap.add_argument("--peer-python", type=Path, default=ROOT / ".venv-peer" / "bin" / "python")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     steps = 300 if quick_mode(args.quick) else args.steps
-    ours = bench_tm(steps=steps, **LIKE_FOR_LIKE)
-    peer = bench_peer(args.peer_python, steps)
+    rounds = 1 if quick_mode(args.quick) else args.rounds
+    sides = side_by_side(steps, rounds, args.peer_python, args.before)
+    ours, peer = sides["cortexloc"], sides["brainblocks"]
     service = bench_tm(steps=max(steps // 5, 100), **SERVICE)
     breakdown = service_breakdown(warm=50 if quick_mode(args.quick) else 300,
                                   steps=10 if quick_mode(args.quick) else 60)
-    ratio = (ours["ms_per_step_median"] / peer["ms_per_step_median"]) if "error" not in peer else None
-    print(f"like for like, {steps} steps: cortexloc {ours['ms_per_step_median']:.3f} ms/step, BrainBlocks "
-          + (f"{peer['ms_per_step_median']:.3f} ms/step, ratio {ratio:.2f}" if ratio else peer["error"]))
+    ratio = ours.get("ratio_over_peer")
+    print(f"like for like, {steps} steps, median of {rounds} rounds: cortexloc "
+          f"{ours['ms_per_step_median']:.3f} ms/step, BrainBlocks "
+          + (f"{peer['ms_per_step_median']:.3f} ms/step, ratio {ratio:.2f} (median of the rounds' ratios)"
+             if ratio else peer["error"]))
+    for name in sides:
+        if name.startswith("before") and "ratio_over_peer" in sides[name]:
+            print(f"  {name}: {sides[name]['ms_per_step_median']:.3f} ms/step, ratio "
+                  f"{sides[name]['ratio_over_peer']:.2f}")
     b = breakdown
     print(f"service preset (308 active): {service['ms_per_step_median']:.3f} ms/step "
           f"(p90 {service['ms_per_step_p90']:.3f}); its step kernel on one saved state: learning "
@@ -139,7 +207,9 @@ def main() -> None:
           f"not learning {b['infer_step_ms']:.2f} ms; activation {b['learn_activity_ms']:.2f} ms; "
           f"{b['learn_overrun_per_step']:.0f} synapses overrun per step")
     path = write_json("tm_peer.json", {"like_for_like": ours, "brainblocks": peer,
-                                       "ratio_cortexloc_over_peer": ratio, "service_preset": service,
+                                       "ratio_cortexloc_over_peer": ratio, "rounds": rounds,
+                                       "before": {k: v for k, v in sides.items() if k.startswith("before")},
+                                       "service_preset": service,
                                        "service_breakdown": breakdown},
                       args.out)
     print(f"wrote {path}")

@@ -164,8 +164,8 @@ def _layout(params: dict[str, Any]) -> dict[str, tuple[int, Any, int]]:
         "blk_fill": (n_blocks, np.int32, 0),
         "tail": (cells, np.int64, -1),
         "pool": (1, np.int64, 0),
-        # Packed counts and stamp of `_tm_kernels.activity`: 32 bits while a count fits 8 bits.
-        "seg_act": (n_seg, np.uint32 if int(params["maxSynapsesPerSegment"]) < 256 else np.int64, 0),
+        # Packed counts and stamp of `_tm_kernels.activity` (the word `count_bits` was written for).
+        "seg_act": (n_seg, np.uint16 if k < 64 else np.uint32 if k < 256 else np.int64, 0),
         "epoch": (1, np.int64, 0),
         "matching": (n_seg, np.int32 if n_seg < 2**31 else np.int64, 0),
         "mask_active": (cells, np.bool_, 0),
