@@ -28,6 +28,7 @@ stands in for it.
 from __future__ import annotations
 
 import argparse
+import functools
 import multiprocessing
 import shutil
 import tempfile
@@ -45,6 +46,7 @@ from models.frontend import slsbh
 from models.localisation.index import InvertedIndex
 from models.memory.temporal_memory import TemporalMemory
 from service.maps.encoding.encoders import Encoders
+from service.maps.errors import MapUnavailable
 from service.maps.recovery import memory as recovery
 from service.settings import Settings
 from storage import snapshots
@@ -134,8 +136,25 @@ def build(data_dir: Path, n: int, short_tail: int, long_tail: int, seed: int = 0
     return {"observations": n, "build_s": build_s, "snapshots_at": sorted(snaps_at)}
 
 
+def first_answer(rt: Any, t0: float) -> tuple[float, int]:
+    """Seconds from `t0` until a localising frame is answered through the map's writer (what a client's
+    first `learn=false` post waits for, the encoding aside), and how many tries were refused first."""
+    assert rt.hasher is not None
+    probe = np.random.Generator(np.random.PCG64(1)).normal(size=rt.hasher.k).astype(np.float32)
+    refused = 0
+    while True:
+        try:
+            rt.submit(functools.partial(rt.apply, probe, "0" * 64, learn=False, stream="bench-probe",
+                                        top_k=5)).result()
+            return time.perf_counter() - t0, refused
+        except MapUnavailable:
+            refused += 1
+            time.sleep(0.01)
+
+
 def open_once(data_dir: Path) -> dict[str, Any]:
-    """`MapRegistry.start()` on the data directory, with the time of each recovery phase."""
+    """`MapRegistry.start()` on the data directory, with the time of each recovery phase, the time to the
+    first localising answer and the time until the map learns again (its tail replayed)."""
     timer = PhaseTimer()
     timer.wrap(registry_mod, "warm_up", "kernel warm-up (numba cache load)")
     timer.wrap(slsbh, "load_projection", "projection load + SHA-256")
@@ -152,17 +171,24 @@ def open_once(data_dir: Path) -> dict[str, Any]:
         reg = registry_mod.MapRegistry(data_dir, Encoders.one(StubEncoder()), settings_for(data_dir))
         reg.start()
         total = time.perf_counter() - t0
+        rt = reg.get("default")
+        answered_s, refused = first_answer(rt, t0)
+        while rt.state != "ready":  # the tail still replaying: learning posts are refused meanwhile
+            time.sleep(0.01)
+        learning_s = time.perf_counter() - t0
     finally:
         timer.undo()
-    rt = reg.get("default")
-    state, replayed = rt.state, timer.calls.get("replay (TM steps, verified)", 0)
+    # The probe's own TM step is not a replayed one.
+    state, replayed = rt.state, timer.calls.get("replay (TM steps, verified)", 0) - 1
     observations = len(rt.index)
     rss = rss_mib() - rss0
     # Close without the shutdown snapshot, so the next scenario finds the same snapshots.
     rt.close(snapshot=False)
     reg.catalog.close()
     replay_s = timer.seconds.get("replay (TM steps, verified)", 0.0)
-    return {"start_s": total, "state": state, "observations": observations, "replayed": replayed,
+    return {"start_s": total, "first_answer_s": answered_s, "learning_s": learning_s,
+            "refused_before_answer": refused, "recovery": rt.recovery, "state": state,
+            "observations": observations, "replayed": replayed,
             "replay_ms_per_step": replay_s / replayed * 1e3 if replayed else None,
             "phases_s": {k: round(v, 4) for k, v in timer.seconds.items()},
             "rss_growth_mib": round(rss, 1)}
@@ -224,7 +250,8 @@ def main() -> None:
                 r = {"scenario": name, **ex.submit(open_once, data_dir).result()}
             scenarios.append(r)
             ph = r["phases_s"]
-            print(f"{name:>11}: start {r['start_s']:.2f} s, replayed {r['replayed']} "
+            print(f"{name:>11}: start {r['start_s']:.2f} s, first localising answer "
+                  f"{r['first_answer_s']:.2f} s, learning {r['learning_s']:.2f} s, replayed {r['replayed']} "
                   f"({(r['replay_ms_per_step'] or 0):.2f} ms/step), state {r['state']}; phases (s) "
                   + ", ".join(f"{k} {v:.2f}" for k, v in ph.items()), flush=True)
         write_json(args.out.name, {
