@@ -64,6 +64,7 @@ from service.maps.runtime.budget import MemoryBudget, index_row_bytes
 from service.maps.runtime.durability import GroupCommit
 from service.maps.runtime.recent import RecentAnswers
 from storage import snapshots
+from storage.base.dtypes import INDEX_DTYPE
 from storage.catalog import Catalog, MapRecord, utc_now
 from storage.mapstore import MapStore, NewClosure, NewObservation, NewVisit, StorageFull, StoreCorrupt
 
@@ -78,6 +79,9 @@ FORGETTING = ("when the rows held reach max_rows, the least recently used places
 #: map serves (well under a second at 5-13 ms a step); a longer one while it serves localising frames
 #: from the snapshot's memory (docs/design/service.md §4.4).
 TAIL_BEFORE_SERVING = 50
+#: Stored rows' codes the writer keeps for the own-trail rule and consolidation (`_code_of`), the most
+#: recently used: about one read per frame, of a row committed moments before (1.2 MB at 308 columns).
+CODES_KEPT = 256
 
 log = logging.getLogger("cortexloc.runtime")
 T = TypeVar("T")
@@ -165,6 +169,7 @@ class MapRuntime:
         # their order, their persistence and their snapshots.
         self.model = map_model(self.config, max_observations=max_observations)
         self.store: MapStore | None = None
+        self._codes: OrderedDict[int, np.ndarray] = OrderedDict()  # seq -> its stored code (`_code_of`)
         self.recent: RecentAnswers[Any] = RecentAnswers()  # the replies as sent (the route fills it)
 
     @property
@@ -348,6 +353,7 @@ class MapRuntime:
         if self.hasher is None:
             self._fail("projection-invalid", self._projection_error or "no projection")
             return
+        self._codes.clear()  # a restore's store holds other rows under later seqs
         if self.layout.snapshots_dir(self.map_id).is_dir():  # a crash during a snapshot leaves a temp dir
             snapshots.remove_stale_temp(self.layout.snapshots_dir(self.map_id))
         try:
@@ -678,6 +684,7 @@ class MapRuntime:
             committed = self.store.append(dataclasses.replace(row, closure=closure), durable=durable)
             commit_ms = (time.perf_counter() - t_commit) * 1e3
             assert committed == seq  # this thread is the store's only writer
+            self._keep_code(seq, step.code.astype(INDEX_DTYPE))  # as the store gives it back
             self._committed()
         if learn and self.budget is not None and (step.visit is not None or step.dropped):
             # the row reserved before the step was not made, or its place dropped rows (§11.9)
@@ -729,11 +736,23 @@ class MapRuntime:
         return dataclasses.replace(place, verification=v, revisit=revisit)
 
     def _code_of(self, seq: int) -> np.ndarray:
-        """Writer: a stored row's frame code (its sLSBH input SDR), for the own-trail rule (§11.6)."""
+        """Writer: a stored row's frame code (its sLSBH input SDR), for the own-trail rule (§11.6) and
+        consolidation (§11.8): kept from its commit (`CODES_KEPT`), else read from the store (the same
+        values: the code is stored exactly)."""
+        code = self._codes.get(seq)
+        if code is not None:
+            self._codes.move_to_end(seq)
+            return code
         assert self.store is not None
         row = self.store.get(seq)
         assert row is not None  # the rule walks the stream's committed rows
+        self._keep_code(seq, row.input_sdr)
         return row.input_sdr
+
+    def _keep_code(self, seq: int, code: np.ndarray) -> None:
+        self._codes[seq] = code
+        if len(self._codes) > CODES_KEPT:
+            self._codes.popitem(last=False)
 
     # ------------------------------------------------------------------ resources
 
