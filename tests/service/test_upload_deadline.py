@@ -18,8 +18,7 @@ import httpx
 import pytest
 import uvicorn
 
-from service.limits import HEAD_MAX_BYTES
-from service.server import ProblemH11Protocol
+from service.server import ProblemHttpToolsProtocol
 from service.settings import ConfigError, Settings
 from tests.service.helpers import frame, make_app
 
@@ -36,8 +35,8 @@ def live(tmp_path) -> Iterator[str]:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, http=ProblemH11Protocol,
-                                           h11_max_incomplete_event_size=HEAD_MAX_BYTES, lifespan="on",
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, http=ProblemHttpToolsProtocol,
+                                           lifespan="on",
                                            log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
