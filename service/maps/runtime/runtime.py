@@ -30,7 +30,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -66,7 +66,15 @@ from service.maps.runtime.recent import RecentAnswers
 from storage import snapshots
 from storage.base.dtypes import INDEX_DTYPE
 from storage.catalog import Catalog, MapRecord, utc_now
-from storage.mapstore import MapStore, NewClosure, NewObservation, NewVisit, StorageFull, StoreCorrupt
+from storage.mapstore import (
+    MapStore,
+    NewClosure,
+    NewObservation,
+    NewVisit,
+    Observation,
+    StorageFull,
+    StoreCorrupt,
+)
 
 __all__ = ["FORGETTING", "TAIL_BEFORE_SERVING", "MapRuntime"]
 
@@ -447,10 +455,18 @@ class MapRuntime:
         """The index and links from the stored rows (docs/design/service.md §4.4 step 6)."""
         assert self.store is not None
         dropped = self.store.dropped()
-        self.model.index.rebuild(r for r in self.store.rows() if r.seq not in dropped)
-        self.model.links.rebuild(self.store.rows(), dropped, self.store.joined(),
+        held: list[_Held] = []
+
+        def rows() -> Iterator[Observation]:  # the rows read once, for the links and the index (issue 40)
+            for r in self.store.rows():  # type: ignore[union-attr]
+                if r.seq not in dropped:
+                    held.append(_Held(r.seq, r.winner_cells, r.stream))
+                yield r
+
+        self.model.links.rebuild(rows(), dropped, self.store.joined(),
                                  ((v.context_prev_seq, v.seq, v.after_seq + 1) for v in self.store.visits()),
                                  self.store.recency())
+        self.model.index.rebuild(held)
         if self.budget is not None:
             self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
 
@@ -799,6 +815,14 @@ class MapRuntime:
         return sizes.memory_info(self.model, self.streams, tm_params=self.config.tm,
                                  max_streams=self.max_streams, projection=self.projection_path,
                                  store=self.store, snapshots_bytes=self.catalog.snapshots_bytes(self.map_id))
+
+
+class _Held(NamedTuple):
+    """What the index is rebuilt from of a row held (`InvertedIndex.rebuild`)."""
+
+    seq: int
+    winner_cells: np.ndarray
+    stream: str
 
 
 def _sha256(data: bytes) -> str:
