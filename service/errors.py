@@ -266,6 +266,8 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
     maps_errors.InvalidConfiguration: DomainProblem(422, "invalid-configuration", ("errors",)),
     maps_errors.InvalidCamera: DomainProblem(422, "invalid-metadata", ("errors",)),
     maps_errors.MapUnavailable: DomainProblem(503, "map-unavailable", ("state", "state_reason")),
+    maps_errors.MapReplaying: DomainProblem(503, "map-unavailable", (
+        "state", "state_reason", "steps", "replayed", "retry_after")),
     maps_errors.ShardUnavailable: DomainProblem(503, "map-unavailable", ("map_id", "shard", "retry_after")),
     maps_errors.Overloaded: DomainProblem(503, "overloaded", ("retry_after",), {"Retry-After": "1"}),
     maps_errors.EncoderUnavailable: DomainProblem(503, "not-ready", ("retry_after",)),

@@ -24,10 +24,9 @@ JSON bodies (`application/json` or `application/*+json`). 413, 408 and 503 respo
 `cortexloc_upload_inflight_bytes` (reserved now) and `cortexloc_upload_refusals_total{reason}`
 (`too-large`, `timeout`, `budget`).
 
-The request line and headers are limited to `HEAD_MAX_BYTES` (16 KiB, h11's own limit, which
-`cortexloc serve` passes to uvicorn): h11 enforces it only while a head is incomplete, so a larger head
-that arrives in one read would get through; here it is refused whatever the segmentation, with the
-same 400 `invalid-parameter` that `service.server.ProblemH11Protocol` writes in the other case.
+The request line and headers are limited to `HEAD_MAX_BYTES` (16 KiB): the protocol `cortexloc serve`
+runs (`service.server.ProblemHttpToolsProtocol`) refuses a longer head as it parses it; here it is
+refused too (an app served by another server, the test client), with the same 400 `invalid-parameter`.
 """
 
 from __future__ import annotations

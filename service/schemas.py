@@ -71,7 +71,7 @@ class MapModel(_Out):
 
     map_id: str
     created_at: str
-    state: Literal["ready", "recovering", "failed"]
+    state: Literal["ready", "replaying", "recovering", "failed"]
     state_reason: str | None
     preset: str | None
     params: MapParams  # type: ignore[valid-type]

@@ -1,17 +1,21 @@
 """What `cortexloc serve` runs uvicorn with, below the app: the HTTP/1.1 protocol.
 
-uvicorn answers a request it cannot parse (a malformed request line, or a request line plus
-headers larger than h11's incomplete-event limit, `service.limits.HEAD_MAX_BYTES`) itself, before the
-app sees anything, with a text/plain 400. `ProblemH11Protocol` is uvicorn's h11 protocol with only
-that answer replaced by the service's problem+json (docs/design/service.md §2), so every error has one shape.
-(uvicorn picks httptools when it is installed; it is not a dependency here, and `serve` names this
-protocol explicitly.)
+uvicorn's httptools protocol (the C parser llhttp: issue 40 measured h11's pure-Python parsing as a
+large part of the event loop's ~3.5 ms of CPU per image, docs/benchmarks.md §10.1), with what the
+service needs below the app:
 
-It also bounds how long a request's head may take: a connection that has not completed a request head
-within `CORTEXLOC_BODY_TIMEOUT_S` of opening (or of its previous reply) is answered 408
-`request-timeout` and closed. uvicorn bounds only an idle keep-alive connection (5 s, reset by any byte),
-so a client sending its headers a byte at a time would otherwise hold the connection for ever (the body
-is bounded by `service.limits`, docs/design/service.md §3).
+- uvicorn answers a request it cannot parse (a malformed request line or header) itself, before the
+  app sees anything, with a text/plain 400. `ProblemHttpToolsProtocol` replaces only that answer by the
+  service's problem+json (docs/design/service.md §2), so every error has one shape.
+- A request head still incomplete past `service.limits.HEAD_MAX_BYTES` (16 KiB) is refused with the
+  same 400 problem+json: llhttp has no limit of its own, nor uvicorn's httptools protocol, so a client
+  could otherwise make the server buffer megabytes of header. A longer head that completes within one
+  read reaches the app, whose upload-limit middleware refuses it the same way (`service.limits`).
+- It bounds how long a request's head may take: a connection that has not completed a request head
+  within `CORTEXLOC_BODY_TIMEOUT_S` of opening (or of its previous reply) is answered 408
+  `request-timeout` and closed. uvicorn bounds only an idle keep-alive connection (5 s, reset by any
+  byte), so a client sending its headers a byte at a time would otherwise hold the connection for ever
+  (the body is bounded by `service.limits`, docs/design/service.md §3).
 """
 
 from __future__ import annotations
@@ -19,21 +23,22 @@ from __future__ import annotations
 import asyncio
 import json
 
-import h11
-from uvicorn.protocols.http.h11_impl import DEFAULT_MAX_INCOMPLETE_EVENT_SIZE, H11Protocol
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from service.errors import PROBLEM_MEDIA_TYPE, problem_body
+from service.limits import HEAD_MAX_BYTES
 from service.request_ids import REQUEST_ID_HEADER, new_request_id
 from service.settings import Settings
 
-__all__ = ["ProblemH11Protocol"]
+__all__ = ["ProblemHttpToolsProtocol"]
 
 
-class ProblemH11Protocol(H11Protocol):
-    """uvicorn's h11 protocol; unparseable requests get a 400 `invalid-parameter` problem+json, and a head
-    that does not arrive in time a 408 (see the module docstring)."""
+class ProblemHttpToolsProtocol(HttpToolsProtocol):
+    """uvicorn's httptools protocol; unparseable requests and heads over `HEAD_MAX_BYTES` get a 400
+    `invalid-parameter` problem+json, and a head that does not arrive in time a 408 (module docstring)."""
 
     _head_timer: asyncio.TimerHandle | None = None
+    _in_head, _head_bytes = True, 0  # the current message's head is unfinished; bytes read since it began
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
@@ -48,6 +53,27 @@ class ProblemH11Protocol(H11Protocol):
             self._head_timer.cancel()
         super().connection_lost(exc)
 
+    # ---------------------------------------------------------------- the head's size
+
+    def data_received(self, data: bytes) -> None:
+        # Bytes since the message began while its head is unfinished: a head still incomplete past the
+        # limit is refused. One that completes within a read reaches the app, which checks its size.
+        if self._in_head:
+            self._head_bytes += len(data)
+        super().data_received(data)
+        if self._in_head and self._head_bytes > HEAD_MAX_BYTES and not self.transport.is_closing():
+            self.send_400_response(f"the request head is over {HEAD_MAX_BYTES} bytes")
+
+    def on_headers_complete(self) -> None:
+        self._in_head = False
+        super().on_headers_complete()
+
+    def on_message_complete(self) -> None:
+        self._in_head, self._head_bytes = True, 0
+        super().on_message_complete()
+
+    # ---------------------------------------------------------------- the head's time
+
     def _await_head(self) -> None:
         if self._head_timer is not None:
             self._head_timer.cancel()
@@ -61,29 +87,23 @@ class ProblemH11Protocol(H11Protocol):
             return
         if cycle is not None and not getattr(cycle, "response_complete", True):
             return  # a request is being served
-        rid = new_request_id()
         detail = f"no complete request head within {timeout:g} s"
-        body = json.dumps(problem_body(408, "request-timeout", detail, instance=f"urn:uuid:{rid}",
-                                       request_id=rid, timeout_s=timeout, received_bytes=0)).encode()
-        # Written as bytes: h11 sends no response to a request it has not seen.
-        self.transport.write(b"HTTP/1.1 408 Request Timeout\r\ncontent-type: " + PROBLEM_MEDIA_TYPE.encode()
-                             + b"\r\ncontent-length: %d\r\nconnection: close\r\n" % len(body)
-                             + REQUEST_ID_HEADER.lower().encode() + b": " + rid.encode() + b"\r\n\r\n" + body)
-        self.transport.close()
+        self._answer(408, "Request Timeout", "request-timeout", detail, timeout_s=timeout, received_bytes=0)
 
     def send_400_response(self, msg: str) -> None:
-        limit = self.config.h11_max_incomplete_event_size or DEFAULT_MAX_INCOMPLETE_EVENT_SIZE
-        rid = new_request_id()
         detail = (f"the request could not be parsed as HTTP/1.1: a malformed request line or header, or a "
-                  f"request line and headers larger than {limit} bytes")
-        # The path is unknown (the request line may be what failed), so the instance names the occurrence.
-        body = json.dumps(problem_body(400, "invalid-parameter", detail, instance=f"urn:uuid:{rid}",
-                                       request_id=rid, errors=[{"location": "header", "name": "",
-                                                                "message": msg}])).encode()
-        headers = [(b"content-type", PROBLEM_MEDIA_TYPE.encode()),
-                   (b"content-length", str(len(body)).encode()), (b"connection", b"close"),
-                   (REQUEST_ID_HEADER.lower().encode(), rid.encode())]
-        for event in (h11.Response(status_code=400, headers=headers, reason=b"Bad Request"),
-                      h11.Data(data=body), h11.EndOfMessage()):
-            self.transport.write(self.conn.send(event))
+                  f"request line and headers larger than {HEAD_MAX_BYTES} bytes")
+        self._answer(400, "Bad Request", "invalid-parameter", detail,
+                     errors=[{"location": "header", "name": "", "message": msg}])
+
+    def _answer(self, status: int, reason: str, slug: str, detail: str, **members: object) -> None:
+        """Write a problem+json answer as bytes and close: no request was parsed to answer. The path is
+        unknown (the request line may be what failed), so the instance names the occurrence."""
+        rid = new_request_id()
+        body = json.dumps(problem_body(status, slug, detail, instance=f"urn:uuid:{rid}", request_id=rid,
+                                       **members)).encode()
+        self.transport.write(b"HTTP/1.1 %d %s\r\ncontent-type: " % (status, reason.encode())
+                             + PROBLEM_MEDIA_TYPE.encode()
+                             + b"\r\ncontent-length: %d\r\nconnection: close\r\n" % len(body)
+                             + REQUEST_ID_HEADER.lower().encode() + b": " + rid.encode() + b"\r\n\r\n" + body)
         self.transport.close()

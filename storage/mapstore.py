@@ -574,6 +574,12 @@ class MapStore:
         with self._lock:
             return self._count
 
+    def count_after(self, seq: int) -> int:
+        """Number of stored observations with a seq above `seq` (a recovery's tail after a snapshot)."""
+        with self._lock:
+            return int(self._db().execute("SELECT count(*) FROM observations WHERE seq > ?",
+                                          (int(seq),)).fetchone()[0])
+
     def last_seq(self) -> int:
         """Highest stored seq (0 when empty); the seq floor is not counted."""
         with self._lock:

@@ -67,12 +67,10 @@ def serve(
     import uvicorn
 
     from service.app import create_app
-    from service.limits import HEAD_MAX_BYTES
-    from service.server import ProblemH11Protocol
+    from service.server import ProblemHttpToolsProtocol
 
     # loop="asyncio": the `ray` extra installs uvloop, which uvicorn would otherwise pick; the single
     # process keeps the loop it is tested and measured with, whatever extras are installed.
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, workers=1, lifespan="on",
-                log_level=settings.log_level.lower(), http=ProblemH11Protocol, loop="asyncio",
-                h11_max_incomplete_event_size=HEAD_MAX_BYTES)
+                log_level=settings.log_level.lower(), http=ProblemHttpToolsProtocol, loop="asyncio")
 

@@ -16,8 +16,8 @@ from storage.snapshots import SnapshotInvalid
 
 __all__ = ["EncoderUnavailable", "IdempotencyKeyReused", "InsufficientStorage", "InvalidConfiguration",
            "InvalidMapId", "MapAlreadyExists", "MapError", "MapFull", "MapLimit", "MapNotFound",
-           "MapTooLarge", "MapUnavailable", "MemoryBudgetExceeded", "ObservationNotFound", "Overloaded",
-           "RecentAnswerNotFound", "ShardUnavailable", "SnapshotInUse", "SnapshotInvalid",
+           "MapReplaying", "MapTooLarge", "MapUnavailable", "MemoryBudgetExceeded", "ObservationNotFound",
+           "Overloaded", "RecentAnswerNotFound", "ShardUnavailable", "SnapshotInUse", "SnapshotInvalid",
            "SnapshotNotFound", "StoreClosed", "StreamLimit"]
 
 
@@ -37,6 +37,19 @@ class MapUnavailable(MapError):  # noqa: N818
     def __init__(self, map_id: str, state: str, state_reason: str | None) -> None:
         super().__init__(f"map {map_id!r} is {state}" + (f" ({state_reason})" if state_reason else ""))
         self.state, self.state_reason = state, state_reason
+
+
+class MapReplaying(MapUnavailable):
+    """The map is `replaying` the rows and visits after its snapshot at a start (docs/design/service.md
+    §4.4): localising frames are answered meanwhile; what learns is refused until about `retry_after`
+    seconds from now (the steps left at the pace so far)."""
+
+    def __init__(self, map_id: str, steps: int, replayed: int, retry_after: int) -> None:
+        super().__init__(map_id, "replaying", None)
+        self.args = (f"map {map_id!r} is replaying the {steps} rows and visits after its last snapshot "
+                     f"({replayed} done): localising frames are answered, learning resumes in about "
+                     f"{retry_after} s",)
+        self.steps, self.replayed, self.retry_after = steps, replayed, retry_after
 
 
 class MapFull(MapError):  # noqa: N818

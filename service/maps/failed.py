@@ -50,7 +50,7 @@ class FailedMap:
         """`fn(*args)` in a worker thread (there is no writer: nothing here changes the map)."""
         return await asyncio.to_thread(fn, *args)
 
-    def require_ready(self) -> None:
+    def require_ready(self, learns: bool = True) -> None:
         raise MapUnavailable(self.map_id, self.state, self.state_reason)
 
     def close(self, snapshot: bool = True) -> None:

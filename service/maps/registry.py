@@ -179,7 +179,7 @@ class MapRegistry:
                       config.encoder_id, encoder.identity_for(config.resize))
             return rt
         try:
-            rt.recover()
+            rt.recover(serve_during_replay=True)  # a long tail replays while the map localises (§4.4)
         except BaseException:
             rt.close(snapshot=False)  # its writer thread and store
             raise

@@ -31,7 +31,7 @@ async def list_loop_closures(
 ) -> LoopClosureList:
     """The revisits streams were told of, oldest first: learning streams' with the row that saw them."""
     rt = registry.get(map_id)
-    rt.require_ready()
+    rt.require_ready(learns=False)
     assert rt.store is not None
     found = await anyio.to_thread.run_sync(closures.page, rt.store, after, limit)
     return LoopClosureList(loop_closures=[LoopClosureModel.from_result(c) for c in found],
@@ -51,7 +51,7 @@ async def export_loop_closures(
     both poses where given, the geometric verification and relative pose where the map keeps keyframes
     (`closures.EXPORT_COLUMNS`); or, as g2o, the verified ones with a pose (`closures.g2o_lines`)."""
     rt = registry.get(map_id)
-    rt.require_ready()
+    rt.require_ready(learns=False)
     assert rt.store is not None
     # Rendered whole first: a failure is an error answer, never a 200 with a short body.
     spool = await anyio.to_thread.run_sync(closures.render, rt.store, format)

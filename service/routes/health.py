@@ -9,8 +9,9 @@ iff no check fails: 200 `{"status": "ready", "checks": ..., "warnings": [...]}`,
 - `encoder`: loaded, with its weights (`pretrained` + SHA-256, or `random` + seed: `warn`, or `fail`
   when `CORTEXLOC_ALLOW_RANDOM_WEIGHTS=false`), and the runtime and device its backbone runs on;
 - `maps`: the state of each map in `app.state.maps` (objects with `state`, `state_reason`, `recovery`
-  and `snapshot_error`): ready iff none is `recovering`; `failed` maps, recoveries that passed over
-  snapshots or rows, and failed automatic snapshots are warnings. With `CORTEXLOC_API_KEY_READS` the
+  and `snapshot_error`): ready iff none is `recovering`; `failed` maps, maps `replaying` their tail
+  (they localise, learning waits), recoveries that passed over snapshots or rows, and failed automatic
+  snapshots are warnings. With `CORTEXLOC_API_KEY_READS` the
   probe stays open but names no map: it gives the counts by state (map ids are reads that need the key);
 - `catalog`: once the map registry started, its catalog's own check (`Catalog.check`); if the registry
   could not start, `app.state.registry_error` says why (a failure).
@@ -104,6 +105,10 @@ def check_maps(maps: dict[str, Any], named: bool = True) -> Check:
             notes.append(f"map {map_id} recovered by {recovery.get('source')} after passing over "
                          f"{len(skipped)} snapshot(s) (a damaged snapshot, or one whose replay diverged), "
                          f"{recovery.get('mismatches', 0)} row(s) not reproduced")
+        if m.state == "replaying":  # answers localising frames; learning waits (docs/design/service.md §4.4)
+            states[map_id]["recovery"] = recovery  # `tail` steps, `replayed` so far
+            notes.append(f"map {map_id} is replaying the rows after its snapshot: localising frames are "
+                         "answered, learning ones get 503 until it is done")
         if snap_error:
             states[map_id]["snapshot_error"] = snap_error
             notes.append(f"map {map_id}: automatic snapshot failed at seq {snap_error.get('seq')}: "

@@ -229,7 +229,7 @@ async def post_observation(
                       errors=[{"location": "query", "name": "top_k", "message": f"<= {settings.max_top_k}"}])
     meta = parse_metadata(metadata) if metadata is not None else None
     rt = registry.get(map_id)
-    rt.require_ready()
+    rt.require_ready(learn)  # a localising frame is answered while a tail replays
     media = (request.headers.get("content-type") or "").split(";")[0].strip().lower()
     if media not in IMAGE_MEDIA_TYPES:
         raise Problem(415, "unsupported-media-type", f"Content-Type {media or '(none)'!r} is not accepted",
@@ -339,7 +339,7 @@ async def list_observations(
 ) -> StoredObservationList:
     """Stored observations in seq order, without their codes (a map's trajectory, from the poses)."""
     rt = registry.get(map_id)
-    rt.require_ready()
+    rt.require_ready(learns=False)
     assert rt.store is not None
     found = await anyio.to_thread.run_sync(stored.page, rt.store, after_seq, limit)
     return StoredObservationList(observations=[StoredObservationModel.from_result(o) for o in found],
@@ -350,7 +350,7 @@ async def list_observations(
             responses=problem_responses(404, 503))
 async def get_observation(map_id: MapId, seq: Seq, registry: RegistryDep) -> StoredObservationModel:
     rt = registry.get(map_id)
-    rt.require_ready()
+    rt.require_ready(learns=False)
     assert rt.store is not None
     found = await anyio.to_thread.run_sync(stored.observation, map_id, rt.store, seq)
     return StoredObservationModel.from_result(found)
@@ -362,7 +362,7 @@ async def get_observation(map_id: MapId, seq: Seq, registry: RegistryDep) -> Sto
 async def get_thumbnail(map_id: MapId, seq: Seq, registry: RegistryDep) -> Response:
     """The small JPEG kept with a learned observation of a map made with `thumbnails: true`."""
     rt = registry.get(map_id)
-    rt.require_ready()
+    rt.require_ready(learns=False)
     assert rt.store is not None
     jpeg = await anyio.to_thread.run_sync(stored.thumbnail, map_id, rt.store, seq)
     return Response(jpeg, media_type="image/jpeg")

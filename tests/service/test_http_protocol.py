@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 
 from service.errors import PROBLEM_MEDIA_TYPE
 from service.limits import HEAD_MAX_BYTES
-from service.server import ProblemH11Protocol
+from service.server import ProblemHttpToolsProtocol
 from tests.service.helpers import frame, make_client
 
 
@@ -113,14 +113,14 @@ def test_readyz_reports_the_damaged_snapshots_recovery_skipped(tmp_path):
 
 
 def test_unparseable_requests_get_problem_json_from_the_protocol():
-    # uvicorn answers these itself, before the app; `cortexloc serve` runs it with ProblemH11Protocol.
+    # uvicorn answers these itself, before the app; `cortexloc serve` runs it with ProblemHttpToolsProtocol.
     async def app(scope, receive, send):  # never reached by the requests below
         raise AssertionError("the app saw an unparseable request")
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, http=ProblemH11Protocol,
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, http=ProblemHttpToolsProtocol,
                                            lifespan="off", log_level="critical"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
@@ -128,10 +128,12 @@ def test_unparseable_requests_get_problem_json_from_the_protocol():
         deadline = time.monotonic() + 30
         while not server.started and time.monotonic() < deadline:
             time.sleep(0.02)
-        # Headers past h11's 16 KiB limit (refused once that much arrived without the blank line that
-        # ends them), and a malformed header line.
+        # Headers past the 16 KiB limit still unfinished (a whole one reaches the app, which refuses it:
+        # test_oversized_headers_are_refused_however_they_arrive), a malformed header line, a malformed
+        # request line.
         for raw in (b"GET / HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 40_000,
-                    b"GET / HTTP/1.1\r\nHost: x\r\nno colon in this header\r\n\r\n"):
+                    b"GET / HTTP/1.1\r\nHost: x\r\nno colon in this header\r\n\r\n",
+                    b"GET /\x00 HTTP/1.1\r\nHost: x\r\n\r\n"):
             with socket.create_connection(("127.0.0.1", port), timeout=10) as conn:
                 conn.sendall(raw)
                 reply = b""
@@ -155,13 +157,13 @@ def test_the_serve_command_uses_the_problem_protocol(monkeypatch, tmp_path):
     monkeypatch.setattr(uvicorn, "run", lambda app, **kw: seen.update(kw))
     monkeypatch.setenv("CORTEXLOC_DATA_DIR", str(tmp_path))
     cli.serve(host=None, port=0, data_dir=None)
-    assert seen["http"] is ProblemH11Protocol and seen["h11_max_incomplete_event_size"] == HEAD_MAX_BYTES
+    assert seen["http"] is ProblemHttpToolsProtocol
     assert seen["loop"] == "asyncio"  # not uvloop, which the `ray` extra installs (issue 26)
 
 
 def test_oversized_headers_are_refused_however_they_arrive(client):
-    # h11 refuses a head over its limit only while it is incomplete; one that arrives in a single read
-    # reaches the app, which refuses it the same way.
+    # The protocol refuses a head over the limit as it parses it; under the test client (no protocol)
+    # the app refuses it the same way.
     r = client.get("/healthz", headers={"X-Big": "a" * HEAD_MAX_BYTES})
     assert r.status_code == 400 and r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
     assert r.json()["type"].endswith("invalid-parameter") and str(HEAD_MAX_BYTES) in r.json()["detail"]

@@ -16,8 +16,7 @@ import anyio
 import httpx
 import pytest
 
-from service.limits import HEAD_MAX_BYTES
-from service.server import ProblemH11Protocol
+from service.server import ProblemHttpToolsProtocol
 from service.settings import ConfigError, Settings
 from tests.service.helpers import frame, make_app, served
 
@@ -31,7 +30,7 @@ def live(tmp_path) -> Iterator[str]:
     """`cortexloc serve`'s uvicorn (its protocol and head limit) in a thread; yields the base URL."""
     app = make_app(tmp_path / "var", max_upload_bytes=LIMIT, body_timeout_s=DEADLINE_S,
                    max_inflight_upload_bytes=BUDGET)
-    with served(app, http=ProblemH11Protocol, h11_max_incomplete_event_size=HEAD_MAX_BYTES) as base:
+    with served(app, http=ProblemHttpToolsProtocol) as base:
         yield base
 
 

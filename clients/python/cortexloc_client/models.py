@@ -114,7 +114,7 @@ class Map(_Reply):
 
     map_id: str
     created_at: str
-    state: Literal["ready", "recovering", "failed"]
+    state: Literal["ready", "replaying", "recovering", "failed"]
     state_reason: str | None = None
     preset: str
     params: MapParams

@@ -7,11 +7,14 @@ from service.maps.recovery.memory import (
     VISIT_MARK,
     MapCheck,
     Rebuilt,
+    Replay,
+    Tail,
+    begin,
     open_catalog,
     rebuild,
     recover,
     verify_map,
 )
 
-__all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover",
-           "verify_map"]
+__all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "Replay", "Tail", "begin", "open_catalog",
+           "rebuild", "recover", "verify_map"]

@@ -11,10 +11,11 @@ stream resumes its place from the state its last learned step stored (`MapStore.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,8 +33,8 @@ from storage.catalog import Catalog, MapRecord, SnapshotRecord, StorageError
 from storage.layout import Layout
 from storage.mapstore import MapStore, Observation, Visit
 
-__all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "open_catalog", "rebuild", "recover",
-           "verify_map"]
+__all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "Replay", "Tail", "begin", "open_catalog",
+           "rebuild", "recover", "verify_map"]
 
 #: The snapshot array holding the last visit id its memory learned (0 in a snapshot made before visits),
 #: and that visit's `MapStore.visit_mark` (the branch check of visits, as a row's observation id is).
@@ -69,7 +70,7 @@ class Rebuilt:
     replayed_streams: set[str] = field(default_factory=set)
 
 
-def _in_order(rows: Iterable[Observation], visits: Iterable[Visit]) -> Iterable[Observation | Visit]:
+def _in_order(rows: Iterable[Observation], visits: Iterable[Visit]) -> Iterator[Observation | Visit]:
     """Rows (seq order) and visits (log order) merged as they were learned: a visit after the row
     `after_seq` and before the next."""
     pending = iter(visits)
@@ -82,6 +83,58 @@ def _in_order(rows: Iterable[Observation], visits: Iterable[Visit]) -> Iterable[
     while visit is not None:
         yield visit
         visit = next(pending, None)
+
+
+class Replay:
+    """A replay that can run in slices (docs/design/service.md §4.4): `rebuild`'s loop, resumable, so the
+    map's writer can answer localising frames between slices while a recovery's tail replays.
+
+    Args: as `rebuild`'s.
+    """
+
+    def __init__(self, start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Observation],
+                 like: MapModel, *, stop_at_mismatch: bool = True,
+                 progress: Callable[[int], None] | None = None, visits: Iterable[Visit] = ()) -> None:
+        if isinstance(start, TemporalMemory):
+            tm, streams, covered = start, OrderedDict(), 0
+        else:
+            tm, streams = load_memory_state(start, like.adapt_tau, like.condition_frames)
+            covered = int(start.get(VISIT_CURSOR, 0))
+        self.out = Rebuilt(like.fresh(tm), streams, covered=covered)
+        self.stop_at_mismatch, self.progress = stop_at_mismatch, progress
+        self._pending = _in_order(rows, visits)
+        self.finished = False
+
+    def run(self, steps: int | None = None) -> bool:
+        """Replay the next `steps` rows and visits (None: all); True once the replay is over (every row
+        replayed, or a mismatch with `stop_at_mismatch`)."""
+        out = self.out
+        model = out.model
+        for row in self._pending if steps is None else itertools.islice(self._pending, steps):
+            st = out.streams.get(row.stream)
+            if st is None:
+                st = out.streams[row.stream] = Stream()
+            out.streams.move_to_end(row.stream)  # most recently used last, as the live map keeps them
+            out.replayed_streams.add(row.stream)
+            prev = row.context_prev_seq
+            if isinstance(row, Visit):
+                winners = pipeline.revisit(model, st, row.input_sdr, row=row.seq, prev_seq=prev)
+                out.visits += 1
+            else:
+                winners = pipeline.replay(model, st, row.input_sdr, seq=row.seq, prev_seq=prev)
+                out.replayed += 1
+                out.last_seq = row.seq
+            if not np.array_equal(winners, row.winner_cells):
+                out.mismatches.append(row.seq)
+                if self.stop_at_mismatch:
+                    self.finished = True
+                    return True
+            if self.progress is not None:
+                self.progress(out.replayed)
+            steps = None if steps is None else steps - 1
+        # islice stopped early only when its count ran out; otherwise the rows are exhausted
+        self.finished = steps is None or steps > 0
+        return self.finished
 
 
 def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Observation], like: MapModel, *,
@@ -109,33 +162,9 @@ def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Obs
     Returns:
         The rebuilt memory (empty index and links), and what the replay found.
     """
-    if isinstance(start, TemporalMemory):
-        tm, streams, covered = start, OrderedDict(), 0
-    else:
-        tm, streams = load_memory_state(start, like.adapt_tau, like.condition_frames)
-        covered = int(start.get(VISIT_CURSOR, 0))
-    model = like.fresh(tm)
-    out = Rebuilt(model, streams, covered=covered)
-    for row in _in_order(rows, visits):
-        st = out.streams.get(row.stream)
-        if st is None:
-            st = out.streams[row.stream] = Stream()
-        out.streams.move_to_end(row.stream)  # most recently used last, as the live map keeps them
-        out.replayed_streams.add(row.stream)
-        if isinstance(row, Visit):
-            winners = pipeline.revisit(model, st, row.input_sdr, row=row.seq, prev_seq=row.context_prev_seq)
-            out.visits += 1
-        else:
-            winners = pipeline.replay(model, st, row.input_sdr, seq=row.seq, prev_seq=row.context_prev_seq)
-            out.replayed += 1
-            out.last_seq = row.seq
-        if not np.array_equal(winners, row.winner_cells):
-            out.mismatches.append(row.seq)
-            if stop_at_mismatch:
-                break
-        if progress is not None:
-            progress(out.replayed)
-    return out
+    replay = Replay(start, rows, like, stop_at_mismatch=stop_at_mismatch, progress=progress, visits=visits)
+    replay.run()
+    return replay.out
 
 
 def _snapshot_start(store: MapStore, catalog: Catalog, rec: SnapshotRecord
@@ -165,7 +194,61 @@ def _snapshot_start(store: MapStore, catalog: Catalog, rec: SnapshotRecord
     return m, memory
 
 
-def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> tuple[Rebuilt, dict[str, Any]]:
+@dataclass
+class Tail:
+    """A recovery begun at a snapshot, its replay of the rows and visits after it not yet run (`begin`):
+    the map localises from the replay's memory while the writer runs it in slices (§4.4), then `recover`
+    finishes it.
+
+    Attributes:
+        replay: the replay from the snapshot (its `out.model` and `out.streams` are the memory).
+        snapshot_id, snapshot_seq: the snapshot it starts from.
+        steps: rows and visits to replay.
+        tried: the snapshots looked at by `begin` (this one included): a fallback tries the others.
+        skipped: those passed over, and why (the recovery note's `skipped_snapshots`).
+        t0: when the recovery began (`time.perf_counter`).
+    """
+
+    replay: Replay
+    snapshot_id: str
+    snapshot_seq: int
+    steps: int
+    tried: set[str]
+    skipped: list[dict[str, str]]
+    t0: float
+
+
+def _pass_over(map_id: str, snapshot_id: str, reason: str, skipped: list[dict[str, str]]) -> None:
+    skipped.append({"snapshot_id": snapshot_id, "reason": reason})
+    log.warning("map %s: snapshot %s passed over: %s", map_id, snapshot_id, reason)
+
+
+def begin(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> Tail | None:
+    """The newest snapshot of `store` that verifies and loads, as the start of its replay (not run);
+    None when there is none (`recover` then replays from the first row). One from a branch a restore
+    abandoned is skipped silently, a damaged one passed over (`Tail.skipped`)."""
+    t0 = time.perf_counter()
+    tried: set[str] = set()
+    skipped: list[dict[str, str]] = []
+    for rec in catalog.list_snapshots(map_id):
+        tried.add(rec.snapshot_id)
+        try:
+            start = _snapshot_start(store, catalog, rec)
+            if start is None:
+                continue  # from a branch a restore abandoned
+            m, memory = start
+            cursor = int(memory.get(VISIT_CURSOR, 0))
+            replay = Replay(memory, store.rows(after_seq=m.seq), like, visits=store.visits(after_id=cursor))
+        except Exception as e:  # an unusable snapshot is passed over, never fatal
+            _pass_over(map_id, rec.snapshot_id, str(e) or type(e).__name__, skipped)
+            continue
+        steps = store.count_after(m.seq) + max(0, store.visit_stats()[2] - cursor)
+        return Tail(replay, rec.snapshot_id, m.seq, steps, tried, skipped, t0)
+    return None
+
+
+def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel, *,
+            begun: Tail | None = None) -> tuple[Rebuilt, dict[str, Any]]:
     """The memory of `store`: the newest usable snapshot, then a verified replay of the rows after it.
 
     A snapshot that does not verify, cannot be loaded, or whose replay does not reproduce the stored
@@ -179,13 +262,27 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> t
         catalog: lists the map's snapshots, newest first.
         map_id: the map.
         like: the map's model (`rebuild`); its TM's parameters make the fresh memory of the last resort.
+        begun: a recovery `begin` started (its replay run in part, or whole, by the caller): it is
+            finished here, and the snapshots it looked at are not tried again.
 
     Returns:
         (the rebuilt memory, the note the map resource shows as `recovery`).
     """
-    t0 = time.perf_counter()
-    skipped: list[dict[str, str]] = []
-    for rec in catalog.list_snapshots(map_id):
+    t0 = begun.t0 if begun is not None else time.perf_counter()
+    skipped: list[dict[str, str]] = list(begun.skipped) if begun is not None else []
+    done: Rebuilt | None = None
+    if begun is not None:
+        begun.replay.run()
+        if not begun.replay.out.mismatches:
+            done = begun.replay.out
+            note: dict[str, Any] = {"source": "snapshot", "snapshot_id": begun.snapshot_id,
+                                    "snapshot_seq": begun.snapshot_seq}
+        else:
+            _pass_over(map_id, begun.snapshot_id,
+                       f"the replay after it diverged at seq {begun.replay.out.mismatches[0]}", skipped)
+    for rec in catalog.list_snapshots(map_id) if done is None else ():
+        if begun is not None and rec.snapshot_id in begun.tried:
+            continue
         try:
             start = _snapshot_start(store, catalog, rec)
             if start is None:
@@ -197,14 +294,12 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> t
             reason = str(e) or type(e).__name__
         else:
             if not done.mismatches:
-                note: dict[str, Any] = {"source": "snapshot", "snapshot_id": rec.snapshot_id,
-                                        "snapshot_seq": m.seq}
+                note = {"source": "snapshot", "snapshot_id": rec.snapshot_id, "snapshot_seq": m.seq}
                 break
             reason = f"the replay after it diverged at seq {done.mismatches[0]}"
-            del done  # its memory is as large as the map's: free it before the next attempt
-        skipped.append({"snapshot_id": rec.snapshot_id, "reason": reason})
-        log.warning("map %s: snapshot %s passed over: %s", map_id, rec.snapshot_id, reason)
-    else:
+            done = None  # its memory is as large as the map's: free it before the next attempt
+        _pass_over(map_id, rec.snapshot_id, reason, skipped)
+    if done is None:
         done = rebuild(TemporalMemory(like.tm.params), store.rows(), like, stop_at_mismatch=False,
                        visits=store.visits())
         note = {"source": "replay", "mismatches": len(done.mismatches),

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import copy
 import dataclasses
 import functools
 import hashlib
@@ -30,7 +31,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -45,7 +46,14 @@ from models.pipeline import Stream, eviction_wait, memory_state, touch
 from service.maps import keyframes, recovery
 from service.maps.config import MapConfig, map_model
 from service.maps.encoding.pool import EncoderPool
-from service.maps.errors import ClientGone, InsufficientStorage, MapNotFound, MapUnavailable, StreamLimit
+from service.maps.errors import (
+    ClientGone,
+    InsufficientStorage,
+    MapNotFound,
+    MapReplaying,
+    MapUnavailable,
+    StreamLimit,
+)
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import (
     MapInfo,
@@ -64,15 +72,32 @@ from service.maps.runtime.budget import MemoryBudget, index_row_bytes
 from service.maps.runtime.durability import GroupCommit
 from service.maps.runtime.recent import RecentAnswers
 from storage import snapshots
+from storage.base.dtypes import INDEX_DTYPE
 from storage.catalog import Catalog, MapRecord, utc_now
-from storage.mapstore import MapStore, NewClosure, NewObservation, NewVisit, StorageFull, StoreCorrupt
+from storage.mapstore import (
+    MapStore,
+    NewClosure,
+    NewObservation,
+    NewVisit,
+    Observation,
+    StorageFull,
+    StoreCorrupt,
+)
 
-__all__ = ["FORGETTING", "MapRuntime"]
+__all__ = ["FORGETTING", "TAIL_BEFORE_SERVING", "MapRuntime"]
 
 #: The forgetting rule as the map resource states it (docs/design/science.md §11.9).
 FORGETTING = ("when the rows held reach max_rows, the least recently used places (made, visited or joined "
               "by a learning stream) are forgotten whole, at least 1% of max_rows at a time; a place over "
               "max_appearances drops its least recently used appearance")
+
+#: A recovery's tail (rows and visits after its snapshot) of at most this many steps is replayed before the
+#: map serves (well under a second at 5-13 ms a step); a longer one while it serves localising frames
+#: from the snapshot's memory (docs/design/service.md §4.4).
+TAIL_BEFORE_SERVING = 50
+#: Stored rows' codes the writer keeps for the own-trail rule and consolidation (`_code_of`), the most
+#: recently used: about one read per frame, of a row committed moments before (1.2 MB at 308 columns).
+CODES_KEPT = 256
 
 log = logging.getLogger("cortexloc.runtime")
 T = TypeVar("T")
@@ -84,6 +109,8 @@ class MapRuntime:
 
     #: The clock of the streams' last posts (the stream window, §1.3); tests set their own.
     clock: Callable[[], float] = staticmethod(time.monotonic)
+    #: Steps of a tail replay per turn of the writer: a localising frame waits for at most one turn (§4.4).
+    replay_turn_steps = 8
 
     def __init__(self, record: MapRecord, catalog: Catalog,
                  feature_dim: int, max_streams: int, max_observations: int,
@@ -127,6 +154,11 @@ class MapRuntime:
         self.snapshot_error: dict[str, Any] | None = None
         self.snapshot_failures = 0
         self.streams: OrderedDict[str, Stream] = OrderedDict()
+        # A tail replaying while the map localises (`state` "replaying", §4.4): the recovery begun, when its
+        # replay started, and the streams localised or reset meanwhile (theirs are the live states).
+        self._tail: recovery.Tail | None = None
+        self._tail_started = 0.0
+        self._localised: set[str] = set()
         self._writer = ThreadPoolExecutor(1, thread_name_prefix=f"map-{self.map_id}")
         # Learned rows are committed by the writer without their fsync and acknowledged once this has
         # synced them, one fsync per group (service.maps.runtime.durability).
@@ -153,6 +185,7 @@ class MapRuntime:
         # their order, their persistence and their snapshots.
         self.model = map_model(self.config, max_observations=max_observations)
         self.store: MapStore | None = None
+        self._codes: OrderedDict[int, np.ndarray] = OrderedDict()  # seq -> its stored code (`_code_of`)
         self.recent: RecentAnswers[Any] = RecentAnswers()  # the replies as sent (the route fills it)
 
     @property
@@ -217,8 +250,18 @@ class MapRuntime:
         it: docs/design/service.md §4.3)."""
         await asyncio.wrap_future(self._commits.durable())
 
-    def require_ready(self) -> None:
-        """Raises MapUnavailable unless the map is ready."""
+    def require_ready(self, learns: bool = True) -> None:
+        """Raises MapUnavailable unless the map is ready or, for what neither learns nor changes stored
+        state (`learns=False`: a localising frame, a read), replaying its tail (§4.4); MapReplaying (a
+        MapUnavailable with a `retry_after`) for what learns meanwhile."""
+        tail = self._tail
+        if self.state == "replaying" and tail is not None:
+            if learns:
+                done = tail.replay.out.replayed + tail.replay.out.visits
+                per_step = (time.perf_counter() - self._tail_started) / done if done else 0.0
+                raise MapReplaying(self.map_id, tail.steps, done,
+                                   max(1, math.ceil((tail.steps - done) * per_step)))
+            return
         if self.state != "ready":
             raise MapUnavailable(self.map_id, self.state, self.state_reason)
 
@@ -314,13 +357,19 @@ class MapRuntime:
 
     # ------------------------------------------------------------------ recovery
 
-    def recover(self) -> None:
+    def recover(self, *, serve_during_replay: bool = False) -> None:
         """Open the store and rebuild the memory from it (`recovery.recover`, docs/design/service.md §4.4):
         at startup, after a restore, and after a failed commit. What happened is in `self.recovery`
-        (map resource, /readyz) and the log; only an unreadable store or projection fails the map."""
+        (map resource, /readyz) and the log; only an unreadable store or projection fails the map.
+
+        With `serve_during_replay` (at startup) a tail of more than `TAIL_BEFORE_SERVING` steps after the
+        newest usable snapshot is replayed by the writer in turns of `replay_turn_steps`, after this
+        returns: the map is `replaying` meanwhile, localising frames are answered from the memory as far
+        as it has replayed, and what learns is refused (MapReplaying) until the tail is done."""
         if self.hasher is None:
             self._fail("projection-invalid", self._projection_error or "no projection")
             return
+        self._codes.clear()  # a restore's store holds other rows under later seqs
         if self.layout.snapshots_dir(self.map_id).is_dir():  # a crash during a snapshot leaves a temp dir
             snapshots.remove_stale_temp(self.layout.snapshots_dir(self.map_id))
         try:
@@ -332,22 +381,103 @@ class MapRuntime:
         except (StoreCorrupt, StorageFull) as e:  # full (a migration): the file is whole, a restart recovers
             self._fail("disk-full" if isinstance(e, StorageFull) else "database-corrupt", str(e))
             return
-        done, note = recovery.recover(self.store, self.catalog, self.map_id, self.model)
+        tail = None
+        if serve_during_replay:
+            tail = recovery.begin(self.store, self.catalog, self.map_id, self.model)
+        if tail is not None and tail.steps > TAIL_BEFORE_SERVING:
+            self._serve_during(tail)
+            return
+        self._install(*recovery.recover(self.store, self.catalog, self.map_id, self.model, begun=tail))
+
+    def _install(self, done: recovery.Rebuilt, note: dict[str, Any]) -> None:
+        """The recovered memory in place, its index and links built from the rows (unless they already
+        were, for it: a tail replayed while serving); the map is ready."""
+        assert self.store is not None
+        fresh = done.model is not self.model
         self.model, self.streams = done.model, done.streams
         while len(self.streams) > self.max_streams:  # a replay meets every stream that ever learned
             self.streams.popitem(last=False)  # the least recently used go, as `touch` evicts them live
         self.covered, self.since_snapshot = done.covered, 0
-        dropped = self.store.dropped()
-        self.model.index.rebuild(r for r in self.store.rows() if r.seq not in dropped)
-        visits = ((v.context_prev_seq, v.seq, v.after_seq + 1, v.stream, v.input_sdr)
-                  for v in self.store.visits())
-        self.model.links.rebuild(self.store.rows(), dropped, self.store.joined(), visits,
-                                 self.store.recency())
-        if self.budget is not None:
-            self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
+        if fresh:
+            self._rebuild_index()
         self.recovery = note
         self.state, self.state_reason = "ready", None
         log.info("map %s ready: %s", self.map_id, note)
+
+    def _serve_during(self, tail: recovery.Tail) -> None:
+        """Serve localising frames from the tail's start while the writer replays it (`_replay_tail`)."""
+        out = tail.replay.out
+        self.model = out.model
+        self._rebuild_index()  # every stored row is in the index at once: the replay reproduces them
+        # The live streams are copies: the replay steps its own, and a localising frame never moves them.
+        self.streams = copy.deepcopy(out.streams)
+        while len(self.streams) > self.max_streams:
+            self.streams.popitem(last=False)
+        self._tail, self._tail_started, self._localised = tail, time.perf_counter(), set()
+        self.recovery = {"source": "snapshot", "snapshot_id": tail.snapshot_id,
+                         "snapshot_seq": tail.snapshot_seq, "tail": tail.steps, "replayed": 0}
+        self.state, self.state_reason = "replaying", None
+        log.info("map %s localises from snapshot %s while its tail of %d rows and visits replays",
+                 self.map_id, tail.snapshot_id, tail.steps)
+        self.submit(self._replay_tail)
+
+    def _replay_tail(self) -> None:
+        """Writer: one turn of the tail's replay, then the next turn is queued behind the frames that
+        arrived meanwhile; at its end the map is ready (its streams as replayed and resumed, but those
+        localised or reset meanwhile as they are now: their next learned frame starts a new sequence, as
+        after any localisation). A replay that diverges passes the snapshot over as at a start (the map
+        `recovering` until an older start is replayed). A crash meanwhile loses nothing: the replay
+        writes nothing, the next start replays the same tail."""
+        tail = self._tail
+        if tail is None:
+            return
+        try:
+            if not tail.replay.run(self.replay_turn_steps):
+                # how far it is, for the map resource and /readyz (a new dict: they read it on the loop)
+                self.recovery = {**(self.recovery or {}),
+                                 "replayed": tail.replay.out.replayed + tail.replay.out.visits}
+                with contextlib.suppress(RuntimeError):  # the writer shut down: the map closes replaying
+                    self._writer.submit(self._replay_tail)
+                return
+            assert self.store is not None
+            self._tail = None
+            if tail.replay.out.mismatches:
+                self.state, self.state_reason = "recovering", "replay-diverged"
+            live, localised = self.streams, self._localised
+            done, note = recovery.recover(self.store, self.catalog, self.map_id, self.model, begun=tail)
+            if done.model is self.model:
+                for name in localised:
+                    if name in live:
+                        done.streams[name] = live[name]
+                        done.streams.move_to_end(name)
+                    else:  # evicted by the live streams meanwhile
+                        done.streams.pop(name, None)
+            note["replayed_while_serving"] = True
+            self._install(done, note)
+        except Exception as e:  # anything: the map must not stay replaying for ever
+            log.exception("map %s: the tail's replay failed", self.map_id)
+            self._tail = None
+            self._fail("replay-failed", str(e) or type(e).__name__)
+
+    def _rebuild_index(self) -> None:
+        """The index and links from the stored rows (docs/design/service.md §4.4 step 6)."""
+        assert self.store is not None
+        dropped = self.store.dropped()
+        held: list[_Held] = []
+
+        def rows() -> Iterator[Observation]:  # the rows read once, for the links and the index (issue 40)
+            for r in self.store.rows():  # type: ignore[union-attr]
+                if r.seq not in dropped:
+                    held.append(_Held(r.seq, r.winner_cells, r.stream))
+                yield r
+
+        # (a visit's stream and code: the streams' short-term memories, docs/design/science.md §11.6)
+        visits = ((v.context_prev_seq, v.seq, v.after_seq + 1, v.stream, v.input_sdr)
+                  for v in self.store.visits())
+        self.model.links.rebuild(rows(), dropped, self.store.joined(), visits, self.store.recency())
+        self.model.index.rebuild(held)
+        if self.budget is not None:
+            self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
 
     def _fail(self, reason: str, detail: str) -> None:
         self.state, self.state_reason = "failed", reason
@@ -367,6 +497,8 @@ class MapRuntime:
         """Break the stream's sequence (the next frame starts a new one); its adaptation is kept,
         because it describes the camera and the conditions, not where the robot is."""
         st = self.streams.get(name)
+        if self._tail is not None:  # the live state is the stream's from now on (`_replay_tail`)
+            self._localised.add(name)
         had = st is not None and st.context.active_cells.size > 0
         if st is not None:
             st.break_sequence()
@@ -399,7 +531,7 @@ class MapRuntime:
             `apply`); IdempotencyKeyReused.
         """
         gone = gone or threading.Event()
-        self.require_ready()
+        self.require_ready(learn)
         # Refused before its encoding too; `apply` checks again in the writer, where it is exact (here
         # the writer may be changing the streams: a look that meets it is left to that check).
         with contextlib.suppress(RuntimeError):
@@ -491,7 +623,7 @@ class MapRuntime:
             StreamLimit, MemoryBudgetExceeded (nothing changed).
             InsufficientStorage: the disk is full; the memory was rebuilt from the store, nothing learned.
         """
-        self.require_ready()
+        self.require_ready(learn)
         assert self.store is not None and self.hasher is not None  # a map without them is never ready
         if projected.shape != (self.hasher.k,):
             raise ValueError(f"projection has shape {projected.shape}, this map's are ({self.hasher.k},)")
@@ -532,6 +664,8 @@ class MapRuntime:
         assert self.store is not None
         st, evicted = touch(self.streams, stream, self.max_streams, self.clock())
         self.stream_evictions += evicted
+        if self._tail is not None:  # localising while the tail replays (`_replay_tail`)
+            self._localised.add(stream)
         seq = self.store.next_seq() if learn else None  # this thread is the store's only writer
         step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq,
                                 code_of=self._code_of, threshold=self.config.revisit_threshold,
@@ -589,6 +723,7 @@ class MapRuntime:
             committed = self.store.append(dataclasses.replace(row, closure=closure), durable=durable)
             commit_ms = (time.perf_counter() - t_commit) * 1e3
             assert committed == seq  # this thread is the store's only writer
+            self._keep_code(seq, step.code.astype(INDEX_DTYPE))  # as the store gives it back
             self._committed()
         if learn and self.budget is not None and (step.visit is not None or step.dropped):
             # the row reserved before the step was not made, or its place dropped rows (§11.9)
@@ -640,11 +775,23 @@ class MapRuntime:
         return dataclasses.replace(place, verification=v, revisit=revisit)
 
     def _code_of(self, seq: int) -> np.ndarray:
-        """Writer: a stored row's frame code (its sLSBH input SDR), for the own-trail rule (§11.6)."""
+        """Writer: a stored row's frame code (its sLSBH input SDR), for the own-trail rule (§11.6) and
+        consolidation (§11.8): kept from its commit (`CODES_KEPT`), else read from the store (the same
+        values: the code is stored exactly)."""
+        code = self._codes.get(seq)
+        if code is not None:
+            self._codes.move_to_end(seq)
+            return code
         assert self.store is not None
         row = self.store.get(seq)
         assert row is not None  # the rule walks the stream's committed rows
+        self._keep_code(seq, row.input_sdr)
         return row.input_sdr
+
+    def _keep_code(self, seq: int, code: np.ndarray) -> None:
+        self._codes[seq] = code
+        if len(self._codes) > CODES_KEPT:
+            self._codes.popitem(last=False)
 
     # ------------------------------------------------------------------ resources
 
@@ -653,7 +800,8 @@ class MapRuntime:
                           observations=len(self.index),
                           last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),
                           recovery=self.recovery, snapshot_error=self.snapshot_error,
-                          places=self.places() if self.store is not None and self.state == "ready" else None,
+                          places=(self.places() if self.store is not None
+                                  and self.state in ("ready", "replaying") else None),
                           **map_snapshots.disk_use(self.catalog, self.map_id))
 
     def places(self) -> PlacesInfo:
@@ -690,6 +838,14 @@ class MapRuntime:
         return sizes.memory_info(self.model, self.streams, tm_params=self.config.tm,
                                  max_streams=self.max_streams, projection=self.projection_path,
                                  store=self.store, snapshots_bytes=self.catalog.snapshots_bytes(self.map_id))
+
+
+class _Held(NamedTuple):
+    """What the index is rebuilt from of a row held (`InvertedIndex.rebuild`)."""
+
+    seq: int
+    winner_cells: np.ndarray
+    stream: str
 
 
 def _sha256(data: bytes) -> str:

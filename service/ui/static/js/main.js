@@ -257,7 +257,7 @@ async function poll() {
         state.rows = new Map(); state.rowsAfter = 0; forgetThumbs(new Set());
         state.closures = { entries: [], after: 0 };  // the restore's log is the snapshot's
       }
-      if (map.state === "ready") {  // a recovering map's rows are not readable yet
+      if (map.state === "ready" || map.state === "replaying") {  // a recovering map's rows are not readable yet
         await loadRows(map);
         await loadClosures(map.map_id, state.closures);
       }

@@ -93,3 +93,30 @@ def test_the_revisit_threshold_changes_durably_and_only_within_0_1(tmp_path):
         assert rt.config.revisit_threshold == 0.5
     with registry(tmp_path) as reg:
         assert reg.get("default").config.revisit_threshold == 0.5
+
+
+def test_the_writer_reads_no_stored_code_back_for_the_own_trail_of_a_drive(tmp_path, monkeypatch):
+    """Issue 40, item 1: the own-trail rule asks for the code of a row the writer committed moments
+    before; it is kept from the commit (`CODES_KEPT`) instead of read back from SQLite each frame, and
+    the answers are those of a writer that reads it back."""
+    def drive(reg, reads: list[int]) -> list:
+        rt = reg.get("default")
+        real = rt.store.get
+
+        def get(seq):
+            reads.append(seq)
+            return real(seq)
+
+        monkeypatch.setattr(rt.store, "get", get)
+        frames = route(6)
+        out = [step(rt, f) for f in frames + frames]  # the route twice: the second lap revisits
+        return [(r.seq, r.consolidated_into, [m.seq for m in r.matches], r.place) for r in out]
+
+    reads: list[int] = []
+    with registry(tmp_path / "a") as reg:
+        kept = drive(reg, reads)
+    assert reads == []
+    with registry(tmp_path / "b") as reg:  # every code read back, as before
+        monkeypatch.setattr("service.maps.runtime.runtime.CODES_KEPT", 0)
+        again: list[int] = []
+        assert drive(reg, again) == kept and again
