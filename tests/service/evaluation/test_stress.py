@@ -44,9 +44,9 @@ def test_every_case_builds_its_route_and_the_windows_cover_both_halves(tmp_path)
 @needs_data
 def test_the_quick_suite_maps_without_a_false_revisit_or_a_merged_place_and_closes_real_loops(tmp_path):
     """One robot mapping while it drives: a slower robot (each frame 3 times) and a low-texture stretch
-    make no false revisit and merge no places (before the short-term memory: 3-14 false revisits and
-    5-53 merged places per such run, docs/results.md §10.11); a short loop and a noisy second lap still
-    close, at precision 1."""
+    make no false revisit and merge no places (before the short-term memory: 2-19 false revisits and
+    5-53 merged places per such run at these seeds, docs/results.md §10.11); a short loop and a noisy
+    second lap still close, at precision 1."""
     out = tmp_path / "quick.json"
     r = CliRunner().invoke(app, ["eval", "slam", "--suite", "--quick", "--data", str(NORDLAND),
                                  "--json", str(out)])
