@@ -213,7 +213,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     own = model.links.own_trail(st.localiser, st.own_seq, code, code_of, not flat)
     if own is not None and own.here > own.last and st.last_learned_seq != st.own_seq:
         own = None  # it left every row it made and travels on rows it visited: none is where it is
-    # Its short-term memory, the rows it made in its last learned frames whatever its trail, is no loop
+    # Its short-term memory, the rows it made over its last moves whatever its trail, is no loop
     # candidate; the map keeps it, so a restart, an eviction or a switch of mode keeps it too (§11.6).
     stm = model.links.short_term_rows(stream)
     if stm.size:
