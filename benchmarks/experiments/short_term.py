@@ -6,8 +6,9 @@ served map's model, as `service_path.slam_replay` drives it), one JSON line per 
         slow3,slow10,flat,shortloop,seasons,noise,park,repeat,seasons30,seasons60 1,7,42 0,200,400,600 '{}'
 
 Arguments: routes, map seeds, the windows' first files (`tune`: 0-694, `test`: 894-1588), and the maps'
-localiser options as JSON (`'{"short_term": 0}'`: the memory off). Routes, from the window of files
-[lo, lo + 200) of ../shared/data/nordland_tiny_64x32 (labels = file index): `slow3` and `slow10` (each
+localiser options as JSON (`'{"short_term": 0}'`: the memory off, the consolidation rules of
+science §11.6 kept: the code before issue 35 is d8683e8, which the tables' "before" ran). Routes, from
+the window of files [lo, lo + 200) of ../shared/data/nordland_tiny_64x32 (labels = file index): `slow3` and `slow10` (each
 frame 3 times, or the first 60 frames 10 times, σ 4 pixel noise), `park` (60 frames, 200 copies of the
 next with σ 2 noise, 59 more), `flat` (blurred, contrast cut to 35 %), `repeat` (100 frames, then 40 of
 them shifted and noisy), `shortloop` (40 frames three times, exact), `seasons` and `noise` (the window,

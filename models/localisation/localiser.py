@@ -86,8 +86,8 @@ class LocaliserParams(BaseModel):
     condition_frames: int = Field(100, ge=0, le=100_000)
     condition_discount: float = Field(2.0, ge=0.0, le=100.0)
     # A stream's short-term memory (§11.6): the rows it made over its last `short_term` moves are
-    # never loop candidates, states of its paths or rows its frames are consolidated into (0: none, the
-    # rule before issue 35)
+    # never loop candidates, states of its paths or rows its frames are consolidated into (0: no memory;
+    # the consolidation rules of §11.6 still hold, so 0 is not the code before issue 35)
     short_term: int = Field(20, ge=0, le=1000)
 
 
