@@ -6,19 +6,20 @@ served map's model, as `service_path.slam_replay` drives it), one JSON line per 
         slow3,slow10,flat,shortloop,seasons,noise,park,repeat,seasons30,seasons60 1,7,42 0,200,400,600 '{}'
 
 Arguments: routes, map seeds, the windows' first files (`tune`: 0-694, `test`: 894-1588), and the maps'
-localiser options as JSON (`'{"short_term": 0}'`: the memory off, the consolidation rules of
-science §11.6 kept: the code before issue 35 is d8683e8, which the tables' "before" ran). Routes, from
-the window of files [lo, lo + 200) of ../shared/data/nordland_tiny_64x32 (labels = file index): `slow3` and `slow10` (each
-frame 3 times, or the first 60 frames 10 times, σ 4 pixel noise), `park` (60 frames, 200 copies of the
-next with σ 2 noise, 59 more), `flat` (blurred, contrast cut to 35 %), `repeat` (100 frames, then 40 of
-them shifted and noisy), `shortloop` (40 frames three times, exact), `seasons` and `noise` (the window,
-then in winter or with σ 8 noise), `seasons30` and `seasons60` (the window's first 30 or 60 files, then
-in winter). Truth: `slam.revisit_truth` (tolerance 1). Each line: `false` (revisits called that are no
-true revisit named right), `hit` of `true` revisits, `merged_places` (places whose rows' labels differ by
-more than 1, visits counted with the row they went into), `wrong_visits` (frames consolidated into a
-row of another label), `rows`, and `lags` (rows between the stream's last row and each false answer).
-The route builder differs from `cortexloc eval slam --suite` (service/evaluation/stress.py) in its
-noise seeds and the exact short loop; the suite is the maintained form.
+localiser options as JSON (`'{"short_term": 0}'`: the memory off, the consolidation rules of science
+§11.6 kept: the code before issue 35 is d8683e8, which the tables' "before" ran). Routes, from the window
+of files [lo, lo + 200) of ../shared/data/nordland_tiny_64x32 (labels = file index): `slow3` and `slow10`
+(each frame 3 times, or the first 60 frames 10 times, σ 4 pixel noise), `park` (60 frames, 200 copies of
+the next with σ 2 noise, 59 more), `flat` (blurred, contrast cut to 35 %), `repeat` (100 frames, then 40
+of them shifted and noisy), `shortloop` (40 frames three times, exact), `seasons` and `noise` (the
+window, then in winter or with σ 8 noise), `seasons30` and `seasons60` (the window's first 30 or 60
+files, then in winter). Truth: `slam.revisit_truth` (tolerance 1). Each line: `false` (revisits called
+that are no true revisit named right), `hit` of `true` revisits, `merged_places` (places whose rows'
+labels differ by more than 1, visits counted with the row they went into), `wrong_visits` (frames
+consolidated into a row of another label), `rows`, and `lags` (rows between the stream's last row and
+each false answer). The route builder differs from `cortexloc eval slam --suite`
+(service/evaluation/stress.py) in its noise seeds and the exact short loop; the suite is the maintained
+form.
 """
 
 from __future__ import annotations
