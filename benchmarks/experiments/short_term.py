@@ -37,7 +37,7 @@ from models.evaluation import datasets, sequences, slam
 from models.frontend.encoder import Encoder
 from models.pipeline import Stream, observe
 from service.encoder import resolve_backbone
-from service.evaluation import service_path
+from service.evaluation import service_path, stress
 from service.settings import Settings
 
 DATA = datasets.nordland_dir()
@@ -52,23 +52,9 @@ def img(season: str, i: int) -> np.ndarray:
     return cv2.imread(str(DATA / season / names[i]), cv2.IMREAD_COLOR)
 
 
-def png(a: np.ndarray) -> bytes:
-    ok, b = cv2.imencode(".png", np.clip(a, 0, 255).astype(np.uint8))
-    assert ok
-    return b.tobytes()
-
-
 def variant(season: str, i: int, kind: str, seed: int) -> bytes:
-    a = img(season, i).astype(np.float32)
-    rng = np.random.default_rng(seed)
-    if kind.startswith("noise"):
-        a = a + rng.normal(0, float(kind[5:]), a.shape)
-    elif kind == "flat":
-        a = cv2.GaussianBlur(a, (0, 0), 3.0)
-        a = a.mean() + 0.35 * (a - a.mean()) + rng.normal(0, 1.5, a.shape)
-    elif kind == "shift":
-        a = np.roll(a, int(rng.integers(-3, 4)), axis=1) + rng.normal(0, 4, a.shape)
-    return png(a)
+    """`stress.variant` of file i (`noise4` here is its `noise:4`)."""
+    return stress.variant(img(season, i), kind.replace("noise", "noise:"), seed)
 
 
 def feats_of(pngs: list[bytes]) -> np.ndarray:
@@ -91,7 +77,7 @@ def build(name: str, lo: int) -> tuple[list[bytes], np.ndarray, np.ndarray]:
 
     def add(season: str, idx, kind: str | None = None, lap: int = 0, seed: int = 0) -> None:
         for j, i in enumerate(idx):
-            P.append(variant(season, i, kind, seed + j) if kind else png(img(season, i)))
+            P.append(variant(season, i, kind, seed + j) if kind else stress.png(img(season, i)))
             L.append(i)
             K.append(lap)
 

@@ -92,13 +92,13 @@ class Frames:
         return feats
 
 
-def _png(img: np.ndarray) -> bytes:
+def png(img: np.ndarray) -> bytes:
     ok, buf = cv2.imencode(".png", np.clip(img, 0, 255).astype(np.uint8))
     assert ok
     return buf.tobytes()
 
 
-def _variant(img: np.ndarray, kind: str, seed: int) -> bytes:
+def variant(img: np.ndarray, kind: str, seed: int) -> bytes:
     """A view of `img`: `noise:<σ>` pixel noise, `flat` blurred and its contrast cut to 35 % (low
     texture), `shift` a crop moved up to 3 px sideways with σ 4 noise; seeded."""
     a = img.astype(np.float32)
@@ -112,7 +112,7 @@ def _variant(img: np.ndarray, kind: str, seed: int) -> bytes:
         a = np.roll(a, int(rng.integers(-3, 4)), axis=1) + rng.normal(0.0, 4.0, a.shape)
     else:
         raise ValueError(f"unknown variant {kind!r}")
-    return _png(a)
+    return png(a)
 
 
 def route(frames: Frames, case: str, lo: int) -> Route:
@@ -125,7 +125,7 @@ def route(frames: Frames, case: str, lo: int) -> Route:
             seed: int = 0) -> None:
         for j, i in enumerate(idx):
             img = frames.image(season, i)
-            pngs.append(_png(img) if kind is None else _variant(img, kind, seed + 7919 * j + i))
+            pngs.append(png(img) if kind is None else variant(img, kind, seed + 7919 * j + i))
             labels.append(i)
             laps.append(lap)
 
