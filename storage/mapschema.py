@@ -19,7 +19,9 @@ back of a learning stream (its localiser state), written with each learned step;
 closure's `consolidated_into` (the closure of a consolidated frame, a visit, names the row it was
 consolidated into: it has no row of its own, and a localising stream's closure has neither). An older
 file is brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep
-`place` NULL (read as the place its learning stream's logged loop closure names, else its own).
+`place` NULL (read as the place its learning stream's logged loop closure names, else its own). Opened
+read-only (`cortexloc verify`, a snapshot's copy) an older file is read as it is; a file of a newer version
+than `SCHEMA_VERSION` is refused (`storage.mapstore.MapStore.open`).
 """
 
 from __future__ import annotations
@@ -265,8 +267,8 @@ COLUMNS_V1 = COLUMNS_V4.replace("metadata", "NULL")
 
 
 def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
-    """Bring an open version 1 file to `SCHEMA_VERSION` in one transaction (all or nothing); the meta
-    as it then is. A current file is returned as it is."""
+    """Bring an open file of an older version (1 to `SCHEMA_VERSION` - 1) to `SCHEMA_VERSION` in one
+    transaction (all or nothing); the meta as it then is. A current file is returned as it is."""
     if meta.schema_version >= SCHEMA_VERSION:
         return meta
     # chain[v - 1]: version v -> v + 1
