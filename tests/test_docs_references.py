@@ -10,7 +10,8 @@ map schema version (issue 38 item 6).
 - **Commands.** `cortexloc <command> [<sub>]` in backticks or at the start of a code-block line must be a
   command of the typer app (`service/cli/`), and a sub-command of a group one of the group's.
 - **Schema.** `storage/mapschema.py`'s docstring and docs/design/service.md §4.2 say what every map.sqlite
-  version from 2 to `SCHEMA_VERSION` added, and no doc names a schema version above it.
+  version from 2 to `SCHEMA_VERSION` added, CHANGELOG.md has an entry for `SCHEMA_VERSION` (what an
+  existing map keeps), and no doc names a schema version above it.
 
 Everything is compared with the code as it is, never with a number written here.
 """
@@ -242,6 +243,9 @@ def schema_problems(root: Path, version: int) -> list[str]:
     if added != wanted:
         out.append(f"{SERVICE_DESIGN} §4.2 says 'Schema version N added' for {sorted(added)}, "
                    f"the code's versions 2..{version} are {sorted(wanted)}")
+    changelog = root / "CHANGELOG.md"
+    if changelog.is_file() and f"map.sqlite schema {version}" not in changelog.read_text(encoding="utf-8"):
+        out.append(f"CHANGELOG.md does not say what map.sqlite schema {version} changed for an existing map")
     for path in documents(root):
         text = path.read_text(encoding="utf-8")
         for m in SCHEMA_MENTION.finditer(text):
@@ -329,13 +333,14 @@ def test_a_schema_version_the_docs_do_not_describe_is_reported(tmp_path):
         MAPSCHEMA: '"""Version 2 added metadata; version 3 the closures."""\nSCHEMA_VERSION = 3\n',
         SERVICE_DESIGN: ("## 4. Storage\n### 4.2 Schema\nSchema version 3 added closures. Schema\n"
                          "version 2 added metadata.\n### 4.3 Next\nThe durable write.\n"),
-        "README.md": "A map.sqlite schema 3 file.\n",
+        "CHANGELOG.md": "## Round 2 (map.sqlite schema 3)\n",
     }
     assert schema_problems(_tree(tmp_path, files), 3) == []
     (tmp_path / "docs/scaling.md").write_text("Schema version 9 added nothing.\n", encoding="utf-8")
     bad = schema_problems(tmp_path, 4)  # the code moved on, the docs did not
     assert bad[0] == f"{MAPSCHEMA}'s docstring says nothing of schema version(s) [4]"
     assert bad[1].startswith(f"{SERVICE_DESIGN} §4.2 says 'Schema version N added' for [2, 3]")
-    assert bad[2:] == ["docs/scaling.md:1: Schema version 9: SCHEMA_VERSION is 4"]
+    assert bad[2:] == ["CHANGELOG.md does not say what map.sqlite schema 4 changed for an existing map",
+                       "docs/scaling.md:1: Schema version 9: SCHEMA_VERSION is 4"]
     assert schema_problems(tmp_path, 2)[0] == (f"{MAPSCHEMA}'s docstring names version(s) [3] beyond "
                                                "SCHEMA_VERSION 2")
