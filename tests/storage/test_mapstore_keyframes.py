@@ -13,6 +13,7 @@ import pytest
 from storage.mapschema import SCHEMA_VERSION, NewClosure
 from storage.mapstore import MapMeta, MapStore
 from tests.storage.conftest import make_row
+from tests.storage.test_mapstore_places import V10_UNDONE
 
 CAMERA = {"fx": 300.0, "fy": 300.0, "cx": 160.0, "cy": 120.0, "distortion": []}
 
@@ -48,7 +49,7 @@ def test_an_older_file_is_migrated_to_hold_keyframes_and_closure_verifications(t
              else "ALTER TABLE loop_closures DROP COLUMN verification; "
                   "ALTER TABLE loop_closures DROP COLUMN consolidated_into;")
     conn = sqlite3.connect(path)
-    conn.executescript(f"""
+    conn.executescript(V10_UNDONE + f"""
         DROP TABLE keyframes;
         DROP TABLE visits;
         DROP TABLE dropped;

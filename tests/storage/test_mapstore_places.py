@@ -105,10 +105,15 @@ def test_a_row_s_place_and_the_rows_it_dropped_commit_with_it(store: MapStore) -
     assert store.count() == 3  # the rows stay: the replay and the snapshots read them
 
 
+#: What version 10 added, undone (every older file lacks it).
+V10_UNDONE = "DROP TABLE repairs; ALTER TABLE loop_closures DROP COLUMN retracts;"
+
+
 def _as_version(path: Path, version: int, changes: str) -> None:
-    """Today's file as schema `version` wrote it: `changes` (SQL) undone from it, and its version."""
+    """Today's file as schema `version` wrote it: `changes` (SQL) undone from it, and its version (and what
+    version 10 added: the repairs and the closures' `retracts`)."""
     conn = sqlite3.connect(path)
-    conn.executescript(changes + f"""
+    conn.executescript(V10_UNDONE + changes + f"""
         DROP TRIGGER meta_no_update;
         UPDATE meta SET value = '{version}' WHERE key = 'schema_version';
         CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
