@@ -94,16 +94,15 @@ def own_trail_merges(log: Iterable[Learned | Named], conf: dict[str, Any] | None
     links = Localisation({**(conf or {}), "short_term": window(conf)}, code_width)
     out = Merges()
     for event in log:
-        recent = links.short_term_rows(event.stream)
         if isinstance(event, Named):
-            if np.isin([event.place_seq, event.into], recent).any():
+            if np.isin([event.place_seq, event.into], links.short_term_rows(event.stream)).any():
                 out.closures.append(event.id)
-        elif event.made:
-            if event.through and np.isin(event.through, recent).any():
+        elif event.made:  # (the memory read only where the row joined a place: most rows did not)
+            if event.through and np.isin(event.through, links.short_term_rows(event.stream)).any():
                 out.joins.append(event.ref)
             links.add(event.seq, None, event.code, stream=event.stream)
         else:
-            if event.seq in recent:
+            if event.seq in links.short_term_rows(event.stream):
                 out.visits.append(event.ref)
             links.visit(None, event.seq, event.seq, event.stream, event.code)
     return out
