@@ -241,6 +241,49 @@ class LoopClosureModel(_Out):
                                           "frame (a visit, docs/design/science.md §11.8): the row it was "
                                           "consolidated into; null for a frame with its own row, a "
                                           "localising stream's, and one logged before this was recorded")
+    retracts: int | None = Field(default=None, description="a retraction entry (a repair, "
+                                 "docs/design/science.md §11.6): the id of the closure it withdraws (its "
+                                 "pair is that closure's; confidence and support 0); null for a closure")
+
+
+class SplitVisitModel(_Out):
+    """A visit into a row of its stream's own recent trail."""
+
+    visit: int = Field(description="its id in the map's visit log")
+    stream: str
+    into: int = Field(description="the row it was consolidated into")
+    seq: int | None = Field(description="the row the repair re-made it as (null: listed, not repaired)")
+
+
+class UnjoinModel(_Out):
+    """A row that joined a place through a row of its stream's own recent trail."""
+
+    seq: int
+    stream: str
+    joined: int = Field(description="the row whose place it joined; a repair gives it its own place")
+
+
+class RetractionModel(_Out):
+    """A logged loop closure that named a row of its stream's own recent trail."""
+
+    closure: int = Field(description="its id in the loop-closure log")
+    stream: str
+    place_seq: int = Field(description="the row it named")
+
+
+class RepairModel(_Out):
+    """The merges made from a stream's own recent trail (docs/design/science.md §11.6): listed (`GET`) or
+    undone (`POST`): each visit re-made as its own row, each row given back its own place, each closure
+    retracted by a new log entry. A second repair finds nothing."""
+
+    map_id: str
+    window: int = Field(description="the moves of a stream's short-term memory the rule read (the map's "
+                        "`short_term`, else the default's)")
+    repaired: bool = Field(description="false: a listing; true: undone, durably")
+    splits: list[SplitVisitModel]
+    unjoins: list[UnjoinModel]
+    retractions: list[RetractionModel]
+    rows_added: int = Field(description="rows the repair added to the map (its re-made visits)")
 
 
 class LoopClosureList(_Out):

@@ -20,6 +20,7 @@ import os
 import shutil
 import sqlite3
 import threading
+import uuid
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -49,6 +50,7 @@ from storage.mapschema import (
     NewObservation,
     NewVisit,
     Observation,
+    Repair,
     StoreCorrupt,
     Visit,
     cell_dtype_for,
@@ -72,6 +74,7 @@ __all__ = [
     "NewObservation",
     "NewVisit",
     "Observation",
+    "Repair",
     "StorageError",
     "StorageFull",
     "StoreClosed",
@@ -111,6 +114,7 @@ class MapStore:
         self._v5 = meta.schema_version >= 5  # places: a row's place, visits, dropped rows
         self._v6 = meta.schema_version >= 6  # rows' recency
         self._v7 = meta.schema_version >= 7  # visit keys apart from the visit log
+        self._v10 = meta.schema_version >= 10  # repairs, retraction entries in the loop-closure log
         self._cols = COLUMNS if self._v5 else COLUMNS_V4 if self._v2 else COLUMNS_V1
         self._v3 = meta.schema_version >= 3  # a version 2 file opened read-only has no loop-closure log
         self._conn: sqlite3.Connection | None = conn
@@ -484,9 +488,78 @@ class MapStore:
         version 5, docs/design/science.md §11.8)."""
         if not self._v3:
             return {}
+        retraction = " AND retracts IS NULL" if self._v10 else ""  # a retraction joins nothing
         with self._lock:
             return {int(r[0]): int(r[1]) for r in self._db().execute(
-                "SELECT seq, place_seq FROM loop_closures WHERE seq IS NOT NULL")}
+                f"SELECT seq, place_seq FROM loop_closures WHERE seq IS NOT NULL{retraction}")}
+
+    # ------------------------------------------------------------------ repairs (schema 10)
+
+    def repair(self, splits: Iterable[Visit], unjoins: Iterable[tuple[int, int]],
+               retracts: Iterable[int]) -> list[int]:
+        """Undo merges in one transaction (docs/design/science.md §11.6, service.md §4.2): each visit of
+        `splits` re-made as a row of its own (appended: its stream, code, winner cells, metadata, clock
+        and the row its stream continued; no image digest, a visit keeps none), each (row, the row whose
+        place it joined) of `unjoins` given back its own place, and for each closure id of `retracts` a
+        retraction entry (its pair, confidence and support 0, `retracts` = that id) in the loop-closure
+        log; all logged in `repairs`. Durable when this returns; all or nothing.
+
+        Returns:
+            The seqs of the re-made rows, in the order of `splits`.
+
+        Raises:
+            StorageError: a file before schema version 10 (opened read-only). StorageFull: nothing
+            was written.
+        """
+        splits, unjoins, retracts = list(splits), list(unjoins), list(retracts)
+        with self._lock:
+            conn = self._db()
+            if not self._v10:
+                raise StorageError(f"{self.path}: schema version {self.meta.schema_version} has no repairs")
+            first = max(self._last_seq, self._seq_floor) + 1
+            now = utc_now()
+            rows = [(first + i, str(uuid.uuid4()), v.stream, v.context_prev_seq, None, v.created_at, "",
+                     encode(v.input_sdr, INPUT_DTYPE, "input_sdr"),
+                     encode(v.winner_cells, self._cell_dtype, "winner_cells"),
+                     None if v.metadata is None else json.dumps(v.metadata, separators=(",", ":")), None)
+                    for i, v in enumerate(splits)]
+            logged = [("split", first + i, v.id, v.seq, now) for i, v in enumerate(splits)]
+            logged += [("unjoin", int(seq), None, int(was), now) for seq, was in unjoins]
+            with transaction(conn):
+                conn.executemany(f"INSERT INTO observations ({COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?,?)",
+                                 rows)
+                conn.executemany("INSERT INTO repairs (kind, seq, visit, was, created_at) "
+                                 "VALUES (?, ?, ?, ?, ?)", logged)
+                conn.executemany(
+                    "INSERT INTO loop_closures (stream, seq, place_seq, confidence, support, metadata, "
+                    "created_at, consolidated_into, retracts) SELECT stream, seq, place_seq, 0, 0, metadata, "
+                    "?, consolidated_into, id FROM loop_closures c WHERE id = ? AND retracts IS NULL AND "
+                    "NOT EXISTS (SELECT 1 FROM loop_closures r WHERE r.retracts = c.id)",
+                    [(now, int(c)) for c in retracts])
+                if retracts:
+                    self._prune_closures(conn)
+            if rows:  # only after COMMIT returned, as `append_many`
+                self._last_seq = first + len(rows) - 1
+                self._count += len(rows)
+            return [first + i for i in range(len(rows))]
+
+    def repairs(self) -> list[Repair]:
+        """The logged repairs, in log order (empty before schema version 10)."""
+        if not self._v10:
+            return []
+        with self._lock:
+            found = self._db().execute(
+                "SELECT id, kind, seq, visit, was, created_at FROM repairs ORDER BY id").fetchall()
+        return [Repair(id=int(r[0]), kind=r[1], seq=int(r[2]), visit=None if r[3] is None else int(r[3]),
+                       was=int(r[4]), created_at=r[5]) for r in found]
+
+    def retracted(self) -> set[int]:
+        """The ids of the closures a retraction entry withdraws (kept while the retraction is logged)."""
+        if not self._v10:
+            return set()
+        with self._lock:
+            return {int(r[0]) for r in self._db().execute(
+                "SELECT retracts FROM loop_closures WHERE retracts IS NOT NULL")}
 
     def sync(self) -> None:
         """Make every commit so far durable, those made with `durable=False` included: one fsync of the
@@ -536,10 +609,15 @@ class MapStore:
                          "metadata, idempotency_key, created_at, verification, consolidated_into) "
                          "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", params)
         added = conn.total_changes - before
-        if added and self.max_closures is not None:
+        if added:
+            self._prune_closures(conn)
+        return added
+
+    def _prune_closures(self, conn: sqlite3.Connection) -> None:
+        """In a transaction: keep the last `max_closures` entries of the loop-closure log."""
+        if self.max_closures is not None:
             conn.execute("DELETE FROM loop_closures WHERE id <= (SELECT max(id) FROM loop_closures) - ?",
                          (self.max_closures,))
-        return added
 
     def closures(self, after: int, limit: int) -> list[LoopClosure]:
         """At most `limit` logged loop closures with id > `after`, oldest first, with both rows."""
@@ -550,7 +628,8 @@ class MapStore:
                 "SELECT c.id, c.stream, c.seq, o.observation_id, c.metadata, c.place_seq, p.observation_id, "
                 "p.stream, p.label, p.metadata, c.confidence, c.support, c.created_at, "
                 f"{'c.verification' if self.meta.schema_version >= 4 else 'NULL'}, "
-                f"{'c.consolidated_into' if self.meta.schema_version >= 8 else 'NULL'} FROM loop_closures c "
+                f"{'c.consolidated_into' if self.meta.schema_version >= 8 else 'NULL'}, "
+                f"{'c.retracts' if self._v10 else 'NULL'} FROM loop_closures c "
                 "JOIN observations p ON p.seq = c.place_seq LEFT JOIN observations o ON o.seq = c.seq "
                 "WHERE c.id > ? ORDER BY c.id LIMIT ?", (int(after), int(limit))).fetchall()
         return [LoopClosure(id=int(r[0]), stream=r[1], seq=None if r[2] is None else int(r[2]),
@@ -558,7 +637,8 @@ class MapStore:
                             place_observation_id=r[6], place_stream=r[7], place_label=r[8],
                             place_metadata=_json(r[9]), confidence=float(r[10]), support=int(r[11]),
                             created_at=r[12], verification=_json(r[13]),
-                            consolidated_into=None if r[14] is None else int(r[14])) for r in found]
+                            consolidated_into=None if r[14] is None else int(r[14]),
+                            retracts=None if r[15] is None else int(r[15])) for r in found]
 
     def closure_count(self) -> int:
         """Loop closures in the log."""

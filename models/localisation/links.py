@@ -60,8 +60,8 @@ class Localisation:
         self.visits = 0  # consolidated frames seen since the map was loaded
 
     def rebuild(self, rows: Iterable[Any], dropped: Iterable[int] = (), joined: dict[int, int] | None = None,
-                visited: Iterable[tuple[Any, ...]] = (), used: Mapping[int, int] | None = None
-                ) -> None:
+                visited: Iterable[tuple[Any, ...]] = (), used: Mapping[int, int] | None = None,
+                remade: Iterable[int] = (), unjoined: Iterable[int] = ()) -> None:
         """The links, places and code statistics of the store's rows (recovery).
 
         Args:
@@ -72,16 +72,20 @@ class Localisation:
             visited: (previous row or None, row, clock[, stream, code]) of the visits kept, in log order:
                 their links and the rows' recency (the clock a visit's `after_seq` + 1, a lower bound of
                 the live one), and with the stream and the frame's code its short-term memory (§11.6):
-                rows and visits are taken in the order they were learned.
+                rows and visits are taken in the order they were learned. A visit a repair re-made as a
+                row has row NONE: only its step of the memory, no link, no recency.
             used: row -> the clock of its last use by a later step, as the live map recorded it (the
                 store's `recency`): with it the rows' recency is the live map's exactly (§11.9).
+            remade: rows a repair re-made from visits (§11.6): each a trail and a place of its own after
+                the row its stream continued, neither its stream's last row nor a step of its memory.
+            unjoined: rows a repair gave back their own place (their stored `place` is not read).
         """
         self.graph = SequenceGraph()
         self.codes.rebuild([])
         self.used = np.zeros(0, np.int64)
         self._last_row, self._short, self.held = {}, OrderedDict(), 0
         joined = joined or {}
-        gone = set(dropped)
+        gone, remade, unjoined = set(dropped), set(remade), set(unjoined)
         # Rows and visits in the order they were learned (a visit's clock is its `after_seq` + 1), so each
         # stream's short-term memory is the live map's.
         pending = deque(visited)
@@ -89,11 +93,11 @@ class Localisation:
             seq = int(row.seq)
             while pending and pending[0][2] <= seq:
                 self.visit(*pending.popleft())
-            place = getattr(row, "place", None)
-            if place is None and seq in joined:
+            place = None if seq in unjoined or seq in remade else getattr(row, "place", None)
+            if place is None and seq in joined and seq not in unjoined:
                 place = int(self.graph.place[joined[seq]])
             self.add(seq, row.context_prev_seq, row.input_sdr, stream=row.stream,
-                     place=-1 if place is None else int(place))
+                     place=-1 if place is None else int(place), remade=seq in remade)
         for seq in sorted(gone):
             if seq < len(self.graph):
                 self.drop(seq)
@@ -102,19 +106,23 @@ class Localisation:
         for row, clock in (used or {}).items():
             self.touch(row, clock)
 
-    def add(self, seq: int, prev: int | None, code: np.ndarray, *, stream: str = "", place: int = -1) -> None:
+    def add(self, seq: int, prev: int | None, code: np.ndarray, *, stream: str = "", place: int = -1,
+            remade: bool = False) -> None:
         """A row just learned, after `prev` (None: the start of a sequence), its frame code, and the place
         it shows (-1: a new place). It continues `prev`'s trail only when `prev` is its stream's last made
         row; after a consolidated frame `prev` is a row it visited, and a new trail starts (§11.8), and
-        the stream's last made row, if it had no successor, gets this one."""
-        own = self._last_row.get(stream)
+        the stream's last made row, if it had no successor, gets this one. `remade`: a row a repair
+        re-made from a visit (§11.6), learned long before its seq: a trail of its own after `prev`, not
+        its stream's last row, no step of its short-term memory (its visit was that step)."""
+        own = None if remade else self._last_row.get(stream)
         joins = prev is not None and own == prev
         self.graph.append(seq, -1 if prev is None else prev, place=place, joins=joins)
         if prev is not None and not joins and own is not None:
             # its own rows stay one route: the last it made leads on to this one if it led nowhere
             self.graph.link(own, seq, successor=True)
-        self._last_row[stream] = seq
-        self._learned(stream, seq, code)
+        if not remade:
+            self._last_row[stream] = seq
+            self._learned(stream, seq, code)
         self.codes.add(code)
         if seq >= self.used.size:
             grow = max(seq + 1, 2 * self.used.size, 16) - self.used.size

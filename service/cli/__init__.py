@@ -9,6 +9,8 @@
     cortexloc shards list | move MAP --to SHARD [--address A]         service.cli.shards
     cortexloc import FILE.tar [--data-dir DIR]                        service.cli.maps
     cortexloc verify [--map M] [--data-dir DIR]                       service.cli.maps
+    cortexloc repair --map M [--dry-run] [--url URL | --data-dir DIR] [--api-key KEY] [--json]
+                                                                      service.cli.maps
     cortexloc ingest SOURCE --map M [--stream S] [--learn | --localise] [--url URL | --data-dir DIR]
                      [--topic T] [--every N] [--json] [--prefetch K] [--label-stamp] [--api-key KEY]
                                                                       service.cli.ingest
@@ -47,6 +49,7 @@ def list_presets() -> None:
 app.command("serve")(serve)
 app.command("import")(maps.import_map)
 app.command("verify")(maps.verify)
+app.command("repair")(maps.repair)
 app.command("ingest")(ingest_command)
 
 

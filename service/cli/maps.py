@@ -1,14 +1,20 @@
-"""`cortexloc import` and `cortexloc verify`: a data directory's maps, offline (the server stopped)."""
+"""`cortexloc import` and `cortexloc verify`: a data directory's maps, offline (the server stopped); and
+`cortexloc repair`: a map's merges from a stream's own recent trail, listed or undone through the service
+(`/v1/maps/{id}/repair`, a running one or the app run in this process)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from service.cli.common import progress
 from service.cli.serve import process_settings
+
+if TYPE_CHECKING:
+    from service.maps.repair import Found
 
 
 def import_map(
@@ -46,8 +52,11 @@ def verify(
                                                        "or ./var).")] = None,
 ) -> None:
     """Check maps offline, changing nothing: replay every row from the first and compare its stored
-    winner cells, verify every snapshot's checksums and the projection. Exit 1 on any problem."""
+    winner cells, verify every snapshot's checksums and the projection. Exit 1 on any problem. Also list
+    the merges made from a stream's own recent trail (`POST /v1/maps/{id}/repair` undoes them; they are
+    no problem of the files)."""
     from service.maps.recovery import open_catalog, verify_map
+    from service.maps.repair import listing
 
     root = process_settings(data_dir=data_dir).data_dir
     try:
@@ -81,8 +90,73 @@ def verify(
                 typer.echo(f"  snapshot {sid}: {why}")
             for problem in check.problems:
                 typer.echo(f"  {problem}")
+            if not check.problems:
+                _merges(listing(catalog, record))
     finally:
         catalog.close()
     typer.echo(f"{len(records)} map(s) checked, {bad} with problems")
     if bad:
         raise typer.Exit(1)
+
+
+def _merges(found: Found) -> None:
+    """The own-trail merges of one map, a line each."""
+    if not found:
+        typer.echo(f"  no merges from a stream's own recent trail (its last {found.window} moves)")
+        return
+    typer.echo(f"  merges from a stream's own recent trail (its last {found.window} moves): "
+               f"{len(found.visits)} visit(s), {len(found.joins)} place join(s), {len(found.closures)} loop "
+               "closure(s); POST /v1/maps/{id}/repair undoes them")
+    for v in found.visits:
+        typer.echo(f"    visit {v.id}: stream {v.stream!r} consolidated into its own row {v.seq}")
+    for seq, was, stream in found.joins:
+        typer.echo(f"    row {seq}: stream {stream!r} joined the place of its own row {was}")
+    for cid, stream, place in found.closures:
+        typer.echo(f"    loop closure {cid}: stream {stream!r} named its own row {place}")
+
+
+def repair(
+    map_id: Annotated[str, typer.Option("--map", help="The map.")],
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="List the merges only (GET), change "
+                                                           "nothing.")] = False,
+    url: Annotated[str | None, typer.Option(help="A running service, e.g. http://127.0.0.1:8000 (default: "
+                                                 "run the service in this process, the server stopped).")]
+    = None,
+    data_dir: Annotated[Path | None, typer.Option(help="In process: the data directory (default: "
+                                                       "$CORTEXLOC_DATA_DIR or ./var).")] = None,
+    api_key: Annotated[str | None, typer.Option(help="API key of the service (X-API-Key); in process "
+                                                     "the configured CORTEXLOC_API_KEY is used.")] = None,
+    json_out: Annotated[bool, typer.Option("--json", help="The answer's JSON on stdout.")] = False,
+) -> None:
+    """Undo a map's merges from a stream's own recent trail (docs/design/science.md §11.6): visits
+    re-made as rows, rows given back their own place, loop closures retracted. Exit 1 on an error."""
+    if url is not None and data_dir is not None:
+        raise typer.BadParameter("--data-dir is for the in-process service; with --url the server has its "
+                                 "own", param_hint="--data-dir")
+    import anyio
+
+    from service.cli.ingest import _in_process_settings
+    from service.ingest import poster
+
+    settings = None if url is not None else _in_process_settings(data_dir)
+    if settings is not None and api_key is None:
+        api_key = settings.api_key
+    headers = {"X-API-Key": api_key} if api_key else {}
+
+    async def run() -> tuple[int, dict[str, Any]]:
+        client = poster.remote_client(url) if settings is None else poster.in_process_client(settings)
+        async with client as c:
+            r = await c.request("GET" if dry_run else "POST", f"/v1/maps/{map_id}/repair", headers=headers)
+            return r.status_code, r.json()
+
+    status, body = anyio.run(run)
+    if status != 200:
+        typer.echo(f"error: {status} {body.get('detail', body)}", err=True)
+        raise typer.Exit(1)
+    if json_out:
+        typer.echo(json.dumps(body))
+        return
+    done = "repaired" if body["repaired"] else "would repair"
+    typer.echo(f"map {map_id}: {done} {len(body['splits'])} visit(s) as rows ({body['rows_added']} rows "
+               f"added), {len(body['unjoins'])} place join(s), {len(body['retractions'])} loop closure(s) "
+               f"retracted; a stream's recent trail: its last {body['window']} moves")

@@ -27,19 +27,22 @@ from models.geometry.verify import is_rotation
 from service.maps.results import LoopClosureResult, StoredRow, VerificationResult
 from storage.mapstore import LoopClosure, MapStore
 
-__all__ = ["EXPORT_COLUMNS", "EXPORT_FORMATS", "VISIT_VERTEX_BASE", "chunks", "csv_cell", "g2o_lines", "page",
-           "render"]
+__all__ = ["EXPORT_COLUMNS", "EXPORT_FORMATS", "VISIT_VERTEX_BASE", "chunks", "csv_cell", "g2o_lines",
+           "g2o_retracted", "page", "render"]
 
 #: The export's fields, in CSV column order: both stamps in seconds, both ids, the confidence, both
 #: poses where the client gave them (x, y, yaw); empty (CSV) or null (JSON) where not.
 #: Then the geometric verification (maps with keyframes; empty elsewhere): verified, the keyframe row it
 #: verified against, inliers, model, and the relative pose X_query = R X_keyframe + t as a quaternion
 #: (qx, qy, qz, qw) and a unit translation (tx, ty, tz; empty where unobservable). Last, the frame's
-#: vertex id in the g2o export (`vertex_id`; empty for a localising stream's frame).
+#: vertex id in the g2o export (`vertex_id`; empty for a localising stream's frame). Then the entry's log
+#: `id`, its `kind` (`closure`, or `retraction`: a repair withdrew closure `retracts`, docs/design/science.md
+#: §11.6; the retraction repeats that closure's pair with confidence and support 0, no verification, and a
+#: back end drops the edge it made for it).
 EXPORT_COLUMNS = ("stamp", "observation_id", "seq", "stream", "place_stamp", "place_observation_id",
                   "place_seq", "place_stream", "confidence", "support", "x", "y", "yaw", "place_x",
                   "place_y", "place_yaw", "verified", "keyframe_seq", "inliers", "model", "qx", "qy", "qz",
-                  "qw", "tx", "ty", "tz", "vertex")
+                  "qw", "tx", "ty", "tz", "vertex", "id", "kind", "retracts")
 #: Export media types by format.
 EXPORT_FORMATS = {"csv": "text/csv; charset=utf-8", "jsonl": "application/jsonl",
                   "g2o": "text/plain; charset=utf-8"}
@@ -73,7 +76,7 @@ def _result(c: LoopClosure) -> LoopClosureResult:
                                              metadata=c.place_metadata),
                              verification=None if c.verification is None
                              else VerificationResult(**c.verification),
-                             consolidated_into=c.consolidated_into)
+                             consolidated_into=c.consolidated_into, retracts=c.retracts)
 
 
 def page(store: MapStore, after: int, limit: int) -> list[LoopClosureResult]:
@@ -119,7 +122,8 @@ def _record(c: LoopClosure) -> dict[str, Any]:
             "place_observation_id": c.place_observation_id, "place_seq": c.place_seq,
             "place_stream": c.place_stream, "confidence": _finite(c.confidence), "support": c.support,
             "x": x, "y": y, "yaw": yaw, "place_x": px, "place_y": py, "place_yaw": pyaw,
-            **_verification(c.verification), "vertex": vertex_id(c)}
+            **_verification(c.verification), "vertex": vertex_id(c), "id": c.id,
+            "kind": "closure" if c.retracts is None else "retraction", "retracts": c.retracts}
 
 
 def _rotation(v: dict[str, Any]) -> np.ndarray | None:
@@ -161,7 +165,8 @@ def vertex_id(c: LoopClosure) -> int | None:
         return c.seq if c.seq < VISIT_VERTEX_BASE else None
     if c.consolidated_into is None:
         return None
-    return VISIT_VERTEX_BASE + c.id if VISIT_VERTEX_BASE + c.id <= _G2O_MAX_ID else None
+    vertex = VISIT_VERTEX_BASE + (c.id if c.retracts is None else c.retracts)  # a retraction: its closure's
+    return vertex if vertex <= _G2O_MAX_ID else None
 
 
 def g2o_lines(c: LoopClosure) -> str | None:
@@ -206,15 +211,26 @@ def csv_cell(value: Any) -> Any:
     return value
 
 
+def g2o_retracted(c: LoopClosure) -> str | None:
+    """The comment line standing for a retracted closure's edge in the g2o export (the edge, and a visit's
+    vertex, are left out: a g2o reader skips `#` lines), None where `g2o_lines` makes no edge of it."""
+    edge = g2o_lines(c)
+    if edge is None:
+        return None
+    _, keyframe, vertex = edge.splitlines()[-1].split()[:3]
+    return f"# RETRACTED {keyframe} {vertex} closure {c.id}\n"
+
+
 def _lines(store: MapStore, fmt: str) -> Iterator[str]:
     """The export's text, a line at a time, read a page of the log at a time."""
     if fmt == "csv":
         yield ",".join(EXPORT_COLUMNS) + "\n"
+    retracted = store.retracted() if fmt == "g2o" else set()
     after = 0
     while found := store.closures(after, _EXPORT_PAGE):
         for c in found:
             if fmt == "g2o":
-                if (lines := g2o_lines(c)) is not None:
+                if (lines := g2o_retracted(c) if c.id in retracted else g2o_lines(c)) is not None:
                     yield lines
                 continue
             rec = _record(c)
@@ -231,8 +247,9 @@ def render(store: MapStore, fmt: str) -> IO[bytes]:
     """Worker thread: the whole log as candidate pairs, oldest first, in `fmt` (`csv`: a header line,
     then one line per closure; `jsonl`: one JSON object per line; `g2o`: the verified closures with a
     finite pose, `g2o_lines`), rendered into a file (in memory up to _SPOOL_BYTES, on disk beyond),
-    rewound, for `chunks`. Every entry is rendered before the body starts, so an entry that cannot be
-    rendered fails the request with an error, never a short file; the export holds the log as it was."""
+    rewound, for `chunks`. A g2o export leaves a retracted closure's edge out (`g2o_retracted`). Every
+    entry is rendered before the body starts, so an entry that cannot be rendered fails the request with
+    an error, never a short file; the export holds the log as it was."""
     if fmt not in EXPORT_FORMATS:
         raise ValueError(f"format must be one of {', '.join(EXPORT_FORMATS)}")
     spool = tempfile.SpooledTemporaryFile(max_size=_SPOOL_BYTES)  # noqa: SIM115 - `chunks` closes it

@@ -245,6 +245,7 @@ class LoopClosureResult:
     created_at: str
     verification: VerificationResult | None = None  # the place's, as the reply gave it (maps with keyframes)
     consolidated_into: int | None = None  # a visit's (a consolidated frame): the row it joined
+    retracts: int | None = None  # a retraction entry's: the closure it withdraws (§11.6)
 
 
 @dataclass(frozen=True)
@@ -266,6 +267,57 @@ class SnapshotInfo:
     created_at: str
     bytes: int
     manifest_sha256: str
+
+
+@dataclass(frozen=True)
+class SplitVisit:
+    """A visit into a row of its stream's own recent trail (docs/design/science.md §11.6): `visit` its id
+    in the visit log, `into` the row it was consolidated into, `seq` the row a repair re-made it as
+    (None: listed, not repaired)."""
+
+    visit: int
+    stream: str
+    into: int
+    seq: int | None = None
+
+
+@dataclass(frozen=True)
+class Unjoin:
+    """A row that joined a place through a row of its stream's own recent trail: `joined` the row whose
+    place it joined; a repair gives it back its own place."""
+
+    seq: int
+    stream: str
+    joined: int
+
+
+@dataclass(frozen=True)
+class Retraction:
+    """A logged loop closure that named a row of its stream's own recent trail (or was logged with a visit
+    into one): `closure` its log id, `place_seq` the row it named; a repair logs an entry retracting it."""
+
+    closure: int
+    stream: str
+    place_seq: int
+
+
+@dataclass(frozen=True)
+class RepairResult:
+    """What a repair found, and whether it undid it (docs/design/science.md §11.6).
+
+    Attributes:
+        window: the moves of the stream's memory the rule read (the map's `short_term`, else the
+            default's). repaired: False for a listing. splits, unjoins, retractions: as listed or undone.
+        rows_added: rows the repair added (the re-made visits).
+    """
+
+    map_id: str
+    window: int
+    repaired: bool
+    splits: list[SplitVisit]
+    unjoins: list[Unjoin]
+    retractions: list[Retraction]
+    rows_added: int = 0
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, Request
 
 from service.deps import ReadKeyDep
 from service.errors import Problem, problem_responses
-from service.routes import closures, health, maps, metrics, observations, recent, snapshots
+from service.routes import closures, health, maps, metrics, observations, recent, repair, snapshots
 
 __all__ = ["api_router", "refuse_repeated_query_parameters"]
 
@@ -39,6 +39,6 @@ api_router.include_router(health.router)  # /healthz, /readyz: open to probes, w
 api_router.include_router(metrics.router, dependencies=[ReadKeyDep], responses=problem_responses(401))
 v1 = APIRouter(dependencies=[ReadKeyDep], responses=problem_responses(401))
 for resource in (maps.router, maps.process_router, observations.router, recent.router, snapshots.router,
-                 closures.router):
+                 closures.router, repair.router):
     v1.include_router(resource)
 api_router.include_router(v1)

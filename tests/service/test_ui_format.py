@@ -40,4 +40,6 @@ def test_a_closure_of_a_consolidated_frame_reads_visit_not_localising():
     assert formatted([("closureFrame", [{"seq": 7, "consolidated_into": None}]),
                       ("closureFrame", [{"seq": None, "consolidated_into": 3}]),
                       ("closureFrame", [{"seq": None, "consolidated_into": None}]),
-                      ("closureFrame", [{"seq": None}])]) == ["7", "visit", "localising", "localising"]
+                      ("closureFrame", [{"seq": None}]),
+                      ("closureFrame", [{"seq": 7, "consolidated_into": None, "retracts": 12}])]) == [
+        "7", "visit", "localising", "localising", "retracts 12"]

@@ -33,8 +33,8 @@ from storage.catalog import Catalog, MapRecord, SnapshotRecord, StorageError
 from storage.layout import Layout
 from storage.mapstore import MapStore, Observation, Visit
 
-__all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "Replay", "Tail", "begin", "open_catalog",
-           "rebuild", "recover", "verify_map"]
+__all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "Replay", "Tail", "begin", "in_order",
+           "learned_rows", "open_catalog", "rebuild", "recover", "verify_map"]
 
 #: The snapshot array holding the last visit id its memory learned (0 in a snapshot made before visits),
 #: and that visit's `MapStore.visit_mark` (the branch check of visits, as a row's observation id is).
@@ -70,7 +70,7 @@ class Rebuilt:
     replayed_streams: set[str] = field(default_factory=set)
 
 
-def _in_order(rows: Iterable[Observation], visits: Iterable[Visit]) -> Iterator[Observation | Visit]:
+def in_order(rows: Iterable[Observation], visits: Iterable[Visit]) -> Iterator[Observation | Visit]:
     """Rows (seq order) and visits (log order) merged as they were learned: a visit after the row
     `after_seq` and before the next."""
     pending = iter(visits)
@@ -83,6 +83,13 @@ def _in_order(rows: Iterable[Observation], visits: Iterable[Visit]) -> Iterator[
     while visit is not None:
         yield visit
         visit = next(pending, None)
+
+
+def learned_rows(store: MapStore, after_seq: int = 0) -> Iterator[Observation]:
+    """The rows after `after_seq` the memory learned as rows, in seq order: a row a repair re-made from a
+    visit (docs/design/science.md §11.6) is not one (its visit taught the memory, and replays)."""
+    remade = {r.seq for r in store.repairs() if r.kind == "split" and r.seq > after_seq}
+    return (r for r in store.rows(after_seq=after_seq) if r.seq not in remade)
 
 
 class Replay:
@@ -102,7 +109,7 @@ class Replay:
             covered = int(start.get(VISIT_CURSOR, 0))
         self.out = Rebuilt(like.fresh(tm), streams, covered=covered)
         self.stop_at_mismatch, self.progress = stop_at_mismatch, progress
-        self._pending = _in_order(rows, visits)
+        self._pending = in_order(rows, visits)
         self.finished = False
 
     def run(self, steps: int | None = None) -> bool:
@@ -238,11 +245,12 @@ def begin(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> Tai
                 continue  # from a branch a restore abandoned
             m, memory = start
             cursor = int(memory.get(VISIT_CURSOR, 0))
-            replay = Replay(memory, store.rows(after_seq=m.seq), like, visits=store.visits(after_id=cursor))
+            replay = Replay(memory, learned_rows(store, m.seq), like, visits=store.visits(after_id=cursor))
         except Exception as e:  # an unusable snapshot is passed over, never fatal
             _pass_over(map_id, rec.snapshot_id, str(e) or type(e).__name__, skipped)
             continue
-        steps = store.count_after(m.seq) + max(0, store.visit_stats()[2] - cursor)
+        remade = sum(r.kind == "split" and r.seq > m.seq for r in store.repairs())
+        steps = store.count_after(m.seq) - remade + max(0, store.visit_stats()[2] - cursor)
         return Tail(replay, rec.snapshot_id, m.seq, steps, tried, skipped, t0)
     return None
 
@@ -288,7 +296,7 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel, *,
             if start is None:
                 continue  # from a branch a restore abandoned
             m, memory = start
-            done = rebuild(memory, store.rows(after_seq=m.seq), like,
+            done = rebuild(memory, learned_rows(store, m.seq), like,
                            visits=store.visits(after_id=int(memory.get(VISIT_CURSOR, 0))))
         except Exception as e:  # an unusable snapshot is passed over, never fatal
             reason = str(e) or type(e).__name__
@@ -300,7 +308,7 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel, *,
             done = None  # its memory is as large as the map's: free it before the next attempt
         _pass_over(map_id, rec.snapshot_id, reason, skipped)
     if done is None:
-        done = rebuild(TemporalMemory(like.tm.params), store.rows(), like, stop_at_mismatch=False,
+        done = rebuild(TemporalMemory(like.tm.params), learned_rows(store), like, stop_at_mismatch=False,
                        visits=store.visits())
         note = {"source": "replay", "mismatches": len(done.mismatches),
                 "mismatched_seqs": done.mismatches[:_LISTED]}
@@ -436,7 +444,7 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
                     out.start, m, memory = found
                     start, after_seq, after_id = memory, m.seq, int(memory.get(VISIT_CURSOR, 0))
             if start is not None:
-                done = rebuild(start, store.rows(after_seq=after_seq), like, stop_at_mismatch=False,
+                done = rebuild(start, learned_rows(store, after_seq), like, stop_at_mismatch=False,
                                visits=store.visits(after_id=after_id),
                                progress=None if progress is None else lambda n: progress(n, total))
                 out.rows, out.mismatches = done.replayed, done.mismatches

@@ -41,14 +41,17 @@ from models import geometry, pipeline
 from models.frontend import slsbh
 from models.frontend.images import RawFrame
 from models.localisation import InvertedIndex, Localisation
+from models.localisation.graph import NONE
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import Stream, eviction_wait, memory_state, touch
 from service.maps import keyframes, recovery
+from service.maps import repair as repairs
 from service.maps.config import MapConfig, map_model
 from service.maps.encoding.pool import EncoderPool
 from service.maps.errors import (
     ClientGone,
     InsufficientStorage,
+    MapFull,
     MapNotFound,
     MapReplaying,
     MapUnavailable,
@@ -62,10 +65,14 @@ from service.maps.results import (
     ObservationResult,
     PlaceResult,
     PlacesInfo,
+    RepairResult,
     RestoreResult,
+    Retraction,
     SequenceStats,
     SnapshotInfo,
+    SplitVisit,
     StreamReset,
+    Unjoin,
     VerificationResult,
 )
 from service.maps.runtime.budget import MemoryBudget, index_row_bytes
@@ -471,10 +478,15 @@ class MapRuntime:
                     held.append(_Held(r.seq, r.winner_cells, r.stream))
                 yield r
 
-        # (a visit's stream and code: the streams' short-term memories, docs/design/science.md §11.6)
-        visits = ((v.context_prev_seq, v.seq, v.after_seq + 1, v.stream, v.input_sdr)
-                  for v in self.store.visits())
-        self.model.links.rebuild(rows(), dropped, self.store.joined(), visits, self.store.recency())
+        # (a visit's stream and code: the streams' short-term memories, docs/design/science.md §11.6; a
+        # visit a repair re-made as a row: its step of the memory only, row NONE)
+        done = self.store.repairs()
+        split = {r.visit for r in done if r.kind == "split"}
+        visits = ((v.context_prev_seq, NONE if v.id in split else v.seq, v.after_seq + 1, v.stream,
+                   v.input_sdr) for v in self.store.visits())
+        self.model.links.rebuild(rows(), dropped, self.store.joined(), visits, self.store.recency(),
+                                 remade={r.seq for r in done if r.kind == "split"},
+                                 unjoined={r.seq for r in done if r.kind == "unjoin"})
         self.model.index.rebuild(held)
         if self.budget is not None:
             self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
@@ -792,6 +804,67 @@ class MapRuntime:
         self._codes[seq] = code
         if len(self._codes) > CODES_KEPT:
             self._codes.popitem(last=False)
+
+    # ------------------------------------------------------------------ repair
+
+    def own_trail_merges(self) -> RepairResult:
+        """Writer: the merges made from a stream's own recent trail that no repair undid yet, listed
+        (docs/design/science.md §11.6; `service.maps.repair.find`)."""
+        self.require_ready(learns=False)
+        assert self.store is not None
+        return self._repair_result(self._find(), None)
+
+    def repair(self) -> RepairResult:
+        """Writer: undo the merges made from a stream's own recent trail (docs/design/science.md §11.6,
+        docs/design/service.md §1.2): each visit re-made as a row of its own, each row that joined a place
+        through its stream's recent row given back its own place, each closure that named such a row
+        retracted, in one transaction (`MapStore.repair`); then the index and places are rebuilt from
+        the store, as a recovery builds them. A second repair finds nothing. The memory is not touched:
+        it learned each frame once, with its visit, and the replay keeps taking it so.
+
+        Raises:
+            MapUnavailable (not ready). MapFull: the re-made rows would pass `max_observations`;
+            MemoryBudgetExceeded: their index bytes do not fit the budget (nothing changed: a repair
+            forgets nothing to make room). InsufficientStorage: the disk is full (nothing changed).
+        """
+        self.require_ready()
+        assert self.store is not None
+        found = self._find()
+        if not found:
+            return self._repair_result(found, [])
+        added = len(found.visits)
+        if len(self.index) + added > self.index.max_observations:
+            raise MapFull(self.map_id, self.index.max_observations)
+        if self.budget is not None:
+            self.budget.grow_index(self.map_id, added * self.row_bytes)
+        try:
+            seqs = self.store.repair(found.visits, [(s, was) for s, was, _ in found.joins],
+                                     [c[0] for c in found.closures])
+        except BaseException as e:
+            if self.budget is not None:  # nothing was stored: the index holds what it held
+                self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
+            if isinstance(e, StorageFull):
+                raise InsufficientStorage("the repair could not be stored: the disk is full; nothing "
+                                          "changed") from e
+            raise
+        self._rebuild_index()  # sets the budget's index bytes to the index rebuilt
+        log.info("map %s repaired: %d visits re-made as rows, %d rows given back their place, %d loop "
+                 "closures retracted", self.map_id, len(seqs), len(found.joins), len(found.closures))
+        return self._repair_result(found, seqs)
+
+    def _find(self) -> repairs.Found:
+        assert self.store is not None
+        return repairs.find(self.store, self.localisation.localiser.conf, self.tm.n_columns)
+
+    def _repair_result(self, found: repairs.Found, seqs: list[int] | None) -> RepairResult:
+        made = seqs or [None] * len(found.visits)
+        return RepairResult(
+            map_id=self.map_id, window=found.window, repaired=seqs is not None,
+            splits=[SplitVisit(visit=v.id, stream=v.stream, into=v.seq, seq=s)
+                    for v, s in zip(found.visits, made, strict=True)],
+            unjoins=[Unjoin(seq=s, stream=st, joined=was) for s, was, st in found.joins],
+            retractions=[Retraction(closure=i, stream=st, place_seq=p) for i, st, p in found.closures],
+            rows_added=len(seqs or []))
 
     # ------------------------------------------------------------------ resources
 

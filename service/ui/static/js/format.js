@@ -33,8 +33,10 @@ export function bytes(v) {
 }
 
 /** A logged loop closure's frame: its row, else "visit" (a learning stream's consolidated frame, which
- * joined row `consolidated_into`) or "localising" (a localising stream's: no row at all). */
+ * joined row `consolidated_into`) or "localising" (a localising stream's: no row at all); a retraction
+ * entry (a repair withdrew closure `retracts`) says so. */
 export function closureFrame(c) {
+  if (c.retracts !== null && c.retracts !== undefined) return `retracts ${num(c.retracts)}`;
   if (c.seq !== null && c.seq !== undefined) return num(c.seq);
   return c.consolidated_into !== null && c.consolidated_into !== undefined ? "visit" : "localising";
 }

@@ -1,0 +1,213 @@
+"""Repairing a map made before the short-term memory (docs/design/science.md §11.6, docs/design/service.md
+§1.2, §4.2, §4.4; issue 35 item 3): the merges made from a stream's own recent trail are listed, undone in
+one durable transaction, retracted in the loop-closure log and its exports, and stay undone across a
+crash, a restart, a snapshot and a restore; a second repair finds nothing."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+
+import numpy as np
+from typer.testing import CliRunner
+
+from models import pipeline
+from service.cli import app as cli
+from service.maps.closures import g2o_lines, g2o_retracted
+from service.maps.recovery import open_catalog, verify_map
+from storage.mapstore import LoopClosure, NewClosure, NewObservation, NewVisit
+from tests.service.helpers import frame, make_client, post
+from tests.service.test_loop_closures import THRESHOLD, drive
+from tests.service.test_places import crash
+
+
+def echo_visit(rt, stream: str, into: int, code: np.ndarray) -> int:
+    """What a map before the short-term memory did with an echo: the stream's frame consolidated into its
+    own recent row `into` (the memory learns it on the stream's context, a visit and its loop closure are
+    logged), as `MapRuntime._step` does it; the replay reproduces it. Returns the visit's id."""
+    def run() -> int:
+        st = rt.streams[stream]
+        prev = st.last_learned_seq
+        clock = rt.store.next_seq()
+        winners = pipeline.revisit(rt.model, st, code, row=into, prev_seq=prev)
+        rt.localisation.visit(prev, into, clock, stream, code)
+        return rt.store.add_visit(NewVisit(
+            stream=stream, seq=into, context_prev_seq=prev, input_sdr=code, winner_cells=winners,
+            closure=NewClosure(stream=stream, place_seq=into, confidence=0.95, support=5), touched=(into,),
+            resume=pipeline.resume_state(st)))
+    return rt.submit(run).result()
+
+
+def echo_row(rt, stream: str, joined: int, code: np.ndarray) -> int:
+    """An echo that made a row: it joined the place of the stream's own recent row `joined`, its revisit
+    logged. Returns its seq."""
+    def run() -> int:
+        st = rt.streams[stream]
+        prev, seq = st.last_learned_seq, rt.store.next_seq()
+        place = rt.localisation.place_of(joined)
+        winners = pipeline.replay(rt.model, st, code, seq=seq, prev_seq=prev)
+        rt.model.index.add(seq, winners, stream)
+        rt.localisation.add(seq, prev, code, stream=stream, place=place)
+        return rt.store.append(NewObservation(
+            stream=stream, image_sha256="0" * 64, input_sdr=code, winner_cells=winners, context_prev_seq=prev,
+            place=place, closure=NewClosure(stream=stream, place_seq=joined, confidence=0.9, support=4),
+            resume=pipeline.resume_state(st)))
+    return rt.submit(run).result()
+
+
+def hit(c) -> dict:
+    """A map made with no short-term memory and hit by two echoes of stream `a`: a frame of place 25
+    consolidated into a's row of place 7 (two rows back), then a frame of place 26 that joined the place of
+    a's row of place 9 (its last row). Returns the rows and ids a repair names."""
+    body = {"map_id": "m", "revisit_threshold": THRESHOLD, "localiser": {"short_term": 0}}
+    assert c.post("/v1/maps", json=body).status_code == 201
+    z = drive(c, [25, 26], stream="z", noise=0.0, map_id="m")
+    a = drive(c, range(10), stream="a", noise=0.0, map_id="m")
+    rt = c.app.state.registry.get("m")
+    code = {p: rt.store.get(b["seq"]).input_sdr for p, b in zip((25, 26), z, strict=True)}
+    visit = echo_visit(rt, "a", a[7]["seq"], code[25])
+    row = echo_row(rt, "a", a[9]["seq"], code[26])
+    drive(c, range(10, 14), stream="a", noise=0.0, map_id="m")
+    closures = c.get("/v1/maps/m/loop-closures").json()["loop_closures"]
+    return {"visit": visit, "into": a[7]["seq"], "row": row, "joined": a[9]["seq"], "z25": z[0]["seq"],
+            "closures": [e["id"] for e in closures if e["place"]["seq"] in (a[7]["seq"], a[9]["seq"])]}
+
+
+def listing(c) -> dict:
+    r = c.get("/v1/maps/m/repair")
+    assert r.status_code == 200
+    return r.json()
+
+
+def nothing(body: dict) -> bool:
+    return body["splits"] == body["unjoins"] == body["retractions"] == [] and body["rows_added"] == 0
+
+
+def test_a_hit_map_is_listed_repaired_once_and_answers_as_if_the_frames_had_never_been_merged(tmp_path):
+    with make_client(tmp_path / "data") as c:
+        h = hit(c)
+        rt = c.app.state.registry.get("m")
+        assert rt.localisation.place_of(h["row"]) == rt.localisation.place_of(h["joined"])  # merged
+        found = listing(c)
+        assert found["repaired"] is False and found["window"] == 20  # the default's: the map has none
+        assert [(s["visit"], s["stream"], s["into"], s["seq"]) for s in found["splits"]] == [
+            (h["visit"], "a", h["into"], None)]
+        assert found["unjoins"] == [{"seq": h["row"], "stream": "a", "joined": h["joined"]}]
+        assert sorted(r["closure"] for r in found["retractions"]) == sorted(h["closures"])
+        assert len(h["closures"]) == 2
+        rows, last = rt.store.count(), rt.store.last_seq()
+        assert c.get("/v1/maps/m/repair").json() == found and rt.store.count() == rows  # changes nothing
+
+        done = c.post("/v1/maps/m/repair").json()
+        made = done["splits"][0]["seq"]
+        assert done["repaired"] and done["rows_added"] == 1 and made == last + 1
+        assert rt.store.count() == rows + 1 and len(rt.index) == rows + 1
+        # distinct places: the re-made frame is a place of its own, the joined row its own again
+        assert rt.localisation.place_of(made) == made != rt.localisation.place_of(h["into"])
+        assert rt.localisation.place_of(h["row"]) == h["row"] != rt.localisation.place_of(h["joined"])
+        # a later localisation along a's route to the re-made frame finds its row, never the echo
+        drive(c, range(10), stream="q", learn="false", noise=0.0, map_id="m")
+        seen = post(c, frame(25), map_id="m", learn="false", stream="q", top_k=5).json()
+        assert seen["matches"][0]["seq"] == made  # its own row, the frame's exact code and context
+        assert seen["place"]["place_id"] not in (h["into"], rt.localisation.place_of(h["into"]))
+        again = c.post("/v1/maps/m/repair").json()
+        assert again["repaired"] and nothing(again) and rt.store.count() == rows + 1
+        assert nothing(listing(c))
+
+
+def test_the_log_retracts_the_echoes_closures_and_the_exports_carry_the_retractions(tmp_path):
+    with make_client(tmp_path / "data") as c:
+        h = hit(c)
+        before = c.get("/v1/maps/m/loop-closures").json()["loop_closures"]
+        assert c.post("/v1/maps/m/repair").status_code == 200
+        log = c.get("/v1/maps/m/loop-closures").json()["loop_closures"]
+        assert log[:len(before)] == [{**e, "retracts": None} for e in before]  # nothing edited
+        retractions = log[len(before):]
+        assert sorted(e["retracts"] for e in retractions) == sorted(h["closures"])
+        for e in retractions:
+            closure = next(b for b in before if b["id"] == e["retracts"])
+            assert e["place"] == closure["place"] and e["stream"] == "a"
+            assert e["confidence"] == 0 and e["support"] == 0 and e["id"] > closure["id"]
+        text = c.get("/v1/maps/m/loop-closures/export", params={"format": "csv"}).text
+        table = list(csv.DictReader(io.StringIO(text)))
+        assert sorted(int(r["retracts"]) for r in table if r["kind"] == "retraction") == sorted(h["closures"])
+        assert all(r["retracts"] == "" for r in table if r["kind"] == "closure")
+        lines = [json.loads(x) for x in c.get("/v1/maps/m/loop-closures/export",
+                                              params={"format": "jsonl"}).text.splitlines()]
+        withdrawn = {x["retracts"]: x for x in lines if x["kind"] == "retraction"}
+        assert sorted(withdrawn) == sorted(h["closures"])
+        assert {x["id"] for x in lines if x["kind"] == "closure"} >= set(withdrawn)
+
+
+def test_a_retracted_closure_leaves_its_g2o_edge_out_for_a_comment():
+    v = {"verified": True, "keyframe_seq": 4, "rotation": np.eye(3).tolist(), "translation": [0, 0, 1]}
+    closure = LoopClosure(id=7, stream="a", seq=9, observation_id="o9", metadata=None, place_seq=4,
+                          place_observation_id="o4", place_stream="a", place_label=None, place_metadata=None,
+                          confidence=0.9, support=5, created_at="t", verification=v)
+    assert g2o_lines(closure).startswith("EDGE_SE3:QUAT 4 9 ")
+    assert g2o_retracted(closure) == "# RETRACTED 4 9 closure 7\n"
+
+
+def test_a_repair_survives_a_crash_a_restart_a_snapshot_and_a_restore(tmp_path):
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        h = hit(c)
+        before = c.post("/v1/maps/m/snapshots").json()["snapshot_id"]
+        made = c.post("/v1/maps/m/repair").json()["splits"][0]["seq"]
+        crash(c)  # as a kill -9 leaves it: no shutdown snapshot
+    with make_client(data) as c:
+        rt = c.app.state.registry.get("m")
+        note = c.get("/v1/maps/m").json()["recovery"]
+        assert note["source"] == "snapshot" and note["snapshot_id"] == before
+        assert note.get("mismatches", 0) == 0
+        assert nothing(listing(c)) and rt.localisation.place_of(made) == made
+        assert rt.localisation.place_of(h["row"]) == h["row"] and made in {r.seq for r in rt.store.rows()}
+        after = c.post("/v1/maps/m/snapshots").json()["snapshot_id"]
+        assert c.post(f"/v1/maps/m/snapshots/{before}/restore").status_code == 200
+        assert len(listing(c)["splits"]) == 1  # the map as it was before the repair
+        assert c.post(f"/v1/maps/m/snapshots/{after}/restore").status_code == 200
+        assert nothing(listing(c)) and rt.localisation.place_of(made) == made  # the snapshot carries it
+    with make_client(data) as c:  # a clean restart
+        assert nothing(listing(c))
+        assert c.get("/v1/maps/m").json()["recovery"].get("mismatches", 0) == 0
+    catalog = open_catalog(data)
+    try:
+        check = verify_map(catalog, catalog.get_map("m"))
+    finally:
+        catalog.close()
+    assert check.ok and not check.mismatches
+
+
+def test_verify_lists_the_merges_and_the_cli_repairs_them(tmp_path):
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        h = hit(c)
+    runner = CliRunner()
+    out = runner.invoke(cli, ["verify", "--map", "m", "--data-dir", str(data)])
+    assert out.exit_code == 0, out.output
+    assert f"visit {h['visit']}: stream 'a' consolidated into its own row {h['into']}" in out.output
+    assert f"row {h['row']}: stream 'a' joined the place of its own row {h['joined']}" in out.output
+    out = runner.invoke(cli, ["repair", "--map", "m", "--data-dir", str(data), "--json"])
+    assert out.exit_code == 0, out.output
+    assert json.loads(out.output.strip().splitlines()[-1])["rows_added"] == 1
+    out = runner.invoke(cli, ["verify", "--map", "m", "--data-dir", str(data)])
+    assert out.exit_code == 0 and "no merges from a stream's own recent trail" in out.output
+
+
+def test_a_repair_that_does_not_fit_the_cap_is_refused_and_changes_nothing(tmp_path):
+    with make_client(tmp_path / "data") as c:
+        hit(c)
+        rt = c.app.state.registry.get("m")
+        found, rows = listing(c), rt.store.count()
+        rt.index.max_observations = len(rt.index)  # full: the re-made row has no room
+        r = c.post("/v1/maps/m/repair")
+        assert r.status_code == 409 and r.json()["type"].endswith("map-full")
+        assert r.headers["content-type"].startswith("application/problem+json")
+        assert rt.store.count() == rows and listing(c) == found
+
+
+def test_an_unknown_map_is_a_404(tmp_path):
+    with make_client(tmp_path / "data") as c:
+        for r in (c.get("/v1/maps/nope/repair"), c.post("/v1/maps/nope/repair")):
+            assert r.status_code == 404 and r.headers["content-type"].startswith("application/problem+json")
