@@ -18,9 +18,9 @@ for the keys' window whatever the visit log's pruning, and `stream_states`, what
 back of a learning stream (its localiser state), written with each learned step; version 8 a logged
 closure's `consolidated_into` (the closure of a consolidated frame, a visit, names the row it was
 consolidated into: it has no row of its own, and a localising stream's closure has neither); version
-10 the `repairs` log and a logged closure's `retracts` (a repair of merges made from a stream's own
+9 the `repairs` log and a logged closure's `retracts` (a repair of merges made from a stream's own
 recent trail, docs/design/science.md §11.6: a visit re-made as its own row, a row given back its own
-place, a closure retracted by a new entry that names it; version 9 is another branch's). An older
+place, a closure retracted by a new entry that names it). An older
 file is brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep
 `place` NULL (read as the place its learning stream's logged loop closure names, else its own). Opened
 read-only (`cortexloc verify`, a snapshot's copy) an older file is read as it is; a file of a newer version
@@ -72,7 +72,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 10
+SCHEMA_VERSION = 9
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -260,17 +260,14 @@ _MIGRATE_V7 = _V7_TABLES + _COPY_VISIT_KEYS + _version_step(7)
 #: Version 7 -> 8: a column no row has yet (an older visit's closure reads NULL, as a localising one's).
 _CLOSURE_VISIT = "ALTER TABLE loop_closures ADD COLUMN consolidated_into INTEGER NULL;"
 _MIGRATE_V8 = _CLOSURE_VISIT + _version_step(8)
-#: Version 8 -> 9: another branch's (the loop closures' span columns); its script replaces this at merge.
-_MIGRATE_V9 = _version_step(9)
-
-# What version 10 added (docs/design/science.md §11.6, docs/design/service.md §4.2, §4.4): the repair of
+# What version 9 added (docs/design/science.md §11.6, docs/design/service.md §4.2, §4.4): the repair of
 # merges made from a stream's own recent trail. `repairs`: each thing a repair changed, committed in one
 # transaction with the rows it re-made and the retractions it logged: `split` (a visit re-made as its own
 # row `seq`, appended at the end; the memory learned the frame with the visit, so a replay skips the row
 # and replays the visit) or `unjoin` (row `seq` given back its own place); `was` is the row it had been
 # merged into or joined. A logged closure's `retracts`: this entry withdraws closure `retracts` (a new
 # entry: the log's no-update trigger stays).
-_V10_TABLES = """
+_V9_TABLES = """
 CREATE TABLE repairs (
     id         INTEGER PRIMARY KEY,
     kind       TEXT NOT NULL CHECK (kind IN ('split', 'unjoin')),
@@ -285,8 +282,8 @@ CREATE TRIGGER repairs_no_delete BEFORE DELETE ON repairs
 BEGIN SELECT RAISE(ABORT, 'repairs are append-only'); END;
 """
 _CLOSURE_RETRACTS = "ALTER TABLE loop_closures ADD COLUMN retracts INTEGER NULL;"
-#: Version 9 -> 10: a new table and a column no row has yet (no row changes).
-_MIGRATE_V10 = _V10_TABLES + _CLOSURE_RETRACTS + _version_step(10)
+#: Version 8 -> 9: a new table and a column no row has yet (no row changes).
+_MIGRATE_V9 = _V9_TABLES + _CLOSURE_RETRACTS + _version_step(9)
 
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
@@ -304,7 +301,7 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
         return meta
     # chain[v - 1]: version v -> v + 1
     chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6, _MIGRATE_V7, _MIGRATE_V8,
-             _MIGRATE_V9, _MIGRATE_V10]
+             _MIGRATE_V9]
     steps = "".join(chain[meta.schema_version - 1:])
     try:
         conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
@@ -479,7 +476,7 @@ class LoopClosure:
         verification: as logged (None: none, or a file before version 4). consolidated_into: for a
         consolidated frame (a visit), the row it was consolidated into (None: it has a row, or it was
         a localising stream's, or it was logged before version 8). retracts: on a retraction entry
-        (version 10: a repair withdrew a closure, docs/design/science.md §11.6), the id of the closure it
+        (version 9: a repair withdrew a closure, docs/design/science.md §11.6), the id of the closure it
         withdraws; its pair is that closure's, its confidence and support 0, no verification.
     """
 
@@ -503,7 +500,7 @@ class LoopClosure:
 
 @dataclass(frozen=True)
 class Repair:
-    """One logged repair (`MapStore.repairs`, schema version 10, docs/design/science.md §11.6).
+    """One logged repair (`MapStore.repairs`, schema version 9, docs/design/science.md §11.6).
 
     Attributes:
         id: its log order. kind: `split` (visit `visit` re-made as row `seq`) or `unjoin` (row `seq`
@@ -601,7 +598,7 @@ def create_file(path: Path, meta: MapMeta) -> None:
             # (executescript would commit a pending transaction anyway).
             conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION
                                + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES + _V7_TABLES + _CLOSURE_VISIT
-                               + _V10_TABLES + _CLOSURE_RETRACTS)
+                               + _V9_TABLES + _CLOSURE_RETRACTS)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

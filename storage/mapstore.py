@@ -114,7 +114,7 @@ class MapStore:
         self._v5 = meta.schema_version >= 5  # places: a row's place, visits, dropped rows
         self._v6 = meta.schema_version >= 6  # rows' recency
         self._v7 = meta.schema_version >= 7  # visit keys apart from the visit log
-        self._v10 = meta.schema_version >= 10  # repairs, retraction entries in the loop-closure log
+        self._v9 = meta.schema_version >= 9  # repairs, retraction entries in the loop-closure log
         self._cols = COLUMNS if self._v5 else COLUMNS_V4 if self._v2 else COLUMNS_V1
         self._v3 = meta.schema_version >= 3  # a version 2 file opened read-only has no loop-closure log
         self._conn: sqlite3.Connection | None = conn
@@ -488,12 +488,12 @@ class MapStore:
         version 5, docs/design/science.md §11.8)."""
         if not self._v3:
             return {}
-        retraction = " AND retracts IS NULL" if self._v10 else ""  # a retraction joins nothing
+        retraction = " AND retracts IS NULL" if self._v9 else ""  # a retraction joins nothing
         with self._lock:
             return {int(r[0]): int(r[1]) for r in self._db().execute(
                 f"SELECT seq, place_seq FROM loop_closures WHERE seq IS NOT NULL{retraction}")}
 
-    # ------------------------------------------------------------------ repairs (schema 10)
+    # ------------------------------------------------------------------ repairs (schema 9)
 
     def repair(self, splits: Iterable[Visit], unjoins: Iterable[tuple[int, int]],
                retracts: Iterable[int]) -> list[int]:
@@ -508,13 +508,13 @@ class MapStore:
             The seqs of the re-made rows, in the order of `splits`.
 
         Raises:
-            StorageError: a file before schema version 10 (opened read-only). StorageFull: nothing
+            StorageError: a file before schema version 9 (opened read-only). StorageFull: nothing
             was written.
         """
         splits, unjoins, retracts = list(splits), list(unjoins), list(retracts)
         with self._lock:
             conn = self._db()
-            if not self._v10:
+            if not self._v9:
                 raise StorageError(f"{self.path}: schema version {self.meta.schema_version} has no repairs")
             first = max(self._last_seq, self._seq_floor) + 1
             now = utc_now()
@@ -544,8 +544,8 @@ class MapStore:
             return [first + i for i in range(len(rows))]
 
     def repairs(self) -> list[Repair]:
-        """The logged repairs, in log order (empty before schema version 10)."""
-        if not self._v10:
+        """The logged repairs, in log order (empty before schema version 9)."""
+        if not self._v9:
             return []
         with self._lock:
             found = self._db().execute(
@@ -555,7 +555,7 @@ class MapStore:
 
     def retracted(self) -> set[int]:
         """The ids of the closures a retraction entry withdraws (kept while the retraction is logged)."""
-        if not self._v10:
+        if not self._v9:
             return set()
         with self._lock:
             return {int(r[0]) for r in self._db().execute(
@@ -629,7 +629,7 @@ class MapStore:
                 "p.stream, p.label, p.metadata, c.confidence, c.support, c.created_at, "
                 f"{'c.verification' if self.meta.schema_version >= 4 else 'NULL'}, "
                 f"{'c.consolidated_into' if self.meta.schema_version >= 8 else 'NULL'}, "
-                f"{'c.retracts' if self._v10 else 'NULL'} FROM loop_closures c "
+                f"{'c.retracts' if self._v9 else 'NULL'} FROM loop_closures c "
                 "JOIN observations p ON p.seq = c.place_seq LEFT JOIN observations o ON o.seq = c.seq "
                 "WHERE c.id > ? ORDER BY c.id LIMIT ?", (int(after), int(limit))).fetchall()
         return [LoopClosure(id=int(r[0]), stream=r[1], seq=None if r[2] is None else int(r[2]),

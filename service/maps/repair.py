@@ -128,7 +128,7 @@ def find(store: MapStore, conf: dict[str, Any] | None, code_width: int) -> Found
 
 def listing(catalog: Catalog, record: MapRecord) -> Found:
     """The merges of one map still to undo, read offline (`cortexloc verify`: the store opened read-only,
-    nothing changes; a file before schema version 10 has had no repair).
+    nothing changes; a file before schema version 9 has had no repair).
 
     Raises:
         StorageError, OSError: the store cannot be read. InvalidConfiguration: its options are not this

@@ -13,7 +13,7 @@ import pytest
 from storage.mapschema import SCHEMA_VERSION, NewClosure
 from storage.mapstore import MapMeta, MapStore
 from tests.storage.conftest import make_row
-from tests.storage.test_mapstore_places import V10_UNDONE
+from tests.storage.test_mapstore_places import V9_UNDONE
 
 CAMERA = {"fx": 300.0, "fy": 300.0, "cx": 160.0, "cy": 120.0, "distortion": []}
 
@@ -49,7 +49,7 @@ def test_an_older_file_is_migrated_to_hold_keyframes_and_closure_verifications(t
              else "ALTER TABLE loop_closures DROP COLUMN verification; "
                   "ALTER TABLE loop_closures DROP COLUMN consolidated_into;")
     conn = sqlite3.connect(path)
-    conn.executescript(V10_UNDONE + f"""
+    conn.executescript(V9_UNDONE + f"""
         DROP TABLE keyframes;
         DROP TABLE visits;
         DROP TABLE dropped;
@@ -68,7 +68,7 @@ def test_an_older_file_is_migrated_to_hold_keyframes_and_closure_verifications(t
         assert ro.meta.schema_version == version and ro.keyframes([1]) == {} and ro.keyframe_bytes() == (0, 0)
         assert ro.closures(0, 10) == []
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 10
+        assert store.meta.schema_version == SCHEMA_VERSION == 9
         closure = NewClosure(stream="s", place_seq=1, confidence=0.99, support=3,
                              verification={"verified": True, "inliers": 40})
         seq = store.append(dataclasses.replace(make_row(2, prev=1), keyframe=(b"f" * 16, CAMERA),

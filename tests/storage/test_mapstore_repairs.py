@@ -1,4 +1,4 @@
-"""map.sqlite schema 10 (docs/design/science.md §11.6; docs/design/service.md §4.2): a repair of merges
+"""map.sqlite schema 9 (docs/design/science.md §11.6; docs/design/service.md §4.2): a repair of merges
 made from a stream's own recent trail, in one transaction: visits re-made as rows, rows given back their
 place, loop closures retracted by new entries; and the migration of an older file."""
 
@@ -58,6 +58,6 @@ def test_an_older_file_is_migrated_to_schema_10_keeping_its_log(tmp_path: Path, 
     with MapStore.open(path, readonly=True) as old:
         assert old.repairs() == [] and old.retracted() == set() and old.closures(0, 10)[0].retracts is None
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 10
+        assert store.meta.schema_version == SCHEMA_VERSION == 9
         assert store.repair(list(store.visits()), [], [c]) == [4] and store.retracted() == {c}
         assert [x.id for x in store.visits()] == [v]  # the visit stays: the replay teaches the memory with it
