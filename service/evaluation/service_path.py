@@ -168,7 +168,8 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
         if step.place is not None:
             revisit[i], verification[i] = _answered(step.place, config, kf, query, model.links.graph,
                                                     "robot", "robot")
-            best[i], confidence[i] = frame_of[step.place.seq], _decided(step.place, verification[i], config)
+            refused = verification[i] is not None and not revisit[i]
+            best[i], confidence[i] = frame_of[step.place.seq], _decided(step.place, refused)
             support[i] = step.place.support
         if step.visit is None:
             codes[seq], frame_of[seq] = step.code, i
@@ -198,15 +199,11 @@ def _at(contrast: np.ndarray | None, i: int) -> float | None:
     return None if contrast is None else float(contrast[i])
 
 
-def _decided(place: Place, verification: VerificationResult | None = None,
-             config: MapConfig | None = None) -> float:
+def _decided(place: Place, refused: bool = False) -> float:
     """The confidence the revisit decision compares: 0 for a frame too flat to be a revisit at any
     threshold (`Place.is_revisit`, docs/design/science.md §11.7), and for a candidate its verification
-    failed on a map with `verify_revisit` (`keyframes.revisit_stands`, §12.2)."""
-    if verification is not None and config is not None and not keyframes.revisit_stands(
-            True, verification, config.verify_revisit):
-        return 0.0
-    return place.confidence if place.informative else 0.0
+    `refused` on a map with `verify_revisit` (`keyframes.revisit_stands`, §12.2)."""
+    return place.confidence if place.informative and not refused else 0.0
 
 
 def _answered(place: Place, config: MapConfig, kf: _Keyframes | None, query: keyframes.QueryFrame | None,
@@ -281,7 +278,8 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
         if place is not None:
             revisit[j], verification[j] = _answered(place, config, kf, frame, model.links.graph, "query",
                                                     "database")
-            best[j], confidence[j] = place.seq - 1, _decided(place, verification[j], config)
+            refused = verification[j] is not None and not revisit[j]
+            best[j], confidence[j] = place.seq - 1, _decided(place, refused)
             support[j] = place.support
         if progress:
             progress(n_db + j + 1, n_db + n_q)
