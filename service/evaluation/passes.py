@@ -42,13 +42,13 @@ NO_CONSOLIDATION = {"consolidate": 1.0, "appearances": 1024}
 
 
 class Driver:
-    """One map's pure pipeline (`service_path._model`), with the codes of its rows and their labels."""
+    """One map's pure pipeline (`service_path._model`, forgetting at the served cap as the writer does:
+    `service_path.forget`), with the codes of its rows and their labels."""
 
-    def __init__(self, n_rows: int, dim: int, *, memory: str, localiser: dict[str, Any],
-                 map_conf: dict[str, Any]) -> None:
+    def __init__(self, dim: int, *, memory: str, localiser: dict[str, Any], map_conf: dict[str, Any]) -> None:
         self.model: MapModel
         self.model, self.hasher, config = service_path._model(
-            n_rows, dim, memory=memory, localiser=localiser, create=None, **map_conf)
+            dim, memory=memory, localiser=localiser, create=None, **map_conf)
         self.threshold = float(config.revisit_threshold)
         self.codes: dict[int, np.ndarray] = {}
         self.labels: dict[int, int] = {}
@@ -61,6 +61,8 @@ class Driver:
         out = Pass(np.full(len(labels), -1, np.int64), np.zeros(len(labels)), labels, 0, 0)
         for i, y in enumerate(self.hasher.project(feats)):
             seq = self.seq + 1 if learn else None
+            if learn:
+                service_path.forget(self.model)
             step = observe(self.model, st, y, learn=learn, stream=stream, top_k=0, seq=seq,
                            code_of=self.codes.__getitem__, threshold=self.threshold)
             if learn and step.visit is None:
@@ -95,7 +97,7 @@ def _passes(frames: Frames, idx: np.ndarray, labels: np.ndarray, counts: list[in
     dim = int(query.shape[1])
     out = []
     for n in counts:
-        d = Driver(n * len(idx), dim, memory=memory, localiser=localiser, map_conf=map_conf)
+        d = Driver(dim, memory=memory, localiser=localiser, map_conf=map_conf)
         added = [d.drive(_conditions(frames, idx, kind, k), labels, f"pass-{k}", learn=True).rows
                  for k in range(n)]
         q = d.drive(query, labels, "query", learn=False)
@@ -107,7 +109,7 @@ def _passes(frames: Frames, idx: np.ndarray, labels: np.ndarray, counts: list[in
 def _stream(frames: Frames, idx: np.ndarray, labels: np.ndarray, memory: str, localiser: dict[str, Any],
             map_conf: dict[str, Any], tolerance: int, laps: int = 3) -> list[dict]:
     """One learning stream drives the route `laps` times (same conditions): each lap's revisits."""
-    d = Driver(laps * len(idx), int(frames.feats["summer"].shape[1]), memory=memory, localiser=localiser,
+    d = Driver(int(frames.feats["summer"].shape[1]), memory=memory, localiser=localiser,
                map_conf=map_conf)
     st = Stream()
     out = []
@@ -122,7 +124,7 @@ def _month(frames: Frames, idx: np.ndarray, labels: np.ndarray, days: int, memor
     """Three robots drive the route once a day each, the season alternating by day; after each day a
     held-out pass (noisy summer on summer days, winter's frames with noise on winter days is not
     available, so the other season's clean frames) is localised."""
-    d = Driver(3 * days * len(idx), int(frames.feats["summer"].shape[1]), memory=memory,
+    d = Driver(int(frames.feats["summer"].shape[1]), memory=memory,
                localiser=localiser, map_conf=map_conf)
     robots = {f"robot-{r}": Stream() for r in range(3)}
     out = []

@@ -16,17 +16,27 @@ import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from models import geometry
 from models.frontend.images import ImageError, RawFrame
+from models.localisation import SequenceGraph
 from service.maps.errors import ClientGone, InvalidCamera, Overloaded
 from service.maps.results import VerificationResult
-from storage.mapstore import MapStore
 
-__all__ = ["Extractions", "QueryFrame", "camera_of", "extract_frame", "verify_place"]
+__all__ = ["Extractions", "KeyframeSource", "QueryFrame", "camera_of", "extract_frame", "revisit_stands",
+           "verify_candidate", "verify_place"]
+
+
+class KeyframeSource(Protocol):
+    """Where a verification reads the stored keyframes: the map's store (`MapStore.keyframes`), or the
+    evaluation's keyframes held in memory (`service.evaluation.service_path`)."""
+
+    def keyframes(self, seqs: Iterable[int]) -> dict[int, tuple[bytes, dict[str, Any] | None]]:
+        """{seq: (packed features, camera or None)} of those of `seqs` that have a keyframe."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -118,7 +128,24 @@ def camera_of(value: dict[str, Any] | None) -> geometry.Camera | None:
                            tuple(float(d) for d in value.get("distortion") or ()))
 
 
-def verify_place(store: MapStore, place_seq: int, place_stream: str, route: Iterable[int],
+def verify_candidate(store: KeyframeSource, graph: SequenceGraph, place_seq: int, place_stream: str,
+                     query: QueryFrame | None, *, stream: str, neighbours: int) -> VerificationResult:
+    """Writer (and the evaluation): a revisit candidate's verification on a map with keyframes
+    (docs/design/science.md §12.2): `verify_place` along the rows within `neighbours` links of the place
+    (`graph.within`); `no-features` where the query frame could not be decoded for features."""
+    if query is None:
+        return VerificationResult(verified=False, reason="no-features")
+    return verify_place(store, place_seq, place_stream, graph.within(place_seq, neighbours), query,
+                        stream=stream)
+
+
+def revisit_stands(revisit: bool, verification: VerificationResult, verify_revisit: bool) -> bool:
+    """The revisit decision after its verification: with the map's `verify_revisit` an unverified
+    candidate is no revisit; without it verification only reports (docs/design/science.md §12.2)."""
+    return revisit and (verification.verified or not verify_revisit)
+
+
+def verify_place(store: KeyframeSource, place_seq: int, place_stream: str, route: Iterable[int],
                  query: QueryFrame, *, stream: str) -> VerificationResult:
     """Writer: verify the query against the keyframe of `place_seq`, then those of its `route`
     neighbours (the rows within `CORTEXLOC_VERIFY_NEIGHBOURS` links of it, `SequenceGraph.within`),

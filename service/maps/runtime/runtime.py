@@ -40,7 +40,7 @@ import service.maps.runtime.sizes as sizes
 from models import geometry, pipeline
 from models.frontend import slsbh
 from models.frontend.images import RawFrame
-from models.localisation import InvertedIndex, Localisation
+from models.localisation import InvertedIndex, Localisation, forgetting
 from models.localisation.graph import NONE
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import Stream, eviction_wait, memory_state, touch
@@ -73,7 +73,6 @@ from service.maps.results import (
     SplitVisit,
     StreamReset,
     Unjoin,
-    VerificationResult,
 )
 from service.maps.runtime.budget import MemoryBudget, index_row_bytes
 from service.maps.runtime.durability import GroupCommit
@@ -94,9 +93,7 @@ from storage.mapstore import (
 __all__ = ["FORGETTING", "TAIL_BEFORE_SERVING", "MapRuntime"]
 
 #: The forgetting rule as the map resource states it (docs/design/science.md §11.9).
-FORGETTING = ("when the rows held reach max_rows, the least recently used places (made, visited or joined "
-              "by a learning stream) are forgotten whole, at least 1% of max_rows at a time; a place over "
-              "max_appearances drops its least recently used appearance")
+FORGETTING = forgetting.RULE
 
 #: A recovery's tail (rows and visits after its snapshot) of at most this many steps is replayed before the
 #: map serves (well under a second at 5-13 ms a step); a longer one while it serves localising frames
@@ -640,8 +637,8 @@ class MapRuntime:
         if projected.shape != (self.hasher.k,):
             raise ValueError(f"projection has shape {projected.shape}, this map's are ({self.hasher.k},)")
         self._admit(stream)
-        if learn and len(self.index) >= self.index.max_observations:
-            self._forget()
+        if learn and (gone := forgetting.to_forget(self.index, self.localisation)):
+            self._forget(gone)
         if learn and self.budget is not None:  # the row's index bytes, before the step (a failed one is
             self.budget.grow_index(self.map_id, self.row_bytes)  # set right by the recovery it causes)
         try:
@@ -758,13 +755,12 @@ class MapRuntime:
                 self.store.prune_visits(self.covered, self.max_visits)
                 self.store.prune_stream_states(self.store.last_seq())
 
-    def _forget(self) -> None:
-        """Writer: the hard cap binds (`max_observations` rows held): forget the least recently used
-        places, whole, at least 1 % of the cap, durably before the row that needed the room
-        (docs/design/science.md §11.9). Their rows stay in map.sqlite (the replay and snapshots read them)
-        but leave the index, the places and every answer."""
+    def _forget(self, gone: list[int]) -> None:
+        """Writer: the hard cap binds (`max_observations` rows held): forget `gone`, the rows the rule
+        chose (`forgetting.to_forget`: the least recently used places, whole, at least 1 % of the cap),
+        durably before the row that needed the room (docs/design/science.md §11.9). Their rows stay in
+        map.sqlite (the replay and snapshots read them) but leave the index, the places and every answer."""
         assert self.store is not None
-        gone = self.localisation.least_recent(max(1, self.index.max_observations // 100))
         self.store.drop(gone, "forgotten")
         pipeline.drop(self.model, gone)
         self.forgotten += len(gone)
@@ -778,12 +774,9 @@ class MapRuntime:
         with keyframes only; with `verify_revisit` an unverified candidate is no revisit."""
         if not place.revisit or self.config.keyframes is None or self.store is None:
             return place
-        if query is None:  # the frame could not be decoded for features (the encoder decoded it)
-            v = VerificationResult(verified=False, reason="no-features")
-        else:
-            route = self.localisation.graph.within(place.seq, self.verify_neighbours)
-            v = keyframes.verify_place(self.store, place.seq, place.stream, route, query, stream=stream)
-        revisit = place.revisit and (v.verified or not self.config.verify_revisit)
+        v = keyframes.verify_candidate(self.store, self.localisation.graph, place.seq, place.stream, query,
+                                       stream=stream, neighbours=self.verify_neighbours)
+        revisit = keyframes.revisit_stands(place.revisit, v, self.config.verify_revisit)
         return dataclasses.replace(place, verification=v, revisit=revisit)
 
     def _code_of(self, seq: int) -> np.ndarray:

@@ -115,3 +115,24 @@ def test_the_localiser_answers_the_place_of_its_best_row():
     loc = SequenceLocaliser({"warmup": 1})
     place = loc.step(state, g, np.array([25]), np.array([1.0]))
     assert place is not None and place.seq == 25 and place.place == 5
+
+
+def test_the_cap_rule_forgets_nothing_below_it_and_at_least_one_percent_of_it_at_it():
+    """`forgetting.to_forget` (issue 38 item 4: the one home of the rule the writer and the evaluation
+    apply): nothing under the cap; at it, whole least recently used places, at least 1 % of the cap."""
+    from models.localisation import forgetting
+
+    loc = localisation_with(appearances=8)
+    loc.add(4, None, np.array([1]), stream="b", place=1)  # place 1: rows 1 and 4, used at 4
+    loc.touch(2, 9)
+    index = InvertedIndex(64, 5)
+    for seq in range(1, 5):
+        index.add(seq, [seq], "a")
+    assert forgetting.to_forget(index, loc) == []  # 4 rows held of 5
+    index.add(5, [5], "a")
+    assert forgetting.to_forget(index, loc) == [3]  # at the cap: at least one row, place 3 whole
+    assert [forgetting.batch(c) for c in (1, 99, 100, 250, 1_000_000)] == [1, 1, 1, 2, 10_000]
+    big = InvertedIndex(64, 200)  # a cap of 200 forgets at least 2 rows: places 3 and then 1, whole
+    for seq in range(1, 201):
+        big.add(seq, [seq % 64], "a")
+    assert forgetting.to_forget(big, loc) == [3, 1, 4]

@@ -115,3 +115,81 @@ def test_the_evaluation_measures_and_decides_low_information_frames_as_the_servi
     got = [None if b < 0 else (int(b), float(cf), int(s))
            for b, cf, s in zip(found.best, found.confidence, found.support, strict=True)]
     assert got == want
+
+
+def _places(places, frame_of: dict[int, int] | None = None) -> list[tuple[int, float, int] | None]:
+    """HTTP `place` answers as (row seq - 1, or the frame that made the row, confidence, support), None
+    in warm-up."""
+    return [None if p is None else (p["seq"] - 1 if frame_of is None else frame_of[p["seq"]],
+                                    p["confidence"], p["support"]) for p in places]
+
+
+def _found(found) -> list[tuple[int, float, int] | None]:
+    return [None if b < 0 else (int(b), float(cf), int(s))
+            for b, cf, s in zip(found.best, found.confidence, found.support, strict=True)]
+
+
+def _held(rt) -> list[bool]:
+    """Each stored row of the served map: still held (neither forgotten nor dropped over its place's cap)."""
+    dropped = rt.store.dropped()
+    return [r.seq not in dropped for r in rt.store.rows()]
+
+
+@pytest.mark.parametrize("memory", ["tm", "none"])
+def test_beyond_its_cap_the_slam_replay_forgets_the_rows_the_service_forgets(tmp_path, memory):
+    """Issue 38 item 4: a map of 12 rows driven over three laps of 20 places as one learning stream
+    forgets at its cap; the evaluation's path (`slam_replay` with the same cap) forgets the same rows,
+    keeps the same ones and answers the same, frame for frame."""
+    route = list(range(20))
+    laps = [frame(p) for p in route] + [frame(p, noise=4.0) for p in route] + [frame(p, noise=6.0)
+                                                                             for p in route]
+    with make_client(tmp_path / "data", max_observations=12) as c:
+        assert c.post("/v1/maps", json={"map_id": "route", "seed": 7, "memory": memory}).status_code == 201
+        http = [post(c, b, map_id="route", stream="robot", top_k=0).json() for b in laps]
+        rt = c.app.state.registry.get("route")
+        held, forgotten = _held(rt), rt.forgotten
+        places = c.get("/v1/maps/route").json()["places"]
+        enc = c.app.state.encoder
+        preset = c.app.state.settings.default_preset
+        resize = rt.config.resize
+        feats = np.concatenate([enc.embed([b], resize=resize).features for b in laps])
+    trace: dict = {}
+    found, _ = service_path.slam_replay(
+        feats, encoder_id=enc.identity_for(resize), backbone="alexnet", preset=preset, seed=7, memory=memory,
+        create={"resize": resize}, max_observations=12, trace=trace)
+    assert forgotten >= 12 and places["forgotten"] == forgotten and places["max_rows"] == 12
+    frame_of = {b["seq"]: i for i, b in enumerate(http) if b["seq"] is not None}  # rows made, by frame
+    assert _found(found) == _places((b["place"] for b in http), frame_of)
+    assert trace["row_held"].tolist() == held and sum(held) <= 12
+    assert trace["revisit"].tolist() == [b["place"] is not None and b["place"]["revisit"] for b in http]
+
+
+@pytest.mark.parametrize("memory", ["tm", "none"])
+def test_beyond_its_cap_the_replay_localises_on_the_rows_the_service_keeps(tmp_path, memory):
+    """Issue 38 item 4: a database traverse of 24 places into a map of 10 rows (forgetting at the cap),
+    then a query traverse: `replay` with the same cap keeps the same rows and answers as HTTP."""
+    db_places = list(range(24))
+    db_bodies = [frame(p) for p in db_places]
+    q_bodies = [frame(p, noise=4.0) for p in db_places[10:]]
+    with make_client(tmp_path / "data", max_observations=10) as c:
+        assert c.post("/v1/maps", json={"map_id": "route", "seed": 7, "memory": memory}).status_code == 201
+        for b in db_bodies:
+            post(c, b, map_id="route", stream="database", top_k=0)
+        http = [post(c, b, map_id="route", stream="query", learn="false", top_k=0).json()["place"]
+                for b in q_bodies]
+        rt = c.app.state.registry.get("route")
+        held, forgotten = _held(rt), rt.forgotten
+        enc = c.app.state.encoder
+        preset = c.app.state.settings.default_preset
+        resize = rt.config.resize
+        db_feats = np.concatenate([enc.embed([b], resize=resize).features for b in db_bodies])
+        q_feats = np.concatenate([enc.embed([b], resize=resize).features for b in q_bodies])
+    trace: dict = {}
+    found = service_path.replay(db_feats, q_feats, encoder_id=enc.identity_for(resize), backbone="alexnet",
+                                preset=preset, seed=7, memory=memory, create={"resize": resize},
+                                max_observations=10, trace=trace)
+    assert forgotten >= 14 and sum(held) <= 10 and held[-1]
+    assert trace["row_held"].tolist() == held
+    assert _found(found) == _places(http)
+    assert sum(p is not None for p in http) >= len(q_bodies) - 4
+    assert np.mean(found.best[4:] == np.arange(14, 24)) >= 0.8  # the rows kept: the route's last places

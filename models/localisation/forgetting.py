@@ -1,0 +1,39 @@
+"""Forgetting at the hard cap on rows held (docs/design/science.md §11.9), pure: which rows a map forgets
+before a learned row when its index is full.
+
+The one home of the rule: the map writer (`service.maps.runtime.MapRuntime.apply`) persists what this
+decides before the row that needed the room; the evaluation (`service.evaluation.service_path`) applies
+it to its model alone, so a map measured beyond its cap is the map served.
+"""
+
+from __future__ import annotations
+
+from models.localisation.index import InvertedIndex
+from models.localisation.links import Localisation
+
+__all__ = ["BATCH_PERCENT", "RULE", "batch", "to_forget"]
+
+#: At least this percentage of the cap is forgotten at a time: the cap binding then costs one forgetting
+#: (a durable drop and a compaction's share) per 1 % of the cap learned, not one per learned row.
+BATCH_PERCENT = 1
+
+#: The rule as the map resource states it (`places.forgetting`).
+RULE = ("when the rows held reach max_rows, the least recently used places (made, visited or joined "
+        f"by a learning stream) are forgotten whole, at least {BATCH_PERCENT}% of max_rows at a time; a "
+        "place over max_appearances drops its least recently used appearance")
+
+
+def batch(cap: int) -> int:
+    """The least number of rows one forgetting drops at a cap of `cap` rows (at least one)."""
+    return max(1, cap * BATCH_PERCENT // 100)
+
+
+def to_forget(index: InvertedIndex, links: Localisation) -> list[int]:
+    """The rows to forget before the next learned row: none under the cap (`index.max_observations` rows
+    held); at it, the least recently used places, whole, at least `batch(cap)` rows
+    (`Localisation.least_recent`). The caller drops them (`models.pipeline.drop`), durably first where
+    it stores them."""
+    cap = index.max_observations
+    if len(index) < cap:
+        return []
+    return links.least_recent(batch(cap))
