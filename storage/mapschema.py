@@ -17,7 +17,9 @@ rows (out of the index and their places: an appearance over its place's cap, a f
 for the keys' window whatever the visit log's pruning, and `stream_states`, what a replay cannot give
 back of a learning stream (its localiser state), written with each learned step; version 8 a logged
 closure's `consolidated_into` (the closure of a consolidated frame, a visit, names the row it was
-consolidated into: it has no row of its own, and a localising stream's closure has neither). An older
+consolidated into: it has no row of its own, and a localising stream's closure has neither); version 11
+(9 and 10 are other branches') the `joins`, a learning stream's warm-up rows joined to the old places its
+confident path found (docs/design/science.md §11.8). An older
 file is brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep
 `place` NULL (read as the place its learning stream's logged loop closure names, else its own).
 """
@@ -66,7 +68,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 8
+SCHEMA_VERSION = 11
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -180,7 +182,7 @@ CREATE TABLE visits (
 );
 CREATE TABLE dropped (
     seq        INTEGER PRIMARY KEY REFERENCES observations (seq),
-    reason     TEXT NOT NULL,               -- appearance-cap | forgotten
+    reason     TEXT NOT NULL,               -- appearance-cap | forgotten | joined (version 11)
     after_seq  INTEGER NOT NULL,
     created_at TEXT NOT NULL
 );
@@ -226,6 +228,24 @@ SELECT idempotency_key, fingerprint, id, reply, created_at FROM visits WHERE ide
 """
 
 
+# What version 11 added (docs/design/science.md §11.8; docs/design/service.md §4.2): the warm-up joins. A
+# row a learning stream made while it warmed up or was unsure, that the confident path it then found
+# explains (an old row represents it), shows the old row's place and is held no more (`dropped`, reason
+# `joined`), both in the transaction of the step that found it. Rows are append-only, so the join is its
+# own record, read by the recovery after the rows (`MapStore.joins`). (Versions 9 and 10 are other
+# branches'; at a merge this becomes the next number: this constant and its one `migrate` entry.)
+_V11_TABLES = """
+CREATE TABLE joins (
+    seq        INTEGER PRIMARY KEY REFERENCES observations (seq),   -- the row joined
+    place_seq  INTEGER NOT NULL REFERENCES observations (seq),      -- the old row whose place it joined
+    stream     TEXT NOT NULL,
+    after_seq  INTEGER NOT NULL,                                    -- the last row stored before it
+    created_at TEXT NOT NULL,
+    CHECK (place_seq < seq)
+);
+"""
+
+
 def _version_step(version: int) -> str:
     """The script that lifts the frozen meta's trigger for the version number alone."""
     return f"""
@@ -254,6 +274,8 @@ _MIGRATE_V7 = _V7_TABLES + _COPY_VISIT_KEYS + _version_step(7)
 #: Version 7 -> 8: a column no row has yet (an older visit's closure reads NULL, as a localising one's).
 _CLOSURE_VISIT = "ALTER TABLE loop_closures ADD COLUMN consolidated_into INTEGER NULL;"
 _MIGRATE_V8 = _CLOSURE_VISIT + _version_step(8)
+#: Version 8 -> 11 (9 and 10: other branches', see `_V11_TABLES`): a new table, no row changes.
+_MIGRATE_V11 = _V11_TABLES + _version_step(11)
 
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
@@ -270,7 +292,8 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
     if meta.schema_version >= SCHEMA_VERSION:
         return meta
     # chain[v - 1]: version v -> v + 1
-    chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6, _MIGRATE_V7, _MIGRATE_V8]
+    chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6, _MIGRATE_V7, _MIGRATE_V8,
+             _MIGRATE_V11]
     steps = "".join(chain[meta.schema_version - 1:])
     try:
         conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
@@ -348,6 +371,8 @@ class NewObservation:
         drops: rows its place dropped over its cap, recorded in its transaction (`dropped`).
         touched: rows its step used (the answer's row of the place it joined), at the clock of its seq
             (`recency`).
+        joins: (row, old row) the warm-up joins its step made (`joins`, with each row `dropped`,
+            reason `joined`; docs/design/science.md §11.8).
     """
 
     stream: str
@@ -367,6 +392,7 @@ class NewObservation:
     place: int | None = None
     drops: tuple[int, ...] = ()
     touched: tuple[int, ...] = ()
+    joins: tuple[tuple[int, int], ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -381,7 +407,7 @@ class NewVisit:
         frame's. key: the post's Idempotency-Key and reply. closure: its revisit, logged with it.
         touched: rows its step used (`seq` and the answer's row), at the clock of the seq the store
             would have given it (`MapStore.next_seq`: the live map's clock, `recency`).
-        resume: as a row's (`NewObservation.resume`).
+        resume, joins: as a row's (`NewObservation.resume`, `NewObservation.joins`).
     """
 
     stream: str
@@ -395,6 +421,7 @@ class NewVisit:
     closure: NewClosure | None = None
     touched: tuple[int, ...] = ()
     resume: bytes | None = None
+    joins: tuple[tuple[int, int], ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -546,7 +573,8 @@ def create_file(path: Path, meta: MapMeta) -> None:
             # A temporary file: atomicity comes from the rename below, not from one transaction
             # (executescript would commit a pending transaction anyway).
             conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION
-                               + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES + _V7_TABLES + _CLOSURE_VISIT)
+                               + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES + _V7_TABLES + _CLOSURE_VISIT
+                               + _V11_TABLES)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),
