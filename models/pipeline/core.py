@@ -173,11 +173,14 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         threshold: the map's revisit threshold. A learning frame whose place is a revisit (confidence
             >= it) joins that place, and is consolidated into it when one of its appearances already
             represents the frame (`Localisation.consolidation`, docs/design/science.md §11.8): the
-            memory learns it, no row is made (`Step.visit`). None: no frame is a revisit.
+            memory learns it, no row is made (`Step.visit`); the rows the stream made before it
+            knew where it was that its path now explains are joined to the old places (`Step.joins`).
+            None: no frame is a revisit, none is consolidated.
         contrast: the decoded frame's contrast (`models.frontend.images.contrast`; None: not measured).
             Under `localisation.MIN_CONTRAST` the frame says nothing of where it is (§11.7): it is no
             evidence to the localiser, leaves no row of the stream's trail, and its place is no revisit.
-            It is still learned and ranked like any frame.
+            It is still learned and ranked like any frame, and consolidated like an unconfident one (a
+            visit of a flat appearance its path names: stored once per place at most).
 
     Returns:
         The step. The stream's bookkeeping is done; the caller stores a learned row (or the visit) after
