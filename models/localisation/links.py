@@ -231,11 +231,14 @@ class Localisation:
         if not short.size:
             return []
         g = self.graph
-        ages = memory.ages()
         tries = int(self.localiser.conf["exclusion"])
         newest = short[-self.reach():]
         rows = [r for r, alone in zip(newest.tolist(), g.alone(newest), strict=True)
-                if alone and self._tried.get(r, 0) < tries and ages.get(r, place.support) + 1 < place.support]
+                if alone and self._tried.get(r, 0) < tries]
+        if not rows:
+            return []
+        ages = memory.ages()
+        rows = [r for r in rows if ages.get(r, place.support) + 1 < place.support]  # the path covers it
         if not rows:
             return []
         if len(self._tried) > KEPT * self.reach():  # bounded: the rows of the streams kept
