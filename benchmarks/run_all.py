@@ -20,7 +20,7 @@ HERE = Path(__file__).resolve().parent
 # In running order: the short ones first, the 10^6-step long run last.
 ORDER = ["bench_runtimes.py", "bench_encoder.py", "bench_tm.py", "bench_tm_peer.py", "bench_tm_profile.py",
          "bench_index.py", "bench_localiser.py", "bench_place.py", "bench_http.py", "bench_scaleout.py",
-         "bench_hostile.py", "bench_startup.py", "bench_forgetting.py", "bench_longrun.py"]
+         "bench_hostile.py", "bench_startup.py", "bench_growth.py", "bench_forgetting.py", "bench_longrun.py"]
 # Scripts that predate quick mode take their own smaller sizes.
 QUICK_ARGS = {"bench_encoder.py": ["--repeats", "3"], "bench_tm.py": ["--steps", "500"]}
 

@@ -20,7 +20,8 @@ closure's `consolidated_into` (the closure of a consolidated frame, a visit, nam
 consolidated into: it has no row of its own, and a localising stream's closure has neither); version
 9 the `repairs` log and a logged closure's `retracts` (a repair of merges made from a stream's own
 recent trail, docs/design/science.md §11.6: a visit re-made as its own row, a row given back its own
-place, a closure retracted by a new entry that names it). An older
+place, a closure retracted by a new entry that names it); version 10 the `joins`, a learning stream's
+warm-up rows joined to the old places its confident path found (docs/design/science.md §11.8). An older
 file is brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep
 `place` NULL (read as the place its learning stream's logged loop closure names, else its own). Opened
 read-only (`cortexloc verify`, a snapshot's copy) an older file is read as it is; a file of a newer version
@@ -72,7 +73,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 9
+SCHEMA_VERSION = 10
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -186,7 +187,7 @@ CREATE TABLE visits (
 );
 CREATE TABLE dropped (
     seq        INTEGER PRIMARY KEY REFERENCES observations (seq),
-    reason     TEXT NOT NULL,               -- appearance-cap | forgotten
+    reason     TEXT NOT NULL,               -- appearance-cap | forgotten | joined (version 10)
     after_seq  INTEGER NOT NULL,
     created_at TEXT NOT NULL
 );
@@ -229,6 +230,23 @@ CREATE TABLE stream_states (
 _COPY_VISIT_KEYS = """
 INSERT INTO visit_keys (key, fingerprint, visit, reply, created_at)
 SELECT idempotency_key, fingerprint, id, reply, created_at FROM visits WHERE idempotency_key IS NOT NULL;
+"""
+
+
+# What version 10 added (docs/design/science.md §11.8; docs/design/service.md §4.2): the warm-up joins. A
+# row a learning stream made while it warmed up or was unsure, that the confident path it then found
+# explains (an old row represents it), shows the old row's place and is held no more (`dropped`, reason
+# `joined`), both in the transaction of the step that found it. Rows are append-only, so the join is its
+# own record, read by the recovery after the rows (`MapStore.joins`).
+_V10_TABLES = """
+CREATE TABLE joins (
+    seq        INTEGER PRIMARY KEY REFERENCES observations (seq),   -- the row joined
+    place_seq  INTEGER NOT NULL REFERENCES observations (seq),      -- the old row whose place it joined
+    stream     TEXT NOT NULL,
+    after_seq  INTEGER NOT NULL,                                    -- the last row stored before it
+    created_at TEXT NOT NULL,
+    CHECK (place_seq < seq)
+);
 """
 
 
@@ -284,6 +302,8 @@ BEGIN SELECT RAISE(ABORT, 'repairs are append-only'); END;
 _CLOSURE_RETRACTS = "ALTER TABLE loop_closures ADD COLUMN retracts INTEGER NULL;"
 #: Version 8 -> 9: a new table and a column no row has yet (no row changes).
 _MIGRATE_V9 = _V9_TABLES + _CLOSURE_RETRACTS + _version_step(9)
+#: Version 9 -> 10: a new table, no row changes.
+_MIGRATE_V10 = _V10_TABLES + _version_step(10)
 
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
@@ -301,7 +321,7 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
         return meta
     # chain[v - 1]: version v -> v + 1
     chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6, _MIGRATE_V7, _MIGRATE_V8,
-             _MIGRATE_V9]
+             _MIGRATE_V9, _MIGRATE_V10]
     steps = "".join(chain[meta.schema_version - 1:])
     try:
         conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
@@ -379,6 +399,8 @@ class NewObservation:
         drops: rows its place dropped over its cap, recorded in its transaction (`dropped`).
         touched: rows its step used (the answer's row of the place it joined), at the clock of its seq
             (`recency`).
+        joins: (row, old row) the warm-up joins its step made (`joins`, with each row `dropped`,
+            reason `joined`; docs/design/science.md §11.8).
     """
 
     stream: str
@@ -398,6 +420,7 @@ class NewObservation:
     place: int | None = None
     drops: tuple[int, ...] = ()
     touched: tuple[int, ...] = ()
+    joins: tuple[tuple[int, int], ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -412,7 +435,7 @@ class NewVisit:
         frame's. key: the post's Idempotency-Key and reply. closure: its revisit, logged with it.
         touched: rows its step used (`seq` and the answer's row), at the clock of the seq the store
             would have given it (`MapStore.next_seq`: the live map's clock, `recency`).
-        resume: as a row's (`NewObservation.resume`).
+        resume, joins: as a row's (`NewObservation.resume`, `NewObservation.joins`).
     """
 
     stream: str
@@ -426,6 +449,7 @@ class NewVisit:
     closure: NewClosure | None = None
     touched: tuple[int, ...] = ()
     resume: bytes | None = None
+    joins: tuple[tuple[int, int], ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -598,7 +622,7 @@ def create_file(path: Path, meta: MapMeta) -> None:
             # (executescript would commit a pending transaction anyway).
             conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION
                                + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES + _V7_TABLES + _CLOSURE_VISIT
-                               + _V9_TABLES + _CLOSURE_RETRACTS)
+                               + _V9_TABLES + _CLOSURE_RETRACTS + _V10_TABLES)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

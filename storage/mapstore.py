@@ -115,6 +115,7 @@ class MapStore:
         self._v6 = meta.schema_version >= 6  # rows' recency
         self._v7 = meta.schema_version >= 7  # visit keys apart from the visit log
         self._v9 = meta.schema_version >= 9  # repairs, retraction entries in the loop-closure log
+        self._v10 = meta.schema_version >= 10  # warm-up joins
         self._cols = COLUMNS if self._v5 else COLUMNS_V4 if self._v2 else COLUMNS_V1
         self._v3 = meta.schema_version >= 3  # a version 2 file opened read-only has no loop-closure log
         self._conn: sqlite3.Connection | None = conn
@@ -285,6 +286,7 @@ class MapStore:
             resumes = [(str(r.stream), first + i, r.resume)
                        for i, r in enumerate(rows) if r.resume is not None]
             touches = [(int(t), first + i) for i, r in enumerate(rows) for t in r.touched]
+            joins = [(str(r.stream), j, first + i - 1) for i, r in enumerate(rows) for j in r.joins]
             if not durable:  # per connection, outside a transaction: this commit alone skips its fsync
                 conn.execute("PRAGMA synchronous=NORMAL")
             try:
@@ -292,6 +294,7 @@ class MapStore:
                     conn.executemany(f"INSERT INTO observations ({COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?,?)",
                                      params)
                     self._drop(conn, drops)
+                    self._join(conn, joins)
                     self._touch(conn, touches)
                     self._resume(conn, resumes)
                     # The row's thumbnail and idempotency key commit with it, or nothing does.
@@ -351,6 +354,7 @@ class MapStore:
                             conn.execute("DELETE FROM visit_keys WHERE visit <= ?",
                                          (visit_id - self.max_keys,))
                     clock = max(self._last_seq, self._seq_floor) + 1  # the seq the live step was given
+                    self._join(conn, [(str(visit.stream), j, self._last_seq) for j in visit.joins])
                     self._touch(conn, [(int(t), clock) for t in visit.touched])
                     if visit.resume is not None:
                         self._resume(conn, [(str(visit.stream), clock, visit.resume)])
@@ -476,8 +480,48 @@ class MapStore:
             conn.executemany("INSERT OR IGNORE INTO dropped (seq, reason, after_seq, created_at) "
                              "VALUES (?, ?, ?, ?)", [(*d, utc_now()) for d in drops])
 
+    def _join(self, conn: sqlite3.Connection, joins: list[tuple[str, tuple[int, int], int]]) -> None:
+        """Warm-up joins (stream, (row, old row), after_seq), each row dropped (`joined`) with it."""
+        if joins:
+            now = utc_now()
+            conn.executemany("INSERT INTO joins (seq, place_seq, stream, after_seq, created_at) "
+                             "VALUES (?, ?, ?, ?, ?)",
+                             [(int(row), int(old), stream, after, now)
+                              for stream, (row, old), after in joins])
+            self._drop(conn, [(int(row), "joined", after) for _, (row, _old), after in joins])
+
+    def joins(self) -> list[tuple[int, int]]:
+        """The warm-up joins (row, old row whose place it joined) in log order (docs/design/science.md
+        §11.8); the rows are `dropped` (reason `joined`)."""
+        if not self._v10:
+            return []
+        with self._lock:
+            return [(int(r[0]), int(r[1])) for r in self._db().execute(
+                "SELECT seq, place_seq FROM joins ORDER BY after_seq, seq")]
+
+    def join_problems(self, reach: int) -> list[str]:
+        """What is wrong with the warm-up joins (`cortexloc verify`, docs/design/science.md §11.8): a join
+        whose row is not dropped as `joined`, or that reached back over more than `reach` of its stream's
+        rows; a row dropped as `joined` with no join."""
+        if not self._v10:
+            return []
+        with self._lock:
+            db = self._db()
+            out = [f"join of row {r[0]}: the row is not dropped as joined" for r in db.execute(
+                "SELECT j.seq FROM joins j LEFT JOIN dropped d ON d.seq = j.seq "
+                "WHERE d.reason IS NOT 'joined'")]
+            out += [f"row {r[0]} is dropped as joined without a join" for r in db.execute(
+                "SELECT d.seq FROM dropped d LEFT JOIN joins j ON j.seq = d.seq "
+                "WHERE d.reason = 'joined' AND j.seq IS NULL")]
+            out += [f"join of row {r[0]}: {r[1]} rows of its stream since, more than {reach}"
+                    for r in db.execute(
+                        "SELECT j.seq, (SELECT count(*) FROM observations o WHERE o.stream = j.stream "
+                        "AND o.seq > j.seq AND o.seq <= j.after_seq) AS n FROM joins j WHERE n >= ?",
+                        (int(reach),))]
+            return out
+
     def dropped(self) -> dict[int, str]:
-        """The rows no longer held and why (`appearance-cap` | `forgotten`)."""
+        """The rows no longer held and why (`appearance-cap` | `forgotten` | `joined`)."""
         if not self._v5:
             return {}
         with self._lock:

@@ -154,6 +154,22 @@ class SequenceGraph:
         members.append(row)
         self._place[row] = place
 
+    def alone(self, rows: np.ndarray) -> np.ndarray:
+        """(m,) bool: each row is a place of its own that no other row joined (a row made while its stream
+        did not know where it was, before anything named it, §11.8)."""
+        rows = np.asarray(rows, np.int64)
+        return (self._place[rows] == rows) & np.array([r not in self._members for r in rows.tolist()], bool)
+
+    def rejoin(self, row: int, place: int) -> None:
+        """Row `row`, a place of its own that no other row joined (`alone`), shows place `place` after all
+        (a warm-up join, docs/design/science.md §11.8): its own place is left with no row."""
+        if not self.alone(np.array([row]))[0]:
+            raise ValueError(f"row {row} is not a place of its own")
+        if int(self._place[place]) == row:
+            return
+        self._members[row] = []
+        self.join(row, place)
+
     def members(self, place: int) -> list[int]:
         """The rows of place `place` (a place id) still held, oldest first (`drop` removes one)."""
         return list(self._members.get(place, [place]))
@@ -188,6 +204,17 @@ class SequenceGraph:
             nxt[ok & ~fwd] = self._prev[out[ok & ~fwd]]
             out = nxt
         return out
+
+    def route(self, row: int, direction: int, steps: int) -> np.ndarray:
+        """(m,) int64: `row` and the rows up to `steps` successor (direction +1) or predecessor (-1) links
+        from it, in walking order, until a link runs out; branches are not taken. O(steps)."""
+        out, links = [row], self._next if direction > 0 else self._prev
+        for _ in range(steps):
+            row = int(links[row])
+            if row < 0:
+                break
+            out.append(row)
+        return np.array(out, np.int64)
 
     def within(self, row: int, links: int) -> np.ndarray:
         """Sorted rows at most `links` links from `row`, along any link either way (branches included),

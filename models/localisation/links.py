@@ -33,6 +33,12 @@ def graph_from_rows(rows: Iterable[Any]) -> SequenceGraph:
     return graph
 
 
+#: How many links a warm-up join looks either side of the row the confident path stood on when a row was
+#: made (`Localisation.explained`): the path may have stood still or skipped a row on the way (a move of 0 or
+#: 2, §11.2); a neighbour beyond that is another place by the truth's tolerance (§11.4) twice over.
+JOIN_SLACK = 1
+
+
 class Localisation:
     """The map's localiser, links and places (docs/design/science.md §11.1, §11.2, §11.6, §11.8, §11.9).
 
@@ -58,10 +64,12 @@ class Localisation:
         self._short: OrderedDict[str, ShortTerm] = OrderedDict()
         self.held = 0  # rows held (not dropped)
         self.visits = 0  # consolidated frames seen since the map was loaded
+        self._tried: dict[int, int] = {}  # row -> confident frames it was not joined on (`explained`)
 
     def rebuild(self, rows: Iterable[Any], dropped: Iterable[int] = (), joined: dict[int, int] | None = None,
                 visited: Iterable[tuple[Any, ...]] = (), used: Mapping[int, int] | None = None,
-                remade: Iterable[int] = (), unjoined: Iterable[int] = ()) -> None:
+                remade: Iterable[int] = (), unjoined: Iterable[int] = (),
+                folded: Iterable[tuple[int, int]] = ()) -> None:
         """The links, places and code statistics of the store's rows (recovery).
 
         Args:
@@ -79,6 +87,8 @@ class Localisation:
             remade: rows a repair re-made from visits (§11.6): each a trail and a place of its own after
                 the row its stream continued, neither its stream's last row nor a step of its memory.
             unjoined: rows a repair gave back their own place (their stored `place` is not read).
+            folded: (row, old row) of the warm-up joins (`fold`, §11.8), in log order; their rows are
+                among `dropped`.
         """
         self.graph = SequenceGraph()
         self.codes.rebuild([])
@@ -98,6 +108,8 @@ class Localisation:
                 place = int(self.graph.place[joined[seq]])
             self.add(seq, row.context_prev_seq, row.input_sdr, stream=row.stream,
                      place=-1 if place is None else int(place), remade=seq in remade)
+        for row, old in folded:  # after every row: a join names rows stored before it
+            self.fold(int(row), int(old))
         for seq in sorted(gone):
             if seq < len(self.graph):
                 self.drop(seq)
@@ -202,6 +214,70 @@ class Localisation:
         sims = [code_dice(code, np.asarray(code_of(r))) for r in rows]
         best = int(np.argmax(sims))
         return rows[best] if sims[best] >= b + c * (1.0 - b) else None
+
+    def reach(self) -> int:
+        """How many of a stream's newest rows a warm-up join looks back over: `warmup` + `exclusion`
+        (the frames before a first answer and the rival window after it, §11.8)."""
+        return int(self.localiser.conf["warmup"]) + int(self.localiser.conf["exclusion"])
+
+    def explained(self, stream: str, place: Place, code_of: Callable[[int], np.ndarray]
+                  ) -> list[tuple[int, int]]:
+        """The warm-up joins a learning stream's confident revisit `place` gives (docs/design/science.md
+        §11.8): (row, old row) for each of the stream's newest `reach` rows that is a place of its own
+        (made while it warmed up or was unsure; nothing named it since), that the path covers (made
+        a frames ago, a < the path's `support`), and that is represented, at the `consolidate` level, by
+        the row the path stood on then: a row a links from `place.seq` along its route, either way
+        (the path may run against the stored direction), give or take JOIN_SLACK, stored before every row
+        of the stretch. The old row is never of a place a row of the stream's short-term memory shows,
+        nor of the trail the joined row lies on. Each row is tried on at most `exclusion` confident
+        frames: O(reach · JOIN_SLACK) code reads on such a frame, O(reach) on the rest.
+        """
+        c = float(self.localiser.conf["consolidate"])
+        memory = self._short.get(stream)
+        if c >= 1.0 or memory is None:
+            return []
+        short = self.short_term_rows(stream)
+        if not short.size:
+            return []
+        g = self.graph
+        tries = int(self.localiser.conf["exclusion"])
+        newest = short[-self.reach():]
+        rows = [r for r, alone in zip(newest.tolist(), g.alone(newest), strict=True)
+                if alone and self._tried.get(r, 0) < tries]
+        if not rows:
+            return []
+        ages = memory.ages()
+        rows = [r for r in rows if ages.get(r, place.support) + 1 < place.support]  # the path covers it
+        if not rows:
+            return []
+        if len(self._tried) > KEPT * self.reach():  # bounded: the rows of the streams kept
+            self._tried.clear()
+        mine = set(g.place[short].tolist())
+        first = min(rows)
+        out = []
+        for r in rows:
+            lag = ages[r] + 1  # frames from the row's frame to this one
+            old = np.concatenate([g.route(place.seq, d, lag + JOIN_SLACK)[max(lag - JOIN_SLACK, 0):]
+                                  for d in (1, -1)])
+            old = old[(old < first) & (self.used[old] >= 0) & (g.trail[old] != g.trail[r])]
+            old = np.array([o for o in old.tolist() if int(g.place[o]) not in mine], np.int64)
+            code = np.asarray(code_of(r), np.int64)
+            b = self.codes.background(code)
+            sims = [code_dice(code, np.asarray(code_of(o), np.int64)) for o in old.tolist()]
+            best = int(np.argmax(sims)) if sims else -1
+            if best >= 0 and sims[best] >= b + c * (1.0 - b):
+                out.append((r, int(old[best])))
+            else:
+                self._tried[r] = self._tried.get(r, 0) + 1
+        return out
+
+    def fold(self, row: int, old: int, clock: int | None = None) -> None:
+        """A warm-up join (`explained`): row `row` shows the place of `old`, which already represents it;
+        `old` used at `clock` (None: a recovery, whose recency is the store's). The caller drops `row`:
+        like a consolidated frame it adds no appearance."""
+        self.graph.rejoin(row, old)
+        if clock is not None:
+            self.touch(old, clock)
 
     def over_cap(self, place: int, keep: int) -> list[int]:
         """The appearances to drop so that `place` holds at most `appearances` rows: the least recently

@@ -59,6 +59,14 @@ class ShortTerm:
         self._frames[self._n % self._frames.size] = (int(row) + 1) * 2 + int(moved)
         self._n += 1
 
+    def ages(self) -> dict[int, int]:
+        """Each row the memory remembers -> how many of the stream's learned frames came after it (0: its
+        row was the last frame's). O(frames remembered)."""
+        size = self._frames.size
+        held = min(self._n, size)
+        rows = self._frames[(self._n - 1 - np.arange(held)) % size] // 2 - 1  # newest first
+        return {int(r): i for i, r in enumerate(rows.tolist()) if r != NONE}
+
     def rows(self) -> np.ndarray:
         """(m,) int64 ascending: the rows made over the last `moves` moves (the frames since the oldest
         of them, the frames alike to it included). O(frames remembered), vectorised."""

@@ -104,6 +104,9 @@ class Step:
         dropped: rows the made row's place dropped over its cap (§11.9), least recently used first.
         touched: rows this learned step used at the clock `seq` (the answer's row, the visited row):
             stored with the row or visit, so a recovery gives them the same recency (§11.9).
+        joins: the warm-up joins this step's confident revisit made (docs/design/science.md §11.8):
+            (row, old row), the stream's earlier row now of the old row's place and held no more
+            (dropped from the index and the places with the step, logged with its row or visit).
     """
 
     code: np.ndarray
@@ -118,6 +121,7 @@ class Step:
     joined: int = -1
     dropped: tuple[int, ...] = ()
     touched: tuple[int, ...] = ()
+    joins: tuple[tuple[int, int], ...] = ()
 
 
 def _remember(model: MapModel, st: Stream, code: np.ndarray, *, learn: bool, starts: bool) -> np.ndarray:
@@ -169,11 +173,14 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         threshold: the map's revisit threshold. A learning frame whose place is a revisit (confidence
             >= it) joins that place, and is consolidated into it when one of its appearances already
             represents the frame (`Localisation.consolidation`, docs/design/science.md §11.8): the
-            memory learns it, no row is made (`Step.visit`). None: no frame is a revisit.
+            memory learns it, no row is made (`Step.visit`); the rows the stream made before it
+            knew where it was that its path now explains are joined to the old places (`Step.joins`).
+            None: no frame is a revisit, none is consolidated.
         contrast: the decoded frame's contrast (`models.frontend.images.contrast`; None: not measured).
             Under `localisation.MIN_CONTRAST` the frame says nothing of where it is (§11.7): it is no
             evidence to the localiser, leaves no row of the stream's trail, and its place is no revisit.
-            It is still learned and ranked like any frame.
+            It is still learned and ranked like any frame, and consolidated like an unconfident one (a
+            visit of a flat appearance its path names: stored once per place at most).
 
     Returns:
         The step. The stream's bookkeeping is done; the caller stores a learned row (or the visit) after
@@ -226,13 +233,15 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                               weights=weights)
     t_ranked = time.perf_counter()
     place = model.links.step(st.localiser, ranked, own, not flat)
-    visit, joined, dropped, touched = None, -1, (), []
+    visit, joined, dropped, touched, joins = None, -1, (), [], []
     if learn:
         assert seq is not None
         links = model.links
-        if place is not None and threshold is not None and place.informative:  # a flat frame says nothing
+        if place is not None and threshold is not None:
             # Well represented: like an appearance of the place its best path names, confident or not
             # (a pass's unconfident frames would otherwise become parallel places, each a rival, §11.8).
+            # A flat frame too (never confident, §11.7): where its path names a place that has a flat
+            # appearance, it is a visit of it, not a new place each time it is seen.
             visit = links.consolidation(place.place, code, code_of)
             confident = place.is_revisit(threshold)
             mine = own is not None and visit is not None and bool(own.holds(links.graph, [visit])[0])
@@ -248,6 +257,13 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                 links.touch(place.seq, seq)  # a learning stream used the place (§11.9)
                 touched.append(place.seq)
                 joined = place.place
+        if place is not None and threshold is not None and place.is_revisit(threshold):
+            # Rows it made while it warmed up or was unsure, that the path now explains (§11.8).
+            joins = links.explained(stream, place, code_of)
+            for row, old in joins:
+                links.fold(row, old, seq)
+                touched.append(old)
+            drop(model, [row for row, _ in joins])
         if visit is not None:
             links.visit(prev, visit, seq, stream, code)
             touched.append(visit)
@@ -265,7 +281,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                "localiser": (t3 - t_ranked) * 1e3}
     return Step(code=code, winners=winners, prev_seq=prev, step=step, stats=stats,
                 ranked=list(ranked[:top_k]), place=place, timings_ms=timings, visit=visit, joined=joined,
-                dropped=dropped, touched=tuple(touched))
+                dropped=dropped, touched=tuple(touched), joins=tuple(joins))
 
 
 def drop(model: MapModel, seqs: tuple[int, ...] | list[int]) -> None:

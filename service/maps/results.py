@@ -158,7 +158,7 @@ class PlacesInfo:
     places: int  # places with a row held
     appearances: int  # rows held (in the index and their places)
     rows_stored: int  # rows in map.sqlite (held and dropped)
-    dropped: int  # rows no longer held: over a place's cap, or forgotten
+    dropped: int  # rows no longer held: over a place's cap, forgotten, or joined (a warm-up, §11.8)
     forgotten: int  # of those, rows of forgotten places
     visits_logged: int  # consolidated frames in the visit log (bounded; pruned once a snapshot covers them)
     max_appearances: int  # rows a place keeps (the map's localiser option `appearances`)

@@ -51,6 +51,7 @@ def test_an_older_file_is_migrated_to_hold_keyframes_and_closure_verifications(t
     conn = sqlite3.connect(path)
     conn.executescript(V9_UNDONE + f"""
         DROP TABLE keyframes;
+        DROP TABLE joins;
         DROP TABLE visits;
         DROP TABLE dropped;
         DROP TABLE recency;
@@ -68,7 +69,7 @@ def test_an_older_file_is_migrated_to_hold_keyframes_and_closure_verifications(t
         assert ro.meta.schema_version == version and ro.keyframes([1]) == {} and ro.keyframe_bytes() == (0, 0)
         assert ro.closures(0, 10) == []
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 9
+        assert store.meta.schema_version == SCHEMA_VERSION == 10
         closure = NewClosure(stream="s", place_seq=1, confidence=0.99, support=3,
                              verification={"verified": True, "inliers": 40})
         seq = store.append(dataclasses.replace(make_row(2, prev=1), keyframe=(b"f" * 16, CAMERA),

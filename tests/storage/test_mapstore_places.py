@@ -113,6 +113,7 @@ def _as_version(path: Path, version: int, changes: str) -> None:
     """Today's file as schema `version` wrote it: `changes` (SQL) undone from it, and its version (and what
     version 9 added: the repairs and the closures' `retracts`)."""
     conn = sqlite3.connect(path)
+    changes = ("DROP TABLE joins;" if version < 10 else "") + changes  # version 10: the warm-up joins
     conn.executescript(V9_UNDONE + changes + f"""
         DROP TRIGGER meta_no_update;
         UPDATE meta SET value = '{version}' WHERE key = 'schema_version';
@@ -151,7 +152,7 @@ def test_an_old_map_is_migrated_and_its_places_come_from_its_loop_closures(tmp_p
         assert ro.meta.schema_version == 4 and ro.dropped() == {} and list(ro.visits()) == []
         assert [r.place for r in ro.rows()] == [None] * 7
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 9
+        assert store.meta.schema_version == SCHEMA_VERSION == 10
         assert [r.place for r in store.rows()] == [None] * 7 and store.joined() == {4: 1, 5: 2, 6: 3}
         links = Localisation(None, 4096)
         links.rebuild(store.rows(), store.dropped(), store.joined())
@@ -192,7 +193,7 @@ def test_a_version_6_file_keeps_its_logged_visit_keys(tmp_path: Path, meta: MapM
     with MapStore.open(path, readonly=True) as ro:  # read-only: not migrated, read from the log
         assert ro.meta.schema_version == 6 and ro.key_record("visit-key-0001") == record
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 9
+        assert store.meta.schema_version == SCHEMA_VERSION == 10
         assert store.prune_visits(covered=10**6, keep=0) == 0  # the only visit stays (the newest)
         assert store.key_record("visit-key-0001") == record
 
@@ -223,7 +224,7 @@ def test_an_older_file_gains_the_visits_closure_column(tmp_path: Path, meta: Map
         assert ro.meta.schema_version == version
         assert [c.consolidated_into for c in ro.closures(0, 10)] == [None]
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 9
+        assert store.meta.schema_version == SCHEMA_VERSION == 10
         closure = NewClosure(stream="b", place_seq=1, confidence=0.99, support=6)
         store.add_visit(dataclasses.replace(visit(10, 1, None), closure=closure))
         assert [(c.stream, c.seq, c.consolidated_into) for c in store.closures(0, 10)] == [

@@ -358,7 +358,7 @@ class MapCheck:
         snapshots_ok: ids of the snapshots whose every checksum verified.
         snapshots_bad: snapshot id -> why it does not verify.
         problems: anything else wrong (store unreadable or damaged, projection missing or changed, a
-            pruned visit log that no usable snapshot covers).
+            pruned visit log that no usable snapshot covers, a warm-up join that does not hold).
         start: the snapshot the replay started from (None: the first row): once visits were pruned
             (`MapStore.visits_pruned_through`), the earliest usable one that covers them (§4.4); the rows
             up to its seq are then not replayed.
@@ -401,7 +401,8 @@ def open_catalog(data_dir: Path) -> Catalog:
 def verify_map(catalog: Catalog, record: MapRecord, *,
                progress: Callable[[int, int], None] | None = None) -> MapCheck:
     """The offline full check of one map (`cortexloc verify`), changing nothing on disk: the store's
-    integrity, a replay from the first row comparing every row's stored winner cells (from the earliest
+    integrity, its warm-up joins (`MapStore.join_problems`, docs/design/science.md §11.8), a replay from the
+    first row comparing every row's stored winner cells (from the earliest
     usable snapshot that covers the pruned visits once some were: `MapCheck.start`, §4.4), every
     snapshot's checksums, and the projection's SHA-256.
 
@@ -431,6 +432,7 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
                 out.problems.append("map.sqlite fails PRAGMA integrity_check")
             total = store.count()
             like = map_model(MapConfig.parse(record.params), max_observations=max(total, 1))
+            out.problems += store.join_problems(like.links.reach())
             start: TemporalMemory | Mapping[str, np.ndarray] | None = like.tm
             after_seq = after_id = 0
             pruned = store.visits_pruned_through()

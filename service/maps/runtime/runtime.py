@@ -483,7 +483,8 @@ class MapRuntime:
                    v.input_sdr) for v in self.store.visits())
         self.model.links.rebuild(rows(), dropped, self.store.joined(), visits, self.store.recency(),
                                  remade={r.seq for r in done if r.kind == "split"},
-                                 unjoined={r.seq for r in done if r.kind == "unjoin"})
+                                 unjoined={r.seq for r in done if r.kind == "unjoin"},
+                                 folded=self.store.joins())
         self.model.index.rebuild(held)
         if self.budget is not None:
             self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
@@ -695,7 +696,7 @@ class MapRuntime:
                              winner_cells=step.winners, context_prev_seq=step.prev_seq, label=label,
                              metadata=metadata, thumbnail=thumbnail, keyframe=kf,
                              place=step.joined if step.joined >= 0 else None,
-                             drops=step.dropped, touched=step.touched,
+                             drops=step.dropped, touched=step.touched, joins=step.joins,
                              resume=resume) if seq is not None else None
         answer = None if place is None else self._verified(
             PlaceResult.of(place, rows[place.seq], self.config.revisit_threshold), query, stream)
@@ -721,7 +722,7 @@ class MapRuntime:
             self.store.add_visit(NewVisit(
                 stream=stream, seq=step.visit, context_prev_seq=step.prev_seq, input_sdr=step.code,
                 winner_cells=step.winners, metadata=metadata, closure=closure, touched=step.touched,
-                key=None if post is None else post.record(result), resume=resume))
+                key=None if post is None else post.record(result), resume=resume, joins=step.joins))
             self._committed()
         elif row is None and closure is not None:
             self.store.add_closure(closure)
@@ -734,8 +735,9 @@ class MapRuntime:
             assert committed == seq  # this thread is the store's only writer
             self._keep_code(seq, step.code.astype(INDEX_DTYPE))  # as the store gives it back
             self._committed()
-        if learn and self.budget is not None and (step.visit is not None or step.dropped):
-            # the row reserved before the step was not made, or its place dropped rows (§11.9)
+        if learn and self.budget is not None and (step.visit is not None or step.dropped or step.joins):
+            # the row reserved before the step was not made, or its place dropped rows (§11.9), or
+            # warm-up rows were joined and are held no more (§11.8)
             self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
         t4 = time.perf_counter()
         # store: the reply's stored rows, verification and the durable write; commit: the write alone.

@@ -1,0 +1,172 @@
+"""Growth of a map driven pass after pass over one held-out route while it learns (issue 36; docs/design/
+science.md §11.7-§11.9, docs/results.md §11): rows made and held per pass, revisit precision and recall
+per pass, the visit log and the loop-closure log.
+
+    python benchmarks/bench_growth.py [--passes 10] [--lo 894] [--frames 400] [--seed 42] [--http] [--quick]
+
+The route is files [lo, lo + frames) of ../shared/data/nordland_tiny_64x32's summer half (default the
+first 400 files of the held-out `test` half; labels = file index), driven `passes` times as ONE learning
+stream through the service's step (`models.pipeline.observe` on a served map's model at the defaults and
+a new map's seed, 42, as `service.evaluation.service_path.slam_replay` drives it; `--http`: the service
+itself through HTTP, `drive_http`, which also measures contrast at decode), the drive restarted
+before every pass (`Stream.break_sequence`, what `POST .../streams/{s}/reset` does: a new warm-up), the
+frames' contrast measured as the service measures it at decode (§11.7). Two routes: `exact` (every pass
+the same PNGs) and `noise8` (pass 1 the PNGs, every later pass new pixel noise of σ 8).
+
+Per pass: `rows` made (seqs stored: map.sqlite grows by these), `held` (the change in rows held: the index
+and the places' appearances), `new_places` (the change in places with a row held; `places`: at the pass's
+end), `visits` (consolidated frames: the visit log's growth, pruned to `max_visits` once snapshots cover
+them), `joins` (warm-up joins, §11.8; `--http`: `dropped`, the rows dropped, joins or cap), `closures`
+(revisits called: the loop-closure log's growth, bounded by `max_closures`), and `precision`, `recall` of
+the revisits called (right: the named row's file within 1 of the frame's; recall over every frame of the
+pass, all true revisits after pass 1). Pass 1 must call no revisit. One JSON line per route and pass,
+then a summary line per route; results/growth.json (`--http`: growth-http.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+from _common import machine, quick_mode, write_json
+
+from models.evaluation import datasets
+from models.pipeline import Stream, observe
+from service.evaluation import service_path, stress
+from service.evaluation.slam import encoder_setup
+
+
+def drive(feats: list[np.ndarray], contrast: list[np.ndarray], labels: np.ndarray, seed: int) -> list[dict]:
+    """`feats[p]` (T, D) the features of pass p's frames (labels `labels`, the same every pass): one map,
+    one stream, the drive restarted before each pass. Returns one dict per pass."""
+    backbone, preset = ENC["backbone"], ENC["preset"]
+    T = len(labels)
+    model, hasher, config = service_path._model(T * len(feats), int(feats[0].shape[1]), backbone=backbone,
+                                                preset=preset, seed=seed, memory="tm", localiser=None,
+                                                create=None)
+    thr = config.revisit_threshold
+    robot, codes, label_of = Stream(), {}, {}
+    out, visits, closures = [], 0, 0
+    for p, (f, c) in enumerate(zip(feats, contrast, strict=True)):
+        robot.break_sequence()  # a new drive: a new warm-up
+        held0, places0 = model.links.held, model.links.places()
+        made, v0, c0, joins, right, called = len(codes), visits, closures, 0, 0, 0
+        t0 = time.perf_counter()
+        for i, y in enumerate(hasher.project(f)):
+            seq = len(codes) + 1
+            step = observe(model, robot, y, learn=True, stream="robot", top_k=0, seq=seq,
+                           code_of=codes.__getitem__, threshold=thr, contrast=float(c[i]))
+            if step.visit is None:
+                codes[seq], label_of[seq] = step.code, int(labels[i])
+            else:
+                visits += 1
+            joins += len(getattr(step, "joins", ()))
+            if step.place is not None and step.place.is_revisit(thr):
+                closures += 1
+                called += 1
+                right += abs(label_of[step.place.seq] - int(labels[i])) <= 1
+        out.append({"pass": p + 1, "rows": len(codes) - made, "held": model.links.held - held0,
+                    "new_places": model.links.places() - places0, "places": model.links.places(),
+                    "visits": visits - v0, "joins": joins,
+                    "closures": closures - c0, "visit_log": visits, "closure_log": closures,
+                    "called": called, "right": right,
+                    "precision": round(right / called, 4) if called else None,
+                    "recall": round(right / T, 4), "seconds": round(time.perf_counter() - t0, 1)})
+        print(out[-1], flush=True)
+    return out
+
+
+def drive_http(pngs: list[list[bytes]], labels: np.ndarray, seed: int) -> list[dict]:
+    """`drive` through HTTP: the service itself (`create_app` at the defaults, its own encoder, a fresh
+    data directory), a new map of `seed`, each pass's PNGs posted as one learning stream, `POST
+    .../streams/robot/reset` before each pass; the sizes read from `GET /v1/maps/{id}` (`places`)."""
+    import tempfile
+
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from service.settings import Settings
+
+    out, visits0, closures = [], 0, 0
+    with tempfile.TemporaryDirectory() as d, TestClient(create_app(Settings(data_dir=Path(d)))) as c:
+        assert c.post("/v1/maps", json={"map_id": "growth", "seed": seed}).status_code == 201
+        label_of: dict[int, int] = {}
+        before = c.get("/v1/maps/growth").json()["places"]
+        for p, bodies in enumerate(pngs):
+            c.post("/v1/maps/growth/streams/robot/reset")
+            t0, made, joins0, right, called = time.perf_counter(), 0, before["dropped"], 0, 0
+            for i, body in enumerate(bodies):
+                b = c.post("/v1/maps/growth/observations", content=body,
+                           headers={"Content-Type": "image/png"},
+                           params={"stream": "robot", "learn": "true", "top_k": 0}).json()
+                if b["seq"] is not None:
+                    made += 1
+                    label_of[b["seq"]] = int(labels[i])
+                if b["place"] is not None and b["place"]["revisit"]:
+                    called += 1
+                    right += abs(label_of[b["place"]["seq"]] - int(labels[i])) <= 1
+            closures += called
+            now = c.get("/v1/maps/growth").json()["places"]
+            out.append({"pass": p + 1, "rows": made, "held": now["appearances"] - before["appearances"],
+                        "new_places": now["places"] - before["places"], "places": now["places"],
+                        "visits": now["visits_logged"] - visits0, "dropped": now["dropped"] - joins0,
+                        "closures": called, "visit_log": now["visits_logged"], "closure_log": closures,
+                        "called": called, "right": right,
+                        "precision": round(right / called, 4) if called else None,
+                        "recall": round(right / len(labels), 4),
+                        "seconds": round(time.perf_counter() - t0, 1)})
+            print(out[-1], flush=True)
+            before, visits0 = now, now["visits_logged"]
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--passes", type=int, default=10)
+    ap.add_argument("--lo", type=int, default=894, help="first file of the route (test half: 894-1787)")
+    ap.add_argument("--frames", type=int, default=400)
+    ap.add_argument("--seed", type=int, default=42, help="the map's seed (42: a new map's)")
+    ap.add_argument("--quick", action="store_true", help="3 passes of 100 frames (a smoke run)")
+    ap.add_argument("--http", action="store_true", help="through HTTP: the service at its defaults")
+    a = ap.parse_args()
+    passes, n = (3, 100) if quick_mode(a.quick) else (a.passes, a.frames)
+    enc, cache, conf = encoder_setup(None, None)
+    ENC.update(conf)
+    frames = stress.Frames(datasets.nordland_dir(), enc, cache)
+    idx = range(a.lo, a.lo + n)
+    labels = np.asarray(list(idx))
+    imgs = [frames.image("summer", i) for i in idx]
+    clean = [stress.png(im) for im in imgs]
+    results = {}
+    for name in ("exact", "noise8"):
+        pngs = [clean if name == "exact" or p == 0 else
+                [stress.variant(im, "noise:8", 1000 * p + j) for j, im in enumerate(imgs)]
+                for p in range(passes)]
+        if a.http:
+            rows = drive_http(pngs, labels, a.seed)
+        else:
+            feats = [frames.features(ps) for ps in pngs]
+            rows = drive(feats, [service_path.contrasts(ps) for ps in pngs], labels, a.seed)
+        p2 = rows[1]["recall"] if len(rows) > 1 else 0.0
+        later = rows[2:]
+        summary = {"route": name, "rows_per_pass_3_on": [r["rows"] for r in later],
+                   "held_per_pass_3_on": [r["held"] for r in later],
+                   "new_places_per_pass_3_on": [r["new_places"] for r in later],
+                   "max_rows_3_on": max((r["rows"] for r in later), default=0),
+                   "max_held_3_on": max((r["held"] for r in later), default=0),
+                   "pass1_false": rows[0]["called"] - rows[0]["right"],
+                   "min_recall_ratio_3_on": round(min((r["recall"] for r in later), default=0) / p2, 3)
+                   if p2 else None,
+                   "min_precision_2_on": min((r["precision"] or 1.0 for r in rows[1:]), default=None)}
+        print(summary, flush=True)
+        results[name] = {"passes": rows, "summary": summary}
+    write_json("growth-http.json" if a.http else "growth.json",
+               {"machine": machine(), "route": [a.lo, a.lo + n], "seed": a.seed, "results": results})
+
+
+ENC: dict = {}
+
+if __name__ == "__main__":
+    main()

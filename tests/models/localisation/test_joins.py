@@ -1,0 +1,91 @@
+"""Warm-up joins (docs/design/science.md §11.8): the rows a learning stream made before it knew where it
+was, that its confident path then explains, join the old places that path passed through, never a place
+of the stream's short-term memory or of the trail the row lies on."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.localisation import Localisation, Place
+from models.localisation.graph import SequenceGraph
+
+WIDTH = 256
+
+
+def code(seed: int) -> np.ndarray:
+    return np.sort(np.random.default_rng(seed).choice(WIDTH, 24, replace=False)).astype(np.int64)
+
+
+OLD = 40  # rows 1-40: an old route of stream "old"
+A = (41, 42, 43)  # stream "a" driving on from it: its short-term memory
+WARM = 44  # "a"'s warm-up row after a restart
+
+
+def build(warm: int = 39, stm_place: int | None = None) -> tuple[Localisation, dict[int, np.ndarray]]:
+    """The rows above; the warm-up row is the frame of row `warm`. `stm_place`: row 43 joined that row's
+    place."""
+    links = Localisation({"short_term": 20}, WIDTH)
+    codes = {r: code(r) for r in range(0, WARM)}
+    links.add(0, None, codes[0], stream="z")  # seq 0 unused by a store; keeps row ids = seqs
+    for r in range(1, OLD + 1):
+        links.add(r, r - 1 if r > 1 else None, codes[r], stream="old")
+    for r in A:
+        links.add(r, r - 1, codes[r], stream="a", place=stm_place if r == A[-1] and stm_place else -1)
+    codes[WARM] = codes[warm].copy()
+    links.add(WARM, None, codes[WARM], stream="a")
+    return links, codes
+
+
+def at(seq: int, support: int = 10) -> Place:
+    """The stream's confident answer: its path on row `seq`, `support` frames long."""
+    return Place(seq, 0.99, support, place=seq)
+
+
+def test_a_warm_up_row_joins_the_old_place_the_confident_path_stood_on() -> None:
+    links, codes = build()
+    assert set(links.short_term_rows("a").tolist()) == {*A, WARM}
+    # the path is on row 40 now, so on the frame before (the warm-up row's) it stood on row 39
+    assert links.explained("a", at(40), codes.__getitem__) == [(WARM, 39)]
+    links.fold(WARM, 39, WARM + 1)
+    links.drop(WARM)  # (the caller's: it adds no appearance)
+    assert links.place_of(WARM) == links.place_of(39) and links.graph.members(WARM) == []
+    assert WARM not in links.short_term_rows("a") and links.explained("a", at(40), codes.__getitem__) == []
+
+
+def test_a_row_the_path_does_not_cover_or_stood_far_from_is_not_joined() -> None:
+    links, codes = build()
+    assert links.explained("a", at(40, support=1), codes.__getitem__) == []  # the path began after it
+    assert links.explained("a", at(30), codes.__getitem__) == []  # the path stood on row 29, not row 39
+
+
+def test_a_join_never_targets_the_short_term_memory() -> None:
+    links, codes = build(warm=A[1])  # the warm-up frame looks like the stream's own recent row 42
+    assert links.explained("a", at(A[2]), codes.__getitem__) == []
+    links, codes = build(stm_place=39)  # the stream's row 43 shows old row 39's place
+    assert not links.graph.alone(np.array([A[-1]]))[0]
+    assert links.explained("a", at(40), codes.__getitem__) == []
+
+
+@pytest.mark.parametrize("more", [14, 15])
+def test_a_join_reaches_back_over_warmup_plus_exclusion_rows_only(more: int) -> None:
+    """The warm-up row, then `more` rows of the stream: with 15 it is the 16th newest (reach: 15)."""
+    assert Localisation({}, WIDTH).reach() == 15
+    links, codes = build(warm=20)
+    for r in range(WARM + 1, WARM + 1 + more):  # the stream goes on making rows, joined to old places
+        codes[r] = code(r)
+        links.add(r, r - 1, codes[r], stream="a", place=1)
+    # the path stood on row 20 on the warm-up row's frame, `more` + 1 frames ago
+    got = links.explained("a", at(20 + more + 1, support=100), codes.__getitem__)
+    assert got == ([(WARM, 20)] if more < 15 else [])
+
+
+def test_rejoin_takes_only_a_row_that_is_a_place_of_its_own() -> None:
+    g = SequenceGraph.chain(4)
+    g.join(3, 0)
+    with pytest.raises(ValueError):
+        g.rejoin(3, 1)  # already of another place
+    with pytest.raises(ValueError):
+        g.rejoin(0, 1)  # another row joined it
+    g.rejoin(2, 1)
+    assert g.place.tolist() == [0, 1, 1, 0] and g.members(1) == [1, 2] and g.members(2) == []
