@@ -129,3 +129,52 @@ def test_bench_gpu_says_it_needs_a_gpu_where_there_is_none(monkeypatch: pytest.M
     monkeypatch.setattr(sys, "argv", ["bench_gpu.py"])
     with pytest.raises(SystemExit, match="no CUDA device"):
         bench_gpu.main()
+
+
+def test_the_loops_benchmark_counts_merges_over_the_rows_an_http_run_made() -> None:
+    """bench_loops_http reads an HTTP run's rows by seq (any seqs, not 1..R) and their places from the
+    store; `stress.merges` then counts places whose rows' labels differ by more than the tolerance and
+    frames consolidated into a row of another label."""
+    import bench_loops_http as b
+
+    # rows 5, 6, 9 made by frames 0, 1, 3; row 9 joined row 6's place, which joined row 5's
+    places = b.roots({5: None, 6: 5, 9: 6})
+    assert places == {5: 5, 6: 5, 9: 5}
+    labels = np.array([0, 1, 1, 40, 0])
+    trace = b.merge_trace({5: 0, 6: 1, 9: 3}, {2: 6, 4: 9}, places, frames=5)
+    # one place holds labels 0, 1 and 40: merged; frame 2 (label 1) into row 6 (label 1) is right,
+    # frame 4 (label 0) into row 9 (label 40) is not
+    assert b.stress.merges(labels, trace) == {"merged_places": 1, "wrong_consolidations": 1}
+    assert b.roots({3: None, 4: 2}) == {3: 3, 4: 2}  # a join to a row not listed ends there
+
+
+def test_the_loops_benchmark_drives_a_tiny_corridor_through_a_real_server(tmp_path: Path) -> None:
+    """The whole command on a few dozen rendered frames (and a tiny Nordland loop where the data is
+    here): a real `cortexloc serve` on loopback, a new map's seed, the table and the JSON's structure
+    and counts that must agree. No figure is asserted but the seed."""
+    import json
+
+    import bench_loops_http as b
+
+    from models.evaluation import datasets
+
+    data = datasets.nordland_dir()
+    routes = ["corridor"] + (["outdoor"] if (data / "summer").is_dir() else [])
+    tiny = b.Sizes(lo=1000, lap=16, between=1494, gap=12, corridor=4.0, corridor_b=2.0)
+    result = b.run(data=data, routes=routes, seeds=[b.DEFAULT_SEED], sizes=tiny, concurrency=4)
+    json.loads(json.dumps(result))  # JSON all through
+    assert set(result["routes"]) == set(routes)
+    for name, r in result["routes"].items():
+        assert r["revisits_true"] > 0  # lap 2 is a real return
+        (e,) = r["seeds"]
+        assert e["seed"] == 42 and e["asked"] == b.DEFAULT_SEED  # a map created with no seed option
+        assert e["rows"] >= 1 and e["rows"] + e["consolidated"] <= e["frames"] == r["frames"]
+        assert 0 <= e["merged_places"] <= e["rows"] and 0 <= e["wrong_consolidations"] <= e["consolidated"]
+        assert 0 <= e["revisits_called"] <= e["frames"] and e["revisits_true"] == r["revisits_true"]
+        for k in ("precision", "recall", "localise_recall"):
+            assert e[k] is None or 0.0 <= e[k] <= 1.0
+        osl = r["openseqslam_recall_at_100p"]
+        assert osl is None or 0.0 <= osl <= 1.0
+        w = r["worst"]
+        assert w["met"] == all(w["checks"].values())
+        assert f"| {name} | {r['frames']} |" in b.table(result)
