@@ -123,8 +123,8 @@ def slower(r: Route, copies: int = 3, sigma: float = 4.0) -> Route:
 def indoor(sizes: Sizes) -> Route:
     """The rendered corridor loop (module docstring, `models.evaluation.corridor`)."""
     a = corridor.Corridor(sizes.corridor, seed=3)
-    b = corridor.Corridor(sizes.corridor_b, seed=11, wall=(150, 175, 160), door=5.0, light=3.0, poster=4.0,
-                          label0=10_000)
+    b = corridor.Corridor(sizes.corridor_b, seed=11, wall=(120, 185, 210), floor=(60, 80, 115), door=5.0,
+                          light=3.0, poster=4.0, label0=10_000)
     legs = [(a, 0.12, 0.0, corridor.Lens(100.0), 0), (b, 0.14, 0.0, corridor.Lens(100.0), 0),
             (a, 0.14, 0.05, corridor.Lens(80.0, 0.25), 1)]
     pngs, labels, laps = [], [], []
@@ -181,6 +181,7 @@ async def run_map(http: httpx.AsyncClient, base: str, map_id: str, seed: str, ro
     """Drive `route` into a new map: `slam` one learning stream throughout; `localise` the mapping laps
     learned by stream `robot`, lap 2 localised (`learn=false`) by stream `query`."""
     async with gate:
+        t0 = time.perf_counter()
         resource = await create_map(http, base, map_id, seed)
         url = f"{base}/v1/maps/{map_id}/observations"
         replies = []
@@ -188,6 +189,7 @@ async def run_map(http: httpx.AsyncClient, base: str, map_id: str, seed: str, ro
             learn = mode == "slam" or route.laps[i] == 0
             params = {"stream": "robot" if learn else "query", "learn": str(learn).lower(), "top_k": "0"}
             replies.append(await _post(http, url, body, params))
+        print(f"{map_id}: {len(replies)} frames in {time.perf_counter() - t0:.0f} s", flush=True)
         return {"map_id": map_id, "seed": resource["params"]["seed"], "asked": seed,
                 "threshold": float(resource["revisit_threshold"]), "backbone": resource["backbone"],
                 "replies": replies}
@@ -253,7 +255,9 @@ def merge_trace(frame_of: dict[int, int], consolidated: dict[int, int], places: 
 
 def score_seed(route: Route, slam_run: dict[str, Any], loc_run: dict[str, Any],
                places: dict[int, int]) -> dict[str, Any]:
-    """One seed's figures on one route (module docstring)."""
+    """One seed's figures on one route (module docstring); `false_revisit_lags`: for each revisit called
+    while mapping, how many frames and labels back the row it named lies (an echo of the stream's own
+    trail is a few frames back, aliasing far)."""
     thr = slam_run["threshold"]
     a = answers(slam_run["replies"], thr)
     s = slam.score(a["best"], a["confidence"], route.labels, thr, TOLERANCE, route.laps)
@@ -266,6 +270,9 @@ def score_seed(route: Route, slam_run: dict[str, Any], loc_run: dict[str, Any],
     ls = slam.score(best, conf, route.labels, loc_run["threshold"], TOLERANCE, route.laps,
                     slam.localise_truth(route.labels, route.laps, TOLERANCE))
     mapping, second, loc2 = s["lap"][0], s["lap"].get(1, {}), ls["lap"].get(1, {})
+    called = np.flatnonzero((route.laps == 0) & (a["best"] >= 0) & (a["confidence"] >= thr))
+    lags = {"frames": (called - a["best"][called]).tolist(),
+            "labels": np.abs(route.labels[called] - route.labels[a["best"][called]]).tolist()}
     return {"seed": slam_run["seed"], "asked": slam_run["asked"], "threshold": thr,
             "false_revisits_mapping": mapping["false_revisits"], "merged_places": m["merged_places"],
             "wrong_consolidations": m["wrong_consolidations"], "rows": len(a["frame_of"]),
@@ -273,7 +280,8 @@ def score_seed(route: Route, slam_run: dict[str, Any], loc_run: dict[str, Any],
             "frames": len(route.pngs), "revisits_true": second.get("revisits_true"),
             "revisits_called": second.get("revisits_called"), "precision": second.get("precision"),
             "recall": second.get("recall"), "localise_recall": loc2.get("recall"),
-            "localise_precision": loc2.get("precision")}
+            "localise_precision": loc2.get("precision"),
+            "false_revisit_lags": lags}
 
 
 def openseqslam(route: Route) -> float | None:

@@ -1,11 +1,14 @@
 """A synthetic indoor corridor, rendered: the route of issue 35's "indoor corridor" check (160x120 frames,
 a slow robot, the second lap through another lens), deterministic for a seed. numpy + cv2 only.
 
-The world: straight corridors 2 m wide, 2.5 m high, flat grey walls (low texture: each 0.5 m strip one
+The world: straight corridors 2 m wide, 2.5 m high, flat walls (low texture: each 0.5 m strip one
 shade, darker with depth), a floor and a ceiling, dark skirting boards, ceiling lights every `light`
-metres, doors every `door` metres alternating sides (a colour from a small palette: the structure repeats
-and aliases) and a poster now and then (a coloured panel with one inner block). A corridor's layout comes
-from its own seed; a second corridor (other colours and spacing) is the "unrelated stretch" of a loop.
+metres, doors about every `door` metres (irregular gaps, mostly alternating sides, a colour from a small
+palette: the structure repeats and aliases) and a poster now and then (a coloured panel with one inner
+block). A corridor's layout comes from its own seed; a second corridor (other wall and floor colours,
+other spacing) is the "unrelated stretch" of a loop. The gaps are irregular so that no place is a copy
+of another: with doors exactly every 4 m on alternating sides (the first version) a place 8 m on was one,
+and most revisits the service called while mapping named a row 7-9 m back.
 
 The camera: a pinhole 1.2 m above the floor looking down the corridor, swaying laterally by up to 0.1 m
 (`Lens`: focal length in pixels and one radial distortion coefficient k1, applied by remapping a larger
@@ -47,22 +50,29 @@ class Corridor:
     length: float
     seed: int
     wall: tuple[int, int, int] = (168, 170, 164)
+    floor: tuple[int, int, int] = (95, 100, 105)
     door: float = 4.0
     light: float = 2.5
     poster: float = 7.0
     label0: int = 0
 
     def features(self) -> list[tuple[str, float, float, tuple[int, int, int]]]:
-        """(kind, x along the corridor in metres, side +1 left / -1 right, colour), laid out by `seed`."""
+        """(kind, x along the corridor in metres, side +1 left / -1 right, colour), laid out by `seed`:
+        doors `door` metres apart on average (each gap 0.6-1.4 times it, the side flipped 3 times in
+        4), a colour of five; posters likewise every `poster` metres."""
         rng = np.random.default_rng(self.seed)
-        palette = [(60, 80, 120), (40, 55, 85), (110, 90, 70)]  # BGR: browns and a grey-blue
+        palette = [(60, 80, 120), (40, 55, 85), (110, 90, 70), (70, 110, 150), (90, 90, 95)]  # BGR
         out: list[tuple[str, float, float, tuple[int, int, int]]] = []
-        for k, x in enumerate(np.arange(1.0, self.length, self.door)):
-            out.append(("door", float(x), 1.0 if k % 2 == 0 else -1.0, palette[int(rng.integers(3))]))
-        for x in np.arange(3.0, self.length, self.poster):
+        x, side = 1.0, 1.0
+        while x < self.length:
+            out.append(("door", float(x), side, palette[int(rng.integers(len(palette)))]))
+            x += self.door * rng.uniform(0.6, 1.4)
+            side = -side if rng.random() < 0.75 else side
+        x = 3.0
+        while x < self.length:
             colour = tuple(int(c) for c in rng.integers(30, 230, 3))
-            out.append(("poster", float(x + rng.uniform(-1.0, 1.0)), float(rng.choice([-1.0, 1.0])),
-                        colour))  # type: ignore[arg-type]
+            out.append(("poster", float(x), float(rng.choice([-1.0, 1.0])), colour))  # type: ignore[arg-type]
+            x += self.poster * rng.uniform(0.6, 1.4)
         return out
 
 
@@ -103,7 +113,7 @@ def _pinhole(c: Corridor, s: float, f: float, size: tuple[int, int]) -> np.ndarr
             continue
         d = x0 - s
         quad([(x0, HALF_W, 0), (x1, HALF_W, 0), (x1, -HALF_W, 0), (x0, -HALF_W, 0)],
-             _shade((95, 100, 105), d))
+             _shade(c.floor, d))
         quad([(x0, HALF_W, CEIL), (x1, HALF_W, CEIL), (x1, -HALF_W, CEIL), (x0, -HALF_W, CEIL)],
              _shade((205, 205, 200), d))
         for side in (1.0, -1.0):
