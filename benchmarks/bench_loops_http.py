@@ -34,6 +34,11 @@ localise mode on the same lap-2 frames). Measured:
 - lap 2: revisit precision and recall of `place.revisit` (the map's own decision at its threshold), the
   localise mode's recall (revisits called right / true revisits, the same frames), and OpenSeqSLAM run
   online on the route (`slam.openseqslam_online`), its recall at 100 % precision.
+With `--poses` each frame carries `metadata` {stamp, pose}: the corridor's true positions (0.24 s per
+frame), outdoors the file index x 280 m along a line (assumed: no poses come with the data), the slow
+robot's copies between a frame and the next. Without it (the default) no frame has a pose, as with a
+robot that posts none.
+
 Each route's line is the worst seed; `met` is issue 35's bar on every seed: 0 false revisits while
 mapping, 0 merged places, precision >= 0.99, recall >= 0.9 x the localise mode's (same seed) and >=
 OpenSeqSLAM's recall at 100 % precision + 0.05.
@@ -85,15 +90,28 @@ class Sizes:
 QUICK = Sizes(lo=1000, lap=24, between=1494, gap=14, corridor=6.0, corridor_b=3.0)
 
 
+#: Outdoor poses (`--poses`): metres per Nordland file, assumed (files are 10 s apart at about 100 km/h).
+METRES_PER_FILE = 280.0
+
+
 @dataclass(frozen=True)
 class Route:
     """`pngs` (T,) encoded frames in driven order, `labels` (T,) place labels, `laps` (T,) 0 for lap 1 and
-    the stretch after it (mapping), 1 for lap 2."""
+    the stretch after it (mapping), 1 for lap 2; `xy` (T, 2) each frame's position in metres and
+    `stamps` (T,) its time in seconds, posted as metadata with `--poses`."""
 
     name: str
     pngs: list[bytes]
     labels: np.ndarray
     laps: np.ndarray
+    xy: np.ndarray
+    stamps: np.ndarray
+
+    def metadata(self, i: int) -> str:
+        """Frame i's `metadata` query parameter: its stamp and pose (compact JSON)."""
+        x, y = (round(float(v), 3) for v in self.xy[i])
+        return json.dumps({"stamp": round(float(self.stamps[i]), 3), "pose": {"x": x, "y": y}},
+                          separators=(",", ":"))
 
 
 def outdoor(data: Path, sizes: Sizes) -> Route:
@@ -108,7 +126,9 @@ def outdoor(data: Path, sizes: Sizes) -> Route:
             pngs.append((data / season / names[i]).read_bytes())
             labels.append(i)
             laps.append(lap)
-    return Route("outdoor", pngs, np.asarray(labels, np.int64), np.asarray(laps, np.int64))
+    lab = np.asarray(labels, np.int64)
+    xy = np.stack([lab * METRES_PER_FILE, np.zeros(lab.size)], axis=1)  # a straight line, assumed
+    return Route("outdoor", pngs, lab, np.asarray(laps, np.int64), xy, 10.0 * np.arange(lab.size))
 
 
 def slower(r: Route, copies: int = 3, sigma: float = 4.0) -> Route:
@@ -117,7 +137,13 @@ def slower(r: Route, copies: int = 3, sigma: float = 4.0) -> Route:
     for i, b in enumerate(r.pngs):
         img = cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR)
         pngs.extend(stress.variant(img, f"noise:{sigma:g}", 1000 * c + i) for c in range(copies))
-    return Route("slow", pngs, np.repeat(r.labels, copies), np.repeat(r.laps, copies))
+    # the copies of a frame lie between it and the next (a slower robot), their stamps `copies` times denser
+    step = np.diff(r.xy, axis=0, append=r.xy[-1:])
+    xy = np.repeat(r.xy, copies, axis=0) + np.tile(np.arange(copies) / copies, r.xy.shape[0])[:, None] * \
+        np.repeat(np.where(np.abs(step) <= METRES_PER_FILE, step, 0.0), copies, axis=0)
+    dt = float(r.stamps[1] - r.stamps[0]) if len(r.stamps) > 1 else 1.0
+    return Route("slow", pngs, np.repeat(r.labels, copies), np.repeat(r.laps, copies), xy,
+                 dt / copies * np.arange(len(pngs)))
 
 
 def indoor(sizes: Sizes) -> Route:
@@ -125,15 +151,20 @@ def indoor(sizes: Sizes) -> Route:
     a = corridor.Corridor(sizes.corridor, seed=3)
     b = corridor.Corridor(sizes.corridor_b, seed=11, wall=(120, 185, 210), floor=(60, 80, 115), door=5.0,
                           light=3.0, poster=4.0, label0=10_000)
-    legs = [(a, 0.12, 0.0, corridor.Lens(100.0), 0), (b, 0.14, 0.0, corridor.Lens(100.0), 0),
-            (a, 0.14, 0.05, corridor.Lens(80.0, 0.25), 1)]
-    pngs, labels, laps = [], [], []
-    for c, step, start, lens, lap in legs:
+    # (corridor, metres per frame, first position, lens, lap, where it lies: origin and direction)
+    legs = [(a, 0.12, 0.0, corridor.Lens(100.0), 0, (0.0, 0.0), (1.0, 0.0)),
+            (b, 0.14, 0.0, corridor.Lens(100.0), 0, (a.length + 2.0, 0.0), (0.0, 1.0)),
+            (a, 0.14, 0.05, corridor.Lens(80.0, 0.25), 1, (0.0, 0.0), (1.0, 0.0))]
+    pngs, labels, laps, xy = [], [], [], []
+    for c, step, start, lens, lap, origin, way in legs:
         for s in np.arange(start, c.length, step):
             pngs.append(stress.png(corridor.render(c, float(s), lens)))
             labels.append(c.label0 + int(s))
             laps.append(lap)
-    return Route("corridor", pngs, np.asarray(labels, np.int64), np.asarray(laps, np.int64))
+            xy.append((origin[0] + way[0] * s, origin[1] + way[1] * s))
+    # a robot at 0.5 m/s: 0.24 s per frame on lap 1; one stamp per frame along the whole drive
+    return Route("corridor", pngs, np.asarray(labels, np.int64), np.asarray(laps, np.int64),
+                 np.asarray(xy, np.float64), 0.24 * np.arange(len(pngs)))
 
 
 def build(name: str, data: Path, sizes: Sizes) -> Route:
@@ -177,9 +208,10 @@ async def create_map(http: httpx.AsyncClient, base: str, map_id: str, seed: str)
 
 
 async def run_map(http: httpx.AsyncClient, base: str, map_id: str, seed: str, route: Route, mode: str,
-                  gate: asyncio.Semaphore) -> dict[str, Any]:
+                  gate: asyncio.Semaphore, poses: bool = False) -> dict[str, Any]:
     """Drive `route` into a new map: `slam` one learning stream throughout; `localise` the mapping laps
-    learned by stream `robot`, lap 2 localised (`learn=false`) by stream `query`."""
+    learned by stream `robot`, lap 2 localised (`learn=false`) by stream `query`; `poses`: each frame
+    with its stamp and pose as metadata."""
     async with gate:
         t0 = time.perf_counter()
         resource = await create_map(http, base, map_id, seed)
@@ -188,6 +220,8 @@ async def run_map(http: httpx.AsyncClient, base: str, map_id: str, seed: str, ro
         for i, body in enumerate(route.pngs):
             learn = mode == "slam" or route.laps[i] == 0
             params = {"stream": "robot" if learn else "query", "learn": str(learn).lower(), "top_k": "0"}
+            if poses:
+                params["metadata"] = route.metadata(i)
             replies.append(await _post(http, url, body, params))
         print(f"{map_id}: {len(replies)} frames in {time.perf_counter() - t0:.0f} s", flush=True)
         return {"map_id": map_id, "seed": resource["params"]["seed"], "asked": seed,
@@ -352,8 +386,8 @@ def table(result: dict[str, Any]) -> str:
     return head + "\n".join(lines) + "\n" + "\n".join(seeds) + "\n"
 
 
-async def _drive_all(base: str, routes: dict[str, Route], seeds: list[str], concurrency: int
-                     ) -> dict[str, list[dict[str, Any]]]:
+async def _drive_all(base: str, routes: dict[str, Route], seeds: list[str], concurrency: int,
+                     poses: bool) -> dict[str, list[dict[str, Any]]]:
     gate = asyncio.Semaphore(concurrency)
     limits = httpx.Limits(max_connections=concurrency, max_keepalive_connections=concurrency)
     jobs: list[tuple[str, Any]] = []
@@ -361,7 +395,8 @@ async def _drive_all(base: str, routes: dict[str, Route], seeds: list[str], conc
         for name, r in routes.items():
             for seed in seeds:
                 for mode in ("slam", "localise"):
-                    jobs.append((name, run_map(http, base, f"{name}-{mode}-{seed}", seed, r, mode, gate)))
+                    jobs.append((name, run_map(http, base, f"{name}-{mode}-{seed}", seed, r, mode, gate,
+                                                poses)))
         done = await asyncio.gather(*(j for _, j in jobs))
     out: dict[str, list[dict[str, Any]]] = {}
     for (name, _), run in zip(jobs, done, strict=True):
@@ -370,7 +405,7 @@ async def _drive_all(base: str, routes: dict[str, Route], seeds: list[str], conc
 
 
 def run(*, data: Path, routes: list[str], seeds: list[str], sizes: Sizes, concurrency: int,
-        keep: bool = False) -> dict[str, Any]:
+        keep: bool = False, poses: bool = False) -> dict[str, Any]:
     """Build the routes, start the server, drive every map, score: {"config", "routes": {name: {frames,
     seeds: [per seed], openseqslam_recall_at_100p, worst}}, "wall_s"}."""
     t0 = time.perf_counter()
@@ -382,12 +417,13 @@ def run(*, data: Path, routes: list[str], seeds: list[str], sizes: Sizes, concur
         server.wait_ready()
         ready = httpx.get(f"{server.base}/readyz", timeout=30).json()["checks"]["encoder"]
         t_drive = time.perf_counter()
-        runs = asyncio.run(_drive_all(server.base, built, seeds, concurrency))
+        runs = asyncio.run(_drive_all(server.base, built, seeds, concurrency, poses))
         drive_s = time.perf_counter() - t_drive
         layout = Layout(tmp / "var")
         result: dict[str, Any] = {"config": {
             "data": str(data), "sizes": sizes.__dict__, "seeds": seeds, "tolerance": TOLERANCE,
-            "backbone": ready.get("backbone"), "runtime": ready.get("runtime"), "concurrency": concurrency},
+            "backbone": ready.get("backbone"), "runtime": ready.get("runtime"), "concurrency": concurrency,
+            "poses": poses},
             "routes": {}}
         for name, r in built.items():
             by_seed: dict[str, dict[str, Any]] = {}
@@ -420,11 +456,13 @@ def main() -> None:
     ap.add_argument("--concurrency", type=int, default=6, help="maps driven at once")
     ap.add_argument("--quick", action="store_true", help="tiny routes (also CORTEXLOC_BENCH_QUICK=1)")
     ap.add_argument("--keep", action="store_true", help="keep the temporary data directory")
+    ap.add_argument("--poses", action="store_true", help="post each frame's stamp and pose as metadata "
+                    "(the corridor's true ones; outdoors the file index x 280 m on a line, assumed)")
     ap.add_argument("--out", type=Path, default=RESULTS / "loops_http.json")
     args = ap.parse_args()
     sizes = QUICK if quick_mode(args.quick) else Sizes()
     result = run(data=args.data, routes=args.routes, seeds=args.seeds, sizes=sizes,
-                 concurrency=args.concurrency, keep=args.keep)
+                 concurrency=args.concurrency, keep=args.keep, poses=args.poses)
     print(table(result), flush=True)
     print(f"{result['posts']} posts, driven in {result['drive_s']:.0f} s; {result['wall_s']:.0f} s in all",
           flush=True)

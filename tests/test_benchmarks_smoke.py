@@ -161,7 +161,9 @@ def test_the_loops_benchmark_drives_a_tiny_corridor_through_a_real_server(tmp_pa
     data = datasets.nordland_dir()
     routes = ["corridor"] + (["outdoor"] if (data / "summer").is_dir() else [])
     tiny = b.Sizes(lo=1000, lap=16, between=1494, gap=12, corridor=4.0, corridor_b=2.0)
-    result = b.run(data=data, routes=routes, seeds=[b.DEFAULT_SEED], sizes=tiny, concurrency=4)
+    # with poses: the metadata path too (a pose the service refused would be a 400 here)
+    result = b.run(data=data, routes=routes, seeds=[b.DEFAULT_SEED], sizes=tiny, concurrency=4, poses=True)
+    assert result["config"]["poses"] is True
     json.loads(json.dumps(result))  # JSON all through
     assert set(result["routes"]) == set(routes)
     for name, r in result["routes"].items():
@@ -178,3 +180,26 @@ def test_the_loops_benchmark_drives_a_tiny_corridor_through_a_real_server(tmp_pa
         w = r["worst"]
         assert w["met"] == all(w["checks"].values())
         assert f"| {name} | {r['frames']} |" in b.table(result)
+
+
+def test_the_loops_benchmark_poses_follow_the_route() -> None:
+    """`--poses`: the corridor's frames carry their true positions (lap 2 where lap 1 was, the second
+    corridor elsewhere), stamps increase, and a slower robot's copies lie between a frame and the next."""
+    import json
+
+    import bench_loops_http as b
+
+    tiny = b.Sizes(corridor=3.0, corridor_b=1.0)
+    r = b.indoor(tiny)
+    assert len(r.pngs) == len(r.labels) == len(r.laps) == len(r.xy) == len(r.stamps)
+    assert np.all(np.diff(r.stamps) > 0)
+    lap1, lap2 = (r.laps == 0) & (r.labels < 10_000), r.laps == 1
+    assert np.allclose(np.diff(r.xy[lap1, 0]), 0.12) and np.allclose(r.xy[lap1, 1], 0.0)
+    assert np.all(np.abs(np.floor(r.xy[lap2, 0]) - r.labels[lap2]) == 0)  # labels are metres along A
+    assert np.all(r.xy[r.labels >= 10_000, 1] >= 0) and np.all(r.xy[r.labels >= 10_000, 0] > 3.0)
+    meta = json.loads(r.metadata(5))
+    assert meta == {"stamp": round(float(r.stamps[5]), 3), "pose": {"x": 0.6, "y": 0.0}}
+    slow = b.slower(b.Route("outdoor", r.pngs[:3], np.array([7, 8, 9]), np.zeros(3, np.int64),
+                            np.array([[0.0, 0.0], [30.0, 0.0], [60.0, 0.0]]), np.array([0.0, 10.0, 20.0])))
+    assert np.allclose(slow.xy[:, 0], [0, 10, 20, 30, 40, 50, 60, 60, 60])
+    assert np.allclose(np.diff(slow.stamps), 10.0 / 3) and list(slow.labels) == [7, 7, 7, 8, 8, 8, 9, 9, 9]
