@@ -129,3 +129,77 @@ def test_bench_gpu_says_it_needs_a_gpu_where_there_is_none(monkeypatch: pytest.M
     monkeypatch.setattr(sys, "argv", ["bench_gpu.py"])
     with pytest.raises(SystemExit, match="no CUDA device"):
         bench_gpu.main()
+
+
+def test_the_loops_benchmark_counts_merges_over_the_rows_an_http_run_made() -> None:
+    """bench_loops_http reads an HTTP run's rows by seq (any seqs, not 1..R) and their places from the
+    store; `stress.merges` then counts places whose rows' labels differ by more than the tolerance and
+    frames consolidated into a row of another label."""
+    import bench_loops_http as b
+
+    # rows 5, 6, 9 made by frames 0, 1, 3; row 9 joined row 6's place, which joined row 5's
+    places = b.roots({5: None, 6: 5, 9: 6})
+    assert places == {5: 5, 6: 5, 9: 5}
+    labels = np.array([0, 1, 1, 40, 0])
+    trace = b.merge_trace({5: 0, 6: 1, 9: 3}, {2: 6, 4: 9}, places, frames=5)
+    # one place holds labels 0, 1 and 40: merged; frame 2 (label 1) into row 6 (label 1) is right,
+    # frame 4 (label 0) into row 9 (label 40) is not
+    assert b.stress.merges(labels, trace) == {"merged_places": 1, "wrong_consolidations": 1}
+    assert b.roots({3: None, 4: 2}) == {3: 3, 4: 2}  # a join to a row not listed ends there
+
+
+def test_the_loops_benchmark_drives_a_tiny_corridor_through_a_real_server(tmp_path: Path) -> None:
+    """The whole command on a few dozen rendered frames (and a tiny Nordland loop where the data is
+    here): a real `cortexloc serve` on loopback, a new map's seed, the table and the JSON's structure
+    and counts that must agree. No figure is asserted but the seed."""
+    import json
+
+    import bench_loops_http as b
+
+    from models.evaluation import datasets
+
+    data = datasets.nordland_dir()
+    routes = ["corridor"] + (["outdoor"] if (data / "summer").is_dir() else [])
+    tiny = b.Sizes(lo=1000, lap=16, between=1494, gap=12, corridor=4.0, corridor_b=2.0)
+    # with poses: the metadata path too (a pose the service refused would be a 400 here)
+    result = b.run(data=data, routes=routes, seeds=[b.DEFAULT_SEED], sizes=tiny, concurrency=4, poses=True)
+    assert result["config"]["poses"] is True
+    json.loads(json.dumps(result))  # JSON all through
+    assert set(result["routes"]) == set(routes)
+    for name, r in result["routes"].items():
+        assert r["revisits_true"] > 0  # lap 2 is a real return
+        (e,) = r["seeds"]
+        assert e["seed"] == 42 and e["asked"] == b.DEFAULT_SEED  # a map created with no seed option
+        assert e["rows"] >= 1 and e["rows"] + e["consolidated"] <= e["frames"] == r["frames"]
+        assert 0 <= e["merged_places"] <= e["rows"] and 0 <= e["wrong_consolidations"] <= e["consolidated"]
+        assert 0 <= e["revisits_called"] <= e["frames"] and e["revisits_true"] == r["revisits_true"]
+        for k in ("precision", "recall", "localise_recall"):
+            assert e[k] is None or 0.0 <= e[k] <= 1.0
+        osl = r["openseqslam_recall_at_100p"]
+        assert osl is None or 0.0 <= osl <= 1.0
+        w = r["worst"]
+        assert w["met"] == all(w["checks"].values())
+        assert f"| {name} | {r['frames']} |" in b.table(result)
+
+
+def test_the_loops_benchmark_poses_follow_the_route() -> None:
+    """`--poses`: the corridor's frames carry their true positions (lap 2 where lap 1 was, the second
+    corridor elsewhere), stamps increase, and a slower robot's copies lie between a frame and the next."""
+    import json
+
+    import bench_loops_http as b
+
+    tiny = b.Sizes(corridor=3.0, corridor_b=1.0)
+    r = b.indoor(tiny)
+    assert len(r.pngs) == len(r.labels) == len(r.laps) == len(r.xy) == len(r.stamps)
+    assert np.all(np.diff(r.stamps) > 0)
+    lap1, lap2 = (r.laps == 0) & (r.labels < 10_000), r.laps == 1
+    assert np.allclose(np.diff(r.xy[lap1, 0]), 0.12) and np.allclose(r.xy[lap1, 1], 0.0)
+    assert np.all(np.abs(np.floor(r.xy[lap2, 0]) - r.labels[lap2]) == 0)  # labels are metres along A
+    assert np.all(r.xy[r.labels >= 10_000, 1] >= 0) and np.all(r.xy[r.labels >= 10_000, 0] > 3.0)
+    meta = json.loads(r.metadata(5))
+    assert meta == {"stamp": round(float(r.stamps[5]), 3), "pose": {"x": 0.6, "y": 0.0}}
+    slow = b.slower(b.Route("outdoor", r.pngs[:3], np.array([7, 8, 9]), np.zeros(3, np.int64),
+                            np.array([[0.0, 0.0], [30.0, 0.0], [60.0, 0.0]]), np.array([0.0, 10.0, 20.0])))
+    assert np.allclose(slow.xy[:, 0], [0, 10, 20, 30, 40, 50, 60, 60, 60])
+    assert np.allclose(np.diff(slow.stamps), 10.0 / 3) and list(slow.labels) == [7, 7, 7, 8, 8, 8, 9, 9, 9]

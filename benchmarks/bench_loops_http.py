@@ -1,0 +1,474 @@
+"""Loop closure checked from outside (issue 35, "Done when"): one robot mapping while it drives, through
+HTTP, at the service's defaults and a new map's seed.
+
+Run: `python benchmarks/bench_loops_http.py [--data DIR] [--seeds default 1 7] [--quick] [--out FILE]`.
+Prints a markdown table; writes JSON (default benchmarks/results/loops_http.json).
+
+Setup: the real service (`cortexloc serve`, default settings, the default backbone as this machine
+resolves it, `bench_http.Server`) on a free 127.0.0.1 port with a temporary data directory. Each map is
+created by `POST /v1/maps` with no option but its id and, for seeds other than `default`, `seed` (the
+`default` maps are made with no seed at all: a new map's, read back from the map resource, 42 today).
+Every frame is a PNG posted to `/v1/maps/{id}/observations?top_k=0`; all maps run concurrently (one
+sequential stream each, `--concurrency` at a time).
+
+Routes (labels: the truth's place labels; `slam.revisit_truth`: a frame is a true revisit only after the
+route went more than 10 labels away and came back; tolerance 1 label):
+- `outdoor`: Nordland 64x32, held out (`test` half, files the defaults were not tuned on, docs/results.md
+  §10): lap 1 summer files [lo, lo + lap), an unrelated stretch [between, between + gap) of summer,
+  lap 2 winter [lo, lo + lap). Labels: file index.
+- `corridor`: a rendered indoor corridor 160x120 (`models.evaluation.corridor`: low texture, doors and
+  lights repeating): lap 1 along corridor A at 0.12 m per frame through lens 1 (f 100 px), then
+  corridor B (other colours and spacing) at 0.14 m, then lap 2 along A at 0.14 m through lens 2 (f 80 px,
+  radial distortion k1 0.25). Labels: metres (B's offset by 10,000).
+- `slow`: `outdoor` with each frame posted 3 times, each copy with σ 4 pixel noise (`stress.variant`).
+
+Per route and seed, two maps: `slam` (every frame `learn=true`, one stream: loop closure while mapping)
+and `localise` (lap 1 and the stretch learned by one stream, lap 2 posted `learn=false` by another: the
+localise mode on the same lap-2 frames). Measured:
+- false revisits while mapping: replies with `place.revisit` on lap 1 or the stretch (`slam.score`,
+  lap 0), every one false (the truth has no revisit there);
+- merged places: places whose rows' labels differ by more than the tolerance (`stress.merges`), the
+  rows' places read from the map's `map.sqlite` read-only after its run (no endpoint lists every row's
+  place; a benchmark may, the service never does); wrong consolidations beside it (a frame consolidated,
+  `consolidated_into`, into a row of another label);
+- lap 2: revisit precision and recall of `place.revisit` (the map's own decision at its threshold), the
+  localise mode's recall (revisits called right / true revisits, the same frames), and OpenSeqSLAM run
+  online on the route (`slam.openseqslam_online`), its recall at 100 % precision.
+With `--poses` each frame carries `metadata` {stamp, pose}: the corridor's true positions (0.24 s per
+frame), outdoors the file index x 280 m along a line (assumed: no poses come with the data), the slow
+robot's copies between a frame and the next. Without it (the default) no frame has a pose, as with a
+robot that posts none.
+
+Each route's line is the worst seed; `met` is issue 35's bar on every seed: 0 false revisits while
+mapping, 0 merged places, precision >= 0.99, recall >= 0.9 x the localise mode's (same seed) and >=
+OpenSeqSLAM's recall at 100 % precision + 0.05.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import httpx
+import numpy as np
+from _common import RESULTS, quick_mode, write_json  # also puts the repo on sys.path
+from bench_http import Server
+
+from models.evaluation import corridor, datasets, seqslam, sequences, slam
+from service.evaluation import stress
+from service.evaluation.slam import grey
+from storage.layout import Layout
+from storage.mapstore import MapStore
+
+TOLERANCE = stress.TOLERANCE
+ROUTES = ("outdoor", "corridor", "slow")
+DEFAULT_SEED = "default"  # a map created with no seed option
+
+
+@dataclass(frozen=True)
+class Sizes:
+    """A run's route sizes: `lo` the outdoor lap's first file index, `lap` its files, `between` and `gap`
+    the unrelated stretch's; `corridor` and `corridor_b` the corridors' lengths in metres."""
+
+    lo: int = 994
+    lap: int = 200
+    between: int = 1494
+    gap: int = 100
+    corridor: float = 36.0
+    corridor_b: float = 14.0
+
+
+QUICK = Sizes(lo=1000, lap=24, between=1494, gap=14, corridor=6.0, corridor_b=3.0)
+
+
+#: Outdoor poses (`--poses`): metres per Nordland file, assumed (files are 10 s apart at about 100 km/h).
+METRES_PER_FILE = 280.0
+
+
+@dataclass(frozen=True)
+class Route:
+    """`pngs` (T,) encoded frames in driven order, `labels` (T,) place labels, `laps` (T,) 0 for lap 1 and
+    the stretch after it (mapping), 1 for lap 2; `xy` (T, 2) each frame's position in metres and
+    `stamps` (T,) its time in seconds, posted as metadata with `--poses`."""
+
+    name: str
+    pngs: list[bytes]
+    labels: np.ndarray
+    laps: np.ndarray
+    xy: np.ndarray
+    stamps: np.ndarray
+
+    def metadata(self, i: int) -> str:
+        """Frame i's `metadata` query parameter: its stamp and pose (compact JSON)."""
+        x, y = (round(float(v), 3) for v in self.xy[i])
+        return json.dumps({"stamp": round(float(self.stamps[i]), 3), "pose": {"x": x, "y": y}},
+                          separators=(",", ":"))
+
+
+def outdoor(data: Path, sizes: Sizes) -> Route:
+    """The held-out Nordland loop (module docstring)."""
+    names = sequences.paired_names(data / "summer", data / "winter")
+    legs = [("summer", range(sizes.lo, sizes.lo + sizes.lap), 0),
+            ("summer", range(sizes.between, sizes.between + sizes.gap), 0),
+            ("winter", range(sizes.lo, sizes.lo + sizes.lap), 1)]
+    pngs, labels, laps = [], [], []
+    for season, files, lap in legs:
+        for i in files:
+            pngs.append((data / season / names[i]).read_bytes())
+            labels.append(i)
+            laps.append(lap)
+    lab = np.asarray(labels, np.int64)
+    xy = np.stack([lab * METRES_PER_FILE, np.zeros(lab.size)], axis=1)  # a straight line, assumed
+    return Route("outdoor", pngs, lab, np.asarray(laps, np.int64), xy, 10.0 * np.arange(lab.size))
+
+
+def slower(r: Route, copies: int = 3, sigma: float = 4.0) -> Route:
+    """`r` driven by a slower robot: each frame `copies` times, each copy with σ pixel noise (seeded)."""
+    pngs: list[bytes] = []
+    for i, b in enumerate(r.pngs):
+        img = cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR)
+        pngs.extend(stress.variant(img, f"noise:{sigma:g}", 1000 * c + i) for c in range(copies))
+    # the copies of a frame lie between it and the next (a slower robot), their stamps `copies` times denser
+    step = np.diff(r.xy, axis=0, append=r.xy[-1:])
+    xy = np.repeat(r.xy, copies, axis=0) + np.tile(np.arange(copies) / copies, r.xy.shape[0])[:, None] * \
+        np.repeat(np.where(np.abs(step) <= METRES_PER_FILE, step, 0.0), copies, axis=0)
+    dt = float(r.stamps[1] - r.stamps[0]) if len(r.stamps) > 1 else 1.0
+    return Route("slow", pngs, np.repeat(r.labels, copies), np.repeat(r.laps, copies), xy,
+                 dt / copies * np.arange(len(pngs)))
+
+
+def indoor(sizes: Sizes) -> Route:
+    """The rendered corridor loop (module docstring, `models.evaluation.corridor`)."""
+    a = corridor.Corridor(sizes.corridor, seed=3)
+    b = corridor.Corridor(sizes.corridor_b, seed=11, wall=(120, 185, 210), floor=(60, 80, 115), door=5.0,
+                          light=3.0, poster=4.0, label0=10_000)
+    # (corridor, metres per frame, first position, lens, lap, where it lies: origin and direction)
+    legs = [(a, 0.12, 0.0, corridor.Lens(100.0), 0, (0.0, 0.0), (1.0, 0.0)),
+            (b, 0.14, 0.0, corridor.Lens(100.0), 0, (a.length + 2.0, 0.0), (0.0, 1.0)),
+            (a, 0.14, 0.05, corridor.Lens(80.0, 0.25), 1, (0.0, 0.0), (1.0, 0.0))]
+    pngs, labels, laps, xy = [], [], [], []
+    for c, step, start, lens, lap, origin, way in legs:
+        for s in np.arange(start, c.length, step):
+            pngs.append(stress.png(corridor.render(c, float(s), lens)))
+            labels.append(c.label0 + int(s))
+            laps.append(lap)
+            xy.append((origin[0] + way[0] * s, origin[1] + way[1] * s))
+    # a robot at 0.5 m/s: 0.24 s per frame on lap 1; one stamp per frame along the whole drive
+    return Route("corridor", pngs, np.asarray(labels, np.int64), np.asarray(laps, np.int64),
+                 np.asarray(xy, np.float64), 0.24 * np.arange(len(pngs)))
+
+
+def build(name: str, data: Path, sizes: Sizes) -> Route:
+    if name == "outdoor":
+        return outdoor(data, sizes)
+    if name == "slow":
+        return slower(outdoor(data, sizes))
+    if name == "corridor":
+        return indoor(sizes)
+    raise ValueError(f"unknown route {name!r}; known: {', '.join(ROUTES)}")
+
+
+# ---------------------------------------------------------------------------------------------- HTTP
+
+
+async def _post(http: httpx.AsyncClient, url: str, body: bytes, params: dict[str, str]) -> dict[str, Any]:
+    """One frame's reply (the fields scored); a 503 `overloaded` is retried after its Retry-After."""
+    for _ in range(100):
+        r = await http.post(url, params=params, content=body, headers={"Content-Type": "image/png"})
+        if r.status_code == 503:
+            await asyncio.sleep(float(r.headers.get("Retry-After", "1")))
+            continue
+        if r.status_code != 200:
+            raise RuntimeError(f"POST {url} {params}: {r.status_code} {r.text[:500]}")
+        j = r.json()
+        return {"seq": j["seq"], "consolidated_into": j.get("consolidated_into"), "place": j["place"]}
+    raise RuntimeError(f"POST {url}: overloaded 100 times in a row")
+
+
+async def create_map(http: httpx.AsyncClient, base: str, map_id: str, seed: str) -> dict[str, Any]:
+    """A new map with no option but `seed` (none for `default`); its resource."""
+    body: dict[str, Any] = {"map_id": map_id}
+    if seed != DEFAULT_SEED:
+        body["seed"] = int(seed)
+    r = await http.post(f"{base}/v1/maps", json=body)
+    if r.status_code != 201:
+        raise RuntimeError(f"create {map_id}: {r.status_code} {r.text[:500]}")
+    got = await http.get(f"{base}/v1/maps/{map_id}")
+    got.raise_for_status()
+    return dict(got.json())
+
+
+async def run_map(http: httpx.AsyncClient, base: str, map_id: str, seed: str, route: Route, mode: str,
+                  gate: asyncio.Semaphore, poses: bool = False) -> dict[str, Any]:
+    """Drive `route` into a new map: `slam` one learning stream throughout; `localise` the mapping laps
+    learned by stream `robot`, lap 2 localised (`learn=false`) by stream `query`; `poses`: each frame
+    with its stamp and pose as metadata."""
+    async with gate:
+        t0 = time.perf_counter()
+        resource = await create_map(http, base, map_id, seed)
+        url = f"{base}/v1/maps/{map_id}/observations"
+        replies = []
+        for i, body in enumerate(route.pngs):
+            learn = mode == "slam" or route.laps[i] == 0
+            params = {"stream": "robot" if learn else "query", "learn": str(learn).lower(), "top_k": "0"}
+            if poses:
+                params["metadata"] = route.metadata(i)
+            replies.append(await _post(http, url, body, params))
+        print(f"{map_id}: {len(replies)} frames in {time.perf_counter() - t0:.0f} s", flush=True)
+        return {"map_id": map_id, "seed": resource["params"]["seed"], "asked": seed,
+                "threshold": float(resource["revisit_threshold"]), "backbone": resource["backbone"],
+                "replies": replies}
+
+
+# ---------------------------------------------------------------------------------------------- scoring
+
+
+def answers(replies: list[dict[str, Any]], threshold: float) -> dict[str, Any]:
+    """The replies as `slam.score` reads them: (T,) `best` frame the place names (-1: none), a confidence
+    at or above `threshold` exactly where the reply said `place.revisit`; the rows made (seq -> frame)
+    and the frames consolidated (frame -> the row's seq)."""
+    T = len(replies)
+    frame_of = {r["seq"]: i for i, r in enumerate(replies) if r["seq"] is not None}
+    best, conf = np.full(T, -1, np.int64), np.zeros(T)
+    below = float(np.nextafter(threshold, 0.0))
+    for i, r in enumerate(replies):
+        p = r["place"]
+        if p is None or p["seq"] not in frame_of:
+            continue
+        best[i] = frame_of[p["seq"]]
+        c = 0.0 if p.get("low_information") else float(p["confidence"])
+        conf[i] = max(c, threshold) if p["revisit"] else min(c, below)
+    consolidated = {i: int(r["consolidated_into"]) for i, r in enumerate(replies)
+                    if r.get("consolidated_into") is not None}
+    return {"best": best, "confidence": conf, "frame_of": frame_of, "consolidated": consolidated}
+
+
+def row_places(db: Path) -> dict[int, int]:
+    """Row seq -> its place (the id of the place's first row) of the map database `db`, read-only: a row's
+    stored `place` (the row whose place it joined; a row a repair unjoined: its own) followed to its root
+    (docs/design/science.md §11.8)."""
+    with MapStore.open(db, readonly=True) as store:
+        unjoined = {r.seq for r in store.repairs() if r.kind == "unjoin"}
+        return roots({row.seq: None if row.place is None or row.seq in unjoined else int(row.place)
+                      for row in store.rows()})
+
+
+def roots(joined: dict[int, int | None]) -> dict[int, int]:
+    """Row -> the root of its chain of joins (`joined`: row -> the row whose place it joined, None: its
+    own); a row joined to a row not listed ends there."""
+    out: dict[int, int] = {}
+    for seq in joined:
+        root, hops = seq, 0
+        while (up := joined.get(root)) is not None and hops <= len(joined):
+            root, hops = up, hops + 1
+        out[seq] = root
+    return out
+
+
+def merge_trace(frame_of: dict[int, int], consolidated: dict[int, int], places: dict[int, int],
+                frames: int) -> dict[str, np.ndarray]:
+    """`stress.merges`' trace of an HTTP run: rows in seq order renumbered 1..R (its `visit` indexes
+    `row_frame` by seq - 1), each row's place, each consolidated frame's row."""
+    seqs = sorted(frame_of)
+    pos = {q: k + 1 for k, q in enumerate(seqs)}
+    visit = np.full(frames, -1, np.int64)
+    for i, q in consolidated.items():
+        visit[i] = pos[q]
+    return {"row_frame": np.array([frame_of[q] for q in seqs], np.int64),
+            "row_place": np.array([places.get(q, q) for q in seqs], np.int64), "visit": visit}
+
+
+def score_seed(route: Route, slam_run: dict[str, Any], loc_run: dict[str, Any],
+               places: dict[int, int]) -> dict[str, Any]:
+    """One seed's figures on one route (module docstring); `false_revisit_lags`: for each revisit called
+    while mapping, how many frames and labels back the row it named lies (an echo of the stream's own
+    trail is a few frames back, aliasing far)."""
+    thr = slam_run["threshold"]
+    a = answers(slam_run["replies"], thr)
+    s = slam.score(a["best"], a["confidence"], route.labels, thr, TOLERANCE, route.laps)
+    m = stress.merges(route.labels, merge_trace(a["frame_of"], a["consolidated"], places, len(route.pngs)))
+    # the localise map: its lap-2 answers name rows the mapping laps made
+    la = answers(loc_run["replies"], loc_run["threshold"])
+    lap2 = route.laps == 1
+    best = np.where(lap2, la["best"], -1)
+    conf = np.where(lap2, la["confidence"], 0.0)
+    ls = slam.score(best, conf, route.labels, loc_run["threshold"], TOLERANCE, route.laps,
+                    slam.localise_truth(route.labels, route.laps, TOLERANCE))
+    mapping, second, loc2 = s["lap"][0], s["lap"].get(1, {}), ls["lap"].get(1, {})
+    called = np.flatnonzero((route.laps == 0) & (a["best"] >= 0) & (a["confidence"] >= thr))
+    lags = {"frames": (called - a["best"][called]).tolist(),
+            "labels": np.abs(route.labels[called] - route.labels[a["best"][called]]).tolist()}
+    return {"seed": slam_run["seed"], "asked": slam_run["asked"], "threshold": thr,
+            "false_revisits_mapping": mapping["false_revisits"], "merged_places": m["merged_places"],
+            "wrong_consolidations": m["wrong_consolidations"], "rows": len(a["frame_of"]),
+            "consolidated": len(a["consolidated"]),
+            "frames": len(route.pngs), "revisits_true": second.get("revisits_true"),
+            "revisits_called": second.get("revisits_called"), "precision": second.get("precision"),
+            "recall": second.get("recall"), "localise_recall": loc2.get("recall"),
+            "localise_precision": loc2.get("precision"),
+            "false_revisit_lags": lags}
+
+
+def openseqslam(route: Route) -> float | None:
+    """OpenSeqSLAM run online on the whole route: lap 2's recall at 100 % precision."""
+    F = grey(route.pngs)
+    best, conf = slam.openseqslam_online(seqslam.mean_abs_difference(F, F))
+    s = slam.score(best, conf, route.labels, float("inf"), TOLERANCE, route.laps)
+    lap2 = s["lap"].get(1, {})
+    return lap2.get("recall_at_100p")
+
+
+def verdict(entry: dict[str, Any], osl: float | None) -> dict[str, bool]:
+    """Issue 35's bar on one seed (module docstring)."""
+    p, r, lr = entry["precision"], entry["recall"] or 0.0, entry["localise_recall"] or 0.0
+    return {"no_false_revisits": entry["false_revisits_mapping"] == 0,
+            "no_merges": entry["merged_places"] == 0,
+            "precision": p is None or p >= 0.99, "recall_vs_localise": r >= 0.9 * lr,
+            "recall_vs_openseqslam": r >= (osl or 0.0) + 0.05}
+
+
+def worst(per_seed: list[dict[str, Any]], osl: float | None) -> dict[str, Any]:
+    """A route's line: the worst seed of each figure, and `met` on every seed."""
+    def lo(k: str) -> float | None:
+        vals = [e[k] for e in per_seed if e[k] is not None]
+        return min(vals) if vals else None
+
+    checks = [verdict(e, osl) for e in per_seed]
+    return {"false_revisits_mapping": max(e["false_revisits_mapping"] for e in per_seed),
+            "merged_places": max(e["merged_places"] for e in per_seed),
+            "wrong_consolidations": max(e["wrong_consolidations"] for e in per_seed),
+            "precision": lo("precision"), "recall": lo("recall"), "localise_recall": lo("localise_recall"),
+            "recall_to_localise": min((e["recall"] or 0.0) / e["localise_recall"] if e["localise_recall"]
+                                      else float("inf") for e in per_seed),
+            "openseqslam_recall_at_100p": osl,
+            "checks": {k: all(c[k] for c in checks) for k in checks[0]},
+            "met": all(all(c.values()) for c in checks)}
+
+
+def _f(v: float | None) -> str:
+    return "–" if v is None else f"{v:.3f}"
+
+
+def table(result: dict[str, Any]) -> str:
+    """The routes' worst-seed lines, then every seed, as markdown."""
+    head = ("| route | frames | false revisits while mapping | merged places | wrong consolidations | "
+            "lap-2 precision | lap-2 recall | localise recall | recall / localise | OpenSeqSLAM R@100P | "
+            "met |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|\n")
+    lines = []
+    for name, r in result["routes"].items():
+        w = r["worst"]
+        failed = [k for k, ok in w["checks"].items() if not ok]
+        lines.append(f"| {name} | {r['frames']} | {w['false_revisits_mapping']} | {w['merged_places']} | "
+                     f"{w['wrong_consolidations']} | {_f(w['precision'])} | {_f(w['recall'])} | "
+                     f"{_f(w['localise_recall'])} | {_f(w['recall_to_localise'])} | "
+                     f"{_f(w['openseqslam_recall_at_100p'])} | "
+                     f"{'yes' if w['met'] else 'no: ' + ', '.join(failed)} |")
+    seeds = ["", "| route | seed | false revisits while mapping | merged places | wrong consolidations | "
+             "rows | lap-2 called / true | precision | recall | localise recall |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, r in result["routes"].items():
+        for e in r["seeds"]:
+            seed = f"{e['seed']}" + (" (new map's)" if e["asked"] == DEFAULT_SEED else "")
+            seeds.append(f"| {name} | {seed} | {e['false_revisits_mapping']} | {e['merged_places']} | "
+                         f"{e['wrong_consolidations']} | {e['rows']} | {e['revisits_called']} / "
+                         f"{e['revisits_true']} | {_f(e['precision'])} | {_f(e['recall'])} | "
+                         f"{_f(e['localise_recall'])} |")
+    return head + "\n".join(lines) + "\n" + "\n".join(seeds) + "\n"
+
+
+async def _drive_all(base: str, routes: dict[str, Route], seeds: list[str], concurrency: int,
+                     poses: bool) -> dict[str, list[dict[str, Any]]]:
+    gate = asyncio.Semaphore(concurrency)
+    limits = httpx.Limits(max_connections=concurrency, max_keepalive_connections=concurrency)
+    jobs: list[tuple[str, Any]] = []
+    async with httpx.AsyncClient(limits=limits, timeout=300) as http:
+        for name, r in routes.items():
+            for seed in seeds:
+                for mode in ("slam", "localise"):
+                    jobs.append((name, run_map(http, base, f"{name}-{mode}-{seed}", seed, r, mode, gate,
+                                                poses)))
+        done = await asyncio.gather(*(j for _, j in jobs))
+    out: dict[str, list[dict[str, Any]]] = {}
+    for (name, _), run in zip(jobs, done, strict=True):
+        out.setdefault(name, []).append(run)
+    return out
+
+
+def run(*, data: Path, routes: list[str], seeds: list[str], sizes: Sizes, concurrency: int,
+        keep: bool = False, poses: bool = False) -> dict[str, Any]:
+    """Build the routes, start the server, drive every map, score: {"config", "routes": {name: {frames,
+    seeds: [per seed], openseqslam_recall_at_100p, worst}}, "wall_s"}."""
+    t0 = time.perf_counter()
+    built = {name: build(name, data, sizes) for name in routes}
+    tmp = Path(tempfile.mkdtemp(prefix="cortexloc-bench-loops-"))
+    # the service's defaults on this machine: its own weights directory, not bench_http's empty one
+    server = Server(tmp, extra_env={"CORTEXLOC_WEIGHTS_DIR": os.environ.get("CORTEXLOC_WEIGHTS_DIR", "")})
+    try:
+        server.wait_ready()
+        ready = httpx.get(f"{server.base}/readyz", timeout=30).json()["checks"]["encoder"]
+        t_drive = time.perf_counter()
+        runs = asyncio.run(_drive_all(server.base, built, seeds, concurrency, poses))
+        drive_s = time.perf_counter() - t_drive
+        layout = Layout(tmp / "var")
+        result: dict[str, Any] = {"config": {
+            "data": str(data), "sizes": sizes.__dict__, "seeds": seeds, "tolerance": TOLERANCE,
+            "backbone": ready.get("backbone"), "runtime": ready.get("runtime"), "concurrency": concurrency,
+            "poses": poses},
+            "routes": {}}
+        for name, r in built.items():
+            by_seed: dict[str, dict[str, Any]] = {}
+            for rn in runs[name]:
+                by_seed.setdefault(rn["asked"], {})[rn["map_id"].split("-")[1]] = rn
+            per_seed = [score_seed(r, pair["slam"], pair["localise"],
+                                   row_places(layout.map_db(pair["slam"]["map_id"])))
+                        for pair in by_seed.values()]
+            osl = openseqslam(r)
+            result["routes"][name] = {"frames": len(r.pngs), "revisits_true": int(slam.revisit_truth(
+                r.labels, TOLERANCE).sum()), "seeds": per_seed, "openseqslam_recall_at_100p": osl,
+                "worst": worst(per_seed, osl)}
+    finally:
+        server.stop()
+        if not keep:
+            shutil.rmtree(tmp, ignore_errors=True)
+    result["drive_s"] = drive_s
+    # every frame twice per seed: the slam map and the localise map
+    result["posts"] = sum(2 * len(r.pngs) for r in built.values()) * len(seeds)
+    result["wall_s"] = time.perf_counter() - t0
+    return result
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=datasets.nordland_dir())
+    ap.add_argument("--routes", nargs="+", default=list(ROUTES), choices=ROUTES)
+    ap.add_argument("--seeds", nargs="+", default=[DEFAULT_SEED, "1", "7"],
+                    help="map seeds; `default`: a map created with no seed option (a new map's)")
+    ap.add_argument("--concurrency", type=int, default=6, help="maps driven at once")
+    ap.add_argument("--quick", action="store_true", help="tiny routes (also CORTEXLOC_BENCH_QUICK=1)")
+    ap.add_argument("--keep", action="store_true", help="keep the temporary data directory")
+    ap.add_argument("--poses", action="store_true", help="post each frame's stamp and pose as metadata "
+                    "(the corridor's true ones; outdoors the file index x 280 m on a line, assumed)")
+    ap.add_argument("--out", type=Path, default=RESULTS / "loops_http.json")
+    args = ap.parse_args()
+    sizes = QUICK if quick_mode(args.quick) else Sizes()
+    result = run(data=args.data, routes=args.routes, seeds=args.seeds, sizes=sizes,
+                 concurrency=args.concurrency, keep=args.keep, poses=args.poses)
+    print(table(result), flush=True)
+    print(f"{result['posts']} posts, driven in {result['drive_s']:.0f} s; {result['wall_s']:.0f} s in all",
+          flush=True)
+    write_json(args.out.name, result, args.out)
+    print(json.dumps({name: r["worst"]["met"] for name, r in result["routes"].items()}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
