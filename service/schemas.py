@@ -241,6 +241,12 @@ class LoopClosureModel(_Out):
                                           "frame (a visit, docs/design/science.md §11.8): the row it was "
                                           "consolidated into; null for a frame with its own row, a "
                                           "localising stream's, and one logged before this was recorded")
+    span: int | None = Field(default=None, description="how many places the stream may have been at: the "
+                             "places whose best path scored within the map's `span_margin` of the best "
+                             "(docs/design/science.md §11.11); a back end may divide the edge's information "
+                             "by it; null: logged before this was recorded")
+    span_seqs: list[int] | None = Field(default=None, description="the best row of each place of the span, "
+                                        "best first (at most 16); null: logged before this was recorded")
 
 
 class LoopClosureList(_Out):

@@ -17,7 +17,9 @@ rows (out of the index and their places: an appearance over its place's cap, a f
 for the keys' window whatever the visit log's pruning, and `stream_states`, what a replay cannot give
 back of a learning stream (its localiser state), written with each learned step; version 8 a logged
 closure's `consolidated_into` (the closure of a consolidated frame, a visit, names the row it was
-consolidated into: it has no row of its own, and a localising stream's closure has neither). An older
+consolidated into: it has no row of its own, and a localising stream's closure has neither); version 9 a
+logged closure's `span` and `span_seqs` (how many places the stream may have been at, and their rows:
+docs/design/science.md §11.11). An older
 file is brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep
 `place` NULL (read as the place its learning stream's logged loop closure names, else its own).
 """
@@ -66,7 +68,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 8
+SCHEMA_VERSION = 9
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -254,6 +256,10 @@ _MIGRATE_V7 = _V7_TABLES + _COPY_VISIT_KEYS + _version_step(7)
 #: Version 7 -> 8: a column no row has yet (an older visit's closure reads NULL, as a localising one's).
 _CLOSURE_VISIT = "ALTER TABLE loop_closures ADD COLUMN consolidated_into INTEGER NULL;"
 _MIGRATE_V8 = _CLOSURE_VISIT + _version_step(8)
+#: Version 8 -> 9: columns no row has yet (an older closure's span reads NULL: not recorded).
+_CLOSURE_SPAN = ("ALTER TABLE loop_closures ADD COLUMN span INTEGER NULL;"
+                 "ALTER TABLE loop_closures ADD COLUMN span_seqs TEXT NULL;")
+_MIGRATE_V9 = _CLOSURE_SPAN + _version_step(9)
 
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
@@ -270,7 +276,8 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
     if meta.schema_version >= SCHEMA_VERSION:
         return meta
     # chain[v - 1]: version v -> v + 1
-    chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6, _MIGRATE_V7, _MIGRATE_V8]
+    chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6, _MIGRATE_V7, _MIGRATE_V8,
+             _MIGRATE_V9]
     steps = "".join(chain[meta.schema_version - 1:])
     try:
         conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
@@ -423,6 +430,8 @@ class NewClosure:
         metadata: the frame's metadata (stamp, pose). key: the post's Idempotency-Key (a repeat logs
         nothing). created_at: ISO 8601 UTC. verification: the place's geometric verification
         (`place.verification`, docs/design/science.md §12) on a map with keyframes, else None.
+        span, span_seqs: the answer's span (`place.span`, `place.span_seqs`; docs/design/science.md
+        §11.11); None: not known.
     """
 
     stream: str
@@ -433,6 +442,8 @@ class NewClosure:
     key: str | None = None
     created_at: str = field(default_factory=utc_now)
     verification: dict[str, Any] | None = None
+    span: int | None = None
+    span_seqs: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -444,7 +455,9 @@ class LoopClosure:
         the stream was localising, or the frame was consolidated). place_*: the row its place named.
         verification: as logged (None: none, or a file before version 4). consolidated_into: for a
         consolidated frame (a visit), the row it was consolidated into (None: it has a row, or it was
-        a localising stream's, or it was logged before version 8).
+        a localising stream's, or it was logged before version 8). span, span_seqs: how many places the
+        stream may have been at and their rows (docs/design/science.md §11.11; None: logged before
+        version 9).
     """
 
     id: int
@@ -462,6 +475,8 @@ class LoopClosure:
     created_at: str
     verification: dict[str, Any] | None = None
     consolidated_into: int | None = None
+    span: int | None = None
+    span_seqs: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -546,7 +561,8 @@ def create_file(path: Path, meta: MapMeta) -> None:
             # A temporary file: atomicity comes from the rename below, not from one transaction
             # (executescript would commit a pending transaction anyway).
             conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION
-                               + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES + _V7_TABLES + _CLOSURE_VISIT)
+                               + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES + _V7_TABLES + _CLOSURE_VISIT
+                               + _CLOSURE_SPAN)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

@@ -533,8 +533,8 @@ class MapStore:
             return 0
         before = conn.total_changes
         conn.executemany("INSERT OR IGNORE INTO loop_closures (stream, seq, place_seq, confidence, support, "
-                         "metadata, idempotency_key, created_at, verification, consolidated_into) "
-                         "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", params)
+                         "metadata, idempotency_key, created_at, verification, consolidated_into, span, "
+                         "span_seqs) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", params)
         added = conn.total_changes - before
         if added and self.max_closures is not None:
             conn.execute("DELETE FROM loop_closures WHERE id <= (SELECT max(id) FROM loop_closures) - ?",
@@ -550,15 +550,19 @@ class MapStore:
                 "SELECT c.id, c.stream, c.seq, o.observation_id, c.metadata, c.place_seq, p.observation_id, "
                 "p.stream, p.label, p.metadata, c.confidence, c.support, c.created_at, "
                 f"{'c.verification' if self.meta.schema_version >= 4 else 'NULL'}, "
-                f"{'c.consolidated_into' if self.meta.schema_version >= 8 else 'NULL'} FROM loop_closures c "
-                "JOIN observations p ON p.seq = c.place_seq LEFT JOIN observations o ON o.seq = c.seq "
-                "WHERE c.id > ? ORDER BY c.id LIMIT ?", (int(after), int(limit))).fetchall()
+                f"{'c.consolidated_into' if self.meta.schema_version >= 8 else 'NULL'}, "
+                f"{'c.span, c.span_seqs' if self.meta.schema_version >= 9 else 'NULL, NULL'} "
+                "FROM loop_closures c JOIN observations p ON p.seq = c.place_seq "
+                "LEFT JOIN observations o ON o.seq = c.seq WHERE c.id > ? ORDER BY c.id LIMIT ?",
+                (int(after), int(limit))).fetchall()
         return [LoopClosure(id=int(r[0]), stream=r[1], seq=None if r[2] is None else int(r[2]),
                             observation_id=r[3], metadata=_json(r[4]), place_seq=int(r[5]),
                             place_observation_id=r[6], place_stream=r[7], place_label=r[8],
                             place_metadata=_json(r[9]), confidence=float(r[10]), support=int(r[11]),
                             created_at=r[12], verification=_json(r[13]),
-                            consolidated_into=None if r[14] is None else int(r[14])) for r in found]
+                            consolidated_into=None if r[14] is None else int(r[14]),
+                            span=None if r[15] is None else int(r[15]),
+                            span_seqs=None if r[16] is None else tuple(json.loads(r[16]))) for r in found]
 
     def closure_count(self) -> int:
         """Loop closures in the log."""
@@ -787,8 +791,10 @@ def _json(text: str | None) -> Any:
 def _closure_params(c: NewClosure, seq: int | None, consolidated_into: int | None = None) -> tuple[Any, ...]:
     meta = None if c.metadata is None else json.dumps(c.metadata, separators=(",", ":"))
     verification = None if c.verification is None else json.dumps(c.verification, separators=(",", ":"))
+    span_seqs = None if c.span_seqs is None else json.dumps([int(s) for s in c.span_seqs])
     return (str(c.stream), seq, int(c.place_seq), float(c.confidence), int(c.support), meta, c.key,
-            str(c.created_at), verification, consolidated_into)
+            str(c.created_at), verification, consolidated_into, None if c.span is None else int(c.span),
+            span_seqs)
 
 
 def _size(p: Path) -> int:

@@ -147,6 +147,11 @@ function revisitCell(place, threshold) {
                               + "never a revisit, whatever its confidence" },
               el("span", { class: "badge below" }, "low information"));
   }
+  if (!place.revisit && place.span > 1 && place.confidence >= threshold) {  // science.md §11.11
+    return el("td", { title: `sure of the stretch, not of the row: ${place.span} places score within the `
+                              + "map's span_margin of the best, more than its span_max: no revisit" },
+              el("span", { class: "badge below" }, "wide span"));
+  }
   const at = `the map's revisit threshold, now ${exact(threshold)}`;
   return el("td", { title: place.revisit ? `confidence at or above ${at}` : `confidence below ${at}` },
             place.revisit ? el("span", { class: "badge revisit" }, "revisit")
@@ -183,6 +188,7 @@ function renderRecent() {
       confidenceCell(p ? p.confidence : undefined, map ? map.revisit_threshold : undefined),
       revisitCell(p, map ? map.revisit_threshold : undefined),
       el("td", { class: "num" }, p ? num(p.support) : NONE),
+      el("td", { class: "num" }, p ? num(p.span) : NONE),
       el("td", { class: "num match-seq" }, m ? num(m.seq) : NONE),
       el("td", {}, m ? text(m.label) : NONE),
       el("td", { class: `num ${level(m ? m.score : undefined)}` }, m ? num(m.score, 3) : NONE),
