@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.localisation import default_conf
 from service.evaluation import service_path
 from tests.service.helpers import frame, make_client, post
 
@@ -32,7 +33,11 @@ def test_http_and_eval_give_the_same_places(tmp_path, memory):
         q_feats = np.concatenate([enc.embed([b], resize=resize).features for b in q_bodies])
     found = service_path.replay(db_feats, q_feats, encoder_id=enc.identity_for(resize), backbone="alexnet",
                                 preset=preset, seed=7, memory=memory, create={"resize": resize})
-    want = [None if p is None else (p["seq"] - 1, p["confidence"], p["support"]) for p in http]
+    # the evaluation reads the confidence the revisit decision compares: 0 where the span is wider than
+    # span_max (docs/design/science.md §11.11) or the frame too flat (§11.7)
+    wide = int(default_conf["span_max"])
+    want = [None if p is None else (p["seq"] - 1, 0.0 if p["span"] > wide or p["low_information"]
+                                    else p["confidence"], p["support"]) for p in http]
     got = [None if b < 0 else (int(b), float(cf), int(s))
            for b, cf, s in zip(found.best, found.confidence, found.support, strict=True)]
     assert got == want
