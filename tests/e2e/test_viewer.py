@@ -22,8 +22,11 @@ from urllib.parse import quote
 
 import pytest
 
+from models.localisation import default_conf
+
 OUT = Path(__file__).resolve().parents[2] / "out"
 NONE = "—"
+SPAN_MAX = default_conf["span_max"]  # the viewer's map takes the default (docs/design/science.md §11.11)
 
 
 @pytest.fixture
@@ -177,7 +180,8 @@ def test_the_viewer_shows_a_mapped_loop_its_revisits_poses_and_thumbnails(chromi
         assert row["seq"] == (str(body["seq"]) if body["learned"] else NONE)
         got = [row[f"sequence place/{c}"] for c in ("place", "label", "revisit", "support", "span")]
         # confident, but more places than the map's span_max score near the best (science.md §11.11)
-        wide = bool(place) and not place["revisit"] and place["span"] > 1 and place["confidence"] >= threshold
+        wide = bool(place) and not place["revisit"] and place["span"] > SPAN_MAX \
+            and place["confidence"] >= threshold
         assert got == ([str(place["seq"]), place["label"] or NONE,
                         "low information" if place["low_information"] else "wide span" if wide
                         else "revisit" if place["revisit"] else "below threshold", str(place["support"]),
