@@ -244,6 +244,12 @@ class LoopClosureModel(_Out):
     retracts: int | None = Field(default=None, description="a retraction entry (a repair, "
                                  "docs/design/science.md §11.6): the id of the closure it withdraws (its "
                                  "pair is that closure's; confidence and support 0); null for a closure")
+    span: int | None = Field(default=None, description="how many places the stream may have been at: the "
+                             "places whose best path scored within the map's `span_margin` of the best "
+                             "(docs/design/science.md §11.11); a back end may divide the edge's information "
+                             "by it; null: logged before this was recorded")
+    span_seqs: list[int] | None = Field(default=None, description="the best row of each place of the span, "
+                                        "best first (at most 16); null: logged before this was recorded")
 
 
 class SplitVisitModel(_Out):

@@ -21,7 +21,9 @@ consolidated into: it has no row of its own, and a localising stream's closure h
 9 the `repairs` log and a logged closure's `retracts` (a repair of merges made from a stream's own
 recent trail, docs/design/science.md §11.6: a visit re-made as its own row, a row given back its own
 place, a closure retracted by a new entry that names it); version 10 the `joins`, a learning stream's
-warm-up rows joined to the old places its confident path found (docs/design/science.md §11.8). An older
+warm-up rows joined to the old places its confident path found (docs/design/science.md §11.8); version 11 a
+logged closure's `span` and `span_seqs` (how many places the stream may have been at, and their rows:
+docs/design/science.md §11.11). An older
 file is brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep
 `place` NULL (read as the place its learning stream's logged loop closure names, else its own). Opened
 read-only (`cortexloc verify`, a snapshot's copy) an older file is read as it is; a file of a newer version
@@ -73,7 +75,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 10
+SCHEMA_VERSION = 11
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -304,6 +306,10 @@ _CLOSURE_RETRACTS = "ALTER TABLE loop_closures ADD COLUMN retracts INTEGER NULL;
 _MIGRATE_V9 = _V9_TABLES + _CLOSURE_RETRACTS + _version_step(9)
 #: Version 9 -> 10: a new table, no row changes.
 _MIGRATE_V10 = _V10_TABLES + _version_step(10)
+#: Version 10 -> 11: columns no row has yet (an older closure's span reads NULL: not recorded).
+_CLOSURE_SPAN = ("ALTER TABLE loop_closures ADD COLUMN span INTEGER NULL;"
+                 "ALTER TABLE loop_closures ADD COLUMN span_seqs TEXT NULL;")
+_MIGRATE_V11 = _CLOSURE_SPAN + _version_step(11)
 
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
@@ -321,7 +327,7 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
         return meta
     # chain[v - 1]: version v -> v + 1
     chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6, _MIGRATE_V7, _MIGRATE_V8,
-             _MIGRATE_V9, _MIGRATE_V10]
+             _MIGRATE_V9, _MIGRATE_V10, _MIGRATE_V11]
     steps = "".join(chain[meta.schema_version - 1:])
     try:
         conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
@@ -478,6 +484,8 @@ class NewClosure:
         metadata: the frame's metadata (stamp, pose). key: the post's Idempotency-Key (a repeat logs
         nothing). created_at: ISO 8601 UTC. verification: the place's geometric verification
         (`place.verification`, docs/design/science.md §12) on a map with keyframes, else None.
+        span, span_seqs: the answer's span (`place.span`, `place.span_seqs`; docs/design/science.md
+        §11.11); None: not known.
     """
 
     stream: str
@@ -488,6 +496,8 @@ class NewClosure:
     key: str | None = None
     created_at: str = field(default_factory=utc_now)
     verification: dict[str, Any] | None = None
+    span: int | None = None
+    span_seqs: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -502,6 +512,8 @@ class LoopClosure:
         a localising stream's, or it was logged before version 8). retracts: on a retraction entry
         (version 9: a repair withdrew a closure, docs/design/science.md §11.6), the id of the closure it
         withdraws; its pair is that closure's, its confidence and support 0, no verification.
+        span, span_seqs: how many places the stream may have been at and their rows
+        (docs/design/science.md §11.11; None: logged before version 11, or a retraction).
     """
 
     id: int
@@ -520,6 +532,9 @@ class LoopClosure:
     verification: dict[str, Any] | None = None
     consolidated_into: int | None = None
     retracts: int | None = None
+
+    span: int | None = None
+    span_seqs: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -622,7 +637,7 @@ def create_file(path: Path, meta: MapMeta) -> None:
             # (executescript would commit a pending transaction anyway).
             conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION
                                + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES + _V7_TABLES + _CLOSURE_VISIT
-                               + _V9_TABLES + _CLOSURE_RETRACTS + _V10_TABLES)
+                               + _V9_TABLES + _CLOSURE_RETRACTS + _V10_TABLES + _CLOSURE_SPAN)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

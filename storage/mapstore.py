@@ -116,6 +116,7 @@ class MapStore:
         self._v7 = meta.schema_version >= 7  # visit keys apart from the visit log
         self._v9 = meta.schema_version >= 9  # repairs, retraction entries in the loop-closure log
         self._v10 = meta.schema_version >= 10  # warm-up joins
+        self._v11 = meta.schema_version >= 11  # the loop closures' span
         self._cols = COLUMNS if self._v5 else COLUMNS_V4 if self._v2 else COLUMNS_V1
         self._v3 = meta.schema_version >= 3  # a version 2 file opened read-only has no loop-closure log
         self._conn: sqlite3.Connection | None = conn
@@ -650,8 +651,8 @@ class MapStore:
             return 0
         before = conn.total_changes
         conn.executemany("INSERT OR IGNORE INTO loop_closures (stream, seq, place_seq, confidence, support, "
-                         "metadata, idempotency_key, created_at, verification, consolidated_into) "
-                         "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", params)
+                         "metadata, idempotency_key, created_at, verification, consolidated_into, span, "
+                         "span_seqs) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", params)
         added = conn.total_changes - before
         if added:
             self._prune_closures(conn)
@@ -673,16 +674,20 @@ class MapStore:
                 "p.stream, p.label, p.metadata, c.confidence, c.support, c.created_at, "
                 f"{'c.verification' if self.meta.schema_version >= 4 else 'NULL'}, "
                 f"{'c.consolidated_into' if self.meta.schema_version >= 8 else 'NULL'}, "
-                f"{'c.retracts' if self._v9 else 'NULL'} FROM loop_closures c "
-                "JOIN observations p ON p.seq = c.place_seq LEFT JOIN observations o ON o.seq = c.seq "
-                "WHERE c.id > ? ORDER BY c.id LIMIT ?", (int(after), int(limit))).fetchall()
+                f"{'c.retracts' if self._v9 else 'NULL'}, "
+                f"{'c.span, c.span_seqs' if self._v11 else 'NULL, NULL'} "
+                "FROM loop_closures c JOIN observations p ON p.seq = c.place_seq "
+                "LEFT JOIN observations o ON o.seq = c.seq WHERE c.id > ? ORDER BY c.id LIMIT ?",
+                (int(after), int(limit))).fetchall()
         return [LoopClosure(id=int(r[0]), stream=r[1], seq=None if r[2] is None else int(r[2]),
                             observation_id=r[3], metadata=_json(r[4]), place_seq=int(r[5]),
                             place_observation_id=r[6], place_stream=r[7], place_label=r[8],
                             place_metadata=_json(r[9]), confidence=float(r[10]), support=int(r[11]),
                             created_at=r[12], verification=_json(r[13]),
                             consolidated_into=None if r[14] is None else int(r[14]),
-                            retracts=None if r[15] is None else int(r[15])) for r in found]
+                            retracts=None if r[15] is None else int(r[15]),
+                            span=None if r[16] is None else int(r[16]),
+                            span_seqs=None if r[17] is None else tuple(json.loads(r[17]))) for r in found]
 
     def closure_count(self) -> int:
         """Loop closures in the log."""
@@ -911,8 +916,10 @@ def _json(text: str | None) -> Any:
 def _closure_params(c: NewClosure, seq: int | None, consolidated_into: int | None = None) -> tuple[Any, ...]:
     meta = None if c.metadata is None else json.dumps(c.metadata, separators=(",", ":"))
     verification = None if c.verification is None else json.dumps(c.verification, separators=(",", ":"))
+    span_seqs = None if c.span_seqs is None else json.dumps([int(s) for s in c.span_seqs])
     return (str(c.stream), seq, int(c.place_seq), float(c.confidence), int(c.support), meta, c.key,
-            str(c.created_at), verification, consolidated_into)
+            str(c.created_at), verification, consolidated_into, None if c.span is None else int(c.span),
+            span_seqs)
 
 
 def _size(p: Path) -> int:

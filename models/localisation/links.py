@@ -220,17 +220,20 @@ class Localisation:
         (the frames before a first answer and the rival window after it, §11.8)."""
         return int(self.localiser.conf["warmup"]) + int(self.localiser.conf["exclusion"])
 
-    def explained(self, stream: str, place: Place, code_of: Callable[[int], np.ndarray]
+    def explained(self, stream: str, place: Place, direction: int, code_of: Callable[[int], np.ndarray]
                   ) -> list[tuple[int, int]]:
         """The warm-up joins a learning stream's confident revisit `place` gives (docs/design/science.md
         §11.8): (row, old row) for each of the stream's newest `reach` rows that is a place of its own
         (made while it warmed up or was unsure; nothing named it since), that the path covers (made
         a frames ago, a < the path's `support`), and that is represented, at the `consolidate` level, by
-        the row the path stood on then: a row a links from `place.seq` along its route, either way
-        (the path may run against the stored direction), give or take JOIN_SLACK, stored before every row
-        of the stretch. The old row is never of a place a row of the stream's short-term memory shows,
-        nor of the trail the joined row lies on. Each row is tried on at most `exclusion` confident
-        frames: O(reach · JOIN_SLACK) code reads on such a frame, O(reach) on the rest.
+        the row the path stood on then: a row a links back from `place.seq` along its route, against
+        the path's `direction` (+1: the path runs along the stored direction, -1 against it; the state's
+        best hypothesis's), give or take JOIN_SLACK, stored before every row of the stretch. Never ahead
+        of the path: on an aliased route the rows ahead may look like the stretch behind it, and a join
+        there merges places that far apart. The old row is never of a place a row of the stream's
+        short-term memory shows, nor of the trail the joined row lies on. Each row is tried on at most
+        `exclusion` confident frames: O(reach · JOIN_SLACK) code reads on such a frame, O(reach) on the
+        rest.
         """
         c = float(self.localiser.conf["consolidate"])
         memory = self._short.get(stream)
@@ -257,8 +260,7 @@ class Localisation:
         out = []
         for r in rows:
             lag = ages[r] + 1  # frames from the row's frame to this one
-            old = np.concatenate([g.route(place.seq, d, lag + JOIN_SLACK)[max(lag - JOIN_SLACK, 0):]
-                                  for d in (1, -1)])
+            old = g.route(place.seq, -int(direction), lag + JOIN_SLACK)[max(lag - JOIN_SLACK, 0):]
             old = old[(old < first) & (self.used[old] >= 0) & (g.trail[old] != g.trail[r])]
             old = np.array([o for o in old.tolist() if int(g.place[o]) not in mine], np.int64)
             code = np.asarray(code_of(r), np.int64)

@@ -89,10 +89,22 @@ class LocaliserParams(BaseModel):
     # never loop candidates, states of its paths or rows its frames are consolidated into (0: no memory;
     # the consolidation rules of §11.6 still hold, so 0 is not the code before issue 35)
     short_term: int = Field(20, ge=0, le=1000)
+    # The span (§11.11): the places whose best path scores within `span_margin` temperatures of the best
+    # path's score (a path at least e^-margin as likely as the best); a revisit needs at most `span_max`
+    # of them. Up to 100 temperatures (beyond, every path in the beam is in the span anyway: no evidence
+    # keeps a score that far above the background); `span_max` up to `beam`'s bound (a span holds at most
+    # `beam` rows; at that bound the gate never closes)
+    span_margin: float = Field(1.5, ge=0.0, le=100.0)
+    span_max: int = Field(3, ge=1, le=4096)
 
 
 #: Every option's default (LocaliserParams; meanings and why: docs/design/science.md §11.3).
 default_conf: dict[str, Any] = LocaliserParams().model_dump()
+
+#: Rows `Place.span_seqs` lists at most: the best-scoring row of each place in the span, best first
+#: (docs/design/science.md §11.11). The count, `Place.span`, is always exact; a span wider than the list
+#: is far wider than a revisit may be (`span_max`, default 3), and the reply stays small.
+SPAN_LISTED = 16
 
 #: Bytes of one hypothesis in a stream's state (LocaliserState: row, direction, score, age, born).
 HYPOTHESIS_BYTES = sum(np.dtype(t).itemsize for t in (np.int64, np.int8, np.float64, np.int64, np.int64))
@@ -111,6 +123,12 @@ class Place(NamedTuple):
         informative: False for a frame with too little contrast to say where it is (§11.7): it gave the
             filter no evidence, and whatever the confidence it is no revisit (`is_revisit`).
         place: the place id of `seq` (`SequenceGraph.place`, §11.8); -1 where not given.
+        span: how many places the stream may be at (§11.11): the places of the rows whose best path
+            scores within `span_margin` temperatures of the best path's, the answer's own among them
+            (>= 1; a place's other appearances count once). Exact.
+        span_seqs: for each of those places, best first, the row its best path ends on (`seq` first);
+            at most SPAN_LISTED of them.
+        narrow: the span is at most `span_max` places: a revisit needs it (`is_revisit`, §11.11).
     """
 
     seq: int
@@ -118,10 +136,14 @@ class Place(NamedTuple):
     support: int
     informative: bool = True
     place: int = -1
+    span: int = 1
+    span_seqs: tuple[int, ...] = ()
+    narrow: bool = True
 
     def is_revisit(self, threshold: float) -> bool:
-        """The revisit decision (docs/design/science.md §11.7): confident enough, the frame informative."""
-        return self.informative and self.confidence >= threshold
+        """The revisit decision (docs/design/science.md §11.7, §11.11): confident enough, the frame
+        informative, the span at most `span_max` places."""
+        return self.informative and self.narrow and self.confidence >= threshold
 
 
 @dataclass
@@ -442,7 +464,20 @@ class SequenceLocaliser:
         t, top = float(self.conf["temperature"]), float(state.scores[0])
         others = np.logaddexp((rival - top) / t, (state.null - top) / t)
         p = float(np.exp(-np.logaddexp(0.0, others)))
-        return Place(best, max(2.0 * p - 1.0, 0.0), int(min(state.ages[0], state.frames)), place=place)
+        span, seqs = self._span(state, graph, n)
+        return Place(best, max(2.0 * p - 1.0, 0.0), int(min(state.ages[0], state.frames)), place=place,
+                     span=span, span_seqs=seqs, narrow=span <= int(self.conf["span_max"]))
+
+    def _span(self, state: LocaliserState, graph: SequenceGraph, n: int) -> tuple[int, tuple[int, ...]]:
+        """(places, their best rows best first, at most SPAN_LISTED) whose best path scores within
+        `span_margin` · `temperature` of the best path's (§11.11). The beam is best first, so each
+        place's first row in it is its best; the best path's row leads."""
+        c = self.conf
+        level = float(state.scores[0]) - float(c["span_margin"]) * float(c["temperature"])
+        rows = state.rows[:n][state.scores[:n] >= level]
+        _, first = np.unique(graph.place[rows], return_index=True)
+        first.sort()
+        return int(first.size), tuple(int(r) for r in rows[first[:SPAN_LISTED]])
 
 
 def _lookup(sorted_rows: np.ndarray, values: np.ndarray, rows: np.ndarray) -> np.ndarray:

@@ -259,7 +259,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                 joined = place.place
         if place is not None and threshold is not None and place.is_revisit(threshold):
             # Rows it made while it warmed up or was unsure, that the path now explains (§11.8).
-            joins = links.explained(stream, place, code_of)
+            joins = links.explained(stream, place, int(st.localiser.dirs[0]), code_of)
             for row, old in joins:
                 links.fold(row, old, seq)
                 touched.append(old)

@@ -145,8 +145,8 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
 
     Returns:
         (answers over the route's own frames: best = the frame the `place` names, -1 in warm-up;
-        confidence 0 where the frame is too flat to be a revisit, §11.7, or where `verify_revisit`
-        refused it, §12.2; S is empty (0, T)), and the map's `revisit_threshold`.
+        confidence 0 where the frame cannot be a revisit: too flat, §11.7, too wide a span, §11.11, or
+        `verify_revisit` refused it, §12.2; S is empty (0, T)), and the map's `revisit_threshold`.
     """
     del encoder_id
     T = len(feats)
@@ -201,9 +201,10 @@ def _at(contrast: np.ndarray | None, i: int) -> float | None:
 
 def _decided(place: Place, refused: bool = False) -> float:
     """The confidence the revisit decision compares: 0 for a frame too flat to be a revisit at any
-    threshold (`Place.is_revisit`, docs/design/science.md §11.7), and for a candidate its verification
+    threshold or whose span is wider than `span_max` (`Place.is_revisit`, docs/design/science.md §11.7,
+    §11.11), and for a candidate its verification
     `refused` on a map with `verify_revisit` (`keyframes.revisit_stands`, §12.2)."""
-    return place.confidence if place.informative and not refused else 0.0
+    return place.confidence if place.informative and place.narrow and not refused else 0.0
 
 
 def _answered(place: Place, config: MapConfig, kf: _Keyframes | None, query: keyframes.QueryFrame | None,
@@ -242,8 +243,9 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
 
     Returns:
         `OnlineAnswers` over database rows 0..n_db-1: the `place` answers (best -1 during warm-up,
-        confidence (0 for a frame too flat to be a revisit, §11.7, or one `verify_revisit` refused,
-        §12.2), support) and S, the query stream's beam scores after each frame (-inf elsewhere).
+        confidence (0 for a frame that cannot be a revisit: too flat, §11.7, too wide a span, §11.11, or
+        one `verify_revisit` refused, §12.2), support) and S, the query stream's beam scores after each
+        frame (-inf elsewhere).
     """
     del encoder_id  # the features are the encoder's; a map would freeze its identity
     n_db, n_q = len(db_feats), len(q_feats)

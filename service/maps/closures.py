@@ -34,15 +34,17 @@ __all__ = ["EXPORT_COLUMNS", "EXPORT_FORMATS", "VISIT_VERTEX_BASE", "chunks", "c
 #: poses where the client gave them (x, y, yaw); empty (CSV) or null (JSON) where not.
 #: Then the geometric verification (maps with keyframes; empty elsewhere): verified, the keyframe row it
 #: verified against, inliers, model, and the relative pose X_query = R X_keyframe + t as a quaternion
-#: (qx, qy, qz, qw) and a unit translation (tx, ty, tz; empty where unobservable). Last, the frame's
+#: (qx, qy, qz, qw) and a unit translation (tx, ty, tz; empty where unobservable). Then the frame's
 #: vertex id in the g2o export (`vertex_id`; empty for a localising stream's frame). Then the entry's log
 #: `id`, its `kind` (`closure`, or `retraction`: a repair withdrew closure `retracts`, docs/design/science.md
 #: §11.6; the retraction repeats that closure's pair with confidence and support 0, no verification, and a
-#: back end drops the edge it made for it).
+#: back end drops the edge it made for it). Last, the answer's span (docs/design/science.md §11.11): how
+#: many places the stream may have been at, and their best rows (CSV: space-separated; JSON: a list),
+#: empty or null for an entry logged before schema 11 and for a retraction.
 EXPORT_COLUMNS = ("stamp", "observation_id", "seq", "stream", "place_stamp", "place_observation_id",
                   "place_seq", "place_stream", "confidence", "support", "x", "y", "yaw", "place_x",
                   "place_y", "place_yaw", "verified", "keyframe_seq", "inliers", "model", "qx", "qy", "qz",
-                  "qw", "tx", "ty", "tz", "vertex", "id", "kind", "retracts")
+                  "qw", "tx", "ty", "tz", "vertex", "id", "kind", "retracts", "span", "span_seqs")
 #: Export media types by format.
 EXPORT_FORMATS = {"csv": "text/csv; charset=utf-8", "jsonl": "application/jsonl",
                   "g2o": "text/plain; charset=utf-8"}
@@ -76,7 +78,8 @@ def _result(c: LoopClosure) -> LoopClosureResult:
                                              metadata=c.place_metadata),
                              verification=None if c.verification is None
                              else VerificationResult(**c.verification),
-                             consolidated_into=c.consolidated_into, retracts=c.retracts)
+                             consolidated_into=c.consolidated_into, retracts=c.retracts, span=c.span,
+                             span_seqs=None if c.span_seqs is None else list(c.span_seqs))
 
 
 def page(store: MapStore, after: int, limit: int) -> list[LoopClosureResult]:
@@ -123,7 +126,8 @@ def _record(c: LoopClosure) -> dict[str, Any]:
             "place_stream": c.place_stream, "confidence": _finite(c.confidence), "support": c.support,
             "x": x, "y": y, "yaw": yaw, "place_x": px, "place_y": py, "place_yaw": pyaw,
             **_verification(c.verification), "vertex": vertex_id(c), "id": c.id,
-            "kind": "closure" if c.retracts is None else "retraction", "retracts": c.retracts}
+            "kind": "closure" if c.retracts is None else "retraction", "retracts": c.retracts,
+            "span": c.span, "span_seqs": None if c.span_seqs is None else list(c.span_seqs)}
 
 
 def _rotation(v: dict[str, Any]) -> np.ndarray | None:
@@ -180,7 +184,9 @@ def g2o_lines(c: LoopClosure) -> str | None:
     exports, column `vertex`). The measurement is the query camera's pose in the keyframe camera's
     frame (camera axes: x right, y down, z ahead): X_keyframe = R^T X_query - R^T t. Its translation is
     the unit direction where observable, else zero, and carries zero information either way; the
-    rotation's information is G2O_ROTATION_INFORMATION (upper triangle of the 6 x 6 matrix, row-major)."""
+    rotation's information is G2O_ROTATION_INFORMATION divided by the answer's span (upper triangle of
+    the 6 x 6 matrix, row-major): an answer that could have been any of k places is a k times weaker
+    constraint (docs/design/science.md §11.11; an entry logged before the span, schema 11, counts 1)."""
     v = c.verification or {}
     R = _rotation(v)
     vertex = vertex_id(c)
@@ -190,7 +196,7 @@ def g2o_lines(c: LoopClosure) -> str | None:
         return None
     t_dir = _translation(v)
     t = -R.T @ (np.zeros(3) if t_dir is None else t_dir)
-    info = np.diag([0.0, 0.0, 0.0] + [G2O_ROTATION_INFORMATION] * 3)[np.triu_indices(6)]
+    info = np.diag([0.0, 0.0, 0.0] + [G2O_ROTATION_INFORMATION / max(c.span or 1, 1)] * 3)[np.triu_indices(6)]
     values = [*t, *quaternion(R.T), *info]
     edge = f"EDGE_SE3:QUAT {int(keyframe)} {vertex} " + " ".join(f"{x:.9g}" for x in values) + "\n"
     if c.seq is not None:
@@ -237,6 +243,8 @@ def _lines(store: MapStore, fmt: str) -> Iterator[str]:
             if fmt == "jsonl":
                 yield json.dumps(rec, separators=(",", ":"), allow_nan=False) + "\n"
             else:
+                if rec["span_seqs"] is not None:
+                    rec["span_seqs"] = " ".join(str(q) for q in rec["span_seqs"])
                 buf = io.StringIO()
                 csv.writer(buf, lineterminator="\n").writerow([csv_cell(rec[k]) for k in EXPORT_COLUMNS])
                 yield buf.getvalue()

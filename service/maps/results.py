@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -95,9 +95,12 @@ class VerificationResult:
 class PlaceResult:
     """The stream's sequence-level answer (docs/design/science.md §11.2, docs/design/service.md §1.2):
     the stored row it is at, `confidence` in [0, 1], `revisit` = confidence >= the map's threshold and
-    the frame informative, `support` = frames on the path behind the answer; `metadata` when the row has
-    any; `low_information`: the frame was too flat (near-black, blank, overexposed) to say where it is,
-    so it is no revisit whatever the confidence (docs/design/science.md §11.7)."""
+    the frame informative and the span at most the map's `span_max`, `support` = frames on the path behind
+    the answer; `metadata` when the row has any; `low_information`: the frame was too flat (near-black,
+    blank, overexposed) to say where it is, so it is no revisit whatever the confidence
+    (docs/design/science.md §11.7); `span`: how many places the stream may be at (the places whose best
+    path scores within the map's `span_margin` of the best), `span_seqs` their best rows, best first (at
+    most 16; docs/design/science.md §11.11)."""
 
     seq: int
     observation_id: str
@@ -113,6 +116,9 @@ class PlaceResult:
     # The place `seq` shows: the id of the place's first row; every pass and appearance of one place
     # answers the same id (docs/design/science.md §11.8). `seq` is the row that matched best.
     place_id: int = 0
+    # How many places the stream may be at, >= 1 (exact), and their best rows, `seq` first (§11.11).
+    span: int = 1
+    span_seqs: list[int] = field(default_factory=list)
 
     @classmethod
     def of(cls, place: Any, row: Any, revisit_threshold: float) -> PlaceResult:
@@ -121,7 +127,8 @@ class PlaceResult:
                    confidence=place.confidence, revisit=place.is_revisit(revisit_threshold),
                    support=place.support, metadata=getattr(row, "metadata", None),
                    low_information=not place.informative,
-                   place_id=int(place.place) if place.place >= 0 else int(place.seq))
+                   place_id=int(place.place) if place.place >= 0 else int(place.seq),
+                   span=int(place.span), span_seqs=[int(q) for q in place.span_seqs] or [int(place.seq)])
 
 
 @dataclass(frozen=True)
@@ -246,6 +253,8 @@ class LoopClosureResult:
     verification: VerificationResult | None = None  # the place's, as the reply gave it (maps with keyframes)
     consolidated_into: int | None = None  # a visit's (a consolidated frame): the row it joined
     retracts: int | None = None  # a retraction entry's: the closure it withdraws (§11.6)
+    span: int | None = None  # the answer's span and its rows (§11.11); None: logged before schema 11
+    span_seqs: list[int] | None = None
 
 
 @dataclass(frozen=True)

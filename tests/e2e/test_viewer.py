@@ -22,8 +22,11 @@ from urllib.parse import quote
 
 import pytest
 
+from models.localisation import default_conf
+
 OUT = Path(__file__).resolve().parents[2] / "out"
 NONE = "—"
+SPAN_MAX = default_conf["span_max"]  # the viewer's map takes the default (docs/design/science.md §11.11)
 
 
 @pytest.fixture
@@ -175,15 +178,19 @@ def test_the_viewer_shows_a_mapped_loop_its_revisits_poses_and_thumbnails(chromi
         place, top = body["place"], body["matches"][0] if body["matches"] else None
         assert (row["stream"], row["mode"]) == (body["stream"], "learned" if body["learned"] else "localised")
         assert row["seq"] == (str(body["seq"]) if body["learned"] else NONE)
-        got = [row[f"sequence place/{c}"] for c in ("place", "label", "revisit", "support")]
+        got = [row[f"sequence place/{c}"] for c in ("place", "label", "revisit", "support", "span")]
+        # confident, but more places than the map's span_max score near the best (science.md §11.11)
+        wide = bool(place) and not place["revisit"] and place["span"] > SPAN_MAX \
+            and place["confidence"] >= threshold
         assert got == ([str(place["seq"]), place["label"] or NONE,
-                        "low information" if place["low_information"]
-                        else "revisit" if place["revisit"] else "below threshold", str(place["support"])]
-                       if place else [NONE] * 4)
+                        "low information" if place["low_information"] else "wide span" if wide
+                        else "revisit" if place["revisit"] else "below threshold", str(place["support"]),
+                        str(place["span"])]
+                       if place else [NONE] * 5)
         if place:  # two decimals at least, as many more as keep it on its side of the threshold
             shown = row["sequence place/confidence"]
             assert re.fullmatch(r"\d\.\d{2,}", shown) and abs(float(shown) - place["confidence"]) < 0.005
-            assert (float(shown) >= threshold) is place["revisit"], (shown, place)
+            assert (float(shown) >= threshold) is (place["revisit"] or wide), (shown, place)
         assert row["top frame match/match"] == (str(top["seq"]) if top else NONE)
         assert row["top frame match/score"] == (f"{top['score']:.3f}" if top else NONE)
         # the thumbnails: the query frame's (localised ones too: the recent ring keeps it), the place's

@@ -46,7 +46,11 @@ CAMERA_META = {"camera": {"fx": CAMERA.fx, "fy": CAMERA.fy, "cx": CAMERA.cx, "cy
 
 
 def make_map(c, map_id: str = "kf", **more) -> dict:
-    r = c.post("/v1/maps", json={"map_id": map_id, "keyframes": KEYFRAMES, "revisit_threshold": 0.0, **more})
+    # Threshold 0 and no span gate (docs/design/science.md §11.11): every answer is a revisit candidate,
+    # so the verification is what these tests see decide.
+    body = {"map_id": map_id, "keyframes": KEYFRAMES, "revisit_threshold": 0.0,
+            "localiser": {"span_max": 4096}, **more}
+    r = c.post("/v1/maps", json=body)
     assert r.status_code == 201, r.text
     return r.json()
 
@@ -242,7 +246,8 @@ def test_the_loop_closure_log_and_its_exports_carry_the_verified_relative_pose(t
         # The query camera's pose in the keyframe's frame: turned by R^T, i.e. yaw -5 degrees about y.
         assert qy < 0 and abs(np.degrees(2 * np.arctan2(abs(qy), qw)) - 5.0) < 1.0
         info = list(map(float, edge[10:]))
-        assert info[0] == 0.0 and info[-1] == 1e4  # translation unknown in length, rotation weighted
+        # translation unknown in length, rotation weighted and divided by the closure's span (§11.11)
+        assert info[0] == 0.0 and info[-1] == pytest.approx(1e4 / e["span"]) and e["span"] >= 1
 
 
 def test_a_route_neighbour_verifies_when_the_place_itself_does_not(tmp_path):

@@ -204,3 +204,31 @@ def test_frames_with_no_information_are_never_revisits(tmp_path):
     assert log["loop_closures"] == []
     assert all(b["place"]["low_information"] for b in tunnel2)
     assert not any(b["place"]["low_information"] for b in after)
+
+
+def test_the_answer_the_log_and_the_exports_carry_the_span(tmp_path):
+    # docs/design/science.md §11.11: `place.span` (how many places the stream may be at) and
+    # `place.span_seqs` (their best rows, the answer's first) in the reply; each logged closure keeps the
+    # span it was told, and the CSV and JSON lines exports carry it (a back end weighs the edge by it).
+    with make_client(tmp_path / "data") as c:
+        patched(c)
+        drive(c, LAP, noise=0.0)
+        lap2 = drive(c, LAP)
+        log = c.get("/v1/maps/default/loop-closures", params={"limit": 500}).json()["loop_closures"]
+        text = c.get("/v1/maps/default/loop-closures/export", params={"format": "csv"}).text
+        lines = c.get("/v1/maps/default/loop-closures/export", params={"format": "jsonl"}).text
+        spec = c.get("/openapi.json").json()
+    answered = [b["place"] for b in lap2 if b["place"] is not None]
+    assert answered and all(p["span"] >= 1 and p["span_seqs"][0] == p["seq"]
+                            and len(p["span_seqs"]) == min(p["span"], 16) for p in answered)
+    called = revisits(lap2)
+    assert called and all(b["place"]["span"] <= 3 for b in called)  # the map's span_max, the default
+    assert [(e["span"], e["span_seqs"]) for e in log] == [(b["place"]["span"], b["place"]["span_seqs"])
+                                                          for b in called]
+    rows = list(csv.DictReader(io.StringIO(text)))
+    records = [json.loads(line) for line in lines.splitlines()]
+    assert [(int(r["span"]), [int(q) for q in r["span_seqs"].split()]) for r in rows] == [
+        (r["span"], r["span_seqs"]) for r in records] == [(e["span"], e["span_seqs"]) for e in log]
+    schemas = spec["components"]["schemas"]
+    assert {"span", "span_seqs"} <= set(schemas["PlaceResult"]["properties"]) & set(
+        schemas["LoopClosureModel"]["properties"])

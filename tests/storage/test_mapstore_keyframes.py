@@ -44,10 +44,12 @@ def test_an_older_file_is_migrated_to_hold_keyframes_and_closure_verifications(t
     with MapStore.create(path, meta) as made:
         made.append(make_row(1))
     # Version 3's layout is today's without the keyframes table and the closures' verification and
-    # consolidated_into columns; version 2's has no loop_closures either.
+    # consolidated_into and span columns; version 2's has no loop_closures either.
     older = ("DROP TABLE loop_closures;" if version == 2
              else "ALTER TABLE loop_closures DROP COLUMN verification; "
-                  "ALTER TABLE loop_closures DROP COLUMN consolidated_into;")
+                  "ALTER TABLE loop_closures DROP COLUMN consolidated_into; "
+                  "ALTER TABLE loop_closures DROP COLUMN span; "
+                  "ALTER TABLE loop_closures DROP COLUMN span_seqs;")
     conn = sqlite3.connect(path)
     conn.executescript(V9_UNDONE + f"""
         DROP TABLE keyframes;
@@ -69,7 +71,7 @@ def test_an_older_file_is_migrated_to_hold_keyframes_and_closure_verifications(t
         assert ro.meta.schema_version == version and ro.keyframes([1]) == {} and ro.keyframe_bytes() == (0, 0)
         assert ro.closures(0, 10) == []
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 10
+        assert store.meta.schema_version == SCHEMA_VERSION
         closure = NewClosure(stream="s", place_seq=1, confidence=0.99, support=3,
                              verification={"verified": True, "inliers": 40})
         seq = store.append(dataclasses.replace(make_row(2, prev=1), keyframe=(b"f" * 16, CAMERA),

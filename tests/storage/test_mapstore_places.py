@@ -1,7 +1,7 @@
-"""map.sqlite schemas 5 to 8 (docs/design/science.md §11.8, §11.9; docs/design/service.md §4.2): a row's
-place, the visit log (consolidated frames, replayed), dropped rows, rows' recency (schema 6), visit keys
-and streams' states (schema 7), a visit's closure naming the row it joined (schema 8), and the migration
-of an older map whose places come from its loop-closure log."""
+"""map.sqlite schemas 5 to 9 (docs/design/science.md §11.8, §11.9, §11.11; docs/design/service.md §4.2): a
+row's place, the visit log (consolidated frames, replayed), dropped rows, rows' recency (schema 6), visit
+keys and streams' states (schema 7), a visit's closure naming the row it joined (schema 8), a closure's
+span (schema 11), and the migration of an older map whose places come from its loop-closure log."""
 
 from __future__ import annotations
 
@@ -16,6 +16,9 @@ from models.localisation import Localisation
 from storage.mapschema import SCHEMA_VERSION, KeyRecord, NewClosure, NewVisit
 from storage.mapstore import DuplicateObservation, MapMeta, MapStore
 from tests.storage.conftest import make_row
+
+#: Schema 9's closure columns, undone (a file as version 8 and before wrote it).
+DROP_SPAN = "ALTER TABLE loop_closures DROP COLUMN span; ALTER TABLE loop_closures DROP COLUMN span_seqs;"
 
 
 def visit(i: int, seq: int, prev: int | None, key: str | None = None) -> NewVisit:
@@ -125,7 +128,7 @@ def _as_version(path: Path, version: int, changes: str) -> None:
 
 def _as_version_4(path: Path) -> None:
     """No visits, no dropped rows, no place column, no recency, no visit keys or streams' states, no
-    closures' `consolidated_into`."""
+    closures' `consolidated_into` or span."""
     _as_version(path, 4, """
         DROP TABLE visits;
         DROP TABLE dropped;
@@ -133,6 +136,8 @@ def _as_version_4(path: Path) -> None:
         DROP TABLE visit_keys;
         DROP TABLE stream_states;
         ALTER TABLE loop_closures DROP COLUMN consolidated_into;
+        ALTER TABLE loop_closures DROP COLUMN span;
+        ALTER TABLE loop_closures DROP COLUMN span_seqs;
         ALTER TABLE observations DROP COLUMN place;
     """)
 
@@ -152,7 +157,7 @@ def test_an_old_map_is_migrated_and_its_places_come_from_its_loop_closures(tmp_p
         assert ro.meta.schema_version == 4 and ro.dropped() == {} and list(ro.visits()) == []
         assert [r.place for r in ro.rows()] == [None] * 7
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 10
+        assert store.meta.schema_version == SCHEMA_VERSION
         assert [r.place for r in store.rows()] == [None] * 7 and store.joined() == {4: 1, 5: 2, 6: 3}
         links = Localisation(None, 4096)
         links.rebuild(store.rows(), store.dropped(), store.joined())
@@ -188,12 +193,14 @@ def test_a_version_6_file_keeps_its_logged_visit_keys(tmp_path: Path, meta: MapM
         DROP TABLE visit_keys;
         DROP TABLE stream_states;
         ALTER TABLE loop_closures DROP COLUMN consolidated_into;
+        ALTER TABLE loop_closures DROP COLUMN span;
+        ALTER TABLE loop_closures DROP COLUMN span_seqs;
     """)
     record = KeyRecord("visit-key-0001", "f" * 64, '{"reply": 1}')
     with MapStore.open(path, readonly=True) as ro:  # read-only: not migrated, read from the log
         assert ro.meta.schema_version == 6 and ro.key_record("visit-key-0001") == record
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 10
+        assert store.meta.schema_version == SCHEMA_VERSION
         assert store.prune_visits(covered=10**6, keep=0) == 0  # the only visit stays (the newest)
         assert store.key_record("visit-key-0001") == record
 
@@ -218,14 +225,37 @@ def test_an_older_file_gains_the_visits_closure_column(tmp_path: Path, meta: Map
     with MapStore.create(path, meta) as made:
         made.append(make_row(1))
         made.add_closure(NewClosure(stream="loc", place_seq=1, confidence=0.9, support=2))
-    _as_version(path, version, "ALTER TABLE loop_closures DROP COLUMN consolidated_into;"
+    _as_version(path, version, "ALTER TABLE loop_closures DROP COLUMN consolidated_into;" + DROP_SPAN
                 + ("DROP TABLE visit_keys; DROP TABLE stream_states;" if version == 6 else ""))
     with MapStore.open(path, readonly=True) as ro:  # read-only: not migrated, reads as before
         assert ro.meta.schema_version == version
         assert [c.consolidated_into for c in ro.closures(0, 10)] == [None]
     with MapStore.open(path) as store:
-        assert store.meta.schema_version == SCHEMA_VERSION == 10
+        assert store.meta.schema_version == SCHEMA_VERSION
         closure = NewClosure(stream="b", place_seq=1, confidence=0.99, support=6)
         store.add_visit(dataclasses.replace(visit(10, 1, None), closure=closure))
         assert [(c.stream, c.seq, c.consolidated_into) for c in store.closures(0, 10)] == [
             ("loc", None, None), ("b", None, 1)]
+
+
+def test_a_version_8_file_gains_the_closures_span(tmp_path: Path, meta: MapMeta) -> None:
+    """Schema 9 `loop_closures.span`, `span_seqs` (issue 37): a version 8 file's closures read None (not
+    recorded) before and after the migration; closures logged after it carry their span."""
+    path = tmp_path / "map.sqlite"
+    with MapStore.create(path, meta) as made:
+        made.append(make_row(1))
+        made.add_closure(NewClosure(stream="loc", place_seq=1, confidence=0.9, support=2))
+    _as_version(path, 8, DROP_SPAN)
+    with MapStore.open(path, readonly=True) as ro:  # read-only: not migrated, reads as before
+        assert ro.meta.schema_version == 8
+        assert [(c.span, c.span_seqs) for c in ro.closures(0, 10)] == [(None, None)]
+    with MapStore.open(path) as store:
+        assert store.meta.schema_version == SCHEMA_VERSION
+        store.add_closure(NewClosure(stream="loc", place_seq=1, confidence=0.95, support=9, span=3,
+                                     span_seqs=(1, 2, 5)))
+        store.append(dataclasses.replace(make_row(2, prev=1), closure=NewClosure(
+            stream="a", place_seq=1, confidence=0.99, support=6, span=1, span_seqs=(1,))))
+        assert [(c.stream, c.span, c.span_seqs) for c in store.closures(0, 10)] == [
+            ("loc", None, None), ("loc", 3, (1, 2, 5)), ("a", 1, (1,))]
+    with MapStore.open(path, readonly=True) as ro:  # and it is durable
+        assert [c.span for c in ro.closures(0, 10)] == [None, 3, 1]

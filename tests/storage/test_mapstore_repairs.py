@@ -14,7 +14,7 @@ import pytest
 from storage.mapschema import SCHEMA_VERSION, NewClosure
 from storage.mapstore import MapMeta, MapStore
 from tests.storage.conftest import make_row
-from tests.storage.test_mapstore_places import _as_version, visit
+from tests.storage.test_mapstore_places import DROP_SPAN, _as_version, visit
 
 
 def hit(store: MapStore) -> tuple[int, int]:
@@ -54,7 +54,7 @@ def test_a_version_8_file_is_migrated_keeping_its_log(tmp_path: Path, meta: MapM
     path = tmp_path / "map.sqlite"
     with MapStore.create(path, meta) as store:
         v, c = hit(store)
-    _as_version(path, 8, "")
+    _as_version(path, 8, DROP_SPAN)
     with MapStore.open(path, readonly=True) as old:
         assert old.repairs() == [] and old.retracted() == set() and old.closures(0, 10)[0].retracts is None
     with MapStore.open(path) as store:

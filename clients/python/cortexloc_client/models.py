@@ -330,6 +330,10 @@ class Place(_Reply):
     place_id: int | None = None
     #: The frame was too flat (near-black, blank, overexposed) to say where it is: never a revisit.
     low_information: bool = False
+    #: How many places the stream may be at (the answer's own among them; a revisit needs at most the
+    #: map's `span_max`), and their best rows, `seq` first (None from an older server).
+    span: int | None = None
+    span_seqs: list[int] | None = None
 
 
 class Versions(_Reply):
@@ -411,6 +415,10 @@ class LoopClosure(_Reply):
     #: A consolidated frame's (a visit's): the row it joined (None: a frame with its own row, a
     #: localising stream's, or one logged before the server recorded it).
     consolidated_into: int | None = None
+    #: The answer's span and its rows (a back end may divide the edge's information by the span; None:
+    #: logged before the server recorded it).
+    span: int | None = None
+    span_seqs: list[int] | None = None
 
 
 class LoopClosureList(_Reply):

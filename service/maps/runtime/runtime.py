@@ -717,7 +717,7 @@ class MapRuntime:
         closure = None if result.place is None or not result.place.revisit else NewClosure(
             stream=stream, place_seq=result.place.seq, confidence=result.place.confidence,
             support=result.place.support, metadata=metadata, key=post.key if post is not None else None,
-            verification=verified)
+            verification=verified, span=result.place.span, span_seqs=tuple(result.place.span_seqs))
         if step.visit is not None:  # durable before the reply: the replay needs it (service.md §4.4)
             self.store.add_visit(NewVisit(
                 stream=stream, seq=step.visit, context_prev_seq=step.prev_seq, input_sdr=step.code,

@@ -46,25 +46,29 @@ def test_a_warm_up_row_joins_the_old_place_the_confident_path_stood_on() -> None
     links, codes = build()
     assert set(links.short_term_rows("a").tolist()) == {*A, WARM}
     # the path is on row 40 now, so on the frame before (the warm-up row's) it stood on row 39
-    assert links.explained("a", at(40), codes.__getitem__) == [(WARM, 39)]
+    assert links.explained("a", at(40), 1, codes.__getitem__) == [(WARM, 39)]
     links.fold(WARM, 39, WARM + 1)
     links.drop(WARM)  # (the caller's: it adds no appearance)
     assert links.place_of(WARM) == links.place_of(39) and links.graph.members(WARM) == []
-    assert WARM not in links.short_term_rows("a") and links.explained("a", at(40), codes.__getitem__) == []
+    assert WARM not in links.short_term_rows("a") and links.explained("a", at(40), 1, codes.__getitem__) == []
 
 
 def test_a_row_the_path_does_not_cover_or_stood_far_from_is_not_joined() -> None:
     links, codes = build()
-    assert links.explained("a", at(40, support=1), codes.__getitem__) == []  # the path began after it
-    assert links.explained("a", at(30), codes.__getitem__) == []  # the path stood on row 29, not row 39
+    assert links.explained("a", at(40, support=1), 1, codes.__getitem__) == []  # the path began after it
+    assert links.explained("a", at(30), 1, codes.__getitem__) == []  # the path stood on row 29, not row 39
+    # never ahead of the path: on row 38 running along the stored direction, it stood on row 37 then;
+    # run against it (row 38 reached from row 39) it stood on row 39
+    assert links.explained("a", at(38), 1, codes.__getitem__) == []
+    assert links.explained("a", at(38), -1, codes.__getitem__) == [(WARM, 39)]
 
 
 def test_a_join_never_targets_the_short_term_memory() -> None:
     links, codes = build(warm=A[1])  # the warm-up frame looks like the stream's own recent row 42
-    assert links.explained("a", at(A[2]), codes.__getitem__) == []
+    assert links.explained("a", at(A[2]), 1, codes.__getitem__) == []
     links, codes = build(stm_place=39)  # the stream's row 43 shows old row 39's place
     assert not links.graph.alone(np.array([A[-1]]))[0]
-    assert links.explained("a", at(40), codes.__getitem__) == []
+    assert links.explained("a", at(40), 1, codes.__getitem__) == []
 
 
 @pytest.mark.parametrize("more", [14, 15])
@@ -76,7 +80,7 @@ def test_a_join_reaches_back_over_warmup_plus_exclusion_rows_only(more: int) -> 
         codes[r] = code(r)
         links.add(r, r - 1, codes[r], stream="a", place=1)
     # the path stood on row 20 on the warm-up row's frame, `more` + 1 frames ago
-    got = links.explained("a", at(20 + more + 1, support=100), codes.__getitem__)
+    got = links.explained("a", at(20 + more + 1, support=100), 1, codes.__getitem__)
     assert got == ([(WARM, 20)] if more < 15 else [])
 
 

@@ -17,7 +17,7 @@ from models.localisation import (
     top_candidates,
 )
 from models.localisation.condition import Condition
-from models.localisation.localiser import evidence
+from models.localisation.localiser import SPAN_LISTED, evidence
 from models.localisation.short_term import ShortTerm
 from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 
@@ -235,6 +235,83 @@ def test_two_traverses_of_a_loop_answer_a_stored_row_of_the_right_place() -> Non
     assert np.all(db_places[rows[-5:]] == q_places[-5:])
 
 
+def featureless(n: int = 80, first: int = 30, rows: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """(similarity (n, n), stretch rows): a route driven as stored, whose rows `first` .. `first` + `rows` - 1
+    all look alike and like each of their frames (a featureless stretch shorter than the rival window)."""
+    places = np.arange(n)
+    places[first:first + rows] = first
+    return place_similarity(places, places, noise=0.1, seed=3), np.arange(first, first + rows)
+
+
+def test_a_featureless_stretch_is_sure_of_the_stretch_not_the_row_and_is_no_revisit() -> None:
+    # docs/design/science.md §11.11: inside the stretch no rival place comes near (every row of it lies
+    # within the rival window), so the confidence stays high; but the paths one and two rows off the best
+    # score as well, and the span says so. A revisit needs a span of at most `span_max` (3) places.
+    S, stretch = featureless()
+    places = run(S, SequenceGraph.chain(S.shape[0]))
+    inside = [places[j] for j in stretch[1:]]
+    assert all(p.confidence >= REVISIT for p in inside)
+    assert all(p.span > default_conf["span_max"] and not p.narrow and not p.is_revisit(REVISIT)
+               for p in inside), [(p.seq, p.span) for p in inside]
+    # the span lists the rows the stream may be at, the answer's first; the true row is among them
+    assert all(p.span_seqs[0] == p.seq and j in p.span_seqs and len(p.span_seqs) == p.span
+               for j, p in zip(stretch[1:], inside, strict=True))
+    # where the frames tell the rows apart the span is the answer's row alone, and a revisit
+    outside = [places[j] for j in (*range(10, 29), *range(stretch[-1] + 1, 75))]
+    assert all(p.span == 1 and p.span_seqs == (p.seq,) and p.is_revisit(REVISIT) for p in outside)
+
+
+def test_the_span_gates_the_revisit_only_never_the_answer() -> None:
+    # span_max is a gate on the revisit decision: the answered row, its confidence and its support are
+    # the same at any span_max or span_margin (R@1 and the beam's scores do not move).
+    S, _ = featureless()
+    graph = SequenceGraph.chain(S.shape[0])
+    default = run(S, graph)
+    for conf in ({"span_max": 4096}, {"span_max": 1}, {"span_margin": 0.0}, {"span_margin": 100.0}):
+        other = run(S, graph, conf)
+        assert [(p.seq, p.confidence, p.support) for p in other[5:]] == [
+            (p.seq, p.confidence, p.support) for p in default[5:]], conf
+    gate_off = run(S, graph, {"span_max": 4096})
+    assert all(p.narrow for p in gate_off[5:])
+    assert sum(p.is_revisit(REVISIT) for p in gate_off[5:]) > sum(p.is_revisit(REVISIT) for p in default[5:])
+    # no margin: the span is the best path's place alone (and rows tied with it)
+    assert all(p.span == 1 for p in run(S, graph, {"span_margin": 0.0})[5:])
+
+
+def test_the_span_counts_places_not_rows() -> None:
+    # Two traverses of one loop: each place stored twice. Joined as places (§11.8), the second
+    # traverse's row is the same place, no second candidate: span 1. As separate places they are two.
+    loop = 30
+    db_places = np.concatenate([np.arange(loop), np.arange(loop)])
+    prev = np.concatenate([[-1], np.arange(loop - 1), [-1], np.arange(loop, 2 * loop - 1)])
+    S = place_similarity(db_places, np.arange(loop), noise=0.1, seed=2)
+    apart, joined = SequenceGraph(prev), SequenceGraph(prev)
+    for r in range(loop):
+        joined.join(loop + r, r)
+    assert all(p.span == 2 and set(p.span_seqs) == {p.seq % loop, p.seq % loop + loop}
+               for p in run(S, apart)[10:])
+    assert all(p.span == 1 and p.is_revisit(REVISIT) for p in run(S, joined)[10:])
+
+
+def test_the_span_lists_at_most_a_bounded_number_of_rows_and_counts_them_all() -> None:
+    # A margin wider than every score gap: every place with a path in the beam is in the span.
+    S, _ = featureless()
+    loc = SequenceLocaliser({"span_margin": 100.0})
+    state = loc.new_state()
+    graph = SequenceGraph.chain(S.shape[0])
+    place = None
+    for j in range(40):
+        place = loc.step_dense(state, graph, S[:, j])
+    assert place is not None
+    live = state.rows[state.rows >= 0]
+    assert place.span == np.unique(graph.place[live]).size > SPAN_LISTED
+    assert len(place.span_seqs) == SPAN_LISTED == len(set(place.span_seqs))
+    assert place.span_seqs[0] == place.seq
+    best = {int(r): float(state.scores[i]) for i, r in reversed(list(enumerate(state.rows))) if r >= 0}
+    listed = [best[r] for r in place.span_seqs]
+    assert listed == sorted(listed, reverse=True)  # best first
+
+
 @pytest.mark.parametrize("speed", [2.0, 0.5, 1.5])
 def test_faster_and_slower_queries_are_followed(speed: float) -> None:
     n = 200
@@ -375,7 +452,9 @@ BAD_OPTIONS = [("exclusion", "x"), ("exclusion", -5), ("exclusion", 10.0), ("bea
                ("top_k", 10**6), ("warmup", 0), ("temperature", float("nan")), ("temperature", 0.0),
                ("jump_cost", float("inf")), ("decay", 1.0), ("null_quantile", 1.5), ("backward", "no"),
                ("backward", 1), ("move_costs", ()), ("move_costs", (3.0, float("nan"))),
-               ("move_costs", (1.0,) * 17), ("move_costs", "303")]
+               ("move_costs", (1.0,) * 17), ("move_costs", "303"), ("span_margin", -0.5),
+               ("span_margin", float("inf")), ("span_margin", 101.0), ("span_max", 0), ("span_max", 4097),
+               ("span_max", 2.5)]
 
 
 @pytest.mark.parametrize(("name", "value"), BAD_OPTIONS, ids=[f"{n}={v!r}" for n, v in BAD_OPTIONS])

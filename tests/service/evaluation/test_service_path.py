@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.localisation import default_conf
 from service.evaluation import service_path
 from tests.service.helpers import frame, make_client, post
 
@@ -32,11 +33,8 @@ def test_http_and_eval_give_the_same_places(tmp_path, memory):
         q_feats = np.concatenate([enc.embed([b], resize=resize).features for b in q_bodies])
     found = service_path.replay(db_feats, q_feats, encoder_id=enc.identity_for(resize), backbone="alexnet",
                                 preset=preset, seed=7, memory=memory, create={"resize": resize})
-    want = [None if p is None else (p["seq"] - 1, p["confidence"], p["support"]) for p in http]
-    got = [None if b < 0 else (int(b), float(cf), int(s))
-           for b, cf, s in zip(found.best, found.confidence, found.support, strict=True)]
-    assert got == want
-    assert sum(p is not None for p in want) >= len(QUERY) - 4
+    assert _found(found) == _places(http)
+    assert sum(p is not None for p in http) >= len(QUERY) - 4
 
 
 def test_operating_point_is_the_lowest_threshold_reaching_the_precision():
@@ -79,11 +77,7 @@ def test_http_and_slam_replay_give_the_same_places_for_one_learning_stream(tmp_p
     found, threshold = service_path.slam_replay(
         feats, encoder_id=enc.identity_for(resize), backbone="alexnet", preset=preset, seed=7, memory=memory,
         create={"resize": resize})
-    want = [None if b["place"] is None else (b["place"]["seq"] - 1, b["place"]["confidence"],
-                                             b["place"]["support"]) for b in http]
-    got = [None if b < 0 else (int(b), float(cf), int(s))
-           for b, cf, s in zip(found.best, found.confidence, found.support, strict=True)]
-    assert got == want
+    assert _found(found) == _places(b["place"] for b in http)
     assert threshold == map_threshold
     assert all(b < i for i, b in enumerate(found.best))  # never the frame's own row, nor a later one
     second = found.best[len(route) + 6:]
@@ -110,18 +104,20 @@ def test_the_evaluation_measures_and_decides_low_information_frames_as_the_servi
                                         preset=preset, seed=7, create={"resize": resize}, contrast=contrast)
     flat = [i for i, p in enumerate(http) if p is not None and p["low_information"]]
     assert flat == [i for i in (7, 8, 23, 24) if http[i] is not None] and flat[-2:] == [23, 24]
-    want = [None if p is None else (p["seq"] - 1, 0.0 if p["low_information"] else p["confidence"],
-                                    p["support"]) for p in http]
-    got = [None if b < 0 else (int(b), float(cf), int(s))
-           for b, cf, s in zip(found.best, found.confidence, found.support, strict=True)]
-    assert got == want
+    assert _found(found) == _places(http)
 
 
 def _places(places, frame_of: dict[int, int] | None = None) -> list[tuple[int, float, int] | None]:
     """HTTP `place` answers as (row seq - 1, or the frame that made the row, confidence, support), None
     in warm-up."""
     return [None if p is None else (p["seq"] - 1 if frame_of is None else frame_of[p["seq"]],
-                                    p["confidence"], p["support"]) for p in places]
+                                    _decided(p), p["support"]) for p in places]
+
+
+def _decided(p: dict) -> float:
+    """The confidence the revisit decision compares, as the evaluation reads it: 0 where the span is wider
+    than span_max (docs/design/science.md §11.11) or the frame too flat (§11.7)."""
+    return 0.0 if p["span"] > int(default_conf["span_max"]) or p["low_information"] else p["confidence"]
 
 
 def _found(found) -> list[tuple[int, float, int] | None]:

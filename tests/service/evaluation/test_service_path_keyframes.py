@@ -21,7 +21,10 @@ from tests.service.test_keyframes import CAMERA, CAMERA_META, KEYFRAMES, ROUTE, 
 
 #: A route of ten photographs is shorter than a stream's short-term memory (20 moves, §11.6): without it
 #: the stream's laps can close on each other.
-SHORT = {"short_term": 0}
+# no span gate (docs/design/science.md §11.11): at threshold 0 the verification alone decides, as in
+# tests/service/test_keyframes.py
+NO_GATE = {"span_max": 4096}
+SHORT = {"short_term": 0, **NO_GATE}
 MAP = {"keyframes": KEYFRAMES, "revisit_threshold": 0.0, "verify_revisit": True}
 
 
@@ -40,7 +43,7 @@ def _features(c, bodies: list[bytes]) -> tuple[np.ndarray, dict]:
     feats = np.concatenate([enc.embed([b], resize=resize).features for b in bodies])
     return feats, {"encoder_id": enc.identity_for(resize), "backbone": "alexnet", "seed": 7,
                    "preset": c.app.state.settings.default_preset, "create": {"resize": resize, **MAP},
-                   "camera": CAMERA_META["camera"]}
+                   "localiser": NO_GATE, "camera": CAMERA_META["camera"]}
 
 
 def test_replay_verifies_and_refuses_the_revisits_http_does(tmp_path):
@@ -52,7 +55,8 @@ def test_replay_verifies_and_refuses_the_revisits_http_does(tmp_path):
              + [png(sized(n)) for n in UNRELATED * 2])
     meta = json.dumps(CAMERA_META)
     with make_client(tmp_path / "data") as c:
-        assert c.post("/v1/maps", json={"map_id": "kf", "seed": 7, **MAP}).status_code == 201
+        made = c.post("/v1/maps", json={"map_id": "kf", "seed": 7, **MAP, "localiser": NO_GATE})
+        assert made.status_code == 201
         for b in db:
             post(c, b, map_id="kf", stream="database", top_k=0, metadata=meta)
         http = [post(c, b, map_id="kf", stream="query", learn="false", top_k=0,
@@ -92,8 +96,8 @@ def test_slam_replay_beyond_its_cap_verifies_the_revisits_http_does(tmp_path):
         held = [r.seq not in dropped for r in rt.store.rows()]
         feats, conf = _features(c, laps)
     trace: dict = {}
-    found, _ = service_path.slam_replay(feats, frames=laps, trace=trace, max_observations=20, localiser=SHORT,
-                                        contrast=service_path.contrasts(laps), **conf)
+    found, _ = service_path.slam_replay(feats, frames=laps, trace=trace, max_observations=20,
+                                        contrast=service_path.contrasts(laps), **{**conf, "localiser": SHORT})
     places = [b["place"] for b in http]
     assert forgotten > 0 and trace["row_held"].tolist() == held
     assert trace["revisit"].tolist() == [p is not None and p["revisit"] for p in places]

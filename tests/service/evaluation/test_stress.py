@@ -57,6 +57,9 @@ def test_the_quick_suite_maps_without_a_false_revisit_or_a_merged_place_and_clos
         s = per_method["service-slam"]
         assert s["runs"] == len(stress.QUICK_SEEDS)
         assert s["false_revisits"] == 0 and s["merged_places"] == 0, (case, s)
+    # The span gate (docs/design/science.md §11.11) calls no revisit where 4 or more places score near
+    # the best: this window's slow stretches give right answers such spans, so lap-2 recall is 0.45
+    # (short loop) and 0.525 (noise) at worst, 0.65 and 0.695 without the gate (docs/results.md §10.13).
     for case in ("short-loop", "noise"):
         s = summary[case]["service-slam"]
-        assert s["precision_worst"] >= 0.99 and s["recall_worst"] >= 0.5, (case, s)
+        assert s["precision_worst"] >= 0.99 and s["recall_worst"] >= 0.4, (case, s)

@@ -28,7 +28,8 @@ export function closureRows(log) {
     el("td", {}, c.place.stream),
     el("td", {}, text(c.place.label)),
     el("td", { class: "num" }, num(c.confidence, 3)),
-    el("td", { class: "num" }, num(c.support))));
+    el("td", { class: "num" }, num(c.support)),
+    el("td", { class: "num" }, num(c.span))));
 }
 
 /** Save the whole log as `format` (csv | jsonl | g2o: the verified closures as edges). */

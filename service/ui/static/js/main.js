@@ -138,7 +138,7 @@ function confidenceCell(v, threshold) {
 
 /** "revisit" (confidence at or above the map's revisit threshold when the answer was given) or "below
  * threshold": a place the map knows, not a new one (docs/design/service.md §1.2). */
-function revisitCell(place, threshold) {
+function revisitCell(place, threshold, spanMax) {
   if (!place || typeof place.revisit !== "boolean") {
     return el("td", { class: "none" }, NONE);
   }
@@ -146,6 +146,11 @@ function revisitCell(place, threshold) {
     return el("td", { title: "the frame is too flat (dark, blank or overexposed) to say where it is: "
                               + "never a revisit, whatever its confidence" },
               el("span", { class: "badge below" }, "low information"));
+  }
+  if (!place.revisit && place.span > spanMax && place.confidence >= threshold) {  // science.md §11.11
+    return el("td", { title: `sure of the stretch, not of the row: ${place.span} places score within the `
+                              + "map's span_margin of the best, more than its span_max: no revisit" },
+              el("span", { class: "badge below" }, "wide span"));
   }
   const at = `the map's revisit threshold, now ${exact(threshold)}`;
   return el("td", { title: place.revisit ? `confidence at or above ${at}` : `confidence below ${at}` },
@@ -181,8 +186,10 @@ function renderRecent() {
       el("td", { class: "num place-seq" }, p ? num(p.seq) : NONE),
       el("td", {}, p ? text(p.label) : NONE),
       confidenceCell(p ? p.confidence : undefined, map ? map.revisit_threshold : undefined),
-      revisitCell(p, map ? map.revisit_threshold : undefined),
+      revisitCell(p, map ? map.revisit_threshold : undefined,
+                  map && map.params && map.params.localiser ? map.params.localiser.span_max : undefined),
       el("td", { class: "num" }, p ? num(p.support) : NONE),
+      el("td", { class: "num" }, p ? num(p.span) : NONE),
       el("td", { class: "num match-seq" }, m ? num(m.seq) : NONE),
       el("td", {}, m ? text(m.label) : NONE),
       el("td", { class: `num ${level(m ? m.score : undefined)}` }, m ? num(m.score, 3) : NONE),
