@@ -41,6 +41,7 @@ from models import geometry, pipeline
 from models.frontend import slsbh
 from models.frontend.images import RawFrame
 from models.localisation import InvertedIndex, Localisation
+from models.localisation.motion import Motion
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import Stream, eviction_wait, memory_state, touch
 from service.maps import keyframes, recovery
@@ -472,7 +473,7 @@ class MapRuntime:
                 yield r
 
         # (a visit's stream and code: the streams' short-term memories, docs/design/science.md §11.6)
-        visits = ((v.context_prev_seq, v.seq, v.after_seq + 1, v.stream, v.input_sdr)
+        visits = ((v.context_prev_seq, v.seq, v.after_seq + 1, v.stream, v.input_sdr, Motion.of(v.metadata))
                   for v in self.store.visits())
         self.model.links.rebuild(rows(), dropped, self.store.joined(), visits, self.store.recency())
         self.model.index.rebuild(held)
@@ -669,7 +670,7 @@ class MapRuntime:
         seq = self.store.next_seq() if learn else None  # this thread is the store's only writer
         step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq,
                                 code_of=self._code_of, threshold=self.config.revisit_threshold,
-                                contrast=contrast)
+                                contrast=contrast, motion=Motion.of(metadata))
         if step.visit is not None:  # consolidated (§11.8): the memory learned it, no row is made
             seq = None
         # What a replay cannot rebuild of the stream, durable with its step: it resumes after a crash (§4.4).
