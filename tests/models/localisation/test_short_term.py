@@ -66,6 +66,12 @@ def test_a_path_that_starts_just_behind_the_memory_is_followed_as_an_echo_and_on
     born = own.born(graph, np.array([19, 16, 15, 14, 2, 25]), now=40, margin=5)
     assert born.tolist() == [20, 20, 20, 40, 40, 40]  # 19..15: 1-5 links behind; 14 and 2 farther
     assert OwnTrail.short_term_only(np.arange(20, 40)).born(graph, np.array([19]), 40, 5).tolist() == [40]
+    # a slower robot's memory (3 rows a move: 60 rows) reaches a quarter of its rows back, 15 links
+    for r in range(40, 100):
+        graph.append(r, r - 1)
+    slow = OwnTrail(first=90, here=100, last=99, trail=int(graph.trail[99]))
+    slow = slow.with_short_term(np.arange(40, 100))
+    assert slow.born(graph, np.array([39, 28, 25, 24]), now=100, margin=5).tolist() == [40, 40, 40, 100]
 
 
 # ------------------------------------------------------------------ poses (issue 35: D metres of path)
