@@ -95,7 +95,7 @@ class LocaliserParams(BaseModel):
     # stamps) a reset: no distance
     short_term_metres: float = Field(20.0, ge=0.0, le=1e5)
     move_metres: float = Field(1.0, gt=0.0, le=1e4)
-    max_speed: float = Field(5.0, gt=0.0, le=1e4)
+    max_speed: float = Field(50.0, gt=0.0, le=1e4)
 
 
 #: Every option's default (LocaliserParams; meanings and why: docs/design/science.md §11.3).

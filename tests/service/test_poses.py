@@ -10,7 +10,7 @@ from fastapi.testclient import TestClient
 
 from tests.service.helpers import frame, make_app, post
 
-DEFAULTS = {"short_term": 20, "short_term_metres": 20.0, "move_metres": 1.0, "max_speed": 5.0}
+DEFAULTS = {"short_term": 20, "short_term_metres": 20.0, "move_metres": 1.0, "max_speed": 50.0}
 
 
 def test_the_map_resource_shows_the_pose_options_and_a_map_sets_its_own(tmp_path):
