@@ -14,7 +14,7 @@ encoder.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import numpy as np
@@ -23,6 +23,7 @@ from models.evaluation.online import OnlineAnswers
 from models.frontend import images as frontend_images
 from models.frontend import slsbh
 from models.localisation import Place
+from models.localisation.motion import NO_MOTION, Motion
 from models.pipeline import MapModel, Stream, observe
 from service.maps.config import MapConfig, MapOptions, map_model, resolve
 from service.maps.encoding import projection as map_projection
@@ -53,7 +54,8 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
                 memory: str = "tm", localiser: dict[str, Any] | None = None,
                 create: dict[str, Any] | None = None, contrast: np.ndarray | None = None,
                 progress: Callable[[int, int], None] | None = None,
-                trace: dict[str, Any] | None = None) -> tuple[OnlineAnswers, float]:
+                trace: dict[str, Any] | None = None,
+                motions: Sequence[Motion] | None = None) -> tuple[OnlineAnswers, float]:
     """A whole route as ONE learning stream (every frame learned, `models.pipeline.observe` as the map
     writer calls it): loop closure while mapping (docs/design/science.md §11.6).
 
@@ -62,6 +64,8 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
         trace: filled, where given, with what the map made of the frames: "row_frame" (R,) the frame
             each made row came from (row seq - 1), "row_place" (R,) each row's place id at the end,
             "visit" (T,) the row a consolidated frame went into (-1: it made a row).
+        motions: (T,) each frame's pose, stamp and trail (`Motion`, as a served map reads them from
+            `metadata`; docs/design/science.md §11.6); None: none.
 
     Returns:
         (answers over the route's own frames: best = the frame the `place` names, -1 in warm-up;
@@ -79,7 +83,7 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
         seq = len(codes) + 1
         step = observe(model, robot, y, learn=True, stream="robot", top_k=0, seq=seq,
                        code_of=codes.__getitem__, threshold=config.revisit_threshold,
-                       contrast=_at(contrast, i))
+                       contrast=_at(contrast, i), motion=NO_MOTION if motions is None else motions[i])
         if step.visit is None:
             codes[seq], frame_of[seq] = step.code, i
         else:
