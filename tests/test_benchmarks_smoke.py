@@ -79,10 +79,10 @@ def test_place_benchmark_localises_through_the_index_with_a_fixed_state() -> Non
     assert small["recall_at_1"] > 0.9 and large["recall_at_1"] > 0.9
     assert small["state_bytes"] == large["state_bytes"]
     # one index pass serves the localiser's top_k plus the `exclusion` rows a stream's own trail may take
-    # and the rows of its short-term memory; the graph holds predecessor, successor and trail links, one
-    # int64 each per row (and row 0)
+    # and the rows of its short-term memory (none: the benchmark's stream never learned); the graph holds
+    # predecessor, successor and trail links, one int64 each per row (and row 0)
     conf = LocaliserParams()
-    assert large["candidates"] == conf.top_k + conf.exclusion + conf.short_term
+    assert large["candidates"] == conf.top_k + conf.exclusion
     assert large["graph_bytes"] == 3 * 8 * (20_000 + 1)
 
 

@@ -12,17 +12,20 @@ from __future__ import annotations
 
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from models.localisation.graph import NONE, SequenceGraph
 from models.localisation.index import Match
 from models.localisation.localiser import LocaliserState, Place, SequenceLocaliser
-from models.localisation.short_term import KEPT, ShortTerm
+from models.localisation.motion import NO_MOTION, Motion
+from models.localisation.short_term import KEPT, Anchor, ShortTerm, ring_moves
 from models.localisation.trail import CodeStats, OwnTrail, code_dice
 
 __all__ = ["Localisation", "graph_from_rows"]
+
+T = TypeVar("T")
 
 
 def graph_from_rows(rows: Iterable[Any]) -> SequenceGraph:
@@ -57,11 +60,13 @@ class Localisation:
         self.graph = SequenceGraph()
         self.codes = CodeStats(code_width)  # the stored frame codes' bit counts (§11.6)
         self.top_k = int(self.localiser.conf["top_k"])
-        self.short_term = int(self.localiser.conf["short_term"])
+        self.short_term = ring_moves(self.localiser.conf)  # the memories' size in moves (0: none)
         self.used = np.zeros(0, np.int64)
         self._last_row: dict[str, int] = {}  # each stream's last made row (its trail goes on from there)
-        # each stream's short-term memory (§11.6), the KEPT most recently learning streams', oldest first
+        # each trail's short-term memory and each stream's last move (§11.6), the KEPT most recently
+        # learning ones, oldest first
         self._short: OrderedDict[str, ShortTerm] = OrderedDict()
+        self._anchors: OrderedDict[str, Anchor] = OrderedDict()
         self.held = 0  # rows held (not dropped)
         self.visits = 0  # consolidated frames seen since the map was loaded
         self._tried: dict[int, int] = {}  # row -> confident frames it was not joined on (`explained`)
@@ -77,10 +82,11 @@ class Localisation:
                 `place`: the place the row joined, None for its own or a row stored before places).
             dropped: seqs no longer held (§11.9). joined: seq -> the row its learning stream revisited,
                 from the loop-closure log (the place of a row stored before places, §11.8).
-            visited: (previous row or None, row, clock[, stream, code]) of the visits kept, in log order:
-                their links and the rows' recency (the clock a visit's `after_seq` + 1, a lower bound of
-                the live one), and with the stream and the frame's code its short-term memory (§11.6):
-                rows and visits are taken in the order they were learned. A visit a repair re-made as a
+            visited: (previous row or None, row, clock[, stream, code[, motion]]) of the visits kept, in
+                log order: their links and the rows' recency (the clock a visit's `after_seq` + 1, a lower
+                bound of the live one), and with the stream, the frame's code and its `Motion` (from its
+                stored metadata) the short-term memory (§11.6): rows and visits are taken in the order
+                they were learned. A row's motion is its stored `metadata`'s. A visit a repair re-made as a
                 row has row NONE: only its step of the memory, no link, no recency.
             used: row -> the clock of its last use by a later step, as the live map recorded it (the
                 store's `recency`): with it the rows' recency is the live map's exactly (§11.9).
@@ -93,7 +99,7 @@ class Localisation:
         self.graph = SequenceGraph()
         self.codes.rebuild([])
         self.used = np.zeros(0, np.int64)
-        self._last_row, self._short, self.held = {}, OrderedDict(), 0
+        self._last_row, self._short, self._anchors, self.held = {}, OrderedDict(), OrderedDict(), 0
         joined = joined or {}
         gone, remade, unjoined = set(dropped), set(remade), set(unjoined)
         # Rows and visits in the order they were learned (a visit's clock is its `after_seq` + 1), so each
@@ -107,7 +113,8 @@ class Localisation:
             if place is None and seq in joined and seq not in unjoined:
                 place = int(self.graph.place[joined[seq]])
             self.add(seq, row.context_prev_seq, row.input_sdr, stream=row.stream,
-                     place=-1 if place is None else int(place), remade=seq in remade)
+                     place=-1 if place is None else int(place), remade=seq in remade,
+                     motion=Motion.of(getattr(row, "metadata", None)))
         for row, old in folded:  # after every row: a join names rows stored before it
             self.fold(int(row), int(old))
         for seq in sorted(gone):
@@ -119,13 +126,14 @@ class Localisation:
             self.touch(row, clock)
 
     def add(self, seq: int, prev: int | None, code: np.ndarray, *, stream: str = "", place: int = -1,
-            remade: bool = False) -> None:
+            remade: bool = False, motion: Motion = NO_MOTION) -> None:
         """A row just learned, after `prev` (None: the start of a sequence), its frame code, and the place
         it shows (-1: a new place). It continues `prev`'s trail only when `prev` is its stream's last made
         row; after a consolidated frame `prev` is a row it visited, and a new trail starts (§11.8), and
         the stream's last made row, if it had no successor, gets this one. `remade`: a row a repair
         re-made from a visit (§11.6), learned long before its seq: a trail of its own after `prev`, not
-        its stream's last row, no step of its short-term memory (its visit was that step)."""
+        its stream's last row, no step of its short-term memory (its visit was that step). `motion`: the
+        frame's pose, stamp and trail (its short-term memory, §11.6)."""
         own = None if remade else self._last_row.get(stream)
         joins = prev is not None and own == prev
         self.graph.append(seq, -1 if prev is None else prev, place=place, joins=joins)
@@ -134,7 +142,7 @@ class Localisation:
             self.graph.link(own, seq, successor=True)
         if not remade:
             self._last_row[stream] = seq
-            self._learned(stream, seq, code)
+            self._learned(stream, seq, code, motion)
         self.codes.add(code)
         if seq >= self.used.size:
             grow = max(seq + 1, 2 * self.used.size, 16) - self.used.size
@@ -148,35 +156,35 @@ class Localisation:
             self.used[row] = max(int(self.used[row]), int(clock))
 
     def visit(self, prev: int | None, row: int, clock: int, stream: str | None = None,
-              code: np.ndarray | None = None) -> None:
+              code: np.ndarray | None = None, motion: Motion = NO_MOTION) -> None:
         """A learning stream's frame consolidated into `row` after `prev` (its last row, None: none), at
         `clock`: the link, and the row's recency (§11.8); with `stream` and the frame's `code`, a learned
-        frame of that stream that made no row (its short-term memory, §11.6)."""
+        frame of that stream that made no row (its short-term memory, §11.6; `motion` as in `add`)."""
         if prev is not None:
             self.graph.link(prev, row)
         self.touch(row, clock)
         if stream is not None and code is not None:
-            self._learned(stream, NONE, code)
+            self._learned(stream, NONE, code, motion)
 
-    def _learned(self, stream: str, row: int, code: np.ndarray) -> None:
-        """A learned frame of `stream` into its short-term memory, before its code joins the statistics
-        (so a rebuild, which adds the rows in the same order, gives the same moves)."""
+    def _learned(self, stream: str, row: int, code: np.ndarray, motion: Motion) -> None:
+        """A learned frame of `stream` into its trail's short-term memory (`motion.trail`, else the
+        stream's own), before its code joins the statistics (so a rebuild, which adds the rows in the
+        same order, gives the same moves)."""
         if not self.short_term:
             return
-        memory = self._short.get(stream)
-        if memory is None:
-            memory = self._short[stream] = ShortTerm(self.short_term)
-            if len(self._short) > KEPT:
-                self._short.popitem(last=False)
-        self._short.move_to_end(stream)
+        anchor = _recent(self._anchors, stream, Anchor)
+        trail = motion.trail or stream
+        memory = _recent(self._short, trail, lambda: ShortTerm(self.short_term))
         code = np.asarray(code, np.int64)
         b = self.codes.background(code)
-        memory.step(row, code, b + float(self.localiser.conf["departure"]) * (1.0 - b))
+        conf = self.localiser.conf
+        memory.add(row, anchor.move(code, b + float(conf["departure"]) * (1.0 - b), motion, conf), stream)
 
-    def short_term_rows(self, stream: str) -> np.ndarray:
-        """(m,) int64 ascending: the rows `stream` made over its last `short_term` moves and still holds,
-        its short-term memory (`ShortTerm`, docs/design/science.md §11.6)."""
-        memory = self._short.get(stream)
+    def short_term_rows(self, trail: str) -> np.ndarray:
+        """(m,) int64 ascending: the rows `trail`'s streams made over its last moves and still held,
+        its short-term memory (`ShortTerm`, docs/design/science.md §11.6); a stream's trail is its own
+        name unless its frames name another (`Motion.trail`)."""
+        memory = self._short.get(trail)
         if memory is None:
             return np.zeros(0, np.int64)
         rows = memory.rows()
@@ -220,8 +228,8 @@ class Localisation:
         (the frames before a first answer and the rival window after it, §11.8)."""
         return int(self.localiser.conf["warmup"]) + int(self.localiser.conf["exclusion"])
 
-    def explained(self, stream: str, place: Place, direction: int, code_of: Callable[[int], np.ndarray]
-                  ) -> list[tuple[int, int]]:
+    def explained(self, stream: str, place: Place, direction: int, code_of: Callable[[int], np.ndarray],
+                  trail: str | None = None) -> list[tuple[int, int]]:
         """The warm-up joins a learning stream's confident revisit `place` gives (docs/design/science.md
         §11.8): (row, old row) for each of the stream's newest `reach` rows that is a place of its own
         (made while it warmed up or was unsure; nothing named it since), that the path covers (made
@@ -233,13 +241,13 @@ class Localisation:
         there merges places that far apart. The old row is never of a place a row of the stream's
         short-term memory shows, nor of the trail the joined row lies on. Each row is tried on at most
         `exclusion` confident frames: O(reach · JOIN_SLACK) code reads on such a frame, O(reach) on the
-        rest.
+        rest. `trail`: the short-term memory the stream learns into (`Motion.trail`; None: its own).
         """
         c = float(self.localiser.conf["consolidate"])
-        memory = self._short.get(stream)
+        memory = self._short.get(trail or stream)
         if c >= 1.0 or memory is None:
             return []
-        short = self.short_term_rows(stream)
+        short = self.short_term_rows(trail or stream)
         if not short.size:
             return []
         g = self.graph
@@ -249,7 +257,7 @@ class Localisation:
                 if alone and self._tried.get(r, 0) < tries]
         if not rows:
             return []
-        ages = memory.ages()
+        ages = memory.ages(stream)
         rows = [r for r in rows if ages.get(r, place.support) + 1 < place.support]  # the path covers it
         if not rows:
             return []
@@ -310,10 +318,11 @@ class Localisation:
                 break
         return out
 
-    def candidates_wanted(self, top_k: int) -> int:
+    def candidates_wanted(self, top_k: int, short_term: int = 0) -> int:
         """How many ranked rows one index pass must return for `top_k` matches and the localiser (whose
-        candidates leave out up to `exclusion` of them: the stream's own rows behind those not left)."""
-        return max(top_k, self.top_k + int(self.localiser.conf["exclusion"]) + self.short_term)
+        candidates leave out up to `exclusion` of them, the stream's own rows behind those not left, and
+        the `short_term` rows of its memory: a slow robot's holds hundreds)."""
+        return max(top_k, self.top_k + int(self.localiser.conf["exclusion"]) + int(short_term))
 
     def new_state(self) -> LocaliserState:
         return self.localiser.new_state()
@@ -343,3 +352,14 @@ class Localisation:
         seqs = np.fromiter((m.seq for m in ranked), np.int64, len(ranked))
         scores = np.fromiter((m.score for m in ranked), np.float64, len(ranked))
         return self.localiser.step(state, self.graph, seqs, scores, own, informative)
+
+
+def _recent(kept: OrderedDict[str, T], key: str, new: Callable[[], T]) -> T:
+    """`kept[key]` (made by `new` where missing), now the most recent; the least recent beyond KEPT go."""
+    value = kept.get(key)
+    if value is None:
+        value = kept[key] = new()
+        if len(kept) > KEPT:
+            kept.popitem(last=False)
+    kept.move_to_end(key)
+    return value

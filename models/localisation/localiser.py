@@ -26,7 +26,7 @@ import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from models.localisation.graph import NONE, SequenceGraph
-from models.localisation.short_term import ShortTerm
+from models.localisation.short_term import ShortTerm, ring_moves
 from models.localisation.trail import UNKNOWN, CodeStats, OwnTrail, own_trail
 from models.presets import check_section
 
@@ -96,6 +96,13 @@ class LocaliserParams(BaseModel):
     # `beam` rows; at that bound the gate never closes)
     span_margin: float = Field(1.5, ge=0.0, le=100.0)
     span_max: int = Field(3, ge=1, le=4096)
+    # With poses (`metadata.pose`, §11.6) the memory is the rows made over the last `short_term_metres`
+    # of path (the sum of the moves' lengths; 0: poses play no part, moves by appearance), a move a pose
+    # at least `move_metres` from the last move's, and a step faster than `max_speed` (m/s, from the
+    # stamps) a reset: no distance
+    short_term_metres: float = Field(20.0, ge=0.0, le=1e5)
+    move_metres: float = Field(1.0, gt=0.0, le=1e4)
+    max_speed: float = Field(50.0, gt=0.0, le=1e4)
 
 
 #: Every option's default (LocaliserParams; meanings and why: docs/design/science.md §11.3).
@@ -300,7 +307,7 @@ class SequenceLocaliser:
         float64, and the last code taken in, at most width int64), and with `short_term` its short-term
         memory (§11.6, `ShortTerm.nbytes`)."""
         condition = 8 * (2 * int(code_width) + 2) if int(self.conf["condition_frames"]) else 0
-        moves = int(self.conf["short_term"])
+        moves = ring_moves(self.conf)
         # the map keeps the memories of up to KEPT (twice the default stream cap) streams: two per stream
         short = 2 * ShortTerm.nbytes(moves, code_width) if moves else 0
         return self.state_bytes() + condition + short

@@ -1,80 +1,168 @@
-"""A stream's short-term memory (docs/design/science.md §11.6): the rows it made over its last
-`short_term` moves, which are never loop candidates, states of its paths or rows its frames are
-consolidated into.
+"""A trail's short-term memory (docs/design/science.md §11.6): the rows its streams made over their last
+`short_term` moves, or their last `short_term_metres` of path where frames carry poses; those rows are
+never loop candidates, states of its paths or rows its frames are consolidated into.
 
-A move is a learned frame unlike the stream's last **anchor** (the frame of its last move) by the
-departure level of the own-trail rule: Dice(frame, anchor) < b + departure · (1 − b), b the frame's
-background likeness. Frames alike to the anchor (a robot that stands, a slower robot's extra frames, a
-plateau where nothing changes) are no moves: the rows they make stay in the memory however many there
-are, so the memory spans the same stretch of route at any frame rate. Clock time, frames not learned
-and frames of other streams do not age it either. A learned frame consolidated into a row it visited
-(known ground) is a move like any other but makes no row.
+A **move** is judged by each stream against its last move's frame (its `Anchor`):
+- with poses (`Motion.pose`) on the frame and on the anchor, a pose at least `move_metres` from the
+  anchor's; it covers its distance of the memory's `short_term_metres`. A step from the stream's last
+  posed frame longer than `max_speed` x Δt (Δt from the stamps) is a **reset** (a relocalisation, an
+  odometry jump, a teleport): a move that covers nothing, the memory goes on from the new pose. With
+  Δt <= 0 (a bag replayed in a loop, a clock stepped back) a step of `move_metres` or more is a reset;
+  without stamps there is no speed to check and a step is distance;
+- otherwise by appearance: Dice(frame, anchor) < b + departure · (1 − b), b the frame's background
+  likeness; it covers 1 / `short_term` of the memory.
+Frames that are no move (a robot that stands, a slower robot's extra frames, a plateau) cover nothing: the
+rows they make stay in the memory however many there are. Clock time, frames not learned and frames of
+other trails do not age it. A learned frame consolidated into a row it visited (known ground) is a move
+like any other but makes no row.
+
+Streams that name one trail (`Motion.trail`: two cameras of one robot, a renamed node) share its memory:
+it spans back until one of them has covered the whole of it, so two cameras driving together hold the
+rows of the last D metres (not D/2), and a renamed node holds the old name's last D metres until the new
+one has driven D itself.
 """
 
 from __future__ import annotations
 
+import math
+from collections import OrderedDict
+from collections.abc import Mapping
+from typing import Any
+
 import numpy as np
 
 from models.localisation.graph import NONE
+from models.localisation.motion import Motion
 from models.localisation.trail import code_dice
 
-__all__ = ["KEPT", "SPAN", "ShortTerm"]
+__all__ = ["KEPT", "SLOTS", "SPAN", "Anchor", "ShortTerm", "ring_moves"]
 
-#: The most learned frames a stream's memory remembers, as a multiple of its moves: a robot that stays
-#: in one place (its frames all alike) for longer than SPAN x `short_term` learned frames loses the rows
-#: from before its stop from the memory. It bounds the memory: 8 bytes a frame (`nbytes`).
+#: The most learned frames a trail's memory remembers, as a multiple of its moves (`ring_moves`): a robot
+#: that stays in one place (its frames all alike, its pose within `move_metres`) for longer than SPAN x
+#: that many learned frames loses the rows from before its stop from the memory. It bounds the memory:
+#: 17 bytes a frame (`nbytes`).
 SPAN = 50
-#: How many streams' memories a map keeps, the most recently learning first: twice the default
-#: `CORTEXLOC_MAX_STREAMS`, so a stream evicted for another (or renamed back) finds its memory again,
-#: and a map fed a new stream name every drive stays bounded (at most KEPT x `ShortTerm.nbytes`).
+#: How many streams' anchors and trails' memories a map keeps, the most recently learning first: twice
+#: the default `CORTEXLOC_MAX_STREAMS`, so a stream evicted for another (or renamed back) finds its
+#: memory again, and a map fed a new stream name every drive stays bounded (at most KEPT x
+#: `ShortTerm.nbytes`).
 KEPT = 128
+#: Streams one trail tells apart (each covers the memory on its own); a further one takes the least
+#: recently learning one's place, and that one's frames in the ring count as its own.
+SLOTS = 8
+#: A span below 1 by less than this is the whole memory (20 x 1/20 sums to 0.9999999999999999).
+_EPS = 1e-9
+
+
+def ring_moves(conf: Mapping[str, Any]) -> int:
+    """How many moves a memory's ring is sized for: `short_term`, or the most moves of `move_metres`
+    that `short_term_metres` holds where more (at most 1,000, `short_term`'s bound); 0: no memory."""
+    moves = int(conf["short_term"])
+    if not moves:
+        return 0
+    metres, step = float(conf["short_term_metres"]), float(conf["move_metres"])
+    return max(moves, min(1000, math.ceil(metres / step))) if metres > 0 else moves
+
+
+class Anchor:
+    """One stream's last move (its code and pose) and its last posed learned frame (pose and stamp)."""
+
+    def __init__(self) -> None:
+        self.code: np.ndarray | None = None
+        self.pose: tuple[float, float] | None = None
+        self.last: tuple[tuple[float, float], float | None] | None = None
+
+    def move(self, code: np.ndarray, level: float, motion: Motion, conf: Mapping[str, Any]) -> float | None:
+        """The share of the memory this learned frame covers, as a move (0 for a reset), or None when it
+        is no move. `code` (n,) sorted; `level` its departure level (the Dice below which it moved by
+        appearance); `conf` the localiser options (`short_term`, `short_term_metres`, `move_metres`,
+        `max_speed`)."""
+        metres = float(conf["short_term_metres"])
+        pose = motion.pose if metres > 0 else None
+        reset = False
+        if pose is not None:
+            if self.last is not None:
+                (lx, ly), stamp = self.last
+                step = math.hypot(pose[0] - lx, pose[1] - ly)
+                dt = None if stamp is None or motion.stamp is None else motion.stamp - stamp
+                if dt is not None and dt > 0:
+                    reset = step > float(conf["max_speed"]) * dt
+                elif dt is not None:  # no time to judge a speed by: a move's worth of step is a jump
+                    reset = step >= float(conf["move_metres"])
+            self.last = (pose, motion.stamp)
+        if reset:
+            self.code, self.pose = np.asarray(code), pose
+            return 0.0
+        if pose is not None and self.pose is not None:
+            gone = math.hypot(pose[0] - self.pose[0], pose[1] - self.pose[1])
+            if gone < float(conf["move_metres"]):
+                return None
+            self.code, self.pose = np.asarray(code), pose
+            return gone / metres
+        # no pose on the frame or on its anchor: by appearance
+        if self.code is not None and code_dice(code, self.code) >= level:
+            return None
+        self.code, self.pose = np.asarray(code), pose
+        return 1.0 / int(conf["short_term"])
 
 
 class ShortTerm:
-    """One stream's short-term memory: a ring of its last SPAN x `moves` learned frames, each the row it
-    made (or NONE) and whether it was a move, and the code of its last move (the anchor).
+    """One trail's short-term memory: a ring of its streams' last SPAN x `moves` learned frames, each the
+    row it made (or NONE), the share of the memory it covered (0: no move) and its stream's slot.
 
     Args:
-        moves: how many moves it spans (`LocaliserParams.short_term`, >= 1).
+        moves: the ring's size in moves (`ring_moves`, >= 1).
     """
 
     def __init__(self, moves: int) -> None:
-        self.moves = int(moves)
-        # each learned frame: (row made + 1) * 2 + moved (row NONE: a frame that made no row); 0: empty
-        self._frames = np.zeros(SPAN * self.moves, np.int64)
+        size = SPAN * int(moves)
+        self._rows = np.full(size, NONE, np.int64)
+        self._span = np.zeros(size, np.float64)
+        self._slot = np.zeros(size, np.int8)
         self._n = 0  # frames taken in, ever (the ring's write position is _n % size)
-        self._anchor: np.ndarray | None = None
+        self._slots: OrderedDict[str, int] = OrderedDict()  # stream -> slot, least recently learning first
 
     @staticmethod
     def nbytes(moves: int, code_width: int) -> int:
-        """Bytes one stream's memory holds at most: the ring and an anchor of up to `code_width` bits."""
-        return 8 * (SPAN * int(moves) + int(code_width))
+        """Bytes one stream's memory holds at most: the ring (17 bytes a frame) and its stream's anchor,
+        a code of up to `code_width` bits."""
+        return 17 * SPAN * int(moves) + 8 * int(code_width)
 
-    def step(self, row: int, code: np.ndarray, level: float) -> None:
-        """One learned frame of the stream: `row` the row it made (NONE: consolidated), `code` (n,) its
-        sorted code, `level` its departure level (the Dice below which it moved from the anchor)."""
-        moved = self._anchor is None or code_dice(code, self._anchor) < level
-        if moved:
-            self._anchor = np.asarray(code)
-        self._frames[self._n % self._frames.size] = (int(row) + 1) * 2 + int(moved)
+    def add(self, row: int, span: float | None, stream: str = "") -> None:
+        """One learned frame of `stream`: `row` the row it made (NONE: consolidated), `span` the share of
+        the memory it covered as a move (`Anchor.move`; None: no move)."""
+        slot = self._slots.get(stream)
+        if slot is None:
+            slot = len(self._slots) if len(self._slots) < SLOTS else self._slots.popitem(last=False)[1]
+            self._slots[stream] = slot
+        self._slots.move_to_end(stream)
+        i = self._n % self._rows.size
+        self._rows[i], self._span[i], self._slot[i] = int(row), 0.0 if span is None else span, slot
         self._n += 1
 
-    def ages(self) -> dict[int, int]:
-        """Each row the memory remembers -> how many of the stream's learned frames came after it (0: its
-        row was the last frame's). O(frames remembered)."""
-        size = self._frames.size
+    def ages(self, stream: str = "") -> dict[int, int]:
+        """Each row `stream` made that the memory remembers -> how many of that stream's learned frames
+        came after it (0: its row was the stream's last frame's); a trail's other streams' frames do not
+        count. O(frames remembered)."""
+        slot = self._slots.get(stream)
+        if slot is None:
+            return {}
+        size = self._rows.size
         held = min(self._n, size)
-        rows = self._frames[(self._n - 1 - np.arange(held)) % size] // 2 - 1  # newest first
+        idx = (self._n - 1 - np.arange(held)) % size  # newest first
+        rows = self._rows[idx[self._slot[idx] == slot]]
         return {int(r): i for i, r in enumerate(rows.tolist()) if r != NONE}
 
     def rows(self) -> np.ndarray:
-        """(m,) int64 ascending: the rows made over the last `moves` moves (the frames since the oldest
-        of them, the frames alike to it included). O(frames remembered), vectorised."""
-        size = self._frames.size
+        """(m,) int64 ascending: the rows made since one of the trail's streams last covered the whole
+        memory (the frames since its oldest move, the frames alike to it included). O(frames
+        remembered · streams), vectorised."""
+        size = self._rows.size
         held = min(self._n, size)
         idx = (self._n - 1 - np.arange(held)) % size  # newest first
-        entries = self._frames[idx]
-        moved = np.cumsum(entries % 2)
-        upto = int(np.searchsorted(moved, self.moves)) + 1  # through the frame of the moves-th move
-        rows = entries[:upto] // 2 - 1
+        upto = held
+        for slot in set(self._slots.values()):
+            covered = np.cumsum(np.where(self._slot[idx] == slot, self._span[idx], 0.0))
+            upto = min(upto, int(np.searchsorted(covered, 1.0 - _EPS)) + 1)  # through the covering move
+        rows = self._rows[idx[:upto]]
         return np.sort(rows[rows != NONE])

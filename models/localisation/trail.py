@@ -74,9 +74,11 @@ class OwnTrail(NamedTuple):
 
     def born(self, graph: SequenceGraph, rows: np.ndarray, now: int, margin: int) -> np.ndarray:
         """(H,) `born` of paths that start now on `rows` (H,), `now` the map's row count: the oldest row of
-        the stream's short-term memory for a path that starts on its trail within `margin` links behind
-        that row (just behind the memory: where an echo of it starts, §11.6), so `laid_behind` follows it
-        over the rows it walks onto; `now` for every other."""
+        the stream's short-term memory for a path that starts on its trail within `margin` links, or a
+        quarter of the memory's rows where more, behind that row (just behind the memory: where an echo
+        of it starts, §11.6), so `laid_behind` follows it over the rows it walks onto; `now` for every
+        other. The quarter: the memory is 20 moves and `margin` 5 links at one row a move; a robot that
+        makes 10 rows a move lays its echo 10 times as many rows back."""
         rows = np.asarray(rows, np.int64)
         out = np.full(rows.size, int(now), np.int64)
         if not self.short_term.size or not self.has_trail or not rows.size:
@@ -85,7 +87,7 @@ class OwnTrail(NamedTuple):
         near = (rows < oldest) & (graph.trail[rows] == self.trail)
         if near.any():
             behind, row = set(), oldest
-            for _ in range(margin):  # the rows up to `margin` links before the memory's oldest
+            for _ in range(max(margin, self.short_term.size // 4)):  # the rows just before the oldest
                 row = int(graph.prev[row])
                 if row < 0 or graph.trail[row] != self.trail:
                     break

@@ -27,6 +27,7 @@ from models.frontend import slsbh
 from models.frontend.adaptation import RunningMean
 from models.localisation import InvertedIndex, Localisation, Match, Place, informative
 from models.localisation.condition import Condition
+from models.localisation.motion import NO_MOTION, Motion
 from models.localisation.trail import OwnTrail
 from models.memory import registry as memories
 from models.memory.temporal_memory import TemporalMemory
@@ -155,7 +156,8 @@ def _advance(st: Stream, learn: bool, seq: int | None, made: bool = True) -> Non
 
 def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, stream: str, top_k: int,
             code_of: Callable[[int], np.ndarray], seq: int | None = None,
-            threshold: float | None = None, contrast: float | None = None) -> Step:
+            threshold: float | None = None, contrast: float | None = None,
+            motion: Motion = NO_MOTION) -> Step:
     """One frame of one stream (docs/design/service.md §1.2, §6).
 
     Args:
@@ -181,6 +183,8 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             evidence to the localiser, leaves no row of the stream's trail, and its place is no revisit.
             It is still learned and ranked like any frame, and consolidated like an unconfident one (a
             visit of a flat appearance its path names: stored once per place at most).
+        motion: the frame's pose, stamp and trail (`Motion.of` its metadata): a learned frame's move in
+            its trail's short-term memory, and the trail whose memory is no candidate (§11.6).
 
     Returns:
         The step. The stream's bookkeeping is done; the caller stores a learned row (or the visit) after
@@ -222,13 +226,13 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         own = None  # it left every row it made and travels on rows it visited: none is where it is
     # Its short-term memory, the rows it made over its last moves whatever its trail, is no loop
     # candidate; the map keeps it, so a restart, an eviction or a switch of mode keeps it too (§11.6).
-    stm = model.links.short_term_rows(stream)
+    stm = model.links.short_term_rows(motion.trail or stream)
     if stm.size:
         own = OwnTrail.short_term_only(stm) if own is None else own.with_short_term(stm)
     # Bits the stream's recent frames share say what its conditions are, not where it is (§11.10).
     weights = None if st.condition is None else st.condition.weights(
         winners, model.cells_per_column(), float(model.links.localiser.conf["condition_discount"]))
-    ranked = model.index.rank(winners, model.links.candidates_wanted(top_k),
+    ranked = model.index.rank(winners, model.links.candidates_wanted(top_k, stm.size),
                               exclude_own=None if own is None or not own.has_trail else (stream, own.here),
                               weights=weights)
     t_ranked = time.perf_counter()
@@ -259,18 +263,18 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                 joined = place.place
         if place is not None and threshold is not None and place.is_revisit(threshold):
             # Rows it made while it warmed up or was unsure, that the path now explains (§11.8).
-            joins = links.explained(stream, place, int(st.localiser.dirs[0]), code_of)
+            joins = links.explained(stream, place, int(st.localiser.dirs[0]), code_of, motion.trail)
             for row, old in joins:
                 links.fold(row, old, seq)
                 touched.append(old)
             drop(model, [row for row, _ in joins])
         if visit is not None:
-            links.visit(prev, visit, seq, stream, code)
+            links.visit(prev, visit, seq, stream, code, motion)
             touched.append(visit)
             links.visits += 1
         else:
             model.index.add(seq, winners, stream)
-            links.add(seq, prev, code, stream=stream, place=joined)
+            links.add(seq, prev, code, stream=stream, place=joined, motion=motion)
             dropped = tuple(links.over_cap(joined, seq)) if joined >= 0 else ()
             drop(model, dropped)
     _condition(model, st, code)

@@ -28,6 +28,7 @@ from models.evaluation.online import OnlineAnswers
 from models.frontend import images as frontend_images
 from models.frontend import slsbh
 from models.localisation import Place, SequenceGraph, forgetting
+from models.localisation.motion import NO_MOTION, Motion
 from models.pipeline import MapModel, Stream, drop, observe
 from service.maps import keyframes
 from service.maps.config import MapConfig, MapOptions, map_model, resolve
@@ -128,7 +129,8 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
                 progress: Callable[[int, int], None] | None = None,
                 trace: dict[str, Any] | None = None, max_observations: int | None = None,
                 frames: Sequence[bytes] | None = None,
-                camera: dict[str, Any] | None = None) -> tuple[OnlineAnswers, float]:
+                camera: dict[str, Any] | None = None,
+                motions: Sequence[Motion] | None = None) -> tuple[OnlineAnswers, float]:
     """A whole route as ONE learning stream (every frame learned, `models.pipeline.observe` as the map
     writer calls it, forgetting at the cap and verifying as it does): loop closure while mapping
     (docs/design/science.md §11.6).
@@ -142,6 +144,8 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
             made a row), "revisit" (T,) bool, the answer is a revisit as the service replies it
             (after its verification), "verification" (T,) each answer's `VerificationResult` or None
             (no candidate, or a map without keyframes).
+        motions: (T,) each frame's pose, stamp and trail (`Motion`, as a served map reads them from
+            `metadata`; docs/design/science.md §11.6); None: none.
 
     Returns:
         (answers over the route's own frames: best = the frame the `place` names, -1 in warm-up;
@@ -164,7 +168,7 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
         query = None if kf is None else kf.query(i)
         step = observe(model, robot, y, learn=True, stream="robot", top_k=0, seq=seq,
                        code_of=codes.__getitem__, threshold=config.revisit_threshold,
-                       contrast=_at(contrast, i))
+                       contrast=_at(contrast, i), motion=NO_MOTION if motions is None else motions[i])
         if step.place is not None:
             revisit[i], verification[i] = _answered(step.place, config, kf, query, model.links.graph,
                                                     "robot", "robot")

@@ -17,13 +17,13 @@ import json
 import math
 import tempfile
 from collections.abc import Iterator
-from datetime import UTC, datetime
 from typing import IO, Any
 
 import numpy as np
 
 from models.geometry import quaternion
 from models.geometry.verify import is_rotation
+from models.localisation.motion import stamp_seconds
 from service.maps.results import LoopClosureResult, StoredRow, VerificationResult
 from storage.mapstore import LoopClosure, MapStore
 
@@ -85,24 +85,6 @@ def _result(c: LoopClosure) -> LoopClosureResult:
 def page(store: MapStore, after: int, limit: int) -> list[LoopClosureResult]:
     """At most `limit` logged loop closures after log id `after`, oldest first."""
     return [_result(c) for c in store.closures(after, limit)]
-
-
-def stamp_seconds(metadata: dict[str, Any] | None) -> float | None:
-    """`metadata.stamp` in seconds: a number as it is, a numeric string or ISO 8601 text converted;
-    None without one (a string that is neither)."""
-    stamp = (metadata or {}).get("stamp")
-    if isinstance(stamp, bool) or stamp is None:
-        return None
-    try:
-        seconds = float(stamp)  # a number, or a numeric string ("NaN" and "1e999" included)
-    except ValueError:
-        try:
-            when = datetime.fromisoformat(str(stamp))
-        except ValueError:
-            return None
-        # ISO text without an offset is UTC: the export must not depend on the server's time zone
-        seconds = (when if when.tzinfo else when.replace(tzinfo=UTC)).timestamp()
-    return seconds if math.isfinite(seconds) else None  # JSON has no NaN or Infinity
 
 
 def _finite(value: Any) -> Any:

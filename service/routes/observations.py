@@ -33,6 +33,7 @@ from service.maps.runtime import idempotency, stored
 from service.media_types import IMAGE_MEDIA_TYPES
 from service.routes.params import MAX_SEQ, MapId, Seq, StreamQuery
 from service.schemas import (
+    STREAM_PATTERN,
     MatchModel,
     ObservationModel,
     SequenceModel,
@@ -108,6 +109,8 @@ class _Metadata(BaseModel):
     stamp: float | str | None = None
     pose: _Pose | None = None
     camera: _Camera | None = None
+    # the short-term memory the stream shares (docs/design/science.md §11.6): a stream name
+    trail: str | None = Field(None, pattern=STREAM_PATTERN)
 
 
 def _depth(text: str) -> int:

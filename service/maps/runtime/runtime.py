@@ -42,6 +42,7 @@ from models.frontend import slsbh
 from models.frontend.images import RawFrame
 from models.localisation import InvertedIndex, Localisation, forgetting
 from models.localisation.graph import NONE
+from models.localisation.motion import Motion
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import Stream, eviction_wait, memory_state, touch
 from service.maps import keyframes, recovery
@@ -480,7 +481,7 @@ class MapRuntime:
         done = self.store.repairs()
         split = {r.visit for r in done if r.kind == "split"}
         visits = ((v.context_prev_seq, NONE if v.id in split else v.seq, v.after_seq + 1, v.stream,
-                   v.input_sdr) for v in self.store.visits())
+                   v.input_sdr, Motion.of(v.metadata)) for v in self.store.visits())
         self.model.links.rebuild(rows(), dropped, self.store.joined(), visits, self.store.recency(),
                                  remade={r.seq for r in done if r.kind == "split"},
                                  unjoined={r.seq for r in done if r.kind == "unjoin"},
@@ -679,7 +680,7 @@ class MapRuntime:
         seq = self.store.next_seq() if learn else None  # this thread is the store's only writer
         step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq,
                                 code_of=self._code_of, threshold=self.config.revisit_threshold,
-                                contrast=contrast)
+                                contrast=contrast, motion=Motion.of(metadata))
         if step.visit is not None:  # consolidated (§11.8): the memory learned it, no row is made
             seq = None
         # What a replay cannot rebuild of the stream, durable with its step: it resumes after a crash (§4.4).

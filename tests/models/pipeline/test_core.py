@@ -258,3 +258,62 @@ def test_consolidated_frames_move_the_short_term_memory_on_and_a_rebuild_replays
     assert int(links.short_term_rows("a")[0]) == first == 22
     # off: no short-term memory
     assert model("none", localiser={"short_term": 0}).links.short_term_rows("a").size == 0
+
+
+def test_a_slow_robots_short_term_memory_does_not_crowd_the_right_old_row_out_of_the_candidates() -> None:
+    """The index pass must return the localiser's `top_k` plus every row it leaves out: a robot parked at
+    a place it stored long ago holds dozens of rows of the stop in its memory, each more like its frames
+    than the old row, and a pass sized for `short_term` rows (not the memory's size) returned only them,
+    so the right place was never a candidate (review of issue 35; here the old row ranks 55th)."""
+    m, codes, st = model("none", localiser={"top_k": 5, "exclusion": 0}), {}, Stream()
+    rng = np.random.default_rng(11)
+    here = rng.normal(size=K)
+    old = (here + 0.6 * rng.normal(size=K))[None, :].astype(np.float32)
+    elsewhere = route(30, seed=12)
+    parked = (here + 0.2 * rng.normal(size=(60, K))).astype(np.float32)
+    learn = dict(threshold=None, top_k=0)  # nothing consolidated: every frame a row
+    for frames in (old, elsewhere, parked):
+        for y in frames:
+            seq = len(codes) + 1
+            codes[seq] = observe(m, st, y, learn=True, stream="a", seq=seq,
+                                 code_of=codes.__getitem__, **learn).code
+    assert m.links.short_term_rows("a").size > 5 + 20  # more than the old margin
+    seen = {}
+    step = m.links.step
+
+    def spy(state, ranked, own, informative=True):
+        seen["candidates"] = {r.seq for r in ranked} - set(own.short_term.tolist())
+        return step(state, ranked, own, informative)
+
+    m.links.step = spy
+    # evicted (or restarted without its state), then localising: no trail of its own leaves the stop's
+    # rows out of the pass, only its memory does
+    observe(m, Stream(), parked[-1], learn=False, stream="a", top_k=0, code_of=codes.__getitem__)
+    assert 1 in seen["candidates"]
+
+
+def test_two_cameras_that_name_one_trail_never_revisit_each_others_recent_rows() -> None:
+    """A robot that posts as two streams (two cameras over one route, `metadata.trail`): each stream's
+    rows are the other's best candidates, and as two trails the second camera "revisits" the first's
+    rows of a moment ago. Named as one trail, the memory of both (over its 20 m of path) is no candidate
+    of either."""
+    from models.localisation.motion import Motion
+
+    frames = slow_route(60, 1, 0.8, 3)
+    rng = np.random.default_rng(4)
+    named = {}
+    for trail in (None, "robot"):
+        m, codes, cams = model("none"), {}, {"front": Stream(), "rear": Stream()}
+        steps = {"front": [], "rear": []}
+        for i, y in enumerate(frames):
+            for name in cams:
+                seq = len(codes) + 1
+                view = y + 0.2 * rng.normal(size=K).astype(np.float32) if name == "rear" else y
+                step = observe(m, cams[name], view, learn=True, stream=name, top_k=3, seq=seq,
+                               code_of=codes.__getitem__, threshold=REVISIT,
+                               motion=Motion((float(i), 0.0), float(i), trail))
+                if step.visit is None:
+                    codes[seq] = step.code
+                steps[name].append(step)
+        named[trail] = revisits(steps["front"]) + revisits(steps["rear"])
+    assert named[None] > 0 and named["robot"] == 0

@@ -1,0 +1,55 @@
+"""Poses in a stream's short-term memory through the service (docs/design/science.md §11.6,
+docs/design/service.md §1.2): the options are the map's, shown and settable; `metadata.pose`, `stamp` and
+`trail` reach the memory, and a restart rebuilds the same memory from the stored metadata."""
+
+from __future__ import annotations
+
+import json
+
+from fastapi.testclient import TestClient
+
+from tests.service.helpers import frame, make_app, post
+
+DEFAULTS = {"short_term": 20, "short_term_metres": 20.0, "move_metres": 1.0, "max_speed": 50.0}
+
+
+def test_the_map_resource_shows_the_pose_options_and_a_map_sets_its_own(tmp_path):
+    data = tmp_path / "data"
+    options = {"short_term_metres": 35.0, "move_metres": 0.5, "max_speed": 2.0}
+    with TestClient(make_app(data)) as c:
+        shown = c.get("/v1/maps/default").json()["params"]["localiser"]
+        assert {k: shown[k] for k in DEFAULTS} == DEFAULTS
+        assert c.post("/v1/maps", json={"map_id": "lab", "localiser": options}).status_code == 201
+        r = c.post("/v1/maps", json={"map_id": "bad", "localiser": {"max_speed": 0}})
+        assert r.status_code == 422 and "max_speed" in r.text
+    with TestClient(make_app(data)) as c:
+        shown = c.get("/v1/maps/lab").json()["params"]["localiser"]
+        assert {k: shown[k] for k in options} == options
+
+
+def test_a_restart_rebuilds_the_same_memory_from_the_stored_poses_stamps_and_trail(tmp_path):
+    """Two cameras name one trail and drive 1 m a frame, with a relocalisation (a 500 m jump) and a
+    frame without a pose on the way: the trail's memory after a restart (rebuilt from the stored rows'
+    metadata) is the live one."""
+    data = tmp_path / "data"
+
+    def meta(i: int) -> str:
+        m = {"stamp": 1000.0 + i, "trail": "robot", "pose": {"x": float(i) + (500.0 if i >= 20 else 0.0),
+                                                             "y": 0.0, "yaw": 0.0}}
+        if i == 25:
+            m.pop("pose")
+        return json.dumps(m, separators=(",", ":"))
+
+    with TestClient(make_app(data)) as c:
+        for i in range(40):
+            for cam in ("front", "rear"):
+                r = post(c, frame(i, noise=3.0 if cam == "rear" else 0.0), stream=cam, top_k=0,
+                         metadata=meta(i))
+                assert r.status_code == 200, r.text
+        links = c.app.state.registry.get("default").model.links
+        live = links.short_term_rows("robot").tolist()
+        assert links.short_term_rows("front").size == 0
+    # 20 m back, across the jump (no distance) and the frame without a pose (a move by appearance)
+    assert 30 <= len(live) < 80
+    with TestClient(make_app(data)) as c:
+        assert c.app.state.registry.get("default").model.links.short_term_rows("robot").tolist() == live
