@@ -194,9 +194,11 @@ async def _post(http: httpx.AsyncClient, url: str, body: bytes, params: dict[str
     raise RuntimeError(f"POST {url}: overloaded 100 times in a row")
 
 
-async def create_map(http: httpx.AsyncClient, base: str, map_id: str, seed: str) -> dict[str, Any]:
-    """A new map with no option but `seed` (none for `default`); its resource."""
-    body: dict[str, Any] = {"map_id": map_id}
+async def create_map(http: httpx.AsyncClient, base: str, map_id: str, seed: str,
+                     localiser: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A new map with no option but `seed` (none for `default`) and, for an ablation, `localiser`
+    options; its resource."""
+    body: dict[str, Any] = {"map_id": map_id, **({"localiser": localiser} if localiser else {})}
     if seed != DEFAULT_SEED:
         body["seed"] = int(seed)
     r = await http.post(f"{base}/v1/maps", json=body)
@@ -208,13 +210,14 @@ async def create_map(http: httpx.AsyncClient, base: str, map_id: str, seed: str)
 
 
 async def run_map(http: httpx.AsyncClient, base: str, map_id: str, seed: str, route: Route, mode: str,
-                  gate: asyncio.Semaphore, poses: bool = False) -> dict[str, Any]:
+                  gate: asyncio.Semaphore, poses: bool = False,
+                  localiser: dict[str, Any] | None = None) -> dict[str, Any]:
     """Drive `route` into a new map: `slam` one learning stream throughout; `localise` the mapping laps
     learned by stream `robot`, lap 2 localised (`learn=false`) by stream `query`; `poses`: each frame
     with its stamp and pose as metadata."""
     async with gate:
         t0 = time.perf_counter()
-        resource = await create_map(http, base, map_id, seed)
+        resource = await create_map(http, base, map_id, seed, localiser)
         url = f"{base}/v1/maps/{map_id}/observations"
         replies = []
         for i, body in enumerate(route.pngs):
@@ -387,7 +390,7 @@ def table(result: dict[str, Any]) -> str:
 
 
 async def _drive_all(base: str, routes: dict[str, Route], seeds: list[str], concurrency: int,
-                     poses: bool) -> dict[str, list[dict[str, Any]]]:
+                     poses: bool, localiser: dict[str, Any] | None) -> dict[str, list[dict[str, Any]]]:
     gate = asyncio.Semaphore(concurrency)
     limits = httpx.Limits(max_connections=concurrency, max_keepalive_connections=concurrency)
     jobs: list[tuple[str, Any]] = []
@@ -396,7 +399,7 @@ async def _drive_all(base: str, routes: dict[str, Route], seeds: list[str], conc
             for seed in seeds:
                 for mode in ("slam", "localise"):
                     jobs.append((name, run_map(http, base, f"{name}-{mode}-{seed}", seed, r, mode, gate,
-                                                poses)))
+                                                poses, localiser)))
         done = await asyncio.gather(*(j for _, j in jobs))
     out: dict[str, list[dict[str, Any]]] = {}
     for (name, _), run in zip(jobs, done, strict=True):
@@ -405,7 +408,7 @@ async def _drive_all(base: str, routes: dict[str, Route], seeds: list[str], conc
 
 
 def run(*, data: Path, routes: list[str], seeds: list[str], sizes: Sizes, concurrency: int,
-        keep: bool = False, poses: bool = False) -> dict[str, Any]:
+        keep: bool = False, poses: bool = False, localiser: dict[str, Any] | None = None) -> dict[str, Any]:
     """Build the routes, start the server, drive every map, score: {"config", "routes": {name: {frames,
     seeds: [per seed], openseqslam_recall_at_100p, worst}}, "wall_s"}."""
     t0 = time.perf_counter()
@@ -417,13 +420,13 @@ def run(*, data: Path, routes: list[str], seeds: list[str], sizes: Sizes, concur
         server.wait_ready()
         ready = httpx.get(f"{server.base}/readyz", timeout=30).json()["checks"]["encoder"]
         t_drive = time.perf_counter()
-        runs = asyncio.run(_drive_all(server.base, built, seeds, concurrency, poses))
+        runs = asyncio.run(_drive_all(server.base, built, seeds, concurrency, poses, localiser))
         drive_s = time.perf_counter() - t_drive
         layout = Layout(tmp / "var")
         result: dict[str, Any] = {"config": {
             "data": str(data), "sizes": sizes.__dict__, "seeds": seeds, "tolerance": TOLERANCE,
             "backbone": ready.get("backbone"), "runtime": ready.get("runtime"), "concurrency": concurrency,
-            "poses": poses},
+            "poses": poses, "localiser": localiser},
             "routes": {}}
         for name, r in built.items():
             by_seed: dict[str, dict[str, Any]] = {}
@@ -458,11 +461,14 @@ def main() -> None:
     ap.add_argument("--keep", action="store_true", help="keep the temporary data directory")
     ap.add_argument("--poses", action="store_true", help="post each frame's stamp and pose as metadata "
                     "(the corridor's true ones; outdoors the file index x 280 m on a line, assumed)")
+    ap.add_argument("--localiser", type=json.loads, default=None,
+                    help="the maps' localiser options as JSON, over the defaults (an ablation), e.g. "
+                    "'{\"span_max\": 4096}'")
     ap.add_argument("--out", type=Path, default=RESULTS / "loops_http.json")
     args = ap.parse_args()
     sizes = QUICK if quick_mode(args.quick) else Sizes()
     result = run(data=args.data, routes=args.routes, seeds=args.seeds, sizes=sizes,
-                 concurrency=args.concurrency, keep=args.keep, poses=args.poses)
+                 concurrency=args.concurrency, keep=args.keep, poses=args.poses, localiser=args.localiser)
     print(table(result), flush=True)
     print(f"{result['posts']} posts, driven in {result['drive_s']:.0f} s; {result['wall_s']:.0f} s in all",
           flush=True)
