@@ -64,6 +64,7 @@ from _common import RESULTS, quick_mode, write_json  # also puts the repo on sys
 from bench_http import Server
 
 from models.evaluation import corridor, datasets, seqslam, sequences, slam
+from models.localisation.localiser import reaches
 from service.evaluation import stress
 from service.evaluation.slam import grey
 from storage.layout import Layout
@@ -307,7 +308,7 @@ def score_seed(route: Route, slam_run: dict[str, Any], loc_run: dict[str, Any],
     ls = slam.score(best, conf, route.labels, loc_run["threshold"], TOLERANCE, route.laps,
                     slam.localise_truth(route.labels, route.laps, TOLERANCE))
     mapping, second, loc2 = s["lap"][0], s["lap"].get(1, {}), ls["lap"].get(1, {})
-    called = np.flatnonzero((route.laps == 0) & (a["best"] >= 0) & (a["confidence"] >= thr))
+    called = np.flatnonzero((route.laps == 0) & (a["best"] >= 0) & reaches(a["confidence"], thr))
     lags = {"frames": (called - a["best"][called]).tolist(),
             "labels": np.abs(route.labels[called] - route.labels[a["best"][called]]).tolist()}
     return {"seed": slam_run["seed"], "asked": slam_run["asked"], "threshold": thr,

@@ -47,7 +47,7 @@ def install(variant: str) -> None:
         if laid.any():
             c = float(loc.default_conf["consolidate"])
             # the absolute level needs the frame's background likeness, captured at `own_trail` (below)
-            level = STATS["b"] + c * (1.0 - STATS["b"])
+            level = trail.above_background(STATS["b"], c)
             laid[laid] = [trail.code_dice(self.code, np.asarray(self.code_of(int(r)))) < level
                           for r in np.asarray(rows)[laid]]
         return laid

@@ -35,6 +35,7 @@ import numpy as np
 
 from models.evaluation import datasets, sequences, slam
 from models.frontend.encoder import Encoder
+from models.localisation.localiser import reaches
 from models.pipeline import Stream, observe
 from service.encoder import resolve_backbone
 from service.evaluation import service_path, stress
@@ -138,7 +139,7 @@ def run(name: str, lo: int, seed: int, localiser: dict | None) -> dict:
             best[i] = frame_of[st.place.seq]
             conf[i] = st.place.confidence if st.place.informative else 0
     truth = slam.revisit_truth(labels, 1)
-    called = (best >= 0) & (conf >= config.revisit_threshold)
+    called = (best >= 0) & reaches(conf, config.revisit_threshold)
     right = (best >= 0) & (np.abs(labels[np.maximum(best, 0)] - labels) <= 1)
     false = np.flatnonzero(called & ~(truth & right))
     row_of = {f: q for q, f in frame_of.items()}

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from models.evaluation import datasets
+from models.localisation.localiser import reaches
 from models.pipeline import Stream, observe
 from service.evaluation import service_path, stress
 from service.evaluation.slam import encoder_setup
@@ -60,7 +61,7 @@ def run(frames: stress.Frames, kind: str, lo: int, seed: int, map_conf: dict[str
         if place is None:
             continue
         answered += 1
-        if not (place.informative and place.confidence >= config.revisit_threshold):
+        if not (place.informative and reaches(place.confidence, config.revisit_threshold)):  # no span gate
             continue
         truth = lo + j - n
         state = query.localiser

@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from models.localisation.localiser import reaches
+
 __all__ = ["Pass", "localise_score", "summary_row"]
 
 
@@ -34,7 +36,7 @@ def localise_score(p: Pass, threshold: float, tolerance: int) -> dict[str, Any]:
     visits of the pass."""
     answered = p.best >= 0
     right = answered & (np.abs(p.best - p.labels) <= tolerance)
-    called = answered & (p.confidence >= threshold)
+    called = answered & reaches(p.confidence, threshold)
     hit = int((called & right).sum())
     n = int(called.sum())
     return {"frames": int(p.labels.size), "revisits": n, "right_revisits": hit,

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from models.evaluation import metrics, seqslam
+from models.localisation.localiser import reaches
 
 __all__ = ["AWAY", "RECENT", "openseqslam_online", "revisit_truth", "score"]
 
@@ -81,7 +82,7 @@ def score(best: np.ndarray, confidence: np.ndarray, labels: np.ndarray, threshol
     right = truth & named
     either = truth | (np.zeros(lab.size, bool) if also_true is None else np.asarray(also_true, bool))
     fine = either & named
-    called = (best >= 0) & (conf >= threshold)
+    called = (best >= 0) & reaches(conf, threshold)
     out: dict[str, Any] = {"false_revisits": int((called & ~fine).sum()), "lap": {}}
     for lap in np.unique(laps):
         m = laps == lap

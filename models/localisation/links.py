@@ -176,9 +176,9 @@ class Localisation:
         trail = motion.trail or stream
         memory = _recent(self._short, trail, lambda: ShortTerm(self.short_term))
         code = np.asarray(code, np.int64)
-        b = self.codes.background(code)
         conf = self.localiser.conf
-        memory.add(row, anchor.move(code, b + float(conf["departure"]) * (1.0 - b), motion, conf), stream)
+        level = self.codes.level(code, float(conf["departure"]))
+        memory.add(row, anchor.move(code, level, motion, conf), stream)
 
     def short_term_rows(self, trail: str) -> np.ndarray:
         """(m,) int64 ascending: the rows `trail`'s streams made over its last moves and still held,
@@ -218,10 +218,9 @@ class Localisation:
         rows = self.appearances(place)
         if c >= 1.0 or not rows:
             return None
-        b = self.codes.background(code)
         sims = [code_dice(code, np.asarray(code_of(r))) for r in rows]
         best = int(np.argmax(sims))
-        return rows[best] if sims[best] >= b + c * (1.0 - b) else None
+        return rows[best] if sims[best] >= self.codes.level(code, c) else None
 
     def reach(self) -> int:
         """How many of a stream's newest rows a warm-up join looks back over: `warmup` + `exclusion`
@@ -272,10 +271,9 @@ class Localisation:
             old = old[(old < first) & (self.used[old] >= 0) & (g.trail[old] != g.trail[r])]
             old = np.array([o for o in old.tolist() if int(g.place[o]) not in mine], np.int64)
             code = np.asarray(code_of(r), np.int64)
-            b = self.codes.background(code)
             sims = [code_dice(code, np.asarray(code_of(o), np.int64)) for o in old.tolist()]
             best = int(np.argmax(sims)) if sims else -1
-            if best >= 0 and sims[best] >= b + c * (1.0 - b):
+            if best >= 0 and sims[best] >= self.codes.level(code, c):
                 out.append((r, int(old[best])))
             else:
                 self._tried[r] = self._tried.get(r, 0) + 1

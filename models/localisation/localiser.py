@@ -147,10 +147,28 @@ class Place(NamedTuple):
     span_seqs: tuple[int, ...] = ()
     narrow: bool = True
 
+    @property
+    def decidable(self) -> bool:
+        """Whether the answer may be a revisit at all (§11.7, §11.11): the frame informative, the span
+        at most `span_max` places."""
+        return self.informative and self.narrow
+
+    @property
+    def decided(self) -> float:
+        """The confidence the revisit decision compares: 0 where the answer is not `decidable`."""
+        return self.confidence if self.decidable else 0.0
+
     def is_revisit(self, threshold: float) -> bool:
-        """The revisit decision (docs/design/science.md §11.7, §11.11): confident enough, the frame
-        informative, the span at most `span_max` places."""
-        return self.informative and self.narrow and self.confidence >= threshold
+        """The revisit decision (docs/design/science.md §11.7, §11.11): `decidable`, and confident
+        enough (`reaches`)."""
+        return self.decidable and reaches(self.confidence, threshold)
+
+
+def reaches(confidence: Any, threshold: float) -> Any:
+    """The one rule of a confidence's threshold (docs/design/science.md §11.7): a revisit is called at a
+    confidence at or above it. Elementwise on an array of (decided) confidences, which is how the
+    evaluations score a pass (`Place.decided`, 0 where no revisit may be called)."""
+    return confidence >= threshold
 
 
 @dataclass

@@ -18,7 +18,7 @@ import numpy as np
 
 from models.localisation.graph import NONE, SequenceGraph
 
-__all__ = ["UNKNOWN", "CodeStats", "OwnTrail", "code_dice", "own_trail"]
+__all__ = ["UNKNOWN", "CodeStats", "OwnTrail", "above_background", "code_dice", "own_trail"]
 
 #: `LocaliserState.here` of a state saved before the own-trail rule: the stream's whole current trail
 #: counts as not left until a frame unlike it is seen (§11.6).
@@ -135,6 +135,13 @@ class OwnTrail(NamedTuple):
         return laid
 
 
+def above_background(background: float, share: float) -> float:
+    """The one rule of a level read above the background likeness (§11.6, §11.8): the Dice a `share` in
+    [0, 1] of the way from `background` (`CodeStats.background`, what unrelated codes share) to 1. The
+    departure level (a frame left a row, a move by appearance) and the consolidation level read it."""
+    return background + share * (1.0 - background)
+
+
 def code_dice(a: np.ndarray, b: np.ndarray) -> float:
     """Dice of two sorted, duplicate-free codes (index arrays): 2 |a ∩ b| / (|a| + |b|); 0 for two empty."""
     n = a.size + b.size
@@ -176,6 +183,10 @@ class CodeStats:
         code = np.asarray(code, np.int64)
         shared = self.counts[code].sum() / self.n
         return float(2.0 * shared / (code.size + self.bits / self.n))
+
+    def level(self, code: np.ndarray, share: float) -> float:
+        """The Dice `share` of the way above `code`'s background likeness (`above_background`)."""
+        return above_background(self.background(code), share)
 
 
 def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: np.ndarray,
@@ -220,8 +231,7 @@ def own_trail(state: TrailState, graph: SequenceGraph, last: int | None, code: n
     elif here < 0 or here > last + 1 or (here <= last and int(graph.trail[here]) != trail):
         # A new trail (a new sequence, or rows of others in between): only its last row may be its own.
         here, state.here_code = last, None
-    b = stats.background(code)
-    level = b + departure * (1.0 - b)
+    level = stats.level(code, departure)
     while informative and here <= last:
         if state.here_code is None:
             state.here_code = np.asarray(code_of(here))

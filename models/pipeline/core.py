@@ -128,8 +128,7 @@ class Step:
 def _remember(model: MapModel, st: Stream, code: np.ndarray, *, learn: bool, starts: bool) -> np.ndarray:
     """The memory's step on the stream's context; `starts`: the frame begins a new sequence."""
     if starts:
-        st.context.reset()
-        st.step, st.last_learned_seq, st.own_seq = 0, None, None
+        st.new_sequence()
     return memories.get(model.memory).winners(model.tm, code, learn, st.context)
 
 
@@ -210,7 +209,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     else:
         starts = False
         if st.context.active_cells.size == 0 and memories.get(model.memory).sequential:
-            st.step, st.last_learned_seq, st.own_seq = 0, None, None
+            st.new_sequence(context=False)
     winners = _remember(model, st, code, learn=learn, starts=starts)
     stats = st.context.stats.as_dict()
     t2 = time.perf_counter()

@@ -38,11 +38,19 @@ class Stream:
     # How often each code bit was on in the stream's recent frames (docs/design/science.md §11.10).
     condition: Condition | None = None
 
+    def new_sequence(self, context: bool = True) -> None:
+        """The one rule of a sequence's start (docs/design/service.md §1.3): no step counted, no learned
+        row or own row it continues; `context`: its TM context is emptied too (False: it is already
+        empty, nothing to break). The localiser's search, the adaptation and the condition are kept."""
+        if context:
+            self.context.reset()
+        self.step, self.last_learned_seq, self.own_seq = 0, None, None
+
     def break_sequence(self) -> None:
         """The next frame starts a new sequence (and a new search for the place); the adaptation and the
         condition are kept, because they describe the camera and the conditions, not where the robot is."""
-        self.context.reset()
-        self.step, self.last_learned_seq, self.localiser, self.own_seq = 0, None, None, None
+        self.new_sequence()
+        self.localiser = None
 
 
 def eviction_wait(streams: OrderedDict[str, Stream], name: str, max_streams: int, keep_seconds: float,

@@ -27,6 +27,7 @@ import numpy as np
 from models.evaluation import sequences
 from models.frontend.encoder import Encoder
 from models.frontend.images import RawFrame
+from models.localisation.localiser import reaches
 from service.evaluation import service_path
 from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 from service.settings import Settings
@@ -96,7 +97,7 @@ def resize_runs(db_dir: Path, query_dir: Path, *, offset: int = 0, limit: int = 
                                             create={"resize": mode})
                 answered = found.best >= 0
                 right = answered & (found.best == np.arange(n))
-                revisit = answered & (found.confidence >= DEFAULT_REVISIT_THRESHOLD)
+                revisit = answered & reaches(found.confidence, DEFAULT_REVISIT_THRESHOLD)
                 print(f"{shape:<6} {mode:<7} {seed:>4} {int(answered.sum()):>7} "
                       f"{right.sum() / max(int(answered.sum()), 1):>6.3f} {right[scored].mean():>6.3f} "
                       f"{int(revisit.sum()):>8} {int((revisit & right).sum()):>14}")

@@ -24,6 +24,7 @@ import numpy as np
 
 from models.evaluation import sequences
 from models.frontend.encoder import Encoder
+from models.localisation.localiser import reaches
 from service.evaluation import service_path
 from service.maps.config import DEFAULT_RESIZE, DEFAULT_REVISIT_THRESHOLD
 from service.settings import Settings
@@ -67,7 +68,7 @@ def revisit(folder: Path, *, offset: int = 0, limit: int = 894, noise: float = 8
     right = found.best == np.arange(len(paths))
     conf = found.confidence[answered]
     ok = right[answered]
-    at = conf >= DEFAULT_REVISIT_THRESHOLD
+    at = reaches(conf, DEFAULT_REVISIT_THRESHOLD)
     out = {"frames": len(paths), "answered": int(answered.sum()), "recall_at_1": float(ok.mean()),
            "confidence_right_mean": float(conf[ok].mean()) if ok.any() else None,
            "confidence_wrong_mean": float(conf[~ok].mean()) if (~ok).any() else None,

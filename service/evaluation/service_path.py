@@ -208,7 +208,7 @@ def _decided(place: Place, refused: bool = False) -> float:
     threshold or whose span is wider than `span_max` (`Place.is_revisit`, docs/design/science.md §11.7,
     §11.11), and for a candidate its verification
     `refused` on a map with `verify_revisit` (`keyframes.revisit_stands`, §12.2)."""
-    return place.confidence if place.informative and place.narrow and not refused else 0.0
+    return 0.0 if refused else place.decided
 
 
 def _answered(place: Place, config: MapConfig, kf: _Keyframes | None, query: keyframes.QueryFrame | None,

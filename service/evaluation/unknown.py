@@ -24,6 +24,7 @@ import numpy as np
 
 from models.evaluation import sequences
 from models.frontend.encoder import Encoder
+from models.localisation.localiser import reaches
 from service.evaluation import service_path
 from service.maps.config import DEFAULT_RESIZE
 from service.settings import Settings
@@ -87,7 +88,7 @@ def unknown(db: Path, query: Path, *, split: int, thresholds: list[float], backb
         answered = found.best >= 0
         right = answered & (found.best == np.arange(len(found.best)))
         for t in args.thresholds:
-            said = answered & (found.confidence >= t)
+            said = answered & reaches(found.confidence, t)
             precision = right[said].mean() if said.any() else float("nan")
             print(f"stored (rows {offset + h.start}-{offset + h.stop}) at {t}: precision {precision:.3f}, "
                   f"recall {said[right].sum() / max(int(right.sum()), 1):.3f} (R@1 {right.mean():.3f})")

@@ -31,7 +31,8 @@ from fastapi.responses import JSONResponse
 from service.errors import problem_response, problem_responses
 from service.schemas import Health, Readiness
 
-__all__ = ["Check", "check_catalog", "check_data_dir", "check_encoder", "check_maps", "readiness", "router"]
+__all__ = ["Check", "check_catalog", "check_data_dir", "check_encoder", "check_maps", "failing", "readiness",
+           "readiness_reply", "router"]
 
 Check = dict[str, Any]
 
@@ -153,6 +154,23 @@ def check_catalog(app: FastAPI) -> Check | None:
         return {"status": "fail", "error": f"{type(e).__name__}: {e}"}
 
 
+def failing(checks: dict[str, Check]) -> list[str]:
+    """The one rule of readiness (docs/design/service.md §1.6): the names of the checks that fail; the
+    service (a shard, or the ingress over its shards) is ready iff there is none. Warnings never count."""
+    return [name for name, c in checks.items() if c.get("status") == "fail"]
+
+
+def readiness_reply(request: Request, checks: dict[str, Check],
+                    warnings: list[str]) -> Readiness | JSONResponse:
+    """/readyz's reply: 200 `ready` with each check's result, or 503 problem+json `not-ready` naming the
+    `failing` checks."""
+    names = failing(checks)
+    if not names:
+        return Readiness(status="ready", checks=checks, warnings=warnings)
+    return problem_response(request, 503, "not-ready", f"not ready: {', '.join(names)} failed",
+                            checks=checks, warnings=warnings)
+
+
 def readiness(app: FastAPI) -> tuple[bool, dict[str, Check]]:
     """Run every check: (ready, results by name)."""
     checks: dict[str, Check] = {}
@@ -165,8 +183,7 @@ def readiness(app: FastAPI) -> tuple[bool, dict[str, Check]]:
     catalog = check_catalog(app)
     if catalog is not None:
         checks["catalog"] = catalog
-    ready = all(c.get("status") != "fail" for c in checks.values())
-    return ready, checks
+    return not failing(checks), checks
 
 
 @router.get("/healthz")
@@ -178,10 +195,5 @@ async def healthz() -> Health:
 @router.get("/readyz", response_model=Readiness, responses=problem_responses(503))
 def readyz(request: Request) -> Readiness | JSONResponse:
     """Readiness: 200 with each check's result, or 503 problem+json `not-ready` with `checks`."""
-    ready, checks = readiness(request.app)
-    warnings = [c["warning"] for c in checks.values() if c.get("warning")]
-    if ready:
-        return Readiness(status="ready", checks=checks, warnings=warnings)
-    failing = [name for name, c in checks.items() if c.get("status") == "fail"]
-    return problem_response(request, 503, "not-ready", f"not ready: {', '.join(failing)} failed",
-                            checks=checks, warnings=warnings)
+    _, checks = readiness(request.app)
+    return readiness_reply(request, checks, [c["warning"] for c in checks.values() if c.get("warning")])

@@ -31,10 +31,11 @@ from prometheus_client.registry import CollectorRegistry
 
 from service.app import install_edge
 from service.deps import ApiKeyDep, ReadKeyDep
-from service.errors import problem_response, problem_responses
+from service.errors import problem_responses
 from service.maps.errors import ShardUnavailable
 from service.metrics import Metrics
 from service.request_ids import REQUEST_ID_HEADER, request_id_var
+from service.routes.health import readiness_reply
 from service.scaleout.shards import ShardSet
 from service.schemas import BudgetModel, Health, MapList, Readiness
 from service.settings import Settings
@@ -127,11 +128,7 @@ def _router() -> APIRouter:
         if not shards.reconciled:  # the map table does not know every shard's maps yet
             checks["routes"] = {"status": "fail", "error": getattr(request.app.state, "shards_error", None)
                                 or "the shards' maps are being read"}
-        failing = [name for name, c in checks.items() if c["status"] == "fail"]
-        if not failing:
-            return Readiness(status="ready", checks=checks, warnings=warnings)
-        return problem_response(request, 503, "not-ready", f"not ready: {', '.join(failing)} failed",
-                                checks=checks, warnings=warnings)
+        return readiness_reply(request, checks, warnings)
 
     @router.get("/metrics", response_class=Response, dependencies=[ReadKeyDep],
                 responses=problem_responses(401, 503))
