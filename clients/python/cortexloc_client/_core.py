@@ -238,6 +238,11 @@ def export_loop_closures(map_id: str, fmt: str) -> Call[bytes]:
                 idempotent=True)
 
 
+def repair(map_id: str, *, undo: bool) -> Call[models.Repair]:
+    # a repair is idempotent: a second one finds nothing, so a retried POST is safe
+    return Call("POST" if undo else "GET", f"{_map(map_id)}/repair", _model(models.Repair), idempotent=True)
+
+
 def recent(map_id: str, limit: int, stream: str | None) -> Call[models.RecentAnswers]:
     params = {"limit": str(int(limit)), **({"stream": stream} if stream is not None else {})}
     return Call("GET", f"{_map(map_id)}/recent", _model(models.RecentAnswers), params=params, idempotent=True)

@@ -188,6 +188,12 @@ class Client:
         log id `after`, at most `limit` (<= 500); continue with `after=page.next_after`."""
         return self._send(_core.loop_closures(map_id, after, limit))
 
+    def repair(self, map_id: str, *, undo: bool = False) -> models.Repair:
+        """`GET /v1/maps/{map_id}/repair` (undo False: what a repair would undo) or `POST` (undo True: undo
+        it, durably): the merges a stream made from its own recent trail, and the loop closures that
+        named them (retracted in the log)."""
+        return self._send(_core.repair(map_id, undo=undo))
+
     def export_loop_closures(self, map_id: str, fmt: str = "csv") -> bytes:
         """`GET /v1/maps/{map_id}/loop-closures/export`: the whole log as candidate pairs (`csv` or
         `jsonl`): both stamps in seconds, both ids, the confidence, both poses where given, and the

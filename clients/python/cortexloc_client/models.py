@@ -415,10 +415,53 @@ class LoopClosure(_Reply):
     #: A consolidated frame's (a visit's): the row it joined (None: a frame with its own row, a
     #: localising stream's, or one logged before the server recorded it).
     consolidated_into: int | None = None
+    #: On a retraction entry (a repair withdrew a closure): the id of the closure it withdraws; a back end
+    #: drops the edge it made for it (None: a closure).
+    retracts: int | None = None
     #: The answer's span and its rows (a back end may divide the edge's information by the span; None:
     #: logged before the server recorded it).
     span: int | None = None
     span_seqs: list[int] | None = None
+
+
+class SplitVisit(_Reply):
+    """A visit into a row of its stream's own recent trail (`seq`: the row a repair re-made it as; None:
+    listed, not repaired)."""
+
+    visit: int
+    stream: str
+    into: int
+    seq: int | None = None
+
+
+class Unjoin(_Reply):
+    """A row that joined a place through a row of its stream's own recent trail (`joined`)."""
+
+    seq: int
+    stream: str
+    joined: int
+
+
+class Retraction(_Reply):
+    """A logged loop closure (`closure`) that named a row (`place_seq`) of its stream's own recent trail."""
+
+    closure: int
+    stream: str
+    place_seq: int
+
+
+class Repair(_Reply):
+    """`GET`/`POST /v1/maps/{map_id}/repair`: the merges a stream made from its own recent trail, listed
+    (`repaired` False) or undone (True): each visit re-made as its own row, each row given back its own
+    place, each closure retracted. A second repair finds nothing."""
+
+    map_id: str
+    window: int
+    repaired: bool
+    splits: list[SplitVisit]
+    unjoins: list[Unjoin]
+    retractions: list[Retraction]
+    rows_added: int
 
 
 class LoopClosureList(_Reply):

@@ -166,6 +166,8 @@ CONTRACT: list[tuple[type[BaseModel], str, str, int, str]] = [
     (models.StoredObservation, "/v1/maps/{map_id}/observations/{seq}", "get", 200, JSON),
     (models.StoredObservationList, "/v1/maps/{map_id}/observations", "get", 200, JSON),
     (models.LoopClosureList, "/v1/maps/{map_id}/loop-closures", "get", 200, JSON),
+    (models.Repair, "/v1/maps/{map_id}/repair", "get", 200, JSON),
+    (models.Repair, "/v1/maps/{map_id}/repair", "post", 200, JSON),
     (models.Problem, "/v1/maps/{map_id}/observations/{seq}", "get", 404, PROBLEM),
     (models.Snapshot, "/v1/maps/{map_id}/snapshots", "post", 201, JSON),
     (models.SnapshotList, "/v1/maps/{map_id}/snapshots", "get", 200, JSON),

@@ -302,3 +302,16 @@ def test_loop_closures_are_paged_and_exported(client: Client, tiny_map: str, mak
     assert csv_text.splitlines()[0].startswith("stamp,observation_id,seq,stream,place_stamp")
     assert len(csv_text.splitlines()) == len(log) + 1
     assert len(client.export_loop_closures(tiny_map, "jsonl").decode().splitlines()) == len(log)
+    assert all(c.retracts is None for c in log)  # closures, no retraction entry yet
+
+
+def test_a_repair_lists_then_undoes_and_a_second_finds_nothing(client: Client, tiny_map: str,
+                                                              make_frame) -> None:
+    _drive_a_route(client, tiny_map, make_frame, 12)
+    listed = client.repair(tiny_map)
+    assert listed.map_id == tiny_map and not listed.repaired and listed.window >= 1
+    done = client.repair(tiny_map, undo=True)
+    assert done.repaired and done.rows_added == len(listed.splits)
+    assert [s.visit for s in done.splits] == [s.visit for s in listed.splits]
+    again = client.repair(tiny_map, undo=True)
+    assert again.repaired and again.splits == [] and again.unjoins == [] and again.retractions == []
