@@ -6,7 +6,8 @@ A **move** is judged by each stream against its last move's frame (its `Anchor`)
 - with poses (`Motion.pose`) on the frame and on the anchor, a pose at least `move_metres` from the
   anchor's; it covers its distance of the memory's `short_term_metres`. A step from the stream's last
   posed frame longer than `max_speed` x Δt (Δt from the stamps) is a **reset** (a relocalisation, an
-  odometry jump, a teleport): a move that covers nothing, the memory goes on from the new pose. With
+  odometry jump, a teleport, a bag played faster than real time): that step is judged by appearance
+  (below), and the memory goes on from the new pose. With
   Δt <= 0 (a bag replayed in a loop, a clock stepped back) a step of `move_metres` or more is a reset;
   without stamps there is no speed to check and a step is distance;
 - otherwise by appearance: Dice(frame, anchor) < b + departure · (1 − b), b the frame's background
@@ -91,8 +92,14 @@ class Anchor:
                     reset = step >= float(conf["move_metres"])
             self.last = (pose, motion.stamp)
         if reset:
-            self.code, self.pose = np.asarray(code), pose
-            return 0.0
+            # The pose cannot say how far it went: appearance does, and the memory goes on from the new
+            # pose. (A reset that covered nothing would leave a robot whose every step reads as one, a
+            # bag played faster than `max_speed` allows, a memory that never ages: no loop ever closes.)
+            self.pose = pose
+            if self.code is not None and code_dice(code, self.code) >= level:
+                return None
+            self.code = np.asarray(code)
+            return 1.0 / int(conf["short_term"])
         if pose is not None and self.pose is not None:
             gone = math.hypot(pose[0] - self.pose[0], pose[1] - self.pose[1])
             if gone < float(conf["move_metres"]):

@@ -98,4 +98,7 @@ def loop_closure_json(answer: Observation, stamp: Stamp, frame_id: str, pose: Po
             "place_stamp": _time(stored_stamp(p.metadata)), "place_seq": p.seq, "place_id": p.place_id,
             "place_stream": p.stream, "place_pose": _pose(place_pose(p, default_frame)),
             "confidence": p.confidence, "support": p.support,
+            # how many places the stream may have been at (docs/design/science.md §11.11): a back end
+            # divides the edge's information by it, as the service's g2o export does (None: an older server)
+            "span": p.span, "span_seqs": p.span_seqs,
             "verified": None if v is None else v.verified, "relative_pose": relative}

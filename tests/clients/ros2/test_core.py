@@ -153,7 +153,8 @@ def test_a_verified_loop_closure_carries_the_relative_pose_of_the_services_g2o_e
     a = 0.3
     R = [[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]]
     t = [0.6, 0.0, 0.8]
-    place = {"seq": 4, "confidence": 0.95, "revisit": True, "support": 12, "place_id": 4,
+    place = {"seq": 4, "confidence": 0.95, "revisit": True, "support": 12, "place_id": 4, "span": 2,
+             "span_seqs": [4, 5],
              "metadata": {"stamp": 12.5, "stamp_ns": "12500000000", "pose": {"x": 1.0, "y": 2.0, "yaw": 0.1,
                                                                              "frame_id": "odom"}},
              "verification": {"verified": True, "keyframe_seq": 4, "inliers": 80, "model": "fundamental",
@@ -163,8 +164,9 @@ def test_a_verified_loop_closure_carries_the_relative_pose_of_the_services_g2o_e
     assert doc["place_stamp"] == {"sec": 12, "nanosec": 500000000}
     assert doc["place_pose"] == {"x": 1.0, "y": 2.0, "yaw": 0.1, "frame_id": "odom"}
     assert doc["pose"]["x"] == 1.5 and doc["confidence"] == 0.95 and doc["verified"] is True
+    assert doc["span"] == 2 and doc["span_seqs"] == [4, 5]
     edge = g2o_lines(SimpleNamespace(verification=place["verification"], seq=9, place_seq=4, id=1,
-                                     consolidated_into=None, metadata=None))
+                                     consolidated_into=None, metadata=None, span=doc["span"]))
     want = [float(v) for v in edge.split()[3:10]]  # x y z qx qy qz qw
     rel = doc["relative_pose"]
     got = [rel["position"][k] for k in "xyz"] + [rel["orientation"][k] for k in "xyzw"]

@@ -112,18 +112,30 @@ def test_with_poses_a_robot_that_moves_through_a_flat_stretch_has_moved_and_the_
         assert links.short_term_rows("a").tolist() == list(range(61 - held, 61)), metres
 
 
-def test_a_step_faster_than_max_speed_is_a_reset_that_adds_no_distance_and_keeps_the_memory() -> None:
+def test_a_step_faster_than_max_speed_is_a_reset_judged_by_appearance_that_keeps_the_memory() -> None:
     """A relocalisation (a pose 970 m away 1 s later) is no path: the memory keeps the rows of the 20 m
-    driven before it and goes on from the new pose; taken as distance it would have emptied it."""
+    driven before it and goes on from the new pose; taken as distance it would have emptied it. The
+    pose cannot say how far the robot went, so the step is judged by appearance: the same view is no
+    move, another view one move (1 / `short_term` of the memory, 1 m at the defaults)."""
     drive = [(q, code(q), float(q), float(q)) for q in range(1, 31)]  # 1 m/s
-    jump = [(31, code(31), 1000.0, 31.0), (32, code(32), 1001.0, 32.0)]
-    links, fast = Localisation({}, 256), Localisation({"max_speed": 1e4}, 256)
-    learn(links, drive + jump[:1])
-    learn(fast, drive + jump[:1])
-    assert links.short_term_rows("a").tolist() == list(range(11, 32))
+    links, fast, still = Localisation({}, 256), Localisation({"max_speed": 1e4}, 256), Localisation({}, 256)
+    learn(links, [*drive, (31, code(31), 1000.0, 31.0)])
+    learn(fast, [*drive, (31, code(31), 1000.0, 31.0)])
+    learn(still, [*drive, (31, code(30), 1000.0, 31.0)])  # the estimate jumped, the view did not
+    assert links.short_term_rows("a").tolist() == list(range(12, 32))  # one move by appearance
+    assert still.short_term_rows("a").tolist() == list(range(11, 32))  # no move
     assert fast.short_term_rows("a").tolist() == [31]  # 970 m of "path" in one move
-    learn(links, jump[1:])  # 1 m on from the new pose: a move of 1 m, the oldest row leaves
-    assert links.short_term_rows("a").tolist() == list(range(12, 33))
+    learn(links, [(32, code(32), 1001.0, 32.0)])  # 1 m on from the new pose: a move of 1 m
+    assert links.short_term_rows("a").tolist() == list(range(13, 33))
+
+
+def test_a_bag_played_faster_than_max_speed_still_ages_its_memory_by_appearance() -> None:
+    """Every step reads as a reset (10 m a frame at 10 frames a second: 100 m/s): the memory must not
+    stop ageing, or no loop would ever close; each step is judged by appearance (20 moves at the
+    defaults)."""
+    links = Localisation({}, 256)
+    learn(links, [(q, code(q), 10.0 * q, 0.1 * q) for q in range(1, 61)])
+    assert links.short_term_rows("a").tolist() == list(range(41, 61))
 
 
 def test_stamps_that_jump_back_reset_and_a_clock_step_forward_takes_the_step_as_it_is() -> None:
@@ -133,11 +145,12 @@ def test_stamps_that_jump_back_reset_and_a_clock_step_forward_takes_the_step_as_
     links = Localisation({}, 256)
     learn(links, [(q, code(q), float(q), 100.0 + q) for q in range(1, 31)])
     learn(links, [(31, code(31), 0.0, 101.0)])  # the bag again from its start
-    assert links.short_term_rows("a").tolist() == list(range(11, 32))  # no 30 m of path: a reset
+    # no 30 m of path: a reset, another view (a move by appearance)
+    assert links.short_term_rows("a").tolist() == list(range(12, 32))
     learn(links, [(32, code(32), 0.5, 101.0)])  # the same stamp, half a metre: no move, no reset
-    assert links.short_term_rows("a").tolist() == list(range(11, 33))
+    assert links.short_term_rows("a").tolist() == list(range(12, 33))
     learn(links, [(33, code(33), 1.5, 3701.0)])  # an hour later by the clock, 1.5 m from the anchor
-    assert links.short_term_rows("a").tolist() == list(range(12, 34))  # 1.5 m of path: row 11 leaves
+    assert links.short_term_rows("a").tolist() == list(range(13, 34))  # 1.5 m of path: row 12 leaves
     # without stamps a jump cannot be told from a drive: it is distance
     blind = Localisation({}, 256)
     learn(blind, [(q, code(q), float(q), None) for q in range(1, 31)] + [(31, code(31), 500.0, None)])
