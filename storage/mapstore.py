@@ -502,8 +502,8 @@ class MapStore:
 
     def join_problems(self, reach: int) -> list[str]:
         """What is wrong with the warm-up joins (`cortexloc verify`, docs/design/science.md §11.8): a join
-        whose row is not dropped as `joined`, or that reached back over more than `reach` of its stream's
-        rows; a row dropped as `joined` with no join."""
+        whose row is not dropped as `joined`, or that reached back over `reach` or more of its stream's rows
+        held then; a row dropped as `joined` with no join."""
         if not self._v10:
             return []
         with self._lock:
@@ -514,11 +514,16 @@ class MapStore:
             out += [f"row {r[0]} is dropped as joined without a join" for r in db.execute(
                 "SELECT d.seq FROM dropped d LEFT JOIN joins j ON j.seq = d.seq "
                 "WHERE d.reason = 'joined' AND j.seq IS NULL")]
-            out += [f"join of row {r[0]}: {r[1]} rows of its stream since, more than {reach}"
+            # The rows the live rule looked through: the stream's rows made after the joined one and
+            # still held when the join was made (a row dropped at an earlier step, joined or over its
+            # place's cap, had left the memory; a row a repair re-made is no step of it).
+            split = "SELECT seq FROM repairs WHERE kind = 'split'" if self._v9 else "SELECT NULL WHERE 0"
+            out += [f"join of row {r[0]}: {r[1]} held rows of its stream since, the reach is {reach}"
                     for r in db.execute(
                         "SELECT j.seq, (SELECT count(*) FROM observations o WHERE o.stream = j.stream "
-                        "AND o.seq > j.seq AND o.seq <= j.after_seq) AS n FROM joins j WHERE n >= ?",
-                        (int(reach),))]
+                        "AND o.seq > j.seq AND o.seq <= j.after_seq AND NOT EXISTS (SELECT 1 FROM dropped d "
+                        "WHERE d.seq = o.seq AND d.after_seq < j.after_seq) "
+                        f"AND o.seq NOT IN ({split})) AS n FROM joins j WHERE n >= ?", (int(reach),))]
             return out
 
     def dropped(self) -> dict[int, str]:

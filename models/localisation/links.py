@@ -100,6 +100,7 @@ class Localisation:
         self.codes.rebuild([])
         self.used = np.zeros(0, np.int64)
         self._last_row, self._short, self._anchors, self.held = {}, OrderedDict(), OrderedDict(), 0
+        self._tried = {}  # as a map loaded fresh: a repair's rebuild and a restart alike
         joined = joined or {}
         gone, remade, unjoined = set(dropped), set(remade), set(unjoined)
         # Rows and visits in the order they were learned (a visit's clock is its `after_seq` + 1), so each

@@ -259,3 +259,19 @@ def test_a_version_8_file_gains_the_closures_span(tmp_path: Path, meta: MapMeta)
             ("loc", None, None), ("loc", 3, (1, 2, 5)), ("a", 1, (1,))]
     with MapStore.open(path, readonly=True) as ro:  # and it is durable
         assert [c.span for c in ro.closures(0, 10)] == [None, 3, 1]
+
+
+def test_verify_counts_only_the_rows_held_when_a_join_was_made(store: MapStore) -> None:
+    """`join_problems` (docs/design/science.md §11.8): the live rule looks through the stream's newest
+    `reach` rows still held, so a row dropped at an earlier step is not counted against a join's reach
+    (verify called a legal join a problem); one more held row is."""
+    reach = 3
+    store.append(make_row(1, stream="old"))  # the old place
+    store.append(make_row(2, stream="a"))  # the warm-up row, joined later
+    store.append(make_row(3, stream="a", prev=2))
+    store.append(dataclasses.replace(make_row(4, stream="a", prev=3), drops=(3,)))  # row 3 leaves
+    store.append(make_row(5, stream="a", prev=4))
+    store.append(dataclasses.replace(make_row(6, stream="a", prev=5), joins=((2, 1),)))
+    # rows 3-5 were made after row 2, row 3 dropped before the join: 2 held, within the reach of 3
+    assert store.join_problems(reach) == []
+    assert [p.split(":")[0] for p in store.join_problems(reach - 1)] == ["join of row 2"]
