@@ -49,8 +49,12 @@ SPAN = 50
 #: `ShortTerm.nbytes`).
 KEPT = 128
 #: Streams one trail tells apart (each covers the memory on its own); a further one takes the least
-#: recently learning one's place, and that one's frames in the ring count as its own.
+#: recently learning one's slot, and that one's frames in the ring belong to no stream from then on: they
+#: stay in the memory until the others cover it, and they are never the new stream's (its look-back for
+#: warm-up joins, `ShortTerm.ages`, counts its own frames only).
 SLOTS = 8
+#: The slot of a frame whose stream left the trail's slots (`SLOTS`).
+_UNOWNED = -1
 #: A span below 1 by less than this is the whole memory (20 x 1/20 sums to 0.9999999999999999).
 _EPS = 1e-9
 
@@ -140,7 +144,11 @@ class ShortTerm:
         the memory it covered as a move (`Anchor.move`; None: no move)."""
         slot = self._slots.get(stream)
         if slot is None:
-            slot = len(self._slots) if len(self._slots) < SLOTS else self._slots.popitem(last=False)[1]
+            if len(self._slots) < SLOTS:
+                slot = len(self._slots)
+            else:
+                slot = self._slots.popitem(last=False)[1]
+                self._slot[self._slot == slot] = _UNOWNED  # the evicted stream's frames: no one's
             self._slots[stream] = slot
         self._slots.move_to_end(stream)
         i = self._n % self._rows.size

@@ -9,7 +9,7 @@ from models.localisation import Localisation, SequenceLocaliser
 from models.localisation.graph import NONE
 from models.localisation.localiser import default_conf
 from models.localisation.motion import NO_MOTION, Motion
-from models.localisation.short_term import KEPT, SPAN, Anchor, ShortTerm
+from models.localisation.short_term import KEPT, SLOTS, SPAN, Anchor, ShortTerm
 
 A, B = np.arange(10), np.arange(100, 110)  # two unlike codes (Dice 0)
 
@@ -184,6 +184,19 @@ def test_two_streams_that_name_one_trail_share_its_memory_over_d_metres_of_path(
     assert links.short_term_rows("robot").tolist() == list(range(22, 71))
     learn(links, renamed[10:], stream="node2", trail="robot")
     assert links.short_term_rows("robot").tolist() == list(range(61, 81))  # its own 20 m
+
+
+def test_a_ninth_stream_on_a_trail_never_takes_the_evicted_stream_s_frames_as_its_own() -> None:
+    """`SLOTS` streams a trail tells apart: a ninth takes the least recently learning one's slot; the
+    evicted stream's rows are no one's (they stay in the memory), never the ninth's look-back."""
+    links = Localisation({}, 256)
+    for i in range(SLOTS):
+        learn(links, [(i + 1, code(i + 1), float(i), None)], stream=f"cam{i}", trail="robot")
+    learn(links, [(SLOTS + 1, code(SLOTS + 1), 100.0, None)], stream="late", trail="robot")
+    memory = links._short["robot"]
+    assert memory.ages("late") == {SLOTS + 1: 0}  # cam0's row 1 is not its own
+    assert memory.ages("cam0") == {}
+    assert 1 in links.short_term_rows("robot").tolist()  # and it stays in the memory
 
 
 def test_a_rebuild_from_the_stored_metadata_gives_the_same_memories() -> None:
