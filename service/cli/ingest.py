@@ -56,13 +56,8 @@ def ingest_command(
     = None,
 ) -> None:
     """Post a folder of images or a ROS bag to a map in source order, with progress and a summary."""
-    if url is not None and data_dir is not None:
-        raise typer.BadParameter("--data-dir is for the in-process service; with --url the server has its "
-                                 "own", param_hint="--data-dir")
     # Before anything imports cv2 (the readers do): the settings set OpenCV's pixel guard for the app.
-    settings = None if url is not None else _in_process_settings(data_dir)
-    if settings is not None and api_key is None:
-        api_key = settings.api_key
+    settings, api_key = target(url, data_dir, api_key)
 
     import anyio
 
@@ -113,6 +108,16 @@ def ingest_command(
     print(summary.text(), file=out)
     if summary.errors:
         raise typer.Exit(1)
+
+
+def target(url: str | None, data_dir: Path | None, api_key: str | None) -> tuple[Settings | None, str | None]:
+    """(the in-process app's settings, None with `--url`; the API key to send: the given one, else the
+    in-process service's). `--url` and `--data-dir` together are a usage error."""
+    if url is not None and data_dir is not None:
+        raise typer.BadParameter("--data-dir is for the in-process service; with --url the server has its "
+                                 "own", param_hint="--data-dir")
+    settings = None if url is not None else _in_process_settings(data_dir)
+    return settings, settings.api_key if settings is not None and api_key is None else api_key
 
 
 def _in_process_settings(data_dir: Path | None) -> Settings:

@@ -130,17 +130,12 @@ def repair(
 ) -> None:
     """Undo a map's merges from a stream's own recent trail (docs/design/science.md §11.6): visits
     re-made as rows, rows given back their own place, loop closures retracted. Exit 1 on an error."""
-    if url is not None and data_dir is not None:
-        raise typer.BadParameter("--data-dir is for the in-process service; with --url the server has its "
-                                 "own", param_hint="--data-dir")
     import anyio
 
-    from service.cli.ingest import _in_process_settings
+    from service.cli.ingest import target
     from service.ingest import poster
 
-    settings = None if url is not None else _in_process_settings(data_dir)
-    if settings is not None and api_key is None:
-        api_key = settings.api_key
+    settings, api_key = target(url, data_dir, api_key)
     headers = {"X-API-Key": api_key} if api_key else {}
 
     async def run() -> tuple[int, dict[str, Any]]:
