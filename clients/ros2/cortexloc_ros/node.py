@@ -44,7 +44,7 @@ from cortexloc_ros.core import (
     image_array,
     yaw_from_quaternion,
 )
-from cortexloc_ros.params import PARAMETERS, Config, ConfigError, read_config
+from cortexloc_ros.params import PARAMETERS, Config, ConfigError, read_config, trail_of
 from cortexloc_ros.poster import Frame, Poster, Stats
 
 __all__ = ["CortexlocNode", "main"]
@@ -84,7 +84,7 @@ class CortexlocNode(Node):
         image_topic = cfg.topics["image"] + ("/compressed" if cfg.compressed else "")
         self.image_topic = self.resolve_topic_name(image_topic)
         stream = cfg.stream or self.image_topic.lstrip("/")
-        self.cfg = cfg = replace(cfg, stream=stream)
+        self.cfg = cfg = replace(cfg, stream=stream, trail=trail_of(cfg.trail, self.get_namespace()) or "")
         self.create_subscription(CompressedImage if cfg.compressed else Image, image_topic, self._on_image,
                                  _SENSOR_QOS, qos_overriding_options=_QOS_OVERRIDES)
         if cfg.topics["camera_info"]:
@@ -109,7 +109,7 @@ class CortexlocNode(Node):
         self.poster.start()
         self.get_logger().info(
             f"{image_topic} -> {cfg.service_url} map {cfg.map_id!r} stream {cfg.stream!r} "
-            f"({'learn' if cfg.learn else 'localise'}), run id {cfg.run_id}")
+            f"trail {cfg.trail or '(its own)'} ({'learn' if cfg.learn else 'localise'}), run id {cfg.run_id}")
 
     # ---------------------------------------------------------------------------------- parameters
 

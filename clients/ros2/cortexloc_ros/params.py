@@ -19,7 +19,7 @@ from urllib.parse import urlsplit
 
 from cortexloc_ros.core import DROP_POLICIES
 
-__all__ = ["PARAMETERS", "Config", "ConfigError", "read_config"]
+__all__ = ["PARAMETERS", "Config", "ConfigError", "read_config", "trail_of"]
 
 #: name -> (default, description). Nested names (`rate.every_n`) are YAML sections.
 PARAMETERS: dict[str, tuple[Any, str]] = {
@@ -31,6 +31,10 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
             "true"),
     "stream": ("", "the stream (one per camera); empty: the image topic's resolved name without its "
                "leading '/'"),
+    "trail": ("", "the robot's trail (service `metadata.trail`): streams naming one trail share one "
+              "short-term memory, so a robot with two cameras, or a renamed node, closes no loop on its own "
+              "recent path; empty: the node's namespace without its leading '/' (none at the root "
+              "namespace: the stream's own trail)"),
     "learn": (True, "true: map (frames are learned and stored; loop closure while mapping); false: localise "
               "(nothing stored changes)"),
     "top_k": (5, "frame-level matches in each answer (0 up to the service's CORTEXLOC_MAX_TOP_K, "
@@ -69,6 +73,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
 #: The service's map ids (storage/catalog.py MAP_ID_RE).
 _MAP_ID = re.compile(r"^[a-z0-9][a-z0-9._-]{0,63}$")
 _RUN_ID = re.compile(r"^[A-Za-z0-9_-]{1,40}$")
+#: The service's stream (and trail) names (service/schemas.py STREAM_PATTERN).
+_STREAM = re.compile(r"^[A-Za-z0-9._-]{1,64}(/[A-Za-z0-9._-]{1,64}){0,7}$")
 
 
 class ConfigError(ValueError):
@@ -87,6 +93,7 @@ class Config:
     api_key: str | None
     map_id: str
     stream: str
+    trail: str
     learn: bool
     top_k: int
     run_id: str
@@ -152,6 +159,14 @@ def _typed(values: dict[str, Any], problems: list[str]) -> dict[str, Any]:
     return out
 
 
+def trail_of(trail: str, namespace: str) -> str | None:
+    """The trail a node's frames name (`metadata.trail`): the `trail` parameter, else the node's namespace
+    without its leading '/' (a robot's nodes share its namespace), else None (the root namespace: each
+    stream its own trail)."""
+    name = trail or namespace.strip("/")
+    return name if name and _STREAM.match(name) else None
+
+
 def read_config(values: dict[str, Any], *, unknown: list[str] | None = None) -> Config:
     """Check the parameters' values (name -> value, as declared) and build the `Config`.
 
@@ -181,6 +196,9 @@ def read_config(values: dict[str, Any], *, unknown: list[str] | None = None) -> 
         problems.append(f"top_k: {v['top_k']} must be >= 0")
     if v["run_id"] and not _RUN_ID.match(v["run_id"]):
         problems.append(f"run_id: {v['run_id']!r} must be 1 to 40 letters, digits, '_' or '-'")
+    if v["trail"] and not _STREAM.match(v["trail"]):
+        problems.append(f"trail: {v['trail']!r} is not a stream name (up to 8 '/'-separated parts of 1 to 64 "
+                        f"letters, digits, '.', '_' or '-')")
     if not v["request_timeout"] > 0:
         problems.append(f"request_timeout: {v['request_timeout']} must be > 0 seconds")
     if v["image_transport"] not in ("raw", "compressed"):
@@ -211,7 +229,7 @@ def read_config(values: dict[str, Any], *, unknown: list[str] | None = None) -> 
         raise ConfigError(problems)
     topics = {k.split(".", 1)[1]: val for k, val in v.items() if k.startswith("topics.")}
     return Config(service_url=str(v["service_url"]).rstrip("/"), api_key=api_key, map_id=v["map"],
-                  stream=v["stream"], learn=bool(v["learn"]), top_k=int(v["top_k"]),
+                  stream=v["stream"], trail=v["trail"], learn=bool(v["learn"]), top_k=int(v["top_k"]),
                   run_id=v["run_id"] or uuid.uuid4().hex[:12], request_timeout=float(v["request_timeout"]),
                   compressed=v["image_transport"] == "compressed",
                   odom_tolerance_ns=round(float(v["odom_tolerance"]) * 1e9),

@@ -135,6 +135,8 @@ class Poster:
         # `stamp` in seconds is what the service's export reads; `stamp_ns` (text: past 2^53) is exact.
         meta: dict[str, Any] = {"stamp": frame.stamp.seconds, "stamp_ns": str(frame.stamp.ns),
                                 "frame_id": frame.frame_id}
+        if self.cfg.trail:
+            meta["trail"] = self.cfg.trail
         if pose is not None:
             meta["pose"] = pose.as_metadata()
         camera = self.camera()

@@ -22,7 +22,7 @@ from cortexloc_ros.core import (
     idempotency_key,
     image_array,
 )
-from cortexloc_ros.params import PARAMETERS, ConfigError, read_config
+from cortexloc_ros.params import PARAMETERS, ConfigError, read_config, trail_of
 
 from cortexloc_client import Observation
 
@@ -120,11 +120,12 @@ def test_the_parameters_yaml_declares_every_parameter_with_its_default():
 
 def test_bad_parameters_are_all_named_at_once(monkeypatch, tmp_path):
     bad = {**DEFAULTS, "service_url": "127.0.0.1:8000", "queue.size": 0, "queue.policy": "lifo",
-           "odom_tolerance": 0.0, "camera_mount": [1.0, 2.0], "image_transport": "theora"}
+           "odom_tolerance": 0.0, "camera_mount": [1.0, 2.0], "image_transport": "theora", "trail": "a b"}
     with pytest.raises(ConfigError) as e:
         read_config(bad)
     assert [p.split(":")[0] for p in e.value.problems] == [
-        "service_url", "image_transport", "odom_tolerance", "camera_mount", "queue.size", "queue.policy"]
+        "service_url", "trail", "image_transport", "odom_tolerance", "camera_mount", "queue.size",
+        "queue.policy"]
     with pytest.raises(ConfigError, match="api_key: the API key is never a parameter"):
         read_config(DEFAULTS, unknown=["api_key"])
     monkeypatch.setenv("ROBOT_KEY", "from-env")
@@ -173,3 +174,11 @@ def test_a_verified_loop_closure_carries_the_relative_pose_of_the_services_g2o_e
     assert np.allclose(got, want, atol=1e-8)
     assert loop_closure_json(_answer({**place, "revisit": False}), Stamp(1), "cam", None, "map") is None
     assert place_json(_answer(None), Stamp(1), "cam", None, 3.0, "map")["place"] is None
+
+
+def test_a_robots_nodes_name_one_trail_its_namespace_unless_the_parameter_names_another():
+    # two cameras under /robot1 share the robot's short-term memory (service metadata.trail)
+    assert trail_of("", "/robot1") == trail_of("", "/robot1/") == "robot1"
+    assert trail_of("", "/fleet/robot1") == "fleet/robot1"
+    assert trail_of("rover", "/robot1") == "rover"  # the parameter wins
+    assert trail_of("", "/") is None and trail_of("", "") is None  # the root: each stream its own trail

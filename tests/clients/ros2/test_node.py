@@ -88,7 +88,7 @@ def test_a_route_with_odometry_and_camera_info_gives_places_and_loop_closures_on
     # the service's default map: the tiny one closes these loops at some seeds only
     w = World(tmp_path, map_params={})
     try:
-        node = w.node()
+        node = w.node(trail="robot1")
         w.probe.wait_connected()
         for i, (frame, stamp, x, y) in enumerate(route):
             if i < len(PLACES):  # summer: rgb8, rows padded past the width
@@ -137,6 +137,7 @@ def test_a_route_with_odometry_and_camera_info_gives_places_and_loop_closures_on
         assert stored.model_extra["camera"] == {"fx": 60.0, "fy": 60.0, "cx": 32.0, "cy": 16.0,
                                                 "distortion": [0.01, -0.02, 0.0, 0.0, 0.0]}
         assert stored.model_extra["stamp_ns"] == str(route[0][1])
+        assert stored.model_extra["trail"] == "robot1"  # the trail parameter, on the frames posted
         d = w.probe.last_diagnostics()
         assert (d["service"], d["dropped"], d["refused"], d["unsupported"]) == ("up", "0", "0", "0")
         assert node.stop() == 0
