@@ -33,7 +33,10 @@ localise mode on the same lap-2 frames). Measured:
   `consolidated_into`, into a row of another label);
 - lap 2: revisit precision and recall of `place.revisit` (the map's own decision at its threshold), the
   localise mode's recall (revisits called right / true revisits, the same frames), and OpenSeqSLAM run
-  online on the route (`slam.openseqslam_online`), its recall at 100 % precision.
+  online on the route (`slam.openseqslam_online`), its recall at 100 % precision;
+- issue 37's count of the localise mode's lap-2 revisits (`span_right`): right only when a true row lies
+  inside the revisit's span and the span is at most 3 rows; its precision, and the share of the right
+  answers it calls a revisit.
 With `--poses` each frame carries `metadata` {stamp, pose}: the corridor's true positions (0.24 s per
 frame), outdoors the file index x 280 m along a line (assumed: no poses come with the data), the slow
 robot's copies between a frame and the next. Without it (the default) no frame has a pose, as with a
@@ -253,7 +256,28 @@ def answers(replies: list[dict[str, Any]], threshold: float) -> dict[str, Any]:
         conf[i] = max(c, threshold) if p["revisit"] else min(c, below)
     consolidated = {i: int(r["consolidated_into"]) for i, r in enumerate(replies)
                     if r.get("consolidated_into") is not None}
-    return {"best": best, "confidence": conf, "frame_of": frame_of, "consolidated": consolidated}
+    # each answer's span: the frames its `span_seqs` name (rows this run made) and its `span` count
+    spans = [([frame_of[q] for q in (r["place"] or {}).get("span_seqs") or [] if q in frame_of],
+              int((r["place"] or {}).get("span") or 0)) for r in replies]
+    return {"best": best, "confidence": conf, "frame_of": frame_of, "consolidated": consolidated,
+            "spans": spans, "revisit": np.array([bool(r["place"] and r["place"]["revisit"])
+                                                 for r in replies], bool)}
+
+
+def span_right(labels: np.ndarray, laps: np.ndarray, a: dict[str, Any], span_max: int = 3) -> dict[str, Any]:
+    """Issue 37's count of the localise mode's lap-2 revisits: one is right when a true row (a row of
+    lap 0 within the tolerance of the frame's label) lies inside its span and the span is at most
+    `span_max` rows. "precision": right / revisits called; "called": right / right answers (frames whose
+    best row is a true one), the share of its right places the mode calls."""
+    lab = np.asarray(labels, np.int64)
+    lap2 = np.asarray(laps) == 1
+    called = lap2 & a["revisit"]
+    ok = np.array([span <= span_max and any(abs(int(lab[f]) - int(lab[i])) <= TOLERANCE for f in frames)
+                   for i, (frames, span) in enumerate(a["spans"])], bool)
+    named = (a["best"] >= 0) & (np.abs(lab[np.maximum(a["best"], 0)] - lab) <= TOLERANCE)
+    right_answers = int((lap2 & named).sum())
+    return {"span_precision": float((called & ok).sum() / called.sum()) if called.any() else None,
+            "span_called": float((called & ok).sum() / right_answers) if right_answers else None}
 
 
 def row_places(db: Path) -> dict[int, int]:
@@ -319,6 +343,7 @@ def score_seed(route: Route, slam_run: dict[str, Any], loc_run: dict[str, Any],
             "revisits_called": second.get("revisits_called"), "precision": second.get("precision"),
             "recall": second.get("recall"), "localise_recall": loc2.get("recall"),
             "localise_precision": loc2.get("precision"),
+            **{f"localise_{k}": v for k, v in span_right(route.labels, route.laps, la).items()},
             "false_revisit_lags": lags}
 
 
@@ -351,6 +376,8 @@ def worst(per_seed: list[dict[str, Any]], osl: float | None) -> dict[str, Any]:
             "merged_places": max(e["merged_places"] for e in per_seed),
             "wrong_consolidations": max(e["wrong_consolidations"] for e in per_seed),
             "precision": lo("precision"), "recall": lo("recall"), "localise_recall": lo("localise_recall"),
+            "localise_span_precision": lo("localise_span_precision"),
+            "localise_span_called": lo("localise_span_called"),
             "recall_to_localise": min((e["recall"] or 0.0) / e["localise_recall"] if e["localise_recall"]
                                       else float("inf") for e in per_seed),
             "openseqslam_recall_at_100p": osl,
@@ -378,15 +405,17 @@ def table(result: dict[str, Any]) -> str:
                      f"{_f(w['openseqslam_recall_at_100p'])} | "
                      f"{'yes' if w['met'] else 'no: ' + ', '.join(failed)} |")
     seeds = ["", "| route | seed | false revisits while mapping | merged places | wrong consolidations | "
-             "rows | lap-2 called / true | precision | recall | localise recall |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "rows | lap-2 called / true | precision | recall | localise recall | localise span precision | "
+             "localise span called |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in result["routes"].items():
         for e in r["seeds"]:
             seed = f"{e['seed']}" + (" (new map's)" if e["asked"] == DEFAULT_SEED else "")
             seeds.append(f"| {name} | {seed} | {e['false_revisits_mapping']} | {e['merged_places']} | "
                          f"{e['wrong_consolidations']} | {e['rows']} | {e['revisits_called']} / "
                          f"{e['revisits_true']} | {_f(e['precision'])} | {_f(e['recall'])} | "
-                         f"{_f(e['localise_recall'])} |")
+                         f"{_f(e['localise_recall'])} | {_f(e['localise_span_precision'])} | "
+                         f"{_f(e['localise_span_called'])} |")
     return head + "\n".join(lines) + "\n" + "\n".join(seeds) + "\n"
 
 

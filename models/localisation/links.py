@@ -20,6 +20,7 @@ from models.localisation.graph import NONE, SequenceGraph
 from models.localisation.index import Match
 from models.localisation.localiser import LocaliserState, Place, SequenceLocaliser
 from models.localisation.motion import NO_MOTION, Motion
+from models.localisation.odometry import Odometer, RowOdometry
 from models.localisation.short_term import KEPT, Anchor, ShortTerm, ring_moves
 from models.localisation.trail import CodeStats, OwnTrail, code_dice
 
@@ -67,6 +68,9 @@ class Localisation:
         # learning ones, oldest first
         self._short: OrderedDict[str, ShortTerm] = OrderedDict()
         self._anchors: OrderedDict[str, Anchor] = OrderedDict()
+        # each stream's drive and each row's reading on it (odometry's word, §11.12)
+        self._odometers: OrderedDict[str, Odometer] = OrderedDict()
+        self.odometry = RowOdometry()
         self.held = 0  # rows held (not dropped)
         self.visits = 0  # consolidated frames seen since the map was loaded
         self._tried: dict[int, int] = {}  # row -> confident frames it was not joined on (`explained`)
@@ -100,6 +104,7 @@ class Localisation:
         self.codes.rebuild([])
         self.used = np.zeros(0, np.int64)
         self._last_row, self._short, self._anchors, self.held = {}, OrderedDict(), OrderedDict(), 0
+        self._odometers, self.odometry = OrderedDict(), RowOdometry()
         self._tried = {}  # as a map loaded fresh: a repair's rebuild and a restart alike
         joined = joined or {}
         gone, remade, unjoined = set(dropped), set(remade), set(unjoined)
@@ -170,7 +175,14 @@ class Localisation:
     def _learned(self, stream: str, row: int, code: np.ndarray, motion: Motion) -> None:
         """A learned frame of `stream` into its trail's short-term memory (`motion.trail`, else the
         stream's own), before its code joins the statistics (so a rebuild, which adds the rows in the
-        same order, gives the same moves)."""
+        same order, gives the same moves), and its odometry reading (the row's, where it made one)."""
+        odometer = _recent(self._odometers, stream, Odometer)
+        reading = odometer.peek(motion, self.localiser.conf, self.odometry.drives)
+        if reading.drive == self.odometry.drives:
+            self.odometry.drives += 1
+        odometer.take(reading, motion.stamp)
+        if row != NONE:
+            self.odometry.record(row, reading)
         if not self.short_term:
             return
         anchor = _recent(self._anchors, stream, Anchor)
@@ -190,6 +202,20 @@ class Localisation:
             return np.zeros(0, np.int64)
         rows = memory.rows()
         return rows[self.used[rows] >= 0] if rows.size else rows
+
+    def beyond(self, stream: str, motion: Motion) -> Callable[[np.ndarray], np.ndarray] | None:
+        """What `stream`'s odometry says of a frame of this `motion` (docs/design/science.md §11.12):
+        rows (H,) -> (H,) bool, the rows of its drive it cannot be back at; None where the frame is on no
+        drive of the stream's (no pose or stamp, a gap, a jump, or nothing learned yet)."""
+        odometer = self._odometers.get(stream)
+        if odometer is None:
+            return None
+        conf = self.localiser.conf
+        here = odometer.peek(motion, conf, -1)  # a frame that would start a drive judges nothing
+        if here.drive < 0:
+            return None
+        drift, slack = float(conf["odometry_drift"]), float(conf["odometry_slack"])
+        return lambda rows: self.odometry.beyond(rows, here, drift, slack)
 
     def drop(self, seq: int) -> None:
         """Row `seq` is no longer held: not an appearance of its place, never touched again (§11.9)."""

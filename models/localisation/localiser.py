@@ -103,6 +103,12 @@ class LocaliserParams(BaseModel):
     short_term_metres: float = Field(20.0, ge=0.0, le=1e5)
     move_metres: float = Field(1.0, gt=0.0, le=1e4)
     max_speed: float = Field(50.0, gt=0.0, le=1e4)
+    # Odometry's word (§11.12): within one drive of a stream (posed, stamped frames, no gap longer than
+    # `odometry_gap` s, no reset), a row whose pose lies farther from the frame's than `odometry_drift` x
+    # the path driven since plus `odometry_slack` m is no loop candidate (a drift of 10 disables it)
+    odometry_drift: float = Field(0.2, ge=0.0, le=10.0)
+    odometry_slack: float = Field(5.0, ge=0.0, le=1e5)
+    odometry_gap: float = Field(60.0, gt=0.0, le=1e6)
 
 
 #: Every option's default (LocaliserParams; meanings and why: docs/design/science.md §11.3).

@@ -46,6 +46,9 @@ class OwnTrail(NamedTuple):
         code: (n,) sorted int, the frame's code; code_of: a stored row's code in the same form (None:
             not given: no row is then more like the frame than where it just was).
         window: how many of the trail's last rows are where the stream just was (`margin` + 1).
+        short_term: (m,) ascending, the rows of the stream's short-term memory (§11.6).
+        beyond: rows (H,) -> (H,) bool, those its odometry says it cannot be back at (§11.12;
+            `RowOdometry.beyond`); None: no word from odometry.
     """
 
     first: int
@@ -56,6 +59,7 @@ class OwnTrail(NamedTuple):
     code_of: Callable[[int], np.ndarray] | None = None
     window: int = 1
     short_term: np.ndarray = np.zeros(0, np.int64)
+    beyond: Callable[[np.ndarray], np.ndarray] | None = None
 
     @classmethod
     def short_term_only(cls, rows: np.ndarray) -> OwnTrail:
@@ -97,13 +101,16 @@ class OwnTrail(NamedTuple):
         return out
 
     def holds(self, graph: SequenceGraph, rows: np.ndarray) -> np.ndarray:
-        """(H,) bool: which of `rows` (H,) lie on this trail between `first` and `last`. A stream's
-        rows on one trail are learned in seq order, so it is a range test: O(H)."""
+        """(H,) bool: which of `rows` (H,) are the stream's own: on this trail between `first` and `last`
+        (a stream's rows on one trail are learned in seq order, so a range test), in its short-term
+        memory, or where its odometry says it cannot be (`beyond`). O(H) (+ O(H log m) for the memory)."""
         rows = np.asarray(rows, np.int64)
         ok = (rows >= self.first) & (rows <= self.last)
         ok[ok] = graph.trail[rows[ok]] == self.trail
         if self.short_term.size:
             ok |= np.isin(rows, self.short_term)
+        if self.beyond is not None and rows.size:
+            ok |= self.beyond(rows)
         return ok
 
     def laid_behind(self, graph: SequenceGraph, rows: np.ndarray, began: np.ndarray) -> np.ndarray:

@@ -228,6 +228,10 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     stm = model.links.short_term_rows(motion.trail or stream)
     if stm.size:
         own = OwnTrail.short_term_only(stm) if own is None else own.with_short_term(stm)
+    # Nor is a row of its drive that its odometry says it cannot be back at (§11.12).
+    beyond = model.links.beyond(stream, motion)
+    if beyond is not None:
+        own = (OwnTrail.short_term_only(stm) if own is None else own)._replace(beyond=beyond)
     # Bits the stream's recent frames share say what its conditions are, not where it is (§11.10).
     weights = None if st.condition is None else st.condition.weights(
         winners, model.cells_per_column(), float(model.links.localiser.conf["condition_discount"]))

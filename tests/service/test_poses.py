@@ -53,3 +53,32 @@ def test_a_restart_rebuilds_the_same_memory_from_the_stored_poses_stamps_and_tra
     assert 30 <= len(live) < 80
     with TestClient(make_app(data)) as c:
         assert c.app.state.registry.get("default").model.links.short_term_rows("robot").tolist() == live
+
+
+def _square_with_a_repeat() -> list[tuple[int, float, float]]:
+    """(frame's scene, x, y) 1 m apart: side A (scenes 0-24) along y = 0, the same scenes again straight on
+    (x 25-49: a corridor whose doors repeat), three more sides back to the start, then A again (a loop)."""
+    out = [(k, float(k), 0.0) for k in range(25)] + [(k, 25.0 + k, 0.0) for k in range(25)]
+    out += [(100 + k, 50.0, float(k)) for k in range(25)] + [(200 + k, 50.0 - 2 * k, 25.0) for k in range(25)]
+    out += [(300 + k, 0.0, 25.0 - k) for k in range(25)]
+    return out + [(k, float(k), 1.0) for k in range(25)]
+
+
+def test_odometry_keeps_a_repeat_straight_on_from_being_a_revisit_and_a_loop_back_still_closes(tmp_path):
+    """Rows the robot's own drive says it cannot be back at are no loop candidates (docs/design/science.md
+    §11.12): the scenes repeated 25 m straight on call no revisit, the same scenes after the loop do. With
+    the rule off (`odometry_drift` 10) the repeat is called a revisit: what odometry prevents."""
+    route = _square_with_a_repeat()
+    called: dict[str, list[bool]] = {}
+    with TestClient(make_app(tmp_path / "data")) as c:
+        for name, localiser in {"on": {}, "off": {"odometry_drift": 10.0}}.items():
+            assert c.post("/v1/maps", json={"map_id": name, "localiser": localiser}).status_code == 201
+            called[name] = []
+            for i, (scene, x, y) in enumerate(route):
+                meta = json.dumps({"stamp": 100.0 + i, "pose": {"x": x, "y": y}}, separators=(",", ":"))
+                r = post(c, frame(scene, noise=2.0 * (i >= 25)), map_id=name, top_k=0, metadata=meta)
+                assert r.status_code == 200, r.text
+                called[name].append(bool(r.json()["place"] and r.json()["place"]["revisit"]))
+    repeat, loop = slice(25, 50), slice(len(route) - 25, len(route))
+    assert not any(called["on"][repeat]) and sum(called["on"][loop]) >= 8
+    assert sum(called["off"][repeat]) >= 5  # the rule is what keeps them out

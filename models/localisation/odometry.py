@@ -1,0 +1,109 @@
+"""Odometry's word on a revisit (docs/design/science.md §11.12): within one drive of one stream, a row the
+robot's own poses say it cannot be back at is no loop candidate.
+
+Over one stretch of odometry the pose error grows with the path driven, not with time: after L metres a
+pose is off by at most `odometry_drift` x L (wheel and visual odometry drift a few per cent of the distance)
+plus `odometry_slack` metres (how far apart two views of one place may be taken). A row the stream made
+L metres of path ago, whose pose lies farther from the frame's than that, is a place the robot has not
+come back to, however alike it looks: the periodic doors of a straight corridor, a plateau driven
+straight on. A true loop comes back near where its row's pose lies (a ring of 100 m, its start 0-20 m away
+at 20 % drift), and passes. The rule only ever takes candidates away: where it cannot judge, it keeps them.
+
+A **drive** (one odometry stretch, a `segment`) is what a stream's learned frames trace while each carries a
+pose and a stamp, each stamp after the last by at most `odometry_gap` seconds and each step no faster than
+`max_speed` (the short-term memory's reset, §11.6). A frame without a pose or stamp, a gap (the node
+stopped, a robot powered off: its odometry may start again from zero), a stamp that goes back (a bag
+replayed) or a jump ends the drive; the next posed frame starts another. Rows of another drive, of another
+stream (two robots' odometry share no frame) or without a pose are never judged. `travelled` sums every
+step of the drive, so a row's distance from the frame is at most the path between them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from models.localisation.motion import Motion
+
+__all__ = ["NO_READING", "Odometer", "Reading", "RowOdometry"]
+
+
+class Reading(NamedTuple):
+    """Where a stream's odometry stands at a learned frame: its `drive` (a number unique in the map; -1:
+    none, the frame is not on a drive), the path `travelled` on it (m) and the pose (x, y)."""
+
+    drive: int = -1
+    travelled: float = 0.0
+    x: float = 0.0
+    y: float = 0.0
+
+
+#: Not on a drive: nothing to judge by.
+NO_READING = Reading()
+
+
+class Odometer:
+    """One stream's drive: its last posed learned frame's reading and stamp."""
+
+    def __init__(self) -> None:
+        self.reading = NO_READING
+        self.stamp: float | None = None
+
+    def peek(self, motion: Motion, conf: Mapping[str, Any], new_drive: int) -> Reading:
+        """The reading at a frame of this `motion`, this odometer unchanged; `new_drive` the number a drive
+        that starts here gets. `conf`: the localiser options (`odometry_gap`, `max_speed`)."""
+        if motion.pose is None or motion.stamp is None:
+            return NO_READING
+        x, y = motion.pose
+        last = self.reading
+        if last.drive >= 0 and self.stamp is not None:
+            dt = motion.stamp - self.stamp
+            step = math.hypot(x - last.x, y - last.y)
+            if 0.0 < dt <= float(conf["odometry_gap"]) and step <= float(conf["max_speed"]) * dt:
+                return Reading(last.drive, last.travelled + step, x, y)
+            if dt == 0.0 and step == 0.0:  # the same stamp and pose again (a frame posted twice)
+                return last
+        return Reading(new_drive, 0.0, x, y)
+
+    def take(self, reading: Reading, stamp: float | None) -> None:
+        """A learned frame's reading (`peek`'s) becomes the odometer's."""
+        self.reading, self.stamp = reading, stamp if reading.drive >= 0 else None
+
+
+class RowOdometry:
+    """Each row's reading when it was made (rows of no drive: -1), grown as rows are added: 32 bytes a
+    row."""
+
+    def __init__(self) -> None:
+        self.drive = np.zeros(0, np.int64)
+        self.at = np.zeros((0, 3), np.float64)  # travelled, x, y
+        self.drives = 0  # drives started in this map, the next one's number
+
+    def record(self, row: int, reading: Reading) -> None:
+        if row >= self.drive.size:
+            grow = max(row + 1, 2 * self.drive.size, 16) - self.drive.size
+            self.drive = np.concatenate([self.drive, np.full(grow, -1, np.int64)])
+            self.at = np.concatenate([self.at, np.zeros((grow, 3))])
+        self.drive[row] = reading.drive
+        self.at[row] = reading.travelled, reading.x, reading.y
+
+    def beyond(self, rows: np.ndarray, here: Reading, drift: float, slack: float) -> np.ndarray:
+        """(H,) bool: which of `rows` (H,) the stream at `here` cannot be back at (module docstring): made on
+        its drive, farther from its pose than `drift` x the path since plus `slack` metres."""
+        rows = np.asarray(rows, np.int64)
+        out = np.zeros(rows.size, bool)
+        if here.drive < 0 or not rows.size:
+            return out
+        known = rows < self.drive.size
+        mine = np.zeros(rows.size, bool)
+        mine[known] = self.drive[rows[known]] == here.drive
+        if not mine.any():
+            return out
+        at = self.at[rows[mine]]
+        path = np.maximum(here.travelled - at[:, 0], 0.0)
+        gone = np.hypot(here.x - at[:, 1], here.y - at[:, 2])
+        out[mine] = gone > drift * path + slack
+        return out
