@@ -1,5 +1,6 @@
 """`map.sqlite`'s layout: its schema, its rows as Python values, and the creation of a new file
-(docs/design/service.md §4.2). `storage.mapstore` reads and appends; this module says what is stored.
+(docs/design/service.md §4.2). `storage.mapstore` reads and appends; this module says what is stored
+(and, for each schema version, what a file holds: `Holds`).
 
 A row, once committed, is never changed or removed: triggers in the file refuse UPDATE and DELETE on
 `observations` and `thumbnails`, and the frozen `meta` likewise. The logs and keys are bounded: the
@@ -56,6 +57,7 @@ __all__ = [
     "INPUT_DTYPE",
     "SCHEMA_VERSION",
     "DuplicateObservation",
+    "Holds",
     "KeyRecord",
     "LoopClosure",
     "MapMeta",
@@ -70,6 +72,7 @@ __all__ = [
     "create_file",
     "decode",
     "encode",
+    "load_json",
     "migrate",
     "read_meta",
 ]
@@ -318,6 +321,41 @@ COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, im
 COLUMNS_V4 = COLUMNS.replace("place", "NULL")
 #: The same for a version 1 file opened read-only (no metadata column either).
 COLUMNS_V1 = COLUMNS_V4.replace("metadata", "NULL")
+
+
+@dataclass(frozen=True)
+class Holds:
+    """What a file of one schema version holds, each table or column under its name (the version that
+    added it: this module's docstring). Read once, when a store opens the file (`Holds.of`): a reader
+    asks whether its table is there, never which version the file is. A file opened for writing is
+    migrated first, so it holds everything; one opened read-only holds what its version had."""
+
+    thumbnails: bool  # 2, and a row's metadata
+    idempotency_keys: bool  # 2
+    loop_closures: bool  # 3
+    keyframes: bool  # 4
+    closure_verification: bool  # 4
+    visits: bool  # 5, and a row's place
+    dropped: bool  # 5
+    recency: bool  # 6
+    visit_keys: bool  # 7 (a version 5-6 file keeps a visit's key in its log)
+    stream_states: bool  # 7
+    closure_consolidated_into: bool  # 8
+    repairs: bool  # 9
+    closure_retracts: bool  # 9
+    joins: bool  # 10
+    closure_span: bool  # 11
+    row_columns: str  # what `SELECT` reads of `observations` (NULL for a column the file lacks)
+
+    @classmethod
+    def of(cls, version: int) -> Holds:
+        return cls(thumbnails=version >= 2, idempotency_keys=version >= 2, loop_closures=version >= 3,
+                   keyframes=version >= 4, closure_verification=version >= 4, visits=version >= 5,
+                   dropped=version >= 5, recency=version >= 6, visit_keys=version >= 7,
+                   stream_states=version >= 7, closure_consolidated_into=version >= 8,
+                   repairs=version >= 9, closure_retracts=version >= 9, joins=version >= 10,
+                   closure_span=version >= 11,
+                   row_columns=COLUMNS if version >= 5 else COLUMNS_V4 if version >= 2 else COLUMNS_V1)
 
 
 def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
@@ -603,6 +641,11 @@ def encode(values: np.ndarray | Sequence[int], dtype: str, what: str) -> bytes:
     if a.size > 1 and not bool(np.all(a[1:] > a[:-1])):
         raise ValueError(f"{what} must be sorted ascending without duplicates")
     return a.astype(np.dtype(dtype).newbyteorder("<"), copy=False).tobytes()
+
+
+def load_json(text: str | None) -> Any:
+    """A JSON column's value (None for NULL)."""
+    return None if text is None else json.loads(text)
 
 
 def decode(blob: bytes, dtype: str) -> np.ndarray:

@@ -57,7 +57,7 @@ def loop_closure(S: np.ndarray, codes: Sequence[np.ndarray], conf: Mapping[str, 
     §2.4) and a robot mapping a route (§11.6), through the service's localiser and its own-trail rule.
 
     Step i is localised before it is stored: the map then holds steps 0 … i − 1, linked in order (row r's
-    predecessor r − 1). As in the service (`service/maps/runtime/runtime.py`), the stream's own rows it
+    predecessor r − 1). As in the service (`service/maps/runtime/writer.py`), the stream's own rows it
     has not left (`SequenceLocaliser.own_trail`, measured on the steps' frame codes) are not candidates,
     nor rows of similarity <= 0 (the index returns only rows sharing a cell). Then step i joins the map. One
     stream, one state, no reset.

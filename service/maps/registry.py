@@ -33,6 +33,8 @@ from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import BudgetInfo, MapReservation
 from service.maps.runtime import MapRuntime
 from service.maps.runtime import budget as map_budget
+from service.maps.runtime.settings import RuntimeSettings
+from service.settings import Settings
 from storage import snapshots
 from storage.base.process import rss_bytes
 from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord
@@ -66,10 +68,11 @@ class MapRegistry:
         settings: the service's settings (map caps, snapshot cadence, default preset).
     """
 
-    def __init__(self, data_dir: Path, encoders: Encoders, settings: Any) -> None:
+    def __init__(self, data_dir: Path, encoders: Encoders, settings: Settings) -> None:
         self.data_dir = Path(data_dir)
         self.encoders = encoders
         self.settings = settings
+        self.runtime_settings = RuntimeSettings.of(settings)  # what each map's runtime reads of them
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self.layout = Layout(data_dir)  # every path of the data directory (storage.layout)
         self.catalog = Catalog.open(self.layout.catalog)
@@ -77,7 +80,7 @@ class MapRegistry:
         self.projections.mkdir(parents=True, exist_ok=True)
         self.maps: dict[str, MapRuntime | FailedMap] = {}
         self._create_lock = threading.Lock()
-        total = getattr(settings, "memory_budget_bytes", None)
+        total = settings.memory_budget_bytes
         total, source = (total, "setting") if total is not None else map_budget.default_total()
         self.budget = map_budget.MemoryBudget(total, source)
         #: Maps left closed at start because they did not fit in the budget: map_id -> bytes asked.
@@ -94,13 +97,7 @@ class MapRegistry:
                                    key_cache=self.settings.idempotency_cache)
 
     def _runtime(self, record: MapRecord, feature_dim: int) -> MapRuntime:
-        s = self.settings
-        return MapRuntime(record, self.catalog, feature_dim, s.max_streams, s.max_observations,
-                          s.snapshot_every, s.snapshot_keep, max_keys=s.idempotency_keys,
-                          key_cache=s.idempotency_cache, budget=self.budget,
-                          stream_keep_seconds=s.stream_keep_seconds, manual_keep=s.snapshot_manual_keep,
-                          manual_bytes=s.snapshot_manual_bytes, max_closures=s.loop_closures,
-                          verify_neighbours=s.verify_neighbours, max_visits=s.visits)
+        return MapRuntime(record, self.catalog, feature_dim, self.runtime_settings, budget=self.budget)
 
     def start(self) -> None:
         """Open every map and recover it by replay; create `default` on a fresh install.

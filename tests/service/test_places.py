@@ -11,6 +11,7 @@ from service.maps.recovery import VISIT_CURSOR, open_catalog, verify_map
 from storage import snapshots
 from tests.service.helpers import frame, make_client, post, state_of
 from tests.service.test_loop_closures import LAP, THRESHOLD, drive, revisits
+from tests.service.test_recovery import crash
 
 
 def make(c, map_id: str, **localiser) -> None:
@@ -81,12 +82,6 @@ def test_a_place_keeps_its_cap_and_drops_its_least_recently_used_rows(tmp_path):
         assert info["dropped"] == len(dropped) and info["appearances"] == info["rows_stored"] - len(dropped)
         assert all(m["seq"] not in dropped for m in post(c, frame(LAP[5]), map_id="m", learn="false",
                                                           stream="q", top_k=20).json()["matches"])
-
-
-def crash(c) -> None:
-    """As a kill -9 leaves the data directory: no shutdown snapshot (tests/service/test_recovery.py)."""
-    for rt in c.app.state.registry.maps.values():
-        rt.snapshot_every = 0
 
 
 def answers(bodies: list[dict]) -> list[tuple]:

@@ -11,7 +11,7 @@ from contextlib import contextmanager
 
 import pytest
 
-import service.maps.runtime.runtime as runtime_mod
+import service.maps.runtime.recovering as recovering
 from service.maps.recovery import memory as recovery_memory
 from service.maps.runtime import MapRuntime
 from tests.service.helpers import frame, make_client, post, state_of
@@ -23,8 +23,8 @@ TAIL = 6  # rows learned after the snapshot
 def short_tails(monkeypatch) -> None:
     """A tail of more than 2 steps replays while the map serves (the service's bound is larger), one
     step per turn of the writer."""
-    monkeypatch.setattr(runtime_mod, "TAIL_BEFORE_SERVING", 2, raising=False)
-    monkeypatch.setattr(MapRuntime, "replay_turn_steps", 1, raising=False)
+    monkeypatch.setattr(recovering, "TAIL_BEFORE_SERVING", 2)
+    monkeypatch.setattr(MapRuntime, "replay_turn_steps", 1)
 
 
 @contextmanager

@@ -321,13 +321,13 @@ def test_sync_fsyncs_the_wal_and_its_directory_entry(store: MapStore, row_factor
                                                      monkeypatch) -> None:
     """The group commit's fsync: the WAL file the deferred commits went to (its directory once per WAL
     file); the connection is back to synchronous=FULL after a deferred commit."""
-    from storage import mapstore
+    from storage.mapstore import copies  # where the store syncs
 
     synced: list[int] = []
     dirs: list[Path] = []
     real_fsync = os.fsync
-    monkeypatch.setattr(mapstore.os, "fsync", lambda fd: (synced.append(os.fstat(fd).st_ino), real_fsync(fd)))
-    monkeypatch.setattr(mapstore, "fsync_dir", lambda d: dirs.append(Path(d)))
+    monkeypatch.setattr(copies.os, "fsync", lambda fd: (synced.append(os.fstat(fd).st_ino), real_fsync(fd)))
+    monkeypatch.setattr(copies, "fsync_dir", lambda d: dirs.append(Path(d)))
     assert store.append(row_factory(1), durable=False) == 1
     assert store.durability()["synchronous"] == 2  # FULL again for every other commit
     assert synced == []  # committed, visible, not synced by us yet
@@ -348,6 +348,7 @@ def test_a_migration_without_room_is_a_full_disk_not_corruption(tmp_path: Path, 
     """Found by review: SQLITE_FULL during the v1 -> v2 migration was reported as a corrupt database, so
     the map was failed as `database-corrupt` although its file is whole (the migration is one transaction)."""
     from storage import mapstore
+    from storage.mapstore import store  # where the store opens (and migrates) a file
 
     MapStore.create(tmp_path / "map.sqlite", meta).close()
 
@@ -356,7 +357,7 @@ def test_a_migration_without_room_is_a_full_disk_not_corruption(tmp_path: Path, 
         exc.sqlite_errorname = "SQLITE_FULL"
         raise exc
 
-    monkeypatch.setattr(mapstore, "migrate", no_room)
+    monkeypatch.setattr(store, "migrate", no_room)
     with pytest.raises(mapstore.StorageFull):
         MapStore.open(tmp_path / "map.sqlite")
     monkeypatch.undo()

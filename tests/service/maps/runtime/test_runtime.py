@@ -117,6 +117,6 @@ def test_the_writer_reads_no_stored_code_back_for_the_own_trail_of_a_drive(tmp_p
         kept = drive(reg, reads)
     assert reads == []
     with registry(tmp_path / "b") as reg:  # every code read back, as before
-        monkeypatch.setattr("service.maps.runtime.runtime.CODES_KEPT", 0)
+        monkeypatch.setattr("service.maps.runtime.writer.CODES_KEPT", 0)
         again: list[int] = []
         assert drive(reg, again) == kept and again

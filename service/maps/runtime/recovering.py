@@ -1,0 +1,213 @@
+"""A map's recovery as its runtime runs it (docs/design/service.md §4.3–§4.4): the store opened and
+checked, the memory rebuilt from the newest usable snapshot and the rows and visits after it
+(`service.maps.recovery.recover`), installed with its index and links rebuilt from the store; a long
+tail replayed by the writer in turns while the map localises from the snapshot's memory; the map's
+state (`ready` | `replaying` | `recovering` | `failed`) and the readiness check every request makes.
+
+Recovery runs at start-up, after a restore (`service.maps.runtime.snapshots`) and after a failed
+commit (`service.maps.runtime.writer`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import logging
+import math
+import time
+from collections.abc import Iterator
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from models.localisation.graph import NONE
+from models.localisation.motion import Motion
+from service.maps import recovery
+from service.maps.errors import MapReplaying, MapUnavailable
+from storage import snapshots
+from storage.mapstore import MapStore, Observation, StorageFull, StoreCorrupt
+
+__all__ = ["TAIL_BEFORE_SERVING", "Recovering"]
+
+#: A recovery's tail (rows and visits after its snapshot) of at most this many steps is replayed before the
+#: map serves (well under a second at 5-13 ms a step); a longer one while it serves localising frames
+#: from the snapshot's memory (docs/design/service.md §4.4).
+TAIL_BEFORE_SERVING = 50
+
+log = logging.getLogger("cortexloc.runtime")
+
+
+class Recovering:
+    """`MapRuntime`'s recovery (module docstring). It owns the map's state and its reason, the store it
+    opens, what the last recovery did, and a tail replaying while the map localises: the recovery
+    begun, when its replay started, and the streams localised or reset meanwhile (theirs are the live
+    states)."""
+
+    #: Steps of a tail replay per turn of the writer: a localising frame waits for at most one turn (§4.4).
+    replay_turn_steps = 8
+
+    state: str
+    state_reason: str | None
+    store: MapStore | None
+    recovery: dict[str, Any] | None
+    _tail: recovery.Tail | None
+    _tail_started: float
+    _localised: set[str]
+    _projection_error: str | None
+
+    def require_ready(self, learns: bool = True) -> None:
+        """Raises MapUnavailable unless the map is ready or, for what neither learns nor changes stored
+        state (`learns=False`: a localising frame, a read), replaying its tail (§4.4); MapReplaying (a
+        MapUnavailable with a `retry_after`) for what learns meanwhile."""
+        tail = self._tail
+        if self.state == "replaying" and tail is not None:
+            if learns:
+                done = tail.replay.out.replayed + tail.replay.out.visits
+                per_step = (time.perf_counter() - self._tail_started) / done if done else 0.0
+                raise MapReplaying(self.map_id, tail.steps, done,
+                                   max(1, math.ceil((tail.steps - done) * per_step)))
+            return
+        if self.state != "ready":
+            raise MapUnavailable(self.map_id, self.state, self.state_reason)
+
+    def recover(self, *, serve_during_replay: bool = False) -> None:
+        """Open the store and rebuild the memory from it (`recovery.recover`, docs/design/service.md §4.4):
+        at startup, after a restore, and after a failed commit. What happened is in `self.recovery`
+        (map resource, /readyz) and the log; only an unreadable store or projection fails the map.
+
+        With `serve_during_replay` (at startup) a tail of more than `TAIL_BEFORE_SERVING` steps after the
+        newest usable snapshot is replayed by the writer in turns of `replay_turn_steps`, after this
+        returns: the map is `replaying` meanwhile, localising frames are answered from the memory as far
+        as it has replayed, and what learns is refused (MapReplaying) until the tail is done."""
+        if self.hasher is None:
+            self._fail("projection-invalid", self._projection_error or "no projection")
+            return
+        self._codes.clear()  # a restore's store holds other rows under later seqs
+        if self.layout.snapshots_dir(self.map_id).is_dir():  # a crash during a snapshot leaves a temp dir
+            snapshots.remove_stale_temp(self.layout.snapshots_dir(self.map_id))
+        try:
+            self.store = MapStore.open(self.layout.map_db(self.map_id),
+                                       max_keys=self.settings.idempotency_keys,
+                                       max_closures=self.settings.loop_closures,
+                                       seq_floor=self.catalog.get_high_water(self.map_id))
+            if not self.store.quick_check():
+                raise StoreCorrupt("quick_check failed")
+        except (StoreCorrupt, StorageFull) as e:  # full (a migration): the file is whole, a restart recovers
+            self._fail("disk-full" if isinstance(e, StorageFull) else "database-corrupt", str(e))
+            return
+        tail = None
+        if serve_during_replay:
+            tail = recovery.begin(self.store, self.catalog, self.map_id, self.model)
+        if tail is not None and tail.steps > TAIL_BEFORE_SERVING:
+            self._serve_during(tail)
+            return
+        self._install(*recovery.recover(self.store, self.catalog, self.map_id, self.model, begun=tail))
+
+    def _install(self, done: recovery.Rebuilt, note: dict[str, Any]) -> None:
+        """The recovered memory in place, its index and links built from the rows (unless they already
+        were, for it: a tail replayed while serving); the map is ready."""
+        assert self.store is not None
+        fresh = done.model is not self.model
+        self.model, self.streams = done.model, done.streams
+        while len(self.streams) > self.settings.max_streams:  # a replay meets every stream that ever learned
+            self.streams.popitem(last=False)  # the least recently used go, as `touch` evicts them live
+        self.covered, self.since_snapshot = done.covered, 0
+        if fresh:
+            self._rebuild_index()
+        self.recovery = note
+        self.state, self.state_reason = "ready", None
+        log.info("map %s ready: %s", self.map_id, note)
+
+    def _serve_during(self, tail: recovery.Tail) -> None:
+        """Serve localising frames from the tail's start while the writer replays it (`_replay_tail`)."""
+        out = tail.replay.out
+        self.model = out.model
+        self._rebuild_index()  # every stored row is in the index at once: the replay reproduces them
+        # The live streams are copies: the replay steps its own, and a localising frame never moves them.
+        self.streams = copy.deepcopy(out.streams)
+        while len(self.streams) > self.settings.max_streams:
+            self.streams.popitem(last=False)
+        self._tail, self._tail_started, self._localised = tail, time.perf_counter(), set()
+        self.recovery = {"source": "snapshot", "snapshot_id": tail.snapshot_id,
+                         "snapshot_seq": tail.snapshot_seq, "tail": tail.steps, "replayed": 0}
+        self.state, self.state_reason = "replaying", None
+        log.info("map %s localises from snapshot %s while its tail of %d rows and visits replays",
+                 self.map_id, tail.snapshot_id, tail.steps)
+        self.submit(self._replay_tail)
+
+    def _replay_tail(self) -> None:
+        """Writer: one turn of the tail's replay, then the next turn is queued behind the frames that
+        arrived meanwhile; at its end the map is ready (its streams as replayed and resumed, but those
+        localised or reset meanwhile as they are now: their next learned frame starts a new sequence, as
+        after any localisation). A replay that diverges passes the snapshot over as at a start (the map
+        `recovering` until an older start is replayed). A crash meanwhile loses nothing: the replay
+        writes nothing, the next start replays the same tail."""
+        tail = self._tail
+        if tail is None:
+            return
+        try:
+            if not tail.replay.run(self.replay_turn_steps):
+                # how far it is, for the map resource and /readyz (a new dict: they read it on the loop)
+                self.recovery = {**(self.recovery or {}),
+                                 "replayed": tail.replay.out.replayed + tail.replay.out.visits}
+                with contextlib.suppress(RuntimeError):  # the writer shut down: the map closes replaying
+                    self._writer.submit(self._replay_tail)
+                return
+            assert self.store is not None
+            self._tail = None
+            if tail.replay.out.mismatches:
+                self.state, self.state_reason = "recovering", "replay-diverged"
+            live, localised = self.streams, self._localised
+            done, note = recovery.recover(self.store, self.catalog, self.map_id, self.model, begun=tail)
+            if done.model is self.model:
+                for name in localised:
+                    if name in live:
+                        done.streams[name] = live[name]
+                        done.streams.move_to_end(name)
+                    else:  # evicted by the live streams meanwhile
+                        done.streams.pop(name, None)
+            note["replayed_while_serving"] = True
+            self._install(done, note)
+        except Exception as e:  # anything: the map must not stay replaying for ever
+            log.exception("map %s: the tail's replay failed", self.map_id)
+            self._tail = None
+            self._fail("replay-failed", str(e) or type(e).__name__)
+
+    def _rebuild_index(self) -> None:
+        """The index and links from the stored rows (docs/design/service.md §4.4 step 6)."""
+        assert self.store is not None
+        dropped = self.store.dropped()
+        held: list[_Held] = []
+
+        def rows() -> Iterator[Observation]:  # the rows read once, for the links and the index (issue 40)
+            for r in self.store.rows():  # type: ignore[union-attr]
+                if r.seq not in dropped:
+                    held.append(_Held(r.seq, r.winner_cells, r.stream))
+                yield r
+
+        # (a visit's stream and code: the streams' short-term memories, docs/design/science.md §11.6; a
+        # visit a repair re-made as a row: its step of the memory only, row NONE)
+        done = self.store.repairs()
+        split = {r.visit for r in done if r.kind == "split"}
+        visits = ((v.context_prev_seq, NONE if v.id in split else v.seq, v.after_seq + 1, v.stream,
+                   v.input_sdr, Motion.of(v.metadata)) for v in self.store.visits())
+        self.model.links.rebuild(rows(), dropped, self.store.joined(), visits, self.store.recency(),
+                                 remade={r.seq for r in done if r.kind == "split"},
+                                 unjoined={r.seq for r in done if r.kind == "unjoin"},
+                                 folded=self.store.joins())
+        self.model.index.rebuild(held)
+        if self.budget is not None:
+            self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
+
+    def _fail(self, reason: str, detail: str) -> None:
+        self.state, self.state_reason = "failed", reason
+        self.catalog.set_state(self.map_id, "failed", reason)
+        log.error("map %s failed (%s): %s", self.map_id, reason, detail)
+
+
+class _Held(NamedTuple):
+    """What the index is rebuilt from of a row held (`InvertedIndex.rebuild`)."""
+
+    seq: int
+    winner_cells: np.ndarray
+    stream: str

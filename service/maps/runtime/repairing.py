@@ -1,0 +1,81 @@
+"""Repairing a map's merges as its runtime runs it (docs/design/science.md §11.6, docs/design/service.md
+§1.2): the merges made from a stream's own recent trail listed (`own_trail_merges`) or undone (`repair`)
+in one transaction, then the index and places rebuilt from the store. Which merges those are is
+`service.maps.repair.find`'s; the transaction is `MapStore.repair`'s.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from service.maps import repair as repairs
+from service.maps.errors import InsufficientStorage, MapFull
+from service.maps.results import RepairResult, Retraction, SplitVisit, Unjoin
+from storage.mapstore import StorageFull
+
+__all__ = ["Repairing"]
+
+log = logging.getLogger("cortexloc.runtime")
+
+
+class Repairing:
+    """`MapRuntime`'s repair (module docstring); it holds no state of its own."""
+
+    def own_trail_merges(self) -> RepairResult:
+        """Writer: the merges made from a stream's own recent trail that no repair undid yet, listed
+        (docs/design/science.md §11.6; `service.maps.repair.find`)."""
+        self.require_ready(learns=False)
+        assert self.store is not None
+        return self._repair_result(self._find(), None)
+
+    def repair(self) -> RepairResult:
+        """Writer: undo the merges made from a stream's own recent trail (docs/design/science.md §11.6,
+        docs/design/service.md §1.2): each visit re-made as a row of its own, each row that joined a place
+        through its stream's recent row given back its own place, each closure that named such a row
+        retracted, in one transaction (`MapStore.repair`); then the index and places are rebuilt from
+        the store, as a recovery builds them. A second repair finds nothing. The memory is not touched:
+        it learned each frame once, with its visit, and the replay keeps taking it so.
+
+        Raises:
+            MapUnavailable (not ready). MapFull: the re-made rows would pass `max_observations`;
+            MemoryBudgetExceeded: their index bytes do not fit the budget (nothing changed: a repair
+            forgets nothing to make room). InsufficientStorage: the disk is full (nothing changed).
+        """
+        self.require_ready()
+        assert self.store is not None
+        found = self._find()
+        if not found:
+            return self._repair_result(found, [])
+        added = len(found.visits)
+        if len(self.index) + added > self.index.max_observations:
+            raise MapFull(self.map_id, self.index.max_observations)
+        if self.budget is not None:
+            self.budget.grow_index(self.map_id, added * self.row_bytes)
+        try:
+            seqs = self.store.repair(found.visits, [(s, was) for s, was, _ in found.joins],
+                                     [c[0] for c in found.closures])
+        except BaseException as e:
+            if self.budget is not None:  # nothing was stored: the index holds what it held
+                self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
+            if isinstance(e, StorageFull):
+                raise InsufficientStorage("the repair could not be stored: the disk is full; nothing "
+                                          "changed") from e
+            raise
+        self._rebuild_index()  # sets the budget's index bytes to the index rebuilt
+        log.info("map %s repaired: %d visits re-made as rows, %d rows given back their place, %d loop "
+                 "closures retracted", self.map_id, len(seqs), len(found.joins), len(found.closures))
+        return self._repair_result(found, seqs)
+
+    def _find(self) -> repairs.Found:
+        assert self.store is not None
+        return repairs.find(self.store, self.localisation.localiser.conf, self.tm.n_columns)
+
+    def _repair_result(self, found: repairs.Found, seqs: list[int] | None) -> RepairResult:
+        made = seqs or [None] * len(found.visits)
+        return RepairResult(
+            map_id=self.map_id, window=found.window, repaired=seqs is not None,
+            splits=[SplitVisit(visit=v.id, stream=v.stream, into=v.seq, seq=s)
+                    for v, s in zip(found.visits, made, strict=True)],
+            unjoins=[Unjoin(seq=s, stream=st, joined=was) for s, was, st in found.joins],
+            retractions=[Retraction(closure=i, stream=st, place_seq=p) for i, st, p in found.closures],
+            rows_added=len(seqs or []))

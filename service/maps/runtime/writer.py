@@ -1,0 +1,390 @@
+"""The map's writer and the order of what it does (docs/design/service.md §1.2, §4.3, §6): the single
+thread every change of the map runs in, the way of one observation to it (`observe`: encoder pool, then
+the writer's turn in arrival order), its checks and the step (`apply`, `_step`), the persistence of
+what the step made (a row, a visit, a localising loop closure), the group commit that acknowledges a
+row once durable, the periodic snapshot's trigger after a commit (`_committed`), forgetting at the
+row cap, made durable before the row that needs the room (`_forget`), a revisit's verification
+(`_verified`) and the stored codes the writer keeps (`_code_of`).
+
+What the step builds (the row, the reply, the closure, the visit) is `service.maps.runtime.records`'s;
+the step itself is the pure `models.pipeline.observe`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import functools
+import hashlib
+import logging
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, TypeVar
+
+import numpy as np
+
+import service.maps.runtime.idempotency as idempotency  # the module, not the package: no cycle via __init__
+import service.maps.runtime.records as records
+from models import pipeline
+from models.frontend import slsbh
+from models.frontend.images import RawFrame
+from models.localisation import forgetting
+from models.localisation.motion import Motion
+from models.pipeline import touch
+from service.maps import keyframes
+from service.maps.encoding.pool import EncoderPool
+from service.maps.errors import ClientGone, InsufficientStorage, MapNotFound
+from service.maps.recovery import snapshots as map_snapshots
+from service.maps.results import ObservationResult, PlaceResult
+from service.maps.runtime.durability import GroupCommit
+from storage.base.dtypes import INDEX_DTYPE
+from storage.mapstore import MapStore, StorageFull
+
+__all__ = ["CODES_KEPT", "Writer"]
+
+#: Stored rows' codes the writer keeps for the own-trail rule and consolidation (`_code_of`), the most
+#: recently used: about one read per frame, of a row committed moments before (1.2 MB at 308 columns).
+CODES_KEPT = 256
+
+log = logging.getLogger("cortexloc.runtime")
+T = TypeVar("T")
+
+
+class Writer:
+    """`MapRuntime`'s writer (module docstring). It owns the writer thread, the group commit, the
+    arrival order of observations, the streams' cameras, the kept codes and the count of forgotten rows."""
+
+    _writer: ThreadPoolExecutor
+    _commits: GroupCommit
+    _turn: asyncio.Event
+    hasher: slsbh.Hasher | None
+    cameras: dict[str, dict[str, Any]]  # given once per stream (or with each frame)
+    _codes: OrderedDict[int, np.ndarray]  # seq -> its stored code (`_code_of`)
+    forgotten: int  # rows forgotten since start (the hard cap, docs/design/science.md §11.9)
+    store: MapStore | None
+
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        """Event loop: `fn(*args)` in this map's writer thread, after everything submitted before it."""
+        return await asyncio.wrap_future(self.submit(fn, *args))
+
+    def submit(self, fn: Callable[..., T], *args: Any) -> Future[T]:
+        """Any thread: queue `fn(*args)` on the writer. Raises MapNotFound once the map is deleted."""
+        try:
+            return self._writer.submit(fn, *args)
+        except RuntimeError as e:  # the writer was shut down: the map was deleted meanwhile
+            raise MapNotFound(self.map_id) from e
+
+    def close(self, snapshot: bool = True) -> None:
+        """Drain the writer; at a clean shutdown take an automatic snapshot if anything is new.
+
+        "New" includes a stream that switched to localisation: that switch is not in the rows, and the
+        snapshot carries it (a localisation stream comes back empty, so its next mapping step starts a
+        new sequence as it would have without the restart).
+        """
+        self._writer.shutdown(wait=True)
+        self._commits.close()  # the requests still waiting get their sync first
+        if self.store is None:
+            return
+        latest = self.catalog.list_snapshots(self.map_id)
+        # Rows or visits the newest snapshot (of any kind) does not hold: a shutdown snapshot shortens
+        # the next start; one right after a manual snapshot would only duplicate it.
+        new_rows = (self.store.last_seq() > (latest[0].seq if latest else 0)
+                    or self.store.visit_stats()[2] > self.covered)
+        switched = any(st.learning is False for st in self.streams.values())
+        if snapshot and self.state == "ready" and self.settings.snapshot_every and (new_rows or switched):
+            try:
+                self.snapshot("auto")
+                map_snapshots.prune_auto(self.catalog, self.map_id, self.store, self.settings.snapshot_keep)
+            except Exception:  # the rows are durable; a snapshot only shortens the next replay
+                log.exception("map %s: shutdown snapshot failed", self.map_id)
+        self.store.close()
+
+    def _sync_store(self) -> None:
+        """Group commit's thread: fsync what the writer committed (the store in use now; one that
+        recovery closed was checkpointed and synced by SQLite on close)."""
+        store = self.store
+        if store is not None:
+            store.sync()
+
+    async def durable(self) -> None:
+        """Event loop: wait until every row committed so far is durable (an acknowledgement waits for
+        it: docs/design/service.md §4.3)."""
+        await asyncio.wrap_future(self._commits.durable())
+
+    async def observe(self, pool: EncoderPool, extractions: keyframes.Extractions, body: bytes | RawFrame, *,
+                      learn: bool, stream: str, top_k: int, label: str | None,
+                      metadata: dict[str, Any] | None = None, post: idempotency.IdempotentPost | None = None,
+                      gone: threading.Event | None = None) -> ObservationResult | idempotency.Reply:
+        """Event loop: one checked image through the map (docs/design/service.md §1.2, §6).
+
+        The pool encodes and projects it with this map's matrix, batched with other requests; the step
+        (`apply`) is then queued on the writer, after the steps of the requests that arrived before
+        this one, so the memory sees frames in arrival order while the writer never waits for an
+        encoding.
+
+        With a `post` (an Idempotency-Key) the answer is its `Reply`: the earlier one for a repeated
+        key, else the sealed reply of this step (service.maps.runtime.idempotency).
+
+        On a map with keyframes the frame's features are taken in `extractions`, beside the encoding.
+        `gone` is set once the client went away: an extraction not yet started is skipped, and a post
+        whose client is gone by the time its turn comes is not handed to the writer; one the writer has
+        is never aborted.
+
+        Raises:
+            MapUnavailable, StreamLimit, Overloaded (nothing queued); ImageError (the decode failed, nothing
+            changed); ClientGone, InvalidCamera (nothing changed); MapFull, InsufficientStorage (from
+            `apply`); IdempotencyKeyReused.
+        """
+        gone = gone or threading.Event()
+        self.require_ready(learn)
+        # Refused before its encoding too; `apply` checks again in the writer, where it is exact (here
+        # the writer may be changing the streams: a look that meets it is left to that check).
+        with contextlib.suppress(RuntimeError):
+            self._admit(stream)
+        t0 = time.perf_counter()
+        # Localised frames too: their thumbnail is kept in the recent ring only (never stored).
+        encoding = pool.submit(body, hasher=self.hasher, backbone=self.config.backbone,
+                               thumbnail=self.config.thumbnails, resize=self.config.resize)
+        # Local features in native pixels, while the backbone encodes (docs/design/science.md §12.1).
+        # The stream's camera: this frame's, else the last.
+        given = (metadata or {}).get("camera")
+        camera = given or self.cameras.get(stream)
+        try:
+            frame = None if self.config.keyframes is None else asyncio.wrap_future(extractions.submit(
+                pool.encoders.get(self.config.backbone).decode, body, self.config.keyframes, camera,
+                given is not None, gone))
+        except BaseException:
+            encoding.cancel()  # refused (Overloaded): the pool skips the encoding where it has not started
+            raise
+        # The digest stored with the row, off the event loop (a 10 MB raw frame takes ~20 ms to hash)
+        # and beside the encoding.
+        digest = asyncio.ensure_future(asyncio.to_thread(_sha256, getattr(body, "data", body)))
+        before, mine = self._turn, asyncio.Event()
+        self._turn = mine
+        try:
+            encoded = await asyncio.wrap_future(encoding)
+            query = None if frame is None else await frame
+            image_sha256 = await digest
+            t_encoded = time.perf_counter()
+            await before.wait()
+            if gone.is_set():  # nobody waits for the answer: the writer never gets it (nothing changes)
+                raise ClientGone("the client went away before its post reached the map's writer")
+            assert encoded.projected is not None  # the pool projects when given a hasher
+            front = {"decode": encoded.timings_ms["decode"], "encode": (t_encoded - t0) * 1e3,
+                     **({} if query is None else {"features": query.ms})}
+            thumb = encoded.thumbnails[0] if encoded.thumbnails else None
+            apply = functools.partial(
+                self.apply, encoded.projected[0], image_sha256,
+                learn=learn, stream=stream, top_k=top_k, label=label, metadata=metadata,
+                thumbnail=thumb if learn else None, post=post, query=query,
+                contrast=None if encoded.contrast is None else float(encoded.contrast[0]), durable=False)
+            if post is not None:
+                post.front_ms = front
+                assert self.store is not None  # a ready map has its store
+                once = self.submit(idempotency.apply_once, self.store, self.keys, post, learn, apply)
+            else:
+                step = self.submit(apply)
+        finally:
+            mine.set()
+        # A learned row (and the earlier reply of a repeated key, whose row may be in the same group) is
+        # acknowledged only once durable: the writer committed it without its fsync (group commit).
+        if post is not None:
+            answer = await asyncio.wrap_future(once)
+            if learn:
+                await self.durable()
+            return answer if answer.replayed else dataclasses.replace(answer, thumbnail=thumb)
+        result = await asyncio.wrap_future(step)
+        t_step = time.perf_counter()
+        if learn:
+            await self.durable()
+        sync = {"sync": (time.perf_counter() - t_step) * 1e3} if learn else {}
+        return dataclasses.replace(result, timings_ms={**front, **result.timings_ms, **sync}, thumbnail=thumb)
+
+    def apply(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
+              label: str | None, metadata: dict[str, Any] | None = None, thumbnail: bytes | None = None,
+              post: idempotency.IdempotentPost | None = None,
+              query: keyframes.QueryFrame | None = None, contrast: float | None = None,
+              durable: bool = True) -> ObservationResult:
+        """Writer: one frame's TM step on the stream's context, ranking, and for learning the commit.
+
+        Args:
+            projected: (k,) the frame's features · this map's projection (docs/design/science.md §7).
+            image_sha256: hex digest of the image bytes (stored, never the image).
+            metadata, thumbnail: stored with a learned row (docs/design/service.md §4.2).
+            post: an idempotent post: a learned row commits with its sealed reply.
+            query: the frame's local features and camera (maps with keyframes): a learned row stores
+                them; a revisit candidate is verified with them (docs/design/science.md §12).
+            contrast: the decoded frame's contrast (`models.frontend.images.contrast`; None: not
+                measured): a frame too flat to say where it is is no revisit (docs/design/science.md §11.7).
+            durable: False: the row is committed without its fsync; the caller acknowledges it only
+                after `durable()` (group commit, docs/design/service.md §4.3).
+
+        Returns:
+            The result; `timings_ms` holds hash, tm, search (of which localiser), store and, for a
+            learned row, commit (its durable write, within store).
+
+        Raises:
+            ValueError: `projected` is not (k,) (before any state change). MapUnavailable, MapFull,
+            StreamLimit, MemoryBudgetExceeded (nothing changed).
+            InsufficientStorage: the disk is full; the memory was rebuilt from the store, nothing learned.
+        """
+        self.require_ready(learn)
+        assert self.store is not None and self.hasher is not None  # a map without them is never ready
+        if projected.shape != (self.hasher.k,):
+            raise ValueError(f"projection has shape {projected.shape}, this map's are ({self.hasher.k},)")
+        self._admit(stream)
+        if learn and (gone := forgetting.to_forget(self.index, self.localisation)):
+            self._forget(gone)
+        if learn and self.budget is not None:  # the row's index bytes, before the step (a failed one is
+            self.budget.grow_index(self.map_id, self.row_bytes)  # set right by the recovery it causes)
+        try:
+            return self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k, label=label,
+                              metadata=metadata, thumbnail=thumbnail, post=post, query=query,
+                              contrast=contrast, durable=durable)
+        except Exception as e:
+            if not learn:  # a localisation learns nothing: the memory and the store still agree
+                if isinstance(e, StorageFull):  # its loop closure could not be logged: no answer either
+                    raise InsufficientStorage("the loop closure could not be logged: the disk is full") from e
+                raise
+            # The TM may hold a learned step the store does not (a failed commit, or a failure anywhere
+            # between the step and the commit): rebuild from the store before anything else runs, so
+            # no later row is learned on a memory that replay cannot reproduce (docs/design/service.md §4.3).
+            assert self.store is not None
+            self.state, self.state_reason = "recovering", "step-failed"
+            self.store.close()
+            self.recover()
+            if isinstance(e, StorageFull):
+                raise InsufficientStorage("the observation could not be stored: the disk is full; nothing "
+                                          "was learned") from e
+            raise
+
+    def _step(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
+              label: str | None, metadata: dict[str, Any] | None, thumbnail: bytes | None,
+              post: idempotency.IdempotentPost | None,
+              query: keyframes.QueryFrame | None = None, contrast: float | None = None,
+              durable: bool = True) -> ObservationResult:
+        """Writer: `apply` after its checks: the pure step (`models.pipeline.observe`), the reply from
+        the stored rows it names and what it made (`records`), then, durable before the reply, the
+        visit, the row or a localising stream's loop closure. An exception here while learning is
+        rebuilt from by `apply` (the step already holds the row in the index and links)."""
+        assert self.store is not None
+        st, evicted = touch(self.streams, stream, self.settings.max_streams, self.clock())
+        self.stream_evictions += evicted
+        if self._tail is not None:  # localising while the tail replays (`_replay_tail`)
+            self._localised.add(stream)
+        seq = self.store.next_seq() if learn else None  # this thread is the store's only writer
+        step = pipeline.observe(self.model, st, projected, learn=learn, stream=stream, top_k=top_k, seq=seq,
+                                code_of=self._code_of, threshold=self.config.revisit_threshold,
+                                contrast=contrast, motion=Motion.of(metadata))
+        if step.visit is not None:  # consolidated (§11.8): the memory learned it, no row is made
+            seq = None
+        # What a replay cannot rebuild of the stream, durable with its step: it resumes after a crash (§4.4).
+        resume = pipeline.resume_state(st) if learn else None
+        t3 = time.perf_counter()
+        place = step.place
+        rows = self.store.get_many([*(m.seq for m in step.ranked), *([place.seq] if place else [])])
+        if query is not None and query.camera is not None:
+            self.cameras[stream] = query.camera
+            if len(self.cameras) > self.settings.max_streams:  # bounded: the cameras of the streams held
+                self.cameras = {k: v for k, v in self.cameras.items() if k in self.streams}
+        row = None if seq is None else records.learned_row(
+            step, stream=stream, image_sha256=image_sha256, label=label, metadata=metadata,
+            thumbnail=thumbnail, query=query, resume=resume)
+        answer = None if place is None else self._verified(
+            PlaceResult.of(place, rows[place.seq], self.config.revisit_threshold), query, stream)
+        # The answer is whole before the commit, so an idempotent post's reply commits with its row.
+        result = records.reply(self.config, self.map_id, step, rows, stream=stream, learn=learn, seq=seq,
+                               row=row, place=answer, metadata=metadata,
+                               map_seq=seq or self.store.last_seq())
+        # A revisit is a loop closure, logged durably: with the learned row in its transaction, or alone
+        # for a localising stream (it stores no observation and changes no memory; §11.6).
+        closure = records.loop_closure(result, stream=stream, metadata=metadata,
+                                       key=post.key if post is not None else None)
+        if step.visit is not None:  # durable before the reply: the replay needs it (service.md §4.4)
+            self.store.add_visit(records.visit(step, stream=stream, metadata=metadata, closure=closure,
+                                               key=None if post is None else post.record(result),
+                                               resume=resume))
+            self._committed()
+        elif row is None and closure is not None:
+            self.store.add_closure(closure)
+        if row is not None:
+            if post is not None:
+                row = dataclasses.replace(row, key=post.record(result))
+            t_commit = time.perf_counter()
+            committed = self.store.append(dataclasses.replace(row, closure=closure), durable=durable)
+            commit_ms = (time.perf_counter() - t_commit) * 1e3
+            assert committed == seq  # this thread is the store's only writer
+            self._keep_code(seq, step.code.astype(INDEX_DTYPE))  # as the store gives it back
+            self._committed()
+        if learn and self.budget is not None and (step.visit is not None or step.dropped or step.joins):
+            # the row reserved before the step was not made, or its place dropped rows (§11.9), or
+            # warm-up rows were joined and are held no more (§11.8)
+            self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
+        t4 = time.perf_counter()
+        # store: the reply's stored rows, verification and the durable write; commit: the write alone.
+        stored = {"store": (t4 - t3) * 1e3, **({"commit": commit_ms} if row is not None else {})}
+        return dataclasses.replace(result, timings_ms={**result.timings_ms, **stored})
+
+    def _committed(self) -> None:
+        """Writer: after a row or a visit is durable. Every `snapshot_every` of them the automatic snapshot
+        (the stream's step is recorded first, so it holds the stream as it is after this frame); then the
+        visits it covers beyond the last `visits` kept are pruned (docs/design/science.md §11.8), and the
+        stream states it holds (docs/design/service.md §4.4)."""
+        assert self.store is not None
+        self.since_snapshot += 1
+        if self.settings.snapshot_every and self.since_snapshot >= self.settings.snapshot_every:
+            self._auto_snapshot()
+            if self.since_snapshot == 0:  # it was taken
+                self.store.prune_visits(self.covered, self.settings.visits)
+                self.store.prune_stream_states(self.store.last_seq())
+
+    def _forget(self, gone: list[int]) -> None:
+        """Writer: the hard cap binds (`max_observations` rows held): forget `gone`, the rows the rule
+        chose (`forgetting.to_forget`: the least recently used places, whole, at least 1 % of the cap),
+        durably before the row that needed the room (docs/design/science.md §11.9). Their rows stay in
+        map.sqlite (the replay and snapshots read them) but leave the index, the places and every answer."""
+        assert self.store is not None
+        self.store.drop(gone, "forgotten")
+        pipeline.drop(self.model, gone)
+        self.forgotten += len(gone)
+        if self.budget is not None:
+            self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
+        log.info("map %s: the row cap binds; forgot %d rows of the least recently used places",
+                 self.map_id, len(gone))
+
+    def _verified(self, place: PlaceResult, query: keyframes.QueryFrame | None, stream: str) -> PlaceResult:
+        """Writer: a revisit candidate's geometric verification (docs/design/science.md §12.2), on maps
+        with keyframes only; with `verify_revisit` an unverified candidate is no revisit."""
+        if not place.revisit or self.config.keyframes is None or self.store is None:
+            return place
+        v = keyframes.verify_candidate(self.store, self.localisation.graph, place.seq, place.stream, query,
+                                       stream=stream, neighbours=self.settings.verify_neighbours)
+        revisit = keyframes.revisit_stands(place.revisit, v, self.config.verify_revisit)
+        return dataclasses.replace(place, verification=v, revisit=revisit)
+
+    def _code_of(self, seq: int) -> np.ndarray:
+        """Writer: a stored row's frame code (its sLSBH input SDR), for the own-trail rule (§11.6) and
+        consolidation (§11.8): kept from its commit (`CODES_KEPT`), else read from the store (the same
+        values: the code is stored exactly)."""
+        code = self._codes.get(seq)
+        if code is not None:
+            self._codes.move_to_end(seq)
+            return code
+        assert self.store is not None
+        row = self.store.get(seq)
+        assert row is not None  # the rule walks the stream's committed rows
+        self._keep_code(seq, row.input_sdr)
+        return row.input_sdr
+
+    def _keep_code(self, seq: int, code: np.ndarray) -> None:
+        self._codes[seq] = code
+        if len(self._codes) > CODES_KEPT:
+            self._codes.popitem(last=False)
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()

@@ -1,0 +1,142 @@
+"""`MapStore`: one map's `map.sqlite` opened (docs/design/service.md §4.2–§4.3): its connection, lock and
+lifecycle, what the file holds (`storage.mapschema.Holds`, read once at open) and the families of
+tables composed (`storage.mapstore`'s docstring).
+"""
+
+from __future__ import annotations
+
+import os
+import sqlite3
+import threading
+from pathlib import Path
+
+from storage._common import StorageError, StorageFull, StoreClosed, connect, is_full_error
+from storage.mapschema import SCHEMA_VERSION, Holds, MapMeta, StoreCorrupt, create_file, migrate, read_meta
+from storage.mapstore.closures import Closures, closure_columns
+from storage.mapstore.copies import Copies
+from storage.mapstore.keyframes import Keyframes
+from storage.mapstore.observations import Observations
+from storage.mapstore.streams import Streams
+from storage.mapstore.visits import Visits
+
+__all__ = ["MapStore"]
+
+
+class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
+    """One map's `map.sqlite`: frozen meta + append-only observations, and the tables written with them
+    (one module per family: observations, visits, streams, closures, keyframes, copies).
+
+    Thread-safe: every method takes the store's lock, so the map's writer thread and readers such as
+    `GET /v1/maps/{id}` (request threads) can share one store. Count and last seq are cached in memory:
+    this object is the file's only writer (docs/design/service.md §6: one writer per map).
+
+    Plain `sqlite3`, not `sqlite_utils` (which the catalog uses): the append path is the service's
+    durability contract (§4.3), and each of its steps is spelled out here: an explicit `BEGIN
+    IMMEDIATE` ... `COMMIT` per group, seqs assigned before the INSERT and counted only after COMMIT
+    returns, the file's triggers' errors and SQLITE_FULL mapped to our errors. A helper that opens
+    its own transactions or retries would blur exactly that.
+    """
+
+    def __init__(self, path: Path, conn: sqlite3.Connection, meta: MapMeta, seq_floor: int,
+                 max_keys: int | None = None, max_closures: int | None = None) -> None:
+        """Use `MapStore.create` or `MapStore.open`."""
+        self.path = path
+        self.meta = meta
+        self.max_keys = max_keys
+        self.max_closures = max_closures
+        # What the file holds, read once here: an older file opened read-only is not migrated, and
+        # each reader asks for its table by name (`storage.mapschema.Holds`), never for a version.
+        self.holds = Holds.of(meta.schema_version)
+        self._closure_columns = closure_columns(self.holds)
+        self._conn: sqlite3.Connection | None = conn
+        self._lock = threading.RLock()
+        self._cell_dtype = meta.cell_dtype
+        last, count = conn.execute("SELECT coalesce(max(seq), 0), count(*) FROM observations").fetchone()
+        self._last_seq = int(last)
+        self._count = int(count)
+        self._seq_floor = max(0, int(seq_floor))
+        self._synced_wal: int | None = None  # the inode of the WAL file whose directory entry `sync` synced
+
+    @classmethod
+    def create(cls, path: str | os.PathLike[str], meta: MapMeta, *, seq_floor: int = 0,
+               max_keys: int | None = None, max_closures: int | None = None) -> MapStore:
+        """Create a new `map.sqlite` atomically (`storage.mapschema.create_file`: a crash leaves no map
+        file or a complete one) and open it.
+
+        Args:
+            path: the file to create; its directory must exist.
+            meta: what is frozen into the map.
+            seq_floor, max_keys, max_closures: see `open`.
+
+        Raises:
+            FileExistsError: `path` exists.
+        """
+        create_file(Path(path), meta)
+        return cls.open(path, seq_floor=seq_floor, max_keys=max_keys, max_closures=max_closures)
+
+    @classmethod
+    def open(cls, path: str | os.PathLike[str], *, seq_floor: int = 0, readonly: bool = False,
+             max_keys: int | None = None, max_closures: int | None = None) -> MapStore:
+        """Open an existing `map.sqlite`.
+
+        Args:
+            path: the file.
+            seq_floor: the lowest seq that counts as used (the catalog's high-water mark): the next
+                append gets `max(last_seq, seq_floor) + 1`, so a restored (older) file never hands out a
+                seq again.
+            readonly: inspect only (`cortexloc verify`): nothing on disk changes, appends fail. An
+                older file is migrated (`storage.mapschema.migrate`) unless opened read-only.
+            max_keys: idempotency keys kept: those of the last `max_keys` seqs (None: all).
+            max_closures: loop closures kept: the last `max_closures` (None: all).
+
+        Raises:
+            FileNotFoundError: no such file (SQLite would silently create an empty one).
+            StoreCorrupt: not a map database.
+            StorageError: written by a newer schema version.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path} does not exist")
+        try:
+            conn = connect(path, readonly=readonly)
+        except sqlite3.DatabaseError as exc:
+            raise StoreCorrupt(f"{path}: {exc}") from exc
+        try:
+            meta = read_meta(conn, path)
+            if meta.schema_version > SCHEMA_VERSION:
+                raise StorageError(f"{path}: schema version {meta.schema_version} is newer than "
+                                   f"this code's {SCHEMA_VERSION}")
+            if not readonly:
+                meta = migrate(conn, meta)
+            return cls(path, conn, meta, seq_floor, max_keys, max_closures)
+        except sqlite3.DatabaseError as exc:
+            conn.close()
+            if is_full_error(exc):  # the migration found no room: the file is whole, the disk is not
+                raise StorageFull(f"{path}: no room to migrate to schema {SCHEMA_VERSION}") from exc
+            raise StoreCorrupt(f"{path}: {exc}") from exc
+        except BaseException:
+            conn.close()
+            raise
+
+    def close(self) -> None:
+        """Close the connection (idempotent). SQLite checkpoints and removes the WAL on the last close."""
+        with self._lock:
+            if self._conn is not None:
+                self._conn.close()
+                self._conn = None
+
+    def __enter__(self) -> MapStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def closed(self) -> bool:
+        """True after `close`."""
+        return self._conn is None
+
+    def _db(self) -> sqlite3.Connection:
+        if self._conn is None:
+            raise StoreClosed(f"{self.path}: store is closed")
+        return self._conn

@@ -1,0 +1,205 @@
+"""`map.sqlite`'s places beyond the rows (docs/design/science.md §11.8–§11.9, docs/design/service.md §4.2):
+the visits log (a consolidated frame: the memory learned it, no row was made) with its keys and pruning,
+the warm-up joins and the dropped rows (out of the index: over a place's cap, forgotten, joined).
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from collections.abc import Iterable, Iterator
+
+from storage._common import transaction, utc_now
+from storage.mapschema import (
+    INPUT_DTYPE,
+    DuplicateObservation,
+    NewVisit,
+    Visit,
+    decode,
+    encode,
+    load_json,
+)
+from storage.mapstore.closures import closure_params
+from storage.mapstore.observations import PAGE
+
+__all__ = ["Visits"]
+
+
+class Visits:
+    """`MapStore`'s visits, joins and dropped rows (module docstring); no state of its own."""
+
+    def add_visit(self, visit: NewVisit) -> int:
+        """Log a consolidated frame (docs/design/science.md §11.8) with its loop closure and idempotency
+        key, and COMMIT: durable when this returns, before its reply (docs/design/service.md §4.3).
+
+        Returns:
+            Its id (the visits' log order).
+
+        Raises:
+            DuplicateObservation: its idempotency key is already stored. StorageFull: nothing was written.
+        """
+        meta = None if visit.metadata is None else json.dumps(visit.metadata, separators=(",", ":"))
+        key = visit.key
+        with self._lock:
+            conn = self._db()
+            if key is not None and conn.execute("SELECT 1 FROM idempotency_keys WHERE key = ?",
+                                                (key.key,)).fetchone():
+                raise DuplicateObservation(f"idempotency key {key.key} is already stored")
+            try:
+                with transaction(conn):
+                    cur = conn.execute(
+                        "INSERT INTO visits (after_seq, stream, seq, context_prev_seq, input_sdr, "
+                        "winner_cells, metadata, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                        (self._last_seq, str(visit.stream), int(visit.seq),
+                         None if visit.context_prev_seq is None else int(visit.context_prev_seq),
+                         encode(visit.input_sdr, INPUT_DTYPE, "input_sdr"),
+                         encode(visit.winner_cells, self._cell_dtype, "winner_cells"), meta,
+                         str(visit.created_at)))
+                    visit_id = int(cur.lastrowid or 0)
+                    if key is not None:  # kept apart from the log, which is pruned (§4.2)
+                        conn.execute("INSERT INTO visit_keys (key, fingerprint, visit, reply, created_at) "
+                                     "VALUES (?, ?, ?, ?, ?)",
+                                     (key.key, key.fingerprint, visit_id, key.reply, str(visit.created_at)))
+                        if self.max_keys is not None:  # the keys of the last max_keys visits stay
+                            conn.execute("DELETE FROM visit_keys WHERE visit <= ?",
+                                         (visit_id - self.max_keys,))
+                    clock = max(self._last_seq, self._seq_floor) + 1  # the seq the live step was given
+                    self._join(conn, [(str(visit.stream), j, self._last_seq) for j in visit.joins])
+                    self._touch(conn, [(int(t), clock) for t in visit.touched])
+                    if visit.resume is not None:
+                        self._resume(conn, [(str(visit.stream), clock, visit.resume)])
+                    if visit.closure is not None:
+                        self._log_closures(conn, [closure_params(visit.closure, None, visit.seq)])
+            except sqlite3.IntegrityError as exc:
+                if "visit_keys.key" in str(exc):
+                    raise DuplicateObservation(str(exc)) from exc
+                raise
+            return visit_id
+
+    def visits(self, after_id: int = 0) -> Iterator[Visit]:
+        """Logged visits with id > `after_id`, in log order, read in pages (replay)."""
+        if not self.holds.visits:
+            return
+        last = int(after_id)
+        while True:
+            with self._lock:
+                found = self._db().execute(
+                    "SELECT id, after_seq, stream, seq, context_prev_seq, input_sdr, winner_cells, "
+                    "created_at, metadata FROM visits WHERE id > ? ORDER BY id LIMIT ?",
+                    (last, PAGE)).fetchall()
+            if not found:
+                return
+            for r in found:
+                yield Visit(id=int(r[0]), after_seq=int(r[1]), stream=r[2], seq=int(r[3]),
+                            context_prev_seq=None if r[4] is None else int(r[4]),
+                            input_sdr=decode(r[5], INPUT_DTYPE), winner_cells=decode(r[6], self._cell_dtype),
+                            created_at=r[7], metadata=load_json(r[8]))
+            last = int(found[-1][0])
+
+    def visit_stats(self) -> tuple[int, int, int]:
+        """(visits logged, the first id kept (0: none), the last id ever logged (0: none))."""
+        if not self.holds.visits:
+            return 0, 0, 0
+        with self._lock:
+            n, lo, hi = self._db().execute("SELECT count(*), coalesce(min(id), 0), coalesce(max(id), 0) "
+                                           "FROM visits").fetchone()
+        return int(n), int(lo), int(hi)
+
+    def visit_mark(self, visit_id: int) -> str | None:
+        """What tells visit `visit_id` from another that got its id on another branch (a restore rolls
+        the log back and ids are handed out again): its stream and created_at; None: no such visit."""
+        if not self.holds.visits:
+            return None
+        with self._lock:
+            r = self._db().execute("SELECT stream, created_at FROM visits WHERE id = ?",
+                                   (int(visit_id),)).fetchone()
+        return None if r is None else f"{r[0]}|{r[1]}"
+
+    def visits_pruned_through(self) -> int:
+        """The last visit id pruned from the log (0: none ever was): a replay that starts before it
+        cannot reproduce the memory (docs/design/service.md §4.4).
+
+        Durable as the log itself: ids start at 1 and are never reused (SQLite hands out max(id) + 1,
+        and `prune_visits` always keeps the newest), so the oldest id kept minus one is how far the log
+        was pruned."""
+        _, first, _ = self.visit_stats()
+        return max(first - 1, 0)
+
+    def prune_visits(self, covered: int, keep: int) -> int:
+        """Delete the oldest visits beyond the last `keep` (at least 1: `visits_pruned_through` reads
+        the oldest kept), but only those with id <= `covered` (a snapshot holds the memory they taught;
+        the replay after it never needs them). Returns how many."""
+        if not self.holds.visits:
+            return 0
+        keep = max(int(keep), 1)
+        with self._lock:
+            conn = self._db()
+            with transaction(conn):
+                cur = conn.execute("DELETE FROM visits WHERE id <= ? AND "
+                                   "id <= (SELECT max(id) FROM visits) - ?", (int(covered), int(keep)))
+            return int(cur.rowcount)
+
+    def drop(self, seqs: Iterable[int], reason: str) -> None:
+        """Record rows as no longer held (a forgotten place, docs/design/science.md §11.9) and COMMIT."""
+        with self._lock:
+            conn = self._db()
+            with transaction(conn):
+                self._drop(conn, [(int(s), reason, self._last_seq) for s in seqs])
+
+    def _drop(self, conn: sqlite3.Connection, drops: list[tuple[int, str, int]]) -> None:
+        if drops:
+            conn.executemany("INSERT OR IGNORE INTO dropped (seq, reason, after_seq, created_at) "
+                             "VALUES (?, ?, ?, ?)", [(*d, utc_now()) for d in drops])
+
+    def _join(self, conn: sqlite3.Connection, joins: list[tuple[str, tuple[int, int], int]]) -> None:
+        """Warm-up joins (stream, (row, old row), after_seq), each row dropped (`joined`) with it."""
+        if joins:
+            now = utc_now()
+            conn.executemany("INSERT INTO joins (seq, place_seq, stream, after_seq, created_at) "
+                             "VALUES (?, ?, ?, ?, ?)",
+                             [(int(row), int(old), stream, after, now)
+                              for stream, (row, old), after in joins])
+            self._drop(conn, [(int(row), "joined", after) for _, (row, _old), after in joins])
+
+    def joins(self) -> list[tuple[int, int]]:
+        """The warm-up joins (row, old row whose place it joined) in log order (docs/design/science.md
+        §11.8); the rows are `dropped` (reason `joined`)."""
+        if not self.holds.joins:
+            return []
+        with self._lock:
+            return [(int(r[0]), int(r[1])) for r in self._db().execute(
+                "SELECT seq, place_seq FROM joins ORDER BY after_seq, seq")]
+
+    def join_problems(self, reach: int) -> list[str]:
+        """What is wrong with the warm-up joins (`cortexloc verify`, docs/design/science.md §11.8): a join
+        whose row is not dropped as `joined`, or that reached back over `reach` or more of its stream's rows
+        held then; a row dropped as `joined` with no join."""
+        if not self.holds.joins:
+            return []
+        with self._lock:
+            db = self._db()
+            out = [f"join of row {r[0]}: the row is not dropped as joined" for r in db.execute(
+                "SELECT j.seq FROM joins j LEFT JOIN dropped d ON d.seq = j.seq "
+                "WHERE d.reason IS NOT 'joined'")]
+            out += [f"row {r[0]} is dropped as joined without a join" for r in db.execute(
+                "SELECT d.seq FROM dropped d LEFT JOIN joins j ON j.seq = d.seq "
+                "WHERE d.reason = 'joined' AND j.seq IS NULL")]
+            # The rows the live rule looked through: the stream's rows made after the joined one and
+            # still held when the join was made (a row dropped at an earlier step, joined or over its
+            # place's cap, had left the memory; a row a repair re-made is no step of it).
+            split = ("SELECT seq FROM repairs WHERE kind = 'split'" if self.holds.repairs
+                     else "SELECT NULL WHERE 0")
+            out += [f"join of row {r[0]}: {r[1]} held rows of its stream since, the reach is {reach}"
+                    for r in db.execute(
+                        "SELECT j.seq, (SELECT count(*) FROM observations o WHERE o.stream = j.stream "
+                        "AND o.seq > j.seq AND o.seq <= j.after_seq AND NOT EXISTS (SELECT 1 FROM dropped d "
+                        "WHERE d.seq = o.seq AND d.after_seq < j.after_seq) "
+                        f"AND o.seq NOT IN ({split})) AS n FROM joins j WHERE n >= ?", (int(reach),))]
+            return out
+
+    def dropped(self) -> dict[int, str]:
+        """The rows no longer held and why (`appearance-cap` | `forgotten` | `joined`)."""
+        if not self.holds.dropped:
+            return {}
+        with self._lock:
+            return {int(r[0]): r[1] for r in self._db().execute("SELECT seq, reason FROM dropped")}
