@@ -91,10 +91,7 @@ from storage.mapstore import (
     StoreCorrupt,
 )
 
-__all__ = ["FORGETTING", "TAIL_BEFORE_SERVING", "MapRuntime"]
-
-#: The forgetting rule as the map resource states it (docs/design/science.md §11.9).
-FORGETTING = forgetting.RULE
+__all__ = ["TAIL_BEFORE_SERVING", "MapRuntime"]
 
 #: A recovery's tail (rows and visits after its snapshot) of at most this many steps is replayed before the
 #: map serves (well under a second at 5-13 ms a step); a longer one while it serves localising frames
@@ -178,8 +175,8 @@ class MapRuntime:
         # the checksum is verified on load: a map never runs on another matrix (docs/design/science.md §7)
         try:
             projection = slsbh.load_projection(self.projection_path, sha,
-                                               shape=(feature_dim, int(self.config.slsbh["k"])))
-            self.hasher = slsbh.Hasher(projection, float(self.config.slsbh["s"]))
+                                               shape=(feature_dim, int(self.config.sections.slsbh.k)))
+            self.hasher = slsbh.Hasher(projection, float(self.config.sections.slsbh.s))
         except (slsbh.ProjectionError, OSError) as e:
             self._projection_error = str(e)
         # Keyframes (docs/design/science.md §12): how many route neighbours a verification tries, each
@@ -557,7 +554,7 @@ class MapRuntime:
         camera = given or self.cameras.get(stream)
         try:
             frame = None if self.config.keyframes is None else asyncio.wrap_future(extractions.submit(
-                pool.encoders.get(self.config.backbone).decode, body, self.config.keyframes, camera,
+                pool.encoders.get(self.config.backbone).decode, body, self.config.sections.keyframes, camera,
                 given is not None, gone))
         except BaseException:
             encoding.cancel()  # refused (Overloaded): the pool skips the encoding where it has not started
@@ -760,7 +757,7 @@ class MapRuntime:
 
     def _forget(self, gone: list[int]) -> None:
         """Writer: the hard cap binds (`max_observations` rows held): forget `gone`, the rows the rule
-        chose (`forgetting.to_forget`: the least recently used places, whole, at least 1 % of the cap),
+        chose (`forgetting.to_forget`: the least recently used places, whole, at least `forget_percent` %),
         durably before the row that needed the room (docs/design/science.md §11.9). Their rows stay in
         map.sqlite (the replay and snapshots read them) but leave the index, the places and every answer."""
         assert self.store is not None
@@ -850,7 +847,7 @@ class MapRuntime:
 
     def _find(self) -> repairs.Found:
         assert self.store is not None
-        return repairs.find(self.store, self.localisation.localiser.conf, self.tm.n_columns)
+        return repairs.find(self.store, self.localisation.options, self.tm.n_columns)
 
     def _repair_result(self, found: repairs.Found, seqs: list[int] | None) -> RepairResult:
         made = seqs or [None] * len(found.visits)
@@ -877,13 +874,13 @@ class MapRuntime:
         """Writer: the map's places, appearances and visits (docs/design/science.md §11.8, §11.9)."""
         assert self.store is not None
         dropped = self.store.dropped()
-        conf = self.localisation.localiser.conf
+        conf = self.localisation.options
         return PlacesInfo(
             places=self.localisation.places(), appearances=len(self.index), rows_stored=self.store.count(),
             dropped=len(dropped), forgotten=sum(1 for r in dropped.values() if r == "forgotten"),
-            visits_logged=self.store.visit_stats()[0], max_appearances=int(conf["appearances"]),
-            max_rows=self.index.max_observations, consolidate=float(conf["consolidate"]),
-            forgetting=FORGETTING)
+            visits_logged=self.store.visit_stats()[0], max_appearances=conf.appearances,
+            max_rows=self.index.max_observations, consolidate=float(conf.consolidate),
+            forgetting=forgetting.rule(conf.forget_percent))
 
     def set_revisit_threshold(self, value: float) -> MapInfo:
         """Writer: the map's revisit threshold (`patch`)."""
@@ -904,7 +901,7 @@ class MapRuntime:
         return self.info()
 
     def memory(self) -> MemoryInfo:
-        return sizes.memory_info(self.model, self.streams, tm_params=self.config.tm,
+        return sizes.memory_info(self.model, self.streams, tm_params=self.config.sections.tm,
                                  max_streams=self.max_streams, projection=self.projection_path,
                                  store=self.store, snapshots_bytes=self.catalog.snapshots_bytes(self.map_id))
 

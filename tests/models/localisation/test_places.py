@@ -6,7 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.localisation import InvertedIndex, Localisation, SequenceGraph, SequenceLocaliser
+from models.localisation import (
+    InvertedIndex,
+    Localisation,
+    LocaliserOptions,
+    SequenceGraph,
+    SequenceLocaliser,
+)
 from tests.models.localisation.test_localiser import place_similarity, run
 
 
@@ -50,7 +56,7 @@ def test_a_place_s_rows_join_drop_and_link_as_told():
 
 
 def localisation_with(appearances: int) -> Localisation:
-    loc = Localisation({"appearances": appearances}, 64)
+    loc = Localisation(LocaliserOptions.of({"appearances": appearances}), 64)
     for seq in range(1, 4):  # places 1, 2, 3
         loc.add(seq, None if seq == 1 else seq - 1, np.array([seq]), stream="a")
     return loc
@@ -111,8 +117,8 @@ def test_a_full_index_compacts_its_removed_rows_before_refusing():
 
 def test_the_localiser_answers_the_place_of_its_best_row():
     g = three_passes(10, joined=True)
-    state = SequenceLocaliser({"warmup": 1}).new_state()
-    loc = SequenceLocaliser({"warmup": 1})
+    state = SequenceLocaliser(LocaliserOptions.of({"warmup": 1})).new_state()
+    loc = SequenceLocaliser(LocaliserOptions.of({"warmup": 1}))
     place = loc.step(state, g, np.array([25]), np.array([1.0]))
     assert place is not None and place.seq == 25 and place.place == 5
 

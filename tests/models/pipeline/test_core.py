@@ -6,7 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.localisation import LocaliserOptions
 from models.pipeline import MapModel, Stream, load_memory_state, memory_state, observe, replay
+from models.presets import TmOptions
 
 TM = {"columnDimensions": 128, "cellsPerColumn": 4, "maxSegmentsPerCell": 4, "maxSynapsesPerSegment": 16,
       "activationThreshold": 3, "minThreshold": 2, "seed": 3}
@@ -14,7 +16,8 @@ K, S = 64, 0.1  # 2k = columnDimensions; n = 6 ones per half
 
 
 def model(memory: str = "tm", adapt_tau: int = 0, localiser: dict | None = None) -> MapModel:
-    return MapModel.new(TM, localiser or {}, max_observations=1000, memory=memory, s=S, adapt_tau=adapt_tau)
+    return MapModel.new(TmOptions.of(TM), LocaliserOptions.of(localiser), max_observations=1000,
+                        memory=memory, s=S, adapt_tau=adapt_tau)
 
 
 def route(n: int, seed: int = 0) -> np.ndarray:
