@@ -115,6 +115,17 @@ class Sections:
     keyframes: geometry.KeyframeOptions | None
 
 
+def _salvaged(section: Any, values: Any) -> Any:
+    """A section of stored values this version rejects: as far as they are valid, else the defaults
+    (None for absent keyframes)."""
+    if values is None and section is geometry.KeyframeOptions:
+        return None
+    try:
+        return section.of(values)
+    except (ValueError, TypeError):  # ParamsError and pydantic's ValidationError are ValueErrors
+        return section()
+
+
 def _check_sections(**sections: dict[str, Any]) -> tuple[list[dict[str, str]], dict[str, Any]]:
     """Every offending option of the given sections; the valid sections, typed (their defaults filled
     in)."""
@@ -191,7 +202,8 @@ class MapConfig(BaseModel):
 
     @property
     def sections(self) -> Sections:
-        """The option sections, typed (set by the checks; a `salvage`d configuration has none)."""
+        """The option sections, typed (set by the checks; a `salvage`d configuration's: what was valid of
+        each section, else its defaults)."""
         return self._sections
 
     def streams_bytes(self, max_streams: int) -> int:
@@ -284,7 +296,11 @@ class MapConfig(BaseModel):
                     pass
             kept[name] = ({"tm": {}, "slsbh": {}, "seed": 0}[name] if field.is_required()
                           else field.get_default(call_default_factory=True))
-        return cls.model_construct(**kept)
+        config = cls.model_construct(**kept)
+        config._sections = Sections(*(_salvaged(_SECTIONS[name], kept[name]) for name in ("tm", "slsbh",
+                                                                                         "localiser")),
+                                    _salvaged(geometry.KeyframeOptions, kept["keyframes"]))
+        return config
 
     def with_revisit_threshold(self, value: float) -> MapConfig:
         """A copy with another `revisit_threshold`. Raises InvalidConfiguration outside [0, 1]."""

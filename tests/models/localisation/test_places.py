@@ -4,6 +4,8 @@ recently used first, and the index drops rows it no longer holds."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from models.localisation import (
@@ -55,8 +57,8 @@ def test_a_place_s_rows_join_drop_and_link_as_told():
     assert g.members(2) == [5] and g.place[2] == 2  # its links stay: paths still walk through it
 
 
-def localisation_with(appearances: int) -> Localisation:
-    loc = Localisation(LocaliserOptions.of({"appearances": appearances}), 64)
+def localisation_with(appearances: int, **options: Any) -> Localisation:
+    loc = Localisation(LocaliserOptions.of({"appearances": appearances, **options}), 64)
     for seq in range(1, 4):  # places 1, 2, 3
         loc.add(seq, None if seq == 1 else seq - 1, np.array([seq]), stream="a")
     return loc
@@ -142,3 +144,21 @@ def test_the_cap_rule_forgets_nothing_below_it_and_at_least_one_percent_of_it_at
     for seq in range(1, 201):
         big.add(seq, [seq % 64], "a")
     assert forgetting.to_forget(big, loc) == [3, 1, 4]
+
+
+def test_the_maps_forget_percent_is_the_batch_the_cap_rule_forgets_and_states() -> None:
+    """`forget_percent` (LocaliserOptions; 1 by default): at a cap of 200 rows, 1 % forgets places 3 and
+    1 (2 rows at least), 0 % place 3 alone (one row at least), 2 % every place (4 rows); the rule the map
+    resource states names the map's value."""
+    from models.localisation import forgetting
+
+    big = InvertedIndex(64, 200)
+    for seq in range(1, 201):
+        big.add(seq, [seq % 64], "a")
+    for percent, gone in ((1, [3, 1, 4]), (0, [3]), (2, [3, 1, 4, 2])):
+        loc = localisation_with(appearances=8, forget_percent=percent)
+        loc.add(4, None, np.array([1]), stream="b", place=1)
+        loc.touch(2, 9)
+        assert forgetting.to_forget(big, loc) == gone
+    assert forgetting.batch(1000, 5) == 50
+    assert "at least 5% of max_rows" in forgetting.rule(5) and "at least 1% of" in forgetting.rule(1)
