@@ -45,7 +45,7 @@ RUNS = [
 
 def run(cfg: dict[str, Any], novel: int, every: int, seed: int = 0) -> dict[str, Any]:
     """One run of `cfg`: the curve of recall and of the route's segments against novel steps."""
-    tm = TemporalMemory(presets.tm_params(cfg["preset"], {"maxSegmentsPerCell": cfg["S"],
+    tm = TemporalMemory(presets.tm_options(cfg["preset"], {"maxSegmentsPerCell": cfg["S"],
                                                           "maxSynapsesPerSegment": cfg["K"]}))
     route = random_sequence(100, 2048, cfg["active"], seed + 7)
     stored = forgetting.learn(tm, route, laps=2)

@@ -26,7 +26,7 @@ def bench_size(n: int, frames: int, seed: int = 0) -> dict[str, float]:
     graph = SequenceGraph.chain(n)
     loc = SequenceLocaliser()
     state = loc.new_state()
-    k = int(loc.conf["top_k"])
+    k = loc.options.top_k
     start = int(rng.integers(0, max(n - frames, 1)))
     times, right = [], 0
     for t in range(frames):
@@ -40,7 +40,7 @@ def bench_size(n: int, frames: int, seed: int = 0) -> dict[str, float]:
     us = np.array(times) * 1e6
     return {"n": n, "median_us": float(np.median(us)), "p90_us": float(np.percentile(us, 90)),
             "state_bytes": sum(v.nbytes for v in state.to_arrays().values()),
-            "recall_at_1": right / (frames - int(loc.conf["warmup"]) + 1)}
+            "recall_at_1": right / (frames - loc.options.warmup + 1)}
 
 
 def main() -> None:

@@ -81,7 +81,7 @@ class LongRun:
         self.n_places, self.laps = places, laps
         self.rng = np.random.Generator(np.random.PCG64(seed))
         self.eval_seed = seed + 1_000_003
-        self.tm = TemporalMemory(self.params)
+        self.tm = TemporalMemory(presets.TmOptions.of(self.params))
         self.ctx = StreamContext()
         self.index = InvertedIndex(self.tm.n_cells, 10_000_000)
         self.place_of_row: list[int] = []
@@ -201,7 +201,8 @@ def main() -> None:
 
     run = LongRun(args.preset, args.places, args.laps, args.noise, args.seed)
     # Compile the kernels before measuring anything (numba caches on disk; the first call still loads).
-    warm = TemporalMemory({**run.params, "columnDimensions": 64, "maxSegmentsPerCell": 2})
+    warm = TemporalMemory(presets.TmOptions.of({**run.params, "columnDimensions": 64,
+                                                "maxSegmentsPerCell": 2}))
     for x in random_places(20, 64, 8, np.random.default_rng(1)):
         warm.compute(x, learn=True)
         warm.compute(x, learn=False)

@@ -26,6 +26,7 @@ from _common import quick_mode, write_json
 
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import memory_state
+from models.presets import TmOptions
 from service.maps.config import MapOptions, resolve
 from storage import snapshots
 from storage.base.files import sha256_file
@@ -64,7 +65,7 @@ def measure(root: Path, rows: int, repeats: int) -> dict[str, Any]:
                                                          projection_sha256="0" * 64, encoder_id="bench",
                                                          cell_dtype=cell_dtype_for(cells)))
     fill(store, rows, np.random.default_rng(0), params)
-    memory = memory_state(TemporalMemory(params["tm"]), {})
+    memory = memory_state(TemporalMemory(TmOptions.of(params["tm"])), {})
     steps: dict[str, list[float]] = {"db_copy": [], "memory_save": [], "checksums": [], "total": []}
     sizes: dict[str, int] = {}
     for r in range(repeats):

@@ -141,7 +141,7 @@ def service_breakdown(warm: int = 300, steps: int = 60, seed: int = 0) -> dict[s
     from models.memory import _tm_synapses as syn
     from models.memory.temporal_memory import TemporalMemory
 
-    tm = TemporalMemory(presets.tm_params(SERVICE["preset"]))
+    tm = TemporalMemory(presets.tm_options(SERVICE["preset"]))
     for x in random_sequence(warm, 2048, SERVICE["active"], seed + 1):
         tm.compute(x)
     state = {k: np.copy(v) for k, v in tm.state_dict().items()}

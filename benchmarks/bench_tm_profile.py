@@ -153,7 +153,7 @@ def main() -> None:
 
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(prefix="cortexloc-tm-profile-") as tmp:
-        tm = TemporalMemory(presets.tm_params("cortexloc-default"))
+        tm = TemporalMemory(presets.tm_options("cortexloc-default"))
         for x in random_sequence(args.warm, 2048, 308, 1):
             tm.compute(x)
         state = Path(tmp) / "state.npz"

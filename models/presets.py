@@ -8,8 +8,12 @@ optionally override individual parameters.
 from __future__ import annotations
 
 import copy
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 _COUNT = 65535  # synapse and segment counts are stored as uint16
@@ -17,39 +21,103 @@ _SEED = 2**63 - 1
 M = TypeVar("M", bound=BaseModel)
 
 
+@dataclass(frozen=True, slots=True)
+class TmOptions:
+    """A map's Temporal Memory section, typed: each parameter's NuPIC 1.0.5 / htm.core name and
+    constructor default (docs/design/science.md §3.1), the one home of both. Build one from untrusted
+    values with `of` (checked by `TmParams`); the constructor checks nothing."""
+
+    columnDimensions: int = 2048
+    cellsPerColumn: int = 32
+    activationThreshold: int = 13
+    initialPermanence: float = 0.21
+    connectedPermanence: float = 0.50
+    minThreshold: int = 10
+    maxNewSynapseCount: int = 20
+    permanenceIncrement: float = 0.10
+    permanenceDecrement: float = 0.10
+    predictedSegmentDecrement: float = 0.0
+    maxSegmentsPerCell: int = 255
+    maxSynapsesPerSegment: int = 255
+    seed: int = 42
+
+    @classmethod
+    def of(cls, values: Mapping[str, Any] | None = None) -> TmOptions:
+        """The section of `values` (a map's `tm` dict, NumPy scalars taken as Python numbers): each
+        checked by `TmParams`, the missing ones NuPIC's defaults. Raises ParamsError naming each bad
+        parameter."""
+        plain = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in (values or {}).items()}
+        check_section(TmParams, "tm", plain)
+        return cls(**plain)  # as given (an int stays an int: a memory's state stores them as JSON)
+
+    def values(self) -> dict[str, Any]:
+        """Every parameter by its NuPIC name (what a map and a memory's state store, as JSON)."""
+        return dataclasses.asdict(self)
+
+
+_TM = TmOptions()
+
+
 class TmParams(BaseModel):
-    """The Temporal Memory section: each parameter's NuPIC 1.0.5 / htm.core name and constructor default
-    (docs/design/science.md §3.1), its type (JSON numbers only: strict, no strings or booleans) and its range.
-    Rules between parameters are `models.memory.temporal_memory.validate`'s."""
+    """The check of the Temporal Memory section: each parameter's type (JSON numbers only: strict, no
+    strings or booleans) and range; names and defaults are `TmOptions`'. Rules between parameters are
+    `models.memory.temporal_memory.validate`'s."""
 
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
-    columnDimensions: int = Field(2048, ge=1, le=2**24)
-    cellsPerColumn: int = Field(32, ge=1, le=2**16)
-    activationThreshold: int = Field(13, ge=1, le=_COUNT)
-    initialPermanence: float = Field(0.21, ge=0.0, le=1.0)
-    connectedPermanence: float = Field(0.50, ge=0.0, le=1.0)
-    minThreshold: int = Field(10, ge=1, le=_COUNT)
-    maxNewSynapseCount: int = Field(20, ge=1, le=_COUNT)
-    permanenceIncrement: float = Field(0.10, ge=0.0, le=1.0)
-    permanenceDecrement: float = Field(0.10, ge=0.0, le=1.0)
-    predictedSegmentDecrement: float = Field(0.0, ge=0.0, le=1.0)
-    maxSegmentsPerCell: int = Field(255, ge=1, le=_COUNT)
-    maxSynapsesPerSegment: int = Field(255, ge=1, le=_COUNT)
-    seed: int = Field(42, ge=0, le=_SEED)
+    columnDimensions: int = Field(_TM.columnDimensions, ge=1, le=2**24)
+    cellsPerColumn: int = Field(_TM.cellsPerColumn, ge=1, le=2**16)
+    activationThreshold: int = Field(_TM.activationThreshold, ge=1, le=_COUNT)
+    initialPermanence: float = Field(_TM.initialPermanence, ge=0.0, le=1.0)
+    connectedPermanence: float = Field(_TM.connectedPermanence, ge=0.0, le=1.0)
+    minThreshold: int = Field(_TM.minThreshold, ge=1, le=_COUNT)
+    maxNewSynapseCount: int = Field(_TM.maxNewSynapseCount, ge=1, le=_COUNT)
+    permanenceIncrement: float = Field(_TM.permanenceIncrement, ge=0.0, le=1.0)
+    permanenceDecrement: float = Field(_TM.permanenceDecrement, ge=0.0, le=1.0)
+    predictedSegmentDecrement: float = Field(_TM.predictedSegmentDecrement, ge=0.0, le=1.0)
+    maxSegmentsPerCell: int = Field(_TM.maxSegmentsPerCell, ge=1, le=_COUNT)
+    maxSynapsesPerSegment: int = Field(_TM.maxSynapsesPerSegment, ge=1, le=_COUNT)
+    seed: int = Field(_TM.seed, ge=0, le=_SEED)
+
+
+@dataclass(frozen=True, slots=True)
+class SlsbhOptions:
+    """A map's sLSBH section, typed (docs/design/science.md §7), the one home of its defaults. Build one
+    from untrusted values with `of` (checked by `SlsbhParams`)."""
+
+    #: the projected dimension (2k must equal the TM's columnDimensions)
+    k: int = 1024
+    #: the sparsity: the fraction of the k projections kept on each side
+    s: float = 0.25
+    #: the projection's seed (None: the TM's)
+    seed: int | None = None
+    #: the stream adaptation time constant in frames (0: off, models.frontend.adaptation); maps made
+    #: before it: none
+    adapt_tau: int = 0
+
+    @classmethod
+    def of(cls, values: Mapping[str, Any] | None = None) -> SlsbhOptions:
+        """The section of `values` (a map's `slsbh` dict): each checked by `SlsbhParams`, the missing
+        ones the defaults. Raises ParamsError naming each bad parameter."""
+        check_section(SlsbhParams, "slsbh", dict(values or {}))
+        return cls(**(values or {}))
+
+    def values(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+_SLSBH = SlsbhOptions()
 
 
 class SlsbhParams(BaseModel):
-    """The sLSBH section of a map (docs/design/science.md §7): projected dimension, sparsity, projection seed
-    (None: the TM's seed) and the stream adaptation time constant in frames (0 = off,
-    models.frontend.adaptation)."""
+    """The check of the sLSBH section (`SlsbhOptions`: names, defaults, meanings): types and ranges."""
 
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
-    k: int = Field(1024, ge=1, le=2**16)
-    s: float = Field(0.25, gt=0.0, le=0.5)
-    seed: int | None = Field(None, ge=0, le=_SEED)
-    adapt_tau: int = Field(0, ge=0, le=100_000)
+    k: int = Field(_SLSBH.k, ge=1, le=2**16)
+    s: float = Field(_SLSBH.s, gt=0.0, le=0.5)
+    seed: int | None = Field(_SLSBH.seed, ge=0, le=_SEED)
+    adapt_tau: int = Field(_SLSBH.adapt_tau, ge=0, le=100_000)
 
 
 class ParamsError(ValueError):
@@ -86,7 +154,7 @@ def check_section(model: type[M], section: str, values: dict[str, Any]) -> M:
 
 
 #: NuPIC 1.0.5 / htm.core constructor defaults, with their parameter names (docs/design/science.md §3.1).
-TM_DEFAULTS: dict[str, Any] = TmParams().model_dump()
+TM_DEFAULTS: dict[str, Any] = _TM.values()
 
 # MCN (docs/design/science.md §4). `nInConPerCol=None` means "round(mean ones per input)", derived from the
 # data; `minColumnActivity` is a fraction of nInConPerCol, rounded; `strict` selects `>` instead of `>=`.
@@ -235,10 +303,15 @@ def tm_params(name: str, overrides: dict[str, Any] | None = None) -> dict[str, A
     return params
 
 
+def tm_options(name: str, overrides: dict[str, Any] | None = None) -> TmOptions:
+    """`tm_params`, typed: what a `TemporalMemory` takes."""
+    return TmOptions.of(tm_params(name, overrides))
+
+
 def slsbh_params(name: str) -> dict[str, Any]:
     """The sLSBH section of preset `name` with every default filled in (`SlsbhParams`, the one home of
     the sLSBH defaults): {"k", "s", "seed", "adapt_tau"}. Raises KeyError for an unknown preset."""
-    return {**SlsbhParams().model_dump(), **get(name).get("slsbh", {})}
+    return {**_SLSBH.values(), **get(name).get("slsbh", {})}
 
 
 def mcn_params(name: str = "mcn-grid", overrides: dict[str, Any] | None = None) -> dict[str, Any]:

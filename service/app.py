@@ -98,7 +98,8 @@ async def map_registry(app: FastAPI) -> AsyncIterator[None]:
         return
     app.state.registry = registry
     app.state.maps = registry.maps
-    app.state.encoder_pool = EncoderPool(encoders, s.encoder_workers, s.encoder_queue)
+    app.state.encoder_pool = EncoderPool(encoders, s.encoder_workers, s.encoder_queue, s.encode_batch,
+                                         s.encode_wait_ms)
     app.state.extractions = Extractions(s.max_extractions)
     try:
         yield

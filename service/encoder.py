@@ -41,6 +41,7 @@ def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
         conf = {"backbone": resolve_backbone(settings).backbone,
                 "weights_path": str(path) if path is not None else None,
                 "random_seed": settings.random_weights_seed, "torch_threads": settings.torch_threads,
+                "chunk": settings.encode_chunk,
                 "max_bytes": settings.max_upload_bytes, "max_pixels": settings.max_pixels,
                 "runtime": settings.runtime, "device": settings.device,
                 # the resize a new map gets, so the identity /readyz and /metrics show is a new map's

@@ -21,7 +21,7 @@ import bench_localiser
 import bench_place
 from bench_longrun import noisy
 
-from models.localisation.localiser import LocaliserParams
+from models.localisation import LocaliserParams
 
 
 def test_descriptor_generators_keep_constant_weight() -> None:

@@ -45,7 +45,7 @@ def install(variant: str) -> None:
     def absolute(self, graph, rows, began):
         laid = adopted(self._replace(code_of=None), graph, rows, began)
         if laid.any():
-            c = float(loc.default_conf["consolidate"])
+            c = float(loc.LocaliserOptions().consolidate)
             # the absolute level needs the frame's background likeness, captured at `own_trail` (below)
             level = trail.above_background(STATS["b"], c)
             laid[laid] = [trail.code_dice(self.code, np.asarray(self.code_of(int(r)))) < level

@@ -27,7 +27,7 @@ def jump_level(variant: str):
     kind, _, value = variant.partition(":")
 
     def level(self, past: np.ndarray, null: float) -> float:
-        c = float(self.conf["jump_cost"])
+        c = float(self.options.jump_cost)
         best = float(past.max()) if past.size else None
         if kind == "adopted":
             return (max(best, null) if best is not None else 0.0) - c

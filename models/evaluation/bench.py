@@ -46,12 +46,12 @@ def bench_tm(columns: int = 2048, cells: int = 4, active: int = 40, steps: int =
     params = presets.tm_params(preset, {**(overrides or {}), "columnDimensions": columns,
                                         "cellsPerColumn": cells})
     # Compile the kernels on a tiny memory first, so compilation is neither timed nor counted in RSS.
-    warm = TemporalMemory({**params, "columnDimensions": 64, "maxSegmentsPerCell": 2})
+    warm = TemporalMemory(presets.TmOptions.of({**params, "columnDimensions": 64, "maxSegmentsPerCell": 2}))
     for x in random_sequence(20, 64, min(active, 8), seed):
         warm.compute(x, learn=True)
         warm.compute(x, learn=False)
     seq = random_sequence(period or steps, columns, active, seed + 1)
-    tm = TemporalMemory(params)
+    tm = TemporalMemory(presets.TmOptions.of(params))
     rss0 = rss_mb()
     times = np.empty(steps)
     clock = time.perf_counter

@@ -53,7 +53,7 @@ def route_segments(tm: TemporalMemory, route: list[np.ndarray]) -> dict[int, np.
     """The segments that predict `route`'s steps on a replay (learning off): segment id -> (n,) sorted
     presynaptic cells of its connected synapses when listed."""
     ctx = tm.new_context()
-    S = int(tm.params["maxSegmentsPerCell"])
+    S = int(tm.options.maxSegmentsPerCell)
     cpc = tm.cells_per_column
     out: dict[int, np.ndarray] = {}
     for t, x in enumerate(route):
@@ -68,7 +68,7 @@ def route_segments(tm: TemporalMemory, route: list[np.ndarray]) -> dict[int, np.
 
 def fate(tm: TemporalMemory, segments: dict[int, np.ndarray]) -> dict[str, int]:
     """What became of `segments` (from `route_segments`): counts of intact, overwritten, destroyed."""
-    thr = int(tm.params["activationThreshold"])
+    thr = int(tm.options.activationThreshold)
     out = {"listed": len(segments), "intact": 0, "overwritten": 0, "destroyed": 0}
     for g, cells in segments.items():
         if tm.nsyn[g] == 0:

@@ -14,7 +14,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from models.localisation import CodeStats, SequenceGraph, SequenceLocaliser, top_candidates
+from models.localisation import CodeStats, LocaliserOptions, SequenceGraph, SequenceLocaliser, top_candidates
 
 
 class OnlineAnswers(NamedTuple):
@@ -45,8 +45,8 @@ def localise(S: np.ndarray, conf: Mapping[str, Any] | None = None,
     """
     S = np.asarray(S, dtype=np.float64)
     n_db, n_q = S.shape
-    loc = SequenceLocaliser(conf)
-    top_k = int(loc.conf["top_k"])
+    loc = SequenceLocaliser(LocaliserOptions.of(conf))
+    top_k = loc.options.top_k
     graph = SequenceGraph.chain(n_db) if graph is None else graph
     return _drive(loc, graph, n_db, n_q, lambda j: top_candidates(S[:, j], top_k))
 
@@ -77,8 +77,8 @@ def loop_closure(S: np.ndarray, codes: Sequence[np.ndarray], conf: Mapping[str, 
     T = S.shape[0]
     if S.shape != (T, T) or len(codes) != T:
         raise ValueError(f"S must be square (T, T) with T codes, got {S.shape} and {len(codes)}")
-    loc = SequenceLocaliser(conf)
-    top_k = int(loc.conf["top_k"])
+    loc = SequenceLocaliser(LocaliserOptions.of(conf))
+    top_k = loc.options.top_k
     codes = [np.unique(np.asarray(c, np.int64)) for c in codes]
     stats = CodeStats(width or 1 + max((int(c.max()) for c in codes if c.size), default=0))
     graph = SequenceGraph()

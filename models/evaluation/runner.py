@@ -33,7 +33,7 @@ def run_htm(data: GridData, preset: str, seed: int) -> tuple[list[np.ndarray], d
     Returns:
         winners: one (w,) sorted cell array per step; info: predicted-column fraction, sizes, warnings.
     """
-    tm = TemporalMemory(presets.tm_params(preset, {"seed": int(seed), "columnDimensions": data.width}))
+    tm = TemporalMemory(presets.tm_options(preset, {"seed": int(seed), "columnDimensions": data.width}))
     winners, predicted, active, predictive = [], 0, 0, 0
     for x in data.sdrs:
         winners.append(tm.compute(x, learn=True))

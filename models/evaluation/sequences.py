@@ -133,7 +133,7 @@ def run_tm(db_codes: np.ndarray, q_codes: np.ndarray, preset: str, seed: int, re
         chance-prediction rate, docs/design/science.md §3.8: the difference is what sequence memory
         contributes), and the preallocated bytes.
     """
-    tm = TemporalMemory(presets.tm_params(preset, {**(tm_overrides or {}), "seed": int(seed),
+    tm = TemporalMemory(presets.tm_options(preset, {**(tm_overrides or {}), "seed": int(seed),
                                                    "columnDimensions": width}))
     db_w = [tm.compute(c, learn=True) for c in db_codes]
     if reset:
@@ -260,9 +260,9 @@ def image_experiment(db_feats: np.ndarray, q_feats: np.ndarray, *, methods: Sequ
          "first": {name: {"S", "P", "R", "query_P", "query_R", "best", "confidence", "correct"}}}
         (the first seed's matrices and answers, for plots and the match gallery).
     """
-    defaults = presets.slsbh_params(preset)
-    k = defaults["k"] if k is None else k
-    s = defaults["s"] if s is None else s
+    defaults = presets.SlsbhOptions.of(presets.slsbh_params(preset))
+    k = defaults.k if k is None else k
+    s = defaults.s if s is None else s
     methods = with_ablations(methods)
     bad = set(methods) - set(METHODS)
     if bad:

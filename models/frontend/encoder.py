@@ -48,6 +48,7 @@ default_conf: dict[str, Any] = {
     "device": "cpu",  # cpu | cuda | auto (CUDA through ONNX Runtime; auto falls back to the CPU)
     "export_dir": None,  # the ONNX exports' content-addressed store; None: <weights cache>/onnx
     "decode_threads": 2,  # OpenCV releases the GIL: frames decode and resize beside the backbone
+    "chunk": limits.DEFAULT_CHUNK,  # images per backbone call while the next ones are prepared
     "max_bytes": limits.DEFAULT_MAX_BYTES,
     "max_pixels": limits.DEFAULT_MAX_PIXELS,
     # projection: the encoder's own (evaluation, benchmarks): dense (docs/design/science.md §7) | sparse
@@ -120,13 +121,10 @@ class Encoder:
             instead of generating one (a map's).
     """
 
-    # Images per backbone call while the pool prepares the next ones: the forward's cost per image is flat
-    # from batch 1 to 16 on ONNX Runtime (1 thread), so small chunks start the backbone sooner.
-    CHUNK = 4
-
     def __init__(self, conf: dict[str, Any] | None = None,
                  projection: np.ndarray | slsbh.SparseProjection | None = None) -> None:
         self.conf = merge_conf(conf)
+        self.chunk = int(self.conf["chunk"])  # images per backbone call (limits.DEFAULT_CHUNK: why)
         torch.set_num_threads(int(self.conf["torch_threads"]))
         # The same budget for the BLAS behind the sLSBH projection (NumPy's OpenBLAS starts one thread per
         # core): on cores shared with the decode threads and the map writers its threads wait on each
@@ -289,7 +287,7 @@ class Encoder:
         return self._pool.submit(run)
 
     def embed_prepared(self, prepared: Sequence[Future[Prepared]]) -> EncodeResult:
-        """Backbone features of frames from `prepare`, in their order, forwarded in chunks of `CHUNK` as
+        """Backbone features of frames from `prepare`, in their order, forwarded in chunks of `chunk` as
         they become ready, so the backbone starts on the first frames while the others still decode.
 
         Args:
@@ -312,8 +310,8 @@ class Encoder:
         contrast = np.zeros(len(prepared))
         feats_parts: list[np.ndarray] = []
         try:
-            for start in range(0, len(prepared), self.CHUNK):
-                ready = [f.result() for f in prepared[start:start + self.CHUNK]]
+            for start in range(0, len(prepared), self.chunk):
+                ready = [f.result() for f in prepared[start:start + self.chunk]]
                 for j, p in enumerate(ready):
                     contrast[start + j] = p.contrast
                     timings["decode"] += p.decode_ms

@@ -9,3 +9,9 @@ DEFAULT_MAX_PIXELS = 25_000_000
 # docs/design/service.md §1.2: "long side more than 16× the short side" is a degenerate image. The cap also
 # bounds the Resize(256) intermediate: a 1×4000 upload would otherwise become a 256×1,024,000 array (786 MB).
 DEFAULT_MAX_ASPECT = 16.0
+
+#: Images per backbone call while the pool prepares the next ones (`Encoder`'s `chunk`,
+#: CORTEXLOC_ENCODE_CHUNK): the forward's cost per image is flat from batch 1 to 16 on ONNX Runtime
+#: (1 thread), so small chunks start the backbone sooner. (Here, beside the upload limits, because
+#: `service.settings` reads it before the backbone's modules load.)
+DEFAULT_CHUNK = 4

@@ -6,6 +6,7 @@ from models.geometry.features import (
     EXTRACT_MAX_SIDE,
     EXTRACTORS,
     Features,
+    KeyframeOptions,
     KeyframeParams,
     available,
     extract,
@@ -14,5 +15,6 @@ from models.geometry.features import (
 )
 from models.geometry.verify import Camera, Verification, camera_problems, quaternion, verify
 
-__all__ = ["EXTRACTORS", "EXTRACT_MAX_SIDE", "Camera", "Features", "KeyframeParams", "Verification",
-           "available", "camera_problems", "extract", "pack", "quaternion", "unpack", "verify"]
+__all__ = ["EXTRACTORS", "EXTRACT_MAX_SIDE", "Camera", "Features", "KeyframeOptions", "KeyframeParams",
+           "Verification", "available", "camera_problems", "extract", "pack", "quaternion", "unpack",
+           "verify"]

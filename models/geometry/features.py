@@ -9,9 +9,11 @@ keyframe of n features takes 8 n + n D bytes plus a 16-byte header (D: 32 orb, 6
 
 from __future__ import annotations
 
+import dataclasses
 import struct
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -40,13 +42,36 @@ _HEADER = struct.Struct("<BBHHHHxxxxxx")  # code, descriptor bytes % 256 flag, n
 assert _HEADER.size == 16
 
 
+@dataclass(frozen=True, slots=True)
+class KeyframeOptions:
+    """The `keyframes` map option, typed (docs/design/service.md §1.1, science.md §12.1): the one home of
+    its names and defaults. Build one from untrusted values with `of` (checked by `KeyframeParams`)."""
+
+    #: the extractor (`EXTRACTORS`): ORB is in every OpenCV build and the fastest
+    features: str = "orb"
+    #: features kept per frame (the strongest)
+    max: int = 500
+
+    @classmethod
+    def of(cls, values: Mapping[str, Any] | None = None) -> KeyframeOptions:
+        """The section of `values` (a map's `keyframes` dict), checked, the missing names the defaults.
+        Raises pydantic.ValidationError."""
+        return cls(**KeyframeParams.model_validate(dict(values or {})).model_dump())
+
+    def values(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+_KF = KeyframeOptions()
+
+
 class KeyframeParams(BaseModel):
-    """The `keyframes` map option (docs/design/service.md §1.1): which extractor, how many features
-    per frame at most."""
+    """The check of the `keyframes` map option (`KeyframeOptions`: names, defaults): which extractor,
+    how many features per frame at most."""
 
     model_config = ConfigDict(extra="forbid", strict=True)
-    features: Literal["orb", "sift", "akaze"] = "orb"
-    max: int = Field(default=500, ge=50, le=8000, description="features kept per frame (the strongest)")
+    features: Literal["orb", "sift", "akaze"] = _KF.features  # type: ignore[assignment]
+    max: int = Field(default=_KF.max, ge=50, le=8000, description="features kept per frame (the strongest)")
 
     @field_validator("features")
     @classmethod

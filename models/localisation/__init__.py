@@ -7,17 +7,16 @@ from models.localisation.localiser import (
     HYPOTHESIS_BYTES,
     MIN_CONTRAST,
     NULL_PRIOR,
-    LocaliserParams,
     LocaliserState,
     Place,
     SequenceLocaliser,
-    default_conf,
     informative,
     top_candidates,
 )
+from models.localisation.options import LocaliserOptions, LocaliserParams, default_conf
 from models.localisation.trail import CodeStats, OwnTrail
 
 __all__ = ["HYPOTHESIS_BYTES", "MIN_CONTRAST", "NULL_PRIOR", "CodeStats", "IndexFull", "InvertedIndex",
-           "Localisation",
-           "LocaliserParams", "LocaliserState", "Match", "OwnTrail", "Place", "SequenceGraph",
-           "SequenceLocaliser", "default_conf", "graph_from_rows", "informative", "top_candidates"]
+           "Localisation", "LocaliserOptions", "LocaliserParams", "LocaliserState", "Match", "OwnTrail",
+           "Place", "SequenceGraph", "SequenceLocaliser", "default_conf", "graph_from_rows", "informative",
+           "top_candidates"]

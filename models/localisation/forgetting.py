@@ -10,30 +10,31 @@ from __future__ import annotations
 
 from models.localisation.index import InvertedIndex
 from models.localisation.links import Localisation
+from models.localisation.options import LocaliserOptions
 
-__all__ = ["BATCH_PERCENT", "RULE", "batch", "to_forget"]
-
-#: At least this percentage of the cap is forgotten at a time: the cap binding then costs one forgetting
-#: (a durable drop and a compaction's share) per 1 % of the cap learned, not one per learned row.
-BATCH_PERCENT = 1
-
-#: The rule as the map resource states it (`places.forgetting`).
-RULE = ("when the rows held reach max_rows, the least recently used places (made, visited or joined "
-        f"by a learning stream) are forgotten whole, at least {BATCH_PERCENT}% of max_rows at a time; a "
-        "place over max_appearances drops its least recently used appearance")
+__all__ = ["batch", "rule", "to_forget"]
 
 
-def batch(cap: int) -> int:
-    """The least number of rows one forgetting drops at a cap of `cap` rows (at least one)."""
-    return max(1, cap * BATCH_PERCENT // 100)
+def rule(percent: int) -> str:
+    """The rule as the map resource states it (`places.forgetting`), at the map's `forget_percent`
+    (`LocaliserOptions`: at least that percentage of the cap is forgotten at a time, and why)."""
+    return ("when the rows held reach max_rows, the least recently used places (made, visited or joined "
+            f"by a learning stream) are forgotten whole, at least {percent}% of max_rows at a time; a "
+            "place over max_appearances drops its least recently used appearance")
+
+
+def batch(cap: int, percent: int = LocaliserOptions().forget_percent) -> int:
+    """The least number of rows one forgetting drops at a cap of `cap` rows and `percent` of it (at least
+    one)."""
+    return max(1, cap * percent // 100)
 
 
 def to_forget(index: InvertedIndex, links: Localisation) -> list[int]:
     """The rows to forget before the next learned row: none under the cap (`index.max_observations` rows
-    held); at it, the least recently used places, whole, at least `batch(cap)` rows
+    held); at it, the least recently used places, whole, at least `batch(cap, forget_percent)` rows
     (`Localisation.least_recent`). The caller drops them (`models.pipeline.drop`), durably first where
     it stores them."""
     cap = index.max_observations
     if len(index) < cap:
         return []
-    return links.least_recent(batch(cap))
+    return links.least_recent(batch(cap, links.options.forget_percent))

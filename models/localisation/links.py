@@ -21,6 +21,7 @@ from models.localisation.index import Match
 from models.localisation.localiser import LocaliserState, Place, SequenceLocaliser
 from models.localisation.motion import NO_MOTION, Motion
 from models.localisation.odometry import Odometer, RowOdometry
+from models.localisation.options import LocaliserOptions
 from models.localisation.short_term import KEPT, Anchor, ShortTerm, ring_moves
 from models.localisation.trail import CodeStats, OwnTrail, code_dice
 
@@ -47,7 +48,7 @@ class Localisation:
     """The map's localiser, links and places (docs/design/science.md §11.1, §11.2, §11.6, §11.8, §11.9).
 
     Args:
-        conf: localiser options over `models.localisation.default_conf` (the map's `localiser` params).
+        options: the map's localiser options (default: the defaults).
         code_width: the frame code's bit space (the code statistics, §11.6).
 
     Attributes:
@@ -56,12 +57,13 @@ class Localisation:
             read it (§11.9).
     """
 
-    def __init__(self, conf: dict[str, Any] | None = None, code_width: int = 0) -> None:
-        self.localiser = SequenceLocaliser(conf)
+    def __init__(self, options: LocaliserOptions | None = None, code_width: int = 0) -> None:
+        self.localiser = SequenceLocaliser(options)
+        self.options = self.localiser.options
         self.graph = SequenceGraph()
         self.codes = CodeStats(code_width)  # the stored frame codes' bit counts (§11.6)
-        self.top_k = int(self.localiser.conf["top_k"])
-        self.short_term = ring_moves(self.localiser.conf)  # the memories' size in moves (0: none)
+        self.top_k = int(self.options.top_k)
+        self.short_term = ring_moves(self.options)  # the memories' size in moves (0: none)
         self.used = np.zeros(0, np.int64)
         self._last_row: dict[str, int] = {}  # each stream's last made row (its trail goes on from there)
         # each trail's short-term memory and each stream's last move (§11.6), the KEPT most recently
@@ -177,7 +179,7 @@ class Localisation:
         stream's own), before its code joins the statistics (so a rebuild, which adds the rows in the
         same order, gives the same moves), and its odometry reading (the row's, where it made one)."""
         odometer = _recent(self._odometers, stream, Odometer)
-        reading = odometer.peek(motion, self.localiser.conf, self.odometry.drives)
+        reading = odometer.peek(motion, self.options, self.odometry.drives)
         if reading.drive == self.odometry.drives:
             self.odometry.drives += 1
         odometer.take(reading, motion.stamp)
@@ -189,9 +191,8 @@ class Localisation:
         trail = motion.trail or stream
         memory = _recent(self._short, trail, lambda: ShortTerm(self.short_term))
         code = np.asarray(code, np.int64)
-        conf = self.localiser.conf
-        level = self.codes.level(code, float(conf["departure"]))
-        memory.add(row, anchor.move(code, level, motion, conf), stream)
+        level = self.codes.level(code, float(self.options.departure))
+        memory.add(row, anchor.move(code, level, motion, self.options), stream)
 
     def short_term_rows(self, trail: str) -> np.ndarray:
         """(m,) int64 ascending: the rows `trail`'s streams made over its last moves and still held,
@@ -210,11 +211,11 @@ class Localisation:
         odometer = self._odometers.get(stream)
         if odometer is None:
             return None
-        conf = self.localiser.conf
+        conf = self.options
         here = odometer.peek(motion, conf, -1)  # a frame that would start a drive judges nothing
         if here.drive < 0:
             return None
-        drift, slack = float(conf["odometry_drift"]), float(conf["odometry_slack"])
+        drift, slack = conf.odometry_drift, conf.odometry_slack
         return lambda rows: self.odometry.beyond(rows, here, drift, slack)
 
     def drop(self, seq: int) -> None:
@@ -241,7 +242,7 @@ class Localisation:
         most like it, when its Dice reaches b + consolidate · (1 − b), b the frame's background likeness
         (`CodeStats.background`, the scale of `departure`); `consolidate` 1 never consolidates (§11.8).
         O(appearances) code reads."""
-        c = float(self.localiser.conf["consolidate"])
+        c = float(self.options.consolidate)
         rows = self.appearances(place)
         if c >= 1.0 or not rows:
             return None
@@ -252,7 +253,7 @@ class Localisation:
     def reach(self) -> int:
         """How many of a stream's newest rows a warm-up join looks back over: `warmup` + `exclusion`
         (the frames before a first answer and the rival window after it, §11.8)."""
-        return int(self.localiser.conf["warmup"]) + int(self.localiser.conf["exclusion"])
+        return int(self.options.warmup) + int(self.options.exclusion)
 
     def explained(self, stream: str, place: Place, direction: int, code_of: Callable[[int], np.ndarray],
                   trail: str | None = None) -> list[tuple[int, int]]:
@@ -269,7 +270,7 @@ class Localisation:
         `exclusion` confident frames: O(reach · JOIN_SLACK) code reads on such a frame, O(reach) on the
         rest. `trail`: the short-term memory the stream learns into (`Motion.trail`; None: its own).
         """
-        c = float(self.localiser.conf["consolidate"])
+        c = float(self.options.consolidate)
         memory = self._short.get(trail or stream)
         if c >= 1.0 or memory is None:
             return []
@@ -277,7 +278,7 @@ class Localisation:
         if not short.size:
             return []
         g = self.graph
-        tries = int(self.localiser.conf["exclusion"])
+        tries = int(self.options.exclusion)
         newest = short[-self.reach():]
         rows = [r for r, alone in zip(newest.tolist(), g.alone(newest), strict=True)
                 if alone and self._tried.get(r, 0) < tries]
@@ -318,7 +319,7 @@ class Localisation:
         """The appearances to drop so that `place` holds at most `appearances` rows: the least recently
         used first (ties: the older row), never `keep` (the row just made) (§11.9)."""
         rows = [r for r in self.appearances(place) if r != keep]
-        extra = len(rows) + 1 - int(self.localiser.conf["appearances"])
+        extra = len(rows) + 1 - int(self.options.appearances)
         if extra <= 0:
             return []
         return sorted(rows, key=lambda r: (int(self.used[r]), r))[:extra]
@@ -347,7 +348,7 @@ class Localisation:
         """How many ranked rows one index pass must return for `top_k` matches and the localiser (whose
         candidates leave out up to `exclusion` of them, the stream's own rows behind those not left, and
         the `short_term` rows of its memory: a slow robot's holds hundreds)."""
-        return max(top_k, self.top_k + int(self.localiser.conf["exclusion"]) + int(short_term))
+        return max(top_k, self.top_k + int(self.options.exclusion) + int(short_term))
 
     def new_state(self) -> LocaliserState:
         return self.localiser.new_state()

@@ -9,7 +9,7 @@ place against both the best path ending more than `exclusion // 2` links away fr
 (OpenSeqSLAM's best-over-rival idea made causal, over places rather than rows: another pass of the same
 place is no rival, §11.8) and the null, mapped to [0, 1].
 
-    loc = SequenceLocaliser({"beam": 128})
+    loc = SequenceLocaliser(LocaliserOptions(beam=128))
     state = loc.new_state()
     for frame in stream:
         seqs, scores = index.rank(frame)               # or loc.step_dense(state, graph, sims)
@@ -20,15 +20,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from models.localisation.graph import NONE, SequenceGraph
+from models.localisation.options import LocaliserOptions
 from models.localisation.short_term import ShortTerm, ring_moves
 from models.localisation.trail import UNKNOWN, CodeStats, OwnTrail, own_trail
-from models.presets import check_section
 
 #: The null's score before a stream's first frame: not yet born. It is born on the first frame at the
 #: jump level, like every candidate row, so it starts on an equal footing (docs/design/science.md §11.5).
@@ -44,75 +43,6 @@ def informative(contrast: float | None) -> bool:
     """Whether a frame of this contrast can say where it is (§11.7); None (not measured) is taken as yes."""
     return contrast is None or contrast >= MIN_CONTRAST
 
-
-def _tuple(v: Any) -> Any:
-    return tuple(v) if isinstance(v, list) else v  # JSON (a map's stored params) has lists, not tuples
-
-
-class LocaliserParams(BaseModel):
-    """The localiser's options: the one home of their names, defaults, types and ranges
-    (docs/design/science.md §11.3). Strict: ints where ints, finite floats, a bool `backward`.
-
-    The upper bounds keep one stream's state and step small whatever a client asks for: the state is
-    `beam` hypotheses of HYPOTHESIS_BYTES each (4,096 of them: 132 KiB a stream); a step costs
-    O(top_k + beam * len(move_costs)) plus an O(exclusion) walk over the links, and for a learning
-    stream, where a path reaches the trail it laid, `exclusion` + 1 code reads plus one per distinct
-    row so reached (at most beam * len(move_costs); §11.6).
-    """
-
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
-
-    top_k: int = Field(100, ge=1, le=1000)  # candidates per frame that carry evidence and seed hypotheses
-    beam: int = Field(256, ge=1, le=4096)  # hypotheses kept per stream (the state's fixed size)
-    # cost of advancing 0, 1, 2, ... stored rows in one frame (up to 15 rows a frame)
-    move_costs: Annotated[tuple[Annotated[float, Field(ge=0.0, le=1e6)], ...],
-                          BeforeValidator(_tuple)] = Field((3.0, 0.0, 3.0), min_length=1, max_length=16)
-    backward: bool = True  # also hypothesise the route driven against its stored direction
-    decay: float = Field(0.95, ge=0.0, lt=1.0)  # weight of the past per frame: memory of 1 / (1 - decay)
-    jump_cost: float = Field(20.0, ge=0.0, le=1e6)  # a new hypothesis's cost below the best state's score
-    warmup: int = Field(5, ge=1, le=1000)  # frames before the first answer
-    exclusion: int = Field(10, ge=0, le=1000)  # rows (links, both ways) around the best no rival may end in
-    temperature: float = Field(4.0, gt=0.0, le=1e6)  # score gap per unit of log-odds in the confidence
-    null_quantile: float = Field(0.5, ge=0.0, le=1.0)  # the null's evidence: this quantile of the candidates'
-    # a stream has left its own stored row once a frame's code is less like it than this far from the
-    # map's background likeness to the identical code (0: background, 1: identical; §11.6)
-    departure: float = Field(0.5, ge=0.0, le=1.0)
-    # A learning stream's confident revisit stores no new row when its code is at least this like the
-    # place's most similar appearance, on the same scale as `departure` (1: never, every frame a row; §11.8)
-    consolidate: float = Field(0.25, ge=0.0, le=1.0)
-    appearances: int = Field(8, ge=1, le=1024)  # rows a place keeps; beyond, the least recently used goes
-    # A stream's condition (§11.10): the index weighs each query bit by max(0, 1 - discount * how often it
-    # was on in the stream's recent frames), over a time constant of `condition_frames` (0: plain Dice)
-    condition_frames: int = Field(100, ge=0, le=100_000)
-    condition_discount: float = Field(2.0, ge=0.0, le=100.0)
-    # A stream's short-term memory (§11.6): the rows it made over its last `short_term` moves are
-    # never loop candidates, states of its paths or rows its frames are consolidated into (0: no memory;
-    # the consolidation rules of §11.6 still hold, so 0 is not the code before issue 35)
-    short_term: int = Field(20, ge=0, le=1000)
-    # The span (§11.11): the places whose best path scores within `span_margin` temperatures of the best
-    # path's score (a path at least e^-margin as likely as the best); a revisit needs at most `span_max`
-    # of them. Up to 100 temperatures (beyond, every path in the beam is in the span anyway: no evidence
-    # keeps a score that far above the background); `span_max` up to `beam`'s bound (a span holds at most
-    # `beam` rows; at that bound the gate never closes)
-    span_margin: float = Field(1.5, ge=0.0, le=100.0)
-    span_max: int = Field(3, ge=1, le=4096)
-    # With poses (`metadata.pose`, §11.6) the memory is the rows made over the last `short_term_metres`
-    # of path (the sum of the moves' lengths; 0: poses play no part, moves by appearance), a move a pose
-    # at least `move_metres` from the last move's, and a step faster than `max_speed` (m/s, from the
-    # stamps) a reset: no distance
-    short_term_metres: float = Field(20.0, ge=0.0, le=1e5)
-    move_metres: float = Field(1.0, gt=0.0, le=1e4)
-    max_speed: float = Field(50.0, gt=0.0, le=1e4)
-    # Odometry's word (§11.12): within one drive of a stream (posed, stamped frames, no gap longer than
-    # `odometry_gap` s, no reset), a row whose pose lies farther from the frame's than `odometry_drift` x
-    # the path driven since plus `odometry_slack` m is no loop candidate (a drift of 10 disables it)
-    odometry_drift: float = Field(0.2, ge=0.0, le=10.0)
-    odometry_slack: float = Field(5.0, ge=0.0, le=1e5)
-    odometry_gap: float = Field(60.0, gt=0.0, le=1e6)
-
-
-#: Every option's default (LocaliserParams; meanings and why: docs/design/science.md §11.3).
-default_conf: dict[str, Any] = LocaliserParams().model_dump()
 
 #: Rows `Place.span_seqs` lists at most: the best-scoring row of each place in the span, best first
 #: (docs/design/science.md §11.11). The count, `Place.span`, is always exact; a span wider than the list
@@ -307,38 +237,35 @@ def null_evidence(ev: np.ndarray, quantile: float) -> float:
 
 
 class SequenceLocaliser:
-    """The per-frame step of docs/design/science.md §11; configuration merged over `default_conf`
-    and checked by LocaliserParams.
+    """The per-frame step of docs/design/science.md §11, with a map's `LocaliserOptions` (default: the
+    defaults).
 
     Per frame the cost is O(top_k + beam * (max move + 1)) plus O(exclusion) link walks, whatever the
     map's size. Deterministic: ties are broken by row id and direction.
     """
 
-    default_conf = default_conf
-
-    def __init__(self, conf: Mapping[str, Any] | None = None) -> None:
-        """Raises presets.ParamsError (a ValueError) naming every bad option (LocaliserParams)."""
-        self.conf: dict[str, Any] = check_section(LocaliserParams, "localiser", dict(conf or {})).model_dump()
-        self.move_costs = np.asarray(self.conf["move_costs"], dtype=np.float64)
+    def __init__(self, options: LocaliserOptions | None = None) -> None:
+        self.options = LocaliserOptions() if options is None else options
+        self.move_costs = np.asarray(self.options.move_costs, dtype=np.float64)
 
     def state_bytes(self) -> int:
         """Bytes of one stream's state (`new_state`): `beam` hypotheses of HYPOTHESIS_BYTES."""
-        return int(self.conf["beam"]) * HYPOTHESIS_BYTES
+        return self.options.beam * HYPOTHESIS_BYTES
 
     def stream_bytes(self, code_width: int) -> int:
         """Bytes one stream holds in a map at most: its state (`state_bytes`), with `condition_frames`
         its condition over a code of `code_width` bits (docs/design/science.md §11.10: the rates, width
         float64, and the last code taken in, at most width int64), and with `short_term` its short-term
         memory (§11.6, `ShortTerm.nbytes`)."""
-        condition = 8 * (2 * int(code_width) + 2) if int(self.conf["condition_frames"]) else 0
-        moves = ring_moves(self.conf)
+        condition = 8 * (2 * int(code_width) + 2) if self.options.condition_frames else 0
+        moves = ring_moves(self.options)
         # the map keeps the memories of up to KEPT (twice the default stream cap) streams: two per stream
         short = 2 * ShortTerm.nbytes(moves, code_width) if moves else 0
         return self.state_bytes() + condition + short
 
     def new_state(self) -> LocaliserState:
         """An empty state for one stream (`beam` hypotheses)."""
-        return LocaliserState.empty(int(self.conf["beam"]))
+        return LocaliserState.empty(self.options.beam)
 
     def step_dense(self, state: LocaliserState, graph: SequenceGraph, sims: np.ndarray,
                    own: OwnTrail | None = None) -> Place | None:
@@ -346,9 +273,9 @@ class SequenceLocaliser:
         if own is not None:
             sims = np.where(own.holds(graph, np.arange(len(sims))), -np.inf, sims)
             keep = np.isfinite(sims)
-            seqs, scores = top_candidates(sims[keep], int(self.conf["top_k"]))
+            seqs, scores = top_candidates(sims[keep], self.options.top_k)
             return self.step(state, graph, np.flatnonzero(keep)[seqs], scores, own)
-        return self.step(state, graph, *top_candidates(sims, int(self.conf["top_k"])))
+        return self.step(state, graph, *top_candidates(sims, self.options.top_k))
 
     def own_trail(self, state: LocaliserState, graph: SequenceGraph, last: int | None, code: np.ndarray,
                   code_of: Callable[[int], np.ndarray], stats: CodeStats,
@@ -356,8 +283,8 @@ class SequenceLocaliser:
         """The rows of the stream's own trail it has not left, after this frame (`trail.own_trail`,
         docs/design/science.md §11.6, at this localiser's `departure`, widened by `exclusion` links);
         call it before `step`, learning or not."""
-        return own_trail(state, graph, last, code, code_of, stats, float(self.conf["departure"]),
-                         int(self.conf["exclusion"]), informative)
+        return own_trail(state, graph, last, code, code_of, stats, self.options.departure,
+                         self.options.exclusion, informative)
 
     def step(self, state: LocaliserState, graph: SequenceGraph, seqs: np.ndarray,
              scores: np.ndarray, own: OwnTrail | None = None, informative: bool = True) -> Place | None:
@@ -377,7 +304,7 @@ class SequenceLocaliser:
         Returns:
             The place, or None while fewer than `warmup` frames were seen or no candidate was ever given.
         """
-        c = self.conf
+        c = self.options
         seqs, scores = np.asarray(seqs, np.int64), np.asarray(scores, np.float64)
         if seqs.size and (seqs.min() < 0 or seqs.max() >= len(graph)):
             raise ValueError("a candidate row is not in the graph")
@@ -386,11 +313,11 @@ class SequenceLocaliser:
         if own is not None and seqs.size:
             mine = own.holds(graph, seqs)
             seqs, scores = seqs[~mine], scores[~mine]
-        if seqs.size > int(c["top_k"]):
-            keep = np.lexsort((seqs, -scores))[:int(c["top_k"])]
+        if seqs.size > c.top_k:
+            keep = np.lexsort((seqs, -scores))[:c.top_k]
             seqs, scores = seqs[keep], scores[keep]
         ev_rows, ev = evidence(seqs, scores)
-        decay = float(c["decay"])
+        decay = c.decay
         live = state.rows >= 0
         rows, dirs = state.rows[live], state.dirs[live]
         past = decay * state.scores[live]
@@ -399,7 +326,7 @@ class SequenceLocaliser:
         null = decay * state.null if np.isfinite(state.null) else NULL_PRIOR
         jump = self._jump_level(past, null)
         # The null stays (no move cost) or is entered by that same jump.
-        state.null = max(null, jump) + null_evidence(ev, float(c["null_quantile"]))
+        state.null = max(null, jump) + null_evidence(ev, c.null_quantile)
 
         new_rows, new_dirs, new_scores, new_ages, new_born = [], [], [], [], []
         cur = rows
@@ -412,14 +339,14 @@ class SequenceLocaliser:
             new_scores.append(past[ok] - cost)
             new_ages.append(ages[ok] + 1)
             new_born.append(born[ok])
-        born_dirs = (1, -1) if c["backward"] else (1,)
+        born_dirs = (1, -1) if c.backward else (1,)
         for d in born_dirs:
             new_rows.append(seqs)
             new_dirs.append(np.full(seqs.size, d, np.int8))
             new_scores.append(np.full(seqs.size, jump))
             new_ages.append(np.ones(seqs.size, np.int64))
             new_born.append(np.full(seqs.size, len(graph), np.int64) if own is None else
-                            own.born(graph, seqs, len(graph), int(c["exclusion"]) // 2))
+                            own.born(graph, seqs, len(graph), c.exclusion // 2))
         r = np.concatenate(new_rows)
         d = np.concatenate(new_dirs).astype(np.int8)
         s = np.concatenate(new_scores) + _lookup(ev_rows, ev, r)
@@ -460,7 +387,7 @@ class SequenceLocaliser:
         state.rows[:n], state.dirs[:n], state.scores[:n], state.ages[:n] = r[idx], d[idx], s[idx], a[idx]
         state.born[:n] = b[idx]
         state.frames += 1
-        if state.frames < int(c["warmup"]) or n == 0:
+        if state.frames < c.warmup or n == 0:
             return None
         place = self._answer(state, graph, n, jump)
         return place if informative else place._replace(informative=False)
@@ -479,32 +406,32 @@ class SequenceLocaliser:
             null: the null's decayed score (-inf before it is born).
         """
         best = max(float(past.max()), null) if past.size else 0.0
-        return best - float(self.conf["jump_cost"])
+        return best - self.options.jump_cost
 
     def _answer(self, state: LocaliserState, graph: SequenceGraph, n: int, background: float) -> Place:
         best = int(state.rows[0])
         # The rival is another place: the rows of the best's place (its other passes and appearances)
         # and their neighbourhoods are not rivals (§11.8).
-        place, links = int(graph.place[best]), int(self.conf["exclusion"]) // 2
+        place, links = int(graph.place[best]), self.options.exclusion // 2
         near = np.unique(np.concatenate([graph.within(r, links) for r in {best, *graph.members(place)}]))
         rivals = state.scores[:n][~np.isin(state.rows[:n], near)]
         # Rows outside the beam stand at the background level: a rival at least that strong exists.
         rival = max(float(rivals.max()) if rivals.size else -np.inf, background)
         # Scores as log-likelihoods at `temperature`: p = P(best | best, rival, null); 2p - 1 is
         # P(best) minus the rest, tanh(gap / 2T) when the null is far below (§11.2, §11.5).
-        t, top = float(self.conf["temperature"]), float(state.scores[0])
+        t, top = self.options.temperature, float(state.scores[0])
         others = np.logaddexp((rival - top) / t, (state.null - top) / t)
         p = float(np.exp(-np.logaddexp(0.0, others)))
         span, seqs = self._span(state, graph, n)
         return Place(best, max(2.0 * p - 1.0, 0.0), int(min(state.ages[0], state.frames)), place=place,
-                     span=span, span_seqs=seqs, narrow=span <= int(self.conf["span_max"]))
+                     span=span, span_seqs=seqs, narrow=span <= self.options.span_max)
 
     def _span(self, state: LocaliserState, graph: SequenceGraph, n: int) -> tuple[int, tuple[int, ...]]:
         """(places, their best rows best first, at most SPAN_LISTED) whose best path scores within
         `span_margin` · `temperature` of the best path's (§11.11). The beam is best first, so each
         place's first row in it is its best; the best path's row leads."""
-        c = self.conf
-        level = float(state.scores[0]) - float(c["span_margin"]) * float(c["temperature"])
+        c = self.options
+        level = float(state.scores[0]) - c.span_margin * c.temperature
         rows = state.rows[:n][state.scores[:n] >= level]
         _, first = np.unique(graph.place[rows], return_index=True)
         first.sort()

@@ -21,12 +21,12 @@ step of the drive, so a row's distance from the frame is at most the path betwee
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from models.localisation.motion import Motion
+from models.localisation.options import LocaliserOptions
 
 __all__ = ["NO_READING", "Odometer", "Reading", "RowOdometry"]
 
@@ -52,7 +52,7 @@ class Odometer:
         self.reading = NO_READING
         self.stamp: float | None = None
 
-    def peek(self, motion: Motion, conf: Mapping[str, Any], new_drive: int) -> Reading:
+    def peek(self, motion: Motion, conf: LocaliserOptions, new_drive: int) -> Reading:
         """The reading at a frame of this `motion`, this odometer unchanged; `new_drive` the number a drive
         that starts here gets. `conf`: the localiser options (`odometry_gap`, `max_speed`)."""
         if motion.pose is None or motion.stamp is None:
@@ -62,7 +62,7 @@ class Odometer:
         if last.drive >= 0 and self.stamp is not None:
             dt = motion.stamp - self.stamp
             step = math.hypot(x - last.x, y - last.y)
-            if 0.0 < dt <= float(conf["odometry_gap"]) and step <= float(conf["max_speed"]) * dt:
+            if 0.0 < dt <= conf.odometry_gap and step <= conf.max_speed * dt:
                 return Reading(last.drive, last.travelled + step, x, y)
             if dt == 0.0 and step == 0.0:  # the same stamp and pose again (a frame posted twice)
                 return last

@@ -12,15 +12,15 @@ the memory (or with `short_term` 0) is judged by the rule it would have had: its
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
 from models.localisation.graph import NONE
 from models.localisation.links import Localisation
-from models.localisation.localiser import default_conf
+from models.localisation.options import LocaliserOptions
 
 __all__ = ["Learned", "Merges", "Named", "own_trail_merges", "window"]
 
@@ -72,26 +72,28 @@ class Merges:
     closures: list[int] = field(default_factory=list)
 
 
-def window(conf: dict[str, Any] | None) -> int:
+def window(options: LocaliserOptions | None) -> int:
     """The moves a repair's memory spans: the map's `short_term`, or the default's where it is 0."""
-    moves = int((conf or {}).get("short_term", 0) or 0)
-    return moves or int(default_conf["short_term"])
+    moves = 0 if options is None else options.short_term
+    return moves or LocaliserOptions().short_term
 
 
-def own_trail_merges(log: Iterable[Learned | Named], conf: dict[str, Any] | None, code_width: int) -> Merges:
+def own_trail_merges(log: Iterable[Learned | Named], options: LocaliserOptions | None,
+                     code_width: int) -> Merges:
     """The merges of a log made from each stream's own recent trail.
 
     Args:
         log: the learned steps (rows and visits) in the order they were learned, each loop closure just
             before the step that came after it (a learned row's closure just before its row): a closure is
             judged by its stream's memory at that moment, a step by the memory before it.
-        conf: the map's localiser options (its `departure` and `short_term`, `window`).
+        options: the map's localiser options (its `departure` and `short_term`, `window`).
         code_width: the frame code's bit space (the code statistics the memory's moves read, §11.6).
 
     Returns:
         The merges. One pass, O(log · memory) time, O(rows) memory (the codes are not kept).
     """
-    links = Localisation({**(conf or {}), "short_term": window(conf)}, code_width)
+    links = Localisation(dataclasses.replace(options or LocaliserOptions(), short_term=window(options)),
+                         code_width)
     out = Merges()
     for event in log:
         if isinstance(event, Named):

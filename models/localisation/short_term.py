@@ -27,13 +27,12 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Mapping
-from typing import Any
 
 import numpy as np
 
 from models.localisation.graph import NONE
 from models.localisation.motion import Motion
+from models.localisation.options import LocaliserOptions
 from models.localisation.trail import code_dice
 
 __all__ = ["KEPT", "SLOTS", "SPAN", "Anchor", "ShortTerm", "ring_moves"]
@@ -59,13 +58,13 @@ _UNOWNED = -1
 _EPS = 1e-9
 
 
-def ring_moves(conf: Mapping[str, Any]) -> int:
+def ring_moves(conf: LocaliserOptions) -> int:
     """How many moves a memory's ring is sized for: `short_term`, or the most moves of `move_metres`
     that `short_term_metres` holds where more (at most 1,000, `short_term`'s bound); 0: no memory."""
-    moves = int(conf["short_term"])
+    moves = int(conf.short_term)
     if not moves:
         return 0
-    metres, step = float(conf["short_term_metres"]), float(conf["move_metres"])
+    metres, step = float(conf.short_term_metres), float(conf.move_metres)
     return max(moves, min(1000, math.ceil(metres / step))) if metres > 0 else moves
 
 
@@ -77,12 +76,12 @@ class Anchor:
         self.pose: tuple[float, float] | None = None
         self.last: tuple[tuple[float, float], float | None] | None = None
 
-    def move(self, code: np.ndarray, level: float, motion: Motion, conf: Mapping[str, Any]) -> float | None:
+    def move(self, code: np.ndarray, level: float, motion: Motion, conf: LocaliserOptions) -> float | None:
         """The share of the memory this learned frame covers, as a move (0 for a reset), or None when it
         is no move. `code` (n,) sorted; `level` its departure level (the Dice below which it moved by
         appearance); `conf` the localiser options (`short_term`, `short_term_metres`, `move_metres`,
         `max_speed`)."""
-        metres = float(conf["short_term_metres"])
+        metres = float(conf.short_term_metres)
         pose = motion.pose if metres > 0 else None
         reset = False
         if pose is not None:
@@ -91,9 +90,9 @@ class Anchor:
                 step = math.hypot(pose[0] - lx, pose[1] - ly)
                 dt = None if stamp is None or motion.stamp is None else motion.stamp - stamp
                 if dt is not None and dt > 0:
-                    reset = step > float(conf["max_speed"]) * dt
+                    reset = step > float(conf.max_speed) * dt
                 elif dt is not None:  # no time to judge a speed by: a move's worth of step is a jump
-                    reset = step >= float(conf["move_metres"])
+                    reset = step >= float(conf.move_metres)
             self.last = (pose, motion.stamp)
         if reset:
             # The pose cannot say how far it went: appearance does, and the memory goes on from the new
@@ -103,10 +102,10 @@ class Anchor:
             if self.code is not None and code_dice(code, self.code) >= level:
                 return None
             self.code = np.asarray(code)
-            return 1.0 / int(conf["short_term"])
+            return 1.0 / int(conf.short_term)
         if pose is not None and self.pose is not None:
             gone = math.hypot(pose[0] - self.pose[0], pose[1] - self.pose[1])
-            if gone < float(conf["move_metres"]):
+            if gone < float(conf.move_metres):
                 return None
             self.code, self.pose = np.asarray(code), pose
             return gone / metres
@@ -114,7 +113,7 @@ class Anchor:
         if self.code is not None and code_dice(code, self.code) >= level:
             return None
         self.code, self.pose = np.asarray(code), pose
-        return 1.0 / int(conf["short_term"])
+        return 1.0 / int(conf.short_term)
 
 
 class ShortTerm:

@@ -8,7 +8,7 @@ the randomness rules of §3.6 (one seeded `numpy.random.Generator`, drawn only w
 The hot loops live in `models.memory._tm_kernels` (numba); this module is the readable interface.
 
 Example:
-    >>> tm = TemporalMemory(presets.tm_params("cortexloc-grid"))
+    >>> tm = TemporalMemory(presets.TmOptions.of(presets.tm_params("cortexloc-grid")))
     >>> ctx = tm.new_context()
     >>> winners = tm.compute(np.array([3, 17, 40]), learn=True, context=ctx)
 """
@@ -114,42 +114,41 @@ class StreamContext:
         )
 
 
-def validate(params: dict[str, Any]) -> list[str]:
+def validate(options: presets.TmOptions) -> list[str]:
     """Check parameters as NuPIC does; return the warnings of docs/design/science.md §3.1.
 
-    Names, types and ranges are `presets.TmParams`'s; the rules between parameters are here.
+    Names, types and ranges are `presets.TmParams`'s (`TmOptions.of`); the rules between parameters are
+    here.
 
     Raises:
-        presets.ParamsError (a ValueError): an unknown parameter, a value of the wrong type or out of
-            range (a count below 1, a permanence outside [0, 1], ...), minThreshold > activationThreshold.
+        presets.ParamsError (a ValueError): minThreshold > activationThreshold.
     """
-    params = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in params.items()}
-    presets.check_section(presets.TmParams, "tm", params)
-    if params["minThreshold"] > params["activationThreshold"]:
+    o = options
+    if o.minThreshold > o.activationThreshold:
         raise presets.ParamsError("tm", [("minThreshold", (
-            f"minThreshold ({params['minThreshold']}) must not exceed activationThreshold "
-            f"({params['activationThreshold']})"))])
+            f"minThreshold ({o.minThreshold}) must not exceed activationThreshold "
+            f"({o.activationThreshold})"))])
     notes = []
-    if params["activationThreshold"] > params["maxSynapsesPerSegment"]:
+    if o.activationThreshold > o.maxSynapsesPerSegment:
         notes.append(
-            f"activationThreshold {params['activationThreshold']} > maxSynapsesPerSegment "
-            f"{params['maxSynapsesPerSegment']}: this memory can never predict"
+            f"activationThreshold {o.activationThreshold} > maxSynapsesPerSegment "
+            f"{o.maxSynapsesPerSegment}: this memory can never predict"
         )
-    if params["maxNewSynapseCount"] > params["maxSynapsesPerSegment"]:
+    if o.maxNewSynapseCount > o.maxSynapsesPerSegment:
         notes.append("maxNewSynapseCount > maxSynapsesPerSegment: growth is cut by the synapse cap")
-    if params["initialPermanence"] >= params["connectedPermanence"]:
+    if o.initialPermanence >= o.connectedPermanence:
         notes.append("initialPermanence >= connectedPermanence: one-shot learning")
     return notes
 
 
-def _layout(params: dict[str, Any]) -> dict[str, tuple[int, Any, int]]:
-    """Every array a memory with `params` preallocates: name -> (length, dtype, fill value).
+def _layout(o: presets.TmOptions) -> dict[str, tuple[int, Any, int]]:
+    """Every array a memory with options `o` preallocates: name -> (length, dtype, fill value).
 
     One table for both the constructor and `planned_bytes`, so the reported size is exact.
     """
-    cells = int(params["columnDimensions"]) * int(params["cellsPerColumn"])
-    n_seg = cells * int(params["maxSegmentsPerCell"])
-    k = int(params["maxSynapsesPerSegment"])
+    cells = int(o.columnDimensions) * int(o.cellsPerColumn)
+    n_seg = cells * int(o.maxSegmentsPerCell)
+    k = int(o.maxSynapsesPerSegment)
     n_slot = n_seg * k
     n_blocks = syn.pool_blocks(n_slot, cells)
     return {
@@ -176,11 +175,10 @@ def _layout(params: dict[str, Any]) -> dict[str, tuple[int, Any, int]]:
     }
 
 
-def planned_bytes(params: dict[str, Any]) -> int:
-    """Exact bytes a `TemporalMemory(params)` preallocates (`size()["bytes"]`), without allocating."""
-    merged = {**presets.TM_DEFAULTS, **params}
-    validate(merged)
-    arrays = sum(n * np.dtype(dtype).itemsize for n, dtype, _ in _layout(merged).values())
+def planned_bytes(options: presets.TmOptions) -> int:
+    """Exact bytes a `TemporalMemory(options)` preallocates (`size()["bytes"]`), without allocating."""
+    validate(options)
+    arrays = sum(n * np.dtype(dtype).itemsize for n, dtype, _ in _layout(options).values())
     return arrays + 5 * 4 + 7 * 8  # plus the float32 and int64 parameter vectors
 
 
@@ -188,37 +186,36 @@ class TemporalMemory:
     """Learned connections of one map (docs/design/science.md §3.2) plus its seeded generator.
 
     Args:
-        params: full parameter dict (see `presets.tm_params`); missing keys take NuPIC defaults.
+        options: the parameters (`presets.TmOptions`, e.g. `TmOptions.of(presets.tm_params(name))`);
+            None: NuPIC's defaults.
 
     Attributes:
+        options: the parameters; params: the same by NuPIC name (a memory's state stores them as JSON).
         warnings: configuration warnings of docs/design/science.md §3.1 (not errors: presets reproduce them).
         iteration: learning iterations so far; version: bumped by every step that changes connections.
     """
 
     _CANONICAL = ("presyn", "perm", "nsyn", "last_used")
 
-    def __init__(self, params: dict[str, Any] | None = None) -> None:
-        merged = dict(presets.TM_DEFAULTS)
-        merged.update(params or {})
-        # Plain Python numbers, so the parameters always serialise (snapshots store them as JSON).
-        merged = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in merged.items()}
-        self.warnings = validate(merged)
-        self.params = merged
-        self.n_columns = int(merged["columnDimensions"])
-        self.cells_per_column = int(merged["cellsPerColumn"])
+    def __init__(self, options: presets.TmOptions | None = None) -> None:
+        o = presets.TmOptions() if options is None else options
+        self.warnings = validate(o)
+        self.options = o
+        self.params = o.values()
+        self.n_columns = int(o.columnDimensions)
+        self.cells_per_column = int(o.cellsPerColumn)
         self.n_cells = self.n_columns * self.cells_per_column
-        S = int(merged["maxSegmentsPerCell"])
-        Kc = int(merged["maxSynapsesPerSegment"])
+        S = int(o.maxSegmentsPerCell)
+        Kc = int(o.maxSynapsesPerSegment)
         f32 = np.float32
         # Parameters cast to float32 once (docs/design/science.md §3.6).
         self._p = np.array(
-            [merged["initialPermanence"], f32(merged["connectedPermanence"]) - f32(syn.EPS),
-             merged["permanenceIncrement"], merged["permanenceDecrement"],
-             merged["predictedSegmentDecrement"]], dtype=f32)
+            [o.initialPermanence, f32(o.connectedPermanence) - f32(syn.EPS),
+             o.permanenceIncrement, o.permanenceDecrement, o.predictedSegmentDecrement], dtype=f32)
         self._ip = np.array(
-            [self.cells_per_column, S, Kc, merged["activationThreshold"], merged["minThreshold"],
-             merged["maxNewSynapseCount"], syn.slot_bits(Kc)], dtype=np.int64)
-        a = {name: _alloc(n, dtype, fill) for name, (n, dtype, fill) in _layout(merged).items()}
+            [self.cells_per_column, S, Kc, o.activationThreshold, o.minThreshold,
+             o.maxNewSynapseCount, syn.slot_bits(Kc)], dtype=np.int64)
+        a = {name: _alloc(n, dtype, fill) for name, (n, dtype, fill) in _layout(o).items()}
         # Canonical state (docs/design/science.md §3.5 table).
         self.presyn, self.perm, self.nsyn, self.last_used = a["presyn"], a["perm"], a["nsyn"], a["last_used"]
         # Auxiliary, fixed-capacity, derived from the canonical arrays.
@@ -236,7 +233,7 @@ class TemporalMemory:
         self.counters = a["counters"]
         self.iteration = 0
         self.version = 0
-        self.rng = np.random.Generator(np.random.PCG64(int(merged["seed"])))
+        self.rng = np.random.Generator(np.random.PCG64(int(o.seed)))
         self.context = StreamContext()
 
     # ---------------------------------------------------------------- stepping
@@ -381,7 +378,7 @@ class TemporalMemory:
     @classmethod
     def from_state(cls, state: dict[str, np.ndarray]) -> TemporalMemory:
         """Rebuild a memory saved by `state_dict` (the reverse index is rebuilt, not loaded)."""
-        tm = cls(json.loads(str(state["params"])))
+        tm = cls(presets.TmOptions.of(json.loads(str(state["params"]))))
         for n in cls._CANONICAL:
             src = np.asarray(state[n])
             dst = getattr(tm, n)

@@ -19,19 +19,19 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from models.frontend import slsbh
 from models.frontend.adaptation import RunningMean
-from models.localisation import InvertedIndex, Localisation, Match, Place, informative
+from models.localisation import InvertedIndex, Localisation, LocaliserOptions, Match, Place, informative
 from models.localisation.condition import Condition
 from models.localisation.motion import NO_MOTION, Motion
 from models.localisation.trail import OwnTrail
 from models.memory import registry as memories
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline.state import Stream
+from models.presets import TmOptions
 
 __all__ = ["MapModel", "Step", "observe", "replay", "revisit"]
 
@@ -58,26 +58,26 @@ class MapModel:
     adapt_tau: int = 0
 
     @classmethod
-    def new(cls, tm_params: dict[str, Any], localiser: dict[str, Any], *, max_observations: int,
+    def new(cls, tm: TmOptions, localiser: LocaliserOptions, *, max_observations: int,
             memory: str = "tm", s: float = 0.0, adapt_tau: int = 0) -> MapModel:
-        """A fresh model: an empty memory with `tm_params`, an empty index of `max_observations` rows,
+        """A fresh model: an empty memory with options `tm`, an empty index of `max_observations` rows,
         no links, the localiser with the `localiser` options (its code statistics over the TM's columns,
         the sLSBH code's width)."""
-        tm = TemporalMemory(tm_params)
-        return cls(tm, InvertedIndex(tm.n_cells, max_observations), Localisation(localiser, tm.n_columns),
-                   memory, s, adapt_tau)
+        connections = TemporalMemory(tm)
+        return cls(connections, InvertedIndex(connections.n_cells, max_observations),
+                   Localisation(localiser, connections.n_columns), memory, s, adapt_tau)
 
     def fresh(self, tm: TemporalMemory | None = None) -> MapModel:
         """The same options over `tm` (default: this model's), with an empty index and no links."""
         tm = self.tm if tm is None else tm
         return MapModel(tm, InvertedIndex(tm.n_cells, self.index.max_observations),
-                        Localisation(self.links.localiser.conf, tm.n_columns), self.memory, self.s,
+                        Localisation(self.links.options, tm.n_columns), self.memory, self.s,
                         self.adapt_tau)
 
     @property
     def condition_frames(self) -> int:
         """The streams' condition time constant (docs/design/science.md §11.10; 0: none)."""
-        return int(self.links.localiser.conf["condition_frames"])
+        return self.links.options.condition_frames
 
     def cells_per_column(self) -> int:
         """Winner cells per code bit: the TM's cells per column, 1 where the code is the winners."""
@@ -139,7 +139,7 @@ def _condition(model: MapModel, st: Stream, code: np.ndarray) -> None:
     if model.condition_frames:
         if st.condition is None:
             st.condition = Condition(model.links.codes.counts.size, model.condition_frames)
-        st.condition.add(code, float(model.links.localiser.conf["condition_discount"]))
+        st.condition.add(code, float(model.links.options.condition_discount))
 
 
 def _advance(st: Stream, learn: bool, seq: int | None, made: bool = True) -> None:
@@ -234,7 +234,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         own = (OwnTrail.short_term_only(stm) if own is None else own)._replace(beyond=beyond)
     # Bits the stream's recent frames share say what its conditions are, not where it is (§11.10).
     weights = None if st.condition is None else st.condition.weights(
-        winners, model.cells_per_column(), float(model.links.localiser.conf["condition_discount"]))
+        winners, model.cells_per_column(), float(model.links.options.condition_discount))
     ranked = model.index.rank(winners, model.links.candidates_wanted(top_k, stm.size),
                               exclude_own=None if own is None or not own.has_trail else (stream, own.here),
                               weights=weights)
@@ -254,7 +254,9 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             mine = own is not None and visit is not None and bool(own.holds(links.graph, [visit])[0])
             trail = visit is not None and st.own_seq is not None and bool(
                 links.graph.trail[visit] == links.graph.trail[st.own_seq])
-            unsure = not confident and (place.confidence < threshold / 2 or trail)
+            # (`unsure_fraction` of the threshold: some sequence evidence, LocaliserOptions)
+            unsure = not confident and (place.confidence < threshold * links.options.unsure_fraction
+                                        or trail)
             if visit is not None and (mine or unsure):
                 # never into the stream's own recent rows (its short-term memory, or a row it has not
                 # left); unconfident, it needs some sequence evidence, and never a row of the trail it is

@@ -246,7 +246,8 @@ def eval_images(
     if resize not in images.MODES:
         raise typer.BadParameter(f"must be one of {', '.join(images.MODES)}", param_hint="--resize")
     s_conf = presets.slsbh_params(preset)
-    sparsity = float(s if s is not None else s_conf["s"])
+    s_options = presets.SlsbhOptions.of(s_conf)
+    sparsity = float(s if s is not None else s_options.s)
     try:  # the sLSBH rules have one home: presets.SlsbhParams
         presets.SlsbhParams(**{**s_conf, "s": sparsity})
     except ValidationError as e:
@@ -299,7 +300,7 @@ def eval_images(
             with progress("runs", show=seeds > 1) as tick:
                 result = sequences.image_experiment(
                     feats["db"], feats["query"], methods=method_list, preset=preset, mcn_preset=mcn_preset,
-                    k=int(s_conf["k"]), s=sparsity, seeds=seeds, seed=seed, tolerance=tolerance, reset=reset,
+                    k=int(s_options.k), s=sparsity, seeds=seeds, seed=seed, tolerance=tolerance, reset=reset,
                     adapt_tau=adapt, reverse_query=reverse_query, ds=ds, gt=gt_matrix, frames=frames,
                     progress=tick)
         if service_list:
@@ -341,7 +342,7 @@ def eval_images(
                         "backbone": backbone if enc else "none", "resize": resize if enc else "none",
                         "weights": enc.describe()["weights"] if enc else "none", "preset": preset,
                         "mcn_preset": mcn_preset,
-                        "k": int(s_conf["k"]), "s": sparsity, "ds": ds, "adapt_tau": adapt,
+                        "k": int(s_options.k), "s": sparsity, "ds": ds, "adapt_tau": adapt,
                         "drop_dark": drop_dark, "reverse_query": reverse_query, "tolerance": tolerance,
                         "reset": reset, "seeds": seeds, "seed": seed}
     result["provenance"] = provenance()

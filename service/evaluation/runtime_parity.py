@@ -45,9 +45,9 @@ def route_features(runtime: str, paths: Sequence[Path], backbone: str = BACKBONE
 def code_overlap(a: np.ndarray, b: np.ndarray, preset: str = PRESET) -> np.ndarray:
     """(N,) per-frame |codes(a) AND codes(b)| / |codes(a)| under the preset's projection, for features
     a, b (N, D)."""
-    p = presets.slsbh_params(preset)
-    seed = 0 if p["seed"] is None else int(p["seed"])  # None: each map draws its own; any one will do
-    hasher = slsbh.Hasher(slsbh.make_projection(a.shape[1], int(p["k"]), seed), float(p["s"]))
+    p = presets.SlsbhOptions.of(presets.slsbh_params(preset))
+    seed = 0 if p.seed is None else int(p.seed)  # None: each map draws its own; any one will do
+    hasher = slsbh.Hasher(slsbh.make_projection(a.shape[1], int(p.k), seed), float(p.s))
     ca, cb = hasher(a), hasher(b)
     return np.array([np.intersect1d(x, y, assume_unique=True).size / x.size
                      for x, y in zip(ca, cb, strict=True)])

@@ -54,7 +54,7 @@ def _model(feature_dim: int, *, backbone: str, preset: str, seed: int, memory: s
     config = resolve(options, default_preset=preset, default_backbone=backbone)
     defaults = Settings()  # a served map's caps, as the registry applies them
     _, P = map_projection.for_map(config, feature_dim, defaults.max_streams, defaults.max_map_bytes)
-    hasher = slsbh.Hasher(P, float(config.slsbh["s"]))
+    hasher = slsbh.Hasher(P, float(config.sections.slsbh.s))
     cap = defaults.max_observations if max_observations is None else max_observations
     return map_model(config, max_observations=cap), hasher, config
 
@@ -92,8 +92,9 @@ class _Keyframes:
 
     def query(self, i: int) -> keyframes.QueryFrame | None:
         """Frame i's local features and camera (None: it cannot be decoded)."""
-        assert self.config.keyframes is not None
-        return keyframes.extract_frame(frontend_images.decode, self.frames[i], self.config.keyframes,
+        options = self.config.sections.keyframes
+        assert options is not None
+        return keyframes.extract_frame(frontend_images.decode, self.frames[i], options,
                                        self.camera, given=self.camera is not None and i == 0)
 
     def verify(self, place: Place, query: keyframes.QueryFrame | None, graph: SequenceGraph, *, stream: str,

@@ -15,12 +15,14 @@ dense`, ...).
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any, Literal
 
 from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    PrivateAttr,
     TypeAdapter,
     ValidationError,
     field_validator,
@@ -29,14 +31,14 @@ from pydantic import (
 
 from models import geometry, presets
 from models.frontend import backbones, images, slsbh
-from models.localisation import LocaliserParams, SequenceLocaliser, default_conf
+from models.localisation import LocaliserOptions, SequenceLocaliser, default_conf
 from models.memory import registry as memories
 from models.memory.temporal_memory import validate
 from models.pipeline import MapModel
 from service.maps.errors import InvalidConfiguration
 
 __all__ = ["DEFAULT_RESIZE", "DEFAULT_REVISIT_THRESHOLD", "SHOWN_PARAMS", "MapConfig", "MapOptions",
-           "map_model", "resolve"]
+           "Sections", "map_model", "resolve"]
 
 #: A new map's `revisit_threshold` (docs/design/service.md §1.2): the confidence at which an answer is
 #: called a revisit. docs/results.md §10.1: chosen on the Nordland `tune` half only, per route (two laps
@@ -95,19 +97,43 @@ def _section_errors(e: presets.ParamsError) -> list[dict[str, str]]:
     return [_body(f"{e.section}.{name}", message) for name, message in e.errors]
 
 
-#: Each section's model: names, types, ranges (`models.presets`, `models.localisation`).
-_SECTIONS: dict[str, type[BaseModel]] = {"tm": presets.TmParams, "slsbh": presets.SlsbhParams,
-                                         "localiser": LocaliserParams}
+#: Each section's typed form (`models.presets`, `models.localisation`): names, defaults; its `of`
+#: checks types and ranges.
+_SECTIONS: dict[str, Any] = {"tm": presets.TmOptions, "slsbh": presets.SlsbhOptions,
+                             "localiser": LocaliserOptions}
+
+
+@dataclass(frozen=True, slots=True)
+class Sections:
+    """A map's option sections, typed: what the map's models read (never the stored dicts). Made once,
+    where a configuration is checked (`MapConfig`: a new map, a map opened from its store, a snapshot's
+    manifest); a stored map's missing options take the sections' defaults."""
+
+    tm: presets.TmOptions
+    slsbh: presets.SlsbhOptions
+    localiser: LocaliserOptions
+    keyframes: geometry.KeyframeOptions | None
+
+
+def _salvaged(section: Any, values: Any) -> Any:
+    """A section of stored values this version rejects: as far as they are valid, else the defaults
+    (None for absent keyframes)."""
+    if values is None and section is geometry.KeyframeOptions:
+        return None
+    try:
+        return section.of(values)
+    except (ValueError, TypeError):  # ParamsError and pydantic's ValidationError are ValueErrors
+        return section()
 
 
 def _check_sections(**sections: dict[str, Any]) -> tuple[list[dict[str, str]], dict[str, Any]]:
-    """Every offending option of the given sections, by their models; the valid sections' values with
-    their models' defaults filled in."""
+    """Every offending option of the given sections; the valid sections, typed (their defaults filled
+    in)."""
     errors: list[dict[str, str]] = []
     valid: dict[str, Any] = {}
     for section, values in sections.items():
         try:
-            valid[section] = presets.check_section(_SECTIONS[section], section, values).model_dump()
+            valid[section] = _SECTIONS[section].of(values)
         except presets.ParamsError as e:
             errors.extend(_section_errors(e))
     return errors, valid
@@ -172,12 +198,19 @@ class MapConfig(BaseModel):
                     "§12.1); null: none kept")
     verify_revisit: bool = Field(default=False, description="a revisit needs a verified keyframe "
                                  "(docs/design/science.md §12.2); changeable with PATCH")
+    _sections: Sections = PrivateAttr()
+
+    @property
+    def sections(self) -> Sections:
+        """The option sections, typed (set by the checks; a `salvage`d configuration's: what was valid of
+        each section, else its defaults)."""
+        return self._sections
 
     def streams_bytes(self, max_streams: int) -> int:
         """What `max_streams` streams hold in this map: each one's localiser state and condition
         (`SequenceLocaliser.stream_bytes` over the TM's columns, the code's width)."""
-        width = int({**presets.TM_DEFAULTS, **self.tm}["columnDimensions"])
-        return int(max_streams) * SequenceLocaliser(self.localiser).stream_bytes(width)
+        width = int(self.sections.tm.columnDimensions)
+        return int(max_streams) * SequenceLocaliser(self.sections.localiser).stream_bytes(width)
 
     @field_validator("keyframes")
     @classmethod
@@ -211,14 +244,14 @@ class MapConfig(BaseModel):
         errors, valid = _check_sections(tm=self.tm, slsbh=self.slsbh, localiser=self.localiser)
         if not errors:
             try:
-                validate(self.tm)  # NuPIC's rules between TM parameters (its warnings are `resolve`'s)
+                validate(valid["tm"])  # NuPIC's rules between TM parameters (its warnings are `resolve`'s)
             except presets.ParamsError as e:
                 errors.extend(_section_errors(e))
         if errors:
             raise _OptionsError(errors)
-        k, columns = valid["slsbh"]["k"], valid["tm"]["columnDimensions"]
+        k, columns = valid["slsbh"].k, valid["tm"].columnDimensions
         try:
-            slsbh.n_ones(k, valid["slsbh"]["s"])
+            slsbh.n_ones(k, valid["slsbh"].s)
         except ValueError as e:
             errors.append(_body("slsbh.s", str(e)))
         if k * 2 != columns:
@@ -235,6 +268,8 @@ class MapConfig(BaseModel):
                                 "the keyframes option"))
         if errors:
             raise _OptionsError(errors)
+        kf = None if self.keyframes is None else geometry.KeyframeOptions.of(self.keyframes)
+        self._sections = Sections(valid["tm"], valid["slsbh"], valid["localiser"], kf)
         return self
 
     @classmethod
@@ -261,7 +296,11 @@ class MapConfig(BaseModel):
                     pass
             kept[name] = ({"tm": {}, "slsbh": {}, "seed": 0}[name] if field.is_required()
                           else field.get_default(call_default_factory=True))
-        return cls.model_construct(**kept)
+        config = cls.model_construct(**kept)
+        config._sections = Sections(*(_salvaged(_SECTIONS[name], kept[name]) for name in ("tm", "slsbh",
+                                                                                         "localiser")),
+                                    _salvaged(geometry.KeyframeOptions, kept["keyframes"]))
+        return config
 
     def with_revisit_threshold(self, value: float) -> MapConfig:
         """A copy with another `revisit_threshold`. Raises InvalidConfiguration outside [0, 1]."""
@@ -286,10 +325,6 @@ class MapConfig(BaseModel):
         out["localiser"] = {**default_conf, **self.localiser}
         return out
 
-    @property
-    def adapt_tau(self) -> int:
-        return int(self.slsbh.get("adapt_tau", 0))  # maps made before it: none
-
 
 def resolve(options: MapOptions, *, default_preset: str, default_backbone: str) -> MapConfig:
     """A new map's configuration: the preset (the request's, else `default_preset`) <- the request's
@@ -306,17 +341,20 @@ def resolve(options: MapOptions, *, default_preset: str, default_backbone: str) 
     try:
         s_conf = {**presets.slsbh_params(preset), **(options.slsbh or {})}
         tm = presets.tm_params(preset, {**(options.tm or {}), **seed})
-        warnings = validate(tm)
+        tm_options = presets.TmOptions.of(tm)
+        warnings = validate(tm_options)
     except presets.ParamsError as e:  # reported with the other sections' errors, all at once
         others, _ = _check_sections(slsbh=s_conf, localiser=dict(options.localiser or {}))
         raise _problem(_section_errors(e) + others) from None
     except (KeyError, ValueError) as e:  # no such preset, or one without a TM
         msg = str(e).strip("'\"")
         raise InvalidConfiguration(msg, [_body("preset", msg)]) from e
-    if s_conf.get("seed") is None:
-        s_conf["seed"] = tm["seed"]
+    # the projection's seed: the TM's where neither the request nor the preset gives one (the preset's
+    # section always names it, `presets.slsbh_params`)
+    s_conf = {name: tm_options.seed if name == "seed" and value is None else value
+              for name, value in s_conf.items()}
     values: dict[str, Any] = {
-        "preset": preset, "tm": tm, "slsbh": s_conf, "seed": tm["seed"],
+        "preset": preset, "tm": tm, "slsbh": s_conf, "seed": tm_options.seed,
         "backbone": options.backbone or default_backbone, "memory": options.memory,
         "localiser": dict(options.localiser or {}), "thumbnails": options.thumbnails, "warnings": warnings,
         "resize": DEFAULT_RESIZE if options.resize is None else options.resize,
@@ -328,5 +366,6 @@ def resolve(options: MapOptions, *, default_preset: str, default_backbone: str) 
 
 def map_model(config: MapConfig, *, max_observations: int) -> MapModel:
     """A fresh pipeline model (models.pipeline) of a map with this configuration."""
-    return MapModel.new(config.tm, config.localiser, max_observations=max_observations, memory=config.memory,
-                        s=float(config.slsbh["s"]), adapt_tau=config.adapt_tau)
+    sections = config.sections
+    return MapModel.new(sections.tm, sections.localiser, max_observations=max_observations,
+                        memory=config.memory, s=float(sections.slsbh.s), adapt_tau=sections.slsbh.adapt_tau)

@@ -50,7 +50,7 @@ class QueryFrame:
 
 
 def extract_frame(decode: Callable[..., np.ndarray], body: bytes | RawFrame,
-                  keyframes: dict[str, Any], camera: dict[str, Any] | None,
+                  keyframes: geometry.KeyframeOptions, camera: dict[str, Any] | None,
                   given: bool = False) -> QueryFrame | None:
     """Worker thread: decode the frame in grey at its native resolution with the map's encoder
     (`decode(body, grey=True)`: its byte and pixel limits, the service's settings) and take its features
@@ -71,7 +71,7 @@ def extract_frame(decode: Callable[..., np.ndarray], body: bytes | RawFrame,
         return None
     if given and (problems := geometry.camera_problems(camera_of(camera), (grey.shape[1], grey.shape[0]))):
         raise InvalidCamera(problems)
-    f = geometry.extract(grey, keyframes["features"], int(keyframes["max"]))
+    f = geometry.extract(grey, keyframes.features, int(keyframes.max))
     return QueryFrame(f, camera, (time.perf_counter() - t0) * 1e3)
 
 
@@ -86,8 +86,8 @@ class Extractions:
         self._lock = threading.Lock()
         self._threads = ThreadPoolExecutor(limit, thread_name_prefix="keyframes")
 
-    def submit(self, decode: Callable[..., np.ndarray], body: bytes | RawFrame, keyframes: dict[str, Any],
-               camera: dict[str, Any] | None, given: bool,
+    def submit(self, decode: Callable[..., np.ndarray], body: bytes | RawFrame,
+               keyframes: geometry.KeyframeOptions, camera: dict[str, Any] | None, given: bool,
                gone: threading.Event) -> Future[QueryFrame | None]:
         """`extract_frame` in a worker; its future raises ClientGone where `gone` was set before it
         started (the work is skipped).

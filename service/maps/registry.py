@@ -16,6 +16,7 @@ import numpy as np
 from models.frontend import slsbh
 from models.localisation.index import warm_up as index_warm_up
 from models.memory.temporal_memory import TemporalMemory
+from models.presets import TmOptions
 from service.maps.config import MapConfig, MapOptions, resolve
 from service.maps.encoding import projection as map_projection
 from service.maps.encoding.encoders import Encoders
@@ -49,8 +50,8 @@ log = logging.getLogger("cortexloc.runtime")
 
 def warm_up() -> None:
     """Compile the TM and index kernels now (numba, cached on disk), not during the first client's request."""
-    tm = TemporalMemory({"columnDimensions": 64, "cellsPerColumn": 4, "maxSegmentsPerCell": 2,
-                         "maxSynapsesPerSegment": 4, "activationThreshold": 2, "minThreshold": 1})
+    tm = TemporalMemory(TmOptions(columnDimensions=64, cellsPerColumn=4, maxSegmentsPerCell=2,
+                                  maxSynapsesPerSegment=4, activationThreshold=2, minThreshold=1))
     for x in ([1, 2, 3], [4, 5, 6], [1, 2, 3], [4, 5, 6]):
         tm.compute(np.array(x), learn=True)
     tm.compute(np.array([1, 2, 3]), learn=False)
@@ -90,7 +91,7 @@ class MapRegistry:
         """The map's share of the budget; the encoders built by now are told to the budget first."""
         self.budget.set_encoders(sum(map_budget.encoder_bytes(e) for e in self.encoders.built().values()))
         return self._need_of(config, rows, map_budget.projection_bytes(
-            config.projection, feature_dim, int(config.slsbh["k"])))
+            config.projection, feature_dim, int(config.sections.slsbh.k)))
 
     def _need_of(self, config: MapConfig, rows: int, projection: int) -> map_budget.MapNeed:
         return map_budget.map_need(config, projection, rows, max_streams=self.settings.max_streams,
@@ -249,7 +250,7 @@ class MapRegistry:
                                                  "message": str(e)}]) from e
         # Projection plus memory within the map budget: the very sparse projection where dense breaks it.
         return config.model_copy(update={"projection": map_projection.projection_kind(
-            encoder.feature_dim, int(config.slsbh["k"]), need, self.settings.max_map_bytes)}), encoder
+            encoder.feature_dim, int(config.sections.slsbh.k), need, self.settings.max_map_bytes)}), encoder
 
     def _create_reserved(self, map_id: str, config: MapConfig, encoder: Any) -> MapRuntime:
         """`create` after its checks and its reservation (under the creation lock)."""
@@ -267,8 +268,8 @@ class MapRegistry:
         Raises:
             MapAlreadyExists.
         """
-        P = map_projection.make(config.projection, encoder.feature_dim, int(config.slsbh["k"]),
-                                int(config.slsbh["seed"]))
+        P = map_projection.make(config.projection, encoder.feature_dim, int(config.sections.slsbh.k),
+                                int(config.sections.slsbh.seed))
         _, sha = slsbh.save_projection(P, self.projections)
         del P
         # the encoder identity names the backbone, its weights and the map's resize mode
@@ -283,7 +284,8 @@ class MapRegistry:
         params = config.stored()
         store = MapStore.create(self.layout.map_db(map_id), MapMeta(
             map_id=map_id, params=params, projection_sha256=sha, encoder_id=config.encoder_id,
-            cell_dtype=cell_dtype_for(int(config.tm["columnDimensions"]) * int(config.tm["cellsPerColumn"]))))
+            cell_dtype=cell_dtype_for(int(config.sections.tm.columnDimensions)
+                                      * int(config.sections.tm.cellsPerColumn))))
         store.close()
         try:
             return self.catalog.create_map(map_id, params, preset=config.preset, state="ready"), config

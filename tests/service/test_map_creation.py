@@ -123,10 +123,11 @@ def test_every_streams_localiser_state_counts_in_the_map_size(tmp_path):
     condition += 2 * ShortTerm.nbytes(int(default_conf["short_term"]), tm["columnDimensions"])
     default_streams = 64 * (SequenceLocaliser().state_bytes() + condition)
     with TestClient(make_app(tmp_path / "data", max_streams=64,
-                             max_map_bytes=planned_bytes(tm) + default_streams)) as c:
+                             max_map_bytes=planned_bytes(presets.TmOptions.of(tm)) + default_streams)) as c:
         r = c.post("/v1/maps", json={"map_id": "lab", "localiser": {"beam": 4096}})
         assert r.status_code == 422 and r.json()["type"] == "urn:cortexloc:problem:map-too-large", r.text
-        assert str(planned_bytes(tm) + 64 * (4096 * HYPOTHESIS_BYTES + condition)) in r.json()["detail"]
+        tm_bytes = planned_bytes(presets.TmOptions.of(tm))
+        assert str(tm_bytes + 64 * (4096 * HYPOTHESIS_BYTES + condition)) in r.json()["detail"]
         assert c.get("/v1/maps/lab").status_code == 404
         assert c.post("/v1/maps", json={"map_id": "lab", "localiser": {"beam": 256}}).status_code == 201
 

@@ -291,3 +291,22 @@ def test_a_learning_stream_resumes_its_place_after_a_crash_mid_pass(tmp_path):
     made = sum(b["seq"] is not None for b in got) - sum(b["seq"] is not None for b in expected)
     assert made == 0  # no duplicate rows against the twin (5 before issue 34)
     assert same and answers(got) == answers(expected)
+
+
+def test_the_consolidation_gate_and_the_forgetting_batch_are_options_of_the_map(tmp_path):
+    """`localiser.unsure_fraction` and `localiser.forget_percent` (issue 38 item 3) are map options:
+    checked like the others, shown in the map's `params`, the forgetting rule stated with the map's
+    batch; a map that does not set them shows their defaults (0.5, the threshold's half; 1 %)."""
+    with make_client(tmp_path / "data") as c:
+        make(c, "m", unsure_fraction=0.75, forget_percent=5)
+        shown = c.get("/v1/maps/m").json()
+        make(c, "plain")
+        plain = c.get("/v1/maps/plain").json()
+        bad = c.post("/v1/maps", json={"map_id": "bad", "localiser": {"forget_percent": 101}})
+    assert (shown["params"]["localiser"]["unsure_fraction"], shown["params"]["localiser"]["forget_percent"]) \
+        == (0.75, 5)
+    assert "at least 5% of max_rows" in shown["places"]["forgetting"]
+    assert (plain["params"]["localiser"]["unsure_fraction"], plain["params"]["localiser"]["forget_percent"]) \
+        == (0.5, 1)
+    assert "at least 1% of max_rows" in plain["places"]["forgetting"]
+    assert bad.status_code == 422 and bad.json()["errors"][0]["name"] == "localiser.forget_percent"

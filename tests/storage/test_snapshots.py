@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from models import presets
 from storage import snapshots
 from storage.mapstore import MapStore, NewObservation
 from storage.snapshots import SnapshotInvalid, create_snapshot, import_tar, load_memory, verify
@@ -98,9 +99,9 @@ def test_empty_map_snapshot(tmp_path: Path, store: MapStore) -> None:
 def test_real_temporal_memory_state_round_trips(tmp_path: Path, store: MapStore) -> None:
     from models.memory.temporal_memory import TemporalMemory
 
-    tm = TemporalMemory({"columnDimensions": 32, "cellsPerColumn": 4, "activationThreshold": 3,
-                         "minThreshold": 2, "maxNewSynapseCount": 4, "maxSegmentsPerCell": 4,
-                         "maxSynapsesPerSegment": 8, "seed": 7})
+    tm = TemporalMemory(presets.TmOptions(columnDimensions=32, cellsPerColumn=4, activationThreshold=3,
+                                          minThreshold=2, maxNewSynapseCount=4, maxSegmentsPerCell=4,
+                                          maxSynapsesPerSegment=8, seed=7))
     cam = tm.new_context()
     for cols in ([0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]):
         tm.compute(np.array(cols), learn=True, context=cam)

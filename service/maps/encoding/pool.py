@@ -41,8 +41,12 @@ from models.frontend.images import ImageError, RawFrame
 from models.frontend.slsbh import Hasher
 from service.maps.encoding.encoders import Encoders
 from service.maps.errors import Overloaded
+from service.settings import Settings
 
 _STOP = object()
+# The defaults have one home, `Settings` (with why): a pool built in code batches as the service does.
+_BATCH: int = Settings.model_fields["encode_batch"].default
+_WAIT_MS: float = Settings.model_fields["encode_wait_ms"].default
 
 
 class EncoderPool:
@@ -52,12 +56,12 @@ class EncoderPool:
         encoders: the service's encoders by backbone (`embed` is called with a list of image bytes).
         workers: threads running backbone calls.
         queue: requests that may wait beyond those being encoded.
-        max_batch: images per backbone call at most.
-        wait_ms: how long a worker waits for more images once it has one.
+        max_batch: images per backbone call at most (CORTEXLOC_ENCODE_BATCH; default: its default).
+        wait_ms: how long a worker waits for more images once it has one (CORTEXLOC_ENCODE_WAIT_MS).
     """
 
-    def __init__(self, encoders: Encoders, workers: int, queue: int, max_batch: int = 16,
-                 wait_ms: float = 2.0) -> None:
+    def __init__(self, encoders: Encoders, workers: int, queue: int, max_batch: int = _BATCH,
+                 wait_ms: float = _WAIT_MS) -> None:
         self.encoders = encoders
         self.limit = workers + queue
         self.max_batch = max_batch

@@ -37,15 +37,15 @@ def model_bytes(config: MapConfig, max_streams: int) -> int:
     """What a map of this configuration may hold besides its projection: the memory and every stream's
     localiser state and condition (`MapConfig.streams_bytes`, docs/design/science.md §11.3, §11.10) at
     the stream cap."""
-    return planned_bytes(config.tm) + config.streams_bytes(max_streams)
+    return planned_bytes(config.sections.tm) + config.streams_bytes(max_streams)
 
 
 def for_map(config: MapConfig, feature_dim: int, max_streams: int, budget: int) -> tuple[Kind, Projection]:
     """A new map's projection kind and matrix (the kind by `projection_kind` within `budget`,
     CORTEXLOC_MAX_MAP_BYTES; the seed `slsbh.seed`)."""
-    k = int(config.slsbh["k"])
+    k = int(config.sections.slsbh.k)
     kind = projection_kind(feature_dim, k, model_bytes(config, max_streams), budget)
-    return kind, make(kind, feature_dim, k, int(config.slsbh["seed"]))
+    return kind, make(kind, feature_dim, k, int(config.sections.slsbh.seed))
 
 
 def make(kind: Kind, feature_dim: int, k: int, seed: int) -> Projection:

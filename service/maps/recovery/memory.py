@@ -308,7 +308,7 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel, *,
             done = None  # its memory is as large as the map's: free it before the next attempt
         _pass_over(map_id, rec.snapshot_id, reason, skipped)
     if done is None:
-        done = rebuild(TemporalMemory(like.tm.params), learned_rows(store), like, stop_at_mismatch=False,
+        done = rebuild(TemporalMemory(like.tm.options), learned_rows(store), like, stop_at_mismatch=False,
                        visits=store.visits())
         note = {"source": "replay", "mismatches": len(done.mismatches),
                 "mismatched_seqs": done.mismatches[:_LISTED]}

@@ -83,8 +83,8 @@ def encoder_bytes(encoder: Any) -> int:
 def index_row_bytes(config: MapConfig) -> int:
     """Estimated index bytes of one stored row of a map with `config`: its 2n winner cells (one per
     active column of the sLSBH code, docs/design/science.md §7.3) as postings, plus the row's overhead."""
-    s_conf = config.slsbh
-    return 2 * slsbh.n_ones(int(s_conf["k"]), float(s_conf["s"])) * POSTING_BYTES + INDEX_ROW_OVERHEAD_BYTES
+    s_conf = config.sections.slsbh
+    return 2 * slsbh.n_ones(int(s_conf.k), float(s_conf.s)) * POSTING_BYTES + INDEX_ROW_OVERHEAD_BYTES
 
 
 @dataclass(frozen=True)
@@ -118,7 +118,7 @@ def map_need(config: MapConfig, projection: int, rows: int, *, max_streams: int,
     and a projection of `projection` bytes (`projection_bytes`, or its file's size where no encoder
     says the feature dimension)."""
     return MapNeed(
-        tm=planned_bytes(config.tm), projection=int(projection),
+        tm=planned_bytes(config.sections.tm), projection=int(projection),
         localiser=config.streams_bytes(max_streams),
         caches=CACHE_MAX_CHARS if key_cache else 0, index=rows * index_row_bytes(config),
         projection_key=(config.projection_sha256 or None) if config.projection == "dense" else None)

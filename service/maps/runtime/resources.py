@@ -10,10 +10,7 @@ from models.localisation import forgetting
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import MapInfo, MemoryInfo, PlacesInfo
 
-__all__ = ["FORGETTING", "Resources"]
-
-#: The forgetting rule as the map resource states it (docs/design/science.md §11.9).
-FORGETTING = forgetting.RULE
+__all__ = ["Resources"]
 
 
 class Resources:
@@ -32,13 +29,13 @@ class Resources:
         """Writer: the map's places, appearances and visits (docs/design/science.md §11.8, §11.9)."""
         assert self.store is not None
         dropped = self.store.dropped()
-        conf = self.localisation.localiser.conf
+        conf = self.localisation.options
         return PlacesInfo(
             places=self.localisation.places(), appearances=len(self.index), rows_stored=self.store.count(),
             dropped=len(dropped), forgotten=sum(1 for r in dropped.values() if r == "forgotten"),
-            visits_logged=self.store.visit_stats()[0], max_appearances=int(conf["appearances"]),
-            max_rows=self.index.max_observations, consolidate=float(conf["consolidate"]),
-            forgetting=FORGETTING)
+            visits_logged=self.store.visit_stats()[0], max_appearances=conf.appearances,
+            max_rows=self.index.max_observations, consolidate=float(conf.consolidate),
+            forgetting=forgetting.rule(conf.forget_percent))
 
     def set_revisit_threshold(self, value: float) -> MapInfo:
         """Writer: the map's revisit threshold (`patch`)."""
@@ -59,6 +56,6 @@ class Resources:
         return self.info()
 
     def memory(self) -> MemoryInfo:
-        return sizes.memory_info(self.model, self.streams, tm_params=self.config.tm,
+        return sizes.memory_info(self.model, self.streams, tm_params=self.config.sections.tm,
                                  max_streams=self.settings.max_streams, projection=self.projection_path,
                                  store=self.store, snapshots_bytes=self.catalog.snapshots_bytes(self.map_id))

@@ -114,8 +114,8 @@ class MapRuntime(Writer, Snapshots, Recovering, Admission, Repairing, Resources)
         # the checksum is verified on load: a map never runs on another matrix (docs/design/science.md §7)
         try:
             projection = slsbh.load_projection(self.projection_path, sha,
-                                               shape=(feature_dim, int(self.config.slsbh["k"])))
-            self.hasher = slsbh.Hasher(projection, float(self.config.slsbh["s"]))
+                                               shape=(feature_dim, int(self.config.sections.slsbh.k)))
+            self.hasher = slsbh.Hasher(projection, float(self.config.sections.slsbh.s))
         except (slsbh.ProjectionError, OSError) as e:
             self._projection_error = str(e)
         self.cameras = {}

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 from models.pipeline import MapModel, Stream
+from models.presets import TmOptions
 from service.maps.results import IndexMemory, MemoryInfo, StorageMemory, StreamsMemory, TmMemory
 from storage.base.process import rss_bytes
 from storage.mapstore import MapStore
@@ -14,7 +14,7 @@ from storage.mapstore import MapStore
 __all__ = ["memory_info"]
 
 
-def memory_info(model: MapModel, streams: Mapping[str, Stream], *, tm_params: Mapping[str, Any],
+def memory_info(model: MapModel, streams: Mapping[str, Stream], *, tm_params: TmOptions,
                 max_streams: int, projection: Path, store: MapStore | None,
                 snapshots_bytes: int) -> MemoryInfo:
     """Writer: exact sizes, counts and caps of a map's memory, index, streams and files."""
@@ -24,8 +24,8 @@ def memory_info(model: MapModel, streams: Mapping[str, Stream], *, tm_params: Ma
     return MemoryInfo(
         tm=TmMemory(columns=size["columns"], cells_per_column=tm.cells_per_column,
                     cells=size["cells"],
-                    max_segments_per_cell=int(tm_params["maxSegmentsPerCell"]),
-                    max_synapses_per_segment=int(tm_params["maxSynapsesPerSegment"]),
+                    max_segments_per_cell=int(tm_params.maxSegmentsPerCell),
+                    max_synapses_per_segment=int(tm_params.maxSynapsesPerSegment),
                     segments=size["segments"], segment_capacity=size["segment_capacity"],
                     synapses=size["synapses"], synapse_capacity=size["synapse_capacity"],
                     allocated_bytes=size["bytes"], evicted_segments_total=size["evictions"],

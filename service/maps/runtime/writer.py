@@ -155,7 +155,7 @@ class Writer:
         camera = given or self.cameras.get(stream)
         try:
             frame = None if self.config.keyframes is None else asyncio.wrap_future(extractions.submit(
-                pool.encoders.get(self.config.backbone).decode, body, self.config.keyframes, camera,
+                pool.encoders.get(self.config.backbone).decode, body, self.config.sections.keyframes, camera,
                 given is not None, gone))
         except BaseException:
             encoding.cancel()  # refused (Overloaded): the pool skips the encoding where it has not started
@@ -344,7 +344,7 @@ class Writer:
 
     def _forget(self, gone: list[int]) -> None:
         """Writer: the hard cap binds (`max_observations` rows held): forget `gone`, the rows the rule
-        chose (`forgetting.to_forget`: the least recently used places, whole, at least 1 % of the cap),
+        chose (`forgetting.to_forget`: the least recently used places, whole, at least `forget_percent` %),
         durably before the row that needed the room (docs/design/science.md §11.9). Their rows stay in
         map.sqlite (the replay and snapshots read them) but leave the index, the places and every answer."""
         assert self.store is not None

@@ -14,8 +14,8 @@ Learned = tuple[TemporalMemory, list[np.ndarray], list[np.ndarray], dict[int, np
 
 
 def _learned(S: int, K: int) -> Learned:
-    tm = TemporalMemory(presets.tm_params("cortexloc-grid", {"columnDimensions": 512, "maxSegmentsPerCell": S,
-                                                             "maxSynapsesPerSegment": K}))
+    overrides = {"columnDimensions": 512, "maxSegmentsPerCell": S, "maxSynapsesPerSegment": K}
+    tm = TemporalMemory(presets.tm_options("cortexloc-grid", overrides))
     route = random_sequence(30, 512, 20, 1)
     stored = forgetting.learn(tm, route, laps=2)
     return tm, route, stored, forgetting.route_segments(tm, route)

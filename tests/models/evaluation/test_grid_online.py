@@ -20,7 +20,7 @@ def test_loop_closure_is_causal_and_never_answers_the_streams_own_recent_rows() 
     codes = [np.sort(rng.choice(2048, 300, replace=False)) for _ in range(60)]  # every step unlike the others
     found = online.loop_closure(S, codes)
     # Each step leaves the row before it at once; the `exclusion` rows behind that are still its own.
-    own = int(online.SequenceLocaliser().conf["exclusion"]) + 1
+    own = online.SequenceLocaliser().options.exclusion + 1
     answered = np.flatnonzero(found.best >= 0)
     assert answered.size and np.all(found.best[answered] < answered - own)
     assert np.all(np.isneginf(found.S[np.tril_indices(60)]))  # only older steps are ever scored

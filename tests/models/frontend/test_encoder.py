@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from models import sdr
 from models.evaluation.bench import synthetic_jpegs
-from models.frontend import images, slsbh
+from models.frontend import images, limits, slsbh
 from models.frontend.backbones import alexnet as backbones
 from models.frontend.encoder import STAGES, Encoder, merge_conf
 from service.cli import app
@@ -70,7 +70,7 @@ def test_batched_and_single_encoding_agree(encoder):
 def test_frames_decoded_beside_the_backbone_encode_as_one_at_a_time(encoder):
     """The decode threads (frames prepared into their rows of the batch, chunks forwarded as they are
     ready) give the codes and features of the plain sequential path."""
-    data = [png(scene(s)) for s in range(2 * Encoder.CHUNK + 1)]  # three chunks, the last short
+    data = [png(scene(s)) for s in range(2 * limits.DEFAULT_CHUNK + 1)]  # three chunks, the last short
     rgbs = [images.decode(d) for d in data]
     ref_feats = np.concatenate([encoder.features(images.preprocess_batch([r])) for r in rgbs])
     ref_codes = encoder.hasher(ref_feats)

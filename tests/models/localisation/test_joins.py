@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.localisation import Localisation, Place
+from models.localisation import Localisation, LocaliserOptions, Place
 from models.localisation.graph import SequenceGraph
 
 WIDTH = 256
@@ -25,7 +25,7 @@ WARM = 44  # "a"'s warm-up row after a restart
 def build(warm: int = 39, stm_place: int | None = None) -> tuple[Localisation, dict[int, np.ndarray]]:
     """The rows above; the warm-up row is the frame of row `warm`. `stm_place`: row 43 joined that row's
     place."""
-    links = Localisation({"short_term": 20}, WIDTH)
+    links = Localisation(LocaliserOptions.of({"short_term": 20}), WIDTH)
     codes = {r: code(r) for r in range(0, WARM)}
     links.add(0, None, codes[0], stream="z")  # seq 0 unused by a store; keeps row ids = seqs
     for r in range(1, OLD + 1):
@@ -74,7 +74,7 @@ def test_a_join_never_targets_the_short_term_memory() -> None:
 @pytest.mark.parametrize("more", [14, 15])
 def test_a_join_reaches_back_over_warmup_plus_exclusion_rows_only(more: int) -> None:
     """The warm-up row, then `more` rows of the stream: with 15 it is the 16th newest (reach: 15)."""
-    assert Localisation({}, WIDTH).reach() == 15
+    assert Localisation(LocaliserOptions(), WIDTH).reach() == 15
     links, codes = build(warm=20)
     for r in range(WARM + 1, WARM + 1 + more):  # the stream goes on making rows, joined to old places
         codes[r] = code(r)

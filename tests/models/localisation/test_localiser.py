@@ -9,6 +9,7 @@ from models import presets
 from models.localisation import (
     HYPOTHESIS_BYTES,
     NULL_PRIOR,
+    LocaliserOptions,
     LocaliserParams,
     LocaliserState,
     SequenceGraph,
@@ -34,7 +35,7 @@ def place_similarity(db_places: np.ndarray, q_places: np.ndarray, seed: int = 0,
 
 def run(S: np.ndarray, graph: SequenceGraph, conf: dict | None = None,
         loc: SequenceLocaliser | None = None, state: LocaliserState | None = None) -> list:
-    loc = loc or SequenceLocaliser(conf)
+    loc = loc or SequenceLocaliser(LocaliserOptions.of(conf))
     state = state or loc.new_state()
     return [loc.step_dense(state, graph, S[:, j]) for j in range(S.shape[1])]
 
@@ -174,7 +175,7 @@ def test_a_full_beam_stays_best_first_and_keeps_its_best_path_through_an_outlier
     S = place_similarity(np.arange(60), np.arange(30), noise=0.2, seed=3)
     S[:, 12] = 0.0
     S[40, 12] = 5.0
-    loc, graph = SequenceLocaliser({"beam": beam}), SequenceGraph.chain(60)
+    loc, graph = SequenceLocaliser(LocaliserOptions.of({"beam": beam})), SequenceGraph.chain(60)
     state = loc.new_state()
     for j in range(30):
         place = loc.step_dense(state, graph, S[:, j])
@@ -296,7 +297,7 @@ def test_the_span_counts_places_not_rows() -> None:
 def test_the_span_lists_at_most_a_bounded_number_of_rows_and_counts_them_all() -> None:
     # A margin wider than every score gap: every place with a path in the beam is in the span.
     S, _ = featureless()
-    loc = SequenceLocaliser({"span_margin": 100.0})
+    loc = SequenceLocaliser(LocaliserOptions.of({"span_margin": 100.0}))
     state = loc.new_state()
     graph = SequenceGraph.chain(S.shape[0])
     place = None
@@ -345,7 +346,7 @@ def test_no_answer_during_warm_up_then_support_counts_frames() -> None:
 def test_state_size_does_not_depend_on_the_map() -> None:
     sizes = []
     for n in (100, 5000):
-        loc = SequenceLocaliser({"beam": 64})
+        loc = SequenceLocaliser(LocaliserOptions.of({"beam": 64}))
         state = loc.new_state()
         run(place_similarity(np.arange(n), np.arange(40), noise=0.3), SequenceGraph.chain(n), loc=loc,
             state=state)
@@ -428,7 +429,7 @@ def test_sparse_candidates_give_the_dense_answers() -> None:
     n = 60
     S = place_similarity(np.arange(n), np.arange(n), noise=0.3)
     graph = SequenceGraph.chain(n)
-    loc = SequenceLocaliser({"top_k": 20})
+    loc = SequenceLocaliser(LocaliserOptions.of({"top_k": 20}))
     dense, sparse = loc.new_state(), loc.new_state()
     rng = np.random.default_rng(0)
     for j in range(n):
@@ -445,7 +446,7 @@ def test_evidence_and_bad_input() -> None:
     with pytest.raises(ValueError, match="not in the graph"):
         loc.step(loc.new_state(), SequenceGraph.chain(5), np.array([9]), np.array([1.0]))
     with pytest.raises(ValueError, match=r"localiser\.beams: unknown parameter"):
-        SequenceLocaliser({"beams": 3})
+        SequenceLocaliser(LocaliserOptions.of({"beams": 3}))
 
 
 BAD_OPTIONS = [("exclusion", "x"), ("exclusion", -5), ("exclusion", 10.0), ("beam", 10**9), ("beam", 0),
@@ -462,18 +463,18 @@ def test_every_bad_option_is_refused_naming_it(name, value) -> None:
     # A wrong type, a non-finite float or a value out of range never reaches the arrays (np.full(-4), a
     # 25 GB beam, NaN confidences): LocaliserParams (docs/design/science.md §11.3) refuses it by name.
     with pytest.raises(ValueError, match=rf"localiser\.{name}\b") as info:
-        SequenceLocaliser({name: value})
+        SequenceLocaliser(LocaliserOptions.of({name: value}))
     assert isinstance(info.value, presets.ParamsError) and info.value.errors[0][0].startswith(name)
 
 
 def test_options_are_normalised_and_the_state_size_is_bounded() -> None:
     # JSON gives lists and ints where the defaults are tuples and floats; both mean the same map.
-    loc = SequenceLocaliser({"move_costs": [1, 0, 1], "jump_cost": 20, "beam": 4096})
-    assert loc.conf["move_costs"] == (1.0, 0.0, 1.0) and loc.conf["jump_cost"] == 20.0
-    assert loc.conf == {**default_conf, "move_costs": (1.0, 0.0, 1.0), "beam": 4096}
+    loc = SequenceLocaliser(LocaliserOptions.of({"move_costs": [1, 0, 1], "jump_cost": 20, "beam": 4096}))
+    assert loc.options.move_costs == (1.0, 0.0, 1.0) and loc.options.jump_cost == 20.0
+    assert loc.options.values() == {**default_conf, "move_costs": (1.0, 0.0, 1.0), "beam": 4096}
     assert loc.state_bytes() == 4096 * HYPOTHESIS_BYTES == sum(
         v.nbytes for k, v in loc.new_state().to_arrays().items() if k not in ("frames", "null", "here"))
-    assert SequenceLocaliser().conf == LocaliserParams().model_dump() == default_conf
+    assert SequenceLocaliser().options.values() == LocaliserParams().model_dump() == default_conf
     # a stream's condition (§11.10) is at most 2 + 2 width 8-byte values on top, nothing when it is off
     # and its short-term memory (§11.6), two per stream slot (tests/models/localisation/test_short_term.py)
     short = 2 * ShortTerm.nbytes(int(default_conf["short_term"]), 2048)
@@ -481,7 +482,7 @@ def test_options_are_normalised_and_the_state_size_is_bounded() -> None:
     held = Condition(2048, 10)
     held.add(np.arange(0, 2048, 3), 2.0)
     assert held.state().nbytes <= 8 * (2 * 2048 + 2)
-    assert SequenceLocaliser({"condition_frames": 0, "short_term": 0}).stream_bytes(2048) == \
+    assert SequenceLocaliser(LocaliserOptions(condition_frames=0, short_term=0)).stream_bytes(2048) == \
         SequenceLocaliser().state_bytes()
 
 

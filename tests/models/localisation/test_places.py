@@ -4,9 +4,17 @@ recently used first, and the index drops rows it no longer holds."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
-from models.localisation import InvertedIndex, Localisation, SequenceGraph, SequenceLocaliser
+from models.localisation import (
+    InvertedIndex,
+    Localisation,
+    LocaliserOptions,
+    SequenceGraph,
+    SequenceLocaliser,
+)
 from tests.models.localisation.test_localiser import place_similarity, run
 
 
@@ -49,8 +57,8 @@ def test_a_place_s_rows_join_drop_and_link_as_told():
     assert g.members(2) == [5] and g.place[2] == 2  # its links stay: paths still walk through it
 
 
-def localisation_with(appearances: int) -> Localisation:
-    loc = Localisation({"appearances": appearances}, 64)
+def localisation_with(appearances: int, **options: Any) -> Localisation:
+    loc = Localisation(LocaliserOptions.of({"appearances": appearances, **options}), 64)
     for seq in range(1, 4):  # places 1, 2, 3
         loc.add(seq, None if seq == 1 else seq - 1, np.array([seq]), stream="a")
     return loc
@@ -111,8 +119,8 @@ def test_a_full_index_compacts_its_removed_rows_before_refusing():
 
 def test_the_localiser_answers_the_place_of_its_best_row():
     g = three_passes(10, joined=True)
-    state = SequenceLocaliser({"warmup": 1}).new_state()
-    loc = SequenceLocaliser({"warmup": 1})
+    state = SequenceLocaliser(LocaliserOptions.of({"warmup": 1})).new_state()
+    loc = SequenceLocaliser(LocaliserOptions.of({"warmup": 1}))
     place = loc.step(state, g, np.array([25]), np.array([1.0]))
     assert place is not None and place.seq == 25 and place.place == 5
 
@@ -136,3 +144,21 @@ def test_the_cap_rule_forgets_nothing_below_it_and_at_least_one_percent_of_it_at
     for seq in range(1, 201):
         big.add(seq, [seq % 64], "a")
     assert forgetting.to_forget(big, loc) == [3, 1, 4]
+
+
+def test_the_maps_forget_percent_is_the_batch_the_cap_rule_forgets_and_states() -> None:
+    """`forget_percent` (LocaliserOptions; 1 by default): at a cap of 200 rows, 1 % forgets places 3 and
+    1 (2 rows at least), 0 % place 3 alone (one row at least), 2 % every place (4 rows); the rule the map
+    resource states names the map's value."""
+    from models.localisation import forgetting
+
+    big = InvertedIndex(64, 200)
+    for seq in range(1, 201):
+        big.add(seq, [seq % 64], "a")
+    for percent, gone in ((1, [3, 1, 4]), (0, [3]), (2, [3, 1, 4, 2])):
+        loc = localisation_with(appearances=8, forget_percent=percent)
+        loc.add(4, None, np.array([1]), stream="b", place=1)
+        loc.touch(2, 9)
+        assert forgetting.to_forget(big, loc) == gone
+    assert forgetting.batch(1000, 5) == 50
+    assert "at least 5% of max_rows" in forgetting.rule(5) and "at least 1% of" in forgetting.rule(1)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from models.localisation.options import LocaliserOptions
 from models.localisation.repair import Learned, Named, own_trail_merges, window
 
 
@@ -21,7 +22,7 @@ def test_a_visit_into_the_streams_own_recent_rows_is_a_merge_one_older_or_anothe
            Learned("a", 8, code(40), made=False, ref=101),  # 3 moves back: within a memory of 4 moves
            Learned("a", 2, code(41), made=False, ref=102),  # far behind
            Learned("b", 10, code(42), made=False, ref=103)]  # another stream's visit into a's row
-    found = own_trail_merges(log, {"short_term": 4}, 512)
+    found = own_trail_merges(log, LocaliserOptions(short_term=4), 512)
     assert found.visits == [101] and found.joins == [] and found.closures == []
 
 
@@ -32,18 +33,19 @@ def test_a_row_that_joined_a_place_through_its_own_recent_row_and_a_closure_nami
            Named(2, "b", 5),  # b names a's row: a loop for b
            Named(3, "a", 1, into=5),  # logged with a visit into a's own row 5
            Learned("a", 7, code(21), made=True, through=(1,), ref=7)]  # joined a place far behind
-    found = own_trail_merges(log, {"short_term": 3}, 512)
+    found = own_trail_merges(log, LocaliserOptions(short_term=3), 512)
     assert found.joins == [6] and found.closures == [1, 3] and found.visits == []
 
 
 def test_frames_alike_are_no_moves_so_a_stop_stays_recent_however_many_frames_it_lasts():
     stop = [Learned("a", s, code(1), made=True, ref=s) for s in range(2, 60)]  # a parked robot: one code
     log = [Learned("a", 1, code(0), made=True, ref=1), *stop, Learned("a", 3, code(1), made=False, ref=9)]
-    assert own_trail_merges(log, {"short_term": 2}, 512).visits == [9]
+    assert own_trail_merges(log, LocaliserOptions(short_term=2), 512).visits == [9]
 
 
 def test_a_map_without_a_memory_is_judged_by_the_default_window():
-    assert window({"short_term": 0}) == window({}) == 20 and window({"short_term": 5}) == 5
+    assert window(LocaliserOptions(short_term=0)) == window(LocaliserOptions()) == 20
+    assert window(LocaliserOptions(short_term=5)) == 5
     log = [*rows("a", range(1, 16)), Learned("a", 3, code(50), made=False, ref=7)]  # 12 moves back
-    assert own_trail_merges(log, {"short_term": 0}, 512).visits == [7]
-    assert own_trail_merges(log, {"short_term": 5}, 512).visits == []
+    assert own_trail_merges(log, LocaliserOptions(short_term=0), 512).visits == [7]
+    assert own_trail_merges(log, LocaliserOptions(short_term=5), 512).visits == []

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from models.evaluation import online
-from models.localisation import CodeStats, SequenceGraph, SequenceLocaliser
+from models.localisation import CodeStats, LocaliserOptions, SequenceGraph, SequenceLocaliser
 from models.localisation.trail import UNKNOWN, code_dice
 from models.sdr import dice_matrix
 
@@ -51,7 +51,7 @@ def test_standing_still_keeps_every_row_of_the_stop_however_long():
 def test_every_frame_unlike_the_last_leaves_it_and_the_margin_is_the_rival_window():
     codes = [place() for _ in range(40)]
     trail = walk(codes)
-    exclusion = int(SequenceLocaliser().conf["exclusion"])
+    exclusion = SequenceLocaliser().options.exclusion
     for i, (here, first, last) in enumerate(trail[1:], start=1):
         assert here == last + 1 == i and first == max(0, last - exclusion)
 
@@ -165,7 +165,7 @@ def test_a_path_ends_on_the_first_row_stored_after_it_began(began: int, ends: bo
     # One path on the stream's own trail at row 19, walking on; the frame looks like where the stream
     # just was. Row 20 was stored when the map held 20 rows: after a path that began then, not after one
     # that began when it held 21 (rows are stored in seq order).
-    loc, graph = SequenceLocaliser({"move_costs": (3.0, 0.0)}), SequenceGraph.chain(40)
+    loc, graph = SequenceLocaliser(LocaliserOptions.of({"move_costs": (3.0, 0.0)})), SequenceGraph.chain(40)
     codes = [place() for _ in range(40)]
     stats = CodeStats(W)
     for c in codes:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models import presets
 from models.memory import registry
 from models.memory.temporal_memory import StreamContext, TemporalMemory
 
@@ -23,7 +24,7 @@ def test_tm_and_none_are_registered():
 
 
 def test_none_is_the_code_itself_and_tm_the_temporal_memorys_cells():
-    tm, ctx = TemporalMemory(TM), StreamContext()
+    tm, ctx = TemporalMemory(presets.TmOptions.of(TM)), StreamContext()
     code = np.array([1, 5, 9])
     assert np.array_equal(registry.get("none").winners(tm, code, True, ctx), code)
     assert ctx.active_cells.size == 0  # the ablation leaves the context alone

@@ -32,7 +32,7 @@ def small(**over) -> TemporalMemory:
         "seed": 7,
     }
     params.update(over)
-    return TemporalMemory(params)
+    return TemporalMemory(presets.TmOptions.of(params))
 
 
 A, B, C, D, E = (np.arange(4) + 4 * i for i in range(5))
@@ -377,20 +377,21 @@ def test_other_stream_learning_refreshes_stale_segment_lists():
 
 def test_validation_and_warnings():
     with pytest.raises(ValueError, match="minThreshold"):
-        TemporalMemory({"minThreshold": 20, "activationThreshold": 13, "maxSegmentsPerCell": 1,
-                        "maxSynapsesPerSegment": 1, "columnDimensions": 8})
+        TemporalMemory(presets.TmOptions.of({"minThreshold": 20, "activationThreshold": 13,
+                                             "maxSegmentsPerCell": 1, "maxSynapsesPerSegment": 1,
+                                             "columnDimensions": 8}))
     with pytest.raises(ValueError, match="initialPermanence"):
         small(initialPermanence=1.5)
     with pytest.raises(ValueError, match="unknown"):
         small(bogus=1)
-    grid = TemporalMemory(presets.tm_params("cba2020-grid"))
+    grid = TemporalMemory(presets.TmOptions.of(presets.tm_params("cba2020-grid")))
     assert any("never predict" in w for w in grid.warnings)
     with pytest.raises(ValueError, match="out of range"):
         small().compute(np.array([40]))
 
 
 def test_reported_bytes_match_reference_layout():
-    grid = TemporalMemory(presets.tm_params("cba2020-grid"))
+    grid = TemporalMemory(presets.TmOptions.of(presets.tm_params("cba2020-grid")))
     size = grid.size()
     assert size["canonical_bytes"] == 688_128  # docs/design/science.md §3.7: C·S·(6K + 10)
     assert size["segment_capacity"] == 8192 * 3 and size["synapse_capacity"] == 8192 * 9
@@ -401,7 +402,7 @@ def test_grid_preset_never_predicts_but_predicting_preset_does():
     seq = random_sequence(30, 2048, 40, seed=2)
     frac = {}
     for name in ("cba2020-grid", "cortexloc-grid"):
-        tm = TemporalMemory(presets.tm_params(name))
+        tm = TemporalMemory(presets.TmOptions.of(presets.tm_params(name)))
         learn_sequence(tm, seq, times=3)
         tm.reset()
         predicted = 0
@@ -426,7 +427,7 @@ def test_default_preset_predicts_repeats_of_its_own_codes_and_rarely_by_chance()
     conf = presets.get("cortexloc-default")
     active = 2 * round(conf["slsbh"]["s"] * conf["slsbh"]["k"])
     seq = random_sequence(30, 2048, active, seed=5)
-    tm = TemporalMemory(presets.tm_params("cortexloc-default"))
+    tm = TemporalMemory(presets.TmOptions.of(presets.tm_params("cortexloc-default")))
     learn_sequence(tm, seq, times=2)
 
     def predicted_fraction(frames) -> float:
@@ -450,16 +451,18 @@ def test_planned_bytes_equal_the_allocated_bytes():
 
     for name in ("cba2020-grid", "cortexloc-grid"):
         params = presets.tm_params(name)
-        assert planned_bytes(params) == TemporalMemory(params).size()["bytes"]
+        options = presets.TmOptions.of(params)
+        assert planned_bytes(options) == TemporalMemory(options).size()["bytes"]
     small_params = {"columnDimensions": 64, "cellsPerColumn": 3, "maxSegmentsPerCell": 5,
                     "maxSynapsesPerSegment": 7, "minThreshold": 2, "activationThreshold": 3}
-    assert planned_bytes(small_params) == TemporalMemory(small_params).size()["bytes"]
+    small = presets.TmOptions.of(small_params)
+    assert planned_bytes(small) == TemporalMemory(small).size()["bytes"]
     # the paper's Nordland preset is sized without being allocated
-    assert planned_bytes(presets.tm_params("cba2020-nordland")) > 3_997_696_000
+    assert planned_bytes(presets.TmOptions.of(presets.tm_params("cba2020-nordland"))) > 3_997_696_000
 
 
 def test_connected_presyn_lists_a_segments_connected_cells() -> None:
-    tm = TemporalMemory(presets.tm_params("cortexloc-grid", {"columnDimensions": 64}))
+    tm = TemporalMemory(presets.TmOptions.of(presets.tm_params("cortexloc-grid", {"columnDimensions": 64})))
     first = tm.compute(np.array([1, 5, 9]))
     tm.compute(np.array([20, 30, 40]))
     segs = np.flatnonzero(tm.nsyn)

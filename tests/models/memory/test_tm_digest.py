@@ -40,7 +40,7 @@ DIGESTS = {
 
 def digest(name: str, steps: int = 400) -> str:
     preset, overrides, active = SCENARIOS[name]
-    tm = TemporalMemory(presets.tm_params(preset, overrides))
+    tm = TemporalMemory(presets.TmOptions.of(presets.tm_params(preset, overrides)))
     cols = tm.n_columns
     rng = np.random.Generator(np.random.PCG64(5))
     loop = random_sequence(30, cols, active, seed=3)

@@ -6,7 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.localisation import LocaliserOptions, Place
 from models.pipeline import MapModel, Stream, load_memory_state, memory_state, observe, replay
+from models.presets import TmOptions
 
 TM = {"columnDimensions": 128, "cellsPerColumn": 4, "maxSegmentsPerCell": 4, "maxSynapsesPerSegment": 16,
       "activationThreshold": 3, "minThreshold": 2, "seed": 3}
@@ -14,7 +16,8 @@ K, S = 64, 0.1  # 2k = columnDimensions; n = 6 ones per half
 
 
 def model(memory: str = "tm", adapt_tau: int = 0, localiser: dict | None = None) -> MapModel:
-    return MapModel.new(TM, localiser or {}, max_observations=1000, memory=memory, s=S, adapt_tau=adapt_tau)
+    return MapModel.new(TmOptions.of(TM), LocaliserOptions.of(localiser), max_observations=1000,
+                        memory=memory, s=S, adapt_tau=adapt_tau)
 
 
 def route(n: int, seed: int = 0) -> np.ndarray:
@@ -317,3 +320,20 @@ def test_two_cameras_that_name_one_trail_never_revisit_each_others_recent_rows()
                 steps[name].append(step)
         named[trail] = revisits(steps["front"]) + revisits(steps["rear"])
     assert named[None] > 0 and named["robot"] == 0
+
+
+@pytest.mark.parametrize(("fraction", "consolidated"), [(0.5, True), (0.9, False)])
+def test_an_unconfident_frame_is_consolidated_only_above_the_maps_unsure_fraction_of_the_threshold(
+        fraction: float, consolidated: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The consolidation gate (docs/design/science.md §11.8) reads the map's `unsure_fraction`: a frame
+    answered at confidence 0.6 (no revisit at 0.91) that looks like a stored appearance is a visit of it
+    where 0.6 reaches the fraction of the threshold (0.455 at the default 0.5, the `threshold / 2` it
+    was), and a row of its own where it does not (0.819 at 0.9)."""
+    m = model("none", localiser={"unsure_fraction": fraction})
+    learn_route(m, route(6), Stream())
+    place = Place(seq=3, confidence=0.6, support=5, place=m.links.place_of(3))
+    monkeypatch.setattr(m.links, "step", lambda *args, **kwargs: place)
+    monkeypatch.setattr(m.links, "consolidation", lambda *args, **kwargs: 3)
+    step = observe(m, Stream(), route(1, seed=9)[0], learn=True, stream="b", top_k=3, seq=7,
+                   code_of=CODES.__getitem__, threshold=REVISIT)
+    assert (step.visit == 3) is consolidated

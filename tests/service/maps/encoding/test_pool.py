@@ -220,3 +220,18 @@ def test_a_prepare_that_raises_gives_its_slot_back() -> None:
         assert pool.submit(bytes(3)).result(timeout=30).features.shape == (1, 32)
     finally:
         pool.close()
+
+
+def test_the_pools_batch_and_wait_and_the_encoders_chunk_are_the_settings(tmp_path) -> None:
+    """CORTEXLOC_ENCODE_BATCH, CORTEXLOC_ENCODE_WAIT_MS and CORTEXLOC_ENCODE_CHUNK reach the pool and the
+    encoder the service builds (issue 38 item 3: before, 16 images, 2 ms and 4 were fixed); a pool built
+    in code batches as the service's defaults say."""
+    with make_client(tmp_path / "data", encode_batch=4, encode_wait_ms=0.5, encode_chunk=2) as c:
+        pool = c.app.state.encoder_pool
+        assert (pool.max_batch, pool.wait_s) == (4, 0.5 / 1e3)
+        assert pool.encoders.get(pool.encoders.default).chunk == 2
+    plain = EncoderPool(Encoders.one(FakeEncoder()), workers=1, queue=1)
+    try:
+        assert (plain.max_batch, plain.wait_s) == (16, 2.0 / 1e3)
+    finally:
+        plain.close()

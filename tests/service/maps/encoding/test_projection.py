@@ -37,7 +37,7 @@ EXPECTED_KIND = {"alexnet": "sparse", "efficientnet-lite0": "sparse", "efficient
 @pytest.mark.parametrize("name", backbones.names())
 def test_the_default_map_of_every_backbone_fits_the_budget(name, monkeypatch):
     monkeypatch.undo()  # the real cortexloc-default, not the service tests' tiny one
-    tm = planned_bytes(presets.tm_params("cortexloc-default", {}))
+    tm = planned_bytes(presets.TmOptions.of(presets.tm_params("cortexloc-default", {})))
     k = int(presets.slsbh_params("cortexloc-default")["k"])
     d = feature_dim(name)
     kind = projection.projection_kind(d, k, tm, BUDGET)

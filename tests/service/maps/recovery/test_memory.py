@@ -17,12 +17,12 @@ def test_a_replay_reproduces_every_row_and_names_one_that_differs(tmp_path):
         for f in route(6):
             step(rt, f)
         rows = list(rt.store.rows())
-        fresh = rt.model.fresh(type(rt.tm)(rt.tm.params))
+        fresh = rt.model.fresh(type(rt.tm)(rt.tm.options))
         done = rebuild(fresh.tm, rows, rt.model, stop_at_mismatch=False)
         assert done.mismatches == [] and done.replayed == 6 and tm_digest(done.model.tm) == tm_digest(rt.tm)
         assert done.streams["s"].last_learned_seq == 6 and done.streams["s"].step == 6
         bad = [*rows[:3], dataclasses.replace(rows[3], winner_cells=rows[3].winner_cells[:-1]), *rows[4:]]
-        again = rebuild(type(rt.tm)(rt.tm.params), bad, rt.model, stop_at_mismatch=False)
+        again = rebuild(type(rt.tm)(rt.tm.options), bad, rt.model, stop_at_mismatch=False)
         assert again.mismatches == [4]
 
 
