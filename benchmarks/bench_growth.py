@@ -43,9 +43,9 @@ def drive(feats: list[np.ndarray], contrast: list[np.ndarray], labels: np.ndarra
     one stream, the drive restarted before each pass. Returns one dict per pass."""
     backbone, preset = ENC["backbone"], ENC["preset"]
     T = len(labels)
-    model, hasher, config = service_path._model(T * len(feats), int(feats[0].shape[1]), backbone=backbone,
-                                                preset=preset, seed=seed, memory="tm", localiser=None,
-                                                create=None)
+    model, hasher, config = service_path._model(int(feats[0].shape[1]), max_observations=T * len(feats),
+                                                backbone=backbone, preset=preset, seed=seed, memory="tm",
+                                                localiser=None, create=None)
     thr = config.revisit_threshold
     robot, codes, label_of = Stream(), {}, {}
     out, visits, closures = [], 0, 0
