@@ -10,6 +10,7 @@ beyond that pass (benchmarks/bench_index.py, docs/benchmarks.md).
 
 from __future__ import annotations
 
+import copy
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, TypeVar
@@ -180,6 +181,21 @@ class Localisation:
         conf = self.localiser.conf
         level = self.codes.level(code, float(conf["departure"]))
         memory.add(row, anchor.move(code, level, motion, conf), stream)
+
+    def stays(self, stream: str, code: np.ndarray, motion: Motion = NO_MOTION) -> bool:
+        """Whether a learned frame of `stream` (`code` (n,) sorted, its `motion`) is no move of its
+        short-term memory (`Anchor.move` None: its pose within `move_metres` of its last move's, or
+        without poses its code as like that move's frame as `departure` reads "the same view", §11.6):
+        the stream has not moved, and the frame is a rehearsal of its newest row, not a row of its own
+        (RTAB-Map's rehearsal). False without a memory or before the stream's first move. Changes
+        nothing (the move is judged on a copy of the anchor; the frame's own step judges it again)."""
+        anchor = self._anchors.get(stream) if self.short_term else None
+        if anchor is None or anchor.code is None:
+            return False
+        code = np.asarray(code, np.int64)
+        conf = self.localiser.conf
+        level = self.codes.level(code, float(conf["departure"]))
+        return copy.copy(anchor).move(code, level, motion, conf) is None
 
     def short_term_rows(self, trail: str) -> np.ndarray:
         """(m,) int64 ascending: the rows `trail`'s streams made over its last moves and still held,
