@@ -5,7 +5,8 @@ One SQLite file per map, so maps never contend for SQLite's single writer and a 
 servers as one directory. The file is the system of record: the in-memory TM and index are rebuilt
 from it (snapshot + replay, §4.4), so a row, once committed, is never changed or removed — triggers
 refuse UPDATE and DELETE on `observations`, and a restore replaces the whole file instead
-(`MapStore.install_copy`).
+(`MapStore.install_copy`). The one exception (schema 12): a warm-up join turns the row it joins into a
+visit, which replays it, and deletes the row in the same transaction (docs/design/science.md §11.8).
 
 Sequence numbers: `seq` is assigned here, strictly increasing and never reused. SQLite's own choice
 (max(rowid)+1) would reuse seqs after a restore rolls the file back, so the caller passes the
@@ -24,6 +25,8 @@ import uuid
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
+
+import numpy as np
 
 from storage._common import (
     StorageError,
@@ -117,12 +120,15 @@ class MapStore:
         self._v9 = meta.schema_version >= 9  # repairs, retraction entries in the loop-closure log
         self._v10 = meta.schema_version >= 10  # warm-up joins
         self._v11 = meta.schema_version >= 11  # the loop closures' span
+        self._v12 = meta.schema_version >= 12  # joined rows turned into visits
         self._cols = COLUMNS if self._v5 else COLUMNS_V4 if self._v2 else COLUMNS_V1
         self._v3 = meta.schema_version >= 3  # a version 2 file opened read-only has no loop-closure log
         self._conn: sqlite3.Connection | None = conn
         self._lock = threading.RLock()
         self._cell_dtype = meta.cell_dtype
         last, count = conn.execute("SELECT coalesce(max(seq), 0), count(*) FROM observations").fetchone()
+        if self._v12:  # a joined row turned into a visit was deleted: its seq is still handed out (§11.8)
+            last = max(int(last), int(conn.execute("SELECT coalesce(max(seq), 0) FROM joins").fetchone()[0]))
         self._last_seq = int(last)
         self._count = int(count)
         self._seq_floor = max(0, int(seq_floor))
@@ -295,7 +301,7 @@ class MapStore:
                     conn.executemany(f"INSERT INTO observations ({COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?,?)",
                                      params)
                     self._drop(conn, drops)
-                    self._join(conn, joins)
+                    gone = self._join(conn, joins)
                     self._touch(conn, touches)
                     self._resume(conn, resumes)
                     # The row's thumbnail and idempotency key commit with it, or nothing does.
@@ -316,7 +322,7 @@ class MapStore:
                     conn.execute("PRAGMA synchronous=FULL")
             # Only after COMMIT returned: a failed commit consumes no seq and changes no counter.
             self._last_seq = first + len(params) - 1
-            self._count += len(params)
+            self._count += len(params) - gone
             return list(range(first, first + len(params)))
 
     def add_visit(self, visit: NewVisit) -> int:
@@ -355,7 +361,7 @@ class MapStore:
                             conn.execute("DELETE FROM visit_keys WHERE visit <= ?",
                                          (visit_id - self.max_keys,))
                     clock = max(self._last_seq, self._seq_floor) + 1  # the seq the live step was given
-                    self._join(conn, [(str(visit.stream), j, self._last_seq) for j in visit.joins])
+                    gone = self._join(conn, [(str(visit.stream), j, self._last_seq) for j in visit.joins])
                     self._touch(conn, [(int(t), clock) for t in visit.touched])
                     if visit.resume is not None:
                         self._resume(conn, [(str(visit.stream), clock, visit.resume)])
@@ -365,27 +371,33 @@ class MapStore:
                 if "visit_keys.key" in str(exc):
                     raise DuplicateObservation(str(exc)) from exc
                 raise
+            self._count -= gone  # only after COMMIT returned
             return visit_id
 
-    def visits(self, after_id: int = 0) -> Iterator[Visit]:
-        """Logged visits with id > `after_id`, in log order, read in pages (replay)."""
+    def visits(self, after_id: int = 0, rows_after: int = 0) -> Iterator[Visit]:
+        """Logged visits with id > `after_id`, in the order they were learned (their `after_seq`, then log
+        order: a joined row's visit, logged at its join, takes its row's place, §11.8), read in pages
+        (replay). `rows_after`: a joined row's visit only if its row is after it (a snapshot at that seq
+        learned the rows up to it)."""
         if not self._v5:
             return
-        last = int(after_id)
+        row = "row_seq" if self._v12 else "NULL"
+        last = (-1, 0)
         while True:
             with self._lock:
                 found = self._db().execute(
                     "SELECT id, after_seq, stream, seq, context_prev_seq, input_sdr, winner_cells, "
-                    "created_at, metadata FROM visits WHERE id > ? ORDER BY id LIMIT ?",
-                    (last, _PAGE)).fetchall()
+                    f"created_at, metadata, {row} FROM visits WHERE id > ? AND (after_seq, id) > (?, ?) "
+                    f"AND coalesce({row}, ?) > ? ORDER BY after_seq, id LIMIT ?",
+                    (int(after_id), *last, int(rows_after) + 1, int(rows_after), _PAGE)).fetchall()
             if not found:
                 return
             for r in found:
                 yield Visit(id=int(r[0]), after_seq=int(r[1]), stream=r[2], seq=int(r[3]),
                             context_prev_seq=None if r[4] is None else int(r[4]),
                             input_sdr=decode(r[5], INPUT_DTYPE), winner_cells=decode(r[6], self._cell_dtype),
-                            created_at=r[7], metadata=_json(r[8]))
-            last = int(found[-1][0])
+                            created_at=r[7], metadata=_json(r[8]), row=None if r[9] is None else int(r[9]))
+            last = (int(found[-1][1]), int(found[-1][0]))
 
     def visit_stats(self) -> tuple[int, int, int]:
         """(visits logged, the first id kept (0: none), the last id ever logged (0: none))."""
@@ -481,15 +493,64 @@ class MapStore:
             conn.executemany("INSERT OR IGNORE INTO dropped (seq, reason, after_seq, created_at) "
                              "VALUES (?, ?, ?, ?)", [(*d, utc_now()) for d in drops])
 
-    def _join(self, conn: sqlite3.Connection, joins: list[tuple[str, tuple[int, int], int]]) -> None:
-        """Warm-up joins (stream, (row, old row), after_seq), each row dropped (`joined`) with it."""
-        if joins:
-            now = utc_now()
-            conn.executemany("INSERT INTO joins (seq, place_seq, stream, after_seq, created_at) "
-                             "VALUES (?, ?, ?, ?, ?)",
-                             [(int(row), int(old), stream, after, now)
-                              for stream, (row, old), after in joins])
-            self._drop(conn, [(int(row), "joined", after) for _, (row, _old), after in joins])
+    def _join(self, conn: sqlite3.Connection, joins: list[tuple[str, tuple[int, int], int]]) -> int:
+        """Warm-up joins (stream, (row, old row), after_seq), each row dropped (`joined`) with it; from
+        schema 12 each row that no loop closure or repair names is turned into a visit of the old row
+        (`visits.row_seq`, after the row before it) and deleted, so a join leaves no row behind (§11.8).
+        Returns how many rows were deleted."""
+        if not joins:
+            return 0
+        now = utc_now()
+        oid = "(SELECT observation_id FROM observations WHERE seq = ?)" if self._v12 else "NULL"
+        conn.executemany(f"INSERT INTO joins (seq, place_seq, stream, after_seq, created_at"
+                         f"{', observation_id' if self._v12 else ''}) "
+                         f"VALUES (?, ?, ?, ?, ?{', ' + oid if self._v12 else ''})",
+                         [(int(row), int(old), stream, after, now, *((int(row),) if self._v12 else ()))
+                          for stream, (row, old), after in joins])
+        self._drop(conn, [(int(row), "joined", after) for _, (row, _old), after in joins])
+        if not self._v12:
+            return 0
+        gone = 0
+        for _, (row, old), _after in joins:
+            cur = conn.execute(
+                "INSERT INTO visits (after_seq, stream, seq, context_prev_seq, input_sdr, winner_cells, "
+                "metadata, created_at, row_seq) SELECT o.seq - 1, o.stream, ?, o.context_prev_seq, "
+                "o.input_sdr, o.winner_cells, o.metadata, o.created_at, o.seq FROM observations o "
+                "WHERE o.seq = ? AND NOT EXISTS (SELECT 1 FROM loop_closures c WHERE c.seq = o.seq "
+                "OR c.place_seq = o.seq) AND NOT EXISTS (SELECT 1 FROM repairs r WHERE r.seq = o.seq)",
+                (int(old), int(row)))
+            if cur.rowcount:
+                for table in ("thumbnails", "keyframes", "recency", "observations"):
+                    conn.execute(f"DELETE FROM {table} WHERE seq = ?", (int(row),))
+                gone += 1
+        return gone
+
+    def observation_id(self, seq: int) -> str | None:
+        """The observation id of row `seq`, held or joined away (a warm-up join turned it into a visit,
+        schema 12); None: no such row in this file."""
+        with self._lock:
+            db = self._db()
+            r = db.execute("SELECT observation_id FROM observations WHERE seq = ?", (int(seq),)).fetchone()
+            if r is None and self._v12:
+                r = db.execute("SELECT observation_id FROM joins WHERE seq = ?", (int(seq),)).fetchone()
+        return None if r is None else r[0]
+
+    def code(self, seq: int) -> np.ndarray | None:
+        """Row `seq`'s frame code (`input_sdr`), held or joined away (its visit's, schema 12); None: none."""
+        with self._lock:
+            db = self._db()
+            r = db.execute("SELECT input_sdr FROM observations WHERE seq = ?", (int(seq),)).fetchone()
+            if r is None and self._v12:
+                r = db.execute("SELECT input_sdr FROM visits WHERE row_seq = ?", (int(seq),)).fetchone()
+        return None if r is None else decode(r[0], INPUT_DTYPE)
+
+    def joined_to(self, seq: int) -> int | None:
+        """The old row whose place row `seq` joined (a warm-up join), or None."""
+        if not self._v10:
+            return None
+        with self._lock:
+            r = self._db().execute("SELECT place_seq FROM joins WHERE seq = ?", (int(seq),)).fetchone()
+        return None if r is None else int(r[0])
 
     def joins(self) -> list[tuple[int, int]]:
         """The warm-up joins (row, old row whose place it joined) in log order (docs/design/science.md
@@ -518,9 +579,11 @@ class MapStore:
             # still held when the join was made (a row dropped at an earlier step, joined or over its
             # place's cap, had left the memory; a row a repair re-made is no step of it).
             split = "SELECT seq FROM repairs WHERE kind = 'split'" if self._v9 else "SELECT NULL WHERE 0"
+            rows = ("(SELECT seq, stream FROM observations UNION ALL SELECT row_seq, stream FROM visits "
+                    "WHERE row_seq IS NOT NULL)") if self._v12 else "observations"
             out += [f"join of row {r[0]}: {r[1]} held rows of its stream since, the reach is {reach}"
                     for r in db.execute(
-                        "SELECT j.seq, (SELECT count(*) FROM observations o WHERE o.stream = j.stream "
+                        f"SELECT j.seq, (SELECT count(*) FROM {rows} o WHERE o.stream = j.stream "
                         "AND o.seq > j.seq AND o.seq <= j.after_seq AND NOT EXISTS (SELECT 1 FROM dropped d "
                         "WHERE d.seq = o.seq AND d.after_seq < j.after_seq) "
                         f"AND o.seq NOT IN ({split})) AS n FROM joins j WHERE n >= ?", (int(reach),))]
@@ -715,7 +778,8 @@ class MapStore:
                                           (int(seq),)).fetchone()[0])
 
     def last_seq(self) -> int:
-        """Highest stored seq (0 when empty); the seq floor is not counted."""
+        """Highest seq stored (a row held, or one a join turned into a visit, §11.8; 0 when empty); the seq
+        floor is not counted."""
         with self._lock:
             return self._last_seq
 

@@ -23,6 +23,7 @@ import copy
 import dataclasses
 import functools
 import hashlib
+import heapq
 import logging
 import math
 import threading
@@ -470,8 +471,11 @@ class MapRuntime:
         dropped = self.store.dropped()
         held: list[_Held] = []
 
+        # a row a warm-up join turned into a visit is that row again (docs/design/science.md §11.8)
+        joined = [v.as_row() for v in self.store.visits() if v.row is not None]
+
         def rows() -> Iterator[Observation]:  # the rows read once, for the links and the index (issue 40)
-            for r in self.store.rows():  # type: ignore[union-attr]
+            for r in heapq.merge(self.store.rows(), joined, key=lambda o: o.seq):  # type: ignore[union-attr]
                 if r.seq not in dropped:
                     held.append(_Held(r.seq, r.winner_cells, r.stream))
                 yield r
@@ -481,7 +485,7 @@ class MapRuntime:
         done = self.store.repairs()
         split = {r.visit for r in done if r.kind == "split"}
         visits = ((v.context_prev_seq, NONE if v.id in split else v.seq, v.after_seq + 1, v.stream,
-                   v.input_sdr, Motion.of(v.metadata)) for v in self.store.visits())
+                   v.input_sdr, Motion.of(v.metadata)) for v in self.store.visits() if v.row is None)
         self.model.links.rebuild(rows(), dropped, self.store.joined(), visits, self.store.recency(),
                                  remade={r.seq for r in done if r.kind == "split"},
                                  unjoined={r.seq for r in done if r.kind == "unjoin"},
@@ -688,6 +692,9 @@ class MapRuntime:
         t3 = time.perf_counter()
         place = step.place
         rows = self.store.get_many([*(m.seq for m in step.ranked), *([place.seq] if place else [])])
+        if place is not None and place.seq not in rows:  # a path on a row a join turned into a visit:
+            place = place._replace(seq=self.store.joined_to(place.seq))  # its place's old row (§11.8)
+            rows.update(self.store.get_many([place.seq]))
         if query is not None and query.camera is not None:
             self.cameras[stream] = query.camera
             if len(self.cameras) > self.max_streams:  # bounded: the cameras of the streams held
@@ -791,10 +798,10 @@ class MapRuntime:
             self._codes.move_to_end(seq)
             return code
         assert self.store is not None
-        row = self.store.get(seq)
-        assert row is not None  # the rule walks the stream's committed rows
-        self._keep_code(seq, row.input_sdr)
-        return row.input_sdr
+        code = self.store.code(seq)  # (a joined row's from its visit, §11.8)
+        assert code is not None  # the rule walks the stream's committed rows
+        self._keep_code(seq, code)
+        return code
 
     def _keep_code(self, seq: int, code: np.ndarray) -> None:
         self._codes[seq] = code
