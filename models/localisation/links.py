@@ -121,7 +121,8 @@ class Localisation:
                      place=-1 if place is None else int(place), remade=seq in remade,
                      motion=Motion.of(getattr(row, "metadata", None)))
         for row, old in folded:  # after every row: a join names rows stored before it
-            self.fold(int(row), int(old))
+            if int(row) < len(self.graph) and self.graph.place[int(row)] >= 0:  # (its visit not pruned)
+                self.fold(int(row), int(old))
         for seq in sorted(gone):
             if seq < len(self.graph):
                 self.drop(seq)
