@@ -13,10 +13,11 @@ before every pass (`Stream.break_sequence`, what `POST .../streams/{s}/reset` do
 frames' contrast measured as the service measures it at decode (§11.7). Two routes: `exact` (every pass
 the same PNGs) and `noise8` (pass 1 the PNGs, every later pass new pixel noise of σ 8).
 
-Per pass: `rows` made (seqs stored: map.sqlite grows by these), `held` (the change in rows held: the index
-and the places' appearances), `new_places` (the change in places with a row held; `places`: at the pass's
-end), `visits` (consolidated frames: the visit log's growth, pruned to `max_visits` once snapshots cover
-them), `joins` (warm-up joins, §11.8; `--http`: `dropped`, the rows dropped, joins or cap), `closures`
+Per pass: `rows` made (seqs handed out), `stored` (`--http`: the change in map.sqlite's rows, `rows_stored`:
+the rows made less the warm-up rows a join turned into visits, schema 12), `held` (the change in rows held:
+the index and the places' appearances), `new_places` (the change in places with a row held; `places`: at the
+pass's end), `visits` (consolidated frames: the visit log's growth, pruned to `max_visits` once snapshots
+cover them), `joins` (warm-up joins, §11.8; `--http`: `dropped`, the rows dropped, joins or cap), `closures`
 (revisits called: the loop-closure log's growth, bounded by `max_closures`), and `precision`, `recall` of
 the revisits called (right: the named row's file within 1 of the frame's; recall over every frame of the
 pass, all true revisits after pass 1). Pass 1 must call no revisit. One JSON line per route and pass,
@@ -43,9 +44,9 @@ def drive(feats: list[np.ndarray], contrast: list[np.ndarray], labels: np.ndarra
     one stream, the drive restarted before each pass. Returns one dict per pass."""
     backbone, preset = ENC["backbone"], ENC["preset"]
     T = len(labels)
-    model, hasher, config = service_path._model(T * len(feats), int(feats[0].shape[1]), backbone=backbone,
-                                                preset=preset, seed=seed, memory="tm", localiser=None,
-                                                create=None)
+    model, hasher, config = service_path._model(int(feats[0].shape[1]), max_observations=T * len(feats),
+                                                backbone=backbone, preset=preset, seed=seed, memory="tm",
+                                                localiser=None, create=None)
     thr = config.revisit_threshold
     robot, codes, label_of = Stream(), {}, {}
     out, visits, closures = [], 0, 0
@@ -109,7 +110,8 @@ def drive_http(pngs: list[list[bytes]], labels: np.ndarray, seed: int) -> list[d
                     right += abs(label_of[b["place"]["seq"]] - int(labels[i])) <= 1
             closures += called
             now = c.get("/v1/maps/growth").json()["places"]
-            out.append({"pass": p + 1, "rows": made, "held": now["appearances"] - before["appearances"],
+            out.append({"pass": p + 1, "rows": made, "stored": now["rows_stored"] - before["rows_stored"],
+                        "held": now["appearances"] - before["appearances"],
                         "new_places": now["places"] - before["places"], "places": now["places"],
                         "visits": now["visits_logged"] - visits0, "dropped": now["dropped"] - joins0,
                         "closures": called, "visit_log": now["visits_logged"], "closure_log": closures,
@@ -152,6 +154,7 @@ def main() -> None:
         p2 = rows[1]["recall"] if len(rows) > 1 else 0.0
         later = rows[2:]
         summary = {"route": name, "rows_per_pass_3_on": [r["rows"] for r in later],
+                   **({"stored_per_pass_3_on": [r["stored"] for r in later]} if a.http else {}),
                    "held_per_pass_3_on": [r["held"] for r in later],
                    "new_places_per_pass_3_on": [r["new_places"] for r in later],
                    "max_rows_3_on": max((r["rows"] for r in later), default=0),

@@ -24,7 +24,11 @@ recent trail, docs/design/science.md §11.6: a visit re-made as its own row, a r
 place, a closure retracted by a new entry that names it); version 10 the `joins`, a learning stream's
 warm-up rows joined to the old places its confident path found (docs/design/science.md §11.8); version 11 a
 logged closure's `span` and `span_seqs` (how many places the stream may have been at, and their rows:
-docs/design/science.md §11.11). An older
+docs/design/science.md §11.11); version 12 a joined row turned into a visit: the join, in its
+transaction, logs the row's frame as a visit (`visits.row_seq`: the row's seq; `seq`: the old row whose place
+it joined) and deletes the row (its observation, thumbnail and keyframe: the file's delete triggers let a
+joined row go, nothing else), so a restarted drive's warm-up adds to the bounded visit log, not to the
+rows (docs/design/science.md §11.8). An older
 file is brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep
 `place` NULL (read as the place its learning stream's logged loop closure names, else its own). Opened
 read-only (`cortexloc verify`, a snapshot's copy) an older file is read as it is; a file of a newer version
@@ -78,7 +82,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 11
+SCHEMA_VERSION = 12
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -314,6 +318,32 @@ _CLOSURE_SPAN = ("ALTER TABLE loop_closures ADD COLUMN span INTEGER NULL;"
                  "ALTER TABLE loop_closures ADD COLUMN span_seqs TEXT NULL;")
 _MIGRATE_V11 = _CLOSURE_SPAN + _version_step(11)
 
+# What version 12 added (docs/design/science.md §11.8; docs/design/service.md §4.2, §4.4): a joined row
+# turned into a visit. `visits.row_seq`: the seq of the row a warm-up join turned into this visit (NULL: a
+# consolidated frame), replayed as that row (its memory step, its links, its place joined); `joins.
+# observation_id`: the row's, so a snapshot whose last row was joined away is still known as this file's.
+# The delete triggers of `observations`, `thumbnails` and `keyframes` let a joined row go, nothing else.
+_V12_TABLES = """
+ALTER TABLE visits ADD COLUMN row_seq INTEGER NULL;
+ALTER TABLE joins ADD COLUMN observation_id TEXT NULL;
+CREATE INDEX visits_learned ON visits (after_seq, id);        -- the replay's order (`MapStore.visits`)
+CREATE INDEX visits_row ON visits (row_seq) WHERE row_seq IS NOT NULL;
+DROP TRIGGER observations_no_delete;
+CREATE TRIGGER observations_no_delete BEFORE DELETE ON observations
+WHEN NOT EXISTS (SELECT 1 FROM joins WHERE seq = OLD.seq)
+BEGIN SELECT RAISE(ABORT, 'observations are append-only'); END;
+DROP TRIGGER thumbnails_no_delete;
+CREATE TRIGGER thumbnails_no_delete BEFORE DELETE ON thumbnails
+WHEN NOT EXISTS (SELECT 1 FROM joins WHERE seq = OLD.seq)
+BEGIN SELECT RAISE(ABORT, 'thumbnails are append-only'); END;
+DROP TRIGGER keyframes_no_delete;
+CREATE TRIGGER keyframes_no_delete BEFORE DELETE ON keyframes
+WHEN NOT EXISTS (SELECT 1 FROM joins WHERE seq = OLD.seq)
+BEGIN SELECT RAISE(ABORT, 'keyframes are append-only'); END;
+"""
+#: Version 11 -> 12: columns no row has yet (an older visit and join read NULL), the delete triggers.
+_MIGRATE_V12 = _V12_TABLES + _version_step(12)
+
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
             "input_sdr, winner_cells, metadata, place")
@@ -345,6 +375,7 @@ class Holds:
     closure_retracts: bool  # 9
     joins: bool  # 10
     closure_span: bool  # 11
+    joined_rows: bool  # 12: a joined row turned into a visit (`visits.row_seq`, `joins.observation_id`)
     row_columns: str  # what `SELECT` reads of `observations` (NULL for a column the file lacks)
 
     @classmethod
@@ -354,7 +385,7 @@ class Holds:
                    dropped=version >= 5, recency=version >= 6, visit_keys=version >= 7,
                    stream_states=version >= 7, closure_consolidated_into=version >= 8,
                    repairs=version >= 9, closure_retracts=version >= 9, joins=version >= 10,
-                   closure_span=version >= 11,
+                   closure_span=version >= 11, joined_rows=version >= 12,
                    row_columns=COLUMNS if version >= 5 else COLUMNS_V4 if version >= 2 else COLUMNS_V1)
 
 
@@ -365,7 +396,7 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
         return meta
     # chain[v - 1]: version v -> v + 1
     chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6, _MIGRATE_V7, _MIGRATE_V8,
-             _MIGRATE_V9, _MIGRATE_V10, _MIGRATE_V11]
+             _MIGRATE_V9, _MIGRATE_V10, _MIGRATE_V11, _MIGRATE_V12]
     steps = "".join(chain[meta.schema_version - 1:])
     try:
         conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
@@ -498,7 +529,9 @@ class NewVisit:
 
 @dataclass(frozen=True, eq=False)
 class Visit:
-    """A logged visit (`MapStore.visits`): `id` its log order, `after_seq` the last row before it."""
+    """A logged visit (`MapStore.visits`): `id` its log order, `after_seq` the last row before it; `row`
+    the seq of the row a warm-up join turned into it (replayed as that row, §11.8), None for a
+    consolidated frame."""
 
     id: int
     after_seq: int
@@ -509,6 +542,16 @@ class Visit:
     winner_cells: np.ndarray
     created_at: str
     metadata: dict[str, Any] | None = None
+    row: int | None = None  # the row a warm-up join turned into this visit (schema 12); None: consolidated
+
+    def as_row(self) -> Observation:
+        """The row a warm-up join turned into this visit, as it was learned (its seq `row`, its own
+        place; no observation id or image digest: those went with it)."""
+        assert self.row is not None
+        return Observation(seq=self.row, observation_id="", stream=self.stream,
+                           context_prev_seq=self.context_prev_seq, label=None, created_at=self.created_at,
+                           image_sha256="", input_sdr=self.input_sdr, winner_cells=self.winner_cells,
+                           metadata=self.metadata)
 
 
 @dataclass(frozen=True)
@@ -680,7 +723,8 @@ def create_file(path: Path, meta: MapMeta) -> None:
             # (executescript would commit a pending transaction anyway).
             conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION
                                + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES + _V7_TABLES + _CLOSURE_VISIT
-                               + _V9_TABLES + _CLOSURE_RETRACTS + _V10_TABLES + _CLOSURE_SPAN)
+                               + _V9_TABLES + _CLOSURE_RETRACTS + _V10_TABLES + _CLOSURE_SPAN
+                               + _V12_TABLES)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

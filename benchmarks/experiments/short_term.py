@@ -116,9 +116,9 @@ def run(name: str, lo: int, seed: int, localiser: dict | None) -> dict:
     pngs, labels, _ = build(name, lo)
     feats = feats_of(pngs)
     contrast = service_path.contrasts(pngs)
-    model, hasher, config = service_path._model(len(feats), feats.shape[1], backbone=backbone,
-                                                preset=settings.default_preset, seed=seed, memory="tm",
-                                                localiser=localiser, create=None)
+    model, hasher, config = service_path._model(feats.shape[1], max_observations=len(feats),
+                                                backbone=backbone, preset=settings.default_preset, seed=seed,
+                                                memory="tm", localiser=localiser, create=None)
     robot, codes, frame_of = Stream(), {}, {}
     T = len(feats)
     best, conf = np.full(T, -1), np.zeros(T)

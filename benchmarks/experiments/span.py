@@ -44,7 +44,8 @@ def run(frames: stress.Frames, kind: str, lo: int, seed: int, map_conf: dict[str
     pngs = lap1 + lap2
     feats, contrast = frames.features(pngs), service_path.contrasts(pngs)
     n = len(lap1)
-    model, hasher, config = service_path._model(n, feats.shape[1], seed=seed, memory="tm", create=None,
+    model, hasher, config = service_path._model(feats.shape[1], max_observations=n, seed=seed, memory="tm",
+                                                create=None,
                                                 **{k: v for k, v in map_conf.items() if k != "encoder_id"})
     codes: dict[int, np.ndarray] = {}
     database, query = Stream(), Stream()

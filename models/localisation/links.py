@@ -10,6 +10,7 @@ beyond that pass (benchmarks/bench_index.py, docs/benchmarks.md).
 
 from __future__ import annotations
 
+import copy
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, TypeVar
@@ -120,11 +121,15 @@ class Localisation:
             place = None if seq in unjoined or seq in remade else getattr(row, "place", None)
             if place is None and seq in joined and seq not in unjoined:
                 place = int(self.graph.place[joined[seq]])
-            self.add(seq, row.context_prev_seq, row.input_sdr, stream=row.stream,
+            prev = row.context_prev_seq
+            if prev is not None and (prev >= len(self.graph) or self.graph.place[prev] < 0):
+                prev = None  # a joined row whose visit the log pruned (§11.8): a trail starts here
+            self.add(seq, prev, row.input_sdr, stream=row.stream,
                      place=-1 if place is None else int(place), remade=seq in remade,
                      motion=Motion.of(getattr(row, "metadata", None)))
         for row, old in folded:  # after every row: a join names rows stored before it
-            self.fold(int(row), int(old))
+            if int(row) < len(self.graph) and self.graph.place[int(row)] >= 0:  # (its visit not pruned)
+                self.fold(int(row), int(old))
         for seq in sorted(gone):
             if seq < len(self.graph):
                 self.drop(seq)
@@ -193,6 +198,25 @@ class Localisation:
         code = np.asarray(code, np.int64)
         level = self.codes.level(code, float(self.options.departure))
         memory.add(row, anchor.move(code, level, motion, self.options), stream)
+
+    def stays(self, stream: str, code: np.ndarray, motion: Motion = NO_MOTION) -> bool:
+        """Whether a learned frame of `stream` (`code` (n,) sorted, its `motion`) has not moved: it and
+        the stream's last move carry poses (`short_term_metres` > 0) and it is no move of the short-term
+        memory (`Anchor.move` None: its pose within `move_metres` of that move's; a step faster than
+        `max_speed` is judged as the memory judges it), §11.6. Such a frame is a rehearsal of the row its
+        stream is at, not a row of its own (RTAB-Map's rehearsal). Without poses, False: appearance
+        cannot tell a robot that stands from a stretch whose places look alike (measured, docs/results.md
+        §11: at the `departure` level a Nordland frame and its copy with pixel noise of σ 8 read as a
+        move, frames 5 apart as none on 9 % of the route; rehearsing those merged places). Changes
+        nothing (the move is judged on a copy of the anchor; the frame's own step judges it again)."""
+        anchor = self._anchors.get(stream) if self.short_term else None
+        conf = self.options
+        if (anchor is None or anchor.code is None or anchor.pose is None or motion.pose is None
+                or conf.short_term_metres <= 0):
+            return False
+        code = np.asarray(code, np.int64)
+        level = self.codes.level(code, conf.departure)
+        return copy.copy(anchor).move(code, level, motion, conf) is None
 
     def short_term_rows(self, trail: str) -> np.ndarray:
         """(m,) int64 ascending: the rows `trail`'s streams made over its last moves and still held,

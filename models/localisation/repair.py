@@ -20,6 +20,7 @@ import numpy as np
 
 from models.localisation.graph import NONE
 from models.localisation.links import Localisation
+from models.localisation.motion import NO_MOTION, Motion
 from models.localisation.options import LocaliserOptions
 
 __all__ = ["Learned", "Merges", "Named", "own_trail_merges", "window"]
@@ -35,6 +36,8 @@ class Learned:
         through: a made row's merge: the row whose place it joined and the row its revisit named (empty:
             it joined no place).
         ref: the caller's name for it (a row's seq, a visit's log id), as `Merges` lists it.
+        prev: a visit's row its stream continued (its `context_prev_seq`): a visit of that row by a frame
+            that is no move is a rehearsal (§11.6), no merge. motion: the frame's (`Motion`), its move.
     """
 
     stream: str
@@ -43,6 +46,8 @@ class Learned:
     made: bool
     through: tuple[int, ...] = ()
     ref: int = 0
+    prev: int | None = None
+    motion: Motion = NO_MOTION
 
 
 @dataclass(frozen=True)
@@ -102,9 +107,10 @@ def own_trail_merges(log: Iterable[Learned | Named], options: LocaliserOptions |
         elif event.made:  # (the memory read only where the row joined a place: most rows did not)
             if event.through and np.isin(event.through, links.short_term_rows(event.stream)).any():
                 out.joins.append(event.ref)
-            links.add(event.seq, None, event.code, stream=event.stream)
+            links.add(event.seq, None, event.code, stream=event.stream, motion=event.motion)
         else:
-            if event.seq in links.short_term_rows(event.stream):
+            rehearsal = event.prev == event.seq and links.stays(event.stream, event.code, event.motion)
+            if not rehearsal and event.seq in links.short_term_rows(event.stream):
                 out.visits.append(event.ref)
-            links.visit(None, event.seq, event.seq, event.stream, event.code)
+            links.visit(None, event.seq, event.seq, event.stream, event.code, event.motion)
     return out

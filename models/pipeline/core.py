@@ -273,6 +273,11 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                 links.fold(row, old, seq)
                 touched.append(old)
             drop(model, [row for row, _ in joins])
+        if (visit is None and prev is not None and links.used[prev] >= 0
+                and links.stays(stream, code, motion)):
+            # It has not moved since its last learned frame (§11.6: no pose change of `move_metres`): a
+            # visit of the row that frame made or visited (a rehearsal), the memory learns it, no row
+            visit = prev
         if visit is not None:
             links.visit(prev, visit, seq, stream, code, motion)
             touched.append(visit)

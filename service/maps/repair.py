@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from models.localisation.graph import NONE
+from models.localisation.motion import Motion
 from models.localisation.repair import Learned, Named, own_trail_merges, window
 from service.maps.config import MapConfig, map_model
 from service.maps.recovery.memory import in_order, learned_rows
@@ -73,14 +74,19 @@ def _log(store: MapStore, closures: list[LoopClosure]) -> Iterator[Learned | Nam
         while k < len(others) and others[k].created_at < step.created_at:
             yield _named(others[k])
             k += 1
+        if isinstance(step, Visit) and step.row is not None:  # a row a warm-up join turned into a visit
+            yield Learned(step.stream, step.row, step.input_sdr, made=True, ref=step.row,
+                          motion=Motion.of(step.metadata))
+            continue
         if isinstance(step, Visit):
-            yield Learned(step.stream, step.seq, step.input_sdr, made=False, ref=step.id)
+            yield Learned(step.stream, step.seq, step.input_sdr, made=False, ref=step.id,
+                          prev=step.context_prev_seq, motion=Motion.of(step.metadata))
             continue
         mine = by_row.get(step.seq, [])
         for c in mine:
             yield Named(c.id, c.stream, c.place_seq)
         yield Learned(step.stream, step.seq, step.input_sdr, made=True, through=_through(step, joined, mine),
-                      ref=step.seq)
+                      ref=step.seq, motion=Motion.of(step.metadata))
     for c in others[k:]:
         yield _named(c)
 

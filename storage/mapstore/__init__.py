@@ -5,7 +5,8 @@ One SQLite file per map, so maps never contend for SQLite's single writer and a 
 servers as one directory. The file is the system of record: the in-memory TM and index are rebuilt
 from it (snapshot + replay, §4.4), so a row, once committed, is never changed or removed — triggers
 refuse UPDATE and DELETE on `observations`, and a restore replaces the whole file instead
-(`MapStore.install_copy`).
+(`MapStore.install_copy`). The one exception (schema 12): a warm-up join turns the row it joins into a
+visit, which replays it, and deletes the row in the same transaction (docs/design/science.md §11.8).
 
 Sequence numbers: `seq` is assigned here, strictly increasing and never reused. SQLite's own choice
 (max(rowid)+1) would reuse seqs after a restore rolls the file back, so the caller passes the

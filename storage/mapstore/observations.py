@@ -117,7 +117,7 @@ class Observations:
                     conn.executemany(f"INSERT INTO observations ({COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?,?)",
                                      params)
                     self._drop(conn, drops)
-                    self._join(conn, joins)
+                    gone = self._join(conn, joins)
                     self._touch(conn, touches)
                     self._resume(conn, resumes)
                     # The row's thumbnail and idempotency key commit with it, or nothing does.
@@ -138,7 +138,7 @@ class Observations:
                     conn.execute("PRAGMA synchronous=FULL")
             # Only after COMMIT returned: a failed commit consumes no seq and changes no counter.
             self._last_seq = first + len(params) - 1
-            self._count += len(params)
+            self._count += len(params) - gone
             return list(range(first, first + len(params)))
 
     def count(self) -> int:
@@ -153,7 +153,8 @@ class Observations:
                                           (int(seq),)).fetchone()[0])
 
     def last_seq(self) -> int:
-        """Highest stored seq (0 when empty); the seq floor is not counted."""
+        """Highest seq stored (a row held, or one a join turned into a visit, §11.8; 0 when empty); the seq
+        floor is not counted."""
         with self._lock:
             return self._last_seq
 

@@ -52,6 +52,8 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
         self._lock = threading.RLock()
         self._cell_dtype = meta.cell_dtype
         last, count = conn.execute("SELECT coalesce(max(seq), 0), count(*) FROM observations").fetchone()
+        if self.holds.joined_rows:  # a joined row turned into a visit was deleted: its seq stays handed out
+            last = max(int(last), int(conn.execute("SELECT coalesce(max(seq), 0) FROM joins").fetchone()[0]))
         self._last_seq = int(last)
         self._count = int(count)
         self._seq_floor = max(0, int(seq_floor))

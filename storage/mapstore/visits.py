@@ -9,6 +9,8 @@ import json
 import sqlite3
 from collections.abc import Iterable, Iterator
 
+import numpy as np
+
 from storage._common import transaction, utc_now
 from storage.mapschema import (
     INPUT_DTYPE,
@@ -64,7 +66,7 @@ class Visits:
                             conn.execute("DELETE FROM visit_keys WHERE visit <= ?",
                                          (visit_id - self.max_keys,))
                     clock = max(self._last_seq, self._seq_floor) + 1  # the seq the live step was given
-                    self._join(conn, [(str(visit.stream), j, self._last_seq) for j in visit.joins])
+                    gone = self._join(conn, [(str(visit.stream), j, self._last_seq) for j in visit.joins])
                     self._touch(conn, [(int(t), clock) for t in visit.touched])
                     if visit.resume is not None:
                         self._resume(conn, [(str(visit.stream), clock, visit.resume)])
@@ -74,27 +76,34 @@ class Visits:
                 if "visit_keys.key" in str(exc):
                     raise DuplicateObservation(str(exc)) from exc
                 raise
+            self._count -= gone  # only after COMMIT returned
             return visit_id
 
-    def visits(self, after_id: int = 0) -> Iterator[Visit]:
-        """Logged visits with id > `after_id`, in log order, read in pages (replay)."""
+    def visits(self, after_id: int = 0, rows_after: int = 0) -> Iterator[Visit]:
+        """Logged visits with id > `after_id`, in the order they were learned (their `after_seq`, then log
+        order: a joined row's visit, logged at its join, takes its row's place, §11.8), read in pages
+        (replay). `rows_after`: a joined row's visit only if its row is after it (a snapshot at that seq
+        learned the rows up to it)."""
         if not self.holds.visits:
             return
-        last = int(after_id)
+        row = "row_seq" if self.holds.joined_rows else "NULL"
+        last = (-1, 0)
         while True:
             with self._lock:
                 found = self._db().execute(
                     "SELECT id, after_seq, stream, seq, context_prev_seq, input_sdr, winner_cells, "
-                    "created_at, metadata FROM visits WHERE id > ? ORDER BY id LIMIT ?",
-                    (last, PAGE)).fetchall()
+                    f"created_at, metadata, {row} FROM visits WHERE id > ? AND (after_seq, id) > (?, ?) "
+                    f"AND coalesce({row}, ?) > ? ORDER BY after_seq, id LIMIT ?",
+                    (int(after_id), *last, int(rows_after) + 1, int(rows_after), PAGE)).fetchall()
             if not found:
                 return
             for r in found:
                 yield Visit(id=int(r[0]), after_seq=int(r[1]), stream=r[2], seq=int(r[3]),
                             context_prev_seq=None if r[4] is None else int(r[4]),
                             input_sdr=decode(r[5], INPUT_DTYPE), winner_cells=decode(r[6], self._cell_dtype),
-                            created_at=r[7], metadata=load_json(r[8]))
-            last = int(found[-1][0])
+                            created_at=r[7], metadata=load_json(r[8]),
+                            row=None if r[9] is None else int(r[9]))
+            last = (int(found[-1][1]), int(found[-1][0]))
 
     def visit_stats(self) -> tuple[int, int, int]:
         """(visits logged, the first id kept (0: none), the last id ever logged (0: none))."""
@@ -151,15 +160,65 @@ class Visits:
             conn.executemany("INSERT OR IGNORE INTO dropped (seq, reason, after_seq, created_at) "
                              "VALUES (?, ?, ?, ?)", [(*d, utc_now()) for d in drops])
 
-    def _join(self, conn: sqlite3.Connection, joins: list[tuple[str, tuple[int, int], int]]) -> None:
-        """Warm-up joins (stream, (row, old row), after_seq), each row dropped (`joined`) with it."""
-        if joins:
-            now = utc_now()
-            conn.executemany("INSERT INTO joins (seq, place_seq, stream, after_seq, created_at) "
-                             "VALUES (?, ?, ?, ?, ?)",
-                             [(int(row), int(old), stream, after, now)
-                              for stream, (row, old), after in joins])
-            self._drop(conn, [(int(row), "joined", after) for _, (row, _old), after in joins])
+    def _join(self, conn: sqlite3.Connection, joins: list[tuple[str, tuple[int, int], int]]) -> int:
+        """Warm-up joins (stream, (row, old row), after_seq), each row dropped (`joined`) with it; from
+        schema 12 each row that no loop closure or repair names is turned into a visit of the old row
+        (`visits.row_seq`, after the row before it) and deleted, so a join leaves no row behind (§11.8).
+        Returns how many rows were deleted."""
+        if not joins:
+            return 0
+        now = utc_now()
+        v12 = self.holds.joined_rows
+        oid = "(SELECT observation_id FROM observations WHERE seq = ?)" if v12 else "NULL"
+        conn.executemany(f"INSERT INTO joins (seq, place_seq, stream, after_seq, created_at"
+                         f"{', observation_id' if v12 else ''}) "
+                         f"VALUES (?, ?, ?, ?, ?{', ' + oid if v12 else ''})",
+                         [(int(row), int(old), stream, after, now, *((int(row),) if v12 else ()))
+                          for stream, (row, old), after in joins])
+        self._drop(conn, [(int(row), "joined", after) for _, (row, _old), after in joins])
+        if not v12:
+            return 0
+        gone = 0
+        for _, (row, old), _after in joins:
+            cur = conn.execute(
+                "INSERT INTO visits (after_seq, stream, seq, context_prev_seq, input_sdr, winner_cells, "
+                "metadata, created_at, row_seq) SELECT o.seq - 1, o.stream, ?, o.context_prev_seq, "
+                "o.input_sdr, o.winner_cells, o.metadata, o.created_at, o.seq FROM observations o "
+                "WHERE o.seq = ? AND NOT EXISTS (SELECT 1 FROM loop_closures c WHERE c.seq = o.seq "
+                "OR c.place_seq = o.seq) AND NOT EXISTS (SELECT 1 FROM repairs r WHERE r.seq = o.seq)",
+                (int(old), int(row)))
+            if cur.rowcount:
+                for table in ("thumbnails", "keyframes", "recency", "observations"):
+                    conn.execute(f"DELETE FROM {table} WHERE seq = ?", (int(row),))
+                gone += 1
+        return gone
+
+    def observation_id(self, seq: int) -> str | None:
+        """The observation id of row `seq`, held or joined away (a warm-up join turned it into a visit,
+        schema 12); None: no such row in this file."""
+        with self._lock:
+            db = self._db()
+            r = db.execute("SELECT observation_id FROM observations WHERE seq = ?", (int(seq),)).fetchone()
+            if r is None and self.holds.joined_rows:
+                r = db.execute("SELECT observation_id FROM joins WHERE seq = ?", (int(seq),)).fetchone()
+        return None if r is None else r[0]
+
+    def code(self, seq: int) -> np.ndarray | None:
+        """Row `seq`'s frame code (`input_sdr`), held or joined away (its visit's, schema 12); None: none."""
+        with self._lock:
+            db = self._db()
+            r = db.execute("SELECT input_sdr FROM observations WHERE seq = ?", (int(seq),)).fetchone()
+            if r is None and self.holds.joined_rows:
+                r = db.execute("SELECT input_sdr FROM visits WHERE row_seq = ?", (int(seq),)).fetchone()
+        return None if r is None else decode(r[0], INPUT_DTYPE)
+
+    def joined_to(self, seq: int) -> int | None:
+        """The old row whose place row `seq` joined (a warm-up join), or None."""
+        if not self.holds.joins:
+            return None
+        with self._lock:
+            r = self._db().execute("SELECT place_seq FROM joins WHERE seq = ?", (int(seq),)).fetchone()
+        return None if r is None else int(r[0])
 
     def joins(self) -> list[tuple[int, int]]:
         """The warm-up joins (row, old row whose place it joined) in log order (docs/design/science.md
@@ -189,9 +248,11 @@ class Visits:
             # place's cap, had left the memory; a row a repair re-made is no step of it).
             split = ("SELECT seq FROM repairs WHERE kind = 'split'" if self.holds.repairs
                      else "SELECT NULL WHERE 0")
+            rows = ("(SELECT seq, stream FROM observations UNION ALL SELECT row_seq, stream FROM visits "
+                    "WHERE row_seq IS NOT NULL)") if self.holds.joined_rows else "observations"
             out += [f"join of row {r[0]}: {r[1]} held rows of its stream since, the reach is {reach}"
                     for r in db.execute(
-                        "SELECT j.seq, (SELECT count(*) FROM observations o WHERE o.stream = j.stream "
+                        f"SELECT j.seq, (SELECT count(*) FROM {rows} o WHERE o.stream = j.stream "
                         "AND o.seq > j.seq AND o.seq <= j.after_seq AND NOT EXISTS (SELECT 1 FROM dropped d "
                         "WHERE d.seq = o.seq AND d.after_seq < j.after_seq) "
                         f"AND o.seq NOT IN ({split})) AS n FROM joins j WHERE n >= ?", (int(reach),))]

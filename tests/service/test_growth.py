@@ -5,6 +5,7 @@ warmed up are joined to the places its confident path then names, durably (recov
 
 from __future__ import annotations
 
+import json
 import sqlite3
 
 import cv2
@@ -128,3 +129,90 @@ def test_verify_checks_the_joins(tmp_path):
     conn.close()
     check = verify_map(catalog, catalog.get_map("default"))
     assert not check.ok and any(f"join of row {row}" in p for p in check.problems)
+
+
+def test_map_sqlite_does_not_grow_drive_after_drive(tmp_path):
+    """A joined warm-up row is turned into a visit of the old row it joined and deleted in the join's
+    transaction (schema 12, docs/design/science.md §11.8): drive after restarted drive, the rows in
+    map.sqlite stay the first drive's (before: its warm-up's rows stayed, joined but on disk, each drive)."""
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        setup(c)
+        drive(c)
+        rt = c.app.state.registry.get("default")
+        rows, counts = rt.store.count(), []
+        for _ in range(4):
+            restart(c)
+            drive(c)
+            counts.append(rt.store.count())
+        joins = rt.store.joins()
+        assert len(joins) >= 8 and counts == [rows] * 4
+        assert all(rt.store.get(row) is None and rt.store.joined_to(row) == old for row, old in joins)
+        assert {v.row for v in rt.store.visits() if v.row is not None} == {row for row, _ in joins}
+        before = shape(c)
+    with make_client(data) as c:  # a restart rebuilds the same map from the rows and the visits
+        assert shape(c) == before
+    check = verify_map(open_catalog(data), open_catalog(data).get_map("default"))
+    assert check.ok, check
+
+
+def recovers_from(data, snap: str, before: tuple) -> None:
+    """After a kill -9: the map comes back from snapshot `snap`, as it was (`shape` `before`)."""
+    with make_client(data, snapshot_every=0) as c:
+        assert shape(c) == before
+        note = c.get("/v1/maps/default").json()["recovery"]
+        assert note["source"] == "snapshot" and note["snapshot_id"] == snap, note
+
+
+def test_a_crash_after_the_join_recovers_from_a_snapshot_taken_before_it(tmp_path):
+    """The snapshot holds the warm-up rows' learning; the join after it turns them into visits and
+    deletes them; a kill -9 then: the recovery starts at the snapshot and does not replay those visits
+    again (their rows are at or before its seq), and gives the map the crash left."""
+    data = tmp_path / "data"
+    with make_client(data, snapshot_every=0) as c:
+        _, warm = two_drives(c, second=LAP[:3])
+        snap = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        drive(c, places=LAP[3:])
+        rt = c.app.state.registry.get("default")
+        assert all(rt.store.get(b["seq"]) is None for b in warm)  # joined away after the snapshot
+        before = shape(c)
+        crash(c)
+    recovers_from(data, snap, before)
+
+
+def test_a_snapshot_whose_last_row_was_joined_away_is_still_the_maps(tmp_path):
+    """A snapshot's last row may be a warm-up row joined away before it was taken: the recovery still
+    knows the snapshot as this file's (by the join's record of the row's observation id), and replays
+    the rows and joins after it."""
+    data = tmp_path / "data"
+    with make_client(data, snapshot_every=0) as c:
+        two_drives(c)
+        rt = c.app.state.registry.get("default")
+        last = rt.store.last_seq()
+        assert rt.store.get(last) is None and rt.store.joined_to(last) is not None
+        snap = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        restart(c)
+        drive(c)  # a third drive: its warm-up rows and joins are after the snapshot
+        before = shape(c)
+        crash(c)
+    recovers_from(data, snap, before)
+    check = verify_map(open_catalog(data), open_catalog(data).get_map("default"))
+    assert check.ok, check
+
+
+def test_a_parked_robot_rehearses_its_row_and_a_repair_lists_no_merge(tmp_path):
+    """A robot with poses that parks: the frames of its stop are visits of the row it made on arriving
+    (a rehearsal, §11.6; before: a row per frame), and a repair, which lists visits into a stream's own
+    recent rows, does not take a rehearsal for a merge."""
+    def at(p: int, x: float, t: int) -> dict:
+        meta = json.dumps({"stamp": float(t), "pose": {"x": x, "y": 0.0}})
+        return post(c, view(p), stream="robot", learn="true", top_k=0, metadata=meta).json()
+
+    with make_client(tmp_path / "data") as c:
+        setup(c)
+        [at(p, 2.0 * p, p) for p in LAP[:10]]
+        stop = [at(10, 20.0 + 0.01 * k, 10 + k) for k in range(20)]
+        arrived = stop[0]["seq"]
+        assert arrived is not None and [b["consolidated_into"] for b in stop[1:]] == [arrived] * 19
+        listed = c.get("/v1/maps/default/repair").json()
+        assert listed["splits"] == [] and listed["unjoins"] == [] and listed["retractions"] == []

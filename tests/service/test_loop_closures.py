@@ -97,10 +97,12 @@ def test_a_restart_between_laps_keeps_the_stream_and_its_trail(tmp_path):
 
 def test_the_loop_closure_log_pages_exports_and_survives_a_restart(tmp_path):
     data = tmp_path / "data"
-    meta = {"stamp": 1700000000.5, "pose": {"x": 1.0, "y": 2.0, "yaw": 0.1}}
+    # lap 1 posed 2 m a frame (a pose that never changes is a robot that never moved: one row, §11.6)
+    metas = [{"stamp": 1700000000.5 + p, "pose": {"x": 1.0 + 2.0 * p, "y": 2.0, "yaw": 0.1}} for p in LAP]
     with make_client(data) as c:
         patched(c)
-        lap1 = drive(c, LAP, noise=0.0, metadata=json.dumps(meta))
+        lap1 = [post(c, frame(p), stream="mapper", learn="true", top_k=0, metadata=json.dumps(m)).json()
+                for p, m in zip(LAP, metas, strict=True)]
         lap2 = drive(c, LAP, metadata=json.dumps({"stamp": "1700000100.25"}))
         localised = drive(c, LAP, stream="robot", learn="false")
         page = c.get("/v1/maps/default/loop-closures", params={"limit": 500}).json()
@@ -114,6 +116,7 @@ def test_the_loop_closure_log_pages_exports_and_survives_a_restart(tmp_path):
         + [("robot", None, b["place"]["seq"]) for b in loc])
     first = log[0]
     assert first["confidence"] >= THRESHOLD and first["support"] >= 1
+    meta = next(m for m, b in zip(metas, lap1, strict=True) if b["seq"] == first["place"]["seq"])
     assert first["place"]["metadata"] == meta and first["metadata"] == {"stamp": "1700000100.25"}
     assert first["observation_id"] == learned[0]["observation_id"]
     assert first["place"]["observation_id"] == next(b["observation_id"] for b in lap1
@@ -133,8 +136,9 @@ def test_the_loop_closure_log_pages_exports_and_survives_a_restart(tmp_path):
     rows = list(csv.DictReader(io.StringIO(text.text)))
     records = [json.loads(line) for line in lines.text.splitlines()]
     assert len(rows) == len(records) == len(log)
-    assert records[0]["stamp"] == 1700000100.25 and records[0]["place_stamp"] == 1700000000.5
-    assert (records[0]["place_x"], records[0]["place_y"], records[0]["place_yaw"]) == (1.0, 2.0, 0.1)
+    assert records[0]["stamp"] == 1700000100.25 and records[0]["place_stamp"] == meta["stamp"]
+    assert (records[0]["place_x"], records[0]["place_y"], records[0]["place_yaw"]) == (
+        meta["pose"]["x"], 2.0, 0.1)
     assert records[0]["x"] is None and rows[0]["x"] == ""
     assert float(rows[0]["stamp"]) == 1700000100.25 and rows[0]["place_observation_id"] == \
         log[0]["place"]["observation_id"]

@@ -109,7 +109,14 @@ def test_a_row_s_place_and_the_rows_it_dropped_commit_with_it(store: MapStore) -
 
 
 #: What version 9 added, undone (every older file lacks it).
-V9_UNDONE = "DROP TABLE repairs; ALTER TABLE loop_closures DROP COLUMN retracts;"
+#: What version 12 added, undone (every older file fabricated here lacks it): the visits' `row_seq`, the
+#: joins' `observation_id`, the replay-order indexes, the delete triggers that let a joined row go.
+V12_UNDONE = "DROP INDEX visits_learned; DROP INDEX visits_row; ALTER TABLE visits DROP COLUMN row_seq; " \
+    "ALTER TABLE joins DROP COLUMN observation_id; " + "".join(
+        f"DROP TRIGGER {t}_no_delete; CREATE TRIGGER {t}_no_delete BEFORE DELETE ON {t} "
+        f"BEGIN SELECT RAISE(ABORT, '{t} are append-only'); END;"
+        for t in ("observations", "thumbnails", "keyframes"))
+V9_UNDONE = V12_UNDONE + "DROP TABLE repairs; ALTER TABLE loop_closures DROP COLUMN retracts;"
 
 
 def _as_version(path: Path, version: int, changes: str) -> None:
@@ -275,3 +282,36 @@ def test_verify_counts_only_the_rows_held_when_a_join_was_made(store: MapStore) 
     # rows 3-5 were made after row 2, row 3 dropped before the join: 2 held, within the reach of 3
     assert store.join_problems(reach) == []
     assert [p.split(":")[0] for p in store.join_problems(reach - 1)] == ["join of row 2"]
+
+
+def test_a_join_turns_its_row_into_a_visit_and_deletes_it_and_its_seq_is_never_handed_out_again(
+        tmp_path: Path, meta: MapMeta) -> None:
+    """Schema 12 (docs/design/science.md §11.8): the join, in its transaction, logs the joined row's frame
+    as a visit of the old row (`row` = its seq, replayed as that row: after the row before it, before
+    the rows after it) and deletes the row, its thumbnail and keyframe; the row's code and observation id
+    are still read (the own-trail rule, a snapshot's last row), its seq is never handed out again, and
+    the file's triggers let only a joined row go. Before: the row stayed, one a drive."""
+    path = tmp_path / "map.sqlite"
+    with MapStore.create(path, meta) as store:
+        store.append(make_row(1, stream="old"))
+        store.append(dataclasses.replace(make_row(2, stream="a"), thumbnail=b"jpeg"))  # the warm-up row
+        store.add_visit(NewVisit(stream="a", seq=1, context_prev_seq=2, input_sdr=np.arange(3),
+                                 winner_cells=np.arange(3)))  # (a visit logged before the join)
+        store.append(make_row(3, stream="a", prev=2))
+        store.append(dataclasses.replace(make_row(4, stream="a", prev=3), joins=((2, 1),)))
+        assert store.get(2) is None and store.count() == 3 and store.thumbnail(2) is None
+        # the joined row first (where it was learned), then the visit logged after it
+        assert [(v.seq, v.row, v.after_seq) for v in store.visits()] == [(1, 2, 1), (1, None, 2)]
+        assert store.observation_id(2) == "obs-00000002" and store.joined_to(2) == 1
+        assert np.array_equal(store.code(2), make_row(2).input_sdr)
+        assert [(v.row, v.id) for v in store.visits(rows_after=2)] == [(None, 1)]  # a snapshot at 2 holds it
+        assert store.join_problems(15) == [] and store.dropped()[2] == "joined"
+    conn = sqlite3.connect(path)
+    with pytest.raises(sqlite3.IntegrityError, match="append-only"):
+        conn.execute("DELETE FROM observations WHERE seq = 3")  # a row no join names stays
+    conn.close()
+    with MapStore.open(path) as store:
+        store.append(make_row(5, stream="a", prev=4))
+        store.append(dataclasses.replace(make_row(6, stream="a", prev=5), joins=((5, 1),)))
+    with MapStore.open(path) as store:  # the newest row joined away: its seq stays used
+        assert store.count() == 4 and store.last_seq() == 6 and store.next_seq() == 7

@@ -124,15 +124,18 @@ class Replay:
             out.streams.move_to_end(row.stream)  # most recently used last, as the live map keeps them
             out.replayed_streams.add(row.stream)
             prev = row.context_prev_seq
-            if isinstance(row, Visit):
+            if isinstance(row, Visit) and row.row is None:
                 winners = pipeline.revisit(model, st, row.input_sdr, row=row.seq, prev_seq=prev)
                 out.visits += 1
+            elif isinstance(row, Visit):  # a row a warm-up join turned into a visit: the row's step (§11.8)
+                winners = pipeline.replay(model, st, row.input_sdr, seq=row.row, prev_seq=prev)
+                out.replayed += 1
             else:
                 winners = pipeline.replay(model, st, row.input_sdr, seq=row.seq, prev_seq=prev)
                 out.replayed += 1
                 out.last_seq = row.seq
             if not np.array_equal(winners, row.winner_cells):
-                out.mismatches.append(row.seq)
+                out.mismatches.append(row.row if isinstance(row, Visit) and row.row is not None else row.seq)
                 if self.stop_at_mismatch:
                     self.finished = True
                     return True
@@ -185,10 +188,8 @@ def _snapshot_start(store: MapStore, catalog: Catalog, rec: SnapshotRecord
     """
     path = catalog.snapshot_dir(rec)
     m = snapshots.verify(path)
-    if m.seq > 0:
-        row = store.get(m.seq)
-        if row is None or row.observation_id != m.last_observation_id:
-            return None
+    if m.seq > 0 and store.observation_id(m.seq) != m.last_observation_id:  # (held or joined away)
+        return None
     memory = snapshots.load_memory(path)
     cursor = int(memory.get(VISIT_CURSOR, 0))
     last = store.visit_stats()[2]
@@ -245,7 +246,8 @@ def begin(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> Tai
                 continue  # from a branch a restore abandoned
             m, memory = start
             cursor = int(memory.get(VISIT_CURSOR, 0))
-            replay = Replay(memory, learned_rows(store, m.seq), like, visits=store.visits(after_id=cursor))
+            replay = Replay(memory, learned_rows(store, m.seq), like,
+                            visits=store.visits(after_id=cursor, rows_after=m.seq))
         except Exception as e:  # an unusable snapshot is passed over, never fatal
             _pass_over(map_id, rec.snapshot_id, str(e) or type(e).__name__, skipped)
             continue
@@ -297,7 +299,7 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel, *,
                 continue  # from a branch a restore abandoned
             m, memory = start
             done = rebuild(memory, learned_rows(store, m.seq), like,
-                           visits=store.visits(after_id=int(memory.get(VISIT_CURSOR, 0))))
+                           visits=store.visits(after_id=int(memory.get(VISIT_CURSOR, 0)), rows_after=m.seq))
         except Exception as e:  # an unusable snapshot is passed over, never fatal
             reason = str(e) or type(e).__name__
         else:
@@ -447,7 +449,7 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
                     start, after_seq, after_id = memory, m.seq, int(memory.get(VISIT_CURSOR, 0))
             if start is not None:
                 done = rebuild(start, learned_rows(store, after_seq), like, stop_at_mismatch=False,
-                               visits=store.visits(after_id=after_id),
+                               visits=store.visits(after_id=after_id, rows_after=after_seq),
                                progress=None if progress is None else lambda n: progress(n, total))
                 out.rows, out.mismatches = done.replayed, done.mismatches
     except (StorageError, OSError) as e:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import heapq
 import logging
 import math
 import time
@@ -179,8 +180,11 @@ class Recovering:
         dropped = self.store.dropped()
         held: list[_Held] = []
 
+        # a row a warm-up join turned into a visit is that row again (docs/design/science.md §11.8)
+        joined = [v.as_row() for v in self.store.visits() if v.row is not None]
+
         def rows() -> Iterator[Observation]:  # the rows read once, for the links and the index (issue 40)
-            for r in self.store.rows():  # type: ignore[union-attr]
+            for r in heapq.merge(self.store.rows(), joined, key=lambda o: o.seq):  # type: ignore[union-attr]
                 if r.seq not in dropped:
                     held.append(_Held(r.seq, r.winner_cells, r.stream))
                 yield r
@@ -190,7 +194,7 @@ class Recovering:
         done = self.store.repairs()
         split = {r.visit for r in done if r.kind == "split"}
         visits = ((v.context_prev_seq, NONE if v.id in split else v.seq, v.after_seq + 1, v.stream,
-                   v.input_sdr, Motion.of(v.metadata)) for v in self.store.visits())
+                   v.input_sdr, Motion.of(v.metadata)) for v in self.store.visits() if v.row is None)
         self.model.links.rebuild(rows(), dropped, self.store.joined(), visits, self.store.recency(),
                                  remade={r.seq for r in done if r.kind == "split"},
                                  unjoined={r.seq for r in done if r.kind == "unjoin"},

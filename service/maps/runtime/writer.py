@@ -287,6 +287,9 @@ class Writer:
         t3 = time.perf_counter()
         place = step.place
         rows = self.store.get_many([*(m.seq for m in step.ranked), *([place.seq] if place else [])])
+        if place is not None and place.seq not in rows:  # a path on a row a join turned into a visit:
+            place = place._replace(seq=self.store.joined_to(place.seq))  # its place's old row (§11.8)
+            rows.update(self.store.get_many([place.seq]))
         if query is not None and query.camera is not None:
             self.cameras[stream] = query.camera
             if len(self.cameras) > self.settings.max_streams:  # bounded: the cameras of the streams held
@@ -375,10 +378,10 @@ class Writer:
             self._codes.move_to_end(seq)
             return code
         assert self.store is not None
-        row = self.store.get(seq)
-        assert row is not None  # the rule walks the stream's committed rows
-        self._keep_code(seq, row.input_sdr)
-        return row.input_sdr
+        code = self.store.code(seq)  # (a joined row's from its visit, §11.8)
+        assert code is not None  # the rule walks the stream's committed rows
+        self._keep_code(seq, code)
+        return code
 
     def _keep_code(self, seq: int, code: np.ndarray) -> None:
         self._codes[seq] = code

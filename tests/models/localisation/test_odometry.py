@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 
 from models.localisation import Localisation
-from models.localisation.options import LocaliserOptions
 from models.localisation.motion import Motion
 from models.localisation.odometry import NO_READING, Odometer, Reading, RowOdometry
+from models.localisation.options import LocaliserOptions
 
 CONF = LocaliserOptions()  # drift 0.2, slack 5 m, gap 60 s, max speed 50 m/s
 

@@ -101,13 +101,13 @@ def test_the_writer_reads_no_stored_code_back_for_the_own_trail_of_a_drive(tmp_p
     the answers are those of a writer that reads it back."""
     def drive(reg, reads: list[int]) -> list:
         rt = reg.get("default")
-        real = rt.store.get
+        real = rt.store.code  # (a row's code, or a joined row's from its visit)
 
-        def get(seq):
+        def code(seq):
             reads.append(seq)
             return real(seq)
 
-        monkeypatch.setattr(rt.store, "get", get)
+        monkeypatch.setattr(rt.store, "code", code)
         frames = route(6)
         out = [step(rt, f) for f in frames + frames]  # the route twice: the second lap revisits
         return [(r.seq, r.consolidated_into, [m.seq for m in r.matches], r.place) for r in out]

@@ -1,0 +1,101 @@
+"""A stream with poses makes a new row only after it has moved (issue 35 item 1, issue 36; docs/design/
+science.md §11.6): a learned frame whose pose is within `move_metres` of its stream's last move is a visit
+of the row the stream is at, a rehearsal: the memory learns it, the answer is the same, no row is made;
+replayed, it gives the same memory. Without poses appearance cannot tell a robot that stands from a
+stretch of alike places, and every frame is a row as before."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from models.localisation import LocaliserOptions
+from models.localisation.motion import NO_MOTION, Motion
+from models.pipeline import MapModel, Stream, observe, replay, revisit
+from models.presets import TmOptions
+
+TM = {"columnDimensions": 128, "cellsPerColumn": 4, "maxSegmentsPerCell": 4, "maxSynapsesPerSegment": 16,
+      "activationThreshold": 3, "minThreshold": 2, "seed": 3}
+K, S = 64, 0.1
+
+
+def model(**localiser) -> MapModel:
+    return MapModel.new(TmOptions.of(TM), LocaliserOptions.of(localiser), max_observations=1000, s=S)
+
+
+def run(m: MapModel, frames, motions=None, threshold: float | None = 0.9) -> list:
+    """Learn `frames` as stream "a" (each with its motion): the steps."""
+    st, codes, steps = Stream(), {}, []
+    seq = 1
+    for i, y in enumerate(frames):
+        step = observe(m, st, y, learn=True, stream="a", top_k=3, seq=seq, code_of=codes.__getitem__,
+                       threshold=threshold, motion=NO_MOTION if motions is None else motions[i])
+        steps.append(step)
+        if step.visit is None:
+            codes[seq] = step.code
+            seq += 1
+    return steps
+
+
+def route(n: int = 20, seed: int = 9) -> np.ndarray:
+    """A drive of `n` unlike views."""
+    return np.random.default_rng(seed).normal(size=(n, K)).astype(np.float32)
+
+
+def noisy(base: np.ndarray, n: int, sigma: float, seed: int) -> np.ndarray:
+    return (base + sigma * np.random.default_rng(seed).normal(size=(n, K))).astype(np.float32)
+
+
+def posed(n: int, metres: float, start: float = 0.0) -> list[Motion]:
+    """`n` frames a second apart, `metres` apart along x from `start`."""
+    return [Motion((start + metres * i, 0.0), float(i)) for i in range(n)]
+
+
+def parked() -> tuple[np.ndarray, list[Motion]]:
+    """A drive of 20 frames 2 m apart, then 60 frames of one view with sensor noise, standing (its pose
+    within a few cm of where it stopped)."""
+    here = np.random.default_rng(1).normal(size=K)
+    frames = np.concatenate([route(), noisy(here, 60, 0.05, 2)])
+    stop = [Motion((40.0 + 0.02 * np.sin(i), 0.0), 20.0 + i) for i in range(60)]
+    return frames, posed(20, 2.0) + stop
+
+
+def test_a_parked_robot_with_poses_makes_one_row_and_rehearses_it() -> None:
+    """Before: 60 rows of the stop (each in the stream's short-term memory); now the stop's first
+    frame's row and 59 visits of it."""
+    frames, motions = parked()
+    m = model()
+    steps = run(m, frames, motions)
+    assert all(s.visit is None for s in steps[:21])
+    assert [s.visit for s in steps[21:]] == [21] * 59
+    assert len(m.index) == 21 and m.links.held == 21 and m.links.visits == 59
+    rows = model()
+    rows_steps = run(rows, frames)  # the same frames without poses: a row each, as before
+    assert all(s.visit is None for s in rows_steps) and len(rows.index) == 80
+    assert not any(s.place is not None and s.place.is_revisit(0.9) for s in steps)  # standing: no revisit
+
+
+def test_a_slow_robot_with_poses_makes_a_row_per_move_metres_whatever_the_view() -> None:
+    """Creeping at 0.25 m a frame through changing views: a row every metre (`move_metres` 1), the frames
+    between rehearse the newest row; frames 2 m apart are a row each even where they look the same."""
+    steps = run(model(), route(), posed(20, 0.25))
+    assert [i for i, s in enumerate(steps) if s.visit is None] == [0, 4, 8, 12, 16]
+    assert all(s.visit == s.prev_seq for s in steps if s.visit is not None)  # the row it is at
+    same = np.repeat(route(1), 3, axis=0)
+    assert [s.visit for s in run(model(), same, posed(3, 2.0))] == [None, None, None]
+
+
+def test_a_rehearsal_replays_to_the_same_memory_and_without_posed_memory_every_frame_is_a_row() -> None:
+    frames, motions = parked()
+    m = model()
+    steps = run(m, frames, motions)
+    again, st = m.fresh(model().tm), Stream()
+    seq = 0
+    for s in steps:  # rows and visits again, in the order they were learned
+        if s.visit is None:
+            seq += 1
+            winners = replay(again, st, s.code, seq=seq, prev_seq=s.prev_seq)
+        else:
+            winners = revisit(again, st, s.code, row=s.visit, prev_seq=s.prev_seq)
+        assert np.array_equal(winners, s.winners)
+    for off in ({"short_term_metres": 0.0}, {"short_term": 0}):  # poses play no part, or no memory
+        assert all(s.visit is None for s in run(model(**off), frames, motions)), off
