@@ -199,24 +199,33 @@ class Localisation:
         level = self.codes.level(code, float(self.options.departure))
         memory.add(row, anchor.move(code, level, motion, self.options), stream)
 
-    def stays(self, stream: str, code: np.ndarray, motion: Motion = NO_MOTION) -> bool:
-        """Whether a learned frame of `stream` (`code` (n,) sorted, its `motion`) has not moved: it and
-        the stream's last move carry poses (`short_term_metres` > 0) and it is no move of the short-term
-        memory (`Anchor.move` None: its pose within `move_metres` of that move's; a step faster than
-        `max_speed` is judged as the memory judges it), §11.6. Such a frame is a rehearsal of the row its
-        stream is at, not a row of its own (RTAB-Map's rehearsal). Without poses, False: appearance
-        cannot tell a robot that stands from a stretch whose places look alike (measured, docs/results.md
-        §11: at the `departure` level a Nordland frame and its copy with pixel noise of σ 8 read as a
-        move, frames 5 apart as none on 9 % of the route; rehearsing those merged places). Changes
-        nothing (the move is judged on a copy of the anchor; the frame's own step judges it again)."""
-        anchor = self._anchors.get(stream) if self.short_term else None
+    def moves(self, anchor: Anchor, code: np.ndarray, motion: Motion = NO_MOTION) -> bool:
+        """Whether a frame (`code` (n,) sorted, its `motion`) moved the stream whose last move `anchor`
+        holds, learning or not (§11.6); the anchor takes the frame where it is a move. It has not moved
+        only where it and the anchor carry poses (`short_term_metres` > 0) and `Anchor.move` finds no
+        move (its pose within `move_metres` of that move's; a step faster than `max_speed` judged as the
+        memory judges it). Without poses, moved: appearance cannot tell a robot that stands from a
+        stretch whose places look alike (measured, docs/results.md §11: at the `departure` level a
+        Nordland frame and its copy with pixel noise of σ 8 read as a move, frames 5 apart as none on
+        9 % of the route; rehearsing those merged places, and a localiser that expected such frames to
+        stay called 8 false revisits while mapping on the held-out route, docs/results.md §10.15).
+        Without a memory (`short_term` 0) every frame moves."""
         conf = self.options
-        if (anchor is None or anchor.code is None or anchor.pose is None or motion.pose is None
-                or conf.short_term_metres <= 0):
-            return False
+        if not self.short_term:
+            return True
+        posed = anchor.pose is not None and motion.pose is not None and conf.short_term_metres > 0
         code = np.asarray(code, np.int64)
-        level = self.codes.level(code, conf.departure)
-        return copy.copy(anchor).move(code, level, motion, conf) is None
+        moved = anchor.move(code, self.codes.level(code, conf.departure), motion, conf) is not None
+        return moved or not posed
+
+    def stays(self, stream: str, code: np.ndarray, motion: Motion = NO_MOTION) -> bool:
+        """Whether a learned frame of `stream` has not moved since its short-term memory's last move
+        (`moves`): a rehearsal of the row its stream is at, not a row of its own (RTAB-Map's
+        rehearsal), §11.6. False before the stream's first move. Changes nothing (judged on a copy of
+        the anchor; the frame's own step judges it again)."""
+        anchor = self._anchors.get(stream) if self.short_term else None
+        return (anchor is not None and anchor.code is not None
+                and not self.moves(copy.copy(anchor), code, motion))
 
     def short_term_rows(self, trail: str) -> np.ndarray:
         """(m,) int64 ascending: the rows `trail`'s streams made over its last moves and still held,
@@ -385,7 +394,7 @@ class Localisation:
                                         informative)
 
     def step(self, state: LocaliserState, ranked: Sequence[Match], own: OwnTrail | None,
-             informative: bool = True) -> Place | None:
+             informative: bool = True, moved: bool = True) -> Place | None:
         """One frame of one stream (docs/design/science.md §11.2), before this frame is stored.
 
         Args:
@@ -401,7 +410,7 @@ class Localisation:
         """
         seqs = np.fromiter((m.seq for m in ranked), np.int64, len(ranked))
         scores = np.fromiter((m.score for m in ranked), np.float64, len(ranked))
-        return self.localiser.step(state, self.graph, seqs, scores, own, informative)
+        return self.localiser.step(state, self.graph, seqs, scores, own, informative, moved)
 
 
 def _recent(kept: OrderedDict[str, T], key: str, new: Callable[[], T]) -> T:

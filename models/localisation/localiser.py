@@ -287,7 +287,8 @@ class SequenceLocaliser:
                          self.options.exclusion, informative)
 
     def step(self, state: LocaliserState, graph: SequenceGraph, seqs: np.ndarray,
-             scores: np.ndarray, own: OwnTrail | None = None, informative: bool = True) -> Place | None:
+             scores: np.ndarray, own: OwnTrail | None = None, informative: bool = True,
+             moved: bool = True) -> Place | None:
         """Advance one stream by one frame and answer its place.
 
         Args:
@@ -330,7 +331,12 @@ class SequenceLocaliser:
 
         new_rows, new_dirs, new_scores, new_ages, new_born = [], [], [], [], []
         cur = rows
-        for m, cost in enumerate(self.move_costs):
+        # A frame that is no move of the stream (`moved` False: it and its last move posed, within
+        # `move_metres`, §11.6) is expected to stay where it was: every cost one step down, staying as
+        # cheap as one step usually is. With poses rows are made per move (§11.6's rehearsal), so a robot
+        # slower than its map, or standing, follows it at its own pace instead of paying a stay per frame.
+        costs = self.move_costs if moved or self.move_costs.size < 2 else self.move_costs[1:]
+        for m, cost in enumerate(costs):
             if m:
                 cur = graph.walk(cur, dirs, 1)
             ok = cur >= 0

@@ -239,7 +239,8 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                               exclude_own=None if own is None or not own.has_trail else (stream, own.here),
                               weights=weights)
     t_ranked = time.perf_counter()
-    place = model.links.step(st.localiser, ranked, own, not flat)
+    moved = model.links.moves(st.mover, code, motion)
+    place = model.links.step(st.localiser, ranked, own, not flat, moved)
     visit, joined, dropped, touched, joins = None, -1, (), [], []
     if learn:
         assert seq is not None

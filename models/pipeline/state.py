@@ -15,6 +15,7 @@ import numpy as np
 from models.frontend.adaptation import RunningMean
 from models.localisation import LocaliserState
 from models.localisation.condition import Condition
+from models.localisation.short_term import Anchor
 from models.memory.temporal_memory import StreamContext, TemporalMemory
 
 __all__ = ["Stream", "eviction_wait", "load_memory_state", "memory_state", "resume", "resume_state", "touch"]
@@ -37,6 +38,9 @@ class Stream:
     own_seq: int | None = None
     # How often each code bit was on in the stream's recent frames (docs/design/science.md §11.10).
     condition: Condition | None = None
+    # Its last move, learning or not (docs/design/science.md §11.2 step 2, §11.6): the localiser's steps
+    # follow its moves. Not stored: after a restart its first frame is a move.
+    mover: Anchor = field(default_factory=Anchor)
 
     def new_sequence(self, context: bool = True) -> None:
         """The one rule of a sequence's start (docs/design/service.md §1.3): no step counted, no learned

@@ -539,3 +539,25 @@ def test_a_frame_with_no_information_leaves_no_row_of_the_own_trail() -> None:
     assert state.here == state_here  # unlike every row, but a flat frame says nothing of leaving
     loc.own_trail(state, graph, 5, codes[9], lambda r: codes[0], stats)
     assert state.here == 6  # an informative frame unlike the stop leaves it all
+
+
+def test_a_query_slower_than_its_map_is_followed_sharply_where_its_frames_say_it_has_not_moved() -> None:
+    # docs/design/science.md §11.2 step 2: rows are made per move (1 m, §11.6), so a robot at 1/6 of a
+    # row a frame shows each row six times. Told which frames are no move (its poses), the filter expects
+    # them to stay, and is sure of the row; charged a stay on each, it is not.
+    n, per = 60, 6
+    truth = np.repeat(np.arange(n), per)
+    S = place_similarity(np.arange(n), truth, noise=0.25, seed=3)
+    moved = np.arange(truth.size) % per == 0
+    answers = {}
+    for told in (True, False):
+        loc, graph = SequenceLocaliser(), SequenceGraph.chain(n)
+        state = loc.new_state()
+        answers[told] = [loc.step(state, graph, np.arange(n), S[:, j], moved=bool(moved[j]) or not told)
+                         for j in range(truth.size)]
+    right = {t: np.mean([p is not None and abs(p.seq - r) <= 1 for p, r in zip(a, truth, strict=True)][30:])
+             for t, a in answers.items()}
+    called = {t: np.mean([p is not None and p.is_revisit(REVISIT) for p in a][30:])
+              for t, a in answers.items()}
+    assert right[True] > 0.95 and called[True] > 0.8
+    assert called[False] < called[True] - 0.2, called
