@@ -604,6 +604,8 @@ def eval_slam(
     suite: Annotated[bool, typer.Option(help="the stress suite instead (service/evaluation/stress.py): "
                                              "every window of both halves, 3 seeds")] = False,
     quick: Annotated[bool, typer.Option(help="with --suite: one window, four cases, two seeds")] = False,
+    threshold: Annotated[float | None, typer.Option(min=0.0, max=1.0, help="with --suite: the maps' "
+                                                    "revisit_threshold (default: a new map's)")] = None,
 ) -> None:
     """Loop closure while mapping on routes made from the Nordland halves, or the grid world's loops
     (service/evaluation/slam.py); `--suite`: the loop-closure stress suite (service/evaluation/stress.py)."""
@@ -615,7 +617,7 @@ def eval_slam(
         if data is None:
             raise typer.BadParameter("--suite needs --data (the Nordland folder)")
         stress.suite_runs(data=data, quick=quick, backbone=backbone, json_path=json_out,
-                          localiser=_json_object(localiser, "--localiser"))
+                          localiser=_json_object(localiser, "--localiser"), threshold=threshold)
         return
     try:
         slam.slam_runs(data=data, half=half, routes=routes or ",".join(slam.ROUTES), methods=methods,
