@@ -326,8 +326,8 @@ def _key(x: dict[str, Any]) -> tuple[str, int, int]:
 
 
 def rule_table(lines: list[dict[str, Any]]) -> str:
-    """Item 3: per memory and rule switched off, over the windows and seeds every rule of that memory
-    ran on (mean / worst), and the rule's cost on its worst window (the mean over seeds with the rule
+    """Item 3: per memory and rule switched off, over the windows and seeds it ran on with every rule on
+    too ("runs"; mean / worst), and the rule's cost on its worst window (the mean over seeds with the rule
     off less with it on; positive: the rule costs that much there) and its gain on its best, of localise
     R@1 and learning lap-2 recall."""
     out = ["| memory | rule off | runs | localise R@1 | localise precision | learning lap-2 recall | "
@@ -345,11 +345,13 @@ def rule_table(lines: list[dict[str, Any]]) -> str:
         ran = [r for r in RULES if _by(lines, memory=memory, rule=r)]
         if "all" not in ran:
             continue
-        common = set.intersection(*({_key(x) for x in _by(lines, memory=memory, rule=r)} for r in ran))
-        base = [x for x in _by(lines, memory=memory, rule="all") if _key(x) in common]
-        b_r1, b_rec = _window_means(base, r1), _window_means(base, rec)
+        every = _by(lines, memory=memory, rule="all")
         for rule in ran:
-            mine = [x for x in _by(lines, memory=memory, rule=rule) if _key(x) in common]
+            mine = _by(lines, memory=memory, rule=rule)
+            paired = {_key(x) for x in mine} & {_key(x) for x in every}
+            mine = [x for x in mine if _key(x) in paired]
+            base = [x for x in every if _key(x) in paired]
+            b_r1, b_rec = _window_means(base, r1), _window_means(base, rec)
             cells = [memory, rule if rule != "all" else "none (every rule on)", str(len(mine)),
                      _mw([r1(x) for x in mine]), _mw([x["localise"]["winter"]["precision"] for x in mine]),
                      _mw([rec(x) for x in mine]), _mw([x["learn"]["precision"] for x in mine]),
