@@ -511,6 +511,39 @@ def eval_slam_ablation(
 
     slam_ablation.ablation(data, seeds=seeds, backbone=backbone, json_path=json_out)
 
+@app.command("rules")
+def eval_rules(
+    data: Annotated[Path | None, typer.Option(help="the Nordland folder (summer/, winter/)")] = None,
+    out: Annotated[Path, typer.Option(help="JSON lines, one per job, written as each ends; the tables "
+                                           "beside it (.md)")] = Path("rules.jsonl"),
+    jobs: Annotated[int, typer.Option(min=1, help="processes")] = 1,
+    seeds: Annotated[str, typer.Option(help="map seeds, comma-separated")] = "42,1,7,100,2024",
+    rules: Annotated[str, typer.Option(help="rules switched off, comma-separated (all: none)")] = "",
+    memories: Annotated[str, typer.Option(help="tm,none (none: the memory's ablation)")] = "tm,none",
+    windows: Annotated[int, typer.Option(min=0, help="the first N windows of each half (0: every one)")] = 0,
+    backbone: Annotated[str | None, typer.Option(help="default: the service's")] = None,
+    tables: Annotated[Path | None, typer.Option(help="only the tables, from these JSON lines")] = None,
+) -> None:
+    """Every learning and answering rule switched off one at a time, over every window of both halves,
+    in both modes, over map seeds, with and without the memory; and the revisit threshold chosen on
+    `tune` (service/evaluation/rules.py, docs/results.md §10.14)."""
+    from service.evaluation import rules as costed
+
+    if tables is not None:
+        print(costed.tables(costed.read(tables)), end="")
+        return
+    if data is None:
+        raise typer.BadParameter("--data is needed (the Nordland folder)")
+    try:
+        lines = costed.rules_runs(data=data, out=out, jobs=jobs,
+                                  seeds=tuple(int(s) for s in seeds.split(",")),
+                                  rules=tuple(rules.split(",")) if rules else costed.RULES,
+                                  memories=tuple(memories.split(",")), windows=windows, backbone=backbone)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from e
+    print(costed.tables(lines), end="")
+
+
 @app.command("passes")
 def eval_passes(
     data: Annotated[Path, typer.Option(help="the Nordland folder (summer/, winter/)")],
@@ -572,6 +605,8 @@ def eval_slam(
     suite: Annotated[bool, typer.Option(help="the stress suite instead (service/evaluation/stress.py): "
                                              "every window of both halves, 3 seeds")] = False,
     quick: Annotated[bool, typer.Option(help="with --suite: one window, four cases, two seeds")] = False,
+    threshold: Annotated[float | None, typer.Option(min=0.0, max=1.0, help="with --suite: the maps' "
+                                                    "revisit_threshold (default: a new map's)")] = None,
 ) -> None:
     """Loop closure while mapping on routes made from the Nordland halves, or the grid world's loops
     (service/evaluation/slam.py); `--suite`: the loop-closure stress suite (service/evaluation/stress.py)."""
@@ -583,7 +618,7 @@ def eval_slam(
         if data is None:
             raise typer.BadParameter("--suite needs --data (the Nordland folder)")
         stress.suite_runs(data=data, quick=quick, backbone=backbone, json_path=json_out,
-                          localiser=_json_object(localiser, "--localiser"))
+                          localiser=_json_object(localiser, "--localiser"), threshold=threshold)
         return
     try:
         slam.slam_runs(data=data, half=half, routes=routes or ",".join(slam.ROUTES), methods=methods,

@@ -244,7 +244,9 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
             camera they were taken with (`_Keyframes`), or None.
         trace: filled, where given: "row_held" (n_db,) bool, the database row is still held at the end
             (§11.9); "revisit" (n_q,) bool, the query's answer is a revisit as the service replies it
-            (after its verification); "verification" (n_q,) its `VerificationResult` or None.
+            (after its verification); "verification" (n_q,) its `VerificationResult` or None;
+            "span" (n_q,) int, the answer's span (§11.11; 0: no answer) and "span_rows" (n_q,) its
+            `span_seqs` as database rows (seq - 1; empty: no answer).
 
     Returns:
         `OnlineAnswers` over database rows 0..n_db-1: the `place` answers (best -1 during warm-up,
@@ -274,6 +276,7 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
     best, confidence = np.full(n_q, -1, np.int64), np.zeros(n_q)
     support, S = np.zeros(n_q, np.int64), np.full((n_db, n_q), -np.inf)
     revisit, verification = np.zeros(n_q, bool), [None] * n_q
+    span, span_rows = np.zeros(n_q, np.int64), [()] * n_q
     for j, y in enumerate(hasher.project(q_feats)):
         frame = None if kf is None else kf.query(n_db + j)
         place = observe(model, query, y, learn=False, stream="query", top_k=0,
@@ -288,11 +291,13 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
             refused = verification[j] is not None and not revisit[j]
             best[j], confidence[j] = place.seq - 1, _decided(place, refused)
             support[j] = place.support
+            span[j], span_rows[j] = place.span, tuple(s - 1 for s in place.span_seqs)
         if progress:
             progress(n_db + j + 1, n_db + n_q)
     if trace is not None:
         trace["row_held"] = model.links.used[1:n_db + 1] >= 0
         trace["revisit"], trace["verification"] = revisit, verification
+        trace["span"], trace["span_rows"] = span, span_rows
     return OnlineAnswers(best, confidence, support, S)
 
 

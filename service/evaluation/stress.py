@@ -209,7 +209,7 @@ def run_case(frames: Frames, case: str, lo: int, seeds: tuple[int, ...], methods
                 found = service_path.replay(feats[:n1], feats[n1:], seed=seed, memory="tm",
                                             contrast=contrast, **map_conf)
                 best, conf = np.r_[np.full(n1, -1), found.best], np.r_[np.zeros(n1), found.confidence]
-                threshold = DEFAULT_REVISIT_THRESHOLD
+                threshold = (map_conf.get("create") or {}).get("revisit_threshold", DEFAULT_REVISIT_THRESHOLD)
                 extra = slam.localise_truth(r.labels, r.laps, TOLERANCE)
             else:  # OpenSeqSLAM online: no threshold of its own, read at 100 % precision
                 F = grey(r.pngs)
@@ -283,13 +283,16 @@ def summary(results: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def suite_runs(*, data: Path, quick: bool, backbone: str | None = None, json_path: Path | None = None,
-               localiser: dict[str, Any] | None = None) -> dict[str, Any]:
+               localiser: dict[str, Any] | None = None, threshold: float | None = None) -> dict[str, Any]:
     """`cortexloc eval slam --suite`: the suite on `data` at the service's defaults (the maps'
-    `localiser` options over them, for an ablation), each case printed as a JSON line as it ends, then
-    the summary; written to `json_path` too."""
+    `localiser` options over them, for an ablation; `threshold`: the maps made with that
+    `revisit_threshold`, to choose the default, docs/results.md §10.14), each case printed as a JSON line
+    as it ends, then the summary; written to `json_path` too."""
     from service.evaluation.slam import encoder_setup
 
     enc, cache, map_conf = encoder_setup(backbone, localiser)
+    if threshold is not None:
+        map_conf["create"] = {"revisit_threshold": threshold}
     result = suite(Frames(data, enc, cache), quick=quick, map_conf=map_conf,
                    progress=lambda line: print(line, flush=True))
     for case, per_method in result["summary"].items():

@@ -1,0 +1,112 @@
+"""`cortexloc eval rules` (service/evaluation/rules.py, issue 37 items 2-5): each rule switched off for
+one run only, the jobs in their order, the threshold's choice, and a smoke run on tiny windows of the
+real Nordland frames (skipped without ../shared/data)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from models.evaluation import datasets
+from models.localisation import Localisation, LocaliserOptions, trail
+from models.localisation import localiser as loc
+from service.cli import app
+from service.evaluation import rules, service_path, stress
+
+NORDLAND = datasets.nordland_dir()
+needs_data = pytest.mark.skipif(not (NORDLAND / "summer").is_dir(), reason=f"no Nordland data at {NORDLAND}")
+
+
+@pytest.fixture(autouse=True)
+def _tiny_default_preset():
+    """The rules are costed at the service's defaults: the map preset too, not the tiny one of the other
+    service tests (tests/service/conftest.py)."""
+
+
+def test_a_rule_is_switched_off_for_the_run_only_and_every_rule_is_known() -> None:
+    owners = {"echo": (trail.OwnTrail, "laid_behind"), "joins": (Localisation, "explained"),
+              "null-rows": (loc.SequenceLocaliser, "_jump_level"), "flat-visits": (service_path, "observe")}
+    for rule, (owner, name) in owners.items():
+        before = getattr(owner, name)
+        with rules.switched_off(rule):
+            assert getattr(owner, name) is not before, rule
+        assert getattr(owner, name) is before, rule
+    with pytest.raises(RuntimeError), rules.switched_off("echo"):
+        raise RuntimeError("a run that fails still restores the rule")
+    assert trail.OwnTrail.laid_behind is owners["echo"][0].__dict__["laid_behind"]
+    assert set(rules.OPTIONS) | set(rules.PATCHES) | {"all", "low-information"} == set(rules.RULES)
+    for options in rules.OPTIONS.values():  # each is a valid localiser option
+        loc.SequenceLocaliser(LocaliserOptions.of(options))
+
+
+def test_jobs_run_seed_by_seed_every_rule_on_first_and_the_ablation_with_rules_off_last() -> None:
+    jobs = rules.jobs_of((42, 1), ("all", "span"), ("tm", "none"), windows=1)
+    assert len(jobs) == 2 * 2 * 4
+    first = jobs[:12]
+    assert {(j.memory, j.rule) for j in first} == {("tm", "all"), ("tm", "span"), ("none", "all")}
+    assert [j.seed for j in first] == [42] * 6 + [1] * 6
+    assert {(j.memory, j.rule) for j in jobs[12:]} == {("none", "span")}
+    assert {(j.half, j.lo) for j in jobs} == {("tune", 0), ("test", 894)}
+    assert len(rules.jobs_of((42,), ("all",), ("tm",))) == 14  # every window of both halves
+
+
+def _line(half: str, seed: int, conf: list[float], inside: list[int]) -> dict:
+    n = len(conf)
+    loc_ = {"r1": 1.0, "r5": 1.0, "auc": 0.5, "precision": 1.0, "recall": 1.0, "right_called": 1.0,
+            "query_auc": 1.0, "r100p": 1.0,
+            "answers": {"conf": conf, "named": [1] * n, "span": [1] * n, "inside": inside}}
+    best = list(range(stress.WINDOW)) * 2
+    return {"half": half, "lo": 0, "seed": seed, "memory": "tm", "rule": "all",
+            "localise": {k: loc_ for k in rules.KINDS},
+            "learn": {"recall": 1.0, "precision": 1.0, "r1": 1.0, "false_revisits": 0, "merged_places": 0,
+                      "wrong_consolidations": 0,
+                      "answers": {"best": [-1] * stress.WINDOW + best[:stress.WINDOW],
+                                  "conf": [0.0] * (2 * stress.WINDOW)}}}
+
+
+def test_the_threshold_is_the_lowest_that_keeps_every_kind_and_seed_precise_on_tune_only() -> None:
+    # three wrong revisits at 0.9 (precision 0.985): the threshold must pass them; `test` (all wrong) is
+    # never looked at
+    conf = [0.95] * 197 + [0.9] * 3
+    inside = [1] * 197 + [0] * 3
+    lines = [_line("tune", s, conf, inside) for s in (42, 1)] + [_line("test", 42, conf, [0] * 200)]
+    chosen, table = rules.choose_threshold(lines)
+    assert chosen == 0.905
+    pooled = rules.answers_of(lines, "tune", "tm", "winter")
+    assert rules.at_threshold(pooled, 0.9)[0] == pytest.approx(394 / 400)
+    assert any(row.startswith("| 0.905 |") for row in table)
+
+
+@needs_data
+def test_the_command_costs_rules_on_tiny_windows_and_its_tables_come_back_from_the_lines(tmp_path,
+                                                                                         monkeypatch):
+    """Two 30-file windows (one per half), one seed, every rule on and the echo rule off, with and
+    without the memory: every line holds both modes; `--tables` makes the same tables from the lines."""
+    monkeypatch.setattr(stress, "HALVES", {"tune": (0, 30), "test": (894, 924)})
+    monkeypatch.setattr(stress, "WINDOW", 30)
+    out = tmp_path / "rules.jsonl"
+    r = CliRunner().invoke(app, ["eval", "rules", "--data", str(NORDLAND), "--out", str(out), "--seeds", "42",
+                                 "--rules", "all,echo", "--memories", "tm,none"])
+    assert r.exit_code == 0, r.output
+    lines = [json.loads(s) for s in out.read_text().splitlines()]
+    assert sorted((x["half"], x["memory"], x["rule"]) for x in lines) == sorted(
+        (h, m, rule) for h in ("tune", "test") for m, rule in (("tm", "all"), ("tm", "echo"), ("none", "all"),
+                                                                 ("none", "echo")))
+    for x in lines:
+        assert set(x["localise"]) == (set(rules.KINDS) if x["rule"] == "all" else {"winter"})
+        for e in x["localise"].values():
+            assert 0.0 <= e["r1"] <= 1.0 and 0.0 <= e["r5"] <= 1.0 and e["r1"] <= e["r5"] + 1e-9
+        assert {"recall", "precision", "false_revisits", "merged_places"} <= set(x["learn"])
+        if x["rule"] == "all":
+            a = x["localise"]["winter"]["answers"]
+            assert len(a["conf"]) == len(a["span"]) == len(a["inside"]) > 0
+            assert np.all(np.asarray(a["span"]) >= 1)
+    assert "| tm | echo |" in r.output and "### Threshold (item 2)" in r.output
+    again = CliRunner().invoke(app, ["eval", "rules", "--tables", str(out)])
+    assert again.exit_code == 0 and again.output == out.with_suffix(".md").read_text()
+    bad = CliRunner().invoke(app, ["eval", "rules", "--data", str(NORDLAND), "--out", str(out),
+                                   "--rules", "nope"])
+    assert bad.exit_code == 2 and "unknown rules" in bad.output
