@@ -157,8 +157,12 @@ def test_a_replica_of_each_kind_killed_mid_stream_costs_no_frame(cluster):
         info = client.get_map(m)
         assert info.state == "ready" and info.places is not None, m
         stored = {o.seq: o.observation_id for o in client.list_observations(m, limit=500).observations}
-        unacknowledged += len(set(stored) - set(rows)) + info.places.visits_logged - len(visits)
-        assert stored.items() >= rows.items() and set(visits) <= set(stored), m  # nothing acknowledged lost
+        # a warm-up row a stream's confident path later explained was joined to that place: turned into a
+        # visit of it and its row deleted (map.sqlite schema 12), dropped as `joined`
+        joined = set(rows) - set(stored)
+        assert len(joined) <= info.places.dropped, m
+        unacknowledged += len(set(stored) - set(rows)) + info.places.visits_logged - len(visits) - len(joined)
+        assert all(stored[s] == rows[s] for s in rows if s in stored) and set(visits) <= set(stored), m
     figures = {t: {k: r[k] for k in ("failed", "failed_500", "seen_app_500", "seen_proxy_500")}
                for t, r in rounds.items()}
     print("stored, not acknowledged:", unacknowledged)

@@ -276,7 +276,10 @@ def test_a_second_pass_is_consolidated_into_known_rows(client: Client, tiny_map:
     visits = [o for o in again if o.consolidated_into is not None]
     assert visits and all(o.seq is None and o.observation_id is None and o.consolidated_into in seqs.values()
                           for o in visits)
-    assert client.get_map(tiny_map).places.visits_logged == len(visits)
+    # the pass's warm-up rows, joined to the places it then found, are visits of them now (schema 12)
+    stored = {o.seq for o in client.list_observations(tiny_map, limit=500).observations}
+    joined = [o.seq for o in again if o.seq is not None and o.seq not in stored]
+    assert client.get_map(tiny_map).places.visits_logged == len(visits) + len(joined)
 
 
 def test_the_revisit_threshold_can_be_changed(client: Client, tiny_map: str) -> None:
