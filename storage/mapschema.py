@@ -62,6 +62,7 @@ __all__ = [
     "SCHEMA_VERSION",
     "DuplicateObservation",
     "Holds",
+    "JoinedRow",
     "KeyRecord",
     "LoopClosure",
     "MapMeta",
@@ -321,11 +322,18 @@ _MIGRATE_V11 = _CLOSURE_SPAN + _version_step(11)
 # What version 12 added (docs/design/science.md §11.8; docs/design/service.md §4.2, §4.4): a joined row
 # turned into a visit. `visits.row_seq`: the seq of the row a warm-up join turned into this visit (NULL: a
 # consolidated frame), replayed as that row (its memory step, its links, its place joined); `joins.
-# observation_id`: the row's, so a snapshot whose last row was joined away is still known as this file's.
+# observation_id`: the row's, so a snapshot whose last row was joined away is still known as this file's;
+# with its `image_sha256`, `label`, `row_created_at` and `metadata` the row's record as acknowledged, so
+# `GET .../observations/{seq}` answers for it as before (nothing acknowledged is lost, the visit being pruned
+# or not).
 # The delete triggers of `observations`, `thumbnails` and `keyframes` let a joined row go, nothing else.
 _V12_TABLES = """
 ALTER TABLE visits ADD COLUMN row_seq INTEGER NULL;
 ALTER TABLE joins ADD COLUMN observation_id TEXT NULL;
+ALTER TABLE joins ADD COLUMN image_sha256 TEXT NULL;    -- the row's record, kept when it is deleted:
+ALTER TABLE joins ADD COLUMN label TEXT NULL;           -- GET .../observations/{seq} still answers
+ALTER TABLE joins ADD COLUMN row_created_at TEXT NULL;
+ALTER TABLE joins ADD COLUMN metadata TEXT NULL;
 CREATE INDEX visits_learned ON visits (after_seq, id);        -- the replay's order (`MapStore.visits`)
 CREATE INDEX visits_row ON visits (row_seq) WHERE row_seq IS NOT NULL;
 DROP TRIGGER observations_no_delete;
@@ -633,6 +641,21 @@ class Repair:
     visit: int | None
     was: int
     created_at: str
+
+
+@dataclass(frozen=True)
+class JoinedRow:
+    """The record of a row a warm-up join turned into a visit and deleted (schema 12, docs/design/science.md
+    §11.8), as it was acknowledged: `place_seq` the old row whose place it joined."""
+
+    seq: int
+    observation_id: str
+    stream: str
+    label: str | None
+    created_at: str
+    image_sha256: str
+    metadata: dict[str, Any] | None
+    place_seq: int
 
 
 @dataclass(frozen=True, eq=False)

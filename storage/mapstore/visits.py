@@ -15,6 +15,7 @@ from storage._common import transaction, utc_now
 from storage.mapschema import (
     INPUT_DTYPE,
     DuplicateObservation,
+    JoinedRow,
     NewVisit,
     Visit,
     decode,
@@ -169,11 +170,13 @@ class Visits:
             return 0
         now = utc_now()
         v12 = self.holds.joined_rows
-        oid = "(SELECT observation_id FROM observations WHERE seq = ?)" if v12 else "NULL"
-        conn.executemany(f"INSERT INTO joins (seq, place_seq, stream, after_seq, created_at"
-                         f"{', observation_id' if v12 else ''}) "
-                         f"VALUES (?, ?, ?, ?, ?{', ' + oid if v12 else ''})",
-                         [(int(row), int(old), stream, after, now, *((int(row),) if v12 else ()))
+        # from schema 12 the row's record as acknowledged goes with the join (`joined_row`)
+        kept = ("observation_id", "image_sha256", "label", "created_at", "metadata") if v12 else ()
+        names = "".join(f", {'row_created_at' if k == 'created_at' else k}" for k in kept)
+        reads = "".join(f", (SELECT {k} FROM observations WHERE seq = ?)" for k in kept)
+        conn.executemany(f"INSERT INTO joins (seq, place_seq, stream, after_seq, created_at{names}) "
+                         f"VALUES (?, ?, ?, ?, ?{reads})",
+                         [(int(row), int(old), stream, after, now, *((int(row),) * len(kept)))
                           for stream, (row, old), after in joins])
         self._drop(conn, [(int(row), "joined", after) for _, (row, _old), after in joins])
         if not v12:
@@ -211,6 +214,21 @@ class Visits:
             if r is None and self.holds.joined_rows:
                 r = db.execute("SELECT input_sdr FROM visits WHERE row_seq = ?", (int(seq),)).fetchone()
         return None if r is None else decode(r[0], INPUT_DTYPE)
+
+    def joined_row(self, seq: int) -> JoinedRow | None:
+        """The record of row `seq` if a warm-up join turned it into a visit and deleted it (schema 12),
+        as it was acknowledged; None otherwise (a row held, or none)."""
+        if not self.holds.joined_rows:
+            return None
+        with self._lock:
+            db = self._db()
+            r = db.execute("SELECT seq, observation_id, stream, label, row_created_at, image_sha256, "
+                           "metadata, place_seq FROM joins WHERE seq = ? AND observation_id IS NOT NULL",
+                           (int(seq),)).fetchone()
+            if r is None or db.execute("SELECT 1 FROM observations WHERE seq = ?", (int(seq),)).fetchone():
+                return None
+        return JoinedRow(seq=int(r[0]), observation_id=r[1], stream=r[2], label=r[3], created_at=r[4],
+                         image_sha256=r[5], metadata=load_json(r[6]), place_seq=int(r[7]))
 
     def joined_to(self, seq: int) -> int | None:
         """The old row whose place row `seq` joined (a warm-up join), or None."""

@@ -156,6 +156,35 @@ def test_map_sqlite_does_not_grow_drive_after_drive(tmp_path):
     assert check.ok, check
 
 
+def test_a_joined_row_still_answers_as_it_was_acknowledged(tmp_path):
+    """Nothing acknowledged is lost: a warm-up row the join turned into a visit and deleted (schema 12)
+    answers `GET .../observations/{seq}` with its record as posted (id, digest, metadata), without its
+    thumbnail, after a restart too; a seq never handed out is still a 404."""
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        setup(c)
+        drive(c)
+        restart(c)
+        meta = json.dumps({"run": 2})
+        second = [post(c, view(p), stream="robot", learn="true", top_k=0, metadata=meta).json() for p in LAP]
+        rt = c.app.state.registry.get("default")
+        gone = [row for row, _ in rt.store.joins() if rt.store.get(row) is None]
+        assert gone
+        told = {r["seq"]: r for r in second if r["seq"] is not None}
+    with make_client(data) as c:
+        for seq in gone:
+            got = c.get(f"/v1/maps/default/observations/{seq}")
+            assert got.status_code == 200, got.text
+            body = got.json()
+            assert body["observation_id"] == told[seq]["observation_id"] and body["stream"] == "robot"
+            assert body["metadata"]["run"] == 2 and body["has_thumbnail"] is False
+            assert len(body["image_sha256"]) == 64
+            thumb = c.get(f"/v1/maps/default/observations/{seq}/thumbnail")
+            assert thumb.status_code == 404 and "thumbnail" in thumb.text
+        missing = c.get("/v1/maps/default/observations/99999")
+        assert missing.status_code == 404 and missing.headers["content-type"] == "application/problem+json"
+
+
 def recovers_from(data, snap: str, before: tuple) -> None:
     """After a kill -9: the map comes back from snapshot `snap`, as it was (`shape` `before`)."""
     with make_client(data, snapshot_every=0) as c:

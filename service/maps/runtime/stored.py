@@ -18,10 +18,17 @@ def _stored(row: Observation, has_thumbnail: bool) -> StoredObservation:
 
 
 def observation(map_id: str, store: MapStore, seq: int) -> StoredObservation:
-    """Raises ObservationNotFound."""
+    """Raises ObservationNotFound. A row a warm-up join turned into a visit (docs/design/science.md
+    §11.8) answers with its record as acknowledged, without its thumbnail."""
     row = store.get(seq)
     if row is None:
-        raise ObservationNotFound(map_id, seq)
+        joined = store.joined_row(seq)
+        if joined is None:
+            raise ObservationNotFound(map_id, seq)
+        return StoredObservation(seq=joined.seq, observation_id=joined.observation_id, stream=joined.stream,
+                                 label=joined.label, created_at=joined.created_at,
+                                 image_sha256=joined.image_sha256, metadata=joined.metadata,
+                                 has_thumbnail=False)
     return _stored(row, seq in store.with_thumbnails([seq]))
 
 
@@ -36,5 +43,6 @@ def thumbnail(map_id: str, store: MapStore, seq: int) -> bytes:
     """The JPEG kept with `seq`. Raises ObservationNotFound (no such row, or none kept)."""
     jpeg = store.thumbnail(seq)
     if jpeg is None:
-        raise ObservationNotFound(map_id, seq, "thumbnail" if store.get(seq) is not None else "observation")
+        known = store.get(seq) is not None or store.joined_row(seq) is not None
+        raise ObservationNotFound(map_id, seq, "thumbnail" if known else "observation")
     return jpeg
