@@ -247,6 +247,7 @@ class SequenceLocaliser:
     def __init__(self, options: LocaliserOptions | None = None) -> None:
         self.options = LocaliserOptions() if options is None else options
         self.move_costs = np.asarray(self.options.move_costs, dtype=np.float64)
+        self._still_costs = np.minimum(self.move_costs, np.r_[self.move_costs[1:], np.inf])
 
     def state_bytes(self) -> int:
         """Bytes of one stream's state (`new_state`): `beam` hypotheses of HYPOTHESIS_BYTES."""
@@ -332,10 +333,12 @@ class SequenceLocaliser:
         new_rows, new_dirs, new_scores, new_ages, new_born = [], [], [], [], []
         cur = rows
         # A frame that is no move of the stream (`moved` False: it and its last move posed, within
-        # `move_metres`, §11.6) is expected to stay where it was: every cost one step down, staying as
-        # cheap as one step usually is. With poses rows are made per move (§11.6's rehearsal), so a robot
-        # slower than its map, or standing, follows it at its own pace instead of paying a stay per frame.
-        costs = self.move_costs if moved or self.move_costs.size < 2 else self.move_costs[1:]
+        # `move_metres`, §11.6) may stay where it was at no cost: each move costs the least of its own
+        # cost and the next one's, so staying is as cheap as one step usually is and one step stays free.
+        # With poses rows are made per move (§11.6's rehearsal), so a robot slower than its map, or
+        # standing, follows it at its own pace instead of paying a stay per frame; on a map with several
+        # rows a move (learned without poses, or before the rehearsal) it still walks on freely.
+        costs = self.move_costs if moved else self._still_costs
         for m, cost in enumerate(costs):
             if m:
                 cur = graph.walk(cur, dirs, 1)

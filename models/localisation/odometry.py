@@ -62,7 +62,9 @@ class Odometer:
         if last.drive >= 0 and self.stamp is not None:
             dt = motion.stamp - self.stamp
             step = math.hypot(x - last.x, y - last.y)
-            if 0.0 < dt <= conf.odometry_gap and step <= conf.max_speed * dt:
+            # a step longer than the slack between two learned frames is no drive's: an odometry that
+            # restarted from zero (a node restarted within the gap), or frames too sparse to judge by
+            if 0.0 < dt <= conf.odometry_gap and step <= min(conf.max_speed * dt, conf.odometry_slack):
                 return Reading(last.drive, last.travelled + step, x, y)
             if dt == 0.0 and step == 0.0:  # the same stamp and pose again (a frame posted twice)
                 return last

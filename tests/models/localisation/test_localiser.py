@@ -561,3 +561,16 @@ def test_a_query_slower_than_its_map_is_followed_sharply_where_its_frames_say_it
               for t, a in answers.items()}
     assert right[True] > 0.95 and called[True] > 0.8
     assert called[False] < called[True] - 0.2, called
+
+
+def test_a_posed_query_still_walks_a_map_with_several_rows_a_move() -> None:
+    # A map learned a row per frame (without poses, or before the rehearsal) and followed by a robot
+    # whose poses call 9 of 10 frames no move: staying is free, but so is one row a frame, as before.
+    n = 300
+    truth = np.arange(n)
+    S = place_similarity(np.arange(n), truth, noise=0.25, seed=3)
+    loc, graph = SequenceLocaliser(), SequenceGraph.chain(n)
+    state = loc.new_state()
+    places = [loc.step(state, graph, np.arange(n), S[:, j], moved=j % 10 == 0) for j in range(n)]
+    assert np.mean([abs(p.seq - r) <= 1 for p, r in zip(places[30:], truth[30:], strict=True)]) > 0.95
+    assert np.mean([p.is_revisit(REVISIT) for p in places[30:]]) > 0.95

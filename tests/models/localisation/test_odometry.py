@@ -49,6 +49,8 @@ def test_a_gap_a_stamp_back_a_jump_or_a_frame_without_pose_or_stamp_starts_anoth
     base = [(float(x), 0.0) for x in range(30)]
     for case, motion in {"gap": Motion((30.0, 0.0), 29.0 + 61.0), "back": Motion((30.0, 0.0), 10.0),
                          "jump": Motion((30.0 + 5000.0, 0.0), 30.0), "no pose": Motion(None, 30.0),
+                         # odometry restarted from zero within the gap, slower than max_speed allows
+                         "restart": Motion((0.0, 0.0), 31.0),
                          "no stamp": Motion((30.0, 0.0), None)}.items():
         rows, odo = _drive(base)
         r = odo.peek(motion, CONF, rows.drives)
