@@ -28,7 +28,12 @@ import numpy as np
 from models.localisation.motion import Motion
 from models.localisation.options import LocaliserOptions
 
-__all__ = ["NO_READING", "Odometer", "Reading", "RowOdometry"]
+__all__ = ["JUMP", "NO_READING", "Odometer", "Reading", "RowOdometry"]
+
+#: A step longer than `odometry_slack` and this many times the drive's last step ends the drive: an
+#: odometry node restarted from zero within `odometry_gap` (a review's case: a 150 m jump after 1 m steps
+#: vetoed a loop's true start), while a sparse but steady frame rate (a frame every 280 m) stays one drive.
+JUMP = 3.0
 
 
 class Reading(NamedTuple):
@@ -51,6 +56,7 @@ class Odometer:
     def __init__(self) -> None:
         self.reading = NO_READING
         self.stamp: float | None = None
+        self.step: float | None = None  # the drive's last step (m); None at its start
 
     def peek(self, motion: Motion, conf: LocaliserOptions, new_drive: int) -> Reading:
         """The reading at a frame of this `motion`, this odometer unchanged; `new_drive` the number a drive
@@ -62,9 +68,10 @@ class Odometer:
         if last.drive >= 0 and self.stamp is not None:
             dt = motion.stamp - self.stamp
             step = math.hypot(x - last.x, y - last.y)
-            # a step longer than the slack between two learned frames is no drive's: an odometry that
-            # restarted from zero (a node restarted within the gap), or frames too sparse to judge by
-            if 0.0 < dt <= conf.odometry_gap and step <= min(conf.max_speed * dt, conf.odometry_slack):
+            # a step both longer than the slack and JUMP times the drive's last one is no drive's: an
+            # odometry restarted from zero within the gap (a node restarted), not a sparse frame rate
+            jump = self.step is not None and step > max(conf.odometry_slack, JUMP * self.step)
+            if 0.0 < dt <= conf.odometry_gap and step <= conf.max_speed * dt and not jump:
                 return Reading(last.drive, last.travelled + step, x, y)
             if dt == 0.0 and step == 0.0:  # the same stamp and pose again (a frame posted twice)
                 return last
@@ -72,6 +79,8 @@ class Odometer:
 
     def take(self, reading: Reading, stamp: float | None) -> None:
         """A learned frame's reading (`peek`'s) becomes the odometer's."""
+        same = reading.drive >= 0 and reading.drive == self.reading.drive
+        self.step = reading.travelled - self.reading.travelled if same else None
         self.reading, self.stamp = reading, stamp if reading.drive >= 0 else None
 
 

@@ -95,3 +95,10 @@ def test_the_map_judges_a_streams_frame_by_its_drive_and_a_rebuild_gives_the_sam
     assert np.array_equal(again.odometry.at[:31], loc.odometry.at[:31])
     judge_again = again.beyond("robot", Motion((31.0, 0.0), 31.0))
     assert judge_again is not None and judge_again(np.array([1, 29, 30])).tolist() == [True, False, False]
+
+
+def test_a_steady_sparse_frame_rate_is_one_drive_and_a_jump_after_short_steps_is_not():
+    rows, odo = _drive([(280.0 * i, 0.0) for i in range(6)], stamps=[10.0 * i for i in range(6)])
+    assert set(rows.drive[1:7].tolist()) == {0} and odo.reading.travelled == 1400.0  # a frame every 280 m
+    rows, odo = _drive([(float(x), 0.0) for x in range(10)] + [(40.0, 0.0)])  # 1 m steps, then 31 m in 1 s
+    assert rows.drive[10] == 0 and rows.drive[11] == 1  # the jump starts another drive
