@@ -39,6 +39,7 @@ from models.evaluation.bench import synthetic_jpegs
 from models.localisation import InvertedIndex
 from service.maps.config import MapOptions, resolve
 from service.maps.runtime.budget import index_row_bytes
+from service.maps.states import serving
 
 BIG_TM = {"cellsPerColumn": 16, "maxSegmentsPerCell": 64, "maxSynapsesPerSegment": 64}
 
@@ -86,8 +87,8 @@ def restart(tmp: Path, env: dict[str, str], command: list[str] | None) -> dict[s
         server.wait_ready(timeout=1800)
         out: dict[str, Any] = {"ready_s": round(time.perf_counter() - t0, 1), "rss_mib": server.rss_mib()}
         maps = httpx.get(f"{server.base}/v1/maps", timeout=600).json()["maps"]
-        out["ready_maps"] = sum(m["state"] == "ready" for m in maps)
-        out["closed"] = {m["map_id"]: m["state_reason"] for m in maps if m["state"] != "ready"}
+        out["ready_maps"] = sum(serving(m["state"]).learns for m in maps)
+        out["closed"] = {m["map_id"]: m["state_reason"] for m in maps if not serving(m["state"]).learns}
     finally:
         server.stop()
     return out

@@ -55,6 +55,7 @@ from models.memory.temporal_memory import TemporalMemory
 from service.maps.encoding.encoders import Encoders
 from service.maps.errors import MapUnavailable
 from service.maps.recovery import memory as recovery
+from service.maps.states import serving
 from service.settings import Settings
 from storage import snapshots
 from storage.mapstore import MapStore
@@ -182,7 +183,7 @@ def open_once(data_dir: Path) -> dict[str, Any]:
         total = time.perf_counter() - t0
         rt = reg.get("default")
         answered_s, refused = first_answer(rt, t0)
-        while rt.state != "ready":  # the tail still replaying: learning posts are refused meanwhile
+        while not serving(rt.state).learns:  # the tail still replaying: learning posts are refused meanwhile
             time.sleep(0.01)
         learning_s = time.perf_counter() - t0
     finally:

@@ -12,6 +12,7 @@ from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 from service.maps import results
 from service.maps.config import SHOWN_PARAMS, MapConfig, MapOptions
 from service.maps.ids import MAP_ID_RE
+from service.maps.states import MapState
 
 __all__ = ["BudgetModel", "CreateMap", "Health", "MapList", "MapModel", "MatchModel", "MemoryModel",
            "ObservationModel",
@@ -71,7 +72,7 @@ class MapModel(_Out):
 
     map_id: str
     created_at: str
-    state: Literal["ready", "replaying", "recovering", "failed"]
+    state: MapState
     state_reason: str | None
     preset: str | None
     params: MapParams  # type: ignore[valid-type]

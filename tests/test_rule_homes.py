@@ -67,6 +67,22 @@ def _readiness(node: ast.AST) -> bool:
                for n in ast.walk(node))
 
 
+#: the names of a map's states (service/maps/states.py)
+_MAP_STATES = {"ready", "replaying", "recovering", "failed"}
+
+
+def _map_state(node: ast.AST) -> bool:
+    """A map's state compared with a state's name (`m.state == "ready"`, `state in ("ready", ...)`, a
+    `case "failed":`): what a map in that state serves, decided."""
+    if isinstance(node, ast.MatchValue):
+        return isinstance(node.value, ast.Constant) and node.value.value in _MAP_STATES
+    if not isinstance(node, ast.Compare):
+        return False
+    sides = [node.left, *node.comparators]
+    named = {c.value for n in sides for c in ast.walk(n) if isinstance(c, ast.Constant)} & _MAP_STATES
+    return bool(named) and any(re.search(r"state['\"\]]*$", _text(n)) for n in sides)
+
+
 _SEQUENCE = {"last_learned_seq", "own_seq"}
 
 
@@ -92,6 +108,7 @@ HOMES: dict[str, tuple[str, Callable[[ast.AST], bool]]] = {
     "revisit gate": ("models/localisation/localiser.py:Place.decidable", _revisit_gate),
     "sequence reset": ("models/pipeline/state.py:Stream.new_sequence", _sequence_reset),
     "readiness": ("service/routes/health.py:failing", _readiness),
+    "what a map's state serves": ("service/maps/states.py:serving", _map_state),
 }
 
 
@@ -150,6 +167,9 @@ def test_each_home_exists(rule: str) -> None:
     ("sequence reset", "st.step, st.last_learned_seq, st.own_seq = 0, None, None"),
     ("sequence reset", "st.context.reset()"),
     ("readiness", "ready = all(c.get('status') != 'fail' for c in checks.values())"),
+    ("what a map's state serves", "ok = self.state == 'ready'"),
+    ("what a map's state serves", "ok = m.state in ('ready', 'replaying')"),
+    ("what a map's state serves", "bad = [k for k, v in states.items() if v['state'] == 'recovering']"),
 ])
 def test_a_duplicate_is_found(rule: str, duplicate: str) -> None:
     """The check sees each rule written out again (so the test above would fail on it)."""

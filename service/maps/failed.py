@@ -19,6 +19,7 @@ from service.maps.errors import MapUnavailable
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import MapInfo, SnapshotInfo
 from service.maps.runtime.recent import RecentAnswers
+from service.maps.states import serving
 from storage.catalog import Catalog, MapRecord
 
 __all__ = ["FailedMap"]
@@ -51,6 +52,8 @@ class FailedMap:
         return await asyncio.to_thread(fn, *args)
 
     def require_ready(self, learns: bool = True) -> None:
+        """Raises MapUnavailable: a failed map serves nothing (`serving("failed")`)."""
+        assert not serving(self.state).reads
         raise MapUnavailable(self.map_id, self.state, self.state_reason)
 
     def close(self, snapshot: bool = True) -> None:

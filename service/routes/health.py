@@ -29,6 +29,7 @@ from fastapi import APIRouter, FastAPI, Request
 from fastapi.responses import JSONResponse
 
 from service.errors import problem_response, problem_responses
+from service.maps.states import serving
 from service.schemas import Health, Readiness
 
 __all__ = ["Check", "check_catalog", "check_data_dir", "check_encoder", "check_maps", "failing", "readiness",
@@ -106,7 +107,8 @@ def check_maps(maps: dict[str, Any], named: bool = True) -> Check:
             notes.append(f"map {map_id} recovered by {recovery.get('source')} after passing over "
                          f"{len(skipped)} snapshot(s) (a damaged snapshot, or one whose replay diverged), "
                          f"{recovery.get('mismatches', 0)} row(s) not reproduced")
-        if m.state == "replaying":  # answers localising frames; learning waits (docs/design/service.md §4.4)
+        serves = serving(str(m.state))
+        if serves.reads and not serves.learns:  # replaying: localises, learning waits (service.md §4.4)
             states[map_id]["recovery"] = recovery  # `tail` steps, `replayed` so far
             notes.append(f"map {map_id} is replaying the rows after its snapshot: localising frames are "
                          "answered, learning ones get 503 until it is done")
@@ -114,15 +116,15 @@ def check_maps(maps: dict[str, Any], named: bool = True) -> Check:
             states[map_id]["snapshot_error"] = snap_error
             notes.append(f"map {map_id}: automatic snapshot failed at seq {snap_error.get('seq')}: "
                          f"{snap_error.get('error')}")
-    recovering = [k for k, v in states.items() if v["state"] == "recovering"]
-    failed = [k for k, v in states.items() if v["state"] == "failed"]
+    blocking = [k for k, v in states.items() if serving(v["state"]).blocks_readiness]
+    failed = [k for k, v in states.items() if serving(v["state"]).warns and not serving(v["state"]).reads]
     out: Check = {"status": "pass", "count": len(states), "maps": states}
     if failed:
         notes.insert(0, f"failed map(s), served as map-unavailable: {', '.join(failed)}")
     if notes:
         out.update(status="warn", warning="; ".join(notes))
-    if recovering:
-        out.update(status="fail", error=f"map(s) still recovering: {', '.join(recovering)}")
+    if blocking:
+        out.update(status="fail", error=f"map(s) still recovering: {', '.join(blocking)}")
     return out
 
 
@@ -136,7 +138,8 @@ def _anonymous(check: Check) -> Check:
     if check["status"] == "warn":
         out["warning"] = "a map needs an operator's look (details with the read key: GET /v1/maps)"
     elif check["status"] == "fail":
-        out["error"] = f"{by_state.get('recovering', 0)} map(s) still recovering"
+        blocking = sum(n for state, n in by_state.items() if serving(state).blocks_readiness)
+        out["error"] = f"{blocking} map(s) still recovering"
     return out
 
 

@@ -25,6 +25,7 @@ from models.localisation.graph import NONE
 from models.localisation.motion import Motion
 from service.maps import recovery
 from service.maps.errors import MapReplaying, MapUnavailable
+from service.maps.states import serving
 from storage import snapshots
 from storage.mapstore import MapStore, Observation, StorageFull, StoreCorrupt
 
@@ -60,16 +61,18 @@ class Recovering:
         """Raises MapUnavailable unless the map is ready or, for what neither learns nor changes stored
         state (`learns=False`: a localising frame, a read), replaying its tail (§4.4); MapReplaying (a
         MapUnavailable with a `retry_after`) for what learns meanwhile."""
+        serves = serving(self.state)
+        if serves.learns:
+            return
         tail = self._tail
-        if self.state == "replaying" and tail is not None:
+        if serves.reads and tail is not None:  # what reads is answered from the tail replayed so far
             if learns:
                 done = tail.replay.out.replayed + tail.replay.out.visits
                 per_step = (time.perf_counter() - self._tail_started) / done if done else 0.0
                 raise MapReplaying(self.map_id, tail.steps, done,
                                    max(1, math.ceil((tail.steps - done) * per_step)))
             return
-        if self.state != "ready":
-            raise MapUnavailable(self.map_id, self.state, self.state_reason)
+        raise MapUnavailable(self.map_id, self.state, self.state_reason)
 
     def recover(self, *, serve_during_replay: bool = False) -> None:
         """Open the store and rebuild the memory from it (`recovery.recover`, docs/design/service.md §4.4):

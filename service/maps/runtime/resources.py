@@ -9,6 +9,7 @@ import service.maps.runtime.sizes as sizes  # the module, not the package: no cy
 from models.localisation import forgetting
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import MapInfo, MemoryInfo, PlacesInfo
+from service.maps.states import serving
 
 __all__ = ["Resources"]
 
@@ -22,7 +23,7 @@ class Resources:
                           last_seq=self.store.last_seq() if self.store else 0, streams=list(self.streams),
                           recovery=self.recovery, snapshot_error=self.snapshot_error,
                           places=(self.places() if self.store is not None
-                                  and self.state in ("ready", "replaying") else None),
+                                  and serving(self.state).reads else None),
                           **map_snapshots.disk_use(self.catalog, self.map_id))
 
     def places(self) -> PlacesInfo:

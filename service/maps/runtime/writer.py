@@ -41,6 +41,7 @@ from service.maps.errors import ClientGone, InsufficientStorage, MapNotFound
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import ObservationResult, PlaceResult
 from service.maps.runtime.durability import GroupCommit
+from service.maps.states import serving
 from storage.base.dtypes import INDEX_DTYPE
 from storage.mapstore import MapStore, StorageFull
 
@@ -95,7 +96,8 @@ class Writer:
         new_rows = (self.store.last_seq() > (latest[0].seq if latest else 0)
                     or self.store.visit_stats()[2] > self.covered)
         switched = any(st.learning is False for st in self.streams.values())
-        if snapshot and self.state == "ready" and self.settings.snapshot_every and (new_rows or switched):
+        ready = serving(self.state).learns
+        if snapshot and ready and self.settings.snapshot_every and (new_rows or switched):
             try:
                 self.snapshot("auto")
                 map_snapshots.prune_auto(self.catalog, self.map_id, self.store, self.settings.snapshot_keep)
