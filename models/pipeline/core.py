@@ -250,17 +250,16 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             # (a pass's unconfident frames would otherwise become parallel places, each a rival, §11.8).
             # A flat frame too (never confident, §11.7): where its path names a place that has a flat
             # appearance, it is a visit of it, not a new place each time it is seen.
-            visit = links.consolidation(place.place, code, code_of)
+            # never into the stream's own recent rows (its short-term memory, a row it has not left)
+            visit = links.consolidation(place, code, code_of, own)
             confident = place.is_revisit(threshold)
-            mine = own is not None and visit is not None and bool(own.holds(links.graph, [visit])[0])
             trail = visit is not None and st.own_seq is not None and bool(
                 links.graph.trail[visit] == links.graph.trail[st.own_seq])
             # (`unsure_fraction` of the threshold: some sequence evidence, LocaliserOptions)
             unsure = not confident and (place.confidence < threshold * links.options.unsure_fraction
                                         or trail)
-            if visit is not None and (mine or unsure):
-                # never into the stream's own recent rows (its short-term memory, or a row it has not
-                # left); unconfident, it needs some sequence evidence, and never a row of the trail it is
+            if visit is not None and unsure:
+                # unconfident, it needs some sequence evidence, and never a row of the trail it is
                 # laying (just behind its short-term memory a path in step with it is an echo, §11.6)
                 visit = None
             if visit is not None or confident:

@@ -337,3 +337,22 @@ def test_an_unconfident_frame_is_consolidated_only_above_the_maps_unsure_fractio
     step = observe(m, Stream(), route(1, seed=9)[0], learn=True, stream="b", top_k=3, seq=7,
                    code_of=CODES.__getitem__, threshold=REVISIT)
     assert (step.visit == 3) is consolidated
+
+
+@pytest.mark.parametrize(("frame", "visit"), [(3, 4), (2, 3), (4, None)])
+def test_a_confident_frame_like_the_row_one_link_from_its_path_is_a_visit_of_it_not_a_new_appearance(
+        frame: int, visit: int | None, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Consolidation (docs/design/science.md §11.8) reads the place's appearances and the rows one link
+    from the row its path ends on: the path is sure of its row give or take one (the robot's pace
+    against the map's), so a frame like the row just ahead of it is that row's visit, not a new row of
+    the place (issue 36: on noisy passes such frames were a new appearance each pass). Two links away
+    is no visit. The path names row 3; the frame is route frame `frame` again (row frame + 1)."""
+    m = model("none")
+    frames = route(6)
+    learn_route(m, frames, Stream())
+    place = Place(seq=3, confidence=0.99, support=5, place=m.links.place_of(3))
+    monkeypatch.setattr(m.links, "step", lambda *args, **kwargs: place)
+    step = observe(m, Stream(), frames[frame], learn=True, stream="b", top_k=3, seq=7,
+                   code_of=CODES.__getitem__, threshold=REVISIT)
+    assert step.visit == visit
+    assert (step.joined == place.place) is True  # a visit of its neighbour or a new appearance: the place
