@@ -18,7 +18,6 @@ time is the request's, its RSS growth the whole process's (the encoder's decode 
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
@@ -27,7 +26,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from _common import write_json
+
+from benchmarks._common import write_json
 
 CASES = (("5000x5000", 5000, 5000, "sift"), ("4000x3000", 4000, 3000, "sift"),
          ("5000x5000", 5000, 5000, "orb"))
@@ -106,10 +106,7 @@ def texture(w: int, h: int) -> np.ndarray:
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=None)
-    args = ap.parse_args()
+def main(*, out: Path | None) -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name, w, h, kind in CASES:
@@ -128,8 +125,5 @@ def main() -> None:
                       f"peak RSS +{row['peak_growth_mb']:.0f} MB "
                       f"({row['jpeg_mib']} MiB)", flush=True)
                 rows.append(row)
-    write_json("keyframes.json", {"cases": rows}, args.out)
+    write_json("keyframes.json", {"cases": rows}, out)
 
-
-if __name__ == "__main__":
-    main()
