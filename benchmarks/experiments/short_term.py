@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -151,14 +150,12 @@ def run(name: str, lo: int, seed: int, localiser: dict | None) -> dict:
             "wrong_visits": sum(1 for i, r in visit_of.items() if abs(labels[frame_of[r]] - labels[i]) > 1)}
 
 
-if __name__ == "__main__":
-    routes, seeds = sys.argv[1].split(","), [int(s) for s in sys.argv[2].split(",")]
-    starts = [int(x) for x in sys.argv[3].split(",")] if len(sys.argv) > 3 else [100]
-    loc = json.loads(sys.argv[4]) if len(sys.argv) > 4 else None
+def main(*, routes: list[str], seeds: list[int], starts: list[int], localiser: dict | None) -> None:
+    """`cortexloc eval short-term`: one JSON line per route, window start and seed."""
     for r in routes:
         for lo in starts:
             for s in seeds:
                 t = time.time()
-                o = run(r, lo, s, loc)
+                o = run(r, lo, s, localiser)
                 o["s"] = round(time.time() - t, 1)
                 print(json.dumps(o), flush=True)

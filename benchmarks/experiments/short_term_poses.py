@@ -28,7 +28,8 @@ DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "nordlan
 SEEDS = (1, 7, 42)
 
 
-def main(metres: float, seconds: float, localiser: dict, cases: list[str]) -> None:
+def main(*, metres: float, seconds: float, localiser: dict, cases: list[str]) -> None:
+    """`cortexloc eval short-term-poses`: `stress.summary` per case over the tune windows and seeds."""
     enc, cache, map_conf = encoder_setup(None, localiser or None)
     frames = stress.Frames(DATA, enc, cache)
     t, results = time.time(), []
@@ -53,6 +54,3 @@ def main(metres: float, seconds: float, localiser: dict, cases: list[str]) -> No
         print(case, json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in acc.items()}))
     print(f"{time.time() - t:.0f} s", file=sys.stderr)
 
-
-if __name__ == "__main__":
-    main(float(sys.argv[1]), float(sys.argv[2]), json.loads(sys.argv[3]), sys.argv[4:])

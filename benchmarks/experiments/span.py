@@ -19,7 +19,6 @@ the span); S = 4096 is no gate. A revisit is called at the map's `revisit_thresh
 from __future__ import annotations
 
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -94,12 +93,8 @@ def total(lines: list[dict[str, Any]]) -> None:
                   round(c["right"] / max(answered, 1), 3))
 
 
-if __name__ == "__main__":
-    if sys.argv[1] == "sum":
-        total([json.loads(line) for line in sys.stdin if line.strip()])
-        sys.exit()
-    kinds, seeds = sys.argv[1].split(","), [int(s) for s in sys.argv[2].split(",")]
-    localiser = json.loads(sys.argv[3]) if len(sys.argv) > 3 else None
+def main(*, kinds: list[str], seeds: list[int], localiser: dict | None) -> None:
+    """`cortexloc eval span KINDS SEEDS [LOCALISER]`: one JSON line per kind, window and seed."""
     enc, cache, map_conf = encoder_setup(None, localiser)
     frames = stress.Frames(Path(datasets.nordland_dir()), enc, cache)
     for kind in kinds:

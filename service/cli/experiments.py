@@ -1,7 +1,9 @@
 """`cortexloc eval <name>` for the searches and experiments whose run logic lives outside service/evaluation/:
 the searches behind the presets (models/evaluation/sweeps/), the cross-season tables
 (models/evaluation/nordland_tables.py), geometric verification (models/evaluation/geometry.py) and the
-variants of benchmarks/experiments/ and benchmarks/bench_loops_http.py.
+variants of benchmarks/experiments/ and benchmarks/bench_loops_http.py. `echo` and `null-entry` install
+a variant for the process and then run another `cortexloc` command line given after it (`cortexloc eval
+echo off eval slam --data D`), so the rest of that command's path is the service's.
 
 Where a command goes is benchmarks/__init__.py's rule (docs/benchmarks.md): a table of docs/results.md
 comes from `cortexloc eval <name>`, a speed or memory figure from `cortexloc bench <name>`. The commands
@@ -12,7 +14,7 @@ Comma-separated lists keep the form of the other `eval` options (`--methods`, `-
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Annotated
 
@@ -225,3 +227,92 @@ def eval_loops_http(
     bench_loops_http.main(data=data, routes=route_list, seeds=_split(seeds, "--seeds"),
                           concurrency=concurrency, quick=quick, keep=keep, poses=poses,
                           localiser=_json_object(localiser or "", "--localiser"), out=out)
+
+
+PASS_ON = {"allow_extra_args": True, "ignore_unknown_options": True}
+COMMAND = "the `cortexloc` command line to run with the variant, e.g. eval slam --data D --half tune"
+
+
+def _runner(ctx: typer.Context) -> Callable[[list[str]], object]:
+    """Run another `cortexloc` command line in this process (the variant installed stays in force)."""
+    root = ctx.find_root().command
+    return lambda argv: root.main(args=list(argv), prog_name="cortexloc", standalone_mode=False)
+
+
+@app.command("echo", context_settings=PASS_ON)
+def eval_echo(
+    ctx: typer.Context,
+    variant: Annotated[str, typer.Argument(help="adopted | off | kill | absolute | between | codes:N")],
+    command: Annotated[list[str], typer.Argument(help=COMMAND + "; or `synthetic`")],
+) -> None:
+    """The echo and what was tried against it: a variant of the own-trail rule for one run of another
+    command (docs/results.md §10.9; benchmarks/experiments/echo.py)."""
+    from benchmarks.experiments import echo
+
+    echo.main(variant=variant, command=command, run_command=_runner(ctx))
+
+
+@app.command("null-entry", context_settings=PASS_ON)
+def eval_null_entry(
+    ctx: typer.Context,
+    variant: Annotated[str, typer.Argument(help="adopted | rows | entry:K | first | level")],
+    command: Annotated[list[str], typer.Argument(help=COMMAND)],
+) -> None:
+    """Where the localiser's new rows start (the jump level) for one run of another command
+    (docs/results.md §10.8; benchmarks/experiments/null_entry.py)."""
+    from benchmarks.experiments import null_entry
+
+    null_entry.main(variant=variant, command=command, run_command=_runner(ctx))
+
+
+@app.command("short-term")
+def eval_short_term(
+    routes: Annotated[str, typer.Argument(help="comma-separated routes (slow3, flat, shortloop, ...)")],
+    seeds: Annotated[str, typer.Argument(help="comma-separated map seeds")],
+    starts: Annotated[str, typer.Argument(help="comma-separated first files of the windows")] = "100",
+    localiser: Annotated[str, typer.Argument(help="the maps' localiser options as JSON")] = "",
+) -> None:
+    """A stream's short-term memory on the stress routes, one JSON line per route, window and seed
+    (docs/results.md §10.11; benchmarks/experiments/short_term.py)."""
+    from benchmarks.experiments import short_term
+
+    short_term.main(routes=_split(routes, "ROUTES"), seeds=_split(seeds, "SEEDS", int),
+                    starts=_split(starts, "STARTS", int), localiser=_json_object(localiser, "LOCALISER"))
+
+
+@app.command("short-term-poses")
+def eval_short_term_poses(
+    metres: Annotated[float, typer.Argument(help="metres per label (a frame's pose: its label x this)")],
+    seconds: Annotated[float, typer.Argument(help="seconds per frame (a frame's stamp: its index x this)")],
+    localiser: Annotated[str, typer.Argument(help="the maps' localiser options as JSON")],
+    cases: Annotated[list[str], typer.Argument(help="stress cases (rate3, parked, flat, ...)")],
+) -> None:
+    """The stress routes given poses, one learning stream through the service's step (docs/results.md
+    §10.11 "With poses"; benchmarks/experiments/short_term_poses.py)."""
+    from benchmarks.experiments import short_term_poses
+
+    short_term_poses.main(metres=metres, seconds=seconds,
+                          localiser=_json_object(localiser, "LOCALISER") or {}, cases=cases)
+
+
+@app.command("span")
+def eval_span(
+    kinds: Annotated[str, typer.Argument(help="comma-separated lap-2 kinds (winter, flat); `sum`: total the "
+                                         "JSON lines read from stdin")],
+    seeds: Annotated[str | None, typer.Argument(help="comma-separated map seeds")] = None,
+    localiser: Annotated[str, typer.Argument(help="the maps' localiser options as JSON")] = "",
+) -> None:
+    """The span in the localise mode at several margins and caps, one JSON line per window and seed
+    (docs/results.md §10.13; benchmarks/experiments/span.py)."""
+    import json
+    import sys
+
+    from benchmarks.experiments import span
+
+    if kinds == "sum":
+        span.total([json.loads(line) for line in sys.stdin if line.strip()])
+        return
+    if seeds is None:
+        raise typer.BadParameter("give the map seeds", param_hint="SEEDS")
+    span.main(kinds=_split(kinds, "KINDS"), seeds=_split(seeds, "SEEDS", int),
+              localiser=_json_object(localiser, "LOCALISER"))
