@@ -1,4 +1,4 @@
-"""Encoder benchmark (issues: front end, 24). Run: `make bench` or `python benchmarks/bench_encoder.py`.
+"""Encoder benchmark (issues: front end, 24). Run: `make bench` or `cortexloc bench encoder-suite`.
 
 Batch-1 latency and batch-16 throughput of the whole encoder (640x480 JPEG bytes -> decode, preprocess,
 backbone, sLSBH codes) side by side, in the same run, with a bare forward of the same backbone on the

@@ -1,7 +1,7 @@
 """Forgetting shown: recall of a first route against steps of novel input learned after it, with caps
 that bind and with larger caps, in one run (issue 25 item 4; docs/benchmarks.md §12).
 
-Run: `python benchmarks/bench_forgetting.py [--novel 3000] [--every 300] [--quick]` (`make bench`).
+Run: `cortexloc bench forgetting [--novel 3000] [--every 300] [--quick]` (`make bench`).
 Writes benchmarks/results/forgetting.json and forgetting.png.
 
 Setup: a first route of 100 places (random SDRs of `active` of 2048 columns) learned twice (a reset

@@ -3,7 +3,7 @@ this machine's thread counts, torch on CUDA in fp32 and in fp16 autocast, at bat
 interleaved; and which ONNX Runtime providers are installed (the service's CUDA path,
 `CORTEXLOC_DEVICE=cuda`, needs onnxruntime-gpu's CUDAExecutionProvider).
 
-Run: `python benchmarks/bench_gpu.py [--repeats 20] [--backbones efficientnet-lite0]`. Writes
+Run: `cortexloc bench gpu [--repeats 20] [--backbones efficientnet-lite0]`. Writes
 benchmarks/results/gpu.json: per backbone and runtime the median ms per batch and images/s, the ratio to
 torch on the CPU with this machine's 2-core budget (`--cpu-threads`, default 2: the development machine),
 and the largest descriptor difference to the CPU's on the same input. Exits with a message where CUDA is

@@ -2,7 +2,7 @@
 science.md §11.7-§11.9, docs/results.md §11): rows made and held per pass, revisit precision and recall
 per pass, the visit log and the loop-closure log.
 
-    python benchmarks/bench_growth.py [--passes 10] [--lo 894] [--frames 400] [--seed 42] [--http] [--quick]
+    cortexloc bench growth [--passes 10] [--lo 894] [--frames 400] [--seed 42] [--http] [--quick]
 
 The route is files [lo, lo + frames) of ../shared/data/nordland_tiny_64x32's summer half (default the
 first 400 files of the held-out `test` half; labels = file index), driven `passes` times as ONE learning

@@ -1,7 +1,7 @@
 """Hostile inputs against the real service (issue 11): how fast bombs are refused, what a normal frame
 waits meanwhile, and what stalled snapshot downloads hold.
 
-Run: `python benchmarks/bench_hostile.py [--quick] [--server-cmd CMD]`. Writes
+Run: `cortexloc bench hostile [--quick] [--server-cmd CMD]`. Writes
 benchmarks/results/hostile.json. `--server-cmd` runs another build of the CLI (e.g. the code before the
 fix) with the same measurements.
 

@@ -1,6 +1,6 @@
 """End to end over HTTP on loopback: images/s and latency for 1, 4 and 16 clients, next to the encoder.
 
-Run: `python benchmarks/bench_http.py [--clients 1 4 16] [--requests 160] [--quick]` (`make bench`).
+Run: `cortexloc bench http [--clients 1 --clients 4 --clients 16] [--requests 160] [--quick]` (`make bench`).
 Writes benchmarks/results/http.json.
 
 Setup: the real service (`cortexloc serve`, one uvicorn worker, default settings) in a subprocess on

@@ -1,6 +1,6 @@
 """Retrieval as a map grows: the inverted index against a brute-force popcount, side by side (`make bench`).
 
-Run: `python benchmarks/bench_index.py [--sizes 1000 100000 1000000] [--queries 50] [--quick]`.
+Run: `cortexloc bench index [--sizes 1000 --sizes 100000 --sizes 1000000] [--queries 50] [--quick]`.
 
 Setup: stored descriptors are synthetic winner-cell sets of constant weight (40 cells out of 8,192, the
 default 2048x4 TM with 40 active columns), uniform at random. Queries are noisy copies of stored

@@ -1,6 +1,6 @@
 """`cortexloc ingest`: frames/s and latency in process vs over HTTP, for the same folder of frames.
 
-Run: `python benchmarks/bench_ingest.py [--frames 50] [--repeats 3] [--quick]` (`make bench`).
+Run: `cortexloc bench ingest [--frames 50] [--repeats 3] [--quick]` (`make bench`).
 Writes benchmarks/results/ingest.json.
 
 Setup: a folder of `--frames` 640x480 synthetic JPEGs (`models.evaluation.bench.synthetic_jpegs`),

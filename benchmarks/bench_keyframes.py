@@ -2,7 +2,7 @@
 `service.maps.keyframes.extract_frame` (the decode and the features), then of one whole post of the
 frame to a map with keyframes, each in a fresh process.
 
-Run: `python benchmarks/bench_keyframes.py [--out PATH]`. Writes benchmarks/results/keyframes.json (or
+Run: `cortexloc bench keyframes [--out PATH]`. Writes benchmarks/results/keyframes.json (or
 `--out`) and prints one line per case.
 
 Frames: a 5000 x 5000 JPEG (SIFT), a 4000 x 3000 (12 MP) JPEG (SIFT) and a 5000 x 5000 JPEG (ORB), all

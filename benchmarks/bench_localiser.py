@@ -1,6 +1,6 @@
 """The online localiser's step as the map grows: per-frame cost and state size (`make bench`).
 
-Run: `python benchmarks/bench_localiser.py [--sizes 1000 100000 1000000] [--frames 400] [--quick]`.
+Run: `cortexloc bench localiser [--sizes 1000 --sizes 100000 --sizes 1000000] [--frames 400] [--quick]`.
 
 Setup (docs/design/science.md §11.2): one traverse of N stored rows (`SequenceGraph.chain`); a stream
 drives along it at one row per frame; per frame the candidates are what an index's top-100 gives: the

@@ -1,6 +1,6 @@
 """Long run: 10^6 Temporal Memory steps with the default preset, RSS, caps and the forgetting curve.
 
-Run: `python benchmarks/bench_longrun.py [--steps N] [--quick]` (`make bench` runs 10^6 steps, which
+Run: `cortexloc bench longrun [--steps N] [--quick]` (`make bench` runs 10^6 steps, which
 takes about 2.5 hours on one shared core here with `cortexloc-default`). Writes
 benchmarks/results/longrun.json after every checkpoint, so a run that is stopped early still leaves
 its numbers.

@@ -1,7 +1,7 @@
 """Loop closure checked from outside (issue 35, "Done when"): one robot mapping while it drives, through
 HTTP, at the service's defaults and a new map's seed.
 
-Run: `python benchmarks/bench_loops_http.py [--data DIR] [--seeds default 1 7] [--quick] [--out FILE]`.
+Run: `cortexloc eval loops-http [--data DIR] [--seeds default,1,7] [--quick] [--out FILE]`.
 Prints a markdown table; writes JSON (default benchmarks/results/loops_http.json).
 
 Setup: the real service (`cortexloc serve`, default settings, the default backbone as this machine

@@ -1,7 +1,7 @@
 """The process-wide memory budget against the real service (issue 19 item 1): server RSS while maps are
 created, and at the next start.
 
-Run: `python benchmarks/bench_memory.py [--quick] [--budget BYTES] [--server-cmd CMD] [--out NAME]`.
+Run: `cortexloc bench memory [--quick] [--budget BYTES] [--server-cmd CMD] [--out NAME]`.
 Writes benchmarks/results/<NAME>.json (default `memory`). `--server-cmd` runs another build of the CLI
 (e.g. the code before the budget) with the same requests.
 

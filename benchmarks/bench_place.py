@@ -1,6 +1,6 @@
 """The service's per-frame `place` as the map grows: the index pass plus the localisation step (`make bench`).
 
-Run: `python benchmarks/bench_place.py [--sizes 1000 100000 1000000] [--frames 300] [--quick]`.
+Run: `cortexloc bench place [--sizes 1000 --sizes 100000 --sizes 1000000] [--frames 300] [--quick]`.
 
 Setup: N stored rows of synthetic winner cells (40 of 8,192, as bench_index.py), stored as one traverse
 (seqs 1..N, each row's predecessor the one before, the links `models.localisation.links.Localisation`

@@ -2,7 +2,7 @@
 ONNX on ONNX Runtime, and on OpenVINO where it is installed, for every registered backbone at batch 1
 and batch 16, in one process, repeats interleaved so machine noise hits all alike.
 
-Run: `python benchmarks/bench_runtimes.py [--threads 1] [--repeats 7]` (`--quick`: 2 repeats). Writes
+Run: `cortexloc bench runtimes [--threads 1] [--repeats 7]` (`--quick`: 2 repeats). Writes
 benchmarks/results/runtimes.json: per backbone and runtime the median ms at batch 1, images/s at batch
 16, the ratio to torch at batch 16, and the largest descriptor difference to torch on the same input.
 OpenVINO is not a dependency (`pip install openvino` to include it); it reads the same ONNX file.

@@ -1,6 +1,6 @@
 """The Ray Serve scale-out's per-request cost against the single process, side by side in one run.
 
-Run: `python benchmarks/bench_scaleout.py [--requests 60] [--clients 8] [--quick]` (`make bench`; skipped,
+Run: `cortexloc bench scaleout [--requests 60] [--clients 8] [--quick]` (`make bench`; skipped,
 with its reason in the JSON, when the `ray` extra is not installed). Writes benchmarks/results/scaleout.json.
 
 Setup: both services up at once on loopback, on the same settings (the service defaults: the default

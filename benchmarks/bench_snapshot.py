@@ -1,7 +1,7 @@
 """What a snapshot costs, by step, as a map's store grows (issue 19 item 10): is the copy of map.sqlite
 the dominant part?
 
-Run: `python benchmarks/bench_snapshot.py [--quick] [--rows 0,20000,60000] [--repeats 3]`. Writes
+Run: `cortexloc bench snapshot [--quick] [--rows 0,20000,60000] [--repeats 3]`. Writes
 benchmarks/results/snapshot.json.
 
 In process, on a temporary directory: a default map's Temporal Memory (`cortexloc-default`, 62 MiB

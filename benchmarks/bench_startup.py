@@ -1,6 +1,6 @@
 """Start-up time of a map with 10^5 observations: snapshot load, replay after it, index rebuild.
 
-Run: `python benchmarks/bench_startup.py [--observations 100000] [--quick] [--full-replay]`
+Run: `cortexloc bench startup [--observations 100000] [--quick] [--full-replay]`
 (`make bench`). Writes benchmarks/results/startup.json.
 
 Setup: a data directory with one map `default` (preset `cortexloc-default`, the real 64,896 x 1,024

@@ -1,4 +1,4 @@
-"""Temporal Memory benchmark (issue: memory core). Run: `make bench` or `python benchmarks/bench_tm.py`.
+"""Temporal Memory benchmark (issue: memory core). Run: `make bench` or `cortexloc bench tm-suite`.
 
 Two configurations, as the issue asks: 2048 columns x 4 cells with 40 active columns, and 2048 x 32
 with 512 active columns; 5,000 learning steps each on a never-repeating random SDR sequence (the

@@ -1,6 +1,6 @@
 """The Temporal Memory against BrainBlocks 0.7.1, like for like, in one run (issue 25; `make bench`).
 
-Run: `python benchmarks/bench_tm_peer.py [--steps 5000] [--rounds 3] [--before REF ...]
+Run: `cortexloc bench tm-peer [--steps 5000] [--rounds 3] [--before REF ...]
 [--peer-python .venv-peer/bin/python] [--quick]`.
 
 Setup (the issue's): 2048 columns x 4 cells, 40 active columns, NuPIC's thresholds (activation 13,

@@ -1,6 +1,6 @@
 """Where the service preset's learning step goes, by ablation (issue 25; docs/benchmarks.md §12).
 
-Run: `python benchmarks/bench_tm_profile.py [--warm 300] [--steps 30] [--repeats 3] [--before main ...]`.
+Run: `cortexloc bench tm-profile [--warm 300] [--steps 30] [--repeats 3] [--before main ...]`.
 Writes benchmarks/results/tm_profile.json.
 
 The kernels are compiled (numba, with the small helpers inlined), so no profiler attributes time to

@@ -1,6 +1,6 @@
 """Half-sent uploads against the real service (issue 19 item 2): what they hold, and for how long.
 
-Run: `python benchmarks/bench_uploads.py [--quick] [--server-cmd CMD] [--env NAME=VALUE ...]`. Writes
+Run: `cortexloc bench uploads [--quick] [--server-cmd CMD] [--env NAME=VALUE ...]`. Writes
 benchmarks/results/uploads.json (or `--out`). `--server-cmd` runs another build of the CLI (e.g. the code
 before the fix) with the same measurements.
 

@@ -1,6 +1,6 @@
 """The encoder's stages one by one, and its ratio to the bare forward (issue 24).
 
-Run: `python benchmarks/profile_encoder.py [--repeats 9] [--backbone efficientnet-lite0-s5]`; writes
+Run: `cortexloc bench profile-encoder [--repeats 9] [--backbone efficientnet-lite0-s5]`; writes
 benchmarks/results/profile_encoder.json. Not part of `make bench` (bench_encoder.py is the contract).
 
 Per image, on one thread each, medians over `--repeats` batches of 16 640x480 JPEGs: header probe,

@@ -1,6 +1,6 @@
 """Where the service's CPU goes per image: 16 loopback clients learning into one map (issue 24).
 
-Run: `python benchmarks/profile_service.py [--clients 16] [--seconds 30]` (needs `py-spy` on PATH or in
+Run: `cortexloc bench profile-service [--clients 16] [--seconds 30]` (needs `py-spy` on PATH or in
 the venv, to name the server's threads; not part of `make bench`). Writes benchmarks/results/profile.json.
 
 The real `cortexloc serve` as in bench_http.py (default settings, the default map, 640x480 JPEGs). Over

@@ -3,10 +3,10 @@
 service's code: each variant replaces `OwnTrail.laid_behind` (or the step's candidates) for the run only,
 so the rest of the path is the service's.
 
-    PYTHONPATH=$PWD python benchmarks/experiments/echo.py off eval slam --data $D --half tune
-    PYTHONPATH=$PWD python benchmarks/experiments/echo.py kill eval slam --grid $G --thresholds 0.5
-    PYTHONPATH=$PWD python benchmarks/experiments/echo.py off synthetic
-    PYTHONPATH=$PWD python benchmarks/experiments/echo.py codes:61 eval slam --data $D --half tune \
+    cortexloc eval echo off eval slam --data $D --half tune
+    cortexloc eval echo kill eval slam --grid $G --thresholds 0.5
+    cortexloc eval echo off synthetic
+    cortexloc eval echo codes:61 eval slam --data $D --half tune \
         --routes stop --methods service-slam --thresholds 0.9
 
 `codes:N`: the service's rule, and after the run the Dice of the last stream's frame N (0-based) with

@@ -2,8 +2,8 @@
 docs/design/science.md §11.2, §11.5), tried on the `cortexloc eval` commands. Not the service's code:
 each replaces `SequenceLocaliser._jump_level` for the run only, so the rest of the path is the service's.
 
-    PYTHONPATH=$PWD python benchmarks/experiments/null_entry.py entry:10 eval slam --data $D --half tune
-    PYTHONPATH=$PWD python benchmarks/experiments/null_entry.py rows eval unknown --db $D/summer ...
+    cortexloc eval null-entry entry:10 eval slam --data $D --half tune
+    cortexloc eval null-entry rows eval unknown --db $D/summer ...
 
 Variants (J; `c` = `jump_cost`, `best` = the live rows' best decayed score, `null` = the null's):
 - `adopted`: the service's rule, max(best, null) - c; 0 - c without a row path;

@@ -2,7 +2,7 @@
 the stress routes, one learning stream through the service's step (`models.pipeline.observe` on a
 served map's model, as `service_path.slam_replay` drives it), one JSON line per route, window and seed.
 
-    PYTHONPATH=$PWD python benchmarks/experiments/short_term.py \
+    cortexloc eval short-term \
         slow3,slow10,flat,shortloop,seasons,noise,park,repeat,seasons30,seasons60 1,7,42 0,200,400,600 '{}'
 
 Arguments: routes, map seeds, the windows' first files (`tune`: 0-694, `test`: 894-1588), and the maps'

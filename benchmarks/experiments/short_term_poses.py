@@ -2,7 +2,7 @@
 stress.py) given poses, one learning stream through the service's step (`service_path.slam_replay` with
 each frame's `Motion`), at the suite's `tune` windows (7, from file 0 slid by 100) and seeds 1, 7, 42.
 
-    PYTHONPATH=$PWD python benchmarks/experiments/short_term_poses.py 1.0 1.0 '{}' rate3 rate10 parked flat \
+    cortexloc eval short-term-poses 1.0 1.0 '{}' rate3 rate10 parked flat \
         short-loop seasons noise repeat
 
 Arguments: metres per label (each frame's pose is its label x this along x), seconds per frame (its

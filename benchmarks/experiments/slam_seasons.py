@@ -2,8 +2,8 @@
 bias of one learning stream, over the `cortexloc eval slam` routes. Not the service's code: each
 wraps `SequenceLocaliser.step` for the run only, so the rest of the path is the service's.
 
-    PYTHONPATH=$PWD python benchmarks/experiments/slam_seasons.py own 0.5 --half test
-    PYTHONPATH=$PWD python benchmarks/experiments/slam_seasons.py contrast 5 --half test
+    cortexloc eval slam-seasons own 0.5 --half test
+    cortexloc eval slam-seasons contrast 5 --half test
 
 `own X`: the evidence of candidate rows on the stream's own trail lowered by X candidate spreads.
 `contrast W`: each candidate's score less the mean of its ±W route neighbours' (rows outside the
@@ -19,9 +19,9 @@ stream's recent frames (time constant T, the rates started at the first frame's 
 weight over the query's (the first form of docs/design/science.md §11.10).
 `local M B`: the same weights from the frame's M best rows by plain Dice instead of the stream's past.
 
-    PYTHONPATH=$PWD python benchmarks/experiments/slam_seasons.py hub 50 2 --half test
-    PYTHONPATH=$PWD python benchmarks/experiments/slam_seasons.py idf 100 2 --half tune
-    PYTHONPATH=$PWD python benchmarks/experiments/slam_seasons.py local 100 2 --half tune
+    cortexloc eval slam-seasons hub 50 2 --half test
+    cortexloc eval slam-seasons idf 100 2 --half tune
+    cortexloc eval slam-seasons local 100 2 --half tune
 """
 
 from __future__ import annotations

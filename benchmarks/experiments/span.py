@@ -3,8 +3,8 @@ window's summer frames learned as one traverse and the same window driven again 
 localises, read at several margins and span caps from one run (the span is read from the stream's beam
 after each frame, so the answers are the run's, whatever the margin), one JSON line per window and seed.
 
-    PYTHONPATH=$PWD python benchmarks/experiments/span.py flat,winter 1,42 '{}' > span.jsonl
-    python benchmarks/experiments/span.py sum < span.jsonl    # totals per kind, margin and cap
+    cortexloc eval span flat,winter 1,42 '{}' > span.jsonl
+    cortexloc eval span sum < span.jsonl    # totals per kind, margin and cap
 
 Arguments: lap-2 kinds (`winter`: the window in winter; `flat`: in winter, blurred and its contrast cut
 to 35 %, `stress.variant`'s low-texture frames, a featureless other season), map seeds, and the maps'

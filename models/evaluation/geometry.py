@@ -1,7 +1,7 @@
 """Geometric verification measured on real images (issue 27 item 4; docs/results.md §12,
 docs/design/science.md §12).
 
-    python -m models.evaluation.geometry --extractors orb sift
+    cortexloc eval geometry --extractors orb,sift
 
 Cases, each per extractor:
 

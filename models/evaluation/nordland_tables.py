@@ -1,6 +1,6 @@
 """The cross-season tables of docs/results.md §7: every method at two path lengths, both metrics.
 
-Run: `python -m models.evaluation.nordland_tables --backbone efficientnet-lite0 [--seeds 3] [--json OUT]`.
+Run: `cortexloc eval nordland-tables --backbone efficientnet-lite0 [--seeds 3] [--json OUT]`.
 nordland_tiny_64x32, summer database, winter query, squash resize, `cortexloc-default`, reset between
 database and query, tolerance 0 (docs/design/science.md §8.5). Per window (tune, test and five windows of 200
 files) and per ds (10, 20) it runs what `cortexloc eval images --reset --ds DS --offset O --limit N` runs:

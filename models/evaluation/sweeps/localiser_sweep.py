@@ -1,8 +1,8 @@
 """The searches behind the localiser's defaults and the backbone block (docs/results.md §8.3, §8.4).
 
 Run:
-    python -m models.evaluation.sweeps.localiser_sweep grid [--grid decay=0.9,0.95 --grid top_k=50,100]
-    python -m models.evaluation.sweeps.localiser_sweep layers [--split tune] [--blocks stage5-pool2,...]
+    cortexloc eval localiser-sweep grid [--grid decay=0.9,0.95 --grid top_k=50,100]
+    cortexloc eval localiser-sweep layers [--split tune] [--blocks stage5-pool2,...]
 
 nordland_tiny_64x32, summer database, winter query, squash resize, tolerance 0, the ds-10 queries of
 docs/results.md §7. `grid`: `online-cosine` on EfficientNet-Lite0 stage 7 over every combination of

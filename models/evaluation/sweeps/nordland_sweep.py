@@ -1,7 +1,7 @@
 """Parameter search for the cross-season default (issue: cross-season evaluation,
 docs/design/science.md §8.5).
 
-Run: `python -m models.evaluation.sweeps.nordland_sweep [--split tune] [--json OUT]` (one seed: a sweep
+Run: `cortexloc eval nordland-sweep [--split tune] [--json OUT]` (one seed: a sweep
 ranks).
 Protocol `tune` (files 1-894 of nordland_tiny_64x32, summer database, winter query, reset between them,
 squash resize): every configuration of sLSBH density, stream adaptation and Temporal Memory parameters

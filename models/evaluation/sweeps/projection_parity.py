@@ -1,6 +1,6 @@
 """Dense versus very sparse sLSBH projection: is the cheaper one as good? (issue: front end, §3)
 
-Run: `python -m models.evaluation.sweeps.projection_parity [--windows 0,1000] [--n 200] [--seeds 3]`.
+Run: `cortexloc eval projection-parity [--windows 0,1000] [--n 200] [--seeds 3]`.
 Encodes Nordland summer (database) and winter (query) frames once with the AlexNet conv3 encoder, then
 hashes the same features with dense and sparse projections of several seeds, at s = 0.25 and
 s = 0.025, and reports the pairwise-sLSBH AUC (S = Dice, GT = same file name) of each. The sparse

@@ -1,6 +1,6 @@
 """Parameter search for a grid-world TM preset that really predicts (issue: "beyond the paper").
 
-Run: `python -m models.evaluation.sweeps.sweep [--seeds K] [--grid main|followup]`. Every configuration is
+Run: `cortexloc eval grid-sweep [--seeds K] [--grid main|followup]`. Every configuration is
 scored with clean scoring on the published (a=5, n=0.5) file (when ../shared/data has it) and on
 generated (a=5, n=0.5), (a=1, n=0.05), (a=0, n=0) and (a=5, n=0) worlds, so a choice cannot be tuned
 to one file; the objective is the worst of these AUCs. One line per configuration, the best last.
