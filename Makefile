@@ -62,10 +62,10 @@ run: install
 	$(BIN)/cortexloc serve
 
 bench: $(RAY_STAMP) $(PEER_STAMP)
-	$(BIN)/python benchmarks/run_all.py
+	$(BIN)/cortexloc bench all
 
 bench-quick: $(RAY_STAMP)
-	$(BIN)/python benchmarks/run_all.py --quick
+	$(BIN)/cortexloc bench all --quick
 
 clean:
 	rm -rf $(VENV) $(PEER) .pytest_cache .ruff_cache

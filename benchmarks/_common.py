@@ -1,4 +1,4 @@
-"""Helpers shared by the benchmark scripts: results folder, quick mode, machine description, JSON out.
+"""Helpers shared by the benchmarks: results folder, quick mode, machine description, JSON out.
 
 Timings on the shared development machines are noisy, so every script reports medians and ratios of
 quantities measured side by side in one run; none of this is ever asserted in a test.
@@ -9,24 +9,20 @@ from __future__ import annotations
 import json
 import os
 import platform
-import sys
 from pathlib import Path
 from typing import Any
+
+from models.evaluation.bench import rss_mb as rss_mib
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 RESULTS = HERE / "results"
 
-if str(ROOT) not in sys.path:  # `python benchmarks/bench_x.py` from anywhere imports the project
-    sys.path.insert(0, str(ROOT))
-
-from models.evaluation.bench import rss_mb as rss_mib  # noqa: E402  (needs the path above)
-
 __all__ = ["RESULTS", "machine", "quick_mode", "rss_mib", "write_json"]
 
 
 def quick_mode(flag: bool = False) -> bool:
-    """True for a smoke run: `--quick` on the command line or CORTEXLOC_BENCH_QUICK=1 in the environment."""
+    """True for a smoke run: `--quick` on the command or CORTEXLOC_BENCH_QUICK=1 in the environment."""
     return flag or os.environ.get("CORTEXLOC_BENCH_QUICK", "").strip().lower() in ("1", "true", "yes")
 
 

@@ -1,4 +1,4 @@
-"""Encoder benchmark (issues: front end, 24). Run: `make bench` or `python benchmarks/bench_encoder.py`.
+"""Encoder benchmark (issues: front end, 24). Run: `make bench` or `cortexloc bench encoder-suite`.
 
 Batch-1 latency and batch-16 throughput of the whole encoder (640x480 JPEG bytes -> decode, preprocess,
 backbone, sLSBH codes) side by side, in the same run, with a bare forward of the same backbone on the
@@ -9,11 +9,9 @@ default (EfficientNet-Lite0 stage 5 on ONNX Runtime, dense projection) against i
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
-from _common import RESULTS, write_json
-
+from benchmarks._common import RESULTS, write_json
 from models.evaluation.bench import bench_encoder
 
 CONFIGS = [
@@ -24,14 +22,12 @@ CONFIGS = [
 TARGET_RATIO, TARGET_BATCH1_MS = 0.8, 70.0
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--repeats", type=int, default=15)
-    ap.add_argument("--out", type=Path, default=RESULTS / "encoder.json")
-    args = ap.parse_args()
+def main(*, repeats: int, out: Path | None) -> None:
+    if out is None:
+        out = RESULTS / "encoder.json"
     results = []
     for cfg in CONFIGS:
-        r = bench_encoder(repeats=args.repeats, **cfg)
+        r = bench_encoder(repeats=repeats, **cfg)
         r["met_ratio"] = r["ratio_to_bare"] >= TARGET_RATIO
         r["met_batch1"] = r["batch1_ms_median"] <= TARGET_BATCH1_MS
         results.append(r)
@@ -41,9 +37,6 @@ def main() -> None:
               f"forward "
               f"{r['bare_batch16_images_per_s']:.1f} img/s, ratio {r['ratio_to_bare']:.2f} (target >= "
               f"{TARGET_RATIO}); stages (ms) " + ", ".join(f"{k} {v:.1f}" for k, v in st.items()), flush=True)
-    write_json(args.out.name, {"targets": {"ratio_to_bare": TARGET_RATIO, "batch1_ms": TARGET_BATCH1_MS},
-                               "results": results}, args.out)
+    write_json(out.name, {"targets": {"ratio_to_bare": TARGET_RATIO, "batch1_ms": TARGET_BATCH1_MS},
+                               "results": results}, out)
 
-
-if __name__ == "__main__":
-    main()

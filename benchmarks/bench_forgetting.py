@@ -1,7 +1,7 @@
 """Forgetting shown: recall of a first route against steps of novel input learned after it, with caps
 that bind and with larger caps, in one run (issue 25 item 4; docs/benchmarks.md §12).
 
-Run: `python benchmarks/bench_forgetting.py [--novel 3000] [--every 300] [--quick]` (`make bench`).
+Run: `cortexloc bench forgetting [--novel 3000] [--every 300] [--quick]` (`make bench`).
 Writes benchmarks/results/forgetting.json and forgetting.png.
 
 Setup: a first route of 100 places (random SDRs of `active` of 2048 columns) learned twice (a reset
@@ -21,14 +21,11 @@ maxSynapsesPerSegment K):
 
 from __future__ import annotations
 
-import argparse
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
-from _common import RESULTS, quick_mode, write_json
-
+from benchmarks._common import RESULTS, quick_mode, write_json
 from models import presets
 from models.evaluation import forgetting
 from models.evaluation.bench import random_sequence
@@ -100,21 +97,14 @@ def plot(results: list[dict[str, Any]], path: Path) -> None:
     fig.savefig(path, dpi=100)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--novel", type=int, default=3000)
-    ap.add_argument("--every", type=int, default=300)
-    ap.add_argument("--quick", action="store_true")
-    args = ap.parse_args()
-    if quick_mode(args.quick):
-        args.novel, args.every = 300, 100
+def main(*, novel: int, every: int, quick: bool) -> None:
+    if quick_mode(quick):
+        novel, every = 300, 100
     t0 = time.perf_counter()
-    results = [run(cfg, args.novel, args.every) for cfg in RUNS]
+    results = [run(cfg, novel, every) for cfg in RUNS]
     plot(results, RESULTS / "forgetting.png")
-    path = write_json("forgetting.json", {"config": vars(args), "runs": results,
+    path = write_json("forgetting.json", {"config": {"novel": novel, "every": every, "quick": quick},
+                                          "runs": results,
                                           "seconds": round(time.perf_counter() - t0, 1)})
     print(f"wrote {path} and {RESULTS / 'forgetting.png'} in {time.perf_counter() - t0:.0f} s")
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -3,7 +3,7 @@ this machine's thread counts, torch on CUDA in fp32 and in fp16 autocast, at bat
 interleaved; and which ONNX Runtime providers are installed (the service's CUDA path,
 `CORTEXLOC_DEVICE=cuda`, needs onnxruntime-gpu's CUDAExecutionProvider).
 
-Run: `python benchmarks/bench_gpu.py [--repeats 20] [--backbones efficientnet-lite0]`. Writes
+Run: `cortexloc bench gpu [--repeats 20] [--backbones efficientnet-lite0]`. Writes
 benchmarks/results/gpu.json: per backbone and runtime the median ms per batch and images/s, the ratio to
 torch on the CPU with this machine's 2-core budget (`--cpu-threads`, default 2: the development machine),
 and the largest descriptor difference to the CPU's on the same input. Exits with a message where CUDA is
@@ -12,16 +12,16 @@ not available (the CPU-only development machines and CI).
 
 from __future__ import annotations
 
-import argparse
 import copy
 import os
 import time
 from typing import Any
 
 import numpy as np
-from _common import machine, quick_mode, write_json
 
-from models.frontend import backbones, weights
+from benchmarks._common import machine, quick_mode, write_json
+from models.frontend import backbones as registry
+from models.frontend import weights
 
 BATCHES = (1, 16, 64)
 
@@ -36,7 +36,7 @@ def _timed(f: Any, x: Any, sync: Any) -> float:
 def bench_backbone(name: str, cpu_threads: list[int], repeats: int) -> dict[str, Any]:
     import torch
 
-    bb = backbones.get(name)({"weights_path": weights.find_alexnet(), "random_seed": 0})
+    bb = registry.get(name)({"weights_path": weights.find_alexnet(), "random_seed": 0})
     rng = np.random.default_rng(0)
     xs = {n: rng.standard_normal((n, 3, 224, 224), np.float32) for n in BATCHES}
     gpu = torch.device("cuda")
@@ -87,13 +87,10 @@ def bench_backbone(name: str, cpu_threads: list[int], repeats: int) -> dict[str,
             "device": torch.cuda.get_device_name(0), "runtimes": out}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--repeats", type=int, default=20)
-    ap.add_argument("--cpu-threads", type=int, nargs="+", default=[2, os.cpu_count() or 2])
-    ap.add_argument("--backbones", nargs="+", default=None)
-    ap.add_argument("--quick", action="store_true")
-    args = ap.parse_args()
+def main(*, repeats: int, cpu_threads: list[int] | None, backbones: list[str] | None,
+         quick: bool) -> None:
+    if cpu_threads is None:
+        cpu_threads = [2, os.cpu_count() or 2]
     import torch
 
     if not torch.cuda.is_available():
@@ -103,20 +100,17 @@ def main() -> None:
         providers = ort.get_available_providers()
     except ImportError:
         providers = []
-    repeats = 3 if quick_mode(args.quick) else args.repeats
+    repeats = 3 if quick_mode(quick) else repeats
     results = []
-    for name in args.backbones or backbones.names():
-        r = bench_backbone(name, args.cpu_threads, repeats)
+    for name in backbones or registry.names():
+        r = bench_backbone(name, cpu_threads, repeats)
         results.append(r)
         for k, v in r["runtimes"].items():
             print(f"{name} {k}: " + ", ".join(f"b{n} {v[f'batch{n}_ms']:.1f} ms "
                                                f"({v[f'batch{n}_images_per_s']:.0f} img/s)" for n in BATCHES)
-                  + f"; b16 {v['batch16_vs_cpu']:.1f}x cpu-{args.cpu_threads[0]}t, "
+                  + f"; b16 {v['batch16_vs_cpu']:.1f}x cpu-{cpu_threads[0]}t, "
                   f"max |Δ| {v['max_abs_diff_to_cpu']:.1e}", flush=True)
     print("onnxruntime providers:", providers)
     write_json("gpu.json", {"machine": machine(), "torch": torch.__version__, "repeats": repeats,
                             "onnxruntime_providers": providers, "results": results})
 
-
-if __name__ == "__main__":
-    main()

@@ -2,7 +2,7 @@
 science.md §11.7-§11.9, docs/results.md §11): rows made and held per pass, revisit precision and recall
 per pass, the visit log and the loop-closure log.
 
-    python benchmarks/bench_growth.py [--passes 10] [--lo 894] [--frames 400] [--seed 42] [--http] [--quick]
+    cortexloc bench growth [--passes 10] [--lo 894] [--frames 400] [--seed 42] [--http] [--quick]
 
 The route is files [lo, lo + frames) of ../shared/data/nordland_tiny_64x32's summer half (default the
 first 400 files of the held-out `test` half; labels = file index), driven `passes` times as ONE learning
@@ -26,13 +26,12 @@ then a summary line per route; results/growth.json (`--http`: growth-http.json).
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 
 import numpy as np
-from _common import machine, quick_mode, write_json
 
+from benchmarks._common import machine, quick_mode, write_json
 from models.evaluation import datasets
 from models.pipeline import Stream, observe
 from service.evaluation import service_path, stress
@@ -124,37 +123,30 @@ def drive_http(pngs: list[list[bytes]], labels: np.ndarray, seed: int) -> list[d
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--passes", type=int, default=10)
-    ap.add_argument("--lo", type=int, default=894, help="first file of the route (test half: 894-1787)")
-    ap.add_argument("--frames", type=int, default=400)
-    ap.add_argument("--seed", type=int, default=42, help="the map's seed (42: a new map's)")
-    ap.add_argument("--quick", action="store_true", help="3 passes of 100 frames (a smoke run)")
-    ap.add_argument("--http", action="store_true", help="through HTTP: the service at its defaults")
-    a = ap.parse_args()
-    passes, n = (3, 100) if quick_mode(a.quick) else (a.passes, a.frames)
+def main(*, passes: int, lo: int, frames: int, seed: int, quick: bool, http: bool) -> None:
+    """`cortexloc bench growth`: `passes` passes over files lo..lo+frames, in process or through HTTP."""
+    passes, n = (3, 100) if quick_mode(quick) else (passes, frames)
     enc, cache, conf = encoder_setup(None, None)
     ENC.update(conf)
-    frames = stress.Frames(datasets.nordland_dir(), enc, cache)
-    idx = range(a.lo, a.lo + n)
+    source = stress.Frames(datasets.nordland_dir(), enc, cache)
+    idx = range(lo, lo + n)
     labels = np.asarray(list(idx))
-    imgs = [frames.image("summer", i) for i in idx]
+    imgs = [source.image("summer", i) for i in idx]
     clean = [stress.png(im) for im in imgs]
     results = {}
     for name in ("exact", "noise8"):
         pngs = [clean if name == "exact" or p == 0 else
                 [stress.variant(im, "noise:8", 1000 * p + j) for j, im in enumerate(imgs)]
                 for p in range(passes)]
-        if a.http:
-            rows = drive_http(pngs, labels, a.seed)
+        if http:
+            rows = drive_http(pngs, labels, seed)
         else:
-            feats = [frames.features(ps) for ps in pngs]
-            rows = drive(feats, [service_path.contrasts(ps) for ps in pngs], labels, a.seed)
+            feats = [source.features(ps) for ps in pngs]
+            rows = drive(feats, [service_path.contrasts(ps) for ps in pngs], labels, seed)
         p2 = rows[1]["recall"] if len(rows) > 1 else 0.0
         later = rows[2:]
         summary = {"route": name, "rows_per_pass_3_on": [r["rows"] for r in later],
-                   **({"stored_per_pass_3_on": [r["stored"] for r in later]} if a.http else {}),
+                   **({"stored_per_pass_3_on": [r["stored"] for r in later]} if http else {}),
                    "held_per_pass_3_on": [r["held"] for r in later],
                    "new_places_per_pass_3_on": [r["new_places"] for r in later],
                    "max_rows_3_on": max((r["rows"] for r in later), default=0),
@@ -165,11 +157,8 @@ def main() -> None:
                    "min_precision_2_on": min((r["precision"] or 1.0 for r in rows[1:]), default=None)}
         print(summary, flush=True)
         results[name] = {"passes": rows, "summary": summary}
-    write_json("growth-http.json" if a.http else "growth.json",
-               {"machine": machine(), "route": [a.lo, a.lo + n], "seed": a.seed, "results": results})
+    write_json("growth-http.json" if http else "growth.json",
+               {"machine": machine(), "route": [lo, lo + n], "seed": seed, "results": results})
 
 
 ENC: dict = {}
-
-if __name__ == "__main__":
-    main()

@@ -1,7 +1,7 @@
 """Hostile inputs against the real service (issue 11): how fast bombs are refused, what a normal frame
 waits meanwhile, and what stalled snapshot downloads hold.
 
-Run: `python benchmarks/bench_hostile.py [--quick] [--server-cmd CMD]`. Writes
+Run: `cortexloc bench hostile [--quick] [--server-cmd CMD]`. Writes
 benchmarks/results/hostile.json. `--server-cmd` runs another build of the CLI (e.g. the code before the
 fix) with the same measurements.
 
@@ -21,7 +21,6 @@ worker), temporary data directory, random weights. Measured, medians over repeat
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import os
 import re
@@ -35,9 +34,9 @@ from typing import Any
 import cv2
 import httpx
 import numpy as np
-from _common import RESULTS, quick_mode, write_json
-from bench_http import Server
 
+from benchmarks._common import RESULTS, quick_mode, write_json
+from benchmarks.bench_http import Server
 from models.evaluation.bench import make_png, png_bomb, synthetic_jpegs
 
 ISSUE_BOMB_BYTES = 9_600_000_000  # zeros inflated from the issue's 9.8 MB PNG
@@ -147,24 +146,17 @@ def downloads(server: Server, stalled: int) -> dict[str, Any]:
             "deleted_open_files_after_abort": after_n, "deleted_open_bytes_after_abort": after_bytes}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="smoke run (also CORTEXLOC_BENCH_QUICK=1)")
-    ap.add_argument("--repeats", type=int, default=None, help="posts per hostile image (default 3)")
-    ap.add_argument("--server-cmd", default=None,
-                    help="command that starts the CLI instead of `cortexloc`; `serve ...` is appended")
-    ap.add_argument("--skip", nargs="*", default=[], help="hostile image names to leave out")
-    ap.add_argument("--frames-during", type=int, default=None,
-                    help="normal frames timed while bombs are posted (default 10)")
-    ap.add_argument("--out", type=Path, default=RESULTS / "hostile.json")
-    args = ap.parse_args()
-    quick = quick_mode(args.quick)
-    repeats = args.repeats or (1 if quick else 3)
+def main(*, quick: bool, repeats: int | None, server_cmd: str | None, skip: list[str],
+         frames_during: int | None, out: Path | None) -> None:
+    if out is None:
+        out = RESULTS / "hostile.json"
+    quick = quick_mode(quick)
+    repeats = repeats or (1 if quick else 3)
     frame = synthetic_jpegs(1, seed=3)[0]
-    images = {k: v for k, v in hostile_images(quick).items() if k not in args.skip}
+    images = {k: v for k, v in hostile_images(quick).items() if k not in skip}
     tmp = Path(tempfile.mkdtemp(prefix="cortexloc-bench-hostile-"))
-    server = Server(tmp, command=shlex.split(args.server_cmd) if args.server_cmd else None)
-    out: dict[str, Any] = {"config": {"server_cmd": args.server_cmd or "cortexloc", "quick": quick,
+    server = Server(tmp, command=shlex.split(server_cmd) if server_cmd else None)
+    result: dict[str, Any] = {"config": {"server_cmd": server_cmd or "cortexloc", "quick": quick,
                                       "repeats": repeats}}
     try:
         server.wait_ready()
@@ -182,13 +174,13 @@ def main() -> None:
                 print(f"{name}: {len(body)} bytes -> {runs[0][0]} {runs[0][1]}, "
                       f"median {bombs[name]['ms']['p50']:.1f} ms", flush=True)
         during = asyncio.run(frames_during_bombs(server.base, frame, images["png_100x100_issue_bomb"],
-                                                 args.frames_during or (3 if quick else 10)))
-        out["bombs"] = bombs
-        out["normal_frame_ms"] = {"alone": stats(alone), "while_bombs_posted": stats(during)}
+                                                 frames_during or (3 if quick else 10)))
+        result["bombs"] = bombs
+        result["normal_frame_ms"] = {"alone": stats(alone), "while_bombs_posted": stats(during)}
         print(f"normal frame: alone p50 {np.median(alone):.1f} ms; while 2 clients post the issue's bomb "
               f"p50 {np.median(during):.1f} ms, max {max(during):.1f} ms", flush=True)
-        out["downloads"] = downloads(server, 4)
-        d = out["downloads"]
+        result["downloads"] = downloads(server, 4)
+        d = result["downloads"]
         print(f"download: {d['tar_bytes']} bytes, first byte {d['ttfb_ms']:.0f} ms, whole "
               f"{d['full_download_ms']:.0f} ms; 4 stalled clients: "
               f"{d['deleted_open_files_while_stalled']} deleted files open, "
@@ -197,8 +189,5 @@ def main() -> None:
     finally:
         server.stop()
         shutil.rmtree(tmp, ignore_errors=True)
-    write_json(args.out.name, out, args.out)
+    write_json(out.name, result, out)
 
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """End to end over HTTP on loopback: images/s and latency for 1, 4 and 16 clients, next to the encoder.
 
-Run: `python benchmarks/bench_http.py [--clients 1 4 16] [--requests 160] [--quick]` (`make bench`).
+Run: `cortexloc bench http [--clients 1 --clients 4 --clients 16] [--requests 160] [--quick]` (`make bench`).
 Writes benchmarks/results/http.json.
 
 Setup: the real service (`cortexloc serve`, one uvicorn worker, default settings) in a subprocess on
@@ -24,7 +24,6 @@ across machines.
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import os
 import shlex
@@ -39,8 +38,8 @@ from typing import Any
 
 import httpx
 import numpy as np
-from _common import RESULTS, ROOT, quick_mode, write_json  # also puts the repo on sys.path
 
+from benchmarks._common import RESULTS, ROOT, quick_mode, write_json
 from models.evaluation.bench import synthetic_jpegs
 
 # Issue 24: 16 clients >= 0.6x the bare batch-16 forward of the map's backbone; one client's p50 <= 70 ms.
@@ -173,26 +172,17 @@ def encoder_alone(backbone: str, repeats: int) -> dict[str, Any]:
     return bench_encoder(backbone=backbone, repeats=repeats)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--clients", type=int, nargs="+", default=[1, 4, 16])
-    ap.add_argument("--requests", type=int, default=None, help="replies per client count (default 160)")
-    ap.add_argument("--max-seconds", type=float, default=120.0, help="wall-clock cap per client count")
-    ap.add_argument("--repeats", type=int, default=None, help="encoder-alone repeats (default 15)")
-    ap.add_argument("--quick", action="store_true", help="smoke run (also CORTEXLOC_BENCH_QUICK=1)")
-    ap.add_argument("--keep", action="store_true", help="keep the temporary data directory")
-    ap.add_argument("--server-cmd", default=None,
-                    help="command that starts the CLI instead of `cortexloc` (e.g. another build); "
-                         "`serve --port P --data-dir D` is appended")
-    ap.add_argument("--out", type=Path, default=RESULTS / "http.json")
-    args = ap.parse_args()
-    quick = quick_mode(args.quick)
-    total = args.requests or (32 if quick else 160)
-    repeats = args.repeats or (3 if quick else 15)
+def main(*, clients: list[int], requests: int | None, max_seconds: float, repeats: int | None, quick: bool,
+         keep: bool, server_cmd: str | None, out: Path | None) -> None:
+    if out is None:
+        out = RESULTS / "http.json"
+    quick = quick_mode(quick)
+    total = requests or (32 if quick else 160)
+    repeats = repeats or (3 if quick else 15)
     frames = synthetic_jpegs(64, seed=1)
     tmp = Path(tempfile.mkdtemp(prefix="cortexloc-bench-http-"))
     os.environ["CORTEXLOC_WEIGHTS_DIR"] = str(tmp / "no-weights")  # the same random weights as the server
-    server = Server(tmp, command=shlex.split(args.server_cmd) if args.server_cmd else None)
+    server = Server(tmp, command=shlex.split(server_cmd) if server_cmd else None)
     try:
         t0 = time.perf_counter()
         server.wait_ready()
@@ -204,9 +194,9 @@ def main() -> None:
         # Warm-up: the first requests pay for lazy imports, the writer thread and the batch path.
         asyncio.run(drive(server.base, frames, 4, 16, 60))
         levels = []
-        for c in args.clients:
+        for c in clients:
             cpu0, own0 = proc_cpu_s(server.proc.pid), time.process_time()
-            r = asyncio.run(drive(server.base, frames, c, max(total, c), args.max_seconds))
+            r = asyncio.run(drive(server.base, frames, c, max(total, c), max_seconds))
             # CPU per image, server and this client: on a machine of n free cores, n * 1000 / their sum
             # bounds images/s whatever the overlap (benchmarks/profile_service.py splits it by thread).
             n = max(r["replies"], 1)
@@ -225,7 +215,7 @@ def main() -> None:
         memory = httpx.get(f"{server.base}/v1/maps/default/memory", timeout=30).json()
     finally:
         server.stop()
-        if not args.keep:
+        if not keep:
             shutil.rmtree(tmp, ignore_errors=True)
     enc = {k: float(np.median([enc_before[k], enc_after[k]]))
            for k in ("batch1_ms_median", "batch16_images_per_s", "bare_batch16_images_per_s")}
@@ -269,8 +259,8 @@ def main() -> None:
         ratio = summary["ratio_http1_p50_to_encoder_batch1"]
         print(f"1 client p50 {summary['p50_ms_1']:.1f} ms = {ratio:.2f} x encoder batch 1 "
               f"(target <= {TARGET_P50_1_MS} ms: {met})", flush=True)
-    write_json(args.out.name, {
-        "config": {"server_cmd": args.server_cmd or "cortexloc", "clients": args.clients,
+    write_json(out.name, {
+        "config": {"server_cmd": server_cmd or "cortexloc", "clients": clients,
                    "requests_per_level": total, "frames": "64 x 640x480 JPEG",
                    "route": "POST /v1/maps/default/observations?learn=true&top_k=5", "quick": quick,
                    "settings": "defaults (1 uvicorn worker, CORTEXLOC_TORCH_THREADS=1, "
@@ -279,8 +269,5 @@ def main() -> None:
                    "device": ready["device"]},
         "startup_s": startup_s, "server_rss_start_mib": rss_start, "levels": levels,
         "encoder_alone_before": enc_before, "encoder_alone_after": enc_after, "summary": summary,
-        "map_memory_after": memory}, args.out)
+        "map_memory_after": memory}, out)
 
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """Retrieval as a map grows: the inverted index against a brute-force popcount, side by side (`make bench`).
 
-Run: `python benchmarks/bench_index.py [--sizes 1000 100000 1000000] [--queries 50] [--quick]`.
+Run: `cortexloc bench index [--sizes 1000 --sizes 100000 --sizes 1000000] [--queries 50] [--quick]`.
 
 Setup: stored descriptors are synthetic winner-cell sets of constant weight (40 cells out of 8,192, the
 default 2048x4 TM with 40 active columns), uniform at random. Queries are noisy copies of stored
@@ -24,15 +24,14 @@ Index, previous ranking and brute force alternate query by query, so machine noi
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
-from _common import RESULTS, quick_mode, rss_mib, write_json  # also puts the repo on sys.path
 
+from benchmarks._common import RESULTS, quick_mode, rss_mib, write_json
 from models.localisation.index import InvertedIndex
 
 N_CELLS, WEIGHT, TOP_K = 8192, 40, 10
@@ -174,20 +173,15 @@ def bench_size(n: int, queries: int, keep: int, seed: int = 0, brute: bool = Tru
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", type=int, nargs="+", default=None, help="default 10^3 10^5 10^6")
-    ap.add_argument("--queries", type=int, default=None, help="queries per size (default 50; quick 10)")
-    ap.add_argument("--keep", type=int, default=30, help="cells of the stored descriptor kept in a query")
-    ap.add_argument("--quick", action="store_true", help="smoke run (also CORTEXLOC_BENCH_QUICK=1)")
-    ap.add_argument("--out", type=Path, default=RESULTS / "index.json")
-    args = ap.parse_args()
-    quick = quick_mode(args.quick)
-    sizes = args.sizes or ([1_000, 10_000] if quick else [1_000, 100_000, 1_000_000])
-    queries = args.queries or (10 if quick else 50)
+def main(*, sizes: list[int] | None, queries: int | None, keep: int, quick: bool, out: Path | None) -> None:
+    if out is None:
+        out = RESULTS / "index.json"
+    quick = quick_mode(quick)
+    sizes = sizes or ([1_000, 10_000] if quick else [1_000, 100_000, 1_000_000])
+    queries = queries or (10 if quick else 50)
     results = []
     for n in sizes:
-        r = bench_size(n, queries, args.keep)
+        r = bench_size(n, queries, keep)
         results.append(r)
         print(f"{n:>9} descriptors: index rank median {r['index']['rank_ms_median']:.3f} ms "
               f"(p90 {r['index']['rank_ms_p90']:.3f}), "
@@ -198,9 +192,6 @@ def main() -> None:
               f"({r['ratio_weighted_to_index']:.2f}x the unweighted); "
               f"rebuild {r['index']['rebuild_s']:.2f} s, index {r['index']['bytes'] / 2**20:.1f} MiB, "
               f"packed {r['brute']['packed_bytes'] / 2**20:.1f} MiB", flush=True)
-    write_json(args.out.name, {"config": {"n_cells": N_CELLS, "weight": WEIGHT, "top_k": TOP_K,
-                                          "keep": args.keep, "quick": quick}, "results": results}, args.out)
+    write_json(out.name, {"config": {"n_cells": N_CELLS, "weight": WEIGHT, "top_k": TOP_K,
+                                          "keep": keep, "quick": quick}, "results": results}, out)
 
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """`cortexloc ingest`: frames/s and latency in process vs over HTTP, for the same folder of frames.
 
-Run: `python benchmarks/bench_ingest.py [--frames 50] [--repeats 3] [--quick]` (`make bench`).
+Run: `cortexloc bench ingest [--frames 50] [--repeats 3] [--quick]` (`make bench`).
 Writes benchmarks/results/ingest.json.
 
 Setup: a folder of `--frames` 640x480 synthetic JPEGs (`models.evaluation.bench.synthetic_jpegs`),
@@ -17,7 +17,6 @@ the runs' client-side median and p95 latency.
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import tempfile
@@ -26,9 +25,9 @@ from typing import Any
 
 import anyio
 import httpx
-from _common import quick_mode, write_json  # also puts the repo on sys.path
-from bench_http import Server
 
+from benchmarks._common import quick_mode, write_json
+from benchmarks.bench_http import Server
 from models.evaluation.bench import synthetic_jpegs
 from service.ingest import poster
 from service.ingest.sources import open_source
@@ -53,13 +52,8 @@ def _medians(runs: list[dict[str, Any]]) -> dict[str, float]:
             for k in ("frames_per_s", "latency_ms_median", "latency_ms_p95")}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--frames", type=int, default=50)
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--quick", action="store_true")
-    args = ap.parse_args()
-    frames, repeats = (10, 1) if quick_mode(args.quick) else (args.frames, args.repeats)
+def main(*, frames: int, repeats: int, quick: bool) -> None:
+    frames, repeats = (10, 1) if quick_mode(quick) else (frames, repeats)
     from service.settings import Settings
 
     with tempfile.TemporaryDirectory(prefix="cortexloc-bench-ingest-") as tmp_s:
@@ -94,6 +88,3 @@ def main() -> None:
     print(f"ingest of {frames} frames, medians of {repeats}: in process {result['in_process']}, "
           f"over HTTP {result['http']} -> {path}")
 
-
-if __name__ == "__main__":
-    main()

@@ -2,7 +2,7 @@
 `service.maps.keyframes.extract_frame` (the decode and the features), then of one whole post of the
 frame to a map with keyframes, each in a fresh process.
 
-Run: `python benchmarks/bench_keyframes.py [--out PATH]`. Writes benchmarks/results/keyframes.json (or
+Run: `cortexloc bench keyframes [--out PATH]`. Writes benchmarks/results/keyframes.json (or
 `--out`) and prints one line per case.
 
 Frames: a 5000 x 5000 JPEG (SIFT), a 4000 x 3000 (12 MP) JPEG (SIFT) and a 5000 x 5000 JPEG (ORB), all
@@ -18,7 +18,6 @@ time is the request's, its RSS growth the whole process's (the encoder's decode 
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
@@ -27,7 +26,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from _common import write_json
+
+from benchmarks._common import write_json
 
 CASES = (("5000x5000", 5000, 5000, "sift"), ("4000x3000", 4000, 3000, "sift"),
          ("5000x5000", 5000, 5000, "orb"))
@@ -106,10 +106,7 @@ def texture(w: int, h: int) -> np.ndarray:
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=None)
-    args = ap.parse_args()
+def main(*, out: Path | None) -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name, w, h, kind in CASES:
@@ -128,8 +125,5 @@ def main() -> None:
                       f"peak RSS +{row['peak_growth_mb']:.0f} MB "
                       f"({row['jpeg_mib']} MiB)", flush=True)
                 rows.append(row)
-    write_json("keyframes.json", {"cases": rows}, args.out)
+    write_json("keyframes.json", {"cases": rows}, out)
 
-
-if __name__ == "__main__":
-    main()

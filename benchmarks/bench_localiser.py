@@ -1,6 +1,6 @@
 """The online localiser's step as the map grows: per-frame cost and state size (`make bench`).
 
-Run: `python benchmarks/bench_localiser.py [--sizes 1000 100000 1000000] [--frames 400] [--quick]`.
+Run: `cortexloc bench localiser [--sizes 1000 --sizes 100000 --sizes 1000000] [--frames 400] [--quick]`.
 
 Setup (docs/design/science.md §11.2): one traverse of N stored rows (`SequenceGraph.chain`); a stream
 drives along it at one row per frame; per frame the candidates are what an index's top-100 gives: the
@@ -12,12 +12,11 @@ tests never reach), and the ratio of each median to the smallest size's.
 
 from __future__ import annotations
 
-import argparse
 import time
 
 import numpy as np
-from _common import RESULTS, quick_mode, write_json  # also puts the repo on sys.path
 
+from benchmarks._common import RESULTS, quick_mode, write_json
 from models.localisation import SequenceGraph, SequenceLocaliser
 
 
@@ -43,21 +42,13 @@ def bench_size(n: int, frames: int, seed: int = 0) -> dict[str, float]:
             "recall_at_1": right / (frames - loc.options.warmup + 1)}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--sizes", type=int, nargs="+", default=[1_000, 100_000, 1_000_000])
-    ap.add_argument("--frames", type=int, default=400)
-    ap.add_argument("--quick", action="store_true")
-    args = ap.parse_args()
-    sizes, frames = ([1_000, 10_000], 100) if quick_mode(args.quick) else (args.sizes, args.frames)
+def main(*, sizes: list[int], frames: int, quick: bool) -> None:
+    sizes, frames = ([1_000, 10_000], 100) if quick_mode(quick) else (sizes, frames)
     rows = [bench_size(n, frames) for n in sizes]
     for r in rows:
         r["median_ratio"] = r["median_us"] / rows[0]["median_us"]
         print(f"N {r['n']:>9,}: step median {r['median_us']:.0f} us (x{r['median_ratio']:.2f}), p90 "
               f"{r['p90_us']:.0f} us, state {r['state_bytes']} B, R@1 {r['recall_at_1']:.3f}", flush=True)
-    print(write_json("localiser.json", {"frames": frames, "sizes": rows}, None if not quick_mode(args.quick)
+    print(write_json("localiser.json", {"frames": frames, "sizes": rows}, None if not quick_mode(quick)
                      else RESULTS / "localiser-quick.json"))
 
-
-if __name__ == "__main__":
-    main()

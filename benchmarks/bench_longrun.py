@@ -1,6 +1,6 @@
 """Long run: 10^6 Temporal Memory steps with the default preset, RSS, caps and the forgetting curve.
 
-Run: `python benchmarks/bench_longrun.py [--steps N] [--quick]` (`make bench` runs 10^6 steps, which
+Run: `cortexloc bench longrun [--steps N] [--quick]` (`make bench` runs 10^6 steps, which
 takes about 2.5 hours on one shared core here with `cortexloc-default`). Writes
 benchmarks/results/longrun.json after every checkpoint, so a run that is stopped early still leaves
 its numbers.
@@ -28,14 +28,13 @@ maxSynapsesPerSegment drops its weakest synapse), checked every 100 steps.
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _common import RESULTS, quick_mode, rss_mib, write_json  # also puts the repo on sys.path
 
+from benchmarks._common import RESULTS, quick_mode, rss_mib, write_json
 from models import presets
 from models.frontend import slsbh
 from models.localisation.index import InvertedIndex
@@ -181,25 +180,15 @@ class LongRun:
         }
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--steps", type=int, default=None,
-                    help="total TM steps (default 1,000,000; quick 20,000)")
-    ap.add_argument("--checkpoints", type=int, default=10, help="RSS/recall measurements (every steps/N)")
-    ap.add_argument("--preset", default="cortexloc-default")
-    ap.add_argument("--places", type=int, default=100, help="places per route")
-    ap.add_argument("--laps", type=int, default=3, help="learning laps of the early loop")
-    ap.add_argument("--noise", type=float, default=0.1, help="fraction of columns replaced per visit")
-    ap.add_argument("--novel", choices=("routes", "random"), default="routes")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--quick", action="store_true", help="smoke run (also CORTEXLOC_BENCH_QUICK=1)")
-    ap.add_argument("--out", type=Path, default=RESULTS / "longrun.json")
-    args = ap.parse_args()
-    quick = quick_mode(args.quick)
-    steps = args.steps or (20_000 if quick else 1_000_000)
-    every = max(1, steps // args.checkpoints)
+def main(*, steps: int | None, checkpoints: int, preset: str, places: int, laps: int, noise: float,
+         novel: str, seed: int, quick: bool, out: Path | None) -> None:
+    if out is None:
+        out = RESULTS / "longrun.json"
+    quick = quick_mode(quick)
+    steps = steps or (20_000 if quick else 1_000_000)
+    every = max(1, steps // checkpoints)
 
-    run = LongRun(args.preset, args.places, args.laps, args.noise, args.seed)
+    run = LongRun(preset, places, laps, noise, seed)
     # Compile the kernels before measuring anything (numba caches on disk; the first call still loads).
     warm = TemporalMemory(presets.TmOptions.of({**run.params, "columnDimensions": 64,
                                                 "maxSegmentsPerCell": 2}))
@@ -208,7 +197,7 @@ def main() -> None:
         warm.compute(x, learn=False)
     del warm
     size = run.tm.size()
-    print(f"longrun: preset {args.preset!r}, {run.columns} columns x {run.tm.cells_per_column} cells, "
+    print(f"longrun: preset {preset!r}, {run.columns} columns x {run.tm.cells_per_column} cells, "
           f"{run.active} active, caps {run.params['maxSegmentsPerCell']} seg/cell x "
           f"{run.params['maxSynapsesPerSegment']} syn/seg, preallocated {size['bytes'] / 2**20:.1f} MiB; "
           f"{steps} steps, checkpoint every {every}", flush=True)
@@ -219,36 +208,36 @@ def main() -> None:
     input_ceiling = run.input_recall()
     print(f"  after the early loop ({run.steps} steps): recall@1 {cp0['recall_at_1']:.2f} "
           f"(inputs alone {input_ceiling:.2f}), RSS {cp0['rss_mib']} MiB", flush=True)
-    checkpoints = [cp0]
+    points = [cp0]
     result: dict[str, Any] = {}
 
     def save(done: bool) -> None:
-        rss = [c["rss_mib"] for c in checkpoints]
+        rss = [c["rss_mib"] for c in points]
         result.update({
-            "config": {"preset": args.preset, "tm": run.params, "active": run.active, "steps": steps,
-                       "places": args.places, "laps": args.laps, "noise": args.noise, "novel": args.novel,
-                       "seed": args.seed, "quick": quick},
+            "config": {"preset": preset, "tm": run.params, "active": run.active, "steps": steps,
+                       "places": places, "laps": laps, "noise": noise, "novel": novel,
+                       "seed": seed, "quick": quick},
             "finished": done, "steps_done": run.steps, "preallocated_mib": size["bytes"] / 2**20,
             "rss_after_alloc_mib": round(rss_alloc, 1),
             # Flatness: the largest RSS at any checkpoint against the first one (memory is preallocated).
             "rss_growth_pct": round(100 * (max(rss) / rss[0] - 1), 2),
             "first_eviction_step": run.first_eviction, "first_overrun_step": run.first_overrun,
-            "input_recall_at_1": input_ceiling, "checkpoints": checkpoints,
+            "input_recall_at_1": input_ceiling, "checkpoints": points,
         })
-        write_json(args.out.name, result, args.out)
+        write_json(out.name, result, out)
 
     save(False)
     next_cp = (run.steps // every + 1) * every  # the first checkpoint after the early loop
     last_print = time.perf_counter()
     while run.steps < steps:
-        run.novel_block(args.novel, min(next_cp, steps) - run.steps)
+        run.novel_block(novel, min(next_cp, steps) - run.steps)
         if time.perf_counter() - last_print > 30:
             last_print = time.perf_counter()
             el = last_print - t_start
             print(f"  step {run.steps}/{steps} ({el:.0f} s, {run.steps / el:.0f} steps/s)", flush=True)
         if run.steps >= next_cp or run.steps >= steps:
             cp = run.checkpoint(t_start)
-            checkpoints.append(cp)
+            points.append(cp)
             print(f"  checkpoint {cp['step']}: RSS {cp['rss_mib']} MiB, segments {cp['segment_fill']:.1%} "
                   f"synapses {cp['synapse_fill']:.1%} of capacity, "
                   f"cells at cap {cp['cells_at_segment_cap']}, "
@@ -259,8 +248,5 @@ def main() -> None:
             next_cp += every
     print(f"longrun: RSS growth {result['rss_growth_pct']}% after allocation; first eviction at step "
           f"{run.first_eviction}, first synapse overrun at step {run.first_overrun}; recall@1 of the early "
-          f"loop {checkpoints[0]['recall_at_1']:.2f} -> {checkpoints[-1]['recall_at_1']:.2f}", flush=True)
+          f"loop {points[0]['recall_at_1']:.2f} -> {points[-1]['recall_at_1']:.2f}", flush=True)
 
-
-if __name__ == "__main__":
-    main()

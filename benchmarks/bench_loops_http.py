@@ -1,7 +1,7 @@
 """Loop closure checked from outside (issue 35, "Done when"): one robot mapping while it drives, through
 HTTP, at the service's defaults and a new map's seed.
 
-Run: `python benchmarks/bench_loops_http.py [--data DIR] [--seeds default 1 7] [--quick] [--out FILE]`.
+Run: `cortexloc eval loops-http [--data DIR] [--seeds default,1,7] [--quick] [--out FILE]`.
 Prints a markdown table; writes JSON (default benchmarks/results/loops_http.json).
 
 Setup: the real service (`cortexloc serve`, default settings, the default backbone as this machine
@@ -49,7 +49,6 @@ OpenSeqSLAM's recall at 100 % precision + 0.05.
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import json
 import os
@@ -63,9 +62,9 @@ from typing import Any
 import cv2
 import httpx
 import numpy as np
-from _common import RESULTS, quick_mode, write_json  # also puts the repo on sys.path
-from bench_http import Server
 
+from benchmarks._common import RESULTS, quick_mode, write_json
+from benchmarks.bench_http import Server
 from models.evaluation import corridor, datasets, seqslam, sequences, slam
 from models.localisation.localiser import reaches
 from service.evaluation import stress
@@ -480,31 +479,17 @@ def run(*, data: Path, routes: list[str], seeds: list[str], sizes: Sizes, concur
     return result
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, default=datasets.nordland_dir())
-    ap.add_argument("--routes", nargs="+", default=list(ROUTES), choices=ROUTES)
-    ap.add_argument("--seeds", nargs="+", default=[DEFAULT_SEED, "1", "7"],
-                    help="map seeds; `default`: a map created with no seed option (a new map's)")
-    ap.add_argument("--concurrency", type=int, default=6, help="maps driven at once")
-    ap.add_argument("--quick", action="store_true", help="tiny routes (also CORTEXLOC_BENCH_QUICK=1)")
-    ap.add_argument("--keep", action="store_true", help="keep the temporary data directory")
-    ap.add_argument("--poses", action="store_true", help="post each frame's stamp and pose as metadata "
-                    "(the corridor's true ones; outdoors the file index x 280 m on a line, assumed)")
-    ap.add_argument("--localiser", type=json.loads, default=None,
-                    help="the maps' localiser options as JSON, over the defaults (an ablation), e.g. "
-                    "'{\"span_max\": 4096}'")
-    ap.add_argument("--out", type=Path, default=RESULTS / "loops_http.json")
-    args = ap.parse_args()
-    sizes = QUICK if quick_mode(args.quick) else Sizes()
-    result = run(data=args.data, routes=args.routes, seeds=args.seeds, sizes=sizes,
-                 concurrency=args.concurrency, keep=args.keep, poses=args.poses, localiser=args.localiser)
+def main(*, data: Path | None, routes: list[str], seeds: list[str], concurrency: int, quick: bool, keep: bool,
+         poses: bool, localiser: dict[str, Any] | None, out: Path | None) -> None:
+    """`cortexloc eval loops-http`: `run` at the full or the quick sizes, then the table, JSON under
+    benchmarks/results/loops_http.json (or `out`) and each route's verdict."""
+    out = out or RESULTS / "loops_http.json"
+    sizes = QUICK if quick_mode(quick) else Sizes()
+    result = run(data=data or datasets.nordland_dir(), routes=routes, seeds=seeds, sizes=sizes,
+                 concurrency=concurrency, keep=keep, poses=poses, localiser=localiser)
     print(table(result), flush=True)
     print(f"{result['posts']} posts, driven in {result['drive_s']:.0f} s; {result['wall_s']:.0f} s in all",
           flush=True)
-    write_json(args.out.name, result, args.out)
+    write_json(out.name, result, out)
     print(json.dumps({name: r["worst"]["met"] for name, r in result["routes"].items()}), flush=True)
 
-
-if __name__ == "__main__":
-    main()

@@ -1,7 +1,7 @@
 """The process-wide memory budget against the real service (issue 19 item 1): server RSS while maps are
 created, and at the next start.
 
-Run: `python benchmarks/bench_memory.py [--quick] [--budget BYTES] [--server-cmd CMD] [--out NAME]`.
+Run: `cortexloc bench memory [--quick] [--budget BYTES] [--server-cmd CMD] [--out NAME]`.
 Writes benchmarks/results/<NAME>.json (default `memory`). `--server-cmd` runs another build of the CLI
 (e.g. the code before the budget) with the same requests.
 
@@ -23,7 +23,6 @@ random rows of the default map's 308 winner cells.
 
 from __future__ import annotations
 
-import argparse
 import shlex
 import tempfile
 import time
@@ -32,9 +31,9 @@ from typing import Any
 
 import httpx
 import numpy as np
-from _common import quick_mode, write_json
-from bench_http import Server
 
+from benchmarks._common import quick_mode, write_json
+from benchmarks.bench_http import Server
 from models.evaluation.bench import synthetic_jpegs
 from models.localisation import InvertedIndex
 from service.maps.config import MapOptions, resolve
@@ -113,33 +112,21 @@ def index_estimate(sizes: list[int]) -> list[dict[str, float]]:
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--budget", type=int, default=None, help="CORTEXLOC_MEMORY_BUDGET_BYTES (default: unset)")
-    ap.add_argument("--big", type=int, default=3, help="big maps to try")
-    ap.add_argument("--many", type=int, default=63, help="default maps to try")
-    ap.add_argument("--restart-budget", type=int, default=None,
-                    help="CORTEXLOC_MEMORY_BUDGET_BYTES at the restart (default: as --budget)")
-    ap.add_argument("--server-cmd", default=None, help="the CLI to run instead of this build's")
-    ap.add_argument("--out", default="memory")
-    args = ap.parse_args()
-    quick = quick_mode(args.quick)
-    command = shlex.split(args.server_cmd) if args.server_cmd else None
-    env = {} if args.budget is None else {"CORTEXLOC_MEMORY_BUDGET_BYTES": str(args.budget)}
+def main(*, quick: bool, budget: int | None, big: int, many: int, restart_budget: int | None,
+         server_cmd: str | None, out: str) -> None:
+    quick = quick_mode(quick)
+    command = shlex.split(server_cmd) if server_cmd else None
+    env = {} if budget is None else {"CORTEXLOC_MEMORY_BUDGET_BYTES": str(budget)}
     frame = synthetic_jpegs(1, 640, 480)[0]
-    out: dict[str, Any] = {"budget_setting": args.budget, "server_cmd": args.server_cmd}
-    out["index"] = index_estimate([1000] if quick else [1000, 10_000, 50_000])
+    result: dict[str, Any] = {"budget_setting": budget, "server_cmd": server_cmd}
+    result["index"] = index_estimate([1000] if quick else [1000, 10_000, 50_000])
     with tempfile.TemporaryDirectory() as d:
-        out["big"] = scenario(Path(d), env, command, 1 if quick else args.big, {"tm": BIG_TM}, None)
+        result["big"] = scenario(Path(d), env, command, 1 if quick else big, {"tm": BIG_TM}, None)
     with tempfile.TemporaryDirectory() as d:
-        out["many"] = scenario(Path(d), env, command, 3 if quick else args.many, {}, frame)
-        again = env if args.restart_budget is None else {
-            "CORTEXLOC_MEMORY_BUDGET_BYTES": str(args.restart_budget)}
-        out["many_restart"] = restart(Path(d), again, command)
-    write_json(f"{args.out}.json", out)
-    print({k: out[k] for k in ("big", "many_restart")})
+        result["many"] = scenario(Path(d), env, command, 3 if quick else many, {}, frame)
+        again = env if restart_budget is None else {
+            "CORTEXLOC_MEMORY_BUDGET_BYTES": str(restart_budget)}
+        result["many_restart"] = restart(Path(d), again, command)
+    write_json(f"{out}.json", result)
+    print({k: result[k] for k in ("big", "many_restart")})
 
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """The service's per-frame `place` as the map grows: the index pass plus the localisation step (`make bench`).
 
-Run: `python benchmarks/bench_place.py [--sizes 1000 100000 1000000] [--frames 300] [--quick]`.
+Run: `cortexloc bench place [--sizes 1000 --sizes 100000 --sizes 1000000] [--frames 300] [--quick]`.
 
 Setup: N stored rows of synthetic winner cells (40 of 8,192, as bench_index.py), stored as one traverse
 (seqs 1..N, each row's predecessor the one before, the links `models.localisation.links.Localisation`
@@ -14,15 +14,14 @@ index's bytes per stored row (`InvertedIndex.nbytes`, capacity included) and R@1
 
 from __future__ import annotations
 
-import argparse
 import time
 from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
-from _common import RESULTS, quick_mode, write_json  # also puts the repo on sys.path
-from bench_index import build_index, noisy_query, random_sets
 
+from benchmarks._common import RESULTS, quick_mode, write_json
+from benchmarks.bench_index import build_index, noisy_query, random_sets
 from models.localisation.links import Localisation
 
 
@@ -63,19 +62,13 @@ def bench_size(n: int, frames: int, keep: int = 30, seed: int = 0) -> dict[str, 
             "recall_at_1": right / max(answered, 1)}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", type=int, nargs="+", default=None, help="default 10^3 10^5 10^6")
-    ap.add_argument("--frames", type=int, default=None, help="frames per size (default 300; quick 40)")
-    ap.add_argument("--keep", type=int, default=30, help="cells of the stored row kept in a frame")
-    ap.add_argument("--quick", action="store_true", help="smoke run (also CORTEXLOC_BENCH_QUICK=1)")
-    args = ap.parse_args()
-    quick = quick_mode(args.quick)
-    sizes = args.sizes or ([1_000, 10_000] if quick else [1_000, 100_000, 1_000_000])
-    frames = args.frames or (40 if quick else 300)
+def main(*, sizes: list[int] | None, frames: int | None, keep: int, quick: bool) -> None:
+    quick = quick_mode(quick)
+    sizes = sizes or ([1_000, 10_000] if quick else [1_000, 100_000, 1_000_000])
+    frames = frames or (40 if quick else 300)
     results = []
     for n in sizes:
-        r = bench_size(n, frames, args.keep)
+        r = bench_size(n, frames, keep)
         r["ratio_to_smallest"] = r["total_ms_median"] / (results[0] if results else r)["total_ms_median"]
         results.append(r)
         print(f"{n:>9} rows: rank {r['rank_ms_median']:.3f} ms (p90 {r['rank_ms_p90']:.3f}), step "
@@ -84,9 +77,6 @@ def main() -> None:
               f"index {r['index_bytes_per_row']:.0f} B/row, "
               f"R@1 {r['recall_at_1']:.3f}",
               flush=True)
-    write_json("place.json", {"config": {"frames": frames, "keep": args.keep, "quick": quick},
+    write_json("place.json", {"config": {"frames": frames, "keep": keep, "quick": quick},
                               "results": results}, RESULTS / "place.json")
 
-
-if __name__ == "__main__":
-    main()

@@ -2,7 +2,7 @@
 ONNX on ONNX Runtime, and on OpenVINO where it is installed, for every registered backbone at batch 1
 and batch 16, in one process, repeats interleaved so machine noise hits all alike.
 
-Run: `python benchmarks/bench_runtimes.py [--threads 1] [--repeats 7]` (`--quick`: 2 repeats). Writes
+Run: `cortexloc bench runtimes [--threads 1] [--repeats 7]` (`--quick`: 2 repeats). Writes
 benchmarks/results/runtimes.json: per backbone and runtime the median ms at batch 1, images/s at batch
 16, the ratio to torch at batch 16, and the largest descriptor difference to torch on the same input.
 OpenVINO is not a dependency (`pip install openvino` to include it); it reads the same ONNX file.
@@ -10,15 +10,15 @@ OpenVINO is not a dependency (`pip install openvino` to include it); it reads th
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from _common import quick_mode, write_json
 
-from models.frontend import backbones, runtimes, weights
+from benchmarks._common import quick_mode, write_json
+from models.frontend import backbones as registry
+from models.frontend import runtimes, weights
 
 
 def _openvino(model: bytes, threads: int) -> Callable[[np.ndarray], np.ndarray] | None:
@@ -37,7 +37,7 @@ def bench_backbone(name: str, threads: int, repeats: int) -> dict[str, Any]:
     import torch
 
     torch.set_num_threads(threads)
-    bb = backbones.get(name)({"weights_path": weights.find_alexnet(), "random_seed": 0})
+    bb = registry.get(name)({"weights_path": weights.find_alexnet(), "random_seed": 0})
     runs: dict[str, Callable[[np.ndarray], np.ndarray]] = {
         "torch": runtimes.TorchRunner(bb.describe),
         "onnxruntime": runtimes.make_runner(bb, "onnxruntime", "cpu", threads,
@@ -67,24 +67,15 @@ def bench_backbone(name: str, threads: int, repeats: int) -> dict[str, Any]:
     return {"backbone": name, "arch": bb.arch, "weights": bb.weights_id, "runtimes": out}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--threads", type=int, default=1, help="intra-op threads of every runtime")
-    ap.add_argument("--repeats", type=int, default=7)
-    ap.add_argument("--backbones", nargs="+", default=None)
-    ap.add_argument("--quick", action="store_true")
-    args = ap.parse_args()
-    repeats = 2 if quick_mode(args.quick) else args.repeats
+def main(*, threads: int, repeats: int, backbones: list[str] | None, quick: bool) -> None:
+    repeats = 2 if quick_mode(quick) else repeats
     results = []
-    for name in args.backbones or backbones.names():
-        r = bench_backbone(name, args.threads, repeats)
+    for name in backbones or registry.names():
+        r = bench_backbone(name, threads, repeats)
         results.append(r)
         for k, v in r["runtimes"].items():
             print(f"{name} {k}: batch 1 {v['batch1_ms']:.1f} ms, batch 16 "
                   f"{v['batch16_images_per_s']:.1f} img/s ({v['batch16_vs_torch']:.2f}x torch), "
                   f"max |Δ| {v['max_abs_diff_to_torch']:.1e}", flush=True)
-    write_json("runtimes.json", {"threads": args.threads, "repeats": repeats, "results": results})
+    write_json("runtimes.json", {"threads": threads, "repeats": repeats, "results": results})
 
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """The Ray Serve scale-out's per-request cost against the single process, side by side in one run.
 
-Run: `python benchmarks/bench_scaleout.py [--requests 60] [--clients 8] [--quick]` (`make bench`; skipped,
+Run: `cortexloc bench scaleout [--requests 60] [--clients 8] [--quick]` (`make bench`; skipped,
 with its reason in the JSON, when the `ray` extra is not installed). Writes benchmarks/results/scaleout.json.
 
 Setup: both services up at once on loopback, on the same settings (the service defaults: the default
@@ -31,7 +31,6 @@ measured here (docs/scaling.md says what a larger machine needs).
 
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import signal
@@ -45,8 +44,8 @@ from typing import Any
 
 import httpx
 import numpy as np
-from _common import ROOT, quick_mode, write_json  # also puts the repo on sys.path
 
+from benchmarks._common import ROOT, quick_mode, write_json
 from models.evaluation.bench import synthetic_jpegs
 
 
@@ -237,27 +236,23 @@ def run(requests: int, clients: int, rounds: int) -> dict[str, Any]:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--requests", type=int, default=60, help="sequential requests per path (each kind)")
-    ap.add_argument("--clients", type=int, default=8)
-    ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--quick", action="store_true")
-    args = ap.parse_args()
-    quick = quick_mode(args.quick)
+def main(*, requests: int, clients: int, rounds: int, quick: bool) -> None:
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # `finally` tears the cluster down
+    quick = quick_mode(quick)
     if quick:
-        args.requests, args.clients, args.rounds = 12, 4, 2
+        requests, clients, rounds = 12, 4, 2
     try:
         import ray  # noqa: F401
     except ImportError:
         path = write_json("scaleout.json", {"skipped": "the `ray` extra is not installed"})
         print(f"skipped: ray is not installed ({path})")
         return
-    out = run(args.requests, args.clients, args.rounds)
+    out = run(requests, clients, rounds)
     path = write_json("scaleout.json", {"quick": quick, **out})
     for name, p in out["paths"].items():
         print(f"{name:>6}: post p50 {p['post']['p50_ms']} ms (p95 {p['post']['p95_ms']}), get p50 "
-              f"{p['get']['p50_ms']} ms, {args.clients} clients {p['images_per_s_median']} img/s")
+              f"{p['get']['p50_ms']} ms, {clients} clients {p['images_per_s_median']} img/s")
     extra = out["ray_extra_ms"]
     print(f"ray extra per request: post {extra['post_p50']} ms, get {extra['get_p50']} ms; ray/single "
           f"img/s {out['ray_over_single']['images_per_s']}; ray start {out['ray_start_s']} s")
@@ -269,8 +264,3 @@ def main() -> None:
     print(f"RSS: single {out['rss_mib']['single']} MiB, Ray cluster {out['rss_mib']['ray_total']} MiB")
     print(f"wrote {path}")
 
-
-if __name__ == "__main__":
-    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # `finally` tears the cluster down
-    main()

@@ -1,7 +1,7 @@
 """What a snapshot costs, by step, as a map's store grows (issue 19 item 10): is the copy of map.sqlite
 the dominant part?
 
-Run: `python benchmarks/bench_snapshot.py [--quick] [--rows 0,20000,60000] [--repeats 3]`. Writes
+Run: `cortexloc bench snapshot [--quick] [--rows 0,20000,60000] [--repeats 3]`. Writes
 benchmarks/results/snapshot.json.
 
 In process, on a temporary directory: a default map's Temporal Memory (`cortexloc-default`, 62 MiB
@@ -14,7 +14,6 @@ backup of map.sqlite (`db_copy`), `np.savez` of the memory (`memory_save`), the 
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import tempfile
 import time
@@ -22,8 +21,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _common import quick_mode, write_json
 
+from benchmarks._common import quick_mode, write_json
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import memory_state
 from models.presets import TmOptions
@@ -86,21 +85,13 @@ def measure(root: Path, rows: int, repeats: int) -> dict[str, Any]:
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--rows", default="0,20000,60000")
-    ap.add_argument("--repeats", type=int, default=3)
-    args = ap.parse_args()
-    quick = quick_mode(args.quick)
-    sizes = [0, 1000] if quick else [int(n) for n in args.rows.split(",")]
+def main(*, quick: bool, rows: str, repeats: int) -> None:
+    quick = quick_mode(quick)
+    sizes = [0, 1000] if quick else [int(n) for n in rows.split(",")]
     results = []
     for n in sizes:
         with tempfile.TemporaryDirectory() as d:
-            results.append(measure(Path(d), n, 1 if quick else args.repeats))
+            results.append(measure(Path(d), n, 1 if quick else repeats))
             print(results[-1], flush=True)
     write_json("snapshot.json", {"results": results})
 
-
-if __name__ == "__main__":
-    main()

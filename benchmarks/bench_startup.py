@@ -1,6 +1,6 @@
 """Start-up time of a map with 10^5 observations: snapshot load, replay after it, index rebuild.
 
-Run: `python benchmarks/bench_startup.py [--observations 100000] [--quick] [--full-replay]`
+Run: `cortexloc bench startup [--observations 100000] [--quick] [--full-replay]`
 (`make bench`). Writes benchmarks/results/startup.json.
 
 Setup: a data directory with one map `default` (preset `cortexloc-default`, the real 64,896 x 1,024
@@ -33,7 +33,6 @@ stands in for it.
 
 from __future__ import annotations
 
-import argparse
 import functools
 import multiprocessing
 import shutil
@@ -45,9 +44,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _common import RESULTS, quick_mode, rss_mib, write_json  # also puts the repo on sys.path
 
 import service.maps.registry as registry_mod
+from benchmarks._common import RESULTS, quick_mode, rss_mib, write_json
 from models.frontend import slsbh
 from models.localisation import Localisation
 from models.localisation.index import InvertedIndex
@@ -221,27 +220,18 @@ def keep_snapshots(data_dir: Path, keep: int) -> int:
         cat.close()
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--observations", type=int, default=None, help="map size (default 100,000; quick 2,000)")
-    ap.add_argument("--short-tail", type=int, default=None, help="replay after the newest snapshot (100)")
-    ap.add_argument("--long-tail", type=int, default=None, help="replay after the older snapshot (10,000)")
-    ap.add_argument("--full-replay", action="store_true", help="also open with no snapshot at all")
-    ap.add_argument("--data-dir", type=Path, default=None,
-                    help="reuse (or build once into) this directory instead of a temporary one")
-    ap.add_argument("--quick", action="store_true", help="smoke run (also CORTEXLOC_BENCH_QUICK=1)")
-    ap.add_argument("--out", type=Path, default=RESULTS / "startup.json")
-    args = ap.parse_args()
-    quick = quick_mode(args.quick)
-    n = args.observations or (2_000 if quick else 100_000)
-    short_tail = args.short_tail or (20 if quick else 100)
-    long_tail = args.long_tail or (500 if quick else 10_000)
+def main(*, observations: int | None, short_tail: int | None, long_tail: int | None, full_replay: bool,
+         data_dir: Path | None, quick: bool, out: Path | None) -> None:
+    if out is None:
+        out = RESULTS / "startup.json"
+    quick = quick_mode(quick)
+    n = observations or (2_000 if quick else 100_000)
+    short_tail = short_tail or (20 if quick else 100)
+    long_tail = long_tail or (500 if quick else 10_000)
     tmp = None
-    if args.data_dir is None:
+    if data_dir is None:
         tmp = Path(tempfile.mkdtemp(prefix="cortexloc-bench-startup-"))
         data_dir = tmp / "var"
-    else:
-        data_dir = args.data_dir
     try:
         built: dict[str, Any] = {"reused": True}
         if not (data_dir / "catalog.sqlite").exists():
@@ -252,7 +242,7 @@ def main() -> None:
         # The build leaves two snapshots (the long tail's, then the short tail's); each scenario keeps
         # fewer. A directory reused after a run that dropped the newer one runs the long tail only.
         for name, keep in (("short tail", 2), ("long tail", 1), ("no snapshot", 0)):
-            if name == "no snapshot" and not args.full_replay:
+            if name == "no snapshot" and not full_replay:
                 break
             if keep_snapshots(data_dir, keep) < keep:
                 print(f"{name:>11}: skipped (an earlier run dropped its snapshot)", flush=True)
@@ -267,14 +257,11 @@ def main() -> None:
                   f"{r['first_answer_s']:.2f} s, learning {r['learning_s']:.2f} s, replayed {r['replayed']} "
                   f"({(r['replay_ms_per_step'] or 0):.2f} ms/step), state {r['state']}; phases (s) "
                   + ", ".join(f"{k} {v:.2f}" for k, v in ph.items()), flush=True)
-        write_json(args.out.name, {
+        write_json(out.name, {
             "config": {"observations": n, "short_tail": short_tail, "long_tail": long_tail,
                        "preset": "cortexloc-default", "quick": quick},
-            "build": built, "db_mib": db_mib, "scenarios": scenarios}, args.out)
+            "build": built, "db_mib": db_mib, "scenarios": scenarios}, out)
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
 
-
-if __name__ == "__main__":
-    main()

@@ -1,4 +1,4 @@
-"""Temporal Memory benchmark (issue: memory core). Run: `make bench` or `python benchmarks/bench_tm.py`.
+"""Temporal Memory benchmark (issue: memory core). Run: `make bench` or `cortexloc bench tm-suite`.
 
 Two configurations, as the issue asks: 2048 columns x 4 cells with 40 active columns, and 2048 x 32
 with 512 active columns; 5,000 learning steps each on a never-repeating random SDR sequence (the
@@ -8,7 +8,6 @@ median ms/step and the RSS growth after allocation; writes JSON next to this fil
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -23,23 +22,17 @@ CONFIGS = [
 ]
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--steps", type=int, default=5000)
-    ap.add_argument("--preset", default="cortexloc-grid")
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "tm.json")
-    args = ap.parse_args()
+def main(*, steps: int, preset: str, out: Path | None) -> None:
+    if out is None:
+        out = Path(__file__).parent / "results" / "tm.json"
     results = []
     for cfg in CONFIGS:
-        r = bench_tm(steps=args.steps, **{"preset": args.preset, **cfg})
+        r = bench_tm(steps=steps, **{"preset": preset, **cfg})
         results.append(r)
         print(f"TM {cfg['columns']}x{cfg['cells']} active {cfg['active']} ({r['config']['preset']}): median "
               f"{r['ms_per_step_median']:.3f} ms/step (p90 {r['ms_per_step_p90']:.3f}), RSS growth "
               f"{r['rss_growth_mb']:.1f} MB, segments {r['segments']}, synapses {r['synapses']}, "
               f"preallocated {r['bytes'] / 2**20:.1f} MiB", flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=2))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(results, indent=2))
 
-
-if __name__ == "__main__":
-    main()

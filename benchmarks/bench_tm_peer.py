@@ -1,6 +1,6 @@
 """The Temporal Memory against BrainBlocks 0.7.1, like for like, in one run (issue 25; `make bench`).
 
-Run: `python benchmarks/bench_tm_peer.py [--steps 5000] [--rounds 3] [--before REF ...]
+Run: `cortexloc bench tm-peer [--steps 5000] [--rounds 3] [--before REF ...]
 [--peer-python .venv-peer/bin/python] [--quick]`.
 
 Setup (the issue's): 2048 columns x 4 cells, 40 active columns, NuPIC's thresholds (activation 13,
@@ -23,7 +23,6 @@ service preset's step goes (`service_breakdown`; docs/benchmarks.md §12).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -33,8 +32,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _common import ROOT, quick_mode, write_json  # also puts the repo on sys.path
 
+from benchmarks._common import ROOT, quick_mode, write_json
 from models.evaluation.bench import bench_tm, random_sequence
 
 LIKE_FOR_LIKE = {"columns": 2048, "cells": 4, "active": 40, "preset": "numenta-defaults",
@@ -175,22 +174,17 @@ def service_breakdown(warm: int = 300, steps: int = 60, seed: int = 0) -> dict[s
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--steps", type=int, default=5000)
-    ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--before", nargs="*", default=[], help="also time these commits' memory (main ...)")
-    ap.add_argument("--peer-python", type=Path, default=ROOT / ".venv-peer" / "bin" / "python")
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", type=Path, default=None)
-    args = ap.parse_args()
-    steps = 300 if quick_mode(args.quick) else args.steps
-    rounds = 1 if quick_mode(args.quick) else args.rounds
-    sides = side_by_side(steps, rounds, args.peer_python, args.before)
+def main(*, steps: int, rounds: int, before: list[str], peer_python: Path | None, quick: bool,
+         out: Path | None) -> None:
+    if peer_python is None:
+        peer_python = ROOT / ".venv-peer" / "bin" / "python"
+    steps = 300 if quick_mode(quick) else steps
+    rounds = 1 if quick_mode(quick) else rounds
+    sides = side_by_side(steps, rounds, peer_python, before)
     ours, peer = sides["cortexloc"], sides["brainblocks"]
     service = bench_tm(steps=max(steps // 5, 100), **SERVICE)
-    breakdown = service_breakdown(warm=50 if quick_mode(args.quick) else 300,
-                                  steps=10 if quick_mode(args.quick) else 60)
+    breakdown = service_breakdown(warm=50 if quick_mode(quick) else 300,
+                                  steps=10 if quick_mode(quick) else 60)
     ratio = ours.get("ratio_over_peer")
     print(f"like for like, {steps} steps, median of {rounds} rounds: cortexloc "
           f"{ours['ms_per_step_median']:.3f} ms/step, BrainBlocks "
@@ -211,9 +205,6 @@ def main() -> None:
                                        "before": {k: v for k, v in sides.items() if k.startswith("before")},
                                        "service_preset": service,
                                        "service_breakdown": breakdown},
-                      args.out)
+                      out)
     print(f"wrote {path}")
 
-
-if __name__ == "__main__":
-    sys.exit(main())

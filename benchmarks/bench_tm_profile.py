@@ -1,6 +1,6 @@
 """Where the service preset's learning step goes, by ablation (issue 25; docs/benchmarks.md §12).
 
-Run: `python benchmarks/bench_tm_profile.py [--warm 300] [--steps 30] [--repeats 3] [--before main ...]`.
+Run: `cortexloc bench tm-profile [--warm 300] [--steps 30] [--repeats 3] [--before main ...]`.
 Writes benchmarks/results/tm_profile.json.
 
 The kernels are compiled (numba, with the small helpers inlined), so no profiler attributes time to
@@ -25,7 +25,6 @@ dendrites is timed on its own as well.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -35,7 +34,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from _common import ROOT, quick_mode, write_json
+from benchmarks._common import ROOT, quick_mode, write_json
 
 SYN = "models/memory/_tm_synapses.py"
 SIG_ADD = "def _rx_add(q, cell, e, rev, rpos, bprev, bfill, tail, pool):\n"
@@ -135,16 +134,9 @@ def split(f: dict[str, Any]) -> dict[str, float]:
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--warm", type=int, default=300)
-    ap.add_argument("--steps", type=int, default=30)
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--before", nargs="*", default=[], help="also time these commits' kernels (main ...)")
-    ap.add_argument("--quick", action="store_true")
-    args = ap.parse_args()
-    if quick_mode(args.quick):
-        args.warm, args.steps, args.repeats = 50, 8, 1
+def main(*, warm: int, steps: int, repeats: int, before: list[str], quick: bool) -> None:
+    if quick_mode(quick):
+        warm, steps, repeats = 50, 8, 1
     import numpy as np
 
     from models import presets
@@ -154,7 +146,7 @@ def main() -> None:
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(prefix="cortexloc-tm-profile-") as tmp:
         tm = TemporalMemory(presets.tm_options("cortexloc-default"))
-        for x in random_sequence(args.warm, 2048, 308, 1):
+        for x in random_sequence(warm, 2048, 308, 1):
             tm.compute(x)
         state = Path(tmp) / "state.npz"
         np.savez(state, **tm.state_dict())
@@ -162,7 +154,7 @@ def main() -> None:
         variants = dict(VARIANTS)
         for name, edits in VARIANTS.items():
             patched_copy(Path(tmp) / name, edits)
-        for ref in args.before:
+        for ref in before:
             # The kernel of another commit, for a same-run before/after comparison.
             variants[f"before ({ref})"] = []
             dest = Path(tmp) / f"before ({ref})"
@@ -172,11 +164,11 @@ def main() -> None:
             subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
         samples: dict[str, dict[str, list[float]]] = {}
         # Rounds of every variant in turn, so that what else the shared cores run weighs on all alike.
-        for _ in range(args.repeats):
+        for _ in range(repeats):
             for name in variants:
                 env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(tmp) / name), str(ROOT)])}
                 for no_pun in (False, True):
-                    job = {"state": str(state), "steps": args.steps, "repeats": 1, "no_punishment": no_pun}
+                    job = {"state": str(state), "steps": steps, "repeats": 1, "no_punishment": no_pun}
                     proc = subprocess.run([sys.executable, "-c", CHILD, json.dumps(job)], env=env, cwd=tmp,
                                           capture_output=True, text=True, check=True)
                     r = json.loads(proc.stdout)
@@ -193,11 +185,9 @@ def main() -> None:
     parts = split(results)
     print("parts of the full step (ms CPU): " + ", ".join(f"{k} {v:.2f}" for k, v in parts.items()))
     path = write_json("tm_profile.json", {
-        "config": {**vars(args), "preset": "cortexloc-default"},
+        "config": {"warm": warm, "steps": steps, "repeats": repeats, "before": before, "quick": quick,
+                   "preset": "cortexloc-default"},
         "state": {"segments": size["segments"], "synapses": size["synapses"]},
         "variants": results, "parts_ms": parts})
     print(f"wrote {path}")
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,6 +1,6 @@
 """Half-sent uploads against the real service (issue 19 item 2): what they hold, and for how long.
 
-Run: `python benchmarks/bench_uploads.py [--quick] [--server-cmd CMD] [--env NAME=VALUE ...]`. Writes
+Run: `cortexloc bench uploads [--quick] [--server-cmd CMD] [--env NAME=VALUE ...]`. Writes
 benchmarks/results/uploads.json (or `--out`). `--server-cmd` runs another build of the CLI (e.g. the code
 before the fix) with the same measurements.
 
@@ -14,7 +14,6 @@ connections the server closed by then, and a small post's latency while they sta
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import shlex
@@ -25,9 +24,9 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-from _common import RESULTS, quick_mode, write_json
-from bench_http import Server
 
+from benchmarks._common import RESULTS, quick_mode, write_json
+from benchmarks.bench_http import Server
 from models.evaluation.bench import synthetic_jpegs
 
 
@@ -77,26 +76,17 @@ def tally(socks: list[socket.socket]) -> dict[str, Any]:
     return {"answers": statuses, "closed_by_server": sum(closed for _, closed in seen)}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--server-cmd", default=None, help="another CLI to run as `CMD serve ...`")
-    ap.add_argument("--env", action="append", default=[], help="NAME=VALUE for the server")
-    ap.add_argument("--uploads", type=int, default=50)
-    ap.add_argument("--declared", type=int, default=10_000_000)
-    ap.add_argument("--sent", type=int, default=9_000_000)
-    ap.add_argument("--watch", type=float, default=None, help="seconds to wait before the last look")
-    ap.add_argument("--out", type=Path, default=None)
-    args = ap.parse_args()
-    quick = quick_mode(args.quick)
-    uploads = 5 if quick else args.uploads
-    env = dict(e.split("=", 1) for e in args.env)
-    deadline_s = float(env.get("CORTEXLOC_BODY_TIMEOUT_S", 60.0))
-    watch = args.watch if args.watch is not None else deadline_s + 10
-    command = shlex.split(args.server_cmd) if args.server_cmd else None
+def main(*, quick: bool, server_cmd: str | None, env: list[str], uploads: int, declared: int, sent: int,
+         watch: float | None, out: Path | None) -> None:
+    quick = quick_mode(quick)
+    uploads = 5 if quick else uploads
+    server_env = dict(e.split("=", 1) for e in env)
+    deadline_s = float(server_env.get("CORTEXLOC_BODY_TIMEOUT_S", 60.0))
+    watch = watch if watch is not None else deadline_s + 10
+    command = shlex.split(server_cmd) if server_cmd else None
     small = synthetic_jpegs(1, 640, 480)[0]
     with tempfile.TemporaryDirectory() as tmp:
-        server = Server(Path(tmp), env, command)
+        server = Server(Path(tmp), server_env, command)
         try:
             server.wait_ready()
             http = httpx.Client(timeout=60)
@@ -104,7 +94,7 @@ def main() -> None:
                              headers={"Content-Type": "image/jpeg"}).status_code == 200  # warm
             before = server.rss_mib()
             t0 = time.monotonic()
-            socks = [stall(server.port, args.declared, args.sent) for _ in range(uploads)]
+            socks = [stall(server.port, declared, sent) for _ in range(uploads)]
             time.sleep(1.0)
             held = {"rss_mib": server.rss_mib(), "after_s": round(time.monotonic() - t0, 1), **tally(socks)}
             t1 = time.perf_counter()
@@ -119,12 +109,9 @@ def main() -> None:
         finally:
             server.stop()
     lines = [ln for ln in metrics.splitlines() if ln.startswith("cortexloc_upload_")]
-    result = {"uploads": uploads, "declared_bytes": args.declared, "sent_bytes": args.sent, "env": env,
-              "server_cmd": args.server_cmd, "rss_mib_before": before, "held": held, "small_post": small_post,
+    result = {"uploads": uploads, "declared_bytes": declared, "sent_bytes": sent, "env": server_env,
+              "server_cmd": server_cmd, "rss_mib_before": before, "held": held, "small_post": small_post,
               "later": later, "upload_metrics": lines}
     print(json.dumps(result, indent=2))
-    write_json("uploads.json", result, args.out or RESULTS / "uploads.json")
+    write_json("uploads.json", result, out or RESULTS / "uploads.json")
 
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """The encoder's stages one by one, and its ratio to the bare forward (issue 24).
 
-Run: `python benchmarks/profile_encoder.py [--repeats 9] [--backbone efficientnet-lite0-s5]`; writes
+Run: `cortexloc bench profile-encoder [--repeats 9] [--backbone efficientnet-lite0-s5]`; writes
 benchmarks/results/profile_encoder.json. Not part of `make bench` (bench_encoder.py is the contract).
 
 Per image, on one thread each, medians over `--repeats` batches of 16 640x480 JPEGs: header probe,
@@ -13,15 +13,14 @@ shows without the machine's noise.
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
-from _common import RESULTS, write_json  # also puts the repo on sys.path
 
+from benchmarks._common import RESULTS, write_json
 from models.evaluation.bench import synthetic_jpegs
 from models.frontend import images
 from models.frontend.encoder import Encoder
@@ -36,14 +35,11 @@ def median_ms(fn: Callable[[], object], repeats: int) -> float:
     return float(np.median(out) * 1e3)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--repeats", type=int, default=9)
-    ap.add_argument("--backbone", default="efficientnet-lite0-s5")
-    ap.add_argument("--out", type=Path, default=RESULTS / "profile_encoder.json")
-    args = ap.parse_args()
-    n, reps = 16, args.repeats
-    enc = Encoder({"backbone": args.backbone, "slsbh": {"projection": "dense"}})
+def main(*, repeats: int, backbone: str, out: Path | None) -> None:
+    if out is None:
+        out = RESULTS / "profile_encoder.json"
+    n, reps = 16, repeats
+    enc = Encoder({"backbone": backbone, "slsbh": {"projection": "dense"}})
     jpegs = synthetic_jpegs(n)
     rgbs = [images.decode(b) for b in jpegs]
     per_image = {
@@ -91,11 +87,8 @@ def main() -> None:
     print(f"batch 16: encoder {med['encode_wall']:.1f} ms, bare forward {med['bare_wall']:.1f} ms, ratio "
           f"{ratio:.3f}; CPU {med['encode_cpu']:.1f} against {med['bare_cpu']:.1f} ms: {beside:.2f} ms per "
           "image beside the forward", flush=True)
-    write_json(args.out.name, {"encoder": enc.identity, **enc.describe(), "repeats": reps,
+    write_json(out.name, {"encoder": enc.identity, **enc.describe(), "repeats": reps,
                                "per_image_ms": per_image, "forward_16_by_chunk_ms": forward_16_by_chunk,
                                "hash_16_ms": hash_16, "project_16_ms": project_16, "batch16_ms": med,
-                               "ratio_to_bare": ratio, "cpu_ms_per_image_beside_forward": beside}, args.out)
+                               "ratio_to_bare": ratio, "cpu_ms_per_image_beside_forward": beside}, out)
 
-
-if __name__ == "__main__":
-    main()

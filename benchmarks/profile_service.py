@@ -1,6 +1,6 @@
 """Where the service's CPU goes per image: 16 loopback clients learning into one map (issue 24).
 
-Run: `python benchmarks/profile_service.py [--clients 16] [--seconds 30]` (needs `py-spy` on PATH or in
+Run: `cortexloc bench profile-service [--clients 16] [--seconds 30]` (needs `py-spy` on PATH or in
 the venv, to name the server's threads; not part of `make bench`). Writes benchmarks/results/profile.json.
 
 The real `cortexloc serve` as in bench_http.py (default settings, the default map, 640x480 JPEGs). Over
@@ -15,7 +15,6 @@ the machine takes.
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import collections
 import os
@@ -29,9 +28,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from _common import RESULTS, write_json  # also puts the repo on sys.path
-from bench_http import Server, drive
-
+from benchmarks._common import RESULTS, write_json
+from benchmarks.bench_http import Server, drive
 from models.evaluation.bench import synthetic_jpegs
 
 _TICK = os.sysconf("SC_CLK_TCK")
@@ -58,30 +56,24 @@ def group_of(name: str) -> str:
         if name.startswith("sync-") else name)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--clients", type=int, default=16)
-    ap.add_argument("--seconds", type=float, default=30.0)
-    ap.add_argument("--server-cmd", default=None,
-                    help="command that starts the CLI instead of `cortexloc` (e.g. another build, as in "
-                         "bench_http.py); `serve --port P --data-dir D` is appended")
-    ap.add_argument("--out", type=Path, default=RESULTS / "profile.json")
-    args = ap.parse_args()
+def main(*, clients: int, seconds: float, server_cmd: str | None, out: Path | None) -> None:
+    if out is None:
+        out = RESULTS / "profile.json"
     spy_bin = shutil.which("py-spy") or str(Path(sys.executable).with_name("py-spy"))
     frames = synthetic_jpegs(64, seed=1)
     tmp = Path(tempfile.mkdtemp(prefix="cortexloc-profile-"))
     os.environ["CORTEXLOC_WEIGHTS_DIR"] = str(tmp / "no-weights")
-    server = Server(tmp, command=shlex.split(args.server_cmd) if args.server_cmd else None)
+    server = Server(tmp, command=shlex.split(server_cmd) if server_cmd else None)
     raw = tmp / "spy.txt"
     try:
         server.wait_ready()
         asyncio.run(drive(server.base, frames, 4, 32, 60))  # warm-up
         pid = server.proc.pid
-        spy = subprocess.Popen([spy_bin, "record", "-p", str(pid), "-d", str(int(args.seconds * 0.8)),
+        spy = subprocess.Popen([spy_bin, "record", "-p", str(pid), "-d", str(int(seconds * 0.8)),
                                 "-r", "50", "--threads", "-f", "raw", "-o", str(raw), "--nonblocking"],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         before, c0 = thread_cpu_s(pid), resource.getrusage(resource.RUSAGE_SELF)
-        r = asyncio.run(drive(server.base, frames, args.clients, 100000, args.seconds))
+        r = asyncio.run(drive(server.base, frames, clients, 100000, seconds))
         after, c1 = thread_cpu_s(pid), resource.getrusage(resource.RUSAGE_SELF)
         spy.wait(timeout=120)
     finally:
@@ -109,22 +101,19 @@ def main() -> None:
     client_ms = ((c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime)) * 1e3 / n_img
     server_ms = sum(by_group.values())
     total_w = sum(writer.values()) or 1
-    print(f"{args.clients} clients: {r['images_per_s']:.1f} img/s over {r['wall_s']:.0f} s; CPU ms per "
+    print(f"{clients} clients: {r['images_per_s']:.1f} img/s over {r['wall_s']:.0f} s; CPU ms per "
           f"image: server {server_ms:.1f}, client {client_ms:.1f}", flush=True)
     for g, v in by_group.most_common():
         print(f"  {g:34s} {v:6.2f} ms/image", flush=True)
     print("map writer's py-spy samples by function (running or waiting on I/O): " + ", ".join(
         f"{k} {v / total_w:.0%}" for k, v in writer.most_common(8)), flush=True)
     payload: dict[str, Any] = {
-        "server_cmd": args.server_cmd or "cortexloc", "clients": args.clients,
+        "server_cmd": server_cmd or "cortexloc", "clients": clients,
         "images_per_s": r["images_per_s"], "replies": r["replies"],
         "server_cpu_ms_per_image": server_ms, "client_cpu_ms_per_image": client_ms,
         "server_cpu_ms_per_image_by_thread": dict(by_group.most_common()),
         "writer_samples_by_function": {k: v / total_w for k, v in writer.most_common(12)},
         "server_stage_ms_median": r["server_stage_ms_median"]}
-    write_json(args.out.name, payload, args.out)
+    write_json(out.name, payload, out)
     shutil.rmtree(tmp, ignore_errors=True)
 
-
-if __name__ == "__main__":
-    main()

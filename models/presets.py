@@ -224,7 +224,7 @@ confs: dict[str, dict[str, Any]] = {
     },
     "cortexloc-grid": {
         "description": "TM 2048x4 that really predicts (one-shot, threshold 8); chosen by the grid sweep",
-        # Chosen by `python -m models.evaluation.sweeps.sweep` and the follow-up in docs/results.md: the best
+        # Chosen by `cortexloc eval grid-sweep` and the follow-up in docs/results.md: the best
         # worst-case clean AUC over the published (a=5, n=0.5) file and generated worlds with and
         # without noise. maxNewSynapseCount near the ~40 winners per step matters: with 20, noiseless
         # loops keep re-learning a new high-order code for the same place (clean AUC 0.88 at n=0).
@@ -232,7 +232,7 @@ confs: dict[str, dict[str, Any]] = {
     },
     "cortexloc-default": {
         "description": "service default: one-shot TM 2048x4 (threshold 24), 308-of-2048 sLSBH codes, 62 MiB",
-        # Chosen with `python -m models.evaluation.sweeps.nordland_sweep` on the Nordland `tune` split
+        # Chosen with `cortexloc eval nordland-sweep` on the Nordland `tune` split
         # (docs/results.md §7), then with a sequence filter that let short paths win. With only full
         # paths competing, the winner cells add nothing measurable over the sLSBH codes across seasons
         # (§7.4), so the context argument for minThreshold 2 is gone (§7.7); it stays the default

@@ -157,11 +157,41 @@ def test_the_private_import_check_finds_one(tmp_path):
                                          "service.maps: storage.catalog._private"]
 
 
-def test_one_command_line_library_in_the_service():
-    """`cortexloc` is typer; no service module parses arguments another way (the experiments included:
-    `cortexloc eval revisit | unknown`)."""
-    offenders = [str(p.relative_to(ROOT)) for p in sorted((ROOT / "service").rglob("*.py"))
-                 if any(isinstance(n, (ast.Import, ast.ImportFrom))
-                        and "argparse" in {a.name for a in n.names} | {getattr(n, "module", None)}
-                        for n in ast.walk(ast.parse(p.read_text())))]
-    assert offenders == []
+#: Modules of models/, service/ or benchmarks/ allowed to parse a command line with argparse: none.
+#: Experiments and benchmarks are `cortexloc eval` / `cortexloc bench` commands (benchmarks/__init__.py).
+ARGPARSE_ALLOWED: frozenset[str] = frozenset()
+COMMAND_HOMES = ("models", "service", "benchmarks")
+
+
+def argparse_users(root: Path) -> list[str]:
+    """The .py files under models/, service/ and benchmarks/ that import argparse, or call
+    `ArgumentParser` or `parse_args` (however argparse was reached)."""
+    found = []
+    for home in COMMAND_HOMES:
+        for path in sorted((root / home).rglob("*.py")):
+            for n in ast.walk(ast.parse(path.read_text(), str(path))):
+                imported = (isinstance(n, (ast.Import, ast.ImportFrom))
+                            and "argparse" in {a.name for a in n.names} | {getattr(n, "module", None)})
+                called = (isinstance(n, ast.Call) and isinstance(n.func, (ast.Attribute, ast.Name))
+                          and getattr(n.func, "attr", getattr(n.func, "id", None)) in ("ArgumentParser",
+                                                                                     "parse_args"))
+                if imported or called:
+                    found.append(path.relative_to(root).as_posix())
+                    break
+    return found
+
+
+def test_one_command_line_library_for_commands_and_experiments():
+    """`cortexloc` is typer; no module of models/, service/ or benchmarks/ parses arguments another way:
+    every experiment and benchmark is a `cortexloc eval` / `cortexloc bench` command."""
+    assert [p for p in argparse_users(ROOT) if p not in ARGPARSE_ALLOWED] == []
+
+
+def test_the_argparse_check_finds_one(tmp_path):
+    for home in COMMAND_HOMES:
+        (tmp_path / home).mkdir()
+    (tmp_path / "benchmarks" / "bench_x.py").write_text("import argparse\n")
+    (tmp_path / "models" / "sweep.py").write_text("from argparse import ArgumentParser\n")
+    (tmp_path / "service" / "tool.py").write_text("def main(ap):\n    return ap.parse_args()\n")
+    (tmp_path / "service" / "fine.py").write_text("import typer\n")
+    assert argparse_users(tmp_path) == ["models/sweep.py", "service/tool.py", "benchmarks/bench_x.py"]

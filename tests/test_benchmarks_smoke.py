@@ -1,4 +1,5 @@
-"""The retrieval benchmark's own check, small: the index and the brute-force popcount agree.
+"""The benchmarks' own checks, small, through their `cortexloc bench` / `cortexloc eval` commands where a
+command runs them (benchmarks/__init__.py: the run logic of those commands).
 
 benchmarks/bench_index.py compares `InvertedIndex.rank` with a packed-bit `np.bitwise_count` scan at
 10^3..10^6 descriptors; here the same code runs on a few thousand, asserting that both return the same
@@ -8,20 +9,19 @@ Timings are never asserted (they live in the benchmark's JSON).
 
 from __future__ import annotations
 
-import sys
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-
-import bench_index
-import bench_localiser
-import bench_place
-from bench_longrun import noisy
-
+from benchmarks import bench_index, bench_localiser, bench_place
+from benchmarks.bench_longrun import noisy
 from models.localisation import LocaliserParams
+from service.cli import app
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
 def test_descriptor_generators_keep_constant_weight() -> None:
@@ -58,7 +58,7 @@ def test_startup_benchmark_builds_a_map_and_reopens_it_from_its_snapshot(tmp_pat
                                                                            tiny_default_preset) -> None:
     """bench_startup drives the service's own MapRuntime: a tiny map keeps it cheap, and a change of
     that interface breaks here rather than in a two-hour `make bench`."""
-    import bench_startup
+    from benchmarks import bench_startup
 
     monkeypatch.setenv("CORTEXLOC_WEIGHTS_DIR", str(tmp_path / "no-weights"))
     built = bench_startup.build(tmp_path / "data", 60, short_tail=5, long_tail=30)
@@ -86,15 +86,16 @@ def test_place_benchmark_localises_through_the_index_with_a_fixed_state() -> Non
     assert large["graph_bytes"] == 3 * 8 * (20_000 + 1)
 
 
-def test_every_benchmark_script_imports() -> None:
-    """A module moved by a refactor breaks a benchmark only at `make bench` time; importing each script
-    here (their work is under `main()`, nothing runs at import) catches it in `make test`."""
+def test_every_benchmark_module_imports() -> None:
+    """A module moved by a refactor breaks a benchmark only when its command runs; importing each module
+    of benchmarks/ here (their work is under `main()`, nothing runs at import) catches it in `make test`."""
     import importlib
 
-    scripts = sorted(p.stem for p in (Path(__file__).resolve().parents[1] / "benchmarks").glob("bench_*.py"))
-    assert scripts, "no benchmark scripts found"
+    modules = sorted(".".join(p.relative_to(BENCHMARKS.parent).with_suffix("").parts)
+                     for p in BENCHMARKS.rglob("*.py") if p.name != "__init__.py")
+    assert modules, "no benchmark modules found"
     failed = {}
-    for name in scripts:
+    for name in modules:
         try:
             importlib.import_module(name)
         except Exception as exc:  # every failure is reported by name
@@ -102,10 +103,33 @@ def test_every_benchmark_script_imports() -> None:
     assert not failed, failed
 
 
+def test_make_bench_runs_every_benchmark_as_a_command() -> None:
+    """`cortexloc bench all` (`make bench`) runs each bench_*.py through its command: none is left out
+    and each command exists (its `--help` answers)."""
+    from benchmarks import run_all
+
+    assert set(run_all.COMMANDS) == {p.stem for p in BENCHMARKS.glob("bench_*.py")}
+    for argv in run_all.COMMANDS.values():
+        result = CliRunner().invoke(app, [*argv, "--help"])
+        assert result.exit_code == 0, (argv, result.output)
+
+
+def test_the_index_benchmark_runs_as_a_command_and_writes_its_json(tmp_path: Path) -> None:
+    """`cortexloc bench index` on a small map: the command hands its options to the benchmark, which
+    prints its line and writes its JSON where `--out` says (figures unasserted)."""
+    out = tmp_path / "index.json"
+    result = CliRunner().invoke(app, ["bench", "index", "--sizes", "2000", "--sizes", "3000",
+                                      "--queries", "4", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "2000 descriptors" in result.output and "3000 descriptors" in result.output
+    written = json.loads(out.read_text())
+    assert [r["descriptors"] for r in written["results"]] == [2000, 3000]
+
+
 def test_the_tm_profile_still_ablates_the_kernel(tmp_path: Path) -> None:
     """bench_tm_profile.py removes parts of the step by editing a copy of the kernel's source; a kernel
     edit that moves one of those lines must fail here, not leave a variant that times the full step."""
-    import bench_tm_profile
+    from benchmarks import bench_tm_profile
 
     for name, edits in bench_tm_profile.VARIANTS.items():
         bench_tm_profile.patched_copy(tmp_path / name, edits)
@@ -120,22 +144,18 @@ def test_the_tm_profile_still_ablates_the_kernel(tmp_path: Path) -> None:
 def test_bench_gpu_says_it_needs_a_gpu_where_there_is_none(monkeypatch: pytest.MonkeyPatch) -> None:
     """bench_gpu (docs/benchmarks.md §15) runs on a GPU machine only; on the CPU machines of CI and
     development it stops with a message, not a traceback, and writes nothing."""
-    import sys
-
-    import bench_gpu
     import torch
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    monkeypatch.setattr(sys, "argv", ["bench_gpu.py"])
-    with pytest.raises(SystemExit, match="no CUDA device"):
-        bench_gpu.main()
+    result = CliRunner().invoke(app, ["bench", "gpu", "--quick"])
+    assert result.exit_code == 1 and "no CUDA device" in result.output
 
 
 def test_the_loops_benchmark_counts_merges_over_the_rows_an_http_run_made() -> None:
     """bench_loops_http reads an HTTP run's rows by seq (any seqs, not 1..R) and their places from the
     store; `stress.merges` then counts places whose rows' labels differ by more than the tolerance and
     frames consolidated into a row of another label."""
-    import bench_loops_http as b
+    from benchmarks import bench_loops_http as b
 
     # rows 5, 6, 9 made by frames 0, 1, 3; row 9 joined row 6's place, which joined row 5's
     places = b.roots({5: None, 6: 5, 9: 6})
@@ -152,10 +172,7 @@ def test_the_loops_benchmark_drives_a_tiny_corridor_through_a_real_server(tmp_pa
     """The whole command on a few dozen rendered frames (and a tiny Nordland loop where the data is
     here): a real `cortexloc serve` on loopback, a new map's seed, the table and the JSON's structure
     and counts that must agree. No figure is asserted but the seed."""
-    import json
-
-    import bench_loops_http as b
-
+    from benchmarks import bench_loops_http as b
     from models.evaluation import datasets
 
     data = datasets.nordland_dir()
@@ -185,9 +202,8 @@ def test_the_loops_benchmark_drives_a_tiny_corridor_through_a_real_server(tmp_pa
 def test_the_loops_benchmark_poses_follow_the_route() -> None:
     """`--poses`: the corridor's frames carry their true positions (lap 2 where lap 1 was, the second
     corridor elsewhere), stamps increase, and a slower robot's copies lie between a frame and the next."""
-    import json
 
-    import bench_loops_http as b
+    from benchmarks import bench_loops_http as b
 
     tiny = b.Sizes(corridor=3.0, corridor_b=1.0)
     r = b.indoor(tiny)

@@ -8,7 +8,9 @@ map schema version (issue 38 item 6).
   the repository, and the `:name`, or the first attribute after the module, a name the module binds
   (read with `ast`, nothing imported). A name beyond the first attribute (`Class.method`) is not checked.
 - **Commands.** `cortexloc <command> [<sub>]` in backticks or at the start of a code-block line must be a
-  command of the typer app (`service/cli/`), and a sub-command of a group one of the group's.
+  command of the typer app (`service/cli/`), and a sub-command of a group one of the group's. The other
+  way round, every `cortexloc eval` and `cortexloc bench` command (the experiments and the benchmarks,
+  docs/benchmarks.md) is written in README.md or docs/ at least once.
 - **Schema.** `storage/mapschema.py`'s docstring and docs/design/service.md §4.2 say what every map.sqlite
   version from 2 to `SCHEMA_VERSION` added, CHANGELOG.md has an entry for `SCHEMA_VERSION` (what an
   existing map keeps), and no doc names a schema version above it.
@@ -213,6 +215,36 @@ def command_problems(root: Path, tree: dict[str, dict]) -> tuple[int, list[str]]
     return checked, out
 
 
+DOCUMENTED_GROUPS = ("eval", "bench")  # every command of these groups is documented somewhere
+
+
+def documented_commands(root: Path) -> set[tuple[str, ...]]:
+    """(group, sub-command) pairs, and lone commands, that README.md or docs/ write after `cortexloc`
+    (`|` alternatives each count)."""
+    found: set[tuple[str, ...]] = set()
+    for doc in documents(root):
+        for _, words in command_lines(doc.read_text(encoding="utf-8")):
+            tokens = words.replace("|", " | ").split()
+            if not tokens:
+                continue
+            found.add((tokens[0],))
+            i = 1
+            while i < len(tokens) and WORD.match(tokens[i]):
+                found.add((tokens[0], tokens[i]))
+                if i + 2 < len(tokens) and tokens[i + 1] == "|":
+                    i += 2
+                else:
+                    break
+    return found
+
+
+def undocumented_commands(root: Path, tree: dict[str, dict]) -> list[str]:
+    """`cortexloc GROUP NAME` for each command of DOCUMENTED_GROUPS that no doc writes."""
+    said = documented_commands(root)
+    return [f"cortexloc {group} {name}" for group in DOCUMENTED_GROUPS for name in sorted(tree.get(group, {}))
+            if (group, name) not in said]
+
+
 # ------------------------------------------------------------------------------------------ schema
 
 
@@ -269,6 +301,12 @@ def test_documented_commands_exist():
     checked, bad = command_problems(ROOT, tree)
     assert checked > 50
     assert not bad, f"{len(bad)} of {checked} documented commands do not exist:\n" + "\n".join(bad)
+
+
+def test_every_experiment_and_benchmark_command_is_documented():
+    tree = command_tree()
+    assert len(tree["eval"]) > 20 and len(tree["bench"]) > 20
+    assert undocumented_commands(ROOT, tree) == []
 
 
 def test_documented_schema_versions_are_the_code_s():
@@ -344,3 +382,13 @@ def test_a_schema_version_the_docs_do_not_describe_is_reported(tmp_path):
                        "docs/scaling.md:1: Schema version 9: SCHEMA_VERSION is 4"]
     assert schema_problems(tmp_path, 2)[0] == (f"{MAPSCHEMA}'s docstring names version(s) [3] beyond "
                                                "SCHEMA_VERSION 2")
+
+
+def test_an_undocumented_command_is_reported(tmp_path):
+    root = _tree(tmp_path, {
+        "README.md": "```\ncortexloc eval grid --seeds 3\ncortexloc bench http | index [--quick]\n```\n",
+        "docs/benchmarks.md": "Run `cortexloc bench all --quick`; `cortexloc eval` alone names none.\n",
+    })
+    tree = {"eval": {"grid": {}, "span": {}}, "bench": {"http": {}, "index": {}, "all": {}, "gpu": {}},
+            "serve": {}}
+    assert undocumented_commands(root, tree) == ["cortexloc eval span", "cortexloc bench gpu"]

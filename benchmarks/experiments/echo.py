@@ -3,10 +3,10 @@
 service's code: each variant replaces `OwnTrail.laid_behind` (or the step's candidates) for the run only,
 so the rest of the path is the service's.
 
-    PYTHONPATH=$PWD python benchmarks/experiments/echo.py off eval slam --data $D --half tune
-    PYTHONPATH=$PWD python benchmarks/experiments/echo.py kill eval slam --grid $G --thresholds 0.5
-    PYTHONPATH=$PWD python benchmarks/experiments/echo.py off synthetic
-    PYTHONPATH=$PWD python benchmarks/experiments/echo.py codes:61 eval slam --data $D --half tune \
+    cortexloc eval echo off eval slam --data $D --half tune
+    cortexloc eval echo kill eval slam --grid $G --thresholds 0.5
+    cortexloc eval echo off synthetic
+    cortexloc eval echo codes:61 eval slam --data $D --half tune \
         --routes stop --methods service-slam --thresholds 0.9
 
 `codes:N`: the service's rule, and after the run the Dice of the last stream's frame N (0-based) with
@@ -28,7 +28,7 @@ Variants:
 
 from __future__ import annotations
 
-import sys
+from collections.abc import Callable
 
 import numpy as np
 
@@ -124,23 +124,18 @@ def synthetic() -> None:
         print(f"{drift} bits a frame: highest confidence {min(highest):.3f}-{max(highest):.3f} over 12 seeds")
 
 
-def main() -> None:
-    if len(sys.argv) < 3:
-        raise SystemExit(__doc__)
-    install(sys.argv[1])
-    if sys.argv[2] == "synthetic":
+def main(*, variant: str, command: list[str], run_command: Callable[[list[str]], object]) -> None:
+    """`cortexloc eval echo VARIANT COMMAND...`: install `variant` for this process, then run `command`
+    (another `cortexloc` command line, through `run_command`) or, for `synthetic`, the synthetic echo."""
+    install(variant)
+    if command == ["synthetic"]:
         synthetic()
         return
-    from service.cli import app
-
     try:
-        app(sys.argv[2:])
+        run_command(command)
     finally:
-        if sys.argv[1].startswith("codes:") and len(SEEN) > int(sys.argv[1].partition(":")[2]) and SEEN[-1]:
+        if variant.startswith("codes:") and len(SEEN) > int(variant.partition(":")[2]) and SEEN[-1]:
             code, background, behind = SEEN[-1]
             print(f"frame {len(SEEN) - 1}: background likeness {background:.3f}; Dice with the rows 1..20 "
                   "behind it: " + " ".join(f"{trail.code_dice(code, c):.2f}" for c in behind))
 
-
-if __name__ == "__main__":
-    main()

@@ -2,8 +2,8 @@
 docs/design/science.md §11.2, §11.5), tried on the `cortexloc eval` commands. Not the service's code:
 each replaces `SequenceLocaliser._jump_level` for the run only, so the rest of the path is the service's.
 
-    PYTHONPATH=$PWD python benchmarks/experiments/null_entry.py entry:10 eval slam --data $D --half tune
-    PYTHONPATH=$PWD python benchmarks/experiments/null_entry.py rows eval unknown --db $D/summer ...
+    cortexloc eval null-entry entry:10 eval slam --data $D --half tune
+    cortexloc eval null-entry rows eval unknown --db $D/summer ...
 
 Variants (J; `c` = `jump_cost`, `best` = the live rows' best decayed score, `null` = the null's):
 - `adopted`: the service's rule, max(best, null) - c; 0 - c without a row path;
@@ -16,7 +16,7 @@ Variants (J; `c` = `jump_cost`, `best` = the live rows' best decayed score, `nul
 
 from __future__ import annotations
 
-import sys
+from collections.abc import Callable
 
 import numpy as np
 
@@ -46,14 +46,8 @@ def jump_level(variant: str):
     return level
 
 
-def main() -> None:
-    if len(sys.argv) < 3:
-        raise SystemExit(__doc__)
-    loc.SequenceLocaliser._jump_level = jump_level(sys.argv[1])
-    from service.cli import app
-
-    app(sys.argv[2:])
-
-
-if __name__ == "__main__":
-    main()
+def main(*, variant: str, command: list[str], run_command: Callable[[list[str]], object]) -> None:
+    """`cortexloc eval null-entry VARIANT COMMAND...`: install `variant` for this process, then run
+    `command` (another `cortexloc` command line) through `run_command`."""
+    loc.SequenceLocaliser._jump_level = jump_level(variant)
+    run_command(command)

@@ -2,7 +2,7 @@
 the stress routes, one learning stream through the service's step (`models.pipeline.observe` on a
 served map's model, as `service_path.slam_replay` drives it), one JSON line per route, window and seed.
 
-    PYTHONPATH=$PWD python benchmarks/experiments/short_term.py \
+    cortexloc eval short-term \
         slow3,slow10,flat,shortloop,seasons,noise,park,repeat,seasons30,seasons60 1,7,42 0,200,400,600 '{}'
 
 Arguments: routes, map seeds, the windows' first files (`tune`: 0-694, `test`: 894-1588), and the maps'
@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -151,14 +150,12 @@ def run(name: str, lo: int, seed: int, localiser: dict | None) -> dict:
             "wrong_visits": sum(1 for i, r in visit_of.items() if abs(labels[frame_of[r]] - labels[i]) > 1)}
 
 
-if __name__ == "__main__":
-    routes, seeds = sys.argv[1].split(","), [int(s) for s in sys.argv[2].split(",")]
-    starts = [int(x) for x in sys.argv[3].split(",")] if len(sys.argv) > 3 else [100]
-    loc = json.loads(sys.argv[4]) if len(sys.argv) > 4 else None
+def main(*, routes: list[str], seeds: list[int], starts: list[int], localiser: dict | None) -> None:
+    """`cortexloc eval short-term`: one JSON line per route, window start and seed."""
     for r in routes:
         for lo in starts:
             for s in seeds:
                 t = time.time()
-                o = run(r, lo, s, loc)
+                o = run(r, lo, s, localiser)
                 o["s"] = round(time.time() - t, 1)
                 print(json.dumps(o), flush=True)

@@ -2,7 +2,7 @@
 stress.py) given poses, one learning stream through the service's step (`service_path.slam_replay` with
 each frame's `Motion`), at the suite's `tune` windows (7, from file 0 slid by 100) and seeds 1, 7, 42.
 
-    PYTHONPATH=$PWD python benchmarks/experiments/short_term_poses.py 1.0 1.0 '{}' rate3 rate10 parked flat \
+    cortexloc eval short-term-poses 1.0 1.0 '{}' rate3 rate10 parked flat \
         short-loop seasons noise repeat
 
 Arguments: metres per label (each frame's pose is its label x this along x), seconds per frame (its
@@ -28,7 +28,8 @@ DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "nordlan
 SEEDS = (1, 7, 42)
 
 
-def main(metres: float, seconds: float, localiser: dict, cases: list[str]) -> None:
+def main(*, metres: float, seconds: float, localiser: dict, cases: list[str]) -> None:
+    """`cortexloc eval short-term-poses`: `stress.summary` per case over the tune windows and seeds."""
     enc, cache, map_conf = encoder_setup(None, localiser or None)
     frames = stress.Frames(DATA, enc, cache)
     t, results = time.time(), []
@@ -53,6 +54,3 @@ def main(metres: float, seconds: float, localiser: dict, cases: list[str]) -> No
         print(case, json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in acc.items()}))
     print(f"{time.time() - t:.0f} s", file=sys.stderr)
 
-
-if __name__ == "__main__":
-    main(float(sys.argv[1]), float(sys.argv[2]), json.loads(sys.argv[3]), sys.argv[4:])

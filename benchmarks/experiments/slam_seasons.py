@@ -2,8 +2,8 @@
 bias of one learning stream, over the `cortexloc eval slam` routes. Not the service's code: each
 wraps `SequenceLocaliser.step` for the run only, so the rest of the path is the service's.
 
-    PYTHONPATH=$PWD python benchmarks/experiments/slam_seasons.py own 0.5 --half test
-    PYTHONPATH=$PWD python benchmarks/experiments/slam_seasons.py contrast 5 --half test
+    cortexloc eval slam-seasons own 0.5 --half test
+    cortexloc eval slam-seasons contrast 5 --half test
 
 `own X`: the evidence of candidate rows on the stream's own trail lowered by X candidate spreads.
 `contrast W`: each candidate's score less the mean of its ±W route neighbours' (rows outside the
@@ -19,14 +19,13 @@ stream's recent frames (time constant T, the rates started at the first frame's 
 weight over the query's (the first form of docs/design/science.md §11.10).
 `local M B`: the same weights from the frame's M best rows by plain Dice instead of the stream's past.
 
-    PYTHONPATH=$PWD python benchmarks/experiments/slam_seasons.py hub 50 2 --half test
-    PYTHONPATH=$PWD python benchmarks/experiments/slam_seasons.py idf 100 2 --half tune
-    PYTHONPATH=$PWD python benchmarks/experiments/slam_seasons.py local 100 2 --half tune
+    cortexloc eval slam-seasons hub 50 2 --half test
+    cortexloc eval slam-seasons idf 100 2 --half tune
+    cortexloc eval slam-seasons local 100 2 --half tune
 """
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
@@ -166,25 +165,17 @@ def local(m: int, beta: float) -> None:
     _weighted_rank(weights_of)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("kind", choices=["own", "contrast", "hub", "idf", "local"])
-    ap.add_argument("value", type=float)
-    ap.add_argument("beta", type=float, nargs="?", default=2.0, help="hub, idf, local: the discount")
-    ap.add_argument("--half", default="test")
-    ap.add_argument("--routes", default="seasons")
-    ap.add_argument("--methods", default="service-slam,service")
-    ap.add_argument("--data", type=Path, default=Path("../shared/data/nordland_tiny_64x32"))
-    ap.add_argument("--json", type=Path)
-    a = ap.parse_args()
-    if a.kind in ("idf", "local"):
-        (idf(a.value, a.beta) if a.kind == "idf" else local(int(a.value), a.beta))
+def main(*, kind: str, value: float, beta: float, half: str, routes: str, methods: str, data: Path,
+         json_out: Path | None) -> None:
+    """Install variant `kind` (module docstring) and run `cortexloc eval slam` with these options."""
+    if kind in ("idf", "local"):
+        (idf(value, beta) if kind == "idf" else local(int(value), beta))
 
         def change(graph, seqs, scores, own_trail):
             return scores
     else:
-        change = {"own": lambda: own(a.value), "contrast": lambda: contrast(int(a.value)),
-                  "hub": lambda: hub(a.value, a.beta)}[a.kind]()
+        change = {"own": lambda: own(value), "contrast": lambda: contrast(int(value)),
+                  "hub": lambda: hub(value, beta)}[kind]()
     step = loc.SequenceLocaliser.step
 
     def changed(self, state, graph, seqs, scores, own_trail=None, informative=True):
@@ -194,9 +185,6 @@ def main() -> None:
     loc.SequenceLocaliser.step = changed
     from service.evaluation import slam
 
-    slam.slam_runs(data=a.data, half=a.half, routes=a.routes, methods=a.methods, json_path=a.json,
+    slam.slam_runs(data=data, half=half, routes=routes, methods=methods, json_path=json_out,
                    localiser={"condition_frames": 0})
 
-
-if __name__ == "__main__":
-    main()

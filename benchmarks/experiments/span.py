@@ -3,8 +3,8 @@ window's summer frames learned as one traverse and the same window driven again 
 localises, read at several margins and span caps from one run (the span is read from the stream's beam
 after each frame, so the answers are the run's, whatever the margin), one JSON line per window and seed.
 
-    PYTHONPATH=$PWD python benchmarks/experiments/span.py flat,winter 1,42 '{}' > span.jsonl
-    python benchmarks/experiments/span.py sum < span.jsonl    # totals per kind, margin and cap
+    cortexloc eval span flat,winter 1,42 '{}' > span.jsonl
+    cortexloc eval span sum < span.jsonl    # totals per kind, margin and cap
 
 Arguments: lap-2 kinds (`winter`: the window in winter; `flat`: in winter, blurred and its contrast cut
 to 35 %, `stress.variant`'s low-texture frames, a featureless other season), map seeds, and the maps'
@@ -19,7 +19,6 @@ the span); S = 4096 is no gate. A revisit is called at the map's `revisit_thresh
 from __future__ import annotations
 
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -94,12 +93,8 @@ def total(lines: list[dict[str, Any]]) -> None:
                   round(c["right"] / max(answered, 1), 3))
 
 
-if __name__ == "__main__":
-    if sys.argv[1] == "sum":
-        total([json.loads(line) for line in sys.stdin if line.strip()])
-        sys.exit()
-    kinds, seeds = sys.argv[1].split(","), [int(s) for s in sys.argv[2].split(",")]
-    localiser = json.loads(sys.argv[3]) if len(sys.argv) > 3 else None
+def main(*, kinds: list[str], seeds: list[int], localiser: dict | None) -> None:
+    """`cortexloc eval span KINDS SEEDS [LOCALISER]`: one JSON line per kind, window and seed."""
     enc, cache, map_conf = encoder_setup(None, localiser)
     frames = stress.Frames(Path(datasets.nordland_dir()), enc, cache)
     for kind in kinds:

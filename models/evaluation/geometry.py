@@ -1,7 +1,7 @@
 """Geometric verification measured on real images (issue 27 item 4; docs/results.md §12,
 docs/design/science.md §12).
 
-    python -m models.evaluation.geometry --extractors orb sift
+    cortexloc eval geometry --extractors orb,sift
 
 Cases, each per extractor:
 
@@ -20,7 +20,6 @@ keyframe. scikit-image is a dev dependency: this module imports it only when it 
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
 import math
@@ -177,17 +176,12 @@ def table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--extractors", nargs="+", default=[k for k in ("orb", "sift") if k in available()])
-    ap.add_argument("--max", type=int, default=500, help="features per frame")
-    ap.add_argument("--json", action="store_true", help="print the rows as JSON too")
-    a = ap.parse_args(argv)
-    rows = evaluate(tuple(a.extractors), a.max)
+def run(*, extractors: list[str] | None, max_features: int, as_json: bool) -> None:
+    """Print the table of `evaluate` (every available extractor when None), and its rows as JSON too."""
+    if extractors is None:
+        extractors = [k for k in ("orb", "sift") if k in available()]
+    rows = evaluate(tuple(extractors), max_features)
     print(table(rows))
-    if a.json:
+    if as_json:
         print(json.dumps(rows, indent=1))
 
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """The cross-season tables of docs/results.md §7: every method at two path lengths, both metrics.
 
-Run: `python -m models.evaluation.nordland_tables --backbone efficientnet-lite0 [--seeds 3] [--json OUT]`.
+Run: `cortexloc eval nordland-tables --backbone efficientnet-lite0 [--seeds 3] [--json OUT]`.
 nordland_tiny_64x32, summer database, winter query, squash resize, `cortexloc-default`, reset between
 database and query, tolerance 0 (docs/design/science.md §8.5). Per window (tune, test and five windows of 200
 files) and per ds (10, 20) it runs what `cortexloc eval images --reset --ds DS --offset O --limit N` runs:
@@ -13,7 +13,6 @@ Nothing here is tuned: the reference's parameters are OpenSeqSLAM's, the memory'
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 from pathlib import Path
@@ -25,7 +24,6 @@ from models import presets
 from models.evaluation import seqslam as seq
 from models.evaluation import sequences
 from models.evaluation.datasets import nordland_dir
-from models.frontend import backbones
 from models.frontend.encoder import Encoder
 
 # Files (1-based, as in docs/design/science.md §10.1) -> (offset, count).
@@ -83,57 +81,42 @@ def markdown(result: dict[str, Any], metric: str) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--backbone", default="efficientnet-lite0", choices=backbones.names())
-    ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--ds", default="10,20", help="comma-separated path lengths")
-    ap.add_argument("--methods", default=",".join(METHODS), help="comma-separated methods of "
-                    "models.evaluation.sequences.METHODS, e.g. openseqslam,online-htm (its ablations join)")
-    ap.add_argument("--windows", default=",".join(WINDOWS), help="comma-separated names of WINDOWS")
-    ap.add_argument("--reverse-query", action="store_true", help="drive the query route backwards")
-    ap.add_argument("--crossing", action="store_true", help="sequence methods answer the row where the best "
-                    "path crosses the query, not OpenSeqSLAM's start row + ds/2")
-    ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "cortexloc" / "features")
-    ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--markdown", type=Path, default=None,
-                    help="print the tables of a --json result, run nothing")
-    args = ap.parse_args()
-    if args.markdown:
-        result = json.loads(args.markdown.read_text())
+def run(*, backbone: str, seeds: int, ds: list[int], methods: list[str], windows: list[str],
+        reverse_query: bool, crossing: bool, cache: Path, json_out: Path | None,
+        markdown_of: Path | None) -> None:
+    """The tables (module docstring); with `markdown_of`, print that JSON result's tables only."""
+    if markdown_of:
+        result = json.loads(markdown_of.read_text())
         for metric in ("recall_at_1", "query_auc", "auc"):
             print(f"\n{metric} ({result['backbone']}, {result['seeds']} seeds)\n" + markdown(result, metric))
         return
     root = nordland_dir()
     names = sequences.paired_names(root / "summer", root / "winter")
-    enc = Encoder({"backbone": args.backbone, "resize": "squash"})
-    feats = {season: sequences.cached_features(enc, [root / season / n for n in names], args.cache)
+    enc = Encoder({"backbone": backbone, "resize": "squash"})
+    feats = {season: sequences.cached_features(enc, [root / season / n for n in names], cache)
              for season in ("summer", "winter")}
     frames = {season: seq.load_frames([root / season / n for n in names]) for season in ("summer", "winter")}
     codes = presets.get(PRESET)["slsbh"]
     _memoised_run_tm()
-    methods = sequences.with_ablations(args.methods.split(","))
-    out: dict[str, Any] = {"backbone": enc.identity, "preset": PRESET, "seeds": args.seeds,
-                           "methods": methods, "reverse_query": args.reverse_query, "crossing": args.crossing,
+    methods = sequences.with_ablations(methods)
+    out: dict[str, Any] = {"backbone": enc.identity, "preset": PRESET, "seeds": seeds,
+                           "methods": methods, "reverse_query": reverse_query, "crossing": crossing,
                            "windows": {}}
-    for window in args.windows.split(","):
+    for window in windows:
         o, n = WINDOWS[window]
         sl = slice(o, o + n)
         out["windows"][window] = {}
-        for ds in (int(v) for v in args.ds.split(",")):
+        for d in ds:
             r = sequences.image_experiment(
                 feats["summer"][sl], feats["winter"][sl], methods=methods, preset=PRESET, k=codes["k"],
-                s=codes["s"], seeds=args.seeds, reset=True, ds=ds, reverse_query=args.reverse_query,
-                crossing=args.crossing,
+                s=codes["s"], seeds=seeds, reset=True, ds=d, reverse_query=reverse_query,
+                crossing=crossing,
                 frames=(frames["summer"][sl], frames["winter"][sl]))
             r.pop("first")
-            out["windows"][window][ds] = r["methods"]
-            print(f"{args.backbone} {window} ds={ds}: " + ", ".join(
+            out["windows"][window][d] = r["methods"]
+            print(f"{backbone} {window} ds={d}: " + ", ".join(
                 f"{m} R@1 {e['recall_at_1_mean']:.3f} qAUC {e['query_auc_mean']:.3f} AUC {e['auc_mean']:.4f}"
                 for m, e in r["methods"].items()), flush=True)
-            if args.json:
-                args.json.write_text(json.dumps(out, indent=1))
+            if json_out:
+                json_out.write_text(json.dumps(out, indent=1))
 
-
-if __name__ == "__main__":
-    main()

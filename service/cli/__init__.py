@@ -1,8 +1,8 @@
 """The `cortexloc` command line: a stable contract that scripts and acceptance checks call.
 
     cortexloc presets
-    cortexloc eval grid | images ...            service.cli.evaluate
-    cortexloc bench tm | encoder ...            service.cli.bench
+    cortexloc eval grid | images | slam | ...   service.cli.evaluate, service.cli.experiments
+    cortexloc bench tm | encoder | http | ...   service.cli.bench
     cortexloc weights download | import ...     service.cli.weights
     cortexloc serve [--host H] [--port P] [--data-dir DIR] [--ray [--shards N] [--encoder-replicas N]]
                                                                       service.cli.serve
@@ -17,7 +17,8 @@
 
 Tables go to stdout, progress and warnings to stderr, machine-readable results to --json. Importing this
 package imports no heavy library (torch, cv2, rosbags): each command imports what it needs when it runs,
-so `serve` can set OpenCV's pixel guard before cv2 is first imported.
+so `serve` can set OpenCV's pixel guard before cv2 is first imported. Where an experiment or a
+benchmark goes (`eval` or `bench`) is benchmarks/__init__.py's rule.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from __future__ import annotations
 import typer
 
 from models import presets
-from service.cli import bench, evaluate, maps, shards, weights
+from service.cli import bench, experiments, maps, shards, weights
 from service.cli.ingest import ingest_command
 from service.cli.serve import process_settings, serve
 
@@ -33,7 +34,8 @@ __all__ = ["app", "main", "process_settings", "serve"]
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="cortexloc: visual place recognition with a Hierarchical Temporal Memory.")
-app.add_typer(evaluate.app, name="eval")
+# experiments.app is service.cli.evaluate.app with the searches and experiments registered on it
+app.add_typer(experiments.app, name="eval")
 app.add_typer(bench.app, name="bench")
 app.add_typer(weights.app, name="weights")
 app.add_typer(shards.app, name="shards")

@@ -1,8 +1,8 @@
 """The searches behind the localiser's defaults and the backbone block (docs/results.md §8.3, §8.4).
 
 Run:
-    python -m models.evaluation.sweeps.localiser_sweep grid [--grid decay=0.9,0.95 --grid top_k=50,100]
-    python -m models.evaluation.sweeps.localiser_sweep layers [--split tune] [--blocks stage5-pool2,...]
+    cortexloc eval localiser-sweep grid [--grid decay=0.9,0.95 --grid top_k=50,100]
+    cortexloc eval localiser-sweep layers [--split tune] [--blocks stage5-pool2,...]
 
 nordland_tiny_64x32, summer database, winter query, squash resize, tolerance 0, the ds-10 queries of
 docs/results.md §7. `grid`: `online-cosine` on EfficientNet-Lite0 stage 7 over every combination of
@@ -15,7 +15,6 @@ dense projection plus Temporal Memory bytes per map. A block `stageN-pool2` is s
 
 from __future__ import annotations
 
-import argparse
 import itertools
 from pathlib import Path
 from typing import Any
@@ -82,24 +81,19 @@ def scores(S: np.ndarray, conf: dict[str, Any] | None = None) -> tuple[float, fl
     return single["recall_at_1"], single["query_auc"], loc["recall_at_1"], loc["query_auc"]
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=("grid", "layers"))
-    ap.add_argument("--split", default="tune", choices=SPLITS)
-    ap.add_argument("--grid", action="append", default=[], help="OPTION=V1,V2 (numbers; move_costs as 3/0/3)")
-    ap.add_argument("--blocks", default=",".join(BLOCKS))
-    ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "cortexloc" / "features")
-    args = ap.parse_args()
-    offset, limit = SPLITS[args.split]
-    if args.what == "grid":
+def run(*, what: str, split: str, grid: list[str], blocks: list[str], cache: Path) -> None:
+    """`what` grid: the localiser over every combination of `grid` (OPTION=V1,V2 items); layers: a table of
+    `blocks` (module docstring)."""
+    offset, limit = SPLITS[split]
+    if what == "grid":
         root = nordland_dir()
         names = sequences.paired_names(root / "summer", root / "winter", offset, limit)
         enc = Encoder({"backbone": "efficientnet-lite0", "resize": "squash"})
-        db, q = (sequences.cached_features(enc, [root / season / n for n in names], args.cache)
+        db, q = (sequences.cached_features(enc, [root / season / n for n in names], cache)
                  for season in ("summer", "winter"))
         S = db @ q.T
         grid = {k: [tuple(float(x) for x in v.split("/")) if "/" in v else float(v) for v in vals.split(",")]
-                for k, _, vals in (g.partition("=") for g in args.grid)}
+                for k, _, vals in (g.partition("=") for g in grid)}
         for values in itertools.product(*grid.values()):
             conf = {k: int(v) if k in ("top_k", "beam", "warmup", "exclusion") else v
                     for k, v in zip(grid, values, strict=True)}
@@ -108,7 +102,7 @@ def main() -> None:
     p = presets.get("cortexloc-default")["slsbh"]
     print("| block | D | projection + TM | cosine | online-cosine | slsbh | online-slsbh |")
     print("|---|---|---|---|---|---|---|")
-    for block, (db, q) in layer_features(args.blocks.split(","), offset, limit).items():
+    for block, (db, q) in layer_features(blocks, offset, limit).items():
         hasher = slsbh.Hasher(slsbh.make_projection(db.shape[1], p["k"], 1), p["s"])
         dice = sdr.dice_matrix(list(sequences.codes(hasher, db)), list(sequences.codes(hasher, q)))
         c, d = scores(db @ q.T), scores(dice)
@@ -116,6 +110,3 @@ def main() -> None:
         cells = [f"{a:.3f} / {b:.3f}" for a, b in ((c[0], c[1]), (c[2], c[3]), (d[0], d[1]), (d[2], d[3]))]
         print(f"| {block} | {db.shape[1]} | {mib:.1f} MiB | " + " | ".join(cells) + " |", flush=True)
 
-
-if __name__ == "__main__":
-    main()

@@ -1,7 +1,7 @@
 """Parameter search for the cross-season default (issue: cross-season evaluation,
 docs/design/science.md §8.5).
 
-Run: `python -m models.evaluation.sweeps.nordland_sweep [--split tune] [--json OUT]` (one seed: a sweep
+Run: `cortexloc eval nordland-sweep [--split tune] [--json OUT]` (one seed: a sweep
 ranks).
 Protocol `tune` (files 1-894 of nordland_tiny_64x32, summer database, winter query, reset between them,
 squash resize): every configuration of sLSBH density, stream adaptation and Temporal Memory parameters
@@ -16,7 +16,6 @@ so the sequence-compared winner cells are what tell configurations apart. Choose
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
 from pathlib import Path
@@ -63,23 +62,14 @@ def _codes(db: np.ndarray, q: np.ndarray, s: float, adapt_tau: int, seed: int) -
     return sequences.codes(hasher, db, adapt_tau), sequences.codes(hasher, q, adapt_tau)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--split", choices=sorted(SPLITS), default="tune")
-    ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "cortexloc" / "features")
-    ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--codes-only", action="store_true",
-                    help="only the code statistics per (s, adaptation): bits shared by the same place "
-                         "and by different places, and single-image sLSBH AUC")
-    ap.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2",
-                    help="replace GRID[KEY] by these values (re-run single rows)")
-    args = ap.parse_args()
-    for item in args.grid:
+def run(*, split: str, cache: Path, json_out: Path | None, codes_only: bool, grid: list[str]) -> None:
+    """The search (module docstring); `grid` items KEY=V1,V2 replace GRID[KEY] (ValueError: unknown KEY)."""
+    for item in grid:
         key, _, values = item.partition("=")
         if key not in GRID:
-            ap.error(f"--grid: unknown key {key!r}; known: {', '.join(GRID)}")
+            raise ValueError(f"--grid: unknown key {key!r}; known: {', '.join(GRID)}")
         GRID[key] = [type(GRID[key][0])(v) for v in values.split(",")]
-    feats = load_features(args.split, args.cache)
+    feats = load_features(split, cache)
     tm_keys = [k for k in GRID if k not in ("s", "adapt_tau")]
     rows = []
     # Codes depend on (backbone, s, adaptation) only: hash once, then run every TM configuration on them.
@@ -96,7 +86,7 @@ def main() -> None:
             print(f"codes s={s} adapt_tau={adapt_tau} {b}: bits shared of {ones}: same place "
                   f"{np.diag(D).mean() * ones:.1f}, different places {D[off].mean() * ones:.1f}; sLSBH AUC "
                   f"{base[b]['auc']:.4f}, R@1 {base[b]['recall_at_1']:.3f}", flush=True)
-        if args.codes_only:
+        if codes_only:
             continue
         for values in itertools.product(*(GRID[k] for k in tm_keys)):
             tm = dict(zip(tm_keys, values, strict=True))
@@ -125,9 +115,6 @@ def main() -> None:
     for adapt in GRID["adapt_tau"] if rows else ():
         best = [r for r in rows if r["conf"]["adapt_tau"] == adapt][-1]
         print(f"best with adapt_tau={adapt}: {best['conf']} objective {best['objective']:.4f}")
-    if args.json:
-        args.json.write_text(json.dumps({"split": args.split, "rows": rows}, indent=1))
+    if json_out:
+        json_out.write_text(json.dumps({"split": split, "rows": rows}, indent=1))
 
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """Dense versus very sparse sLSBH projection: is the cheaper one as good? (issue: front end, §3)
 
-Run: `python -m models.evaluation.sweeps.projection_parity [--windows 0,1000] [--n 200] [--seeds 3]`.
+Run: `cortexloc eval projection-parity [--windows 0,1000] [--n 200] [--seeds 3]`.
 Encodes Nordland summer (database) and winter (query) frames once with the AlexNet conv3 encoder, then
 hashes the same features with dense and sparse projections of several seeds, at s = 0.25 and
 s = 0.025, and reports the pairwise-sLSBH AUC (S = Dice, GT = same file name) of each. The sparse
@@ -9,7 +9,6 @@ projection may become the default only if its AUC matches the dense one within t
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -18,7 +17,7 @@ import numpy as np
 from models import sdr
 from models.evaluation import metrics
 from models.evaluation.datasets import shared_data_dir
-from models.frontend import backbones, slsbh
+from models.frontend import slsbh
 from models.frontend.encoder import Encoder
 
 
@@ -29,21 +28,14 @@ def _features(enc: Encoder, folder: Path, names: list[str]) -> np.ndarray:
     return np.concatenate(out)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--windows", default="0,1000", help="start indices of the windows")
-    ap.add_argument("--n", type=int, default=200, help="frames per window")
-    ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--resize", default="squash", help="crop | squash (64x32 frames: squash keeps the view)")
-    ap.add_argument("--backbone", default="alexnet", choices=backbones.names())
-    ap.add_argument("--json", type=Path, default=None)
-    args = ap.parse_args()
+def run(*, windows: list[int], n: int, seeds: int, resize: str, backbone: str, json_out: Path | None) -> None:
+    """AUC of dense and sparse projections per window start in `windows` (module docstring)."""
     root = shared_data_dir() / "nordland_tiny_64x32"
     names = sorted(p.name for p in (root / "summer").glob("*.png"))
-    enc = Encoder({"backbone": args.backbone, "resize": args.resize})  # features only: no projection built
+    enc = Encoder({"backbone": backbone, "resize": resize})  # features only: no projection built
     results = []
-    for start in (int(w) for w in args.windows.split(",")):
-        window = names[start:start + args.n]
+    for start in windows:
+        window = names[start:start + n]
         db, q = _features(enc, root / "summer", window), _features(enc, root / "winter", window)
         gt = np.eye(len(window), dtype=bool)
         cos = metrics.auc(*metrics.pr_curve(db @ q.T, gt))
@@ -51,7 +43,7 @@ def main() -> None:
             row = {"window": start, "n": len(window), "s": s, "cosine_auc": cos, "encoder": enc.identity}
             for kind in ("dense", "sparse"):
                 aucs = []
-                for seed in range(args.seeds):
+                for seed in range(seeds):
                     P = (slsbh.make_projection(db.shape[1], 1024, seed) if kind == "dense"
                          else slsbh.make_sparse_projection(db.shape[1], 1024, seed))
                     h = slsbh.Hasher(P, s)
@@ -65,9 +57,6 @@ def main() -> None:
                   f"[{row['dense']['auc_min']:.4f}, {row['dense']['auc_max']:.4f}]; sparse "
                   f"{row['sparse']['auc_mean']:.4f} [{row['sparse']['auc_min']:.4f}, "
                   f"{row['sparse']['auc_max']:.4f}]", flush=True)
-    if args.json:
-        args.json.write_text(json.dumps(results, indent=2))
+    if json_out:
+        json_out.write_text(json.dumps(results, indent=2))
 
-
-if __name__ == "__main__":
-    main()

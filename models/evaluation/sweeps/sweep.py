@@ -1,6 +1,6 @@
 """Parameter search for a grid-world TM preset that really predicts (issue: "beyond the paper").
 
-Run: `python -m models.evaluation.sweeps.sweep [--seeds K] [--grid main|followup]`. Every configuration is
+Run: `cortexloc eval grid-sweep [--seeds K] [--grid main|followup]`. Every configuration is
 scored with clean scoring on the published (a=5, n=0.5) file (when ../shared/data has it) and on
 generated (a=5, n=0.5), (a=1, n=0.05), (a=0, n=0) and (a=5, n=0) worlds, so a choice cannot be tuned
 to one file; the objective is the worst of these AUCs. One line per configuration, the best last.
@@ -8,7 +8,6 @@ to one file; the objective is the worst of these AUCs. One line per configuratio
 
 from __future__ import annotations
 
-import argparse
 import itertools
 
 import numpy as np
@@ -57,17 +56,14 @@ def _datasets(seed: int) -> dict[str, gridworld.GridData]:
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--grid", choices=sorted(GRIDS), default="main")
-    args = ap.parse_args()
+def run(*, seeds: int, grid: str) -> None:
+    """Score every configuration of GRIDS[grid] over `seeds` seeds; print one line each, the best last."""
     data = _datasets(0)
     base = presets.tm_params("cortexloc-grid")
-    grid = GRIDS[args.grid]
-    keys = list(grid)
+    configurations = GRIDS[grid]
+    keys = list(configurations)
     rows = []
-    for values in itertools.product(*(grid[k] for k in keys)):
+    for values in itertools.product(*(configurations[k] for k in keys)):
         over = dict(zip(keys, values, strict=True))
         if over["minThreshold"] > over["activationThreshold"]:
             continue
@@ -77,7 +73,7 @@ def main() -> None:
         scores = {}
         for name, d in data.items():
             aucs, pred = [], []
-            for s in range(args.seeds):
+            for s in range(seeds):
                 w, info = run_htm(d, "_sweep", seed=s)
                 aucs.append(metrics.grid_evaluation(w, d.places, "clean")["auc"])
                 pred.append(info["predicted_column_fraction"])
@@ -88,6 +84,3 @@ def main() -> None:
     rows.sort(key=lambda r: r[0])
     print("best (by worst data set):", rows[-1][1], rows[-1][2])
 
-
-if __name__ == "__main__":
-    main()
