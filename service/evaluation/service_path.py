@@ -232,7 +232,7 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
     with keyframes, as the map writer does (docs/design/science.md §11.9, §12).
 
     Args:
-        db_feats, q_feats: (n_db, D), (n_q, D) backbone features in driven order (`Encoder.embed`).
+        db_feats, q_feats: (n_db, D), (n_q, D) backbone features in driven order (`Embedder.embed`).
         encoder_id, backbone: the encoder they came from (a served map freezes them; here the backbone
             is checked like a created map's, `encoder_id` only names them).
         preset, seed, memory, localiser: the map's `CreateMap` fields; `create`: any further ones.

@@ -36,7 +36,7 @@ from models.localisation import forgetting
 from models.localisation.motion import Motion
 from models.pipeline import touch
 from service.maps import keyframes
-from service.maps.encoding.pool import EncoderPool
+from service.maps.encoding.pool import EmbeddingPool
 from service.maps.errors import ClientGone, InsufficientStorage, MapNotFound
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import ObservationResult, PlaceResult
@@ -115,8 +115,8 @@ class Writer:
         it: docs/design/service.md §4.3)."""
         await asyncio.wrap_future(self._commits.durable())
 
-    async def observe(self, pool: EncoderPool, extractions: keyframes.Extractions, body: bytes | RawFrame, *,
-                      learn: bool, stream: str, top_k: int, label: str | None,
+    async def observe(self, pool: EmbeddingPool, extractions: keyframes.Extractions,
+                      body: bytes | RawFrame, *, learn: bool, stream: str, top_k: int, label: str | None,
                       metadata: dict[str, Any] | None = None, post: idempotency.IdempotentPost | None = None,
                       gone: threading.Event | None = None) -> ObservationResult | idempotency.Reply:
         """Event loop: one checked image through the map (docs/design/service.md §1.2, §6).
