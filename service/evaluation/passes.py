@@ -77,8 +77,8 @@ class Driver:
         return out
 
     def size(self) -> dict[str, int]:
-        links = self.model.links
-        return {"rows_held": links.held, "rows_made": self.seq, "places": links.places(),
+        place_map = self.model.place_map
+        return {"rows_held": place_map.held, "rows_made": self.seq, "places": place_map.places(),
                 "index_bytes": self.model.index.nbytes()}
 
 

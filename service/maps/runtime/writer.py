@@ -237,7 +237,7 @@ class Writer:
         if projected.shape != (self.hasher.k,):
             raise ValueError(f"projection has shape {projected.shape}, this map's are ({self.hasher.k},)")
         self._admit(stream)
-        if learn and (gone := forgetting.to_forget(self.index, self.localisation)):
+        if learn and (gone := forgetting.to_forget(self.index, self.place_map)):
             self._forget(gone)
         if learn and self.budget is not None:  # the row's index bytes, before the step (a failed one is
             self.budget.grow_index(self.map_id, self.row_bytes)  # set right by the recovery it causes)
@@ -364,7 +364,7 @@ class Writer:
         with keyframes only; with `verify_revisit` an unverified candidate is no revisit."""
         if not place.revisit or self.config.keyframes is None or self.store is None:
             return place
-        v = keyframes.verify_candidate(self.store, self.localisation.graph, place.seq, place.stream, query,
+        v = keyframes.verify_candidate(self.store, self.place_map.graph, place.seq, place.stream, query,
                                        stream=stream, neighbours=self.settings.verify_neighbours)
         revisit = keyframes.revisit_stands(place.revisit, v, self.config.verify_revisit)
         return dataclasses.replace(place, verification=v, revisit=revisit)
