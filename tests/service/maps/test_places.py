@@ -10,8 +10,8 @@ import shutil
 from service.maps.recovery import VISIT_CURSOR, open_catalog, verify_map
 from storage import snapshots
 from tests.service.helpers import frame, make_client, post, state_of
-from tests.service.test_loop_closures import LAP, THRESHOLD, drive, revisits
-from tests.service.test_recovery import crash
+from tests.service.maps.recovery.test_recovery import crash
+from tests.service.maps.test_loop_closures import LAP, THRESHOLD, drive, revisits
 
 
 def make(c, map_id: str, **localiser) -> None:

@@ -18,8 +18,8 @@ from service.maps.closures import g2o_lines, g2o_retracted
 from service.maps.recovery import open_catalog, verify_map
 from storage.mapstore import LoopClosure, NewClosure, NewObservation, NewVisit
 from tests.service.helpers import frame, make_client, post
-from tests.service.test_loop_closures import THRESHOLD, drive
-from tests.service.test_places import crash
+from tests.service.maps.test_loop_closures import THRESHOLD, drive
+from tests.service.maps.test_places import crash
 
 
 def echo_visit(rt, stream: str, into: int, code: np.ndarray) -> int:

@@ -13,8 +13,8 @@ import numpy as np
 
 from service.maps.recovery import open_catalog, verify_map
 from tests.service.helpers import frame, make_client, post
-from tests.service.test_loop_closures import LAP, THRESHOLD
-from tests.service.test_places import crash, shape
+from tests.service.maps.test_loop_closures import LAP, THRESHOLD
+from tests.service.maps.test_places import crash, shape
 
 TUNNEL = range(12, 15)  # the places of LAP where the route is in a tunnel: near-black frames
 
