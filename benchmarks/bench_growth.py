@@ -51,7 +51,7 @@ def drive(feats: list[np.ndarray], contrast: list[np.ndarray], labels: np.ndarra
     out, visits, closures = [], 0, 0
     for p, (f, c) in enumerate(zip(feats, contrast, strict=True)):
         robot.break_sequence()  # a new drive: a new warm-up
-        held0, places0 = model.links.held, model.links.places()
+        held0, places0 = model.place_map.held, model.place_map.places()
         made, v0, c0, joins, right, called = len(codes), visits, closures, 0, 0, 0
         t0 = time.perf_counter()
         for i, y in enumerate(hasher.project(f)):
@@ -67,8 +67,8 @@ def drive(feats: list[np.ndarray], contrast: list[np.ndarray], labels: np.ndarra
                 closures += 1
                 called += 1
                 right += abs(label_of[step.place.seq] - int(labels[i])) <= 1
-        out.append({"pass": p + 1, "rows": len(codes) - made, "held": model.links.held - held0,
-                    "new_places": model.links.places() - places0, "places": model.links.places(),
+        out.append({"pass": p + 1, "rows": len(codes) - made, "held": model.place_map.held - held0,
+                    "new_places": model.place_map.places() - places0, "places": model.place_map.places(),
                     "visits": visits - v0, "joins": joins,
                     "closures": closures - c0, "visit_log": visits, "closure_log": closures,
                     "called": called, "right": right,

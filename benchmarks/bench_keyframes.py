@@ -65,7 +65,7 @@ from pathlib import Path
 import cv2, numpy as np
 from fastapi.testclient import TestClient
 from service.app import create_app
-from service.encoder import build_encoder
+from service.frontend import build_embedder
 from service.settings import Settings
 
 def status(name):
@@ -78,7 +78,7 @@ small = cv2.imencode(".jpg", np.random.default_rng(0).integers(0, 255, (480, 640
 jpeg = {"Content-Type": "image/jpeg"}
 with tempfile.TemporaryDirectory() as d:
     app = create_app(Settings(data_dir=Path(d), backbone="alexnet"),
-                     encoder_factory=lambda s: build_encoder(s, slsbh={"k": 16}))
+                     encoder_factory=lambda s: build_embedder(s, slsbh={"k": 16}))
     with TestClient(app) as c:
         assert c.post("/v1/maps", json={"map_id": "kf", "keyframes": {"features": kind}}).status_code == 201
         for _ in range(2):

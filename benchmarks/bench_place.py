@@ -3,11 +3,11 @@
 Run: `cortexloc bench place [--sizes 1000 --sizes 100000 --sizes 1000000] [--frames 300] [--quick]`.
 
 Setup: N stored rows of synthetic winner cells (40 of 8,192, as bench_index.py), stored as one traverse
-(seqs 1..N, each row's predecessor the one before, the links `models.localisation.links.Localisation`
+(seqs 1..N, each row's predecessor the one before, the links `models.localisation.places.PlaceMap`
 rebuilds from the store). A stream drives `--frames` consecutive stored rows, each frame a noisy copy
 (`--keep` of 40 cells kept). Per frame, what `MapRuntime.apply` runs for the answer
 (docs/design/science.md §11.2): one `InvertedIndex.rank` pass for the frame's cells (top
-`candidates_wanted`) and `Localisation.step` on its candidates. Reported per size: medians and p90 of the
+`candidates_wanted`) and `PlaceMap.step` on its candidates. Reported per size: medians and p90 of the
 pass, the step and both, the ratio of the medians to the smallest size's, the stream state's bytes, the
 index's bytes per stored row (`InvertedIndex.nbytes`, capacity included) and R@1 after the warm-up.
 """
@@ -22,14 +22,14 @@ import numpy as np
 
 from benchmarks._common import RESULTS, quick_mode, write_json
 from benchmarks.bench_index import build_index, noisy_query, random_sets
-from models.localisation.links import Localisation
+from models.localisation.places import PlaceMap
 
 
 def bench_size(n: int, frames: int, keep: int = 30, seed: int = 0) -> dict[str, Any]:
     rng = np.random.Generator(np.random.PCG64(seed))
     sets = random_sets(rng, n)
     idx, _ = build_index(sets)
-    loc = Localisation()
+    loc = PlaceMap()
     loc.rebuild(SimpleNamespace(seq=i + 1, context_prev_seq=i or None, input_sdr=np.zeros(0, np.int64),
                                 stream="bench")
                 for i in range(n))

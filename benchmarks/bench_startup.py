@@ -48,10 +48,10 @@ import numpy as np
 import service.maps.registry as registry_mod
 from benchmarks._common import RESULTS, quick_mode, rss_mib, write_json
 from models.frontend import slsbh
-from models.localisation import Localisation
+from models.localisation import PlaceMap
 from models.localisation.index import InvertedIndex
 from models.memory.temporal_memory import TemporalMemory
-from service.maps.encoding.encoders import Encoders
+from service.maps.encoding.embedders import Embedders
 from service.maps.errors import MapUnavailable
 from service.maps.recovery import memory as recovery
 from service.maps.states import serving
@@ -112,7 +112,7 @@ def settings_for(data_dir: Path) -> Settings:
 
 def build(data_dir: Path, n: int, short_tail: int, long_tail: int, seed: int = 0) -> dict[str, Any]:
     """Create map `default` with n observations and snapshots at n - long_tail and n - short_tail."""
-    reg = registry_mod.MapRegistry(data_dir, Encoders.one(StubEncoder()), settings_for(data_dir))
+    reg = registry_mod.MapRegistry(data_dir, Embedders.one(StubEncoder()), settings_for(data_dir))
     reg.start()  # creates `default` with the default preset (and its 266 MB projection)
     rt = reg.get("default")
     assert rt.store is not None and rt.hasher is not None
@@ -173,11 +173,11 @@ def open_once(data_dir: Path) -> dict[str, Any]:
     timer.wrap(TemporalMemory, "compute", "replay (TM steps, verified)")
     timer.wrap(InvertedIndex, "rebuild", "index rebuild (read rows + build)")
     # Since issue 40 the links' rebuild reads the rows for both, and the index's builds from what it kept.
-    timer.wrap(Localisation, "rebuild", "links rebuild (read rows + build)")
+    timer.wrap(PlaceMap, "rebuild", "links rebuild (read rows + build)")
     rss0 = rss_mib()
     try:
         t0 = time.perf_counter()
-        reg = registry_mod.MapRegistry(data_dir, Encoders.one(StubEncoder()), settings_for(data_dir))
+        reg = registry_mod.MapRegistry(data_dir, Embedders.one(StubEncoder()), settings_for(data_dir))
         reg.start()
         total = time.perf_counter() - t0
         rt = reg.get("default")

@@ -4,7 +4,7 @@ Run: `cortexloc bench profile-encoder [--repeats 9] [--backbone efficientnet-lit
 benchmarks/results/profile_encoder.json. Not part of `make bench` (bench_encoder.py is the contract).
 
 Per image, on one thread each, medians over `--repeats` batches of 16 640x480 JPEGs: header probe,
-JPEG decode, the decode as `Encoder.prepare` runs it, resize (crop and squash), to-tensor + normalise;
+JPEG decode, the decode as `Embedder.prepare` runs it, resize (crop and squash), to-tensor + normalise;
 then the forward of 16 in chunks of 1, 2, 4, 8 and 16 (why the encoder forwards chunks of 4), the
 sLSBH hash of 16 rows and its x·P; then, interleaved, the whole encoder at batch 16 against the bare
 forward: wall ratio, and CPU per batch (`time.process_time`, all threads) so the work beside the forward
@@ -23,7 +23,7 @@ import numpy as np
 from benchmarks._common import RESULTS, write_json
 from models.evaluation.bench import synthetic_jpegs
 from models.frontend import images
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 
 
 def median_ms(fn: Callable[[], object], repeats: int) -> float:
@@ -39,7 +39,7 @@ def main(*, repeats: int, backbone: str, out: Path | None) -> None:
     if out is None:
         out = RESULTS / "profile_encoder.json"
     n, reps = 16, repeats
-    enc = Encoder({"backbone": backbone, "slsbh": {"projection": "dense"}})
+    enc = Embedder({"backbone": backbone, "slsbh": {"projection": "dense"}})
     jpegs = synthetic_jpegs(n)
     rgbs = [images.decode(b) for b in jpegs]
     per_image = {

@@ -39,8 +39,8 @@ import anyio
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
-from service.encoder import EncoderFactory, build_encoder, encoder_weights_info, resolve_backbone
 from service.errors import install_error_handlers, problem_responses
+from service.frontend import EmbedderFactory, build_embedder, embedder_weights_info, resolve_backbone
 from service.headers import SecurityHeadersMiddleware
 from service.limits import UploadLimitMiddleware
 from service.logs import configure_logging
@@ -79,14 +79,14 @@ def _prepare_data_dir(data_dir: Path) -> None:
 @asynccontextmanager
 async def map_registry(app: FastAPI) -> AsyncIterator[None]:
     """The maps of the data directory: opened and recovered by replay at start, closed at shutdown."""
-    from service.maps.encoding.encoders import Encoders
-    from service.maps.encoding.pool import EncoderPool
+    from service.maps.encoding.embedders import Embedders
+    from service.maps.encoding.pool import EmbeddingPool
     from service.maps.keyframes import Extractions
     from service.maps.registry import MapRegistry
 
     s = app.state.settings
     try:
-        encoders = Encoders(lambda name: app.state.encoder_factory(s.model_copy(update={"backbone": name})),
+        encoders = Embedders(lambda name: app.state.encoder_factory(s.model_copy(update={"backbone": name})),
                             s.backbone, {s.backbone: app.state.encoder})
         registry = await anyio.to_thread.run_sync(MapRegistry, s.data_dir, encoders, s)
         await anyio.to_thread.run_sync(registry.start)
@@ -98,7 +98,7 @@ async def map_registry(app: FastAPI) -> AsyncIterator[None]:
         return
     app.state.registry = registry
     app.state.maps = registry.maps
-    app.state.encoder_pool = EncoderPool(encoders, s.encoder_workers, s.encoder_queue, s.encode_batch,
+    app.state.encoder_pool = EmbeddingPool(encoders, s.encoder_workers, s.encoder_queue, s.encode_batch,
                                          s.encode_wait_ms)
     app.state.extractions = Extractions(s.max_extractions)
     try:
@@ -109,13 +109,13 @@ async def map_registry(app: FastAPI) -> AsyncIterator[None]:
         await anyio.to_thread.run_sync(registry.close)
 
 
-def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFactory | None = None,
+def create_app(settings: Settings | None = None, *, encoder_factory: EmbedderFactory | None = None,
                components: Sequence[Component] = (map_registry,)) -> FastAPI:
     """Build the app; settings are read and the encoder built when it starts, not here.
 
     Args:
         settings: explicit settings; None: `Settings.from_env()` at startup.
-        encoder_factory: builds the encoder from the settings (default `build_encoder`); runs in a thread.
+        encoder_factory: builds the encoder from the settings (default `build_embedder`); runs in a thread.
         components: startup/shutdown steps entered in order after the encoder (e.g. the map runtime).
 
     Returns:
@@ -123,7 +123,7 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFact
         (dict), and what the components add (`map_registry`: `registry`, `encoder_pool`).
     """
     metrics = Metrics()
-    factory = encoder_factory or build_encoder
+    factory = encoder_factory or build_embedder
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -140,7 +140,7 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EncoderFact
             log.warning("OpenCV's pixel guard is %s, CORTEXLOC_MAX_PIXELS is %d (the header check applies "
                         "the latter; `cortexloc serve` sets both)", cv2_pixels, s.max_pixels)
         encoder = await anyio.to_thread.run_sync(factory, s)
-        app.state.encoder_weights = await anyio.to_thread.run_sync(encoder_weights_info, encoder)
+        app.state.encoder_weights = await anyio.to_thread.run_sync(embedder_weights_info, encoder)
         app.state.encoder = encoder
         desc = encoder.describe()
         metrics.set_encoder(weights=desc["weights"], encoder=desc["encoder"])

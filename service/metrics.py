@@ -119,9 +119,9 @@ class Metrics:
                       "observations": len(rt.index), "memory_bytes": size["bytes"],
                       "snapshot_failures": getattr(rt, "snapshot_failures", 0),
                       "stream_evictions": getattr(rt, "stream_evictions", 0)}
-            store, links = getattr(rt, "store", None), getattr(rt, "localisation", None)
-            if store is not None and links is not None and not store.closed:
-                values.update(places=links.places(), appearances=len(rt.index),
+            store, place_map = getattr(rt, "store", None), getattr(rt, "place_map", None)
+            if store is not None and place_map is not None and not store.closed:
+                values.update(places=place_map.places(), appearances=len(rt.index),
                               visits=store.visit_stats()[0], forgotten=getattr(rt, "forgotten", 0))
             for name, v in values.items():
                 self.map_gauges[name].labels(map=map_id).set(v)

@@ -34,7 +34,7 @@ SECTION_WORDS = ("slsbh", "s_conf", "keyframes", "localiser", "tm", "conf", "opt
 NOT_SECTIONS = {
     # the frontend's own configuration (backbone, runtime, its sLSBH with `projection`): the evaluations'
     # encoder, never a map's (a map's projection comes from its sections, service.maps.encoding)
-    "models/frontend/encoder.py",
+    "models/frontend/embedding.py",
     # the MCN ablation's parameters (models.presets.MCN_DEFAULTS), no map option
     "models/memory/mcn.py",
     # parameter sweeps: grids and result rows keyed by the names they sweep

@@ -33,18 +33,18 @@ import cv2
 import numpy as np
 
 from models.evaluation import datasets, sequences, slam
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 from models.localisation.localiser import reaches
 from models.pipeline import Stream, observe
-from service.encoder import resolve_backbone
 from service.evaluation import service_path, stress
+from service.frontend import resolve_backbone
 from service.settings import Settings
 
 DATA = datasets.nordland_dir()
 CACHE = Path.home() / ".cache/cortexloc/features"
 settings = Settings.from_env()
 backbone = resolve_backbone(settings).backbone
-enc = Encoder({"backbone": backbone, "resize": "squash"})
+enc = Embedder({"backbone": backbone, "resize": "squash"})
 names = sequences.paired_names(DATA / "summer", DATA / "winter")
 
 
@@ -132,7 +132,7 @@ def run(name: str, lo: int, seed: int, localiser: dict | None) -> dict:
             pl = st.joined if st.joined >= 0 else seq
         else:
             visit_of[i] = st.visit
-            pl = int(model.links.graph.place[st.visit])
+            pl = int(model.place_map.graph.place[st.visit])
         place_rows.setdefault(int(pl), []).append(int(labels[i]))
         if st.place is not None:
             best[i] = frame_of[st.place.seq]

@@ -82,7 +82,8 @@ def _watch_frames(tau: float) -> None:
 
     def observed(model, st, projected, **kw):
         cpc = int(model.tm.cells_per_column) if model.memory == "tm" else 1
-        _FRAME.update(key=id(st), cpc=cpc, code_of=kw["code_of"], width=int(model.links.codes.counts.size))
+        width = int(model.place_map.codes.counts.size)
+        _FRAME.update(key=id(st), cpc=cpc, code_of=kw["code_of"], width=width)
         step = observe(model, st, projected, **kw)
         _rates_after(id(st), step.code, tau, int(_FRAME["width"]))
         _FRAME.clear()

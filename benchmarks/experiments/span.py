@@ -52,7 +52,7 @@ def run(frames: stress.Frames, kind: str, lo: int, seed: int, map_conf: dict[str
     for i in range(n):
         codes[i + 1] = observe(model, database, Y[i], learn=True, stream="database", top_k=0, seq=i + 1,
                                code_of=codes.__getitem__, contrast=float(contrast[i])).code
-    graph, conf = model.links.graph, model.links.options
+    graph, conf = model.place_map.graph, model.place_map.options
     counts = {f"{m}/{s}": {"called": 0, "right": 0, "inside": 0} for m in MARGINS for s in CAPS}
     answered = 0
     for j in range(n, 2 * n):

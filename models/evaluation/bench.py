@@ -140,7 +140,7 @@ def bench_encoder(backbone: str = "alexnet", repeats: int = 15, threads: int = 1
     """Whole-encoder latency and throughput beside a bare forward of the same backbone on the same
     runtime, in the same run.
 
-    The bare forward is the backbone alone (`Encoder.features`) on a preprocessed batch of 16 random
+    The bare forward is the backbone alone (`Embedder.features`) on a preprocessed batch of 16 random
     tensors; measurements alternate between the two so machine noise hits both alike: the ratio is the
     figure that counts.
 
@@ -151,13 +151,13 @@ def bench_encoder(backbone: str = "alexnet", repeats: int = 15, threads: int = 1
         batch1_ms_median, batch16_images_per_s, bare_batch16_images_per_s, ratio_to_bare, per-stage
         medians at batch 16 (ms), the encoder identity, runtime and device.
     """
-    from models.frontend.encoder import Encoder
+    from models.frontend.embedding import Embedder
 
     conf: dict[str, Any] = {"backbone": backbone, "torch_threads": threads,
                             "slsbh": {"projection": projection}}
     if runtime is not None:
         conf["runtime"] = runtime
-    enc = Encoder(conf)
+    enc = Embedder(conf)
     jpegs = synthetic_jpegs(16)
     bare_in = np.random.default_rng(0).standard_normal((16, 3, 224, 224), np.float32)
     clock = time.perf_counter

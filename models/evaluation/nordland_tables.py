@@ -24,7 +24,7 @@ from models import presets
 from models.evaluation import seqslam as seq
 from models.evaluation import sequences
 from models.evaluation.datasets import nordland_dir
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 
 # Files (1-based, as in docs/design/science.md §10.1) -> (offset, count).
 WINDOWS = {"1-200": (0, 200), "401-600": (400, 200), "801-1000": (800, 200), "1201-1400": (1200, 200),
@@ -92,7 +92,7 @@ def run(*, backbone: str, seeds: int, ds: list[int], methods: list[str], windows
         return
     root = nordland_dir()
     names = sequences.paired_names(root / "summer", root / "winter")
-    enc = Encoder({"backbone": backbone, "resize": "squash"})
+    enc = Embedder({"backbone": backbone, "resize": "squash"})
     feats = {season: sequences.cached_features(enc, [root / season / n for n in names], cache)
              for season in ("summer", "winter")}
     frames = {season: seq.load_frames([root / season / n for n in names]) for season in ("summer", "winter")}

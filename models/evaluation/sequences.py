@@ -20,7 +20,7 @@ from models.evaluation import metrics, online
 from models.evaluation import seqslam as seq
 from models.frontend import slsbh
 from models.frontend.adaptation import running_mean_subtract
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 from models.memory.mcn import MCN
 from models.memory.temporal_memory import TemporalMemory
 from storage.base.files import atomic_write, sha256_file
@@ -70,7 +70,7 @@ def paired_names(db_dir: Path, query_dir: Path, offset: int = 0, limit: int | No
     return out
 
 
-def cached_features(encoder: Encoder, paths: Sequence[Path], cache_dir: Path | None,
+def cached_features(encoder: Embedder, paths: Sequence[Path], cache_dir: Path | None,
                     progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """(N, D) float32 backbone features of `paths`, cached on disk by content.
 

@@ -5,5 +5,5 @@
     weights.py   the AlexNet checkpoint: download, import, check, trim, cache
     slsbh/       projection (D, k) and hashing (N, k) -> (N, 2n) sorted active columns
     adaptation.py  a stream's running mean subtracted in projection space
-    encoder.py   Encoder, the one entry point: bytes -> features or codes
+    embedding.py Embedder, the one entry point: bytes -> features or codes
 """

@@ -10,7 +10,7 @@ DEFAULT_MAX_PIXELS = 25_000_000
 # bounds the Resize(256) intermediate: a 1×4000 upload would otherwise become a 256×1,024,000 array (786 MB).
 DEFAULT_MAX_ASPECT = 16.0
 
-#: Images per backbone call while the pool prepares the next ones (`Encoder`'s `chunk`,
+#: Images per backbone call while the pool prepares the next ones (`Embedder`'s `chunk`,
 #: CORTEXLOC_ENCODE_CHUNK): the forward's cost per image is flat from batch 1 to 16 on ONNX Runtime
 #: (1 thread), so small chunks start the backbone sooner. (Here, beside the upload limits, because
 #: `service.settings` reads it before the backbone's modules load.)

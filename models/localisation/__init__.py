@@ -2,7 +2,6 @@
 
 from models.localisation.graph import SequenceGraph
 from models.localisation.index import IndexFull, InvertedIndex, Match
-from models.localisation.links import Localisation, graph_from_rows
 from models.localisation.localiser import (
     HYPOTHESIS_BYTES,
     MIN_CONTRAST,
@@ -14,9 +13,27 @@ from models.localisation.localiser import (
     top_candidates,
 )
 from models.localisation.options import LocaliserOptions, LocaliserParams, default_conf
+from models.localisation.places import PlaceMap, graph_from_rows
 from models.localisation.trail import CodeStats, OwnTrail
 
-__all__ = ["HYPOTHESIS_BYTES", "MIN_CONTRAST", "NULL_PRIOR", "CodeStats", "IndexFull", "InvertedIndex",
-           "Localisation", "LocaliserOptions", "LocaliserParams", "LocaliserState", "Match", "OwnTrail",
-           "Place", "SequenceGraph", "SequenceLocaliser", "default_conf", "graph_from_rows", "informative",
-           "top_candidates"]
+__all__ = [
+    "HYPOTHESIS_BYTES",
+    "MIN_CONTRAST",
+    "NULL_PRIOR",
+    "CodeStats",
+    "IndexFull",
+    "InvertedIndex",
+    "LocaliserOptions",
+    "LocaliserParams",
+    "LocaliserState",
+    "Match",
+    "OwnTrail",
+    "Place",
+    "PlaceMap",
+    "SequenceGraph",
+    "SequenceLocaliser",
+    "default_conf",
+    "graph_from_rows",
+    "informative",
+    "top_candidates",
+]

@@ -9,8 +9,8 @@ it to its model alone, so a map measured beyond its cap is the map served.
 from __future__ import annotations
 
 from models.localisation.index import InvertedIndex
-from models.localisation.links import Localisation
 from models.localisation.options import LocaliserOptions
+from models.localisation.places import PlaceMap
 
 __all__ = ["batch", "rule", "to_forget"]
 
@@ -29,12 +29,12 @@ def batch(cap: int, percent: int = LocaliserOptions().forget_percent) -> int:
     return max(1, cap * percent // 100)
 
 
-def to_forget(index: InvertedIndex, links: Localisation) -> list[int]:
+def to_forget(index: InvertedIndex, place_map: PlaceMap) -> list[int]:
     """The rows to forget before the next learned row: none under the cap (`index.max_observations` rows
     held); at it, the least recently used places, whole, at least `batch(cap, forget_percent)` rows
-    (`Localisation.least_recent`). The caller drops them (`models.pipeline.drop`), durably first where
+    (`PlaceMap.least_recent`). The caller drops them (`models.pipeline.drop`), durably first where
     it stores them."""
     cap = index.max_observations
     if len(index) < cap:
         return []
-    return links.least_recent(batch(cap, links.options.forget_percent))
+    return place_map.least_recent(batch(cap, place_map.options.forget_percent))

@@ -4,7 +4,7 @@
 A learning stream's frame consolidated into a row (a visit, §11.8), a row that joined a row's place, or a
 loop closure that named a row, is a merge from the stream's own recent trail when that row was in the
 stream's short-term memory at that moment: the rows it made over its last `short_term` moves
-(`ShortTerm`), the memory `Localisation.rebuild` builds by taking rows and visits in the order they
+(`ShortTerm`), the memory `PlaceMap.rebuild` builds by taking rows and visits in the order they
 were learned. Here the same memory is built again over the log as it was learned, so a map made before
 the memory (or with `short_term` 0) is judged by the rule it would have had: its window is the map's
 `short_term`, or the default's (`LocaliserParams.short_term`) where the map's is 0.
@@ -19,9 +19,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from models.localisation.graph import NONE
-from models.localisation.links import Localisation
 from models.localisation.motion import NO_MOTION, Motion
 from models.localisation.options import LocaliserOptions
+from models.localisation.places import PlaceMap
 
 __all__ = ["Learned", "Merges", "Named", "own_trail_merges", "window"]
 
@@ -97,20 +97,20 @@ def own_trail_merges(log: Iterable[Learned | Named], options: LocaliserOptions |
     Returns:
         The merges. One pass, O(log · memory) time, O(rows) memory (the codes are not kept).
     """
-    links = Localisation(dataclasses.replace(options or LocaliserOptions(), short_term=window(options)),
+    place_map = PlaceMap(dataclasses.replace(options or LocaliserOptions(), short_term=window(options)),
                          code_width)
     out = Merges()
     for event in log:
         if isinstance(event, Named):
-            if np.isin([event.place_seq, event.into], links.short_term_rows(event.stream)).any():
+            if np.isin([event.place_seq, event.into], place_map.short_term_rows(event.stream)).any():
                 out.closures.append(event.id)
         elif event.made:  # (the memory read only where the row joined a place: most rows did not)
-            if event.through and np.isin(event.through, links.short_term_rows(event.stream)).any():
+            if event.through and np.isin(event.through, place_map.short_term_rows(event.stream)).any():
                 out.joins.append(event.ref)
-            links.add(event.seq, None, event.code, stream=event.stream, motion=event.motion)
+            place_map.add(event.seq, None, event.code, stream=event.stream, motion=event.motion)
         else:
-            rehearsal = event.prev == event.seq and links.stays(event.stream, event.code, event.motion)
-            if not rehearsal and event.seq in links.short_term_rows(event.stream):
+            rehearsal = event.prev == event.seq and place_map.stays(event.stream, event.code, event.motion)
+            if not rehearsal and event.seq in place_map.short_term_rows(event.stream):
                 out.visits.append(event.ref)
-            links.visit(None, event.seq, event.seq, event.stream, event.code, event.motion)
+            place_map.visit(None, event.seq, event.seq, event.stream, event.code, event.motion)
     return out

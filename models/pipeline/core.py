@@ -24,7 +24,7 @@ import numpy as np
 
 from models.frontend import slsbh
 from models.frontend.adaptation import RunningMean
-from models.localisation import InvertedIndex, Localisation, LocaliserOptions, Match, Place, informative
+from models.localisation import InvertedIndex, LocaliserOptions, Match, Place, PlaceMap, informative
 from models.localisation.condition import Condition
 from models.localisation.motion import NO_MOTION, Motion
 from models.localisation.trail import OwnTrail
@@ -38,13 +38,14 @@ __all__ = ["MapModel", "Step", "observe", "replay", "revisit"]
 
 @dataclass
 class MapModel:
-    """What a frame's step reads and changes: the map's memory, index and links, and the frozen options
+    """What a frame's step reads and changes: the map's memory, index and places, and the frozen options
     the step needs (docs/design/service.md §1.1).
 
     Attributes:
         tm: the Temporal Memory (unused with `memory: none`).
         index: winner cells -> stored seqs, ranked by Dice (docs/design/service.md §5).
-        links: the learned links and the localiser (docs/design/science.md §11).
+        place_map: the places: the learned links, the localiser and each row's place
+            (`models.localisation.places.PlaceMap`, docs/design/science.md §11).
         memory: a registered memory (`models.memory.registry`: `tm`, or `none`, the ablation).
         s: the sLSBH sparsity (the fraction of the k projections kept on each side, §7).
         adapt_tau: the streams' adaptation time constant (0: none).
@@ -52,7 +53,7 @@ class MapModel:
 
     tm: TemporalMemory
     index: InvertedIndex
-    links: Localisation
+    place_map: PlaceMap
     memory: str = "tm"
     s: float = 0.0
     adapt_tau: int = 0
@@ -65,19 +66,19 @@ class MapModel:
         the sLSBH code's width)."""
         connections = TemporalMemory(tm)
         return cls(connections, InvertedIndex(connections.n_cells, max_observations),
-                   Localisation(localiser, connections.n_columns), memory, s, adapt_tau)
+                   PlaceMap(localiser, connections.n_columns), memory, s, adapt_tau)
 
     def fresh(self, tm: TemporalMemory | None = None) -> MapModel:
         """The same options over `tm` (default: this model's), with an empty index and no links."""
         tm = self.tm if tm is None else tm
         return MapModel(tm, InvertedIndex(tm.n_cells, self.index.max_observations),
-                        Localisation(self.links.options, tm.n_columns), self.memory, self.s,
+                        PlaceMap(self.place_map.options, tm.n_columns), self.memory, self.s,
                         self.adapt_tau)
 
     @property
     def condition_frames(self) -> int:
         """The streams' condition time constant (docs/design/science.md §11.10; 0: none)."""
-        return self.links.options.condition_frames
+        return self.place_map.options.condition_frames
 
     def cells_per_column(self) -> int:
         """Winner cells per code bit: the TM's cells per column, 1 where the code is the winners."""
@@ -138,8 +139,8 @@ def _condition(model: MapModel, st: Stream, code: np.ndarray) -> None:
     again (learn=false frames are not stored: after a crash they are lost to it)."""
     if model.condition_frames:
         if st.condition is None:
-            st.condition = Condition(model.links.codes.counts.size, model.condition_frames)
-        st.condition.add(code, float(model.links.options.condition_discount))
+            st.condition = Condition(model.place_map.codes.counts.size, model.condition_frames)
+        st.condition.add(code, float(model.place_map.options.condition_discount))
 
 
 def _advance(st: Stream, learn: bool, seq: int | None, made: bool = True) -> None:
@@ -173,7 +174,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             It is also the clock of the places' recency (§11.9).
         threshold: the map's revisit threshold. A learning frame whose place is a revisit (confidence
             >= it) joins that place, and is consolidated into it when one of its appearances already
-            represents the frame (`Localisation.consolidation`, docs/design/science.md §11.8): the
+            represents the frame (`PlaceMap.consolidation`, docs/design/science.md §11.8): the
             memory learns it, no row is made (`Step.visit`); the rows the stream made before it
             knew where it was that its path now explains are joined to the old places (`Step.joins`).
             None: no frame is a revisit, none is consolidated.
@@ -213,79 +214,79 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     winners = _remember(model, st, code, learn=learn, starts=starts)
     stats = st.context.stats.as_dict()
     t2 = time.perf_counter()
-    st.localiser = st.localiser or model.links.new_state()
+    st.localiser = st.localiser or model.place_map.new_state()
     prev, step = st.last_learned_seq, st.step
     # The stream's own rows it has not left are no answer (docs/design/science.md §11.6); one index pass
     # without them serves the matches and the localiser's candidates (§11.2), which also leaves out the
     # rival window behind them.
     # The trail is the stream's own made rows: after a consolidated frame it is not where `prev` is (§11.8).
     flat = not informative(contrast)
-    own = model.links.own_trail(st.localiser, st.own_seq, code, code_of, not flat)
+    own = model.place_map.own_trail(st.localiser, st.own_seq, code, code_of, not flat)
     if own is not None and own.here > own.last and st.last_learned_seq != st.own_seq:
         own = None  # it left every row it made and travels on rows it visited: none is where it is
     # Its short-term memory, the rows it made over its last moves whatever its trail, is no loop
     # candidate; the map keeps it, so a restart, an eviction or a switch of mode keeps it too (§11.6).
-    stm = model.links.short_term_rows(motion.trail or stream)
+    stm = model.place_map.short_term_rows(motion.trail or stream)
     if stm.size:
         own = OwnTrail.short_term_only(stm) if own is None else own.with_short_term(stm)
     # Nor is a row of its drive that its odometry says it cannot be back at (§11.12).
-    beyond = model.links.beyond(stream, motion)
+    beyond = model.place_map.beyond(stream, motion)
     if beyond is not None:
         own = (OwnTrail.short_term_only(stm) if own is None else own)._replace(beyond=beyond)
     # Bits the stream's recent frames share say what its conditions are, not where it is (§11.10).
     weights = None if st.condition is None else st.condition.weights(
-        winners, model.cells_per_column(), float(model.links.options.condition_discount))
-    ranked = model.index.rank(winners, model.links.candidates_wanted(top_k, stm.size),
+        winners, model.cells_per_column(), float(model.place_map.options.condition_discount))
+    ranked = model.index.rank(winners, model.place_map.candidates_wanted(top_k, stm.size),
                               exclude_own=None if own is None or not own.has_trail else (stream, own.here),
                               weights=weights)
     t_ranked = time.perf_counter()
-    moved = model.links.moves(st.mover, code, motion)
-    place = model.links.step(st.localiser, ranked, own, not flat, moved)
+    moved = model.place_map.moves(st.mover, code, motion)
+    place = model.place_map.step(st.localiser, ranked, own, not flat, moved)
     visit, joined, dropped, touched, joins = None, -1, (), [], []
     if learn:
         assert seq is not None
-        links = model.links
+        place_map = model.place_map
         if place is not None and threshold is not None:
             # Well represented: like an appearance of the place its best path names, confident or not
             # (a pass's unconfident frames would otherwise become parallel places, each a rival, §11.8).
             # A flat frame too (never confident, §11.7): where its path names a place that has a flat
             # appearance, it is a visit of it, not a new place each time it is seen.
             # never into the stream's own recent rows (its short-term memory, a row it has not left)
-            visit = links.consolidation(place, code, code_of, own)
+            visit = place_map.consolidation(place, code, code_of, own)
             confident = place.is_revisit(threshold)
             trail = visit is not None and st.own_seq is not None and bool(
-                links.graph.trail[visit] == links.graph.trail[st.own_seq])
+                place_map.graph.trail[visit] == place_map.graph.trail[st.own_seq])
             # (`unsure_fraction` of the threshold: some sequence evidence, LocaliserOptions)
-            unsure = not confident and (place.confidence < threshold * links.options.unsure_fraction
+            unsure = not confident and (place.confidence < threshold * place_map.options.unsure_fraction
                                         or trail)
             if visit is not None and unsure:
                 # unconfident, it needs some sequence evidence, and never a row of the trail it is
                 # laying (just behind its short-term memory a path in step with it is an echo, §11.6)
                 visit = None
             if visit is not None or confident:
-                links.touch(place.seq, seq)  # a learning stream used the place (§11.9)
+                place_map.touch(place.seq, seq)  # a learning stream used the place (§11.9)
                 touched.append(place.seq)
                 joined = place.place
         if place is not None and threshold is not None and place.is_revisit(threshold):
             # Rows it made while it warmed up or was unsure, that the path now explains (§11.8).
-            joins = links.explained(stream, place, int(st.localiser.dirs[0]), code_of, motion.trail)
+            joins = place_map.explained(stream, place, int(st.localiser.dirs[0]), code_of, motion.trail)
             for row, old in joins:
-                links.fold(row, old, seq)
+                place_map.fold(row, old, seq)
                 touched.append(old)
             drop(model, [row for row, _ in joins])
-        if (visit is None and prev is not None and links.used[prev] >= 0
-                and links.stays(stream, code, motion)):
+        if (visit is None and prev is not None and place_map.used[prev] >= 0
+                and place_map.stays(stream, code, motion)):
             # It has not moved since its last learned frame (§11.6: no pose change of `move_metres`): a
             # visit of the row that frame made or visited (a rehearsal), the memory learns it, no row
             visit = prev
         if visit is not None:
-            links.visit(prev, visit, seq, stream, code, motion)
+            place_map.visit(prev, visit, seq, stream, code, motion)
             touched.append(visit)
-            links.visits += 1
+            place_map.visits += 1
         else:
             model.index.add(seq, winners, stream)
-            links.add(seq, prev, code, stream=stream, place=joined, motion=motion)
-            dropped = tuple(links.over_cap(joined, seq)) if joined >= 0 else ()
+            place_map.add(seq, prev, code, stream=stream, place=joined, motion=motion)
+            dropped = tuple(place_map.over_cap(joined, seq)) if joined >= 0 else ()
             drop(model, dropped)
     _condition(model, st, code)
     _advance(st, learn, seq if visit is None else visit, made=visit is None)
@@ -303,7 +304,7 @@ def drop(model: MapModel, seqs: tuple[int, ...] | list[int]) -> None:
     docs/design/science.md §11.9): out of the index and their places; their links stay."""
     model.index.remove(seqs)
     for s in seqs:
-        model.links.drop(int(s))
+        model.place_map.drop(int(s))
 
 
 def replay(model: MapModel, st: Stream, code: np.ndarray, *, seq: int, prev_seq: int | None) -> np.ndarray:

@@ -219,15 +219,14 @@ def eval_images(
 
     from models.evaluation import ground_truth, plots, sequences
     from models.evaluation import seqslam as seq
-    from models.frontend import encoder as encoder_mod
-    from models.frontend import images
-    from service.encoder import resolve_backbone
+    from models.frontend import embedding, images
     from service.evaluation import service_path
+    from service.frontend import resolve_backbone
     from service.maps.config import DEFAULT_RESIZE
     from service.settings import Settings
 
     # The service's defaults, read from their one home each (docs/design/service.md §8,
-    # models.frontend.encoder).
+    # models.frontend.embedding).
     preset = preset or Settings.model_fields["default_preset"].default
     backbone = backbone or resolve_backbone(Settings.from_env()).backbone
     resize = resize or DEFAULT_RESIZE  # a new map's (service.maps.config)
@@ -280,7 +279,7 @@ def eval_images(
         feats = {label: np.zeros((len(names), 0), np.float32)
                  for label, names in (("db", db_names), ("query", q_names))}
     else:
-        enc = encoder_mod.Encoder({"backbone": backbone, "resize": resize})  # features only: no projection
+        enc = embedding.Embedder({"backbone": backbone, "resize": resize})  # features only: no projection
         feats = {}
         for label, folder, names in (("db", db, db_names), ("query", query, q_names)):
             with progress(f"features {label}") as tick:

@@ -29,13 +29,14 @@ def import_map(
     declares more than CORTEXLOC_MAX_IMPORT_BYTES or than the free space."""
     from types import SimpleNamespace
 
-    from service.maps.encoding.encoders import Encoders
+    from service.maps.encoding.embedders import Embedders
     from service.maps.errors import MemoryBudgetExceeded, SnapshotInvalid
     from service.maps.registry import MapRegistry
 
     settings = process_settings(data_dir=data_dir)
     root = settings.data_dir
-    registry = MapRegistry(root, Encoders.one(SimpleNamespace(identity="", feature_dim=0)), settings=settings)
+    no_embedder = SimpleNamespace(identity="", feature_dim=0)  # an import embeds no image
+    registry = MapRegistry(root, Embedders.one(no_embedder), settings=settings)
     try:
         map_id = registry.import_snapshot(tar, settings.max_import_bytes)
     except (SnapshotInvalid, MemoryBudgetExceeded, ValueError, OSError) as e:

@@ -77,8 +77,8 @@ class Driver:
         return out
 
     def size(self) -> dict[str, int]:
-        links = self.model.links
-        return {"rows_held": links.held, "rows_made": self.seq, "places": links.places(),
+        place_map = self.model.place_map
+        return {"rows_held": place_map.held, "rows_made": self.seq, "places": place_map.places(),
                 "index_bytes": self.model.index.nbytes()}
 
 
@@ -147,14 +147,14 @@ def passes_runs(*, data: Path, half: str = "test", start: int = 0, frames_n: int
                 month_days: int = 0, stream: bool = True, tolerance: int = 2, backbone: str | None = None,
                 seed: int = 1, json_path: Path | None = None) -> dict[str, Any]:
     """The experiment (module docstring), printed and returned."""
-    from models.frontend.encoder import Encoder
-    from service.encoder import resolve_backbone
+    from models.frontend.embedding import Embedder
+    from service.frontend import resolve_backbone
 
     if half not in HALVES:
         raise ValueError(f"--half must be one of {', '.join(sorted(HALVES))}")
     settings = Settings.from_env()
     backbone = backbone or resolve_backbone(settings).backbone
-    enc = Encoder({"backbone": backbone, "resize": "squash"})
+    enc = Embedder({"backbone": backbone, "resize": "squash"})
     cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
     frames = Frames(data, half, enc, cache)
     idx = np.arange(start, start + frames_n)

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from models.evaluation import sequences
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 from models.frontend.images import RawFrame
 from models.localisation.localiser import reaches
 from service.evaluation import service_path
@@ -49,7 +49,7 @@ def cut(rgb: np.ndarray, shape: str) -> np.ndarray:
     return np.ascontiguousarray(rgb[top:top + new_h, left:left + new_w])
 
 
-def features(enc: Encoder, paths: list[Path], shape: str, cache: Path) -> np.ndarray:
+def features(enc: Embedder, paths: list[Path], shape: str, cache: Path) -> np.ndarray:
     """(N, D) backbone features of `paths` cut to `shape`, cached by encoder, shape and file contents."""
     h = hashlib.sha256(f"{enc.identity}|{shape}".encode())
     for p in paths:
@@ -71,7 +71,7 @@ def resize_runs(db_dir: Path, query_dir: Path, *, offset: int = 0, limit: int = 
                 shapes: list[str] | None = None, backbone: str | None = None,
                 seeds: list[int] | None = None) -> None:
     """The experiment (module docstring), printed."""
-    from service.encoder import resolve_backbone  # the service's own resolution of its default
+    from service.frontend import resolve_backbone  # the service's own resolution of its default
 
     args = SimpleNamespace(db=db_dir, query=query_dir, offset=offset, limit=limit,
                            shapes=shapes or ["2:1", "4:3"], backbone=backbone, seeds=seeds or [1])
@@ -88,7 +88,7 @@ def resize_runs(db_dir: Path, query_dir: Path, *, offset: int = 0, limit: int = 
           f"{'right revisits':>14}")
     for shape in args.shapes:
         for mode in MODES:
-            enc = Encoder({"backbone": backbone, "resize": mode})
+            enc = Embedder({"backbone": backbone, "resize": mode})
             db = features(enc, [args.db / x for x in names], shape, cache)
             q = features(enc, [args.query / x for x in names], shape, cache)
             for seed in args.seeds:

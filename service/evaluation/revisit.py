@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from models.evaluation import sequences
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 from models.localisation.localiser import reaches
 from service.evaluation import service_path
 from service.maps.config import DEFAULT_RESIZE, DEFAULT_REVISIT_THRESHOLD
@@ -55,7 +55,7 @@ def revisit(folder: Path, *, offset: int = 0, limit: int = 894, noise: float = 8
                            resize=resize, seed=seed, json=json_path)
     names = sequences.image_names(args.folder)[args.offset:args.offset + args.limit]
     paths = [args.folder / n for n in names]
-    enc = Encoder({"backbone": args.backbone, "resize": args.resize})
+    enc = Embedder({"backbone": args.backbone, "resize": args.resize})
     cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
     db = sequences.cached_features(enc, paths, cache)
     q = np.concatenate([enc.embed([noisy_png(p, args.noise, args.seed + i) for p in paths[i:i + 16]]).features

@@ -48,7 +48,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from models.evaluation import sequences, slam
-from models.localisation import Localisation, informative, trail
+from models.localisation import PlaceMap, informative, trail
 from models.localisation import localiser as loc
 from models.localisation.localiser import reaches
 from models.pipeline import observe
@@ -85,7 +85,7 @@ def _no_echo(self: trail.OwnTrail, graph: Any, rows: np.ndarray, began: np.ndarr
     return np.zeros(len(rows), bool)
 
 
-def _no_joins(self: Localisation, *args: Any, **kwargs: Any) -> list[tuple[int, int]]:
+def _no_joins(self: PlaceMap, *args: Any, **kwargs: Any) -> list[tuple[int, int]]:
     return []
 
 
@@ -97,18 +97,18 @@ def _rows_level(self: loc.SequenceLocaliser, past: np.ndarray, null: float) -> f
 def _no_flat_visits(model: Any, st: Any, projected: np.ndarray, **kw: Any) -> Any:
     """`observe`, but a flat learned frame is never consolidated (it makes a row of its own)."""
     if kw.get("learn") and not informative(kw.get("contrast")):
-        model.links.consolidation = lambda *a: None
+        model.place_map.consolidation = lambda *a: None
         try:
             return observe(model, st, projected, **kw)
         finally:
-            del model.links.consolidation
+            del model.place_map.consolidation
     return observe(model, st, projected, **kw)
 
 
 #: The rules switched off by patching (owner, attribute, value) for the run only.
 PATCHES: dict[str, tuple[Any, str, Callable[..., Any]]] = {
     "echo": (trail.OwnTrail, "laid_behind", _no_echo),
-    "joins": (Localisation, "explained", _no_joins),
+    "joins": (PlaceMap, "explained", _no_joins),
     "null-rows": (loc.SequenceLocaliser, "_jump_level", _rows_level),
     "flat-visits": (service_path, "observe", _no_flat_visits),
 }

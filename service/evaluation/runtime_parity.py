@@ -24,7 +24,7 @@ from models.evaluation import seqslam, sequences
 from models.evaluation.datasets import nordland_dir
 from models.evaluation.nordland_tables import WINDOWS
 from models.frontend import slsbh
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 from service.evaluation import service_path
 
 __all__ = ["BACKBONE", "PRESET", "code_overlap", "encode_route", "parity", "route_features"]
@@ -37,7 +37,7 @@ RUNTIMES = ("torch", "onnxruntime")
 def route_features(runtime: str, paths: Sequence[Path], backbone: str = BACKBONE) -> tuple[np.ndarray, str]:
     """(N, D) float32 features of `paths` on `runtime` (no cache: the cache is keyed by the encoder
     identity, which both runtimes share) and the encoder identity."""
-    enc = Encoder({"backbone": backbone, "resize": "squash", "runtime": runtime})
+    enc = Embedder({"backbone": backbone, "resize": "squash", "runtime": runtime})
     parts = [enc.embed([p.read_bytes() for p in paths[i:i + 32]]).features for i in range(0, len(paths), 32)]
     return np.concatenate(parts), enc.identity
 

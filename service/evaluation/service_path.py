@@ -62,7 +62,7 @@ def _model(feature_dim: int, *, backbone: str, preset: str, seed: int, memory: s
 def forget(model: MapModel) -> list[int]:
     """Before a learned frame, as the map writer (`MapRuntime.apply`): the rows the cap rule forgets
     (`forgetting.to_forget`, docs/design/science.md §11.9; none under the cap), out of the model."""
-    gone = forgetting.to_forget(model.index, model.links)
+    gone = forgetting.to_forget(model.index, model.place_map)
     drop(model, gone)
     return gone
 
@@ -171,7 +171,7 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
                        code_of=codes.__getitem__, threshold=config.revisit_threshold,
                        contrast=_at(contrast, i), motion=NO_MOTION if motions is None else motions[i])
         if step.place is not None:
-            revisit[i], verification[i] = _answered(step.place, config, kf, query, model.links.graph,
+            revisit[i], verification[i] = _answered(step.place, config, kf, query, model.place_map.graph,
                                                     "robot", "robot")
             refused = verification[i] is not None and not revisit[i]
             best[i], confidence[i] = frame_of[step.place.seq], _decided(step.place, refused)
@@ -187,8 +187,8 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
     if trace is not None:
         seqs = np.array(sorted(frame_of), np.int64)
         trace["row_frame"] = np.array([frame_of[q] for q in seqs], np.int64)
-        trace["row_place"] = model.links.graph.place[seqs].astype(np.int64)
-        trace["row_held"] = model.links.used[seqs] >= 0
+        trace["row_place"] = model.place_map.graph.place[seqs].astype(np.int64)
+        trace["row_held"] = model.place_map.used[seqs] >= 0
         trace["visit"] = visit
         trace["revisit"], trace["verification"] = revisit, verification
     return OnlineAnswers(best, confidence, support, np.zeros((0, T))), config.revisit_threshold
@@ -232,7 +232,7 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
     with keyframes, as the map writer does (docs/design/science.md §11.9, §12).
 
     Args:
-        db_feats, q_feats: (n_db, D), (n_q, D) backbone features in driven order (`Encoder.embed`).
+        db_feats, q_feats: (n_db, D), (n_q, D) backbone features in driven order (`Embedder.embed`).
         encoder_id, backbone: the encoder they came from (a served map freezes them; here the backbone
             is checked like a created map's, `encoder_id` only names them).
         preset, seed, memory, localiser: the map's `CreateMap` fields; `create`: any further ones.
@@ -286,7 +286,7 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
         live = state.rows >= 0
         np.maximum.at(S[:, j], state.rows[live] - 1, state.scores[live])  # seq s is database row s - 1
         if place is not None:
-            revisit[j], verification[j] = _answered(place, config, kf, frame, model.links.graph, "query",
+            revisit[j], verification[j] = _answered(place, config, kf, frame, model.place_map.graph, "query",
                                                     "database")
             refused = verification[j] is not None and not revisit[j]
             best[j], confidence[j] = place.seq - 1, _decided(place, refused)
@@ -295,7 +295,7 @@ def replay(db_feats: np.ndarray, q_feats: np.ndarray, *, encoder_id: str, backbo
         if progress:
             progress(n_db + j + 1, n_db + n_q)
     if trace is not None:
-        trace["row_held"] = model.links.used[1:n_db + 1] >= 0
+        trace["row_held"] = model.place_map.used[1:n_db + 1] >= 0
         trace["revisit"], trace["verification"] = revisit, verification
         trace["span"], trace["span_rows"] = span, span_rows
     return OnlineAnswers(best, confidence, support, S)

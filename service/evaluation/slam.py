@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from models.evaluation import seqslam, sequences, slam
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 from service.evaluation import service_path
 from service.evaluation.revisit import noisy_png
 from service.maps.config import DEFAULT_REVISIT_THRESHOLD
@@ -49,7 +49,7 @@ ROUTES = ("seasons", "noise", "short-lap", "stop", "excursion")
 class Frames:
     """One Nordland half: features and OpenSeqSLAM frames of summer, winter and noisy summer."""
 
-    def __init__(self, data: Path, half: str, enc: Encoder, cache: Path) -> None:
+    def __init__(self, data: Path, half: str, enc: Embedder, cache: Path) -> None:
         lo, hi = HALVES[half]
         names = sequences.paired_names(data / "summer", data / "winter")[lo:hi]
         self.lo, self.enc, self.cache = lo, enc, cache
@@ -189,14 +189,14 @@ def grid(folder: Path, thresholds: list[float], seeds: int = 1) -> dict[str, Any
 
 
 def encoder_setup(backbone: str | None, localiser: dict[str, Any] | None
-                  ) -> tuple[Encoder, Path, dict[str, Any]]:
+                  ) -> tuple[Embedder, Path, dict[str, Any]]:
     """(the encoder of `backbone`, default the service's; the feature cache; the maps' keywords of
     `service_path.slam_replay` and `replay` but the seed: the service's preset, `localiser`)."""
-    from service.encoder import resolve_backbone  # the service's own resolution of its default
+    from service.frontend import resolve_backbone  # the service's own resolution of its default
 
     settings = Settings.from_env()
     backbone = backbone or resolve_backbone(settings).backbone
-    enc = Encoder({"backbone": backbone, "resize": "squash"})
+    enc = Embedder({"backbone": backbone, "resize": "squash"})
     cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
     return enc, cache, {"encoder_id": enc.identity, "backbone": backbone, "preset": settings.default_preset,
                         "localiser": localiser}

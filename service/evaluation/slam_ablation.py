@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from models.evaluation import slam
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 from service.evaluation import service_path
 from service.evaluation.slam import HALVES, Frames
 
@@ -55,7 +55,7 @@ def ablation(data: Path, seeds: int = 3, backbone: str = "efficientnet-lite0-s5"
     """The experiment (module docstring), printed per run and summarised; `json_path`: every run too."""
     from service.settings import Settings
 
-    enc = Encoder({"backbone": backbone, "resize": "squash"})
+    enc = Embedder({"backbone": backbone, "resize": "squash"})
     cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
     preset = Settings.from_env().default_preset
     rows: list[dict[str, Any]] = []

@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 
 from models.evaluation import seqslam, sequences, slam
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 from service.evaluation import service_path
 from service.evaluation.slam import grey
 from service.maps.config import DEFAULT_REVISIT_THRESHOLD
@@ -68,7 +68,7 @@ class Route:
 class Frames:
     """A Nordland folder's frames as (H, W, 3) uint8 arrays and PNGs, and features by content."""
 
-    def __init__(self, data: Path, enc: Encoder, cache: Path) -> None:
+    def __init__(self, data: Path, enc: Embedder, cache: Path) -> None:
         self.names = sequences.paired_names(data / "summer", data / "winter")
         self.data, self.enc, self.cache = data, enc, cache
 

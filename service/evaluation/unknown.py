@@ -23,7 +23,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from models.evaluation import sequences
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 from models.localisation.localiser import reaches
 from service.evaluation import service_path
 from service.maps.config import DEFAULT_RESIZE
@@ -52,12 +52,12 @@ def unknown(db: Path, query: Path, *, split: int, thresholds: list[float], backb
     """
     args = SimpleNamespace(db=db, query=query, split=split, thresholds=thresholds, backbone=backbone,
                            seed=seed)
-    from service.encoder import resolve_backbone  # the service's own resolution of its default
+    from service.frontend import resolve_backbone  # the service's own resolution of its default
 
     settings = Settings.from_env()
     backbone = args.backbone or resolve_backbone(settings).backbone
     names = route_names(args.db, args.query, split=split, offset=offset, limit=limit)
-    enc = Encoder({"backbone": backbone, "resize": DEFAULT_RESIZE})  # a new map's
+    enc = Embedder({"backbone": backbone, "resize": DEFAULT_RESIZE})  # a new map's
     cache = Path(os.environ.get("CORTEXLOC_CACHE_DIR", Path.home() / ".cache" / "cortexloc")) / "features"
     db = sequences.cached_features(enc, [args.db / n for n in names], cache)
     q = sequences.cached_features(enc, [args.query / n for n in names], cache)

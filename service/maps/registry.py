@@ -19,7 +19,7 @@ from models.memory.temporal_memory import TemporalMemory
 from models.presets import TmOptions
 from service.maps.config import MapConfig, MapOptions, resolve
 from service.maps.encoding import projection as map_projection
-from service.maps.encoding.encoders import Encoders
+from service.maps.encoding.embedders import Embedders
 from service.maps.errors import (
     InvalidConfiguration,
     InvalidMapId,
@@ -64,12 +64,12 @@ class MapRegistry:
 
     Args:
         data_dir: CORTEXLOC_DATA_DIR.
-        encoders: the service's encoders by backbone (`service.maps.encoding.encoders.Encoders`; each has
+        encoders: the service's encoders by backbone (`service.maps.encoding.embedders.Embedders`; each has
             `identity` and `feature_dim`); a map uses its frozen backbone's.
         settings: the service's settings (map caps, snapshot cadence, default preset).
     """
 
-    def __init__(self, data_dir: Path, encoders: Encoders, settings: Settings) -> None:
+    def __init__(self, data_dir: Path, encoders: Embedders, settings: Settings) -> None:
         self.data_dir = Path(data_dir)
         self.encoders = encoders
         self.settings = settings

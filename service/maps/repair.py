@@ -142,4 +142,4 @@ def listing(catalog: Catalog, record: MapRecord) -> Found:
     """
     like = map_model(MapConfig.parse(record.params), max_observations=1)
     with MapStore.open(catalog.layout.map_db(record.map_id), readonly=True) as store:
-        return find(store, like.links.options, like.tm.n_columns)
+        return find(store, like.place_map.options, like.tm.n_columns)

@@ -68,7 +68,7 @@ def check_encoder(app: FastAPI) -> Check:
     desc = encoder.describe()
     out: Check = {"status": "pass", "encoder": desc["encoder"], "weights": desc["weights"], **info,
                   "runtime": desc["runtime"], "device": desc["device"],
-                  "backbone": app.state.settings.backbone}  # of new maps (service.encoder.resolve_backbone)
+                  "backbone": app.state.settings.backbone}  # of new maps (service.frontend.resolve_backbone)
     registry = getattr(app.state, "registry", None)
     if registry is not None:  # one encoder per backbone in use
         out["backbones"] = {name: e.identity for name, e in registry.encoders.built().items()}

@@ -25,7 +25,7 @@ from typing import Any
 from ray import serve
 from ray.serve.handle import DeploymentHandle
 
-from service.scaleout.encoding import EmbedReply, EmbedRequest, EncoderService
+from service.scaleout.embedding import EmbeddingService, EmbedReply, EmbedRequest
 from service.scaleout.ingress import create_ingress_app
 from service.scaleout.shard import ForwardedReply, ShardHost
 from service.scaleout.shards import ShardSet
@@ -52,7 +52,7 @@ class Encoder(_Replica):
     """Images -> features (1, D), batched across shards."""
 
     def __init__(self, env: dict[str, str], data_dir: str, max_batch: int) -> None:
-        self.service = EncoderService(_settings(env, Path(data_dir)))
+        self.service = EmbeddingService(_settings(env, Path(data_dir)))
         self.embed.set_max_batch_size(max_batch)
 
     def info(self, backbone: str) -> dict[str, Any]:

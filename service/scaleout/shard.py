@@ -4,7 +4,7 @@ recovery, unchanged) on the shard's own data directory, answering requests that 
 
 The app runs in process behind an ASGI transport: a forwarded request goes through the same
 middleware, routes and error table as one sent to `cortexloc serve`; the encoder is the encoder
-deployment, behind `RemoteEncoder`. Ray Serve keeps exactly one replica of a shard (one owner, one
+deployment, behind `RemoteEmbedder`. Ray Serve keeps exactly one replica of a shard (one owner, one
 writer per map); when it dies, Ray starts another on the same data directory and the registry
 recovers every map from it as at any start (§4.3).
 """
@@ -22,7 +22,7 @@ import anyio
 import httpx
 
 from service.app import create_app
-from service.scaleout.encoding import RemoteEncoder
+from service.scaleout.embedding import RemoteEmbedder
 from service.settings import Settings
 
 __all__ = ["ForwardedReply", "ShardHost"]
@@ -36,15 +36,15 @@ class ShardHost:
 
     Args:
         settings: the service's settings with this shard's `data_dir`.
-        encoder_info: backbone -> `EncoderService.info` (the deployment's answer).
-        embed_call: `RemoteEncoder`'s call into the encoder deployment.
+        encoder_info: backbone -> `EmbeddingService.info` (the deployment's answer).
+        embed_call: `RemoteEmbedder`'s call into the encoder deployment.
     """
 
     def __init__(self, settings: Settings, encoder_info: Callable[[str], dict[str, Any]],
                  embed_call: Callable[..., Any]) -> None:
-        def factory(s: Settings) -> RemoteEncoder:
+        def factory(s: Settings) -> RemoteEmbedder:
             assert s.backbone is not None  # resolved by the app before it builds an encoder
-            return RemoteEncoder(encoder_info(s.backbone), embed_call)
+            return RemoteEmbedder(encoder_info(s.backbone), embed_call)
 
         self.settings = settings
         self.app = create_app(settings, encoder_factory=factory)

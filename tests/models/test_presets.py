@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from models import presets
-from models.frontend import encoder, slsbh
+from models.frontend import embedding, slsbh
 
 
 def test_slsbh_params_fill_the_defaults_under_the_preset():
@@ -15,9 +15,9 @@ def test_slsbh_params_fill_the_defaults_under_the_preset():
         presets.slsbh_params("nope")
 
 
-def test_the_encoder_takes_k_and_s_from_the_map_defaults():
+def test_the_embedder_takes_k_and_s_from_the_map_defaults():
     defaults = presets.SlsbhParams()
-    conf = encoder.default_conf["slsbh"]
+    conf = embedding.default_conf["slsbh"]
     assert (conf["k"], conf["s"]) == (defaults.k, defaults.s)
 
 

@@ -21,7 +21,7 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.encoder import build_encoder
+from service.frontend import build_embedder
 from service.settings import Settings
 
 __all__ = ["frame", "held_encoder", "make_app", "make_client", "post", "served", "state_of", "tiny_encoder"]
@@ -52,7 +52,7 @@ def served(app: FastAPI, **config: Any) -> Iterator[str]:
 
 
 def tiny_encoder(settings: Settings):
-    return build_encoder(settings, slsbh={"k": 16})
+    return build_embedder(settings, slsbh={"k": 16})
 
 
 def make_app(data_dir: Path | None, **overrides) -> FastAPI:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.localisation import Localisation
+from models.localisation import PlaceMap
 from storage.mapschema import SCHEMA_VERSION, KeyRecord, NewClosure, NewVisit
 from storage.mapstore import DuplicateObservation, MapMeta, MapStore
 from tests.storage.conftest import make_row
@@ -61,9 +61,9 @@ def test_recency_commits_with_the_row_or_visit_that_used_it_at_the_live_clock(tm
         store.add_visit(dataclasses.replace(visit(11, 1, None), touched=(1,)))
         store.append(dataclasses.replace(make_row(3, prev=2), touched=(2,)))
         assert store.recency() == {1: 41, 2: 41}
-        links = Localisation(None, 4096)
-        links.rebuild(store.rows(), used=store.recency())
-        assert links.used[[1, 2, 41]].tolist() == [41, 41, 41]
+        place_map = PlaceMap(None, 4096)
+        place_map.rebuild(store.rows(), used=store.recency())
+        assert place_map.used[[1, 2, 41]].tolist() == [41, 41, 41]
 
 
 def test_a_visit_key_answers_a_repeat_and_is_never_stored_twice(store: MapStore) -> None:
@@ -166,10 +166,10 @@ def test_an_old_map_is_migrated_and_its_places_come_from_its_loop_closures(tmp_p
     with MapStore.open(path) as store:
         assert store.meta.schema_version == SCHEMA_VERSION
         assert [r.place for r in store.rows()] == [None] * 7 and store.joined() == {4: 1, 5: 2, 6: 3}
-        links = Localisation(None, 4096)
-        links.rebuild(store.rows(), store.dropped(), store.joined())
-        assert [links.place_of(s) for s in range(1, 8)] == [1, 2, 3, 1, 2, 3, 7]
-        assert links.appearances(2) == [2, 5] and links.places() == 4
+        place_map = PlaceMap(None, 4096)
+        place_map.rebuild(store.rows(), store.dropped(), store.joined())
+        assert [place_map.place_of(s) for s in range(1, 8)] == [1, 2, 3, 1, 2, 3, 7]
+        assert place_map.appearances(2) == [2, 5] and place_map.places() == 4
         store.append(dataclasses.replace(make_row(8, stream="a", prev=7), place=7))  # and it goes on
         assert store.get(8).place == 7
 

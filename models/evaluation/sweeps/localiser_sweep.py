@@ -29,7 +29,7 @@ from models.evaluation.datasets import nordland_dir
 from models.evaluation.seqslam import full_window
 from models.frontend import images, slsbh
 from models.frontend.backbones.efficientnet_lite0 import LAYERS
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 
 SPLITS = {"tune": (0, 894), "test": (894, 894)}
 BLOCKS = ("stage4", "stage4-pool2", "stage5", "stage5-pool2", "stage6", "stage7", "head-gap")
@@ -59,7 +59,7 @@ def layer_features(blocks: list[str], offset: int, limit: int) -> dict[str, tupl
     """{block: (summer, winter) descriptors} of files offset .. offset + limit - 1."""
     root = nordland_dir()
     names = sequences.paired_names(root / "summer", root / "winter", offset, limit)
-    enc = Encoder({"backbone": "efficientnet-lite0", "resize": "squash"})
+    enc = Embedder({"backbone": "efficientnet-lite0", "resize": "squash"})
     model = enc.backbone.module
     out: dict[str, list[list[np.ndarray]]] = {b: [[], []] for b in blocks}
     for s, season in enumerate(("summer", "winter")):
@@ -88,7 +88,7 @@ def run(*, what: str, split: str, grid: list[str], blocks: list[str], cache: Pat
     if what == "grid":
         root = nordland_dir()
         names = sequences.paired_names(root / "summer", root / "winter", offset, limit)
-        enc = Encoder({"backbone": "efficientnet-lite0", "resize": "squash"})
+        enc = Embedder({"backbone": "efficientnet-lite0", "resize": "squash"})
         db, q = (sequences.cached_features(enc, [root / season / n for n in names], cache)
                  for season in ("summer", "winter"))
         S = db @ q.T

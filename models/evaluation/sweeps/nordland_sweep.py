@@ -28,7 +28,7 @@ from models.evaluation import sequences
 from models.evaluation.datasets import shared_data_dir
 from models.evaluation.seqslam import full_window, seqslam
 from models.frontend import slsbh
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 
 K = 1024  # sLSBH projections: 2K = 2048 TM columns
 SPLITS = {"tune": (0, 894), "test": (894, 894)}
@@ -51,7 +51,7 @@ def load_features(split: str, cache_dir: Path) -> dict[str, tuple[np.ndarray, np
     names = sequences.paired_names(root / "summer", root / "winter")
     out = {}
     for backbone in BACKBONES:
-        enc = Encoder({"backbone": backbone, "resize": "squash"})
+        enc = Embedder({"backbone": backbone, "resize": "squash"})
         out[backbone] = tuple(sequences.cached_features(enc, [root / season / n for n in names], cache_dir)
                               [offset:offset + limit] for season in ("summer", "winter"))
     return out

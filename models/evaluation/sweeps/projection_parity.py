@@ -18,10 +18,10 @@ from models import sdr
 from models.evaluation import metrics
 from models.evaluation.datasets import shared_data_dir
 from models.frontend import slsbh
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 
 
-def _features(enc: Encoder, folder: Path, names: list[str]) -> np.ndarray:
+def _features(enc: Embedder, folder: Path, names: list[str]) -> np.ndarray:
     out = []
     for i in range(0, len(names), 32):
         out.append(enc.embed([(folder / n).read_bytes() for n in names[i:i + 32]]).features)
@@ -32,7 +32,7 @@ def run(*, windows: list[int], n: int, seeds: int, resize: str, backbone: str, j
     """AUC of dense and sparse projections per window start in `windows` (module docstring)."""
     root = shared_data_dir() / "nordland_tiny_64x32"
     names = sorted(p.name for p in (root / "summer").glob("*.png"))
-    enc = Encoder({"backbone": backbone, "resize": resize})  # features only: no projection built
+    enc = Embedder({"backbone": backbone, "resize": resize})  # features only: no projection built
     results = []
     for start in windows:
         window = names[start:start + n]

@@ -1,7 +1,7 @@
 """Backbones: a registry of front-end networks, image batch -> descriptor (docs/design/science.md §6).
 
 A backbone is one module in this package that registers a builder under its name; the encoder
-(`models.frontend.encoder`) looks the name of its `backbone` option up here and never names a network
+(`models.frontend.embedding`) looks the name of its `backbone` option up here and never names a network
 itself. The package's modules are imported on the first look-up, so adding a third backbone is adding
 one module:
 

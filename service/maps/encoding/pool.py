@@ -6,13 +6,13 @@ else arrives within a few milliseconds (up to `max_batch`), and runs one backbon
 them, so throughput under load approaches the backbone's batch throughput. A full queue answers 503
 `overloaded` at once instead of letting latency grow without bound.
 
-Each image starts decoding when it is submitted (`Encoder.prepare`, in the encoder's decode threads),
+Each image starts decoding when it is submitted (`Embedder.prepare`, in the encoder's decode threads),
 not when its batch is taken: the next batch decodes while the backbone runs the current one, so the
 forward never waits for a decode it could have overlapped. A bad image fails its own request alone.
 
 Batches are per backbone and resize mode: a request names its map's backbone and `resize` (crop |
 squash, frozen with the map), and a batch holding several runs one backbone call per pair present
-(`service.maps.encoding.encoders.Encoders` holds one encoder per backbone; the mode is a per-call
+(`service.maps.encoding.embedders.Embedders` holds one encoder per backbone; the mode is a per-call
 argument).
 
 A request brings its map's sLSBH hasher (`MapRuntime.observe` passes it): the batch is then also
@@ -36,10 +36,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.frontend.encoder import EncodeResult, Prepared
+from models.frontend.embedding import EncodeResult, Prepared
 from models.frontend.images import ImageError, RawFrame
 from models.frontend.slsbh import Hasher
-from service.maps.encoding.encoders import Encoders
+from service.maps.encoding.embedders import Embedders
 from service.maps.errors import Overloaded
 from service.settings import Settings
 
@@ -49,7 +49,7 @@ _BATCH: int = Settings.model_fields["encode_batch"].default
 _WAIT_MS: float = Settings.model_fields["encode_wait_ms"].default
 
 
-class EncoderPool:
+class EmbeddingPool:
     """`submit(image bytes) -> Future[EncodeResult]` with at most `workers + queue` in flight.
 
     Args:
@@ -60,7 +60,7 @@ class EncoderPool:
         wait_ms: how long a worker waits for more images once it has one (CORTEXLOC_ENCODE_WAIT_MS).
     """
 
-    def __init__(self, encoders: Encoders, workers: int, queue: int, max_batch: int = _BATCH,
+    def __init__(self, encoders: Embedders, workers: int, queue: int, max_batch: int = _BATCH,
                  wait_ms: float = _WAIT_MS) -> None:
         self.encoders = encoders
         self.limit = workers + queue

@@ -434,7 +434,7 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
                 out.problems.append("map.sqlite fails PRAGMA integrity_check")
             total = store.count()
             like = map_model(MapConfig.parse(record.params), max_observations=max(total, 1))
-            out.problems += store.join_problems(like.links.reach())
+            out.problems += store.join_problems(like.place_map.reach())
             start: TemporalMemory | Mapping[str, np.ndarray] | None = like.tm
             after_seq = after_id = 0
             pruned = store.visits_pruned_through()

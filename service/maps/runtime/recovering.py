@@ -198,7 +198,7 @@ class Recovering:
         split = {r.visit for r in done if r.kind == "split"}
         visits = ((v.context_prev_seq, NONE if v.id in split else v.seq, v.after_seq + 1, v.stream,
                    v.input_sdr, Motion.of(v.metadata)) for v in self.store.visits() if v.row is None)
-        self.model.links.rebuild(rows(), dropped, self.store.joined(), visits, self.store.recency(),
+        self.model.place_map.rebuild(rows(), dropped, self.store.joined(), visits, self.store.recency(),
                                  remade={r.seq for r in done if r.kind == "split"},
                                  unjoined={r.seq for r in done if r.kind == "unjoin"},
                                  folded=self.store.joins())

@@ -68,7 +68,7 @@ class Repairing:
 
     def _find(self) -> repairs.Found:
         assert self.store is not None
-        return repairs.find(self.store, self.localisation.options, self.tm.n_columns)
+        return repairs.find(self.store, self.place_map.options, self.tm.n_columns)
 
     def _repair_result(self, found: repairs.Found, seqs: list[int] | None) -> RepairResult:
         made = seqs or [None] * len(found.visits)

@@ -30,9 +30,9 @@ class Resources:
         """Writer: the map's places, appearances and visits (docs/design/science.md §11.8, §11.9)."""
         assert self.store is not None
         dropped = self.store.dropped()
-        conf = self.localisation.options
+        conf = self.place_map.options
         return PlacesInfo(
-            places=self.localisation.places(), appearances=len(self.index), rows_stored=self.store.count(),
+            places=self.place_map.places(), appearances=len(self.index), rows_stored=self.store.count(),
             dropped=len(dropped), forgotten=sum(1 for r in dropped.values() if r == "forgotten"),
             visits_logged=self.store.visit_stats()[0], max_appearances=conf.appearances,
             max_rows=self.index.max_observations, consolidate=float(conf.consolidate),

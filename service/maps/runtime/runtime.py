@@ -36,7 +36,7 @@ from typing import Any
 
 import service.maps.runtime.idempotency as idempotency  # the module, not the package: no cycle via __init__
 from models.frontend import slsbh
-from models.localisation import InvertedIndex, Localisation
+from models.localisation import InvertedIndex, PlaceMap
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import Stream
 from service.maps.config import MapConfig, map_model
@@ -135,5 +135,5 @@ class MapRuntime(Writer, Snapshots, Recovering, Admission, Repairing, Resources)
         return self.model.index
 
     @property
-    def localisation(self) -> Localisation:
-        return self.model.links
+    def place_map(self) -> PlaceMap:
+        return self.model.place_map

@@ -36,7 +36,7 @@ from models.localisation import forgetting
 from models.localisation.motion import Motion
 from models.pipeline import touch
 from service.maps import keyframes
-from service.maps.encoding.pool import EncoderPool
+from service.maps.encoding.pool import EmbeddingPool
 from service.maps.errors import ClientGone, InsufficientStorage, MapNotFound
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import ObservationResult, PlaceResult
@@ -117,8 +117,8 @@ class Writer:
         it: docs/design/service.md §4.3)."""
         await asyncio.wrap_future(self._commits.durable())
 
-    async def observe(self, pool: EncoderPool, extractions: keyframes.Extractions, body: bytes | RawFrame, *,
-                      learn: bool, stream: str, top_k: int, label: str | None,
+    async def observe(self, pool: EmbeddingPool, extractions: keyframes.Extractions,
+                      body: bytes | RawFrame, *, learn: bool, stream: str, top_k: int, label: str | None,
                       metadata: dict[str, Any] | None = None, post: idempotency.IdempotentPost | None = None,
                       gone: threading.Event | None = None) -> ObservationResult | idempotency.Reply:
         """Event loop: one checked image through the map (docs/design/service.md §1.2, §6).
@@ -239,7 +239,7 @@ class Writer:
         if projected.shape != (self.hasher.k,):
             raise ValueError(f"projection has shape {projected.shape}, this map's are ({self.hasher.k},)")
         self._admit(stream)
-        if learn and (gone := forgetting.to_forget(self.index, self.localisation)):
+        if learn and (gone := forgetting.to_forget(self.index, self.place_map)):
             self._forget(gone)
         if learn and self.budget is not None:  # the row's index bytes, before the step (a failed one is
             self.budget.grow_index(self.map_id, self.row_bytes)  # set right by the recovery it causes)
@@ -366,7 +366,7 @@ class Writer:
         with keyframes only; with `verify_revisit` an unverified candidate is no revisit."""
         if not place.revisit or self.config.keyframes is None or self.store is None:
             return place
-        v = keyframes.verify_candidate(self.store, self.localisation.graph, place.seq, place.stream, query,
+        v = keyframes.verify_candidate(self.store, self.place_map.graph, place.seq, place.stream, query,
                                        stream=stream, neighbours=self.settings.verify_neighbours)
         revisit = keyframes.revisit_stands(place.revisit, v, self.config.verify_revisit)
         return dataclasses.replace(place, verification=v, revisit=revisit)

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from models.evaluation import seqslam as seq
 from models.evaluation import sequences
 from models.evaluation.seqslam import seqslam
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 from service.cli import app
 
 
@@ -50,7 +50,7 @@ def test_pairs_by_name_offset_and_limit(tmp_path):
 
 def test_features_are_cached_by_content(tmp_path):
     db, _ = write_sequences(tmp_path, n=6)
-    enc = Encoder({"resize": "squash", "slsbh": {"k": 16}})
+    enc = Embedder({"resize": "squash", "slsbh": {"k": 16}})
     paths = [db / n for n in sorted(p.name for p in db.glob("images-*.png"))]
     a = sequences.cached_features(enc, paths, tmp_path / "cache")
     assert len(list((tmp_path / "cache").glob("features-*.npy"))) == 1
@@ -217,7 +217,7 @@ def test_sequence_filtered_methods_gain_from_order_and_keep_their_base():
 
 
 def test_eval_images_defaults_follow_the_service(tmp_path):
-    from service.encoder import resolve_backbone
+    from service.frontend import resolve_backbone
     from service.maps.config import DEFAULT_RESIZE, MapOptions, resolve
     from service.settings import Settings
 

@@ -62,9 +62,9 @@ def test_nordland_tunnel_frames_measure_under_the_level_and_daylight_frames_abov
 
 
 def test_the_encoder_reports_each_decoded_frames_contrast():
-    from models.frontend.encoder import Encoder
+    from models.frontend.embedding import Embedder
 
-    enc = Encoder({"backbone": "alexnet", "decode_threads": 1})
+    enc = Embedder({"backbone": "alexnet", "decode_threads": 1})
     bodies = [cv2.imencode(".png", x)[1].tobytes() for x in (flat(5.0), scene())]
     out = enc.embed(bodies)
     assert out.contrast is not None and out.contrast.shape == (2,)

@@ -10,7 +10,7 @@ import torch
 from typer.testing import CliRunner
 
 from models.frontend import backbones
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 from models.frontend.images import IMAGENET_MEAN, IMAGENET_STD
 from service.cli import app
 
@@ -62,7 +62,7 @@ def test_alexnet_builder_gives_the_encoders_backbone():
 
 
 def test_a_registered_backbone_is_usable_by_name_in_the_encoder(tiny_backbone):
-    enc = Encoder({"backbone": tiny_backbone, "slsbh": {"k": 2}, "random_seed": 5})
+    enc = Embedder({"backbone": tiny_backbone, "slsbh": {"k": 2}, "random_seed": 5})
     assert enc.identity == "tiny-mean/random-seed5:crop"
     assert enc.feature_dim == 3
     assert tiny_backbone in backbones.names()

@@ -12,7 +12,7 @@ import torch
 
 from models.frontend import backbones, runtimes
 from models.frontend.backbones import efficientnet_lite0 as effnet
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 
 onnx = pytest.importorskip("onnx")
 
@@ -142,8 +142,8 @@ def test_unknown_runtime_or_device_is_refused(alexnet):
 
 def test_the_encoder_reports_its_runtime_and_device_and_keeps_its_identity(tmp_path):
     conf = {"slsbh": {"k": 64}, "export_dir": str(tmp_path)}
-    onnx_enc = Encoder(conf)
-    torch_enc = Encoder({**conf, "runtime": "torch"})
+    onnx_enc = Embedder(conf)
+    torch_enc = Embedder({**conf, "runtime": "torch"})
     assert onnx_enc.describe() | {"runtime": "torch"} == torch_enc.describe()
     assert onnx_enc.describe()["runtime"] == "onnxruntime" and onnx_enc.describe()["device"] == "cpu"
     assert onnx_enc.identity == torch_enc.identity  # same codes: maps do not care which runtime
@@ -165,7 +165,7 @@ def test_weights_export_builds_every_backbones_export_into_the_store(tmp_path, m
     assert len(manifests) == len(backbones.names()), manifests
     for p in store.glob("*.onnx"):
         assert hashlib.sha256(p.read_bytes()).hexdigest() == p.stem
-    enc = Encoder({"backbone": "efficientnet-lite0-s5", "slsbh": {"k": 16}})
+    enc = Embedder({"backbone": "efficientnet-lite0-s5", "slsbh": {"k": 16}})
     monkeypatch.setattr(runtimes, "export_onnx", lambda backbone: pytest.fail("exported again"))
     monkeypatch.setattr(runtimes, "_EXPORTS", {})
-    assert Encoder({"backbone": "efficientnet-lite0-s5", "slsbh": {"k": 16}}).identity == enc.identity
+    assert Embedder({"backbone": "efficientnet-lite0-s5", "slsbh": {"k": 16}}).identity == enc.identity

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.localisation import Localisation, LocaliserOptions, Place
+from models.localisation import LocaliserOptions, Place, PlaceMap
 from models.localisation.graph import SequenceGraph
 
 WIDTH = 256
@@ -22,19 +22,19 @@ A = (41, 42, 43)  # stream "a" driving on from it: its short-term memory
 WARM = 44  # "a"'s warm-up row after a restart
 
 
-def build(warm: int = 39, stm_place: int | None = None) -> tuple[Localisation, dict[int, np.ndarray]]:
+def build(warm: int = 39, stm_place: int | None = None) -> tuple[PlaceMap, dict[int, np.ndarray]]:
     """The rows above; the warm-up row is the frame of row `warm`. `stm_place`: row 43 joined that row's
     place."""
-    links = Localisation(LocaliserOptions.of({"short_term": 20}), WIDTH)
+    place_map = PlaceMap(LocaliserOptions.of({"short_term": 20}), WIDTH)
     codes = {r: code(r) for r in range(0, WARM)}
-    links.add(0, None, codes[0], stream="z")  # seq 0 unused by a store; keeps row ids = seqs
+    place_map.add(0, None, codes[0], stream="z")  # seq 0 unused by a store; keeps row ids = seqs
     for r in range(1, OLD + 1):
-        links.add(r, r - 1 if r > 1 else None, codes[r], stream="old")
+        place_map.add(r, r - 1 if r > 1 else None, codes[r], stream="old")
     for r in A:
-        links.add(r, r - 1, codes[r], stream="a", place=stm_place if r == A[-1] and stm_place else -1)
+        place_map.add(r, r - 1, codes[r], stream="a", place=stm_place if r == A[-1] and stm_place else -1)
     codes[WARM] = codes[warm].copy()
-    links.add(WARM, None, codes[WARM], stream="a")
-    return links, codes
+    place_map.add(WARM, None, codes[WARM], stream="a")
+    return place_map, codes
 
 
 def at(seq: int, support: int = 10) -> Place:
@@ -43,44 +43,46 @@ def at(seq: int, support: int = 10) -> Place:
 
 
 def test_a_warm_up_row_joins_the_old_place_the_confident_path_stood_on() -> None:
-    links, codes = build()
-    assert set(links.short_term_rows("a").tolist()) == {*A, WARM}
+    place_map, codes = build()
+    assert set(place_map.short_term_rows("a").tolist()) == {*A, WARM}
     # the path is on row 40 now, so on the frame before (the warm-up row's) it stood on row 39
-    assert links.explained("a", at(40), 1, codes.__getitem__) == [(WARM, 39)]
-    links.fold(WARM, 39, WARM + 1)
-    links.drop(WARM)  # (the caller's: it adds no appearance)
-    assert links.place_of(WARM) == links.place_of(39) and links.graph.members(WARM) == []
-    assert WARM not in links.short_term_rows("a") and links.explained("a", at(40), 1, codes.__getitem__) == []
+    assert place_map.explained("a", at(40), 1, codes.__getitem__) == [(WARM, 39)]
+    place_map.fold(WARM, 39, WARM + 1)
+    place_map.drop(WARM)  # (the caller's: it adds no appearance)
+    assert place_map.place_of(WARM) == place_map.place_of(39) and place_map.graph.members(WARM) == []
+    assert WARM not in place_map.short_term_rows("a")
+    assert place_map.explained("a", at(40), 1, codes.__getitem__) == []
 
 
 def test_a_row_the_path_does_not_cover_or_stood_far_from_is_not_joined() -> None:
-    links, codes = build()
-    assert links.explained("a", at(40, support=1), 1, codes.__getitem__) == []  # the path began after it
-    assert links.explained("a", at(30), 1, codes.__getitem__) == []  # the path stood on row 29, not row 39
+    place_map, codes = build()
+    assert place_map.explained("a", at(40, support=1), 1, codes.__getitem__) == []  # the path began after it
+    # the path stood on row 29, not row 39
+    assert place_map.explained("a", at(30), 1, codes.__getitem__) == []
     # never ahead of the path: on row 38 running along the stored direction, it stood on row 37 then;
     # run against it (row 38 reached from row 39) it stood on row 39
-    assert links.explained("a", at(38), 1, codes.__getitem__) == []
-    assert links.explained("a", at(38), -1, codes.__getitem__) == [(WARM, 39)]
+    assert place_map.explained("a", at(38), 1, codes.__getitem__) == []
+    assert place_map.explained("a", at(38), -1, codes.__getitem__) == [(WARM, 39)]
 
 
 def test_a_join_never_targets_the_short_term_memory() -> None:
-    links, codes = build(warm=A[1])  # the warm-up frame looks like the stream's own recent row 42
-    assert links.explained("a", at(A[2]), 1, codes.__getitem__) == []
-    links, codes = build(stm_place=39)  # the stream's row 43 shows old row 39's place
-    assert not links.graph.alone(np.array([A[-1]]))[0]
-    assert links.explained("a", at(40), 1, codes.__getitem__) == []
+    place_map, codes = build(warm=A[1])  # the warm-up frame looks like the stream's own recent row 42
+    assert place_map.explained("a", at(A[2]), 1, codes.__getitem__) == []
+    place_map, codes = build(stm_place=39)  # the stream's row 43 shows old row 39's place
+    assert not place_map.graph.alone(np.array([A[-1]]))[0]
+    assert place_map.explained("a", at(40), 1, codes.__getitem__) == []
 
 
 @pytest.mark.parametrize("more", [14, 15])
 def test_a_join_reaches_back_over_warmup_plus_exclusion_rows_only(more: int) -> None:
     """The warm-up row, then `more` rows of the stream: with 15 it is the 16th newest (reach: 15)."""
-    assert Localisation(LocaliserOptions(), WIDTH).reach() == 15
-    links, codes = build(warm=20)
+    assert PlaceMap(LocaliserOptions(), WIDTH).reach() == 15
+    place_map, codes = build(warm=20)
     for r in range(WARM + 1, WARM + 1 + more):  # the stream goes on making rows, joined to old places
         codes[r] = code(r)
-        links.add(r, r - 1, codes[r], stream="a", place=1)
+        place_map.add(r, r - 1, codes[r], stream="a", place=1)
     # the path stood on row 20 on the warm-up row's frame, `more` + 1 frames ago
-    got = links.explained("a", at(20 + more + 1, support=100), 1, codes.__getitem__)
+    got = place_map.explained("a", at(20 + more + 1, support=100), 1, codes.__getitem__)
     assert got == ([(WARM, 20)] if more < 15 else [])
 
 

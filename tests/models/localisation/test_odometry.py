@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.localisation import Localisation
+from models.localisation import PlaceMap
 from models.localisation.motion import Motion
 from models.localisation.odometry import NO_READING, Odometer, Reading, RowOdometry
 from models.localisation.options import LocaliserOptions
@@ -71,7 +71,7 @@ def test_rows_of_no_drive_or_of_another_stream_s_drive_are_never_judged():
 
 
 def test_the_map_judges_a_streams_frame_by_its_drive_and_a_rebuild_gives_the_same_readings():
-    loc = Localisation(CONF, 64)
+    loc = PlaceMap(CONF, 64)
     code = np.arange(8, dtype=np.int64)
     assert loc.beyond("robot", Motion((0.0, 0.0), 0.0)) is None  # nothing learned yet
     prev = None
@@ -89,7 +89,7 @@ def test_the_map_judges_a_streams_frame_by_its_drive_and_a_rebuild_gives_the_sam
             self.input_sdr = code + seq
             self.metadata = {"pose": {"x": float(seq), "y": 0.0}, "stamp": float(seq)}
 
-    again = Localisation(CONF, 64)
+    again = PlaceMap(CONF, 64)
     again.rebuild([Row(s) for s in range(1, 31)])
     assert np.array_equal(again.odometry.drive[:31], loc.odometry.drive[:31])
     assert np.array_equal(again.odometry.at[:31], loc.odometry.at[:31])

@@ -10,8 +10,8 @@ import numpy as np
 
 from models.localisation import (
     InvertedIndex,
-    Localisation,
     LocaliserOptions,
+    PlaceMap,
     SequenceGraph,
     SequenceLocaliser,
 )
@@ -57,15 +57,15 @@ def test_a_place_s_rows_join_drop_and_link_as_told():
     assert g.members(2) == [5] and g.place[2] == 2  # its links stay: paths still walk through it
 
 
-def localisation_with(appearances: int, **options: Any) -> Localisation:
-    loc = Localisation(LocaliserOptions.of({"appearances": appearances, **options}), 64)
+def place_map_with(appearances: int, **options: Any) -> PlaceMap:
+    loc = PlaceMap(LocaliserOptions.of({"appearances": appearances, **options}), 64)
     for seq in range(1, 4):  # places 1, 2, 3
         loc.add(seq, None if seq == 1 else seq - 1, np.array([seq]), stream="a")
     return loc
 
 
 def test_the_cap_drops_the_least_recently_used_appearance_never_the_new_one():
-    loc = localisation_with(appearances=2)
+    loc = place_map_with(appearances=2)
     loc.add(4, None, np.array([1]), stream="b", place=1)  # place 1: rows 1, 4
     loc.touch(1, 10)  # row 1 used later than row 4
     loc.add(5, None, np.array([1]), stream="c", place=1)
@@ -75,7 +75,7 @@ def test_the_cap_drops_the_least_recently_used_appearance_never_the_new_one():
 
 
 def test_forgetting_takes_whole_places_least_recently_used_first():
-    loc = localisation_with(appearances=8)
+    loc = place_map_with(appearances=8)
     loc.add(4, None, np.array([1]), stream="b", place=1)  # place 1 used at 4
     loc.touch(2, 9)  # place 2 used last
     # place 3 (used at 3) goes first, then place 1 (its latest row used at 4), whole
@@ -130,7 +130,7 @@ def test_the_cap_rule_forgets_nothing_below_it_and_at_least_one_percent_of_it_at
     apply): nothing under the cap; at it, whole least recently used places, at least 1 % of the cap."""
     from models.localisation import forgetting
 
-    loc = localisation_with(appearances=8)
+    loc = place_map_with(appearances=8)
     loc.add(4, None, np.array([1]), stream="b", place=1)  # place 1: rows 1 and 4, used at 4
     loc.touch(2, 9)
     index = InvertedIndex(64, 5)
@@ -156,7 +156,7 @@ def test_the_maps_forget_percent_is_the_batch_the_cap_rule_forgets_and_states() 
     for seq in range(1, 201):
         big.add(seq, [seq % 64], "a")
     for percent, gone in ((1, [3, 1, 4]), (0, [3]), (2, [3, 1, 4, 2])):
-        loc = localisation_with(appearances=8, forget_percent=percent)
+        loc = place_map_with(appearances=8, forget_percent=percent)
         loc.add(4, None, np.array([1]), stream="b", place=1)
         loc.touch(2, 9)
         assert forgetting.to_forget(big, loc) == gone

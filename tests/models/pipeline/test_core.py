@@ -59,7 +59,7 @@ def test_a_learned_frame_joins_the_index_and_the_links_and_a_localisation_change
     m, st = model(), Stream()
     frames = route(8)
     learn_route(m, frames, st)
-    assert len(m.index) == 8 and m.links.graph.prev[5] == 4  # row 5 continues row 4
+    assert len(m.index) == 8 and m.place_map.graph.prev[5] == 4  # row 5 continues row 4
     before = (len(m.index), m.tm.size()["segments"])
     q = Stream()
     found = [observe(m, q, y + 0.01, learn=False, stream="q", top_k=1, code_of=CODES.__getitem__)
@@ -207,7 +207,7 @@ def test_a_real_loop_longer_than_the_short_term_memory_still_closes() -> None:
 
 
 def test_the_short_term_memory_is_the_maps_so_an_eviction_a_switch_and_a_restart_keep_it() -> None:
-    """The rows a stream made in its last learned frames are kept by the map (`Localisation`), not by
+    """The rows a stream made in its last learned frames are kept by the map (`PlaceMap`), not by
     the stream's state: a stream evicted (a new `Stream`), switched to localising, or rebuilt from the
     store's rows and visits after a restart still has them, and never names one of them."""
     frames = slow_route(30, 1, 0.8, 5)
@@ -218,7 +218,7 @@ def test_the_short_term_memory_is_the_maps_so_an_eviction_a_switch_and_a_restart
         drive(m, frames, Stream(), codes=codes)
         steps = drive(m, frames[-15:], Stream(), codes=codes, learn=False)
         named[n] = {s.place.seq for s in steps if s.place is not None}
-    stm = m.links.short_term_rows("a")
+    stm = m.place_map.short_term_rows("a")
     # the default: the rows made over its last 20 moves (frames alike to the one before are no move)
     assert stm.size >= 20 and stm.tolist() == list(range(int(stm[0]), 31))
     assert named[0] & set(stm.tolist()) and not named[20] & set(stm.tolist())
@@ -226,8 +226,8 @@ def test_the_short_term_memory_is_the_maps_so_an_eviction_a_switch_and_a_restart
     rows = [type("Row", (), {"seq": q, "context_prev_seq": q - 1 if q > 1 else None, "input_sdr": c,
                              "stream": "a", "place": None})() for q, c in sorted(codes.items())]
     again = model("none")
-    again.links.rebuild(rows)
-    assert again.links.short_term_rows("a").tolist() == stm.tolist()
+    again.place_map.rebuild(rows)
+    assert again.place_map.short_term_rows("a").tolist() == stm.tolist()
     # another stream's memory is its own: a second robot on the same route names the first's rows
     other = drive(m, frames[-10:], Stream(), stream="b", codes=codes)
     assert any(s.place is not None and s.place.seq in stm for s in other)
@@ -238,29 +238,29 @@ def test_consolidated_frames_move_the_short_term_memory_on_and_a_rebuild_replays
     its short-term memory (else a lap over known ground would keep its last made rows out of reach, and
     a short loop's third lap could not consolidate into them); frames alike to its last move (a stop) do
     not. A rebuild interleaves rows and visits by their clock, so the memory is the live one's."""
-    links = model("none").links
+    place_map = model("none").place_map
     # every frame unlike the last (12 random bits of the 128): each a move
     codes = [np.sort(np.random.default_rng(q).choice(128, 12, replace=False)) for q in range(41)]
     for q in range(1, 26):
-        links.add(q, q - 1 if q > 1 else None, codes[q], stream="a")
-    assert links.short_term_rows("a").tolist() == list(range(6, 26))
+        place_map.add(q, q - 1 if q > 1 else None, codes[q], stream="a")
+    assert place_map.short_term_rows("a").tolist() == list(range(6, 26))
     visits = [(25 if k == 0 else k, k + 1, 26, "a", codes[26 + k]) for k in range(15)]  # into rows 1..15
     for v in visits:
-        links.visit(*v)
-    assert links.short_term_rows("a").tolist() == list(range(21, 26))
+        place_map.visit(*v)
+    assert place_map.short_term_rows("a").tolist() == list(range(21, 26))
     rows = [type("Row", (), {"seq": q, "context_prev_seq": q - 1 if q > 1 else None, "input_sdr": codes[q],
                              "stream": "a", "place": None})() for q in range(1, 26)]
-    again = model("none").links
+    again = model("none").place_map
     again.rebuild(rows, visited=visits)
     assert again.short_term_rows("a").tolist() == list(range(21, 26))
     # frames alike to the last move are no move: a stop keeps the rows from before it
-    links.add(26, 25, codes[25], stream="a")  # a move (unlike the last visit's frame), then a stop
-    first = int(links.short_term_rows("a")[0])
+    place_map.add(26, 25, codes[25], stream="a")  # a move (unlike the last visit's frame), then a stop
+    first = int(place_map.short_term_rows("a")[0])
     for q in range(27, 60):
-        links.add(q, q - 1, codes[25], stream="a")
-    assert int(links.short_term_rows("a")[0]) == first == 22
+        place_map.add(q, q - 1, codes[25], stream="a")
+    assert int(place_map.short_term_rows("a")[0]) == first == 22
     # off: no short-term memory
-    assert model("none", localiser={"short_term": 0}).links.short_term_rows("a").size == 0
+    assert model("none", localiser={"short_term": 0}).place_map.short_term_rows("a").size == 0
 
 
 def test_a_slow_robots_short_term_memory_does_not_crowd_the_right_old_row_out_of_the_candidates() -> None:
@@ -280,15 +280,15 @@ def test_a_slow_robots_short_term_memory_does_not_crowd_the_right_old_row_out_of
             seq = len(codes) + 1
             codes[seq] = observe(m, st, y, learn=True, stream="a", seq=seq,
                                  code_of=codes.__getitem__, **learn).code
-    assert m.links.short_term_rows("a").size > 5 + 20  # more than the old margin
+    assert m.place_map.short_term_rows("a").size > 5 + 20  # more than the old margin
     seen = {}
-    step = m.links.step
+    step = m.place_map.step
 
     def spy(state, ranked, own, informative=True, moved=True):
         seen["candidates"] = {r.seq for r in ranked} - set(own.short_term.tolist())
         return step(state, ranked, own, informative, moved)
 
-    m.links.step = spy
+    m.place_map.step = spy
     # evicted (or restarted without its state), then localising: no trail of its own leaves the stop's
     # rows out of the pass, only its memory does
     observe(m, Stream(), parked[-1], learn=False, stream="a", top_k=0, code_of=codes.__getitem__)
@@ -331,9 +331,9 @@ def test_an_unconfident_frame_is_consolidated_only_above_the_maps_unsure_fractio
     was), and a row of its own where it does not (0.819 at 0.9)."""
     m = model("none", localiser={"unsure_fraction": fraction})
     learn_route(m, route(6), Stream())
-    place = Place(seq=3, confidence=0.6, support=5, place=m.links.place_of(3))
-    monkeypatch.setattr(m.links, "step", lambda *args, **kwargs: place)
-    monkeypatch.setattr(m.links, "consolidation", lambda *args, **kwargs: 3)
+    place = Place(seq=3, confidence=0.6, support=5, place=m.place_map.place_of(3))
+    monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: place)
+    monkeypatch.setattr(m.place_map, "consolidation", lambda *args, **kwargs: 3)
     step = observe(m, Stream(), route(1, seed=9)[0], learn=True, stream="b", top_k=3, seq=7,
                    code_of=CODES.__getitem__, threshold=REVISIT)
     assert (step.visit == 3) is consolidated
@@ -350,8 +350,8 @@ def test_a_confident_frame_like_the_row_one_link_from_its_path_is_a_visit_of_it_
     m = model("none")
     frames = route(6)
     learn_route(m, frames, Stream())
-    place = Place(seq=3, confidence=0.99, support=5, place=m.links.place_of(3))
-    monkeypatch.setattr(m.links, "step", lambda *args, **kwargs: place)
+    place = Place(seq=3, confidence=0.99, support=5, place=m.place_map.place_of(3))
+    monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: place)
     step = observe(m, Stream(), frames[frame], learn=True, stream="b", top_k=3, seq=7,
                    code_of=CODES.__getitem__, threshold=REVISIT)
     assert step.visit == visit

@@ -67,7 +67,7 @@ def test_a_parked_robot_with_poses_makes_one_row_and_rehearses_it() -> None:
     steps = run(m, frames, motions)
     assert all(s.visit is None for s in steps[:21])
     assert [s.visit for s in steps[21:]] == [21] * 59
-    assert len(m.index) == 21 and m.links.held == 21 and m.links.visits == 59
+    assert len(m.index) == 21 and m.place_map.held == 21 and m.place_map.visits == 59
     rows = model()
     rows_steps = run(rows, frames)  # the same frames without poses: a row each, as before
     assert all(s.visit is None for s in rows_steps) and len(rows.index) == 80

@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from models.evaluation import datasets
-from models.localisation import Localisation, LocaliserOptions, trail
+from models.localisation import LocaliserOptions, PlaceMap, trail
 from models.localisation import localiser as loc
 from service.cli import app
 from service.evaluation import rules, service_path, stress
@@ -27,7 +27,7 @@ def _tiny_default_preset():
 
 
 def test_a_rule_is_switched_off_for_the_run_only_and_every_rule_is_known() -> None:
-    owners = {"echo": (trail.OwnTrail, "laid_behind"), "joins": (Localisation, "explained"),
+    owners = {"echo": (trail.OwnTrail, "laid_behind"), "joins": (PlaceMap, "explained"),
               "null-rows": (loc.SequenceLocaliser, "_jump_level"), "flat-visits": (service_path, "observe")}
     for rule, (owner, name) in owners.items():
         before = getattr(owner, name)

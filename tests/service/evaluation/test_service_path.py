@@ -87,7 +87,7 @@ def test_http_and_slam_replay_give_the_same_places_for_one_learning_stream(tmp_p
 def test_the_evaluation_measures_and_decides_low_information_frames_as_the_service_does(tmp_path):
     """Dark frames in both laps: `slam_replay` with `contrasts` of the same images answers as HTTP, and
     scores a frame the service marks `low_information` at confidence 0 (never a revisit, §11.7)."""
-    from tests.service.test_loop_closures import dark
+    from tests.service.maps.test_loop_closures import dark
 
     lap2 = [frame(p, noise=4.0) for p in DB]
     laps = ([frame(p) for p in DB[:7]] + [dark(0), dark(1)] + [frame(p) for p in DB[7:]]

@@ -17,12 +17,12 @@ from tests.service.helpers import make_client, post
 pytest.importorskip("skimage", reason="scikit-image (dev extra) ships the real images")
 
 from models.evaluation.geometry import rotation, warp
-from tests.service.test_keyframes import CAMERA, CAMERA_META, KEYFRAMES, ROUTE, UNRELATED, png, sized
+from tests.service.maps.test_keyframes import CAMERA, CAMERA_META, KEYFRAMES, ROUTE, UNRELATED, png, sized
 
 #: A route of ten photographs is shorter than a stream's short-term memory (20 moves, §11.6): without it
 #: the stream's laps can close on each other.
 # no span gate (docs/design/science.md §11.11): at threshold 0 the verification alone decides, as in
-# tests/service/test_keyframes.py
+# tests/service/maps/test_keyframes.py
 NO_GATE = {"span_max": 4096}
 SHORT = {"short_term": 0, **NO_GATE}
 MAP = {"keyframes": KEYFRAMES, "revisit_threshold": 0.0, "verify_revisit": True}

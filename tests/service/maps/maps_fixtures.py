@@ -10,7 +10,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from service.maps.encoding.encoders import Encoders
+from service.maps.encoding.embedders import Embedders
 from service.maps.registry import MapRegistry
 from service.maps.runtime import MapRuntime
 from service.settings import Settings
@@ -23,7 +23,7 @@ ENCODER = SimpleNamespace(identity="alexnet-conv3/test-features:crop", feature_d
 @contextmanager
 def registry(data_dir: Path, **settings: object) -> Iterator[MapRegistry]:
     conf = {"data_dir": data_dir, "snapshot_every": 0, **settings}
-    reg = MapRegistry(data_dir, Encoders.one(ENCODER), Settings(**conf))
+    reg = MapRegistry(data_dir, Embedders.one(ENCODER), Settings(**conf))
     reg.start()
     try:
         yield reg

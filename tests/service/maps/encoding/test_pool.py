@@ -13,15 +13,15 @@ import numpy as np
 import pytest
 
 from models.frontend import images
-from models.frontend.encoder import EncodeResult, Prepared
+from models.frontend.embedding import EncodeResult, Prepared
 from models.frontend.images import ImageError
 from models.frontend.slsbh import Hasher, make_projection
-from service.maps.encoding.encoders import Encoders
-from service.maps.encoding.pool import EncoderPool
+from service.maps.encoding.embedders import Embedders
+from service.maps.encoding.pool import EmbeddingPool
 from tests.service.helpers import frame, held_encoder, make_client
 
 
-class FakeEncoder:
+class FakeEmbedder:
     """`embed` returns one fixed feature row per image (derived from its bytes); b"bad" fails.
     `prepare` + `embed_prepared` (what the pool calls) give the same rows."""
 
@@ -53,8 +53,8 @@ class FakeEncoder:
 def test_pool_projects_each_request_with_its_own_hasher() -> None:
     h1 = Hasher(make_projection(32, 16, seed=1), 0.25)
     h2 = Hasher(make_projection(32, 16, seed=2), 0.25)
-    enc = FakeEncoder()
-    pool = EncoderPool(Encoders.one(enc), workers=1, queue=64)
+    enc = FakeEmbedder()
+    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=64)
     try:
         bodies = [bytes(10 + i) for i in range(9)]
         hashers = [h1, h2, None] * 3
@@ -84,8 +84,8 @@ def test_pool_projects_each_request_with_its_own_hasher() -> None:
 
 
 def test_a_bad_image_fails_alone_and_its_batch_mates_are_encoded_once() -> None:
-    enc = FakeEncoder()
-    pool = EncoderPool(Encoders.one(enc), workers=1, queue=64)
+    enc = FakeEmbedder()
+    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=64)
     try:
         with held_encoder(enc) as (gate, sizes):
             first = pool.submit(bytes(3))
@@ -137,16 +137,16 @@ def test_an_image_decodes_while_the_backbone_runs_the_batch_before_it(tmp_path, 
 
 
 def test_pool_batches_per_backbone_and_builds_each_encoder_once() -> None:
-    built: dict[str, FakeEncoder] = {}
+    built: dict[str, FakeEmbedder] = {}
 
-    def build(name: str) -> FakeEncoder:
+    def build(name: str) -> FakeEmbedder:
         assert name not in built  # at most one encoder per backbone
-        built[name] = FakeEncoder()
+        built[name] = FakeEmbedder()
         return built[name]
 
-    first = FakeEncoder()
-    encoders = Encoders(build, "alexnet", {"alexnet": first})
-    pool = EncoderPool(encoders, workers=1, queue=64)
+    first = FakeEmbedder()
+    encoders = Embedders(build, "alexnet", {"alexnet": first})
+    pool = EmbeddingPool(encoders, workers=1, queue=64)
     try:
         with held_encoder(first) as (gate, _):
             futs = [pool.submit(bytes(10 + i), backbone=("alexnet", "efficientnet-lite0")[i % 2])
@@ -164,8 +164,8 @@ def test_pool_batches_per_backbone_and_builds_each_encoder_once() -> None:
 
 
 def test_pool_encodes_each_image_with_its_maps_resize_mode() -> None:
-    enc = FakeEncoder()
-    pool = EncoderPool(Encoders.one(enc), workers=1, queue=64)
+    enc = FakeEmbedder()
+    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=64)
     try:
         wanted = {bytes(10 + i): (None, "squash", "crop")[i % 3] for i in range(9)}
         with held_encoder(enc) as (gate, sizes):
@@ -205,13 +205,13 @@ def test_a_prepare_that_raises_gives_its_slot_back() -> None:
     input) never queues the item, so no worker frees its slot: the pool must, or each such failure
     takes a slot for good and the pool ends up refusing everything (a permanent 503)."""
 
-    class Failing(FakeEncoder):
+    class Failing(FakeEmbedder):
         def prepare(self, body, thumbnail=False, resize=None):
             if body == b"boom":
                 raise OSError(104, "Connection reset by peer")
             return super().prepare(body, thumbnail, resize)
 
-    pool = EncoderPool(Encoders.one(Failing()), workers=1, queue=1)
+    pool = EmbeddingPool(Embedders.one(Failing()), workers=1, queue=1)
     try:
         for _ in range(5):  # more failures than the pool has slots
             with pytest.raises(OSError, match="reset"):
@@ -230,7 +230,7 @@ def test_the_pools_batch_and_wait_and_the_encoders_chunk_are_the_settings(tmp_pa
         pool = c.app.state.encoder_pool
         assert (pool.max_batch, pool.wait_s) == (4, 0.5 / 1e3)
         assert pool.encoders.get(pool.encoders.default).chunk == 2
-    plain = EncoderPool(Encoders.one(FakeEncoder()), workers=1, queue=1)
+    plain = EmbeddingPool(Embedders.one(FakeEmbedder()), workers=1, queue=1)
     try:
         assert (plain.max_batch, plain.wait_s) == (16, 2.0 / 1e3)
     finally:

@@ -9,7 +9,7 @@ import pytest
 
 from models.frontend import images
 from service.ingest.sources import RAW_ENCODINGS, SourceError, image_to_raw, open_source
-from tests.ingest.data import (
+from tests.service.ingest.data import (
     DAMAGE,
     ROUTE,
     TOPICS,

@@ -124,7 +124,7 @@ def test_backbone_is_frozen_with_the_map_and_shown(tmp_path):
 
 
 def test_the_default_backbone_is_resolved_once_at_startup(tmp_path):
-    from service.encoder import resolve_backbone
+    from service.frontend import resolve_backbone
     from service.maps.config import MapConfig
     from service.settings import Settings
 

@@ -14,7 +14,7 @@ from service.app import create_app
 from service.settings import Settings
 from service.ui import STATIC_DIR
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 _TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css"}
 
 

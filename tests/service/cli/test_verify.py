@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from service.cli import app as cli_app
 from tests.service.helpers import frame, make_client, post
-from tests.service.test_recovery import corrupt_winner_cells, snapshot_dirs
+from tests.service.maps.recovery.test_recovery import corrupt_winner_cells, snapshot_dirs
 
 
 def files(root: Path) -> dict[str, bytes]:

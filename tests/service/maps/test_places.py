@@ -10,8 +10,8 @@ import shutil
 from service.maps.recovery import VISIT_CURSOR, open_catalog, verify_map
 from storage import snapshots
 from tests.service.helpers import frame, make_client, post, state_of
-from tests.service.test_loop_closures import LAP, THRESHOLD, drive, revisits
-from tests.service.test_recovery import crash
+from tests.service.maps.recovery.test_recovery import crash
+from tests.service.maps.test_loop_closures import LAP, THRESHOLD, drive, revisits
 
 
 def make(c, map_id: str, **localiser) -> None:
@@ -76,8 +76,8 @@ def test_a_place_keeps_its_cap_and_drops_its_least_recently_used_rows(tmp_path):
         rt = c.app.state.registry.get("m")
         info = places(c, "m")
         dropped = rt.store.dropped()
-        for place in {rt.localisation.place_of(b["seq"]) for b in passes[0]}:
-            assert len(rt.localisation.appearances(place)) <= 2
+        for place in {rt.place_map.place_of(b["seq"]) for b in passes[0]}:
+            assert len(rt.place_map.appearances(place)) <= 2
         last = {b["seq"] for b in passes[-1]}
         assert dropped and set(dropped.values()) == {"appearance-cap"} and not last & set(dropped)
         assert info["dropped"] == len(dropped) and info["appearances"] == info["rows_stored"] - len(dropped)
@@ -94,7 +94,7 @@ def shape(c) -> tuple:
     rt = c.app.state.registry.get("default")
     info = places(c, "default")
     return (*state_of(c), info["places"], info["appearances"], info["visits_logged"],
-            rt.localisation.graph.place.tolist(), rt.localisation.graph.next.tolist())
+            rt.place_map.graph.place.tolist(), rt.place_map.graph.next.tolist())
 
 
 def twin_and_crashed(tmp_path, drive_: list[tuple], crash_at: int) -> tuple[list, list, tuple, dict]:
@@ -239,7 +239,7 @@ def test_after_a_crash_the_cap_drops_the_rows_the_map_that_did_not_crash_drops(t
 
     def state(c) -> tuple:
         rt = c.app.state.registry.get("m")
-        return sorted(rt.store.dropped().items()), rt.localisation.used[:len(rt.localisation.graph)].tolist()
+        return sorted(rt.store.dropped().items()), rt.place_map.used[:len(rt.place_map.graph)].tolist()
 
     with make_client(tmp_path / "twin", snapshot_every=7) as c:
         make(c, "m", consolidate=1.0, appearances=2)

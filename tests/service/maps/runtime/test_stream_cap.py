@@ -7,7 +7,7 @@ from __future__ import annotations
 import re
 
 from tests.service.helpers import frame, make_client, post, state_of
-from tests.service.test_recovery import crash
+from tests.service.maps.recovery.test_recovery import crash
 
 
 def evictions(c, map_id: str = "default") -> float:

@@ -1,10 +1,10 @@
 """The encoder as its own stateless deployment (docs/scaling.md; docs/design/service.md §6, §9).
 
-`EncoderService` holds the real encoders (one per backbone, built on first use) and embeds a batch
-of single-image requests that Ray Serve's `@serve.batch` gathered from every shard; `RemoteEncoder`
-stands in a shard's process for `models.frontend.encoder.Encoder`: the same identity, feature
+`EmbeddingService` holds the real encoders (one per backbone, built on first use) and embeds a batch
+of single-image requests that Ray Serve's `@serve.batch` gathered from every shard; `RemoteEmbedder`
+stands in a shard's process for `models.frontend.embedding.Embedder`: the same identity, feature
 dimension, limits and `embed`, with each image sent to the encoder deployment by its handle. The
-shard's own `EncoderPool` (service/maps/encoding/pool.py) still projects each batch with the map's
+shard's own `EmbeddingPool` (service/maps/encoding/pool.py) still projects each batch with the map's
 sLSBH matrix: the deployment returns features (1, D), never codes, so it needs no map's state.
 """
 
@@ -19,15 +19,15 @@ from typing import Any
 import numpy as np
 
 from models.frontend import images
-from models.frontend.encoder import EncodeResult
+from models.frontend.embedding import EncodeResult
 from models.frontend.images import ImageError
-from service.encoder import build_encoder, resolve_backbone
-from service.maps.encoding.encoders import Encoders
+from service.frontend import build_embedder, resolve_backbone
+from service.maps.encoding.embedders import Embedders
 from service.maps.errors import EncoderUnavailable
 from service.scaleout.replicas import unavailable_errors
 from service.settings import Settings
 
-__all__ = ["EmbedRequest", "Embedded", "EncoderService", "PendingReply", "RemoteEncoder"]
+__all__ = ["EmbedRequest", "Embedded", "EmbeddingService", "PendingReply", "RemoteEmbedder"]
 
 #: One image for the encoder deployment: (backbone, resize or None, encoded bytes or raw frame, thumbnail?).
 EmbedRequest = tuple[str, str | None, "bytes | images.RawFrame", bool]
@@ -37,7 +37,7 @@ EmbedRequest = tuple[str, str | None, "bytes | images.RawFrame", bool]
 EmbedReply = tuple[str, Any, Any, dict[str, float], Any]
 
 
-class EncoderService:
+class EmbeddingService:
     """The encoder deployment's work, Ray left out (tested in process).
 
     Args:
@@ -46,12 +46,12 @@ class EncoderService:
 
     def __init__(self, settings: Settings) -> None:
         settings = resolve_backbone(settings)
-        self.encoders = Encoders(lambda name: build_encoder(settings.model_copy(update={"backbone": name})),
+        self.encoders = Embedders(lambda name: build_embedder(settings.model_copy(update={"backbone": name})),
                                  settings.backbone)
         self.encoders.get(settings.backbone)  # loaded before the replica says it is ready
 
     def info(self, backbone: str) -> dict[str, Any]:
-        """What a `RemoteEncoder` needs to stand in for the encoder of `backbone` (ValueError: none here)."""
+        """What a `RemoteEmbedder` needs to stand in for the encoder of `backbone` (ValueError: none here)."""
         e = self.encoders.get(backbone)
         return {"conf": e.conf, "weights_id": e.weights_id, "feature_dim": e.feature_dim,
                 "arch": e.backbone.arch, "describe": e.describe()}
@@ -90,11 +90,11 @@ class EncoderService:
         return [o for o in out if o is not None]
 
 
-class RemoteEncoder:
-    """A shard's stand-in for `Encoder` (the attributes the service reads), embedding by `call`.
+class RemoteEmbedder:
+    """A shard's stand-in for `Embedder` (the attributes the service reads), embedding by `call`.
 
     Args:
-        info: `EncoderService.info` of this backbone.
+        info: `EmbeddingService.info` of this backbone.
         call: one `EmbedRequest` -> a future of its `EmbedReply` (the deployment handle's call).
     """
 
@@ -112,7 +112,7 @@ class RemoteEncoder:
         return self.identity_for(self.conf["resize"])
 
     def identity_for(self, resize: str) -> str:
-        """The real encoder's identity (models.frontend.encoder.Encoder.identity_for)."""
+        """The real encoder's identity (models.frontend.embedding.Embedder.identity_for)."""
         if resize not in images.MODES:
             raise ValueError(f"resize must be one of {', '.join(images.MODES)}, got {resize!r}")
         return f"{self._arch}/{self.weights_id}:{resize}"
@@ -130,7 +130,7 @@ class RemoteEncoder:
 
     def prepare(self, data: bytes | images.RawFrame, *, thumbnail: bool = False,
                 resize: str | None = None) -> PendingReply:
-        """Send one image to the encoder deployment now (`Encoder.prepare`'s place in the shard's encoder
+        """Send one image to the encoder deployment now (`Embedder.prepare`'s place in the shard's encoder
         pool: the decode, and here the forward too, start when the request arrives); returns at once.
 
         Returns:
@@ -140,7 +140,7 @@ class RemoteEncoder:
         return PendingReply(self._call((self.conf["backbone"], resize, data, bool(thumbnail))))
 
     def embed_prepared(self, prepared: Sequence[PendingReply]) -> EncodeResult:
-        """Features (N, D) of images sent by `prepare`, in their order (`Encoder.embed_prepared`).
+        """Features (N, D) of images sent by `prepare`, in their order (`Embedder.embed_prepared`).
 
         Raises:
             ImageError: the first image the deployment could not decode.

@@ -18,8 +18,8 @@ from service.maps.closures import g2o_lines, g2o_retracted
 from service.maps.recovery import open_catalog, verify_map
 from storage.mapstore import LoopClosure, NewClosure, NewObservation, NewVisit
 from tests.service.helpers import frame, make_client, post
-from tests.service.test_loop_closures import THRESHOLD, drive
-from tests.service.test_places import crash
+from tests.service.maps.test_loop_closures import THRESHOLD, drive
+from tests.service.maps.test_places import crash
 
 
 def echo_visit(rt, stream: str, into: int, code: np.ndarray) -> int:
@@ -31,7 +31,7 @@ def echo_visit(rt, stream: str, into: int, code: np.ndarray) -> int:
         prev = st.last_learned_seq
         clock = rt.store.next_seq()
         winners = pipeline.revisit(rt.model, st, code, row=into, prev_seq=prev)
-        rt.localisation.visit(prev, into, clock, stream, code)
+        rt.place_map.visit(prev, into, clock, stream, code)
         return rt.store.add_visit(NewVisit(
             stream=stream, seq=into, context_prev_seq=prev, input_sdr=code, winner_cells=winners,
             closure=NewClosure(stream=stream, place_seq=into, confidence=0.95, support=5), touched=(into,),
@@ -45,10 +45,10 @@ def echo_row(rt, stream: str, joined: int, code: np.ndarray) -> int:
     def run() -> int:
         st = rt.streams[stream]
         prev, seq = st.last_learned_seq, rt.store.next_seq()
-        place = rt.localisation.place_of(joined)
+        place = rt.place_map.place_of(joined)
         winners = pipeline.replay(rt.model, st, code, seq=seq, prev_seq=prev)
         rt.model.index.add(seq, winners, stream)
-        rt.localisation.add(seq, prev, code, stream=stream, place=place)
+        rt.place_map.add(seq, prev, code, stream=stream, place=place)
         return rt.store.append(NewObservation(
             stream=stream, image_sha256="0" * 64, input_sdr=code, winner_cells=winners, context_prev_seq=prev,
             place=place, closure=NewClosure(stream=stream, place_seq=joined, confidence=0.9, support=4),
@@ -88,7 +88,7 @@ def test_a_hit_map_is_listed_repaired_once_and_answers_as_if_the_frames_had_neve
     with make_client(tmp_path / "data") as c:
         h = hit(c)
         rt = c.app.state.registry.get("m")
-        assert rt.localisation.place_of(h["row"]) == rt.localisation.place_of(h["joined"])  # merged
+        assert rt.place_map.place_of(h["row"]) == rt.place_map.place_of(h["joined"])  # merged
         found = listing(c)
         assert found["repaired"] is False and found["window"] == 20  # the default's: the map has none
         assert [(s["visit"], s["stream"], s["into"], s["seq"]) for s in found["splits"]] == [
@@ -104,13 +104,13 @@ def test_a_hit_map_is_listed_repaired_once_and_answers_as_if_the_frames_had_neve
         assert done["repaired"] and done["rows_added"] == 1 and made == last + 1
         assert rt.store.count() == rows + 1 and len(rt.index) == rows + 1
         # distinct places: the re-made frame is a place of its own, the joined row its own again
-        assert rt.localisation.place_of(made) == made != rt.localisation.place_of(h["into"])
-        assert rt.localisation.place_of(h["row"]) == h["row"] != rt.localisation.place_of(h["joined"])
+        assert rt.place_map.place_of(made) == made != rt.place_map.place_of(h["into"])
+        assert rt.place_map.place_of(h["row"]) == h["row"] != rt.place_map.place_of(h["joined"])
         # a later localisation along a's route to the re-made frame finds its row, never the echo
         drive(c, range(10), stream="q", learn="false", noise=0.0, map_id="m")
         seen = post(c, frame(25), map_id="m", learn="false", stream="q", top_k=5).json()
         assert seen["matches"][0]["seq"] == made  # its own row, the frame's exact code and context
-        assert seen["place"]["place_id"] not in (h["into"], rt.localisation.place_of(h["into"]))
+        assert seen["place"]["place_id"] not in (h["into"], rt.place_map.place_of(h["into"]))
         again = c.post("/v1/maps/m/repair").json()
         assert again["repaired"] and nothing(again) and rt.store.count() == rows + 1
         assert nothing(listing(c))
@@ -161,13 +161,13 @@ def test_a_repair_survives_a_crash_a_restart_a_snapshot_and_a_restore(tmp_path):
         note = c.get("/v1/maps/m").json()["recovery"]
         assert note["source"] == "snapshot" and note["snapshot_id"] == before
         assert note.get("mismatches", 0) == 0
-        assert nothing(listing(c)) and rt.localisation.place_of(made) == made
-        assert rt.localisation.place_of(h["row"]) == h["row"] and made in {r.seq for r in rt.store.rows()}
+        assert nothing(listing(c)) and rt.place_map.place_of(made) == made
+        assert rt.place_map.place_of(h["row"]) == h["row"] and made in {r.seq for r in rt.store.rows()}
         after = c.post("/v1/maps/m/snapshots").json()["snapshot_id"]
         assert c.post(f"/v1/maps/m/snapshots/{before}/restore").status_code == 200
         assert len(listing(c)["splits"]) == 1  # the map as it was before the repair
         assert c.post(f"/v1/maps/m/snapshots/{after}/restore").status_code == 200
-        assert nothing(listing(c)) and rt.localisation.place_of(made) == made  # the snapshot carries it
+        assert nothing(listing(c)) and rt.place_map.place_of(made) == made  # the snapshot carries it
     with make_client(data) as c:  # a clean restart
         assert nothing(listing(c))
         assert c.get("/v1/maps/m").json()["recovery"].get("mismatches", 0) == 0

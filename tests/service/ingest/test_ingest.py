@@ -17,7 +17,7 @@ from service.app import create_app
 from service.ingest import poster
 from service.ingest.sources import open_source
 from service.settings import Settings
-from tests.ingest.data import (
+from tests.service.ingest.data import (
     DAMAGE,
     ROUTE,
     TOPICS,
@@ -27,11 +27,6 @@ from tests.ingest.data import (
     write_folder,
     write_ros2_bag,
 )
-
-
-@pytest.fixture(autouse=True)
-def _small_maps(clean_env, tiny_default_preset):
-    """Real code paths on a small map (tests/conftest.py), random seeded weights."""
 
 
 def reference(data_dir: Path, map_id: str, bodies: list[bytes], *, labels: list[str | None] | None = None,
@@ -267,5 +262,5 @@ def test_registering_ingest_keeps_cv2_out_of_the_cli_start():
     code = ("import sys, service.cli; "
             "print(sorted(m for m in ('cv2', 'torch', 'rosbags') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         cwd=Path(__file__).resolve().parents[2])
+                         cwd=Path(__file__).resolve().parents[3])
     assert out.stdout.strip() == "[]"

@@ -15,7 +15,7 @@ from models import sdr
 from models.evaluation.bench import synthetic_jpegs
 from models.frontend import images, limits, slsbh
 from models.frontend.backbones import alexnet as backbones
-from models.frontend.encoder import STAGES, Encoder, merge_conf
+from models.frontend.embedding import STAGES, Embedder, merge_conf
 from service.cli import app
 
 
@@ -26,9 +26,9 @@ def empty_weights_cache(tmp_path, monkeypatch):
 
 
 @pytest.fixture(scope="module")
-def encoder() -> Encoder:
+def encoder() -> Embedder:
     # k=128 keeps the projection small (64,896 x 128) so the module stays fast.
-    return Encoder({"slsbh": {"k": 128, "s": 0.25, "seed": 3}})
+    return Embedder({"slsbh": {"k": 128, "s": 0.25, "seed": 3}})
 
 
 def png(img: np.ndarray) -> bytes:
@@ -97,7 +97,7 @@ def test_frames_decoded_beside_the_backbone_encode_as_one_at_a_time(encoder):
 def test_a_batch_takes_its_resize_mode_as_an_encoder_made_with_it_would(encoder):
     """One network serves maps of both resize modes (a map's `resize` option): the mode is per call."""
     wide = png(np.ascontiguousarray(np.hstack([scene(4), scene(5)])))  # 640 x 240: crop and squash differ
-    squashing = Encoder({"resize": "squash", "slsbh": {"k": 128, "s": 0.25, "seed": 3}})
+    squashing = Embedder({"resize": "squash", "slsbh": {"k": 128, "s": 0.25, "seed": 3}})
     np.testing.assert_allclose(encoder.embed([wide], resize="squash").features,
                                squashing.embed([wide]).features, atol=1e-6)
     assert not np.allclose(encoder.embed([wide]).features, squashing.embed([wide]).features, atol=1e-3)
@@ -114,7 +114,7 @@ def test_similar_images_share_more_bits_than_different_ones(encoder):
 
 def test_random_weights_are_announced(caplog):
     with caplog.at_level(logging.WARNING, logger="cortexloc.encoder"):
-        enc = Encoder({"slsbh": {"k": 16}, "random_seed": 4})
+        enc = Embedder({"slsbh": {"k": 16}, "random_seed": 4})
     assert enc.identity == "alexnet-conv3/random-seed4:crop"
     assert enc.describe()["weights"] == "random"
     assert any("RANDOM weights" in r.message and "cortexloc weights" in r.message for r in caplog.records)
@@ -126,12 +126,12 @@ def test_weights_file_is_used_and_named(tmp_path, monkeypatch):
     state = backbones.random_alexnet_state(seed=9)
     path = tmp_path / "conv3.pt"
     torch.save(state, path)
-    enc = Encoder({"weights_path": str(path), "slsbh": {"k": 16}, "resize": "squash"})
+    enc = Embedder({"weights_path": str(path), "slsbh": {"k": 16}, "resize": "squash"})
     # An AlexNet-shaped file that is not torchvision's checkpoint is not called pretrained.
     assert not enc.pretrained and enc.describe()["weights"] == "file"
     assert enc.identity.startswith("alexnet-conv3/file-") and enc.identity.endswith(":squash")
     monkeypatch.setattr(weights, "ALEXNET_SHA256_PREFIX", weights.sha256_file(path)[:8])
-    enc = Encoder({"weights_path": str(path), "slsbh": {"k": 16}, "resize": "squash"})
+    enc = Embedder({"weights_path": str(path), "slsbh": {"k": 16}, "resize": "squash"})
     assert enc.pretrained and enc.identity.startswith("alexnet-conv3/imagenet-")
     ref = backbones.AlexNetConv3()
     ref.load_state_dict(state)
@@ -152,9 +152,9 @@ def test_bad_images_raise_one_typed_error(encoder):
 
 def test_projection_must_fit_and_is_identified(encoder):
     with pytest.raises(ValueError, match="projection shape"):
-        Encoder({"slsbh": {"k": 16}}, projection=np.zeros((10, 16), np.float32))
+        Embedder({"slsbh": {"k": 16}}, projection=np.zeros((10, 16), np.float32))
     assert encoder.projection_sha256 == slsbh.projection_sha256(encoder.projection)
-    sparse = Encoder({"slsbh": {"k": 64, "projection": "sparse"}})
+    sparse = Embedder({"slsbh": {"k": 64, "projection": "sparse"}})
     assert "projection" not in sparse.describe()  # reported per map by the service, never built for it
     assert sparse.projection_sha256 == sparse.hasher.sha256()
     assert sparse.encode([png(scene(1))]).codes.shape == (1, 2 * slsbh.n_ones(64, 0.25))
@@ -168,16 +168,16 @@ def test_conf_validation():
     with pytest.raises(ValueError, match="sLSBH"):
         merge_conf({"slsbh": {"q": 1}})
     with pytest.raises(ValueError, match="backbone"):
-        Encoder({"backbone": "vgg"})
+        Embedder({"backbone": "vgg"})
 
 
 def test_efficientnet_backbone_encodes():
-    enc = Encoder({"backbone": "efficientnet-lite0", "slsbh": {"k": 32}})
+    enc = Embedder({"backbone": "efficientnet-lite0", "slsbh": {"k": 32}})
     assert enc.pretrained and enc.identity.startswith("efficientnet-lite0-stage7/imagenet-")
     out = enc.encode(synthetic_jpegs(2), return_features=True)
     assert out.codes.shape == (2, 2 * slsbh.n_ones(32, 0.25))
     assert out.features.shape[1] == enc.feature_dim
-    s5 = Encoder({"backbone": "efficientnet-lite0-s5", "slsbh": {"k": 32}})
+    s5 = Embedder({"backbone": "efficientnet-lite0-s5", "slsbh": {"k": 32}})
     assert s5.identity.startswith("efficientnet-lite0-stage5-pool2/imagenet-") and s5.feature_dim == 5488
     assert s5.encode(synthetic_jpegs(2), return_features=True).features.shape == (2, 5488)
 
@@ -219,6 +219,6 @@ def test_the_thread_budget_covers_the_blas_of_the_projection():
     import threadpoolctl
 
     with threadpoolctl.threadpool_limits(2, user_api="blas"):
-        Encoder({"slsbh": {"k": 16}, "torch_threads": 1})
+        Embedder({"slsbh": {"k": 16}, "torch_threads": 1})
         blas = [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"]
         assert blas and all(n == 1 for n in blas)

@@ -1,6 +1,6 @@
 """The scale-out's ingress, shard set and shard host in one process (issue 26, items 1-3), Ray left out:
 two shards (the single-process app each, on its own data directory) behind the ingress app, with the
-encoder deployment's work (`EncoderService`) called directly. tests/e2e/test_scaleout.py runs the
+encoder deployment's work (`EmbeddingService`) called directly. tests/e2e/test_scaleout.py runs the
 same on a real Ray cluster with a shard killed."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from service.scaleout.encoding import EncoderService
+from service.scaleout.embedding import EmbeddingService
 from service.scaleout.ingress import create_ingress_app
 from service.scaleout.shard import ShardHost
 from service.scaleout.shards import MoveFailed, ShardSet
@@ -35,7 +35,7 @@ class Cluster:
     def __init__(self, root: Path, **settings) -> None:
         self.root = root
         self.settings = {"backbone": "alexnet", "runtime": "torch", **settings}
-        self.encoder = EncoderService(Settings(data_dir=root, **self.settings))
+        self.encoder = EmbeddingService(Settings(data_dir=root, **self.settings))
         self.hosts: dict[str, ShardHost] = {}
         self.starting: dict[str, asyncio.Task] = {}  # one start per shard, as Ray starts one replica
         self.dead: set[str] = set()
@@ -263,9 +263,9 @@ def test_the_ingress_lists_only_what_the_table_routes(cluster):
 
 def test_the_encoder_deployment_fails_only_the_bad_image_of_a_batch(cluster):
     """One undecodable upload among good ones (batched together by `@serve.batch`) fails only itself,
-    and a shard's `RemoteEncoder` raises it as the `ImageError` that the routes answer with a 4xx."""
+    and a shard's `RemoteEmbedder` raises it as the `ImageError` that the routes answer with a 4xx."""
     from models.frontend.images import ImageError
-    from service.scaleout.encoding import RemoteEncoder
+    from service.scaleout.embedding import RemoteEmbedder
 
     enc = cluster.encoder
     backbone = enc.encoders.default
@@ -273,7 +273,7 @@ def test_the_encoder_deployment_fails_only_the_bad_image_of_a_batch(cluster):
                                (backbone, "squash", frame(2), True)])
     assert [r[0] for r in replies] == ["ok", "error", "ok"]
     assert replies[0][1].shape == (1, enc.info(backbone)["feature_dim"]) and replies[2][2] is not None
-    remote = RemoteEncoder(enc.info(backbone), cluster._embed)
+    remote = RemoteEmbedder(enc.info(backbone), cluster._embed)
     out = remote.embed([frame(1), frame(2)])
     assert out.features.shape == (2, remote.feature_dim) and set(out.timings_ms) >= {"decode", "backbone"}
     # the frames' contrast crosses the process boundary: the low-information rule holds on shards too

@@ -1,4 +1,4 @@
-"""A map's sequence localisation: the learned links, the localiser, and one stream's step
+"""A map's places (`PlaceMap`): the learned links, each row's place, the localiser, and one stream's step
 (docs/design/science.md §11, docs/design/service.md §1.2).
 
 The map holds one `SequenceGraph` (each stored row's `context_prev_seq`, rebuilt from the store on
@@ -26,7 +26,7 @@ from models.localisation.options import LocaliserOptions
 from models.localisation.short_term import KEPT, Anchor, ShortTerm, ring_moves
 from models.localisation.trail import CodeStats, OwnTrail, code_dice
 
-__all__ = ["Localisation", "graph_from_rows"]
+__all__ = ["PlaceMap", "graph_from_rows"]
 
 T = TypeVar("T")
 
@@ -40,12 +40,12 @@ def graph_from_rows(rows: Iterable[Any]) -> SequenceGraph:
 
 
 #: How many links a warm-up join looks either side of the row the confident path stood on when a row was
-#: made (`Localisation.explained`): the path may have stood still or skipped a row on the way (a move of 0 or
+#: made (`PlaceMap.explained`): the path may have stood still or skipped a row on the way (a move of 0 or
 #: 2, §11.2); a neighbour beyond that is another place by the truth's tolerance (§11.4) twice over.
 JOIN_SLACK = 1
 
 
-class Localisation:
+class PlaceMap:
     """The map's localiser, links and places (docs/design/science.md §11.1, §11.2, §11.6, §11.8, §11.9).
 
     Args:

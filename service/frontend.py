@@ -1,6 +1,6 @@
-"""The service's encoder and the choice of the backbone of new maps, made once at startup
-(docs/design/service.md §1.1, §7): `resolve_backbone`, `build_encoder`, and what /readyz says of the
-weights (`encoder_weights_info`)."""
+"""The service's `Embedder` and the choice of the backbone of new maps, made once at startup
+(docs/design/service.md §1.1, §7): `resolve_backbone`, `build_embedder`, and what /readyz says of the
+weights (`embedder_weights_info`)."""
 
 from __future__ import annotations
 
@@ -8,23 +8,23 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
-from models.frontend.encoder import Encoder
+from models.frontend.embedding import Embedder
 from service.settings import ConfigError, Settings
 
-__all__ = ["EncoderFactory", "build_encoder", "encoder_weights_info", "resolve_backbone"]
+__all__ = ["EmbedderFactory", "build_embedder", "embedder_weights_info", "resolve_backbone"]
 
 log = logging.getLogger("cortexloc.service")
 
-EncoderFactory = Callable[[Settings], Encoder]
+EmbedderFactory = Callable[[Settings], Embedder]
 
 
-def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
+def build_embedder(settings: Settings, **overrides: Any) -> Embedder:
     """The encoder of `settings.backbone` (resolved at startup; AlexNet conv3 with the configured weights
     and seed, or EfficientNet-Lite0 with its package's), threads and input limits.
 
     Args:
         settings: the settings.
-        **overrides: `models.frontend.encoder.default_conf` keys merged last (tests: `slsbh={"k": 16}`).
+        **overrides: `models.frontend.embedding.default_conf` keys merged last (tests: `slsbh={"k": 16}`).
 
     Raises:
         ConfigError: naming CORTEXLOC_WEIGHTS_PATH when the weights cannot be used.
@@ -45,9 +45,9 @@ def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
                 "max_bytes": settings.max_upload_bytes, "max_pixels": settings.max_pixels,
                 "runtime": settings.runtime, "device": settings.device,
                 # the resize a new map gets, so the identity /readyz and /metrics show is a new map's
-                # (each map embeds with its own: `Encoder.identity_for`)
+                # (each map embeds with its own: `Embedder.identity_for`)
                 "resize": DEFAULT_RESIZE, **overrides}
-        return Encoder(conf)
+        return Embedder(conf)
     except DeviceUnavailableError as e:
         raise ConfigError([("CORTEXLOC_DEVICE", f"={settings.device!r}: {e}")]) from e
     except weights.WeightsError as e:
@@ -58,9 +58,9 @@ def build_encoder(settings: Settings, **overrides: Any) -> Encoder:
 def resolve_backbone(settings: Settings) -> Settings:
     """The settings with `backbone` resolved once: the configured one, else AlexNet when its real
     weights are installed (CORTEXLOC_WEIGHTS_PATH or the cache), else `efficientnet-lite0-s5`
-    (`service.maps.encoding.encoders.default_backbone`)."""
+    (`service.maps.encoding.embedders.default_backbone`)."""
     from models.frontend import weights
-    from service.maps.encoding.encoders import default_backbone
+    from service.maps.encoding.embedders import default_backbone
 
     if settings.backbone is not None:
         return settings
@@ -68,7 +68,7 @@ def resolve_backbone(settings: Settings) -> Settings:
     return settings.model_copy(update={"backbone": default_backbone(None, installed)})
 
 
-def encoder_weights_info(encoder: Encoder) -> dict[str, Any]:
+def embedder_weights_info(encoder: Embedder) -> dict[str, Any]:
     """What /readyz reports about the weights: `weights_id`, and the file's SHA-256 (or the seed)."""
     from models.frontend import weights
     from storage.base.files import sha256_file

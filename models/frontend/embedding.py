@@ -1,14 +1,14 @@
-"""Encoder: a batch of image bytes -> sLSBH SDRs (docs/design/science.md §1, §6, §7).
+"""Embedder: a batch of image bytes -> sLSBH SDRs (docs/design/science.md §1, §6, §7).
 
 Two entry points, stateless across calls and batch-first, so the service can batch concurrent requests:
-`Encoder.embed(images)` gives backbone features (the service projects them with each map's own matrix,
-service.maps.encoding.pool) and `Encoder.encode(images)` goes on to the sLSBH codes with the encoder's own
+`Embedder.embed(images)` gives backbone features (the service projects them with each map's own matrix,
+service.maps.encoding.pool) and `Embedder.encode(images)` goes on to the sLSBH codes with the encoder's own
 projection (evaluation, benchmarks). Configuration is a `default_conf` merged with the caller's (presets as
 data); the encoder's identity string says which backbone, weights and resize mode it runs on, because
 descriptors from different encoders are not comparable.
 
 Example:
-    >>> enc = Encoder({"backbone": "alexnet", "slsbh": {"s": 0.25}})
+    >>> enc = Embedder({"backbone": "alexnet", "slsbh": {"s": 0.25}})
     >>> out = enc.encode([open("frame.jpg", "rb").read()])
     >>> out.codes[0]          # (2n,) int32 sorted active columns
 """
@@ -87,7 +87,7 @@ def _check_resize(mode: str) -> str:
 
 @dataclass
 class EncodeResult:
-    """What `Encoder.encode` returns.
+    """What `Embedder.encode` returns.
 
     Attributes:
         codes: (N, 2n) int32, each row the sorted active columns of one image (None from `embed`).
@@ -109,7 +109,7 @@ class EncodeResult:
     contrast: np.ndarray | None = None
 
 
-class Encoder:
+class Embedder:
     """Image bytes -> SDR codes, with the backbone and the sLSBH projection of one configuration.
 
     Timings: decode and preprocess are summed over the images (they run in a thread pool, overlapped
@@ -164,7 +164,7 @@ class Encoder:
     @functools.cached_property
     def hasher(self) -> slsbh.Hasher:
         """The sLSBH hasher, built on first use: a service that hashes with each map's own projection
-        (`Encoder.embed` + the map's hasher) never pays for a 266 MB matrix it does not use."""
+        (`Embedder.embed` + the map's hasher) never pays for a 266 MB matrix it does not use."""
         s_conf = self.conf["slsbh"]
         d, k, seed = self.feature_dim, int(s_conf["k"]), int(s_conf["seed"])
         if s_conf["projection"] == "sparse":
@@ -363,7 +363,7 @@ class Encoder:
 
 @dataclass
 class Prepared:
-    """One frame ready for the backbone (`Encoder.prepare`).
+    """One frame ready for the backbone (`Embedder.prepare`).
 
     Attributes:
         x: (3, 224, 224) float32 network input (docs/design/science.md §6).

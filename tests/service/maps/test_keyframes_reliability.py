@@ -27,7 +27,7 @@ from tests.service.helpers import frame, make_app, make_client, post, served
 pytest.importorskip("skimage", reason="scikit-image (dev extra) ships the real images")
 
 from models.evaluation.geometry import rotation, warp
-from tests.service.test_keyframes import CAMERA, CAMERA_META, ROUTE, make_map, png, sized
+from tests.service.maps.test_keyframes import CAMERA, CAMERA_META, ROUTE, make_map, png, sized
 
 
 def learn_route(c) -> list[int]:

@@ -13,8 +13,8 @@ import numpy as np
 
 from service.maps.recovery import open_catalog, verify_map
 from tests.service.helpers import frame, make_client, post
-from tests.service.test_loop_closures import LAP, THRESHOLD
-from tests.service.test_places import crash, shape
+from tests.service.maps.test_loop_closures import LAP, THRESHOLD
+from tests.service.maps.test_places import crash, shape
 
 TUNNEL = range(12, 15)  # the places of LAP where the route is in a tunnel: near-black frames
 
@@ -79,8 +79,8 @@ def test_warm_up_rows_are_joined_to_the_places_the_confident_path_names(tmp_path
         dropped = rt.store.dropped()
         for row, old in joins:
             assert old in rows and abs(rows[old] - LAP[[b["seq"] for b in second].index(row)]) <= 1
-            assert rt.localisation.place_of(row) == rt.localisation.place_of(old)
-            assert dropped[row] == "joined" and rt.localisation.used[row] < 0  # held no more
+            assert rt.place_map.place_of(row) == rt.place_map.place_of(old)
+            assert dropped[row] == "joined" and rt.place_map.used[row] < 0  # held no more
         assert c.get("/v1/maps/default").json()["places"]["places"] == len(LAP)
 
 
@@ -108,7 +108,7 @@ def test_a_map_restored_from_a_snapshot_taken_between_a_warm_up_and_its_join(tmp
         assert c.post(f"/v1/maps/default/snapshots/{snap}/restore").status_code == 200
         rt = c.app.state.registry.get("default")
         assert rt.store.joins() == [] and shape(c)[:-2] == at_snapshot[:-2]
-        assert all(rt.localisation.used[b["seq"]] >= 0 for b in warm)  # held, places of their own
+        assert all(rt.place_map.used[b["seq"]] >= 0 for b in warm)  # held, places of their own
         restart(c)
         drive(c)  # the map goes on, and joins again
         assert rt.store.joins()

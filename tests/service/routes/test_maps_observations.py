@@ -39,6 +39,7 @@ def test_fresh_install_serves_the_default_map(client):
     assert 'cortexloc_stage_duration_seconds_count{stage="tm"} 1.0' in text
     assert 'cortexloc_map_observations{map="default"} 1.0' in text
     assert 'cortexloc_map_memory_bytes{map="default"}' in text
+    assert 'cortexloc_map_places{map="default"} 1.0' in text  # read off the runtime's `place_map`
 
 
 def test_a_revisited_place_ranks_first(client):
@@ -46,7 +47,7 @@ def test_a_revisited_place_ranks_first(client):
     for img in route:
         assert post(client, img, learn="true").status_code == 200
     client.post("/v1/maps/default/streams/default/reset")
-    # Localisation needs sequence context, as the paper's protocol: a few frames of the same route.
+    # Localising needs sequence context, as the paper's protocol: a few frames of the same route.
     for p in (1, 2):
         post(client, frame(p, noise=4.0), learn="false", top_k=0)
     r = post(client, frame(3, noise=4.0), learn="false", top_k=3)

@@ -305,7 +305,7 @@ def test_a_failure_between_the_tm_step_and_the_commit_leaves_no_row_replay_canno
         for i in range(3):
             assert post(c, frame(i)).status_code == 200
         rt = c.app.state.registry.get("default")
-        real, calls = rt.localisation.step, []
+        real, calls = rt.place_map.step, []
 
         def fails_once(*args, **kwargs):
             calls.append(1)
@@ -313,7 +313,7 @@ def test_a_failure_between_the_tm_step_and_the_commit_leaves_no_row_replay_canno
                 raise RuntimeError("injected after the TM step")
             return real(*args, **kwargs)
 
-        monkeypatch.setattr(rt.localisation, "step", fails_once)
+        monkeypatch.setattr(rt.place_map, "step", fails_once)
         r = post(c, frame(3))
         assert r.status_code == 500 and rt.store.count() == 3  # nothing stored, and the map still serves
         monkeypatch.undo()  # the rebuilt map has new links; the old ones get their step back

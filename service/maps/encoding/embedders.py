@@ -1,4 +1,5 @@
-"""The service's encoders: one per backbone in use, built on first use (docs/design/service.md §1.1, §6).
+"""The service's embedders: one `Embedder` per backbone in use, built on first use
+(docs/design/service.md §1.1, §6).
 
 A map freezes its `backbone` (a name registered in `models.frontend.backbones`); its projection is
 sized to that backbone's feature dimension and its `encoder_id` is that encoder's identity. The
@@ -15,7 +16,7 @@ from typing import Any
 
 from models.frontend import backbones
 
-__all__ = ["Encoders", "default_backbone"]
+__all__ = ["Embedders", "default_backbone"]
 
 
 def default_backbone(configured: str | None, alexnet_weights_installed: bool) -> str:
@@ -28,8 +29,8 @@ def default_backbone(configured: str | None, alexnet_weights_installed: bool) ->
     return backbones.PAPER if alexnet_weights_installed else backbones.PRETRAINED
 
 
-class Encoders:
-    """Encoders by backbone name, built lazily and kept.
+class Embedders:
+    """Embedders by backbone name, built lazily and kept.
 
     Args:
         build: backbone name -> a built encoder (has `identity`, `feature_dim`, `embed`, `describe`).
@@ -45,7 +46,7 @@ class Encoders:
         self._lock = threading.Lock()
 
     @classmethod
-    def one(cls, encoder: Any, name: str = backbones.PAPER) -> Encoders:
+    def one(cls, encoder: Any, name: str = backbones.PAPER) -> Embedders:
         """A holder of one ready encoder as the default `name` (evaluation, tools, tests)."""
         def refuse(other: str) -> Any:
             raise ValueError(f"backbone {other!r} is not available here (only {name!r})")

@@ -10,7 +10,14 @@ from pathlib import Path
 from typing import Any
 
 from tests.e2e.conftest import call
-from tests.ingest.data import ROUTE, TOPICS, comparable, write_folder, write_ros2_bag, write_ros2_bag_with
+from tests.service.ingest.data import (
+    ROUTE,
+    TOPICS,
+    comparable,
+    write_folder,
+    write_ros2_bag,
+    write_ros2_bag_with,
+)
 
 #: A small map (tests/conftest.py's tiny preset, as overrides): the real code paths without 266 MB maps.
 SMALL = {"seed": 3, "slsbh": {"k": 64},
@@ -39,7 +46,7 @@ def _ingest(base: str, source: Path, map_id: str, *args: str) -> tuple[list[dict
     _create(base, map_id)
     p = subprocess.run([sys.executable, "-m", "service.cli", "ingest", str(source), "--map", map_id,
                         "--stream", "s", "--url", base, "--json", *args],
-                       capture_output=True, text=True, timeout=300, cwd=Path(__file__).resolve().parents[2])
+                       capture_output=True, text=True, timeout=300, cwd=Path(__file__).resolve().parents[3])
     assert p.returncode == 0, p.stderr
     return [json.loads(line) for line in p.stdout.splitlines()], p.stderr
 
@@ -69,7 +76,7 @@ def _ingest_refusing(base: str, source: Path, map_id: str, *args: str) -> tuple[
     _create(base, map_id)
     p = subprocess.run([sys.executable, "-m", "service.cli", "ingest", str(source), "--map", map_id,
                         "--stream", "s", "--url", base, "--json", *args],
-                       capture_output=True, text=True, timeout=300, cwd=Path(__file__).resolve().parents[2])
+                       capture_output=True, text=True, timeout=300, cwd=Path(__file__).resolve().parents[3])
     assert p.returncode == 1, p.stderr
     return [json.loads(line) for line in p.stdout.splitlines()], p.stderr
 

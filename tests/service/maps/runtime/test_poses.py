@@ -46,13 +46,13 @@ def test_a_restart_rebuilds_the_same_memory_from_the_stored_poses_stamps_and_tra
                 r = post(c, frame(i, noise=3.0 if cam == "rear" else 0.0), stream=cam, top_k=0,
                          metadata=meta(i))
                 assert r.status_code == 200, r.text
-        links = c.app.state.registry.get("default").model.links
-        live = links.short_term_rows("robot").tolist()
-        assert links.short_term_rows("front").size == 0
+        place_map = c.app.state.registry.get("default").model.place_map
+        live = place_map.short_term_rows("robot").tolist()
+        assert place_map.short_term_rows("front").size == 0
     # 20 m back, across the jump (no distance) and the frame without a pose (a move by appearance)
     assert 30 <= len(live) < 80
     with TestClient(make_app(data)) as c:
-        assert c.app.state.registry.get("default").model.links.short_term_rows("robot").tolist() == live
+        assert c.app.state.registry.get("default").model.place_map.short_term_rows("robot").tolist() == live
 
 
 def _square_with_a_repeat() -> list[tuple[int, float, float]]:
