@@ -273,29 +273,34 @@ class PlaceMap:
     def consolidation(self, place: Place, code: np.ndarray, code_of: Callable[[int], np.ndarray],
                       own: OwnTrail | None = None) -> int | None:
         """The stored row that already represents a frame of code `code` whose best path names `place`,
-        or None (docs/design/science.md §11.8): of the appearances of the place and of the places just
-        before and after the row the path ends on (`place.seq`) along the route it was learned on (its
-        predecessor's and successor's: the path is sure of its row give or take one, the pace of the
-        robot against the map's, so a frame one place ahead of or behind its path is a visit of that
-        place, not a new appearance of this one; not the links a consolidation added, which may join
-        rows far apart on the route),
-        held, less the stream's own (`own.holds`: its short-term
-        memory, rows it has not left, rows its odometry says it cannot be at), the one most like it,
-        when its Dice reaches b + consolidate · (1 − b), b the frame's background likeness
-        (`CodeStats.background`, the scale of `departure`); `consolidate` 1 never consolidates.
-        O(appearances) code reads."""
-        c = float(self.options.consolidate)
+        or None (docs/design/science.md §11.8): the place's appearance most like it, when its Dice
+        reaches b + consolidate · (1 − b), b the frame's background likeness (`CodeStats.background`,
+        the scale of `departure`); failing that, the same of the places just before and after the row
+        the path ends on (`place.seq`) along the route it was learned on (its predecessor's and
+        successor's: the path is sure of its row give or take one, the pace of the robot against the
+        map's, so a frame one place ahead of or behind its path is a visit of that place, not a new
+        appearance of this one; not the links a consolidation added, which may join rows far apart on
+        the route). The path's own place first: where it represents the frame, a neighbour that looks as
+        much alike (a low-texture corridor, rows a metre apart) is no better answer. Rows held only,
+        less the stream's own (`own.holds`: its short-term memory, rows it has not left, rows its
+        odometry says it cannot be at); `consolidate` 1 never consolidates. O(appearances) code reads."""
+        if float(self.options.consolidate) >= 1.0:
+            return None
+        level = self.codes.level(code, float(self.options.consolidate))
         r = int(place.seq)
         near = [int(n) for n in (self.graph.prev[r], self.graph.next[r])] if 0 <= r < len(self.graph) else []
-        places = {place.place, *(int(self.graph.place[n]) for n in near if n >= 0)}
-        rows = np.array(sorted({a for p in places for a in self.appearances(p)}), np.int64)
-        if own is not None and rows.size:
-            rows = rows[~own.holds(self.graph, rows)]
-        if c >= 1.0 or not rows.size:
-            return None
-        sims = [code_dice(code, np.asarray(code_of(int(r)))) for r in rows]
-        best = int(np.argmax(sims))
-        return int(rows[best]) if sims[best] >= self.codes.level(code, c) else None
+        neighbours = {int(self.graph.place[n]) for n in near if n >= 0} - {place.place}
+        for places in ({place.place}, neighbours):
+            rows = np.array(sorted({a for p in places for a in self.appearances(p)}), np.int64)
+            if own is not None and rows.size:
+                rows = rows[~own.holds(self.graph, rows)]
+            if not rows.size:
+                continue
+            sims = [code_dice(code, np.asarray(code_of(int(row)))) for row in rows]
+            best = int(np.argmax(sims))
+            if sims[best] >= level:
+                return int(rows[best])
+        return None
 
     def reach(self) -> int:
         """How many of a stream's newest rows a warm-up join looks back over: `warmup` + `exclusion`

@@ -356,3 +356,23 @@ def test_a_confident_frame_like_the_row_one_link_from_its_path_is_a_visit_of_it_
                    code_of=CODES.__getitem__, threshold=REVISIT)
     assert step.visit == visit
     assert (step.joined == place.place) is True  # a visit of its neighbour or a new appearance: the place
+
+
+def test_the_paths_own_place_comes_before_a_neighbour_that_looks_more_alike(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Consolidation (docs/design/science.md §11.8) asks the neighbouring places only when the path's own
+    place does not represent the frame: where both do (a low-texture corridor, rows a metre apart) the
+    path's row is the answer, not the neighbour that happens to look a little more alike (the most alike
+    of all three places gave the corridor's lap 2 more consolidations two metres off, issue 36). Row 3
+    keeps 80 % of row 4's code; the frame is row 4's frame again."""
+    m = model("none")
+    frames = route(6)
+    learn_route(m, frames, Stream())
+    codes = dict(CODES)
+    four = codes[4]
+    codes[3] = four[: int(0.8 * four.size)]  # like the frame above the level, less than row 4
+    place = Place(seq=3, confidence=0.99, support=5, place=m.place_map.place_of(3))
+    monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: place)
+    step = observe(m, Stream(), frames[3], learn=True, stream="b", top_k=3, seq=7,
+                   code_of=codes.__getitem__, threshold=REVISIT)
+    assert step.visit == 3
