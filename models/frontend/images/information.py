@@ -4,7 +4,9 @@ A near-black tunnel frame, a lens cap, a blank wall or an overexposed frame is o
 few bright or dark specks (a lamp, the camera's timestamp overlay): the backbone still gives it a code,
 and two such frames of different places share most of it. The measure is the spread between the 5th
 and 95th percentile of the frame's luma, as a fraction of the 8-bit range: specks covering under 5 %
-of the frame do not count, sensor noise on a flat frame is a few levels. Measured on Nordland
+of the frame do not count, nor does sensor noise of a few levels; noise of σ 8 (a camera's gain
+turned up in a tunnel) does: it spreads a flat frame's range by about 26 levels, and such frames
+measure as informative (docs/results.md §11, a limit left as it is). Measured on Nordland
 (docs/results.md §10.5): near-black tunnel frames 0-0.02, every frame with visible structure (dim
 winter frames included) 0.04 or more. The front end measures; the localiser decides what it means
 (`models.localisation.localiser.MIN_CONTRAST`).
