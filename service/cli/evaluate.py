@@ -568,8 +568,9 @@ def eval_projections(
     out: _LinesOpt = Path("projections.jsonl"),
     jobs: _JobsOpt = 1,
     seeds: _SeedsOpt = "42,1,7,100,2024",
-    variants: Annotated[str, typer.Option(help="today, centred, concat:K, wide:K, vote:K, pca:R, whiten:R, "
-                                               "adapt:T, comma-separated (default: each once)")] = "",
+    variants: Annotated[str, typer.Option(help="today, centred, concat:K, wide:K, wide-dense:K, vote:K, "
+                                               "pca:R, whiten:R, adapt:T, comma-separated (default: each "
+                                               "once)")] = "",
     memories: _MemoriesOpt = "tm,none",
     halves: Annotated[str, typer.Option(help="tune,test")] = "tune,test",
     windows: Annotated[int, typer.Option(min=0, help="the first N windows of each half (0: every one; "

@@ -16,7 +16,11 @@ memory (`tm` and `none`, the memory's ablation):
   ones) and stacked: the same code size (2k bits). Column by column this is the same law as one draw
   (every column an independent unit Gaussian), so it can only show that;
 - `wide:K`: one hash of K stacked projections: k·K columns (the code 2k·K bits, the memory's columns
-  2k·K, the same sparsity s), K times the size;
+  2k·K, the same sparsity s), K times the size. The projection is the one such a map gets within the
+  default map budget (`service.maps.encoding.projection.for_map`): from K = 2 the very sparse one
+  (§7.1), since the memory alone is then over CORTEXLOC_MAX_MAP_BYTES' default (a served map needs it
+  raised: 142 MB of memory and streams at K = 2, 282 MB at K = 4); `wide-dense:K` the same with the
+  dense Gaussian projection (what a map gets with the budget above the memory plus D·k·K·4 bytes);
 - `vote:K`: K maps (the map seed and K-1 derived ones: K projections and K memories) each learn the
   window and localise it; the vote is the sum of the K beam-score matrices (a map's rows outside its
   beam at its lowest score of that frame): per query frame the answer is the row where the sum is
@@ -54,7 +58,7 @@ from service.evaluation import rules, service_path, stress
 
 #: The variants measured by default (module docstring).
 VARIANTS = ("today", "concat:4", "wide:2", "vote:3", "centred", "pca:64", "whiten:64", "adapt:20")
-NAMES = ("today", "concat", "wide", "vote", "centred", "pca", "whiten", "adapt")
+NAMES = ("today", "concat", "wide", "wide-dense", "vote", "centred", "pca", "whiten", "adapt")
 SEEDS = rules.SEEDS
 MEMORIES = rules.MEMORIES
 #: The issue's bars: the hardest `tune` window's spread over seeds, and what a variant may cost a window.
@@ -75,8 +79,8 @@ def parse(variant: str) -> tuple[str, int]:
     """(name, its number: K, R or T; 0 where it takes none). Raises ValueError for an unknown one."""
     name, _, arg = variant.partition(":")
     if name not in NAMES or (name in ("today", "centred")) != (arg == "") or (arg and int(arg) < 1):
-        raise ValueError(f"unknown variant {variant!r}; known: today, centred, concat:K, wide:K, vote:K, "
-                         "pca:R, whiten:R, adapt:T")
+        raise ValueError(f"unknown variant {variant!r}; known: today, centred, concat:K, wide:K, "
+                         "wide-dense:K, vote:K, pca:R, whiten:R, adapt:T")
     return name, int(arg or 0)
 
 
@@ -112,6 +116,8 @@ def fitted(name: str, r: int, reference: np.ndarray, hasher: slsbh.Hasher, seed:
     """The projection of variant `name` for a map of seed `seed` whose reference frames are `reference`
     (n, D); `hasher` is the map's own (`today`'s)."""
     k, s = hasher.k, hasher.s
+    if name == "wide-dense":
+        return slsbh.Hasher(slsbh.make_projection(hasher.d, k, seed), s)
     if name == "concat":
         parts = [slsbh.make_projection(hasher.d, k // r + (i < k % r), derived(seed, i)) for i in range(r)]
         return slsbh.Hasher(np.ascontiguousarray(np.hstack(parts)), s)
@@ -193,7 +199,7 @@ def run_job(job: Job, kinds: tuple[str, ...] = ("winter",)) -> dict[str, Any]:
     a = job.lo - stress.HALVES[job.half][0]
     reference = rules._FEATS[(job.half, "summer")][0][a:a + stress.WINDOW]
     create = None
-    if name == "wide":
+    if name in ("wide", "wide-dense"):
         k = int(slsbh_k())
         create = {"slsbh": {"k": k * r}, "tm": {"columnDimensions": 2 * k * r}}
     elif name == "adapt":
@@ -315,7 +321,7 @@ def costs(lines: list[dict[str, Any]], variant: str, memory: str, kind: str = "w
             if not seeds:
                 continue
             b, m = [base[lo][s] for s in seeds], [mine[lo][s] for s in seeds]
-            where = f"{half} {lo - stress.HALVES[half][0] + 1}"
+            where = f"{half} {lo + 1}"  # files 1-based from the route's first, as `eval rules`
             worst_mean = max(worst_mean, (float(np.mean(b) - np.mean(m)), where))
             worst_low = max(worst_low, (float(min(b) - min(m)), where))
     if worst_mean[1] == "":
@@ -338,7 +344,8 @@ def variant_table(lines: list[dict[str, Any]], kind: str = "winter") -> str:
     variant meets item 4's bars."""
     out = ["| variant | memory | half | runs | R@1 | R@5 | R@100P | revisit precision (named) | span "
            "precision / right places called (pooled) | hardest `tune` window: R@1 per seed | spread | "
-           "mean / worst seed | cost vs today: mean R@1 (window) / worst seed (window) | meets item 4 |",
+           "mean / worst seed | cost vs today: mean R@1 (window) / worst seed (window) | "
+           "meets item 4 (on the windows run) |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     variants = list(dict.fromkeys(x["variant"] for x in lines))
     for variant in variants:
@@ -370,6 +377,24 @@ def variant_table(lines: list[dict[str, Any]], kind: str = "winter") -> str:
     return "\n".join(out)
 
 
+def window_table(lines: list[dict[str, Any]], memory: str, kind: str = "winter") -> str:
+    """Per window that `today` ran on: each variant's R@1, mean / worst over the seeds (what `costs`
+    compares)."""
+    variants = list(dict.fromkeys(x["variant"] for x in rules._by(lines, memory=memory)))
+    if "today" not in variants:
+        return ""
+    out = ["| window (files) | " + " | ".join(variants) + " |", "|---" * (len(variants) + 1) + "|"]
+    for half in stress.HALVES:
+        per = {v: _windows(lines, v, memory, half, kind) for v in variants}
+        for lo in sorted(per["today"]):
+            cells = [f"{half} {lo + 1}-{lo + stress.WINDOW}"]
+            for v in variants:
+                r = list(per[v].get(lo, {}).values())
+                cells.append(f"{np.mean(r):.3f} / {min(r):.3f}" if r else "–")
+            out.append("| " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def tables(lines: list[dict[str, Any]]) -> str:
     """docs/results.md §10.16's tables from the lines: one per lap-2 kind that ran."""
     kinds = [k for k in rules.KINDS if any(k in x["localise"] for x in lines)]
@@ -377,6 +402,11 @@ def tables(lines: list[dict[str, Any]]) -> str:
     for kind in kinds:
         parts += [f"### Localise mode, lap 2 `{kind}`, every variant (mean / worst over windows and seeds)",
                   variant_table(lines, kind), ""]
+        for memory in MEMORIES:
+            table = window_table(lines, memory, kind)
+            if table:
+                parts += [f"### Per window, lap 2 `{kind}`, memory `{memory}`: R@1 mean / worst over seeds",
+                          table, ""]
     return "\n".join(parts)
 
 

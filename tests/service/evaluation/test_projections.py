@@ -122,13 +122,16 @@ def test_a_variant_meets_item_4_only_with_a_narrow_spread_and_no_window_costed()
              for lo, vals in table.items() for s, r in zip(seeds, vals, strict=True)]
     assert pj.hardest(lines) == 0
     cost = pj.costs(lines, "good", "tm")
-    assert cost is not None and cost[0] == pytest.approx(0.005) and cost[1] == "test 1"
-    assert pj.costs(lines, "costly", "tm")[2:] == (pytest.approx(0.05), "test 1")
+    assert cost is not None and cost[0] == pytest.approx(0.005) and cost[1] == "test 895"
+    assert pj.costs(lines, "costly", "tm")[2:] == (pytest.approx(0.05), "test 895")
     table = pj.variant_table(lines)
     row = {r.split(" | ")[0].lstrip("| "): r for r in table.splitlines() if "| tune |" in r}
     assert row["good"].endswith("| yes |") and "| 0.040 |" in row["good"]
     assert row["costly"].endswith("| no |") and row["today"].endswith("| – |")
     assert "| 0.100 |" in row["today"]
+    per_window = pj.window_table(lines, "tm").splitlines()
+    assert per_window[0] == "| window (files) | today | good | costly |"
+    assert "| test 895-1094 | 0.950 / 0.950 | 0.945 / 0.945 | 0.940 / 0.900 |" in per_window
 
 
 @needs_data
