@@ -339,12 +339,13 @@ def _pooled(lines: list[dict[str, Any]], kind: str, **match: Any) -> dict[str, n
 def variant_table(lines: list[dict[str, Any]], kind: str = "winter") -> str:
     """Per variant, memory and half: mean / worst over windows and seeds of R@1, R@5, R@100P, and at the
     default threshold the revisits' precision (named within the tolerance), their span precision and the
-    right places called (issue 37's count, `rules.at_threshold`, pooled); the hardest `tune` window's R@1
+    right places called (issue 37's count, `rules.at_threshold`, pooled; with the revisits and the wrong
+    ones counted); the hardest `tune` window's R@1
     per seed and spread; the cost against `today` on its worst window and the worst seed's; whether the
     variant meets item 4's bars."""
     out = ["| variant | memory | half | runs | R@1 | R@5 | R@100P | revisit precision (named) | span "
-           "precision / right places called (pooled) | hardest `tune` window: R@1 per seed | spread | "
-           "mean / worst seed | cost vs today: mean R@1 (window) / worst seed (window) | "
+           "precision / right places called (revisits, wrong; pooled) | hardest `tune` window: R@1 per "
+           "seed | spread | mean / worst seed | cost vs today: mean R@1 (window) / worst seed (window) | "
            "meets item 4 (on the windows run) |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     variants = list(dict.fromkeys(x["variant"] for x in lines))
@@ -357,8 +358,9 @@ def variant_table(lines: list[dict[str, Any]], kind: str = "winter") -> str:
                 if not mine:
                     continue
                 e = [x["localise"][kind] for x in mine]
-                p, c, _ = rules.at_threshold(_pooled(lines, variant=variant, memory=memory, half=half,
+                p, c, n = rules.at_threshold(_pooled(lines, variant=variant, memory=memory, half=half,
                                                      kind=kind), rules.DEFAULT_REVISIT_THRESHOLD)
+                wrong = round(n * (1 - p)) if p is not None else 0
                 hard = _windows(lines, variant, memory, "tune", kind).get(lo, {}) if half == "tune" else {}
                 vals = list(hard.values())
                 cost = costs(lines, variant, memory, kind) if variant != "today" else None
@@ -369,7 +371,7 @@ def variant_table(lines: list[dict[str, Any]], kind: str = "winter") -> str:
                 out.append("| " + " | ".join([
                     variant, memory, half, str(len(mine)),
                     *(rules._mw([v[k] for v in e]) for k in ("r1", "r5", "r100p")),
-                    rules._mw([v["precision"] for v in e]), f"{rules._f(p)} / {rules._f(c)}",
+                    rules._mw([v["precision"] for v in e]), f"{rules._f(p)} / {rules._f(c)} ({n}, {wrong})",
                     ", ".join(f"{s}: {v:.3f}" for s, v in hard.items()) or "–",
                     rules._f(spread_), f"{np.mean(vals):.3f} / {min(vals):.3f}" if vals else "–",
                     (f"{cost[0]:+.3f} ({cost[1]}) / {cost[2]:+.3f} ({cost[3]})" if cost and half == "tune"
