@@ -41,6 +41,7 @@ first frame). Jobs run in a process pool; each line is written as its job ends. 
 
 from __future__ import annotations
 
+import functools
 import json
 import multiprocessing
 import sys
@@ -238,13 +239,6 @@ def jobs_of(seeds: tuple[int, ...], variants: tuple[str, ...], memories: tuple[s
             for half, lo in wins]
 
 
-_KINDS: tuple[str, ...] = ("winter",)
-
-
-def _run(job: Job) -> dict[str, Any]:
-    return run_job(job, _KINDS)
-
-
 def projection_runs(*, data: Path, out: Path, jobs: int = 1, seeds: tuple[int, ...] = SEEDS,
                     variants: tuple[str, ...] = VARIANTS, memories: tuple[str, ...] = MEMORIES,
                     halves: tuple[str, ...] = tuple(stress.HALVES), windows: int = 0,
@@ -253,7 +247,6 @@ def projection_runs(*, data: Path, out: Path, jobs: int = 1, seeds: tuple[int, .
     """The experiment (module docstring): each job's line appended to `out` as it ends (JSON lines), the
     tables beside it (`out` with `.md`); returns the lines. Raises ValueError for an unknown variant,
     half or kind."""
-    global _KINDS
     log = log or (lambda line: print(line, file=sys.stderr, flush=True))
     from service.evaluation.slam import encoder_setup
 
@@ -264,7 +257,6 @@ def projection_runs(*, data: Path, out: Path, jobs: int = 1, seeds: tuple[int, .
     _, _, map_conf = encoder_setup(backbone, None)
     map_conf.pop("localiser")
     rules._MAP.update(map_conf)
-    _KINDS = kinds
     todo = jobs_of(seeds, variants, memories, halves, windows)
     t0 = time.perf_counter()
     rules.prepare(data, backbone, halves, jobs)
@@ -275,7 +267,8 @@ def projection_runs(*, data: Path, out: Path, jobs: int = 1, seeds: tuple[int, .
     with out.open("w") as f:
         pool = multiprocessing.get_context("fork").Pool(jobs) if jobs > 1 else None
         try:
-            for line in (pool.imap(_run, todo) if pool else map(_run, todo)):
+            run = functools.partial(run_job, kinds=kinds)
+            for line in (pool.imap(run, todo) if pool else map(run, todo)):
                 lines.append(line)
                 f.write(json.dumps(line) + "\n")
                 f.flush()
