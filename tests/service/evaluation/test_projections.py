@@ -46,6 +46,11 @@ def test_stacked_projections_keep_the_code_size_and_the_first_is_the_map_seeds()
     np.testing.assert_array_equal(stacked.P[:, :6], slsbh.make_projection(40, 6, 7))
     np.testing.assert_allclose(np.linalg.norm(stacked.P, axis=0), 1.0, rtol=1e-5)
     assert pj.fitted("today", 0, np.zeros((5, 40)), h, 7) is h
+    # wide-dense: the map's (wider) hasher's shape, the dense Gaussian projection of the map seed
+    sparse = slsbh.Hasher(slsbh.make_sparse_projection(40, 64, 7), 0.25)
+    dense = pj.fitted("wide-dense", 4, np.zeros((5, 40)), sparse, 7)
+    assert not dense.sparse and dense.s == 0.25
+    np.testing.assert_array_equal(dense.P, slsbh.make_projection(40, 64, 7))
 
 
 def test_a_fitted_projection_reads_the_reference_frames_only() -> None:
