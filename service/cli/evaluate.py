@@ -17,6 +17,7 @@ Tables go to stdout, progress and warnings to stderr, machine-readable results t
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -510,37 +511,83 @@ def eval_slam_ablation(
 
     slam_ablation.ablation(data, seeds=seeds, backbone=backbone, json_path=json_out)
 
+# The options `eval rules` and `eval projections` share (one window-by-seed experiment each).
+_DataOpt = Annotated[Path | None, typer.Option(help="the Nordland folder (summer/, winter/)")]
+_LinesOpt = Annotated[Path, typer.Option(help="JSON lines, one per job, written as each ends; the tables "
+                                              "beside it (.md)")]
+_JobsOpt = Annotated[int, typer.Option(min=1, help="processes")]
+_SeedsOpt = Annotated[str, typer.Option(help="map seeds, comma-separated")]
+_MemoriesOpt = Annotated[str, typer.Option(help="tm,none (none: the memory's ablation)")]
+_BackboneOpt = Annotated[str | None, typer.Option(help="default: the service's")]
+_TablesOpt = Annotated[Path | None, typer.Option(help="only the tables, from these JSON lines")]
+
+
 @app.command("rules")
 def eval_rules(
-    data: Annotated[Path | None, typer.Option(help="the Nordland folder (summer/, winter/)")] = None,
-    out: Annotated[Path, typer.Option(help="JSON lines, one per job, written as each ends; the tables "
-                                           "beside it (.md)")] = Path("rules.jsonl"),
-    jobs: Annotated[int, typer.Option(min=1, help="processes")] = 1,
-    seeds: Annotated[str, typer.Option(help="map seeds, comma-separated")] = "42,1,7,100,2024",
+    data: _DataOpt = None,
+    out: _LinesOpt = Path("rules.jsonl"),
+    jobs: _JobsOpt = 1,
+    seeds: _SeedsOpt = "42,1,7,100,2024",
     rules: Annotated[str, typer.Option(help="rules switched off, comma-separated (all: none)")] = "",
-    memories: Annotated[str, typer.Option(help="tm,none (none: the memory's ablation)")] = "tm,none",
+    memories: _MemoriesOpt = "tm,none",
     windows: Annotated[int, typer.Option(min=0, help="the first N windows of each half (0: every one)")] = 0,
-    backbone: Annotated[str | None, typer.Option(help="default: the service's")] = None,
-    tables: Annotated[Path | None, typer.Option(help="only the tables, from these JSON lines")] = None,
+    backbone: _BackboneOpt = None,
+    tables: _TablesOpt = None,
 ) -> None:
     """Every learning and answering rule switched off one at a time, over every window of both halves,
     in both modes, over map seeds, with and without the memory; and the revisit threshold chosen on
     `tune` (service/evaluation/rules.py, docs/results.md §10.14)."""
     from service.evaluation import rules as costed
 
+    _lines_then_tables(costed, tables, data, lambda d: costed.rules_runs(
+        data=d, out=out, jobs=jobs, seeds=tuple(int(s) for s in seeds.split(",")),
+        rules=tuple(rules.split(",")) if rules else costed.RULES, memories=tuple(memories.split(",")),
+        windows=windows, backbone=backbone))
+
+
+def _lines_then_tables(module: Any, tables: Path | None, data: Path | None,
+                       run: Callable[[Path], list[dict[str, Any]]]) -> None:
+    """`module`'s tables from the lines in `tables`, or from the lines of `run(data)` (a bad option:
+    exit 2)."""
     if tables is not None:
-        print(costed.tables(costed.read(tables)), end="")
+        print(module.tables(module.read(tables)), end="")
         return
     if data is None:
         raise typer.BadParameter("--data is needed (the Nordland folder)")
     try:
-        lines = costed.rules_runs(data=data, out=out, jobs=jobs,
-                                  seeds=tuple(int(s) for s in seeds.split(",")),
-                                  rules=tuple(rules.split(",")) if rules else costed.RULES,
-                                  memories=tuple(memories.split(",")), windows=windows, backbone=backbone)
+        lines = run(data)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from e
-    print(costed.tables(lines), end="")
+    print(module.tables(lines), end="")
+
+
+@app.command("projections")
+def eval_projections(
+    data: _DataOpt = None,
+    out: _LinesOpt = Path("projections.jsonl"),
+    jobs: _JobsOpt = 1,
+    seeds: _SeedsOpt = "42,1,7,100,2024",
+    variants: Annotated[str, typer.Option(help="today, centred, concat:K, wide:K, wide-dense:K, vote:K, "
+                                               "pca:R, whiten:R, adapt:T, comma-separated (default: each "
+                                               "once)")] = "",
+    memories: _MemoriesOpt = "tm,none",
+    halves: Annotated[str, typer.Option(help="tune,test")] = "tune,test",
+    windows: Annotated[int, typer.Option(min=0, help="the first N windows of each half (0: every one; "
+                                                     "`tune`'s first is the hardest)")] = 0,
+    kinds: Annotated[str, typer.Option(help="lap-2 kinds: winter,flat,noise")] = "winter",
+    backbone: _BackboneOpt = None,
+    tables: _TablesOpt = None,
+) -> None:
+    """The localise mode with the sLSBH projection varied (several voted or stacked, fitted on the map's
+    own frames), over map seeds, on the windows of `eval rules` (service/evaluation/projections.py,
+    docs/results.md §10.16)."""
+    from service.evaluation import projections
+
+    _lines_then_tables(projections, tables, data, lambda d: projections.projection_runs(
+        data=d, out=out, jobs=jobs, seeds=tuple(int(s) for s in seeds.split(",")),
+        variants=tuple(variants.split(",")) if variants else projections.VARIANTS,
+        memories=tuple(memories.split(",")), halves=tuple(halves.split(",")), windows=windows,
+        kinds=tuple(kinds.split(",")), backbone=backbone))
 
 
 @app.command("passes")

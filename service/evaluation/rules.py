@@ -182,7 +182,17 @@ def _localise(job: Job, kind: str, map_conf: dict[str, Any]) -> dict[str, Any]:
     trace: dict[str, Any] = {}
     found = service_path.replay(db[a:b], q[a:b], seed=job.seed, memory=job.memory, contrast=contrast,
                                 trace=trace, **map_conf)
-    n = b - a
+    return localise_scores(found, trace["span"], trace["span_rows"], answers=job.rule == "all")
+
+
+def localise_scores(found: Any, span: np.ndarray, span_rows: list[tuple[int, ...]], *,
+                    answers: bool) -> dict[str, Any]:
+    """A localise-mode lap over a window (`service_path.replay`'s answers `found`, over n database rows
+    whose true rows are the query's frame indices; `span` (n,) and `span_rows` its trace's): R@1, R@5,
+    the all-pairs AUC, and at the default threshold precision, recall, right places called, query AUC and
+    recall at 100 % precision; with `answers`, each answer's confidence, whether it names the true row,
+    its span and whether the true row lies inside the span (for `threshold_table`)."""
+    n = len(found.best)
     labels = np.r_[np.arange(n), np.arange(n)]
     laps = np.r_[np.zeros(n, np.int64), np.ones(n, np.int64)]
     best, conf = np.r_[np.full(n, -1), found.best], np.r_[np.zeros(n), found.confidence]
@@ -193,13 +203,13 @@ def _localise(job: Job, kind: str, map_conf: dict[str, Any]) -> dict[str, Any]:
     out = {"r1": s["recall_at_1"], "r5": e["recall_at_5"], "auc": e["auc"], "precision": s["precision"],
            "recall": s["recall"], "right_called": s["right_called"], "query_auc": s["query_auc"],
            "r100p": s["recall_at_100p"]}
-    if job.rule == "all":  # each answer, for the threshold (issue 37 item 2)
+    if answers:  # each answer, for the threshold (issue 37 item 2)
         truth = np.arange(n)
         inside = [bool(np.any(np.abs(np.asarray(rows, np.int64) - t) <= TOLERANCE)) if rows else False
-                  for rows, t in zip(trace["span_rows"], truth, strict=True)]
+                  for rows, t in zip(span_rows, truth, strict=True)]
         out["answers"] = {"conf": np.round(found.confidence[answered], 5).tolist(),
                           "named": (np.abs(found.best - truth) <= TOLERANCE)[answered].astype(int).tolist(),
-                          "span": trace["span"][answered].tolist(),
+                          "span": np.asarray(span)[answered].tolist(),
                           "inside": np.asarray(inside)[answered].astype(int).tolist()}
     return out
 
