@@ -24,6 +24,7 @@ form.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import time
@@ -42,14 +43,20 @@ from service.settings import Settings
 
 DATA = datasets.nordland_dir()
 CACHE = Path.home() / ".cache/cortexloc/features"
-settings = Settings.from_env()
-backbone = resolve_backbone(settings).backbone
-enc = Embedder({"backbone": backbone, "resize": "squash"})
-names = sequences.paired_names(DATA / "summer", DATA / "winter")
+
+
+@functools.cache
+def _setup() -> tuple[Settings, str, Embedder, list[str]]:
+    """(settings, backbone, embedder, the route's file names), made when an experiment runs, not at
+    import (importing the module reads no data: the benchmarks' import smoke test runs without it)."""
+    settings = Settings.from_env()
+    backbone = resolve_backbone(settings).backbone
+    return (settings, backbone, Embedder({"backbone": backbone, "resize": "squash"}),
+            sequences.paired_names(DATA / "summer", DATA / "winter"))
 
 
 def img(season: str, i: int) -> np.ndarray:
-    return cv2.imread(str(DATA / season / names[i]), cv2.IMREAD_COLOR)
+    return cv2.imread(str(DATA / season / _setup()[3][i]), cv2.IMREAD_COLOR)
 
 
 def variant(season: str, i: int, kind: str, seed: int) -> bytes:
@@ -58,6 +65,7 @@ def variant(season: str, i: int, kind: str, seed: int) -> bytes:
 
 
 def feats_of(pngs: list[bytes]) -> np.ndarray:
+    enc = _setup()[2]
     digest = b"".join(hashlib.sha256(p).digest() for p in pngs) + enc.identity.encode()
     key = hashlib.sha256(digest).hexdigest()
     path = CACHE / f"stress-{key}.npy"
@@ -115,6 +123,7 @@ def run(name: str, lo: int, seed: int, localiser: dict | None) -> dict:
     pngs, labels, _ = build(name, lo)
     feats = feats_of(pngs)
     contrast = service_path.contrasts(pngs)
+    settings, backbone = _setup()[:2]
     model, hasher, config = service_path._model(feats.shape[1], max_observations=len(feats),
                                                 backbone=backbone, preset=settings.default_preset, seed=seed,
                                                 memory="tm", localiser=localiser, create=None)
