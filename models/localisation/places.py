@@ -271,27 +271,34 @@ class PlaceMap:
         return int(np.unique(self.graph.place[held]).size)
 
     def consolidation(self, place: Place, code: np.ndarray, code_of: Callable[[int], np.ndarray],
-                      own: OwnTrail | None = None) -> int | None:
+                      own: OwnTrail | None = None, neighbours: bool = True) -> int | None:
         """The stored row that already represents a frame of code `code` whose best path names `place`,
         or None (docs/design/science.md §11.8): the place's appearance most like it, when its Dice
         reaches b + consolidate · (1 − b), b the frame's background likeness (`CodeStats.background`,
         the scale of `departure`); failing that, the same of the places just before and after the row
-        the path ends on (`place.seq`) along the route it was learned on (its predecessor's and
-        successor's: the path is sure of its row give or take one, the pace of the robot against the
-        map's, so a frame one place ahead of or behind its path is a visit of that place, not a new
-        appearance of this one; not the links a consolidation added, which may join rows far apart on
-        the route). The path's own place first: where it represents the frame, a neighbour that looks as
-        much alike (a low-texture corridor, rows a metre apart) is no better answer. Rows held only,
-        less the stream's own (`own.holds`: its short-term memory, rows it has not left, rows its
-        odometry says it cannot be at); `consolidate` 1 never consolidates. O(appearances) code reads."""
+        the path ends on (`place.seq`) along the route it was learned on (its predecessor's, and its
+        successor's where that row continues it: the path is sure of its row give or take one, the
+        pace of the robot against the map's, so a frame one place ahead of or behind its path is a
+        visit of that place, not a new appearance of this one; not a link a consolidation added, which
+        may join rows far apart on the route). The path's own place first: where it represents the
+        frame, a neighbour that looks as much alike (a low-texture corridor, rows a metre apart) is no
+        better answer. `neighbours` False: the place's alone (a frame whose stream has not moved is a
+        rehearsal of the row it is at, not a visit a place off, §11.6). Rows held only, less the
+        stream's own (`own.holds`: its short-term memory, rows it has not left, rows its odometry says
+        it cannot be at); `consolidate` 1 never consolidates. O(appearances) code reads."""
         if float(self.options.consolidate) >= 1.0:
             return None
         level = self.codes.level(code, float(self.options.consolidate))
+        near: list[int] = []
         r = int(place.seq)
-        near = [int(n) for n in (self.graph.prev[r], self.graph.next[r])] if 0 <= r < len(self.graph) else []
-        neighbours = {int(self.graph.place[n]) for n in near if n >= 0} - {place.place}
-        for places in ({place.place}, neighbours):
-            rows = np.array(sorted({a for p in places for a in self.appearances(p)}), np.int64)
+        if neighbours and 0 <= r < len(self.graph):
+            prev, nxt = int(self.graph.prev[r]), int(self.graph.next[r])
+            # the successor only where it continues r: `add` also makes a stream's next made row the
+            # successor of its last one across frames it consolidated (rows far apart on the route)
+            near = [prev, nxt if nxt >= 0 and int(self.graph.prev[nxt]) == r else -1]
+        around = {int(self.graph.place[n]) for n in near if n >= 0} - {place.place, -1}
+        for tier in ({place.place}, around):
+            rows = np.array(sorted({a for q in tier for a in self.appearances(q)}), np.int64)
             if own is not None and rows.size:
                 rows = rows[~own.holds(self.graph, rows)]
             if not rows.size:

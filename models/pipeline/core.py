@@ -251,8 +251,10 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             # (a pass's unconfident frames would otherwise become parallel places, each a rival, §11.8).
             # A flat frame too (never confident, §11.7): where its path names a place that has a flat
             # appearance, it is a visit of it, not a new place each time it is seen.
-            # never into the stream's own recent rows (its short-term memory, a row it has not left)
-            visit = place_map.consolidation(place, code, code_of, own)
+            # never into the stream's own recent rows (its short-term memory, a row it has not left);
+            # a frame that has not moved is the row it is at or a rehearsal, never a place off
+            visit = place_map.consolidation(place, code, code_of, own,
+                                            neighbours=not place_map.stays(stream, code, motion))
             confident = place.is_revisit(threshold)
             trail = visit is not None and st.own_seq is not None and bool(
                 place_map.graph.trail[visit] == place_map.graph.trail[st.own_seq])

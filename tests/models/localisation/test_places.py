@@ -11,6 +11,7 @@ import numpy as np
 from models.localisation import (
     InvertedIndex,
     LocaliserOptions,
+    Place,
     PlaceMap,
     SequenceGraph,
     SequenceLocaliser,
@@ -162,3 +163,31 @@ def test_the_maps_forget_percent_is_the_batch_the_cap_rule_forgets_and_states() 
         assert forgetting.to_forget(big, loc) == gone
     assert forgetting.batch(1000, 5) == 50
     assert "at least 5% of max_rows" in forgetting.rule(5) and "at least 1% of" in forgetting.rule(1)
+
+
+def test_consolidation_reads_the_route_neighbours_not_a_successor_across_consolidated_frames() -> None:
+    """A frame is a visit of the place just before or after its path's row along the route (docs/design/
+    science.md §11.8), and only that: stream b made row 10 (a second appearance of place 2), had its
+    frames 3-7 consolidated, then made row 11 after row 7, which `add` also makes row 10's successor.
+    Six places on from row 10, row 11's place is no neighbour of it (the successor counts only where it
+    continues the row), while row 3, row 2's successor on its route, is one of row 2."""
+    rng = np.random.default_rng(0)
+    width = 2048
+    codes = {s: np.sort(rng.choice(width, 40, replace=False)).astype(np.int64) for s in range(12)}
+    pm = PlaceMap(LocaliserOptions.of({"short_term": 0}), code_width=width)
+    for s in range(10):
+        pm.add(s, s - 1 if s else None, codes[s], stream="a")
+    codes[10] = codes[2]
+    pm.add(10, None, codes[10], stream="b", place=2)
+    last = 10
+    for v in (3, 4, 5, 6, 7):
+        pm.visit(last, v, 11, "b", codes[v])
+        last = v
+    codes[11] = codes[8]
+    pm.add(11, last, codes[11], stream="b", place=8)
+    assert pm.graph.next[10] == 11  # the link the rule must not read as the route
+    on10 = Place(seq=10, confidence=0.99, support=5, place=2)
+    assert pm.consolidation(on10, codes[8], codes.__getitem__) is None
+    on2 = Place(seq=2, confidence=0.99, support=5, place=2)
+    assert pm.consolidation(on2, codes[3], codes.__getitem__) == 3  # row 2's successor on its route
+    assert pm.consolidation(on2, codes[3], codes.__getitem__, neighbours=False) is None
