@@ -67,6 +67,8 @@ class PlaceMap:
         self.short_term = ring_moves(self.options)  # the memories' size in moves (0: none)
         self.used = np.zeros(0, np.int64)
         self._last_row: dict[str, int] = {}  # each stream's last made row (its trail goes on from there)
+        # the trail each stream names (`Motion.trail`, else its own name), the KEPT most recently learning
+        self._named: OrderedDict[str, str] = OrderedDict()
         # each trail's short-term memory and each stream's last move (§11.6), the KEPT most recently
         # learning ones, oldest first
         self._short: OrderedDict[str, ShortTerm] = OrderedDict()
@@ -107,6 +109,7 @@ class PlaceMap:
         self.codes.rebuild([])
         self.used = np.zeros(0, np.int64)
         self._last_row, self._short, self._anchors, self.held = {}, OrderedDict(), OrderedDict(), 0
+        self._named = OrderedDict()
         self._odometers, self.odometry = OrderedDict(), RowOdometry()
         self._tried = {}  # as a map loaded fresh: a repair's rebuild and a restart alike
         joined = joined or {}
@@ -183,6 +186,10 @@ class PlaceMap:
         """A learned frame of `stream` into its trail's short-term memory (`motion.trail`, else the
         stream's own), before its code joins the statistics (so a rebuild, which adds the rows in the
         same order, gives the same moves), and its odometry reading (the row's, where it made one)."""
+        self._named[stream] = motion.trail or stream
+        self._named.move_to_end(stream)
+        while len(self._named) > KEPT:
+            self._named.popitem(last=False)
         odometer = _recent(self._odometers, stream, Odometer)
         reading = odometer.peek(motion, self.options, self.odometry.drives)
         if reading.drive == self.odometry.drives:
@@ -226,6 +233,15 @@ class PlaceMap:
         anchor = self._anchors.get(stream) if self.short_term else None
         return (anchor is not None and anchor.code is not None
                 and not self.moves(copy.copy(anchor), code, motion))
+
+    def laid_by_others(self, stream: str, trail: str) -> set[int]:
+        """The trails (`SequenceGraph.trail` ids) that the other streams naming `trail` (a robot's other
+        cameras, §11.6) are laying: the chains their last made rows end. A row on one of them is on the
+        robot's own trail as much as one on `stream`'s (whose own chain its state holds). O(streams
+        kept)."""
+        return {int(self.graph.trail[row]) for name, named in self._named.items()
+                if named == trail and name != stream
+                and (row := self._last_row.get(name)) is not None and row < len(self.graph)}
 
     def short_term_rows(self, trail: str) -> np.ndarray:
         """(m,) int64 ascending: the rows `trail`'s streams made over its last moves and still held,

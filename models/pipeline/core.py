@@ -256,8 +256,11 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             visit = place_map.consolidation(place, code, code_of, own,
                                             neighbours=not place_map.stays(stream, code, motion))
             confident = place.is_revisit(threshold)
-            trail = visit is not None and st.own_seq is not None and bool(
-                place_map.graph.trail[visit] == place_map.graph.trail[st.own_seq])
+            # the trail it lays: its own chain's, or one its robot's other cameras lay (§11.6)
+            on = -1 if visit is None else int(place_map.graph.trail[visit])
+            trail = visit is not None and (
+                (st.own_seq is not None and on == int(place_map.graph.trail[st.own_seq]))
+                or on in place_map.laid_by_others(stream, motion.trail or stream))
             # (`unsure_fraction` of the threshold: some sequence evidence, LocaliserOptions)
             unsure = not confident and (place.confidence < threshold * place_map.options.unsure_fraction
                                         or trail)

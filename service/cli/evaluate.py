@@ -653,6 +653,8 @@ def eval_slam(
     quick: Annotated[bool, typer.Option(help="with --suite: one window, four cases, two seeds")] = False,
     threshold: Annotated[float | None, typer.Option(min=0.0, max=1.0, help="with --suite: the maps' "
                                                     "revisit_threshold (default: a new map's)")] = None,
+    cases: Annotated[str, typer.Option(help="with --suite: only these cases, comma-separated (default: "
+                                            "the suite's, or --quick's)")] = "",
 ) -> None:
     """Loop closure while mapping on routes made from the Nordland halves, or the grid world's loops
     (service/evaluation/slam.py); `--suite`: the loop-closure stress suite (service/evaluation/stress.py)."""
@@ -663,8 +665,14 @@ def eval_slam(
 
         if data is None:
             raise typer.BadParameter("--suite needs --data (the Nordland folder)")
+        chosen = tuple(c for c in cases.split(",") if c) or None
+        unknown = sorted(set(chosen or ()) - set(stress.CASES))
+        if unknown:
+            known = ", ".join(stress.CASES)
+            raise typer.BadParameter(f"unknown case(s) {', '.join(unknown)}; known: {known}",
+                                     param_hint="--cases")
         stress.suite_runs(data=data, quick=quick, backbone=backbone, json_path=json_out,
-                          localiser=_json_object(localiser, "--localiser"), threshold=threshold)
+                          localiser=_json_object(localiser, "--localiser"), threshold=threshold, cases=chosen)
         return
     try:
         slam.slam_runs(data=data, half=half, routes=routes or ",".join(slam.ROUTES), methods=methods,

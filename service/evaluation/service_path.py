@@ -131,7 +131,8 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
                 trace: dict[str, Any] | None = None, max_observations: int | None = None,
                 frames: Sequence[bytes] | None = None,
                 camera: dict[str, Any] | None = None,
-                motions: Sequence[Motion] | None = None) -> tuple[OnlineAnswers, float]:
+                motions: Sequence[Motion] | None = None,
+                streams: Sequence[str] | None = None) -> tuple[OnlineAnswers, float]:
     """A whole route as ONE learning stream (every frame learned, `models.pipeline.observe` as the map
     writer calls it, forgetting at the cap and verifying as it does): loop closure while mapping
     (docs/design/science.md §11.6).
@@ -147,6 +148,8 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
             (no candidate, or a map without keyframes).
         motions: (T,) each frame's pose, stamp and trail (`Motion`, as a served map reads them from
             `metadata`; docs/design/science.md §11.6); None: none.
+        streams: (T,) the stream that posts each frame (a robot's two cameras, each its own stream,
+            naming one trail in `motions`); None: every frame one stream's, `robot`.
 
     Returns:
         (answers over the route's own frames: best = the frame the `place` names, -1 in warm-up;
@@ -159,7 +162,8 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
                                    memory=memory, localiser=localiser, create=create,
                                    max_observations=max_observations)
     kf = _keyframes(config, frames, camera, T)
-    robot, codes, frame_of = Stream(), {}, {}
+    robots: dict[str, Stream] = {}
+    codes, frame_of, stream_of = {}, {}, {}
     best, confidence, support = np.full(T, -1, np.int64), np.zeros(T), np.zeros(T, np.int64)
     visit = np.full(T, -1, np.int64)
     revisit, verification = np.zeros(T, bool), [None] * T
@@ -167,17 +171,18 @@ def slam_replay(feats: np.ndarray, *, encoder_id: str, backbone: str, preset: st
         seq = len(codes) + 1
         forget(model)
         query = None if kf is None else kf.query(i)
-        step = observe(model, robot, y, learn=True, stream="robot", top_k=0, seq=seq,
-                       code_of=codes.__getitem__, threshold=config.revisit_threshold,
+        name = "robot" if streams is None else streams[i]
+        step = observe(model, robots.setdefault(name, Stream()), y, learn=True, stream=name, top_k=0,
+                       seq=seq, code_of=codes.__getitem__, threshold=config.revisit_threshold,
                        contrast=_at(contrast, i), motion=NO_MOTION if motions is None else motions[i])
         if step.place is not None:
             revisit[i], verification[i] = _answered(step.place, config, kf, query, model.place_map.graph,
-                                                    "robot", "robot")
+                                                    name, stream_of.get(step.place.seq, name))
             refused = verification[i] is not None and not revisit[i]
             best[i], confidence[i] = frame_of[step.place.seq], _decided(step.place, refused)
             support[i] = step.place.support
         if step.visit is None:
-            codes[seq], frame_of[seq] = step.code, i
+            codes[seq], frame_of[seq], stream_of[seq] = step.code, i, name
             if kf is not None:
                 kf.made(seq, query)
         else:

@@ -17,6 +17,9 @@ lap-2 frames and OpenSeqSLAM run online (`models.evaluation.slam.openseqslam_onl
   that looks the same from the same place (with distinct poses they would not be a loop).
 - `short-loop`: 40 frames driven three times (a real short loop must still close).
 - `seasons`, `noise`: the window, then again in winter or with pixel noise (σ 8): lap 2 is a revisit.
+- `cameras`: one pass posted by a robot's two cameras as two streams, `front` (the frames) and `rear`
+  (each frame again with σ 4 noise), both naming one trail (`metadata.trail`): each camera's frames are
+  the other's recent rows, its short-term memory. No true revisit.
 
 Per case and seed: false revisits while mapping (every call not a true revisit named right), merged
 places (places whose rows' labels differ by more than the tolerance), wrong consolidations (frames
@@ -39,14 +42,17 @@ import numpy as np
 
 from models.evaluation import seqslam, sequences, slam
 from models.frontend.embedding import Embedder
+from models.localisation.motion import Motion
 from service.evaluation import service_path
 from service.evaluation.slam import grey
 from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 
 #: Every case of the full suite, in the order they are run.
-CASES = ("rate1", "rate3", "rate10", "parked", "flat", "repeat", "short-loop", "seasons", "noise")
+CASES = ("rate1", "rate3", "rate10", "parked", "flat", "repeat", "short-loop", "seasons", "noise", "cameras")
 #: What `--quick` runs: one case of each failure (a slower robot, low texture) and of each real loop.
 QUICK_CASES = ("rate3", "flat", "short-loop", "noise")
+#: The `cameras` case's frames: both streams name one trail (`metadata.trail`, docs/design/science.md §11.6)
+TRAIL = Motion(trail="robot")
 #: The map seeds every case is read over; 42 is a new map's (`CreateMap.seed`'s default).
 SEEDS = (1, 7, 42)
 QUICK_SEEDS = (1, 42)
@@ -63,6 +69,8 @@ class Route:
     pngs: list[bytes]
     labels: np.ndarray
     laps: np.ndarray
+    #: (T,) the stream posting each frame, all naming the trail `robot` (None: one stream, `robot`)
+    streams: tuple[str, ...] | None = None
 
 
 class Frames:
@@ -154,6 +162,12 @@ def route(frames: Frames, case: str, lo: int) -> Route:
     elif case == "noise":
         add("summer", range(lo, lo + WINDOW))
         add("summer", range(lo, lo + WINDOW), "noise:8", 1, 3)
+    elif case == "cameras":
+        for i in range(lo, lo + WINDOW):
+            add("summer", [i])
+            add("summer", [i], "noise:4", 0, 2000)
+        streams = ("front", "rear") * WINDOW
+        return Route(case, pngs, np.asarray(labels, np.int64), np.asarray(laps, np.int64), streams)
     else:
         raise ValueError(f"unknown case {case!r}; known: {', '.join(CASES)}")
     return Route(case, pngs, np.asarray(labels, np.int64), np.asarray(laps, np.int64))
@@ -201,6 +215,7 @@ def run_case(frames: Frames, case: str, lo: int, seeds: tuple[int, ...], methods
             if m in service_path.SLAM_METHODS:
                 found, threshold = service_path.slam_replay(
                     feats, seed=seed, memory=service_path.SLAM_METHODS[m], contrast=contrast, trace=trace,
+                    streams=r.streams, motions=None if r.streams is None else [TRAIL] * len(r.streams),
                     **map_conf)
                 best, conf = found.best, found.confidence
             elif m == "service":  # the localise mode: lap 1 learned, the rest localised by another robot
@@ -236,9 +251,11 @@ def windows(quick: bool) -> Iterator[tuple[str, int]]:
 
 
 def suite(frames: Frames, *, quick: bool, map_conf: dict[str, Any],
-          progress: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """The whole suite (module docstring): {"cases": [{half, lo, case, <run_case>}], "summary"}."""
-    cases = QUICK_CASES if quick else CASES
+          progress: Callable[[str], None] | None = None,
+          cases: tuple[str, ...] | None = None) -> dict[str, Any]:
+    """The whole suite (module docstring): {"cases": [{half, lo, case, <run_case>}], "summary"};
+    `cases`: only these (default: `QUICK_CASES` with `quick`, else `CASES`)."""
+    cases = cases or (QUICK_CASES if quick else CASES)
     seeds = QUICK_SEEDS if quick else SEEDS
     methods = ("service-slam",) if quick else ("service-slam", "service-slam-without-tm", "service",
                                               "openseqslam")
@@ -283,7 +300,8 @@ def summary(results: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def suite_runs(*, data: Path, quick: bool, backbone: str | None = None, json_path: Path | None = None,
-               localiser: dict[str, Any] | None = None, threshold: float | None = None) -> dict[str, Any]:
+               localiser: dict[str, Any] | None = None, threshold: float | None = None,
+               cases: tuple[str, ...] | None = None) -> dict[str, Any]:
     """`cortexloc eval slam --suite`: the suite on `data` at the service's defaults (the maps'
     `localiser` options over them, for an ablation; `threshold`: the maps made with that
     `revisit_threshold`, to choose the default, docs/results.md §10.14), each case printed as a JSON line
@@ -294,7 +312,7 @@ def suite_runs(*, data: Path, quick: bool, backbone: str | None = None, json_pat
     if threshold is not None:
         map_conf["create"] = {"revisit_threshold": threshold}
     result = suite(Frames(data, enc, cache), quick=quick, map_conf=map_conf,
-                   progress=lambda line: print(line, flush=True))
+                   progress=lambda line: print(line, flush=True), cases=cases)
     for case, per_method in result["summary"].items():
         for m, acc in per_method.items():
             shown = {k: round(v, 3) if isinstance(v, float) else v for k, v in acc.items()}

@@ -376,3 +376,28 @@ def test_the_paths_own_place_comes_before_a_neighbour_that_looks_more_alike(
     step = observe(m, Stream(), frames[3], learn=True, stream="b", top_k=3, seq=7,
                    code_of=codes.__getitem__, threshold=REVISIT)
     assert step.visit == 3
+
+
+@pytest.mark.parametrize(("trail", "consolidated"), [("robot", False), (None, True)])
+def test_an_unconfident_frame_is_never_consolidated_into_the_trail_its_robots_other_camera_lays(
+        trail: str | None, consolidated: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Unconfident, a frame is never consolidated into a row of the trail it is laying (docs/design/
+    science.md §11.6, §11.8): with two cameras naming one trail (`metadata.trail`), the other camera's
+    trail is that trail too (the stress suite's `cameras` case at seed 42: 3 rear frames consolidated
+    into front rows 28 places back, beyond the shared short-term memory). As two trails, the rear
+    camera's frame may be consolidated into the front's row."""
+    from models.localisation.motion import Motion
+
+    m = model("none", localiser={"short_term": 0})  # the rule itself, not the memory in front of it
+    front = Stream()
+    frames = route(6)
+    for i, y in enumerate(frames):  # the front camera lays rows 1-6 on its trail
+        step = observe(m, front, y, learn=True, stream="front", top_k=3, seq=i + 1,
+                       code_of=CODES.__getitem__, motion=Motion(trail=trail))
+        CODES[i + 1] = step.code
+    place = Place(seq=3, confidence=0.6, support=5, place=m.place_map.place_of(3))
+    monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: place)
+    monkeypatch.setattr(m.place_map, "consolidation", lambda *args, **kwargs: 3)
+    step = observe(m, Stream(), frames[2], learn=True, stream="rear", top_k=3, seq=7,
+                   code_of=CODES.__getitem__, threshold=REVISIT, motion=Motion(trail=trail))
+    assert (step.visit == 3) is consolidated

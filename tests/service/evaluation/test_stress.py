@@ -76,3 +76,18 @@ def test_the_suite_runs_at_another_threshold_and_the_default_keeps_its_margin(tm
     assert r.exit_code == 0, r.output
     loop = json.loads(out.read_text())["summary"]["short-loop"]["service-slam"]
     assert loop["false_revisits"] >= 1 and loop["merged_places"] >= 1
+
+
+def test_the_suite_runs_only_the_cases_asked_for_and_refuses_an_unknown_one(tmp_path, monkeypatch) -> None:
+    """`--cases`: only those (the `cameras` case, a robot's two cameras naming one trail, runs on its own:
+    `cortexloc eval slam --suite --quick --cases cameras`); a case the suite does not know is a usage
+    error, before any data is read."""
+    asked = {}
+    monkeypatch.setattr(stress, "suite_runs", lambda **kw: asked.update(kw))
+    r = CliRunner().invoke(app, ["eval", "slam", "--suite", "--quick", "--cases", "cameras,flat",
+                                 "--data", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    assert asked["cases"] == ("cameras", "flat") and asked["quick"] is True
+    r = CliRunner().invoke(app, ["eval", "slam", "--suite", "--cases", "nope", "--data", str(tmp_path)])
+    assert r.exit_code == 2 and "unknown case" in r.output
+    assert "cameras" in stress.CASES and "cameras" not in stress.QUICK_CASES
