@@ -246,6 +246,8 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     if learn:
         assert seq is not None
         place_map = model.place_map
+        # whether it has not moved since its stream's last move (§11.6: no pose change of `move_metres`)
+        still = place_map.stays(stream, code, motion)
         if place is not None and threshold is not None:
             # Well represented: like an appearance of the place its best path names, confident or not
             # (a pass's unconfident frames would otherwise become parallel places, each a rival, §11.8).
@@ -253,8 +255,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             # appearance, it is a visit of it, not a new place each time it is seen.
             # never into the stream's own recent rows (its short-term memory, a row it has not left);
             # a frame that has not moved is the row it is at or a rehearsal, never a place off
-            visit = place_map.consolidation(place, code, code_of, own,
-                                            neighbours=not place_map.stays(stream, code, motion))
+            visit = place_map.consolidation(place, code, code_of, own, neighbours=not still)
             confident = place.is_revisit(threshold)
             # the trail it lays: its own chain's, or one its robot's other cameras lay (§11.6)
             on = -1 if visit is None else int(place_map.graph.trail[visit])
@@ -279,10 +280,9 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                 place_map.fold(row, old, seq)
                 touched.append(old)
             drop(model, [row for row, _ in joins])
-        if (visit is None and prev is not None and place_map.used[prev] >= 0
-                and place_map.stays(stream, code, motion)):
-            # It has not moved since its last learned frame (§11.6: no pose change of `move_metres`): a
-            # visit of the row that frame made or visited (a rehearsal), the memory learns it, no row
+        if visit is None and prev is not None and place_map.used[prev] >= 0 and still:
+            # It has not moved since its last learned frame: a visit of the row that frame made or
+            # visited (a rehearsal), the memory learns it, no row
             visit = prev
         if visit is not None:
             place_map.visit(prev, visit, seq, stream, code, motion)
