@@ -222,7 +222,7 @@ def slsbh_k() -> int:
     """The default map's projected dimension (the one home: `presets.SlsbhOptions`)."""
     from models import presets
 
-    return int(presets.slsbh_params(rules._MAP["preset"])["k"])
+    return int(presets.SlsbhOptions.of(presets.slsbh_params(rules._MAP["preset"])).k)
 
 
 def jobs_of(seeds: tuple[int, ...], variants: tuple[str, ...], memories: tuple[str, ...],
