@@ -49,8 +49,15 @@ def informative(contrast: float | None) -> bool:
 #: is far wider than a revisit may be (`span_max`, default 3), and the reply stays small.
 SPAN_LISTED = 16
 
-#: Bytes of one hypothesis in a stream's state (LocaliserState: row, direction, score, age, born).
-HYPOTHESIS_BYTES = sum(np.dtype(t).itemsize for t in (np.int64, np.int8, np.float64, np.int64, np.int64))
+#: Bytes of one hypothesis in a stream's state (LocaliserState: row, direction, score, age, born, lags).
+HYPOTHESIS_BYTES = sum(np.dtype(t).itemsize
+                       for t in (np.int64, np.int8, np.float64, np.int64, np.int64, np.float64))
+
+#: What a path's lag keeps of itself at each move of its stream (docs/design/science.md §11.13): the lag
+#: is the stream's moves the path fell behind over about its last 1 / (1 - LAG_KEPT) = 10 moves, so a
+#: path that fell behind once (a stop, a wrong start) and has kept pace since is in step again, while a
+#: path that stays on its rows as the stream moves on nears 10.
+LAG_KEPT = 0.9
 
 
 class Place(NamedTuple):
@@ -72,6 +79,8 @@ class Place(NamedTuple):
         span_seqs: for each of those places, best first, the row its best path ends on (`seq` first);
             at most SPAN_LISTED of them.
         narrow: the span is at most `span_max` places: a revisit needs it (`is_revisit`, §11.11).
+        advancing: the best path has fallen at most `lag_max` of its stream's moves behind it (§11.13):
+            a revisit needs it (`is_revisit`).
     """
 
     seq: int
@@ -82,12 +91,13 @@ class Place(NamedTuple):
     span: int = 1
     span_seqs: tuple[int, ...] = ()
     narrow: bool = True
+    advancing: bool = True
 
     @property
     def decidable(self) -> bool:
-        """Whether the answer may be a revisit at all (§11.7, §11.11): the frame informative, the span
-        at most `span_max` places."""
-        return self.informative and self.narrow
+        """Whether the answer may be a revisit at all (§11.7, §11.11, §11.13): the frame informative, the
+        span at most `span_max` places, the path advancing with its stream."""
+        return self.informative and self.narrow and self.advancing
 
     @property
     def decided(self) -> float:
@@ -118,6 +128,9 @@ class LocaliserState:
         ages: (beam,) int64 frames on the path.
         born: (beam,) int64 the map's row count when the path began (`len(graph)`): rows from it on were
             stored while it was followed (`OwnTrail.laid_behind`, §11.6).
+        lags: (beam,) float64 the moves its stream made that the path did not keep pace with, one row a
+            move (§11.13): at a move of the stream LAG_KEPT of itself + 1, - 1 a row the path advanced,
+            never below 0.
         frames: frames seen since the last reset.
         null: the null hypothesis' decayed score ("a place the map has not stored",
             docs/design/science.md §11.5); NULL_PRIOR (-inf, not yet born) at the start of a stream.
@@ -133,6 +146,7 @@ class LocaliserState:
     scores: np.ndarray
     ages: np.ndarray
     born: np.ndarray
+    lags: np.ndarray
     frames: int = 0
     null: float = NULL_PRIOR
     here: int = UNKNOWN
@@ -141,7 +155,7 @@ class LocaliserState:
     @classmethod
     def empty(cls, beam: int) -> LocaliserState:
         return cls(np.full(beam, NONE, np.int64), np.ones(beam, np.int8), np.full(beam, -np.inf),
-                   np.zeros(beam, np.int64), np.zeros(beam, np.int64))
+                   np.zeros(beam, np.int64), np.zeros(beam, np.int64), np.zeros(beam))
 
     def reset(self) -> None:
         """Forget every hypothesis (a new traverse, a kidnapped robot); the size stays."""
@@ -150,6 +164,7 @@ class LocaliserState:
         self.scores[:] = -np.inf
         self.ages[:] = 0
         self.born[:] = 0
+        self.lags[:] = 0
         self.frames = 0
         self.null = NULL_PRIOR
         self.here, self.here_code = UNKNOWN, None
@@ -157,8 +172,9 @@ class LocaliserState:
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain numpy arrays for a snapshot (`np.savez`); `from_arrays` restores them."""
         return {"rows": self.rows.copy(), "dirs": self.dirs.copy(), "scores": self.scores.copy(),
-                "ages": self.ages.copy(), "born": self.born.copy(), "frames": np.array(self.frames, np.int64),
-                "null": np.array(self.null, np.float64), "here": np.array(self.here, np.int64)}
+                "ages": self.ages.copy(), "born": self.born.copy(), "lags": self.lags.copy(),
+                "frames": np.array(self.frames, np.int64), "null": np.array(self.null, np.float64),
+                "here": np.array(self.here, np.int64)}
 
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> LocaliserState:
@@ -168,7 +184,8 @@ class LocaliserState:
         loads with `here` UNKNOWN: its whole current trail counts as not left (§11.6); one saved before
         paths knew when they began (no "born") loads them as begun before every row: a path on the
         stream's own trail ends at its next step unless the frame is more like the row it reaches than
-        like where the stream just was (§11.6).
+        like where the stream just was (§11.6); one saved before paths counted their lags (no
+        "lags") loads them as having stayed through no move (§11.13).
 
         Raises:
             ValueError: the arrays are missing or of different lengths.
@@ -180,15 +197,18 @@ class LocaliserState:
             null = float(arrays["null"]) if "null" in arrays else NULL_PRIOR
             here = int(arrays["here"]) if "here" in arrays else UNKNOWN
             born = np.asarray(arrays["born"], np.int64) if "born" in arrays else np.zeros_like(rows)
+            lags = np.asarray(arrays["lags"], np.float64) if "lags" in arrays else np.zeros(rows.shape)
         except KeyError as e:
             raise ValueError(f"localiser state lacks {e}") from None
         if np.isnan(null) or null == np.inf:
             raise ValueError("localiser state's null score must be finite or -inf")
-        if not rows.ndim == 1 or not rows.shape == dirs.shape == scores.shape == ages.shape == born.shape:
+        if not rows.ndim == 1 or not (rows.shape == dirs.shape == scores.shape == ages.shape == born.shape
+                                      == lags.shape):
             raise ValueError("localiser state arrays differ in shape")
         if here < UNKNOWN:
             raise ValueError("localiser state's `here` must be a row, -1 or -2")
-        return cls(rows.copy(), dirs.copy(), scores.copy(), ages.copy(), born.copy(), frames, null, here)
+        return cls(rows.copy(), dirs.copy(), scores.copy(), ages.copy(), born.copy(), lags.copy(), frames,
+                   null, here)
 
 
 def top_candidates(sims: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -289,7 +309,7 @@ class SequenceLocaliser:
 
     def step(self, state: LocaliserState, graph: SequenceGraph, seqs: np.ndarray,
              scores: np.ndarray, own: OwnTrail | None = None, informative: bool = True,
-             moved: bool = True) -> Place | None:
+             moved: bool = True, departed: bool = False) -> Place | None:
         """Advance one stream by one frame and answer its place.
 
         Args:
@@ -302,6 +322,10 @@ class SequenceLocaliser:
             informative: False for a frame too flat to say where it is (`informative`, §11.7): its
                 candidates are no evidence (every row and the null earn 0: the filter only moves the
                 paths along, as with a missing observation), and its answer is no revisit.
+            moved: False where the frame is no move of its stream (posed, §11.6): a path stays at the
+                cost of a step.
+            departed: the frame is a move of its stream by its look (`PlaceMap.departs`): a path that
+                does not advance a row with it falls a move behind (§11.13).
 
         Returns:
             The place, or None while fewer than `warmup` frames were seen or no candidate was ever given.
@@ -324,13 +348,14 @@ class SequenceLocaliser:
         rows, dirs = state.rows[live], state.dirs[live]
         past = decay * state.scores[live]
         ages, born = state.ages[live], state.born[live]
+        lags = state.lags[live] * LAG_KEPT + 1.0 if departed else state.lags[live]
         # The null decayed; -inf (NULL_PRIOR) before a stream's first frame stays -inf (0 * -inf is nan).
         null = decay * state.null if np.isfinite(state.null) else NULL_PRIOR
         jump = self._jump_level(past, null)
         # The null stays (no move cost) or is entered by that same jump.
         state.null = max(null, jump) + null_evidence(ev, c.null_quantile)
 
-        new_rows, new_dirs, new_scores, new_ages, new_born = [], [], [], [], []
+        new_rows, new_dirs, new_scores, new_ages, new_born, new_lags = [], [], [], [], [], []
         cur = rows
         # A frame that is no move of the stream (`moved` False: it and its last move posed, within
         # `move_metres`, §11.6) may stay where it was at no cost: each move costs the least of its own
@@ -348,6 +373,8 @@ class SequenceLocaliser:
             new_scores.append(past[ok] - cost)
             new_ages.append(ages[ok] + 1)
             new_born.append(born[ok])
+            # the moves its stream made that the path did not keep pace with, one row a move
+            new_lags.append(np.maximum(lags[ok] - m, 0.0))
         born_dirs = (1, -1) if c.backward else (1,)
         for d in born_dirs:
             new_rows.append(seqs)
@@ -356,17 +383,18 @@ class SequenceLocaliser:
             new_ages.append(np.ones(seqs.size, np.int64))
             new_born.append(np.full(seqs.size, len(graph), np.int64) if own is None else
                             own.born(graph, seqs, len(graph), c.exclusion // 2))
+            new_lags.append(np.zeros(seqs.size))
         r = np.concatenate(new_rows)
         d = np.concatenate(new_dirs).astype(np.int8)
         s = np.concatenate(new_scores) + _lookup(ev_rows, ev, r)
-        a, b = np.concatenate(new_ages), np.concatenate(new_born)
+        a, b, st = np.concatenate(new_ages), np.concatenate(new_born), np.concatenate(new_lags)
         if own is not None and r.size:
             # A path ends where it walks onto the rows the stream has not left, or onto the trail the
             # stream laid while the path was followed, unless the frame is more like that row than like
             # where the stream just was: an echo of where it just was is no place it came back to (§11.6).
             ends = own.holds(graph, r)
             ends[~ends] = own.laid_behind(graph, r[~ends], b[~ends])
-            r, d, s, a, b = r[~ends], d[~ends], s[~ends], a[~ends], b[~ends]
+            r, d, s, a, b, st = r[~ends], d[~ends], s[~ends], a[~ends], b[~ends], st[~ends]
 
         # Viterbi: one survivor per (row, direction), the best score; ties to the older path.
         key = r * 2 + (d > 0)
@@ -393,8 +421,9 @@ class SequenceLocaliser:
         state.scores[:] = -np.inf
         state.ages[:] = 0
         state.born[:] = 0
+        state.lags[:] = 0
         state.rows[:n], state.dirs[:n], state.scores[:n], state.ages[:n] = r[idx], d[idx], s[idx], a[idx]
-        state.born[:n] = b[idx]
+        state.born[:n], state.lags[:n] = b[idx], st[idx]
         state.frames += 1
         if state.frames < c.warmup or n == 0:
             return None
@@ -433,7 +462,8 @@ class SequenceLocaliser:
         p = float(np.exp(-np.logaddexp(0.0, others)))
         span, seqs = self._span(state, graph, n)
         return Place(best, max(2.0 * p - 1.0, 0.0), int(min(state.ages[0], state.frames)), place=place,
-                     span=span, span_seqs=seqs, narrow=span <= self.options.span_max)
+                     span=span, span_seqs=seqs, narrow=span <= self.options.span_max,
+                     advancing=float(state.lags[0]) <= self.options.lag_max)
 
     def _span(self, state: LocaliserState, graph: SequenceGraph, n: int) -> tuple[int, tuple[int, ...]]:
         """(places, their best rows best first, at most SPAN_LISTED) whose best path scores within

@@ -79,6 +79,10 @@ class LocaliserOptions:
     #: of them
     span_margin: float = 1.5
     span_max: int = 3
+    #: a revisit needs a path that keeps pace with its stream (§11.13): one that fell more than `lag_max` of
+    #: the stream's moves behind (it stayed on its rows while the stream moved on, by its poses or its
+    #: look) is a row like a whole stretch, not a place come back to (a large value turns the rule off)
+    lag_max: int = 3
     #: with poses (`metadata.pose`, §11.6) the memory is the rows made over the last `short_term_metres`
     #: of path (the sum of the moves' lengths; 0: poses play no part, moves by appearance), a move a pose
     #: at least `move_metres` from the last move's, and a step faster than `max_speed` (m/s, from the
@@ -120,7 +124,7 @@ class LocaliserParams(BaseModel):
     `backward`.
 
     The upper bounds keep one stream's state and step small whatever a client asks for: the state is
-    `beam` hypotheses of HYPOTHESIS_BYTES each (4,096 of them: 132 KiB a stream); a step costs
+    `beam` hypotheses of HYPOTHESIS_BYTES each (4,096 of them: 164 KiB a stream); a step costs
     O(top_k + beam * len(move_costs)) plus an O(exclusion) walk over the links, and for a learning
     stream, where a path reaches the trail it laid, `exclusion` + 1 code reads plus one per distinct
     row so reached (at most beam * len(move_costs); §11.6). `span_margin` goes up to 100 temperatures
@@ -152,6 +156,7 @@ class LocaliserParams(BaseModel):
     short_term: int = Field(_D.short_term, ge=0, le=1000)
     span_margin: float = Field(_D.span_margin, ge=0.0, le=100.0)
     span_max: int = Field(_D.span_max, ge=1, le=4096)
+    lag_max: int = Field(_D.lag_max, ge=0, le=1_000_000)
     short_term_metres: float = Field(_D.short_term_metres, ge=0.0, le=1e5)
     move_metres: float = Field(_D.move_metres, gt=0.0, le=1e4)
     max_speed: float = Field(_D.max_speed, gt=0.0, le=1e4)

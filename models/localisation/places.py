@@ -225,6 +225,16 @@ class PlaceMap:
         moved = anchor.move(code, self.codes.level(code, conf.departure), motion, conf) is not None
         return moved or not posed
 
+    def departs(self, look: np.ndarray | None, code: np.ndarray) -> bool:
+        """Whether a frame of code `code` (n,) sorted is a move of its stream by its look (§11.13): unlike
+        `look`, the code of the stream's last such move, by the `departure` level (§11.6), or the
+        stream's first. Poses play no part: a map's rows are as far apart as its maker's frames or moves,
+        and the look is what a path on them can keep pace with."""
+        if look is None:
+            return True
+        code = np.asarray(code, np.int64)
+        return code_dice(code, look) < self.codes.level(code, float(self.options.departure))
+
     def stays(self, stream: str, code: np.ndarray, motion: Motion = NO_MOTION) -> bool:
         """Whether a learned frame of `stream` has not moved since its short-term memory's last move
         (`moves`): a rehearsal of the row its stream is at, not a row of its own (RTAB-Map's
@@ -436,7 +446,7 @@ class PlaceMap:
                                         informative)
 
     def step(self, state: LocaliserState, ranked: Sequence[Match], own: OwnTrail | None,
-             informative: bool = True, moved: bool = True) -> Place | None:
+             informative: bool = True, moved: bool = True, departed: bool = False) -> Place | None:
         """One frame of one stream (docs/design/science.md §11.2), before this frame is stored.
 
         Args:
@@ -446,13 +456,15 @@ class PlaceMap:
                 its `top_k` best.
             own: the stream's own rows (`own_trail`). informative: False for a frame too flat to say
                 where it is (`localiser.informative`, §11.7): no evidence, no revisit.
+            moved: False where the frame is no move of its stream by its poses (`moves`, §11.6).
+            departed: the frame is a move of its stream by its look (`departs`, §11.13).
 
         Returns:
             The place, or None during warm-up.
         """
         seqs = np.fromiter((m.seq for m in ranked), np.int64, len(ranked))
         scores = np.fromiter((m.score for m in ranked), np.float64, len(ranked))
-        return self.localiser.step(state, self.graph, seqs, scores, own, informative, moved)
+        return self.localiser.step(state, self.graph, seqs, scores, own, informative, moved, departed)
 
 
 def _recent(kept: OrderedDict[str, T], key: str, new: Callable[[], T]) -> T:

@@ -241,7 +241,10 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                               weights=weights)
     t_ranked = time.perf_counter()
     moved = model.place_map.moves(st.mover, code, motion)
-    place = model.place_map.step(st.localiser, ranked, own, not flat, moved)
+    departed = model.place_map.departs(st.look, code)
+    if departed:
+        st.look = code
+    place = model.place_map.step(st.localiser, ranked, own, not flat, moved, departed)
     visit, joined, dropped, touched, joins = None, -1, (), [], []
     if learn:
         assert seq is not None
@@ -264,7 +267,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                 or on in place_map.laid_by_others(stream, motion.trail or stream))
             # (`unsure_fraction` of the threshold: some sequence evidence, LocaliserOptions)
             unsure = not confident and (place.confidence < threshold * place_map.options.unsure_fraction
-                                        or trail)
+                                        or trail or not place.advancing)
             if visit is not None and unsure:
                 # unconfident, it needs some sequence evidence, and never a row of the trail it is
                 # laying (just behind its short-term memory a path in step with it is an echo, §11.6)

@@ -23,7 +23,8 @@ the revisit threshold is chosen from the lines (`threshold_table`, issue 37 item
 
 A rule is switched off for one run only (`switched_off`), the rest of the path being the service's:
 `condition` (a stream's condition, science §11.10: `condition_frames` 0), `span` (the span gate,
-§11.11: `span_max` 4096), `short-term` (a stream's short-term memory, §11.6: `short_term` 0),
+§11.11: `span_max` 4096), `lag` (a revisit's path keeping pace with its stream, §11.13: `lag_max`
+1000000), `short-term` (a stream's short-term memory, §11.6: `short_term` 0),
 `consolidation` (the consolidation gate, §11.8: `consolidate` 1, every frame a row), `echo` (the echo
 rule, §11.6: `benchmarks/experiments/echo.py`'s `off`), `flat-visits` (a flat frame consolidated into
 a flat appearance its path names, §11.7/§11.8: a flat frame makes a row), `joins` (warm-up joins,
@@ -56,11 +57,12 @@ from service.evaluation import service_path, stress
 from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 
 #: Every rule switched off, `all` first (every rule on: the default map).
-RULES = ("all", "condition", "span", "short-term", "consolidation", "echo", "flat-visits", "joins",
+RULES = ("all", "condition", "span", "lag", "short-term", "consolidation", "echo", "flat-visits", "joins",
          "low-information", "null-rows")
 #: The maps' localiser options that switch a rule off (the others are patched, `switched_off`).
 OPTIONS: dict[str, dict[str, Any]] = {"condition": {"condition_frames": 0}, "span": {"span_max": 4096},
-                                      "short-term": {"short_term": 0}, "consolidation": {"consolidate": 1.0}}
+                                      "lag": {"lag_max": 1_000_000}, "short-term": {"short_term": 0},
+                                      "consolidation": {"consolidate": 1.0}}
 #: Map seeds: 42 is a new map's (`CreateMap.seed`'s default).
 SEEDS = (42, 1, 7, 100, 2024)
 MEMORIES = ("tm", "none")

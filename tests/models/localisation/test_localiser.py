@@ -574,3 +574,48 @@ def test_a_posed_query_still_walks_a_map_with_several_rows_a_move() -> None:
     places = [loc.step(state, graph, np.arange(n), S[:, j], moved=j % 10 == 0) for j in range(n)]
     assert np.mean([abs(p.seq - r) <= 1 for p, r in zip(places[30:], truth[30:], strict=True)]) > 0.95
     assert np.mean([p.is_revisit(REVISIT) for p in places[30:]]) > 0.95
+
+
+def hub_route(departed: bool) -> list:
+    """A stream that walks rows 40-79 of a chain of 80, then goes on over ground the map never stored
+    where the two first rows (0, 1) stay the most alike to every frame (rows that look like a whole
+    stretch; the span rule widened so that it does not hide the answer); `departed`: each frame of that
+    stretch is a move of the stream (§11.13)."""
+    n = 80
+    S = place_similarity(np.arange(n), np.arange(40, 80), noise=0.2, seed=5)
+    hub = 0.05 * np.random.default_rng(6).standard_normal((n, 40))
+    hub[[0, 1]] += 0.5
+    loc, graph = SequenceLocaliser(LocaliserOptions.of({"span_max": 16})), SequenceGraph.chain(n)
+    state = loc.new_state()
+    return [loc.step(state, graph, np.arange(n), S[:, j], departed=True) for j in range(40)] + [
+        loc.step(state, graph, np.arange(n), hub[:, j], departed=departed) for j in range(40)]
+
+
+def test_a_path_that_stays_on_rows_alike_to_every_frame_while_its_stream_moves_is_no_revisit() -> None:
+    # docs/design/science.md §11.13: on the cameras case at a new map's seed, two rows of the drive's start
+    # were the most alike to 17 frames running of ground never stored; the path stayed on them, sure of it
+    # (0.93), while its stream moved on. A path keeps pace with its stream on the route it knows.
+    moving = hub_route(departed=True)
+    assert all(p.is_revisit(REVISIT) and p.advancing for p in moving[20:40])
+    stuck = [p for p in moving[40:] if p.seq in (0, 1) and p.confidence >= REVISIT]
+    assert len(stuck) >= 15  # sure of those rows, as the old rule was
+    # no revisit once the stream has made more than `lag_max` moves the path did not keep pace with
+    lag_max = default_conf["lag_max"]
+    assert sum(p.is_revisit(REVISIT) for p in stuck) <= lag_max
+    assert not any(p.advancing for p in stuck[lag_max:])
+    # a stream that does not move (it stands, by its poses or its look) keeps its answer
+    standing = hub_route(departed=False)
+    assert all(p.advancing for p in standing[40:])
+    assert sum(p.is_revisit(REVISIT) for p in standing[40:]) == len(stuck)
+
+
+def test_lags_survive_a_snapshot_and_old_states_load_without_them() -> None:
+    loc, graph = SequenceLocaliser(), SequenceGraph.chain(10)
+    state = loc.new_state()
+    for _ in range(3):
+        loc.step(state, graph, np.array([4]), np.array([1.0]), departed=True)
+    assert state.lags.max() > 0
+    arrays = state.to_arrays()
+    assert np.array_equal(LocaliserState.from_arrays(arrays).lags, state.lags)
+    del arrays["lags"]
+    assert not LocaliserState.from_arrays(arrays).lags.any()

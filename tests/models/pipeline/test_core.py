@@ -284,9 +284,9 @@ def test_a_slow_robots_short_term_memory_does_not_crowd_the_right_old_row_out_of
     seen = {}
     step = m.place_map.step
 
-    def spy(state, ranked, own, informative=True, moved=True):
+    def spy(state, ranked, own, *args):
         seen["candidates"] = {r.seq for r in ranked} - set(own.short_term.tolist())
-        return step(state, ranked, own, informative, moved)
+        return step(state, ranked, own, *args)
 
     m.place_map.step = spy
     # evicted (or restarted without its state), then localising: no trail of its own leaves the stop's

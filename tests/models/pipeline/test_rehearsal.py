@@ -99,3 +99,20 @@ def test_a_rehearsal_replays_to_the_same_memory_and_without_posed_memory_every_f
         assert np.array_equal(winners, s.winners)
     for off in ({"short_term_metres": 0.0}, {"short_term": 0}):  # poses play no part, or no memory
         assert all(s.visit is None for s in run(model(**off), frames, motions)), off
+
+
+def test_its_paths_keep_pace_with_its_moves_by_its_look_whatever_its_poses() -> None:
+    # docs/design/science.md §11.13: the lag a path counts is the stream's moves by its look; a robot that
+    # stands (one view, sensor noise) makes none however far its poses say it went, a drive of unlike
+    # views one a frame.
+    m = model()
+    here = np.random.default_rng(1).normal(size=K)
+    for frames, motions, moves in ((noisy(here, 20, 0.05, 2), posed(20, 5.0), 1),
+                                   (route(), [NO_MOTION] * 20, 20)):
+        st, seen = Stream(), 0
+        for i, y in enumerate(frames):
+            before = st.look
+            observe(m, st, y, learn=False, stream="b", top_k=0, code_of=lambda r: np.zeros(0, np.int64),
+                    motion=motions[i])
+            seen += st.look is not before
+        assert seen == moves
