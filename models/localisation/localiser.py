@@ -324,8 +324,8 @@ class SequenceLocaliser:
                 paths along, as with a missing observation), and its answer is no revisit.
             moved: False where the frame is no move of its stream (posed, §11.6): a path stays at the
                 cost of a step.
-            departed: the frame is a move of its stream by its look (`PlaceMap.departs`): a path that
-                does not advance a row with it falls a move behind (§11.13).
+            departed: the frame is a move of its stream by its look and its poses (`PlaceMap.departs`):
+                a path that does not advance a row with it falls a move behind (§11.13).
 
         Returns:
             The place, or None while fewer than `warmup` frames were seen or no candidate was ever given.

@@ -227,9 +227,8 @@ class PlaceMap:
 
     def departs(self, look: np.ndarray | None, code: np.ndarray) -> bool:
         """Whether a frame of code `code` (n,) sorted is a move of its stream by its look (§11.13): unlike
-        `look`, the code of the stream's last such move, by the `departure` level (§11.6), or the
-        stream's first. Poses play no part: a map's rows are as far apart as its maker's frames or moves,
-        and the look is what a path on them can keep pace with."""
+        `look`, the code of the stream's last move, by the `departure` level (§11.6), or the stream's
+        first. The caller asks it only of a frame that moved by its poses too (`moves`)."""
         if look is None:
             return True
         code = np.asarray(code, np.int64)

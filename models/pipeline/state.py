@@ -41,8 +41,9 @@ class Stream:
     # Its last move, learning or not (docs/design/science.md §11.2 step 2, §11.6): the localiser's steps
     # follow its moves. Not stored: after a restart its first frame is a move.
     mover: Anchor = field(default_factory=Anchor)
-    # The code of its last move by its look, learning or not (docs/design/science.md §11.13): its paths
-    # keep pace with these. Not stored: after a restart its first frame is one.
+    # The code of its last move by its look (and its poses where it has them), learning or not
+    # (docs/design/science.md §11.13): its paths keep pace with these. Not stored: after a restart its
+    # first frame is one.
     look: np.ndarray | None = None
 
     def new_sequence(self, context: bool = True) -> None:

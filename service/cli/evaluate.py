@@ -650,7 +650,7 @@ def eval_slam(
                                                 '\'{"condition_frames": 0}\'')] = "",
     suite: Annotated[bool, typer.Option(help="the stress suite instead (service/evaluation/stress.py): "
                                              "every window of both halves, 3 seeds")] = False,
-    quick: Annotated[bool, typer.Option(help="with --suite: one window, four cases, two seeds")] = False,
+    quick: Annotated[bool, typer.Option(help="with --suite: one window, five cases, two seeds")] = False,
     threshold: Annotated[float | None, typer.Option(min=0.0, max=1.0, help="with --suite: the maps' "
                                                     "revisit_threshold (default: a new map's)")] = None,
     cases: Annotated[str, typer.Option(help="with --suite: only these cases, comma-separated (default: "

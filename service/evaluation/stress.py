@@ -25,7 +25,7 @@ Per case and seed: false revisits while mapping (every call not a true revisit n
 places (places whose rows' labels differ by more than the tolerance), wrong consolidations (frames
 consolidated into a row of another label), and for lap 2 precision, recall and recall at 100 %
 precision. The full suite covers every window of both halves slid by 100; `--quick` one window of
-`tune`, four cases, two seeds, the memory only (what `make test` runs, tests/service/evaluation).
+`tune`, five cases, two seeds, the memory only (what `make test` runs, tests/service/evaluation).
 """
 
 from __future__ import annotations
@@ -49,8 +49,9 @@ from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 
 #: Every case of the full suite, in the order they are run.
 CASES = ("rate1", "rate3", "rate10", "parked", "flat", "repeat", "short-loop", "seasons", "noise", "cameras")
-#: What `--quick` runs: one case of each failure (a slower robot, low texture) and of each real loop.
-QUICK_CASES = ("rate3", "flat", "short-loop", "noise")
+#: What `--quick` runs: one case of each failure (a slower robot, low texture, a robot's two cameras) and
+#: of each real loop.
+QUICK_CASES = ("rate3", "flat", "cameras", "short-loop", "noise")
 #: The `cameras` case's frames: both streams name one trail (`metadata.trail`, docs/design/science.md §11.6)
 TRAIL = Motion(trail="robot")
 #: The map seeds every case is read over; 42 is a new map's (`CreateMap.seed`'s default).

@@ -101,14 +101,18 @@ def test_a_rehearsal_replays_to_the_same_memory_and_without_posed_memory_every_f
         assert all(s.visit is None for s in run(model(**off), frames, motions)), off
 
 
-def test_its_paths_keep_pace_with_its_moves_by_its_look_whatever_its_poses() -> None:
-    # docs/design/science.md §11.13: the lag a path counts is the stream's moves by its look; a robot that
-    # stands (one view, sensor noise) makes none however far its poses say it went, a drive of unlike
-    # views one a frame.
+def test_its_paths_keep_pace_with_its_moves_by_its_look_and_its_poses() -> None:
+    # docs/design/science.md §11.13: the lag a path counts is the stream's moves by its look and, where it
+    # has poses, by them too. One view with sensor noise makes none however far its poses say it went;
+    # unlike views make one a frame without poses, and none while the poses stay within `move_metres`
+    # (a robot turning on the spot); posed 2 m apart, one a frame.
     m = model()
     here = np.random.default_rng(1).normal(size=K)
+    standing = [Motion((0.01 * i, 0.0), float(i)) for i in range(20)]
     for frames, motions, moves in ((noisy(here, 20, 0.05, 2), posed(20, 5.0), 1),
-                                   (route(), [NO_MOTION] * 20, 20)):
+                                   (route(), [NO_MOTION] * 20, 20),
+                                   (route(), standing, 1),
+                                   (route(), posed(20, 2.0), 20)):
         st, seen = Stream(), 0
         for i, y in enumerate(frames):
             before = st.look
