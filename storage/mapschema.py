@@ -28,7 +28,9 @@ docs/design/science.md §11.11); version 12 a joined row turned into a visit: th
 transaction, logs the row's frame as a visit (`visits.row_seq`: the row's seq; `seq`: the old row whose place
 it joined) and deletes the row (its observation, thumbnail and keyframe: the file's delete triggers let a
 joined row go, nothing else), so a restarted drive's warm-up adds to the bounded visit log, not to the
-rows (docs/design/science.md §11.8). An older
+rows (docs/design/science.md §11.8); version 13 the `flat` rows, those whose frame was too flat to say
+where it is (docs/design/science.md §11.7: a later flat frame whose path names one is a visit of it; an
+older file's rows are not known flat). An older
 file is brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep
 `place` NULL (read as the place its learning stream's logged loop closure names, else its own). Opened
 read-only (`cortexloc verify`, a snapshot's copy) an older file is read as it is; a file of a newer version
@@ -83,7 +85,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 12
+SCHEMA_VERSION = 13
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -352,6 +354,18 @@ BEGIN SELECT RAISE(ABORT, 'keyframes are append-only'); END;
 #: Version 11 -> 12: columns no row has yet (an older visit and join read NULL), the delete triggers.
 _MIGRATE_V12 = _V12_TABLES + _version_step(12)
 
+# What version 13 added (docs/design/science.md §11.7; docs/design/service.md §4.2): the rows whose frame
+# was flat (under `MIN_CONTRAST`), written in the row's transaction, so a recovery and a restored snapshot
+# know them as the live map did (a later flat frame is a visit of the flat row its path names, whatever
+# its code). A row not here is not known flat (every row of an older file).
+_V13_TABLES = """
+CREATE TABLE flat (
+    seq  INTEGER PRIMARY KEY REFERENCES observations (seq)
+);
+"""
+#: Version 12 -> 13: a new table, no row changes (an older file's rows are not known flat).
+_MIGRATE_V13 = _V13_TABLES + _version_step(13)
+
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
             "input_sdr, winner_cells, metadata, place")
@@ -384,6 +398,7 @@ class Holds:
     joins: bool  # 10
     closure_span: bool  # 11
     joined_rows: bool  # 12: a joined row turned into a visit (`visits.row_seq`, `joins.observation_id`)
+    flat: bool  # 13: the rows whose frame was flat
     row_columns: str  # what `SELECT` reads of `observations` (NULL for a column the file lacks)
 
     @classmethod
@@ -393,7 +408,7 @@ class Holds:
                    dropped=version >= 5, recency=version >= 6, visit_keys=version >= 7,
                    stream_states=version >= 7, closure_consolidated_into=version >= 8,
                    repairs=version >= 9, closure_retracts=version >= 9, joins=version >= 10,
-                   closure_span=version >= 11, joined_rows=version >= 12,
+                   closure_span=version >= 11, joined_rows=version >= 12, flat=version >= 13,
                    row_columns=COLUMNS if version >= 5 else COLUMNS_V4 if version >= 2 else COLUMNS_V1)
 
 
@@ -404,7 +419,7 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
         return meta
     # chain[v - 1]: version v -> v + 1
     chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6, _MIGRATE_V7, _MIGRATE_V8,
-             _MIGRATE_V9, _MIGRATE_V10, _MIGRATE_V11, _MIGRATE_V12]
+             _MIGRATE_V9, _MIGRATE_V10, _MIGRATE_V11, _MIGRATE_V12, _MIGRATE_V13]
     steps = "".join(chain[meta.schema_version - 1:])
     try:
         conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
@@ -484,6 +499,7 @@ class NewObservation:
             (`recency`).
         joins: (row, old row) the warm-up joins its step made (`joins`, with each row `dropped`,
             reason `joined`; docs/design/science.md §11.8).
+        flat: its frame was flat (under `MIN_CONTRAST`, docs/design/science.md §11.7; `flat`).
     """
 
     stream: str
@@ -504,6 +520,7 @@ class NewObservation:
     drops: tuple[int, ...] = ()
     touched: tuple[int, ...] = ()
     joins: tuple[tuple[int, int], ...] = ()
+    flat: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -747,7 +764,7 @@ def create_file(path: Path, meta: MapMeta) -> None:
             conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION
                                + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES + _V7_TABLES + _CLOSURE_VISIT
                                + _V9_TABLES + _CLOSURE_RETRACTS + _V10_TABLES + _CLOSURE_SPAN
-                               + _V12_TABLES)
+                               + _V12_TABLES + _V13_TABLES)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

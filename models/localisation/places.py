@@ -56,6 +56,8 @@ class PlaceMap:
         used: (seq,) int64 when each row was last used (made, visited, or the place a learning stream's
             new row joined): the seq-space clock, -1 for rows not held; the drop and forgetting rules
             read it (§11.9).
+        flat: (seq,) bool whether each row's frame was flat (under `MIN_CONTRAST`, §11.7): a later flat
+            frame whose path names its place, or a neighbouring one, is a visit of it (`consolidation`).
     """
 
     def __init__(self, options: LocaliserOptions | None = None, code_width: int = 0) -> None:
@@ -66,6 +68,7 @@ class PlaceMap:
         self.top_k = int(self.options.top_k)
         self.short_term = ring_moves(self.options)  # the memories' size in moves (0: none)
         self.used = np.zeros(0, np.int64)
+        self.flat = np.zeros(0, bool)
         self._last_row: dict[str, int] = {}  # each stream's last made row (its trail goes on from there)
         # the trail each stream names (`Motion.trail`, else its own name), the KEPT most recently learning
         self._named: OrderedDict[str, str] = OrderedDict()
@@ -83,7 +86,7 @@ class PlaceMap:
     def rebuild(self, rows: Iterable[Any], dropped: Iterable[int] = (), joined: dict[int, int] | None = None,
                 visited: Iterable[tuple[Any, ...]] = (), used: Mapping[int, int] | None = None,
                 remade: Iterable[int] = (), unjoined: Iterable[int] = (),
-                folded: Iterable[tuple[int, int]] = ()) -> None:
+                folded: Iterable[tuple[int, int]] = (), flat: Iterable[int] = ()) -> None:
         """The links, places and code statistics of the store's rows (recovery).
 
         Args:
@@ -104,16 +107,18 @@ class PlaceMap:
             unjoined: rows a repair gave back their own place (their stored `place` is not read).
             folded: (row, old row) of the warm-up joins (`fold`, §11.8), in log order; their rows are
                 among `dropped`.
+            flat: the rows whose frame was flat (the store's `flat`, §11.7); every other row is not.
         """
         self.graph = SequenceGraph()
         self.codes.rebuild([])
         self.used = np.zeros(0, np.int64)
+        self.flat = np.zeros(0, bool)
         self._last_row, self._short, self._anchors, self.held = {}, OrderedDict(), OrderedDict(), 0
         self._named = OrderedDict()
         self._odometers, self.odometry = OrderedDict(), RowOdometry()
         self._tried = {}  # as a map loaded fresh: a repair's rebuild and a restart alike
         joined = joined or {}
-        gone, remade, unjoined = set(dropped), set(remade), set(unjoined)
+        gone, remade, unjoined, flat = set(dropped), set(remade), set(unjoined), set(flat)
         # Rows and visits in the order they were learned (a visit's clock is its `after_seq` + 1), so each
         # stream's short-term memory is the live map's.
         pending = deque(visited)
@@ -129,7 +134,7 @@ class PlaceMap:
                 prev = None  # a joined row whose visit the log pruned (§11.8): a trail starts here
             self.add(seq, prev, row.input_sdr, stream=row.stream,
                      place=-1 if place is None else int(place), remade=seq in remade,
-                     motion=Motion.of(getattr(row, "metadata", None)))
+                     motion=Motion.of(getattr(row, "metadata", None)), flat=seq in flat)
         for row, old in folded:  # after every row: a join names rows stored before it
             if int(row) < len(self.graph) and self.graph.place[int(row)] >= 0:  # (its visit not pruned)
                 self.fold(int(row), int(old))
@@ -142,14 +147,14 @@ class PlaceMap:
             self.touch(row, clock)
 
     def add(self, seq: int, prev: int | None, code: np.ndarray, *, stream: str = "", place: int = -1,
-            remade: bool = False, motion: Motion = NO_MOTION) -> None:
+            remade: bool = False, motion: Motion = NO_MOTION, flat: bool = False) -> None:
         """A row just learned, after `prev` (None: the start of a sequence), its frame code, and the place
         it shows (-1: a new place). It continues `prev`'s trail only when `prev` is its stream's last made
         row; after a consolidated frame `prev` is a row it visited, and a new trail starts (§11.8), and
         the stream's last made row, if it had no successor, gets this one. `remade`: a row a repair
         re-made from a visit (§11.6), learned long before its seq: a trail of its own after `prev`, not
         its stream's last row, no step of its short-term memory (its visit was that step). `motion`: the
-        frame's pose, stamp and trail (its short-term memory, §11.6)."""
+        frame's pose, stamp and trail (its short-term memory, §11.6). `flat`: its frame was flat (§11.7)."""
         own = None if remade else self._last_row.get(stream)
         joins = prev is not None and own == prev
         self.graph.append(seq, -1 if prev is None else prev, place=place, joins=joins)
@@ -163,7 +168,9 @@ class PlaceMap:
         if seq >= self.used.size:
             grow = max(seq + 1, 2 * self.used.size, 16) - self.used.size
             self.used = np.concatenate([self.used, np.full(grow, -1, np.int64)])
+            self.flat = np.concatenate([self.flat, np.zeros(grow, bool)])
         self.used[seq] = seq
+        self.flat[seq] = flat
         self.held += 1
 
     def touch(self, row: int, clock: int) -> None:
@@ -296,7 +303,7 @@ class PlaceMap:
         return int(np.unique(self.graph.place[held]).size)
 
     def consolidation(self, place: Place, code: np.ndarray, code_of: Callable[[int], np.ndarray],
-                      own: OwnTrail | None = None, neighbours: bool = True) -> int | None:
+                      own: OwnTrail | None = None, neighbours: bool = True, flat: bool = False) -> int | None:
         """The stored row that already represents a frame of code `code` whose best path names `place`,
         or None (docs/design/science.md §11.8): the place's appearance most like it, when its Dice
         reaches b + consolidate · (1 − b), b the frame's background likeness (`CodeStats.background`,
@@ -308,29 +315,37 @@ class PlaceMap:
         may join rows far apart on the route). The path's own place first: where it represents the
         frame, a neighbour that looks as much alike (a low-texture corridor, rows a metre apart) is no
         better answer. `neighbours` False: the place's alone (a frame whose stream has not moved is a
-        rehearsal of the row it is at, not a visit a place off, §11.6). Rows held only, less the
+        rehearsal of the row it is at, not a visit a place off, §11.6). `flat`: the frame is flat
+        (§11.7): its code says nothing of where it is, so a flat appearance of those places (`flat`)
+        represents it whatever its code (the place's first, then the neighbours', the most alike of
+        them), and only failing both the code decides as for any frame. Rows held only, less the
         stream's own (`own.holds`: its short-term memory, rows it has not left, rows its odometry says
         it cannot be at); `consolidate` 1 never consolidates. O(appearances) code reads."""
         if float(self.options.consolidate) >= 1.0:
             return None
-        level = self.codes.level(code, float(self.options.consolidate))
         near: list[int] = []
         r = int(place.seq)
         if neighbours and 0 <= r < len(self.graph):
             prev, nxt = int(self.graph.prev[r]), int(self.graph.next[r])
             # the successor only where it continues r: `add` also makes a stream's next made row the
-            # successor of its last one across frames it consolidated (rows far apart on the route)
+            # successor of its last one across consolidated frames (rows far apart on the route)
             near = [prev, nxt if nxt >= 0 and int(self.graph.prev[nxt]) == r else -1]
         around = {int(self.graph.place[n]) for n in near if n >= 0} - {place.place, -1}
+        tiers = []
         for tier in ({place.place}, around):
             rows = np.array(sorted({a for q in tier for a in self.appearances(q)}), np.int64)
             if own is not None and rows.size:
                 rows = rows[~own.holds(self.graph, rows)]
+            tiers.append(rows)
+        # a flat frame: a flat appearance, whatever its code; then, as any frame, its code's level
+        chances = [rows[self.flat[rows]] for rows in tiers] if flat else []
+        level = self.codes.level(code, float(self.options.consolidate))
+        for rows, floor in [*((rows, -np.inf) for rows in chances), *((rows, level) for rows in tiers)]:
             if not rows.size:
                 continue
             sims = [code_dice(code, np.asarray(code_of(int(row)))) for row in rows]
             best = int(np.argmax(sims))
-            if sims[best] >= level:
+            if sims[best] >= floor:
                 return int(rows[best])
         return None
 

@@ -109,6 +109,7 @@ class Step:
         joins: the warm-up joins this step's confident revisit made (docs/design/science.md §11.8):
             (row, old row), the stream's earlier row now of the old row's place and held no more
             (dropped from the index and the places with the step, logged with its row or visit).
+        flat: the frame was flat (under `MIN_CONTRAST`, §11.7): a made row is a flat row (stored with it).
     """
 
     code: np.ndarray
@@ -124,6 +125,7 @@ class Step:
     dropped: tuple[int, ...] = ()
     touched: tuple[int, ...] = ()
     joins: tuple[tuple[int, int], ...] = ()
+    flat: bool = False
 
 
 def _remember(model: MapModel, st: Stream, code: np.ndarray, *, learn: bool, starts: bool) -> np.ndarray:
@@ -181,8 +183,9 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         contrast: the decoded frame's contrast (`models.frontend.images.contrast`; None: not measured).
             Under `localisation.MIN_CONTRAST` the frame says nothing of where it is (§11.7): it is no
             evidence to the localiser, leaves no row of the stream's trail, and its place is no revisit.
-            It is still learned and ranked like any frame, and consolidated like an unconfident one (a
-            visit of a flat appearance its path names: stored once per place at most).
+            It is still learned and ranked like any frame, and consolidated like an unconfident one:
+            a visit of a flat row its path names (its place's, else a neighbouring place's), whatever
+            its code, else of an appearance like it; a row it makes is a flat row (`Step.flat`).
         motion: the frame's pose, stamp and trail (`Motion.of` its metadata): a learned frame's move in
             its trail's short-term memory, and the trail whose memory is no candidate (§11.6).
 
@@ -255,11 +258,12 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         if place is not None and threshold is not None:
             # Well represented: like an appearance of the place its best path names, confident or not
             # (a pass's unconfident frames would otherwise become parallel places, each a rival, §11.8).
-            # A flat frame too (never confident, §11.7): where its path names a place that has a flat
-            # appearance, it is a visit of it, not a new place each time it is seen.
+            # A flat frame too (never confident, §11.7): where its path names a place (or a neighbouring
+            # one) that has a flat row, it is a visit of it whatever its code (a flat frame's code is
+            # noise), not a new place each time it is seen.
             # never into the stream's own recent rows (its short-term memory, a row it has not left);
             # a frame that has not moved is the row it is at or a rehearsal, never a place off
-            visit = place_map.consolidation(place, code, code_of, own, neighbours=not still)
+            visit = place_map.consolidation(place, code, code_of, own, neighbours=not still, flat=flat)
             confident = place.is_revisit(threshold)
             # the trail it lays: its own chain's, or one its robot's other cameras lay (§11.6)
             on = -1 if visit is None else int(place_map.graph.trail[visit])
@@ -294,7 +298,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             place_map.visits += 1
         else:
             model.index.add(seq, winners, stream)
-            place_map.add(seq, prev, code, stream=stream, place=joined, motion=motion)
+            place_map.add(seq, prev, code, stream=stream, place=joined, motion=motion, flat=flat)
             dropped = tuple(place_map.over_cap(joined, seq)) if joined >= 0 else ()
             drop(model, dropped)
     _condition(model, st, code)
@@ -305,7 +309,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                "localiser": (t3 - t_ranked) * 1e3}
     return Step(code=code, winners=winners, prev_seq=prev, step=step, stats=stats,
                 ranked=list(ranked[:top_k]), place=place, timings_ms=timings, visit=visit, joined=joined,
-                dropped=dropped, touched=tuple(touched), joins=tuple(joins))
+                dropped=dropped, touched=tuple(touched), joins=tuple(joins), flat=flat)
 
 
 def drop(model: MapModel, seqs: tuple[int, ...] | list[int]) -> None:

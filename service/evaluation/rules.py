@@ -99,7 +99,7 @@ def _rows_level(self: loc.SequenceLocaliser, past: np.ndarray, null: float) -> f
 def _no_flat_visits(model: Any, st: Any, projected: np.ndarray, **kw: Any) -> Any:
     """`observe`, but a flat learned frame is never consolidated (it makes a row of its own)."""
     if kw.get("learn") and not informative(kw.get("contrast")):
-        model.place_map.consolidation = lambda *a: None
+        model.place_map.consolidation = lambda *a, **k: None
         try:
             return observe(model, st, projected, **kw)
         finally:

@@ -1,6 +1,6 @@
 """`map.sqlite`'s observations (docs/design/service.md §4.2–§4.3): the rows, appended with what commits
 in their transaction (thumbnail, keyframe, idempotency key, loop closure, drops, joins, recency, stream
-state), their seqs, and the reads of rows, thumbnails and idempotency keys.
+state, flatness), their seqs, and the reads of rows, thumbnails, flat rows and idempotency keys.
 
 Seqs are assigned here, strictly increasing and never reused: the next is `max(last_seq, seq_floor) + 1`
 (`storage.mapstore`'s docstring).
@@ -110,6 +110,7 @@ class Observations:
                        for i, r in enumerate(rows) if r.resume is not None]
             touches = [(int(t), first + i) for i, r in enumerate(rows) for t in r.touched]
             joins = [(str(r.stream), j, first + i - 1) for i, r in enumerate(rows) for j in r.joins]
+            flat = [(first + i,) for i, r in enumerate(rows) if r.flat and self.holds.flat]
             if not durable:  # per connection, outside a transaction: this commit alone skips its fsync
                 conn.execute("PRAGMA synchronous=NORMAL")
             try:
@@ -123,6 +124,7 @@ class Observations:
                     # The row's thumbnail and idempotency key commit with it, or nothing does.
                     conn.executemany("INSERT INTO thumbnails (seq, jpeg) VALUES (?, ?)", thumbs)
                     conn.executemany("INSERT INTO keyframes (seq, features, camera) VALUES (?, ?, ?)", frames)
+                    conn.executemany("INSERT INTO flat (seq) VALUES (?)", flat)
                     conn.executemany("INSERT INTO idempotency_keys (key, fingerprint, seq, reply, created_at)"
                                      " VALUES (?, ?, ?, ?, ?)", keys)
                     if keys and self.max_keys is not None:  # the keys of the last max_keys seqs stay
@@ -205,6 +207,14 @@ class Observations:
                            winner_cells=decode(r[8], self._cell_dtype),
                            metadata=None if r[9] is None else json.loads(r[9]),
                            place=None if r[10] is None else int(r[10]))
+
+    def flat(self) -> set[int]:
+        """The rows whose frame was flat (docs/design/science.md §11.7; `NewObservation.flat`). Empty for a
+        file before version 13: its rows are not known flat."""
+        if not self.holds.flat:
+            return set()
+        with self._lock:
+            return {int(r[0]) for r in self._db().execute("SELECT seq FROM flat")}
 
     def thumbnail(self, seq: int) -> bytes | None:
         """The JPEG thumbnail stored with this seq, or None."""

@@ -191,7 +191,7 @@ class Visits:
                 "OR c.place_seq = o.seq) AND NOT EXISTS (SELECT 1 FROM repairs r WHERE r.seq = o.seq)",
                 (int(old), int(row)))
             if cur.rowcount:
-                for table in ("thumbnails", "keyframes", "recency", "observations"):
+                for table in ("thumbnails", "keyframes", "recency", "flat", "observations"):
                     conn.execute(f"DELETE FROM {table} WHERE seq = ?", (int(row),))
                 gone += 1
         return gone

@@ -27,7 +27,7 @@ WHERE = {
     "stream_states": ("stream_states", None),
     "closure_consolidated_into": ("loop_closures", "consolidated_into"),
     "repairs": ("repairs", None), "closure_retracts": ("loop_closures", "retracts"), "joins": ("joins", None),
-    "closure_span": ("loop_closures", "span"), "joined_rows": ("visits", "row_seq"),
+    "closure_span": ("loop_closures", "span"), "joined_rows": ("visits", "row_seq"), "flat": ("flat", None),
 }
 
 

@@ -109,9 +109,12 @@ def test_a_row_s_place_and_the_rows_it_dropped_commit_with_it(store: MapStore) -
 
 
 #: What version 9 added, undone (every older file lacks it).
+#: What version 13 added, undone: the flat rows.
+V13_UNDONE = "DROP TABLE flat;"
 #: What version 12 added, undone (every older file fabricated here lacks it): the visits' `row_seq`, the
 #: joins' `observation_id`, the replay-order indexes, the delete triggers that let a joined row go.
-V12_UNDONE = "DROP INDEX visits_learned; DROP INDEX visits_row; ALTER TABLE visits DROP COLUMN row_seq; " \
+V12_UNDONE = V13_UNDONE + "DROP INDEX visits_learned; DROP INDEX visits_row; " \
+    "ALTER TABLE visits DROP COLUMN row_seq; " \
     "ALTER TABLE joins DROP COLUMN observation_id; " + "".join(
         f"DROP TRIGGER {t}_no_delete; CREATE TRIGGER {t}_no_delete BEFORE DELETE ON {t} "
         f"BEGIN SELECT RAISE(ABORT, '{t} are append-only'); END;"
@@ -315,3 +318,47 @@ def test_a_join_turns_its_row_into_a_visit_and_deletes_it_and_its_seq_is_never_h
         store.append(dataclasses.replace(make_row(6, stream="a", prev=5), joins=((5, 1),)))
     with MapStore.open(path) as store:  # the newest row joined away: its seq stays used
         assert store.count() == 4 and store.last_seq() == 6 and store.next_seq() == 7
+
+
+def test_a_rows_flatness_commits_with_it_and_a_rebuild_knows_it(tmp_path: Path, meta: MapMeta) -> None:
+    """Schema 13 `flat` (docs/design/science.md §11.7): a row whose frame was flat is recorded in its
+    transaction; the recovery's rebuild reads it back (a later flat frame is a visit of it, whatever its
+    code); a row a warm-up join deletes leaves it too."""
+    path = tmp_path / "map.sqlite"
+    with MapStore.create(path, meta) as store:
+        store.append(make_row(1))
+        store.append(dataclasses.replace(make_row(2, prev=1), flat=True))
+        store.append(dataclasses.replace(make_row(3, prev=2), flat=True))
+        store.append(dataclasses.replace(make_row(4, prev=3), joins=((3, 1),)))  # row 3 joined away
+        assert store.flat() == {2}
+    with MapStore.open(path) as store:
+        assert store.flat() == {2}
+        place_map = PlaceMap(None, 4096)
+        place_map.rebuild(store.rows(), store.dropped(), flat=store.flat())
+        assert place_map.flat[[1, 2, 4]].tolist() == [False, True, False]
+
+
+def test_a_version_12_file_is_migrated_and_its_rows_are_not_known_flat(tmp_path: Path, meta: MapMeta) -> None:
+    """Schema 12 -> 13: the `flat` table, empty: an older file's rows read as not flat (they were stored
+    before flatness was), and the map goes on recording it."""
+    path = tmp_path / "map.sqlite"
+    with MapStore.create(path, meta) as made:
+        made.append(make_row(1))
+        made.append(dataclasses.replace(make_row(2, prev=1), flat=True))
+    conn = sqlite3.connect(path)
+    conn.executescript(V13_UNDONE + """
+        DROP TRIGGER meta_no_update;
+        UPDATE meta SET value = '12' WHERE key = 'schema_version';
+        CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
+        BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
+    """)
+    conn.close()
+    with MapStore.open(path, readonly=True) as old:  # read-only: as it is
+        assert old.meta.schema_version == 12 and old.flat() == set()
+    with MapStore.open(path) as store:
+        assert store.meta.schema_version == SCHEMA_VERSION and store.flat() == set()
+        place_map = PlaceMap(None, 4096)
+        place_map.rebuild(store.rows(), flat=store.flat())
+        assert not place_map.flat[[1, 2]].any()
+        store.append(dataclasses.replace(make_row(3, prev=2), flat=True))
+        assert store.flat() == {3}

@@ -26,13 +26,15 @@ def learned_row(step: Step, *, stream: str, image_sha256: str, label: str | None
                 query: keyframes.QueryFrame | None, resume: bytes | None) -> NewObservation:
     """The row a learned frame that was not consolidated stores: its code, winner cells and the row it
     continues, what it came with (label, metadata, thumbnail, keyframe), its place, the rows the step
-    dropped, touched and joined, and its stream's resume state (service.md §4.2)."""
+    dropped, touched and joined, its stream's resume state and whether its frame was flat (service.md
+    §4.2)."""
     kf = None if query is None else (geometry.pack(query.features), query.camera)
     return NewObservation(stream=stream, image_sha256=image_sha256, input_sdr=step.code,
                           winner_cells=step.winners, context_prev_seq=step.prev_seq, label=label,
                           metadata=metadata, thumbnail=thumbnail, keyframe=kf,
                           place=step.joined if step.joined >= 0 else None,
-                          drops=step.dropped, touched=step.touched, joins=step.joins, resume=resume)
+                          drops=step.dropped, touched=step.touched, joins=step.joins, resume=resume,
+                          flat=step.flat)
 
 
 def reply(config: MapConfig, map_id: str, step: Step, rows: dict[int, Observation], *, stream: str,

@@ -201,7 +201,7 @@ class Recovering:
         self.model.place_map.rebuild(rows(), dropped, self.store.joined(), visits, self.store.recency(),
                                  remade={r.seq for r in done if r.kind == "split"},
                                  unjoined={r.seq for r in done if r.kind == "unjoin"},
-                                 folded=self.store.joins())
+                                 folded=self.store.joins(), flat=self.store.flat())
         self.model.index.rebuild(held)
         if self.budget is not None:
             self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)

@@ -42,6 +42,29 @@ def test_a_rule_is_switched_off_for_the_run_only_and_every_rule_is_known() -> No
         loc.SequenceLocaliser(LocaliserOptions.of(options))
 
 
+def test_with_flat_visits_off_a_flat_learned_frame_makes_a_row_of_its_own() -> None:
+    """The `flat-visits` rule off: a flat learned frame is never consolidated (before: the patch took no
+    keyword, and `observe` calls `consolidation` with `neighbours` and `flat`: the run failed)."""
+    from models.pipeline import MapModel, Stream
+    from models.presets import TmOptions
+
+    tm = {"columnDimensions": 128, "cellsPerColumn": 4, "maxSegmentsPerCell": 4,
+          "maxSynapsesPerSegment": 16, "activationThreshold": 3, "minThreshold": 2, "seed": 3}
+    m = MapModel.new(TmOptions.of(tm), LocaliserOptions.of(None), max_observations=100, memory="none", s=0.1)
+    codes: dict[int, np.ndarray] = {}
+    frames = np.random.default_rng(0).normal(size=(10, 64)).astype(np.float32)
+    with rules.switched_off("flat-visits"):
+        for stream, st in (("a", Stream()), ("b", Stream())):  # a route, then again with a tunnel
+            for i, y in enumerate(frames):
+                seq = len(codes) + 1
+                step = service_path.observe(m, st, y, learn=True, stream=stream, top_k=0, seq=seq,
+                                            code_of=codes.__getitem__, threshold=1.0,
+                                            contrast=0.0 if stream == "b" and i >= 7 else None)
+                codes[seq] = step.code
+                assert step.visit is None or (stream == "b" and i < 7)
+    assert step.place is not None  # past the warm-up: consolidation was asked
+
+
 def test_jobs_run_seed_by_seed_every_rule_on_first_and_the_ablation_with_rules_off_last() -> None:
     jobs = rules.jobs_of((42, 1), ("all", "span"), ("tm", "none"), windows=1)
     assert len(jobs) == 2 * 2 * 4

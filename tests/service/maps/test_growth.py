@@ -67,6 +67,35 @@ def test_a_flat_frame_is_stored_once_per_place_not_on_every_pass(tmp_path):
         assert all(later[i]["place"]["low_information"] for i in flat)
 
 
+def flat_rows(c) -> list[int]:
+    rt = c.app.state.registry.get("default")
+    return [int(r) for r in np.flatnonzero(rt.place_map.flat)]
+
+
+def test_a_rows_flatness_survives_a_restart_a_crash_and_a_snapshot_restore(tmp_path):
+    """Which rows were flat is stored with them (schema 13, `flat`): the map rebuilt on a restart, after
+    a kill -9, and from a snapshot knows its tunnel's rows as flat, as the live map did (before: a
+    rebuilt map knew none, so its flat frames would not be visits of them)."""
+    data = tmp_path / "data"
+    with make_client(data, snapshot_every=0) as c:
+        setup(c)
+        first = drive(c)
+        tunnel = sorted(first[i]["seq"] for i, p in enumerate(LAP) if p in TUNNEL)
+        assert flat_rows(c) == tunnel
+        snap = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+    with make_client(data, snapshot_every=0) as c:  # a restart
+        assert flat_rows(c) == tunnel
+        restart(c)
+        second = drive(c, places=[p + 100 for p in LAP[:5]] + list(TUNNEL))  # new places, a tunnel
+        later = sorted(b["seq"] for b in second[5:] if b["seq"] is not None)
+        assert later  # (unsure on new places: the tunnel made rows again)
+        crash(c)
+    with make_client(data, snapshot_every=0) as c:  # a kill -9: the rows after it replayed
+        assert flat_rows(c) == sorted(tunnel + later)
+        assert c.post(f"/v1/maps/default/snapshots/{snap}/restore").status_code == 200
+        assert flat_rows(c) == tunnel
+
+
 def test_warm_up_rows_are_joined_to_the_places_the_confident_path_names(tmp_path):
     with make_client(tmp_path / "data") as c:
         first, second = two_drives(c)
