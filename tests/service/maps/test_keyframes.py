@@ -46,10 +46,11 @@ CAMERA_META = {"camera": {"fx": CAMERA.fx, "fy": CAMERA.fy, "cx": CAMERA.cx, "cy
 
 
 def make_map(c, map_id: str = "kf", **more) -> dict:
-    # Threshold 0 and no span gate (docs/design/science.md §11.11): every answer is a revisit candidate,
-    # so the verification is what these tests see decide.
+    # Threshold 0, no span gate (docs/design/science.md §11.11) and no lag gate (§11.13: these tests
+    # drive unlike frames over a few rows, which no path keeps pace with): every answer is a revisit
+    # candidate, so the verification is what these tests see decide.
     body = {"map_id": map_id, "keyframes": KEYFRAMES, "revisit_threshold": 0.0,
-            "localiser": {"span_max": 4096}, **more}
+            "localiser": {"span_max": 4096, "lag_max": 1_000_000}, **more}
     r = c.post("/v1/maps", json=body)
     assert r.status_code == 201, r.text
     return r.json()
