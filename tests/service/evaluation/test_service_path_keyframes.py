@@ -21,9 +21,9 @@ from tests.service.maps.test_keyframes import CAMERA, CAMERA_META, KEYFRAMES, RO
 
 #: A route of ten photographs is shorter than a stream's short-term memory (20 moves, §11.6): without it
 #: the stream's laps can close on each other.
-# no span gate (docs/design/science.md §11.11): at threshold 0 the verification alone decides, as in
-# tests/service/maps/test_keyframes.py
-NO_GATE = {"span_max": 4096}
+# no span gate (docs/design/science.md §11.11) nor lag gate (§11.13): at threshold 0 the verification
+# alone decides, as in tests/service/maps/test_keyframes.py
+NO_GATE = {"span_max": 4096, "lag_max": 1_000_000}
 SHORT = {"short_term": 0, **NO_GATE}
 MAP = {"keyframes": KEYFRAMES, "revisit_threshold": 0.0, "verify_revisit": True}
 
