@@ -1,7 +1,6 @@
 """Typed dependencies: what routes receive from the app (one place, one spelling each).
 
     SettingsDep   the validated `Settings` (read once at startup)
-    EmbedderDep   the loaded `Embedder` (503 not-ready while there is none)
     MetricsDep    the app's `Metrics` (per-app Prometheus registry)
     RegistryDep   the `MapRegistry` (503 not-ready until the maps are open)
     require_api_key / ApiKeyDep   guard for write routes when `CORTEXLOC_API_KEY` is set
@@ -20,7 +19,6 @@ from typing import Annotated
 from fastapi import Depends, Request, Security
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
-from models.frontend.embedding import Embedder
 from service.errors import Problem
 from service.maps.registry import MapRegistry
 from service.metrics import Metrics
@@ -28,12 +26,10 @@ from service.settings import Settings
 
 __all__ = [
     "ApiKeyDep",
-    "EmbedderDep",
     "MetricsDep",
     "ReadKeyDep",
     "RegistryDep",
     "SettingsDep",
-    "get_embedder",
     "get_metrics",
     "get_registry",
     "get_settings",
@@ -49,19 +45,11 @@ def get_settings(request: Request) -> Settings:
     return settings
 
 
-def get_embedder(request: Request) -> Embedder:
-    encoder = getattr(request.app.state, "encoder", None)
-    if encoder is None:
-        raise Problem(503, "not-ready", "the encoder is not loaded yet")
-    return encoder
-
-
 def get_metrics(request: Request) -> Metrics:
     return request.app.state.metrics
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
-EmbedderDep = Annotated[Embedder, Depends(get_embedder)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 
 
