@@ -100,7 +100,9 @@ class PlaceResult:
     blank, overexposed) to say where it is, so it is no revisit whatever the confidence
     (docs/design/science.md §11.7); `span`: how many places the stream may be at (the places whose best
     path scores within the map's `span_margin` of the best), `span_seqs` their best rows, best first (at
-    most 16; docs/design/science.md §11.11)."""
+    most 16; docs/design/science.md §11.11); `lagging`: the path has fallen more than the map's `lag_max`
+    of the robot's moves behind it (it stayed on its rows while the robot moved on), so it is no revisit
+    whatever the confidence (docs/design/science.md §11.13)."""
 
     seq: int
     observation_id: str
@@ -119,6 +121,7 @@ class PlaceResult:
     # How many places the stream may be at, >= 1 (exact), and their best rows, `seq` first (§11.11).
     span: int = 1
     span_seqs: list[int] = field(default_factory=list)
+    lagging: bool = False
 
     @classmethod
     def of(cls, place: Any, row: Any, revisit_threshold: float) -> PlaceResult:
@@ -128,7 +131,8 @@ class PlaceResult:
                    support=place.support, metadata=getattr(row, "metadata", None),
                    low_information=not place.informative,
                    place_id=int(place.place) if place.place >= 0 else int(place.seq),
-                   span=int(place.span), span_seqs=[int(q) for q in place.span_seqs] or [int(place.seq)])
+                   span=int(place.span), span_seqs=[int(q) for q in place.span_seqs] or [int(place.seq)],
+                   lagging=not place.advancing)
 
 
 @dataclass(frozen=True)

@@ -334,6 +334,9 @@ class Place(_Reply):
     #: map's `span_max`), and their best rows, `seq` first (None from an older server).
     span: int | None = None
     span_seqs: list[int] | None = None
+    #: The path fell more than the map's `lag_max` of the robot's moves behind it (it stayed on its rows
+    #: while the robot moved on): never a revisit (False from an older server).
+    lagging: bool = False
 
 
 class Versions(_Reply):

@@ -116,8 +116,10 @@ def _places(places, frame_of: dict[int, int] | None = None) -> list[tuple[int, f
 
 def _decided(p: dict) -> float:
     """The confidence the revisit decision compares, as the evaluation reads it: 0 where the span is wider
-    than span_max (docs/design/science.md §11.11) or the frame too flat (§11.7)."""
-    return 0.0 if p["span"] > int(default_conf["span_max"]) or p["low_information"] else p["confidence"]
+    than span_max (docs/design/science.md §11.11), the frame too flat (§11.7) or the path lagging
+    (§11.13)."""
+    gated = p["span"] > int(default_conf["span_max"]) or p["low_information"] or p["lagging"]
+    return 0.0 if gated else p["confidence"]
 
 
 def _found(found) -> list[tuple[int, float, int] | None]:

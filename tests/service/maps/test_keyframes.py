@@ -285,3 +285,21 @@ def test_a_frame_within_raised_upload_limits_keeps_its_keyframe(tmp_path):
         assert r.status_code == 200, r.text
         sizes = c.get("/v1/maps/kf/memory").json()["storage"]
         assert sizes["keyframes"] == 1 and sizes["keyframe_bytes"] > 16
+
+
+def test_a_path_that_falls_behind_the_robot_is_lagging_and_no_revisit(tmp_path):
+    # docs/design/science.md §11.13, service.md §1.2: 24 unlike frames driven over a route of 10 rows are
+    # moves no path keeps pace with (it walks to the route's end and stays there); the reply says
+    # `lagging` and no revisit, at any confidence (threshold 0 here). With the rule off (`lag_max`
+    # 1000000) the same frames are all revisit candidates.
+    for lag_max in (3, 1_000_000):
+        with make_client(tmp_path / str(lag_max)) as c:
+            made = make_map(c, localiser={"span_max": 4096, "lag_max": lag_max})
+            assert made["params"]["localiser"]["lag_max"] == lag_max
+            learn(c, [sized(n) for n in ROUTE])
+            answers = [p for p in drive(c, [sized(n) for n in UNRELATED * 6]) if p]
+        lagging = [p for p in answers if p["lagging"]]
+        if lag_max == 3:
+            assert lagging and not any(p["revisit"] for p in lagging)
+        else:
+            assert not lagging and answers and all(p["revisit"] for p in answers)
