@@ -90,7 +90,7 @@ def install(variant: str) -> None:
     if variant == "between":
         step = loc.SequenceLocaliser.step
 
-        def filtered(self, state, graph, seqs, scores, own=None, informative=True):
+        def filtered(self, state, graph, seqs, scores, own=None, *rest, **kw):
             seqs, scores = np.asarray(seqs, np.int64), np.asarray(scores, np.float64)
             if own is not None and own.code_of is not None and seqs.size:
                 keep = np.ones(seqs.size, bool)
@@ -102,7 +102,7 @@ def install(variant: str) -> None:
                         u = int(graph.next[u])
                     keep[i] = back
                 seqs, scores = seqs[keep], scores[keep]
-            return step(self, state, graph, seqs, scores, own, informative)
+            return step(self, state, graph, seqs, scores, own, *rest, **kw)
 
         loc.SequenceLocaliser.step = filtered
 

@@ -179,9 +179,9 @@ def main(*, kind: str, value: float, beta: float, half: str, routes: str, method
                   "hub": lambda: hub(value, beta)}[kind]()
     step = loc.SequenceLocaliser.step
 
-    def changed(self, state, graph, seqs, scores, own_trail=None, informative=True):
+    def changed(self, state, graph, seqs, scores, own_trail=None, *rest, **kw):
         seqs, scores = np.asarray(seqs, np.int64), np.asarray(scores, np.float64)
-        return step(self, state, graph, seqs, change(graph, seqs, scores, own_trail), own_trail, informative)
+        return step(self, state, graph, seqs, change(graph, seqs, scores, own_trail), own_trail, *rest, **kw)
 
     loc.SequenceLocaliser.step = changed
     from service.evaluation import slam

@@ -244,8 +244,9 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                               weights=weights)
     t_ranked = time.perf_counter()
     moved = model.place_map.moves(st.mover, code, motion)
-    # a move its paths must keep pace with: by its look, and by its poses where it has them (§11.13)
-    departed = moved and model.place_map.departs(st.look, code)
+    # a move its paths must keep pace with: by its look, and by its poses where it has them; a flat
+    # frame's code is noise, no look (§11.13)
+    departed = moved and not flat and model.place_map.departs(st.look, code)
     if departed:
         st.look = code
     place = model.place_map.step(st.localiser, ranked, own, not flat, moved, departed)

@@ -58,7 +58,7 @@ class Stream:
         """The next frame starts a new sequence (and a new search for the place); the adaptation and the
         condition are kept, because they describe the camera and the conditions, not where the robot is."""
         self.new_sequence()
-        self.localiser = None
+        self.localiser, self.look = None, None
 
 
 def eviction_wait(streams: OrderedDict[str, Stream], name: str, max_streams: int, keep_seconds: float,
@@ -136,7 +136,7 @@ def resume_state(st: Stream) -> bytes:
     """What a replay of the stream's rows and visits cannot give back, packed (npz, no pickle): its
     localiser state (where it is on the map, docs/design/science.md §11) and its adaptation mean (its
     frames' projections are not stored). The context, the step bookkeeping and the condition are
-    replayed (docs/design/service.md §4.4). A few KB: beam × 33 bytes, plus k floats with adaptation."""
+    replayed (docs/design/service.md §4.4). A few KB: beam × 41 bytes, plus k floats with adaptation."""
     arrays = {} if st.localiser is None else {f"loc.{k}": v for k, v in st.localiser.to_arrays().items()}
     if st.adapt is not None:
         arrays["adapt"] = st.adapt.state()

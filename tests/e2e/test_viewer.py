@@ -182,15 +182,19 @@ def test_the_viewer_shows_a_mapped_loop_its_revisits_poses_and_thumbnails(chromi
         # confident, but more places than the map's span_max score near the best (science.md §11.11)
         wide = bool(place) and not place["revisit"] and place["span"] > SPAN_MAX \
             and place["confidence"] >= threshold
+        # confident, but the path fell behind the robot (science.md §11.13)
+        lagging = bool(place) and not place["revisit"] and place["lagging"] \
+            and place["confidence"] >= threshold
         assert got == ([str(place["seq"]), place["label"] or NONE,
                         "low information" if place["low_information"] else "wide span" if wide
-                        else "revisit" if place["revisit"] else "below threshold", str(place["support"]),
+                        else "lagging" if lagging else "revisit" if place["revisit"] else "below threshold",
+                        str(place["support"]),
                         str(place["span"])]
                        if place else [NONE] * 5)
         if place:  # two decimals at least, as many more as keep it on its side of the threshold
             shown = row["sequence place/confidence"]
             assert re.fullmatch(r"\d\.\d{2,}", shown) and abs(float(shown) - place["confidence"]) < 0.005
-            assert (float(shown) >= threshold) is (place["revisit"] or wide), (shown, place)
+            assert (float(shown) >= threshold) is (place["revisit"] or wide or lagging), (shown, place)
         assert row["top frame match/match"] == (str(top["seq"]) if top else NONE)
         assert row["top frame match/score"] == (f"{top['score']:.3f}" if top else NONE)
         # the thumbnails: the query frame's (localised ones too: the recent ring keeps it), the place's

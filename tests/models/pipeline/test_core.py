@@ -339,6 +339,27 @@ def test_an_unconfident_frame_is_consolidated_only_above_the_maps_unsure_fractio
     assert (step.visit == 3) is consolidated
 
 
+@pytest.mark.parametrize(("confidence", "advancing", "visit", "joined"),
+                         [(0.6, True, 3, True), (0.6, False, None, False), (0.95, False, None, False),
+                          (0.95, True, None, True)])
+def test_a_path_that_lags_its_stream_consolidates_and_joins_nothing(
+        confidence: float, advancing: bool, visit: int | None, joined: bool,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """An answer whose path fell behind its stream (`Place.advancing` False, docs/design/science.md
+    §11.13) is unsure whatever its confidence: its frame is not consolidated into the place it names and
+    joins no place; the same answer in step with its stream is a visit (above the unsure fraction) or a
+    revisit that joins the place (at or above the threshold, here a frame unlike every appearance)."""
+    m = model("none")
+    learn_route(m, route(6), Stream())
+    place = Place(seq=3, confidence=confidence, support=5, place=m.place_map.place_of(3), advancing=advancing)
+    monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: place)
+    monkeypatch.setattr(m.place_map, "consolidation", lambda *args, **kwargs: 3 if confidence < 0.9 else None)
+    step = observe(m, Stream(), route(1, seed=9)[0], learn=True, stream="b", top_k=3, seq=7,
+                   code_of=CODES.__getitem__, threshold=REVISIT)
+    assert step.visit == visit
+    assert (step.joined >= 0) is joined
+
+
 @pytest.mark.parametrize(("frame", "visit"), [(3, 4), (2, 3), (4, None)])
 def test_a_confident_frame_like_the_row_one_link_from_its_path_is_a_visit_of_it_not_a_new_appearance(
         frame: int, visit: int | None, monkeypatch: pytest.MonkeyPatch) -> None:

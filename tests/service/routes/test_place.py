@@ -49,7 +49,7 @@ def test_a_revisit_of_a_learned_route_answers_its_rows(tmp_path):
     assert body["versions"]["backbone"] == "alexnet"
     assert set(body["place"]) == {"seq", "observation_id", "stream", "label", "confidence", "revisit",
                                   "support", "metadata", "verification", "low_information", "place_id",
-                                  "span", "span_seqs"}
+                                  "span", "span_seqs", "lagging"}
     assert body["place"]["verification"] is None  # a map without keyframes verifies nothing
     assert body["place"]["low_information"] is False  # smooth scenes: every frame informative
 

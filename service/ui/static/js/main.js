@@ -152,7 +152,7 @@ function revisitCell(place, threshold, spanMax) {
                               + "map's span_margin of the best, more than its span_max: no revisit" },
               el("span", { class: "badge below" }, "wide span"));
   }
-  if (place.lagging && !place.revisit) {  // science.md §11.13
+  if (!place.revisit && place.lagging && place.confidence >= threshold) {  // science.md §11.13
     return el("td", { title: "the path stayed on its rows while the robot moved on: it has fallen more than "
                               + "the map's lag_max of the robot's moves behind, so no revisit" },
               el("span", { class: "badge below" }, "lagging"));
