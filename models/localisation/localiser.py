@@ -387,14 +387,14 @@ class SequenceLocaliser:
         r = np.concatenate(new_rows)
         d = np.concatenate(new_dirs).astype(np.int8)
         s = np.concatenate(new_scores) + _lookup(ev_rows, ev, r)
-        a, b, st = np.concatenate(new_ages), np.concatenate(new_born), np.concatenate(new_lags)
+        a, b, lag = np.concatenate(new_ages), np.concatenate(new_born), np.concatenate(new_lags)
         if own is not None and r.size:
             # A path ends where it walks onto the rows the stream has not left, or onto the trail the
             # stream laid while the path was followed, unless the frame is more like that row than like
             # where the stream just was: an echo of where it just was is no place it came back to (§11.6).
             ends = own.holds(graph, r)
             ends[~ends] = own.laid_behind(graph, r[~ends], b[~ends])
-            r, d, s, a, b, st = r[~ends], d[~ends], s[~ends], a[~ends], b[~ends], st[~ends]
+            r, d, s, a, b, lag = r[~ends], d[~ends], s[~ends], a[~ends], b[~ends], lag[~ends]
 
         # Viterbi: one survivor per (row, direction), the best score; ties to the older path.
         key = r * 2 + (d > 0)
@@ -423,7 +423,7 @@ class SequenceLocaliser:
         state.born[:] = 0
         state.lags[:] = 0
         state.rows[:n], state.dirs[:n], state.scores[:n], state.ages[:n] = r[idx], d[idx], s[idx], a[idx]
-        state.born[:n], state.lags[:n] = b[idx], st[idx]
+        state.born[:n], state.lags[:n] = b[idx], lag[idx]
         state.frames += 1
         if state.frames < c.warmup or n == 0:
             return None
