@@ -7,7 +7,8 @@ Place (`topics.place`, one per answered frame)::
     {"stamp": {"sec", "nanosec"}, "frame_id", "map_id", "stream", "learned", "seq", "consolidated_into",
      "pose": {"x", "y", "yaw", "frame_id"} | null,            # the frame's pose as posted (camera's)
      "place": null | {"seq", "place_id", "observation_id", "stream", "label", "confidence", "revisit",
-                      "support", "low_information", "stamp": Time | null, "pose": Pose | null,
+                      "support", "low_information", "span", "span_seqs", "lagging",
+                      "stamp": Time | null, "pose": Pose | null,
                       "verification": {...} | null},            # the service's place (§1.2)
      "matches": [{"rank", "seq", "stream", "score", "overlap", "stamp": Time | null, "pose": Pose | null}],
      "latency_ms", "request_id"}
@@ -70,7 +71,8 @@ def place_json(answer: Observation, stamp: Stamp, frame_id: str, pose: Pose2D | 
     place = None if p is None else {
         "seq": p.seq, "place_id": p.place_id, "observation_id": p.observation_id, "stream": p.stream,
         "label": p.label, "confidence": p.confidence, "revisit": p.revisit, "support": p.support,
-        "low_information": p.low_information, "stamp": _time(stored_stamp(p.metadata)),
+        "low_information": p.low_information, "span": p.span, "span_seqs": p.span_seqs,
+        "lagging": p.lagging, "stamp": _time(stored_stamp(p.metadata)),
         "pose": _pose(place_pose(p, default_frame)),
         "verification": None if p.verification is None else p.verification.model_dump()}
     return {"stamp": stamp.as_json(), "frame_id": frame_id, "map_id": answer.map_id, "stream": answer.stream,

@@ -174,6 +174,10 @@ def test_a_verified_loop_closure_carries_the_relative_pose_of_the_services_g2o_e
     assert np.allclose(got, want, atol=1e-8)
     assert loop_closure_json(_answer({**place, "revisit": False}), Stamp(1), "cam", None, "map") is None
     assert place_json(_answer(None), Stamp(1), "cam", None, 3.0, "map")["place"] is None
+    # the place document says why a confident answer is no revisit, as the service's reply does
+    said = place_json(_answer({**place, "revisit": False, "lagging": True}), Stamp(1), "cam", None, 3.0,
+                      "map")["place"]
+    assert said["lagging"] is True and said["span"] == 2 and said["span_seqs"] == [4, 5]
 
 
 def test_a_robots_nodes_name_one_trail_its_namespace_unless_the_parameter_names_another():
