@@ -44,6 +44,15 @@ def informative(contrast: float | None) -> bool:
     return contrast is None or contrast >= MIN_CONTRAST
 
 
+def flat_share(contrast: float | None) -> float:
+    """The share of its evidence a flat row (§11.7) keeps from a frame of this contrast: all of it from a
+    frame as flat as a flat row may be (`MIN_CONTRAST` or under), 1/k from a frame k times as contrasted
+    (a lit scene keeps a few hundredths). A flat row shows no scene, so a frame that shows one is unlike
+    it however it ranks among rows as blank; a near-flat frame (a tunnel under pixel noise) may be its
+    place. None (not measured): all of it."""
+    return 1.0 if contrast is None or contrast <= MIN_CONTRAST else MIN_CONTRAST / contrast
+
+
 #: Rows `Place.span_seqs` lists at most: the best-scoring row of each place in the span, best first
 #: (docs/design/science.md §11.11). The count, `Place.span`, is always exact; a span wider than the list
 #: is far wider than a revisit may be (`span_max`, default 3), and the reply stays small.
@@ -309,7 +318,7 @@ class SequenceLocaliser:
 
     def step(self, state: LocaliserState, graph: SequenceGraph, seqs: np.ndarray,
              scores: np.ndarray, own: OwnTrail | None = None, informative: bool = True,
-             moved: bool = True, departed: bool = False) -> Place | None:
+             moved: bool = True, departed: bool = False, shares: np.ndarray | None = None) -> Place | None:
         """Advance one stream by one frame and answer its place.
 
         Args:
@@ -326,6 +335,9 @@ class SequenceLocaliser:
                 cost of a step.
             departed: the frame is a move of its stream by its look and its poses (`PlaceMap.departs`):
                 a path that does not advance a row with it falls a move behind (§11.13).
+            shares: (K,) in [0, 1] with `seqs`, the share of its evidence each candidate keeps: under 1
+                for a flat row under a frame with more contrast (`flat_share`, `PlaceMap.step`, §11.7);
+                the null reads its level from the candidates' whole spread first. None: all of it.
 
         Returns:
             The place, or None while fewer than `warmup` frames were seen or no candidate was ever given.
@@ -334,14 +346,17 @@ class SequenceLocaliser:
         seqs, scores = np.asarray(seqs, np.int64), np.asarray(scores, np.float64)
         if seqs.size and (seqs.min() < 0 or seqs.max() >= len(graph)):
             raise ValueError("a candidate row is not in the graph")
+        shares = np.ones(seqs.size) if shares is None else np.asarray(shares, np.float64)
+        if shares.shape != seqs.shape or np.any((shares < 0) | (shares > 1)):
+            raise ValueError(f"shares must be one in [0, 1] a candidate, got {shares.shape} for {seqs.shape}")
         if not informative:
-            seqs, scores = seqs[:0], scores[:0]
+            seqs, scores, shares = seqs[:0], scores[:0], shares[:0]
         if own is not None and seqs.size:
             mine = own.holds(graph, seqs)
-            seqs, scores = seqs[~mine], scores[~mine]
+            seqs, scores, shares = seqs[~mine], scores[~mine], shares[~mine]
         if seqs.size > c.top_k:
             keep = np.lexsort((seqs, -scores))[:c.top_k]
-            seqs, scores = seqs[keep], scores[keep]
+            seqs, scores, shares = seqs[keep], scores[keep], shares[keep]
         ev_rows, ev = evidence(seqs, scores)
         decay = c.decay
         live = state.rows >= 0
@@ -354,6 +369,12 @@ class SequenceLocaliser:
         jump = self._jump_level(past, null)
         # The null stays (no move cost) or is entered by that same jump.
         state.null = max(null, jump) + null_evidence(ev, c.null_quantile)
+        if (shares < 1).any():
+            # A flat row keeps a share of its evidence (§11.7). Evidence is relative: scored among rows
+            # as blank as itself, a flat row earned what the best of a bad lot earns, and a path walking
+            # a stored tunnel while its stream saw scenery kept up with the null and came out of it past
+            # the jump cost, onto whatever rows follow the tunnel. The null's level is read first.
+            ev = ev * shares[np.argsort(seqs, kind="stable")]  # in `evidence`'s order
 
         new_rows, new_dirs, new_scores, new_ages, new_born, new_lags = [], [], [], [], [], []
         cur = rows

@@ -19,7 +19,7 @@ import numpy as np
 
 from models.localisation.graph import NONE, SequenceGraph
 from models.localisation.index import Match
-from models.localisation.localiser import LocaliserState, Place, SequenceLocaliser
+from models.localisation.localiser import LocaliserState, Place, SequenceLocaliser, flat_share, informative
 from models.localisation.motion import NO_MOTION, Motion
 from models.localisation.odometry import Odometer, RowOdometry
 from models.localisation.options import LocaliserOptions
@@ -460,7 +460,7 @@ class PlaceMap:
                                         informative)
 
     def step(self, state: LocaliserState, ranked: Sequence[Match], own: OwnTrail | None,
-             informative: bool = True, moved: bool = True, departed: bool = False) -> Place | None:
+             contrast: float | None = None, moved: bool = True, departed: bool = False) -> Place | None:
         """One frame of one stream (docs/design/science.md §11.2), before this frame is stored.
 
         Args:
@@ -468,8 +468,10 @@ class PlaceMap:
             ranked: the index's pass for the frame's winner cells, best first (Dice scores), without
                 the rows the stream has not left; the localiser leaves out the rest of `own` and keeps
                 its `top_k` best.
-            own: the stream's own rows (`own_trail`). informative: False for a frame too flat to say
-                where it is (`localiser.informative`, §11.7): no evidence, no revisit.
+            own: the stream's own rows (`own_trail`).
+            contrast: the frame's (None: not measured). Under `MIN_CONTRAST` it is too flat to say where
+                it is (`localiser.informative`, §11.7): no evidence, no revisit; over it, a flat row
+                keeps `flat_share` of its evidence (§11.7).
             moved: False where the frame is no move of its stream by its poses (`moves`, §11.6).
             departed: the frame is a move of its stream by its look (`departs`, §11.13).
 
@@ -478,7 +480,10 @@ class PlaceMap:
         """
         seqs = np.fromiter((m.seq for m in ranked), np.int64, len(ranked))
         scores = np.fromiter((m.score for m in ranked), np.float64, len(ranked))
-        return self.localiser.step(state, self.graph, seqs, scores, own, informative, moved, departed)
+        flat = self.flat[seqs] if seqs.size else np.zeros(0, bool)
+        shares = np.where(flat, flat_share(contrast), 1.0) if flat.any() else None
+        return self.localiser.step(state, self.graph, seqs, scores, own, informative(contrast), moved,
+                                   departed, shares)
 
 
 def _recent(kept: OrderedDict[str, T], key: str, new: Callable[[], T]) -> T:

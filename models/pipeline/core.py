@@ -249,7 +249,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     departed = moved and not flat and model.place_map.departs(st.look, code)
     if departed:
         st.look = code
-    place = model.place_map.step(st.localiser, ranked, own, not flat, moved, departed)
+    place = model.place_map.step(st.localiser, ranked, own, contrast, moved, departed)
     visit, joined, dropped, touched, joins = None, -1, (), [], []
     if learn:
         assert seq is not None

@@ -18,7 +18,7 @@ from models.localisation import (
     top_candidates,
 )
 from models.localisation.condition import Condition
-from models.localisation.localiser import SPAN_LISTED, evidence
+from models.localisation.localiser import MIN_CONTRAST, SPAN_LISTED, evidence, flat_share
 from models.localisation.short_term import ShortTerm
 from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 
@@ -521,6 +521,59 @@ def test_a_frame_with_no_information_is_no_evidence_and_never_a_revisit() -> Non
     assert not any(p.is_revisit(REVISIT) for p in told[30:])
     assert [p.informative for p in told[30:]] == [False] * 5 + [True] * 4
     assert not told[32].is_revisit(0.0)  # whatever the threshold
+
+
+def tunnel_then_alias(seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """A stream on ground never stored whose candidates, its own trail left out, are a stored tunnel's
+    30 flat rows (0-29; one in step with it a little ahead of the rest, as noise will be somewhere),
+    then frames a little like the 10 rows after the tunnel (30-39, an alias) on an 80-row chain."""
+    rng = np.random.default_rng(seed)
+    frames = []
+    for j in range(30):
+        scores = 0.30 + 0.01 * rng.standard_normal(30)
+        scores[j] += 0.015
+        frames.append((np.arange(30), scores))
+    for j in range(30, 40):
+        scores = 0.30 + 0.01 * rng.standard_normal(80)
+        scores[j] += 0.03
+        frames.append((np.arange(80), scores))
+    return frames
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_stored_tunnel_is_no_way_through_for_a_stream_that_sees_scenery(seed: int) -> None:
+    # docs/design/science.md §11.7: at rate 3 on `tune` files 1-200 a path walked the drive's stored
+    # tunnel (flat rows) in step with its stream, which saw scenery; scored among rows as blank as they
+    # it kept up with the null and came out past the jump cost onto the rows after the tunnel, a false
+    # revisit at every map seed. A flat row keeps a share of its evidence, the less the more contrast
+    # the frame has.
+    frames, graph = tunnel_then_alias(seed), SequenceGraph.chain(80)
+
+    def run_with(share: float | None) -> list:
+        loc = SequenceLocaliser()
+        state = loc.new_state()
+        return [loc.step(state, graph, s, c, shares=None if share is None else np.where(s < 30, share, 1.0))
+                for s, c in frames]
+
+    assert any(p.is_revisit(REVISIT) for p in run_with(None)[30:])  # the failure the rule prevents
+    lit = run_with(flat_share(0.75))  # a lit scene's contrast on Nordland
+    assert not any(p.is_revisit(REVISIT) for p in lit if p is not None)
+    # a frame as flat as a flat row may be keeps all of its evidence: the answers are what they were
+    def answers(places: list) -> list:
+        return [p and (p.seq, p.confidence) for p in places]
+
+    assert answers(run_with(flat_share(MIN_CONTRAST))) == answers(run_with(None))
+    with pytest.raises(ValueError, match="one in \\[0, 1\\] a candidate"):
+        SequenceLocaliser().step(SequenceLocaliser().new_state(), graph, *frames[0], shares=np.ones(3))
+    with pytest.raises(ValueError, match="one in"):
+        SequenceLocaliser().step(SequenceLocaliser().new_state(), graph, *frames[0], shares=np.full(30, 1.5))
+
+
+def test_a_flat_row_keeps_all_of_its_evidence_from_a_flat_frame_and_less_the_more_contrast() -> None:
+    assert flat_share(None) == flat_share(0.0) == flat_share(MIN_CONTRAST) == 1.0
+    shares = [flat_share(c) for c in (0.06, 0.3, 0.75)]  # a tunnel under σ 8 noise, dim, lit
+    assert shares == sorted(shares, reverse=True) and shares[0] == pytest.approx(0.5)
+    assert shares[-1] < 0.05
 
 
 def test_a_frame_with_no_information_leaves_no_row_of_the_own_trail() -> None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.localisation import Place
+from models.localisation import MIN_CONTRAST, Place
 from models.pipeline import MapModel, Stream, observe
 from tests.models.pipeline.test_core import REVISIT, model, route, slow_route
 
@@ -93,3 +93,25 @@ def test_a_second_laps_tunnel_is_visits_of_the_first_laps_flat_rows() -> None:
             assert second[i].place is not None and not second[i].place.informative
             assert second[i].place.confidence >= REVISIT * m.place_map.options.unsure_fraction
             assert second[i].visit in flat_rows, (seed, i, second[i].visit)
+
+
+def test_a_frames_flat_candidates_keep_the_share_of_evidence_its_contrast_gives(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """§11.7: a flat row shows no scene. Among a frame's candidates it keeps `flat_share` of its evidence:
+    all of it from a frame as flat as it (or one whose contrast was not measured), a tenth from a frame
+    of contrast 0.3; every other row all of it."""
+    m, codes = flat_map()
+    real, seen = m.place_map.localiser.step, []
+
+    def spy(state, graph, seqs, scores, own, informative, moved, departed, shares):
+        seen.append((np.asarray(seqs).tolist(), shares))
+        return real(state, graph, seqs, scores, own, informative, moved, departed, shares)
+
+    monkeypatch.setattr(m.place_map.localiser, "step", spy)
+    for contrast in (None, MIN_CONTRAST, 0.3):
+        observe(m, Stream(), route(6)[2], learn=False, stream="b", top_k=3, code_of=codes.__getitem__,
+                contrast=contrast)
+    (seqs, unmeasured), (_, as_flat), (_, lit) = seen
+    assert 3 in seqs and np.all(unmeasured == 1.0)
+    assert np.all(as_flat == 1.0)
+    assert lit.tolist() == [pytest.approx(0.1) if s == 3 else 1.0 for s in seqs]
