@@ -50,7 +50,8 @@ def flat_share(contrast: float | None) -> float:
     (a lit scene keeps a few hundredths). A flat row shows no scene, so a frame that shows one is unlike
     it however it ranks among rows as blank; a near-flat frame (a tunnel under pixel noise) may be its
     place. None (not measured): all of it."""
-    return 1.0 if contrast is None or contrast <= MIN_CONTRAST else MIN_CONTRAST / contrast
+    # (written so a contrast that is no number keeps all of it: such a frame is no evidence anyway)
+    return MIN_CONTRAST / contrast if contrast is not None and contrast > MIN_CONTRAST else 1.0
 
 
 #: Rows `Place.span_seqs` lists at most: the best-scoring row of each place in the span, best first
@@ -347,7 +348,7 @@ class SequenceLocaliser:
         if seqs.size and (seqs.min() < 0 or seqs.max() >= len(graph)):
             raise ValueError("a candidate row is not in the graph")
         shares = np.ones(seqs.size) if shares is None else np.asarray(shares, np.float64)
-        if shares.shape != seqs.shape or np.any((shares < 0) | (shares > 1)):
+        if shares.shape != seqs.shape or not np.all((shares >= 0) & (shares <= 1)):
             raise ValueError(f"shares must be one in [0, 1] a candidate, got {shares.shape} for {seqs.shape}")
         if not informative:
             seqs, scores, shares = seqs[:0], scores[:0], shares[:0]

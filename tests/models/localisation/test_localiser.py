@@ -563,14 +563,14 @@ def test_a_stored_tunnel_is_no_way_through_for_a_stream_that_sees_scenery(seed: 
         return [p and (p.seq, p.confidence) for p in places]
 
     assert answers(run_with(flat_share(MIN_CONTRAST))) == answers(run_with(None))
-    with pytest.raises(ValueError, match="one in \\[0, 1\\] a candidate"):
-        SequenceLocaliser().step(SequenceLocaliser().new_state(), graph, *frames[0], shares=np.ones(3))
-    with pytest.raises(ValueError, match="one in"):
-        SequenceLocaliser().step(SequenceLocaliser().new_state(), graph, *frames[0], shares=np.full(30, 1.5))
+    loc = SequenceLocaliser()
+    for bad in (np.ones(3), np.full(30, 1.5), np.full(30, np.nan)):  # one a candidate, in [0, 1]
+        with pytest.raises(ValueError, match="one in \\[0, 1\\] a candidate"):
+            loc.step(loc.new_state(), graph, *frames[0], shares=bad)
 
 
 def test_a_flat_row_keeps_all_of_its_evidence_from_a_flat_frame_and_less_the_more_contrast() -> None:
-    assert flat_share(None) == flat_share(0.0) == flat_share(MIN_CONTRAST) == 1.0
+    assert flat_share(None) == flat_share(0.0) == flat_share(MIN_CONTRAST) == flat_share(float("nan")) == 1.0
     shares = [flat_share(c) for c in (0.06, 0.3, 0.75)]  # a tunnel under σ 8 noise, dim, lit
     assert shares == sorted(shares, reverse=True) and shares[0] == pytest.approx(0.5)
     assert shares[-1] < 0.05
