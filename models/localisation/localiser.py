@@ -430,7 +430,8 @@ class SequenceLocaliser:
             # The frame's best candidate row keeps its hypotheses (§11.2 step 4): a beam full of older
             # paths, all above the jump level, would otherwise cut every path that starts there, and a
             # stream back on its map after a long lap could not begin the right one for ~100 frames.
-            mine = r[idx] == seqs[np.lexsort((seqs, -scores))[0]]
+            # Best by the evidence it keeps (ties to the lower row): a flat row under scenery is not.
+            mine = r[idx] == ev_rows[int(np.argmax(ev))]
             # (at most 2: one per direction; a beam of 1 or 2 keeps its best path instead)
             if mine[beam:].any() and beam > int(mine.sum()):
                 others = np.flatnonzero(~mine)[:beam - int(mine.sum())]

@@ -19,7 +19,8 @@ import numpy as np
 
 from models.localisation.graph import NONE, SequenceGraph
 from models.localisation.index import Match
-from models.localisation.localiser import LocaliserState, Place, SequenceLocaliser, flat_share, informative
+from models.localisation.localiser import LocaliserState, Place, SequenceLocaliser, flat_share
+from models.localisation.localiser import informative as is_informative
 from models.localisation.motion import NO_MOTION, Motion
 from models.localisation.odometry import Odometer, RowOdometry
 from models.localisation.options import LocaliserOptions
@@ -480,9 +481,11 @@ class PlaceMap:
         """
         seqs = np.fromiter((m.seq for m in ranked), np.int64, len(ranked))
         scores = np.fromiter((m.score for m in ranked), np.float64, len(ranked))
-        flat = self.flat[seqs] if seqs.size else np.zeros(0, bool)
+        # (a row outside the map is the localiser's to refuse, not an index to wrap)
+        ok = seqs.size and seqs.min() >= 0 and seqs.max() < self.flat.size
+        flat = self.flat[seqs] if ok else np.zeros(seqs.size, bool)
         shares = np.where(flat, flat_share(contrast), 1.0) if flat.any() else None
-        return self.localiser.step(state, self.graph, seqs, scores, own, informative(contrast), moved,
+        return self.localiser.step(state, self.graph, seqs, scores, own, is_informative(contrast), moved,
                                    departed, shares)
 
 

@@ -20,6 +20,7 @@ from models.localisation import (
 from models.localisation.condition import Condition
 from models.localisation.localiser import MIN_CONTRAST, SPAN_LISTED, evidence, flat_share
 from models.localisation.short_term import ShortTerm
+from models.localisation.trail import OwnTrail
 from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 
 REVISIT = DEFAULT_REVISIT_THRESHOLD  # the service's default: the answers these tests pin are its decisions
@@ -567,6 +568,54 @@ def test_a_stored_tunnel_is_no_way_through_for_a_stream_that_sees_scenery(seed: 
     for bad in (np.ones(3), np.full(30, 1.5), np.full(30, np.nan)):  # one a candidate, in [0, 1]
         with pytest.raises(ValueError, match="one in \\[0, 1\\] a candidate"):
             loc.step(loc.new_state(), graph, *frames[0], shares=bad)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_each_candidate_keeps_its_own_share_whatever_the_order_filters_and_cut(seed: int) -> None:
+    # Shares come with the candidates in the index's order; the evidence is computed in row order, after
+    # the stream's own rows and all but the `top_k` best are left out. A first frame's paths are born at
+    # the jump level plus their evidence, so each row's score above it must be its share of what it is
+    # with every share 1.
+    rng = np.random.default_rng(seed)
+    n, top_k = 60, 25
+    graph = SequenceGraph.chain(n)
+    seqs = rng.permutation(n)[:45]  # the index's order, not the rows'
+    scores = rng.random(seqs.size)
+    shares = np.where(rng.random(seqs.size) < 0.5, rng.uniform(0.05, 0.95, seqs.size), 1.0)
+    own = OwnTrail.short_term_only(np.sort(rng.choice(n, 10, replace=False)))
+    loc = SequenceLocaliser(LocaliserOptions.of({"top_k": top_k, "warmup": 1, "beam": 200}))
+    by_row = {}
+    for given in (None, shares):
+        state = loc.new_state()
+        loc.step(state, graph, seqs, scores, own, shares=given)
+        live = (state.rows >= 0) & (state.dirs > 0)
+        by_row[given is None] = dict(zip(state.rows[live].tolist(), state.scores[live].tolist(), strict=True))
+    jump = -float(loc.options.jump_cost)  # a first frame: no past, rows start at 0 - jump_cost
+    share_of = dict(zip(seqs.tolist(), shares.tolist(), strict=True))
+    kept = [r for r in by_row[True] if not own.holds(graph, np.array([r]))[0]]
+    assert len(kept) == top_k and set(by_row[False]) == set(by_row[True])
+    for r in kept:
+        assert by_row[False][r] - jump == pytest.approx(share_of[r] * (by_row[True][r] - jump)), r
+
+
+def test_a_full_beam_keeps_the_paths_of_the_best_candidate_by_the_evidence_it_keeps() -> None:
+    # §11.2 step 4 with §11.7: a beam of 4 full of strong older paths; the frame's highest-scoring row is
+    # a flat row under scenery (a few hundredths of its evidence), so the row it keeps its paths for is
+    # the best by what it keeps, not by its raw score.
+    loc = SequenceLocaliser(LocaliserOptions.of({"beam": 4, "warmup": 1}))
+    graph, state = SequenceGraph.chain(80), loc.new_state()
+    rng = np.random.default_rng(0)
+    for j in range(12):
+        scores = 0.3 + 0.01 * rng.standard_normal(20)
+        scores[j] += 0.5
+        loc.step(state, graph, np.arange(20), scores)
+    scores = 0.3 + 0.01 * rng.standard_normal(20)
+    scores[10] += 0.6  # row 50: the raw best, flat
+    scores[5] += 0.4   # row 45
+    shares = np.ones(20)
+    shares[10] = flat_share(0.75)
+    loc.step(state, graph, np.arange(40, 60), scores, shares=shares)
+    assert 45 in state.rows.tolist() and 50 not in state.rows.tolist()
 
 
 def test_a_flat_row_keeps_all_of_its_evidence_from_a_flat_frame_and_less_the_more_contrast() -> None:
