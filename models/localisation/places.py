@@ -152,7 +152,8 @@ class PlaceMap:
         """A row just learned, after `prev` (None: the start of a sequence), its frame code, and the place
         it shows (-1: a new place). It continues `prev`'s trail only when `prev` is its stream's last made
         row; after a consolidated frame `prev` is a row it visited, and a new trail starts (§11.8), and
-        the stream's last made row, if it had no successor, gets this one. `remade`: a row a repair
+        the stream's last made row, if it still has no successor (its visits named no stream, §11.1),
+        gets this one. `remade`: a row a repair
         re-made from a visit (§11.6), learned long before its seq: a trail of its own after `prev`, not
         its stream's last row, no step of its short-term memory (its visit was that step). `motion`: the
         frame's pose, stamp and trail (its short-term memory, §11.6). `flat`: its frame was flat (§11.7)."""
@@ -185,7 +186,10 @@ class PlaceMap:
         `clock`: the link, and the row's recency (§11.8); with `stream` and the frame's `code`, a learned
         frame of that stream that made no row (its short-term memory, §11.6; `motion` as in `add`)."""
         if prev is not None:
-            self.graph.link(prev, row)
+            # the stream's last made row, if it led nowhere, leads where the stream went next: to this
+            # row, not to the next row it makes after the visits (a shortcut over every place visited
+            # in between, which paths walking its route then took onto rows files ahead, §11.1)
+            self.graph.link(prev, row, successor=stream is not None and self._last_row.get(stream) == prev)
         self.touch(row, clock)
         if stream is not None and code is not None:
             self._learned(stream, NONE, code, motion)
@@ -328,8 +332,9 @@ class PlaceMap:
         r = int(place.seq)
         if neighbours and 0 <= r < len(self.graph):
             prev, nxt = int(self.graph.prev[r]), int(self.graph.next[r])
-            # the successor only where it continues r: `add` also makes a stream's next made row the
-            # successor of its last one across consolidated frames (rows far apart on the route)
+            # the successor only where it continues r: a stream's last made row leads on to the row it
+            # visited next, and (visits that named no stream) `add` makes its next made row the
+            # successor across consolidated frames (rows far apart on the route, §11.1)
             near = [prev, nxt if nxt >= 0 and int(self.graph.prev[nxt]) == r else -1]
         around = {int(self.graph.place[n]) for n in near if n >= 0} - {place.place, -1}
         tiers = []
