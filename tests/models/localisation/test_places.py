@@ -165,6 +165,27 @@ def test_the_maps_forget_percent_is_the_batch_the_cap_rule_forgets_and_states() 
     assert "at least 5% of max_rows" in forgetting.rule(5) and "at least 1% of" in forgetting.rule(1)
 
 
+def b_visits_a(named: bool) -> tuple[PlaceMap, dict[int, np.ndarray], list[tuple[Any, ...]]]:
+    """Stream a's route, rows 0-9; stream b made row 10 (a second appearance of place 2), had its frames
+    consolidated into rows 3-7 (visits that name their stream where `named`), then made row 11 (place 8)
+    after row 7. Returns the map, the rows' codes and b's visits."""
+    rng = np.random.default_rng(0)
+    width = 2048
+    codes = {s: np.sort(rng.choice(width, 40, replace=False)).astype(np.int64) for s in range(12)}
+    codes[10], codes[11] = codes[2], codes[8]
+    pm = PlaceMap(LocaliserOptions.of({"short_term": 0}), code_width=width)
+    for s in range(10):
+        pm.add(s, s - 1 if s else None, codes[s], stream="a")
+    pm.add(10, None, codes[10], stream="b", place=2)
+    last, visits = 10, []
+    for v in (3, 4, 5, 6, 7):
+        visits.append((last, v, 11, "b", codes[v]) if named else (last, v, 11))
+        pm.visit(*visits[-1])
+        last = v
+    pm.add(11, last, codes[11], stream="b", place=8)
+    return pm, codes, visits
+
+
 def test_consolidation_reads_the_route_neighbours_not_a_successor_across_consolidated_frames() -> None:
     """A frame is a visit of the place just before or after its path's row along the route (docs/design/
     science.md §11.8), and only that: stream b made row 10 (a second appearance of place 2), had its
@@ -172,20 +193,7 @@ def test_consolidation_reads_the_route_neighbours_not_a_successor_across_consoli
     where the visits did not say whose they were (a visit log from before they did). Six places on from
     row 10, row 11's place is no neighbour of it (the successor counts only where it continues the row),
     while row 3, row 2's successor on its route, is one of row 2."""
-    rng = np.random.default_rng(0)
-    width = 2048
-    codes = {s: np.sort(rng.choice(width, 40, replace=False)).astype(np.int64) for s in range(12)}
-    pm = PlaceMap(LocaliserOptions.of({"short_term": 0}), code_width=width)
-    for s in range(10):
-        pm.add(s, s - 1 if s else None, codes[s], stream="a")
-    codes[10] = codes[2]
-    pm.add(10, None, codes[10], stream="b", place=2)
-    last = 10
-    for v in (3, 4, 5, 6, 7):
-        pm.visit(last, v, 11)
-        last = v
-    codes[11] = codes[8]
-    pm.add(11, last, codes[11], stream="b", place=8)
+    pm, codes, _ = b_visits_a(named=False)
     assert pm.graph.next[10] == 11  # the link the rule must not read as the route
     on10 = Place(seq=10, confidence=0.99, support=5, place=2)
     assert pm.consolidation(on10, codes[8], codes.__getitem__) is None
@@ -198,21 +206,9 @@ def test_a_streams_last_made_row_leads_where_the_stream_went_next_not_to_its_nex
     """§11.8: stream b made row 10, then its frames were consolidated into rows 3-7 of stream a's route,
     then it made row 11. Row 10 leads on to row 3, where b went, so a path on row 10 walks on along the
     route; before, `add` made row 11 its successor, and a path walked from row 10 to row 11, five places
-    ahead (on the stress suite's short loop, a false revisit several files ahead). A rebuild from the rows and
-    the visits in the order they were learned gives the same links."""
-    rng = np.random.default_rng(0)
-    width = 2048
-    codes = {s: np.sort(rng.choice(width, 40, replace=False)).astype(np.int64) for s in range(12)}
-    pm = PlaceMap(LocaliserOptions.of({"short_term": 0}), code_width=width)
-    for s in range(10):
-        pm.add(s, s - 1 if s else None, codes[s], stream="a")
-    pm.add(10, None, codes[2], stream="b", place=2)
-    last, visits = 10, []
-    for v in (3, 4, 5, 6, 7):
-        visits.append((last, v, 11, "b", codes[v]))
-        pm.visit(*visits[-1])
-        last = v
-    pm.add(11, last, codes[8], stream="b", place=8)
+    ahead (on the stress suite's short loop, a false revisit several files ahead). A rebuild from the
+    rows and the visits in the order they were learned gives the same links."""
+    pm, codes, visits = b_visits_a(named=True)
     assert pm.graph.next[10] == 3 and pm.graph.prev[11] == 7
     assert pm.graph.walk(np.array([10, 10]), np.array([1, 1]), 2).tolist() == [4, 4]
     assert 11 in pm.graph.within(10, 1)  # still its neighbour, as a link to a row it made
@@ -225,7 +221,7 @@ def test_a_streams_last_made_row_leads_where_the_stream_went_next_not_to_its_nex
         place: int | None
 
     rows = [Row(s, s - 1 if s else None, codes[s], "a", None) for s in range(10)]
-    rows += [Row(10, None, codes[2], "b", 2), Row(11, 7, codes[8], "b", 8)]
-    again = PlaceMap(LocaliserOptions.of({"short_term": 0}), code_width=width)
-    again.rebuild(rows, visited=[(p, r, 11, st, c) for p, r, _, st, c in visits])
+    rows += [Row(10, None, codes[10], "b", 2), Row(11, 7, codes[11], "b", 8)]
+    again = PlaceMap(LocaliserOptions.of({"short_term": 0}), code_width=2048)
+    again.rebuild(rows, visited=visits)
     assert again.graph.next[:12].tolist() == pm.graph.next[:12].tolist()
