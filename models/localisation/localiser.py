@@ -89,8 +89,10 @@ class Place(NamedTuple):
         span_seqs: for each of those places, best first, the row its best path ends on (`seq` first);
             at most SPAN_LISTED of them.
         narrow: the span is at most `span_max` places: a revisit needs it (`is_revisit`, §11.11).
-        advancing: the best path has fallen at most `lag_max` of its stream's moves behind it (§11.13):
-            a revisit needs it (`is_revisit`).
+        advancing: the best path keeps pace with its stream (§11.13): it has fallen at most `lag_max` of
+            its stream's moves behind it, and it is not walking back along the trail its stream lays on a
+            frame that does not show its row, with no word from odometry (`mirrors`). A revisit needs it
+            (`is_revisit`).
     """
 
     seq: int
@@ -451,6 +453,8 @@ class SequenceLocaliser:
         if state.frames < c.warmup or n == 0:
             return None
         place = self._answer(state, graph, n, jump)
+        if place.advancing and mirrors(own, graph, int(state.rows[0]), int(state.dirs[0])):
+            place = place._replace(advancing=False)
         return place if informative else place._replace(informative=False)
 
     def _jump_level(self, past: np.ndarray, null: float) -> float:
@@ -498,6 +502,18 @@ class SequenceLocaliser:
         _, first = np.unique(graph.place[rows], return_index=True)
         first.sort()
         return int(first.size), tuple(int(r) for r in rows[first[:SPAN_LISTED]])
+
+
+def mirrors(own: OwnTrail | None, graph: SequenceGraph, row: int, direction: int) -> bool:
+    """Whether a path at `row` walking `direction` goes back along the trail its stream is laying, with no
+    word from odometry, on a frame no more like `row` than like where the stream just was (docs/design/
+    science.md §11.13): the stream moves on along that trail, the path away from it, so it does not keep
+    pace. Without poses a robot that turned round looks more like the rows it comes back to than like
+    the frames just before (`OwnTrail.shows`, the echo rule's test, §11.6); a plateau's mirror does not
+    (its rows behind the stream match the frames ahead no better than the frames just behind do). With
+    poses odometry's word (§11.12) judges instead."""
+    return (own is not None and own.has_trail and own.beyond is None and direction < 0
+            and int(graph.trail[row]) == own.trail and not bool(own.shows(graph, np.array([row]))[0]))
 
 
 def _lookup(sorted_rows: np.ndarray, values: np.ndarray, rows: np.ndarray) -> np.ndarray:

@@ -65,7 +65,8 @@ class PlaceMap:
         self.localiser = SequenceLocaliser(options)
         self.options = self.localiser.options
         self.graph = SequenceGraph()
-        self.codes = CodeStats(code_width)  # the stored frame codes' bit counts (§11.6)
+        self.codes = CodeStats(code_width)  # the stored frame codes' bit counts (§11.6, §11.8)
+        self.looks = CodeStats(code_width)  # one code a move of its maker: the departure level's (§11.6)
         self.top_k = int(self.options.top_k)
         self.short_term = ring_moves(self.options)  # the memories' size in moves (0: none)
         self.used = np.zeros(0, np.int64)
@@ -112,6 +113,7 @@ class PlaceMap:
         """
         self.graph = SequenceGraph()
         self.codes.rebuild([])
+        self.looks.rebuild([])
         self.used = np.zeros(0, np.int64)
         self.flat = np.zeros(0, bool)
         self._last_row, self._short, self._anchors, self.held = {}, OrderedDict(), OrderedDict(), 0
@@ -163,9 +165,17 @@ class PlaceMap:
         if prev is not None and not joins and own is not None:
             # its own rows stay one route: the last it made leads on to this one if it led nowhere
             self.graph.link(own, seq, successor=True)
+        moved = True
         if not remade:
             self._last_row[stream] = seq
-            self._learned(stream, seq, code, motion)
+            moved = self._learned(stream, seq, code, motion)
+        if moved:
+            # One code a move for the departure level: a robot that stands, or crawls, makes a row a
+            # frame (its short-term memory holds them), and counting each filled the statistics with its
+            # one place, raised that place's background likeness and so its departure level, until its
+            # own copies read as moves (§11.6: a parked robot's memory aged in ~130 frames, and its paths
+            # kept pace with "moves"). Consolidation reads every row's (§11.8).
+            self.looks.add(code)
         self.codes.add(code)
         if seq >= self.used.size:
             grow = max(seq + 1, 2 * self.used.size, 16) - self.used.size
@@ -194,10 +204,11 @@ class PlaceMap:
         if stream is not None and code is not None:
             self._learned(stream, NONE, code, motion)
 
-    def _learned(self, stream: str, row: int, code: np.ndarray, motion: Motion) -> None:
+    def _learned(self, stream: str, row: int, code: np.ndarray, motion: Motion) -> bool:
         """A learned frame of `stream` into its trail's short-term memory (`motion.trail`, else the
         stream's own), before its code joins the statistics (so a rebuild, which adds the rows in the
-        same order, gives the same moves), and its odometry reading (the row's, where it made one)."""
+        same order, gives the same moves), and its odometry reading (the row's, where it made one).
+        Returns whether it was a move of its stream (every frame where the map has no memory)."""
         self._named[stream] = motion.trail or stream
         self._named.move_to_end(stream)
         while len(self._named) > KEPT:
@@ -210,13 +221,15 @@ class PlaceMap:
         if row != NONE:
             self.odometry.record(row, reading)
         if not self.short_term:
-            return
+            return True
         anchor = _recent(self._anchors, stream, Anchor)
         trail = motion.trail or stream
         memory = _recent(self._short, trail, lambda: ShortTerm(self.short_term))
         code = np.asarray(code, np.int64)
-        level = self.codes.level(code, float(self.options.departure))
-        memory.add(row, anchor.move(code, level, motion, self.options), stream)
+        level = self.looks.level(code, float(self.options.departure))
+        span = anchor.move(code, level, motion, self.options)
+        memory.add(row, span, stream)
+        return span is not None
 
     def moves(self, anchor: Anchor, code: np.ndarray, motion: Motion = NO_MOTION) -> bool:
         """Whether a frame (`code` (n,) sorted, its `motion`) moved the stream whose last move `anchor`
@@ -234,7 +247,7 @@ class PlaceMap:
             return True
         posed = anchor.pose is not None and motion.pose is not None and conf.short_term_metres > 0
         code = np.asarray(code, np.int64)
-        moved = anchor.move(code, self.codes.level(code, conf.departure), motion, conf) is not None
+        moved = anchor.move(code, self.looks.level(code, conf.departure), motion, conf) is not None
         return moved or not posed
 
     def departs(self, look: np.ndarray | None, code: np.ndarray) -> bool:
@@ -244,7 +257,7 @@ class PlaceMap:
         if look is None:
             return True
         code = np.asarray(code, np.int64)
-        return code_dice(code, look) < self.codes.level(code, float(self.options.departure))
+        return code_dice(code, look) < self.looks.level(code, float(self.options.departure))
 
     def stays(self, stream: str, code: np.ndarray, motion: Motion = NO_MOTION) -> bool:
         """Whether a learned frame of `stream` has not moved since its short-term memory's last move
@@ -462,7 +475,7 @@ class PlaceMap:
                   code_of: Callable[[int], np.ndarray], informative: bool = True) -> OwnTrail | None:
         """The stream's own rows it has not left, after this frame (`SequenceLocaliser.own_trail`,
         docs/design/science.md §11.6): not candidates of the index pass, not states of the filter."""
-        return self.localiser.own_trail(state, self.graph, last_learned, code, code_of, self.codes,
+        return self.localiser.own_trail(state, self.graph, last_learned, code, code_of, self.looks,
                                         informative)
 
     def step(self, state: LocaliserState, ranked: Sequence[Match], own: OwnTrail | None,

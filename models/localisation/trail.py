@@ -126,20 +126,34 @@ class OwnTrail(NamedTuple):
         if not self.has_trail:
             return np.zeros(rows.size, bool)
         laid = (graph.trail[rows] == self.trail) & (rows >= np.asarray(began, np.int64))
-        if not laid.any() or self.code is None or self.code_of is None:
-            return laid
+        if laid.any():
+            laid[laid] = ~self.shows(graph, rows[laid])
+        return laid
+
+    def shows(self, graph: SequenceGraph, rows: np.ndarray) -> np.ndarray:
+        """(H,) bool: whether the frame is at least as like each of `rows` (H,) as like where the stream
+        just was (its highest Dice with the trail's last `window` rows and its short-term memory's): a
+        place it came back to, not an echo of where it just was (§11.6). All False where the frame's code
+        or `code_of` is not given (no row is then more like the frame). One Dice per distinct row, then
+        one per recent row until one is more like the frame than every row asked of (each a `code_of`
+        read): at most `window` + the memory's rows."""
+        rows = np.asarray(rows, np.int64)
+        if self.code is None or self.code_of is None or not rows.size:
+            return np.zeros(rows.size, bool)
+        unique, inverse = np.unique(rows, return_inverse=True)
+        dice = np.array([code_dice(self.code, np.asarray(self.code_of(int(r)))) for r in unique])
+        top = float(dice.max())
         recent, row = 0.0, self.last
         for _ in range(self.window):
+            if recent > top or row < 0 or graph.trail[row] != self.trail:
+                break
             recent = max(recent, code_dice(self.code, np.asarray(self.code_of(row))))
             row = int(graph.prev[row])
-            if row < 0 or graph.trail[row] != self.trail:
-                break
         for row in self.short_term:  # where it just was includes its short-term memory
+            if recent > top:
+                break  # (every row asked of is already less like the frame)
             recent = max(recent, code_dice(self.code, np.asarray(self.code_of(int(row)))))
-        unique, inverse = np.unique(rows[laid], return_inverse=True)
-        unlike = np.array([code_dice(self.code, np.asarray(self.code_of(int(r)))) < recent for r in unique])
-        laid[laid] = unlike[inverse]
-        return laid
+        return (dice >= recent)[inverse]
 
 
 def above_background(background: float, share: float) -> float:
@@ -159,7 +173,10 @@ class CodeStats:
     """How often each bit is on in a map's stored frame codes: the background likeness of a code
     (`background`), what a frame shares with a stored frame of another place on average. Codes of a
     weak or untrained backbone share a large common part (Dice 0.6 between unrelated places), those of a
-    good one little (§11.6); the departure level is read above it. One int64 per bit, per map.
+    good one little (§11.6); the departure level is read above it. One int64 per bit. A map keeps two
+    (`PlaceMap`): every stored row's, which consolidation reads (§11.8), and one code a move of its maker,
+    which the departure level reads: a standing robot's copies would otherwise raise its own place's
+    background, and its departure level, until they read as moves (§11.6).
 
     Args:
         width: the code's bit space (2k for sLSBH codes).

@@ -721,3 +721,44 @@ def test_lags_survive_a_snapshot_and_old_states_load_without_them() -> None:
     assert np.array_equal(LocaliserState.from_arrays(arrays).lags, state.lags)
     del arrays["lags"]
     assert not LocaliserState.from_arrays(arrays).lags.any()
+
+
+def reverse_on_own_trail(beyond: bool, own_trail: bool, shown: bool) -> list:
+    """A stream's frames rank rows 45, 44, ... 0 of a chain of 60 rows best, walking back along it; the
+    chain is the trail the stream is laying (its rows 50-59 are its own, `own_trail`), or another
+    stream's; with `beyond` its odometry has a word (it rules nothing out here). `shown`: each frame's
+    code is the row it ranks best (a robot that turned round), else the code of the stream's last row
+    (a stretch whose frames all look alike: where it just was is as like them as anything behind)."""
+    n = 60
+    rng = np.random.default_rng(12)
+    codes = [np.sort(rng.choice(2048, 80, replace=False)) for _ in range(n)]
+    shows = np.arange(45, -1, -1)
+    S = place_similarity(np.arange(n), shows, noise=0.2, seed=11)
+    loc, graph = SequenceLocaliser(), SequenceGraph.chain(n)
+    state = loc.new_state()
+    out = []
+    for j, row in enumerate(shows):
+        own = OwnTrail(first=50, here=59, last=59, trail=0 if own_trail else 1,
+                       code=codes[row] if shown else codes[59], code_of=codes.__getitem__,
+                       beyond=(lambda rows: np.zeros(np.asarray(rows).size, bool)) if beyond else None)
+        out.append(loc.step(state, graph, np.arange(n), S[:, j], own=own, departed=True))
+    return out
+
+
+def test_a_path_back_along_the_trail_its_stream_lays_must_show_the_row_or_have_odometrys_word() -> None:
+    # docs/design/science.md §11.13: on the stress suite's 3x and 10x robots, paths walked back over a
+    # plateau of the trail the stream was laying (its rows match the frames ahead in either order) and came
+    # out at the plateau's start sure of rows tens of files back, on frames less like those rows than like
+    # where the stream just was. A robot that turned round sees the rows it comes back to (the echo rule's
+    # test, §11.6); with odometry's word (§11.12) that judges instead.
+    def called(places: list) -> float:
+        return float(np.mean([p.is_revisit(REVISIT) and p.seq == r for p, r in
+                              zip(places[10:], range(35, -1, -1), strict=True)]))
+
+    assert called(reverse_on_own_trail(beyond=False, own_trail=True, shown=False)) == 0.0
+    for beyond, own_trail, shown in ((False, True, True), (True, True, False), (False, False, False)):
+        assert called(reverse_on_own_trail(beyond, own_trail, shown)) > 0.9  # turned round, posed, another's
+    # the answer itself does not change, only the decision
+    quiet, posed = reverse_on_own_trail(False, True, False), reverse_on_own_trail(True, True, False)
+    assert [p.seq for p in quiet[5:]] == [p.seq for p in posed[5:]]
+    assert [p.confidence for p in quiet[5:]] == [p.confidence for p in posed[5:]]

@@ -165,6 +165,16 @@ def test_the_maps_forget_percent_is_the_batch_the_cap_rule_forgets_and_states() 
     assert "at least 5% of max_rows" in forgetting.rule(5) and "at least 1% of" in forgetting.rule(1)
 
 
+class Row(NamedTuple):
+    """A stored row as `PlaceMap.rebuild` reads it."""
+
+    seq: int
+    context_prev_seq: int | None
+    input_sdr: np.ndarray
+    stream: str
+    place: int | None
+
+
 def b_visits_a(named: bool) -> tuple[PlaceMap, dict[int, np.ndarray], list[tuple[Any, ...]]]:
     """Stream a's route, rows 0-9; stream b made row 10 (a second appearance of place 2), had its frames
     consolidated into rows 3-7 (visits that name their stream where `named`), then made row 11 (place 8)
@@ -213,15 +223,39 @@ def test_a_streams_last_made_row_leads_where_the_stream_went_next_not_to_its_nex
     assert pm.graph.walk(np.array([10, 10]), np.array([1, 1]), 2).tolist() == [4, 4]
     assert 11 in pm.graph.within(10, 1)  # still its neighbour, as a link to a row it made
 
-    class Row(NamedTuple):
-        seq: int
-        context_prev_seq: int | None
-        input_sdr: np.ndarray
-        stream: str
-        place: int | None
-
     rows = [Row(s, s - 1 if s else None, codes[s], "a", None) for s in range(10)]
     rows += [Row(10, None, codes[10], "b", 2), Row(11, 7, codes[11], "b", 8)]
     again = PlaceMap(LocaliserOptions.of({"short_term": 0}), code_width=2048)
     again.rebuild(rows, visited=visits)
     assert again.graph.next[:12].tolist() == pm.graph.next[:12].tolist()
+
+
+def test_a_parked_robot_stays_put_however_long_it_stands() -> None:
+    """§11.6: the code statistics take one code a move. A robot parked for 300 frames (each a row: its
+    short-term memory holds them, nothing is consolidated into it) would otherwise fill them with its one
+    place, raise that place's background likeness and its departure level, until its own copies read as
+    moves: its memory aged while it stood, and rows from before the stop became its loop candidates."""
+    rng = np.random.default_rng(4)
+    width = 2048
+    others = [np.sort(rng.choice(width, 80, replace=False)) for _ in range(30)]
+    spot = np.sort(rng.choice(width, 80, replace=False))
+
+    def copy() -> np.ndarray:  # the parked view again, 12 of its 80 bits moved (Dice 0.85)
+        out = set(spot.tolist()) - set(rng.choice(spot, 12, replace=False).tolist())
+        while len(out) < spot.size:
+            out.add(int(rng.integers(width)))
+        return np.array(sorted(out), np.int64)
+
+    pm = PlaceMap(LocaliserOptions(), code_width=width)
+    for s, code in enumerate(others):  # the robot's drive up to its stop
+        pm.add(s, s - 1 if s else None, code, stream="a")
+    for s in range(30, 330):
+        pm.add(s, s - 1, copy(), stream="a")
+    held = pm.short_term_rows("a")
+    assert 11 in held and set(range(30, 330)) <= set(held.tolist())  # its last 20 moves, and the stop
+    assert pm.looks.n == 31 and pm.codes.n == 330  # consolidation still reads every row (§11.8)
+
+    codes = [*others, *[copy() for _ in range(300)]]
+    again = PlaceMap(LocaliserOptions(), code_width=width)
+    again.rebuild([Row(s, s - 1 if s else None, c, "a", None) for s, c in enumerate(codes)])
+    assert again.looks.n == 31 and again.short_term_rows("a").tolist() == held.tolist()

@@ -8,7 +8,7 @@ import pytest
 
 from models.evaluation import online
 from models.localisation import CodeStats, LocaliserOptions, SequenceGraph, SequenceLocaliser
-from models.localisation.trail import UNKNOWN, code_dice
+from models.localisation.trail import UNKNOWN, OwnTrail, code_dice
 from models.sdr import dice_matrix
 
 W, N = 2048, 300
@@ -178,3 +178,15 @@ def test_a_path_ends_on_the_first_row_stored_after_it_began(began: int, ends: bo
     moved = (state.rows == 20) & (state.dirs > 0)
     assert moved.any() != ends
     assert (state.rows == 19).any()  # staying put (move 0) is no step onto a new row
+
+
+def test_without_the_frames_code_every_row_laid_since_a_path_began_ends_it():
+    # `OwnTrail.shows` with no code: no row is more like the frame than where the stream just was, so a
+    # path on rows laid since it began is an echo (§11.6), and a path back along the trail is no revisit
+    # without odometry's word (§11.13).
+    graph = SequenceGraph.chain(40)
+    own = OwnTrail(first=30, here=40, last=39, trail=0)
+    rows = np.array([35, 36, 37])
+    assert own.shows(graph, rows).tolist() == [False] * 3
+    assert own.laid_behind(graph, rows, np.zeros(3, np.int64)).tolist() == [True] * 3
+    assert own.laid_behind(graph, rows, np.full(3, 38)).tolist() == [False] * 3  # laid before it began
