@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from models.localisation.graph import NONE, SequenceGraph
-from models.localisation.options import LocaliserOptions
+from models.localisation.options import LAG_OFF, LocaliserOptions
 from models.localisation.short_term import ShortTerm, ring_moves
 from models.localisation.trail import UNKNOWN, CodeStats, OwnTrail, own_trail
 
@@ -453,7 +453,8 @@ class SequenceLocaliser:
         if state.frames < c.warmup or n == 0:
             return None
         place = self._answer(state, graph, n, jump)
-        if place.advancing and mirrors(own, graph, int(state.rows[0]), int(state.dirs[0])):
+        if place.advancing and c.lag_max < LAG_OFF and mirrors(own, graph, int(state.rows[0]),
+                                                                int(state.dirs[0])):
             place = place._replace(advancing=False)
         return place if informative else place._replace(informative=False)
 

@@ -17,7 +17,11 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from models.presets import check_section
 
-__all__ = ["LocaliserOptions", "LocaliserParams", "default_conf"]
+__all__ = ["LAG_OFF", "LocaliserOptions", "LocaliserParams", "default_conf"]
+
+#: `lag_max` at this bound turns the rule that a revisit's path keeps pace with its stream off (§11.13):
+#: the lag, and a path back along the stream's own trail (`localiser.mirrors`).
+LAG_OFF = 1_000_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,7 +85,7 @@ class LocaliserOptions:
     span_max: int = 3
     #: a revisit needs a path that keeps pace with its stream (§11.13): one that fell more than `lag_max` of
     #: the stream's moves behind (it stayed on its rows while the stream moved on, by its poses or its
-    #: look) is a row like a whole stretch, not a place come back to (a large value turns the rule off)
+    #: look) is a row like a whole stretch, not a place come back to (`LAG_OFF` turns the rule off)
     lag_max: int = 3
     #: with poses (`metadata.pose`, §11.6) the memory is the rows made over the last `short_term_metres`
     #: of path (the sum of the moves' lengths; 0: poses play no part, moves by appearance), a move a pose
@@ -156,7 +160,7 @@ class LocaliserParams(BaseModel):
     short_term: int = Field(_D.short_term, ge=0, le=1000)
     span_margin: float = Field(_D.span_margin, ge=0.0, le=100.0)
     span_max: int = Field(_D.span_max, ge=1, le=4096)
-    lag_max: int = Field(_D.lag_max, ge=0, le=1_000_000)
+    lag_max: int = Field(_D.lag_max, ge=0, le=LAG_OFF)
     short_term_metres: float = Field(_D.short_term_metres, ge=0.0, le=1e5)
     move_metres: float = Field(_D.move_metres, gt=0.0, le=1e4)
     max_speed: float = Field(_D.max_speed, gt=0.0, le=1e4)

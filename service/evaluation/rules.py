@@ -52,6 +52,7 @@ from models.evaluation import sequences, slam
 from models.localisation import PlaceMap, informative, trail
 from models.localisation import localiser as loc
 from models.localisation.localiser import reaches
+from models.localisation.options import LAG_OFF
 from models.pipeline import observe
 from service.evaluation import service_path, stress
 from service.maps.config import DEFAULT_REVISIT_THRESHOLD
@@ -61,7 +62,7 @@ RULES = ("all", "condition", "span", "lag", "short-term", "consolidation", "echo
          "low-information", "null-rows")
 #: The maps' localiser options that switch a rule off (the others are patched, `switched_off`).
 OPTIONS: dict[str, dict[str, Any]] = {"condition": {"condition_frames": 0}, "span": {"span_max": 4096},
-                                      "lag": {"lag_max": 1_000_000}, "short-term": {"short_term": 0},
+                                      "lag": {"lag_max": LAG_OFF}, "short-term": {"short_term": 0},
                                       "consolidation": {"consolidate": 1.0}}
 #: Map seeds: 42 is a new map's (`CreateMap.seed`'s default).
 SEEDS = (42, 1, 7, 100, 2024)

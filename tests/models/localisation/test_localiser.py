@@ -19,6 +19,7 @@ from models.localisation import (
 )
 from models.localisation.condition import Condition
 from models.localisation.localiser import MIN_CONTRAST, SPAN_LISTED, evidence, flat_share
+from models.localisation.options import LAG_OFF
 from models.localisation.short_term import ShortTerm
 from models.localisation.trail import OwnTrail
 from service.maps.config import DEFAULT_REVISIT_THRESHOLD
@@ -723,7 +724,7 @@ def test_lags_survive_a_snapshot_and_old_states_load_without_them() -> None:
     assert not LocaliserState.from_arrays(arrays).lags.any()
 
 
-def reverse_on_own_trail(beyond: bool, own_trail: bool, shown: bool) -> list:
+def reverse_on_own_trail(beyond: bool, own_trail: bool, shown: bool, conf: dict | None = None) -> list:
     """A stream's frames rank rows 45, 44, ... 0 of a chain of 60 rows best, walking back along it; the
     chain is the trail the stream is laying (its rows 50-59 are its own, `own_trail`), or another
     stream's; with `beyond` its odometry has a word (it rules nothing out here). `shown`: each frame's
@@ -734,7 +735,7 @@ def reverse_on_own_trail(beyond: bool, own_trail: bool, shown: bool) -> list:
     codes = [np.sort(rng.choice(2048, 80, replace=False)) for _ in range(n)]
     shows = np.arange(45, -1, -1)
     S = place_similarity(np.arange(n), shows, noise=0.2, seed=11)
-    loc, graph = SequenceLocaliser(), SequenceGraph.chain(n)
+    loc, graph = SequenceLocaliser(LocaliserOptions.of(conf)), SequenceGraph.chain(n)
     state = loc.new_state()
     out = []
     for j, row in enumerate(shows):
@@ -758,6 +759,8 @@ def test_a_path_back_along_the_trail_its_stream_lays_must_show_the_row_or_have_o
     assert called(reverse_on_own_trail(beyond=False, own_trail=True, shown=False)) == 0.0
     for beyond, own_trail, shown in ((False, True, True), (True, True, False), (False, False, False)):
         assert called(reverse_on_own_trail(beyond, own_trail, shown)) > 0.9  # turned round, posed, another's
+    # `lag_max` at LAG_OFF turns the rule off with the lag (a map option, §11.3)
+    assert called(reverse_on_own_trail(False, True, False, {"lag_max": LAG_OFF})) > 0.9
     # the answer itself does not change, only the decision
     quiet, posed = reverse_on_own_trail(False, True, False), reverse_on_own_trail(True, True, False)
     assert [p.seq for p in quiet[5:]] == [p.seq for p in posed[5:]]
