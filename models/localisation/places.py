@@ -173,8 +173,8 @@ class PlaceMap:
             # One code a move for the departure level: a robot that stands, or crawls, makes a row a
             # frame (its short-term memory holds them), and counting each filled the statistics with its
             # one place, raised that place's background likeness and so its departure level, until its
-            # own copies read as moves (§11.6: a parked robot's memory aged in ~130 frames, and its paths
-            # kept pace with "moves"). Consolidation reads every row's (§11.8).
+            # own copies read as moves (§11.6: a parked robot's memory aged while it stood, and its
+            # paths kept pace with "moves"). Consolidation reads every row's (§11.8).
             self.looks.add(code)
         self.codes.add(code)
         if seq >= self.used.size:
@@ -226,10 +226,14 @@ class PlaceMap:
         trail = motion.trail or stream
         memory = _recent(self._short, trail, lambda: ShortTerm(self.short_term))
         code = np.asarray(code, np.int64)
-        level = self.looks.level(code, float(self.options.departure))
-        span = anchor.move(code, level, motion, self.options)
+        span = anchor.move(code, self.departure(code), motion, self.options)
         memory.add(row, span, stream)
         return span is not None
+
+    def departure(self, code: np.ndarray) -> float:
+        """The Dice under which a frame of code `code` (n,) sorted has left a code (§11.6): the `departure`
+        share above its background likeness, read on the statistics of one code a move (`looks`)."""
+        return self.looks.level(np.asarray(code, np.int64), float(self.options.departure))
 
     def moves(self, anchor: Anchor, code: np.ndarray, motion: Motion = NO_MOTION) -> bool:
         """Whether a frame (`code` (n,) sorted, its `motion`) moved the stream whose last move `anchor`
@@ -247,7 +251,7 @@ class PlaceMap:
             return True
         posed = anchor.pose is not None and motion.pose is not None and conf.short_term_metres > 0
         code = np.asarray(code, np.int64)
-        moved = anchor.move(code, self.looks.level(code, conf.departure), motion, conf) is not None
+        moved = anchor.move(code, self.departure(code), motion, conf) is not None
         return moved or not posed
 
     def departs(self, look: np.ndarray | None, code: np.ndarray) -> bool:
@@ -257,7 +261,7 @@ class PlaceMap:
         if look is None:
             return True
         code = np.asarray(code, np.int64)
-        return code_dice(code, look) < self.looks.level(code, float(self.options.departure))
+        return code_dice(code, look) < self.departure(code)
 
     def stays(self, stream: str, code: np.ndarray, motion: Motion = NO_MOTION) -> bool:
         """Whether a learned frame of `stream` has not moved since its short-term memory's last move
