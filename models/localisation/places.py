@@ -325,7 +325,8 @@ class PlaceMap:
         return int(np.unique(self.graph.place[held]).size)
 
     def consolidation(self, place: Place, code: np.ndarray, code_of: Callable[[int], np.ndarray],
-                      own: OwnTrail | None = None, neighbours: bool = True, flat: bool = False) -> int | None:
+                      own: OwnTrail | None = None, neighbours: bool = True, flat: bool = False,
+                      known: bool = False) -> int | None:
         """The stored row that already represents a frame of code `code` whose best path names `place`,
         or None (docs/design/science.md §11.8): the place's appearance most like it, when its Dice
         reaches b + consolidate · (1 − b), b the frame's background likeness (`CodeStats.background`,
@@ -340,7 +341,9 @@ class PlaceMap:
         rehearsal of the row it is at, not a visit a place off, §11.6). `flat`: the frame is flat
         (§11.7): its code says nothing of where it is, so a flat appearance of those places (`flat`)
         represents it whatever its code (the place's first, then the neighbours', the most alike of
-        them), and only failing both the code decides as for any frame. Rows held only, less the
+        them), and only failing both the code decides as for any frame. `known`: the frame's stream is
+        in the place's conditions (its last frame was at the level, `Stream.represented`): the place's
+        own appearance most like it represents it whatever its code. Rows held only, less the
         stream's own (`own.holds`: its short-term memory, rows it has not left, rows its odometry says
         it cannot be at); `consolidate` 1 never consolidates. O(appearances) code reads."""
         if float(self.options.consolidate) >= 1.0:
@@ -361,7 +364,10 @@ class PlaceMap:
                 rows = rows[~own.holds(self.graph, rows)]
             tiers.append(rows)
         # a flat frame: a flat appearance, whatever its code; then, as any frame, its code's level
-        chances = [rows[self.flat[rows]] for rows in tiers] if flat else []
+        if known:  # the place's own appearances, whatever the code (the stream's conditions are theirs)
+            chances = tiers[:1]
+        else:
+            chances = [rows[self.flat[rows]] for rows in tiers] if flat else []
         level = self.codes.level(code, float(self.options.consolidate))
         for rows, floor in [*((rows, -np.inf) for rows in chances), *((rows, level) for rows in tiers)]:
             if not rows.size:

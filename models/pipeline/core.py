@@ -266,6 +266,13 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             # a frame that has not moved is the row it is at or a rehearsal, never a place off
             visit = place_map.consolidation(place, code, code_of, own, neighbours=not still, flat=flat)
             confident = place.is_revisit(threshold)
+            at_level = visit is not None and not flat  # its code earned it: the place's conditions
+            if visit is None and confident and st.represented:
+                # Its last frame was at the level of an appearance and this one, a revisit, falls just
+                # under it: the noise of one frame, not another condition, which shows on frames in a
+                # row (a noisy pass stored 1-3 such rows per 400 frames, issue 36): a visit of the
+                # place's most alike appearance (§11.8)
+                visit = place_map.consolidation(place, code, code_of, own, neighbours=False, known=True)
             # the trail it lays: its own chain's, or one its robot's other cameras lay (§11.6)
             on = -1 if visit is None else int(place_map.graph.trail[visit])
             trail = visit is not None and (
@@ -278,6 +285,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                 # unconfident, it needs some sequence evidence, and never a row of the trail it is
                 # laying (just behind its short-term memory a path in step with it is an echo, §11.6)
                 visit = None
+            st.represented = at_level and visit is not None
             if visit is not None or confident:
                 place_map.touch(place.seq, seq)  # a learning stream used the place (§11.9)
                 touched.append(place.seq)

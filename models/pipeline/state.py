@@ -45,6 +45,11 @@ class Stream:
     # (docs/design/science.md §11.13): its paths keep pace with these. Not stored: after a restart its
     # first frame is one.
     look: np.ndarray | None = None
+    # Its last learned frame was a visit its code earned, at the consolidation level of an appearance
+    # (docs/design/science.md §11.8): the stream is in the conditions of the places it passes, so a
+    # confident revisit just under the level is one frame's noise, not a new appearance. Not stored:
+    # after a restart or a new sequence such a frame is an appearance, as before the rule.
+    represented: bool = False
 
     def new_sequence(self, context: bool = True) -> None:
         """The one rule of a sequence's start (docs/design/service.md §1.3): no step counted, no learned
@@ -53,6 +58,7 @@ class Stream:
         if context:
             self.context.reset()
         self.step, self.last_learned_seq, self.own_seq = 0, None, None
+        self.represented = False
 
     def break_sequence(self) -> None:
         """The next frame starts a new sequence (and a new search for the place); the adaptation and the

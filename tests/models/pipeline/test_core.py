@@ -379,6 +379,32 @@ def test_a_confident_frame_like_the_row_one_link_from_its_path_is_a_visit_of_it_
     assert (step.joined == place.place) is True  # a visit of its neighbour or a new appearance: the place
 
 
+@pytest.mark.parametrize(("lead", "visits"), [(True, [3, 4, None]), (False, [None, None])])
+def test_one_confident_frame_under_the_level_after_one_at_it_is_a_visit_frames_in_a_row_are_an_appearance(
+        lead: bool, visits: list[int | None], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Consolidation (docs/design/science.md §11.8) in the stream's conditions: a confident revisit whose
+    code falls under the level right after a frame at it is the noise of one frame (a pass with pixel
+    noise stored 1-3 such rows per 400 frames, issue 36), a visit of its place's most alike appearance;
+    a second one in a row is another condition showing, and the first after no frame at the level (a
+    stream new to the place's conditions) is one too: each a new appearance, a row. The path names rows
+    3, 4, 5 in turn; the stream's frames are row 3's frame again (at the level) when `lead`, then frames
+    unlike every row."""
+    m = model("none")
+    frames = route(6)
+    learn_route(m, frames, Stream())
+    names = iter([3, 4, 5] if lead else [4, 5])
+    monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: Place(
+        seq=(r := next(names)), confidence=0.99, support=9, place=m.place_map.place_of(r)))
+    shown = ([frames[2]] if lead else []) + list(route(2, seed=9))
+    st, got = Stream(), []
+    for i, y in enumerate(shown):
+        step = observe(m, st, y, learn=True, stream="b", top_k=3, seq=7 + i,
+                       code_of=CODES.__getitem__, threshold=REVISIT)
+        CODES[7 + i] = step.code
+        got.append(step.visit)
+    assert got == visits
+
+
 def test_the_paths_own_place_comes_before_a_neighbour_that_looks_more_alike(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """Consolidation (docs/design/science.md §11.8) asks the neighbouring places only when the path's own
