@@ -343,9 +343,10 @@ class PlaceMap:
         represents it whatever its code (the place's first, then the neighbours', the most alike of
         them), and only failing both the code decides as for any frame. `known`: the frame's stream is
         in the place's conditions (its last frame was at the level, `Stream.represented`): the place's
-        own appearance most like it represents it whatever its code. Rows held only, less the
-        stream's own (`own.holds`: its short-term memory, rows it has not left, rows its odometry says
-        it cannot be at); `consolidate` 1 never consolidates. O(appearances) code reads."""
+        own appearance most like it represents it if more alike than the background (level 0). Rows
+        held only, less the stream's own (`own.holds`: its short-term memory, rows it has not left,
+        rows its odometry says it cannot be at); `consolidate` 1 never consolidates. O(appearances)
+        code reads."""
         if float(self.options.consolidate) >= 1.0:
             return None
         near: list[int] = []
@@ -364,11 +365,10 @@ class PlaceMap:
                 rows = rows[~own.holds(self.graph, rows)]
             tiers.append(rows)
         # a flat frame: a flat appearance, whatever its code; then, as any frame, its code's level
-        if known:  # the place's own appearances, whatever the code (the stream's conditions are theirs)
-            chances = tiers[:1]
-        else:
-            chances = [rows[self.flat[rows]] for rows in tiers] if flat else []
         level = self.codes.level(code, float(self.options.consolidate))
+        if known:  # the place's own appearances down to the background (the stream's conditions are theirs)
+            tiers, level = tiers[:1], self.codes.level(code, 0.0)
+        chances = [rows[self.flat[rows]] for rows in tiers] if flat else []
         for rows, floor in [*((rows, -np.inf) for rows in chances), *((rows, level) for rows in tiers)]:
             if not rows.size:
                 continue

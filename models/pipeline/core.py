@@ -256,6 +256,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         place_map = model.place_map
         # whether it has not moved since its stream's last move (§11.6: no pose change of `move_metres`)
         still = place_map.stays(stream, code, motion)
+        represented = False  # whether this frame's code earns its stream the place's conditions
         if place is not None and threshold is not None:
             # Well represented: like an appearance of the place its best path names, confident or not
             # (a pass's unconfident frames would otherwise become parallel places, each a rival, §11.8).
@@ -267,11 +268,12 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             visit = place_map.consolidation(place, code, code_of, own, neighbours=not still, flat=flat)
             confident = place.is_revisit(threshold)
             at_level = visit is not None and not flat  # its code earned it: the place's conditions
-            if visit is None and confident and st.represented:
-                # Its last frame was at the level of an appearance and this one, a revisit, falls just
-                # under it: the noise of one frame, not another condition, which shows on frames in a
-                # row (a noisy pass stored 1-3 such rows per 400 frames, issue 36): a visit of the
-                # place's most alike appearance (§11.8)
+            if visit is None and confident and st.represented and not still:
+                # Its last frame was at the level of an appearance and this one, a revisit, falls under
+                # it: the noise of one frame, not another condition, which shows on frames in a row (a
+                # noisy pass stored 1-5 such rows per 400 frames, issue 36): a visit of the place's most
+                # alike appearance, if more alike than the background (§11.8). A frame that has not
+                # moved stays a rehearsal of the row it is at.
                 visit = place_map.consolidation(place, code, code_of, own, neighbours=False, known=True)
             # the trail it lays: its own chain's, or one its robot's other cameras lay (§11.6)
             on = -1 if visit is None else int(place_map.graph.trail[visit])
@@ -285,7 +287,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                 # unconfident, it needs some sequence evidence, and never a row of the trail it is
                 # laying (just behind its short-term memory a path in step with it is an echo, §11.6)
                 visit = None
-            st.represented = at_level and visit is not None
+            represented = at_level and visit is not None
             if visit is not None or confident:
                 place_map.touch(place.seq, seq)  # a learning stream used the place (§11.9)
                 touched.append(place.seq)
@@ -297,6 +299,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                 place_map.fold(row, old, seq)
                 touched.append(old)
             drop(model, [row for row, _ in joins])
+        st.represented = represented  # a frame with no answer, or that made a row, earns none
         if visit is None and prev is not None and place_map.used[prev] >= 0 and still:
             # It has not moved since its last learned frame: a visit of the row that frame made or
             # visited (a rehearsal), the memory learns it, no row

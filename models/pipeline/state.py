@@ -47,8 +47,8 @@ class Stream:
     look: np.ndarray | None = None
     # Its last learned frame was a visit its code earned, at the consolidation level of an appearance
     # (docs/design/science.md §11.8): the stream is in the conditions of the places it passes, so a
-    # confident revisit just under the level is one frame's noise, not a new appearance. Not stored:
-    # after a restart or a new sequence such a frame is an appearance, as before the rule.
+    # confident revisit under the level is one frame's noise, not a new appearance. Stored with the
+    # stream (snapshots, `resume_state`); a new sequence starts without it.
     represented: bool = False
 
     def new_sequence(self, context: bool = True) -> None:
@@ -104,7 +104,7 @@ def memory_state(tm: TemporalMemory, streams: Mapping[str, Stream]) -> dict[str,
         state[f"streammeta.{h}"] = np.array(
             [st.step, -1 if st.last_learned_seq is None else st.last_learned_seq,
              -1 if st.learning is None else int(st.learning),
-             -1 if st.own_seq is None else st.own_seq], dtype=np.int64)
+             -1 if st.own_seq is None else st.own_seq, int(st.represented)], dtype=np.int64)
         if st.adapt is not None:
             state[f"streamadapt.{h}"] = st.adapt.state()
         if st.condition is not None:
@@ -125,6 +125,7 @@ def load_memory_state(state: Mapping[str, np.ndarray], adapt_tau: int, condition
         meta = [int(v) for v in state[f"streammeta.{h}"]]
         step, last, learning = meta[:3]
         own = meta[3] if len(meta) > 3 else last  # a snapshot before places: every learned row was made
+        represented = len(meta) > 4 and bool(meta[4])  # (before §11.8's noise rule: not known)
         adapt = (RunningMean.from_state(adapt_tau, state[f"streamadapt.{h}"])
                  if adapt_tau and f"streamadapt.{h}" in state else None)
         cond = (Condition.from_state(condition_frames, state[f"streamcond.{h}"])
@@ -134,18 +135,20 @@ def load_memory_state(state: Mapping[str, np.ndarray], adapt_tau: int, condition
         streams[bytes.fromhex(h).decode()] = Stream(
             ctx, step, None if last < 0 else last, None if learning < 0 else bool(learning), adapt,
             LocaliserState.from_arrays(loc) if loc else None, own_seq=None if own < 0 else own,
-            condition=cond)
+            condition=cond, represented=represented)
     return tm, streams
 
 
 def resume_state(st: Stream) -> bytes:
     """What a replay of the stream's rows and visits cannot give back, packed (npz, no pickle): its
-    localiser state (where it is on the map, docs/design/science.md §11) and its adaptation mean (its
-    frames' projections are not stored). The context, the step bookkeeping and the condition are
+    localiser state (where it is on the map, docs/design/science.md §11), its adaptation mean (its
+    frames' projections are not stored) and whether its last frame earned the place's conditions
+    (`Stream.represented`, §11.8). The context, the step bookkeeping and the condition are
     replayed (docs/design/service.md §4.4). A few KB: beam × 41 bytes, plus k floats with adaptation."""
     arrays = {} if st.localiser is None else {f"loc.{k}": v for k, v in st.localiser.to_arrays().items()}
     if st.adapt is not None:
         arrays["adapt"] = st.adapt.state()
+    arrays["represented"] = np.array([st.represented], bool)
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     return buf.getvalue()
@@ -159,3 +162,4 @@ def resume(st: Stream, packed: bytes, adapt_tau: int) -> None:
     st.localiser = LocaliserState.from_arrays(loc) if loc else None
     if adapt_tau and "adapt" in arrays:
         st.adapt = RunningMean.from_state(adapt_tau, arrays["adapt"])
+    st.represented = "represented" in arrays and bool(arrays["represented"][0])

@@ -7,7 +7,16 @@ import numpy as np
 import pytest
 
 from models.localisation import LocaliserOptions, Place
-from models.pipeline import MapModel, Stream, load_memory_state, memory_state, observe, replay
+from models.pipeline import (
+    MapModel,
+    Stream,
+    load_memory_state,
+    memory_state,
+    observe,
+    replay,
+    resume,
+    resume_state,
+)
 from models.presets import TmOptions
 
 TM = {"columnDimensions": 128, "cellsPerColumn": 4, "maxSegmentsPerCell": 4, "maxSynapsesPerSegment": 16,
@@ -126,6 +135,26 @@ def test_a_streams_condition_keeps_its_own_rows_of_the_new_condition_from_outran
     assert right < 40 and own > 150  # (a path chasing the trail just laid ends, §11.6: a few right)
     right, own = second_lap({"condition_frames": 20})
     assert right > 150 and own < 40
+
+
+@pytest.mark.parametrize("represented", [True, False])
+def test_whether_the_last_frame_earned_the_places_conditions_survives_a_snapshot_and_a_crash(
+        represented: bool) -> None:
+    """`Stream.represented` (docs/design/science.md §11.8) is in the memory's snapshot and in the state a
+    crash recovery resumes a stream with (`resume_state`, docs/design/service.md §4.4 step 7): the
+    stream's next noisy frame is a visit or a row as it would have been without the restart. A
+    snapshot or a packed state from before the rule loads without it."""
+    m, st = model(), Stream()
+    learn_route(m, route(3), st)
+    st.represented = represented
+    assert load_memory_state(memory_state(m.tm, {"a": st}), 0, 0)[1]["a"].represented is represented
+    back = Stream(represented=not represented)
+    resume(back, resume_state(st), 0)
+    assert back.represented is represented
+    old = memory_state(m.tm, {"a": st})
+    key = next(k for k in old if k.startswith("streammeta."))
+    old[key] = old[key][:4]  # a snapshot written before the flag
+    assert load_memory_state(old, 0, 0)[1]["a"].represented is False
 
 
 def test_the_condition_survives_a_snapshot_of_the_streams_and_weighs_columns_of_cells():
@@ -379,25 +408,35 @@ def test_a_confident_frame_like_the_row_one_link_from_its_path_is_a_visit_of_it_
     assert (step.joined == place.place) is True  # a visit of its neighbour or a new appearance: the place
 
 
-@pytest.mark.parametrize(("lead", "visits"), [(True, [3, 4, None]), (False, [None, None])])
+@pytest.mark.parametrize(("shown", "visits"), [
+    ("lead near near", [3, 4, None]),  # one under the level after one at it; then a second in a row
+    ("near", [None]),  # no frame at the level before it: a stream new to the conditions
+    ("lead gap near", [3, None, None]),  # a frame with no answer between (it made a row)
+    ("lead unlike", [3, None]),  # under the level and the background: not the place's look at all
+])
 def test_one_confident_frame_under_the_level_after_one_at_it_is_a_visit_frames_in_a_row_are_an_appearance(
-        lead: bool, visits: list[int | None], monkeypatch: pytest.MonkeyPatch) -> None:
+        shown: str, visits: list[int | None], monkeypatch: pytest.MonkeyPatch) -> None:
     """Consolidation (docs/design/science.md §11.8) in the stream's conditions: a confident revisit whose
     code falls under the level right after a frame at it is the noise of one frame (a pass with pixel
-    noise stored 1-3 such rows per 400 frames, issue 36), a visit of its place's most alike appearance;
-    a second one in a row is another condition showing, and the first after no frame at the level (a
-    stream new to the place's conditions) is one too: each a new appearance, a row. The path names rows
-    3, 4, 5 in turn; the stream's frames are row 3's frame again (at the level) when `lead`, then frames
-    unlike every row."""
-    m = model("none")
+    noise stored 1-5 such rows per 400 frames, issue 36), a visit of its place's most alike appearance
+    if more alike than the background; a second one in a row is another condition showing, and so is
+    the first after a frame that made a row: each a new appearance, a row. The level is set near
+    identical (`consolidate` 0.99): `lead` is row 3's frame again (at it), `near` the next route frame
+    with pixel noise (under it), `gap` a frame with no answer, `unlike` a frame of no stored place."""
+    m = model("none", localiser={"consolidate": 0.99})
     frames = route(6)
     learn_route(m, frames, Stream())
-    names = iter([3, 4, 5] if lead else [4, 5])
-    monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: Place(
-        seq=(r := next(names)), confidence=0.99, support=9, place=m.place_map.place_of(r)))
-    shown = ([frames[2]] if lead else []) + list(route(2, seed=9))
+    noise = np.random.default_rng(5).normal(scale=0.3, size=(6, K)).astype(np.float32)
+    kinds = shown.split()
+    rows = iter(range(3, 3 + len(kinds)))  # the path names rows 3, 4, 5 in turn
+    named = [None if k == "gap" else next(rows) for k in kinds]
+    answers = iter(named)
+    monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: None if (r := next(answers)) is None
+                        else Place(seq=r, confidence=0.99, support=9, place=m.place_map.place_of(r)))
     st, got = Stream(), []
-    for i, y in enumerate(shown):
+    for i, (kind, r) in enumerate(zip(kinds, named, strict=True)):
+        y = {"lead": frames[2], "gap": route(1, seed=7)[0], "unlike": -frames[3],
+             "near": frames[(r or 1) - 1] + noise[i]}[kind]  # row r is route frame r - 1
         step = observe(m, st, y, learn=True, stream="b", top_k=3, seq=7 + i,
                        code_of=CODES.__getitem__, threshold=REVISIT)
         CODES[7 + i] = step.code
