@@ -6,7 +6,8 @@ growth (docs/results.md §11, docs/design/science.md §11.8, §11.9).
 
 A route is `--frames` consecutive frames of a Nordland half (`--start` in it). A pass is the route
 driven once as its own learning stream (`pass-k`, learn=true, every frame through
-`models.pipeline.observe` with the map's revisit threshold, as the map writer runs it), in:
+`models.pipeline.observe` with the map's revisit threshold and the frame's contrast as the service
+measures it at decode, so flat frames are judged as the map writer judges them), in:
 - `same` conditions: summer, each pass after the first with fresh pixel noise (σ 8, seed = the pass);
 - `alternating` conditions: summer, winter, summer (noise), winter, ...
 After N passes another pass is localised (learn=false): the winter pass for `same`, a summer pass with
@@ -25,7 +26,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -41,6 +42,14 @@ __all__ = ["passes_runs"]
 NO_CONSOLIDATION = {"consolidate": 1.0, "appearances": 1024}
 
 
+class Shown(NamedTuple):
+    """The frames of one pass: `feats` (T, D) their features, `contrast` (T,) each one's contrast as the
+    service measures it at decode (`images.contrast`, docs/design/science.md §11.7)."""
+
+    feats: np.ndarray
+    contrast: np.ndarray
+
+
 class Driver:
     """One map's pure pipeline (`service_path._model`, forgetting at the served cap as the writer does:
     `service_path.forget`), with the codes of its rows and their labels."""
@@ -54,9 +63,10 @@ class Driver:
         self.labels: dict[int, int] = {}
         self.seq = 0
 
-    def drive(self, feats: np.ndarray, labels: np.ndarray, stream: str, *, learn: bool,
+    def drive(self, shown: Shown, labels: np.ndarray, stream: str, *, learn: bool,
               st: Stream | None = None) -> Pass:
-        """One pass; its answers (row label, confidence) and what it added."""
+        """One pass of `shown` frames; its answers (row label, confidence) and what it added."""
+        feats, contrast = shown
         st = st or Stream()
         out = Pass(np.full(len(labels), -1, np.int64), np.zeros(len(labels)), labels, 0, 0)
         for i, y in enumerate(self.hasher.project(feats)):
@@ -64,7 +74,8 @@ class Driver:
             if learn:
                 service_path.forget(self.model)
             step = observe(self.model, st, y, learn=learn, stream=stream, top_k=0, seq=seq,
-                           code_of=self.codes.__getitem__, threshold=self.threshold)
+                           code_of=self.codes.__getitem__, threshold=self.threshold,
+                           contrast=float(contrast[i]))
             if learn and step.visit is None:
                 self.seq += 1
                 self.codes[self.seq], self.labels[self.seq] = step.code, int(labels[i])
@@ -82,19 +93,31 @@ class Driver:
                 "index_bytes": self.model.index.nbytes()}
 
 
-def _conditions(frames: Frames, idx: np.ndarray, kind: str, k: int) -> np.ndarray:
-    """Features of pass k of a route in `same` or `alternating` conditions (module docstring)."""
+def _season(frames: Frames, idx: np.ndarray, season: str) -> Shown:
+    """A season's frames `idx` as they are: features and contrasts."""
+    return Shown(frames.feats[season][idx],
+                 service_path.contrasts([frames.images[season][int(i)] for i in idx]))
+
+
+def _noisy(frames: Frames, idx: np.ndarray, seed: int) -> Shown:
+    """Summer frames `idx` with pixel noise of σ 8 (`seed`): features and contrasts."""
+    feats, pngs = frames.noisy(idx, 8.0, seed)
+    return Shown(feats, service_path.contrasts(pngs))
+
+
+def _conditions(frames: Frames, idx: np.ndarray, kind: str, k: int) -> Shown:
+    """Pass k of a route in `same` or `alternating` conditions (module docstring)."""
     if kind == "alternating" and k % 2 == 1:
-        return frames.feats["winter"][idx]
+        return _season(frames, idx, "winter")
     if k == 0:
-        return frames.feats["summer"][idx]
-    return frames.noisy(idx, 8.0, k)[0]
+        return _season(frames, idx, "summer")
+    return _noisy(frames, idx, k)
 
 
 def _passes(frames: Frames, idx: np.ndarray, labels: np.ndarray, counts: list[int], kind: str,
             memory: str, localiser: dict[str, Any], map_conf: dict[str, Any], tolerance: int) -> list[dict]:
-    query = frames.feats["winter"][idx] if kind == "same" else frames.noisy(idx, 8.0, 999)[0]
-    dim = int(query.shape[1])
+    query = _season(frames, idx, "winter") if kind == "same" else _noisy(frames, idx, 999)
+    dim = int(query.feats.shape[1])
     out = []
     for n in counts:
         d = Driver(dim, memory=memory, localiser=localiser, map_conf=map_conf)
@@ -132,10 +155,10 @@ def _month(frames: Frames, idx: np.ndarray, labels: np.ndarray, days: int, memor
         rows = 0
         for r, (name, st) in enumerate(robots.items()):
             k = 1 + day * 3 + r  # a fresh noise seed per drive
-            feats = frames.feats["winter"][idx] if day % 2 else frames.noisy(idx, 8.0, k)[0]
+            shown = _season(frames, idx, "winter") if day % 2 else _noisy(frames, idx, k)
             st.break_sequence()
-            rows += d.drive(feats, labels, name, learn=True, st=st).rows
-        q = d.drive(frames.noisy(idx, 8.0, 999)[0] if day % 2 else frames.feats["winter"][idx], labels,
+            rows += d.drive(shown, labels, name, learn=True, st=st).rows
+        q = d.drive(_noisy(frames, idx, 999) if day % 2 else _season(frames, idx, "winter"), labels,
                     "query", learn=False)
         out.append({"day": day + 1, "rows_added": rows, **d.size(),
                     **localise_score(q, d.threshold, tolerance)})
