@@ -82,16 +82,21 @@ def _kill_mid_stream(c: RayCluster, client: Client, seen: Recording, acked: dict
 
     Returns:
         The round's figures: posts, acknowledged, failed (and how many of those were a 500), the replies
-        the transport saw (503, the app's problem+json 500, the proxy's plain 500), the errors by key.
+        the transport saw (503, the app's problem+json 500, the proxy's plain 500), the errors by key, and
+        per map the posts begun after the kill that were acknowledged (the old replica was dead by then,
+        so a restarted one answered them).
     """
     pid = c.pids(victim)[victim]
     first = len(seen.seen)
     failed: dict[str, CortexlocError | httpx.HTTPError] = {}
     done: list[str] = []  # keys answered or given up on (list.append is atomic across threads)
+    killed = threading.Event()
+    after_kill: list[str] = []  # maps of the posts begun after the kill and acknowledged
 
     def robot(map_id: str, stream: str) -> None:
         for i in range(FRAMES):
             key = f"{map_id}-{stream}-{i:04d}"
+            begun_after = killed.is_set()
             try:
                 obs = client.observe(map_id, tiny_frame(i), stream=stream, top_k=1, idempotency_key=key)
             except (CortexlocError, httpx.HTTPError) as e:
@@ -100,6 +105,8 @@ def _kill_mid_stream(c: RayCluster, client: Client, seen: Recording, acked: dict
             finally:
                 done.append(key)
             acked[map_id][key] = (obs.seq, obs.observation_id, obs.consolidated_into)
+            if begun_after:
+                after_kill.append(map_id)
 
     robots = [threading.Thread(target=robot, args=(m, f"{tag}-{s}")) for m in MAPS for s in STREAMS]
     for t in robots:
@@ -108,6 +115,7 @@ def _kill_mid_stream(c: RayCluster, client: Client, seen: Recording, acked: dict
     while len(done) < 12 and time.monotonic() < deadline:
         time.sleep(0.05)
     os.kill(pid, signal.SIGKILL)  # no shutdown hook, no flush
+    killed.set()
     killed_at = len(done)
     for t in robots:
         t.join(timeout=600)
@@ -122,6 +130,7 @@ def _kill_mid_stream(c: RayCluster, client: Client, seen: Recording, acked: dict
             "seen_app_500": sum(s == 500 and ct == problem for s, ct, _ in replies),
             "seen_proxy_500": sum(s == 500 and ct != problem for s, ct, _ in replies),
             "unavailable_503": [(ct, ra) for s, ct, ra in replies if s == 503],
+            "acked_after_kill": dict(Counter(after_kill)),
             "errors": {k: f"{type(e).__name__}: {e}"[:200] for k, e in failed.items()}}
 
 
@@ -171,13 +180,14 @@ def test_a_replica_of_each_kind_killed_mid_stream_costs_no_frame(cluster):
     lost = [t for t, r in rounds.items() if r["failed"] or r["seen_app_500"]]
     assert not lost and unacknowledged == 0, (figures, unacknowledged)
     assert sum(len(v) for v in acked.values()) == sum(r["posts"] for r in rounds.values())
-    # The shard's outage was seen and handled: its maps answered 503 map-unavailable with Retry-After
-    # (problem+json) or, where a post reached the dead replica through the proxy, a plain 500 the
-    # client retried. Which of the two a run sees depends on when the posts land against Ray's restart
-    # of the replica (a clean-clone run of this round saw no 503 in the shard's round), so either counts.
+    # The shard died mid-stream of its own maps: posts to them begun after the SIGKILL were acknowledged,
+    # so its restarted replica served them. What a robot saw meanwhile depends on where its posts were
+    # when the replica died: one the ingress had forwarded is answered 503 map-unavailable, a later one
+    # may wait in Ray's router for the new replica and be answered 200 (CI saw a round with neither 503
+    # nor 500), so no reply is required; any 503 is problem+json with Retry-After.
+    after = rounds["shard"]["acked_after_kill"]
+    assert all(after.get(m, 0) > 0 for m in victim_maps), (victim_maps, after)
     unavailable = rounds["shard"]["unavailable_503"]
-    assert unavailable or rounds["shard"]["seen_proxy_500"], \
-        f"the shard's outage was never seen ({Counter(s[0] for s in seen.seen)})"
     assert all(ct == "application/problem+json" and ra is not None for ct, ra in unavailable)
 
     # A retry now is replayed, on a restarted shard's map too.
