@@ -6,6 +6,7 @@ one fail anyway."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import functools
 import io
@@ -21,6 +22,7 @@ import pytest
 
 from service.maps import closures, keyframes
 from service.maps.errors import ClientGone
+from service.routes import observations
 from storage.mapschema import NewClosure, NewVisit
 from tests.service.helpers import frame, make_app, make_client, post, served
 
@@ -104,13 +106,23 @@ def test_a_client_that_hangs_up_during_its_extraction_changes_nothing(live, monk
         return extract(*args)
 
     monkeypatch.setattr(keyframes, "extract_frame", held)
+    departures: list[threading.Event] = []  # each post's "the client went away" event
+    departure = observations._departure
+
+    @contextlib.asynccontextmanager
+    async def recorded(request):
+        async with departure(request) as gone:
+            departures.append(gone)
+            yield gone
+
+    monkeypatch.setattr(observations, "_departure", recorded)
     body = png(sized("astronaut"))
     port = int(base.rsplit(":", 1)[1])
     with socket.create_connection(("127.0.0.1", port)) as sock:
         sock.sendall(b"POST /v1/maps/kf/observations HTTP/1.1\r\nHost: t\r\nContent-Type: image/png\r\n"
                      b"Content-Length: %d\r\n\r\n" % len(body) + body)
         assert started.wait(60)
-    time.sleep(1.0)  # the disconnect reaches the server (loopback: well within this)
+    assert departures and departures[0].wait(30)  # the disconnect reached the server
     monkeypatch.setattr(keyframes, "extract_frame", extract)
     release.set()
     after = httpx.post(f"{base}/v1/maps/kf/observations", content=png(sized("coffee")),

@@ -169,11 +169,20 @@ def test_a_dead_shard_answers_503_with_retry_after_and_a_retry_is_replayed(clust
         # The shard comes back (as Ray restarts it): the same key is replayed, not learned twice.
         cluster.dead.clear()
         cluster.stop(c.portal)  # a restarted replica opens its data directory again
-        time.sleep(0.25)
+        wait_until_serving(c, "m0")
         again = post(c, "m0", 1, key="key-00000001")
         assert again.status_code == 200 and again.headers["Idempotent-Replayed"] == "true"
         assert again.json()["observation_id"] == first.json()["observation_id"]
         assert c.get("/v1/maps/m0").json()["observations"] == 1
+
+
+def wait_until_serving(c, map_id: str, within_s: float = 30.0) -> None:
+    """Until the ingress's probe finds the map's (restarted) shard serving: its start (opening the maps)
+    takes as long as the machine lets it, so no fixed sleep; a shard that never comes back fails the
+    caller's next assertion."""
+    deadline = time.monotonic() + within_s
+    while c.get(f"/v1/maps/{map_id}").status_code == 503 and time.monotonic() < deadline:
+        time.sleep(0.05)
 
 
 def test_a_replica_that_dies_with_a_call_answers_503_never_500(cluster):
@@ -203,9 +212,7 @@ def test_a_replica_that_dies_with_a_call_answers_503_never_500(cluster):
             cluster.failures["shard-1"] = error
             refused(post(c, "m0", 2, key="key-00000002"), "map-unavailable")
             cluster.failures.clear()
-            deadline = time.monotonic() + 30  # until the ingress's probe finds the shard serving again
-            while c.get("/v1/maps/m0").status_code == 503 and time.monotonic() < deadline:
-                time.sleep(0.05)
+            wait_until_serving(c, "m0")
         assert c.get("/v1/maps/m0").json()["observations"] == 1
         assert post(c, "m0", 2, key="key-00000002").json()["seq"] == 2
 
