@@ -509,12 +509,14 @@ def mirrors(own: OwnTrail | None, graph: SequenceGraph, row: int, direction: int
     """Whether a path at `row` walking `direction` goes back along the trail its stream is laying, with no
     word from odometry, on a frame no more like `row` than like where the stream just was (docs/design/
     science.md §11.13): the stream moves on along that trail, the path away from it, so it does not keep
-    pace. Without poses a robot that turned round looks more like the rows it comes back to than like
-    the frames just before (`OwnTrail.shows`, the echo rule's test, §11.6); a plateau's mirror does not
-    (its rows behind the stream match the frames ahead no better than the frames just behind do). With
-    poses odometry's word (§11.12) judges instead."""
+    pace. The trail is the robot's: its other cameras' chains count (`OwnTrail.lays`). Without poses a
+    robot that turned round looks more like the rows it comes back to than like the frames just before
+    (`OwnTrail.shows`, the echo rule's test, §11.6); a plateau's mirror does not (its rows behind the
+    stream match the frames ahead no better than the frames just behind do). With poses odometry's word
+    (§11.12) judges instead."""
+    at = np.array([row])
     return (own is not None and own.has_trail and own.beyond is None and direction < 0
-            and int(graph.trail[row]) == own.trail and not bool(own.shows(graph, np.array([row]))[0]))
+            and bool(own.lays(graph, at)[0]) and not bool(own.shows(graph, at)[0]))
 
 
 def _lookup(sorted_rows: np.ndarray, values: np.ndarray, rows: np.ndarray) -> np.ndarray:

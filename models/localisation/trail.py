@@ -49,6 +49,9 @@ class OwnTrail(NamedTuple):
         short_term: (m,) ascending, the rows of the stream's short-term memory (§11.6).
         beyond: rows (H,) -> (H,) bool, those its odometry says it cannot be back at (§11.12;
             `RowOdometry.beyond`); None: no word from odometry.
+        others: the chains (`SequenceGraph.trail` ids) its robot's other cameras are laying, streams
+            that name the same trail (`PlaceMap.laid_by_others`, §11.6): the robot's trail as much as
+            `trail` is, for the mirror rule (`lays`, §11.13).
     """
 
     first: int
@@ -60,6 +63,7 @@ class OwnTrail(NamedTuple):
     window: int = 1
     short_term: np.ndarray = np.zeros(0, np.int64)
     beyond: Callable[[np.ndarray], np.ndarray] | None = None
+    others: frozenset[int] = frozenset()
 
     @classmethod
     def short_term_only(cls, rows: np.ndarray) -> OwnTrail:
@@ -125,10 +129,18 @@ class OwnTrail(NamedTuple):
         rows = np.asarray(rows, np.int64)
         if not self.has_trail:
             return np.zeros(rows.size, bool)
+        # its own chain only: ending echoes along its other cameras' chains too took rivals from the beam
+        # and let an echo of its own through (the stress suite's `cameras` case, §11.6)
         laid = (graph.trail[rows] == self.trail) & (rows >= np.asarray(began, np.int64))
         if laid.any():
             laid[laid] = ~self.shows(graph, rows[laid])
         return laid
+
+    def lays(self, graph: SequenceGraph, rows: np.ndarray) -> np.ndarray:
+        """(H,) bool: which of `rows` (H,) lie on a chain its robot is laying: the stream's current trail
+        or one of its other cameras' (`others`, §11.6). O(H)."""
+        on = graph.trail[np.asarray(rows, np.int64)]
+        return (on == self.trail) | (np.isin(on, tuple(self.others)) if self.others else False)
 
     def shows(self, graph: SequenceGraph, rows: np.ndarray) -> np.ndarray:
         """(H,) bool: whether the frame is at least as like each of `rows` (H,) as like where the stream
@@ -201,12 +213,13 @@ class CodeStats:
 
     def background(self, code: np.ndarray) -> float:
         """Expected Dice of `code` with a stored code drawn at random: sum of its bits' frequencies over
-        the mean of the two sizes; 0 before anything is stored."""
-        if self.n == 0:
-            return 0.0
+        the mean of the two sizes; 0 before anything is stored, and for an empty code among empty ones
+        (as `code_dice` of two empty codes)."""
         code = np.asarray(code, np.int64)
-        shared = self.counts[code].sum() / self.n
-        return float(2.0 * shared / (code.size + self.bits / self.n))
+        sizes = code.size + self.bits / self.n if self.n else 0.0
+        if not sizes:
+            return 0.0
+        return float(2.0 * self.counts[code].sum() / self.n / sizes)
 
     def level(self, code: np.ndarray, share: float) -> float:
         """The Dice `share` of the way above `code`'s background likeness (`above_background`)."""

@@ -227,6 +227,11 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     own = model.place_map.own_trail(st.localiser, st.own_seq, code, code_of, not flat)
     if own is not None and own.here > own.last and st.last_learned_seq != st.own_seq:
         own = None  # it left every row it made and travels on rows it visited: none is where it is
+    # the chains its robot's other cameras are laying are its trail as much as its own (the mirror
+    # rule, §11.13; the consolidation guard below, §11.6)
+    others = frozenset(model.place_map.laid_by_others(stream, motion.trail or stream))
+    if own is not None and others:
+        own = own._replace(others=others)
     # Its short-term memory, the rows it made over its last moves whatever its trail, is no loop
     # candidate; the map keeps it, so a restart, an eviction or a switch of mode keeps it too (§11.6).
     stm = model.place_map.short_term_rows(motion.trail or stream)
@@ -279,7 +284,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             on = -1 if visit is None else int(place_map.graph.trail[visit])
             trail = visit is not None and (
                 (st.own_seq is not None and on == int(place_map.graph.trail[st.own_seq]))
-                or on in place_map.laid_by_others(stream, motion.trail or stream))
+                or on in others)
             # (`unsure_fraction` of the threshold: some sequence evidence, LocaliserOptions)
             unsure = not confident and (place.confidence < threshold * place_map.options.unsure_fraction
                                         or trail or not place.advancing)

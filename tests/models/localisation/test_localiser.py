@@ -724,10 +724,13 @@ def test_lags_survive_a_snapshot_and_old_states_load_without_them() -> None:
     assert not LocaliserState.from_arrays(arrays).lags.any()
 
 
-def reverse_on_own_trail(beyond: bool, own_trail: bool, shown: bool, conf: dict | None = None) -> list:
+def reverse_on_own_trail(beyond: bool, own_trail: bool, shown: bool, conf: dict | None = None,
+                         other_camera: bool = False) -> list:
     """A stream's frames rank rows 45, 44, ... 0 of a chain of 60 rows best, walking back along it; the
     chain is the trail the stream is laying (its rows 50-59 are its own, `own_trail`), or another
-    stream's; with `beyond` its odometry has a word (it rules nothing out here). `shown`: each frame's
+    stream's: with `other_camera` one its robot's other camera is laying (a stream naming the same
+    trail: rows 50-59 are their shared short-term memory); with `beyond` its odometry has a word (it
+    rules nothing out here). `shown`: each frame's
     code is the row it ranks best (a robot that turned round), else the code of the stream's last row
     (a stretch whose frames all look alike: where it just was is as like them as anything behind)."""
     n = 60
@@ -741,7 +744,9 @@ def reverse_on_own_trail(beyond: bool, own_trail: bool, shown: bool, conf: dict 
     for j, row in enumerate(shows):
         own = OwnTrail(first=50, here=59, last=59, trail=0 if own_trail else 1,
                        code=codes[row] if shown else codes[59], code_of=codes.__getitem__,
-                       beyond=(lambda rows: np.zeros(np.asarray(rows).size, bool)) if beyond else None)
+                       beyond=(lambda rows: np.zeros(np.asarray(rows).size, bool)) if beyond else None,
+                       others=frozenset({0}) if other_camera else frozenset(),
+                       short_term=np.arange(50, 60) if other_camera else np.zeros(0, np.int64))
         out.append(loc.step(state, graph, np.arange(n), S[:, j], own=own, departed=True))
     return out
 
@@ -759,6 +764,9 @@ def test_a_path_back_along_the_trail_its_stream_lays_must_show_the_row_or_have_o
     assert called(reverse_on_own_trail(beyond=False, own_trail=True, shown=False)) == 0.0
     for beyond, own_trail, shown in ((False, True, True), (True, True, False), (False, False, False)):
         assert called(reverse_on_own_trail(beyond, own_trail, shown)) > 0.9  # turned round, posed, another's
+    # the chain its robot's other camera lays is its trail too; turned round, that camera's rows show
+    assert called(reverse_on_own_trail(False, False, False, other_camera=True)) == 0.0
+    assert called(reverse_on_own_trail(False, False, True, other_camera=True)) > 0.9
     # `lag_max` at LAG_OFF turns the rule off with the lag (a map option, §11.3)
     assert called(reverse_on_own_trail(False, True, False, {"lag_max": LAG_OFF})) > 0.9
     # the answer itself does not change, only the decision

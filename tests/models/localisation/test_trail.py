@@ -83,6 +83,16 @@ def test_background_likeness_sets_the_level_a_weak_backbone_shares_much():
     assert all(t[0] == t[2] + 1 for t in trail[1:])  # unrelated places are left at once despite the overlap
 
 
+def test_the_background_of_an_empty_code_is_zero_not_nan():
+    # as `code_dice` of two empty codes: nothing stored, or only empty codes stored (a NaN level would
+    # make every comparison with it false)
+    stats, empty = CodeStats(W), np.zeros(0, np.int64)
+    assert stats.background(empty) == 0.0
+    stats.add(empty)
+    assert stats.background(empty) == 0.0 == code_dice(empty, empty)
+    assert stats.level(empty, 0.5) == 0.5
+
+
 def test_a_loop_closes_on_ones_own_trail_and_a_stop_does_not():
     lap = [place() for _ in range(40)]
     codes = lap + [noisy(c) for c in lap]
@@ -190,3 +200,16 @@ def test_without_the_frames_code_every_row_laid_since_a_path_began_ends_it():
     assert own.shows(graph, rows).tolist() == [False] * 3
     assert own.laid_behind(graph, rows, np.zeros(3, np.int64)).tolist() == [True] * 3
     assert own.laid_behind(graph, rows, np.full(3, 38)).tolist() == [False] * 3  # laid before it began
+
+
+def test_the_chain_a_robots_other_camera_lays_is_its_trail_for_the_mirror_rule_not_the_echo_rule():
+    # Two cameras naming one trail each lay a chain (§11.6): `lays` counts the other camera's chain as
+    # the robot's (the mirror rule reads it, §11.13); the echo rule ends paths on the stream's own chain
+    # only (ending them on the other camera's too cost the stress suite's `cameras` case a false revisit).
+    graph = SequenceGraph.chain(40)  # chain 0: the other camera's
+    rows = np.array([35, 36, 37])
+    alone = OwnTrail(first=1, here=2, last=1, trail=7)  # its own chain is another
+    robot = alone._replace(others=frozenset({0}))
+    assert robot.lays(graph, rows).all() and not alone.lays(graph, rows).any()
+    assert robot.laid_behind(graph, rows, np.zeros(3, np.int64)).tolist() == [False] * 3
+    assert alone._replace(trail=0).laid_behind(graph, rows, np.zeros(3, np.int64)).tolist() == [True] * 3

@@ -351,6 +351,37 @@ def test_two_cameras_that_name_one_trail_never_revisit_each_others_recent_rows()
     assert named[None] > 0 and named["robot"] == 0
 
 
+def test_a_stream_reads_the_chains_its_robots_other_cameras_lay_as_its_trail() -> None:
+    """The mirror rule (§11.13) reads `OwnTrail.others`: the chains the streams that name
+    the same trail are laying, and none where a stream names its own."""
+    from models.localisation.motion import Motion
+
+    frames = route(12, seed=5)
+    for trail in (None, "robot"):
+        m, codes, cams = model("none"), {}, {"front": Stream(), "rear": Stream()}
+        seen: list[frozenset[int]] = []
+        step = m.place_map.step
+
+        def spy(state, ranked, own, *args, _seen=seen, _step=step):
+            _seen.append(frozenset() if own is None else own.others)
+            return _step(state, ranked, own, *args)
+
+        m.place_map.step = spy
+        for i, y in enumerate(frames):
+            for name in cams:
+                seq = len(codes) + 1
+                got = observe(m, cams[name], y, learn=True, stream=name, top_k=3, seq=seq,
+                              code_of=codes.__getitem__, threshold=None,
+                              motion=Motion((float(i), 0.0), float(i), trail))
+                if got.visit is None:
+                    codes[seq] = got.code
+        chains = {int(m.place_map.graph.trail[q]) for q in codes}
+        if trail is None:
+            assert not any(seen)
+        else:  # from each camera's second frame on, the other camera's chain
+            assert len(chains) == 2 and all(len(o) == 1 and o <= chains for o in seen[2:])
+
+
 @pytest.mark.parametrize(("fraction", "consolidated"), [(0.5, True), (0.9, False)])
 def test_an_unconfident_frame_is_consolidated_only_above_the_maps_unsure_fraction_of_the_threshold(
         fraction: float, consolidated: bool, monkeypatch: pytest.MonkeyPatch) -> None:
