@@ -34,6 +34,9 @@ localise mode on the same lap-2 frames). Measured:
 - lap 2: revisit precision and recall of `place.revisit` (the map's own decision at its threshold), the
   localise mode's recall (revisits called right / true revisits, the same frames), and OpenSeqSLAM run
   online on the route (`slam.openseqslam_online`), its recall at 100 % precision;
+- beside them the per-query figures OpenSeqSLAM is read by, for both modes and OpenSeqSLAM: R@1 and
+  recall at 100 % precision, each method's threshold swept (the service's answers ranked by confidence,
+  its revisits first): what the default threshold and the span and pace gates leave on the table;
 - issue 37's count of the localise mode's lap-2 revisits (`span_right`): right only when a true row lies
   inside the revisit's span and the span is at most 3 rows; its precision, and the share of the right
   answers it calls a revisit.
@@ -342,17 +345,22 @@ def score_seed(route: Route, slam_run: dict[str, Any], loc_run: dict[str, Any],
             "revisits_called": second.get("revisits_called"), "precision": second.get("precision"),
             "recall": second.get("recall"), "localise_recall": loc2.get("recall"),
             "localise_precision": loc2.get("precision"),
+            # the per-query figures OpenSeqSLAM is read by, the threshold swept: what the default leaves
+            "recall_at_1": second.get("recall_at_1"), "recall_at_100p": second.get("recall_at_100p"),
+            "localise_recall_at_1": loc2.get("recall_at_1"),
+            "localise_recall_at_100p": loc2.get("recall_at_100p"),
             **{f"localise_{k}": v for k, v in span_right(route.labels, route.laps, la).items()},
             "false_revisit_lags": lags}
 
 
-def openseqslam(route: Route) -> float | None:
-    """OpenSeqSLAM run online on the whole route: lap 2's recall at 100 % precision."""
+def openseqslam(route: Route) -> dict[str, float | None]:
+    """OpenSeqSLAM run online on the whole route: lap 2's recall at 100 % precision (its threshold swept,
+    as it is read) and R@1."""
     F = grey(route.pngs)
     best, conf = slam.openseqslam_online(seqslam.mean_abs_difference(F, F))
     s = slam.score(best, conf, route.labels, float("inf"), TOLERANCE, route.laps)
     lap2 = s["lap"].get(1, {})
-    return lap2.get("recall_at_100p")
+    return {"recall_at_100p": lap2.get("recall_at_100p"), "recall_at_1": lap2.get("recall_at_1")}
 
 
 def verdict(entry: dict[str, Any], osl: float | None) -> dict[str, bool]:
@@ -377,6 +385,8 @@ def worst(per_seed: list[dict[str, Any]], osl: float | None) -> dict[str, Any]:
             "precision": lo("precision"), "recall": lo("recall"), "localise_recall": lo("localise_recall"),
             "localise_span_precision": lo("localise_span_precision"),
             "localise_span_called": lo("localise_span_called"),
+            **{k: lo(k) for k in ("recall_at_100p", "localise_recall_at_100p", "recall_at_1",
+                                  "localise_recall_at_1")},
             "recall_to_localise": min((e["recall"] or 0.0) / e["localise_recall"] if e["localise_recall"]
                                       else float("inf") for e in per_seed),
             "openseqslam_recall_at_100p": osl,
@@ -392,8 +402,8 @@ def table(result: dict[str, Any]) -> str:
     """The routes' worst-seed lines, then every seed, as markdown."""
     head = ("| route | frames | false revisits while mapping | merged places | wrong consolidations | "
             "lap-2 precision | lap-2 recall | localise recall | recall / localise | OpenSeqSLAM R@100P | "
-            "met |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|\n")
+            "met | R@100P: mapping / localise / OpenSeqSLAM | R@1: mapping / localise / OpenSeqSLAM |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     lines = []
     for name, r in result["routes"].items():
         w = r["worst"]
@@ -402,7 +412,10 @@ def table(result: dict[str, Any]) -> str:
                      f"{w['wrong_consolidations']} | {_f(w['precision'])} | {_f(w['recall'])} | "
                      f"{_f(w['localise_recall'])} | {_f(w['recall_to_localise'])} | "
                      f"{_f(w['openseqslam_recall_at_100p'])} | "
-                     f"{'yes' if w['met'] else 'no: ' + ', '.join(failed)} |")
+                     f"{'yes' if w['met'] else 'no: ' + ', '.join(failed)} | "
+                     f"{_f(w['recall_at_100p'])} / {_f(w['localise_recall_at_100p'])} / "
+                     f"{_f(r['openseqslam_recall_at_100p'])} | {_f(w['recall_at_1'])} / "
+                     f"{_f(w['localise_recall_at_1'])} / {_f(r['openseqslam_recall_at_1'])} |")
     seeds = ["", "| route | seed | false revisits while mapping | merged places | wrong consolidations | "
              "rows | lap-2 called / true | precision | recall | localise recall | localise span precision | "
              "localise span called |",
@@ -466,8 +479,10 @@ def run(*, data: Path, routes: list[str], seeds: list[str], sizes: Sizes, concur
                         for pair in by_seed.values()]
             osl = openseqslam(r)
             result["routes"][name] = {"frames": len(r.pngs), "revisits_true": int(slam.revisit_truth(
-                r.labels, TOLERANCE).sum()), "seeds": per_seed, "openseqslam_recall_at_100p": osl,
-                "worst": worst(per_seed, osl)}
+                r.labels, TOLERANCE).sum()), "seeds": per_seed,
+                "openseqslam_recall_at_100p": osl["recall_at_100p"],
+                "openseqslam_recall_at_1": osl["recall_at_1"],
+                "worst": worst(per_seed, osl["recall_at_100p"])}
     finally:
         server.stop()
         if not keep:

@@ -190,12 +190,18 @@ def test_the_loops_benchmark_drives_a_tiny_corridor_through_a_real_server(tmp_pa
         assert e["rows"] >= 1 and e["rows"] + e["consolidated"] <= e["frames"] == r["frames"]
         assert 0 <= e["merged_places"] <= e["rows"] and 0 <= e["wrong_consolidations"] <= e["consolidated"]
         assert 0 <= e["revisits_called"] <= e["frames"] and e["revisits_true"] == r["revisits_true"]
-        for k in ("precision", "recall", "localise_recall"):
+        for k in ("precision", "recall", "localise_recall", "recall_at_1", "recall_at_100p",
+                  "localise_recall_at_1", "localise_recall_at_100p"):
             assert e[k] is None or 0.0 <= e[k] <= 1.0
-        osl = r["openseqslam_recall_at_100p"]
-        assert osl is None or 0.0 <= osl <= 1.0
+        # a revisit called right is a right answer: recall at the default <= R@1; swept down to the
+        # default's own precision-1 point, R@100P >= the recall there when that precision is 1
+        assert e["recall"] is None or e["recall"] <= e["recall_at_1"]
+        if e["precision"] == 1.0 and e["recall"] is not None:
+            assert e["recall_at_100p"] >= e["recall"]
+        for k in ("openseqslam_recall_at_100p", "openseqslam_recall_at_1"):
+            assert r[k] is None or 0.0 <= r[k] <= 1.0
         w = r["worst"]
-        assert w["met"] == all(w["checks"].values())
+        assert w["met"] == all(w["checks"].values()) and w["recall_at_1"] == e["recall_at_1"]
         assert f"| {name} | {r['frames']} |" in b.table(result)
 
 
