@@ -274,12 +274,16 @@ class PlaceMap:
 
     def laid_by_others(self, stream: str, trail: str) -> set[int]:
         """The trails (`SequenceGraph.trail` ids) that the other streams naming `trail` (a robot's other
-        cameras, §11.6) are laying: the chains their last made rows end. A row on one of them is on the
-        robot's own trail as much as one on `stream`'s (whose own chain its state holds). O(streams
-        kept)."""
+        cameras, §11.6) are laying: the chains their last made rows end, where that row is still in the
+        trail's short-term memory (a camera that stopped, or yesterday's session under the same names,
+        lays no chain now; a map without the memory, `short_term` 0, keeps every such chain). A row on
+        one of them is on the robot's own trail as much as one on `stream`'s (whose own chain its state
+        holds). O(streams kept + the memory's rows)."""
+        recent = set(self.short_term_rows(trail).tolist()) if self.short_term else None
         return {int(self.graph.trail[row]) for name, named in self._named.items()
                 if named == trail and name != stream
-                and (row := self._last_row.get(name)) is not None and row < len(self.graph)}
+                and (row := self._last_row.get(name)) is not None and row < len(self.graph)
+                and (recent is None or row in recent)}
 
     def short_term_rows(self, trail: str) -> np.ndarray:
         """(m,) int64 ascending: the rows `trail`'s streams made over its last moves and still held,

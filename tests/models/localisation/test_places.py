@@ -259,3 +259,27 @@ def test_a_parked_robot_stays_put_however_long_it_stands() -> None:
     again = PlaceMap(LocaliserOptions(), code_width=width)
     again.rebuild([Row(s, s - 1 if s else None, c, "a", None) for s, c in enumerate(codes)])
     assert again.looks.n == 31 and again.short_term_rows("a").tolist() == held.tolist()
+
+
+def test_a_camera_of_the_robot_that_stopped_lays_no_chain_it_is_read_by() -> None:
+    """§11.6: `laid_by_others` names the chains a robot's other cameras (streams naming one trail) are
+    laying: while the rear camera posts, its chain; once it stopped and the front camera has moved on past
+    the short-term memory, none (its old chain is no trail the robot is laying). Without the memory
+    (`short_term` 0) every such chain is kept, as before."""
+    from models.localisation.motion import Motion
+
+    rng = np.random.default_rng(8)
+    robot = Motion(trail="robot")
+    order = ["front", "rear"] * 3 + ["front"] * 12  # then unlike frames: each a move, past a memory of 5
+    for short_term in (5, 0):
+        pm = PlaceMap(LocaliserOptions.of({"short_term": short_term}), code_width=2048)
+        last: dict[str, int | None] = {"front": None, "rear": None}
+        for seq, stream in enumerate(order):
+            pm.add(seq, last[stream], np.sort(rng.choice(2048, 80, replace=False)), stream=stream,
+                   motion=robot)
+            last[stream] = seq
+            if seq == 5:  # both cameras posting
+                rear = int(pm.graph.trail[last["rear"]])
+                assert pm.laid_by_others("front", "robot") == {rear}
+                assert pm.laid_by_others("front", "front") == set()  # another trail: not the robot's
+        assert pm.laid_by_others("front", "robot") == (set() if short_term else {rear})
