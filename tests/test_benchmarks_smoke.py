@@ -191,7 +191,8 @@ def test_the_loops_benchmark_drives_a_tiny_corridor_through_a_real_server(tmp_pa
         assert 0 <= e["merged_places"] <= e["rows"] and 0 <= e["wrong_consolidations"] <= e["consolidated"]
         assert 0 <= e["revisits_called"] <= e["frames"] and e["revisits_true"] == r["revisits_true"]
         for k in ("precision", "recall", "localise_recall", "recall_at_1", "recall_at_100p",
-                  "localise_recall_at_1", "localise_recall_at_100p"):
+                  "localise_recall_at_1", "localise_recall_at_100p", "recall_at_100p_ungated",
+                  "localise_recall_at_100p_ungated"):
             assert e[k] is None or 0.0 <= e[k] <= 1.0
         # a revisit called right is a right answer: recall at the default <= R@1; swept down to the
         # default's own precision-1 point, R@100P >= the recall there when that precision is 1
