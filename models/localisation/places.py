@@ -278,12 +278,13 @@ class PlaceMap:
         trail's short-term memory (a camera that stopped, or yesterday's session under the same names,
         lays no chain now; a map without the memory, `short_term` 0, keeps every such chain). A row on
         one of them is on the robot's own trail as much as one on `stream`'s (whose own chain its state
-        holds). O(streams kept + the memory's rows)."""
-        recent = set(self.short_term_rows(trail).tolist()) if self.short_term else None
-        return {int(self.graph.trail[row]) for name, named in self._named.items()
-                if named == trail and name != stream
-                and (row := self._last_row.get(name)) is not None and row < len(self.graph)
-                and (recent is None or row in recent)}
+        holds). O(streams kept), and the memory's rows only where another stream names the trail."""
+        last = [row for name, named in self._named.items() if named == trail and name != stream
+                and (row := self._last_row.get(name)) is not None and row < len(self.graph)]
+        if last and self.short_term:  # (a stream alone on its trail, the usual case, reads no memory)
+            recent = set(self.short_term_rows(trail).tolist())
+            last = [row for row in last if row in recent]
+        return {int(self.graph.trail[row]) for row in last}
 
     def short_term_rows(self, trail: str) -> np.ndarray:
         """(m,) int64 ascending: the rows `trail`'s streams made over its last moves and still held,
