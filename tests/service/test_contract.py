@@ -25,7 +25,9 @@ def test_every_operation_without_server_errors(tmp_path):
         assert len(operations) >= 10
         for op in operations:
             @given(case=op.as_strategy())
-            @settings(max_examples=10, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+            # derandomized: CI sees the same examples every run, so a red run is reproducible, not luck
+            @settings(max_examples=10, deadline=None, suppress_health_check=list(HealthCheck), database=None,
+                      derandomize=True)
             def check(case) -> None:
                 response = case.call()
                 calls.append(response.status_code)
