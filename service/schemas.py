@@ -205,11 +205,19 @@ class StoredObservationModel(_Out):
     has_thumbnail: bool
 
 
+#: A page's `epoch` (docs/design/service.md §1.2): how many restores rolled the map back. Seqs and log ids are
+#: never handed out twice, but a restore takes away what came after its snapshot and brings back what
+#: was retracted since: a client following a page with a cursor reads it again from 0 when this changes.
+EPOCH_DESCRIPTION = ("restores that rolled the map back so far; when it changes, read again from 0: what "
+                     "came after the snapshot is gone, and retractions made since are undone")
+
+
 class StoredObservationList(_Out):
     """A page in seq order; `next_after_seq` continues it (None: nothing after this page)."""
 
     observations: list[StoredObservationModel]
     next_after_seq: int | None
+    epoch: int = Field(ge=0, description=EPOCH_DESCRIPTION)
 
 
 class StoredRowModel(_Out):
@@ -298,6 +306,7 @@ class LoopClosureList(_Out):
 
     loop_closures: list[LoopClosureModel]
     next_after: int | None
+    epoch: int = Field(ge=0, description=EPOCH_DESCRIPTION)
 
 
 class RecentModel(_Out):

@@ -3,10 +3,12 @@
 The catalog is small and written rarely (map creation, state changes, snapshots, restores), so one file
 for the whole data directory is enough; each map's observations live in its own `map.sqlite`.
 
-The seq high-water mark is what keeps seqs unique across restores (docs/design/service.md §1: "never reused,
-not even after a restore"): before a restore replaces `map.sqlite` with an older copy, the service bumps
-the mark to the current last seq, and opens the restored file with `MapStore.open(seq_floor=mark)`.
-Bumping only at restore (not per observation) keeps the per-observation commit to one file.
+The high-water marks are what keep seqs and loop-closure ids unique across restores (docs/design/service.md
+§1: "never reused, not even after a restore"; §1.2): before a restore replaces `map.sqlite` with an older
+copy, the service raises the marks to the current last seq and log id and counts the restore
+(`mark_restore`), and opens the restored file with `MapStore.open(seq_floor=, closure_floor=)`. Marking
+only at restore (not per observation) keeps the per-observation commit to one file. The count is the log's
+epoch: a client following the log or the rows with a cursor learns from it that they were rolled back.
 
 Plain CRUD goes through `sqlite_utils` tables over our own connection (`storage._common.connect`: WAL,
 synchronous=FULL, explicit `BEGIN IMMEDIATE` transactions, inside which sqlite-utils writes as
@@ -58,7 +60,7 @@ SnapshotKind = Literal["manual", "auto", "pre-restore"]
 MAP_STATES: tuple[str, ...] = get_args(MapState)
 SNAPSHOT_KINDS: tuple[str, ...] = get_args(SnapshotKind)
 
-_SCHEMA_VERSION = 1
+_SCHEMA_VERSION = 2
 # Statements separated by ";" (no ";" inside comments): run one by one inside one transaction, since
 # executescript would commit on its own.
 _SCHEMA = f"""
@@ -71,7 +73,9 @@ CREATE TABLE IF NOT EXISTS maps (
     state_reason    TEXT NULL,
     preset          TEXT NULL,
     params          TEXT NOT NULL,                        -- JSON
-    seq_high_water  INTEGER NOT NULL DEFAULT 0 CHECK (seq_high_water >= 0)
+    seq_high_water  INTEGER NOT NULL DEFAULT 0 CHECK (seq_high_water >= 0),
+    closure_high_water INTEGER NOT NULL DEFAULT 0 CHECK (closure_high_water >= 0),
+    restores        INTEGER NOT NULL DEFAULT 0 CHECK (restores >= 0)
 );
 CREATE TABLE IF NOT EXISTS snapshots (
     -- Registration order = "newest first", explicit so that VACUUM cannot renumber it.
@@ -87,6 +91,11 @@ CREATE TABLE IF NOT EXISTS snapshots (
     UNIQUE (map_id, snapshot_id)
 );
 """
+# What version 2 added to a version 1 catalog: the loop-closure id mark and the restore count.
+_V2 = ("ALTER TABLE maps ADD COLUMN closure_high_water INTEGER NOT NULL DEFAULT 0 "
+       "CHECK (closure_high_water >= 0)",
+       "ALTER TABLE maps ADD COLUMN restores INTEGER NOT NULL DEFAULT 0 CHECK (restores >= 0)",
+       "UPDATE meta SET value = '2' WHERE key = 'schema_version'")
 
 
 class MapExists(StorageError):  # noqa: N818 - named after the problem slug `map-exists`
@@ -109,6 +118,8 @@ class MapRecord:
         preset: the preset the parameters were resolved from.
         params: resolved parameters (decoded JSON).
         seq_high_water: highest seq ever handed out that a restore may have removed from `map.sqlite`.
+        closure_high_water: the same for loop-closure log ids.
+        restores: how many restores rolled the map back: the loop-closure log's and the rows' epoch.
     """
 
     map_id: str
@@ -118,6 +129,8 @@ class MapRecord:
     preset: str | None
     params: dict[str, Any]
     seq_high_water: int
+    closure_high_water: int = 0
+    restores: int = 0
 
 
 @dataclass(frozen=True)
@@ -149,7 +162,10 @@ class SnapshotRecord:
 def _map(r: dict[str, Any]) -> MapRecord:
     return MapRecord(map_id=r["map_id"], created_at=r["created_at"], state=r["state"],
                      state_reason=r["state_reason"], preset=r["preset"], params=json.loads(r["params"]),
-                     seq_high_water=int(r["seq_high_water"]))
+                     seq_high_water=int(r["seq_high_water"]),
+                     # (a version 1 catalog opened read-only has neither column)
+                     closure_high_water=int(r.get("closure_high_water") or 0),
+                     restores=int(r.get("restores") or 0))
 
 
 def _snap(r: dict[str, Any]) -> SnapshotRecord:
@@ -210,6 +226,10 @@ class Catalog:
             if version > _SCHEMA_VERSION:
                 raise StorageError(f"{path}: catalog schema {version} is newer than this code's "
                                    f"{_SCHEMA_VERSION}")
+            if version < 2:
+                with transaction(self._conn):
+                    for statement in _V2:
+                        self._conn.execute(statement)
             with transaction(self._conn):  # absolute paths of older versions become relative (`_snap`)
                 snapshots = self._db["snapshots"]
                 for r in list(snapshots.rows_where("path LIKE '/%'")):
@@ -356,30 +376,25 @@ class Catalog:
             db["maps"].delete(map_id)  # ON DELETE CASCADE removes its snapshot rows
         return snaps
 
-    # ------------------------------------------------------------------ seq high-water mark
+    # ------------------------------------------------------------------ high-water marks
 
-    def bump_high_water(self, map_id: str, seq: int) -> int:
-        """Raise the map's seq high-water mark to at least `seq` (never lowers it).
+    def mark_restore(self, map_id: str, seq: int, closure_id: int) -> MapRecord:
+        """Before a restore replaces the map's file: raise its seq and loop-closure id marks to at least
+        `seq` and `closure_id` (never lowered) and count the restore (module docstring).
 
         Returns:
-            The mark after the call.
+            The map's record after the call.
 
         Raises:
             MapNotFound: unknown map.
         """
         with self._write() as db:
-            mark = max(int(_get_map(db, map_id)["seq_high_water"]), int(seq))
-            db["maps"].update(map_id, {"seq_high_water": mark})
-            return mark
-
-    def get_high_water(self, map_id: str) -> int:
-        """The map's seq high-water mark.
-
-        Raises:
-            MapNotFound: unknown map.
-        """
-        with self._tables() as db:
-            return int(_get_map(db, map_id)["seq_high_water"])
+            r = _get_map(db, map_id)
+            db["maps"].update(map_id, {
+                "seq_high_water": max(int(r["seq_high_water"]), int(seq)),
+                "closure_high_water": max(int(r["closure_high_water"]), int(closure_id)),
+                "restores": int(r["restores"]) + 1})
+            return _map(_get_map(db, map_id))
 
     # ------------------------------------------------------------------ snapshots
 

@@ -132,6 +132,7 @@ def repair(
     """Undo a map's merges from a stream's own recent trail (docs/design/science.md §11.6): visits
     re-made as rows, rows given back their own place, loop closures retracted. Exit 1 on an error."""
     import anyio
+    import httpx
 
     from service.cli.ingest import target
     from service.ingest import poster
@@ -142,12 +143,19 @@ def repair(
     async def run() -> tuple[int, dict[str, Any]]:
         client = poster.remote_client(url) if settings is None else poster.in_process_client(settings)
         async with client as c:
-            r = await c.request("GET" if dry_run else "POST", f"/v1/maps/{map_id}/repair", headers=headers)
-            return r.status_code, r.json()
+            try:
+                r = await c.request("GET" if dry_run else "POST", f"/v1/maps/{map_id}/repair",
+                                    headers=headers)
+            except httpx.TimeoutException as e:
+                return 0, {"detail": f"no answer from {url} ({e!r}): the repair may or may not have run; "
+                                     "--dry-run lists what is left"}
+            except httpx.TransportError as e:
+                return 0, {"detail": f"cannot reach the service at {url}: {e}"}
+            return r.status_code, poster.json_body(r)
 
     status, body = anyio.run(run)
     if status != 200:
-        typer.echo(f"error: {status} {body.get('detail', body)}", err=True)
+        typer.echo(f"error: {status or 'no answer'}: {body.get('detail', body)}", err=True)
         raise typer.Exit(1)
     if json_out:
         typer.echo(json.dumps(body))

@@ -280,7 +280,7 @@ async def _post_frame(client: httpx.AsyncClient, frame: Frame, opts: Options, he
         await sleep(retry_after_s(None if r is None else r.headers.get("Retry-After"), attempt))
     assert r is not None
     latency_ms = (time.perf_counter() - t) * 1e3
-    rec = Record(frame.index, frame.name, frame.stamp_ns, r.status_code, round(latency_ms, 3), _json(r))
+    rec = Record(frame.index, frame.name, frame.stamp_ns, r.status_code, round(latency_ms, 3), json_body(r))
     if r.status_code != 200 and r.status_code not in FRAME_ERRORS:
         summary.add(rec)
         raise IngestError(f"frame {frame.name}: {_problem_text(r)}", summary)
@@ -326,7 +326,8 @@ async def _request(client: httpx.AsyncClient, method: str, path: str, summary: S
                             summary) from e
 
 
-def _json(r: httpx.Response) -> dict[str, Any]:
+def json_body(r: httpx.Response) -> dict[str, Any]:
+    """The answer's JSON object; a body that is none (a proxy's page) as `status` and `detail`."""
     try:
         body = r.json()
     except ValueError:
@@ -335,5 +336,5 @@ def _json(r: httpx.Response) -> dict[str, Any]:
 
 
 def _problem_text(r: httpx.Response) -> str:
-    body = _json(r)
+    body = json_body(r)
     return f"{r.status_code} {body.get('title', '')}: {body.get('detail', '')}".strip()

@@ -35,7 +35,7 @@ async def list_loop_closures(
     assert rt.store is not None
     found = await anyio.to_thread.run_sync(closures.page, rt.store, after, limit)
     return LoopClosureList(loop_closures=[LoopClosureModel.from_result(c) for c in found],
-                           next_after=found[-1].id if len(found) == limit else None)
+                           next_after=found[-1].id if len(found) == limit else None, epoch=rt.epoch)
 
 
 @router.get("/{map_id}/loop-closures/export",

@@ -26,6 +26,7 @@ from fastapi import APIRouter, Header, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from models.frontend import images
+from models.localisation.motion import stamp_seconds
 from service.deps import ApiKeyDep, MetricsDep, RegistryDep, SettingsDep
 from service.errors import Problem, problem_responses
 from service.maps.results import ObservationResult
@@ -51,12 +52,16 @@ METADATA_MAX_BYTES = 4096
 METADATA_MAX_DEPTH = 8
 #: The largest integer magnitude metadata may hold: 2^53 - 1, JavaScript's `Number.MAX_SAFE_INTEGER` and
 #: I-JSON's bound (RFC 7493 §2.2). A larger integer reaches a JSON reader that uses doubles (the viewer,
-#: most clients) rounded, or as Infinity past ~1.8e308: send it as a string (a nanosecond stamp, an id).
+#: most clients) rounded, or as Infinity past ~1.8e308: send it as a string (an id).
 METADATA_MAX_INT = 2**53 - 1
 #: The accepted pose coordinates, |x| and |y| at most this (docs/design/service.md §1.2): 10^6 km covers
 #: every Earth frame in metres (UTM northings reach 10^7, ECEF 6.4 x 10^6) with room; a larger value is a
 #: unit or sensor fault, and at 10^16 the doubles are 2 m apart, so it could not say where anyway.
 POSE_MAX_ABS = 1e9
+#: The latest `stamp` accepted, in seconds since the epoch (10^11 s: the year 5138). Stamps are seconds:
+#: one in milliseconds (~1.7 x 10^12 today), microseconds or nanoseconds read as seconds lies far beyond
+#: it, and would quietly turn off what the service reads in stamps (a drive's gap and speed, §1.2).
+STAMP_MAX_S = 1e11
 #: Stored observations per page of `GET /v1/maps/{id}/observations`.
 MAX_PAGE = 500
 REPLAY_HEADER = "Idempotent-Replayed"
@@ -111,6 +116,15 @@ class _Metadata(BaseModel):
     camera: _Camera | None = None
     # the short-term memory the stream shares (docs/design/science.md §11.6): a stream name
     trail: str | None = Field(None, pattern=STREAM_PATTERN)
+
+    @field_validator("stamp")
+    @classmethod
+    def _seconds(cls, v: float | str | None) -> float | str | None:
+        seconds = stamp_seconds({"stamp": v})
+        if seconds is not None and abs(seconds) > STAMP_MAX_S:
+            raise ValueError(f"{v} read as seconds since the epoch is after the year 5000: stamps are "
+                             "seconds (a millisecond or nanosecond stamp divided by 10^3 or 10^9)")
+        return v
 
 
 def _depth(text: str) -> int:
@@ -346,7 +360,8 @@ async def list_observations(
     assert rt.store is not None
     found = await anyio.to_thread.run_sync(stored.page, rt.store, after_seq, limit)
     return StoredObservationList(observations=[StoredObservationModel.from_result(o) for o in found],
-                                 next_after_seq=found[-1].seq if len(found) == limit else None)
+                                 next_after_seq=found[-1].seq if len(found) == limit else None,
+                                 epoch=rt.epoch)
 
 
 @router.get("/{map_id}/observations/{seq}",

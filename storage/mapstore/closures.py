@@ -43,6 +43,7 @@ class Closures:
 
     max_closures: int | None
     _closure_columns: str
+    _closure_floor: int
 
     def add_closure(self, closure: NewClosure) -> bool:
         """Log a localising stream's loop closure alone (it stores no observation) and COMMIT.
@@ -62,17 +63,35 @@ class Closures:
         """In a transaction: insert (a repeated key inserts nothing), then keep the last `max_closures`."""
         if not params:
             return 0
-        before = conn.total_changes
-        conn.executemany("INSERT OR IGNORE INTO loop_closures (stream, seq, place_seq, confidence, support, "
-                         "metadata, idempotency_key, created_at, verification, consolidated_into, span, "
-                         "span_seqs) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", params)
+        before, first = conn.total_changes, self._next_closure_id(conn)
+        # ids given, not SQLite's max + 1: after a restore they continue above the closure floor (a
+        # repeated key's id is skipped: ids increase, with gaps)
+        conn.executemany("INSERT OR IGNORE INTO loop_closures (id, stream, seq, place_seq, confidence, "
+                         "support, metadata, idempotency_key, created_at, verification, consolidated_into, "
+                         "span, span_seqs) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                         [(first + i, *p) for i, p in enumerate(params)])
         added = conn.total_changes - before
         if added:
             self._prune_closures(conn)
         return added
 
+    def _next_closure_id(self, conn: sqlite3.Connection) -> int:
+        """The next log id: above every id in the log and above the closure floor (`MapStore.open`)."""
+        last = int(conn.execute("SELECT coalesce(max(id), 0) FROM loop_closures").fetchone()[0])
+        return max(last, self._closure_floor) + 1
+
+    def last_closure_id(self) -> int:
+        """The newest log id handed out (the closure floor where the log holds none above it)."""
+        if not self.holds.loop_closures:
+            return self._closure_floor
+        with self._lock:
+            return self._next_closure_id(self._db()) - 1
+
     def _prune_closures(self, conn: sqlite3.Connection) -> None:
-        """In a transaction: keep the last `max_closures` entries of the loop-closure log."""
+        """In a transaction: keep the entries of the loop-closure log's last `max_closures` ids. Ids run
+        without gaps but where a restore rolled entries back (their ids stay handed out) or a batch's
+        repeated key was skipped, so that is the last `max_closures` entries less those few (a count by
+        `OFFSET` would walk the whole log at every entry)."""
         if self.max_closures is not None:
             conn.execute("DELETE FROM loop_closures WHERE id <= (SELECT max(id) FROM loop_closures) - ?",
                          (self.max_closures,))
@@ -152,12 +171,14 @@ class Closures:
                                  rows)
                 conn.executemany("INSERT INTO repairs (kind, seq, visit, was, created_at) "
                                  "VALUES (?, ?, ?, ?, ?)", logged)
+                following = self._next_closure_id(conn)  # (a closure already retracted skips its id)
                 conn.executemany(
-                    "INSERT INTO loop_closures (stream, seq, place_seq, confidence, support, metadata, "
-                    "created_at, consolidated_into, retracts) SELECT stream, seq, place_seq, 0, 0, metadata, "
-                    "?, consolidated_into, id FROM loop_closures c WHERE id = ? AND retracts IS NULL AND "
-                    "NOT EXISTS (SELECT 1 FROM loop_closures r WHERE r.retracts = c.id)",
-                    [(now, int(c)) for c in retracts])
+                    "INSERT INTO loop_closures (id, stream, seq, place_seq, confidence, support, metadata, "
+                    "created_at, consolidated_into, retracts) SELECT ?, stream, seq, place_seq, 0, 0, "
+                    "metadata, ?, consolidated_into, id FROM loop_closures c "
+                    "WHERE id = ? AND retracts IS NULL "
+                    "AND NOT EXISTS (SELECT 1 FROM loop_closures r WHERE r.retracts = c.id)",
+                    [(following + i, now, int(c)) for i, c in enumerate(retracts)])
                 if retracts:
                     self._prune_closures(conn)
             if rows:  # only after COMMIT returned, as `append_many`

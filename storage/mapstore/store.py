@@ -38,7 +38,8 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
     """
 
     def __init__(self, path: Path, conn: sqlite3.Connection, meta: MapMeta, seq_floor: int,
-                 max_keys: int | None = None, max_closures: int | None = None) -> None:
+                 max_keys: int | None = None, max_closures: int | None = None,
+                 closure_floor: int = 0) -> None:
         """Use `MapStore.create` or `MapStore.open`."""
         self.path = path
         self.meta = meta
@@ -57,28 +58,32 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
         self._last_seq = int(last)
         self._count = int(count)
         self._seq_floor = max(0, int(seq_floor))
+        self._closure_floor = max(0, int(closure_floor))
         self._synced_wal: int | None = None  # the inode of the WAL file whose directory entry `sync` synced
 
     @classmethod
     def create(cls, path: str | os.PathLike[str], meta: MapMeta, *, seq_floor: int = 0,
-               max_keys: int | None = None, max_closures: int | None = None) -> MapStore:
+               max_keys: int | None = None, max_closures: int | None = None,
+               closure_floor: int = 0) -> MapStore:
         """Create a new `map.sqlite` atomically (`storage.mapschema.create_file`: a crash leaves no map
         file or a complete one) and open it.
 
         Args:
             path: the file to create; its directory must exist.
             meta: what is frozen into the map.
-            seq_floor, max_keys, max_closures: see `open`.
+            seq_floor, max_keys, max_closures, closure_floor: see `open`.
 
         Raises:
             FileExistsError: `path` exists.
         """
         create_file(Path(path), meta)
-        return cls.open(path, seq_floor=seq_floor, max_keys=max_keys, max_closures=max_closures)
+        return cls.open(path, seq_floor=seq_floor, max_keys=max_keys, max_closures=max_closures,
+                        closure_floor=closure_floor)
 
     @classmethod
     def open(cls, path: str | os.PathLike[str], *, seq_floor: int = 0, readonly: bool = False,
-             max_keys: int | None = None, max_closures: int | None = None) -> MapStore:
+             max_keys: int | None = None, max_closures: int | None = None,
+             closure_floor: int = 0) -> MapStore:
         """Open an existing `map.sqlite`.
 
         Args:
@@ -90,6 +95,8 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
                 older file is migrated (`storage.mapschema.migrate`) unless opened read-only.
             max_keys: idempotency keys kept: those of the last `max_keys` seqs (None: all).
             max_closures: loop closures kept: the last `max_closures` (None: all).
+            closure_floor: the same as `seq_floor` for loop-closure log ids (the catalog's mark): the
+                next entry's id is above it, so a restored log never hands out an id again.
 
         Raises:
             FileNotFoundError: no such file (SQLite would silently create an empty one).
@@ -110,7 +117,7 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
                                    f"this code's {SCHEMA_VERSION}")
             if not readonly:
                 meta = migrate(conn, meta)
-            return cls(path, conn, meta, seq_floor, max_keys, max_closures)
+            return cls(path, conn, meta, seq_floor, max_keys, max_closures, closure_floor)
         except sqlite3.DatabaseError as exc:
             conn.close()
             if is_full_error(exc):  # the migration found no room: the file is whole, the disk is not

@@ -54,16 +54,38 @@ def test_map_crud(catalog: Catalog, tmp_path: Path) -> None:
     again.close()
 
 
-def test_high_water_mark(catalog: Catalog) -> None:
+def test_a_restore_raises_the_marks_and_counts_itself(catalog: Catalog) -> None:
     catalog.create_map("lab", {})
-    assert catalog.get_high_water("lab") == 0
-    assert catalog.bump_high_water("lab", 12) == 12
-    assert catalog.bump_high_water("lab", 5) == 12  # never lowered
-    assert catalog.get_map("lab").seq_high_water == 12
+    fresh = catalog.get_map("lab")
+    assert (fresh.seq_high_water, fresh.closure_high_water, fresh.restores) == (0, 0, 0)
+    marked = catalog.mark_restore("lab", 12, 40)
+    assert (marked.seq_high_water, marked.closure_high_water, marked.restores) == (12, 40, 1)
+    again = catalog.mark_restore("lab", 5, 7)  # never lowered; every restore counts
+    assert (again.seq_high_water, again.closure_high_water, again.restores) == (12, 40, 2)
+    assert catalog.get_map("lab") == again
     with pytest.raises(MapNotFound):
-        catalog.bump_high_water("nope", 1)
-    with pytest.raises(MapNotFound):
-        catalog.get_high_water("nope")
+        catalog.mark_restore("nope", 1, 1)
+
+
+def test_a_version_1_catalog_gains_the_closure_mark_and_the_restore_count(tmp_path) -> None:
+    path = tmp_path / "catalog.sqlite"
+    old = sqlite3.connect(path)  # the version 1 schema, as written before the closure mark
+    old.executescript("""
+        CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+        INSERT INTO meta VALUES ('schema_version', '1');
+        CREATE TABLE maps (map_id TEXT PRIMARY KEY, created_at TEXT NOT NULL, state TEXT NOT NULL,
+            state_reason TEXT NULL, preset TEXT NULL, params TEXT NOT NULL,
+            seq_high_water INTEGER NOT NULL DEFAULT 0);
+        INSERT INTO maps VALUES ('lab', '2026-01-01T00:00:00Z', 'ready', NULL, NULL, '{}', 9);""")
+    old.commit()
+    old.close()
+    with Catalog.open(path, readonly=True) as ro:  # read as it is: no columns yet, nothing restored
+        assert (ro.get_map("lab").seq_high_water, ro.get_map("lab").restores) == (9, 0)
+    with Catalog.open(path) as catalog:
+        rec = catalog.mark_restore("lab", 3, 5)
+    assert (rec.seq_high_water, rec.closure_high_water, rec.restores) == (9, 5, 1)
+    with sqlite3.connect(path) as conn:
+        assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == "2"
 
 
 def test_snapshot_registry(catalog: Catalog) -> None:
@@ -95,7 +117,7 @@ def test_snapshot_registry(catalog: Catalog) -> None:
     assert catalog.list_snapshots("lab") == []
     assert [s.snapshot_id for s in catalog.list_snapshots("yard")] == ["s1"]
     catalog.create_map("lab", {})  # a new map with the old id starts clean
-    assert catalog.list_snapshots("lab") == [] and catalog.get_high_water("lab") == 0
+    assert catalog.list_snapshots("lab") == [] and catalog.get_map("lab").restores == 0
 
 
 def test_snapshot_paths_are_stored_relative_to_the_data_directory(catalog: Catalog, tmp_path: Path) -> None:

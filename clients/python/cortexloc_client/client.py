@@ -191,7 +191,8 @@ class Client:
     def repair(self, map_id: str, *, undo: bool = False) -> models.Repair:
         """`GET /v1/maps/{map_id}/repair` (undo False: what a repair would undo) or `POST` (undo True: undo
         it, durably): the merges a stream made from its own recent trail, and the loop closures that
-        named them (retracted in the log)."""
+        named them (retracted in the log). A POST whose answer was lost is sent again: the second finds
+        nothing left to undo, so its lists are empty; the retractions are in `loop_closures`."""
         return self._send(_core.repair(map_id, undo=undo))
 
     def export_loop_closures(self, map_id: str, fmt: str = "csv") -> bytes:

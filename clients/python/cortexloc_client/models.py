@@ -469,18 +469,22 @@ class Repair(_Reply):
 
 class LoopClosureList(_Reply):
     """`GET /v1/maps/{map_id}/loop-closures`: a page, oldest first; `next_after` continues it (None: the
-    end)."""
+    end). `epoch` counts the restores that rolled the map back (0 from a server before it): ids are never
+    handed out twice, but when it changes, read the log again from `after=0` (what came after the
+    snapshot is gone, and retractions made since are undone)."""
 
     loop_closures: list[LoopClosure]
     next_after: int | None = None
+    epoch: int = 0
 
 
 class StoredObservationList(_Reply):
     """`GET /v1/maps/{map_id}/observations`: a page in seq order; `next_after_seq` continues it (None:
-    nothing after this page)."""
+    nothing after this page). `epoch`: as `LoopClosureList`'s."""
 
     observations: list[StoredObservation]
     next_after_seq: int | None = None
+    epoch: int = 0
 
 
 # ------------------------------------------------------------------------------------- snapshots

@@ -27,6 +27,7 @@ from service.maps import recovery
 from service.maps.errors import MapReplaying, MapUnavailable
 from service.maps.states import serving
 from storage import snapshots
+from storage.catalog import MapNotFound as CatalogMapNotFound
 from storage.mapstore import MapStore, Observation, StorageFull, StoreCorrupt
 
 __all__ = ["TAIL_BEFORE_SERVING", "Recovering"]
@@ -51,6 +52,7 @@ class Recovering:
     state: str
     state_reason: str | None
     store: MapStore | None
+    epoch: int
     recovery: dict[str, Any] | None
     _tail: recovery.Tail | None
     _tail_started: float
@@ -90,10 +92,14 @@ class Recovering:
         if self.layout.snapshots_dir(self.map_id).is_dir():  # a crash during a snapshot leaves a temp dir
             snapshots.remove_stale_temp(self.layout.snapshots_dir(self.map_id))
         try:
+            marks = self.catalog.get_map(self.map_id)
+            if marks is None:  # deleted meanwhile: as the catalog says it
+                raise CatalogMapNotFound(f"map {self.map_id!r} not found")
             self.store = MapStore.open(self.layout.map_db(self.map_id),
                                        max_keys=self.settings.idempotency_keys,
                                        max_closures=self.settings.loop_closures,
-                                       seq_floor=self.catalog.get_high_water(self.map_id))
+                                       seq_floor=marks.seq_high_water, closure_floor=marks.closure_high_water)
+            self.epoch = marks.restores
             if not self.store.quick_check():
                 raise StoreCorrupt("quick_check failed")
         except (StoreCorrupt, StorageFull) as e:  # full (a migration): the file is whole, a restart recovers

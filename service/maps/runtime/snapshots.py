@@ -100,7 +100,7 @@ class Snapshots:
         before = self.store.count()
         with self._restore_budget(path):
             self.snapshot("pre-restore")
-            self.catalog.bump_high_water(self.map_id, self.store.next_seq() - 1)
+            self.catalog.mark_restore(self.map_id, self.store.next_seq() - 1, self.store.last_closure_id())
             self.store.close()
             MapStore.install_copy(path / snapshots.DB_FILE, self.layout.map_db(self.map_id))
             self.recover()

@@ -161,6 +161,35 @@ def test_the_log_is_carried_by_a_snapshot_and_a_restore_and_is_bounded(tmp_path)
     assert restored == kept  # the restore's file holds the log as it was at the snapshot
 
 
+def test_after_a_restore_log_ids_are_not_handed_out_again_and_the_epoch_says_so(tmp_path):
+    # A back end following the log with a cursor: the ids after the restore continue above every id it
+    # was given (it misses none of the new ones), and the epoch tells it to read again from 0 (what came
+    # after the snapshot is gone). A restart keeps both.
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        patched(c)
+        drive(c, LAP, noise=0.0)
+        drive(c, LAP[:15])
+        page = c.get("/v1/maps/default/loop-closures").json()
+        assert page["epoch"] == 0 and c.get("/v1/maps/default/observations").json()["epoch"] == 0
+        snap = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        drive(c, LAP[15:])
+        log = c.get("/v1/maps/default/loop-closures", params={"limit": 500}).json()["loop_closures"]
+        cursor = log[-1]["id"]
+        assert cursor > page["loop_closures"][-1]["id"]
+        assert c.post(f"/v1/maps/default/snapshots/{snap}/restore").status_code == 200
+        assert c.get("/v1/maps/default/loop-closures").json()["epoch"] == 1
+        assert c.get("/v1/maps/default/observations").json()["epoch"] == 1
+        called = revisits(drive(c, LAP[15:]))
+        assert called
+        new = c.get("/v1/maps/default/loop-closures", params={"after": cursor}).json()
+    assert len(new["loop_closures"]) == len(called) and new["epoch"] == 1
+    assert min(e["id"] for e in new["loop_closures"]) == cursor + 1
+    with make_client(data) as c:  # the marks and the count are the catalog's: a restart keeps them
+        again = c.get("/v1/maps/default/loop-closures", params={"after": cursor}).json()
+    assert again == new
+
+
 def test_a_repeated_localisation_post_logs_its_closure_once(tmp_path):
     data = tmp_path / "data"
     with make_client(data) as c:

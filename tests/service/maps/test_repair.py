@@ -211,3 +211,11 @@ def test_an_unknown_map_is_a_404(tmp_path):
     with make_client(tmp_path / "data") as c:
         for r in (c.get("/v1/maps/nope/repair"), c.post("/v1/maps/nope/repair")):
             assert r.status_code == 404 and r.headers["content-type"].startswith("application/problem+json")
+
+
+def test_the_cli_repair_says_in_one_line_that_it_cannot_reach_the_service():
+    # nothing listens on port 9 (discard) of loopback: a refused connection, one error line, exit 1
+    out = CliRunner().invoke(cli, ["repair", "--map", "m", "--url", "http://127.0.0.1:9"])
+    assert out.exit_code == 1
+    assert "cannot reach the service at http://127.0.0.1:9" in out.output
+    assert "Traceback" not in out.output and len(out.output.strip().splitlines()) == 1

@@ -163,6 +163,11 @@ def bad_inputs() -> list[tuple[str, bytes, str, dict, int, str]]:
         ("trail not a stream name", png, "image/png", {"metadata": '{"trail":"a b"}'}, 422,
          "invalid-metadata"),
         ("trail a number", png, "image/png", {"metadata": '{"trail":3}'}, 422, "invalid-metadata"),
+        # stamps are seconds: milliseconds and nanoseconds (as a string, past 2^53) read as seconds are not
+        ("stamp in milliseconds", png, "image/png", {"metadata": '{"stamp":1700000000123}'}, 422,
+         "invalid-metadata"),
+        ("stamp in nanoseconds, a string", png, "image/png", {"metadata": '{"stamp":"1700000000123456789"}'},
+         422, "invalid-metadata"),
         ("png header claiming 100000x100000", huge_png_header(), "image/png", {}, 413, "image-too-large"),
         ("1x4000", frame_of_size(1, 4000), "image/png", {}, 422, "degenerate-image"),
     ]
