@@ -56,7 +56,10 @@ MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 def get_registry(request: Request) -> MapRegistry:
     registry = getattr(request.app.state, "registry", None)
     if registry is None:
-        raise Problem(503, "not-ready", "the maps are not loaded yet")
+        # a start that could not open the maps stays so until the cause is fixed and the server restarted
+        failed = getattr(request.app.state, "registry_error", None)
+        raise Problem(503, "not-ready", f"{failed}; restart the server once fixed" if failed
+                      else "the maps are not loaded yet")
     return registry
 
 

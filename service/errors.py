@@ -258,6 +258,7 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
     SnapshotInvalid: DomainProblem(409, "snapshot-invalid"),
     maps_errors.SnapshotInUse: DomainProblem(409, "snapshot-in-use", ("map_id", "snapshot_id")),
     maps_errors.MapAlreadyExists: DomainProblem(409, "map-exists", ("map_id",)),
+    maps_errors.UnlistedMaps: DomainProblem(409, "map-exists", ("map_id",)),  # on disk, not in the catalog
     maps_errors.MapLimit: DomainProblem(409, "map-limit", ("max_maps",)),
     maps_errors.MapFull: DomainProblem(409, "map-full", ("max_observations",)),
     maps_errors.MemoryBudgetExceeded: DomainProblem(409, "memory-budget", (
@@ -271,6 +272,8 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
     maps_errors.ShardUnavailable: DomainProblem(503, "map-unavailable", ("map_id", "shard", "retry_after")),
     maps_errors.Overloaded: DomainProblem(503, "overloaded", ("retry_after",), {"Retry-After": "1"}),
     maps_errors.EncoderUnavailable: DomainProblem(503, "not-ready", ("retry_after",)),
+    # (raised at start only, where it keeps the service not ready: /readyz and every map route say why)
+    maps_errors.DataDirectoryInUse: DomainProblem(503, "not-ready"),
     maps_errors.StreamLimit: DomainProblem(429, "stream-limit",
                                            ("max_streams", "keep_seconds", "retry_after")),
     StoreClosed: DomainProblem(503, "map-unavailable", (), {"Retry-After": "1"}),  # mid-restore or delete

@@ -6,7 +6,9 @@ the app in another task):
 - a `Content-Length` above the limit is answered 413 `payload-too-large` before the app runs; the body
   is read and dropped first (never held) when it is at most `DRAIN_MAX_BYTES`, within the body deadline,
   so that a client still sending receives the answer instead of a reset connection (what stopped
-  `cortexloc ingest` at a 12 MB frame); a larger one is answered at once;
+  `cortexloc ingest` at a 12 MB frame); a larger one is answered at once, and so is one whose client
+  sent `Expect: 100-continue` (curl does over 1 MiB): it waits for the server's word before sending,
+  and gets the 413 instead of a 100 Continue;
 - otherwise the body is counted as it arrives (chunked uploads too): the chunk that crosses the limit is
   not handed to the app, which sees `BodyTooLargeError` from `receive()`; whatever the app then does, its
   response is replaced by the 413 (a route that already started streaming its reply is only cut off);
@@ -194,7 +196,10 @@ class UploadLimitMiddleware:
                 return
             if length > limit:
                 _count(scope, "too-large")
-                if length <= DRAIN_MAX_BYTES:
+                # A client that asked `Expect: 100-continue` sends nothing until told to: answered at
+                # once, it never uploads the body (reading it would tell the server to send 100 first).
+                waits = headers.get("expect", "").lower() == "100-continue"
+                if length <= DRAIN_MAX_BYTES and not waits:
                     await _drain(receive, length, deadline)
                 await _too_large(scope, limit, length, declared=True)(scope, receive, send)
                 return

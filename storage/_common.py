@@ -74,11 +74,19 @@ def connect(path: str | Path, *, readonly: bool = False) -> sqlite3.Connection:
     return conn
 
 
+#: What says there is no room to write: the disk full, the user's quota used up, the file-size limit
+#: (`ulimit -f`) reached. SQLite reports the first as SQLITE_FULL and the other two as a failed write
+#: (its VFS keeps the errno to itself), so a failed write counts as no room too: a write that fails for
+#: any reason is storage refusing the row, answered as such (507, nothing changed), never as a bug.
+_NO_ROOM_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
+_NO_ROOM_SQLITE = frozenset({"SQLITE_FULL", "SQLITE_IOERR_WRITE"})
+
+
 def is_full_error(exc: BaseException) -> bool:
-    """True when `exc` means the disk (or the database size limit) is full."""
+    """True when `exc` means there is no room to write (`_NO_ROOM_ERRNOS`, `_NO_ROOM_SQLITE`)."""
     if isinstance(exc, sqlite3.Error):
-        return getattr(exc, "sqlite_errorname", "") == "SQLITE_FULL"
-    return isinstance(exc, OSError) and exc.errno == errno.ENOSPC
+        return getattr(exc, "sqlite_errorname", "") in _NO_ROOM_SQLITE
+    return isinstance(exc, OSError) and exc.errno in _NO_ROOM_ERRNOS
 
 
 @contextmanager

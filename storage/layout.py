@@ -1,6 +1,7 @@
 """Where everything lives in one data directory: the one layout every writer and reader uses
 (docs/design/service.md §4.1).
 
+    <root>/.lock                                (`storage.lock`: one process at a time)
     <root>/catalog.sqlite
     <root>/projections/<sha256>.npy             (`models.frontend.slsbh.save_projection`'s naming)
     <root>/maps/<map_id>/map.sqlite
@@ -36,6 +37,11 @@ class Layout:
     def catalog(self) -> Path:
         """The catalog database (`storage.catalog.Catalog`)."""
         return self.root / "catalog.sqlite"
+
+    @property
+    def lock(self) -> Path:
+        """The file a process holds locked while it has the directory's maps open (`storage.lock`)."""
+        return self.root / ".lock"
 
     @property
     def projections(self) -> Path:

@@ -30,20 +30,24 @@ def import_map(
     from types import SimpleNamespace
 
     from service.maps.encoding.embedders import Embedders
-    from service.maps.errors import MemoryBudgetExceeded, SnapshotInvalid
+    from service.maps.errors import DataDirectoryInUse, MemoryBudgetExceeded, SnapshotInvalid
     from service.maps.registry import MapRegistry
 
     settings = process_settings(data_dir=data_dir)
     root = settings.data_dir
     no_embedder = SimpleNamespace(identity="", feature_dim=0)  # an import embeds no image
-    registry = MapRegistry(root, Embedders.one(no_embedder), settings=settings)
+    try:
+        registry = MapRegistry(root, Embedders.one(no_embedder), settings=settings)
+    except DataDirectoryInUse as e:  # the server is running on it
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1) from e
     try:
         map_id = registry.import_snapshot(tar, settings.max_import_bytes)
     except (SnapshotInvalid, MemoryBudgetExceeded, ValueError, OSError) as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from e
     finally:
-        registry.catalog.close()
+        registry.close()  # (no map is open: the catalog, and the directory's lock)
     typer.echo(f"imported map {map_id!r} into {root}; it recovers from the snapshot when the server starts")
 
 

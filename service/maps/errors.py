@@ -65,6 +65,21 @@ class MapAlreadyExists(MapError):  # noqa: N818
         self.map_id = map_id
 
 
+class DataDirectoryInUse(MapError):  # noqa: N818
+    """Another process has the data directory's maps open (`storage.lock`): this one touches nothing."""
+
+
+class UnlistedMaps(MapAlreadyExists):
+    """Map directories hold a map the catalog does not list (a catalog lost or replaced, or another
+    process's map): they are never deleted or made anew (docs/design/service.md §4.1)."""
+
+    def __init__(self, map_ids: list[str]) -> None:
+        MapError.__init__(self, f"maps/{', maps/'.join(map_ids)} hold(s) a map the catalog does not list; "
+                          "it is left as it is: restore catalog.sqlite, or move the directory away")
+        self.map_id = map_ids[0]
+        self.map_ids = map_ids
+
+
 class MapLimit(MapError):  # noqa: N818
     def __init__(self, max_maps: int) -> None:
         super().__init__(f"at most {max_maps} maps")

@@ -21,6 +21,7 @@ from service.maps.config import MapConfig, MapOptions, resolve
 from service.maps.encoding import projection as map_projection
 from service.maps.encoding.embedders import Embedders
 from service.maps.errors import (
+    DataDirectoryInUse,
     InvalidConfiguration,
     InvalidMapId,
     MapAlreadyExists,
@@ -28,6 +29,7 @@ from service.maps.errors import (
     MapNotFound,
     MapTooLarge,
     MemoryBudgetExceeded,
+    UnlistedMaps,
 )
 from service.maps.failed import FailedMap
 from service.maps.recovery import snapshots as map_snapshots
@@ -40,6 +42,7 @@ from storage import snapshots
 from storage.base.process import rss_bytes
 from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord
 from storage.layout import Layout
+from storage.lock import DataDirInUse, DataDirLock
 from storage.mapstore import MapMeta, MapStore, StorageError, cell_dtype_for
 from storage.snapshots import Manifest
 
@@ -76,7 +79,16 @@ class MapRegistry:
         self.runtime_settings = RuntimeSettings.of(settings)  # what each map's runtime reads of them
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self.layout = Layout(data_dir)  # every path of the data directory (storage.layout)
-        self.catalog = Catalog.open(self.layout.catalog)
+        # one process at a time (storage.lock): before anything of the directory is read or written
+        try:
+            self._lock = DataDirLock(self.layout.lock).acquire()
+        except DataDirInUse as e:
+            raise DataDirectoryInUse(str(e)) from e
+        try:
+            self.catalog = Catalog.open(self.layout.catalog)
+        except BaseException:
+            self._lock.release()
+            raise
         self.projections = self.layout.projections
         self.projections.mkdir(parents=True, exist_ok=True)
         self.maps: dict[str, MapRuntime | FailedMap] = {}
@@ -120,6 +132,14 @@ class MapRegistry:
                 log.exception("map %s cannot be opened; it is served as failed", record.map_id)
                 self.catalog.set_state(record.map_id, "failed", "open-failed")
                 self.maps[record.map_id] = FailedMap(record, self.catalog, "open-failed")
+        unlisted = self._unlisted()
+        for map_id in unlisted:
+            log.error("maps/%s holds a map the catalog does not list; it is left as it is (not served): "
+                      "restore catalog.sqlite, or move the directory away", map_id)
+        if not self.maps and unlisted:
+            # A fresh install has no map directories: this catalog was lost or replaced. Making `default`
+            # now would serve an empty map as if the robot's maps had never been.
+            raise UnlistedMaps(unlisted)
         if not self.maps:
             try:
                 self.create("default")
@@ -184,9 +204,12 @@ class MapRegistry:
         return rt
 
     def close(self) -> None:
-        for rt in self.maps.values():
-            rt.close()
-        self.catalog.close()
+        try:
+            for rt in self.maps.values():
+                rt.close()
+            self.catalog.close()
+        finally:
+            self._lock.release()
 
     def get(self, map_id: str) -> MapRuntime | FailedMap:
         """Raises MapNotFound."""
@@ -277,8 +300,12 @@ class MapRegistry:
                                            "encoder_id": encoder.identity_for(config.resize)})
         if encoder.identity.split("/")[1].startswith("random"):
             log.warning("map %s is created on RANDOM encoder weights (%s)", map_id, encoder.identity)
+        if self.catalog.get_map(map_id) is not None:  # before any file is touched
+            raise MapAlreadyExists(map_id)
         map_dir = self.layout.map_dir(map_id)
         if map_dir.exists():
+            if self._holds_data(map_id):
+                raise UnlistedMaps([map_id])
             shutil.rmtree(map_dir)  # leftovers of a creation that never reached the catalog
         map_dir.mkdir(parents=True)
         params = config.stored()
@@ -291,6 +318,31 @@ class MapRegistry:
             return self.catalog.create_map(map_id, params, preset=config.preset, state="ready"), config
         except MapExists as e:
             raise MapAlreadyExists(map_id) from e
+
+    def _holds_data(self, map_id: str) -> bool:
+        """Whether `maps/<map_id>` holds what a map stored: rows, or snapshots. A creation that never
+        reached the catalog leaves an empty store at most (`MapStore.create` writes it whole or not at
+        all); a store that cannot be read is taken to hold data: it is never deleted unread."""
+        snaps = self.layout.snapshots_dir(map_id)
+        if snaps.is_dir() and any(snaps.iterdir()):
+            return True
+        db = self.layout.map_db(map_id)
+        if not db.exists():
+            return False
+        try:
+            with MapStore.open(db, readonly=True) as store:
+                return store.count() > 0 or store.closure_count() > 0
+        except (StorageError, OSError, sqlite3.Error):
+            return True
+
+    def _unlisted(self) -> list[str]:
+        """The map directories the catalog does not list that hold data (`_holds_data`), sorted."""
+        if not self.layout.maps.is_dir():
+            return []
+        listed = {r.map_id for r in self.catalog.list_maps()}
+        return sorted(d.name for d in self.layout.maps.iterdir()
+                      if d.is_dir() and MAP_ID_RE.match(d.name) and d.name not in listed
+                      and self._holds_data(d.name))
 
     def memory_budget(self) -> BudgetInfo:
         """The budget: total, used, free, the encoders, and every map's reservation (§1.8); a map left

@@ -181,6 +181,10 @@ def test_declared_length_is_refused_before_the_app_and_the_body_dropped_unheld()
     huge = str(DRAIN_MAX_BYTES + 1).encode()
     sent, reads = _run(UploadLimitMiddleware(app), _scope([(b"content-length", huge)]), body)
     assert reads == 0 and sent[0]["status"] == 413
+    # a client that waits for 100 Continue is told at once: reading would have the server send it the 100
+    sent, reads = _run(UploadLimitMiddleware(app), _scope([(b"content-length", b"1000000"),
+                                                           (b"expect", b"100-continue")]), body)
+    assert reads == 0 and sent[0]["status"] == 413
 
 
 def test_chunks_are_counted_and_cut_at_the_limit():

@@ -250,7 +250,8 @@ class Writer:
         except Exception as e:
             if not learn:  # a localisation learns nothing: the memory and the store still agree
                 if isinstance(e, StorageFull):  # its loop closure could not be logged: no answer either
-                    raise InsufficientStorage("the loop closure could not be logged: the disk is full") from e
+                    raise InsufficientStorage("the loop closure could not be logged: no room to write "
+                                              "(the disk full, a quota, the file-size limit)") from e
                 raise
             # The TM may hold a learned step the store does not (a failed commit, or a failure anywhere
             # between the step and the commit): rebuild from the store before anything else runs, so
@@ -260,7 +261,7 @@ class Writer:
             self.store.close()
             self.recover()
             if isinstance(e, StorageFull):
-                raise InsufficientStorage("the observation could not be stored: the disk is full; nothing "
+                raise InsufficientStorage("the observation could not be stored: no room to write; nothing "
                                           "was learned") from e
             raise
 

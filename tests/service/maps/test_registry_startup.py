@@ -88,3 +88,80 @@ def test_the_map_limit_is_checked_before_a_network_is_loaded(counted):
     r = c.post("/v1/maps", json={"map_id": "more", "backbone": "efficientnet-lite0-s5"})
     assert r.status_code == 409 and r.json()["type"] == "urn:cortexloc:problem:map-limit", r.text
     assert built == ["alexnet"]
+
+
+def map_files(data, map_id: str) -> dict[str, bytes]:
+    """Every file of a map's directory, by path: what must be left as it is."""
+    root = data / "maps" / map_id
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def a_map_with_rows(c, map_id: str) -> None:
+    assert c.post("/v1/maps", json={"map_id": map_id}).status_code == 201
+    for place in range(3):
+        assert post(c, frame(place), map_id=map_id).status_code == 200
+    assert c.post(f"/v1/maps/{map_id}/snapshots").status_code == 201
+
+
+@pytest.mark.parametrize("catalog", ["deleted", "empty file"])
+def test_a_lost_catalog_leaves_every_map_as_it_is_and_the_service_not_ready(tmp_path, catalog):
+    # A fresh install has no map directories: a catalog that lists none beside maps that hold rows was
+    # lost or replaced, and making `default` anew (or any map later) would wipe what the robot learned.
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        a_map_with_rows(c, "farm")
+        assert post(c, frame(7)).status_code == 200  # and `default` holds a row too
+    (data / "catalog.sqlite").unlink()
+    for side in ("-wal", "-shm"):
+        (data / f"catalog.sqlite{side}").unlink(missing_ok=True)
+    if catalog == "empty file":
+        (data / "catalog.sqlite").write_bytes(b"")
+    before = {m: map_files(data, m) for m in ("farm", "default")}
+    with make_client(data) as c:
+        ready = c.get("/readyz")
+        assert ready.status_code == 503
+        assert "maps/default, maps/farm" in json.dumps(ready.json()) and "catalog" in json.dumps(ready.json())
+    assert {m: map_files(data, m) for m in ("farm", "default")} == before
+
+
+def test_creating_a_map_over_a_directory_the_catalog_does_not_list_is_refused_and_changes_nothing(tmp_path):
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        a_map_with_rows(c, "farm")
+    with sqlite3.connect(data / "catalog.sqlite") as db:  # the catalog forgot it (another process's map)
+        db.execute("DELETE FROM snapshots WHERE map_id = 'farm'")
+        db.execute("DELETE FROM maps WHERE map_id = 'farm'")
+    before = map_files(data, "farm")
+    with make_client(data) as c:
+        assert c.get("/readyz").status_code == 200  # `default` is listed: the service serves it
+        r = c.post("/v1/maps", json={"map_id": "farm"})
+        assert r.status_code == 409 and r.json()["type"].endswith("map-exists")
+        assert "maps/farm" in r.json()["detail"]
+    assert map_files(data, "farm") == before
+
+
+def test_leftovers_of_a_creation_that_never_reached_the_catalog_are_cleared(tmp_path):
+    # MapStore.create wrote the empty store, the catalog row never came (a crash between the two)
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        assert c.post("/v1/maps", json={"map_id": "yard"}).status_code == 201
+    with sqlite3.connect(data / "catalog.sqlite") as db:
+        db.execute("DELETE FROM maps WHERE map_id = 'yard'")
+    with make_client(data) as c:
+        assert c.post("/v1/maps", json={"map_id": "yard"}).status_code == 201
+        assert post(c, frame(1), map_id="yard").status_code == 200
+
+
+def test_a_second_process_on_the_data_directory_is_not_ready_and_touches_nothing(tmp_path):
+    data = tmp_path / "data"
+    with make_client(data) as first:
+        assert post(first, frame(1)).status_code == 200
+        with make_client(data) as second:  # another open of the directory: as another process's
+            ready = second.get("/readyz")
+            assert ready.status_code == 503
+            assert "in use by another cortexloc process" in json.dumps(ready.json())
+            assert second.post("/v1/maps", json={"map_id": "farm"}).status_code == 503
+        assert post(first, frame(2)).status_code == 200  # the first serves on
+    with make_client(data) as again:  # the lock went with the first
+        assert again.get("/readyz").status_code == 200
+        assert again.get("/v1/maps/default").json()["observations"] == 2
