@@ -189,9 +189,9 @@ def check_memory(directory: str | os.PathLike[str], *, max_bytes: int, known: Ca
     Raises:
         SnapshotInvalid: not a zip of `.npy` members, a name `known` refuses, a name twice, an encrypted
             member or one compressed other than stored or deflated, an object dtype, or more than
-            `max_bytes` in all.
+            `max_bytes` in all, or in the file itself.
     """
-    with _open_memory(Path(directory) / MEMORY_FILE) as z:
+    with _open_memory(Path(directory) / MEMORY_FILE, max_bytes) as z:
         return sum(size for _, _, size in _members(z, max_bytes, known))
 
 
@@ -199,7 +199,7 @@ def load_memory(directory: str | os.PathLike[str], *, max_bytes: int,
                 known: Callable[[str], bool]) -> dict[str, np.ndarray]:
     """The arrays of `memory.npz`, every member checked first as `check_memory` does, so that nothing
     inflates past `max_bytes` (call `verify` first). No pickle. Raises SnapshotInvalid."""
-    with _open_memory(Path(directory) / MEMORY_FILE) as z:
+    with _open_memory(Path(directory) / MEMORY_FILE, max_bytes) as z:
         members = _members(z, max_bytes, known)
         try:
             out = {}
@@ -216,13 +216,22 @@ _UNREADABLE = (zipfile.BadZipFile, zlib.error, EOFError, ValueError, NotImplemen
 
 
 @contextlib.contextmanager
-def _open_memory(path: Path) -> Iterator[zipfile.ZipFile]:
+def _open_memory(path: Path, max_bytes: int) -> Iterator[zipfile.ZipFile]:
+    """The zip, opened once its size on disk is within `max_bytes`: a zip's directory is read whole when it
+    is opened, each entry an object of a few hundred bytes for as few as 78 on disk."""
+    size = path.stat().st_size
+    if size > max_bytes:
+        raise SnapshotInvalid(f"{MEMORY_FILE} has {size} bytes; {_bound(max_bytes)}")
     try:
         z = zipfile.ZipFile(path)
     except (zipfile.BadZipFile, ValueError) as exc:
         raise SnapshotInvalid(f"{MEMORY_FILE}: not a zip archive: {exc}") from exc
     with z:
         yield z
+
+
+def _bound(max_bytes: int) -> str:
+    return f"the map's memory holds at most {max_bytes} bytes in all"
 
 
 def _members(z: zipfile.ZipFile, max_bytes: int, known: Callable[[str], bool]
@@ -232,7 +241,7 @@ def _members(z: zipfile.ZipFile, max_bytes: int, known: Callable[[str], bool]
     out: list[tuple[str, zipfile.ZipInfo, int]] = []
     seen: set[str] = set()
     total = 0
-    bound = f"the map's memory holds at most {max_bytes} bytes in all"
+    bound = _bound(max_bytes)
     for info in z.infolist():
         member = info.filename
         name = member.removesuffix(".npy")
