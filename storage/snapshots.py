@@ -10,12 +10,16 @@ exists iff its manifest verifies" (`verify`).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import math
 import os
 import shutil
 import tempfile
 import uuid
-from collections.abc import Mapping
+import zipfile
+import zlib
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +55,7 @@ __all__ = [
     "Manifest",
     "SnapshotInvalid",
     "TarExport",
+    "check_memory",
     "create_snapshot",
     "import_tar",
     "load_memory",
@@ -166,10 +171,112 @@ def _last_observation(db: Path) -> tuple[int, str | None]:
     return (0, None) if row is None else (int(row[0]), str(row[1]))
 
 
-def load_memory(directory: str | os.PathLike[str]) -> dict[str, np.ndarray]:
-    """The arrays of `memory.npz`, loaded with `allow_pickle=False` (call `verify` first)."""
-    with np.load(Path(directory) / MEMORY_FILE, allow_pickle=False) as z:
-        return {name: z[name] for name in z.files}
+def check_memory(directory: str | os.PathLike[str], *, max_bytes: int, known: Callable[[str], bool]) -> int:
+    """Check `memory.npz` without reading its data (docs/design/service.md §4.4): each member's name and
+    `.npy` header (shape, dtype) and its uncompressed size from the zip's directory. A snapshot is
+    untrusted input (an imported one comes from elsewhere), and its checksums say nothing of what its
+    members inflate to.
+
+    Args:
+        directory: the snapshot (call `verify` first).
+        max_bytes: the most the arrays may hold together (each member counted at the larger of its
+            uncompressed size and its header's shape × itemsize).
+        known: whether the memory's writer writes an array of this name.
+
+    Returns:
+        The bytes the arrays hold.
+
+    Raises:
+        SnapshotInvalid: not a zip of `.npy` members, a name `known` refuses, a name twice, an encrypted
+            member or one compressed other than stored or deflated, an object dtype, or more than
+            `max_bytes` in all, or in the file itself.
+    """
+    with _open_memory(Path(directory) / MEMORY_FILE, max_bytes) as z:
+        return sum(size for _, _, size in _members(z, max_bytes, known))
+
+
+def load_memory(directory: str | os.PathLike[str], *, max_bytes: int,
+                known: Callable[[str], bool]) -> dict[str, np.ndarray]:
+    """The arrays of `memory.npz`, every member checked first as `check_memory` does, so that nothing
+    inflates past `max_bytes` (call `verify` first). No pickle. Raises SnapshotInvalid."""
+    with _open_memory(Path(directory) / MEMORY_FILE, max_bytes) as z:
+        members = _members(z, max_bytes, known)
+        try:
+            out = {}
+            for name, info, _ in members:
+                with z.open(info) as f:
+                    out[name] = np.lib.format.read_array(f, allow_pickle=False)
+        except _UNREADABLE as exc:
+            raise SnapshotInvalid(f"{MEMORY_FILE}: unreadable: {exc}") from exc
+    return out
+
+
+# What a damaged or hostile zip raises while it is read (a truncated or corrupt member, a bad header).
+_UNREADABLE = (zipfile.BadZipFile, zlib.error, EOFError, ValueError, NotImplementedError, RuntimeError)
+
+
+@contextlib.contextmanager
+def _open_memory(path: Path, max_bytes: int) -> Iterator[zipfile.ZipFile]:
+    """The zip, opened once its size on disk is within `max_bytes`: a zip's directory is read whole when it
+    is opened, each entry an object of a few hundred bytes for as few as 78 on disk."""
+    size = path.stat().st_size
+    if size > max_bytes:
+        raise SnapshotInvalid(f"{MEMORY_FILE} has {size} bytes; {_bound(max_bytes)}")
+    try:
+        z = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, ValueError) as exc:
+        raise SnapshotInvalid(f"{MEMORY_FILE}: not a zip archive: {exc}") from exc
+    with z:
+        yield z
+
+
+def _bound(max_bytes: int) -> str:
+    return f"the map's memory holds at most {max_bytes} bytes in all"
+
+
+def _members(z: zipfile.ZipFile, max_bytes: int, known: Callable[[str], bool]
+             ) -> list[tuple[str, zipfile.ZipInfo, int]]:
+    """(array name, member, bytes) of each member of `memory.npz`, checked (`check_memory`) from the zip's
+    directory and each `.npy` header, no array data read."""
+    out: list[tuple[str, zipfile.ZipInfo, int]] = []
+    seen: set[str] = set()
+    total = 0
+    bound = _bound(max_bytes)
+    for info in z.infolist():
+        member = info.filename
+        name = member.removesuffix(".npy")
+        where = f"{MEMORY_FILE}: member {member!r}"
+        if name == member or not known(name):
+            raise SnapshotInvalid(f"{where} is no array of a map's memory")
+        if name in seen:
+            raise SnapshotInvalid(f"{where} appears twice")
+        seen.add(name)
+        if info.flag_bits & 0x1 or info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+            raise SnapshotInvalid(f"{where} is encrypted or compressed with method "
+                                  f"{info.compress_type}")
+        if info.file_size > max_bytes - total:  # refused before a byte of it is inflated
+            raise SnapshotInvalid(f"{where} inflates to {info.file_size} bytes; {bound}")
+        try:
+            with z.open(info) as f:
+                version = np.lib.format.read_magic(f)
+                if version == (1, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+                elif version == (2, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+                else:
+                    raise ValueError(f".npy format version {version}")
+        except _UNREADABLE as exc:
+            raise SnapshotInvalid(f"{where} unreadable: {exc}") from exc
+        if any(d < 0 for d in shape):
+            raise SnapshotInvalid(f"{where} declares the shape {shape}")
+        if dtype.hasobject:
+            raise SnapshotInvalid(f"{where} holds objects (dtype {dtype}): pickle")
+        size = max(info.file_size, math.prod(shape) * dtype.itemsize)
+        if size > max_bytes - total:
+            raise SnapshotInvalid(f"{where} declares {dtype}{shape}; {bound}")
+        total += size
+        out.append((name, info, size))
+    return out
 
 
 def remove_stale_temp(parent: str | os.PathLike[str]) -> list[Path]:

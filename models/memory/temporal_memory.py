@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numba
@@ -114,6 +114,10 @@ class StreamContext:
         )
 
 
+#: The arrays of a context's `state_dict`: one per field.
+_CONTEXT_FIELDS = frozenset(f.name for f in fields(StreamContext))
+
+
 def validate(options: presets.TmOptions) -> list[str]:
     """Check parameters as NuPIC does; return the warnings of docs/design/science.md §3.1.
 
@@ -196,6 +200,8 @@ class TemporalMemory:
     """
 
     _CANONICAL = ("presyn", "perm", "nsyn", "last_used")
+    #: The arrays `state_dict` writes besides the contexts' (`ctx.<field>`, `stream.<name>.<field>`).
+    _STATE = (*_CANONICAL, "params", "counters", "scalars", "rng", "numpy_version", "numba_version")
 
     def __init__(self, options: presets.TmOptions | None = None) -> None:
         o = presets.TmOptions() if options is None else options
@@ -364,6 +370,17 @@ class TemporalMemory:
                 raise ValueError(f"stream name {name!r} must not contain '.'")
             out.update({f"stream.{name}.{k}": v for k, v in ctx.state_dict().items()})
         return out
+
+    @classmethod
+    def state_name(cls, name: str) -> bool:
+        """Whether `state_dict` (with any streams) writes an array of this name: a snapshot's loader refuses
+        any other before reading it (docs/design/service.md §4.4)."""
+        kind, _, rest = name.partition(".")
+        if kind == "ctx":
+            return rest in _CONTEXT_FIELDS
+        if kind == "stream":
+            return rest.partition(".")[2] in _CONTEXT_FIELDS
+        return name in cls._STATE
 
     @staticmethod
     def load_streams(state: dict[str, np.ndarray]) -> dict[str, StreamContext]:

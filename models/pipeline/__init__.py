@@ -6,11 +6,12 @@ from models.pipeline.state import (
     Stream,
     eviction_wait,
     load_memory_state,
+    memory_name,
     memory_state,
     resume,
     resume_state,
     touch,
 )
 
-__all__ = ["MapModel", "Step", "Stream", "drop", "eviction_wait", "load_memory_state", "memory_state",
-           "observe", "replay", "resume", "resume_state", "revisit", "touch"]
+__all__ = ["MapModel", "Step", "Stream", "drop", "eviction_wait", "load_memory_state", "memory_name",
+           "memory_state", "observe", "replay", "resume", "resume_state", "revisit", "touch"]

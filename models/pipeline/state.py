@@ -6,6 +6,7 @@ after a crash (§4.4)."""
 from __future__ import annotations
 
 import io
+import re
 from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -18,7 +19,13 @@ from models.localisation.condition import Condition
 from models.localisation.short_term import Anchor
 from models.memory.temporal_memory import StreamContext, TemporalMemory
 
-__all__ = ["Stream", "eviction_wait", "load_memory_state", "memory_state", "resume", "resume_state", "touch"]
+__all__ = ["Stream", "eviction_wait", "load_memory_state", "memory_name", "memory_state", "resume",
+           "resume_state", "touch"]
+
+#: `memory_state`'s arrays of each stream, by prefix; the stream's name is hex-encoded (names may hold '.').
+_PER_STREAM = ("stream", "streammeta", "streamadapt", "streamcond", "streamloc")
+_STREAM_HEX = re.compile(r"(?:[0-9a-f]{2})*")
+_LOCALISER_ARRAYS = frozenset(LocaliserState.empty(1).to_arrays())
 
 
 @dataclass
@@ -113,6 +120,24 @@ def memory_state(tm: TemporalMemory, streams: Mapping[str, Stream]) -> dict[str,
             for key, value in st.localiser.to_arrays().items():
                 state[f"streamloc.{h}.{key}"] = value
     return state
+
+
+def memory_name(name: str) -> bool:
+    """Whether `memory_state` writes an array of this name: the memory's (`TemporalMemory.state_name`),
+    and for each stream `stream.<h>.<field>`, `streammeta.<h>`, `streamadapt.<h>`, `streamcond.<h>` and
+    `streamloc.<h>.<key>`, `<h>` its name in hex. A snapshot's loader refuses any other name before
+    reading it (docs/design/service.md §4.4)."""
+    kind, _, rest = name.partition(".")
+    if kind not in _PER_STREAM:
+        return TemporalMemory.state_name(name)
+    h, _, part = rest.partition(".")
+    if not _STREAM_HEX.fullmatch(h):
+        return False
+    if kind == "stream":
+        return TemporalMemory.state_name(name)
+    if kind == "streamloc":
+        return part in _LOCALISER_ARRAYS
+    return rest == h
 
 
 def load_memory_state(state: Mapping[str, np.ndarray], adapt_tau: int, condition_frames: int = 0

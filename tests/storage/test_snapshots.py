@@ -8,6 +8,8 @@ import json
 import os
 import sqlite3
 import tarfile
+import warnings
+import zipfile
 from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
@@ -16,11 +18,13 @@ import numpy as np
 import pytest
 
 from models import presets
+from models.memory.temporal_memory import TemporalMemory, planned_bytes
 from storage import snapshots
 from storage.mapstore import MapStore, NewObservation
 from storage.snapshots import SnapshotInvalid, create_snapshot, import_tar, load_memory, verify
 
 RowFactory = Callable[..., NewObservation]
+KNOWN = TemporalMemory.state_name  # the names `memory_arrays` (a TM's state) may have
 
 
 def memory_arrays() -> dict[str, np.ndarray]:
@@ -82,7 +86,7 @@ def test_create_and_verify(snap: tuple[Path, snapshots.Manifest], store: MapStor
     conn.close()
     assert verify(dest) == m  # reading it changed nothing
 
-    loaded = load_memory(dest)
+    loaded = load_memory(dest, max_bytes=2**20, known=KNOWN)
     want = memory_arrays()
     assert loaded.keys() == want.keys()
     for k, v in want.items():
@@ -97,8 +101,6 @@ def test_empty_map_snapshot(tmp_path: Path, store: MapStore) -> None:
 
 
 def test_real_temporal_memory_state_round_trips(tmp_path: Path, store: MapStore) -> None:
-    from models.memory.temporal_memory import TemporalMemory
-
     tm = TemporalMemory(presets.TmOptions(columnDimensions=32, cellsPerColumn=4, activationThreshold=3,
                                           minThreshold=2, maxNewSynapseCount=4, maxSegmentsPerCell=4,
                                           maxSynapsesPerSegment=8, seed=7))
@@ -108,12 +110,95 @@ def test_real_temporal_memory_state_round_trips(tmp_path: Path, store: MapStore)
     state = tm.state_dict(streams={"cam-1": cam})
     create_snapshot(store, state, tmp_path / "tm", kind="manual")
     verify(tmp_path / "tm")
-    loaded = load_memory(tmp_path / "tm")
+    loaded = load_memory(tmp_path / "tm", max_bytes=planned_bytes(tm.options), known=KNOWN)
     back = TemporalMemory.from_state(loaded)
     again = back.state_dict(streams=TemporalMemory.load_streams(loaded))
     assert again.keys() == state.keys()
     for k in state:
         np.testing.assert_array_equal(again[k], state[k])
+
+
+def npy_header(shape: tuple[int, ...], descr: str = "|u1") -> bytes:
+    """A `.npy` header alone: an array that declares `shape` and holds no data."""
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, {"descr": descr, "fortran_order": False, "shape": shape})
+    return buf.getvalue()
+
+
+def with_member(npz: bytes, member: str, data: bytes, compress: int = zipfile.ZIP_STORED) -> bytes:
+    """`npz` with one more member (what a crafted snapshot carries beside the memory's arrays)."""
+    buf = io.BytesIO(npz)
+    with zipfile.ZipFile(buf, "a") as z, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a name twice, on purpose
+        z.writestr(zipfile.ZipInfo(member), data, compress_type=compress)
+    return buf.getvalue()
+
+
+def planted(manifest: bytes, npz: bytes, member: str, data: bytes) -> tuple[bytes, bytes]:
+    """(manifest, memory.npz) of a crafted snapshot: `member` added to the memory, deflated, and the
+    manifest made to agree, so every checksum verifies (the outside tester's craft_snapshot.py)."""
+    npz = with_member(npz, member, data, zipfile.ZIP_DEFLATED)
+    body = json.loads(manifest)
+    body["files"]["memory.npz"] = {"bytes": len(npz), "sha256": hashlib.sha256(npz).hexdigest()}
+    return json.dumps(body).encode(), npz
+
+
+def deflated_zeros(n: int) -> bytes:
+    """A `.npy` of `n` zero bytes: it deflates about a thousandfold."""
+    return npy_header((n,)) + bytes(n)
+
+
+def test_memory_within_its_bound_loads_and_one_byte_less_is_refused(snap: tuple[Path, snapshots.Manifest]
+                                                                    ) -> None:
+    """The bound holds the file, and the arrays as the zip's directory sizes them (`.npy` header
+    included); a stored (not deflated) memory.npz is the larger."""
+    dest, _ = snap
+    size = (dest / "memory.npz").stat().st_size
+    with zipfile.ZipFile(dest / "memory.npz") as z:
+        total = sum(i.file_size for i in z.infolist())
+    assert snapshots.check_memory(dest, max_bytes=size, known=KNOWN) == total
+    assert load_memory(dest, max_bytes=size, known=KNOWN).keys() == memory_arrays().keys()
+    with pytest.raises(SnapshotInvalid, match=f"memory.npz has {size} bytes; the map's memory holds at most"):
+        load_memory(dest, max_bytes=size - 1, known=KNOWN)
+
+
+@pytest.mark.parametrize(("member", "data", "compress", "why"), [
+    # 1 TiB declared by its header, no data behind it: refused by the header, before a byte is read
+    ("presyn2.npy", npy_header((2**40,)), zipfile.ZIP_STORED, r"'presyn2.npy' declares uint8\(1099511627776"),
+    # 16 MiB of zeros deflated to ~16 KB: refused by the zip directory's size before it is inflated
+    ("presyn2.npy", deflated_zeros(2**24), zipfile.ZIP_DEFLATED, "'presyn2.npy' inflates to 16777344 bytes"),
+    ("bomb.npy", b"\x93NUMPY", zipfile.ZIP_STORED, "'bomb.npy' is no array of a map's memory"),
+    ("notes.txt", b"hello", zipfile.ZIP_STORED, "'notes.txt' is no array of a map's memory"),
+    ("perm.npy", npy_header((3,), "<f4") + bytes(12), zipfile.ZIP_STORED, "'perm.npy' appears twice"),
+    ("presyn2.npy", npy_header((3,), "|O"), zipfile.ZIP_STORED, "holds objects"),
+    ("presyn2.npy", npy_header((-1, 4)), zipfile.ZIP_STORED, "declares the shape"),
+    ("presyn2.npy", b"not an array", zipfile.ZIP_STORED, "unreadable"),
+], ids=["declared-1TiB", "deflated-16MiB", "unknown-name", "not-npy", "twice", "object", "negative",
+        "garbage"])
+def test_a_memory_member_is_refused_before_any_array_is_read(
+        snap: tuple[Path, snapshots.Manifest], monkeypatch: pytest.MonkeyPatch,
+        member: str, data: bytes, compress: int, why: str) -> None:
+    """A crafted `memory.npz` (docs/design/service.md §4.4): a member past the bound (1 MiB here), of a
+    name the memory's writer never writes, or not an array of numbers, is refused by `check_memory` and
+    by `load_memory` before any array's data is read."""
+    dest, _ = snap
+    npz = dest / "memory.npz"
+    npz.write_bytes(with_member(npz.read_bytes(), member, data, compress))
+    read: list[object] = []
+    monkeypatch.setattr(np.lib.format, "read_array", lambda *a, **k: read.append(a))
+    known = {*memory_arrays(), "presyn2"}.__contains__
+    with pytest.raises(SnapshotInvalid, match=why):
+        snapshots.check_memory(dest, max_bytes=2**20, known=known)
+    with pytest.raises(SnapshotInvalid, match=why):
+        load_memory(dest, max_bytes=2**20, known=known)
+    assert read == []
+
+
+def test_a_damaged_memory_file_is_invalid(snap: tuple[Path, snapshots.Manifest]) -> None:
+    dest, _ = snap
+    (dest / "memory.npz").write_bytes(b"not an archive")
+    with pytest.raises(SnapshotInvalid, match="not a zip archive"):
+        load_memory(dest, max_bytes=2**20, known=KNOWN)
 
 
 def test_create_refuses(tmp_path: Path, store: MapStore) -> None:

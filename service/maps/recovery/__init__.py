@@ -10,11 +10,13 @@ from service.maps.recovery.memory import (
     Replay,
     Tail,
     begin,
+    check_memory,
+    memory_bound,
     open_catalog,
     rebuild,
     recover,
     verify_map,
 )
 
-__all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "Replay", "Tail", "begin", "open_catalog",
-           "rebuild", "recover", "verify_map"]
+__all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "Replay", "Tail", "begin", "check_memory",
+           "memory_bound", "open_catalog", "rebuild", "recover", "verify_map"]

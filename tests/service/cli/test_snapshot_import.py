@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import re
 import tarfile
 from pathlib import Path
 
@@ -13,8 +14,12 @@ import pytest
 from typer.testing import CliRunner
 
 from service.cli import app as cli_app
+from service.maps.errors import SnapshotInvalid
 from storage import archive
 from tests.service.helpers import frame, make_client, post
+from tests.service.maps.maps_fixtures import registry
+from tests.service.maps.recovery.test_memory import CRAFTED
+from tests.storage.test_snapshots import planted
 
 
 @pytest.fixture
@@ -117,6 +122,28 @@ def test_a_compressed_bomb_is_refused_before_its_data_is_written(tmp_path, membe
     r = run_import(make_tar(tmp_path / "liar.tar.gz", {**members, "memory.npz": zeros}, "w:gz"), data)
     assert r.exit_code == 1 and "the manifest says" in r.output, r.output
     assert "memory.npz" not in written
+
+
+@CRAFTED
+def test_a_crafted_memory_is_refused_and_nothing_is_stored(tmp_path, members, member, data, why):
+    """A tar whose every checksum verifies, its memory.npz carrying a member past the map's bound or of a
+    name no memory writes (the outside tester's bomb): `cortexloc import` and the live import (a move's
+    receiving end) refuse it as an invalid snapshot, and nothing stored changes
+    (docs/design/service.md §4.4)."""
+    manifest, npz = planted(members["manifest.json"], members["memory.npz"], member, data)
+    crafted = make_tar(tmp_path / "crafted.tar", {**members, "manifest.json": manifest, "memory.npz": npz})
+    data_dir = tmp_path / "data"
+    with make_client(data_dir):
+        pass  # a data directory as the server leaves it
+    before = tree(data_dir)
+    r = run_import(crafted, data_dir)
+    assert r.exit_code == 1 and "error: " in r.output and why in r.output, r.output
+    assert tree(data_dir) == before
+    with registry(tmp_path / "live") as reg:
+        before = tree(tmp_path / "live" / "maps")
+        with pytest.raises(SnapshotInvalid, match=re.escape(why)):
+            reg.import_live(crafted, 2**33)
+        assert reg.catalog.get_map("lab") is None and tree(tmp_path / "live" / "maps") == before
 
 
 def test_the_manifest_must_come_first(tmp_path, members):

@@ -5,10 +5,34 @@ the rows, else replays from the first row (docs/design/service.md §4.4)."""
 from __future__ import annotations
 
 import dataclasses
+import logging
+import re
+from pathlib import Path
 
-from service.maps.recovery import rebuild, recover
-from tests.service.helpers import tm_digest
+import pytest
+
+from models.pipeline import memory_state
+from service.maps.errors import SnapshotInvalid
+from service.maps.recovery import check_memory, rebuild, recover, verify_map
+from service.maps.recovery.memory import snapshot_array
+from storage import snapshots
+from tests.service.helpers import MAX_STREAMS, tm_digest
 from tests.service.maps.maps_fixtures import registry, route, step
+from tests.storage.test_snapshots import npy_header, planted
+
+
+def recovered(reg, rt):
+    """`recover` of the map on its writer, with the bound its runtime gives a snapshot's memory."""
+    return rt.submit(lambda: recover(rt.store, reg.catalog, rt.map_id, rt.model,
+                                     max_memory=rt.max_memory)).result()
+
+
+def plant(directory: Path, member: str, data: bytes) -> None:
+    """The snapshot at `directory` crafted (`planted`): every checksum still verifies."""
+    files = (directory / "manifest.json", directory / "memory.npz")
+    for path, body in zip(files, planted(*(p.read_bytes() for p in files), member, data), strict=True):
+        path.write_bytes(body)
+    snapshots.verify(directory)
 
 
 def test_a_replay_reproduces_every_row_and_names_one_that_differs(tmp_path):
@@ -26,25 +50,83 @@ def test_a_replay_reproduces_every_row_and_names_one_that_differs(tmp_path):
         assert again.mismatches == [4]
 
 
+def two_snapshots(rt):
+    """Six rows learned, a manual snapshot after the second and after the fourth: (older, newer)."""
+    frames = route(6)
+    taken = []
+    for part in (frames[:2], frames[2:4]):
+        for f in part:
+            step(rt, f)
+        taken.append(rt.submit(rt.snapshot, "manual").result())
+    for f in frames[4:]:
+        step(rt, f)
+    return taken
+
+
 def test_recovery_takes_the_newest_snapshot_that_reproduces_the_rows(tmp_path):
     with registry(tmp_path) as reg:
         rt = reg.get("default")
-        frames = route(6)
-        for f in frames[:2]:
-            step(rt, f)
-        older = rt.submit(rt.snapshot, "manual").result()
-        for f in frames[2:4]:
-            step(rt, f)
-        newer = rt.submit(rt.snapshot, "manual").result()
-        for f in frames[4:]:
-            step(rt, f)
-        done, note = rt.submit(lambda: recover(rt.store, reg.catalog, rt.map_id, rt.model)).result()
+        older, newer = two_snapshots(rt)
+        done, note = recovered(reg, rt)
         assert note["source"] == "snapshot" and note["snapshot_id"] == newer.snapshot_id
         assert note["replayed"] == 2 and tm_digest(done.model.tm) == tm_digest(rt.tm)
         # a damaged newest snapshot is passed over for the older one
         memory = reg.catalog.layout.snapshot_dir(rt.map_id, newer.snapshot_id) / "memory.npz"
         memory.write_bytes(b"not an archive")
-        done, note = rt.submit(lambda: recover(rt.store, reg.catalog, rt.map_id, rt.model)).result()
+        done, note = recovered(reg, rt)
         assert note["snapshot_id"] == older.snapshot_id and note["replayed"] == 4
         assert [s["snapshot_id"] for s in note["skipped_snapshots"]] == [newer.snapshot_id]
         assert tm_digest(done.model.tm) == tm_digest(rt.tm)
+
+
+#: Crafted members of a memory.npz, and why each is refused.
+CRAFTED = pytest.mark.parametrize(("member", "data", "why"), [
+    # a name the memory's writer writes, its header declaring 8 GiB (the tester's bomb inflated 2 GiB)
+    ("streamcond.00.npy", npy_header((2**33,)), "'streamcond.00.npy' declares uint8(8589934592,)"),
+    ("extra.npy", npy_header((4,)) + bytes(4), "'extra.npy' is no array of a map's memory"),
+], ids=["oversized", "unknown"])
+
+
+@CRAFTED
+def test_a_snapshot_whose_memory_is_refused_is_passed_over_like_a_damaged_one(tmp_path, caplog, member,
+                                                                              data, why):
+    """A snapshot whose checksums verify but whose memory.npz holds a member past the map's bound
+    (`memory_bound`) or of a name no memory writes: recovery passes over it for the older one and logs
+    why; `cortexloc verify` lists it as bad; a restore to it is refused before anything changes
+    (docs/design/service.md §4.4)."""
+    with registry(tmp_path) as reg:
+        rt = reg.get("default")
+        older, newer = two_snapshots(rt)
+        plant(rt.snapshot_dir(newer.snapshot_id), member, data)
+        with caplog.at_level(logging.WARNING, logger="cortexloc.recovery"):
+            done, note = recovered(reg, rt)
+        assert note["snapshot_id"] == older.snapshot_id and tm_digest(done.model.tm) == tm_digest(rt.tm)
+        [skipped] = note["skipped_snapshots"]
+        assert skipped["snapshot_id"] == newer.snapshot_id and why in skipped["reason"]
+        assert any(f"snapshot {newer.snapshot_id} passed over" in r.getMessage() and why in r.getMessage()
+                   for r in caplog.records)
+        check = verify_map(reg.catalog, rt.record, max_streams=MAX_STREAMS)
+        assert list(check.snapshots_bad) == [newer.snapshot_id]
+        assert why in check.snapshots_bad[newer.snapshot_id]
+        before = (rt.store.count(), tm_digest(rt.tm), [s.snapshot_id for s in rt.snapshots()])
+        with pytest.raises(SnapshotInvalid, match=re.escape(why)):
+            rt.submit(rt.restore, newer.snapshot_id).result()
+        assert (rt.store.count(), tm_digest(rt.tm), [s.snapshot_id for s in rt.snapshots()]) == before
+
+
+def test_every_array_a_map_snapshots_is_one_its_loader_knows(tmp_path):
+    """The names the memory's writer writes (`memory_state`, the visit cursor and mark) against the
+    loader's rule (`snapshot_array`), on a map with learning and localising streams; a normal snapshot
+    loads within its bound."""
+    with registry(tmp_path) as reg:
+        rt = reg.get("default")
+        for f in route(4):
+            step(rt, f)
+        step(rt, route(1, seed=9)[0], learn=False, stream="a.b/localising")
+        snap = rt.submit(rt.snapshot, "manual").result()
+        names = set(rt.submit(lambda: memory_state(rt.tm, rt.streams)).result())
+        assert {n.split(".")[0] for n in names} >= {"stream", "streammeta", "streamloc", "ctx", "presyn"}
+        assert all(snapshot_array(n) for n in names)
+        check_memory(rt.snapshot_dir(snap.snapshot_id), rt.max_memory)
+        for bad in ("stream.6162.bomb", "streammeta.zz", "streamloc.6162.rows.x", "ctx", "streammeta.61.x"):
+            assert not snapshot_array(bad)
