@@ -47,7 +47,9 @@ localise mode on the same lap-2 frames). Measured:
 With `--poses` each frame carries `metadata` {stamp, pose}: the corridor's true positions (0.24 s per
 frame), outdoors the file index x 280 m along a line (assumed: no poses come with the data), the slow
 robot's copies between a frame and the next. Without it (the default) no frame has a pose, as with a
-robot that posts none.
+robot that posts none. `--drift S,H` (with `--poses`) posts odometry instead of the true poses: each
+step scaled by 1 + N(0, S) and turned by a heading that walks N(0, H degrees) a step (seeded), so the
+poses drift from the truth as wheel odometry does; a jump (a new drive) is turned and scaled the same.
 
 Each route's line is the worst seed; `met` is issue 35's bar on every seed: 0 false revisits while
 mapping, 0 merged places, precision >= 0.99, recall >= 0.9 x the localise mode's (same seed) and >=
@@ -175,6 +177,19 @@ def indoor(sizes: Sizes) -> Route:
     # a robot at 0.5 m/s: 0.24 s per frame on lap 1; one stamp per frame along the whole drive
     return Route("corridor", pngs, np.asarray(labels, np.int64), np.asarray(laps, np.int64),
                  np.asarray(xy, np.float64), 0.24 * np.arange(len(pngs)))
+
+
+def drifted(r: Route, scale_sd: float, heading_deg: float, seed: int = 5) -> Route:
+    """`r` with odometry for poses (module docstring, `--drift`): its steps (T - 1, 2) each scaled by
+    1 + N(0, `scale_sd`) and turned by a heading random walk of N(0, `heading_deg`) a step."""
+    rng = np.random.default_rng(seed)
+    steps = np.diff(r.xy, axis=0)
+    heading = np.cumsum(rng.normal(0.0, np.deg2rad(heading_deg), len(steps)))
+    scale = 1.0 + rng.normal(0.0, scale_sd, len(steps))
+    c, s = np.cos(heading), np.sin(heading)
+    turned = np.stack([c * steps[:, 0] - s * steps[:, 1], s * steps[:, 0] + c * steps[:, 1]], axis=1)
+    xy = np.vstack([r.xy[:1], r.xy[:1] + np.cumsum(turned * scale[:, None], axis=0)])
+    return Route(r.name, r.pngs, r.labels, r.laps, xy, r.stamps)
 
 
 def build(name: str, data: Path, sizes: Sizes) -> Route:
@@ -472,11 +487,15 @@ async def _drive_all(base: str, routes: dict[str, Route], seeds: list[str], conc
 
 
 def run(*, data: Path, routes: list[str], seeds: list[str], sizes: Sizes, concurrency: int,
-        keep: bool = False, poses: bool = False, localiser: dict[str, Any] | None = None) -> dict[str, Any]:
+        keep: bool = False, poses: bool = False, localiser: dict[str, Any] | None = None,
+        drift: tuple[float, float] | None = None) -> dict[str, Any]:
     """Build the routes, start the server, drive every map, score: {"config", "routes": {name: {frames,
-    seeds: [per seed], openseqslam_recall_at_100p, worst}}, "wall_s"}."""
+    seeds: [per seed], openseqslam_recall_at_100p, worst}}, "wall_s"}. `drift`: (scale σ, heading σ in
+    degrees a step) of the posted odometry (`drifted`), None: the true poses."""
     t0 = time.perf_counter()
     built = {name: build(name, data, sizes) for name in routes}
+    if drift is not None:
+        built = {name: drifted(r, *drift) for name, r in built.items()}
     tmp = Path(tempfile.mkdtemp(prefix="cortexloc-bench-loops-"))
     # the service's defaults on this machine: its own weights directory, not bench_http's empty one
     server = Server(tmp, extra_env={"CORTEXLOC_WEIGHTS_DIR": os.environ.get("CORTEXLOC_WEIGHTS_DIR", "")})
@@ -490,7 +509,7 @@ def run(*, data: Path, routes: list[str], seeds: list[str], sizes: Sizes, concur
         result: dict[str, Any] = {"config": {
             "data": str(data), "sizes": sizes.__dict__, "seeds": seeds, "tolerance": TOLERANCE,
             "backbone": ready.get("backbone"), "runtime": ready.get("runtime"), "concurrency": concurrency,
-            "poses": poses, "localiser": localiser},
+            "poses": poses, "localiser": localiser, "drift": drift},
             "routes": {}}
         for name, r in built.items():
             by_seed: dict[str, dict[str, Any]] = {}
@@ -517,13 +536,14 @@ def run(*, data: Path, routes: list[str], seeds: list[str], sizes: Sizes, concur
 
 
 def main(*, data: Path | None, routes: list[str], seeds: list[str], concurrency: int, quick: bool, keep: bool,
-         poses: bool, localiser: dict[str, Any] | None, out: Path | None) -> None:
+         poses: bool, localiser: dict[str, Any] | None, out: Path | None,
+         drift: tuple[float, float] | None = None) -> None:
     """`cortexloc eval loops-http`: `run` at the full or the quick sizes, then the table, JSON under
     benchmarks/results/loops_http.json (or `out`) and each route's verdict."""
     out = out or RESULTS / "loops_http.json"
     sizes = QUICK if quick_mode(quick) else Sizes()
     result = run(data=data or datasets.nordland_dir(), routes=routes, seeds=seeds, sizes=sizes,
-                 concurrency=concurrency, keep=keep, poses=poses, localiser=localiser)
+                 concurrency=concurrency, keep=keep, poses=poses, localiser=localiser, drift=drift)
     print(table(result), flush=True)
     print(f"{result['posts']} posts, driven in {result['drive_s']:.0f} s; {result['wall_s']:.0f} s in all",
           flush=True)

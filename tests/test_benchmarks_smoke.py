@@ -226,3 +226,19 @@ def test_the_loops_benchmark_poses_follow_the_route() -> None:
                             np.array([[0.0, 0.0], [30.0, 0.0], [60.0, 0.0]]), np.array([0.0, 10.0, 20.0])))
     assert np.allclose(slow.xy[:, 0], [0, 10, 20, 30, 40, 50, 60, 60, 60])
     assert np.allclose(np.diff(slow.stamps), 10.0 / 3) and list(slow.labels) == [7, 7, 7, 8, 8, 8, 9, 9, 9]
+
+
+def test_the_loops_benchmark_drifted_odometry_drifts_as_odometry_does() -> None:
+    """`--drift S,H`: the posted poses keep the route's path length to within the scale noise and wander
+    from the truth more the farther the robot drove; none at S = H = 0."""
+    from benchmarks import bench_loops_http as b
+
+    r = b.indoor(b.Sizes(corridor=6.0, corridor_b=2.0))
+    assert np.allclose(b.drifted(r, 0.0, 0.0).xy, r.xy)
+    d = b.drifted(r, 0.03, 0.5)
+    true_steps, odo_steps = (np.hypot(*np.diff(x, axis=0).T) for x in (r.xy, d.xy))
+    moved = true_steps > 0
+    assert np.all(np.abs(odo_steps[moved] / true_steps[moved] - 1) < 0.2)  # 3 % scale noise, per step
+    error = np.hypot(*(d.xy - r.xy).T)
+    assert error[0] == 0 and error[-1] > error[len(error) // 4] > 0  # the error grows along the drive
+    assert (d.pngs, list(d.labels), list(d.stamps)) == (r.pngs, list(r.labels), list(r.stamps))

@@ -215,6 +215,9 @@ def eval_loops_http(
     localiser: Annotated[str | None, typer.Option(help="the maps' localiser options as JSON, over the "
                                                   "defaults (an ablation), e.g. '{\"span_max\": 4096}'")]
     = None,
+    drift: Annotated[str | None, typer.Option(help="with --poses: odometry, not the true poses: S,H = each "
+                                             "step scaled by 1 + N(0, S), the heading walking N(0, H "
+                                             "degrees) a step, e.g. 0.03,0.3")] = None,
     out: Annotated[Path | None, typer.Option(help="default benchmarks/results/loops_http.json")] = None,
 ) -> None:
     """Loop closure checked from outside: one robot mapping while it drives, through a real server
@@ -224,9 +227,18 @@ def eval_loops_http(
     route_list = _split(routes, "--routes")
     for r in route_list:
         _among(r, bench_loops_http.ROUTES, "--routes")
+    drifts = None
+    if drift is not None:
+        try:
+            scale_sd, heading_deg = (float(v) for v in drift.split(","))
+        except ValueError as e:
+            raise typer.BadParameter("expected S,H: two numbers", param_hint="--drift") from e
+        if not poses or scale_sd < 0 or heading_deg < 0:
+            raise typer.BadParameter("two numbers >= 0, with --poses", param_hint="--drift")
+        drifts = (scale_sd, heading_deg)
     bench_loops_http.main(data=data, routes=route_list, seeds=_split(seeds, "--seeds"),
                           concurrency=concurrency, quick=quick, keep=keep, poses=poses,
-                          localiser=_json_object(localiser or "", "--localiser"), out=out)
+                          localiser=_json_object(localiser or "", "--localiser"), out=out, drift=drifts)
 
 
 PASS_ON = {"allow_extra_args": True, "ignore_unknown_options": True}
