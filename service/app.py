@@ -27,6 +27,7 @@ Example:
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 from collections.abc import AsyncIterator, Callable, Sequence
@@ -81,16 +82,26 @@ async def map_registry(app: FastAPI) -> AsyncIterator[None]:
     """The maps of the data directory: opened and recovered by replay at start, closed at shutdown."""
     from service.maps.encoding.embedders import Embedders
     from service.maps.encoding.pool import EmbeddingPool
+    from service.maps.errors import DataDirectoryInUse
     from service.maps.keyframes import Extractions
     from service.maps.registry import MapRegistry
 
     s = app.state.settings
+    registry = None
     try:
         encoders = Embedders(lambda name: app.state.encoder_factory(s.model_copy(update={"backbone": name})),
                             s.backbone, {s.backbone: app.state.encoder})
         registry = await anyio.to_thread.run_sync(MapRegistry, s.data_dir, encoders, s)
         await anyio.to_thread.run_sync(registry.start)
+    except DataDirectoryInUse:
+        # Still held after `lock_wait_s`: this process exits (its supervisor, Ray or systemd, starts it
+        # again), rather than stay up refusing every map for good.
+        log.exception("the data directory %s stays in use by another process; exiting", s.data_dir)
+        raise
     except Exception as e:
+        if registry is not None:  # the maps it opened, and the directory's lock, are let go
+            with contextlib.suppress(Exception):
+                await anyio.to_thread.run_sync(registry.close)
         # /readyz says why; the process stays alive for /healthz.
         log.exception("cannot open the maps in %s; the service will not be ready", s.data_dir)
         app.state.registry_error = f"the maps could not be opened: {type(e).__name__}: {e}"

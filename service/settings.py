@@ -165,6 +165,9 @@ class Settings(BaseSettings):
                                       "deleted first (0: no count limit)")
     snapshot_manual_bytes: int = Field(2**31, ge=0, description="bytes of manual snapshots kept per map, "
                                        "oldest deleted first (0: no byte limit)")
+    lock_wait_s: float = Field(30.0, ge=0, description="seconds a starting server waits for another process "
+                               "to let its data directory go (a restart, a rolling update) before it gives "
+                               "up and exits (docs/design/service.md §4.1)")
     max_import_bytes: int = Field(2**33, ge=1, description="most bytes a snapshot tar may unpack to "
                                   "(`cortexloc import`); a map within max_map_bytes and a million ~3 KB rows "
                                   "fit in 8 GiB")

@@ -5,12 +5,21 @@ Two servers on one directory each believe they are its only writer: they hand ou
 them answers 500 on every learned post) and, creating a map the other holds, would find its files as
 leftovers. The lock is `flock(2)`: the kernel drops it when the holding process exits however it exits
 (kill -9 included), so a crash never leaves a stale lock behind. The file holds the holder's pid, for
-the refusal's message only. Where `fcntl` does not exist (not POSIX) there is no lock.
+the refusal's message only. Where `fcntl` does not exist (not POSIX), or the file system has no
+`flock` (some network and FUSE mounts), there is no lock, with a warning.
+
+A process that finds the lock held waits for it up to a bound (`acquire(wait_s=)`): a restart or a
+rolling update starts the new process while the old one is still closing its maps, and the new one
+must then start, not give up.
 """
 
 from __future__ import annotations
 
+import errno
+import logging
 import os
+import time
+import weakref
 from pathlib import Path
 
 from storage._common import StorageError
@@ -21,6 +30,13 @@ except ImportError:  # pragma: no cover - not POSIX
     fcntl = None  # type: ignore[assignment]
 
 __all__ = ["DataDirInUse", "DataDirLock"]
+
+log = logging.getLogger("cortexloc.storage")
+
+#: How often a waiting process tries the lock again.
+_POLL_S = 0.2
+#: `flock` errors that mean the file system has no such lock (not that another process holds it).
+_NO_FLOCK = frozenset({errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL})
 
 
 class DataDirInUse(StorageError):  # noqa: N818 - what it says
@@ -34,33 +50,45 @@ class DataDirLock:
         self.path = Path(path)
         self._fd: int | None = None
 
-    def acquire(self) -> DataDirLock:
-        """Take the lock now, without waiting.
+    def acquire(self, wait_s: float = 0.0) -> DataDirLock:
+        """Take the lock, waiting up to `wait_s` seconds while another process holds it.
 
         Raises:
-            DataDirInUse: another process (or another open registry of this one) holds it.
+            DataDirInUse: another process (or another open registry of this one) still holds it.
         """
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
-            if fcntl is not None:
+            deadline = time.monotonic() + wait_s
+            while fcntl is not None:
                 try:
                     fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
                 except BlockingIOError:
-                    holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
-                    raise DataDirInUse(
-                        f"{self.path.parent} is in use by another cortexloc process (pid {holder}): one "
-                        "process at a time serves a data directory; stop it, or give this one another "
-                        "--data-dir") from None
+                    if time.monotonic() >= deadline:
+                        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+                        raise DataDirInUse(
+                            f"{self.path.parent} is in use by another cortexloc process (pid {holder}), "
+                            f"still after {wait_s:g} s: one process at a time serves a data directory; "
+                            "stop it, or give this one another --data-dir") from None
+                    time.sleep(_POLL_S)
+                except OSError as e:
+                    if e.errno not in _NO_FLOCK:
+                        raise
+                    log.warning("%s: the file system has no flock (%s); no lock: make sure one process "
+                                "at a time serves this data directory", self.path, e)
+                    break
             os.ftruncate(fd, 0)
             os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         except BaseException:
             os.close(fd)
             raise
         self._fd = fd
+        # a lock whose holder is dropped unclosed (a failed start) goes with it, not with the process
+        self._closer = weakref.finalize(self, os.close, fd)
         return self
 
     def release(self) -> None:
         """Let the lock go (closing the file drops it)."""
         if self._fd is not None:
-            os.close(self._fd)
+            self._closer()
             self._fd = None

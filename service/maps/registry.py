@@ -81,7 +81,7 @@ class MapRegistry:
         self.layout = Layout(data_dir)  # every path of the data directory (storage.layout)
         # one process at a time (storage.lock): before anything of the directory is read or written
         try:
-            self._lock = DataDirLock(self.layout.lock).acquire()
+            self._lock = DataDirLock(self.layout.lock).acquire(settings.lock_wait_s)
         except DataDirInUse as e:
             raise DataDirectoryInUse(str(e)) from e
         try:

@@ -88,13 +88,17 @@ class Closures:
             return self._next_closure_id(self._db()) - 1
 
     def _prune_closures(self, conn: sqlite3.Connection) -> None:
-        """In a transaction: keep the entries of the loop-closure log's last `max_closures` ids. Ids run
-        without gaps but where a restore rolled entries back (their ids stay handed out) or a batch's
-        repeated key was skipped, so that is the last `max_closures` entries less those few (a count by
-        `OFFSET` would walk the whole log at every entry)."""
-        if self.max_closures is not None:
-            conn.execute("DELETE FROM loop_closures WHERE id <= (SELECT max(id) FROM loop_closures) - ?",
-                         (self.max_closures,))
+        """In a transaction: keep the last `max_closures` entries of the loop-closure log. Ids have gaps
+        (those a restore rolled back stay handed out; a batch's repeated key skips one), so the cut is
+        counted in entries; only where the ids span more than the cap can there be more entries than it
+        (the span check is two index look-ups, the count walks the cap's entries)."""
+        if self.max_closures is None:
+            return
+        low, high = conn.execute("SELECT min(id), max(id) FROM loop_closures").fetchone()
+        if low is None or high - low + 1 <= self.max_closures:
+            return
+        conn.execute("DELETE FROM loop_closures WHERE id <= (SELECT id FROM loop_closures ORDER BY id DESC "
+                     "LIMIT 1 OFFSET ?)", (self.max_closures,))
 
     def closures(self, after: int, limit: int) -> list[LoopClosure]:
         """At most `limit` logged loop closures with id > `after`, oldest first, with both rows."""

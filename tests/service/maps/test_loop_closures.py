@@ -161,6 +161,24 @@ def test_the_log_is_carried_by_a_snapshot_and_a_restore_and_is_bounded(tmp_path)
     assert restored == kept  # the restore's file holds the log as it was at the snapshot
 
 
+def test_a_restore_over_a_longer_log_keeps_the_restored_entries_within_the_cap(tmp_path):
+    # The restore rolls back more ids than the log keeps: the next closures continue above them, and the
+    # cap counts entries, so the restored ones stay (by id arithmetic, the first new one pruned them all).
+    with make_client(tmp_path / "data", loop_closures=5) as c:
+        patched(c)
+        drive(c, LAP, noise=0.0)
+        drive(c, LAP[:15])
+        kept = [e["id"] for e in c.get("/v1/maps/default/loop-closures").json()["loop_closures"]]
+        snap = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        drive(c, LAP[15:])  # more closures than the 5 kept: their ids are rolled back below
+        assert c.post(f"/v1/maps/default/snapshots/{snap}/restore").status_code == 200
+        new = revisits(drive(c, LAP[15:17]))
+        log = [e["id"] for e in c.get("/v1/maps/default/loop-closures").json()["loop_closures"]]
+    assert len(kept) == 5 and 1 <= len(new) <= 2
+    assert log[:5 - len(new)] == kept[len(new):]  # the restored entries, less as many as came after
+    assert len(log) == 5 and min(log[5 - len(new):]) > max(kept) + 5  # the new ones, above the rolled back
+
+
 def test_after_a_restore_log_ids_are_not_handed_out_again_and_the_epoch_says_so(tmp_path):
     # A back end following the log with a cursor: the ids after the restore continue above every id it
     # was given (it misses none of the new ones), and the epoch tells it to read again from 0 (what came

@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import json
 import sqlite3
+import threading
 
 import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
+from service.maps.errors import DataDirectoryInUse
 from service.settings import Settings
+from storage.lock import DataDirLock
 from tests.service.helpers import frame, make_client, post, tiny_encoder
 
 
@@ -152,16 +155,44 @@ def test_leftovers_of_a_creation_that_never_reached_the_catalog_are_cleared(tmp_
         assert post(c, frame(1), map_id="yard").status_code == 200
 
 
-def test_a_second_process_on_the_data_directory_is_not_ready_and_touches_nothing(tmp_path):
+def test_a_second_process_on_the_data_directory_waits_for_it_then_gives_up_touching_nothing(tmp_path):
     data = tmp_path / "data"
     with make_client(data) as first:
         assert post(first, frame(1)).status_code == 200
-        with make_client(data) as second:  # another open of the directory: as another process's
-            ready = second.get("/readyz")
-            assert ready.status_code == 503
-            assert "in use by another cortexloc process" in json.dumps(ready.json())
-            assert second.post("/v1/maps", json={"map_id": "farm"}).status_code == 503
+        before = map_files(data, "default")
+        # another open of the directory, as another process's: it waits `lock_wait_s`, then fails to start
+        with (pytest.raises(DataDirectoryInUse, match="in use by another cortexloc process"),
+              make_client(data, lock_wait_s=0.5)):
+            pass
+        assert map_files(data, "default") == before
         assert post(first, frame(2)).status_code == 200  # the first serves on
-    with make_client(data) as again:  # the lock went with the first
+    with make_client(data, lock_wait_s=0) as again:  # the lock went with the first
         assert again.get("/readyz").status_code == 200
         assert again.get("/v1/maps/default").json()["observations"] == 2
+
+
+def test_a_restart_that_overlaps_the_old_process_starts_once_it_lets_go(tmp_path):
+    # a rolling update: the new process starts while the old one still closes its maps
+    data = tmp_path / "data"
+    old = make_client(data)
+    old.__enter__()
+    assert post(old, frame(1)).status_code == 200
+    closer = threading.Timer(1.0, old.__exit__, (None, None, None))
+    closer.start()
+    try:
+        with make_client(data, lock_wait_s=60) as new:  # waits for the lock, then starts
+            assert new.get("/readyz").status_code == 200
+            assert new.get("/v1/maps/default").json()["observations"] == 1
+    finally:
+        closer.join()
+
+
+def test_a_start_that_fails_lets_the_directory_go(tmp_path):
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        a_map_with_rows(c, "farm")
+    (data / "catalog.sqlite").unlink()
+    with make_client(data) as c:  # not ready (a lost catalog)
+        assert c.get("/readyz").status_code == 503
+        # the failed start let the lock go: the directory can be opened again in this process
+        DataDirLock(data / ".lock").acquire().release()
