@@ -60,6 +60,15 @@ class Layout:
     def map_dir(self, map_id: str) -> Path:
         return self.maps / map_id
 
+    def discarded(self, map_id: str, token: str) -> Path:
+        """Where a deleted map's directory goes before it is removed: out of the maps' names (no map id
+        starts with a dot), so a removal cut short leaves no map-like directory."""
+        return self.maps / f".deleted-{map_id}-{token}"
+
+    def discarded_dirs(self) -> list[Path]:
+        """The deleted maps' directories a removal left (`discarded`)."""
+        return sorted(self.maps.glob(".deleted-*")) if self.maps.is_dir() else []
+
     def map_db(self, map_id: str) -> Path:
         """The map's live database (`storage.mapstore.MapStore`)."""
         return self.map_dir(map_id) / DB_FILE

@@ -8,6 +8,7 @@ import logging
 import shutil
 import sqlite3
 import threading
+import uuid
 from pathlib import Path
 from typing import Any
 
@@ -132,6 +133,7 @@ class MapRegistry:
                 log.exception("map %s cannot be opened; it is served as failed", record.map_id)
                 self.catalog.set_state(record.map_id, "failed", "open-failed")
                 self.maps[record.map_id] = FailedMap(record, self.catalog, "open-failed")
+        self._sweep_discarded()
         unlisted = self._unlisted()
         for map_id in unlisted:
             log.error("maps/%s holds a map the catalog does not list; it is left as it is (not served): "
@@ -319,6 +321,21 @@ class MapRegistry:
         except MapExists as e:
             raise MapAlreadyExists(map_id) from e
 
+    def _discard(self, map_id: str) -> None:
+        """Delete a map directory the catalog no longer lists: renamed out of the maps' names first (an
+        instant), then removed, so a delete cut short (a kill during a large map's removal) leaves no
+        directory that looks like an unlisted map (`_unlisted`); a start removes what is left
+        (`_sweep_discarded`)."""
+        gone = self.layout.discarded(map_id, uuid.uuid4().hex)
+        with contextlib.suppress(FileNotFoundError):
+            self.layout.map_dir(map_id).rename(gone)
+        shutil.rmtree(gone, ignore_errors=True)
+
+    def _sweep_discarded(self) -> None:
+        """Remove what deletes cut short left (`_discard`)."""
+        for d in self.layout.discarded_dirs():
+            shutil.rmtree(d, ignore_errors=True)
+
     def _holds_data(self, map_id: str) -> bool:
         """Whether `maps/<map_id>` holds what a map stored: rows, or snapshots. A creation that never
         reached the catalog leaves an empty store at most (`MapStore.create` writes it whole or not at
@@ -390,7 +407,7 @@ class MapRegistry:
             self.unfitted.pop(map_id, None)
             rt.close(snapshot=False)
             self.catalog.delete_map(map_id)
-            shutil.rmtree(self.layout.map_dir(map_id), ignore_errors=True)
+            self._discard(map_id)
 
     def import_live(self, tar_path: Path, max_bytes: int) -> MapRuntime:
         """Import a snapshot tar into this running registry and open the map: the receiving end of a
@@ -410,7 +427,7 @@ class MapRegistry:
                 rt = self._open(record)
             except BaseException:
                 self.catalog.delete_map(map_id)
-                shutil.rmtree(self.layout.map_dir(map_id), ignore_errors=True)
+                self._discard(map_id)
                 raise
             self.maps[map_id] = rt
         return rt

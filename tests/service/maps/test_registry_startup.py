@@ -196,3 +196,22 @@ def test_a_start_that_fails_lets_the_directory_go(tmp_path):
         assert c.get("/readyz").status_code == 503
         # the failed start let the lock go: the directory can be opened again in this process
         DataDirLock(data / ".lock").acquire().release()
+
+
+def test_a_delete_cut_short_blocks_neither_the_id_nor_the_next_start(tmp_path, monkeypatch):
+    # killed during a large map's removal: the directory was left holding rows with no catalog row, so
+    # the id was refused for good (409), and as the last map it kept every start not ready
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        a_map_with_rows(c, "farm")
+        assert c.delete("/v1/maps/default").status_code == 204
+        monkeypatch.setattr("service.maps.registry.shutil.rmtree", lambda *a, **k: None)  # the kill
+        assert c.delete("/v1/maps/farm").status_code == 204
+        monkeypatch.undo()
+        assert c.post("/v1/maps", json={"map_id": "farm"}).status_code == 201  # the id is free again
+        assert c.get("/v1/maps/farm").json()["observations"] == 0
+        assert c.delete("/v1/maps/farm").status_code == 204
+    assert list((data / "maps").glob(".deleted-*"))  # what the cut-short removal left
+    with make_client(data) as c:  # the next start (no map listed): ready, and the leftovers gone
+        assert c.get("/readyz").status_code == 200
+    assert not list((data / "maps").glob(".deleted-*"))
