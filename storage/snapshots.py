@@ -15,6 +15,7 @@ import hashlib
 import math
 import os
 import shutil
+import struct
 import tempfile
 import uuid
 import zipfile
@@ -171,39 +172,33 @@ def _last_observation(db: Path) -> tuple[int, str | None]:
     return (0, None) if row is None else (int(row[0]), str(row[1]))
 
 
-def check_memory(directory: str | os.PathLike[str], *, max_bytes: int, known: Callable[[str], bool]) -> int:
-    """Check `memory.npz` without reading its data (docs/design/service.md §4.4): each member's name and
-    `.npy` header (shape, dtype) and its uncompressed size from the zip's directory. A snapshot is
-    untrusted input (an imported one comes from elsewhere), and its checksums say nothing of what its
-    members inflate to.
-
-    Args:
-        directory: the snapshot (call `verify` first).
-        max_bytes: the most the arrays may hold together (each member counted at the larger of its
-            uncompressed size and its header's shape × itemsize).
-        known: whether the memory's writer writes an array of this name.
+def check_memory(directory: str | os.PathLike[str], *, known: Callable[[str], bool]) -> int:
+    """Check `memory.npz` without reading its data (docs/design/service.md §4.4). A snapshot is untrusted
+    input (an imported one comes from elsewhere), and its checksums say nothing of what its members
+    inflate to; `np.savez`, its only writer, stores every member uncompressed, so one that is compressed
+    (or encrypted) is refused, and what the arrays hold is then at most the file's own size: each member
+    a `.npy` of a name `known` takes, once, whose header (shape, dtype) declares no more than the member
+    holds. The zip's directory, read whole when it is opened, is held to 65,534 entries (no ZIP64
+    directory: a memory writes a few dozen arrays a stream).
 
     Returns:
         The bytes the arrays hold.
 
     Raises:
-        SnapshotInvalid: not a zip of `.npy` members, a name `known` refuses, a name twice, an encrypted
-            member or one compressed other than stored or deflated, an object dtype, or more than
-            `max_bytes` in all, or in the file itself.
+        SnapshotInvalid: any of the above.
     """
-    with _open_memory(Path(directory) / MEMORY_FILE, max_bytes) as z:
-        return sum(size for _, _, size in _members(z, max_bytes, known))
+    with _open_memory(Path(directory) / MEMORY_FILE) as z:
+        return sum(info.file_size for _, info in _members(z, known))
 
 
-def load_memory(directory: str | os.PathLike[str], *, max_bytes: int,
-                known: Callable[[str], bool]) -> dict[str, np.ndarray]:
-    """The arrays of `memory.npz`, every member checked first as `check_memory` does, so that nothing
-    inflates past `max_bytes` (call `verify` first). No pickle. Raises SnapshotInvalid."""
-    with _open_memory(Path(directory) / MEMORY_FILE, max_bytes) as z:
-        members = _members(z, max_bytes, known)
+def load_memory(directory: str | os.PathLike[str], *, known: Callable[[str], bool]) -> dict[str, np.ndarray]:
+    """The arrays of `memory.npz`, every member checked first as `check_memory` does (call `verify` first).
+    No pickle. Raises SnapshotInvalid."""
+    with _open_memory(Path(directory) / MEMORY_FILE) as z:
+        members = _members(z, known)
         try:
             out = {}
-            for name, info, _ in members:
+            for name, info in members:
                 with z.open(info) as f:
                     out[name] = np.lib.format.read_array(f, allow_pickle=False)
         except _UNREADABLE as exc:
@@ -212,16 +207,27 @@ def load_memory(directory: str | os.PathLike[str], *, max_bytes: int,
 
 
 # What a damaged or hostile zip raises while it is read (a truncated or corrupt member, a bad header).
-_UNREADABLE = (zipfile.BadZipFile, zlib.error, EOFError, ValueError, NotImplementedError, RuntimeError)
+_UNREADABLE = (zipfile.BadZipFile, zlib.error, EOFError, ValueError, NotImplementedError, RuntimeError,
+               struct.error)
+#: The end of a zip's central directory: its signature, and the bytes it may end with (a comment).
+_EOCD, _EOCD_TAIL = b"PK\x05\x06", 22 + 65535
 
 
 @contextlib.contextmanager
-def _open_memory(path: Path, max_bytes: int) -> Iterator[zipfile.ZipFile]:
-    """The zip, opened once its size on disk is within `max_bytes`: a zip's directory is read whole when it
-    is opened, each entry an object of a few hundred bytes for as few as 78 on disk."""
-    size = path.stat().st_size
-    if size > max_bytes:
-        raise SnapshotInvalid(f"{MEMORY_FILE} has {size} bytes; {_bound(max_bytes)}")
+def _open_memory(path: Path) -> Iterator[zipfile.ZipFile]:
+    """The zip, opened once its directory's entry count (from its end record, read first) is below
+    0xFFFF: zipfile reads the whole directory at open, an object of a few hundred bytes per entry for as
+    few as 46 on disk."""
+    try:
+        with path.open("rb") as f:
+            f.seek(max(path.stat().st_size - _EOCD_TAIL, 0))
+            tail = f.read()
+        at = tail.rfind(_EOCD)
+        entries = struct.unpack("<H", tail[at + 10:at + 12])[0] if at >= 0 else None
+    except (OSError, struct.error) as exc:
+        raise SnapshotInvalid(f"{MEMORY_FILE}: unreadable: {exc}") from exc
+    if entries is None or entries == 0xFFFF:
+        raise SnapshotInvalid(f"{MEMORY_FILE}: no zip directory a memory writes (entries: {entries})")
     try:
         z = zipfile.ZipFile(path)
     except (zipfile.BadZipFile, ValueError) as exc:
@@ -230,18 +236,11 @@ def _open_memory(path: Path, max_bytes: int) -> Iterator[zipfile.ZipFile]:
         yield z
 
 
-def _bound(max_bytes: int) -> str:
-    return f"the map's memory holds at most {max_bytes} bytes in all"
-
-
-def _members(z: zipfile.ZipFile, max_bytes: int, known: Callable[[str], bool]
-             ) -> list[tuple[str, zipfile.ZipInfo, int]]:
-    """(array name, member, bytes) of each member of `memory.npz`, checked (`check_memory`) from the zip's
+def _members(z: zipfile.ZipFile, known: Callable[[str], bool]) -> list[tuple[str, zipfile.ZipInfo]]:
+    """(array name, member) of each member of `memory.npz`, checked (`check_memory`) from the zip's
     directory and each `.npy` header, no array data read."""
-    out: list[tuple[str, zipfile.ZipInfo, int]] = []
+    out: list[tuple[str, zipfile.ZipInfo]] = []
     seen: set[str] = set()
-    total = 0
-    bound = _bound(max_bytes)
     for info in z.infolist():
         member = info.filename
         name = member.removesuffix(".npy")
@@ -251,11 +250,10 @@ def _members(z: zipfile.ZipFile, max_bytes: int, known: Callable[[str], bool]
         if name in seen:
             raise SnapshotInvalid(f"{where} appears twice")
         seen.add(name)
-        if info.flag_bits & 0x1 or info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
-            raise SnapshotInvalid(f"{where} is encrypted or compressed with method "
-                                  f"{info.compress_type}")
-        if info.file_size > max_bytes - total:  # refused before a byte of it is inflated
-            raise SnapshotInvalid(f"{where} inflates to {info.file_size} bytes; {bound}")
+        if info.flag_bits & 0x1 or info.compress_type != zipfile.ZIP_STORED \
+                or info.compress_size != info.file_size:
+            raise SnapshotInvalid(f"{where} is compressed (method {info.compress_type}) or encrypted: a "
+                                  "memory's members are stored as they are")
         try:
             with z.open(info) as f:
                 version = np.lib.format.read_magic(f)
@@ -271,11 +269,9 @@ def _members(z: zipfile.ZipFile, max_bytes: int, known: Callable[[str], bool]
             raise SnapshotInvalid(f"{where} declares the shape {shape}")
         if dtype.hasobject:
             raise SnapshotInvalid(f"{where} holds objects (dtype {dtype}): pickle")
-        size = max(info.file_size, math.prod(shape) * dtype.itemsize)
-        if size > max_bytes - total:
-            raise SnapshotInvalid(f"{where} declares {dtype}{shape}; {bound}")
-        total += size
-        out.append((name, info, size))
+        if math.prod(shape) * dtype.itemsize > info.file_size:  # read_array would allocate it first
+            raise SnapshotInvalid(f"{where} declares {dtype}{shape}, more than its {info.file_size} bytes")
+        out.append((name, info))
     return out
 
 

@@ -63,8 +63,7 @@ def verify(
     from service.maps.recovery import open_catalog, verify_map
     from service.maps.repair import listing
 
-    settings = process_settings(data_dir=data_dir)
-    root = settings.data_dir
+    root = process_settings(data_dir=data_dir).data_dir
     try:
         catalog = open_catalog(root)
         records = [r for r in catalog.list_maps() if map_id is None or r.map_id == map_id]
@@ -79,7 +78,7 @@ def verify(
     try:
         for record in records:
             with progress(f"verify {record.map_id}") as tick:
-                check = verify_map(catalog, record, max_streams=settings.max_streams, progress=tick)
+                check = verify_map(catalog, record, progress=tick)
             bad += not check.ok
             rate = check.rows / check.seconds if check.seconds else 0.0
             typer.echo(f"map {record.map_id}: {'ok' if check.ok else 'PROBLEMS'}; {check.rows} rows "

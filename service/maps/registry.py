@@ -377,7 +377,7 @@ class MapRegistry:
     def import_snapshot(self, tar_path: Path, max_bytes: int) -> str:
         """Create a map from a downloaded snapshot tar (`service.maps.recovery.snapshots.import_snapshot`)."""
         return map_snapshots.import_snapshot(self.data_dir, self.catalog, tar_path, max_bytes,
-                                             max_streams=self.settings.max_streams, fits=self._import_fits)
+                                             fits=self._import_fits)
 
     def _import_fits(self, m: Manifest) -> None:
         """Raises MemoryBudgetExceeded unless the imported map fits beside the maps here, each at its

@@ -24,11 +24,7 @@ from service.app import create_app
 from service.frontend import build_embedder
 from service.settings import Settings
 
-__all__ = ["MAX_STREAMS", "frame", "held_encoder", "make_app", "make_client", "post", "served", "state_of",
-           "tiny_encoder"]
-
-#: CORTEXLOC_MAX_STREAMS of the test apps (the default): `cortexloc verify`'s bound of a snapshot's memory.
-MAX_STREAMS: int = Settings.model_fields["max_streams"].default
+__all__ = ["frame", "held_encoder", "make_app", "make_client", "post", "served", "state_of", "tiny_encoder"]
 
 
 @contextmanager

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from models import presets
-from models.memory.temporal_memory import TemporalMemory, planned_bytes
+from models.memory.temporal_memory import TemporalMemory
 from storage import snapshots
 from storage.mapstore import MapStore, NewObservation
 from storage.snapshots import SnapshotInvalid, create_snapshot, import_tar, load_memory, verify
@@ -86,7 +86,7 @@ def test_create_and_verify(snap: tuple[Path, snapshots.Manifest], store: MapStor
     conn.close()
     assert verify(dest) == m  # reading it changed nothing
 
-    loaded = load_memory(dest, max_bytes=2**20, known=KNOWN)
+    loaded = load_memory(dest, known=KNOWN)
     want = memory_arrays()
     assert loaded.keys() == want.keys()
     for k, v in want.items():
@@ -110,7 +110,7 @@ def test_real_temporal_memory_state_round_trips(tmp_path: Path, store: MapStore)
     state = tm.state_dict(streams={"cam-1": cam})
     create_snapshot(store, state, tmp_path / "tm", kind="manual")
     verify(tmp_path / "tm")
-    loaded = load_memory(tmp_path / "tm", max_bytes=planned_bytes(tm.options), known=KNOWN)
+    loaded = load_memory(tmp_path / "tm", known=KNOWN)
     back = TemporalMemory.from_state(loaded)
     again = back.state_dict(streams=TemporalMemory.load_streams(loaded))
     assert again.keys() == state.keys()
@@ -134,10 +134,12 @@ def with_member(npz: bytes, member: str, data: bytes, compress: int = zipfile.ZI
     return buf.getvalue()
 
 
-def planted(manifest: bytes, npz: bytes, member: str, data: bytes) -> tuple[bytes, bytes]:
-    """(manifest, memory.npz) of a crafted snapshot: `member` added to the memory, deflated, and the
-    manifest made to agree, so every checksum verifies (the outside tester's craft_snapshot.py)."""
-    npz = with_member(npz, member, data, zipfile.ZIP_DEFLATED)
+def planted(manifest: bytes, npz: bytes, member: str, data: bytes,
+            compress: int = zipfile.ZIP_STORED) -> tuple[bytes, bytes]:
+    """(manifest, memory.npz) of a crafted snapshot: `member` added to the memory (`compress`: the
+    outside tester's was deflated), and the manifest made to agree, so every checksum verifies (the
+    tester's craft_snapshot.py)."""
+    npz = with_member(npz, member, data, compress)
     body = json.loads(manifest)
     body["files"]["memory.npz"] = {"bytes": len(npz), "sha256": hashlib.sha256(npz).hexdigest()}
     return json.dumps(body).encode(), npz
@@ -148,25 +150,38 @@ def deflated_zeros(n: int) -> bytes:
     return npy_header((n,)) + bytes(n)
 
 
-def test_memory_within_its_bound_loads_and_one_byte_less_is_refused(snap: tuple[Path, snapshots.Manifest]
-                                                                    ) -> None:
-    """The bound holds the file, and the arrays as the zip's directory sizes them (`.npy` header
-    included); a stored (not deflated) memory.npz is the larger."""
+def test_a_memory_as_np_savez_writes_it_loads(snap: tuple[Path, snapshots.Manifest]) -> None:
+    """Every member stored as it is: the arrays hold what the members hold (`.npy` headers included)."""
     dest, _ = snap
-    size = (dest / "memory.npz").stat().st_size
     with zipfile.ZipFile(dest / "memory.npz") as z:
         total = sum(i.file_size for i in z.infolist())
-    assert snapshots.check_memory(dest, max_bytes=size, known=KNOWN) == total
-    assert load_memory(dest, max_bytes=size, known=KNOWN).keys() == memory_arrays().keys()
-    with pytest.raises(SnapshotInvalid, match=f"memory.npz has {size} bytes; the map's memory holds at most"):
-        load_memory(dest, max_bytes=size - 1, known=KNOWN)
+    assert snapshots.check_memory(dest, known=KNOWN) == total
+    assert load_memory(dest, known=KNOWN).keys() == memory_arrays().keys()
+
+
+def test_a_zip_directory_of_more_entries_than_a_memory_writes_is_refused_before_it_is_read(
+        snap: tuple[Path, snapshots.Manifest], monkeypatch: pytest.MonkeyPatch) -> None:
+    """zipfile holds the whole directory in memory when it opens a zip: its end record's count is read
+    first (a ZIP64 directory, 0xFFFF, is none a memory writes)."""
+    dest, _ = snap
+    npz = dest / "memory.npz"
+    data = bytearray(npz.read_bytes())
+    at = data.rfind(b"PK\x05\x06")
+    data[at + 8:at + 12] = b"\xff\xff\xff\xff"  # entries on this disk, and in all: 0xFFFF
+    npz.write_bytes(bytes(data))
+    opened: list[object] = []
+    monkeypatch.setattr(zipfile, "ZipFile", lambda *a, **k: opened.append(a))
+    with pytest.raises(SnapshotInvalid, match="no zip directory a memory writes"):
+        snapshots.check_memory(dest, known=KNOWN)
+    assert opened == []
 
 
 @pytest.mark.parametrize(("member", "data", "compress", "why"), [
     # 1 TiB declared by its header, no data behind it: refused by the header, before a byte is read
-    ("presyn2.npy", npy_header((2**40,)), zipfile.ZIP_STORED, r"'presyn2.npy' declares uint8\(1099511627776"),
-    # 16 MiB of zeros deflated to ~16 KB: refused by the zip directory's size before it is inflated
-    ("presyn2.npy", deflated_zeros(2**24), zipfile.ZIP_DEFLATED, "'presyn2.npy' inflates to 16777344 bytes"),
+    ("presyn2.npy", npy_header((2**40,)), zipfile.ZIP_STORED,
+     r"'presyn2.npy' declares uint8\(1099511627776,\), more than its"),
+    # 16 MiB of zeros deflated to ~16 KB: np.savez stores its members, so a deflated one is refused
+    ("presyn2.npy", deflated_zeros(2**24), zipfile.ZIP_DEFLATED, "'presyn2.npy' is compressed"),
     ("bomb.npy", b"\x93NUMPY", zipfile.ZIP_STORED, "'bomb.npy' is no array of a map's memory"),
     ("notes.txt", b"hello", zipfile.ZIP_STORED, "'notes.txt' is no array of a map's memory"),
     ("perm.npy", npy_header((3,), "<f4") + bytes(12), zipfile.ZIP_STORED, "'perm.npy' appears twice"),
@@ -178,9 +193,9 @@ def test_memory_within_its_bound_loads_and_one_byte_less_is_refused(snap: tuple[
 def test_a_memory_member_is_refused_before_any_array_is_read(
         snap: tuple[Path, snapshots.Manifest], monkeypatch: pytest.MonkeyPatch,
         member: str, data: bytes, compress: int, why: str) -> None:
-    """A crafted `memory.npz` (docs/design/service.md §4.4): a member past the bound (1 MiB here), of a
-    name the memory's writer never writes, or not an array of numbers, is refused by `check_memory` and
-    by `load_memory` before any array's data is read."""
+    """A crafted `memory.npz` (docs/design/service.md §4.4): a member compressed or declaring more than it
+    holds, of a name the memory's writer never writes, or not an array of numbers, is refused by
+    `check_memory` and by `load_memory` before any array's data is read."""
     dest, _ = snap
     npz = dest / "memory.npz"
     npz.write_bytes(with_member(npz.read_bytes(), member, data, compress))
@@ -188,17 +203,17 @@ def test_a_memory_member_is_refused_before_any_array_is_read(
     monkeypatch.setattr(np.lib.format, "read_array", lambda *a, **k: read.append(a))
     known = {*memory_arrays(), "presyn2"}.__contains__
     with pytest.raises(SnapshotInvalid, match=why):
-        snapshots.check_memory(dest, max_bytes=2**20, known=known)
+        snapshots.check_memory(dest, known=known)
     with pytest.raises(SnapshotInvalid, match=why):
-        load_memory(dest, max_bytes=2**20, known=known)
+        load_memory(dest, known=known)
     assert read == []
 
 
 def test_a_damaged_memory_file_is_invalid(snap: tuple[Path, snapshots.Manifest]) -> None:
     dest, _ = snap
     (dest / "memory.npz").write_bytes(b"not an archive")
-    with pytest.raises(SnapshotInvalid, match="not a zip archive"):
-        load_memory(dest, max_bytes=2**20, known=KNOWN)
+    with pytest.raises(SnapshotInvalid, match="no zip directory"):
+        load_memory(dest, known=KNOWN)
 
 
 def test_create_refuses(tmp_path: Path, store: MapStore) -> None:

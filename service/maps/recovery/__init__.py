@@ -11,7 +11,6 @@ from service.maps.recovery.memory import (
     Tail,
     begin,
     check_memory,
-    memory_bound,
     open_catalog,
     rebuild,
     recover,
@@ -19,4 +18,4 @@ from service.maps.recovery.memory import (
 )
 
 __all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "Replay", "Tail", "begin", "check_memory",
-           "memory_bound", "open_catalog", "rebuild", "recover", "verify_map"]
+           "open_catalog", "rebuild", "recover", "verify_map"]

@@ -27,7 +27,6 @@ from models.frontend import slsbh
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import MapModel, Stream, load_memory_state
 from service.maps.config import MapConfig, map_model
-from service.maps.encoding.projection import model_bytes
 from service.maps.errors import InvalidConfiguration
 from storage import snapshots
 from storage.catalog import Catalog, MapRecord, SnapshotRecord, StorageError
@@ -35,8 +34,8 @@ from storage.layout import Layout
 from storage.mapstore import MapStore, Observation, Visit
 
 __all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "Replay", "Tail", "begin", "check_memory",
-           "in_order", "learned_rows", "load_memory", "memory_bound", "open_catalog", "rebuild", "recover",
-           "snapshot_array", "verify_map"]
+           "in_order", "learned_rows", "load_memory", "open_catalog", "rebuild", "recover", "snapshot_array",
+           "verify_map"]
 
 #: The snapshot array holding the last visit id its memory learned (0 in a snapshot made before visits),
 #: and that visit's `MapStore.visit_mark` (the branch check of visits, as a row's observation id is).
@@ -53,26 +52,17 @@ def snapshot_array(name: str) -> bool:
     return name in (VISIT_CURSOR, VISIT_MARK) or pipeline.memory_name(name)
 
 
-def memory_bound(config: MapConfig, max_streams: int) -> int:
-    """The most bytes a snapshot's memory of a map with `config` may inflate to (docs/design/service.md
-    §4.4): what the map may hold besides its projection (`model_bytes`: its memory at its planned size,
-    every stream's state at the stream cap), the size the budget keeps room for. A snapshot holds less:
-    the memory's canonical arrays, not its reverse index and scratch (26.5 of 65.7 MB in the default
-    preset), and a few tens of KB a stream."""
-    return model_bytes(config, max_streams)
-
-
-def load_memory(path: Path, max_memory: int) -> dict[str, np.ndarray]:
+def load_memory(path: Path) -> dict[str, np.ndarray]:
     """The arrays of the snapshot at `path` (`storage.snapshots.load_memory`): a member of a name no
-    memory writes, or past `max_memory` bytes (`memory_bound`), is refused (SnapshotInvalid) before its
+    memory writes, compressed, or declaring more than it holds is refused (SnapshotInvalid) before its
     data is read."""
-    return snapshots.load_memory(path, max_bytes=max_memory, known=snapshot_array)
+    return snapshots.load_memory(path, known=snapshot_array)
 
 
-def check_memory(path: Path, max_memory: int) -> None:
+def check_memory(path: Path) -> None:
     """`load_memory`'s checks without reading any array: SnapshotInvalid (import, restore, `cortexloc
     verify`)."""
-    snapshots.check_memory(path, max_bytes=max_memory, known=snapshot_array)
+    snapshots.check_memory(path, known=snapshot_array)
 
 
 @dataclass
@@ -207,21 +197,21 @@ def rebuild(start: TemporalMemory | Mapping[str, np.ndarray], rows: Iterable[Obs
     return replay.out
 
 
-def _snapshot_start(store: MapStore, catalog: Catalog, rec: SnapshotRecord, max_memory: int
+def _snapshot_start(store: MapStore, catalog: Catalog, rec: SnapshotRecord
                     ) -> tuple[snapshots.Manifest, dict[str, np.ndarray]] | None:
     """Snapshot `rec` as the start of a replay of `store`: (its manifest, its memory arrays); None when it
     is from a branch a restore abandoned (its last row, or its last visit, is not this store's).
 
     Raises:
-        SnapshotInvalid, OSError, ValueError: it cannot be used (damaged, unreadable, a memory past
-            `max_memory` bytes or with arrays no memory writes (`load_memory`), or the visits after it
-            were pruned: the store's `visits_pruned_through` is past its visit cursor).
+        SnapshotInvalid, OSError, ValueError: it cannot be used (damaged, unreadable, a memory
+            `load_memory` refuses, or the visits after it were pruned: the store's
+            `visits_pruned_through` is past its visit cursor).
     """
     path = catalog.snapshot_dir(rec)
     m = snapshots.verify(path)
     if m.seq > 0 and store.observation_id(m.seq) != m.last_observation_id:  # (held or joined away)
         return None
-    memory = load_memory(path, max_memory)
+    memory = load_memory(path)
     cursor = int(memory.get(VISIT_CURSOR, 0))
     last = store.visit_stats()[2]
     mark = store.visit_mark(cursor) if cursor else None
@@ -262,18 +252,17 @@ def _pass_over(map_id: str, snapshot_id: str, reason: str, skipped: list[dict[st
     log.warning("map %s: snapshot %s passed over: %s", map_id, snapshot_id, reason)
 
 
-def begin(store: MapStore, catalog: Catalog, map_id: str, like: MapModel, *, max_memory: int) -> Tail | None:
-    """The newest snapshot of `store` that verifies and loads within `max_memory` bytes (`memory_bound`),
-    as the start of its replay (not run); None when there is none (`recover` then replays from the first
-    row). One from a branch a restore abandoned is skipped silently, a damaged one passed over
-    (`Tail.skipped`)."""
+def begin(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> Tail | None:
+    """The newest snapshot of `store` that verifies and loads (`load_memory`), as the start of its replay
+    (not run); None when there is none (`recover` then replays from the first row). One from a branch a
+    restore abandoned is skipped silently, a damaged one passed over (`Tail.skipped`)."""
     t0 = time.perf_counter()
     tried: set[str] = set()
     skipped: list[dict[str, str]] = []
     for rec in catalog.list_snapshots(map_id):
         tried.add(rec.snapshot_id)
         try:
-            start = _snapshot_start(store, catalog, rec, max_memory)
+            start = _snapshot_start(store, catalog, rec)
             if start is None:
                 continue  # from a branch a restore abandoned
             m, memory = start
@@ -289,13 +278,13 @@ def begin(store: MapStore, catalog: Catalog, map_id: str, like: MapModel, *, max
     return None
 
 
-def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel, *, max_memory: int,
+def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel, *,
             begun: Tail | None = None) -> tuple[Rebuilt, dict[str, Any]]:
     """The memory of `store`: the newest usable snapshot, then a verified replay of the rows after it.
 
-    A snapshot that does not verify, cannot be loaded (its memory past `max_memory` bytes or holding
-    arrays no memory writes among the reasons: `load_memory`), or whose replay does not reproduce the
-    stored winner cells is passed over for the next older one; one from a branch a restore abandoned (its last
+    A snapshot that does not verify, cannot be loaded (a memory `load_memory` refuses among the
+    reasons), or whose replay does not reproduce the stored winner cells is passed over for the next
+    older one; one from a branch a restore abandoned (its last
     row is not this store's row at that seq) is skipped silently. The last resort is a replay from the
     first row on a fresh memory: it is served, and the rows whose stored winner cells it did not
     reproduce are listed.
@@ -305,7 +294,6 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel, *, m
         catalog: lists the map's snapshots, newest first.
         map_id: the map.
         like: the map's model (`rebuild`); its TM's parameters make the fresh memory of the last resort.
-        max_memory: the most a snapshot's memory may inflate to (`memory_bound`).
         begun: a recovery `begin` started (its replay run in part, or whole, by the caller): it is
             finished here, and the snapshots it looked at are not tried again.
 
@@ -328,7 +316,7 @@ def recover(store: MapStore, catalog: Catalog, map_id: str, like: MapModel, *, m
         if begun is not None and rec.snapshot_id in begun.tried:
             continue
         try:
-            start = _snapshot_start(store, catalog, rec, max_memory)
+            start = _snapshot_start(store, catalog, rec)
             if start is None:
                 continue  # from a branch a restore abandoned
             m, memory = start
@@ -415,13 +403,13 @@ class MapCheck:
         return not (self.mismatches or self.snapshots_bad or self.problems)
 
 
-def _covering(store: MapStore, catalog: Catalog, map_id: str, max_memory: int
+def _covering(store: MapStore, catalog: Catalog, map_id: str
               ) -> tuple[str, snapshots.Manifest, dict[str, np.ndarray]] | None:
     """The earliest usable snapshot of `store` that covers its pruned visits: (its id, manifest, memory
     arrays); None: there is none."""
     for rec in reversed(catalog.list_snapshots(map_id)):
         try:
-            start = _snapshot_start(store, catalog, rec, max_memory)
+            start = _snapshot_start(store, catalog, rec)
         except Exception:  # damaged (listed in snapshots_bad), unreadable, or before the prune cursor
             continue
         if start is not None:
@@ -434,7 +422,7 @@ def open_catalog(data_dir: Path) -> Catalog:
     return Catalog.open(Layout(data_dir).catalog, readonly=True)
 
 
-def verify_map(catalog: Catalog, record: MapRecord, *, max_streams: int,
+def verify_map(catalog: Catalog, record: MapRecord, *,
                progress: Callable[[int, int], None] | None = None) -> MapCheck:
     """The offline full check of one map (`cortexloc verify`), changing nothing on disk: the store's
     integrity, its warm-up joins (`MapStore.join_problems`, docs/design/science.md §11.8), a replay from the
@@ -445,7 +433,6 @@ def verify_map(catalog: Catalog, record: MapRecord, *, max_streams: int,
     Args:
         catalog: the data directory's catalog (opened read-only).
         record: the map.
-        max_streams: CORTEXLOC_MAX_STREAMS (a snapshot's `memory_bound`).
         progress: called with (rows replayed, rows in the store).
     """
     t0 = time.perf_counter()
@@ -457,15 +444,10 @@ def verify_map(catalog: Catalog, record: MapRecord, *, max_streams: int,
         slsbh.load_projection(projection, sha)  # the same check a starting server makes
     except slsbh.ProjectionError as e:
         out.problems.append(f"projection: {e}")
-    try:
-        max_memory: int | None = memory_bound(MapConfig.parse(record.params), max_streams)
-    except InvalidConfiguration:
-        max_memory = None  # the replay below reports it
     for rec in catalog.list_snapshots(record.map_id):
         try:
             snapshots.verify(catalog.snapshot_dir(rec))
-            if max_memory is not None:
-                check_memory(catalog.snapshot_dir(rec), max_memory)
+            check_memory(catalog.snapshot_dir(rec))
             out.snapshots_ok.append(rec.snapshot_id)
         except snapshots.SnapshotInvalid as e:
             out.snapshots_bad[rec.snapshot_id] = str(e)
@@ -481,7 +463,7 @@ def verify_map(catalog: Catalog, record: MapRecord, *, max_streams: int,
             after_seq = after_id = 0
             pruned = store.visits_pruned_through()
             if pruned:  # a replay from the first row would lack them: start at a snapshot that covers them
-                found = _covering(store, catalog, record.map_id, memory_bound(config, max_streams))
+                found = _covering(store, catalog, record.map_id)
                 if found is None:
                     out.problems.append(f"the visit log was pruned through id {pruned} and no usable "
                                         "snapshot covers it: the memory cannot be replayed")

@@ -14,7 +14,7 @@ import numpy as np
 from models.frontend import slsbh
 from service.maps.config import MapConfig
 from service.maps.errors import InsufficientStorage, InvalidConfiguration, SnapshotInUse, SnapshotNotFound
-from service.maps.recovery.memory import check_memory, memory_bound
+from service.maps.recovery.memory import check_memory
 from service.maps.results import SnapshotInfo
 from storage import snapshots
 from storage.catalog import Catalog, SnapshotRecord
@@ -145,7 +145,7 @@ def prune_manual(catalog: Catalog, map_id: str, store: MapStore, keep: int, max_
     return deleted
 
 
-def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes: int, *, max_streams: int,
+def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes: int, *,
                     fits: Callable[[snapshots.Manifest], None] = lambda m: None) -> str:
     """Create a map from a downloaded snapshot tar (`cortexloc import`, server stopped).
 
@@ -153,16 +153,16 @@ def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes:
     the API's rules (`storage.snapshots`), the map is new here, and the files it declares fit in
     `max_bytes` and in the free space of the data directory. Every checksum is then verified (the
     snapshot's files, and the projection against the map's recorded SHA-256), and the memory's arrays
-    checked by their headers (`check_memory`: known names, within the map's `memory_bound` at
-    `max_streams`), before anything is registered; the map recovers from that snapshot when the server
+    checked by their headers (`check_memory`: known names, stored, no more declared than held), before
+    anything is registered; the map recovers from that snapshot when the server
     starts. Every path comes from `Layout(data_dir)`.
 
     Returns:
         The imported map's id.
 
     Raises:
-        SnapshotInvalid: a bad or too large tar, or a memory that would inflate past its bound or holds
-            arrays no memory writes. ValueError: the map exists, or no projection.
+        SnapshotInvalid: a bad or too large tar, or a memory `check_memory` refuses. ValueError: the map
+            exists, or no projection.
         MemoryBudgetExceeded: from `fits`, which sees the manifest before anything is written.
     """
     layout = Layout(data_dir)
@@ -185,7 +185,7 @@ def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes:
             config = MapConfig.parse(manifest.params)
         except InvalidConfiguration as e:
             raise snapshots.SnapshotInvalid(f"the snapshot's map configuration: {e}") from e
-        check_memory(staging, memory_bound(config, max_streams))
+        check_memory(staging)
         sha = manifest.projection_sha256
         target = layout.projection(sha)
         staged = staging / snapshots.PROJECTION_FILE

@@ -76,11 +76,6 @@ class Recovering:
             return
         raise MapUnavailable(self.map_id, self.state, self.state_reason)
 
-    @property
-    def max_memory(self) -> int:
-        """The most bytes a snapshot's memory of this map may inflate to (`recovery.memory_bound`)."""
-        return recovery.memory_bound(self.config, self.settings.max_streams)
-
     def recover(self, *, serve_during_replay: bool = False) -> None:
         """Open the store and rebuild the memory from it (`recovery.recover`, docs/design/service.md §4.4):
         at startup, after a restore, and after a failed commit. What happened is in `self.recovery`
@@ -112,13 +107,11 @@ class Recovering:
             return
         tail = None
         if serve_during_replay:
-            tail = recovery.begin(self.store, self.catalog, self.map_id, self.model,
-                                  max_memory=self.max_memory)
+            tail = recovery.begin(self.store, self.catalog, self.map_id, self.model)
         if tail is not None and tail.steps > TAIL_BEFORE_SERVING:
             self._serve_during(tail)
             return
-        self._install(*recovery.recover(self.store, self.catalog, self.map_id, self.model,
-                                        max_memory=self.max_memory, begun=tail))
+        self._install(*recovery.recover(self.store, self.catalog, self.map_id, self.model, begun=tail))
 
     def _install(self, done: recovery.Rebuilt, note: dict[str, Any]) -> None:
         """The recovered memory in place, its index and links built from the rows (unless they already
@@ -175,8 +168,7 @@ class Recovering:
             if tail.replay.out.mismatches:
                 self.state, self.state_reason = "recovering", "replay-diverged"
             live, localised = self.streams, self._localised
-            done, note = recovery.recover(self.store, self.catalog, self.map_id, self.model,
-                                          max_memory=self.max_memory, begun=tail)
+            done, note = recovery.recover(self.store, self.catalog, self.map_id, self.model, begun=tail)
             if done.model is self.model:
                 for name in localised:
                     if name in live:

@@ -97,7 +97,7 @@ class Snapshots:
         assert self.store is not None
         _, path = map_snapshots.locate(self.catalog, self.map_id, snapshot_id)
         snapshots.verify(path)  # refuse a damaged snapshot before touching anything
-        recovery.check_memory(path, self.max_memory)  # and one whose memory recovery would refuse
+        recovery.check_memory(path)  # and one whose memory recovery would refuse
         before = self.store.count()
         with self._restore_budget(path):
             self.snapshot("pre-restore")

@@ -125,12 +125,12 @@ def test_a_compressed_bomb_is_refused_before_its_data_is_written(tmp_path, membe
 
 
 @CRAFTED
-def test_a_crafted_memory_is_refused_and_nothing_is_stored(tmp_path, members, member, data, why):
-    """A tar whose every checksum verifies, its memory.npz carrying a member past the map's bound or of a
-    name no memory writes (the outside tester's bomb): `cortexloc import` and the live import (a move's
-    receiving end) refuse it as an invalid snapshot, and nothing stored changes
+def test_a_crafted_memory_is_refused_and_nothing_is_stored(tmp_path, members, member, data, compress, why):
+    """A tar whose every checksum verifies, its memory.npz carrying a compressed member, one declaring more
+    than it holds, or one of a name no memory writes (the outside tester's bomb): `cortexloc import` and
+    the live import (a move's receiving end) refuse it as an invalid snapshot, and nothing stored changes
     (docs/design/service.md §4.4)."""
-    manifest, npz = planted(members["manifest.json"], members["memory.npz"], member, data)
+    manifest, npz = planted(members["manifest.json"], members["memory.npz"], member, data, compress)
     crafted = make_tar(tmp_path / "crafted.tar", {**members, "manifest.json": manifest, "memory.npz": npz})
     data_dir = tmp_path / "data"
     with make_client(data_dir):

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from service.maps.recovery import open_catalog, verify_map
-from tests.service.helpers import MAX_STREAMS, frame, make_client, post
+from tests.service.helpers import frame, make_client, post
 from tests.service.maps.test_loop_closures import LAP, THRESHOLD
 from tests.service.maps.test_places import crash, shape
 
@@ -141,7 +141,7 @@ def test_a_map_restored_from_a_snapshot_taken_between_a_warm_up_and_its_join(tmp
         restart(c)
         drive(c)  # the map goes on, and joins again
         assert rt.store.joins()
-    check = verify_map(open_catalog(data), open_catalog(data).get_map("default"), max_streams=MAX_STREAMS)
+    check = verify_map(open_catalog(data), open_catalog(data).get_map("default"))
     assert check.ok, check
 
 
@@ -151,12 +151,12 @@ def test_verify_checks_the_joins(tmp_path):
         two_drives(c)
         row, _ = c.app.state.registry.get("default").store.joins()[0]
     catalog = open_catalog(data)
-    assert verify_map(catalog, catalog.get_map("default"), max_streams=MAX_STREAMS).ok
+    assert verify_map(catalog, catalog.get_map("default")).ok
     conn = sqlite3.connect(catalog.layout.map_db("default"))
     conn.execute("DELETE FROM dropped WHERE seq = ?", (row,))  # a join whose row is still held
     conn.commit()
     conn.close()
-    check = verify_map(catalog, catalog.get_map("default"), max_streams=MAX_STREAMS)
+    check = verify_map(catalog, catalog.get_map("default"))
     assert not check.ok and any(f"join of row {row}" in p for p in check.problems)
 
 
@@ -181,7 +181,7 @@ def test_map_sqlite_does_not_grow_drive_after_drive(tmp_path):
         before = shape(c)
     with make_client(data) as c:  # a restart rebuilds the same map from the rows and the visits
         assert shape(c) == before
-    check = verify_map(open_catalog(data), open_catalog(data).get_map("default"), max_streams=MAX_STREAMS)
+    check = verify_map(open_catalog(data), open_catalog(data).get_map("default"))
     assert check.ok, check
 
 
@@ -254,7 +254,7 @@ def test_a_snapshot_whose_last_row_was_joined_away_is_still_the_maps(tmp_path):
         before = shape(c)
         crash(c)
     recovers_from(data, snap, before)
-    check = verify_map(open_catalog(data), open_catalog(data).get_map("default"), max_streams=MAX_STREAMS)
+    check = verify_map(open_catalog(data), open_catalog(data).get_map("default"))
     assert check.ok, check
 
 

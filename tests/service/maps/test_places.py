@@ -9,7 +9,7 @@ import shutil
 
 from service.maps.recovery import VISIT_CURSOR, open_catalog, verify_map
 from service.maps.recovery.memory import load_memory
-from tests.service.helpers import MAX_STREAMS, frame, make_client, post, state_of
+from tests.service.helpers import frame, make_client, post, state_of
 from tests.service.maps.recovery.test_recovery import crash
 from tests.service.maps.test_loop_closures import LAP, THRESHOLD, drive, revisits
 
@@ -215,12 +215,12 @@ def test_verify_starts_at_the_earliest_snapshot_that_covers_the_pruned_visits(tm
     try:
         record = catalog.get_map("default")
         covering = [r.snapshot_id for r in reversed(catalog.list_snapshots("default"))
-                    if int(load_memory(catalog.snapshot_dir(r), 2**30)[VISIT_CURSOR]) >= pruned]
-        check = verify_map(catalog, record, max_streams=MAX_STREAMS)
+                    if int(load_memory(catalog.snapshot_dir(r))[VISIT_CURSOR]) >= pruned]
+        check = verify_map(catalog, record)
         assert check.ok and check.mismatches == [] and check.start == covering[0]
         for d in snaps.iterdir():
             shutil.rmtree(d)
-        check = verify_map(catalog, record, max_streams=MAX_STREAMS)
+        check = verify_map(catalog, record)
         assert not check.ok and check.start is None and any("pruned" in p for p in check.problems)
     finally:
         catalog.close()

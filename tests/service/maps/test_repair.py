@@ -17,7 +17,7 @@ from service.cli import app as cli
 from service.maps.closures import g2o_lines, g2o_retracted
 from service.maps.recovery import open_catalog, verify_map
 from storage.mapstore import LoopClosure, NewClosure, NewObservation, NewVisit
-from tests.service.helpers import MAX_STREAMS, frame, make_client, post
+from tests.service.helpers import frame, make_client, post
 from tests.service.maps.test_loop_closures import THRESHOLD, drive
 from tests.service.maps.test_places import crash
 
@@ -173,7 +173,7 @@ def test_a_repair_survives_a_crash_a_restart_a_snapshot_and_a_restore(tmp_path):
         assert c.get("/v1/maps/m").json()["recovery"].get("mismatches", 0) == 0
     catalog = open_catalog(data)
     try:
-        check = verify_map(catalog, catalog.get_map("m"), max_streams=MAX_STREAMS)
+        check = verify_map(catalog, catalog.get_map("m"))
     finally:
         catalog.close()
     assert check.ok and not check.mismatches

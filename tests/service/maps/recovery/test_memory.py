@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import re
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -16,21 +17,21 @@ from service.maps.errors import SnapshotInvalid
 from service.maps.recovery import check_memory, rebuild, recover, verify_map
 from service.maps.recovery.memory import snapshot_array
 from storage import snapshots
-from tests.service.helpers import MAX_STREAMS, tm_digest
+from tests.service.helpers import tm_digest
 from tests.service.maps.maps_fixtures import registry, route, step
 from tests.storage.test_snapshots import npy_header, planted
 
 
 def recovered(reg, rt):
-    """`recover` of the map on its writer, with the bound its runtime gives a snapshot's memory."""
-    return rt.submit(lambda: recover(rt.store, reg.catalog, rt.map_id, rt.model,
-                                     max_memory=rt.max_memory)).result()
+    """`recover` of the map on its writer."""
+    return rt.submit(lambda: recover(rt.store, reg.catalog, rt.map_id, rt.model)).result()
 
 
-def plant(directory: Path, member: str, data: bytes) -> None:
+def plant(directory: Path, member: str, data: bytes, compress: int) -> None:
     """The snapshot at `directory` crafted (`planted`): every checksum still verifies."""
     files = (directory / "manifest.json", directory / "memory.npz")
-    for path, body in zip(files, planted(*(p.read_bytes() for p in files), member, data), strict=True):
+    for path, body in zip(files, planted(*(p.read_bytes() for p in files), member, data, compress),
+                          strict=True):
         path.write_bytes(body)
     snapshots.verify(directory)
 
@@ -80,24 +81,29 @@ def test_recovery_takes_the_newest_snapshot_that_reproduces_the_rows(tmp_path):
 
 
 #: Crafted members of a memory.npz, and why each is refused.
-CRAFTED = pytest.mark.parametrize(("member", "data", "why"), [
-    # a name the memory's writer writes, its header declaring 8 GiB (the tester's bomb inflated 2 GiB)
-    ("streamcond.00.npy", npy_header((2**33,)), "'streamcond.00.npy' declares uint8(8589934592,)"),
-    ("extra.npy", npy_header((4,)) + bytes(4), "'extra.npy' is no array of a map's memory"),
-], ids=["oversized", "unknown"])
+CRAFTED = pytest.mark.parametrize(("member", "data", "compress", "why"), [
+    # a name the memory's writer writes, its header declaring 8 GiB with nothing behind it
+    ("streamcond.00.npy", npy_header((2**33,)), zipfile.ZIP_STORED,
+     "'streamcond.00.npy' declares uint8(8589934592,), more"),
+    # the tester's bomb: a known name, deflated zeros (np.savez stores every member)
+    ("streamcond.00.npy", npy_header((2**24,)) + bytes(2**24), zipfile.ZIP_DEFLATED,
+     "'streamcond.00.npy' is compressed"),
+    ("extra.npy", npy_header((4,)) + bytes(4), zipfile.ZIP_STORED,
+     "'extra.npy' is no array of a map's memory"),
+], ids=["declared-8GiB", "deflated", "unknown"])
 
 
 @CRAFTED
 def test_a_snapshot_whose_memory_is_refused_is_passed_over_like_a_damaged_one(tmp_path, caplog, member,
-                                                                              data, why):
-    """A snapshot whose checksums verify but whose memory.npz holds a member past the map's bound
-    (`memory_bound`) or of a name no memory writes: recovery passes over it for the older one and logs
+                                                                              data, compress, why):
+    """A snapshot whose checksums verify but whose memory.npz holds a member declaring more than it holds
+    or of a name no memory writes: recovery passes over it for the older one and logs
     why; `cortexloc verify` lists it as bad; a restore to it is refused before anything changes
     (docs/design/service.md §4.4)."""
     with registry(tmp_path) as reg:
         rt = reg.get("default")
         older, newer = two_snapshots(rt)
-        plant(rt.snapshot_dir(newer.snapshot_id), member, data)
+        plant(rt.snapshot_dir(newer.snapshot_id), member, data, compress)
         with caplog.at_level(logging.WARNING, logger="cortexloc.recovery"):
             done, note = recovered(reg, rt)
         assert note["snapshot_id"] == older.snapshot_id and tm_digest(done.model.tm) == tm_digest(rt.tm)
@@ -105,7 +111,7 @@ def test_a_snapshot_whose_memory_is_refused_is_passed_over_like_a_damaged_one(tm
         assert skipped["snapshot_id"] == newer.snapshot_id and why in skipped["reason"]
         assert any(f"snapshot {newer.snapshot_id} passed over" in r.getMessage() and why in r.getMessage()
                    for r in caplog.records)
-        check = verify_map(reg.catalog, rt.record, max_streams=MAX_STREAMS)
+        check = verify_map(reg.catalog, rt.record)
         assert list(check.snapshots_bad) == [newer.snapshot_id]
         assert why in check.snapshots_bad[newer.snapshot_id]
         before = (rt.store.count(), tm_digest(rt.tm), [s.snapshot_id for s in rt.snapshots()])
@@ -117,7 +123,7 @@ def test_a_snapshot_whose_memory_is_refused_is_passed_over_like_a_damaged_one(tm
 def test_every_array_a_map_snapshots_is_one_its_loader_knows(tmp_path):
     """The names the memory's writer writes (`memory_state`, the visit cursor and mark) against the
     loader's rule (`snapshot_array`), on a map with learning and localising streams; a normal snapshot
-    loads within its bound."""
+    passes its checks."""
     with registry(tmp_path) as reg:
         rt = reg.get("default")
         for f in route(4):
@@ -127,6 +133,6 @@ def test_every_array_a_map_snapshots_is_one_its_loader_knows(tmp_path):
         names = set(rt.submit(lambda: memory_state(rt.tm, rt.streams)).result())
         assert {n.split(".")[0] for n in names} >= {"stream", "streammeta", "streamloc", "ctx", "presyn"}
         assert all(snapshot_array(n) for n in names)
-        check_memory(rt.snapshot_dir(snap.snapshot_id), rt.max_memory)
+        check_memory(rt.snapshot_dir(snap.snapshot_id))
         for bad in ("stream.6162.bomb", "streammeta.zz", "streamloc.6162.rows.x", "ctx", "streammeta.61.x"):
             assert not snapshot_array(bad)

@@ -10,7 +10,7 @@ from service.maps.config import MapOptions
 from service.maps.errors import InsufficientStorage, InvalidConfiguration
 from service.maps.recovery import verify_map
 from storage.mapstore import StorageFull
-from tests.service.helpers import MAX_STREAMS, tm_digest
+from tests.service.helpers import tm_digest
 from tests.service.maps.maps_fixtures import registry, route, step
 
 
@@ -65,7 +65,7 @@ def test_a_failed_commit_leaves_the_memory_the_store_can_replay(tmp_path, monkey
         assert rt.state == "ready" and rt.store.count() == len(rt.index) == 3 and tm_digest(rt.tm) == live
         for f in frames[3:]:
             step(rt, f)
-        assert verify_map(reg.catalog, rt.record, max_streams=MAX_STREAMS).mismatches == []
+        assert verify_map(reg.catalog, rt.record).mismatches == []
 
 
 def test_restore_rolls_back_to_the_snapshot_and_keeps_the_present(tmp_path):

@@ -14,7 +14,7 @@ import pytest
 import service.maps.runtime.recovering as recovering
 from service.maps.recovery import memory as recovery_memory
 from service.maps.runtime import MapRuntime
-from tests.service.helpers import MAX_STREAMS, frame, make_client, post, state_of
+from tests.service.helpers import frame, make_client, post, state_of
 
 TAIL = 6  # rows learned after the snapshot
 
@@ -137,7 +137,7 @@ def verify_clean(data, rows: int) -> None:
     """`cortexloc verify`'s check: a replay from the first row reproduces every stored row."""
     catalog = recovery_memory.open_catalog(data)
     try:
-        check = recovery_memory.verify_map(catalog, catalog.get_map("default"), max_streams=MAX_STREAMS)
+        check = recovery_memory.verify_map(catalog, catalog.get_map("default"))
     finally:
         catalog.close()
     assert check.ok and check.rows == rows, check
