@@ -227,8 +227,10 @@ class Catalog:
                 raise StorageError(f"{path}: catalog schema {version} is newer than this code's "
                                    f"{_SCHEMA_VERSION}")
             if version < 2:
-                with transaction(self._conn):
-                    for statement in _V2:
+                with transaction(self._conn):  # read again under the write lock: another opener may
+                    current = int(self._conn.execute(  # have migrated it meanwhile
+                        "SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0])
+                    for statement in _V2 if current < 2 else ():
                         self._conn.execute(statement)
             with transaction(self._conn):  # absolute paths of older versions become relative (`_snap`)
                 snapshots = self._db["snapshots"]

@@ -150,7 +150,8 @@ class SnapshotInUse(MapError):  # noqa: N818
 
 
 class InsufficientStorage(MapError):  # noqa: N818
-    """The disk is full; what the message names was not written and the map is unchanged."""
+    """No room to write (a full disk, a quota, the file-size limit: `storage._common.is_full_error`); what
+    the message names was not written and the map is unchanged."""
 
 
 class Overloaded(MapError):  # noqa: N818

@@ -122,8 +122,8 @@ class _Metadata(BaseModel):
     def _seconds(cls, v: float | str | None) -> float | str | None:
         seconds = stamp_seconds({"stamp": v})
         if seconds is not None and abs(seconds) > STAMP_MAX_S:
-            raise ValueError(f"{v} read as seconds since the epoch is after the year 5000: stamps are "
-                             "seconds (a millisecond or nanosecond stamp divided by 10^3 or 10^9)")
+            raise ValueError(f"{v} read as seconds since the epoch is beyond ±10^11 s (the year 5138): "
+                             "stamps are seconds (a millisecond or nanosecond stamp divided by 10^3 or 10^9)")
         return v
 
 

@@ -52,7 +52,7 @@ class Closures:
             False when its idempotency key is already logged (nothing written).
 
         Raises:
-            StorageFull: the disk is full; nothing was written.
+            StorageFull: no room to write; nothing was written.
         """
         with self._lock:
             conn = self._db()

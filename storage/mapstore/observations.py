@@ -67,7 +67,7 @@ class Observations:
         Raises:
             ValueError: arrays not sorted/distinct/in range, or a context_prev_seq that is not earlier.
             DuplicateObservation: the observation_id is already stored.
-            StorageFull: the disk is full; nothing was written and the seq is not consumed.
+            StorageFull: no room to write; nothing was written and the seq is not consumed.
         """
         return self.append_many([row], durable=durable)[0]
 

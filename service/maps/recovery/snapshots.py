@@ -68,7 +68,7 @@ def take(store: MapStore, memory: Mapping[str, np.ndarray], catalog: Catalog, ma
     It goes where the catalog's `Layout` puts the map's snapshots.
 
     Raises:
-        InsufficientStorage: the disk is full (nothing is left behind).
+        InsufficientStorage: no room to write (nothing is left behind).
     """
     sid = snapshots.new_snapshot_id()
     dest = catalog.layout.snapshot_dir(map_id, sid)
@@ -78,7 +78,7 @@ def take(store: MapStore, memory: Mapping[str, np.ndarray], catalog: Catalog, ma
         m = snapshots.create_snapshot(store, dict(memory), dest, kind=kind,
                                       external={snapshots.PROJECTION_FILE: projection_path})
     except StorageFull as e:
-        raise InsufficientStorage(f"the {kind} snapshot could not be written: the disk is full; the map "
+        raise InsufficientStorage(f"the {kind} snapshot could not be written: no room to write; the map "
                                   "is unchanged") from e
     rec = catalog.register_snapshot(SnapshotRecord(
         snapshot_id=m.snapshot_id, map_id=map_id, seq=m.seq, kind=kind, created_at=m.created_at,

@@ -39,7 +39,7 @@ class Repairing:
         Raises:
             MapUnavailable (not ready). MapFull: the re-made rows would pass `max_observations`;
             MemoryBudgetExceeded: their index bytes do not fit the budget (nothing changed: a repair
-            forgets nothing to make room). InsufficientStorage: the disk is full (nothing changed).
+            forgets nothing to make room). InsufficientStorage: no room to write (nothing changed).
         """
         self.require_ready()
         assert self.store is not None
@@ -58,7 +58,7 @@ class Repairing:
             if self.budget is not None:  # nothing was stored: the index holds what it held
                 self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
             if isinstance(e, StorageFull):
-                raise InsufficientStorage("the repair could not be stored: the disk is full; nothing "
+                raise InsufficientStorage("the repair could not be stored: no room to write; nothing "
                                           "changed") from e
             raise
         self._rebuild_index()  # sets the budget's index bytes to the index rebuilt

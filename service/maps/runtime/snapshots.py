@@ -54,7 +54,7 @@ class Snapshots:
         """A consistent cut at the current seq (docs/design/service.md §1.5, §4.4).
 
         Raises:
-            InsufficientStorage: the disk is full (nothing is left behind).
+            InsufficientStorage: no room to write (nothing is left behind).
         """
         assert self.store is not None
         cursor = self.store.visit_stats()[2]  # the visits this memory has learned (§11.8)

@@ -232,7 +232,7 @@ class Writer:
         Raises:
             ValueError: `projected` is not (k,) (before any state change). MapUnavailable, MapFull,
             StreamLimit, MemoryBudgetExceeded (nothing changed).
-            InsufficientStorage: the disk is full; the memory was rebuilt from the store, nothing learned.
+            InsufficientStorage: no room to write; the memory was rebuilt from the store, nothing learned.
         """
         self.require_ready(learn)
         assert self.store is not None and self.hasher is not None  # a map without them is never ready
