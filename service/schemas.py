@@ -205,11 +205,14 @@ class StoredObservationModel(_Out):
     has_thumbnail: bool
 
 
-#: A page's `epoch` (docs/design/service.md §1.2): how many restores rolled the map back. Seqs and log ids are
-#: never handed out twice, but a restore takes away what came after its snapshot and brings back what
-#: was retracted since: a client following a page with a cursor reads it again from 0 when this changes.
-EPOCH_DESCRIPTION = ("restores that rolled the map back so far; when it changes, read again from 0: what "
-                     "came after the snapshot is gone, and retractions made since are undone")
+#: A page's `epoch` (docs/design/service.md §1.2): which map this is (its creation) and how many restores
+#: rolled it back. Seqs and log ids are not handed out twice within it, but a restore takes away what came
+#: after its snapshot and brings back what was retracted since, and a map deleted and made again (or
+#: moved between shards) starts afresh: a client following a page with a cursor reads it again from 0
+#: when this changes.
+EPOCH_DESCRIPTION = ("an opaque token of the map's creation and its restores; when it changes, read again "
+                     "from 0: a restore took away what came after its snapshot and undid the retractions "
+                     "made since, or the map was made anew")
 
 
 class StoredObservationList(_Out):
@@ -217,7 +220,7 @@ class StoredObservationList(_Out):
 
     observations: list[StoredObservationModel]
     next_after_seq: int | None
-    epoch: int = Field(ge=0, description=EPOCH_DESCRIPTION)
+    epoch: str = Field(description=EPOCH_DESCRIPTION)
 
 
 class StoredRowModel(_Out):
@@ -306,7 +309,7 @@ class LoopClosureList(_Out):
 
     loop_closures: list[LoopClosureModel]
     next_after: int | None
-    epoch: int = Field(ge=0, description=EPOCH_DESCRIPTION)
+    epoch: str = Field(description=EPOCH_DESCRIPTION)
 
 
 class RecentModel(_Out):

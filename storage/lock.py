@@ -1,12 +1,15 @@
 """One process at a time on a data directory (docs/design/service.md §4.1): an exclusive advisory lock
-on `<root>/.lock`, held while a process has the directory's maps open.
+on the data directory itself, held while a process has the directory's maps open; `<root>/.lock` names
+the holder's pid, for the refusal's message only.
 
 Two servers on one directory each believe they are its only writer: they hand out the same seqs (one of
 them answers 500 on every learned post) and, creating a map the other holds, would find its files as
-leftovers. The lock is `flock(2)`: the kernel drops it when the holding process exits however it exits
-(kill -9 included), so a crash never leaves a stale lock behind. The file holds the holder's pid, for
-the refusal's message only. Where `fcntl` does not exist (not POSIX), or the file system has no
-`flock` (some network and FUSE mounts), there is no lock, with a warning.
+leftovers. The lock is `flock(2)` on the directory's own descriptor: the kernel drops it when the holding
+process exits however it exits (kill -9 included), so a crash never leaves a stale lock, and no file can
+be deleted from under it (an outside test deleted a locked `.lock` file while a server ran: a second
+server then took a new one, deleted the first's live map, and acknowledged rows were lost). Where
+`fcntl` does not exist (not POSIX), or the file system has no `flock` (some network and FUSE mounts),
+there is no lock, with a warning.
 
 A process that finds the lock held waits for it up to a bound (`acquire(wait_s=)`): a restart or a
 rolling update starts the new process while the old one is still closing its maps, and the new one
@@ -15,6 +18,7 @@ must then start, not give up.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import os
@@ -44,7 +48,8 @@ class DataDirInUse(StorageError):  # noqa: N818 - what it says
 
 
 class DataDirLock:
-    """The exclusive lock on one data directory: `acquire` or raise DataDirInUse; `release` (idempotent)."""
+    """The exclusive lock on one data directory, `path` its `.lock` (the holder's pid; the lock is the
+    directory's): `acquire` or raise DataDirInUse; `release` (idempotent)."""
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
@@ -56,7 +61,7 @@ class DataDirLock:
         Raises:
             DataDirInUse: another process (or another open registry of this one) still holds it.
         """
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = os.open(self.path.parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
         try:
             deadline = time.monotonic() + wait_s
             while fcntl is not None:
@@ -65,20 +70,25 @@ class DataDirLock:
                     break
                 except BlockingIOError:
                     if time.monotonic() >= deadline:
-                        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
                         raise DataDirInUse(
-                            f"{self.path.parent} is in use by another cortexloc process (pid {holder}), "
-                            f"still after {wait_s:g} s: one process at a time serves a data directory; "
-                            "stop it, or give this one another --data-dir") from None
+                            f"{self.path.parent} is in use by another cortexloc process (pid "
+                            f"{self._holder()}), still after {wait_s:g} s: one process at a time serves a "
+                            "data directory; stop it, or give this one another --data-dir") from None
                     time.sleep(_POLL_S)
                 except OSError as e:
                     if e.errno not in _NO_FLOCK:
                         raise
                     log.warning("%s: the file system has no flock (%s); no lock: make sure one process "
-                                "at a time serves this data directory", self.path, e)
+                                "at a time serves this data directory", self.path.parent, e)
                     break
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            # who holds it, for another's refusal; never through a link (it would write where it points)
+            with contextlib.suppress(OSError):
+                flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0)
+                pid = os.open(self.path, flags, 0o644)
+                try:
+                    os.write(pid, f"{os.getpid()}\n".encode())
+                finally:
+                    os.close(pid)
         except BaseException:
             os.close(fd)
             raise
@@ -86,6 +96,14 @@ class DataDirLock:
         # a lock whose holder is dropped unclosed (a failed start) goes with it, not with the process
         self._closer = weakref.finalize(self, os.close, fd)
         return self
+
+    def _holder(self) -> str:
+        """The pid `.lock` names (what the holder wrote), or `unknown`."""
+        try:
+            with open(self.path, "rb") as f:
+                return f.read(32).decode(errors="replace").strip() or "unknown"
+        except OSError:
+            return "unknown"
 
     def release(self) -> None:
         """Let the lock go (closing the file drops it)."""

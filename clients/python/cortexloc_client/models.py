@@ -469,13 +469,13 @@ class Repair(_Reply):
 
 class LoopClosureList(_Reply):
     """`GET /v1/maps/{map_id}/loop-closures`: a page, oldest first; `next_after` continues it (None: the
-    end). `epoch` counts the restores that rolled the map back (0 from a server before it): ids are never
-    handed out twice, but when it changes, read the log again from `after=0` (what came after the
-    snapshot is gone, and retractions made since are undone)."""
+    end). `epoch` is an opaque token of the map's creation and restores ("" from a server before it):
+    when it changes, read the log again from `after=0` (a restore took away what came after its snapshot
+    and undid the retractions made since, or the map was made anew)."""
 
     loop_closures: list[LoopClosure]
     next_after: int | None = None
-    epoch: int = 0
+    epoch: str = ""
 
 
 class StoredObservationList(_Reply):
@@ -484,7 +484,7 @@ class StoredObservationList(_Reply):
 
     observations: list[StoredObservation]
     next_after_seq: int | None = None
-    epoch: int = 0
+    epoch: str = ""
 
 
 # ------------------------------------------------------------------------------------- snapshots

@@ -135,11 +135,12 @@ def test_snapshots_round_trip(client: Client, tiny_map: str, make_frame, tmp_pat
     with tarfile.open(tar_path) as tar:
         assert {"manifest.json", "map.sqlite", "memory.npz", "projection.npy"} <= set(tar.getnames())
 
-    assert client.list_observations(tiny_map).epoch == 0
+    epoch = client.list_observations(tiny_map).epoch
+    assert epoch and client.loop_closures(tiny_map).epoch == epoch
     restored = client.restore_snapshot(tiny_map, snap.snapshot_id)
     assert (restored.map_id, restored.observations, restored.discarded_observations) == (tiny_map, 3, 2)
     # the epoch tells a client following the pages with a cursor to read them again from 0
-    assert client.list_observations(tiny_map).epoch == client.loop_closures(tiny_map).epoch == 1
+    assert client.list_observations(tiny_map).epoch == client.loop_closures(tiny_map).epoch != epoch
     kinds = sorted(s.kind for s in client.list_snapshots(tiny_map))
     assert kinds == ["manual", "pre-restore"]
     with pytest.raises(NotFoundError) as e:

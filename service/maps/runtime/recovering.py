@@ -52,7 +52,7 @@ class Recovering:
     state: str
     state_reason: str | None
     store: MapStore | None
-    epoch: int
+    epoch: str
     recovery: dict[str, Any] | None
     _tail: recovery.Tail | None
     _tail_started: float
@@ -99,7 +99,8 @@ class Recovering:
                                        max_keys=self.settings.idempotency_keys,
                                        max_closures=self.settings.loop_closures,
                                        seq_floor=marks.seq_high_water, closure_floor=marks.closure_high_water)
-            self.epoch = marks.restores
+            # which map (a map deleted and made again, or imported, is another) and how many restores
+            self.epoch = f"{marks.created_at}/{marks.restores}"
             if not self.store.quick_check():
                 raise StoreCorrupt("quick_check failed")
         except (StoreCorrupt, StorageFull) as e:  # full (a migration): the file is whole, a restart recovers

@@ -123,7 +123,7 @@ class MapRuntime(Writer, Snapshots, Recovering, Admission, Repairing, Resources)
         # their order, their persistence and their snapshots.
         self.model = map_model(self.config, max_observations=settings.max_observations)
         self.store = None
-        self.epoch = 0  # restores so far: the epoch of its rows and log (`recover` reads the catalog's)
+        self.epoch = ""  # the map's creation and restores (`recover` reads the catalog's, `Recovering`)
         self._codes = OrderedDict()
         self.recent: RecentAnswers[Any] = RecentAnswers()  # the replies as sent (the route fills it)
 

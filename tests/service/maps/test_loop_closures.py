@@ -189,23 +189,29 @@ def test_after_a_restore_log_ids_are_not_handed_out_again_and_the_epoch_says_so(
         drive(c, LAP, noise=0.0)
         drive(c, LAP[:15])
         page = c.get("/v1/maps/default/loop-closures").json()
-        assert page["epoch"] == 0 and c.get("/v1/maps/default/observations").json()["epoch"] == 0
+        epoch = page["epoch"]
+        assert epoch and c.get("/v1/maps/default/observations").json()["epoch"] == epoch
         snap = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
         drive(c, LAP[15:])
         log = c.get("/v1/maps/default/loop-closures", params={"limit": 500}).json()["loop_closures"]
         cursor = log[-1]["id"]
         assert cursor > page["loop_closures"][-1]["id"]
         assert c.post(f"/v1/maps/default/snapshots/{snap}/restore").status_code == 200
-        assert c.get("/v1/maps/default/loop-closures").json()["epoch"] == 1
-        assert c.get("/v1/maps/default/observations").json()["epoch"] == 1
+        restored = c.get("/v1/maps/default/loop-closures").json()["epoch"]
+        assert restored != epoch and c.get("/v1/maps/default/observations").json()["epoch"] == restored
         called = revisits(drive(c, LAP[15:]))
         assert called
         new = c.get("/v1/maps/default/loop-closures", params={"after": cursor}).json()
-    assert len(new["loop_closures"]) == len(called) and new["epoch"] == 1
+    assert len(new["loop_closures"]) == len(called) and new["epoch"] == restored
     assert min(e["id"] for e in new["loop_closures"]) == cursor + 1
     with make_client(data) as c:  # the marks and the count are the catalog's: a restart keeps them
         again = c.get("/v1/maps/default/loop-closures", params={"after": cursor}).json()
-    assert again == new
+        assert again == new
+        # a map deleted and made again under the same id is another map: its ids start again, its
+        # epoch differs from every one before
+        assert c.delete("/v1/maps/default").status_code == 204
+        assert c.post("/v1/maps", json={"map_id": "default"}).status_code == 201
+        assert c.get("/v1/maps/default/loop-closures").json()["epoch"] not in (epoch, restored)
 
 
 def test_a_repeated_localisation_post_logs_its_closure_once(tmp_path):
