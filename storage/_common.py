@@ -77,7 +77,9 @@ def connect(path: str | Path, *, readonly: bool = False) -> sqlite3.Connection:
 #: What says there is no room to write: the disk full, the user's quota used up, the file-size limit
 #: (`ulimit -f`) reached. SQLite reports the first as SQLITE_FULL and the other two as a failed write
 #: (its VFS keeps the errno to itself), so a failed write counts as no room too: a write that fails for
-#: any reason is storage refusing the row, answered as such (507, nothing changed), never as a bug.
+#: any reason is storage refusing the row, answered as such (507, nothing changed), never as a bug. A
+#: failing or read-only disk fails writes the same way; the answer carries SQLite's own words ("disk I/O
+#: error", "database or disk is full") so that an operator can tell.
 _NO_ROOM_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
 _NO_ROOM_SQLITE = frozenset({"SQLITE_FULL", "SQLITE_IOERR_WRITE"})
 

@@ -250,8 +250,8 @@ class Writer:
         except Exception as e:
             if not learn:  # a localisation learns nothing: the memory and the store still agree
                 if isinstance(e, StorageFull):  # its loop closure could not be logged: no answer either
-                    raise InsufficientStorage("the loop closure could not be logged: no room to write "
-                                              "(the disk full, a quota, the file-size limit)") from e
+                    raise InsufficientStorage(f"the loop closure could not be logged: no room to write "
+                                              f"({e})") from e
                 raise
             # The TM may hold a learned step the store does not (a failed commit, or a failure anywhere
             # between the step and the commit): rebuild from the store before anything else runs, so
@@ -261,8 +261,10 @@ class Writer:
             self.store.close()
             self.recover()
             if isinstance(e, StorageFull):
-                raise InsufficientStorage("the observation could not be stored: no room to write; nothing "
-                                          "was learned") from e
+                # (SQLite's own words beside ours: its failed write may be a quota, a file-size limit
+                # or a failing disk, which it does not tell apart; storage._common.is_full_error)
+                raise InsufficientStorage(f"the observation could not be stored: no room to write ({e}); "
+                                          "nothing was learned") from e
             raise
 
     def _step(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
