@@ -99,6 +99,8 @@ class MapRegistry:
         self.budget = map_budget.MemoryBudget(total, source)
         #: Maps left closed at start because they did not fit in the budget: map_id -> bytes asked.
         self.unfitted: dict[str, int] = {}
+        #: Map directories the catalog did not list at start (left as they are, not served).
+        self.unlisted: list[str] = []
 
     def _need(self, config: MapConfig, feature_dim: int, rows: int) -> map_budget.MapNeed:
         """The map's share of the budget; the encoders built by now are told to the budget first."""
@@ -134,7 +136,7 @@ class MapRegistry:
                 self.catalog.set_state(record.map_id, "failed", "open-failed")
                 self.maps[record.map_id] = FailedMap(record, self.catalog, "open-failed")
         self._sweep_discarded()
-        unlisted = self._unlisted()
+        self.unlisted = unlisted = self._unlisted()  # /readyz warns of them
         for map_id in unlisted:
             log.error("maps/%s holds a map the catalog does not list; it is left as it is (not served): "
                       "restore catalog.sqlite, or move the directory away", map_id)

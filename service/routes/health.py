@@ -13,8 +13,9 @@ iff no check fails: 200 `{"status": "ready", "checks": ..., "warnings": [...]}`,
   (they localise, learning waits), recoveries that passed over snapshots or rows, and failed automatic
   snapshots are warnings. With `CORTEXLOC_API_KEY_READS` the
   probe stays open but names no map: it gives the counts by state (map ids are reads that need the key);
-- `catalog`: once the map registry started, its catalog's own check (`Catalog.check`); if the registry
-  could not start, `app.state.registry_error` says why (a failure).
+- `catalog`: once the map registry started, its catalog's own check (`Catalog.check`), and a warning
+  for map directories it does not list (left as they are, not served); if the registry could not
+  start, `app.state.registry_error` says why (a failure).
 """
 
 from __future__ import annotations
@@ -143,8 +144,10 @@ def _anonymous(check: Check) -> Check:
     return out
 
 
-def check_catalog(app: FastAPI) -> Check | None:
-    """The map registry's catalog; None while no registry was started (an app without maps)."""
+def check_catalog(app: FastAPI, named: bool = True) -> Check | None:
+    """The map registry's catalog; None while no registry was started (an app without maps). Map
+    directories it does not list (`MapRegistry.unlisted`: left as they are, not served) are a warning:
+    their ids where `named`, else their count."""
     error = getattr(app.state, "registry_error", None)
     if error is not None:
         return {"status": "fail", "error": error}
@@ -152,9 +155,17 @@ def check_catalog(app: FastAPI) -> Check | None:
     if registry is None:
         return None
     try:
-        return registry.catalog.check()
+        out = registry.catalog.check()
     except Exception as e:  # a check that crashes is a failed check, not a 500
         return {"status": "fail", "error": f"{type(e).__name__}: {e}"}
+    unlisted = list(getattr(registry, "unlisted", ()))
+    if unlisted and out.get("status") == "pass":
+        out.update(status="warn", unlisted=len(unlisted),
+                   warning=f"{len(unlisted)} map director(y/ies) hold a map the catalog does not list: left "
+                           "as they are, not served; restore catalog.sqlite or move them away")
+        if named:
+            out["unlisted_maps"] = unlisted
+    return out
 
 
 def failing(checks: dict[str, Check]) -> list[str]:
@@ -183,7 +194,7 @@ def readiness(app: FastAPI) -> tuple[bool, dict[str, Check]]:
     checks["data_dir"] = check_data_dir(settings.data_dir)
     checks["encoder"] = check_encoder(app)
     checks["maps"] = check_maps(getattr(app.state, "maps", None) or {}, named=not settings.api_key_reads)
-    catalog = check_catalog(app)
+    catalog = check_catalog(app, named=not settings.api_key_reads)
     if catalog is not None:
         checks["catalog"] = catalog
     return not failing(checks), checks

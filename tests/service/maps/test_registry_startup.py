@@ -136,7 +136,9 @@ def test_creating_a_map_over_a_directory_the_catalog_does_not_list_is_refused_an
         db.execute("DELETE FROM maps WHERE map_id = 'farm'")
     before = map_files(data, "farm")
     with make_client(data) as c:
-        assert c.get("/readyz").status_code == 200  # `default` is listed: the service serves it
+        ready = c.get("/readyz")  # `default` is listed: the service serves it, and warns of farm
+        assert ready.status_code == 200 and ready.json()["checks"]["catalog"]["unlisted_maps"] == ["farm"]
+        assert any("catalog does not list" in w for w in ready.json()["warnings"])
         r = c.post("/v1/maps", json={"map_id": "farm"})
         assert r.status_code == 409 and r.json()["type"].endswith("map-exists")
         assert "maps/farm" in r.json()["detail"]
