@@ -93,10 +93,10 @@ async def map_registry(app: FastAPI) -> AsyncIterator[None]:
                             s.backbone, {s.backbone: app.state.encoder})
         registry = await anyio.to_thread.run_sync(MapRegistry, s.data_dir, encoders, s)
         await anyio.to_thread.run_sync(registry.start)
-    except DataDirectoryInUse:
+    except DataDirectoryInUse as e:
         # Still held after `lock_wait_s`: this process exits (its supervisor, Ray or systemd, starts it
-        # again), rather than stay up refusing every map for good.
-        log.exception("the data directory %s stays in use by another process; exiting", s.data_dir)
+        # again), rather than stay up refusing every map for good. The message says it all.
+        log.error("%s; exiting", e)
         raise
     except Exception as e:
         if registry is not None:  # the maps it opened, and the directory's lock, are let go

@@ -64,6 +64,7 @@ def ingest_command(
     from models.frontend.limits import DEFAULT_MAX_BYTES
     from service.ingest import poster
     from service.ingest.sources import SourceError, open_source
+    from service.maps.errors import DataDirectoryInUse
     from service.settings import ConfigError
 
     if max_bytes is None:
@@ -105,6 +106,9 @@ def ingest_command(
     except (SourceError, ConfigError) as e:  # a bag message that cannot be read; the app's configuration
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from e
+    except DataDirectoryInUse as e:  # in process, beside a server on the same data directory
+        typer.echo(f"error: {e}; post to it with --url instead", err=True)
+        raise typer.Exit(1) from e
     print(summary.text(), file=out)
     if summary.errors:
         raise typer.Exit(1)

@@ -140,6 +140,7 @@ def repair(
 
     from service.cli.ingest import target
     from service.ingest import poster
+    from service.maps.errors import DataDirectoryInUse
 
     settings, api_key = target(url, data_dir, api_key)
     headers = {"X-API-Key": api_key} if api_key else {}
@@ -157,7 +158,11 @@ def repair(
                 return 0, {"detail": f"cannot reach the service at {url}: {e}"}
             return r.status_code, poster.json_body(r)
 
-    status, body = anyio.run(run)
+    try:
+        status, body = anyio.run(run)
+    except DataDirectoryInUse as e:  # in process, beside a server on the same data directory
+        typer.echo(f"error: {e}; run it with --url against that server instead", err=True)
+        raise typer.Exit(1) from e
     if status != 200:
         typer.echo(f"error: {status or 'no answer'}: {body.get('detail', body)}", err=True)
         raise typer.Exit(1)

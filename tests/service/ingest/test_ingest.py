@@ -132,6 +132,17 @@ def test_a_damaged_bag_exits_2_with_one_line(tmp_path, kind):
     assert "cannot read the bag" in r.stderr and "Traceback" not in r.output
 
 
+def test_an_in_process_ingest_beside_a_server_on_its_data_directory_says_so_in_one_line(tmp_path):
+    write_folder(tmp_path / "frames")
+    with TestClient(create_app(Settings(data_dir=tmp_path / "a"))):  # the server holding the directory
+        r = CliRunner().invoke(cli.app, ["ingest", str(tmp_path / "frames"), "--map", "m", "--data-dir",
+                                         str(tmp_path / "a")], env={"CORTEXLOC_LOCK_WAIT_S": "0"})
+    assert r.exit_code == 1, (r.exit_code, r.output, r.exception)
+    last = r.stderr.strip().splitlines()[-1]  # (after the source's header and the app's log line)
+    assert last.startswith("error: ") and "in use by another cortexloc process" in last and "--url" in last
+    assert "Traceback" not in r.output
+
+
 # ----------------------------------------------------------------- against a scripted service
 
 
