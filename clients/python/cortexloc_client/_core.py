@@ -32,22 +32,29 @@ IDEMPOTENCY_HEADER = "Idempotency-Key"
 METADATA_PARAM = "metadata"
 
 
+#: Statuses that, without the service's problem+json body, are a proxy's page in front of it: the request
+#: may or may not have reached the service (RetryPolicy).
+PROXY_STATUSES = frozenset({500, 502, 503, 504})
+
+
 @dataclass(frozen=True)
 class RetryPolicy:
     """When a request is sent again.
 
-    - 503 (`overloaded`, `not-ready`, `map-unavailable`): the service refused before doing anything, so
-      any request is retried, after `Retry-After` seconds when the reply has them, else after
-      `backoff_s`, 2 x `backoff_s`, 4 x ...; never longer than `max_wait_s`.
+    - the service's 503 (problem+json `overloaded`, `not-ready`, `map-unavailable`): it refused before
+      doing anything, so any request is retried, after `Retry-After` seconds when the reply has them,
+      else after `backoff_s`, 2 x `backoff_s`, 4 x ...; never longer than `max_wait_s`.
     - a connection that could not be opened: the request was never sent; retried like a 503.
     - any other transport failure (reset, timeout while reading the reply): the service may have done
       the work, so only idempotent requests are retried (GET, DELETE, PATCH, a stream reset, and an
       observation that carries an `Idempotency-Key`).
-    - a 500 that is not problem+json: a proxy's page, not the service's answer (Ray Serve's proxy sends
-      a plain-text 500 for a request whose ingress replica died with it), so it is a transport failure
-      after the request left: idempotent requests only, the same key, the backoff above. A
-      problem+json 500 is the service's own `internal-error` (a bug to report with its `request_id`):
-      never retried.
+    - a 500, 502, 503 or 504 that is not problem+json: a proxy's page, not the service's answer (Ray
+      Serve's proxy sends a plain-text 500 for a request whose ingress replica died with it; nginx and
+      load balancers send HTML 502 Bad Gateway, 503 and 504 Gateway Timeout when the upstream failed or
+      was slow), so whether the service did the work is unknown: a transport failure after the request
+      left, retried for idempotent requests only, the same key, after `Retry-After` or the backoff
+      above. A problem+json 500 is the service's own `internal-error` (a bug to report with its
+      `request_id`): never retried.
 
     Args:
         attempts: tries in all, the first included (1: never retry).
@@ -78,8 +85,9 @@ class RetryPolicy:
                 raise error
             return min(self.backoff_s * 2**attempt, self.max_wait_s)
         assert response is not None
-        lost = response.status_code == 500 and not is_problem(response)  # a proxy's, on a dead replica
-        if last or not (response.status_code == 503 or (lost and call.idempotent)):
+        proxy = response.status_code in PROXY_STATUSES and not is_problem(response)
+        refused = response.status_code == 503 and not proxy  # the service's own 503: nothing was done
+        if last or not (refused or (proxy and call.idempotent)):
             raise error_from_response(response)
         asked = retry_after_seconds(response.headers.get("Retry-After"))
         return min(self.backoff_s * 2**attempt if asked is None else asked, self.max_wait_s)

@@ -208,10 +208,38 @@ def test_the_async_client_retries_a_proxys_500_alike(waits) -> None:
     assert len(script.requests) == 1
 
 
+def proxy_page(status: int) -> httpx.Response:
+    """nginx's (or a load balancer's) HTML page for an upstream that failed or was slow."""
+    return httpx.Response(status, text=f"<html><body><h1>{status}</h1></body></html>",
+                          headers={"Content-Type": "text/html"})
+
+
+@pytest.mark.parametrize("status", [502, 503, 504])
+def test_a_proxys_html_502_503_or_504_is_retried_where_safe_sync_and_async(waits, status: int) -> None:
+    script = Script(proxy_page(status), proxy_page(status), httpx.Response(200, json=OBSERVATION))
+    assert make(script).observe("lab", JPEG, idempotency_key="frame-0001").seq == 1
+    assert script.keys() == ["frame-0001"] * 3 and waits == [0.5, 1.0]
+    script = Script(proxy_page(status), httpx.Response(200, json={"snapshots": [SNAPSHOT]}))
+    assert make(script).list_snapshots("lab")[0].snapshot_id == "s1" and len(script.requests) == 2
+    # the service may have done the work behind the proxy: a post without a key is never sent twice
+    for unsafe in (lambda c: c.observe("lab", JPEG), lambda c: c.create_snapshot("lab")):
+        script = Script(proxy_page(status), httpx.Response(201, json=SNAPSHOT))
+        with pytest.raises(ServerError if status != 503 else ServiceUnavailableError) as e:
+            unsafe(make(script, idempotency_keys=False))
+        assert e.value.status == status and e.value.problem is None and len(script.requests) == 1
+    script = Script(proxy_page(status), httpx.Response(200, json=OBSERVATION))
+
+    async def post() -> str | None:
+        async with AsyncClient("http://cortexloc.test", transport=httpx.MockTransport(script)) as c:
+            return (await c.observe("lab", JPEG)).observation_id
+
+    assert asyncio.run(post()) == "o-1" and len(script.requests) == 2 and len(set(script.keys())) == 1
+
+
 def test_a_reply_that_is_not_a_problem_still_raises(waits) -> None:
     script = Script(httpx.Response(502, text="<html>Bad Gateway</html>"))
     with pytest.raises(ServerError) as e:
-        make(script).get_map("lab")
+        make(script, retry=RetryPolicy(attempts=1)).get_map("lab")
     assert e.value.status == 502 and e.value.slug is None and e.value.problem is None
     assert "Bad Gateway" in e.value.detail
 
