@@ -18,8 +18,9 @@ from typing import Any, Generic, Literal, TypeVar
 
 import numpy as np
 
-__all__ = ["ENCODINGS", "DropPolicy", "FrameQueue", "OdometryBuffer", "Pose2D", "RateFilter", "Stamp",
-           "idempotency_key", "image_array", "quaternion_from_matrix", "relative_pose", "yaw_from_quaternion"]
+__all__ = ["ENCODINGS", "DropPolicy", "FrameKeys", "FrameQueue", "OdometryBuffer", "Pose2D", "RateFilter",
+           "Stamp", "idempotency_key", "image_array", "quaternion_from_matrix", "relative_pose",
+           "yaw_from_quaternion"]
 
 #: `sensor_msgs/Image` encodings the service takes as raw frames -> (sample dtype, channels). rgba8 and
 #: bgra8 are sent without their alpha channel (the client drops it); mono16 is sent little-endian.
@@ -106,19 +107,40 @@ _KEY_UNSAFE = re.compile(r"[^A-Za-z0-9._-]")
 _KEY_MAX = 128
 
 
-def idempotency_key(run_id: str, topic: str, stamp: Stamp) -> str:
-    """The post's key: one per (run, topic, stamp), so a retry is deduplicated by the service and a bag
-    replayed under another run id is a second drive.
+def idempotency_key(run_id: str, topic: str, stamp: Stamp, number: int) -> str:
+    """The post's key: one per received message, (run, topic, stamp, the message's number in the run),
+    so a retry (which reuses the frame's key) is deduplicated by the service, a bag replayed under
+    another run id is a second drive, and two messages with one stamp (a driver that does not stamp,
+    or stamps twice) are two frames, not one key reused (which the service refuses with 422).
 
     ROS names hold letters, digits, `_`, `/` and `~`; `/` becomes `.` (which no ROS name holds), anything
-    else `-`. A key that would pass 128 characters keeps its stamp and a hash of the rest.
+    else `-`. A key that would pass 128 characters keeps its stamp and number and a hash of the rest.
     """
-    key = f"{run_id}:{_KEY_UNSAFE.sub('-', topic.replace('/', '.'))}:{stamp.ns}"
+    key = f"{run_id}:{_KEY_UNSAFE.sub('-', topic.replace('/', '.'))}:{stamp.ns}:{number}"
     if len(key) <= _KEY_MAX:
         return key
     import hashlib
 
-    return f"h:{hashlib.sha256(f'{run_id}:{topic}'.encode()).hexdigest()[:40]}:{stamp.ns}"
+    return f"h:{hashlib.sha256(f'{run_id}:{topic}'.encode()).hexdigest()[:40]}:{stamp.ns}:{number}"
+
+
+@dataclass
+class FrameKeys:
+    """The keys of one topic's messages in one run, numbered as they arrive, and whether the camera's
+    stamps repeat (a stamp equal to the previous message's: the node warns once, since odometry and the
+    stored `stamp` cannot tell those frames apart). Used by the executor's callback only."""
+
+    run_id: str
+    topic: str
+    received: int = 0
+    _last: Stamp | None = None
+
+    def next(self, stamp: Stamp) -> tuple[str, bool]:
+        """(the key of the message just received, whether its stamp repeats the previous one's)."""
+        repeats = stamp == self._last
+        self._last = stamp
+        self.received += 1
+        return idempotency_key(self.run_id, self.topic, stamp, self.received), repeats
 
 
 # ------------------------------------------------------------------------------------------- poses

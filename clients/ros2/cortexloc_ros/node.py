@@ -35,12 +35,12 @@ from visualization_msgs.msg import Marker, MarkerArray
 from cortexloc_client import Client, Observation, RetryPolicy
 from cortexloc_ros.answers import loop_closure_json, place_json, place_pose
 from cortexloc_ros.core import (
+    FrameKeys,
     FrameQueue,
     OdometryBuffer,
     Pose2D,
     RateFilter,
     Stamp,
-    idempotency_key,
     image_array,
     yaw_from_quaternion,
 )
@@ -83,6 +83,7 @@ class CortexlocNode(Node):
 
         image_topic = cfg.topics["image"] + ("/compressed" if cfg.compressed else "")
         self.image_topic = self.resolve_topic_name(image_topic)
+        self.keys = FrameKeys(cfg.run_id, self.image_topic)
         stream = cfg.stream or self.image_topic.lstrip("/")
         self.cfg = cfg = replace(cfg, stream=stream, trail=trail_of(cfg.trail, self.get_namespace()) or "")
         self.create_subscription(CompressedImage if cfg.compressed else Image, image_topic, self._on_image,
@@ -161,6 +162,11 @@ class CortexlocNode(Node):
         with self.stats.lock:
             self.stats.received += 1
         stamp = Stamp.of(msg.header.stamp.sec, msg.header.stamp.nanosec)
+        key, repeats = self.keys.next(stamp)  # numbered before anything can skip it: one key per message
+        if repeats:
+            self._warn_once("stamps", f"the camera's stamps repeat ({stamp.ns} ns twice in a row; a driver "
+                                      f"that does not stamp sends 0): each frame is still posted, but its "
+                                      f"stored stamp and odometry pose cannot tell it from the one before")
         try:
             if isinstance(msg, CompressedImage):
                 image: Any = bytes(msg.data)
@@ -180,8 +186,7 @@ class CortexlocNode(Node):
             with self.stats.lock:
                 self.stats.skipped_rate += 1
             return
-        frame = Frame(stamp, msg.header.frame_id, image, colour,
-                      idempotency_key(self.cfg.run_id, self.image_topic, stamp), pose)
+        frame = Frame(stamp, msg.header.frame_id, image, colour, key, pose)
         if self.queue.put(frame) is not None:
             self._warn_once("drop", f"queue full ({self.cfg.queue_size}): frames dropped by "
                                     f"{self.cfg.queue_policy} (counted in diagnostics)")

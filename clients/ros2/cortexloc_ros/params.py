@@ -39,8 +39,9 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
               "(nothing stored changes)"),
     "top_k": (5, "frame-level matches in each answer (0 up to the service's CORTEXLOC_MAX_TOP_K, "
               "100 by default)"),
-    "run_id": ("", "this drive's id, part of each post's Idempotency-Key (run id + topic + stamp); empty: a "
-               "new one per start, so a bag replayed twice is two drives. Set it to resume one drive"),
+    "run_id": ("", "this drive's id, part of each post's Idempotency-Key (run id + topic + stamp + the "
+               "message's number in the run); empty: a new one per start, so a bag replayed twice is "
+               "two drives. Set it to resume one drive"),
     "request_timeout": (10.0, "seconds to connect and between bytes of a reply; a post cut short is retried "
                         "with the same key"),
     "image_transport": ("raw", "raw: sensor_msgs/Image on topics.image; compressed: sensor_msgs/"

@@ -5,8 +5,9 @@ typed client; the ROS executor never waits on the service.
   on the order; docs/design/service.md §1.3).
 - Retries: a frame is posted until the service answers it or refuses its bytes. The service down (no
   connection, a reply cut short, a timeout), a 503 or a 429: the same post again after `Retry-After` or
-  a backoff of 0.5 s doubling to 5 s, with the **same Idempotency-Key** (run id + topic + stamp), so a
-  post that was stored before its reply was lost is answered from the store, never learned twice. An
+  a backoff of 0.5 s doubling to 5 s, with the **same Idempotency-Key** (made when the message
+  arrived), so a post that was stored before its reply was lost is answered from the store, never
+  learned twice. An
   answered frame is done: it is never posted again. Meanwhile the camera's frames queue, and the queue
   drops by its policy.
 - Refused: 400, 413, 415, 422 (the frame or its metadata) are counted and logged; the poster goes on. A

@@ -14,6 +14,7 @@ pytest.importorskip("cortexloc_ros.core", reason="the ROS 2 node is not installe
 
 from cortexloc_ros.answers import loop_closure_json, place_json
 from cortexloc_ros.core import (
+    FrameKeys,
     FrameQueue,
     OdometryBuffer,
     Pose2D,
@@ -55,18 +56,29 @@ def test_an_image_shorter_than_its_header_or_of_another_encoding_is_refused():
         image_array(b"\0" * 64, height=4, width=4, step=16, encoding="32FC1", is_bigendian=False)
 
 
-def test_the_key_is_run_topic_and_stamp_so_a_replayed_bag_is_a_second_drive():
+def test_the_key_is_run_topic_stamp_and_message_number_so_a_replayed_bag_is_a_second_drive():
     stamp = Stamp.of(1_700_000_000, 5)
-    key = idempotency_key("run1", "/robot/cam/image_raw", stamp)
-    assert key == "run1:.robot.cam.image_raw:1700000000000000005"
-    assert key == idempotency_key("run1", "/robot/cam/image_raw", stamp)  # a retry: the same key
-    assert key != idempotency_key("run2", "/robot/cam/image_raw", stamp)  # the bag replayed: another
-    assert key != idempotency_key("run1", "/robot/cam2/image_raw", stamp)
-    long = idempotency_key("r", "/" + "x" * 200, stamp)
-    assert len(long) <= 128 and long.endswith(":1700000000000000005")
+    key = idempotency_key("run1", "/robot/cam/image_raw", stamp, 7)
+    assert key == "run1:.robot.cam.image_raw:1700000000000000005:7"
+    assert key == idempotency_key("run1", "/robot/cam/image_raw", stamp, 7)  # a retry: the same key
+    assert key != idempotency_key("run2", "/robot/cam/image_raw", stamp, 7)  # the bag replayed: another
+    assert key != idempotency_key("run1", "/robot/cam2/image_raw", stamp, 7)
+    long = idempotency_key("r", "/" + "x" * 200, stamp, 7)
+    assert len(long) <= 128 and long.endswith(":1700000000000000005:7")
     import re
 
     assert re.fullmatch(r"[A-Za-z0-9._:-]{8,128}", long) and re.fullmatch(r"[A-Za-z0-9._:-]{8,128}", key)
+
+
+def test_frames_with_one_stamp_get_keys_of_their_own_and_the_repeat_is_told():
+    # a driver that does not stamp (0 every time), then two frames stamped alike: each its own post
+    keys = FrameKeys("run1", "/cam/image_raw")
+    got = [keys.next(Stamp(ns)) for ns in (0, 0, 0, 5, 5, 6)]
+    assert len({k for k, _ in got}) == 6  # no key reused: the service would refuse it 422
+    assert [repeats for _, repeats in got] == [False, True, True, False, True, False]
+    # the same messages in a second start under the same run id: the same keys (a resumed drive)
+    again = FrameKeys("run1", "/cam/image_raw")
+    assert [again.next(Stamp(ns))[0] for ns in (0, 0, 0, 5, 5, 6)] == [k for k, _ in got]
 
 
 def test_a_frame_takes_the_odometry_pose_nearest_its_stamp_within_the_tolerance():
