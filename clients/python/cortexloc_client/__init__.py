@@ -33,6 +33,8 @@ from cortexloc_client.errors import (
 )
 from cortexloc_client.frames import ColourOrder, frame_body
 from cortexloc_client.models import (
+    MAX_TOP_K,
+    STREAM_PATTERN,
     Budget,
     Map,
     Match,
@@ -50,6 +52,8 @@ from cortexloc_client.models import (
 )
 
 __all__ = [
+    "MAX_TOP_K",
+    "STREAM_PATTERN",
     "AsyncClient",
     "BadRequestError",
     "Budget",

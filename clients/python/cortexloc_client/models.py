@@ -12,7 +12,18 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+# The service's limits on a request, for callers that check parameters before posting (the ROS node
+# refuses them at start). The client is installed without the service (a robot has no service package),
+# so it cannot import them: tests/clients/ros2/test_core.py checks that they equal the service's.
+#: A stream's (and a trail's) name: the service's `service.schemas.STREAM_PATTERN`.
+STREAM_PATTERN = r"^[A-Za-z0-9._-]{1,64}(/[A-Za-z0-9._-]{1,64}){0,7}$"
+#: The most matches an answer may ask for (`top_k`) on a service with the default settings
+#: (`CORTEXLOC_MAX_TOP_K`, `service.settings.Settings.max_top_k`).
+MAX_TOP_K = 100
+
 __all__ = [
+    "MAX_TOP_K",
+    "STREAM_PATTERN",
     "Budget",
     "CheckResult",
     "Health",

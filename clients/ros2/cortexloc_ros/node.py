@@ -24,7 +24,9 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import InvalidTopicNameException
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
@@ -44,7 +46,15 @@ from cortexloc_ros.core import (
     image_array,
     yaw_from_quaternion,
 )
-from cortexloc_ros.params import PARAMETERS, Config, ConfigError, read_config, trail_of
+from cortexloc_ros.params import (
+    PARAMETERS,
+    Config,
+    ConfigError,
+    read_config,
+    stream_problem,
+    trail_of,
+    usage,
+)
 from cortexloc_ros.poster import Frame, Poster, Stats
 
 __all__ = ["CortexlocNode", "main"]
@@ -82,6 +92,7 @@ class CortexlocNode(Node):
         self._lock = threading.Lock()
 
         image_topic = cfg.topics["image"] + ("/compressed" if cfg.compressed else "")
+        self._check_names(cfg)
         self.image_topic = self.resolve_topic_name(image_topic)
         self.keys = FrameKeys(cfg.run_id, self.image_topic)
         stream = cfg.stream or self.image_topic.lstrip("/")
@@ -124,6 +135,27 @@ class CortexlocNode(Node):
         overrides = getattr(self, "_parameter_overrides", {})  # what --ros-args and params files gave
         unknown = [n for n in overrides if not self.has_parameter(n) and not n.startswith("qos_overrides.")]
         return read_config(values, unknown=unknown)
+
+    def _check_names(self, cfg: Config) -> None:
+        """Topic names ROS refuses, and a stream derived from the image topic that the service refuses,
+        as `ConfigError` lines: found here, before anything is made, they would otherwise end the node
+        in a traceback from `create_publisher`, or have every frame refused."""
+        problems = []
+        for name, topic in cfg.topics.items():
+            if not topic:  # an optional input left out (read_config requires the others)
+                continue
+            try:
+                self.resolve_topic_name(topic)
+            except (_rclpy.RCLError, InvalidTopicNameException) as e:
+                reason = str(e).split(", at ")[0].removeprefix("failed to resolve name: ")
+                problems.append(f"topics.{name}: {topic!r} is not a ROS topic name ({reason})")
+        if not problems and not cfg.stream:
+            image_topic = cfg.topics["image"] + ("/compressed" if cfg.compressed else "")
+            problem = stream_problem("stream", self.resolve_topic_name(image_topic).lstrip("/"))
+            if problem:
+                problems.append(f"{problem}: it is the image topic's name; set stream")
+        if problems:
+            raise ConfigError(problems)
 
     # ----------------------------------------------------------------------------------- callbacks
 
@@ -276,7 +308,13 @@ class CortexlocNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """`cortexloc-ros [--ros-args -p name:=value ... --params-file params.yaml]`: run the node until
-    SIGINT or SIGTERM. Exit status 0; 2 with one line per problem when the parameters cannot be used."""
+    SIGINT or SIGTERM. Exit status 0; 2 with one line per problem when the parameters cannot be used.
+    `--help` (or `-h`) before `--ros-args` prints the usage and exits 0 without starting ROS."""
+    argv = sys.argv[1:] if args is None else args[1:]  # rclpy's args, like sys.argv, start with the program
+    ours = argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv
+    if "--help" in ours or "-h" in ours:
+        print(usage())
+        return 0
     rclpy.init(args=args)
     try:
         node = CortexlocNode()

@@ -11,15 +11,17 @@ from __future__ import annotations
 
 import os
 import re
+import textwrap
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
+from cortexloc_client import MAX_TOP_K, STREAM_PATTERN
 from cortexloc_ros.core import DROP_POLICIES
 
-__all__ = ["PARAMETERS", "Config", "ConfigError", "read_config", "trail_of"]
+__all__ = ["PARAMETERS", "Config", "ConfigError", "read_config", "stream_problem", "trail_of", "usage"]
 
 #: name -> (default, description). Nested names (`rate.every_n`) are YAML sections.
 PARAMETERS: dict[str, tuple[Any, str]] = {
@@ -37,8 +39,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
               "namespace: the stream's own trail)"),
     "learn": (True, "true: map (frames are learned and stored; loop closure while mapping); false: localise "
               "(nothing stored changes)"),
-    "top_k": (5, "frame-level matches in each answer (0 up to the service's CORTEXLOC_MAX_TOP_K, "
-              "100 by default)"),
+    "top_k": (5, f"frame-level matches in each answer (0 up to {MAX_TOP_K}, the service's default "
+              f"CORTEXLOC_MAX_TOP_K)"),
     "run_id": ("", "this drive's id, part of each post's Idempotency-Key (run id + topic + stamp + the "
                "message's number in the run); empty: a new one per start, so a bag replayed twice is "
                "two drives. Set it to resume one drive"),
@@ -74,8 +76,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
 #: The service's map ids (storage/catalog.py MAP_ID_RE).
 _MAP_ID = re.compile(r"^[a-z0-9][a-z0-9._-]{0,63}$")
 _RUN_ID = re.compile(r"^[A-Za-z0-9_-]{1,40}$")
-#: The service's stream (and trail) names (service/schemas.py STREAM_PATTERN).
-_STREAM = re.compile(r"^[A-Za-z0-9._-]{1,64}(/[A-Za-z0-9._-]{1,64}){0,7}$")
+#: The service's stream (and trail) names, as the client states them (service/schemas.py STREAM_PATTERN).
+_STREAM = re.compile(STREAM_PATTERN)
 
 
 class ConfigError(ValueError):
@@ -108,6 +110,21 @@ class Config:
     queue_size: int
     queue_policy: str
     topics: dict[str, str]
+
+
+def usage(prog: str = "cortexloc-ros") -> str:
+    """What `--help` prints: how to run the node and every parameter with its default and description."""
+    lines = [f"usage: {prog} [--ros-args -p name:=value ... --params-file params.yaml]",
+             "",
+             "cortexloc_node: camera frames (and odometry, camera_info) in, places and loop closures out,",
+             "through the cortexloc service. Parameters (bad values exit 2 with one line each):", ""]
+    for name, (default, description) in PARAMETERS.items():
+        shown = "''" if default == "" else str(default).lower() if isinstance(default, bool) else default
+        lines.append(f"  {name} (default {shown})")
+        lines.append(textwrap.fill(description, 100, initial_indent=" " * 6, subsequent_indent=" " * 6))
+    lines += ["", "Topics, messages and diagnostics: the package's README.md (clients/ros2/README.md); the "
+              "defaults as YAML: config/params.yaml."]
+    return "\n".join(lines)
 
 
 def _api_key(env_name: str, file_name: str, problems: list[str]) -> str | None:
@@ -160,6 +177,15 @@ def _typed(values: dict[str, Any], problems: list[str]) -> dict[str, Any]:
     return out
 
 
+def stream_problem(name: str, value: str) -> str | None:
+    """The line saying why `value` (the parameter `name`'s) is not a stream name the service takes, or
+    None: the service refuses such a name on every frame, so the node refuses it at start."""
+    if _STREAM.match(value):
+        return None
+    return (f"{name}: {value!r} is not a stream name (up to 8 '/'-separated parts of 1 to 64 letters, "
+            f"digits, '.', '_' or '-')")
+
+
 def trail_of(trail: str, namespace: str) -> str | None:
     """The trail a node's frames name (`metadata.trail`): the `trail` parameter, else the node's namespace
     without its leading '/' (a robot's nodes share its namespace), else None (the root namespace: each
@@ -193,13 +219,16 @@ def read_config(values: dict[str, Any], *, unknown: list[str] | None = None) -> 
     if not _MAP_ID.match(v["map"]):
         problems.append(f"map: {v['map']!r} is not a map id (a lower-case letter or digit, then up to "
                         f"63 of those, '.', '_', '-')")
-    if v["top_k"] < 0:
-        problems.append(f"top_k: {v['top_k']} must be >= 0")
+    if not 0 <= v["top_k"] <= MAX_TOP_K:
+        # the service's default limit: above it every frame would be refused (400) by such a service
+        problems.append(f"top_k: {v['top_k']} must be 0 to {MAX_TOP_K} (the service's CORTEXLOC_MAX_TOP_K "
+                        f"default; a frame asking more is refused)")
     if v["run_id"] and not _RUN_ID.match(v["run_id"]):
         problems.append(f"run_id: {v['run_id']!r} must be 1 to 40 letters, digits, '_' or '-'")
-    if v["trail"] and not _STREAM.match(v["trail"]):
-        problems.append(f"trail: {v['trail']!r} is not a stream name (up to 8 '/'-separated parts of 1 to 64 "
-                        f"letters, digits, '.', '_' or '-')")
+    for name in ("stream", "trail"):  # empty: derived by the node (the image topic; the namespace)
+        problem = stream_problem(name, v[name]) if v[name] else None
+        if problem:
+            problems.append(problem)
     if not v["request_timeout"] > 0:
         problems.append(f"request_timeout: {v['request_timeout']} must be > 0 seconds")
     if v["image_transport"] not in ("raw", "compressed"):

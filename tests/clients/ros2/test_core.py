@@ -148,6 +148,30 @@ def test_bad_parameters_are_all_named_at_once(monkeypatch, tmp_path):
     assert cfg.odom_tolerance_ns == 1_000_000_000 and cfg.camera_mount == (0.0, 0.0, 1.0)
 
 
+def test_a_top_k_or_stream_the_service_refuses_on_every_frame_is_refused_at_start():
+    with pytest.raises(ConfigError) as e:
+        read_config({**DEFAULTS, "top_k": 101, "stream": "front cam", "trail": "robot//1"})
+    assert e.value.problems == [
+        "top_k: 101 must be 0 to 100 (the service's CORTEXLOC_MAX_TOP_K default; a frame asking more is "
+        "refused)",
+        "stream: 'front cam' is not a stream name (up to 8 '/'-separated parts of 1 to 64 letters, digits, "
+        "'.', '_' or '-')",
+        "trail: 'robot//1' is not a stream name (up to 8 '/'-separated parts of 1 to 64 letters, digits, "
+        "'.', '_' or '-')"]
+    cfg = read_config({**DEFAULTS, "top_k": 100, "stream": "robot1/front.cam"})
+    assert (cfg.top_k, cfg.stream) == (100, "robot1/front.cam")
+
+
+def test_the_limits_the_node_checks_are_the_services():
+    # the client states them (a robot installs it without the service); they must not drift apart
+    from cortexloc_client import MAX_TOP_K, STREAM_PATTERN
+    from service.schemas import STREAM_PATTERN as SERVICE_STREAM_PATTERN
+    from service.settings import Settings
+
+    assert STREAM_PATTERN == SERVICE_STREAM_PATTERN
+    assert Settings.model_fields["max_top_k"].default == MAX_TOP_K
+
+
 def _answer(place: dict | None) -> Observation:
     return Observation.model_validate({
         "map_id": "m", "stream": "s", "learned": True, "seq": 9, "sequence": {

@@ -232,7 +232,8 @@ def test_bad_parameters_stop_the_node_at_start_with_a_clear_error(tmp_path):
                     **{"rate.every_n": 0, "rate.min_distance": 2.0})
     assert rc == 2, log
     for line in ("service_url: 'ftp://robot' is not an http(s)://host[:port] URL", "map: 'Bad Map'",
-                 "top_k: -1 must be >= 0", "queue.policy: 'sometimes' is not one of drop_oldest, drop_newest",
+                 "top_k: -1 must be 0 to 100",
+                 "queue.policy: 'sometimes' is not one of drop_oldest, drop_newest",
                  "rate.every_n: 0 must be >= 1", "rate.min_distance needs odometry"):
         assert line in log, log
     rc, log = start(api_key="s3cret")
@@ -242,3 +243,33 @@ def test_bad_parameters_stop_the_node_at_start_with_a_clear_error(tmp_path):
     rc, log = start(api_key_file=str(tmp_path / "missing-key"))
     assert rc == 2 and "api_key_file: cannot read a key from" in log, log
     assert "Traceback" not in log
+
+
+@in_loopback_netns
+def test_a_bad_topic_name_or_a_value_the_service_refuses_exits_2_in_one_line_and_help_prints_usage(tmp_path):
+    import subprocess
+    import sys
+
+    runs = iter(range(100))
+
+    def start(**params: object) -> tuple[int, str]:
+        node = NodeProcess(tmp_path, params, f"refused{next(runs)}")
+        node.proc.wait(timeout=60)
+        return node.proc.returncode, node.log()
+
+    rc, log = start(**{"topics.place": "1bad", "topics.markers": "a b"})
+    assert rc == 2, log
+    assert "topics.place: '1bad' is not a ROS topic name (topic name token must not start with a number)" \
+        in log, log
+    assert "topics.markers: 'a b' is not a ROS topic name" in log and "Traceback" not in log, log
+    rc, log = start(top_k=101, stream="front cam")
+    assert rc == 2 and "top_k: 101 must be 0 to 100" in log and "stream: 'front cam' is not a stream name" \
+        in log and "Traceback" not in log, log
+    # a stream taken from an image topic the service would refuse (9 parts): refused at start, not per frame
+    rc, log = start(**{"topics.image": "/a/b/c/d/e/f/g/h/image_raw"})
+    assert rc == 2 and "stream: 'a/b/c/d/e/f/g/h/image_raw' is not a stream name" in log, log
+    # --help: the usage, each parameter with its default, the README; the node is not started
+    p = subprocess.run([sys.executable, "-m", "cortexloc_ros", "--help"], capture_output=True, text=True,
+                       timeout=60, cwd=tmp_path)
+    assert p.returncode == 0 and p.stdout.startswith("usage: cortexloc-ros"), p.stdout + p.stderr
+    assert "  top_k (default 5)" in p.stdout and "README.md" in p.stdout and "cortexloc_node" not in p.stderr
