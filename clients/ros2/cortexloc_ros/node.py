@@ -287,13 +287,8 @@ class CortexlocNode(Node):
                       "revisits": s.revisits, "no_pose": s.no_pose,
                       "latency_ms": "" if s.last_latency_ms is None else f"{s.last_latency_ms:.1f}",
                       "latency_ms_median": "" if median is None else f"{median:.1f}", "last_error": error}
-        if service in ("down", "error"):
-            level, message = DiagnosticStatus.ERROR, f"service {service}: {error}"
-        elif self.queue.dropped or s.refused or s.unsupported:
-            level, message = DiagnosticStatus.WARN, (f"service {service}; dropped {self.queue.dropped}, "
-                                                     f"refused {s.refused}, unsupported {s.unsupported}")
-        else:
-            level, message = DiagnosticStatus.OK, f"service {service}"
+            health, message = s.health(self.queue.dropped)
+        level = getattr(DiagnosticStatus, health)  # the health's name is the constant's: OK, WARN, ERROR
         status = DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: cortexloc",
                                   message=message, hardware_id=self.cfg.service_url,
                                   values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])

@@ -13,6 +13,10 @@ typed client; the ROS executor never waits on the service.
 - Refused: 400, 413, 415, 422 (the frame or its metadata) are counted and logged; the poster goes on. A
   missing map is created (service defaults) when learning.
 - Idle, it checks the service's readiness every `PROBE_S`, so diagnostics say "down" without frames.
+- The service's state for diagnostics: `up` (it answered), `slow` (connected, but no reply within
+  `request_timeout`: it is busy, not gone), `down` (no connection, a reply cut short), `error` (it
+  answered with an error). `last_error` is the current trouble's: cleared when the service answers
+  again, so "service up" never shows an outage's error.
 """
 
 from __future__ import annotations
@@ -67,8 +71,8 @@ class Stats:
     retries: int = 0
     revisits: int = 0
     no_pose: int = 0
-    service: str = "unknown"  # up | down | error | unknown
-    last_error: str = ""
+    service: str = "unknown"  # up | slow | down | error | unknown (module docstring)
+    last_error: str = ""  # the current trouble's; "" once the service is up again
     last_latency_ms: float | None = None
     latencies_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -76,6 +80,18 @@ class Stats:
     def median_latency_ms(self) -> float | None:
         with self.lock:
             return statistics.median(self.latencies_ms) if self.latencies_ms else None
+
+    def health(self, dropped: int) -> tuple[str, str]:
+        """The diagnostics' level ("OK", "WARN" or "ERROR") and message; call with `lock` held. Slow is a
+        warning: frames are still answered, later, and the queue drops by its policy meanwhile."""
+        if self.service in ("down", "error"):
+            return "ERROR", f"service {self.service}: {self.last_error}"
+        if self.service == "slow":
+            return "WARN", f"service slow: {self.last_error}"
+        if dropped or self.refused or self.unsupported:
+            return "WARN", (f"service {self.service}; dropped {dropped}, refused {self.refused}, "
+                            f"unsupported {self.unsupported}")
+        return "OK", f"service {self.service}"
 
 
 Answered = Callable[[Frame, Pose2D | None, Observation, float], None]
@@ -118,9 +134,18 @@ class Poster:
         except CortexlocError as e:
             self._state("error", f"not ready: {e}")
         except httpx.HTTPError as e:
-            self._state("down", f"{e.__class__.__name__}: {e}")
+            self._transport_state(e)
         else:
             self._state("up", "")
+
+    def _transport_state(self, e: httpx.HTTPError) -> None:
+        """A request that got no answer: `slow` when connected but no reply came within the timeout (the
+        service is busy: a request that could not connect in time is `down`), else `down`."""
+        if isinstance(e, httpx.TimeoutException) and not isinstance(e, httpx.ConnectTimeout):
+            self._state("slow", f"{e.__class__.__name__}: no reply within request_timeout "
+                                f"({self.cfg.request_timeout:g} s)")
+        else:
+            self._state("down", f"{e.__class__.__name__}: {e}")
 
     def _state(self, service: str, error: str) -> None:
         with self.stats.lock:
@@ -128,6 +153,9 @@ class Poster:
                 self.log.warning(f"cortexloc service {service}: {error}; retrying")
             elif service != self.stats.service:
                 self.log.info(f"cortexloc service up at {self.cfg.service_url}")
+                # recovered: the outage's error is history (the log has it); an operator reading
+                # "service up" beside an old error would look for a fault that is gone
+                self.stats.last_error = ""
             self.stats.service = service
             if error:
                 self.stats.last_error = error
@@ -173,7 +201,7 @@ class Poster:
                 self._state("error", str(e))
                 wait = e.retry_after if e.retry_after is not None else delay
             except httpx.HTTPError as e:
-                self._state("down", f"{e.__class__.__name__}: {e}")
+                self._transport_state(e)
                 wait = delay
             else:
                 latency = (time.perf_counter() - t0) * 1e3
