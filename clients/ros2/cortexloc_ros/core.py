@@ -12,6 +12,7 @@ import bisect
 import math
 import re
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Generic, Literal, TypeVar
@@ -221,7 +222,8 @@ def relative_pose(rotation: list[list[float]], translation: list[float] | None
 class OdometryBuffer:
     """Recent odometry poses by stamp; a frame takes the pose nearest its stamp within `tolerance_ns`
     (message_filters' ApproximateTime for two topics, which pip-installed ROS 2 lacks). Thread-safe: the
-    executor adds, the poster matches late frames.
+    executor adds, the poster matches (`wait_match`: once a pose at or after the frame's stamp is in,
+    since the nearest may be the one after it).
 
     Odometry arriving out of order is inserted in order; the oldest entries go past `capacity`.
     """
@@ -232,6 +234,7 @@ class OdometryBuffer:
         self._poses: list[Pose2D] = []
         self._capacity = capacity
         self._lock = threading.Lock()
+        self._added = threading.Condition(self._lock)
 
     def add(self, stamp: Stamp, pose: Pose2D) -> None:
         with self._lock:
@@ -240,6 +243,19 @@ class OdometryBuffer:
             self._poses.insert(i, pose)
             if len(self._stamps) > self._capacity:
                 del self._stamps[0], self._poses[0]
+            self._added.notify_all()
+
+    def wait_match(self, stamp: Stamp, deadline: float) -> Pose2D | None:
+        """`match(stamp)` once a pose at or after `stamp` is in, or at `deadline` (`time.monotonic()`)
+        with what is in by then: a frame arriving before the odometry of its instant would otherwise
+        take an older pose, or none. Waits on the poster's thread; the executor's `add` wakes it."""
+        with self._lock:
+            while not (self._stamps and self._stamps[-1] >= stamp.ns):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._added.wait(left)
+        return self.match(stamp)
 
     def match(self, stamp: Stamp) -> Pose2D | None:
         """The pose whose stamp is nearest `stamp`, if within the tolerance."""

@@ -1,9 +1,10 @@
 """`cortexloc_node`: camera frames (and odometry, camera_info) in, places and loop closures out.
 
 The executor only converts and queues: each image callback turns the message into a raw frame (step
-padding dropped, 16-bit samples in the host's order), matches its stamp against the odometry buffer,
-applies the rate filter and puts it on the bounded queue. The poster thread (`cortexloc_ros.poster`)
-posts the queue through the typed client and publishes each answer. A 1 Hz timer on the executor
+padding dropped, 16-bit samples in the host's order), applies the rate filter (with the odometry in so
+far) and puts it on the bounded queue. The poster thread (`cortexloc_ros.poster`) matches each frame's
+odometry (waiting, bounded, for the sample of its instant), posts the queue through the typed client
+and publishes each answer. A 1 Hz timer on the executor
 publishes diagnostics, so they keep coming while the service is down.
 
 Topics and parameters: `cortexloc_ros.params.PARAMETERS`; the JSON documents: `cortexloc_ros.answers`.
@@ -15,6 +16,7 @@ import json
 import math
 import sys
 import threading
+import time
 from collections import deque
 from dataclasses import replace
 from typing import Any
@@ -213,12 +215,14 @@ class CortexlocNode(Node):
                 self.stats.last_error = str(e)
             self._warn_once(f"image:{getattr(msg, 'encoding', '')}", f"frame skipped: {e}")
             return
+        # The rate filter's distance needs a pose now: the nearest in so far, else the latest. The pose
+        # posted is matched by the poster, once the odometry of the frame's instant is in.
         pose = self.odometry.match(stamp) if self.odometry is not None else None
         if not self.rate.take(pose or (self.odometry.latest() if self.odometry is not None else None)):
             with self.stats.lock:
                 self.stats.skipped_rate += 1
             return
-        frame = Frame(stamp, msg.header.frame_id, image, colour, key, pose)
+        frame = Frame(stamp, msg.header.frame_id, image, colour, key, time.monotonic())
         if self.queue.put(frame) is not None:
             self._warn_once("drop", f"queue full ({self.cfg.queue_size}): frames dropped by "
                                     f"{self.cfg.queue_policy} (counted in diagnostics)")

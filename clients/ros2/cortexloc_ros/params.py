@@ -48,7 +48,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
                         "with the same key"),
     "image_transport": ("raw", "raw: sensor_msgs/Image on topics.image; compressed: sensor_msgs/"
                         "CompressedImage on topics.image + '/compressed' (JPEG or PNG, posted as it is)"),
-    "odom_tolerance": (0.05, "seconds: a frame takes the odometry pose nearest its stamp within this"),
+    "odom_tolerance": (0.05, "seconds: a frame takes the odometry pose nearest its stamp within this, once "
+                       "one at or after its stamp is in (it waits for that at most this + 50 ms)"),
     "camera_mount": ([0.0, 0.0, 0.0], "the camera's planar mounting on the odometry's child frame: x, y "
                      "(metres), yaw (radians), in place of tf; the pose sent is the camera's"),
     "place_covariance": ([1.0, 1.0, 0.1], "variances of x, y (m^2) and yaw (rad^2) published with the "

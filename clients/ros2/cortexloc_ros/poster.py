@@ -46,17 +46,24 @@ PROBE_S = 1.0
 LATENCY_WINDOW = 100
 
 
+#: Seconds past `odom_tolerance` that a frame waits, after it arrived, for the odometry of its instant:
+#: the odometry at or after a frame's stamp is published after the frame's exposure, and its transport
+#: may lag the image's by a few milliseconds.
+ODOM_MARGIN_S = 0.05
+
+
 @dataclass(frozen=True)
 class Frame:
     """One camera frame on its way: the body (a raw-frame array or encoded bytes), its stamp and frame,
-    the key of its post, and its pose if odometry gave one when it arrived."""
+    the key of its post, and when it arrived (`time.monotonic()`: its wait for odometry counts from
+    there)."""
 
     stamp: Stamp
     frame_id: str
     image: np.ndarray | bytes
     colour: str
     key: str
-    pose: Pose2D | None = None
+    arrived: float
 
 
 @dataclass
@@ -174,9 +181,12 @@ class Poster:
         return meta
 
     def _post(self, frame: Frame) -> None:
-        pose = frame.pose
-        if pose is None and self.odometry is not None:  # odometry that arrived after the frame
-            pose = self.odometry.match(frame.stamp)
+        pose = None
+        if self.odometry is not None:
+            # the nearest pose may be the one just after the stamp, not in yet: wait for it here (never
+            # on the executor), at most odom_tolerance + ODOM_MARGIN_S after the frame arrived
+            deadline = frame.arrived + self.cfg.odom_tolerance_ns / 1e9 + ODOM_MARGIN_S
+            pose = self.odometry.wait_match(frame.stamp, deadline)
             if pose is None:
                 with self.stats.lock:
                     self.stats.no_pose += 1

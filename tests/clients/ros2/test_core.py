@@ -92,6 +92,20 @@ def test_a_frame_takes_the_odometry_pose_nearest_its_stamp_within_the_tolerance(
     assert odom.latest().x == 3.0
 
 
+def test_a_match_waits_for_odometry_at_or_after_the_stamp_until_its_deadline():
+    import threading
+    import time
+
+    odom = OdometryBuffer(tolerance_ns=50_000_000)
+    odom.add(Stamp(60_000_000), Pose2D(0.0, 0.0, 0.0, "odom"))  # 40 ms before the frame
+    threading.Timer(0.05, odom.add, (Stamp(110_000_000), Pose2D(1.0, 0.0, 0.0, "odom"))).start()
+    assert odom.wait_match(Stamp(100_000_000), time.monotonic() + 30).x == 1.0  # 10 ms after: the nearest
+    t0 = time.monotonic()
+    assert odom.wait_match(Stamp(100_000_000), t0 + 30).x == 1.0  # already in: no wait
+    assert odom.wait_match(Stamp(140_000_000), t0 - 1).x == 1.0  # past its deadline: what is in
+    assert time.monotonic() - t0 < 5  # neither waited for its deadline
+
+
 def test_the_camera_mount_moves_the_pose_with_the_robots_heading():
     pose = Pose2D(1.0, 2.0, math.pi / 2, "odom").compose((0.5, 0.0, math.pi / 2))
     assert (round(pose.x, 9), round(pose.y, 9), round(pose.yaw, 9)) == (1.0, 2.5, round(math.pi, 9))

@@ -3,6 +3,8 @@ slow, down and back, driven through a scripted client (no server)."""
 
 from __future__ import annotations
 
+import threading
+import time
 from typing import Any
 
 import httpx
@@ -12,7 +14,7 @@ import pytest
 pytest.importorskip("cortexloc_ros.poster", reason="the ROS 2 node is not installed (make install-ros)")
 
 from cortexloc_ros import poster
-from cortexloc_ros.core import FrameQueue, Stamp
+from cortexloc_ros.core import FrameQueue, OdometryBuffer, Pose2D, Stamp
 from cortexloc_ros.params import PARAMETERS, read_config
 from cortexloc_ros.poster import Frame, Poster, Stats
 
@@ -31,6 +33,7 @@ class ScriptedClient:
     def __init__(self, stats: Stats, *outcomes: Exception | Observation) -> None:
         self.stats, self.outcomes = stats, list(outcomes)
         self.seen: list[tuple[str, str]] = []
+        self.metadata: list[dict[str, Any]] = []
 
     def _next(self) -> Any:
         self.seen.append((self.stats.service, self.stats.last_error))
@@ -40,6 +43,7 @@ class ScriptedClient:
         return outcome
 
     def observe(self, *args: Any, **kwargs: Any) -> Observation:
+        self.metadata.append(kwargs["metadata"])
         return self._next()
 
     def ready(self) -> None:
@@ -56,19 +60,20 @@ class Log:
     warning = error = info
 
 
-def _poster(monkeypatch: pytest.MonkeyPatch, *outcomes: Exception | Observation) -> tuple[Poster, Stats,
-                                                                                         ScriptedClient]:
+def _poster(monkeypatch: pytest.MonkeyPatch, *outcomes: Exception | Observation,
+            odometry: OdometryBuffer | None = None) -> tuple[Poster, Stats, ScriptedClient]:
     monkeypatch.setattr(poster, "BACKOFF_S", 0.001)  # the retries' waits, not what is tested
     cfg = read_config({name: default for name, (default, _) in PARAMETERS.items()})
     stats = Stats()
     client = ScriptedClient(stats, *outcomes)
-    p = Poster(cfg, client, FrameQueue(2), stats, None, lambda: None,  # type: ignore[arg-type]
+    p = Poster(cfg, client, FrameQueue(2), stats, odometry, lambda: None,  # type: ignore[arg-type]
                lambda *a: None, Log())
     return p, stats, client
 
 
-def _frame() -> Frame:
-    return Frame(Stamp(1), "cam", np.zeros((4, 4, 3), np.uint8), "rgb8", "run1:.cam:1:1")
+def _frame(stamp: Stamp | None = None) -> Frame:
+    return Frame(stamp or Stamp(1), "cam", np.zeros((4, 4, 3), np.uint8), "rgb8", "run1:.cam:1:1",
+                 time.monotonic())
 
 
 def test_a_slow_service_is_slow_not_down_and_its_error_is_cleared_when_it_answers(monkeypatch):
@@ -99,3 +104,23 @@ def test_the_idle_probe_reports_slow_down_and_recovery_alike(monkeypatch):
     assert (stats.service, stats.last_error.split(":")[0]) == ("slow", "ReadTimeout")
     p._probe()
     assert (stats.service, stats.last_error) == ("up", "")
+
+
+def test_a_frame_waits_for_the_odometry_of_its_instant_and_takes_the_nearest(monkeypatch):
+    # odometry 40 ms before the frame is in (within the 50 ms tolerance); the sample 10 ms after the
+    # frame, the nearest, comes 30 ms after the frame did: the frame is posted with it
+    odometry = OdometryBuffer(tolerance_ns=50_000_000)
+    stamp = Stamp(10_000_000_000)
+    odometry.add(Stamp(stamp.ns - 40_000_000), Pose2D(1.0, 0.0, 0.0, "odom"))
+    p, stats, client = _poster(monkeypatch, ANSWER, ANSWER, odometry=odometry)
+    threading.Timer(0.03, odometry.add, (Stamp(stamp.ns + 10_000_000), Pose2D(2.0, 0.0, 0.0, "odom"))).start()
+    p._post(_frame(stamp))
+    assert client.metadata[0]["pose"]["x"] == 2.0
+    # no odometry after the stamp ever comes: the wait is bounded (odom_tolerance + the margin after the
+    # frame arrived), then the nearest in is taken
+    later = Stamp(stamp.ns + 45_000_000)
+    t0 = time.monotonic()
+    p._post(_frame(later))
+    waited = time.monotonic() - t0
+    assert client.metadata[1]["pose"]["x"] == 2.0 and stats.no_pose == 0
+    assert waited < 5 * (0.05 + poster.ODOM_MARGIN_S)  # a bound on the wait, loose for a loaded machine
