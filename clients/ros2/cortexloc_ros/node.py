@@ -325,6 +325,12 @@ def main(args: list[str] | None = None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except _rclpy.RCLError:
+        # SIGTERM's handler shuts the context down; when that lands while spin builds its wait set,
+        # rclpy raises RCLError ("the given context is not valid") instead of ExternalShutdownException:
+        # the same shutdown, which must end with status 0 and no traceback
+        if rclpy.ok():
+            raise
     finally:
         node.close()
         node.destroy_node()
