@@ -67,6 +67,12 @@ class World:
         self.nodes.append(node)
         return node
 
+    def __enter__(self) -> World:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
     def close(self) -> None:
         from tests.clients.ros2.probe import stop_probe
 
@@ -217,6 +223,24 @@ def test_a_slow_service_makes_the_queue_drop_by_its_policy_and_diagnostics_say_s
         assert w.probe.last_diagnostics()["dropped"] == "5"
     finally:
         w.close()
+
+
+@in_loopback_netns
+def test_a_camera_that_does_not_stamp_has_every_frame_answered_and_is_told_once(tmp_path):
+    with World(tmp_path) as w:
+        node = w.node()
+        w.probe.wait_connected()
+        for frame, _, x, y in _route(5):  # five frames, all stamped 0 (a driver that does not stamp)
+            w.probe.publish(frame, 0, x, y)
+            w.probe.spin(0.01)
+        w.probe.wait(lambda: len(w.probe.places) == 5, 60, "an answer per frame")
+        assert all(p["stamp"] == {"sec": 0, "nanosec": 0} for p in w.probe.places)
+        keys = [k for k, _ in w.relay.posts]
+        assert len(set(keys)) == 5 and [o for _, o in w.relay.posts] == ["200"] * 5  # none refused 422
+        w.probe.wait(lambda: w.probe.last_diagnostics().get("answered") == "5", 10, "diagnostics")
+        assert w.probe.last_diagnostics()["refused"] == "0"
+        assert node.stop() == 0
+        assert node.log().count("the camera's stamps repeat") == 1, node.log()
 
 
 @in_loopback_netns
