@@ -1,8 +1,9 @@
 """Typed Python client for the cortexloc HTTP API: `Client` (sync) and `AsyncClient` (asyncio).
 
 Replies are pydantic models (`cortexloc_client.models`); refusals are `CortexlocError` and its
-subclasses; 503s are retried after `Retry-After` (`RetryPolicy`); observation posts carry an
-`Idempotency-Key`, the same across their retries, and are resent with it on a proxy's plain 500.
+subclasses; the service's 503s are retried after `Retry-After` (`RetryPolicy`); observation posts carry
+an `Idempotency-Key`, the same across their retries, and are resent with it on a proxy's 500, 502, 503
+or 504 page.
 """
 
 import pydantic
