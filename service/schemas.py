@@ -203,6 +203,9 @@ class StoredObservationModel(_Out):
     image_sha256: str
     metadata: dict[str, Any] | None
     has_thumbnail: bool
+    joined_to: int | None = Field(default=None, description=(
+        "the row whose place this row joined (a warm-up join: the row a stream made before it knew where "
+        "it was, held no more; its record stays as acknowledged); null: the row is held"))
 
 
 #: A page's `epoch` (docs/design/service.md §1.2): which map this is (its creation) and how many restores

@@ -238,6 +238,7 @@ class StoredObservation:
     image_sha256: str
     metadata: dict[str, Any] | None
     has_thumbnail: bool
+    joined_to: int | None = None
 
 
 @dataclass(frozen=True)

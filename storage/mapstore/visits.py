@@ -218,17 +218,22 @@ class Visits:
     def joined_row(self, seq: int) -> JoinedRow | None:
         """The record of row `seq` if a warm-up join turned it into a visit and deleted it (schema 12),
         as it was acknowledged; None otherwise (a row held, or none)."""
+        found = self.joined_rows(int(seq) - 1, 1)
+        return found[0] if found and found[0].seq == int(seq) else None
+
+    def joined_rows(self, after_seq: int, limit: int) -> list[JoinedRow]:
+        """At most `limit` records of rows a warm-up join turned into visits and deleted (schema 12), with
+        seq > `after_seq`, in seq order (the listing of a map's rows keeps them, so it only grows)."""
         if not self.holds.joined_rows:
-            return None
+            return []
         with self._lock:
-            db = self._db()
-            r = db.execute("SELECT seq, observation_id, stream, label, row_created_at, image_sha256, "
-                           "metadata, place_seq FROM joins WHERE seq = ? AND observation_id IS NOT NULL",
-                           (int(seq),)).fetchone()
-            if r is None or db.execute("SELECT 1 FROM observations WHERE seq = ?", (int(seq),)).fetchone():
-                return None
-        return JoinedRow(seq=int(r[0]), observation_id=r[1], stream=r[2], label=r[3], created_at=r[4],
-                         image_sha256=r[5], metadata=load_json(r[6]), place_seq=int(r[7]))
+            found = self._db().execute(
+                "SELECT seq, observation_id, stream, label, row_created_at, image_sha256, metadata, "
+                "place_seq FROM joins j WHERE seq > ? AND observation_id IS NOT NULL "
+                "AND NOT EXISTS (SELECT 1 FROM observations o WHERE o.seq = j.seq) ORDER BY seq LIMIT ?",
+                (int(after_seq), int(limit))).fetchall()
+        return [JoinedRow(seq=int(r[0]), observation_id=r[1], stream=r[2], label=r[3], created_at=r[4],
+                          image_sha256=r[5], metadata=load_json(r[6]), place_seq=int(r[7])) for r in found]
 
     def joined_to(self, seq: int) -> int | None:
         """The old row whose place row `seq` joined (a warm-up join), or None."""

@@ -399,6 +399,9 @@ class StoredObservation(_Reply):
     image_sha256: str | None = None
     metadata: Metadata | None = None
     has_thumbnail: bool | None = None
+    #: the row whose place this row joined (a warm-up join: made before the stream knew where it was, held
+    #: no more, its record kept as acknowledged); None: the row is held
+    joined_to: int | None = None
 
 
 class StoredRow(_Reply):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from service.maps.errors import ObservationNotFound
 from service.maps.results import StoredObservation
+from storage.mapschema import JoinedRow
 from storage.mapstore import MapStore, Observation
 
 __all__ = ["observation", "page", "thumbnail"]
@@ -17,26 +18,33 @@ def _stored(row: Observation, has_thumbnail: bool) -> StoredObservation:
                              metadata=row.metadata, has_thumbnail=has_thumbnail)
 
 
+def _joined(row: JoinedRow) -> StoredObservation:
+    return StoredObservation(seq=row.seq, observation_id=row.observation_id, stream=row.stream,
+                             label=row.label, created_at=row.created_at, image_sha256=row.image_sha256,
+                             metadata=row.metadata, has_thumbnail=False, joined_to=row.place_seq)
+
+
 def observation(map_id: str, store: MapStore, seq: int) -> StoredObservation:
     """Raises ObservationNotFound. A row a warm-up join turned into a visit (docs/design/science.md
-    §11.8) answers with its record as acknowledged, without its thumbnail."""
+    §11.8) answers with its record as acknowledged, without its thumbnail, and the row it joined."""
     row = store.get(seq)
     if row is None:
         joined = store.joined_row(seq)
         if joined is None:
             raise ObservationNotFound(map_id, seq)
-        return StoredObservation(seq=joined.seq, observation_id=joined.observation_id, stream=joined.stream,
-                                 label=joined.label, created_at=joined.created_at,
-                                 image_sha256=joined.image_sha256, metadata=joined.metadata,
-                                 has_thumbnail=False)
+        return _joined(joined)
     return _stored(row, seq in store.with_thumbnails([seq]))
 
 
 def page(store: MapStore, after_seq: int, limit: int) -> list[StoredObservation]:
-    """At most `limit` (<= 500) observations with seq > `after_seq`, in seq order."""
+    """At most `limit` (<= 500) observations with seq > `after_seq`, in seq order: the rows held and
+    the rows a warm-up join turned into visits (`joined_to`), so that within an epoch a page read again
+    holds what it held (a join deletes a row after a follower may have read it, §11.8)."""
     rows = store.page(after_seq, limit)
     thumbs = store.with_thumbnails(r.seq for r in rows)
-    return [_stored(r, r.seq in thumbs) for r in rows]
+    found = [_stored(r, r.seq in thumbs) for r in rows]
+    found += [_joined(j) for j in store.joined_rows(after_seq, limit)]
+    return sorted(found, key=lambda o: o.seq)[:limit]
 
 
 def thumbnail(map_id: str, store: MapStore, seq: int) -> bytes:

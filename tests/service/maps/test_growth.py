@@ -201,6 +201,7 @@ def test_a_joined_row_still_answers_as_it_was_acknowledged(tmp_path):
         assert gone
         told = {r["seq"]: r for r in second if r["seq"] is not None}
     with make_client(data) as c:
+        store = c.app.state.registry.get("default").store
         for seq in gone:
             got = c.get(f"/v1/maps/default/observations/{seq}")
             assert got.status_code == 200, got.text
@@ -210,8 +211,42 @@ def test_a_joined_row_still_answers_as_it_was_acknowledged(tmp_path):
             assert len(body["image_sha256"]) == 64
             thumb = c.get(f"/v1/maps/default/observations/{seq}/thumbnail")
             assert thumb.status_code == 404 and "thumbnail" in thumb.text
+            assert body["joined_to"] == store.joined_to(seq) and body["joined_to"] < seq
         missing = c.get("/v1/maps/default/observations/99999")
         assert missing.status_code == 404 and missing.headers["content-type"] == "application/problem+json"
+
+
+def test_the_listing_keeps_a_row_a_join_took_away_so_pages_only_grow(tmp_path):
+    """A follower pages through the map's rows while a restarted drive learns: a warm-up join then turns
+    rows it has read into visits. Within the epoch, the pages read again hold every row read before (the
+    joined ones with `joined_to`, the held ones with null), in seq order, and page by page the same as in
+    one read; before, the listing held rows only and the joined ones vanished."""
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        setup(c)
+        drive(c)
+        restart(c)
+        seen, epochs = set(), set()
+        for p in LAP:  # the second drive's warm-up rows, then the join; the follower reads after each frame
+            post(c, view(p), stream="robot", learn="true", top_k=0)
+            page = c.get("/v1/maps/default/observations", params={"limit": 500}).json()
+            seen |= {o["seq"] for o in page["observations"]}
+            epochs.add(page["epoch"])
+        rt = c.app.state.registry.get("default")
+        joined = {row: old for row, old in rt.store.joins() if rt.store.get(row) is None}
+        assert joined and set(joined) <= seen  # the follower had read the rows the join took away
+        again = c.get("/v1/maps/default/observations", params={"limit": 500}).json()
+        assert {again["epoch"]} == epochs
+        seqs = [o["seq"] for o in again["observations"]]
+        assert seqs == sorted(seqs) and seen <= set(seqs)
+        for o in again["observations"]:
+            assert o["joined_to"] == joined.get(o["seq"]), o
+        pages, after = [], 0
+        while after is not None:
+            page = c.get("/v1/maps/default/observations", params={"after_seq": after, "limit": 3}).json()
+            pages += page["observations"]
+            after = page["next_after_seq"]
+        assert pages == again["observations"]
 
 
 def recovers_from(data, snap: str, before: tuple) -> None:

@@ -184,7 +184,7 @@ def test_metadata_is_stored_and_returned_everywhere(client):
     one = client.get("/v1/maps/default/observations/2").json()
     assert one["metadata"]["stamp"] == 101.0 and one["stream"] == "default" and one["has_thumbnail"] is False
     assert set(one) == {"seq", "observation_id", "stream", "label", "created_at", "image_sha256", "metadata",
-                        "has_thumbnail"}
+                        "has_thumbnail", "joined_to"} and one["joined_to"] is None  # a row held
     page = client.get("/v1/maps/default/observations", params={"after_seq": 1, "limit": 1}).json()
     assert [o["seq"] for o in page["observations"]] == [2] and page["next_after_seq"] == 2
     last = client.get("/v1/maps/default/observations", params={"after_seq": 2}).json()
