@@ -26,6 +26,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.event_handler import QoSMessageLostInfo, SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidTopicNameException
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
@@ -99,8 +100,12 @@ class CortexlocNode(Node):
         self.keys = FrameKeys(cfg.run_id, self.image_topic)
         stream = cfg.stream or self.image_topic.lstrip("/")
         self.cfg = cfg = replace(cfg, stream=stream, trail=trail_of(cfg.trail, self.get_namespace()) or "")
+        # A best-effort subscription loses what the transport loses (a raw camera image is hundreds of UDP
+        # fragments): the middleware's count of lost samples goes to diagnostics, which would else only
+        # show the frames that arrived.
         self.create_subscription(CompressedImage if cfg.compressed else Image, image_topic, self._on_image,
-                                 _SENSOR_QOS, qos_overriding_options=_QOS_OVERRIDES)
+                                 _SENSOR_QOS, qos_overriding_options=_QOS_OVERRIDES,
+                                 event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_lost))
         if cfg.topics["camera_info"]:
             self.create_subscription(CameraInfo, cfg.topics["camera_info"], self._on_camera_info, _SENSOR_QOS,
                                      qos_overriding_options=_QOS_OVERRIDES)
@@ -165,6 +170,16 @@ class CortexlocNode(Node):
         if what not in self._warned:
             self._warned.add(what)
             self.get_logger().warning(text)
+
+    def _on_lost(self, info: QoSMessageLostInfo) -> None:
+        """The middleware lost camera frames before they reached the node (a best-effort subscription)."""
+        with self.stats.lock:
+            self.stats.lost += int(info.total_count_change)
+        self._warn_once("lost", f"camera frames lost in transport before they reached the node "
+                                f"({info.total_count} so far, counted in diagnostics as `lost`): the image "
+                                f"subscription is best effort; with a camera that publishes reliably set "
+                                f"qos_overrides.{self.image_topic}.subscription.reliability:=reliable, or "
+                                f"subscribe to its compressed images")
 
     def _on_odometry(self, msg: Odometry) -> None:
         assert self.odometry is not None
@@ -284,7 +299,8 @@ class CortexlocNode(Node):
             service, error = s.service, s.last_error
             values = {"service": service, "service_url": self.cfg.service_url, "map": self.cfg.map_id,
                       "stream": self.cfg.stream, "mode": "learn" if self.cfg.learn else "localise",
-                      "received": s.received, "skipped_rate": s.skipped_rate, "unsupported": s.unsupported,
+                      "received": s.received, "lost": s.lost, "skipped_rate": s.skipped_rate,
+                      "unsupported": s.unsupported,
                       "queue_depth": len(self.queue), "queue_size": self.cfg.queue_size,
                       "queue_policy": self.cfg.queue_policy, "dropped": self.queue.dropped,
                       "answered": s.answered, "refused": s.refused, "retries": s.retries,

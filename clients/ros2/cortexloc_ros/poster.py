@@ -71,6 +71,7 @@ class Stats:
     """What the diagnostics report; written by the executor (received, skipped) and the poster."""
 
     received: int = 0
+    lost: int = 0  # frames the middleware lost before they reached the node (best effort)
     skipped_rate: int = 0
     unsupported: int = 0
     answered: int = 0
@@ -95,9 +96,9 @@ class Stats:
             return "ERROR", f"service {self.service}: {self.last_error}"
         if self.service == "slow":
             return "WARN", f"service slow: {self.last_error}"
-        if dropped or self.refused or self.unsupported:
-            return "WARN", (f"service {self.service}; dropped {dropped}, refused {self.refused}, "
-                            f"unsupported {self.unsupported}")
+        if dropped or self.refused or self.unsupported or self.lost:
+            return "WARN", (f"service {self.service}; lost {self.lost}, dropped {dropped}, refused "
+                            f"{self.refused}, unsupported {self.unsupported}")
         return "OK", f"service {self.service}"
 
 
