@@ -263,6 +263,7 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
     maps_errors.UnlistedMaps: DomainProblem(409, "map-exists", ("map_id",)),  # on disk, not in the catalog
     maps_errors.MapLimit: DomainProblem(409, "map-limit", ("max_maps",)),
     maps_errors.MapFull: DomainProblem(409, "map-full", ("max_observations",)),
+    maps_errors.RowsOverCap: DomainProblem(409, "map-full", ("max_observations", "rows_held")),
     maps_errors.MemoryBudgetExceeded: DomainProblem(409, "memory-budget", (
         "map_id", "used_bytes", "asked_bytes", "total_bytes", "free_bytes")),
     maps_errors.MapTooLarge: DomainProblem(422, "map-too-large", ("required_bytes", "max_bytes")),

@@ -282,3 +282,15 @@ class Visits:
             return {}
         with self._lock:
             return {int(r[0]): r[1] for r in self._db().execute("SELECT seq, reason FROM dropped")}
+
+    def held(self) -> int:
+        """How many rows are held: stored (or turned into a visit by a join) and not dropped, what a rebuilt
+        index holds (`CORTEXLOC_MAX_OBSERVATIONS` caps this, docs/design/science.md §11.9)."""
+        rows = "SELECT seq FROM observations"
+        if self.holds.joined_rows:  # a joined row's visit is that row again (§11.8)
+            rows += " UNION SELECT row_seq FROM visits WHERE row_seq IS NOT NULL"
+        held = f"SELECT count(*) FROM ({rows})"
+        if self.holds.dropped:
+            held += " WHERE seq NOT IN (SELECT seq FROM dropped)"
+        with self._lock:
+            return int(self._db().execute(held).fetchone()[0])

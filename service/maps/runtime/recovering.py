@@ -116,7 +116,18 @@ class Recovering:
 
     def _install(self, done: recovery.Rebuilt, note: dict[str, Any]) -> None:
         """The recovered memory in place, its index and links built from the rows (unless they already
-        were, for it: a tail replayed while serving); the map is ready."""
+        were, for it: a tail replayed while serving); the map is ready.
+
+        A failure half way leaves a memory that is neither the old one nor the store's: the map is
+        `failed` (`install-failed`, the error in the log), never `ready` on it, and the error is raised
+        on (its caller's request or start says so)."""
+        try:
+            self._install_rebuilt(done, note)
+        except Exception as e:
+            self._fail("install-failed", str(e) or type(e).__name__)
+            raise
+
+    def _install_rebuilt(self, done: recovery.Rebuilt, note: dict[str, Any]) -> None:
         assert self.store is not None
         fresh = done.model is not self.model
         self.model, self.streams = done.model, done.streams
