@@ -24,7 +24,7 @@ import numpy as np
 from models.localisation.graph import NONE
 from models.localisation.motion import Motion
 from service.maps import recovery
-from service.maps.errors import MapReplaying, MapUnavailable
+from service.maps.errors import MapReplaying, MapUnavailable, RowsOverCap
 from service.maps.states import serving
 from storage import snapshots
 from storage.catalog import MapNotFound as CatalogMapNotFound
@@ -105,6 +105,13 @@ class Recovering:
                 raise StoreCorrupt("quick_check failed")
         except (StoreCorrupt, StorageFull) as e:  # full (a migration): the file is whole, a restart recovers
             self._fail("disk-full" if isinstance(e, StorageFull) else "database-corrupt", str(e))
+            return
+        held, cap = self.store.held(), self.index.max_observations
+        if held > cap:  # the setting lowered since: the index cannot hold the rows (§1.4)
+            # Refused, not forgotten down to the cap: a setting's typo must not cost a map its places. The
+            # reason says it all (map resource, /readyz, one log line): there is no traceback to read.
+            over = RowsOverCap(f"map {self.map_id!r}", held, cap, "it is not opened, nothing was forgotten")
+            self._fail(str(over))
             return
         tail = None
         if serve_during_replay:
@@ -224,10 +231,11 @@ class Recovering:
         if self.budget is not None:
             self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
 
-    def _fail(self, reason: str, detail: str) -> None:
+    def _fail(self, reason: str, detail: str | None = None) -> None:
+        """The map `failed`: `reason` is its `state_reason`, `detail` (if any) what the log adds to it."""
         self.state, self.state_reason = "failed", reason
         self.catalog.set_state(self.map_id, "failed", reason)
-        log.error("map %s failed (%s): %s", self.map_id, reason, detail)
+        log.error("map %s failed (%s)%s", self.map_id, reason, f": {detail}" if detail else "")
 
 
 class _Held(NamedTuple):

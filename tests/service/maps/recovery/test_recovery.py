@@ -386,3 +386,24 @@ def test_a_failure_while_installing_a_recovered_map_leaves_it_failed_not_ready(t
         m = c.get("/v1/maps/default").json()
         assert (m["state"], m["state_reason"]) == ("failed", "install-failed")
         assert post(c, frame(9), stream="a").status_code == 503
+
+
+def test_a_map_over_a_lowered_row_cap_fails_at_start_saying_which_setting_and_what_to_do(tmp_path, caplog):
+    """Found by an outside tester: the map came up `failed` (`open-failed`) with only a traceback in the
+    log. Its reason now names the setting, the rows held, the cap and the remedy; nothing is forgotten."""
+    data = tmp_path / "data"
+    with make_client(data, snapshot_every=0) as c:
+        learn(c, range(30))
+    caplog.clear()
+    with make_client(data, snapshot_every=0, max_observations=20) as c:
+        m = c.get("/v1/maps/default").json()
+        assert m["state"] == "failed"
+        reason = m["state_reason"]
+        assert all(s in reason for s in ("CORTEXLOC_MAX_OBSERVATIONS=20", "holds 30 rows", "at least 30"))
+        assert c.get("/readyz").json()["checks"]["maps"]["maps"]["default"]["state_reason"] == reason
+        assert post(c, frame(0), stream="a").status_code == 503
+    said = [r for r in caplog.records if r.levelname == "ERROR" and "default" in r.getMessage()]
+    assert len(said) == 1 and reason in said[0].getMessage() and said[0].exc_info is None
+    with make_client(data, snapshot_every=0) as c:  # the setting raised back: every row is there
+        m = c.get("/v1/maps/default").json()
+        assert (m["state"], m["observations"]) == ("ready", 30)
