@@ -101,10 +101,10 @@ class Snapshots:
         recovery.check_memory(path)  # and one whose memory recovery would refuse
         with MapStore.open(path / snapshots.DB_FILE, readonly=True) as copy:
             rows, held = copy.count(), copy.held()
-        if held > self.index.max_observations:  # its index could not be rebuilt (the cap lowered since)
-            raise RowsOverCap(f"snapshot {snapshot_id!r} of map {self.map_id!r}", held,
-                              self.index.max_observations, "nothing changed")
-        before = self.store.count()
+            if held > self.index.max_observations:  # its index could not be rebuilt (the cap lowered since)
+                raise RowsOverCap(f"snapshot {snapshot_id!r} of map {self.map_id!r}", held,
+                                  self.index.max_observations, "nothing changed")
+            discarded, brought_back = map_snapshots.learned_difference(self.store, copy)
         with self._restore_budget(rows):
             self.snapshot("pre-restore")
             self.catalog.mark_restore(self.map_id, self.store.next_seq() - 1, self.store.last_closure_id())
@@ -113,8 +113,8 @@ class Snapshots:
             self.recover()
         self.keys.clear()  # answers given before may name the observations the restore dropped
         self.recent.clear()
-        after = self.store.count() if self.store is not None else 0
-        return RestoreResult(**vars(self.info()), discarded_observations=before - after)
+        return RestoreResult(**vars(self.info()), discarded_observations=discarded,
+                             restored_observations=brought_back)
 
     @contextlib.contextmanager
     def _restore_budget(self, rows: int) -> Iterator[None]:
