@@ -217,7 +217,7 @@ def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes:
             raise ValueError(f"the snapshot needs {need} bytes, {data_dir} has {free} free")
         fits(m)
 
-    staging = layout.maps / f".import-{snapshots.new_snapshot_id()}"
+    staging = layout.import_staging(snapshots.new_snapshot_id())  # a start removes it if this is killed
     with tar_path.open("rb") as f:
         manifest = snapshots.import_tar(f, staging, max_bytes=max_bytes, check=acceptable)
     try:
