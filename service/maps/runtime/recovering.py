@@ -58,6 +58,7 @@ class Recovering:
     _tail_started: float
     _localised: set[str]
     _projection_error: str | None
+    stream_evictions: int
 
     def require_ready(self, learns: bool = True) -> None:
         """Raises MapUnavailable unless the map is ready or, for what neither learns nor changes stored
@@ -138,14 +139,27 @@ class Recovering:
         assert self.store is not None
         fresh = done.model is not self.model
         self.model, self.streams = done.model, done.streams
-        while len(self.streams) > self.settings.max_streams:  # a replay meets every stream that ever learned
-            self.streams.popitem(last=False)  # the least recently used go, as `touch` evicts them live
+        self._cap_streams()
         self.covered, self.since_snapshot = done.covered, 0
         if fresh:
             self._rebuild_index()
         self.recovery = note
         self.state, self.state_reason = "ready", None
         log.info("map %s ready: %s", self.map_id, note)
+
+    def _cap_streams(self) -> None:
+        """A replay meets every stream that ever learned, and `CORTEXLOC_MAX_STREAMS` may have been lowered
+        since: the least recently used over it go, as `touch` evicts them live (their next learned frame
+        starts a new sequence), counted as evictions and said in one log line."""
+        evicted = 0
+        while len(self.streams) > self.settings.max_streams:
+            self.streams.popitem(last=False)
+            evicted += 1
+        if evicted:
+            self.stream_evictions += evicted
+            log.info("map %s: the %d least recently used of its learning streams are over "
+                     "CORTEXLOC_MAX_STREAMS=%d; they start afresh", self.map_id, evicted,
+                     self.settings.max_streams)
 
     def _serve_during(self, tail: recovery.Tail) -> None:
         """Serve localising frames from the tail's start while the writer replays it (`_replay_tail`)."""
@@ -154,8 +168,7 @@ class Recovering:
         self._rebuild_index()  # every stored row is in the index at once: the replay reproduces them
         # The live streams are copies: the replay steps its own, and a localising frame never moves them.
         self.streams = copy.deepcopy(out.streams)
-        while len(self.streams) > self.settings.max_streams:
-            self.streams.popitem(last=False)
+        self._cap_streams()
         self._tail, self._tail_started, self._localised = tail, time.perf_counter(), set()
         self.recovery = {"source": "snapshot", "snapshot_id": tail.snapshot_id,
                          "snapshot_seq": tail.snapshot_seq, "tail": tail.steps, "replayed": 0}
