@@ -239,11 +239,13 @@ def _validation_errors(exc: RequestValidationError) -> list[dict[str, str]]:
 
 
 class DomainProblem(NamedTuple):
-    """How a domain error is answered: status, slug, the error's attributes shown as members, headers."""
+    """How a domain error is answered: status, slug, the error's attributes shown as members, headers;
+    `detail` replaces the error's message where that message is for the log only (it names a file)."""
     status: int
     slug: str
     members: tuple[str, ...] = ()
     headers: Mapping[str, str] = MappingProxyType({})
+    detail: str | None = None
 
 
 #: Domain errors -> their problem, the one table (docs/design/service.md §2). The detail is the error's
@@ -261,6 +263,7 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
     maps_errors.UnlistedMaps: DomainProblem(409, "map-exists", ("map_id",)),  # on disk, not in the catalog
     maps_errors.MapLimit: DomainProblem(409, "map-limit", ("max_maps",)),
     maps_errors.MapFull: DomainProblem(409, "map-full", ("max_observations",)),
+    maps_errors.RowsOverCap: DomainProblem(409, "map-full", ("max_observations", "rows_held")),
     maps_errors.MemoryBudgetExceeded: DomainProblem(409, "memory-budget", (
         "map_id", "used_bytes", "asked_bytes", "total_bytes", "free_bytes")),
     maps_errors.MapTooLarge: DomainProblem(422, "map-too-large", ("required_bytes", "max_bytes")),
@@ -276,7 +279,10 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
     maps_errors.DataDirectoryInUse: DomainProblem(503, "not-ready"),
     maps_errors.StreamLimit: DomainProblem(429, "stream-limit",
                                            ("max_streams", "keep_seconds", "retry_after")),
-    StoreClosed: DomainProblem(503, "map-unavailable", (), {"Retry-After": "1"}),  # mid-restore or delete
+    # mid-restore or delete; the storage's message names the file (maps/<id>/map.sqlite)
+    StoreClosed: DomainProblem(503, "map-unavailable", (), {"Retry-After": "1"},
+                               "the map's store was closed under this request (a restore or a deletion "
+                               "replaced it); retry"),
     maps_errors.InsufficientStorage: DomainProblem(507, "insufficient-storage"),
 }
 
@@ -285,7 +291,7 @@ def domain_problem(exc: Exception, data_dir: Path | None = None) -> Problem:
     """The `Problem` for a domain error of `DOMAIN_PROBLEMS` (its nearest listed class); an error with a
     `retry_after` (seconds) says it in the `Retry-After` header too."""
     entry = next(DOMAIN_PROBLEMS[cls] for cls in type(exc).__mro__ if cls in DOMAIN_PROBLEMS)
-    detail = str(exc)
+    detail = entry.detail or str(exc)
     for root in {str(data_dir.resolve()), str(data_dir)} if data_dir is not None else ():
         detail = detail.replace(root.rstrip("/") + "/", "")
     retry = getattr(exc, "retry_after", None)

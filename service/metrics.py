@@ -95,8 +95,9 @@ class Metrics:
                                 ("snapshots", "Snapshots of every kind on disk"),
                                 ("snapshots_bytes", "Bytes of the snapshots on disk"),
                                 ("stream_evictions", "Streams evicted (least recently used, idle "
-                                                     "beyond CORTEXLOC_STREAM_KEEP_SECONDS) for a new one "
-                                                     "since start"),
+                                                     "beyond CORTEXLOC_STREAM_KEEP_SECONDS) for a new one, "
+                                                     "or over CORTEXLOC_MAX_STREAMS at a recovery, since "
+                                                     "start"),
                                 ("snapshot_failures", "Automatic snapshots that failed since start (the "
                                                       "rows stay durable; /readyz says why)"))}
 

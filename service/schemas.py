@@ -101,7 +101,12 @@ class MapList(_Out):
 
 
 class RestoreModel(MapModel):
-    discarded_observations: int = Field(description="observations after the snapshot, now dropped")
+    discarded_observations: int = Field(
+        description="learned frames (rows and visits) the map held that the snapshot does not; the "
+                    "pre-restore snapshot keeps them")
+    restored_observations: int = Field(
+        description="learned frames (rows and visits) the snapshot holds that the map did not: a restore "
+                    "to another branch (a snapshot taken before an earlier restore) brings them back")
 
 
 class StreamResetModel(_Out):

@@ -65,9 +65,20 @@ class Layout:
         starts with a dot), so a removal cut short leaves no map-like directory."""
         return self.maps / f".deleted-{map_id}-{token}"
 
+    def import_staging(self, token: str) -> Path:
+        """Where `cortexloc import` unpacks a snapshot before it becomes a map's: out of the maps' names,
+        and unpacked first into a temporary directory beside it (`.<its name>.tmp-*`, storage.snapshots)."""
+        return self.maps / f".import-{token}"
+
     def discarded_dirs(self) -> list[Path]:
-        """The deleted maps' directories a removal left (`discarded`)."""
-        return sorted(self.maps.glob(".deleted-*")) if self.maps.is_dir() else []
+        """What a removal or an import cut short left, to remove at a start (with the directory's lock
+        held: no import runs): the deleted maps' directories (`discarded`), and an import's staging
+        directory and its temporary one (`import_staging`; a killed import leaves its unpacked size)."""
+        if not self.maps.is_dir():
+            return []
+        staging = self.import_staging("*").name
+        return sorted([*self.maps.glob(".deleted-*"), *self.maps.glob(staging),
+                       *self.maps.glob(f".{staging}")])
 
     def map_db(self, map_id: str) -> Path:
         """The map's live database (`storage.mapstore.MapStore`)."""

@@ -17,8 +17,8 @@ from storage.snapshots import SnapshotInvalid
 __all__ = ["EncoderUnavailable", "IdempotencyKeyReused", "InsufficientStorage", "InvalidConfiguration",
            "InvalidMapId", "MapAlreadyExists", "MapError", "MapFull", "MapLimit", "MapNotFound",
            "MapReplaying", "MapTooLarge", "MapUnavailable", "MemoryBudgetExceeded", "ObservationNotFound",
-           "Overloaded", "RecentAnswerNotFound", "ShardUnavailable", "SnapshotInUse", "SnapshotInvalid",
-           "SnapshotNotFound", "StoreClosed", "StreamLimit"]
+           "Overloaded", "RecentAnswerNotFound", "RowsOverCap", "ShardUnavailable", "SnapshotInUse",
+           "SnapshotInvalid", "SnapshotNotFound", "StoreClosed", "StreamLimit"]
 
 
 class MapError(Exception):
@@ -57,6 +57,19 @@ class MapFull(MapError):  # noqa: N818
         super().__init__(f"map {map_id!r} holds its maximum of {max_observations} observations; "
                          "localisation still works")
         self.max_observations = max_observations
+
+
+class RowsOverCap(MapFull):
+    """A map, or the snapshot a restore would install, holds more rows than `CORTEXLOC_MAX_OBSERVATIONS`
+    (the setting lowered since they were learned): its index cannot hold them. Nothing is forgotten to
+    make room (learning forgets at the cap, docs/design/science.md §11.9; a setting is no reason to
+    forget a map's places at a start or a restore): the operator raises the setting back."""
+
+    def __init__(self, what: str, rows_held: int, max_observations: int, outcome: str) -> None:
+        MapError.__init__(self, f"{what} holds {rows_held} rows, more than CORTEXLOC_MAX_OBSERVATIONS="
+                          f"{max_observations}; {outcome}: raise CORTEXLOC_MAX_OBSERVATIONS to at least "
+                          f"{rows_held} and restart the service")
+        self.rows_held, self.max_observations = rows_held, max_observations
 
 
 class MapAlreadyExists(MapError):  # noqa: N818

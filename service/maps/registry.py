@@ -334,7 +334,8 @@ class MapRegistry:
         shutil.rmtree(gone, ignore_errors=True)
 
     def _sweep_discarded(self) -> None:
-        """Remove what deletes cut short left (`_discard`)."""
+        """Remove what deletes (`_discard`) and imports (`import_snapshot`) cut short left; at the start,
+        under the directory's lock."""
         for d in self.layout.discarded_dirs():
             shutil.rmtree(d, ignore_errors=True)
 

@@ -223,7 +223,11 @@ class MapInfo:
 
 @dataclass(frozen=True)
 class RestoreResult(MapInfo):
-    discarded_observations: int
+    """The map as restored, and what the restore changed of its learned frames (rows and visits;
+    `service.maps.recovery.snapshots.learned_difference`)."""
+
+    discarded_observations: int  # those the map held that the snapshot does not (in the pre-restore one)
+    restored_observations: int  # those the snapshot holds that the map did not (a restore to another branch)
 
 
 @dataclass(frozen=True)

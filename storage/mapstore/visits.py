@@ -5,6 +5,7 @@ the warm-up joins and the dropped rows (out of the index: over a place's cap, fo
 
 from __future__ import annotations
 
+import heapq
 import json
 import sqlite3
 from collections.abc import Iterable, Iterator
@@ -287,3 +288,52 @@ class Visits:
             return {}
         with self._lock:
             return {int(r[0]): r[1] for r in self._db().execute("SELECT seq, reason FROM dropped")}
+
+    def held(self) -> int:
+        """How many rows are held: stored (or turned into a visit by a join) and not dropped, what a rebuilt
+        index holds (`CORTEXLOC_MAX_OBSERVATIONS` caps this, docs/design/science.md §11.9)."""
+        rows = "SELECT seq FROM observations"
+        if self.holds.joined_rows:  # a joined row's visit is that row again (§11.8)
+            rows += " UNION SELECT row_seq FROM visits WHERE row_seq IS NOT NULL"
+        held = f"SELECT count(*) FROM ({rows})"
+        if self.holds.dropped:
+            held += " WHERE seq NOT IN (SELECT seq FROM dropped)"
+        with self._lock:
+            return int(self._db().execute(held).fetchone()[0])
+
+    def learned_seqs(self) -> Iterator[int]:
+        """The seq of every learned row the file knows, ascending (a seq twice where a row was joined and
+        kept): held, dropped, or joined into a visit (its row deleted, schema 12; its join record stays
+        when its visit is pruned). Read in pages, so a million rows never sit in memory at once."""
+        sources = [self._seqs_paged("SELECT seq FROM observations WHERE seq > ? ORDER BY seq LIMIT ?")]
+        if self.holds.joins:
+            sources.append(self._seqs_paged("SELECT seq FROM joins WHERE seq > ? ORDER BY seq LIMIT ?"))
+        return heapq.merge(*sources)
+
+    def consolidated_visits(self, from_id: int = 0) -> Iterator[tuple[int, str, str]]:
+        """The consolidated visits logged (no joined row's) with id >= `from_id`, as (id, stream, created_at),
+        by id: a visit's id is handed out again on another branch, so its stream and time tell them apart
+        (as `visit_mark`). In pages."""
+        if not self.holds.visits:
+            return
+        own = " AND row_seq IS NULL" if self.holds.joined_rows else ""
+        last = int(from_id) - 1
+        while True:
+            with self._lock:
+                page = [(int(r[0]), r[1], r[2]) for r in self._db().execute(
+                    f"SELECT id, stream, created_at FROM visits WHERE id > ?{own} ORDER BY id LIMIT ?",
+                    (last, PAGE))]
+            yield from page
+            if len(page) < PAGE:
+                return
+            last = page[-1][0]
+
+    def _seqs_paged(self, sql: str) -> Iterator[int]:
+        last = 0
+        while True:
+            with self._lock:
+                page = [int(r[0]) for r in self._db().execute(sql, (last, PAGE))]
+            yield from page
+            if len(page) < PAGE:
+                return
+            last = page[-1]

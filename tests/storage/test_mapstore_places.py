@@ -106,6 +106,7 @@ def test_a_row_s_place_and_the_rows_it_dropped_commit_with_it(store: MapStore) -
     assert [r.place for r in store.rows()] == [None, None, 1]
     assert store.dropped() == {2: "appearance-cap", 1: "forgotten"}
     assert store.count() == 3  # the rows stay: the replay and the snapshots read them
+    assert store.held() == 1  # but only row 3 is held (what the index holds and the row cap counts)
 
 
 #: What version 9 added, undone (every older file lacks it).
@@ -309,6 +310,7 @@ def test_a_join_turns_its_row_into_a_visit_and_deletes_it_and_its_seq_is_never_h
         assert np.array_equal(store.code(2), make_row(2).input_sdr)
         assert [(v.row, v.id) for v in store.visits(rows_after=2)] == [(None, 1)]  # a snapshot at 2 holds it
         assert store.join_problems(15) == [] and store.dropped()[2] == "joined"
+        assert store.held() == 3  # rows 1, 3, 4: the joined row is dropped
     conn = sqlite3.connect(path)
     with pytest.raises(sqlite3.IntegrityError, match="append-only"):
         conn.execute("DELETE FROM observations WHERE seq = 3")  # a row no join names stays

@@ -174,9 +174,12 @@ class MapList(_Reply):
 
 
 class RestoredMap(Map):
-    """`POST .../snapshots/{snapshot_id}/restore`: the map as restored."""
+    """`POST .../snapshots/{snapshot_id}/restore`: the map as restored; the learned frames (rows and
+    visits) it took away (`discarded_observations`) and brought back from another branch
+    (`restored_observations`; 0 from a server before it was answered)."""
 
     discarded_observations: int
+    restored_observations: int = 0
 
 
 class StreamReset(_Reply):

@@ -433,7 +433,7 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
     Args:
         catalog: the data directory's catalog (opened read-only).
         record: the map.
-        progress: called with (rows replayed, rows in the store).
+        progress: called with (rows replayed, rows the replay steps: `_replayed_rows`).
     """
     t0 = time.perf_counter()
     out = MapCheck(record.map_id)
@@ -472,9 +472,10 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
                     out.start, m, memory = found
                     start, after_seq, after_id = memory, m.seq, int(memory.get(VISIT_CURSOR, 0))
             if start is not None:
+                steps = 0 if progress is None else _replayed_rows(store, after_seq, after_id)
                 done = rebuild(start, learned_rows(store, after_seq), like, stop_at_mismatch=False,
                                visits=store.visits(after_id=after_id, rows_after=after_seq),
-                               progress=None if progress is None else lambda n: progress(n, total))
+                               progress=None if progress is None else lambda n: progress(n, steps))
                 out.rows, out.mismatches = done.replayed, done.mismatches
     except (StorageError, OSError) as e:
         out.problems.append(f"map.sqlite unreadable: {e}")
@@ -482,3 +483,12 @@ def verify_map(catalog: Catalog, record: MapRecord, *,
         out.problems.append(f"configuration: {e}")
     out.seconds = time.perf_counter() - t0
     return out
+
+
+def _replayed_rows(store: MapStore, after_seq: int, after_id: int) -> int:
+    """How many rows a replay after row `after_seq` and visit `after_id` steps (`Replay.out.replayed`, what
+    `verify`'s progress counts): those it learns as rows (`learned_rows`: the stored rows less those a
+    repair re-made) and the rows a warm-up join turned into visits (§11.8), not the rows held."""
+    remade = sum(1 for r in store.repairs() if r.kind == "split" and r.seq > after_seq)
+    joined = sum(1 for v in store.visits(after_id=after_id, rows_after=after_seq) if v.row is not None)
+    return store.count_after(after_seq) - remade + joined

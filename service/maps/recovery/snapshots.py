@@ -6,8 +6,9 @@ from __future__ import annotations
 import logging
 import shutil
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -22,8 +23,8 @@ from storage.layout import Layout
 from storage.manifest import parse_manifest
 from storage.mapstore import MapStore, StorageFull
 
-__all__ = ["TarExport", "delete", "disk_use", "export", "import_snapshot", "info", "listing", "locate",
-           "prune_auto", "prune_manual", "recovery_base", "take"]
+__all__ = ["TarExport", "delete", "disk_use", "export", "import_snapshot", "info", "learned_difference",
+           "listing", "locate", "prune_auto", "prune_manual", "recovery_base", "take"]
 
 #: A snapshot as a tar stream: `size`, `chunks()`, `close()` (storage.archive).
 TarExport = snapshots.TarExport
@@ -85,6 +86,46 @@ def take(store: MapStore, memory: Mapping[str, np.ndarray], catalog: Catalog, ma
         bytes=m.bytes, manifest_sha256=m.manifest_sha256, path=str(dest)))
     log.info("map %s: %s snapshot %s at seq %d in %.2f s", map_id, kind, sid, m.seq, time.perf_counter() - t0)
     return info(rec)
+
+
+def learned_difference(present: MapStore, snapshot: MapStore) -> tuple[int, int]:
+    """(learned frames `present` holds that `snapshot` does not, those `snapshot` holds that `present` does
+    not): what a restore from `snapshot` takes away and brings back (docs/design/service.md §1.5).
+
+    A learned frame is a row, by its seq (held, dropped or joined: seqs are never handed out twice, across
+    restores too), or a consolidated visit, by its id and mark (ids are handed out again on another
+    branch). Whole sets are compared, not the seqs after the snapshot's: after a restore, a frame of an
+    earlier branch can have a lower seq than one kept. Visits are compared from the oldest both still
+    log (pruning keeps the newest; below that one file cannot tell). Both are read in order, in pages:
+    the memory is bounded whatever the map's size."""
+    rows = _only_in_each(present.learned_seqs(), snapshot.learned_seqs())
+    first = max(present.visit_stats()[1], snapshot.visit_stats()[1])
+    visits = _only_in_each(present.consolidated_visits(first), snapshot.consolidated_visits(first))
+    return rows[0] + visits[0], rows[1] + visits[1]
+
+
+def _only_in_each(a: Iterator[Any], b: Iterator[Any]) -> tuple[int, int]:
+    """How many distinct items of ascending `a` are not in ascending `b`, and of `b` not in `a`."""
+    a, b = _distinct(a), _distinct(b)
+    only_a = only_b = 0
+    x, y = next(a, None), next(b, None)
+    while x is not None or y is not None:
+        if y is None or (x is not None and x < y):
+            only_a, x = only_a + 1, next(a, None)
+        elif x is None or y < x:
+            only_b, y = only_b + 1, next(b, None)
+        else:
+            x, y = next(a, None), next(b, None)
+    return only_a, only_b
+
+
+def _distinct(items: Iterator[Any]) -> Iterator[Any]:
+    """Ascending `items` without repeats (a row joined and still stored is read twice)."""
+    last: Any = None
+    for item in items:
+        if item != last:
+            yield item
+        last = item
 
 
 def _remove(catalog: Catalog, rec: SnapshotRecord) -> None:
@@ -176,7 +217,7 @@ def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes:
             raise ValueError(f"the snapshot needs {need} bytes, {data_dir} has {free} free")
         fits(m)
 
-    staging = layout.maps / f".import-{snapshots.new_snapshot_id()}"
+    staging = layout.import_staging(snapshots.new_snapshot_id())  # a start removes it if this is killed
     with tar_path.open("rb") as f:
         manifest = snapshots.import_tar(f, staging, max_bytes=max_bytes, check=acceptable)
     try:

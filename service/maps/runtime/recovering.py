@@ -24,7 +24,7 @@ import numpy as np
 from models.localisation.graph import NONE
 from models.localisation.motion import Motion
 from service.maps import recovery
-from service.maps.errors import MapReplaying, MapUnavailable
+from service.maps.errors import MapReplaying, MapUnavailable, RowsOverCap
 from service.maps.states import serving
 from storage import snapshots
 from storage.catalog import MapNotFound as CatalogMapNotFound
@@ -58,6 +58,7 @@ class Recovering:
     _tail_started: float
     _localised: set[str]
     _projection_error: str | None
+    stream_evictions: int
 
     def require_ready(self, learns: bool = True) -> None:
         """Raises MapUnavailable unless the map is ready or, for what neither learns nor changes stored
@@ -106,6 +107,13 @@ class Recovering:
         except (StoreCorrupt, StorageFull) as e:  # full (a migration): the file is whole, a restart recovers
             self._fail("disk-full" if isinstance(e, StorageFull) else "database-corrupt", str(e))
             return
+        held, cap = self.store.held(), self.index.max_observations
+        if held > cap:  # the setting lowered since: the index cannot hold the rows (§1.4)
+            # Refused, not forgotten down to the cap: a setting's typo must not cost a map its places. The
+            # reason says it all (map resource, /readyz, one log line): there is no traceback to read.
+            over = RowsOverCap(f"map {self.map_id!r}", held, cap, "it is not opened, nothing was forgotten")
+            self._fail(str(over))
+            return
         tail = None
         if serve_during_replay:
             tail = recovery.begin(self.store, self.catalog, self.map_id, self.model)
@@ -116,18 +124,42 @@ class Recovering:
 
     def _install(self, done: recovery.Rebuilt, note: dict[str, Any]) -> None:
         """The recovered memory in place, its index and links built from the rows (unless they already
-        were, for it: a tail replayed while serving); the map is ready."""
+        were, for it: a tail replayed while serving); the map is ready.
+
+        A failure half way leaves a memory that is neither the old one nor the store's: the map is
+        `failed` (`install-failed`, the error in the log), never `ready` on it, and the error is raised
+        on (its caller's request or start says so)."""
+        try:
+            self._install_rebuilt(done, note)
+        except Exception as e:
+            self._fail("install-failed", str(e) or type(e).__name__)
+            raise
+
+    def _install_rebuilt(self, done: recovery.Rebuilt, note: dict[str, Any]) -> None:
         assert self.store is not None
         fresh = done.model is not self.model
         self.model, self.streams = done.model, done.streams
-        while len(self.streams) > self.settings.max_streams:  # a replay meets every stream that ever learned
-            self.streams.popitem(last=False)  # the least recently used go, as `touch` evicts them live
+        self._cap_streams()
         self.covered, self.since_snapshot = done.covered, 0
         if fresh:
             self._rebuild_index()
         self.recovery = note
         self.state, self.state_reason = "ready", None
         log.info("map %s ready: %s", self.map_id, note)
+
+    def _cap_streams(self) -> None:
+        """A replay meets every stream that ever learned, and `CORTEXLOC_MAX_STREAMS` may have been lowered
+        since: the least recently used over it go, as `touch` evicts them live (their next learned frame
+        starts a new sequence), counted as evictions and said in one log line."""
+        evicted = 0
+        while len(self.streams) > self.settings.max_streams:
+            self.streams.popitem(last=False)
+            evicted += 1
+        if evicted:
+            self.stream_evictions += evicted
+            log.info("map %s: the %d least recently used of its learning streams are over "
+                     "CORTEXLOC_MAX_STREAMS=%d; they start afresh", self.map_id, evicted,
+                     self.settings.max_streams)
 
     def _serve_during(self, tail: recovery.Tail) -> None:
         """Serve localising frames from the tail's start while the writer replays it (`_replay_tail`)."""
@@ -136,8 +168,7 @@ class Recovering:
         self._rebuild_index()  # every stored row is in the index at once: the replay reproduces them
         # The live streams are copies: the replay steps its own, and a localising frame never moves them.
         self.streams = copy.deepcopy(out.streams)
-        while len(self.streams) > self.settings.max_streams:
-            self.streams.popitem(last=False)
+        self._cap_streams()
         self._tail, self._tail_started, self._localised = tail, time.perf_counter(), set()
         self.recovery = {"source": "snapshot", "snapshot_id": tail.snapshot_id,
                          "snapshot_seq": tail.snapshot_seq, "tail": tail.steps, "replayed": 0}
@@ -213,10 +244,11 @@ class Recovering:
         if self.budget is not None:
             self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
 
-    def _fail(self, reason: str, detail: str) -> None:
+    def _fail(self, reason: str, detail: str | None = None) -> None:
+        """The map `failed`: `reason` is its `state_reason`, `detail` (if any) what the log adds to it."""
         self.state, self.state_reason = "failed", reason
         self.catalog.set_state(self.map_id, "failed", reason)
-        log.error("map %s failed (%s): %s", self.map_id, reason, detail)
+        log.error("map %s failed (%s)%s", self.map_id, reason, f": {detail}" if detail else "")
 
 
 class _Held(NamedTuple):

@@ -19,6 +19,7 @@ import numpy as np
 
 from models.pipeline import memory_state
 from service.maps import recovery
+from service.maps.errors import RowsOverCap
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import RestoreResult, SnapshotInfo
 from storage import snapshots
@@ -92,14 +93,19 @@ class Snapshots:
         are on the branch the restore leaves).
 
         Raises:
-            SnapshotNotFound; SnapshotInvalid (before anything changes); InsufficientStorage.
+            SnapshotNotFound; SnapshotInvalid, RowsOverCap (before anything changes); InsufficientStorage.
         """
         assert self.store is not None
         _, path = map_snapshots.locate(self.catalog, self.map_id, snapshot_id)
         snapshots.verify(path)  # refuse a damaged snapshot before touching anything
         recovery.check_memory(path)  # and one whose memory recovery would refuse
-        before = self.store.count()
-        with self._restore_budget(path):
+        with MapStore.open(path / snapshots.DB_FILE, readonly=True) as copy:
+            rows, held = copy.count(), copy.held()
+            if held > self.index.max_observations:  # its index could not be rebuilt (the cap lowered since)
+                raise RowsOverCap(f"snapshot {snapshot_id!r} of map {self.map_id!r}", held,
+                                  self.index.max_observations, "nothing changed")
+            discarded, brought_back = map_snapshots.learned_difference(self.store, copy)
+        with self._restore_budget(rows):
             self.snapshot("pre-restore")
             self.catalog.mark_restore(self.map_id, self.store.next_seq() - 1, self.store.last_closure_id())
             self.store.close()
@@ -107,20 +113,18 @@ class Snapshots:
             self.recover()
         self.keys.clear()  # answers given before may name the observations the restore dropped
         self.recent.clear()
-        after = self.store.count() if self.store is not None else 0
-        return RestoreResult(**vars(self.info()), discarded_observations=before - after)
+        return RestoreResult(**vars(self.info()), discarded_observations=discarded,
+                             restored_observations=brought_back)
 
     @contextlib.contextmanager
-    def _restore_budget(self, snapshot: Path) -> Iterator[None]:
+    def _restore_budget(self, rows: int) -> Iterator[None]:
         """The memory budget of a restore (docs/design/service.md §1.8): while it runs, the new memory and
         index are built beside the old ones (the memory in the budget's recovery room, the old index
-        held as transient bytes), and the snapshot's rows must fit (the index estimate, set exactly by
+        held as transient bytes), and the snapshot's `rows` must fit (the index estimate, set exactly by
         the recovery). Raises MemoryBudgetExceeded before anything changes."""
         if self.budget is None:
             yield
             return
-        with MapStore.open(snapshot / snapshots.DB_FILE, readonly=True) as copy:
-            rows = copy.count()
         old_index = len(self.index) * self.row_bytes
         with self.budget.transient(self.map_id, old_index):
             self.budget.grow_index(self.map_id, rows * self.row_bytes - old_index)

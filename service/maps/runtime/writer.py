@@ -186,8 +186,7 @@ class Writer:
                 contrast=None if encoded.contrast is None else float(encoded.contrast[0]), durable=False)
             if post is not None:
                 post.front_ms = front
-                assert self.store is not None  # a ready map has its store
-                once = self.submit(idempotency.apply_once, self.store, self.keys, post, learn, apply)
+                once = self.submit(self._apply_once, post, learn, apply)
             else:
                 step = self.submit(apply)
         finally:
@@ -205,6 +204,16 @@ class Writer:
             await self.durable()
         sync = {"sync": (time.perf_counter() - t_step) * 1e3} if learn else {}
         return dataclasses.replace(result, timings_ms={**front, **result.timings_ms, **sync}, thumbnail=thumb)
+
+    def _apply_once(self, post: idempotency.IdempotentPost, learn: bool,
+                    apply: Callable[[], ObservationResult]) -> idempotency.Reply:
+        """Writer: `idempotency.apply_once` on the store as it is when this runs, not when the post was
+        queued: a restore (or a failed commit's recovery) queued ahead closes that store and opens
+        another."""
+        if self.store is None:  # a map that failed meanwhile has none: refused as `apply` would refuse it
+            self.require_ready(learn)
+        assert self.store is not None
+        return idempotency.apply_once(self.store, self.keys, post, learn, apply)
 
     def apply(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None = None, thumbnail: bytes | None = None,

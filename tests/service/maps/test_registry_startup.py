@@ -217,3 +217,28 @@ def test_a_delete_cut_short_blocks_neither_the_id_nor_the_next_start(tmp_path, m
     with make_client(data) as c:  # the next start (no map listed): ready, and the leftovers gone
         assert c.get("/readyz").status_code == 200
     assert not list((data / "maps").glob(".deleted-*"))
+
+
+def test_a_start_removes_what_a_killed_import_left_but_not_while_another_process_holds_the_directory(
+        tmp_path):
+    """Found by an outside tester: a killed `cortexloc import` left its staging directories (the snapshot's
+    unpacked size) in maps/ for good: neither a new import nor a start removed them."""
+    data = tmp_path / "data"
+    with make_client(data):
+        pass
+    staging = data / "maps" / ".import-20261129T000000000000Z-0badf00d"  # killed after unpacking
+    unpacking = data / "maps" / "..import-20261129T000001000000Z-0badf00d.tmp-x1y2"  # killed while unpacking
+    for d in (staging, unpacking):
+        d.mkdir()
+        (d / "map.sqlite").write_bytes(b"\0" * 1024)
+    other = DataDirLock(data / ".lock").acquire()  # an import still running: its files are in use
+    try:
+        with pytest.raises(DataDirectoryInUse), make_client(data, lock_wait_s=0):
+            pass
+        assert staging.is_dir() and unpacking.is_dir()
+    finally:
+        other.release()
+    with make_client(data) as c:
+        assert c.get("/readyz").status_code == 200
+    assert not staging.exists() and not unpacking.exists()
+    assert sorted(p.name for p in (data / "maps").iterdir()) == ["default"]

@@ -267,6 +267,38 @@ def test_snapshot_restore_continues_bit_identically(tmp_path):
     assert kinds.count("pre-restore") == 1 and kinds.count("manual") == 1
 
 
+def test_a_restore_counts_the_learned_frames_it_takes_away_and_brings_back_across_branches(tmp_path):
+    """Found by an outside tester: `discarded_observations` was the rows held before less those after, so
+    consolidated frames (visits) were not counted, a restore forward was negative, and branches netted
+    out (15 for 25 dropped and 10 brought back). It counts learned frames by identity now."""
+    def learn(c, places, stream: str) -> list[dict]:
+        replies = [post(c, frame(p), stream=stream) for p in places]
+        assert [r.status_code for r in replies] == [200] * len(places)
+        return [r.json() for r in replies]
+
+    def restore(c, sid: str) -> tuple[int, int]:
+        r = c.post(f"/v1/maps/default/snapshots/{sid}/restore")
+        assert r.status_code == 200, r.text
+        return r.json()["discarded_observations"], r.json()["restored_observations"]
+
+    def pre_restore(c) -> str:
+        snaps = c.get("/v1/maps/default/snapshots").json()["snapshots"]
+        newest = max((s for s in snaps if s["kind"] == "pre-restore"), key=lambda s: s["created_at"])
+        return newest["snapshot_id"]
+
+    with make_client(tmp_path / "a", snapshot_every=0) as c:
+        learn(c, range(8), "a")
+        s1 = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        b = learn(c, list(range(8)) * 2, "b")  # the route again: mostly visits, no rows
+        visits = c.get("/v1/maps/default").json()["places"]["visits_logged"]
+        assert visits > 0 and sum(r["learned"] for r in b) == 16
+        assert restore(c, s1) == (16, 0)  # every learned post undone, rows and visits
+        p1 = pre_restore(c)  # the branch B: the 8 rows of `a` and the 16 frames of `b`
+        learn(c, range(20, 25), "c")  # the branch C, after S1
+        assert restore(c, p1) == (5, 16)  # forward to B: C goes, B comes back
+        assert restore(c, pre_restore(c)) == (16, 5)  # and back to C
+
+
 def test_restart_recovers_from_snapshot_plus_replay(tmp_path):
     data = tmp_path / "data"
     with make_client(data, snapshot_every=3) as c:

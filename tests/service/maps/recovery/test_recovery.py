@@ -12,6 +12,7 @@ import sqlite3
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from service.maps.runtime import MapRuntime
 from tests.service.helpers import frame, make_client, post, state_of, tm_digest
@@ -335,3 +336,74 @@ def test_a_read_that_meets_a_closed_store_is_a_503_to_retry(tmp_path):
         r = c.get("/v1/maps/default/observations/1")
         assert r.status_code == 503 and r.json()["type"].endswith("map-unavailable")
         assert r.headers["retry-after"] == "1"
+
+
+# ------------------------------------------------------------ the row cap lowered (outside tester, probe_ops)
+
+
+def learn(c, places) -> None:
+    for p in places:
+        assert post(c, frame(p), stream="a").status_code == 200
+
+
+def test_a_restore_of_a_snapshot_over_the_row_cap_is_refused_before_anything_changes(tmp_path):
+    """Found by an outside tester: it answered 500 after the store was replaced, the map left `ready`
+    with an empty index (matching nothing) and learning on top of it."""
+    data = tmp_path / "data"
+    with make_client(data, snapshot_every=0) as c:
+        learn(c, range(10))
+        s10 = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        learn(c, range(10, 30))
+        s30 = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        assert c.post(f"/v1/maps/default/snapshots/{s10}/restore").status_code == 200
+    with make_client(data, snapshot_every=0, max_observations=20) as c:  # the cap lowered since
+        before, listing = state_of(c), c.get("/v1/maps/default/snapshots").json()
+        r = c.post(f"/v1/maps/default/snapshots/{s30}/restore")
+        assert r.status_code == 409 and r.json()["type"].endswith(":map-full"), r.text
+        assert (r.json()["rows_held"], r.json()["max_observations"]) == (30, 20)
+        assert "CORTEXLOC_MAX_OBSERVATIONS" in r.json()["detail"] and "nothing changed" in r.json()["detail"]
+        assert state_of(c) == before and c.get("/v1/maps/default/snapshots").json() == listing
+        m = c.get("/v1/maps/default").json()
+        assert (m["state"], m["observations"]) == ("ready", 10)
+
+
+def test_a_failure_while_installing_a_recovered_map_leaves_it_failed_not_ready(tmp_path, monkeypatch):
+    """The second line of defence: whatever fails once the recovered memory is being swapped in, the
+    map is never `ready` on a half-installed memory."""
+    with make_client(tmp_path / "data", snapshot_every=0) as c:
+        learn(c, range(3))
+        sid = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        learn(c, range(3, 5))
+        rt = c.app.state.registry.get("default")
+
+        def broken() -> None:
+            raise RuntimeError("index rebuild failed")
+
+        monkeypatch.setattr(rt, "_rebuild_index", broken)
+        with pytest.raises(RuntimeError, match="index rebuild failed"):
+            rt.submit(rt.restore, sid).result()
+        assert (rt.state, rt.state_reason) == ("failed", "install-failed")
+        m = c.get("/v1/maps/default").json()
+        assert (m["state"], m["state_reason"]) == ("failed", "install-failed")
+        assert post(c, frame(9), stream="a").status_code == 503
+
+
+def test_a_map_over_a_lowered_row_cap_fails_at_start_saying_which_setting_and_what_to_do(tmp_path, caplog):
+    """Found by an outside tester: the map came up `failed` (`open-failed`) with only a traceback in the
+    log. Its reason now names the setting, the rows held, the cap and the remedy; nothing is forgotten."""
+    data = tmp_path / "data"
+    with make_client(data, snapshot_every=0) as c:
+        learn(c, range(30))
+    caplog.clear()
+    with make_client(data, snapshot_every=0, max_observations=20) as c:
+        m = c.get("/v1/maps/default").json()
+        assert m["state"] == "failed"
+        reason = m["state_reason"]
+        assert all(s in reason for s in ("CORTEXLOC_MAX_OBSERVATIONS=20", "holds 30 rows", "at least 30"))
+        assert c.get("/readyz").json()["checks"]["maps"]["maps"]["default"]["state_reason"] == reason
+        assert post(c, frame(0), stream="a").status_code == 503
+    said = [r for r in caplog.records if r.levelname == "ERROR" and "default" in r.getMessage()]
+    assert len(said) == 1 and reason in said[0].getMessage() and said[0].exc_info is None
+    with make_client(data, snapshot_every=0) as c:  # the setting raised back: every row is there
+        m = c.get("/v1/maps/default").json()
+        assert (m["state"], m["observations"]) == ("ready", 30)

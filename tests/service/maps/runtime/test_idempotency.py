@@ -5,12 +5,17 @@ its row's transaction, a localisation's in the bounded memory cache (docs/design
 from __future__ import annotations
 
 import functools
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
 from service.maps.errors import IdempotencyKeyReused
 from service.maps.runtime import idempotency
 from storage.mapschema import KeyRecord
+from tests.service.helpers import frame, make_client
+from tests.service.helpers import post as post_frame
 from tests.service.maps.maps_fixtures import registry, route
 
 
@@ -47,3 +52,41 @@ def test_a_localisations_reply_is_kept_in_memory_only():
     assert cache.get("key-00000000") is None and cache.get("key-00000002") is not None  # bounded, LRU
     cache.clear()
     assert cache.get("key-00000002") is None
+
+
+def test_keyed_posts_queued_behind_a_restore_learn_on_the_restored_store(tmp_path):
+    """Found by an outside tester: a keyed post queued behind a restore was bound to the store the
+    restore closes (503 naming maps/<id>/map.sqlite); it must read the store when it runs."""
+    with make_client(tmp_path / "d", snapshot_every=0) as c:
+        rt = c.app.state.registry.get("default")
+        assert post_frame(c, frame(0)).status_code == 200
+        sid = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        gate = threading.Event()
+        rt.submit(gate.wait, 30)  # the writer held: what follows queues behind it
+        try:
+            restore = rt.submit(rt.restore, sid)
+            with ThreadPoolExecutor(3) as ex:
+                keyed = [ex.submit(c.post, "/v1/maps/default/observations", content=frame(i),
+                                   params={"stream": f"k{i}"}, headers={"Content-Type": "image/png",
+                                                                        "Idempotency-Key": f"queued-{i:04d}"})
+                         for i in range(1, 4)]
+                deadline = time.monotonic() + 30  # every post queued behind the restore
+                while rt._writer._work_queue.qsize() < 4 and time.monotonic() < deadline:
+                    time.sleep(0.01)
+                assert rt._writer._work_queue.qsize() == 4
+                gate.set()
+                restore.result(timeout=60)
+                replies = [f.result(timeout=60) for f in keyed]
+        finally:
+            gate.set()
+        assert [r.status_code for r in replies] == [200] * 3, [r.text for r in replies]
+        assert rt.store.count() == 4
+
+
+def test_a_store_closed_under_a_request_names_no_file(tmp_path):
+    with make_client(tmp_path / "d", snapshot_every=0) as c:
+        assert post_frame(c, frame(0)).status_code == 200
+        c.app.state.registry.get("default").store.close()  # as a restore does before the snapshot's opens
+        r = c.get("/v1/maps/default/observations/1")
+        assert r.status_code == 503 and "map.sqlite" not in r.json()["detail"]
+        assert "/" not in r.json()["detail"].replace("/v1", "")

@@ -69,3 +69,18 @@ def test_a_restart_holds_no_more_streams_than_the_cap_and_counts_their_condition
         conditions = sum(s.condition.state().nbytes for s in rt.streams.values())
     assert mem["count"] == 2 and conditions > 0 and mem["bytes"] > conditions
     assert live["count"] == 2 and live["bytes"] > conditions
+
+
+def test_streams_over_a_lowered_cap_at_a_restart_are_counted_and_said(tmp_path, caplog):
+    """Found by an outside tester: lowering CORTEXLOC_MAX_STREAMS dropped the least recently used learning
+    streams at the restart (their contexts reset) with no eviction counted and nothing in the log."""
+    data = tmp_path / "data"
+    with make_client(data, max_streams=4, stream_keep_seconds=0) as c:
+        for i, robot in enumerate(("a", "b", "c", "d")):
+            assert post(c, frame(i), stream=robot).status_code == 200
+    caplog.clear()
+    with make_client(data, max_streams=2, stream_keep_seconds=0) as c:
+        assert c.get("/v1/maps/default").json()["streams"] == ["c", "d"]
+        assert evictions(c) == 2
+    said = [r.getMessage() for r in caplog.records if "CORTEXLOC_MAX_STREAMS=2" in r.getMessage()]
+    assert len(said) == 1 and "2 least recently used" in said[0]
