@@ -18,10 +18,12 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["DB_FILE", "Layout"]
+__all__ = ["DB_FILE", "TMP_MARK", "Layout"]
 
 #: A map's database, in its map directory and, under the same name, in each of its snapshots.
 DB_FILE = "map.sqlite"
+#: In the names of the temporary directories that a create or an import renames into place.
+TMP_MARK = ".tmp-"
 
 
 @dataclass(frozen=True)
@@ -78,7 +80,7 @@ class Layout:
             return []
         staging = self.import_staging("*").name
         return sorted([*self.maps.glob(".deleted-*"), *self.maps.glob(staging),
-                       *self.maps.glob(f".{staging}")])
+                       *self.maps.glob(f".{staging}{TMP_MARK}*")])
 
     def map_db(self, map_id: str) -> Path:
         """The map's live database (`storage.mapstore.MapStore`)."""

@@ -24,7 +24,7 @@ from typing import Any
 
 from storage._common import StorageError
 from storage.catalog import MAP_ID_RE, SNAPSHOT_ID_RE, SNAPSHOT_KINDS
-from storage.layout import DB_FILE
+from storage.layout import DB_FILE, TMP_MARK
 
 __all__ = [
     "DB_FILE",
@@ -52,8 +52,6 @@ PROJECTION_FILE = "projection.npy"
 
 #: A member or file name: one path component, no leading dot (so neither `..` nor hidden temp files).
 SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
-#: In the names of the temporary directories that a create or an import renames into place.
-TMP_MARK = ".tmp-"
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 
 

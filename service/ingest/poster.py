@@ -287,10 +287,17 @@ async def _post_frame(client: httpx.AsyncClient, frame: Frame, opts: Options, he
     return rec
 
 
+#: Statuses that, without the service's problem+json body, are a proxy's page in front of it: the post may
+#: or may not have reached the service, and every post here is keyed, so it is sent again. The typed
+#: client's rule (`cortexloc_client._core.PROXY_STATUSES`; installed without the service, so a test keeps
+#: the two equal).
+PROXY_STATUSES = frozenset({500, 502, 503, 504})
+
+
 def _retried(r: httpx.Response) -> bool:
-    """A 503, or a proxy's 500 (not the service's problem+json): the post is sent again."""
+    """The service's 503, or a proxy's page (`PROXY_STATUSES`, not problem+json): the post is sent again."""
     problem = r.headers.get("Content-Type", "").split(";")[0].strip() == PROBLEM_MEDIA_TYPE
-    return r.status_code == 503 or (r.status_code == 500 and not problem)
+    return r.status_code == 503 or (r.status_code in PROXY_STATUSES and not problem)
 
 
 def _connection_lost(e: BaseException | None) -> bool:

@@ -23,3 +23,20 @@ def test_pydantic_1_is_named_at_import(tmp_path: Path) -> None:
     assert run.returncode != 0
     assert "ImportError: cortexloc_client needs pydantic 2, found pydantic 1.10.14" in run.stderr
     assert "Beside ROS 2" in run.stderr
+
+
+def test_the_service_limits_the_client_states_are_the_services():
+    # the client states them for the ROS node and robots (installed without the service); they must not
+    # drift from the service's own homes
+    from service.schemas import STREAM_PATTERN as SERVICE_STREAM_PATTERN
+    from service.settings import Settings
+
+    assert cortexloc_client.STREAM_PATTERN == SERVICE_STREAM_PATTERN
+    assert Settings.model_fields["max_top_k"].default == cortexloc_client.MAX_TOP_K
+
+
+def test_the_client_and_cortexloc_ingest_resend_the_same_proxy_pages():
+    from cortexloc_client import _core
+    from service.ingest.poster import PROXY_STATUSES
+
+    assert _core.PROXY_STATUSES == PROXY_STATUSES

@@ -13,6 +13,7 @@ import math
 import re
 import threading
 import time
+import zlib
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Generic, Literal, TypeVar
@@ -108,40 +109,47 @@ _KEY_UNSAFE = re.compile(r"[^A-Za-z0-9._-]")
 _KEY_MAX = 128
 
 
-def idempotency_key(run_id: str, topic: str, stamp: Stamp, number: int) -> str:
-    """The post's key: one per received message, (run, topic, stamp, the message's number in the run),
-    so a retry (which reuses the frame's key) is deduplicated by the service, a bag replayed under
-    another run id is a second drive, and two messages with one stamp (a driver that does not stamp,
-    or stamps twice) are two frames, not one key reused (which the service refuses with 422).
+def idempotency_key(run_id: str, topic: str, stamp: Stamp, content: str) -> str:
+    """The post's key: (run, topic, stamp, a digest of the message's image data), so a retry (which
+    reuses the frame's key) and a drive resumed under its run id (the same messages again) are
+    deduplicated by the service, a bag replayed under another run id is a second drive, and two messages
+    with one stamp (a driver that does not stamp, or stamps twice) are two frames, not one key reused
+    (which the service refuses with 422). Not a count of the messages received: one the transport lost
+    in one run and not in the other would shift every key after it.
 
     ROS names hold letters, digits, `_`, `/` and `~`; `/` becomes `.` (which no ROS name holds), anything
-    else `-`. A key that would pass 128 characters keeps its stamp and number and a hash of the rest.
+    else `-`. A key that would pass 128 characters keeps its stamp and digest and a hash of the rest.
     """
-    key = f"{run_id}:{_KEY_UNSAFE.sub('-', topic.replace('/', '.'))}:{stamp.ns}:{number}"
+    key = f"{run_id}:{_KEY_UNSAFE.sub('-', topic.replace('/', '.'))}:{stamp.ns}:{content}"
     if len(key) <= _KEY_MAX:
         return key
     import hashlib
 
-    return f"h:{hashlib.sha256(f'{run_id}:{topic}'.encode()).hexdigest()[:40]}:{stamp.ns}:{number}"
+    return f"h:{hashlib.sha256(f'{run_id}:{topic}'.encode()).hexdigest()[:40]}:{stamp.ns}:{content}"
+
+
+def content_digest(data: Any) -> str:
+    """8 hex digits of CRC-32 over a message's image bytes (any buffer): tells apart two frames with one
+    stamp (a collision needs two frames with the same stamp too); about 3 ms for a 1080p RGB frame."""
+    return f"{zlib.crc32(data) & 0xFFFFFFFF:08x}"
 
 
 @dataclass
 class FrameKeys:
-    """The keys of one topic's messages in one run, numbered as they arrive, and whether the camera's
-    stamps repeat (a stamp equal to the previous message's: the node warns once, since odometry and the
-    stored `stamp` cannot tell those frames apart). Used by the executor's callback only."""
+    """The keys of one topic's messages in one run, and whether the camera's stamps repeat (a stamp equal
+    to the previous message's: the node warns once, since odometry and the stored `stamp` cannot tell
+    those frames apart). Used by the executor's callback only."""
 
     run_id: str
     topic: str
-    received: int = 0
     _last: Stamp | None = None
 
-    def next(self, stamp: Stamp) -> tuple[str, bool]:
-        """(the key of the message just received, whether its stamp repeats the previous one's)."""
+    def next(self, stamp: Stamp, data: Any) -> tuple[str, bool]:
+        """(the key of the message just received, whether its stamp repeats the previous one's); `data`
+        its image bytes (any buffer)."""
         repeats = stamp == self._last
         self._last = stamp
-        self.received += 1
-        return idempotency_key(self.run_id, self.topic, stamp, self.received), repeats
+        return idempotency_key(self.run_id, self.topic, stamp, content_digest(data)), repeats
 
 
 # ------------------------------------------------------------------------------------------- poses

@@ -26,7 +26,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.event_handler import QoSMessageLostInfo, SubscriptionEventCallbacks
+from rclpy.event_handler import QoSMessageLostInfo, SubscriptionEventCallbacks, UnsupportedEventTypeError
 from rclpy.exceptions import InvalidTopicNameException
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
@@ -53,6 +53,7 @@ from cortexloc_ros.params import (
     PARAMETERS,
     Config,
     ConfigError,
+    config_warnings,
     read_config,
     stream_problem,
     trail_of,
@@ -85,6 +86,8 @@ class CortexlocNode(Node):
         super().__init__(NODE_NAME)
         self.cfg = self._read_parameters()
         cfg = self.cfg
+        for line in config_warnings(cfg):
+            self.get_logger().warning(line)
         self.stats = Stats()
         self.queue: FrameQueue[Frame] = FrameQueue(cfg.queue_size, cfg.queue_policy)  # type: ignore[arg-type]
         self.rate = RateFilter(cfg.every_n, cfg.min_distance)
@@ -103,9 +106,14 @@ class CortexlocNode(Node):
         # A best-effort subscription loses what the transport loses (a raw camera image is hundreds of UDP
         # fragments): the middleware's count of lost samples goes to diagnostics, which would else only
         # show the frames that arrived.
-        self.create_subscription(CompressedImage if cfg.compressed else Image, image_topic, self._on_image,
-                                 _SENSOR_QOS, qos_overriding_options=_QOS_OVERRIDES,
-                                 event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_lost))
+        kind = CompressedImage if cfg.compressed else Image
+        try:
+            self.create_subscription(kind, image_topic, self._on_image, _SENSOR_QOS,
+                                     qos_overriding_options=_QOS_OVERRIDES,
+                                     event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_lost))
+        except UnsupportedEventTypeError:  # a middleware without the event: no count, the node still runs
+            self.create_subscription(kind, image_topic, self._on_image, _SENSOR_QOS,
+                                     qos_overriding_options=_QOS_OVERRIDES)
         if cfg.topics["camera_info"]:
             self.create_subscription(CameraInfo, cfg.topics["camera_info"], self._on_camera_info, _SENSOR_QOS,
                                      qos_overriding_options=_QOS_OVERRIDES)
@@ -211,7 +219,7 @@ class CortexlocNode(Node):
         with self.stats.lock:
             self.stats.received += 1
         stamp = Stamp.of(msg.header.stamp.sec, msg.header.stamp.nanosec)
-        key, repeats = self.keys.next(stamp)  # numbered before anything can skip it: one key per message
+        key, repeats = self.keys.next(stamp, msg.data)  # before anything can skip it: one key a message
         if repeats:
             self._warn_once("stamps", f"the camera's stamps repeat ({stamp.ns} ns twice in a row; a driver "
                                       f"that does not stamp sends 0): each frame is still posted, but its "

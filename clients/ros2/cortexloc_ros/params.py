@@ -21,7 +21,8 @@ from urllib.parse import urlsplit
 from cortexloc_client import MAX_TOP_K, STREAM_PATTERN
 from cortexloc_ros.core import DROP_POLICIES
 
-__all__ = ["PARAMETERS", "Config", "ConfigError", "read_config", "stream_problem", "trail_of", "usage"]
+__all__ = ["PARAMETERS", "Config", "ConfigError", "config_warnings", "read_config", "stream_problem",
+           "trail_of", "usage"]
 
 #: name -> (default, description). Nested names (`rate.every_n`) are YAML sections.
 PARAMETERS: dict[str, tuple[Any, str]] = {
@@ -39,10 +40,10 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
               "namespace: the stream's own trail)"),
     "learn": (True, "true: map (frames are learned and stored; loop closure while mapping); false: localise "
               "(nothing stored changes)"),
-    "top_k": (5, f"frame-level matches in each answer (0 up to {MAX_TOP_K}, the service's default "
-              f"CORTEXLOC_MAX_TOP_K)"),
-    "run_id": ("", "this drive's id, part of each post's Idempotency-Key (run id + topic + stamp + the "
-               "message's number in the run); empty: a new one per start, so a bag replayed twice is "
+    "top_k": (5, f"frame-level matches in each answer (0 or more; over {MAX_TOP_K}, the service's default "
+              f"CORTEXLOC_MAX_TOP_K, a warning at start)"),
+    "run_id": ("", "this drive's id, part of each post's Idempotency-Key (run id + topic + stamp + a "
+               "CRC-32 of the image); empty: a new one per start, so a bag replayed twice is "
                "two drives. Set it to resume one drive"),
     "request_timeout": (10.0, "seconds to connect and between bytes of a reply; a post cut short is retried "
                         "with the same key"),
@@ -195,6 +196,16 @@ def trail_of(trail: str, namespace: str) -> str | None:
     return name if name and _STREAM.match(name) else None
 
 
+def config_warnings(cfg: Config) -> list[str]:
+    """What the node says at start of values a service may refuse: a `top_k` over the service's default
+    limit (an operator may raise `CORTEXLOC_MAX_TOP_K`, so it is no error here; where the limit is the
+    default, every frame is refused 400 and counted in diagnostics as refused)."""
+    if cfg.top_k > MAX_TOP_K:
+        return [f"top_k: {cfg.top_k} is over {MAX_TOP_K}, the service's default CORTEXLOC_MAX_TOP_K: a "
+                f"service that keeps that limit refuses every frame (400; diagnostics: refused)"]
+    return []
+
+
 def read_config(values: dict[str, Any], *, unknown: list[str] | None = None) -> Config:
     """Check the parameters' values (name -> value, as declared) and build the `Config`.
 
@@ -220,10 +231,8 @@ def read_config(values: dict[str, Any], *, unknown: list[str] | None = None) -> 
     if not _MAP_ID.match(v["map"]):
         problems.append(f"map: {v['map']!r} is not a map id (a lower-case letter or digit, then up to "
                         f"63 of those, '.', '_', '-')")
-    if not 0 <= v["top_k"] <= MAX_TOP_K:
-        # the service's default limit: above it every frame would be refused (400) by such a service
-        problems.append(f"top_k: {v['top_k']} must be 0 to {MAX_TOP_K} (the service's CORTEXLOC_MAX_TOP_K "
-                        f"default; a frame asking more is refused)")
+    if v["top_k"] < 0:
+        problems.append(f"top_k: {v['top_k']} must be 0 or more")
     if v["run_id"] and not _RUN_ID.match(v["run_id"]):
         problems.append(f"run_id: {v['run_id']!r} must be 1 to 40 letters, digits, '_' or '-'")
     for name in ("stream", "trail"):  # empty: derived by the node (the image topic; the namespace)

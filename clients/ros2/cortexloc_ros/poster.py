@@ -221,6 +221,7 @@ class Poster:
                     self.stats.revisits += bool(answer.place and answer.place.revisit)
                     self.stats.last_latency_ms = latency
                     self.stats.latencies_ms.append(latency)
+                    self.stats.last_error = ""  # a refused frame's too: the trouble is over
                 self._state("up", "")
                 try:
                     self.on_answer(frame, pose, answer, latency)

@@ -34,8 +34,8 @@ from storage.layout import Layout
 from storage.mapstore import MapStore, Observation, Visit
 
 __all__ = ["VISIT_CURSOR", "VISIT_MARK", "MapCheck", "Rebuilt", "Replay", "Tail", "begin", "check_memory",
-           "in_order", "learned_rows", "load_memory", "open_catalog", "rebuild", "recover", "snapshot_array",
-           "verify_map"]
+           "in_order", "learned_rows", "load_memory", "open_catalog", "rebuild", "recover", "remade_rows",
+           "snapshot_array", "verify_map"]
 
 #: The snapshot array holding the last visit id its memory learned (0 in a snapshot made before visits),
 #: and that visit's `MapStore.visit_mark` (the branch check of visits, as a row's observation id is).
@@ -105,10 +105,15 @@ def in_order(rows: Iterable[Observation], visits: Iterable[Visit]) -> Iterator[O
         visit = next(pending, None)
 
 
+def remade_rows(store: MapStore, after_seq: int = 0) -> set[int]:
+    """The rows after `after_seq` a repair re-made from a visit (docs/design/science.md §11.6): stored rows
+    the memory did not learn as rows (their visit taught it, and replays): no learned frame of their own."""
+    return {r.seq for r in store.repairs() if r.kind == "split" and r.seq > after_seq}
+
+
 def learned_rows(store: MapStore, after_seq: int = 0) -> Iterator[Observation]:
-    """The rows after `after_seq` the memory learned as rows, in seq order: a row a repair re-made from a
-    visit (docs/design/science.md §11.6) is not one (its visit taught the memory, and replays)."""
-    remade = {r.seq for r in store.repairs() if r.kind == "split" and r.seq > after_seq}
+    """The rows after `after_seq` the memory learned as rows, in seq order (less `remade_rows`)."""
+    remade = remade_rows(store, after_seq)
     return (r for r in store.rows(after_seq=after_seq) if r.seq not in remade)
 
 
@@ -272,8 +277,8 @@ def begin(store: MapStore, catalog: Catalog, map_id: str, like: MapModel) -> Tai
         except Exception as e:  # an unusable snapshot is passed over, never fatal
             _pass_over(map_id, rec.snapshot_id, str(e) or type(e).__name__, skipped)
             continue
-        remade = sum(r.kind == "split" and r.seq > m.seq for r in store.repairs())
-        steps = store.count_after(m.seq) - remade + max(0, store.visit_stats()[2] - cursor)
+        steps = (store.count_after(m.seq) - len(remade_rows(store, m.seq))
+                 + max(0, store.visit_stats()[2] - cursor))
         return Tail(replay, rec.snapshot_id, m.seq, steps, tried, skipped, t0)
     return None
 
@@ -489,6 +494,5 @@ def _replayed_rows(store: MapStore, after_seq: int, after_id: int) -> int:
     """How many rows a replay after row `after_seq` and visit `after_id` steps (`Replay.out.replayed`, what
     `verify`'s progress counts): those it learns as rows (`learned_rows`: the stored rows less those a
     repair re-made) and the rows a warm-up join turned into visits (§11.8), not the rows held."""
-    remade = sum(1 for r in store.repairs() if r.kind == "split" and r.seq > after_seq)
     joined = sum(1 for v in store.visits(after_id=after_id, rows_after=after_seq) if v.row is not None)
-    return store.count_after(after_seq) - remade + joined
+    return store.count_after(after_seq) - len(remade_rows(store, after_seq)) + joined

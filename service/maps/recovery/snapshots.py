@@ -15,7 +15,7 @@ import numpy as np
 from models.frontend import slsbh
 from service.maps.config import MapConfig
 from service.maps.errors import InsufficientStorage, InvalidConfiguration, SnapshotInUse, SnapshotNotFound
-from service.maps.recovery.memory import check_memory
+from service.maps.recovery.memory import check_memory, remade_rows
 from service.maps.results import SnapshotInfo
 from storage import snapshots
 from storage.catalog import Catalog, SnapshotRecord
@@ -94,14 +94,21 @@ def learned_difference(present: MapStore, snapshot: MapStore) -> tuple[int, int]
 
     A learned frame is a row, by its seq (held, dropped or joined: seqs are never handed out twice, across
     restores too), or a consolidated visit, by its id and mark (ids are handed out again on another
-    branch). Whole sets are compared, not the seqs after the snapshot's: after a restore, a frame of an
-    earlier branch can have a lower seq than one kept. Visits are compared from the oldest both still
-    log (pruning keeps the newest; below that one file cannot tell). Both are read in order, in pages:
-    the memory is bounded whatever the map's size."""
-    rows = _only_in_each(present.learned_seqs(), snapshot.learned_seqs())
+    branch); a row a repair split off a visit is that visit. Whole sets are compared, not the seqs after
+    the snapshot's: after a restore, a frame of an earlier branch can have a lower seq than one kept.
+    Visits are compared from the oldest both still log (pruning keeps the newest; below that one file
+    cannot tell). Both are read in order, in pages: the memory is bounded whatever the map's size."""
+    rows = _only_in_each(_unsplit(present), _unsplit(snapshot))
     first = max(present.visit_stats()[1], snapshot.visit_stats()[1])
     visits = _only_in_each(present.consolidated_visits(first), snapshot.consolidated_visits(first))
     return rows[0] + visits[0], rows[1] + visits[1]
+
+
+def _unsplit(store: MapStore) -> Iterator[int]:
+    """`learned_seqs` less the rows a repair split off a visit (docs/design/science.md §11.6): that frame is
+    its visit, counted with the visits (as the replay counts it once)."""
+    split = remade_rows(store)
+    return (seq for seq in store.learned_seqs() if seq not in split)
 
 
 def _only_in_each(a: Iterator[Any], b: Iterator[Any]) -> tuple[int, int]:

@@ -147,15 +147,16 @@ class Recovering:
         self.state, self.state_reason = "ready", None
         log.info("map %s ready: %s", self.map_id, note)
 
-    def _cap_streams(self) -> None:
+    def _cap_streams(self, say: bool = True) -> None:
         """A replay meets every stream that ever learned, and `CORTEXLOC_MAX_STREAMS` may have been lowered
         since: the least recently used over it go, as `touch` evicts them live (their next learned frame
-        starts a new sequence), counted as evictions and said in one log line."""
+        starts a new sequence), counted as evictions and said in one log line (`say`; not for the copies
+        served while a tail replays: its end caps the replayed streams again, and says it once)."""
         evicted = 0
         while len(self.streams) > self.settings.max_streams:
             self.streams.popitem(last=False)
             evicted += 1
-        if evicted:
+        if evicted and say:
             self.stream_evictions += evicted
             log.info("map %s: the %d least recently used of its learning streams are over "
                      "CORTEXLOC_MAX_STREAMS=%d; they start afresh", self.map_id, evicted,
@@ -168,7 +169,7 @@ class Recovering:
         self._rebuild_index()  # every stored row is in the index at once: the replay reproduces them
         # The live streams are copies: the replay steps its own, and a localising frame never moves them.
         self.streams = copy.deepcopy(out.streams)
-        self._cap_streams()
+        self._cap_streams(say=False)
         self._tail, self._tail_started, self._localised = tail, time.perf_counter(), set()
         self.recovery = {"source": "snapshot", "snapshot_id": tail.snapshot_id,
                          "snapshot_seq": tail.snapshot_seq, "tail": tail.steps, "replayed": 0}

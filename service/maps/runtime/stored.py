@@ -42,9 +42,10 @@ def page(store: MapStore, after_seq: int, limit: int) -> list[StoredObservation]
     holds what it held (a join deletes a row after a follower may have read it, §11.8)."""
     rows = store.page(after_seq, limit)
     thumbs = store.with_thumbnails(r.seq for r in rows)
-    found = [_stored(r, r.seq in thumbs) for r in rows]
-    found += [_joined(j) for j in store.joined_rows(after_seq, limit)]
-    return sorted(found, key=lambda o: o.seq)[:limit]
+    found = {r.seq: _stored(r, r.seq in thumbs) for r in rows}
+    # read after the rows: a join that committed between the two reads shows its row once, as joined
+    found.update((j.seq, _joined(j)) for j in store.joined_rows(after_seq, limit))
+    return [found[seq] for seq in sorted(found)[:limit]]
 
 
 def thumbnail(map_id: str, store: MapStore, seq: int) -> bytes:

@@ -90,14 +90,18 @@ class Writer:
         self._commits.close()  # the requests still waiting get their sync first
         if self.store is None:
             return
+        # a map that is not ready takes no snapshot, and may hold the closed store a failed reopen left
+        ready = serving(self.state).learns
+        if not (snapshot and ready and self.settings.snapshot_every):
+            self.store.close()
+            return
         latest = self.catalog.list_snapshots(self.map_id)
         # Rows or visits the newest snapshot (of any kind) does not hold: a shutdown snapshot shortens
         # the next start; one right after a manual snapshot would only duplicate it.
         new_rows = (self.store.last_seq() > (latest[0].seq if latest else 0)
                     or self.store.visit_stats()[2] > self.covered)
         switched = any(st.learning is False for st in self.streams.values())
-        ready = serving(self.state).learns
-        if snapshot and ready and self.settings.snapshot_every and (new_rows or switched):
+        if new_rows or switched:
             try:
                 self.snapshot("auto")
                 map_snapshots.prune_auto(self.catalog, self.map_id, self.store, self.settings.snapshot_keep)
@@ -210,7 +214,9 @@ class Writer:
         """Writer: `idempotency.apply_once` on the store as it is when this runs, not when the post was
         queued: a restore (or a failed commit's recovery) queued ahead closes that store and opens
         another."""
-        if self.store is None:  # a map that failed meanwhile has none: refused as `apply` would refuse it
+        # a map that failed meanwhile (no store, or the closed one a failed reopen left): refused as `apply`
+        # would refuse it, with its state, not a closed store's 503 to retry for ever
+        if self.store is None or not serving(self.state).reads:
             self.require_ready(learn)
         assert self.store is not None
         return idempotency.apply_once(self.store, self.keys, post, learn, apply)

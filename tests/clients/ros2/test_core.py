@@ -23,7 +23,7 @@ from cortexloc_ros.core import (
     idempotency_key,
     image_array,
 )
-from cortexloc_ros.params import PARAMETERS, ConfigError, read_config, trail_of
+from cortexloc_ros.params import PARAMETERS, ConfigError, config_warnings, read_config, trail_of
 
 from cortexloc_client import Observation
 
@@ -58,13 +58,13 @@ def test_an_image_shorter_than_its_header_or_of_another_encoding_is_refused():
 
 def test_the_key_is_run_topic_stamp_and_message_number_so_a_replayed_bag_is_a_second_drive():
     stamp = Stamp.of(1_700_000_000, 5)
-    key = idempotency_key("run1", "/robot/cam/image_raw", stamp, 7)
-    assert key == "run1:.robot.cam.image_raw:1700000000000000005:7"
-    assert key == idempotency_key("run1", "/robot/cam/image_raw", stamp, 7)  # a retry: the same key
-    assert key != idempotency_key("run2", "/robot/cam/image_raw", stamp, 7)  # the bag replayed: another
-    assert key != idempotency_key("run1", "/robot/cam2/image_raw", stamp, 7)
-    long = idempotency_key("r", "/" + "x" * 200, stamp, 7)
-    assert len(long) <= 128 and long.endswith(":1700000000000000005:7")
+    key = idempotency_key("run1", "/robot/cam/image_raw", stamp, "0badf00d")
+    assert key == "run1:.robot.cam.image_raw:1700000000000000005:0badf00d"
+    assert key == idempotency_key("run1", "/robot/cam/image_raw", stamp, "0badf00d")  # a retry: the same
+    assert key != idempotency_key("run2", "/robot/cam/image_raw", stamp, "0badf00d")  # a replay: another
+    assert key != idempotency_key("run1", "/robot/cam2/image_raw", stamp, "0badf00d")
+    long = idempotency_key("r", "/" + "x" * 200, stamp, "0badf00d")
+    assert len(long) <= 128 and long.endswith(":1700000000000000005:0badf00d")
     import re
 
     assert re.fullmatch(r"[A-Za-z0-9._:-]{8,128}", long) and re.fullmatch(r"[A-Za-z0-9._:-]{8,128}", key)
@@ -72,13 +72,22 @@ def test_the_key_is_run_topic_stamp_and_message_number_so_a_replayed_bag_is_a_se
 
 def test_frames_with_one_stamp_get_keys_of_their_own_and_the_repeat_is_told():
     # a driver that does not stamp (0 every time), then two frames stamped alike: each its own post
+    frames = [bytes([i]) * 64 for i in range(6)]
+    stamps = (0, 0, 0, 5, 5, 6)
     keys = FrameKeys("run1", "/cam/image_raw")
-    got = [keys.next(Stamp(ns)) for ns in (0, 0, 0, 5, 5, 6)]
+    got = [keys.next(Stamp(ns), f) for ns, f in zip(stamps, frames, strict=True)]
     assert len({k for k, _ in got}) == 6  # no key reused: the service would refuse it 422
     assert [repeats for _, repeats in got] == [False, True, True, False, True, False]
-    # the same messages in a second start under the same run id: the same keys (a resumed drive)
+    # the same messages in a second start under the same run id: the same keys (a resumed drive)...
     again = FrameKeys("run1", "/cam/image_raw")
-    assert [again.next(Stamp(ns))[0] for ns in (0, 0, 0, 5, 5, 6)] == [k for k, _ in got]
+    assert [again.next(Stamp(ns), f)[0] for ns, f in zip(stamps, frames, strict=True)] == [k for k, _ in got]
+    # ...also where the transport lost a message in one run and not the other (a count would shift)
+    lossy = FrameKeys("run1", "/cam/image_raw")
+    assert [lossy.next(Stamp(ns), f)[0] for ns, f in list(zip(stamps, frames, strict=True))[1:]] == \
+        [k for k, _ in got[1:]]
+    # and a camera that does not stamp, restarted under its run id with other frames: no key reused
+    other = FrameKeys("run1", "/cam/image_raw")
+    assert not {other.next(Stamp(0), bytes([100 + i]) * 64)[0] for i in range(3)} & {k for k, _ in got}
 
 
 def test_a_frame_takes_the_odometry_pose_nearest_its_stamp_within_the_tolerance():
@@ -162,28 +171,22 @@ def test_bad_parameters_are_all_named_at_once(monkeypatch, tmp_path):
     assert cfg.odom_tolerance_ns == 1_000_000_000 and cfg.camera_mount == (0.0, 0.0, 1.0)
 
 
-def test_a_top_k_or_stream_the_service_refuses_on_every_frame_is_refused_at_start():
+def test_a_stream_the_service_refuses_on_every_frame_is_refused_at_start_and_a_large_top_k_told():
     with pytest.raises(ConfigError) as e:
-        read_config({**DEFAULTS, "top_k": 101, "stream": "front cam", "trail": "robot//1"})
+        read_config({**DEFAULTS, "top_k": -1, "stream": "front cam", "trail": "robot//1"})
     assert e.value.problems == [
-        "top_k: 101 must be 0 to 100 (the service's CORTEXLOC_MAX_TOP_K default; a frame asking more is "
-        "refused)",
+        "top_k: -1 must be 0 or more",
         "stream: 'front cam' is not a stream name (up to 8 '/'-separated parts of 1 to 64 letters, digits, "
         "'.', '_' or '-')",
         "trail: 'robot//1' is not a stream name (up to 8 '/'-separated parts of 1 to 64 letters, digits, "
         "'.', '_' or '-')"]
     cfg = read_config({**DEFAULTS, "top_k": 100, "stream": "robot1/front.cam"})
-    assert (cfg.top_k, cfg.stream) == (100, "robot1/front.cam")
-
-
-def test_the_limits_the_node_checks_are_the_services():
-    # the client states them (a robot installs it without the service); they must not drift apart
-    from cortexloc_client import MAX_TOP_K, STREAM_PATTERN
-    from service.schemas import STREAM_PATTERN as SERVICE_STREAM_PATTERN
-    from service.settings import Settings
-
-    assert STREAM_PATTERN == SERVICE_STREAM_PATTERN
-    assert Settings.model_fields["max_top_k"].default == MAX_TOP_K
+    assert (cfg.top_k, cfg.stream) == (100, "robot1/front.cam") and config_warnings(cfg) == []
+    # over the service's default limit: a service may raise it (CORTEXLOC_MAX_TOP_K), so said, not refused
+    big = read_config({**DEFAULTS, "top_k": 101})
+    assert big.top_k == 101 and config_warnings(big) == [
+        "top_k: 101 is over 100, the service's default CORTEXLOC_MAX_TOP_K: a service that keeps that limit "
+        "refuses every frame (400; diagnostics: refused)"]
 
 
 def _answer(place: dict | None) -> Observation:

@@ -316,8 +316,8 @@ def test_a_bad_topic_name_or_a_value_the_service_refuses_exits_2_in_one_line_and
     assert "topics.place: '1bad' is not a ROS topic name (topic name token must not start with a number)" \
         in log, log
     assert "topics.markers: 'a b' is not a ROS topic name" in log and "Traceback" not in log, log
-    rc, log = start(top_k=101, stream="front cam")
-    assert rc == 2 and "top_k: 101 must be 0 to 100" in log and "stream: 'front cam' is not a stream name" \
+    rc, log = start(top_k=-1, stream="front cam")
+    assert rc == 2 and "top_k: -1 must be 0 or more" in log and "stream: 'front cam' is not a stream name" \
         in log and "Traceback" not in log, log
     # a stream taken from an image topic the service would refuse (9 parts): refused at start, not per frame
     rc, log = start(**{"topics.image": "/a/b/c/d/e/f/g/h/image_raw"})

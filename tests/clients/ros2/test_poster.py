@@ -93,6 +93,18 @@ def test_a_slow_service_is_slow_not_down_and_its_error_is_cleared_when_it_answer
         assert stats.health(0) == ("OK", "service up")
 
 
+def test_a_refused_frames_error_is_cleared_by_the_next_answer(monkeypatch):
+    from cortexloc_client import CortexlocError
+
+    p, stats, _ = _poster(monkeypatch, CortexlocError(422, detail="a degenerate image"), ANSWER)
+    p._post(_frame())
+    with stats.lock:
+        assert (stats.refused, stats.last_error) == (1, "422 error: a degenerate image")
+    p._post(_frame(Stamp(2)))
+    with stats.lock:  # the service answers again: no refusal's text left beside "service up"
+        assert (stats.answered, stats.last_error, stats.service) == (1, "", "up")
+
+
 def test_the_idle_probe_reports_slow_down_and_recovery_alike(monkeypatch):
     request = httpx.Request("GET", "http://cortexloc.test/readyz")
     p, stats, _ = _poster(monkeypatch, httpx.ConnectError("refused", request=request),

@@ -236,6 +236,19 @@ def test_a_proxys_plain_500_and_a_lost_connection_are_retried_with_the_frames_ke
     assert summary.retries == 2 and summary.frames == len(ROUTE) and summary.errors == 0
 
 
+def test_a_proxys_html_502_and_504_are_retried_with_the_frames_key(tmp_path):
+    """nginx in front of a restarting service answers an HTML 502, or 504 for a slow upstream: like its
+    plain 500, the frame is sent again with its key (the typed client does the same)."""
+    page = {"Content-Type": "text/html"}
+    service = Scripted([httpx.Response(502, text="<html>Bad Gateway</html>", headers=page),
+                        httpx.Response(504, text="<html>Gateway Timeout</html>", headers=page), (200, {})])
+    bodies, _, run = _ingest(tmp_path, service)
+    summary = anyio.run(run)
+    assert service.bodies == [bodies[0]] * 3 + bodies[1:]
+    assert service.idempotency_keys[:3] == [service.idempotency_keys[0]] * 3 and service.idempotency_keys[0]
+    assert summary.retries == 2 and summary.frames == len(ROUTE) and summary.errors == 0
+
+
 def test_the_services_own_500_is_not_retried(tmp_path):
     """A problem+json 500 is the service's answer (a bug), not a proxy's: the ingest stops there."""
     problem = httpx.Response(500, json={"title": "Internal error", "detail": "quote request id r"},

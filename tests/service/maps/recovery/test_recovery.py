@@ -386,6 +386,13 @@ def test_a_failure_while_installing_a_recovered_map_leaves_it_failed_not_ready(t
         m = c.get("/v1/maps/default").json()
         assert (m["state"], m["state_reason"]) == ("failed", "install-failed")
         assert post(c, frame(9), stream="a").status_code == 503
+        # a keyed post too: refused with the map's state, even where the failed reopen left the old store
+        # closed (before: 503 "store is closed" with Retry-After, to be retried for ever)
+        rt.store.close()
+        keyed = c.post("/v1/maps/default/observations", content=frame(9), params={"stream": "a"},
+                       headers={"Content-Type": "image/png", "Idempotency-Key": "key-after-a-failed-install"})
+        assert keyed.status_code == 503 and keyed.json()["type"].endswith("map-unavailable"), keyed.text
+        assert "failed" in keyed.json()["detail"] and "closed" not in keyed.json()["detail"], keyed.text
 
 
 def test_a_map_over_a_lowered_row_cap_fails_at_start_saying_which_setting_and_what_to_do(tmp_path, caplog):

@@ -5,6 +5,7 @@ Retry-After) and every robot keeps its context; idle streams are evicted, and co
 from __future__ import annotations
 
 import re
+import time
 
 from tests.service.helpers import frame, make_client, post, state_of
 from tests.service.maps.recovery.test_recovery import crash
@@ -84,3 +85,32 @@ def test_streams_over_a_lowered_cap_at_a_restart_are_counted_and_said(tmp_path, 
         assert evictions(c) == 2
     said = [r.getMessage() for r in caplog.records if "CORTEXLOC_MAX_STREAMS=2" in r.getMessage()]
     assert len(said) == 1 and "2 least recently used" in said[0]
+
+
+def test_streams_over_a_lowered_cap_after_a_tail_served_while_it_replays_are_counted_once(tmp_path, caplog,
+                                                                                         monkeypatch):
+    """Found in review: a tail long enough to be served while it replays capped the served copies of the
+    streams and then the replayed ones again, counting each eviction twice and saying it twice."""
+    import service.maps.runtime.recovering as recovering
+    from service.maps.runtime import MapRuntime
+
+    monkeypatch.setattr(recovering, "TAIL_BEFORE_SERVING", 2)
+    monkeypatch.setattr(MapRuntime, "replay_turn_steps", 1)
+    data = tmp_path / "data"
+    with make_client(data, max_streams=4, stream_keep_seconds=0, snapshot_every=0) as c:
+        for i, robot in enumerate(("a", "b", "c", "d")):
+            assert post(c, frame(i), stream=robot).status_code == 200
+        assert c.post("/v1/maps/default/snapshots").status_code == 201
+        for i, robot in enumerate(("a", "b", "c", "d", "a", "b")):  # the tail: 6 steps after it
+            assert post(c, frame(10 + i), stream=robot).status_code == 200
+    caplog.clear()
+    with make_client(data, max_streams=2, stream_keep_seconds=0, snapshot_every=0) as c:
+        for _ in range(6000):  # the tail replays while the map serves
+            if c.get("/v1/maps/default").json()["state"] == "ready":
+                break
+            time.sleep(0.01)
+        m = c.get("/v1/maps/default").json()
+        assert m["state"] == "ready" and m["streams"] == ["a", "b"], m
+        assert evictions(c) == 2
+    said = [r.getMessage() for r in caplog.records if "CORTEXLOC_MAX_STREAMS=2" in r.getMessage()]
+    assert len(said) == 1, said
