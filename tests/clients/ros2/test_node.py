@@ -286,7 +286,7 @@ def test_bad_parameters_stop_the_node_at_start_with_a_clear_error(tmp_path):
                     **{"rate.every_n": 0, "rate.min_distance": 2.0})
     assert rc == 2, log
     for line in ("service_url: 'ftp://robot' is not an http(s)://host[:port] URL", "map: 'Bad Map'",
-                 "top_k: -1 must be 0 to 100",
+                 "top_k: -1 must be 0 or more",
                  "queue.policy: 'sometimes' is not one of drop_oldest, drop_newest",
                  "rate.every_n: 0 must be >= 1", "rate.min_distance needs odometry"):
         assert line in log, log
