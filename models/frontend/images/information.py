@@ -7,10 +7,10 @@ spread between the 5th and 95th percentile of the frame's luma, as a fraction of
 what the frame's own sensor noise explains: specks covering under 5 % of the frame do not count, nor
 does pixel noise (a camera's gain turned up in a tunnel), whose level is estimated from the frame
 itself (Immerkær's operator, "Fast noise variance estimation", CVIU 64(2), 1996) and taken off the
-spread in quadrature. Measured on Nordland (docs/results.md §10.5, §11): near-black tunnel frames
-0-0.02 and with pixel noise of σ 8 at most 0.04 (0.10 with the spread alone), every frame with visible
-structure (dim winter frames included) 0.04 or more, 0.03 or more with that noise. The front end
-measures; the localiser decides what it means (`models.localisation.localiser.MIN_CONTRAST`).
+spread in quadrature. On Nordland (docs/results.md §10.5, §11; tests/models/frontend/test_information.py)
+near-black tunnel frames measure under the localiser's floor with or without pixel noise of σ 8, and
+frames with visible structure (dim winter frames included) over it. The front end measures; the
+localiser decides what it means (`models.localisation.localiser.MIN_CONTRAST`).
 """
 
 from __future__ import annotations
