@@ -55,8 +55,11 @@ install-gpu: $(STAMP)
 lint: install
 	$(BIN)/ruff check .
 
+# Both cores (pytest-xdist): the suite is mostly one core's work at a time (24 min in one process, 14.5 on
+# two). Tests marked `xdist_group` stay on one worker: the Ray cluster of tests/e2e/test_scaleout.py starts
+# once, and never beside another.
 test: $(RAY_STAMP) $(ROS_STAMP) lint
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q -n 2 --dist loadgroup
 
 run: install
 	$(BIN)/cortexloc serve

@@ -5,6 +5,13 @@ from __future__ import annotations
 import pytest
 
 
+@pytest.fixture(autouse=True)
+def _wide_cli_errors(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Typer's error boxes (Rich) wrap at 80 columns off a terminal, so a test that looks for a file's name in
+    # one fails when its tmp path is long (an xdist worker's, `make test`, is 11 characters longer).
+    monkeypatch.setenv("COLUMNS", "250")
+
+
 @pytest.fixture
 def tiny_default_preset(monkeypatch):
     """`cortexloc-default` shrunk to 128 columns and k = 64: the real code paths on a small map (the

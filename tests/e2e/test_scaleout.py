@@ -31,6 +31,9 @@ pytest.importorskip("ray", reason="the `ray` extra is not installed (pip install
 from cortexloc_client import Client, CortexlocError, RetryPolicy
 from tests.e2e.scaleout_cluster import RayCluster
 
+# one pytest-xdist worker runs the whole file (`make test`): its module's cluster starts once
+pytestmark = pytest.mark.xdist_group("ray-cluster")
+
 KEY = "scaleout-test-key"
 MAPS = ("m0", "m1", "m2", "m3")
 STREAMS = ("left", "right")
