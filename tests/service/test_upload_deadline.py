@@ -118,6 +118,26 @@ def test_uploads_past_the_in_flight_budget_are_503_before_their_body(live):
     assert big.status_code != 503, big.text
 
 
+def test_with_a_key_stalled_uploads_without_it_are_401_at_once_and_hold_no_budget(tmp_path):
+    # The budget is reserved by declared length (§3): stalled bodies could hold it until their deadline.
+    # With a key, one that lacks it is answered without its body being waited for, so only a key
+    # holder can hold the budget.
+    app = make_app(tmp_path / "var", max_upload_bytes=LIMIT, body_timeout_s=30.0,
+                   max_inflight_upload_bytes=BUDGET, api_key="robot-key")
+    with served(app, http=ProblemHttpToolsProtocol) as base:
+        stalled = []
+        for _ in range(3):  # 300 KB declared in all, over the 250 KB budget: the third is no 503
+            stalled.append(half_sent(base, LIMIT, 4))
+            raw, _ = answer(stalled[-1], 2.0)  # far under the 30 s deadline
+            assert status_and_problem(raw)[0] == 401
+        assert metric(base, "cortexloc_upload_inflight_bytes") == 0  # their connections still open
+        keyed = httpx.post(f"{base}/v1/maps/default/observations", content=frame(1),
+                           headers={"Content-Type": "image/png", "Authorization": "Bearer robot-key"})
+        assert keyed.status_code == 200, keyed.text
+        for sock in stalled:
+            sock.close()
+
+
 @pytest.mark.parametrize("chunked", [False, True])
 def test_a_body_over_the_limit_gets_its_413_while_the_client_is_still_sending(live, chunked):
     """The 12 MB frame of the issue, posted as `cortexloc ingest` posts (httpx's async client): before,
