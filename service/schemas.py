@@ -313,10 +313,17 @@ class RepairModel(_Out):
 
 
 class LoopClosureList(_Out):
-    """A page of the log, oldest first; `next_after` continues it (None: nothing after this page)."""
+    """A page of the log, oldest first (docs/design/service.md §1.2 says how to follow it)."""
 
     loop_closures: list[LoopClosureModel]
-    next_after: int | None
+    next_after: int | None = Field(description=(
+        "the `after` of the next page: the last id of this one when it was full. Null: nothing more for "
+        "now, not the log's end for ever: poll again with `after` = the last id you read (this page's "
+        "last, or your own `after` when it is empty), never 0 or null"))
+    oldest: int | None = Field(description=(
+        "the oldest log id still kept (the log keeps the last CORTEXLOC_LOOP_CLOSURES entries; null: "
+        "empty). A follower whose `after` is below `oldest` - 1 may have missed pruned entries, "
+        "retractions among them: it rebuilds its edges from the export"))
     epoch: str = Field(description=EPOCH_DESCRIPTION)
 
 

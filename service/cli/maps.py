@@ -141,7 +141,10 @@ def repair(
     from service.cli.ingest import target
     from service.ingest import poster
     from service.maps.errors import DataDirectoryInUse
+    from service.maps.ids import MAP_ID_RE
 
+    if not MAP_ID_RE.match(map_id):  # it goes into the path as it is: "m/x/.." would repair map m
+        raise typer.BadParameter(f"{map_id!r} is not a map id ({MAP_ID_RE.pattern})", param_hint="--map")
     settings, api_key = target(url, data_dir, api_key)
     headers = {"X-API-Key": api_key} if api_key else {}
 

@@ -43,6 +43,7 @@ import httpx
 import numpy as np
 
 from service.ingest.sources import Frame, Source
+from service.maps.ids import MAP_ID_RE
 from service.media_types import PROBLEM_MEDIA_TYPE
 
 if TYPE_CHECKING:
@@ -190,6 +191,9 @@ async def ingest(client: httpx.AsyncClient, source: Source, opts: Options, *,
     """
     summary = Summary(source=source.describe(), map_id=opts.map_id, stream=opts.stream, learn=opts.learn,
                       total=source.total)
+    if not MAP_ID_RE.match(opts.map_id):
+        # the id goes into the path as it is: "m/.." or "m/snapshots" would be another resource
+        raise IngestError(f"map {opts.map_id!r} is not a map id ({MAP_ID_RE.pattern})", summary)
     headers = {"X-API-Key": opts.api_key} if opts.api_key else {}
     t0 = time.perf_counter()
     try:

@@ -24,7 +24,7 @@ import numpy as np
 from models.geometry import quaternion
 from models.geometry.verify import is_rotation
 from models.localisation.motion import stamp_seconds
-from service.maps.results import LoopClosureResult, StoredRow, VerificationResult
+from service.maps.results import LoopClosurePage, LoopClosureResult, StoredRow, VerificationResult
 from storage.mapstore import LoopClosure, MapStore
 
 __all__ = ["EXPORT_COLUMNS", "EXPORT_FORMATS", "VISIT_VERTEX_BASE", "chunks", "csv_cell", "g2o_lines",
@@ -82,9 +82,11 @@ def _result(c: LoopClosure) -> LoopClosureResult:
                              span_seqs=None if c.span_seqs is None else list(c.span_seqs))
 
 
-def page(store: MapStore, after: int, limit: int) -> list[LoopClosureResult]:
-    """At most `limit` logged loop closures after log id `after`, oldest first."""
-    return [_result(c) for c in store.closures(after, limit)]
+def page(store: MapStore, after: int, limit: int) -> LoopClosurePage:
+    """At most `limit` logged loop closures after log id `after`, oldest first, and the oldest id kept
+    (read after them, `LoopClosurePage`)."""
+    entries = [_result(c) for c in store.closures(after, limit)]
+    return LoopClosurePage(entries=entries, oldest=store.oldest_closure_id())
 
 
 def _finite(value: Any) -> Any:

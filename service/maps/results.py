@@ -10,10 +10,10 @@ import numpy as np
 
 from service.maps.config import MapConfig
 
-__all__ = ["BudgetInfo", "IndexMemory", "LoopClosureResult", "MapInfo", "MapReservation", "Match",
-           "MemoryInfo", "ObservationResult", "PlaceResult", "RestoreResult", "SequenceStats", "SnapshotInfo",
-           "StorageMemory", "StoredObservation", "StoredRow", "StreamReset", "StreamsMemory", "TmMemory",
-           "VerificationResult"]
+__all__ = ["BudgetInfo", "IndexMemory", "LoopClosurePage", "LoopClosureResult", "MapInfo", "MapReservation",
+           "Match", "MemoryInfo", "ObservationResult", "PlaceResult", "RestoreResult", "SequenceStats",
+           "SnapshotInfo", "StorageMemory", "StoredObservation", "StoredRow", "StreamReset", "StreamsMemory",
+           "TmMemory", "VerificationResult"]
 
 
 @dataclass(frozen=True)
@@ -264,6 +264,15 @@ class LoopClosureResult:
     retracts: int | None = None  # a retraction entry's: the closure it withdraws (§11.6)
     span: int | None = None  # the answer's span and its rows (§11.11); None: logged before schema 11
     span_seqs: list[int] | None = None
+
+
+@dataclass(frozen=True)
+class LoopClosurePage:
+    """A page of the log and the oldest id it still keeps (None: empty), read after the page: a prune
+    between the two reads can only make a follower resync once too often, never miss a gap."""
+
+    entries: list[LoopClosureResult]
+    oldest: int | None
 
 
 @dataclass(frozen=True)

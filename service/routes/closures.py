@@ -33,9 +33,11 @@ async def list_loop_closures(
     rt = registry.get(map_id)
     rt.require_ready(learns=False)
     assert rt.store is not None
-    found = await anyio.to_thread.run_sync(closures.page, rt.store, after, limit)
+    page = await anyio.to_thread.run_sync(closures.page, rt.store, after, limit)
+    found = page.entries
     return LoopClosureList(loop_closures=[LoopClosureModel.from_result(c) for c in found],
-                           next_after=found[-1].id if len(found) == limit else None, epoch=rt.epoch)
+                           next_after=found[-1].id if len(found) == limit else None, oldest=page.oldest,
+                           epoch=rt.epoch)
 
 
 @router.get("/{map_id}/loop-closures/export",

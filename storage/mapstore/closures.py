@@ -122,6 +122,15 @@ class Closures:
                             span=None if r[16] is None else int(r[16]),
                             span_seqs=None if r[17] is None else tuple(json.loads(r[17]))) for r in found]
 
+    def oldest_closure_id(self) -> int | None:
+        """The oldest log id still kept (None: the log is empty): a reader past `after` below it - 1 may
+        have missed entries the cap pruned."""
+        if not self.holds.loop_closures:
+            return None
+        with self._lock:
+            low = self._db().execute("SELECT min(id) FROM loop_closures").fetchone()[0]
+        return None if low is None else int(low)
+
     def closure_count(self) -> int:
         """Loop closures in the log."""
         if not self.holds.loop_closures:

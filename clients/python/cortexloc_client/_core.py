@@ -149,6 +149,13 @@ def _content(r: httpx.Response) -> bytes:
 
 
 def _seg(value: str) -> str:
+    """One path segment. `quote` leaves '.' alone, and httpx resolves a "." or ".." segment (RFC 3986):
+    `delete_snapshot(m, "..")` would be DELETE /v1/maps/m, so those two go as "%2E" (the server reads
+    one segment, a stream named ".." among them). An empty one would name the collection instead."""
+    if not value:
+        raise ValueError("an id or stream name in a path cannot be empty")
+    if value in (".", ".."):
+        return "%2E" * len(value)
     return quote(value, safe="")
 
 

@@ -185,7 +185,9 @@ class Client:
 
     def loop_closures(self, map_id: str, *, after: int = 0, limit: int = 100) -> models.LoopClosureList:
         """`GET /v1/maps/{map_id}/loop-closures`: the revisits streams were told of, oldest first, after
-        log id `after`, at most `limit` (<= 500); continue with `after=page.next_after`."""
+        log id `after`, at most `limit` (<= 500); continue with `after=page.cursor(after)` (`next_after`
+        is None when there is nothing more for now), and rebuild from the export when
+        `page.missed(after)` (entries the log's cap pruned before they were read)."""
         return self._send(_core.loop_closures(map_id, after, limit))
 
     def repair(self, map_id: str, *, undo: bool = False) -> models.Repair:

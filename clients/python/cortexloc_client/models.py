@@ -485,14 +485,32 @@ class Repair(_Reply):
 
 
 class LoopClosureList(_Reply):
-    """`GET /v1/maps/{map_id}/loop-closures`: a page, oldest first; `next_after` continues it (None: the
-    end). `epoch` is an opaque token of the map's creation and restores ("" from a server before it):
-    when it changes, read the log again from `after=0` (a restore took away what came after its snapshot
-    and undid the retractions made since, or the map was made anew)."""
+    """`GET /v1/maps/{map_id}/loop-closures`: a page, oldest first. `next_after` continues it; None is
+    "nothing more for now": poll again with the last id read (`cursor(after)` gives the next `after`
+    either way). `oldest` is the oldest id the log still keeps (None: empty, or a server before it): a
+    follower whose `after` is below `oldest - 1` may have missed entries the cap pruned, retractions
+    among them (`missed(after)`), and rebuilds its edges from the export. `epoch` is an opaque token of
+    the map's creation and restores ("" from a server before it): when it changes, read the log again
+    from `after=0` (a restore took away what came after its snapshot and undid the retractions made
+    since, or the map was made anew)."""
 
     loop_closures: list[LoopClosure]
     next_after: int | None = None
+    oldest: int | None = None
     epoch: str = ""
+
+    def cursor(self, after: int) -> int:
+        """The `after` of the next request, given this page's: `next_after`, else the last id on the
+        page, else `after` again (never 0: that would read the whole log again)."""
+        if self.next_after is not None:
+            return self.next_after
+        return self.loop_closures[-1].id if self.loop_closures else after
+
+    def missed(self, after: int) -> bool:
+        """Entries after `after` (this page's) were pruned before they were read: rebuild from the
+        export (`Client.export_loop_closures`) and go on from its last id. A gap in the ids below
+        `oldest` (a restore's, a repeated key's) can say so once too often, never too rarely."""
+        return self.oldest is not None and after < self.oldest - 1
 
 
 class StoredObservationList(_Reply):

@@ -72,6 +72,24 @@ def test_keyframes_and_verify_revisit_round_trip(client: Client, tiny_params: di
         client.delete_map(map_id)
 
 
+def test_dot_segments_stay_one_segment(client: Client, tiny_map: str, make_frame) -> None:
+    # httpx resolves a "." or ".." path segment (RFC 3986): a snapshot id ".." once deleted the whole map.
+    client.observe(tiny_map, make_frame(0))
+    with pytest.raises(BadRequestError):  # an id the service never hands out, not a path to the map
+        client.delete_snapshot(tiny_map, "..")
+    with pytest.raises(BadRequestError):
+        client.restore_snapshot(tiny_map, ".")
+    assert client.get_map(tiny_map).observations == 1
+    for stream in (".", ".."):  # stream names the service accepts, reset as themselves
+        client.observe(tiny_map, make_frame(1), stream=stream)
+        assert client.reset_stream(tiny_map, stream) == models.StreamReset(stream=stream, had_context=True)
+    for call in (lambda: client.delete_snapshot(tiny_map, ""), lambda: client.delete_map(""),
+                 lambda: client.reset_stream(tiny_map, "")):
+        with pytest.raises(ValueError):  # refused before any request
+            call()
+    assert client.get_map(tiny_map).observations == 3
+
+
 def test_a_revisited_place_is_the_first_match(client: Client, tiny_map: str, make_frame) -> None:
     seqs = {}
     for place in range(5):
@@ -311,6 +329,20 @@ def test_loop_closures_are_paged_and_exported(client: Client, tiny_map: str, mak
     assert len(csv_text.splitlines()) == len(log) + 1
     assert len(client.export_loop_closures(tiny_map, "jsonl").decode().splitlines()) == len(log)
     assert all(c.retracts is None for c in log)  # closures, no retraction entry yet
+    # the end for now: next_after is None, and the next poll goes on from the last id read, not from 0
+    assert rest.next_after is None and rest.cursor(page.next_after) == log[-1].id
+    polled = client.loop_closures(tiny_map, after=rest.cursor(page.next_after))
+    assert polled.loop_closures == [] and polled.cursor(log[-1].id) == log[-1].id
+    # nothing pruned: the oldest id kept is the first, and no follower missed anything
+    assert rest.oldest == polled.oldest == log[0].id and not page.missed(0) and not rest.missed(log[0].id)
+
+
+def test_a_page_tells_a_follower_it_fell_behind_the_prune() -> None:
+    page = models.LoopClosureList(loop_closures=[], next_after=None, oldest=10, epoch="e")
+    assert page.missed(8) and page.missed(0)  # ids 9 (or 1..9) were pruned before they were read
+    assert not page.missed(9) and not page.missed(12)
+    assert not models.LoopClosureList(loop_closures=[], oldest=None).missed(0)  # an empty log
+    assert page.cursor(12) == 12  # an empty page: poll again from the same id
 
 
 def test_a_repair_lists_then_undoes_and_a_second_finds_nothing(client: Client, tiny_map: str,

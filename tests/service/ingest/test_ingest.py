@@ -178,7 +178,8 @@ class Scripted:
         return httpx.Response(status, json=body, headers=headers)
 
 
-def _ingest(tmp_path: Path, service: Scripted, *, prefetch: int = 4, api_key: str | None = None):
+def _ingest(tmp_path: Path, service: Scripted, *, prefetch: int = 4, api_key: str | None = None,
+            map_id: str = "m"):
     bodies = write_folder(tmp_path / "frames")
     sleeps: list[float] = []
 
@@ -188,7 +189,7 @@ def _ingest(tmp_path: Path, service: Scripted, *, prefetch: int = 4, api_key: st
     async def run() -> poster.Summary:
         async with httpx.AsyncClient(transport=httpx.MockTransport(service), base_url="http://svc") as c:
             src = open_source(tmp_path / "frames")
-            opts = poster.Options("m", prefetch=prefetch, api_key=api_key)
+            opts = poster.Options(map_id, prefetch=prefetch, api_key=api_key)
             return await poster.ingest(c, src, opts, sleep=sleep)
 
     return bodies, sleeps, run
@@ -276,6 +277,16 @@ def test_a_refused_frame_is_counted_and_the_ingest_goes_on_but_a_refused_map_sto
     with pytest.raises(poster.IngestError, match=r"frame frame_0001\.jpg: 404"):
         anyio.run(run)
     assert len(service.bodies) == 2
+
+
+@pytest.mark.parametrize("map_id", ["..", "m/..", "m/snapshots", ""])
+def test_a_map_id_that_is_not_one_is_refused_before_any_request(tmp_path, map_id):
+    """The id goes into the path as it is: "m/.." would post to another resource."""
+    service = Scripted()
+    _, _, run = _ingest(tmp_path, service, map_id=map_id)
+    with pytest.raises(poster.IngestError, match="is not a map id"):
+        anyio.run(run)
+    assert service.keys == set()  # nothing was sent
 
 
 def test_registering_ingest_keeps_cv2_out_of_the_cli_start():

@@ -161,6 +161,24 @@ def test_the_log_is_carried_by_a_snapshot_and_a_restore_and_is_bounded(tmp_path)
     assert restored == kept  # the restore's file holds the log as it was at the snapshot
 
 
+def test_a_page_names_the_oldest_id_kept_so_a_follower_behind_the_prune_knows_it_missed_entries(tmp_path):
+    with make_client(tmp_path / "data", loop_closures=5) as c:
+        empty = c.get("/v1/maps/default/loop-closures")
+        patched(c)
+        drive(c, LAP, noise=0.0)
+        drive(c, LAP[:15])
+        first = c.get("/v1/maps/default/loop-closures", params={"limit": 1}).json()
+        read = first["loop_closures"][0]["id"]  # a follower reads one entry, then falls behind
+        drive(c, LAP[15:])
+        page = c.get("/v1/maps/default/loop-closures", params={"after": read}).json()
+        ids = [e["id"] for e in page["loop_closures"]]
+    assert empty.status_code == 404 or empty.json()["oldest"] is None
+    assert first["oldest"] == read
+    assert len(ids) == 5 and page["oldest"] == ids[0]  # the last 5 kept: the rest pruned unread
+    assert read < page["oldest"] - 1  # the follower's rule says so (docs/design/service.md §1.2)
+    assert page["next_after"] is None  # nothing more for now: it polls again with after=ids[-1]
+
+
 def test_a_restore_over_a_longer_log_keeps_the_restored_entries_within_the_cap(tmp_path):
     # The restore rolls back more ids than the log keeps: the next closures continue above them, and the
     # cap counts entries, so the restored ones stay (by id arithmetic, the first new one pruned them all).

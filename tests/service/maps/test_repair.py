@@ -10,6 +10,7 @@ import io
 import json
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from models import pipeline
@@ -224,6 +225,14 @@ def test_the_cli_repair_says_in_one_line_that_it_cannot_reach_the_service():
     assert out.exit_code == 1
     assert "cannot reach the service at http://127.0.0.1:9" in out.output
     assert "Traceback" not in out.output and len(out.output.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("map_id", ["m/x/..", "..", ""])
+def test_the_cli_repair_refuses_what_is_not_a_map_id_before_any_request(map_id):
+    # the id goes into the path: "m/x/.." would be resolved to a repair of map m
+    out = CliRunner().invoke(cli, ["repair", "--map", map_id, "--url", "http://127.0.0.1:9"])
+    assert out.exit_code == 2 and "is not a map id" in out.output
+    assert "cannot reach" not in out.output  # nothing was sent
 
 
 def test_the_cli_repair_in_process_beside_a_server_says_so_in_one_line(tmp_path):
