@@ -138,7 +138,9 @@ def parse_manifest(body: bytes, where: str) -> Manifest:
     """Parse and type-check manifest.json; `SnapshotInvalid` on anything unexpected."""
     try:
         d = json.loads(body)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+    # ValueError: not UTF-8, not JSON, an integer past Python's 4,300 digits; RecursionError: nested
+    # deeper than the parser recurses (a tar is outside input: each is a bad manifest, not a traceback)
+    except (ValueError, RecursionError) as exc:
         raise SnapshotInvalid(f"{where}: manifest is not JSON: {exc}") from exc
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise SnapshotInvalid(f"{where}: not a {FORMAT} manifest")

@@ -15,9 +15,11 @@ from typing import Any, NamedTuple
 __all__ = ["NO_MOTION", "Motion", "stamp_seconds"]
 
 
-def stamp_seconds(metadata: Mapping[str, Any] | None) -> float | None:
+def stamp_seconds(metadata: Mapping[str, Any] | None, *, finite: bool = True) -> float | None:
     """`metadata.stamp` in seconds: a number as it is, a numeric string or ISO 8601 text converted;
-    None without one (a string that is neither)."""
+    None without one (a string that is neither). A numeric string beyond a double ("1e400") or "nan"
+    reads as None too, unless `finite` is False: then as the inf or NaN it is, for the HTTP check that
+    refuses it (a stored row's is read as absent, as it was learned)."""
     stamp = (metadata or {}).get("stamp")
     if isinstance(stamp, bool) or stamp is None:
         return None
@@ -30,7 +32,7 @@ def stamp_seconds(metadata: Mapping[str, Any] | None) -> float | None:
             return None
         # ISO text without an offset is UTC: the export must not depend on the server's time zone
         seconds = (when if when.tzinfo else when.replace(tzinfo=UTC)).timestamp()
-    return seconds if math.isfinite(seconds) else None  # JSON has no NaN or Infinity
+    return seconds if math.isfinite(seconds) or not finite else None  # JSON has no NaN or Infinity
 
 
 def _coordinate(value: Any) -> float | None:

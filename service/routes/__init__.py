@@ -6,32 +6,93 @@ added below.
 
 from __future__ import annotations
 
+from urllib.parse import unquote_to_bytes
+
 from fastapi import APIRouter, Depends, Request
+from fastapi.dependencies.models import Dependant
 
 from service.deps import ReadKeyDep
 from service.errors import Problem, problem_responses
 from service.routes import closures, health, maps, metrics, observations, recent, repair, snapshots
 
-__all__ = ["api_router", "refuse_repeated_query_parameters"]
+__all__ = ["QueryRulesDep", "api_router", "check_request_parameters", "declared_parameters"]
 
 
-def refuse_repeated_query_parameters(request: Request) -> None:
-    """A query parameter given twice is ambiguous (FastAPI would silently take the last one).
+def declared_parameters(dependant: Dependant) -> tuple[frozenset[str], frozenset[str]]:
+    """The query parameter names and the header names (lower case) `dependant` (a route's, with every
+    dependency it pulls in) declares: what the route reads, so a rule over them needs no list kept by hand.
+    Walked per request: a few dozen fields, and no cache to keep a dropped app's routes alive."""
+    queries = {field.alias for field in dependant.query_params}
+    headers = {field.alias.lower() for field in dependant.header_params}
+    for sub in dependant.dependencies:
+        sub_queries, sub_headers = declared_parameters(sub)
+        queries |= sub_queries
+        headers |= sub_headers
+    return frozenset(queries), frozenset(headers)
+
+
+def _invalid(detail: str, names: list[str], message: str, location: str = "query",
+             **members: object) -> Problem:
+    return Problem(400, "invalid-parameter", detail, **members,
+                   errors=[{"location": location, "name": name, "message": message} for name in names])
+
+
+def _not_utf8(query_string: bytes) -> list[str]:
+    """The parameters of a raw query string whose percent-decoded name or value is not UTF-8 (Starlette
+    would read each bad byte as U+FFFD and the service would store that, not what was sent)."""
+    bad = []
+    for field in query_string.decode("latin-1").split("&"):
+        name, _, value = field.partition("=")
+        raw_name = unquote_to_bytes(name.replace("+", " "))
+        try:
+            raw_name.decode()
+            unquote_to_bytes(value.replace("+", " ")).decode()
+        except UnicodeDecodeError:
+            bad.append(raw_name.decode(errors="backslashreplace"))
+    return bad
+
+
+def check_request_parameters(request: Request) -> None:
+    """The rules every route's query (and declared headers) follow (docs/design/service.md §2), read from
+    the route's own declarations: each query name and value is UTF-8, each parameter is one the route
+    declares and is given once (FastAPI would silently ignore an unknown one, so a misspelt `learn=false`
+    would learn, and take the last of a repeated one), and so is each header the route declares
+    (`Idempotency-Key`: two keys in one request bind neither safely).
 
     Raises:
-        Problem: 400 invalid-parameter naming each repeated parameter.
+        Problem: 400 invalid-parameter naming each offending parameter (and listing the accepted ones
+            for an unknown one).
     """
+    not_utf8 = _not_utf8(request.scope.get("query_string") or b"")
+    if not_utf8:
+        raise _invalid(f"query parameter(s) not UTF-8 once percent-decoded: {', '.join(not_utf8)}",
+                       not_utf8, "not UTF-8")
     names = [name for name, _ in request.query_params.multi_items()]
     repeated = sorted({name for name in names if names.count(name) > 1})
     if repeated:
-        raise Problem(400, "invalid-parameter",
-                      f"query parameter(s) given more than once: {', '.join(repeated)}; give each once",
-                      errors=[{"location": "query", "name": name, "message": "given more than once"}
-                              for name in repeated])
+        raise _invalid(f"query parameter(s) given more than once: {', '.join(repeated)}; give each once",
+                       repeated, "given more than once")
+    route = request.scope.get("route")
+    dependant = getattr(route, "dependant", None)
+    if not isinstance(dependant, Dependant):
+        return
+    accepted, headers = declared_parameters(dependant)
+    unknown = sorted(set(names) - accepted)
+    if unknown:
+        listed = ", ".join(sorted(accepted)) or "none"
+        raise _invalid(f"unknown query parameter(s): {', '.join(map(repr, unknown))}; this route accepts: "
+                       f"{listed}", unknown, "unknown parameter", accepted=sorted(accepted))
+    doubled = sorted(name for name in headers if len(request.headers.getlist(name)) > 1)
+    if doubled:
+        raise _invalid(f"header(s) given more than once: {', '.join(doubled)}; give each once",
+                       doubled, "given more than once", location="header")
 
 
-# Every route: `?learn=false&learn=true` is a 400, not a guess.
-api_router = APIRouter(dependencies=[Depends(refuse_repeated_query_parameters)])
+#: The rules above, for a router or route that is not under `api_router` (the scale-out ingress's own).
+QueryRulesDep = Depends(check_request_parameters)
+
+# Every route: `?learn=false&learn=true`, `?Learn=false` and `?label=caf%E9` are each a 400, not a guess.
+api_router = APIRouter(dependencies=[QueryRulesDep])
 api_router.include_router(health.router)  # /healthz, /readyz: open to probes, whatever the key rules
 # With CORTEXLOC_API_KEY_READS every /v1 route and /metrics need the key: map lists, stream names (robot
 # names), sizes, snapshot lists and the metrics' map ids are not for anyone on the network either. A

@@ -120,10 +120,14 @@ class _Metadata(BaseModel):
     @field_validator("stamp")
     @classmethod
     def _seconds(cls, v: float | str | None) -> float | str | None:
-        seconds = stamp_seconds({"stamp": v})
-        if seconds is not None and abs(seconds) > STAMP_MAX_S:
-            raise ValueError(f"{v} read as seconds since the epoch is beyond ±10^11 s (the year 5138): "
-                             "stamps are seconds (a millisecond or nanosecond stamp divided by 10^3 or 10^9)")
+        seconds = stamp_seconds({"stamp": v}, finite=False)
+        # `not <=`: a numeric string that overflows a double ("1e400", 400 nines) reads as inf, and "nan" as
+        # NaN; stored, either would read back as no stamp, so each is refused like "1e300"
+        if seconds is not None and not abs(seconds) <= STAMP_MAX_S:
+            shown = str(v) if len(str(v)) <= 24 else str(v)[:24] + "..."
+            raise ValueError(f"{shown} read as seconds since the epoch is not a finite number within "
+                             "±10^11 s (the year 5138): stamps are seconds (a millisecond or nanosecond stamp"
+                             " divided by 10^3 or 10^9)")
         return v
 
 

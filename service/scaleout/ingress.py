@@ -35,6 +35,7 @@ from service.errors import problem_responses
 from service.maps.errors import ShardUnavailable
 from service.metrics import Metrics
 from service.request_ids import REQUEST_ID_HEADER, request_id_var
+from service.routes import QueryRulesDep
 from service.routes.health import readiness_reply
 from service.scaleout.shards import ShardSet
 from service.schemas import BudgetModel, Health, MapList, Readiness
@@ -104,13 +105,16 @@ def _merge_metrics(texts: dict[str, str]) -> bytes:
 
 
 def _router() -> APIRouter:
+    # The query rules of every route (service.routes.check_request_parameters) on the routes answered
+    # here; a route forwarded whole (`one_map`) declares nothing and leaves them to its shard.
     router = APIRouter()
 
-    @router.get("/healthz")
+    @router.get("/healthz", dependencies=[QueryRulesDep])
     async def healthz() -> Health:
         return Health(status="ok")
 
-    @router.get("/readyz", response_model=Readiness, responses=problem_responses(503))
+    @router.get("/readyz", response_model=Readiness, responses=problem_responses(503),
+                dependencies=[QueryRulesDep])
     async def readyz(request: Request, shards: ShardsDep) -> Readiness | JSONResponse:
         """Ready when every shard is: each shard's own /readyz checks, under its name."""
         replies = await shards.each("GET", "/readyz", "", _out_headers(request))
@@ -130,7 +134,7 @@ def _router() -> APIRouter:
                                 or "the shards' maps are being read"}
         return readiness_reply(request, checks, warnings)
 
-    @router.get("/metrics", response_class=Response, dependencies=[ReadKeyDep],
+    @router.get("/metrics", response_class=Response, dependencies=[QueryRulesDep, ReadKeyDep],
                 responses=problem_responses(401, 503))
     async def metrics(request: Request, shards: ShardsDep) -> Response:
         replies = await shards.each("GET", "/metrics", "", _out_headers(request))
@@ -143,7 +147,7 @@ def _router() -> APIRouter:
 
     v1 = APIRouter(prefix="/v1", dependencies=[ReadKeyDep], responses=problem_responses(401))
 
-    @v1.get("/maps", responses=problem_responses(503))
+    @v1.get("/maps", responses=problem_responses(503), dependencies=[QueryRulesDep])
     async def list_maps(request: Request, shards: ShardsDep) -> MapList:
         """Every shard's maps, each listed by the shard that owns it."""
         shards.require_reconciled()
@@ -152,7 +156,8 @@ def _router() -> APIRouter:
         maps = [m for shard, b in bodies.items() for m in b["maps"] if owner.get(m["map_id"]) == shard]
         return MapList.model_validate({"maps": sorted(maps, key=lambda m: m["map_id"])})
 
-    @v1.post("/maps", dependencies=[ApiKeyDep], responses=problem_responses(400, 401, 409, 422, 503))
+    @v1.post("/maps", dependencies=[QueryRulesDep, ApiKeyDep],
+             responses=problem_responses(400, 401, 409, 422, 503))
     async def create_map(request: Request, shards: ShardsDep) -> Response:
         """Created on the shard with the fewest maps, then routed there."""
         body = await request.body()
@@ -169,7 +174,7 @@ def _router() -> APIRouter:
                                             request.url.query, _out_headers(request), body))
         return _reply(await shards.create(map_id, "/v1/maps", request.url.query, _out_headers(request), body))
 
-    @v1.get("/memory", responses=problem_responses(503))
+    @v1.get("/memory", responses=problem_responses(503), dependencies=[QueryRulesDep])
     async def memory(request: Request, shards: ShardsDep) -> BudgetModel:
         """Every shard's budget summed; the maps' reservations of each (by the shard that owns them)."""
         shards.require_reconciled()

@@ -63,7 +63,9 @@ class ShardHost:
     async def request(self, method: str, path: str, query: str, headers: list[tuple[str, str]],
                       body: bytes) -> ForwardedReply:
         """One HTTP request through the app, answered whole."""
-        r = await self.client.request(method, path, params=httpx.QueryParams(query), headers=headers,
+        # The query as it came (Starlette's str of the raw bytes): parsed and re-encoded, a non-UTF-8
+        # escape would reach the shard's checks as U+FFFD (docs/design/service.md §2)
+        r = await self.client.request(method, httpx.URL(path, query=query.encode("latin-1")), headers=headers,
                                       content=body)
         return r.status_code, list(r.headers.multi_items()), r.content
 

@@ -87,7 +87,66 @@ def test_repeated_query_parameters_are_refused(client):
     assert body["type"].endswith("invalid-parameter")
     assert [e["name"] for e in body["errors"]] == ["learn", "top_k"]
     assert client.app.state.registry.get("default").store.count() == 0
-    assert client.get("/v1/maps?x=1&y=2").status_code == 200  # distinct parameters are fine
+    assert client.get("/v1/maps/default/observations?after_seq=0&limit=5").status_code == 200  # distinct
+
+
+@pytest.mark.parametrize("query", ["Learn=false", "learning=false", "learn%20=false", "topk=1",
+                                   "learn=false&top_k=1&lmit=2"])
+def test_an_unknown_query_parameter_is_refused_and_learns_nothing(client, query):
+    """Found from outside: a misspelt `learn=false` was ignored, so the frame was LEARNED (200)."""
+    r = client.post(f"/v1/maps/default/observations?{query}", content=frame(1),
+                    headers={"Content-Type": "image/png"})
+    assert r.status_code == 400 and r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE), r.text
+    body = r.json()
+    unknown = [field.split("=")[0].replace("%20", " ") for field in query.split("&")
+               if field.split("=")[0] not in ("learn", "top_k")]
+    assert body["type"].endswith("invalid-parameter") and [e["name"] for e in body["errors"]] == unknown
+    # the accepted names come from the route's declarations, not a list kept by hand
+    assert body["accepted"] == sorted(["learn", "top_k", "stream", "label", "encoding", "width", "height",
+                                       "metadata"])
+    assert client.app.state.registry.get("default").store.count() == 0
+
+
+@pytest.mark.parametrize("path", ["/v1/maps?foo=1", "/v1/maps/default/observations?lmit=1",
+                                  "/v1/maps/default/loop-closures/export?fmt=g2o", "/healthz?x=1",
+                                  "/v1/maps/default/recent?limit=1&strem=a"])
+def test_every_route_refuses_unknown_query_parameters(client, path):
+    """GET `.../export?fmt=g2o` answered CSV; each read route now names the stray parameter."""
+    r = client.get(path)
+    assert r.status_code == 400 and r.json()["type"].endswith("invalid-parameter"), r.text
+    stray = path.rsplit("&", 1)[-1].rsplit("?", 1)[-1].split("=")[0]
+    assert [e["name"] for e in r.json()["errors"]] == [stray] and stray in r.json()["detail"]
+    assert client.get(path.split("?")[0] + ("?format=jsonl" if "export" in path else "")).status_code == 200
+
+
+def test_a_query_value_that_is_not_utf8_is_refused_and_stores_nothing(client):
+    """Found from outside: `label=caf%E9` and metadata with `caf%E9` were stored as `caf\ufffd`."""
+    r = client.post("/v1/maps/default/observations?metadata=%7B%22name%22%3A%22caf%E9%22%7D&label=caf%E9"
+                    "&stream=ok", content=frame(1), headers={"Content-Type": "image/png"})
+    assert r.status_code == 400 and r.json()["type"].endswith("invalid-parameter"), r.text
+    assert [e["name"] for e in r.json()["errors"]] == ["metadata", "label"]
+    assert client.app.state.registry.get("default").store.count() == 0
+    # UTF-8 escapes (and a '+' for a space) are still read as sent
+    r = client.post("/v1/maps/default/observations?label=caf%C3%A9+au+lait", content=frame(1),
+                    headers={"Content-Type": "image/png"})
+    assert r.status_code == 200, r.text
+    assert client.get(f"/v1/maps/default/observations/{r.json()['seq']}").json()["label"] == "café au lait"
+
+
+def test_two_idempotency_keys_are_refused(client):
+    """Found from outside: two `Idempotency-Key` headers were accepted and the first bound the reply."""
+    headers = [("Content-Type", "image/png"), ("Idempotency-Key", "key-aaaaaaaa"),
+               ("Idempotency-Key", "key-bbbbbbbb")]
+    r = client.post("/v1/maps/default/observations", content=frame(1), headers=headers)
+    assert r.status_code == 400 and r.json()["type"].endswith("invalid-parameter"), r.text
+    assert r.json()["errors"] == [{"location": "header", "name": "idempotency-key",
+                                   "message": "given more than once"}]
+    assert client.app.state.registry.get("default").store.count() == 0
+    # neither key was bound: each alone is a first post
+    for key in ("key-aaaaaaaa", "key-bbbbbbbb"):
+        r = client.post("/v1/maps/default/observations", content=frame(1),
+                        headers={"Content-Type": "image/png", "Idempotency-Key": key})
+        assert r.status_code == 200 and "idempotent-replayed" not in r.headers, r.text
 
 
 def test_readyz_reports_the_damaged_snapshots_recovery_skipped(tmp_path):

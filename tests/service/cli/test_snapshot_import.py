@@ -87,6 +87,18 @@ def test_a_good_tar_still_imports(tmp_path, members):
     assert (tmp_path / "data" / "maps" / "lab" / "map.sqlite").is_file()
 
 
+@pytest.mark.parametrize("manifest", [b'{"a":' * 100_000 + b"1" + b"}" * 100_000, b"1" * 5000],
+                         ids=["nested 100000 deep", "an integer of 5000 digits"])
+def test_a_manifest_json_cannot_parse_is_one_line_refusal(tmp_path, members, manifest):
+    """Found from outside: a manifest nested 100,000 deep escaped as a RecursionError traceback (and an
+    over-long integer is Python's ValueError, not a JSONDecodeError); each is a bad manifest."""
+    data = tmp_path / "data"
+    r = run_import(make_tar(tmp_path / "deep.tar", {**members, "manifest.json": manifest}), data)
+    assert r.exit_code == 1 and isinstance(r.exception, SystemExit), (r.exception, r.output)
+    assert "manifest is not JSON" in r.output, r.output
+    assert not list(data.glob("maps/*"))
+
+
 def test_a_compressed_bomb_is_refused_before_its_data_is_written(tmp_path, members, monkeypatch):
     """64 MiB of zeros, gzip-compressed to ~64 KB, against a 32 MiB cap: refused from the manifest
     when declared, from the member's tar header when not, and never written either way."""

@@ -168,6 +168,11 @@ def bad_inputs() -> list[tuple[str, bytes, str, dict, int, str]]:
          "invalid-metadata"),
         ("stamp in nanoseconds, a string", png, "image/png", {"metadata": '{"stamp":"1700000000123456789"}'},
          422, "invalid-metadata"),
+        # a numeric string past a double reads as inf (and "nan" as NaN): once read as no stamp, now refused
+        *[(f"stamp string {shown}", png, "image/png", {"metadata": json.dumps({"stamp": stamp})}, 422,
+           "invalid-metadata") for shown, stamp in (("1e400", "1e400"), ("of 400 nines", "9" * 400),
+                                                    ("inf", "inf"), ("-Infinity", "-Infinity"),
+                                                    ("nan", "nan"))],
         ("png header claiming 100000x100000", huge_png_header(), "image/png", {}, 413, "image-too-large"),
         ("1x4000", frame_of_size(1, 4000), "image/png", {}, 422, "degenerate-image"),
     ]

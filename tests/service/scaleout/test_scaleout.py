@@ -230,6 +230,29 @@ def test_the_edge_rules_hold_at_the_ingress(cluster):
         assert big.status_code == 413 and big.json()["type"] == "urn:cortexloc:problem:payload-too-large"
 
 
+def test_the_query_rules_hold_through_the_ingress(cluster):
+    """Unknown, repeated and non-UTF-8 query parameters and a doubled Idempotency-Key are refused as by
+    one process (docs/design/service.md §2): on the ingress's own routes, and on a map's, forwarded as
+    sent (re-encoded, `caf%E9` reached the shard as U+FFFD and was stored)."""
+    with cluster.client() as c:
+        assert c.post("/v1/maps", json={"map_id": "m0", **TINY}).status_code == 201
+        for path in ("/v1/maps?foo=1", "/v1/memory?foo=1", "/healthz?foo=1", "/readyz?foo=1"):
+            r = c.get(path)
+            assert r.status_code == 400 and r.json()["errors"][0]["name"] == "foo", (path, r.text)
+        for query in ("Learn=false", "label=caf%E9", "learn=true&learn=false"):
+            r = c.post(f"/v1/maps/m0/observations?{query}", content=frame(1),
+                       headers={"Content-Type": "image/png"})
+            assert r.status_code == 400 and r.json()["type"].endswith("invalid-parameter"), (query, r.text)
+        two = [("Content-Type", "image/png"), ("Idempotency-Key", "key-aaaaaaaa"),
+               ("Idempotency-Key", "key-bbbbbbbb")]
+        r = c.post("/v1/maps/m0/observations", content=frame(1), headers=two)
+        assert r.status_code == 400, r.text
+        assert c.get("/v1/maps/m0").json()["last_seq"] == 0
+        r = post(c, "m0", 1, label="caf\u00e9 au lait", top_k=1)
+        assert r.status_code == 200, r.text
+        assert c.get(f"/v1/maps/m0/observations/{r.json()['seq']}").json()["label"] == "caf\u00e9 au lait"
+
+
 def test_moving_a_map_keeps_every_row_and_switches_the_route(cluster):
     with cluster.client() as c:
         assert c.post("/v1/maps", json={"map_id": "m0", **TINY}).status_code == 201  # shard-1
