@@ -88,17 +88,20 @@ def check_request_parameters(request: Request) -> None:
                        doubled, "given more than once", location="header")
 
 
-#: The rules above, for a router or route that is not under `api_router` (the scale-out ingress's own).
+#: The rules above, on every route but the probes' (`api_router`; the scale-out ingress's own routes).
 QueryRulesDep = Depends(check_request_parameters)
 
-# Every route: `?learn=false&learn=true`, `?Learn=false` and `?label=caf%E9` are each a 400, not a guess.
-api_router = APIRouter(dependencies=[QueryRulesDep])
-api_router.include_router(health.router)  # /healthz, /readyz: open to probes, whatever the key rules
-# With CORTEXLOC_API_KEY_READS every /v1 route and /metrics need the key: map lists, stream names (robot
-# names), sizes, snapshot lists and the metrics' map ids are not for anyone on the network either. A
-# route added to these routers is guarded without naming it (writes check the key anyway).
-api_router.include_router(metrics.router, dependencies=[ReadKeyDep], responses=problem_responses(401))
-v1 = APIRouter(dependencies=[ReadKeyDep], responses=problem_responses(401))
+api_router = APIRouter()
+# /healthz, /readyz: open to probes, whatever the key rules, and whatever their query: they read none, and
+# a liveness check that adds a cache-busting parameter must not restart a healthy service.
+api_router.include_router(health.router)
+# Every other route: `?learn=false&learn=true`, `?Learn=false` and `?label=caf%E9` are each a 400, not a
+# guess. With CORTEXLOC_API_KEY_READS every /v1 route and /metrics need the key: map lists, stream names
+# (robot names), sizes, snapshot lists and the metrics' map ids are not for anyone on the network either.
+# A route added to these routers is guarded without naming it (writes check the key anyway).
+api_router.include_router(metrics.router, dependencies=[QueryRulesDep, ReadKeyDep],
+                          responses=problem_responses(401))
+v1 = APIRouter(dependencies=[QueryRulesDep, ReadKeyDep], responses=problem_responses(401))
 for resource in (maps.router, maps.process_router, observations.router, recent.router, snapshots.router,
                  closures.router, repair.router):
     v1.include_router(resource)

@@ -105,16 +105,16 @@ def _merge_metrics(texts: dict[str, str]) -> bytes:
 
 
 def _router() -> APIRouter:
-    # The query rules of every route (service.routes.check_request_parameters) on the routes answered
-    # here; a route forwarded whole (`one_map`) declares nothing and leaves them to its shard.
+    # The query rules of every route but the probes' (service.routes.check_request_parameters) on the
+    # routes answered here; a route forwarded whole (`one_map`) declares nothing and leaves them to its
+    # shard.
     router = APIRouter()
 
-    @router.get("/healthz", dependencies=[QueryRulesDep])
+    @router.get("/healthz")
     async def healthz() -> Health:
         return Health(status="ok")
 
-    @router.get("/readyz", response_model=Readiness, responses=problem_responses(503),
-                dependencies=[QueryRulesDep])
+    @router.get("/readyz", response_model=Readiness, responses=problem_responses(503))
     async def readyz(request: Request, shards: ShardsDep) -> Readiness | JSONResponse:
         """Ready when every shard is: each shard's own /readyz checks, under its name."""
         replies = await shards.each("GET", "/readyz", "", _out_headers(request))

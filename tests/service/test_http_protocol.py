@@ -108,7 +108,7 @@ def test_an_unknown_query_parameter_is_refused_and_learns_nothing(client, query)
 
 
 @pytest.mark.parametrize("path", ["/v1/maps?foo=1", "/v1/maps/default/observations?lmit=1",
-                                  "/v1/maps/default/loop-closures/export?fmt=g2o", "/healthz?x=1",
+                                  "/v1/maps/default/loop-closures/export?fmt=g2o", "/metrics?x=1",
                                   "/v1/maps/default/recent?limit=1&strem=a"])
 def test_every_route_refuses_unknown_query_parameters(client, path):
     """GET `.../export?fmt=g2o` answered CSV; each read route now names the stray parameter."""
@@ -117,6 +117,12 @@ def test_every_route_refuses_unknown_query_parameters(client, path):
     stray = path.rsplit("&", 1)[-1].rsplit("?", 1)[-1].split("=")[0]
     assert [e["name"] for e in r.json()["errors"]] == [stray] and stray in r.json()["detail"]
     assert client.get(path.split("?")[0] + ("?format=jsonl" if "export" in path else "")).status_code == 200
+
+
+def test_the_probes_endpoints_take_a_stray_parameter(client):
+    """A liveness or readiness check that adds a cache-busting parameter must not fail a healthy service."""
+    assert client.get("/healthz?cache=1").status_code == 200
+    assert client.get("/readyz?cache=1").status_code == 200
 
 
 def test_a_query_value_that_is_not_utf8_is_refused_and_stores_nothing(client):
