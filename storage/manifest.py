@@ -178,9 +178,9 @@ def parse_manifest(body: bytes, where: str) -> Manifest:
     if m.kind not in SNAPSHOT_KINDS or m.seq < 0 or (m.seq > 0) != (m.last_observation_id is not None):
         raise SnapshotInvalid(f"{where}: inconsistent manifest (kind {m.kind!r}, seq {m.seq})")
     # The ids and the projection's checksum become directory and file names on import.
-    if not MAP_ID_RE.match(m.map_id):
+    if not MAP_ID_RE.fullmatch(m.map_id):  # fullmatch: `$` also matches before a last newline
         raise SnapshotInvalid(f"{where}: map_id {m.map_id!r} must match {MAP_ID_RE.pattern}")
-    if not SNAPSHOT_ID_RE.match(m.snapshot_id):
+    if not SNAPSHOT_ID_RE.fullmatch(m.snapshot_id):
         raise SnapshotInvalid(f"{where}: snapshot_id {m.snapshot_id!r} must match {SNAPSHOT_ID_RE.pattern}")
     if not _SHA256.fullmatch(m.projection_sha256):
         raise SnapshotInvalid(f"{where}: projection_sha256 is not a SHA-256")

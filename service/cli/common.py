@@ -84,3 +84,12 @@ def check_backbone(name: str) -> None:
 
     if name not in backbones.names():
         raise typer.BadParameter(f"must be one of {', '.join(backbones.names())}", param_hint="--backbone")
+
+
+def check_map_id(map_id: str) -> None:
+    """--map must be a map id: a command that puts it into a URL path as it is would otherwise reach
+    another resource (`m/x/..` is map m, `m/snapshots` a collection)."""
+    from service.maps.ids import MAP_ID_RE
+
+    if not MAP_ID_RE.fullmatch(map_id):  # fullmatch: the pattern's `$` also matches before a last newline
+        raise typer.BadParameter(f"{map_id!r} is not a map id ({MAP_ID_RE.pattern})", param_hint="--map")

@@ -56,6 +56,9 @@ def ingest_command(
     = None,
 ) -> None:
     """Post a folder of images or a ROS bag to a map in source order, with progress and a summary."""
+    from service.cli.common import check_map_id
+
+    check_map_id(map_id)  # before the in-process service starts (its maps replayed, its lock taken)
     # Before anything imports cv2 (the readers do): the settings set OpenCV's pixel guard for the app.
     settings, api_key = target(url, data_dir, api_key)
 

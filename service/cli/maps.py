@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from service.cli.common import progress
+from service.cli.common import check_map_id, progress
 from service.cli.serve import process_settings
 
 if TYPE_CHECKING:
@@ -141,10 +141,8 @@ def repair(
     from service.cli.ingest import target
     from service.ingest import poster
     from service.maps.errors import DataDirectoryInUse
-    from service.maps.ids import MAP_ID_RE
 
-    if not MAP_ID_RE.match(map_id):  # it goes into the path as it is: "m/x/.." would repair map m
-        raise typer.BadParameter(f"{map_id!r} is not a map id ({MAP_ID_RE.pattern})", param_hint="--map")
+    check_map_id(map_id)
     settings, api_key = target(url, data_dir, api_key)
     headers = {"X-API-Key": api_key} if api_key else {}
 

@@ -191,7 +191,7 @@ async def ingest(client: httpx.AsyncClient, source: Source, opts: Options, *,
     """
     summary = Summary(source=source.describe(), map_id=opts.map_id, stream=opts.stream, learn=opts.learn,
                       total=source.total)
-    if not MAP_ID_RE.match(opts.map_id):
+    if not MAP_ID_RE.fullmatch(opts.map_id):
         # the id goes into the path as it is: "m/.." or "m/snapshots" would be another resource
         raise IngestError(f"map {opts.map_id!r} is not a map id ({MAP_ID_RE.pattern})", summary)
     headers = {"X-API-Key": opts.api_key} if opts.api_key else {}

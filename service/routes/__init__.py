@@ -6,6 +6,7 @@ added below.
 
 from __future__ import annotations
 
+from collections import Counter
 from urllib.parse import unquote_to_bytes
 
 from fastapi import APIRouter, Depends, Request
@@ -15,7 +16,14 @@ from service.deps import ReadKeyDep
 from service.errors import Problem, problem_responses
 from service.routes import closures, health, maps, metrics, observations, recent, repair, snapshots
 
-__all__ = ["QueryRulesDep", "api_router", "check_request_parameters", "declared_parameters"]
+__all__ = ["MAX_QUERY_PARAMETERS", "QueryRulesDep", "api_router", "check_request_parameters",
+           "declared_parameters"]
+
+#: Query parameters one request may carry: a route declares 8 at most, and the rules below run before the
+#: write key is checked, so a query of thousands of names must cost nothing and echo nothing.
+MAX_QUERY_PARAMETERS = 32
+#: Offending names a refusal lists (the count is always given).
+_NAMES_LISTED = 10
 
 
 def declared_parameters(dependant: Dependant) -> tuple[frozenset[str], frozenset[str]]:
@@ -31,10 +39,14 @@ def declared_parameters(dependant: Dependant) -> tuple[frozenset[str], frozenset
     return frozenset(queries), frozenset(headers)
 
 
-def _invalid(detail: str, names: list[str], message: str, location: str = "query",
+def _invalid(what: str, names: list[str], message: str, location: str = "query", advice: str = "",
              **members: object) -> Problem:
-    return Problem(400, "invalid-parameter", detail, **members,
-                   errors=[{"location": location, "name": name, "message": message} for name in names])
+    """400 invalid-parameter naming at most `_NAMES_LISTED` of `names` (a reply never echoes a request)."""
+    shown = names[:_NAMES_LISTED]
+    more = f" and {len(names) - len(shown)} more" if len(names) > len(shown) else ""
+    return Problem(400, "invalid-parameter", f"{what}: {', '.join(map(repr, shown))}{more}{advice}",
+                   **members,
+                   errors=[{"location": location, "name": name, "message": message} for name in shown])
 
 
 def _not_utf8(query_string: bytes) -> list[str]:
@@ -52,7 +64,7 @@ def _not_utf8(query_string: bytes) -> list[str]:
     return bad
 
 
-def check_request_parameters(request: Request) -> None:
+async def check_request_parameters(request: Request) -> None:
     """The rules every route's query (and declared headers) follow (docs/design/service.md §2), read from
     the route's own declarations: each query name and value is UTF-8, each parameter is one the route
     declares and is given once (FastAPI would silently ignore an unknown one, so a misspelt `learn=false`
@@ -63,15 +75,18 @@ def check_request_parameters(request: Request) -> None:
         Problem: 400 invalid-parameter naming each offending parameter (and listing the accepted ones
             for an unknown one).
     """
-    not_utf8 = _not_utf8(request.scope.get("query_string") or b"")
+    query = request.scope.get("query_string") or b""
+    if query.count(b"&") >= MAX_QUERY_PARAMETERS:
+        raise Problem(400, "invalid-parameter", f"more than {MAX_QUERY_PARAMETERS} query parameters",
+                      errors=[{"location": "query", "name": "", "message": "too many parameters"}])
+    not_utf8 = _not_utf8(query)
     if not_utf8:
-        raise _invalid(f"query parameter(s) not UTF-8 once percent-decoded: {', '.join(not_utf8)}",
-                       not_utf8, "not UTF-8")
+        raise _invalid("query parameter(s) not UTF-8 once percent-decoded", not_utf8, "not UTF-8")
     names = [name for name, _ in request.query_params.multi_items()]
-    repeated = sorted({name for name in names if names.count(name) > 1})
+    repeated = sorted(name for name, n in Counter(names).items() if n > 1)
     if repeated:
-        raise _invalid(f"query parameter(s) given more than once: {', '.join(repeated)}; give each once",
-                       repeated, "given more than once")
+        raise _invalid("query parameter(s) given more than once", repeated, "given more than once",
+                       advice="; give each once")
     route = request.scope.get("route")
     dependant = getattr(route, "dependant", None)
     if not isinstance(dependant, Dependant):
@@ -80,12 +95,12 @@ def check_request_parameters(request: Request) -> None:
     unknown = sorted(set(names) - accepted)
     if unknown:
         listed = ", ".join(sorted(accepted)) or "none"
-        raise _invalid(f"unknown query parameter(s): {', '.join(map(repr, unknown))}; this route accepts: "
-                       f"{listed}", unknown, "unknown parameter", accepted=sorted(accepted))
+        raise _invalid("unknown query parameter(s)", unknown, "unknown parameter",
+                       advice=f"; this route accepts: {listed}", accepted=sorted(accepted))
     doubled = sorted(name for name in headers if len(request.headers.getlist(name)) > 1)
     if doubled:
-        raise _invalid(f"header(s) given more than once: {', '.join(doubled)}; give each once",
-                       doubled, "given more than once", location="header")
+        raise _invalid("header(s) given more than once", doubled, "given more than once", location="header",
+                       advice="; give each once")
 
 
 #: The rules above, on every route but the probes' (`api_router`; the scale-out ingress's own routes).
@@ -99,9 +114,9 @@ api_router.include_router(health.router)
 # guess. With CORTEXLOC_API_KEY_READS every /v1 route and /metrics need the key: map lists, stream names
 # (robot names), sizes, snapshot lists and the metrics' map ids are not for anyone on the network either.
 # A route added to these routers is guarded without naming it (writes check the key anyway).
-api_router.include_router(metrics.router, dependencies=[QueryRulesDep, ReadKeyDep],
+api_router.include_router(metrics.router, dependencies=[ReadKeyDep, QueryRulesDep],
                           responses=problem_responses(401))
-v1 = APIRouter(dependencies=[QueryRulesDep, ReadKeyDep], responses=problem_responses(401))
+v1 = APIRouter(dependencies=[ReadKeyDep, QueryRulesDep], responses=problem_responses(401))
 for resource in (maps.router, maps.process_router, observations.router, recent.router, snapshots.router,
                  closures.router, repair.router):
     v1.include_router(resource)

@@ -31,7 +31,7 @@ from prometheus_client.registry import CollectorRegistry
 
 from service.app import install_edge
 from service.deps import ApiKeyDep, ReadKeyDep
-from service.errors import problem_responses
+from service.errors import Problem, problem_responses
 from service.maps.errors import ShardUnavailable
 from service.metrics import Metrics
 from service.request_ids import REQUEST_ID_HEADER, request_id_var
@@ -134,7 +134,7 @@ def _router() -> APIRouter:
                                 or "the shards' maps are being read"}
         return readiness_reply(request, checks, warnings)
 
-    @router.get("/metrics", response_class=Response, dependencies=[QueryRulesDep, ReadKeyDep],
+    @router.get("/metrics", response_class=Response, dependencies=[ReadKeyDep, QueryRulesDep],
                 responses=problem_responses(401, 503))
     async def metrics(request: Request, shards: ShardsDep) -> Response:
         replies = await shards.each("GET", "/metrics", "", _out_headers(request))
@@ -187,8 +187,21 @@ def _router() -> APIRouter:
         return BudgetModel.model_validate({**summed, "source": first["source"], "maps": maps})
 
     async def one_map(request: Request, shards: ShardsDep, map_id: str, rest: str = "") -> Response:
-        """A request about one map, answered by its shard."""
-        path = request.url.path
+        """A request about one map, answered by its shard, at the path as it came (still percent-encoded).
+
+        Raises:
+            Problem: 400 invalid-parameter for a "." or ".." segment sent as it is.
+        """
+        # Decoded, a stream or snapshot id ".." sent as "%2E%2E" (as the typed client sends it) would be a
+        # dot segment the forward resolves: `…/snapshots/%2E%2E` was DELETE /v1/maps/m on the shard, and
+        # the table kept routing to the deleted map. Sent bare, the segment is refused: nothing of ours
+        # sends one, and `m0/a/../../m1` would reach map m1 on m0's shard, past the table.
+        raw = request.scope.get("raw_path") or request.url.path.encode()
+        path = raw.split(b"?", 1)[0].decode("latin-1")
+        if any(segment in (".", "..") for segment in path.split("/")):
+            raise Problem(400, "invalid-parameter",
+                          "the path has a '.' or '..' segment: an id of '.' or '..' goes percent-encoded",
+                          errors=[{"location": "path", "name": "path", "message": "dot segment"}])
         if request.method == "DELETE" and not rest:
             return _reply(await shards.delete(map_id, path, request.url.query, _out_headers(request)))
         return _reply(await shards.forward(map_id, request.method, path, request.url.query,

@@ -66,6 +66,8 @@ def run_import(tar: Path, data: Path):
     {"map_id": ".."},
     {"snapshot_id": "../../../../newdir/snap"},
     {"snapshot_id": ".."},
+    {"map_id": "m\n"},  # `$` also matches before a last newline
+    {"snapshot_id": "s\n"},
     {"projection_sha256": "../../../projection-escape"},
 ], ids=lambda c: f"{next(iter(c))}={next(iter(c.values()))}")
 def test_hostile_names_are_refused_before_anything_is_written(tmp_path, members, changes):

@@ -279,7 +279,7 @@ def test_a_refused_frame_is_counted_and_the_ingest_goes_on_but_a_refused_map_sto
     assert len(service.bodies) == 2
 
 
-@pytest.mark.parametrize("map_id", ["..", "m/..", "m/snapshots", ""])
+@pytest.mark.parametrize("map_id", ["..", "m/..", "m/snapshots", "", "m\n"])
 def test_a_map_id_that_is_not_one_is_refused_before_any_request(tmp_path, map_id):
     """The id goes into the path as it is: "m/.." would post to another resource."""
     service = Scripted()
@@ -287,6 +287,16 @@ def test_a_map_id_that_is_not_one_is_refused_before_any_request(tmp_path, map_id
     with pytest.raises(poster.IngestError, match="is not a map id"):
         anyio.run(run)
     assert service.keys == set()  # nothing was sent
+
+
+def test_the_cli_refuses_a_map_id_that_is_not_one_before_it_starts_the_service(tmp_path):
+    """Found in review: in process, the refusal came after the service had started (its encoder loaded,
+    its maps replayed, its directory locked), with exit 1; like `repair`, it is a usage error first."""
+    (tmp_path / "frames").mkdir()
+    out = CliRunner().invoke(cli.app, ["ingest", str(tmp_path / "frames"), "--map", "m/..",
+                                       "--data-dir", str(tmp_path / "data")])
+    assert out.exit_code == 2 and "is not a map id" in out.output, out.output
+    assert not (tmp_path / "data").exists()  # no service started on it
 
 
 def test_registering_ingest_keeps_cv2_out_of_the_cli_start():

@@ -227,7 +227,7 @@ def test_the_cli_repair_says_in_one_line_that_it_cannot_reach_the_service():
     assert "Traceback" not in out.output and len(out.output.strip().splitlines()) == 1
 
 
-@pytest.mark.parametrize("map_id", ["m/x/..", "..", ""])
+@pytest.mark.parametrize("map_id", ["m/x/..", "..", "", "m\n"])
 def test_the_cli_repair_refuses_what_is_not_a_map_id_before_any_request(map_id):
     # the id goes into the path: "m/x/.." would be resolved to a repair of map m
     out = CliRunner().invoke(cli, ["repair", "--map", map_id, "--url", "http://127.0.0.1:9"])

@@ -249,6 +249,42 @@ def test_the_query_rules_hold_through_the_ingress(cluster):
         r = c.post("/v1/maps/m0/observations", content=frame(1), headers=two)
         assert r.status_code == 400, r.text
         assert c.get("/v1/maps/m0").json()["last_seq"] == 0
+
+
+async def raw_delete(app, path: str) -> tuple[int, bytes]:
+    """DELETE `path` on the ASGI `app` exactly as a client may send it (curl --path-as-is)."""
+    scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "DELETE",
+             "scheme": "http", "path": path, "raw_path": path.encode(), "query_string": b"", "root_path": "",
+             "headers": [(b"host", b"testserver")], "client": ("127.0.0.1", 1), "server": ("testserver", 80)}
+    sent: list[dict] = []
+
+    async def receive() -> dict:
+        return {"type": "http.request", "body": b"", "more_body": False}
+
+    async def send(message: dict) -> None:
+        sent.append(message)
+
+    await app(scope, receive, send)
+    return sent[0]["status"], b"".join(m.get("body", b"") for m in sent[1:])
+
+
+def test_a_dot_segment_reaches_the_shard_as_one_segment_never_another_resource(cluster):
+    """Found in review: the ingress forwarded the decoded path, so the typed client's
+    `delete_snapshot(m0, "..")` (`…/snapshots/%2E%2E`) became DELETE /v1/maps/m0 on the shard, and the
+    table kept routing to the deleted map; a bare `..` reached another map past the table."""
+    with cluster.client() as c:
+        for m in ("m0", "m1"):
+            assert c.post("/v1/maps", json={"map_id": m, **TINY}).status_code == 201
+        assert post(c, "m0", 1).status_code == 200
+        r = c.delete("/v1/maps/m0/snapshots/%2E%2E")
+        assert r.status_code in (400, 404) and r.json()["type"].endswith(("invalid-parameter", "not-found"))
+        r = c.post("/v1/maps/m0/streams/%2E%2E/reset")  # a stream named ".." is one segment, its own
+        assert r.status_code != 404 or "stream" in r.json()["detail"], r.text
+        for bare in ("/v1/maps/m0/a/../../m1", "/v1/maps/m0/snapshots/.."):
+            status, body = c.portal.call(raw_delete, c.app, bare)  # httpx would resolve the dots first
+            assert status == 400 and json.loads(body)["type"].endswith("invalid-parameter"), (bare, body)
+        assert c.get("/v1/maps/m0").json()["last_seq"] == 1 and c.get("/v1/maps/m1").status_code == 200
+        assert {m["map_id"] for m in c.get("/v1/maps").json()["maps"]} >= {"m0", "m1"}
         r = post(c, "m0", 1, label="caf\u00e9 au lait", top_k=1)
         assert r.status_code == 200, r.text
         assert c.get(f"/v1/maps/m0/observations/{r.json()['seq']}").json()["label"] == "caf\u00e9 au lait"
