@@ -26,6 +26,9 @@ JSON bodies (`application/json` or `application/*+json`). 413, 408 and 503 respo
 `cortexloc_upload_inflight_bytes` (reserved now) and `cortexloc_upload_refusals_total{reason}`
 (`too-large`, `timeout`, `budget`).
 
+A body sent with a content coding (`Content-Encoding` other than identity) is answered 415
+`unsupported-media-type` with `Accept-Encoding: identity` before it is read (RFC 7694).
+
 The request line and headers are limited to `HEAD_MAX_BYTES` (16 KiB): the protocol `cortexloc serve`
 runs (`service.server.ProblemHttpToolsProtocol`) refuses a longer head as it parses it; here it is
 refused too (an app served by another server, the test client), with the same 400 `invalid-parameter`.
@@ -76,7 +79,8 @@ class BodyTimeoutError(ClientDisconnect):
         self.received_bytes = received_bytes
 
 
-def _is_json(content_type: str | None) -> bool:
+def is_json(content_type: str | None) -> bool:
+    """Whether a Content-Type is JSON's (`application/json`, `application/*+json`, any parameters)."""
     if not content_type:
         return False
     media = content_type.split(";", 1)[0].strip().lower()
@@ -95,7 +99,7 @@ def _setting(scope: Scope, name: str) -> Any:
 def body_limit(scope: Scope, headers: Headers) -> int:
     """The byte limit of this request's body."""
     limit = int(_setting(scope, "max_upload_bytes"))
-    if _is_json(headers.get("content-type")):
+    if is_json(headers.get("content-type")):
         limit = min(limit, JSON_MAX_BYTES)
     return limit
 
@@ -175,6 +179,18 @@ class UploadLimitMiddleware:
             await response(scope, receive, send)
             return
         headers = Headers(scope=scope)
+        coded = [c.strip() for v in headers.getlist("content-encoding") for c in v.split(",")
+                 if c.strip() and c.strip().lower() != "identity"]
+        if coded:
+            # Read as sent, a gzip body is refused for its bytes (not an image, bad JSON): the wrong
+            # reason. An image is compressed already, so the service decodes no content coding (RFC 7694).
+            response = problem_response(
+                Request(scope), 415, "unsupported-media-type",
+                f"Content-Encoding {', '.join(map(repr, coded[:4]))} is not accepted: send the body "
+                f"uncompressed", headers={"Accept-Encoding": "identity", "Connection": "close"},
+                allowed=["identity"])
+            await response(scope, receive, send)
+            return
         limit = body_limit(scope, headers)
         timeout_s = float(_setting(scope, "body_timeout_s"))
         deadline = anyio.current_time() + timeout_s

@@ -230,7 +230,7 @@ class MapRegistry:
             InvalidMapId, InvalidConfiguration, MapTooLarge, MapAlreadyExists, MapLimit,
             MemoryBudgetExceeded.
         """
-        if not MAP_ID_RE.match(map_id):
+        if not MAP_ID_RE.fullmatch(map_id):  # `$` also matches before a last newline
             raise InvalidMapId(map_id, MAP_ID_RE.pattern)
         config = self._resolve(options)
         with self._create_lock:
@@ -361,7 +361,7 @@ class MapRegistry:
             return []
         listed = {r.map_id for r in self.catalog.list_maps()}
         return sorted(d.name for d in self.layout.maps.iterdir()
-                      if d.is_dir() and MAP_ID_RE.match(d.name) and d.name not in listed
+                      if d.is_dir() and MAP_ID_RE.fullmatch(d.name) and d.name not in listed
                       and self._holds_data(d.name))
 
     def memory_budget(self) -> BudgetInfo:

@@ -14,6 +14,7 @@ from fastapi.dependencies.models import Dependant
 
 from service.deps import ReadKeyDep
 from service.errors import Problem, problem_responses
+from service.limits import is_json
 from service.routes import closures, health, maps, metrics, observations, recent, repair, snapshots
 
 __all__ = ["MAX_QUERY_PARAMETERS", "QueryRulesDep", "api_router", "check_request_parameters",
@@ -69,10 +70,12 @@ async def check_request_parameters(request: Request) -> None:
     the route's own declarations: each query name and value is UTF-8, each parameter is one the route
     declares and is given once (FastAPI would silently ignore an unknown one, so a misspelt `learn=false`
     would learn, and take the last of a repeated one), and so is each header the route declares
-    (`Idempotency-Key`: two keys in one request bind neither safely).
+    (`Idempotency-Key`: two keys in one request bind neither safely). A route that reads a JSON body
+    gets one sent as JSON.
 
     Raises:
-        Problem: 400 invalid-parameter naming each offending parameter (and listing the accepted ones
+        Problem: 415 unsupported-media-type for a body of another type on a JSON route; 400
+            invalid-parameter naming each offending parameter (and listing the accepted ones
             for an unknown one).
     """
     query = request.scope.get("query_string") or b""
@@ -97,6 +100,15 @@ async def check_request_parameters(request: Request) -> None:
         listed = ", ".join(sorted(accepted)) or "none"
         raise _invalid("unknown query parameter(s)", unknown, "unknown parameter",
                        advice=f"; this route accepts: {listed}", accepted=sorted(accepted))
+    sent = (request.headers.get("content-length", "0") not in ("", "0")
+            or "transfer-encoding" in request.headers)
+    if dependant.body_params and sent and not is_json(request.headers.get("content-type")):
+        # FastAPI would read any other type as bytes and say the body is no object: the wrong reason
+        media = request.headers.get("content-type")
+        raise Problem(415, "unsupported-media-type",
+                      f"Content-Type {media or '(none)'!r} is not accepted: this route reads "
+                      f"application/json",
+                      allowed=["application/json"])
     doubled = sorted(name for name in headers if len(request.headers.getlist(name)) > 1)
     if doubled:
         raise _invalid("header(s) given more than once", doubled, "given more than once", location="header",

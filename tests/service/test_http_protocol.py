@@ -120,6 +120,42 @@ def test_every_route_refuses_unknown_query_parameters(client, path):
     assert client.get(path.split("?")[0] + ("?format=jsonl" if "export" in path else "")).status_code == 200
 
 
+@pytest.mark.parametrize("coding", ["gzip", "br", "gzip, identity", "x-unknown"])
+def test_a_compressed_body_is_415_naming_the_coding_and_stores_nothing(client, coding):
+    """Found from outside: a gzip body was read as sent, so a frame was refused as 'not an image' and a
+    map's options as bad JSON: the wrong reason. The service decodes no content coding (RFC 7694)."""
+    import gzip
+
+    r = client.post("/v1/maps/default/observations", content=gzip.compress(frame(1)),
+                    headers={"Content-Type": "image/png", "Content-Encoding": coding})
+    created = client.post("/v1/maps", content=gzip.compress(b'{"map_id": "lab"}'),
+                          headers={"Content-Type": "application/json", "Content-Encoding": coding})
+    for reply in (r, created):
+        assert reply.status_code == 415 and reply.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
+        assert reply.headers["accept-encoding"] == "identity"
+        assert reply.json()["allowed"] == ["identity"] and "Content-Encoding" in reply.json()["detail"]
+    assert client.app.state.registry.get("default").store.count() == 0
+    assert [m["map_id"] for m in client.get("/v1/maps").json()["maps"]] == ["default"]
+    plain = client.post("/v1/maps/default/observations", content=frame(1),
+                        headers={"Content-Type": "image/png", "Content-Encoding": "identity"})
+    assert plain.status_code == 200, plain.text
+
+
+@pytest.mark.parametrize("ctype", ["text/plain", None, "application/x-www-form-urlencoded"])
+def test_json_sent_as_another_type_is_415_saying_which_type_and_changes_nothing(client, ctype):
+    """Found from outside: `curl -d` sends form type, and the 400 said the body was 'no object'."""
+    headers = {"Content-Type": ctype} if ctype else {}
+    created = client.post("/v1/maps", content=b'{"map_id": "lab"}', headers=headers)
+    patched = client.patch("/v1/maps/default", content=b'{"revisit_threshold": 0.5}', headers=headers)
+    for reply in (created, patched):
+        assert reply.status_code == 415 and reply.json()["allowed"] == ["application/json"], reply.text
+        assert "application/json" in reply.json()["detail"]
+    assert [m["map_id"] for m in client.get("/v1/maps").json()["maps"]] == ["default"]
+    assert client.get("/v1/maps/default").json()["revisit_threshold"] != 0.5
+    assert client.post("/v1/maps", json={"map_id": "lab"}).status_code == 201
+    assert client.post("/v1/maps/default/snapshots").status_code == 201  # no body: no type needed
+
+
 def test_the_probes_endpoints_take_a_stray_parameter(client):
     """A liveness or readiness check that adds a cache-busting parameter must not fail a healthy service."""
     assert client.get("/healthz?cache=1").status_code == 200

@@ -64,3 +64,13 @@ def test_a_binary_reply_is_declared_as_what_it_sends_and_nothing_else(tmp_path):
     reply = spec["paths"]["/v1/maps/{map_id}/snapshots/{snapshot_id}/download"]["get"]["responses"]["200"]
     assert set(reply["content"]) == {"application/x-tar"}
     assert reply["content"]["application/x-tar"]["schema"] == {"type": "string", "format": "binary"}
+
+
+def test_every_route_with_a_body_declares_its_415(tmp_path):
+    """A body of another type (or with a content coding) is 415 on every route that reads one: the spec
+    says so where a client generator reads it."""
+    spec = TestClient(make_app(tmp_path / "data")).get("/openapi.json").json()
+    with_body = [(m, p, op) for p, ops in spec["paths"].items() for m, op in ops.items()
+                 if op.get("requestBody")]
+    assert len(with_body) >= 3
+    assert [f"{m} {p}" for m, p, op in with_body if "415" not in op["responses"]] == []

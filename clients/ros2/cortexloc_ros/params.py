@@ -182,7 +182,7 @@ def _typed(values: dict[str, Any], problems: list[str]) -> dict[str, Any]:
 def stream_problem(name: str, value: str) -> str | None:
     """The line saying why `value` (the parameter `name`'s) is not a stream name the service takes, or
     None: the service refuses such a name on every frame, so the node refuses it at start."""
-    if _STREAM.match(value):
+    if _STREAM.fullmatch(value):  # fullmatch: `$` also matches before a last newline
         return None
     return (f"{name}: {value!r} is not a stream name (up to 8 '/'-separated parts of 1 to 64 letters, "
             f"digits, '.', '_' or '-')")
@@ -193,7 +193,7 @@ def trail_of(trail: str, namespace: str) -> str | None:
     without its leading '/' (a robot's nodes share its namespace), else None (the root namespace: each
     stream its own trail)."""
     name = trail or namespace.strip("/")
-    return name if name and _STREAM.match(name) else None
+    return name if name and _STREAM.fullmatch(name) else None
 
 
 def config_warnings(cfg: Config) -> list[str]:
@@ -228,12 +228,12 @@ def read_config(values: dict[str, Any], *, unknown: list[str] | None = None) -> 
     url = urlsplit(str(v["service_url"]))
     if url.scheme not in ("http", "https") or not url.hostname:
         problems.append(f"service_url: {v['service_url']!r} is not an http(s)://host[:port] URL")
-    if not _MAP_ID.match(v["map"]):
+    if not _MAP_ID.fullmatch(v["map"]):
         problems.append(f"map: {v['map']!r} is not a map id (a lower-case letter or digit, then up to "
                         f"63 of those, '.', '_', '-')")
     if v["top_k"] < 0:
         problems.append(f"top_k: {v['top_k']} must be 0 or more")
-    if v["run_id"] and not _RUN_ID.match(v["run_id"]):
+    if v["run_id"] and not _RUN_ID.fullmatch(v["run_id"]):
         problems.append(f"run_id: {v['run_id']!r} must be 1 to 40 letters, digits, '_' or '-'")
     for name in ("stream", "trail"):  # empty: derived by the node (the image topic; the namespace)
         problem = stream_problem(name, v[name]) if v[name] else None

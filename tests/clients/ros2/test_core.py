@@ -171,6 +171,14 @@ def test_bad_parameters_are_all_named_at_once(monkeypatch, tmp_path):
     assert cfg.odom_tolerance_ns == 1_000_000_000 and cfg.camera_mount == (0.0, 0.0, 1.0)
 
 
+def test_a_name_with_a_last_newline_is_refused_at_start_not_on_every_frame():
+    # `$` in a Python pattern also matches before a last newline; the service's patterns do not
+    with pytest.raises(ConfigError) as e:
+        read_config({**DEFAULTS, "map": "robot-map\n", "stream": "front\n", "run_id": "run1\n"})
+    assert [p.split(":")[0] for p in e.value.problems] == ["map", "run_id", "stream"]
+    assert trail_of("", "/robot1\n") is None
+
+
 def test_a_stream_the_service_refuses_on_every_frame_is_refused_at_start_and_a_large_top_k_told():
     with pytest.raises(ConfigError) as e:
         read_config({**DEFAULTS, "top_k": -1, "stream": "front cam", "trail": "robot//1"})

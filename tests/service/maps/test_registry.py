@@ -31,6 +31,8 @@ def test_refusals_leave_nothing_behind(tmp_path):
     with registry(tmp_path) as reg:
         with pytest.raises(InvalidMapId):
             reg.create("Bad Id")
+        with pytest.raises(InvalidMapId):  # a last newline: the pattern's `$` matches before it
+            reg.create("lab\n")
         with pytest.raises(InvalidConfiguration):
             reg.create("lab", MapOptions(memory="lstm"))
         with pytest.raises(MapAlreadyExists):
