@@ -411,6 +411,8 @@ class MapRegistry:
             rt.close(snapshot=False)
             self.catalog.delete_map(map_id)
             self._discard(map_id)
+        del rt
+        map_budget.give_back()
 
     def import_live(self, tar_path: Path, max_bytes: int) -> MapRuntime:
         """Import a snapshot tar into this running registry and open the map: the receiving end of a

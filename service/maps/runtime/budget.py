@@ -22,6 +22,9 @@ working memory, request bodies, SQLite's page caches).
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import functools
+import gc
 import os
 import threading
 from collections.abc import Iterable, Iterator
@@ -36,8 +39,8 @@ from service.maps.errors import MemoryBudgetExceeded
 from service.maps.runtime.idempotency import CACHE_MAX_CHARS
 
 __all__ = ["CGROUP_LIMIT_FILES", "DEFAULT_SHARE", "INDEX_ROW_OVERHEAD_BYTES", "POSTING_BYTES", "MapNeed",
-           "MemoryBudget", "default_total", "encoder_bytes", "index_row_bytes", "map_need", "memory_limit",
-           "projection_bytes"]
+           "MemoryBudget", "default_total", "encoder_bytes", "give_back", "index_row_bytes", "map_need",
+           "memory_limit", "projection_bytes"]
 
 #: Share of the smaller of host memory and cgroup limit that the maps and encoders may use by default.
 DEFAULT_SHARE = 0.5
@@ -48,6 +51,31 @@ POSTING_BYTES = 8
 #: Per stored row besides its postings: seq, weight, stream row, the ranking scratch, the localiser's
 #: graph links (int64 prev and next), each with its doubling slack.
 INDEX_ROW_OVERHEAD_BYTES = 96
+
+
+@functools.cache
+def _malloc_trim() -> Any:
+    """glibc's `malloc_trim`, or None (musl, macOS: their allocators return memory on their own terms)."""
+    try:
+        return ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
+def give_back() -> None:
+    """Return what a dropped map held to the OS, at once (a map deleted, a memory replaced by a restore).
+
+    The budget counts a map's memory gone when the map is; the process must agree, or its RSS outgrows
+    the budget it was sized by (a container's limit). A map's objects sit in reference cycles that only
+    the collector's full pass frees, and that pass is rare: creating 8 maps and deleting them, 5 times
+    over, held 22 dead maps and 2.2 GB, against 0.5 GB at the start. Then glibc keeps freed heap pages
+    in its arenas until `malloc_trim` (1 GB after the collection, 0.5 GB after the trim). Both cost
+    milliseconds to a few hundred on a large heap, paid on the rare operation that frees a map, never
+    per frame."""
+    gc.collect()
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
 
 
 def memory_limit(cgroup_files: Iterable[Path] = CGROUP_LIMIT_FILES) -> tuple[int, str]:

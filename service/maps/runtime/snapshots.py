@@ -22,6 +22,7 @@ from service.maps import recovery
 from service.maps.errors import RowsOverCap
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import RestoreResult, SnapshotInfo
+from service.maps.runtime import budget as map_budget
 from storage import snapshots
 from storage.catalog import utc_now
 from storage.mapstore import MapStore
@@ -113,6 +114,7 @@ class Snapshots:
             self.recover()
         self.keys.clear()  # answers given before may name the observations the restore dropped
         self.recent.clear()
+        map_budget.give_back()  # the memory and index the restore replaced
         return RestoreResult(**vars(self.info()), discarded_observations=discarded,
                              restored_observations=brought_back)
 

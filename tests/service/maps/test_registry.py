@@ -56,3 +56,31 @@ def test_a_stored_configuration_this_version_rejects_fails_that_map_alone(tmp_pa
         assert isinstance(failed, FailedMap) and failed.state_reason == "open-failed"
         assert failed.info().params["memory"] == "lstm"  # shown as stored, never run
         assert reg.get("default").state == "ready"
+
+
+def test_a_deleted_map_and_a_replaced_memory_leave_the_process_at_once(tmp_path):
+    """Found from outside: creating and deleting maps took the process's RSS far over its memory budget.
+    A map's objects sit in reference cycles; only the collector's rare full pass freed them (here it is
+    off, so only the service's own collection can)."""
+    import gc
+    import weakref
+
+    gc.collect()
+    gc.disable()
+    try:
+        with registry(tmp_path) as reg:
+            rt = reg.create("lab")
+            for f in route(3):
+                step(rt, f)
+            snap = rt.snapshot("manual").snapshot_id
+            for f in route(2, seed=1):
+                step(rt, f)
+            old_model = weakref.ref(rt.model)
+            rt.restore(snap)
+            assert old_model() is None  # the memory the restore replaced
+            gone = weakref.ref(rt)
+            del rt
+            reg.delete("lab")
+            assert gone() is None
+    finally:
+        gc.enable()
