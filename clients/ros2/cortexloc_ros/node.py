@@ -54,6 +54,7 @@ from cortexloc_ros.params import (
     Config,
     ConfigError,
     config_warnings,
+    empty_overrides,
     read_config,
     stream_problem,
     trail_of,
@@ -338,7 +339,14 @@ def main(args: list[str] | None = None) -> int:
     if "--help" in ours or "-h" in ours:
         print(usage())
         return 0
-    rclpy.init(args=args)
+    try:
+        empty = empty_overrides(argv)
+        if empty:
+            raise ConfigError(empty)
+        rclpy.init(args=args)
+    except (ConfigError, _rclpy.RCLError) as e:  # rcl's parse errors: one line, not a traceback
+        print(f"cortexloc-ros: {e}".split(", at /")[0], file=sys.stderr)
+        return 2
     try:
         node = CortexlocNode()
     except ConfigError as e:

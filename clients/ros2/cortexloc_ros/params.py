@@ -9,6 +9,8 @@ command line, in `ros2 param get` and in launch logs): it comes from the environ
 
 from __future__ import annotations
 
+import itertools
+import math
 import os
 import re
 import textwrap
@@ -21,8 +23,8 @@ from urllib.parse import urlsplit
 from cortexloc_client import MAX_TOP_K, STREAM_PATTERN
 from cortexloc_ros.core import DROP_POLICIES
 
-__all__ = ["PARAMETERS", "Config", "ConfigError", "config_warnings", "read_config", "stream_problem",
-           "trail_of", "usage"]
+__all__ = ["PARAMETERS", "Config", "ConfigError", "config_warnings", "empty_overrides", "read_config",
+           "stream_problem", "trail_of", "usage"]
 
 #: name -> (default, description). Nested names (`rate.every_n`) are YAML sections.
 PARAMETERS: dict[str, tuple[Any, str]] = {
@@ -30,8 +32,8 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     "api_key_env": ("CORTEXLOC_API_KEY", "name of the environment variable that holds the service's API key "
                     "(unset or empty: no key); the key itself is never a parameter"),
     "api_key_file": ("", "a file whose first line is the API key (read at start; wins over api_key_env)"),
-    "map": ("default", "the map posted to; created with the service's defaults when missing and learn is "
-            "true"),
+    "map": ("default", "the map posted to; created with the service's defaults when missing at start and "
+            "learn is true (a map deleted while the node runs is an error, never created again)"),
     "stream": ("", "the stream (one per camera); empty: the image topic's resolved name without its "
                "leading '/'"),
     "trail": ("", "the robot's trail (service `metadata.trail`): streams naming one trail share one "
@@ -43,8 +45,9 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
     "top_k": (5, f"frame-level matches in each answer (0 or more; over {MAX_TOP_K}, the service's default "
               f"CORTEXLOC_MAX_TOP_K, a warning at start)"),
     "run_id": ("", "this drive's id, part of each post's Idempotency-Key (run id + topic + stamp + a "
-               "CRC-32 of the image); empty: a new one per start, so a bag replayed twice is "
-               "two drives. Set it to resume one drive"),
+               "CRC-32 of the image); empty: a new one per start, a new drive (the stream's context on the "
+               "service is reset at start), so a bag replayed twice is two drives. Set it to resume one "
+               "drive (its context kept)"),
     "request_timeout": (10.0, "seconds to connect and between bytes of a reply; a post cut short is retried "
                         "with the same key"),
     "image_transport": ("raw", "raw: sensor_msgs/Image on topics.image; compressed: sensor_msgs/"
@@ -102,6 +105,7 @@ class Config:
     learn: bool
     top_k: int
     run_id: str
+    resume: bool  # `run_id` was given: this start resumes that drive (its stream context is kept)
     request_timeout: float
     compressed: bool
     odom_tolerance_ns: int
@@ -206,6 +210,48 @@ def config_warnings(cfg: Config) -> list[str]:
     return []
 
 
+def _url_problems(url: str) -> list[str]:
+    """`service_url`'s problem: not http(s)://host[:port], or a port out of range (urlsplit says so only
+    when `.port` is read; unchecked, the node would retry a URL no request can reach forever)."""
+    parts = urlsplit(url)
+    try:
+        port_ok = parts.port is None or parts.port > 0
+    except ValueError:
+        port_ok = False
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        return [f"service_url: {url!r} is not an http(s)://host[:port] URL"]
+    return [] if port_ok else [f"service_url: {url!r} has no port 1-65535"]
+
+
+def _number_problems(v: dict[str, Any]) -> list[str]:
+    """The float parameters' problems: each finite (a NaN passes every comparison, and is then refused
+    by the service on every frame or published as it is), and within its documented range."""
+    problems = []
+    for name, positive, unit in (("request_timeout", True, "seconds"), ("odom_tolerance", True, "seconds"),
+                                 ("rate.min_distance", False, "metres")):
+        value = v[name]
+        if not (math.isfinite(value) and (value > 0 if positive else value >= 0)):
+            problems.append(f"{name}: {value} must be a finite number {'> 0' if positive else '>= 0'} {unit}")
+    for name, what in (("camera_mount", "x, y, yaw"), ("place_covariance", "variances of x, y, yaw")):
+        values = list(v[name])
+        if len(values) != 3:
+            problems.append(f"{name}: {values} must be 3 numbers ({what})")
+        elif not all(map(math.isfinite, values)):
+            problems.append(f"{name}: {values} must be 3 finite numbers ({what})")
+        elif name == "place_covariance" and any(c < 0 for c in values):
+            problems.append(f"{name}: {values} holds a negative variance")
+    return problems
+
+
+def empty_overrides(argv: list[str]) -> list[str]:
+    """A line for each `-p name:=` with nothing after `:=` among the ROS arguments: rcl cannot parse it
+    and `rclpy.init` would end the node in a traceback; an empty string is `-p "name:=''"`."""
+    ros = argv[argv.index("--ros-args") + 1:] if "--ros-args" in argv else []
+    rules = [b for a, b in itertools.pairwise(ros) if a in ("-p", "--param")]
+    return [f"{rule[:-2]}: -p {rule} gives no value (an empty string is -p \"{rule}''\")"
+            for rule in rules if rule.endswith(":=") and len(rule) > 2]
+
+
 def read_config(values: dict[str, Any], *, unknown: list[str] | None = None) -> Config:
     """Check the parameters' values (name -> value, as declared) and build the `Config`.
 
@@ -225,9 +271,7 @@ def read_config(values: dict[str, Any], *, unknown: list[str] | None = None) -> 
             problems.append(f"{name}: no such parameter (known: {', '.join(PARAMETERS)})")
     if problems:
         raise ConfigError(problems)
-    url = urlsplit(str(v["service_url"]))
-    if url.scheme not in ("http", "https") or not url.hostname:
-        problems.append(f"service_url: {v['service_url']!r} is not an http(s)://host[:port] URL")
+    problems += _url_problems(str(v["service_url"]))
     if not _MAP_ID.fullmatch(v["map"]):
         problems.append(f"map: {v['map']!r} is not a map id (a lower-case letter or digit, then up to "
                         f"63 of those, '.', '_', '-')")
@@ -239,21 +283,11 @@ def read_config(values: dict[str, Any], *, unknown: list[str] | None = None) -> 
         problem = stream_problem(name, v[name]) if v[name] else None
         if problem:
             problems.append(problem)
-    if not v["request_timeout"] > 0:
-        problems.append(f"request_timeout: {v['request_timeout']} must be > 0 seconds")
     if v["image_transport"] not in ("raw", "compressed"):
         problems.append(f"image_transport: {v['image_transport']!r} is neither 'raw' nor 'compressed'")
-    if not v["odom_tolerance"] > 0:
-        problems.append(f"odom_tolerance: {v['odom_tolerance']} must be > 0 seconds")
-    for name in ("camera_mount", "place_covariance"):
-        if len(v[name]) != 3:
-            problems.append(f"{name}: {list(v[name])} must be 3 numbers (x, y, yaw)")
-    if any(c < 0 for c in v["place_covariance"]):
-        problems.append(f"place_covariance: {list(v['place_covariance'])} holds a negative variance")
+    problems += _number_problems(v)
     if v["rate.every_n"] < 1:
         problems.append(f"rate.every_n: {v['rate.every_n']} must be >= 1")
-    if v["rate.min_distance"] < 0:
-        problems.append(f"rate.min_distance: {v['rate.min_distance']} must be >= 0 metres")
     if v["rate.min_distance"] > 0 and not v["topics.odometry"]:
         problems.append("rate.min_distance needs odometry: set topics.odometry")
     if v["queue.size"] < 1:
@@ -270,7 +304,8 @@ def read_config(values: dict[str, Any], *, unknown: list[str] | None = None) -> 
     topics = {k.split(".", 1)[1]: val for k, val in v.items() if k.startswith("topics.")}
     return Config(service_url=str(v["service_url"]).rstrip("/"), api_key=api_key, map_id=v["map"],
                   stream=v["stream"], trail=v["trail"], learn=bool(v["learn"]), top_k=int(v["top_k"]),
-                  run_id=v["run_id"] or uuid.uuid4().hex[:12], request_timeout=float(v["request_timeout"]),
+                  run_id=v["run_id"] or uuid.uuid4().hex[:12], resume=bool(v["run_id"]),
+                  request_timeout=float(v["request_timeout"]),
                   compressed=v["image_transport"] == "compressed",
                   odom_tolerance_ns=round(float(v["odom_tolerance"]) * 1e9),
                   camera_mount=tuple(map(float, v["camera_mount"])),  # type: ignore[arg-type]

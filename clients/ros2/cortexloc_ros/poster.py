@@ -10,8 +10,13 @@ typed client; the ROS executor never waits on the service.
   learned twice. An
   answered frame is done: it is never posted again. Meanwhile the camera's frames queue, and the queue
   drops by its policy.
-- Refused: 400, 413, 415, 422 (the frame or its metadata) are counted and logged; the poster goes on. A
-  missing map is created (service defaults) when learning.
+- First contact, before any frame is posted (retried like a post until the service answers): a missing
+  map is created (service defaults) when learning, and the stream's sequence context is reset on the
+  service, so a new start is a new drive (the service keeps a stream's context across a node's restart),
+  unless `run_id` was given: a resumed drive keeps its context, and its frames' keys are the same. A map
+  missing later (deleted while the node runs) is never created again, which would reuse its seqs for
+  other frames: it is an error, its frame is retried like a service down until the map is back.
+- Refused: 400, 413, 415, 422 (the frame or its metadata) are counted and logged; the poster goes on.
 - Idle, it checks the service's readiness every `PROBE_S`, so diagnostics say "down" without frames.
 - The service's state for diagnostics: `up` (it answered), `slow` (connected, but no reply within
   `request_timeout`: it is busy, not gone), `down` (no connection, a reply cut short), `error` (it
@@ -117,6 +122,7 @@ class Poster:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="cortexloc-poster", daemon=True)
         self._last_probe = 0.0
+        self._map_gone = False  # a 404 map-not-found after first contact, said in the log
 
     def start(self) -> None:
         self._thread.start()
@@ -128,6 +134,7 @@ class Poster:
     # -------------------------------------------------------------------------------------- thread
 
     def _run(self) -> None:
+        self._first_contact()
         while not self._stop.is_set():
             frame = self.queue.get(timeout=0.2)
             if frame is not None:
@@ -207,14 +214,16 @@ class Poster:
                         self.stats.last_error = str(e)
                     self.log.warning(f"frame {frame.stamp.ns} refused: {e}")
                     return
-                if e.status == 404 and e.slug == "map-not-found" and self.cfg.learn and self._create_map():
-                    continue
-                self._state("error", str(e))
-                wait = e.retry_after if e.retry_after is not None else delay
+                if e.status == 404 and e.slug == "map-not-found" and not self._map_gone:
+                    self._map_gone = True  # said once an outage: the log is no per-retry stream
+                    self.log.error(f"map {self.cfg.map_id!r} not found (deleted while the node runs?): "
+                                   f"frames wait until it is back (restore it, or restart the node); it is "
+                                   f"not created again, which would reuse its seqs for other frames")
+                wait = self._trouble(e, delay)
             except httpx.HTTPError as e:
-                self._transport_state(e)
-                wait = delay
+                wait = self._trouble(e, delay)
             else:
+                self._map_gone = False
                 latency = (time.perf_counter() - t0) * 1e3
                 with self.stats.lock:
                     self.stats.answered += 1
@@ -229,17 +238,52 @@ class Poster:
                     if not self._stop.is_set():
                         self.log.error(f"publishing the answer of frame {frame.stamp.ns} failed: {e!r}")
                 return
-            with self.stats.lock:
-                self.stats.retries += 1
-            self._stop.wait(min(wait, MAX_BACKOFF_S))
-            delay = min(delay * 2, MAX_BACKOFF_S)
+            delay = self._back_off(wait, delay)
 
-    def _create_map(self) -> bool:
+    def _trouble(self, e: CortexlocError | httpx.HTTPError, delay: float) -> float:
+        """Diagnostics' state after a request that failed; the seconds to wait before its retry."""
+        if isinstance(e, CortexlocError):
+            self._state("error", str(e))
+            return e.retry_after if e.retry_after is not None else delay
+        self._transport_state(e)
+        return delay
+
+    def _back_off(self, wait: float, delay: float) -> float:
+        """Counts a retry and waits `wait` (at most MAX_BACKOFF_S); the next backoff."""
+        with self.stats.lock:
+            self.stats.retries += 1
+        self._stop.wait(min(wait, MAX_BACKOFF_S))
+        return min(delay * 2, MAX_BACKOFF_S)
+
+    def _first_contact(self) -> None:
+        """The map made sure of and the stream reset (module docstring), retried until the service
+        answers; frames wait in the queue meanwhile."""
+        delay = BACKOFF_S
+        while not self._stop.is_set():
+            try:
+                self._open()
+            except (CortexlocError, httpx.HTTPError) as e:
+                wait = self._trouble(e, delay)
+            else:
+                self._state("up", "")
+                return
+            delay = self._back_off(wait, delay)
+
+    def _open(self) -> None:
+        map_id, stream = self.cfg.map_id, self.cfg.stream
         try:
-            self.client.create_map(self.cfg.map_id)
+            if self.cfg.resume:
+                self.client.get_map(map_id)
+            else:
+                dropped = " (the last drive's context dropped)" if self.client.reset_stream(
+                    map_id, stream).had_context else ""
+                self.log.info(f"stream {stream!r} reset on map {map_id!r}: a new drive{dropped}")
         except CortexlocError as e:
-            if e.status != 409:  # 409: another node created it meanwhile
-                self._state("error", f"cannot create map {self.cfg.map_id!r}: {e}")
-                return False
-        self.log.info(f"created map {self.cfg.map_id!r} (the service's defaults)")
-        return True
+            if not (e.status == 404 and e.slug == "map-not-found" and self.cfg.learn):
+                raise
+            try:  # a new map holds no stream context: nothing to reset
+                self.client.create_map(map_id)
+            except CortexlocError as e2:
+                if e2.status != 409:  # 409: another node created it meanwhile
+                    raise
+            self.log.info(f"created map {map_id!r} (the service's defaults)")

@@ -23,7 +23,14 @@ from cortexloc_ros.core import (
     idempotency_key,
     image_array,
 )
-from cortexloc_ros.params import PARAMETERS, ConfigError, config_warnings, read_config, trail_of
+from cortexloc_ros.params import (
+    PARAMETERS,
+    ConfigError,
+    config_warnings,
+    empty_overrides,
+    read_config,
+    trail_of,
+)
 
 from cortexloc_client import Observation
 
@@ -169,6 +176,41 @@ def test_bad_parameters_are_all_named_at_once(monkeypatch, tmp_path):
     assert read_config({**DEFAULTS, "api_key_file": str(tmp_path / "key")}).api_key == "from-file"
     cfg = read_config({**DEFAULTS, "odom_tolerance": 1, "camera_mount": [0, 0, 1]})  # integers as numbers
     assert cfg.odom_tolerance_ns == 1_000_000_000 and cfg.camera_mount == (0.0, 0.0, 1.0)
+
+
+def test_every_float_parameter_must_be_finite_and_in_range_and_the_url_port_too():
+    # a NaN passes every comparison: a NaN mount had every frame refused 422, a NaN or inf covariance
+    # was published; an inf timeout or tolerance cannot be used either
+    nan, inf = math.nan, math.inf
+    with pytest.raises(ConfigError) as e:
+        read_config({**DEFAULTS, "service_url": "http://127.0.0.1:99999", "request_timeout": inf,
+                     "odom_tolerance": nan, "rate.min_distance": -inf, "camera_mount": [nan, 0.0, 0.0],
+                     "place_covariance": [1.0, inf, 0.1]})
+    assert e.value.problems == [
+        "service_url: 'http://127.0.0.1:99999' has no port 1-65535",
+        "request_timeout: inf must be a finite number > 0 seconds",
+        "odom_tolerance: nan must be a finite number > 0 seconds",
+        "rate.min_distance: -inf must be a finite number >= 0 metres",
+        "camera_mount: [nan, 0.0, 0.0] must be 3 finite numbers (x, y, yaw)",
+        "place_covariance: [1.0, inf, 0.1] must be 3 finite numbers (variances of x, y, yaw)"]
+    for value in ([nan, 1.0, 0.1], [-1.0, 1.0, 0.1]):
+        with pytest.raises(ConfigError, match="place_covariance"):
+            read_config({**DEFAULTS, "place_covariance": value})
+    with pytest.raises(ConfigError, match="service_url: 'http://h:0' has no port"):
+        read_config({**DEFAULTS, "service_url": "http://h:0"})
+    assert read_config({**DEFAULTS, "service_url": "https://h:65535/"}).service_url == "https://h:65535"
+
+
+def test_an_empty_override_is_named_before_rcl_fails_to_parse_it():
+    # `-p map:=` made rclpy.init raise RCLError (a traceback, exit 1); the node says which, and exits 2
+    assert empty_overrides(["prog", "--ros-args", "-p", "map:=", "--param", "service_url:=",
+                            "-p", "learn:=false", "-p", "stream:=''"]) == [
+        "map: -p map:= gives no value (an empty string is -p \"map:=''\")",
+        "service_url: -p service_url:= gives no value (an empty string is -p \"service_url:=''\")"]
+    assert empty_overrides(["prog", "-p", "map:="]) == []  # not a ROS argument: not ROS's to parse
+    run = read_config(DEFAULTS)
+    assert not run.resume and run.run_id  # a new drive per start; a given run_id resumes one
+    assert read_config({**DEFAULTS, "run_id": "drive-a"}).resume
 
 
 def test_a_name_with_a_last_newline_is_refused_at_start_not_on_every_frame():

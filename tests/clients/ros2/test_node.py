@@ -275,6 +275,9 @@ def test_a_camera_that_does_not_stamp_has_every_frame_answered_and_is_told_once(
 
 @in_loopback_netns
 def test_bad_parameters_stop_the_node_at_start_with_a_clear_error(tmp_path):
+    import subprocess
+    import sys
+
     runs = iter(range(100))
 
     def start(**params: object) -> tuple[int, str]:
@@ -297,6 +300,15 @@ def test_bad_parameters_stop_the_node_at_start_with_a_clear_error(tmp_path):
     rc, log = start(api_key_file=str(tmp_path / "missing-key"))
     assert rc == 2 and "api_key_file: cannot read a key from" in log, log
     assert "Traceback" not in log
+    # an empty value rcl cannot parse, and a port out of range: one line each, exit 2 (the first was an
+    # RCLError traceback and exit 1; the second was retried forever)
+    p = subprocess.run([sys.executable, "-m", "cortexloc_ros", "--ros-args", "-p", "map:="],
+                       capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert p.returncode == 2 and "map: -p map:= gives no value" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr
+    rc, log = start(service_url="http://127.0.0.1:99999", place_covariance="[1.0, .nan, 0.1]")
+    assert rc == 2 and "service_url: 'http://127.0.0.1:99999' has no port 1-65535" in log, log
+    assert "place_covariance: [1.0, nan, 0.1] must be 3 finite numbers" in log, log
 
 
 @in_loopback_netns

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import replace
 from typing import Any
 
 import httpx
@@ -19,6 +20,7 @@ from cortexloc_ros.params import PARAMETERS, read_config
 from cortexloc_ros.poster import Frame, Poster, Stats
 
 from cortexloc_client import Observation
+from cortexloc_client.models import StreamReset
 
 ANSWER = Observation.model_validate({
     "map_id": "m", "stream": "s", "learned": True, "seq": 1, "sequence": {
@@ -34,6 +36,7 @@ class ScriptedClient:
         self.stats, self.outcomes = stats, list(outcomes)
         self.seen: list[tuple[str, str]] = []
         self.metadata: list[dict[str, Any]] = []
+        self.calls: list[tuple[str, ...]] = []  # the calls other than observe and ready
 
     def _next(self) -> Any:
         self.seen.append((self.stats.service, self.stats.last_error))
@@ -49,6 +52,19 @@ class ScriptedClient:
     def ready(self) -> None:
         self._next()
 
+    def _call(self, name: str, *args: Any) -> Any:
+        self.calls.append((name, *args))
+        return self._next()
+
+    def reset_stream(self, map_id: str, stream: str) -> Any:
+        return self._call("reset_stream", map_id, stream)
+
+    def get_map(self, map_id: str) -> Any:
+        return self._call("get_map", map_id)
+
+    def create_map(self, map_id: str) -> Any:
+        return self._call("create_map", map_id)
+
 
 class Log:
     def __init__(self) -> None:
@@ -60,15 +76,25 @@ class Log:
     warning = error = info
 
 
-def _poster(monkeypatch: pytest.MonkeyPatch, *outcomes: Exception | Observation,
-            odometry: OdometryBuffer | None = None) -> tuple[Poster, Stats, ScriptedClient]:
+def _poster(monkeypatch: pytest.MonkeyPatch, *outcomes: Any, odometry: OdometryBuffer | None = None,
+            **params: Any) -> tuple[Poster, Stats, ScriptedClient]:
+    """A poster of the default parameters (`params` over them; its stream is `cam`)."""
     monkeypatch.setattr(poster, "BACKOFF_S", 0.001)  # the retries' waits, not what is tested
-    cfg = read_config({name: default for name, (default, _) in PARAMETERS.items()})
+    cfg = replace(read_config({**{name: default for name, (default, _) in PARAMETERS.items()}, **params}),
+                  stream="cam")
     stats = Stats()
     client = ScriptedClient(stats, *outcomes)
     p = Poster(cfg, client, FrameQueue(2), stats, odometry, lambda: None,  # type: ignore[arg-type]
                lambda *a: None, Log())
     return p, stats, client
+
+
+def _problem(status: int, slug: str) -> Exception:
+    from cortexloc_client import CortexlocError
+    from cortexloc_client.models import Problem
+
+    return CortexlocError(status, Problem(type=f"urn:cortexloc:problem:{slug}", title=slug, status=status,
+                                          detail=f"map 'default' {slug}"))
 
 
 def _frame(stamp: Stamp | None = None) -> Frame:
@@ -136,3 +162,38 @@ def test_a_frame_waits_for_the_odometry_of_its_instant_and_takes_the_nearest(mon
     waited = time.monotonic() - t0
     assert client.metadata[1]["pose"]["x"] == 2.0 and stats.no_pose == 0
     assert waited < 5 * (0.05 + poster.ODOM_MARGIN_S)  # a bound on the wait, loose for a loaded machine
+
+
+def test_a_start_resets_the_stream_before_the_first_frame_unless_it_resumes_a_run(monkeypatch):
+    # A new start (no run_id) is a new drive: the service keeps a stream's context across the node's
+    # restart, and without a reset a new drive's first frame continued the last one (an outside probe: a
+    # row 30 frames away at confidence 0.96, published as a loop closure). The service down at start: the
+    # reset is retried, and frames wait for it.
+    request = httpx.Request("POST", "http://cortexloc.test/v1/maps/default/streams/cam/reset")
+    p, stats, client = _poster(monkeypatch, httpx.ConnectError("refused", request=request),
+                               StreamReset(stream="cam", had_context=True))
+    p._first_contact()
+    assert client.calls == [("reset_stream", "default", "cam")] * 2
+    assert client.seen[1][0] == "down" and (stats.service, stats.retries) == ("up", 1)
+    assert any("a new drive (the last drive's context dropped)" in line for line in p.log.lines)
+    # the same run_id again resumes that drive: its context (and its frames' keys) kept, the map checked
+    p, stats, client = _poster(monkeypatch, None, run_id="drive-a")
+    p._first_contact()
+    assert client.calls == [("get_map", "default")] and stats.service == "up"
+    # a learning node's missing map is created at first contact (a new map: nothing to reset)
+    p, stats, client = _poster(monkeypatch, _problem(404, "map-not-found"), None)
+    p._first_contact()
+    assert client.calls == [("reset_stream", "default", "cam"), ("create_map", "default")]
+
+
+def test_a_map_deleted_while_the_node_learns_is_an_error_not_created_again(monkeypatch):
+    # Created anew with the service's defaults, the map took the next frames under seqs 1, 2, 3 ... again:
+    # a pose-graph back end got other frames under old seqs with no word. Now: ERROR, the frame waits.
+    gone = _problem(404, "map-not-found")
+    p, stats, client = _poster(monkeypatch, gone, gone, ANSWER)
+    p._post(_frame())
+    assert client.calls == []  # never created again
+    assert client.seen[1] == ("error", "404 map-not-found: map 'default' map-not-found")
+    assert Stats(service=client.seen[1][0], last_error=client.seen[1][1]).health(0)[0] == "ERROR"
+    assert (stats.answered, stats.retries, stats.service, stats.last_error) == (1, 2, "up", "")
+    assert sum("not created again" in line for line in p.log.lines) == 1  # said once, not per retry
