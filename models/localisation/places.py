@@ -286,6 +286,31 @@ class PlaceMap:
             last = [row for row in last if row in recent]
         return {int(self.graph.trail[row]) for row in last}
 
+    def twin(self, stream: str, trail: str, code: np.ndarray,
+             code_of: Callable[[int], np.ndarray]) -> int | None:
+        """The row another camera of the robot made of this very view (§11.6, "One trail, several
+        streams"): of the last rows `trail`'s other streams made, still in its short-term memory, the
+        one most like the frame (`code` (n,) sorted) at the `consolidate` level (§11.8), else None. That
+        row is where the robot is now, so the frame is a visit of it: not a parallel place, which would
+        be the rival of every revisit there (two cameras with one view, a stereo pair or a duplicated
+        topic, closed 0.19-0.26 of their second lap's loops). O(the trail's streams) code reads, and
+        nothing where no other stream names the trail."""
+        if float(self.options.consolidate) >= 1.0:
+            return None
+        last = [row for name, named in self._named.items() if named == trail and name != stream
+                and (row := self._last_row.get(name)) is not None and 0 <= row < len(self.graph)
+                and self.used[row] >= 0]
+        if not last:
+            return None
+        recent = set(self.short_term_rows(trail).tolist()) if self.short_term else set(last)
+        last = [row for row in last if row in recent]
+        if not last:
+            return None
+        code = np.asarray(code, np.int64)
+        sims = [code_dice(code, np.asarray(code_of(row))) for row in last]
+        best = int(np.argmax(sims))
+        return last[best] if sims[best] >= self.codes.level(code, float(self.options.consolidate)) else None
+
     def short_term_rows(self, trail: str) -> np.ndarray:
         """(m,) int64 ascending: the rows `trail`'s streams made over its last moves and still held,
         its short-term memory (`ShortTerm`, docs/design/science.md §11.6); a stream's trail is its own

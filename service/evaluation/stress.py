@@ -17,9 +17,10 @@ lap-2 frames and OpenSeqSLAM run online (`models.evaluation.slam.openseqslam_onl
   that looks the same from the same place (with distinct poses they would not be a loop).
 - `short-loop`: 40 frames driven three times (a real short loop must still close).
 - `seasons`, `noise`: the window, then again in winter or with pixel noise (σ 8): lap 2 is a revisit.
-- `cameras`: one pass posted by a robot's two cameras as two streams, `front` (the frames) and `rear`
-  (each frame again with σ 4 noise), both naming one trail (`metadata.trail`): each camera's frames are
-  the other's recent rows, its short-term memory. No true revisit.
+- `cameras`: the window posted by a robot's two cameras as two streams, `front` (the frames) and `rear`
+  (each frame again with σ 4 noise: nearly one view, as a stereo pair's), both naming one trail
+  (`metadata.trail`): each camera's frames are the other's recent rows, its short-term memory; then
+  again in winter by both (lap 2: a revisit for each camera).
 
 Per case and seed: false revisits while mapping (every call not a true revisit named right), merged
 places (places whose rows' labels differ by more than the tolerance), wrong consolidations (frames
@@ -164,10 +165,11 @@ def route(frames: Frames, case: str, lo: int) -> Route:
         add("summer", range(lo, lo + WINDOW))
         add("summer", range(lo, lo + WINDOW), "noise:8", 1, 3)
     elif case == "cameras":
-        for i in range(lo, lo + WINDOW):
-            add("summer", [i])
-            add("summer", [i], "noise:4", 0, 2000)
-        streams = ("front", "rear") * WINDOW
+        for season, lap in (("summer", 0), ("winter", 1)):
+            for i in range(lo, lo + WINDOW):
+                add(season, [i], None, lap)
+                add(season, [i], "noise:4", lap, 2000)
+        streams = ("front", "rear") * (2 * WINDOW)
         return Route(case, pngs, np.asarray(labels, np.int64), np.asarray(laps, np.int64), streams)
     else:
         raise ValueError(f"unknown case {case!r}; known: {', '.join(CASES)}")

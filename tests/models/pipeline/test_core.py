@@ -356,7 +356,7 @@ def test_a_stream_reads_the_chains_its_robots_other_cameras_lay_as_its_trail() -
     the same trail are laying, and none where a stream names its own."""
     from models.localisation.motion import Motion
 
-    frames = route(12, seed=5)
+    frames = {"front": route(12, seed=5), "rear": route(12, seed=6)}  # two views (one view is one chain)
     for trail in (None, "robot"):
         m, codes, cams = model("none"), {}, {"front": Stream(), "rear": Stream()}
         seen: list[frozenset[int]] = []
@@ -367,10 +367,10 @@ def test_a_stream_reads_the_chains_its_robots_other_cameras_lay_as_its_trail() -
             return _step(state, ranked, own, *args)
 
         m.place_map.step = spy
-        for i, y in enumerate(frames):
+        for i in range(12):
             for name in cams:
                 seq = len(codes) + 1
-                got = observe(m, cams[name], y, learn=True, stream=name, top_k=3, seq=seq,
+                got = observe(m, cams[name], frames[name][i], learn=True, stream=name, top_k=3, seq=seq,
                               code_of=codes.__getitem__, threshold=None,
                               motion=Motion((float(i), 0.0), float(i), trail))
                 if got.visit is None:
@@ -380,6 +380,42 @@ def test_a_stream_reads_the_chains_its_robots_other_cameras_lay_as_its_trail() -
             assert not any(seen)
         else:  # from each camera's second frame on, the other camera's chain
             assert len(chains) == 2 and all(len(o) == 1 and o <= chains for o in seen[2:])
+
+
+@pytest.mark.parametrize("rear_noise", [0.0, 0.2])
+def test_two_cameras_with_one_view_store_its_places_once_and_both_close_the_loop(rear_noise: float) -> None:
+    """Found from outside (the ROS 2 node, two cameras on one trail fed one view: a stereo pair, a
+    duplicated topic): the second camera's frame could not be consolidated into the row the first had
+    just made (the trail's short-term memory), so the map held the route twice and each copy was the
+    rival of every revisit: the second lap closed no loop. Now that frame is a visit of that row (the
+    robot is there now, §11.6), the route is stored once, and both cameras' second laps are revisits."""
+    from models.localisation.motion import Motion
+
+    frames = route(40, seed=5)
+    rng = np.random.default_rng(8)
+    called: dict[str | None, int] = {}
+    for trail in (None, "robot"):
+        m, codes, cams = model("none"), {}, {"front": Stream(), "rear": Stream()}
+        lap2, rows = [], []
+        for lap in range(2):
+            rows.append(len(codes))  # rows made before the lap
+            for y in frames:
+                for name in cams:
+                    seq = len(codes) + 1
+                    view = y + rear_noise * rng.normal(size=K).astype(np.float32) if name == "rear" else y
+                    step = observe(m, cams[name], view, learn=True, stream=name, top_k=3, seq=seq,
+                                   code_of=codes.__getitem__, threshold=REVISIT, motion=Motion(trail=trail))
+                    if step.visit is None:
+                        codes[seq] = step.code
+                    if lap == 1:
+                        lap2.append(step)
+        called[trail] = revisits(lap2)
+        if trail == "robot":
+            # lap 1: a row a place, the rear frames its visits (a noisy view now and then one of its own)
+            assert rows[1] <= len(frames) * (1.0 if rear_noise == 0 else 1.1)
+            # and every revisit names a row of lap 1
+            assert all(s.place.seq <= rows[1] for s in lap2 if s.place and s.place.is_revisit(REVISIT))
+    assert called["robot"] >= len(frames)  # both cameras, most of the lap
 
 
 @pytest.mark.parametrize(("fraction", "consolidated"), [(0.5, True), (0.9, False)])
