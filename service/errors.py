@@ -73,6 +73,7 @@ PROBLEMS: dict[str, tuple[int, str]] = {
     "invalid-configuration": (422, "Invalid configuration"),
     "not-ready": (503, "Not ready"),
     "map-unavailable": (503, "Map unavailable"),
+    "map-read-only": (503, "Map read-only"),
     "overloaded": (503, "Overloaded"),
     "insufficient-storage": (507, "Insufficient storage"),
     "internal-error": (500, "Internal error"),
@@ -270,6 +271,7 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
     maps_errors.InvalidConfiguration: DomainProblem(422, "invalid-configuration", ("errors",)),
     maps_errors.InvalidCamera: DomainProblem(422, "invalid-metadata", ("errors",)),
     maps_errors.MapUnavailable: DomainProblem(503, "map-unavailable", ("state", "state_reason")),
+    maps_errors.MapReadOnly: DomainProblem(503, "map-read-only", ("map_id", "state", "state_reason")),
     maps_errors.MapReplaying: DomainProblem(503, "map-unavailable", (
         "state", "state_reason", "steps", "replayed", "retry_after")),
     maps_errors.ShardUnavailable: DomainProblem(503, "map-unavailable", ("map_id", "shard", "retry_after")),

@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 
 class StorageError(Exception):
@@ -23,6 +24,21 @@ class StorageFull(StorageError):  # noqa: N818
     """A write failed for lack of space (SQLITE_FULL or ENOSPC); nothing of that write is committed."""
 
 
+class StoreCorrupt(StorageError):  # noqa: N818
+    """The file is not a readable database (not SQLite, malformed pages, tables missing, meta unreadable):
+    SQLITE_CORRUPT or SQLITE_NOTADB at open or at any later read (`connect`'s connections say it so)."""
+
+
+class StoreUnopenable(StorageError):  # noqa: N818
+    """The file could not be opened (SQLITE_CANTOPEN, SQLITE_PERM, SQLITE_READONLY at open: a permission,
+    a read-only file or directory): nothing says its contents are damaged; the message has the OS's words."""
+
+
+class StoreReadOnly(StorageError):  # noqa: N818
+    """A write met a database SQLite could open read-only only (SQLITE_READONLY: an immutable or
+    read-only file, a read-only mount); nothing of that write is committed."""
+
+
 class StoreClosed(StorageError):  # noqa: N818
     """A read or write reached a store or catalog that is closed (a restore, a deletion or a shutdown is
     swapping it): nothing was done, and the same request may succeed a moment later."""
@@ -31,6 +47,75 @@ class StoreClosed(StorageError):  # noqa: N818
 def utc_now() -> str:
     """Current UTC time as ISO 8601 with microseconds and a `Z` suffix (sortable as text)."""
     return datetime.now(UTC).isoformat(timespec="microseconds").replace("+00:00", "Z")
+
+
+#: SQLite's words for a damaged file (`sqlite_errorname`, extended codes included): `StoreCorrupt`.
+_CORRUPT_SQLITE = ("SQLITE_CORRUPT", "SQLITE_NOTADB")
+
+
+def is_corrupt_error(exc: BaseException) -> bool:
+    """True when SQLite says the file is damaged (`_CORRUPT_SQLITE`), not that it cannot reach it."""
+    return isinstance(exc, sqlite3.DatabaseError) and str(getattr(exc, "sqlite_errorname", "")).startswith(
+        _CORRUPT_SQLITE)
+
+
+@contextmanager
+def _corruption_named() -> Iterator[None]:
+    try:
+        yield
+    except sqlite3.DatabaseError as exc:
+        if is_corrupt_error(exc):
+            raise StoreCorrupt(str(exc)) from exc
+        raise
+
+
+class _Cursor(sqlite3.Cursor):
+    """A cursor whose statements and fetches say a damaged file as `StoreCorrupt` (a malformed page is
+    met at whichever step reads it), so that no caller above storage sees a raw sqlite3 error for it."""
+
+    def execute(self, sql: str, parameters: Any = (), /) -> _Cursor:
+        with _corruption_named():
+            return super().execute(sql, parameters)
+
+    def executemany(self, sql: str, seq_of_parameters: Any, /) -> _Cursor:
+        with _corruption_named():
+            return super().executemany(sql, seq_of_parameters)
+
+    def executescript(self, sql_script: str, /) -> _Cursor:
+        with _corruption_named():
+            return super().executescript(sql_script)
+
+    def __next__(self) -> Any:
+        with _corruption_named():
+            return super().__next__()
+
+    def fetchone(self) -> Any:
+        with _corruption_named():
+            return super().fetchone()
+
+    def fetchmany(self, size: int | None = None) -> list[Any]:
+        with _corruption_named():
+            return super().fetchmany(self.arraysize if size is None else size)
+
+    def fetchall(self) -> list[Any]:
+        with _corruption_named():
+            return super().fetchall()
+
+
+class _Connection(sqlite3.Connection):
+    """`connect`'s connection: its statements run on `_Cursor`s (CPython's own `execute` would not)."""
+
+    def cursor(self, factory: Any = _Cursor) -> Any:
+        return super().cursor(factory)
+
+    def execute(self, sql: str, parameters: Any = (), /) -> Any:
+        return self.cursor().execute(sql, parameters)
+
+    def executemany(self, sql: str, parameters: Any, /) -> Any:
+        return self.cursor().executemany(sql, parameters)
+
+    def executescript(self, sql_script: str, /) -> Any:
+        return self.cursor().executescript(sql_script)
 
 
 def connect(path: str | Path, *, readonly: bool = False) -> sqlite3.Connection:
@@ -42,6 +127,8 @@ def connect(path: str | Path, *, readonly: bool = False) -> sqlite3.Connection:
       store is opened at startup in a worker thread, written by the map's own single writer thread (a
       one-thread executor per map) and read from request handler threads; the catalog likewise. The
       owners (`MapStore`, `Catalog`) serialise access with their own lock instead.
+    - a damaged file (SQLITE_CORRUPT, SQLITE_NOTADB) raises `StoreCorrupt` from any statement or fetch,
+      not `sqlite3.DatabaseError` (`_Cursor`).
     - WAL + `synchronous=FULL` (read-write only): a commit is on disk when COMMIT returns. `journal_mode`
       is stored in the file, `synchronous` is per connection, so both are set on every open.
 
@@ -58,9 +145,9 @@ def connect(path: str | Path, *, readonly: bool = False) -> sqlite3.Connection:
         wal = Path(f"{path}-wal")
         mode = "mode=ro" if wal.is_file() and wal.stat().st_size > 0 else "mode=ro&immutable=1"
         conn = sqlite3.connect(f"{Path(path).resolve().as_uri()}?{mode}", uri=True,
-                               isolation_level=None, check_same_thread=False)
+                               isolation_level=None, check_same_thread=False, factory=_Connection)
         return conn
-    conn = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)
+    conn = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False, factory=_Connection)
     try:
         # A reader of another connection (backup, inspection) waits instead of failing at once.
         conn.execute("PRAGMA busy_timeout=5000")
@@ -93,12 +180,18 @@ def is_full_error(exc: BaseException) -> bool:
 
 @contextmanager
 def transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
-    """`BEGIN IMMEDIATE` … `COMMIT`, rolled back on any exception; SQLITE_FULL becomes `StorageFull`.
+    """`BEGIN IMMEDIATE` … `COMMIT`, rolled back on any exception; SQLITE_FULL becomes `StorageFull`,
+    SQLITE_READONLY `StoreReadOnly`.
 
     IMMEDIATE takes the write lock at BEGIN, so a second writer fails (or waits) before doing work
     rather than at COMMIT.
     """
-    conn.execute("BEGIN IMMEDIATE")
+    try:
+        conn.execute("BEGIN IMMEDIATE")  # a file SQLite holds read-only refuses the write lock already
+    except sqlite3.Error as exc:
+        if is_read_only_error(exc):
+            raise StoreReadOnly(str(exc)) from exc
+        raise
     try:
         yield conn
         conn.execute("COMMIT")
@@ -109,4 +202,13 @@ def transaction(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
                 conn.execute("ROLLBACK")
         if is_full_error(exc):
             raise StorageFull(str(exc)) from exc
+        if is_read_only_error(exc):
+            raise StoreReadOnly(str(exc)) from exc
         raise
+
+
+def is_read_only_error(exc: BaseException) -> bool:
+    """True when SQLite refused a write because it holds the file read-only (SQLITE_READONLY and its
+    extended codes)."""
+    return isinstance(exc, sqlite3.Error) and str(getattr(exc, "sqlite_errorname", "")).startswith(
+        "SQLITE_READONLY")

@@ -53,7 +53,7 @@ from typing import Any
 
 import numpy as np
 
-from storage._common import StorageError, connect, transaction, utc_now
+from storage._common import StorageError, StoreCorrupt, connect, transaction, utc_now
 from storage.base.dtypes import INDEX_DTYPE
 from storage.base.files import fsync_dir
 
@@ -428,10 +428,6 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
             conn.execute("ROLLBACK")
         raise
     return dataclasses.replace(meta, schema_version=SCHEMA_VERSION)
-
-
-class StoreCorrupt(StorageError):  # noqa: N818
-    """The file is not a readable map database (not SQLite, tables missing, meta unreadable)."""
 
 
 class DuplicateObservation(StorageError):  # noqa: N818

@@ -14,11 +14,12 @@ from typing import Any
 from storage.mapstore import StoreClosed
 from storage.snapshots import SnapshotInvalid
 
-__all__ = ["EncoderUnavailable", "IdempotencyKeyReused", "InsufficientStorage", "InvalidConfiguration",
-           "InvalidMapId", "MapAlreadyExists", "MapError", "MapFull", "MapLimit", "MapNotFound",
-           "MapReplaying", "MapTooLarge", "MapUnavailable", "MemoryBudgetExceeded", "ObservationNotFound",
-           "Overloaded", "RecentAnswerNotFound", "RowsOverCap", "ShardUnavailable", "SnapshotInUse",
-           "SnapshotInvalid", "SnapshotNotFound", "StoreClosed", "StreamLimit"]
+__all__ = ["READ_ONLY_REASON", "REMEDIES", "EncoderUnavailable", "IdempotencyKeyReused",
+           "InsufficientStorage", "InvalidConfiguration", "InvalidMapId", "MapAlreadyExists", "MapError",
+           "MapFull", "MapLimit", "MapNotFound", "MapReadOnly", "MapReplaying", "MapTooLarge",
+           "MapUnavailable", "MemoryBudgetExceeded", "ObservationNotFound", "Overloaded",
+           "RecentAnswerNotFound", "RowsOverCap", "ShardUnavailable", "SnapshotInUse", "SnapshotInvalid",
+           "SnapshotNotFound", "StoreClosed", "StreamLimit"]
 
 
 class MapError(Exception):
@@ -31,12 +32,44 @@ class MapNotFound(MapError):  # noqa: N818 - named after the problem slug
         self.map_id = map_id
 
 
+#: What an operator does about a map failed for this reason, said in its 503's detail (docs/design/
+#: service.md §4.4). A corrupt map is not restored over: its snapshots are imported as a new map file.
+REMEDIES: dict[str, str] = {
+    "database-corrupt": "its map.sqlite fails SQLite's check; to recover it from a snapshot: download its "
+                        "newest one (GET /v1/maps/{id}/snapshots/{snapshot_id}/download, verified as it is "
+                        "sent), DELETE the map, stop the service, `cortexloc import` the file and start "
+                        "the service again",
+    "unopenable": "its map.sqlite could not be opened (a permission, a read-only file or directory: the "
+                  "log has the OS's words); nothing says it is damaged: give the service read and write "
+                  "access to maps/{id}/ and restart it",
+}
+
+#: The `state_reason` of a map whose storage refuses writes (state `read-only`).
+READ_ONLY_REASON = "storage-read-only"
+
+
 class MapUnavailable(MapError):  # noqa: N818
-    """The map is `recovering` or `failed` (docs/design/service.md §4.4)."""
+    """The map is `recovering`, `read-only` or `failed` (docs/design/service.md §4.4); a failed map's
+    reason with a known remedy (`REMEDIES`) says it."""
 
     def __init__(self, map_id: str, state: str, state_reason: str | None) -> None:
-        super().__init__(f"map {map_id!r} is {state}" + (f" ({state_reason})" if state_reason else ""))
+        remedy = REMEDIES.get(state_reason or "")
+        super().__init__(f"map {map_id!r} is {state}" + (f" ({state_reason})" if state_reason else "")
+                         + (f": {remedy.replace('{id}', map_id)}" if remedy else ""))
         self.state, self.state_reason = state, state_reason
+
+
+class MapReadOnly(MapUnavailable):
+    """The map's `map.sqlite` refuses writes (an immutable or read-only file, a read-only mount: SQLite
+    opens it read-only without a word): the map is `read-only`; `refused` was not stored, nothing changed.
+    Localising frames and reads are still answered."""
+
+    def __init__(self, map_id: str, refused: str = "the change") -> None:
+        super().__init__(map_id, "read-only", READ_ONLY_REASON)
+        self.args = (f"map {map_id!r} is read-only: its storage (maps/{map_id}/map.sqlite) refuses writes, "
+                     f"so {refused} was not stored; localising frames are still answered. Make the file "
+                     "writable by the service (chattr -i, chmod, a read-write mount) and restart it",)
+        self.map_id = map_id
 
 
 class MapReplaying(MapUnavailable):

@@ -3,7 +3,10 @@
 
 A map is `ready` (it serves everything), `replaying` the rows after its snapshot at startup (it answers
 localising frames and reads from the memory as far as it has replayed; what learns waits), `recovering`
-(rebuilding its memory: nothing is served, and the service is not ready until it is done) or `failed`
+(rebuilding its memory: nothing is served, and the service is not ready until it is done), `read-only`
+(its `map.sqlite` refuses writes: an immutable or read-only file, a read-only mount; it answers
+localising frames and reads, what would write gets 503 `map-read-only` until an operator makes the file
+writable and restarts the service) or `failed`
 (it answers `map-unavailable` while the other maps serve; an operator should look). The request path
 (`MapRuntime.require_ready`, `FailedMap`), the map resource, the automatic snapshot and `/readyz` ask
 `serving`; none of them compares a state name.
@@ -16,7 +19,7 @@ from typing import Literal
 
 __all__ = ["MapState", "Serving", "serving"]
 
-MapState = Literal["ready", "replaying", "recovering", "failed"]
+MapState = Literal["ready", "replaying", "recovering", "read-only", "failed"]
 
 
 @dataclass(frozen=True)
@@ -28,12 +31,15 @@ class Serving:
         learns: learning frames and changes are taken.
         blocks_readiness: while a map is in this state the service is not ready (`/readyz` fails).
         warns: `/readyz` warns an operator about a map in this state (the map does not serve all).
+        read_only: its storage refuses writes: what learns is refused as such (`MapReadOnly`), not as
+            something to wait for.
     """
 
     reads: bool
     learns: bool
     blocks_readiness: bool = False
     warns: bool = False
+    read_only: bool = False
 
 
 def serving(state: str) -> Serving:
@@ -46,6 +52,8 @@ def serving(state: str) -> Serving:
             return Serving(reads=True, learns=False, warns=True)
         case "recovering":
             return Serving(reads=False, learns=False, blocks_readiness=True)
+        case "read-only":
+            return Serving(reads=True, learns=False, warns=True, read_only=True)
         case "failed":
             return Serving(reads=False, learns=False, warns=True)
     return Serving(reads=False, learns=False, blocks_readiness=True)

@@ -9,7 +9,8 @@ iff no check fails: 200 `{"status": "ready", "checks": ..., "warnings": [...]}`,
 - `encoder`: loaded, with its weights (`pretrained` + SHA-256, or `random` + seed: `warn`, or `fail`
   when `CORTEXLOC_ALLOW_RANDOM_WEIGHTS=false`), and the runtime and device its backbone runs on;
 - `maps`: the state of each map in `app.state.maps` (objects with `state`, `state_reason`, `recovery`
-  and `snapshot_error`): ready iff none is `recovering`; `failed` maps, maps `replaying` their tail
+  and `snapshot_error`): ready iff none is `recovering`; `failed` maps, `read-only` ones (their storage
+  refuses writes), maps `replaying` their tail
   (they localise, learning waits), recoveries that passed over snapshots or rows, and failed automatic
   snapshots are warnings. With `CORTEXLOC_API_KEY_READS` the
   probe stays open but names no map: it gives the counts by state (map ids are reads that need the key);
@@ -109,7 +110,11 @@ def check_maps(maps: dict[str, Any], named: bool = True) -> Check:
                          f"{len(skipped)} snapshot(s) (a damaged snapshot, or one whose replay diverged), "
                          f"{recovery.get('mismatches', 0)} row(s) not reproduced")
         serves = serving(str(m.state))
-        if serves.reads and not serves.learns:  # replaying: localises, learning waits (service.md §4.4)
+        if serves.read_only:
+            notes.append(f"map {map_id}'s storage refuses writes (read-only): localising frames are "
+                         "answered, learning ones get 503 map-read-only; make its map.sqlite writable and "
+                         "restart")
+        elif serves.reads and not serves.learns:  # replaying: localises, learning waits (service.md §4.4)
             states[map_id]["recovery"] = recovery  # `tail` steps, `replayed` so far
             notes.append(f"map {map_id} is replaying the rows after its snapshot: localising frames are "
                          "answered, learning ones get 503 until it is done")

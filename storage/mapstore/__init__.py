@@ -19,7 +19,7 @@ keyframes.py, copies.py (sync, checks, sizes, backup, install). The schema, the 
 version holds are `storage.mapschema`'s alone.
 """
 
-from storage._common import StorageError, StorageFull, StoreClosed
+from storage._common import StorageError, StorageFull, StoreClosed, StoreReadOnly, StoreUnopenable
 from storage.mapschema import (
     CELL_DTYPES,
     INPUT_DTYPE,
@@ -57,6 +57,8 @@ __all__ = [
     "StorageFull",
     "StoreClosed",
     "StoreCorrupt",
+    "StoreReadOnly",
+    "StoreUnopenable",
     "Visit",
     "cell_dtype_for",
 ]

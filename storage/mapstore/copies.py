@@ -12,7 +12,7 @@ import sqlite3
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from storage._common import StorageFull, is_full_error
+from storage._common import StorageFull, StoreCorrupt, is_full_error
 from storage.base.files import atomic_write, fsync_dir
 
 __all__ = ["Copies"]
@@ -61,7 +61,7 @@ class Copies:
         try:
             with self._lock:
                 result = self._db().execute(f"PRAGMA {pragma}").fetchall()
-        except sqlite3.DatabaseError:
+        except (sqlite3.DatabaseError, StoreCorrupt):  # (a page too damaged to check: `connect`'s cursors)
             return False
         return result == [("ok",)]
 

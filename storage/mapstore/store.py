@@ -10,8 +10,16 @@ import sqlite3
 import threading
 from pathlib import Path
 
-from storage._common import StorageError, StorageFull, StoreClosed, connect, is_full_error
-from storage.mapschema import SCHEMA_VERSION, Holds, MapMeta, StoreCorrupt, create_file, migrate, read_meta
+from storage._common import (
+    StorageError,
+    StorageFull,
+    StoreClosed,
+    StoreCorrupt,
+    StoreUnopenable,
+    connect,
+    is_full_error,
+)
+from storage.mapschema import SCHEMA_VERSION, Holds, MapMeta, create_file, migrate, read_meta
 from storage.mapstore.closures import Closures, closure_columns
 from storage.mapstore.copies import Copies
 from storage.mapstore.keyframes import Keyframes
@@ -100,7 +108,9 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
 
         Raises:
             FileNotFoundError: no such file (SQLite would silently create an empty one).
-            StoreCorrupt: not a map database.
+            StoreCorrupt: not a map database (damaged, or another file).
+            StoreUnopenable: SQLite could not open it (a permission, a read-only file or directory),
+                with the OS's words: nothing says it is damaged.
             StorageError: written by a newer schema version.
         """
         path = Path(path)
@@ -109,7 +119,7 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
         try:
             conn = connect(path, readonly=readonly)
         except sqlite3.DatabaseError as exc:
-            raise StoreCorrupt(f"{path}: {exc}") from exc
+            raise _open_error(path, exc) from exc
         try:
             meta = read_meta(conn, path)
             if meta.schema_version > SCHEMA_VERSION:
@@ -122,10 +132,17 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
             conn.close()
             if is_full_error(exc):  # the migration found no room: the file is whole, the disk is not
                 raise StorageFull(f"{path}: no room to migrate to schema {SCHEMA_VERSION}") from exc
-            raise StoreCorrupt(f"{path}: {exc}") from exc
+            raise _open_error(path, exc) from exc
         except BaseException:
             conn.close()
             raise
+
+    @property
+    def writable(self) -> bool:
+        """Whether this process may write the file (`os.access`, one system call, no probe written): an
+        immutable or read-only file, or one on a read-only mount, is opened by SQLite read-only without a
+        word, and only its first write would say so (`StoreReadOnly`)."""
+        return os.access(self.path, os.W_OK)
 
     def close(self) -> None:
         """Close the connection (idempotent). SQLite checkpoints and removes the WAL on the last close."""
@@ -149,3 +166,24 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
         if self._conn is None:
             raise StoreClosed(f"{self.path}: store is closed")
         return self._conn
+
+
+#: SQLite's codes for a file it could not open or write as asked (prefixes of `sqlite_errorname`).
+_UNOPENABLE = ("SQLITE_CANTOPEN", "SQLITE_PERM", "SQLITE_READONLY", "SQLITE_AUTH")
+
+
+def _open_error(path: Path, exc: sqlite3.DatabaseError) -> StorageError:
+    """What an open's SQLite error means: the file or its directory cannot be reached as needed
+    (`_UNOPENABLE`: a permission, a read-only file, directory or mount) is `StoreUnopenable` with the OS's
+    words where it gives them, never called corrupt (an operator deletes a corrupt map, and a permission
+    must not cost a healthy one); anything else says the file is no map database: `StoreCorrupt`."""
+    if not str(getattr(exc, "sqlite_errorname", "")).startswith(_UNOPENABLE):
+        return StoreCorrupt(f"{path}: {exc}")
+    why = str(exc)
+    try:  # SQLite keeps the errno to itself: ask the OS for the file, then for its directory (-wal, -shm)
+        os.close(os.open(path, os.O_RDWR))
+        if not os.access(path.parent, os.W_OK | os.X_OK):
+            why += f" ({path.parent}: the directory is not writable, SQLite's -wal and -shm files live there)"
+    except OSError as e:
+        why += f" ({e.strerror or e})"
+    return StoreUnopenable(f"{path}: {why}")

@@ -197,6 +197,7 @@ def test_registry_covers_the_spec_table():
     spec |= {"request-timeout"}  # issue 19: the body-read deadline
     spec |= {"memory-budget", "stream-limit", "snapshot-in-use"}  # issue 19 items 1, 8 and 10
     spec |= {"recent-answer-not-found"}  # issue 23: the viewer's query thumbnails
+    spec |= {"map-read-only"}  # a map whose map.sqlite refuses writes (was a 500)
     assert set(TITLES) == spec
 
 

@@ -41,9 +41,9 @@ PROXY_STATUSES = frozenset({500, 502, 503, 504})
 class RetryPolicy:
     """When a request is sent again.
 
-    - the service's 503 (problem+json `overloaded`, `not-ready`, `map-unavailable`): it refused before
-      doing anything, so any request is retried, after `Retry-After` seconds when the reply has them,
-      else after `backoff_s`, 2 x `backoff_s`, 4 x ...; never longer than `max_wait_s`.
+    - the service's 503 (problem+json `overloaded`, `not-ready`, `map-unavailable`, `map-read-only`): it
+      refused before doing anything, so any request is retried, after `Retry-After` seconds when the
+      reply has them, else after `backoff_s`, 2 x `backoff_s`, 4 x ...; never longer than `max_wait_s`.
     - a connection that could not be opened: the request was never sent; retried like a 503.
     - any other transport failure (reset, timeout while reading the reply): the service may have done
       the work, so only idempotent requests are retried (GET, DELETE, PATCH, a stream reset, and an

@@ -125,7 +125,7 @@ class Map(_Reply):
 
     map_id: str
     created_at: str
-    state: Literal["ready", "replaying", "recovering", "failed"]
+    state: Literal["ready", "replaying", "recovering", "read-only", "failed"]
     state_reason: str | None = None
     preset: str
     params: MapParams

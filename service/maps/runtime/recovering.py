@@ -24,11 +24,11 @@ import numpy as np
 from models.localisation.graph import NONE
 from models.localisation.motion import Motion
 from service.maps import recovery
-from service.maps.errors import MapReplaying, MapUnavailable, RowsOverCap
+from service.maps.errors import READ_ONLY_REASON, MapReadOnly, MapReplaying, MapUnavailable, RowsOverCap
 from service.maps.states import serving
 from storage import snapshots
 from storage.catalog import MapNotFound as CatalogMapNotFound
-from storage.mapstore import MapStore, Observation, StorageFull, StoreCorrupt
+from storage.mapstore import MapStore, Observation, StorageFull, StoreCorrupt, StoreUnopenable
 
 __all__ = ["TAIL_BEFORE_SERVING", "Recovering"]
 
@@ -63,7 +63,8 @@ class Recovering:
     def require_ready(self, learns: bool = True) -> None:
         """Raises MapUnavailable unless the map is ready or, for what neither learns nor changes stored
         state (`learns=False`: a localising frame, a read), replaying its tail (§4.4); MapReplaying (a
-        MapUnavailable with a `retry_after`) for what learns meanwhile."""
+        MapUnavailable with a `retry_after`) for what learns meanwhile; MapReadOnly for what learns on a
+        map whose storage refuses writes (`read-only`: it reads)."""
         serves = serving(self.state)
         if serves.learns:
             return
@@ -74,6 +75,10 @@ class Recovering:
                 per_step = (time.perf_counter() - self._tail_started) / done if done else 0.0
                 raise MapReplaying(self.map_id, tail.steps, done,
                                    max(1, math.ceil((tail.steps - done) * per_step)))
+            return
+        if serves.read_only:
+            if learns:
+                raise MapReadOnly(self.map_id)
             return
         raise MapUnavailable(self.map_id, self.state, self.state_reason)
 
@@ -106,6 +111,9 @@ class Recovering:
                 raise StoreCorrupt("quick_check failed")
         except (StoreCorrupt, StorageFull) as e:  # full (a migration): the file is whole, a restart recovers
             self._fail("disk-full" if isinstance(e, StorageFull) else "database-corrupt", str(e))
+            return
+        except StoreUnopenable as e:  # a permission or a read-only directory: never called corrupt
+            self._fail("unopenable", str(e))
             return
         held, cap = self.store.held(), self.index.max_observations
         if held > cap:  # the setting lowered since: the index cannot hold the rows (§1.4)
@@ -146,6 +154,15 @@ class Recovering:
         self.recovery = note
         self.state, self.state_reason = "ready", None
         log.info("map %s ready: %s", self.map_id, note)
+        if not self.store.writable:  # checked once per open: SQLite opened it read-only without a word
+            self.read_only()
+
+    def read_only(self) -> None:
+        """The map's storage refuses writes: it serves reads and refuses what learns (`MapReadOnly`) until
+        an operator makes `map.sqlite` writable and restarts the service."""
+        self.state, self.state_reason = "read-only", READ_ONLY_REASON
+        log.error("map %s: %s refuses writes; it localises, learning is refused until the file is writable "
+                  "and the service restarted", self.map_id, self.layout.map_db(self.map_id))
 
     def _cap_streams(self, say: bool = True) -> None:
         """A replay meets every stream that ever learned, and `CORTEXLOC_MAX_STREAMS` may have been lowered

@@ -37,13 +37,13 @@ from models.localisation.motion import Motion
 from models.pipeline import touch
 from service.maps import keyframes
 from service.maps.encoding.pool import EmbeddingPool
-from service.maps.errors import ClientGone, InsufficientStorage, MapNotFound
+from service.maps.errors import ClientGone, InsufficientStorage, MapNotFound, MapReadOnly
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import ObservationResult, PlaceResult
 from service.maps.runtime.durability import GroupCommit
 from service.maps.states import serving
 from storage.base.dtypes import INDEX_DTYPE
-from storage.mapstore import MapStore, StorageFull
+from storage.mapstore import MapStore, StorageFull, StoreReadOnly
 
 __all__ = ["CODES_KEPT", "Writer"]
 
@@ -248,6 +248,7 @@ class Writer:
             ValueError: `projected` is not (k,) (before any state change). MapUnavailable, MapFull,
             StreamLimit, MemoryBudgetExceeded (nothing changed).
             InsufficientStorage: no room to write; the memory was rebuilt from the store, nothing learned.
+            MapReadOnly: the store refuses writes; as for InsufficientStorage, and the map is `read-only`.
         """
         self.require_ready(learn)
         assert self.store is not None and self.hasher is not None  # a map without them is never ready
@@ -267,6 +268,9 @@ class Writer:
                 if isinstance(e, StorageFull):  # its loop closure could not be logged: no answer either
                     raise InsufficientStorage(f"the loop closure could not be logged: no room to write "
                                               f"({e})") from e
+                if isinstance(e, StoreReadOnly):
+                    self.read_only()
+                    raise MapReadOnly(self.map_id, "this revisit's loop closure (so no answer)") from e
                 raise
             # The TM may hold a learned step the store does not (a failed commit, or a failure anywhere
             # between the step and the commit): rebuild from the store before anything else runs, so
@@ -280,6 +284,11 @@ class Writer:
                 # or a failing disk, which it does not tell apart; storage._common.is_full_error)
                 raise InsufficientStorage(f"the observation could not be stored: no room to write ({e}); "
                                           "nothing was learned") from e
+            if isinstance(e, StoreReadOnly):
+                # (recovery marks it too, where the OS says the file is read-only; SQLite said so first)
+                if serving(self.state).learns:
+                    self.read_only()
+                raise MapReadOnly(self.map_id, "the observation (nothing was learned)") from e
             raise
 
     def _step(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,

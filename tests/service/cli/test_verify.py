@@ -4,6 +4,7 @@ and changes nothing (issue 11, item 12)."""
 from __future__ import annotations
 
 import re
+import sqlite3
 from pathlib import Path
 
 from typer.testing import CliRunner
@@ -46,3 +47,26 @@ def test_verify_reports_a_changed_row_under_a_snapshot_and_changes_nothing(tmp_p
     assert files(data) == before  # byte-identical, and no -wal/-shm or other file appeared
     assert run_verify(data, "--map", "other").exit_code == 0
     assert run_verify(data, "--map", "nope").exit_code == 2
+
+
+def test_verify_reports_a_malformed_map_file_and_checks_the_other_maps(tmp_path):
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        c.post("/v1/maps", json={"map_id": "other"})
+        for p in range(6):
+            post(c, frame(p))
+        post(c, frame(5), map_id="other")
+    db = data / "maps" / "default" / "map.sqlite"
+    conn = sqlite3.connect(db)
+    root = conn.execute("SELECT rootpage FROM sqlite_master WHERE name = 'observations'").fetchone()[0]
+    size = conn.execute("PRAGMA page_size").fetchone()[0]
+    conn.close()
+    with open(db, "r+b") as f:  # random bytes over a page of the rows: "database disk image is malformed"
+        f.seek((root - 1) * size)
+        f.write(bytes(range(256)) * (size // 256))
+    r = run_verify(data)
+    assert r.exit_code == 1, r.output
+    assert r.exception is None or isinstance(r.exception, SystemExit), r.exception  # no traceback
+    assert "map default: PROBLEMS" in r.output and "malformed" in r.output
+    assert re.search(r"map other: ok; 1 rows replayed", r.output), r.output
+    assert "2 map(s) checked, 1 with problems" in r.output

@@ -49,3 +49,13 @@ def test_the_table_gives_status_slug_members_and_headers(exc, status, slug, memb
 def test_the_data_directory_is_cut_from_the_detail(tmp_path) -> None:
     p = domain_problem(errors.InsufficientStorage(f"cannot write {tmp_path}/maps/lab/x"), tmp_path)
     assert p.detail == "cannot write maps/lab/x"
+
+
+def test_a_failed_maps_503_says_what_an_operator_does_about_its_reason() -> None:
+    corrupt = domain_problem(errors.MapUnavailable("lab", "failed", "database-corrupt")).detail
+    assert corrupt.startswith("map 'lab' is failed (database-corrupt): ")
+    assert "/v1/maps/lab/snapshots/" in corrupt and "`cortexloc import`" in corrupt and "DELETE" in corrupt
+    unopenable = domain_problem(errors.MapUnavailable("lab", "failed", "unopenable")).detail
+    assert "maps/lab/" in unopenable and "not" in unopenable and "damaged" in unopenable
+    plain = domain_problem(errors.MapUnavailable("lab", "recovering", None)).detail
+    assert plain == "map 'lab' is recovering"

@@ -393,6 +393,26 @@ def test_disk_full_is_507_and_nothing_is_learned(client):
     assert post(client, frame(place)).json()["seq"] == before[1] + 1
 
 
+def test_a_store_refusing_writes_is_503_map_read_only_and_readyz_says_so(client):
+    post(client, frame(1))
+    before = state_of(client)
+    # SQLite refuses the commit as for a file it holds read-only (an immutable map.sqlite: the probe's case)
+    client.app.state.registry.get("default").store._db().execute("PRAGMA query_only = ON")
+    r = client.post("/v1/maps/default/observations", content=frame(2), headers={"Content-Type": "image/png"})
+    assert r.status_code == 503 and r.headers["content-type"] == PROBLEM_MEDIA_TYPE, r.text
+    body = r.json()
+    assert body["type"].endswith(":map-read-only") and body["map_id"] == "default"
+    assert (body["state"], body["state_reason"]) == ("read-only", "storage-read-only")
+    assert "read-only" in body["detail"] and "maps/default/map.sqlite" in body["detail"]
+    assert state_of(client) == before  # nothing stored half, nothing learned
+    assert client.get("/v1/maps/default").json()["state"] == "read-only"
+    ready = client.get("/readyz")
+    assert ready.status_code == 200  # it localises: a warning, not unready
+    maps = ready.json()["checks"]["maps"]
+    assert maps["status"] == "warn" and "default's storage refuses writes" in maps["warning"]
+    assert post(client, frame(1), learn="false").status_code == 200
+
+
 def test_a_map_whose_projection_changed_fails_alone(tmp_path):
     data = tmp_path / "data"
     with make_client(data) as c:

@@ -1,0 +1,67 @@
+"""A map whose storage refuses writes or cannot be opened (service/maps/runtime/recovering.py, writer.py;
+docs/design/service.md §4.4): `read-only` (it localises, what learns is refused as such, nothing half
+stored) or `failed` `unopenable`, never `database-corrupt` for a permission."""
+
+from __future__ import annotations
+
+import sqlite3
+
+import pytest
+
+from service.maps.config import MapOptions
+from service.maps.errors import MapReadOnly, MapUnavailable
+from tests.service.helpers import tm_digest
+from tests.service.maps.maps_fixtures import registry, route, step
+from tests.storage.test_mapstore_faults import unwritable
+
+
+def test_a_commit_the_store_refuses_as_read_only_is_map_read_only_and_learns_nothing(tmp_path):
+    with registry(tmp_path) as reg:
+        rt = reg.create("flat", MapOptions(memory="none"))  # matches by the code itself: exact places
+        frames = route(5)
+        for f in frames[:3]:
+            step(rt, f)
+        live, count = tm_digest(rt.tm), rt.store.count()
+        # SQLite refuses the write as for a file it opened read-only (SQLITE_READONLY)
+        rt.store._db().execute("PRAGMA query_only = ON")
+        with pytest.raises(MapReadOnly, match=r"read-only: its storage .*map.sqlite. refuses writes"):
+            step(rt, frames[3])
+        assert (rt.state, rt.state_reason) == ("read-only", "storage-read-only")
+        assert rt.store.count() == len(rt.index) == count and tm_digest(rt.tm) == live
+        assert step(rt, frames[1], learn=False, stream="q").matches[0].seq == 2  # it still localises
+        with pytest.raises(MapReadOnly):  # refused up front now: no step, no rebuild
+            step(rt, frames[4])
+        assert rt.store.count() == count and tm_digest(rt.tm) == live
+
+
+def test_a_map_file_read_only_at_start_is_read_only_not_ready(tmp_path):
+    with registry(tmp_path) as reg:
+        rt = reg.create("flat", MapOptions(memory="none"))
+        for f in route(3):
+            step(rt, f)
+    db = tmp_path / "maps" / "flat" / "map.sqlite"
+    with unwritable(db), registry(tmp_path) as reg:
+        rt = reg.get("flat")
+        assert (rt.state, rt.state_reason) == ("read-only", "storage-read-only")
+        assert step(rt, route(3)[1], learn=False, stream="q").matches[0].seq == 2
+        with pytest.raises(MapReadOnly):
+            step(rt, route(4, seed=1)[0])
+        assert rt.store.count() == 3
+
+
+def test_a_map_file_sqlite_cannot_open_is_failed_unopenable_not_corrupt(tmp_path, monkeypatch):
+    with registry(tmp_path) as reg:
+        step(reg.get("default"), route(1)[0])
+    real = sqlite3.connect
+
+    def cannot_open(database, *args, **kwargs):  # SQLite's own CANTOPEN for the map's file alone
+        if str(database).endswith("map.sqlite"):
+            return real("file:/nonexistent-dir/map.sqlite?mode=ro", uri=True)
+        return real(database, *args, **kwargs)
+
+    monkeypatch.setattr(sqlite3, "connect", cannot_open)
+    with registry(tmp_path) as reg:
+        rt = reg.get("default")
+        assert (rt.state, rt.state_reason) == ("failed", "unopenable")
+        with pytest.raises(MapUnavailable, match=r"could not be opened .* nothing says it is damaged"):
+            rt.require_ready(learns=False)
