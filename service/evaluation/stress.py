@@ -19,8 +19,8 @@ lap-2 frames and OpenSeqSLAM run online (`models.evaluation.slam.openseqslam_onl
 - `seasons`, `noise`: the window, then again in winter or with pixel noise (σ 8): lap 2 is a revisit.
 - `cameras`: the window posted by a robot's two cameras as two streams, `front` (the frames) and `rear`
   (each frame again with σ 4 noise: nearly one view, as a stereo pair's), both naming one trail
-  (`metadata.trail`): each camera's frames are the other's recent rows, its short-term memory; then
-  again in winter by both (lap 2: a revisit for each camera).
+  (`metadata.trail`), both frames of a moment with its stamp: each camera's frames are the other's
+  recent rows, its short-term memory; then again in winter by both (lap 2: a revisit for each camera).
 
 Per case and seed: false revisits while mapping (every call not a true revisit named right), merged
 places (places whose rows' labels differ by more than the tolerance), wrong consolidations (frames
@@ -73,6 +73,8 @@ class Route:
     laps: np.ndarray
     #: (T,) the stream posting each frame, all naming the trail `robot` (None: one stream, `robot`)
     streams: tuple[str, ...] | None = None
+    #: (T,) each frame's stamp in seconds, its `metadata.stamp` (None: unstamped)
+    stamps: tuple[float, ...] | None = None
 
 
 class Frames:
@@ -170,7 +172,9 @@ def route(frames: Frames, case: str, lo: int) -> Route:
                 add(season, [i], None, lap)
                 add(season, [i], "noise:4", lap, 2000)
         streams = ("front", "rear") * (2 * WINDOW)
-        return Route(case, pngs, np.asarray(labels, np.int64), np.asarray(laps, np.int64), streams)
+        # both cameras' frames of one moment carry its stamp, as a robot's drivers stamp them
+        stamps = tuple(float(k // 2) for k in range(len(streams)))
+        return Route(case, pngs, np.asarray(labels, np.int64), np.asarray(laps, np.int64), streams, stamps)
     else:
         raise ValueError(f"unknown case {case!r}; known: {', '.join(CASES)}")
     return Route(case, pngs, np.asarray(labels, np.int64), np.asarray(laps, np.int64))
@@ -201,6 +205,13 @@ def _lap2(s: dict[str, Any]) -> dict[str, Any]:
     return {k: lap.get(k) for k in keys} if lap else {}
 
 
+def _motions(r: Route) -> list[Motion] | None:
+    """Each frame's motion in a case of several streams: the trail `robot`, and the frame's stamp."""
+    if r.streams is None:
+        return None
+    return [TRAIL._replace(stamp=None if r.stamps is None else r.stamps[i]) for i in range(len(r.streams))]
+
+
 def run_case(frames: Frames, case: str, lo: int, seeds: tuple[int, ...], methods: tuple[str, ...],
              map_conf: dict[str, Any]) -> dict[str, Any]:
     """One case on one window: every method at every seed, scored at the map's revisit threshold."""
@@ -218,7 +229,7 @@ def run_case(frames: Frames, case: str, lo: int, seeds: tuple[int, ...], methods
             if m in service_path.SLAM_METHODS:
                 found, threshold = service_path.slam_replay(
                     feats, seed=seed, memory=service_path.SLAM_METHODS[m], contrast=contrast, trace=trace,
-                    streams=r.streams, motions=None if r.streams is None else [TRAIL] * len(r.streams),
+                    streams=r.streams, motions=_motions(r),
                     **map_conf)
                 best, conf = found.best, found.confidence
             elif m == "service":  # the localise mode: lap 1 learned, the rest localised by another robot
