@@ -67,11 +67,10 @@ def give_back() -> None:
 
     The budget counts a map's memory gone when the map is; the process must agree, or its RSS outgrows
     the budget it was sized by (a container's limit). A map's objects sit in reference cycles that only
-    the collector's full pass frees, and that pass is rare: creating 8 maps and deleting them, 5 times
-    over, held 22 dead maps and 2.2 GB, against 0.5 GB at the start. Then glibc keeps freed heap pages
-    in its arenas until `malloc_trim` (1 GB after the collection, 0.5 GB after the trim). Both cost
-    milliseconds to a few hundred on a large heap, paid on the rare operation that frees a map, never
-    per frame."""
+    the collector's full pass frees, and that pass is rare: maps created and deleted in rounds stayed
+    alive in dozens (docs/design/service.md §1.8). Then glibc keeps freed heap pages in its arenas until
+    `malloc_trim`. Both cost milliseconds to a few hundred on a large heap, paid on the rare operation
+    that frees a map, never per frame."""
     gc.collect()
     trim = _malloc_trim()
     if trim is not None:
