@@ -87,7 +87,7 @@ class TarExport:
         self.manifest = parse_manifest(body, str(directory))
         m = self.manifest
         for name in extra:
-            if not SAFE_NAME.match(name) or name == MANIFEST_FILE or name in m.files:
+            if not SAFE_NAME.fullmatch(name) or name == MANIFEST_FILE or name in m.files:
                 raise ValueError(f"unsafe or duplicate extra member name {name!r}")
         # (member name, where it is for messages, open file, what the manifest records or None)
         here = str(directory)
@@ -218,7 +218,7 @@ def import_tar(fileobj: BinaryIO, dest: str | os.PathLike[str], *,
                         raise SnapshotInvalid(f"tar member {name!r} refused: {exc}") from exc
                     if not member.isreg():
                         raise SnapshotInvalid(f"tar member {name!r} is not a regular file")
-                    if not SAFE_NAME.match(name):
+                    if not SAFE_NAME.fullmatch(name):
                         raise SnapshotInvalid(f"tar member name {name!r} is not a plain file name")
                     if name in got or (m is not None and name == MANIFEST_FILE):
                         raise SnapshotInvalid(f"tar member {name!r} appears twice")

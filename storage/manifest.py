@@ -51,6 +51,7 @@ MEMORY_FILE = "memory.npz"
 PROJECTION_FILE = "projection.npy"
 
 #: A member or file name: one path component, no leading dot (so neither `..` nor hidden temp files).
+#: Use `fullmatch`: its `$` also matches before a last newline.
 SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 
@@ -151,7 +152,7 @@ def parse_manifest(body: bytes, where: str) -> Manifest:
             raise SnapshotInvalid(f"{where}: manifest {key!r} is not an object")
         out = {}
         for name, e in raw.items():
-            ok = (isinstance(name, str) and SAFE_NAME.match(name) and name != MANIFEST_FILE
+            ok = (isinstance(name, str) and SAFE_NAME.fullmatch(name) and name != MANIFEST_FILE
                   and isinstance(e, dict) and isinstance(e.get("bytes"), int) and e["bytes"] >= 0
                   and isinstance(e.get("sha256"), str) and _SHA256.fullmatch(e["sha256"]))
             if not ok:

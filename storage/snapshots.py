@@ -111,7 +111,7 @@ def create_snapshot(store: MapStore, memory: Mapping[str, np.ndarray], dest: str
     arrays = _check_memory(memory)
     ext = {name: Path(p) for name, p in (external or {}).items()}
     for name in ext:
-        if not SAFE_NAME.match(name) or name in (MANIFEST_FILE, DB_FILE, MEMORY_FILE):
+        if not SAFE_NAME.fullmatch(name) or name in (MANIFEST_FILE, DB_FILE, MEMORY_FILE):
             raise ValueError(f"unsafe or reserved external file name {name!r}")
     if dest.exists():
         raise FileExistsError(f"{dest} exists")

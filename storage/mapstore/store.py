@@ -118,6 +118,8 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
             raise FileNotFoundError(f"{path} does not exist")
         try:
             conn = connect(path, readonly=readonly)
+        except StoreCorrupt as exc:  # connect's own PRAGMAs read the file, and its cursors say no path
+            raise _corrupt_at(path, exc) from exc
         except sqlite3.DatabaseError as exc:
             raise _open_error(path, exc) from exc
         try:
@@ -128,6 +130,9 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
             if not readonly:
                 meta = migrate(conn, meta)
             return cls(path, conn, meta, seq_floor, max_keys, max_closures, closure_floor)
+        except StoreCorrupt as exc:  # the first read of a file that is no database (read_meta's SELECT)
+            conn.close()
+            raise _corrupt_at(path, exc) from exc
         except sqlite3.DatabaseError as exc:
             conn.close()
             if is_full_error(exc):  # the migration found no room: the file is whole, the disk is not
@@ -170,6 +175,11 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
 
 #: SQLite's codes for a file it could not open or write as asked (prefixes of `sqlite_errorname`).
 _UNOPENABLE = ("SQLITE_CANTOPEN", "SQLITE_PERM", "SQLITE_READONLY", "SQLITE_AUTH")
+
+
+def _corrupt_at(path: Path, exc: StoreCorrupt) -> StoreCorrupt:
+    """`exc` naming the file (the cursors' `StoreCorrupt` has SQLite's words alone; read_meta's names it)."""
+    return exc if str(exc).startswith(f"{path}:") else StoreCorrupt(f"{path}: {exc}")
 
 
 def _open_error(path: Path, exc: sqlite3.DatabaseError) -> StorageError:

@@ -100,3 +100,12 @@ def test_a_write_to_a_file_held_read_only_is_store_read_only_and_commits_nothing
         assert s.count() == 3 and s.last_seq() == 3
     with MapStore.open(db, readonly=True) as s:
         assert s.count() == 3
+
+
+@pytest.mark.parametrize("readonly", [False, True])
+def test_a_file_that_is_no_database_is_store_corrupt_naming_the_file(tmp_path, readonly):
+    db = tmp_path / "map.sqlite"
+    db.write_bytes(b"not a database at all " * 400)  # read first by connect (read-write) or read_meta
+    with pytest.raises(StoreCorrupt, match="is not a database") as e:
+        MapStore.open(db, readonly=readonly)
+    assert str(e.value).startswith(f"{db}: ")

@@ -20,6 +20,7 @@ import pytest
 from models import presets
 from models.memory.temporal_memory import TemporalMemory
 from storage import snapshots
+from storage.manifest import parse_manifest
 from storage.mapstore import MapStore, NewObservation
 from storage.snapshots import SnapshotInvalid, create_snapshot, import_tar, load_memory, verify
 
@@ -380,6 +381,29 @@ def test_links_duplicates_and_unknown_members_refused(tmp_path: Path,
     # A projection the manifest does not list is accepted (the caller verifies it by its own checksum).
     got = import_tar(_tar([*good, (_file("projection.npy"), b"npy")]), tmp_path / "dest")
     assert (tmp_path / "dest" / "projection.npy").read_bytes() == b"npy" and got.seq == 5
+
+
+def test_a_file_name_ending_in_a_newline_is_refused(tmp_path: Path, store: MapStore,
+                                                   snap: tuple[Path, snapshots.Manifest]) -> None:
+    """SAFE_NAME ends in `$`, which also matches before a last newline: every use is a fullmatch (a tar
+    member, a manifest entry, an external file written or exported)."""
+    src, _ = snap
+    good = [(_file(n), (src / n).read_bytes()) for n in ("manifest.json", "map.sqlite", "memory.npz")]
+    with pytest.raises(SnapshotInvalid, match="not a plain file name"):
+        import_tar(_tar([*good, (_file("projection.npy\n"), b"npy")]), tmp_path / "dest")
+    assert not (tmp_path / "dest").exists()
+    body = json.loads((src / "manifest.json").read_bytes())
+    body["external"] = {"projection.npy\n": {"bytes": 3, "sha256": "0" * 64}}
+    with pytest.raises(SnapshotInvalid, match="bad manifest entry"):
+        parse_manifest(json.dumps(body).encode(), "here")
+    projection = tmp_path / "proj.npy"
+    projection.write_bytes(b"npy")
+    with pytest.raises(ValueError, match="unsafe"):
+        create_snapshot(store, memory_arrays(), tmp_path / "s2", kind="manual",
+                        external={"projection.npy\n": projection})
+    assert not (tmp_path / "s2").exists()
+    with pytest.raises(ValueError, match="unsafe"):
+        exported(src, {"projection.npy\n": projection})
 
 
 def test_stale_temp_is_removed_and_nothing_else(tmp_path: Path, snap: tuple[Path, snapshots.Manifest],

@@ -177,7 +177,7 @@ def load_projection(
             shape, or checksum mismatch.
     """
     expected = str(expected_sha256).lower()
-    if not _SHA_RE.match(expected):
+    if not _SHA_RE.fullmatch(expected):
         raise ProjectionError(f"expected_sha256 must be 64 hex digits, got {expected_sha256!r}")
     try:
         with open(path, "rb") as f:

@@ -43,7 +43,7 @@ from service.maps.results import ObservationResult, PlaceResult
 from service.maps.runtime.durability import GroupCommit
 from service.maps.states import serving
 from storage.base.dtypes import INDEX_DTYPE
-from storage.mapstore import MapStore, StorageFull, StoreReadOnly
+from storage.mapstore import MapStore, NewClosure, StorageFull, StoreReadOnly
 
 __all__ = ["CODES_KEPT", "Writer"]
 
@@ -248,7 +248,8 @@ class Writer:
             ValueError: `projected` is not (k,) (before any state change). MapUnavailable, MapFull,
             StreamLimit, MemoryBudgetExceeded (nothing changed).
             InsufficientStorage: no room to write; the memory was rebuilt from the store, nothing learned.
-            MapReadOnly: the store refuses writes; as for InsufficientStorage, and the map is `read-only`.
+            MapReadOnly: the store refuses a learning frame's write; as for InsufficientStorage, and the
+                map is `read-only`. A localising frame is answered there (its closure is not logged).
         """
         self.require_ready(learn)
         assert self.store is not None and self.hasher is not None  # a map without them is never ready
@@ -268,9 +269,6 @@ class Writer:
                 if isinstance(e, StorageFull):  # its loop closure could not be logged: no answer either
                     raise InsufficientStorage(f"the loop closure could not be logged: no room to write "
                                               f"({e})") from e
-                if isinstance(e, StoreReadOnly):
-                    self.read_only()
-                    raise MapReadOnly(self.map_id, "this revisit's loop closure (so no answer)") from e
                 raise
             # The TM may hold a learned step the store does not (a failed commit, or a failure anywhere
             # between the step and the commit): rebuild from the store before anything else runs, so
@@ -290,6 +288,19 @@ class Writer:
                     self.read_only()
                 raise MapReadOnly(self.map_id, "the observation (nothing was learned)") from e
             raise
+
+    def _log_closure(self, closure: NewClosure) -> None:
+        """Log a localising stream's loop closure. A map whose storage refuses writes still answers: the
+        frame learned nothing, so only its log entry is lost (docs/design/service.md §4.3). Its file is
+        not tried again once the map is `read-only` (that lasts until a restart), and the map becomes
+        `read-only` once, from the first refusal, so the log says it once, not per frame."""
+        assert self.store is not None
+        if serving(self.state).read_only:
+            return
+        try:
+            self.store.add_closure(closure)
+        except StoreReadOnly:
+            self.read_only()
 
     def _step(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None, thumbnail: bytes | None,
@@ -333,7 +344,7 @@ class Writer:
                                row=row, place=answer, metadata=metadata,
                                map_seq=seq or self.store.last_seq())
         # A revisit is a loop closure, logged durably: with the learned row in its transaction, or alone
-        # for a localising stream (it stores no observation and changes no memory; §11.6).
+        # for a localising stream (it stores no observation and changes no memory; §11.6), where it can.
         closure = records.loop_closure(result, stream=stream, metadata=metadata,
                                        key=post.key if post is not None else None)
         if step.visit is not None:  # durable before the reply: the replay needs it (service.md §4.4)
@@ -342,7 +353,7 @@ class Writer:
                                                resume=resume))
             self._committed()
         elif row is None and closure is not None:
-            self.store.add_closure(closure)
+            self._log_closure(closure)
         if row is not None:
             if post is not None:
                 row = dataclasses.replace(row, key=post.record(result))

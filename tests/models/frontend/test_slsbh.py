@@ -334,6 +334,8 @@ def test_load_refuses_wrong_dtype_shape_order_and_bad_input(dense_p: np.ndarray,
         slsbh.load_projection(path, sha, shape=(K, D))
     with pytest.raises(ProjectionError, match="64 hex"):
         slsbh.load_projection(path, "abc")
+    with pytest.raises(ProjectionError, match="64 hex"):  # `$` matches before a last newline: fullmatch
+        slsbh.load_projection(path, sha + "\n")
     with pytest.raises(ProjectionError, match="cannot read"):
         slsbh.load_projection(tmp_path / "missing.npy", sha)
     truncated = tmp_path / "truncated.npy"

@@ -65,3 +65,45 @@ def test_a_map_file_sqlite_cannot_open_is_failed_unopenable_not_corrupt(tmp_path
         assert (rt.state, rt.state_reason) == ("failed", "unopenable")
         with pytest.raises(MapUnavailable, match=r"could not be opened .* nothing says it is damaged"):
             rt.require_ready(learns=False)
+
+
+def test_a_read_only_map_answers_a_localising_revisit_and_says_it_is_read_only_once(tmp_path, caplog):
+    """A localising revisit would log its loop closure, which a read-only store refuses: the robot still
+    gets its answer (it learned nothing), the closure is not logged, and the log says read-only once."""
+    frames = route(30)
+    with registry(tmp_path) as reg:
+        rt = reg.create("flat", MapOptions(memory="none"))
+        for f in frames:
+            step(rt, f)
+        # the same route localised on the writable map: which frames are revisits
+        control = [(p := step(rt, f, learn=False, stream="q").place) is not None and p.revisit
+                   for f in frames[:15]]
+        closures = rt.store.last_closure_id()
+    assert sum(control) >= 5
+    db = tmp_path / "maps" / "flat" / "map.sqlite"
+    caplog.set_level("ERROR", logger="cortexloc.runtime")
+    with unwritable(db), registry(tmp_path) as reg:
+        rt = reg.get("flat")
+        assert (rt.state, rt.state_reason) == ("read-only", "storage-read-only")
+        answers = [step(rt, f, learn=False, stream="q").place for f in frames[:15]]
+        assert [p is not None and p.revisit for p in answers] == control
+        assert (rt.state, rt.state_reason) == ("read-only", "storage-read-only")
+        assert rt.store.last_closure_id() == closures  # the closures were not logged
+    said = [r for r in caplog.records if "refuses writes" in r.getMessage()]
+    assert len(said) == 1, [r.getMessage() for r in said]
+
+
+def test_a_store_refusing_a_localising_revisits_closure_makes_the_map_read_only_once(tmp_path, caplog):
+    with registry(tmp_path) as reg:
+        rt = reg.create("flat", MapOptions(memory="none"))
+        frames = route(30)
+        for f in frames:
+            step(rt, f)
+        closures = rt.store.last_closure_id()
+        rt.store._db().execute("PRAGMA query_only = ON")  # SQLITE_READONLY from here, as an immutable file
+        caplog.set_level("ERROR", logger="cortexloc.runtime")
+        answers = [step(rt, f, learn=False, stream="q").place for f in frames[:15]]
+        assert sum(p is not None and p.revisit for p in answers) >= 5  # answered, revisits and all
+        assert (rt.state, rt.state_reason) == ("read-only", "storage-read-only")
+        assert rt.store.last_closure_id() == closures
+        assert len([r for r in caplog.records if "refuses writes" in r.getMessage()]) == 1
