@@ -74,8 +74,6 @@ class PlaceMap:
         self._last_row: dict[str, int] = {}  # each stream's last made row (its trail goes on from there)
         # the trail each stream names (`Motion.trail`, else its own name), the KEPT most recently learning
         self._named: OrderedDict[str, str] = OrderedDict()
-        # each of those streams' last learned frame: the row it made (NONE: a visit) and its stamp (`twin`)
-        self._latest: dict[str, tuple[int, float | None]] = {}
         # each trail's short-term memory and each stream's last move (§11.6), the KEPT most recently
         # learning ones, oldest first
         self._short: OrderedDict[str, ShortTerm] = OrderedDict()
@@ -119,7 +117,7 @@ class PlaceMap:
         self.used = np.zeros(0, np.int64)
         self.flat = np.zeros(0, bool)
         self._last_row, self._short, self._anchors, self.held = {}, OrderedDict(), OrderedDict(), 0
-        self._named, self._latest = OrderedDict(), {}
+        self._named = OrderedDict()
         self._odometers, self.odometry = OrderedDict(), RowOdometry()
         self._tried = {}  # as a map loaded fresh: a repair's rebuild and a restart alike
         joined = joined or {}
@@ -213,9 +211,8 @@ class PlaceMap:
         Returns whether it was a move of its stream (every frame where the map has no memory)."""
         self._named[stream] = motion.trail or stream
         self._named.move_to_end(stream)
-        self._latest[stream] = (int(row), motion.stamp)
         while len(self._named) > KEPT:
-            self._latest.pop(self._named.popitem(last=False)[0], None)
+            self._named.popitem(last=False)
         odometer = _recent(self._odometers, stream, Odometer)
         reading = odometer.peek(motion, self.options, self.odometry.drives)
         if reading.drive == self.odometry.drives:
@@ -288,40 +285,6 @@ class PlaceMap:
             recent = set(self.short_term_rows(trail).tolist())
             last = [row for row in last if row in recent]
         return {int(self.graph.trail[row]) for row in last}
-
-    def twin(self, stream: str, trail: str, code: np.ndarray, code_of: Callable[[int], np.ndarray],
-             stamp: float | None) -> int | None:
-        """The row another camera of the robot made of this very view at this very moment (§11.6, "One
-        view, two cameras"), else None: of `trail`'s other streams, one whose last learned frame made a
-        row, stamped within half this stream's last frame interval of this frame's `stamp` (the other
-        camera's frame nearest in time: a camera a frame behind, one that stopped, switched to localising
-        or was renamed has an older last row, and is refused), still held in the trail's short-term
-        memory, and most like the frame (`code` (n,) sorted) at the `consolidate` level (§11.8). That
-        row is where the robot is now, so the frame is a visit of it: not a parallel place, which would
-        be the rival of every revisit there. Without stamps (this frame's, this stream's last one, or the
-        row's) nothing says the two frames are of one moment: None. O(the trail's streams) code reads,
-        and none where no other stream names the trail."""
-        mine = self._latest.get(stream)
-        if (float(self.options.consolidate) >= 1.0 or stamp is None or mine is None or mine[1] is None
-                or not stamp > mine[1]):
-            return None
-        tolerance = (stamp - mine[1]) / 2.0
-        rows = []
-        for name, named in self._named.items():
-            row, when = self._latest.get(name, (NONE, None))
-            if (named == trail and name != stream and row != NONE and when is not None
-                    and abs(when - stamp) <= tolerance and 0 <= row < len(self.graph)
-                    and self.used[row] >= 0):
-                rows.append(row)
-        if rows and self.short_term:
-            recent = set(self.short_term_rows(trail).tolist())
-            rows = [row for row in rows if row in recent]
-        if not rows:
-            return None
-        code = np.asarray(code, np.int64)
-        sims = [code_dice(code, np.asarray(code_of(row))) for row in rows]
-        best = int(np.argmax(sims))
-        return rows[best] if sims[best] >= self.codes.level(code, float(self.options.consolidate)) else None
 
     def short_term_rows(self, trail: str) -> np.ndarray:
         """(m,) int64 ascending: the rows `trail`'s streams made over its last moves and still held,

@@ -305,10 +305,6 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                 touched.append(old)
             drop(model, [row for row, _ in joins])
         st.represented = represented  # a frame with no answer, or that made a row, earns none
-        if visit is None and others and not flat:
-            # the robot's other camera made a row of this very view at this moment (by their stamps): the
-            # same place (§11.6), not a parallel one that would be the rival of its revisits
-            visit = place_map.twin(stream, motion.trail or stream, code, code_of, motion.stamp)
         if visit is None and prev is not None and place_map.used[prev] >= 0 and still:
             # It has not moved since its last learned frame: a visit of the row that frame made or
             # visited (a rehearsal), the memory learns it, no row
