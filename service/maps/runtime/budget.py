@@ -69,7 +69,7 @@ def give_back() -> None:
     the budget it was sized by (a container's limit). A map's objects sit in reference cycles that only
     the collector's full pass frees, and that pass is rare: maps created and deleted in rounds stayed
     alive in dozens (docs/design/service.md §1.8). Then glibc keeps freed heap pages in its arenas until
-    `malloc_trim`. Both cost milliseconds to a few hundred on a large heap, paid on the rare operation
+    `malloc_trim`. Both pause the process (a full collection of its heap), paid on the rare operation
     that frees a map, never per frame."""
     gc.collect()
     trim = _malloc_trim()
