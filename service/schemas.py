@@ -195,6 +195,10 @@ class ObservationModel(_Out):
     consolidated_into: int | None = Field(default=None, description="a learned frame the map already "
                                           "represents: the stored row it was consolidated into (no new "
                                           "row: seq is null; docs/design/science.md §11.8)")
+    loop_closure_id: int | None = Field(default=None, description="a revisit's entry in the map's "
+                                        "loop-closure log (GET /v1/maps/{map_id}/loop_closures; a "
+                                        "retraction names it in `retracts`); null: no revisit, or a "
+                                        "localising revisit the log could not take (a read-only map)")
 
 
 class StoredObservationModel(_Out):
@@ -324,6 +328,9 @@ class LoopClosureList(_Out):
         "the oldest log id still kept (the log keeps the last CORTEXLOC_LOOP_CLOSURES entries; null: "
         "empty). A follower whose `after` is below `oldest` - 1 may have missed pruned entries, "
         "retractions among them: it rebuilds its edges from the export"))
+    newest: int = Field(description=(
+        "the newest log id handed out (0: none yet): a follower of what is logged from now on (the ROS 2 "
+        "node's retraction follower) starts with `after` = newest"))
     epoch: str = Field(description=EPOCH_DESCRIPTION)
 
 

@@ -83,10 +83,10 @@ def _result(c: LoopClosure) -> LoopClosureResult:
 
 
 def page(store: MapStore, after: int, limit: int) -> LoopClosurePage:
-    """At most `limit` logged loop closures after log id `after`, oldest first, and the oldest id kept
-    (read after them, `LoopClosurePage`)."""
+    """At most `limit` logged loop closures after log id `after`, oldest first, and the oldest and newest
+    ids (read after them, `LoopClosurePage`)."""
     entries = [_result(c) for c in store.closures(after, limit)]
-    return LoopClosurePage(entries=entries, oldest=store.oldest_closure_id())
+    return LoopClosurePage(entries=entries, oldest=store.oldest_closure_id(), newest=store.last_closure_id())
 
 
 def _finite(value: Any) -> Any:

@@ -160,6 +160,10 @@ class ObservationResult:
     # A learned frame consolidated into this stored row: the memory learned it, no row was made (`seq`
     # and `observation_id` are null; docs/design/science.md §11.8).
     consolidated_into: int | None = None
+    # A revisit's entry in the map's loop-closure log (a later retraction names it in `retracts`,
+    # docs/design/service.md §1.2); None: no revisit, or a localising revisit the log could not take (a
+    # `read-only` map).
+    loop_closure_id: int | None = None
 
 
 @dataclass(frozen=True)
@@ -273,6 +277,7 @@ class LoopClosurePage:
 
     entries: list[LoopClosureResult]
     oldest: int | None
+    newest: int  # the newest id handed out (0: none yet): a follower of what comes next starts after it
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,7 @@ async def list_loop_closures(
     found = page.entries
     return LoopClosureList(loop_closures=[LoopClosureModel.from_result(c) for c in found],
                            next_after=found[-1].id if len(found) == limit else None, oldest=page.oldest,
-                           epoch=rt.epoch)
+                           newest=page.newest, epoch=rt.epoch)
 
 
 @router.get("/{map_id}/loop-closures/export",

@@ -279,7 +279,8 @@ async def post_observation(
                               runtime=desc["runtime"],
                               device=desc["device"],
                               projection=f"sha256:{result.projection_sha256}", map_seq=result.map_seq),
-            metadata=result.metadata, consolidated_into=result.consolidated_into)
+            metadata=result.metadata, consolidated_into=result.consolidated_into,
+            loop_closure_id=result.loop_closure_id)
 
     post = None
     if idempotency_key is not None:

@@ -45,11 +45,12 @@ class Closures:
     _closure_columns: str
     _closure_floor: int
 
-    def add_closure(self, closure: NewClosure) -> bool:
+    def add_closure(self, closure: NewClosure) -> int | None:
         """Log a localising stream's loop closure alone (it stores no observation) and COMMIT.
 
         Returns:
-            False when its idempotency key is already logged (nothing written).
+            Its log id; where its idempotency key is already logged (nothing written), that entry's (None
+            once the log's cap pruned it).
 
         Raises:
             StorageFull: no room to write; nothing was written.
@@ -57,7 +58,11 @@ class Closures:
         with self._lock:
             conn = self._db()
             with transaction(conn):
-                return self._log_closures(conn, [closure_params(closure, None)]) > 0
+                if self._log_closures(conn, [closure_params(closure, None)]):
+                    return int(conn.execute("SELECT max(id) FROM loop_closures").fetchone()[0])
+                r = conn.execute("SELECT id FROM loop_closures WHERE idempotency_key = ?",
+                                 (closure.key,)).fetchone()
+                return None if r is None else int(r[0])
 
     def _log_closures(self, conn: sqlite3.Connection, params: list[tuple[Any, ...]]) -> int:
         """In a transaction: insert (a repeated key inserts nothing), then keep the last `max_closures`."""
@@ -79,6 +84,11 @@ class Closures:
         """The next log id: above every id in the log and above the closure floor (`MapStore.open`)."""
         last = int(conn.execute("SELECT coalesce(max(id), 0) FROM loop_closures").fetchone()[0])
         return max(last, self._closure_floor) + 1
+
+    def next_closure_id(self) -> int:
+        """The id the next logged closure gets: the writer, the log's only writer, tells a revisit's
+        reply its entry before the transaction that logs it (an idempotent reply is sealed into it)."""
+        return self.last_closure_id() + 1
 
     def last_closure_id(self) -> int:
         """The newest log id handed out (the closure floor where the log holds none above it)."""

@@ -389,6 +389,9 @@ class Observation(_Reply):
     #: A learned frame consolidated into this stored row (a visit of a known place): the memory learned
     #: it, no row was made, so `seq` and `observation_id` are None.
     consolidated_into: int | None = None
+    #: A revisit's entry in the map's loop-closure log (`Client.loop_closures`): a later retraction names it
+    #: in `retracts`. None: no revisit, a localising revisit on a read-only map, or an older server.
+    loop_closure_id: int | None = None
 
 
 class StoredObservation(_Reply):
@@ -497,6 +500,9 @@ class LoopClosureList(_Reply):
     loop_closures: list[LoopClosure]
     next_after: int | None = None
     oldest: int | None = None
+    #: The newest log id handed out (0: none yet; None: a server before it): to follow only what is logged
+    #: from now on, start with `after=newest`.
+    newest: int | None = None
     epoch: str = ""
 
     def cursor(self, after: int) -> int:

@@ -10,6 +10,10 @@ import pytest
 
 from cortexloc_client import AsyncClient, NotFoundError, UnauthorizedError, UnsupportedMediaTypeError
 
+# One pytest-xdist worker runs both files that use the session's server (`make test`): it starts once,
+# not once per worker (a start exports the backbone: tens of seconds on two cores).
+pytestmark = pytest.mark.xdist_group("client-server")
+
 
 def test_the_async_client_maps_localises_and_snapshots(server: str, api_key: str, tiny_params: dict,
                                                        make_frame, tmp_path) -> None:

@@ -19,6 +19,10 @@ from cortexloc_client import (
     models,
 )
 
+# One pytest-xdist worker runs both files that use the session's server (`make test`): it starts once,
+# not once per worker (a start exports the backbone: tens of seconds on two cores).
+pytestmark = pytest.mark.xdist_group("client-server")
+
 
 def test_health_and_readiness(client: Client) -> None:
     assert client.health().status == "ok"

@@ -13,9 +13,10 @@ Place (`topics.place`, one per answered frame)::
      "matches": [{"rank", "seq", "stream", "score", "overlap", "stamp": Time | null, "pose": Pose | null}],
      "latency_ms", "request_id"}
 
-Loop closure (`topics.loop_closures`, one per answer whose place is a revisit: the service logs the same)::
+Loop closure (`topics.loop_closures`, one per answer whose place is a revisit: the service logs the same,
+`id` its entry in the map's loop-closure log; null where the log could not take it, a read-only map)::
 
-    {"stamp": Time, "frame_id", "map_id", "stream", "seq", "pose": Pose | null,
+    {"kind": "closure", "id", "stamp": Time, "frame_id", "map_id", "stream", "seq", "pose": Pose | null,
      "place_stamp": Time | null, "place_seq", "place_id", "place_stream", "place_pose": Pose | null,
      "confidence", "support", "verified": bool | null,
      "relative_pose": null | {"frame": "keyframe_camera_optical", "keyframe_seq", "inliers", "model",
@@ -24,6 +25,12 @@ Loop closure (`topics.loop_closures`, one per answer whose place is a revisit: t
 
 `relative_pose` is the query camera's pose in the keyframe camera's frame (optical axes), with a unit
 (or zero) position: two views give the direction, never the length.
+
+Retraction (`topics.loop_closures` too, one per retraction of this stream's closures that the log gains
+while the node runs: an operator's repair withdrew closure `retracts`; the back end drops its edge)::
+
+    {"kind": "retraction", "id", "retracts", "map_id", "stream", "seq", "stamp": Time | null,
+     "place_seq", "place_stream", "place_stamp": Time | null}
 """
 
 from __future__ import annotations
@@ -31,9 +38,10 @@ from __future__ import annotations
 from typing import Any
 
 from cortexloc_client import Match, Observation, Place
+from cortexloc_client.models import LoopClosure
 from cortexloc_ros.core import Pose2D, Stamp, relative_pose
 
-__all__ = ["loop_closure_json", "place_json", "place_pose", "stored_stamp"]
+__all__ = ["loop_closure_json", "place_json", "place_pose", "retraction_json", "stored_stamp"]
 
 
 def stored_stamp(metadata: Any) -> Stamp | None:
@@ -95,8 +103,8 @@ def loop_closure_json(answer: Observation, stamp: Stamp, frame_id: str, pose: Po
         relative = {"frame": "keyframe_camera_optical", "keyframe_seq": v.keyframe_seq, "inliers": v.inliers,
                     "model": v.model, "position": {"x": x, "y": y, "z": z},
                     "orientation": {"x": qx, "y": qy, "z": qz, "w": qw}, "rotation_deg": v.rotation_deg}
-    return {"stamp": stamp.as_json(), "frame_id": frame_id, "map_id": answer.map_id, "stream": answer.stream,
-            "seq": answer.seq, "pose": _pose(pose),
+    return {"kind": "closure", "id": answer.loop_closure_id, "stamp": stamp.as_json(), "frame_id": frame_id,
+            "map_id": answer.map_id, "stream": answer.stream, "seq": answer.seq, "pose": _pose(pose),
             "place_stamp": _time(stored_stamp(p.metadata)), "place_seq": p.seq, "place_id": p.place_id,
             "place_stream": p.stream, "place_pose": _pose(place_pose(p, default_frame)),
             "confidence": p.confidence, "support": p.support,
@@ -104,3 +112,12 @@ def loop_closure_json(answer: Observation, stamp: Stamp, frame_id: str, pose: Po
             # divides the edge's information by it, as the service's g2o export does (None: an older server)
             "span": p.span, "span_seqs": p.span_seqs,
             "verified": None if v is None else v.verified, "relative_pose": relative}
+
+
+def retraction_json(entry: LoopClosure, map_id: str) -> dict[str, Any]:
+    """The retraction document of a retraction entry of the loop-closure log (module docstring): it
+    repeats the withdrawn closure's pair."""
+    return {"kind": "retraction", "id": entry.id, "retracts": entry.retracts, "map_id": map_id,
+            "stream": entry.stream, "seq": entry.seq, "stamp": _time(stored_stamp(entry.metadata)),
+            "place_seq": entry.place.seq, "place_stream": entry.place.stream,
+            "place_stamp": _time(stored_stamp(entry.place.metadata))}

@@ -38,7 +38,8 @@ from std_msgs.msg import ColorRGBA, String
 from visualization_msgs.msg import Marker, MarkerArray
 
 from cortexloc_client import Client, Observation, RetryPolicy
-from cortexloc_ros.answers import loop_closure_json, place_json, place_pose
+from cortexloc_client.models import LoopClosure
+from cortexloc_ros.answers import loop_closure_json, place_json, place_pose, retraction_json
 from cortexloc_ros.core import (
     FrameKeys,
     FrameQueue,
@@ -94,7 +95,8 @@ class CortexlocNode(Node):
         self.rate = RateFilter(cfg.every_n, cfg.min_distance)
         self.odometry = OdometryBuffer(cfg.odom_tolerance_ns) if cfg.topics["odometry"] else None
         self._camera: dict[str, Any] | None = None
-        self._edges: deque[tuple[Pose2D, Pose2D, float]] = deque(maxlen=MAX_EDGES)
+        # (closure id, the frame's pose, the place's stored pose, confidence)
+        self._edges: deque[tuple[int | None, Pose2D, Pose2D, float]] = deque(maxlen=MAX_EDGES)
         self._warned: set[str] = set()
         self._lock = threading.Lock()
 
@@ -132,7 +134,7 @@ class CortexlocNode(Node):
         self.client = Client(cfg.service_url, api_key=cfg.api_key, timeout=cfg.request_timeout,
                              retry=RetryPolicy(attempts=1))
         self.poster = Poster(cfg, self.client, self.queue, self.stats, self.odometry, self._camera_now,
-                             self._publish_answer, self.get_logger())
+                             self._publish_answer, self.get_logger(), self._publish_retraction)
         self.create_timer(1.0, self._publish_diagnostics)
         self.poster.start()
         self.get_logger().info(
@@ -266,7 +268,17 @@ class CortexlocNode(Node):
             return
         self.pub_closures.publish(String(data=json.dumps(closure, separators=(",", ":"))))
         if pose is not None and stored is not None and pose.frame_id == stored.frame_id:
-            self._edges.append((pose, stored, float(closure["confidence"])))
+            self._edges.append((answer.loop_closure_id, pose, stored, float(closure["confidence"])))
+            self.pub_markers.publish(self._markers())
+
+    def _publish_retraction(self, entry: LoopClosure) -> None:
+        """On the poster's thread: a retraction of one of the stream's closures, and its edge taken off
+        the markers."""
+        self.pub_closures.publish(String(data=json.dumps(retraction_json(entry, self.cfg.map_id),
+                                                         separators=(",", ":"))))
+        kept = [e for e in self._edges if e[0] != entry.retracts]
+        if len(kept) != len(self._edges):
+            self._edges = deque(kept, maxlen=MAX_EDGES)
             self.pub_markers.publish(self._markers())
 
     def _pose_message(self, stamp: Stamp, pose: Pose2D) -> PoseWithCovarianceStamped:
@@ -285,15 +297,20 @@ class CortexlocNode(Node):
 
     def _markers(self) -> MarkerArray:
         """Every kept loop-closure edge (frame's pose -> the place's stored pose) as one LINE_LIST in the
-        first edge's frame, coloured from red (confidence at the threshold) to green (1)."""
+        first edge's frame, coloured from red (confidence at the threshold) to green (1); with none left
+        (all retracted), the list deleted."""
         edges = list(self._edges)
-        frame_id = edges[0][0].frame_id
         m = Marker()
+        m.ns, m.id, m.type = "cortexloc_loop_closures", 0, Marker.LINE_LIST
+        if not edges:
+            m.header.frame_id, m.action = DEFAULT_FRAME, Marker.DELETE
+            return MarkerArray(markers=[m])
+        frame_id = edges[0][1].frame_id
         m.header.frame_id = frame_id  # stamp zero: drawn with the latest transform
-        m.ns, m.id, m.type, m.action = "cortexloc_loop_closures", 0, Marker.LINE_LIST, Marker.ADD
+        m.action = Marker.ADD
         m.pose.orientation.w = 1.0
         m.scale.x = 0.2
-        for a, b, confidence in edges:
+        for _, a, b, confidence in edges:
             if a.frame_id != frame_id:
                 continue
             colour = ColorRGBA(r=float(1.0 - confidence), g=float(confidence), b=0.2, a=1.0)
@@ -313,7 +330,7 @@ class CortexlocNode(Node):
                       "queue_depth": len(self.queue), "queue_size": self.cfg.queue_size,
                       "queue_policy": self.cfg.queue_policy, "dropped": self.queue.dropped,
                       "answered": s.answered, "refused": s.refused, "retries": s.retries,
-                      "revisits": s.revisits, "no_pose": s.no_pose,
+                      "revisits": s.revisits, "retractions": s.retractions, "no_pose": s.no_pose,
                       "latency_ms": "" if s.last_latency_ms is None else f"{s.last_latency_ms:.1f}",
                       "latency_ms_median": "" if median is None else f"{median:.1f}", "last_error": error}
             health, message = s.health(self.queue.dropped)

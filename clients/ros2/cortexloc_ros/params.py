@@ -48,6 +48,9 @@ PARAMETERS: dict[str, tuple[Any, str]] = {
                "CRC-32 of the image); empty: a new one per start, a new drive (the stream's context on the "
                "service is reset at start), so a bag replayed twice is two drives. Set it to resume one "
                "drive (its context kept)"),
+    "retractions_poll": (5.0, "seconds between reads of the map's loop-closure log for retractions of this "
+                         "stream's closures (an operator's repair withdrew them), each published on "
+                         "topics.loop_closures with the id of the closure it withdraws; 0: off"),
     "request_timeout": (10.0, "seconds to connect and between bytes of a reply; a post cut short is retried "
                         "with the same key"),
     "image_transport": ("raw", "raw: sensor_msgs/Image on topics.image; compressed: sensor_msgs/"
@@ -107,6 +110,7 @@ class Config:
     run_id: str
     resume: bool  # `run_id` was given: this start resumes that drive (its stream context is kept)
     request_timeout: float
+    retractions_poll: float  # seconds; 0: no retraction follower
     compressed: bool
     odom_tolerance_ns: int
     camera_mount: tuple[float, float, float]
@@ -228,7 +232,8 @@ def _number_problems(v: dict[str, Any]) -> list[str]:
     by the service on every frame or published as it is), and within its documented range."""
     problems = []
     for name, positive, unit in (("request_timeout", True, "seconds"), ("odom_tolerance", True, "seconds"),
-                                 ("rate.min_distance", False, "metres")):
+                                 ("rate.min_distance", False, "metres"),
+                                 ("retractions_poll", False, "seconds")):
         value = v[name]
         if not (math.isfinite(value) and (value > 0 if positive else value >= 0)):
             problems.append(f"{name}: {value} must be a finite number {'> 0' if positive else '>= 0'} {unit}")
@@ -305,7 +310,7 @@ def read_config(values: dict[str, Any], *, unknown: list[str] | None = None) -> 
     return Config(service_url=str(v["service_url"]).rstrip("/"), api_key=api_key, map_id=v["map"],
                   stream=v["stream"], trail=v["trail"], learn=bool(v["learn"]), top_k=int(v["top_k"]),
                   run_id=v["run_id"] or uuid.uuid4().hex[:12], resume=bool(v["run_id"]),
-                  request_timeout=float(v["request_timeout"]),
+                  request_timeout=float(v["request_timeout"]), retractions_poll=float(v["retractions_poll"]),
                   compressed=v["image_transport"] == "compressed",
                   odom_tolerance_ns=round(float(v["odom_tolerance"]) * 1e9),
                   camera_mount=tuple(map(float, v["camera_mount"])),  # type: ignore[arg-type]

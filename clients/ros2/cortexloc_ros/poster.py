@@ -18,6 +18,8 @@ typed client; the ROS executor never waits on the service.
   other frames: it is an error, its frame is retried like a service down until the map is back.
 - Refused: 400, 413, 415, 422 (the frame or its metadata) are counted and logged; the poster goes on.
 - Idle, it checks the service's readiness every `PROBE_S`, so diagnostics say "down" without frames.
+- Between frames, every `retractions_poll` seconds, it reads one page of the map's loop-closure log for
+  the retractions of this stream's closures (`retractions.RetractionFollower`).
 - The service's state for diagnostics: `up` (it answered), `slow` (connected, but no reply within
   `request_timeout`: it is busy, not gone), `down` (no connection, a reply cut short), `error` (it
   answered with an error). `last_error` is the current trouble's: cleared when the service answers
@@ -38,8 +40,10 @@ import httpx
 import numpy as np
 
 from cortexloc_client import Client, CortexlocError, Observation
+from cortexloc_client.models import LoopClosure
 from cortexloc_ros.core import FrameQueue, OdometryBuffer, Pose2D, Stamp
 from cortexloc_ros.params import Config
+from cortexloc_ros.retractions import RetractionFollower
 
 __all__ = ["Frame", "Poster", "Stats"]
 
@@ -83,6 +87,7 @@ class Stats:
     refused: int = 0
     retries: int = 0
     revisits: int = 0
+    retractions: int = 0  # retractions of the stream's closures published (`retractions`)
     no_pose: int = 0
     service: str = "unknown"  # up | slow | down | error | unknown (module docstring)
     last_error: str = ""  # the current trouble's; "" once the service is up again
@@ -112,13 +117,18 @@ Answered = Callable[[Frame, Pose2D | None, Observation, float], None]
 
 class Poster:
     """Posts queued frames through `client`, one at a time; `on_answer(frame, pose, answer, latency_ms)`
-    runs on the poster's thread for each answered frame (it publishes)."""
+    runs on the poster's thread for each answered frame, and `on_retraction(entry)` for each retraction
+    of the stream's closures (both publish)."""
 
     def __init__(self, cfg: Config, client: Client, queue: FrameQueue[Frame], stats: Stats,
                  odometry: OdometryBuffer | None, camera: Callable[[], dict[str, Any] | None],
-                 on_answer: Answered, log: Any) -> None:
+                 on_answer: Answered, log: Any,
+                 on_retraction: Callable[[LoopClosure], None] = lambda entry: None) -> None:
         self.cfg, self.client, self.queue, self.stats = cfg, client, queue, stats
         self.odometry, self.camera, self.on_answer, self.log = odometry, camera, on_answer, log
+        self.retractions = RetractionFollower(client, cfg.map_id, cfg.stream, cfg.retractions_poll,
+                                              self._retracted, log)
+        self._on_retraction = on_retraction
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="cortexloc-poster", daemon=True)
         self._last_probe = 0.0
@@ -141,6 +151,17 @@ class Poster:
                 self._post(frame)
             elif time.monotonic() - self._last_probe >= PROBE_S:
                 self._probe()
+            if self.retractions.due() and not self._stop.is_set():
+                self.retractions.poll()
+
+    def _retracted(self, entry: LoopClosure) -> None:
+        with self.stats.lock:
+            self.stats.retractions += 1
+        try:
+            self._on_retraction(entry)
+        except Exception as e:  # e.g. publishing while SIGTERM shuts the context down
+            if not self._stop.is_set():
+                self.log.error(f"publishing the retraction of closure {entry.retracts} failed: {e!r}")
 
     def _probe(self) -> None:
         self._last_probe = time.monotonic()

@@ -289,18 +289,21 @@ class Writer:
                 raise MapReadOnly(self.map_id, "the observation (nothing was learned)") from e
             raise
 
-    def _log_closure(self, closure: NewClosure) -> None:
-        """Log a localising stream's loop closure. A map whose storage refuses writes still answers: the
-        frame learned nothing, so only its log entry is lost (docs/design/service.md §4.3). Its file is
-        not tried again once the map is `read-only` (that lasts until a restart), and the map becomes
-        `read-only` once, from the first refusal, so the log says it once, not per frame."""
+    def _log_closure(self, closure: NewClosure) -> int | None:
+        """Log a localising stream's loop closure: its log id (a retry's is its first post's entry), None
+        where it was not logged. A map whose storage refuses writes still answers: the frame learned
+        nothing, so only its log entry is lost
+        (docs/design/service.md §4.3). Its file is not tried again once the map is `read-only` (that lasts
+        until a restart), and the map becomes `read-only` once, from the first refusal, so the log says it
+        once, not per frame."""
         assert self.store is not None
         if serving(self.state).read_only:
-            return
+            return None
         try:
-            self.store.add_closure(closure)
+            return self.store.add_closure(closure)
         except StoreReadOnly:
             self.read_only()
+            return None
 
     def _step(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None, thumbnail: bytes | None,
@@ -347,13 +350,16 @@ class Writer:
         # for a localising stream (it stores no observation and changes no memory; §11.6), where it can.
         closure = records.loop_closure(result, stream=stream, metadata=metadata,
                                        key=post.key if post is not None else None)
+        if closure is not None and learn:  # its log id, in the reply (a learned post's is sealed into the
+            # commit that logs it, so it is told before: the writer is the log's only writer)
+            result = dataclasses.replace(result, loop_closure_id=self.store.next_closure_id())
         if step.visit is not None:  # durable before the reply: the replay needs it (service.md §4.4)
             self.store.add_visit(records.visit(step, stream=stream, metadata=metadata, closure=closure,
                                                key=None if post is None else post.record(result),
                                                resume=resume))
             self._committed()
         elif row is None and closure is not None:
-            self._log_closure(closure)
+            result = dataclasses.replace(result, loop_closure_id=self._log_closure(closure))
         if row is not None:
             if post is not None:
                 row = dataclasses.replace(row, key=post.record(result))

@@ -197,3 +197,36 @@ def test_a_map_deleted_while_the_node_learns_is_an_error_not_created_again(monke
     assert Stats(service=client.seen[1][0], last_error=client.seen[1][1]).health(0)[0] == "ERROR"
     assert (stats.answered, stats.retries, stats.service, stats.last_error) == (1, 2, "up", "")
     assert sum("not created again" in line for line in p.log.lines) == 1  # said once, not per retry
+
+
+def test_between_frames_the_poster_hands_on_the_streams_retractions_and_counts_them(monkeypatch):
+    # A repair withdrew closure 2 while the node ran: the poster reads the log between frames (one page
+    # each `retractions_poll`) and hands the retraction on for the topic; the frame is answered as ever.
+    from cortexloc_client.models import LoopClosureList
+
+    p, stats, client = _poster(monkeypatch, StreamReset(stream="cam", had_context=False), ANSWER,
+                               retractions_poll=0.05)
+    withdrawn = {"id": 6, "stream": "cam", "seq": 4,
+                 "place": {"seq": 1, "observation_id": "o1", "stream": "cam"},
+                 "confidence": 0.0, "support": 0, "created_at": "2026-11-29T00:00:00Z", "retracts": 2}
+    pages = [LoopClosureList(loop_closures=[], newest=5, epoch="e"),
+             LoopClosureList.model_validate({"loop_closures": [withdrawn], "newest": 6, "epoch": "e"})]
+    reads: list[int] = []
+
+    def loop_closures(map_id: str, *, after: int = 0, limit: int = 100) -> LoopClosureList:
+        reads.append(after)
+        return pages.pop(0) if pages else LoopClosureList(loop_closures=[], newest=6, epoch="e")
+
+    client.loop_closures = loop_closures  # type: ignore[attr-defined]
+    client.ready = lambda: None  # type: ignore[method-assign]  # the idle probe: up
+    got: list = []
+    p._on_retraction = got.append
+    p.queue.put(_frame())
+    p.start()
+    deadline = time.monotonic() + 10
+    while not got and time.monotonic() < deadline:
+        time.sleep(0.01)
+    p.stop()
+    assert [e.retracts for e in got] == [2] and reads[:2] == [0, 5]
+    with stats.lock:
+        assert (stats.answered, stats.retractions) == (1, 1)

@@ -10,10 +10,11 @@ import pytest
 from tests.e2e.conftest import Server
 
 
-@pytest.fixture
-def served(tmp_path) -> Iterator[Server]:
-    """`cortexloc serve` in a subprocess (random weights); `.base` is its URL."""
-    s = Server(tmp_path)
+@pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """`cortexloc serve` in a subprocess (random weights); `.base` is its URL. One per module: a start
+    exports the backbone (tens of seconds on two cores), and the tests' maps have ids of their own."""
+    s = Server(tmp_path_factory.mktemp("served"))
     try:
         s.start()
         yield s

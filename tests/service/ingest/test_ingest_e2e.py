@@ -9,6 +9,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from tests.e2e.conftest import call
 from tests.service.ingest.data import (
     ROUTE,
@@ -18,6 +20,9 @@ from tests.service.ingest.data import (
     write_ros2_bag,
     write_ros2_bag_with,
 )
+
+# one pytest-xdist worker runs the file (`make test`): its module's server starts once
+pytestmark = pytest.mark.xdist_group("ingest-e2e-server")
 
 #: A small map (tests/conftest.py's tiny preset, as overrides): the real code paths without 266 MB maps.
 SMALL = {"seed": 3, "slsbh": {"k": 64},

@@ -251,6 +251,44 @@ def test_a_repeated_localisation_post_logs_its_closure_once(tmp_path):
         assert len(c.get("/v1/maps/default/loop-closures").json()["loop_closures"]) == n
 
 
+def test_each_revisits_reply_names_its_log_entry_so_a_retraction_can_be_matched_to_its_edge(tmp_path):
+    # A back end that builds its graph from the replies (the ROS 2 node's topic) must be able to drop the
+    # edge a later retraction names by id: every revisit's reply carries its entry's id, whichever way it
+    # was logged (a learned row's commit, a consolidated frame's visit, a localising stream's own entry),
+    # and a keyed localisation's retry, even after a restart, names its first post's entry.
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        patched(c)
+        lap1 = drive(c, LAP, noise=0.0)
+        lap2 = drive(c, LAP)
+        localised = drive(c, LAP[:12], stream="robot", learn="false")
+        body = frame(LAP[12], noise=3.0)
+        headers = {"Content-Type": "image/png", "Idempotency-Key": "closure-id-key-01"}
+        keyed = [c.post("/v1/maps/default/observations", content=body, headers=headers,
+                        params={"stream": "robot", "learn": "false"}).json() for _ in range(2)]
+        log = c.get("/v1/maps/default/loop-closures", params={"limit": 500}).json()
+        # a map that consolidates nothing: each revisit's closure commits with its own row
+        assert c.post("/v1/maps", json={"map_id": "rows", "revisit_threshold": THRESHOLD,
+                                        "localiser": {"consolidate": 1.0}}).status_code == 201
+        row_laps = [post(c, frame(p, noise=n), map_id="rows", stream="mapper", learn="true", top_k=0).json()
+                    for n in (0.0, 3.0) for p in LAP]
+        row_log = c.get("/v1/maps/rows/loop-closures", params={"limit": 500}).json()["loop_closures"]
+    with make_client(data) as c:  # the key's cached reply is gone: the store names the entry
+        again = c.post("/v1/maps/default/observations", content=body, headers=headers,
+                       params={"stream": "robot", "learn": "false"}).json()
+    told = [*revisits(lap1 + lap2 + localised), keyed[0]]
+    assert keyed[0]["place"]["revisit"]
+    assert all(b["seq"] is None for b in revisits(lap2))  # consolidated (visits, no rows of their own)
+    with_rows = revisits(row_laps)
+    assert len(with_rows) >= 8 and all(b["seq"] is not None for b in with_rows)
+    assert [b["loop_closure_id"] for b in with_rows] == [e["id"] for e in row_log]
+    assert [b["loop_closure_id"] for b in told] == [e["id"] for e in log["loop_closures"]]
+    assert len({b["loop_closure_id"] for b in told}) == len(told) >= 10
+    assert all(b["loop_closure_id"] is None for b in lap1 + lap2 + localised if b not in told)
+    assert keyed[1]["loop_closure_id"] == again["loop_closure_id"] == keyed[0]["loop_closure_id"]
+    assert log["newest"] == log["loop_closures"][-1]["id"]
+
+
 def dark(k: int) -> bytes:
     """A near-black tunnel frame: a flat level, sensor noise and a small bright speck (a lamp, the
     camera's timestamp overlay): no place can be told from it (docs/design/science.md §11.7)."""

@@ -102,8 +102,10 @@ def test_a_store_refusing_a_localising_revisits_closure_makes_the_map_read_only_
         closures = rt.store.last_closure_id()
         rt.store._db().execute("PRAGMA query_only = ON")  # SQLITE_READONLY from here, as an immutable file
         caplog.set_level("ERROR", logger="cortexloc.runtime")
-        answers = [step(rt, f, learn=False, stream="q").place for f in frames[:15]]
+        results = [step(rt, f, learn=False, stream="q") for f in frames[:15]]
+        answers = [r.place for r in results]
         assert sum(p is not None and p.revisit for p in answers) >= 5  # answered, revisits and all
         assert (rt.state, rt.state_reason) == ("read-only", "storage-read-only")
         assert rt.store.last_closure_id() == closures
+        assert all(r.loop_closure_id is None for r in results)  # no reply names an entry not logged
         assert len([r for r in caplog.records if "refuses writes" in r.getMessage()]) == 1
