@@ -100,6 +100,7 @@ class MapRuntime(Writer, Snapshots, Recovering, Admission, Repairing, Resources)
         self.snapshot_failures = 0
         # the writer
         self.forgotten = 0
+        self._closures_unlogged = False
         self._writer = ThreadPoolExecutor(1, thread_name_prefix=f"map-{self.map_id}")
         # Learned rows are committed by the writer without their fsync and acknowledged once this has
         # synced them, one fsync per group (service.maps.runtime.durability).

@@ -66,6 +66,7 @@ class Writer:
     cameras: dict[str, dict[str, Any]]  # given once per stream (or with each frame)
     _codes: OrderedDict[int, np.ndarray]  # seq -> its stored code (`_code_of`)
     forgotten: int  # rows forgotten since start (the hard cap, docs/design/science.md §11.9)
+    _closures_unlogged: bool  # a full disk refused a localising closure, said once (`_log_closure`)
     store: MapStore | None
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
@@ -247,9 +248,11 @@ class Writer:
         Raises:
             ValueError: `projected` is not (k,) (before any state change). MapUnavailable, MapFull,
             StreamLimit, MemoryBudgetExceeded (nothing changed).
-            InsufficientStorage: no room to write; the memory was rebuilt from the store, nothing learned.
+            InsufficientStorage: no room to write a learning frame; the memory was rebuilt from the store,
+                nothing learned.
             MapReadOnly: the store refuses a learning frame's write; as for InsufficientStorage, and the
-                map is `read-only`. A localising frame is answered there (its closure is not logged).
+                map is `read-only`. A localising frame is answered on either (its closure is not logged:
+                `loop_closure_id` null).
         """
         self.require_ready(learn)
         assert self.store is not None and self.hasher is not None  # a map without them is never ready
@@ -266,9 +269,6 @@ class Writer:
                               contrast=contrast, durable=durable)
         except Exception as e:
             if not learn:  # a localisation learns nothing: the memory and the store still agree
-                if isinstance(e, StorageFull):  # its loop closure could not be logged: no answer either
-                    raise InsufficientStorage(f"the loop closure could not be logged: no room to write "
-                                              f"({e})") from e
                 raise
             # The TM may hold a learned step the store does not (a failed commit, or a failure anywhere
             # between the step and the commit): rebuild from the store before anything else runs, so
@@ -291,19 +291,28 @@ class Writer:
 
     def _log_closure(self, closure: NewClosure) -> int | None:
         """Log a localising stream's loop closure: its log id (a retry's is its first post's entry), None
-        where it was not logged. A map whose storage refuses writes still answers: the frame learned
-        nothing, so only its log entry is lost
-        (docs/design/service.md §4.3). Its file is not tried again once the map is `read-only` (that lasts
-        until a restart), and the map becomes `read-only` once, from the first refusal, so the log says it
+        where it was not logged. A map whose storage refuses writes, or has no room to write, still
+        answers: the frame learned nothing, so only its log entry is lost (docs/design/service.md §4.3).
+        A read-only file is not tried again once the map is `read-only` (that lasts until a restart), and
+        the map becomes `read-only` once, from the first refusal; a full disk is tried at every closure
+        (room may be made) and said once until a closure is logged again. Either way the log says it
         once, not per frame."""
         assert self.store is not None
         if serving(self.state).read_only:
             return None
         try:
-            return self.store.add_closure(closure)
+            logged = self.store.add_closure(closure)
         except StoreReadOnly:
             self.read_only()
             return None
+        except StorageFull as e:
+            if not self._closures_unlogged:
+                log.error("map %s: no room to log loop closures (%s): localising revisits are answered, "
+                          "their closures not logged, until room is made", self.map_id, e)
+            self._closures_unlogged = True
+            return None
+        self._closures_unlogged = False
+        return logged
 
     def _step(self, projected: np.ndarray, image_sha256: str, *, learn: bool, stream: str, top_k: int,
               label: str | None, metadata: dict[str, Any] | None, thumbnail: bytes | None,

@@ -93,13 +93,19 @@ def test_a_read_only_map_answers_a_localising_revisit_and_says_it_is_read_only_o
     assert len(said) == 1, [r.getMessage() for r in said]
 
 
+def mapped(reg, n: int = 30):
+    """A map that matches by the code itself (exact places) with a route of `n` places learned: the map,
+    the route and its loop-closure log's last id."""
+    rt = reg.create("flat", MapOptions(memory="none"))
+    frames = route(n)
+    for f in frames:
+        step(rt, f)
+    return rt, frames, rt.store.last_closure_id()
+
+
 def test_a_store_refusing_a_localising_revisits_closure_makes_the_map_read_only_once(tmp_path, caplog):
     with registry(tmp_path) as reg:
-        rt = reg.create("flat", MapOptions(memory="none"))
-        frames = route(30)
-        for f in frames:
-            step(rt, f)
-        closures = rt.store.last_closure_id()
+        rt, frames, closures = mapped(reg)
         rt.store._db().execute("PRAGMA query_only = ON")  # SQLITE_READONLY from here, as an immutable file
         caplog.set_level("ERROR", logger="cortexloc.runtime")
         results = [step(rt, f, learn=False, stream="q") for f in frames[:15]]
@@ -109,3 +115,29 @@ def test_a_store_refusing_a_localising_revisits_closure_makes_the_map_read_only_
         assert rt.store.last_closure_id() == closures
         assert all(r.loop_closure_id is None for r in results)  # no reply names an entry not logged
         assert len([r for r in caplog.records if "refuses writes" in r.getMessage()]) == 1
+
+
+def test_a_full_disk_answers_a_localising_revisit_without_its_closure_and_logs_again_once_room_is_made(
+        tmp_path, caplog, monkeypatch):
+    """A localisation stores nothing but its revisits' closures: with no room to write, the robot still gets
+    its answer (before: 507 exactly when it recognised its place), `loop_closure_id` null, said once; the
+    map stays ready and logs closures again once there is room."""
+    from storage.mapstore import StorageFull
+
+    with registry(tmp_path) as reg:
+        rt, frames, closures = mapped(reg)
+
+        def full(closure):  # as the store raises it for SQLITE_FULL / ENOSPC (storage._common.is_full_error)
+            raise StorageFull("database or disk is full")
+
+        monkeypatch.setattr(rt.store, "add_closure", full)
+        caplog.set_level("ERROR", logger="cortexloc.runtime")
+        results = [step(rt, f, learn=False, stream="q") for f in frames[:15]]
+        told = [r for r in results if r.place is not None and r.place.revisit]
+        assert len(told) >= 5 and all(r.loop_closure_id is None for r in results)
+        assert rt.store.last_closure_id() == closures and rt.state == "ready"
+        assert len([r for r in caplog.records if "no room to log loop closures" in r.getMessage()]) == 1
+        monkeypatch.undo()  # room made
+        again = [step(rt, f, learn=False, stream="q2") for f in frames[:15]]
+        ids = [r.loop_closure_id for r in again if r.place is not None and r.place.revisit]
+        assert ids and all(i is not None for i in ids) and rt.store.last_closure_id() == ids[-1]
