@@ -45,12 +45,12 @@ class Closures:
     _closure_columns: str
     _closure_floor: int
 
-    def add_closure(self, closure: NewClosure) -> int | None:
+    def add_closure(self, closure: NewClosure) -> int:
         """Log a localising stream's loop closure alone (it stores no observation) and COMMIT.
 
         Returns:
-            Its log id; where its idempotency key is already logged (nothing written), that entry's (None
-            once the log's cap pruned it).
+            Its log id; where its idempotency key is already logged (nothing written), that entry's. A key
+            whose entry the log's cap pruned is logged anew.
 
         Raises:
             StorageFull: no room to write; nothing was written.
@@ -58,11 +58,10 @@ class Closures:
         with self._lock:
             conn = self._db()
             with transaction(conn):
-                if self._log_closures(conn, [closure_params(closure, None)]):
-                    return int(conn.execute("SELECT max(id) FROM loop_closures").fetchone()[0])
-                r = conn.execute("SELECT id FROM loop_closures WHERE idempotency_key = ?",
-                                 (closure.key,)).fetchone()
-                return None if r is None else int(r[0])
+                if not self._log_closures(conn, [closure_params(closure, None)]):  # its key's entry
+                    return int(conn.execute("SELECT id FROM loop_closures WHERE idempotency_key = ?",
+                                            (closure.key,)).fetchone()[0])
+                return int(conn.execute("SELECT max(id) FROM loop_closures").fetchone()[0])
 
     def _log_closures(self, conn: sqlite3.Connection, params: list[tuple[Any, ...]]) -> int:
         """In a transaction: insert (a repeated key inserts nothing), then keep the last `max_closures`."""

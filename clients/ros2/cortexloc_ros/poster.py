@@ -152,7 +152,10 @@ class Poster:
             elif time.monotonic() - self._last_probe >= PROBE_S:
                 self._probe()
             if self.retractions.due() and not self._stop.is_set():
-                self.retractions.poll()
+                try:
+                    self.retractions.poll()
+                except Exception as e:  # a page it cannot read (a proxy's, a newer server's): posting goes on
+                    self.log.error(f"following the loop-closure log failed: {e!r}")
 
     def _retracted(self, entry: LoopClosure) -> None:
         with self.stats.lock:

@@ -5,8 +5,8 @@ per closure. This follower reads the map's loop-closure log every `retractions_p
 a time, on the poster's thread, and hands on each retraction of this node's stream's closures, so the
 back end can drop the edge the closure's `id` names.
 
-- It follows what is logged from the node's start on (the page's `newest`, read at its first poll); a
-  retraction made before is in the service's exports.
+- It follows what is logged after its first read (the page's `newest`, read at its first poll, just after
+  the node's first contact with the service); a retraction made before is in the service's exports.
 - A failed read is said once and tried again at the next period; it never holds a frame back more than
   one request.
 - A restore (the page's `epoch` changes) took away what came after its snapshot and undid the retractions

@@ -357,8 +357,12 @@ class Writer:
                                map_seq=seq or self.store.last_seq())
         # A revisit is a loop closure, logged durably: with the learned row in its transaction, or alone
         # for a localising stream (it stores no observation and changes no memory; §11.6), where it can.
+        # A localising closure is logged alone, so its key keeps a retry from logging it twice. A learned
+        # one commits with its row or visit, whose key answers a retry: keyed too, it would collide with an
+        # entry its key logged before (a localising pass of the same keys, or a retry past the kept keys),
+        # be dropped, and leave the reply naming an id the next closure gets.
         closure = records.loop_closure(result, stream=stream, metadata=metadata,
-                                       key=post.key if post is not None else None)
+                                       key=post.key if post is not None and not learn else None)
         if closure is not None and learn:  # its log id, in the reply (a learned post's is sealed into the
             # commit that logs it, so it is told before: the writer is the log's only writer)
             result = dataclasses.replace(result, loop_closure_id=self.store.next_closure_id())

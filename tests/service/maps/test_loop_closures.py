@@ -289,6 +289,38 @@ def test_each_revisits_reply_names_its_log_entry_so_a_retraction_can_be_matched_
     assert log["newest"] == log["loop_closures"][-1]["id"]
 
 
+def test_a_key_a_localising_pass_used_or_one_past_the_kept_keys_gives_a_learned_closure_its_own_id(tmp_path):
+    # A review found the reply naming an id the store never gave its closure: a learned closure was logged
+    # with its post's key, and a key already in the log (a localising pass of the same bag under one run
+    # id, or a retry past the last `idempotency_keys`) dropped the entry, so the reply named the id the
+    # next frame's closure then got. Each learned revisit must name an entry of its own row.
+    def keyed(c, place: int, learn: str, noise: float) -> dict:
+        return c.post("/v1/maps/rows/observations", content=frame(place, noise=noise),
+                      headers={"Content-Type": "image/png", "Idempotency-Key": f"bag-run-1-{place:04d}"},
+                      params={"stream": "robot", "learn": learn, "top_k": 0}).json()
+
+    data = tmp_path / "data"
+    with make_client(data, idempotency_keys=1) as c:
+        assert c.post("/v1/maps", json={"map_id": "rows", "revisit_threshold": THRESHOLD,
+                                        "localiser": {"consolidate": 1.0}}).status_code == 201
+        for p in LAP:  # the first lap, unkeyed
+            post(c, frame(p), map_id="rows", stream="mapper", learn="true", top_k=0)
+        localised = [keyed(c, p, "false", 3.0) for p in LAP]  # a localising pass of the bag
+    # (while the service holds a localisation's reply, its key on a learning post is refused as reused)
+    with make_client(data, idempotency_keys=1) as c:
+        learned = [keyed(c, p, "true", 3.0) for p in LAP]  # the same bag mapped, the same keys
+        first = next(p for p, b in zip(LAP, learned, strict=True) if b in revisits(learned))
+        again = keyed(c, first, "true", 3.0)  # a retry past the one kept key: learned anew
+        log = c.get("/v1/maps/rows/loop-closures", params={"limit": 500}).json()["loop_closures"]
+    by_id = {e["id"]: e for e in log}
+    told = [b for b in [*revisits(learned), again] if b["place"]["revisit"]]
+    assert revisits(localised) and len(told) >= 10 and all(b["seq"] is not None for b in told)
+    for b in told:
+        e = by_id[b["loop_closure_id"]]
+        assert (e["stream"], e["seq"], e["place"]["seq"]) == ("robot", b["seq"], b["place"]["seq"])
+    assert len({b["loop_closure_id"] for b in told}) == len(told) and again["seq"] > learned[-1]["seq"]
+
+
 def dark(k: int) -> bytes:
     """A near-black tunnel frame: a flat level, sensor noise and a small bright speck (a lamp, the
     camera's timestamp overlay): no place can be told from it (docs/design/science.md §11.7)."""
