@@ -222,9 +222,10 @@ class StoredObservationModel(_Out):
 #: after its snapshot and brings back what was retracted since, and a map deleted and made again (or
 #: moved between shards) starts afresh: a client following a page with a cursor reads it again from 0
 #: when this changes.
-EPOCH_DESCRIPTION = ("an opaque token of the map's creation and its restores; when it changes, read again "
-                     "from 0: a restore took away what came after its snapshot and undid the retractions "
-                     "made since, or the map was made anew")
+EPOCH_DESCRIPTION = ("an opaque token of the map's creation, its restores and its rewrites; when it changes, "
+                     "read again from 0: a restore took away what came after its snapshot and undid the "
+                     "retractions made since, a repair withdrew closures the log no longer kept (it could "
+                     "not retract them), or the map was made anew")
 
 
 class StoredObservationList(_Out):

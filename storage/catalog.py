@@ -9,6 +9,8 @@ copy, the service raises the marks to the current last seq and log id and counts
 (`mark_restore`), and opens the restored file with `MapStore.open(seq_floor=, closure_floor=)`. Marking
 only at restore (not per observation) keeps the per-observation commit to one file. The count is the log's
 epoch: a client following the log or the rows with a cursor learns from it that they were rolled back.
+So is the count of rewrites (`mark_rewrite`): repairs that withdrew loop closures the log's cap had
+already pruned, whose retractions could therefore not be logged.
 
 Plain CRUD goes through `sqlite_utils` tables over our own connection (`storage._common.connect`: WAL,
 synchronous=FULL, explicit `BEGIN IMMEDIATE` transactions, inside which sqlite-utils writes as
@@ -60,7 +62,7 @@ SnapshotKind = Literal["manual", "auto", "pre-restore"]
 MAP_STATES: tuple[str, ...] = get_args(MapState)
 SNAPSHOT_KINDS: tuple[str, ...] = get_args(SnapshotKind)
 
-_SCHEMA_VERSION = 2
+_SCHEMA_VERSION = 3
 # Statements separated by ";" (no ";" inside comments): run one by one inside one transaction, since
 # executescript would commit on its own.
 _SCHEMA = f"""
@@ -75,7 +77,8 @@ CREATE TABLE IF NOT EXISTS maps (
     params          TEXT NOT NULL,                        -- JSON
     seq_high_water  INTEGER NOT NULL DEFAULT 0 CHECK (seq_high_water >= 0),
     closure_high_water INTEGER NOT NULL DEFAULT 0 CHECK (closure_high_water >= 0),
-    restores        INTEGER NOT NULL DEFAULT 0 CHECK (restores >= 0)
+    restores        INTEGER NOT NULL DEFAULT 0 CHECK (restores >= 0),
+    rewrites        INTEGER NOT NULL DEFAULT 0 CHECK (rewrites >= 0)
 );
 CREATE TABLE IF NOT EXISTS snapshots (
     -- Registration order = "newest first", explicit so that VACUUM cannot renumber it.
@@ -96,6 +99,9 @@ _V2 = ("ALTER TABLE maps ADD COLUMN closure_high_water INTEGER NOT NULL DEFAULT 
        "CHECK (closure_high_water >= 0)",
        "ALTER TABLE maps ADD COLUMN restores INTEGER NOT NULL DEFAULT 0 CHECK (restores >= 0)",
        "UPDATE meta SET value = '2' WHERE key = 'schema_version'")
+# What version 3 added: the count of repairs that withdrew closures the log no longer held.
+_V3 = ("ALTER TABLE maps ADD COLUMN rewrites INTEGER NOT NULL DEFAULT 0 CHECK (rewrites >= 0)",
+       "UPDATE meta SET value = '3' WHERE key = 'schema_version'")
 
 
 class MapExists(StorageError):  # noqa: N818 - named after the problem slug `map-exists`
@@ -120,6 +126,7 @@ class MapRecord:
         seq_high_water: highest seq ever handed out that a restore may have removed from `map.sqlite`.
         closure_high_water: the same for loop-closure log ids.
         restores: how many restores rolled the map back: the loop-closure log's and the rows' epoch.
+        rewrites: how many repairs withdrew loop closures the log no longer held: the epoch too.
     """
 
     map_id: str
@@ -131,6 +138,14 @@ class MapRecord:
     seq_high_water: int
     closure_high_water: int = 0
     restores: int = 0
+    rewrites: int = 0
+
+    @property
+    def epoch(self) -> str:
+        """The map's loop-closure log's and rows' epoch (docs/design/service.md §1.2): which map (a map
+        deleted and made again, or imported, is another), how many restores, and how many rewrites
+        (shown once there is one, so the epochs of maps without are as before)."""
+        return f"{self.created_at}/{self.restores}" + (f"/{self.rewrites}" if self.rewrites else "")
 
 
 @dataclass(frozen=True)
@@ -165,7 +180,7 @@ def _map(r: dict[str, Any]) -> MapRecord:
                      seq_high_water=int(r["seq_high_water"]),
                      # (a version 1 catalog opened read-only has neither column)
                      closure_high_water=int(r.get("closure_high_water") or 0),
-                     restores=int(r.get("restores") or 0))
+                     restores=int(r.get("restores") or 0), rewrites=int(r.get("rewrites") or 0))
 
 
 def _snap(r: dict[str, Any]) -> SnapshotRecord:
@@ -226,11 +241,11 @@ class Catalog:
             if version > _SCHEMA_VERSION:
                 raise StorageError(f"{path}: catalog schema {version} is newer than this code's "
                                    f"{_SCHEMA_VERSION}")
-            if version < 2:
+            if version < _SCHEMA_VERSION:
                 with transaction(self._conn):  # read again under the write lock: another opener may
                     current = int(self._conn.execute(  # have migrated it meanwhile
                         "SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0])
-                    for statement in _V2 if current < 2 else ():
+                    for statement in (*(_V2 if current < 2 else ()), *(_V3 if current < 3 else ())):
                         self._conn.execute(statement)
             with transaction(self._conn):  # absolute paths of older versions become relative (`_snap`)
                 snapshots = self._db["snapshots"]
@@ -396,6 +411,18 @@ class Catalog:
                 "seq_high_water": max(int(r["seq_high_water"]), int(seq)),
                 "closure_high_water": max(int(r["closure_high_water"]), int(closure_id)),
                 "restores": int(r["restores"]) + 1})
+            return _map(_get_map(db, map_id))
+
+    def mark_rewrite(self, map_id: str) -> MapRecord:
+        """Before a repair withdraws loop closures the log no longer holds: count it, which changes the
+        map's epoch (module docstring), so a follower of the log rebuilds its edges.
+
+        Raises:
+            MapNotFound: unknown map.
+        """
+        with self._write() as db:
+            r = _get_map(db, map_id)
+            db["maps"].update(map_id, {"rewrites": int(r.get("rewrites") or 0) + 1})
             return _map(_get_map(db, map_id))
 
     # ------------------------------------------------------------------ snapshots

@@ -493,9 +493,9 @@ class LoopClosureList(_Reply):
     either way). `oldest` is the oldest id the log still keeps (None: empty, or a server before it): a
     follower whose `after` is below `oldest - 1` may have missed entries the cap pruned, retractions
     among them (`missed(after)`), and rebuilds its edges from the export. `epoch` is an opaque token of
-    the map's creation and restores ("" from a server before it): when it changes, read the log again
-    from `after=0` (a restore took away what came after its snapshot and undid the retractions made
-    since, or the map was made anew)."""
+    the map's creation, restores and rewrites ("" from a server before it): when it changes, read the log
+    again from `after=0` (a restore took away what came after its snapshot and undid the retractions made
+    since, a repair withdrew closures the log no longer kept, or the map was made anew)."""
 
     loop_closures: list[LoopClosure]
     next_after: int | None = None

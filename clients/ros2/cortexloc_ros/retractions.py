@@ -10,8 +10,9 @@ back end can drop the edge the closure's `id` names.
 - A failed read is said once and tried again at the next period; it never holds a frame back more than
   one request.
 - A restore (the page's `epoch` changes) took away what came after its snapshot and undid the retractions
-  made since: that cannot be published as edges, so it is said (rebuild from the export) and the follower
-  goes on from the restored log's newest id. Entries the log's cap pruned before they were read are said
+  made since, and a repair beyond what the log keeps withdrew closures it could not retract: neither can
+  be published as edges, so it is said (rebuild from the export) and the follower goes on from the log's
+  newest id. Entries the log's cap pruned before they were read are said
   the same way.
 """
 
@@ -75,9 +76,10 @@ class RetractionFollower:
             return
         if self.after is None or page.epoch != self.epoch:
             if self.after is not None:
-                self.log.warning(f"map {self.map_id!r} was restored: closures logged after its snapshot are "
-                                 f"gone and the retractions made since undone; rebuild the graph from the "
-                                 f"loop-closure export")
+                self.log.warning(f"map {self.map_id!r} was restored (closures logged after its snapshot are "
+                                 f"gone, the retractions made since undone) or repaired beyond what its log "
+                                 f"keeps (closures withdrawn without a retraction): rebuild the graph from "
+                                 f"the loop-closure export")
             self.after, self.epoch = page.newest, page.epoch
             return
         if page.missed(self.after):

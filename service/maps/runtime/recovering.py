@@ -105,8 +105,7 @@ class Recovering:
                                        max_keys=self.settings.idempotency_keys,
                                        max_closures=self.settings.loop_closures,
                                        seq_floor=marks.seq_high_water, closure_floor=marks.closure_high_water)
-            # which map (a map deleted and made again, or imported, is another) and how many restores
-            self.epoch = f"{marks.created_at}/{marks.restores}"
+            self.epoch = marks.epoch  # which map, how many restores and rewrites (`MapRecord.epoch`)
             if not self.store.quick_check():
                 raise StoreCorrupt("quick_check failed")
         except (StoreCorrupt, StorageFull) as e:  # full (a migration): the file is whole, a restart recovers

@@ -49,6 +49,11 @@ class Repairing:
         added = len(found.visits)
         if len(self.index) + added > self.index.max_observations:
             raise MapFull(self.map_id, self.index.max_observations)
+        if found.beyond_log:  # before the repair: a failed one then costs a follower a rebuild, never an edge
+            self.epoch = self.catalog.mark_rewrite(self.map_id).epoch
+            log.warning("map %s: the repair withdraws merges older than the loop-closure log keeps; their "
+                        "closures cannot be retracted in it, so the log's epoch changes (a follower rebuilds "
+                        "its edges from the export)", self.map_id)
         if self.budget is not None:
             self.budget.grow_index(self.map_id, added * self.row_bytes)
         try:

@@ -141,6 +141,28 @@ def test_the_log_retracts_the_echoes_closures_and_the_exports_carry_the_retracti
         assert {x["id"] for x in lines if x["kind"] == "closure"} >= set(withdrawn)
 
 
+def test_a_repair_beyond_what_the_log_keeps_changes_its_epoch_so_a_follower_rebuilds(tmp_path):
+    # An outside probe: with the log's cap past the echoes' closures, a repair undid their merges but could
+    # retract nothing (the entries were gone), and a follower that held those edges was told nothing.
+    data = tmp_path / "data"
+    with make_client(data, loop_closures=3) as c:
+        h = hit(c)
+        drive(c, range(10), stream="q", learn="false", noise=0.0, map_id="m")  # revisits push the echoes out
+        before = c.get("/v1/maps/m/loop-closures").json()
+        assert before["oldest"] > max(h["closures"])  # pruned: nothing in the log to retract
+        done = c.post("/v1/maps/m/repair").json()
+        assert done["repaired"] and done["rows_added"] == 1 and done["retractions"] == []
+        after = c.get("/v1/maps/m/loop-closures").json()
+        assert after["epoch"] != before["epoch"] and after["epoch"].endswith("/0/1")  # no restore, a rewrite
+    with make_client(data, loop_closures=3) as c:  # durable: the catalog's
+        assert c.get("/v1/maps/m/loop-closures").json()["epoch"] == after["epoch"]
+    with make_client(tmp_path / "kept") as c:  # the log kept them: retracted there, the epoch stands
+        h = hit(c)
+        epoch = c.get("/v1/maps/m/loop-closures").json()["epoch"]
+        assert c.post("/v1/maps/m/repair").json()["retractions"]
+        assert c.get("/v1/maps/m/loop-closures").json()["epoch"] == epoch
+
+
 def test_a_retracted_closure_leaves_its_g2o_edge_out_for_a_comment():
     v = {"verified": True, "keyframe_seq": 4, "rotation": np.eye(3).tolist(), "translation": [0, 0, 1]}
     closure = LoopClosure(id=7, stream="a", seq=9, observation_id="o9", metadata=None, place_seq=4,
