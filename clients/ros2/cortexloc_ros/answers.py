@@ -31,6 +31,12 @@ while the node runs: an operator's repair withdrew closure `retracts`; the back 
 
     {"kind": "retraction", "id", "retracts", "map_id", "stream", "seq", "stamp": Time | null,
      "place_seq", "place_stream", "place_stamp": Time | null}
+
+Epoch (`topics.loop_closures` too, when the map's log changes its epoch while the node runs: a restore
+rolled it back, or a repair withdrew closures the log no longer kept, so closures published before may be
+gone or withdrawn with no retraction; the back end rebuilds its edges from the service's export)::
+
+    {"kind": "epoch", "map_id", "previous", "epoch"}
 """
 
 from __future__ import annotations
@@ -41,7 +47,7 @@ from cortexloc_client import Match, Observation, Place
 from cortexloc_client.models import LoopClosure
 from cortexloc_ros.core import Pose2D, Stamp, relative_pose
 
-__all__ = ["loop_closure_json", "place_json", "place_pose", "retraction_json", "stored_stamp"]
+__all__ = ["epoch_json", "loop_closure_json", "place_json", "place_pose", "retraction_json", "stored_stamp"]
 
 
 def stored_stamp(metadata: Any) -> Stamp | None:
@@ -121,3 +127,8 @@ def retraction_json(entry: LoopClosure, map_id: str) -> dict[str, Any]:
             "stream": entry.stream, "seq": entry.seq, "stamp": _time(stored_stamp(entry.metadata)),
             "place_seq": entry.place.seq, "place_stream": entry.place.stream,
             "place_stamp": _time(stored_stamp(entry.place.metadata))}
+
+
+def epoch_json(map_id: str, previous: str, epoch: str) -> dict[str, Any]:
+    """The epoch document (module docstring): the map's log changed its epoch."""
+    return {"kind": "epoch", "map_id": map_id, "previous": previous, "epoch": epoch}

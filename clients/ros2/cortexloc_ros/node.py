@@ -39,7 +39,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from cortexloc_client import Client, Observation, RetryPolicy
 from cortexloc_client.models import LoopClosure
-from cortexloc_ros.answers import loop_closure_json, place_json, place_pose, retraction_json
+from cortexloc_ros.answers import epoch_json, loop_closure_json, place_json, place_pose, retraction_json
 from cortexloc_ros.core import (
     FrameKeys,
     FrameQueue,
@@ -134,7 +134,8 @@ class CortexlocNode(Node):
         self.client = Client(cfg.service_url, api_key=cfg.api_key, timeout=cfg.request_timeout,
                              retry=RetryPolicy(attempts=1))
         self.poster = Poster(cfg, self.client, self.queue, self.stats, self.odometry, self._camera_now,
-                             self._publish_answer, self.get_logger(), self._publish_retraction)
+                             self._publish_answer, self.get_logger(), self._publish_retraction,
+                             self._publish_epoch)
         self.create_timer(1.0, self._publish_diagnostics)
         self.poster.start()
         self.get_logger().info(
@@ -280,6 +281,15 @@ class CortexlocNode(Node):
         if len(kept) != len(self._edges):
             self._edges = deque(kept, maxlen=MAX_EDGES)
             self.pub_markers.publish(self._markers())
+
+    def _publish_epoch(self, previous: str, epoch: str) -> None:
+        """On the poster's thread: the map's log changed its epoch (a restore, or a repair that withdrew
+        closures the log no longer kept): the closures published so far may be gone or withdrawn without a
+        retraction, so the back end rebuilds from the export; the markers are cleared."""
+        self.pub_closures.publish(String(data=json.dumps(epoch_json(self.cfg.map_id, previous, epoch),
+                                                         separators=(",", ":"))))
+        self._edges.clear()
+        self.pub_markers.publish(self._markers())
 
     def _pose_message(self, stamp: Stamp, pose: Pose2D) -> PoseWithCovarianceStamped:
         msg = PoseWithCovarianceStamped()

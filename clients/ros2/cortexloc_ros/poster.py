@@ -117,17 +117,19 @@ Answered = Callable[[Frame, Pose2D | None, Observation, float], None]
 
 class Poster:
     """Posts queued frames through `client`, one at a time; `on_answer(frame, pose, answer, latency_ms)`
-    runs on the poster's thread for each answered frame, and `on_retraction(entry)` for each retraction
-    of the stream's closures (both publish)."""
+    runs on the poster's thread for each answered frame, `on_retraction(entry)` for each retraction of
+    the stream's closures and `on_epoch(previous, epoch)` when the map's log changes its epoch (all
+    publish)."""
 
     def __init__(self, cfg: Config, client: Client, queue: FrameQueue[Frame], stats: Stats,
                  odometry: OdometryBuffer | None, camera: Callable[[], dict[str, Any] | None],
                  on_answer: Answered, log: Any,
-                 on_retraction: Callable[[LoopClosure], None] = lambda entry: None) -> None:
+                 on_retraction: Callable[[LoopClosure], None] = lambda entry: None,
+                 on_epoch: Callable[[str, str], None] = lambda previous, epoch: None) -> None:
         self.cfg, self.client, self.queue, self.stats = cfg, client, queue, stats
         self.odometry, self.camera, self.on_answer, self.log = odometry, camera, on_answer, log
         self.retractions = RetractionFollower(client, cfg.map_id, cfg.stream, cfg.retractions_poll,
-                                              self._retracted, log)
+                                              self._retracted, log, on_epoch=on_epoch)
         self._on_retraction = on_retraction
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="cortexloc-poster", daemon=True)

@@ -11,8 +11,8 @@ back end can drop the edge the closure's `id` names.
   one request.
 - A restore (the page's `epoch` changes) took away what came after its snapshot and undid the retractions
   made since, and a repair beyond what the log keeps withdrew closures it could not retract: neither can
-  be published as edges, so it is said (rebuild from the export) and the follower goes on from the log's
-  newest id. Entries the log's cap pruned before they were read are said
+  be published as edges, so it is said (rebuild from the export; `on_epoch`, which the node publishes) and
+  the follower goes on from the log's newest id. Entries the log's cap pruned before they were read are said
   the same way.
 """
 
@@ -39,13 +39,15 @@ class _Log(Protocol):
 
 class RetractionFollower:
     """Follows `map_id`'s loop-closure log for the retractions of `stream`'s closures; `on_retraction(entry)`
-    runs for each (on the caller's thread). `every_s` 0: off."""
+    runs for each, and `on_epoch(previous, epoch)` when the log's epoch changes (both on the caller's
+    thread). `every_s` 0: off."""
 
     def __init__(self, client: _Log, map_id: str, stream: str, every_s: float,
                  on_retraction: Callable[[LoopClosure], None], log: Any,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 on_epoch: Callable[[str, str], None] = lambda previous, epoch: None) -> None:
         self.client, self.map_id, self.stream, self.every_s = client, map_id, stream, every_s
-        self.on_retraction, self.log, self.clock = on_retraction, log, clock
+        self.on_retraction, self.on_epoch, self.log, self.clock = on_retraction, on_epoch, log, clock
         self.after: int | None = None  # the last log id read; None: not started
         self.epoch = ""
         self.published = 0
@@ -76,6 +78,7 @@ class RetractionFollower:
             return
         if self.after is None or page.epoch != self.epoch:
             if self.after is not None:
+                self.on_epoch(self.epoch, page.epoch)
                 self.log.warning(f"map {self.map_id!r} was restored (closures logged after its snapshot are "
                                  f"gone, the retractions made since undone) or repaired beyond what its log "
                                  f"keeps (closures withdrawn without a retraction): rebuild the graph from "

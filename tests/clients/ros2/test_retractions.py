@@ -59,7 +59,8 @@ class Pages:
 def follower(pages: Pages, every_s: float = 5.0) -> tuple[RetractionFollower, list[LoopClosure], list[float]]:
     now = [100.0]
     got: list[LoopClosure] = []
-    f = RetractionFollower(pages, "m", "cam", every_s, got.append, Log(), clock=lambda: now[0])
+    f = RetractionFollower(pages, "m", "cam", every_s, got.append, Log(), clock=lambda: now[0],
+                           on_epoch=lambda previous, epoch: f.log.lines.append(f"epoch {previous} {epoch}"))
     return f, got, now
 
 
@@ -124,7 +125,8 @@ def test_a_restore_or_a_pruned_gap_is_said_and_the_follower_goes_on_from_the_res
         now[0] += 5.0
     # the restored log's entries up to its newest are not this run's to publish; 31 and 80 are
     assert [e.retracts for e in got] == [4, 5]
-    assert "was restored" in f.log.lines[0] and "pruned" in f.log.lines[1] and len(f.log.lines) == 2
+    assert f.log.lines[0] == "epoch e1 e2"  # handed on once (the node publishes it and clears its markers)
+    assert "was restored" in f.log.lines[1] and "pruned" in f.log.lines[2] and len(f.log.lines) == 3
 
 
 def test_an_older_server_or_a_zero_period_turns_the_follower_off():
@@ -178,3 +180,9 @@ def test_the_node_publishes_a_retraction_and_takes_its_edge_off_the_markers():
     assert len(closures) == 2 and len(markers) == 1  # an edge the node never drew: the markers stand
     node.CortexlocNode._publish_retraction(fake, LoopClosure.model_validate(entry(52, retracts=41)))
     assert markers[-1].markers[0].action == markers[-1].markers[0].DELETE  # none left: the list deleted
+    # the log changed its epoch (a restore, a repair beyond the log): the topic says so, the markers clear
+    fake._edges.append((60, Pose2D(0, 0, 0, "odom"), Pose2D(5, 0, 0, "odom"), 0.9))
+    node.CortexlocNode._publish_epoch(fake, "t/0", "t/0/1")
+    said = json.loads(closures[-1].data)
+    assert said == {"kind": "epoch", "map_id": "m", "previous": "t/0", "epoch": "t/0/1"}
+    assert not fake._edges and markers[-1].markers[0].action == markers[-1].markers[0].DELETE
