@@ -217,11 +217,11 @@ class StoredObservationModel(_Out):
         "it was, held no more; its record stays as acknowledged); null: the row is held"))
 
 
-#: A page's `epoch` (docs/design/service.md §1.2): which map this is (its creation) and how many restores
-#: rolled it back. Seqs and log ids are not handed out twice within it, but a restore takes away what came
-#: after its snapshot and brings back what was retracted since, and a map deleted and made again (or
-#: moved between shards) starts afresh: a client following a page with a cursor reads it again from 0
-#: when this changes.
+#: A page's `epoch` (docs/design/service.md §1.2): which map this is (its creation), how many restores
+#: rolled it back and how many repairs rewrote it. Seqs and log ids are not handed out twice within it, but
+#: a restore takes away what came after its snapshot and brings back what was retracted since, a rewrite
+#: may withdraw a closure the log no longer holds, and a map deleted and made again (or moved between
+#: shards) starts afresh: a client following a page with a cursor reads it again from 0 when this changes.
 EPOCH_DESCRIPTION = ("an opaque token of the map's creation, its restores and its rewrites; when it changes, "
                      "read again from 0: a restore took away what came after its snapshot and undid the "
                      "retractions made since, a repair withdrew closures the log no longer kept (it could "
@@ -315,6 +315,10 @@ class RepairModel(_Out):
     unjoins: list[UnjoinModel]
     retractions: list[RetractionModel]
     rows_added: int = Field(description="rows the repair added to the map (its re-made visits)")
+    epoch_changed: bool = Field(description=(
+        "true: the log's cap had pruned entries since the last such repair, a closure among them may be "
+        "withdrawn without a retraction, so the loop-closure log's epoch changed and a follower rebuilds "
+        "its edges (POST only)"))
 
 
 class LoopClosureList(_Out):

@@ -26,7 +26,7 @@ from service.maps.recovery.memory import in_order, learned_rows
 from storage.catalog import Catalog, MapRecord
 from storage.mapstore import LoopClosure, MapStore, Observation, Visit
 
-__all__ = ["Found", "find", "listing"]
+__all__ = ["Found", "find", "listing", "pruned_below"]
 
 _PAGE = 1000  # loop closures read per query
 
@@ -42,16 +42,12 @@ class Found:
         joins: (row, the row whose place it joined) of the rows that joined a place through a row of
             their stream's own memory, in seq order.
         closures: the logged closures to retract, in log order: each (id, stream, the row it named).
-        beyond_log: a visit or a join to undo is older than the oldest entry the log's cap kept: its
-            closure, if it logged one, is pruned and cannot be retracted in the log, so the repair
-            changes the map's epoch instead (a follower rebuilds its edges; `Catalog.mark_rewrite`).
     """
 
     window: int
     visits: list[Visit] = field(default_factory=list)
     joins: list[tuple[int, int, str]] = field(default_factory=list)
     closures: list[tuple[int, str, int]] = field(default_factory=list)
-    beyond_log: bool = False
 
     def __bool__(self) -> bool:
         return bool(self.visits or self.joins or self.closures)
@@ -127,27 +123,23 @@ def find(store: MapStore, conf: dict[str, Any] | None, code_width: int) -> Found
     if wanted:
         out.visits = [v for v in store.visits() if v.id in wanted]
     joins = [s for s in merges.joins if s not in unjoined]
-    made: list[str] = [v.created_at for v in out.visits]  # when each merge to undo was learned
     if joins:
         joined = store.joined()
         rows = store.get_many(joins)
         out.joins = [(s, int(_joined(rows[s], joined)), rows[s].stream) for s in joins]  # type: ignore[arg-type]
-        made += [rows[s].created_at for s in joins]
     named = {c.id: c for c in closures}
     out.closures = [(i, named[i].stream, named[i].place_seq) for i in merges.closures if i not in retracted]
-    out.beyond_log = bool(made) and _pruned_before(store, min(made))
     return out
 
 
-def _pruned_before(store: MapStore, when: str) -> bool:
-    """Whether the log's cap may have pruned a closure logged at `when` or later: it pruned some (the
-    oldest id kept is not the first, or the log is empty though ids were handed out) and the oldest
-    entry kept is younger. Over-cautious (an id skipped by a repeated key, a merge that logged no
-    closure): a follower then rebuilds its edges once too often, never keeps a withdrawn one."""
-    oldest = store.closures(0, 1)
-    if not oldest:
-        return store.last_closure_id() > 0
-    return oldest[0].id > 1 and when < oldest[0].created_at
+def pruned_below(store: MapStore) -> int:
+    """The log ids below this one are gone from the log (the cap pruned them, or a restore's floor skipped
+    them): the oldest id kept, else the next to be handed out. 1: none. A closure among them that a repair
+    would withdraw cannot be found, so it cannot be retracted in the log (docs/design/service.md §1.2,
+    "rewrite")."""
+    oldest = store.oldest_closure_id()
+    return oldest if oldest is not None else store.next_closure_id()
+
 
 
 def listing(catalog: Catalog, record: MapRecord) -> Found:

@@ -341,6 +341,8 @@ class RepairResult:
         window: the moves of the stream's memory the rule read (the map's `short_term`, else the
             default's). repaired: False for a listing. splits, unjoins, retractions: as listed or undone.
         rows_added: rows the repair added (the re-made visits).
+        epoch_changed: the repair was a rewrite: the log's cap had pruned entries it may withdraw without
+            a retraction, so the log's epoch changed (docs/design/service.md §1.2).
     """
 
     map_id: str
@@ -350,6 +352,7 @@ class RepairResult:
     unjoins: list[Unjoin]
     retractions: list[Retraction]
     rows_added: int = 0
+    epoch_changed: bool = False
 
 
 @dataclass(frozen=True)

@@ -485,6 +485,9 @@ class Repair(_Reply):
     unjoins: list[Unjoin]
     retractions: list[Retraction]
     rows_added: int
+    #: The log's cap had pruned entries this repair may withdraw without a retraction: the loop-closure
+    #: log's epoch changed, so a follower rebuilds its edges (False from a server before it).
+    epoch_changed: bool = False
 
 
 class LoopClosureList(_Reply):

@@ -36,29 +36,35 @@ class Repairing:
         the store, as a recovery builds them. A second repair finds nothing. The memory is not touched:
         it learned each frame once, with its visit, and the replay keeps taking it so.
 
+        Where the log's cap pruned entries since the last rewrite, a closure among them that this repair
+        withdraws cannot be found nor retracted, so the repair is a rewrite first (`_rewrite`): the
+        log's epoch changes and a follower rebuilds its edges, even when nothing is found.
+
         Raises:
             MapUnavailable (not ready). MapFull: the re-made rows would pass `max_observations`;
             MemoryBudgetExceeded: their index bytes do not fit the budget (nothing changed: a repair
-            forgets nothing to make room). InsufficientStorage: no room to write (nothing changed).
+            forgets nothing to make room). InsufficientStorage: no room to write (nothing changed, but
+            a rewrite counted before the failure stands: one rebuild too many, never an edge kept).
         """
         self.require_ready()
         assert self.store is not None
         found = self._find()
-        if not found:
+        below = repairs.pruned_below(self.store)
+        marks = self.catalog.get_map(self.map_id)
+        assert marks is not None  # a ready map is in the catalog
+        rewrite = below > max(1, marks.rewritten_below)
+        if not found and not rewrite:
             return self._repair_result(found, [])
         added = len(found.visits)
         if len(self.index) + added > self.index.max_observations:
             raise MapFull(self.map_id, self.index.max_observations)
-        if found.beyond_log:  # before the repair: a failed one then costs a follower a rebuild, never an edge
-            self.epoch = self.catalog.mark_rewrite(self.map_id).epoch
-            log.warning("map %s: the repair withdraws merges older than the loop-closure log keeps; their "
-                        "closures cannot be retracted in it, so the log's epoch changes (a follower rebuilds "
-                        "its edges from the export)", self.map_id)
         if self.budget is not None:
             self.budget.grow_index(self.map_id, added * self.row_bytes)
         try:
+            if rewrite:  # before the repair: a failed one then costs a follower a rebuild, never an edge
+                self._rewrite(below)
             seqs = self.store.repair(found.visits, [(s, was) for s, was, _ in found.joins],
-                                     [c[0] for c in found.closures])
+                                     [c[0] for c in found.closures]) if found else []
         except BaseException as e:
             if self.budget is not None:  # nothing was stored: the index holds what it held
                 self.budget.set_index(self.map_id, len(self.index) * self.row_bytes)
@@ -66,16 +72,26 @@ class Repairing:
                 raise InsufficientStorage("the repair could not be stored: no room to write; nothing "
                                           "changed") from e
             raise
-        self._rebuild_index()  # sets the budget's index bytes to the index rebuilt
+        if found:
+            self._rebuild_index()  # sets the budget's index bytes to the index rebuilt
         log.info("map %s repaired: %d visits re-made as rows, %d rows given back their place, %d loop "
                  "closures retracted", self.map_id, len(seqs), len(found.joins), len(found.closures))
-        return self._repair_result(found, seqs)
+        return self._repair_result(found, seqs, epoch_changed=rewrite)
+
+    def _rewrite(self, below: int) -> None:
+        """Writer: count a rewrite of the log's ids below `below` (`Catalog.mark_rewrite`) and take the
+        epoch it gives."""
+        self.epoch = self.catalog.mark_rewrite(self.map_id, below).epoch
+        log.warning("map %s: the loop-closure log's cap pruned entries (ids below %d) that the repair may "
+                    "withdraw without a retraction: the log's epoch changes, so a follower rebuilds its "
+                    "edges from the export", self.map_id, below)
 
     def _find(self) -> repairs.Found:
         assert self.store is not None
         return repairs.find(self.store, self.place_map.options, self.tm.n_columns)
 
-    def _repair_result(self, found: repairs.Found, seqs: list[int] | None) -> RepairResult:
+    def _repair_result(self, found: repairs.Found, seqs: list[int] | None,
+                       epoch_changed: bool = False) -> RepairResult:
         made = seqs or [None] * len(found.visits)
         return RepairResult(
             map_id=self.map_id, window=found.window, repaired=seqs is not None,
@@ -83,4 +99,4 @@ class Repairing:
                     for v, s in zip(found.visits, made, strict=True)],
             unjoins=[Unjoin(seq=s, stream=st, joined=was) for s, was, st in found.joins],
             retractions=[Retraction(closure=i, stream=st, place_seq=p) for i, st, p in found.closures],
-            rows_added=len(seqs or []))
+            rows_added=len(seqs or []), epoch_changed=epoch_changed)

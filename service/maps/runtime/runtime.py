@@ -124,7 +124,7 @@ class MapRuntime(Writer, Snapshots, Recovering, Admission, Repairing, Resources)
         # their order, their persistence and their snapshots.
         self.model = map_model(self.config, max_observations=settings.max_observations)
         self.store = None
-        self.epoch = ""  # the map's creation and restores (`recover` reads the catalog's, `Recovering`)
+        self.epoch = ""  # creation, restores and rewrites (`recover` reads the catalog's, `Recovering`)
         self._codes = OrderedDict()
         self.recent: RecentAnswers[Any] = RecentAnswers()  # the replies as sent (the route fills it)
 
