@@ -402,7 +402,9 @@ class Catalog:
 
     def mark_restore(self, map_id: str, seq: int, closure_id: int) -> MapRecord:
         """Before a restore replaces the map's file: raise its seq and loop-closure id marks to at least
-        `seq` and `closure_id` (never lowered) and count the restore (module docstring).
+        `seq` and `closure_id` (never lowered) and count the restore (module docstring). The ids the last
+        rewrite covered are forgotten: the restored log is another, whose pruned entries a follower that
+        rebuilt from it may hold.
 
         Returns:
             The map's record after the call.
@@ -415,7 +417,7 @@ class Catalog:
             db["maps"].update(map_id, {
                 "seq_high_water": max(int(r["seq_high_water"]), int(seq)),
                 "closure_high_water": max(int(r["closure_high_water"]), int(closure_id)),
-                "restores": int(r["restores"]) + 1})
+                "restores": int(r["restores"]) + 1, "rewritten_below": 0})
             return _map(_get_map(db, map_id))
 
     def mark_rewrite(self, map_id: str, below: int) -> MapRecord:

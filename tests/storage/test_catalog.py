@@ -72,8 +72,10 @@ def test_a_rewrite_changes_the_epoch_and_a_map_without_one_keeps_the_epoch_it_ha
     assert made.epoch == f"{made.created_at}/0"  # as before rewrites were counted: no follower rebuilds
     assert catalog.mark_rewrite("lab", 9).epoch == f"{made.created_at}/0/1"
     assert catalog.mark_restore("lab", 1, 1).epoch == f"{made.created_at}/1/1"
+    assert catalog.get_map("lab").rewritten_below == 0  # a restore's log is another: nothing covered
+    catalog.mark_rewrite("lab", 9)
     again = catalog.mark_rewrite("lab", 4)  # every rewrite counts; the ids covered are never lowered
-    assert (again.rewrites, again.rewritten_below, again.epoch) == (2, 9, f"{made.created_at}/1/2")
+    assert (again.rewrites, again.rewritten_below, again.epoch) == (3, 9, f"{made.created_at}/1/3")
     with pytest.raises(MapNotFound):
         catalog.mark_rewrite("nope", 1)
 
