@@ -169,6 +169,9 @@ def test_a_repair_beyond_what_the_log_keeps_changes_its_epoch_so_a_follower_rebu
     with make_client(data, loop_closures=3) as c:  # durable: the catalog's
         assert c.get("/v1/maps/m/loop-closures").json()["epoch"] == latest
         assert c.post("/v1/maps/m/repair").json()["epoch_changed"] is False
+        drive(c, range(10), stream="q", learn="false", noise=0.0, map_id="m")  # pruned again
+    out = CliRunner().invoke(cli, ["repair", "--map", "m", "--data-dir", str(data)])  # the CLI says so
+    assert out.exit_code == 0 and "the log's epoch changed" in out.output, out.output
     with make_client(tmp_path / "kept") as c:  # the log kept them: retracted there, the epoch stands
         h = hit(c)
         epoch = c.get("/v1/maps/m/loop-closures").json()["epoch"]
