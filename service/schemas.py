@@ -315,10 +315,10 @@ class RepairModel(_Out):
     unjoins: list[UnjoinModel]
     retractions: list[RetractionModel]
     rows_added: int = Field(description="rows the repair added to the map (its re-made visits)")
-    epoch_changed: bool = Field(description=(
-        "true: the log's cap had pruned entries since the last such repair, a closure among them may be "
-        "withdrawn without a retraction, so the loop-closure log's epoch changed and a follower rebuilds "
-        "its edges (POST only)"))
+    rewrite: bool = Field(description=(
+        "true: the repair changes (a listing: would change) the loop-closure log's epoch: its cap pruned "
+        "entries logged since the last repair, a closure among them may be withdrawn without a retraction, "
+        "so a follower rebuilds its edges from the export"))
 
 
 class LoopClosureList(_Out):

@@ -9,8 +9,8 @@ copy, the service raises the marks to the current last seq and log id and counts
 (`mark_restore`), and opens the restored file with `MapStore.open(seq_floor=, closure_floor=)`. Marking
 only at restore (not per observation) keeps the per-observation commit to one file. The count is the log's
 epoch: a client following the log or the rows with a cursor learns from it that they were rolled back.
-So is the count of rewrites (`mark_rewrite`): repairs run after the log's cap had pruned entries no
-earlier rewrite covered, which may withdraw closures whose retractions cannot be logged.
+So is the count of rewrites (`mark_rewrite`): repairs run after the log's cap had pruned entries logged
+since the last repair (`mark_repaired`), which may withdraw closures whose retractions cannot be logged.
 
 Plain CRUD goes through `sqlite_utils` tables over our own connection (`storage._common.connect`: WAL,
 synchronous=FULL, explicit `BEGIN IMMEDIATE` transactions, inside which sqlite-utils writes as
@@ -79,7 +79,7 @@ CREATE TABLE IF NOT EXISTS maps (
     closure_high_water INTEGER NOT NULL DEFAULT 0 CHECK (closure_high_water >= 0),
     restores        INTEGER NOT NULL DEFAULT 0 CHECK (restores >= 0),
     rewrites        INTEGER NOT NULL DEFAULT 0 CHECK (rewrites >= 0),
-    rewritten_below INTEGER NOT NULL DEFAULT 0 CHECK (rewritten_below >= 0)
+    repaired_below  INTEGER NOT NULL DEFAULT 0 CHECK (repaired_below >= 0)
 );
 CREATE TABLE IF NOT EXISTS snapshots (
     -- Registration order = "newest first", explicit so that VACUUM cannot renumber it.
@@ -100,9 +100,9 @@ _V2 = ("ALTER TABLE maps ADD COLUMN closure_high_water INTEGER NOT NULL DEFAULT 
        "CHECK (closure_high_water >= 0)",
        "ALTER TABLE maps ADD COLUMN restores INTEGER NOT NULL DEFAULT 0 CHECK (restores >= 0)",
        "UPDATE meta SET value = '2' WHERE key = 'schema_version'")
-# What version 3 added: the count of rewrites and the log ids the last one covered.
+# What version 3 added: the count of rewrites and the log ids the last repair judged.
 _V3 = ("ALTER TABLE maps ADD COLUMN rewrites INTEGER NOT NULL DEFAULT 0 CHECK (rewrites >= 0)",
-       "ALTER TABLE maps ADD COLUMN rewritten_below INTEGER NOT NULL DEFAULT 0 CHECK (rewritten_below >= 0)",
+       "ALTER TABLE maps ADD COLUMN repaired_below INTEGER NOT NULL DEFAULT 0 CHECK (repaired_below >= 0)",
        "UPDATE meta SET value = '3' WHERE key = 'schema_version'")
 
 
@@ -129,7 +129,8 @@ class MapRecord:
         closure_high_water: the same for loop-closure log ids.
         restores: how many restores rolled the map back: the loop-closure log's and the rows' epoch.
         rewrites: how many repairs ran past entries the log's cap had pruned: the epoch too.
-        rewritten_below: the log ids below this one were pruned before the last rewrite (0: none).
+        repaired_below: the log ids below this one were judged by a repair (0: none since the map was made
+            or last restored).
     """
 
     map_id: str
@@ -142,7 +143,7 @@ class MapRecord:
     closure_high_water: int = 0
     restores: int = 0
     rewrites: int = 0
-    rewritten_below: int = 0
+    repaired_below: int = 0
 
     @property
     def epoch(self) -> str:
@@ -185,7 +186,7 @@ def _map(r: dict[str, Any]) -> MapRecord:
                      # (a version 1 catalog opened read-only has neither column)
                      closure_high_water=int(r.get("closure_high_water") or 0),
                      restores=int(r.get("restores") or 0), rewrites=int(r.get("rewrites") or 0),
-                     rewritten_below=int(r.get("rewritten_below") or 0))
+                     repaired_below=int(r.get("repaired_below") or 0))
 
 
 def _snap(r: dict[str, Any]) -> SnapshotRecord:
@@ -402,9 +403,9 @@ class Catalog:
 
     def mark_restore(self, map_id: str, seq: int, closure_id: int) -> MapRecord:
         """Before a restore replaces the map's file: raise its seq and loop-closure id marks to at least
-        `seq` and `closure_id` (never lowered) and count the restore (module docstring). The ids the last
-        rewrite covered are forgotten: the restored log is another, whose pruned entries a follower that
-        rebuilt from it may hold.
+        `seq` and `closure_id` (never lowered) and count the restore (module docstring). The ids a repair
+        judged are forgotten: the restored log is another, whose pruned entries a follower that rebuilt
+        from it may hold.
 
         Returns:
             The map's record after the call.
@@ -417,22 +418,30 @@ class Catalog:
             db["maps"].update(map_id, {
                 "seq_high_water": max(int(r["seq_high_water"]), int(seq)),
                 "closure_high_water": max(int(r["closure_high_water"]), int(closure_id)),
-                "restores": int(r["restores"]) + 1, "rewritten_below": 0})
+                "restores": int(r["restores"]) + 1, "repaired_below": 0})
             return _map(_get_map(db, map_id))
 
-    def mark_rewrite(self, map_id: str, below: int) -> MapRecord:
-        """Before a repair on a log whose cap pruned the ids below `below`: count it, which changes the
-        map's epoch (module docstring), so a follower of the log rebuilds its edges, and mark those ids
-        covered (`rewritten_below`, never lowered).
+    def mark_rewrite(self, map_id: str) -> MapRecord:
+        """Before a repair on a log whose cap pruned entries logged since the last repair: count it, which
+        changes the map's epoch (module docstring), so a follower of the log rebuilds its edges.
 
         Raises:
             MapNotFound: unknown map.
         """
         with self._write() as db:
             r = _get_map(db, map_id)
-            covered = max(int(r.get("rewritten_below") or 0), int(below))
-            db["maps"].update(map_id, {"rewrites": int(r.get("rewrites") or 0) + 1,
-                                       "rewritten_below": covered})
+            db["maps"].update(map_id, {"rewrites": int(r.get("rewrites") or 0) + 1})
+            return _map(_get_map(db, map_id))
+
+    def mark_repaired(self, map_id: str, below: int) -> MapRecord:
+        """After a repair: the log ids below `below` were judged (`repaired_below`, never lowered).
+
+        Raises:
+            MapNotFound: unknown map.
+        """
+        with self._write() as db:
+            r = _get_map(db, map_id)
+            db["maps"].update(map_id, {"repaired_below": max(int(r.get("repaired_below") or 0), int(below))})
             return _map(_get_map(db, map_id))
 
     # ------------------------------------------------------------------ snapshots

@@ -174,7 +174,8 @@ def repair(
     typer.echo(f"map {map_id}: {done} {len(body['splits'])} visit(s) as rows ({body['rows_added']} rows "
                f"added), {len(body['unjoins'])} place join(s), {len(body['retractions'])} loop closure(s) "
                f"retracted; a stream's recent trail: its last {body['window']} moves")
-    if body.get("epoch_changed"):
-        typer.echo(f"map {map_id}: the loop-closure log's cap had pruned entries this repair may withdraw "
-                   f"without a retraction: the log's epoch changed, so a back end following it rebuilds its "
-                   f"edges from the export")
+    if body.get("rewrite"):
+        changes = "changed" if body["repaired"] else "would change"
+        typer.echo(f"map {map_id}: the loop-closure log's cap pruned entries this repair may withdraw "
+                   f"without a retraction: the log's epoch {changes}, so a back end following it rebuilds "
+                   f"its edges from the export")

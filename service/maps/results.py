@@ -341,8 +341,9 @@ class RepairResult:
         window: the moves of the stream's memory the rule read (the map's `short_term`, else the
             default's). repaired: False for a listing. splits, unjoins, retractions: as listed or undone.
         rows_added: rows the repair added (the re-made visits).
-        epoch_changed: the repair was a rewrite: the log's cap had pruned entries it may withdraw without
-            a retraction, so the log's epoch changed (docs/design/service.md §1.2).
+        rewrite: the repair changes (listed: would change) the loop-closure log's epoch: its cap pruned
+            entries logged since the last repair, which it may withdraw without a retraction
+            (docs/design/service.md §1.2).
     """
 
     map_id: str
@@ -352,7 +353,7 @@ class RepairResult:
     unjoins: list[Unjoin]
     retractions: list[Retraction]
     rows_added: int = 0
-    epoch_changed: bool = False
+    rewrite: bool = False
 
 
 @dataclass(frozen=True)

@@ -70,14 +70,17 @@ def test_a_restore_raises_the_marks_and_counts_itself(catalog: Catalog) -> None:
 def test_a_rewrite_changes_the_epoch_and_a_map_without_one_keeps_the_epoch_it_had(catalog: Catalog) -> None:
     made = catalog.create_map("lab", {})
     assert made.epoch == f"{made.created_at}/0"  # as before rewrites were counted: no follower rebuilds
-    assert catalog.mark_rewrite("lab", 9).epoch == f"{made.created_at}/0/1"
+    assert catalog.mark_rewrite("lab").epoch == f"{made.created_at}/0/1"
+    assert catalog.mark_repaired("lab", 9).repaired_below == 9
+    assert catalog.mark_repaired("lab", 4).repaired_below == 9  # never lowered
     assert catalog.mark_restore("lab", 1, 1).epoch == f"{made.created_at}/1/1"
-    assert catalog.get_map("lab").rewritten_below == 0  # a restore's log is another: nothing covered
-    catalog.mark_rewrite("lab", 9)
-    again = catalog.mark_rewrite("lab", 4)  # every rewrite counts; the ids covered are never lowered
-    assert (again.rewrites, again.rewritten_below, again.epoch) == (3, 9, f"{made.created_at}/1/3")
+    assert catalog.get_map("lab").repaired_below == 0  # a restore's log is another: nothing judged
+    again = catalog.mark_rewrite("lab")  # every rewrite counts
+    assert (again.rewrites, again.epoch) == (2, f"{made.created_at}/1/2")
     with pytest.raises(MapNotFound):
-        catalog.mark_rewrite("nope", 1)
+        catalog.mark_rewrite("nope")
+    with pytest.raises(MapNotFound):
+        catalog.mark_repaired("nope", 1)
 
 
 def test_a_version_1_catalog_gains_the_closure_mark_and_the_restore_count(tmp_path) -> None:
@@ -97,10 +100,10 @@ def test_a_version_1_catalog_gains_the_closure_mark_and_the_restore_count(tmp_pa
     with Catalog.open(path) as catalog:
         rec = catalog.mark_restore("lab", 3, 5)
         assert rec.epoch == "2026-01-01T00:00:00Z/1"
-        rewritten = catalog.mark_rewrite("lab", 7)  # version 3's columns too
+        rewritten = catalog.mark_rewrite("lab")  # version 3's columns too
+        assert catalog.mark_repaired("lab", 7).repaired_below == 7
     assert (rec.seq_high_water, rec.closure_high_water, rec.restores) == (9, 5, 1)
     assert (rewritten.restores, rewritten.rewrites, rewritten.epoch) == (1, 1, "2026-01-01T00:00:00Z/1/1")
-    assert rewritten.rewritten_below == 7
     with sqlite3.connect(path) as conn:
         assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == "3"
 

@@ -485,9 +485,10 @@ class Repair(_Reply):
     unjoins: list[Unjoin]
     retractions: list[Retraction]
     rows_added: int
-    #: The log's cap had pruned entries this repair may withdraw without a retraction: the loop-closure
-    #: log's epoch changed, so a follower rebuilds its edges (False from a server before it).
-    epoch_changed: bool = False
+    #: The repair changes (listed: would change) the loop-closure log's epoch: its cap pruned entries
+    #: logged since the last repair, which it may withdraw without a retraction, so a follower rebuilds
+    #: its edges (False from a server before it).
+    rewrite: bool = False
 
 
 class LoopClosureList(_Reply):

@@ -11,7 +11,7 @@ import logging
 from service.maps import repair as repairs
 from service.maps.errors import InsufficientStorage, MapFull
 from service.maps.results import RepairResult, Retraction, SplitVisit, Unjoin
-from storage.mapstore import StorageFull
+from storage.mapstore import StorageError, StorageFull
 
 __all__ = ["Repairing"]
 
@@ -23,10 +23,11 @@ class Repairing:
 
     def own_trail_merges(self) -> RepairResult:
         """Writer: the merges made from a stream's own recent trail that no repair undid yet, listed
-        (docs/design/science.md §11.6; `service.maps.repair.find`)."""
+        (docs/design/science.md §11.6; `service.maps.repair.find`), and whether a repair now would be a
+        rewrite."""
         self.require_ready(learns=False)
         assert self.store is not None
-        return self._repair_result(self._find(), None)
+        return self._repair_result(self._find(), None, rewrite=self._rewrite_due())
 
     def repair(self) -> RepairResult:
         """Writer: undo the merges made from a stream's own recent trail (docs/design/science.md §11.6,
@@ -36,9 +37,10 @@ class Repairing:
         the store, as a recovery builds them. A second repair finds nothing. The memory is not touched:
         it learned each frame once, with its visit, and the replay keeps taking it so.
 
-        Where the log's cap pruned entries since the last rewrite, a closure among them that this repair
-        withdraws cannot be found nor retracted, so the repair is a rewrite first (`_rewrite`): the
-        log's epoch changes and a follower rebuilds its edges, even when nothing is found.
+        Where the log's cap pruned entries logged since the last repair, a closure among them that this
+        repair withdraws can be neither found nor retracted, so the repair is a rewrite first: the log's
+        epoch changes and a follower rebuilds its edges, even when nothing is found. Afterwards every id
+        logged so far counts as judged (`Catalog.mark_repaired`).
 
         Raises:
             MapUnavailable (not ready). MapFull: the re-made rows would pass `max_observations`;
@@ -49,12 +51,7 @@ class Repairing:
         self.require_ready()
         assert self.store is not None
         found = self._find()
-        below = repairs.pruned_below(self.store)
-        marks = self.catalog.get_map(self.map_id)
-        assert marks is not None  # a ready map is in the catalog
-        rewrite = below > max(1, marks.rewritten_below)
-        if not found and not rewrite:
-            return self._repair_result(found, [])
+        rewrite = self._rewrite_due()
         added = len(found.visits)
         if len(self.index) + added > self.index.max_observations:
             raise MapFull(self.map_id, self.index.max_observations)
@@ -62,7 +59,10 @@ class Repairing:
             self.budget.grow_index(self.map_id, added * self.row_bytes)
         try:
             if rewrite:  # before the repair: a failed one then costs a follower a rebuild, never an edge
-                self._rewrite(below)
+                self.epoch = self.catalog.mark_rewrite(self.map_id).epoch
+                log.warning("map %s: the loop-closure log's cap pruned entries logged since the last repair, "
+                            "which it may withdraw without a retraction: the log's epoch changes, so a "
+                            "follower rebuilds its edges from the export", self.map_id)
             seqs = self.store.repair(found.visits, [(s, was) for s, was, _ in found.joins],
                                      [c[0] for c in found.closures]) if found else []
         except BaseException as e:
@@ -74,24 +74,28 @@ class Repairing:
             raise
         if found:
             self._rebuild_index()  # sets the budget's index bytes to the index rebuilt
+        try:
+            self.catalog.mark_repaired(self.map_id, self.store.next_closure_id())
+        except StorageError as e:  # the repair stands; the next one may be a rewrite it need not be
+            log.warning("map %s: the repair is done, but the catalog could not record it (%s)",
+                        self.map_id, e)
         log.info("map %s repaired: %d visits re-made as rows, %d rows given back their place, %d loop "
                  "closures retracted", self.map_id, len(seqs), len(found.joins), len(found.closures))
-        return self._repair_result(found, seqs, epoch_changed=rewrite)
+        return self._repair_result(found, seqs, rewrite=rewrite)
 
-    def _rewrite(self, below: int) -> None:
-        """Writer: count a rewrite of the log's ids below `below` (`Catalog.mark_rewrite`) and take the
-        epoch it gives."""
-        self.epoch = self.catalog.mark_rewrite(self.map_id, below).epoch
-        log.warning("map %s: the loop-closure log's cap pruned entries (ids below %d) that the repair may "
-                    "withdraw without a retraction: the log's epoch changes, so a follower rebuilds its "
-                    "edges from the export", self.map_id, below)
+    def _rewrite_due(self) -> bool:
+        """Whether the log's cap pruned entries logged since the last repair judged the log (docs/design/
+        service.md §1.2, "rewrite"): over-cautious where those were closures no repair would withdraw."""
+        assert self.store is not None
+        marks = self.catalog.get_map(self.map_id)
+        assert marks is not None  # a ready map is in the catalog
+        return repairs.pruned_below(self.store) > max(1, marks.repaired_below)
 
     def _find(self) -> repairs.Found:
         assert self.store is not None
         return repairs.find(self.store, self.place_map.options, self.tm.n_columns)
 
-    def _repair_result(self, found: repairs.Found, seqs: list[int] | None,
-                       epoch_changed: bool = False) -> RepairResult:
+    def _repair_result(self, found: repairs.Found, seqs: list[int] | None, *, rewrite: bool) -> RepairResult:
         made = seqs or [None] * len(found.visits)
         return RepairResult(
             map_id=self.map_id, window=found.window, repaired=seqs is not None,
@@ -99,4 +103,4 @@ class Repairing:
                     for v, s in zip(found.visits, made, strict=True)],
             unjoins=[Unjoin(seq=s, stream=st, joined=was) for s, was, st in found.joins],
             retractions=[Retraction(closure=i, stream=st, place_seq=p) for i, st, p in found.closures],
-            rows_added=len(seqs or []), epoch_changed=epoch_changed)
+            rows_added=len(seqs or []), rewrite=rewrite)

@@ -150,25 +150,28 @@ def test_a_repair_beyond_what_the_log_keeps_changes_its_epoch_so_a_follower_rebu
         drive(c, range(10), stream="q", learn="false", noise=0.0, map_id="m")  # revisits push the echoes out
         before = c.get("/v1/maps/m/loop-closures").json()
         assert before["oldest"] > max(h["closures"])  # pruned: nothing in the log to retract
-        assert listing(c)["epoch_changed"] is False  # a listing changes nothing
+        assert listing(c)["rewrite"] is True  # the listing says what the repair will do
+        assert c.get("/v1/maps/m/loop-closures").json()["epoch"] == before["epoch"]  # and changes nothing
         done = c.post("/v1/maps/m/repair").json()
         assert done["repaired"] and done["rows_added"] == 1 and done["retractions"] == []
-        assert done["epoch_changed"] is True
+        assert done["rewrite"] is True
         after = c.get("/v1/maps/m/loop-closures").json()
         assert after["epoch"] != before["epoch"] and after["epoch"].endswith("/0/1")  # no restore, a rewrite
-        # a second repair: nothing found, nothing pruned since the rewrite covered it: the epoch stands
+        # a second repair finds nothing, and what the cap pruned since was judged by the first: the epoch
+        # stands (an outside probe: it changed again, a needless rebuild for every follower)
         again = c.post("/v1/maps/m/repair").json()
-        assert nothing(again) and again["epoch_changed"] is False
+        assert nothing(again) and again["rewrite"] is False and listing(c)["rewrite"] is False
         assert c.get("/v1/maps/m/loop-closures").json()["epoch"] == after["epoch"]
-        # pruned again since: a closure the repair would withdraw may be among the pruned (a review: one
-        # with no visit or join behind it leaves no trace), so even a repair that finds nothing rewrites
+        # closures logged since the last repair, pruned: one the repair would withdraw may be among them
+        # (a review: one with no visit or join behind it leaves no trace), so even a repair that finds
+        # nothing rewrites
         drive(c, range(10), stream="q", learn="false", noise=0.0, map_id="m")
-        assert c.post("/v1/maps/m/repair").json()["epoch_changed"] is True
+        assert c.post("/v1/maps/m/repair").json()["rewrite"] is True
         latest = c.get("/v1/maps/m/loop-closures").json()["epoch"]
         assert latest.endswith("/0/2")
     with make_client(data, loop_closures=3) as c:  # durable: the catalog's
         assert c.get("/v1/maps/m/loop-closures").json()["epoch"] == latest
-        assert c.post("/v1/maps/m/repair").json()["epoch_changed"] is False
+        assert c.post("/v1/maps/m/repair").json()["rewrite"] is False
         drive(c, range(10), stream="q", learn="false", noise=0.0, map_id="m")  # pruned again
     out = CliRunner().invoke(cli, ["repair", "--map", "m", "--data-dir", str(data)])  # the CLI says so
     assert out.exit_code == 0 and "the log's epoch changed" in out.output, out.output
@@ -176,7 +179,7 @@ def test_a_repair_beyond_what_the_log_keeps_changes_its_epoch_so_a_follower_rebu
         h = hit(c)
         epoch = c.get("/v1/maps/m/loop-closures").json()["epoch"]
         done = c.post("/v1/maps/m/repair").json()
-        assert done["retractions"] and done["epoch_changed"] is False
+        assert done["retractions"] and done["rewrite"] is False
         assert c.get("/v1/maps/m/loop-closures").json()["epoch"] == epoch
 
 
