@@ -70,6 +70,8 @@ class RetractionFollower:
                                  f"every {self.every_s:g} s")
             self._failing = True
             return
+        if self._failing:
+            self.log.info("reading the loop-closure log for retractions again")
         self._failing = False
         if page.newest is None:  # a server before it: no way to start from now, so no following
             self._off = True

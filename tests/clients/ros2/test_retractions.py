@@ -41,6 +41,8 @@ class Log:
     def warning(self, text: str) -> None:
         self.lines.append(text)
 
+    info = warning
+
 
 class Pages:
     """The map's log as the follower reads it: one scripted outcome per request, each request recorded."""
@@ -108,7 +110,8 @@ def test_a_failed_read_is_said_once_and_tried_again_a_period_later():
     f.poll()
     assert len(f.log.lines) == 1 and "tried again every 5 s" in f.log.lines[0]
     now[0] += 5.0
-    f.poll()  # back: it starts from where the log stands now
+    f.poll()  # back: it starts from where the log stands now, and says so
+    assert len(f.log.lines) == 2 and "again" in f.log.lines[1]
     now[0] += 5.0
     f.poll()
     assert [e.retracts for e in got] == [2]
