@@ -141,7 +141,6 @@ def pruned_below(store: MapStore) -> int:
     return oldest if oldest is not None else store.next_closure_id()
 
 
-
 def listing(catalog: Catalog, record: MapRecord) -> Found:
     """The merges of one map still to undo, read offline (`cortexloc verify`: the store opened read-only,
     nothing changes; a file before schema version 9 has had no repair).

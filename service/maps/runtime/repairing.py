@@ -79,8 +79,9 @@ class Repairing:
         except StorageError as e:  # the repair stands; the next one may be a rewrite it need not be
             log.warning("map %s: the repair is done, but the catalog could not record it (%s)",
                         self.map_id, e)
-        log.info("map %s repaired: %d visits re-made as rows, %d rows given back their place, %d loop "
-                 "closures retracted", self.map_id, len(seqs), len(found.joins), len(found.closures))
+        if found:
+            log.info("map %s repaired: %d visits re-made as rows, %d rows given back their place, %d loop "
+                     "closures retracted", self.map_id, len(seqs), len(found.joins), len(found.closures))
         return self._repair_result(found, seqs, rewrite=rewrite)
 
     def _rewrite_due(self) -> bool:
