@@ -87,14 +87,14 @@ class Closures:
     def next_closure_id(self) -> int:
         """The id the next logged closure gets: the writer, the log's only writer, tells a revisit's
         reply its entry before the transaction that logs it (an idempotent reply is sealed into it)."""
-        return self.last_closure_id() + 1
+        if not self.holds.loop_closures:
+            return self._closure_floor + 1
+        with self._lock:
+            return self._next_closure_id(self._db())
 
     def last_closure_id(self) -> int:
         """The newest log id handed out (the closure floor where the log holds none above it)."""
-        if not self.holds.loop_closures:
-            return self._closure_floor
-        with self._lock:
-            return self._next_closure_id(self._db()) - 1
+        return self.next_closure_id() - 1
 
     def _prune_closures(self, conn: sqlite3.Connection) -> None:
         """In a transaction: keep the last `max_closures` entries of the loop-closure log. Ids have gaps
