@@ -2,7 +2,7 @@
 science.md §11.7-§11.9, docs/results.md §11): rows made and held per pass, revisit precision and recall
 per pass, the visit log and the loop-closure log.
 
-    cortexloc bench growth [--passes 10] [--lo 894] [--frames 400] [--seed 42] [--http] [--quick]
+    cortexloc bench growth [--passes 10] [--lo 894] [--frames 400] [--seed 42] [--http] [--quick] [--anywhere]
 
 The route is files [lo, lo + frames) of ../shared/data/nordland_tiny_64x32's summer half (default the
 first 400 files of the held-out `test` half; labels = file index), driven `passes` times as ONE learning
@@ -11,7 +11,9 @@ a new map's seed, 42, as `service.evaluation.service_path.slam_replay` drives it
 itself through HTTP, `drive_http`, which also measures contrast at decode), the drive restarted
 before every pass (`Stream.break_sequence`, what `POST .../streams/{s}/reset` does: a new warm-up), the
 frames' contrast measured as the service measures it at decode (§11.7). Two routes: `exact` (every pass
-the same PNGs) and `noise8` (pass 1 the PNGs, every later pass new pixel noise of σ 8).
+the same PNGs) and `noise8` (pass 1 the PNGs, every later pass new pixel noise of σ 8). `--anywhere`: every
+pass after the first starts part-way along the route (a robot whose node restarts where it stands; pass p
+at file `lo + (p · 7919) mod (frames / 2)`) and drives to its end; its recall is over the frames it drove.
 
 Per pass: `rows` made (seqs handed out), `stored` (`--http`: the change in map.sqlite's rows, `rows_stored`:
 the rows made less the warm-up rows a join turned into visits, schema 12), `held` (the change in rows held:
@@ -38,18 +40,19 @@ from service.evaluation import service_path, stress
 from service.evaluation.slam import encoder_setup
 
 
-def drive(feats: list[np.ndarray], contrast: list[np.ndarray], labels: np.ndarray, seed: int) -> list[dict]:
-    """`feats[p]` (T, D) the features of pass p's frames (labels `labels`, the same every pass): one map,
-    one stream, the drive restarted before each pass. Returns one dict per pass."""
+def drive(feats: list[np.ndarray], contrast: list[np.ndarray], passes: list[np.ndarray],
+          seed: int) -> list[dict]:
+    """`feats[p]` (T_p, D) the features of pass p's frames, `passes[p]` (T_p,) their labels: one map, one
+    stream, the drive restarted before each pass. Returns one dict per pass."""
     backbone, preset = ENC["backbone"], ENC["preset"]
-    T = len(labels)
-    model, hasher, config = service_path._model(int(feats[0].shape[1]), max_observations=T * len(feats),
+    model, hasher, config = service_path._model(int(feats[0].shape[1]),
+                                                max_observations=sum(len(y) for y in passes),
                                                 backbone=backbone, preset=preset, seed=seed, memory="tm",
                                                 localiser=None, create=None)
     thr = config.revisit_threshold
     robot, codes, label_of = Stream(), {}, {}
     out, visits, closures = [], 0, 0
-    for p, (f, c) in enumerate(zip(feats, contrast, strict=True)):
+    for p, (f, c, labels) in enumerate(zip(feats, contrast, passes, strict=True)):
         robot.break_sequence()  # a new drive: a new warm-up
         held0, places0 = model.place_map.held, model.place_map.places()
         made, v0, c0, joins, right, called = len(codes), visits, closures, 0, 0, 0
@@ -73,12 +76,12 @@ def drive(feats: list[np.ndarray], contrast: list[np.ndarray], labels: np.ndarra
                     "closures": closures - c0, "visit_log": visits, "closure_log": closures,
                     "called": called, "right": right,
                     "precision": round(right / called, 4) if called else None,
-                    "recall": round(right / T, 4), "seconds": round(time.perf_counter() - t0, 1)})
+                    "recall": round(right / len(labels), 4), "seconds": round(time.perf_counter() - t0, 1)})
         print(out[-1], flush=True)
     return out
 
 
-def drive_http(pngs: list[list[bytes]], labels: np.ndarray, seed: int) -> list[dict]:
+def drive_http(pngs: list[list[bytes]], passes: list[np.ndarray], seed: int) -> list[dict]:
     """`drive` through HTTP: the service itself (`create_app` at the defaults, its own encoder, a fresh
     data directory), a new map of `seed`, each pass's PNGs posted as one learning stream, `POST
     .../streams/robot/reset` before each pass; the sizes read from `GET /v1/maps/{id}` (`places`)."""
@@ -94,7 +97,7 @@ def drive_http(pngs: list[list[bytes]], labels: np.ndarray, seed: int) -> list[d
         assert c.post("/v1/maps", json={"map_id": "growth", "seed": seed}).status_code == 201
         label_of: dict[int, int] = {}
         before = c.get("/v1/maps/growth").json()["places"]
-        for p, bodies in enumerate(pngs):
+        for p, (bodies, labels) in enumerate(zip(pngs, passes, strict=True)):
             c.post("/v1/maps/growth/streams/robot/reset")
             t0, made, joins0, right, called = time.perf_counter(), 0, before["dropped"], 0, 0
             for i, body in enumerate(bodies):
@@ -123,9 +126,12 @@ def drive_http(pngs: list[list[bytes]], labels: np.ndarray, seed: int) -> list[d
     return out
 
 
-def main(*, passes: int, lo: int, frames: int, seed: int, quick: bool, http: bool) -> None:
-    """`cortexloc bench growth`: `passes` passes over files lo..lo+frames, in process or through HTTP."""
+def main(*, passes: int, lo: int, frames: int, seed: int, quick: bool, http: bool,
+         anywhere: bool = False) -> None:
+    """`cortexloc bench growth`: `passes` passes over files lo..lo+frames, in process or through HTTP;
+    `anywhere`: passes after the first start part-way along the route."""
     passes, n = (3, 100) if quick_mode(quick) else (passes, frames)
+    starts = [(p * 7919) % max(n // 2, 1) if anywhere and p else 0 for p in range(passes)]
     enc, cache, conf = encoder_setup(None, None)
     ENC.update(conf)
     source = stress.Frames(datasets.nordland_dir(), enc, cache)
@@ -135,14 +141,15 @@ def main(*, passes: int, lo: int, frames: int, seed: int, quick: bool, http: boo
     clean = [stress.png(im) for im in imgs]
     results = {}
     for name in ("exact", "noise8"):
-        pngs = [clean if name == "exact" or p == 0 else
-                [stress.variant(im, "noise:8", 1000 * p + j) for j, im in enumerate(imgs)]
+        pngs = [(clean if name == "exact" or p == 0 else
+                 [stress.variant(im, "noise:8", 1000 * p + j) for j, im in enumerate(imgs)])[starts[p]:]
                 for p in range(passes)]
+        ys = [labels[o:] for o in starts]
         if http:
-            rows = drive_http(pngs, labels, seed)
+            rows = drive_http(pngs, ys, seed)
         else:
             feats = [source.features(ps) for ps in pngs]
-            rows = drive(feats, [service_path.contrasts(ps) for ps in pngs], labels, seed)
+            rows = drive(feats, [service_path.contrasts(ps) for ps in pngs], ys, seed)
         p2 = rows[1]["recall"] if len(rows) > 1 else 0.0
         later = rows[2:]
         summary = {"route": name, "rows_per_pass_3_on": [r["rows"] for r in later],
@@ -158,7 +165,8 @@ def main(*, passes: int, lo: int, frames: int, seed: int, quick: bool, http: boo
         print(summary, flush=True)
         results[name] = {"passes": rows, "summary": summary}
     write_json("growth-http.json" if http else "growth.json",
-               {"machine": machine(), "route": [lo, lo + n], "seed": seed, "results": results})
+               {"machine": machine(), "route": [lo, lo + n], "seed": seed, "starts": starts,
+                "results": results})
 
 
 ENC: dict = {}

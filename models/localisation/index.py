@@ -562,6 +562,57 @@ class InvertedIndex:
         else:
             score = np.divide(2.0 * ov, denom, out=np.zeros(cand.size), where=denom > 0)
 
+        return self._best(cand, ov, score, top_k)
+
+    def rank_columns(self, columns: np.ndarray | Sequence[int], cells_per_column: int, top_k: int, *,
+                     exclude_own: tuple[str, int] | None = None) -> list[Match]:
+        """The `top_k` stored rows most like a frame the memory saw without context, best first
+        (docs/design/science.md §11.2 step 1).
+
+        With no previous activity every column of the frame bursts and its winner cells are the
+        least-used cells of those columns: they say which columns are on, not which stored row the frame
+        is, so ranked by cells it matches only rows learned the same way (other first frames). Its columns
+        do say it: a stored row shares a query column where one of its winner cells lies in it.
+
+        Args:
+            columns: (k,) the frame's active columns (its code; distinct, order free).
+            cells_per_column: the memory's cells per column (cell `c · cells_per_column + j` lies in
+                column c).
+            top_k, exclude_own: as `rank`.
+
+        Returns:
+            `Match(seq, overlap, score)`, overlap = the row's winner cells in the query's columns, score =
+            2 · min(overlap, k) / (|stored| + k) in [0, 1] (a predicted column may hold several winners:
+            the min keeps a row from scoring past 1), 1 for a row with one winner in each of the frame's
+            columns; sorted by score descending, ties to the lower (older) seq. Rows sharing no column
+            are not returned.
+        """
+        n = self._seq.n
+        if top_k <= 0 or n == 0:
+            return []
+        cols = np.unique(np.asarray(columns, dtype=np.int64))
+        cpc = int(cells_per_column)
+        if cols.size and (cols[0] < 0 or (cols[-1] + 1) * cpc > self.n_cells):
+            raise ValueError(f"columns must lie in [0, {self.n_cells // max(cpc, 1)})")
+        post, plen = self._post, self._plen
+        cells = (cols[:, None] * cpc + np.arange(cpc, dtype=np.int64)).ravel()
+        parts = [post[c][: plen[c]] for c in cells.tolist() if plen[c]]
+        if not parts:
+            return []
+        counts = np.bincount(np.concatenate(parts), minlength=n)
+        keep = counts > 0
+        keep[self._excluded_rows((), exclude_own)] = False
+        cand = np.flatnonzero(keep)
+        if cand.size == 0:
+            return []
+        ov = counts[cand]
+        denom = (self._weight.data[cand] + cols.size).astype(np.float64)
+        score = 2.0 * np.minimum(ov, cols.size) / denom
+        return self._best(cand, ov, score, top_k)
+
+    def _best(self, cand: np.ndarray, ov: np.ndarray, score: np.ndarray, top_k: int) -> list[Match]:
+        """The `top_k` best of the candidate rows `cand` (ascending, (m,)) by `score` (m,), overlaps `ov`
+        (m,): score descending, ties to the lower (older) row."""
         k = min(int(top_k), cand.size)
         if k < cand.size:
             # Partition finds the k-th best score; everything strictly better is in, and the places

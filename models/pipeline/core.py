@@ -208,12 +208,16 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     t1 = time.perf_counter()
     # A switch to mapping starts a new sequence (replay relies on it); with a sequential memory, so
     # does an empty context (without one, only `step` counts).
+    sequential = memories.get(model.memory).sequential
     if learn and st.learning is False:
         starts = True
     else:
         starts = False
-        if st.context.active_cells.size == 0 and memories.get(model.memory).sequential:
+        if st.context.active_cells.size == 0 and sequential:
             st.new_sequence(context=False)
+    # Without context every column bursts and the winners are least-used cells: ranked by its columns
+    # (docs/design/science.md §11.2 step 1).
+    unprimed = sequential and (starts or st.context.active_cells.size == 0)
     winners = _remember(model, st, code, learn=learn, starts=starts)
     stats = st.context.stats.as_dict()
     t2 = time.perf_counter()
@@ -241,12 +245,15 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     beyond = model.place_map.beyond(stream, motion)
     if beyond is not None:
         own = (OwnTrail.short_term_only(stm) if own is None else own)._replace(beyond=beyond)
-    # Bits the stream's recent frames share say what its conditions are, not where it is (§11.10).
-    weights = None if st.condition is None else st.condition.weights(
-        winners, model.cells_per_column(), float(model.place_map.options.condition_discount))
-    ranked = model.index.rank(winners, model.place_map.candidates_wanted(top_k, stm.size),
-                              exclude_own=None if own is None or not own.has_trail else (stream, own.here),
-                              weights=weights)
+    wanted = model.place_map.candidates_wanted(top_k, stm.size)
+    exclude = None if own is None or not own.has_trail else (stream, own.here)
+    if unprimed:  # one frame a sequence: unweighted
+        ranked = model.index.rank_columns(code, model.cells_per_column(), wanted, exclude_own=exclude)
+    else:
+        # Bits the stream's recent frames share say what its conditions are, not where it is (§11.10).
+        weights = None if st.condition is None else st.condition.weights(
+            winners, model.cells_per_column(), float(model.place_map.options.condition_discount))
+        ranked = model.index.rank(winners, wanted, exclude_own=exclude, weights=weights)
     t_ranked = time.perf_counter()
     moved = model.place_map.moves(st.mover, code, motion)
     # a move its paths must keep pace with: by its look, and by its poses where it has them; a flat

@@ -442,9 +442,11 @@ def bench_growth(
     seed: Annotated[int, typer.Option(help="the map's seed (42: a new map's)")] = 42,
     quick: Annotated[bool, typer.Option("--quick", help="3 passes of 100 frames (a smoke run)")] = False,
     http: Annotated[bool, typer.Option("--http", help="through HTTP: the service at its defaults")] = False,
+    anywhere: Annotated[bool, typer.Option("--anywhere", help="passes after the first start part-way along "
+                                           "the route (a node restarted where the robot stands)")] = False,
 ) -> None:
     """A map's growth pass after pass over one held-out route while it learns (docs/results.md §11;
     benchmarks/bench_growth.py)."""
     from benchmarks.bench_growth import main
 
-    main(passes=passes, lo=lo, frames=frames, seed=seed, quick=quick, http=http)
+    main(passes=passes, lo=lo, frames=frames, seed=seed, quick=quick, http=http, anywhere=anywhere)
