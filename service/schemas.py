@@ -103,7 +103,8 @@ class MapList(_Out):
 class RestoreModel(MapModel):
     discarded_observations: int = Field(
         description="learned frames (rows and visits) the map held that the snapshot does not; the "
-                    "pre-restore snapshot keeps them")
+                    "pre-restore snapshot keeps them. Visits either visit log pruned are not counted: "
+                    "then a lower bound")
     restored_observations: int = Field(
         description="learned frames (rows and visits) the snapshot holds that the map did not: a restore "
                     "to another branch (a snapshot taken before an earlier restore) brings them back")
@@ -131,7 +132,10 @@ class BudgetModel(_Out):
     total_bytes: int = Field(description="CORTEXLOC_MEMORY_BUDGET_BYTES, or its default")
     source: str = Field(description="`setting`, or the share of `host` or `cgroup` memory it defaults to")
     used_bytes: int
-    free_bytes: int
+    reserve_bytes: int = Field(description="kept free for the second memory a recovery builds beside a map's "
+                                           "empty one: the largest map's memory")
+    free_bytes: int = Field(description="total less used less the reserve: what a new map or learned rows "
+                                        "may still take")
     encoders_bytes: int = Field(description="the encoders' networks, counted once")
     maps: list[results.MapReservation] = Field(description="open maps' reservations, then the maps left "
                                                "closed at start (`open` false) with what they asked")

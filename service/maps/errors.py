@@ -39,6 +39,9 @@ REMEDIES: dict[str, str] = {
                         "newest one (GET /v1/maps/{id}/snapshots/{snapshot_id}/download, verified as it is "
                         "sent), DELETE the map, stop the service, `cortexloc import` the file and start "
                         "the service again",
+    "memory-budget": "it did not fit the memory budget when the service started (GET /v1/memory lists what "
+                     "it asks under `maps`); nothing is lost: raise CORTEXLOC_MEMORY_BUDGET_BYTES, or delete "
+                     "maps you do not need, and restart the service",
     "unopenable": "its map.sqlite could not be opened (a permission, a read-only file or directory: the "
                   "log has the OS's words); nothing says it is damaged: give the service read and write "
                   "access to maps/{id}/ and restart it",

@@ -369,12 +369,14 @@ class MapRegistry:
         closed at start shows what it asked."""
         encoders, held = self.budget.report()
         used = encoders + sum(sum(parts.values()) for parts in held.values())
+        reserve = self.budget.room()
         maps = [MapReservation(map_id, True, None, sum(parts.values()), parts)
                 for map_id, parts in held.items()]
         maps += [MapReservation(map_id, False, "memory-budget", asked, {})
                  for map_id, asked in self.unfitted.items()]
         return BudgetInfo(total_bytes=self.budget.total, source=self.budget.source, used_bytes=used,
-                          free_bytes=max(0, self.budget.total - used), encoders_bytes=encoders, maps=maps,
+                          reserve_bytes=reserve, free_bytes=max(0, self.budget.total - used - reserve),
+                          encoders_bytes=encoders, maps=maps,
                           process_rss_bytes=rss_bytes())
 
     def import_snapshot(self, tar_path: Path, max_bytes: int) -> str:

@@ -432,7 +432,8 @@ class BudgetInfo:
     total_bytes: int
     source: str  # `setting`, or the share of `host` or `cgroup` memory it defaults to
     used_bytes: int
-    free_bytes: int
+    reserve_bytes: int  # kept free for a recovery's second memory (the largest map's)
+    free_bytes: int  # total less used less the reserve: what a new map or row may take
     encoders_bytes: int
     maps: list[MapReservation]
     process_rss_bytes: int

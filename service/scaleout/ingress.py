@@ -181,7 +181,8 @@ def _router() -> APIRouter:
         bodies = _ok_json(await shards.each("GET", "/v1/memory", "", _out_headers(request)))
         owner = {r.map_id: r.shard for r in shards.table.all()}
         summed = {k: sum(b[k] for b in bodies.values()) for k in (
-            "total_bytes", "used_bytes", "free_bytes", "encoders_bytes", "process_rss_bytes")}
+            "total_bytes", "used_bytes", "reserve_bytes", "free_bytes", "encoders_bytes",
+            "process_rss_bytes")}
         maps = [m for shard, b in bodies.items() for m in b["maps"] if owner.get(m["map_id"]) == shard]
         first = next(iter(bodies.values()))
         return BudgetModel.model_validate({**summed, "source": first["source"], "maps": maps})

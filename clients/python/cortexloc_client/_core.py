@@ -44,6 +44,8 @@ class RetryPolicy:
     - the service's 503 (problem+json `overloaded`, `not-ready`, `map-unavailable`, `map-read-only`): it
       refused before doing anything, so any request is retried, after `Retry-After` seconds when the
       reply has them, else after `backoff_s`, 2 x `backoff_s`, 4 x ...; never longer than `max_wait_s`.
+      Except a map whose `state` is `failed`: it waits for its operator (the detail says what to do),
+      not for time, so it is raised at once.
     - a connection that could not be opened: the request was never sent; retried like a 503.
     - any other transport failure (reset, timeout while reading the reply): the service may have done
       the work, so only idempotent requests are retried (GET, DELETE, PATCH, a stream reset, and an
@@ -87,10 +89,20 @@ class RetryPolicy:
         assert response is not None
         proxy = response.status_code in PROXY_STATUSES and not is_problem(response)
         refused = response.status_code == 503 and not proxy  # the service's own 503: nothing was done
-        if last or not (refused or (proxy and call.idempotent)):
+        if last or not (refused or (proxy and call.idempotent)) or (refused and _failed_map(response)):
             raise error_from_response(response)
         asked = retry_after_seconds(response.headers.get("Retry-After"))
         return min(self.backoff_s * 2**attempt if asked is None else asked, self.max_wait_s)
+
+
+def _failed_map(response: httpx.Response) -> bool:
+    """A 503 about a map left `failed` (a corrupt or unopenable file, one that did not fit the memory
+    budget at start): no retry helps until an operator acts."""
+    try:
+        body = response.json()
+    except ValueError:
+        return False
+    return isinstance(body, dict) and body.get("state") == "failed"
 
 
 @dataclass(frozen=True)

@@ -254,7 +254,8 @@ class Budget(_Reply):
     total_bytes: int
     source: str
     used_bytes: int
-    free_bytes: int
+    reserve_bytes: int = 0  # kept for a recovery's second memory (0 from a server before it was told)
+    free_bytes: int  # total less used less the reserve: what a new map may take
     encoders_bytes: int
     maps: list[MapReservation]
     process_rss_bytes: int

@@ -177,7 +177,8 @@ def test_snapshots_round_trip(client: Client, tiny_map: str, make_frame, tmp_pat
     assert [s.snapshot_id for s in client.list_snapshots(tiny_map)] == [snap.snapshot_id]
     assert client.get_map(tiny_map).snapshot_count == 1
     budget = client.memory_budget()
-    assert budget.used_bytes + budget.free_bytes == budget.total_bytes
+    assert budget.used_bytes + budget.reserve_bytes + budget.free_bytes == budget.total_bytes
+    assert budget.reserve_bytes == max(m.parts["tm"] for m in budget.maps if m.open)
     assert tiny_map in {m.map_id for m in budget.maps}
 
 

@@ -125,6 +125,20 @@ def test_other_refusals_and_readiness_are_not_retried(waits) -> None:
     assert len(script.requests) == 1 and waits == []
 
 
+def test_a_failed_map_is_raised_at_once_and_a_recovering_one_retried(waits) -> None:
+    failed = {**OVERLOADED, "type": "urn:cortexloc:problem:map-unavailable", "state": "failed",
+              "state_reason": "memory-budget", "detail": "map 'lab' is failed (memory-budget): raise ..."}
+    script = Script(httpx.Response(503, json=failed, headers={"Content-Type": "application/problem+json"}))
+    with pytest.raises(ServiceUnavailableError) as e:
+        make(script).observe("lab", JPEG)
+    assert len(script.requests) == 1 and waits == [] and e.value.extra["state"] == "failed"
+    recovering = {**failed, "state": "recovering", "state_reason": None}
+    script = Script(httpx.Response(503, json=recovering, headers={"Content-Type": "application/problem+json",
+                                                                 "Retry-After": "1"}),
+                    httpx.Response(200, json=OBSERVATION))
+    assert make(script).observe("lab", JPEG).seq == 1 and waits == [1.0]
+
+
 def test_transport_failures_are_retried_only_where_safe(waits) -> None:
     reset = httpx.ReadError("connection reset")
     refused = httpx.ConnectError("connection refused")

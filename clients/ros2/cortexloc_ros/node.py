@@ -374,6 +374,10 @@ def main(args: list[str] | None = None) -> int:
     except (ConfigError, _rclpy.RCLError) as e:  # rcl's parse errors: one line, not a traceback
         print(f"cortexloc-ros: {e}".split(", at /")[0], file=sys.stderr)
         return 2
+    except _rclpy.UnknownROSArgsError as e:  # a stray word after --ros-args
+        print(f"cortexloc-ros: unknown ROS arguments {e} (a value with a space needs quotes: "
+              "-p stream:=\"'front cam'\"; each parameter needs its -p)", file=sys.stderr)
+        return 2
     try:
         node = CortexlocNode()
     except ConfigError as e:

@@ -206,6 +206,11 @@ class MemoryBudget:
         with self._lock:
             return self._used()
 
+    def room(self) -> int:
+        """The recovery room kept free now (`_room`)."""
+        with self._lock:
+            return self._room()
+
     def fits(self, map_id: str, need: MapNeed) -> tuple[bool, int, int]:
         """(fits, used, asked) for reserving `need` as `map_id` (its own reservation not counted):
         `used` is what the others hold plus the recovery room they keep, `asked` the map's parts plus

@@ -309,6 +309,11 @@ def test_bad_parameters_stop_the_node_at_start_with_a_clear_error(tmp_path):
     rc, log = start(service_url="http://127.0.0.1:99999", place_covariance="[1.0, .nan, 0.1]")
     assert rc == 2 and "service_url: 'http://127.0.0.1:99999' has no port 1-65535" in log, log
     assert "place_covariance: [1.0, nan, 0.1] must be 3 finite numbers" in log, log
+    # a stray word after --ros-args (an unquoted value with a space): one line, not rclpy's traceback
+    p = subprocess.run([sys.executable, "-m", "cortexloc_ros", "--ros-args", "-p", "stream:=front", "cam"],
+                       capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert p.returncode == 2 and "unknown ROS arguments" in p.stderr and "['cam']" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr
 
 
 @in_loopback_netns
