@@ -12,8 +12,9 @@ itself through HTTP, `drive_http`, which also measures contrast at decode), the 
 before every pass (`Stream.break_sequence`, what `POST .../streams/{s}/reset` does: a new warm-up), the
 frames' contrast measured as the service measures it at decode (§11.7). Two routes: `exact` (every pass
 the same PNGs) and `noise8` (pass 1 the PNGs, every later pass new pixel noise of σ 8). `--anywhere`: every
-pass after the first starts part-way along the route (a robot whose node restarts where it stands; pass p
-at file `lo + (p · 7919) mod (frames / 2)`) and drives to its end; its recall is over the frames it drove.
+pass after the first starts part-way along the route (pass p, counted from 1, at file
+`lo + ((p − 1) · 7919) mod (frames / 2)`) and drives to its end; its recall is over the frames it drove
+(written to growth-anywhere.json).
 
 Per pass: `rows` made (seqs handed out), `stored` (`--http`: the change in map.sqlite's rows, `rows_stored`:
 the rows made less the warm-up rows a join turned into visits, schema 12), `held` (the change in rows held:
@@ -164,7 +165,7 @@ def main(*, passes: int, lo: int, frames: int, seed: int, quick: bool, http: boo
                    "min_precision_2_on": min((r["precision"] or 1.0 for r in rows[1:]), default=None)}
         print(summary, flush=True)
         results[name] = {"passes": rows, "summary": summary}
-    write_json("growth-http.json" if http else "growth.json",
+    write_json(f"growth{'-http' if http else ''}{'-anywhere' if anywhere else ''}.json",
                {"machine": machine(), "route": [lo, lo + n], "seed": seed, "starts": starts,
                 "results": results})
 

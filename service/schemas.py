@@ -135,7 +135,8 @@ class BudgetModel(_Out):
     reserve_bytes: int = Field(description="kept free for the second memory a recovery builds beside a map's "
                                            "empty one: the largest map's memory")
     free_bytes: int = Field(description="total less used less the reserve: what a new map or learned rows "
-                                        "may still take")
+                                        "may still take (behind the Ray ingress the shards' sum: a map "
+                                        "is made on one shard, which has its own)")
     encoders_bytes: int = Field(description="the encoders' networks, counted once")
     maps: list[results.MapReservation] = Field(description="open maps' reservations, then the maps left "
                                                "closed at start (`open` false) with what they asked")
@@ -160,10 +161,12 @@ class MatchModel(_Out):
     stream: str
     label: str | None
     created_at: str
-    overlap: int
+    overlap: int = Field(description="winner cells shared; on a frame without context (a stream's first, "
+                                     "after a reset) the frame's columns the row holds")
     score: float = Field(description="Dice of the winner-cell sets, each cell weighed by how rarely the "
                                      "stream's recent frames had it (docs/design/science.md §11.10); "
-                                     "1: the same cells")
+                                     "1: the same cells. On a frame without context: the share of its "
+                                     "columns the row holds (§11.2 step 1)")
     metadata: dict[str, Any] | None = Field(description="as stored with that observation")
 
 

@@ -133,6 +133,24 @@ def _offer(r, o, s, k, nb, best_row, best_ov, best_sc):  # pragma: no cover
 
 
 @njit(cache=True)
+def _count_column(rows: np.ndarray, j: int, mark: np.ndarray, counts: np.ndarray, touched: np.ndarray,
+                  m: int) -> int:  # pragma: no cover - compiled
+    """`InvertedIndex.rank_columns`' pass over the postings `rows` of the query's column `j` (its cells'
+    postings, a row once per cell it has there): each row counted once for the column (`mark`: the last
+    column that counted it), newly counted rows appended to `touched` after its first `m`. Returns the
+    new `m`."""
+    for i in range(rows.size):
+        r = rows[i]
+        if mark[r] != j:
+            mark[r] = j
+            if counts[r] == 0:
+                touched[m] = r
+                m += 1
+            counts[r] += 1
+    return m
+
+
+@njit(cache=True)
 def _top_k_touched(flat: np.ndarray, flat_w: np.ndarray, weight: np.ndarray, q_size: int,
                    w_total: float, w_max: float, k: int, min_overlap: int, w_min: int, excluded: np.ndarray,
                    counts: np.ndarray, acc: np.ndarray,
@@ -572,7 +590,8 @@ class InvertedIndex:
         With no previous activity every column of the frame bursts and its winner cells are the
         least-used cells of those columns: they say which columns are on, not which stored row the frame
         is, so ranked by cells it matches only rows learned the same way (other first frames). Its columns
-        do say it: a stored row shares a query column where one of its winner cells lies in it.
+        do say it: a stored row shares a query column where one of its winner cells lies in it (a
+        predicted column's several winners count once).
 
         Args:
             columns: (k,) the frame's active columns (its code; distinct, order free).
@@ -581,11 +600,12 @@ class InvertedIndex:
             top_k, exclude_own: as `rank`.
 
         Returns:
-            `Match(seq, overlap, score)`, overlap = the row's winner cells in the query's columns, score =
-            2 · min(overlap, k) / (|stored| + k) in [0, 1] (a predicted column may hold several winners:
-            the min keeps a row from scoring past 1), 1 for a row with one winner in each of the frame's
-            columns; sorted by score descending, ties to the lower (older) seq. Rows sharing no column
-            are not returned.
+            `Match(seq, overlap, score)`, overlap = the query columns the row shares, score = overlap / k
+            in [0, 1] (the Dice of the two codes, which have one size in a map), 1 for a row with a winner
+            in each of the frame's columns; sorted by score descending, ties to the lower (older) seq.
+            Rows sharing no column are not returned. One compiled pass over the postings of the frame's
+            columns, about rows · k² / columns entries (5 ms at 50,000 rows of the default map), with two
+            scratch ints a row.
         """
         n = self._seq.n
         if top_k <= 0 or n == 0:
@@ -595,20 +615,25 @@ class InvertedIndex:
         if cols.size and (cols[0] < 0 or (cols[-1] + 1) * cpc > self.n_cells):
             raise ValueError(f"columns must lie in [0, {self.n_cells // max(cpc, 1)})")
         post, plen = self._post, self._plen
-        cells = (cols[:, None] * cpc + np.arange(cpc, dtype=np.int64)).ravel()
-        parts = [post[c][: plen[c]] for c in cells.tolist() if plen[c]]
-        if not parts:
+        mark = np.full(n, -1, dtype=np.int32)
+        counts = np.zeros(n, dtype=np.int32)
+        touched = np.empty(n, dtype=np.int64)
+        m = 0
+        for j, col in enumerate(cols.tolist()):
+            parts = [post[c][: plen[c]] for c in range(col * cpc, (col + 1) * cpc) if plen[c]]
+            if parts:
+                m = _count_column(np.concatenate(parts) if len(parts) > 1 else parts[0], j, mark, counts,
+                                  touched, m)
+        if m == 0:
             return []
-        counts = np.bincount(np.concatenate(parts), minlength=n)
-        keep = counts > 0
+        keep = np.zeros(n, dtype=bool)
+        keep[touched[:m]] = True
         keep[self._excluded_rows((), exclude_own)] = False
         cand = np.flatnonzero(keep)
         if cand.size == 0:
             return []
-        ov = counts[cand]
-        denom = (self._weight.data[cand] + cols.size).astype(np.float64)
-        score = 2.0 * np.minimum(ov, cols.size) / denom
-        return self._best(cand, ov, score, top_k)
+        ov = counts[cand].astype(np.int64)
+        return self._best(cand, ov, ov / float(cols.size), top_k)
 
     def _best(self, cand: np.ndarray, ov: np.ndarray, score: np.ndarray, top_k: int) -> list[Match]:
         """The `top_k` best of the candidate rows `cand` (ascending, (m,)) by `score` (m,), overlaps `ov`

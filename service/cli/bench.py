@@ -443,7 +443,7 @@ def bench_growth(
     quick: Annotated[bool, typer.Option("--quick", help="3 passes of 100 frames (a smoke run)")] = False,
     http: Annotated[bool, typer.Option("--http", help="through HTTP: the service at its defaults")] = False,
     anywhere: Annotated[bool, typer.Option("--anywhere", help="passes after the first start part-way along "
-                                           "the route (a node restarted where the robot stands)")] = False,
+                                           "the route")] = False,
 ) -> None:
     """A map's growth pass after pass over one held-out route while it learns (docs/results.md §11;
     benchmarks/bench_growth.py)."""

@@ -368,8 +368,7 @@ class MapRegistry:
         """The budget: total, used, free, the encoders, and every map's reservation (§1.8); a map left
         closed at start shows what it asked."""
         encoders, held = self.budget.report()
-        used = encoders + sum(sum(parts.values()) for parts in held.values())
-        reserve = self.budget.room()
+        used, reserve = self.budget.held()  # (with a restore's second index, which the parts leave out)
         maps = [MapReservation(map_id, True, None, sum(parts.values()), parts)
                 for map_id, parts in held.items()]
         maps += [MapReservation(map_id, False, "memory-budget", asked, {})

@@ -255,7 +255,7 @@ class Budget(_Reply):
     source: str
     used_bytes: int
     reserve_bytes: int = 0  # kept for a recovery's second memory (0 from a server before it was told)
-    free_bytes: int  # total less used less the reserve: what a new map may take
+    free_bytes: int  # total less used less the reserve (an older server: the reserve inside it)
     encoders_bytes: int
     maps: list[MapReservation]
     process_rss_bytes: int
@@ -295,7 +295,8 @@ class SequenceStats(_Reply):
 
 class Match(_Reply):
     """One earlier observation, ranked by the Dice score of shared winner cells (weighed by the stream's
-    conditions: cells its recent frames share count less)."""
+    conditions: cells its recent frames share count less); on a stream's first frame (or the first after
+    a reset), by the share of the frame's columns the row holds."""
 
     rank: int
     observation_id: str

@@ -375,8 +375,8 @@ def main(args: list[str] | None = None) -> int:
         print(f"cortexloc-ros: {e}".split(", at /")[0], file=sys.stderr)
         return 2
     except _rclpy.UnknownROSArgsError as e:  # a stray word after --ros-args
-        print(f"cortexloc-ros: unknown ROS arguments {e} (a value with a space needs quotes: "
-              "-p stream:=\"'front cam'\"; each parameter needs its -p)", file=sys.stderr)
+        print(f"cortexloc-ros: unknown ROS arguments {e}: each parameter needs its -p, and a value with "
+              "a space its quotes (-p stream:=\"'front cam'\")", file=sys.stderr)
         return 2
     try:
         node = CortexlocNode()

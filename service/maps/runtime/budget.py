@@ -206,10 +206,10 @@ class MemoryBudget:
         with self._lock:
             return self._used()
 
-    def room(self) -> int:
-        """The recovery room kept free now (`_room`)."""
+    def held(self) -> tuple[int, int]:
+        """(bytes used, a restore's second index included; the recovery room kept free), read together."""
         with self._lock:
-            return self._room()
+            return self._used(), self._room()
 
     def fits(self, map_id: str, need: MapNeed) -> tuple[bool, int, int]:
         """(fits, used, asked) for reserving `need` as `map_id` (its own reservation not counted):

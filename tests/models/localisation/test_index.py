@@ -148,22 +148,24 @@ def test_exclude_own_skips_one_streams_rows_from_a_seq_on() -> None:
 
 def test_a_frame_without_context_is_ranked_by_its_columns() -> None:
     """`rank_columns` (docs/design/science.md §11.2 step 1): 4 cells per column; a stored row shares a
-    query column where one of its winner cells lies in it, whichever cell the context chose."""
+    query column where one of its winner cells lies in it, whichever cell the context chose, and a
+    column counts once however many winners the row has in it."""
     cpc = 4
     idx = InvertedIndex(16 * cpc, 10)
     idx.add(1, [0 * cpc + 1, 1 * cpc + 3, 2 * cpc + 0], "s")  # columns 0, 1, 2, other cells
     idx.add(2, [0 * cpc + 0, 1 * cpc + 0, 9 * cpc + 0], "s")  # columns 0, 1, 9
     idx.add(3, [5 * cpc + 2], "s")                             # column 5 only
-    idx.add(4, [0 * cpc + 1, 0 * cpc + 2, 1 * cpc + 1], "t")  # two winners in column 0 (predicted)
+    idx.add(4, [0 * cpc + 1, 0 * cpc + 2, 1 * cpc + 1, 1 * cpc + 2], "t")  # columns 0, 1: two winners each
     # by cells, the least-used cells of columns 0, 1 and 2 name row 2, whose columns are not the frame's
     assert idx.rank([0, 4, 8], 5) == [Match(2, 2, 2 * 2 / 6), Match(1, 1, 2 * 1 / 6)]
     got = idx.rank_columns([2, 0, 1], cpc, 5)
-    assert got == [Match(1, 3, 1.0), Match(4, 3, 1.0), Match(2, 2, 2 * 2 / 6)]  # row 3 shares none
-    assert all(0.0 <= m.score <= 1.0 for m in got)
-    by_seq = {m.seq: m for m in idx.rank_columns([0], cpc, 5)}
-    assert by_seq[4] == Match(4, 2, 2 * 1 / 4) == by_seq[1]._replace(seq=4, overlap=2)  # 2 winners, 1 column
-    assert [m.seq for m in idx.rank_columns([0, 1, 2], cpc, 1)] == [1]  # ties to the older row
-    assert [m.seq for m in idx.rank_columns([0, 1, 2], cpc, 5, exclude_own=("s", 2))] == [1, 4]
+    assert got == [Match(1, 3, 1.0), Match(2, 2, 2 / 3), Match(4, 2, 2 / 3)]  # row 3 shares none
+    # a row holding two of the frame's four columns, twice each, is no full match (a reviewer's case)
+    idx.add(5, [0 * cpc + 3, 1 * cpc + 3, 2 * cpc + 3, 3 * cpc + 3], "u")
+    assert idx.rank_columns([0, 1, 2, 3], cpc, 2) == [Match(5, 4, 1.0), Match(1, 3, 0.75)]
+    assert {m.seq: m.score for m in idx.rank_columns([0, 1, 2, 3], cpc, 5)}[4] == 0.5
+    assert [m.seq for m in idx.rank_columns([0, 1], cpc, 5)] == [1, 2, 4, 5]  # ties to the older row
+    assert [m.seq for m in idx.rank_columns([0, 1, 2], cpc, 5, exclude_own=("s", 2))] == [1, 5, 4]
     assert idx.rank_columns([7], cpc, 5) == [] and idx.rank_columns([0], cpc, 0) == []
     with pytest.raises(ValueError):
         idx.rank_columns([16], cpc, 3)
