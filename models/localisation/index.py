@@ -604,8 +604,7 @@ class InvertedIndex:
             in [0, 1] (the Dice of the two codes, which have one size in a map), 1 for a row with a winner
             in each of the frame's columns; sorted by score descending, ties to the lower (older) seq.
             Rows sharing no column are not returned. One compiled pass per column over its cells' postings,
-            about rows · k² / columns entries in all, with two scratch ints a row: 28 ms at 10,000 random
-            rows of the default map's size and 41 ms at 50,000 (`rank`: 1.2 and 2.6 ms), once a sequence.
+            about rows · k² / columns entries in all, with two scratch ints a row; once a sequence.
         """
         n = self._seq.n
         if top_k <= 0 or n == 0:

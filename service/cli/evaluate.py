@@ -545,6 +545,29 @@ def eval_rules(
         windows=windows, backbone=backbone))
 
 
+@app.command("starts")
+def eval_starts(
+    data: _DataOpt = None,
+    seed: Annotated[int, typer.Option(help="the map's seed (42: a new map's)")] = 42,
+    starts: Annotated[str, typer.Option(help="files into the window each lap starts, comma-separated")]
+    = "0,23,57",
+    kinds: Annotated[str, typer.Option(help="winter, flat, noise (rules' lap kinds), comma-separated")]
+    = "winter,flat",
+    windows: Annotated[str, typer.Option(help="half:lo,... (default: every window of both halves)")] = "",
+    backbone: _BackboneOpt = None,
+) -> None:
+    """The localise mode's laps of `eval rules` started part-way into their window: the share of frames
+    named within one file (service/evaluation/rules.py `start_shares`, docs/results.md §11)."""
+    from service.evaluation import rules as costed
+
+    if data is None:
+        raise typer.BadParameter("--data is needed (the Nordland folder)")
+    chosen = tuple((w.split(":")[0], int(w.split(":")[1])) for w in windows.split(",")) if windows else None
+    lines = costed.start_shares(data=data, seed=seed, starts=tuple(int(s) for s in starts.split(",")),
+                                kinds=tuple(kinds.split(",")), windows=chosen, backbone=backbone)
+    print(costed.starts_table(lines), end="")
+
+
 def _lines_then_tables(module: Any, tables: Path | None, data: Path | None,
                        run: Callable[[Path], list[dict[str, Any]]]) -> None:
     """`module`'s tables from the lines in `tables`, or from the lines of `run(data)` (a bad option:

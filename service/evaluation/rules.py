@@ -188,6 +188,60 @@ def _localise(job: Job, kind: str, map_conf: dict[str, Any]) -> dict[str, Any]:
     return localise_scores(found, trace["span"], trace["span_rows"], answers=job.rule == "all")
 
 
+def _map_setup(backbone: str | None) -> None:
+    """The served map's options for `backbone` (its localiser's left to each job) into `_MAP`."""
+    from service.evaluation.slam import encoder_setup
+
+    _, _, map_conf = encoder_setup(backbone, None)
+    map_conf.pop("localiser")
+    _MAP.update(map_conf)
+
+
+def start_shares(*, data: Path, seed: int = 42, starts: tuple[int, ...] = (0, 23, 57),
+                 kinds: tuple[str, ...] = ("winter", "flat"),
+                 windows: tuple[tuple[str, int], ...] | None = None,
+                 backbone: str | None = None) -> list[dict[str, Any]]:
+    """The localise mode's laps started part-way into their window (docs/results.md §11): each window's
+    summer frames learned as one traverse, its `kind` frames from file lo + start on localised
+    (`service_path.replay`, every rule on), and the share of those frames whose answer names a row within
+    `TOLERANCE` of the truth (a frame in warm-up counts as not named). `rules_runs` starts every lap at
+    the map's first row, where a stream's first frame once named row 1 whatever it showed.
+
+    Returns:
+        One dict per window, kind and start: half, lo, kind, start, share.
+    """
+    _map_setup(backbone)
+    todo = windows or tuple(stress.windows(False))
+    prepare(data, backbone, tuple(sorted({half for half, _ in todo})))
+    out = []
+    for half, lo in todo:
+        a = lo - stress.HALVES[half][0]
+        b = a + stress.WINDOW
+        db, dbc = _FEATS[(half, "summer")]
+        for kind in kinds:
+            q, qc = _FEATS[(half, kind)]
+            for start in starts:
+                found = service_path.replay(db[a:b], q[a + start:b], seed=seed, memory="tm",
+                                            contrast=np.r_[dbc[a:b], qc[a + start:b]], **_MAP, localiser=None)
+                named = (found.best >= 0) & (np.abs(found.best - np.arange(start, b - a)) <= TOLERANCE)
+                out.append({"half": half, "lo": lo, "kind": kind, "start": start,
+                            "share": round(float(named.mean()), 3)})
+    return out
+
+
+def starts_table(lines: list[dict[str, Any]]) -> str:
+    """`start_shares`' lines as a markdown table: a row per window and kind, a column per start."""
+    starts = sorted({x["start"] for x in lines})
+    rows: dict[tuple[str, int, str], dict[int, float]] = {}
+    for x in lines:
+        rows.setdefault((x["half"], x["lo"], x["kind"]), {})[x["start"]] = x["share"]
+    head = "| window | kind | " + " | ".join(f"start {s}" for s in starts) + " |\n"
+    head += "|---|---|" + "---|" * len(starts) + "\n"
+    return head + "".join(f"| {h} {lo + 1}-{lo + stress.WINDOW} | {k} | "
+                          + " | ".join(_f(v.get(s)) for s in starts) + " |\n"
+                          for (h, lo, k), v in rows.items())
+
+
 def localise_scores(found: Any, span: np.ndarray, span_rows: list[tuple[int, ...]], *,
                     answers: bool) -> dict[str, Any]:
     """A localise-mode lap over a window (`service_path.replay`'s answers `found`, over n database rows
@@ -272,14 +326,10 @@ def rules_runs(*, data: Path, out: Path, jobs: int = 1, seeds: tuple[int, ...] =
     progress to `log` (default stderr), then the tables written beside it (`out` with `.md`); returns
     the lines."""
     log = log or (lambda line: print(line, file=sys.stderr, flush=True))
-    from service.evaluation.slam import encoder_setup
-
     unknown = sorted(set(rules) - set(RULES))
     if unknown:
         raise ValueError(f"unknown rules {unknown}; known: {', '.join(RULES)}")
-    _, _, map_conf = encoder_setup(backbone, None)
-    map_conf.pop("localiser")
-    _MAP.update(map_conf)
+    _map_setup(backbone)
     todo = jobs_of(seeds, rules, memories, windows)
     t0 = time.perf_counter()
     prepare(data, backbone, tuple(sorted({j.half for j in todo})), jobs)

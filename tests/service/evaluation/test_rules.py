@@ -133,3 +133,23 @@ def test_the_command_costs_rules_on_tiny_windows_and_its_tables_come_back_from_t
     bad = CliRunner().invoke(app, ["eval", "rules", "--data", str(NORDLAND), "--out", str(out),
                                    "--rules", "nope"])
     assert bad.exit_code == 2 and "unknown rules" in bad.output
+
+
+def test_the_starts_table_has_a_row_per_window_and_kind_and_a_column_per_start() -> None:
+    lines = [{"half": "test", "lo": 1494, "kind": "winter", "start": s, "share": v}
+             for s, v in ((0, 0.98), (23, 0.977))]
+    table = rules.starts_table(lines)
+    assert "| start 0 | start 23 |" in table and "| test 1495-1694 | winter | 0.980 | 0.977 |" in table
+
+
+@needs_data
+def test_a_lap_started_part_way_into_its_window_still_finds_its_rows() -> None:
+    """`cortexloc eval starts` (docs/results.md §11): a winter lap that starts 23 files into a held-out
+    window, not at its map's first row, names the right row on most frames, as one started at the first
+    row does (a stream's first frame ranked by its columns, docs/design/science.md §11.2 step 1)."""
+    r = CliRunner().invoke(app, ["eval", "starts", "--data", str(NORDLAND), "--windows", "test:1494",
+                                 "--kinds", "winter", "--starts", "0,23"])
+    assert r.exit_code == 0, r.output
+    row = next(line for line in r.output.splitlines() if line.startswith("| test 1495-1694 | winter"))
+    shares = [float(v) for v in row.strip("| \n").split(" | ")[2:]]
+    assert len(shares) == 2 and min(shares) >= 0.95, row
