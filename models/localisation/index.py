@@ -133,21 +133,15 @@ def _offer(r, o, s, k, nb, best_row, best_ov, best_sc):  # pragma: no cover
 
 
 @njit(cache=True)
-def _count_column(rows: np.ndarray, j: int, mark: np.ndarray, counts: np.ndarray, touched: np.ndarray,
-                  m: int) -> int:  # pragma: no cover - compiled
+def _count_column(rows: np.ndarray, j: int, mark: np.ndarray, counts: np.ndarray) -> None:  # pragma: no cover
     """`InvertedIndex.rank_columns`' pass over the postings `rows` of the query's column `j` (its cells'
     postings, a row once per cell it has there): each row counted once for the column (`mark`: the last
-    column that counted it), newly counted rows appended to `touched` after its first `m`. Returns the
-    new `m`."""
+    column that counted it)."""
     for i in range(rows.size):
         r = rows[i]
         if mark[r] != j:
             mark[r] = j
-            if counts[r] == 0:
-                touched[m] = r
-                m += 1
             counts[r] += 1
-    return m
 
 
 @njit(cache=True)
@@ -616,17 +610,11 @@ class InvertedIndex:
         post, plen = self._post, self._plen
         mark = np.full(n, -1, dtype=np.int32)
         counts = np.zeros(n, dtype=np.int32)
-        touched = np.empty(n, dtype=np.int64)
-        m = 0
         for j, col in enumerate(cols.tolist()):
             parts = [post[c][: plen[c]] for c in range(col * cpc, (col + 1) * cpc) if plen[c]]
             if parts:
-                m = _count_column(np.concatenate(parts) if len(parts) > 1 else parts[0], j, mark, counts,
-                                  touched, m)
-        if m == 0:
-            return []
-        keep = np.zeros(n, dtype=bool)
-        keep[touched[:m]] = True
+                _count_column(np.concatenate(parts) if len(parts) > 1 else parts[0], j, mark, counts)
+        keep = counts > 0
         keep[self._excluded_rows((), exclude_own)] = False
         cand = np.flatnonzero(keep)
         if cand.size == 0:
