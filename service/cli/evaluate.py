@@ -562,7 +562,13 @@ def eval_starts(
 
     if data is None:
         raise typer.BadParameter("--data is needed (the Nordland folder)")
-    chosen = tuple((w.split(":")[0], int(w.split(":")[1])) for w in windows.split(",")) if windows else None
+    try:
+        pairs = [w.split(":") for w in windows.split(",")] if windows else []
+        chosen = tuple((h, int(lo)) for h, lo in pairs) or None
+    except ValueError as e:
+        raise typer.BadParameter(f"--windows takes half:lo,... (e.g. test:994): {windows!r}") from e
+    if chosen and any(h not in ("tune", "test") for h, _ in chosen):
+        raise typer.BadParameter(f"--windows: the halves are tune and test: {windows!r}")
     lines = costed.start_shares(data=data, seed=seed, starts=tuple(int(s) for s in starts.split(",")),
                                 kinds=tuple(kinds.split(",")), windows=chosen, backbone=backbone)
     print(costed.starts_table(lines), end="")

@@ -140,6 +140,9 @@ def test_the_starts_table_has_a_row_per_window_and_kind_and_a_column_per_start()
              for s, v in ((0, 0.98), (23, 0.977))]
     table = rules.starts_table(lines)
     assert "| start 0 | start 23 |" in table and "| test 1495-1694 | winter | 0.980 | 0.977 |" in table
+    for bad in ("test", "test:x", "north:994"):  # exit 2 with what it takes, before any work
+        r = CliRunner().invoke(app, ["eval", "starts", "--data", ".", "--windows", bad])
+        assert r.exit_code == 2 and "--windows" in r.output, r.output
 
 
 @needs_data
