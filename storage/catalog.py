@@ -43,6 +43,7 @@ __all__ = [
     "SNAPSHOT_ID_RE",
     "SNAPSHOT_KINDS",
     "Catalog",
+    "Lineage",
     "MapExists",
     "MapNotFound",
     "MapRecord",
@@ -115,6 +116,25 @@ class MapNotFound(StorageError):  # noqa: N818 - named after the problem slug `m
 
 
 @dataclass(frozen=True)
+class Lineage:
+    """What makes a map the same map on another server (a move between shards; docs/design/service.md
+    §1.2): the parts of its epoch and the marks of the ids it handed out. A snapshot's manifest carries it.
+
+    Attributes:
+        created_at: ISO 8601 UTC, the map's creation.
+        restores, rewrites, repaired_below: as `MapRecord`'s.
+        seq_high_water, closure_high_water: the highest seq and loop-closure log id handed out by then.
+    """
+
+    created_at: str
+    restores: int = 0
+    rewrites: int = 0
+    repaired_below: int = 0
+    seq_high_water: int = 0
+    closure_high_water: int = 0
+
+
+@dataclass(frozen=True)
 class MapRecord:
     """A row of `maps`.
 
@@ -151,6 +171,12 @@ class MapRecord:
         deleted and made again, or imported, is another), how many restores, and how many rewrites
         (shown once there is one, so the epochs of maps without are as before)."""
         return f"{self.created_at}/{self.restores}" + (f"/{self.rewrites}" if self.rewrites else "")
+
+    def lineage(self, seq: int = 0, closure_id: int = 0) -> Lineage:
+        """The record's `Lineage`, its marks raised to the ids `seq` and `closure_id` the map's file has
+        handed out."""
+        return Lineage(self.created_at, self.restores, self.rewrites, self.repaired_below,
+                       max(self.seq_high_water, int(seq)), max(self.closure_high_water, int(closure_id)))
 
 
 @dataclass(frozen=True)
@@ -326,8 +352,10 @@ class Catalog:
     # ------------------------------------------------------------------ maps
 
     def create_map(self, map_id: str, params: dict[str, Any], *, preset: str | None = None,
-                   state: MapState = "ready", created_at: str | None = None) -> MapRecord:
-        """Register a new map.
+                   state: MapState = "ready", created_at: str | None = None,
+                   lineage: Lineage | None = None) -> MapRecord:
+        """Register a new map; `lineage`: the same map coming from elsewhere (a move between shards),
+        with its creation, counts and id marks (`created_at` is then its).
 
         Raises:
             MapExists: the id is taken.
@@ -335,14 +363,19 @@ class Catalog:
         """
         if state not in MAP_STATES:
             raise ValueError(f"state must be one of {MAP_STATES}, got {state!r}")
-        created_at = created_at or utc_now()
+        line = lineage or Lineage(created_at or utc_now())
         try:
             with self._write() as db:
-                db["maps"].insert({"map_id": map_id, "created_at": created_at, "state": state,
-                                   "preset": preset, "params": json.dumps(params, sort_keys=True)})
+                db["maps"].insert({"map_id": map_id, "created_at": line.created_at, "state": state,
+                                   "preset": preset, "params": json.dumps(params, sort_keys=True),
+                                   "seq_high_water": line.seq_high_water,
+                                   "closure_high_water": line.closure_high_water, "restores": line.restores,
+                                   "rewrites": line.rewrites, "repaired_below": line.repaired_below})
         except sqlite3.IntegrityError as exc:
             raise MapExists(f"map {map_id!r} exists") from exc
-        return MapRecord(map_id, created_at, state, None, preset, json.loads(json.dumps(params)), 0)
+        return MapRecord(map_id, line.created_at, state, None, preset, json.loads(json.dumps(params)),
+                         line.seq_high_water, line.closure_high_water, line.restores, line.rewrites,
+                         line.repaired_below)
 
     def get_map(self, map_id: str) -> MapRecord | None:
         """The map's record, or None."""

@@ -4,7 +4,8 @@
     map.sqlite     copy of the map database at seq S (SQLite online backup, journal_mode=DELETE)
     memory.npz     the memory's arrays (`TemporalMemory.state_dict(streams=...)`), `np.savez`, no pickle
     manifest.json  written last: ids, S and its observation id, kind, time, parameters, encoder id,
-                   projection SHA-256, NumPy/code versions, and size + SHA-256 of every file
+                   projection SHA-256, NumPy/code versions, size + SHA-256 of every file, and the
+                   map's lineage (its epoch's parts and id marks, `storage.catalog.Lineage`)
 
 "A snapshot exists iff its manifest verifies" (`verify`). Files outside the directory (the
 content-addressed `projection.npy`) can be recorded in the manifest's `external` section (size +
@@ -23,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from storage._common import StorageError
-from storage.catalog import MAP_ID_RE, SNAPSHOT_ID_RE, SNAPSHOT_KINDS
+from storage.catalog import MAP_ID_RE, SNAPSHOT_ID_RE, SNAPSHOT_KINDS, Lineage
 from storage.layout import DB_FILE, TMP_MARK
 
 __all__ = [
@@ -80,6 +81,8 @@ class Manifest:
         numpy_version, code_version: of the writer (the generator stream is only stable per NumPy build).
         files: name → entry for the files inside the directory.
         external: name → entry for files kept elsewhere (e.g. `projection.npy`), checked on import.
+        lineage: the map's creation, restore and rewrite counts and id marks when the snapshot was taken
+            (`storage.catalog.Lineage`); None in a manifest written before it was recorded.
         manifest_sha256: SHA-256 of manifest.json (not stored inside it).
         bytes: total size of the directory's files, manifest included.
     """
@@ -99,6 +102,7 @@ class Manifest:
     code_version: str
     files: dict[str, FileEntry]
     external: dict[str, FileEntry] = field(default_factory=dict)
+    lineage: Lineage | None = None
     manifest_sha256: str = ""
     bytes: int = 0
 
@@ -121,6 +125,7 @@ class Manifest:
             "code_version": self.code_version,
             "files": {k: {"bytes": v.bytes, "sha256": v.sha256} for k, v in sorted(self.files.items())},
             "external": {k: {"bytes": v.bytes, "sha256": v.sha256} for k, v in sorted(self.external.items())},
+            **({} if self.lineage is None else {"lineage": dict(self.lineage.__dict__)}),
         }
 
 
@@ -173,7 +178,7 @@ def parse_manifest(body: bytes, where: str) -> Manifest:
             encoder_id=str(d["encoder_id"]), projection_sha256=str(d["projection_sha256"]),
             cell_dtype=str(d["cell_dtype"]), schema_version=int(d["schema_version"]),
             numpy_version=str(d["numpy_version"]), code_version=str(d.get("code_version", "")),
-            files=files, external=external)
+            files=files, external=external, lineage=_lineage(d.get("lineage"), where))
     except (KeyError, TypeError, ValueError) as exc:
         raise SnapshotInvalid(f"{where}: manifest field missing or mistyped: {exc}") from exc
     if m.kind not in SNAPSHOT_KINDS or m.seq < 0 or (m.seq > 0) != (m.last_observation_id is not None):
@@ -186,6 +191,24 @@ def parse_manifest(body: bytes, where: str) -> Manifest:
     if not _SHA256.fullmatch(m.projection_sha256):
         raise SnapshotInvalid(f"{where}: projection_sha256 is not a SHA-256")
     return m
+
+
+#: A lineage's creation stamp: what `utc_now` writes, give or take the fraction's digits.
+_STAMP = re.compile(r"\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}(\.\d{1,9})?(Z|[+-]\d{2}:\d{2})")
+_COUNTS = ("restores", "rewrites", "repaired_below", "seq_high_water", "closure_high_water")
+
+
+def _lineage(raw: Any, where: str) -> Lineage | None:
+    """The manifest's `lineage` (absent: None); its stamp becomes part of an epoch and its counts ids'
+    floors, so each is checked: a stamp as the catalog writes it, non-negative integers SQLite holds."""
+    if raw is None:
+        return None
+    ok = (isinstance(raw, dict) and set(raw) == {"created_at", *_COUNTS}
+          and isinstance(raw["created_at"], str) and _STAMP.fullmatch(raw["created_at"])
+          and all(type(raw[k]) is int and 0 <= raw[k] < 2**63 for k in _COUNTS))
+    if not ok:
+        raise SnapshotInvalid(f"{where}: manifest lineage is malformed")
+    return Lineage(**raw)
 
 
 def _digest(path: Path) -> str:

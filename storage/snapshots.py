@@ -28,7 +28,7 @@ import numpy as np
 from storage._common import StorageFull, connect, is_full_error, utc_now
 from storage.archive import TarExport, import_tar
 from storage.base.files import atomic_write, fsync_dir, sha256_file
-from storage.catalog import SNAPSHOT_KINDS
+from storage.catalog import SNAPSHOT_KINDS, Lineage
 from storage.manifest import (
     DB_FILE,
     FORMAT,
@@ -78,7 +78,8 @@ def new_snapshot_id() -> str:
 def create_snapshot(store: MapStore, memory: Mapping[str, np.ndarray], dest: str | os.PathLike[str], *,
                     kind: str, snapshot_id: str | None = None, code_version: str = "",
                     created_at: str | None = None,
-                    external: Mapping[str, str | os.PathLike[str]] | None = None) -> Manifest:
+                    external: Mapping[str, str | os.PathLike[str]] | None = None,
+                    lineage: Lineage | None = None) -> Manifest:
     """Write a snapshot directory at `dest` (docs/design/service.md §4.4), to be called by the map's writer.
 
     Order: temporary directory beside `dest` → `map.sqlite` by online backup → `memory.npz` → fsync →
@@ -95,6 +96,8 @@ def create_snapshot(store: MapStore, memory: Mapping[str, np.ndarray], dest: str
         created_at: ISO 8601 UTC (now by default).
         external: name → path of files that belong with the snapshot but live elsewhere (the
             projection), recorded by size and SHA-256 only.
+        lineage: the map's creation, counts and id marks (`storage.catalog.Lineage`), recorded so that a
+            move between shards keeps the map's epoch and never hands out an id again.
 
     Returns:
         The manifest (with `manifest_sha256` and total `bytes` for the catalog).
@@ -131,7 +134,8 @@ def create_snapshot(store: MapStore, memory: Mapping[str, np.ndarray], dest: str
             projection_sha256=meta.projection_sha256, cell_dtype=meta.cell_dtype,
             schema_version=meta.schema_version, numpy_version=np.__version__, code_version=code_version,
             files=files,
-            external={name: FileEntry(p.stat().st_size, sha256_file(p)) for name, p in ext.items()})
+            external={name: FileEntry(p.stat().st_size, sha256_file(p)) for name, p in ext.items()},
+            lineage=lineage)
         body = manifest_bytes(manifest)
         atomic_write(tmp / MANIFEST_FILE, lambda f: f.write(body))
         fsync_dir(tmp)

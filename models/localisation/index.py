@@ -232,9 +232,11 @@ def _top_k_touched(flat: np.ndarray, flat_w: np.ndarray, weight: np.ndarray, q_s
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's disk cache) the ranking kernel now, not in the first query."""
+    """Compile (or load from numba's disk cache) the ranking kernels now, not in the first query (nor in
+    a stream's first frame: `rank_columns`)."""
     idx = InvertedIndex(512, 4)
     idx.add(1, [1, 2], "s")
+    idx.rank_columns([0, 1], 2, 1)
     idx.rank([1, 3], 1)  # the uint8 counters
     idx.rank(np.arange(300), 1)  # the int32 counters
     idx.rank([1, 3], 1, weights=np.array([0.5, 1.0]))  # the weighted pass

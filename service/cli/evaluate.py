@@ -567,10 +567,16 @@ def eval_starts(
         chosen = tuple((h, int(lo)) for h, lo in pairs) or None
     except ValueError as e:
         raise typer.BadParameter(f"--windows takes half:lo,... (e.g. test:994): {windows!r}") from e
-    if chosen and any(h not in ("tune", "test") for h, _ in chosen):
-        raise typer.BadParameter(f"--windows: the halves are tune and test: {windows!r}")
-    lines = costed.start_shares(data=data, seed=seed, starts=tuple(int(s) for s in starts.split(",")),
-                                kinds=tuple(kinds.split(",")), windows=chosen, backbone=backbone)
+    try:
+        at = tuple(int(s) for s in starts.split(","))
+    except ValueError as e:
+        raise typer.BadParameter(f"--starts takes files into the window, e.g. 0,23,57: {starts!r}") from e
+    try:
+        costed.check_starts(at, tuple(kinds.split(",")), chosen)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from e
+    lines = costed.start_shares(data=data, seed=seed, starts=at, kinds=tuple(kinds.split(",")),
+                                windows=chosen, backbone=backbone)
     print(costed.starts_table(lines), end="")
 
 

@@ -197,6 +197,24 @@ def _map_setup(backbone: str | None) -> None:
     _MAP.update(map_conf)
 
 
+def check_starts(starts: tuple[int, ...], kinds: tuple[str, ...],
+                 windows: tuple[tuple[str, int], ...] | None) -> None:
+    """`start_shares`' options, each one it can evaluate: a window inside its half (`stress.HALVES`,
+    `lo` the file it starts at), a start inside the window, a kind of `KINDS`. Raises ValueError saying
+    which is not."""
+    for half, lo in windows or ():
+        if half not in stress.HALVES:
+            raise ValueError(f"no half {half!r}: the halves are {', '.join(stress.HALVES)}")
+        first, end = stress.HALVES[half]
+        if not first <= lo <= end - stress.WINDOW:
+            raise ValueError(f"window {half}:{lo}: a {half} window of {stress.WINDOW} files starts at a "
+                             f"file from {first} to {end - stress.WINDOW}")
+    if not starts or any(not 0 <= s < stress.WINDOW for s in starts):
+        raise ValueError(f"starts {starts}: each is a file into the window, 0 to {stress.WINDOW - 1}")
+    if not kinds or not set(kinds) <= set(KINDS):
+        raise ValueError(f"kinds {kinds}: each is one of {', '.join(KINDS)}")
+
+
 def start_shares(*, data: Path, seed: int = 42, starts: tuple[int, ...] = (0, 23, 57),
                  kinds: tuple[str, ...] = ("winter", "flat"),
                  windows: tuple[tuple[str, int], ...] | None = None,
@@ -209,7 +227,11 @@ def start_shares(*, data: Path, seed: int = 42, starts: tuple[int, ...] = (0, 23
 
     Returns:
         One dict per window, kind and start: half, lo, kind, start, share.
+
+    Raises:
+        ValueError: an option it cannot evaluate (`check_starts`).
     """
+    check_starts(starts, kinds, windows)
     _map_setup(backbone)
     todo = windows or tuple(stress.windows(False))
     prepare(data, backbone, tuple(sorted({half for half, _ in todo})))

@@ -378,10 +378,11 @@ class MapRegistry:
                           encoders_bytes=encoders, maps=maps,
                           process_rss_bytes=rss_bytes())
 
-    def import_snapshot(self, tar_path: Path, max_bytes: int) -> str:
-        """Create a map from a downloaded snapshot tar (`service.maps.recovery.snapshots.import_snapshot`)."""
+    def import_snapshot(self, tar_path: Path, max_bytes: int, moved: bool = False) -> str:
+        """Create a map from a downloaded snapshot tar (`service.maps.recovery.snapshots.import_snapshot`;
+        `moved`: the map itself, moved here, keeping its epoch)."""
         return map_snapshots.import_snapshot(self.data_dir, self.catalog, tar_path, max_bytes,
-                                             fits=self._import_fits)
+                                             fits=self._import_fits, moved=moved)
 
     def _import_fits(self, m: Manifest) -> None:
         """Raises MemoryBudgetExceeded unless the imported map fits beside the maps here, each at its
@@ -418,7 +419,7 @@ class MapRegistry:
     def import_live(self, tar_path: Path, max_bytes: int) -> MapRuntime:
         """Import a snapshot tar into this running registry and open the map: the receiving end of a
         move between shards (service.scaleout; docs/scaling.md). The map recovers from the snapshot
-        as it would at a start.
+        as it would at a start, and is the same map: its epoch and id marks are the snapshot's lineage's.
 
         Raises:
             MapLimit, SnapshotInvalid, MemoryBudgetExceeded (nothing of the map is left behind).
@@ -426,7 +427,7 @@ class MapRegistry:
         with self._create_lock:
             if len(self.maps) >= self.settings.max_maps:
                 raise MapLimit(self.settings.max_maps)
-            map_id = self.import_snapshot(tar_path, max_bytes)
+            map_id = self.import_snapshot(tar_path, max_bytes, moved=True)
             record = self.catalog.get_map(map_id)
             assert record is not None
             try:

@@ -22,6 +22,7 @@ iff no check fails: 200 `{"status": "ready", "checks": ..., "warnings": [...]}`,
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import uuid
 from pathlib import Path
@@ -34,12 +35,13 @@ from service.errors import problem_response, problem_responses
 from service.maps.states import serving
 from service.schemas import Health, Readiness
 
-__all__ = ["Check", "check_catalog", "check_data_dir", "check_encoder", "check_maps", "failing", "readiness",
-           "readiness_reply", "router"]
+__all__ = ["UNNAMED_ERROR", "Check", "check_catalog", "check_data_dir", "check_encoder", "check_maps",
+           "failing", "readiness", "readiness_reply", "router"]
 
 Check = dict[str, Any]
 
 router = APIRouter(tags=["operations"])
+log = logging.getLogger("cortexloc.service")
 
 
 def check_data_dir(data_dir: Path) -> Check:
@@ -149,20 +151,29 @@ def _anonymous(check: Check) -> Check:
     return out
 
 
+#: A failed check's reason where reads need the key (`named` False): its text names files of the host.
+UNNAMED_ERROR = "see the server's log (the reason names files of the host; reads need the key)"
+
+
 def check_catalog(app: FastAPI, named: bool = True) -> Check | None:
     """The map registry's catalog; None while no registry was started (an app without maps). Map
     directories it does not list (`MapRegistry.unlisted`: left as they are, not served) are a warning:
-    their ids where `named`, else their count."""
-    error = getattr(app.state, "registry_error", None)
+    their ids where `named`, else their count. A failure's reason names files (the catalog's path, the
+    file a start could not open): where not `named` it is `UNNAMED_ERROR`, and logged."""
+    error = getattr(app.state, "registry_error", None)  # logged at the start that failed
     if error is not None:
-        return {"status": "fail", "error": error}
+        return {"status": "fail", "error": error if named else UNNAMED_ERROR}
     registry = getattr(app.state, "registry", None)
     if registry is None:
         return None
     try:
         out = registry.catalog.check()
     except Exception as e:  # a check that crashes is a failed check, not a 500
-        return {"status": "fail", "error": f"{type(e).__name__}: {e}"}
+        out = {"status": "fail", "error": f"{type(e).__name__}: {e}"}
+    if out.get("status") == "fail":
+        log.warning("readiness: the catalog check failed: %s", out.get("error"))
+        if not named:
+            out = {**out, "error": UNNAMED_ERROR}
     unlisted = list(getattr(registry, "unlisted", ()))
     if unlisted and out.get("status") == "pass":
         out.update(status="warn", unlisted=len(unlisted),
@@ -196,12 +207,15 @@ def readiness(app: FastAPI) -> tuple[bool, dict[str, Check]]:
     settings = getattr(app.state, "settings", None)
     if settings is None:
         return False, {"startup": {"status": "fail", "error": "startup has not finished"}}
+    named = not settings.api_key_reads
     checks["data_dir"] = check_data_dir(settings.data_dir)
     checks["encoder"] = check_encoder(app)
-    checks["maps"] = check_maps(getattr(app.state, "maps", None) or {}, named=not settings.api_key_reads)
-    catalog = check_catalog(app, named=not settings.api_key_reads)
+    checks["maps"] = check_maps(getattr(app.state, "maps", None) or {}, named=named)
+    catalog = check_catalog(app, named=named)
     if catalog is not None:
         checks["catalog"] = catalog
+    if not named:  # the probe stays open: where reads need the key it shows no file path of the host
+        checks = {name: {k: v for k, v in c.items() if k != "path"} for name, c in checks.items()}
     return not failing(checks), checks
 
 

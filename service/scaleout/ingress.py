@@ -36,7 +36,7 @@ from service.maps.errors import ShardUnavailable
 from service.metrics import Metrics
 from service.request_ids import REQUEST_ID_HEADER, request_id_var
 from service.routes import QueryRulesDep
-from service.routes.health import readiness_reply
+from service.routes.health import UNNAMED_ERROR, readiness_reply
 from service.scaleout.shards import ShardSet
 from service.schemas import BudgetModel, Health, MapList, Readiness
 from service.settings import Settings
@@ -121,7 +121,7 @@ def _router() -> APIRouter:
         checks: dict[str, dict[str, Any]] = {}
         warnings: list[str] = []
         for shard, r in replies.items():
-            if isinstance(r, ShardUnavailable):
+            if isinstance(r, ShardUnavailable):  # its own words: which shard, and that it restarts
                 checks[shard] = {"status": "fail", "error": str(r)}
                 continue
             body = json.loads(r[2])
@@ -130,8 +130,12 @@ def _router() -> APIRouter:
                              **({} if ok else {"error": body.get("detail", f"HTTP {r[0]}")})}
             warnings += [f"{shard}: {w}" for w in body.get("warnings", [])]
         if not shards.reconciled:  # the map table does not know every shard's maps yet
-            checks["routes"] = {"status": "fail", "error": getattr(request.app.state, "shards_error", None)
-                                or "the shards' maps are being read"}
+            # the reconcile's reason is any exception's text (logged there), which may name files of the
+            # host; the shards hide their own where reads need the key (service.routes.health)
+            error = getattr(request.app.state, "shards_error", None)
+            named = not request.app.state.settings.api_key_reads
+            checks["routes"] = {"status": "fail", "error": "the shards' maps are being read" if error is None
+                                else error if named else UNNAMED_ERROR}
         return readiness_reply(request, checks, warnings)
 
     @router.get("/metrics", response_class=Response, dependencies=[ReadKeyDep, QueryRulesDep],

@@ -6,10 +6,13 @@ in /metrics were open with the setting on."""
 from __future__ import annotations
 
 import re
+import sqlite3
 
 import pytest
 
+from service.routes.health import UNNAMED_ERROR
 from service.routing import iter_routes
+from storage.catalog import StoreClosed
 from tests.service.helpers import frame, make_client
 
 KEY = {"X-API-Key": "k3y"}
@@ -74,6 +77,39 @@ def test_readyz_stays_open_but_names_no_map_or_stream(guarded):
     maps = r.json()["checks"]["maps"]
     assert maps["count"] == 2 and maps["states"] == {"ready": 2}  # `yard` and the `default` map
     assert values["map_id"] not in r.text and "robot7" not in r.text and "default" not in r.text
+    # nor a path of the host: the data directory, the catalog, the weights file
+    assert all("path" not in check for check in r.json()["checks"].values()), r.json()["checks"]
+    assert str(c.app.state.settings.data_dir) not in r.text
+
+
+def test_a_failed_catalog_is_said_without_its_path_where_reads_need_the_key(tmp_path, caplog, monkeypatch):
+    # found from outside: the reasons of a closed catalog and of one a newer version wrote named its path
+    data = tmp_path / "var"
+    with make_client(data, api_key="k3y", api_key_reads=True) as c:
+        catalog = c.app.state.registry.catalog
+        monkeypatch.setattr(catalog, "_tables", lambda: (_ for _ in ()).throw(StoreClosed(
+            f"{catalog.path}: catalog is closed")))  # as `Catalog.close` leaves it, the app kept whole
+        r = c.get("/readyz")
+        assert r.status_code == 503 and r.json()["checks"]["catalog"]["error"] == UNNAMED_ERROR
+        assert str(tmp_path) not in r.text
+        assert any(str(data) in m for m in caplog.messages)  # the operator reads it in the log
+        monkeypatch.undo()
+    con = sqlite3.connect(data / "catalog.sqlite")
+    con.execute("UPDATE meta SET value = '99' WHERE key = 'schema_version'")
+    con.commit()
+    con.close()
+    for reads, shown in ((True, False), (False, True)):
+        with make_client(data, api_key="k3y", api_key_reads=reads) as c:
+            r = c.get("/readyz")
+            assert r.status_code == 503 and (str(data) in r.text) is shown, r.text
+            assert "newer" in r.text or not shown
+
+
+def test_readyz_without_the_setting_shows_the_paths_an_operator_reads(tmp_path):
+    with make_client(tmp_path / "var", api_key="k3y") as c:
+        checks = c.get("/readyz").json()["checks"]
+        assert checks["data_dir"]["path"] == str(c.app.state.settings.data_dir)
+        assert checks["catalog"]["path"].endswith("catalog.sqlite")
 
 
 def test_the_viewer_page_stays_open(guarded):

@@ -20,6 +20,7 @@ import pytest
 from models import presets
 from models.memory.temporal_memory import TemporalMemory
 from storage import snapshots
+from storage.catalog import Lineage
 from storage.manifest import parse_manifest
 from storage.mapstore import MapStore, NewObservation
 from storage.snapshots import SnapshotInvalid, create_snapshot, import_tar, load_memory, verify
@@ -266,6 +267,31 @@ def test_other_damage_is_detected(snap: tuple[Path, snapshots.Manifest]) -> None
     (dest / "manifest.json").unlink()
     with pytest.raises(SnapshotInvalid):
         verify(dest)
+
+
+def test_the_lineage_travels_in_the_manifest_and_a_malformed_one_is_invalid(
+        tmp_path: Path, store: MapStore, row_factory: RowFactory) -> None:
+    # a move keeps the map's epoch and id marks (docs/design/service.md §1.2): the manifest carries them
+    store.append(row_factory(1))
+    line = Lineage("2026-11-30T05:00:00.000000Z", restores=2, rewrites=1, repaired_below=7,
+                   seq_high_water=40, closure_high_water=90)
+    dest = tmp_path / "s1"
+    m = create_snapshot(store, memory_arrays(), dest, kind="manual", lineage=line)
+    assert m.lineage == line and verify(dest).lineage == line
+    raw = json.loads((dest / "manifest.json").read_text())
+    assert raw["lineage"]["closure_high_water"] == 90
+    assert import_tar(io.BytesIO(exported(dest)), tmp_path / "imported").lineage == line
+    # a manifest written before the lineage was recorded has none
+    (dest / "manifest.json").write_text(json.dumps({k: v for k, v in raw.items() if k != "lineage"}))
+    assert verify(dest).lineage is None
+    # its stamp becomes part of an epoch and its counts floors of ids: anything else is refused
+    for bad in ({**raw["lineage"], "restores": -1}, {**raw["lineage"], "seq_high_water": 2**63},
+                {**raw["lineage"], "closure_high_water": True}, {**raw["lineage"], "created_at": "../x"},
+                {**raw["lineage"], "extra": 1}, {k: v for k, v in raw["lineage"].items() if k != "rewrites"},
+                [1, 2], "2026"):
+        (dest / "manifest.json").write_text(json.dumps({**raw, "lineage": bad}))
+        with pytest.raises(SnapshotInvalid, match="lineage"):
+            verify(dest)
 
 
 def exported(directory: Path, extra: dict[str, Path] | None = None) -> bytes:

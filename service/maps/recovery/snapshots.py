@@ -18,7 +18,7 @@ from service.maps.errors import InsufficientStorage, InvalidConfiguration, Snaps
 from service.maps.recovery.memory import check_memory, remade_rows
 from service.maps.results import SnapshotInfo
 from storage import snapshots
-from storage.catalog import Catalog, SnapshotRecord
+from storage.catalog import Catalog, Lineage, SnapshotRecord, utc_now
 from storage.layout import Layout
 from storage.manifest import parse_manifest
 from storage.mapstore import MapStore, StorageFull
@@ -76,8 +76,11 @@ def take(store: MapStore, memory: Mapping[str, np.ndarray], catalog: Catalog, ma
     dest.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     try:
+        record = catalog.get_map(map_id)
+        # the map's epoch and id marks travel with it: a move keeps both (docs/design/service.md §1.2)
+        lineage = None if record is None else record.lineage(store.next_seq() - 1, store.last_closure_id())
         m = snapshots.create_snapshot(store, dict(memory), dest, kind=kind,
-                                      external={snapshots.PROJECTION_FILE: projection_path})
+                                      external={snapshots.PROJECTION_FILE: projection_path}, lineage=lineage)
     except StorageFull as e:
         raise InsufficientStorage(f"the {kind} snapshot could not be written: no room to write; the map "
                                   "is unchanged") from e
@@ -194,8 +197,13 @@ def prune_manual(catalog: Catalog, map_id: str, store: MapStore, keep: int, max_
 
 
 def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes: int, *,
-                    fits: Callable[[snapshots.Manifest], None] = lambda m: None) -> str:
+                    fits: Callable[[snapshots.Manifest], None] = lambda m: None, moved: bool = False) -> str:
     """Create a map from a downloaded snapshot tar (`cortexloc import`, server stopped).
+
+    The map takes the id marks of the manifest's lineage, so no seq or loop-closure id the map had handed
+    out when the snapshot was taken is handed out again. `moved`: the map itself, moved here (between
+    shards: its owner drained and snapshotted it last), keeps its creation and counts, so its epoch;
+    otherwise it is another map, with an epoch of its own (docs/design/service.md §1.2).
 
     The manifest (the tar's first member) is checked before anything is written: its ids follow
     the API's rules (`storage.snapshots`), the map is new here, and the files it declares fit in
@@ -250,7 +258,11 @@ def import_snapshot(data_dir: Path, catalog: Catalog, tar_path: Path, max_bytes:
         snap_dir = layout.snapshot_dir(map_id, manifest.snapshot_id)
         snap_dir.parent.mkdir(parents=True)
         staging.replace(snap_dir)
-        catalog.create_map(map_id, config.stored(), preset=config.preset, state="ready")
+        line = manifest.lineage
+        if line is not None and not moved:
+            line = Lineage(utc_now(), seq_high_water=line.seq_high_water,
+                           closure_high_water=line.closure_high_water)
+        catalog.create_map(map_id, config.stored(), preset=config.preset, state="ready", lineage=line)
         catalog.register_snapshot(SnapshotRecord(
             snapshot_id=manifest.snapshot_id, map_id=map_id, seq=manifest.seq, kind=manifest.kind,
             created_at=manifest.created_at, bytes=manifest.bytes,

@@ -11,6 +11,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from models.localisation import index
 from models.localisation.index import InvertedIndex, Match, warm_up
 
 
@@ -119,6 +120,8 @@ def test_concurrent_readers_agree_with_sequential() -> None:
 
 def test_warm_up_compiles_without_side_effects() -> None:
     warm_up()
+    # every kernel a frame can reach, a stream's first (ranked by its columns) too
+    assert index._top_k_touched.signatures and index._count_column.signatures
     idx = InvertedIndex(16, 10)
     idx.add(1, [1, 2, 3], "s")
     assert idx.rank([1, 2, 3], 3) == [Match(1, 3, 1.0)]

@@ -83,6 +83,18 @@ def test_hostile_names_are_refused_before_anything_is_written(tmp_path, members,
     assert tree(root) == before  # nothing inside the data directory, nor beside it
 
 
+def test_a_malformed_lineage_is_refused_before_anything_is_written(tmp_path, members):
+    # its stamp becomes part of the map's epoch and its counts floors of ids (docs/design/service.md §1.2)
+    assert json.loads(members["manifest.json"])["lineage"]["seq_high_water"] == 3
+    data = tmp_path / "data"
+    with make_client(data):
+        pass
+    before = tree(data)
+    r = run_import(make_tar(tmp_path / "bad.tar", with_manifest(members, lineage={"created_at": "x"})), data)
+    assert r.exit_code == 1 and "lineage" in r.output, r.output
+    assert tree(data) == before
+
+
 def test_a_good_tar_still_imports(tmp_path, members):
     r = run_import(make_tar(tmp_path / "good.tar", members), tmp_path / "data")
     assert r.exit_code == 0, r.output

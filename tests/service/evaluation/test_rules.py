@@ -5,6 +5,7 @@ real Nordland frames (skipped without ../shared/data)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -140,9 +141,17 @@ def test_the_starts_table_has_a_row_per_window_and_kind_and_a_column_per_start()
              for s, v in ((0, 0.98), (23, 0.977))]
     table = rules.starts_table(lines)
     assert "| start 0 | start 23 |" in table and "| test 1495-1694 | winter | 0.980 | 0.977 |" in table
-    for bad in ("test", "test:x", "north:994"):  # exit 2 with what it takes, before any work
-        r = CliRunner().invoke(app, ["eval", "starts", "--data", ".", "--windows", bad])
-        assert r.exit_code == 2 and "--windows" in r.output, r.output
+    # exit 2 with what it takes, before any work (a window outside its half once evaluated other files
+    # under its own name, or crashed; a start past the window gave nan)
+    for bad, said in ((["--windows", "test"], "--windows"), (["--windows", "test:x"], "--windows"),
+                      (["--windows", "north:994"], "halves"), (["--windows", "test:0"], "894 to 1588"),
+                      (["--windows", "test:1700"], "894 to 1588"), (["--starts", "0,200"], "0 to 199"),
+                      (["--starts", "-1"], "0 to 199"), (["--starts", "0,x"], "--starts"),
+                      (["--kinds", "spring"], "winter, flat, noise")):
+        r = CliRunner().invoke(app, ["eval", "starts", "--data", ".", *bad])
+        assert r.exit_code == 2 and said in " ".join(r.output.split()), (bad, r.output)
+    with pytest.raises(ValueError, match="0 to 199"):
+        rules.start_shares(data=Path("."), starts=(250,))
 
 
 @needs_data

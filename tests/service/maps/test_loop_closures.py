@@ -232,6 +232,57 @@ def test_after_a_restore_log_ids_are_not_handed_out_again_and_the_epoch_says_so(
         assert c.get("/v1/maps/default/loop-closures").json()["epoch"] not in (epoch, restored)
 
 
+def test_a_moved_map_keeps_its_epoch_and_no_copy_hands_out_an_id_again(tmp_path):
+    # The marks of a restore travel with a snapshot (its manifest's lineage). A move between shards
+    # (`MapRegistry.import_live`) is the same map: its epoch stays, so a back end's cursor stays good; a
+    # map imported with `cortexloc import` is another map (another epoch). Neither hands out a seq or a
+    # log id the map handed out before the snapshot, even one a restore had rolled back (before, both
+    # started again above the file's own: the rolled-back ids came back).
+    from typer.testing import CliRunner
+
+    from service.cli import app as cli_app
+
+    with make_client(tmp_path / "a") as c:
+        patched(c)
+        drive(c, LAP, noise=0.0)
+        drive(c, LAP[:15])
+        snap = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        later = drive(c, [*LAP[15:], *range(100, 105)])  # closures and new rows the restore rolls back
+        log = c.get("/v1/maps/default/loop-closures", params={"limit": 500}).json()["loop_closures"]
+        cursor, last_seq = log[-1]["id"], max(b["seq"] or 0 for b in later)
+        assert last_seq > 0
+        assert c.post(f"/v1/maps/default/snapshots/{snap}/restore").status_code == 200
+        epoch = c.get("/v1/maps/default/loop-closures").json()["epoch"]
+        tar_id = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        tar = tmp_path / "default.tar"
+        tar.write_bytes(c.get(f"/v1/maps/default/snapshots/{tar_id}/download").content)
+
+    def continues(c) -> tuple[str, list[int], list[int]]:
+        """The map's epoch after it learns on, the log ids and the seqs that learning handed out."""
+        def ids() -> set[int]:
+            page = c.get("/v1/maps/default/loop-closures", params={"limit": 500}).json()
+            return {e["id"] for e in page["loop_closures"]}
+        held = ids()
+        bodies = drive(c, [*LAP[15:], *range(200, 205)])  # a stretch it knows, then new places
+        return (c.get("/v1/maps/default/loop-closures").json()["epoch"], sorted(ids() - held),
+                [b["seq"] for b in bodies if b["seq"] is not None])
+
+    with make_client(tmp_path / "b") as c:  # the receiving shard of a move
+        assert c.delete("/v1/maps/default").status_code == 204
+        c.app.state.registry.import_live(tar, 1 << 30)
+        assert c.get("/v1/maps/default/loop-closures").json()["epoch"] == epoch
+        moved_epoch, moved_log, moved_seqs = continues(c)
+    assert moved_epoch == epoch
+    assert moved_log and moved_log[0] == cursor + 1 and moved_seqs and min(moved_seqs) == last_seq + 1
+
+    assert CliRunner().invoke(cli_app, ["import", str(tar), "--data-dir", str(tmp_path / "c")]).exit_code == 0
+    with make_client(tmp_path / "c") as c:  # a copy: another map
+        patched(c)
+        copy_epoch, copy_log, copy_seqs = continues(c)
+    assert copy_epoch not in (epoch, moved_epoch)
+    assert copy_log and copy_log[0] == cursor + 1 and copy_seqs and min(copy_seqs) == last_seq + 1
+
+
 def test_a_repeated_localisation_post_logs_its_closure_once(tmp_path):
     data = tmp_path / "data"
     with make_client(data) as c:

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
+from service.routes.health import UNNAMED_ERROR
 from service.scaleout.embedding import EmbeddingService
 from service.scaleout.ingress import create_ingress_app
 from service.scaleout.shard import ShardHost
@@ -294,12 +295,15 @@ def test_moving_a_map_keeps_every_row_and_switches_the_route(cluster):
     with cluster.client() as c:
         assert c.post("/v1/maps", json={"map_id": "m0", **TINY}).status_code == 201  # shard-1
         acked = [post(c, "m0", i, key=f"move-key-{i:04d}").json()["observation_id"] for i in range(4)]
+        epoch = c.get("/v1/maps/m0/loop-closures").json()["epoch"]
         out = c.portal.call(cluster.shards.move, "m0", "shard-0", [])
         assert out["from"] == "shard-1" and out["to"] == "shard-0" and out["observations"] == 4
         assert cluster.shards.table.get("m0").shard == "shard-0"
         assert "m0" not in cluster.hosts["shard-1"].map_ids()
         rows = c.get("/v1/maps/m0/observations").json()["observations"]
         assert [r["observation_id"] for r in rows] == acked
+        # the same map, its log and rows in the same epoch: a back end's cursor stays good
+        assert c.get("/v1/maps/m0/loop-closures").json()["epoch"] == epoch
         # The moved map learns on: the next seq, and a key of before the move is still replayed.
         assert post(c, "m0", 9).json()["seq"] == 5
         assert post(c, "m0", 0, key="move-key-0000").headers["Idempotent-Replayed"] == "true"
@@ -372,6 +376,24 @@ def test_a_shard_down_at_the_ingress_start_is_read_when_it_answers(cluster):
             time.sleep(0.5)
         assert c.get("/readyz").status_code == 200
         assert c.get("/v1/maps/anything").status_code == 404
+
+
+def test_where_reads_need_the_key_the_ingress_readiness_names_no_file_of_the_host(cluster):
+    # the reason the ingress gives itself for routes it could not read is any exception's text (Ray's
+    # words may name its session's files); the shards hide their own (tests/service/test_read_key.py)
+    secret = f"{cluster.root}/ray/session_latest/logs/raylet.err"
+    cluster.dead.add("shard-1")
+    for reads, shown in ((True, False), (False, True)):
+        with cluster.client(api_key="k3y", api_key_reads=reads) as c:
+            deadline = time.monotonic() + 30
+            while c.app.state.shards_error is None and time.monotonic() < deadline:  # its first try failed
+                time.sleep(0.05)
+            c.app.state.shards_error = f"the shards' maps could not be read: RuntimeError: see {secret}"
+            r = c.get("/readyz")
+            assert r.status_code == 503 and {"routes", "shard-1"} <= set(r.json()["checks"]), r.text
+            assert (secret in r.text) is shown
+            assert (r.json()["checks"]["routes"]["error"] == UNNAMED_ERROR) is not shown
+            assert "shard-1" in r.json()["checks"]["shard-1"]["error"]  # which shard, said either way
 
 
 def test_a_stalled_body_meets_the_deadline_at_the_ingress(cluster):
