@@ -4,7 +4,8 @@ client; a shard's replica, then the encoder's, then the ingress's killed with SI
 restarts each (a shard from its data directory); meanwhile clients get 503 + Retry-After (problem+json),
 or the proxy's plain 500 for a request the dead ingress held; their retries with the same
 Idempotency-Key are replayed, not learned twice; then acknowledged == stored on every map, no post was
-lost or answered 500, a map moves between shards with one command, and `cortexloc verify` finds every
+lost or answered 500, a map moves between shards with one command (the same map there: its epoch
+kept), and `cortexloc verify` finds every
 shard's maps clean.
 
 Kept light for 2 shared cores: tiny maps (128 columns, k = 64), 64x48 frames, the torch runtime (no
@@ -230,12 +231,15 @@ def test_a_replica_of_each_kind_killed_mid_stream_costs_no_frame(cluster):
     # rows held: the rows made less those the warm-up joins dropped (docs/design/science.md §11.8)
     held_before = client.get_map("m0").observations
     assert held_before <= held["m0"]
+    log = f"{c.base}/v1/maps/m0/loop-closures"
+    epoch = httpx.get(log, headers={"X-API-Key": KEY}).json()["epoch"]
     out = c.cli("shards", "move", "m0", "--to", target, "--address", c.address)
     assert out.returncode == 0, out.stderr[-2000:]
     moved = json.loads(out.stdout.strip().splitlines()[-1])
     assert moved["from"] == victim and moved["to"] == target and moved["observations"] == held_before
     assert c.routes()["m0"] == (target, "serving")
     assert client.get_map("m0").observations == held_before
+    assert httpx.get(log, headers={"X-API-Key": KEY}).json()["epoch"] == epoch  # the same map: same epoch
     after = client.observe("m0", tiny_frame(99), stream="left")  # learning goes on where it stopped
     if after.consolidated_into is None:
         assert after.seq == held["m0"] + 1
