@@ -12,9 +12,10 @@ pytestmark = pytest.mark.skipif(not (nordland_dir() / "winter").is_dir(),
                                 reason=f"shared Nordland data not found at {nordland_dir()} "
                                        "(set CORTEXLOC_SHARED_DATA)")
 
-#: The five 200-frame windows of the cross-season tables; tune and test (894 frames each) are run by
-#: `cortexloc eval runtime-parity` (docs/benchmarks.md §10).
-WINDOWS = ["1-200", "401-600", "801-1000", "1201-1400", "1589-1788"]
+#: Two of the five 200-frame windows of the cross-season tables, the hardest `tune` one and the last of
+#: `test` (3 minutes for all five held `make test` up on 2 cores); all five, and tune and test whole
+#: (894 frames each), are run by `cortexloc eval runtime-parity` (docs/benchmarks.md §10).
+WINDOWS = ["1-200", "1589-1788"]
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +26,7 @@ def result():
 
 
 def test_codes_on_real_frames_overlap_at_least_99_percent(result):
-    assert result["frames"] == 2 * 1000
+    assert result["frames"] == 2 * 200 * len(WINDOWS)
     assert result["overlap_mean"] >= 0.99, result
 
 
