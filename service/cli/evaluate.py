@@ -477,7 +477,11 @@ def eval_runtime_parity(
     from models.evaluation.nordland_tables import WINDOWS
     from service.evaluation.runtime_parity import report
 
-    report(windows.split(",") if windows else list(WINDOWS), json_out)
+    chosen = windows.split(",") if windows else list(WINDOWS)
+    if unknown := [w for w in chosen if w not in WINDOWS]:  # before any frame is encoded
+        raise typer.BadParameter(f"--windows: no window {', '.join(unknown)}; the windows are "
+                                 f"{', '.join(WINDOWS)}")
+    report(chosen, json_out)
 
 
 @app.command("resize")

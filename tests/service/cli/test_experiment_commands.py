@@ -47,3 +47,9 @@ def test_help_of_every_experiment_and_benchmark_imports_no_torch_or_cv2() -> Non
             "print('torch' in sys.modules, 'cv2' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "False"]
+
+
+def test_an_unknown_window_is_refused_before_any_frame_is_encoded() -> None:
+    # found by a review: `eval runtime-parity --windows 9-99` encoded nothing and ended in a KeyError
+    r = CliRunner().invoke(app, ["eval", "runtime-parity", "--windows", "1-200,9-99"])
+    assert r.exit_code == 2 and "no window 9-99" in " ".join(r.output.split()), r.output
