@@ -391,7 +391,8 @@ class PlaceMap:
     def explained(self, stream: str, place: Place, direction: int, code_of: Callable[[int], np.ndarray],
                   trail: str | None = None) -> list[tuple[int, int]]:
         """The warm-up joins a learning stream's confident revisit `place` gives (docs/design/science.md
-        §11.8): (row, old row) for each of the stream's newest `reach` rows that is a place of its own
+        §11.8): (row, old row) for each of the stream's newest `reach` rows held (its own learned frames,
+        as its short-term memory's ring remembers them, `ShortTerm.ages`) that is a place of its own
         (made while it warmed up or was unsure; nothing named it since), that the path covers (made
         a frames ago, a < the path's `support`), and that is represented, at the `consolidate` level, by
         the row the path stood on then: a row a links back from `place.seq` along its route, against
@@ -407,20 +408,22 @@ class PlaceMap:
         memory = self._short.get(trail or stream)
         if c >= 1.0 or memory is None:
             return []
-        short = self.short_term_rows(trail or stream)
-        if not short.size:
-            return []
         g = self.graph
         tries = int(self.options.exclusion)
-        newest = short[-self.reach():]
+        # its newest rows held, from the memory's ring, whether or not still in the short-term memory
+        # proper: with poses that memory is the last `short_term_metres` of path, which at a frame every
+        # 10 m is 2 rows, and a posed drive's first warm-up rows were never joined (an outside tester)
+        ages = memory.ages(stream)
+        newest = np.array([r for r in sorted(ages, key=ages.__getitem__) if self.used[r] >= 0][:self.reach()],
+                          np.int64)
+        if not newest.size:
+            return []
         rows = [r for r, alone in zip(newest.tolist(), g.alone(newest), strict=True)
                 if alone and self._tried.get(r, 0) < tries]
+        rows = [r for r in rows if ages[r] + 1 < place.support]  # the path covers it
         if not rows:
             return []
-        ages = memory.ages(stream)
-        rows = [r for r in rows if ages.get(r, place.support) + 1 < place.support]  # the path covers it
-        if not rows:
-            return []
+        short = self.short_term_rows(trail or stream)
         if len(self._tried) > KEPT * self.reach():  # bounded: the rows of the streams kept
             self._tried.clear()
         mine = set(g.place[short].tolist())

@@ -65,18 +65,42 @@ def _not_utf8(query_string: bytes) -> list[str]:
     return bad
 
 
+#: The most of a body a route that takes none reads to see whether it is empty (`{}`, whitespace).
+_EMPTY_BODY_READ = 64
+
+
+async def _no_body(request: Request) -> None:
+    """A route that declares no body (no body parameter, no OpenAPI `requestBody`: its options are query
+    parameters) gets none: a body such as
+    `{"dry_run": true}` to `POST .../repair` would otherwise be ignored and the repair run. An empty JSON
+    object, or whitespace, says nothing and passes; anything else is refused unread past
+    `_EMPTY_BODY_READ` bytes.
+
+    Raises:
+        Problem: 400 invalid-parameter (location `body`)."""
+    body = b""
+    async for chunk in request.stream():  # the route reads nothing: at most a few bytes are read here
+        body += chunk
+        if len(body) > _EMPTY_BODY_READ:
+            break
+    if body.strip() not in (b"", b"{}"):
+        raise Problem(400, "invalid-parameter", "this route takes no request body: its options are query "
+                      "parameters (nothing was done)",
+                      errors=[{"location": "body", "name": "", "message": "no body is accepted"}])
+
+
 async def check_request_parameters(request: Request) -> None:
     """The rules every route's query (and declared headers) follow (docs/design/service.md §2), read from
     the route's own declarations: each query name and value is UTF-8, each parameter is one the route
     declares and is given once (FastAPI would silently ignore an unknown one, so a misspelt `learn=false`
     would learn, and take the last of a repeated one), and so is each header the route declares
     (`Idempotency-Key`: two keys in one request bind neither safely). A route that reads a JSON body
-    gets one sent as JSON.
+    gets one sent as JSON; a route that reads none gets none (`_no_body`).
 
     Raises:
         Problem: 415 unsupported-media-type for a body of another type on a JSON route; 400
             invalid-parameter naming each offending parameter (and listing the accepted ones
-            for an unknown one).
+            for an unknown one), or a body sent to a route that takes none.
     """
     query = request.scope.get("query_string") or b""
     if query.count(b"&") >= MAX_QUERY_PARAMETERS:
@@ -102,6 +126,8 @@ async def check_request_parameters(request: Request) -> None:
                        advice=f"; this route accepts: {listed}", accepted=sorted(accepted))
     sent = (request.headers.get("content-length", "0") not in ("", "0")
             or "transfer-encoding" in request.headers)
+    if sent and not (dependant.body_params or "requestBody" in (getattr(route, "openapi_extra", None) or {})):
+        await _no_body(request)
     if dependant.body_params and sent and not is_json(request.headers.get("content-type")):
         # FastAPI would read any other type as bytes and say the body is no object: the wrong reason
         media = request.headers.get("content-type")

@@ -160,8 +160,10 @@ def _router() -> APIRouter:
         maps = [m for shard, b in bodies.items() for m in b["maps"] if owner.get(m["map_id"]) == shard]
         return MapList.model_validate({"maps": sorted(maps, key=lambda m: m["map_id"])})
 
+    # (the body is read as it came and forwarded; declared, so the request rules let it through)
     @v1.post("/maps", dependencies=[QueryRulesDep, ApiKeyDep],
-             responses=problem_responses(400, 401, 409, 422, 503))
+             responses=problem_responses(400, 401, 409, 422, 503),
+             openapi_extra={"requestBody": {"content": {"application/json": {}}}})
     async def create_map(request: Request, shards: ShardsDep) -> Response:
         """Created on the shard with the fewest maps, then routed there."""
         body = await request.body()
