@@ -156,19 +156,19 @@ def test_json_sent_as_another_type_is_415_saying_which_type_and_changes_nothing(
     assert client.post("/v1/maps/default/snapshots").status_code == 201  # no body: no type needed
 
 
-@pytest.mark.parametrize("body", [b'{"dry_run": true}', b"not json at all", b'{"label": "x"}', b"[]",
-                                  b"x" * 10_000])
-def test_a_body_sent_to_a_route_that_takes_none_is_refused_and_changes_nothing(client, body):
+def test_a_body_sent_to_a_route_that_takes_none_is_refused_and_changes_nothing(client):
     """Found from outside: `POST .../repair` with `{"dry_run": true}` ignored the body and ran the repair
     (200, rows re-made, closures retracted); `POST .../snapshots` dropped `{"label": "x"}` silently. A
     route whose options are query parameters takes no body; an empty one (`{}`, whitespace) says nothing."""
     post(client, frame(1), stream="s", learn="true")
     snapshots = client.get("/v1/maps/default/snapshots").json()["snapshots"]
-    for path in ("/v1/maps/default/repair", "/v1/maps/default/snapshots", "/v1/maps/default/streams/s/reset"):
-        r = client.post(path, content=body, headers={"Content-Type": "application/json"})
-        assert r.status_code == 400, (path, r.text)
-        assert r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
-        assert r.json()["errors"] == [{"location": "body", "name": "", "message": "no body is accepted"}]
+    for body in (b'{"dry_run": true}', b"not json at all", b'{"label": "x"}', b"[]", b"x" * 10_000):
+        for path in ("/v1/maps/default/repair", "/v1/maps/default/snapshots",
+                     "/v1/maps/default/streams/s/reset"):
+            r = client.post(path, content=body, headers={"Content-Type": "application/json"})
+            assert r.status_code == 400, (path, body[:20], r.text)
+            assert r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
+            assert r.json()["errors"] == [{"location": "body", "name": "", "message": "no body is accepted"}]
     assert client.get("/v1/maps/default/snapshots").json()["snapshots"] == snapshots
     for empty in (b"{}", b" \n", b""):
         assert client.post("/v1/maps/default/snapshots", content=empty,
