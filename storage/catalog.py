@@ -352,10 +352,9 @@ class Catalog:
     # ------------------------------------------------------------------ maps
 
     def create_map(self, map_id: str, params: dict[str, Any], *, preset: str | None = None,
-                   state: MapState = "ready", created_at: str | None = None,
-                   lineage: Lineage | None = None) -> MapRecord:
-        """Register a new map; `lineage`: the same map coming from elsewhere (a move between shards),
-        with its creation, counts and id marks (`created_at` is then its).
+                   state: MapState = "ready", lineage: Lineage | None = None) -> MapRecord:
+        """Register a new map, made now; `lineage`: its creation, counts and id marks where it comes from
+        elsewhere (a snapshot's: a move between shards, an import).
 
         Raises:
             MapExists: the id is taken.
@@ -363,7 +362,7 @@ class Catalog:
         """
         if state not in MAP_STATES:
             raise ValueError(f"state must be one of {MAP_STATES}, got {state!r}")
-        line = lineage or Lineage(created_at or utc_now())
+        line = lineage or Lineage(utc_now())
         try:
             with self._write() as db:
                 db["maps"].insert({"map_id": map_id, "created_at": line.created_at, "state": state,

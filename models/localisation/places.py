@@ -11,6 +11,7 @@ beyond that pass (benchmarks/bench_index.py, docs/benchmarks.md).
 from __future__ import annotations
 
 import copy
+import itertools
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, TypeVar
@@ -413,9 +414,9 @@ class PlaceMap:
         # its newest rows held, from the memory's ring, whether or not still in the short-term memory
         # proper: with poses that memory is the last `short_term_metres` of path, which at a frame every
         # 10 m is 2 rows, and a posed drive's first warm-up rows were never joined (an outside tester)
-        ages = memory.ages(stream)
-        newest = np.array([r for r in sorted(ages, key=ages.__getitem__) if self.used[r] >= 0][:self.reach()],
-                          np.int64)
+        ages = memory.ages(stream)  # newest first
+        held = (r for r in ages if self.used[r] >= 0)
+        newest = np.fromiter(itertools.islice(held, self.reach()), np.int64)
         if not newest.size:
             return []
         rows = [r for r, alone in zip(newest.tolist(), g.alone(newest), strict=True)

@@ -156,8 +156,8 @@ class ShortTerm:
 
     def ages(self, stream: str = "") -> dict[int, int]:
         """Each row `stream` made that the memory remembers -> how many of that stream's learned frames
-        came after it (0: its row was the stream's last frame's); a trail's other streams' frames do not
-        count. O(frames remembered)."""
+        came after it (0: its row was the stream's last frame's), newest first; a trail's other streams'
+        frames do not count. O(frames remembered)."""
         slot = self._slots.get(stream)
         if slot is None:
             return {}
