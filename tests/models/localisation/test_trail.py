@@ -15,6 +15,14 @@ W, N = 2048, 300
 RNG = np.random.default_rng(7)
 
 
+@pytest.fixture(autouse=True)
+def _seeded() -> None:
+    """Each test draws its codes from a fresh RNG: under pytest-xdist a test's neighbours in one worker
+    vary, and the codes they drew changed this test's (one failed that way, in a run of this round)."""
+    global RNG
+    RNG = np.random.default_rng(7)
+
+
 def place() -> np.ndarray:
     return np.sort(RNG.choice(W, N, replace=False))
 
