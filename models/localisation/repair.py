@@ -70,11 +70,15 @@ class Merges:
         joins: the refs of the made rows that joined a place through a row of the stream's own memory.
         closures: the ids of the closures that named a row of the stream's own memory (or were logged
             with a visit into one).
+        past_repair: the ids among `closures` logged with a consolidated frame whose visit the log no
+            longer holds (pruned, a snapshot covers it): the closure can be retracted, the frame cannot be
+            split (its code is gone).
     """
 
     visits: list[int] = field(default_factory=list)
     joins: list[int] = field(default_factory=list)
     closures: list[int] = field(default_factory=list)
+    past_repair: list[int] = field(default_factory=list)
 
 
 def window(options: LocaliserOptions | None) -> int:
@@ -95,15 +99,25 @@ def own_trail_merges(log: Iterable[Learned | Named], options: LocaliserOptions |
         code_width: the frame code's bit space (the code statistics the memory's moves read, §11.6).
 
     Returns:
-        The merges. One pass, O(log · memory) time, O(rows) memory (the codes are not kept).
+        The merges. One pass, O(log · memory) time, O(rows) memory (the codes are not kept). A
+        consolidated frame's closure comes just before its visit (it is stamped first, in the same
+        transaction), so a flagged one whose stream's next step is not a visit into its row lost its
+        visit to the log's prune (`Merges.past_repair`).
     """
     place_map = PlaceMap(dataclasses.replace(options or LocaliserOptions(), short_term=window(options)),
                          code_width)
     out = Merges()
+    awaiting: dict[str, Named] = {}  # per stream: a flagged consolidated frame's closure, its visit next
     for event in log:
+        if not isinstance(event, Named) or event.into != NONE:
+            was = awaiting.pop(event.stream, None)
+            if was is not None and (isinstance(event, Named) or event.made or event.seq != was.into):
+                out.past_repair.append(was.id)
         if isinstance(event, Named):
             if np.isin([event.place_seq, event.into], place_map.short_term_rows(event.stream)).any():
                 out.closures.append(event.id)
+                if event.into != NONE:
+                    awaiting[event.stream] = event
         elif event.made:  # (the memory read only where the row joined a place: most rows did not)
             if event.through and np.isin(event.through, place_map.short_term_rows(event.stream)).any():
                 out.joins.append(event.ref)
@@ -113,4 +127,5 @@ def own_trail_merges(log: Iterable[Learned | Named], options: LocaliserOptions |
             if not rehearsal and event.seq in place_map.short_term_rows(event.stream):
                 out.visits.append(event.ref)
             place_map.visit(None, event.seq, event.seq, event.stream, event.code, event.motion)
+    out.past_repair.extend(c.id for c in awaiting.values())
     return out

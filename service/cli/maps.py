@@ -116,8 +116,10 @@ def _merges(found: Found) -> None:
         typer.echo(f"    visit {v.id}: stream {v.stream!r} consolidated into its own row {v.seq}")
     for seq, was, stream in found.joins:
         typer.echo(f"    row {seq}: stream {stream!r} joined the place of its own row {was}")
+    past = set(found.past_repair)
     for cid, stream, place in found.closures:
-        typer.echo(f"    loop closure {cid}: stream {stream!r} named its own row {place}")
+        gone = "; its frame's visit is pruned from the log, past repair" if cid in past else ""
+        typer.echo(f"    loop closure {cid}: stream {stream!r} named its own row {place}{gone}")
 
 
 def repair(
@@ -174,6 +176,10 @@ def repair(
     typer.echo(f"map {map_id}: {done} {len(body['splits'])} visit(s) as rows ({body['rows_added']} rows "
                f"added), {len(body['unjoins'])} place join(s), {len(body['retractions'])} loop closure(s) "
                f"retracted; a stream's recent trail: its last {body['window']} moves")
+    if body.get("past_repair"):
+        typer.echo(f"map {map_id}: {len(body['past_repair'])} of those loop closures were logged with a "
+                   f"consolidated frame whose visit the visit log has pruned (through visit "
+                   f"{body['visits_pruned_through']}): their edges are retracted, their frames stay merged")
     if body.get("rewrite"):
         changes = "changed" if body["repaired"] else "would change"
         typer.echo(f"map {map_id}: the loop-closure log's cap pruned entries this repair may withdraw "

@@ -42,12 +42,18 @@ class Found:
         joins: (row, the row whose place it joined) of the rows that joined a place through a row of
             their stream's own memory, in seq order.
         closures: the logged closures to retract, in log order: each (id, stream, the row it named).
+        past_repair: the ids among `closures` logged with a consolidated frame whose visit the log has
+            pruned: retracted, but the frame stays merged (its code is gone).
+        visits_pruned_through: the last visit id the log pruned (0: none): a merge among those visits is
+            past repair, and one without a closure is not found at all.
     """
 
     window: int
     visits: list[Visit] = field(default_factory=list)
     joins: list[tuple[int, int, str]] = field(default_factory=list)
     closures: list[tuple[int, str, int]] = field(default_factory=list)
+    past_repair: list[int] = field(default_factory=list)
+    visits_pruned_through: int = 0
 
     def __bool__(self) -> bool:
         return bool(self.visits or self.joins or self.closures)
@@ -71,7 +77,8 @@ def _log(store: MapStore, closures: list[LoopClosure]) -> Iterator[Learned | Nam
     joined = store.joined()  # the place of a row stored before version 5
     k = 0
     for step in in_order(learned_rows(store), store.visits()):
-        while k < len(others) and others[k].created_at < step.created_at:
+        # `<=`: a consolidated frame's closure is stamped before its visit, at worst in the same microsecond
+        while k < len(others) and others[k].created_at <= step.created_at:
             yield _named(others[k])
             k += 1
         if isinstance(step, Visit) and step.row is not None:  # a row a warm-up join turned into a visit
@@ -118,7 +125,7 @@ def find(store: MapStore, conf: dict[str, Any] | None, code_width: int) -> Found
     retracted = store.retracted()
     closures = _closures(store)
     merges = own_trail_merges(_log(store, closures), conf, code_width)
-    out = Found(window(conf))
+    out = Found(window(conf), visits_pruned_through=store.visits_pruned_through())
     wanted = set(merges.visits) - split
     if wanted:
         out.visits = [v for v in store.visits() if v.id in wanted]
@@ -129,6 +136,7 @@ def find(store: MapStore, conf: dict[str, Any] | None, code_width: int) -> Found
         out.joins = [(s, int(_joined(rows[s], joined)), rows[s].stream) for s in joins]  # type: ignore[arg-type]
     named = {c.id: c for c in closures}
     out.closures = [(i, named[i].stream, named[i].place_seq) for i in merges.closures if i not in retracted]
+    out.past_repair = [i for i in merges.past_repair if i not in retracted]
     return out
 
 

@@ -104,4 +104,5 @@ class Repairing:
                     for v, s in zip(found.visits, made, strict=True)],
             unjoins=[Unjoin(seq=s, stream=st, joined=was) for s, was, st in found.joins],
             retractions=[Retraction(closure=i, stream=st, place_seq=p) for i, st, p in found.closures],
-            rows_added=len(seqs or []), rewrite=rewrite)
+            rows_added=len(seqs or []), rewrite=rewrite, past_repair=found.past_repair,
+            visits_pruned_through=found.visits_pruned_through)

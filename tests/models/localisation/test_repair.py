@@ -49,3 +49,17 @@ def test_a_map_without_a_memory_is_judged_by_the_default_window():
     log = [*rows("a", range(1, 16)), Learned("a", 3, code(50), made=False, ref=7)]  # 12 moves back
     assert own_trail_merges(log, LocaliserOptions(short_term=0), 512).visits == [7]
     assert own_trail_merges(log, LocaliserOptions(short_term=5), 512).visits == []
+
+
+def test_a_flagged_closure_whose_visit_the_log_no_longer_holds_is_past_repair():
+    log = [*rows("a", range(1, 6)),
+           Named(1, "a", 4, into=4), Learned("a", 4, code(30), made=False, ref=201),  # its visit is kept
+           Named(2, "a", 3, into=3),  # its visit pruned: the stream's next step is a row
+           *rows("a", range(6, 8), first_code=40),
+           Named(3, "a", 5, into=5), Named(4, "a", 6, into=6),  # two in a row: the first's visit is gone
+           Learned("b", 6, code(60), made=False, ref=202),  # another stream's step settles nothing
+           Learned("a", 6, code(61), made=False, ref=203),  # closure 4's visit
+           Named(5, "a", 7, into=7)]  # the log ends before its visit
+    found = own_trail_merges(log, LocaliserOptions(short_term=4), 512)
+    assert found.closures == [1, 2, 3, 4, 5] and found.visits == [201, 203]
+    assert found.past_repair == [2, 3, 5]

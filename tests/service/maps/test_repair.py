@@ -183,6 +183,43 @@ def test_a_repair_beyond_what_the_log_keeps_changes_its_epoch_so_a_follower_rebu
         assert c.get("/v1/maps/m/loop-closures").json()["epoch"] == epoch
 
 
+def test_a_repair_past_the_visit_logs_prune_retracts_every_edge_and_names_the_frames_it_cannot_split(
+        tmp_path):
+    # An outside probe: with the visit log pruned under the echoes, a repair retracted all 12 closures but
+    # split only the 2 visits it still had, and its reply did not say the other 10 were past repair.
+    with make_client(tmp_path / "data", snapshot_every=5, visits=1) as c:
+        body = {"map_id": "m", "revisit_threshold": THRESHOLD, "localiser": {"short_term": 0}}
+        assert c.post("/v1/maps", json=body).status_code == 201
+        z = drive(c, [25, 26, 27], stream="z", noise=0.0, map_id="m")
+        a = drive(c, range(10), stream="a", noise=0.0, map_id="m")
+        rt = c.app.state.registry.get("m")
+        visits = [echo_visit(rt, "a", a[i]["seq"], rt.store.get(b["seq"]).input_sdr)
+                  for i, b in zip((6, 7, 8), z, strict=True)]
+        drive(c, range(10, 17), stream="a", noise=0.0, map_id="m")  # an automatic snapshot prunes the log
+        pruned = rt.store.visits_pruned_through()
+        assert pruned == visits[1] and rt.store.visit_stats()[0] == 1  # the newest echo's visit is kept
+        log = c.get("/v1/maps/m/loop-closures").json()["loop_closures"]
+        echoes = [e["id"] for e in log if e["consolidated_into"] in {a[i]["seq"] for i in (6, 7, 8)}]
+        assert len(echoes) == 3
+        found = listing(c)
+        assert [s["visit"] for s in found["splits"]] == [visits[2]]
+        assert sorted(r["closure"] for r in found["retractions"]) == echoes
+        assert found["past_repair"] == echoes[:2] and found["visits_pruned_through"] == pruned
+    # offline, the CLI's listing and `verify` say which edges are past repair
+    out = CliRunner().invoke(cli, ["repair", "--map", "m", "--dry-run", "--data-dir", str(tmp_path / "data")])
+    assert out.exit_code == 0 and "2 of those loop closures" in out.output, out.output
+    out = CliRunner().invoke(cli, ["verify", "--data-dir", str(tmp_path / "data")])
+    assert out.exit_code == 0 and out.output.count("past repair") == 2, out.output
+    with make_client(tmp_path / "data", snapshot_every=5, visits=1) as c:
+        done = c.post("/v1/maps/m/repair").json()
+        assert done["rows_added"] == 1 and done["past_repair"] == echoes[:2]
+        withdrawn = [e["retracts"] for e in c.get("/v1/maps/m/loop-closures").json()["loop_closures"]
+                     if e["retracts"] is not None]
+        assert sorted(withdrawn) == echoes  # every edge retracted, the pruned frames' too
+        again = c.post("/v1/maps/m/repair").json()
+        assert nothing(again) and again["past_repair"] == [] and again["visits_pruned_through"] == pruned
+
+
 def test_a_retracted_closure_leaves_its_g2o_edge_out_for_a_comment():
     v = {"verified": True, "keyframe_seq": 4, "rotation": np.eye(3).tolist(), "translation": [0, 0, 1]}
     closure = LoopClosure(id=7, stream="a", seq=9, observation_id="o9", metadata=None, place_seq=4,
