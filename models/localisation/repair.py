@@ -70,9 +70,9 @@ class Merges:
         joins: the refs of the made rows that joined a place through a row of the stream's own memory.
         closures: the ids of the closures that named a row of the stream's own memory (or were logged
             with a visit into one).
-        past_repair: the ids among `closures` logged with a consolidated frame whose visit the log no
-            longer holds (pruned, a snapshot covers it): the closure can be retracted, the frame cannot be
-            split (its code is gone).
+        past_repair: the ids among `closures` logged with a frame consolidated into a row of the
+            stream's memory whose visit the log no longer holds (pruned, a snapshot covers it): the
+            closure can be retracted, the frame cannot be split (its code is gone).
     """
 
     visits: list[int] = field(default_factory=list)
@@ -100,9 +100,11 @@ def own_trail_merges(log: Iterable[Learned | Named], options: LocaliserOptions |
 
     Returns:
         The merges. One pass, O(log · memory) time, O(rows) memory (the codes are not kept). A
-        consolidated frame's closure comes just before its visit (it is stamped first, in the same
-        transaction), so a flagged one whose stream's next step is not a visit into its row lost its
-        visit to the log's prune (`Merges.past_repair`).
+        consolidated frame's closure comes just before its visit (the writer stamps it first and commits
+        both at once; while the wall clock does not step back), so a closure whose frame went into a row
+        of the memory, and whose stream's next step is not a visit into that row, lost its visit to the
+        log's prune (`Merges.past_repair`). The pairing is by row, not identity: where the next kept
+        visit of the stream went into the same row, the pruned one is not told.
     """
     place_map = PlaceMap(dataclasses.replace(options or LocaliserOptions(), short_term=window(options)),
                          code_width)
@@ -116,7 +118,7 @@ def own_trail_merges(log: Iterable[Learned | Named], options: LocaliserOptions |
         if isinstance(event, Named):
             if np.isin([event.place_seq, event.into], place_map.short_term_rows(event.stream)).any():
                 out.closures.append(event.id)
-                if event.into != NONE:
+                if event.into != NONE and event.into in place_map.short_term_rows(event.stream):
                     awaiting[event.stream] = event
         elif event.made:  # (the memory read only where the row joined a place: most rows did not)
             if event.through and np.isin(event.through, place_map.short_term_rows(event.stream)).any():

@@ -5,10 +5,11 @@
 The store's log is read in the order it was learned (rows by seq, visits after the row before them, as
 the replay takes them: `recovery.in_order`), each loop closure placed among them: a learned row's just
 before its row, any other (a consolidated frame's, a localising stream's) before the first step logged
-after it (`created_at`, microseconds, one writer). `models.localisation.repair.own_trail_merges` judges
-them; what an earlier repair already undid (`MapStore.repairs`, the closures a retraction withdraws) is
-left out, so a second repair finds nothing. Visits pruned from the log (a snapshot covers them,
-`max_visits`) are past repair: their codes are gone.
+at or after it (`created_at`, microseconds, one writer; a wall clock stepped back misplaces it).
+`models.localisation.repair.own_trail_merges` judges them; what an earlier repair already undid
+(`MapStore.repairs`, the closures a retraction withdraws) is left out, so a second repair finds
+nothing. Visits pruned from the log (a snapshot covers them, `max_visits`) are past repair: their codes
+are gone (`Found.past_repair` names the retracted closures whose frames stay merged).
 """
 
 from __future__ import annotations
@@ -136,7 +137,13 @@ def find(store: MapStore, conf: dict[str, Any] | None, code_width: int) -> Found
         out.joins = [(s, int(_joined(rows[s], joined)), rows[s].stream) for s in joins]  # type: ignore[arg-type]
     named = {c.id: c for c in closures}
     out.closures = [(i, named[i].stream, named[i].place_seq) for i in merges.closures if i not in retracted]
-    out.past_repair = [i for i in merges.past_repair if i not in retracted]
+    # Only a closure stamped no later than the oldest visit kept can have lost its visit (its visit is
+    # stamped after it, and one writer stamps nothing between them): this keeps most closures a clock
+    # stepped back misplaced in the log from calling a kept visit's frame past repair.
+    kept = store.visit_mark(out.visits_pruned_through + 1) if out.visits_pruned_through else None
+    oldest = None if kept is None else kept.rsplit("|", 1)[1]
+    out.past_repair = [i for i in merges.past_repair if i not in retracted and out.visits_pruned_through
+                       and (oldest is None or named[i].created_at <= oldest)]
     return out
 
 

@@ -59,7 +59,8 @@ def test_a_flagged_closure_whose_visit_the_log_no_longer_holds_is_past_repair():
            Named(3, "a", 5, into=5), Named(4, "a", 6, into=6),  # two in a row: the first's visit is gone
            Learned("b", 6, code(60), made=False, ref=202),  # another stream's step settles nothing
            Learned("a", 6, code(61), made=False, ref=203),  # closure 4's visit
-           Named(5, "a", 7, into=7)]  # the log ends before its visit
+           Named(5, "a", 7, into=7),  # the log ends before its visit
+           Named(6, "a", 7, into=1)]  # named a recent row, but its frame went far behind: no split to miss
     found = own_trail_merges(log, LocaliserOptions(short_term=4), 512)
-    assert found.closures == [1, 2, 3, 4, 5] and found.visits == [201, 203]
+    assert found.closures == [1, 2, 3, 4, 5, 6] and found.visits == [201, 203]
     assert found.past_repair == [2, 3, 5]

@@ -220,6 +220,37 @@ def test_a_repair_past_the_visit_logs_prune_retracts_every_edge_and_names_the_fr
         assert nothing(again) and again["past_repair"] == [] and again["visits_pruned_through"] == pruned
 
 
+def test_with_no_visit_pruned_a_clock_stepped_back_calls_no_frame_past_repair(tmp_path, monkeypatch):
+    # A review: the wall clock stepped back before an echo misplaces its closure in the stored log, ahead of
+    # its visit, and the reply called the frame past repair while splitting it.
+    import datetime as dt
+
+    import storage._common as common
+
+    back = [dt.timedelta(0)]
+
+    class Clock(dt.datetime):
+        @classmethod
+        def now(cls, tz=None):
+            return dt.datetime.now(tz) - back[0]
+
+    monkeypatch.setattr(common, "datetime", Clock)
+    with make_client(tmp_path / "data") as c:
+        body = {"map_id": "m", "revisit_threshold": THRESHOLD, "localiser": {"short_term": 0}}
+        assert c.post("/v1/maps", json=body).status_code == 201
+        z = drive(c, [25], stream="z", noise=0.0, map_id="m")
+        a = drive(c, range(10), stream="a", noise=0.0, map_id="m")
+        rt = c.app.state.registry.get("m")
+        t8, t9 = (dt.datetime.fromisoformat(rt.store.get(a[i]["seq"]).created_at.replace("Z", "+00:00"))
+                  for i in (8, 9))
+        back[0] = dt.datetime.now(dt.UTC) - (t8 + (t9 - t8) / 2)  # to between a's rows 8 and 9
+        visit = echo_visit(rt, "a", a[7]["seq"], rt.store.get(z[0]["seq"]).input_sdr)
+        drive(c, range(10, 14), stream="a", noise=0.0, map_id="m")
+        found = listing(c)
+        assert [s["visit"] for s in found["splits"]] == [visit] and len(found["retractions"]) == 1
+        assert found["past_repair"] == [] and found["visits_pruned_through"] == 0
+
+
 def test_a_retracted_closure_leaves_its_g2o_edge_out_for_a_comment():
     v = {"verified": True, "keyframe_seq": 4, "rotation": np.eye(3).tolist(), "translation": [0, 0, 1]}
     closure = LoopClosure(id=7, stream="a", seq=9, observation_id="o9", metadata=None, place_seq=4,
