@@ -116,9 +116,10 @@ def own_trail_merges(log: Iterable[Learned | Named], options: LocaliserOptions |
             if was is not None and (isinstance(event, Named) or event.made or event.seq != was.into):
                 out.past_repair.append(was.id)
         if isinstance(event, Named):
-            if np.isin([event.place_seq, event.into], place_map.short_term_rows(event.stream)).any():
+            recent = place_map.short_term_rows(event.stream)
+            if np.isin([event.place_seq, event.into], recent).any():
                 out.closures.append(event.id)
-                if event.into != NONE and event.into in place_map.short_term_rows(event.stream):
+                if event.into != NONE and event.into in recent:
                     awaiting[event.stream] = event
         elif event.made:  # (the memory read only where the row joined a place: most rows did not)
             if event.through and np.isin(event.through, place_map.short_term_rows(event.stream)).any():
