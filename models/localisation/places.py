@@ -400,10 +400,12 @@ class PlaceMap:
         the path's `direction` (+1: the path runs along the stored direction, -1 against it; the state's
         best hypothesis's), give or take JOIN_SLACK, stored before every row of the stretch. Never ahead
         of the path: on an aliased route the rows ahead may look like the stretch behind it, and a join
-        there merges places that far apart. The old row is never of a place a row of the stream's
-        short-term memory shows, nor of the trail the joined row lies on. Each row is tried on at most
-        `exclusion` confident frames: O(reach · JOIN_SLACK) code reads on such a frame, O(reach) on the
-        rest. `trail`: the short-term memory the stream learns into (`Motion.trail`; None: its own).
+        there merges places that far apart. A flat row (§11.7) is joined by the path alone: to the flat
+        row the path stood on then, failing that to a flat row a step off, whatever its code (a flat
+        frame's code is noise); failing both, as any row. The old row is never of a place a row of the
+        stream's short-term memory shows, nor of the trail the joined row lies on. Each row is tried on
+        at most `exclusion` confident frames: O(reach · JOIN_SLACK) code reads on such a frame, O(reach)
+        on the rest. `trail`: the short-term memory the stream learns into (`Motion.trail`; None: its own).
         """
         c = float(self.options.consolidate)
         memory = self._short.get(trail or stream)
@@ -432,14 +434,29 @@ class PlaceMap:
         out = []
         for r in rows:
             lag = ages[r] + 1  # frames from the row's frame to this one
-            old = g.route(place.seq, -int(direction), lag + JOIN_SLACK)[max(lag - JOIN_SLACK, 0):]
-            old = old[(old < first) & (self.used[old] >= 0) & (g.trail[old] != g.trail[r])]
-            old = np.array([o for o in old.tolist() if int(g.place[o]) not in mine], np.int64)
+            walk = g.route(place.seq, -int(direction), lag + JOIN_SLACK)
+            off = np.abs(np.arange(walk.size) - lag)  # steps from the path's row then
+            keep = (off <= JOIN_SLACK) & (walk < first) & (self.used[walk] >= 0)
+            keep &= (g.trail[walk] != g.trail[r]) & np.isin(g.place[walk], list(mine), invert=True)
+            old, off = walk[keep], off[keep]
             code = np.asarray(code_of(r), np.int64)
-            sims = [code_dice(code, np.asarray(code_of(o), np.int64)) for o in old.tolist()]
-            best = int(np.argmax(sims)) if sims else -1
-            if best >= 0 and sims[best] >= self.codes.level(code, c):
-                out.append((r, int(old[best])))
+            # A flat row's code is noise (§11.7): among rows as blank the most alike is chance, and a
+            # noisy tunnel frame is more like another noisy one a place off than like the clean row the
+            # path stood on. So a flat row is joined by the path alone: the flat row it stood on then,
+            # failing that a flat row a step off (the most alike); as consolidation takes a flat frame.
+            flat = self.flat[old] if self.flat[r] else np.zeros(old.size, bool)
+            tiers = [(old[(off == 0) & flat], -np.inf), (old[(off > 0) & flat], -np.inf)]
+            joined = -1
+            for cands, floor in [*tiers, (old, self.codes.level(code, c))]:
+                if not cands.size:
+                    continue
+                sims = [code_dice(code, np.asarray(code_of(o), np.int64)) for o in cands.tolist()]
+                best = int(np.argmax(sims))
+                if sims[best] >= floor:
+                    joined = int(cands[best])
+                break
+            if joined >= 0:
+                out.append((r, joined))
             else:
                 self._tried[r] = self._tried.get(r, 0) + 1
         return out

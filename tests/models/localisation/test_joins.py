@@ -22,18 +22,19 @@ A = (41, 42, 43)  # stream "a" driving on from it: its short-term memory
 WARM = 44  # "a"'s warm-up row after a restart
 
 
-def build(warm: int = 39, stm_place: int | None = None) -> tuple[PlaceMap, dict[int, np.ndarray]]:
+def build(warm: int = 39, stm_place: int | None = None,
+          flat: frozenset[int] = frozenset()) -> tuple[PlaceMap, dict[int, np.ndarray]]:
     """The rows above; the warm-up row is the frame of row `warm`. `stm_place`: row 43 joined that row's
-    place."""
+    place. `flat`: the rows that are flat rows (§11.7)."""
     place_map = PlaceMap(LocaliserOptions.of({"short_term": 20}), WIDTH)
     codes = {r: code(r) for r in range(0, WARM)}
     place_map.add(0, None, codes[0], stream="z")  # seq 0 unused by a store; keeps row ids = seqs
     for r in range(1, OLD + 1):
-        place_map.add(r, r - 1 if r > 1 else None, codes[r], stream="old")
+        place_map.add(r, r - 1 if r > 1 else None, codes[r], stream="old", flat=r in flat)
     for r in A:
         place_map.add(r, r - 1, codes[r], stream="a", place=stm_place if r == A[-1] and stm_place else -1)
     codes[WARM] = codes[warm].copy()
-    place_map.add(WARM, None, codes[WARM], stream="a")
+    place_map.add(WARM, None, codes[WARM], stream="a", flat=WARM in flat)
     return place_map, codes
 
 
@@ -63,6 +64,25 @@ def test_a_row_the_path_does_not_cover_or_stood_far_from_is_not_joined() -> None
     # run against it (row 38 reached from row 39) it stood on row 39
     assert place_map.explained("a", at(38), 1, codes.__getitem__) == []
     assert place_map.explained("a", at(38), -1, codes.__getitem__) == [(WARM, 39)]
+
+
+@pytest.mark.parametrize(("warm", "flat", "joined"), [
+    (40, {38, 39, 40, WARM}, 39),  # like the tunnel's next row (before: joined to it, a place off)
+    (10, {38, 39, 40, WARM}, 39),  # like no row near: still the path's
+    (40, {38, 40, WARM}, 40),      # the path's row is not flat: a flat row a step off, the most alike
+    (40, {WARM}, 40),              # no flat row there: its code decides, as any row's
+    (10, {WARM}, None),
+    (40, {38, 39, 40}, 40),        # a row that is not flat: its code decides whatever the rows near
+])
+def test_a_flat_row_joins_the_flat_row_the_path_stood_on_whatever_its_code(
+        warm: int, flat: set[int], joined: int | None) -> None:
+    """§11.7: a flat row's code is noise, and a noisy tunnel frame may be more like the tunnel's row a
+    step off than like the one the path stood on (a short loop's seam merged two places so, docs/results.md
+    §11): a flat row joins the flat row the path stood on then, whatever its code."""
+    place_map, codes = build(warm=warm, flat=frozenset(flat))
+    # the path is on row 40 now, so on the warm-up row's frame it stood on row 39
+    got = place_map.explained("a", at(40), 1, codes.__getitem__)
+    assert got == ([] if joined is None else [(WARM, joined)])
 
 
 def test_a_join_never_targets_the_short_term_memory() -> None:
