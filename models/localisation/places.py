@@ -375,14 +375,8 @@ class PlaceMap:
         if known:  # the place's own appearances down to the background (the stream's conditions are theirs)
             tiers, level = tiers[:1], self.codes.level(code, 0.0)
         chances = [rows[self.flat[rows]] for rows in tiers] if flat else []
-        for rows, floor in [*((rows, -np.inf) for rows in chances), *((rows, level) for rows in tiers)]:
-            if not rows.size:
-                continue
-            sims = [code_dice(code, np.asarray(code_of(int(row)))) for row in rows]
-            best = int(np.argmax(sims))
-            if sims[best] >= floor:
-                return int(rows[best])
-        return None
+        return _most_alike(code, code_of, [*((rows, -np.inf) for rows in chances),
+                                           *((rows, level) for rows in tiers)])
 
     def reach(self) -> int:
         """How many of a stream's newest rows a warm-up join looks back over: `warmup` + `exclusion`
@@ -445,17 +439,10 @@ class PlaceMap:
             # path stood on. So a flat row is joined by the path alone: the flat row it stood on then,
             # failing that a flat row a step off (the most alike); as consolidation takes a flat frame.
             flat = self.flat[old] if self.flat[r] else np.zeros(old.size, bool)
-            tiers = [(old[(off == 0) & flat], -np.inf), (old[(off > 0) & flat], -np.inf)]
-            joined = -1
-            for cands, floor in [*tiers, (old, self.codes.level(code, c))]:
-                if not cands.size:
-                    continue
-                sims = [code_dice(code, np.asarray(code_of(o), np.int64)) for o in cands.tolist()]
-                best = int(np.argmax(sims))
-                if sims[best] >= floor:
-                    joined = int(cands[best])
-                break
-            if joined >= 0:
+            joined = _most_alike(code, code_of, [(old[(off == 0) & flat], -np.inf),
+                                                 (old[(off > 0) & flat], -np.inf),
+                                                 (old, self.codes.level(code, c))])
+            if joined is not None:
                 out.append((r, joined))
             else:
                 self._tried[r] = self._tried.get(r, 0) + 1
@@ -541,6 +528,20 @@ class PlaceMap:
         shares = np.where(flat, flat_share(contrast), 1.0) if flat.any() else None
         return self.localiser.step(state, self.graph, seqs, scores, own, is_informative(contrast), moved,
                                    departed, shares)
+
+
+def _most_alike(code: np.ndarray, code_of: Callable[[int], np.ndarray],
+                tiers: Sequence[tuple[np.ndarray, float]]) -> int | None:
+    """The row most like `code` of the first tier (rows (n,) int64, floor) whose most alike row reaches
+    its floor, tiers in order, empty ones skipped; None: none does. O(rows read) code reads."""
+    for rows, floor in tiers:
+        if not rows.size:
+            continue
+        sims = [code_dice(code, np.asarray(code_of(int(row)), np.int64)) for row in rows.tolist()]
+        best = int(np.argmax(sims))
+        if sims[best] >= floor:
+            return int(rows[best])
+    return None
 
 
 def _recent(kept: OrderedDict[str, T], key: str, new: Callable[[], T]) -> T:
