@@ -712,6 +712,37 @@ def test_a_path_that_stays_on_rows_alike_to_every_frame_while_its_stream_moves_i
     assert sum(p.is_revisit(REVISIT) for p in standing[40:]) == len(stuck)
 
 
+def route_past_its_end(departed: bool, conf: dict | None = None, seed: int = 0) -> list:
+    """A stream that walks the 40 rows of an open route (a chain: row 39 has no successor), then goes on
+    past its end onto ground like the route's first rows (a loop the map never closed: nothing links
+    row 39 to row 0); `departed`: each of those frames is a move of the stream (§11.13)."""
+    n = 40
+    truth = np.concatenate([np.arange(n), np.arange(10)])
+    S = place_similarity(np.arange(n), truth, noise=0.2, seed=seed)
+    loc, graph = SequenceLocaliser(LocaliserOptions.of(conf)), SequenceGraph.chain(n)
+    state = loc.new_state()
+    return [loc.step(state, graph, np.arange(n), S[:, j], departed=departed or j < n)
+            for j in range(truth.size)]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_path_on_the_last_row_of_its_route_is_no_revisit_once_its_stream_moved_on(seed: int) -> None:
+    # docs/design/science.md §11.13: on the short loop, the localising robot's first frames past the
+    # end of the route it learned were answered as that end, sure of it: the path could not advance, and
+    # it may lag `lag_max` moves before it is no longer advancing. At a dead end it can never catch up.
+    places = route_past_its_end(departed=True, seed=seed)
+    assert all(p.is_revisit(REVISIT) and p.advancing for p in places[20:40])
+    past = places[40:]
+    assert not any(p.is_revisit(REVISIT) for p in past if p.seq == 39)
+    assert not any(p.advancing for p in past if p.seq == 39)
+    # a stream that stands at the route's end (no move, by its poses or its look) keeps its answer
+    standing = route_past_its_end(departed=False, seed=seed)
+    assert standing[40].seq == 39 and standing[40].is_revisit(REVISIT)
+    # `lag_max` at LAG_OFF turns the rule off with the lag: the end is answered, as before the rule
+    off = route_past_its_end(departed=True, conf={"lag_max": LAG_OFF}, seed=seed)
+    assert off[40].seq == 39 and off[40].advancing
+
+
 def test_lags_survive_a_snapshot_and_old_states_load_without_them() -> None:
     loc, graph = SequenceLocaliser(), SequenceGraph.chain(10)
     state = loc.new_state()
