@@ -90,10 +90,9 @@ class Place(NamedTuple):
             at most SPAN_LISTED of them.
         narrow: the span is at most `span_max` places: a revisit needs it (`is_revisit`, §11.11).
         advancing: the best path keeps pace with its stream (§11.13): it has fallen at most `lag_max` of
-            its stream's moves behind it (none it stayed through on the last row of its route, on a frame
-            showing another place), and it is not walking back along the trail its stream lays on a
-            frame that does not show its row, with no word from odometry (`mirrors`). A revisit needs
-            it (`is_revisit`).
+            its stream's moves behind it (none it stayed through on the last row of its route), and it is
+            not walking back along the trail its stream lays on a frame that does not show its row, with
+            no word from odometry (`mirrors`). A revisit needs it (`is_revisit`).
     """
 
     seq: int
@@ -144,8 +143,7 @@ class LocaliserState:
         lags: (beam,) float64 the moves its stream made that the path did not keep pace with, one row a
             move (§11.13): at a move of the stream LAG_KEPT of itself + 1, - 1 a row the path advanced,
             never below 0; at least `lag_max` + 1 once it stayed through a move on a row with no successor
-            along its direction, on a frame that does not show that row (a dead end: it can never make
-            that move up).
+            along its direction (a dead end: it can never make that move up).
         frames: frames seen since the last reset.
         null: the null hypothesis' decayed score ("a place the map has not stored",
             docs/design/science.md §11.5); NULL_PRIOR (-inf, not yet born) at the start of a stream.
@@ -393,15 +391,10 @@ class SequenceLocaliser:
         costs = self.move_costs if moved else self._still_costs
         if departed and c.lag_max < LAG_OFF:
             # A path that stays on the last row of its route (no successor along its direction: an open
-            # route's end, a traverse's end) through a move of its stream, on a frame that does not show
-            # that row, can never make that move up: it is past `lag_max` at once, not after `lag_max`
-            # moves. Else a robot driving on past a route's end is answered as that end, sure of it, for
-            # its first frames (§11.13). A frame whose best candidate is the row or a row beside it shows
-            # the robot still there (a move judged after a restart, without a last look; a noisy look; a
-            # slower robot): the lag's slack stands.
+            # route's end, a traverse's end) through a move of its stream can never make that move up:
+            # it is past `lag_max` at once, not after `lag_max` moves. Else a robot driving on past a
+            # route's end is answered as that end, sure of it, for its first frames (§11.13).
             dead = graph.walk(rows, dirs, 1) < 0
-            if dead.any() and ev.size:
-                dead &= ~np.isin(rows, graph.within(int(ev_rows[int(np.argmax(ev))]), 1))
             lags = np.where(dead, np.maximum(lags, c.lag_max + 1.0), lags)
         for m, cost in enumerate(costs):
             if m:

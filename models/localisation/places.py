@@ -255,12 +255,10 @@ class PlaceMap:
         moved = anchor.move(code, self.departure(code), motion, conf) is not None
         return moved or not posed
 
-    def departs(self, look: np.ndarray | None, code: np.ndarray) -> bool:
+    def departs(self, look: np.ndarray, code: np.ndarray) -> bool:
         """Whether a frame of code `code` (n,) sorted is a move of its stream by its look (§11.13): unlike
-        `look`, the code of the stream's last move, by the `departure` level (§11.6), or the stream's
-        first. The caller asks it only of a frame that moved by its poses too (`moves`)."""
-        if look is None:
-            return True
+        `look`, the code of the stream's last move, by the `departure` level (§11.6). The caller asks it
+        only of a frame that moved by its poses too (`moves`), with a look to judge it against."""
         code = np.asarray(code, np.int64)
         return code_dice(code, look) < self.departure(code)
 

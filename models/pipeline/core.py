@@ -257,9 +257,11 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     t_ranked = time.perf_counter()
     moved = model.place_map.moves(st.mover, code, motion)
     # a move its paths must keep pace with: by its look, and by its poses where it has them; a flat
-    # frame's code is noise, no look (§11.13)
-    departed = moved and not flat and model.place_map.departs(st.look, code)
-    if departed:
+    # frame's code is noise, no look (§11.13). With no look to judge it against (a stream's first
+    # frame, or its first after a restart: paths restored, the look not stored) a frame is the look,
+    # no move: a robot parked at its route's end would fall behind a dead end it cannot leave.
+    departed = moved and not flat and st.look is not None and model.place_map.departs(st.look, code)
+    if departed or (st.look is None and not flat):
         st.look = code
     place = model.place_map.step(st.localiser, ranked, own, contrast, moved, departed)
     visit, joined, dropped, touched, joins = None, -1, (), [], []

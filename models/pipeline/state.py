@@ -50,7 +50,7 @@ class Stream:
     mover: Anchor = field(default_factory=Anchor)
     # The code of its last move by its look (and its poses where it has them), learning or not
     # (docs/design/science.md §11.13): its paths keep pace with these. Not stored: after a restart its
-    # first frame is one.
+    # first frame is the look, no move (as a stream's first frame is).
     look: np.ndarray | None = None
     # Its last learned frame was a visit its code earned, at the consolidation level of an appearance
     # (docs/design/science.md §11.8): the stream is in the conditions of the places it passes, so a

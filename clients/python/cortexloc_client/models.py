@@ -351,8 +351,8 @@ class Place(_Reply):
     span: int | None = None
     span_seqs: list[int] | None = None
     #: The path fell more than the map's `lag_max` of the robot's moves behind it (it stayed on its rows
-    #: while the robot moved on; on its route's last row, through one move to a frame that shows
-    #: another place): never a revisit (False from an older server).
+    #: while the robot moved on; on its route's last row, through one move): never a revisit (False
+    #: from an older server).
     lagging: bool = False
 
 

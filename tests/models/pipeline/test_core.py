@@ -399,6 +399,26 @@ def test_an_unconfident_frame_is_consolidated_only_above_the_maps_unsure_fractio
     assert (step.visit == 3) is consolidated
 
 
+def test_a_restored_stream_at_its_routes_end_is_still_there_on_its_first_frame() -> None:
+    """A stream's last look is not stored (`Stream.look`), so after a restart its first frame is judged
+    against nothing. It is its look, not a move (docs/design/science.md §11.13): a robot parked at its
+    route's end (a dock), on the route's last row, a dead end its path cannot advance from, would
+    otherwise fall a move behind it for good and call no revisit there again."""
+    m, frames = model(), route(12, seed=4)
+    learn_route(m, frames, Stream())
+    st = Stream()
+    kw = {"learn": False, "stream": "b", "top_k": 3, "code_of": CODES.__getitem__, "threshold": REVISIT}
+    steps = [observe(m, st, y, **kw) for y in frames]
+    assert steps[-1].place.seq == 12 and steps[-1].place.advancing
+    _, streams = load_memory_state(memory_state(m.tm, {"b": st}), 0, 0)
+    back = streams["b"]
+    assert back.look is None and back.localiser.frames == st.localiser.frames
+    lag = float(back.localiser.lags[0])  # the best path's, on row 12
+    again = [observe(m, back, frames[-1], **kw) for _ in range(2)]
+    assert all(s.place.seq == 12 and s.place.advancing and s.place.is_revisit(REVISIT) for s in again)
+    assert back.look is not None and float(back.localiser.lags[0]) <= lag
+
+
 @pytest.mark.parametrize(("confidence", "advancing", "visit", "joined"),
                          [(0.6, True, 3, True), (0.6, False, None, False), (0.95, False, None, False),
                           (0.95, True, None, True)])
