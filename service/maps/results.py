@@ -102,8 +102,8 @@ class PlaceResult:
     path scores within the map's `span_margin` of the best), `span_seqs` their best rows, best first (at
     most 16; docs/design/science.md §11.11); `lagging`: the path has fallen more than the map's `lag_max`
     of the robot's moves behind it (it stayed on its rows while the robot moved on; at its route's last
-    row, through one move), so it is no revisit
-    whatever the confidence (docs/design/science.md §11.13)."""
+    row, through one move), so it is no revisit whatever the confidence (docs/design/science.md
+    §11.13)."""
 
     seq: int
     observation_id: str
