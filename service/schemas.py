@@ -321,7 +321,8 @@ class RepairModel(_Out):
     splits: list[SplitVisitModel]
     unjoins: list[UnjoinModel]
     retractions: list[RetractionModel]
-    rows_added: int = Field(description="rows the repair added to the map (its re-made visits)")
+    rows_added: int = Field(description="rows the repair added to the map (its re-made visits; a listing: "
+                            "the rows it would add)")
     rewrite: bool = Field(description=(
         "true: the repair changes (a listing: would change) the loop-closure log's epoch: its cap pruned "
         "entries logged since the last repair, a closure among them may be withdrawn without a retraction, "

@@ -162,9 +162,11 @@ class Settings(BaseSettings):
     snapshot_keep: int = Field(3, ge=0, description="automatic snapshots kept, and whatever their number "
                                "the one recovery starts from (0: only that one)")
     snapshot_manual_keep: int = Field(10, ge=0, description="manual snapshots kept per map, oldest "
-                                      "deleted first (0: no count limit)")
+                                      "deleted first (0: no count limit); so many pre-restore ones too, "
+                                      "counted apart")
     snapshot_manual_bytes: int = Field(2**31, ge=0, description="bytes of manual snapshots kept per map, "
-                                       "oldest deleted first (0: no byte limit)")
+                                       "oldest deleted first (0: no byte limit); so many of pre-restore "
+                                       "ones too, counted apart")
     lock_wait_s: float = Field(30.0, ge=0, description="seconds a starting server waits for another process "
                                "to let its data directory go (a restart, a rolling update) before it gives "
                                "up and exits (docs/design/service.md §4.1)")

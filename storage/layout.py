@@ -14,7 +14,9 @@ Example:
 
 from __future__ import annotations
 
+import glob
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -66,6 +68,14 @@ class Layout:
         """Where a deleted map's directory goes before it is removed: out of the maps' names (no map id
         starts with a dot), so a removal cut short leaves no map-like directory."""
         return self.maps / f".deleted-{map_id}-{token}"
+
+    def discarded_of(self, map_id: str) -> list[Path]:
+        """The discarded directories (`discarded`) of map `map_id`, not of another id it begins (a token
+        is a 32-digit hex uuid)."""
+        if not self.maps.is_dir():
+            return []
+        pattern = re.compile(re.escape(f".deleted-{map_id}-") + "[0-9a-f]{32}")
+        return [d for d in self.maps.glob(f".deleted-{glob.escape(map_id)}-*") if pattern.fullmatch(d.name)]
 
     def import_staging(self, token: str) -> Path:
         """Where `cortexloc import` unpacks a snapshot before it becomes a map's: out of the maps' names,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import sys
+import urllib.parse
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -123,6 +124,11 @@ def target(url: str | None, data_dir: Path | None, api_key: str | None) -> tuple
     if url is not None and data_dir is not None:
         raise typer.BadParameter("--data-dir is for the in-process service; with --url the server has its "
                                  "own", param_hint="--data-dir")
+    if url is not None:
+        parts = urllib.parse.urlsplit(url)
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            raise typer.BadParameter(f"{url!r} is no http:// or https:// URL (e.g. http://127.0.0.1:8000)",
+                                     param_hint="--url")
     settings = None if url is not None else _in_process_settings(data_dir)
     return settings, settings.api_key if settings is not None and api_key is None else api_key
 

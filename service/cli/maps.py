@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -35,6 +36,9 @@ def import_map(
 
     settings = process_settings(data_dir=data_dir)
     root = settings.data_dir
+    # Opening the registry makes a data directory (its catalog, lock and folders): one that this import
+    # made and that ends up holding no map goes again, so a refused import leaves nothing behind.
+    fresh = not root.exists()
     no_embedder = SimpleNamespace(identity="", feature_dim=0)  # an import embeds no image
     try:
         registry = MapRegistry(root, Embedders.one(no_embedder), settings=settings)
@@ -42,12 +46,15 @@ def import_map(
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from e
     try:
-        map_id = registry.import_snapshot(tar, settings.max_import_bytes)
+        try:
+            map_id = registry.import_snapshot(tar, settings.max_import_bytes)
+        finally:
+            registry.close()  # (no map is open: the catalog, and the directory's lock)
     except (SnapshotInvalid, MemoryBudgetExceeded, ValueError, OSError) as e:
+        if fresh:
+            shutil.rmtree(root, ignore_errors=True)
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from e
-    finally:
-        registry.close()  # (no map is open: the catalog, and the directory's lock)
     typer.echo(f"imported map {map_id!r} into {root}; it recovers from the snapshot when the server starts")
 
 
@@ -172,9 +179,9 @@ def repair(
     if json_out:
         typer.echo(json.dumps(body))
         return
-    done = "repaired" if body["repaired"] else "would repair"
+    done, added = ("repaired", "added") if body["repaired"] else ("would repair", "to add")
     typer.echo(f"map {map_id}: {done} {len(body['splits'])} visit(s) as rows ({body['rows_added']} rows "
-               f"added), {len(body['unjoins'])} place join(s), {len(body['retractions'])} loop closure(s) "
+               f"{added}), {len(body['unjoins'])} place join(s), {len(body['retractions'])} loop closure(s) "
                f"retracted; a stream's recent trail: its last {body['window']} moves")
     if body.get("past_repair"):
         typer.echo(f"map {map_id}: {len(body['past_repair'])} of those loop closures were logged with a "

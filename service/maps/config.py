@@ -143,7 +143,8 @@ class MapOptions(BaseModel):
     """What a client chooses for a new map; every field optional. `tm`, `slsbh` and `localiser` are
     overrides merged over the preset, checked option by option by `resolve`."""
 
-    model_config = ConfigDict(extra="forbid")
+    # strict: `"seed": true` is not a seed nor `"thumbnails": "yes"` a choice, as inside the sections
+    model_config = ConfigDict(extra="forbid", strict=True)
     preset: str | None = Field(default=None, description="a preset (`cortexloc presets`; default: the "
                                "service's CORTEXLOC_DEFAULT_PRESET)")
     seed: int | None = Field(default=None, description="the TM's seed (and the projection's); >= 0")

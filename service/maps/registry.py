@@ -126,6 +126,7 @@ class MapRegistry:
         starts ready.
         """
         warm_up()
+        self._finish_deletes()
         for record in self.catalog.list_maps():
             try:
                 self.maps[record.map_id] = self._open(record)
@@ -324,14 +325,35 @@ class MapRegistry:
             raise MapAlreadyExists(map_id) from e
 
     def _discard(self, map_id: str) -> None:
-        """Delete a map directory the catalog no longer lists: renamed out of the maps' names first (an
-        instant), then removed, so a delete cut short (a kill during a large map's removal) leaves no
-        directory that looks like an unlisted map (`_unlisted`); a start removes what is left
-        (`_sweep_discarded`)."""
+        """Delete a map, its catalog entry and its directory: the directory renamed out of the maps' names
+        first (an instant), then the entry deleted, then the directory removed. A delete cut short (a
+        kill) leaves no directory that looks like a map the catalog does not list (`_unlisted`, which a
+        start leaves alone and whose id it refuses for good): killed before the entry went, the entry
+        names a map whose directory is a discarded one, and the start finishes the delete
+        (`_finish_deletes`); after it, a start removes what is left (`_sweep_discarded`)."""
         gone = self.layout.discarded(map_id, uuid.uuid4().hex)
-        with contextlib.suppress(FileNotFoundError):
+        moved = True
+        try:
             self.layout.map_dir(map_id).rename(gone)
+        except FileNotFoundError:
+            moved = False
+        try:
+            self.catalog.delete_map(map_id)
+        except BaseException:
+            if moved:  # the catalog still lists it: its files stay where they were
+                gone.rename(self.layout.map_dir(map_id))
+            raise
         shutil.rmtree(gone, ignore_errors=True)
+
+    def _finish_deletes(self) -> None:
+        """At a start, before the maps open: a map the catalog lists whose directory is gone and was
+        renamed to a discarded one (`_discard` cut short between the two: the delete was never
+        answered) is deleted, as it was asked to be."""
+        for record in self.catalog.list_maps():
+            if not self.layout.map_dir(record.map_id).exists() and self.layout.discarded_of(record.map_id):
+                log.warning("map %s: a delete was cut short after its directory was moved away; it is "
+                            "finished", record.map_id)
+                self.catalog.delete_map(record.map_id)
 
     def _sweep_discarded(self) -> None:
         """Remove what deletes (`_discard`) and imports (`import_snapshot`) cut short left; at the start,
@@ -411,7 +433,6 @@ class MapRegistry:
             self.budget.release(map_id)
             self.unfitted.pop(map_id, None)
             rt.close(snapshot=False)
-            self.catalog.delete_map(map_id)
             self._discard(map_id)
         del rt
         map_budget.give_back()
@@ -433,7 +454,6 @@ class MapRegistry:
             try:
                 rt = self._open(record)
             except BaseException:
-                self.catalog.delete_map(map_id)
                 self._discard(map_id)
                 raise
             self.maps[map_id] = rt

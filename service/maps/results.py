@@ -341,7 +341,7 @@ class RepairResult:
     Attributes:
         window: the moves of the stream's memory the rule read (the map's `short_term`, else the
             default's). repaired: False for a listing. splits, unjoins, retractions: as listed or undone.
-        rows_added: rows the repair added (the re-made visits).
+        rows_added: rows the repair added (the re-made visits; listed: would add).
         rewrite: the repair changes (listed: would change) the loop-closure log's epoch: its cap pruned
             entries logged since the last repair, which it may withdraw without a retraction
             (docs/design/service.md §1.2).

@@ -16,6 +16,7 @@ from service.deps import ReadKeyDep
 from service.errors import Problem, problem_responses
 from service.limits import is_json
 from service.routes import closures, health, maps, metrics, observations, recent, repair, snapshots
+from service.routes.params import duplicate_keys
 
 __all__ = ["MAX_QUERY_PARAMETERS", "QueryRulesDep", "api_router", "check_request_parameters",
            "declared_parameters"]
@@ -135,6 +136,10 @@ async def check_request_parameters(request: Request) -> None:
                       f"Content-Type {media or '(none)'!r} is not accepted: this route reads "
                       f"application/json",
                       allowed=["application/json"])
+    if dependant.body_params and sent and (twice := duplicate_keys(await request.body())):
+        # (the body is read already: FastAPI reads it before the dependencies run, and it is kept)
+        raise _invalid("JSON member(s) given more than once in one object", twice, "given more than once",
+                       location="body", advice="; give each once")
     doubled = sorted(name for name in headers if len(request.headers.getlist(name)) > 1)
     if doubled:
         raise _invalid("header(s) given more than once", doubled, "given more than once", location="header",

@@ -12,7 +12,7 @@ from fastapi.responses import StreamingResponse
 from service.deps import RegistryDep
 from service.errors import problem_responses
 from service.maps import closures
-from service.routes.params import MapId
+from service.routes.params import DECIMAL, MapId
 from service.schemas import LoopClosureList, LoopClosureModel
 
 router = APIRouter(prefix="/v1/maps", tags=["loop closures"])
@@ -26,8 +26,9 @@ MAX_ID = 2**63 - 1
 @router.get("/{map_id}/loop-closures", responses=problem_responses(404, 503))
 async def list_loop_closures(
     map_id: MapId, registry: RegistryDep,
-    after: Annotated[int, Query(ge=0, le=MAX_ID, description="the page starts after this log id")] = 0,
-    limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 100,
+    after: Annotated[int, Query(ge=0, le=MAX_ID, description="the page starts after this log id"),
+                     DECIMAL] = 0,
+    limit: Annotated[int, Query(ge=1, le=MAX_PAGE), DECIMAL] = 100,
 ) -> LoopClosureList:
     """The revisits streams were told of, oldest first: learning streams' with the row that saw them."""
     rt = registry.get(map_id)

@@ -32,7 +32,7 @@ from service.errors import Problem, problem_responses
 from service.maps.results import ObservationResult
 from service.maps.runtime import idempotency, stored
 from service.media_types import IMAGE_MEDIA_TYPES
-from service.routes.params import MAX_SEQ, MapId, Seq, StreamQuery
+from service.routes.params import DECIMAL, MAX_SEQ, MapId, Seq, StreamQuery, duplicate_keys
 from service.schemas import (
     STREAM_PATTERN,
     MatchModel,
@@ -172,7 +172,7 @@ def _no_constant(name: str) -> float:
 def parse_metadata(text: str) -> dict[str, Any]:
     """The `metadata` query parameter as a JSON object. Raises Problem 422 invalid-metadata: longer than
     `METADATA_MAX_BYTES`, not JSON, not an object, nested deeper than `METADATA_MAX_DEPTH`, or a
-    `stamp` / `pose` of the wrong shape."""
+    `stamp` / `pose` of the wrong shape, or an object that gives a member twice."""
     def bad(message: str, **members: Any) -> Problem:
         return Problem(422, "invalid-metadata", f"metadata: {message}", **members)
 
@@ -191,6 +191,10 @@ def parse_metadata(text: str) -> dict[str, Any]:
         raise bad(f"not JSON that can be stored ({e})") from e
     if not isinstance(value, dict):
         raise bad(f"must be a JSON object, not {type(value).__name__}")
+    if twice := duplicate_keys(text):  # stored, one of the two would be lost without a word
+        raise bad(f"member(s) given more than once in one object: {', '.join(map(repr, twice[:10]))}",
+                  errors=[{"location": "query", "name": f"metadata.{name}", "message": "given more than once"}
+                          for name in twice[:10]])
     try:
         _Metadata.model_validate(value)
     except ValidationError as e:
@@ -228,14 +232,14 @@ async def post_observation(
     settings: SettingsDep,
     metrics: MetricsDep,
     learn: Annotated[bool, Query(description="true: mapping (stored, learned); false: localisation")] = True,
-    top_k: Annotated[int, Query(ge=0, description="matches to return (0: none; `place` is still answered)")]
-    = 5,
+    top_k: Annotated[int, Query(ge=0, description="matches to return (0: none; `place` is still answered)"),
+                     DECIMAL] = 5,
     stream: StreamQuery = "default",
     label: Annotated[str | None, Query(max_length=200)] = None,
     encoding: Annotated[str | None, Query(max_length=16, description="a raw frame's pixels: "
                                           + " | ".join(images.RAW_ENCODINGS))] = None,
-    width: Annotated[int | None, Query(description="a raw frame's width in pixels")] = None,
-    height: Annotated[int | None, Query(description="a raw frame's height in pixels")] = None,
+    width: Annotated[int | None, Query(description="a raw frame's width in pixels"), DECIMAL] = None,
+    height: Annotated[int | None, Query(description="a raw frame's height in pixels"), DECIMAL] = None,
     metadata: Annotated[str | None, Query(description="a compact JSON object stored with the "
                                           "observation: stamp, pose {x, y, yaw, frame_id}, ...")] = None,
     idempotency_key: Annotated[str | None, Header(
@@ -356,8 +360,9 @@ def _count(metrics: Any, map_id: str, learn: bool, timings: dict[str, float]) ->
 @router.get("/{map_id}/observations", responses=problem_responses(404, 503))
 async def list_observations(
     map_id: MapId, registry: RegistryDep,
-    after_seq: Annotated[int, Query(ge=0, le=MAX_SEQ, description="the page starts after this seq")] = 0,
-    limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 100,
+    after_seq: Annotated[int, Query(ge=0, le=MAX_SEQ, description="the page starts after this seq"),
+                         DECIMAL] = 0,
+    limit: Annotated[int, Query(ge=1, le=MAX_PAGE), DECIMAL] = 100,
 ) -> StoredObservationList:
     """Stored observations in seq order, without their codes (a map's trajectory, from the poses)."""
     rt = registry.get(map_id)

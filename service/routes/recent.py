@@ -11,7 +11,7 @@ from fastapi import APIRouter, Query, Response
 from service.deps import RegistryDep
 from service.errors import problem_responses
 from service.maps.runtime.recent import RECENT_CAPACITY, kept_thumbnail
-from service.routes.params import AnswerId, MapId
+from service.routes.params import DECIMAL, AnswerId, MapId
 from service.schemas import STREAM_PATTERN, RecentList, RecentModel
 
 router = APIRouter(prefix="/v1/maps", tags=["observations"])
@@ -21,7 +21,8 @@ router = APIRouter(prefix="/v1/maps", tags=["observations"])
 async def recent_answers(
     map_id: MapId,
     registry: RegistryDep,
-    limit: Annotated[int, Query(ge=1, le=RECENT_CAPACITY, description="newest answers to return")] = 50,
+    limit: Annotated[int, Query(ge=1, le=RECENT_CAPACITY, description="newest answers to return"),
+                     DECIMAL] = 50,
     stream: Annotated[str | None, Query(pattern=STREAM_PATTERN,
                                         description="only this stream's answers")] = None,
 ) -> RecentList:

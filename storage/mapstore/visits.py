@@ -269,7 +269,11 @@ class Visits:
                 "WHERE d.reason = 'joined' AND j.seq IS NULL")]
             # The rows the live rule looked through: the stream's rows made after the joined one and
             # still held when the join was made (a row dropped at an earlier step, joined or over its
-            # place's cap, had left the memory; a row a repair re-made is no step of it).
+            # place's cap, had left the memory; a row a repair re-made is no step of it). Steps that
+            # store no row (a consolidated frame) share their `after_seq`: of those, a join's own step
+            # wrote its joins with one `created_at`, an earlier one with an earlier `created_at`, so a
+            # row joined there had left (an outside probe: a restart's 19 warm-up rows joined over two
+            # frames in a row, 15 then 4, read as a reach of 18).
             split = ("SELECT seq FROM repairs WHERE kind = 'split'" if self.holds.repairs
                      else "SELECT NULL WHERE 0")
             rows = ("(SELECT seq, stream FROM observations UNION ALL SELECT row_seq, stream FROM visits "
@@ -278,7 +282,9 @@ class Visits:
                     for r in db.execute(
                         f"SELECT j.seq, (SELECT count(*) FROM {rows} o WHERE o.stream = j.stream "
                         "AND o.seq > j.seq AND o.seq <= j.after_seq AND NOT EXISTS (SELECT 1 FROM dropped d "
-                        "WHERE d.seq = o.seq AND d.after_seq < j.after_seq) "
+                        "WHERE d.seq = o.seq AND (d.after_seq < j.after_seq OR (d.after_seq = j.after_seq "
+                        "AND EXISTS (SELECT 1 FROM joins k WHERE k.seq = d.seq "
+                        "AND k.created_at < j.created_at)))) "
                         f"AND o.seq NOT IN ({split})) AS n FROM joins j WHERE n >= ?", (int(reach),))]
             return out
 

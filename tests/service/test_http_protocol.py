@@ -91,6 +91,20 @@ def test_repeated_query_parameters_are_refused(client):
     assert client.get("/v1/maps/default/observations?after_seq=0&limit=5").status_code == 200  # distinct
 
 
+@pytest.mark.parametrize("path", ["observations?limit={}", "observations?after_seq={}", "observations/{}",
+                                  "loop-closures?after={}", "recent?limit={}"])
+@pytest.mark.parametrize("value", ["1_0", "%201", "1%20", "+1", "01"])
+def test_an_integer_parameter_is_plain_decimal_digits(client, path, value):
+    """Found from outside: `limit=1_0` returned 10 rows and `/observations/1_0` read seq 10 (Python's int()
+    reads underscores, signs, spaces and leading zeros); each now names the parameter."""
+    post(client, frame(1))
+    path = "/v1/maps/default/" + path
+    r = client.get(path.format(value))
+    assert r.status_code == 400 and r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE), r.text
+    assert r.json()["type"].endswith("invalid-parameter") and "plain decimal digits" in r.json()["detail"]
+    assert client.get(path.format("1")).status_code == 200
+
+
 @pytest.mark.parametrize("query", ["Learn=false", "learning=false", "learn%20=false", "topk=1",
                                    "learn=false&top_k=1&lmit=2"])
 def test_an_unknown_query_parameter_is_refused_and_learns_nothing(client, query):

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import sqlite3
+import time
 from pathlib import Path
 
 import numpy as np
@@ -286,6 +287,27 @@ def test_verify_counts_only_the_rows_held_when_a_join_was_made(store: MapStore) 
     # rows 3-5 were made after row 2, row 3 dropped before the join: 2 held, within the reach of 3
     assert store.join_problems(reach) == []
     assert [p.split(":")[0] for p in store.join_problems(reach - 1)] == ["join of row 2"]
+
+
+def test_verify_reads_joins_over_frames_that_store_no_row_in_their_order(store: MapStore) -> None:
+    """Found from outside: a restarted drive's warm-up rows were joined over two frames in a row, the
+    newest `reach` held rows on the first, the older ones on the second, a consolidated frame that stores
+    no row and so shares the first's `after_seq`; verify counted the rows the first step had joined
+    against the second's reach and called a map written only by the service a problem."""
+    reach = 3
+    store.append(make_row(1, stream="old"))  # the old place
+    for i in range(2, 7):
+        store.append(make_row(i, stream="a", prev=i - 1 if i > 2 else None))
+    for i, joins in ((7, ((6, 1), (5, 1), (4, 1))), (8, ((3, 1), (2, 1)))):  # two frames in a row
+        store.add_visit(dataclasses.replace(visit(i, 1, 6), stream="a", joins=joins))
+        time.sleep(0.002)  # (the next step's clock reads later)
+    assert [v.after_seq for v in store.visits() if v.row is None] == [6, 6]  # no row between them
+    # at the second step rows 4-6 had left: rows 2 and 3 were the newest held, within the reach of 3
+    assert store.join_problems(reach) == []
+    # a join over as many held rows as the reach is still found: rows 5 and 6 when row 4 was joined
+    assert [p.split(":")[0] for p in store.join_problems(2)] == ["join of row 4"]
+    assert [p.split(":")[0] for p in store.join_problems(1)] == ["join of row 2", "join of row 4",
+                                                                 "join of row 5"]
 
 
 def test_a_join_turns_its_row_into_a_visit_and_deletes_it_and_its_seq_is_never_handed_out_again(

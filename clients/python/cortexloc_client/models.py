@@ -127,7 +127,8 @@ class Map(_Reply):
     created_at: str
     state: Literal["ready", "replaying", "recovering", "read-only", "failed"]
     state_reason: str | None = None
-    preset: str
+    #: The preset the map was made from; None where the server has none on record for it.
+    preset: str | None = None
     params: MapParams
     encoder: str
     projection_sha256: str

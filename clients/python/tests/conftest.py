@@ -198,6 +198,17 @@ def _resolve(schema: dict[str, Any], spec: dict[str, Any]) -> dict[str, Any]:
             return schema
 
 
+def _server_nullable(schema: dict[str, Any]) -> bool:
+    """Whether a property's schema admits null (`anyOf: [X, {type: null}]`, a type list with "null")."""
+    options = schema.get("anyOf", schema.get("oneOf", []))
+    kinds = schema.get("type")
+    return any(o.get("type") == "null" for o in options) or (isinstance(kinds, list) and "null" in kinds)
+
+
+def _admits_none(annotation: Any) -> bool:
+    return annotation is Any or annotation is None or type(None) in get_args(annotation)
+
+
 def _nested(annotation: Any) -> tuple[str | None, type[BaseModel]] | None:
     """(where the model sits: None itself, "items" in a list, "additionalProperties" in a dict, model)."""
     args = [a for a in get_args(annotation) if a is not type(None)]
@@ -217,8 +228,10 @@ def _nested(annotation: Any) -> tuple[str | None, type[BaseModel]] | None:
 def schema_mismatches(model: type[BaseModel], schema: dict[str, Any], spec: dict[str, Any],
                       where: str) -> list[str]:
     """How `model` and the server's `schema` disagree: a field the server declares that the model lacks,
-    a field the model requires that the server does not declare; nested models are compared where the
+    a field the model requires that the server does not declare, a field the server may send as null
+    that the model does not take as None; nested models are compared where the
     server describes them (a free-form object there is not compared)."""
+    model.model_rebuild(force=True)  # a field naming a model defined further down is a ForwardRef until then
     schema = _resolve(schema, spec)
     props = schema.get("properties")
     if props is None:
@@ -227,6 +240,9 @@ def schema_mismatches(model: type[BaseModel], schema: dict[str, Any], spec: dict
            for name in props if name not in model.model_fields]
     out += [f"{where}.{name}: required by {model.__name__}, not declared by the server"
             for name, f in model.model_fields.items() if f.is_required() and name not in props]
+    out += [f"{where}.{name}: may be null on the server, not in {model.__name__}"
+            for name, f in model.model_fields.items()
+            if name in props and _server_nullable(props[name]) and not _admits_none(f.annotation)]
     for name, f in model.model_fields.items():
         nested = _nested(f.annotation)
         if nested is None or name not in props:

@@ -18,13 +18,13 @@ from service.maps.errors import InsufficientStorage, InvalidConfiguration, Snaps
 from service.maps.recovery.memory import check_memory, remade_rows
 from service.maps.results import SnapshotInfo
 from storage import snapshots
-from storage.catalog import Catalog, Lineage, SnapshotRecord, utc_now
+from storage.catalog import Catalog, Lineage, SnapshotKind, SnapshotRecord, utc_now
 from storage.layout import Layout
 from storage.manifest import parse_manifest
 from storage.mapstore import MapStore, StorageFull
 
 __all__ = ["TarExport", "delete", "disk_use", "export", "import_snapshot", "info", "learned_difference",
-           "listing", "locate", "prune_auto", "prune_manual", "recovery_base", "take"]
+           "listing", "locate", "prune_auto", "prune_kept", "recovery_base", "take"]
 
 #: A snapshot as a tar stream: `size`, `chunks()`, `close()` (storage.archive).
 TarExport = snapshots.TarExport
@@ -181,13 +181,15 @@ def delete(catalog: Catalog, map_id: str, snapshot_id: str, store: MapStore) -> 
     _remove(catalog, rec)
 
 
-def prune_manual(catalog: Catalog, map_id: str, store: MapStore, keep: int, max_bytes: int) -> list[str]:
-    """Delete the oldest manual snapshots beyond the newest `keep` or `max_bytes` in all (0: no such
-    limit), never the `recovery_base`. Returns the ids deleted."""
+def prune_kept(catalog: Catalog, map_id: str, store: MapStore, kind: SnapshotKind, keep: int,
+               max_bytes: int) -> list[str]:
+    """Delete the oldest snapshots of `kind` (`manual`, or `pre-restore`: each kind counted apart) beyond
+    the newest `keep` or `max_bytes` in all (0: no such limit), never the `recovery_base`. Returns the
+    ids deleted."""
     base = recovery_base(catalog, map_id, store)
     kept = total = 0
     deleted = []
-    for rec in catalog.list_snapshots(map_id, kind="manual"):  # newest first
+    for rec in catalog.list_snapshots(map_id, kind=kind):  # newest first
         kept, total = kept + 1, total + rec.bytes
         if rec.snapshot_id != base and ((keep and kept > keep) or (max_bytes and total > max_bytes)):
             _remove(catalog, rec)

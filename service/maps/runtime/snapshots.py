@@ -24,7 +24,7 @@ from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import RestoreResult, SnapshotInfo
 from service.maps.runtime import budget as map_budget
 from storage import snapshots
-from storage.catalog import utc_now
+from storage.catalog import SnapshotKind, utc_now
 from storage.mapstore import MapStore
 
 __all__ = ["Snapshots"]
@@ -52,7 +52,7 @@ class Snapshots:
         assert self.store is not None
         map_snapshots.delete(self.catalog, self.map_id, snapshot_id, self.store)
 
-    def snapshot(self, kind: str = "manual") -> SnapshotInfo:
+    def snapshot(self, kind: SnapshotKind = "manual") -> SnapshotInfo:
         """A consistent cut at the current seq (docs/design/service.md §1.5, §4.4).
 
         Raises:
@@ -65,10 +65,14 @@ class Snapshots:
         snap = map_snapshots.take(self.store, memory, self.catalog, self.map_id, self.projection_path, kind)
         self.covered = cursor
         if kind == "manual":  # retention (docs/design/service.md §1.5); the new one is never deleted
-            keep = self.settings
-            map_snapshots.prune_manual(self.catalog, self.map_id, self.store, keep.snapshot_manual_keep,
-                                       keep.snapshot_manual_bytes)
+            self._prune_kept("manual")
         return snap
+
+    def _prune_kept(self, kind: SnapshotKind) -> None:
+        assert self.store is not None
+        keep = self.settings
+        map_snapshots.prune_kept(self.catalog, self.map_id, self.store, kind, keep.snapshot_manual_keep,
+                                 keep.snapshot_manual_bytes)
 
     def _auto_snapshot(self) -> None:
         """The periodic snapshot after a commit. It only shortens the next recovery, so a failure
@@ -112,6 +116,14 @@ class Snapshots:
             self.store.close()
             MapStore.install_copy(path / snapshots.DB_FILE, self.layout.map_db(self.map_id))
             self.recover()
+        # Pre-restore snapshots are kept to the manual ones' limits, counted apart (a loop of restores wrote
+        # one each, ~27 MB apiece, kept for good). Pruned once the restore is done: the snapshot restored,
+        # a pre-restore one perhaps, is then the recovery base, never deleted. The restore stands either way.
+        try:
+            self._prune_kept("pre-restore")
+        except Exception:  # (the next restore prunes again)
+            log.exception("map %s: restored, but its older pre-restore snapshots could not be pruned",
+                          self.map_id)
         self.keys.clear()  # answers given before may name the observations the restore dropped
         self.recent.clear()
         map_budget.give_back()  # the memory and index the restore replaced

@@ -101,6 +101,26 @@ def test_a_good_tar_still_imports(tmp_path, members):
     assert (tmp_path / "data" / "maps" / "lab" / "map.sqlite").is_file()
 
 
+@pytest.mark.parametrize("damage", ["truncated", "not a tar"])
+def test_a_refused_import_leaves_no_data_directory_it_made_and_changes_none_there_was(tmp_path, members,
+                                                                                      damage):
+    """Found from outside: a truncated tar (or a JPEG given as one) was refused, but the data directory
+    the import had opened stayed behind (its lock, an empty catalog, the folders)."""
+    good = make_tar(tmp_path / "good.tar", members).read_bytes()
+    bad = tmp_path / "bad.tar"
+    bad.write_bytes(good[: len(good) // 3] if damage == "truncated" else b"\xff\xd8\xff\xe0" + b"\0" * 600)
+    fresh = tmp_path / "fresh"
+    r = run_import(bad, fresh)
+    assert r.exit_code == 1 and isinstance(r.exception, SystemExit), (r.exception, r.output)
+    assert r.output.startswith("error: "), r.output
+    assert not fresh.exists()
+    kept = tmp_path / "kept"  # a data directory that was there stays as it was
+    assert run_import(tmp_path / "good.tar", kept).exit_code == 0
+    before = tree(kept)
+    assert run_import(bad, kept).exit_code == 1
+    assert tree(kept) == before
+
+
 @pytest.mark.parametrize("manifest", [b'{"a":' * 100_000 + b"1" + b"}" * 100_000, b"1" * 5000],
                          ids=["nested 100000 deep", "an integer of 5000 digits"])
 def test_a_manifest_json_cannot_parse_is_one_line_refusal(tmp_path, members, manifest):

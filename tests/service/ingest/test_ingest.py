@@ -119,6 +119,9 @@ def test_bad_sources_and_options_exit_2_with_the_reason(tmp_path):
     assert r.exit_code == 2 and "no topic '/nope'" in r.stderr
     r = run(cli.app, ["ingest", str(bag), "--map", "m", "--url", "http://x", "--data-dir", str(tmp_path)])
     assert r.exit_code == 2 and "--data-dir" in r.stderr
+    for url in ("localhost:8012", "ftp://x", "http://"):  # found from outside: exit 1 after "posted 0/30"
+        r = run(cli.app, ["ingest", str(bag), "--map", "m", "--topic", "/cam/rgb", "--url", url])
+        assert r.exit_code == 2 and "no http:// or https:// URL" in r.stderr and "posted" not in r.output
     assert not (tmp_path / "a").exists()  # nothing started
 
 

@@ -13,6 +13,7 @@ from fastapi.testclient import TestClient
 from service.app import create_app
 from service.maps.errors import DataDirectoryInUse
 from service.settings import Settings
+from storage.catalog import Catalog
 from storage.lock import DataDirLock
 from tests.service.helpers import frame, make_client, post, tiny_encoder
 
@@ -216,6 +217,39 @@ def test_a_delete_cut_short_blocks_neither_the_id_nor_the_next_start(tmp_path, m
     assert list((data / "maps").glob(".deleted-*"))  # what the cut-short removal left
     with make_client(data) as c:  # the next start (no map listed): ready, and the leftovers gone
         assert c.get("/readyz").status_code == 200
+    assert not list((data / "maps").glob(".deleted-*"))
+
+
+class _Killed(BaseException):
+    """The process dies here (a kill -9: nothing after it runs, no handler sees it)."""
+
+
+def test_a_delete_killed_after_its_directory_moved_is_finished_at_the_next_start(tmp_path, monkeypatch):
+    """Found from outside: a kill -9 during `DELETE /v1/maps/{id}` left the map's directory under its own
+    name with no catalog row (the entry went first), so every start logged an unlisted map and the id
+    was refused (409) for good. The directory now moves out of the maps' names first; killed before the
+    entry goes, the next start finishes the delete, which was never answered."""
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        a_map_with_rows(c, "farm")
+        a_map_with_rows(c, "farmer")  # an id the other begins: untouched
+        real = Catalog.delete_map
+
+        def killed(self, map_id):
+            raise _Killed
+
+        monkeypatch.setattr(Catalog, "delete_map", killed)
+        with pytest.raises(_Killed):
+            c.app.state.registry.delete("farm")
+        monkeypatch.setattr(Catalog, "delete_map", real)
+        # the kill left the catalog row and the map's files under a discarded name
+        assert (data / "maps" / "farm").is_dir()  # (put back: nothing answered the delete)
+        (data / "maps" / "farm").rename(data / "maps" / f".deleted-farm-{'0' * 32}")  # as at the kill
+    with make_client(data) as c:
+        assert c.get("/readyz").status_code == 200
+        assert c.get("/v1/maps/farm").status_code == 404
+        assert c.get("/v1/maps/farmer").json()["observations"] > 0
+        assert c.post("/v1/maps", json={"map_id": "farm"}).status_code == 201  # the id is free
     assert not list((data / "maps").glob(".deleted-*"))
 
 

@@ -92,6 +92,7 @@ def test_a_hit_map_is_listed_repaired_once_and_answers_as_if_the_frames_had_neve
         assert rt.place_map.place_of(h["row"]) == rt.place_map.place_of(h["joined"])  # merged
         found = listing(c)
         assert found["repaired"] is False and found["window"] == 20  # the default's: the map has none
+        assert found["rows_added"] == 1  # a listing says what the repair would add
         assert [(s["visit"], s["stream"], s["into"], s["seq"]) for s in found["splits"]] == [
             (h["visit"], "a", h["into"], None)]
         assert found["unjoins"] == [{"seq": h["row"], "stream": "a", "joined": h["joined"]}]
@@ -304,6 +305,9 @@ def test_verify_lists_the_merges_and_the_cli_repairs_them(tmp_path):
     assert out.exit_code == 0, out.output
     assert f"visit {h['visit']}: stream 'a' consolidated into its own row {h['into']}" in out.output
     assert f"row {h['row']}: stream 'a' joined the place of its own row {h['joined']}" in out.output
+    out = runner.invoke(cli, ["repair", "--map", "m", "--data-dir", str(data), "--dry-run"])
+    assert out.exit_code == 0, out.output
+    assert "map m: would repair 1 visit(s) as rows (1 rows to add), 1 place join(s)" in out.output
     out = runner.invoke(cli, ["repair", "--map", "m", "--data-dir", str(data), "--json"])
     assert out.exit_code == 0, out.output
     assert json.loads(out.output.strip().splitlines()[-1])["rows_added"] == 1

@@ -78,6 +78,22 @@ def test_every_bad_override_is_a_422_naming_it(client, payload, name):
     assert client.get("/v1/maps/lab").status_code == 404
 
 
+@pytest.mark.parametrize("body", ['{"map_id": "lab", "seed": true}', '{"map_id": "lab", "thumbnails": "yes"}',
+                                  '{"map_id": "lab", "thumbnails": 1}', '{"map_id": "lab", "seed": "3"}',
+                                  '{"map_id": "lab", "map_id": "lab2"}',
+                                  '{"map_id": "lab", "tm": {"seed": 1, "seed": 2}}'])
+def test_a_wrong_type_or_a_member_twice_at_the_top_is_a_400_and_makes_no_map(client, body):
+    """Found from outside: `"seed": true` made a map of seed 1 and `"thumbnails": "yes"` one with
+    thumbnails (inside the sections such values were refused), and a member given twice was read as the
+    last (`{"map_id": "lab", "map_id": "lab2"}` made lab2)."""
+    r = client.post("/v1/maps", content=body, headers={"Content-Type": "application/json"})
+    assert r.status_code == 400 and r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE), r.text
+    assert r.json()["type"].endswith("invalid-parameter")
+    assert [m["map_id"] for m in client.get("/v1/maps").json()["maps"]] == ["default"]
+    assert client.post("/v1/maps", json={"map_id": "lab", "seed": 3, "thumbnails": True,
+                                         "revisit_threshold": 1}).status_code == 201
+
+
 def test_every_bad_parameter_is_reported_at_once(client):
     r = client.post("/v1/maps", json={"tm": {"columnDimensions": "x", "seed": -1}, "slsbh": {"s": 2},
                                       "localiser": {"warmup": 0}})

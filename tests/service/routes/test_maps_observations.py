@@ -163,6 +163,11 @@ def bad_inputs() -> list[tuple[str, bytes, str, dict, int, str]]:
         ("trail not a stream name", png, "image/png", {"metadata": '{"trail":"a b"}'}, 422,
          "invalid-metadata"),
         ("trail a number", png, "image/png", {"metadata": '{"trail":3}'}, 422, "invalid-metadata"),
+        # found from outside: stored as {"stamp": "x"}, the first stamp lost without a word
+        ("metadata member twice", png, "image/png", {"metadata": '{"stamp":1,"stamp":"x"}'}, 422,
+         "invalid-metadata"),
+        ("metadata member twice, nested", png, "image/png", {"metadata": '{"pose":{"x":1,"y":2,"x":3}}'}, 422,
+         "invalid-metadata"),
         # stamps are seconds: milliseconds and nanoseconds (as a string, past 2^53) read as seconds are not
         ("stamp in milliseconds", png, "image/png", {"metadata": '{"stamp":1700000000123}'}, 422,
          "invalid-metadata"),

@@ -65,6 +65,24 @@ def test_manual_snapshots_beyond_the_count_go_oldest_first(tmp_path):
         assert sum(s["kind"] == "auto" for s in snaps) == 2  # untouched
 
 
+def test_pre_restore_snapshots_are_kept_to_the_same_count_apart_from_manual_ones(tmp_path):
+    """Found from outside: each restore wrote a pre-restore snapshot that no retention reached, so a loop
+    of restores filled the disk (12 restores, 12 snapshots of ~27 MB kept for good)."""
+    with make_client(tmp_path / "data", snapshot_every=0, snapshot_manual_keep=2) as c:
+        assert post(c, frame(0)).status_code == 200
+        a = snap(c)["snapshot_id"]
+        pres = []
+        for i in range(4):
+            assert post(c, frame(1 + i)).status_code == 200
+            assert c.post(f"/v1/maps/default/snapshots/{a}/restore").status_code == 200
+            pres.append(listed(c)[0])
+        snaps = c.get("/v1/maps/default/snapshots").json()["snapshots"]
+        assert [s["snapshot_id"] for s in snaps if s["kind"] == "pre-restore"] == pres[:1:-1]  # newest 2
+        assert [s["snapshot_id"] for s in snaps if s["kind"] == "manual"] == [a]  # counted apart
+        for p in pres[2:]:  # the kept ones still undo their restore
+            assert c.post(f"/v1/maps/default/snapshots/{p}/restore").status_code == 200
+
+
 def test_manual_snapshots_beyond_the_bytes_go_but_never_the_newest(tmp_path):
     with make_client(tmp_path / "data", snapshot_every=0, snapshot_manual_bytes=1) as c:
         for i in range(3):
