@@ -36,12 +36,13 @@ refused too (an app served by another server, the test client), with the same 40
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import anyio
 from starlette.datastructures import Headers
 from starlette.requests import ClientDisconnect, Request
-from starlette.responses import JSONResponse
+from starlette.responses import JSONResponse, StreamingResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.errors import problem_response
@@ -49,8 +50,10 @@ from service.settings import Settings
 
 __all__ = [
     "DRAIN_MAX_BYTES", "HEAD_MAX_BYTES", "JSON_MAX_BYTES", "BodyTimeoutError", "BodyTooLargeError",
-    "UploadLimitMiddleware", "body_limit", "head_bytes",
+    "ReadStreamingResponse", "UploadLimitMiddleware", "body_limit", "head_bytes",
 ]
+
+log = logging.getLogger("cortexloc.service")
 
 JSON_MAX_BYTES = 64 * 1024
 HEAD_MAX_BYTES = 16 * 1024
@@ -94,6 +97,41 @@ def _state(scope: Scope, name: str) -> Any:
 def _setting(scope: Scope, name: str) -> Any:
     """A setting of the app serving `scope` (its default before startup or without an app)."""
     return getattr(_state(scope, "settings"), name, Settings.model_fields[name].default)
+
+
+class ReadStreamingResponse(StreamingResponse):
+    """A streamed reply (a snapshot download, a loop-closure export) that its client must keep reading:
+    one chunk that waits `CORTEXLOC_BODY_TIMEOUT_S` for the client to take it ends the reply and closes
+    the connection (`on_close` runs however it ends). Before, a client that stopped reading held the
+    reply's files open for as long as it kept the connection: five stalled downloads kept a deleted
+    snapshot's 137 MB on disk. Not a total deadline: a large download on a slow link that keeps reading
+    is never cut."""
+
+    def on_close(self) -> None:
+        """What the reply holds, released: sent, client gone, stalled or failed."""
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        stall_s = float(_setting(scope, "body_timeout_s"))
+        stalled = False
+
+        async def read_or_cut(message: Message) -> None:
+            nonlocal stalled
+            with anyio.move_on_after(stall_s) as waited:
+                await send(message)
+            if waited.cancelled_caught:
+                stalled = True
+                raise ClientDisconnect(f"the client read nothing for {stall_s:g} s")
+
+        try:
+            await super().__call__(scope, receive, read_or_cut)
+        except ClientDisconnect:
+            if not stalled:
+                raise
+            # the reply started: its connection is closed with the app's return, unfinished
+            log.warning("%s %s: the client read nothing for %g s; the reply is cut", scope.get("method"),
+                        scope.get("path"), stall_s)
+        finally:
+            self.on_close()
 
 
 def body_limit(scope: Scope, headers: Headers) -> int:

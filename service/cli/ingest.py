@@ -129,18 +129,10 @@ def target(url: str | None, data_dir: Path | None, api_key: str | None) -> tuple
         if parts.scheme not in ("http", "https") or not parts.hostname:
             raise typer.BadParameter(f"{url!r} is no http:// or https:// URL (e.g. http://127.0.0.1:8000)",
                                      param_hint="--url")
-    settings = None if url is not None else _in_process_settings(data_dir)
+    from service.cli.serve import command_settings
+
+    settings = None if url is not None else command_settings(data_dir)
     return settings, settings.api_key if settings is not None and api_key is None else api_key
-
-
-def _in_process_settings(data_dir: Path | None) -> Settings:
-    """`cortexloc serve`'s settings for the app run here; its log quiet (WARNING) unless configured."""
-    import os
-
-    from service.cli.serve import process_settings
-
-    env = {} if os.environ.get("CORTEXLOC_LOG_LEVEL") else {"CORTEXLOC_LOG_LEVEL": "WARNING"}
-    return process_settings(data_dir=data_dir, **env)
 
 
 def _progress(total: int, what: str):

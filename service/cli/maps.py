@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from service.cli.common import check_map_id, progress
-from service.cli.serve import process_settings
+from service.cli.serve import command_settings, process_settings
 
 if TYPE_CHECKING:
     from service.maps.repair import Found
@@ -34,7 +34,7 @@ def import_map(
     from service.maps.errors import DataDirectoryInUse, MemoryBudgetExceeded, SnapshotInvalid
     from service.maps.registry import MapRegistry
 
-    settings = process_settings(data_dir=data_dir)
+    settings = command_settings(data_dir)
     root = settings.data_dir
     # Opening the registry makes a data directory (its catalog, lock and folders): one that this import
     # made and that ends up holding no map goes again, so a refused import leaves nothing behind.

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import socket
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -35,6 +36,39 @@ def process_settings(*, host: str | None = None, port: int | None = None, data_d
     return settings
 
 
+def command_settings(data_dir: Path | None) -> Settings:
+    """The settings of the app a one-shot command runs in this process (in-process `ingest`, `repair`,
+    `import`): `process_settings`, its log quiet (WARNING) and no wait for the data directory's lock
+    (`CORTEXLOC_LOCK_WAIT_S` 0: a server that holds it will not let it go, and a command run beside one
+    sat 30 s on a frozen progress bar before it said so), unless configured."""
+    import os
+
+    env = {name: value for name, value in (("CORTEXLOC_LOG_LEVEL", "WARNING"), ("CORTEXLOC_LOCK_WAIT_S", "0"))
+           if not os.environ.get(name)}
+    return process_settings(data_dir=data_dir, **env)
+
+
+def _can_listen(host: str, port: int) -> None:
+    """Exit 3 (uvicorn's start-up failure) with one line where `host:port` cannot be bound, before the
+    encoder loads and the data directory is made: uvicorn binds only after the app has started, so a port
+    in use failed a start that had already made a fresh data directory and its `default` map."""
+    if port == 0:
+        return
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except OSError as e:
+        typer.echo(f"error: cannot listen on {host}:{port}: {e}", err=True)
+        raise typer.Exit(3) from e
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+        try:
+            probe.bind(address)
+        except OSError as e:
+            typer.echo(f"error: cannot listen on {host}:{port}: {e.strerror or e}", err=True)
+            raise typer.Exit(3) from e
+
+
 def serve(
     host: Annotated[str | None, typer.Option(help="Bind address (default: $CORTEXLOC_HOST or 127.0.0.1).")]
     = None,
@@ -64,6 +98,7 @@ def serve(
                   ray_address)
         return
 
+    _can_listen(settings.host, settings.port)
     import uvicorn
 
     from service.app import create_app

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import anyio
 from fastapi import APIRouter, Response
-from fastapi.responses import StreamingResponse
-from starlette.types import Receive, Scope, Send
 
 from service.deps import ApiKeyDep, RegistryDep
 from service.errors import problem_responses
+from service.limits import ReadStreamingResponse
 from service.maps.recovery import snapshots
 from service.media_types import TAR_MEDIA_TYPE
 from service.routes.params import MapId, SnapshotId
@@ -50,9 +49,10 @@ async def restore_snapshot(map_id: MapId, snapshot_id: SnapshotId, registry: Reg
     return RestoreModel.from_result(await rt.run(rt.restore, snapshot_id))
 
 
-class TarExportResponse(StreamingResponse):
+class TarExportResponse(ReadStreamingResponse):
     """Streams a `TarExport` chunk by chunk (file reads in worker threads) and releases its file
-    descriptors however the response ends: sent, client gone (Starlette cancels the stream), or error."""
+    descriptors however the response ends: sent, client gone (Starlette cancels the stream), stalled
+    (`ReadStreamingResponse`), or error."""
 
     media_type = TAR_MEDIA_TYPE  # what the OpenAPI declares for the route (`response_class`)
 
@@ -61,11 +61,8 @@ class TarExportResponse(StreamingResponse):
             "Content-Length": str(export.size), "Content-Disposition": f'attachment; filename="{filename}"'})
         self.export = export
 
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        try:
-            await super().__call__(scope, receive, send)
-        finally:
-            self.export.close()
+    def on_close(self) -> None:
+        self.export.close()
 
 
 @router.get("/{snapshot_id}/download", response_class=TarExportResponse, status_code=200,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import anyio
 import pytest
@@ -11,7 +12,7 @@ from fastapi.testclient import TestClient
 from pydantic import BaseModel
 
 from service.errors import PROBLEM_MEDIA_TYPE
-from service.limits import DRAIN_MAX_BYTES, JSON_MAX_BYTES, UploadLimitMiddleware
+from service.limits import DRAIN_MAX_BYTES, JSON_MAX_BYTES, ReadStreamingResponse, UploadLimitMiddleware
 from service.settings import Settings
 from tests.service.helpers import make_app
 
@@ -221,3 +222,44 @@ def test_a_body_whose_last_chunk_crosses_the_limit_is_answered_at_once():
     chunks = [{"type": "http.request", "body": b"a" * 600, "more_body": i < 1} for i in range(2)]
     sent, reads = _run(UploadLimitMiddleware(_reader_app(got)), _scope([]), chunks)
     assert reads == 2 and sent[0]["status"] == 413
+
+
+def _reply_scope(stall_s: float) -> dict:
+    state = SimpleNamespace(settings=SimpleNamespace(body_timeout_s=stall_s))
+    return {"type": "http", "asgi": {"spec_version": "2.4"}, "method": "GET", "path": "/download",
+            "app": SimpleNamespace(state=state)}
+
+
+class _Reply(ReadStreamingResponse):
+    closed = 0
+
+    def on_close(self) -> None:
+        type(self).closed += 1
+
+
+@pytest.mark.parametrize("reads", ["stops", "slowly"])
+def test_a_streamed_reply_is_cut_when_its_client_stops_reading_never_when_it_reads_slowly(reads):
+    """Found from outside: five downloads that stopped reading held a deleted snapshot's files (137 MB)
+    open for as long as their connections stayed. A chunk the client does not take within the body
+    timeout now ends the reply and releases what it holds; a slow reader that keeps reading is not cut."""
+    sent: list[dict] = []
+
+    async def send(message: dict) -> None:
+        sent.append(message)
+        if message["type"] == "http.response.body":
+            await (anyio.sleep_forever() if reads == "stops" else anyio.sleep(0.05))
+
+    async def receive() -> dict:
+        await anyio.sleep_forever()
+        return {}
+
+    async def run() -> None:
+        with anyio.fail_after(10):
+            reply = _Reply(iter([b"a" * 10] * 4), media_type="application/x-tar")
+            await reply(_reply_scope(0.3), receive, send)
+
+    _Reply.closed = 0
+    anyio.run(run)
+    bodies = [m for m in sent if m["type"] == "http.response.body"]
+    assert _Reply.closed == 1
+    assert len(bodies) == (1 if reads == "stops" else 5)  # 4 chunks and the closing empty one

@@ -139,7 +139,7 @@ def test_an_in_process_ingest_beside_a_server_on_its_data_directory_says_so_in_o
     write_folder(tmp_path / "frames")
     with TestClient(create_app(Settings(data_dir=tmp_path / "a"))):  # the server holding the directory
         r = CliRunner().invoke(cli.app, ["ingest", str(tmp_path / "frames"), "--map", "m", "--data-dir",
-                                         str(tmp_path / "a")], env={"CORTEXLOC_LOCK_WAIT_S": "0"})
+                                         str(tmp_path / "a")])  # at once: no wait for the lock
     assert r.exit_code == 1, (r.exit_code, r.output, r.exception)
     last = r.stderr.strip().splitlines()[-1]  # (after the source's header and the app's log line)
     assert last.startswith("error: ") and "in use by another cortexloc process" in last and "--url" in last

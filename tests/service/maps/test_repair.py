@@ -353,8 +353,7 @@ def test_the_cli_repair_in_process_beside_a_server_says_so_in_one_line(tmp_path)
     data = tmp_path / "data"
     with make_client(data) as c:  # the server holding the data directory
         assert c.get("/readyz").status_code == 200
-        out = CliRunner().invoke(cli, ["repair", "--map", "m", "--data-dir", str(data)],
-                                 env={"CORTEXLOC_LOCK_WAIT_S": "0"})
+        out = CliRunner().invoke(cli, ["repair", "--map", "m", "--data-dir", str(data)])  # no lock wait
     assert out.exit_code == 1
     assert "in use by another cortexloc process" in out.output and "--url" in out.output
     assert "Traceback" not in out.output
