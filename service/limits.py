@@ -49,8 +49,16 @@ from service.errors import problem_response
 from service.settings import Settings
 
 __all__ = [
-    "DRAIN_MAX_BYTES", "HEAD_MAX_BYTES", "JSON_MAX_BYTES", "BodyTimeoutError", "BodyTooLargeError",
-    "ReadStreamingResponse", "UploadLimitMiddleware", "body_limit", "head_bytes",
+    "DRAIN_MAX_BYTES",
+    "HEAD_MAX_BYTES",
+    "JSON_MAX_BYTES",
+    "REPLY_CHUNK_BYTES",
+    "BodyTimeoutError",
+    "BodyTooLargeError",
+    "ReadStreamingResponse",
+    "UploadLimitMiddleware",
+    "body_limit",
+    "head_bytes",
 ]
 
 log = logging.getLogger("cortexloc.service")
@@ -99,13 +107,19 @@ def _setting(scope: Scope, name: str) -> Any:
     return getattr(_state(scope, "settings"), name, Settings.model_fields[name].default)
 
 
+#: The pieces a streamed reply is sent in (`ReadStreamingResponse`): a client must take one within
+#: `CORTEXLOC_BODY_TIMEOUT_S`, so this over the timeout is the slowest reading kept (64 KiB / 60 s, about
+#: 1 KiB/s; with 1 MiB pieces a robot on a poor link reading 200 KB/s was cut, a review found).
+REPLY_CHUNK_BYTES = 64 * 1024
+
+
 class ReadStreamingResponse(StreamingResponse):
     """A streamed reply (a snapshot download, a loop-closure export) that its client must keep reading:
-    one chunk that waits `CORTEXLOC_BODY_TIMEOUT_S` for the client to take it ends the reply and closes
-    the connection (`on_close` runs however it ends). Before, a client that stopped reading held the
-    reply's files open for as long as it kept the connection: five stalled downloads kept a deleted
-    snapshot's 137 MB on disk. Not a total deadline: a large download on a slow link that keeps reading
-    is never cut."""
+    a piece (at most `REPLY_CHUNK_BYTES`) that waits `CORTEXLOC_BODY_TIMEOUT_S` for the client to take it
+    ends the reply and closes the connection (`on_close` runs however it ends; uvicorn logs the reply as
+    unfinished). Before, a client that stopped reading held the reply's files open for as long as it
+    kept the connection: five stalled downloads kept a deleted snapshot's 137 MB on disk. Not a total
+    deadline: a large download on a slow link is cut only below a piece per timeout."""
 
     def on_close(self) -> None:
         """What the reply holds, released: sent, client gone, stalled or failed."""

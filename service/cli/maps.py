@@ -5,7 +5,6 @@
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -32,7 +31,7 @@ def import_map(
 
     from service.maps.encoding.embedders import Embedders
     from service.maps.errors import DataDirectoryInUse, MemoryBudgetExceeded, SnapshotInvalid
-    from service.maps.registry import MapRegistry
+    from service.maps.registry import MapRegistry, remove_unused
 
     settings = command_settings(data_dir)
     root = settings.data_dir
@@ -52,7 +51,7 @@ def import_map(
             registry.close()  # (no map is open: the catalog, and the directory's lock)
     except (SnapshotInvalid, MemoryBudgetExceeded, ValueError, OSError) as e:
         if fresh:
-            shutil.rmtree(root, ignore_errors=True)
+            remove_unused(root)
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from e
     typer.echo(f"imported map {map_id!r} into {root}; it recovers from the snapshot when the server starts")

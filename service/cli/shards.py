@@ -70,10 +70,11 @@ def move(map_id: Annotated[str, typer.Argument(help="The map to move.")],
          address: AddressOpt = "auto") -> None:
     """Move a map to another shard: drain it (503 + Retry-After meanwhile), snapshot, import there,
     switch the table, delete the old copy. Prints the result as JSON; exit 1 when it stays where it was."""
-    ingress = _ingress(address)  # outside the `try`: its own exit (no Ray) is click's Exit, an Exception
     try:
-        out = ingress.move.remote(map_id, to).result()
-    except Exception as e:  # the deployment's error (MoveFailed, MapNotFound), wrapped by Ray
+        out = _ingress(address).move.remote(map_id, to).result()
+    except typer.Exit:  # no Ray (`_ray`): click's Exit is an Exception too, and it said why already
+        raise
+    except Exception as e:  # no cluster, or the deployment's error (MoveFailed, MapNotFound), wrapped by Ray
         typer.echo(f"error: {getattr(e, 'cause', None) or e}", err=True)
         raise typer.Exit(1) from e
     typer.echo(json.dumps(out))

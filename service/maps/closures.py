@@ -255,10 +255,10 @@ def render(store: MapStore, fmt: str) -> IO[bytes]:
     return spool
 
 
-def chunks(spool: IO[bytes]) -> Iterator[bytes]:
-    """A rendered export's bytes (`render`), closed once read or abandoned. Should a read fail anyway,
-    the exception ends the response without its final chunk: the client sees a broken transfer, never
-    a short file passing for a whole one."""
+def chunks(spool: IO[bytes], chunk_bytes: int = _CHUNK) -> Iterator[bytes]:
+    """A rendered export's bytes (`render`) in pieces of at most `chunk_bytes`, closed once read or
+    abandoned. Should a read fail anyway, the exception ends the response without its final chunk: the
+    client sees a broken transfer, never a short file passing for a whole one."""
     with spool:
-        while data := spool.read(_CHUNK):
+        while data := spool.read(chunk_bytes):
             yield data

@@ -47,7 +47,7 @@ from storage.lock import DataDirInUse, DataDirLock
 from storage.mapstore import MapMeta, MapStore, StorageError, cell_dtype_for
 from storage.snapshots import Manifest
 
-__all__ = ["MapRegistry", "warm_up"]
+__all__ = ["MapRegistry", "remove_unused", "warm_up"]
 
 log = logging.getLogger("cortexloc.runtime")
 
@@ -458,3 +458,17 @@ class MapRegistry:
                 raise
             self.maps[map_id] = rt
         return rt
+
+
+def remove_unused(root: Path) -> None:
+    """Remove data directory `root`, which this process made and closed (a refused `cortexloc import`),
+    unless another process has taken it since: its lock (`storage.lock`) is held for the removal, so a
+    server starting on the same new path keeps what it made."""
+    try:
+        lock = DataDirLock(Layout(root).lock).acquire()
+    except DataDirInUse:
+        return
+    try:
+        shutil.rmtree(root, ignore_errors=True)
+    finally:
+        lock.release()

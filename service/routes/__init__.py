@@ -136,8 +136,12 @@ async def check_request_parameters(request: Request) -> None:
                       f"Content-Type {media or '(none)'!r} is not accepted: this route reads "
                       f"application/json",
                       allowed=["application/json"])
-    if dependant.body_params and sent and (twice := duplicate_keys(await request.body())):
-        # (the body is read already: FastAPI reads it before the dependencies run, and it is kept)
+    extra = (getattr(route, "openapi_extra", None) or {}).get("requestBody", {}).get("content", {})
+    reads_json = dependant.body_params or "application/json" in extra  # (the ingress forwards its own)
+    if (reads_json and sent and is_json(request.headers.get("content-type"))
+            and (twice := duplicate_keys(await request.body()))):
+        # (FastAPI reads a declared body before the dependencies run, and keeps it; one a route reads
+        # itself, the ingress's, is kept for it too: a JSON body is at most 64 KiB, service/limits.py)
         raise _invalid("JSON member(s) given more than once in one object", twice, "given more than once",
                        location="body", advice="; give each once")
     doubled = sorted(name for name in headers if len(request.headers.getlist(name)) > 1)

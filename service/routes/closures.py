@@ -11,7 +11,7 @@ from fastapi.responses import StreamingResponse
 
 from service.deps import RegistryDep
 from service.errors import problem_responses
-from service.limits import ReadStreamingResponse
+from service.limits import REPLY_CHUNK_BYTES, ReadStreamingResponse
 from service.maps import closures
 from service.routes.params import DECIMAL, MapId
 from service.schemas import LoopClosureList, LoopClosureModel
@@ -60,6 +60,7 @@ async def export_loop_closures(
     # Rendered whole first: a failure is an error answer, never a 200 with a short body.
     spool = await anyio.to_thread.run_sync(closures.render, rt.store, format)
     # (a client that stops reading is cut, `ReadStreamingResponse`; the spool closes with its generator)
-    return ReadStreamingResponse(closures.chunks(spool), media_type=closures.EXPORT_FORMATS[format],
+    return ReadStreamingResponse(closures.chunks(spool, REPLY_CHUNK_BYTES),
+                                 media_type=closures.EXPORT_FORMATS[format],
                                  headers={"Content-Disposition": f'attachment; filename="{map_id}-loop-'
                                                                  f'closures.{format}"'})

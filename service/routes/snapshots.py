@@ -7,7 +7,7 @@ from fastapi import APIRouter, Response
 
 from service.deps import ApiKeyDep, RegistryDep
 from service.errors import problem_responses
-from service.limits import ReadStreamingResponse
+from service.limits import REPLY_CHUNK_BYTES, ReadStreamingResponse
 from service.maps.recovery import snapshots
 from service.media_types import TAR_MEDIA_TYPE
 from service.routes.params import MapId, SnapshotId
@@ -57,7 +57,7 @@ class TarExportResponse(ReadStreamingResponse):
     media_type = TAR_MEDIA_TYPE  # what the OpenAPI declares for the route (`response_class`)
 
     def __init__(self, export: snapshots.TarExport, filename: str) -> None:
-        super().__init__(export.chunks(), media_type=TAR_MEDIA_TYPE, headers={
+        super().__init__(export.chunks(REPLY_CHUNK_BYTES), media_type=TAR_MEDIA_TYPE, headers={
             "Content-Length": str(export.size), "Content-Disposition": f'attachment; filename="{filename}"'})
         self.export = export
 

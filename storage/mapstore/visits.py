@@ -270,21 +270,27 @@ class Visits:
             # The rows the live rule looked through: the stream's rows made after the joined one and
             # still held when the join was made (a row dropped at an earlier step, joined or over its
             # place's cap, had left the memory; a row a repair re-made is no step of it). Steps that
-            # store no row (a consolidated frame) share their `after_seq`: of those, a join's own step
-            # wrote its joins with one `created_at`, an earlier one with an earlier `created_at`, so a
-            # row joined there had left (an outside probe: a restart's 19 warm-up rows joined over two
-            # frames in a row, 15 then 4, read as a reach of 18).
+            # store no row (a consolidated frame) share their `after_seq` (an outside probe: a restart's
+            # 19 warm-up rows joined over two frames in a row, 15 then 4, read as a reach of 18). One
+            # step writes its joins with one `created_at`, so another time is another step; which came
+            # first, the visits its joined rows became say (the log's order, schema 12), or failing them
+            # (a row a closure names stays a row; an older file) the times, which a clock stepped back
+            # can mislead.
             split = ("SELECT seq FROM repairs WHERE kind = 'split'" if self.holds.repairs
                      else "SELECT NULL WHERE 0")
             rows = ("(SELECT seq, stream FROM observations UNION ALL SELECT row_seq, stream FROM visits "
                     "WHERE row_seq IS NOT NULL)") if self.holds.joined_rows else "observations"
+            before = "k.created_at < j.created_at"
+            if self.holds.joined_rows:
+                logged = "(SELECT id FROM visits WHERE row_seq = {})"
+                before = f"COALESCE({logged.format('k.seq')} < {logged.format('j.seq')}, {before})"
             out += [f"join of row {r[0]}: {r[1]} held rows of its stream since, the reach is {reach}"
                     for r in db.execute(
                         f"SELECT j.seq, (SELECT count(*) FROM {rows} o WHERE o.stream = j.stream "
                         "AND o.seq > j.seq AND o.seq <= j.after_seq AND NOT EXISTS (SELECT 1 FROM dropped d "
                         "WHERE d.seq = o.seq AND (d.after_seq < j.after_seq OR (d.after_seq = j.after_seq "
                         "AND EXISTS (SELECT 1 FROM joins k WHERE k.seq = d.seq "
-                        "AND k.created_at < j.created_at)))) "
+                        f"AND k.created_at != j.created_at AND {before})))) "
                         f"AND o.seq NOT IN ({split})) AS n FROM joins j WHERE n >= ?", (int(reach),))]
             return out
 

@@ -224,9 +224,9 @@ def test_a_body_whose_last_chunk_crosses_the_limit_is_answered_at_once():
     assert reads == 2 and sent[0]["status"] == 413
 
 
-def _reply_scope(stall_s: float) -> dict:
+def _reply_scope(stall_s: float, spec: str) -> dict:
     state = SimpleNamespace(settings=SimpleNamespace(body_timeout_s=stall_s))
-    return {"type": "http", "asgi": {"spec_version": "2.4"}, "method": "GET", "path": "/download",
+    return {"type": "http", "asgi": {"spec_version": spec}, "method": "GET", "path": "/download",
             "app": SimpleNamespace(state=state)}
 
 
@@ -237,11 +237,13 @@ class _Reply(ReadStreamingResponse):
         type(self).closed += 1
 
 
+@pytest.mark.parametrize("spec", ["2.3", "2.4"])  # uvicorn's protocols say 2.3: Starlette's other path
 @pytest.mark.parametrize("reads", ["stops", "slowly"])
-def test_a_streamed_reply_is_cut_when_its_client_stops_reading_never_when_it_reads_slowly(reads):
+def test_a_streamed_reply_is_cut_when_its_client_stops_reading_never_when_it_reads_slowly(reads, spec):
     """Found from outside: five downloads that stopped reading held a deleted snapshot's files (137 MB)
     open for as long as their connections stayed. A chunk the client does not take within the body
-    timeout now ends the reply and releases what it holds; a slow reader that keeps reading is not cut."""
+    timeout now ends the reply and releases what it holds; a reader that takes each piece in time is not
+    cut, however long the whole takes."""
     sent: list[dict] = []
 
     async def send(message: dict) -> None:
@@ -256,7 +258,7 @@ def test_a_streamed_reply_is_cut_when_its_client_stops_reading_never_when_it_rea
     async def run() -> None:
         with anyio.fail_after(10):
             reply = _Reply(iter([b"a" * 10] * 4), media_type="application/x-tar")
-            await reply(_reply_scope(0.3), receive, send)
+            await reply(_reply_scope(0.3, spec), receive, send)
 
     _Reply.closed = 0
     anyio.run(run)

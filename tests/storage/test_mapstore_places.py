@@ -310,6 +310,21 @@ def test_verify_reads_joins_over_frames_that_store_no_row_in_their_order(store: 
                                                                  "join of row 5"]
 
 
+def test_verify_orders_those_steps_by_the_log_not_the_clock(store: MapStore, monkeypatch) -> None:
+    """Found in review: ordered by their wall-clock times, two such steps read the wrong way round after
+    the clock stepped back between them, and an over-reach went unreported. The visits their joined
+    rows became keep the log's order."""
+    clock = ["2025-01-01T00:00:10.000000Z"]
+    monkeypatch.setattr("storage.mapstore.visits.utc_now", lambda: clock[0])
+    store.append(make_row(1, stream="old"))
+    for i in range(2, 7):
+        store.append(make_row(i, stream="a", prev=i - 1 if i > 2 else None))
+    for i, joins in ((7, ((2, 1),)), (8, ((6, 1), (5, 1), (4, 1), (3, 1)))):  # row 2 first, over rows 3-6
+        store.add_visit(dataclasses.replace(visit(i, 1, 6), stream="a", joins=joins))
+        clock[0] = "2025-01-01T00:00:05.000000Z"  # the clock steps back between the two
+    assert [p.split(":")[0] for p in store.join_problems(3)] == ["join of row 2", "join of row 3"]
+
+
 def test_a_join_turns_its_row_into_a_visit_and_deletes_it_and_its_seq_is_never_handed_out_again(
         tmp_path: Path, meta: MapMeta) -> None:
     """Schema 12 (docs/design/science.md §11.8): the join, in its transaction, logs the joined row's frame

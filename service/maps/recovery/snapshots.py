@@ -184,14 +184,15 @@ def delete(catalog: Catalog, map_id: str, snapshot_id: str, store: MapStore) -> 
 def prune_kept(catalog: Catalog, map_id: str, store: MapStore, kind: SnapshotKind, keep: int,
                max_bytes: int) -> list[str]:
     """Delete the oldest snapshots of `kind` (`manual`, or `pre-restore`: each kind counted apart) beyond
-    the newest `keep` or `max_bytes` in all (0: no such limit), never the `recovery_base`. Returns the
-    ids deleted."""
+    the newest `keep` or `max_bytes` in all (0: no such limit), never the newest of the kind (even alone
+    over the byte limit: a manual one was just asked for, a pre-restore one holds what its restore took
+    away) nor the `recovery_base`. Returns the ids deleted."""
     base = recovery_base(catalog, map_id, store)
     kept = total = 0
     deleted = []
-    for rec in catalog.list_snapshots(map_id, kind=kind):  # newest first
+    for i, rec in enumerate(catalog.list_snapshots(map_id, kind=kind)):  # newest first
         kept, total = kept + 1, total + rec.bytes
-        if rec.snapshot_id != base and ((keep and kept > keep) or (max_bytes and total > max_bytes)):
+        if i and rec.snapshot_id != base and ((keep and kept > keep) or (max_bytes and total > max_bytes)):
             _remove(catalog, rec)
             deleted.append(rec.snapshot_id)
             kept, total = kept - 1, total - rec.bytes

@@ -197,7 +197,7 @@ def test_an_export_that_fails_midway_is_cut_off_without_its_last_chunk(live, mon
     for i in range(3):
         store.add_closure(NewClosure(stream=f"s{i}", place_seq=seq, confidence=0.9, support=1))
 
-    def failing(spool):
+    def failing(spool, chunk_bytes=0):
         with spool:
             yield spool.read(40)
             raise OSError("the disk went away")

@@ -232,7 +232,7 @@ def test_a_delete_killed_after_its_directory_moved_is_finished_at_the_next_start
     data = tmp_path / "data"
     with make_client(data) as c:
         a_map_with_rows(c, "farm")
-        a_map_with_rows(c, "farmer")  # an id the other begins: untouched
+        a_map_with_rows(c, "farm-b")
         real = Catalog.delete_map
 
         def killed(self, map_id):
@@ -248,9 +248,15 @@ def test_a_delete_killed_after_its_directory_moved_is_finished_at_the_next_start
     with make_client(data) as c:
         assert c.get("/readyz").status_code == 200
         assert c.get("/v1/maps/farm").status_code == 404
-        assert c.get("/v1/maps/farmer").json()["observations"] > 0
+        assert c.get("/v1/maps/farm-b").json()["observations"] > 0
         assert c.post("/v1/maps", json={"map_id": "farm"}).status_code == 201  # the id is free
     assert not list((data / "maps").glob(".deleted-*"))
+    # Another id's discarded directory is not this map's, though its name begins with it: farm, its
+    # files gone some other way (not by a delete) beside farm-b's discarded directory, stays listed.
+    (data / "maps" / "farm").rename(tmp_path / "farm-moved")
+    (data / "maps" / f".deleted-farm-b-{'1' * 32}").mkdir()
+    with make_client(data) as c:
+        assert c.get("/v1/maps/farm").status_code == 200
 
 
 def test_a_start_removes_what_a_killed_import_left_but_not_while_another_process_holds_the_directory(

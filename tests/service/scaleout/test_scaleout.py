@@ -250,6 +250,14 @@ def test_the_query_rules_hold_through_the_ingress(cluster):
         r = c.post("/v1/maps/m0/observations", content=frame(1), headers=two)
         assert r.status_code == 400, r.text
         assert c.get("/v1/maps/m0").json()["last_seq"] == 0
+        # a JSON member given twice (found in review: without a `map_id` the ingress parsed the body
+        # itself, kept the last and forwarded it re-written, so the shard never saw the repeat)
+        tiny = json.dumps(TINY)[1:-1]
+        for twice in ('"seed": 3, "seed": 4', '"map_id": "lab", "map_id": ""'):
+            body = "{" + twice + ", " + tiny + "}"
+            r = c.post("/v1/maps", content=body, headers={"Content-Type": "application/json"})
+            assert r.status_code == 400 and "more than once" in r.json()["detail"], (body, r.text)
+        assert [m["map_id"] for m in c.get("/v1/maps").json()["maps"]] == ["default", "m0"]  # no new map
 
 
 async def raw_delete(app, path: str) -> tuple[int, bytes]:

@@ -83,6 +83,23 @@ def test_pre_restore_snapshots_are_kept_to_the_same_count_apart_from_manual_ones
             assert c.post(f"/v1/maps/default/snapshots/{p}/restore").status_code == 200
 
 
+def test_a_restore_keeps_its_pre_restore_snapshot_even_alone_over_the_byte_limit(tmp_path):
+    """Found in review: pruned after the restore, the new pre-restore snapshot was no longer the recovery
+    base, and alone over `CORTEXLOC_SNAPSHOT_MANUAL_BYTES` it was deleted at once, with the observations
+    the restore took away."""
+    with make_client(tmp_path / "data", snapshot_every=0, snapshot_manual_bytes=1) as c:
+        assert post(c, frame(0)).status_code == 200
+        a = snap(c)["snapshot_id"]
+        assert post(c, frame(1)).status_code == 200
+        r = c.post(f"/v1/maps/default/snapshots/{a}/restore")
+        assert r.status_code == 200 and r.json()["discarded_observations"] == 1
+        kinds = [s["kind"] for s in c.get("/v1/maps/default/snapshots").json()["snapshots"]]
+        assert kinds == ["pre-restore", "manual"]
+        pre = listed(c)[0]
+        assert c.post(f"/v1/maps/default/snapshots/{pre}/restore").status_code == 200  # the undo
+        assert c.get("/v1/maps/default").json()["observations"] == 2
+
+
 def test_manual_snapshots_beyond_the_bytes_go_but_never_the_newest(tmp_path):
     with make_client(tmp_path / "data", snapshot_every=0, snapshot_manual_bytes=1) as c:
         for i in range(3):
