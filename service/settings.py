@@ -124,7 +124,8 @@ class Settings(BaseSettings):
     body_timeout_s: float = Field(60.0, gt=0, le=3600, description="a request's whole body must arrive "
                                   "within this many seconds of its start, its head within as many of the "
                                   "connection's opening or previous reply (408 and the connection closed "
-                                  "otherwise); 10 MiB at 2 Mbit/s takes 42 s")
+                                  "otherwise); 10 MiB at 2 Mbit/s takes 42 s. A streamed reply whose client "
+                                  "takes none of its 64 KiB pieces within it is cut")
     max_inflight_upload_bytes: int = Field(128 * 2**20, ge=1, description="bytes all requests being read "
                                            "or served may hold in bodies at once (each reserves its "
                                            "Content-Length; a chunked one its limit); past it 503 "
