@@ -233,6 +233,8 @@ def _validation_errors(exc: RequestValidationError) -> list[dict[str, str]]:
         location = loc[0] if loc else "request"
         if err.get("type") == "json_invalid":  # loc is ("body", <character offset>)
             name, message = "", f"invalid JSON: {err.get('ctx', {}).get('error', err.get('msg', ''))}"
+        elif err.get("type") == "value_error" and "error" in err.get("ctx", {}):  # one of our validators:
+            name, message = ".".join(loc[1:]), str(err["ctx"]["error"])  # its words, not "Value error, ..."
         else:
             name, message = ".".join(loc[1:]), str(err.get("msg", "invalid value"))
         out.append({"location": location, "name": name, "message": message})
