@@ -11,7 +11,8 @@ from models.pipeline.state import (
     resume,
     resume_state,
     touch,
+    was_reset,
 )
 
 __all__ = ["MapModel", "Step", "Stream", "drop", "eviction_wait", "load_memory_state", "memory_name",
-           "memory_state", "observe", "replay", "resume", "resume_state", "revisit", "touch"]
+           "memory_state", "observe", "replay", "resume", "resume_state", "revisit", "touch", "was_reset"]

@@ -164,23 +164,29 @@ def load_memory_state(state: Mapping[str, np.ndarray], adapt_tau: int, condition
     return tm, streams
 
 
-def resume_state(st: Stream) -> bytes:
+def resume_state(st: Stream, *, reset: bool = False) -> bytes:
     """What a replay of the stream's rows and visits cannot give back, packed (npz, no pickle): its
     localiser state (where it is on the map, docs/design/science.md §11), its adaptation mean (its
     frames' projections are not stored) and whether its last frame earned the place's conditions
     (`Stream.represented`, §11.8). The context, the step bookkeeping and the condition are
-    replayed (docs/design/service.md §4.4). A few KB: beam × 41 bytes, plus k floats with adaptation."""
-    arrays = {} if st.localiser is None else {f"loc.{k}": v for k, v in st.localiser.to_arrays().items()}
+    replayed (docs/design/service.md §4.4). A few KB: beam × 41 bytes, plus k floats with adaptation.
+    `reset`: the stream as `Stream.break_sequence` leaves it, marked so that `resume` breaks the
+    replayed sequence too (a reset after the stream's last learned step, which no row records)."""
+    arrays = {} if st.localiser is None or reset else {
+        f"loc.{k}": v for k, v in st.localiser.to_arrays().items()}
     if st.adapt is not None:
         arrays["adapt"] = st.adapt.state()
-    arrays["represented"] = np.array([st.represented], bool)
+    arrays["represented"] = np.array([st.represented and not reset], bool)
+    if reset:
+        arrays["reset"] = np.array([True], bool)
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     return buf.getvalue()
 
 
 def resume(st: Stream, packed: bytes, adapt_tau: int) -> None:
-    """Give a replayed stream back what `resume_state` packed after its last learned step."""
+    """Give a replayed stream back what `resume_state` packed after its last learned step (or after a
+    reset that followed it: the sequence the replay left it in is broken)."""
     with np.load(io.BytesIO(packed), allow_pickle=False) as z:
         arrays = {name: z[name] for name in z.files}
     loc = {k.removeprefix("loc."): v for k, v in arrays.items() if k.startswith("loc.")}
@@ -188,3 +194,11 @@ def resume(st: Stream, packed: bytes, adapt_tau: int) -> None:
     if adapt_tau and "adapt" in arrays:
         st.adapt = RunningMean.from_state(adapt_tau, arrays["adapt"])
     st.represented = "represented" in arrays and bool(arrays["represented"][0])
+    if "reset" in arrays:
+        st.break_sequence()
+
+
+def was_reset(packed: bytes) -> bool:
+    """Whether `packed` (`resume_state`) records a reset after the stream's last learned step."""
+    with np.load(io.BytesIO(packed), allow_pickle=False) as z:
+        return "reset" in z.files

@@ -71,4 +71,4 @@ class FailedMap:
 
     # Everything else needs the memory, the store or the writer.
     memory = reset_stream = set_revisit_threshold = patch = snapshot = restore = snapshot_dir = _unavailable
-    delete_snapshot = _unavailable
+    delete_snapshot = own_trail_merges = repair = _unavailable

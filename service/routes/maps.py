@@ -53,7 +53,8 @@ async def get_map(map_id: MapId, registry: RegistryDep) -> MapModel:
     return MapModel.from_result(await rt.run(rt.info))
 
 
-@router.patch("/{map_id}", dependencies=[ApiKeyDep], responses=problem_responses(401, 404, 415, 422))
+@router.patch("/{map_id}", dependencies=[ApiKeyDep],
+              responses=problem_responses(400, 401, 404, 415, 422, 503))
 async def patch_map(map_id: MapId, body: PatchMap, registry: RegistryDep) -> MapModel:
     """Change the map's settings that may change after creation (durable): `revisit_threshold`,
     `verify_revisit` (a revisit needs a verified keyframe; maps with keyframes only)."""
@@ -69,7 +70,7 @@ async def delete_map(map_id: MapId, registry: RegistryDep) -> Response:
     return Response(status_code=204)
 
 
-@router.get("/{map_id}/memory", responses=problem_responses(404))
+@router.get("/{map_id}/memory", responses=problem_responses(404, 503))
 async def map_memory(map_id: MapId, registry: RegistryDep) -> MemoryModel:
     rt = registry.get(map_id)
     return MemoryModel.from_result(await rt.run(rt.memory))
@@ -77,7 +78,7 @@ async def map_memory(map_id: MapId, registry: RegistryDep) -> MemoryModel:
 
 # `{stream:path}`: a ROS-style name holds '/', which arrives percent-decoded in the path.
 @router.post("/{map_id}/streams/{stream:path}/reset", dependencies=[ApiKeyDep],
-             responses=problem_responses(401, 404))
+             responses=problem_responses(401, 404, 503, 507))
 async def reset_stream(map_id: MapId, stream: StreamName, registry: RegistryDep) -> StreamResetModel:
     rt = registry.get(map_id)
     return StreamResetModel.from_result(await rt.run(rt.reset_stream, stream))

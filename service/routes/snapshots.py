@@ -66,7 +66,7 @@ class TarExportResponse(ReadStreamingResponse):
 
 
 @router.get("/{snapshot_id}/download", response_class=TarExportResponse, status_code=200,
-            responses={**problem_responses(401, 404, 409), 200: {
+            responses={**problem_responses(401, 404, 409, 503), 200: {
                 "description": "the snapshot as a tar", "content": {TAR_MEDIA_TYPE: {
                     "schema": {"type": "string", "format": "binary"}}}}})
 async def download_snapshot(map_id: MapId, snapshot_id: SnapshotId,

@@ -28,6 +28,21 @@ class Streams:
             conn.executemany("INSERT INTO stream_states (stream, clock, state) VALUES (?, ?, ?) ON CONFLICT "
                              "(stream) DO UPDATE SET clock = excluded.clock, state = excluded.state", states)
 
+    def save_stream_state(self, stream: str, state: bytes) -> None:
+        """Store `stream`'s state on its own, at the clock of the last row stored, and COMMIT (a stream's
+        reset, which no row records: docs/design/service.md §1.3, §4.4). A file before version 7 keeps
+        none.
+
+        Raises:
+            StorageFull, StoreReadOnly: nothing was written.
+        """
+        if not self.holds.stream_states:
+            return
+        with self._lock:
+            conn = self._db()
+            with transaction(conn):
+                self._resume(conn, [(str(stream), int(self._last_seq), bytes(state))])
+
     def stream_states(self) -> dict[str, bytes]:
         """Stream -> its state after its last learned step, as written with that step
         (`NewObservation.resume`); those a snapshot holds may have been pruned (`prune_stream_states`)."""

@@ -373,6 +373,14 @@ def _resume(store: MapStore, done: Rebuilt, like: MapModel) -> int:
         if st is not None and packed is not None:
             pipeline.resume(st, packed, like.adapt_tau)
             resumed += 1
+    # A reset after a stream's last learned step (no row records it) holds whether or not the stream
+    # had rows to replay: one restored from the snapshot alone is reset too (an outside probe: a reset
+    # answered 200, then a kill, and the stream went on with its old sequence).
+    for name, packed in states.items():
+        st = done.streams.get(name)
+        if st is not None and name not in done.replayed_streams and pipeline.was_reset(packed):
+            pipeline.resume(st, packed, like.adapt_tau)
+            resumed += 1
     return resumed
 
 

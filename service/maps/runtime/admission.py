@@ -12,9 +12,11 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 
-from models.pipeline import Stream, eviction_wait
-from service.maps.errors import StreamLimit
+from models.pipeline import Stream, eviction_wait, resume_state
+from service.maps.errors import InsufficientStorage, MapReadOnly, StreamLimit
 from service.maps.results import StreamReset
+from service.maps.states import serving
+from storage.mapstore import StorageFull, StoreReadOnly
 
 __all__ = ["Admission"]
 
@@ -39,11 +41,27 @@ class Admission:
 
     def reset_stream(self, name: str) -> StreamReset:
         """Break the stream's sequence (the next frame starts a new one); its adaptation is kept,
-        because it describes the camera and the conditions, not where the robot is."""
+        because it describes the camera and the conditions, not where the robot is. Durable before the
+        reply, as an observation is: the stream's state is stored as the reset leaves it, so a restart,
+        even after a kill, resumes it reset (before, it resumed the sequence from its last learned step).
+        A map whose storage refuses writes (`read-only`) resets it in memory only: it learns nothing.
+
+        Raises:
+            InsufficientStorage, MapReadOnly: the reset could not be stored; nothing changed.
+        """
         st = self.streams.get(name)
         if self._tail is not None:  # the live state is the stream's from now on (`_replay_tail`)
             self._localised.add(name)
         had = st is not None and st.context.active_cells.size > 0
         if st is not None:
+            if self.store is not None and not serving(self.state).read_only:
+                try:
+                    self.store.save_stream_state(name, resume_state(st, reset=True))
+                except StorageFull as e:
+                    raise InsufficientStorage(f"the reset could not be stored: no room to write ({e}); "
+                                              "nothing changed") from e
+                except StoreReadOnly as e:
+                    self.read_only()
+                    raise MapReadOnly(self.map_id, "the reset (nothing changed)") from e
             st.break_sequence()
         return StreamReset(stream=name, had_context=bool(had))

@@ -294,6 +294,50 @@ def test_crashes_at_random_points_of_random_drives_come_back_as_if_nothing_happe
         assert got == expected, (trial, cut, drive)
 
 
+@pytest.mark.parametrize("snapshot_every", [0, 3], ids=["replayed", "restored-from-a-snapshot"])
+def test_a_reset_answered_before_a_crash_holds_after_it(tmp_path, snapshot_every):
+    """Found from outside: a stream reset answered 200, then a kill -9, and after the restart the stream
+    went on with its old sequence (step 6, not 0): no row records a reset, and the stream's stored state
+    was its last learned step's. Whether the stream's rows are replayed or its state comes from a
+    snapshot taken with its last row, the restart resumes it reset, as a map never killed does."""
+    def drive(c) -> None:
+        for i in range(6):
+            assert post(c, frame(i % 4), stream="F").status_code == 200
+        assert c.post("/v1/maps/default/streams/F/reset").json()["had_context"] is True
+
+    with make_client(tmp_path / "twin", snapshot_every=snapshot_every) as c:
+        drive(c)
+        expected = post(c, frame(5), stream="F").json()
+        twin = state_of(c)
+    data = tmp_path / "crashed"
+    with make_client(data, snapshot_every=snapshot_every) as c:
+        drive(c)
+        crash(c)
+    with make_client(data, snapshot_every=snapshot_every) as c:
+        got = post(c, frame(5), stream="F").json()
+        assert got["sequence"]["step"] == 0 == expected["sequence"]["step"]
+        assert got["place"] == expected["place"] and got["seq"] == expected["seq"]
+        assert state_of(c) == twin
+
+
+def test_a_reset_that_cannot_be_stored_is_refused_and_changes_nothing(tmp_path, monkeypatch):
+    from storage.mapstore import StorageFull
+
+    with make_client(tmp_path / "data", snapshot_every=0) as c:
+        for i in range(3):
+            assert post(c, frame(i), stream="F").status_code == 200
+        rt = c.app.state.registry.get("default")
+
+        def full(*args, **kwargs):
+            raise StorageFull("database or disk is full")
+
+        monkeypatch.setattr(rt.store, "save_stream_state", full)
+        r = c.post("/v1/maps/default/streams/F/reset")
+        assert r.status_code == 507 and r.json()["type"].endswith("insufficient-storage"), r.text
+        monkeypatch.undo()
+        assert post(c, frame(3), stream="F").json()["sequence"]["step"] == 3  # not reset
+
+
 # ------------------------------------------------------------------ a failure between the step and the commit
 
 
