@@ -42,9 +42,12 @@ class Admission:
     def reset_stream(self, name: str) -> StreamReset:
         """Break the stream's sequence (the next frame starts a new one); its adaptation is kept,
         because it describes the camera and the conditions, not where the robot is. Durable before the
-        reply, as an observation is: the stream's state is stored as the reset leaves it, so a restart,
-        even after a kill, resumes it reset (before, it resumed the sequence from its last learned step).
-        A map whose storage refuses writes (`read-only`) resets it in memory only: it learns nothing.
+        reply, as an observation is, where its sequence continues a stored row: the stream's state is
+        stored as the reset leaves it, so a restart, even after a kill, resumes it reset (before, it
+        resumed the sequence from its last learned step). A sequence of localised frames only is not
+        stored (a restart finds the stream as of its last learned step, as after any localisation), so
+        its reset needs no write, and a localising robot resets on a full disk too; nor does a map whose
+        storage refuses writes (`read-only`: it learns nothing).
 
         Raises:
             InsufficientStorage, MapReadOnly: the reset could not be stored; nothing changed.
@@ -54,7 +57,8 @@ class Admission:
             self._localised.add(name)
         had = st is not None and st.context.active_cells.size > 0
         if st is not None:
-            if self.store is not None and not serving(self.state).read_only:
+            durable = st.last_learned_seq is not None and not serving(self.state).read_only
+            if durable and self.store is not None:
                 try:
                     self.store.save_stream_state(name, resume_state(st, reset=True))
                 except StorageFull as e:
