@@ -109,7 +109,7 @@ def _setting(scope: Scope, name: str) -> Any:
 
 #: The pieces a streamed reply is sent in (`ReadStreamingResponse`): a client must take one within
 #: `CORTEXLOC_BODY_TIMEOUT_S`, so this over the timeout is the slowest reading kept (64 KiB / 60 s, about
-#: 1 KiB/s; with 1 MiB pieces a robot on a poor link reading 200 KB/s was cut, a review found).
+#: 1 KiB/s; with 1 MiB pieces a robot reading steadily on a poor link was cut, a review found).
 REPLY_CHUNK_BYTES = 64 * 1024
 
 
@@ -118,7 +118,7 @@ class ReadStreamingResponse(StreamingResponse):
     a piece (at most `REPLY_CHUNK_BYTES`) that waits `CORTEXLOC_BODY_TIMEOUT_S` for the client to take it
     ends the reply and closes the connection (`on_close` runs however it ends; uvicorn logs the reply as
     unfinished). Before, a client that stopped reading held the reply's files open for as long as it
-    kept the connection: five stalled downloads kept a deleted snapshot's 137 MB on disk. Not a total
+    kept the connection: stalled downloads kept a deleted snapshot's files on disk. Not a total
     deadline: a large download on a slow link is cut only below a piece per timeout."""
 
     def on_close(self) -> None:

@@ -127,7 +127,8 @@ async def check_request_parameters(request: Request) -> None:
                        advice=f"; this route accepts: {listed}", accepted=sorted(accepted))
     sent = (request.headers.get("content-length", "0") not in ("", "0")
             or "transfer-encoding" in request.headers)
-    if sent and not (dependant.body_params or "requestBody" in (getattr(route, "openapi_extra", None) or {})):
+    declared = (getattr(route, "openapi_extra", None) or {}).get("requestBody")  # a body it reads itself
+    if sent and not (dependant.body_params or declared is not None):
         await _no_body(request)
     if dependant.body_params and sent and not is_json(request.headers.get("content-type")):
         # FastAPI would read any other type as bytes and say the body is no object: the wrong reason
@@ -136,8 +137,7 @@ async def check_request_parameters(request: Request) -> None:
                       f"Content-Type {media or '(none)'!r} is not accepted: this route reads "
                       f"application/json",
                       allowed=["application/json"])
-    extra = (getattr(route, "openapi_extra", None) or {}).get("requestBody", {}).get("content", {})
-    reads_json = dependant.body_params or "application/json" in extra  # (the ingress forwards its own)
+    reads_json = dependant.body_params or "application/json" in (declared or {}).get("content", {})
     if (reads_json and sent and is_json(request.headers.get("content-type"))
             and (twice := duplicate_keys(await request.body()))):
         # (FastAPI reads a declared body before the dependencies run, and keeps it; one a route reads

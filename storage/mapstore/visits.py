@@ -271,11 +271,11 @@ class Visits:
             # still held when the join was made (a row dropped at an earlier step, joined or over its
             # place's cap, had left the memory; a row a repair re-made is no step of it). Steps that
             # store no row (a consolidated frame) share their `after_seq` (an outside probe: a restart's
-            # 19 warm-up rows joined over two frames in a row, 15 then 4, read as a reach of 18). One
-            # step writes its joins with one `created_at`, so another time is another step; which came
-            # first, the visits its joined rows became say (the log's order, schema 12), or failing them
-            # (a row a closure names stays a row; an older file) the times, which a clock stepped back
-            # can mislead.
+            # warm-up rows joined over two frames in a row, the newest then the older, read as an
+            # over-reach). One step writes its joins with one `created_at`, so another time is another
+            # step; which came first, the visits its joined rows became say (the log's order, schema 12),
+            # or failing them (a row a closure names stays a row; an older file) the times, which a clock
+            # stepped back can mislead.
             split = ("SELECT seq FROM repairs WHERE kind = 'split'" if self.holds.repairs
                      else "SELECT NULL WHERE 0")
             rows = ("(SELECT seq, stream FROM observations UNION ALL SELECT row_seq, stream FROM visits "

@@ -240,7 +240,7 @@ class _Reply(ReadStreamingResponse):
 @pytest.mark.parametrize("spec", ["2.3", "2.4"])  # uvicorn's protocols say 2.3: Starlette's other path
 @pytest.mark.parametrize("reads", ["stops", "slowly"])
 def test_a_streamed_reply_is_cut_when_its_client_stops_reading_never_when_it_reads_slowly(reads, spec):
-    """Found from outside: five downloads that stopped reading held a deleted snapshot's files (137 MB)
+    """Found from outside: downloads that stopped reading held a deleted snapshot's files on disk
     open for as long as their connections stayed. A chunk the client does not take within the body
     timeout now ends the reply and releases what it holds; a reader that takes each piece in time is not
     cut, however long the whole takes."""

@@ -366,19 +366,13 @@ def _resume(store: MapStore, done: Rebuilt, like: MapModel) -> int:
     holds it (docs/design/service.md §4.4). Returns how many streams resumed. A stream without one (its
     state pruned with an older snapshot the recovery passed over, or a file before schema 7) keeps the
     start's state and finds its place again (a warm-up)."""
-    states = store.stream_states()
     resumed = 0
-    for name in done.replayed_streams:
-        st, packed = done.streams.get(name), states.get(name)
-        if st is not None and packed is not None:
-            pipeline.resume(st, packed, like.adapt_tau)
-            resumed += 1
-    # A reset after a stream's last learned step (no row records it) holds whether or not the stream
-    # had rows to replay: one restored from the snapshot alone is reset too (an outside probe: a reset
-    # answered 200, then a kill, and the stream went on with its old sequence).
-    for name, packed in states.items():
+    for name, packed in store.stream_states().items():
         st = done.streams.get(name)
-        if st is not None and name not in done.replayed_streams and pipeline.was_reset(packed):
+        # A reset after a stream's last learned step (no row records it) holds whether or not the stream
+        # had rows to replay: one restored from the snapshot alone is reset too (an outside probe: a
+        # reset answered 200, then a kill, and the stream went on with its old sequence).
+        if st is not None and (name in done.replayed_streams or pipeline.was_reset(packed)):
             pipeline.resume(st, packed, like.adapt_tau)
             resumed += 1
     return resumed

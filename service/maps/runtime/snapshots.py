@@ -116,9 +116,10 @@ class Snapshots:
             self.store.close()
             MapStore.install_copy(path / snapshots.DB_FILE, self.layout.map_db(self.map_id))
             self.recover()
-        # Pre-restore snapshots are kept to the manual ones' limits, counted apart (a loop of restores wrote
-        # one each, ~27 MB apiece, kept for good). Pruned once the restore is done: the snapshot restored,
-        # a pre-restore one perhaps, is then the recovery base, never deleted. The restore stands either way.
+        # Pre-restore snapshots are kept to the manual ones' limits, counted apart (a loop of restores
+        # wrote one each, a map's size apiece, kept for good). Pruned once the restore is done: the
+        # snapshot restored, a pre-restore one perhaps, is then the recovery base, never deleted. The
+        # restore stands either way.
         try:
             self._prune_kept("pre-restore")
         except Exception:  # (the next restore prunes again)

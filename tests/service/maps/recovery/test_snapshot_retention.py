@@ -67,7 +67,7 @@ def test_manual_snapshots_beyond_the_count_go_oldest_first(tmp_path):
 
 def test_pre_restore_snapshots_are_kept_to_the_same_count_apart_from_manual_ones(tmp_path):
     """Found from outside: each restore wrote a pre-restore snapshot that no retention reached, so a loop
-    of restores filled the disk (12 restores, 12 snapshots of ~27 MB kept for good)."""
+    of restores filled the disk (a map's size a restore, kept for good)."""
     with make_client(tmp_path / "data", snapshot_every=0, snapshot_manual_keep=2) as c:
         assert post(c, frame(0)).status_code == 200
         a = snap(c)["snapshot_id"]
