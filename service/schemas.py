@@ -327,13 +327,10 @@ class RepairModel(_Out):
         "true: the repair changes (a listing: would change) the loop-closure log's epoch: its cap pruned "
         "entries logged since the last repair, a closure among them may be withdrawn without a retraction, "
         "so a follower rebuilds its edges from the export"))
-    past_repair: list[int] = Field(description=(
-        "the closures among `retractions` logged with a consolidated frame whose visit the visit log has "
-        "pruned (a snapshot covers it): the edge is retracted, but the frame stays merged into its row, "
-        "since its code is gone"))
     visits_pruned_through: int = Field(description=(
-        "the last visit id the visit log pruned (0: none): a merge among those visits is past repair, and "
-        "one that logged no loop closure is not listed at all"))
+        "the last visit id the visit log pruned (0: none): what was learned up to the oldest visit it keeps "
+        "is not judged (the log no longer says how the streams moved there), so a merge there is neither "
+        "listed nor undone"))
 
 
 class LoopClosureList(_Out):

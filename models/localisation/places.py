@@ -285,6 +285,13 @@ class PlaceMap:
             last = [row for row in last if row in recent]
         return {int(self.graph.trail[row]) for row in last}
 
+    def forget_short_term(self) -> None:
+        """Every trail's short-term memory and every stream's last move forgotten (§11.6): where a log
+        lost steps, what they held is unknown (`models.localisation.repair.Pruned`). The next learned
+        frame of each stream is a move, and its memory holds what it learns from then on."""
+        self._short.clear()
+        self._anchors.clear()
+
     def short_term_rows(self, trail: str) -> np.ndarray:
         """(m,) int64 ascending: the rows `trail`'s streams made over its last moves and still held,
         its short-term memory (`ShortTerm`, docs/design/science.md §11.6); a stream's trail is its own

@@ -8,6 +8,13 @@ stream's short-term memory at that moment: the rows it made over its last `short
 were learned. Here the same memory is built again over the log as it was learned, so a map made before
 the memory (or with `short_term` 0) is judged by the rule it would have had: its window is the map's
 `short_term`, or the default's (`LocaliserParams.short_term`) where the map's is 0.
+
+A log that lost steps (the visit log's prune) cannot tell how its streams moved before the loss: a pruned
+visit was a move, and a memory built without it keeps rows its stream had left, so a real loop closure
+there reads as a merge from the trail (an outside probe: a repair after the prune retracted a second lap's
+closures). Such a log starts with steps that are learned but not judged, up to a `Pruned` mark where every
+stream's memory starts again empty; from it on the memory built is part of the one the stream had (it
+misses rows made before the mark), so what it finds is a merge the stream made, not a loop it closed.
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ from models.localisation.motion import NO_MOTION, Motion
 from models.localisation.options import LocaliserOptions
 from models.localisation.places import PlaceMap
 
-__all__ = ["Learned", "Merges", "Named", "own_trail_merges", "window"]
+__all__ = ["Learned", "Merges", "Named", "Pruned", "own_trail_merges", "window"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,6 +68,12 @@ class Named:
     into: int = NONE
 
 
+@dataclass(frozen=True)
+class Pruned:
+    """The mark in a log after which it holds every step (the visits before it were pruned): the steps
+    before it are not judged, and every stream's memory starts again here."""
+
+
 @dataclass
 class Merges:
     """What `own_trail_merges` found, in log order.
@@ -70,15 +83,11 @@ class Merges:
         joins: the refs of the made rows that joined a place through a row of the stream's own memory.
         closures: the ids of the closures that named a row of the stream's own memory (or were logged
             with a visit into one).
-        past_repair: the ids among `closures` logged with a frame consolidated into a row of the
-            stream's memory whose visit the log no longer holds (pruned, a snapshot covers it): the
-            closure can be retracted, the frame cannot be split (its code is gone).
     """
 
     visits: list[int] = field(default_factory=list)
     joins: list[int] = field(default_factory=list)
     closures: list[int] = field(default_factory=list)
-    past_repair: list[int] = field(default_factory=list)
 
 
 def window(options: LocaliserOptions | None) -> int:
@@ -87,48 +96,42 @@ def window(options: LocaliserOptions | None) -> int:
     return moves or LocaliserOptions().short_term
 
 
-def own_trail_merges(log: Iterable[Learned | Named], options: LocaliserOptions | None,
-                     code_width: int) -> Merges:
+def own_trail_merges(log: Iterable[Learned | Named | Pruned], options: LocaliserOptions | None,
+                     code_width: int, *, pruned: bool = False) -> Merges:
     """The merges of a log made from each stream's own recent trail.
 
     Args:
         log: the learned steps (rows and visits) in the order they were learned, each loop closure just
             before the step that came after it (a learned row's closure just before its row): a closure is
-            judged by its stream's memory at that moment, a step by the memory before it.
+            judged by its stream's memory at that moment, a step by the memory before it. With `pruned`, a
+            `Pruned` mark where the log starts to hold every step (module docstring).
         options: the map's localiser options (its `departure` and `short_term`, `window`).
         code_width: the frame code's bit space (the code statistics the memory's moves read, §11.6).
+        pruned: the log lost steps before its `Pruned` mark: nothing before the mark is judged.
 
     Returns:
-        The merges. One pass, O(log · memory) time, O(rows) memory (the codes are not kept). A
-        consolidated frame's closure comes just before its visit (the writer stamps it first and commits
-        both at once; while the wall clock does not step back), so a closure whose frame went into a row
-        of the memory, and whose stream's next step is not a visit into that row, lost its visit to the
-        log's prune (`Merges.past_repair`). The pairing is by row, not identity: where the next kept
-        visit of the stream went into the same row, the pruned one is not told.
+        The merges. One pass, O(log · memory) time, O(rows) memory (the codes are not kept).
     """
     place_map = PlaceMap(dataclasses.replace(options or LocaliserOptions(), short_term=window(options)),
                          code_width)
     out = Merges()
-    awaiting: dict[str, Named] = {}  # per stream: a flagged consolidated frame's closure, its visit next
+    judged = not pruned
     for event in log:
-        if not isinstance(event, Named) or event.into != NONE:
-            was = awaiting.pop(event.stream, None)
-            if was is not None and (isinstance(event, Named) or event.made or event.seq != was.into):
-                out.past_repair.append(was.id)
-        if isinstance(event, Named):
+        if isinstance(event, Pruned):
+            place_map.forget_short_term()
+            judged = True
+        elif isinstance(event, Named):
             recent = place_map.short_term_rows(event.stream)
-            if np.isin([event.place_seq, event.into], recent).any():
+            if judged and np.isin([event.place_seq, event.into], recent).any():
                 out.closures.append(event.id)
-                if event.into != NONE and event.into in recent:
-                    awaiting[event.stream] = event
         elif event.made:  # (the memory read only where the row joined a place: most rows did not)
-            if event.through and np.isin(event.through, place_map.short_term_rows(event.stream)).any():
+            if judged and event.through and np.isin(event.through,
+                                                    place_map.short_term_rows(event.stream)).any():
                 out.joins.append(event.ref)
             place_map.add(event.seq, None, event.code, stream=event.stream, motion=event.motion)
         else:
             rehearsal = event.prev == event.seq and place_map.stays(event.stream, event.code, event.motion)
-            if not rehearsal and event.seq in place_map.short_term_rows(event.stream):
+            if judged and not rehearsal and event.seq in place_map.short_term_rows(event.stream):
                 out.visits.append(event.ref)
             place_map.visit(None, event.seq, event.seq, event.stream, event.code, event.motion)
-    out.past_repair.extend(c.id for c in awaiting.values())
     return out

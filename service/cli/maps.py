@@ -112,6 +112,9 @@ def verify(
 
 def _merges(found: Found) -> None:
     """The own-trail merges of one map, a line each."""
+    if found.visits_pruned_through:
+        typer.echo(f"  the visit log is pruned through visit {found.visits_pruned_through}: what was learned "
+                   "before the oldest visit it keeps is not judged for merges")
     if not found:
         typer.echo(f"  no merges from a stream's own recent trail (its last {found.window} moves)")
         return
@@ -122,10 +125,8 @@ def _merges(found: Found) -> None:
         typer.echo(f"    visit {v.id}: stream {v.stream!r} consolidated into its own row {v.seq}")
     for seq, was, stream in found.joins:
         typer.echo(f"    row {seq}: stream {stream!r} joined the place of its own row {was}")
-    past = set(found.past_repair)
     for cid, stream, place in found.closures:
-        gone = "; its frame's visit is pruned from the log, past repair" if cid in past else ""
-        typer.echo(f"    loop closure {cid}: stream {stream!r} named its own row {place}{gone}")
+        typer.echo(f"    loop closure {cid}: stream {stream!r} named its own row {place}")
 
 
 def repair(
@@ -182,10 +183,9 @@ def repair(
     typer.echo(f"map {map_id}: {done} {len(body['splits'])} visit(s) as rows ({body['rows_added']} rows "
                f"{added}), {len(body['unjoins'])} place join(s), {len(body['retractions'])} loop closure(s) "
                f"retracted; a stream's recent trail: its last {body['window']} moves")
-    if body.get("past_repair"):
-        typer.echo(f"map {map_id}: {len(body['past_repair'])} of those loop closures were logged with a "
-                   f"consolidated frame whose visit the visit log has pruned (through visit "
-                   f"{body['visits_pruned_through']}): their edges are retracted, their frames stay merged")
+    if body.get("visits_pruned_through"):
+        typer.echo(f"map {map_id}: the visit log is pruned through visit {body['visits_pruned_through']}: "
+                   "what was learned before the oldest visit it keeps is not judged")
     if body.get("rewrite"):
         changes = "changed" if body["repaired"] else "would change"
         typer.echo(f"map {map_id}: the loop-closure log's cap pruned entries this repair may withdraw "

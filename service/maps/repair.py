@@ -8,8 +8,13 @@ before its row, any other (a consolidated frame's, a localising stream's) before
 at or after it (`created_at`, microseconds, one writer; a wall clock stepped back misplaces it).
 `models.localisation.repair.own_trail_merges` judges them; what an earlier repair already undid
 (`MapStore.repairs`, the closures a retraction withdraws) is left out, so a second repair finds
-nothing. Visits pruned from the log (a snapshot covers them, `max_visits`) are past repair: their codes
-are gone (`Found.past_repair` names the retracted closures whose frames stay merged).
+nothing. Where the log pruned visits (a snapshot covers them, `max_visits`), the steps up to the oldest
+visit it keeps are learned, not judged: a pruned visit was a move of its stream, and without it the
+memory keeps rows its stream had left, so a real loop closure reads as a merge (an outside probe: a
+repair then retracted a second lap's true closures). The mark (`Pruned`) is put just before the oldest kept
+visit and the closures stamped since the step before it: every pruned visit was learned before that
+visit, and a step after the mark is judged by a memory that starts empty there, part of the one its
+stream had.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from typing import Any
 
 from models.localisation.graph import NONE
 from models.localisation.motion import Motion
-from models.localisation.repair import Learned, Named, own_trail_merges, window
+from models.localisation.repair import Learned, Named, Pruned, own_trail_merges, window
 from service.maps.config import MapConfig, map_model
 from service.maps.recovery.memory import in_order, learned_rows
 from storage.catalog import Catalog, MapRecord
@@ -43,17 +48,14 @@ class Found:
         joins: (row, the row whose place it joined) of the rows that joined a place through a row of
             their stream's own memory, in seq order.
         closures: the logged closures to retract, in log order: each (id, stream, the row it named).
-        past_repair: the ids among `closures` logged with a consolidated frame whose visit the log has
-            pruned: retracted, but the frame stays merged (its code is gone).
-        visits_pruned_through: the last visit id the log pruned (0: none): a merge among those visits is
-            past repair, and one without a closure is not found at all.
+        visits_pruned_through: the last visit id the log pruned (0: none): the steps learned up to the
+            oldest visit kept are not judged (module docstring), so a merge among them is not found.
     """
 
     window: int
     visits: list[Visit] = field(default_factory=list)
     joins: list[tuple[int, int, str]] = field(default_factory=list)
     closures: list[tuple[int, str, int]] = field(default_factory=list)
-    past_repair: list[int] = field(default_factory=list)
     visits_pruned_through: int = 0
 
     def __bool__(self) -> bool:
@@ -69,15 +71,21 @@ def _closures(store: MapStore) -> list[LoopClosure]:
     return out
 
 
-def _log(store: MapStore, closures: list[LoopClosure]) -> Iterator[Learned | Named]:
-    """The store's learned steps and closures in order (module docstring), read once."""
+def _log(store: MapStore, closures: list[LoopClosure],
+         pruned_through: int) -> Iterator[Learned | Named | Pruned]:
+    """The store's learned steps and closures in order (module docstring), read once; with visits pruned
+    (`pruned_through` > 0), the `Pruned` mark just before the oldest visit kept."""
     by_row: dict[int, list[LoopClosure]] = defaultdict(list)
     others: list[LoopClosure] = []
     for c in closures:
         (by_row[c.seq] if c.seq is not None else others).append(c)
     joined = store.joined()  # the place of a row stored before version 5
+    # the oldest visit kept (`prune_visits` keeps one): every pruned visit was learned before it
+    first = pruned_through + 1 if pruned_through else None
     k = 0
     for step in in_order(learned_rows(store), store.visits()):
+        if isinstance(step, Visit) and step.id == first:
+            yield Pruned()  # before the closures placed with it: stamped after the row it follows
         # `<=`: a consolidated frame's closure is stamped before its visit, at worst in the same microsecond
         while k < len(others) and others[k].created_at <= step.created_at:
             yield _named(others[k])
@@ -125,8 +133,9 @@ def find(store: MapStore, conf: dict[str, Any] | None, code_width: int) -> Found
     unjoined = {r.seq for r in repairs if r.kind == "unjoin"}
     retracted = store.retracted()
     closures = _closures(store)
-    merges = own_trail_merges(_log(store, closures), conf, code_width)
-    out = Found(window(conf), visits_pruned_through=store.visits_pruned_through())
+    pruned = store.visits_pruned_through()
+    merges = own_trail_merges(_log(store, closures, pruned), conf, code_width, pruned=pruned > 0)
+    out = Found(window(conf), visits_pruned_through=pruned)
     wanted = set(merges.visits) - split
     if wanted:
         out.visits = [v for v in store.visits() if v.id in wanted]
@@ -137,13 +146,6 @@ def find(store: MapStore, conf: dict[str, Any] | None, code_width: int) -> Found
         out.joins = [(s, int(_joined(rows[s], joined)), rows[s].stream) for s in joins]  # type: ignore[arg-type]
     named = {c.id: c for c in closures}
     out.closures = [(i, named[i].stream, named[i].place_seq) for i in merges.closures if i not in retracted]
-    # Only a closure stamped no later than the oldest visit kept can have lost its visit (its visit is
-    # stamped after it, and one writer stamps nothing between them): this keeps most closures a clock
-    # stepped back misplaced in the log from calling a kept visit's frame past repair.
-    kept = store.visit_mark(out.visits_pruned_through + 1) if out.visits_pruned_through else None
-    oldest = None if kept is None else kept.rsplit("|", 1)[1]
-    out.past_repair = [i for i in merges.past_repair if i not in retracted and out.visits_pruned_through
-                       and (oldest is None or named[i].created_at <= oldest)]
     return out
 
 

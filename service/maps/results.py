@@ -345,10 +345,8 @@ class RepairResult:
         rewrite: the repair changes (listed: would change) the loop-closure log's epoch: its cap pruned
             entries logged since the last repair, which it may withdraw without a retraction
             (docs/design/service.md §1.2).
-        past_repair: the closures among `retractions` logged with a consolidated frame whose visit the
-            visit log has pruned: retracted, but the frame stays merged into its row (its code is gone).
-        visits_pruned_through: the last visit id the visit log pruned (0: none); merges among those
-            visits are past repair.
+        visits_pruned_through: the last visit id the visit log pruned (0: none): what was learned up to
+            the oldest visit kept is not judged (`service.maps.repair`).
     """
 
     map_id: str
@@ -359,7 +357,6 @@ class RepairResult:
     retractions: list[Retraction]
     rows_added: int = 0
     rewrite: bool = False
-    past_repair: list[int] = field(default_factory=list)
     visits_pruned_through: int = 0
 
 

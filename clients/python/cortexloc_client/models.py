@@ -493,10 +493,8 @@ class Repair(_Reply):
     #: logged since the last repair, which it may withdraw without a retraction, so a follower rebuilds
     #: its edges (False from a server before it).
     rewrite: bool = False
-    #: The closures among `retractions` whose consolidated frame's visit the log has pruned: the edge is
-    #: retracted, the frame stays merged (empty from a server before it).
-    past_repair: list[int] = Field(default_factory=list)
-    #: The last visit id the visit log pruned (0: none): merges among those visits are past repair.
+    #: The last visit id the visit log pruned (0: none): what was learned up to the oldest visit it keeps is
+    #: not judged, so a merge there is neither listed nor undone.
     visits_pruned_through: int = 0
 
 

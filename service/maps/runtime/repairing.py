@@ -105,4 +105,4 @@ class Repairing:
             unjoins=[Unjoin(seq=s, stream=st, joined=was) for s, was, st in found.joins],
             retractions=[Retraction(closure=i, stream=st, place_seq=p) for i, st, p in found.closures],
             rows_added=len(found.visits) if seqs is None else len(seqs), rewrite=rewrite,
-            past_repair=found.past_repair, visits_pruned_through=found.visits_pruned_through)
+            visits_pruned_through=found.visits_pruned_through)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from models.localisation.options import LocaliserOptions
-from models.localisation.repair import Learned, Named, own_trail_merges, window
+from models.localisation.repair import Learned, Named, Pruned, own_trail_merges, window
 
 
 def code(k: int) -> np.ndarray:
@@ -51,16 +51,20 @@ def test_a_map_without_a_memory_is_judged_by_the_default_window():
     assert own_trail_merges(log, LocaliserOptions(short_term=5), 512).visits == []
 
 
-def test_a_flagged_closure_whose_visit_the_log_no_longer_holds_is_past_repair():
-    log = [*rows("a", range(1, 6)),
-           Named(1, "a", 4, into=4), Learned("a", 4, code(30), made=False, ref=201),  # its visit is kept
-           Named(2, "a", 3, into=3),  # its visit pruned: the stream's next step is a row
-           *rows("a", range(6, 8), first_code=40),
-           Named(3, "a", 5, into=5), Named(4, "a", 6, into=6),  # two in a row: the first's visit is gone
-           Learned("b", 6, code(60), made=False, ref=202),  # another stream's step settles nothing
-           Learned("a", 6, code(61), made=False, ref=203),  # closure 4's visit
-           Named(5, "a", 7, into=7),  # the log ends before its visit
-           Named(6, "a", 7, into=1)]  # named a recent row, but its frame went far behind: no split to miss
-    found = own_trail_merges(log, LocaliserOptions(short_term=4), 512)
-    assert found.closures == [1, 2, 3, 4, 5, 6] and found.visits == [201, 203]
-    assert found.past_repair == [2, 3, 5]
+def test_a_log_that_lost_steps_judges_nothing_before_its_mark_and_a_fresh_memory_after():
+    # An outside probe: with the visit log pruned, a repair read a second lap's true closures as echoes.
+    # Lap 1 makes rows 1-6; lap 2's frames were visits of them (moves, pruned); closure 1 names row 3 from
+    # lap 2, after the stream moved on: no echo. Rebuilt without the visits, row 3 still looks recent.
+    lap1 = rows("a", range(1, 7))
+    before = [*lap1, Named(1, "a", 3, into=3)]
+    after = [Learned("a", 4, code(30), made=False, ref=201),  # the oldest visit kept: another lap's
+             *rows("a", range(7, 9), first_code=40),
+             Named(2, "a", 8, into=8), Learned("a", 8, code(50), made=False, ref=202),  # an echo: row 8 is
+             Named(3, "a", 2)]  # recent; row 2 was made before the mark: not told, so not a merge
+    opts = LocaliserOptions(short_term=4)
+    stale = own_trail_merges([*before, *after], opts, 512)
+    assert 1 in stale.closures  # what the repair did: the true closure read as an echo
+    found = own_trail_merges([*before, Pruned(), *after], opts, 512, pruned=True)
+    assert found.closures == [2] and found.visits == [202]
+    # the same log without the loss: judged throughout
+    assert own_trail_merges([*before, *after], opts, 512).closures == stale.closures
