@@ -14,8 +14,14 @@ pose and a stamp, each stamp after the last by at most `odometry_gap` seconds an
 `max_speed` (the short-term memory's reset, §11.6). A frame without a pose or stamp, a gap (the node
 stopped, a robot powered off: its odometry may start again from zero), a stamp that goes back (a bag
 replayed) or a jump ends the drive; the next posed frame starts another. Rows of another drive, of another
-stream (two robots' odometry share no frame) or without a pose are never judged. `travelled` sums every
+robot (two robots' odometry share no frame) or without a pose are never judged. `travelled` sums every
 step of the drive, so a row's distance from the frame is at most the path between them.
+
+The streams that name one trail are one robot's cameras (§11.6): their poses are the robot's, in its one
+odometry frame, so a frame is judged against the rows of each of their live drives too (`Odometer.beside`:
+the frame read as a step of that camera's drive). Without it two cameras of a robot driving faster than its
+short-term memory covers in a few frames named each other's rows just behind it, an echo of where the
+robot just was (an outside probe, through the ROS 2 node: every loop closure of a summer lap false).
 """
 
 from __future__ import annotations
@@ -76,6 +82,24 @@ class Odometer:
             if dt == 0.0 and step == 0.0:  # the same stamp and pose again (a frame posted twice)
                 return last
         return Reading(new_drive, 0.0, x, y)
+
+    def beside(self, motion: Motion, conf: LocaliserOptions) -> Reading:
+        """The reading at a frame of this `motion` taken by another camera of the same robot (a stream
+        naming this odometer's stream's trail, §11.6), read on this odometer's drive, which it leaves
+        unchanged: on it where the frame's stamp is within `odometry_gap` of the drive's last, either
+        way (the cameras post in either order), and its pose within `max_speed` x that of the drive's
+        last pose plus `odometry_slack` (the cameras' mounts apart); `travelled` the drive's own plus
+        the step where the frame is the later one, so the path since a row is never less than the
+        drive's. NO_READING where the drive is over or the frame has no pose or stamp."""
+        last = self.reading
+        if motion.pose is None or motion.stamp is None or last.drive < 0 or self.stamp is None:
+            return NO_READING
+        x, y = motion.pose
+        dt = motion.stamp - self.stamp
+        step = math.hypot(x - last.x, y - last.y)
+        if abs(dt) > conf.odometry_gap or step > conf.max_speed * abs(dt) + conf.odometry_slack:
+            return NO_READING
+        return Reading(last.drive, last.travelled + (step if dt > 0 else 0.0), x, y)
 
     def take(self, reading: Reading, stamp: float | None) -> None:
         """A learned frame's reading (`peek`'s) becomes the odometer's."""

@@ -303,18 +303,29 @@ class PlaceMap:
         return rows[self.used[rows] >= 0] if rows.size else rows
 
     def beyond(self, stream: str, motion: Motion) -> Callable[[np.ndarray], np.ndarray] | None:
-        """What `stream`'s odometry says of a frame of this `motion` (docs/design/science.md §11.12):
-        rows (H,) -> (H,) bool, the rows of its drive it cannot be back at; None where the frame is on no
-        drive of the stream's (no pose or stamp, a gap, a jump, or nothing learned yet)."""
-        odometer = self._odometers.get(stream)
-        if odometer is None:
-            return None
+        """What its robot's odometry says of `stream`'s frame of this `motion` (docs/design/science.md
+        §11.12): rows (H,) -> (H,) bool, the rows of its drive, or of a live drive of another stream that
+        names its trail (the robot's other cameras, `Odometer.beside`), it cannot be back at; None where
+        the frame is on no such drive (no pose or stamp, a gap, a jump, or nothing learned yet).
+        O(streams kept) to build; O(H) per drive judged to apply."""
         conf = self.options
-        here = odometer.peek(motion, conf, -1)  # a frame that would start a drive judges nothing
-        if here.drive < 0:
+        odometer = self._odometers.get(stream)
+        # a frame that would start a drive judges nothing
+        readings = [] if odometer is None else [odometer.peek(motion, conf, -1)]
+        trail = motion.trail or stream
+        readings += [self._odometers[name].beside(motion, conf) for name, named in self._named.items()
+                     if named == trail and name != stream and name in self._odometers]
+        here = [r for r in readings if r.drive >= 0]
+        if not here:
             return None
         drift, slack = conf.odometry_drift, conf.odometry_slack
-        return lambda rows: self.odometry.beyond(rows, here, drift, slack)
+
+        def judged(rows: np.ndarray) -> np.ndarray:
+            out = self.odometry.beyond(rows, here[0], drift, slack)
+            for reading in here[1:]:
+                out |= self.odometry.beyond(rows, reading, drift, slack)
+            return out
+        return judged
 
     def drop(self, seq: int) -> None:
         """Row `seq` is no longer held: not an appearance of its place, never touched again (§11.9)."""

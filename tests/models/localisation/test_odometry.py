@@ -97,6 +97,38 @@ def test_the_map_judges_a_streams_frame_by_its_drive_and_a_rebuild_gives_the_sam
     assert judge_again is not None and judge_again(np.array([1, 29, 30])).tolist() == [True, False, False]
 
 
+def test_a_robots_other_camera_is_judged_by_each_live_drive_of_its_trail():
+    # Two cameras of one robot name one trail (§11.6): their poses are the robot's, so a rear frame is
+    # judged against the front camera's drive too, where that drive is live and the frame on it.
+    loc = PlaceMap(CONF, 64)
+    code = np.arange(8, dtype=np.int64)
+    prev = None
+    for i in range(1, 31):  # the front camera, 1 m a frame
+        loc.add(i, prev, code + i, stream="front", motion=Motion((float(i), 0.0), float(i), "robot"))
+        prev = i
+    rear = loc.beyond("rear", Motion((30.5, 0.0), 30.0, "robot"))  # its first frame, beside the front's
+    assert rear is not None and rear(np.array([1, 29, 30])).tolist() == [True, False, False]
+    for motion, case in ((Motion((31.0, 0.0), 30.0 + 61.0, "robot"), "the front drive is over (a gap)"),
+                         (Motion((29.0, 0.0), 30.0 - 61.0, "robot"), "stamped long before the front's"),
+                         (Motion((5000.0, 0.0), 31.0, "robot"), "not on the front's odometry"),
+                         (Motion((31.0, 0.0), None, "robot"), "no stamp"),
+                         (Motion((31.0, 0.0), 31.0, "other"), "another robot's trail"),
+                         (Motion((31.0, 0.0), 31.0), "its own trail")):
+        assert loc.beyond("rear", motion) is None, case
+    # a frame stamped before the front's last (the cameras post in either order) is judged too, and a
+    # loop back near the front's first row after a long path keeps it
+    assert loc.beyond("rear", Motion((29.0, 0.0), 29.5, "robot"))(np.array([1, 28])).tolist() == [True, False]
+    loop = PlaceMap(CONF, 128)
+    side = [(float(x), 0.0) for x in range(25)] + [(25.0, float(y)) for y in range(25)] + \
+        [(25.0 - x, 25.0) for x in range(25)] + [(0.0, 25.0 - y) for y in range(25)]
+    prev = None
+    for i, pose in enumerate(side, start=1):
+        loop.add(i, prev, code + i, stream="front", motion=Motion(pose, float(i), "robot"))
+        prev = i
+    back = loop.beyond("rear", Motion((3.0, 4.0), 101.0, "robot"))
+    assert back is not None and back(np.array([1, 51])).tolist() == [False, True]
+
+
 def test_a_steady_sparse_frame_rate_is_one_drive_and_a_jump_after_short_steps_is_not():
     rows, odo = _drive([(280.0 * i, 0.0) for i in range(6)], stamps=[10.0 * i for i in range(6)])
     assert set(rows.drive[1:7].tolist()) == {0} and odo.reading.travelled == 1400.0  # a frame every 280 m

@@ -82,3 +82,24 @@ def test_odometry_keeps_a_repeat_straight_on_from_being_a_revisit_and_a_loop_bac
     repeat, loop = slice(25, 50), slice(len(route) - 25, len(route))
     assert not any(called["on"][repeat]) and sum(called["on"][loop]) >= 8
     assert sum(called["off"][repeat]) >= 5  # the rule is what keeps them out
+
+
+def test_odometry_judges_the_rows_of_the_robots_other_camera_too(tmp_path):
+    """Two cameras of one robot (streams naming one trail) post the same route: the scenes repeated 25 m
+    straight on call no revisit on either, though each camera's frames match the other camera's rows of
+    the first pass (docs/design/science.md §11.12: the robot's odometry judges the rows of each of its
+    cameras' drives). An outside probe, through the ROS 2 node: two cameras faster than the short-term
+    memory covers in a few frames named each other's rows just behind it on every loop closure of a lap."""
+    route = _square_with_a_repeat()[:75]  # side A, its repeat straight on, and the next side
+    called: dict[str, list[bool]] = {"front": [], "rear": []}
+    with TestClient(make_app(tmp_path / "data")) as c:
+        for i, (scene, x, y) in enumerate(route):
+            meta = json.dumps({"stamp": 100.0 + i, "trail": "robot", "pose": {"x": x, "y": y}},
+                              separators=(",", ":"))
+            for cam, noise in (("front", 2.0), ("rear", 3.0)):
+                r = post(c, frame(scene, noise=noise * (i >= 25 or cam == "rear")), stream=cam, top_k=0,
+                         metadata=meta)
+                assert r.status_code == 200, r.text
+                called[cam].append(bool(r.json()["place"] and r.json()["place"]["revisit"]))
+        log = c.get("/v1/maps/default/loop-closures").json()["loop_closures"]
+    assert log == [] and not any(called["front"] + called["rear"]), log
