@@ -16,9 +16,11 @@ import functools
 import hashlib
 import json
 import math
+import re
 import threading
 import time
 from collections.abc import AsyncIterator
+from datetime import datetime
 from typing import Annotated, Any
 
 import anyio
@@ -107,6 +109,10 @@ class _Camera(BaseModel):
         return v
 
 
+#: A stamp sent as text that is a number: ASCII decimal, an optional sign, fraction and exponent.
+_NUMERIC_STAMP = re.compile(r"[+-]?([0-9]+(\.[0-9]*)?|\.[0-9]+)([eE][+-]?[0-9]+)?")
+
+
 class _Metadata(BaseModel):
     """What the service reads in metadata; any other small JSON members are kept as they are."""
 
@@ -120,6 +126,15 @@ class _Metadata(BaseModel):
     @field_validator("stamp")
     @classmethod
     def _seconds(cls, v: float | str | None) -> float | str | None:
+        if isinstance(v, str) and not _NUMERIC_STAMP.fullmatch(v):
+            # text that is no plain number must be ISO 8601: Python's float() also reads " 17 ", "1_7" and
+            # other scripts' digits, and an unreadable stamp was stored and read as none (an outside probe)
+            try:
+                datetime.fromisoformat(v)
+            except ValueError:
+                shown = v if len(v) <= 24 else v[:24] + "..."
+                raise ValueError(f"{shown!r} is neither seconds written in plain decimal (ASCII digits, "
+                                 "no spaces) nor ISO 8601 text") from None
         seconds = stamp_seconds({"stamp": v}, finite=False)
         # `not <=`: a numeric string that overflows a double ("1e400", 400 nines) reads as inf, and "nan" as
         # NaN; stored, either would read back as no stamp, so each is refused like "1e300"

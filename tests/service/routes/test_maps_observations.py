@@ -177,7 +177,12 @@ def bad_inputs() -> list[tuple[str, bytes, str, dict, int, str]]:
         *[(f"stamp string {shown}", png, "image/png", {"metadata": json.dumps({"stamp": stamp})}, 422,
            "invalid-metadata") for shown, stamp in (("1e400", "1e400"), ("of 400 nines", "9" * 400),
                                                     ("inf", "inf"), ("-Infinity", "-Infinity"),
-                                                    ("nan", "nan"))],
+                                                    ("nan", "nan"),
+                                                    # an outside probe: float() read these as seconds
+                                                    ("in Arabic-Indic digits", "\u0661\u0667\u0660\u0660"),
+                                                    ("with spaces", " 17 "), ("with an underscore", "1_7"),
+                                                    # stored, then read as no stamp without a word
+                                                    ("that is no time", "yesterday"))],
         ("png header claiming 100000x100000", huge_png_header(), "image/png", {}, 413, "image-too-large"),
         ("1x4000", frame_of_size(1, 4000), "image/png", {}, 422, "degenerate-image"),
     ]
