@@ -11,6 +11,12 @@ service needs below the app:
   same 400 problem+json: llhttp has no limit of its own, nor uvicorn's httptools protocol, so a client
   could otherwise make the server buffer megabytes of header. A longer head that completes within one
   read reaches the app, whose upload-limit middleware refuses it the same way (`service.limits`).
+- It bounds the connections open at once (`connection_cap`: `CORTEXLOC_MAX_CONNECTIONS`, lowered to what
+  the process's descriptor limit leaves after `FD_RESERVE` for the service's own files): a further one
+  is answered 503 `overloaded` (Retry-After) and closed as it opens. An outside probe opened more idle
+  connections than the descriptor limit: accepts failed (asyncio logged a traceback for each, a flood),
+  and so did the maps' own file operations, the group commit's fsync among them, so posts already
+  committed were answered 500.
 - It bounds how long a request's head may take: a connection that has not completed a request head
   within `CORTEXLOC_BODY_TIMEOUT_S` of opening (or of its previous reply) is answered 408
   `request-timeout` and closed. uvicorn bounds only an idle keep-alive connection (5 s, reset by any
@@ -21,7 +27,9 @@ service needs below the app:
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
+import resource
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
@@ -30,7 +38,22 @@ from service.limits import HEAD_MAX_BYTES
 from service.request_ids import REQUEST_ID_HEADER, new_request_id
 from service.settings import Settings
 
-__all__ = ["ProblemHttpToolsProtocol"]
+__all__ = ["FD_RESERVE", "ProblemHttpToolsProtocol", "connection_cap"]
+
+#: File descriptors kept for the service's own files beside its connections: each open map's SQLite
+#: database, journal and shared memory (64 maps by default), snapshots being written or read, the logs.
+FD_RESERVE = 512
+
+
+@functools.lru_cache(maxsize=8)
+def connection_cap(max_connections: int) -> int:
+    """Client connections open at once: `max_connections`, or what the soft descriptor limit leaves
+    after `FD_RESERVE` where that is fewer (at least 1). Read once per value: `cortexloc serve` sets the
+    limit before it serves."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY:
+        return max_connections
+    return max(1, min(max_connections, soft - FD_RESERVE))
 
 
 class ProblemHttpToolsProtocol(HttpToolsProtocol):
@@ -42,7 +65,17 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        settings = self._settings()
+        cap = connection_cap(int(getattr(settings, "max_connections",
+                                         Settings.model_fields["max_connections"].default)))
+        if len(self.connections) > cap:
+            self._answer(503, "Service Unavailable", "overloaded", f"more than {cap} connections are open; "
+                         "retry later", headers={"retry-after": "1"}, max_connections=cap)
+            return
         self._await_head()
+
+    def _settings(self) -> Settings | None:
+        return getattr(getattr(self.config.app, "state", None), "settings", None)
 
     def on_response_complete(self) -> None:
         super().on_response_complete()
@@ -77,8 +110,8 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
     def _await_head(self) -> None:
         if self._head_timer is not None:
             self._head_timer.cancel()
-        settings = getattr(getattr(self.config.app, "state", None), "settings", None)
-        timeout = float(getattr(settings, "body_timeout_s", Settings.model_fields["body_timeout_s"].default))
+        timeout = float(getattr(self._settings(), "body_timeout_s",
+                                Settings.model_fields["body_timeout_s"].default))
         self._head_timer = self.loop.call_later(timeout, self._head_timed_out, self.cycle, timeout)
 
     def _head_timed_out(self, cycle: object, timeout: float) -> None:
@@ -96,14 +129,16 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
         self._answer(400, "Bad Request", "invalid-parameter", detail,
                      errors=[{"location": "header", "name": "", "message": msg}])
 
-    def _answer(self, status: int, reason: str, slug: str, detail: str, **members: object) -> None:
+    def _answer(self, status: int, reason: str, slug: str, detail: str, *,
+                headers: dict[str, str] | None = None, **members: object) -> None:
         """Write a problem+json answer as bytes and close: no request was parsed to answer. The path is
         unknown (the request line may be what failed), so the instance names the occurrence."""
         rid = new_request_id()
         body = json.dumps(problem_body(status, slug, detail, instance=f"urn:uuid:{rid}", request_id=rid,
                                        **members)).encode()
+        extra = b"".join(b"%s: %s\r\n" % (k.encode(), v.encode()) for k, v in (headers or {}).items())
         self.transport.write(b"HTTP/1.1 %d %s\r\ncontent-type: " % (status, reason.encode())
                              + PROBLEM_MEDIA_TYPE.encode()
-                             + b"\r\ncontent-length: %d\r\nconnection: close\r\n" % len(body)
+                             + b"\r\ncontent-length: %d\r\nconnection: close\r\n" % len(body) + extra
                              + REQUEST_ID_HEADER.lower().encode() + b": " + rid.encode() + b"\r\n\r\n" + body)
         self.transport.close()

@@ -126,6 +126,11 @@ class Settings(BaseSettings):
                                   "connection's opening or previous reply (408 and the connection closed "
                                   "otherwise); 10 MiB at 2 Mbit/s takes 42 s. A streamed reply whose client "
                                   "takes none of its 64 KiB pieces within it is cut")
+    max_connections: int = Field(1000, ge=1, le=1_000_000, description="open client connections at most; "
+                                 "a further one is answered 503 overloaded and closed at once, so idle or "
+                                 "stalled connections cannot use up the process's file descriptors "
+                                 "(`cortexloc serve` raises the soft descriptor limit to fit, up to the hard "
+                                 "one; below it the cap is lowered to what fits)")
     max_inflight_upload_bytes: int = Field(128 * 2**20, ge=1, description="bytes all requests being read "
                                            "or served may hold in bodies at once (each reserves its "
                                            "Content-Length; a chunked one its limit); past it 503 "

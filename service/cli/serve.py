@@ -69,6 +69,29 @@ def _can_listen(host: str, port: int) -> None:
             raise typer.Exit(3) from e
 
 
+def _file_limit(connections: int) -> int:
+    """Raise the soft file-descriptor limit to fit `connections` and the service's own files
+    (`service.server.FD_RESERVE`), up to the hard limit (a systemd unit's soft 1,024 is common, while
+    idle connections each hold one); warn where it cannot. Returns the connections that fit
+    (`service.server.connection_cap`)."""
+    import resource
+
+    from service.server import FD_RESERVE, connection_cap
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    want = connections + FD_RESERVE
+    if soft != resource.RLIM_INFINITY and soft < want:
+        raised = want if hard == resource.RLIM_INFINITY else min(hard, want)
+        if raised > soft:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (raised, hard))
+    connection_cap.cache_clear()
+    cap = connection_cap(connections)
+    if cap < connections:
+        typer.echo(f"warning: the file-descriptor limit ({hard} at most) leaves room for {cap} connections, "
+                   f"not CORTEXLOC_MAX_CONNECTIONS={connections}", err=True)
+    return cap
+
+
 def serve(
     host: Annotated[str | None, typer.Option(help="Bind address (default: $CORTEXLOC_HOST or 127.0.0.1).")]
     = None,
@@ -99,6 +122,7 @@ def serve(
         return
 
     _can_listen(settings.host, settings.port)
+    _file_limit(settings.max_connections)
     import uvicorn
 
     from service.app import create_app

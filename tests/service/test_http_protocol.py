@@ -17,8 +17,8 @@ from fastapi.testclient import TestClient
 from service.errors import PROBLEM_MEDIA_TYPE
 from service.limits import HEAD_MAX_BYTES
 from service.routes import MAX_QUERY_PARAMETERS
-from service.server import ProblemHttpToolsProtocol
-from tests.service.helpers import frame, make_client, post
+from service.server import FD_RESERVE, ProblemHttpToolsProtocol, connection_cap
+from tests.service.helpers import frame, make_app, make_client, post, served
 
 
 @pytest.fixture
@@ -300,6 +300,59 @@ def test_unparseable_requests_get_problem_json_from_the_protocol():
     finally:
         server.should_exit = True
         thread.join(timeout=10)
+
+
+def test_connections_past_the_cap_are_answered_503_and_closed_as_they_open(tmp_path):
+    # An outside probe: idle connections past the descriptor limit made accepts fail (a traceback each,
+    # a log flood) and the maps' own file operations too, so committed posts were answered 500.
+    import httpx
+
+    app = make_app(tmp_path / "var", max_connections=3)
+    with served(app, http=ProblemHttpToolsProtocol) as base:
+        port = int(base.rsplit(":", 1)[1])
+        idle = [socket.create_connection(("127.0.0.1", port)) for _ in range(3)]
+        try:
+            time.sleep(0.2)  # the server has taken all three
+            with socket.create_connection(("127.0.0.1", port), timeout=10) as extra:
+                reply = b""
+                while chunk := extra.recv(65536):  # it is closed after the answer
+                    reply += chunk
+            head, _, body = reply.partition(b"\r\n\r\n")
+            assert head.startswith(b"HTTP/1.1 503 ") and b"retry-after: 1" in head.lower()
+            problem = json.loads(body)
+            assert problem["type"] == "urn:cortexloc:problem:overloaded" and problem["max_connections"] == 3
+        finally:
+            for sock in idle:
+                sock.close()
+        time.sleep(0.2)
+        assert httpx.get(f"{base}/healthz", timeout=10).status_code == 200  # room again
+
+
+def test_the_cap_fits_the_descriptor_limit_and_serve_raises_a_low_soft_limit(monkeypatch, tmp_path):
+    import resource
+
+    from service import cli
+    from service.cli.serve import _file_limit
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    low = FD_RESERVE + 100
+    if hard != resource.RLIM_INFINITY and hard < 2 * low:
+        pytest.skip(f"the hard descriptor limit ({hard}) leaves no room to test")
+    try:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (low, hard))
+        connection_cap.cache_clear()
+        assert connection_cap(1000) == 100  # what the limit leaves after the service's own files
+        assert _file_limit(low) == low  # raised to fit, up to the hard limit
+        assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] == low + FD_RESERVE
+        resource.setrlimit(resource.RLIMIT_NOFILE, (low, hard))
+        monkeypatch.setattr(uvicorn, "run", lambda app, **kw: None)
+        monkeypatch.setenv("CORTEXLOC_DATA_DIR", str(tmp_path))
+        monkeypatch.setenv("CORTEXLOC_MAX_CONNECTIONS", "300")
+        cli.serve(host=None, port=0, data_dir=None)
+        assert resource.getrlimit(resource.RLIMIT_NOFILE)[0] >= 300 + FD_RESERVE
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+        connection_cap.cache_clear()
 
 
 def test_the_serve_command_uses_the_problem_protocol(monkeypatch, tmp_path):
