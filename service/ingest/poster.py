@@ -22,7 +22,9 @@ then posts the source's frames **one at a time, in source order**:
 - a frame the service refuses for its bytes (413, 415, 422) is recorded as an error and the ingest goes
   on; any other refusal (401, 404, 409 map full, 5xx) stops it (`IngestError`, with the summary so far).
   A frame over the upload limit the source was opened with (`Frame.oversize`) is recorded as a 413 the
-  same way without being posted (or, for a file, read).
+  same way without being posted (or, for a file, read); a bag message that cannot be made a frame
+  (`Frame.unusable`: an encoding the service does not take, a payload shorter than its shape) as the
+  415 or 422 the service would answer, not posted.
 - a missing map is created with the server's default preset when learning (`Summary.created_map`);
   localising against a missing map stops.
 """
@@ -259,6 +261,8 @@ async def _post_frame(client: httpx.AsyncClient, frame: Frame, opts: Options, he
                       summary: Summary, sleep: Sleep) -> Record:
     if frame.oversize is not None:
         return Record(frame.index, frame.name, frame.stamp_ns, 413, 0.0, _not_sent(frame))
+    if frame.unusable is not None:
+        return _unusable(frame)
     params: dict[str, str] = {"learn": "true" if opts.learn else "false", "stream": opts.stream,
                               **frame.params}
     if frame.stamp_ns is not None:  # where in time: the observation's `stamp` (seconds since the epoch)
@@ -314,6 +318,18 @@ def _not_sent(frame: Frame) -> dict[str, Any]:
     return {"type": "urn:cortexloc:problem:payload-too-large", "title": "Payload too large", "status": 413,
             "detail": f"{frame.oversize} bytes, more than the upload limit; not sent",
             "received_bytes": frame.oversize, "sent": False}
+
+
+def _unusable(frame: Frame) -> Record:
+    """The service's refusal of a bag message that cannot be made a frame (`UnusableFrameError`, its status),
+    answered here: it is not worth sending."""
+    assert frame.unusable is not None
+    status = frame.unusable.status
+    slug, title = (("unsupported-media-type", "Unsupported media type") if status == 415 else
+                   ("raw-frame-size-mismatch", "Raw frame size mismatch"))
+    body = {"type": f"urn:cortexloc:problem:{slug}", "title": title, "status": status,
+            "detail": f"{frame.unusable}; not sent", "sent": False}
+    return Record(frame.index, frame.name, frame.stamp_ns, status, 0.0, body)
 
 
 def retry_after_s(value: str | None, attempt: int) -> float:

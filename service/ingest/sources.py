@@ -57,6 +57,15 @@ class SourceError(ValueError):
     """A source that cannot be read as asked (missing, no images, wrong or ambiguous topic, bad message)."""
 
 
+class UnusableFrameError(SourceError):
+    """A bag message that cannot be made a frame, with the status the service would refuse it with: 415
+    an encoding it does not take, 422 a payload shorter than its shape (`models.frontend.images.raw`)."""
+
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+
+
 @dataclass(frozen=True)
 class Frame:
     """One frame to post.
@@ -70,6 +79,9 @@ class Frame:
         params: the query parameters it needs (a raw frame's `encoding`, `width`, `height`).
         oversize: the frame's size in bytes when it is over the source's `max_bytes`: it was not read
             (a file) or not kept (a bag message), and is not to be posted; None otherwise.
+        unusable: a bag message that cannot be made a frame (`UnusableFrameError`: an encoding the service
+            does not take, a payload shorter than its shape), not to be posted; None otherwise. The service
+            would refuse it the same way: the ingest counts it and goes on, as the ROS 2 node skips it.
     """
 
     index: int
@@ -79,6 +91,7 @@ class Frame:
     media_type: str
     params: dict[str, str] = field(default_factory=dict)
     oversize: int | None = None
+    unusable: UnusableFrameError | None = None
 
 
 @dataclass(frozen=True)
@@ -235,8 +248,9 @@ def _bag_frames(src: Source) -> Iterator[Frame]:
                 try:
                     body, params = image_to_raw(msg.data, height=msg.height, width=msg.width, step=msg.step,
                                                 encoding=msg.encoding, is_bigendian=bool(msg.is_bigendian))
-                except SourceError as e:
-                    raise SourceError(f"{name}: {e}") from e
+                except UnusableFrameError as e:  # one message: counted and skipped, the bag goes on
+                    yield Frame(i, name, stamp_ns, b"", AS_IS_MEDIA, unusable=e)
+                    continue
             if src._over(len(body)):
                 yield Frame(i, name, stamp_ns, b"", AS_IS_MEDIA, oversize=len(body))
             else:
@@ -256,17 +270,17 @@ def image_to_raw(data: bytes | np.ndarray, *, height: int, width: int, step: int
         The pixels row after row without padding, and `{"encoding", "width", "height"}`.
 
     Raises:
-        SourceError: an unknown encoding, or a payload shorter than its shape says.
+        UnusableFrameError: an unknown encoding (415), or a payload shorter than its shape says (422).
     """
     if encoding not in RAW_ENCODINGS:
-        raise SourceError(f"image encoding {encoding!r} is not supported; supported: "
+        raise UnusableFrameError(415, f"image encoding {encoding!r} is not supported; supported: "
                           f"{', '.join(RAW_ENCODINGS)}")
     channels, sample, sent_as = RAW_ENCODINGS[encoding]
     row = width * channels * sample
     buf = np.frombuffer(data, np.uint8) if isinstance(data, bytes | bytearray) else np.asarray(data, np.uint8)
     if height < 1 or width < 1 or step < row or buf.size < step * height:
-        raise SourceError(f"{encoding} image {width}x{height} needs {height} rows of >= {row} bytes "
-                          f"(step {step}); the message holds {buf.size} bytes")
+        raise UnusableFrameError(422, f"{encoding} image {width}x{height} needs {height} rows of >= {row} "
+                                      f"bytes (step {step}); the message holds {buf.size} bytes")
     rows = buf[: step * height].reshape(height, step)[:, :row]
     if sample == 2:
         pixels = rows.copy().view(">u2" if is_bigendian else "<u2").astype("<u2")

@@ -89,6 +89,42 @@ def test_every_topic_of_a_ros2_bag_answers_as_its_frames_posted_one_by_one(tmp_p
         assert got[topic][6].answer["matches"][0]["label"] == labels[2]  # the loop closes
 
 
+def test_bag_messages_that_cannot_be_frames_are_counted_and_the_ingest_goes_on(tmp_path):
+    # An outside probe: the first message in an encoding the service does not take (or shorter than its
+    # shape) stopped the whole ingest with exit 2, frames already learned; the ROS 2 node skips them.
+    import cv2
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from tests.service.ingest.data import image_msg, place_bgr
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    bag = tmp_path / "bag"
+    with Writer(bag, version=9) as w:
+        conn = w.add_connection("/cam", "sensor_msgs/msg/Image", typestore=ts)
+        for i in range(6):
+            msg = image_msg(ts, cv2.resize(place_bgr(i), (64, 48)), "rgb8", stamp(i))
+            if i == 2:
+                msg.encoding = "yuv422"
+            if i == 4:
+                msg.step = 64  # under 64 pixels x 3 bytes a row
+            w.write(conn, stamp(i), ts.serialize_cdr(msg, conn.msgtype))
+    records: list[poster.Record] = []
+
+    async def run() -> poster.Summary:
+        settings = Settings(data_dir=tmp_path / "a", log_level="WARNING")
+        async with poster.in_process_client(settings) as client:
+            return await poster.ingest(client, open_source(bag), poster.Options(map_id="m"),
+                                       on_record=records.append)
+
+    summary = anyio.run(run)
+    assert [r.status for r in records] == [200, 200, 415, 200, 422, 200]
+    assert summary.errors == 2 and summary.learned == 4
+    assert "yuv422" in records[2].answer["detail"] and records[4].answer["sent"] is False
+    out = CliRunner().invoke(cli.app, ["ingest", str(bag), "--map", "n", "--data-dir", str(tmp_path / "b")])
+    assert out.exit_code == 1, out.output  # some frame refused: 1, not 2 (the source is usable)
+
+
 def test_message_stamps_arrive_as_the_observations_stamp(tmp_path):
     bag = write_ros2_bag(tmp_path / "bag", topics=["/cam/bgr"])
     records: list[poster.Record] = []

@@ -144,11 +144,13 @@ def test_raw_encodings_become_raw_frames_of_the_same_pixels():
 
 
 def test_raw_images_that_cannot_be_converted_say_why():
-    with pytest.raises(SourceError, match=r"encoding 'bayer_rggb8' is not supported; supported: rgb8"):
+    with pytest.raises(SourceError, match=r"encoding 'bayer_rggb8' is not supported; supported: rgb8") as e:
         image_to_raw(b"\0" * 12, height=2, width=2, step=2, encoding="bayer_rggb8")
+    assert e.value.status == 415  # as the service answers it
     with pytest.raises(SourceError, match=r"rgb8 image 4x2 needs 2 rows of >= 12 bytes \(step 12\); the "
-                                          r"message holds 20 bytes"):
+                                          r"message holds 20 bytes") as e:
         image_to_raw(b"\0" * 20, height=2, width=4, step=12, encoding="rgb8")
+    assert e.value.status == 422
 
 
 @pytest.mark.parametrize("kind", DAMAGE)
