@@ -5,13 +5,14 @@ Kept private (leading underscore): the public names are re-exported by the modul
 
 from __future__ import annotations
 
-import errno
 import sqlite3
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
+
+from storage.base.files import is_no_room
 
 
 class StorageError(Exception):
@@ -161,21 +162,21 @@ def connect(path: str | Path, *, readonly: bool = False) -> sqlite3.Connection:
     return conn
 
 
-#: What says there is no room to write: the disk full, the user's quota used up, the file-size limit
-#: (`ulimit -f`) reached. SQLite reports the first as SQLITE_FULL and the other two as a failed write
-#: (its VFS keeps the errno to itself), so a failed write counts as no room too: a write that fails for
-#: any reason is storage refusing the row, answered as such (507, nothing changed), never as a bug. A
-#: failing or read-only disk fails writes the same way; the answer carries SQLite's own words ("disk I/O
-#: error", "database or disk is full") so that an operator can tell.
-_NO_ROOM_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
+#: What says there is no room to write, in SQLite's words: the disk full, the user's quota used up, the
+#: file-size limit (`ulimit -f`) reached (the OS's words: `storage.base.files.NO_ROOM_ERRNOS`). SQLite
+#: reports the first as SQLITE_FULL and the other two as a failed write (its VFS keeps the errno to
+#: itself), so a failed write counts as no room too: a write that fails for any reason is storage
+#: refusing the row, answered as such (507, nothing changed), never as a bug. A failing or read-only
+#: disk fails writes the same way; the answer carries SQLite's own words ("disk I/O error", "database
+#: or disk is full") so that an operator can tell.
 _NO_ROOM_SQLITE = frozenset({"SQLITE_FULL", "SQLITE_IOERR_WRITE"})
 
 
 def is_full_error(exc: BaseException) -> bool:
-    """True when `exc` means there is no room to write (`_NO_ROOM_ERRNOS`, `_NO_ROOM_SQLITE`)."""
+    """True when `exc` means there is no room to write (`_NO_ROOM_SQLITE`, `is_no_room`)."""
     if isinstance(exc, sqlite3.Error):
         return getattr(exc, "sqlite_errorname", "") in _NO_ROOM_SQLITE
-    return isinstance(exc, OSError) and exc.errno in _NO_ROOM_ERRNOS
+    return is_no_room(exc)
 
 
 @contextmanager

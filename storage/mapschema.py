@@ -53,7 +53,15 @@ from typing import Any
 
 import numpy as np
 
-from storage._common import StorageError, StoreCorrupt, connect, transaction, utc_now
+from storage._common import (
+    StorageError,
+    StorageFull,
+    StoreCorrupt,
+    connect,
+    is_full_error,
+    transaction,
+    utc_now,
+)
 from storage.base.dtypes import INDEX_DTYPE
 from storage.base.files import fsync_dir
 
@@ -745,11 +753,17 @@ def create_file(path: Path, meta: MapMeta) -> None:
 
     Raises:
         FileExistsError: `path` exists.
+        StorageFull: no room to write (SQLite's words or the OS's); nothing is left behind.
     """
     path = Path(path)
     if path.exists():
         raise FileExistsError(f"{path} exists")
-    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:
+        if is_full_error(exc):
+            raise StorageFull(f"{path}: no room to write ({exc})") from exc
+        raise
     os.close(fd)
     tmp = Path(tmp_name)
     try:
@@ -777,10 +791,14 @@ def create_file(path: Path, meta: MapMeta) -> None:
         if path.exists():  # re-check: another creator may have won meanwhile
             raise FileExistsError(f"{path} exists")
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         for leftover in (tmp, Path(f"{tmp}-wal"), Path(f"{tmp}-shm")):
             with contextlib.suppress(OSError):
                 leftover.unlink()
+        # (a new file meets a full disk outside any transaction: at its first PRAGMA, in the schema's
+        # script, at the fsync; said as every other write says it)
+        if is_full_error(exc) and not isinstance(exc, StorageFull):
+            raise StorageFull(f"{path}: no room to write ({exc})") from exc
         raise
     fsync_dir(path.parent)
 

@@ -23,6 +23,7 @@ from service.maps.encoding import projection as map_projection
 from service.maps.encoding.embedders import Embedders
 from service.maps.errors import (
     DataDirectoryInUse,
+    InsufficientStorage,
     InvalidConfiguration,
     InvalidMapId,
     MapAlreadyExists,
@@ -40,11 +41,12 @@ from service.maps.runtime import budget as map_budget
 from service.maps.runtime.settings import RuntimeSettings
 from service.settings import Settings
 from storage import snapshots
+from storage.base.files import is_no_room
 from storage.base.process import rss_bytes
 from storage.catalog import MAP_ID_RE, Catalog, MapExists, MapRecord
 from storage.layout import Layout
 from storage.lock import DataDirInUse, DataDirLock
-from storage.mapstore import MapMeta, MapStore, StorageError, cell_dtype_for
+from storage.mapstore import MapMeta, MapStore, StorageError, StorageFull, cell_dtype_for
 from storage.snapshots import Manifest
 
 __all__ = ["MapRegistry", "remove_unused", "warm_up"]
@@ -229,7 +231,8 @@ class MapRegistry:
 
         Raises:
             InvalidMapId, InvalidConfiguration, MapTooLarge, MapAlreadyExists, MapLimit,
-            MemoryBudgetExceeded.
+            MemoryBudgetExceeded. InsufficientStorage: no room to write; what the creation made is
+            removed (a projection, content-addressed and perhaps shared, stays).
         """
         if not MAP_ID_RE.fullmatch(map_id):  # `$` also matches before a last newline
             raise InvalidMapId(map_id, MAP_ID_RE.pattern)
@@ -282,7 +285,13 @@ class MapRegistry:
 
     def _create_reserved(self, map_id: str, config: MapConfig, encoder: Any) -> MapRuntime:
         """`create` after its checks and its reservation (under the creation lock)."""
-        record, config = self._make(map_id, config, encoder)
+        try:
+            record, config = self._make(map_id, config, encoder)
+        except (StorageFull, OSError) as e:
+            if not isinstance(e, StorageFull) and not is_no_room(e):  # (the projection's write: the OS's)
+                raise
+            raise InsufficientStorage(f"map {map_id!r} could not be created: no room to write ({e}); "
+                                      "nothing was created") from e
         self.budget.reserve(map_id, self._need(config, encoder.feature_dim, 0))  # shared: less
         rt = self._runtime(record, encoder.feature_dim)
         rt.recover()
@@ -314,15 +323,20 @@ class MapRegistry:
             shutil.rmtree(map_dir)  # leftovers of a creation that never reached the catalog
         map_dir.mkdir(parents=True)
         params = config.stored()
-        store = MapStore.create(self.layout.map_db(map_id), MapMeta(
-            map_id=map_id, params=params, projection_sha256=sha, encoder_id=config.encoder_id,
-            cell_dtype=cell_dtype_for(int(config.sections.tm.columnDimensions)
-                                      * int(config.sections.tm.cellsPerColumn))))
-        store.close()
         try:
+            store = MapStore.create(self.layout.map_db(map_id), MapMeta(
+                map_id=map_id, params=params, projection_sha256=sha, encoder_id=config.encoder_id,
+                cell_dtype=cell_dtype_for(int(config.sections.tm.columnDimensions)
+                                          * int(config.sections.tm.cellsPerColumn))))
+            store.close()
             return self.catalog.create_map(map_id, params, preset=config.preset, state="ready"), config
-        except MapExists as e:
+        except MapExists as e:  # another map's now: its directory is not ours to remove
             raise MapAlreadyExists(map_id) from e
+        except BaseException:
+            # nothing lists the directory made above (no catalog row): removed, not left for the next
+            # creation of this id to find (a full disk would leave one per try)
+            shutil.rmtree(map_dir, ignore_errors=True)
+            raise
 
     def _discard(self, map_id: str) -> None:
         """Delete a map, its catalog entry and its directory: the directory renamed out of the maps' names

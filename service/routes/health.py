@@ -5,12 +5,14 @@ A check result is a dict with `status` = `pass` | `warn` | `fail` and its detail
 iff no check fails: 200 `{"status": "ready", "checks": ..., "warnings": [...]}`, else 503 problem+json
 `not-ready` with `checks`. Built-in checks:
 
-- `data_dir`: a probe file is written, fsynced and deleted in `CORTEXLOC_DATA_DIR`;
+- `data_dir`: a probe file is written, fsynced and deleted in `CORTEXLOC_DATA_DIR`; a directory that
+  has no room (a full disk, a used-up quota) is a warning, not a failure: the maps localise and serve
+  reads, only what writes gets 507, and a readiness-gated balancer must not take that away;
 - `encoder`: loaded, with its weights (`pretrained` + SHA-256, or `random` + seed: `warn`, or `fail`
   when `CORTEXLOC_ALLOW_RANDOM_WEIGHTS=false`), and the runtime and device its backbone runs on;
 - `maps`: the state of each map in `app.state.maps` (objects with `state`, `state_reason`, `recovery`
   and `snapshot_error`): ready iff none is `recovering`; `failed` maps, `read-only` ones (their storage
-  refuses writes), maps `replaying` their tail
+  refuses writes), maps with no room to learn (`no_room`), maps `replaying` their tail
   (they localise, learning waits), recoveries that passed over snapshots or rows, and failed automatic
   snapshots are warnings. With `CORTEXLOC_API_KEY_READS` the
   probe stays open but names no map: it gives the counts by state (map ids are reads that need the key);
@@ -21,9 +23,7 @@ iff no check fails: 200 `{"status": "ready", "checks": ..., "warnings": [...]}`,
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
 import uuid
 from pathlib import Path
 from typing import Any
@@ -34,6 +34,7 @@ from fastapi.responses import JSONResponse
 from service.errors import problem_response, problem_responses
 from service.maps.states import serving
 from service.schemas import Health, Readiness
+from storage.base.files import is_no_room, probe_write
 
 __all__ = ["UNNAMED_ERROR", "Check", "check_catalog", "check_data_dir", "check_encoder", "check_maps",
            "failing", "readiness", "readiness_reply", "router"]
@@ -44,22 +45,24 @@ router = APIRouter(tags=["operations"])
 log = logging.getLogger("cortexloc.service")
 
 
+#: `check_data_dir`'s probe: a page, which a disk with no room refuses at the write.
+DATA_DIR_PROBE_BYTES = 4096
+
+
 def check_data_dir(data_dir: Path) -> Check:
-    """Write, fsync and delete a probe file in `data_dir`."""
+    """Write, fsync and delete a probe file in `data_dir`: a failure where it cannot be written (missing,
+    a permission, a read-only mount), a warning where the OS says there is no room (module docstring)."""
     probe = Path(data_dir) / f".readyz-{uuid.uuid4().hex}"
     out: Check = {"status": "pass", "path": str(data_dir)}
     try:
-        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        try:
-            os.write(fd, b"cortexloc readiness probe\n")
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.unlink(probe)
+        probe_write(probe, DATA_DIR_PROBE_BYTES)
     except OSError as e:
-        out.update(status="fail", error=f"data directory is not writable: {e.strerror or e}")
-        with contextlib.suppress(OSError):
-            probe.unlink(missing_ok=True)
+        if is_no_room(e):
+            out.update(status="warn", warning=f"no room to write in the data directory ({e.strerror or e}): "
+                                              "maps localise and serve reads; learning, snapshots, resets "
+                                              "and new maps get 507 insufficient-storage until room is made")
+        else:
+            out.update(status="fail", error=f"data directory is not writable: {e.strerror or e}")
     return out
 
 
@@ -112,6 +115,11 @@ def check_maps(maps: dict[str, Any], named: bool = True) -> Check:
                          f"{len(skipped)} snapshot(s) (a damaged snapshot, or one whose replay diverged), "
                          f"{recovery.get('mismatches', 0)} row(s) not reproduced")
         serves = serving(str(m.state))
+        no_room = getattr(m, "no_room", None)
+        if no_room and serves.learns:
+            states[map_id]["no_room"] = no_room
+            notes.append(f"map {map_id} has no room to write ({no_room}): localising frames are answered, "
+                         "learning ones get 507 until room is made")
         if serves.read_only:
             notes.append(f"map {map_id}'s storage refuses writes (read-only): localising frames are "
                          "answered, learning ones get 503 map-read-only; make its map.sqlite writable and "

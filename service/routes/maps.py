@@ -33,7 +33,7 @@ async def process_memory(registry: RegistryDep) -> BudgetModel:
     return BudgetModel.from_result(await anyio.to_thread.run_sync(registry.memory_budget))
 
 @router.post("", status_code=201, dependencies=[ApiKeyDep],
-             responses=problem_responses(400, 401, 409, 415, 422))
+             responses=problem_responses(400, 401, 409, 415, 422, 507))
 async def create_map(body: CreateMap, registry: RegistryDep, response: Response) -> MapModel:
     map_id = body.map_id or f"map-{uuid.uuid4().hex[:12]}"
     options = MapOptions.model_validate(body.model_dump(exclude={"map_id"}))
@@ -54,7 +54,7 @@ async def get_map(map_id: MapId, registry: RegistryDep) -> MapModel:
 
 
 @router.patch("/{map_id}", dependencies=[ApiKeyDep],
-              responses=problem_responses(400, 401, 404, 415, 422, 503))
+              responses=problem_responses(400, 401, 404, 415, 422, 503, 507))
 async def patch_map(map_id: MapId, body: PatchMap, registry: RegistryDep) -> MapModel:
     """Change the map's settings that may change after creation (durable): `revisit_threshold`,
     `verify_revisit` (a revisit needs a verified keyframe; maps with keyframes only)."""

@@ -1,8 +1,10 @@
-"""File helpers shared by weights, projections and result files: hashing and atomic writes."""
+"""File helpers shared by weights, projections and result files: hashing and atomic writes; and what
+says there is no room to write, with a write that asks the filesystem (`probe_write`)."""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
 import tempfile
@@ -68,3 +70,37 @@ def atomic_write(target: str | os.PathLike[str], write: Callable[[BinaryIO], Non
             os.unlink(tmp)
         raise
     fsync_dir(target.parent)
+
+
+#: What says there is no room to write: the disk full, the user's quota used up, the file-size limit
+#: (`ulimit -f`) reached. The one home of these errnos: `storage._common.is_full_error` adds SQLite's own
+#: words for them, and `/readyz` tells a full data directory (a warning) from an unwritable one with it.
+NO_ROOM_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
+
+
+def is_no_room(exc: BaseException) -> bool:
+    """True when `exc` is the OS saying there is no room to write (`NO_ROOM_ERRNOS`)."""
+    return isinstance(exc, OSError) and exc.errno in NO_ROOM_ERRNOS
+
+
+def probe_write(path: str | os.PathLike[str], nbytes: int) -> None:
+    """Write `nbytes` to a file at `path` (made or truncated), fsync it and remove it: whether the
+    filesystem takes a write now. Random bytes, so that a compressing filesystem stores them all. The
+    file is removed whatever happens.
+
+    Raises:
+        OSError: the write failed (`is_no_room` says whether for lack of room).
+    """
+    path = Path(path)
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            data = memoryview(os.urandom(nbytes))
+            while data:
+                data = data[os.write(fd, data):]
+            os.fsync(fd)  # a network filesystem may say ENOSPC only here
+        finally:
+            os.close(fd)
+    finally:
+        with contextlib.suppress(OSError):
+            path.unlink()

@@ -19,6 +19,7 @@ from storage._common import (
     connect,
     is_full_error,
 )
+from storage.base.files import is_no_room, probe_write
 from storage.mapschema import SCHEMA_VERSION, Holds, MapMeta, create_file, migrate, read_meta
 from storage.mapstore.closures import Closures, closure_columns
 from storage.mapstore.copies import Copies
@@ -27,7 +28,11 @@ from storage.mapstore.observations import Observations
 from storage.mapstore.streams import Streams
 from storage.mapstore.visits import Visits
 
-__all__ = ["MapStore"]
+__all__ = ["ROOM_PROBE_NAME", "MapStore"]
+
+#: `MapStore.has_room`'s probe file, beside `map.sqlite` (one name: a probe cut short by a kill leaves one
+#: file, which the next probe truncates and removes).
+ROOM_PROBE_NAME = ".room-probe"
 
 
 class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
@@ -148,6 +153,18 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
         immutable or read-only file, or one on a read-only mount, is opened by SQLite read-only without a
         word, and only its first write would say so (`StoreReadOnly`)."""
         return os.access(self.path, os.W_OK)
+
+    def has_room(self, nbytes: int) -> bool:
+        """Whether the filesystem of the map's file takes `nbytes` now: a probe file beside it written,
+        fsynced and removed (`storage.base.files.probe_write`), on the same disk and under the same quota
+        as the file, without touching the file. False only where the OS says there is no room; another
+        failure (a permission on the directory) cannot tell, so it is True and the store's own next write
+        says what it is."""
+        try:
+            probe_write(self.path.parent / ROOM_PROBE_NAME, nbytes)
+        except OSError as exc:
+            return not is_no_room(exc)
+        return True
 
     def close(self) -> None:
         """Close the connection (idempotent). SQLite checkpoints and removes the WAL on the last close."""

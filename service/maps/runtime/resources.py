@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import service.maps.runtime.sizes as sizes  # the module, not the package: no cycle via __init__
 from models.localisation import forgetting
+from service.maps.errors import InsufficientStorage
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import MapInfo, MemoryInfo, PlacesInfo
 from service.maps.states import serving
+from storage.mapstore import StorageFull
 
 __all__ = ["Resources"]
 
@@ -46,13 +48,17 @@ class Resources:
         """Writer: the options that may change after creation, durable in the catalog in one update
         (docs/design/service.md §1.2): the revisit threshold, and whether a revisit needs a verified
         keyframe. InvalidConfiguration (nothing changes): a threshold outside [0, 1], verify_revisit on a
-        map without keyframes."""
+        map without keyframes. InsufficientStorage: no room to write the catalog (nothing changes)."""
         changes = {k: v for k, v in (("revisit_threshold", revisit_threshold),
                                      ("verify_revisit", verify_revisit)) if v is not None}
         if changes:
             config = self.config.with_changes(**changes)
-            self.record = self.catalog.update_params(
-                self.map_id, **{k: getattr(config, k) for k in changes})
+            try:
+                self.record = self.catalog.update_params(
+                    self.map_id, **{k: getattr(config, k) for k in changes})
+            except StorageFull as e:
+                raise InsufficientStorage(f"the change could not be stored: no room to write ({e}); "
+                                          "nothing changed") from e
             self.config = config
         return self.info()
 

@@ -13,6 +13,7 @@ This module builds the map's state and composes the concerns, each in its own mo
     records.py      what a step makes (row, reply, loop closure, visit), pure
     snapshots.py    snapshots, their retention, restore and its memory budget
     recovering.py   recover, install, a tail replayed while serving, the index rebuilt; readiness
+    room.py         `Room`: learning refused before its step while the disk is known full
     admission.py    the streams: admission within the stream window, a stream's reset
     repairing.py    listing and undoing the merges made from a stream's own trail
     resources.py    info, places, patch, memory
@@ -47,6 +48,7 @@ from service.maps.runtime.recent import RecentAnswers
 from service.maps.runtime.recovering import Recovering
 from service.maps.runtime.repairing import Repairing
 from service.maps.runtime.resources import Resources
+from service.maps.runtime.room import Room
 from service.maps.runtime.settings import RuntimeSettings
 from service.maps.runtime.snapshots import Snapshots
 from service.maps.runtime.writer import Writer
@@ -101,6 +103,7 @@ class MapRuntime(Writer, Snapshots, Recovering, Admission, Repairing, Resources)
         # the writer
         self.forgotten = 0
         self._closures_unlogged = False
+        self.room = Room(self.map_id, self._has_room)
         self._writer = ThreadPoolExecutor(1, thread_name_prefix=f"map-{self.map_id}")
         # Learned rows are committed by the writer without their fsync and acknowledged once this has
         # synced them, one fsync per group (service.maps.runtime.durability).

@@ -41,6 +41,7 @@ from service.maps.errors import ClientGone, InsufficientStorage, MapNotFound, Ma
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import ObservationResult, PlaceResult
 from service.maps.runtime.durability import GroupCommit
+from service.maps.runtime.room import ROOM_PROBE_BYTES, Room
 from service.maps.states import serving
 from storage.base.dtypes import INDEX_DTYPE
 from storage.mapstore import MapStore, NewClosure, StorageFull, StoreReadOnly
@@ -67,6 +68,7 @@ class Writer:
     _codes: OrderedDict[int, np.ndarray]  # seq -> its stored code (`_code_of`)
     forgotten: int  # rows forgotten since start (the hard cap, docs/design/science.md §11.9)
     _closures_unlogged: bool  # a full disk refused a localising closure, said once (`_log_closure`)
+    room: Room  # whether the store has room to learn: a full disk refuses learning before its step
     store: MapStore | None
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
@@ -110,6 +112,16 @@ class Writer:
                 log.exception("map %s: shutdown snapshot failed", self.map_id)
         self.store.close()
 
+    def _has_room(self) -> bool:
+        """Writer: `Room`'s probe, on the store in use now (a recovery opens another)."""
+        store = self.store
+        return store is None or store.has_room(ROOM_PROBE_BYTES)
+
+    @property
+    def no_room(self) -> str | None:
+        """Why learning is refused for lack of room (storage's words), or None (`Room.full`)."""
+        return self.room.full
+
     def _sync_store(self) -> None:
         """Group commit's thread: fsync what the writer committed (the store in use now; one that
         recovery closed was checkpointed and synced by SQLite on close)."""
@@ -148,6 +160,10 @@ class Writer:
         """
         gone = gone or threading.Event()
         self.require_ready(learn)
+        # No room and no probe due: refused before its encoding. Not a keyed post: the route answered a
+        # key already stored, but its first post may still be in the writer, which answers the key first.
+        if learn and post is None and (refusal := self.room.refused()) is not None:
+            raise refusal
         # Refused before its encoding too; `apply` checks again in the writer, where it is exact (here
         # the writer may be changing the streams: a look that meets it is left to that check).
         with contextlib.suppress(RuntimeError):
@@ -248,8 +264,9 @@ class Writer:
         Raises:
             ValueError: `projected` is not (k,) (before any state change). MapUnavailable, MapFull,
             StreamLimit, MemoryBudgetExceeded (nothing changed).
-            InsufficientStorage: no room to write a learning frame; the memory was rebuilt from the store,
-                nothing learned.
+            InsufficientStorage: no room to write a learning frame; nothing learned. The first such
+                commit rebuilds the memory from the store; after it the map refuses learning before its
+                step until room is made (`Room`).
             MapReadOnly: the store refuses a learning frame's write; as for InsufficientStorage, and the
                 map is `read-only`. A localising frame is answered on either (its closure is not logged:
                 `loop_closure_id` null).
@@ -259,14 +276,24 @@ class Writer:
         if projected.shape != (self.hasher.k,):
             raise ValueError(f"projection has shape {projected.shape}, this map's are ({self.hasher.k},)")
         self._admit(stream)
+        if learn:  # a disk known full: refused here, the memory untouched, so no recovery to pay (`Room`)
+            self.room.admit()
         if learn and (gone := forgetting.to_forget(self.index, self.place_map)):
-            self._forget(gone)
+            try:
+                self._forget(gone)
+            except StorageFull as e:  # its store write comes first: the memory has forgotten nothing
+                self.room.failed(str(e))
+                raise InsufficientStorage(f"the rows to forget for this observation could not be stored: "
+                                          f"no room to write ({e}); nothing was learned") from e
+            except StoreReadOnly as e:
+                self.read_only()
+                raise MapReadOnly(self.map_id, "the observation (nothing was learned)") from e
         if learn and self.budget is not None:  # the row's index bytes, before the step (a failed one is
             self.budget.grow_index(self.map_id, self.row_bytes)  # set right by the recovery it causes)
         try:
-            return self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k, label=label,
-                              metadata=metadata, thumbnail=thumbnail, post=post, query=query,
-                              contrast=contrast, durable=durable)
+            result = self._step(projected, image_sha256, learn=learn, stream=stream, top_k=top_k,
+                                label=label, metadata=metadata, thumbnail=thumbnail, post=post, query=query,
+                                contrast=contrast, durable=durable)
         except Exception as e:
             if not learn:  # a localisation learns nothing: the memory and the store still agree
                 raise
@@ -277,17 +304,24 @@ class Writer:
             self.state, self.state_reason = "recovering", "step-failed"
             self.store.close()
             self.recover()
-            if isinstance(e, StorageFull):
-                # (SQLite's own words beside ours: its failed write may be a quota, a file-size limit
-                # or a failing disk, which it does not tell apart; storage._common.is_full_error)
-                raise InsufficientStorage(f"the observation could not be stored: no room to write ({e}); "
-                                          "nothing was learned") from e
-            if isinstance(e, StoreReadOnly):
+            # A file made immutable under the open store fails its write as "disk I/O error", which reads
+            # as no room; the reopen asks the OS (`MapStore.writable`) and says read-only: that is the
+            # answer, as for every later post, not a 507 that room would cure.
+            if isinstance(e, StoreReadOnly) or serving(self.state).read_only:
                 # (recovery marks it too, where the OS says the file is read-only; SQLite said so first)
                 if serving(self.state).learns:
                     self.read_only()
                 raise MapReadOnly(self.map_id, "the observation (nothing was learned)") from e
+            if isinstance(e, StorageFull):
+                self.room.failed(str(e))  # the next learning posts are refused before their step
+                # (SQLite's own words beside ours: its failed write may be a quota, a file-size limit
+                # or a failing disk, which it does not tell apart; storage._common.is_full_error)
+                raise InsufficientStorage(f"the observation could not be stored: no room to write ({e}); "
+                                          "nothing was learned") from e
             raise
+        if learn:
+            self.room.stored()
+        return result
 
     def _log_closure(self, closure: NewClosure) -> int | None:
         """Log a localising stream's loop closure: its log id (a retry's is its first post's entry), None

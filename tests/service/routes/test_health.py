@@ -115,6 +115,43 @@ def test_readyz_not_ready_when_data_dir_disappears(client, app, tmp_path):
     assert body["checks"]["data_dir"]["status"] == "fail"
 
 
+def test_readyz_is_ready_with_a_warning_when_the_data_dir_has_no_room(client, app, monkeypatch):
+    """A full disk: the maps localise and serve reads (what writes gets 507), so a readiness-gated
+    balancer must keep the service; before, the data directory's probe failed it (503)."""
+    import errno
+
+    probes: set[int] = set()
+    real_open, real_write = os.open, os.write
+
+    def opened(path, flags, *args, **kw):
+        fd = real_open(path, flags, *args, **kw)
+        if os.path.basename(str(path)).startswith(".readyz-"):
+            probes.add(fd)
+        return fd
+
+    def write(fd, data):  # the OS's words for a full disk, for the probe file alone
+        if fd in probes:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+
+    monkeypatch.setattr(os, "open", opened)
+    monkeypatch.setattr(os, "write", write)
+    r = client.get("/readyz")
+    monkeypatch.undo()
+    assert r.status_code == 200, r.text
+    data_dir = r.json()["checks"]["data_dir"]
+    assert data_dir["status"] == "warn" and "no room" in data_dir["warning"], data_dir
+    assert data_dir["warning"] in r.json()["warnings"]
+    assert not list(app.state.settings.data_dir.glob(".readyz-*"))  # the probe file is gone
+    # a map whose commit found no room says so too (it stays ready: it localises)
+    app.state.maps = {"lab": SimpleNamespace(state="ready", state_reason=None,
+                                             no_room="database or disk is full",
+                                             config=SimpleNamespace(backbone="alexnet"))}
+    maps = client.get("/readyz").json()["checks"]["maps"]
+    assert maps["status"] == "warn" and "no room" in maps["warning"]
+    assert maps["maps"]["lab"]["no_room"] == "database or disk is full"
+
+
 def test_readyz_reports_map_states(client, app):
     app.state.maps = {}  # the states /readyz reads, apart from the runtime's own maps
     app.state.maps["lab"] = SimpleNamespace(state="ready", state_reason=None,

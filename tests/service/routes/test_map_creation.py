@@ -157,3 +157,51 @@ def test_one_home_for_the_parameter_rules():
     grid = resolve(MapOptions(preset="cortexloc-grid", seed=3), default_preset="x",
                    default_backbone="alexnet")
     assert grid.slsbh == {"k": 1024, "s": 0.25, "seed": 3, "adapt_tau": 0}
+
+
+# ------------------------------------------------------------------ a full disk
+
+
+def no_room_for_new_map_files(monkeypatch) -> None:
+    """A new map.sqlite meets a full disk: its connection may not grow past one page, so the schema's
+    script fails with SQLite's own SQLITE_FULL, outside any transaction (as a full disk fails it)."""
+    import storage.mapschema as mapschema
+
+    real = mapschema.connect
+
+    def capped(path, **kw):
+        conn = real(path, **kw)
+        conn.execute("PRAGMA max_page_count = 1")
+        return conn
+
+    monkeypatch.setattr(mapschema, "connect", capped)
+
+
+def test_a_map_created_on_a_full_disk_is_507_and_leaves_no_directory(client, monkeypatch):
+    no_room_for_new_map_files(monkeypatch)
+    r = client.post("/v1/maps", json={"map_id": "x2"})
+    assert r.status_code == 507 and r.json()["type"].endswith("insufficient-storage"), r.text
+    assert "nothing was created" in r.json()["detail"]
+    maps_dir = client.app.state.registry.layout.maps
+    assert not (maps_dir / "x2").exists() and sorted(p.name for p in maps_dir.iterdir()) == ["default"]
+    assert [m["map_id"] for m in client.get("/v1/maps").json()["maps"]] == ["default"]
+    monkeypatch.undo()  # room made: the same creation succeeds
+    assert client.post("/v1/maps", json={"map_id": "x2"}).status_code == 201
+
+
+def test_a_patch_on_a_full_disk_is_507_and_changes_nothing(client, monkeypatch):
+    from storage.catalog import Catalog
+    from storage.mapstore import StorageFull
+
+    before = client.get("/v1/maps/default").json()
+
+    def full(self, map_id, **changes):  # as the catalog's transaction raises SQLITE_FULL
+        raise StorageFull("database or disk is full")
+
+    monkeypatch.setattr(Catalog, "update_params", full)
+    r = client.patch("/v1/maps/default", json={"revisit_threshold": 0.9})
+    assert r.status_code == 507 and r.json()["type"].endswith("insufficient-storage"), r.text
+    assert client.get("/v1/maps/default").json()["revisit_threshold"] == before["revisit_threshold"] != 0.9
+    monkeypatch.undo()
+    r = client.patch("/v1/maps/default", json={"revisit_threshold": 0.9})
+    assert r.status_code == 200 and r.json()["revisit_threshold"] == 0.9

@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import json
 import tarfile
+import time
 
 import cv2
 import numpy as np
@@ -14,6 +15,7 @@ from fastapi.testclient import TestClient
 
 from models.evaluation import sequences
 from service.errors import PROBLEM_MEDIA_TYPE
+from service.maps.runtime.room import ROOM_RECHECK_SECONDS
 from tests.service.helpers import frame, held_encoder, make_client, post, state_of
 
 
@@ -399,8 +401,47 @@ def test_disk_full_is_507_and_nothing_is_learned(client):
             break
     assert r.status_code == 507 and r.json()["type"].endswith("insufficient-storage"), r.text
     assert state_of(client) == before
-    # The failed commit rebuilt the memory from the store, on a new connection without the cap.
+    # The failed commit rebuilt the memory from the store, once: the next learning posts are refused
+    # before their step (no rebuild, the map ready), localising ones answered, until a probe finds room.
+    rt = client.app.state.registry.get("default")
+    now = [time.monotonic()]
+    rt.room.clock = lambda: now[0]
+    rebuilds = []
+    real = rt.recover
+    rt.recover = lambda **kw: (rebuilds.append(1), real(**kw))[1]
+    for other in range(3):
+        r = post(client, frame(place + 1 + other))
+        assert r.status_code == 507 and r.json()["type"].endswith("insufficient-storage"), r.text
+        assert "once room is made" in r.json()["detail"]
+        assert post(client, frame(1), stream="q", learn="false").status_code == 200
+        assert client.get("/v1/maps/default").json()["state"] == "ready"
+    assert rebuilds == [] and state_of(client) == before
+    now[0] += ROOM_RECHECK_SECONDS  # the probe is due, and finds room (the new connection has no cap)
     assert post(client, frame(place)).json()["seq"] == before[1] + 1
+    assert rebuilds == []
+
+
+def test_on_a_full_disk_a_retried_post_of_a_stored_row_still_gets_its_reply(client, monkeypatch):
+    """The disk fills after a row was stored and before the robot heard its reply: its retry (the same
+    Idempotency-Key) is answered from the store, not refused with the new posts."""
+    from storage.mapstore import MapStore, StorageFull
+
+    def keyed(place: int, key: str):
+        return client.post("/v1/maps/default/observations", content=frame(place),
+                           headers={"Content-Type": "image/png", "Idempotency-Key": key})
+
+    first = keyed(1, "key-0001")
+    assert first.status_code == 200
+
+    def full(self, row, **kw):
+        raise StorageFull("database or disk is full")
+
+    monkeypatch.setattr(MapStore, "append", full)
+    monkeypatch.setattr(MapStore, "has_room", lambda self, nbytes: False)
+    assert keyed(2, "key-0002").status_code == 507  # the commit that finds the disk full
+    assert keyed(3, "key-0003").status_code == 507  # refused before its step
+    again = keyed(1, "key-0001")
+    assert again.status_code == 200 and again.json()["seq"] == first.json()["seq"]
 
 
 def test_a_store_refusing_writes_is_503_map_read_only_and_readyz_says_so(client):
