@@ -38,11 +38,16 @@ from service.limits import HEAD_MAX_BYTES
 from service.request_ids import REQUEST_ID_HEADER, new_request_id
 from service.settings import Settings
 
-__all__ = ["FD_RESERVE", "ProblemHttpToolsProtocol", "connection_cap"]
+__all__ = ["BACKLOG", "FD_RESERVE", "ProblemHttpToolsProtocol", "connection_cap"]
 
-#: File descriptors kept for the service's own files beside its connections: each open map's SQLite
-#: database, journal and shared memory (64 maps by default), snapshots being written or read, the logs.
-FD_RESERVE = 512
+#: Connections the kernel may queue for accepting (`uvicorn.run(backlog=...)`): asyncio accepts up to that
+#: many in one turn of the loop, each holding a descriptor before the cap sees it (uvicorn's default, 2,048,
+#: would outrun the reserve below; a review).
+BACKLOG = 256
+#: File descriptors kept beside the connections: a burst of `BACKLOG` accepts, and the service's own files,
+#: each open map's SQLite database, journal and shared memory (64 maps by default), snapshots being
+#: written or read, the logs.
+FD_RESERVE = 1024
 
 
 @functools.lru_cache(maxsize=8)

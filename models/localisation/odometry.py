@@ -34,12 +34,17 @@ import numpy as np
 from models.localisation.motion import Motion
 from models.localisation.options import LocaliserOptions
 
-__all__ = ["JUMP", "NO_READING", "Odometer", "Reading", "RowOdometry"]
+__all__ = ["BESIDE_S", "JUMP", "NO_READING", "Odometer", "Reading", "RowOdometry"]
 
 #: A step longer than `odometry_slack` and this many times the drive's last step ends the drive: an
 #: odometry node restarted from zero within `odometry_gap` (a review's case: a 150 m jump after 1 m steps
 #: vetoed a loop's true start), while a sparse but steady frame rate (a frame every 280 m) stays one drive.
 JUMP = 3.0
+#: Seconds apart, at most, that a frame and the last frame of another camera of its robot may be stamped
+#: for the frame to be judged on that camera's drive (`Odometer.beside`): cameras that post together. A
+#: camera that stopped while the robot drove on reads a path since its rows too short (its last step
+#: spans the whole gap in a straight line), and would veto the robot's true loop (a review's case).
+BESIDE_S = 2.0
 
 
 class Reading(NamedTuple):
@@ -86,18 +91,19 @@ class Odometer:
     def beside(self, motion: Motion, conf: LocaliserOptions) -> Reading:
         """The reading at a frame of this `motion` taken by another camera of the same robot (a stream
         naming this odometer's stream's trail, §11.6), read on this odometer's drive, which it leaves
-        unchanged: on it where the frame's stamp is within `odometry_gap` of the drive's last, either
-        way (the cameras post in either order), and its pose within `max_speed` x that of the drive's
-        last pose plus `odometry_slack` (the cameras' mounts apart); `travelled` the drive's own plus
-        the step where the frame is the later one, so the path since a row is never less than the
-        drive's. NO_READING where the drive is over or the frame has no pose or stamp."""
+        unchanged: on it where the frame's stamp is within `BESIDE_S` of the drive's last, either way
+        (the cameras post in either order), and its pose within `max_speed` x that of the drive's last
+        pose plus `odometry_slack` (the cameras' mounts apart); `travelled` the drive's own plus the
+        step where the frame is the later one, so the path since a row is never less than the drive's.
+        NO_READING where the drive is over or the frame has no pose or stamp."""
         last = self.reading
         if motion.pose is None or motion.stamp is None or last.drive < 0 or self.stamp is None:
             return NO_READING
         x, y = motion.pose
         dt = motion.stamp - self.stamp
         step = math.hypot(x - last.x, y - last.y)
-        if abs(dt) > conf.odometry_gap or step > conf.max_speed * abs(dt) + conf.odometry_slack:
+        if abs(dt) > min(BESIDE_S, conf.odometry_gap) or \
+                step > conf.max_speed * abs(dt) + conf.odometry_slack:
             return NO_READING
         return Reading(last.drive, last.travelled + (step if dt > 0 else 0.0), x, y)
 

@@ -304,20 +304,20 @@ class PlaceMap:
 
     def beyond(self, stream: str, motion: Motion) -> Callable[[np.ndarray], np.ndarray] | None:
         """What its robot's odometry says of `stream`'s frame of this `motion` (docs/design/science.md
-        §11.12): rows (H,) -> (H,) bool, the rows of its drive, or of a live drive of another stream that
-        names its trail (the robot's other cameras, `Odometer.beside`), it cannot be back at; None where
-        the frame is on no such drive (no pose or stamp, a gap, a jump, or nothing learned yet).
-        O(streams kept) to build; O(H) per drive judged to apply."""
+        §11.12): rows (H,) -> (H,) bool, the rows of its drive it cannot be back at, and, where the frame
+        is on its own drive, those of another stream's live drive that names its trail (the robot's
+        other cameras, `Odometer.beside`); None where the frame is on no drive of its own (no pose or
+        stamp, a gap, a jump: an odometry restarted, whose poses the other cameras' rows are not in, or
+        nothing learned yet). O(streams kept) to build; O(H) per drive judged to apply."""
         conf = self.options
         odometer = self._odometers.get(stream)
-        # a frame that would start a drive judges nothing
-        readings = [] if odometer is None else [odometer.peek(motion, conf, -1)]
-        trail = motion.trail or stream
-        readings += [self._odometers[name].beside(motion, conf) for name, named in self._named.items()
-                     if named == trail and name != stream and name in self._odometers]
-        here = [r for r in readings if r.drive >= 0]
-        if not here:
+        here = [] if odometer is None else [odometer.peek(motion, conf, -1)]
+        if not here or here[0].drive < 0:  # a frame that would start a drive judges nothing
             return None
+        trail = motion.trail or stream
+        others = [self._odometers[name].beside(motion, conf) for name, named in self._named.items()
+                  if named == trail and name != stream and name in self._odometers]
+        here += [r for r in others if r.drive >= 0]
         drift, slack = conf.odometry_drift, conf.odometry_slack
 
         def judged(rows: np.ndarray) -> np.ndarray:

@@ -13,8 +13,12 @@ A log that lost steps (the visit log's prune) cannot tell how its streams moved 
 visit was a move, and a memory built without it keeps rows its stream had left, so a real loop closure
 there reads as a merge from the trail (an outside probe: a repair after the prune retracted a second lap's
 closures). Such a log starts with steps that are learned but not judged, up to a `Pruned` mark where every
-stream's memory starts again empty; from it on the memory built is part of the one the stream had (it
-misses rows made before the mark), so what it finds is a merge the stream made, not a loop it closed.
+stream's memory starts again empty, and each stream is judged again only after `GRACE` memories' worth
+of its moves past the mark. The moves are judged against the stream's last move, which the pruned steps
+held: until a frame is a move both for that and for the rebuilt one, the rebuilt memory can count a
+move the stream did not and reach further back than its memory did (a review's case: a true closure
+read as an echo just after the mark). Past the grace the rebuilt memory is the stream's, but for a
+stream whose frames stayed alike to one of the two last moves and not the other all that time.
 """
 
 from __future__ import annotations
@@ -30,7 +34,11 @@ from models.localisation.motion import NO_MOTION, Motion
 from models.localisation.options import LocaliserOptions
 from models.localisation.places import PlaceMap
 
-__all__ = ["Learned", "Merges", "Named", "Pruned", "own_trail_merges", "window"]
+__all__ = ["GRACE", "Learned", "Merges", "Named", "Pruned", "own_trail_merges", "window"]
+
+#: Memories' worth of a stream's moves past a `Pruned` mark before it is judged again (module docstring):
+#: one for its last move to agree with the stream's, one for its memory to lie past that.
+GRACE = 2
 
 
 @dataclass(frozen=True, eq=False)
@@ -107,7 +115,8 @@ def own_trail_merges(log: Iterable[Learned | Named | Pruned], options: Localiser
             `Pruned` mark where the log starts to hold every step (module docstring).
         options: the map's localiser options (its `departure` and `short_term`, `window`).
         code_width: the frame code's bit space (the code statistics the memory's moves read, §11.6).
-        pruned: the log lost steps before its `Pruned` mark: nothing before the mark is judged.
+        pruned: the log lost steps before its `Pruned` mark: nothing before the mark is judged, and a
+            stream after it only past its grace (`GRACE`).
 
     Returns:
         The merges. One pass, O(log · memory) time, O(rows) memory (the codes are not kept).
@@ -115,23 +124,35 @@ def own_trail_merges(log: Iterable[Learned | Named | Pruned], options: Localiser
     place_map = PlaceMap(dataclasses.replace(options or LocaliserOptions(), short_term=window(options)),
                          code_width)
     out = Merges()
-    judged = not pruned
+    marked = not pruned
+    grace = GRACE * max(place_map.short_term, 1)
+    moves: dict[str, int] = {}  # each stream's moves since the mark
+
+    def judged(stream: str) -> bool:
+        return marked and (not pruned or moves.get(stream, 0) >= grace)
+
     for event in log:
         if isinstance(event, Pruned):
             place_map.forget_short_term()
-            judged = True
-        elif isinstance(event, Named):
+            marked = True
+            continue
+        if isinstance(event, Named):
             recent = place_map.short_term_rows(event.stream)
-            if judged and np.isin([event.place_seq, event.into], recent).any():
+            if judged(event.stream) and np.isin([event.place_seq, event.into], recent).any():
                 out.closures.append(event.id)
-        elif event.made:  # (the memory read only where the row joined a place: most rows did not)
-            if judged and event.through and np.isin(event.through,
-                                                    place_map.short_term_rows(event.stream)).any():
+            continue
+        stays = place_map.stays(event.stream, event.code, event.motion)
+        if event.made:  # (the memory read only where the row joined a place: most rows did not)
+            if judged(event.stream) and event.through and np.isin(
+                    event.through, place_map.short_term_rows(event.stream)).any():
                 out.joins.append(event.ref)
             place_map.add(event.seq, None, event.code, stream=event.stream, motion=event.motion)
         else:
-            rehearsal = event.prev == event.seq and place_map.stays(event.stream, event.code, event.motion)
-            if judged and not rehearsal and event.seq in place_map.short_term_rows(event.stream):
+            rehearsal = event.prev == event.seq and stays
+            recent = place_map.short_term_rows(event.stream)
+            if judged(event.stream) and not rehearsal and event.seq in recent:
                 out.visits.append(event.ref)
             place_map.visit(None, event.seq, event.seq, event.stream, event.code, event.motion)
+        if marked and not stays:
+            moves[event.stream] = moves.get(event.stream, 0) + 1
     return out

@@ -126,10 +126,11 @@ def serve(
     import uvicorn
 
     from service.app import create_app
-    from service.server import ProblemHttpToolsProtocol
+    from service.server import BACKLOG, ProblemHttpToolsProtocol
 
     # loop="asyncio": the `ray` extra installs uvloop, which uvicorn would otherwise pick; the single
     # process keeps the loop it is tested and measured with, whatever extras are installed.
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, workers=1, lifespan="on",
-                log_level=settings.log_level.lower(), http=ProblemHttpToolsProtocol, loop="asyncio")
+                log_level=settings.log_level.lower(), http=ProblemHttpToolsProtocol, loop="asyncio",
+                backlog=BACKLOG)
 

@@ -12,9 +12,11 @@ nothing. Where the log pruned visits (a snapshot covers them, `max_visits`), the
 visit it keeps are learned, not judged: a pruned visit was a move of its stream, and without it the
 memory keeps rows its stream had left, so a real loop closure reads as a merge (an outside probe: a
 repair then retracted a second lap's true closures). The mark (`Pruned`) is put just before the oldest kept
-visit and the closures stamped since the step before it: every pruned visit was learned before that
-visit, and a step after the mark is judged by a memory that starts empty there, part of the one its
-stream had.
+visit a consolidated frame made (`MapStore.oldest_plain_visit`) and the closures stamped since the step
+before it: every pruned visit was learned before that visit (a warm-up join's visit sits at its row's
+place, back in the log, so the oldest kept visit may be one and later than pruned ones, a review
+found); where no such visit is kept, at the end of the log. After it each stream is judged by a memory
+that starts empty (`models.localisation.repair`).
 """
 
 from __future__ import annotations
@@ -74,18 +76,19 @@ def _closures(store: MapStore) -> list[LoopClosure]:
 def _log(store: MapStore, closures: list[LoopClosure],
          pruned_through: int) -> Iterator[Learned | Named | Pruned]:
     """The store's learned steps and closures in order (module docstring), read once; with visits pruned
-    (`pruned_through` > 0), the `Pruned` mark just before the oldest visit kept."""
+    (`pruned_through` > 0), the `Pruned` mark (module docstring)."""
     by_row: dict[int, list[LoopClosure]] = defaultdict(list)
     others: list[LoopClosure] = []
     for c in closures:
         (by_row[c.seq] if c.seq is not None else others).append(c)
     joined = store.joined()  # the place of a row stored before version 5
-    # the oldest visit kept (`prune_visits` keeps one): every pruned visit was learned before it
-    first = pruned_through + 1 if pruned_through else None
+    first = store.oldest_plain_visit() if pruned_through else None
+    marked = not pruned_through
     k = 0
     for step in in_order(learned_rows(store), store.visits()):
         if isinstance(step, Visit) and step.id == first:
             yield Pruned()  # before the closures placed with it: stamped after the row it follows
+            marked = True
         # `<=`: a consolidated frame's closure is stamped before its visit, at worst in the same microsecond
         while k < len(others) and others[k].created_at <= step.created_at:
             yield _named(others[k])
@@ -105,6 +108,8 @@ def _log(store: MapStore, closures: list[LoopClosure],
                       ref=step.seq, motion=Motion.of(step.metadata))
     for c in others[k:]:
         yield _named(c)
+    if not marked:
+        yield Pruned()  # no visit of a consolidated frame kept: nothing in the log is judged
 
 
 def _named(c: LoopClosure) -> Named:

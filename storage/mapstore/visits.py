@@ -116,6 +116,17 @@ class Visits:
                                            "FROM visits").fetchone()
         return int(n), int(lo), int(hi)
 
+    def oldest_plain_visit(self) -> int | None:
+        """The id of the oldest visit kept that a consolidated frame made (not a warm-up join's, whose
+        `after_seq` is its row's, back in the log): every visit the log pruned was learned before it
+        (`service.maps.repair`). None: no such visit kept."""
+        if not self.holds.visits:
+            return None
+        plain = "row_seq IS NULL" if self.holds.joined_rows else "1"
+        with self._lock:
+            r = self._db().execute(f"SELECT min(id) FROM visits WHERE {plain}").fetchone()
+        return None if r is None or r[0] is None else int(r[0])
+
     def visit_mark(self, visit_id: int) -> str | None:
         """What tells visit `visit_id` from another that got its id on another branch (a restore rolls
         the log back and ids are handed out again): its stream and created_at; None: no such visit."""

@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 from service.errors import PROBLEM_MEDIA_TYPE
 from service.limits import HEAD_MAX_BYTES
 from service.routes import MAX_QUERY_PARAMETERS
-from service.server import FD_RESERVE, ProblemHttpToolsProtocol, connection_cap
+from service.server import BACKLOG, FD_RESERVE, ProblemHttpToolsProtocol, connection_cap
 from tests.service.helpers import frame, make_app, make_client, post, served
 
 
@@ -364,6 +364,7 @@ def test_the_serve_command_uses_the_problem_protocol(monkeypatch, tmp_path):
     cli.serve(host=None, port=0, data_dir=None)
     assert seen["http"] is ProblemHttpToolsProtocol
     assert seen["loop"] == "asyncio"  # not uvloop, which the `ray` extra installs (issue 26)
+    assert seen["backlog"] == BACKLOG  # a burst of accepts stays within the descriptors kept (FD_RESERVE)
 
 
 def test_oversized_headers_are_refused_however_they_arrive(client):

@@ -401,3 +401,21 @@ def test_a_version_12_file_is_migrated_and_its_rows_are_not_known_flat(tmp_path:
         assert not place_map.flat[[1, 2]].any()
         store.append(dataclasses.replace(make_row(3, prev=2), flat=True))
         assert store.flat() == {3}
+
+
+def test_the_oldest_plain_visit_kept_is_after_every_pruned_one_where_a_join_s_visit_is_older(
+        store: MapStore) -> None:
+    """A review: a warm-up join's visit takes its row's place back in the log, so the oldest visit kept
+    may be a join's, learned after visits the prune took; the repair's mark goes before the oldest visit
+    a consolidated frame made (`service.maps.repair`)."""
+    store.append(make_row(1, stream="old"))
+    store.append(make_row(2, stream="a"))  # the warm-up row, joined later
+    store.append(make_row(3, stream="a", prev=2))
+    first = store.add_visit(dataclasses.replace(visit(10, 1, 3), stream="b"))  # to be pruned
+    store.append(dataclasses.replace(make_row(4, stream="a", prev=3), joins=((2, 1),)))  # row 2's visit
+    plain = store.add_visit(dataclasses.replace(visit(11, 1, 4), stream="b"))
+    assert store.oldest_plain_visit() == first
+    assert store.prune_visits(covered=first, keep=1) == 1
+    kept = list(store.visits())
+    assert kept[0].row == 2 and kept[0].id > first  # the join's visit: first in the log, not the oldest
+    assert store.oldest_plain_visit() == plain

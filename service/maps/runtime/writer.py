@@ -18,6 +18,7 @@ import dataclasses
 import functools
 import hashlib
 import logging
+import sqlite3
 import threading
 import time
 from collections import OrderedDict
@@ -44,7 +45,7 @@ from service.maps.runtime.durability import GroupCommit
 from service.maps.runtime.room import ROOM_PROBE_BYTES, Room
 from service.maps.states import serving
 from storage.base.dtypes import INDEX_DTYPE
-from storage.mapstore import MapStore, NewClosure, StorageFull, StoreReadOnly
+from storage.mapstore import MapStore, NewClosure, StorageError, StorageFull, StoreReadOnly
 
 __all__ = ["CODES_KEPT", "Writer"]
 
@@ -435,8 +436,15 @@ class Writer:
         if self.settings.snapshot_every and self.since_snapshot >= self.settings.snapshot_every:
             self._auto_snapshot()
             if self.since_snapshot == 0:  # it was taken
-                self.store.prune_visits(self.covered, self.settings.visits)
-                self.store.prune_stream_states(self.store.last_seq())
+                # Only room is at stake: the post's row is committed, so a failure here (the snapshot
+                # took the disk's last room) must not turn its answer into "nothing was learned" (a
+                # review); the next snapshot prunes again.
+                try:
+                    self.store.prune_visits(self.covered, self.settings.visits)
+                    self.store.prune_stream_states(self.store.last_seq())
+                except (StorageError, sqlite3.Error) as e:
+                    log.warning("map %s: pruning the visit log after a snapshot failed (%s); the rows "
+                                "stay durable, the next snapshot prunes", self.map_id, e)
 
     def _forget(self, gone: list[int]) -> None:
         """Writer: the hard cap binds (`max_observations` rows held): forget `gone`, the rows the rule

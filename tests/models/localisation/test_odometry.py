@@ -98,33 +98,42 @@ def test_the_map_judges_a_streams_frame_by_its_drive_and_a_rebuild_gives_the_sam
 
 
 def test_a_robots_other_camera_is_judged_by_each_live_drive_of_its_trail():
-    # Two cameras of one robot name one trail (§11.6): their poses are the robot's, so a rear frame is
-    # judged against the front camera's drive too, where that drive is live and the frame on it.
-    loc = PlaceMap(CONF, 64)
+    # Two cameras of one robot name one trail (§11.6): their poses are the robot's, so a rear frame on its
+    # own drive is judged against the front camera's drive too, where that camera posts beside it.
+    loc = PlaceMap(CONF, 256)
     code = np.arange(8, dtype=np.int64)
     prev = None
-    for i in range(1, 31):  # the front camera, 1 m a frame
+    for i in range(1, 31):  # the front camera, 1 m a second
         loc.add(i, prev, code + i, stream="front", motion=Motion((float(i), 0.0), float(i), "robot"))
         prev = i
-    rear = loc.beyond("rear", Motion((30.5, 0.0), 30.0, "robot"))  # its first frame, beside the front's
-    assert rear is not None and rear(np.array([1, 29, 30])).tolist() == [True, False, False]
-    for motion, case in ((Motion((31.0, 0.0), 30.0 + 61.0, "robot"), "the front drive is over (a gap)"),
-                         (Motion((29.0, 0.0), 30.0 - 61.0, "robot"), "stamped long before the front's"),
-                         (Motion((5000.0, 0.0), 31.0, "robot"), "not on the front's odometry"),
-                         (Motion((31.0, 0.0), None, "robot"), "no stamp"),
+    for row, x in ((31, 29.5), (32, 30.5)):  # the rear camera's first frames: its own drive
+        loc.add(row, None if row == 31 else 31, code + 100 + row, stream="rear",
+                motion=Motion((x, 0.0), x, "robot"))
+    rear = loc.beyond("rear", Motion((31.0, 0.0), 31.0, "robot"))
+    assert rear is not None and rear(np.array([1, 29, 30, 31])).tolist() == [True, False, False, False]
+    front_rows = np.arange(1, 31)
+    for motion, case in ((Motion((31.0, 0.0), 31.0 + 61.0, "robot"), "its own drive is over (a gap)"),
+                         (Motion((5000.0, 0.0), 31.0, "robot"), "a jump: its odometry restarted"),
+                         (Motion((31.0, 0.0), None, "robot"), "no stamp")):
+        assert loc.beyond("rear", motion) is None, case
+    for motion, case in ((Motion((31.0, 0.0), 33.5, "robot"), "the front camera has not posted for 3 s"),
                          (Motion((31.0, 0.0), 31.0, "other"), "another robot's trail"),
                          (Motion((31.0, 0.0), 31.0), "its own trail")):
-        assert loc.beyond("rear", motion) is None, case
+        judge = loc.beyond("rear", motion)
+        assert judge is not None and not judge(front_rows).any(), case  # its own rows only
+    assert loc.beyond("renamed", Motion((31.0, 0.0), 31.0, "robot")) is None  # no drive of its own yet
     # a frame stamped before the front's last (the cameras post in either order) is judged too, and a
     # loop back near the front's first row after a long path keeps it
-    assert loc.beyond("rear", Motion((29.0, 0.0), 29.5, "robot"))(np.array([1, 28])).tolist() == [True, False]
-    loop = PlaceMap(CONF, 128)
+    early = loc.beyond("rear", Motion((30.8, 0.0), 30.9, "robot"))
+    assert early is not None and early(np.array([1, 28])).tolist() == [True, False]
+    loop = PlaceMap(CONF, 256)
     side = [(float(x), 0.0) for x in range(25)] + [(25.0, float(y)) for y in range(25)] + \
         [(25.0 - x, 25.0) for x in range(25)] + [(0.0, 25.0 - y) for y in range(25)]
     prev = None
     for i, pose in enumerate(side, start=1):
         loop.add(i, prev, code + i, stream="front", motion=Motion(pose, float(i), "robot"))
         prev = i
+    loop.add(101, None, code + 150, stream="rear", motion=Motion((1.0, 3.0), 100.0, "robot"))
     back = loop.beyond("rear", Motion((3.0, 4.0), 101.0, "robot"))
     assert back is not None and back(np.array([1, 51])).tolist() == [False, True]
 

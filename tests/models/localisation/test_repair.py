@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from models.localisation.options import LocaliserOptions
-from models.localisation.repair import Learned, Named, Pruned, own_trail_merges, window
+from models.localisation.repair import GRACE, Learned, Named, Pruned, own_trail_merges, window
 
 
 def code(k: int) -> np.ndarray:
@@ -51,20 +51,38 @@ def test_a_map_without_a_memory_is_judged_by_the_default_window():
     assert own_trail_merges(log, LocaliserOptions(short_term=5), 512).visits == []
 
 
-def test_a_log_that_lost_steps_judges_nothing_before_its_mark_and_a_fresh_memory_after():
+def test_a_log_that_lost_steps_judges_nothing_before_its_mark_and_a_stream_only_past_its_grace():
     # An outside probe: with the visit log pruned, a repair read a second lap's true closures as echoes.
     # Lap 1 makes rows 1-6; lap 2's frames were visits of them (moves, pruned); closure 1 names row 3 from
     # lap 2, after the stream moved on: no echo. Rebuilt without the visits, row 3 still looks recent.
-    lap1 = rows("a", range(1, 7))
-    before = [*lap1, Named(1, "a", 3, into=3)]
-    after = [Learned("a", 4, code(30), made=False, ref=201),  # the oldest visit kept: another lap's
+    before = [*rows("a", range(1, 7)), Named(1, "a", 3, into=3)]
+    opts = LocaliserOptions(short_term=4, short_term_metres=0.0)  # a grace of GRACE x 4 moves past the mark
+    early = [Learned("a", 4, code(30), made=False, ref=201),  # the oldest visit kept: another lap's
              *rows("a", range(7, 9), first_code=40),
-             Named(2, "a", 8, into=8), Learned("a", 8, code(50), made=False, ref=202),  # an echo: row 8 is
-             Named(3, "a", 2)]  # recent; row 2 was made before the mark: not told, so not a merge
-    opts = LocaliserOptions(short_term=4)
-    stale = own_trail_merges([*before, *after], opts, 512)
+             Named(2, "a", 8, into=8), Learned("a", 8, code(50), made=False, ref=202)]  # an echo, too early
+    late = [*rows("a", range(9, 9 + GRACE * 4), first_code=60),
+            Named(3, "a", 15, into=15), Learned("a", 15, code(90), made=False, ref=203),  # an echo, judged
+            Named(4, "a", 2)]  # row 2 was made before the mark: not told, so not a merge
+    stale = own_trail_merges([*before, *early, *late], opts, 2048)
     assert 1 in stale.closures  # what the repair did: the true closure read as an echo
-    found = own_trail_merges([*before, Pruned(), *after], opts, 512, pruned=True)
-    assert found.closures == [2] and found.visits == [202]
-    # the same log without the loss: judged throughout
-    assert own_trail_merges([*before, *after], opts, 512).closures == stale.closures
+    found = own_trail_merges([*before, Pruned(), *early, *late], opts, 2048, pruned=True)
+    assert found.closures == [3] and found.visits == [203]
+
+
+def test_past_the_mark_a_first_frame_alike_to_the_lost_last_move_reads_no_true_closure_as_an_echo():
+    # A review: the pruned steps held the stream's last move; rebuilt without it, the first frame after the
+    # mark is a move where the stream's was none, and the rebuilt memory reached a frame further back.
+    opts = LocaliserOptions(short_term=3)
+    old = rows("a", range(1, 5))
+    def alike(k: int) -> np.ndarray:  # codes of one place seen again, k bits on from the first
+        return np.arange(2400 + k, 2400 + k + 8)
+
+    lost = Learned("a", 2, alike(0), made=False, ref=900)  # the last (pruned) visit: the stream's last move
+
+    for shift in range(1, 8):
+        after = [Learned("a", 5, alike(shift), made=True, ref=5),
+                 Learned("a", 6, alike(2 * shift), made=True, ref=6),
+                 *rows("a", range(7, 9), first_code=70), Named(1, "a", 5)]
+        live = own_trail_merges([*old, lost, *after], opts, 4096).closures
+        rebuilt = own_trail_merges([*old, Pruned(), *after], opts, 4096, pruned=True).closures
+        assert set(rebuilt) <= set(live), shift

@@ -189,22 +189,25 @@ def test_a_repair_after_the_visit_logs_prune_withdraws_no_true_closure_and_still
     # snapshot pruned the visit log, and a repair retracted the second lap's true loop closures and split
     # a right visit into a row: rebuilt without the pruned visits (moves), its first lap's last rows
     # still looked recent.
-    with make_client(tmp_path / "data", snapshot_every=5, visits=1) as c:
-        body = {"map_id": "m", "revisit_threshold": THRESHOLD, "localiser": {"short_term": 4}}
+    data = tmp_path / "data"
+    with make_client(data, snapshot_every=5, visits=1) as c:
+        body = {"map_id": "m", "revisit_threshold": THRESHOLD,
+                "localiser": {"short_term": 4, "short_term_metres": 0.0}}  # a grace of 8 moves past the prune
         assert c.post("/v1/maps", json=body).status_code == 201
         drive(c, range(12), stream="a", noise=0.0, map_id="m")
         lap2 = drive(c, range(12), stream="a", noise=0.0, map_id="m")
         assert sum(b["consolidated_into"] is not None for b in lap2) >= 3  # the second lap: visits
         b = drive(c, range(40, 52), stream="b", noise=0.0, map_id="m")  # rows: an automatic snapshot prunes
-        drive(c, range(12), stream="a", noise=0.0, map_id="m")  # a third lap, its visits kept
-        rt = c.app.state.registry.get("m")
-        pruned = rt.store.visits_pruned_through()
+        drive(c, range(12), stream="a", noise=0.0, map_id="m")  # a third lap
+        pruned = c.app.state.registry.get("m").store.visits_pruned_through()
         assert pruned > 0
         log = c.get("/v1/maps/m/loop-closures").json()["loop_closures"]
         found = listing(c)
         assert nothing(found) and found["visits_pruned_through"] == pruned
-        # an echo after the prune is still found: a's frame consolidated into its own row 2 moves back
-        new = [r["seq"] for r in drive(c, range(60, 66), stream="a", noise=0.0, map_id="m")
+    with make_client(data, snapshot_every=0) as c:  # no prune from here on
+        rt = c.app.state.registry.get("m")
+        # an echo past the grace is still found: a's frame consolidated into its own row 2 moves back
+        new = [r["seq"] for r in drive(c, range(60, 80), stream="a", noise=0.0, map_id="m")
                if r["seq"] is not None]
         visit = echo_visit(rt, "a", new[-2], rt.store.get(b[0]["seq"]).input_sdr)
         found = listing(c)
@@ -214,7 +217,7 @@ def test_a_repair_after_the_visit_logs_prune_withdraws_no_true_closure_and_still
         after = c.get("/v1/maps/m/loop-closures").json()["loop_closures"]
         withdrawn = {e["retracts"] for e in after if e["retracts"] is not None}
         assert withdrawn.isdisjoint(e["id"] for e in log)  # every closure of the laps stands
-    out = CliRunner().invoke(cli, ["verify", "--data-dir", str(tmp_path / "data")])
+    out = CliRunner().invoke(cli, ["verify", "--data-dir", str(data)])
     assert out.exit_code == 0 and "is not judged for merges" in out.output, out.output
 
 

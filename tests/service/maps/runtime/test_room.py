@@ -139,3 +139,21 @@ def test_a_file_made_immutable_under_the_open_store_is_read_only_from_its_first_
             step(rt, frames[3])
         assert rt.store.count() == count and rt.no_room is None
         assert step(rt, frames[1], learn=False, stream="q").matches[0].seq == 2
+
+
+def test_a_prune_that_finds_no_room_after_a_snapshot_leaves_the_committed_post_answered(tmp_path,
+                                                                                      monkeypatch):
+    # A review: the snapshot took the disk's last room, the visit log's prune after it failed, and the
+    # post whose row was already committed was answered 507 "nothing was learned".
+    from tests.service.helpers import frame, make_client, post
+
+    def full(self, *a, **kw):
+        raise StorageFull("database or disk is full")
+
+    monkeypatch.setattr(MapStore, "prune_visits", full)
+    with make_client(tmp_path / "data", snapshot_every=1) as c:
+        r = post(c, frame(1), top_k=0)
+        assert r.status_code == 200, r.text
+        seq = r.json()["seq"]
+        assert c.get(f"/v1/maps/default/observations/{seq}").status_code == 200
+        assert c.get("/v1/maps/default").json()["state"] == "ready"
