@@ -16,13 +16,13 @@ import time
 import zlib
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Generic, Literal, TypeVar
+from typing import Any, Generic, Literal, NamedTuple, TypeVar
 
 import numpy as np
 
-__all__ = ["ENCODINGS", "DropPolicy", "FrameKeys", "FrameQueue", "OdometryBuffer", "Pose2D", "RateFilter",
-           "Stamp", "idempotency_key", "image_array", "quaternion_from_matrix", "relative_pose",
-           "yaw_from_quaternion"]
+__all__ = ["ENCODINGS", "STAMP_JUMP_NS", "DropPolicy", "FrameKey", "FrameKeys", "FrameQueue", "ImageError",
+           "OdometryBuffer", "Pose2D", "RateFilter", "RecentSet", "Stamp", "idempotency_key", "image_array",
+           "quaternion_from_matrix", "relative_pose", "yaw_from_quaternion"]
 
 #: `sensor_msgs/Image` encodings the service takes as raw frames -> (sample dtype, channels). rgba8 and
 #: bgra8 are sent without their alpha channel (the client drops it); mono16 is sent little-endian.
@@ -30,6 +30,17 @@ ENCODINGS: dict[str, tuple[str, int]] = {
     "rgb8": ("u1", 3), "bgr8": ("u1", 3), "rgba8": ("u1", 4), "bgra8": ("u1", 4),
     "mono8": ("u1", 1), "mono16": ("u2", 1),
 }
+
+
+class ImageError(ValueError):
+    """A `sensor_msgs/Image` the node cannot post; `reason` names the fault's kind (the node logs each kind
+    once a while, and counts them): `encoding` (one the service does not take), else the message is
+    malformed: `size` (no pixels: a zero width or height), `step` (shorter than a row), `data` (fewer
+    bytes than `step` x `height`)."""
+
+    def __init__(self, reason: str, text: str) -> None:
+        super().__init__(text)
+        self.reason = reason
 
 
 def image_array(data: Any, *, height: int, width: int, step: int, encoding: str,
@@ -47,18 +58,23 @@ def image_array(data: Any, *, height: int, width: int, step: int, encoding: str,
         a view of `data` where no copy is needed (the client copies it contiguously when it sends).
 
     Raises:
-        ValueError: an encoding the service does not take, or fewer bytes than the header says.
+        ImageError: an encoding the service does not take, or a header its data does not fill (`reason`).
     """
     if encoding not in ENCODINGS:
-        raise ValueError(f"image encoding {encoding!r} is not one the service takes "
-                         f"({', '.join(ENCODINGS)})")
+        raise ImageError("encoding", f"image encoding {encoding!r} is not one the service takes "
+                                     f"({', '.join(ENCODINGS)})")
     sample, channels = ENCODINGS[encoding]
     itemsize = np.dtype(sample).itemsize
     row = width * channels * itemsize
     buf = np.frombuffer(data, np.uint8)
-    if height < 1 or width < 1 or step < row or buf.size < step * height:
-        raise ValueError(f"{encoding} image {width}x{height} needs {height} rows of at least {row} bytes "
-                         f"(step {step}); the message holds {buf.size} bytes")
+    if height < 1 or width < 1:
+        raise ImageError("size", f"{encoding} image {width}x{height} has no pixels")
+    if step < row:
+        raise ImageError("step", f"{encoding} image {width}x{height}: step {step} is shorter than a row of "
+                                 f"{row} bytes")
+    if buf.size < step * height:
+        raise ImageError("data", f"{encoding} image {width}x{height} needs {height} rows of at least {row} "
+                                 f"bytes (step {step}); the message holds {buf.size} bytes")
     rows = buf[: step * height].reshape(height, step)[:, :row]  # drops each row's padding
     if itemsize == 2:
         pixels = np.ascontiguousarray(rows).view(">u2" if is_bigendian else "<u2").astype(np.uint16)
@@ -134,22 +150,86 @@ def content_digest(data: Any) -> str:
     return f"{zlib.crc32(data) & 0xFFFFFFFF:08x}"
 
 
+class RecentSet:
+    """The last `capacity` items added, in a set: bounded memory of what was seen (keys, closure ids)."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self._items: dict[Any, None] = {}  # insertion-ordered: the oldest first
+
+    def add(self, item: Any) -> bool:
+        """Remember `item`; False when it was remembered already."""
+        if item in self._items:
+            return False
+        self._items[item] = None
+        if len(self._items) > self.capacity:
+            del self._items[next(iter(self._items))]
+        return True
+
+    def __contains__(self, item: Any) -> bool:
+        return item in self._items
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def clear(self) -> None:
+        self._items.clear()
+
+
+#: A camera stamp this far before the newest one seen on the topic starts a new drive (a bag played again,
+#: `ros2 bag play --loop`, or a simulation reset); a smaller step back is a message delivered out of order.
+STAMP_JUMP_NS = 1_000_000_000
+#: Keys remembered per topic to tell a message delivered twice (a camera bridged twice, a re-send).
+RECENT_KEYS = 1000
+
+
+class FrameKey(NamedTuple):
+    """What `FrameKeys.next` says of a message.
+
+    Attributes:
+        key: the post's Idempotency-Key.
+        unstamped: its stamp does not identify the frame (zero, or the previous message's): an odometry
+            pose matched by it would be another frame's, so the frame is posted without one.
+        duplicate: the same stamp and bytes as a message received before in this drive (within the last
+            `RECENT_KEYS`): the same frame delivered again, not posted again.
+        back_ns: > 0 for the first message of a new drive: how far its stamp went back.
+        drive: the drives the stamps' jumps back started since the node started (0: the first).
+    """
+
+    key: str
+    unstamped: bool
+    duplicate: bool
+    back_ns: int
+    drive: int
+
+
 @dataclass
 class FrameKeys:
-    """The keys of one topic's messages in one run, and whether the camera's stamps repeat (a stamp equal
-    to the previous message's: the node warns once, since odometry and the stored `stamp` cannot tell
-    those frames apart). Used by the executor's callback only."""
+    """The keys of one topic's messages in one run. A stamp more than `STAMP_JUMP_NS` before the newest one
+    starts a new drive (`FrameKey.drive`), whose keys hold its number (`run_id.N`), so a recording played
+    again is posted again, not answered from the service's store as the first pass. Used by the executor's
+    callback only."""
 
     run_id: str
     topic: str
+    drive: int = 0
     _last: Stamp | None = None
+    _newest: int = 0  # the newest non-zero stamp of this drive (ns)
+    _recent: RecentSet = field(default_factory=lambda: RecentSet(RECENT_KEYS))
 
-    def next(self, stamp: Stamp, data: Any) -> tuple[str, bool]:
-        """(the key of the message just received, whether its stamp repeats the previous one's); `data`
-        its image bytes (any buffer)."""
-        repeats = stamp == self._last
+    def next(self, stamp: Stamp, data: Any) -> FrameKey:
+        """What the message just received is (`FrameKey`); `data` its image bytes (any buffer)."""
+        back = 0
+        if stamp.ns and self._newest - stamp.ns > STAMP_JUMP_NS:
+            back, self._newest = self._newest - stamp.ns, 0
+            self.drive += 1
+            self._recent.clear()
+        unstamped = stamp.ns == 0 or stamp == self._last
         self._last = stamp
-        return idempotency_key(self.run_id, self.topic, stamp, content_digest(data)), repeats
+        self._newest = max(self._newest, stamp.ns)
+        run = self.run_id if self.drive == 0 else f"{self.run_id}.{self.drive}"  # run ids hold no '.'
+        key = idempotency_key(run, self.topic, stamp, content_digest(data))
+        return FrameKey(key, unstamped, not self._recent.add(key), back, self.drive)
 
 
 # ------------------------------------------------------------------------------------------- poses
@@ -233,7 +313,9 @@ class OdometryBuffer:
     executor adds, the poster matches (`wait_match`: once a pose at or after the frame's stamp is in,
     since the nearest may be the one after it).
 
-    Odometry arriving out of order is inserted in order; the oldest entries go past `capacity`.
+    Odometry arriving out of order is inserted in order; the oldest entries go past `capacity`. A sample
+    more than `STAMP_JUMP_NS` before the newest (a bag played again, a simulation reset) drops those in:
+    they are the last drive's, and would match the new drive's frames.
     """
 
     def __init__(self, tolerance_ns: int, capacity: int = 4096) -> None:
@@ -246,6 +328,8 @@ class OdometryBuffer:
 
     def add(self, stamp: Stamp, pose: Pose2D) -> None:
         with self._lock:
+            if stamp.ns and self._stamps and self._stamps[-1] - stamp.ns > STAMP_JUMP_NS:
+                del self._stamps[:], self._poses[:]
             i = bisect.bisect_right(self._stamps, stamp.ns)
             self._stamps.insert(i, stamp.ns)
             self._poses.insert(i, pose)

@@ -22,6 +22,7 @@ from dataclasses import replace
 from typing import Any
 
 import rclpy
+import rclpy.logging
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
@@ -43,6 +44,7 @@ from cortexloc_ros.answers import epoch_json, loop_closure_json, place_json, pla
 from cortexloc_ros.core import (
     FrameKeys,
     FrameQueue,
+    ImageError,
     OdometryBuffer,
     Pose2D,
     RateFilter,
@@ -73,12 +75,38 @@ DEFAULT_FRAME = "map"
 #: Distortion models the service's pinhole camera takes (OpenCV's coefficients, in ROS's order).
 PINHOLE_MODELS = ("plumb_bob", "rational_polynomial", "")
 DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
+#: Seconds between two log lines of one kind of skipped frame (the first is said at once).
+SKIP_LOG_PERIOD_S = 60.0
 
 # Sensor data as camera drivers publish it: best effort (a reliable subscriber would not hear a
 # best-effort camera; a best-effort one hears both). `qos_overrides.<topic>.subscription.reliability`
 # changes it (ROS 2's QoS override parameters).
 _SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 _QOS_OVERRIDES = QoSOverridingOptions.with_default_policies()
+
+
+class NodeLog:
+    """The node's logger while its context is valid. Once SIGINT or SIGTERM shut the context down, lines go
+    through a logger of another name (`<node>.shutdown`), which has no rosout publisher: the node's would
+    print each line with rcl's "Failed to publish log message to rosout: publisher's context is invalid"."""
+
+    def __init__(self, node: Node) -> None:
+        self._node = node
+        self._name = node.get_logger().name
+
+    def _logger(self) -> Any:
+        if self._node.context.ok():
+            return self._node.get_logger()
+        return rclpy.logging.get_logger(f"{self._name}.shutdown")
+
+    def info(self, text: str) -> None:
+        self._logger().info(text)
+
+    def warning(self, text: str) -> None:
+        self._logger().warning(text)
+
+    def error(self, text: str) -> None:
+        self._logger().error(text)
 
 
 class CortexlocNode(Node):
@@ -98,7 +126,9 @@ class CortexlocNode(Node):
         # (closure id, the frame's pose, the place's stored pose, confidence)
         self._edges: deque[tuple[int | None, Pose2D, Pose2D, float]] = deque(maxlen=MAX_EDGES)
         self._warned: set[str] = set()
+        self._skips: dict[str, tuple[float, int]] = {}  # a kind of skipped frame: (last said, since)
         self._lock = threading.Lock()
+        self.log = NodeLog(self)
 
         image_topic = cfg.topics["image"] + ("/compressed" if cfg.compressed else "")
         self._check_names(cfg)
@@ -134,8 +164,7 @@ class CortexlocNode(Node):
         self.client = Client(cfg.service_url, api_key=cfg.api_key, timeout=cfg.request_timeout,
                              retry=RetryPolicy(attempts=1))
         self.poster = Poster(cfg, self.client, self.queue, self.stats, self.odometry, self._camera_now,
-                             self._publish_answer, self.get_logger(), self._publish_retraction,
-                             self._publish_epoch)
+                             self._publish_answer, self.log, self._publish_retraction, self._publish_epoch)
         self.create_timer(1.0, self._publish_diagnostics)
         self.poster.start()
         self.get_logger().info(
@@ -183,6 +212,18 @@ class CortexlocNode(Node):
             self._warned.add(what)
             self.get_logger().warning(text)
 
+    def _warn_skip(self, what: str, text: str) -> None:
+        """A kind of skipped frame: said the first time, then at most every SKIP_LOG_PERIOD_S with how many
+        more were skipped since."""
+        now = time.monotonic()
+        said, since = self._skips.get(what, (-math.inf, 0))
+        if now - said < SKIP_LOG_PERIOD_S:
+            self._skips[what] = (said, since + 1)
+            return
+        self._skips[what] = (now, 0)
+        more = f" ({since} more like it since the last line)" if since else ""
+        self.get_logger().warning(f"{text}{more}")
+
     def _on_lost(self, info: QoSMessageLostInfo) -> None:
         """The middleware lost camera frames before they reached the node (a best-effort subscription)."""
         with self.stats.lock:
@@ -223,11 +264,32 @@ class CortexlocNode(Node):
         with self.stats.lock:
             self.stats.received += 1
         stamp = Stamp.of(msg.header.stamp.sec, msg.header.stamp.nanosec)
-        key, repeats = self.keys.next(stamp, msg.data)  # before anything can skip it: one key a message
-        if repeats:
-            self._warn_once("stamps", f"the camera's stamps repeat ({stamp.ns} ns twice in a row; a driver "
-                                      f"that does not stamp sends 0): each frame is still posted, but its "
-                                      f"stored stamp and odometry pose cannot tell it from the one before")
+        got = self.keys.next(stamp, msg.data)  # before anything can skip it: one key a message
+        if got.duplicate:
+            with self.stats.lock:
+                self.stats.duplicates += 1
+            self._warn_once("duplicate", f"a camera message came twice (stamp {stamp.ns} ns and the same "
+                                         f"bytes as one received before: a camera bridged or published "
+                                         f"twice?): each is posted once (counted in diagnostics as "
+                                         f"`duplicates`)")
+            return
+        if got.back_ns:
+            text = (f"the camera's stamps went back {got.back_ns / 1e9:.3f} s (to {stamp.ns} ns: a bag "
+                    f"played again, as `ros2 bag play --loop` does, or a simulation reset): a new drive "
+                    f"from this frame on (drive {got.drive} of this run): the stream is reset on the "
+                    f"service and the frames are posted with keys of their own, as after a restart; to "
+                    f"map a recording once, play it without --loop")
+            if "back" in self._warned:  # each pass of a looped bag: said, but as a warning only once
+                self.get_logger().info(text)
+            else:
+                self._warn_once("back", text)
+        if got.unstamped:
+            pose = ("without an odometry pose (one matched by such a stamp may be another frame's: counted "
+                    "as `no_pose`), so the service judges the move by appearance" if self.odometry is not None
+                    else "but its stored stamp cannot tell it from the one before")
+            self._warn_once("stamps", f"the camera's stamps do not tell its frames apart ({stamp.ns} ns: "
+                                      f"zero, or the previous frame's; a driver that does not stamp sends "
+                                      f"0): each frame is still posted, {pose}")
         try:
             if isinstance(msg, CompressedImage):
                 image: Any = bytes(msg.data)
@@ -236,20 +298,25 @@ class CortexlocNode(Node):
                 image = image_array(msg.data, height=msg.height, width=msg.width, step=msg.step,
                                     encoding=msg.encoding, is_bigendian=bool(msg.is_bigendian))
                 colour = msg.encoding if msg.encoding in ("rgb8", "bgr8", "rgba8", "bgra8") else "rgb8"
-        except ValueError as e:
+        except ValueError as e:  # an ImageError, which names its fault's kind
+            reason = e.reason if isinstance(e, ImageError) else "malformed"
             with self.stats.lock:
-                self.stats.unsupported += 1
+                if reason == "encoding":
+                    self.stats.unsupported += 1
+                else:
+                    self.stats.malformed += 1
                 self.stats.last_error = str(e)
-            self._warn_once(f"image:{getattr(msg, 'encoding', '')}", f"frame skipped: {e}")
+            self._warn_skip(f"{getattr(msg, 'encoding', '')}:{reason}", f"frame skipped: {e}")
             return
         # The rate filter's distance needs a pose now: the nearest in so far, else the latest. The pose
         # posted is matched by the poster, once the odometry of the frame's instant is in.
-        pose = self.odometry.match(stamp) if self.odometry is not None else None
+        pose = self.odometry.match(stamp) if self.odometry is not None and not got.unstamped else None
         if not self.rate.take(pose or (self.odometry.latest() if self.odometry is not None else None)):
             with self.stats.lock:
                 self.stats.skipped_rate += 1
             return
-        frame = Frame(stamp, msg.header.frame_id, image, colour, key, time.monotonic())
+        frame = Frame(stamp, msg.header.frame_id, image, colour, got.key, time.monotonic(),
+                      stamped=not got.unstamped, drive=got.drive)
         if self.queue.put(frame) is not None:
             self._warn_once("drop", f"queue full ({self.cfg.queue_size}): frames dropped by "
                                     f"{self.cfg.queue_policy} (counted in diagnostics)")
@@ -257,19 +324,20 @@ class CortexlocNode(Node):
     # ---------------------------------------------------------------------------------- publishing
 
     def _publish_answer(self, frame: Frame, pose: Pose2D | None, answer: Observation,
-                        latency_ms: float) -> None:
-        """On the poster's thread: the place JSON, the place's stored pose, a loop closure and its edge."""
+                        latency_ms: float, closure: bool = True) -> None:
+        """On the poster's thread: the place JSON, the place's stored pose, a loop closure and its edge
+        (`closure` False: the closure was published before, not again)."""
         doc = place_json(answer, frame.stamp, frame.frame_id, pose, latency_ms, DEFAULT_FRAME)
         self.pub_place.publish(String(data=json.dumps(doc, separators=(",", ":"))))
         stored = place_pose(answer.place, DEFAULT_FRAME)
         if stored is not None:
             self.pub_pose.publish(self._pose_message(frame.stamp, stored))
-        closure = loop_closure_json(answer, frame.stamp, frame.frame_id, pose, DEFAULT_FRAME)
-        if closure is None:
+        doc = loop_closure_json(answer, frame.stamp, frame.frame_id, pose, DEFAULT_FRAME)
+        if doc is None or not closure:
             return
-        self.pub_closures.publish(String(data=json.dumps(closure, separators=(",", ":"))))
+        self.pub_closures.publish(String(data=json.dumps(doc, separators=(",", ":"))))
         if pose is not None and stored is not None and pose.frame_id == stored.frame_id:
-            self._edges.append((answer.loop_closure_id, pose, stored, float(closure["confidence"])))
+            self._edges.append((answer.loop_closure_id, pose, stored, float(doc["confidence"])))
             self.pub_markers.publish(self._markers())
 
     def _publish_retraction(self, entry: LoopClosure) -> None:
@@ -336,7 +404,7 @@ class CortexlocNode(Node):
             values = {"service": service, "service_url": self.cfg.service_url, "map": self.cfg.map_id,
                       "stream": self.cfg.stream, "mode": "learn" if self.cfg.learn else "localise",
                       "received": s.received, "lost": s.lost, "skipped_rate": s.skipped_rate,
-                      "unsupported": s.unsupported,
+                      "duplicates": s.duplicates, "unsupported": s.unsupported, "malformed": s.malformed,
                       "queue_depth": len(self.queue), "queue_size": self.cfg.queue_size,
                       "queue_policy": self.cfg.queue_policy, "dropped": self.queue.dropped,
                       "answered": s.answered, "refused": s.refused, "retries": s.retries,
@@ -353,7 +421,14 @@ class CortexlocNode(Node):
         self.pub_diagnostics.publish(msg)
 
     def close(self) -> None:
+        """Stops the poster; says how many frames it leaves unposted (one line, not through the node's
+        rosout once the context is shut down)."""
         self.poster.stop()
+        queued, in_flight = self.poster.unposted()
+        if queued or in_flight:
+            flight = f" and {in_flight} in flight" if in_flight else ""
+            self.log.warning(f"stopping: {queued} frame{'s' * (queued != 1)} queued{flight} not posted "
+                             f"(dropped; a restart posts what the camera sends from then on)")
         self.client.close()
 
 

@@ -16,6 +16,13 @@ typed client; the ROS executor never waits on the service.
   unless `run_id` was given: a resumed drive keeps its context, and its frames' keys are the same. A map
   missing later (deleted while the node runs) is never created again, which would reuse its seqs for
   other frames: it is an error, its frame is retried like a service down until the map is back.
+- A new drive (a frame whose `drive` is not the last one's: the camera's stamps went back, a bag played
+  again): the stream is reset on the service before it is posted, as at a start, so the new pass does not
+  continue the last one's sequence context.
+- Each loop closure id is published once: an answer whose closure id was published before (a frame
+  answered again from the service's store) is published without its closure, and its revisit is not
+  counted again. Ids are never reused within a map, restores included; a map deleted and made again
+  starts them again, which changes the log's epoch, so the ids remembered are forgotten on an epoch change.
 - Refused: 400, 413, 415, 422 (the frame or its metadata) are counted and logged; the poster goes on.
 - Idle, it checks the service's readiness every `PROBE_S`, so diagnostics say "down" without frames.
 - Between frames, every `retractions_poll` seconds, it reads one page of the map's loop-closure log for
@@ -41,7 +48,7 @@ import numpy as np
 
 from cortexloc_client import Client, CortexlocError, Observation
 from cortexloc_client.models import LoopClosure
-from cortexloc_ros.core import FrameQueue, OdometryBuffer, Pose2D, Stamp
+from cortexloc_ros.core import FrameQueue, OdometryBuffer, Pose2D, RecentSet, Stamp
 from cortexloc_ros.params import Config
 from cortexloc_ros.retractions import RetractionFollower
 
@@ -53,6 +60,8 @@ BACKOFF_S, MAX_BACKOFF_S = 0.5, 5.0
 PROBE_S = 1.0
 #: Latencies kept for the diagnostics' median.
 LATENCY_WINDOW = 100
+#: Loop-closure ids remembered as published (`Poster`: each is published once).
+PUBLISHED_CLOSURES = 10_000
 
 
 #: Seconds past `odom_tolerance` that a frame waits, after it arrived, for the odometry of its instant:
@@ -65,7 +74,8 @@ ODOM_MARGIN_S = 0.05
 class Frame:
     """One camera frame on its way: the body (a raw-frame array or encoded bytes), its stamp and frame,
     the key of its post, and when it arrived (`time.monotonic()`: its wait for odometry counts from
-    there)."""
+    there); `stamped` False: its stamp does not identify it (zero, or the previous frame's), so it is
+    posted without an odometry pose; `drive`: the drive it belongs to (`core.FrameKey.drive`)."""
 
     stamp: Stamp
     frame_id: str
@@ -73,6 +83,8 @@ class Frame:
     colour: str
     key: str
     arrived: float
+    stamped: bool = True
+    drive: int = 0
 
 
 @dataclass
@@ -82,7 +94,9 @@ class Stats:
     received: int = 0
     lost: int = 0  # frames the middleware lost before they reached the node (best effort)
     skipped_rate: int = 0
-    unsupported: int = 0
+    duplicates: int = 0  # messages received twice (the same stamp and bytes): not posted again
+    unsupported: int = 0  # images of an encoding the service does not take
+    malformed: int = 0  # images whose header their data does not fill (no pixels, a short step or data)
     answered: int = 0
     refused: int = 0
     retries: int = 0
@@ -106,18 +120,19 @@ class Stats:
             return "ERROR", f"service {self.service}: {self.last_error}"
         if self.service == "slow":
             return "WARN", f"service slow: {self.last_error}"
-        if dropped or self.refused or self.unsupported or self.lost:
+        if dropped or self.refused or self.unsupported or self.malformed or self.lost:
             return "WARN", (f"service {self.service}; lost {self.lost}, dropped {dropped}, refused "
-                            f"{self.refused}, unsupported {self.unsupported}")
+                            f"{self.refused}, unsupported {self.unsupported}, malformed {self.malformed}")
         return "OK", f"service {self.service}"
 
 
-Answered = Callable[[Frame, Pose2D | None, Observation, float], None]
+Answered = Callable[[Frame, Pose2D | None, Observation, float, bool], None]
 
 
 class Poster:
-    """Posts queued frames through `client`, one at a time; `on_answer(frame, pose, answer, latency_ms)`
-    runs on the poster's thread for each answered frame, `on_retraction(entry)` for each retraction of
+    """Posts queued frames through `client`, one at a time; `on_answer(frame, pose, answer, latency_ms,
+    closure)` runs on the poster's thread for each answered frame (`closure` False: the answer's loop
+    closure was published before, do not publish it again), `on_retraction(entry)` for each retraction of
     the stream's closures and `on_epoch(previous, epoch)` when the map's log changes its epoch (all
     publish)."""
 
@@ -129,8 +144,11 @@ class Poster:
         self.cfg, self.client, self.queue, self.stats = cfg, client, queue, stats
         self.odometry, self.camera, self.on_answer, self.log = odometry, camera, on_answer, log
         self.retractions = RetractionFollower(client, cfg.map_id, cfg.stream, cfg.retractions_poll,
-                                              self._retracted, log, on_epoch=on_epoch)
-        self._on_retraction = on_retraction
+                                              self._retracted, log, on_epoch=self._epoch)
+        self._on_retraction, self._on_epoch = on_retraction, on_epoch
+        self.published = RecentSet(PUBLISHED_CLOSURES)  # loop-closure ids published (module docstring)
+        self._drive = 0  # the drive of the frames posted (`Frame.drive`)
+        self.in_flight: Frame | None = None  # the frame being posted
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="cortexloc-poster", daemon=True)
         self._last_probe = 0.0
@@ -158,6 +176,14 @@ class Poster:
                     self.retractions.poll()
                 except Exception as e:  # a page it cannot read (a proxy's, a newer server's): posting goes on
                     self.log.error(f"following the loop-closure log failed: {e!r}")
+
+    def unposted(self) -> tuple[int, int]:
+        """(frames queued, frames in flight) not posted: what a stop leaves."""
+        return len(self.queue), int(self.in_flight is not None)
+
+    def _epoch(self, previous: str, epoch: str) -> None:
+        self.published.clear()  # a map made again numbers its closures from 1 again (module docstring)
+        self._on_epoch(previous, epoch)
 
     def _retracted(self, entry: LoopClosure) -> None:
         with self.stats.lock:
@@ -215,8 +241,19 @@ class Poster:
         return meta
 
     def _post(self, frame: Frame) -> None:
+        self.in_flight = frame  # until it is answered or refused: a stop meanwhile leaves it unposted
+        if frame.drive != self._drive:
+            self._new_drive(frame.drive)
+        if self._post_frame(frame):
+            self.in_flight = None
+
+    def _post_frame(self, frame: Frame) -> bool:
+        """Posts `frame` until it is answered or refused (True), or the poster stops (False)."""
         pose = None
-        if self.odometry is not None:
+        if self.odometry is not None and not frame.stamped:
+            with self.stats.lock:  # a pose matched by a stamp that is not the frame's would be another's
+                self.stats.no_pose += 1
+        elif self.odometry is not None:
             # the nearest pose may be the one just after the stamp, not in yet: wait for it here (never
             # on the executor), at most odom_tolerance + ODOM_MARGIN_S after the frame arrived
             deadline = frame.arrived + self.cfg.odom_tolerance_ns / 1e9 + ODOM_MARGIN_S
@@ -239,7 +276,7 @@ class Poster:
                         self.stats.refused += 1
                         self.stats.last_error = str(e)
                     self.log.warning(f"frame {frame.stamp.ns} refused: {e}")
-                    return
+                    return True
                 if e.status == 404 and e.slug == "map-not-found" and not self._map_gone:
                     self._map_gone = True  # said once an outage: the log is no per-retry stream
                     self.log.error(f"map {self.cfg.map_id!r} not found (deleted while the node runs?): "
@@ -251,20 +288,27 @@ class Poster:
             else:
                 self._map_gone = False
                 latency = (time.perf_counter() - t0) * 1e3
+                revisit = bool(answer.place and answer.place.revisit)
+                closure = answer.loop_closure_id
+                again = revisit and closure is not None and not self.published.add(closure)
+                if again:
+                    self.log.info(f"frame {frame.stamp.ns} answered again with loop closure {closure}, "
+                                  f"published before: not published again")
                 with self.stats.lock:
                     self.stats.answered += 1
-                    self.stats.revisits += bool(answer.place and answer.place.revisit)
+                    self.stats.revisits += revisit and not again
                     self.stats.last_latency_ms = latency
                     self.stats.latencies_ms.append(latency)
                     self.stats.last_error = ""  # a refused frame's too: the trouble is over
                 self._state("up", "")
                 try:
-                    self.on_answer(frame, pose, answer, latency)
+                    self.on_answer(frame, pose, answer, latency, not again)
                 except Exception as e:  # e.g. publishing while SIGTERM shuts the context down
                     if not self._stop.is_set():
                         self.log.error(f"publishing the answer of frame {frame.stamp.ns} failed: {e!r}")
-                return
+                return True
             delay = self._back_off(wait, delay)
+        return False
 
     def _trouble(self, e: CortexlocError | httpx.HTTPError, delay: float) -> float:
         """Diagnostics' state after a request that failed; the seconds to wait before its retry."""
@@ -280,6 +324,24 @@ class Poster:
             self.stats.retries += 1
         self._stop.wait(min(wait, MAX_BACKOFF_S))
         return min(delay * 2, MAX_BACKOFF_S)
+
+    def _new_drive(self, drive: int) -> None:
+        """The stream reset on the service before the first frame of a new drive, retried like a post until
+        the service answers (a map missing is an error, as for a post)."""
+        delay = BACKOFF_S
+        while not self._stop.is_set():
+            try:
+                had = self.client.reset_stream(self.cfg.map_id, self.cfg.stream).had_context
+            except (CortexlocError, httpx.HTTPError) as e:
+                wait = self._trouble(e, delay)
+            else:
+                self._state("up", "")
+                self._drive = drive
+                dropped = " (the last drive's context dropped)" if had else ""
+                self.log.info(f"stream {self.cfg.stream!r} reset on map {self.cfg.map_id!r}: a new drive, "
+                              f"the camera's stamps went back{dropped}")
+                return
+            delay = self._back_off(wait, delay)
 
     def _first_contact(self) -> None:
         """The map made sure of and the stream reset (module docstring), retried until the service

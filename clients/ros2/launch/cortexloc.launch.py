@@ -21,7 +21,7 @@ def generate_launch_description() -> LaunchDescription:
     default_params = os.path.join(get_package_share_directory("cortexloc_ros"), "config", "params.yaml")
     return LaunchDescription([
         DeclareLaunchArgument("params", default_value=default_params,
-                              description="parameters YAML (cortexloc_node: ros__parameters: ...)"),
+                              description="parameters YAML (/**: ros__parameters: ...)"),
         DeclareLaunchArgument("namespace", default_value="", description="the node's namespace"),
         Node(package="cortexloc_ros", executable="cortexloc_node", name="cortexloc_node",
              namespace=LaunchConfiguration("namespace"), parameters=[LaunchConfiguration("params")],

@@ -260,9 +260,11 @@ class Relay:
 class NodeProcess:
     """`cortexloc_node` as a subprocess (`python -m cortexloc_ros`), ended by its PID."""
 
-    def __init__(self, tmp: Path, params: dict[str, Any], name: str = "node") -> None:
+    def __init__(self, tmp: Path, params: dict[str, Any], name: str = "node", ros_args: tuple[str, ...] = ()
+                 ) -> None:
+        """`ros_args`: more after `--ros-args` (`--params-file`, `-r __ns:=...`), before the `-p`s."""
         self.log_path = tmp / f"{name}.log"
-        args = [sys.executable, "-m", "cortexloc_ros", "--ros-args"]
+        args = [sys.executable, "-m", "cortexloc_ros", "--ros-args", *ros_args]
         for k, v in params.items():
             value = "''" if v == "" else json.dumps(v) if not isinstance(v, str) else v
             args += ["-p", f"{k}:={value}"]

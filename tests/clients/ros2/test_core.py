@@ -83,18 +83,76 @@ def test_frames_with_one_stamp_get_keys_of_their_own_and_the_repeat_is_told():
     stamps = (0, 0, 0, 5, 5, 6)
     keys = FrameKeys("run1", "/cam/image_raw")
     got = [keys.next(Stamp(ns), f) for ns, f in zip(stamps, frames, strict=True)]
-    assert len({k for k, _ in got}) == 6  # no key reused: the service would refuse it 422
-    assert [repeats for _, repeats in got] == [False, True, True, False, True, False]
+    assert len({g.key for g in got}) == 6  # no key reused: the service would refuse it 422
+    # a zero stamp or the previous frame's identifies no frame: its odometry pose would be another's
+    assert [g.unstamped for g in got] == [True, True, True, False, True, False]
+    assert not any(g.duplicate for g in got)
     # the same messages in a second start under the same run id: the same keys (a resumed drive)...
     again = FrameKeys("run1", "/cam/image_raw")
-    assert [again.next(Stamp(ns), f)[0] for ns, f in zip(stamps, frames, strict=True)] == [k for k, _ in got]
+    assert [again.next(Stamp(ns), f).key for ns, f in zip(stamps, frames, strict=True)] == \
+        [g.key for g in got]
     # ...also where the transport lost a message in one run and not the other (a count would shift)
     lossy = FrameKeys("run1", "/cam/image_raw")
-    assert [lossy.next(Stamp(ns), f)[0] for ns, f in list(zip(stamps, frames, strict=True))[1:]] == \
-        [k for k, _ in got[1:]]
+    assert [lossy.next(Stamp(ns), f).key for ns, f in list(zip(stamps, frames, strict=True))[1:]] == \
+        [g.key for g in got[1:]]
     # and a camera that does not stamp, restarted under its run id with other frames: no key reused
     other = FrameKeys("run1", "/cam/image_raw")
-    assert not {other.next(Stamp(0), bytes([100 + i]) * 64)[0] for i in range(3)} & {k for k, _ in got}
+    assert not {other.next(Stamp(0), bytes([100 + i]) * 64).key for i in range(3)} & {g.key for g in got}
+
+
+def test_a_message_delivered_twice_is_a_duplicate_and_stamps_going_back_start_a_new_drive():
+    t0, period = 1_700_000_000 * 10**9, 100_000_000
+    frames = [bytes([i]) * 64 for i in range(20)]
+    keys = FrameKeys("run1", "/cam/image_raw")
+    first = [keys.next(Stamp(t0 + i * period), f) for i, f in enumerate(frames)]
+    assert {(g.duplicate, g.back_ns, g.drive) for g in first} == {(False, 0, 0)}
+    # the same message again (a camera bridged twice), at once or a few frames later: the same frame
+    assert keys.next(Stamp(t0 + 19 * period), frames[19]).duplicate
+    assert keys.next(Stamp(t0 + 17 * period), frames[17]).duplicate  # 0.2 s back: out of order, no new drive
+    assert keys.drive == 0
+    # the recording played again (`ros2 bag play --loop`): its stamps go back 1.9 s, a new drive whose keys
+    # are its own, so its frames are posted again, not answered from the store as the first pass's
+    loop = [keys.next(Stamp(t0 + i * period), f) for i, f in enumerate(frames)]
+    assert (loop[0].back_ns, loop[0].drive) == (19 * period, 1) and not loop[0].unstamped
+    assert {(g.duplicate, g.back_ns, g.drive) for g in loop[1:]} == {(False, 0, 1)}
+    assert not {g.key for g in loop} & {g.key for g in first}
+    digest = loop[0].key.rsplit(":", 1)[1]
+    assert loop[0].key == idempotency_key("run1.1", "/cam/image_raw", Stamp(t0), digest)
+    # a zero stamp (a driver's glitch) is no jump back
+    assert keys.next(Stamp(0), b"z" * 64).drive == 1 and keys.drive == 1
+
+
+def test_a_skipped_image_says_which_fault_it_has():
+    from cortexloc_ros.core import ImageError
+
+    faults = {"step": dict(data=b"\0" * 4096, height=32, width=64, step=128),  # a row is 192 bytes
+              "data": dict(data=b"\0" * 100, height=32, width=64, step=192),
+              "size": dict(data=b"", height=0, width=0, step=0)}
+    said = {}
+    for fields in faults.values():
+        with pytest.raises(ImageError) as e:
+            image_array(encoding="rgb8", is_bigendian=False, **fields)
+        said[e.value.reason] = str(e.value)
+    assert set(said) == set(faults)
+    assert "step 128 is shorter than a row of 192 bytes" in said["step"]
+    assert "needs 32 rows of at least 192 bytes (step 192); the message holds 100 bytes" in said["data"]
+    assert said["size"] == "rgb8 image 0x0 has no pixels"
+    with pytest.raises(ImageError) as e:
+        image_array(b"\0" * 64, height=4, width=4, step=16, encoding="yuv422", is_bigendian=False)
+    assert e.value.reason == "encoding"
+
+
+def test_odometry_that_jumps_back_drops_the_last_drives_samples():
+    t0 = 1_700_000_000 * 10**9
+    buf = OdometryBuffer(tolerance_ns=50_000_000)
+    for i in range(30):  # the first pass, 3 s
+        buf.add(Stamp(t0 + i * 100_000_000), Pose2D(float(i), 0.0, 0.0, "odom"))
+    buf.add(Stamp(t0 + 2_950_000_000), Pose2D(-1.0, 0.0, 0.0, "odom"))  # out of order: kept with the rest
+    assert buf.match(Stamp(t0 + 1_000_000_000)) == Pose2D(10.0, 0.0, 0.0, "odom")
+    # a simulation reset: its first sample starts again at t0 + 0.5 s, in another place
+    buf.add(Stamp(t0 + 500_000_000), Pose2D(100.0, 0.0, 0.0, "odom"))
+    assert buf.match(Stamp(t0 + 1_000_000_000)) is None  # the last drive's pose at that stamp is gone
+    assert buf.latest() == Pose2D(100.0, 0.0, 0.0, "odom")
 
 
 def test_a_frame_takes_the_odometry_pose_nearest_its_stamp_within_the_tolerance():
@@ -148,7 +206,7 @@ def test_a_full_queue_drops_by_its_policy(policy, kept):
 def test_the_parameters_yaml_declares_every_parameter_with_its_default():
     yaml = pytest.importorskip("yaml")
     path = Path(__file__).resolve().parents[3] / "clients" / "ros2" / "config" / "params.yaml"
-    doc = yaml.safe_load(path.read_text())["cortexloc_node"]["ros__parameters"]
+    doc = yaml.safe_load(path.read_text())["/**"]["ros__parameters"]
 
     def flat(d: dict, prefix: str = "") -> dict:
         out = {}

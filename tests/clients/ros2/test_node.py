@@ -108,7 +108,11 @@ def test_a_route_with_odometry_and_camera_info_gives_places_and_loop_closures_on
                 w.probe.publish(frame, stamp, x, y, encoding="rgb8", pad=8)
             else:  # winter: mono16 from a big-endian camera, padded too (the service reads it as 8-bit x 257)
                 grey = (frame[:, :, 0].astype(np.uint16) * 257).astype(">u2")
-                w.probe.publish(grey, stamp, x, y, encoding="mono16", pad=6)
+                # each message delivered twice (a camera bridged twice): the same stamp and bytes are one
+                # frame; before, the second was answered from the service's store and its place and loop
+                # closure published again under the same closure id
+                for _ in range(2):
+                    w.probe.publish(grey, stamp, x, y, encoding="mono16", pad=6)
             w.probe.spin(0.01)
         w.probe.wait(lambda: len(w.probe.places) >= len(route), 120, "an answer per frame")
         w.probe.wait(lambda: w.probe.last_diagnostics().get("answered") == str(len(route)), 10,
@@ -134,6 +138,8 @@ def test_a_route_with_odometry_and_camera_info_gives_places_and_loop_closures_on
             assert abs(c["pose"]["x"] - c["place_pose"]["x"]) <= 2 * SPACING_M  # the same place, +-2 frames
             assert c["confidence"] >= 0.5 and c["stream"] == "test/cam"
         assert _stamps(closures) == _stamps(revisits)
+        ids = [c["id"] for c in closures]
+        assert None not in ids and len(set(ids)) == len(ids)  # a back end gets each closure once
 
         # the place's stored pose as PoseWithCovarianceStamped, stamped with the frame's stamp
         with_pose = [p for p in places if p["place"] and p["place"]["pose"]]
@@ -153,7 +159,10 @@ def test_a_route_with_odometry_and_camera_info_gives_places_and_loop_closures_on
         assert stored.model_extra["trail"] == "robot1"  # the trail parameter, on the frames posted
         d = w.probe.last_diagnostics()
         assert (d["service"], d["dropped"], d["refused"], d["unsupported"]) == ("up", "0", "0", "0")
+        assert (d["received"], d["duplicates"]) == (str(len(route) + len(PLACES)), str(len(PLACES)))
+        assert d["revisits"] == str(len(closures))  # each revisit counted once
         assert node.stop() == 0
+        assert node.log().count("a camera message came twice") == 1, node.log()
     finally:
         w.close()
 
@@ -266,22 +275,60 @@ def test_frames_the_transport_loses_to_a_best_effort_subscription_are_counted_an
 
 @needs_nordland
 @in_loopback_netns
-def test_a_camera_that_does_not_stamp_has_every_frame_answered_and_is_told_once(tmp_path):
-    route = _route(5)
+def test_a_camera_that_does_not_stamp_has_every_frame_answered_without_a_pose_and_is_told_once(tmp_path):
+    # Before, each frame stamped 0 took the odometry pose of stamp 0: distinct images at one pose, which the
+    # service merged as a robot standing still. A stamp that is zero, or the previous frame's, identifies
+    # no frame: the frame goes without a pose, and the service judges the move by appearance.
+    route = _route(7)
     with World(tmp_path) as w:
         node = w.node()
         w.probe.wait_connected()
-        for frame, _, x, y in route:  # five frames, all stamped 0 (a driver that does not stamp)
+        for frame, _, x, y in route[:5]:  # five frames, all stamped 0 (a driver that does not stamp)
             w.probe.publish(frame, 0, x, y)
             w.probe.spin(0.01)
-        w.probe.wait(lambda: len(w.probe.places) == 5, 60, "an answer per frame")
-        assert all(p["stamp"] == {"sec": 0, "nanosec": 0} for p in w.probe.places)
+        # then a stamping camera that stamps one frame twice: the second goes without a pose
+        for frame, _, x, y in route[5:]:
+            w.probe.publish(frame, route[5][1], x, y)
+            w.probe.spin(0.01)
+        w.probe.wait(lambda: len(w.probe.places) == 7, 60, "an answer per frame")
+        assert all(p["stamp"] == {"sec": 0, "nanosec": 0} for p in w.probe.places[:5])
+        assert [p["pose"] is None for p in w.probe.places] == [True] * 5 + [False, True]
+        assert w.probe.places[5]["pose"]["x"] == route[5][2]
         keys = [k for k, _ in w.relay.posts]
-        assert len(set(keys)) == 5 and [o for _, o in w.relay.posts] == ["200"] * 5  # none refused 422
-        w.probe.wait(lambda: w.probe.last_diagnostics().get("answered") == "5", 10, "diagnostics")
-        assert w.probe.last_diagnostics()["refused"] == "0"
+        assert len(set(keys)) == 7 and [o for _, o in w.relay.posts] == ["200"] * 7  # none refused 422
+        w.probe.wait(lambda: w.probe.last_diagnostics().get("answered") == "7", 10, "diagnostics")
+        assert (w.probe.last_diagnostics()["refused"], w.probe.last_diagnostics()["no_pose"]) == ("0", "6")
+        stored = [o.metadata for o in w.client.list_observations(w.map_id, limit=100).observations]
+        assert all(m.pose is None for m in stored if m.model_extra["stamp_ns"] == "0")
         assert node.stop() == 0
-        assert node.log().count("the camera's stamps repeat") == 1, node.log()
+        assert node.log().count("the camera's stamps do not tell its frames apart") == 1, node.log()
+
+
+@in_loopback_netns
+def test_a_bag_played_again_is_a_new_drive_whose_frames_are_posted_and_told(tmp_path):
+    # `ros2 bag play --loop`: the stamps jump back to the start and every frame of the second pass repeats
+    # one of the first. Before, each had the first pass's key, was answered from the service's store
+    # (nothing learned or localised) and no log line said so. Now: a new drive, the stream reset, new keys.
+    rng = np.random.default_rng(5)
+    frames = [rng.integers(0, 256, (32, 64, 3), dtype=np.uint8) for _ in range(6)]
+    passes = 2
+    with World(tmp_path) as w:
+        node = w.node()
+        w.probe.wait_connected()
+        for _ in range(passes):
+            for i, frame in enumerate(frames):
+                w.probe.publish(frame, T0_NS + i * 3 * PERIOD_NS, i * SPACING_M, 0.0)
+                w.probe.spin(0.01)
+        n = passes * len(frames)
+        w.probe.wait(lambda: len(w.probe.places) == n, 60, "an answer per frame of both passes")
+        keys = [k for k, _ in w.relay.posts]
+        assert len(set(keys)) == n and [o for _, o in w.relay.posts] == ["200"] * n  # posted, not replayed
+        assert all(p["pose"] is not None for p in w.probe.places)  # the second pass matches its odometry
+        w.probe.wait(lambda: w.probe.last_diagnostics().get("answered") == str(n), 10, "diagnostics")
+        assert node.stop() == 0
+        log = node.log()
+        assert log.count("the camera's stamps went back 1.500 s") == 1, log  # said where it happens
+        assert log.count("a new drive, the camera's stamps went back") == 1, log  # the stream reset
 
 
 @in_loopback_netns
@@ -355,3 +402,104 @@ def test_a_bad_topic_name_or_a_value_the_service_refuses_exits_2_in_one_line_and
                        timeout=60, cwd=tmp_path)
     assert p.returncode == 0 and p.stdout.startswith("usage: cortexloc-ros"), p.stdout + p.stderr
     assert "  top_k (default 5)" in p.stdout and "README.md" in p.stdout and "cortexloc_node" not in p.stderr
+
+
+def _wait_for_log(node: NodeProcess, text: str, timeout_s: float = 60) -> str:
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while text not in node.log():
+        if node.proc.poll() is not None or time.monotonic() > deadline:
+            pytest.fail(f"the node did not log {text!r}:\n{node.log()}")
+        time.sleep(0.1)
+    return node.log()
+
+
+@in_loopback_netns
+def test_the_shipped_params_file_applies_to_a_node_in_a_namespace_or_renamed(tmp_path):
+    # Keyed `cortexloc_node:`, the file applied to the root namespace's cortexloc_node only: a node started
+    # in a namespace (the launch file's namespace:=robot1) or renamed ran on the defaults with no word.
+    shipped = (Path(__file__).resolve().parents[3] / "clients/ros2/config/params.yaml").read_text()
+    assert "    map: default\n" in shipped
+    mine = tmp_path / "my_params.yaml"
+    mine.write_text(shipped.replace("    map: default\n", "    map: from-file\n"))
+    for ns, name in (("/robot1", None), ("/robot2", "cam2")):
+        remaps = ["-r", f"__ns:={ns}"] + (["-r", f"__node:={name}"] if name else [])
+        node = NodeProcess(tmp_path, {}, f"params{ns.strip('/')}", ros_args=("--params-file", str(mine),
+                                                                              *remaps))
+        try:
+            log = _wait_for_log(node, " run id ")
+        finally:
+            assert node.stop() == 0
+        assert f"map 'from-file' stream '{ns.strip('/')}/camera/image_raw'" in log, log
+        assert f"[{ns.strip('/')}.{name or 'cortexloc_node'}]" in log, log
+
+
+@in_loopback_netns
+def test_each_kind_of_skipped_frame_is_told_and_malformed_frames_are_counted_apart(tmp_path):
+    # Before, one line per encoding: after the first malformed rgb8 frame, frames with other faults were
+    # skipped silently, counted as `unsupported`. No service needed: frames are skipped before the queue.
+    from sensor_msgs.msg import Image
+
+    from tests.clients.ros2.probe import start_probe, stop_probe
+
+    probe = start_probe()
+    node = NodeProcess(tmp_path, node_params("http://127.0.0.1:9", "m"))
+    try:
+        probe.wait_connected()
+        good = bytes(64 * 32 * 3)
+        bad = [dict(width=64, height=32, step=128, data=good),  # step shorter than a row
+               dict(width=64, height=32, step=192, data=good[:100]),  # data shorter than the header says
+               dict(width=0, height=0, step=0, data=b""),  # 0x0
+               dict(width=0, height=32, step=192, data=good),  # 0 width
+               dict(width=64, height=32, step=100, data=good),  # a short step again: not said again
+               dict(width=64, height=32, step=192, data=good, encoding="yuv422")]
+        for i, fields in enumerate(bad):
+            msg = Image(encoding=fields.pop("encoding", "rgb8"), **fields)
+            msg.header.stamp.sec = 1_700_000_000 + i
+            probe.images.publish(msg)
+            probe.spin(0.01)
+        probe.wait(lambda: probe.last_diagnostics().get("received") == str(len(bad)), 30,
+                   "every frame received")
+        d = probe.last_diagnostics()
+        assert (d["malformed"], d["unsupported"]) == ("5", "1"), d
+        assert probe.diagnostics[-1][2] != 0  # not OK
+    finally:
+        assert node.stop() == 0
+        stop_probe(probe)
+    lines = [line for line in node.log().splitlines() if "frame skipped" in line]
+    assert len(lines) == 4, node.log()  # one per kind of fault: short step, short data, no pixels, encoding
+    assert "step 128 is shorter than a row of 192 bytes" in lines[0]
+    assert "the message holds 100 bytes" in lines[1] and "0x0 has no pixels" in lines[2]
+    assert "'yuv422' is not one the service takes" in lines[3]
+
+
+@in_loopback_netns
+def test_a_node_stopped_with_frames_queued_says_how_many_it_drops(tmp_path):
+    # Before, SIGTERM with frames queued (the service unreachable) dropped them without a line. The line is
+    # logged after the context is shut down: not through the node's rosout publisher, whose context is gone.
+    import signal
+
+    from tests.clients.ros2.probe import start_probe, stop_probe
+
+    probe = start_probe()
+    rng = np.random.default_rng(1)
+    for sig, n in ((signal.SIGTERM, 4), (signal.SIGINT, 1)):
+        node = NodeProcess(tmp_path, node_params("http://127.0.0.1:9", "m"), f"stop{sig.name}")
+        try:
+            probe.wait_connected()
+            for i in range(n):
+                frame = rng.integers(0, 256, (32, 64, 3), dtype=np.uint8)
+                probe.publish(frame, T0_NS + i * PERIOD_NS, i, 0.0)
+            queued = {"received": str(n), "queue_depth": str(n)}
+            probe.wait(lambda q=queued: {k: probe.last_diagnostics().get(k) for k in q} == q, 30,
+                       "the frames queued")
+            os.kill(node.proc.pid, sig)
+            assert node.proc.wait(timeout=30) == 0
+        finally:
+            node.stop()
+            probe.diagnostics.clear()
+        log = node.log()
+        assert f"stopping: {n} frame{'s' * (n != 1)} queued not posted" in log, log
+        assert "Failed to publish log message to rosout" not in log, log
+    stop_probe(probe)

@@ -230,3 +230,59 @@ def test_between_frames_the_poster_hands_on_the_streams_retractions_and_counts_t
     assert [e.retracts for e in got] == [2] and reads[:2] == [0, 5]
     with stats.lock:
         assert (stats.answered, stats.retractions) == (1, 1)
+
+
+def _revisit(closure_id: int) -> Observation:
+    return Observation.model_validate({
+        **ANSWER.model_dump(), "loop_closure_id": closure_id,
+        "place": {"seq": 3, "place_id": 3, "confidence": 0.95, "revisit": True, "support": 9}})
+
+
+def test_a_loop_closure_answered_again_is_published_once_and_its_revisit_counted_once(monkeypatch):
+    # A message delivered twice got the same key, the service answered the second from its store, and the
+    # node published the closure again under the same id (a back end got the edge twice; `revisits`
+    # counted it twice). Now an id published before is not published again.
+    p, stats, _ = _poster(monkeypatch, _revisit(7), _revisit(7), _revisit(8), _revisit(7), _revisit(7))
+    published: list[tuple[int | None, bool]] = []
+    p.on_answer = lambda frame, pose, answer, latency, closure: published.append(
+        (answer.loop_closure_id, closure))
+    for i in range(3):
+        p._post(_frame(Stamp(i + 1)))
+    assert published == [(7, True), (7, False), (8, True)]
+    assert (stats.answered, stats.revisits) == (3, 2)
+    # the map's log changed its epoch (a map deleted and made again numbers its closures from 1 again): the
+    # ids remembered are forgotten, and the edges rebuilt from the export
+    epochs: list[tuple[str, str]] = []
+    p._on_epoch = lambda previous, epoch: epochs.append((previous, epoch))
+    p._epoch("e1", "e2")
+    p._post(_frame(Stamp(4)))
+    p._post(_frame(Stamp(5)))
+    assert published[3:] == [(7, True), (7, False)] and epochs == [("e1", "e2")]
+
+
+def test_a_new_drive_resets_the_stream_before_its_first_frame(monkeypatch):
+    # The camera's stamps went back (a bag played again): the executor marks the frames with the next drive;
+    # the stream is reset on the service before the first of them, so the new pass does not continue the
+    # last pass's sequence (retried like a post while the service is down).
+    request = httpx.Request("POST", "http://cortexloc.test/v1/maps/default/streams/cam/reset")
+    p, stats, client = _poster(monkeypatch, ANSWER, httpx.ConnectError("refused", request=request),
+                               StreamReset(stream="cam", had_context=True), ANSWER, ANSWER)
+    p._post(_frame(Stamp(5)))
+    p._post(replace(_frame(Stamp(1)), drive=1))
+    p._post(replace(_frame(Stamp(2)), drive=1))
+    assert client.calls == [("reset_stream", "default", "cam")] * 2  # once the drive, after a retry
+    assert stats.answered == 3 and stats.retries == 1
+    assert sum("a new drive, the camera's stamps went back" in line for line in p.log.lines) == 1
+
+
+def test_a_frame_whose_stamp_identifies_no_frame_is_posted_without_a_pose(monkeypatch):
+    # A camera that stamps 0 (or the same stamp twice) with odometry: every frame took the pose of that
+    # stamp, so distinct images got one pose and the service merged them as a robot standing still.
+    odometry = OdometryBuffer(tolerance_ns=50_000_000)
+    odometry.add(Stamp(0), Pose2D(1.0, 0.0, 0.0, "odom"))
+    odometry.add(Stamp(10), Pose2D(2.0, 0.0, 0.0, "odom"))
+    p, stats, client = _poster(monkeypatch, ANSWER, ANSWER, odometry=odometry)
+    p._post(replace(_frame(Stamp(0)), stamped=False))
+    p._post(_frame(Stamp(10)))
+    assert "pose" not in client.metadata[0] and client.metadata[1]["pose"]["x"] == 2.0
+    assert stats.no_pose == 1
