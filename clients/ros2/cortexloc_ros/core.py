@@ -20,9 +20,9 @@ from typing import Any, Generic, Literal, NamedTuple, TypeVar
 
 import numpy as np
 
-__all__ = ["ENCODINGS", "STAMP_JUMP_NS", "DropPolicy", "FrameKey", "FrameKeys", "FrameQueue", "ImageError",
-           "OdometryBuffer", "Pose2D", "RateFilter", "RecentSet", "Stamp", "idempotency_key", "image_array",
-           "quaternion_from_matrix", "relative_pose", "yaw_from_quaternion"]
+__all__ = ["ENCODINGS", "JUMP_CONFIRM", "STAMP_JUMP_NS", "DropPolicy", "FrameKey", "FrameKeys", "FrameQueue",
+           "ImageError", "OdometryBuffer", "Pose2D", "RateFilter", "RecentSet", "Stamp", "StampJumps",
+           "idempotency_key", "image_array", "quaternion_from_matrix", "relative_pose", "yaw_from_quaternion"]
 
 #: `sensor_msgs/Image` encodings the service takes as raw frames -> (sample dtype, channels). rgba8 and
 #: bgra8 are sent without their alpha channel (the client drops it); mono16 is sent little-endian.
@@ -34,9 +34,9 @@ ENCODINGS: dict[str, tuple[str, int]] = {
 
 class ImageError(ValueError):
     """A `sensor_msgs/Image` the node cannot post; `reason` names the fault's kind (the node logs each kind
-    once a while, and counts them): `encoding` (one the service does not take), else the message is
-    malformed: `size` (no pixels: a zero width or height), `step` (shorter than a row), `data` (fewer
-    bytes than `step` x `height`)."""
+    of each encoding once a while, and counts them): `encoding` (one the service does not take), else the
+    message is malformed: `size` (no pixels: a zero width or height), `step` (shorter than a row), `data`
+    (fewer bytes than `step` x `height`)."""
 
     def __init__(self, reason: str, text: str) -> None:
         super().__init__(text)
@@ -176,11 +176,69 @@ class RecentSet:
         self._items.clear()
 
 
-#: A camera stamp this far before the newest one seen on the topic starts a new drive (a bag played again,
+#: A stamp this far before the newest one seen on a topic may start a new drive (a bag played again,
 #: `ros2 bag play --loop`, or a simulation reset); a smaller step back is a message delivered out of order.
 STAMP_JUMP_NS = 1_000_000_000
-#: Keys remembered per topic to tell a message delivered twice (a camera bridged twice, a re-send).
+#: Messages in a row that must go back past `STAMP_JUMP_NS` to start a new drive (`StampJumps`): a single
+#: late message (a copy from a topic bridged twice, a second publisher whose clock is behind) never does.
+JUMP_CONFIRM = 3
+#: Messages of a drive remembered per topic to tell a message delivered twice (a camera bridged twice, a
+#: re-send): one of the last `RECENT_KEYS` stamped messages of the drive.
 RECENT_KEYS = 1000
+
+
+class StampJumps:
+    """The newest stamp of a topic's drive, and when its stamps jumped back to start a new one.
+
+    A message stamped more than `STAMP_JUMP_NS` before the newest stamp is a candidate; a new drive starts
+    only at the `JUMP_CONFIRM`-th candidate in a row, the candidates in stamp order among themselves
+    (`see` returns how far they went back). A message that does not go back ends the run; so does a
+    candidate older than the one before it (it starts a run of its own). A jump forward past
+    `STAMP_JUMP_NS` (a frame stamped in the future) moves the newest stamp only when confirmed the same
+    way, so a single such frame does not make the frames after it look like a jump back. Zero stamps are
+    not given to it."""
+
+    def __init__(self) -> None:
+        self.newest = 0  # ns; 0: none yet
+        self._run: list[tuple[int, Any]] = []  # the candidates of a jump back: (stamp, identity)
+        self._ahead: list[int] = []  # the candidates of a jump forward
+
+    def is_back(self, ns: int) -> bool:
+        return bool(self.newest) and self.newest - ns > STAMP_JUMP_NS
+
+    def pending(self) -> list[Any]:
+        """The identities of the candidates of a jump back so far (not yet a new drive)."""
+        return [ident for _, ident in self._run]
+
+    def see(self, ns: int, ident: Any = None) -> int:
+        """A message stamped `ns` (non-zero): > 0, how far the stamps went back, when it confirms a new
+        drive (the newest stamp is then its); else 0. A candidate whose `ident` is one of the run's (the
+        same message again) changes nothing."""
+        if self.is_back(ns):
+            self._ahead.clear()
+            if ident is not None and any(ident == i for _, i in self._run):
+                return 0
+            if self._run and ns < self._run[-1][0]:
+                self._run.clear()
+            self._run.append((ns, ident))
+            if len(self._run) < JUMP_CONFIRM:
+                return 0
+            back = self.newest - self._run[0][0]
+            self.newest = ns
+            self._run.clear()
+            return back
+        self._run.clear()
+        if self.newest and ns - self.newest > STAMP_JUMP_NS:
+            if self._ahead and ns < self._ahead[-1]:
+                self._ahead.clear()
+            self._ahead.append(ns)
+            if len(self._ahead) >= JUMP_CONFIRM:
+                self.newest = ns
+                self._ahead.clear()
+            return 0
+        self._ahead.clear()
+        self.newest = max(self.newest, ns)
+        return 0
 
 
 class FrameKey(NamedTuple):
@@ -190,9 +248,10 @@ class FrameKey(NamedTuple):
         key: the post's Idempotency-Key.
         unstamped: its stamp does not identify the frame (zero, or the previous message's): an odometry
             pose matched by it would be another frame's, so the frame is posted without one.
-        duplicate: the same stamp and bytes as a message received before in this drive (within the last
-            `RECENT_KEYS`): the same frame delivered again, not posted again.
-        back_ns: > 0 for the first message of a new drive: how far its stamp went back.
+        duplicate: the same stamp (not zero) and bytes as one of the last `RECENT_KEYS` messages of this
+            drive: the same frame delivered again, not posted again.
+        back_ns: > 0 for the first message of a new drive (the `JUMP_CONFIRM`-th in a row that went back):
+            how far the stamps went back.
         drive: the drives the stamps' jumps back started since the node started (0: the first).
     """
 
@@ -205,31 +264,43 @@ class FrameKey(NamedTuple):
 
 @dataclass
 class FrameKeys:
-    """The keys of one topic's messages in one run. A stamp more than `STAMP_JUMP_NS` before the newest one
-    starts a new drive (`FrameKey.drive`), whose keys hold its number (`run_id.N`), so a recording played
-    again is posted again, not answered from the service's store as the first pass. Used by the executor's
-    callback only."""
+    """The keys of one topic's messages in one run. Stamps that go back more than `STAMP_JUMP_NS`, confirmed
+    by `JUMP_CONFIRM` messages in a row (`StampJumps`), start a new drive (`FrameKey.drive`), whose keys
+    hold its number (`run_id.N`), so a recording played again is posted again, not answered from the
+    service's store as the first pass. Until confirmed, a message is the current drive's, the duplicate
+    check first: a late copy of a message seen is a duplicate, not a new drive. A frame stamped 0 is never
+    a duplicate (a still camera that does not stamp sends the same bytes): its key decides, on the
+    service. Used by the executor's callback only."""
 
     run_id: str
     topic: str
     drive: int = 0
     _last: Stamp | None = None
-    _newest: int = 0  # the newest non-zero stamp of this drive (ns)
-    _recent: RecentSet = field(default_factory=lambda: RecentSet(RECENT_KEYS))
+    _jumps: StampJumps = field(default_factory=StampJumps)
+    _recent: RecentSet = field(default_factory=lambda: RecentSet(RECENT_KEYS))  # (stamp ns, digest)
+
+    def _key(self, stamp: Stamp, digest: str) -> str:
+        run = self.run_id if self.drive == 0 else f"{self.run_id}.{self.drive}"  # run ids hold no '.'
+        return idempotency_key(run, self.topic, stamp, digest)
 
     def next(self, stamp: Stamp, data: Any) -> FrameKey:
         """What the message just received is (`FrameKey`); `data` its image bytes (any buffer)."""
-        back = 0
-        if stamp.ns and self._newest - stamp.ns > STAMP_JUMP_NS:
-            back, self._newest = self._newest - stamp.ns, 0
-            self.drive += 1
-            self._recent.clear()
+        digest = content_digest(data)
         unstamped = stamp.ns == 0 or stamp == self._last
         self._last = stamp
-        self._newest = max(self._newest, stamp.ns)
-        run = self.run_id if self.drive == 0 else f"{self.run_id}.{self.drive}"  # run ids hold no '.'
-        key = idempotency_key(run, self.topic, stamp, content_digest(data))
-        return FrameKey(key, unstamped, not self._recent.add(key), back, self.drive)
+        if stamp.ns == 0:
+            return FrameKey(self._key(stamp, digest), True, False, 0, self.drive)
+        item = (stamp.ns, digest)
+        seen = item in self._recent
+        # a message seen before that does not go back is a copy: it neither confirms nor ends a jump back
+        back = 0 if seen and not self._jumps.is_back(stamp.ns) else self._jumps.see(stamp.ns, item)
+        if back:
+            self.drive += 1
+            self._recent.clear()
+            seen = False
+        if not seen:
+            self._recent.add(item)
+        return FrameKey(self._key(stamp, digest), unstamped, seen, back, self.drive)
 
 
 # ------------------------------------------------------------------------------------------- poses
@@ -313,57 +384,100 @@ class OdometryBuffer:
     executor adds, the poster matches (`wait_match`: once a pose at or after the frame's stamp is in,
     since the nearest may be the one after it).
 
-    Odometry arriving out of order is inserted in order; the oldest entries go past `capacity`. A sample
-    more than `STAMP_JUMP_NS` before the newest (a bag played again, a simulation reset) drops those in:
-    they are the last drive's, and would match the new drive's frames.
+    Odometry arriving out of order is inserted in order. Stamps that go back more than `STAMP_JUMP_NS`,
+    confirmed as the camera's are (`StampJumps`: `JUMP_CONFIRM` samples in a row), start a new segment
+    (a bag played again, a simulation reset; the candidates are held until then, and go to the new
+    segment, or, when the run ends unconfirmed, to the current one). A frame matches the samples of one
+    segment only (`segment`: the one its drive took, `for_drive`), so a frame of a new drive never takes
+    the last pass's pose at its stamp, and the last pass's frames still queued keep theirs. The oldest
+    samples (of the oldest segment first) go past `capacity` in all.
     """
 
     def __init__(self, tolerance_ns: int, capacity: int = 4096) -> None:
         self.tolerance_ns = tolerance_ns
-        self._stamps: list[int] = []
-        self._poses: list[Pose2D] = []
+        self.segment = 0  # the current segment: the one new samples go to
+        self._segments: dict[int, tuple[list[int], list[Pose2D]]] = {0: ([], [])}
+        self._held: list[tuple[int, Pose2D]] = []  # candidates of a jump back
+        self._jumps = StampJumps()
+        self._size = 0
         self._capacity = capacity
         self._lock = threading.Lock()
         self._added = threading.Condition(self._lock)
 
+    def _insert(self, segment: int, ns: int, pose: Pose2D) -> None:
+        stamps, poses = self._segments.setdefault(segment, ([], []))
+        i = bisect.bisect_right(stamps, ns)
+        stamps.insert(i, ns)
+        poses.insert(i, pose)
+        self._size += 1
+
     def add(self, stamp: Stamp, pose: Pose2D) -> None:
         with self._lock:
-            if stamp.ns and self._stamps and self._stamps[-1] - stamp.ns > STAMP_JUMP_NS:
-                del self._stamps[:], self._poses[:]
-            i = bisect.bisect_right(self._stamps, stamp.ns)
-            self._stamps.insert(i, stamp.ns)
-            self._poses.insert(i, pose)
-            if len(self._stamps) > self._capacity:
-                del self._stamps[0], self._poses[0]
+            back = self._jumps.see(stamp.ns, stamp.ns) if stamp.ns else 0
+            if back:
+                self.segment += 1
+                for ns, p in (*self._held, (stamp.ns, pose)):
+                    self._insert(self.segment, ns, p)
+                self._held.clear()
+            else:
+                pending = self._jumps.pending()
+                for ns, p in [h for h in self._held if h[0] not in pending]:  # a run ended: out of order
+                    self._insert(self.segment, ns, p)
+                self._held = [h for h in self._held if h[0] in pending]
+                if stamp.ns and stamp.ns in pending:  # a candidate: the segment it goes to is not known yet
+                    self._held.append((stamp.ns, pose))
+                else:
+                    self._insert(self.segment, stamp.ns, pose)
+            while self._size > self._capacity:
+                oldest = min(self._segments)
+                stamps, poses = self._segments[oldest]
+                del stamps[0], poses[0]
+                self._size -= 1
+                if not stamps and oldest != self.segment:
+                    del self._segments[oldest]
             self._added.notify_all()
 
-    def wait_match(self, stamp: Stamp, deadline: float) -> Pose2D | None:
-        """`match(stamp)` once a pose at or after `stamp` is in, or at `deadline` (`time.monotonic()`)
-        with what is in by then: a frame arriving before the odometry of its instant would otherwise
-        take an older pose, or none. Waits on the poster's thread; the executor's `add` wakes it."""
+    def for_drive(self, last: int) -> int:
+        """The segment a camera's new drive takes, `last` the one its last drive took: the current one when
+        the odometry jumped back since (its new segment), else the next one to start (the camera's jump
+        came first: its frames match none of the last pass's samples, and wait for the new segment's)."""
         with self._lock:
-            while not (self._stamps and self._stamps[-1] >= stamp.ns):
+            return self.segment if self.segment > last else last + 1
+
+    def wait_match(self, stamp: Stamp, deadline: float, segment: int | None = None) -> Pose2D | None:
+        """`match(stamp, segment)` once a pose at or after `stamp` is in, or at `deadline`
+        (`time.monotonic()`) with what is in by then: a frame arriving before the odometry of its instant
+        would otherwise take an older pose, or none. Waits on the poster's thread; the executor's `add`
+        wakes it."""
+        with self._lock:
+            while True:
+                stamps = self._segments.get(self.segment if segment is None else segment, ([], []))[0]
+                if stamps and stamps[-1] >= stamp.ns:
+                    break
                 left = deadline - time.monotonic()
                 if left <= 0:
                     break
                 self._added.wait(left)
-        return self.match(stamp)
+        return self.match(stamp, segment)
 
-    def match(self, stamp: Stamp) -> Pose2D | None:
-        """The pose whose stamp is nearest `stamp`, if within the tolerance."""
+    def match(self, stamp: Stamp, segment: int | None = None) -> Pose2D | None:
+        """The pose of `segment` (the current one by default) whose stamp is nearest `stamp`, if within the
+        tolerance."""
         with self._lock:
-            i = bisect.bisect_left(self._stamps, stamp.ns)
+            stamps, poses = self._segments.get(self.segment if segment is None else segment, ([], []))
+            i = bisect.bisect_left(stamps, stamp.ns)
             best: tuple[int, Pose2D] | None = None
             for j in (i - 1, i):
-                if 0 <= j < len(self._stamps):
-                    gap = abs(self._stamps[j] - stamp.ns)
+                if 0 <= j < len(stamps):
+                    gap = abs(stamps[j] - stamp.ns)
                     if gap <= self.tolerance_ns and (best is None or gap < best[0]):
-                        best = (gap, self._poses[j])
+                        best = (gap, poses[j])
             return None if best is None else best[1]
 
-    def latest(self) -> Pose2D | None:
+    def latest(self, segment: int | None = None) -> Pose2D | None:
         with self._lock:
-            return self._poses[-1] if self._poses else None
+            poses = self._segments.get(self.segment if segment is None else segment, ([], []))[1]
+            return poses[-1] if poses else None
 
 
 @dataclass

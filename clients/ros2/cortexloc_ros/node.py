@@ -42,6 +42,7 @@ from cortexloc_client import Client, Observation, RetryPolicy
 from cortexloc_client.models import LoopClosure
 from cortexloc_ros.answers import epoch_json, loop_closure_json, place_json, place_pose, retraction_json
 from cortexloc_ros.core import (
+    JUMP_CONFIRM,
     FrameKeys,
     FrameQueue,
     ImageError,
@@ -134,6 +135,7 @@ class CortexlocNode(Node):
         self._check_names(cfg)
         self.image_topic = self.resolve_topic_name(image_topic)
         self.keys = FrameKeys(cfg.run_id, self.image_topic)
+        self._segment = 0  # the odometry segment the camera's drive matches (OdometryBuffer.for_drive)
         stream = cfg.stream or self.image_topic.lstrip("/")
         self.cfg = cfg = replace(cfg, stream=stream, trail=trail_of(cfg.trail, self.get_namespace()) or "")
         # A best-effort subscription loses what the transport loses (a raw camera image is hundreds of UDP
@@ -213,8 +215,8 @@ class CortexlocNode(Node):
             self.get_logger().warning(text)
 
     def _warn_skip(self, what: str, text: str) -> None:
-        """A kind of skipped frame: said the first time, then at most every SKIP_LOG_PERIOD_S with how many
-        more were skipped since."""
+        """A kind of skipped frame (`what`: its encoding and the fault's kind): said the first time, then at
+        most every SKIP_LOG_PERIOD_S with how many more of that kind were skipped since."""
         now = time.monotonic()
         said, since = self._skips.get(what, (-math.inf, 0))
         if now - said < SKIP_LOG_PERIOD_S:
@@ -274,11 +276,13 @@ class CortexlocNode(Node):
                                          f"`duplicates`)")
             return
         if got.back_ns:
-            text = (f"the camera's stamps went back {got.back_ns / 1e9:.3f} s (to {stamp.ns} ns: a bag "
-                    f"played again, as `ros2 bag play --loop` does, or a simulation reset): a new drive "
-                    f"from this frame on (drive {got.drive} of this run): the stream is reset on the "
-                    f"service and the frames are posted with keys of their own, as after a restart; to "
-                    f"map a recording once, play it without --loop")
+            if self.odometry is not None:  # the drive's frames match the odometry of their own pass only
+                self._segment = self.odometry.for_drive(self._segment)
+            text = (f"the camera's stamps went back {got.back_ns / 1e9:.3f} s ({JUMP_CONFIRM} frames in a "
+                    f"row, the last stamped {stamp.ns} ns: a bag played again, as `ros2 bag play --loop` "
+                    f"does, or a simulation reset): a new drive from this frame on (drive {got.drive} of "
+                    f"this run): the stream is reset on the service and the frames are posted with keys of "
+                    f"their own, as after a restart; to map a recording once, play it without --loop")
             if "back" in self._warned:  # each pass of a looped bag: said, but as a warning only once
                 self.get_logger().info(text)
             else:
@@ -310,13 +314,15 @@ class CortexlocNode(Node):
             return
         # The rate filter's distance needs a pose now: the nearest in so far, else the latest. The pose
         # posted is matched by the poster, once the odometry of the frame's instant is in.
-        pose = self.odometry.match(stamp) if self.odometry is not None and not got.unstamped else None
-        if not self.rate.take(pose or (self.odometry.latest() if self.odometry is not None else None)):
+        segment = self._segment
+        pose = self.odometry.match(stamp, segment) if self.odometry is not None and not got.unstamped \
+            else None
+        if not self.rate.take(pose or (self.odometry.latest(segment) if self.odometry is not None else None)):
             with self.stats.lock:
                 self.stats.skipped_rate += 1
             return
         frame = Frame(stamp, msg.header.frame_id, image, colour, got.key, time.monotonic(),
-                      stamped=not got.unstamped, drive=got.drive)
+                      stamped=not got.unstamped, drive=got.drive, segment=segment)
         if self.queue.put(frame) is not None:
             self._warn_once("drop", f"queue full ({self.cfg.queue_size}): frames dropped by "
                                     f"{self.cfg.queue_policy} (counted in diagnostics)")
@@ -324,16 +330,15 @@ class CortexlocNode(Node):
     # ---------------------------------------------------------------------------------- publishing
 
     def _publish_answer(self, frame: Frame, pose: Pose2D | None, answer: Observation,
-                        latency_ms: float, closure: bool = True) -> None:
-        """On the poster's thread: the place JSON, the place's stored pose, a loop closure and its edge
-        (`closure` False: the closure was published before, not again)."""
+                        latency_ms: float) -> None:
+        """On the poster's thread: the place JSON, the place's stored pose, a loop closure and its edge."""
         doc = place_json(answer, frame.stamp, frame.frame_id, pose, latency_ms, DEFAULT_FRAME)
         self.pub_place.publish(String(data=json.dumps(doc, separators=(",", ":"))))
         stored = place_pose(answer.place, DEFAULT_FRAME)
         if stored is not None:
             self.pub_pose.publish(self._pose_message(frame.stamp, stored))
         doc = loop_closure_json(answer, frame.stamp, frame.frame_id, pose, DEFAULT_FRAME)
-        if doc is None or not closure:
+        if doc is None:
             return
         self.pub_closures.publish(String(data=json.dumps(doc, separators=(",", ":"))))
         if pose is not None and stored is not None and pose.frame_id == stored.frame_id:
@@ -423,12 +428,9 @@ class CortexlocNode(Node):
     def close(self) -> None:
         """Stops the poster; says how many frames it leaves unposted (one line, not through the node's
         rosout once the context is shut down)."""
-        self.poster.stop()
-        queued, in_flight = self.poster.unposted()
-        if queued or in_flight:
-            flight = f" and {in_flight} in flight" if in_flight else ""
-            self.log.warning(f"stopping: {queued} frame{'s' * (queued != 1)} queued{flight} not posted "
-                             f"(dropped; a restart posts what the camera sends from then on)")
+        line = self.poster.stop()
+        if line:
+            self.log.warning(f"{line} (dropped; a restart posts what the camera sends from then on)")
         self.client.close()
 
 

@@ -19,10 +19,10 @@ typed client; the ROS executor never waits on the service.
 - A new drive (a frame whose `drive` is not the last one's: the camera's stamps went back, a bag played
   again): the stream is reset on the service before it is posted, as at a start, so the new pass does not
   continue the last one's sequence context.
-- Each loop closure id is published once: an answer whose closure id was published before (a frame
-  answered again from the service's store) is published without its closure, and its revisit is not
-  counted again. Ids are never reused within a map, restores included; a map deleted and made again
-  starts them again, which changes the log's epoch, so the ids remembered are forgotten on an epoch change.
+- Answers are published as they come: a message delivered twice in a drive is posted once (the executor's
+  duplicate check, `core.FrameKeys`), and a retry after a lost reply is answered once, so within one run
+  of the node each such message's closure is published once. A map deleted and made again numbers its
+  closures from 1 again: those are new closures, published as they come.
 - Refused: 400, 413, 415, 422 (the frame or its metadata) are counted and logged; the poster goes on.
 - Idle, it checks the service's readiness every `PROBE_S`, so diagnostics say "down" without frames.
 - Between frames, every `retractions_poll` seconds, it reads one page of the map's loop-closure log for
@@ -48,7 +48,7 @@ import numpy as np
 
 from cortexloc_client import Client, CortexlocError, Observation
 from cortexloc_client.models import LoopClosure
-from cortexloc_ros.core import FrameQueue, OdometryBuffer, Pose2D, RecentSet, Stamp
+from cortexloc_ros.core import FrameQueue, OdometryBuffer, Pose2D, Stamp
 from cortexloc_ros.params import Config
 from cortexloc_ros.retractions import RetractionFollower
 
@@ -60,8 +60,6 @@ BACKOFF_S, MAX_BACKOFF_S = 0.5, 5.0
 PROBE_S = 1.0
 #: Latencies kept for the diagnostics' median.
 LATENCY_WINDOW = 100
-#: Loop-closure ids remembered as published (`Poster`: each is published once).
-PUBLISHED_CLOSURES = 10_000
 
 
 #: Seconds past `odom_tolerance` that a frame waits, after it arrived, for the odometry of its instant:
@@ -75,7 +73,8 @@ class Frame:
     """One camera frame on its way: the body (a raw-frame array or encoded bytes), its stamp and frame,
     the key of its post, and when it arrived (`time.monotonic()`: its wait for odometry counts from
     there); `stamped` False: its stamp does not identify it (zero, or the previous frame's), so it is
-    posted without an odometry pose; `drive`: the drive it belongs to (`core.FrameKey.drive`)."""
+    posted without an odometry pose; `drive`: the drive it belongs to (`core.FrameKey.drive`); `segment`: the
+    odometry segment its drive took (`core.OdometryBuffer.for_drive`), the only one its pose is matched in."""
 
     stamp: Stamp
     frame_id: str
@@ -85,6 +84,7 @@ class Frame:
     arrived: float
     stamped: bool = True
     drive: int = 0
+    segment: int = 0
 
 
 @dataclass
@@ -126,14 +126,13 @@ class Stats:
         return "OK", f"service {self.service}"
 
 
-Answered = Callable[[Frame, Pose2D | None, Observation, float, bool], None]
+Answered = Callable[[Frame, Pose2D | None, Observation, float], None]
 
 
 class Poster:
-    """Posts queued frames through `client`, one at a time; `on_answer(frame, pose, answer, latency_ms,
-    closure)` runs on the poster's thread for each answered frame (`closure` False: the answer's loop
-    closure was published before, do not publish it again), `on_retraction(entry)` for each retraction of
-    the stream's closures and `on_epoch(previous, epoch)` when the map's log changes its epoch (all
+    """Posts queued frames through `client`, one at a time; `on_answer(frame, pose, answer, latency_ms)` runs
+    on the poster's thread for each answered frame, `on_retraction(entry)` for each retraction of the
+    stream's closures and `on_epoch(previous, epoch)` when the map's log changes its epoch (all
     publish)."""
 
     def __init__(self, cfg: Config, client: Client, queue: FrameQueue[Frame], stats: Stats,
@@ -144,9 +143,8 @@ class Poster:
         self.cfg, self.client, self.queue, self.stats = cfg, client, queue, stats
         self.odometry, self.camera, self.on_answer, self.log = odometry, camera, on_answer, log
         self.retractions = RetractionFollower(client, cfg.map_id, cfg.stream, cfg.retractions_poll,
-                                              self._retracted, log, on_epoch=self._epoch)
-        self._on_retraction, self._on_epoch = on_retraction, on_epoch
-        self.published = RecentSet(PUBLISHED_CLOSURES)  # loop-closure ids published (module docstring)
+                                              self._retracted, log, on_epoch=on_epoch)
+        self._on_retraction = on_retraction
         self._drive = 0  # the drive of the frames posted (`Frame.drive`)
         self.in_flight: Frame | None = None  # the frame being posted
         self._stop = threading.Event()
@@ -157,9 +155,20 @@ class Poster:
     def start(self) -> None:
         self._thread.start()
 
-    def stop(self, timeout: float = 5.0) -> None:
+    def stop(self, timeout: float | None = None) -> str:
+        """Stops posting and waits for the thread, by default `request_timeout` + 1 s (a post under way
+        ends within its timeout); what it leaves unposted, as a log line ("" for nothing)."""
         self._stop.set()
-        self._thread.join(timeout)
+        self._thread.join(self.cfg.request_timeout + 1.0 if timeout is None else timeout)
+        queued, in_flight = self.unposted()
+        if not (queued or in_flight):
+            return ""
+        frames = f"{queued} frame{'s' * (queued != 1)} queued"
+        if in_flight and self._thread.is_alive():  # its request is still under way: it may yet be stored
+            return (f"stopping: {frames} not posted and 1 in flight that may not have been posted (its "
+                    f"request had not ended)")
+        flight = " and 1 in flight" if in_flight else ""
+        return f"stopping: {frames}{flight} not posted"
 
     # -------------------------------------------------------------------------------------- thread
 
@@ -180,10 +189,6 @@ class Poster:
     def unposted(self) -> tuple[int, int]:
         """(frames queued, frames in flight) not posted: what a stop leaves."""
         return len(self.queue), int(self.in_flight is not None)
-
-    def _epoch(self, previous: str, epoch: str) -> None:
-        self.published.clear()  # a map made again numbers its closures from 1 again (module docstring)
-        self._on_epoch(previous, epoch)
 
     def _retracted(self, entry: LoopClosure) -> None:
         with self.stats.lock:
@@ -257,7 +262,7 @@ class Poster:
             # the nearest pose may be the one just after the stamp, not in yet: wait for it here (never
             # on the executor), at most odom_tolerance + ODOM_MARGIN_S after the frame arrived
             deadline = frame.arrived + self.cfg.odom_tolerance_ns / 1e9 + ODOM_MARGIN_S
-            pose = self.odometry.wait_match(frame.stamp, deadline)
+            pose = self.odometry.wait_match(frame.stamp, deadline, frame.segment)
             if pose is None:
                 with self.stats.lock:
                     self.stats.no_pose += 1
@@ -289,20 +294,15 @@ class Poster:
                 self._map_gone = False
                 latency = (time.perf_counter() - t0) * 1e3
                 revisit = bool(answer.place and answer.place.revisit)
-                closure = answer.loop_closure_id
-                again = revisit and closure is not None and not self.published.add(closure)
-                if again:
-                    self.log.info(f"frame {frame.stamp.ns} answered again with loop closure {closure}, "
-                                  f"published before: not published again")
                 with self.stats.lock:
                     self.stats.answered += 1
-                    self.stats.revisits += revisit and not again
+                    self.stats.revisits += revisit
                     self.stats.last_latency_ms = latency
                     self.stats.latencies_ms.append(latency)
                     self.stats.last_error = ""  # a refused frame's too: the trouble is over
                 self._state("up", "")
                 try:
-                    self.on_answer(frame, pose, answer, latency, not again)
+                    self.on_answer(frame, pose, answer, latency)
                 except Exception as e:  # e.g. publishing while SIGTERM shuts the context down
                     if not self._stop.is_set():
                         self.log.error(f"publishing the answer of frame {frame.stamp.ns} failed: {e!r}")

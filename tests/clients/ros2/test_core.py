@@ -100,7 +100,7 @@ def test_frames_with_one_stamp_get_keys_of_their_own_and_the_repeat_is_told():
     assert not {other.next(Stamp(0), bytes([100 + i]) * 64).key for i in range(3)} & {g.key for g in got}
 
 
-def test_a_message_delivered_twice_is_a_duplicate_and_stamps_going_back_start_a_new_drive():
+def test_a_message_delivered_twice_is_a_duplicate_and_a_looped_bag_one_new_drive_on_its_third_message():
     t0, period = 1_700_000_000 * 10**9, 100_000_000
     frames = [bytes([i]) * 64 for i in range(20)]
     keys = FrameKeys("run1", "/cam/image_raw")
@@ -110,16 +110,64 @@ def test_a_message_delivered_twice_is_a_duplicate_and_stamps_going_back_start_a_
     assert keys.next(Stamp(t0 + 19 * period), frames[19]).duplicate
     assert keys.next(Stamp(t0 + 17 * period), frames[17]).duplicate  # 0.2 s back: out of order, no new drive
     assert keys.drive == 0
-    # the recording played again (`ros2 bag play --loop`): its stamps go back 1.9 s, a new drive whose keys
-    # are its own, so its frames are posted again, not answered from the store as the first pass's
+    # the recording played again (`ros2 bag play --loop`): its stamps go back 1.9 s. Its first two messages
+    # are taken as the last drive's (repeats of its messages: not posted); the third, the third in a row
+    # to go back, starts a new drive whose keys are its own, so its frames are posted again, not answered
+    # from the store as the first pass's
     loop = [keys.next(Stamp(t0 + i * period), f) for i, f in enumerate(frames)]
-    assert (loop[0].back_ns, loop[0].drive) == (19 * period, 1) and not loop[0].unstamped
-    assert {(g.duplicate, g.back_ns, g.drive) for g in loop[1:]} == {(False, 0, 1)}
-    assert not {g.key for g in loop} & {g.key for g in first}
-    digest = loop[0].key.rsplit(":", 1)[1]
-    assert loop[0].key == idempotency_key("run1.1", "/cam/image_raw", Stamp(t0), digest)
+    assert [(g.duplicate, g.drive) for g in loop[:3]] == [(True, 0), (True, 0), (False, 1)]
+    assert loop[2].back_ns == 19 * period and not loop[2].unstamped
+    assert {(g.duplicate, g.back_ns, g.drive) for g in loop[3:]} == {(False, 0, 1)}
+    assert not {g.key for g in loop[2:]} & {g.key for g in first}
+    digest = loop[2].key.rsplit(":", 1)[1]
+    assert loop[2].key == idempotency_key("run1.1", "/cam/image_raw", Stamp(t0 + 2 * period), digest)
+    # a third pass: exactly one more drive
+    third = [keys.next(Stamp(t0 + i * period), f) for i, f in enumerate(frames)]
+    assert [g.drive for g in third] == [1, 1] + [2] * 18 and sum(g.back_ns > 0 for g in third) == 1
     # a zero stamp (a driver's glitch) is no jump back
-    assert keys.next(Stamp(0), b"z" * 64).drive == 1 and keys.drive == 1
+    assert keys.next(Stamp(0), b"z" * 64).drive == 2 and keys.drive == 2
+
+
+def test_a_single_late_or_early_message_starts_no_new_drive():
+    # Before, one message stamped more than 1 s before the newest started a new drive (the stream reset on
+    # the service, the recent keys forgotten): a topic bridged twice whose copy lags 1.5 s made every copy a
+    # new drive and a frame posted again, and two publishers with skewed clocks reset the stream each frame.
+    S, period = 10**9, 10**9 // 30
+    keys = FrameKeys("run1", "/cam/image_raw")
+    got = []
+    for i in range(90):  # bridged twice, the copy 1.5 s (45 frames) late
+        got.append(keys.next(Stamp(10 * S + i * period), b"f%d" % i))
+        if i >= 45:
+            got.append(keys.next(Stamp(10 * S + (i - 45) * period), b"f%d" % (i - 45)))
+    assert keys.drive == 0 and not any(g.back_ns for g in got)
+    assert sum(not g.duplicate for g in got) == 90 and sum(g.duplicate for g in got) == 45  # each posted once
+    # two publishers on one topic, the second's clock 1.2 s behind, interleaved: both posted, no new drive
+    two = FrameKeys("run1", "/cam/image_raw")
+    got = [two.next(Stamp(t), b"%s%d" % (who, i)) for i in range(30)
+           for who, t in ((b"A", 100 * S + i * S // 10), (b"B", 100 * S - 1_200_000_000 + i * S // 10))]
+    assert two.drive == 0 and not any(g.duplicate or g.back_ns for g in got)
+    # one frame stamped 49 s in the future: the frames after it are not a jump back
+    glitch = FrameKeys("run1", "/cam/image_raw")
+    stamps = [50_000, 50_100, 50_200, 99_000, 50_300, 50_400, 50_500, 50_600]  # ms
+    got = [glitch.next(Stamp(ms * 10**6), b"%d" % ms) for ms in stamps]
+    assert glitch.drive == 0 and not any(g.back_ns for g in got)
+    # going back, but not in stamp order among themselves (a late copy between two going back): no drive
+    mixed = FrameKeys("run1", "/cam/image_raw")
+    for i in range(30):
+        mixed.next(Stamp(20 * S + i * period), b"m%d" % i)
+    got = [mixed.next(Stamp(10 * S + i * period), b"n%d" % i) for i in (2, 1, 3)]
+    assert mixed.drive == 0 and not any(g.back_ns for g in got)
+
+
+def test_a_still_camera_that_does_not_stamp_is_never_a_duplicate():
+    # Before, a frame stamped 0 with the bytes of one before (a covered lens, a still simulated camera) was a
+    # "duplicate", not posted: nothing was published while the robot stood. Its key decides on the service.
+    keys = FrameKeys("run1", "/cam/image_raw")
+    got = [keys.next(Stamp(0), b"black" * 16) for _ in range(4)]
+    assert not any(g.duplicate for g in got) and all(g.unstamped for g in got)
+    assert len({g.key for g in got}) == 1  # one key: the service answers the repeats from its store
+    # a stamped message delivered twice is still a duplicate
+    assert [keys.next(Stamp(5), b"x" * 64).duplicate for _ in range(2)] == [False, True]
 
 
 def test_a_skipped_image_says_which_fault_it_has():
@@ -142,17 +190,45 @@ def test_a_skipped_image_says_which_fault_it_has():
     assert e.value.reason == "encoding"
 
 
-def test_odometry_that_jumps_back_drops_the_last_drives_samples():
-    t0 = 1_700_000_000 * 10**9
+def test_odometry_that_jumps_back_starts_a_segment_and_each_drive_matches_its_own():
+    import time
+
+    t0, S = 1_700_000_000 * 10**9, 10**9
     buf = OdometryBuffer(tolerance_ns=50_000_000)
     for i in range(30):  # the first pass, 3 s
         buf.add(Stamp(t0 + i * 100_000_000), Pose2D(float(i), 0.0, 0.0, "odom"))
     buf.add(Stamp(t0 + 2_950_000_000), Pose2D(-1.0, 0.0, 0.0, "odom"))  # out of order: kept with the rest
-    assert buf.match(Stamp(t0 + 1_000_000_000)) == Pose2D(10.0, 0.0, 0.0, "odom")
-    # a simulation reset: its first sample starts again at t0 + 0.5 s, in another place
-    buf.add(Stamp(t0 + 500_000_000), Pose2D(100.0, 0.0, 0.0, "odom"))
-    assert buf.match(Stamp(t0 + 1_000_000_000)) is None  # the last drive's pose at that stamp is gone
-    assert buf.latest() == Pose2D(100.0, 0.0, 0.0, "odom")
+    buf.add(Stamp(t0 + 1_000_000_000), Pose2D(10.0, 0.0, 0.0, "odom"))  # one sample 1.9 s late: no segment
+    assert buf.match(Stamp(t0 + 2_000_000_000)) == Pose2D(20.0, 0.0, 0.0, "odom")  # before: all dropped
+    assert buf.segment == 0 and buf.match(Stamp(t0 + 1_000_000_000)) == Pose2D(10.0, 0.0, 0.0, "odom")
+    # the camera's stamps go back first (a simulation reset whose odometry comes later): the new drive takes
+    # the next segment, and its frame at t0 + 0.5 s never takes the last pass's pose at that stamp
+    new = buf.for_drive(0)
+    assert new == 1
+    started = time.monotonic()
+    assert buf.wait_match(Stamp(t0 + 500_000_000), time.monotonic() + 0.05, new) is None
+    assert time.monotonic() - started >= 0.04  # it waited for the new pass's odometry
+    # the new pass's odometry: a segment once three samples in a row went back
+    for i in range(3):
+        buf.add(Stamp(t0 + 400_000_000 + i * 100_000_000), Pose2D(100.0 + i, 0.0, 0.0, "odom"))
+    assert buf.segment == 1 and buf.for_drive(0) == 1
+    assert buf.match(Stamp(t0 + 500_000_000), new) == Pose2D(101.0, 0.0, 0.0, "odom")
+    assert buf.latest(new) == Pose2D(102.0, 0.0, 0.0, "odom")
+    # the last pass's frames still queued keep their poses: its segment is kept
+    assert buf.match(Stamp(t0 + 2_900_000_000), 0) == Pose2D(29.0, 0.0, 0.0, "odom")
+    assert buf.match(Stamp(t0 + 500_000_000), 0) == Pose2D(5.0, 0.0, 0.0, "odom")
+    # the odometry went back first: the camera's next drive takes that segment
+    for i in range(3):
+        buf.add(Stamp(t0 - S + i * 10_000_000), Pose2D(200.0, 0.0, 0.0, "odom"))
+    assert buf.segment == 2 and buf.for_drive(1) == 2
+    # the capacity holds for all segments: the oldest samples of the oldest go first
+    small = OdometryBuffer(tolerance_ns=50_000_000, capacity=4)
+    for i in range(3):
+        small.add(Stamp(5 * S + i * S // 10), Pose2D(float(i), 0.0, 0.0, "odom"))
+    for i in range(3):
+        small.add(Stamp(S + i * S // 10), Pose2D(1.0, 0.0, 0.0, "odom"))
+    assert small.segment == 1 and small.match(Stamp(5 * S), 0) is None
+    assert small.match(Stamp(5 * S + S // 5), 0) == Pose2D(2.0, 0.0, 0.0, "odom")
 
 
 def test_a_frame_takes_the_odometry_pose_nearest_its_stamp_within_the_tolerance():

@@ -238,26 +238,90 @@ def _revisit(closure_id: int) -> Observation:
         "place": {"seq": 3, "place_id": 3, "confidence": 0.95, "revisit": True, "support": 9}})
 
 
-def test_a_loop_closure_answered_again_is_published_once_and_its_revisit_counted_once(monkeypatch):
-    # A message delivered twice got the same key, the service answered the second from its store, and the
-    # node published the closure again under the same id (a back end got the edge twice; `revisits`
-    # counted it twice). Now an id published before is not published again.
-    p, stats, _ = _poster(monkeypatch, _revisit(7), _revisit(7), _revisit(8), _revisit(7), _revisit(7))
-    published: list[tuple[int | None, bool]] = []
-    p.on_answer = lambda frame, pose, answer, latency, closure: published.append(
-        (answer.loop_closure_id, closure))
-    for i in range(3):
-        p._post(_frame(Stamp(i + 1)))
-    assert published == [(7, True), (7, False), (8, True)]
-    assert (stats.answered, stats.revisits) == (3, 2)
-    # the map's log changed its epoch (a map deleted and made again numbers its closures from 1 again): the
-    # ids remembered are forgotten, and the edges rebuilt from the export
-    epochs: list[tuple[str, str]] = []
-    p._on_epoch = lambda previous, epoch: epochs.append((previous, epoch))
-    p._epoch("e1", "e2")
-    p._post(_frame(Stamp(4)))
-    p._post(_frame(Stamp(5)))
-    assert published[3:] == [(7, True), (7, False)] and epochs == [("e1", "e2")]
+class StoreClient(ScriptedClient):
+    """Answers each key once from the script and its repeats from a store, as the service does."""
+
+    def __init__(self, stats: Stats, *outcomes: Any) -> None:
+        super().__init__(stats, *outcomes)
+        self.store: dict[str, Observation] = {}
+
+    def observe(self, *args: Any, **kwargs: Any) -> Observation:
+        key = kwargs["idempotency_key"]
+        if key not in self.store:
+            self.store[key] = super().observe(*args, **kwargs)
+        return self.store[key]
+
+
+def _published(p: Poster) -> list[tuple[int | None, bool]]:
+    """What the node publishes for each answer: (its closure id, whether the closure is published). The
+    closure flag of the version before (a memory of closure ids) is read when it is given."""
+    out: list[tuple[int | None, bool]] = []
+    p.on_answer = lambda frame, pose, answer, latency, *flag: out.append((answer.loop_closure_id, all(flag)))
+    return out
+
+
+def test_a_message_delivered_twice_publishes_its_closure_once_through_the_duplicate_check(monkeypatch):
+    # A message delivered twice (a camera bridged twice) got the same key, and the service answered the second
+    # from its store: its closure was published again under the same id. The duplicate check posts it once.
+    from cortexloc_ros.core import FrameKeys
+
+    p, stats, _ = _poster(monkeypatch)
+    p.client = client = StoreClient(stats, _revisit(7), _revisit(8))
+    published = _published(p)
+    keys = FrameKeys("run1", "/cam")
+    for ns, data in ((1, b"a"), (1, b"a"), (2, b"b"), (1, b"a")):
+        got = keys.next(Stamp(ns), data)
+        if not got.duplicate:
+            p._post(replace(_frame(Stamp(ns)), key=got.key))
+    assert published == [(7, True), (8, True)] and len(client.store) == 2
+    assert (stats.answered, stats.revisits) == (2, 2)
+
+
+def test_a_map_deleted_and_made_again_publishes_its_closure_1_again(monkeypatch):
+    # A memory of the closure ids published, forgotten only when the retraction follower read a new epoch,
+    # kept the closures of a map made again (numbered from 1 again) off the topic: with retractions_poll 0
+    # for good, and until the next poll otherwise. Each answer's closure is published.
+    p, stats, _ = _poster(monkeypatch, _revisit(1), _problem(404, "map-not-found"), _revisit(1),
+                          retractions_poll=0.0)
+    published = _published(p)
+    p._post(_frame(Stamp(1)))
+    p._post(_frame(Stamp(2)))  # 404: the map deleted; retried, and answered by the map made again
+    assert not p.retractions.due()
+    assert published == [(1, True), (1, True)]
+    assert (stats.answered, stats.revisits) == (2, 2)
+
+
+def test_a_stop_waits_for_a_post_under_way_and_says_when_it_may_have_been_posted(monkeypatch):
+    # Before, a stop waited 5 s for the poster while a post may take request_timeout (10 s): "1 in flight not
+    # posted" could be said of a frame the service then stored. Now it waits request_timeout + 1 s, and says
+    # "may not have been posted" when the post is still under way.
+    release = threading.Event()
+
+    class Slow(ScriptedClient):
+        def observe(self, *args: Any, **kwargs: Any) -> Observation:
+            release.wait(float(kwargs["metadata"]["stamp_ns"]) / 1e3)  # stamp_ns: how many ms it takes
+            return ANSWER
+
+    for ms, timeout, said in ((300, 0.2, ""), (30_000, 0.1, "may not have been posted")):
+        p, stats, _ = _poster(monkeypatch, request_timeout=timeout)
+        p.client = Slow(stats, StreamReset(stream="cam", had_context=False))
+        p.start()
+        p.queue.put(_frame(Stamp(ms)))
+        deadline = time.monotonic() + 5
+        while p.in_flight is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        started = time.monotonic()
+        try:
+            line = p.stop()
+        finally:
+            release.set()
+        waited = time.monotonic() - started
+        if said:
+            assert line == ("stopping: 0 frames queued not posted and 1 in flight that may not have been "
+                            "posted (its request had not ended)") and 1.0 <= waited < 2.0
+        else:  # the post ends within the wait: answered, nothing left
+            assert line == "" and stats.answered == 1 and waited < 1.0
+        release.clear()
 
 
 def test_a_new_drive_resets_the_stream_before_its_first_frame(monkeypatch):
@@ -285,4 +349,24 @@ def test_a_frame_whose_stamp_identifies_no_frame_is_posted_without_a_pose(monkey
     p._post(replace(_frame(Stamp(0)), stamped=False))
     p._post(_frame(Stamp(10)))
     assert "pose" not in client.metadata[0] and client.metadata[1]["pose"]["x"] == 2.0
+    assert stats.no_pose == 1
+
+
+def test_a_frame_takes_its_pose_from_its_drives_odometry_segment_only(monkeypatch):
+    # Before, the image's and the odometry's jumps back were independent: a frame of a new drive that came
+    # before the new pass's odometry took the last pass's pose at its stamp, and the last pass's frames still
+    # queued lost theirs once the odometry jumped first.
+    S = 10**9
+    odometry = OdometryBuffer(tolerance_ns=50_000_000)
+    for i in range(30):  # the last pass
+        odometry.add(Stamp(S + i * S // 10), Pose2D(float(i), 0.0, 0.0, "odom"))
+    p, stats, client = _poster(monkeypatch, ANSWER, ANSWER, ANSWER, odometry=odometry)
+    p._post(replace(_frame(Stamp(S + S // 2)), arrived=time.monotonic() - 1,
+                    segment=odometry.for_drive(0)))  # the new pass's odometry not in yet: no pose
+    for i in range(3):  # the new pass's odometry: a segment of its own
+        odometry.add(Stamp(S + i * S // 10), Pose2D(100.0 + i, 0.0, 0.0, "odom"))
+    p._post(replace(_frame(Stamp(S + S // 5)), segment=odometry.for_drive(0)))
+    p._post(replace(_frame(Stamp(S + 29 * S // 10)), segment=0))  # a last-pass frame still queued
+    assert "pose" not in client.metadata[0]
+    assert client.metadata[1]["pose"]["x"] == 102.0 and client.metadata[2]["pose"]["x"] == 29.0
     assert stats.no_pose == 1
