@@ -378,6 +378,12 @@ def relative_pose(rotation: list[list[float]], translation: list[float] | None
     return (float(p[0]), float(p[1]), float(p[2])), quaternion_from_matrix(R.T)
 
 
+#: How far past an odometry segment's newest sample a frame's stamp may be for the frame to be matched in
+#: it (`OdometryBuffer`), waiting for the sample of its instant: more than odometry's period and a
+#: frame's wait.
+SEGMENT_REACH_NS = 5_000_000_000
+
+
 class OdometryBuffer:
     """Recent odometry poses by stamp; a frame takes the pose nearest its stamp within `tolerance_ns`
     (message_filters' ApproximateTime for two topics, which pip-installed ROS 2 lacks). Thread-safe: the
@@ -388,9 +394,15 @@ class OdometryBuffer:
     confirmed as the camera's are (`StampJumps`: `JUMP_CONFIRM` samples in a row), start a new segment
     (a bag played again, a simulation reset; the candidates are held until then, and go to the new
     segment, or, when the run ends unconfirmed, to the current one). A frame matches the samples of one
-    segment only (`segment`: the one its drive took, `for_drive`), so a frame of a new drive never takes
-    the last pass's pose at its stamp, and the last pass's frames still queued keep theirs. The oldest
-    samples (of the oldest segment first) go past `capacity` in all.
+    segment only, chosen by its stamp (`_segment_of`): the newest segment whose samples span it (from its
+    first sample, less the tolerance, to `SEGMENT_REACH_NS` past its newest). So once a new pass's
+    odometry is in, its frames take their poses from it while the last pass's frames still queued keep
+    theirs, and a camera and an odometry that disagree on whether a jump happened (a clock that jumped
+    forward, a few late messages) never lose the live segment (a review: drives and segments counted
+    apart went out of step, and every later frame lost its pose). A frame of a new pass that comes before
+    its pass's odometry has gone back takes the last pass's pose at its stamp: the same for a bag played
+    again, another for a simulation reset (the README says so). The oldest samples (of the oldest segment
+    first) go past `capacity` in all.
     """
 
     def __init__(self, tolerance_ns: int, capacity: int = 4096) -> None:
@@ -423,9 +435,9 @@ class OdometryBuffer:
                 pending = self._jumps.pending()
                 for ns, p in [h for h in self._held if h[0] not in pending]:  # a run ended: out of order
                     self._insert(self.segment, ns, p)
-                self._held = [h for h in self._held if h[0] in pending]
+                self._held = [h for h in self._held if h[0] in pending and h[0] != stamp.ns]
                 if stamp.ns and stamp.ns in pending:  # a candidate: the segment it goes to is not known yet
-                    self._held.append((stamp.ns, pose))
+                    self._held.append((stamp.ns, pose))  # (one a stamp: at most JUMP_CONFIRM held)
                 else:
                     self._insert(self.segment, stamp.ns, pose)
             while self._size > self._capacity:
@@ -437,34 +449,39 @@ class OdometryBuffer:
                     del self._segments[oldest]
             self._added.notify_all()
 
-    def for_drive(self, last: int) -> int:
-        """The segment a camera's new drive takes, `last` the one its last drive took: the current one when
-        the odometry jumped back since (its new segment), else the next one to start (the camera's jump
-        came first: its frames match none of the last pass's samples, and wait for the new segment's)."""
-        with self._lock:
-            return self.segment if self.segment > last else last + 1
+    def _segment_of(self, ns: int) -> int | None:
+        """Under the lock: the newest segment whose samples span stamp `ns` (class docstring); None: none
+        does (the frame's odometry is not in)."""
+        for segment in sorted(self._segments, reverse=True):
+            stamps = self._segments[segment][0]
+            if stamps and stamps[0] - self.tolerance_ns <= ns <= stamps[-1] + SEGMENT_REACH_NS:
+                return segment
+        return None
 
-    def wait_match(self, stamp: Stamp, deadline: float, segment: int | None = None) -> Pose2D | None:
-        """`match(stamp, segment)` once a pose at or after `stamp` is in, or at `deadline`
+    def wait_match(self, stamp: Stamp, deadline: float) -> Pose2D | None:
+        """`match(stamp)` once a pose at or after `stamp` is in its segment, or at `deadline`
         (`time.monotonic()`) with what is in by then: a frame arriving before the odometry of its instant
         would otherwise take an older pose, or none. Waits on the poster's thread; the executor's `add`
         wakes it."""
         with self._lock:
             while True:
-                stamps = self._segments.get(self.segment if segment is None else segment, ([], []))[0]
-                if stamps and stamps[-1] >= stamp.ns:
+                segment = self._segment_of(stamp.ns)
+                if segment is not None and self._segments[segment][0][-1] >= stamp.ns:
                     break
                 left = deadline - time.monotonic()
                 if left <= 0:
                     break
                 self._added.wait(left)
-        return self.match(stamp, segment)
+        return self.match(stamp)
 
-    def match(self, stamp: Stamp, segment: int | None = None) -> Pose2D | None:
-        """The pose of `segment` (the current one by default) whose stamp is nearest `stamp`, if within the
+    def match(self, stamp: Stamp) -> Pose2D | None:
+        """The pose of the frame's segment (`_segment_of`) whose stamp is nearest `stamp`, if within the
         tolerance."""
         with self._lock:
-            stamps, poses = self._segments.get(self.segment if segment is None else segment, ([], []))
+            segment = self._segment_of(stamp.ns)
+            if segment is None:
+                return None
+            stamps, poses = self._segments[segment]
             i = bisect.bisect_left(stamps, stamp.ns)
             best: tuple[int, Pose2D] | None = None
             for j in (i - 1, i):
@@ -474,9 +491,10 @@ class OdometryBuffer:
                         best = (gap, poses[j])
             return None if best is None else best[1]
 
-    def latest(self, segment: int | None = None) -> Pose2D | None:
+    def latest(self) -> Pose2D | None:
+        """The newest pose of the current segment (the rate filter's, for a frame that matched none)."""
         with self._lock:
-            poses = self._segments.get(self.segment if segment is None else segment, ([], []))[1]
+            poses = self._segments.get(self.segment, ([], []))[1]
             return poses[-1] if poses else None
 
 

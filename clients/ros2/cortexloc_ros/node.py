@@ -135,7 +135,6 @@ class CortexlocNode(Node):
         self._check_names(cfg)
         self.image_topic = self.resolve_topic_name(image_topic)
         self.keys = FrameKeys(cfg.run_id, self.image_topic)
-        self._segment = 0  # the odometry segment the camera's drive matches (OdometryBuffer.for_drive)
         stream = cfg.stream or self.image_topic.lstrip("/")
         self.cfg = cfg = replace(cfg, stream=stream, trail=trail_of(cfg.trail, self.get_namespace()) or "")
         # A best-effort subscription loses what the transport loses (a raw camera image is hundreds of UDP
@@ -276,8 +275,6 @@ class CortexlocNode(Node):
                                          f"`duplicates`)")
             return
         if got.back_ns:
-            if self.odometry is not None:  # the drive's frames match the odometry of their own pass only
-                self._segment = self.odometry.for_drive(self._segment)
             text = (f"the camera's stamps went back {got.back_ns / 1e9:.3f} s ({JUMP_CONFIRM} frames in a "
                     f"row, the last stamped {stamp.ns} ns: a bag played again, as `ros2 bag play --loop` "
                     f"does, or a simulation reset): a new drive from this frame on (drive {got.drive} of "
@@ -314,15 +311,13 @@ class CortexlocNode(Node):
             return
         # The rate filter's distance needs a pose now: the nearest in so far, else the latest. The pose
         # posted is matched by the poster, once the odometry of the frame's instant is in.
-        segment = self._segment
-        pose = self.odometry.match(stamp, segment) if self.odometry is not None and not got.unstamped \
-            else None
-        if not self.rate.take(pose or (self.odometry.latest(segment) if self.odometry is not None else None)):
+        pose = self.odometry.match(stamp) if self.odometry is not None and not got.unstamped else None
+        if not self.rate.take(pose or (self.odometry.latest() if self.odometry is not None else None)):
             with self.stats.lock:
                 self.stats.skipped_rate += 1
             return
         frame = Frame(stamp, msg.header.frame_id, image, colour, got.key, time.monotonic(),
-                      stamped=not got.unstamped, drive=got.drive, segment=segment)
+                      stamped=not got.unstamped, drive=got.drive)
         if self.queue.put(frame) is not None:
             self._warn_once("drop", f"queue full ({self.cfg.queue_size}): frames dropped by "
                                     f"{self.cfg.queue_policy} (counted in diagnostics)")

@@ -73,8 +73,7 @@ class Frame:
     """One camera frame on its way: the body (a raw-frame array or encoded bytes), its stamp and frame,
     the key of its post, and when it arrived (`time.monotonic()`: its wait for odometry counts from
     there); `stamped` False: its stamp does not identify it (zero, or the previous frame's), so it is
-    posted without an odometry pose; `drive`: the drive it belongs to (`core.FrameKey.drive`); `segment`: the
-    odometry segment its drive took (`core.OdometryBuffer.for_drive`), the only one its pose is matched in."""
+    posted without an odometry pose; `drive`: the drive it belongs to (`core.FrameKey.drive`)."""
 
     stamp: Stamp
     frame_id: str
@@ -84,7 +83,6 @@ class Frame:
     arrived: float
     stamped: bool = True
     drive: int = 0
-    segment: int = 0
 
 
 @dataclass
@@ -262,7 +260,7 @@ class Poster:
             # the nearest pose may be the one just after the stamp, not in yet: wait for it here (never
             # on the executor), at most odom_tolerance + ODOM_MARGIN_S after the frame arrived
             deadline = frame.arrived + self.cfg.odom_tolerance_ns / 1e9 + ODOM_MARGIN_S
-            pose = self.odometry.wait_match(frame.stamp, deadline, frame.segment)
+            pose = self.odometry.wait_match(frame.stamp, deadline)
             if pose is None:
                 with self.stats.lock:
                     self.stats.no_pose += 1

@@ -14,6 +14,7 @@ pytest.importorskip("cortexloc_ros.core", reason="the ROS 2 node is not installe
 
 from cortexloc_ros.answers import loop_closure_json, place_json
 from cortexloc_ros.core import (
+    JUMP_CONFIRM,
     FrameKeys,
     FrameQueue,
     OdometryBuffer,
@@ -190,45 +191,51 @@ def test_a_skipped_image_says_which_fault_it_has():
     assert e.value.reason == "encoding"
 
 
-def test_odometry_that_jumps_back_starts_a_segment_and_each_drive_matches_its_own():
+def test_odometry_that_jumps_back_starts_a_segment_and_each_frame_matches_the_one_of_its_stamp():
     import time
 
     t0, S = 1_700_000_000 * 10**9, 10**9
     buf = OdometryBuffer(tolerance_ns=50_000_000)
-    for i in range(30):  # the first pass, 3 s
+    for i in range(200):  # the first pass, 20 s
         buf.add(Stamp(t0 + i * 100_000_000), Pose2D(float(i), 0.0, 0.0, "odom"))
-    buf.add(Stamp(t0 + 2_950_000_000), Pose2D(-1.0, 0.0, 0.0, "odom"))  # out of order: kept with the rest
-    buf.add(Stamp(t0 + 1_000_000_000), Pose2D(10.0, 0.0, 0.0, "odom"))  # one sample 1.9 s late: no segment
-    assert buf.match(Stamp(t0 + 2_000_000_000)) == Pose2D(20.0, 0.0, 0.0, "odom")  # before: all dropped
-    assert buf.segment == 0 and buf.match(Stamp(t0 + 1_000_000_000)) == Pose2D(10.0, 0.0, 0.0, "odom")
-    # the camera's stamps go back first (a simulation reset whose odometry comes later): the new drive takes
-    # the next segment, and its frame at t0 + 0.5 s never takes the last pass's pose at that stamp
-    new = buf.for_drive(0)
-    assert new == 1
+    buf.add(Stamp(t0 + 19_950_000_000), Pose2D(-1.0, 0.0, 0.0, "odom"))  # out of order: kept with the rest
+    buf.add(Stamp(t0 + 18_050_000_000), Pose2D(10.0, 0.0, 0.0, "odom"))  # one sample 1.9 s late: no segment
+    buf.add(Stamp(t0 + 20 * S), Pose2D(200.0, 0.0, 0.0, "odom"))  # (the run of candidates ends)
+    assert buf.match(Stamp(t0 + 2 * S)) == Pose2D(20.0, 0.0, 0.0, "odom")  # before: all dropped
+    assert buf.segment == 0 and buf.match(Stamp(t0 + 18_050_000_000)) == Pose2D(10.0, 0.0, 0.0, "odom")
+    # a frame past the newest sample waits for the sample of its instant
     started = time.monotonic()
-    assert buf.wait_match(Stamp(t0 + 500_000_000), time.monotonic() + 0.05, new) is None
-    assert time.monotonic() - started >= 0.04  # it waited for the new pass's odometry
+    assert buf.wait_match(Stamp(t0 + 20_500_000_000), time.monotonic() + 0.05) is None
+    assert time.monotonic() - started >= 0.04
+    # the camera's stamps go back first: until the new pass's odometry is in, its frame at t0 + 0.5 s
+    # takes the last pass's pose at that stamp (the same for a bag played again)
+    assert buf.match(Stamp(t0 + S // 2)) == Pose2D(5.0, 0.0, 0.0, "odom")
     # the new pass's odometry: a segment once three samples in a row went back
     for i in range(3):
         buf.add(Stamp(t0 + 400_000_000 + i * 100_000_000), Pose2D(100.0 + i, 0.0, 0.0, "odom"))
-    assert buf.segment == 1 and buf.for_drive(0) == 1
-    assert buf.match(Stamp(t0 + 500_000_000), new) == Pose2D(101.0, 0.0, 0.0, "odom")
-    assert buf.latest(new) == Pose2D(102.0, 0.0, 0.0, "odom")
-    # the last pass's frames still queued keep their poses: its segment is kept
-    assert buf.match(Stamp(t0 + 2_900_000_000), 0) == Pose2D(29.0, 0.0, 0.0, "odom")
-    assert buf.match(Stamp(t0 + 500_000_000), 0) == Pose2D(5.0, 0.0, 0.0, "odom")
-    # the odometry went back first: the camera's next drive takes that segment
+    assert buf.segment == 1 and buf.match(Stamp(t0 + S // 2)) == Pose2D(101.0, 0.0, 0.0, "odom")
+    assert buf.latest() == Pose2D(102.0, 0.0, 0.0, "odom")
+    # the last pass's frames still queued keep their poses: its segment is kept, and theirs by the stamp
+    assert buf.match(Stamp(t0 + 19_900_000_000)) == Pose2D(199.0, 0.0, 0.0, "odom")
+    # a review: three late samples make a segment the camera never jumped with; the live frames after it
+    # still take their poses (counted drives went out of step and lost every pose for good)
     for i in range(3):
-        buf.add(Stamp(t0 - S + i * 10_000_000), Pose2D(200.0, 0.0, 0.0, "odom"))
-    assert buf.segment == 2 and buf.for_drive(1) == 2
+        buf.add(Stamp(t0 + 500_000_000 + i * 10_000_000), Pose2D(300.0, 0.0, 0.0, "odom"))
+    for i in range(10):
+        buf.add(Stamp(t0 + 700_000_000 + i * 100_000_000), Pose2D(400.0 + i, 0.0, 0.0, "odom"))
+    assert buf.match(Stamp(t0 + 1_100_000_000)) == Pose2D(404.0, 0.0, 0.0, "odom")
+    # a candidate stamp repeated is held once: the held samples stay bounded
+    for _ in range(1000):
+        buf.add(Stamp(t0 - 5 * S), Pose2D(0.0, 0.0, 0.0, "odom"))
+    assert len(buf._held) <= JUMP_CONFIRM
     # the capacity holds for all segments: the oldest samples of the oldest go first
     small = OdometryBuffer(tolerance_ns=50_000_000, capacity=4)
     for i in range(3):
-        small.add(Stamp(5 * S + i * S // 10), Pose2D(float(i), 0.0, 0.0, "odom"))
+        small.add(Stamp(50 * S + i * S // 10), Pose2D(float(i), 0.0, 0.0, "odom"))
     for i in range(3):
         small.add(Stamp(S + i * S // 10), Pose2D(1.0, 0.0, 0.0, "odom"))
-    assert small.segment == 1 and small.match(Stamp(5 * S), 0) is None
-    assert small.match(Stamp(5 * S + S // 5), 0) == Pose2D(2.0, 0.0, 0.0, "odom")
+    assert small.segment == 1 and small.match(Stamp(50 * S)) is None
+    assert small.match(Stamp(50 * S + S // 5)) == Pose2D(2.0, 0.0, 0.0, "odom")
 
 
 def test_a_frame_takes_the_odometry_pose_nearest_its_stamp_within_the_tolerance():

@@ -352,21 +352,20 @@ def test_a_frame_whose_stamp_identifies_no_frame_is_posted_without_a_pose(monkey
     assert stats.no_pose == 1
 
 
-def test_a_frame_takes_its_pose_from_its_drives_odometry_segment_only(monkeypatch):
+def test_a_frame_takes_its_pose_from_the_odometry_segment_of_its_stamp_only(monkeypatch):
     # Before, the image's and the odometry's jumps back were independent: a frame of a new drive that came
     # before the new pass's odometry took the last pass's pose at its stamp, and the last pass's frames still
     # queued lost theirs once the odometry jumped first.
     S = 10**9
     odometry = OdometryBuffer(tolerance_ns=50_000_000)
-    for i in range(30):  # the last pass
+    for i in range(200):  # the last pass, 20 s
         odometry.add(Stamp(S + i * S // 10), Pose2D(float(i), 0.0, 0.0, "odom"))
     p, stats, client = _poster(monkeypatch, ANSWER, ANSWER, ANSWER, odometry=odometry)
-    p._post(replace(_frame(Stamp(S + S // 2)), arrived=time.monotonic() - 1,
-                    segment=odometry.for_drive(0)))  # the new pass's odometry not in yet: no pose
-    for i in range(3):  # the new pass's odometry: a segment of its own
+    p._post(replace(_frame(Stamp(S + 205 * S // 10)), arrived=time.monotonic() - 1))  # past the odometry
+    for i in range(3):  # the new pass's odometry, a segment of its own
         odometry.add(Stamp(S + i * S // 10), Pose2D(100.0 + i, 0.0, 0.0, "odom"))
-    p._post(replace(_frame(Stamp(S + S // 5)), segment=odometry.for_drive(0)))
-    p._post(replace(_frame(Stamp(S + 29 * S // 10)), segment=0))  # a last-pass frame still queued
-    assert "pose" not in client.metadata[0]
-    assert client.metadata[1]["pose"]["x"] == 102.0 and client.metadata[2]["pose"]["x"] == 29.0
+    p._post(_frame(Stamp(S + S // 5)))
+    p._post(_frame(Stamp(S + 199 * S // 10)))  # a last-pass frame still queued
+    assert "pose" not in client.metadata[0]  # its odometry never came within its wait
+    assert client.metadata[1]["pose"]["x"] == 102.0 and client.metadata[2]["pose"]["x"] == 199.0
     assert stats.no_pose == 1
