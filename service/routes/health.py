@@ -24,7 +24,6 @@ iff no check fails: 200 `{"status": "ready", "checks": ..., "warnings": [...]}`,
 from __future__ import annotations
 
 import logging
-import uuid
 from pathlib import Path
 from typing import Any
 
@@ -32,9 +31,9 @@ from fastapi import APIRouter, FastAPI, Request
 from fastapi.responses import JSONResponse
 
 from service.errors import problem_response, problem_responses
+from service.maps.runtime.room import probe_data_dir
 from service.maps.states import serving
 from service.schemas import Health, Readiness
-from storage.base.files import is_no_room, probe_write
 
 __all__ = ["UNNAMED_ERROR", "Check", "check_catalog", "check_data_dir", "check_encoder", "check_maps",
            "failing", "readiness", "readiness_reply", "router"]
@@ -45,24 +44,17 @@ router = APIRouter(tags=["operations"])
 log = logging.getLogger("cortexloc.service")
 
 
-#: `check_data_dir`'s probe: a page, which a disk with no room refuses at the write.
-DATA_DIR_PROBE_BYTES = 4096
-
-
 def check_data_dir(data_dir: Path) -> Check:
     """Write, fsync and delete a probe file in `data_dir`: a failure where it cannot be written (missing,
     a permission, a read-only mount), a warning where the OS says there is no room (module docstring)."""
-    probe = Path(data_dir) / f".readyz-{uuid.uuid4().hex}"
     out: Check = {"status": "pass", "path": str(data_dir)}
-    try:
-        probe_write(probe, DATA_DIR_PROBE_BYTES)
-    except OSError as e:
-        if is_no_room(e):
-            out.update(status="warn", warning=f"no room to write in the data directory ({e.strerror or e}): "
-                                              "maps localise and serve reads; learning, snapshots, resets "
-                                              "and new maps get 507 insufficient-storage until room is made")
-        else:
-            out.update(status="fail", error=f"data directory is not writable: {e.strerror or e}")
+    outcome, why = probe_data_dir(data_dir)
+    if outcome == "no-room":
+        out.update(status="warn", warning=f"no room to write in the data directory ({why}): maps localise "
+                                          "and serve reads; learning, snapshots, resets and new maps get 507 "
+                                          "insufficient-storage until room is made")
+    elif outcome == "unwritable":
+        out.update(status="fail", error=f"data directory is not writable: {why}")
     return out
 
 

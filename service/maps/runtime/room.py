@@ -19,11 +19,15 @@ from __future__ import annotations
 
 import logging
 import time
+import uuid
 from collections.abc import Callable
+from pathlib import Path
 
 from service.maps.errors import InsufficientStorage
+from storage.base.files import is_no_room, probe_write
 
-__all__ = ["ROOM_PROBE_BYTES", "ROOM_RECHECK_MAX_SECONDS", "ROOM_RECHECK_SECONDS", "Room"]
+__all__ = ["DATA_DIR_PROBE_BYTES", "ROOM_PROBE_BYTES", "ROOM_RECHECK_MAX_SECONDS", "ROOM_RECHECK_SECONDS",
+           "Room", "probe_data_dir"]
 
 #: How often, at most, a map with no room probes for room again (s): room made is seen within this, and
 #: a probe (a small write with its fsync) is never paid per post.
@@ -108,3 +112,19 @@ class Room:
         return InsufficientStorage(f"the observation could not be stored: no room to write ({self.full}); "
                                    "nothing was learned. Learning resumes, with no restart, once room is "
                                    "made")
+
+
+#: `probe_data_dir`'s write: a page, which a disk with no room refuses at the write.
+DATA_DIR_PROBE_BYTES = 4096
+
+
+def probe_data_dir(data_dir: Path) -> tuple[str, str]:
+    """Write, fsync and delete a probe file (`.readyz-*`) in `data_dir` (/readyz, docs/design/service.md
+    §1.6): ("pass", ""); ("no-room", the OS's words) where it says there is no room (the maps still
+    localise); ("unwritable", its words) where the file cannot be written at all (missing, a permission,
+    a read-only mount)."""
+    try:
+        probe_write(Path(data_dir) / f".readyz-{uuid.uuid4().hex}", DATA_DIR_PROBE_BYTES)
+    except OSError as e:
+        return ("no-room" if is_no_room(e) else "unwritable"), str(e.strerror or e)
+    return "pass", ""
