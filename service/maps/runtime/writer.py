@@ -282,13 +282,8 @@ class Writer:
         if learn and (gone := forgetting.to_forget(self.index, self.place_map)):
             try:
                 self._forget(gone)
-            except StorageFull as e:  # its store write comes first: the memory has forgotten nothing
-                self.room.failed(str(e))
-                raise InsufficientStorage(f"the rows to forget for this observation could not be stored: "
-                                          f"no room to write ({e}); nothing was learned") from e
-            except StoreReadOnly as e:
-                self.read_only()
-                raise MapReadOnly(self.map_id, "the observation (nothing was learned)") from e
+            except (StorageFull, StoreReadOnly) as e:  # its store write comes first: nothing forgotten
+                raise self._unwritten(e, "the rows to forget for this observation") from e
         if learn and self.budget is not None:  # the row's index bytes, before the step (a failed one is
             self.budget.grow_index(self.map_id, self.row_bytes)  # set right by the recovery it causes)
         try:
@@ -308,21 +303,26 @@ class Writer:
             # A file made immutable under the open store fails its write as "disk I/O error", which reads
             # as no room; the reopen asks the OS (`MapStore.writable`) and says read-only: that is the
             # answer, as for every later post, not a 507 that room would cure.
-            if isinstance(e, StoreReadOnly) or serving(self.state).read_only:
-                # (recovery marks it too, where the OS says the file is read-only; SQLite said so first)
-                if serving(self.state).learns:
-                    self.read_only()
-                raise MapReadOnly(self.map_id, "the observation (nothing was learned)") from e
-            if isinstance(e, StorageFull):
-                self.room.failed(str(e))  # the next learning posts are refused before their step
-                # (SQLite's own words beside ours: its failed write may be a quota, a file-size limit
-                # or a failing disk, which it does not tell apart; storage._common.is_full_error)
-                raise InsufficientStorage(f"the observation could not be stored: no room to write ({e}); "
-                                          "nothing was learned") from e
+            if isinstance(e, StoreReadOnly | StorageFull) or serving(self.state).read_only:
+                raise self._unwritten(e, "the observation") from e
             raise
         if learn:
             self.room.stored()
         return result
+
+    def _unwritten(self, e: Exception, what: str) -> MapReadOnly | InsufficientStorage:
+        """Writer: the refusal of a learning frame whose store write `e` failed, nothing learned: read-only
+        where SQLite or the OS says the file refuses writes (the map becomes `read-only`; recovery marks it
+        too where the OS says so), else no room (`Room`: the next learning posts are refused before their
+        step). `what` failed to be stored."""
+        if isinstance(e, StoreReadOnly) or serving(self.state).read_only:
+            if serving(self.state).learns:
+                self.read_only()
+            return MapReadOnly(self.map_id, "the observation (nothing was learned)")
+        self.room.failed(str(e))
+        # (SQLite's own words beside ours: its failed write may be a quota, a file-size limit or a failing
+        # disk, which it does not tell apart; storage._common.is_full_error)
+        return InsufficientStorage(f"{what} could not be stored: no room to write ({e}); nothing was learned")
 
     def _log_closure(self, closure: NewClosure) -> int | None:
         """Log a localising stream's loop closure: its log id (a retry's is its first post's entry), None
