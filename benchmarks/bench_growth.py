@@ -66,7 +66,7 @@ def drive(feats: list[np.ndarray], contrast: list[np.ndarray], passes: list[np.n
                 codes[seq], label_of[seq] = step.code, int(labels[i])
             else:
                 visits += 1
-            joins += len(getattr(step, "joins", ()))
+            joins += len(step.joins) + len(step.kept)
             if step.place is not None and step.place.is_revisit(thr):
                 closures += 1
                 called += 1

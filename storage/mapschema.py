@@ -30,7 +30,8 @@ it joined) and deletes the row (its observation, thumbnail and keyframe: the fil
 joined row go, nothing else), so a restarted drive's warm-up adds to the bounded visit log, not to the
 rows (docs/design/science.md §11.8); version 13 the `flat` rows, those whose frame was too flat to say
 where it is (docs/design/science.md §11.7: a later flat frame whose path names one is a visit of it; an
-older file's rows are not known flat). An older
+older file's rows are not known flat); version 14 a join that keeps its row (`joins.kept`: the row stays,
+a new appearance of the old row's place, docs/design/science.md §11.8). An older
 file is brought up to date when it is opened for writing (`migrate`), in one transaction: its rows keep
 `place` NULL (read as the place its learning stream's logged loop closure names, else its own). Opened
 read-only (`cortexloc verify`, a snapshot's copy) an older file is read as it is; a file of a newer version
@@ -93,7 +94,7 @@ __all__ = [
 ]
 
 #: Bump when the layout of map.sqlite changes; `open` refuses files from a newer version.
-SCHEMA_VERSION = 13
+SCHEMA_VERSION = 14
 #: Active columns are stored as little-endian uint16 (sLSBH widths are far below 65,536).
 INPUT_DTYPE = "uint16"
 #: Allowed dtypes of the winner-cell blobs; chosen once per map from its cell count.
@@ -374,6 +375,28 @@ CREATE TABLE flat (
 #: Version 12 -> 13: a new table, no row changes (an older file's rows are not known flat).
 _MIGRATE_V13 = _V13_TABLES + _version_step(13)
 
+# What version 14 added (docs/design/science.md §11.8; docs/design/service.md §4.2): a warm-up join that
+# keeps its row (`joins.kept` 1): the row is like the old row but not represented by it (another season's
+# first frames), so it stays, held, a new appearance of the old row's place; it is neither dropped nor
+# deleted, and the delete triggers let a row go only for a join that does not keep it.
+_V14_TABLES = """
+ALTER TABLE joins ADD COLUMN kept INTEGER NOT NULL DEFAULT 0 CHECK (kept IN (0, 1));
+DROP TRIGGER observations_no_delete;
+CREATE TRIGGER observations_no_delete BEFORE DELETE ON observations
+WHEN NOT EXISTS (SELECT 1 FROM joins WHERE seq = OLD.seq AND kept = 0)
+BEGIN SELECT RAISE(ABORT, 'observations are append-only'); END;
+DROP TRIGGER thumbnails_no_delete;
+CREATE TRIGGER thumbnails_no_delete BEFORE DELETE ON thumbnails
+WHEN NOT EXISTS (SELECT 1 FROM joins WHERE seq = OLD.seq AND kept = 0)
+BEGIN SELECT RAISE(ABORT, 'thumbnails are append-only'); END;
+DROP TRIGGER keyframes_no_delete;
+CREATE TRIGGER keyframes_no_delete BEFORE DELETE ON keyframes
+WHEN NOT EXISTS (SELECT 1 FROM joins WHERE seq = OLD.seq AND kept = 0)
+BEGIN SELECT RAISE(ABORT, 'keyframes are append-only'); END;
+"""
+#: Version 13 -> 14: a column every older join reads as 0 (none kept its row), the delete triggers.
+_MIGRATE_V14 = _V14_TABLES + _version_step(14)
+
 #: The columns of `observations`, in the order every SELECT and INSERT uses.
 COLUMNS = ("seq, observation_id, stream, context_prev_seq, label, created_at, image_sha256, "
             "input_sdr, winner_cells, metadata, place")
@@ -407,6 +430,7 @@ class Holds:
     closure_span: bool  # 11
     joined_rows: bool  # 12: a joined row turned into a visit (`visits.row_seq`, `joins.observation_id`)
     flat: bool  # 13: the rows whose frame was flat
+    kept_joins: bool  # 14: a warm-up join that keeps its row (`joins.kept`)
     row_columns: str  # what `SELECT` reads of `observations` (NULL for a column the file lacks)
 
     @classmethod
@@ -417,6 +441,7 @@ class Holds:
                    stream_states=version >= 7, closure_consolidated_into=version >= 8,
                    repairs=version >= 9, closure_retracts=version >= 9, joins=version >= 10,
                    closure_span=version >= 11, joined_rows=version >= 12, flat=version >= 13,
+                   kept_joins=version >= 14,
                    row_columns=COLUMNS if version >= 5 else COLUMNS_V4 if version >= 2 else COLUMNS_V1)
 
 
@@ -427,7 +452,7 @@ def migrate(conn: sqlite3.Connection, meta: MapMeta) -> MapMeta:
         return meta
     # chain[v - 1]: version v -> v + 1
     chain = [_MIGRATE_V2, _MIGRATE_V3, _MIGRATE_V4, _MIGRATE_V5, _MIGRATE_V6, _MIGRATE_V7, _MIGRATE_V8,
-             _MIGRATE_V9, _MIGRATE_V10, _MIGRATE_V11, _MIGRATE_V12, _MIGRATE_V13]
+             _MIGRATE_V9, _MIGRATE_V10, _MIGRATE_V11, _MIGRATE_V12, _MIGRATE_V13, _MIGRATE_V14]
     steps = "".join(chain[meta.schema_version - 1:])
     try:
         conn.executescript("BEGIN IMMEDIATE;" + steps + "COMMIT;")
@@ -503,6 +528,8 @@ class NewObservation:
             (`recency`).
         joins: (row, old row) the warm-up joins its step made (`joins`, with each row `dropped`,
             reason `joined`; docs/design/science.md §11.8).
+        kept: (row, old row) the warm-up joins its step made that keep their row (`joins.kept`; the row
+            stays held, an appearance of the old row's place; their places' drops are in `drops`).
         flat: its frame was flat (under `MIN_CONTRAST`, docs/design/science.md §11.7; `flat`).
     """
 
@@ -524,6 +551,7 @@ class NewObservation:
     drops: tuple[int, ...] = ()
     touched: tuple[int, ...] = ()
     joins: tuple[tuple[int, int], ...] = ()
+    kept: tuple[tuple[int, int], ...] = ()
     flat: bool = False
 
 
@@ -539,7 +567,8 @@ class NewVisit:
         frame's. key: the post's Idempotency-Key and reply. closure: its revisit, logged with it.
         touched: rows its step used (`seq` and the answer's row), at the clock of the seq the store
             would have given it (`MapStore.next_seq`: the live map's clock, `recency`).
-        resume, joins: as a row's (`NewObservation.resume`, `NewObservation.joins`).
+        resume, joins, kept, drops: as a row's (`NewObservation`; a visit's drops are those of the places
+            its kept joins joined).
     """
 
     stream: str
@@ -554,6 +583,8 @@ class NewVisit:
     touched: tuple[int, ...] = ()
     resume: bytes | None = None
     joins: tuple[tuple[int, int], ...] = ()
+    kept: tuple[tuple[int, int], ...] = ()
+    drops: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -774,7 +805,7 @@ def create_file(path: Path, meta: MapMeta) -> None:
             conn.executescript(_SCHEMA + _V2_TABLES + _V3_TABLES + _V4_TABLES + _CLOSURE_VERIFICATION
                                + _V5_TABLES + _PLACE_COLUMN + _V6_TABLES + _V7_TABLES + _CLOSURE_VISIT
                                + _V9_TABLES + _CLOSURE_RETRACTS + _V10_TABLES + _CLOSURE_SPAN
-                               + _V12_TABLES + _V13_TABLES)
+                               + _V12_TABLES + _V13_TABLES + _V14_TABLES)
             with transaction(conn):
                 conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", [
                     ("schema_version", json.dumps(meta.schema_version)),

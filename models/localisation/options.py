@@ -57,6 +57,11 @@ class LocaliserOptions:
     #: a learning stream's confident revisit stores no new row when its code is at least this like the
     #: place's most similar appearance, on the same scale as `departure` (1: never, every frame a row; §11.8)
     consolidate: float = 0.25
+    #: a warm-up row its stream's confident path explains (§11.8) that the old row does not represent (under
+    #: `consolidate`) but is at least this like, on the same scale, is joined to its place and kept as a
+    #: new appearance of it (another season's, a noisier camera's), not left a place of its own; at or
+    #: above `consolidate`: never (every such row stays a place of its own)
+    join_kept: float = 0.1
     #: an unconfident frame is consolidated into the place its path names only with some sequence
     #: evidence: a confidence of at least this fraction of the map's `revisit_threshold` (or, below it,
     #: a path that is not an echo of the trail it lays; §11.8). Half the threshold: a pass's unconfident
@@ -152,6 +157,7 @@ class LocaliserParams(BaseModel):
     null_quantile: float = Field(_D.null_quantile, ge=0.0, le=1.0)
     departure: float = Field(_D.departure, ge=0.0, le=1.0)
     consolidate: float = Field(_D.consolidate, ge=0.0, le=1.0)
+    join_kept: float = Field(_D.join_kept, ge=0.0, le=1.0)
     unsure_fraction: float = Field(_D.unsure_fraction, ge=0.0, le=1.0)
     appearances: int = Field(_D.appearances, ge=1, le=1024)
     forget_percent: int = Field(_D.forget_percent, ge=0, le=100)

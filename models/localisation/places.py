@@ -14,7 +14,7 @@ import copy
 import itertools
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from typing import Any, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -28,7 +28,7 @@ from models.localisation.options import LocaliserOptions
 from models.localisation.short_term import KEPT, Anchor, ShortTerm, ring_moves
 from models.localisation.trail import CodeStats, OwnTrail, code_dice
 
-__all__ = ["PlaceMap", "graph_from_rows"]
+__all__ = ["Explained", "PlaceMap", "graph_from_rows"]
 
 T = TypeVar("T")
 
@@ -45,6 +45,15 @@ def graph_from_rows(rows: Iterable[Any]) -> SequenceGraph:
 #: made (`PlaceMap.explained`): the path may have stood still or skipped a row on the way (a move of 0 or
 #: 2, §11.2); a neighbour beyond that is another place by the truth's tolerance (§11.4) twice over.
 JOIN_SLACK = 1
+
+
+class Explained(NamedTuple):
+    """The warm-up joins one confident frame gives (`PlaceMap.explained`, docs/design/science.md §11.8):
+    (row, old row) each. `joins`: the old row represents the row, which is then held no more; `kept`: the
+    row is like the old row but not represented by it, and stays, an appearance of its place."""
+
+    joins: list[tuple[int, int]]
+    kept: list[tuple[int, int]]
 
 
 class PlaceMap:
@@ -400,7 +409,7 @@ class PlaceMap:
         return int(self.options.warmup) + int(self.options.exclusion)
 
     def explained(self, stream: str, place: Place, direction: int, code_of: Callable[[int], np.ndarray],
-                  trail: str | None = None) -> list[tuple[int, int]]:
+                  trail: str | None = None) -> Explained:
         """The warm-up joins a learning stream's confident revisit `place` gives (docs/design/science.md
         §11.8): (row, old row) for each of the stream's newest `reach` rows held (its own learned frames,
         as its short-term memory's ring remembers them, `ShortTerm.ages`) that is a place of its own
@@ -412,15 +421,20 @@ class PlaceMap:
         of the path: on an aliased route the rows ahead may look like the stretch behind it, and a join
         there merges places that far apart. A flat row (§11.7) is joined by the path alone: to the flat
         row the path stood on then, failing that to a flat row a step off, whatever its code (a flat
-        frame's code is noise); failing both, as any row. The old row is never of a place a row of the
-        stream's short-term memory shows, nor of the trail the joined row lies on. Each row is tried on
+        frame's code is noise); failing both, as any row. By its code, the old rows' places' other
+        appearances count too. A row that is not flat and that no such row represents, but that an
+        appearance of the place of the row the path stood on then (not a step off) is at least
+        `join_kept` like (another season's first frames, a noisier camera's), is joined and kept
+        (`Explained.kept`): a new appearance of that place, not a place of its own. The old row is
+        never of a place a row of the stream's short-term memory shows, nor of the trail the joined
+        row lies on. Each row is tried on
         at most `exclusion` confident frames: O(reach · JOIN_SLACK) code reads on such a frame, O(reach)
         on the rest. `trail`: the short-term memory the stream learns into (`Motion.trail`; None: its own).
         """
         c = float(self.options.consolidate)
         memory = self._short.get(trail or stream)
         if c >= 1.0 or memory is None:
-            return []
+            return Explained([], [])
         g = self.graph
         tries = int(self.options.exclusion)
         # its newest rows held, from the memory's ring, whether or not still in the short-term memory
@@ -430,18 +444,19 @@ class PlaceMap:
         held = (r for r in ages if self.used[r] >= 0)
         newest = np.fromiter(itertools.islice(held, self.reach()), np.int64)
         if not newest.size:
-            return []
+            return Explained([], [])
         rows = [r for r, alone in zip(newest.tolist(), g.alone(newest), strict=True)
                 if alone and self._tried.get(r, 0) < tries]
         rows = [r for r in rows if ages[r] + 1 < place.support]  # the path covers it
         if not rows:
-            return []
+            return Explained([], [])
         short = self.short_term_rows(trail or stream)
         if len(self._tried) > KEPT * self.reach():  # bounded: the rows of the streams kept
             self._tried.clear()
         mine = set(g.place[short].tolist())
         first = min(rows)
-        out = []
+        keeps = float(self.options.join_kept) < c
+        out, kept = [], []
         for r in rows:
             lag = ages[r] + 1  # frames from the row's frame to this one
             walk = g.route(place.seq, -int(direction), lag + JOIN_SLACK)
@@ -455,28 +470,56 @@ class PlaceMap:
             # path stood on. So a flat row is joined by the path alone: the flat row it stood on then,
             # failing that a flat row a step off (the most alike); as consolidation takes a flat frame.
             flat = self.flat[old] if self.flat[r] else np.zeros(old.size, bool)
+            # By its code, the places' other appearances too, as a frame's consolidation reads them: the
+            # place seen otherwise (a kept join's row, another pass's) represents a later drive's row as
+            # well as the row its route was learned with (before, each winter drive kept its warm-up again)
+            seen = self._appearances_before(old, first, int(g.trail[r]))
             joined = _most_alike(code, code_of, [(old[(off == 0) & flat], -np.inf),
                                                  (old[(off > 0) & flat], -np.inf),
-                                                 (old, self.codes.level(code, c))])
+                                                 (seen, self.codes.level(code, c))])
             if joined is not None:
                 out.append((r, joined))
-            else:
-                self._tried[r] = self._tried.get(r, 0) + 1
-        return out
+                continue
+            # Not represented, but like the row the path says it was: that place seen otherwise (another
+            # season, a noisier camera), a new appearance of it. Never a flat row: its code is noise.
+            # The path's geometry is the guard here as for any join: on a route that aliases, a row a few
+            # places off is as alike as the true one often enough (docs/results.md §11). So the path
+            # names the place: the row it stood on then, not a step off (taken by its code among the
+            # rows a step either side, noisy rows were kept a step before and after one place, which then
+            # spanned three: merged places on the quick stress suite's noisy lap and two cameras).
+            at = old[off == 0]
+            if keeps and not self.flat[r] and at.size:
+                level = self.codes.level(code, float(self.options.join_kept))
+                like = _most_alike(code, code_of, [(seen[g.place[seen] == g.place[at[0]]], level)])
+                if like is not None:
+                    kept.append((r, like))
+                    continue
+            self._tried[r] = self._tried.get(r, 0) + 1
+        return Explained(out, kept)
+
+    def _appearances_before(self, rows: np.ndarray, first: int, trail: int) -> np.ndarray:
+        """(n,) int64 `rows` and the other appearances of their places, those stored before row `first`
+        and not on trail `trail` (a warm-up join's candidates, `explained`), ascending."""
+        g = self.graph
+        seen = {int(a) for q in np.unique(g.place[rows]).tolist() for a in self.appearances(q)}
+        seen = np.array(sorted(seen | set(rows.tolist())), np.int64)
+        return seen[(seen < first) & (g.trail[seen] != trail)] if seen.size else seen
 
     def fold(self, row: int, old: int, clock: int | None = None) -> None:
-        """A warm-up join (`explained`): row `row` shows the place of `old`, which already represents it;
-        `old` used at `clock` (None: a recovery, whose recency is the store's). The caller drops `row`:
-        like a consolidated frame it adds no appearance."""
+        """A warm-up join (`explained`): row `row` shows the place of `old`; `old` used at `clock` (None: a
+        recovery, whose recency is the store's). For a join `old` represents, the caller drops `row`: like
+        a consolidated frame it adds no appearance; a kept join's row stays, an appearance of the place."""
         self.graph.rejoin(row, old)
         if clock is not None:
             self.touch(old, clock)
 
-    def over_cap(self, place: int, keep: int) -> list[int]:
+    def over_cap(self, place: int, keep: int, spare: int | None = None) -> list[int]:
         """The appearances to drop so that `place` holds at most `appearances` rows: the least recently
-        used first (ties: the older row), never `keep` (the row just made) (§11.9)."""
+        used first (ties: the older row), never `keep` (the row just made or kept) nor `spare` (the row
+        the step's frame is consolidated into) (§11.9)."""
         rows = [r for r in self.appearances(place) if r != keep]
         extra = len(rows) + 1 - int(self.options.appearances)
+        rows = [r for r in rows if r != spare]
         if extra <= 0:
             return []
         return sorted(rows, key=lambda r: (int(self.used[r]), r))[:extra]

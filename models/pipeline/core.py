@@ -103,12 +103,15 @@ class Step:
         visit: a learned frame consolidated into this stored row (no row made, docs/design/science.md
             §11.8); None: a row was made (learning) or nothing is learned.
         joined: for a made row, the place it joined (-1: a new place of its own).
-        dropped: rows the made row's place dropped over its cap (§11.9), least recently used first.
+        dropped: rows places dropped over their cap (§11.9), least recently used first: those of the places
+            the step's kept joins joined (`kept`), then those of the made row's place.
         touched: rows this learned step used at the clock `seq` (the answer's row, the visited row):
             stored with the row or visit, so a recovery gives them the same recency (§11.9).
         joins: the warm-up joins this step's confident revisit made (docs/design/science.md §11.8):
             (row, old row), the stream's earlier row now of the old row's place and held no more
             (dropped from the index and the places with the step, logged with its row or visit).
+        kept: the warm-up joins that keep their row (§11.8): (row, old row), the stream's earlier row now
+            an appearance of the old row's place, still held (logged with its row or visit).
         flat: the frame was flat (under `MIN_CONTRAST`, §11.7): a made row is a flat row (stored with it).
     """
 
@@ -125,6 +128,7 @@ class Step:
     dropped: tuple[int, ...] = ()
     touched: tuple[int, ...] = ()
     joins: tuple[tuple[int, int], ...] = ()
+    kept: tuple[tuple[int, int], ...] = ()
     flat: bool = False
 
 
@@ -178,7 +182,8 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             >= it) joins that place, and is consolidated into it when one of its appearances already
             represents the frame (`PlaceMap.consolidation`, docs/design/science.md §11.8): the
             memory learns it, no row is made (`Step.visit`); the rows the stream made before it
-            knew where it was that its path now explains are joined to the old places (`Step.joins`).
+            knew where it was that its path now explains are joined to the old places (`Step.joins`,
+            held no more; `Step.kept`, new appearances of them).
             None: no frame is a revisit, none is consolidated.
         contrast: the decoded frame's contrast (`models.frontend.images.contrast`; None: not measured).
             Under `localisation.MIN_CONTRAST` the frame says nothing of where it is (§11.7): it is no
@@ -264,7 +269,8 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     if departed or (st.look is None and not flat):
         st.look = code
     place = model.place_map.step(st.localiser, ranked, own, contrast, moved, departed)
-    visit, joined, dropped, touched, joins = None, -1, (), [], []
+    visit, joined, touched, joins, kept = None, -1, [], [], []
+    dropped: tuple[int, ...] = ()
     if learn:
         assert seq is not None
         place_map = model.place_map
@@ -307,12 +313,19 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                 touched.append(place.seq)
                 joined = place.place
         if place is not None and threshold is not None and place.is_revisit(threshold):
-            # Rows it made while it warmed up or was unsure, that the path now explains (§11.8).
-            joins = place_map.explained(stream, place, int(st.localiser.dirs[0]), code_of, motion.trail)
-            for row, old in joins:
+            # Rows it made while it warmed up or was unsure, that the path now explains (§11.8): those the
+            # old rows represent are held no more, the rest like them are kept, appearances of their places.
+            found = place_map.explained(stream, place, int(st.localiser.dirs[0]), code_of, motion.trail)
+            joins, kept = found.joins, found.kept
+            for row, old in (*joins, *kept):
                 place_map.fold(row, old, seq)
                 touched.append(old)
             drop(model, [row for row, _ in joins])
+            for row, old in kept:  # a place over its cap drops its least recently used appearance (§11.9),
+                # never the row this frame is consolidated into
+                capped = place_map.over_cap(place_map.place_of(old), row, spare=visit)
+                drop(model, capped)
+                dropped += tuple(capped)
         st.represented = represented  # a frame with no answer, or that made a row, earns none
         if visit is None and prev is not None and place_map.used[prev] >= 0 and still:
             # It has not moved since its last learned frame: a visit of the row that frame made or
@@ -325,8 +338,9 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         else:
             model.index.add(seq, winners, stream)
             place_map.add(seq, prev, code, stream=stream, place=joined, motion=motion, flat=flat)
-            dropped = tuple(place_map.over_cap(joined, seq)) if joined >= 0 else ()
-            drop(model, dropped)
+            capped = tuple(place_map.over_cap(joined, seq)) if joined >= 0 else ()
+            drop(model, capped)
+            dropped += capped
     _condition(model, st, code)
     _advance(st, learn, seq if visit is None else visit, made=visit is None)
     t3 = time.perf_counter()
@@ -335,7 +349,7 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                "localiser": (t3 - t_ranked) * 1e3}
     return Step(code=code, winners=winners, prev_seq=prev, step=step, stats=stats,
                 ranked=list(ranked[:top_k]), place=place, timings_ms=timings, visit=visit, joined=joined,
-                dropped=dropped, touched=tuple(touched), joins=tuple(joins), flat=flat)
+                dropped=dropped, touched=tuple(touched), joins=tuple(joins), kept=tuple(kept), flat=flat)
 
 
 def drop(model: MapModel, seqs: tuple[int, ...] | list[int]) -> None:

@@ -328,3 +328,22 @@ def eval_span(
         raise typer.BadParameter("give the map seeds", param_hint="SEEDS")
     span.main(kinds=_split(kinds, "KINDS"), seeds=_split(seeds, "SEEDS", int),
               localiser=_json_object(localiser, "LOCALISER"))
+
+
+@app.command("join-level")
+def eval_join_level(
+    seeds: Annotated[str, typer.Argument(help="comma-separated map seeds; `sum`: total the JSON lines read "
+                                         "from stdin")],
+) -> None:
+    """How alike a frame is to its own place's row seen otherwise and to the rows a wrong warm-up join
+    would take, on `consolidate`'s scale, one JSON line per window and seed (docs/results.md §11;
+    benchmarks/experiments/join_level.py)."""
+    import json
+    import sys
+
+    from benchmarks.experiments import join_level
+
+    if seeds == "sum":
+        join_level.total([json.loads(line) for line in sys.stdin if line.strip()])
+        return
+    join_level.main(seeds=_split(seeds, "SEEDS", int))

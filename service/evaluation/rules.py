@@ -28,7 +28,8 @@ A rule is switched off for one run only (`switched_off`), the rest of the path b
 `consolidation` (the consolidation gate, §11.8: `consolidate` 1, every frame a row), `echo` (the echo
 rule, §11.6: `benchmarks/experiments/echo.py`'s `off`), `flat-visits` (a flat frame consolidated into
 a flat appearance its path names, §11.7/§11.8: a flat frame makes a row), `joins` (warm-up joins,
-§11.8), `low-information` (frames with no information, §11.7: no contrast measured) and `null-rows`
+§11.8), `kept-joins` (a warm-up join that keeps its row, §11.8: `join_kept` 1), `low-information`
+(frames with no information, §11.7: no contrast measured) and `null-rows`
 (rows born from the null, §11.5: `benchmarks/experiments/null_entry.py`'s `rows`).
 
 Jobs run in a process pool (`--jobs`); each line is written as its job ends, so a run cut short keeps
@@ -53,17 +54,18 @@ from models.localisation import PlaceMap, informative, trail
 from models.localisation import localiser as loc
 from models.localisation.localiser import reaches
 from models.localisation.options import LAG_OFF
+from models.localisation.places import Explained
 from models.pipeline import observe
 from service.evaluation import service_path, stress
 from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 
 #: Every rule switched off, `all` first (every rule on: the default map).
 RULES = ("all", "condition", "span", "lag", "short-term", "consolidation", "echo", "flat-visits", "joins",
-         "low-information", "null-rows")
+         "kept-joins", "low-information", "null-rows")
 #: The maps' localiser options that switch a rule off (the others are patched, `switched_off`).
 OPTIONS: dict[str, dict[str, Any]] = {"condition": {"condition_frames": 0}, "span": {"span_max": 4096},
                                       "lag": {"lag_max": LAG_OFF}, "short-term": {"short_term": 0},
-                                      "consolidation": {"consolidate": 1.0}}
+                                      "consolidation": {"consolidate": 1.0}, "kept-joins": {"join_kept": 1.0}}
 #: Map seeds: 42 is a new map's (`CreateMap.seed`'s default).
 SEEDS = (42, 1, 7, 100, 2024)
 MEMORIES = ("tm", "none")
@@ -88,8 +90,8 @@ def _no_echo(self: trail.OwnTrail, graph: Any, rows: np.ndarray, began: np.ndarr
     return np.zeros(len(rows), bool)
 
 
-def _no_joins(self: PlaceMap, *args: Any, **kwargs: Any) -> list[tuple[int, int]]:
-    return []
+def _no_joins(self: PlaceMap, *args: Any, **kwargs: Any) -> Explained:
+    return Explained([], [])
 
 
 def _rows_level(self: loc.SequenceLocaliser, past: np.ndarray, null: float) -> float:

@@ -110,6 +110,7 @@ class Observations:
                        for i, r in enumerate(rows) if r.resume is not None]
             touches = [(int(t), first + i) for i, r in enumerate(rows) for t in r.touched]
             joins = [(str(r.stream), j, first + i - 1) for i, r in enumerate(rows) for j in r.joins]
+            kept = [(str(r.stream), j, first + i - 1) for i, r in enumerate(rows) for j in r.kept]
             flat = [(first + i,) for i, r in enumerate(rows) if r.flat and self.holds.flat]
             if not durable:  # per connection, outside a transaction: this commit alone skips its fsync
                 conn.execute("PRAGMA synchronous=NORMAL")
@@ -119,6 +120,7 @@ class Observations:
                                      params)
                     self._drop(conn, drops)
                     gone = self._join(conn, joins)
+                    self._keep(conn, kept)
                     self._touch(conn, touches)
                     self._resume(conn, resumes)
                     # The row's thumbnail and idempotency key commit with it, or nothing does.

@@ -68,7 +68,9 @@ class Visits:
                             conn.execute("DELETE FROM visit_keys WHERE visit <= ?",
                                          (visit_id - self.max_keys,))
                     clock = max(self._last_seq, self._seq_floor) + 1  # the seq the live step was given
+                    self._drop(conn, [(int(d), "appearance-cap", self._last_seq) for d in visit.drops])
                     gone = self._join(conn, [(str(visit.stream), j, self._last_seq) for j in visit.joins])
+                    self._keep(conn, [(str(visit.stream), j, self._last_seq) for j in visit.kept])
                     self._touch(conn, [(int(t), clock) for t in visit.touched])
                     if visit.resume is not None:
                         self._resume(conn, [(str(visit.stream), clock, visit.resume)])
@@ -173,6 +175,16 @@ class Visits:
             conn.executemany("INSERT OR IGNORE INTO dropped (seq, reason, after_seq, created_at) "
                              "VALUES (?, ?, ?, ?)", [(*d, utc_now()) for d in drops])
 
+    def _keep(self, conn: sqlite3.Connection, kept: list[tuple[str, tuple[int, int], int]]) -> None:
+        """Warm-up joins that keep their row (stream, (row, old row), after_seq; schema 14): the join alone,
+        `kept` 1; the row stays held, an appearance of the old row's place (§11.8), neither dropped nor
+        deleted."""
+        if kept:
+            now = utc_now()
+            conn.executemany("INSERT INTO joins (seq, place_seq, stream, after_seq, created_at, kept) "
+                             "VALUES (?, ?, ?, ?, ?, 1)",
+                             [(int(row), int(old), stream, after, now) for stream, (row, old), after in kept])
+
     def _join(self, conn: sqlite3.Connection, joins: list[tuple[str, tuple[int, int], int]]) -> int:
         """Warm-up joins (stream, (row, old row), after_seq), each row dropped (`joined`) with it; from
         schema 12 each row that no loop closure or repair names is turned into a visit of the old row
@@ -248,7 +260,7 @@ class Visits:
                           image_sha256=r[5], metadata=load_json(r[6]), place_seq=int(r[7])) for r in found]
 
     def joined_to(self, seq: int) -> int | None:
-        """The old row whose place row `seq` joined (a warm-up join), or None."""
+        """The old row whose place row `seq` joined (a warm-up join, kept or not), or None."""
         if not self.holds.joins:
             return None
         with self._lock:
@@ -257,7 +269,7 @@ class Visits:
 
     def joins(self) -> list[tuple[int, int]]:
         """The warm-up joins (row, old row whose place it joined) in log order (docs/design/science.md
-        §11.8); the rows are `dropped` (reason `joined`)."""
+        §11.8); the rows are `dropped` (reason `joined`), but those of joins that keep their row (`kept`)."""
         if not self.holds.joins:
             return []
         with self._lock:
@@ -266,18 +278,26 @@ class Visits:
 
     def join_problems(self, reach: int) -> list[str]:
         """What is wrong with the warm-up joins (`cortexloc verify`, docs/design/science.md §11.8): a join
-        whose row is not dropped as `joined`, or that reached back over `reach` or more of its stream's rows
-        held then; a row dropped as `joined` with no join."""
+        whose row is not dropped as `joined`, or a kept one (schema 14) whose row is, or is not stored; one
+        that reached back over `reach` or more of its stream's rows held then; a row dropped as `joined`
+        with no join that drops it."""
         if not self.holds.joins:
             return []
+        kept = "j.kept" if self.holds.kept_joins else "0"
         with self._lock:
             db = self._db()
             out = [f"join of row {r[0]}: the row is not dropped as joined" for r in db.execute(
                 "SELECT j.seq FROM joins j LEFT JOIN dropped d ON d.seq = j.seq "
-                "WHERE d.reason IS NOT 'joined'")]
+                f"WHERE d.reason IS NOT 'joined' AND {kept} = 0")]
+            out += [f"kept join of row {r[0]}: the row is dropped as joined" for r in db.execute(
+                "SELECT j.seq FROM joins j JOIN dropped d ON d.seq = j.seq "
+                f"WHERE d.reason = 'joined' AND {kept} = 1")]
+            out += [f"kept join of row {r[0]}: the row is not stored" for r in db.execute(
+                f"SELECT j.seq FROM joins j WHERE {kept} = 1 "
+                "AND NOT EXISTS (SELECT 1 FROM observations o WHERE o.seq = j.seq)")]
             out += [f"row {r[0]} is dropped as joined without a join" for r in db.execute(
                 "SELECT d.seq FROM dropped d LEFT JOIN joins j ON j.seq = d.seq "
-                "WHERE d.reason = 'joined' AND j.seq IS NULL")]
+                f"WHERE d.reason = 'joined' AND (j.seq IS NULL OR {kept} = 1)")]
             # The rows the live rule looked through: the stream's rows made after the joined one and
             # still held when the join was made (a row dropped at an earlier step, joined or over its
             # place's cap, had left the memory; a row a repair re-made is no step of it). Steps that

@@ -28,6 +28,7 @@ WHERE = {
     "closure_consolidated_into": ("loop_closures", "consolidated_into"),
     "repairs": ("repairs", None), "closure_retracts": ("loop_closures", "retracts"), "joins": ("joins", None),
     "closure_span": ("loop_closures", "span"), "joined_rows": ("visits", "row_seq"), "flat": ("flat", None),
+    "kept_joins": ("joins", "kept"),
 }
 
 

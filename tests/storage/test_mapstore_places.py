@@ -111,8 +111,14 @@ def test_a_row_s_place_and_the_rows_it_dropped_commit_with_it(store: MapStore) -
 
 
 #: What version 9 added, undone (every older file lacks it).
-#: What version 13 added, undone: the flat rows.
-V13_UNDONE = "DROP TABLE flat;"
+#: What version 14 added, undone: the joins' `kept`, the delete triggers as version 12 made them.
+V14_UNDONE = "".join(
+    f"DROP TRIGGER {t}_no_delete; CREATE TRIGGER {t}_no_delete BEFORE DELETE ON {t} "
+    f"WHEN NOT EXISTS (SELECT 1 FROM joins WHERE seq = OLD.seq) "
+    f"BEGIN SELECT RAISE(ABORT, '{t} are append-only'); END;"
+    for t in ("observations", "thumbnails", "keyframes")) + "ALTER TABLE joins DROP COLUMN kept;"
+#: What version 13 added, undone: the flat rows (and what came after).
+V13_UNDONE = V14_UNDONE + "DROP TABLE flat;"
 #: What version 12 added, undone (every older file fabricated here lacks it): the visits' `row_seq`, the
 #: joins' `observation_id`, the replay-order indexes, the delete triggers that let a joined row go.
 V12_UNDONE = V13_UNDONE + "DROP INDEX visits_learned; DROP INDEX visits_row; " \
@@ -124,18 +130,24 @@ V12_UNDONE = V13_UNDONE + "DROP INDEX visits_learned; DROP INDEX visits_row; " \
 V9_UNDONE = V12_UNDONE + "DROP TABLE repairs; ALTER TABLE loop_closures DROP COLUMN retracts;"
 
 
-def _as_version(path: Path, version: int, changes: str) -> None:
-    """Today's file as schema `version` wrote it: `changes` (SQL) undone from it, and its version (and what
-    version 9 added: the repairs and the closures' `retracts`)."""
+def _undone_to(path: Path, version: int, undone: str) -> None:
+    """Today's file as schema `version` wrote it: `undone` (SQL, what the later versions added, undone)
+    run on it, and its version."""
     conn = sqlite3.connect(path)
-    changes = ("DROP TABLE joins;" if version < 10 else "") + changes  # version 10: the warm-up joins
-    conn.executescript(V9_UNDONE + changes + f"""
+    conn.executescript(undone + f"""
         DROP TRIGGER meta_no_update;
         UPDATE meta SET value = '{version}' WHERE key = 'schema_version';
         CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
         BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
     """)
     conn.close()
+
+
+def _as_version(path: Path, version: int, changes: str) -> None:
+    """Today's file as schema `version` wrote it: `changes` (SQL) undone from it, and its version (and what
+    version 9 added: the repairs and the closures' `retracts`)."""
+    changes = ("DROP TABLE joins;" if version < 10 else "") + changes  # version 10: the warm-up joins
+    _undone_to(path, version, V9_UNDONE + changes)
 
 
 def _as_version_4(path: Path) -> None:
@@ -384,14 +396,7 @@ def test_a_version_12_file_is_migrated_and_its_rows_are_not_known_flat(tmp_path:
     with MapStore.create(path, meta) as made:
         made.append(make_row(1))
         made.append(dataclasses.replace(make_row(2, prev=1), flat=True))
-    conn = sqlite3.connect(path)
-    conn.executescript(V13_UNDONE + """
-        DROP TRIGGER meta_no_update;
-        UPDATE meta SET value = '12' WHERE key = 'schema_version';
-        CREATE TRIGGER meta_no_update BEFORE UPDATE ON meta
-        BEGIN SELECT RAISE(ABORT, 'map metadata is frozen'); END;
-    """)
-    conn.close()
+    _undone_to(path, 12, V13_UNDONE)
     with MapStore.open(path, readonly=True) as old:  # read-only: as it is
         assert old.meta.schema_version == 12 and old.flat() == set()
     with MapStore.open(path) as store:
@@ -419,3 +424,53 @@ def test_the_oldest_plain_visit_kept_is_after_every_pruned_one_where_a_join_s_vi
     kept = list(store.visits())
     assert kept[0].row == 2 and kept[0].id > first  # the join's visit: first in the log, not the oldest
     assert store.oldest_plain_visit() == plain
+
+
+def test_a_kept_join_keeps_its_row_held_and_on_disk_and_logs_the_drops_of_its_place(
+        tmp_path: Path, meta: MapMeta) -> None:
+    """Schema 14 (docs/design/science.md §11.8): a warm-up join that keeps its row (another season's first
+    frames: like the old row, not represented by it) logs the join alone, `kept`; the row stays in the
+    file, held, its own record, and the file's triggers still refuse to delete it. A visit's transaction
+    carries the appearance-cap drops its kept joins caused. `verify` tells a kept join from a join whose
+    drop is missing, and a kept join whose row was dropped as joined."""
+    path = tmp_path / "map.sqlite"
+    with MapStore.create(path, meta) as store:
+        store.append(make_row(1, stream="old"))
+        store.append(make_row(2, stream="old", prev=1))
+        store.append(dataclasses.replace(make_row(3, stream="a"), thumbnail=b"jpeg"))  # warm-up rows
+        store.append(make_row(4, stream="a", prev=3))
+        store.append(dataclasses.replace(make_row(5, stream="a", prev=4), kept=((3, 1),)))
+        store.add_visit(dataclasses.replace(visit(6, 2, 5), stream="a", kept=((4, 2),), drops=(2,)))
+        assert store.joins() == [(3, 1), (4, 2)] and store.joined_to(3) == 1
+        assert store.get(3) is not None and store.thumbnail(3) == b"jpeg"  # on disk, as stored
+        assert store.dropped() == {2: "appearance-cap"}  # the visit's drop; rows 3 and 4 are held
+        assert store.held() == 4 and store.joined_row(3) is None
+        assert store.join_problems(3) == []
+    conn = sqlite3.connect(path)
+    with pytest.raises(sqlite3.IntegrityError, match="append-only"):
+        conn.execute("DELETE FROM observations WHERE seq = 3")
+    conn.execute("INSERT INTO dropped (seq, reason, after_seq, created_at) VALUES (3, 'joined', 5, 'x')")
+    conn.execute("UPDATE joins SET kept = 0 WHERE seq = 4")  # a join that drops its row, not dropped
+    conn.commit()
+    conn.close()
+    with MapStore.open(path, readonly=True) as store:
+        assert sorted(p.split(":")[0] for p in store.join_problems(3)) == [
+            "join of row 4", "kept join of row 3", "row 3 is dropped as joined without a join"]
+
+
+def test_a_version_13_file_is_migrated_and_its_joins_read_as_not_kept(tmp_path: Path, meta: MapMeta) -> None:
+    """Schema 13 -> 14: `joins.kept`, 0 for every older join (each dropped its row), and the delete
+    triggers that let only a join that does not keep its row take it."""
+    path = tmp_path / "map.sqlite"
+    with MapStore.create(path, meta) as made:
+        made.append(make_row(1, stream="old"))
+        made.append(make_row(2, stream="a"))
+        made.append(dataclasses.replace(make_row(3, stream="a", prev=2), joins=((2, 1),)))
+    _undone_to(path, 13, V14_UNDONE)
+    with MapStore.open(path, readonly=True) as old:  # read-only: as it is
+        assert old.meta.schema_version == 13 and old.joins() == [(2, 1)] and old.join_problems(3) == []
+    with MapStore.open(path) as store:
+        assert store.meta.schema_version == SCHEMA_VERSION and store.join_problems(3) == []
+        store.append(make_row(4, stream="a"))
+        store.append(dataclasses.replace(make_row(5, stream="a", prev=4), kept=((4, 1),)))
+        assert store.joins() == [(2, 1), (4, 1)] and store.get(4) is not None and store.join_problems(3) == []

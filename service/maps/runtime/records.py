@@ -33,8 +33,8 @@ def learned_row(step: Step, *, stream: str, image_sha256: str, label: str | None
                           winner_cells=step.winners, context_prev_seq=step.prev_seq, label=label,
                           metadata=metadata, thumbnail=thumbnail, keyframe=kf,
                           place=step.joined if step.joined >= 0 else None,
-                          drops=step.dropped, touched=step.touched, joins=step.joins, resume=resume,
-                          flat=step.flat)
+                          drops=step.dropped, touched=step.touched, joins=step.joins, kept=step.kept,
+                          resume=resume, flat=step.flat)
 
 
 def reply(config: MapConfig, map_id: str, step: Step, rows: dict[int, Observation], *, stream: str,
@@ -71,4 +71,4 @@ def visit(step: Step, *, stream: str, metadata: dict[str, Any] | None, closure: 
     assert step.visit is not None
     return NewVisit(stream=stream, seq=step.visit, context_prev_seq=step.prev_seq, input_sdr=step.code,
                     winner_cells=step.winners, metadata=metadata, closure=closure, touched=step.touched,
-                    key=key, resume=resume, joins=step.joins)
+                    key=key, resume=resume, joins=step.joins, kept=step.kept, drops=step.dropped)

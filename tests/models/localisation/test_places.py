@@ -75,6 +75,17 @@ def test_the_cap_drops_the_least_recently_used_appearance_never_the_new_one():
     assert loc.appearances(1) == [1, 5] and loc.over_cap(1, keep=5) == [] and loc.held == 4
 
 
+def test_the_cap_spares_the_row_the_step_s_frame_is_consolidated_into():
+    """A kept warm-up join (§11.8) fills a place on a step whose frame is consolidated into one of its
+    appearances: that one stays, the next least recently used goes."""
+    loc = place_map_with(appearances=2)
+    loc.add(4, None, np.array([1]), stream="b", place=1)  # place 1: rows 1, 4
+    loc.touch(4, 10)  # row 1 the least recently used
+    loc.add(5, None, np.array([1]), stream="c", place=1)
+    assert loc.over_cap(1, keep=5) == [1]
+    assert loc.over_cap(1, keep=5, spare=1) == [4]
+
+
 def test_forgetting_takes_whole_places_least_recently_used_first():
     loc = place_map_with(appearances=8)
     loc.add(4, None, np.array([1]), stream="b", place=1)  # place 1 used at 4

@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 
 from service.maps.recovery import open_catalog, verify_map
-from tests.service.helpers import frame, make_client, post
+from tests.service.helpers import frame, make_client, post, state_of
 from tests.service.maps.test_loop_closures import LAP, THRESHOLD
-from tests.service.maps.test_places import crash, shape
+from tests.service.maps.test_places import crash, places, shape
 
 TUNNEL = range(12, 15)  # the places of LAP where the route is in a tunnel: near-black frames
 
@@ -155,6 +155,105 @@ def test_a_posed_drive_restarted_on_known_ground_joins_every_warm_up_row(tmp_pat
         for p, seq in warm:
             assert c.get(f"/v1/maps/default/observations/{seq}").json()["joined_to"] == rows[p], (p, seq)
         assert c.get("/v1/maps/default").json()["places"]["places"] == len(LAP)
+
+
+#: A map whose consolidation takes only a frame its stored code matches (`consolidate` 0.99): on the
+#: tests' encoder (codes of a few dozen bits) a frame of LAP with pixel noise is then another condition
+#: of its place, like its row (far above `join_kept`) and not represented by it, whatever bit the noise
+#: flips; the same noisy frame again is represented by the row it made.
+KEPT_MAP = {"map_id": "kept", "localiser": {"consolidate": 0.99}}
+OTHERWISE = 60.0
+
+
+def kept_drive(c, noisy: int = 0, places: list[int] = LAP) -> list[dict]:
+    """A drive of "kept" restarted at `places`' start, its first `noisy` frames in other conditions (the
+    same noise each drive)."""
+    assert c.post("/v1/maps/kept/streams/robot/reset").status_code == 200
+    return [post(c, frame(p, noise=OTHERWISE) if i < noisy else view(p), map_id="kept", stream="robot",
+                 learn="true", top_k=0).json() for i, p in enumerate(places)]
+
+
+def kept_joins(c) -> list[tuple[int, int]]:
+    rt = c.app.state.registry.get("kept")
+    return [(row, old) for row, old in rt.store.joins() if rt.place_map.used[row] >= 0]
+
+
+def kept_shape(c) -> tuple:
+    rt = c.app.state.registry.get("kept")
+    info = places(c, "kept")
+    return (*state_of(c, "kept"), info["places"], info["appearances"], rt.place_map.graph.place.tolist(),
+            rt.place_map.used.tolist())
+
+
+def new_kept_map(c) -> dict[int, int]:
+    """The map, and its first drive over LAP: row -> place."""
+    assert c.post("/v1/maps", json=KEPT_MAP).status_code == 201
+    assert c.patch("/v1/maps/kept", json={"revisit_threshold": THRESHOLD}).status_code == 200
+    return {b["seq"]: p for p, b in zip(LAP, kept_drive(c), strict=True)}
+
+
+def test_a_warm_up_row_seen_otherwise_is_kept_as_an_appearance_and_the_next_drive_adds_none(tmp_path):
+    """A warm-up row the path explains but its old row does not represent (another season's first frames)
+    was a place of its own, and each later drive in those conditions made another (an outside soak: a
+    winter lap repeated exactly, 8-14 rows a pass). It is joined and kept (schema 14, docs/design/
+    science.md §11.8): an appearance of the old row's place, held and on disk, durable over a crash, and
+    the next drive in those conditions is represented by it."""
+    data = tmp_path / "data"
+    with make_client(data, snapshot_every=0) as c:
+        rows = new_kept_map(c)
+        second = kept_drive(c, noisy=4)
+        rt = c.app.state.registry.get("kept")
+        kept = kept_joins(c)
+        seqs = [b["seq"] for b in second]
+        assert {row for row, _ in kept} == {s for s in seqs[:4] if s is not None}, rt.store.joins()
+        dropped = rt.store.dropped()
+        for row, old in kept:
+            assert abs(rows[old] - LAP[seqs.index(row)]) <= 1  # the place the path stood on then
+            assert rt.place_map.place_of(row) == rt.place_map.place_of(old) and row not in dropped
+            assert c.get(f"/v1/maps/kept/observations/{row}").json()["joined_to"] is None  # held
+        info = places(c, "kept")
+        assert (info["places"], info["appearances"]) == (len(LAP), len(LAP) + len(kept))
+        kept_drive(c, noisy=4)  # the same conditions again: its warm-up is represented, not kept again
+        assert kept_joins(c) == kept
+        assert (places(c, "kept")["places"], places(c, "kept")["appearances"]) == \
+            (info["places"], info["appearances"])
+        before = kept_shape(c)
+        crash(c)
+    with make_client(data, snapshot_every=0) as c:
+        assert kept_shape(c) == before and kept_joins(c) == kept  # the kept joins were replayed
+    catalog = open_catalog(data)
+    check = verify_map(catalog, catalog.get_map("kept"))
+    assert check.ok, check
+    conn = sqlite3.connect(catalog.layout.map_db("kept"))
+    conn.execute("INSERT INTO dropped (seq, reason, after_seq, created_at) VALUES (?, 'joined', 0, 'x')",
+                 (kept[0][0],))  # a kept join whose row is dropped as a join that does not keep it
+    conn.commit()
+    conn.close()
+    check = verify_map(catalog, catalog.get_map("kept"))
+    assert not check.ok and any(f"kept join of row {kept[0][0]}" in p for p in check.problems)
+
+
+def test_a_map_restored_from_a_snapshot_taken_before_a_kept_join(tmp_path):
+    data = tmp_path / "data"
+    with make_client(data, snapshot_every=0) as c:
+        new_kept_map(c)
+        warm = kept_drive(c, noisy=4, places=LAP[:4])  # warm-up rows, not joined yet
+        rt = c.app.state.registry.get("kept")
+        assert rt.store.joins() == []
+        at_snapshot = kept_shape(c)
+        snap = c.post("/v1/maps/kept/snapshots").json()["snapshot_id"]
+        for p in LAP[4:]:
+            post(c, view(p), map_id="kept", stream="robot", learn="true", top_k=0)
+        assert {row for row, _ in kept_joins(c)} == {b["seq"] for b in warm}
+        assert c.post(f"/v1/maps/kept/snapshots/{snap}/restore").status_code == 200
+        rt = c.app.state.registry.get("kept")
+        assert rt.store.joins() == [] and kept_shape(c) == at_snapshot
+        assert rt.place_map.graph.alone(np.array([b["seq"] for b in warm])).all()  # places of their own
+        kept_drive(c, noisy=4)  # the map goes on, and keeps its next warm-up
+        assert kept_joins(c)
+    catalog = open_catalog(data)
+    check = verify_map(catalog, catalog.get_map("kept"))
+    assert check.ok, check
 
 
 def test_the_joins_come_back_after_a_crash(tmp_path):
