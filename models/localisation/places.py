@@ -236,9 +236,15 @@ class PlaceMap:
         trail = motion.trail or stream
         memory = _recent(self._short, trail, lambda: ShortTerm(self.short_term))
         code = np.asarray(code, np.int64)
+        posed = self._posed(anchor, motion)  # (before the anchor takes a move)
         span = anchor.move(code, self.departure(code), motion, self.options)
-        memory.add(row, span, stream)
+        memory.add(row, span, stream, still=posed and span is None)
         return span is not None
+
+    def _posed(self, anchor: Anchor, motion: Motion) -> bool:
+        """Whether a frame's move is judged by its poses (it and its stream's last move carry one, and the
+        memory reads them): where not, a frame is a move of its stream's paths whatever its look (§11.6)."""
+        return anchor.pose is not None and motion.pose is not None and self.options.short_term_metres > 0
 
     def departure(self, code: np.ndarray) -> float:
         """The Dice under which a frame of code `code` (n,) sorted has left a code (§11.6): the `departure`
@@ -259,7 +265,7 @@ class PlaceMap:
         conf = self.options
         if not self.short_term:
             return True
-        posed = anchor.pose is not None and motion.pose is not None and conf.short_term_metres > 0
+        posed = self._posed(anchor, motion)
         code = np.asarray(code, np.int64)
         moved = anchor.move(code, self.departure(code), motion, conf) is not None
         return moved or not posed
@@ -409,13 +415,15 @@ class PlaceMap:
         return int(self.options.warmup) + int(self.options.exclusion)
 
     def explained(self, stream: str, place: Place, direction: int, code_of: Callable[[int], np.ndarray],
-                  trail: str | None = None) -> Explained:
+                  trail: str | None = None, moved: bool = True) -> Explained:
         """The warm-up joins a learning stream's confident revisit `place` gives (docs/design/science.md
         §11.8): (row, old row) for each of the stream's newest `reach` rows held (its own learned frames,
         as its short-term memory's ring remembers them, `ShortTerm.ages`) that is a place of its own
         (made while it warmed up or was unsure; nothing named it since), that the path covers (made
         a frames ago, a < the path's `support`), and that is represented, at the `consolidate` level, by
-        the row the path stood on then: a row a links back from `place.seq` along its route, against
+        the row the path stood on then: a row m links back from `place.seq` along its route (m: the
+        moves of the stream since that frame, this one's where `moved`; a frame its poses said stood still
+        is none, and a path that kept pace with its stream stayed on it, `ShortTerm.moves_after`), against
         the path's `direction` (+1: the path runs along the stored direction, -1 against it; the state's
         best hypothesis's), give or take JOIN_SLACK, stored before every row of the stretch. Never ahead
         of the path: on an aliased route the rows ahead may look like the stretch behind it, and a join
@@ -441,6 +449,7 @@ class PlaceMap:
         # proper: with poses that memory is the last `short_term_metres` of path, which at a frame every
         # 10 m is 2 rows, and a posed drive's first warm-up rows were never joined (an outside tester)
         ages = memory.ages(stream)  # newest first
+        moves = memory.moves_after(stream)
         held = (r for r in ages if self.used[r] >= 0)
         newest = np.fromiter(itertools.islice(held, self.reach()), np.int64)
         if not newest.size:
@@ -458,7 +467,10 @@ class PlaceMap:
         keeps = float(self.options.join_kept) < c
         out, kept = [], []
         for r in rows:
-            lag = ages[r] + 1  # frames from the row's frame to this one
+            # the rows a path keeping pace advanced from the row's frame to this one: its stream's moves
+            # (a robot that stood still on its poses during its warm-up: that many rows fewer; counted in
+            # frames, a kept join named a place as many rows back, a review)
+            lag = moves[r] + int(moved)
             walk = g.route(place.seq, -int(direction), lag + JOIN_SLACK)
             off = np.abs(np.arange(walk.size) - lag)  # steps from the path's row then
             keep = (off <= JOIN_SLACK) & (walk < first) & (self.used[walk] >= 0)
@@ -491,8 +503,8 @@ class PlaceMap:
             if keeps and not self.flat[r] and at.size:
                 level = self.codes.level(code, float(self.options.join_kept))
                 like = _most_alike(code, code_of, [(seen[g.place[seen] == g.place[at[0]]], level)])
-                if like is not None:
-                    kept.append((r, like))
+                if like is not None:  # (recorded as the row the path stood on: the place it names)
+                    kept.append((r, int(at[0])))
                     continue
             self._tried[r] = self._tried.get(r, 0) + 1
         return Explained(out, kept)

@@ -118,7 +118,9 @@ class Anchor:
 
 class ShortTerm:
     """One trail's short-term memory: a ring of its streams' last SPAN x `moves` learned frames, each the
-    row it made (or NONE), the share of the memory it covered (0: no move) and its stream's slot.
+    row it made (or NONE), the share of the memory it covered (0: no move), whether its poses said it
+    stood still (no move by `Anchor.move` where the frame and its stream's last move carry poses: the
+    frames a stream's paths need not keep pace with, `PlaceMap.moves`) and its stream's slot.
 
     Args:
         moves: the ring's size in moves (`ring_moves`, >= 1).
@@ -128,19 +130,20 @@ class ShortTerm:
         size = SPAN * int(moves)
         self._rows = np.full(size, NONE, np.int64)
         self._span = np.zeros(size, np.float64)
+        self._still = np.zeros(size, bool)
         self._slot = np.zeros(size, np.int8)
         self._n = 0  # frames taken in, ever (the ring's write position is _n % size)
         self._slots: OrderedDict[str, int] = OrderedDict()  # stream -> slot, least recently learning first
 
     @staticmethod
     def nbytes(moves: int, code_width: int) -> int:
-        """Bytes one stream's memory holds at most: the ring (17 bytes a frame) and its stream's anchor,
+        """Bytes one stream's memory holds at most: the ring (18 bytes a frame) and its stream's anchor,
         a code of up to `code_width` bits."""
-        return 17 * SPAN * int(moves) + 8 * int(code_width)
+        return 18 * SPAN * int(moves) + 8 * int(code_width)
 
-    def add(self, row: int, span: float | None, stream: str = "") -> None:
+    def add(self, row: int, span: float | None, stream: str = "", still: bool = False) -> None:
         """One learned frame of `stream`: `row` the row it made (NONE: consolidated), `span` the share of
-        the memory it covered as a move (`Anchor.move`; None: no move)."""
+        the memory it covered as a move (`Anchor.move`; None: no move); `still`: its poses said it stood."""
         slot = self._slots.get(stream)
         if slot is None:
             if len(self._slots) < SLOTS:
@@ -152,20 +155,33 @@ class ShortTerm:
         self._slots.move_to_end(stream)
         i = self._n % self._rows.size
         self._rows[i], self._span[i], self._slot[i] = int(row), 0.0 if span is None else span, slot
+        self._still[i] = bool(still)
         self._n += 1
 
     def ages(self, stream: str = "") -> dict[int, int]:
         """Each row `stream` made that the memory remembers -> how many of that stream's learned frames
         came after it (0: its row was the stream's last frame's), newest first; a trail's other streams'
         frames do not count. O(frames remembered)."""
+        rows = self._rows[self._frames_of(stream)]
+        return {int(r): i for i, r in enumerate(rows.tolist()) if r != NONE}
+
+    def moves_after(self, stream: str = "") -> dict[int, int]:
+        """As `ages`, counting only the frames after each row that were moves for its stream's paths
+        (not `still`): how many rows a path that kept pace with it advanced since. O(frames remembered)."""
+        idx = self._frames_of(stream)
+        moved = (~self._still[idx]).astype(np.int64)
+        newer = np.cumsum(moved) - moved  # the moves among the frames newer than each
+        return {int(r): int(k) for r, k in zip(self._rows[idx].tolist(), newer.tolist(), strict=True)
+                if r != NONE}
+
+    def _frames_of(self, stream: str) -> np.ndarray:
+        """(m,) int64 the ring positions of `stream`'s frames it remembers, newest first (none: unknown)."""
         slot = self._slots.get(stream)
         if slot is None:
-            return {}
+            return np.zeros(0, np.int64)
         size = self._rows.size
-        held = min(self._n, size)
-        idx = (self._n - 1 - np.arange(held)) % size  # newest first
-        rows = self._rows[idx[self._slot[idx] == slot]]
-        return {int(r): i for i, r in enumerate(rows.tolist()) if r != NONE}
+        idx = (self._n - 1 - np.arange(min(self._n, size))) % size  # newest first
+        return idx[self._slot[idx] == slot]
 
     def rows(self) -> np.ndarray:
         """(m,) int64 ascending: the rows made since one of the trail's streams last covered the whole

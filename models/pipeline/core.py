@@ -315,12 +315,15 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
         if place is not None and threshold is not None and place.is_revisit(threshold):
             # Rows it made while it warmed up or was unsure, that the path now explains (§11.8): those the
             # old rows represent are held no more, the rest like them are kept, appearances of their places.
-            found = place_map.explained(stream, place, int(st.localiser.dirs[0]), code_of, motion.trail)
+            found = place_map.explained(stream, place, int(st.localiser.dirs[0]), code_of, motion.trail,
+                                        moved)
             joins, kept = found.joins, found.kept
             for row, old in (*joins, *kept):
                 place_map.fold(row, old, seq)
                 touched.append(old)
             drop(model, [row for row, _ in joins])
+            if joined >= 0:  # the place as the folds left it, which a recovery reads before it folds
+                joined = place_map.place_of(place.seq)
             for row, old in kept:  # a place over its cap drops its least recently used appearance (§11.9),
                 # never the row this frame is consolidated into
                 capped = place_map.over_cap(place_map.place_of(old), row, spare=visit)

@@ -68,9 +68,11 @@ class Visits:
                             conn.execute("DELETE FROM visit_keys WHERE visit <= ?",
                                          (visit_id - self.max_keys,))
                     clock = max(self._last_seq, self._seq_floor) + 1  # the seq the live step was given
-                    self._drop(conn, [(int(d), "appearance-cap", self._last_seq) for d in visit.drops])
                     gone = self._join(conn, [(str(visit.stream), j, self._last_seq) for j in visit.joins])
                     self._keep(conn, [(str(visit.stream), j, self._last_seq) for j in visit.kept])
+                    # after the step's joins: `join_problems` reads a drop logged at the same `after_seq`
+                    # before a join as made at an earlier step (the row was not held at that join)
+                    self._drop(conn, [(int(d), "appearance-cap", self._last_seq) for d in visit.drops])
                     self._touch(conn, [(int(t), clock) for t in visit.touched])
                     if visit.resume is not None:
                         self._resume(conn, [(str(visit.stream), clock, visit.resume)])
@@ -306,12 +308,16 @@ class Visits:
             # over-reach). One step writes its joins with one `created_at`, so another time is another
             # step; which came first, the visits its joined rows became say (the log's order, schema 12),
             # or failing them (a row a closure names stays a row; an older file) the times, which a clock
-            # stepped back can mislead.
+            # stepped back can mislead. A row dropped over its place's cap or forgotten at the same
+            # `after_seq` before the join (a kept join's drop at an earlier consolidated frame, a review;
+            # a forgetting before the step) is read by the times alone: a step logs its drops after its
+            # joins, so its own drops were still held at its joins, as the live rule read them.
             split = ("SELECT seq FROM repairs WHERE kind = 'split'" if self.holds.repairs
                      else "SELECT NULL WHERE 0")
             rows = ("(SELECT seq, stream FROM observations UNION ALL SELECT row_seq, stream FROM visits "
                     "WHERE row_seq IS NOT NULL)") if self.holds.joined_rows else "observations"
             before = "k.created_at < j.created_at"
+            dropping = "k.kept = 0" if self.holds.kept_joins else "1"  # a kept join's row stays held
             if self.holds.joined_rows:
                 logged = "(SELECT id FROM visits WHERE row_seq = {})"
                 before = f"COALESCE({logged.format('k.seq')} < {logged.format('j.seq')}, {before})"
@@ -320,8 +326,9 @@ class Visits:
                         f"SELECT j.seq, (SELECT count(*) FROM {rows} o WHERE o.stream = j.stream "
                         "AND o.seq > j.seq AND o.seq <= j.after_seq AND NOT EXISTS (SELECT 1 FROM dropped d "
                         "WHERE d.seq = o.seq AND (d.after_seq < j.after_seq OR (d.after_seq = j.after_seq "
-                        "AND EXISTS (SELECT 1 FROM joins k WHERE k.seq = d.seq "
-                        f"AND k.created_at != j.created_at AND {before})))) "
+                        f"AND (EXISTS (SELECT 1 FROM joins k WHERE k.seq = d.seq AND {dropping} "
+                        f"AND k.created_at != j.created_at AND {before}) "
+                        "OR (d.reason != 'joined' AND d.created_at < j.created_at))))) "
                         f"AND o.seq NOT IN ({split})) AS n FROM joins j WHERE n >= ?", (int(reach),))]
             return out
 

@@ -474,3 +474,25 @@ def test_a_version_13_file_is_migrated_and_its_joins_read_as_not_kept(tmp_path: 
         store.append(make_row(4, stream="a"))
         store.append(dataclasses.replace(make_row(5, stream="a", prev=4), kept=((4, 1),)))
         assert store.joins() == [(2, 1), (4, 1)] and store.get(4) is not None and store.join_problems(3) == []
+
+
+def test_verify_reads_a_drop_at_an_earlier_consolidated_frame_as_made_before_a_later_join(
+        store: MapStore) -> None:
+    """A review: a visit's appearance-cap drops (a kept join's, schema 14) share the `after_seq` of the
+    visits after it; verify counted a row dropped at one consolidated frame as held at a join made at the
+    next, and called a map written only by the service a problem. A step's own drops (logged after its
+    joins) were held at its joins, as the live rule read them."""
+    reach = 3
+    store.append(make_row(1, stream="old"))
+    for i in range(2, 6):
+        store.append(make_row(i, stream="a", prev=i - 1 if i > 2 else None))
+    store.add_visit(dataclasses.replace(visit(6, 1, 5), stream="a", kept=((5, 1),), drops=(4,)))
+    time.sleep(0.002)  # (the next step's clock reads later)
+    store.add_visit(dataclasses.replace(visit(7, 1, 5), stream="a", joins=((2, 1),)))
+    # rows 3 and 5 held since row 2, row 4 dropped at the step before: within the reach of 3
+    assert store.join_problems(reach) == []
+    assert [p.split(":")[0] for p in store.join_problems(2)] == ["join of row 2"]
+    # a step's own drops count: row 4 dropped with the join of row 2 was held at it
+    store.add_visit(dataclasses.replace(visit(8, 1, 5), stream="a", joins=((3, 1),), drops=(5,)))
+    assert [p.split(":")[0] for p in store.join_problems(2)] == ["join of row 2"]
+    assert [p.split(":")[0] for p in store.join_problems(1)] == ["join of row 2", "join of row 3"]

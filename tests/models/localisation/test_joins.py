@@ -9,6 +9,8 @@ import pytest
 
 from models.localisation import LocaliserOptions, Place, PlaceMap
 from models.localisation.graph import SequenceGraph
+from models.localisation.motion import NO_MOTION, Motion
+from models.localisation.trail import code_dice
 
 #: Codes as wide and as sparse as a served map's (2,048 columns, s 0.15 of 2 × 1,024 projections on): with
 #: 24 bits of 256 one unrelated row in a few reached `join_kept` by chance, as a served map's rows do not
@@ -24,10 +26,10 @@ A = (41, 42, 43)  # stream "a" driving on from it: its short-term memory
 WARM = 44  # "a"'s warm-up row after a restart
 
 
-def build(warm: int = 39, stm_place: int | None = None,
-          flat: frozenset[int] = frozenset()) -> tuple[PlaceMap, dict[int, np.ndarray]]:
+def build(warm: int = 39, stm_place: int | None = None, flat: frozenset[int] = frozenset(),
+          motion: Motion = NO_MOTION) -> tuple[PlaceMap, dict[int, np.ndarray]]:
     """The rows above; the warm-up row is the frame of row `warm`. `stm_place`: row 43 joined that row's
-    place. `flat`: the rows that are flat rows (§11.7)."""
+    place. `flat`: the rows that are flat rows (§11.7). `motion`: the warm-up frame's."""
     place_map = PlaceMap(LocaliserOptions.of({"short_term": 20}), WIDTH)
     codes = {r: code(r) for r in range(0, WARM)}
     place_map.add(0, None, codes[0], stream="z")  # seq 0 unused by a store; keeps row ids = seqs
@@ -36,7 +38,7 @@ def build(warm: int = 39, stm_place: int | None = None,
     for r in A:
         place_map.add(r, r - 1, codes[r], stream="a", place=stm_place if r == A[-1] and stm_place else -1)
     codes[WARM] = codes[warm].copy()
-    place_map.add(WARM, None, codes[WARM], stream="a", flat=WARM in flat)
+    place_map.add(WARM, None, codes[WARM], stream="a", flat=WARM in flat, motion=motion)
     return place_map, codes
 
 
@@ -174,3 +176,27 @@ def test_the_path_names_the_place_a_kept_row_joins_not_its_code(like: int) -> No
     place_map, codes = build()
     codes[WARM] = seen_otherwise(like, 0.18)
     assert place_map.explained("a", at(40), 1, codes.__getitem__) == ([], [])
+
+
+def test_a_warm_up_a_robot_stood_through_is_joined_to_where_it_stood_not_as_many_rows_back() -> None:
+    """A review: the lag to the row the path stood on was counted in frames, but a path keeps pace with its
+    stream's moves, and a frame its poses say stood still is none. A posed robot that stood 3 frames after
+    its warm-up row had its row kept-joined 3 places back (row 36: its code is like that place too, as
+    on a route that aliases), not to the place it stood at (39)."""
+    base, other, rng = code(39), code(36), np.random.default_rng(7)
+    ours = rng.choice(base, 80, replace=False)  # about 0.17 of the way to row 39's code, 0.12 to row 36's
+    bits = np.union1d(ours, rng.choice(np.setdiff1d(other, ours), 70, replace=False))
+    free = np.setdiff1d(np.arange(WIDTH), np.union1d(base, other))
+    rest = rng.choice(free, BITS - bits.size, replace=False)
+    warm = np.sort(np.r_[bits, rest]).astype(np.int64)
+    place_map, codes = build(motion=Motion(pose=(0.0, 0.0), stamp=1.0))
+    codes[WARM] = warm
+    for row, lo, hi in ((39, 0.1, 0.25), (36, 0.1, 0.25)):  # like both, represented by neither
+        b = place_map.codes.background(warm)
+        assert lo <= (code_dice(warm, codes[row]) - b) / (1 - b) < hi
+    assert place_map.explained("a", at(40), 1, codes.__getitem__) == ([], [(WARM, 39)])
+    for t in (2.0, 3.0, 4.0):  # it stands: visits of its row, no move by its poses
+        place_map.visit(WARM, WARM, int(t), stream="a", code=warm, motion=Motion(pose=(0.2, 0.0), stamp=t))
+    assert place_map.explained("a", at(40), 1, codes.__getitem__) == ([], [(WARM, 39)])
+    # this frame stood still too: the path stood on row 40 then, which the row is not like
+    assert place_map.explained("a", at(40), 1, codes.__getitem__, moved=False) == ([], [])
