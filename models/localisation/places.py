@@ -525,15 +525,15 @@ class PlaceMap:
         if clock is not None:
             self.touch(old, clock)
 
-    def over_cap(self, place: int, keep: int, spare: int | None = None) -> list[int]:
+    def over_cap(self, place: int, *keep: int) -> list[int]:
         """The appearances to drop so that `place` holds at most `appearances` rows: the least recently
-        used first (ties: the older row), never `keep` (the row just made or kept) nor `spare` (the row
-        the step's frame is consolidated into) (§11.9)."""
-        rows = [r for r in self.appearances(place) if r != keep]
-        extra = len(rows) + 1 - int(self.options.appearances)
-        rows = [r for r in rows if r != spare]
+        used first (ties: the older row), never one of `keep` (the rows the step just made or kept, the
+        row its frame is consolidated into) (§11.9)."""
+        rows = self.appearances(place)
+        extra = len(rows) - int(self.options.appearances)
         if extra <= 0:
             return []
+        rows = [r for r in rows if r not in keep]
         return sorted(rows, key=lambda r: (int(self.used[r]), r))[:extra]
 
     def least_recent(self, n: int) -> list[int]:

@@ -40,7 +40,7 @@ __all__ = ["KEPT", "SLOTS", "SPAN", "Anchor", "ShortTerm", "ring_moves"]
 #: The most learned frames a trail's memory remembers, as a multiple of its moves (`ring_moves`): a robot
 #: that stays in one place (its frames all alike, its pose within `move_metres`) for longer than SPAN x
 #: that many learned frames loses the rows from before its stop from the memory. It bounds the memory:
-#: 17 bytes a frame (`nbytes`).
+#: 18 bytes a frame (`nbytes`).
 SPAN = 50
 #: How many streams' anchors and trails' memories a map keeps, the most recently learning first: twice
 #: the default `CORTEXLOC_MAX_STREAMS`, so a stream evicted for another (or renamed back) finds its

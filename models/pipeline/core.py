@@ -324,9 +324,13 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
             drop(model, [row for row, _ in joins])
             if joined >= 0:  # the place as the folds left it, which a recovery reads before it folds
                 joined = place_map.place_of(place.seq)
-            for row, old in kept:  # a place over its cap drops its least recently used appearance (§11.9),
-                # never the row this frame is consolidated into
-                capped = place_map.over_cap(place_map.place_of(old), row, spare=visit)
+            # a place over its cap drops its least recently used appearances (§11.9), once for all the
+            # rows the step kept in it (one at a time, a kept row one cap dropped still counted at the next
+            # and the place lost one too many, a review), never those nor the row the frame visits
+            filled = {place_map.place_of(old) for _, old in kept}
+            spared = [row for row, _ in kept] + ([] if visit is None else [visit])
+            for full in sorted(filled):
+                capped = place_map.over_cap(full, *spared)
                 drop(model, capped)
                 dropped += tuple(capped)
         st.represented = represented  # a frame with no answer, or that made a row, earns none

@@ -13,7 +13,7 @@ import sqlite3
 from collections.abc import Iterable, Iterator
 from typing import Any
 
-from storage._common import transaction
+from storage._common import transaction, utc_now
 from storage.mapschema import (
     COLUMNS,
     INPUT_DTYPE,
@@ -119,8 +119,9 @@ class Observations:
                     conn.executemany(f"INSERT INTO observations ({COLUMNS}) VALUES (?,?,?,?,?,?,?,?,?,?,?)",
                                      params)
                     self._drop(conn, drops)
-                    gone = self._join(conn, joins)
-                    self._keep(conn, kept)
+                    now = utc_now()  # one step's joins, kept or not, share one time (`join_problems`)
+                    gone = self._join(conn, joins, now)
+                    self._keep(conn, kept, now)
                     self._touch(conn, touches)
                     self._resume(conn, resumes)
                     # The row's thumbnail and idempotency key commit with it, or nothing does.

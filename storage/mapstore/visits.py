@@ -68,8 +68,9 @@ class Visits:
                             conn.execute("DELETE FROM visit_keys WHERE visit <= ?",
                                          (visit_id - self.max_keys,))
                     clock = max(self._last_seq, self._seq_floor) + 1  # the seq the live step was given
-                    gone = self._join(conn, [(str(visit.stream), j, self._last_seq) for j in visit.joins])
-                    self._keep(conn, [(str(visit.stream), j, self._last_seq) for j in visit.kept])
+                    now, after = utc_now(), self._last_seq  # one step's joins, kept or not, share one time
+                    gone = self._join(conn, [(str(visit.stream), j, after) for j in visit.joins], now)
+                    self._keep(conn, [(str(visit.stream), j, after) for j in visit.kept], now)
                     # after the step's joins: `join_problems` reads a drop logged at the same `after_seq`
                     # before a join as made at an earlier step (the row was not held at that join)
                     self._drop(conn, [(int(d), "appearance-cap", self._last_seq) for d in visit.drops])
@@ -177,24 +178,22 @@ class Visits:
             conn.executemany("INSERT OR IGNORE INTO dropped (seq, reason, after_seq, created_at) "
                              "VALUES (?, ?, ?, ?)", [(*d, utc_now()) for d in drops])
 
-    def _keep(self, conn: sqlite3.Connection, kept: list[tuple[str, tuple[int, int], int]]) -> None:
-        """Warm-up joins that keep their row (stream, (row, old row), after_seq; schema 14): the join alone,
-        `kept` 1; the row stays held, an appearance of the old row's place (§11.8), neither dropped nor
-        deleted."""
+    def _keep(self, conn: sqlite3.Connection, kept: list[tuple[str, tuple[int, int], int]], now: str) -> None:
+        """Warm-up joins that keep their row (stream, (row, old row), after_seq; schema 14), made at `now`:
+        the join alone, `kept` 1; the row stays held, an appearance of the old row's place (§11.8), neither
+        dropped nor deleted."""
         if kept:
-            now = utc_now()
             conn.executemany("INSERT INTO joins (seq, place_seq, stream, after_seq, created_at, kept) "
                              "VALUES (?, ?, ?, ?, ?, 1)",
                              [(int(row), int(old), stream, after, now) for stream, (row, old), after in kept])
 
-    def _join(self, conn: sqlite3.Connection, joins: list[tuple[str, tuple[int, int], int]]) -> int:
+    def _join(self, conn: sqlite3.Connection, joins: list[tuple[str, tuple[int, int], int]], now: str) -> int:
         """Warm-up joins (stream, (row, old row), after_seq), each row dropped (`joined`) with it; from
         schema 12 each row that no loop closure or repair names is turned into a visit of the old row
         (`visits.row_seq`, after the row before it) and deleted, so a join leaves no row behind (§11.8).
-        Returns how many rows were deleted."""
+        Made at `now` (the step's joins share it). Returns how many rows were deleted."""
         if not joins:
             return 0
-        now = utc_now()
         v12 = self.holds.joined_rows
         # from schema 12 the row's record as acknowledged goes with the join (`joined_row`)
         kept = ("observation_id", "image_sha256", "label", "created_at", "metadata") if v12 else ()

@@ -496,3 +496,14 @@ def test_verify_reads_a_drop_at_an_earlier_consolidated_frame_as_made_before_a_l
     store.add_visit(dataclasses.replace(visit(8, 1, 5), stream="a", joins=((3, 1),), drops=(5,)))
     assert [p.split(":")[0] for p in store.join_problems(2)] == ["join of row 2"]
     assert [p.split(":")[0] for p in store.join_problems(1)] == ["join of row 2", "join of row 3"]
+
+
+def test_one_step_s_joins_kept_or_not_share_one_time(store: MapStore) -> None:
+    """A review: a step's dropping and kept joins were stamped by two clock reads, which `join_problems`
+    reads as two steps (a later time is a later step where no visit orders them)."""
+    store.append(make_row(1, stream="old"))
+    for i in range(2, 5):
+        store.append(make_row(i, stream="a", prev=i - 1 if i > 2 else None))
+    store.add_visit(dataclasses.replace(visit(5, 1, 4), stream="a", joins=((4, 1),), kept=((3, 1), (2, 1))))
+    times = {r[0] for r in store._db().execute("SELECT created_at FROM joins")}
+    assert len(times) == 1 and store.joins() == [(2, 1), (3, 1), (4, 1)]
