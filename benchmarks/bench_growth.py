@@ -3,6 +3,7 @@ science.md §11.7-§11.9, docs/results.md §11): rows made and held per pass, re
 per pass, the visit log and the loop-closure log.
 
     cortexloc bench growth [--passes 10] [--lo 894] [--frames 400] [--seed 42] [--http] [--quick] [--anywhere]
+                           [--routes exact,noise8,winter]
 
 The route is files [lo, lo + frames) of ../shared/data/nordland_tiny_64x32's summer half (default the
 first 400 files of the held-out `test` half; labels = file index), driven `passes` times as ONE learning
@@ -11,7 +12,9 @@ a new map's seed, 42, as `service.evaluation.service_path.slam_replay` drives it
 itself through HTTP, `drive_http`, which also measures contrast at decode), the drive restarted
 before every pass (`Stream.break_sequence`, what `POST .../streams/{s}/reset` does: a new warm-up), the
 frames' contrast measured as the service measures it at decode (§11.7). Two routes: `exact` (every pass
-the same PNGs) and `noise8` (pass 1 the PNGs, every later pass new pixel noise of σ 8). `--anywhere`: every
+the same PNGs) and `noise8` (pass 1 the PNGs, every later pass new pixel noise of σ 8); `--routes` may add
+`winter` (pass 1 the summer PNGs, every later pass the same files' winter PNGs: one winter drive repeated
+exactly, another season's warm-ups, §11.8). `--anywhere`: every
 pass after the first starts part-way along the route (pass p, counted from 1, at file
 `lo + ((p − 1) · 7919) mod (frames / 2)`) and drives to its end; its recall is over the frames it drove
 (written to growth-anywhere.json).
@@ -127,10 +130,14 @@ def drive_http(pngs: list[list[bytes]], passes: list[np.ndarray], seed: int) -> 
     return out
 
 
+#: The routes a run drives (`--routes`): `main`'s names, the first two the default.
+ROUTES = ("exact", "noise8", "winter")
+
+
 def main(*, passes: int, lo: int, frames: int, seed: int, quick: bool, http: bool,
-         anywhere: bool = False) -> None:
-    """`cortexloc bench growth`: `passes` passes over files lo..lo+frames, in process or through HTTP;
-    `anywhere`: passes after the first start part-way along the route."""
+         anywhere: bool = False, routes: tuple[str, ...] = ROUTES[:2]) -> None:
+    """`cortexloc bench growth`: `passes` passes over files lo..lo+frames, in process or through HTTP,
+    of each of `routes` (ROUTES); `anywhere`: passes after the first start part-way along the route."""
     passes, n = (3, 100) if quick_mode(quick) else (passes, frames)
     starts = [(p * 7919) % max(n // 2, 1) if anywhere and p else 0 for p in range(passes)]
     enc, cache, conf = encoder_setup(None, None)
@@ -140,11 +147,17 @@ def main(*, passes: int, lo: int, frames: int, seed: int, quick: bool, http: boo
     labels = np.asarray(list(idx))
     imgs = [source.image("summer", i) for i in idx]
     clean = [stress.png(im) for im in imgs]
+    winter = [stress.png(source.image("winter", i)) for i in idx] if "winter" in routes else []
+
+    def later(name: str, p: int) -> list[bytes]:
+        """Pass p's (p >= 1) PNGs of route `name`."""
+        if name == "noise8":
+            return [stress.variant(im, "noise:8", 1000 * p + j) for j, im in enumerate(imgs)]
+        return winter if name == "winter" else clean
+
     results = {}
-    for name in ("exact", "noise8"):
-        pngs = [(clean if name == "exact" or p == 0 else
-                 [stress.variant(im, "noise:8", 1000 * p + j) for j, im in enumerate(imgs)])[starts[p]:]
-                for p in range(passes)]
+    for name in routes:
+        pngs = [(clean if p == 0 else later(name, p))[starts[p]:] for p in range(passes)]
         ys = [labels[o:] for o in starts]
         if http:
             rows = drive_http(pngs, ys, seed)

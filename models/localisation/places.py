@@ -49,8 +49,9 @@ JOIN_SLACK = 1
 
 class Explained(NamedTuple):
     """The warm-up joins one confident frame gives (`PlaceMap.explained`, docs/design/science.md §11.8):
-    (row, old row) each. `joins`: the old row represents the row, which is then held no more; `kept`: the
-    row is like the old row but not represented by it, and stays, an appearance of its place."""
+    (row, old row) each. `joins`: the old row represents the row, which is then held no more; `kept`: no
+    row there represents it, an appearance of the place of the old row (the row the path stood on) is
+    like it, and it stays, a new appearance of that place."""
 
     joins: list[tuple[int, int]]
     kept: list[tuple[int, int]]
@@ -435,9 +436,10 @@ class PlaceMap:
         `join_kept` like (another season's first frames, a noisier camera's), is joined and kept
         (`Explained.kept`): a new appearance of that place, not a place of its own. The old row is
         never of a place a row of the stream's short-term memory shows, nor of the trail the joined
-        row lies on. Each row is tried on
-        at most `exclusion` confident frames: O(reach · JOIN_SLACK) code reads on such a frame, O(reach)
-        on the rest. `trail`: the short-term memory the stream learns into (`Motion.trail`; None: its own).
+        row lies on. Each row is tried on at most `exclusion` confident frames: O(reach · JOIN_SLACK ·
+        appearances) code reads on such a frame, O(reach) on the rest. `trail`: the short-term memory
+        the stream learns into (`Motion.trail`; None: its own). `moved`: this frame was a move of its
+        stream (`moves`).
         """
         c = float(self.options.consolidate)
         memory = self._short.get(trail or stream)

@@ -444,9 +444,18 @@ def bench_growth(
     http: Annotated[bool, typer.Option("--http", help="through HTTP: the service at its defaults")] = False,
     anywhere: Annotated[bool, typer.Option("--anywhere", help="passes after the first start part-way along "
                                            "the route")] = False,
+    routes: Annotated[str, typer.Option(help="comma-separated: exact, noise8, winter (every pass after the "
+                                        "first in winter)")] = "exact,noise8",
 ) -> None:
     """A map's growth pass after pass over one held-out route while it learns (docs/results.md §11;
     benchmarks/bench_growth.py)."""
-    from benchmarks.bench_growth import main
+    from benchmarks.bench_growth import ROUTES, main
 
-    main(passes=passes, lo=lo, frames=frames, seed=seed, quick=quick, http=http, anywhere=anywhere)
+    chosen = tuple(r.strip() for r in routes.split(",") if r.strip())
+    unknown = sorted(set(chosen) - set(ROUTES))
+    if unknown or not chosen:
+        raise typer.BadParameter(f"unknown route(s) {', '.join(unknown) or '(none given)'}; "
+                                 f"choose among {', '.join(ROUTES)}", param_hint="--routes")
+
+    main(passes=passes, lo=lo, frames=frames, seed=seed, quick=quick, http=http, anywhere=anywhere,
+         routes=chosen)

@@ -53,3 +53,8 @@ def test_an_unknown_window_is_refused_before_any_frame_is_encoded() -> None:
     # found by a review: `eval runtime-parity --windows 9-99` encoded nothing and ended in a KeyError
     r = CliRunner().invoke(app, ["eval", "runtime-parity", "--windows", "1-200,9-99"])
     assert r.exit_code == 2 and "no window 9-99" in " ".join(r.output.split()), r.output
+
+
+def test_an_unknown_growth_route_is_refused_before_any_frame_is_encoded() -> None:
+    r = CliRunner().invoke(app, ["bench", "growth", "--routes", "exact,autumn"])
+    assert r.exit_code == 2 and "unknown route(s) autumn" in " ".join(r.output.split()), r.output
