@@ -149,7 +149,7 @@ def main(*, passes: int, lo: int, frames: int, seed: int, quick: bool, http: boo
     clean = [stress.png(im) for im in imgs]
     winter = [stress.png(source.image("winter", i)) for i in idx] if "winter" in routes else []
 
-    def later(name: str, p: int) -> list[bytes]:
+    def pass_pngs(name: str, p: int) -> list[bytes]:
         """Pass p's (p >= 1) PNGs of route `name`."""
         if name == "noise8":
             return [stress.variant(im, "noise:8", 1000 * p + j) for j, im in enumerate(imgs)]
@@ -157,7 +157,7 @@ def main(*, passes: int, lo: int, frames: int, seed: int, quick: bool, http: boo
 
     results = {}
     for name in routes:
-        pngs = [(clean if p == 0 else later(name, p))[starts[p]:] for p in range(passes)]
+        pngs = [(clean if p == 0 else pass_pngs(name, p))[starts[p]:] for p in range(passes)]
         ys = [labels[o:] for o in starts]
         if http:
             rows = drive_http(pngs, ys, seed)
