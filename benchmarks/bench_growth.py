@@ -45,14 +45,15 @@ from service.evaluation.slam import encoder_setup
 
 
 def drive(feats: list[np.ndarray], contrast: list[np.ndarray], passes: list[np.ndarray],
-          seed: int) -> list[dict]:
-    """`feats[p]` (T_p, D) the features of pass p's frames, `passes[p]` (T_p,) their labels: one map, one
-    stream, the drive restarted before each pass. Returns one dict per pass."""
+          seed: int, localiser: dict | None = None) -> list[dict]:
+    """`feats[p]` (T_p, D) the features of pass p's frames, `passes[p]` (T_p,) their labels: one map (its
+    `localiser` options over the defaults), one stream, the drive restarted before each pass. Returns one
+    dict per pass."""
     backbone, preset = ENC["backbone"], ENC["preset"]
     model, hasher, config = service_path._model(int(feats[0].shape[1]),
                                                 max_observations=sum(len(y) for y in passes),
                                                 backbone=backbone, preset=preset, seed=seed, memory="tm",
-                                                localiser=None, create=None)
+                                                localiser=localiser, create=None)
     thr = config.revisit_threshold
     robot, codes, label_of = Stream(), {}, {}
     out, visits, closures = [], 0, 0
@@ -85,7 +86,8 @@ def drive(feats: list[np.ndarray], contrast: list[np.ndarray], passes: list[np.n
     return out
 
 
-def drive_http(pngs: list[list[bytes]], passes: list[np.ndarray], seed: int) -> list[dict]:
+def drive_http(pngs: list[list[bytes]], passes: list[np.ndarray], seed: int,
+               localiser: dict | None = None) -> list[dict]:
     """`drive` through HTTP: the service itself (`create_app` at the defaults, its own encoder, a fresh
     data directory), a new map of `seed`, each pass's PNGs posted as one learning stream, `POST
     .../streams/robot/reset` before each pass; the sizes read from `GET /v1/maps/{id}` (`places`)."""
@@ -98,7 +100,8 @@ def drive_http(pngs: list[list[bytes]], passes: list[np.ndarray], seed: int) -> 
 
     out, visits0, closures = [], 0, 0
     with tempfile.TemporaryDirectory() as d, TestClient(create_app(Settings(data_dir=Path(d)))) as c:
-        assert c.post("/v1/maps", json={"map_id": "growth", "seed": seed}).status_code == 201
+        made = {"map_id": "growth", "seed": seed, **({"localiser": localiser} if localiser else {})}
+        assert c.post("/v1/maps", json=made).status_code == 201
         label_of: dict[int, int] = {}
         before = c.get("/v1/maps/growth").json()["places"]
         for p, (bodies, labels) in enumerate(zip(pngs, passes, strict=True)):
@@ -135,9 +138,10 @@ ROUTES = ("exact", "noise8", "winter")
 
 
 def main(*, passes: int, lo: int, frames: int, seed: int, quick: bool, http: bool,
-         anywhere: bool = False, routes: tuple[str, ...] = ROUTES[:2]) -> None:
+         anywhere: bool = False, routes: tuple[str, ...] = ROUTES[:2], localiser: dict | None = None) -> None:
     """`cortexloc bench growth`: `passes` passes over files lo..lo+frames, in process or through HTTP,
-    of each of `routes` (ROUTES); `anywhere`: passes after the first start part-way along the route."""
+    of each of `routes` (ROUTES); `anywhere`: passes after the first start part-way along the route;
+    `localiser`: the map's localiser options over the defaults (an ablation)."""
     passes, n = (3, 100) if quick_mode(quick) else (passes, frames)
     starts = [(p * 7919) % max(n // 2, 1) if anywhere and p else 0 for p in range(passes)]
     enc, cache, conf = encoder_setup(None, None)
@@ -160,10 +164,10 @@ def main(*, passes: int, lo: int, frames: int, seed: int, quick: bool, http: boo
         pngs = [(clean if p == 0 else pass_pngs(name, p))[starts[p]:] for p in range(passes)]
         ys = [labels[o:] for o in starts]
         if http:
-            rows = drive_http(pngs, ys, seed)
+            rows = drive_http(pngs, ys, seed, localiser)
         else:
             feats = [source.features(ps) for ps in pngs]
-            rows = drive(feats, [service_path.contrasts(ps) for ps in pngs], ys, seed)
+            rows = drive(feats, [service_path.contrasts(ps) for ps in pngs], ys, seed, localiser)
         p2 = rows[1]["recall"] if len(rows) > 1 else 0.0
         later = rows[2:]
         summary = {"route": name, "rows_per_pass_3_on": [r["rows"] for r in later],
@@ -180,6 +184,7 @@ def main(*, passes: int, lo: int, frames: int, seed: int, quick: bool, http: boo
         results[name] = {"passes": rows, "summary": summary}
     write_json(f"growth{'-http' if http else ''}{'-anywhere' if anywhere else ''}.json",
                {"machine": machine(), "route": [lo, lo + n], "seed": seed, "starts": starts,
+                "localiser": localiser or {},
                 "results": results})
 
 

@@ -265,3 +265,54 @@ def test_the_growth_benchmark_runs_every_route_asked_for(tmp_path: Path, monkeyp
         assert len(passes) == 3 and passes[0]["rows"] == passes[0]["held"] == 100  # a new map's first pass
         for p in passes:
             assert p["held"] <= p["rows"] <= 100  # rows made this pass; held: less those joined away
+
+
+def test_the_growth_benchmark_builds_its_map_with_the_localiser_options_asked_for(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`--localiser` (an ablation): `consolidate` 1 never consolidates, so a second exact pass of the
+    route is a row a frame where at the defaults it is visits; a value that is no JSON object is a
+    usage error before anything runs."""
+    from benchmarks import bench_growth as b
+    from models.evaluation import datasets
+
+    bad = CliRunner().invoke(app, ["bench", "growth", "--quick", "--localiser", "[1]"])
+    assert bad.exit_code == 2 and "JSON object" in bad.output
+    if not (datasets.nordland_dir() / "summer").is_dir():
+        pytest.skip(f"no Nordland data at {datasets.nordland_dir()}")
+    written: list[dict] = []
+    monkeypatch.setattr(b, "write_json", lambda name, payload: written.append(payload))
+    for options in (None, {"consolidate": 1.0}):
+        b.main(passes=2, lo=894, frames=30, seed=42, quick=False, http=False, routes=("exact",),
+               localiser=options)
+    default, never = (w["results"]["exact"]["passes"][1] for w in written)
+    assert written[1]["localiser"] == {"consolidate": 1.0}
+    assert never["visits"] == 0 and never["rows"] == 30 and default["visits"] > 0
+
+
+def test_the_parked_experiment_stands_within_stand_metres_and_totals_its_lines(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """`cortexloc eval parked`: a file 10 m on and a frame a second; the stop's poses within the default
+    `stand_metres` of each other (so the rule applies) and under `move_metres` of its file's; `sum` adds
+    every line's revisits per ground, mode and phase and names the windows with a wrong one."""
+    from benchmarks.experiments import parked
+    from models.localisation import LocaliserOptions
+
+    files, phase = [5, 6, 7, 7, 7, 7, 8], [0, 0, 0, 1, 1, 1, 2]
+    motions = parked.poses(files, phase, 100.0)
+    xs = [m.pose[0] for m in motions]
+    assert xs[1] - xs[0] == xs[2] - xs[1] == 10.0 and [m.stamp for m in motions] == list(map(float, range(7)))
+    stop = xs[3:6]
+    assert max(stop) - min(stop) < LocaliserOptions().stand_metres and abs(stop[0] - xs[2]) < 1.0
+
+    def line(seed: int, wrong: int) -> dict:
+        counts = {p: {"called": 2, "wrong": 0} for p in parked.PHASES}
+        counts["parked"] = {"called": 3, "wrong": wrong}
+        return {"half": "tune", "lo": 0, "seed": seed,
+                **{g: {m: counts for m in parked.MODES} for g in parked.GROUNDS}}
+
+    parked.total([line(1, 0), line(7, 3)])
+    out = capsys.readouterr().out.splitlines()
+    new_poses = next(x for x in out if x.startswith("new poses "))
+    assert '"parked": {"called": 6, "wrong": 3}' in new_poses
+    assert "windows with a wrong revisit: 1" in new_poses
+    assert out[-1].endswith("lines: 2")

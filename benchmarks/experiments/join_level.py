@@ -20,16 +20,14 @@ fraction of frames at or above each level of LEVELS. Deterministic: the map seed
 from __future__ import annotations
 
 import json
-import time
 from typing import Any
 
 import numpy as np
 
-from models.evaluation import datasets
+from benchmarks.experiments import per_window
 from models.frontend import slsbh
 from models.localisation.trail import CodeStats, code_dice
 from service.evaluation import service_path, stress
-from service.evaluation.slam import encoder_setup
 
 #: The back-steps of a wrong join's path (places off the row the frame shows).
 WRONG_STEPS = (3, 5, 10, 20, 30)
@@ -81,14 +79,7 @@ def _read(v: np.ndarray) -> dict[str, Any]:
 
 
 def main(*, seeds: list[int]) -> None:
-    enc, cache, conf = encoder_setup(None, None)
-    frames = stress.Frames(datasets.nordland_dir(), enc, cache)
-    for half, lo in stress.windows(quick=False):
-        for seed in seeds:
-            t0 = time.perf_counter()
-            line = run(frames, half, lo, seed, conf)
-            line["seconds"] = round(time.perf_counter() - t0, 1)
-            print(json.dumps(line), flush=True)
+    per_window(run, seeds)
 
 
 def total(lines: list[dict[str, Any]]) -> None:

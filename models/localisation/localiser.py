@@ -152,6 +152,8 @@ class LocaliserState:
             start of the stream's current trail (a stream that resumes after a restart without its
             state, or mid-stop, has left nothing until a frame unlike its trail is seen).
         here_code: the sorted code of row `here` (a cache, not saved; None: not read yet).
+        last: the answer of the last frame stepped (`SequenceLocaliser.step`), which a frame that only
+            repeats its view gets again (not saved; None: none yet, or in warm-up).
     """
 
     rows: np.ndarray
@@ -164,6 +166,7 @@ class LocaliserState:
     null: float = NULL_PRIOR
     here: int = UNKNOWN
     here_code: np.ndarray | None = None
+    last: Place | None = None
 
     @classmethod
     def empty(cls, beam: int) -> LocaliserState:
@@ -180,7 +183,7 @@ class LocaliserState:
         self.lags[:] = 0
         self.frames = 0
         self.null = NULL_PRIOR
-        self.here, self.here_code = UNKNOWN, None
+        self.here, self.here_code, self.last = UNKNOWN, None, None
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain numpy arrays for a snapshot (`np.savez`); `from_arrays` restores them."""
@@ -322,7 +325,8 @@ class SequenceLocaliser:
 
     def step(self, state: LocaliserState, graph: SequenceGraph, seqs: np.ndarray,
              scores: np.ndarray, own: OwnTrail | None = None, informative: bool = True,
-             moved: bool = True, departed: bool = False, shares: np.ndarray | None = None) -> Place | None:
+             moved: bool = True, departed: bool = False, shares: np.ndarray | None = None,
+             repeat: bool = False) -> Place | None:
         """Advance one stream by one frame and answer its place.
 
         Args:
@@ -342,10 +346,22 @@ class SequenceLocaliser:
             shares: (K,) in [0, 1] with `seqs`, the share of its evidence each candidate keeps: under 1
                 for a flat row under a frame with more contrast (`flat_share`, `PlaceMap.step`, §11.7);
                 the null reads its level from the candidates' whole spread first. None: all of it.
+            repeat: the frame stands (`moved` False) and shows the view the last frame that gave
+                evidence showed (docs/design/science.md §11.2 step 2): that view again, not new evidence.
+                The state is left as it is and the answer is its last one (`LocaliserState.last`);
+                where it has none (a state restored, or new), the frame is stepped as any.
 
         Returns:
             The place, or None while fewer than `warmup` frames were seen or no candidate was ever given.
         """
+        if repeat and state.last is not None:
+            return state.last
+        state.last = self._step(state, graph, seqs, scores, own, informative, moved, departed, shares)
+        return state.last
+
+    def _step(self, state: LocaliserState, graph: SequenceGraph, seqs: np.ndarray, scores: np.ndarray,
+              own: OwnTrail | None, informative: bool, moved: bool, departed: bool,
+              shares: np.ndarray | None) -> Place | None:
         c = self.options
         seqs, scores = np.asarray(seqs, np.int64), np.asarray(scores, np.float64)
         if seqs.size and (seqs.min() < 0 or seqs.max() >= len(graph)):

@@ -99,6 +99,11 @@ class LocaliserOptions:
     short_term_metres: float = 20.0
     move_metres: float = 1.0
     max_speed: float = 50.0
+    #: a posed frame within `stand_metres` of the pose of its stream's last frame that gave evidence, no
+    #: move (`move_metres`) and not unlike that frame's view, repeats it: no new evidence, the answer
+    #: stays (§11.2 step 2). RTAB-Map's `RGBD/LinearUpdate`; above a standing robot's pose noise (cm),
+    #: under a robot's step at walking speed and 10 frames a second (0.14 m). 0: every frame is evidence
+    stand_metres: float = 0.1
     #: odometry's word (§11.12): within one drive of a stream (posed, stamped frames, no gap longer than
     #: `odometry_gap` s, no reset), a row whose pose lies farther from the frame's than `odometry_drift` x
     #: the path driven since plus `odometry_slack` m is no loop candidate (a drift of 10 disables it):
@@ -170,6 +175,7 @@ class LocaliserParams(BaseModel):
     short_term_metres: float = Field(_D.short_term_metres, ge=0.0, le=1e5)
     move_metres: float = Field(_D.move_metres, gt=0.0, le=1e4)
     max_speed: float = Field(_D.max_speed, gt=0.0, le=1e4)
+    stand_metres: float = Field(_D.stand_metres, ge=0.0, le=1e4)
     odometry_drift: float = Field(_D.odometry_drift, ge=0.0, le=10.0)
     odometry_slack: float = Field(_D.odometry_slack, ge=0.0, le=1e5)
     odometry_gap: float = Field(_D.odometry_gap, gt=0.0, le=1e6)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import itertools
+import math
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, NamedTuple, TypeVar
@@ -25,7 +26,7 @@ from models.localisation.localiser import informative as is_informative
 from models.localisation.motion import NO_MOTION, Motion
 from models.localisation.odometry import Odometer, RowOdometry
 from models.localisation.options import LocaliserOptions
-from models.localisation.short_term import KEPT, Anchor, ShortTerm, ring_moves
+from models.localisation.short_term import KEPT, Anchor, ShortTerm, View, ring_moves
 from models.localisation.trail import CodeStats, OwnTrail, code_dice
 
 __all__ = ["Explained", "PlaceMap", "graph_from_rows"]
@@ -277,6 +278,17 @@ class PlaceMap:
         only of a frame that moved by its poses too (`moves`), with a look to judge it against."""
         code = np.asarray(code, np.int64)
         return code_dice(code, look) < self.departure(code)
+
+    def repeats(self, seen: View | None, code: np.ndarray, motion: Motion, moved: bool) -> bool:
+        """Whether a frame (`code` (n,) sorted, its `motion`; `moved`: a move of its stream, `moves`) only
+        repeats `seen`, the view of its stream's last frame that gave evidence (§11.2 step 2): no move,
+        posed within `stand_metres` of that frame's pose, and not unlike its view by the `departure`
+        level (`departs`). Such a frame is no new evidence. Without poses never (appearance cannot tell
+        a robot that stands from a stretch alike, `moves`)."""
+        if moved or seen is None or motion.pose is None:
+            return False
+        gone = math.hypot(motion.pose[0] - seen.pose[0], motion.pose[1] - seen.pose[1])
+        return gone < float(self.options.stand_metres) and not self.departs(seen.code, code)
 
     def stays(self, stream: str, code: np.ndarray, motion: Motion = NO_MOTION) -> bool:
         """Whether a learned frame of `stream` has not moved since its short-term memory's last move
@@ -575,7 +587,8 @@ class PlaceMap:
                                         informative)
 
     def step(self, state: LocaliserState, ranked: Sequence[Match], own: OwnTrail | None,
-             contrast: float | None = None, moved: bool = True, departed: bool = False) -> Place | None:
+             contrast: float | None = None, moved: bool = True, departed: bool = False,
+             repeat: bool = False) -> Place | None:
         """One frame of one stream (docs/design/science.md §11.2), before this frame is stored.
 
         Args:
@@ -589,6 +602,8 @@ class PlaceMap:
                 keeps `flat_share` of its evidence (§11.7).
             moved: False where the frame is no move of its stream by its poses (`moves`, §11.6).
             departed: the frame is a move of its stream by its look (`departs`, §11.13).
+            repeat: the frame stands by its poses and repeats the view of the last frame that gave
+                evidence (§11.2 step 2): no new evidence, the answer stays the last one.
 
         Returns:
             The place, or None during warm-up.
@@ -600,7 +615,7 @@ class PlaceMap:
         flat = self.flat[seqs] if ok else np.zeros(seqs.size, bool)
         shares = np.where(flat, flat_share(contrast), 1.0) if flat.any() else None
         return self.localiser.step(state, self.graph, seqs, scores, own, is_informative(contrast), moved,
-                                   departed, shares)
+                                   departed, shares, repeat)
 
 
 def _most_alike(code: np.ndarray, code_of: Callable[[int], np.ndarray],

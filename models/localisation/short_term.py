@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
+from typing import NamedTuple
 
 import numpy as np
 
@@ -66,6 +67,13 @@ def ring_moves(conf: LocaliserOptions) -> int:
         return 0
     metres, step = float(conf.short_term_metres), float(conf.move_metres)
     return max(moves, min(1000, math.ceil(metres / step))) if metres > 0 else moves
+
+
+class View(NamedTuple):
+    """A posed frame's view: its code (n,) sorted and its pose (x, y) in metres."""
+
+    code: np.ndarray
+    pose: tuple[float, float]
 
 
 class Anchor:

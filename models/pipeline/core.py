@@ -27,6 +27,7 @@ from models.frontend.adaptation import RunningMean
 from models.localisation import InvertedIndex, LocaliserOptions, Match, Place, PlaceMap, informative
 from models.localisation.condition import Condition
 from models.localisation.motion import NO_MOTION, Motion
+from models.localisation.short_term import View
 from models.localisation.trail import OwnTrail
 from models.memory import registry as memories
 from models.memory.temporal_memory import TemporalMemory
@@ -268,7 +269,14 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     departed = moved and not flat and st.look is not None and model.place_map.departs(st.look, code)
     if departed or (st.look is None and not flat):
         st.look = code
-    place = model.place_map.step(st.localiser, ranked, own, contrast, moved, departed)
+    # A frame that stands by its poses and shows the view the last frame that gave evidence showed is
+    # that view again, no new evidence: the answer stays the last one (§11.2 step 2). Counted as new, a
+    # parked robot's frames let a path resting on a stored row elsewhere that looks like its view
+    # gather confidence frame after frame, to a false revisit (docs/results.md §10.24).
+    repeat = not flat and model.place_map.repeats(st.seen, code, motion, moved)
+    if not repeat and not flat and motion.pose is not None:
+        st.seen = View(code, motion.pose)
+    place = model.place_map.step(st.localiser, ranked, own, contrast, moved, departed, repeat)
     visit, joined, touched, joins, kept = None, -1, [], [], []
     dropped: tuple[int, ...] = ()
     if learn:

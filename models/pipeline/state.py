@@ -16,7 +16,7 @@ import numpy as np
 from models.frontend.adaptation import RunningMean
 from models.localisation import LocaliserState
 from models.localisation.condition import Condition
-from models.localisation.short_term import Anchor
+from models.localisation.short_term import Anchor, View
 from models.memory.temporal_memory import StreamContext, TemporalMemory
 
 __all__ = ["Stream", "eviction_wait", "load_memory_state", "memory_name", "memory_state", "resume",
@@ -52,6 +52,9 @@ class Stream:
     # (docs/design/science.md §11.13): its paths keep pace with these. Not stored: after a restart its
     # first frame is the look, no move (as a stream's first frame is).
     look: np.ndarray | None = None
+    # Its last frame that gave its localiser evidence, posed: its code and pose (docs/design/science.md
+    # §11.2 step 2; `PlaceMap.repeats`). Not stored: after a restart its first frame gives evidence.
+    seen: View | None = None
     # Its last learned frame was a visit its code earned, at the consolidation level of an appearance
     # (docs/design/science.md §11.8): the stream is in the conditions of the places it passes, so a
     # confident revisit under the level is one frame's noise, not a new appearance. Stored with the
@@ -71,7 +74,7 @@ class Stream:
         """The next frame starts a new sequence (and a new search for the place); the adaptation and the
         condition are kept, because they describe the camera and the conditions, not where the robot is."""
         self.new_sequence()
-        self.localiser, self.look = None, None
+        self.localiser, self.look, self.seen = None, None, None
 
 
 def eviction_wait(streams: OrderedDict[str, Stream], name: str, max_streams: int, keep_seconds: float,

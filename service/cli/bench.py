@@ -446,10 +446,14 @@ def bench_growth(
                                            "the route")] = False,
     routes: Annotated[str, typer.Option(help="comma-separated: exact, noise8, winter (every pass after the "
                                         "first in winter)")] = "exact,noise8",
+    localiser: Annotated[str | None, typer.Option(help="the map's localiser options as JSON, over the "
+                                                  "defaults (an ablation), e.g. '{\"unsure_fraction\": 0}'")]
+    = None,
 ) -> None:
     """A map's growth pass after pass over one held-out route while it learns (docs/results.md §11;
     benchmarks/bench_growth.py)."""
     from benchmarks.bench_growth import ROUTES, main
+    from service.cli.evaluate import _json_object
 
     chosen = tuple(r.strip() for r in routes.split(",") if r.strip())
     unknown = sorted(set(chosen) - set(ROUTES))
@@ -458,4 +462,4 @@ def bench_growth(
                                  f"choose among {', '.join(ROUTES)}", param_hint="--routes")
 
     main(passes=passes, lo=lo, frames=frames, seed=seed, quick=quick, http=http, anywhere=anywhere,
-         routes=chosen)
+         routes=chosen, localiser=_json_object(localiser or "", "--localiser"))

@@ -330,6 +330,25 @@ def eval_span(
               localiser=_json_object(localiser, "LOCALISER"))
 
 
+@app.command("parked")
+def eval_parked(
+    seeds: Annotated[str, typer.Argument(help="comma-separated map seeds; `sum`: total the JSON lines read "
+                                         "from stdin")],
+) -> None:
+    """A robot that parks, on new ground beside a map of other ground and on known ground, with poses and
+    without, the standing-view rule on and off: revisits before, during and after the stop, one JSON
+    line per window and seed (docs/results.md §10.24; benchmarks/experiments/parked.py)."""
+    import json
+    import sys
+
+    from benchmarks.experiments import parked
+
+    if seeds == "sum":
+        parked.total([json.loads(line) for line in sys.stdin if line.strip()])
+        return
+    parked.main(seeds=_split(seeds, "SEEDS", int))
+
+
 @app.command("join-level")
 def eval_join_level(
     seeds: Annotated[str, typer.Argument(help="comma-separated map seeds; `sum`: total the JSON lines read "

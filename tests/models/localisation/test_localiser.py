@@ -806,3 +806,26 @@ def test_a_path_back_along_the_trail_its_stream_lays_must_show_the_row_or_have_o
     quiet, posed = reverse_on_own_trail(False, True, False), reverse_on_own_trail(True, True, False)
     assert [p.seq for p in quiet[5:]] == [p.seq for p in posed[5:]]
     assert [p.confidence for p in quiet[5:]] == [p.confidence for p in posed[5:]]
+
+
+def test_a_frame_that_repeats_its_view_standing_leaves_the_state_and_gets_the_last_answer() -> None:
+    """docs/design/science.md §11.2 step 2: `repeat` (a frame that stands by its poses and shows the view
+    the last frame that gave evidence showed) is no new evidence: the state is as it was, the answer the
+    last one, whatever the candidates say. A state restored from a snapshot has no last answer (it is
+    not saved): its first such frame steps as any."""
+    n = 30
+    S = place_similarity(np.arange(n), np.arange(20), noise=0.1)
+    graph, loc = SequenceGraph.chain(n), SequenceLocaliser()
+    state = loc.new_state()
+    last = run(S, graph, loc=loc, state=state)[-1]
+    assert last is not None and state.last is last
+    before = state.to_arrays()
+    lure = np.zeros(n)
+    lure[3] = 5.0  # a row elsewhere, far more like this frame than the row the stream is at
+    for _ in range(50):
+        assert loc.step(state, graph, np.arange(n), lure, moved=False, repeat=True) is last
+    assert all(np.array_equal(v, state.to_arrays()[k]) for k, v in before.items())
+    restored = LocaliserState.from_arrays(before)
+    assert restored.last is None
+    stepped = loc.step(restored, graph, np.arange(n), lure, moved=False, repeat=True)
+    assert stepped is not None and stepped is not last and restored.frames == state.frames + 1

@@ -103,9 +103,9 @@ def test_a_frames_flat_candidates_keep_the_share_of_evidence_its_contrast_gives(
     m, codes = flat_map()
     real, seen = m.place_map.localiser.step, []
 
-    def spy(state, graph, seqs, scores, own, informative, moved, departed, shares):
+    def spy(state, graph, seqs, scores, own, informative, moved, departed, shares, repeat):
         seen.append((np.asarray(seqs).tolist(), shares))
-        return real(state, graph, seqs, scores, own, informative, moved, departed, shares)
+        return real(state, graph, seqs, scores, own, informative, moved, departed, shares, repeat)
 
     monkeypatch.setattr(m.place_map.localiser, "step", spy)
     for contrast in (None, MIN_CONTRAST, 0.3):
