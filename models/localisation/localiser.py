@@ -144,7 +144,7 @@ class LocaliserState:
             move (§11.13): at a move of the stream LAG_KEPT of itself + 1, - 1 a row the path advanced,
             never below 0; at least `lag_max` + 1 once it stayed through a move on a row with no successor
             along its direction (a dead end: it can never make that move up).
-        frames: frames seen since the last reset.
+        frames: frames stepped since the last reset (a frame that only repeats its view is not).
         null: the null hypothesis' decayed score ("a place the map has not stored",
             docs/design/science.md §11.5); NULL_PRIOR (-inf, not yet born) at the start of a stream.
         here: the oldest row of the stream's own current trail it has not left (docs/design/science.md
@@ -152,8 +152,9 @@ class LocaliserState:
             start of the stream's current trail (a stream that resumes after a restart without its
             state, or mid-stop, has left nothing until a frame unlike its trail is seen).
         here_code: the sorted code of row `here` (a cache, not saved; None: not read yet).
-        last: the answer of the last frame stepped (`SequenceLocaliser.step`), which a frame that only
-            repeats its view gets again (not saved; None: none yet, or in warm-up).
+        background: the background level J of the last frame stepped that gave an answer (§11.2 step 3),
+            from which a frame that only repeats its view is answered again off the same state (not
+            saved; None: none yet, in warm-up, or restored).
     """
 
     rows: np.ndarray
@@ -166,7 +167,7 @@ class LocaliserState:
     null: float = NULL_PRIOR
     here: int = UNKNOWN
     here_code: np.ndarray | None = None
-    last: Place | None = None
+    background: float | None = None
 
     @classmethod
     def empty(cls, beam: int) -> LocaliserState:
@@ -183,7 +184,7 @@ class LocaliserState:
         self.lags[:] = 0
         self.frames = 0
         self.null = NULL_PRIOR
-        self.here, self.here_code, self.last = UNKNOWN, None, None
+        self.here, self.here_code, self.background = UNKNOWN, None, None
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain numpy arrays for a snapshot (`np.savez`); `from_arrays` restores them."""
@@ -348,16 +349,17 @@ class SequenceLocaliser:
                 the null reads its level from the candidates' whole spread first. None: all of it.
             repeat: the frame stands (`moved` False) and shows the view the last frame that gave
                 evidence showed (docs/design/science.md §11.2 step 2): that view again, not new evidence.
-                The state is left as it is and the answer is its last one (`LocaliserState.last`);
-                where it has none (a state restored, or new), the frame is stepped as any.
+                The state is left as it is and the answer is read off it again, as the last frame's was
+                (`LocaliserState.background`), with the map as it is now (a place a join or a repair
+                changed since is the new one); where there is none (a state restored, or new), the
+                frame is stepped as any. The caller says a frame repeats only after an informative one.
 
         Returns:
             The place, or None while fewer than `warmup` frames were seen or no candidate was ever given.
         """
-        if repeat and state.last is not None:
-            return state.last
-        state.last = self._step(state, graph, seqs, scores, own, informative, moved, departed, shares)
-        return state.last
+        if repeat and state.background is not None:
+            return self._reply(state, graph, own, True)
+        return self._step(state, graph, seqs, scores, own, informative, moved, departed, shares)
 
     def _step(self, state: LocaliserState, graph: SequenceGraph, seqs: np.ndarray, scores: np.ndarray,
               own: OwnTrail | None, informative: bool, moved: bool, departed: bool,
@@ -475,10 +477,19 @@ class SequenceLocaliser:
         state.born[:n], state.lags[:n] = b[idx], lag[idx]
         state.frames += 1
         if state.frames < c.warmup or n == 0:
+            state.background = None
             return None
-        place = self._answer(state, graph, n, jump)
-        if place.advancing and c.lag_max < LAG_OFF and mirrors(own, graph, int(state.rows[0]),
-                                                                int(state.dirs[0])):
+        state.background = jump
+        return self._reply(state, graph, own, informative)
+
+    def _reply(self, state: LocaliserState, graph: SequenceGraph, own: OwnTrail | None,
+               informative: bool) -> Place:
+        """The answer (§11.2 step 5) the stepped state gives, at the background level of its last step."""
+        assert state.background is not None
+        n = int((state.rows >= 0).sum())  # the live hypotheses lead the beam
+        place = self._answer(state, graph, n, state.background)
+        if place.advancing and self.options.lag_max < LAG_OFF and mirrors(own, graph, int(state.rows[0]),
+                                                                           int(state.dirs[0])):
             place = place._replace(advancing=False)
         return place if informative else place._replace(informative=False)
 

@@ -281,7 +281,7 @@ class PlaceMap:
 
     def repeats(self, seen: View | None, code: np.ndarray, motion: Motion, moved: bool) -> bool:
         """Whether a frame (`code` (n,) sorted, its `motion`; `moved`: a move of its stream, `moves`) only
-        repeats `seen`, the view of its stream's last frame that gave evidence (§11.2 step 2): no move,
+        repeats `seen`, the view of the frame its stream's localiser last stepped (§11.2 step 2): no move,
         posed within `stand_metres` of that frame's pose, and not unlike its view by the `departure`
         level (`departs`). Such a frame is no new evidence. Without poses never (appearance cannot tell
         a robot that stands from a stretch alike, `moves`)."""

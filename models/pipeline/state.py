@@ -52,8 +52,9 @@ class Stream:
     # (docs/design/science.md §11.13): its paths keep pace with these. Not stored: after a restart its
     # first frame is the look, no move (as a stream's first frame is).
     look: np.ndarray | None = None
-    # Its last frame that gave its localiser evidence, posed: its code and pose (docs/design/science.md
-    # §11.2 step 2; `PlaceMap.repeats`). Not stored: after a restart its first frame gives evidence.
+    # The view (code and pose) of the frame its localiser last stepped, where that frame was posed and
+    # not flat, else None (docs/design/science.md §11.2 step 2; `PlaceMap.repeats`). Not stored: after a
+    # restart its first frame steps.
     seen: View | None = None
     # Its last learned frame was a visit its code earned, at the consolidation level of an appearance
     # (docs/design/science.md §11.8): the stream is in the conditions of the places it passes, so a

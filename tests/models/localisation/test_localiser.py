@@ -810,22 +810,26 @@ def test_a_path_back_along_the_trail_its_stream_lays_must_show_the_row_or_have_o
 
 def test_a_frame_that_repeats_its_view_standing_leaves_the_state_and_gets_the_last_answer() -> None:
     """docs/design/science.md §11.2 step 2: `repeat` (a frame that stands by its poses and shows the view
-    the last frame that gave evidence showed) is no new evidence: the state is as it was, the answer the
-    last one, whatever the candidates say. A state restored from a snapshot has no last answer (it is
-    not saved): its first such frame steps as any."""
+    the last frame stepped showed) is no new evidence: the state is as it was, the answer the last one
+    read off it again, whatever the candidates say, with the map as it is now (a place a join changed
+    since is the new one). A state restored from a snapshot has no background level of a last step (it
+    is not saved): its first such frame steps as any."""
     n = 30
     S = place_similarity(np.arange(n), np.arange(20), noise=0.1)
     graph, loc = SequenceGraph.chain(n), SequenceLocaliser()
     state = loc.new_state()
     last = run(S, graph, loc=loc, state=state)[-1]
-    assert last is not None and state.last is last
+    assert last is not None and last.seq == 19
     before = state.to_arrays()
     lure = np.zeros(n)
     lure[3] = 5.0  # a row elsewhere, far more like this frame than the row the stream is at
     for _ in range(50):
-        assert loc.step(state, graph, np.arange(n), lure, moved=False, repeat=True) is last
+        assert loc.step(state, graph, np.arange(n), lure, moved=False, repeat=True) == last
     assert all(np.array_equal(v, state.to_arrays()[k]) for k, v in before.items())
+    graph.rejoin(19, 2)  # a join made row 19 an appearance of row 2's place
+    again = loc.step(state, graph, np.arange(n), lure, moved=False, repeat=True)
+    assert again.seq == 19 and again.place == graph.place[2] != last.place
     restored = LocaliserState.from_arrays(before)
-    assert restored.last is None
+    assert restored.background is None
     stepped = loc.step(restored, graph, np.arange(n), lure, moved=False, repeat=True)
-    assert stepped is not None and stepped is not last and restored.frames == state.frames + 1
+    assert stepped is not None and stepped != last and restored.frames == state.frames + 1
