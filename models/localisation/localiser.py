@@ -347,12 +347,13 @@ class SequenceLocaliser:
             shares: (K,) in [0, 1] with `seqs`, the share of its evidence each candidate keeps: under 1
                 for a flat row under a frame with more contrast (`flat_share`, `PlaceMap.step`, §11.7);
                 the null reads its level from the candidates' whole spread first. None: all of it.
-            repeat: the frame stands (`moved` False) and shows the view the last frame that gave
-                evidence showed (docs/design/science.md §11.2 step 2): that view again, not new evidence.
-                The state is left as it is and the answer is read off it again, as the last frame's was
-                (`LocaliserState.background`), with the map as it is now (a place a join or a repair
-                changed since is the new one); where there is none (a state restored, or new), the
-                frame is stepped as any. The caller says a frame repeats only after an informative one.
+            repeat: the frame stands (`moved` False) and shows the view of the frame this state last
+                stepped (docs/design/science.md §11.2 step 2): that view again, not new evidence. The
+                state is left as it is and the answer is read off it again at that step's background
+                level (`LocaliserState.background`), with the map and `own` as they are now (a place a
+                join or a repair changed since is the new one); where there is none (a state restored,
+                new, or in warm-up), the frame is stepped as any. The caller says a frame repeats only
+                after an informative one.
 
         Returns:
             The place, or None while fewer than `warmup` frames were seen or no candidate was ever given.

@@ -99,9 +99,10 @@ class LocaliserOptions:
     short_term_metres: float = 20.0
     move_metres: float = 1.0
     max_speed: float = 50.0
-    #: a posed frame within `stand_metres` of the pose of its stream's last frame that gave evidence, no
-    #: move (`move_metres`) and not unlike that frame's view, repeats it: no new evidence, the answer
-    #: stays (§11.2 step 2). RTAB-Map's `RGBD/LinearUpdate`; above a standing robot's pose noise (cm),
+    #: a posed frame within `stand_metres` of the pose of the frame its stream's localiser last stepped
+    #: (none after a flat or unposed frame), no move (`move_metres`) and not unlike that frame's view,
+    #: repeats it: no new evidence, the answer is read again off the unchanged state (§11.2 step 2).
+    #: RTAB-Map's `RGBD/LinearUpdate`; above a standing robot's pose noise (cm),
     #: under a robot's step at walking speed and 10 frames a second (0.14 m). 0: every frame is evidence
     stand_metres: float = 0.1
     #: odometry's word (§11.12): within one drive of a stream (posed, stamped frames, no gap longer than

@@ -602,8 +602,9 @@ class PlaceMap:
                 keeps `flat_share` of its evidence (§11.7).
             moved: False where the frame is no move of its stream by its poses (`moves`, §11.6).
             departed: the frame is a move of its stream by its look (`departs`, §11.13).
-            repeat: the frame stands by its poses and repeats the view of the last frame that gave
-                evidence (§11.2 step 2): no new evidence, the answer stays the last one.
+            repeat: the frame stands by its poses and repeats the view of the frame the localiser last
+                stepped (`repeats`, §11.2 step 2): no new evidence, the answer read again off the
+                unchanged state.
 
         Returns:
             The place, or None during warm-up.

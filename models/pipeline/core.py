@@ -269,15 +269,16 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     departed = moved and not flat and st.look is not None and model.place_map.departs(st.look, code)
     if departed or (st.look is None and not flat):
         st.look = code
-    # A frame that stands by its poses and shows the view the last frame that gave evidence showed is
-    # that view again, no new evidence: the answer stays the last one (§11.2 step 2). Counted as new, a
-    # parked robot's frames let a path resting on a stored row elsewhere that looks like its view
-    # gather confidence frame after frame, to a false revisit (docs/results.md §10.24).
-    # `seen` is the view of the frame the localiser last stepped, or None where that frame cannot be
-    # repeated (flat, or without a pose): a repeat is answered off the state that frame left, so a flat
-    # frame at a stop is no view the stop's next frames repeat (a review: its uninformative answer stood
-    # for the rest of the stop, and the parked robot lost its revisit).
-    repeat = not flat and model.place_map.repeats(st.seen, code, motion, moved)
+    # A frame that stands by its poses and shows the view of the frame the localiser last stepped is
+    # that view again, no new evidence: the answer is read again off the state that step left (§11.2
+    # step 2). Counted as new, a parked robot's frames let a path resting on a stored row elsewhere that
+    # looks like its view gather confidence frame after frame, to a false revisit (docs/results.md
+    # §10.24). `seen` is the view of the frame the localiser last stepped, or None where that frame
+    # cannot be repeated (flat, or without a pose), so a flat frame at a stop is no view the stop's next
+    # frames repeat (a review: its uninformative answer stood for the rest of the stop, and the parked
+    # robot lost its revisit). A state with no step to answer from (new, restored, in warm-up) steps.
+    repeat = (not flat and st.localiser.background is not None
+              and model.place_map.repeats(st.seen, code, motion, moved))
     if not repeat:
         st.seen = None if flat or motion.pose is None else View(code, motion.pose)
     place = model.place_map.step(st.localiser, ranked, own, contrast, moved, departed, repeat)
