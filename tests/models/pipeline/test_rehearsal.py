@@ -186,7 +186,7 @@ def test_a_flat_frame_at_a_stop_does_not_take_the_revisit_away() -> None:
     """A dark frame (an exposure glitch) in the middle of a stop at a known place steps the filter (no
     evidence, no revisit: §11.7) and is no view the next frames repeat: the next one steps again, and the
     rest of the stop repeats that informative answer (a review: answered off the flat frame, the rest of
-    the stop was no revisit, 5 of 40 at every seed). Where one step after the glitch leaves the span wide
+    the stop was no revisit). Where one step after the glitch leaves the span wide
     (4 places at the third seed), the stop stays undecided: its one view is no more evidence."""
     stored = route(30, seed=5)
     kept = 0
