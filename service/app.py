@@ -49,6 +49,7 @@ from service.metrics import Metrics, MetricsMiddleware
 from service.openapi import openapi_with_problems
 from service.request_context import RequestContextMiddleware
 from service.routes import api_router
+from service.routing import HeadMiddleware
 from service.settings import Settings
 from service.ui import UI_PATH, static_files
 
@@ -182,10 +183,11 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EmbedderFac
 
 def install_edge(app: FastAPI, metrics: Metrics) -> None:
     """The edge every HTTP entry point of cortexloc has (this app, and the Ray Serve ingress): the
-    problem+json handlers, then security headers, request ids, metrics and the upload limits, outermost
-    first (docs/design/service.md §1.9, §2, §3, §9)."""
+    problem+json handlers, then security headers, request ids, metrics, the upload limits and HEAD answered
+    as GET, outermost first (docs/design/service.md §1.9, §2, §3, §9)."""
     install_error_handlers(app)
     # add_middleware puts each one outside the previous: the last added runs first.
+    app.add_middleware(HeadMiddleware)
     app.add_middleware(UploadLimitMiddleware)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(RequestContextMiddleware)

@@ -34,7 +34,7 @@ from service.maps import errors as maps_errors
 from service.maps.errors import SnapshotInvalid, StoreClosed
 from service.media_types import IMAGE_MEDIA_TYPES, PROBLEM_MEDIA_TYPE
 from service.request_ids import REQUEST_ID_HEADER, request_id_of
-from service.routing import allowed_methods
+from service.routing import allowed_methods, request_method
 
 __all__ = ["CLIENT_CLOSED_REQUEST", "DOMAIN_PROBLEMS", "PROBLEM_MEDIA_TYPE", "TITLES", "DomainProblem",
            "Problem", "ProblemDetails", "domain_problem", "image_error_problem", "install_error_handlers",
@@ -347,7 +347,8 @@ async def _http_exception_handler(request: Request, exc: Exception) -> Response:
         if not allowed and "Allow" in headers:
             allowed = sorted(m.strip() for m in headers["Allow"].split(",") if m.strip())
         headers["Allow"] = ", ".join(allowed)
-        detail = f"{request.method} is not allowed on {request.url.path}; allowed: {', '.join(allowed)}"
+        detail = (f"{request_method(request)} is not allowed on {request.url.path}; "
+                  f"allowed: {', '.join(allowed)}")
         return problem_response(request, 405, "method-not-allowed", detail, headers=headers, allowed=allowed)
     slug = _STATUS_SLUGS.get(status, "internal-error" if status >= 500 else "invalid-parameter")
     detail = exc.detail if custom else (phrase or f"HTTP {status}")

@@ -95,10 +95,10 @@ def test_unknown_route_is_404_not_found(client):
 def test_wrong_method_is_405_with_every_allowed_method(client):
     r = client.put("/test/items")
     body = assert_problem(r, 405, "method-not-allowed")
-    assert body["allowed"] == ["GET", "POST"]  # from both routes, not only the first that matched
-    assert r.headers["allow"] == "GET, POST"
+    assert body["allowed"] == ["GET", "HEAD", "POST"]  # from both routes, not only the first that matched
+    assert r.headers["allow"] == "GET, HEAD, POST"
     body = assert_problem(client.post("/healthz"), 405, "method-not-allowed")
-    assert body["allowed"] == ["GET"]
+    assert body["allowed"] == ["GET", "HEAD"]
 
 
 def test_bad_query_is_400_invalid_parameter(client):

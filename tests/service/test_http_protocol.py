@@ -70,14 +70,38 @@ def test_a_client_gone_mid_upload_is_no_server_error(client, caplog):
 
 
 @pytest.mark.parametrize(("method", "path", "allowed"), [
-    ("PUT", "/v1/maps/default", ["DELETE", "GET", "PATCH"]),
-    ("PATCH", "/v1/maps", ["GET", "POST"]),
-    ("DELETE", "/v1/maps/default/snapshots", ["GET", "POST"]),
+    ("PUT", "/v1/maps/default", ["DELETE", "GET", "HEAD", "PATCH"]),
+    ("PATCH", "/v1/maps", ["GET", "HEAD", "POST"]),
+    ("DELETE", "/v1/maps/default/snapshots", ["GET", "HEAD", "POST"]),
 ])
 def test_405_lists_every_method_of_the_path(client, method, path, allowed):
     r = client.request(method, path)
     assert r.status_code == 405 and r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
     assert r.headers["allow"] == ", ".join(allowed) and r.json()["allowed"] == allowed
+
+
+@pytest.mark.parametrize("path", [
+    "/healthz", "/readyz", "/metrics", "/v1/maps", "/v1/maps/default", "/v1/maps/default/memory",
+    "/v1/maps/default/loop-closures/export?format=csv", "/ui/", "/openapi.json", "/v1/maps/nothing-here"])
+def test_every_get_answers_head_with_its_status_and_headers_and_no_body(client, path):
+    """RFC 9110 §9.3.2: HEAD is GET without the body; FastAPI alone answers it 405."""
+    got, head = client.get(path), client.head(path)
+    assert head.status_code == got.status_code and head.content == b""
+    same = ("content-type", "x-content-type-options", "cache-control")
+    if path != "/metrics":  # its text counts the requests before it
+        same += ("content-length",)
+    assert {k: head.headers.get(k) for k in same} == {k: got.headers.get(k) for k in same}
+    assert head.headers.get("x-request-id") not in (None, got.headers.get("x-request-id"))
+
+
+def test_head_is_counted_as_head_and_a_post_only_path_refuses_it(client):
+    assert client.head("/healthz").status_code == 200
+    r = client.head("/v1/maps/default/streams/default/reset")
+    assert r.status_code == 405 and r.content == b"" and r.headers["allow"] == "POST"
+    metrics = client.get("/metrics").text
+    assert 'method="HEAD",route="/healthz",status="200"} 1.0' in metrics
+    assert 'method="HEAD",route="/v1/maps/{map_id}/streams/{stream:path}/reset",status="405"} 1.0' in metrics
+    assert client.app.state.registry.get("default").store.count() == 0
 
 
 def test_repeated_query_parameters_are_refused(client):
