@@ -1,14 +1,15 @@
 """Image bytes -> 8-bit RGB -> normalised network input (docs/design/science.md §6 "Front end",
 Preprocessing).
 
-The one place that knows image formats. Everything is OpenCV + NumPy: no torchvision, no PIL.
+The one place that knows image formats. Everything is OpenCV + NumPy (and libjpeg-turbo through
+simplejpeg to check a JPEG's scan data, `jpeg._jpeg_check_scan_data`): no torchvision, no PIL.
 
 Decoding follows the order of work of docs/design/service.md §1.2 and §3, so a hostile upload costs almost
 nothing before it is refused: byte limit -> magic bytes (JPEG, PNG, BMP, WebP; everything else is refused
 before OpenCV sees it, which keeps OpenCV's many other codecs out of reach) -> width and height read from the
 header by small pure-Python parsers -> pixel cap and aspect-ratio cap -> a structural completeness check
 (truncated uploads are refused rather than decoded into half-grey frames) -> a decoding-cost check ->
-`cv2.imdecode`.
+the PNG's bounded inflate or the JPEG's scan-data check -> `cv2.imdecode`.
 
 Decoding cost is bounded by the declared raster, not only by the byte limit: a 10 MB PNG can hold ~10 GB
 of deflated zeros (libpng inflates all of it, ~25 s), and a 300 kB progressive JPEG thousands of empty

@@ -1,5 +1,5 @@
-"""Bytes -> (H, W, 3) uint8 RGB (or (H, W) grey): `probe`'s checks, the bounded PNG inflate, then
-`cv2.imdecode`."""
+"""Bytes -> (H, W, 3) uint8 RGB (or (H, W) grey): `probe`'s checks, the bounded PNG inflate or the JPEG
+scan-data check, then `cv2.imdecode`."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from models.frontend.images.common import (
     FORMATS,
     ImageError,
 )
+from models.frontend.images.jpeg import _jpeg_check_scan_data
 from models.frontend.images.png import _png_check_inflate
 from models.frontend.images.probing import probe
 from models.frontend.images.raw import RawFrame, decode_raw
@@ -46,7 +47,8 @@ def decode(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES,
 
     Raises:
         ImageError: see `probe`; also "not-an-image" when OpenCV cannot decode a structurally complete
-            file (corrupt data), "bomb" when PNG image data inflates past its raster.
+            file (corrupt data) or a JPEG's scan data is damaged (`jpeg._jpeg_check_scan_data`), "bomb"
+            when PNG image data inflates past its raster.
     """
     if isinstance(data, RawFrame):
         rgb = decode_raw(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect)
@@ -56,6 +58,8 @@ def decode(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES,
     info = probe(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect, formats=formats)
     if info.format == "png":
         _png_check_inflate(data)
+    elif info.format == "jpeg":
+        _jpeg_check_scan_data(data)
     # IMREAD_COLOR_RGB: BGR->RGB inside the codec, grey/alpha to 3 channels, EXIF orientation applied.
     # For PNG also ask for 16-bit samples (IMREAD_ANYDEPTH keeps the orientation handling) so that 16-bit
     # files are scaled with rounding below instead of OpenCV's truncating `>> 8`. Only PNG: a 12-bit JPEG

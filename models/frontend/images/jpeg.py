@@ -5,6 +5,8 @@ from __future__ import annotations
 import re
 import struct
 
+import simplejpeg
+
 from models.frontend.images.common import ImageError, _corrupt, _Header, _truncated
 
 _JPEG_SOF = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
@@ -100,3 +102,38 @@ def _jpeg_scans_error(scans: int, size: tuple[int, int]) -> ImageError | None:
                       f"the whole {size[0]}x{size[1]} frame", format="jpeg", width=size[0], height=size[1],
                       max_scans=JPEG_MAX_SCANS)
 
+
+
+#: libjpeg's warnings that say scan data is missing or wrong (jerror.h: JWRN_HIT_MARKER, JWRN_JPEG_EOF,
+#: JWRN_HUFF_BAD_CODE, JWRN_ARITH_BAD_CODE, JWRN_MUST_RESYNC, and JWRN_EXTRANEOUS_DATA before a restart
+#: marker: a restart interval's blocks were read off bytes that were not theirs). On each, libjpeg fills
+#: or guesses the blocks and goes on; OpenCV returns that frame without a word. Its other warnings (an
+#: unknown JFIF revision, a bad ICC marker, bytes between a complete last scan and EOI, sequential SOS
+#: parameters out of range) leave every block decoded, and cameras write files that raise them.
+_JPEG_DAMAGE = re.compile(r"premature end of data segment|Premature end of JPEG file|bad Huffman code|"
+                          r"bad arithmetic code|instead of RST|extraneous bytes before marker 0xd[0-7]\b")
+
+
+def _jpeg_check_scan_data(data: bytes) -> None:
+    """Entropy-decode every scan once, at 1/8 scale, and refuse a file whose scan data is damaged.
+
+    A USB camera's MJPEG stream, a dropped packet in a driver or a cut in a bag gives a structurally
+    whole file (EOI in place, so the header walk passes) whose scan data breaks off or goes wrong part way:
+    libjpeg fills the rest of the frame with flat blocks, and that frame would be learned as a view
+    (docs/design/service.md §1.2). libjpeg-turbo, the codec OpenCV decodes with, runs here through
+    simplejpeg, which turns its warnings into errors (`strict`). At 1/8 scale the inverse DCT is a DC
+    term, so the check costs about one decode of the file (~0.5 ms at 640x480), within the same limits.
+    It finds what libjpeg finds: a cut that the Huffman decoder happens to read through to the end (a
+    byte or a few lost near a scan's end, say) decodes as a wrong but whole frame, here as in OpenCV.
+
+    Raises:
+        ImageError: "not-an-image" when libjpeg reports damaged scan data. Any other complaint is left to
+            OpenCV's decode, as before: this check only adds refusals of frames it knows are damaged.
+    """
+    try:
+        simplejpeg.decode_jpeg(data, min_factor=8, fastdct=True, fastupsample=True, strict=True)
+    except ValueError as e:
+        why = str(e).strip()
+        if _JPEG_DAMAGE.search(why):
+            raise _corrupt("jpeg", f"its scan data is damaged ({why}); a decoder would fill the missing "
+                                   "blocks with flat colour") from e

@@ -255,6 +255,43 @@ def test_truncated_jpeg_is_refused_even_with_an_exif_thumbnail_eoi(no_decoding):
     assert _code(data[: len(data) - 200]) == "truncated"
 
 
+def _cut_scan(data: bytes, start: int, length: int) -> bytes:
+    """`data` with `length` bytes of the first scan's entropy-coded data taken out, EOI kept."""
+    sos = data.index(b"\xff\xda")
+    begin = sos + 2 + int.from_bytes(data[sos + 2:sos + 4], "big") + start
+    return data[:begin] + data[begin + length:]
+
+
+@pytest.mark.parametrize(("params", "why"), [
+    ([cv2.IMWRITE_JPEG_QUALITY, 90], "premature end of data segment"),
+    ([cv2.IMWRITE_JPEG_PROGRESSIVE, 1], "bad Huffman code"),
+    ([cv2.IMWRITE_JPEG_RST_INTERVAL, 4], "extraneous bytes before marker 0xd4"),
+])
+def test_a_jpeg_whose_scan_data_breaks_off_is_refused_though_opencv_decodes_it(params, why):
+    from skimage import data as skdata
+
+    whole = _encode(np.ascontiguousarray(skdata.chelsea()), ".jpg", params)
+    damaged = _cut_scan(whole, 2000, 3000)
+    assert probe(damaged) == probe(whole)  # structurally whole: the header walk finds EOI
+    filled = cv2.imdecode(np.frombuffer(damaged, np.uint8), cv2.IMREAD_COLOR_RGB)
+    assert filled is not None and filled.shape == decode(whole).shape  # the hazard: OpenCV says nothing
+    with pytest.raises(ImageError) as info:
+        decode(damaged)
+    assert info.value.code == "not-an-image" and why in str(info.value) and "damaged" in str(info.value)
+    assert _code(_cut_scan(whole, 500, 100)) == "not-an-image"
+
+
+def test_a_jpeg_with_warnings_that_leave_every_block_decoded_is_accepted():
+    rgb = _smooth_rgb()
+    whole = _encode(rgb, ".jpg", [cv2.IMWRITE_JPEG_QUALITY, 95])
+    assert whole[6:11] == b"JFIF\x00"
+    revision = whole[:11] + b"\x07" + whole[12:]  # JFIF 7.x: libjpeg warns of an unknown revision
+    padded = whole[:-2] + b"\x00" * 16 + whole[-2:]  # bytes between the complete scan and EOI
+    for data in (revision, padded):
+        out = decode(data)
+        assert np.abs(out.astype(int) - decode(whole).astype(int)).max() == 0
+
+
 @pytest.mark.parametrize("data", [b"\xff\xd8", b"\x89PNG\r\n", b"RIFF\x00\x00\x00\x00WE"])
 def test_a_body_cut_inside_the_signature_is_truncated(data):
     assert _code(data) == "truncated"

@@ -120,12 +120,18 @@ def test_bad_map_creation_is_refused(client, payload, status, slug):
 def bad_inputs() -> list[tuple[str, bytes, str, dict, int, str]]:
     png = frame(1)
     jpg = frame(1, fmt=".jpg")
+    sos = jpg.index(b"\xff\xda")
+    scan = sos + 2 + int.from_bytes(jpg[sos + 2:sos + 4], "big")
+    quarter = (len(jpg) - 2 - scan) // 4
     return [
         ("empty", b"", "image/png", {}, 422, "undecodable-image"),
         ("one byte", b"\x89", "image/png", {}, 422, "undecodable-image"),
         ("random bytes", bytes(range(256)) * 4, "application/octet-stream", {}, 415,
          "unsupported-media-type"),
         ("truncated png", png[: len(png) // 2], "image/png", {}, 422, "undecodable-image"),
+        # a USB camera's broken MJPEG frame: a quarter of the scan data lost, EOI in place
+        ("jpeg with scan data cut out", jpg[:scan + quarter] + jpg[scan + 2 * quarter:], "image/jpeg", {},
+         422, "undecodable-image"),
         ("jpeg declared as png", jpg, "image/png", {}, 415, "unsupported-media-type"),
         ("text/plain", png, "text/plain", {}, 415, "unsupported-media-type"),
         ("gif", b"GIF89a" + bytes(64), "application/octet-stream", {}, 415, "unsupported-media-type"),
