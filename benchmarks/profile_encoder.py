@@ -4,7 +4,7 @@ Run: `cortexloc bench profile-encoder [--repeats 9] [--backbone efficientnet-lit
 benchmarks/results/profile_encoder.json. Not part of `make bench` (bench_encoder.py is the contract).
 
 Per image, on one thread each, medians over `--repeats` batches of 16 640x480 JPEGs: header probe,
-JPEG decode, the decode as `Embedder.prepare` runs it, resize (crop and squash), to-tensor + normalise;
+JPEG decode, the scan-data check `decode` runs before it, the decode as `Embedder.prepare` runs it, resize (crop and squash), to-tensor + normalise;
 then the forward of 16 in chunks of 1, 2, 4, 8 and 16 (why the encoder forwards chunks of 4), the
 sLSBH hash of 16 rows and its x·P; then, interleaved, the whole encoder at batch 16 against the bare
 forward: wall ratio, and CPU per batch (`time.process_time`, all threads) so the work beside the forward
@@ -23,6 +23,7 @@ import numpy as np
 from benchmarks._common import RESULTS, write_json
 from models.evaluation.bench import synthetic_jpegs
 from models.frontend import images
+from models.frontend.images import jpeg as jpeg_mod
 from models.frontend.embedding import Embedder
 
 
@@ -46,6 +47,7 @@ def main(*, repeats: int, backbone: str, out: Path | None) -> None:
         "probe": median_ms(lambda: [images.probe(b) for b in jpegs], reps) / n,
         "imdecode": median_ms(lambda: [cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR_RGB)
                                        for b in jpegs], reps) / n,
+        "jpeg_scan_check": median_ms(lambda: [jpeg_mod._jpeg_check_scan_data(b) for b in jpegs], reps) / n,
         "decode": median_ms(lambda: [images.decode(b) for b in jpegs], reps) / n,
         "imdecode_reduced_2": median_ms(lambda: [cv2.imdecode(np.frombuffer(b, np.uint8),
                                                               cv2.IMREAD_REDUCED_COLOR_2) for b in jpegs],
