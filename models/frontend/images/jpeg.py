@@ -132,8 +132,8 @@ def _jpeg_check_scan_data(data: bytes) -> None:
             OpenCV's decode, as before: this check only adds refusals of frames it knows are damaged.
     """
     try:
-        # grey: libjpeg still entropy-decodes every component's scans (it must, to read the stream), and it
-        # skips the colour conversion (the same refusals on 600 random cuts, baseline and progressive)
+        # grey: libjpeg still entropy-decodes every component's scans (it must, to read the stream; a cut in
+        # a chroma scan is refused, tests/models/frontend/test_images.py), and skips the colour conversion
         simplejpeg.decode_jpeg(data, colorspace="GRAY", min_factor=8, fastdct=True, fastupsample=True,
                                strict=True)
     except ValueError as e:

@@ -281,6 +281,26 @@ def test_a_jpeg_whose_scan_data_breaks_off_is_refused_though_opencv_decodes_it(p
     assert _code(_cut_scan(whole, 500, 100)) == "not-an-image"
 
 
+def test_a_cut_in_any_first_scan_of_a_progressive_jpeg_is_refused_chroma_scans_too():
+    """The check decodes grey: libjpeg must still read the Cb and Cr scans (a refinement scan's
+    correction bits carry no structure that libjpeg could find a cut in, so those are left out)."""
+    from skimage import data as skdata
+
+    whole = _encode(np.ascontiguousarray(skdata.chelsea()), ".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])
+    starts = [i for i in range(len(whole) - 1) if whole[i:i + 2] == b"\xff\xda"]
+    first_scans = set()
+    for k, sos in enumerate(starts):
+        length, count = int.from_bytes(whole[sos + 2:sos + 4], "big"), whole[sos + 4]
+        components = tuple(whole[sos + 5 + 2 * c] for c in range(count))
+        if whole[sos + 2 + length - 1] >> 4:  # Ah > 0: a refinement scan
+            continue
+        begin, end = sos + 2 + length, starts[k + 1] if k + 1 < len(starts) else len(whole) - 2
+        middle = (begin + end) // 2
+        assert _code(whole[:middle] + whole[middle + 8:]) == "not-an-image", components
+        first_scans.add(components)
+    assert {(2,), (3,)} <= first_scans  # the chroma components' own scans were among them
+
+
 def test_a_jpeg_with_warnings_that_leave_every_block_decoded_is_accepted():
     rgb = _smooth_rgb()
     whole = _encode(rgb, ".jpg", [cv2.IMWRITE_JPEG_QUALITY, 95])
