@@ -4,7 +4,8 @@ Run: `cortexloc bench profile-encoder [--repeats 9] [--backbone efficientnet-lit
 benchmarks/results/profile_encoder.json. Not part of `make bench` (bench_encoder.py is the contract).
 
 Per image, on one thread each, medians over `--repeats` batches of 16 640x480 JPEGs: header probe,
-JPEG decode, the scan-data check `decode` runs before it, the decode as `Embedder.prepare` runs it, resize (crop and squash), to-tensor + normalise;
+JPEG decode, the scan-data check `decode` runs before it, the decode as `Embedder.prepare` runs it,
+resize (crop and squash), to-tensor + normalise;
 then the forward of 16 in chunks of 1, 2, 4, 8 and 16 (why the encoder forwards chunks of 4), the
 sLSBH hash of 16 rows and its x·P; then, interleaved, the whole encoder at batch 16 against the bare
 forward: wall ratio, and CPU per batch (`time.process_time`, all threads) so the work beside the forward
