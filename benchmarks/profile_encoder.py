@@ -24,8 +24,8 @@ import numpy as np
 from benchmarks._common import RESULTS, write_json
 from models.evaluation.bench import synthetic_jpegs
 from models.frontend import images
-from models.frontend.images import jpeg as jpeg_mod
 from models.frontend.embedding import Embedder
+from models.frontend.images import jpeg as jpeg_mod
 
 
 def median_ms(fn: Callable[[], object], repeats: int) -> float:
