@@ -281,6 +281,15 @@ def test_a_jpeg_whose_scan_data_breaks_off_is_refused_though_opencv_decodes_it(p
     assert _code(_cut_scan(whole, 500, 100)) == "not-an-image"
 
 
+def test_a_jpeg_whose_header_claims_more_rows_than_its_scan_holds_is_refused():
+    data = bytearray(_encode(_smooth_rgb(), ".jpg"))
+    sof = data.index(b"\xff\xc0")
+    height, width = struct.unpack_from(">HH", data, sof + 5)
+    struct.pack_into(">HH", data, sof + 5, 2 * height, width)  # OpenCV: the lower half filled flat
+    assert cv2.imdecode(np.frombuffer(bytes(data), np.uint8), cv2.IMREAD_COLOR_RGB).shape[0] == 2 * height
+    assert _code(bytes(data)) == "not-an-image"
+
+
 def test_a_cut_in_any_first_scan_of_a_progressive_jpeg_is_refused_chroma_scans_too():
     """The check decodes grey: libjpeg must still read the Cb and Cr scans (a refinement scan's
     correction bits carry no structure that libjpeg could find a cut in, so those are left out)."""
