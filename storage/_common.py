@@ -165,11 +165,13 @@ def connect(path: str | Path, *, readonly: bool = False) -> sqlite3.Connection:
 #: What says there is no room to write, in SQLite's words: the disk full, the user's quota used up, the
 #: file-size limit (`ulimit -f`) reached (the OS's words: `storage.base.files.NO_ROOM_ERRNOS`). SQLite
 #: reports the first as SQLITE_FULL and the other two as a failed write (its VFS keeps the errno to
-#: itself), so a failed write counts as no room too: a write that fails for any reason is storage
-#: refusing the row, answered as such (507, nothing changed), never as a bug. A failing or read-only
-#: disk fails writes the same way; the answer carries SQLite's own words ("disk I/O error", "database
-#: or disk is full") so that an operator can tell.
-_NO_ROOM_SQLITE = frozenset({"SQLITE_FULL", "SQLITE_IOERR_WRITE"})
+#: itself); a WAL database whose shared-memory file (-shm) cannot be made or grown says
+#: SQLITE_IOERR_SHMSIZE (a new map's file with 8-32 KiB left, answered 500 before; a healthy map opened
+#: at a restart on a full disk, called corrupt before). So a failed write counts as no room: a write that
+#: fails for any reason is storage refusing the row, answered as such (507, nothing changed), never as a
+#: bug. A failing or read-only disk fails writes the same way; the answer carries SQLite's own words
+#: ("disk I/O error", "database or disk is full") so that an operator can tell.
+_NO_ROOM_SQLITE = frozenset({"SQLITE_FULL", "SQLITE_IOERR_WRITE", "SQLITE_IOERR_SHMSIZE"})
 
 
 def is_full_error(exc: BaseException) -> bool:

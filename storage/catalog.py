@@ -34,7 +34,15 @@ from typing import Any, Literal, get_args
 import sqlite_utils
 from sqlite_utils.db import NotFoundError
 
-from storage._common import StorageError, StoreClosed, connect, transaction, utc_now
+from storage._common import (
+    StorageError,
+    StorageFull,
+    StoreClosed,
+    connect,
+    is_full_error,
+    transaction,
+    utc_now,
+)
 from storage.layout import Layout
 
 __all__ = [
@@ -249,7 +257,11 @@ class Catalog:
     """
 
     def __init__(self, path: str | os.PathLike[str], readonly: bool = False) -> None:
-        """Open (creating if needed) the catalog at `path`; prefer `Catalog.open`."""
+        """Open (creating if needed) the catalog at `path`; prefer `Catalog.open`.
+
+        Raises:
+            StorageFull: no room beside it for its -wal and -shm files (or to create it).
+        """
         self.path = Path(path)
         self._lock = threading.RLock()
         self._conn: sqlite3.Connection | None = None
@@ -259,7 +271,13 @@ class Catalog:
             self._conn = connect(self.path, readonly=True)
             self._db = _tables(self._conn)
             return
-        self._conn = connect(self.path)
+        try:
+            self._conn = connect(self.path)
+        except sqlite3.Error as exc:  # its -wal and -shm files are made beside it: a full disk says so here
+            if is_full_error(exc):
+                raise StorageFull(f"{self.path}: no room to open it ({exc}): make room in the data "
+                                  "directory") from exc
+            raise
         self._db = _tables(self._conn)
         try:
             # Per connection: without it ON DELETE CASCADE would not remove a deleted map's snapshots.

@@ -114,6 +114,7 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
         Raises:
             FileNotFoundError: no such file (SQLite would silently create an empty one).
             StoreCorrupt: not a map database (damaged, or another file).
+            StorageFull: no room to open it (its -wal and -shm files) or to migrate it: the file is whole.
             StoreUnopenable: SQLite could not open it (a permission, a read-only file or directory),
                 with the OS's words: nothing says it is damaged.
             StorageError: written by a newer schema version.
@@ -203,7 +204,11 @@ def _open_error(path: Path, exc: sqlite3.DatabaseError) -> StorageError:
     """What an open's SQLite error means: the file or its directory cannot be reached as needed
     (`_UNOPENABLE`: a permission, a read-only file, directory or mount) is `StoreUnopenable` with the OS's
     words where it gives them, never called corrupt (an operator deletes a corrupt map, and a permission
-    must not cost a healthy one); anything else says the file is no map database: `StoreCorrupt`."""
+    must not cost a healthy one); no room beside it for its -wal and -shm files (SQLITE_IOERR_SHMSIZE on a
+    full disk: `is_full_error`) is `StorageFull`, for the same reason (before, a healthy map met a full disk
+    at a restart and was called corrupt); anything else says the file is no map database: `StoreCorrupt`."""
+    if is_full_error(exc):
+        return StorageFull(f"{path}: no room to open it ({exc}): its -wal and -shm files are made beside it")
     if not str(getattr(exc, "sqlite_errorname", "")).startswith(_UNOPENABLE):
         return StoreCorrupt(f"{path}: {exc}")
     why = str(exc)

@@ -90,3 +90,53 @@ def test_the_room_probe_says_no_room_where_the_os_refuses_the_write_and_leaves_n
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split(" ", 2)[:2] == ["False", "True"]
     assert ".room-probe" not in out.stdout and "map.sqlite" in out.stdout
+
+
+def test_a_whole_map_or_catalog_on_a_disk_with_no_room_for_its_shm_is_full_not_corrupt(tmp_path):
+    """In a child under a file-size limit of 16 KiB, below the 32 KiB -shm file a WAL database needs when
+    it is opened (SQLITE_IOERR_SHMSIZE, as on a full disk): a healthy map file and the catalog are
+    StorageFull, never StoreCorrupt (the map was called corrupt at a restart on a full disk, and an
+    operator deletes a corrupt map); a new map file is StorageFull and leaves nothing. The files are
+    unchanged, and with the limit lifted they open whole."""
+    pytest.importorskip("resource", reason="needs POSIX resource limits")
+    code = textwrap.dedent(f"""
+        import hashlib, os, resource
+        from pathlib import Path
+        from storage._common import StorageFull
+        from storage.catalog import Catalog
+        from storage.mapschema import MapMeta, create_file
+        from storage.mapstore import MapStore
+        root = Path({str(tmp_path)!r})
+        meta = MapMeta(map_id="m", params={{}}, projection_sha256="0" * 64, encoder_id="e")
+        MapStore.create(root / "map.sqlite", meta).close()
+        Catalog.open(root / "catalog.sqlite").close()
+        def digests():
+            return [hashlib.sha256((root / n).read_bytes()).hexdigest()
+                    for n in ("map.sqlite", "catalog.sqlite")]
+        before = digests()
+        resource.setrlimit(resource.RLIMIT_FSIZE, (16 * 1024, resource.RLIM_INFINITY))
+        said = []
+        for open_it in (lambda: MapStore.open(root / "map.sqlite"),
+                        lambda: Catalog.open(root / "catalog.sqlite"),
+                        lambda: create_file(root / "new.sqlite", meta)):
+            try:
+                open_it().close()
+                said.append("opened")
+            except StorageFull as e:
+                said.append("full" if "no room" in str(e) else str(e))
+            except Exception as e:
+                said.append(type(e).__name__)
+        left = [n for n in os.listdir(root) if n.startswith(("new.", ".new."))]
+        print(" ".join(said), digests() == before, left == [])
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                         cwd=Path(__file__).resolve().parents[2])
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["full", "full", "full", "True", "True"]
+    from storage.catalog import Catalog
+    from storage.mapstore import MapStore
+
+    store = MapStore.open(tmp_path / "map.sqlite")
+    assert store.quick_check() and store.count() == 0
+    store.close()
+    Catalog.open(tmp_path / "catalog.sqlite").close()
