@@ -762,8 +762,14 @@ def encode(values: np.ndarray | Sequence[int], dtype: str, what: str) -> bytes:
 
 
 def load_json(text: str | None) -> Any:
-    """A JSON column's value (None for NULL)."""
-    return None if text is None else json.loads(text)
+    """A JSON column's value (None for NULL); `StoreCorrupt` where the stored text is not JSON (a file
+    edited or damaged outside the service: every reader of a row then says so, as for a bad blob)."""
+    if text is None:
+        return None
+    try:
+        return json.loads(text)
+    except (ValueError, TypeError) as e:
+        raise StoreCorrupt(f"a stored JSON value is unreadable ({e}): {str(text)[:40]!r}") from e
 
 
 def decode(blob: bytes, dtype: str) -> np.ndarray:

@@ -66,7 +66,7 @@ def verify(
     winner cells, verify every snapshot's checksums and the projection. Exit 1 on any problem. Also list
     the merges made from a stream's own recent trail (`POST /v1/maps/{id}/repair` undoes them; they are
     no problem of the files)."""
-    from service.maps.recovery import open_catalog, verify_map
+    from service.maps.recovery import MapCheck, open_catalog, verify_map
     from service.maps.repair import listing
 
     root = process_settings(data_dir=data_dir).data_dir
@@ -83,8 +83,12 @@ def verify(
     bad = 0
     try:
         for record in records:
-            with progress(f"verify {record.map_id}") as tick:
-                check = verify_map(catalog, record, progress=tick)
+            try:
+                with progress(f"verify {record.map_id}") as tick:
+                    check = verify_map(catalog, record, progress=tick)
+            except Exception as e:  # a fault no check names: this map's problem, and the others still run
+                failed = f"the check itself failed: {type(e).__name__}: {e}"
+                check = MapCheck(record.map_id, problems=[failed])
             bad += not check.ok
             rate = check.rows / check.seconds if check.seconds else 0.0
             typer.echo(f"map {record.map_id}: {'ok' if check.ok else 'PROBLEMS'}; {check.rows} rows "
@@ -102,7 +106,11 @@ def verify(
             for problem in check.problems:
                 typer.echo(f"  {problem}")
             if not check.problems:
-                _merges(listing(catalog, record))
+                try:
+                    _merges(listing(catalog, record))
+                except Exception as e:  # as above: said, counted, and the next map checked
+                    bad += check.ok
+                    typer.echo(f"  its merges could not be listed: {type(e).__name__}: {e}")
     finally:
         catalog.close()
     typer.echo(f"{len(records)} map(s) checked, {bad} with problems")

@@ -129,7 +129,7 @@ class Closures:
                             consolidated_into=None if r[14] is None else int(r[14]),
                             retracts=None if r[15] is None else int(r[15]),
                             span=None if r[16] is None else int(r[16]),
-                            span_seqs=None if r[17] is None else tuple(json.loads(r[17]))) for r in found]
+                            span_seqs=None if r[17] is None else tuple(load_json(r[17]))) for r in found]
 
     def oldest_closure_id(self) -> int | None:
         """The oldest log id still kept (None: the log is empty): a reader past `after` below it - 1 may

@@ -4,9 +4,10 @@ written with the row (`storage.mapstore.observations`), read back to verify a re
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterable
 from typing import Any
+
+from storage.mapschema import load_json
 
 __all__ = ["Keyframes"]
 
@@ -24,7 +25,7 @@ class Keyframes:
             marks = ",".join("?" * len(wanted))
             found = self._db().execute(f"SELECT seq, features, camera FROM keyframes WHERE seq IN ({marks})",
                                        wanted).fetchall()
-        return {int(r[0]): (bytes(r[1]), None if r[2] is None else json.loads(r[2])) for r in found}
+        return {int(r[0]): (bytes(r[1]), load_json(r[2])) for r in found}
 
     def keyframe_bytes(self) -> tuple[int, int]:
         """(keyframes stored, bytes of their features and cameras): what the option costs on disk."""

@@ -13,7 +13,7 @@ import sqlite3
 from collections.abc import Iterable, Iterator
 from typing import Any
 
-from storage._common import transaction, utc_now
+from storage._common import StoreCorrupt, transaction, utc_now
 from storage.mapschema import (
     COLUMNS,
     INPUT_DTYPE,
@@ -23,6 +23,7 @@ from storage.mapschema import (
     Observation,
     decode,
     encode,
+    load_json,
 )
 from storage.mapstore.closures import closure_params
 
@@ -204,12 +205,14 @@ class Observations:
         return [self._row(r) for r in found]
 
     def _row(self, r: tuple[Any, ...]) -> Observation:
-        return Observation(seq=int(r[0]), observation_id=r[1], stream=r[2],
-                           context_prev_seq=None if r[3] is None else int(r[3]), label=r[4],
-                           created_at=r[5], image_sha256=r[6], input_sdr=decode(r[7], INPUT_DTYPE),
-                           winner_cells=decode(r[8], self._cell_dtype),
-                           metadata=None if r[9] is None else json.loads(r[9]),
-                           place=None if r[10] is None else int(r[10]))
+        try:
+            return Observation(seq=int(r[0]), observation_id=r[1], stream=r[2],
+                               context_prev_seq=None if r[3] is None else int(r[3]), label=r[4],
+                               created_at=r[5], image_sha256=r[6], input_sdr=decode(r[7], INPUT_DTYPE),
+                               winner_cells=decode(r[8], self._cell_dtype), metadata=load_json(r[9]),
+                               place=None if r[10] is None else int(r[10]))
+        except StoreCorrupt as e:  # which row: what verify and the map's failure reason show
+            raise StoreCorrupt(f"{self.path}: observation seq {r[0]}: {e}") from e
 
     def flat(self) -> set[int]:
         """The rows whose frame was flat (docs/design/science.md §11.7; `NewObservation.flat`). Empty for a

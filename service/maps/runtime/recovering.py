@@ -122,12 +122,15 @@ class Recovering:
             self._fail(str(over))
             return
         tail = None
-        if serve_during_replay:
-            tail = recovery.begin(self.store, self.catalog, self.map_id, self.model)
-        if tail is not None and tail.steps > TAIL_BEFORE_SERVING:
-            self._serve_during(tail)
-            return
-        self._install(*recovery.recover(self.store, self.catalog, self.map_id, self.model, begun=tail))
+        try:  # a row the replay reads may be unreadable (a blob or JSON damaged outside the service)
+            if serve_during_replay:
+                tail = recovery.begin(self.store, self.catalog, self.map_id, self.model)
+            if tail is not None and tail.steps > TAIL_BEFORE_SERVING:
+                self._serve_during(tail)
+                return
+            self._install(*recovery.recover(self.store, self.catalog, self.map_id, self.model, begun=tail))
+        except StoreCorrupt as e:
+            self._fail("database-corrupt", str(e))
 
     def _install(self, done: recovery.Rebuilt, note: dict[str, Any]) -> None:
         """The recovered memory in place, its index and links built from the rows (unless they already

@@ -70,3 +70,62 @@ def test_verify_reports_a_malformed_map_file_and_checks_the_other_maps(tmp_path)
     assert "map default: PROBLEMS" in r.output and "malformed" in r.output
     assert re.search(r"map other: ok; 1 rows replayed", r.output), r.output
     assert "2 map(s) checked, 1 with problems" in r.output
+
+
+def _edit_row_metadata(db: Path, seq: int, text: str) -> None:
+    """Write `text` as a row's stored metadata past the append-only triggers (an edit outside the service)."""
+    conn = sqlite3.connect(db)
+    triggers = conn.execute("SELECT name, sql FROM sqlite_master WHERE type = 'trigger' "
+                            "AND tbl_name = 'observations'").fetchall()
+    with conn:
+        for name, _ in triggers:
+            conn.execute(f'DROP TRIGGER "{name}"')
+        conn.execute("UPDATE observations SET metadata = ? WHERE seq = ?", (text, seq))
+        for _, sql in triggers:
+            conn.execute(sql)
+    conn.close()
+
+
+def test_verify_names_a_row_whose_metadata_is_unreadable_and_checks_the_other_maps(tmp_path):
+    # Found from outside: a JSONDecodeError's traceback, and the maps after it never checked.
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        c.post("/v1/maps", json={"map_id": "other"})
+        for p in range(4):
+            post(c, frame(p), metadata='{"stamp": 1.5}')
+        post(c, frame(5), map_id="other")
+    _edit_row_metadata(data / "maps" / "default" / "map.sqlite", 2, "{bad")
+    r = run_verify(data)
+    assert r.exit_code == 1, r.output
+    assert r.exception is None or isinstance(r.exception, SystemExit), r.exception  # no traceback
+    assert "map default: PROBLEMS" in r.output and "observation seq 2" in r.output, r.output
+    assert "unreadable" in r.output
+    assert re.search(r"map other: ok; 1 rows replayed", r.output), r.output
+    assert "2 map(s) checked, 1 with problems" in r.output
+    with make_client(data) as c:  # the service says the same: that map failed as corrupt, the other serves
+        m = c.get("/v1/maps/default").json()
+        assert (m["state"], m["state_reason"]) == ("failed", "database-corrupt")
+        assert c.get("/readyz").status_code == 200 and post(c, frame(6), map_id="other").status_code == 200
+
+
+def test_a_check_that_fails_outright_is_that_maps_problem_and_the_others_are_checked(tmp_path, monkeypatch):
+    import service.maps.recovery as recovery
+
+    data = tmp_path / "data"
+    with make_client(data) as c:
+        c.post("/v1/maps", json={"map_id": "other"})
+        post(c, frame(1))
+        post(c, frame(5), map_id="other")
+    real = recovery.verify_map
+
+    def flaky(catalog, record, **kw):
+        if record.map_id == "default":
+            raise RuntimeError("a fault no check names")
+        return real(catalog, record, **kw)
+
+    monkeypatch.setattr(recovery, "verify_map", flaky)
+    r = run_verify(data)
+    assert r.exit_code == 1 and (r.exception is None or isinstance(r.exception, SystemExit)), r.output
+    assert "map default: PROBLEMS" in r.output and "RuntimeError: a fault no check names" in r.output
+    assert re.search(r"map other: ok; 1 rows replayed", r.output), r.output
+    assert "2 map(s) checked, 1 with problems" in r.output
