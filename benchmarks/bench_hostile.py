@@ -10,8 +10,9 @@ worker), temporary data directory, random weights. Measured, medians over repeat
 
 - `bombs`: status, problem type and latency of each hostile image: the issue's PNG (100x100, ~9.6 GB of
   deflated zeros in 9.8 MB), the same data split over 10,000 IDAT chunks, an interlaced one, one whose
-  compressed size fits its 2000x2000 raster (only the bounded inflate can tell), and a 5000x5000
-  progressive JPEG with 4,000 empty scans (300 kB);
+  compressed size fits its 2000x2000 raster (only the bounded inflate can tell), a 5000x5000
+  progressive JPEG with 4,000 empty scans (300 kB), and a flat 5000x5000 16-bit RGBA PNG (a well-formed
+  file at the pixel cap whose raster is 200 MB: the decode costs by the bytes);
 - `normal_frame_ms`: a 640x480 JPEG posted alone, and while two clients post the issue's bomb back to
   back (p50, p95, max);
 - `downloads`: time to the first byte of a snapshot download, and the bytes the server holds in
@@ -37,7 +38,7 @@ import numpy as np
 
 from benchmarks._common import RESULTS, quick_mode, write_json
 from benchmarks.bench_http import Server
-from models.evaluation.bench import make_png, png_bomb, synthetic_jpegs
+from models.evaluation.bench import deflated_zeros, make_png, png_bomb, synthetic_jpegs
 
 ISSUE_BOMB_BYTES = 9_600_000_000  # zeros inflated from the issue's 9.8 MB PNG
 
@@ -61,7 +62,10 @@ def hostile_images(quick: bool) -> dict[str, bytes]:
             "png_100x100_10000_idat_chunks": png_bomb(100, 100, zeros, idat_chunks=10_000),
             "png_100x100_interlaced_4MB": interlaced,
             "png_2000x2000_fits_raster": png_bomb(2000, 2000, zeros),
-            "jpeg_5000x5000_4000_scans": jpeg_scan_flood(5000, 300 if quick else 4000)}
+            "jpeg_5000x5000_4000_scans": jpeg_scan_flood(5000, 300 if quick else 4000),
+            # 16-bit RGBA at the pixel cap, all zeros: 200 MB of raster in ~200 kB, a legitimate PNG
+            "png_5000x5000_rgba16_flat": make_png(5000, 5000, deflated_zeros(5000 * (1 + 5000 * 8)),
+                                                  colour=6, depth=16)}
 
 
 def post(http: httpx.Client, base: str, body: bytes, ctype: str) -> tuple[int, str, float]:

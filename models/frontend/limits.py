@@ -6,6 +6,9 @@
 
 DEFAULT_MAX_BYTES = 10 * 2**20
 DEFAULT_MAX_PIXELS = 25_000_000
+#: Bytes a pixel the pixel cap is sized for: an 8-bit RGB frame. A PNG may carry up to 8 (16-bit RGBA),
+#: and its decode costs by the bytes, so its raster is held to `max_pixels` x this many bytes.
+PIXEL_CAP_BYTES = 3
 # docs/design/service.md §1.2: "long side more than 16× the short side" is a degenerate image. The cap also
 # bounds the Resize(256) intermediate: a 1×4000 upload would otherwise become a 256×1,024,000 array (786 MB).
 DEFAULT_MAX_ASPECT = 16.0

@@ -88,6 +88,7 @@ class _Header(NamedTuple):
     height: int
     complete: bool
     costly: ImageError | None = None  # raised by `probe` after the size and completeness checks
+    bits_per_pixel: int | None = None  # where a format's pixels may hold more than 24 bits (PNG)
 
 
 def _truncated(fmt: str, detail: str, n: int) -> ImageError:

@@ -27,6 +27,7 @@ class _PngLayout:
     width: int
     height: int
     raster_bytes: int  # exact size of the filtered scanlines the IDAT stream must inflate to
+    bits_per_pixel: int  # samples x bit depth: up to 64 (16-bit RGBA)
     idat: tuple[tuple[int, int], ...]  # (start, end) of each IDAT chunk's data
     complete: bool  # the walk reached IEND
 
@@ -74,7 +75,7 @@ def _png_layout(data: bytes) -> _PngLayout:
     else:
         raise _corrupt("png", f"more than {_PNG_MAX_CHUNKS} chunks")
     raster = _png_raster_bytes(width, height, samples * depth, bool(interlace))
-    return _PngLayout(width, height, raster, tuple(idat), complete)
+    return _PngLayout(width, height, raster, samples * depth, tuple(idat), complete)
 
 
 def _png_deflate_bound(raster_bytes: int) -> int:
@@ -95,7 +96,7 @@ def _png_header(data: bytes) -> _Header:
                             f"{png.width}x{png.height} image could need ({png.raster_bytes} bytes "
                             "uncompressed)", format="png", width=png.width, height=png.height,
                             compressed_bytes=compressed, raster_bytes=png.raster_bytes)
-    return _Header(png.width, png.height, png.complete, costly)
+    return _Header(png.width, png.height, png.complete, costly, png.bits_per_pixel)
 
 
 def _png_check_inflate(data: bytes) -> None:

@@ -19,6 +19,7 @@ from models.frontend.images.common import (
 from models.frontend.images.jpeg import _jpeg_header
 from models.frontend.images.png import _png_header
 from models.frontend.images.raw import RawFrame, probe_raw
+from models.frontend.limits import PIXEL_CAP_BYTES
 
 # ----------------------------------------------------------------------------------------------- sniffing
 
@@ -119,7 +120,9 @@ def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pix
     Args:
         data: the uploaded bytes, or a raw frame (`raw.probe_raw`: its format is "raw").
         max_bytes: refuse longer inputs ("too-large").
-        max_pixels: refuse images whose header gives width × height above this ("too-many-pixels").
+        max_pixels: refuse images whose header gives width × height above this ("too-many-pixels"), and
+            a PNG whose pixels decode to more than `max_pixels` × `PIXEL_CAP_BYTES` bytes (16-bit or
+            alpha samples: up to 8 bytes a pixel).
         max_aspect: refuse images whose long side exceeds `max_aspect` × the short side ("degenerate");
             None disables the check.
         formats: accepted formats, a subset of `FORMATS` (the service may narrow it to JPEG and PNG).
@@ -167,12 +170,21 @@ def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pix
                          f"{_FORMAT_NAMES[fmt]} images are not accepted here; send {_accepted_list(formats)}",
                          detected=_FORMAT_NAMES[fmt])
 
-    width, height, complete, costly = _HEADER_PARSERS[fmt](data)
+    width, height, complete, costly, bits = _HEADER_PARSERS[fmt](data)
     if width * height > max_pixels:
         raise ImageError("too-many-pixels",
                          f"image has {width}x{height} = {width * height} pixels, "
                          f"more than the limit of {max_pixels}",
                          width=width, height=height, max_pixels=max_pixels, format=fmt)
+    if bits is not None and width * height * bits > max_pixels * PIXEL_CAP_BYTES * 8:
+        # A 16-bit RGBA PNG of 194 kB at the pixel cap held the decode threads of every map 3.5-9.8 s
+        # (found from outside): the cap is sized for 3 bytes a pixel, and the decode costs by the bytes.
+        raster = width * height * bits // 8
+        raise ImageError("too-many-pixels",
+                         f"image has {width}x{height} pixels of {bits} bits = {raster} bytes decoded, more "
+                         f"than the limit of {max_pixels * PIXEL_CAP_BYTES} ({max_pixels} pixels of "
+                         f"{PIXEL_CAP_BYTES} bytes)", width=width, height=height, max_pixels=max_pixels,
+                         bits_per_pixel=bits, format=fmt)
     if max_aspect is not None and max(width, height) > max_aspect * min(width, height):
         raise ImageError("degenerate",
                          f"image is {width}x{height}: its long side is more than {max_aspect:g} times "

@@ -348,6 +348,29 @@ def test_jpeg_sof_claiming_a_huge_image_is_refused_without_decoding(no_decoding)
     assert "30000x30000 = 900000000 pixels" in str(info.value)
 
 
+@pytest.mark.parametrize(("depth", "colour", "refused"), [
+    (16, 6, True),    # 16-bit RGBA: 8 bytes a pixel
+    (8, 6, True),     # 8-bit RGBA: 4
+    (16, 2, True),    # 16-bit RGB: 6
+    (16, 0, False),   # 16-bit grey (a depth camera's): 2
+    (8, 2, False),    # 8-bit RGB: the 3 bytes the cap is sized for
+])
+def test_a_png_whose_pixels_decode_past_the_caps_bytes_is_refused_without_decoding(depth, colour, refused,
+                                                                                   no_decoding):
+    # Found from outside: a 194 kB 16-bit RGBA PNG at the pixel cap held every map's decode for seconds.
+    ihdr = struct.pack(">IIBBBBB", 100, 100, depth, colour, 0, 0, 0)
+    data = (probing._PNG_SIGNATURE + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", zlib.compress(b""))
+            + _png_chunk(b"IEND", b""))
+    if refused:
+        with pytest.raises(ImageError) as info:
+            probe(data, max_pixels=100 * 100)
+        assert info.value.code == "too-many-pixels" and info.value.details["bits_per_pixel"] == depth * {
+            6: 4, 2: 3}[colour] and "30000 (10000 pixels of 3 bytes)" in str(info.value)
+        assert probe(data, max_pixels=100 * 100 * 3).width == 100  # the cap's bytes are what bind it
+    else:
+        assert probe(data, max_pixels=100 * 100) == images.ImageInfo("png", 100, 100)
+
+
 def test_pixel_cap_is_a_parameter():
     data = _encode(_random_rgb(40, 50), ".png")
     assert decode(data, max_pixels=2000).shape == (40, 50, 3)
