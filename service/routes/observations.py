@@ -60,6 +60,10 @@ METADATA_MAX_INT = 2**53 - 1
 #: every Earth frame in metres (UTM northings reach 10^7, ECEF 6.4 x 10^6) with room; a larger value is a
 #: unit or sensor fault, and at 10^16 the doubles are 2 m apart, so it could not say where anyway.
 POSE_MAX_ABS = 1e9
+#: The accepted |yaw|, radians: an odometry that does not wrap its heading may count turns (10^6 rad is
+#: some 160,000 of them, still exact to 10^-10 rad); more is a unit fault, and the g2o export's
+#: quaternion (sin and cos of yaw / 2) of 10^300 is noise.
+YAW_MAX_ABS = 1e6
 #: The latest `stamp` accepted, in seconds since the epoch (10^11 s: the year 5138). Stamps are seconds:
 #: one in milliseconds (~1.7 x 10^12 today), microseconds or nanoseconds read as seconds lies far beyond
 #: it, and would quietly turn off what the service reads in stamps (a drive's gap and speed, §1.2).
@@ -76,7 +80,7 @@ class _Pose(BaseModel):
     model_config = ConfigDict(extra="allow", strict=True)  # strict: `true` is not a coordinate
     x: float = Field(ge=-POSE_MAX_ABS, le=POSE_MAX_ABS)
     y: float = Field(ge=-POSE_MAX_ABS, le=POSE_MAX_ABS)
-    yaw: float | None = None
+    yaw: float | None = Field(None, ge=-YAW_MAX_ABS, le=YAW_MAX_ABS)
     frame_id: str | None = None
 
 
