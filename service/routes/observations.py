@@ -257,8 +257,8 @@ async def post_observation(
     label: Annotated[str | None, Query(max_length=200)] = None,
     encoding: Annotated[str | None, Query(max_length=16, description="a raw frame's pixels: "
                                           + " | ".join(images.RAW_ENCODINGS))] = None,
-    width: Annotated[int | None, Query(description="a raw frame's width in pixels"), DECIMAL] = None,
-    height: Annotated[int | None, Query(description="a raw frame's height in pixels"), DECIMAL] = None,
+    width: Annotated[int | None, Query(ge=1, description="a raw frame's width in pixels"), DECIMAL] = None,
+    height: Annotated[int | None, Query(ge=1, description="a raw frame's height in pixels"), DECIMAL] = None,
     metadata: Annotated[str | None, Query(description="a compact JSON object stored with the "
                                           "observation: stamp, pose {x, y, yaw, frame_id}, ...")] = None,
     idempotency_key: Annotated[str | None, Header(
