@@ -41,7 +41,8 @@ def progress(label: str, *, show: bool = True) -> Iterator[Tick | None]:
         task = bar.add_task(label, total=None)
 
         def tick(done: int, total: int) -> None:
-            bar.update(task, completed=done, total=total)
+            # a total read before the work (a live map's rows) may be passed: never show 149/138
+            bar.update(task, completed=done, total=max(total, done))
 
         yield tick
 
