@@ -129,3 +129,13 @@ def test_a_check_that_fails_outright_is_that_maps_problem_and_the_others_are_che
     assert "map default: PROBLEMS" in r.output and "RuntimeError: a fault no check names" in r.output
     assert re.search(r"map other: ok; 1 rows replayed", r.output), r.output
     assert "2 map(s) checked, 1 with problems" in r.output
+
+
+def test_the_progress_bar_never_shows_more_done_than_its_total(capsys):
+    # verify on a live data directory showed 149/138: rows learned after the total was read
+    from service.cli.common import progress
+
+    with progress("verify x") as tick:
+        assert tick is not None
+        tick(149, 138)
+    assert "149/149" in capsys.readouterr().err
