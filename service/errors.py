@@ -55,6 +55,7 @@ PROBLEMS: dict[str, tuple[int, str]] = {
     "snapshot-in-use": (409, "Snapshot in use"),
     "not-found": (404, "Not found"),
     "method-not-allowed": (405, "Method not allowed"),
+    "method-not-implemented": (501, "Method not implemented"),
     "map-exists": (409, "Map already exists"),
     "map-limit": (409, "Too many maps"),
     "map-full": (409, "Map is full"),

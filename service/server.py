@@ -6,7 +6,8 @@ service needs below the app:
 
 - uvicorn answers a request it cannot parse (a malformed request line or header) itself, before the
   app sees anything, with a text/plain 400. `ProblemHttpToolsProtocol` replaces only that answer by the
-  service's problem+json (docs/design/service.md §2), so every error has one shape.
+  service's problem+json (docs/design/service.md §2), so every error has one shape; a request whose
+  method llhttp does not know (`FOO`, `get`) is 501 `method-not-implemented` (RFC 9110 §9.1).
 - A request head still incomplete past `service.limits.HEAD_MAX_BYTES` (16 KiB) is refused with the
   same 400 problem+json: llhttp has no limit of its own, nor uvicorn's httptools protocol, so a client
   could otherwise make the server buffer megabytes of header. A longer head that completes within one
@@ -29,8 +30,10 @@ from __future__ import annotations
 import asyncio
 import functools
 import json
+import re
 import resource
 
+import httptools
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from service.errors import PROBLEM_MEDIA_TYPE, problem_body
@@ -61,12 +64,34 @@ def connection_cap(max_connections: int) -> int:
     return max(1, min(max_connections, soft - FD_RESERVE))
 
 
+#: Bytes of a request head kept to name its method when llhttp refuses it (the longest method token
+#: a 501 names; a longer one is a malformed request line, 400).
+_METHOD_PEEK = 33
+_METHOD_TOKEN = re.compile(rb"([!#$%&'*+.^_`|~0-9A-Za-z-]{1,32}) ")
+
+
+def _unknown_method(head_start: bytes) -> str | None:
+    """The method of a request line whose method token is well formed but one llhttp does not know
+    (`FOO`, or `get`: methods are case-sensitive), else None."""
+    m = _METHOD_TOKEN.match(head_start)
+    if m is None:
+        return None
+    try:
+        httptools.HttpRequestParser(object()).feed_data(m.group(0) + b"/ HTTP/1.1\r\n\r\n")
+    except httptools.HttpParserInvalidMethodError:
+        return m.group(1).decode("ascii")
+    except httptools.HttpParserError:
+        return None
+    return None
+
+
 class ProblemHttpToolsProtocol(HttpToolsProtocol):
     """uvicorn's httptools protocol; unparseable requests and heads over `HEAD_MAX_BYTES` get a 400
     `invalid-parameter` problem+json, and a head that does not arrive in time a 408 (module docstring)."""
 
     _head_timer: asyncio.TimerHandle | None = None
     _in_head, _head_bytes = True, 0  # the current message's head is unfinished; bytes read since it began
+    _head_start = b""  # its first bytes (`_METHOD_PEEK`)
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
@@ -97,6 +122,8 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
         # Bytes since the message began while its head is unfinished: a head still incomplete past the
         # limit is refused. One that completes within a read reaches the app, which checks its size.
         if self._in_head:
+            if len(self._head_start) < _METHOD_PEEK:  # the method's bytes, for a request llhttp refuses
+                self._head_start += data[:_METHOD_PEEK - len(self._head_start)]
             self._head_bytes += len(data)
         super().data_received(data)
         if self._in_head and self._head_bytes > HEAD_MAX_BYTES and not self.transport.is_closing():
@@ -107,7 +134,7 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
         super().on_headers_complete()
 
     def on_message_complete(self) -> None:
-        self._in_head, self._head_bytes = True, 0
+        self._in_head, self._head_bytes, self._head_start = True, 0, b""
         super().on_message_complete()
 
     # ---------------------------------------------------------------- the head's time
@@ -129,6 +156,12 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
         self._answer(408, "Request Timeout", "request-timeout", detail, timeout_s=timeout, received_bytes=0)
 
     def send_400_response(self, msg: str) -> None:
+        method = _unknown_method(self._head_start)
+        if method is not None:  # RFC 9110 §9.1: a method the server does not know is 501, not a bad request
+            self._answer(501, "Not Implemented", "method-not-implemented",
+                         f"{method!r} is no HTTP method this service knows (methods are case-sensitive)",
+                         method=method)
+            return
         detail = (f"the request could not be parsed as HTTP/1.1: a malformed request line or header, or a "
                   f"request line and headers larger than {HEAD_MAX_BYTES} bytes")
         self._answer(400, "Bad Request", "invalid-parameter", detail,

@@ -198,6 +198,7 @@ def test_registry_covers_the_spec_table():
     spec |= {"memory-budget", "stream-limit", "snapshot-in-use"}  # issue 19 items 1, 8 and 10
     spec |= {"recent-answer-not-found"}  # issue 23: the viewer's query thumbnails
     spec |= {"map-read-only"}  # a map whose map.sqlite refuses writes (was a 500)
+    spec |= {"method-not-implemented"}  # a method llhttp does not know (was a 400 "malformed request")
     assert set(TITLES) == spec
 
 

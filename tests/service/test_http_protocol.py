@@ -307,20 +307,32 @@ def test_unparseable_requests_get_problem_json_from_the_protocol():
         # Headers past the 16 KiB limit still unfinished (a whole one reaches the app, which refuses it:
         # test_oversized_headers_are_refused_however_they_arrive), a malformed header line, a malformed
         # request line.
-        for raw in (b"GET / HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 40_000,
-                    b"GET / HTTP/1.1\r\nHost: x\r\nno colon in this header\r\n\r\n",
-                    b"GET /\x00 HTTP/1.1\r\nHost: x\r\n\r\n"):
+        def answer(raw: bytes) -> tuple[bytes, dict]:
             with socket.create_connection(("127.0.0.1", port), timeout=10) as conn:
                 conn.sendall(raw)
                 reply = b""
                 while chunk := conn.recv(65536):
                     reply += chunk
             head, _, body = reply.partition(b"\r\n\r\n")
-            assert head.startswith(b"HTTP/1.1 400 ")
             assert b"content-type: application/problem+json" in head.lower()
             problem = json.loads(body)
+            assert problem["request_id"] in head.decode()
+            return head, problem
+
+        for raw in (b"GET / HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 40_000,
+                    b"GET / HTTP/1.1\r\nHost: x\r\nno colon in this header\r\n\r\n",
+                    b"GET /\x00 HTTP/1.1\r\nHost: x\r\n\r\n",
+                    b"G@T / HTTP/1.1\r\nHost: x\r\n\r\n"):  # not a method token at all: malformed
+            head, problem = answer(raw)
+            assert head.startswith(b"HTTP/1.1 400 ")
             assert problem["type"] == "urn:cortexloc:problem:invalid-parameter" and problem["status"] == 400
-            assert problem["request_id"] in head.decode() and problem["errors"]
+            assert problem["errors"]
+        # a well-formed token that is no method llhttp knows (methods are case-sensitive): RFC 9110 §9.1
+        for method in (b"FOO", b"get", b"BREW"):
+            head, problem = answer(method + b" /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+            assert head.startswith(b"HTTP/1.1 501 "), head
+            assert problem["type"] == "urn:cortexloc:problem:method-not-implemented"
+            assert problem["method"] == method.decode() and method.decode() in problem["detail"]
     finally:
         server.should_exit = True
         thread.join(timeout=10)
