@@ -70,17 +70,17 @@ _METHOD_PEEK = 33
 _METHOD_TOKEN = re.compile(rb"([!#$%&'*+.^_`|~0-9A-Za-z-]{1,32}) ")
 
 
-def _unknown_method(head_start: bytes) -> str | None:
+def _unknown_method(head_start: bytes | None) -> str | None:
     """The method of a request line whose method token is well formed but one llhttp does not know
     (`FOO`, or `get`: methods are case-sensitive), else None."""
-    m = _METHOD_TOKEN.match(head_start)
+    m = None if head_start is None else _METHOD_TOKEN.match(head_start)
     if m is None:
         return None
     try:
         httptools.HttpRequestParser(object()).feed_data(m.group(0) + b"/ HTTP/1.1\r\n\r\n")
     except httptools.HttpParserInvalidMethodError:
         return m.group(1).decode("ascii")
-    except httptools.HttpParserError:
+    except Exception:  # any other answer (CONNECT's HttpParserUpgrade among them): a known method
         return None
     return None
 
@@ -91,7 +91,11 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
 
     _head_timer: asyncio.TimerHandle | None = None
     _in_head, _head_bytes = True, 0  # the current message's head is unfinished; bytes read since it began
-    _head_start = b""  # its first bytes (`_METHOD_PEEK`)
+    # The current message's first bytes (`_METHOD_PEEK`), or None where it began inside a read that ended
+    # another (pipelined): only a read that starts with a message gives its method.
+    _head_start: bytes | None = b""
+    _message_open = False  # llhttp began a message that has not completed
+    _read_starts_message = True  # this read's first byte is a message's first byte
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
@@ -121,9 +125,12 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
     def data_received(self, data: bytes) -> None:
         # Bytes since the message began while its head is unfinished: a head still incomplete past the
         # limit is refused. One that completes within a read reaches the app, which checks its size.
+        self._read_starts_message = not self._message_open
+        if self._read_starts_message:
+            self._head_start = b""
         if self._in_head:
-            if len(self._head_start) < _METHOD_PEEK:  # the method's bytes, for a request llhttp refuses
-                self._head_start += data[:_METHOD_PEEK - len(self._head_start)]
+            if self._head_start is not None and len(self._head_start) < _METHOD_PEEK:
+                self._head_start += data[:_METHOD_PEEK - len(self._head_start)]  # for a refused method
             self._head_bytes += len(data)
         super().data_received(data)
         if self._in_head and self._head_bytes > HEAD_MAX_BYTES and not self.transport.is_closing():
@@ -133,8 +140,14 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
         self._in_head = False
         super().on_headers_complete()
 
+    def on_message_begin(self) -> None:
+        if not self._read_starts_message:  # a pipelined message, begun part way through a read
+            self._head_start = None
+        self._read_starts_message, self._message_open = False, True
+        super().on_message_begin()
+
     def on_message_complete(self) -> None:
-        self._in_head, self._head_bytes, self._head_start = True, 0, b""
+        self._in_head, self._head_bytes, self._message_open = True, 0, False
         super().on_message_complete()
 
     # ---------------------------------------------------------------- the head's time

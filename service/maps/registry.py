@@ -136,7 +136,8 @@ class MapRegistry:
                 self._unfit(record, e)
             except Exception:  # anything: one map's failure must not take the others down
                 log.exception("map %s cannot be opened; it is served as failed", record.map_id)
-                self.catalog.set_state(record.map_id, "failed", "open-failed")
+                with contextlib.suppress(StorageFull):  # the catalog on a full disk: still served as failed
+                    self.catalog.set_state(record.map_id, "failed", "open-failed")
                 self.maps[record.map_id] = FailedMap(record, self.catalog, "open-failed")
         self._sweep_discarded()
         self.unlisted = unlisted = self._unlisted()  # /readyz warns of them

@@ -290,7 +290,11 @@ def test_readyz_reports_the_damaged_snapshots_recovery_skipped(tmp_path):
 
 def test_unparseable_requests_get_problem_json_from_the_protocol():
     # uvicorn answers these itself, before the app; `cortexloc serve` runs it with ProblemHttpToolsProtocol.
-    async def app(scope, receive, send):  # never reached by the requests below
+    async def app(scope, receive, send):  # reached only by the pipelined case's valid first request
+        if scope["type"] == "http" and scope["path"] == "/a":
+            await send({"type": "http.response.start", "status": 200, "headers": []})
+            await send({"type": "http.response.body", "body": b""})
+            return
         raise AssertionError("the app saw an unparseable request")
 
     with socket.socket() as s:
@@ -322,11 +326,22 @@ def test_unparseable_requests_get_problem_json_from_the_protocol():
         for raw in (b"GET / HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 40_000,
                     b"GET / HTTP/1.1\r\nHost: x\r\nno colon in this header\r\n\r\n",
                     b"GET /\x00 HTTP/1.1\r\nHost: x\r\n\r\n",
-                    b"G@T / HTTP/1.1\r\nHost: x\r\n\r\n"):  # not a method token at all: malformed
+                    b"G@T / HTTP/1.1\r\nHost: x\r\n\r\n",  # not a method token at all: malformed
+                    # CONNECT, a method llhttp knows (its peek raised an upgrade: no answer, a review)
+                    b"CONNECT x:443 HTTP/1.1\r\nHost: x\r\nno colon\r\n\r\n"):
             head, problem = answer(raw)
             assert head.startswith(b"HTTP/1.1 400 ")
             assert problem["type"] == "urn:cortexloc:problem:invalid-parameter" and problem["status"] == 400
             assert problem["errors"]
+        # a pipelined request's bad header, its read starting inside its head, is no unknown method
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as conn:
+            conn.sendall(b"GET /a HTTP/1.1\r\nHost: x\r\n\r\nGET /b HTTP/1.1\r\nX-A: a")
+            time.sleep(0.3)
+            conn.sendall(b"b c\r\nno colon\r\n\r\n")
+            reply = b""
+            while chunk := conn.recv(65536):
+                reply += chunk
+        assert b"HTTP/1.1 400 " in reply and b"method-not-implemented" not in reply, reply[-600:]
         # a well-formed token that is no method llhttp knows (methods are case-sensitive): RFC 9110 §9.1
         for method in (b"FOO", b"get", b"BREW"):
             head, problem = answer(method + b" /healthz HTTP/1.1\r\nHost: x\r\n\r\n")

@@ -134,8 +134,9 @@ def _jpeg_check_scan_data(data: bytes) -> None:
     try:
         # grey: libjpeg still entropy-decodes every component's scans (it must, to read the stream; a cut in
         # a chroma scan is refused, tests/models/frontend/test_images.py), and skips the colour conversion
-        simplejpeg.decode_jpeg(data, colorspace="GRAY", min_factor=8, fastdct=True, fastupsample=True,
-                               strict=True)
+        # min_factor scales only with a minimum size to scale down to (1x1 here: the smallest, 1/8)
+        simplejpeg.decode_jpeg(data, colorspace="GRAY", min_height=1, min_width=1, min_factor=8,
+                               fastdct=True, fastupsample=True, strict=True)
     except ValueError as e:
         why = str(e).strip()
         if _JPEG_DAMAGE.search(why):

@@ -267,8 +267,12 @@ class Recovering:
     def _fail(self, reason: str, detail: str | None = None) -> None:
         """The map `failed`: `reason` is its `state_reason`, `detail` (if any) what the log adds to it."""
         self.state, self.state_reason = "failed", reason
-        self.catalog.set_state(self.map_id, "failed", reason)
         log.error("map %s failed (%s)%s", self.map_id, reason, f": {detail}" if detail else "")
+        try:
+            self.catalog.set_state(self.map_id, "failed", reason)
+        except StorageFull as e:  # a full disk (often why it failed): served as failed all the same
+            log.error("map %s: the catalog could not record its state (%s); it is served as failed",
+                      self.map_id, e)
 
 
 class _Held(NamedTuple):

@@ -310,6 +310,24 @@ def test_a_cut_in_any_first_scan_of_a_progressive_jpeg_is_refused_chroma_scans_t
     assert {(2,), (3,)} <= first_scans  # the chroma components' own scans were among them
 
 
+def test_the_scan_data_check_decodes_at_an_eighth(monkeypatch):
+    """It reads every scan, but writes an eighth of the rows and columns (a review found it decoding the
+    whole frame: simplejpeg scales only given a minimum size)."""
+    from models.frontend.images import jpeg as jpeg_mod
+
+    shapes = []
+    real = jpeg_mod.simplejpeg.decode_jpeg
+
+    def spy(*args, **kw):
+        out = real(*args, **kw)
+        shapes.append(out.shape[:2])
+        return out
+
+    monkeypatch.setattr(jpeg_mod.simplejpeg, "decode_jpeg", spy)
+    decode(_encode(_smooth_rgb(480, 640), ".jpg"))
+    assert shapes == [(60, 80)]
+
+
 def test_a_jpeg_with_warnings_that_leave_every_block_decoded_is_accepted():
     rgb = _smooth_rgb()
     whole = _encode(rgb, ".jpg", [cv2.IMWRITE_JPEG_QUALITY, 95])

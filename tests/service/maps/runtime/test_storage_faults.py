@@ -67,6 +67,43 @@ def test_a_map_file_sqlite_cannot_open_is_failed_unopenable_not_corrupt(tmp_path
             rt.require_ready(learns=False)
 
 
+def test_a_map_opened_with_no_room_for_its_shm_is_failed_disk_full_even_where_the_catalog_is_full(
+        tmp_path, monkeypatch):
+    """SQLite makes a WAL database's -shm file at its open; on a full disk that is SQLITE_IOERR_SHMSIZE,
+    which called a healthy map corrupt (an operator deletes a corrupt map). Its state cannot be written to
+    a full catalog either: it is served as failed all the same, and the file is untouched."""
+    from storage.catalog import Catalog
+    from storage.mapstore import StorageFull
+
+    with registry(tmp_path) as reg:
+        step(reg.get("default"), route(1)[0])
+    db = tmp_path / "maps" / "default" / "map.sqlite"
+    before = db.read_bytes()
+    real = sqlite3.connect
+
+    def no_room_for_the_shm(database, *args, **kwargs):
+        conn = real(database, *args, **kwargs)
+        if str(database).endswith("map.sqlite"):
+            err = sqlite3.OperationalError("disk I/O error")
+            err.sqlite_errorname = "SQLITE_IOERR_SHMSIZE"
+            conn.close()
+            raise err
+        return conn
+
+    def catalog_full(self, *args, **kwargs):
+        raise StorageFull("catalog.sqlite: database or disk is full")
+
+    monkeypatch.setattr(sqlite3, "connect", no_room_for_the_shm)
+    monkeypatch.setattr(Catalog, "set_state", catalog_full)
+    with registry(tmp_path) as reg:
+        rt = reg.get("default")
+        assert (rt.state, rt.state_reason) == ("failed", "disk-full")
+    monkeypatch.undo()
+    assert db.read_bytes() == before
+    with registry(tmp_path) as reg:  # room made: a restart opens it whole
+        assert reg.get("default").state == "ready" and reg.get("default").store.count() == 1
+
+
 def test_a_read_only_map_answers_a_localising_revisit_and_says_it_is_read_only_once(tmp_path, caplog):
     """A localising revisit would log its loop closure, which a read-only store refuses: the robot still
     gets its answer (it learned nothing), the closure is not logged, and the log says read-only once."""
