@@ -46,6 +46,7 @@ from starlette.responses import JSONResponse, StreamingResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.errors import problem_response
+from service.routing import sent_head
 from service.settings import Settings
 
 __all__ = [
@@ -125,6 +126,14 @@ class ReadStreamingResponse(StreamingResponse):
         """What the reply holds, released: sent, client gone, stalled or failed."""
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if sent_head(scope):  # the GET's checks ran (a snapshot's checksums): its headers, no stream
+            try:
+                await send({"type": "http.response.start", "status": self.status_code,
+                            "headers": self.raw_headers})
+                await send({"type": "http.response.body", "body": b"", "more_body": False})
+            finally:
+                self.on_close()
+            return
         stall_s = float(_setting(scope, "body_timeout_s"))
         stalled = False
 

@@ -10,7 +10,7 @@ from fastapi import Request
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-__all__ = ["HeadMiddleware", "allowed_methods", "iter_routes", "request_method"]
+__all__ = ["HeadMiddleware", "allowed_methods", "iter_routes", "request_method", "sent_head"]
 
 #: The scope key that keeps a HEAD request's method while the app answers it as a GET.
 _SENT_METHOD = "cortexloc.sent_method"
@@ -47,12 +47,19 @@ def request_method(request: Request) -> str:
     return str(request.scope.get(_SENT_METHOD, request.method))
 
 
+def sent_head(scope: Scope) -> bool:
+    """Whether the client sent HEAD (`HeadMiddleware`): a streamed reply then sends its headers only."""
+    return scope.get(_SENT_METHOD) == "HEAD"
+
+
 class HeadMiddleware:
     """Every GET resource answers HEAD too, as RFC 9110 §9.3.2 asks of a general-purpose server: the same
     status and headers (`Content-Length` included), no body. FastAPI routes a HEAD to nothing (405), and
     probes and caches send one. Innermost of the edge, so the logs and metrics name the method sent.
 
-    The GET runs whole, its body dropped here: a HEAD costs what its GET does, under the same limits.
+    The GET runs whole, its body dropped here: a HEAD costs what its GET does, under the same limits,
+    but for a streamed reply (`service.limits.ReadStreamingResponse`: a snapshot download, an export),
+    which sends its headers and stops, so a HEAD never streams a snapshot's files to be thrown away.
     """
 
     def __init__(self, app: ASGIApp) -> None:

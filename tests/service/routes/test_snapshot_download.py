@@ -177,3 +177,34 @@ def test_a_malformed_snapshot_id_is_refused_like_any_bad_parameter(client, bad):
         assert r.status_code == 400, r.text
         assert r.headers["content-type"].startswith(PROBLEM_MEDIA_TYPE)
         assert r.json()["type"] == "urn:cortexloc:problem:invalid-parameter"
+
+
+def test_head_on_a_download_checks_the_snapshot_and_streams_nothing(client, tmp_path, monkeypatch):
+    # A review: HEAD ran the whole download server-side (every file read and streamed, then dropped).
+    from storage.archive import TarExport
+
+    sid, snap_dir = snapshot_with_frames(client)
+    data_dir = tmp_path / "data"
+    got = client.get(f"/v1/maps/default/snapshots/{sid}/download")
+    fds_before = fds_into(data_dir)
+    read: list[int] = []
+    real = TarExport.chunks
+
+    def counted(self, *args, **kwargs):
+        for chunk in real(self, *args, **kwargs):
+            read.append(len(chunk))
+            yield chunk
+
+    monkeypatch.setattr(TarExport, "chunks", counted)
+    head = client.head(f"/v1/maps/default/snapshots/{sid}/download")
+    assert head.status_code == 200 and head.content == b"" and read == []
+    assert head.headers["content-length"] == got.headers["content-length"] == str(len(got.content))
+    assert head.headers["content-disposition"] == got.headers["content-disposition"]
+    assert fds_into(data_dir) == fds_before  # the export's files released
+    data = bytearray((snap_dir / "memory.npz").read_bytes())
+    data[len(data) // 2] ^= 1
+    (snap_dir / "memory.npz").write_bytes(bytes(data))
+    assert client.head(f"/v1/maps/default/snapshots/{sid}/download").status_code == 409  # as its GET
+    assert client.get(f"/v1/maps/default/snapshots/{sid}/download").status_code == 409
+    export = client.head("/v1/maps/default/loop-closures/export?format=csv")
+    assert export.status_code == 200 and export.content == b""
