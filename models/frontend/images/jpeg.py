@@ -103,7 +103,6 @@ def _jpeg_scans_error(scans: int, size: tuple[int, int]) -> ImageError | None:
                       max_scans=JPEG_MAX_SCANS)
 
 
-
 #: libjpeg's warnings that say scan data is missing or wrong (jerror.h: JWRN_HIT_MARKER, JWRN_JPEG_EOF,
 #: JWRN_HUFF_BAD_CODE, JWRN_ARITH_BAD_CODE, JWRN_MUST_RESYNC, and JWRN_EXTRANEOUS_DATA before a restart
 #: marker: a restart interval's blocks were read off bytes that were not theirs). On each, libjpeg fills
