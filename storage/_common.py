@@ -166,7 +166,7 @@ def connect(path: str | Path, *, readonly: bool = False) -> sqlite3.Connection:
 #: file-size limit (`ulimit -f`) reached (the OS's words: `storage.base.files.NO_ROOM_ERRNOS`). SQLite
 #: reports the first as SQLITE_FULL and the other two as a failed write (its VFS keeps the errno to
 #: itself); a WAL database whose shared-memory file (-shm) cannot be made or grown says
-#: SQLITE_IOERR_SHMSIZE (a new map's file with 8-32 KiB left, answered 500 before; a healthy map opened
+#: SQLITE_IOERR_SHMSIZE (a new map's file with a few KiB left, answered 500 before; a healthy map opened
 #: at a restart on a full disk, called corrupt before). So a failed write counts as no room: a write that
 #: fails for any reason is storage refusing the row, answered as such (507, nothing changed), never as a
 #: bug. A failing or read-only disk fails writes the same way; the answer carries SQLite's own words
