@@ -108,7 +108,8 @@ class Settings(BaseSettings):
         "faster) or torch (the reference)")
     torch_threads: int = Field(1, ge=1)
     encoder_workers: int = Field(1, ge=1, description="encoder executor size")
-    encoder_queue: int = Field(32, ge=1, description="encoder queue length (full: 503 overloaded)")
+    encoder_queue: int = Field(32, ge=1, description="encoder queue length (full: 503 overloaded; shared "
+                                                     "between maps, docs/design/service.md §6)")
     encode_batch: int = Field(16, ge=1, le=256, description="images one backbone call of the encoder pool "
                               "takes at most: requests that arrive together share a call (the forward's "
                               "cost per image is flat from batch 1 to 16 on ONNX Runtime)")

@@ -126,6 +126,19 @@ def test_the_index_benchmark_runs_as_a_command_and_writes_its_json(tmp_path: Pat
     assert [r["descriptors"] for r in written["results"]] == [2000, 3000]
 
 
+def test_the_fairness_benchmark_times_a_robot_alone_and_beside_a_flood(tmp_path: Path) -> None:
+    """`cortexloc bench fairness` against a real server, tiny: both phases run, every robot frame gets a
+    status, and the flood posted (figures unasserted: docs/benchmarks.md §16 has them)."""
+    out = tmp_path / "fairness.json"
+    result = CliRunner().invoke(app, ["bench", "fairness", "--frames", "2", "--gap", "0", "--clients", "2",
+                                      "--side", "256", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    written = json.loads(out.read_text())
+    assert written["alone"]["statuses"] == {"200": 2}
+    assert sum(written["flooded"]["robot"]["statuses"].values()) == 2
+    assert sum(written["flooded"]["flood_statuses"].values()) > 0
+
+
 def test_the_tm_profile_still_ablates_the_kernel(tmp_path: Path) -> None:
     """bench_tm_profile.py removes parts of the step by editing a copy of the kernel's source; a kernel
     edit that moves one of those lines must fail here, not leave a variant that times the full step."""

@@ -19,8 +19,8 @@ import copy
 import functools
 import logging
 import time
-from collections.abc import Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Hashable, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,6 +31,7 @@ import torch
 
 from models import presets
 from models.frontend import backbones, images, limits, runtimes, slsbh, weights
+from models.frontend.turns import TurnPool
 
 log = logging.getLogger("cortexloc.encoder")
 
@@ -151,8 +152,8 @@ class Embedder:
             self._check_projection(projection)
             self.__dict__["hasher"] = slsbh.Hasher(projection, float(s_conf["s"]))
         # Always a pool, even of one thread: `prepare` never decodes on its caller's thread (the service's
-        # event loop), and the backbone runs beside the decoding.
-        self._pool = ThreadPoolExecutor(max(1, int(self.conf["decode_threads"])), thread_name_prefix="decode")
+        # event loop), and the backbone runs beside the decoding. Its keys (the service's maps) take turns.
+        self._pool = TurnPool(int(self.conf["decode_threads"]), "decode")
 
     # ------------------------------------------------------------------ projection
 
@@ -254,7 +255,7 @@ class Embedder:
         return images.decode(data, grey=grey, **self.decode_limits)
 
     def prepare(self, data: bytes | images.RawFrame, *, thumbnail: bool = False, resize: str | None = None,
-                out: np.ndarray | None = None) -> Future[Prepared]:
+                out: np.ndarray | None = None, key: Hashable = None) -> Future[Prepared]:
         """Start decoding and preprocessing one upload in the encoder's decode threads, for
         `embed_prepared`; returns at once.
 
@@ -267,6 +268,8 @@ class Embedder:
             resize: crop | squash; None: the encoder's own `resize`.
             out: (3, 224, 224) float32 row of the batch the backbone will run on, written in place (no
                 second copy); None: a new array.
+            key: whose frame it is (the service's map): the decode threads take keys in turn
+                (`models.frontend.turns`), so one key's burst does not hold the others' frames back.
 
         Returns:
             A future of the `Prepared` frame; its exception is the `images.ImageError` of a bad upload.
@@ -284,7 +287,7 @@ class Embedder:
             x = images.preprocess(rgb, out=out, **kw)
             return Prepared(x, thumb, contrast, (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3)
 
-        return self._pool.submit(run)
+        return self._pool.submit(run, key)
 
     def embed_prepared(self, prepared: Sequence[Future[Prepared]]) -> EncodeResult:
         """Backbone features of frames from `prepare`, in their order, forwarded in chunks of `chunk` as

@@ -407,6 +407,24 @@ def bench_uploads(
          watch=watch, out=out)
 
 
+@app.command("fairness")
+def bench_fairness(
+    quick: Annotated[bool, typer.Option("--quick", help=QUICK)] = False,
+    server_cmd: Annotated[str | None, typer.Option(help=SERVER_CMD)] = None,
+    env: Annotated[list[str] | None, typer.Option(help="NAME=VALUE for the server (repeat)")] = None,
+    frames: Annotated[int, typer.Option(min=1, help="the robot's frames per phase")] = 20,
+    gap: Annotated[float, typer.Option(min=0.0, help="seconds between the robot's frames")] = 0.25,
+    clients: Annotated[int, typer.Option(min=1, help="the flood's connections")] = 40,
+    side: Annotated[int, typer.Option(min=16, help="the flood's PNG side in pixels")] = 5000,
+    out: Annotated[Path | None, typer.Option(help="default benchmarks/results/fairness.json")] = None,
+) -> None:
+    """One map's flood against another map's robot: does the robot wait (benchmarks/bench_fairness.py)."""
+    from benchmarks.bench_fairness import main
+
+    main(quick=quick, server_cmd=server_cmd, env=env or [], frames=frames, gap=gap, clients=clients,
+         side=side, out=out)
+
+
 @app.command("profile-encoder")
 def bench_profile_encoder(
     repeats: Annotated[int, typer.Option(min=1)] = 9,

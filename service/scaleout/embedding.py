@@ -11,7 +11,7 @@ sLSBH matrix: the deployment returns features (1, D), never codes, so it needs n
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
@@ -129,9 +129,11 @@ class RemoteEmbedder:
         return images.decode(data, grey=grey, **self.decode_limits)
 
     def prepare(self, data: bytes | images.RawFrame, *, thumbnail: bool = False,
-                resize: str | None = None) -> PendingReply:
+                resize: str | None = None, key: Hashable = None) -> PendingReply:
         """Send one image to the encoder deployment now (`Embedder.prepare`'s place in the shard's encoder
         pool: the decode, and here the forward too, start when the request arrives); returns at once.
+        `key` (the map) is not sent: the deployment's batching queue is Ray Serve's, first in first out
+        across shards (docs/scaling.md).
 
         Returns:
             The pending reply (`result()` blocks: the pool's worker threads call it, never the event

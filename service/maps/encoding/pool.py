@@ -1,14 +1,16 @@
 """The encoder behind a bounded, batching executor (docs/design/service.md §6): the one place where
 images are batched.
 
-Concurrent requests are encoded together: a worker takes the first waiting image, gathers whatever
-else arrives within a few milliseconds (up to `max_batch`), and runs one backbone call for all of
+Concurrent requests are encoded together: a worker takes the first decoded image, gathers whatever
+else is decoded within a few milliseconds (up to `max_batch`), and runs one backbone call for all of
 them, so throughput under load approaches the backbone's batch throughput. A full queue answers 503
-`overloaded` at once instead of letting latency grow without bound.
+`overloaded` at once instead of letting latency grow without bound; the slots are shared between maps
+(`EmbeddingPool`).
 
 Each image starts decoding when it is submitted (`Embedder.prepare`, in the encoder's decode threads),
 not when its batch is taken: the next batch decodes while the backbone runs the current one, so the
-forward never waits for a decode it could have overlapped. A bad image fails its own request alone.
+forward never waits for a decode it could have overlapped, and a frame never waits for a batch-mate's
+decode (a 25 MP PNG's is a quarter second). A bad image fails its own request alone.
 
 Batches are per backbone and resize mode: a request names its map's backbone and `resize` (crop |
 squash, frozen with the map), and a batch holding several runs one backbone call per pair present
@@ -28,9 +30,10 @@ selection of the code stay in the writer, on k values.
 
 from __future__ import annotations
 
-import queue as queues
 import threading
 import time
+from collections import deque
+from collections.abc import Hashable
 from concurrent.futures import Future
 from dataclasses import dataclass
 
@@ -43,14 +46,23 @@ from service.maps.encoding.embedders import Embedders
 from service.maps.errors import Overloaded
 from service.settings import Settings
 
-_STOP = object()
 # The defaults have one home, `Settings` (with why): a pool built in code batches as the service does.
 _BATCH: int = Settings.model_fields["encode_batch"].default
 _WAIT_MS: float = Settings.model_fields["encode_wait_ms"].default
 
 
 class EmbeddingPool:
-    """`submit(image bytes) -> Future[EncodeResult]` with at most `workers + queue` in flight.
+    """`submit(image bytes) -> Future[EncodeResult]` with at most `workers + queue` in flight, shared
+    fairly between the keys (the service's maps) that use it (docs/design/service.md §6):
+
+    - a key may hold every slot while no other key wants one (nothing idles);
+    - when the slots are full, a key holding fewer than its share (the slots over the keys holding
+      any, its own counted) takes one back from the key holding the most above its share: that key's
+      newest request not yet in a batch fails with `Overloaded` (a 503 with Retry-After, as if refused
+      at once), its decode cancelled where it has not started;
+    - the workers make each batch taking the keys in turn, and the decode threads take them in turn
+      too (`models.frontend.turns`), so a request waits behind at most one of each other key's, not
+      behind a burst.
 
     Args:
         encoders: the service's encoders by backbone (`embed` is called with a list of image bytes).
@@ -66,59 +78,140 @@ class EmbeddingPool:
         self.limit = workers + queue
         self.max_batch = max_batch
         self.wait_s = wait_ms / 1e3
-        self._queue: queues.Queue = queues.Queue()
-        self._lock = threading.Lock()
+        self._ready = threading.Condition()
+        # Admitted and in no batch yet, by key, oldest first: a slot is taken back from here.
+        self._unbatched: dict[Hashable, deque[_Item]] = {}
+        # Of those, the ones decoded (or to be prepared by the worker), by key; insertion-ordered: the
+        # front key is served next, and a key served goes to the back while it has more (the turn). A
+        # batch is made of decoded frames only: a frame never waits for its batch-mates' decodes.
+        self._decoded: dict[Hashable, deque[_Item]] = {}
+        self._held: dict[Hashable, int] = {}  # slots held by key: unbatched or in a batch
         self.pending = 0
+        self._closed = False
         self._threads = [threading.Thread(target=self._run, name=f"encoder-{i}", daemon=True)
                          for i in range(workers)]
         for t in self._threads:
             t.start()
 
     def submit(self, body: bytes | RawFrame, hasher: Hasher | None = None, backbone: str | None = None,
-               thumbnail: bool = False, resize: str | None = None) -> Future[EncodeResult]:
+               thumbnail: bool = False, resize: str | None = None, key: Hashable = None
+               ) -> Future[EncodeResult]:
         """Queue one image (encoded bytes or a raw frame) for `backbone` (None: the default) resized by
-        `resize` (None: the encoder's own mode); the future's
-        `EncodeResult` has `features` (1, D), with `hasher` `projected` (1, k) = features · that hasher's
-        projection (else None), and with `thumbnail` `thumbnails` = [a small JPEG of the decoded frame].
+        `resize` (None: the encoder's own mode), on behalf of `key` (the map; None: one key for all); the
+        future's `EncodeResult` has `features` (1, D), with `hasher` `projected` (1, k) = features · that
+        hasher's projection (else None), and with `thumbnail` `thumbnails` = [a small JPEG of the
+        decoded frame]. The future may fail with `Overloaded` before its batch: its slot was taken back
+        for a key holding less than its share.
 
         Raises:
-            Overloaded: `workers + queue` requests are already in flight.
+            Overloaded: `workers + queue` requests are already in flight and `key` holds its share.
         """
-        with self._lock:
-            if self.pending >= self.limit:
-                raise Overloaded(self.limit)
+        with self._ready:
+            victim = self._take_back(key) if self.pending >= self.limit else None
             self.pending += 1
+            self._held[key] = self._held.get(key, 0) + 1
+        if victim is not None:
+            _refuse(victim, self.limit)
         fut: Future[EncodeResult] = Future()
         how = (backbone or self.encoders.default, resize)
         # The decode starts now where the encoder is built; one that is not yet is built, and the image
         # prepared, by the worker (never here: the caller is the event loop).
         try:
             encoder = self.encoders.ready(how[0])
-            prepared = None if encoder is None else encoder.prepare(body, thumbnail=thumbnail, resize=resize)
+            prepared = None if encoder is None else encoder.prepare(body, thumbnail=thumbnail, resize=resize,
+                                                                    key=key)
         except BaseException:  # never queued: no worker will give the slot back
-            with self._lock:
-                self.pending -= 1
+            with self._ready:
+                self._release(key, 1)
             raise
-        self._queue.put(_Item(body, fut, hasher, thumbnail, how, prepared))
+        item = _Item(body, fut, hasher, thumbnail, how, prepared, key)
+        # A remote encoder's pending reply cannot say when it is done: its frame is ready for a batch now.
+        when_done = getattr(prepared, "add_done_callback", None)
+        with self._ready:
+            self._unbatched.setdefault(key, deque()).append(item)
+            if when_done is None:
+                self._to_batch(item)
+        if when_done is not None:  # outside the lock: a decode already done calls back at once
+            when_done(lambda _: self._decoded_one(item))
         return fut
 
-    def _run(self) -> None:
-        while True:
-            item = self._queue.get()
-            if item is _STOP:
-                return
-            batch = [item]
+    def _decoded_one(self, item: _Item) -> None:
+        """A decode ended (or failed: its batch gives the request its error): the frame may be batched,
+        unless its slot was taken back meanwhile."""
+        with self._ready:
+            if not item.taken_back:
+                self._to_batch(item)
+
+    def _to_batch(self, item: _Item) -> None:
+        """(Lock held.)"""
+        self._decoded.setdefault(item.key, deque()).append(item)
+        self._ready.notify()
+
+    def _take_back(self, key: Hashable) -> _Item:
+        """(Lock held, every slot taken.) The newest unbatched request of the key holding the most slots
+        above its share, its slot now `key`'s; `Overloaded` if `key` holds its share already or no key
+        above its share has one unbatched."""
+        holders = self._held.keys() | {key}
+        share = self.limit // len(holders)
+        if self._held.get(key, 0) < share:
+            over = [k for k, q in self._unbatched.items() if k != key and q and self._held[k] > share]
+            if over:
+                heavy = max(over, key=self._held.__getitem__)
+                victim = _pop(self._unbatched, heavy, newest=True)
+                victim.taken_back = True
+                decoded = self._decoded.get(heavy)
+                if decoded is not None and victim in decoded:
+                    decoded.remove(victim)
+                    if not decoded:
+                        del self._decoded[heavy]
+                self._release(heavy, 1)
+                return victim
+        raise Overloaded(self.limit)
+
+    def _release(self, key: Hashable, n: int) -> None:
+        """(Lock held.) `key` gives back `n` slots."""
+        self.pending -= n
+        left = self._held[key] - n
+        if left:
+            self._held[key] = left
+        else:
+            del self._held[key]
+
+    def _next_batch(self) -> list[_Item] | None:
+        """The next batch: up to `max_batch` decoded requests taken key by key in turn, gathered for up
+        to `wait_s` after the first; None once the pool is closed and nothing is left."""
+        with self._ready:
+            while not self._decoded:
+                if self._closed and not self._unbatched:
+                    return None
+                self._ready.wait()
+            batch = [self._pop_turn()]
             deadline = time.monotonic() + self.wait_s
             while len(batch) < self.max_batch:
+                if self._decoded:
+                    batch.append(self._pop_turn())
+                    continue
                 remaining = deadline - time.monotonic()
-                try:
-                    nxt = self._queue.get(timeout=remaining) if remaining > 0 else self._queue.get_nowait()
-                except queues.Empty:
+                if remaining <= 0 or self._closed:
                     break
-                if nxt is _STOP:
-                    self._queue.put(_STOP)  # let the other workers see it too
-                    break
-                batch.append(nxt)
+                self._ready.wait(remaining)
+            return batch
+
+    def _pop_turn(self) -> _Item:
+        """(Lock held, something decoded.) The oldest decoded request of the key whose turn it is, now in
+        a batch."""
+        key = next(iter(self._decoded))
+        item = _pop(self._decoded, key, newest=False)
+        if item.key in self._decoded:  # more of this key: its next turn comes after the others'
+            self._decoded[key] = self._decoded.pop(key)
+        unbatched = self._unbatched[key]
+        unbatched.remove(item)
+        if not unbatched:
+            del self._unbatched[key]
+        return item
+
+    def _run(self) -> None:
+        while (batch := self._next_batch()) is not None:
             groups: dict[tuple[str, str | None], list[_Item]] = {}
             for one in batch:
                 groups.setdefault(one.how, []).append(one)
@@ -126,7 +219,6 @@ class EmbeddingPool:
                 self._encode(backbone, resize, group)
 
     def _encode(self, backbone: str, resize: str | None, batch: list[_Item]) -> None:
-        taken = len(batch)
         try:
             # A request whose client went away cancelled its future while it waited: its decode is
             # cancelled too where it has not started, and it costs no backbone time.
@@ -143,7 +235,7 @@ class EmbeddingPool:
                 ok, frames = [], []
                 for item in live:
                     prepared = item.prepared or encoder.prepare(item.body, thumbnail=item.thumbnail,
-                                                                resize=resize)
+                                                                resize=resize, key=item.key)
                     try:
                         prepared.result()
                     except ImageError as e:  # this image alone fails; its batch-mates go on
@@ -167,8 +259,9 @@ class EmbeddingPool:
                     if not item.fut.done():
                         item.fut.set_exception(e)
         finally:
-            with self._lock:
-                self.pending -= taken
+            with self._ready:
+                for item in batch:
+                    self._release(item.key, 1)
 
     @staticmethod
     def _project(features: np.ndarray, hashers: list[Hasher | None]
@@ -193,15 +286,18 @@ class EmbeddingPool:
         return out, (time.perf_counter() - t0) * 1e3
 
     def close(self) -> None:
-        self._queue.put(_STOP)
+        """Stop the workers once what waits is encoded."""
+        with self._ready:
+            self._closed = True
+            self._ready.notify_all()
         for t in self._threads:
             t.join(timeout=30)
 
 
-@dataclass
+@dataclass(eq=False)
 class _Item:
     """One submitted image: its body, its request's future, its map's hasher, whether it wants a
-    thumbnail, (backbone, resize), and its decode, started at submission (None: by the worker)."""
+    thumbnail, (backbone, resize), its decode, started at submission (None: by the worker), and its key."""
 
     body: bytes | RawFrame
     fut: Future[EncodeResult]
@@ -209,3 +305,23 @@ class _Item:
     thumbnail: bool
     how: tuple[str, str | None]
     prepared: Future[Prepared] | None
+    key: Hashable
+    taken_back: bool = False
+
+
+def _pop(queues: dict[Hashable, deque[_Item]], key: Hashable, newest: bool) -> _Item:
+    """One request of `key`'s queue (its newest or oldest), the key dropped once its queue is empty."""
+    q = queues[key]
+    item = q.pop() if newest else q.popleft()
+    if not q:
+        del queues[key]
+    return item
+
+
+def _refuse(item: _Item, limit: int) -> None:
+    """A waiting request whose slot was taken back: it fails as a refusal at submission would, its
+    decode cancelled where it has not started (never one its client already cancelled)."""
+    if item.prepared is not None:
+        item.prepared.cancel()
+    if item.fut.set_running_or_notify_cancel():
+        item.fut.set_exception(Overloaded(limit))

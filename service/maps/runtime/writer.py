@@ -172,7 +172,7 @@ class Writer:
         t0 = time.perf_counter()
         # Localised frames too: their thumbnail is kept in the recent ring only (never stored).
         encoding = pool.submit(body, hasher=self.hasher, backbone=self.config.backbone,
-                               thumbnail=self.config.thumbnails, resize=self.config.resize)
+                               thumbnail=self.config.thumbnails, resize=self.config.resize, key=self.map_id)
         # Local features in native pixels, while the backbone encodes (docs/design/science.md §12.1).
         # The stream's camera: this frame's, else the last.
         given = (metadata or {}).get("camera")

@@ -367,6 +367,43 @@ def test_concurrent_clients_get_distinct_increasing_seqs_and_none_is_lost(client
     assert client.app.state.registry.get("default").store.count() == 24
 
 
+def test_a_map_flooding_the_encoder_does_not_lock_another_map_out(tmp_path):
+    """One client fills the encoder with one map's posts; another map's robot still gets its frame in:
+    the flood's newest waiting post gives its slot back and is answered 503 overloaded (Retry-After),
+    storing nothing. Before, the other map got 503 for as long as the flood lasted (`cortexloc bench
+    fairness`, docs/benchmarks.md)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with make_client(tmp_path / "d", encoder_workers=1, encoder_queue=3) as c:  # 4 in flight at most
+        assert c.post("/v1/maps", json={"map_id": "other"}).status_code == 201
+        pool = c.app.state.encoder_pool
+        with held_encoder(c.app.state.encoder) as (gate, sizes), ThreadPoolExecutor(6) as threads:
+            first = threads.submit(post, c, frame(0))
+            deadline = time.monotonic() + 60
+            while not sizes:  # the worker holds it in the backbone call
+                assert time.monotonic() < deadline
+                time.sleep(0.01)
+            flood = [threads.submit(post, c, frame(p)) for p in (1, 2, 3)]
+            while pool.pending < 4:
+                assert time.monotonic() < deadline
+                time.sleep(0.01)
+            assert post(c, frame(4)).status_code == 503  # its own map holds every slot: refused at once
+            other = threads.submit(post, c, frame(5), map_id="other")
+            refused = None
+            while refused is None:  # one of the flood's waiting posts is answered while the encoder is held
+                assert time.monotonic() < deadline
+                refused = next((f for f in flood if f.done()), None)
+                time.sleep(0.01)
+            assert refused.result().status_code == 503
+            assert refused.result().headers["Retry-After"] == "1"
+            assert refused.result().json()["type"].endswith("overloaded")
+            gate.set()
+            assert other.result().status_code == 200 and first.result().status_code == 200
+            assert sorted(f.result().status_code for f in flood) == [200, 200, 503]
+        registry = c.app.state.registry
+        assert registry.get("default").store.count() == 3 and registry.get("other").store.count() == 1
+
+
 def test_a_full_encoder_queue_answers_503_and_stores_nothing(tmp_path):
     from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 

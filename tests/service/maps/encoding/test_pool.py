@@ -5,6 +5,7 @@ measured why the pool projects: docs/benchmarks.md §1)."""
 
 from __future__ import annotations
 
+import threading
 import time
 from concurrent.futures import Future
 from functools import partial
@@ -18,6 +19,7 @@ from models.frontend.images import ImageError
 from models.frontend.slsbh import Hasher, make_projection
 from service.maps.encoding.embedders import Embedders
 from service.maps.encoding.pool import EmbeddingPool
+from service.maps.errors import Overloaded
 from tests.service.helpers import frame, held_encoder, make_client
 
 
@@ -29,7 +31,7 @@ class FakeEmbedder:
         self.calls: list[int] = []
         self.modes: list[tuple[bytes, str | None]] = []  # each image with the mode it was embedded with
 
-    def prepare(self, body, thumbnail=False, resize=None):
+    def prepare(self, body, thumbnail=False, resize=None, key=None):
         fut = Future()
         if body == b"bad":
             fut.set_exception(ImageError("truncated", "the image data ends early"))
@@ -206,7 +208,7 @@ def test_a_prepare_that_raises_gives_its_slot_back() -> None:
     takes a slot for good and the pool ends up refusing everything (a permanent 503)."""
 
     class Failing(FakeEmbedder):
-        def prepare(self, body, thumbnail=False, resize=None):
+        def prepare(self, body, thumbnail=False, resize=None, key=None):
             if body == b"boom":
                 raise OSError(104, "Connection reset by peer")
             return super().prepare(body, thumbnail, resize)
@@ -235,3 +237,123 @@ def test_the_pools_batch_and_wait_and_the_encoders_chunk_are_the_settings(tmp_pa
         assert (plain.max_batch, plain.wait_s) == (16, 2.0 / 1e3)
     finally:
         plain.close()
+
+
+def _wait_until(cond, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.005)
+
+
+def test_one_key_may_hold_every_slot_while_no_other_wants_one() -> None:
+    enc = FakeEmbedder()
+    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=5)  # 6 slots
+    try:
+        with held_encoder(enc) as (gate, sizes):
+            futs = [pool.submit(bytes(10), key="a")]
+            _wait_until(lambda: sizes)  # the worker holds the first in the backbone call
+            futs += [pool.submit(bytes(11 + i), key="a") for i in range(5)]
+            with pytest.raises(Overloaded):  # its own seventh: no share to take back
+                pool.submit(bytes(99), key="a")
+            gate.set()
+            assert all(f.result(timeout=30).features.shape == (1, 32) for f in futs)
+        assert pool.pending == 0
+    finally:
+        pool.close()
+
+
+def test_a_key_under_its_share_takes_a_slot_back_from_the_key_holding_the_most() -> None:
+    """A client flooding one map fills the pool; another map's post is admitted, and the flood's newest
+    waiting request fails with Overloaded (a 503 with Retry-After) instead: before, the other map got
+    503 for as long as the flood lasted."""
+    enc = FakeEmbedder()
+    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=5)  # 6 slots, a share of 3 for two keys
+    try:
+        with held_encoder(enc) as (gate, sizes):
+            flood = [pool.submit(bytes(10), key="a")]
+            _wait_until(lambda: sizes)  # the worker holds it in the backbone call; the next five wait
+            flood += [pool.submit(bytes(11 + i), key="a") for i in range(5)]
+            other = [pool.submit(bytes(50 + i), key="b") for i in range(3)]
+            with pytest.raises(Overloaded):  # b holds its share now, a no more than its own
+                pool.submit(bytes(60), key="b")
+            # a's three newest gave their slots back, newest first; its oldest (in the backbone) did not
+            for f in flood[3:]:
+                with pytest.raises(Overloaded):
+                    f.result(timeout=30)
+            assert pool.pending == 6
+            gate.set()
+            for f in flood[:3] + other:
+                assert f.result(timeout=30).features.shape == (1, 32)
+        assert pool.pending == 0
+    finally:
+        pool.close()
+
+
+def test_a_request_already_cancelled_is_not_taken_back_twice() -> None:
+    enc = FakeEmbedder()
+    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=1)  # 2 slots
+    try:
+        with held_encoder(enc) as (gate, sizes):
+            first = pool.submit(bytes(10), key="a")
+            _wait_until(lambda: sizes)
+            second = pool.submit(bytes(11), key="a")
+            assert second.cancel()  # its client went away
+            other = pool.submit(bytes(12), key="b")  # takes the cancelled one's slot back
+            assert second.cancelled()
+            gate.set()
+            assert first.result(timeout=30).features.shape == (1, 32)
+            assert other.result(timeout=30).features.shape == (1, 32)
+        _wait_until(lambda: pool.pending == 0)
+    finally:
+        pool.close()
+
+
+def test_batches_take_the_keys_in_turn() -> None:
+    """A key's burst does not hold another key's request back behind it: the next batch takes one of
+    each waiting key in turn before a second of any."""
+    enc = FakeEmbedder()
+    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=64, max_batch=2)
+    try:
+        with held_encoder(enc) as (gate, sizes):
+            pool.submit(bytes(5), key="a")
+            _wait_until(lambda: sizes)
+            flood = [pool.submit(bytes(10 + i), key="a") for i in range(6)]
+            late = pool.submit(bytes(40), key="b")
+            gate.set()
+            late.result(timeout=30)
+            for f in flood:
+                f.result(timeout=30)
+        # batches of 2: [first], then a's oldest with b's, then the rest of a's
+        assert enc.calls[:2] == [1, 2]
+        assert (bytes(10), None) in enc.modes[1:3] and (bytes(40), None) in enc.modes[1:3]
+    finally:
+        pool.close()
+
+
+def test_the_pool_decodes_each_maps_frames_in_turn(tmp_path, monkeypatch) -> None:
+    """Through the service's own encoder: with the decode threads held, a burst to one map and then one
+    frame of another, the other map's frame decodes next but one, not after the burst."""
+    order: list[bytes] = []
+    real = images.decode
+    held = threading.Event()
+
+    def decode(data, **kw):
+        if not order:
+            held.wait(30)
+        order.append(data)
+        return real(data, **kw)
+
+    monkeypatch.setattr(images, "decode", decode)
+    with make_client(tmp_path, encoder_queue=64) as c:
+        pool = c.app.state.encoder_pool
+        burst = [frame(p) for p in range(6)]
+        futs = [pool.submit(b, key="a") for b in burst]
+        other = frame(9)
+        futs.append(pool.submit(other, key="b"))
+        held.set()
+        for f in futs:
+            f.result(timeout=60)
+    threads = c.app.state.encoder.conf["decode_threads"]
+    # behind the calls the threads held and at most one more of the burst's (its turn), not all six
+    assert order.index(other) <= threads + 1 < len(burst)

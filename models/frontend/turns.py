@@ -1,0 +1,80 @@
+"""The decode threads: calls run in turn by key, not in the order they came (docs/design/service.md §6).
+
+The service decodes each upload when its request arrives (`Embedder.prepare`), keyed by its map. With
+one first-in first-out queue, a client that posts a burst of frames to one map, each at the size limit,
+puts every other map's frame behind all of them: seconds of decoding on two threads. Here each key has
+its own queue and the threads take the keys in turn, so a frame waits for at most one call per other
+key that is waiting, however many that key has queued. With one key (one map, or a caller that names
+none) the order is first in, first out, as before. Nothing idles: a thread takes any key's call while
+one is waiting.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from collections.abc import Callable, Hashable
+from concurrent.futures import Future
+from typing import Any
+
+__all__ = ["TurnPool"]
+
+_Call = tuple[Future, Callable[[], Any]]
+
+
+class TurnPool:
+    """`submit(fn, key) -> Future` run by `threads` daemon threads, the keys with calls waiting taken in
+    turn (round robin), each key's calls in the order submitted.
+
+    Args:
+        threads: how many calls run at once (>= 1).
+        name: the threads' name prefix.
+    """
+
+    def __init__(self, threads: int, name: str) -> None:
+        self._ready = threading.Condition()
+        # Insertion-ordered: the key at the front is the next one served, and a key served goes to the
+        # back while it still has calls waiting (the turn).
+        self._queues: dict[Hashable, deque[_Call]] = {}
+        self._threads = [threading.Thread(target=self._run, name=f"{name}-{i}", daemon=True)
+                         for i in range(max(1, threads))]
+        self._started = False
+
+    def submit(self, fn: Callable[[], Any], key: Hashable = None) -> Future:
+        """Queue `fn()` under `key`; its future holds the result or the exception. A future cancelled
+        before a thread takes it never runs."""
+        fut: Future = Future()
+        with self._ready:
+            self._queues.setdefault(key, deque()).append((fut, fn))
+            self._ready.notify()
+            if not self._started:  # threads start with the first call: an encoder never asked costs none
+                self._started = True
+                for t in self._threads:
+                    t.start()
+        return fut
+
+    def waiting(self) -> dict[Hashable, int]:
+        """Calls not yet taken, by key (for tests and diagnostics)."""
+        with self._ready:
+            return {k: len(q) for k, q in self._queues.items()}
+
+    def _take(self) -> _Call:
+        with self._ready:
+            while not self._queues:
+                self._ready.wait()
+            key = next(iter(self._queues))
+            calls = self._queues.pop(key)
+            call = calls.popleft()
+            if calls:
+                self._queues[key] = calls
+            return call
+
+    def _run(self) -> None:
+        while True:
+            fut, fn = self._take()
+            if not fut.set_running_or_notify_cancel():
+                continue
+            try:
+                fut.set_result(fn())
+            except BaseException as e:  # the caller's to see, as a ThreadPoolExecutor's future holds it
+                fut.set_exception(e)
