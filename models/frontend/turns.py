@@ -12,6 +12,7 @@ one is waiting.
 from __future__ import annotations
 
 import threading
+import weakref
 from collections import deque
 from collections.abc import Callable, Hashable
 from concurrent.futures import Future
@@ -24,7 +25,8 @@ _Call = tuple[Future, Callable[[], Any]]
 
 class TurnPool:
     """`submit(fn, key) -> Future` run by `threads` daemon threads, the keys with calls waiting taken in
-    turn (round robin), each key's calls in the order submitted.
+    turn (round robin), each key's calls in the order submitted. The threads start with the first call
+    and end once the pool is garbage-collected and its calls are done (as a ThreadPoolExecutor's).
 
     Args:
         threads: how many calls run at once (>= 1).
@@ -32,35 +34,59 @@ class TurnPool:
     """
 
     def __init__(self, threads: int, name: str) -> None:
-        self._ready = threading.Condition()
-        # Insertion-ordered: the key at the front is the next one served, and a key served goes to the
-        # back while it still has calls waiting (the turn).
-        self._queues: dict[Hashable, deque[_Call]] = {}
-        self._threads = [threading.Thread(target=self._run, name=f"{name}-{i}", daemon=True)
+        self._turns = _Turns()
+        self._threads = [threading.Thread(target=self._turns.run, name=f"{name}-{i}", daemon=True)
                          for i in range(max(1, threads))]
         self._started = False
+        # The threads hold the queues, never the pool: a pool dropped lets them end.
+        weakref.finalize(self, self._turns.stop)
 
     def submit(self, fn: Callable[[], Any], key: Hashable = None) -> Future:
         """Queue `fn()` under `key`; its future holds the result or the exception. A future cancelled
         before a thread takes it never runs."""
         fut: Future = Future()
-        with self._ready:
-            self._queues.setdefault(key, deque()).append((fut, fn))
-            self._ready.notify()
-            if not self._started:  # threads start with the first call: an encoder never asked costs none
-                self._started = True
-                for t in self._threads:
+        self._turns.put(key, (fut, fn))
+        if not self._started:  # threads start with the first call: an encoder never asked costs none
+            for t in self._threads:
+                if not t.is_alive():
                     t.start()
+            self._started = True
         return fut
 
     def waiting(self) -> dict[Hashable, int]:
         """Calls not yet taken, by key (for tests and diagnostics)."""
+        return self._turns.waiting()
+
+
+class _Turns:
+    """The queues by key and the loop the threads run (`TurnPool`)."""
+
+    def __init__(self) -> None:
+        self._ready = threading.Condition()
+        # Insertion-ordered: the key at the front is the next one served, and a key served goes to the
+        # back while it still has calls waiting (the turn).
+        self._queues: dict[Hashable, deque[_Call]] = {}
+        self._stopped = False
+
+    def put(self, key: Hashable, call: _Call) -> None:
+        with self._ready:
+            self._queues.setdefault(key, deque()).append(call)
+            self._ready.notify()
+
+    def stop(self) -> None:
+        with self._ready:
+            self._stopped = True
+            self._ready.notify_all()
+
+    def waiting(self) -> dict[Hashable, int]:
         with self._ready:
             return {k: len(q) for k, q in self._queues.items()}
 
-    def _take(self) -> _Call:
+    def _take(self) -> _Call | None:
         with self._ready:
             while not self._queues:
+                if self._stopped:
+                    return None
                 self._ready.wait()
             key = next(iter(self._queues))
             calls = self._queues.pop(key)
@@ -69,12 +95,13 @@ class TurnPool:
                 self._queues[key] = calls
             return call
 
-    def _run(self) -> None:
-        while True:
-            fut, fn = self._take()
+    def run(self) -> None:
+        while (call := self._take()) is not None:
+            fut, fn = call
             if not fut.set_running_or_notify_cancel():
                 continue
             try:
                 fut.set_result(fn())
             except BaseException as e:  # the caller's to see, as a ThreadPoolExecutor's future holds it
                 fut.set_exception(e)
+            del call, fut, fn  # hold nothing of a done call while waiting for the next

@@ -125,6 +125,8 @@ class EmbeddingPool:
                 self._release(key, 1)
             raise
         item = _Item(body, fut, hasher, thumbnail, how, prepared, key)
+        if prepared is not None:  # a request whose client went away: its decode skipped where not started
+            fut.add_done_callback(lambda f: f.cancelled() and prepared.cancel())
         # A remote encoder's pending reply cannot say when it is done: its frame is ready for a batch now.
         when_done = getattr(prepared, "add_done_callback", None)
         with self._ready:
@@ -152,7 +154,7 @@ class EmbeddingPool:
         above its share, its slot now `key`'s; `Overloaded` if `key` holds its share already or no key
         above its share has one unbatched."""
         holders = self._held.keys() | {key}
-        share = self.limit // len(holders)
+        share = max(self.limit // len(holders), 1)  # more maps than slots: one each, while any holds two
         if self._held.get(key, 0) < share:
             over = [k for k, q in self._unbatched.items() if k != key and q and self._held[k] > share]
             if over:
@@ -195,6 +197,8 @@ class EmbeddingPool:
                 if remaining <= 0 or self._closed:
                     break
                 self._ready.wait(remaining)
+            if self._closed and not self._unbatched:
+                self._ready.notify_all()  # the last taken: the other workers may stop
             return batch
 
     def _pop_turn(self) -> _Item:
@@ -220,14 +224,9 @@ class EmbeddingPool:
 
     def _encode(self, backbone: str, resize: str | None, batch: list[_Item]) -> None:
         try:
-            # A request whose client went away cancelled its future while it waited: its decode is
-            # cancelled too where it has not started, and it costs no backbone time.
-            live = []
-            for item in batch:
-                if item.fut.set_running_or_notify_cancel():
-                    live.append(item)
-                elif item.prepared is not None:
-                    item.prepared.cancel()
+            # A request whose client went away cancelled its future while it waited (and its decode
+            # where that had not started, `submit`): it costs no backbone time.
+            live = [item for item in batch if item.fut.set_running_or_notify_cancel()]
             if not live:
                 return
             try:

@@ -170,25 +170,31 @@ class Writer:
         with contextlib.suppress(RuntimeError):
             self._admit(stream)
         t0 = time.perf_counter()
-        # Localised frames too: their thumbnail is kept in the recent ring only (never stored).
-        encoding = pool.submit(body, hasher=self.hasher, backbone=self.config.backbone,
-                               thumbnail=self.config.thumbnails, resize=self.config.resize, key=self.map_id)
-        # Local features in native pixels, while the backbone encodes (docs/design/science.md §12.1).
-        # The stream's camera: this frame's, else the last.
+        # Local features in native pixels, beside the encoding (docs/design/science.md §12.1), asked
+        # first: a post they refuse takes no encoder slot (which may be taken back from another map's
+        # post). The extraction is skipped where it has not started once the client is gone or the post
+        # failed (`over`). The stream's camera: this frame's, else the last.
+        over = _Either(gone)
         given = (metadata or {}).get("camera")
         camera = given or self.cameras.get(stream)
+        frame = None if self.config.keyframes is None else asyncio.wrap_future(extractions.submit(
+            pool.encoders.get(self.config.backbone).decode, body, self.config.sections.keyframes, camera,
+            given is not None, over))
         try:
-            frame = None if self.config.keyframes is None else asyncio.wrap_future(extractions.submit(
-                pool.encoders.get(self.config.backbone).decode, body, self.config.sections.keyframes, camera,
-                given is not None, gone))
+            # Localised frames too: their thumbnail is kept in the recent ring only (never stored).
+            encoding = pool.submit(body, hasher=self.hasher, backbone=self.config.backbone,
+                                   thumbnail=self.config.thumbnails, resize=self.config.resize,
+                                   key=self.map_id)
         except BaseException:
-            encoding.cancel()  # refused (Overloaded): the pool skips the encoding where it has not started
+            over.failed.set()
+            _drop(frame)
             raise
         # The digest stored with the row, off the event loop (a 10 MB raw frame takes ~20 ms to hash)
         # and beside the encoding.
         digest = asyncio.ensure_future(asyncio.to_thread(_sha256, getattr(body, "data", body)))
         before, mine = self._turn, asyncio.Event()
         self._turn = mine
+        handed = False
         try:
             encoded = await asyncio.wrap_future(encoding)
             query = None if frame is None else await frame
@@ -211,8 +217,15 @@ class Writer:
                 once = self.submit(self._apply_once, post, learn, apply)
             else:
                 step = self.submit(apply)
+            handed = True
         finally:
-            mine.set()
+            if not handed:
+                over.failed.set()
+                _drop(frame)
+            # A post that failed before its turn (its encoding taken back, a bad image) passes the turn on
+            # only once the post before it has had its own: the one after it never reaches the writer
+            # ahead of an older one still encoding.
+            _pass_turn(before, mine)
         # A learned row (and the earlier reply of a repeated key, whose row may be in the same group) is
         # acknowledged only once durable: the writer committed it without its fsync (group commit).
         if post is not None:
@@ -488,6 +501,42 @@ class Writer:
         self._codes[seq] = code
         if len(self._codes) > CODES_KEPT:
             self._codes.popitem(last=False)
+
+
+class _Either:
+    """`is_set()` once the client is gone or the post failed: what an extraction not yet started checks
+    (`keyframes.Extractions.submit`)."""
+
+    def __init__(self, gone: threading.Event) -> None:
+        self.gone, self.failed = gone, threading.Event()
+
+    def is_set(self) -> bool:
+        return self.gone.is_set() or self.failed.is_set()
+
+
+def _drop(frame: asyncio.Future | None) -> None:
+    """An extraction whose post failed: its outcome is read when it ends, so that nothing logs it as
+    never retrieved (never cancelled: the extraction gives its slot back only by running, skipped)."""
+    if frame is not None:
+        frame.add_done_callback(lambda f: f.cancelled() or f.exception())
+
+
+_RELAYS: set[asyncio.Task] = set()  # the pending `_pass_turn` tasks (the loop keeps weak references)
+
+
+def _pass_turn(before: asyncio.Event, mine: asyncio.Event) -> None:
+    """Set `mine` (a post's turn done) now if `before` (the turn before it) is set, else once it is."""
+    if before.is_set():
+        mine.set()
+        return
+
+    async def relay() -> None:
+        await before.wait()
+        mine.set()
+
+    task = asyncio.ensure_future(relay())
+    _RELAYS.add(task)
+    task.add_done_callback(_RELAYS.discard)
 
 
 def _sha256(data: bytes) -> str:

@@ -51,3 +51,24 @@ def test_a_cancelled_call_never_runs_and_an_exception_reaches_its_caller() -> No
         failing.result(timeout=30)
     after.result(timeout=30)
     assert ran == ["after"]
+
+
+def test_a_dropped_pools_threads_end() -> None:
+    """Every encoder an evaluation builds has its decode threads: a pool no longer referenced lets them
+    end (as a ThreadPoolExecutor's do), or a long loop of encoders leaks two threads each."""
+    import gc
+    import time
+
+    def names() -> set[str]:
+        return {t.name for t in threading.enumerate() if t.name.startswith("dropped-")}
+
+    for i in range(5):
+        pool = TurnPool(2, f"dropped-{i}")
+        assert pool.submit(lambda: 7).result(timeout=30) == 7
+    assert names()  # the last one's are alive while it is referenced
+    del pool
+    gc.collect()
+    deadline = time.monotonic() + 30
+    while names():
+        assert time.monotonic() < deadline, names()
+        time.sleep(0.01)

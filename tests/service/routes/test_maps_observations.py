@@ -404,6 +404,50 @@ def test_a_map_flooding_the_encoder_does_not_lock_another_map_out(tmp_path):
         assert registry.get("default").store.count() == 3 and registry.get("other").store.count() == 1
 
 
+def test_a_post_that_fails_before_its_turn_lets_no_later_post_pass_an_older_one(tmp_path):
+    """Three posts to one map; the second's encoding fails (its slot taken back for another map) while
+    the first is still encoding, the third's is done: the third still reaches the writer after the
+    first (the memory sees frames in arrival order). Before, the failed post passed its turn on at once
+    and the third was learned first (found in review)."""
+    from concurrent.futures import Future, ThreadPoolExecutor
+
+    from service.maps.errors import Overloaded
+
+    class Gated:
+        """The real pool, each future it returns released when the test says."""
+
+        def __init__(self, real):
+            self.real, self.encoders, self.calls = real, real.encoders, []
+
+        def submit(self, body, **kw):
+            proxy = Future()
+            self.calls.append((self.real.submit(body, **kw), proxy))
+            return proxy
+
+    with make_client(tmp_path / "d") as c, ThreadPoolExecutor(3) as threads:
+        gated = Gated(c.app.state.encoder_pool)
+        c.app.state.encoder_pool = gated
+        posts = []
+        deadline = time.monotonic() + 60
+        for i in (1, 2, 3):
+            posts.append(threads.submit(post, c, frame(i)))
+            while len(gated.calls) < i:
+                assert time.monotonic() < deadline
+                time.sleep(0.01)
+        (real1, first), (_, second), (real3, third) = gated.calls
+        second.set_running_or_notify_cancel()
+        second.set_exception(Overloaded(4))
+        third.set_result(real3.result(60))
+        time.sleep(0.5)  # room for the third to overtake, as it did
+        overtaken = posts[2].done()
+        first.set_result(real1.result(60))  # released before any assert: the posts' threads must end
+        a1, a2, a3 = (f.result(timeout=60) for f in posts)
+        c.app.state.encoder_pool = gated.real
+    assert not overtaken
+    assert (a1.status_code, a2.status_code, a3.status_code) == (200, 503, 200)
+    assert a1.json()["seq"] < a3.json()["seq"]
+
+
 def test_a_full_encoder_queue_answers_503_and_stores_nothing(tmp_path):
     from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 

@@ -17,6 +17,7 @@ from models.frontend import images
 from models.frontend.embedding import EncodeResult, Prepared
 from models.frontend.images import ImageError
 from models.frontend.slsbh import Hasher, make_projection
+from models.frontend.turns import TurnPool
 from service.maps.encoding.embedders import Embedders
 from service.maps.encoding.pool import EmbeddingPool
 from service.maps.errors import Overloaded
@@ -304,9 +305,9 @@ def test_a_request_already_cancelled_is_not_taken_back_twice() -> None:
             gate.set()
             assert first.result(timeout=30).features.shape == (1, 32)
             assert other.result(timeout=30).features.shape == (1, 32)
-        _wait_until(lambda: pool.pending == 0)
     finally:
         pool.close()
+    assert pool.pending == 0 and pool._held == {}  # each slot given back once, none twice
 
 
 def test_batches_take_the_keys_in_turn() -> None:
@@ -357,3 +358,117 @@ def test_the_pool_decodes_each_maps_frames_in_turn(tmp_path, monkeypatch) -> Non
     threads = c.app.state.encoder.conf["decode_threads"]
     # behind the calls the threads held and at most one more of the burst's (its turn), not all six
     assert order.index(other) <= threads + 1 < len(burst)
+
+
+def test_with_more_maps_than_slots_a_map_with_none_still_takes_one_from_a_map_with_two() -> None:
+    enc = FakeEmbedder()
+    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=2)  # 3 slots
+    try:
+        with held_encoder(enc) as (gate, sizes):
+            futs = [pool.submit(bytes(10), key="a")]
+            _wait_until(lambda: sizes)
+            futs += [pool.submit(bytes(11), key="a"), pool.submit(bytes(12), key="b")]
+            c = pool.submit(bytes(13), key="c")  # a holds 2: its waiting one is taken back
+            with pytest.raises(Overloaded):
+                futs[1].result(timeout=30)
+            with pytest.raises(Overloaded):  # a, b and c hold one each now: none to take back
+                pool.submit(bytes(14), key="d")
+            gate.set()
+            for f in (futs[0], futs[2], c):
+                assert f.result(timeout=30).features.shape == (1, 32)
+    finally:
+        pool.close()
+
+
+class HeldDecodes(FakeEmbedder):
+    """Decodes in a real `TurnPool` that wait for `gate`: a request's decode can be queued or running
+    when its slot is taken back or its client goes away."""
+
+    def __init__(self, threads: int = 1) -> None:
+        super().__init__()
+        self.gate, self.decodes, self.decoded = threading.Event(), TurnPool(threads, "held"), []
+
+    def prepare(self, body, thumbnail=False, resize=None, key=None):
+        def run():
+            self.gate.wait(30)
+            self.decoded.append(body)
+            return Prepared((body, resize), None, 1.0, 0.0, 0.0)
+
+        return self.decodes.submit(run, key)
+
+
+def _empty(pool: EmbeddingPool) -> bool:
+    return pool.pending == 0 and pool._held == {} and pool._unbatched == {} and pool._decoded == {}
+
+
+def test_a_request_taken_back_while_its_decode_is_queued_or_running_never_reaches_a_batch() -> None:
+    """(From review.) Queued: the take-back cancels its decode, which never runs; running: its decode
+    ends after the take-back and the frame is dropped. Every slot comes back once."""
+    enc = HeldDecodes(threads=1)
+    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=3)  # 4 slots
+    try:
+        a = [pool.submit(bytes(10 + i), key="a") for i in range(4)]
+        _wait_until(lambda: enc.decodes.waiting() == {"a": 3})  # a0 decoding, a1-a3 queued
+        b = [pool.submit(bytes(50 + i), key="b") for i in range(2)]  # takes back a3, then a2
+        for f in a[2:]:
+            with pytest.raises(Overloaded):
+                f.result(timeout=5)
+        enc.gate.set()
+        for f in a[:2] + b:
+            assert f.result(timeout=30).features.shape == (1, 32)
+        assert sorted(enc.decoded) == [bytes(10), bytes(11), bytes(50), bytes(51)]  # a2, a3 never decoded
+    finally:
+        pool.close()
+    assert _empty(pool)
+
+    enc = HeldDecodes(threads=2)
+    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=1)  # 2 slots
+    try:
+        a = [pool.submit(bytes(10 + i), key="a") for i in range(2)]
+        _wait_until(lambda: enc.decodes.waiting() == {})  # both decoding, held
+        b = pool.submit(bytes(50), key="b")  # takes a1 back while its decode runs
+        with pytest.raises(Overloaded):
+            a[1].result(timeout=5)
+        enc.gate.set()
+        assert a[0].result(timeout=30).features.shape == (1, 32)
+        assert b.result(timeout=30).features.shape == (1, 32)
+        assert sorted(b for b, _ in enc.modes) == [bytes(10), bytes(50)]  # a1 decoded, never encoded
+    finally:
+        pool.close()
+    assert _empty(pool)
+
+
+def test_a_cancelled_requests_decode_is_skipped_and_its_slot_comes_back() -> None:
+    """(From review.) A client gone before its frame decoded costs no decode."""
+    enc = HeldDecodes(threads=1)
+    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=3)
+    try:
+        futs = [pool.submit(bytes(10 + i), key="a") for i in range(3)]
+        _wait_until(lambda: enc.decodes.waiting() == {"a": 2})
+        assert futs[2].cancel()
+        enc.gate.set()
+        for f in futs[:2]:
+            assert f.result(timeout=30).features.shape == (1, 32)
+        _wait_until(lambda: pool.pending == 0)
+        assert sorted(enc.decoded) == [bytes(10), bytes(11)]
+    finally:
+        pool.close()
+    assert _empty(pool)
+
+
+def test_close_stops_every_worker_at_once_with_decodes_in_flight() -> None:
+    """(From review.) Two workers, one decode in flight at close: the worker that batches it must wake
+    the other, or close() waits 30 s for it."""
+    enc = HeldDecodes(threads=1)
+    pool = EmbeddingPool(Embedders.one(enc), workers=2, queue=2)
+    fut = pool.submit(bytes(10), key="a")
+    _wait_until(lambda: enc.decodes.waiting() == {})
+    closing = threading.Thread(target=pool.close)
+    closing.start()
+    time.sleep(0.05)
+    enc.gate.set()
+    assert fut.result(timeout=30).features.shape == (1, 32)
+    t0 = time.monotonic()
+    closing.join(timeout=60)
+    assert not closing.is_alive() and time.monotonic() - t0 < 10
+    assert not any(t.is_alive() for t in pool._threads)
