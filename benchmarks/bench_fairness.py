@@ -11,7 +11,8 @@ says otherwise, a temporary data directory, random weights. Two maps: `flood` an
 - **Flooded**: `--clients` connections post `--side` x `--side` 8-bit RGB PNGs to `flood` as fast as they
   are answered (a burst of frames at the pixel cap: each costs about a quarter second to decode here,
   the file itself 117 kB for 5,000 px), and the robot posts as before once the flood has filled the
-  encoder.
+  encoder. `--noise --side 1800`: the flood's bodies are 9.7 MB of noise instead, near the upload limit,
+  so that it fills the in-flight upload budget too.
 
 Measured: the robot's replies by status and its latency (median, p95, max) in both phases, and the
 flood's replies by status. The question is whether one map's client can keep another map's robot
@@ -37,11 +38,15 @@ from benchmarks.bench_http import Server
 from models.evaluation.bench import synthetic_jpegs
 
 
-def heavy_png(side: int) -> bytes:
+def heavy_png(side: int, noise: bool = False) -> bytes:
     """A `side` x `side` 8-bit RGB PNG that compresses well (gradients and a coarse pattern) but decodes
-    every pixel: small on the wire, costly in the decoder."""
-    y, x = np.mgrid[0:side, 0:side]
-    img = np.stack([x * 255 // side, y * 255 // side, (x // 7 + y // 5) % 256], axis=-1).astype(np.uint8)
+    every pixel: small on the wire, costly in the decoder; with `noise`, of seeded noise instead, which
+    does not compress (side² x 3 bytes on the wire: 1,800 px is 9.7 MB, near the 10 MiB upload limit)."""
+    if noise:
+        img = np.random.default_rng(0).integers(0, 256, (side, side, 3), dtype=np.uint8)
+    else:
+        y, x = np.mgrid[0:side, 0:side]
+        img = np.stack([x * 255 // side, y * 255 // side, (x // 7 + y // 5) % 256], axis=-1).astype(np.uint8)
     ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 9])
     assert ok
     return buf.tobytes()
@@ -61,11 +66,15 @@ async def robot(http: httpx.AsyncClient, base: str, frames: list[bytes], gap: fl
     ms: list[float] = []
     for i, body in enumerate(frames):
         t0 = time.perf_counter()
-        r = await http.post(f"{base}/v1/maps/robot/observations", params={"stream": "robot"}, content=body,
-                            headers={"Content-Type": "image/jpeg"})
+        try:
+            r = await http.post(f"{base}/v1/maps/robot/observations", params={"stream": "robot"},
+                                content=body, headers={"Content-Type": "image/jpeg"})
+            status = str(r.status_code)
+        except httpx.TransportError:  # refused before its body and closed while it was sent
+            status = "closed"
         dt = (time.perf_counter() - t0) * 1e3
-        statuses[str(r.status_code)] = statuses.get(str(r.status_code), 0) + 1
-        if r.status_code == 200:
+        statuses[status] = statuses.get(status, 0) + 1
+        if status == "200":
             ms.append(dt)
         if i + 1 < len(frames):
             await asyncio.sleep(gap)
@@ -78,9 +87,13 @@ async def flooded(base: str, frames: list[bytes], gap: float, clients: int, png:
 
     async def flooder(http: httpx.AsyncClient, i: int) -> None:
         while not stop.is_set():
-            r = await http.post(f"{base}/v1/maps/flood/observations", params={"stream": f"f{i}"},
-                                content=png, headers={"Content-Type": "image/png"})
-            flood[str(r.status_code)] = flood.get(str(r.status_code), 0) + 1
+            try:
+                r = await http.post(f"{base}/v1/maps/flood/observations", params={"stream": f"f{i}"},
+                                    content=png, headers={"Content-Type": "image/png"})
+                status = str(r.status_code)
+            except httpx.TransportError:  # a 503 before the body, its connection closed while sending
+                status = "closed"
+            flood[status] = flood.get(status, 0) + 1
 
     limits = httpx.Limits(max_connections=clients + 4, max_keepalive_connections=clients + 4)
     async with httpx.AsyncClient(limits=limits, timeout=300) as http:
@@ -95,13 +108,13 @@ async def flooded(base: str, frames: list[bytes], gap: float, clients: int, png:
 
 
 def main(*, quick: bool, server_cmd: str | None, env: list[str], frames: int, gap: float, clients: int,
-         side: int, out: Path | None) -> None:
+         side: int, noise: bool, out: Path | None) -> None:
     quick = quick_mode(quick)
     frames, clients, side = (4, 4, 1500) if quick else (frames, clients, side)
     server_env = dict(e.split("=", 1) for e in env)
     command = shlex.split(server_cmd) if server_cmd else None
     jpegs = synthetic_jpegs(frames, 640, 480, seed=3)
-    png = heavy_png(side)
+    png = heavy_png(side, noise)
     with tempfile.TemporaryDirectory() as tmp:
         server = Server(Path(tmp), server_env, command)
         try:
@@ -123,7 +136,8 @@ def main(*, quick: bool, server_cmd: str | None, env: list[str], frames: int, ga
             result["flooded"] = asyncio.run(flooded(server.base, jpegs, gap, clients, png))
         finally:
             server.stop()
-    result = {"frames": frames, "gap_s": gap, "clients": clients, "side": side, "png_bytes": len(png),
+    result = {"frames": frames, "gap_s": gap, "clients": clients, "side": side, "noise": noise,
+              "png_bytes": len(png),
               "env": server_env, "server_cmd": server_cmd, **result}
     print(json.dumps(result, indent=2))
     write_json("fairness.json", result, out or RESULTS / "fairness.json")

@@ -18,7 +18,11 @@ the app in another task):
 - **in-flight budget**: a request with a body reserves its declared length (a chunked one: its limit)
   until it is answered; one that would take the reservations of all requests past
   `CORTEXLOC_MAX_INFLIGHT_UPLOAD_BYTES` is answered 503 `overloaded` with `Retry-After` before its body
-  is read (50 uploads of 9 MB held 450 MB before).
+  is read (50 uploads of 9 MB held 450 MB before). **One map's share**: the requests for one map (the
+  path's `/v1/maps/{id}/`; other paths count as one map) reserve at most the budget less one largest
+  upload (`CORTEXLOC_MAX_UPLOAD_BYTES`), and never less than one largest upload, so a client
+  sending its largest bodies to one map cannot take the whole budget, and another map's robot still
+  gets in. With frames of a few hundred kB no map comes near it (128 MiB holds hundreds).
 
 The limit is `CORTEXLOC_MAX_UPLOAD_BYTES`, read per request from `app.state.settings`, and 64 KiB for
 JSON bodies (`application/json` or `application/*+json`). 413, 408 and 503 responses carry
@@ -37,6 +41,7 @@ refused too (an app served by another server, the test client), with the same 40
 from __future__ import annotations
 
 import logging
+import re
 from typing import Any
 
 import anyio
@@ -213,15 +218,49 @@ def _over_budget(scope: Scope, asked: int, held: int, budget: int) -> JSONRespon
                             requested_bytes=asked, inflight_bytes=held, max_inflight_bytes=budget)
 
 
+def _map_of(scope: Scope) -> str | None:
+    """The map a request is for (`/v1/maps/{id}/...`), the key of its budget share; None otherwise."""
+    found = _MAP_PATH.match(scope.get("path", ""))
+    return found.group(1) if found else None
+
+
+_MAP_PATH = re.compile(r"^/v1/maps/([^/]+)/")
+
+
 class UploadLimitMiddleware:
     """Pure ASGI body limit, deadline and in-flight budget; see the module docstring."""
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
         self.inflight = 0  # bytes reserved by the requests being read or served (one event loop: no lock)
+        self._held: dict[str | None, int] = {}  # of those, by map (`_map_of`)
 
-    def _reserve(self, scope: Scope, n: int) -> None:
+    def _refusal(self, scope: Scope, reserve: int) -> JSONResponse | None:
+        """The 503 for a request that would reserve `reserve` more bytes past the budget, or past its
+        map's share of it (the module docstring); None: it fits."""
+        budget = int(_setting(scope, "max_inflight_upload_bytes"))
+        largest = int(_setting(scope, "max_upload_bytes"))
+        share = budget - min(largest, budget - largest)
+        held = self._held.get(_map_of(scope), 0)
+        if self.inflight + reserve > budget:
+            return _over_budget(scope, reserve, self.inflight, budget)
+        if held + reserve > share:
+            return problem_response(
+                Request(scope), 503, "overloaded",
+                f"uploads in flight to this map hold {held} bytes; this one would take {reserve} more, past "
+                f"one map's share of {share} (the rest is kept for other maps); retry shortly",
+                headers={"Retry-After": "1", "Connection": "close"}, retry_after=1, requested_bytes=reserve,
+                inflight_bytes=self.inflight, max_inflight_bytes=budget, map_inflight_bytes=held,
+                map_share_bytes=share)
+        return None
+
+    def _reserve(self, scope: Scope, key: str | None, n: int) -> None:
         self.inflight += n
+        held = self._held.get(key, 0) + n
+        if held:
+            self._held[key] = held
+        else:
+            self._held.pop(key, None)
         metrics = _state(scope, "metrics")
         if metrics is not None:
             metrics.upload_inflight_bytes.set(self.inflight)
@@ -282,16 +321,16 @@ class UploadLimitMiddleware:
                 return
         chunked = "chunked" in headers.get("transfer-encoding", "").lower()
         reserve = length if length is not None else (limit if chunked else 0)
-        budget = int(_setting(scope, "max_inflight_upload_bytes"))
-        if reserve and self.inflight + reserve > budget:
+        key = _map_of(scope)
+        if reserve and (refusal := self._refusal(scope, reserve)) is not None:
             _count(scope, "budget")
-            await _over_budget(scope, reserve, self.inflight, budget)(scope, receive, send)
+            await refusal(scope, receive, send)
             return
-        self._reserve(scope, reserve)
+        self._reserve(scope, key, reserve)
         try:
             await self._limited(scope, receive, send, limit, timeout_s, deadline)
         finally:
-            self._reserve(scope, -reserve)
+            self._reserve(scope, key, -reserve)
 
     async def _limited(self, scope: Scope, receive: Receive, send: Send, limit: int, timeout_s: float,
                        deadline: float) -> None:

@@ -416,13 +416,15 @@ def bench_fairness(
     gap: Annotated[float, typer.Option(min=0.0, help="seconds between the robot's frames")] = 0.25,
     clients: Annotated[int, typer.Option(min=1, help="the flood's connections")] = 40,
     side: Annotated[int, typer.Option(min=16, help="the flood's PNG side in pixels")] = 5000,
+    noise: Annotated[bool, typer.Option("--noise", help="the flood's PNG of noise (side² x 3 bytes) "
+                                                        "instead of a pattern")] = False,
     out: Annotated[Path | None, typer.Option(help="default benchmarks/results/fairness.json")] = None,
 ) -> None:
     """One map's flood against another map's robot: does the robot wait (benchmarks/bench_fairness.py)."""
     from benchmarks.bench_fairness import main
 
     main(quick=quick, server_cmd=server_cmd, env=env or [], frames=frames, gap=gap, clients=clients,
-         side=side, out=out)
+         side=side, noise=noise, out=out)
 
 
 @app.command("profile-encoder")

@@ -13,7 +13,9 @@ import time
 from collections.abc import AsyncIterator, Iterator
 
 import anyio
+import cv2
 import httpx
+import numpy as np
 import pytest
 
 from service.server import ProblemHttpToolsProtocol
@@ -34,12 +36,14 @@ def live(tmp_path) -> Iterator[str]:
         yield base
 
 
-def half_sent(base: str, declared: int, sent: int) -> socket.socket:
-    """A connection that sent the head of an observation post declaring `declared` bytes, then `sent`."""
+def half_sent(base: str, declared: int, sent: int, map_id: str = "default") -> socket.socket:
+    """A connection that sent the head of an observation post to `map_id` declaring `declared` bytes,
+    then `sent`."""
     port = int(base.rsplit(":", 1)[1])
     sock = socket.create_connection(("127.0.0.1", port))
-    sock.sendall(b"POST /v1/maps/default/observations HTTP/1.1\r\nHost: t\r\nContent-Type: image/png\r\n"
-                 b"Content-Length: %d\r\n\r\n" % declared + b"\x89PNG" + b"\0" * (sent - 4))
+    head = (b"POST /v1/maps/%s/observations HTTP/1.1\r\nHost: t\r\nContent-Type: image/png\r\n"
+            b"Content-Length: %d\r\n\r\n" % (map_id.encode(), declared))
+    sock.sendall(head + b"\x89PNG" + b"\0" * (sent - 4))
     return sock
 
 
@@ -70,10 +74,10 @@ def metric(base: str, line: str) -> float:
 
 
 def test_half_sent_uploads_are_answered_408_and_closed_at_the_deadline(live):
-    """Slow-loris style: the head and 1 KB of a declared 10 KB body, then nothing, on 20 connections
-    (200 KB reserved: within the budget, so only the deadline ends them)."""
+    """Slow-loris style: the head and 1 KB of a declared 7 KB body, then nothing, on 20 connections
+    (140 KB reserved: within the budget and one map's share, so only the deadline ends them)."""
     t0 = time.monotonic()
-    socks = [half_sent(live, 10_000, 1_000) for _ in range(20)]
+    socks = [half_sent(live, 7_000, 1_000) for _ in range(20)]
     for sock in socks:
         raw, closed = answer(sock, DEADLINE_S + 10)
         elapsed = time.monotonic() - t0
@@ -89,7 +93,9 @@ def test_half_sent_uploads_are_answered_408_and_closed_at_the_deadline(live):
 
 
 def test_uploads_past_the_in_flight_budget_are_503_before_their_body(live):
-    held = [half_sent(live, LIMIT, 1_000), half_sent(live, LIMIT, 1_000)]  # 200 KB reserved of 250
+    # 200 KB reserved of 250, by two maps (one map may hold 150: the budget less one largest upload)
+    assert httpx.post(f"{live}/v1/maps", json={"map_id": "other"}).status_code == 201
+    held = [half_sent(live, LIMIT, 1_000), half_sent(live, LIMIT, 1_000, map_id="other")]
     deadline = time.monotonic() + 10  # until the server has read both heads (no fixed sleep)
     while metric(live, "cortexloc_upload_inflight_bytes") < 2 * LIMIT and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -116,6 +122,36 @@ def test_uploads_past_the_in_flight_budget_are_503_before_their_body(live):
     big = httpx.post(f"{live}/v1/maps/default/observations", content=frame(2) + b"\0" * (LIMIT - 30_000),
                      headers={"Content-Type": "image/png"})
     assert big.status_code != 503, big.text
+
+
+def test_one_maps_largest_uploads_leave_another_map_room(live):
+    """A client sending its largest bodies to one map holds at most the budget less one largest upload
+    (150 of 250 KB here): its next is 503 while the budget still has room, and another map's robot gets
+    in. Before, the flood took the whole budget and every other map's post was 503."""
+    flood = half_sent(live, LIMIT, 1_000)
+    deadline = time.monotonic() + 10
+    while metric(live, "cortexloc_upload_inflight_bytes") < LIMIT and time.monotonic() < deadline:
+        time.sleep(0.05)
+    more = half_sent(live, LIMIT, 4)  # 200 KB for one map: within the budget, past its share
+    raw, closed = answer(more, DEADLINE_S + 5)
+    status, problem, head = status_and_problem(raw)
+    assert closed and status == 503 and problem["type"].endswith("overloaded") and "retry-after: 1" in head
+    assert (problem["map_inflight_bytes"], problem["map_share_bytes"], problem["requested_bytes"]) == (
+        LIMIT, BUDGET - LIMIT, LIMIT)
+    assert "this map" in problem["detail"]
+    assert httpx.post(f"{live}/v1/maps", json={"map_id": "other"}).status_code == 201
+    noise = np.random.default_rng(0).integers(0, 256, (120, 180, 3), dtype=np.uint8)
+    robot_frame = cv2.imencode(".png", noise)[1].tobytes()
+    assert 50_000 < len(robot_frame) < LIMIT  # past the budget's room had the flood held 200 KB
+    robot = httpx.post(f"{live}/v1/maps/other/observations", content=robot_frame,
+                       headers={"Content-Type": "image/png"})
+    assert robot.status_code == 200, robot.text
+    small = httpx.post(f"{live}/v1/maps/default/observations", content=frame(2),
+                       headers={"Content-Type": "image/png"})
+    assert small.status_code == 200  # the flooding map's own small frame still fits its share
+    assert status_and_problem(answer(flood, DEADLINE_S + 10)[0])[0] == 408
+    flood.close()
+    assert metric(live, "cortexloc_upload_inflight_bytes") == 0
 
 
 def test_with_a_key_stalled_uploads_without_it_are_401_at_once_and_hold_no_budget(tmp_path):
