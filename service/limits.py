@@ -22,10 +22,14 @@ the app in another task):
   path's `/v1/maps/{id}/`; other paths count as one map) reserve at most the budget less one largest
   upload (`CORTEXLOC_MAX_UPLOAD_BYTES`), and never less than one largest upload, so a client
   sending its largest bodies to one map cannot take the whole budget, and another map's robot still
-  gets in. With frames of a few hundred kB no map comes near it (128 MiB holds hundreds).
+  gets in. With frames of a few hundred kB no map comes near it (128 MiB holds hundreds). It bounds
+  one map, it is no fair share: a client with two maps can still take the whole budget.
 
-The limit is `CORTEXLOC_MAX_UPLOAD_BYTES`, read per request from `app.state.settings`, and 64 KiB for
-JSON bodies (`application/json` or `application/*+json`). 413, 408 and 503 responses carry
+The limit is `CORTEXLOC_MAX_UPLOAD_BYTES`, read per request from `app.state.settings`, for a frame (`POST
+/v1/maps/{id}/observations`, the one route that takes an image), and 64 KiB for every other body and for
+JSON bodies (`application/json` or `application/*+json`): every other route takes a small JSON body or
+none, and a body some route reads before its key check (FastAPI parses a body before its dependencies)
+can then hold no more than that. 413, 408 and 503 responses carry
 `Connection: close` because the rest of the body is left unread. Metrics (`app.state.metrics`):
 `cortexloc_upload_inflight_bytes` (reserved now) and `cortexloc_upload_refusals_total{reason}`
 (`too-large`, `timeout`, `budget`).
@@ -163,11 +167,15 @@ class ReadStreamingResponse(StreamingResponse):
 
 
 def body_limit(scope: Scope, headers: Headers) -> int:
-    """The byte limit of this request's body."""
+    """The byte limit of this request's body (the module docstring)."""
     limit = int(_setting(scope, "max_upload_bytes"))
-    if is_json(headers.get("content-type")):
+    frame = scope.get("method") == "POST" and _FRAME_PATH.match(scope.get("path", "")) is not None
+    if not frame or is_json(headers.get("content-type")):
         limit = min(limit, JSON_MAX_BYTES)
     return limit
+
+
+_FRAME_PATH = re.compile(r"^/v1/maps/[^/]+/observations/?$")
 
 
 def head_bytes(scope: Scope) -> int:

@@ -92,35 +92,41 @@ class Extractions:
         self._lock = threading.Lock()
         self._threads = ThreadPoolExecutor(limit, thread_name_prefix="keyframes")
 
-    def submit(self, decode: Callable[..., np.ndarray], body: bytes | RawFrame,
-               keyframes: geometry.KeyframeOptions, camera: dict[str, Any] | None, given: bool,
-               gone: Flag) -> Future[QueryFrame | None]:
-        """`extract_frame` in a worker; its future raises ClientGone where `gone` was set before it
-        started (the work is skipped: the client went away, or the post failed).
+    def reserve(self) -> None:
+        """Take a slot for one extraction (`start` it, or `release` it).
 
         Raises:
-            Overloaded: `limit` extractions are in flight (nothing queued).
+            Overloaded: `limit` extractions are in flight (nothing taken).
         """
         with self._lock:
             if self.pending >= self.limit:
                 raise Overloaded(self.limit, what="keyframe extraction")
             self.pending += 1
 
+    def release(self) -> None:
+        """Give back a slot `reserve` took and no extraction used."""
+        with self._lock:
+            self.pending -= 1
+
+    def start(self, decode: Callable[..., np.ndarray], body: bytes | RawFrame,
+              keyframes: geometry.KeyframeOptions, camera: dict[str, Any] | None, given: bool,
+              gone: Flag) -> Future[QueryFrame | None]:
+        """`extract_frame` in a worker, in the slot `reserve` took; its future raises ClientGone where
+        `gone` was set before it started (the work is skipped: the client went away, or the post failed).
+        The slot comes back when the future is done, cancelled before it ran included."""
+
         def run() -> QueryFrame | None:
-            try:
-                if gone.is_set():
-                    raise ClientGone("the client went away before its keyframe extraction started")
-                return extract_frame(decode, body, keyframes, camera, given)
-            finally:
-                with self._lock:
-                    self.pending -= 1
+            if gone.is_set():
+                raise ClientGone("the client went away before its keyframe extraction started")
+            return extract_frame(decode, body, keyframes, camera, given)
 
         try:
-            return self._threads.submit(run)
-        except BaseException:  # never queued (shut down): no worker gives the slot back
-            with self._lock:
-                self.pending -= 1
+            fut = self._threads.submit(run)
+        except BaseException:  # never queued (shut down)
+            self.release()
             raise
+        fut.add_done_callback(lambda _: self.release())
+        return fut
 
     def close(self) -> None:
         self._threads.shutdown(wait=True, cancel_futures=True)

@@ -50,6 +50,9 @@ log = logging.getLogger("cortexloc.scaleout")
 _HOP = {"host", "content-length", "transfer-encoding", "connection", "keep-alive"}
 
 
+#: The methods whose body the ingress reads and forwards (the API takes none with GET or DELETE).
+_BODY_METHODS = frozenset({"POST", "PATCH", "PUT"})
+
 def _out_headers(request: Request) -> list[tuple[str, str]]:
     headers = [(k, v) for k, v in request.headers.items() if k.lower() not in _HOP]
     rid = request_id_var.get()
@@ -211,8 +214,13 @@ def _router() -> APIRouter:
                           errors=[{"location": "path", "name": "path", "message": "dot segment"}])
         if request.method == "DELETE" and not rest:
             return _reply(await shards.delete(map_id, path, request.url.query, _out_headers(request)))
+        # The map is looked up before a byte of the body is read, and only a method with a body reads
+        # one: a body sent to an id no shard has, or with a GET, would otherwise hold its share of the
+        # upload budget (docs/design/service.md §3) until its deadline, a share per made-up id.
+        shards.owner(map_id)
+        body = await request.body() if request.method in _BODY_METHODS else b""
         return _reply(await shards.forward(map_id, request.method, path, request.url.query,
-                                           _out_headers(request), await request.body()))
+                                           _out_headers(request), body))
 
     # Reads under the read guard (the router's); every write needs the key here, as on the shard.
     for path in ("/maps/{map_id}", "/maps/{map_id}/{rest:path}"):

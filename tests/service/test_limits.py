@@ -109,9 +109,11 @@ def test_json_bodies_are_limited_to_64_kib(tmp_path):
                    JSON_MAX_BYTES)
         assert_413(c.post("/test/json", content=(big[i:i + 4096] for i in range(0, len(big), 4096)),
                           headers={"content-type": "application/json; charset=utf-8"}), JSON_MAX_BYTES)
-        # the same size as an image body is fine: 64 KiB applies to JSON only
-        r = c.post("/test/upload", content=big, headers={"content-type": "application/octet-stream"})
-        assert r.status_code == 200 and r.json() == {"bytes": len(big)}
+        # the same size as a frame's body is read: 64 KiB applies to JSON and to every other route
+        r = c.post("/v1/maps/default/observations", content=big, headers={"content-type": "image/png"})
+        assert r.status_code == 415 and r.json()["type"].endswith("unsupported-media-type")  # read, sniffed
+        assert_413(c.post("/test/upload", content=big, headers={"content-type": "application/octet-stream"}),
+                   JSON_MAX_BYTES)
 
 
 def test_limit_metrics_record_the_route(client):
@@ -265,3 +267,18 @@ def test_a_streamed_reply_is_cut_when_its_client_stops_reading_never_when_it_rea
     bodies = [m for m in sent if m["type"] == "http.response.body"]
     assert _Reply.closed == 1
     assert len(bodies) == (1 if reads == "stops" else 5)  # 4 chunks and the closing empty one
+
+
+def test_only_a_frame_post_takes_a_body_past_64_kib(tmp_path):
+    """(From review.) Every route but the frame post takes a small JSON body or none: a large body sent
+    elsewhere (a keyless PATCH is read before its key check) is 413 at once, so it never holds more than
+    64 KiB of the in-flight budget."""
+    with TestClient(make_app(tmp_path / "data", api_key="k")) as c:
+        big = b"\0" * (JSON_MAX_BYTES + 1)
+        for method, path in (("PATCH", "/v1/maps/default"), ("POST", "/v1/maps/default/snapshots"),
+                             ("POST", "/v1/maps/default/streams/s/reset")):
+            r = c.request(method, path, content=big, headers={"Content-Type": "application/octet-stream"})
+            assert r.status_code == 413 and r.json()["max_bytes"] == JSON_MAX_BYTES, (method, path, r.text)
+        frame_post = c.post("/v1/maps/default/observations", content=big,
+                            headers={"Content-Type": "image/png", "Authorization": "Bearer k"})
+        assert frame_post.status_code == 415  # read whole and sniffed (not an image): no 413 for a frame

@@ -143,6 +143,7 @@ def test_one_maps_largest_uploads_leave_another_map_room(live):
     noise = np.random.default_rng(0).integers(0, 256, (120, 180, 3), dtype=np.uint8)
     robot_frame = cv2.imencode(".png", noise)[1].tobytes()
     assert 50_000 < len(robot_frame) < LIMIT  # past the budget's room had the flood held 200 KB
+    assert metric(live, "cortexloc_upload_inflight_bytes") == LIMIT  # the flood still holds its upload
     robot = httpx.post(f"{live}/v1/maps/other/observations", content=robot_frame,
                        headers={"Content-Type": "image/png"})
     assert robot.status_code == 200, robot.text

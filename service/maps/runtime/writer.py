@@ -170,25 +170,34 @@ class Writer:
         with contextlib.suppress(RuntimeError):
             self._admit(stream)
         t0 = time.perf_counter()
-        # Local features in native pixels, beside the encoding (docs/design/science.md §12.1), asked
-        # first: a post they refuse takes no encoder slot (which may be taken back from another map's
-        # post). The extraction is skipped where it has not started once the client is gone or the post
-        # failed (`over`). The stream's camera: this frame's, else the last.
-        over = _Either(gone)
-        given = (metadata or {}).get("camera")
-        camera = given or self.cameras.get(stream)
-        frame = None if self.config.keyframes is None else asyncio.wrap_future(extractions.submit(
-            pool.encoders.get(self.config.backbone).decode, body, self.config.sections.keyframes, camera,
-            given is not None, over))
+        # Local features in native pixels, beside the encoding (docs/design/science.md §12.1). Their slot
+        # is taken first: a post they refuse takes no encoder slot (which may be taken back from another
+        # map's post); one the encoder refuses gives it back unused. Once started, the extraction is
+        # skipped where it has not begun when the client is gone or the post failed (`over`).
+        keyed = self.config.keyframes is not None
+        if keyed:
+            extractions.reserve()
         try:
             # Localised frames too: their thumbnail is kept in the recent ring only (never stored).
             encoding = pool.submit(body, hasher=self.hasher, backbone=self.config.backbone,
                                    thumbnail=self.config.thumbnails, resize=self.config.resize,
                                    key=self.map_id)
         except BaseException:
-            over.failed.set()
-            _drop(frame)
+            if keyed:
+                extractions.release()
             raise
+        over = _Either(gone)
+        frame = None
+        if keyed:  # the stream's camera: this frame's, else the last
+            given = (metadata or {}).get("camera")
+            camera = given or self.cameras.get(stream)
+            try:
+                frame = asyncio.wrap_future(extractions.start(
+                    pool.encoders.get(self.config.backbone).decode, body, self.config.sections.keyframes,
+                    camera, given is not None, over))
+            except BaseException:  # the extractions shut down: the pool skips the encoding if not begun
+                encoding.cancel()
+                raise
         # The digest stored with the row, off the event loop (a 10 MB raw frame takes ~20 ms to hash)
         # and beside the encoding.
         digest = asyncio.ensure_future(asyncio.to_thread(_sha256, getattr(body, "data", body)))

@@ -75,6 +75,28 @@ def test_an_extraction_past_the_cap_is_503_with_retry_after_and_nothing_changes(
         assert post(c, png(sized("astronaut")), top_k=0).status_code == 200
 
 
+def test_a_post_the_encoder_refuses_runs_no_extraction_and_holds_no_slot(tmp_path, monkeypatch):
+    """(From review.) The extraction's slot is taken before the encoding and given back when the encoder
+    refuses the post (a map over its share under a flood): no decode and SIFT for a 503, no slot held
+    after it. A version that submitted the extraction first ran it for every refused post."""
+    from service.maps.encoding.pool import EmbeddingPool
+    from service.maps.errors import Overloaded
+
+    ran = []
+    monkeypatch.setattr(keyframes, "extract_frame", lambda *a: ran.append(a))
+
+    def refuse(self, *a, **kw):
+        raise Overloaded(self.limit)
+
+    with make_client(tmp_path / "data") as c:
+        make_map(c)
+        monkeypatch.setattr(EmbeddingPool, "submit", refuse)
+        statuses = [post(c, png(sized("astronaut")), map_id="kf", top_k=0).status_code for _ in range(3)]
+        assert statuses == [503, 503, 503]
+        time.sleep(0.2)  # an extraction started anyway would have run by now
+        assert ran == [] and c.app.state.extractions.pending == 0
+
+
 def test_a_post_whose_client_went_away_is_skipped_before_the_writer(tmp_path, monkeypatch):
     ran = []
     monkeypatch.setattr(keyframes, "extract_frame", lambda *a: ran.append(a))

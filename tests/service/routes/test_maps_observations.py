@@ -428,21 +428,26 @@ def test_a_post_that_fails_before_its_turn_lets_no_later_post_pass_an_older_one(
         gated = Gated(c.app.state.encoder_pool)
         c.app.state.encoder_pool = gated
         posts = []
-        deadline = time.monotonic() + 60
-        for i in (1, 2, 3):
-            posts.append(threads.submit(post, c, frame(i)))
-            while len(gated.calls) < i:
-                assert time.monotonic() < deadline
-                time.sleep(0.01)
-        (real1, first), (_, second), (real3, third) = gated.calls
-        second.set_running_or_notify_cancel()
-        second.set_exception(Overloaded(4))
-        third.set_result(real3.result(60))
-        time.sleep(0.5)  # room for the third to overtake, as it did
-        overtaken = posts[2].done()
-        first.set_result(real1.result(60))  # released before any assert: the posts' threads must end
-        a1, a2, a3 = (f.result(timeout=60) for f in posts)
-        c.app.state.encoder_pool = gated.real
+        try:
+            deadline = time.monotonic() + 60
+            for i in (1, 2, 3):
+                posts.append(threads.submit(post, c, frame(i)))
+                while len(gated.calls) < i:
+                    assert time.monotonic() < deadline
+                    time.sleep(0.01)
+            (real1, first), (_, second), (real3, third) = gated.calls
+            second.set_running_or_notify_cancel()
+            second.set_exception(Overloaded(4))
+            third.set_result(real3.result(60))
+            time.sleep(0.5)  # room for the third to overtake, as it did
+            overtaken = posts[2].done()
+            first.set_result(real1.result(60))
+            a1, a2, a3 = (f.result(timeout=60) for f in posts)
+        finally:  # whatever failed, no post's thread waits for ever on a future the test holds
+            for _, proxy in gated.calls:
+                if not proxy.done():
+                    proxy.set_exception(Overloaded(4))
+            c.app.state.encoder_pool = gated.real
     assert not overtaken
     assert (a1.status_code, a2.status_code, a3.status_code) == (200, 503, 200)
     assert a1.json()["seq"] < a3.json()["seq"]
