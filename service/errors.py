@@ -56,6 +56,7 @@ PROBLEMS: dict[str, tuple[int, str]] = {
     "not-found": (404, "Not found"),
     "method-not-allowed": (405, "Method not allowed"),
     "method-not-implemented": (501, "Method not implemented"),
+    "transfer-coding-not-implemented": (501, "Transfer coding not implemented"),
     "map-exists": (409, "Map already exists"),
     "map-limit": (409, "Too many maps"),
     "map-full": (409, "Map is full"),

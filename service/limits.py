@@ -35,7 +35,9 @@ can then hold no more than that. 413, 408 and 503 responses carry
 (`too-large`, `timeout`, `budget`).
 
 A body sent with a content coding (`Content-Encoding` other than identity) is answered 415
-`unsupported-media-type` with `Accept-Encoding: identity` before it is read (RFC 7694).
+`unsupported-media-type` with `Accept-Encoding: identity` before it is read (RFC 7694), and one with a
+transfer coding other than chunked (`Transfer-Encoding: gzip, chunked`) 501
+`transfer-coding-not-implemented` (RFC 9112 §6.1): the server dechunks and decodes nothing else.
 
 The request line and headers are limited to `HEAD_MAX_BYTES` (16 KiB): the protocol `cortexloc serve`
 runs (`service.server.ProblemHttpToolsProtocol`) refuses a longer head as it parses it; here it is
@@ -297,6 +299,17 @@ class UploadLimitMiddleware:
                 f"Content-Encoding {', '.join(map(repr, coded[:4]))} is not accepted: send the body "
                 f"uncompressed", headers={"Accept-Encoding": "identity", "Connection": "close"},
                 allowed=["identity"])
+            await response(scope, receive, send)
+            return
+        # A transfer coding other than chunked (`gzip, chunked`): the server dechunks but decodes nothing
+        # else, so the body would be judged on bytes the client did not mean (RFC 9112 §6.1: 501).
+        transfer = [c.strip() for v in headers.getlist("transfer-encoding") for c in v.split(",")
+                    if c.strip()]
+        if any(c.lower() != "chunked" for c in transfer):
+            response = problem_response(
+                Request(scope), 501, "transfer-coding-not-implemented",
+                f"Transfer-Encoding {', '.join(map(repr, transfer[:4]))}: only chunked is understood; send "
+                "the body as it is", headers={"Connection": "close"}, allowed=["chunked"])
             await response(scope, receive, send)
             return
         limit = body_limit(scope, headers)

@@ -17,7 +17,6 @@ import hashlib
 import json
 import math
 import re
-import threading
 import time
 from collections.abc import AsyncIterator
 from datetime import datetime
@@ -31,6 +30,7 @@ from models.frontend import images
 from models.localisation.motion import stamp_seconds
 from service.deps import ApiKeyDep, MetricsDep, RegistryDep, SettingsDep
 from service.errors import Problem, problem_responses
+from service.maps.departure import Departure
 from service.maps.results import ObservationResult
 from service.maps.runtime import idempotency, stored
 from service.media_types import IMAGE_MEDIA_TYPES
@@ -339,11 +339,11 @@ async def post_observation(
 
 
 @contextlib.asynccontextmanager
-async def _departure(request: Request) -> AsyncIterator[threading.Event]:
+async def _departure(request: Request) -> AsyncIterator[Departure]:
     """An event set once the client goes away (the ASGI `http.disconnect`, which `receive()` gives once
     the body was read), watched while the post is worked on, so the work not yet started is skipped
-    (`MapRuntime.observe`)."""
-    gone = threading.Event()
+    (`MapRuntime.observe`: its encoding cancelled where not yet in a batch)."""
+    gone = Departure()
 
     async def watch() -> None:
         while (await request.receive())["type"] != "http.disconnect":

@@ -199,6 +199,7 @@ def test_registry_covers_the_spec_table():
     spec |= {"recent-answer-not-found"}  # issue 23: the viewer's query thumbnails
     spec |= {"map-read-only"}  # a map whose map.sqlite refuses writes (was a 500)
     spec |= {"method-not-implemented"}  # a method llhttp does not know (was a 400 "malformed request")
+    spec |= {"transfer-coding-not-implemented"}  # `Transfer-Encoding: gzip, chunked` (was read as sent)
     assert set(TITLES) == spec
 
 

@@ -434,3 +434,34 @@ def test_requests_answered_before_routing_are_counted_under_their_route(tmp_path
         r = c.post("/v1/maps/default/observations", content=frame(1), headers={"Content-Type": "image/png"})
         assert r.status_code == 413
         assert 'route="/v1/maps/{map_id}/observations",status="413"} 1.0' in c.get("/metrics").text
+
+
+def test_a_transfer_coding_other_than_chunked_is_501_and_stores_nothing(tmp_path):
+    """(Found from outside.) `Transfer-Encoding: gzip, chunked` was dechunked and read as sent: a gzipped
+    frame was refused as 'not an image', and a plain one under a coding it does not carry was learned.
+    The server decodes no transfer coding but chunked (RFC 9112 §6.1: 501)."""
+    import gzip
+
+    app = make_app(tmp_path / "var")
+    with served(app, http=ProblemHttpToolsProtocol) as base:
+        port = int(base.rsplit(":", 1)[1])
+
+        def send(coding: str, body: bytes) -> tuple[int, dict]:
+            with socket.create_connection(("127.0.0.1", port), timeout=20) as s:
+                s.sendall(f"POST /v1/maps/default/observations HTTP/1.1\r\nHost: t\r\nContent-Type: image/png"
+                          f"\r\nConnection: close\r\nTransfer-Encoding: {coding}\r\n\r\n".encode()
+                          + b"%x\r\n" % len(body) + body + b"\r\n0\r\n\r\n")
+                raw = b""
+                while chunk := s.recv(65536):
+                    raw += chunk
+            head, _, rest = raw.partition(b"\r\n\r\n")
+            return int(head.split(b" ", 2)[1]), json.loads(rest) if rest.startswith(b"{") else {}
+
+        for coding, body in (("gzip, chunked", gzip.compress(frame(1))), ("gzip, chunked", frame(1)),
+                             ("x-unknown, chunked", frame(1))):
+            status, problem = send(coding, body)
+            assert status == 501, (coding, problem)
+            assert problem["type"].endswith("transfer-coding-not-implemented"), problem
+            assert problem["allowed"] == ["chunked"]
+        assert app.state.registry.get("default").store.count() == 0
+        assert send("chunked", frame(1))[0] == 200

@@ -125,8 +125,9 @@ class EmbeddingPool:
                 self._release(key, 1)
             raise
         item = _Item(body, fut, hasher, thumbnail, how, prepared, key)
-        if prepared is not None:  # a request whose client went away: its decode skipped where not started
-            fut.add_done_callback(lambda f: f.cancelled() and prepared.cancel())
+        # A request whose client went away (its future cancelled before its batch): slot given back now,
+        # decode skipped where not begun.
+        fut.add_done_callback(lambda f: f.cancelled() and self._abandoned(item))
         # A remote encoder's pending reply cannot say when it is done: its frame is ready for a batch now.
         when_done = getattr(prepared, "add_done_callback", None)
         with self._ready:
@@ -136,6 +137,27 @@ class EmbeddingPool:
         if when_done is not None:  # outside the lock: a decode already done calls back at once
             when_done(lambda _: self._decoded_one(item))
         return fut
+
+    def _abandoned(self, item: _Item) -> None:
+        """A request cancelled before its batch leaves the queues, its slot given back at once."""
+        with self._ready:
+            unbatched = self._unbatched.get(item.key)
+            if unbatched is None or item not in unbatched or item.taken_back:
+                return  # in a batch already (it is skipped there), or taken back
+            unbatched.remove(item)
+            if not unbatched:
+                del self._unbatched[item.key]
+            decoded = self._decoded.get(item.key)
+            if decoded is not None and item in decoded:
+                decoded.remove(item)
+                if not decoded:
+                    del self._decoded[item.key]
+            item.taken_back = True  # its decode's end batches nothing
+            self._release(item.key, 1)
+            if self._closed and not self._unbatched:
+                self._ready.notify_all()
+        if item.prepared is not None:
+            item.prepared.cancel()
 
     def _decoded_one(self, item: _Item) -> None:
         """A decode ended (or failed: its batch gives the request its error): the frame may be batched,

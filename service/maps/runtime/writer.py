@@ -37,6 +37,7 @@ from models.localisation import forgetting
 from models.localisation.motion import Motion
 from models.pipeline import touch
 from service.maps import keyframes
+from service.maps.departure import Departure
 from service.maps.encoding.pool import EmbeddingPool
 from service.maps.errors import ClientGone, InsufficientStorage, MapNotFound, MapReadOnly
 from service.maps.recovery import snapshots as map_snapshots
@@ -138,7 +139,7 @@ class Writer:
     async def observe(self, pool: EmbeddingPool, extractions: keyframes.Extractions,
                       body: bytes | RawFrame, *, learn: bool, stream: str, top_k: int, label: str | None,
                       metadata: dict[str, Any] | None = None, post: idempotency.IdempotentPost | None = None,
-                      gone: threading.Event | None = None) -> ObservationResult | idempotency.Reply:
+                      gone: Departure | None = None) -> ObservationResult | idempotency.Reply:
         """Event loop: one checked image through the map (docs/design/service.md §1.2, §6).
 
         The pool encodes and projects it with this map's matrix, batched with other requests; the step
@@ -150,16 +151,16 @@ class Writer:
         key, else the sealed reply of this step (service.maps.runtime.idempotency).
 
         On a map with keyframes the frame's features are taken in `extractions`, beside the encoding.
-        `gone` is set once the client went away: an extraction not yet started is skipped, and a post
-        whose client is gone by the time its turn comes is not handed to the writer; one the writer has
-        is never aborted.
+        `gone` is set once the client went away: its encoding is cancelled where it is not yet in a
+        batch, an extraction not yet started is skipped, and a post whose client is gone by the time its
+        turn comes is not handed to the writer; one the writer has is never aborted.
 
         Raises:
             MapUnavailable, StreamLimit, Overloaded (nothing queued); ImageError (the decode failed, nothing
             changed); ClientGone, InvalidCamera (nothing changed); MapFull, InsufficientStorage (from
             `apply`); IdempotencyKeyReused.
         """
-        gone = gone or threading.Event()
+        gone = gone or Departure()
         self.require_ready(learn)
         # No room and no probe due: refused before its encoding. Not a keyed post: the route answered a
         # key already stored, but its first post may still be in the writer, which answers the key first.
@@ -186,6 +187,9 @@ class Writer:
             if keyed:
                 extractions.release()
             raise
+        # A client gone before its frame reached a batch: the encoding is cancelled (its decode skipped
+        # where not begun, its slot given back) and the post ends as ClientGone, not after the work.
+        gone.when_set(encoding.cancel)
         over = _Either(gone)
         frame = None
         if keyed:  # the stream's camera: this frame's, else the last
@@ -205,7 +209,13 @@ class Writer:
         self._turn = mine
         handed = False
         try:
-            encoded = await asyncio.wrap_future(encoding)
+            try:
+                encoded = await asyncio.wrap_future(encoding)
+            except asyncio.CancelledError:
+                task = asyncio.current_task()
+                if encoding.cancelled() and gone.is_set() and not (task and task.cancelling()):
+                    raise ClientGone("the client went away before its frame was encoded") from None
+                raise
             query = None if frame is None else await frame
             image_sha256 = await digest
             t_encoded = time.perf_counter()

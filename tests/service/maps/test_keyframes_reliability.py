@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from service.maps import closures, keyframes
+from service.maps.departure import Departure
 from service.maps.errors import ClientGone
 from service.routes import observations
 from storage.mapschema import NewClosure, NewVisit
@@ -103,7 +104,7 @@ def test_a_post_whose_client_went_away_is_skipped_before_the_writer(tmp_path, mo
     with make_client(tmp_path / "data") as c:
         make_map(c)
         rt = c.app.state.registry.get("kf")
-        gone = threading.Event()
+        gone = Departure()
         gone.set()
         observe = functools.partial(rt.observe, c.app.state.encoder_pool, c.app.state.extractions,
                                     png(sized("astronaut")), learn=True, stream="s", top_k=0, label=None,
