@@ -524,7 +524,7 @@ class Writer:
 
 class _Either:
     """`is_set()` once the client is gone or the post failed: what an extraction not yet started checks
-    (`keyframes.Extractions.submit`)."""
+    (`keyframes.Extractions.start`)."""
 
     def __init__(self, gone: threading.Event) -> None:
         self.gone, self.failed = gone, threading.Event()
@@ -535,7 +535,8 @@ class _Either:
 
 def _drop(frame: asyncio.Future | None) -> None:
     """An extraction whose post failed: its outcome is read when it ends, so that nothing logs it as
-    never retrieved (never cancelled: the extraction gives its slot back only by running, skipped)."""
+    never retrieved (left to run: one not yet begun is skipped by `_Either`, and gives its slot back when
+    done)."""
     if frame is not None:
         frame.add_done_callback(lambda f: f.cancelled() or f.exception())
 
