@@ -75,12 +75,6 @@ def extract_frame(decode: Callable[..., np.ndarray], body: bytes | RawFrame,
     return QueryFrame(f, camera, (time.perf_counter() - t0) * 1e3)
 
 
-class Flag(Protocol):
-    """Anything that says whether a thing happened (a `threading.Event`)."""
-
-    def is_set(self) -> bool: ...
-
-
 class Extractions:
     """Keyframe extractions of all maps, at most `limit` in flight (waiting or running) in `limit`
     threads: each holds a decoded frame and a feature pyramid (~300 MB for a 25 MP SIFT frame,
@@ -110,7 +104,7 @@ class Extractions:
 
     def start(self, decode: Callable[..., np.ndarray], body: bytes | RawFrame,
               keyframes: geometry.KeyframeOptions, camera: dict[str, Any] | None, given: bool,
-              gone: Flag) -> Future[QueryFrame | None]:
+              gone: threading.Event) -> Future[QueryFrame | None]:
         """`extract_frame` in a worker, in the slot `reserve` took; its future raises ClientGone where
         `gone` was set before it started (the work is skipped: the client went away, or the post failed).
         The slot comes back when the future is done, cancelled before it ran included."""

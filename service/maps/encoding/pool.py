@@ -10,7 +10,7 @@ them, so throughput under load approaches the backbone's batch throughput. A ful
 Each image starts decoding when it is submitted (`Embedder.prepare`, in the encoder's decode threads),
 not when its batch is taken: the next batch decodes while the backbone runs the current one, so the
 forward never waits for a decode it could have overlapped, and a frame never waits for a batch-mate's
-decode (a 25 MP PNG's is a quarter second). A bad image fails its own request alone.
+decode (a 25 MP PNG's decodes every pixel). A bad image fails its own request alone.
 
 Batches are per backbone and resize mode: a request names its map's backbone and `resize` (crop |
 squash, frozen with the map), and a batch holding several runs one backbone call per pair present
@@ -122,7 +122,7 @@ class EmbeddingPool:
                                                                     key=key)
         except BaseException:  # never queued: no worker will give the slot back
             with self._ready:
-                self._release(key, 1)
+                self._release(key)
             raise
         item = _Item(body, fut, hasher, thumbnail, how, prepared, key)
         # A request whose client went away (its future cancelled before its batch): slot given back now,
@@ -141,19 +141,8 @@ class EmbeddingPool:
     def _abandoned(self, item: _Item) -> None:
         """A request cancelled before its batch leaves the queues, its slot given back at once."""
         with self._ready:
-            unbatched = self._unbatched.get(item.key)
-            if unbatched is None or item not in unbatched or item.taken_back:
+            if not self._withdraw(item):
                 return  # in a batch already (it is skipped there), or taken back
-            unbatched.remove(item)
-            if not unbatched:
-                del self._unbatched[item.key]
-            decoded = self._decoded.get(item.key)
-            if decoded is not None and item in decoded:
-                decoded.remove(item)
-                if not decoded:
-                    del self._decoded[item.key]
-            item.taken_back = True  # its decode's end batches nothing
-            self._release(item.key, 1)
             if self._closed and not self._unbatched:
                 self._ready.notify_all()
         if item.prepared is not None:
@@ -161,9 +150,9 @@ class EmbeddingPool:
 
     def _decoded_one(self, item: _Item) -> None:
         """A decode ended (or failed: its batch gives the request its error): the frame may be batched,
-        unless its slot was taken back meanwhile."""
+        unless it left the queues meanwhile (its slot taken back, or its client gone)."""
         with self._ready:
-            if not item.taken_back:
+            if item in self._unbatched.get(item.key, ()):
                 self._to_batch(item)
 
     def _to_batch(self, item: _Item) -> None:
@@ -181,21 +170,24 @@ class EmbeddingPool:
             over = [k for k, q in self._unbatched.items() if k != key and q and self._held[k] > share]
             if over:
                 heavy = max(over, key=self._held.__getitem__)
-                victim = _pop(self._unbatched, heavy, newest=True)
-                victim.taken_back = True
-                decoded = self._decoded.get(heavy)
-                if decoded is not None and victim in decoded:
-                    decoded.remove(victim)
-                    if not decoded:
-                        del self._decoded[heavy]
-                self._release(heavy, 1)
+                victim = self._unbatched[heavy][-1]
+                self._withdraw(victim)
                 return victim
         raise Overloaded(self.limit)
 
-    def _release(self, key: Hashable, n: int) -> None:
-        """(Lock held.) `key` gives back `n` slots."""
-        self.pending -= n
-        left = self._held[key] - n
+    def _withdraw(self, item: _Item) -> bool:
+        """(Lock held.) An unbatched request out of the queues, its slot given back and its decode's end
+        batching nothing; False where it is in a batch already or withdrawn."""
+        if not _remove(self._unbatched, item):
+            return False
+        _remove(self._decoded, item)
+        self._release(item.key)
+        return True
+
+    def _release(self, key: Hashable) -> None:
+        """(Lock held.) `key` gives back a slot."""
+        self.pending -= 1
+        left = self._held[key] - 1
         if left:
             self._held[key] = left
         else:
@@ -227,13 +219,11 @@ class EmbeddingPool:
         """(Lock held, something decoded.) The oldest decoded request of the key whose turn it is, now in
         a batch."""
         key = next(iter(self._decoded))
-        item = _pop(self._decoded, key, newest=False)
-        if item.key in self._decoded:  # more of this key: its next turn comes after the others'
+        item = self._decoded[key][0]
+        _remove(self._decoded, item)
+        if key in self._decoded:  # more of this key: its next turn comes after the others'
             self._decoded[key] = self._decoded.pop(key)
-        unbatched = self._unbatched[key]
-        unbatched.remove(item)
-        if not unbatched:
-            del self._unbatched[key]
+        _remove(self._unbatched, item)
         return item
 
     def _run(self) -> None:
@@ -282,7 +272,7 @@ class EmbeddingPool:
         finally:
             with self._ready:
                 for item in batch:
-                    self._release(item.key, 1)
+                    self._release(item.key)
 
     @staticmethod
     def _project(features: np.ndarray, hashers: list[Hasher | None]
@@ -327,16 +317,18 @@ class _Item:
     how: tuple[str, str | None]
     prepared: Future[Prepared] | None
     key: Hashable
-    taken_back: bool = False
 
 
-def _pop(queues: dict[Hashable, deque[_Item]], key: Hashable, newest: bool) -> _Item:
-    """One request of `key`'s queue (its newest or oldest), the key dropped once its queue is empty."""
-    q = queues[key]
-    item = q.pop() if newest else q.popleft()
+def _remove(queues: dict[Hashable, deque[_Item]], item: _Item) -> bool:
+    """`item` out of its key's queue, the key dropped once its queue is empty; False where it is not
+    there."""
+    q = queues.get(item.key)
+    if q is None or item not in q:
+        return False
+    q.remove(item)
     if not q:
-        del queues[key]
-    return item
+        del queues[item.key]
+    return True
 
 
 def _refuse(item: _Item, limit: int) -> None:

@@ -174,7 +174,7 @@ class Writer:
         # Local features in native pixels, beside the encoding (docs/design/science.md §12.1). Their slot
         # is taken first: a post they refuse takes no encoder slot (which may be taken back from another
         # map's post); one the encoder refuses gives it back unused. Once started, the extraction is
-        # skipped where it has not begun when the client is gone or the post failed (`over`).
+        # skipped where it has not begun when the client is gone or the post failed (`skip`).
         keyed = self.config.keyframes is not None
         if keyed:
             extractions.reserve()
@@ -190,7 +190,8 @@ class Writer:
         # A client gone before its frame reached a batch: the encoding is cancelled (its decode skipped
         # where not begun, its slot given back) and the post ends as ClientGone, not after the work.
         gone.when_set(encoding.cancel)
-        over = _Either(gone)
+        skip = threading.Event()
+        gone.when_set(skip.set)
         frame = None
         if keyed:  # the stream's camera: this frame's, else the last
             given = (metadata or {}).get("camera")
@@ -198,7 +199,7 @@ class Writer:
             try:
                 frame = asyncio.wrap_future(extractions.start(
                     pool.encoders.get(self.config.backbone).decode, body, self.config.sections.keyframes,
-                    camera, given is not None, over))
+                    camera, given is not None, skip))
             except BaseException:  # the extractions shut down: the pool skips the encoding if not begun
                 encoding.cancel()
                 raise
@@ -239,7 +240,7 @@ class Writer:
             handed = True
         finally:
             if not handed:
-                over.failed.set()
+                skip.set()
                 _drop(frame)
             # A post that failed before its turn (its encoding taken back, a bad image) passes the turn on
             # only once the post before it has had its own: the one after it never reaches the writer
@@ -522,21 +523,9 @@ class Writer:
             self._codes.popitem(last=False)
 
 
-class _Either:
-    """`is_set()` once the client is gone or the post failed: what an extraction not yet started checks
-    (`keyframes.Extractions.start`)."""
-
-    def __init__(self, gone: threading.Event) -> None:
-        self.gone, self.failed = gone, threading.Event()
-
-    def is_set(self) -> bool:
-        return self.gone.is_set() or self.failed.is_set()
-
-
 def _drop(frame: asyncio.Future | None) -> None:
     """An extraction whose post failed: its outcome is read when it ends, so that nothing logs it as
-    never retrieved (left to run: one not yet begun is skipped by `_Either`, and gives its slot back when
-    done)."""
+    never retrieved (left to run: one not yet begun is skipped, and gives its slot back when done)."""
     if frame is not None:
         frame.add_done_callback(lambda f: f.cancelled() or f.exception())
 

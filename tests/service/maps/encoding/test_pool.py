@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Iterator
 from concurrent.futures import Future
+from contextlib import contextmanager
 from functools import partial
 
 import numpy as np
@@ -247,89 +249,79 @@ def _wait_until(cond, timeout: float = 30.0) -> None:
         time.sleep(0.005)
 
 
-def test_one_key_may_hold_every_slot_while_no_other_wants_one() -> None:
+@contextmanager
+def _busy(queue: int, max_batch: int = 16, first: bytes = bytes(10)
+          ) -> Iterator[tuple[EmbeddingPool, FakeEmbedder, threading.Event, Future]]:
+    """A pool of one worker and `queue` + 1 slots whose worker holds key a's `first` request in the
+    backbone call until the gate opens: (pool, encoder, gate, first's future). Closed on the way out, so
+    what follows the block sees every slot given back."""
     enc = FakeEmbedder()
-    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=5)  # 6 slots
+    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=queue, max_batch=max_batch)
     try:
         with held_encoder(enc) as (gate, sizes):
-            futs = [pool.submit(bytes(10), key="a")]
-            _wait_until(lambda: sizes)  # the worker holds the first in the backbone call
-            futs += [pool.submit(bytes(11 + i), key="a") for i in range(5)]
-            with pytest.raises(Overloaded):  # its own seventh: no share to take back
-                pool.submit(bytes(99), key="a")
-            gate.set()
-            assert all(f.result(timeout=30).features.shape == (1, 32) for f in futs)
-        assert pool.pending == 0
+            fut = pool.submit(first, key="a")
+            _wait_until(lambda: sizes)
+            yield pool, enc, gate, fut
     finally:
         pool.close()
+
+
+def test_one_key_may_hold_every_slot_while_no_other_wants_one() -> None:
+    with _busy(queue=5) as (pool, _, gate, first):  # 6 slots
+        futs = [first] + [pool.submit(bytes(11 + i), key="a") for i in range(5)]
+        with pytest.raises(Overloaded):  # its own seventh: no share to take back
+            pool.submit(bytes(99), key="a")
+        gate.set()
+        assert all(f.result(timeout=30).features.shape == (1, 32) for f in futs)
+    assert pool.pending == 0
 
 
 def test_a_key_under_its_share_takes_a_slot_back_from_the_key_holding_the_most() -> None:
     """A client flooding one map fills the pool; another map's post is admitted, and the flood's newest
     waiting request fails with Overloaded (a 503 with Retry-After) instead: before, the other map got
     503 for as long as the flood lasted."""
-    enc = FakeEmbedder()
-    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=5)  # 6 slots, a share of 3 for two keys
-    try:
-        with held_encoder(enc) as (gate, sizes):
-            flood = [pool.submit(bytes(10), key="a")]
-            _wait_until(lambda: sizes)  # the worker holds it in the backbone call; the next five wait
-            flood += [pool.submit(bytes(11 + i), key="a") for i in range(5)]
-            other = [pool.submit(bytes(50 + i), key="b") for i in range(3)]
-            with pytest.raises(Overloaded):  # b holds its share now, a no more than its own
-                pool.submit(bytes(60), key="b")
-            # a's three newest gave their slots back, newest first; its oldest (in the backbone) did not
-            for f in flood[3:]:
-                with pytest.raises(Overloaded):
-                    f.result(timeout=30)
-            assert pool.pending == 6
-            gate.set()
-            for f in flood[:3] + other:
-                assert f.result(timeout=30).features.shape == (1, 32)
-        assert pool.pending == 0
-    finally:
-        pool.close()
+    with _busy(queue=5) as (pool, _, gate, first):  # 6 slots, a share of 3 for two keys
+        # the first is in the backbone call; the next five wait
+        flood = [first] + [pool.submit(bytes(11 + i), key="a") for i in range(5)]
+        other = [pool.submit(bytes(50 + i), key="b") for i in range(3)]
+        with pytest.raises(Overloaded):  # b holds its share now, a no more than its own
+            pool.submit(bytes(60), key="b")
+        # a's three newest gave their slots back, newest first; its oldest (in the backbone) did not
+        for f in flood[3:]:
+            with pytest.raises(Overloaded):
+                f.result(timeout=30)
+        assert pool.pending == 6
+        gate.set()
+        for f in flood[:3] + other:
+            assert f.result(timeout=30).features.shape == (1, 32)
+    assert pool.pending == 0
 
 
 def test_a_request_already_cancelled_is_not_taken_back_twice() -> None:
-    enc = FakeEmbedder()
-    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=1)  # 2 slots
-    try:
-        with held_encoder(enc) as (gate, sizes):
-            first = pool.submit(bytes(10), key="a")
-            _wait_until(lambda: sizes)
-            second = pool.submit(bytes(11), key="a")
-            assert second.cancel()  # its client went away
-            other = pool.submit(bytes(12), key="b")  # takes the cancelled one's slot back
-            assert second.cancelled()
-            gate.set()
-            assert first.result(timeout=30).features.shape == (1, 32)
-            assert other.result(timeout=30).features.shape == (1, 32)
-    finally:
-        pool.close()
+    with _busy(queue=1) as (pool, _, gate, first):  # 2 slots
+        second = pool.submit(bytes(11), key="a")
+        assert second.cancel()  # its client went away
+        other = pool.submit(bytes(12), key="b")  # takes the cancelled one's slot back
+        assert second.cancelled()
+        gate.set()
+        assert first.result(timeout=30).features.shape == (1, 32)
+        assert other.result(timeout=30).features.shape == (1, 32)
     assert pool.pending == 0 and pool._held == {}  # each slot given back once, none twice
 
 
 def test_batches_take_the_keys_in_turn() -> None:
     """A key's burst does not hold another key's request back behind it: the next batch takes one of
     each waiting key in turn before a second of any."""
-    enc = FakeEmbedder()
-    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=64, max_batch=2)
-    try:
-        with held_encoder(enc) as (gate, sizes):
-            pool.submit(bytes(5), key="a")
-            _wait_until(lambda: sizes)
-            flood = [pool.submit(bytes(10 + i), key="a") for i in range(6)]
-            late = pool.submit(bytes(40), key="b")
-            gate.set()
-            late.result(timeout=30)
-            for f in flood:
-                f.result(timeout=30)
-        # batches of 2: [first], then a's oldest with b's, then the rest of a's
-        assert enc.calls[:2] == [1, 2]
-        assert (bytes(10), None) in enc.modes[1:3] and (bytes(40), None) in enc.modes[1:3]
-    finally:
-        pool.close()
+    with _busy(queue=64, max_batch=2, first=bytes(5)) as (pool, enc, gate, _):
+        flood = [pool.submit(bytes(10 + i), key="a") for i in range(6)]
+        late = pool.submit(bytes(40), key="b")
+        gate.set()
+        late.result(timeout=30)
+        for f in flood:
+            f.result(timeout=30)
+    # batches of 2: [first], then a's oldest with b's, then the rest of a's
+    assert enc.calls[:2] == [1, 2]
+    assert (bytes(10), None) in enc.modes[1:3] and (bytes(40), None) in enc.modes[1:3]
 
 
 def test_the_pool_decodes_each_maps_frames_in_turn(tmp_path, monkeypatch) -> None:
@@ -361,23 +353,16 @@ def test_the_pool_decodes_each_maps_frames_in_turn(tmp_path, monkeypatch) -> Non
 
 
 def test_with_more_maps_than_slots_a_map_with_none_still_takes_one_from_a_map_with_two() -> None:
-    enc = FakeEmbedder()
-    pool = EmbeddingPool(Embedders.one(enc), workers=1, queue=2)  # 3 slots
-    try:
-        with held_encoder(enc) as (gate, sizes):
-            futs = [pool.submit(bytes(10), key="a")]
-            _wait_until(lambda: sizes)
-            futs += [pool.submit(bytes(11), key="a"), pool.submit(bytes(12), key="b")]
-            c = pool.submit(bytes(13), key="c")  # a holds 2: its waiting one is taken back
-            with pytest.raises(Overloaded):
-                futs[1].result(timeout=30)
-            with pytest.raises(Overloaded):  # a, b and c hold one each now: none to take back
-                pool.submit(bytes(14), key="d")
-            gate.set()
-            for f in (futs[0], futs[2], c):
-                assert f.result(timeout=30).features.shape == (1, 32)
-    finally:
-        pool.close()
+    with _busy(queue=2) as (pool, _, gate, first):  # 3 slots
+        futs = [first, pool.submit(bytes(11), key="a"), pool.submit(bytes(12), key="b")]
+        c = pool.submit(bytes(13), key="c")  # a holds 2: its waiting one is taken back
+        with pytest.raises(Overloaded):
+            futs[1].result(timeout=30)
+        with pytest.raises(Overloaded):  # a, b and c hold one each now: none to take back
+            pool.submit(bytes(14), key="d")
+        gate.set()
+        for f in (futs[0], futs[2], c):
+            assert f.result(timeout=30).features.shape == (1, 32)
 
 
 class HeldDecodes(FakeEmbedder):
