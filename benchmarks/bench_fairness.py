@@ -9,8 +9,8 @@ says otherwise, a temporary data directory, random weights. Two maps: `flood` an
 - **Alone**: the robot posts `--frames` 640x480 JPEGs to its map one at a time, `--gap` seconds apart,
   with nothing else running: its latency with the service to itself.
 - **Flooded**: `--clients` connections post `--side` x `--side` 8-bit RGB PNGs to `flood` as fast as they
-  are answered (a burst of frames at the pixel cap: each costs about a quarter second to decode here,
-  the file itself 117 kB for 5,000 px), and the robot posts as before once the flood has filled the
+  are answered (a burst of frames at the pixel cap: each decodes all its 25 million pixels, the file
+  itself 117 kB for 5,000 px), and the robot posts as before once the flood has filled the
   encoder. `--noise --side 1800`: the flood's bodies are 9.7 MB of noise instead, near the upload limit,
   so that it fills the in-flight upload budget too.
 
