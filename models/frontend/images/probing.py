@@ -177,8 +177,9 @@ def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pix
                          f"more than the limit of {max_pixels}",
                          width=width, height=height, max_pixels=max_pixels, format=fmt)
     if bits is not None and width * height * bits > max_pixels * PIXEL_CAP_BYTES * 8:
-        # A 16-bit RGBA PNG of 194 kB at the pixel cap held the decode threads of every map 3.5-9.8 s
-        # (found from outside): the cap is sized for 3 bytes a pixel, and the decode costs by the bytes.
+        # A flat 16-bit RGBA PNG at the pixel cap held the decode threads of every map for seconds
+        # (`cortexloc bench hostile`, png_5000x5000_rgba16_flat): the cap is sized for 3 bytes a pixel,
+        # and the decode costs by the bytes.
         raster = width * height * bits // 8
         raise ImageError("too-many-pixels",
                          f"image has {width}x{height} pixels of {bits} bits = {raster} bytes decoded, more "
