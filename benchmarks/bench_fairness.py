@@ -12,7 +12,9 @@ says otherwise, a temporary data directory, random weights. Two maps: `flood` an
   are answered (a burst of frames at the pixel cap: each decodes all its 25 million pixels, the file
   itself 117 kB for 5,000 px), and the robot posts as before once the flood has filled the
   encoder. `--noise --side 1800`: the flood's bodies are 9.7 MB of noise instead, near the upload limit,
-  so that it fills the in-flight upload budget too.
+  so that it fills the in-flight upload budget too. `--keyframes orb` (or `sift`): both maps take local
+  features from every frame (the map option `keyframes`), so the flood fills the keyframe extractions
+  (`CORTEXLOC_MAX_EXTRACTIONS`) as well as the encoder.
 
 Measured: the robot's replies by status and its latency (median, p95, max) in both phases, and the
 flood's replies by status. The question is whether one map's client can keep another map's robot
@@ -108,7 +110,7 @@ async def flooded(base: str, frames: list[bytes], gap: float, clients: int, png:
 
 
 def main(*, quick: bool, server_cmd: str | None, env: list[str], frames: int, gap: float, clients: int,
-         side: int, noise: bool, out: Path | None) -> None:
+         side: int, noise: bool, out: Path | None, keyframes: str | None = None) -> None:
     quick = quick_mode(quick)
     frames, clients, side = (4, 4, 1500) if quick else (frames, clients, side)
     server_env = dict(e.split("=", 1) for e in env)
@@ -120,8 +122,10 @@ def main(*, quick: bool, server_cmd: str | None, env: list[str], frames: int, ga
         try:
             server.wait_ready()
             with httpx.Client(timeout=60) as http:
+                extra = {} if keyframes is None else {"keyframes": {"features": keyframes}}
                 for m in ("flood", "robot"):
-                    assert http.post(f"{server.base}/v1/maps", json={"map_id": m}).status_code == 201
+                    made = http.post(f"{server.base}/v1/maps", json={"map_id": m, **extra})
+                    assert made.status_code == 201, made.text
                 # warm: the encoder, both maps' writers, a PNG at the size
                 for m, body, ctype in (("robot", jpegs[0], "image/jpeg"), ("flood", png, "image/png")):
                     r = http.post(f"{server.base}/v1/maps/{m}/observations", params={"stream": "warm"},
@@ -137,7 +141,7 @@ def main(*, quick: bool, server_cmd: str | None, env: list[str], frames: int, ga
         finally:
             server.stop()
     result = {"frames": frames, "gap_s": gap, "clients": clients, "side": side, "noise": noise,
-              "png_bytes": len(png),
+              "keyframes": keyframes, "png_bytes": len(png),
               "env": server_env, "server_cmd": server_cmd, **result}
     print(json.dumps(result, indent=2))
     write_json("fairness.json", result, out or RESULTS / "fairness.json")

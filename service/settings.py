@@ -119,8 +119,9 @@ class Settings(BaseSettings):
                                   "of several streams (0: never wait)")
     encode_chunk: int = Field(limits.DEFAULT_CHUNK, ge=1, le=256, description="images per backbone call "
                               "while the next ones are decoded: small chunks start the backbone sooner")
-    max_extractions: int = Field(4, ge=1, description="keyframe extractions in flight, all maps together "
-                                 "(full: 503 overloaded); each holds ~300 MB at most (a 25 MP SIFT frame)")
+    max_extractions: int = Field(4, ge=1, description="keyframe extractions running at once, all maps "
+                                 "together, the maps in turn, and in flight per map (full: 503 overloaded); "
+                                 "each running one holds ~300 MB at most (a 25 MP SIFT frame)")
     max_upload_bytes: int = Field(limits.DEFAULT_MAX_BYTES, ge=1, description="request body limit")
     body_timeout_s: float = Field(60.0, gt=0, le=3600, description="a request's whole body must arrive "
                                   "within this many seconds of its start, its head within as many of the "

@@ -45,7 +45,8 @@ class TurnPool:
         """Queue `fn()` under `key`; its future holds the result or the exception. A future cancelled
         before a thread takes it never runs."""
         fut: Future = Future()
-        self._turns.put(key, (fut, fn))
+        if not self._turns.put(key, (fut, fn)):
+            raise RuntimeError("cannot submit a call to a closed TurnPool")
         if not self._started:  # threads start with the first call: an encoder never asked costs none
             for t in self._threads:
                 if not t.is_alive():
@@ -57,6 +58,15 @@ class TurnPool:
         """Calls not yet taken, by key (for tests and diagnostics)."""
         return self._turns.waiting()
 
+    def close(self) -> None:
+        """Cancel the calls not yet taken and wait for those running; a later `submit` raises
+        RuntimeError (as a ThreadPoolExecutor's `shutdown(cancel_futures=True)`)."""
+        for fut, _ in self._turns.stop(cancel=True):
+            fut.cancel()
+        for t in self._threads:
+            if t.is_alive():
+                t.join()
+
 
 class _Turns:
     """The queues by key and the loop the threads run (`TurnPool`)."""
@@ -67,16 +77,30 @@ class _Turns:
         # back while it still has calls waiting (the turn).
         self._queues: dict[Hashable, deque[_Call]] = {}
         self._stopped = False
+        self._closed = False
 
-    def put(self, key: Hashable, call: _Call) -> None:
+    def put(self, key: Hashable, call: _Call) -> bool:
+        """Queue `call` under `key`; False (nothing queued) once stopped with its calls cancelled."""
         with self._ready:
+            if self._closed:
+                return False
             self._queues.setdefault(key, deque()).append(call)
             self._ready.notify()
+            return True
 
-    def stop(self) -> None:
+    def stop(self, cancel: bool = False) -> list[_Call]:
+        """Let the threads end once the queues are empty; with `cancel`, empty them first and take no
+        more calls. Returns the calls taken out, for the caller to cancel."""
         with self._ready:
             self._stopped = True
+            dropped: list[_Call] = []
+            if cancel:
+                self._closed = True
+                for calls in self._queues.values():
+                    dropped.extend(calls)
+                self._queues.clear()
             self._ready.notify_all()
+            return dropped
 
     def waiting(self) -> dict[Hashable, int]:
         with self._ready:

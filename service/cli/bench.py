@@ -418,13 +418,17 @@ def bench_fairness(
     side: Annotated[int, typer.Option(min=16, help="the flood's PNG side in pixels")] = 5000,
     noise: Annotated[bool, typer.Option("--noise", help="the flood's PNG of noise (side² x 3 bytes) "
                                                         "instead of a pattern")] = False,
+    keyframes: Annotated[str | None, typer.Option(help="both maps take local features (orb or sift), so the "
+                                                       "flood fills the keyframe extractions too")] = None,
     out: Annotated[Path | None, typer.Option(help="default benchmarks/results/fairness.json")] = None,
 ) -> None:
     """One map's flood against another map's robot: does the robot wait (benchmarks/bench_fairness.py)."""
     from benchmarks.bench_fairness import main
 
+    if keyframes not in (None, "orb", "sift"):
+        raise typer.BadParameter("orb or sift", param_hint="--keyframes")
     main(quick=quick, server_cmd=server_cmd, env=env or [], frames=frames, gap=gap, clients=clients,
-         side=side, noise=noise, out=out)
+         side=side, noise=noise, keyframes=keyframes, out=out)
 
 
 @app.command("profile-encoder")

@@ -3,8 +3,9 @@ docs/design/service.md §1.2): the glue between the map runtime, the store's `ke
 pure geometry of `models.geometry`.
 
 The query's features are taken in a worker thread while the backbone encodes the frame (`extract_frame`),
-at most `CORTEXLOC_MAX_EXTRACTIONS` at once over all maps (`Extractions`: past it a post is refused
-503 `overloaded`, and one whose client went away before its extraction started is skipped); the writer
+at most `CORTEXLOC_MAX_EXTRACTIONS` at once over all maps, the maps in turn (`Extractions`: past as
+many in flight for one map its post is refused 503 `overloaded`, and one whose client went away before
+its extraction started is skipped); the writer
 verifies only a revisit candidate (`verify_place`), against the place's keyframe first and then
 its route neighbours (along the map's links), stopping at the first that verifies.
 """
@@ -13,8 +14,8 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Iterable
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable, Hashable, Iterable
+from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -22,6 +23,7 @@ import numpy as np
 
 from models import geometry
 from models.frontend.images import ImageError, RawFrame
+from models.frontend.turns import TurnPool
 from models.localisation import SequenceGraph
 from service.maps.errors import ClientGone, InvalidCamera, Overloaded
 from service.maps.results import VerificationResult
@@ -76,38 +78,54 @@ def extract_frame(decode: Callable[..., np.ndarray], body: bytes | RawFrame,
 
 
 class Extractions:
-    """Keyframe extractions of all maps, at most `limit` in flight (waiting or running) in `limit`
-    threads: each holds a decoded frame and a feature pyramid (~300 MB for a 25 MP SIFT frame,
-    docs/benchmarks.md §13.1), so their number bounds that memory."""
+    """Keyframe extractions of all maps: at most `limit` run at once, in `limit` threads that take the
+    maps in turn (`TurnPool`), and each map has at most `limit` in flight (waiting or running).
+
+    A running extraction holds a decoded frame and a feature pyramid (~300 MB for a 25 MP SIFT frame,
+    docs/benchmarks.md §13.1), so the threads bound that memory; a waiting one holds only its upload,
+    which the upload budget bounds. The turns keep one map's burst from locking another map out: the
+    other map's post waits for at most one extraction per map ahead of it, where a first-come cap of
+    `limit` over all maps refused it for as long as the burst lasted (docs/design/service.md §6).
+    """
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
-        self.pending = 0
+        self._held: dict[Hashable, int] = {}
         self._lock = threading.Lock()
-        self._threads = ThreadPoolExecutor(limit, thread_name_prefix="keyframes")
+        self._threads = TurnPool(limit, "keyframes")
 
-    def reserve(self) -> None:
-        """Take a slot for one extraction (`start` it, or `release` it).
+    @property
+    def pending(self) -> int:
+        """Extractions in flight (reserved, waiting or running), all maps together."""
+        with self._lock:
+            return sum(self._held.values())
+
+    def reserve(self, key: Hashable) -> None:
+        """Take one of `key`'s (a map's) slots for one extraction (`start` it, or `release` it).
 
         Raises:
-            Overloaded: `limit` extractions are in flight (nothing taken).
+            Overloaded: `key` has `limit` extractions in flight (nothing taken).
         """
         with self._lock:
-            if self.pending >= self.limit:
+            held = self._held.get(key, 0)
+            if held >= self.limit:
                 raise Overloaded(self.limit, what="keyframe extraction")
-            self.pending += 1
+            self._held[key] = held + 1
 
-    def release(self) -> None:
+    def release(self, key: Hashable) -> None:
         """Give back a slot `reserve` took and no extraction used."""
         with self._lock:
-            self.pending -= 1
+            held = self._held.pop(key) - 1
+            if held:
+                self._held[key] = held
 
-    def start(self, decode: Callable[..., np.ndarray], body: bytes | RawFrame,
+    def start(self, key: Hashable, decode: Callable[..., np.ndarray], body: bytes | RawFrame,
               keyframes: geometry.KeyframeOptions, camera: dict[str, Any] | None, given: bool,
               gone: threading.Event) -> Future[QueryFrame | None]:
-        """`extract_frame` in a worker, in the slot `reserve` took; its future raises ClientGone where
-        `gone` was set before it started (the work is skipped: the client went away, or the post failed).
-        The slot comes back when the future is done, cancelled before it ran included."""
+        """`extract_frame` in a worker, in turn with the other maps' and in the slot `reserve` took for
+        `key`; its future raises ClientGone where `gone` was set before it started (the work is skipped:
+        the client went away, or the post failed). The slot comes back when the future is done,
+        cancelled before it ran included."""
 
         def run() -> QueryFrame | None:
             if gone.is_set():
@@ -115,15 +133,15 @@ class Extractions:
             return extract_frame(decode, body, keyframes, camera, given)
 
         try:
-            fut = self._threads.submit(run)
+            fut = self._threads.submit(run, key)
         except BaseException:  # never queued (shut down)
-            self.release()
+            self.release(key)
             raise
-        fut.add_done_callback(lambda _: self.release())
+        fut.add_done_callback(lambda _: self.release(key))
         return fut
 
     def close(self) -> None:
-        self._threads.shutdown(wait=True, cancel_futures=True)
+        self._threads.close()
 
 
 def camera_of(value: dict[str, Any] | None) -> geometry.Camera | None:

@@ -177,7 +177,7 @@ class Writer:
         # skipped where it has not begun when the client is gone or the post failed (`skip`).
         keyed = self.config.keyframes is not None
         if keyed:
-            extractions.reserve()
+            extractions.reserve(self.map_id)
         try:
             # Localised frames too: their thumbnail is kept in the recent ring only (never stored).
             encoding = pool.submit(body, hasher=self.hasher, backbone=self.config.backbone,
@@ -185,7 +185,7 @@ class Writer:
                                    key=self.map_id)
         except BaseException:
             if keyed:
-                extractions.release()
+                extractions.release(self.map_id)
             raise
         # A client gone before its frame reached a batch: the encoding is cancelled (its decode skipped
         # where not begun, its slot given back) and the post ends as ClientGone, not after the work.
@@ -198,8 +198,8 @@ class Writer:
             camera = given or self.cameras.get(stream)
             try:
                 frame = asyncio.wrap_future(extractions.start(
-                    pool.encoders.get(self.config.backbone).decode, body, self.config.sections.keyframes,
-                    camera, given is not None, skip))
+                    self.map_id, pool.encoders.get(self.config.backbone).decode, body,
+                    self.config.sections.keyframes, camera, given is not None, skip))
             except BaseException:  # the extractions shut down: the pool skips the encoding if not begun
                 encoding.cancel()
                 raise

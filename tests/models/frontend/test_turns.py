@@ -72,3 +72,21 @@ def test_a_dropped_pools_threads_end() -> None:
     while names():
         assert time.monotonic() < deadline, names()
         time.sleep(0.01)
+
+
+def test_close_cancels_the_waiting_calls_waits_for_the_running_ones_and_takes_no_more() -> None:
+    pool, ran, gate, started = TurnPool(1, "closing"), [], threading.Event(), threading.Event()
+    running = pool.submit(lambda: (started.set(), gate.wait(30), ran.append("running")), "a")
+    assert started.wait(30)
+    waiting = [pool.submit(lambda k=k: ran.append(k), k) for k in ("a", "b")]
+    closer = threading.Thread(target=pool.close)
+    closer.start()
+    closer.join(0.2)
+    assert closer.is_alive()  # the running call is waited for
+    assert all(f.cancelled() for f in waiting)
+    gate.set()
+    closer.join(30)
+    assert not closer.is_alive() and running.done() and ran == ["running"]
+    assert not any(t.name.startswith("closing-") for t in threading.enumerate())
+    with pytest.raises(RuntimeError):
+        pool.submit(lambda: None, "a")

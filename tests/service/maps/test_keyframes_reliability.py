@@ -57,7 +57,8 @@ def test_an_extraction_past_the_cap_is_503_with_retry_after_and_nothing_changes(
         make_map(c)
         extractions = c.app.state.extractions
         assert extractions.limit == 2
-        extractions.pending = 2  # two extractions in flight
+        for _ in range(2):  # two of this map's extractions in flight
+            extractions.reserve("kf")
         r = post(c, png(sized("astronaut")), map_id="kf", top_k=0)
         assert r.status_code == 503 and r.headers["Retry-After"] == "1", r.text
         assert r.json()["type"].endswith("overloaded") and "keyframe extraction" in r.json()["detail"]
@@ -68,12 +69,60 @@ def test_an_extraction_past_the_cap_is_503_with_retry_after_and_nothing_changes(
                 break
             time.sleep(0.01)
         assert c.app.state.encoder_pool.pending == 0
-        extractions.pending = 0
+        for _ in range(2):
+            extractions.release("kf")
         assert post(c, png(sized("astronaut")), map_id="kf", top_k=0).status_code == 200
         assert extractions.pending == 0 and rt.store.count() == 1
         # A map without keyframes takes no extraction slot.
-        extractions.pending = 2
+        for _ in range(2):
+            extractions.reserve("kf")
         assert post(c, png(sized("astronaut")), top_k=0).status_code == 200
+        # Another map with keyframes has its own: one map's extractions in flight do not refuse it.
+        assert c.post("/v1/maps", json={"map_id": "kf2", "keyframes": {"features": "orb"}}).status_code == 201
+        assert post(c, png(sized("astronaut")), map_id="kf2", top_k=0).status_code == 200
+        assert extractions.pending == 2
+
+
+def test_the_extractions_take_the_maps_in_turn(monkeypatch):
+    """One map's burst of extractions does not lock another map out: each map has `limit` in flight of
+    its own, and the threads take the maps in turn (models/frontend/turns.py, tested there), so the
+    robot's waits for one of the flood's to end, not for the flood. Before, a cap of `limit` over all maps
+    refused the robot for as long as the flood held it."""
+    from service.maps.errors import Overloaded
+
+    order: list[str] = []
+    gate, running = threading.Event(), threading.Semaphore(0)
+
+    def extract(decode, body, *_):
+        if body == "hold":
+            running.release()
+            gate.wait(30)
+        order.append(body)
+
+    monkeypatch.setattr(keyframes, "extract_frame", extract)
+    ex = keyframes.Extractions(3)
+    futs = []
+
+    def start(key, body):
+        ex.reserve(key)
+        futs.append(ex.start(key, None, body, None, None, False, threading.Event()))
+
+    for _ in range(3):
+        start("flood", "hold")  # the flood's three run and hold every thread
+    for _ in range(3):
+        assert running.acquire(timeout=30)
+    with pytest.raises(Overloaded):
+        ex.reserve("flood")
+    start("robot", "r0")
+    start("robot", "r1")
+    assert ex.pending == 5
+    with pytest.raises(Overloaded):
+        ex.reserve("flood")  # still three of its own in flight
+    gate.set()
+    for f in futs:
+        f.result(timeout=30)
+    assert sorted(order) == ["hold"] * 3 + ["r0", "r1"] and ex.pending == 0
+    ex.close()
 
 
 def test_a_post_the_encoder_refuses_runs_no_extraction_and_holds_no_slot(tmp_path, monkeypatch):
