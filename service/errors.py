@@ -53,6 +53,7 @@ PROBLEMS: dict[str, tuple[int, str]] = {
     "snapshot-not-found": (404, "Snapshot not found"),
     "snapshot-invalid": (409, "Snapshot invalid"),
     "snapshot-in-use": (409, "Snapshot in use"),
+    "map-restored": (409, "Map restored"),
     "not-found": (404, "Not found"),
     "method-not-allowed": (405, "Method not allowed"),
     "method-not-implemented": (501, "Method not implemented"),
@@ -264,6 +265,7 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
     maps_errors.IdempotencyKeyReused: DomainProblem(422, "idempotency-key-reused", ("key",)),
     SnapshotInvalid: DomainProblem(409, "snapshot-invalid"),
     maps_errors.SnapshotInUse: DomainProblem(409, "snapshot-in-use", ("map_id", "snapshot_id")),
+    maps_errors.MapRestored: DomainProblem(409, "map-restored", ("map_id",)),
     maps_errors.MapAlreadyExists: DomainProblem(409, "map-exists", ("map_id",)),
     maps_errors.UnlistedMaps: DomainProblem(409, "map-exists", ("map_id",)),  # on disk, not in the catalog
     maps_errors.MapLimit: DomainProblem(409, "map-limit", ("max_maps",)),

@@ -16,7 +16,7 @@ from storage.snapshots import SnapshotInvalid
 
 __all__ = ["READ_ONLY_REASON", "REMEDIES", "EncoderUnavailable", "IdempotencyKeyReused",
            "InsufficientStorage", "InvalidConfiguration", "InvalidMapId", "MapAlreadyExists", "MapError",
-           "MapFull", "MapLimit", "MapNotFound", "MapReadOnly", "MapReplaying", "MapTooLarge",
+           "MapFull", "MapLimit", "MapNotFound", "MapReadOnly", "MapReplaying", "MapRestored", "MapTooLarge",
            "MapUnavailable", "MemoryBudgetExceeded", "ObservationNotFound", "Overloaded",
            "RecentAnswerNotFound", "RowsOverCap", "ShardUnavailable", "SnapshotInUse", "SnapshotInvalid",
            "SnapshotNotFound", "StoreClosed", "StreamLimit"]
@@ -196,6 +196,18 @@ class SnapshotInUse(MapError):  # noqa: N818
         super().__init__(f"snapshot {snapshot_id!r} is the one map {map_id!r} recovers from (the newest on "
                          "its branch); take a newer snapshot first")
         self.map_id, self.snapshot_id = map_id, snapshot_id
+
+
+class MapRestored(MapError):  # noqa: N818
+    """A learned post's row was stepped, then a restore rolled the map back past it before the row was
+    durable: the row is not in the map (only in the pre-restore snapshot), so the post is not
+    acknowledged. Posting the frame again learns it on the restored map."""
+
+    def __init__(self, map_id: str, seq: int | None) -> None:
+        row = "" if seq is None else f" (seq {seq})"
+        super().__init__(f"map {map_id!r} was restored to a snapshot while this frame's row{row} was being "
+                         "stored: the row is not in the map; post the frame again to learn it")
+        self.map_id = map_id
 
 
 class InsufficientStorage(MapError):  # noqa: N818

@@ -200,6 +200,7 @@ def test_registry_covers_the_spec_table():
     spec |= {"map-read-only"}  # a map whose map.sqlite refuses writes (was a 500)
     spec |= {"method-not-implemented"}  # a method llhttp does not know (was a 400 "malformed request")
     spec |= {"transfer-coding-not-implemented"}  # `Transfer-Encoding: gzip, chunked` (was read as sent)
+    spec |= {"map-restored"}  # a learning post a restore rolled back before its fsync (was a 200)
     assert set(TITLES) == spec
 
 

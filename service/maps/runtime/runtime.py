@@ -100,6 +100,7 @@ class MapRuntime(Writer, Snapshots, Recovering, Admission, Repairing, Resources)
         self.since_snapshot = 0
         self.snapshot_error = None
         self.snapshot_failures = 0
+        self.restores = 0
         # the writer
         self.forgotten = 0
         self._closures_unlogged = False

@@ -40,6 +40,7 @@ class Snapshots:
     since_snapshot: int  # rows and visits committed since the last automatic snapshot
     snapshot_error: dict[str, Any] | None  # the last automatic snapshot's failure, if it failed
     snapshot_failures: int
+    restores: int  # restores done since the runtime started (`Writer._still_held`)
 
     def snapshots(self) -> list[SnapshotInfo]:
         return map_snapshots.listing(self.catalog, self.map_id)
@@ -115,6 +116,9 @@ class Snapshots:
             self.catalog.mark_restore(self.map_id, self.store.next_seq() - 1, self.store.last_closure_id())
             self.store.close()
             MapStore.install_copy(path / snapshots.DB_FILE, self.layout.map_db(self.map_id))
+            # From here the rows stepped before are gone: a post still waiting for its row's fsync is not
+            # acknowledged (`Writer._still_held`).
+            self.restores += 1
             self.recover()
         # Pre-restore snapshots are kept to the manual ones' limits, counted apart (a loop of restores
         # wrote one each, a map's size apiece, kept for good). Pruned once the restore is done: the

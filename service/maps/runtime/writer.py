@@ -39,7 +39,7 @@ from models.pipeline import touch
 from service.maps import keyframes
 from service.maps.departure import Departure
 from service.maps.encoding.pool import EmbeddingPool
-from service.maps.errors import ClientGone, InsufficientStorage, MapNotFound, MapReadOnly
+from service.maps.errors import ClientGone, InsufficientStorage, MapNotFound, MapReadOnly, MapRestored
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import ObservationResult, PlaceResult
 from service.maps.runtime.durability import GroupCommit
@@ -234,9 +234,9 @@ class Writer:
                 contrast=None if encoded.contrast is None else float(encoded.contrast[0]), durable=False)
             if post is not None:
                 post.front_ms = front
-                once = self.submit(self._apply_once, post, learn, apply)
+                once = self.submit(self._restamped, self._apply_once, post, learn, apply)
             else:
-                step = self.submit(apply)
+                step = self.submit(self._restamped, apply)
             handed = True
         finally:
             if not handed:
@@ -249,16 +249,33 @@ class Writer:
         # A learned row (and the earlier reply of a repeated key, whose row may be in the same group) is
         # acknowledged only once durable: the writer committed it without its fsync (group commit).
         if post is not None:
-            answer = await asyncio.wrap_future(once)
+            answer, restores = await asyncio.wrap_future(once)
             if learn:
                 await self.durable()
+                self._still_held(restores, None)
             return answer if answer.replayed else dataclasses.replace(answer, thumbnail=thumb)
-        result = await asyncio.wrap_future(step)
+        result, restores = await asyncio.wrap_future(step)
         t_step = time.perf_counter()
         if learn:
             await self.durable()
+            self._still_held(restores, result.seq)
         sync = {"sync": (time.perf_counter() - t_step) * 1e3} if learn else {}
         return dataclasses.replace(result, timings_ms={**front, **result.timings_ms, **sync}, thumbnail=thumb)
+
+    def _restamped(self, fn: Callable[..., T], *args: Any) -> tuple[T, int]:
+        """Writer: `fn(*args)` and the map's count of restores when it ran (`_still_held`)."""
+        return fn(*args), self.restores
+
+    def _still_held(self, restores: int, seq: int | None) -> None:
+        """Event loop, once a learned row is durable: refuse to acknowledge it when a restore finished
+        after its step. The restore rolled the map back past the row (it is in the pre-restore snapshot
+        only), so a 200 would acknowledge a row the map no longer holds (docs/design/service.md §1.5).
+
+        Raises:
+            MapRestored: the row is not in the map; the client may post the frame again.
+        """
+        if self.restores != restores:
+            raise MapRestored(self.map_id, seq)
 
     def _apply_once(self, post: idempotency.IdempotentPost, learn: bool,
                     apply: Callable[[], ObservationResult]) -> idempotency.Reply:

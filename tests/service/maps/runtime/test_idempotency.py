@@ -90,3 +90,45 @@ def test_a_store_closed_under_a_request_names_no_file(tmp_path):
         r = c.get("/v1/maps/default/observations/1")
         assert r.status_code == 503 and "map.sqlite" not in r.json()["detail"]
         assert "/" not in r.json()["detail"].replace("/v1", "")
+
+
+@pytest.mark.parametrize("keyed", [False, True])
+def test_a_post_whose_row_a_restore_rolled_back_before_its_fsync_is_not_acknowledged(tmp_path, keyed):
+    """Found by an outside probe: a learning post stepped before a restore but made durable after it was
+    answered 200 with a seq the restore had discarded. It is 409 `map-restored` now, the map holds
+    nothing of it, and posting it again (under the same key too: the restore forgot the keys) learns it."""
+    with make_client(tmp_path / "d", snapshot_every=0) as c:
+        rt = c.app.state.registry.get("default")
+        assert post_frame(c, frame(0)).status_code == 200
+        sid = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+        syncing, gate, sync = threading.Event(), threading.Event(), rt._commits._sync
+
+        def held() -> None:  # the group commit's fsync of the next row waits for the restore
+            syncing.set()
+            assert gate.wait(30)
+            sync()
+
+        headers = {"Content-Type": "image/png", **({"Idempotency-Key": "rolled-back-0001"} if keyed else {})}
+
+        def send():
+            return c.post("/v1/maps/default/observations", content=frame(1), params={"stream": "r"},
+                          headers=headers)
+
+        rt._commits._sync = held
+        try:
+            with ThreadPoolExecutor(1) as ex:
+                posted = ex.submit(send)
+                assert syncing.wait(30)  # its row is stepped and committed, not yet acknowledged
+                rt._commits._sync = sync
+                rt.submit(rt.restore, sid).result(timeout=60)  # the restore finishes first
+                gate.set()
+                r = posted.result(timeout=60)
+        finally:
+            rt._commits._sync = sync
+            gate.set()
+        assert r.status_code == 409, r.text
+        assert r.json()["type"].endswith(":map-restored") and r.json()["map_id"] == "default"
+        assert rt.store.count() == 1
+        again = send()
+        assert again.status_code == 200 and again.headers.get("Idempotent-Replayed") is None, again.text
+        assert rt.store.count() == 2
