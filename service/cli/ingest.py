@@ -2,7 +2,8 @@
 
 Progress (rate, ETA) and the summary's warnings go to stderr; the summary to stdout, or with `--json` one
 JSON object per frame to stdout (`{"frame", "name", "stamp_ns", "status", "latency_ms", "answer"}`) and the
-summary to stderr. Exit status: 0 all frames answered 200; 1 some frame refused or the ingest stopped;
+summary to stderr; a file that could not be read is status 0 (not sent), counted as an error, and the
+ingest goes on. Exit status: 0 all frames answered 200; 1 some frame refused or unread, or the ingest stopped;
 2 the source or the options cannot be used (a damaged bag included: one `error:` line, no traceback).
 """
 

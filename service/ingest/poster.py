@@ -263,6 +263,9 @@ async def _post_frame(client: httpx.AsyncClient, frame: Frame, opts: Options, he
         return Record(frame.index, frame.name, frame.stamp_ns, 413, 0.0, _not_sent(frame))
     if frame.unusable is not None:
         return _unusable(frame)
+    if frame.unreadable is not None:  # status 0: never sent, nothing the service said
+        return Record(frame.index, frame.name, frame.stamp_ns, 0, 0.0,
+                      {"detail": f"the file could not be read ({frame.unreadable}); not sent", "sent": False})
     params: dict[str, str] = {"learn": "true" if opts.learn else "false", "stream": opts.stream,
                               **frame.params}
     if frame.stamp_ns is not None:  # where in time: the observation's `stamp` (seconds since the epoch)

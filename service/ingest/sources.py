@@ -82,6 +82,9 @@ class Frame:
         unusable: a bag message that cannot be made a frame (`UnusableFrameError`: an encoding the service
             does not take, a payload shorter than its shape), not to be posted; None otherwise. The service
             would refuse it the same way: the ingest counts it and goes on, as the ROS 2 node skips it.
+        unreadable: why a folder's file could not be read (the OS's words: no permission, gone since the
+            folder was listed, an I/O error), not to be posted; None otherwise. One bad file is counted
+            and the ingest goes on, as for a bag message.
     """
 
     index: int
@@ -92,6 +95,7 @@ class Frame:
     params: dict[str, str] = field(default_factory=dict)
     oversize: int | None = None
     unusable: UnusableFrameError | None = None
+    unreadable: str | None = None
 
 
 @dataclass(frozen=True)
@@ -120,11 +124,16 @@ class Source:
             for i, f in enumerate(self._files):
                 if i % self.every:
                     continue
-                size = f.stat().st_size  # before reading: a 1.5 GB file is never loaded
+                try:
+                    size = f.stat().st_size  # before reading: a 1.5 GB file is never loaded
+                    data = b"" if self._over(size) else f.read_bytes()
+                except OSError as e:
+                    yield Frame(i, f.name, None, b"", AS_IS_MEDIA, unreadable=e.strerror or str(e))
+                    continue
                 if self._over(size):
                     yield Frame(i, f.name, None, b"", AS_IS_MEDIA, oversize=size)
                 else:
-                    yield Frame(i, f.name, None, f.read_bytes(), AS_IS_MEDIA)
+                    yield Frame(i, f.name, None, data, AS_IS_MEDIA)
             return
         yield from _bag_frames(self)
 

@@ -348,3 +348,31 @@ def test_registering_ingest_keeps_cv2_out_of_the_cli_start():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parents[3])
     assert out.stdout.strip() == "[]"
+
+
+def test_a_file_that_cannot_be_read_is_counted_and_the_folder_ingest_goes_on(tmp_path, monkeypatch):
+    """An outside probe: one unreadable file (no permission, an I/O error) or one deleted after the folder
+    was listed ended the ingest with a traceback and no summary, frames already learned."""
+    write_folder(tmp_path / "frames")
+    names = sorted(p.name for p in (tmp_path / "frames").iterdir())
+    source = open_source(tmp_path / "frames")
+    (tmp_path / "frames" / names[3]).unlink()  # gone between the listing and its read
+    read_bytes = Path.read_bytes
+
+    def failing(self: Path) -> bytes:
+        if self.name == names[5]:
+            raise PermissionError(13, "Permission denied")
+        return read_bytes(self)
+
+    monkeypatch.setattr(Path, "read_bytes", failing)
+    got: list[poster.Record] = []
+
+    async def run() -> poster.Summary:
+        async with poster.in_process_client(Settings(data_dir=tmp_path / "a", log_level="WARNING")) as client:
+            return await poster.ingest(client, source, poster.Options(map_id="farm"), on_record=got.append)
+
+    summary = anyio.run(run)
+    assert [r.status for r in got] == [200] * 3 + [0] + [200] + [0] + [200] * (len(ROUTE) - 6)
+    assert "No such file" in got[3].answer["detail"] and "Permission denied" in got[5].answer["detail"]
+    assert summary.errors == 2 and summary.frames == summary.learned == len(ROUTE) - 2
+    assert f"posted {len(ROUTE) - 2}/{len(ROUTE)} frames" in summary.text()
