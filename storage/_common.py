@@ -68,6 +68,11 @@ def _corruption_named() -> Iterator[None]:
         if is_corrupt_error(exc):
             raise StoreCorrupt(str(exc)) from exc
         raise
+    except UnicodeDecodeError as exc:
+        # Every text cell is written as UTF-8 by this code; one that does not decode is flipped bits that
+        # SQLite's page checks did not catch (an outside probe: a bit-flipped file was "the check itself
+        # failed: UnicodeDecodeError" in verify and a traceback in the server).
+        raise StoreCorrupt(f"a text cell is not UTF-8 (damaged file): {exc}") from exc
 
 
 class _Cursor(sqlite3.Cursor):

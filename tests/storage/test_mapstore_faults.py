@@ -109,3 +109,17 @@ def test_a_file_that_is_no_database_is_store_corrupt_naming_the_file(tmp_path, r
     with pytest.raises(StoreCorrupt, match="is not a database") as e:
         MapStore.open(db, readonly=readonly)
     assert str(e.value).startswith(f"{db}: ")
+
+
+def test_a_text_cell_that_is_not_utf8_is_store_corrupt(tmp_path, meta, row_factory):
+    """An outside probe flipped bits in a map file: SQLite's page checks passed, and a text cell no longer
+    decoded, which reached `cortexloc verify` and the server as a bare UnicodeDecodeError."""
+    db = tmp_path / "map.sqlite"
+    filled(db, meta, row_factory, 3)
+    conn = sqlite3.connect(db, isolation_level=None)
+    conn.execute("CREATE TABLE spare (x)")
+    conn.execute("PRAGMA writable_schema = ON")  # the bytes of a flipped name in the schema, as stored
+    conn.execute("UPDATE sqlite_master SET name = CAST(x'739d' AS TEXT) WHERE name = 'spare'")
+    conn.close()
+    with pytest.raises(StoreCorrupt, match="not UTF-8"):
+        MapStore.open(db, readonly=True)
