@@ -1,5 +1,6 @@
 """Refusals of the service as exceptions: an `application/problem+json` reply (the service's
-docs/design/service.md §2) becomes a `CortexlocError`, or the subclass of its status.
+docs/design/service.md §2) becomes a `CortexlocError`, or the subclass of its status; a success reply
+whose body is not the route's answer (a proxy's page sent with 200) an `InvalidResponseError`.
 
 Example:
     >>> try:
@@ -23,6 +24,7 @@ __all__ = [
     "ConflictError",
     "CortexlocError",
     "InsufficientStorageError",
+    "InvalidResponseError",
     "NotFoundError",
     "PayloadTooLargeError",
     "ServerError",
@@ -39,7 +41,7 @@ TYPE_PREFIX = "urn:cortexloc:problem:"
 
 
 class CortexlocError(Exception):
-    """A refusal by the service.
+    """A refusal by the service (or, as `InvalidResponseError`, a reply the client cannot read).
 
     Attributes:
         status: the HTTP status.
@@ -67,6 +69,48 @@ class CortexlocError(Exception):
         self.extra: dict[str, Any] = dict(problem.model_extra or {}) if problem else {}
         self.retry_after = retry_after
         super().__init__(f"{status} {self.slug or self.title or 'error'}: {self.detail}")
+
+
+class InvalidResponseError(CortexlocError):
+    """A reply with a success status (2xx, or a 3xx: the client follows no redirect) whose body is not
+    the route's answer: a proxy's or captive portal's HTML page sent with 200, JSON cut short, JSON
+    without the members the route answers (a server of another version). `problem` and `slug` are None.
+
+    What was asked may have been done (the service may have answered and the body been spoilt on the
+    way), so the client treats it as a connection lost after the request left (`RetryPolicy`): sent again
+    for idempotent requests only, an observation post with the same `Idempotency-Key` (answered from the
+    service's store if it was learned: exactly once); raised once the retries are spent, or at once for
+    a request that is not idempotent (`create_map`, `create_snapshot`, `restore_snapshot`, a post without
+    a key).
+
+    Attributes (besides `CortexlocError`'s: `status`, `detail`, `request_id`):
+        content_type: the reply's `Content-Type` ("" without one).
+        excerpt: the start of the body (at most `EXCERPT_CHARS` characters, undecodable bytes replaced).
+        reason: what is wrong with it (the first JSON or validation error).
+    """
+
+    EXCERPT_CHARS = 200
+
+    def __init__(self, status: int, *, content_type: str, excerpt: str, reason: str,
+                 request_id: str | None = None) -> None:
+        self.content_type, self.excerpt, self.reason = content_type, excerpt, reason
+        detail = (f"a reply the client cannot read ({reason}); Content-Type {content_type or 'none'!r}, "
+                  f"body {excerpt!r}")
+        super().__init__(status, detail=detail, request_id=request_id)
+        self.args = (f"{status} invalid response: {detail}",)
+
+    @classmethod
+    def of(cls, response: httpx.Response, error: ValidationError) -> InvalidResponseError:
+        """The error for `response`, whose body (read) failed the route's model with `error`."""
+        errors = error.errors(include_url=False)
+        first = errors[0] if errors else {"loc": (), "msg": str(error)}
+        where = ".".join(map(str, first.get("loc", ())))
+        reason = f"{where}: {first['msg']}" if where else str(first["msg"])
+        if len(errors) > 1:
+            reason += f" (and {len(errors) - 1} more)"
+        return cls(response.status_code, content_type=response.headers.get("Content-Type", ""),
+                   excerpt=response.content[:cls.EXCERPT_CHARS].decode("utf-8", "replace"), reason=reason,
+                   request_id=response.headers.get("X-Request-ID"))
 
 
 class BadRequestError(CortexlocError):

@@ -14,6 +14,7 @@ from cortexloc_client import (
     AsyncClient,
     Client,
     CortexlocError,
+    InvalidResponseError,
     RetryPolicy,
     ServerError,
     ServiceUnavailableError,
@@ -256,6 +257,58 @@ def test_a_reply_that_is_not_a_problem_still_raises(waits) -> None:
         make(script, retry=RetryPolicy(attempts=1)).get_map("lab")
     assert e.value.status == 502 and e.value.slug is None and e.value.problem is None
     assert "Bad Gateway" in e.value.detail
+
+
+#: Success replies that are not the route's answer, as (Content-Type, body): a proxy's or captive portal's
+#: page sent with 200, JSON cut short, JSON without the members the route answers.
+UNREADABLE = {"html": ("text/html", b"<html><body>502 upstream hiccup</body></html>"),
+              "truncated": ("application/json", b'{"map_id": "lab", "stre'),
+              "missing-fields": ("application/json", b'{"map_id": "lab"}')}
+
+
+@pytest.mark.parametrize("kind", UNREADABLE)
+def test_a_success_reply_that_is_not_the_answer_is_a_typed_error_retried_where_safe(waits, kind: str) -> None:
+    # An outside probe: pydantic's ValidationError came out of the client untyped, and ended the ROS node's
+    # poster thread for good. Now an InvalidResponseError (a CortexlocError), and a reply lost on the way
+    # as far as retries go: a keyed post is sent again with its key (answered from the store if learned).
+    content_type, body = UNREADABLE[kind]
+
+    def reply() -> httpx.Response:
+        return httpx.Response(200, content=body, headers={"Content-Type": content_type})
+
+    script = Script(reply(), reply(), httpx.Response(200, json=OBSERVATION))
+    assert make(script).observe("lab", JPEG, idempotency_key="frame-0001").seq == 1
+    assert script.keys() == ["frame-0001"] * 3 and waits == [0.5, 1.0]
+    script = Script(reply(), httpx.Response(200, json={"snapshots": [SNAPSHOT]}))  # a read, likewise
+    assert make(script).list_snapshots("lab")[0].snapshot_id == "s1" and len(script.requests) == 2
+    # spent retries: raised typed, with the status and what the body began with
+    script = Script(reply())
+    with pytest.raises(CortexlocError) as e:
+        make(script, retry=RetryPolicy(attempts=2)).observe("lab", JPEG)
+    assert isinstance(e.value, InvalidResponseError) and len(script.requests) == 2
+    assert (e.value.status, e.value.slug, e.value.problem) == (200, None, None)
+    assert e.value.excerpt == body.decode() and repr(e.value.excerpt) in e.value.detail
+    assert e.value.content_type == content_type and e.value.reason
+    assert str(e.value).startswith("200 invalid response: a reply the client cannot read (")
+    # what may have been done and has no key is never sent again: a post without a key, a new snapshot
+    for unsafe in (lambda c: c.observe("lab", JPEG), lambda c: c.create_snapshot("lab")):
+        script = Script(reply(), httpx.Response(201, json=SNAPSHOT))
+        with pytest.raises(InvalidResponseError):
+            unsafe(make(script, idempotency_keys=False))
+        assert len(script.requests) == 1
+    script = Script(reply(), httpx.Response(200, json=OBSERVATION))
+
+    async def post() -> str | None:
+        async with AsyncClient("http://cortexloc.test", transport=httpx.MockTransport(script)) as c:
+            return (await c.observe("lab", JPEG)).observation_id
+
+    assert asyncio.run(post()) == "o-1" and len(script.requests) == 2 and len(set(script.keys())) == 1
+
+
+def test_a_snapshot_download_still_streams_through_the_retry_loop(waits, tmp_path) -> None:
+    script = Script(httpx.ReadError("reset"), httpx.Response(200, content=b"tar" * 1000))
+    path = make(script).download_snapshot("lab", "s1", tmp_path / "lab.tar")
+    assert path.read_bytes() == b"tar" * 1000 and len(script.requests) == 2
 
 
 def test_the_api_key_and_the_metadata_are_sent(waits) -> None:
