@@ -12,6 +12,9 @@ Example:
 
 from __future__ import annotations
 
+import math
+from datetime import datetime, timezone
+from email.utils import parsedate_to_datetime
 from typing import Any
 
 import httpx
@@ -53,7 +56,7 @@ class CortexlocError(Exception):
         instance: the request path, or None.
         request_id: the service's id of the request (quote it when reporting a 500).
         extra: the slug's members (`errors`, `map_id`, `max_bytes`, `retry_after`, ...).
-        retry_after: seconds from the `Retry-After` header, when it holds a number.
+        retry_after: seconds from the `Retry-After` header (`retry_after_seconds`), or None.
     """
 
     def __init__(self, status: int, problem: Problem | None = None, *, detail: str = "",
@@ -175,14 +178,29 @@ STATUS_ERRORS: dict[int, type[CortexlocError]] = {
 }
 
 
-def retry_after_seconds(value: str | None) -> float | None:
-    """The `Retry-After` header as seconds (the service sends seconds); None if absent or a date."""
+def retry_after_seconds(value: str | None, now: datetime | None = None) -> float | None:
+    """The `Retry-After` header as seconds to wait (RFC 9110 §10.2.3): a number of seconds (what the
+    service sends), or an HTTP date (a proxy's; one past, or `now`, is 0). None, so that the caller backs
+    off as for a reply without one, when it is absent or is neither: unreadable, negative, or not finite
+    (`nan`, `inf`: `time.sleep` refuses NaN, and `Event.wait` returns at once, a tight retry loop). The
+    caller caps it (`RetryPolicy.max_wait_s`), whichever form it came in.
+
+    Args:
+        now: the time to count a date from (default the present, UTC).
+    """
     if value is None:
         return None
     try:
-        return max(float(value), 0.0)
+        seconds = float(value)
     except ValueError:
-        return None
+        try:
+            when = parsedate_to_datetime(value)
+        except (TypeError, ValueError, IndexError, OverflowError):
+            return None
+        if when.tzinfo is None:  # "-0000": UTC, as HTTP dates are
+            when = when.replace(tzinfo=timezone.utc)
+        return max((when - (now or datetime.now(timezone.utc))).total_seconds(), 0.0)
+    return seconds if math.isfinite(seconds) and seconds >= 0 else None
 
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+from datetime import datetime, timezone
 
 import httpx
 import numpy as np
@@ -21,6 +22,7 @@ from cortexloc_client import (
     aio,
     client,
 )
+from cortexloc_client.errors import retry_after_seconds
 
 OBSERVATION = {"map_id": "lab", "stream": "default", "learned": True, "observation_id": "o-1", "seq": 1,
                "sequence": {"step": 0, "active_columns": 8, "predicted_columns": 0, "bursting_columns": 8,
@@ -112,6 +114,32 @@ def test_without_retry_after_the_waits_back_off(waits) -> None:
     script = Script(busy(None), busy("soon"), busy(None), httpx.Response(200, json=SNAPSHOT))
     make(script, retry=RetryPolicy(backoff_s=0.5)).create_snapshot("lab")
     assert waits == [0.5, 1.0, 2.0]
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "-5", "NaN", "soon"])
+def test_a_retry_after_that_is_no_wait_is_ignored_for_the_backoff(waits, value: str) -> None:
+    # An outside probe: `Retry-After: nan` reached `time.sleep(nan)` (an untyped ValueError out of the
+    # client; the ROS node's `Event.wait(nan)` returns at once: a tight retry loop), and -5 waited 0.
+    script = Script(busy(value), busy(value), httpx.Response(201, json=SNAPSHOT))
+    make(script, retry=RetryPolicy(backoff_s=0.5)).create_snapshot("lab")
+    assert waits == [0.5, 1.0]
+    script = Script(busy(value))
+    with pytest.raises(ServiceUnavailableError) as e:
+        make(script, retry=RetryPolicy(attempts=1)).create_snapshot("lab")
+    assert e.value.retry_after is None
+
+
+def test_a_retry_after_http_date_is_waited_for_capped_as_seconds_are(waits) -> None:
+    now = datetime(2030, 1, 1, 12, 0, 0, tzinfo=timezone.utc)
+    assert retry_after_seconds("Tue, 01 Jan 2030 12:00:07 GMT", now) == 7.0
+    assert retry_after_seconds("Tue, 01 Jan 2030 11:00:00 GMT", now) == 0.0  # past: now
+    assert retry_after_seconds("Tue, 01 Jan 2030 12:00:03 -0000", now) == 3.0
+    assert retry_after_seconds("3", now) == 3.0 and retry_after_seconds("0", now) == 0.0
+    assert retry_after_seconds("Tue, 99 Foo 2030", now) is None and retry_after_seconds(None) is None
+    # far off, as a proxy may say: waited for at most max_wait_s, as "3600" is
+    script = Script(busy("Wed, 21 Oct 2099 07:28:00 GMT"), httpx.Response(201, json=SNAPSHOT))
+    make(script, retry=RetryPolicy(max_wait_s=5.0)).create_snapshot("lab")
+    assert waits == [5.0]
 
 
 def test_other_refusals_and_readiness_are_not_retried(waits) -> None:
