@@ -401,6 +401,28 @@ def test_an_array_of_another_shape_or_type_is_refused_before_sending(waits, arra
     assert script.requests == []
 
 
+@pytest.mark.parametrize("array", [np.zeros((0, 0, 3), np.uint8), np.zeros((32, 0), np.uint8),
+                                   np.zeros((0, 5), np.uint16), np.zeros((0, 4, 1), np.uint8)])
+def test_an_array_without_pixels_is_refused_before_sending(waits, array: np.ndarray) -> None:
+    # Before, it was sent, and the service's 400 spoke of the query parameter `width`.
+    script = Script(httpx.Response(200, json=OBSERVATION))
+    with pytest.raises(ValueError, match="a frame has at least one pixel"):
+        make(script).observe("lab", array)
+    assert script.requests == []
+
+
+def test_colour_is_checked_for_a_one_channel_array_where_it_is_ignored(waits) -> None:
+    # Before, any value passed unseen beside a mono array: a typo surfaced only with the first colour frame.
+    script = Script(httpx.Response(200, json=OBSERVATION))
+    for bad in ("rgb", "BGR8", "yuv422"):
+        with pytest.raises(ValueError, match="colour must be one of"):
+            make(script).observe("lab", GREY, colour=bad)
+    assert script.requests == []
+    # a colour order or a mono encoding's name (`colour=msg.encoding`) is taken, and changes nothing
+    for ok in ("bgr8", "mono8", "mono16"):
+        assert _sent(GREY, ok) == _sent(GREY, "rgb8")
+
+
 def test_the_async_client_retries_alike(waits) -> None:
     script = Script(busy("1"), httpx.ReadError("reset"), httpx.Response(200, json=OBSERVATION))
 
