@@ -326,6 +326,10 @@ class Pose2D:
     def distance(self, other: Pose2D) -> float:
         return math.hypot(self.x - other.x, self.y - other.y)
 
+    def is_finite(self) -> bool:
+        """x, y and yaw are numbers: the service refuses NaN and infinities (422 `invalid-metadata`)."""
+        return math.isfinite(self.x) and math.isfinite(self.y) and math.isfinite(self.yaw)
+
     def as_metadata(self) -> dict[str, Any]:
         return {"x": self.x, "y": self.y, "yaw": self.yaw, "frame_id": self.frame_id}
 

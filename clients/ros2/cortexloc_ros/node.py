@@ -126,7 +126,7 @@ class CortexlocNode(Node):
         # (closure id, the frame's pose, the place's stored pose, confidence)
         self._edges: deque[tuple[int | None, Pose2D, Pose2D, float]] = deque(maxlen=MAX_EDGES)
         self._warned: set[str] = set()
-        self._said = LogLimiter()  # kinds of skipped frames: one line a minute each
+        self._said = LogLimiter()  # kinds of skipped frames and ignored odometry: one line a minute each
         self._lock = threading.Lock()
         self.log = NodeLog(self)
 
@@ -233,12 +233,23 @@ class CortexlocNode(Node):
         assert self.odometry is not None
         p, q = msg.pose.pose.position, msg.pose.pose.orientation
         base = Pose2D(p.x, p.y, yaw_from_quaternion(q.x, q.y, q.z, q.w), msg.header.frame_id or "odom")
+        if not base.is_finite():
+            # an EKF before it has converged, or after it diverged: the service refuses such a pose (422), and
+            # every frame matched to it was lost; left out, a frame takes a finite sample within
+            # odom_tolerance, or goes without a pose (`no_pose`) and the service judges the move by appearance
+            self._warn_limited("odometry:non-finite", f"odometry ignored: its pose is not finite (x {p.x}, "
+                                                      f"y {p.y}, yaw {base.yaw}); frames go without it")
+            return
         self.odometry.add(Stamp.of(msg.header.stamp.sec, msg.header.stamp.nanosec),
                           base.compose(self.cfg.camera_mount))
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         k, d = list(msg.k), list(msg.d)
-        if k[0] <= 0 or k[4] <= 0:  # an uncalibrated camera publishes zeros
+        if not all(math.isfinite(v) for v in (*k, *d)):  # the service refuses the frames' metadata (422)
+            self._warn_once("not-finite", "camera_info holds a K or D that is not finite: frames go without "
+                                          "a camera")
+            camera = None
+        elif k[0] <= 0 or k[4] <= 0:  # an uncalibrated camera publishes zeros
             self._warn_once("uncalibrated", "camera_info holds no intrinsics (K is zero): frames go without")
             camera = None
         elif msg.distortion_model not in PINHOLE_MODELS or len(d) not in DISTORTION_LENGTHS:

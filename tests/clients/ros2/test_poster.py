@@ -3,6 +3,7 @@ slow, down and back, driven through a scripted client (no server)."""
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from dataclasses import replace
@@ -442,3 +443,19 @@ def test_no_exception_ends_the_poster_thread_and_a_frame_faulting_again_and_agai
     with stats.lock:
         assert stats.health(0) == ("WARN", "service up; lost 0, dropped 0, refused 0, failed 2, "
                                            "unsupported 0, malformed 0")
+
+
+def test_a_pose_that_is_not_finite_is_not_posted(monkeypatch):
+    # An outside probe: odometry with NaN or Inf (an EKF not yet converged) went into the metadata, the
+    # service refused each such frame (422 "NaN is not JSON") and the node dropped it. The node takes no such
+    # sample in (node.py); a pose that is not finite is left out here too: the frame is posted without one.
+    odometry = OdometryBuffer(tolerance_ns=50_000_000)
+    odometry.add(Stamp(10), Pose2D(math.nan, 0.0, 0.0, "odom"))
+    odometry.add(Stamp(20), Pose2D(1.0, 2.0, math.inf, "odom"))
+    odometry.add(Stamp(30), Pose2D(3.0, 0.0, 0.0, "odom"))
+    p, stats, client = _poster(monkeypatch, ANSWER, ANSWER, ANSWER, odometry=odometry)
+    for ns in (10, 20, 30):
+        p._post(_frame(Stamp(ns)))
+    assert ["pose" in m for m in client.metadata] == [False, False, True]
+    assert (stats.no_pose, stats.answered, stats.refused) == (2, 3, 0)
+    assert not Pose2D(1.0, math.nan, 0.0, "odom").is_finite() and Pose2D(1.0, 2.0, 3.0, "odom").is_finite()
