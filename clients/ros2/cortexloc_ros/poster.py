@@ -34,6 +34,10 @@ typed client; the ROS executor never waits on the service.
   until the service answers again, and the thread goes on after a backoff; a frame whose post raised
   such a fault `FAULT_TRIES` times in a row is given up (counted as `failed`), so that one fault that
   repeats cannot hold the queue for good.
+- First contact creates a missing map; a map made meanwhile by another node (409 `map-exists`) is used,
+  but any other refusal of its creation (409 `map-limit` or `memory-budget`, a 422, ...) is an ERROR,
+  logged and on diagnostics, and the creation is retried: frames are not posted to a map that is not
+  there.
 - Idle, it checks the service's readiness every `PROBE_S`, so diagnostics say "down" without frames.
 - Between frames, every `retractions_poll` seconds, it reads one page of the map's loop-closure log for
   the retractions of this stream's closures (`retractions.RetractionFollower`).
@@ -423,15 +427,19 @@ class Poster:
         delay = BACKOFF_S
         while not self._stop.is_set():
             try:
-                self._open()
+                opened = self._open()
             except Exception as e:
                 wait = self._trouble(e, delay)
             else:
-                self._state("up", "")
-                return
+                if opened:
+                    self._state("up", "")
+                    return
+                wait = delay
             delay = self._back_off(wait, delay)
 
-    def _open(self) -> None:
+    def _open(self) -> bool:
+        """The map made sure of and the stream reset; False: the service refused to create the map (said
+        at ERROR, and on diagnostics), to be tried again."""
         map_id, stream = self.cfg.map_id, self.cfg.stream
         try:
             if self.cfg.resume:
@@ -446,6 +454,16 @@ class Poster:
             try:  # a new map holds no stream context: nothing to reset
                 self.client.create_map(map_id)
             except CortexlocError as e2:
-                if e2.status != 409:  # 409: another node created it meanwhile
-                    raise
+                if e2.slug == "map-exists":  # another node created it meanwhile
+                    self.log.info(f"map {map_id!r} exists: created meanwhile (by another node?)")
+                    return True
+                if e2.problem is None or e2.status == 503:
+                    raise  # a proxy's page, a reply it cannot read, the service busy: retried as such
+                # 409 map-limit or memory-budget, 422 invalid-configuration, ...: every frame would be 404.
+                # Before, any 409 read as "created by another node", and the log said "created map".
+                self._error(f"create:{e2.slug}", f"map {map_id!r} cannot be created: {e2}; frames wait in "
+                                                 f"the queue and its creation is retried")
+                self._state("error", f"map {map_id!r} cannot be created: {e2}", said=True)
+                return False
             self.log.info(f"created map {map_id!r} (the service's defaults)")
+        return True

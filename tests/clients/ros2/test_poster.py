@@ -459,3 +459,28 @@ def test_a_pose_that_is_not_finite_is_not_posted(monkeypatch):
     assert ["pose" in m for m in client.metadata] == [False, False, True]
     assert (stats.no_pose, stats.answered, stats.refused) == (2, 3, 0)
     assert not Pose2D(1.0, math.nan, 0.0, "odom").is_finite() and Pose2D(1.0, 2.0, 3.0, "odom").is_finite()
+
+
+def test_a_map_the_service_refuses_to_create_is_an_error_retried_not_created(monkeypatch):
+    # Before, any 409 on creation read as "another node created it": the log said "created map" and every
+    # frame then got 404 map-not-found. Only 409 map-exists is that; map-limit (or memory-budget, ...) is an
+    # ERROR, and the creation is tried again until the service takes it.
+    missing = _problem(404, "map-not-found")
+    p, stats, client = _poster(monkeypatch, missing, _problem(409, "map-limit"), missing,
+                               _problem(409, "map-limit"), missing, None)
+    p._first_contact()
+    assert client.calls == [("reset_stream", "default", "cam"), ("create_map", "default")] * 3
+    service, error = client.seen[2]  # the second reset, after the refusal
+    assert (service, error) == ("error", "map 'default' cannot be created: 409 map-limit: map 'default' "
+                                         "map-limit")
+    assert Stats(service=service, last_error=error).health(0)[0] == "ERROR"
+    assert len(p.log.errors) == 1 and "map 'default' cannot be created: 409 map-limit" in p.log.errors[0]
+    assert [line for line in p.log.lines if "created map" in line] == ["created map 'default' (the service's "
+                                                                       "defaults)"]  # once, when it was
+    assert stats.service == "up"
+    # made meanwhile by another node: used, and said so
+    p, stats, client = _poster(monkeypatch, missing, _problem(409, "map-exists"))
+    p._first_contact()
+    assert stats.service == "up" and not p.log.errors
+    assert any("exists: created meanwhile" in line for line in p.log.lines)
+    assert not any("created map" in line for line in p.log.lines)
