@@ -26,9 +26,9 @@ typed client; the ROS executor never waits on the service.
 - A reply the client cannot read (`InvalidResponseError`: a proxy's page sent with 200, JSON cut short):
   the frame may have been stored, so it is retried like a service down, with its key; ERROR on
   diagnostics and in the log (once a minute, with a count) while it lasts.
-- Refused: 400, 413, 415, 422 (the frame or its metadata) are counted and logged; the poster goes on.
-  A pose that is not finite is never posted (the service refuses it): the frame goes without one
-  (`no_pose`).
+- Refused: 400, 413, 415, 422 (the frame or its metadata) are counted and logged (each kind once a
+  minute, with a count); the poster goes on. A pose that is not finite is never posted (the service
+  refuses it): the frame goes without one (`no_pose`).
 - No exception ends the thread: one no code expects (a fault of the node's own, or one of the client's
   no handler names) is logged at ERROR (each kind once a minute, with a count), diagnostics say ERROR
   until the service answers again, and the thread goes on after a backoff; a frame whose post raised
@@ -168,7 +168,7 @@ class Poster:
         self._thread = threading.Thread(target=self._run, name="cortexloc-poster", daemon=True)
         self._last_probe = 0.0
         self._map_gone = False  # a 404 map-not-found after first contact, said in the log
-        self._said = LogLimiter()  # faults: one line a minute of each kind
+        self._said = LogLimiter()  # refused frames, faults: one line a minute of each kind
 
     def start(self) -> None:
         self._thread.start()
@@ -342,7 +342,11 @@ class Poster:
                     with self.stats.lock:
                         self.stats.refused += 1
                         self.stats.last_error = str(e)
-                    self.log.warning(f"frame {frame.stamp.ns} refused: {e}")
+                    # at camera rate (NaN metadata, oversize frames): one line a minute of each kind
+                    kind, text = f"refused:{e.status}:{e.slug}", f"frame {frame.stamp.ns} refused: {e}"
+                    line = self._said.line(kind, text)
+                    if line is not None:
+                        self.log.warning(line)
                     return True
                 if e.status == 404 and e.slug == "map-not-found" and not self._map_gone:
                     self._map_gone = True  # said once an outage: the log is no per-retry stream

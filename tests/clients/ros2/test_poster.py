@@ -484,3 +484,25 @@ def test_a_map_the_service_refuses_to_create_is_an_error_retried_not_created(mon
     assert stats.service == "up" and not p.log.errors
     assert any("exists: created meanwhile" in line for line in p.log.lines)
     assert not any("created map" in line for line in p.log.lines)
+
+
+def test_refused_frames_are_logged_once_a_minute_a_kind_with_a_count(monkeypatch):
+    # Before, one WARN line per refused frame: at camera rate, a flood on /rosout.
+    from cortexloc_client import CortexlocError
+
+    refusal = _problem(422, "invalid-metadata")
+    big = CortexlocError(413, detail="too large")
+    p, stats, _ = _poster(monkeypatch, refusal, refusal, big, refusal, big)
+    for ns in range(1, 6):
+        p._post(_frame(Stamp(ns)))
+    assert stats.refused == 5
+    assert [line.split(" refused: ")[0] for line in p.log.lines] == ["frame 1", "frame 3"]  # one of each kind
+    clock = [0.0]
+    p._said = poster.LogLimiter(clock=lambda: clock[0])
+    p.client.outcomes = [refusal] * 3  # type: ignore[attr-defined]
+    for ns, t in ((6, 0.0), (7, 30.0), (8, 61.0)):
+        clock[0] = t
+        p._post(_frame(Stamp(ns)))
+    said = "422 invalid-metadata: map 'default' invalid-metadata"
+    assert p.log.lines[-2:] == [f"frame 6 refused: {said}",
+                                f"frame 8 refused: {said} (1 more like it since the last line)"]
