@@ -1,9 +1,10 @@
 """Typed Python client for the cortexloc HTTP API: `Client` (sync) and `AsyncClient` (asyncio).
 
 Replies are pydantic models (`cortexloc_client.models`); refusals are `CortexlocError` and its
-subclasses; the service's 503s are retried after `Retry-After` (`RetryPolicy`); observation posts carry
-an `Idempotency-Key`, the same across their retries, and are resent with it on a proxy's 500, 502, 503
-or 504 page.
+subclasses, and so is a success reply the client cannot read (`InvalidResponseError`); the service's
+503s are retried after `Retry-After` (`RetryPolicy`); observation posts carry an `Idempotency-Key`, the
+same across their retries, and are resent with it on a proxy's 500, 502, 503 or 504 page, or on a reply
+the client cannot read.
 """
 
 import pydantic
@@ -23,6 +24,7 @@ from cortexloc_client.errors import (
     ConflictError,
     CortexlocError,
     InsufficientStorageError,
+    InvalidResponseError,
     NotFoundError,
     PayloadTooLargeError,
     ServerError,
@@ -63,6 +65,7 @@ __all__ = [
     "ConflictError",
     "CortexlocError",
     "InsufficientStorageError",
+    "InvalidResponseError",
     "Map",
     "Match",
     "Memory",

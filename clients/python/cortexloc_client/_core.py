@@ -14,10 +14,10 @@ from typing import Any, Generic, TypeVar
 from urllib.parse import quote
 
 import httpx
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
 from cortexloc_client import models
-from cortexloc_client.errors import error_from_response, is_problem, retry_after_seconds
+from cortexloc_client.errors import InvalidResponseError, error_from_response, is_problem, retry_after_seconds
 from cortexloc_client.frames import ColourOrder, frame_body
 
 __all__ = ["Call", "RetryPolicy", "Settings"]
@@ -57,6 +57,13 @@ class RetryPolicy:
       left, retried for idempotent requests only, the same key, after `Retry-After` or the backoff
       above. A problem+json 500 is the service's own `internal-error` (a bug to report with its
       `request_id`): never retried.
+    - a success reply whose body is not the route's answer (`InvalidResponseError`: a proxy's page
+      sent with 200, JSON cut short or without the route's members): whether the service did the work is
+      unknown, as for a 502 page, so it is a transport failure after the request left: retried for
+      idempotent requests only (an observation post with the same `Idempotency-Key`: the service answers
+      a repeat of a stored post from its store, so it is learned once), after the backoff. A reply that
+      never validates (a server whose answer this client does not know) is raised once the attempts are
+      spent.
 
     Args:
         attempts: tries in all, the first included (1: never retry).
@@ -73,12 +80,12 @@ class RetryPolicy:
             raise ValueError(f"invalid retry policy {self}")
 
     def wait(self, call: Call[Any], attempt: int, *, response: httpx.Response | None = None,
-             error: httpx.TransportError | None = None) -> float:
+             error: httpx.TransportError | InvalidResponseError | None = None) -> float:
         """Seconds to wait before try `attempt + 1` (0-based) after this failed try.
 
         Raises:
             CortexlocError: the reply's error, when it is not retried (its body must have been read).
-            httpx.TransportError: `error`, when it is not retried.
+            httpx.TransportError, InvalidResponseError: `error`, when it is not retried.
         """
         last = attempt + 1 >= self.attempts or not call.retry
         if error is not None:
@@ -148,8 +155,17 @@ class Call(Generic[T]):
     retry: bool = True
 
 
+def _parse(cls: type[M], r: httpx.Response) -> M:
+    """The reply's body as `cls`. Raises `InvalidResponseError` for one that is not (not JSON, cut
+    short, without a member the route answers)."""
+    try:
+        return cls.model_validate_json(r.content)
+    except ValidationError as e:
+        raise InvalidResponseError.of(r, e) from None
+
+
 def _model(cls: type[M]) -> Callable[[httpx.Response], M]:
-    return lambda r: cls.model_validate_json(r.content)
+    return lambda r: _parse(cls, r)
 
 
 def _nothing(r: httpx.Response) -> None:
@@ -158,6 +174,10 @@ def _nothing(r: httpx.Response) -> None:
 
 def _content(r: httpx.Response) -> bytes:
     return r.content
+
+
+def _response(r: httpx.Response) -> httpx.Response:
+    return r
 
 
 def _seg(value: str) -> str:
@@ -193,7 +213,7 @@ def create_map(map_id: str | None, **fields: Any) -> Call[models.Map]:
 
 
 def list_maps() -> Call[list[models.Map]]:
-    return Call("GET", "/v1/maps", lambda r: models.MapList.model_validate_json(r.content).maps,
+    return Call("GET", "/v1/maps", lambda r: _parse(models.MapList, r).maps,
                 idempotent=True)
 
 
@@ -289,7 +309,7 @@ def create_snapshot(map_id: str) -> Call[models.Snapshot]:
 
 def list_snapshots(map_id: str) -> Call[list[models.Snapshot]]:
     return Call("GET", f"{_map(map_id)}/snapshots",
-                lambda r: models.SnapshotList.model_validate_json(r.content).snapshots, idempotent=True)
+                lambda r: _parse(models.SnapshotList, r).snapshots, idempotent=True)
 
 
 def restore_snapshot(map_id: str, snapshot_id: str) -> Call[models.RestoredMap]:
@@ -300,9 +320,9 @@ def delete_snapshot(map_id: str, snapshot_id: str) -> Call[None]:
     return Call("DELETE", f"{_map(map_id)}/snapshots/{_seg(snapshot_id)}", _nothing, idempotent=True)
 
 
-def download_snapshot(map_id: str, snapshot_id: str) -> Call[None]:
-    """Streamed by the client (`Client.download_snapshot`), so `decode` is not used."""
-    return Call("GET", f"{_map(map_id)}/snapshots/{_seg(snapshot_id)}/download", _nothing, idempotent=True)
+def download_snapshot(map_id: str, snapshot_id: str) -> Call[httpx.Response]:
+    """Streamed by the client (`Client.download_snapshot`): `decode` hands on the response unread."""
+    return Call("GET", f"{_map(map_id)}/snapshots/{_seg(snapshot_id)}/download", _response, idempotent=True)
 
 
 # -------------------------------------------------------------------------------------- downloads

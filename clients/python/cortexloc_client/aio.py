@@ -21,6 +21,7 @@ import httpx
 
 from cortexloc_client import _core, models
 from cortexloc_client._core import Call, RetryPolicy, Settings
+from cortexloc_client.errors import InvalidResponseError
 from cortexloc_client.frames import ColourOrder
 
 if TYPE_CHECKING:
@@ -57,7 +58,9 @@ class AsyncClient:
 
     # ------------------------------------------------------------------------------- sending
 
-    async def _request(self, call: Call[Any], *, stream: bool = False) -> httpx.Response:
+    async def _send(self, call: Call[T], *, stream: bool = False) -> T:
+        """`call` sent, retried by the policy, its reply decoded (`stream`: the body left unread for
+        `call.decode`, the download's, to stream)."""
         request = self._http.build_request(call.method, call.path, params=call.params, json=call.json,
                                            content=call.content, headers=call.headers)
         for attempt in count():
@@ -67,14 +70,16 @@ class AsyncClient:
                 await sleep(self.settings.retry.wait(call, attempt, error=e))
                 continue
             if response.status_code < 400:
-                return response
+                try:
+                    return call.decode(response)
+                except InvalidResponseError as e:  # a proxy's page sent with 200: as a lost reply
+                    await response.aclose()
+                    await sleep(self.settings.retry.wait(call, attempt, error=e))
+                    continue
             await response.aread()
             await response.aclose()
             await sleep(self.settings.retry.wait(call, attempt, response=response))
         raise AssertionError("unreachable")
-
-    async def _send(self, call: Call[T]) -> T:
-        return call.decode(await self._request(call))
 
     # ---------------------------------------------------------------------------- operations
 
@@ -206,7 +211,7 @@ class AsyncClient:
             `dest` as a Path.
         """
         path, part = _core.part_path(dest)
-        response = await self._request(_core.download_snapshot(map_id, snapshot_id), stream=True)
+        response = await self._send(_core.download_snapshot(map_id, snapshot_id), stream=True)
         written = 0
         try:
             with part.open("wb") as f:

@@ -22,6 +22,7 @@ import httpx
 
 from cortexloc_client import _core, models
 from cortexloc_client._core import Call, RetryPolicy, Settings
+from cortexloc_client.errors import InvalidResponseError
 from cortexloc_client.frames import ColourOrder
 
 if TYPE_CHECKING:
@@ -58,7 +59,9 @@ class Client:
 
     # ------------------------------------------------------------------------------- sending
 
-    def _request(self, call: Call[Any], *, stream: bool = False) -> httpx.Response:
+    def _send(self, call: Call[T], *, stream: bool = False) -> T:
+        """`call` sent, retried by the policy, its reply decoded (`stream`: the body left unread for
+        `call.decode`, the download's, to stream)."""
         request = self._http.build_request(call.method, call.path, params=call.params, json=call.json,
                                            content=call.content, headers=call.headers)
         for attempt in count():
@@ -68,14 +71,16 @@ class Client:
                 sleep(self.settings.retry.wait(call, attempt, error=e))
                 continue
             if response.status_code < 400:
-                return response
+                try:
+                    return call.decode(response)
+                except InvalidResponseError as e:  # a proxy's page sent with 200: as a lost reply
+                    response.close()
+                    sleep(self.settings.retry.wait(call, attempt, error=e))
+                    continue
             response.read()
             response.close()
             sleep(self.settings.retry.wait(call, attempt, response=response))
         raise AssertionError("unreachable")
-
-    def _send(self, call: Call[T]) -> T:
-        return call.decode(self._request(call))
 
     # ---------------------------------------------------------------------------- operations
 
@@ -242,7 +247,7 @@ class Client:
             `dest` as a Path.
         """
         path, part = _core.part_path(dest)
-        response = self._request(_core.download_snapshot(map_id, snapshot_id), stream=True)
+        response = self._send(_core.download_snapshot(map_id, snapshot_id), stream=True)
         written = 0
         try:
             with part.open("wb") as f:

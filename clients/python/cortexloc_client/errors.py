@@ -1,5 +1,6 @@
 """Refusals of the service as exceptions: an `application/problem+json` reply (the service's
-docs/design/service.md §2) becomes a `CortexlocError`, or the subclass of its status.
+docs/design/service.md §2) becomes a `CortexlocError`, or the subclass of its status; a success reply
+whose body is not the route's answer (a proxy's page sent with 200) an `InvalidResponseError`.
 
 Example:
     >>> try:
@@ -11,6 +12,9 @@ Example:
 
 from __future__ import annotations
 
+import math
+from datetime import datetime, timezone
+from email.utils import parsedate_to_datetime
 from typing import Any
 
 import httpx
@@ -23,6 +27,7 @@ __all__ = [
     "ConflictError",
     "CortexlocError",
     "InsufficientStorageError",
+    "InvalidResponseError",
     "NotFoundError",
     "PayloadTooLargeError",
     "ServerError",
@@ -39,7 +44,7 @@ TYPE_PREFIX = "urn:cortexloc:problem:"
 
 
 class CortexlocError(Exception):
-    """A refusal by the service.
+    """A refusal by the service (or, as `InvalidResponseError`, a reply the client cannot read).
 
     Attributes:
         status: the HTTP status.
@@ -51,7 +56,7 @@ class CortexlocError(Exception):
         instance: the request path, or None.
         request_id: the service's id of the request (quote it when reporting a 500).
         extra: the slug's members (`errors`, `map_id`, `max_bytes`, `retry_after`, ...).
-        retry_after: seconds from the `Retry-After` header, when it holds a number.
+        retry_after: seconds from the `Retry-After` header (`retry_after_seconds`), or None.
     """
 
     def __init__(self, status: int, problem: Problem | None = None, *, detail: str = "",
@@ -67,6 +72,48 @@ class CortexlocError(Exception):
         self.extra: dict[str, Any] = dict(problem.model_extra or {}) if problem else {}
         self.retry_after = retry_after
         super().__init__(f"{status} {self.slug or self.title or 'error'}: {self.detail}")
+
+
+class InvalidResponseError(CortexlocError):
+    """A reply with a success status (2xx, or a 3xx: the client follows no redirect) whose body is not
+    the route's answer: a proxy's or captive portal's HTML page sent with 200, JSON cut short, JSON
+    without the members the route answers (a server of another version). `problem` and `slug` are None.
+
+    What was asked may have been done (the service may have answered and the body been spoilt on the
+    way), so the client treats it as a connection lost after the request left (`RetryPolicy`): sent again
+    for idempotent requests only, an observation post with the same `Idempotency-Key` (answered from the
+    service's store if it was learned: exactly once); raised once the retries are spent, or at once for
+    a request that is not idempotent (`create_map`, `create_snapshot`, `restore_snapshot`, a post without
+    a key).
+
+    Attributes (besides `CortexlocError`'s: `status`, `detail`, `request_id`):
+        content_type: the reply's `Content-Type` ("" without one).
+        excerpt: the start of the body (at most `EXCERPT_CHARS` characters, undecodable bytes replaced).
+        reason: what is wrong with it (the first JSON or validation error).
+    """
+
+    EXCERPT_CHARS = 200
+
+    def __init__(self, status: int, *, content_type: str, excerpt: str, reason: str,
+                 request_id: str | None = None) -> None:
+        self.content_type, self.excerpt, self.reason = content_type, excerpt, reason
+        detail = (f"a reply the client cannot read ({reason}); Content-Type {content_type or 'none'!r}, "
+                  f"body {excerpt!r}")
+        super().__init__(status, detail=detail, request_id=request_id)
+        self.args = (f"{status} invalid response: {detail}",)
+
+    @classmethod
+    def of(cls, response: httpx.Response, error: ValidationError) -> InvalidResponseError:
+        """The error for `response`, whose body (read) failed the route's model with `error`."""
+        errors = error.errors(include_url=False)
+        first = errors[0] if errors else {"loc": (), "msg": str(error)}
+        where = ".".join(map(str, first.get("loc", ())))
+        reason = f"{where}: {first['msg']}" if where else str(first["msg"])
+        if len(errors) > 1:
+            reason += f" (and {len(errors) - 1} more)"
+        return cls(response.status_code, content_type=response.headers.get("Content-Type", ""),
+                   excerpt=response.content[:cls.EXCERPT_CHARS].decode("utf-8", "replace"), reason=reason,
+                   request_id=response.headers.get("X-Request-ID"))
 
 
 class BadRequestError(CortexlocError):
@@ -131,14 +178,29 @@ STATUS_ERRORS: dict[int, type[CortexlocError]] = {
 }
 
 
-def retry_after_seconds(value: str | None) -> float | None:
-    """The `Retry-After` header as seconds (the service sends seconds); None if absent or a date."""
+def retry_after_seconds(value: str | None, now: datetime | None = None) -> float | None:
+    """The `Retry-After` header as seconds to wait (RFC 9110 §10.2.3): a number of seconds (what the
+    service sends), or an HTTP date (a proxy's; one past, or `now`, is 0). None, so that the caller backs
+    off as for a reply without one, when it is absent or is neither: unreadable, negative, or not finite
+    (`nan`, `inf`: `time.sleep` refuses NaN, and `Event.wait` returns at once, a tight retry loop). The
+    caller caps it (`RetryPolicy.max_wait_s`), whichever form it came in.
+
+    Args:
+        now: the time to count a date from (default the present, UTC).
+    """
     if value is None:
         return None
     try:
-        return max(float(value), 0.0)
+        seconds = float(value)
     except ValueError:
-        return None
+        try:
+            when = parsedate_to_datetime(value)
+        except (TypeError, ValueError, IndexError, OverflowError):
+            return None
+        if when.tzinfo is None:  # "-0000": UTC, as HTTP dates are
+            when = when.replace(tzinfo=timezone.utc)
+        return max((when - (now or datetime.now(timezone.utc))).total_seconds(), 0.0)
+    return seconds if math.isfinite(seconds) and seconds >= 0 else None
 
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"

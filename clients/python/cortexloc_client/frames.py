@@ -19,6 +19,9 @@ __all__ = ["ColourOrder", "Frame", "frame_body", "sniff_media_type"]
 #: cameras). The alpha channel is dropped (a camera's is padding), so `rgba8` means the same as `rgb8`.
 ColourOrder = Literal["rgb8", "bgr8", "rgba8", "bgra8"]
 _ORDER: dict[str, str] = {"rgb8": "rgb8", "rgba8": "rgb8", "bgr8": "bgr8", "bgra8": "bgr8"}
+#: What `colour` may be beside a one-channel array, where it is ignored: a colour order (a default, a
+#: camera's setting) or a mono encoding's ROS name, so that `colour=msg.encoding` works for every frame.
+_MONO_COLOURS = (*_ORDER, "mono8", "mono16")
 
 _MAGIC: tuple[tuple[bytes, int, str], ...] = (
     (b"\xff\xd8\xff", 0, "image/jpeg"),
@@ -54,10 +57,14 @@ def frame_body(image: bytes | bytearray | memoryview | np.ndarray, colour: Colou
             order with alpha last (the alpha channel is dropped), (H, W) or (H, W, 1) uint8 (`mono8`),
             or (H, W) or (H, W, 1) uint16 of either byte order (`mono16`, sent little-endian). Any
             memory layout (it is sent as a contiguous copy).
-        colour: the channel order of an (H, W, 3) or (H, W, 4) array; ignored otherwise.
+        colour: the channel order of an (H, W, 3) or (H, W, 4) array (`ColourOrder`). Ignored for a
+            one-channel array, where it may also be `mono8` or `mono16` (a ROS encoding's name), and
+            for encoded bytes; any other value is refused even there (a typo would otherwise pass
+            unseen until a colour frame came).
 
     Raises:
-        ValueError: an array of another shape or dtype, or an unknown `colour`.
+        ValueError: an array of another shape or dtype, one without pixels (a zero height or width),
+            or a `colour` it does not take.
     """
     if isinstance(image, (bytes, bytearray, memoryview)):
         data = bytes(image)
@@ -73,13 +80,17 @@ def frame_body(image: bytes | bytearray | memoryview | np.ndarray, colour: Colou
         if colour not in _ORDER:
             raise ValueError(f"colour must be one of {', '.join(_ORDER)}, not {colour!r}")
         encoding, arr = _ORDER[colour], arr[:, :, :3]
-    elif arr.ndim == 2 and kind == ("u", 1):
-        encoding = "mono8"
-    elif arr.ndim == 2 and kind == ("u", 2):
-        encoding, arr = "mono16", arr.astype("<u2", copy=False)
+    elif arr.ndim == 2 and kind in (("u", 1), ("u", 2)):
+        if colour not in _MONO_COLOURS:
+            raise ValueError(f"colour must be one of {', '.join(_MONO_COLOURS)} (ignored for a one-channel "
+                             f"array), not {colour!r}")
+        encoding = "mono8" if kind == ("u", 1) else "mono16"
+        arr = arr.astype("<u2", copy=False) if encoding == "mono16" else arr
     else:
         raise ValueError(f"a frame is an (H, W, 3) or (H, W, 4) uint8, or an (H, W) or (H, W, 1) uint8 or "
                          f"uint16 array, not {shape} {arr.dtype}")
     height, width = arr.shape[:2]
+    if not (height and width):  # the service would refuse it (400 about `width` or `height`)
+        raise ValueError(f"a frame has at least one pixel: this array is {shape} {arr.dtype}")
     return Frame(np.ascontiguousarray(arr).tobytes(), "application/octet-stream",
                  {"encoding": encoding, "width": str(width), "height": str(height)})

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+from datetime import datetime, timezone
 
 import httpx
 import numpy as np
@@ -14,12 +15,14 @@ from cortexloc_client import (
     AsyncClient,
     Client,
     CortexlocError,
+    InvalidResponseError,
     RetryPolicy,
     ServerError,
     ServiceUnavailableError,
     aio,
     client,
 )
+from cortexloc_client.errors import retry_after_seconds
 
 OBSERVATION = {"map_id": "lab", "stream": "default", "learned": True, "observation_id": "o-1", "seq": 1,
                "sequence": {"step": 0, "active_columns": 8, "predicted_columns": 0, "bursting_columns": 8,
@@ -111,6 +114,32 @@ def test_without_retry_after_the_waits_back_off(waits) -> None:
     script = Script(busy(None), busy("soon"), busy(None), httpx.Response(200, json=SNAPSHOT))
     make(script, retry=RetryPolicy(backoff_s=0.5)).create_snapshot("lab")
     assert waits == [0.5, 1.0, 2.0]
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "-5", "NaN", "soon"])
+def test_a_retry_after_that_is_no_wait_is_ignored_for_the_backoff(waits, value: str) -> None:
+    # An outside probe: `Retry-After: nan` reached `time.sleep(nan)` (an untyped ValueError out of the
+    # client; the ROS node's `Event.wait(nan)` returns at once: a tight retry loop), and -5 waited 0.
+    script = Script(busy(value), busy(value), httpx.Response(201, json=SNAPSHOT))
+    make(script, retry=RetryPolicy(backoff_s=0.5)).create_snapshot("lab")
+    assert waits == [0.5, 1.0]
+    script = Script(busy(value))
+    with pytest.raises(ServiceUnavailableError) as e:
+        make(script, retry=RetryPolicy(attempts=1)).create_snapshot("lab")
+    assert e.value.retry_after is None
+
+
+def test_a_retry_after_http_date_is_waited_for_capped_as_seconds_are(waits) -> None:
+    now = datetime(2030, 1, 1, 12, 0, 0, tzinfo=timezone.utc)
+    assert retry_after_seconds("Tue, 01 Jan 2030 12:00:07 GMT", now) == 7.0
+    assert retry_after_seconds("Tue, 01 Jan 2030 11:00:00 GMT", now) == 0.0  # past: now
+    assert retry_after_seconds("Tue, 01 Jan 2030 12:00:03 -0000", now) == 3.0
+    assert retry_after_seconds("3", now) == 3.0 and retry_after_seconds("0", now) == 0.0
+    assert retry_after_seconds("Tue, 99 Foo 2030", now) is None and retry_after_seconds(None) is None
+    # far off, as a proxy may say: waited for at most max_wait_s, as "3600" is
+    script = Script(busy("Wed, 21 Oct 2099 07:28:00 GMT"), httpx.Response(201, json=SNAPSHOT))
+    make(script, retry=RetryPolicy(max_wait_s=5.0)).create_snapshot("lab")
+    assert waits == [5.0]
 
 
 def test_other_refusals_and_readiness_are_not_retried(waits) -> None:
@@ -258,6 +287,58 @@ def test_a_reply_that_is_not_a_problem_still_raises(waits) -> None:
     assert "Bad Gateway" in e.value.detail
 
 
+#: Success replies that are not the route's answer, as (Content-Type, body): a proxy's or captive portal's
+#: page sent with 200, JSON cut short, JSON without the members the route answers.
+UNREADABLE = {"html": ("text/html", b"<html><body>502 upstream hiccup</body></html>"),
+              "truncated": ("application/json", b'{"map_id": "lab", "stre'),
+              "missing-fields": ("application/json", b'{"map_id": "lab"}')}
+
+
+@pytest.mark.parametrize("kind", UNREADABLE)
+def test_a_success_reply_that_is_not_the_answer_is_a_typed_error_retried_where_safe(waits, kind: str) -> None:
+    # An outside probe: pydantic's ValidationError came out of the client untyped, and ended the ROS node's
+    # poster thread for good. Now an InvalidResponseError (a CortexlocError), and a reply lost on the way
+    # as far as retries go: a keyed post is sent again with its key (answered from the store if learned).
+    content_type, body = UNREADABLE[kind]
+
+    def reply() -> httpx.Response:
+        return httpx.Response(200, content=body, headers={"Content-Type": content_type})
+
+    script = Script(reply(), reply(), httpx.Response(200, json=OBSERVATION))
+    assert make(script).observe("lab", JPEG, idempotency_key="frame-0001").seq == 1
+    assert script.keys() == ["frame-0001"] * 3 and waits == [0.5, 1.0]
+    script = Script(reply(), httpx.Response(200, json={"snapshots": [SNAPSHOT]}))  # a read, likewise
+    assert make(script).list_snapshots("lab")[0].snapshot_id == "s1" and len(script.requests) == 2
+    # spent retries: raised typed, with the status and what the body began with
+    script = Script(reply())
+    with pytest.raises(CortexlocError) as e:
+        make(script, retry=RetryPolicy(attempts=2)).observe("lab", JPEG)
+    assert isinstance(e.value, InvalidResponseError) and len(script.requests) == 2
+    assert (e.value.status, e.value.slug, e.value.problem) == (200, None, None)
+    assert e.value.excerpt == body.decode() and repr(e.value.excerpt) in e.value.detail
+    assert e.value.content_type == content_type and e.value.reason
+    assert str(e.value).startswith("200 invalid response: a reply the client cannot read (")
+    # what may have been done and has no key is never sent again: a post without a key, a new snapshot
+    for unsafe in (lambda c: c.observe("lab", JPEG), lambda c: c.create_snapshot("lab")):
+        script = Script(reply(), httpx.Response(201, json=SNAPSHOT))
+        with pytest.raises(InvalidResponseError):
+            unsafe(make(script, idempotency_keys=False))
+        assert len(script.requests) == 1
+    script = Script(reply(), httpx.Response(200, json=OBSERVATION))
+
+    async def post() -> str | None:
+        async with AsyncClient("http://cortexloc.test", transport=httpx.MockTransport(script)) as c:
+            return (await c.observe("lab", JPEG)).observation_id
+
+    assert asyncio.run(post()) == "o-1" and len(script.requests) == 2 and len(set(script.keys())) == 1
+
+
+def test_a_snapshot_download_still_streams_through_the_retry_loop(waits, tmp_path) -> None:
+    script = Script(httpx.ReadError("reset"), httpx.Response(200, content=b"tar" * 1000))
+    path = make(script).download_snapshot("lab", "s1", tmp_path / "lab.tar")
+    assert path.read_bytes() == b"tar" * 1000 and len(script.requests) == 2
+
+
 def test_the_api_key_and_the_metadata_are_sent(waits) -> None:
     script = Script(httpx.Response(200, json=OBSERVATION))
     make(script, api_key="k3y").observe("lab", JPEG, stream="robot1/cam0", label="dock",
@@ -318,6 +399,28 @@ def test_an_array_of_another_shape_or_type_is_refused_before_sending(waits, arra
     with pytest.raises(ValueError, match="frame is an"):
         make(script).observe("lab", array)
     assert script.requests == []
+
+
+@pytest.mark.parametrize("array", [np.zeros((0, 0, 3), np.uint8), np.zeros((32, 0), np.uint8),
+                                   np.zeros((0, 5), np.uint16), np.zeros((0, 4, 1), np.uint8)])
+def test_an_array_without_pixels_is_refused_before_sending(waits, array: np.ndarray) -> None:
+    # Before, it was sent, and the service's 400 spoke of the query parameter `width`.
+    script = Script(httpx.Response(200, json=OBSERVATION))
+    with pytest.raises(ValueError, match="a frame has at least one pixel"):
+        make(script).observe("lab", array)
+    assert script.requests == []
+
+
+def test_colour_is_checked_for_a_one_channel_array_where_it_is_ignored(waits) -> None:
+    # Before, any value passed unseen beside a mono array: a typo surfaced only with the first colour frame.
+    script = Script(httpx.Response(200, json=OBSERVATION))
+    for bad in ("rgb", "BGR8", "yuv422"):
+        with pytest.raises(ValueError, match="colour must be one of"):
+            make(script).observe("lab", GREY, colour=bad)
+    assert script.requests == []
+    # a colour order or a mono encoding's name (`colour=msg.encoding`) is taken, and changes nothing
+    for ok in ("bgr8", "mono8", "mono16"):
+        assert _sent(GREY, ok) == _sent(GREY, "rgb8")
 
 
 def test_the_async_client_retries_alike(waits) -> None:

@@ -20,9 +20,10 @@ from typing import Any, Generic, Literal, NamedTuple, TypeVar
 
 import numpy as np
 
-__all__ = ["ENCODINGS", "JUMP_CONFIRM", "STAMP_JUMP_NS", "DropPolicy", "FrameKey", "FrameKeys", "FrameQueue",
-           "ImageError", "OdometryBuffer", "Pose2D", "RateFilter", "RecentSet", "Stamp", "StampJumps",
-           "idempotency_key", "image_array", "quaternion_from_matrix", "relative_pose", "yaw_from_quaternion"]
+__all__ = ["ENCODINGS", "JUMP_CONFIRM", "LOG_PERIOD_S", "STAMP_JUMP_NS", "DropPolicy", "FrameKey",
+           "FrameKeys", "FrameQueue", "ImageError", "LogLimiter", "OdometryBuffer", "Pose2D", "RateFilter",
+           "RecentSet", "Stamp", "StampJumps", "idempotency_key", "image_array", "quaternion_from_matrix",
+           "relative_pose", "yaw_from_quaternion"]
 
 #: `sensor_msgs/Image` encodings the service takes as raw frames -> (sample dtype, channels). rgba8 and
 #: bgra8 are sent without their alpha channel (the client drops it); mono16 is sent little-endian.
@@ -325,6 +326,10 @@ class Pose2D:
     def distance(self, other: Pose2D) -> float:
         return math.hypot(self.x - other.x, self.y - other.y)
 
+    def is_finite(self) -> bool:
+        """x, y and yaw are numbers: the service refuses NaN and infinities (422 `invalid-metadata`)."""
+        return math.isfinite(self.x) and math.isfinite(self.y) and math.isfinite(self.yaw)
+
     def as_metadata(self) -> dict[str, Any]:
         return {"x": self.x, "y": self.y, "yaw": self.yaw, "frame_id": self.frame_id}
 
@@ -520,6 +525,36 @@ class RateFilter:
             self._last = pose
         self._count = 0
         return True
+
+
+# --------------------------------------------------------------------------------------------- log
+
+#: Seconds between two log lines of one kind (`LogLimiter`): skipped and refused frames, ignored odometry,
+#: the poster's faults.
+LOG_PERIOD_S = 60.0
+
+
+class LogLimiter:
+    """Log lines of many of a kind, at camera or odometry rate, kept to one a minute: each kind is said the
+    first time, then at most every `period_s` with how many more came since (the rest counted, not said).
+    Thread-safe."""
+
+    def __init__(self, period_s: float = LOG_PERIOD_S, clock: Any = time.monotonic) -> None:
+        self.period_s, self._clock = period_s, clock
+        self._kinds: dict[str, tuple[float, int]] = {}  # kind: (last said, not said since)
+        self._lock = threading.Lock()
+
+    def line(self, kind: str, text: str) -> str | None:
+        """The line to log now for one more of `kind` (`text`, and how many more since the last line), or
+        None: said within `period_s`, counted."""
+        with self._lock:
+            now = self._clock()
+            said, since = self._kinds.get(kind, (-math.inf, 0))
+            if now - said < self.period_s:
+                self._kinds[kind] = (said, since + 1)
+                return None
+            self._kinds[kind] = (now, 0)
+        return f"{text} ({since} more like it since the last line)" if since else text
 
 
 # ------------------------------------------------------------------------------------------- queue

@@ -46,6 +46,7 @@ from cortexloc_ros.core import (
     FrameKeys,
     FrameQueue,
     ImageError,
+    LogLimiter,
     OdometryBuffer,
     Pose2D,
     RateFilter,
@@ -76,8 +77,6 @@ DEFAULT_FRAME = "map"
 #: Distortion models the service's pinhole camera takes (OpenCV's coefficients, in ROS's order).
 PINHOLE_MODELS = ("plumb_bob", "rational_polynomial", "")
 DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
-#: Seconds between two log lines of one kind of skipped frame (the first is said at once).
-SKIP_LOG_PERIOD_S = 60.0
 
 # Sensor data as camera drivers publish it: best effort (a reliable subscriber would not hear a
 # best-effort camera; a best-effort one hears both). `qos_overrides.<topic>.subscription.reliability`
@@ -127,7 +126,7 @@ class CortexlocNode(Node):
         # (closure id, the frame's pose, the place's stored pose, confidence)
         self._edges: deque[tuple[int | None, Pose2D, Pose2D, float]] = deque(maxlen=MAX_EDGES)
         self._warned: set[str] = set()
-        self._skips: dict[str, tuple[float, int]] = {}  # a kind of skipped frame: (last said, since)
+        self._said = LogLimiter()  # kinds of skipped frames and ignored odometry: one line a minute each
         self._lock = threading.Lock()
         self.log = NodeLog(self)
 
@@ -213,17 +212,12 @@ class CortexlocNode(Node):
             self._warned.add(what)
             self.get_logger().warning(text)
 
-    def _warn_skip(self, what: str, text: str) -> None:
-        """A kind of skipped frame (`what`: its encoding and the fault's kind): said the first time, then at
-        most every SKIP_LOG_PERIOD_S with how many more of that kind were skipped since."""
-        now = time.monotonic()
-        said, since = self._skips.get(what, (-math.inf, 0))
-        if now - said < SKIP_LOG_PERIOD_S:
-            self._skips[what] = (said, since + 1)
-            return
-        self._skips[what] = (now, 0)
-        more = f" ({since} more like it since the last line)" if since else ""
-        self.get_logger().warning(f"{text}{more}")
+    def _warn_limited(self, what: str, text: str) -> None:
+        """One of a kind that may come at camera or odometry rate (`what`: e.g. a skipped frame's encoding
+        and fault): said the first time, then at most once a minute with how many more came since."""
+        line = self._said.line(what, text)
+        if line is not None:
+            self.get_logger().warning(line)
 
     def _on_lost(self, info: QoSMessageLostInfo) -> None:
         """The middleware lost camera frames before they reached the node (a best-effort subscription)."""
@@ -239,12 +233,23 @@ class CortexlocNode(Node):
         assert self.odometry is not None
         p, q = msg.pose.pose.position, msg.pose.pose.orientation
         base = Pose2D(p.x, p.y, yaw_from_quaternion(q.x, q.y, q.z, q.w), msg.header.frame_id or "odom")
+        if not base.is_finite():
+            # an EKF before it has converged, or after it diverged: the service refuses such a pose (422), and
+            # every frame matched to it was lost; left out, a frame takes a finite sample within
+            # odom_tolerance, or goes without a pose (`no_pose`) and the service judges the move by appearance
+            self._warn_limited("odometry:non-finite", f"odometry ignored: its pose is not finite (x {p.x}, "
+                                                      f"y {p.y}, yaw {base.yaw}); frames go without it")
+            return
         self.odometry.add(Stamp.of(msg.header.stamp.sec, msg.header.stamp.nanosec),
                           base.compose(self.cfg.camera_mount))
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         k, d = list(msg.k), list(msg.d)
-        if k[0] <= 0 or k[4] <= 0:  # an uncalibrated camera publishes zeros
+        if not all(math.isfinite(v) for v in (*k, *d)):  # the service refuses the frames' metadata (422)
+            self._warn_once("not-finite", "camera_info holds a K or D that is not finite: frames go without "
+                                          "a camera")
+            camera = None
+        elif k[0] <= 0 or k[4] <= 0:  # an uncalibrated camera publishes zeros
             self._warn_once("uncalibrated", "camera_info holds no intrinsics (K is zero): frames go without")
             camera = None
         elif msg.distortion_model not in PINHOLE_MODELS or len(d) not in DISTORTION_LENGTHS:
@@ -307,7 +312,7 @@ class CortexlocNode(Node):
                 else:
                     self.stats.malformed += 1
                 self.stats.last_error = str(e)
-            self._warn_skip(f"{getattr(msg, 'encoding', '')}:{reason}", f"frame skipped: {e}")
+            self._warn_limited(f"{getattr(msg, 'encoding', '')}:{reason}", f"frame skipped: {e}")
             return
         # The rate filter's distance needs a pose now: the nearest in so far, else the latest. The pose
         # posted is matched by the poster, once the odometry of the frame's instant is in.
@@ -407,7 +412,7 @@ class CortexlocNode(Node):
                       "duplicates": s.duplicates, "unsupported": s.unsupported, "malformed": s.malformed,
                       "queue_depth": len(self.queue), "queue_size": self.cfg.queue_size,
                       "queue_policy": self.cfg.queue_policy, "dropped": self.queue.dropped,
-                      "answered": s.answered, "refused": s.refused, "retries": s.retries,
+                      "answered": s.answered, "refused": s.refused, "failed": s.failed, "retries": s.retries,
                       "revisits": s.revisits, "retractions": s.retractions, "no_pose": s.no_pose,
                       "latency_ms": "" if s.last_latency_ms is None else f"{s.last_latency_ms:.1f}",
                       "latency_ms_median": "" if median is None else f"{median:.1f}", "last_error": error}

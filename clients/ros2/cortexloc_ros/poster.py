@@ -23,7 +23,21 @@ typed client; the ROS executor never waits on the service.
   duplicate check, `core.FrameKeys`), and a retry after a lost reply is answered once, so within one run
   of the node each such message's closure is published once. A map deleted and made again numbers its
   closures from 1 again: those are new closures, published as they come.
-- Refused: 400, 413, 415, 422 (the frame or its metadata) are counted and logged; the poster goes on.
+- A reply the client cannot read (`InvalidResponseError`: a proxy's page sent with 200, JSON cut short):
+  the frame may have been stored, so it is retried like a service down, with its key; ERROR on
+  diagnostics and in the log (once a minute, with a count) while it lasts.
+- Refused: 400, 413, 415, 422 (the frame or its metadata) are counted and logged (each kind once a
+  minute, with a count); the poster goes on. A pose that is not finite is never posted (the service
+  refuses it): the frame goes without one (`no_pose`).
+- No exception ends the thread: one no code expects (a fault of the node's own, or one of the client's
+  no handler names) is logged at ERROR (each kind once a minute, with a count), diagnostics say ERROR
+  until the service answers again, and the thread goes on after a backoff; a frame whose post raised
+  such a fault `FAULT_TRIES` times in a row is given up (counted as `failed`), so that one fault that
+  repeats cannot hold the queue for good.
+- First contact creates a missing map; a map made meanwhile by another node (409 `map-exists`) is used,
+  but any other refusal of its creation (409 `map-limit` or `memory-budget`, a 422, ...) is an ERROR,
+  logged and on diagnostics, and the creation is retried: frames are not posted to a map that is not
+  there.
 - Idle, it checks the service's readiness every `PROBE_S`, so diagnostics say "down" without frames.
 - Between frames, every `retractions_poll` seconds, it reads one page of the map's loop-closure log for
   the retractions of this stream's closures (`retractions.RetractionFollower`).
@@ -46,9 +60,9 @@ from typing import Any
 import httpx
 import numpy as np
 
-from cortexloc_client import Client, CortexlocError, Observation
+from cortexloc_client import Client, CortexlocError, InvalidResponseError, Observation
 from cortexloc_client.models import LoopClosure
-from cortexloc_ros.core import FrameQueue, OdometryBuffer, Pose2D, Stamp
+from cortexloc_ros.core import FrameQueue, LogLimiter, OdometryBuffer, Pose2D, Stamp
 from cortexloc_ros.params import Config
 from cortexloc_ros.retractions import RetractionFollower
 
@@ -58,6 +72,8 @@ __all__ = ["Frame", "Poster", "Stats"]
 FRAME_REFUSALS = frozenset({400, 413, 415, 422})
 BACKOFF_S, MAX_BACKOFF_S = 0.5, 5.0
 PROBE_S = 1.0
+#: Faults no code expects (module docstring) in a row after which a frame is given up.
+FAULT_TRIES = 3
 #: Latencies kept for the diagnostics' median.
 LATENCY_WINDOW = 100
 
@@ -97,6 +113,7 @@ class Stats:
     malformed: int = 0  # images whose header their data does not fill (no pixels, a short step or data)
     answered: int = 0
     refused: int = 0
+    failed: int = 0  # frames given up after faults of the node's own (FAULT_TRIES in a row)
     retries: int = 0
     revisits: int = 0
     retractions: int = 0  # retractions of the stream's closures published (`retractions`)
@@ -118,9 +135,11 @@ class Stats:
             return "ERROR", f"service {self.service}: {self.last_error}"
         if self.service == "slow":
             return "WARN", f"service slow: {self.last_error}"
-        if dropped or self.refused or self.unsupported or self.malformed or self.lost:
+        if dropped or self.refused or self.failed or self.unsupported or self.malformed or self.lost:
+            failed = f", failed {self.failed}" if self.failed else ""
             return "WARN", (f"service {self.service}; lost {self.lost}, dropped {dropped}, refused "
-                            f"{self.refused}, unsupported {self.unsupported}, malformed {self.malformed}")
+                            f"{self.refused}{failed}, unsupported {self.unsupported}, malformed "
+                            f"{self.malformed}")
         return "OK", f"service {self.service}"
 
 
@@ -149,6 +168,7 @@ class Poster:
         self._thread = threading.Thread(target=self._run, name="cortexloc-poster", daemon=True)
         self._last_probe = 0.0
         self._map_gone = False  # a 404 map-not-found after first contact, said in the log
+        self._said = LogLimiter()  # refused frames, faults: one line a minute of each kind
 
     def start(self) -> None:
         self._thread.start()
@@ -171,18 +191,51 @@ class Poster:
     # -------------------------------------------------------------------------------------- thread
 
     def _run(self) -> None:
-        self._first_contact()
+        """The thread. Nothing ends it but `stop` (module docstring): an exception that reaches here (a
+        fault of the node's own) gives up the frame under way, is said at ERROR, and the loop goes on
+        after a backoff. An outside probe: one reply that did not validate ended the thread, and the
+        node ran on posting nothing while diagnostics said the service was up."""
+        opened = False
+        delay = BACKOFF_S
         while not self._stop.is_set():
-            frame = self.queue.get(timeout=0.2)
-            if frame is not None:
-                self._post(frame)
-            elif time.monotonic() - self._last_probe >= PROBE_S:
-                self._probe()
-            if self.retractions.due() and not self._stop.is_set():
-                try:
-                    self.retractions.poll()
-                except Exception as e:  # a page it cannot read (a proxy's, a newer server's): posting goes on
-                    self.log.error(f"following the loop-closure log failed: {e!r}")
+            try:
+                if not opened:
+                    self._first_contact()  # until it is done, or the poster stops
+                    opened = True
+                    continue
+                self._step()
+            except Exception as e:
+                frame, self.in_flight = self.in_flight, None
+                if frame is not None:
+                    self._give_up(frame, e)
+                delay = self._back_off(self._trouble(e, delay), delay)
+            else:
+                delay = BACKOFF_S
+
+    def _step(self) -> None:
+        """One frame posted, or the idle probe; then the retractions' poll when it is due."""
+        frame = self.queue.get(timeout=0.2)
+        if frame is not None:
+            self._post(frame)
+        elif time.monotonic() - self._last_probe >= PROBE_S:
+            self._probe()
+        if self.retractions.due() and not self._stop.is_set():
+            try:
+                self.retractions.poll()
+            except Exception as e:  # a page it cannot read (a proxy's, a newer server's): posting goes on
+                self._error("retractions", f"following the loop-closure log failed: {e!r}")
+
+    def _error(self, kind: str, text: str) -> None:
+        """An ERROR line, at most one a minute of `kind` (with how many more since)."""
+        line = self._said.line(kind, text)
+        if line is not None:
+            self.log.error(line)
+
+    def _give_up(self, frame: Frame, e: BaseException) -> None:
+        with self.stats.lock:
+            self.stats.failed += 1
+        self._error("given-up", f"frame {frame.stamp.ns} given up after a fault of the node's own: {e!r} "
+                                f"(not posted, or posted and its answer lost; counted as `failed`)")
 
     def unposted(self) -> tuple[int, int]:
         """(frames queued, frames in flight) not posted: what a stop leaves."""
@@ -201,10 +254,14 @@ class Poster:
         self._last_probe = time.monotonic()
         try:
             self.client.ready()
+        except InvalidResponseError as e:
+            self._trouble(e, PROBE_S)
         except CortexlocError as e:
             self._state("error", f"not ready: {e}")
         except httpx.HTTPError as e:
             self._transport_state(e)
+        except Exception as e:  # a fault of the node's own: said, and the probe goes on
+            self._trouble(e, PROBE_S)
         else:
             self._state("up", "")
 
@@ -217,9 +274,11 @@ class Poster:
         else:
             self._state("down", f"{e.__class__.__name__}: {e}")
 
-    def _state(self, service: str, error: str) -> None:
+    def _state(self, service: str, error: str, said: bool = False) -> None:
+        """Diagnostics' service state; a change logged (WARN, or INFO when it is up again) unless the caller
+        `said` it already."""
         with self.stats.lock:
-            if service != self.stats.service and service != "up":
+            if service != self.stats.service and service != "up" and not said:
                 self.log.warning(f"cortexloc service {service}: {error}; retrying")
             elif service != self.stats.service:
                 self.log.info(f"cortexloc service up at {self.cfg.service_url}")
@@ -264,8 +323,13 @@ class Poster:
             if pose is None:
                 with self.stats.lock:
                     self.stats.no_pose += 1
+            elif not pose.is_finite():  # the node takes none in; the service would refuse it (422)
+                pose = None
+                with self.stats.lock:
+                    self.stats.no_pose += 1
         meta = self._metadata(frame, pose)
         delay = BACKOFF_S
+        faults = 0
         while not self._stop.is_set():
             t0 = time.perf_counter()
             try:
@@ -278,7 +342,11 @@ class Poster:
                     with self.stats.lock:
                         self.stats.refused += 1
                         self.stats.last_error = str(e)
-                    self.log.warning(f"frame {frame.stamp.ns} refused: {e}")
+                    # at camera rate (NaN metadata, oversize frames): one line a minute of each kind
+                    kind, text = f"refused:{e.status}:{e.slug}", f"frame {frame.stamp.ns} refused: {e}"
+                    line = self._said.line(kind, text)
+                    if line is not None:
+                        self.log.warning(line)
                     return True
                 if e.status == 404 and e.slug == "map-not-found" and not self._map_gone:
                     self._map_gone = True  # said once an outage: the log is no per-retry stream
@@ -288,6 +356,12 @@ class Poster:
                 wait = self._trouble(e, delay)
             except httpx.HTTPError as e:
                 wait = self._trouble(e, delay)
+            except Exception as e:  # a fault of the node's own: retried, then the frame given up
+                wait = self._trouble(e, delay)
+                faults += 1
+                if faults >= FAULT_TRIES:
+                    self._give_up(frame, e)
+                    return True
             else:
                 self._map_gone = False
                 latency = (time.perf_counter() - t0) * 1e3
@@ -308,12 +382,22 @@ class Poster:
             delay = self._back_off(wait, delay)
         return False
 
-    def _trouble(self, e: CortexlocError | httpx.HTTPError, delay: float) -> float:
-        """Diagnostics' state after a request that failed; the seconds to wait before its retry."""
+    def _trouble(self, e: Exception, delay: float) -> float:
+        """Diagnostics' state after a request that failed; the seconds to wait before its retry. A reply the
+        client cannot read and an exception no code expects are said at ERROR (once a minute a kind)."""
+        if isinstance(e, InvalidResponseError):
+            self._error("invalid-response", f"a reply from {self.cfg.service_url} that is not the service's "
+                                            f"answer (a proxy's page?): {e}; retried with the same key")
+            self._state("error", str(e), said=True)
+            return delay
         if isinstance(e, CortexlocError):
             self._state("error", str(e))
             return e.retry_after if e.retry_after is not None else delay
-        self._transport_state(e)
+        if isinstance(e, httpx.HTTPError):
+            self._transport_state(e)
+            return delay
+        self._error(f"fault:{type(e).__name__}", f"cortexloc poster fault, going on: {e!r}")
+        self._state("error", f"fault of the node's own: {e!r}", said=True)
         return delay
 
     def _back_off(self, wait: float, delay: float) -> float:
@@ -330,7 +414,7 @@ class Poster:
         while not self._stop.is_set():
             try:
                 had = self.client.reset_stream(self.cfg.map_id, self.cfg.stream).had_context
-            except (CortexlocError, httpx.HTTPError) as e:
+            except Exception as e:
                 wait = self._trouble(e, delay)
             else:
                 self._state("up", "")
@@ -347,15 +431,19 @@ class Poster:
         delay = BACKOFF_S
         while not self._stop.is_set():
             try:
-                self._open()
-            except (CortexlocError, httpx.HTTPError) as e:
+                opened = self._open()
+            except Exception as e:
                 wait = self._trouble(e, delay)
             else:
-                self._state("up", "")
-                return
+                if opened:
+                    self._state("up", "")
+                    return
+                wait = delay
             delay = self._back_off(wait, delay)
 
-    def _open(self) -> None:
+    def _open(self) -> bool:
+        """The map made sure of and the stream reset; False: the service refused to create the map (said
+        at ERROR, and on diagnostics), to be tried again."""
         map_id, stream = self.cfg.map_id, self.cfg.stream
         try:
             if self.cfg.resume:
@@ -370,6 +458,16 @@ class Poster:
             try:  # a new map holds no stream context: nothing to reset
                 self.client.create_map(map_id)
             except CortexlocError as e2:
-                if e2.status != 409:  # 409: another node created it meanwhile
-                    raise
+                if e2.slug == "map-exists":  # another node created it meanwhile
+                    self.log.info(f"map {map_id!r} exists: created meanwhile (by another node?)")
+                    return True
+                if e2.problem is None or e2.status == 503:
+                    raise  # a proxy's page, a reply it cannot read, the service busy: retried as such
+                # 409 map-limit or memory-budget, 422 invalid-configuration, ...: every frame would be 404.
+                # Before, any 409 read as "created by another node", and the log said "created map".
+                self._error(f"create:{e2.slug}", f"map {map_id!r} cannot be created: {e2}; frames wait in "
+                                                 f"the queue and its creation is retried")
+                self._state("error", f"map {map_id!r} cannot be created: {e2}", said=True)
+                return False
             self.log.info(f"created map {map_id!r} (the service's defaults)")
+        return True

@@ -171,8 +171,9 @@ class Relay:
     """An HTTP relay on loopback in front of the service, as the node's `service_url`.
 
     Logs every observation post as (Idempotency-Key, outcome): the service's status, `lost` (the service
-    answered, the relay dropped the reply: `lose_next_reply()`), or `down` (the service could not be
-    reached; the relay drops the connection, as a dead service would). `hold()` keeps observation posts
+    answered, the relay dropped the reply: `lose_next_reply()`), `spoilt` (the service answered, the relay
+    sent a proxy's HTML page with status 200 instead: `spoil_next_reply()`), or `down` (the service could
+    not be reached; the relay drops the connection, as a dead service would). `hold()` keeps observation posts
     waiting until `release()`: a slow service, deterministically.
     """
 
@@ -183,6 +184,7 @@ class Relay:
         self._gate = threading.Event()
         self._gate.set()
         self._lose = threading.Event()
+        self._spoil = threading.Event()
         self._lock = threading.Lock()
         relay = self
 
@@ -217,6 +219,16 @@ class Relay:
                     self.close_connection = True
                     self.connection.shutdown(socket.SHUT_RDWR)
                     return
+                if post and relay._spoil.is_set():
+                    relay._spoil.clear()
+                    relay._log(key, "spoilt")
+                    page = b"<html><body>502 upstream hiccup</body></html>"
+                    self.send_response(200)
+                    self.send_header("Content-Type", "text/html")
+                    self.send_header("Content-Length", str(len(page)))
+                    self.end_headers()
+                    self.wfile.write(page)
+                    return
                 if post:
                     relay._log(key, str(r.status_code))
                 self.send_response(r.status_code)
@@ -247,6 +259,9 @@ class Relay:
 
     def lose_next_reply(self) -> None:
         self._lose.set()
+
+    def spoil_next_reply(self) -> None:
+        self._spoil.set()
 
     def close(self) -> None:
         self._gate.set()

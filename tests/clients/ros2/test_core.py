@@ -17,12 +17,14 @@ from cortexloc_ros.core import (
     JUMP_CONFIRM,
     FrameKeys,
     FrameQueue,
+    LogLimiter,
     OdometryBuffer,
     Pose2D,
     RateFilter,
     Stamp,
     idempotency_key,
     image_array,
+    yaw_from_quaternion,
 )
 from cortexloc_ros.params import (
     PARAMETERS,
@@ -266,6 +268,26 @@ def test_a_match_waits_for_odometry_at_or_after_the_stamp_until_its_deadline():
 def test_the_camera_mount_moves_the_pose_with_the_robots_heading():
     pose = Pose2D(1.0, 2.0, math.pi / 2, "odom").compose((0.5, 0.0, math.pi / 2))
     assert (round(pose.x, 9), round(pose.y, 9), round(pose.yaw, 9)) == (1.0, 2.5, round(math.pi, 9))
+
+
+def test_a_pose_that_is_not_finite_says_so():
+    # the node ignores such odometry (an EKF before it converged): the service refuses NaN and infinities
+    assert Pose2D(1.0, -2.0, 3.0, "odom").is_finite()
+    for x, y, yaw in ((math.nan, 0.0, 0.0), (0.0, math.inf, 0.0), (0.0, 0.0, -math.inf)):
+        assert not Pose2D(x, y, yaw, "odom").is_finite()
+    assert not Pose2D(0.0, 0.0, yaw_from_quaternion(math.nan, 0.0, 0.0, 1.0), "odom").is_finite()
+
+
+def test_a_kind_of_log_line_is_said_at_once_then_once_a_minute_with_a_count():
+    now = [100.0]
+    said = LogLimiter(clock=lambda: now[0])
+    lines = []
+    for t, kind in ((100.0, "a"), (101.0, "a"), (102.0, "b"), (130.0, "a"), (160.0, "a"), (161.0, "a"),
+                    (300.0, "a")):
+        now[0] = t
+        lines.append(said.line(kind, f"{kind} at {t:g}"))
+    more = " more like it since the last line)"
+    assert lines == ["a at 100", None, "b at 102", None, f"a at 160 (2{more}", None, f"a at 300 (1{more}"]
 
 
 def test_the_rate_filter_takes_every_nth_frame_and_only_after_the_minimum_distance():

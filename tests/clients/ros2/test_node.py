@@ -7,6 +7,7 @@ parameters stop the node at start with a clear error. The README's three command
 
 from __future__ import annotations
 
+import math
 import os
 from collections import Counter
 from pathlib import Path
@@ -334,6 +335,40 @@ def test_a_bag_played_again_is_a_new_drive_whose_frames_are_posted_and_told(tmp_
         log = node.log()
         assert log.count("the camera's stamps went back 2.700 s (3 frames in a row") == 1, log
         assert log.count("a new drive, the camera's stamps went back") == 1, log  # the stream reset
+
+
+@in_loopback_netns
+def test_a_spoilt_reply_and_odometry_that_is_not_finite_leave_every_frame_posted_once(tmp_path):
+    # An outside probe: one reply a proxy answered 200 text/html ended the node's poster thread (nothing was
+    # posted after it, and diagnostics still said "service up"); and each frame matched to odometry with NaN
+    # or Inf (an EKF before it converged) was refused 422 and lost. Now the spoilt reply is retried with its
+    # key (answered from the service's store: learned once), and such odometry is ignored: those frames go
+    # without a pose.
+    rng = np.random.default_rng(7)
+    frames = [rng.integers(0, 256, (32, 64, 3), dtype=np.uint8) for _ in range(8)]
+    bad = {2: (math.nan, 0.0), 3: (math.inf, 0.0), 4: (0.0, math.nan)}  # frame: (x, yaw)
+    with World(tmp_path) as w:
+        node = w.node()
+        w.probe.wait_connected()
+        w.relay.spoil_next_reply()
+        for i, frame in enumerate(frames):
+            x, yaw = bad.get(i, (i * SPACING_M, 0.0))
+            w.probe.publish(frame, T0_NS + i * PERIOD_NS, x, 0.0, yaw=yaw)
+            w.probe.spin(0.01)
+        w.probe.wait(lambda: len(w.probe.places) == len(frames), 60, "an answer per frame")
+        keys, outcomes = zip(*w.relay.posts, strict=True)
+        assert outcomes == ("spoilt",) + ("200",) * len(frames), outcomes
+        assert keys[0] == keys[1] and len(set(keys)) == len(frames)  # the spoilt one again, with its key
+        assert [p["pose"] is None for p in w.probe.places] == [i in bad for i in range(len(frames))]
+        assert len(w.client.list_observations(w.map_id, limit=100).observations) == len(frames)  # once each
+        n = str(len(frames))
+        w.probe.wait(lambda: w.probe.last_diagnostics().get("answered") == n, 10, "diagnostics")
+        d = w.probe.last_diagnostics()
+        assert (d["refused"], d["failed"], d["no_pose"], d["service"]) == ("0", "0", "3", "up"), d
+        assert node.stop() == 0
+        log = node.log()
+        assert log.count("odometry ignored: its pose is not finite") == 1, log  # once a minute, not each
+        assert log.count("that is not the service's answer") == 1 and "Traceback" not in log, log
 
 
 @in_loopback_netns

@@ -3,6 +3,7 @@ slow, down and back, driven through a scripted client (no server)."""
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from dataclasses import replace
@@ -69,11 +70,16 @@ class ScriptedClient:
 class Log:
     def __init__(self) -> None:
         self.lines: list[str] = []
+        self.errors: list[str] = []  # the lines said at ERROR (in `lines` too)
 
     def info(self, text: str) -> None:
         self.lines.append(text)
 
-    warning = error = info
+    warning = info
+
+    def error(self, text: str) -> None:
+        self.lines.append(text)
+        self.errors.append(text)
 
 
 def _poster(monkeypatch: pytest.MonkeyPatch, *outcomes: Any, odometry: OdometryBuffer | None = None,
@@ -369,3 +375,134 @@ def test_a_frame_takes_its_pose_from_the_odometry_segment_of_its_stamp_only(monk
     assert "pose" not in client.metadata[0]  # its odometry never came within its wait
     assert client.metadata[1]["pose"]["x"] == 102.0 and client.metadata[2]["pose"]["x"] == 199.0
     assert stats.no_pose == 1
+
+
+def _unreadable() -> Exception:
+    """What the client raises for a proxy's HTML page sent with 200."""
+    from cortexloc_client import InvalidResponseError
+
+    return InvalidResponseError(200, content_type="text/html", excerpt="<html>502 upstream hiccup</html>",
+                                reason="Invalid JSON: expected value at line 1 column 1")
+
+
+def _wait_for(cond: Any, what: str, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.01)
+
+
+def test_a_reply_that_cannot_be_read_is_retried_with_the_frames_key_and_said_at_error(monkeypatch):
+    # An outside probe: one 200 text/html reply raised pydantic's ValidationError out of the client, which
+    # ended the poster thread; diagnostics said "service up" for as long as the node ran. Now the client
+    # raises InvalidResponseError, and the frame is retried with its key like a service down, ERROR meanwhile.
+    p, stats, client = _poster(monkeypatch, _unreadable(), _unreadable(), ANSWER)
+    keys: list[str] = []
+    observe = client.observe
+    client.observe = lambda *a, **kw: (keys.append(kw["idempotency_key"]), observe(*a, **kw))[1]  # type: ignore
+    p._post(_frame())
+    assert keys == ["run1:.cam:1:1"] * 3 and (stats.answered, stats.retries, stats.refused) == (1, 2, 0)
+    service, error = client.seen[1]
+    assert service == "error" and error.startswith("200 invalid response: a reply the client cannot read")
+    assert Stats(service=service, last_error=error).health(0)[0] == "ERROR"
+    assert len(p.log.errors) == 1 and "retried with the same key" in p.log.errors[0]  # once, not per retry
+    assert (stats.service, stats.last_error) == ("up", "")
+
+
+def test_no_exception_ends_the_poster_thread_and_a_frame_faulting_again_and_again_is_given_up(monkeypatch):
+    # A fault no handler names (here a ValueError from the client, a camera callback that raises): said at
+    # ERROR once a kind, diagnostics ERROR, the thread goes on; a frame that faults FAULT_TRIES times in a
+    # row is given up (`failed`), and the next frame is answered.
+    faults = [ValueError("boom")] * poster.FAULT_TRIES
+    p, stats, client = _poster(monkeypatch, StreamReset(stream="cam", had_context=False), *faults, ANSWER,
+                               ANSWER, retractions_poll=0.0)
+    client.ready = lambda: None  # type: ignore[method-assign]  # the idle probe: up
+    cameras: list[Exception] = []
+    p.camera = lambda: (_ for _ in ()).throw(cameras.pop()) if cameras else None
+    seen: list[tuple[str, str]] = []
+    p.on_answer = lambda *a: seen.append((stats.service, stats.last_error))
+    p.start()
+    try:
+        p.queue.put(_frame(Stamp(1)))
+        _wait_for(lambda: stats.failed == 1, "the first frame given up")
+        with stats.lock:
+            assert stats.health(0) == ("ERROR", "service error: fault of the node's own: ValueError('boom')")
+        cameras.append(RuntimeError("camera_info callback failed"))
+        p.queue.put(_frame(Stamp(2)))  # its metadata's camera raises: outside the post, in the thread's loop
+        _wait_for(lambda: stats.failed == 2, "the second frame given up")
+        p.queue.put(_frame(Stamp(3)))
+        _wait_for(lambda: stats.answered == 1, "the third frame answered")
+        assert p._thread.is_alive()
+    finally:
+        p.stop()
+    assert seen == [("up", "")] and client.metadata[-1]["stamp_ns"] == "3"
+    assert [line.split(":")[0] for line in p.log.errors] == [
+        "cortexloc poster fault, going on", "frame 1 given up after a fault of the node's own",
+        "cortexloc poster fault, going on"]
+    assert "RuntimeError('camera_info callback failed')" in p.log.errors[2]
+    with stats.lock:
+        assert stats.health(0) == ("WARN", "service up; lost 0, dropped 0, refused 0, failed 2, "
+                                           "unsupported 0, malformed 0")
+
+
+def test_a_pose_that_is_not_finite_is_not_posted(monkeypatch):
+    # An outside probe: odometry with NaN or Inf (an EKF not yet converged) went into the metadata, the
+    # service refused each such frame (422 "NaN is not JSON") and the node dropped it. The node takes no such
+    # sample in (node.py); a pose that is not finite is left out here too: the frame is posted without one.
+    odometry = OdometryBuffer(tolerance_ns=50_000_000)
+    odometry.add(Stamp(10), Pose2D(math.nan, 0.0, 0.0, "odom"))
+    odometry.add(Stamp(20), Pose2D(1.0, 2.0, math.inf, "odom"))
+    odometry.add(Stamp(30), Pose2D(3.0, 0.0, 0.0, "odom"))
+    p, stats, client = _poster(monkeypatch, ANSWER, ANSWER, ANSWER, odometry=odometry)
+    for ns in (10, 20, 30):
+        p._post(_frame(Stamp(ns)))
+    assert ["pose" in m for m in client.metadata] == [False, False, True]
+    assert (stats.no_pose, stats.answered, stats.refused) == (2, 3, 0)
+    assert not Pose2D(1.0, math.nan, 0.0, "odom").is_finite() and Pose2D(1.0, 2.0, 3.0, "odom").is_finite()
+
+
+def test_a_map_the_service_refuses_to_create_is_an_error_retried_not_created(monkeypatch):
+    # Before, any 409 on creation read as "another node created it": the log said "created map" and every
+    # frame then got 404 map-not-found. Only 409 map-exists is that; map-limit (or memory-budget, ...) is an
+    # ERROR, and the creation is tried again until the service takes it.
+    missing = _problem(404, "map-not-found")
+    p, stats, client = _poster(monkeypatch, missing, _problem(409, "map-limit"), missing,
+                               _problem(409, "map-limit"), missing, None)
+    p._first_contact()
+    assert client.calls == [("reset_stream", "default", "cam"), ("create_map", "default")] * 3
+    service, error = client.seen[2]  # the second reset, after the refusal
+    assert (service, error) == ("error", "map 'default' cannot be created: 409 map-limit: map 'default' "
+                                         "map-limit")
+    assert Stats(service=service, last_error=error).health(0)[0] == "ERROR"
+    assert len(p.log.errors) == 1 and "map 'default' cannot be created: 409 map-limit" in p.log.errors[0]
+    assert [line for line in p.log.lines if "created map" in line] == ["created map 'default' (the service's "
+                                                                       "defaults)"]  # once, when it was
+    assert stats.service == "up"
+    # made meanwhile by another node: used, and said so
+    p, stats, client = _poster(monkeypatch, missing, _problem(409, "map-exists"))
+    p._first_contact()
+    assert stats.service == "up" and not p.log.errors
+    assert any("exists: created meanwhile" in line for line in p.log.lines)
+    assert not any("created map" in line for line in p.log.lines)
+
+
+def test_refused_frames_are_logged_once_a_minute_a_kind_with_a_count(monkeypatch):
+    # Before, one WARN line per refused frame: at camera rate, a flood on /rosout.
+    from cortexloc_client import CortexlocError
+
+    refusal = _problem(422, "invalid-metadata")
+    big = CortexlocError(413, detail="too large")
+    p, stats, _ = _poster(monkeypatch, refusal, refusal, big, refusal, big)
+    for ns in range(1, 6):
+        p._post(_frame(Stamp(ns)))
+    assert stats.refused == 5
+    assert [line.split(" refused: ")[0] for line in p.log.lines] == ["frame 1", "frame 3"]  # one of each kind
+    clock = [0.0]
+    p._said = poster.LogLimiter(clock=lambda: clock[0])
+    p.client.outcomes = [refusal] * 3  # type: ignore[attr-defined]
+    for ns, t in ((6, 0.0), (7, 30.0), (8, 61.0)):
+        clock[0] = t
+        p._post(_frame(Stamp(ns)))
+    said = "422 invalid-metadata: map 'default' invalid-metadata"
+    assert p.log.lines[-2:] == [f"frame 6 refused: {said}",
+                                f"frame 8 refused: {said} (1 more like it since the last line)"]
