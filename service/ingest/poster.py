@@ -32,6 +32,7 @@ then posts the source's frames **one at a time, in source order**:
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
 import uuid
@@ -341,7 +342,9 @@ def retry_after_s(value: str | None, attempt: int) -> float:
         wait = float(value) if value is not None else 2.0**attempt
     except ValueError:  # an HTTP date: the service sends seconds; back off instead of parsing clocks
         wait = 2.0**attempt
-    return min(max(wait, 0.0), MAX_WAIT_S)
+    if not math.isfinite(wait) or wait < 0:  # `nan` reached asyncio.sleep (a proxy's header): back off
+        wait = 2.0**attempt
+    return min(wait, MAX_WAIT_S)
 
 
 async def _request(client: httpx.AsyncClient, method: str, path: str, summary: Summary,

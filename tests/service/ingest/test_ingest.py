@@ -250,6 +250,9 @@ def test_503_is_retried_after_retry_after_and_the_frame_is_posted_once_answered(
     assert service.bodies == [bodies[0]] * 3 + bodies[1:]
     assert summary.retries == 2 and summary.frames == len(ROUTE)
     assert poster.retry_after_s("3600", 0) == poster.MAX_WAIT_S
+    # A proxy's header that is no delay (an outside probe: `nan` reached asyncio.sleep): the backoff.
+    for value in ("nan", "inf", "-inf", "-5", "Wed, 21 Oct 2015 07:28:00 GMT"):
+        assert poster.retry_after_s(value, 2) == 4.0, value
 
 
 def test_retries_are_bounded(tmp_path):
