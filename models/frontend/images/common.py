@@ -78,9 +78,10 @@ class ImageInfo:
 
 # The header parsers (jpeg, png, bmp_webp) each return a `_Header`. They raise ImageError("truncated")
 # when the file ends before the dimensions, ImageError("not-an-image") when the structure is corrupt.
-# `complete` says whether the file reaches its end marker and `costly` holds a "bomb" error; both are
-# reported separately so that the pixel cap is checked first (a tiny file that claims 20000×20000 is
-# "too-many-pixels", whatever follows its header).
+# `complete` says whether the file reaches its end marker, `damaged` holds a "not-an-image" error for a
+# file that does but whose contents stop short of the image (a progressive JPEG's missing scans) and
+# `costly` a "bomb" error; all are reported separately so that the pixel cap is checked first (a tiny file
+# that claims 20000×20000 is "too-many-pixels", whatever follows its header).
 
 
 class _Header(NamedTuple):
@@ -89,6 +90,7 @@ class _Header(NamedTuple):
     complete: bool
     costly: ImageError | None = None  # raised by `probe` after the size and completeness checks
     bits_per_pixel: int | None = None  # where a format's pixels may hold more than 24 bits (PNG)
+    damaged: ImageError | None = None  # raised by `probe` after the completeness check, before `costly`
 
 
 def _truncated(fmt: str, detail: str, n: int) -> ImageError:

@@ -170,7 +170,7 @@ def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pix
                          f"{_FORMAT_NAMES[fmt]} images are not accepted here; send {_accepted_list(formats)}",
                          detected=_FORMAT_NAMES[fmt])
 
-    width, height, complete, costly, bits = _HEADER_PARSERS[fmt](data)
+    width, height, complete, costly, bits, damaged = _HEADER_PARSERS[fmt](data)
     if width * height > max_pixels:
         raise ImageError("too-many-pixels",
                          f"image has {width}x{height} = {width * height} pixels, "
@@ -197,6 +197,8 @@ def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pix
                "bmp": "the pixel array is shorter than the header says",
                "webp": "shorter than its RIFF header says"}[fmt]
         raise _truncated(fmt, end, n)
+    if damaged is not None:
+        raise damaged
     if costly is not None:
         raise costly
     return ImageInfo(fmt, width, height)

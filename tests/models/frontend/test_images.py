@@ -6,6 +6,7 @@ Every input is generated here (NumPy + cv2.imencode, skimage's bundled photo); n
 
 from __future__ import annotations
 
+import io
 import struct
 import zlib
 
@@ -262,16 +263,18 @@ def _cut_scan(data: bytes, start: int, length: int) -> bytes:
     return data[:begin] + data[begin + length:]
 
 
-@pytest.mark.parametrize(("params", "why"), [
-    ([cv2.IMWRITE_JPEG_QUALITY, 90], "premature end of data segment"),
-    ([cv2.IMWRITE_JPEG_PROGRESSIVE, 1], "bad Huffman code"),
-    ([cv2.IMWRITE_JPEG_RST_INTERVAL, 4], "extraneous bytes before marker 0xd4"),
+@pytest.mark.parametrize(("params", "cut", "why"), [
+    ([cv2.IMWRITE_JPEG_QUALITY, 90], (2000, 3000), "premature end of data segment"),
+    # within the first of its scans (~2.8 kB): a cut that takes the next scan's header is the header
+    # walk's to find (test_a_progressive_jpeg_missing_a_scan_from_the_middle_is_refused)
+    ([cv2.IMWRITE_JPEG_PROGRESSIVE, 1], (1000, 1000), "bad Huffman code"),
+    ([cv2.IMWRITE_JPEG_RST_INTERVAL, 4], (2000, 3000), "extraneous bytes before marker 0xd4"),
 ])
-def test_a_jpeg_whose_scan_data_breaks_off_is_refused_though_opencv_decodes_it(params, why):
+def test_a_jpeg_whose_scan_data_breaks_off_is_refused_though_opencv_decodes_it(params, cut, why):
     from skimage import data as skdata
 
     whole = _encode(np.ascontiguousarray(skdata.chelsea()), ".jpg", params)
-    damaged = _cut_scan(whole, 2000, 3000)
+    damaged = _cut_scan(whole, *cut)
     assert probe(damaged) == probe(whole)  # structurally whole: the header walk finds EOI
     filled = cv2.imdecode(np.frombuffer(damaged, np.uint8), cv2.IMREAD_COLOR_RGB)
     assert filled is not None and filled.shape == decode(whole).shape  # the hazard: OpenCV says nothing
@@ -308,6 +311,147 @@ def test_a_cut_in_any_first_scan_of_a_progressive_jpeg_is_refused_chroma_scans_t
         assert _code(whole[:middle] + whole[middle + 8:]) == "not-an-image", components
         first_scans.add(components)
     assert {(2,), (3,)} <= first_scans  # the chroma components' own scans were among them
+
+
+def _scan_starts(data: bytes) -> list[int]:
+    """Offsets of every SOS marker (none of these test files holds FF DA inside a segment)."""
+    return [i for i in range(len(data) - 1) if data[i:i + 2] == b"\xff\xda"]
+
+
+def _pil_jpeg(rgb: np.ndarray, mode: str = "RGB", **kw) -> bytes:
+    """A JPEG written by Pillow's libjpeg (its own scan scripts and Huffman optimisation)."""
+    image = pytest.importorskip("PIL.Image")
+    out = io.BytesIO()
+    image.fromarray(rgb).convert(mode).save(out, "JPEG", **kw)
+    return out.getvalue()
+
+
+def _chelsea() -> np.ndarray:
+    from skimage import data as skdata
+
+    return np.ascontiguousarray(skdata.chelsea())
+
+
+_PROGRESSIVE_JPEGS = {
+    "opencv": lambda: _encode(_chelsea(), ".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1]),
+    "opencv-grey": lambda: _encode(_chelsea()[..., 1].copy(), ".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1]),
+    "pillow": lambda: _pil_jpeg(_chelsea(), progressive=True),
+    "pillow-optimised": lambda: _pil_jpeg(_chelsea(), progressive=True, optimize=True),
+    "pillow-cmyk": lambda: _pil_jpeg(_chelsea(), "CMYK", progressive=True),
+}
+
+
+@pytest.mark.parametrize("make", _PROGRESSIVE_JPEGS.values(), ids=_PROGRESSIVE_JPEGS.keys())
+def test_a_progressive_jpeg_cut_at_a_scan_boundary_is_refused(make, no_decoding):
+    """Found from outside: cut before its second scan with EOI appended, a progressive file was learned
+    from its first (DC) scan alone, a blur of the view; libjpeg warns of nothing there."""
+    whole = make()
+    starts = _scan_starts(whole)
+    assert len(starts) > 2
+    assert probe(whole).format == "jpeg"
+    for k in range(1, len(starts)):
+        cut = whole[:starts[k]] + b"\xff\xd9"
+        with pytest.raises(ImageError) as info:
+            probe(cut)
+        assert info.value.code == "not-an-image", k
+        assert "do not hold the whole image" in str(info.value) and "component" in str(info.value)
+
+
+def test_a_progressive_jpeg_cut_at_a_scan_boundary_is_what_opencv_decodes_without_a_word():
+    whole = _PROGRESSIVE_JPEGS["opencv"]()
+    cut = whole[:_scan_starts(whole)[1]] + b"\xff\xd9"  # the DC scan alone, at 1 bit short
+    out = cv2.imdecode(np.frombuffer(cut, np.uint8), cv2.IMREAD_COLOR_RGB)
+    assert out is not None and out.shape == _chelsea().shape  # the hazard: a whole-looking frame
+    with pytest.raises(ImageError) as info:
+        decode(cut)
+    assert str(info.value) == (
+        "corrupt JPEG image: its scans do not hold the whole image (component 1 coefficients 0 refined only "
+        "to bit 1, 1..63 never sent; component 2 coefficients 0 refined only to bit 1, 1..63 never sent; "
+        "component 3 coefficients 0 refined only to bit 1, 1..63 never sent); a decoder would return the "
+        "frame with that detail left out")
+
+
+def test_a_progressive_jpeg_missing_a_scan_from_the_middle_is_refused(no_decoding):
+    """Without any one of its scans the file still ends in EOI, and the last scans still bring each
+    coefficient to bit 0; what is missing shows as a refinement from a bit the scans before it never
+    left (ITU-T T.81 B.2.3), or a band never sent."""
+    whole = _PROGRESSIVE_JPEGS["opencv"]()
+    starts = [*_scan_starts(whole), len(whole) - 2]
+    for k in range(len(starts) - 1):
+        with pytest.raises(ImageError) as info:
+            probe(whole[:starts[k]] + whole[starts[k + 1]:])
+        assert info.value.code == "not-an-image", k
+    dropped = whole[:starts[5]] + whole[starts[6]:]  # Y's AC refinement from bit 2 to bit 1
+    with pytest.raises(ImageError) as info:
+        probe(dropped)
+    assert "scan 9 (component 1, coefficients 1..63, Ah 1) does not follow on from the scans before it: " \
+           "coefficient 1 stands at bit 2" in str(info.value)
+
+
+def test_a_sequential_jpeg_whose_frame_has_a_component_no_scan_holds_is_refused(no_decoding):
+    """A sequential frame may send its components in separate scans; cut after the first with EOI
+    appended, libjpeg leaves the others flat. Here: a grey file whose frame header claims three."""
+    grey = bytearray(_encode(_chelsea()[..., 1].copy(), ".jpg"))
+    sof = grey.index(b"\xff\xc0")
+    assert grey[sof + 9] == 1  # one component: id, sampling, table
+    three = bytes(grey[:sof + 2] + struct.pack(">H", 17) + grey[sof + 4:sof + 9] + b"\x03"
+                  + grey[sof + 10:sof + 13] + b"\x02\x11\x00\x03\x11\x00" + grey[sof + 13:])
+    with pytest.raises(ImageError) as info:
+        probe(three)
+    assert info.value.code == "not-an-image" and "no scan holds component 2, 3" in str(info.value)
+
+
+def test_a_jpeg_scan_naming_a_component_the_frame_lacks_is_refused(no_decoding):
+    data = bytearray(_encode(_blocks_rgb(), ".jpg"))
+    sos = data.index(b"\xff\xda")
+    data[sos + 5] = 9  # the first component's id: the frame's are 1, 2, 3
+    with pytest.raises(ImageError) as info:
+        probe(bytes(data))
+    assert info.value.code == "not-an-image" and "names component 9" in str(info.value)
+
+
+def _exif_thumbnail(main: bytes, thumb: bytes) -> bytes:
+    payload = b"Exif\x00\x00" + thumb
+    return main[:2] + b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload + main[2:]
+
+
+def _sequential_zeros(jpeg: bytes) -> bytes:
+    """Ss, Se, Ah/Al all zero in a baseline file's scan header, as some cameras write them."""
+    sos = jpeg.index(b"\xff\xda")
+    end = sos + 2 + int.from_bytes(jpeg[sos + 2:sos + 4], "big")
+    return jpeg[:end - 3] + b"\x00\x00\x00" + jpeg[end:]
+
+
+_STANDARD_JPEGS = {
+    "opencv-baseline": lambda: _encode(_chelsea(), ".jpg"),
+    "opencv-optimised": lambda: _encode(_chelsea(), ".jpg", [cv2.IMWRITE_JPEG_OPTIMIZE, 1]),
+    "opencv-grey": lambda: _encode(_chelsea()[..., 0].copy(), ".jpg"),
+    "opencv-restarts": lambda: _encode(_chelsea(), ".jpg", [cv2.IMWRITE_JPEG_RST_INTERVAL, 3]),
+    "opencv-progressive-restarts": lambda: _encode(_chelsea(), ".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1,
+                                                                        cv2.IMWRITE_JPEG_RST_INTERVAL, 3]),
+    "opencv-444": lambda: _encode(_chelsea(), ".jpg", [cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
+                                                       cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444]),
+    "pillow-baseline": lambda: _pil_jpeg(_chelsea()),
+    "pillow-optimised": lambda: _pil_jpeg(_chelsea(), optimize=True),
+    "pillow-cmyk": lambda: _pil_jpeg(_chelsea(), "CMYK"),
+    "pillow-grey-progressive": lambda: _pil_jpeg(_chelsea(), "L", progressive=True),
+    "pillow-progressive-444": lambda: _pil_jpeg(_chelsea(), progressive=True, subsampling=0),
+    "exif-thumbnail": lambda: _exif_thumbnail(_encode(_chelsea(), ".jpg"),
+                                              _encode(_blocks_rgb(16, 16), ".jpg")),
+    "progressive-with-progressive-thumbnail": lambda: _exif_thumbnail(
+        *(_encode(a, ".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1]) for a in (_chelsea(), _blocks_rgb(16, 16)))),
+    "sequential-scan-parameters-zero": lambda: _sequential_zeros(_encode(_chelsea(), ".jpg")),
+    **{f"progressive-{name}": make for name, make in _PROGRESSIVE_JPEGS.items()},
+}
+
+
+@pytest.mark.parametrize("make", _STANDARD_JPEGS.values(), ids=_STANDARD_JPEGS.keys())
+def test_whole_jpegs_of_every_common_kind_pass_the_scan_walk(make):
+    data = make()
+    out = decode(data)
+    assert out.shape == _chelsea().shape
+    expected = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR_RGB)
+    np.testing.assert_array_equal(out, expected)
 
 
 def test_the_scan_data_check_decodes_at_an_eighth(monkeypatch):

@@ -123,6 +123,9 @@ def bad_inputs() -> list[tuple[str, bytes, str, dict, int, str]]:
     sos = jpg.index(b"\xff\xda")
     scan = sos + 2 + int.from_bytes(jpg[sos + 2:sos + 4], "big")
     quarter = (len(jpg) - 2 - scan) // 4
+    progressive = cv2.imencode(".jpg", cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR),
+                               [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes()
+    second_scan = progressive.index(b"\xff\xda", progressive.index(b"\xff\xda") + 2)
     return [
         ("empty", b"", "image/png", {}, 422, "undecodable-image"),
         ("one byte", b"\x89", "image/png", {}, 422, "undecodable-image"),
@@ -132,6 +135,9 @@ def bad_inputs() -> list[tuple[str, bytes, str, dict, int, str]]:
         # a USB camera's broken MJPEG frame: a quarter of the scan data lost, EOI in place
         ("jpeg with scan data cut out", jpg[:scan + quarter] + jpg[scan + 2 * quarter:], "image/jpeg", {},
          422, "undecodable-image"),
+        # found from outside: learned from its first scan alone (libjpeg warns of nothing)
+        ("progressive jpeg cut at a scan boundary, EOI appended", progressive[:second_scan] + b"\xff\xd9",
+         "image/jpeg", {}, 422, "undecodable-image"),
         ("jpeg declared as png", jpg, "image/png", {}, 415, "unsupported-media-type"),
         ("text/plain", png, "text/plain", {}, 415, "unsupported-media-type"),
         ("gif", b"GIF89a" + bytes(64), "application/octet-stream", {}, 415, "unsupported-media-type"),
