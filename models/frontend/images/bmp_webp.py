@@ -44,6 +44,31 @@ def _bmp_header(data: bytes) -> _Header:
     return _Header(width, height, n >= need)
 
 
+# An extended (VP8X) WebP's flags: bit 1 says the file is an animation (ANIM, then one ANMF chunk per
+# frame). OpenCV decodes an animation's first frame, which the checks here never judged: a robot sends
+# single frames, so animations are refused, by the flag or by the chunks.
+_VP8X_ANIMATION = 0x02
+_WEBP_ANIMATION_CHUNKS = frozenset({b"ANIM", b"ANMF"})
+# A still extended WebP has a handful of chunks (VP8X, ICCP, ALPH, VP8/VP8L, EXIF, XMP); the cap keeps
+# the walk short whatever the file holds.
+_WEBP_MAX_CHUNKS = 64
+
+
+def _webp_has_animation_chunk(data: bytes) -> bool:
+    """Whether an ANIM or ANMF chunk is among the first `_WEBP_MAX_CHUNKS` chunks of the RIFF container
+    (each: FourCC, little-endian size, data padded to an even length). The flag is what libwebp goes by;
+    the chunks are a second look, so a file that hides them past the cap is no animation to it either."""
+    pos, end = 12, min(len(data), 8 + int.from_bytes(data[4:8], "little"))
+    for _ in range(_WEBP_MAX_CHUNKS):
+        if pos + 8 > end:
+            break
+        if data[pos:pos + 4] in _WEBP_ANIMATION_CHUNKS:
+            return True
+        size = int.from_bytes(data[pos + 4:pos + 8], "little")
+        pos += 8 + size + (size & 1)
+    return False
+
+
 def _webp_header(data: bytes) -> _Header:
     """RIFF container; the first chunk is VP8 (lossy), VP8L (lossless) or VP8X (extended)."""
     n = len(data)
@@ -62,6 +87,9 @@ def _webp_header(data: bytes) -> _Header:
         (bits,) = struct.unpack_from("<I", data, 21)
         width, height = (bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1
     elif fourcc == b"VP8X":
+        if data[20] & _VP8X_ANIMATION or _webp_has_animation_chunk(data):
+            raise ImageError("unsupported-format", "animated WebP images are not supported; send a single "
+                             "frame as a still WebP", detected="WebP (animated)")
         width = int.from_bytes(data[24:27], "little") + 1
         height = int.from_bytes(data[27:30], "little") + 1
     else:

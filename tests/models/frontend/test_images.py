@@ -556,6 +556,65 @@ def test_degenerate_aspect_ratio_is_refused():
     assert decode(_encode(np.zeros((1, 1, 3), np.uint8), ".png")).shape == (1, 1, 3)
 
 
+def _apng(width: int, height: int, first_frame: bytes) -> bytes:
+    """An animated PNG of two frames whose default image (IDAT) is flat grey and whose first animation
+    frame (fcTL + fdAT) is `first_frame`, deflated rows with their filter bytes."""
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    grey = zlib.compress((b"\x00" + b"\x80" * 3 * width) * height)
+
+    def fctl(seq: int) -> bytes:  # sequence, size, offset, delay 1/10 s, dispose none, blend source
+        return _png_chunk(b"fcTL", struct.pack(">IIIIIHHBB", seq, width, height, 0, 0, 1, 10, 0, 0))
+
+    return (probing._PNG_SIGNATURE + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"acTL", struct.pack(">II", 2, 0))
+            + _png_chunk(b"IDAT", grey) + fctl(0) + _png_chunk(b"fdAT", struct.pack(">I", 1) + first_frame)
+            + fctl(2) + _png_chunk(b"fdAT", struct.pack(">I", 3) + grey) + _png_chunk(b"IEND", b""))
+
+
+def test_an_animated_png_is_refused(no_decoding):
+    """Found from outside: the checks judge an APNG's default image (IDAT), OpenCV decodes its first
+    animation frame (fdAT), which they never see: one of 2 GiB of deflated zeros was learned as black."""
+    bomb = zlib.compress(bytes(64 << 20), 9)  # 64 MB of zeros for a 64x48 frame of 9,264 raster bytes
+    for data in (_apng(64, 48, bomb), _apng(64, 48, zlib.compress(bytes(48 * (1 + 64 * 3))))):
+        with pytest.raises(ImageError) as info:
+            probe(data)
+        err = info.value
+        assert err.code == "unsupported-format" and err.details["detected"] == "PNG (animated)"
+        assert "animated PNG" in str(err)
+
+
+def test_an_animated_png_from_pillow_is_refused():
+    image = pytest.importorskip("PIL.Image")
+    frames = [image.fromarray(_random_rgb(seed=s)) for s in range(2)]
+    out = io.BytesIO()
+    image.new("RGB", (64, 48)).save(out, "PNG", save_all=True, append_images=frames, default_image=True)
+    assert _code(out.getvalue()) == "unsupported-format"
+
+
+def test_an_animated_webp_is_refused_by_its_flag_or_its_chunks(no_decoding):
+    image = pytest.importorskip("PIL.Image")
+    frames = [image.fromarray(_random_rgb(seed=s)) for s in range(3)]
+    out = io.BytesIO()
+    frames[0].save(out, "WEBP", save_all=True, append_images=frames[1:], duration=100, loop=0)
+    animated = out.getvalue()
+    assert animated[12:16] == b"VP8X" and animated[20] & 0x02
+    unflagged = animated[:20] + bytes([animated[20] & ~0x02]) + animated[21:]  # ANIM, ANMF still there
+    for data in (animated, unflagged):
+        with pytest.raises(ImageError) as info:
+            probe(data)
+        assert info.value.code == "unsupported-format" and info.value.details["detected"] == "WebP (animated)"
+        assert "animated WebP" in str(info.value)
+
+
+def test_a_still_extended_webp_is_accepted():
+    image = pytest.importorskip("PIL.Image")
+    rgba = np.dstack([_random_rgb(), np.full((48, 64), 128, np.uint8)])
+    out = io.BytesIO()
+    image.fromarray(rgba).save(out, "WEBP", quality=90, exif=b"Exif\x00\x00MM\x00*\x00\x00\x00\x08\x00\x00")
+    data = out.getvalue()
+    assert data[12:16] == b"VP8X" and b"ALPH" in data and b"EXIF" in data
+    assert decode(data).shape == (48, 64, 3)
+
+
 def test_structurally_complete_but_corrupt_png_is_not_an_image():
     data = bytearray(_encode(_random_rgb(), ".png"))
     idat = data.index(b"IDAT")

@@ -126,6 +126,13 @@ def bad_inputs() -> list[tuple[str, bytes, str, dict, int, str]]:
     progressive = cv2.imencode(".jpg", cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR),
                                [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes()
     second_scan = progressive.index(b"\xff\xda", progressive.index(b"\xff\xda") + 2)
+    actl = b"acTL" + bytes(8)  # an animated PNG's control chunk (its CRC is not what is judged)
+    animated_png = png[:33] + len(actl[4:]).to_bytes(4, "big") + actl + bytes(4) + png[33:]
+    vp8x = b"VP8X" + (10).to_bytes(4, "little") + b"\x02" + bytes(3) + (127).to_bytes(3, "little") \
+        + (95).to_bytes(3, "little")  # the animation flag set, a 128x96 canvas
+    webp = frame(1, fmt=".webp")
+    body = b"WEBP" + vp8x + webp[12:]
+    animated_webp = b"RIFF" + len(body).to_bytes(4, "little") + body
     return [
         ("empty", b"", "image/png", {}, 422, "undecodable-image"),
         ("one byte", b"\x89", "image/png", {}, 422, "undecodable-image"),
@@ -139,6 +146,9 @@ def bad_inputs() -> list[tuple[str, bytes, str, dict, int, str]]:
         ("progressive jpeg cut at a scan boundary, EOI appended", progressive[:second_scan] + b"\xff\xd9",
          "image/jpeg", {}, 422, "undecodable-image"),
         ("jpeg declared as png", jpg, "image/png", {}, 415, "unsupported-media-type"),
+        # found from outside: OpenCV decodes an animation's first frame, which no check had judged
+        ("animated png", animated_png, "image/png", {}, 415, "unsupported-media-type"),
+        ("animated webp", animated_webp, "image/webp", {}, 415, "unsupported-media-type"),
         ("text/plain", png, "text/plain", {}, 415, "unsupported-media-type"),
         ("gif", b"GIF89a" + bytes(64), "application/octet-stream", {}, 415, "unsupported-media-type"),
         ("bmp declared as webp", frame(1, fmt=".bmp"), "image/webp", {}, 415, "unsupported-media-type"),
