@@ -8,8 +8,8 @@ Decoding follows the order of work of docs/design/service.md §1.2 and §3, so a
 nothing before it is refused: byte limit -> magic bytes (JPEG, PNG, BMP, WebP; everything else is refused
 before OpenCV sees it, which keeps OpenCV's many other codecs out of reach) -> width and height read from the
 header by small pure-Python parsers -> pixel cap and aspect-ratio cap -> a structural completeness check
-(truncated uploads are refused rather than decoded into half-grey frames, and so is a JPEG whose scans
-stop short of the image) -> a decoding-cost check ->
+(truncated uploads are refused rather than decoded into half-grey frames, and so are a JPEG whose scans
+and an RLE bitmap whose rows stop short of the image) -> a decoding-cost check ->
 the PNG's bounded inflate or the JPEG's scan-data check -> `cv2.imdecode`.
 
 Decoding cost is bounded by the declared raster, not only by the byte limit: a 10 MB PNG can hold ~10 GB

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Collection
 
-from models.frontend.images.bmp_webp import _bmp_header, _webp_header
+from models.frontend.images.bmp_webp import _bmp_check_rle, _bmp_header, _webp_header
 from models.frontend.images.common import (
     _FORMAT_NAMES,
     DEFAULT_MAX_ASPECT,
@@ -197,6 +197,8 @@ def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pix
                "bmp": "the pixel array is shorter than the header says",
                "webp": "shorter than its RIFF header says"}[fmt]
         raise _truncated(fmt, end, n)
+    if fmt == "bmp":
+        _bmp_check_rle(data)  # after the caps: its walk takes a turn per row
     if damaged is not None:
         raise damaged
     if costly is not None:

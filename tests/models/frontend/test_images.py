@@ -548,6 +548,92 @@ def test_over_max_bytes_is_too_large(no_decoding):
     assert f"{len(data)} bytes" in str(info.value)
 
 
+def _bmp_rle(grey: np.ndarray, *, rle4: bool = False, size_image: int | None = None,
+             last_eol: bool = True) -> tuple[bytes, list[int]]:
+    """An RLE8 (values 0..255) or RLE4 (0..15) bitmap of `grey` with a grey palette, and where each row's
+    data ends (after its end of line). Each row opens with an absolute run of 5 pixels, then encoded
+    runs; an end of line after every row (the last: `last_eol`), then the end of bitmap."""
+    h, w = grey.shape
+    rows, ends = b"", []
+    for y in range(h - 1, -1, -1):  # bottom-up
+        row = grey[y].tolist()
+        if rle4:
+            packed = bytes((row[i] << 4) | (row[i + 1] if i + 1 < 5 else 0) for i in range(0, 5, 2))
+            out = bytearray(b"\x00\x05" + packed + b"\x00")  # 5 nibbles in 3 bytes, padded to 4
+        else:
+            out = bytearray(b"\x00\x05" + bytes(row[:5]) + b"\x00")  # 5 bytes, padded to 6
+        x = 5
+        while x < w:
+            n = 1
+            while x + n < w and n < 255 and row[x + n] == row[x]:
+                n += 1
+            out += bytes((n, (row[x] << 4) | row[x] if rle4 else row[x]))
+            x += n
+        if last_eol or y:
+            out += b"\x00\x00"
+        rows += out
+        ends.append(len(rows))
+    data = rows + b"\x00\x01"
+    colours = 16 if rle4 else 256
+    palette = b"".join(bytes((v, v, v, 0)) for v in (np.arange(colours) * 255 // (colours - 1)).tolist())
+    offbits = 14 + 40 + len(palette)
+    header = b"BM" + struct.pack("<IHHI", offbits + len(data), 0, 0, offbits) + struct.pack(
+        "<IiiHHIIiiII", 40, w, h, 1, 4 if rle4 else 8, 2 if rle4 else 1,
+        len(data) if size_image is None else size_image, 2835, 2835, colours, 0)
+    return header + palette + data, [offbits + e for e in ends]
+
+
+def _posterised(levels: int) -> np.ndarray:
+    """96x64 blocks of `levels` grey levels: runs long enough for RLE."""
+    return cv2.resize(np.random.default_rng(4).integers(0, levels, (8, 12), dtype=np.uint8), (96, 64),
+                      interpolation=cv2.INTER_NEAREST)
+
+
+@pytest.mark.parametrize("rle4", [False, True])
+@pytest.mark.parametrize("last_eol", [True, False])
+def test_a_whole_rle_bmp_decodes_to_its_pixels(rle4, last_eol):
+    grey = _posterised(16 if rle4 else 256)
+    data, _ = _bmp_rle(grey, rle4=rle4, last_eol=last_eol)
+    expected = grey * 17 if rle4 else grey
+    np.testing.assert_array_equal(decode(data), np.dstack([expected] * 3))
+
+
+@pytest.mark.parametrize("rle4", [False, True])
+def test_an_rle_bmp_cut_part_way_is_refused_even_with_its_end_of_bitmap(rle4, no_decoding):
+    """Found from outside: an RLE8 bitmap cut after 120 of its 480 rows with an end of bitmap (00 01)
+    appended, biSizeImage 0, was learned with the missing rows black."""
+    grey = _posterised(16 if rle4 else 256)
+    data, ends = _bmp_rle(grey, rle4=rle4, size_image=0)
+    for rows in (1, 16, 62):
+        for cut in (data[:ends[rows - 1]] + b"\x00\x01", data[:ends[rows - 1] + 7] + b"\x00\x01",
+                    data[:ends[rows - 1]]):
+            with pytest.raises(ImageError) as info:
+                probe(cut)
+            assert info.value.code == "truncated"
+            assert f"its RLE data ends in row {rows + 1} of 64" in str(info.value)
+    assert probe(data[:ends[62]] + b"\x00\x01").height == 64  # into the last row: whole as far as it tells
+
+
+def test_an_rle_bmp_cut_with_its_end_of_bitmap_is_what_opencv_decodes_without_a_word():
+    grey = _posterised(256)
+    data, ends = _bmp_rle(grey, size_image=0)
+    cut = data[:ends[15]] + b"\x00\x01"
+    out = cv2.imdecode(np.frombuffer(cut, np.uint8), cv2.IMREAD_GRAYSCALE)
+    assert out is not None and out.shape == grey.shape  # the hazard: rows 16.. filled, no error
+    assert _code(cut) == "truncated"
+
+
+def test_an_rle_bmp_whose_rows_a_delta_skips_is_whole():
+    grey = _posterised(256)
+    data, ends = _bmp_rle(grey, size_image=0)
+    # rows 3..10 (from the bottom) skipped by one delta down 8 rows, back at column 0
+    skipped = data[:ends[2]] + b"\x00\x02\x00\x08" + data[ends[10]:]
+    out = decode(skipped)[::-1, :, 0]  # bottom-up, as the rows were written
+    np.testing.assert_array_equal(out[:3], grey[::-1][:3])
+    np.testing.assert_array_equal(out[11:], grey[::-1][11:])
+    assert _code(skipped[:ends[2]] + b"\x00\x02\x00\x08" + b"\x00\x01") == "truncated"
+
+
 def test_degenerate_aspect_ratio_is_refused():
     data = _encode(np.zeros((1, 4000, 3), np.uint8), ".png")
     assert _code(data) == "degenerate"

@@ -133,6 +133,11 @@ def bad_inputs() -> list[tuple[str, bytes, str, dict, int, str]]:
     webp = frame(1, fmt=".webp")
     body = b"WEBP" + vp8x + webp[12:]
     animated_webp = b"RIFF" + len(body).to_bytes(4, "little") + body
+    # an RLE8 bitmap of 128x96 cut after 10 rows, its end of bitmap appended, biSizeImage 0
+    rle_rows = b"\x80\x07\x00\x00" * 10 + b"\x00\x01"
+    rle_cut = (b"BM" + (1078 + len(rle_rows)).to_bytes(4, "little") + bytes(4) + (1078).to_bytes(4, "little")
+               + (40).to_bytes(4, "little") + (128).to_bytes(4, "little") + (96).to_bytes(4, "little")
+               + b"\x01\x00\x08\x00" + (1).to_bytes(4, "little") + bytes(20) + bytes(1024) + rle_rows)
     return [
         ("empty", b"", "image/png", {}, 422, "undecodable-image"),
         ("one byte", b"\x89", "image/png", {}, 422, "undecodable-image"),
@@ -146,6 +151,8 @@ def bad_inputs() -> list[tuple[str, bytes, str, dict, int, str]]:
         ("progressive jpeg cut at a scan boundary, EOI appended", progressive[:second_scan] + b"\xff\xd9",
          "image/jpeg", {}, 422, "undecodable-image"),
         ("jpeg declared as png", jpg, "image/png", {}, 415, "unsupported-media-type"),
+        # found from outside: learned with the missing rows black
+        ("rle bmp cut part way, end of bitmap appended", rle_cut, "image/bmp", {}, 422, "undecodable-image"),
         # found from outside: OpenCV decodes an animation's first frame, which no check had judged
         ("animated png", animated_png, "image/png", {}, 415, "unsupported-media-type"),
         ("animated webp", animated_webp, "image/webp", {}, 415, "unsupported-media-type"),
