@@ -11,9 +11,11 @@ from models.frontend.images.common import (
     DEFAULT_MAX_ASPECT,
     DEFAULT_MAX_BYTES,
     DEFAULT_MAX_PIXELS,
+    DEFAULT_MIN_SIDE,
     FORMATS,
     ImageError,
     ImageInfo,
+    _check_shape,
     _truncated,
 )
 from models.frontend.images.jpeg import _jpeg_header
@@ -114,7 +116,8 @@ def _accepted_list(formats: Collection[str]) -> str:
 
 
 def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = DEFAULT_MAX_PIXELS,
-          max_aspect: float | None = DEFAULT_MAX_ASPECT, formats: Collection[str] = FORMATS) -> ImageInfo:
+          max_aspect: float | None = DEFAULT_MAX_ASPECT, min_side: int | None = DEFAULT_MIN_SIDE,
+          formats: Collection[str] = FORMATS) -> ImageInfo:
     """Every check `decode` makes, without decoding a pixel (docs/design/service.md §1.2 order of work).
 
     Args:
@@ -125,6 +128,8 @@ def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pix
             alpha samples: up to 8 bytes a pixel).
         max_aspect: refuse images whose long side exceeds `max_aspect` × the short side ("degenerate");
             None disables the check.
+        min_side: refuse images whose short side is under `min_side` pixels ("degenerate"); None
+            disables the check.
         formats: accepted formats, a subset of `FORMATS` (the service may narrow it to JPEG and PNG).
 
     Returns:
@@ -138,7 +143,7 @@ def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pix
     if unknown or not formats:
         raise ValueError(f"formats must be a non-empty subset of {FORMATS}, got {tuple(formats)}")
     if isinstance(data, RawFrame):
-        probe_raw(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect)
+        probe_raw(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect, min_side=min_side)
         return ImageInfo("raw", data.width, data.height)
     if not isinstance(data, bytes):
         data = bytes(data)
@@ -186,11 +191,7 @@ def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pix
                          f"than the limit of {max_pixels * PIXEL_CAP_BYTES} ({max_pixels} pixels of "
                          f"{PIXEL_CAP_BYTES} bytes)", width=width, height=height, max_pixels=max_pixels,
                          bits_per_pixel=bits, format=fmt)
-    if max_aspect is not None and max(width, height) > max_aspect * min(width, height):
-        raise ImageError("degenerate",
-                         f"image is {width}x{height}: its long side is more than {max_aspect:g} times "
-                         f"its short side",
-                         width=width, height=height, max_aspect=max_aspect, format=fmt)
+    _check_shape(width, height, fmt, max_aspect, min_side)
     if not complete:
         end = {"jpeg": "no end-of-image marker (FF D9) after the last scan",
                "png": "no IEND chunk",

@@ -635,11 +635,37 @@ def test_an_rle_bmp_whose_rows_a_delta_skips_is_whole():
 
 
 def test_degenerate_aspect_ratio_is_refused():
-    data = _encode(np.zeros((1, 4000, 3), np.uint8), ".png")
-    assert _code(data) == "degenerate"
-    assert decode(data, max_aspect=None).shape == (1, 4000, 3)
-    assert decode(_encode(np.zeros((1, 16, 3), np.uint8), ".png")).shape == (1, 16, 3)  # 16x is allowed
-    assert decode(_encode(np.zeros((1, 1, 3), np.uint8), ".png")).shape == (1, 1, 3)
+    assert _code(_encode(np.zeros((1, 4000, 3), np.uint8), ".png")) == "degenerate"
+    data = _encode(np.zeros((16, 4000, 3), np.uint8), ".png")
+    with pytest.raises(ImageError) as info:
+        decode(data)
+    assert info.value.details["max_aspect"] == 16 and "more than 16 times its short side" in str(info.value)
+    assert decode(data, max_aspect=None).shape == (16, 4000, 3)
+    assert decode(_encode(np.zeros((16, 256, 3), np.uint8), ".png")).shape == (16, 256, 3)  # 16x is allowed
+    assert _code(_encode(np.zeros((16, 257, 3), np.uint8), ".png")) == "degenerate"
+
+
+@pytest.mark.parametrize(("width", "height"), [(1, 1), (2, 2), (8, 8), (16, 8), (8, 16), (15, 15), (15, 200)])
+def test_a_frame_whose_short_side_is_under_16_pixels_is_refused(width, height, no_decoding):
+    """Found from outside: 1x1, 2x2, 8x8 and 16x8 frames were learned as views, and a 2x2 checkerboard
+    matched real views at confidence 0.725."""
+    board = ((np.indices((height, width)).sum(0) % 2) * 255).astype(np.uint8)
+    for data in (_encode(np.dstack([board] * 3), ".png"), _encode(board, ".jpg"),
+                 images.RawFrame(board.tobytes(), "mono8", width, height)):
+        with pytest.raises(ImageError) as info:
+            probe(data)
+        err = info.value
+        assert err.code == "degenerate" and err.details["min_side"] == images.DEFAULT_MIN_SIDE == 16
+        assert (err.details["width"], err.details["height"]) == (width, height)
+        assert f"image is {width}x{height}: its short side is under 16 pixels" in str(err)
+        assert probe(data, min_side=None).width == width
+
+
+@pytest.mark.parametrize(("width", "height"), [(16, 16), (64, 32), (32, 64), (16, 256)])
+def test_a_frame_whose_short_side_is_16_pixels_or_more_is_accepted(width, height):
+    rgb = _random_rgb(height, width)
+    assert decode(_encode(rgb, ".png")).shape == (height, width, 3)
+    assert decode(images.RawFrame(rgb.tobytes(), "rgb8", width, height)).shape == (height, width, 3)
 
 
 def _apng(width: int, height: int, first_frame: bytes) -> bytes:
@@ -926,7 +952,7 @@ def test_png_bomb_in_a_large_raster_is_stopped_at_the_raster_size(png_bomb, no_d
 def test_png_image_data_must_inflate_to_exactly_its_raster(colour, depth, samples, interlace, make_png):
     # Exactly the raster decodes; one byte more is refused before OpenCV (libpng would inflate it all),
     # one byte less is corrupt. Odd sizes exercise the Adam7 pass arithmetic and sub-byte packing.
-    w, h = 13, 7
+    w, h = 21, 17
     exact = png_mod._png_raster_bytes(w, h, samples * depth, bool(interlace))
     plte = _png_chunk(b"PLTE", bytes(3 * 16)) if colour == 3 else b""
 
