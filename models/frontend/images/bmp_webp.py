@@ -82,8 +82,8 @@ def _bmp_check_rle(data: bytes) -> None:
     dy); by the time the data stops, all rows but the last must be ended. The last may end with the end
     of bitmap itself (encoders write it without an end of line), so a cut inside the last row, at most
     a row, goes unseen. Run after the pixel and aspect caps: one Python turn per row (a regex skips the
-    runs within one), so a header's claimed height costs no more than the caps allow, and the walk
-    reads each byte of the file at most once.
+    runs within one), so a header's claimed height costs no more than the caps allow, and the walk is
+    one pass over the file's bytes.
 
     Raises:
         ImageError: "truncated".

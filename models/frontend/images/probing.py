@@ -1,5 +1,6 @@
 """Magic bytes and the checks before any decoding, in the order of docs/design/service.md §1.2: byte
-limit, signature, header size, pixel and aspect caps, completeness, decoding cost."""
+limit, signature, header size, pixel and aspect caps and the minimum side, completeness (an RLE bitmap's
+rows, a JPEG's scans), decoding cost."""
 
 from __future__ import annotations
 
