@@ -7,8 +7,10 @@ simplejpeg to check a JPEG's scan data, `jpeg._jpeg_check_scan_data`): no torchv
 Decoding follows the order of work of docs/design/service.md §1.2 and §3, so a hostile upload costs almost
 nothing before it is refused: byte limit -> magic bytes (JPEG, PNG, BMP, WebP; everything else is refused
 before OpenCV sees it, which keeps OpenCV's many other codecs out of reach) -> width and height read from the
-header by small pure-Python parsers -> pixel cap and aspect-ratio cap -> a structural completeness check
-(truncated uploads are refused rather than decoded into half-grey frames) -> a decoding-cost check ->
+header by small pure-Python parsers -> pixel cap, aspect-ratio cap and minimum side (16 pixels) -> a
+structural completeness check (truncated uploads are refused rather than decoded into half-grey frames,
+and so are a JPEG whose scans and an RLE bitmap whose rows stop short of the image) -> a decoding-cost
+check ->
 the PNG's bounded inflate or the JPEG's scan-data check -> `cv2.imdecode`.
 
 Decoding cost is bounded by the declared raster, not only by the byte limit: a 10 MB PNG can hold ~10 GB
@@ -53,6 +55,7 @@ from models.frontend.images.common import (
     DEFAULT_MAX_ASPECT,
     DEFAULT_MAX_BYTES,
     DEFAULT_MAX_PIXELS,
+    DEFAULT_MIN_SIDE,
     ERROR_CODES,
     FORMATS,
     IMAGENET_MEAN,
@@ -73,6 +76,7 @@ __all__ = [
     "DEFAULT_MAX_ASPECT",
     "DEFAULT_MAX_BYTES",
     "DEFAULT_MAX_PIXELS",
+    "DEFAULT_MIN_SIDE",
     "ERROR_CODES",
     "FORMATS",
     "IMAGENET_MEAN",

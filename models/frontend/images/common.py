@@ -10,6 +10,7 @@ from typing import Any, NamedTuple
 from models.frontend.limits import DEFAULT_MAX_ASPECT as DEFAULT_MAX_ASPECT
 from models.frontend.limits import DEFAULT_MAX_BYTES as DEFAULT_MAX_BYTES
 from models.frontend.limits import DEFAULT_MAX_PIXELS as DEFAULT_MAX_PIXELS
+from models.frontend.limits import DEFAULT_MIN_SIDE as DEFAULT_MIN_SIDE
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -29,9 +30,9 @@ class ImageError(ValueError):
 
     The HTTP service maps `code` to a 4xx problem+json (docs/design/service.md §2): `too-large` -> 413
     payload-too-large, `too-many-pixels` -> 413 image-too-large, `unsupported-format` -> 415,
-    `degenerate` -> 422 degenerate-image, `bomb` -> 422 decompression-bomb, `empty` / `not-an-image` /
-    `truncated` -> 422 undecodable-image; for raw frames (`raw.py`) `size-mismatch` -> 422
-    raw-frame-size-mismatch, `unsupported-encoding` -> 415.
+    `degenerate` (too long and thin, or too small) -> 422 degenerate-image, `bomb` -> 422
+    decompression-bomb, `empty` / `not-an-image` / `truncated` -> 422 undecodable-image; for raw frames
+    (`raw.py`) `size-mismatch` -> 422 raw-frame-size-mismatch, `unsupported-encoding` -> 415.
 
     Attributes:
         code: one of `ERROR_CODES`: "empty", "too-large", "not-an-image", "truncated", "too-many-pixels",
@@ -78,9 +79,10 @@ class ImageInfo:
 
 # The header parsers (jpeg, png, bmp_webp) each return a `_Header`. They raise ImageError("truncated")
 # when the file ends before the dimensions, ImageError("not-an-image") when the structure is corrupt.
-# `complete` says whether the file reaches its end marker and `costly` holds a "bomb" error; both are
-# reported separately so that the pixel cap is checked first (a tiny file that claims 20000×20000 is
-# "too-many-pixels", whatever follows its header).
+# `complete` says whether the file reaches its end marker, `damaged` holds a "not-an-image" error for a
+# file that does but whose contents stop short of the image (a progressive JPEG's missing scans) and
+# `costly` a "bomb" error; all are reported separately so that the pixel cap is checked first (a tiny file
+# that claims 20000×20000 is "too-many-pixels", whatever follows its header).
 
 
 class _Header(NamedTuple):
@@ -89,6 +91,26 @@ class _Header(NamedTuple):
     complete: bool
     costly: ImageError | None = None  # raised by `probe` after the size and completeness checks
     bits_per_pixel: int | None = None  # where a format's pixels may hold more than 24 bits (PNG)
+    damaged: ImageError | None = None  # raised by `probe` after the completeness check, before `costly`
+
+
+def _check_shape(width: int, height: int, fmt: str, max_aspect: float | None,
+                 min_side: int | None) -> None:
+    """The shape rules of every frame, encoded or raw (docs/design/service.md §1.2): the long side at most
+    `max_aspect` times the short one, the short side at least `min_side` pixels; None disables either.
+
+    Raises:
+        ImageError: "degenerate".
+    """
+    if max_aspect is not None and max(width, height) > max_aspect * min(width, height):
+        raise ImageError("degenerate",
+                         f"image is {width}x{height}: its long side is more than {max_aspect:g} times "
+                         f"its short side",
+                         width=width, height=height, max_aspect=max_aspect, format=fmt)
+    if min_side is not None and min(width, height) < min_side:
+        raise ImageError("degenerate",
+                         f"image is {width}x{height}: its short side is under {min_side} pixels, too small "
+                         "to be a view of a place", width=width, height=height, min_side=min_side, format=fmt)
 
 
 def _truncated(fmt: str, detail: str, n: int) -> ImageError:

@@ -13,6 +13,7 @@ from models.frontend.images.common import (
     DEFAULT_MAX_ASPECT,
     DEFAULT_MAX_BYTES,
     DEFAULT_MAX_PIXELS,
+    DEFAULT_MIN_SIDE,
     FORMATS,
     ImageError,
 )
@@ -24,7 +25,8 @@ from models.frontend.images.raw import RawFrame, decode_raw
 
 def decode(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES,
            max_pixels: int = DEFAULT_MAX_PIXELS, max_aspect: float | None = DEFAULT_MAX_ASPECT,
-           formats: Collection[str] = FORMATS, grey: bool = False) -> np.ndarray:
+           min_side: int | None = DEFAULT_MIN_SIDE, formats: Collection[str] = FORMATS,
+           grey: bool = False) -> np.ndarray:
     """Decode an uploaded JPEG, PNG, BMP or WebP, or a raw frame (`raw.decode_raw`), to 8-bit RGB
     (docs/design/science.md §6).
 
@@ -37,6 +39,7 @@ def decode(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES,
         max_bytes: byte limit ("too-large").
         max_pixels: pixel cap, checked on the header before decoding ("too-many-pixels").
         max_aspect: long side / short side limit ("degenerate"); None disables it.
+        min_side: fewest pixels of the short side ("degenerate"); None disables it.
         formats: accepted formats, a subset of `FORMATS`.
         grey: decode to one grey channel instead (a third of the memory of RGB, and the codec skips its
             colour conversion: what local features take, docs/design/science.md §12.1).
@@ -51,11 +54,13 @@ def decode(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES,
             when PNG image data inflates past its raster.
     """
     if isinstance(data, RawFrame):
-        rgb = decode_raw(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect)
+        rgb = decode_raw(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect,
+                         min_side=min_side)
         return np.ascontiguousarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)) if grey else rgb
     if not isinstance(data, bytes):
         data = bytes(data)
-    info = probe(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect, formats=formats)
+    info = probe(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect, min_side=min_side,
+                 formats=formats)
     if info.format == "png":
         _png_check_inflate(data)
     elif info.format == "jpeg":

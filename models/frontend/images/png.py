@@ -18,6 +18,10 @@ _ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), 
 # cap keeps the Python walk under ~20 ms.
 _PNG_MAX_CHUNKS = 16384
 _INFLATE_STEP = 1 << 22
+# An animated PNG (APNG): its animation control, frame control and frame data chunks. The checks here
+# judge the default image (IHDR, IDAT), but OpenCV decodes the first animation frame, from fdAT chunks
+# they never see (an outside probe: a first frame of 2 GiB of deflated zeros was learned as black).
+_APNG_CHUNKS = frozenset({b"acTL", b"fcTL", b"fdAT"})
 
 
 @dataclass(frozen=True)
@@ -32,6 +36,11 @@ class _PngLayout:
     complete: bool  # the walk reached IEND
 
 
+def _animated() -> ImageError:
+    return ImageError("unsupported-format", "animated PNG (APNG) images are not supported; send a single "
+                      "frame as a PNG without animation chunks (acTL, fcTL, fdAT)", detected="PNG (animated)")
+
+
 def _png_raster_bytes(width: int, height: int, bits_per_pixel: int, interlaced: bool) -> int:
     """Filtered scanline bytes: one filter byte plus the packed pixels per row, per Adam7 pass if any."""
     def rows(w: int, h: int) -> int:
@@ -44,7 +53,8 @@ def _png_raster_bytes(width: int, height: int, bits_per_pixel: int, interlaced: 
 
 
 def _png_layout(data: bytes) -> _PngLayout:
-    """Walk the chunks: IHDR first (size, depth, colour type, interlace), then every IDAT, up to IEND."""
+    """Walk the chunks: IHDR first (size, depth, colour type, interlace), then every IDAT, up to IEND.
+    An animation chunk anywhere is refused ("unsupported-format"): a robot sends single frames."""
     n = len(data)
     if n < 33:  # signature 8 + length 4 + type 4 + IHDR data 13 + CRC 4
         raise _truncated("png", "the file ends inside the IHDR header", n)
@@ -66,6 +76,8 @@ def _png_layout(data: bytes) -> _PngLayout:
         if pos + 8 > n:
             break
         length, ctype = unpack(data, pos)
+        if ctype in _APNG_CHUNKS:
+            raise _animated()
         if ctype == b"IDAT":
             idat.append((pos + 8, min(pos + 8 + length, n)))
         elif ctype == b"IEND":

@@ -1,19 +1,22 @@
 """Magic bytes and the checks before any decoding, in the order of docs/design/service.md §1.2: byte
-limit, signature, header size, pixel and aspect caps, completeness, decoding cost."""
+limit, signature, header size, pixel and aspect caps and the minimum side, completeness (an RLE bitmap's
+rows, a JPEG's scans), decoding cost."""
 
 from __future__ import annotations
 
 from collections.abc import Collection
 
-from models.frontend.images.bmp_webp import _bmp_header, _webp_header
+from models.frontend.images.bmp_webp import _bmp_check_rle, _bmp_header, _webp_header
 from models.frontend.images.common import (
     _FORMAT_NAMES,
     DEFAULT_MAX_ASPECT,
     DEFAULT_MAX_BYTES,
     DEFAULT_MAX_PIXELS,
+    DEFAULT_MIN_SIDE,
     FORMATS,
     ImageError,
     ImageInfo,
+    _check_shape,
     _truncated,
 )
 from models.frontend.images.jpeg import _jpeg_header
@@ -114,7 +117,8 @@ def _accepted_list(formats: Collection[str]) -> str:
 
 
 def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = DEFAULT_MAX_PIXELS,
-          max_aspect: float | None = DEFAULT_MAX_ASPECT, formats: Collection[str] = FORMATS) -> ImageInfo:
+          max_aspect: float | None = DEFAULT_MAX_ASPECT, min_side: int | None = DEFAULT_MIN_SIDE,
+          formats: Collection[str] = FORMATS) -> ImageInfo:
     """Every check `decode` makes, without decoding a pixel (docs/design/service.md §1.2 order of work).
 
     Args:
@@ -125,6 +129,8 @@ def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pix
             alpha samples: up to 8 bytes a pixel).
         max_aspect: refuse images whose long side exceeds `max_aspect` × the short side ("degenerate");
             None disables the check.
+        min_side: refuse images whose short side is under `min_side` pixels ("degenerate"); None
+            disables the check.
         formats: accepted formats, a subset of `FORMATS` (the service may narrow it to JPEG and PNG).
 
     Returns:
@@ -138,7 +144,7 @@ def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pix
     if unknown or not formats:
         raise ValueError(f"formats must be a non-empty subset of {FORMATS}, got {tuple(formats)}")
     if isinstance(data, RawFrame):
-        probe_raw(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect)
+        probe_raw(data, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect, min_side=min_side)
         return ImageInfo("raw", data.width, data.height)
     if not isinstance(data, bytes):
         data = bytes(data)
@@ -170,7 +176,7 @@ def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pix
                          f"{_FORMAT_NAMES[fmt]} images are not accepted here; send {_accepted_list(formats)}",
                          detected=_FORMAT_NAMES[fmt])
 
-    width, height, complete, costly, bits = _HEADER_PARSERS[fmt](data)
+    width, height, complete, costly, bits, damaged = _HEADER_PARSERS[fmt](data)
     if width * height > max_pixels:
         raise ImageError("too-many-pixels",
                          f"image has {width}x{height} = {width * height} pixels, "
@@ -186,17 +192,17 @@ def probe(data: bytes | RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pix
                          f"than the limit of {max_pixels * PIXEL_CAP_BYTES} ({max_pixels} pixels of "
                          f"{PIXEL_CAP_BYTES} bytes)", width=width, height=height, max_pixels=max_pixels,
                          bits_per_pixel=bits, format=fmt)
-    if max_aspect is not None and max(width, height) > max_aspect * min(width, height):
-        raise ImageError("degenerate",
-                         f"image is {width}x{height}: its long side is more than {max_aspect:g} times "
-                         f"its short side",
-                         width=width, height=height, max_aspect=max_aspect, format=fmt)
+    _check_shape(width, height, fmt, max_aspect, min_side)
     if not complete:
         end = {"jpeg": "no end-of-image marker (FF D9) after the last scan",
                "png": "no IEND chunk",
                "bmp": "the pixel array is shorter than the header says",
                "webp": "shorter than its RIFF header says"}[fmt]
         raise _truncated(fmt, end, n)
+    if fmt == "bmp":
+        _bmp_check_rle(data)  # after the caps: its walk takes a turn per row
+    if damaged is not None:
+        raise damaged
     if costly is not None:
         raise costly
     return ImageInfo(fmt, width, height)

@@ -21,7 +21,9 @@ from models.frontend.images.common import (
     DEFAULT_MAX_ASPECT,
     DEFAULT_MAX_BYTES,
     DEFAULT_MAX_PIXELS,
+    DEFAULT_MIN_SIDE,
     ImageError,
+    _check_shape,
 )
 
 __all__ = ["RAW_ENCODINGS", "RawFrame", "decode_raw", "probe_raw"]
@@ -48,7 +50,7 @@ class RawFrame:
 
 
 def probe_raw(frame: RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = DEFAULT_MAX_PIXELS,
-              max_aspect: float | None = DEFAULT_MAX_ASPECT) -> None:
+              max_aspect: float | None = DEFAULT_MAX_ASPECT, min_side: int | None = DEFAULT_MIN_SIDE) -> None:
     """Every check `decode_raw` makes, without touching a pixel.
 
     Raises:
@@ -76,21 +78,19 @@ def probe_raw(frame: RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels
         raise ImageError("too-many-pixels",
                          f"image has {w}x{h} = {w * h} pixels, more than the limit of {max_pixels}",
                          width=w, height=h, max_pixels=max_pixels, format="raw")
-    if max_aspect is not None and max(w, h) > max_aspect * min(w, h):
-        raise ImageError("degenerate",
-                         f"image is {w}x{h}: its long side is more than {max_aspect:g} times its short side",
-                         width=w, height=h, max_aspect=max_aspect, format="raw")
+    _check_shape(w, h, "raw", max_aspect, min_side)
 
 
 def decode_raw(frame: RawFrame, *, max_bytes: int = DEFAULT_MAX_BYTES, max_pixels: int = DEFAULT_MAX_PIXELS,
-               max_aspect: float | None = DEFAULT_MAX_ASPECT) -> np.ndarray:
+               max_aspect: float | None = DEFAULT_MAX_ASPECT,
+               min_side: int | None = DEFAULT_MIN_SIDE) -> np.ndarray:
     """A raw frame as (H, W, 3) uint8 RGB, C-contiguous (docs/design/science.md §6): `bgr8` swapped,
     grey replicated to three channels, `mono16` scaled to 8 bits with rounding.
 
     Raises:
         ImageError: see `probe_raw`.
     """
-    probe_raw(frame, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect)
+    probe_raw(frame, max_bytes=max_bytes, max_pixels=max_pixels, max_aspect=max_aspect, min_side=min_side)
     w, h = frame.width, frame.height
     if frame.encoding == "mono16":
         grey16 = np.frombuffer(frame.data, dtype="<u2").reshape(h, w)

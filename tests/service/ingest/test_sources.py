@@ -117,27 +117,27 @@ def _rgb_of(body: bytes, params: dict[str, str]) -> np.ndarray:
 
 def test_raw_encodings_become_raw_frames_of_the_same_pixels():
     rng = np.random.default_rng(0)
-    bgra = rng.integers(0, 256, (5, 7, 4), dtype=np.uint8)
+    bgra = rng.integers(0, 256, (17, 19, 4), dtype=np.uint8)  # a frame's short side is 16 pixels at least
     bgr, grey = bgra[..., :3].copy(), bgra[..., 0].copy()
-    # rows padded to 32 bytes: the step, not the width, says where a row starts
+    # rows padded to 96 bytes: the step, not the width, says where a row starts
     def padded(a: np.ndarray) -> tuple[bytes, int]:
         rows = a.reshape(a.shape[0], -1).view(np.uint8)
-        out = np.zeros((a.shape[0], 32), np.uint8)
+        out = np.zeros((a.shape[0], 96), np.uint8)
         out[:, : rows.shape[1]] = rows
-        return out.tobytes(), 32
+        return out.tobytes(), 96
 
     for encoding, pixels, want in (("bgr8", bgr, bgr), ("rgb8", bgr[..., ::-1].copy(), bgr),
                                    ("mono8", grey, grey), ("bgra8", bgra, bgra),
                                    ("rgba8", bgra[..., [2, 1, 0, 3]].copy(), bgra)):
         data, step = padded(pixels)
-        body, params = image_to_raw(data, height=5, width=7, step=step, encoding=encoding)
-        assert (params["width"], params["height"]) == ("7", "5")
+        body, params = image_to_raw(data, height=17, width=19, step=step, encoding=encoding)
+        assert (params["width"], params["height"]) == ("19", "17")
         # The decoder's RGB of the same pixels as a PNG (alpha dropped there as here).
         assert np.array_equal(_rgb_of(body, params), images.decode(png(want))), encoding
-    deep = rng.integers(0, 65536, (5, 7), dtype=np.uint16)
+    deep = rng.integers(0, 65536, (17, 19), dtype=np.uint16)
     for big in (False, True):
         raw = deep.astype(">u2" if big else "<u2").tobytes()
-        body, params = image_to_raw(raw, height=5, width=7, step=14, encoding="mono16", is_bigendian=big)
+        body, params = image_to_raw(raw, height=17, width=19, step=38, encoding="mono16", is_bigendian=big)
         assert params["encoding"] == "mono16" and body == deep.astype("<u2").tobytes()
         assert np.array_equal(_rgb_of(body, params), images.decode(png(deep)))
     assert set(RAW_ENCODINGS) == {"rgb8", "bgr8", "mono8", "mono16", "rgba8", "bgra8"}
