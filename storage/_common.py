@@ -52,6 +52,11 @@ def utc_now() -> str:
 
 #: SQLite's words for a damaged file (`sqlite_errorname`, extended codes included): `StoreCorrupt`.
 _CORRUPT_SQLITE = ("SQLITE_CORRUPT", "SQLITE_NOTADB")
+#: Python's sqlite3 on a text cell whose bytes are not UTF-8 (an OperationalError, no SQLite code). Every
+#: text cell is written as UTF-8 by this code, so such a cell is flipped bits that SQLite's page checks
+#: passed: an outside probe's bit-flipped file was "the check itself failed" in `cortexloc verify` and a
+#: traceback in the server. In a schema name it comes as a UnicodeDecodeError instead (`_corruption_named`).
+_UNDECODABLE = "Could not decode to UTF-8"
 
 
 def is_corrupt_error(exc: BaseException) -> bool:
@@ -67,11 +72,10 @@ def _corruption_named() -> Iterator[None]:
     except sqlite3.DatabaseError as exc:
         if is_corrupt_error(exc):
             raise StoreCorrupt(str(exc)) from exc
+        if str(exc).startswith(_UNDECODABLE):
+            raise StoreCorrupt(f"a text cell is not UTF-8 (damaged file): {exc}") from exc
         raise
-    except UnicodeDecodeError as exc:
-        # Every text cell is written as UTF-8 by this code; one that does not decode is flipped bits that
-        # SQLite's page checks did not catch (an outside probe: a bit-flipped file was "the check itself
-        # failed: UnicodeDecodeError" in verify and a traceback in the server).
+    except UnicodeDecodeError as exc:  # the same, in SQLite's own message about a schema name
         raise StoreCorrupt(f"a text cell is not UTF-8 (damaged file): {exc}") from exc
 
 

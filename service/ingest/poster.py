@@ -307,9 +307,12 @@ PROXY_STATUSES = frozenset({500, 502, 503, 504})
 
 
 def _retried(r: httpx.Response) -> bool:
-    """The service's 503, or a proxy's page (`PROXY_STATUSES`, not problem+json): the post is sent again."""
+    """The service's 503, its 409 `map-restored` (a restore rolled the post back: nothing kept), or a
+    proxy's page (`PROXY_STATUSES`, not problem+json): the post is sent again."""
     problem = r.headers.get("Content-Type", "").split(";")[0].strip() == PROBLEM_MEDIA_TYPE
-    return r.status_code == 503 or (r.status_code in PROXY_STATUSES and not problem)
+    rolled_back = (problem and r.status_code == 409
+                   and str(json_body(r).get("type", "")).endswith(":map-restored"))
+    return r.status_code == 503 or rolled_back or (r.status_code in PROXY_STATUSES and not problem)
 
 
 def _connection_lost(e: BaseException | None) -> bool:

@@ -109,7 +109,7 @@ class Extractions:
         with self._lock:
             held = self._held.get(key, 0)
             if held >= self.limit:
-                raise Overloaded(self.limit, what="keyframe extraction")
+                raise Overloaded(self.limit, what=f"map {key!r}'s keyframe extraction")
             self._held[key] = held + 1
 
     def release(self, key: Hashable) -> None:

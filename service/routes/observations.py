@@ -314,12 +314,9 @@ async def post_observation(
                 digest, learn=learn, top_k=top_k, stream=stream, label=label, metadata=meta, media=media,
                 encoding=encoding, width=width, height=height),
             seal=lambda result: reply(result).model_dump_json())
-        assert rt.store is not None  # a ready map has its store
-        # A retry of a stored post is answered before any encoding (the writer checks again: two in
-        # flight at once).
-        earlier = await anyio.to_thread.run_sync(idempotency.lookup, rt.store, None, post)
+        # A retry of a stored post is answered before any encoding.
+        earlier = await rt.stored_reply(post)
         if earlier is not None:
-            await rt.durable()  # its row may be in a group not yet synced: a reply waits for it
             return _replayed(earlier)
     async with _departure(request) as gone:
         out = await rt.observe(request.app.state.encoder_pool, request.app.state.extractions, frame,

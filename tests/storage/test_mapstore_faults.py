@@ -123,3 +123,18 @@ def test_a_text_cell_that_is_not_utf8_is_store_corrupt(tmp_path, meta, row_facto
     conn.close()
     with pytest.raises(StoreCorrupt, match="not UTF-8"):
         MapStore.open(db, readonly=True)
+
+
+def test_a_row_whose_text_is_not_utf8_is_store_corrupt(tmp_path, meta, row_factory):
+    """(From review.) The common case: a flipped byte in a row's text cell, which Python's sqlite3 says as
+    an OperationalError with no SQLite code."""
+    db = tmp_path / "map.sqlite"
+    filled(db, meta, row_factory, 5)
+    with MapStore.open(db, readonly=True) as s:
+        oid = s.observation_id(3)
+    raw = db.read_bytes()
+    assert oid is not None and oid.encode() in raw
+    flipped = oid.encode()[:-2] + b"\x9d" + oid.encode()[-1:]  # one byte, in the row and its index alike
+    db.write_bytes(raw.replace(oid.encode(), flipped))
+    with MapStore.open(db, readonly=True) as s, pytest.raises(StoreCorrupt, match="not UTF-8"):
+        list(s.rows())

@@ -46,6 +46,8 @@ class RetryPolicy:
       reply has them, else after `backoff_s`, 2 x `backoff_s`, 4 x ...; never longer than `max_wait_s`.
       Except a map whose `state` is `failed`: it waits for its operator (the detail says what to do),
       not for time, so it is raised at once.
+    - the service's 409 `map-restored`: a learning post whose row a restore rolled back before it was
+      durable; the map holds nothing of it, so it is retried like a 503 (learned on the restored map).
     - a connection that could not be opened: the request was never sent; retried like a 503.
     - any other transport failure (reset, timeout while reading the reply): the service may have done
       the work, so only idempotent requests are retried (GET, DELETE, PATCH, a stream reset, and an
@@ -96,10 +98,22 @@ class RetryPolicy:
         assert response is not None
         proxy = response.status_code in PROXY_STATUSES and not is_problem(response)
         refused = response.status_code == 503 and not proxy  # the service's own 503: nothing was done
+        refused = refused or _rolled_back(response)  # nothing was kept
         if last or not (refused or (proxy and call.idempotent)) or (refused and _failed_map(response)):
             raise error_from_response(response)
         asked = retry_after_seconds(response.headers.get("Retry-After"))
         return min(self.backoff_s * 2**attempt if asked is None else asked, self.max_wait_s)
+
+
+def _rolled_back(response: httpx.Response) -> bool:
+    """The service's 409 `map-restored`: a restore rolled the post back before it was durable."""
+    if response.status_code != 409 or not is_problem(response):
+        return False
+    try:
+        body = response.json()
+    except ValueError:
+        return False
+    return isinstance(body, dict) and str(body.get("type", "")).endswith(":map-restored")
 
 
 def _failed_map(response: httpx.Response) -> bool:

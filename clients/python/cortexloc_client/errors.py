@@ -130,8 +130,9 @@ class NotFoundError(CortexlocError):
 
 
 class ConflictError(CortexlocError):
-    """409 `map-exists`, `map-limit`, `map-full`, `snapshot-invalid`, `snapshot-in-use`, `memory-budget`
-    (`extra` holds `used_bytes`, `asked_bytes`, `total_bytes`, `free_bytes`)."""
+    """409 `map-exists`, `map-limit`, `map-full`, `map-restored` (retried before it is raised: a restore
+    rolled the post back), `snapshot-invalid`, `snapshot-in-use`, `memory-budget` (`extra` holds
+    `used_bytes`, `asked_bytes`, `total_bytes`, `free_bytes`)."""
 
 
 class PayloadTooLargeError(CortexlocError):

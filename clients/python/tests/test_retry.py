@@ -14,6 +14,7 @@ import pytest
 from cortexloc_client import (
     AsyncClient,
     Client,
+    ConflictError,
     CortexlocError,
     InvalidResponseError,
     RetryPolicy,
@@ -87,6 +88,24 @@ def test_a_503_is_retried_after_retry_after_with_the_same_idempotency_key(waits)
     keys = script.keys()
     assert len(keys) == 3 and keys[0] and len(set(keys)) == 1
     assert all(r.content == JPEG and r.headers["Content-Type"] == "image/jpeg" for r in script.requests)
+
+
+def test_a_post_a_restore_rolled_back_is_sent_again_with_the_same_key(waits) -> None:
+    """409 `map-restored`: the service kept nothing of the post (a restore rolled it back before it was
+    durable), so it is sent again, as after a 503; another 409 is raised at once."""
+    rolled_back = httpx.Response(409, json={"type": "urn:cortexloc:problem:map-restored", "status": 409,
+                                            "detail": "d", "map_id": "lab"},
+                                 headers={"Content-Type": "application/problem+json"})
+    script = Script(rolled_back, httpx.Response(200, json=OBSERVATION))
+    assert make(script).observe("lab", JPEG).seq == 1
+    keys = script.keys()
+    assert len(keys) == 2 and keys[0] and len(set(keys)) == 1
+    exists = httpx.Response(409, json={"type": "urn:cortexloc:problem:map-exists", "status": 409,
+                                       "detail": "d"}, headers={"Content-Type": "application/problem+json"})
+    script = Script(exists)
+    with pytest.raises(ConflictError):
+        make(script).create_map("lab")
+    assert len(script.requests) == 1
 
 
 def test_each_post_has_its_own_key_unless_given_or_turned_off(waits) -> None:

@@ -252,13 +252,13 @@ class Writer:
             answer, restores = await asyncio.wrap_future(once)
             if learn:
                 await self.durable()
-                self._still_held(restores, None)
+                await self._still_held(restores, key=post.key, reply=answer.body)
             return answer if answer.replayed else dataclasses.replace(answer, thumbnail=thumb)
         result, restores = await asyncio.wrap_future(step)
         t_step = time.perf_counter()
         if learn:
             await self.durable()
-            self._still_held(restores, result.seq)
+            await self._still_held(restores, seq=result.seq, observation_id=result.observation_id)
         sync = {"sync": (time.perf_counter() - t_step) * 1e3} if learn else {}
         return dataclasses.replace(result, timings_ms={**front, **result.timings_ms, **sync}, thumbnail=thumb)
 
@@ -266,16 +266,59 @@ class Writer:
         """Writer: `fn(*args)` and the map's count of restores when it ran (`_still_held`)."""
         return fn(*args), self.restores
 
-    def _still_held(self, restores: int, seq: int | None) -> None:
-        """Event loop, once a learned row is durable: refuse to acknowledge it when a restore finished
-        after its step. The restore rolled the map back past the row (it is in the pre-restore snapshot
-        only), so a 200 would acknowledge a row the map no longer holds (docs/design/service.md §1.5).
+    async def _still_held(self, restores: int, *, key: str | None = None, reply: str | None = None,
+                          seq: int | None = None, observation_id: str | None = None) -> None:
+        """Event loop, once a learned post is durable: refuse to acknowledge it when a restore finished
+        after its step and the restored map does not hold it (docs/design/service.md §1.5). Such a restore
+        rolled the map back past the post (it is in the pre-restore snapshot only), and a 200 would name
+        what the map no longer holds. A restored snapshot taken after the step does hold it: the post's
+        key with this `reply` (a keyed post, row or visit; the key alone may be a retry's, learned on the
+        restored map), else its row's seq with its observation id. An unkeyed post
+        consolidated into a visit has nothing to look it up by, so it is refused (posted again, it is
+        one more visit of its place).
 
         Raises:
-            MapRestored: the row is not in the map; the client may post the frame again.
+            MapRestored: the post is not in the map; the client may post the frame again.
         """
-        if self.restores != restores:
+        if self.restores == restores:
+            return
+        if not await asyncio.wrap_future(self.submit(self._holds, key, reply, seq, observation_id)):
             raise MapRestored(self.map_id, seq)
+
+    def _holds(self, key: str | None, reply: str | None, seq: int | None, observation_id: str | None) -> bool:
+        """Writer: the store holds the learned post stored under `key` with `reply`, or row `seq` as
+        `observation_id`."""
+        store = self.store
+        if store is None:
+            return False
+        if key is not None:
+            found = store.key_record(key)
+            return found is not None and found.reply == reply
+        return seq is not None and store.observation_id(seq) == observation_id
+
+    async def stored_reply(self, post: idempotency.IdempotentPost) -> idempotency.Reply | None:
+        """Event loop: the reply of the learned post stored under `post`'s key (a retry), answered before
+        any encoding once its row is durable; None when there is none, and `observe` answers it (its
+        writer looks again: two posts of one key in flight at once).
+
+        A restore that finishes while the reply waits for its fsync may have rolled the post back: the
+        key is then looked up again on the restored store (never the reply of a post the map no longer
+        holds, docs/design/service.md §1.5).
+
+        Raises:
+            IdempotencyKeyReused: the key answered another request.
+        """
+        for _ in range(3):  # each look again needs a restore to finish meanwhile; past that, `observe`
+            restores = self.restores
+            store = self.store
+            assert store is not None  # a ready map has its store
+            earlier = await asyncio.to_thread(idempotency.lookup, store, None, post)
+            if earlier is None:
+                return None
+            await self.durable()  # its row may be in a group not yet synced: a reply waits for it
+            if self.restores == restores:
+                return earlier
+        return None
 
     def _apply_once(self, post: idempotency.IdempotentPost, learn: bool,
                     apply: Callable[[], ObservationResult]) -> idempotency.Reply:

@@ -255,6 +255,18 @@ def test_503_is_retried_after_retry_after_and_the_frame_is_posted_once_answered(
         assert poster.retry_after_s(value, 2) == 4.0, value
 
 
+def test_a_post_a_restore_rolled_back_is_sent_again_with_its_key(tmp_path):
+    """409 `map-restored`: the service kept nothing of the post, so it is sent again (the same key), not
+    counted as a refusal that stops the ingest."""
+    rolled_back = httpx.Response(409, json={"type": "urn:cortexloc:problem:map-restored", "detail": "d"},
+                                 headers={"Content-Type": "application/problem+json"})
+    service = Scripted([rolled_back, (200, {})])
+    bodies, _, run = _ingest(tmp_path, service)
+    summary = anyio.run(run)
+    assert service.bodies[:2] == [bodies[0]] * 2 and len(set(service.idempotency_keys[:2])) == 1
+    assert summary.retries == 1 and summary.errors == 0 and summary.frames == len(ROUTE)
+
+
 def test_retries_are_bounded(tmp_path):
     service = Scripted([(503, {"Retry-After": "1"})] * (poster.MAX_RETRIES + 1))
     _, sleeps, run = _ingest(tmp_path, service)

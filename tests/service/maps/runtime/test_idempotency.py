@@ -132,3 +132,78 @@ def test_a_post_whose_row_a_restore_rolled_back_before_its_fsync_is_not_acknowle
         again = send()
         assert again.status_code == 200 and again.headers.get("Idempotent-Replayed") is None, again.text
         assert rt.store.count() == 2
+
+
+def _hold_first_sync(rt) -> tuple[threading.Event, threading.Event]:
+    """The map's next group-commit fsync waits for the returned gate; the first event says it began."""
+    syncing, gate, sync = threading.Event(), threading.Event(), rt._commits._sync
+
+    def held() -> None:
+        rt._commits._sync = sync  # only this one is held
+        syncing.set()
+        assert gate.wait(30)
+        sync()
+
+    rt._commits._sync = held
+    return syncing, gate
+
+
+def test_a_retry_waiting_for_a_rolled_back_reply_learns_on_the_restored_map(tmp_path):
+    """(From review.) A keyed post's retry found the stored reply before the restore and replayed it
+    after: 200 naming a seq the restore discarded. It now looks again on the restored store and, not
+    finding it there, learns the frame; the first post is then 409 (its reply is not the one stored)."""
+    with make_client(tmp_path / "d", snapshot_every=0) as c:
+        rt = c.app.state.registry.get("default")
+        assert post_frame(c, frame(0)).status_code == 200
+        sid = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
+
+        def send():
+            return c.post("/v1/maps/default/observations", content=frame(1), params={"stream": "r"},
+                          headers={"Content-Type": "image/png", "Idempotency-Key": "retry-of-a-post-01"})
+
+        syncing, gate = _hold_first_sync(rt)
+        try:
+            with ThreadPoolExecutor(2) as ex:
+                first = ex.submit(send)
+                assert syncing.wait(30)  # its row is stepped and committed, its fsync held
+                retry = ex.submit(send)  # the client's retry (a timeout, a lost connection)
+                deadline = time.monotonic() + 30
+                while rt._commits.waiting < 1:  # the retry found the reply and waits for its fsync
+                    assert time.monotonic() < deadline
+                    time.sleep(0.01)
+                assert c.post(f"/v1/maps/default/snapshots/{sid}/restore").status_code == 200
+                gate.set()
+                r1, r2 = first.result(timeout=60), retry.result(timeout=60)
+        finally:
+            gate.set()
+        assert r2.status_code == 200 and r2.headers.get("Idempotent-Replayed") is None, r2.text
+        assert rt.store.observation_id(r2.json()["seq"]) == r2.json()["observation_id"]
+        assert r1.status_code == 409 and r1.json()["type"].endswith(":map-restored"), r1.text
+        assert rt.store.count() == 2
+        again = send()  # the key now names the retry's row
+        assert again.status_code == 200 and again.json()["seq"] == r2.json()["seq"]
+
+
+@pytest.mark.parametrize("keyed", [False, True])
+def test_a_restore_to_a_snapshot_that_holds_the_row_acknowledges_it(tmp_path, keyed):
+    """(From review.) A snapshot taken after the row was stepped, before its fsync, holds it: restoring
+    it keeps the row, and the post is 200, not 409 (posted again as told, it was learned twice)."""
+    with make_client(tmp_path / "d", snapshot_every=0) as c:
+        rt = c.app.state.registry.get("default")
+        assert post_frame(c, frame(0)).status_code == 200
+        headers = {"Content-Type": "image/png", **({"Idempotency-Key": "kept-by-restore1"} if keyed else {})}
+        syncing, gate = _hold_first_sync(rt)
+        try:
+            with ThreadPoolExecutor(1) as ex:
+                posted = ex.submit(c.post, "/v1/maps/default/observations", content=frame(1),
+                                   params={"stream": "r"}, headers=headers)
+                assert syncing.wait(30)
+                sid = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]  # holds the row
+                assert c.post(f"/v1/maps/default/snapshots/{sid}/restore").status_code == 200
+                gate.set()
+                r = posted.result(timeout=60)
+        finally:
+            gate.set()
+        assert r.status_code == 200, r.text
+        assert rt.store.count() == 2
+        assert rt.store.observation_id(r.json()["seq"]) == r.json()["observation_id"]
