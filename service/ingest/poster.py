@@ -14,7 +14,8 @@ then posts the source's frames **one at a time, in source order**:
   that a retry of a post the service already learned is answered with its first reply, never learned
   twice (docs/design/service.md §1.2).
 - retried at most `MAX_RETRIES` times, after `Retry-After` where the reply has one, else after 1, 2, 4 s
-  (capped at `MAX_WAIT_S`): a 503 (overloaded, map recovering, starting); a 500 that is not
+  (capped at `MAX_WAIT_S`): a 503 (overloaded, map recovering, starting); a 409 `map-restored` (a
+  restore rolled the post back before it was durable: nothing kept); a 500 that is not
   problem+json, which is a proxy's, not the service's (Ray Serve's proxy answers so for a request whose
   ingress replica died with it, docs/scaling.md); and a connection lost mid-request. The service's own
   problem+json 500 is a bug, not retried; a post with no answer within `REMOTE_TIMEOUT_S` stops the
@@ -24,7 +25,8 @@ then posts the source's frames **one at a time, in source order**:
   A frame over the upload limit the source was opened with (`Frame.oversize`) is recorded as a 413 the
   same way without being posted (or, for a file, read); a bag message that cannot be made a frame
   (`Frame.unusable`: an encoding the service does not take, a payload shorter than its shape) as the
-  415 or 422 the service would answer, not posted.
+  415 or 422 the service would answer, not posted; a folder's file that cannot be read
+  (`Frame.unreadable`) as status 0, not posted.
 - a missing map is created with the server's default preset when learning (`Summary.created_map`);
   localising against a missing map stops.
 """
