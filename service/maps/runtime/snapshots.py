@@ -40,7 +40,7 @@ class Snapshots:
     since_snapshot: int  # rows and visits committed since the last automatic snapshot
     snapshot_error: dict[str, Any] | None  # the last automatic snapshot's failure, if it failed
     snapshot_failures: int
-    restores: int  # restores done since the runtime started (`Writer._still_held`)
+    restores: int  # restores begun since the runtime started (`Writer._still_held`)
 
     def snapshots(self) -> list[SnapshotInfo]:
         return map_snapshots.listing(self.catalog, self.map_id)
@@ -112,13 +112,14 @@ class Snapshots:
                                   self.index.max_observations, "nothing changed")
             discarded, brought_back = map_snapshots.learned_difference(self.store, copy)
         with self._restore_budget(rows):
+            # From here the rows stepped before may go: a post still waiting for its row's fsync is checked
+            # against the store the restore leaves (`Writer._still_held`, behind this on the writer), not
+            # acknowledged off the count it was stepped at while the file is being replaced.
+            self.restores += 1
             self.snapshot("pre-restore")
             self.catalog.mark_restore(self.map_id, self.store.next_seq() - 1, self.store.last_closure_id())
             self.store.close()
             MapStore.install_copy(path / snapshots.DB_FILE, self.layout.map_db(self.map_id))
-            # From here the rows stepped before are gone: a post still waiting for its row's fsync is not
-            # acknowledged (`Writer._still_held`).
-            self.restores += 1
             self.recover()
         # Pre-restore snapshots are kept to the manual ones' limits, counted apart (a loop of restores
         # wrote one each, a map's size apiece, kept for good). Pruned once the restore is done: the

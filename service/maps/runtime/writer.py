@@ -17,6 +17,7 @@ import contextlib
 import dataclasses
 import functools
 import hashlib
+import json
 import logging
 import sqlite3
 import threading
@@ -252,7 +253,9 @@ class Writer:
             answer, restores = await asyncio.wrap_future(once)
             if learn:
                 await self.durable()
-                await self._still_held(restores, key=post.key, reply=answer.body)
+                sealed = json.loads(answer.body)
+                await self._still_held(restores, key=post.key, reply=answer.body, seq=sealed.get("seq"),
+                                       observation_id=sealed.get("observation_id"))
             return answer if answer.replayed else dataclasses.replace(answer, thumbnail=thumb)
         result, restores = await asyncio.wrap_future(step)
         t_step = time.perf_counter()
@@ -268,14 +271,15 @@ class Writer:
 
     async def _still_held(self, restores: int, *, key: str | None = None, reply: str | None = None,
                           seq: int | None = None, observation_id: str | None = None) -> None:
-        """Event loop, once a learned post is durable: refuse to acknowledge it when a restore finished
-        after its step and the restored map does not hold it (docs/design/service.md §1.5). Such a restore
+        """Event loop, once a learned post is durable: refuse to acknowledge it when a restore began after
+        its step and the restored map does not hold it (docs/design/service.md §1.5). Such a restore
         rolled the map back past the post (it is in the pre-restore snapshot only), and a 200 would name
         what the map no longer holds. A restored snapshot taken after the step does hold it: the post's
         key with this `reply` (a keyed post, row or visit; the key alone may be a retry's, learned on the
-        restored map), else its row's seq with its observation id. An unkeyed post
+        restored map), or its row's seq with its observation id (an unkeyed post, or a keyed one whose
+        key the store has pruned since: it keeps the newest `idempotency_keys`). An unkeyed post
         consolidated into a visit has nothing to look it up by, so it is refused (posted again, it is
-        one more visit of its place).
+        one more visit of its place). The check runs on the writer, behind a restore still running.
 
         Raises:
             MapRestored: the post is not in the map; the client may post the frame again.
@@ -291,9 +295,9 @@ class Writer:
         store = self.store
         if store is None:
             return False
-        if key is not None:
-            found = store.key_record(key)
-            return found is not None and found.reply == reply
+        found = None if key is None else store.key_record(key)
+        if found is not None:
+            return found.reply == reply
         return seq is not None and store.observation_id(seq) == observation_id
 
     async def stored_reply(self, post: idempotency.IdempotentPost) -> idempotency.Reply | None:

@@ -207,3 +207,76 @@ def test_a_restore_to_a_snapshot_that_holds_the_row_acknowledges_it(tmp_path, ke
         assert r.status_code == 200, r.text
         assert rt.store.count() == 2
         assert rt.store.observation_id(r.json()["seq"]) == r.json()["observation_id"]
+
+
+def test_a_keyed_post_held_by_the_restored_map_is_acknowledged_after_its_key_was_pruned(tmp_path):
+    """(From a second review.) The store keeps the newest `idempotency_keys` keys: another post learned on
+    the restored map can prune this post's key before its check, though its row is held. It is found by
+    its row then (200); a 409 made the client's resend with the same key learn the frame twice."""
+    with make_client(tmp_path / "d", snapshot_every=0, idempotency_keys=1) as c:
+        rt = c.app.state.registry.get("default")
+        assert post_frame(c, frame(0)).status_code == 200
+
+        def send(n: int, key: str):
+            return c.post("/v1/maps/default/observations", content=frame(n), params={"stream": f"s{n}"},
+                          headers={"Content-Type": "image/png", "Idempotency-Key": key})
+
+        syncing, gate = _hold_first_sync(rt)
+        try:
+            with ThreadPoolExecutor(2) as ex:
+                a = ex.submit(send, 1, "post-a-000001")
+                assert syncing.wait(30)
+                sid = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]  # holds a's row and key
+                assert c.post(f"/v1/maps/default/snapshots/{sid}/restore").status_code == 200
+                b = ex.submit(send, 2, "post-b-000001")  # learned on the restored map: a's key pruned
+                deadline = time.monotonic() + 30
+                while rt.store.count() < 3:
+                    assert time.monotonic() < deadline
+                    time.sleep(0.01)
+                gate.set()
+                ra, rb = a.result(timeout=60), b.result(timeout=60)
+        finally:
+            gate.set()
+        assert rb.status_code == 200 and ra.status_code == 200, ra.text
+        assert rt.store.observation_id(ra.json()["seq"]) == ra.json()["observation_id"]
+        assert rt.store.count() == 3
+
+
+def test_a_post_made_durable_while_a_restore_replaces_the_file_waits_for_it(tmp_path, monkeypatch):
+    """(From a second review.) The restore's count was raised only once the snapshot's file was in place:
+    a post whose fsync ended while the file was being replaced (its store closed) was answered 200 off
+    the old count, its row discarded. The count is raised as the restore begins, and the check runs on
+    the writer behind it."""
+    from storage.mapstore import MapStore
+
+    copying, release = threading.Event(), threading.Event()
+    install = MapStore.install_copy
+
+    def slow_install(src, dest):
+        copying.set()
+        assert release.wait(30)
+        install(src, dest)
+
+    with make_client(tmp_path / "d", snapshot_every=0) as c:
+        rt = c.app.state.registry.get("default")
+        assert post_frame(c, frame(0)).status_code == 200
+        sid = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]  # before the post
+        syncing, gate = _hold_first_sync(rt)
+        monkeypatch.setattr(MapStore, "install_copy", staticmethod(slow_install))
+        try:
+            with ThreadPoolExecutor(2) as ex:
+                posted = ex.submit(c.post, "/v1/maps/default/observations", content=frame(1),
+                                   params={"stream": "r"}, headers={"Content-Type": "image/png"})
+                assert syncing.wait(30)
+                restore = ex.submit(c.post, f"/v1/maps/default/snapshots/{sid}/restore")
+                assert copying.wait(30)  # the store closed, the snapshot's file going in
+                gate.set()
+                time.sleep(0.3)
+                assert not posted.done()  # not answered off the old store
+                release.set()
+                r, rr = posted.result(timeout=60), restore.result(timeout=60)
+        finally:
+            gate.set()
+            release.set()
+        assert rr.status_code == 200 and r.status_code == 409, r.text
+        assert rt.store.count() == 1
