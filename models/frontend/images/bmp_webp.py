@@ -77,7 +77,7 @@ def _bmp_check_rle(data: bytes) -> None:
     """Refuse an RLE8/RLE4 bitmap whose data ends (end of bitmap, or of the file) before its last row.
 
     A bitmap cut part way with an end of bitmap (00 01) appended, biSizeImage 0, is whole by its header,
-    and OpenCV returns it with the missing rows black (an outside probe: 120 rows of 480 were learned).
+    and OpenCV returns it with the missing rows black (an outside probe).
     The walk counts rows: each ends with an end of line (00 00) or is passed by a delta down (00 02 dx
     dy); by the time the data stops, all rows but the last must be ended. The last may end with the end
     of bitmap itself (encoders write it without an end of line), so a cut inside the last row, at most

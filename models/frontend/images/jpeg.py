@@ -131,7 +131,7 @@ class _Scans:
     A decoder that meets EOI early returns the frame anyway: libjpeg leaves a component no scan named
     flat, and a progressive frame's coefficients that no scan delivered (or refined) zero, without a
     warning. A progressive file cut at a scan boundary with EOI appended was learned from its first scan
-    alone (an outside probe: 1 of 10). So by EOI:
+    alone (an outside probe). So by EOI:
 
     - sequential frames: every frame component must have appeared in some scan. Their Ss, Se, Ah and Al
       are not checked: libjpeg ignores them (a warning) and cameras write files with zeros there.

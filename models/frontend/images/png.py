@@ -20,7 +20,7 @@ _PNG_MAX_CHUNKS = 16384
 _INFLATE_STEP = 1 << 22
 # An animated PNG (APNG): its animation control, frame control and frame data chunks. The checks here
 # judge the default image (IHDR, IDAT), but OpenCV decodes the first animation frame, from fdAT chunks
-# they never see (an outside probe: a first frame of 2 GiB of deflated zeros was learned as black).
+# they never see (an outside probe: a first frame that was a decompression bomb was learned as black).
 _APNG_CHUNKS = frozenset({b"acTL", b"fcTL", b"fdAT"})
 
 

@@ -253,9 +253,7 @@ class Writer:
             answer, restores = await asyncio.wrap_future(once)
             if learn:
                 await self.durable()
-                sealed = json.loads(answer.body)
-                await self._still_held(restores, key=post.key, reply=answer.body, seq=sealed.get("seq"),
-                                       observation_id=sealed.get("observation_id"))
+                await self._still_held(restores, key=post.key, reply=answer.body)
             return answer if answer.replayed else dataclasses.replace(answer, thumbnail=thumb)
         result, restores = await asyncio.wrap_future(step)
         t_step = time.perf_counter()
@@ -291,13 +289,16 @@ class Writer:
 
     def _holds(self, key: str | None, reply: str | None, seq: int | None, observation_id: str | None) -> bool:
         """Writer: the store holds the learned post stored under `key` with `reply`, or row `seq` as
-        `observation_id`."""
+        `observation_id` (for a keyed post, those its `reply` names)."""
         store = self.store
         if store is None:
             return False
         found = None if key is None else store.key_record(key)
         if found is not None:
             return found.reply == reply
+        if reply is not None:  # a keyed post whose key was pruned: its row, as its reply names it
+            sealed = json.loads(reply)
+            seq, observation_id = sealed.get("seq"), sealed.get("observation_id")
         return seq is not None and store.observation_id(seq) == observation_id
 
     async def stored_reply(self, post: idempotency.IdempotentPost) -> idempotency.Reply | None:
@@ -305,7 +306,7 @@ class Writer:
         any encoding once its row is durable; None when there is none, and `observe` answers it (its
         writer looks again: two posts of one key in flight at once).
 
-        A restore that finishes while the reply waits for its fsync may have rolled the post back: the
+        A restore that begins while the reply waits for its fsync may have rolled the post back: the
         key is then looked up again on the restored store (never the reply of a post the map no longer
         holds, docs/design/service.md §1.5).
 
