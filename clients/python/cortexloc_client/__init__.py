@@ -37,7 +37,9 @@ from cortexloc_client.errors import (
 from cortexloc_client.frames import ColourOrder, frame_body
 from cortexloc_client.models import (
     MAX_TOP_K,
+    POSE_MAX_ABS,
     STREAM_PATTERN,
+    YAW_MAX_ABS,
     Budget,
     Map,
     Match,
@@ -56,7 +58,9 @@ from cortexloc_client.models import (
 
 __all__ = [
     "MAX_TOP_K",
+    "POSE_MAX_ABS",
     "STREAM_PATTERN",
+    "YAW_MAX_ABS",
     "AsyncClient",
     "BadRequestError",
     "Budget",

@@ -20,10 +20,16 @@ STREAM_PATTERN = r"^[A-Za-z0-9._-]{1,64}(/[A-Za-z0-9._-]{1,64}){0,7}$"
 #: The most matches an answer may ask for (`top_k`) on a service with the default settings
 #: (`CORTEXLOC_MAX_TOP_K`, `service.settings.Settings.max_top_k`).
 MAX_TOP_K = 100
+#: The largest |x| and |y| of a pose the service accepts: `service.routes.observations.POSE_MAX_ABS`.
+POSE_MAX_ABS = 1e9
+#: The largest |yaw| of a pose the service accepts, radians: `service.routes.observations.YAW_MAX_ABS`.
+YAW_MAX_ABS = 1e6
 
 __all__ = [
     "MAX_TOP_K",
+    "POSE_MAX_ABS",
     "STREAM_PATTERN",
+    "YAW_MAX_ABS",
     "Budget",
     "CheckResult",
     "Health",

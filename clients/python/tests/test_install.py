@@ -28,11 +28,13 @@ def test_pydantic_1_is_named_at_import(tmp_path: Path) -> None:
 def test_the_service_limits_the_client_states_are_the_services():
     # the client states them for the ROS node and robots (installed without the service); they must not
     # drift from the service's own homes
+    from service.routes.observations import POSE_MAX_ABS, YAW_MAX_ABS
     from service.schemas import STREAM_PATTERN as SERVICE_STREAM_PATTERN
     from service.settings import Settings
 
     assert cortexloc_client.STREAM_PATTERN == SERVICE_STREAM_PATTERN
     assert Settings.model_fields["max_top_k"].default == cortexloc_client.MAX_TOP_K
+    assert (cortexloc_client.POSE_MAX_ABS, cortexloc_client.YAW_MAX_ABS) == (POSE_MAX_ABS, YAW_MAX_ABS)
 
 
 def test_the_client_and_cortexloc_ingest_resend_the_same_proxy_pages():

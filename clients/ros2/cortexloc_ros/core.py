@@ -20,6 +20,8 @@ from typing import Any, Generic, Literal, NamedTuple, TypeVar
 
 import numpy as np
 
+from cortexloc_client import POSE_MAX_ABS, YAW_MAX_ABS
+
 __all__ = ["ENCODINGS", "JUMP_CONFIRM", "LOG_PERIOD_S", "STAMP_JUMP_NS", "DropPolicy", "FrameKey",
            "FrameKeys", "FrameQueue", "ImageError", "LogLimiter", "OdometryBuffer", "Pose2D", "RateFilter",
            "RecentSet", "Stamp", "StampJumps", "idempotency_key", "image_array", "quaternion_from_matrix",
@@ -326,9 +328,11 @@ class Pose2D:
     def distance(self, other: Pose2D) -> float:
         return math.hypot(self.x - other.x, self.y - other.y)
 
-    def is_finite(self) -> bool:
-        """x, y and yaw are numbers: the service refuses NaN and infinities (422 `invalid-metadata`)."""
-        return math.isfinite(self.x) and math.isfinite(self.y) and math.isfinite(self.yaw)
+    def is_postable(self) -> bool:
+        """x, y and yaw are finite and within the service's bounds (`POSE_MAX_ABS`, `YAW_MAX_ABS`): it refuses
+        any other pose, NaN and infinities included (422 `invalid-metadata`), and the frame with it."""
+        return (abs(self.x) <= POSE_MAX_ABS and abs(self.y) <= POSE_MAX_ABS  # False for NaN
+                and abs(self.yaw) <= YAW_MAX_ABS)
 
     def as_metadata(self) -> dict[str, Any]:
         return {"x": self.x, "y": self.y, "yaw": self.yaw, "frame_id": self.frame_id}

@@ -233,15 +233,17 @@ class CortexlocNode(Node):
         assert self.odometry is not None
         p, q = msg.pose.pose.position, msg.pose.pose.orientation
         base = Pose2D(p.x, p.y, yaw_from_quaternion(q.x, q.y, q.z, q.w), msg.header.frame_id or "odom")
-        if not base.is_finite():
-            # an EKF before it has converged, or after it diverged: the service refuses such a pose (422), and
-            # every frame matched to it was lost; left out, a frame takes a finite sample within
-            # odom_tolerance, or goes without a pose (`no_pose`) and the service judges the move by appearance
-            self._warn_limited("odometry:non-finite", f"odometry ignored: its pose is not finite (x {p.x}, "
-                                                      f"y {p.y}, yaw {base.yaw}); frames go without it")
+        pose = base.compose(self.cfg.camera_mount)
+        if not pose.is_postable():
+            # an EKF before it has converged, or after it diverged (NaN, Inf, or 10^12 m): the service refuses
+            # such a pose (422), and every frame matched to it was lost; left out, a frame takes a postable
+            # sample within odom_tolerance, or goes without a pose (`no_pose`) and the service judges the
+            # move by appearance
+            self._warn_limited("odometry:unpostable", f"odometry ignored: its pose is not finite or beyond "
+                                                      f"the service's bounds (x {p.x}, y {p.y}, yaw "
+                                                      f"{base.yaw}); frames go without it")
             return
-        self.odometry.add(Stamp.of(msg.header.stamp.sec, msg.header.stamp.nanosec),
-                          base.compose(self.cfg.camera_mount))
+        self.odometry.add(Stamp.of(msg.header.stamp.sec, msg.header.stamp.nanosec), pose)
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         k, d = list(msg.k), list(msg.d)

@@ -27,8 +27,8 @@ typed client; the ROS executor never waits on the service.
   the frame may have been stored, so it is retried like a service down, with its key; ERROR on
   diagnostics and in the log (once a minute, with a count) while it lasts.
 - Refused: 400, 413, 415, 422 (the frame or its metadata) are counted and logged (each kind once a
-  minute, with a count); the poster goes on. A pose that is not finite is never posted (the service
-  refuses it): the frame goes without one (`no_pose`).
+  minute, with a count); the poster goes on. A pose that is not finite, or beyond the service's
+  bounds (`POSE_MAX_ABS`), is never posted (the service refuses it): the frame goes without one (`no_pose`).
 - No exception ends the thread: one no code expects (a fault of the node's own, or one of the client's
   no handler names) is logged at ERROR (each kind once a minute, with a count), diagnostics say ERROR
   until the service answers again, and the thread goes on after a backoff; a frame whose post raised
@@ -323,7 +323,7 @@ class Poster:
             if pose is None:
                 with self.stats.lock:
                     self.stats.no_pose += 1
-            elif not pose.is_finite():  # the node takes none in; the service would refuse it (422)
+            elif not pose.is_postable():  # the node takes none in; the service would refuse it (422)
                 pose = None
                 with self.stats.lock:
                     self.stats.no_pose += 1

@@ -35,7 +35,7 @@ from cortexloc_ros.params import (
     trail_of,
 )
 
-from cortexloc_client import Observation
+from cortexloc_client import POSE_MAX_ABS, YAW_MAX_ABS, Observation
 
 DEFAULTS = {name: default for name, (default, _) in PARAMETERS.items()}
 
@@ -270,12 +270,15 @@ def test_the_camera_mount_moves_the_pose_with_the_robots_heading():
     assert (round(pose.x, 9), round(pose.y, 9), round(pose.yaw, 9)) == (1.0, 2.5, round(math.pi, 9))
 
 
-def test_a_pose_that_is_not_finite_says_so():
-    # the node ignores such odometry (an EKF before it converged): the service refuses NaN and infinities
-    assert Pose2D(1.0, -2.0, 3.0, "odom").is_finite()
-    for x, y, yaw in ((math.nan, 0.0, 0.0), (0.0, math.inf, 0.0), (0.0, 0.0, -math.inf)):
-        assert not Pose2D(x, y, yaw, "odom").is_finite()
-    assert not Pose2D(0.0, 0.0, yaw_from_quaternion(math.nan, 0.0, 0.0, 1.0), "odom").is_finite()
+def test_a_pose_the_service_would_refuse_says_so():
+    # the node ignores such odometry (an EKF before it converged, or diverged): the service refuses NaN,
+    # infinities and coordinates beyond its bounds, and the frame with them
+    assert Pose2D(1.0, -2.0, 3.0, "odom").is_postable()
+    assert Pose2D(-POSE_MAX_ABS, POSE_MAX_ABS, -YAW_MAX_ABS, "odom").is_postable()  # the bounds are in
+    for x, y, yaw in ((math.nan, 0.0, 0.0), (0.0, math.inf, 0.0), (0.0, 0.0, -math.inf),
+                      (POSE_MAX_ABS * 1.01, 0.0, 0.0), (0.0, -1e12, 0.0), (0.0, 0.0, YAW_MAX_ABS * 2)):
+        assert not Pose2D(x, y, yaw, "odom").is_postable()
+    assert not Pose2D(0.0, 0.0, yaw_from_quaternion(math.nan, 0.0, 0.0, 1.0), "odom").is_postable()
 
 
 def test_a_kind_of_log_line_is_said_at_once_then_once_a_minute_with_a_count():
