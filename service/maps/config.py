@@ -169,6 +169,11 @@ class MapOptions(BaseModel):
                                  "(needs keyframes); changeable with PATCH")
 
 
+#: The fields a map's creation options decide and freeze (`MapConfig.made_as`).
+CREATED_FROM = ("preset", "tm", "slsbh", "seed", "backbone", "memory", "localiser", "thumbnails", "resize",
+                "keyframes")
+
+
 class MapConfig(BaseModel):
     """A map's resolved configuration, frozen with the map except `revisit_threshold`."""
 
@@ -315,6 +320,13 @@ class MapConfig(BaseModel):
             return MapConfig.model_validate({**self.model_dump(), **changes})
         except ValidationError as e:
             raise _invalid(e) from None
+
+    def made_as(self, other: MapConfig) -> bool:
+        """Whether `other` was resolved from the same creation options (docs/design/service.md §1.1: an
+        idempotent creation's retry): what the options freeze, not what the map derived from them (its
+        projection) nor what PATCH may have changed since (`revisit_threshold`, `verify_revisit`)."""
+        fields = set(CREATED_FROM)
+        return self.model_dump(mode="json", include=fields) == other.model_dump(mode="json", include=fields)
 
     def stored(self) -> dict[str, Any]:
         """The values as stored (catalog row, map.sqlite meta, manifest): JSON types."""

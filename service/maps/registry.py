@@ -235,12 +235,28 @@ class MapRegistry:
             MemoryBudgetExceeded. InsufficientStorage: no room to write; what the creation made is
             removed (a projection, content-addressed and perhaps shared, stays).
         """
+        return self._create(map_id, options, replay=False)[0]
+
+    def create_or_replay(self, map_id: str, options: MapOptions | None = None) -> tuple[MapRuntime, bool]:
+        """`create`, for a creation that may be a retry (an `Idempotency-Key`, docs/design/service.md §1.1):
+        (the map, whether it was made now). A map of this id whose frozen configuration `options` resolve
+        to (`MapConfig.made_as`) is the earlier creation's, answered as it is.
+
+        Raises:
+            as `create`; MapAlreadyExists where the map of this id was made with other options.
+        """
+        return self._create(map_id, options, replay=True)
+
+    def _create(self, map_id: str, options: MapOptions | None, *, replay: bool) -> tuple[MapRuntime, bool]:
         if not MAP_ID_RE.fullmatch(map_id):  # `$` also matches before a last newline
             raise InvalidMapId(map_id, MAP_ID_RE.pattern)
         config = self._resolve(options)
         with self._create_lock:
             # Refused before a backbone's network is built or loaded.
             if map_id in self.maps:
+                existing = self.maps[map_id]
+                if replay and existing.config.made_as(config):
+                    return existing, False
                 raise MapAlreadyExists(map_id)
             if len(self.maps) >= self.settings.max_maps:
                 raise MapLimit(self.settings.max_maps)
@@ -250,7 +266,7 @@ class MapRegistry:
             # budget keeps room for the second memory its first recovery builds.
             self.budget.reserve(map_id, self._need(config, encoder.feature_dim, 0))
             try:
-                return self._create_reserved(map_id, config, encoder)
+                return self._create_reserved(map_id, config, encoder), True
             except BaseException:
                 self.budget.release(map_id)
                 raise

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import uuid
 
 import anyio
 from fastapi import APIRouter, Response
@@ -11,7 +10,9 @@ from fastapi import APIRouter, Response
 from service.deps import ApiKeyDep, RegistryDep
 from service.errors import problem_responses
 from service.maps.config import MapOptions
-from service.routes.params import MapId, StreamName
+from service.maps.errors import IdempotencyKeyReused, MapAlreadyExists
+from service.maps.ids import new_map_id
+from service.routes.params import REPLAY_HEADER, IdempotencyKey, MapId, StreamName
 from service.schemas import (
     BudgetModel,
     CreateMap,
@@ -34,10 +35,27 @@ async def process_memory(registry: RegistryDep) -> BudgetModel:
 
 @router.post("", status_code=201, dependencies=[ApiKeyDep],
              responses=problem_responses(400, 401, 409, 415, 422, 507))
-async def create_map(body: CreateMap, registry: RegistryDep, response: Response) -> MapModel:
-    map_id = body.map_id or f"map-{uuid.uuid4().hex[:12]}"
+async def create_map(
+    body: CreateMap, registry: RegistryDep, response: Response,
+    idempotency_key: IdempotencyKey = None,
+) -> MapModel:
+    """A new map (201). With an `Idempotency-Key`, a retry answers the map its first try made (§1.1)."""
+    map_id = body.map_id or new_map_id(idempotency_key)
     options = MapOptions.model_validate(body.model_dump(exclude={"map_id"}))
-    rt = await anyio.to_thread.run_sync(registry.create, map_id, options)
+    if idempotency_key is None:
+        rt = await anyio.to_thread.run_sync(registry.create, map_id, options)
+    else:
+        try:
+            rt, created = await anyio.to_thread.run_sync(registry.create_or_replay, map_id, options)
+        except MapAlreadyExists:
+            # The key's own id (chosen here, or by the scale-out ingress in the body), made with other
+            # options: the key was reused.
+            if body.map_id in (None, new_map_id(idempotency_key)):
+                raise IdempotencyKeyReused(idempotency_key) from None
+            raise
+        if not created:
+            response.status_code = 200
+            response.headers[REPLAY_HEADER] = "true"
     response.headers["Location"] = f"/v1/maps/{map_id}"
     return MapModel.from_result(await rt.run(rt.info))
 

@@ -23,7 +23,7 @@ from datetime import datetime
 from typing import Annotated, Any
 
 import anyio
-from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi import APIRouter, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from models.frontend import images
@@ -34,7 +34,16 @@ from service.maps.departure import Departure
 from service.maps.results import ObservationResult
 from service.maps.runtime import idempotency, stored
 from service.media_types import IMAGE_MEDIA_TYPES
-from service.routes.params import DECIMAL, MAX_SEQ, MapId, Seq, StreamQuery, duplicate_keys
+from service.routes.params import (
+    DECIMAL,
+    MAX_SEQ,
+    REPLAY_HEADER,
+    IdempotencyKey,
+    MapId,
+    Seq,
+    StreamQuery,
+    duplicate_keys,
+)
 from service.schemas import (
     STREAM_PATTERN,
     MatchModel,
@@ -70,7 +79,6 @@ YAW_MAX_ABS = 1e6
 STAMP_MAX_S = 1e11
 #: Stored observations per page of `GET /v1/maps/{id}/observations`.
 MAX_PAGE = 500
-REPLAY_HEADER = "Idempotent-Replayed"
 
 _BINARY_BODY = {"requestBody": {"required": True, "content": {
     t: {"schema": {"type": "string", "format": "binary"}} for t in IMAGE_MEDIA_TYPES}}}
@@ -261,9 +269,7 @@ async def post_observation(
     height: Annotated[int | None, Query(ge=1, description="a raw frame's height in pixels"), DECIMAL] = None,
     metadata: Annotated[str | None, Query(description="a compact JSON object stored with the "
                                           "observation: stamp, pose {x, y, yaw, frame_id}, ...")] = None,
-    idempotency_key: Annotated[str | None, Header(
-        alias="Idempotency-Key", pattern=idempotency.KEY_PATTERN,
-        description="a repeat with this key returns the first reply and learns nothing")] = None,
+    idempotency_key: IdempotencyKey = None,
 ) -> ObservationModel | Response:
     """Post one camera frame as the raw body: `image/jpeg`, `image/png`, `image/webp`, `image/bmp`, or
     `application/octet-stream` (sniffed; a raw frame with `encoding`, `width` and `height`)."""

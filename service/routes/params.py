@@ -11,14 +11,15 @@ import re
 from collections import Counter
 from typing import Annotated, Any
 
-from fastapi import Path, Query
+from fastapi import Header, Path, Query
 from pydantic import BeforeValidator
 
 from service.maps.ids import SNAPSHOT_ID_RE
+from service.maps.runtime.idempotency import KEY_PATTERN
 from service.schemas import MAP_ID_PATTERN, STREAM_PATTERN
 
-__all__ = ["DECIMAL", "MAX_SEQ", "AnswerId", "MapId", "Seq", "SnapshotId", "StreamName", "StreamQuery",
-           "duplicate_keys"]
+__all__ = ["DECIMAL", "MAX_SEQ", "REPLAY_HEADER", "AnswerId", "IdempotencyKey", "MapId", "Seq", "SnapshotId",
+           "StreamName", "StreamQuery", "duplicate_keys"]
 
 _DECIMAL_RE = re.compile(r"-?(0|[1-9][0-9]*)")
 
@@ -61,3 +62,11 @@ def duplicate_keys(text: str | bytes) -> list[str]:
     except (ValueError, RecursionError):
         return []
     return sorted(found)
+
+
+#: An `Idempotency-Key` (docs/design/service.md §1.2): a retry with the key and the same request answers
+#: what the first did, which is done once; a replayed answer carries `REPLAY_HEADER: true`.
+IdempotencyKey = Annotated[str | None, Header(
+    alias="Idempotency-Key", pattern=KEY_PATTERN,
+    description="a repeat with this key and the same request answers the first's reply and does nothing")]
+REPLAY_HEADER = "Idempotent-Replayed"

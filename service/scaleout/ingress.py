@@ -15,7 +15,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import uuid
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from importlib import metadata
@@ -33,6 +32,7 @@ from service.app import install_edge
 from service.deps import ApiKeyDep, ReadKeyDep
 from service.errors import Problem, problem_responses
 from service.maps.errors import ShardUnavailable
+from service.maps.ids import new_map_id
 from service.metrics import Metrics
 from service.request_ids import REQUEST_ID_HEADER, request_id_var
 from service.routes import QueryRulesDep
@@ -175,7 +175,7 @@ def _router() -> APIRouter:
         except ValueError:
             doc = None
         if isinstance(doc, dict) and not doc.get("map_id"):  # the id is chosen here, as by the shard
-            doc["map_id"] = f"map-{uuid.uuid4().hex[:12]}"
+            doc["map_id"] = new_map_id(request.headers.get("Idempotency-Key"))
             body = json.dumps(doc).encode()
         map_id = doc.get("map_id") if isinstance(doc, dict) else None
         if not isinstance(map_id, str):  # let a shard answer the malformed body with its 4xx

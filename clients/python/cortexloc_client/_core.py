@@ -51,7 +51,7 @@ class RetryPolicy:
     - a connection that could not be opened: the request was never sent; retried like a 503.
     - any other transport failure (reset, timeout while reading the reply): the service may have done
       the work, so only idempotent requests are retried (GET, DELETE, PATCH, a stream reset, and an
-      observation that carries an `Idempotency-Key`).
+      observation or a map creation that carries an `Idempotency-Key`).
     - a 500, 502, 503 or 504 that is not problem+json: a proxy's page, not the service's answer (Ray
       Serve's proxy sends a plain-text 500 for a request whose ingress replica died with it; nginx and
       load balancers send HTML 502 Bad Gateway, 503 and 504 Gateway Timeout when the upstream failed or
@@ -135,8 +135,8 @@ class Settings:
         api_key: the server's `CORTEXLOC_API_KEY`, sent as `X-API-Key` on every request.
         timeout: seconds for connecting, and between bytes of the reply.
         retry: when to send a request again (`RetryPolicy(attempts=1)`: never).
-        idempotency_keys: give each observation post a fresh `Idempotency-Key` (kept across its
-            retries), so that a retried post is not learned twice.
+        idempotency_keys: give each observation post and map creation a fresh `Idempotency-Key` (kept
+            across its retries), so that a retried post is not learned twice, nor a map made twice.
     """
 
     base_url: str = "http://127.0.0.1:8000"
@@ -220,10 +220,14 @@ def ready() -> Call[models.Readiness]:
     return Call("GET", "/readyz", _model(models.Readiness), idempotent=True, retry=False)
 
 
-def create_map(map_id: str | None, **fields: Any) -> Call[models.Map]:
-    """Fields left None are not sent (the server's preset decides them)."""
+def create_map(settings: Settings, map_id: str | None, *, idempotency_key: str | None,
+               **fields: Any) -> Call[models.Map]:
+    """Fields left None are not sent (the server's preset decides them). With a key (made here once, so
+    every retry sends it) a retry whose first try made the map is answered that map, not a second one."""
     body = {"map_id": map_id, **fields}
-    return Call("POST", "/v1/maps", _model(models.Map), json={k: v for k, v in body.items() if v is not None})
+    key = idempotency_key or (uuid.uuid4().hex if settings.idempotency_keys else None)
+    return Call("POST", "/v1/maps", _model(models.Map), json={k: v for k, v in body.items() if v is not None},
+                headers={} if key is None else {IDEMPOTENCY_HEADER: key}, idempotent=key is not None)
 
 
 def list_maps() -> Call[list[models.Map]]:

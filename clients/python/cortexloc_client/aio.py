@@ -100,10 +100,12 @@ class AsyncClient:
                          revisit_threshold: float | None = None, localiser: Mapping[str, Any] | None = None,
                          thumbnails: bool | None = None, resize: str | None = None,
                          keyframes: Mapping[str, Any] | None = None,
-                         verify_revisit: bool | None = None) -> models.Map:
+                         verify_revisit: bool | None = None,
+                         idempotency_key: str | None = None) -> models.Map:
         """`POST /v1/maps`: as `Client.create_map`."""
         return await self._send(_core.create_map(
-            map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh,
+            self.settings, map_id, idempotency_key=idempotency_key, preset=preset, seed=seed, tm=tm,
+            slsbh=slsbh,
             backbone=backbone, memory=memory, revisit_threshold=revisit_threshold, localiser=localiser,
             thumbnails=thumbnails, resize=resize, keyframes=keyframes, verify_revisit=verify_revisit))
 

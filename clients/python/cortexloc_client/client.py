@@ -101,7 +101,7 @@ class Client:
                    revisit_threshold: float | None = None, localiser: Mapping[str, Any] | None = None,
                    thumbnails: bool | None = None, resize: str | None = None,
                    keyframes: Mapping[str, Any] | None = None,
-                   verify_revisit: bool | None = None) -> models.Map:
+                   verify_revisit: bool | None = None, idempotency_key: str | None = None) -> models.Map:
         """`POST /v1/maps`: a new map; unset fields take the server's preset (a generated id if no id).
 
         Args:
@@ -118,11 +118,15 @@ class Client:
             keyframes: `{"features": "orb" | "sift" | "akaze", "max": N}`: keep each learned frame's local
                 features, so revisits are verified geometrically (`Place.verification`).
             verify_revisit: a revisit needs a verified keyframe (`update_map` changes it).
+            idempotency_key: the creation's key; default a fresh UUID (unless `idempotency_keys=False`),
+                so a retry after a lost reply answers the map its first try made (200), not a second map
+                nor 409.
 
         All but `revisit_threshold` and `verify_revisit` are frozen with the map.
         """
         return self._send(_core.create_map(
-            map_id, preset=preset, seed=seed, tm=tm, slsbh=slsbh,
+            self.settings, map_id, idempotency_key=idempotency_key, preset=preset, seed=seed, tm=tm,
+            slsbh=slsbh,
             backbone=backbone, memory=memory, revisit_threshold=revisit_threshold, localiser=localiser,
             thumbnails=thumbnails, resize=resize, keyframes=keyframes, verify_revisit=verify_revisit))
 

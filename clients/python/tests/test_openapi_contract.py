@@ -40,7 +40,9 @@ def test_every_route_the_server_serves_has_a_client_model(openapi: dict[str, Any
 def test_create_map_takes_every_option_the_server_does(openapi: dict[str, Any], method) -> None:
     body = openapi["paths"]["/v1/maps"]["post"]["requestBody"]["content"]["application/json"]["schema"]
     options = openapi["components"]["schemas"][body["$ref"].rsplit("/", 1)[-1]]["properties"]
-    assert set(inspect.signature(method).parameters) - {"self"} == set(options)
+    headers = {p["name"] for p in openapi["paths"]["/v1/maps"]["post"]["parameters"] if p["in"] == "header"}
+    assert headers == {"Idempotency-Key"}
+    assert set(inspect.signature(method).parameters) - {"self"} == set(options) | {"idempotency_key"}
 
 
 class Inner(BaseModel):

@@ -120,6 +120,29 @@ def test_each_post_has_its_own_key_unless_given_or_turned_off(waits) -> None:
     assert (given, off) == ("frame-0042", None)
 
 
+MAP = {"map_id": "map-0123456789ab", "created_at": "now", "state": "ready", "encoder": "e",
+       "params": {"tm": {}, "slsbh": {}, "seed": 42}, "projection_sha256": "0", "observations": 0,
+       "last_seq": 0, "streams": []}
+
+
+def test_a_map_creation_whose_reply_was_lost_is_sent_again_with_its_key(waits) -> None:
+    # The service answers a keyed creation's retry with the map its first try made (200, replayed), so a
+    # reply lost in transport no longer leaves the caller with an error and a map it does not know of.
+    replayed = httpx.Response(200, json=MAP, headers={"Idempotent-Replayed": "true"})
+    script = Script(httpx.ReadTimeout("lost"), replayed)
+    assert make(script).create_map().map_id == "map-0123456789ab"
+    keys = script.keys()
+    assert len(keys) == 2 and keys[0] and len(set(keys)) == 1
+    assert [json.loads(r.content) for r in script.requests] == [{}, {}]
+    script = Script(httpx.ReadTimeout("lost"), replayed)
+    make(script).create_map("lab", seed=3, idempotency_key="lab-create-1")
+    assert script.keys() == ["lab-create-1", "lab-create-1"]
+    script = Script(httpx.ReadTimeout("lost"), replayed)  # without keys: it may have been made, not resent
+    with pytest.raises(httpx.ReadTimeout):
+        make(script, idempotency_keys=False).create_map()
+    assert script.keys() == [None]
+
+
 def test_waits_are_capped_and_attempts_bounded(waits) -> None:
     script = Script(busy("3600"))
     with pytest.raises(ServiceUnavailableError) as e:

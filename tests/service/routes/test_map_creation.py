@@ -205,3 +205,51 @@ def test_a_patch_on_a_full_disk_is_507_and_changes_nothing(client, monkeypatch):
     monkeypatch.undo()
     r = client.patch("/v1/maps/default", json={"revisit_threshold": 0.9})
     assert r.status_code == 200 and r.json()["revisit_threshold"] == 0.9
+
+
+def test_a_keyed_creation_retried_answers_the_map_its_first_try_made(tmp_path):
+    # A robot whose reply to POST /v1/maps was lost retries it: without a key that made a second map under
+    # a new random id (or, with its own id, a 409 that did not say the map was its own).
+    data = tmp_path / "data"
+    body = {"seed": 3, "localiser": {"warmup": 2}}
+    with TestClient(make_app(data)) as c:
+        first = c.post("/v1/maps", json=body, headers={"Idempotency-Key": "create-key-1"})
+        assert first.status_code == 201 and "Idempotent-Replayed" not in first.headers, first.text
+        map_id = first.json()["map_id"]
+        assert first.headers["Location"] == f"/v1/maps/{map_id}"
+        assert c.patch(f"/v1/maps/{map_id}", json={"revisit_threshold": 0.5}).status_code == 200
+        assert post(c, frame(0), map_id=map_id).status_code == 200
+    with TestClient(make_app(data)) as c:  # across a restart: the key names the id, nothing is stored
+        again = c.post("/v1/maps", json=body, headers={"Idempotency-Key": "create-key-1"})
+        assert again.status_code == 200 and again.headers["Idempotent-Replayed"] == "true", again.text
+        assert again.json()["map_id"] == map_id and again.headers["Location"] == f"/v1/maps/{map_id}"
+        # the map as it is now: PATCHed since (not compared), its observation kept
+        assert again.json()["revisit_threshold"] == 0.5 and again.json()["observations"] == 1
+        assert [m["map_id"] for m in c.get("/v1/maps").json()["maps"]] == ["default", map_id]
+        # the key again with other options: not this creation; nothing made, the map untouched
+        other = c.post("/v1/maps", json={"seed": 4}, headers={"Idempotency-Key": "create-key-1"})
+        assert other.status_code == 422, other.text
+        assert other.json()["type"].endswith("idempotency-key-reused")
+        assert other.json()["key"] == "create-key-1"
+        # another key is another map; no key, a map each time
+        assert c.post("/v1/maps", json=body, headers={"Idempotency-Key": "create-key-2"}).status_code == 201
+        assert c.post("/v1/maps", json=body).status_code == 201
+        assert c.post("/v1/maps", json=body).status_code == 201
+        assert len(c.get("/v1/maps").json()["maps"]) == 5  # the service's "default" among them
+        assert c.get(f"/v1/maps/{map_id}").json()["observations"] == 1
+
+
+def test_a_keyed_creation_with_its_own_id(client):
+    body = {"map_id": "lab", "seed": 3}
+    assert client.post("/v1/maps", json=body, headers={"Idempotency-Key": "lab-key-01"}).status_code == 201
+    again = client.post("/v1/maps", json=body, headers={"Idempotency-Key": "lab-key-01"})
+    assert again.status_code == 200 and again.headers["Idempotent-Replayed"] == "true"
+    # the id's map made with other options is someone else's: 409, as without a key
+    other = client.post("/v1/maps", json={**body, "seed": 4}, headers={"Idempotency-Key": "lab-key-01"})
+    assert other.status_code == 409 and other.json()["type"].endswith("map-exists"), other.text
+    assert client.post("/v1/maps", json=body).status_code == 409  # no key: as before
+    assert client.get("/v1/maps/lab").json()["params"]["seed"] == 3
+    for bad in ("short", "x" * 129, "has space"):  # the observations' key rule
+        r = client.post("/v1/maps", json={"seed": 5}, headers={"Idempotency-Key": bad})
+        assert r.status_code in (400, 422) and r.headers["content-type"] == PROBLEM_MEDIA_TYPE, r.text
+    assert [m["map_id"] for m in client.get("/v1/maps").json()["maps"]] == ["default", "lab"]

@@ -136,6 +136,18 @@ def test_maps_spread_over_shards_and_are_served_through_the_ingress(cluster):
         # Deleting a map removes its route.
         assert c.delete("/v1/maps/m2").status_code == 204
         assert cluster.shards.table.get("m2") is None
+        # A keyed creation without an id: the ingress picks the id a shard would (the key's), so its
+        # retry reaches the map's owner and is answered that map, not made a second time elsewhere.
+        made = c.post("/v1/maps", json=TINY, headers={"Idempotency-Key": "ingress-create-1"})
+        assert made.status_code == 201, made.text
+        again = c.post("/v1/maps", json=TINY, headers={"Idempotency-Key": "ingress-create-1"})
+        assert again.status_code == 200 and again.headers["Idempotent-Replayed"] == "true", again.text
+        assert again.json()["map_id"] == made.json()["map_id"]
+        # the key again with other options: the key was reused (as from one process), nothing made
+        reused = c.post("/v1/maps", json={**TINY, "seed": 9}, headers={"Idempotency-Key": "ingress-create-1"})
+        assert reused.status_code == 422, reused.text
+        assert reused.json()["type"].endswith("idempotency-key-reused")
+        assert len(c.get("/v1/maps").json()["maps"]) == 4
 
 
 def test_metrics_readiness_and_memory_cover_every_shard(cluster):
