@@ -27,8 +27,9 @@ then posts the source's frames **one at a time, in source order**:
   (`Frame.unusable`: an encoding the service does not take, a payload shorter than its shape) as the
   415 or 422 the service would answer, not posted; a folder's file that cannot be read
   (`Frame.unreadable`) as status 0, not posted.
-- a missing map is created with the server's default preset when learning (`Summary.created_map`);
-  localising against a missing map stops.
+- a missing map is created with the server's default preset when learning (`Summary.created_map`); one
+  made by someone else between the look and the creation (409 `map-exists`: two ingests started on one
+  new map) is used as found. Localising against a missing map stops.
 """
 
 from __future__ import annotations
@@ -256,6 +257,12 @@ async def _ensure_map(client: httpx.AsyncClient, opts: Options, headers: dict[st
                                  json={"map_id": opts.map_id})
         if created.status_code == 201:
             return True
+        # Made meanwhile (another ingest started on the same new map)? Then it is served now: use it. (A
+        # map-exists for a directory the catalog does not list is not served: that 409 stops the ingest.)
+        if created.status_code == 409 and str(json_body(created).get("type", "")).endswith(":map-exists"):
+            again = await _request(client, "GET", f"/v1/maps/{opts.map_id}", summary, headers=headers)
+            if again.status_code == 200:
+                return False
         r = created
     raise IngestError(f"map {opts.map_id!r}: {_problem_text(r)}", summary)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -217,7 +218,10 @@ class Scripted:
         return httpx.Response(status, json=body, headers=headers)
 
 
-def _ingest(tmp_path: Path, service: Scripted, *, prefetch: int = 4, api_key: str | None = None,
+Service = Callable[[httpx.Request], Awaitable[httpx.Response]]
+
+
+def _ingest(tmp_path: Path, service: Service, *, prefetch: int = 4, api_key: str | None = None,
             map_id: str = "m"):
     bodies = write_folder(tmp_path / "frames")
     sleeps: list[float] = []
@@ -331,6 +335,47 @@ def test_a_refused_frame_is_counted_and_the_ingest_goes_on_but_a_refused_map_sto
     with pytest.raises(poster.IngestError, match=r"frame frame_0001\.jpg: 404"):
         anyio.run(run)
     assert len(service.bodies) == 2
+
+
+def test_a_map_made_by_another_ingest_between_the_look_and_the_creation_is_used(tmp_path):
+    """Two ingests started on one new map both find it missing; the second's creation is answered 409
+    `map-exists` and it posts into the map the first made, as if it had found it (it stopped there)."""
+    service = Scripted()
+    made = []
+
+    async def racing(request: httpx.Request) -> httpx.Response:
+        if request.method == "GET" and not made:
+            return httpx.Response(404, json={"type": "urn:cortexloc:problem:map-not-found", "detail": "d"},
+                                  headers={"Content-Type": "application/problem+json"})
+        if request.url.path == "/v1/maps":
+            made.append(json.loads(request.content))
+            return httpx.Response(409, json={"type": "urn:cortexloc:problem:map-exists", "detail": "d"},
+                                  headers={"Content-Type": "application/problem+json"})
+        return await service(request)
+
+    bodies, _, run = _ingest(tmp_path, racing)
+    summary = anyio.run(run)
+    assert made == [{"map_id": "m"}] and not summary.created_map
+    assert service.bodies == bodies and summary.frames == len(ROUTE) and summary.errors == 0
+    # Another 409 (the map limit), or a map-exists whose map is not served after all, still stops it.
+    full = httpx.Response(409, json={"type": "urn:cortexloc:problem:map-limit", "title": "Map limit",
+                                     "detail": "d"}, headers={"Content-Type": "application/problem+json"})
+
+    async def limited(request: httpx.Request) -> httpx.Response:
+        made.clear()
+        return await racing(request) if request.method == "GET" else full
+
+    _, _, run = _ingest(tmp_path / "again", limited)
+    with pytest.raises(poster.IngestError, match="409 Map limit"):
+        anyio.run(run)
+
+    async def unlisted(request: httpx.Request) -> httpx.Response:
+        made.clear()  # every look finds no map
+        return await racing(request)
+
+    _, _, run = _ingest(tmp_path / "unlisted", unlisted)
+    with pytest.raises(poster.IngestError, match="map 'm': 409"):
+        anyio.run(run)
 
 
 @pytest.mark.parametrize("map_id", ["..", "m/..", "m/snapshots", "", "m\n"])
