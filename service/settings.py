@@ -32,6 +32,7 @@ from pydantic_settings import BaseSettings, EnvSettingsSource, PydanticBaseSetti
 from pydantic_settings.sources.utils import parse_env_vars
 
 from models.frontend import backbones, limits
+from models.localisation.index import MAX_ROWS
 
 __all__ = ["ENV_PREFIX", "OTHER_KNOWN_VARIABLES", "ConfigError", "Settings", "env_name"]
 
@@ -45,6 +46,12 @@ OTHER_KNOWN_VARIABLES = frozenset({
     "CORTEXLOC_CACHE_DIR",  # cortexloc eval images feature cache
     "CORTEXLOC_SHARED_DATA",  # models.evaluation.datasets
 })
+
+# Every number has an upper bound: an absurd value is refused at startup naming its variable, not met
+# later as a crash or a host brought down (a thread per encoder worker, torch's C int of threads, int32
+# index rows). The bounds are far above any real deployment and each is a value the service runs at.
+_LOG_ROWS = 10**9  # rows kept in a map's logs, and the automatic snapshot period
+_YEAR_S = 365 * 86_400.0
 
 #: Fields whose value must never appear in a message or a repr.
 _SECRET_FIELDS = frozenset({"api_key"})
@@ -99,17 +106,18 @@ class Settings(BaseSettings):
                                  f"models.frontend.backbones); unset: {backbones.PAPER} when its real "
                                  f"weights are installed, else {backbones.PRETRAINED} (resolved at startup)")
     allow_random_weights: bool = Field(True, description="serve (with a warning) on random weights")
-    random_weights_seed: int = Field(0, ge=0, description="seed of the random fallback weights")
+    random_weights_seed: int = Field(0, ge=0, le=2**32 - 1, description="seed of the random fallback weights")
     device: Literal["cpu", "cuda", "auto"] = Field(
         "auto", description="where the backbone runs: cuda (ONNX Runtime's CUDA provider, the `gpu` extra; "
         "refuses to start without it), cpu, or auto (CUDA where it runs, else the CPU with a log line)")
     runtime: Literal["onnxruntime", "torch"] = Field(
         "onnxruntime", description="the backbone's runtime: onnxruntime (its ONNX export, same codes, "
         "faster) or torch (the reference)")
-    torch_threads: int = Field(1, ge=1)
-    encoder_workers: int = Field(1, ge=1, description="encoder executor size")
-    encoder_queue: int = Field(32, ge=1, description="encoder queue length (full: 503 overloaded; shared "
-                                                     "between maps, docs/design/service.md §6)")
+    torch_threads: int = Field(1, ge=1, le=1024)
+    encoder_workers: int = Field(1, ge=1, le=256, description="encoder executor size")
+    encoder_queue: int = Field(
+        32, ge=1, le=100_000, description="encoder queue length (full: 503 overloaded; shared between maps, "
+        "docs/design/service.md §6)")
     encode_batch: int = Field(16, ge=1, le=256, description="images one backbone call of the encoder pool "
                               "takes at most: requests that arrive together share a call (the forward's "
                               "cost per image is flat from batch 1 to 16 on ONNX Runtime)")
@@ -119,10 +127,11 @@ class Settings(BaseSettings):
                                   "of several streams (0: never wait)")
     encode_chunk: int = Field(limits.DEFAULT_CHUNK, ge=1, le=256, description="images per backbone call "
                               "while the next ones are decoded: small chunks start the backbone sooner")
-    max_extractions: int = Field(4, ge=1, description="keyframe extractions running at once, all maps "
-                                 "together, the maps in turn, and in flight per map (full: 503 overloaded); "
-                                 "each running one holds ~300 MB at most (a 25 MP SIFT frame)")
-    max_upload_bytes: int = Field(limits.DEFAULT_MAX_BYTES, ge=1, description="request body limit")
+    max_extractions: int = Field(
+        4, ge=1, le=256, description="keyframe extractions running at once, all maps together, the maps in "
+        "turn, and in flight per map (full: 503 overloaded); each running one holds ~300 MB at most (a 25 "
+        "MP SIFT frame)")
+    max_upload_bytes: int = Field(limits.DEFAULT_MAX_BYTES, ge=1, le=2**30, description="request body limit")
     body_timeout_s: float = Field(60.0, gt=0, le=3600, description="a request's whole body must arrive "
                                   "within this many seconds of its start, its head within as many of the "
                                   "connection's opening or previous reply (408 and the connection closed "
@@ -133,54 +142,60 @@ class Settings(BaseSettings):
                                  "stalled connections cannot use up the process's file descriptors "
                                  "(`cortexloc serve` raises the soft descriptor limit to fit, up to the hard "
                                  "one; below it the cap is lowered to what fits)")
-    max_inflight_upload_bytes: int = Field(128 * 2**20, ge=1, description="bytes all requests being read "
-                                           "or served may hold in bodies at once (each reserves its "
-                                           "Content-Length; a chunked one its limit); past it 503 "
-                                           "overloaded with Retry-After before the body is read")
-    max_pixels: int = Field(limits.DEFAULT_MAX_PIXELS, ge=1,
+    max_inflight_upload_bytes: int = Field(
+        128 * 2**20, ge=1, le=2**36, description="bytes all requests being read or served may hold in "
+        "bodies at once (each reserves its Content-Length; a chunked one its limit); past it 503 overloaded "
+        "with Retry-After before the body is read")
+    max_pixels: int = Field(limits.DEFAULT_MAX_PIXELS, ge=1, le=2**30,
                             description="decoded-image limit (width x height)")
     default_preset: str = Field("cortexloc-default", min_length=1)
-    max_map_bytes: int = Field(100_000_000, ge=1, description="a map's preallocated bytes at most: its "
-                               "memory, every stream's localiser state and its projection (very sparse "
-                               "where the dense one would break the budget)")
-    max_maps: int = Field(64, ge=1)
-    max_observations: int = Field(1_000_000, ge=1)
-    max_streams: int = Field(64, ge=1)
-    stream_keep_seconds: float = Field(600.0, ge=0, allow_inf_nan=False,
+    max_map_bytes: int = Field(
+        100_000_000, ge=1, le=2**40, description="a map's preallocated bytes at most: its memory, every "
+        "stream's localiser state and its projection (very sparse where the dense one would break the "
+        "budget)")
+    max_maps: int = Field(64, ge=1, le=4096)
+    max_observations: int = Field(1_000_000, ge=1, le=MAX_ROWS)
+    max_streams: int = Field(64, ge=1, le=65_536)
+    stream_keep_seconds: float = Field(600.0, ge=0, le=_YEAR_S, allow_inf_nan=False,
                                        description="a stream that posted within this many seconds is never "
                                        "evicted for a new one; a new stream is refused (429) while every "
                                        "slot is that recent (0: least recently used evicted at once)")
-    memory_budget_bytes: int | None = Field(None, ge=1, description="RAM all maps and encoders may hold "
-                                            "together; unset: half the smaller of host memory and the "
-                                            "cgroup limit (service/maps/runtime/budget.py)")
-    max_top_k: int = Field(100, ge=0)
-    idempotency_keys: int = Field(100_000, ge=1, description="Idempotency-Keys kept per map: those of the "
-                                  "learned posts of the last N seqs and the consolidated posts of the "
-                                  "last N visits, in map.sqlite")
-    loop_closures: int = Field(100_000, ge=1, description="loop closures kept per map in its log (the "
-                               "revisits streams were told of, map.sqlite): the last N, oldest pruned")
-    visits: int = Field(100_000, ge=1, description="consolidated frames kept per map in its visit log "
-                        "(map.sqlite): the last N once a snapshot covers them (docs/design/science.md §11.8)")
-    idempotency_cache: int = Field(1024, ge=0, description="replies of localisation posts (learn=false) "
-                                   "kept in memory per map for their Idempotency-Key")
+    memory_budget_bytes: int | None = Field(
+        None, ge=1, le=2**50, description="RAM all maps and encoders may hold together; unset: half the "
+        "smaller of host memory and the cgroup limit (service/maps/runtime/budget.py)")
+    max_top_k: int = Field(100, ge=0, le=10_000)
+    idempotency_keys: int = Field(
+        100_000, ge=1, le=_LOG_ROWS, description="Idempotency-Keys kept per map: those of the learned posts "
+        "of the last N seqs and the consolidated posts of the last N visits, in map.sqlite")
+    loop_closures: int = Field(
+        100_000, ge=1, le=_LOG_ROWS, description="loop closures kept per map in its log (the revisits "
+        "streams were told of, map.sqlite): the last N, oldest pruned")
+    visits: int = Field(
+        100_000, ge=1, le=_LOG_ROWS, description="consolidated frames kept per map in its visit log "
+        "(map.sqlite): the last N once a snapshot covers them (docs/design/science.md §11.8)")
+    idempotency_cache: int = Field(
+        1024, ge=0, le=1_000_000, description="replies of localisation posts (learn=false) kept in memory "
+        "per map for their Idempotency-Key")
     verify_neighbours: int = Field(2, ge=0, le=10, description="a revisit candidate is verified against "
                                    "its place's keyframe, then up to N route neighbours each side "
                                    "(docs/design/science.md §12.2); maps with the keyframes option only")
-    snapshot_every: int = Field(1000, ge=0, description="automatic snapshot period (0 = off)")
-    snapshot_keep: int = Field(3, ge=0, description="automatic snapshots kept, and whatever their number "
-                               "the one recovery starts from (0: only that one)")
-    snapshot_manual_keep: int = Field(10, ge=0, description="manual snapshots kept per map, oldest "
-                                      "deleted first (0: no count limit); so many pre-restore ones too, "
-                                      "counted apart")
-    snapshot_manual_bytes: int = Field(2**31, ge=0, description="bytes of manual snapshots kept per map, "
-                                       "oldest deleted first (0: no byte limit); so many of pre-restore "
-                                       "ones too, counted apart")
-    lock_wait_s: float = Field(30.0, ge=0, description="seconds a starting server waits for another process "
-                               "to let its data directory go (a restart, a rolling update) before it gives "
-                               "up and exits (docs/design/service.md §4.1)")
-    max_import_bytes: int = Field(2**33, ge=1, description="most bytes a snapshot tar may unpack to "
-                                  "(`cortexloc import`); a map within max_map_bytes and a million ~3 KB rows "
-                                  "fit in 8 GiB")
+    snapshot_every: int = Field(1000, ge=0, le=_LOG_ROWS, description="automatic snapshot period (0 = off)")
+    snapshot_keep: int = Field(
+        3, ge=0, le=1000, description="automatic snapshots kept, and whatever their number the one recovery "
+        "starts from (0: only that one)")
+    snapshot_manual_keep: int = Field(
+        10, ge=0, le=100_000, description="manual snapshots kept per map, oldest deleted first (0: no count "
+        "limit); so many pre-restore ones too, counted apart")
+    snapshot_manual_bytes: int = Field(
+        2**31, ge=0, le=2**50, description="bytes of manual snapshots kept per map, oldest deleted first "
+        "(0: no byte limit); so many of pre-restore ones too, counted apart")
+    lock_wait_s: float = Field(
+        30.0, ge=0, le=86_400, allow_inf_nan=False, description="seconds a starting server waits for "
+        "another process to let its data directory go (a restart, a rolling update) before it gives up and "
+        "exits (docs/design/service.md §4.1)")
+    max_import_bytes: int = Field(
+        2**33, ge=1, le=2**50, description="most bytes a snapshot tar may unpack to (`cortexloc import`); a "
+        "map within max_map_bytes and a million ~3 KB rows fit in 8 GiB")
     api_key: str | None = Field(None, min_length=1, repr=False,
                                 description="when set, every write needs it (X-API-Key or Bearer)")
     api_key_reads: bool = Field(False, description="every /v1 read and /metrics need the key too (/healthz "

@@ -36,9 +36,10 @@ from typing import NamedTuple, Protocol
 import numpy as np
 from numba import njit
 
-__all__ = ["IndexFull", "IndexRow", "InvertedIndex", "Match"]
+__all__ = ["MAX_ROWS", "IndexFull", "IndexRow", "InvertedIndex", "Match"]
 
-_ROW = np.int32  # row numbers; max_observations is capped below 2**31
+_ROW = np.int32  # row numbers, hence the cap below
+MAX_ROWS = 2**31 - 1  # the most rows an index holds (`max_observations`): row numbers are int32
 _MIN_CAP = 4  # first allocation of a cell's postings; doubled when full
 _NO_WEIGHTS = np.zeros(0, dtype=np.float64)  # `_top_k_touched` without weights: plain Dice
 
@@ -254,8 +255,8 @@ class InvertedIndex:
     def __init__(self, n_cells: int, max_observations: int) -> None:
         if n_cells <= 0:
             raise ValueError(f"n_cells must be positive, got {n_cells}")
-        if not 0 < max_observations < 2**31:
-            raise ValueError(f"max_observations must be in [1, 2**31), got {max_observations}")
+        if not 0 < max_observations <= MAX_ROWS:
+            raise ValueError(f"max_observations must be in [1, {MAX_ROWS}], got {max_observations}")
         self.n_cells = int(n_cells)
         self.max_observations = int(max_observations)
         self._clear()

@@ -15,8 +15,8 @@ from fastapi.testclient import TestClient
 from typer.testing import CliRunner
 
 from service.app import create_app
-from service.settings import ConfigError, Settings
-from tests.service.helpers import tiny_encoder
+from service.settings import ConfigError, Settings, env_name
+from tests.service.helpers import frame, make_client, post, tiny_encoder
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -100,6 +100,15 @@ def test_empty_value_means_unset():
     ("CORTEXLOC_MAX_UPLOAD_BYTES", "-1"),
     ("CORTEXLOC_TORCH_THREADS", "0"),
     ("CORTEXLOC_SNAPSHOT_KEEP", "three"),
+    # past the upper bounds (docs/design/service.md §8), some met later as a crash or a host brought
+    # down: a thread per worker, torch's C int of threads, int32 index rows, a wait that never ends
+    ("CORTEXLOC_ENCODER_WORKERS", "10000000000000000000000000"),
+    ("CORTEXLOC_TORCH_THREADS", str(2**63)),
+    ("CORTEXLOC_MAX_OBSERVATIONS", str(2**31)),
+    ("CORTEXLOC_RANDOM_WEIGHTS_SEED", str(2**64)),
+    ("CORTEXLOC_LOOP_CLOSURES", str(2**63)),
+    ("CORTEXLOC_LOCK_WAIT_S", "inf"),
+    ("CORTEXLOC_STREAM_KEEP_SECONDS", "1e300"),
 ])
 def test_invalid_value_names_the_variable(var, value):
     with pytest.raises(ConfigError) as info:
@@ -107,6 +116,42 @@ def test_invalid_value_names_the_variable(var, value):
     assert var in str(info.value)
     assert repr(value) in str(info.value)
     assert info.value.variables == [var]
+
+
+def _upper_bound(name: str) -> float | None:
+    return next((m.le for m in Settings.model_fields[name].metadata if getattr(m, "le", None) is not None),
+                None)
+
+
+def test_every_number_has_an_upper_bound():
+    """An absurd number is refused at startup naming its variable, whatever setting is added next."""
+    numeric = [name for name, f in Settings.model_fields.items()
+               if f.annotation in (int, float, int | None, float | None)]
+    assert "encoder_workers" in numeric and "lock_wait_s" in numeric
+    assert [name for name in numeric if _upper_bound(name) is None] == []
+    for name in numeric:  # the bound itself is a value the settings take
+        var, bound = env_name(name), _upper_bound(name)
+        taken = Settings.from_env({var: str(bound), **({"CORTEXLOC_MAX_INFLIGHT_UPLOAD_BYTES": str(bound)}
+                                                        if name == "max_upload_bytes" else {})})
+        assert getattr(taken, name) == bound, var
+
+
+@pytest.mark.parametrize("name", ["encoder_workers", "encoder_queue", "torch_threads", "max_observations",
+                                  "random_weights_seed", "idempotency_keys", "loop_closures", "visits",
+                                  "snapshot_every", "max_top_k", "stream_keep_seconds",
+                                  "lock_wait_s", "max_import_bytes", "snapshot_manual_bytes"])
+def test_the_service_runs_at_an_upper_bound(tmp_path, name):
+    """A setting at its bound is served, not met as a crash: frames learned and localised, a snapshot
+    taken, a second map made."""
+    bound = _upper_bound(name)
+    with make_client(tmp_path, **{name: bound}) as c:
+        for i in range(3):
+            assert post(c, frame(i), learn="true", stream="s").status_code == 200
+        assert c.post("/v1/maps/default/snapshots").status_code == 201
+        found = post(c, frame(1), learn="false", top_k="5")
+        assert found.status_code == 200 and found.json()["matches"], name
+        assert c.post("/v1/maps", json={"map_id": "second"}).status_code == 201
+        assert c.get("/metrics").status_code == 200
 
 
 def test_every_invalid_variable_is_reported():
