@@ -14,6 +14,8 @@ dense`, ...).
 
 from __future__ import annotations
 
+import hashlib
+import json
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -168,10 +170,12 @@ class MapOptions(BaseModel):
     verify_revisit: bool = Field(default=False, description="`place.revisit` needs a verified keyframe "
                                  "(needs keyframes); changeable with PATCH")
 
-
-#: The fields a map's creation options decide and freeze (`MapConfig.made_as`).
-CREATED_FROM = ("preset", "tm", "slsbh", "seed", "backbone", "memory", "localiser", "thumbnails", "resize",
-                "keyframes")
+    def digest(self) -> str:
+        """SHA-256 of the options as asked (the members sent, as sent): a creation's retry sends the same
+        body, so it has the same digest whatever defaults apply by then (docs/design/service.md §1.1)."""
+        asked = json.dumps(self.model_dump(mode="json", exclude_unset=True), sort_keys=True,
+                           separators=(",", ":"))
+        return hashlib.sha256(asked.encode()).hexdigest()
 
 
 class MapConfig(BaseModel):
@@ -204,6 +208,11 @@ class MapConfig(BaseModel):
                     "§12.1); null: none kept")
     verify_revisit: bool = Field(default=False, description="a revisit needs a verified keyframe "
                                  "(docs/design/science.md §12.2); changeable with PATCH")
+    made_by: str = Field(default="", frozen=True,
+                         description="a keyed creation's Idempotency-Key and options as asked, each by its "
+                                     "SHA-256 (`<key>:<options>`), so that its retry is told from another "
+                                     "client's creation (docs/design/service.md §1.1); empty: made "
+                                     "without a key")
     _sections: Sections = PrivateAttr()
 
     @property
@@ -320,13 +329,6 @@ class MapConfig(BaseModel):
             return MapConfig.model_validate({**self.model_dump(), **changes})
         except ValidationError as e:
             raise _invalid(e) from None
-
-    def made_as(self, other: MapConfig) -> bool:
-        """Whether `other` was resolved from the same creation options (docs/design/service.md §1.1: an
-        idempotent creation's retry): what the options freeze, not what the map derived from them (its
-        projection) nor what PATCH may have changed since (`revisit_threshold`, `verify_revisit`)."""
-        fields = set(CREATED_FROM)
-        return self.model_dump(mode="json", include=fields) == other.model_dump(mode="json", include=fields)
 
     def stored(self) -> dict[str, Any]:
         """The values as stored (catalog row, map.sqlite meta, manifest): JSON types."""

@@ -9,7 +9,12 @@ import uuid
 
 from storage.catalog import MAP_ID_RE, SNAPSHOT_ID_RE
 
-__all__ = ["MAP_ID_RE", "SNAPSHOT_ID_RE", "new_map_id"]
+__all__ = ["MAP_ID_RE", "SNAPSHOT_ID_RE", "key_digest", "new_map_id"]
+
+
+def key_digest(idempotency_key: str) -> str:
+    """An `Idempotency-Key`'s SHA-256 (64 hex digits): what a map keeps of the key that made it (§1.1)."""
+    return hashlib.sha256(idempotency_key.encode()).hexdigest()
 
 
 def new_map_id(idempotency_key: str | None = None) -> str:
@@ -18,4 +23,4 @@ def new_map_id(idempotency_key: str | None = None) -> str:
     (the service and the scale-out ingress, which picks the id before a shard sees the body, agree)."""
     if idempotency_key is None:
         return f"map-{uuid.uuid4().hex[:12]}"
-    return f"map-{hashlib.sha256(idempotency_key.encode()).hexdigest()[:12]}"
+    return f"map-{key_digest(idempotency_key)[:12]}"

@@ -23,6 +23,7 @@ from service.maps.encoding import projection as map_projection
 from service.maps.encoding.embedders import Embedders
 from service.maps.errors import (
     DataDirectoryInUse,
+    IdempotencyKeyReused,
     InsufficientStorage,
     InvalidConfiguration,
     InvalidMapId,
@@ -34,6 +35,7 @@ from service.maps.errors import (
     UnlistedMaps,
 )
 from service.maps.failed import FailedMap
+from service.maps.ids import key_digest
 from service.maps.recovery import snapshots as map_snapshots
 from service.maps.results import BudgetInfo, MapReservation
 from service.maps.runtime import MapRuntime
@@ -235,29 +237,37 @@ class MapRegistry:
             MemoryBudgetExceeded. InsufficientStorage: no room to write; what the creation made is
             removed (a projection, content-addressed and perhaps shared, stays).
         """
-        return self._create(map_id, options, replay=False)[0]
+        return self._create(map_id, options)[0]
 
-    def create_or_replay(self, map_id: str, options: MapOptions | None = None) -> tuple[MapRuntime, bool]:
-        """`create`, for a creation that may be a retry (an `Idempotency-Key`, docs/design/service.md §1.1):
-        (the map, whether it was made now). A map of this id whose frozen configuration `options` resolve
-        to (`MapConfig.made_as`) is the earlier creation's, answered as it is.
+    def create_or_replay(self, map_id: str, options: MapOptions | None, key: str) -> tuple[MapRuntime, bool]:
+        """`create` with an `Idempotency-Key`, for a creation that may be a retry (docs/design/service.md
+        §1.1): (the map, whether it was made now). The map keeps the key and the options as asked, by
+        their digests (`MapConfig.made_by`); a map of this id made by this key from these options is the
+        earlier try's, answered as it is.
 
         Raises:
-            as `create`; MapAlreadyExists where the map of this id was made with other options.
+            as `create`; MapAlreadyExists where the map of this id was made otherwise (without this key);
+            IdempotencyKeyReused where this key made it from other options.
         """
-        return self._create(map_id, options, replay=True)
+        return self._create(map_id, options, key=key)
 
-    def _create(self, map_id: str, options: MapOptions | None, *, replay: bool) -> tuple[MapRuntime, bool]:
+    def _create(self, map_id: str, options: MapOptions | None, *, key: str | None = None
+                ) -> tuple[MapRuntime, bool]:
         if not MAP_ID_RE.fullmatch(map_id):  # `$` also matches before a last newline
             raise InvalidMapId(map_id, MAP_ID_RE.pattern)
         config = self._resolve(options)
+        if key is not None:
+            made_by = f"{key_digest(key)}:{(options or MapOptions()).digest()}"
+            config = config.model_copy(update={"made_by": made_by})
         with self._create_lock:
             # Refused before a backbone's network is built or loaded.
             if map_id in self.maps:
-                existing = self.maps[map_id]
-                if replay and existing.config.made_as(config):
-                    return existing, False
-                raise MapAlreadyExists(map_id)
+                made_by = self.maps[map_id].config.made_by
+                if key is None or made_by.partition(":")[0] != key_digest(key):
+                    raise MapAlreadyExists(map_id)
+                if made_by != config.made_by:
+                    raise IdempotencyKeyReused(key)
+                return self.maps[map_id], False
             if len(self.maps) >= self.settings.max_maps:
                 raise MapLimit(self.settings.max_maps)
             config, encoder = self._encoder_for(config)

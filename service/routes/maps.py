@@ -10,7 +10,6 @@ from fastapi import APIRouter, Response
 from service.deps import ApiKeyDep, RegistryDep
 from service.errors import problem_responses
 from service.maps.config import MapOptions
-from service.maps.errors import IdempotencyKeyReused, MapAlreadyExists
 from service.maps.ids import new_map_id
 from service.routes.params import REPLAY_HEADER, IdempotencyKey, MapId, StreamName
 from service.schemas import (
@@ -41,18 +40,13 @@ async def create_map(
 ) -> MapModel:
     """A new map (201). With an `Idempotency-Key`, a retry answers the map its first try made (§1.1)."""
     map_id = body.map_id or new_map_id(idempotency_key)
-    options = MapOptions.model_validate(body.model_dump(exclude={"map_id"}))
+    # the members as sent: a keyed creation is told from another by them (MapOptions.digest)
+    options = MapOptions.model_validate(body.model_dump(exclude={"map_id"}, exclude_unset=True))
     if idempotency_key is None:
         rt = await anyio.to_thread.run_sync(registry.create, map_id, options)
     else:
-        try:
-            rt, created = await anyio.to_thread.run_sync(registry.create_or_replay, map_id, options)
-        except MapAlreadyExists:
-            # The key's own id (chosen here, or by the scale-out ingress in the body), made with other
-            # options: the key was reused.
-            if body.map_id in (None, new_map_id(idempotency_key)):
-                raise IdempotencyKeyReused(idempotency_key) from None
-            raise
+        rt, created = await anyio.to_thread.run_sync(registry.create_or_replay, map_id, options,
+                                                     idempotency_key)
         if not created:
             response.status_code = 200
             response.headers[REPLAY_HEADER] = "true"

@@ -15,7 +15,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -26,6 +26,9 @@ from service.scaleout.shard import ForwardedReply
 from storage.shardtable import ShardRoute, ShardTable
 
 __all__ = ["MoveFailed", "ShardSet"]
+
+#: Creations whose shard did not answer remembered (the latest ones), so that a retry goes to that shard.
+_UNSURE = 4096
 
 log = logging.getLogger("cortexloc.scaleout")
 
@@ -59,6 +62,8 @@ class ShardSet:
         self._probes: dict[str, asyncio.Task[None]] = {}
         self._in_flight: Counter[str] = Counter()
         self._create_lock = asyncio.Lock()
+        # map id -> the shard a creation of it was sent to that did not answer: it may have made the map.
+        self._unsure: OrderedDict[str, str] = OrderedDict()
         #: Every shard's maps are in the table (`reconcile` done): an unknown id is then a 404, not a 503.
         self.reconciled = False
         self._errors = unavailable_errors()
@@ -146,14 +151,33 @@ class ShardSet:
     async def create(self, map_id: str, path: str, query: str, headers: list[tuple[str, str]],
                      body: bytes) -> ForwardedReply:
         """`POST /v1/maps` on the least loaded shard; routed there once the shard created it. A map id
-        already routed goes to its owner, which answers 409 `map-exists`."""
+        already routed goes to its owner, which answers 409 `map-exists` (or, to the retry of a keyed
+        creation, 200 with that map: docs/design/service.md §1.1).
+
+        A creation whose shard did not answer may have made the map there before its reply was lost: a
+        retry of that id goes to the same shard, never to another that would make a second map of the
+        id, and is routed by its answer (201 made now; 200 the first try's; a 409 for a map the shard
+        holds: made by the first try, retried without a key).
+        """
         self.require_reconciled()
         async with self._create_lock:
             route = self.table.get(map_id)
-            shard = route.shard if route is not None else self.least_loaded()
-            reply = await self.call(shard, "request", "POST", path, query, headers, body, map_id=map_id)
-            if reply[0] == 201:
+            shard = route.shard if route is not None else self._unsure.get(map_id) or self.least_loaded()
+            try:
+                reply = await self.call(shard, "request", "POST", path, query, headers, body, map_id=map_id)
+            except ShardUnavailable:
+                if route is None:
+                    self._unsure[map_id] = shard
+                    self._unsure.move_to_end(map_id)
+                    while len(self._unsure) > _UNSURE:
+                        self._unsure.popitem(last=False)
+                raise
+            made = reply[0] in (200, 201)
+            if route is None and reply[0] == 409 and map_id in self._unsure:
+                made = map_id in await self.call(shard, "map_ids")  # by the first try; no key this time
+            if route is None and made:
                 self.table.set(map_id, shard)
+                self._unsure.pop(map_id, None)
             return reply
 
     async def each(self, method: str, path: str, query: str, headers: list[tuple[str, str]]

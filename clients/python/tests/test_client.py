@@ -128,6 +128,13 @@ def test_refusals_become_typed_exceptions(client: Client, server: str, tiny_map:
     with pytest.raises(ConflictError) as e:
         client.create_map(tiny_map)
     assert e.value.slug == "map-exists"
+    # made with the same options by an earlier creation (each sends its own key): not this one's
+    twice = f"t-{uuid.uuid4().hex[:10]}"
+    client.create_map(twice, seed=5)
+    with pytest.raises(ConflictError) as e:
+        client.create_map(twice, seed=5)
+    assert e.value.slug == "map-exists"
+    client.delete_map(twice)
 
     with pytest.raises(UnprocessableError) as e:
         client.create_map(tm={"activationThreshold": 2, "minThreshold": 9})

@@ -15,6 +15,7 @@ from models.localisation.short_term import ShortTerm
 from models.memory.temporal_memory import planned_bytes
 from service.errors import PROBLEM_MEDIA_TYPE
 from service.maps.config import MapOptions, resolve
+from service.maps.ids import new_map_id
 from tests.service.helpers import frame, make_app, post
 
 
@@ -244,11 +245,23 @@ def test_a_keyed_creation_with_its_own_id(client):
     assert client.post("/v1/maps", json=body, headers={"Idempotency-Key": "lab-key-01"}).status_code == 201
     again = client.post("/v1/maps", json=body, headers={"Idempotency-Key": "lab-key-01"})
     assert again.status_code == 200 and again.headers["Idempotent-Replayed"] == "true"
-    # the id's map made with other options is someone else's: 409, as without a key
-    other = client.post("/v1/maps", json={**body, "seed": 4}, headers={"Idempotency-Key": "lab-key-01"})
-    assert other.status_code == 409 and other.json()["type"].endswith("map-exists"), other.text
+    # the key again with other options, the threshold (which PATCH changes) among them: reused, 422
+    for changed in ({"seed": 4}, {"revisit_threshold": 0.2}, {"thumbnails": True}):
+        other = client.post("/v1/maps", json={**body, **changed}, headers={"Idempotency-Key": "lab-key-01"})
+        assert other.status_code == 422, other.text
+        assert other.json()["type"].endswith("idempotency-key-reused")
+    # another client's creation of the id, with the same options: its map is not this one's, 409 as
+    # without a key (a robot told "created" would think the map its own)
+    mine = client.post("/v1/maps", json=body, headers={"Idempotency-Key": "lab-key-02"})
+    assert mine.status_code == 409 and mine.json()["type"].endswith("map-exists"), mine.text
     assert client.post("/v1/maps", json=body).status_code == 409  # no key: as before
     assert client.get("/v1/maps/lab").json()["params"]["seed"] == 3
+    # a map made without a key is no keyed creation's, even under the id a key would give
+    derived = new_map_id("late-key-01")
+    assert client.post("/v1/maps", json={"map_id": derived, "seed": 3}).status_code == 201
+    late = client.post("/v1/maps", json={"seed": 3}, headers={"Idempotency-Key": "late-key-01"})
+    assert late.status_code == 409 and late.json()["type"].endswith("map-exists"), late.text
+    client.delete(f"/v1/maps/{derived}")
     for bad in ("short", "x" * 129, "has space"):  # the observations' key rule
         r = client.post("/v1/maps", json={"seed": 5}, headers={"Idempotency-Key": bad})
         assert r.status_code in (400, 422) and r.headers["content-type"] == PROBLEM_MEDIA_TYPE, r.text

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
+from service.maps.ids import new_map_id
 from service.routes.health import UNNAMED_ERROR
 from service.scaleout.embedding import EmbeddingService
 from service.scaleout.ingress import create_ingress_app
@@ -164,6 +165,49 @@ def test_metrics_readiness_and_memory_cover_every_shard(cluster):
         cluster.dead.add("shard-1")
         r = c.get("/readyz")
         assert r.status_code == 503 and r.json()["checks"]["shard-1"]["status"] == "fail"
+
+
+def test_a_creation_whose_reply_was_lost_is_routed_by_its_retry_and_made_once(cluster):
+    """The shard made the map and its reply was lost (503 to the client): the retry goes to that shard,
+    not to the one least loaded by then (a second map of the id), and its answer routes the map."""
+    calls = cluster.call
+    lose: set[str] = set()  # map ids whose next creation's reply is lost after the shard made it
+
+    async def losing(shard: str, method: str, *args):
+        reply = await calls(shard, method, *args)
+        made = method == "request" and args[:2] == ("POST", "/v1/maps") and reply[0] == 201
+        if made and (map_id := json.loads(reply[2])["map_id"]) in lose:
+            lose.discard(map_id)
+            raise ConnectionError("the reply was lost")
+        return reply
+
+    cluster.call = losing
+
+    def held_by(map_id: str) -> list[str]:
+        return [name for name, host in cluster.hosts.items() if map_id in host.map_ids()]
+
+    with cluster.client() as c:
+        key = {"Idempotency-Key": "lost-create-1"}
+        keyed = new_map_id(key["Idempotency-Key"])
+        lose.update({keyed, "lab"})
+        assert c.post("/v1/maps", json=TINY, headers=key).status_code == 503  # made on shard-1
+        assert held_by(keyed) == ["shard-1"] and cluster.shards.table.get(keyed) is None
+        # another map fills shard-1: shard-0 is the least loaded now
+        assert c.post("/v1/maps", json={"map_id": "m0", **TINY}).status_code == 201
+        assert cluster.shards.table.get("m0").shard == "shard-1"
+        again = c.post("/v1/maps", json=TINY, headers=key)
+        assert again.status_code == 200 and again.headers["Idempotent-Replayed"] == "true", again.text
+        assert held_by(keyed) == ["shard-1"] and cluster.shards.table.get(keyed).shard == "shard-1"
+        wait_until_serving(c, keyed)
+        assert c.get(f"/v1/maps/{keyed}").status_code == 200
+        # without a key: the retry is refused as from one process (409), and the map is routed
+        assert c.post("/v1/maps", json={"map_id": "lab", **TINY}).status_code == 503
+        shard = held_by("lab")
+        retry = c.post("/v1/maps", json={"map_id": "lab", **TINY})
+        assert retry.status_code == 409 and retry.json()["type"].endswith("map-exists"), retry.text
+        assert held_by("lab") == shard and cluster.shards.table.get("lab").shard == shard[0]
+        wait_until_serving(c, "lab")
+        assert c.get("/v1/maps/lab").status_code == 200
 
 
 def test_a_dead_shard_answers_503_with_retry_after_and_a_retry_is_replayed(cluster):
