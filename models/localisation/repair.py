@@ -67,13 +67,15 @@ class Learned:
 
 @dataclass(frozen=True)
 class Named:
-    """A logged loop closure: its `id`, `stream`, the row it named (`place_seq`), and for a consolidated
-    frame's the row it was consolidated into (`into`, NONE: none)."""
+    """A logged loop closure: its `id`, `stream`, the row it named (`place_seq`), for a consolidated
+    frame's the row it was consolidated into (`into`, NONE: none), and the trail its frame named
+    (`metadata.trail`; None: unknown here, the trail the stream's last learned frame named)."""
 
     id: int
     stream: str
     place_seq: int
     into: int = NONE
+    trail: str | None = None
 
 
 @dataclass(frozen=True)
@@ -127,6 +129,9 @@ def own_trail_merges(log: Iterable[Learned | Named | Pruned], options: Localiser
     marked = not pruned
     grace = GRACE * max(place_map.short_term, 1)
     moves: dict[str, int] = {}  # each stream's moves since the mark
+    # The memory is a trail's (`Motion.trail`, else the stream's own name), as the live map keeps it: a
+    # robot's cameras naming one trail share it. A closure's frame is read on its stream's latest trail.
+    trails: dict[str, str] = {}
 
     def judged(stream: str) -> bool:
         return marked and (not pruned or moves.get(stream, 0) >= grace)
@@ -137,19 +142,20 @@ def own_trail_merges(log: Iterable[Learned | Named | Pruned], options: Localiser
             marked = True
             continue
         if isinstance(event, Named):
-            recent = place_map.short_term_rows(event.stream)
+            recent = place_map.short_term_rows(event.trail or trails.get(event.stream, event.stream))
             if judged(event.stream) and np.isin([event.place_seq, event.into], recent).any():
                 out.closures.append(event.id)
             continue
+        trail = trails[event.stream] = event.motion.trail or event.stream
         stays = place_map.stays(event.stream, event.code, event.motion)
         if event.made:  # (the memory read only where the row joined a place: most rows did not)
             if judged(event.stream) and event.through and np.isin(
-                    event.through, place_map.short_term_rows(event.stream)).any():
+                    event.through, place_map.short_term_rows(trail)).any():
                 out.joins.append(event.ref)
             place_map.add(event.seq, None, event.code, stream=event.stream, motion=event.motion)
         else:
             rehearsal = event.prev == event.seq and stays
-            recent = place_map.short_term_rows(event.stream)
+            recent = place_map.short_term_rows(trail)
             if judged(event.stream) and not rehearsal and event.seq in recent:
                 out.visits.append(event.ref)
             place_map.visit(None, event.seq, event.seq, event.stream, event.code, event.motion)

@@ -102,10 +102,11 @@ def _log(store: MapStore, closures: list[LoopClosure],
                           prev=step.context_prev_seq, motion=Motion.of(step.metadata))
             continue
         mine = by_row.get(step.seq, [])
+        motion = Motion.of(step.metadata)
         for c in mine:
-            yield Named(c.id, c.stream, c.place_seq)
+            yield Named(c.id, c.stream, c.place_seq, trail=motion.trail)
         yield Learned(step.stream, step.seq, step.input_sdr, made=True, through=_through(step, joined, mine),
-                      ref=step.seq, motion=Motion.of(step.metadata))
+                      ref=step.seq, motion=motion)
     for c in others[k:]:
         yield _named(c)
     if not marked:

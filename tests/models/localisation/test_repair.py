@@ -3,8 +3,11 @@ docs/design/science.md §11.6)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
+from models.localisation.motion import Motion
 from models.localisation.options import LocaliserOptions
 from models.localisation.repair import GRACE, Learned, Named, Pruned, own_trail_merges, window
 
@@ -86,3 +89,28 @@ def test_past_the_mark_a_first_frame_alike_to_the_lost_last_move_reads_no_true_c
         live = own_trail_merges([*old, lost, *after], opts, 4096).closures
         rebuilt = own_trail_merges([*old, Pruned(), *after], opts, 4096, pruned=True).closures
         assert set(rebuilt) <= set(live), shift
+
+
+def test_a_stream_that_names_a_trail_is_judged_on_that_trail_and_shares_it_with_its_other_cameras():
+    """The memory is the trail's (`metadata.trail`), as the live map keeps it: a stream naming one is
+    judged as one that names none, and a robot's two cameras naming one trail share it."""
+    def naming(trail: str, log: list) -> list:
+        return [dataclasses.replace(e, motion=Motion(trail=trail)) if isinstance(e, Learned) else e
+                for e in log]
+
+    log = [*rows("a", range(1, 6)),
+           Named(1, "a", 4),  # an echo of a's own row 4
+           Learned("a", 6, code(20), made=True, through=(4, 4), ref=6),
+           Learned("a", 5, code(21), made=False, ref=101)]  # a visit into its own row 5
+    bare = own_trail_merges(log, LocaliserOptions(short_term=3), 512)
+    assert (bare.visits, bare.joins, bare.closures) == ([101], [6], [1])
+    for trail in ("a", "robot"):
+        found = own_trail_merges(naming(trail, log), LocaliserOptions(short_term=3), 512)
+        assert (found.visits, found.joins, found.closures) == ([101], [6], [1]), trail
+    # the rear camera names the front's trail: its visit into a front row of a moment ago is a merge;
+    # naming none (another trail), it is a loop
+    robot = Motion(trail="robot")
+    front = [dataclasses.replace(e, motion=robot) for e in rows("front", range(1, 6))]
+    for trail, merges in (("robot", [102]), (None, [])):
+        rear = Learned("rear", 5, code(30), made=False, ref=102, motion=Motion(trail=trail))
+        assert own_trail_merges([*front, rear], LocaliserOptions(short_term=3), 512).visits == merges

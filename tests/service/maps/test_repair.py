@@ -75,8 +75,8 @@ def hit(c) -> dict:
             "closures": [e["id"] for e in closures if e["place"]["seq"] in (a[7]["seq"], a[9]["seq"])]}
 
 
-def listing(c) -> dict:
-    r = c.get("/v1/maps/m/repair")
+def listing(c, map_id: str = "m") -> dict:
+    r = c.get(f"/v1/maps/{map_id}/repair")
     assert r.status_code == 200
     return r.json()
 
@@ -357,3 +357,24 @@ def test_the_cli_repair_in_process_beside_a_server_says_so_in_one_line(tmp_path)
     assert out.exit_code == 1
     assert "in use by another cortexloc process" in out.output and "--url" in out.output
     assert "Traceback" not in out.output
+
+
+def test_a_stream_that_names_a_trail_is_listed_and_repaired_as_one_that_names_none(tmp_path):
+    """The memory a repair rebuilds is the trail's, as the live map keeps it (`metadata.trail`, which the
+    ROS 2 node sends by default): the same echoes, made by a stream naming a trail, are found."""
+    def hit_map(c, map_id: str, metadata: dict) -> dict:
+        body = {"map_id": map_id, "revisit_threshold": 0.0, "localiser": {"short_term": 0}}
+        assert c.post("/v1/maps", json=body).status_code == 201
+        for _ in range(3):  # one stream's laps over 7 places: everything it sees is its own recent trail
+            for place in range(7):
+                r = post(c, frame(place), map_id=map_id, stream="cam1", metadata=json.dumps(metadata))
+                assert r.status_code == 200, r.text
+        found = c.get(f"/v1/maps/{map_id}/repair").json()
+        return {part: len(found[part]) for part in ("splits", "unjoins", "retractions")}
+
+    with make_client(tmp_path / "data") as c:
+        bare = hit_map(c, "bare", {})
+        assert bare["unjoins"] + bare["splits"] > 0 and bare["retractions"] > 0
+        assert hit_map(c, "named", {"trail": "robot"}) == bare
+        assert c.post("/v1/maps/named/repair").json()["repaired"]
+        assert nothing(listing(c, "named"))
