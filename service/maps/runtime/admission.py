@@ -51,7 +51,9 @@ class Admission:
 
         Raises:
             InsufficientStorage, MapReadOnly: the reset could not be stored; nothing changed.
+            MapUnavailable: the map serves nothing (`failed`, `recovering`); there is no stream to reset.
         """
+        self.require_ready(learns=False)
         st = self.streams.get(name)
         if self._tail is not None:  # the live state is the stream's from now on (`_replay_tail`)
             self._localised.add(name)

@@ -48,7 +48,10 @@ class Resources:
         """Writer: the options that may change after creation, durable in the catalog in one update
         (docs/design/service.md §1.2): the revisit threshold, and whether a revisit needs a verified
         keyframe. InvalidConfiguration (nothing changes): a threshold outside [0, 1], verify_revisit on a
-        map without keyframes. InsufficientStorage: no room to write the catalog (nothing changes)."""
+        map without keyframes. InsufficientStorage: no room to write the catalog (nothing changes).
+        MapUnavailable: the map serves nothing (`failed`, `recovering`): a change stored now would be
+        read by the map it is once repaired, unseen by its operator."""
+        self.require_ready(learns=False)
         changes = {k: v for k, v in (("revisit_threshold", revisit_threshold),
                                      ("verify_revisit", verify_revisit)) if v is not None}
         if changes:
@@ -63,6 +66,8 @@ class Resources:
         return self.info()
 
     def memory(self) -> MemoryInfo:
+        """Writer: the map's sizes. MapUnavailable where it serves nothing (its memory is not built)."""
+        self.require_ready(learns=False)
         return sizes.memory_info(self.model, self.streams, tm_params=self.config.sections.tm,
                                  max_streams=self.settings.max_streams, projection=self.projection_path,
                                  store=self.store, snapshots_bytes=self.catalog.snapshots_bytes(self.map_id))

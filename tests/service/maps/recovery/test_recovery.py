@@ -458,8 +458,14 @@ def test_a_map_over_a_lowered_row_cap_fails_at_start_saying_which_setting_and_wh
         assert all(s in reason for s in ("CORTEXLOC_MAX_OBSERVATIONS=20", "holds 30 rows", "at least 30"))
         assert c.get("/readyz").json()["checks"]["maps"]["maps"]["default"]["state_reason"] == reason
         assert post(c, frame(0), stream="a").status_code == 503
+        # every other call is 503 too (§4.4): a PATCH was stored and read by the map once repaired, its
+        # memory shown empty and a stream reset answered (an outside probe)
+        for r in (c.patch("/v1/maps/default", json={"revisit_threshold": 0.5}),
+                  c.get("/v1/maps/default/memory"), c.post("/v1/maps/default/streams/a/reset")):
+            assert r.status_code == 503 and r.json()["type"].endswith("map-unavailable"), r.text
     said = [r for r in caplog.records if r.levelname == "ERROR" and "default" in r.getMessage()]
     assert len(said) == 1 and reason in said[0].getMessage() and said[0].exc_info is None
     with make_client(data, snapshot_every=0) as c:  # the setting raised back: every row is there
         m = c.get("/v1/maps/default").json()
         assert (m["state"], m["observations"]) == ("ready", 30)
+        assert m["revisit_threshold"] != 0.5
