@@ -3,6 +3,8 @@ docs/design/science.md §11.6): the listing, and the repair that undoes them."""
 
 from __future__ import annotations
 
+import asyncio
+
 from fastapi import APIRouter
 
 from service.deps import ApiKeyDep, RegistryDep
@@ -18,7 +20,8 @@ async def list_own_trail_merges(map_id: MapId, registry: RegistryDep) -> RepairM
     """The merges a repair would undo, changing nothing: visits (consolidated frames) and place joins
     into a row of the stream's own recent trail, and the loop closures that named one."""
     rt = registry.get(map_id)
-    return RepairModel.from_result(await rt.run(rt.own_trail_merges))
+    # shared by the requests that come while it runs: one whose client leaves must not cancel it
+    return RepairModel.from_result(await asyncio.shield(asyncio.wrap_future(rt.own_trail_merges())))
 
 
 @router.post("/{map_id}/repair", dependencies=[ApiKeyDep],

@@ -8,6 +8,8 @@ from __future__ import annotations
 import os
 import sqlite3
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from storage._common import (
@@ -173,6 +175,21 @@ class MapStore(Observations, Visits, Streams, Closures, Keyframes, Copies):
             if self._conn is not None:
                 self._conn.close()
                 self._conn = None
+
+    @contextmanager
+    def reader(self) -> Iterator[MapStore]:
+        """A second connection to this file, for a long read off the connection its writer uses, in one
+        read transaction: it sees the file as of its first read, whatever the writer commits meanwhile
+        (WAL), and holds no lock the writer waits on. Its floors are this store's, so it answers as this
+        one does (`next_closure_id`). Closed after."""
+        other = MapStore.open(self.path, seq_floor=self._seq_floor, closure_floor=self._closure_floor)
+        with other, other._lock:
+            conn = other._db()
+            conn.execute("BEGIN")  # deferred: a read transaction from the first read to the end
+            try:
+                yield other
+            finally:
+                conn.execute("COMMIT")
 
     def __enter__(self) -> MapStore:
         return self

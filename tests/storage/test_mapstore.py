@@ -119,6 +119,20 @@ def test_empty_sets_round_trip(store: MapStore) -> None:
     assert got.input_sdr.size == 0 and got.winner_cells.size == 0
 
 
+def test_a_reader_sees_the_file_as_of_its_first_read_while_the_writer_commits(
+        store: MapStore, row_factory: RowFactory) -> None:
+    """`MapStore.reader`: a long read (a repair's listing) on its own connection, in one read transaction."""
+    store.append(row_factory(1))
+    with store.reader() as reader:
+        assert reader.get(1) is not None and reader.get(2) is None  # its first read: the moment it sees
+        assert store.append(row_factory(2, prev=1)) == 2  # the writer is not held by it
+        assert store.get(2) is not None and reader.get(2) is None
+        assert sorted(reader.get_many([1, 2])) == [1]
+    with store.reader() as reader:
+        assert reader.get(2) is not None
+    assert store.append(row_factory(3, prev=2)) == 3 and store.count() == 3
+
+
 def test_observations_are_append_only(store: MapStore, row_factory: RowFactory) -> None:
     store.append(row_factory(1))
     conn = sqlite3.connect(store.path)

@@ -7,11 +7,14 @@ in one transaction, then the index and places rebuilt from the store. Which merg
 from __future__ import annotations
 
 import logging
+import sqlite3
+import threading
+from concurrent.futures import Future
 
 from service.maps import repair as repairs
-from service.maps.errors import InsufficientStorage, MapFull
+from service.maps.errors import InsufficientStorage, MapFull, MapUnavailable
 from service.maps.results import RepairResult, Retraction, SplitVisit, Unjoin
-from storage.mapstore import StorageError, StorageFull
+from storage.mapstore import MapStore, StorageError, StorageFull
 
 __all__ = ["Repairing"]
 
@@ -21,13 +24,41 @@ log = logging.getLogger("cortexloc.runtime")
 class Repairing:
     """`MapRuntime`'s repair (module docstring); it holds no state of its own."""
 
-    def own_trail_merges(self) -> RepairResult:
-        """Writer: the merges made from a stream's own recent trail that no repair undid yet, listed
-        (docs/design/science.md §11.6; `service.maps.repair.find`), and whether a repair now would be a
-        rewrite."""
+    def own_trail_merges(self) -> Future[RepairResult]:
+        """Any thread, not the writer: the merges made from a stream's own recent trail that no repair
+        undid yet, listed (docs/design/science.md §11.6; `service.maps.repair.find`), and whether a repair
+        now would be a rewrite. A listing replays the whole log (seconds on a large map): it runs in a
+        thread of its own on a connection of its own (`MapStore.reader`), as of one moment of the file,
+        so it never holds the writer nor the posts behind it; one runs per map at a time, and the
+        requests that come meanwhile share it (a client gone does not stop it, a thousand cost one).
+
+        Raises:
+            MapUnavailable (not ready); the listing's future: MapUnavailable where the file went from
+            under it (a restore, a deletion).
+        """
         self.require_ready(learns=False)
-        assert self.store is not None
-        return self._repair_result(self._find(), None, rewrite=self._rewrite_due())
+        with self._listing_lock:
+            if self._listing is None or self._listing.done():
+                self._listing = Future()
+                threading.Thread(target=self._list_merges, args=(self._listing,), daemon=True,
+                                 name=f"repair-listing-{self.map_id}").start()
+            return self._listing
+
+    def _list_merges(self, out: Future[RepairResult]) -> None:
+        out.set_running_or_notify_cancel()  # running: no waiter can cancel it for the others
+        store = self.store
+        try:
+            if store is None:
+                raise MapUnavailable(self.map_id, self.state, self.state_reason)
+            with store.reader() as reader:
+                found = repairs.find(reader, self.place_map.options, self.tm.n_columns)
+                rewrite = self._rewrite_due(reader)
+            out.set_result(self._repair_result(found, None, rewrite=rewrite))
+        except (StorageError, OSError, sqlite3.Error) as e:  # the file replaced or removed meanwhile
+            log.warning("map %s: the repair listing could not read the file: %s", self.map_id, e)
+            out.set_exception(MapUnavailable(self.map_id, self.state, self.state_reason))
+        except BaseException as e:
+            out.set_exception(e)
 
     def repair(self) -> RepairResult:
         """Writer: undo the merges made from a stream's own recent trail (docs/design/science.md §11.6,
@@ -51,7 +82,7 @@ class Repairing:
         self.require_ready()
         assert self.store is not None
         found = self._find()
-        rewrite = self._rewrite_due()
+        rewrite = self._rewrite_due(self.store)
         added = len(found.visits)
         if len(self.index) + added > self.index.max_observations:
             raise MapFull(self.map_id, self.index.max_observations)
@@ -84,13 +115,12 @@ class Repairing:
                      "closures retracted", self.map_id, len(seqs), len(found.joins), len(found.closures))
         return self._repair_result(found, seqs, rewrite=rewrite)
 
-    def _rewrite_due(self) -> bool:
+    def _rewrite_due(self, store: MapStore) -> bool:
         """Whether the log's cap pruned entries logged since the last repair judged the log (docs/design/
         service.md §1.2, "rewrite"): over-cautious where those were closures no repair would withdraw."""
-        assert self.store is not None
         marks = self.catalog.get_map(self.map_id)
         assert marks is not None  # a ready map is in the catalog
-        return repairs.pruned_below(self.store) > max(1, marks.repaired_below)
+        return repairs.pruned_below(store) > max(1, marks.repaired_below)
 
     def _find(self) -> repairs.Found:
         assert self.store is not None

@@ -31,8 +31,9 @@ Which thread runs what:
 from __future__ import annotations
 
 import asyncio
+import threading
 from collections import OrderedDict
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import service.maps.runtime.idempotency as idempotency  # the module, not the package: no cycle via __init__
@@ -41,6 +42,7 @@ from models.localisation import InvertedIndex, PlaceMap
 from models.memory.temporal_memory import TemporalMemory
 from models.pipeline import Stream
 from service.maps.config import MapConfig, map_model
+from service.maps.results import RepairResult
 from service.maps.runtime.admission import Admission
 from service.maps.runtime.budget import MemoryBudget, index_row_bytes
 from service.maps.runtime.durability import GroupCommit
@@ -112,6 +114,9 @@ class MapRuntime(Writer, Snapshots, Recovering, Admission, Repairing, Resources)
         # The order in which observations reach the writer: each waits for the one before to be queued.
         self._turn = asyncio.Event()
         self._turn.set()
+        # The listing of the merges a repair would undo, off the writer: one at a time (`own_trail_merges`).
+        self._listing: Future[RepairResult] | None = None
+        self._listing_lock = threading.Lock()
         sha = self.config.projection_sha256
         self.projection_path = self.layout.projection(sha)
         self.hasher = None

@@ -378,3 +378,42 @@ def test_a_stream_that_names_a_trail_is_listed_and_repaired_as_one_that_names_no
         assert hit_map(c, "named", {"trail": "robot"}) == bare
         assert c.post("/v1/maps/named/repair").json()["repaired"]
         assert nothing(listing(c, "named"))
+
+
+def test_a_listing_holds_neither_the_writer_nor_a_second_replay(tmp_path, monkeypatch):
+    """A listing replays the whole log (seconds on a large map): it ran on the map's writer, so every post
+    waited behind it, and each request, even one whose client had left, ran its own (an outside probe:
+    a post's median 19 ms -> 700 ms beside six clients listing). Now it runs beside the writer on its own
+    connection (one read transaction), and the requests that come meanwhile share it."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from service.maps import repair as repairs
+
+    started, release, calls = threading.Event(), threading.Event(), []
+    find = repairs.find
+
+    def held(store, conf, width):
+        calls.append(store)
+        started.set()
+        assert release.wait(30)
+        return find(store, conf, width)
+
+    with make_client(tmp_path / "data") as c:
+        hit(c)
+        rows = c.get("/v1/maps/m").json()["observations"]
+        monkeypatch.setattr(repairs, "find", held)
+        with ThreadPoolExecutor(4) as pool:
+            lists = [pool.submit(listing, c)]
+            assert started.wait(30)
+            lists += [pool.submit(listing, c) for _ in range(3)]  # while the first runs: they share it
+            # the writer is free: a learned frame is answered while the listing is held
+            assert post(c, frame(40), map_id="m", stream="b").status_code == 200
+            assert c.get("/v1/maps/m").json()["observations"] == rows + 1
+            release.set()
+            found = [f.result(30) for f in lists]
+        assert len(calls) == 1 and all(f == found[0] for f in found)
+        assert found[0]["unjoins"] and found[0]["splits"]
+        # the next request after it ends reads the map again
+        again = listing(c)
+        assert len(calls) == 2 and again == found[0]
