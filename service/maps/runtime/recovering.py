@@ -95,6 +95,7 @@ class Recovering:
             self._fail("projection-invalid", self._projection_error or "no projection")
             return
         self._codes.clear()  # a restore's store holds other rows under later seqs
+        self.forget_listing()  # (a repair listing of the file before)
         if self.layout.snapshots_dir(self.map_id).is_dir():  # a crash during a snapshot leaves a temp dir
             snapshots.remove_stale_temp(self.layout.snapshots_dir(self.map_id))
         try:

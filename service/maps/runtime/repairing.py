@@ -22,7 +22,8 @@ log = logging.getLogger("cortexloc.runtime")
 
 
 class Repairing:
-    """`MapRuntime`'s repair (module docstring); it holds no state of its own."""
+    """`MapRuntime`'s repair (module docstring); its one state, the listing in flight, is the runtime's
+    (`_listing`, `_listing_lock`)."""
 
     def own_trail_merges(self) -> Future[RepairResult]:
         """Any thread, not the writer: the merges made from a stream's own recent trail that no repair
@@ -38,11 +39,17 @@ class Repairing:
         """
         self.require_ready(learns=False)
         with self._listing_lock:
-            if self._listing is None or self._listing.done():
+            if self._listing is None or self._listing.done():  # else: share the one in flight
                 self._listing = Future()
                 threading.Thread(target=self._list_merges, args=(self._listing,), daemon=True,
                                  name=f"repair-listing-{self.map_id}").start()
             return self._listing
+
+    def forget_listing(self) -> None:
+        """Any thread: the next listing reads the file again, not sharing one begun before a change that
+        a client reads after (its repair, a restore): the one in flight still answers those waiting."""
+        with self._listing_lock:
+            self._listing = None
 
     def _list_merges(self, out: Future[RepairResult]) -> None:
         out.set_running_or_notify_cancel()  # running: no waiter can cancel it for the others
@@ -103,6 +110,7 @@ class Repairing:
                 raise InsufficientStorage("the repair could not be stored: no room to write; nothing "
                                           "changed") from e
             raise
+        self.forget_listing()
         if found:
             self._rebuild_index()  # sets the budget's index bytes to the index rebuilt
         try:

@@ -417,3 +417,34 @@ def test_a_listing_holds_neither_the_writer_nor_a_second_replay(tmp_path, monkey
         # the next request after it ends reads the map again
         again = listing(c)
         assert len(calls) == 2 and again == found[0]
+
+
+def test_a_listing_asked_after_a_repair_reads_the_repaired_map_not_one_begun_before(tmp_path, monkeypatch):
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from service.maps import repair as repairs
+
+    started, release, calls = threading.Event(), threading.Event(), []
+    find = repairs.find
+
+    def first_held(store, conf, width):
+        calls.append(store)
+        if len(calls) == 1:
+            store.get(1)  # its first read: the moment it sees (one read transaction)
+            started.set()
+            assert release.wait(30)
+        return find(store, conf, width)
+
+    with make_client(tmp_path / "data") as c:
+        hit(c)
+        monkeypatch.setattr(repairs, "find", first_held)
+        with ThreadPoolExecutor(1) as pool:
+            before = pool.submit(listing, c)
+            assert started.wait(30)
+            done = c.post("/v1/maps/m/repair").json()  # the writer's own find, not held
+            assert done["repaired"] and done["splits"]
+            assert nothing(listing(c))  # read after the repair: a listing of its own
+            release.set()
+            assert before.result(30)["splits"]  # the one begun before answers its caller as of then
+        assert len(calls) == 3
