@@ -17,7 +17,10 @@ worker), temporary data directory, random weights. Measured, medians over repeat
   back (p50, p95, max);
 - `downloads`: time to the first byte of a snapshot download, and the bytes the server holds in
   deleted-but-open files (per-request copies) while 4 clients stall after the first chunk, then after
-  they go away.
+  they go away;
+- `listings`: a localising frame on a map of `rows` learned rows (1,500; 200 with --quick), posted alone
+  and while 6 clients ask its repair listing nonstop (`GET /v1/maps/{id}/repair`, which replays the
+  whole log: docs/design/service.md §1.2 "Repair"), with the listings answered meanwhile.
 """
 
 from __future__ import annotations
@@ -106,6 +109,45 @@ async def frames_during_bombs(base: str, frame: bytes, bomb: bytes, n: int) -> l
     return out
 
 
+async def frames_during_listings(base: str, frame: bytes, rows: int, n: int, clients: int = 6
+                                 ) -> dict[str, Any]:
+    """Latencies of `n` localising frames on a map of `rows` learned rows, alone and while `clients` ask
+    its repair listing nonstop."""
+    done = False
+    listed = 0
+    async with httpx.AsyncClient(base_url=base, timeout=600) as http:
+        assert (await http.post("/v1/maps", json={"map_id": "listed"})).status_code == 201
+        for _ in range(rows):
+            r = await http.post("/v1/maps/listed/observations", content=frame, params={"stream": "s"},
+                                headers={"Content-Type": "image/jpeg"})
+            assert r.status_code == 200, r.text
+
+        async def timed() -> list[float]:
+            out = []
+            for _ in range(n):
+                t0 = time.perf_counter()
+                r = await http.post("/v1/maps/listed/observations", content=frame, headers={
+                    "Content-Type": "image/jpeg"}, params={"learn": "false", "stream": "q", "top_k": 1})
+                out.append((time.perf_counter() - t0) * 1e3)
+                assert r.status_code == 200, r.text
+            return out
+
+        async def lister() -> None:
+            nonlocal listed
+            while not done:
+                assert (await http.get("/v1/maps/listed/repair")).status_code == 200
+                listed += 1
+
+        alone = await timed()
+        tasks = [asyncio.create_task(lister()) for _ in range(clients)]
+        await asyncio.sleep(1.0)  # the listings are in flight
+        during = await timed()
+        done = True
+        await asyncio.gather(*tasks)
+    return {"rows": rows, "clients": clients, "alone_ms": stats(alone), "while_listed_ms": stats(during),
+            "listings_answered": listed}
+
+
 def deleted_open_bytes(pid: int) -> tuple[int, int]:
     """(count, bytes) of deleted files the process still holds open."""
     n = size = 0
@@ -190,6 +232,12 @@ def main(*, quick: bool, repeats: int | None, server_cmd: str | None, skip: list
               f"{d['deleted_open_files_while_stalled']} deleted files open, "
               f"{d['deleted_open_bytes_while_stalled']} bytes; after they left: "
               f"{d['deleted_open_bytes_after_abort']} bytes", flush=True)
+        result["listings"] = asyncio.run(frames_during_listings(server.base, frame, 200 if quick else 1500,
+                                                                frames_during or (10 if quick else 40)))
+        li = result["listings"]
+        print(f"localising frame on a {li['rows']}-row map: alone p50 {li['alone_ms']['p50']:.1f} ms; "
+              f"while {li['clients']} clients list its repair p50 {li['while_listed_ms']['p50']:.1f} ms "
+              f"({li['listings_answered']} listings answered)", flush=True)
     finally:
         server.stop()
         shutil.rmtree(tmp, ignore_errors=True)

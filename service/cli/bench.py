@@ -253,7 +253,8 @@ def bench_hostile(
                                                                "posted (default 10)")] = None,
     out: Annotated[Path | None, typer.Option(help="default benchmarks/results/hostile.json")] = None,
 ) -> None:
-    """Hostile inputs against the real service: how fast bombs are refused (benchmarks/bench_hostile.py)."""
+    """Hostile inputs against the real service: how fast bombs are refused, what a frame waits beside
+    them and beside repair listings (benchmarks/bench_hostile.py)."""
     from benchmarks.bench_hostile import main
 
     main(quick=quick, repeats=repeats, server_cmd=server_cmd, skip=skip or [], frames_during=frames_during,
