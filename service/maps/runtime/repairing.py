@@ -58,8 +58,7 @@ class Repairing:
             if store is None:
                 raise MapUnavailable(self.map_id, self.state, self.state_reason)
             with store.reader() as reader:
-                found = repairs.find(reader, self.place_map.options, self.tm.n_columns)
-                rewrite = self._rewrite_due(reader)
+                found, rewrite = self._find(reader), self._rewrite_due(reader)
             out.set_result(self._repair_result(found, None, rewrite=rewrite))
         except (StorageError, OSError, sqlite3.Error) as e:  # the file replaced or removed meanwhile
             log.warning("map %s: the repair listing could not read the file: %s", self.map_id, e)
@@ -88,8 +87,7 @@ class Repairing:
         """
         self.require_ready()
         assert self.store is not None
-        found = self._find()
-        rewrite = self._rewrite_due(self.store)
+        found, rewrite = self._find(self.store), self._rewrite_due(self.store)
         added = len(found.visits)
         if len(self.index) + added > self.index.max_observations:
             raise MapFull(self.map_id, self.index.max_observations)
@@ -130,9 +128,8 @@ class Repairing:
         assert marks is not None  # a ready map is in the catalog
         return repairs.pruned_below(store) > max(1, marks.repaired_below)
 
-    def _find(self) -> repairs.Found:
-        assert self.store is not None
-        return repairs.find(self.store, self.place_map.options, self.tm.n_columns)
+    def _find(self, store: MapStore) -> repairs.Found:
+        return repairs.find(store, self.place_map.options, self.tm.n_columns)
 
     def _repair_result(self, found: repairs.Found, seqs: list[int] | None, *, rewrite: bool) -> RepairResult:
         made = seqs or [None] * len(found.visits)
