@@ -12,7 +12,7 @@ import threading
 from concurrent.futures import Future
 
 from service.maps import repair as repairs
-from service.maps.errors import InsufficientStorage, MapFull, MapUnavailable
+from service.maps.errors import InsufficientStorage, MapFull, MapNotFound, MapUnavailable
 from service.maps.results import RepairResult, Retraction, SplitVisit, Unjoin
 from storage.mapstore import MapStore, StorageError, StorageFull
 
@@ -35,7 +35,8 @@ class Repairing:
 
         Raises:
             MapUnavailable (not ready); the listing's future: MapUnavailable where the file went from
-            under it (a restore, a deletion).
+            under it (a restore, a deletion), MapNotFound where the map was deleted while it read (another
+            made under its id meanwhile or not).
         """
         self.require_ready(learns=False)
         with self._listing_lock:
@@ -125,7 +126,10 @@ class Repairing:
         """Whether the log's cap pruned entries logged since the last repair judged the log (docs/design/
         service.md §1.2, "rewrite"): over-cautious where those were closures no repair would withdraw."""
         marks = self.catalog.get_map(self.map_id)
-        assert marks is not None  # a ready map is in the catalog
+        # A listing's thread reads on while the map may be deleted, and another made under its id: the
+        # map it was asked about is gone either way, and the other's marks are not its own.
+        if marks is None or marks.created_at != self.record.created_at:
+            raise MapNotFound(self.map_id)
         return repairs.pruned_below(store) > max(1, marks.repaired_below)
 
     def _find(self, store: MapStore) -> repairs.Found:

@@ -85,6 +85,29 @@ def nothing(body: dict) -> bool:
     return body["splits"] == body["unjoins"] == body["retractions"] == [] and body["rows_added"] == 0
 
 
+def held_find(monkeypatch, hold=lambda calls: True):
+    """`repairs.find` made to wait, where `hold(calls)` says so, until `release` is set, after setting
+    `started` (its first read done: the moment a listing sees). Returns (started, release, calls: the
+    stores it was called on)."""
+    import threading
+
+    from service.maps import repair as repairs
+
+    started, release, calls = threading.Event(), threading.Event(), []
+    find = repairs.find
+
+    def held(store, conf, width):
+        calls.append(store)
+        if hold(calls):
+            store.get(1)
+            started.set()
+            assert release.wait(30)
+        return find(store, conf, width)
+
+    monkeypatch.setattr(repairs, "find", held)
+    return started, release, calls
+
+
 def test_a_hit_map_is_listed_repaired_once_and_answers_as_if_the_frames_had_never_been_merged(tmp_path):
     with make_client(tmp_path / "data") as c:
         h = hit(c)
@@ -385,24 +408,12 @@ def test_a_listing_holds_neither_the_writer_nor_a_second_replay(tmp_path, monkey
     waited behind it, and each request, even one whose client had left, ran its own (an outside probe:
     a post's median 19 ms -> 700 ms beside six clients listing). Now it runs beside the writer on its own
     connection (one read transaction), and the requests that come meanwhile share it."""
-    import threading
     from concurrent.futures import ThreadPoolExecutor
-
-    from service.maps import repair as repairs
-
-    started, release, calls = threading.Event(), threading.Event(), []
-    find = repairs.find
-
-    def held(store, conf, width):
-        calls.append(store)
-        started.set()
-        assert release.wait(30)
-        return find(store, conf, width)
 
     with make_client(tmp_path / "data") as c:
         hit(c)
         rows = c.get("/v1/maps/m").json()["observations"]
-        monkeypatch.setattr(repairs, "find", held)
+        started, release, calls = held_find(monkeypatch)
         with ThreadPoolExecutor(4) as pool:
             lists = [pool.submit(listing, c)]
             assert started.wait(30)
@@ -420,25 +431,11 @@ def test_a_listing_holds_neither_the_writer_nor_a_second_replay(tmp_path, monkey
 
 
 def test_a_listing_asked_after_a_repair_reads_the_repaired_map_not_one_begun_before(tmp_path, monkeypatch):
-    import threading
     from concurrent.futures import ThreadPoolExecutor
-
-    from service.maps import repair as repairs
-
-    started, release, calls = threading.Event(), threading.Event(), []
-    find = repairs.find
-
-    def first_held(store, conf, width):
-        calls.append(store)
-        if len(calls) == 1:
-            store.get(1)  # its first read: the moment it sees (one read transaction)
-            started.set()
-            assert release.wait(30)
-        return find(store, conf, width)
 
     with make_client(tmp_path / "data") as c:
         hit(c)
-        monkeypatch.setattr(repairs, "find", first_held)
+        started, release, calls = held_find(monkeypatch, lambda calls: len(calls) == 1)
         with ThreadPoolExecutor(1) as pool:
             before = pool.submit(listing, c)
             assert started.wait(30)
@@ -448,3 +445,29 @@ def test_a_listing_asked_after_a_repair_reads_the_repaired_map_not_one_begun_bef
             release.set()
             assert before.result(30)["splits"]  # the one begun before answers its caller as of then
         assert len(calls) == 3
+
+
+@pytest.mark.parametrize("made_again", [False, True])
+def test_a_listing_read_on_while_its_map_is_deleted_answers_that_the_map_is_gone(tmp_path, monkeypatch,
+                                                                                  made_again):
+    """An outside probe: a repair listing in flight while its map was deleted answered 500 (the catalog's
+    marks read after the deletion, asserted present); deleted and made again, it read the new map's
+    marks. The map it was asked about is gone: 404, and the next listing reads the map there is now."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with make_client(tmp_path / "data") as c:
+        hit(c)
+        started, release, _ = held_find(monkeypatch)
+        with ThreadPoolExecutor(1) as pool:
+            asked = pool.submit(c.get, "/v1/maps/m/repair")
+            assert started.wait(30)
+            assert c.delete("/v1/maps/m").status_code == 204
+            if made_again:
+                assert c.post("/v1/maps", json={"map_id": "m"}).status_code == 201
+            release.set()
+            r = asked.result(30)
+        assert r.status_code == 404 and r.json()["type"].endswith("map-not-found")
+        if made_again:
+            assert nothing(listing(c))  # the new map's own listing
+        else:
+            assert c.get("/v1/maps/m/repair").status_code == 404
