@@ -91,18 +91,35 @@ class RetryPolicy:
         """
         last = attempt + 1 >= self.attempts or not call.retry
         if error is not None:
-            unsent = isinstance(error, (httpx.ConnectError, httpx.ConnectTimeout))
-            if last or not (unsent or call.idempotent):
+            if last or (may_have_done(error=error) and not call.idempotent):
                 raise error
             return min(self.backoff_s * 2**attempt, self.max_wait_s)
         assert response is not None
-        proxy = response.status_code in PROXY_STATUSES and not is_problem(response)
+        proxy = may_have_done(response=response)
         refused = response.status_code == 503 and not proxy  # the service's own 503: nothing was done
         refused = refused or _rolled_back(response)  # nothing was kept
         if last or not (refused or (proxy and call.idempotent)) or (refused and _failed_map(response)):
             raise error_from_response(response)
         asked = retry_after_seconds(response.headers.get("Retry-After"))
         return min(self.backoff_s * 2**attempt if asked is None else asked, self.max_wait_s)
+
+
+def may_have_done(*, response: httpx.Response | None = None,
+                  error: httpx.TransportError | InvalidResponseError | None = None) -> bool:
+    """Whether a failed try may have been done by the service (`RetryPolicy`'s cases): a transport
+    failure after the request left, a reply spoilt on the way (`InvalidResponseError`), a proxy's page
+    that is not the service's problem+json. Not a connection never opened, nor the service's own error."""
+    if error is not None:
+        return not isinstance(error, (httpx.ConnectError, httpx.ConnectTimeout))
+    assert response is not None
+    return response.status_code in PROXY_STATUSES and not is_problem(response)
+
+
+def done_already(call: Call[Any], response: httpx.Response, unsure: bool) -> bool:
+    """A delete answered the service's 404 after an earlier try that may have deleted (`unsure`,
+    `may_have_done`): what it asked is so, and the try that did it lost its reply (a reset, a proxy's
+    page). A first try's 404 is the caller's error (`NotFoundError`): nothing of that name was there."""
+    return call.deletes and unsure and response.status_code == 404 and is_problem(response)
 
 
 def _rolled_back(response: httpx.Response) -> bool:
@@ -167,6 +184,9 @@ class Call(Generic[T]):
     idempotent: bool = False
     #: Retried at all (a readiness probe is not: its 503 is the answer).
     retry: bool = True
+    #: A delete (a Call[None]): the service's 404 to a retry after a try that may have been done
+    #: (`may_have_done`) is its success, the reply of the try that deleted lost on the way (`done_already`).
+    deletes: bool = False
 
 
 def _parse(cls: type[M], r: httpx.Response) -> M:
@@ -183,15 +203,32 @@ def _model(cls: type[M]) -> Callable[[httpx.Response], M]:
 
 
 def _nothing(r: httpx.Response) -> None:
+    """A delete's reply: the service's is 204 No Content. Raises `InvalidResponseError` for another
+    success (a captive portal's page sent with 200: the delete may not have reached the service)."""
+    if r.status_code != 204:
+        raise InvalidResponseError.because(r, "a delete is answered 204 No Content")
     return None
 
 
-def _content(r: httpx.Response) -> bytes:
-    return r.content
-
-
-def _response(r: httpx.Response) -> httpx.Response:
+def _typed(r: httpx.Response, media_type: str) -> httpx.Response:
+    """`r`, a byte route's reply, when its `Content-Type` is the route's `media_type` (parameters such as
+    `charset` aside). Raises `InvalidResponseError` for another (a captive portal's HTML page sent with
+    200): retried as a reply lost on the way, as a JSON route's unreadable body is."""
+    got = r.headers.get("Content-Type", "").split(";", 1)[0].strip().lower()
+    if got != media_type:
+        raise InvalidResponseError.because(r, f"Content-Type {got or 'none'!r}, not {media_type!r}")
     return r
+
+
+def _bytes_of(media_type: str) -> Callable[[httpx.Response], bytes]:
+    """The body of a reply of `media_type` (`_typed`)."""
+    return lambda r: _typed(r, media_type).content
+
+
+#: The media type of each byte route's reply (the service's `EXPORT_FORMATS`, `TAR_MEDIA_TYPE`).
+EXPORT_MEDIA_TYPES = {"csv": "text/csv", "jsonl": "application/jsonl", "g2o": "text/plain"}
+JPEG_MEDIA_TYPE = "image/jpeg"
+TAR_MEDIA_TYPE = "application/x-tar"
 
 
 def _seg(value: str) -> str:
@@ -248,7 +285,7 @@ def update_map(map_id: str, revisit_threshold: float | None,
 
 
 def delete_map(map_id: str) -> Call[None]:
-    return Call("DELETE", _map(map_id), _nothing, idempotent=True)
+    return Call("DELETE", _map(map_id), _nothing, idempotent=True, deletes=True)
 
 
 def memory(map_id: str) -> Call[models.Memory]:
@@ -299,8 +336,9 @@ def loop_closures(map_id: str, after: int, limit: int) -> Call[models.LoopClosur
 
 
 def export_loop_closures(map_id: str, fmt: str) -> Call[bytes]:
-    return Call("GET", f"{_map(map_id)}/loop-closures/export", _content, params={"format": fmt},
-                idempotent=True)
+    # an unknown format goes as asked: the service's 400 names the ones there are
+    return Call("GET", f"{_map(map_id)}/loop-closures/export", _bytes_of(EXPORT_MEDIA_TYPES.get(fmt, "")),
+                params={"format": fmt}, idempotent=True)
 
 
 def repair(map_id: str, *, undo: bool) -> Call[models.Repair]:
@@ -314,11 +352,13 @@ def recent(map_id: str, limit: int, stream: str | None) -> Call[models.RecentAns
 
 
 def thumbnail(map_id: str, seq: int) -> Call[bytes]:
-    return Call("GET", f"{_map(map_id)}/observations/{int(seq)}/thumbnail", _content, idempotent=True)
+    return Call("GET", f"{_map(map_id)}/observations/{int(seq)}/thumbnail", _bytes_of(JPEG_MEDIA_TYPE),
+                idempotent=True)
 
 
 def recent_thumbnail(map_id: str, answer_id: int) -> Call[bytes]:
-    return Call("GET", f"{_map(map_id)}/recent/{int(answer_id)}/thumbnail", _content, idempotent=True)
+    return Call("GET", f"{_map(map_id)}/recent/{int(answer_id)}/thumbnail", _bytes_of(JPEG_MEDIA_TYPE),
+                idempotent=True)
 
 
 def create_snapshot(map_id: str) -> Call[models.Snapshot]:
@@ -335,12 +375,15 @@ def restore_snapshot(map_id: str, snapshot_id: str) -> Call[models.RestoredMap]:
 
 
 def delete_snapshot(map_id: str, snapshot_id: str) -> Call[None]:
-    return Call("DELETE", f"{_map(map_id)}/snapshots/{_seg(snapshot_id)}", _nothing, idempotent=True)
+    return Call("DELETE", f"{_map(map_id)}/snapshots/{_seg(snapshot_id)}", _nothing, idempotent=True,
+                deletes=True)
 
 
 def download_snapshot(map_id: str, snapshot_id: str) -> Call[httpx.Response]:
-    """Streamed by the client (`Client.download_snapshot`): `decode` hands on the response unread."""
-    return Call("GET", f"{_map(map_id)}/snapshots/{_seg(snapshot_id)}/download", _response, idempotent=True)
+    """Streamed by the client (`Client.download_snapshot`): `decode` hands on the response unread, once
+    its `Content-Type` is a tar's."""
+    return Call("GET", f"{_map(map_id)}/snapshots/{_seg(snapshot_id)}/download",
+                lambda r: _typed(r, TAR_MEDIA_TYPE), idempotent=True)
 
 
 # -------------------------------------------------------------------------------------- downloads

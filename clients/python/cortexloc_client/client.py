@@ -16,7 +16,7 @@ from collections.abc import Mapping
 from itertools import count
 from pathlib import Path
 from time import sleep
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import httpx
 
@@ -64,11 +64,13 @@ class Client:
         `call.decode`, the download's, to stream)."""
         request = self._http.build_request(call.method, call.path, params=call.params, json=call.json,
                                            content=call.content, headers=call.headers)
+        unsure = False  # an earlier try may have been done (`_core.may_have_done`)
         for attempt in count():
             try:
                 response = self._http.send(request, stream=stream)
             except httpx.TransportError as e:
                 sleep(self.settings.retry.wait(call, attempt, error=e))
+                unsure = unsure or _core.may_have_done(error=e)
                 continue
             if response.status_code < 400:
                 try:
@@ -76,10 +78,14 @@ class Client:
                 except InvalidResponseError as e:  # a proxy's page sent with 200: as a lost reply
                     response.close()
                     sleep(self.settings.retry.wait(call, attempt, error=e))
+                    unsure = True
                     continue
             response.read()
             response.close()
+            if _core.done_already(call, response, unsure):
+                return cast(T, None)  # a delete's: Call[None]
             sleep(self.settings.retry.wait(call, attempt, response=response))
+            unsure = unsure or _core.may_have_done(response=response)
         raise AssertionError("unreachable")
 
     # ---------------------------------------------------------------------------- operations

@@ -103,6 +103,17 @@ class InvalidResponseError(CortexlocError):
         self.args = (f"{status} invalid response: {detail}",)
 
     @classmethod
+    def because(cls, response: httpx.Response, reason: str) -> InvalidResponseError:
+        """The error for `response`, not the route's answer for `reason`. The excerpt only from a body
+        already read: a streamed one (a download) is not read for it."""
+        try:
+            excerpt = response.content[:cls.EXCERPT_CHARS].decode("utf-8", "replace")
+        except httpx.ResponseNotRead:
+            excerpt = ""
+        return cls(response.status_code, content_type=response.headers.get("Content-Type", ""),
+                   excerpt=excerpt, reason=reason, request_id=response.headers.get("X-Request-ID"))
+
+    @classmethod
     def of(cls, response: httpx.Response, error: ValidationError) -> InvalidResponseError:
         """The error for `response`, whose body (read) failed the route's model with `error`."""
         errors = error.errors(include_url=False)
@@ -111,9 +122,7 @@ class InvalidResponseError(CortexlocError):
         reason = f"{where}: {first['msg']}" if where else str(first["msg"])
         if len(errors) > 1:
             reason += f" (and {len(errors) - 1} more)"
-        return cls(response.status_code, content_type=response.headers.get("Content-Type", ""),
-                   excerpt=response.content[:cls.EXCERPT_CHARS].decode("utf-8", "replace"), reason=reason,
-                   request_id=response.headers.get("X-Request-ID"))
+        return cls.because(response, reason)
 
 
 class BadRequestError(CortexlocError):

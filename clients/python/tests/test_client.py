@@ -340,6 +340,7 @@ def test_loop_closures_are_paged_and_exported(client: Client, tiny_map: str, mak
     assert csv_text.splitlines()[0].startswith("stamp,observation_id,seq,stream,place_stamp")
     assert len(csv_text.splitlines()) == len(log) + 1
     assert len(client.export_loop_closures(tiny_map, "jsonl").decode().splitlines()) == len(log)
+    assert isinstance(client.export_loop_closures(tiny_map, "g2o"), bytes)  # its media type, read live too
     assert all(c.retracts is None for c in log)  # closures, no retraction entry yet
     # the end for now: next_after is None, and the next poll goes on from the last id read, not from 0
     assert rest.next_after is None and rest.cursor(page.next_after) == log[-1].id

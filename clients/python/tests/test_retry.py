@@ -376,9 +376,90 @@ def test_a_success_reply_that_is_not_the_answer_is_a_typed_error_retried_where_s
 
 
 def test_a_snapshot_download_still_streams_through_the_retry_loop(waits, tmp_path) -> None:
-    script = Script(httpx.ReadError("reset"), httpx.Response(200, content=b"tar" * 1000))
+    script = Script(httpx.ReadError("reset"), httpx.Response(200, content=b"tar" * 1000, headers=TAR))
     path = make(script).download_snapshot("lab", "s1", tmp_path / "lab.tar")
     assert path.read_bytes() == b"tar" * 1000 and len(script.requests) == 2
+
+
+TAR = {"Content-Type": "application/x-tar"}
+PORTAL = b"<html><body>Please log in to the hotel network</body></html>"
+
+
+def portal() -> httpx.Response:
+    return httpx.Response(200, content=PORTAL, headers={"Content-Type": "text/html; charset=utf-8"})
+
+
+#: each byte route, its real reply (the service's media type, `charset` and case aside), and what it gives
+BYTE_ROUTES = {
+    "csv": (lambda c, d: c.export_loop_closures("lab", "csv"), "text/csv; charset=utf-8", b"stamp,seq\n"),
+    "jsonl": (lambda c, d: c.export_loop_closures("lab", "jsonl"), "application/jsonl", b'{"id": 1}\n'),
+    "g2o": (lambda c, d: c.export_loop_closures("lab", "g2o"), "Text/Plain; charset=utf-8", b"EDGE_SE3:QUAT"),
+    "thumbnail": (lambda c, d: c.thumbnail("lab", 1), "image/jpeg", b"\xff\xd8\xff"),
+    "recent-thumbnail": (lambda c, d: c.recent_thumbnail("lab", 1), "image/jpeg", b"\xff\xd8\xff"),
+    "download": (lambda c, d: c.download_snapshot("lab", "s1", d / "lab.tar").read_bytes(),
+                 "application/x-tar", b"tar" * 100),
+}
+
+
+@pytest.mark.parametrize("route", BYTE_ROUTES)
+def test_a_byte_routes_reply_of_another_type_is_a_page_not_the_answer(waits, tmp_path, route: str) -> None:
+    # An outside probe: a captive portal's 200 HTML page came back as the export, the thumbnail, and as the
+    # snapshot's .tar on disk, with no error and no retry, where a JSON route raised InvalidResponseError.
+    ask, media_type, body = BYTE_ROUTES[route]
+    script = Script(portal(), httpx.Response(200, content=body, headers={"Content-Type": media_type}))
+    assert ask(make(script), tmp_path) == body and len(script.requests) == 2 and waits == [0.5]
+    script, spent = Script(portal()), tmp_path / "spent"
+    spent.mkdir()
+    with pytest.raises(InvalidResponseError) as e:
+        ask(make(script, retry=RetryPolicy(attempts=2)), spent)
+    assert len(script.requests) == 2 and e.value.content_type.startswith("text/html")
+    assert e.value.reason == f"Content-Type 'text/html', not {media_type.split(';')[0].lower()!r}"
+    assert not list(spent.iterdir())  # no page saved as a snapshot, nor its .part
+
+
+def problem_404(slug: str) -> httpx.Response:
+    return httpx.Response(404, json={"type": f"urn:cortexloc:problem:{slug}", "status": 404, "detail": "d"},
+                          headers={"Content-Type": "application/problem+json"})
+
+
+DELETES = {"map": (lambda c: c.delete_map("lab"), "map-not-found"),
+           "snapshot": (lambda c: c.delete_snapshot("lab", "s1"), "snapshot-not-found")}
+LOST = {"reset": lambda: httpx.ReadError("connection reset"),
+        "proxy-502": lambda: httpx.Response(502, text="<html>Bad Gateway</html>",
+                                            headers={"Content-Type": "text/html"}),
+        "portal-200": portal}
+
+
+@pytest.mark.parametrize("what", DELETES)
+@pytest.mark.parametrize("lost", LOST)
+def test_a_delete_whose_reply_was_lost_is_done_when_its_retry_finds_nothing(waits, what, lost) -> None:
+    # An outside probe: the delete reached the service and its reply was lost; the retry's 404 was raised as
+    # NotFoundError although the map (the snapshot) was deleted. A delete's goal is that it is gone.
+    delete, slug = DELETES[what]
+    script = Script(LOST[lost](), problem_404(slug))
+    assert delete(make(script)) is None and len(script.requests) == 2
+
+    async def adelete() -> None:
+        async with AsyncClient("http://cortexloc.test", transport=httpx.MockTransport(script)) as c:
+            await (c.delete_map("lab") if what == "map" else c.delete_snapshot("lab", "s1"))
+
+    script = Script(LOST[lost](), problem_404(slug))
+    assert asyncio.run(adelete()) is None and len(script.requests) == 2
+
+
+@pytest.mark.parametrize("first", ["none", "refused", "own-503", "proxy-404"])
+def test_a_delete_of_nothing_there_is_still_not_found(waits, first: str) -> None:
+    # A first try's 404, or one after tries the service surely did not do (a connection never opened, its
+    # own 503 refusal), says the name was not there: NotFoundError, as before. A proxy's 404 page is no
+    # answer of the service's.
+    before = {"none": [], "refused": [httpx.ConnectError("refused")], "own-503": [busy("1")],
+              "proxy-404": []}[first]
+    last = httpx.Response(404, text="Not Found", headers={"Content-Type": "text/plain"}) \
+        if first == "proxy-404" else problem_404("map-not-found")
+    script = Script(*before, last)
+    with pytest.raises(CortexlocError) as e:
+        make(script).delete_map("lab")
+    assert e.value.status == 404 and len(script.requests) == len(before) + 1
 
 
 def test_the_api_key_and_the_metadata_are_sent(waits) -> None:
