@@ -250,7 +250,7 @@ def _produce(source: Source, send: Any, stop: threading.Event) -> None:
 async def _ensure_map(client: httpx.AsyncClient, opts: Options, headers: dict[str, str],
                       summary: Summary) -> bool:
     r = await _request(client, "GET", f"/v1/maps/{opts.map_id}", summary, headers=headers)
-    if r.status_code == 200:
+    if r.status_code == 200 and _is_map(r):
         return False
     if r.status_code == 404 and opts.learn:
         created = await _request(client, "POST", "/v1/maps", summary, headers=headers,
@@ -261,7 +261,7 @@ async def _ensure_map(client: httpx.AsyncClient, opts: Options, headers: dict[st
         # map-exists for a directory the catalog does not list is not served: that 409 stops the ingest.)
         if created.status_code == 409 and str(json_body(created).get("type", "")).endswith(":map-exists"):
             again = await _request(client, "GET", f"/v1/maps/{opts.map_id}", summary, headers=headers)
-            if again.status_code == 200:
+            if again.status_code == 200 and _is_map(again):
                 return False
         r = created
     raise IngestError(f"map {opts.map_id!r}: {_problem_text(r)}", summary)
@@ -301,6 +301,10 @@ async def _post_frame(client: httpx.AsyncClient, frame: Frame, opts: Options, he
         await sleep(retry_after_s(None if r is None else r.headers.get("Retry-After"), attempt))
     assert r is not None
     latency_ms = (time.perf_counter() - t) * 1e3
+    if _unanswered(r):  # a page in place of the answer to the last try: whether it was learned is unknown
+        summary.errors += 1
+        raise IngestError(f"frame {frame.name}: a 200 reply that is not the service's answer (a proxy's "
+                          f"or captive portal's page?): {_problem_text(r)}", summary)
     rec = Record(frame.index, frame.name, frame.stamp_ns, r.status_code, round(latency_ms, 3), json_body(r))
     if r.status_code != 200 and r.status_code not in FRAME_ERRORS:
         summary.add(rec)
@@ -315,13 +319,39 @@ async def _post_frame(client: httpx.AsyncClient, frame: Frame, opts: Options, he
 PROXY_STATUSES = frozenset({500, 502, 503, 504})
 
 
+#: Members every observation answer has (docs/design/service.md §1.2): a 200 without them is no answer.
+ANSWER_MEMBERS = ("learned", "matches")
+
+
+def _media_type(r: httpx.Response) -> str:
+    return r.headers.get("Content-Type", "").split(";")[0].strip().lower()
+
+
+def _is_map(r: httpx.Response) -> bool:
+    """A map resource, not a captive portal's page sent with 200 (the ingest then stops, saying so)."""
+    return _media_type(r) == "application/json" and "map_id" in json_body(r)
+
+
+def _unanswered(r: httpx.Response) -> bool:
+    """A 200 that is not the service's observation answer (a captive portal's or a proxy's page sent with
+    200, JSON cut short): the post may not have reached the service, as for a proxy's 502."""
+    if r.status_code != 200:
+        return False
+    if _media_type(r) != "application/json":
+        return True
+    body = json_body(r)
+    return not all(k in body for k in ANSWER_MEMBERS)
+
+
 def _retried(r: httpx.Response) -> bool:
-    """The service's 503, its 409 `map-restored` (a restore rolled the post back: nothing kept), or a
-    proxy's page (`PROXY_STATUSES`, not problem+json): the post is sent again."""
-    problem = r.headers.get("Content-Type", "").split(";")[0].strip() == PROBLEM_MEDIA_TYPE
+    """The service's 503, its 409 `map-restored` (a restore rolled the post back: nothing kept), a
+    proxy's page (`PROXY_STATUSES`, not problem+json), or a 200 that is no answer (`_unanswered`): the
+    post is sent again (with its key: learned at most once)."""
+    problem = _media_type(r) == PROBLEM_MEDIA_TYPE
     rolled_back = (problem and r.status_code == 409
                    and str(json_body(r).get("type", "")).endswith(":map-restored"))
-    return r.status_code == 503 or rolled_back or (r.status_code in PROXY_STATUSES and not problem)
+    return (r.status_code == 503 or rolled_back or (r.status_code in PROXY_STATUSES and not problem)
+            or _unanswered(r))
 
 
 def _connection_lost(e: BaseException | None) -> bool:

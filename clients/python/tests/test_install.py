@@ -42,3 +42,12 @@ def test_the_client_and_cortexloc_ingest_resend_the_same_proxy_pages():
     from service.ingest.poster import PROXY_STATUSES
 
     assert _core.PROXY_STATUSES == PROXY_STATUSES
+
+
+def test_the_client_expects_the_media_types_the_service_sends():
+    from cortexloc_client import _core
+    from service.maps.closures import EXPORT_FORMATS
+    from service.media_types import TAR_MEDIA_TYPE
+
+    assert {f: t.split(";")[0] for f, t in EXPORT_FORMATS.items()} == _core.EXPORT_MEDIA_TYPES
+    assert _core.TAR_MEDIA_TYPE == TAR_MEDIA_TYPE

@@ -308,6 +308,43 @@ def test_a_proxys_html_502_and_504_are_retried_with_the_frames_key(tmp_path):
     assert summary.retries == 2 and summary.frames == len(ROUTE) and summary.errors == 0
 
 
+def portal_page() -> httpx.Response:
+    return httpx.Response(200, text="<html>Please log in</html>", headers={"Content-Type": "text/html"})
+
+
+def test_a_captive_portals_200_page_is_no_answer_the_frame_is_sent_again_with_its_key(tmp_path):
+    """An outside probe: a portal that never forwarded a frame answered 200 text/html; the ingest counted
+    it answered (errors 0, exit 0) and the frame was never stored. A 200 that is not the service's answer
+    (a page, JSON without an answer's members) is a reply lost on the way: sent again with the key."""
+    cut = httpx.Response(200, content=b'{"learned": tr', headers={"Content-Type": "application/json"})
+    service = Scripted([portal_page(), cut, (200, {})])
+    bodies, _, run = _ingest(tmp_path, service)
+    summary = anyio.run(run)
+    assert service.bodies == [bodies[0]] * 3 + bodies[1:]
+    assert service.idempotency_keys[:3] == [service.idempotency_keys[0]] * 3
+    assert summary.retries == 2 and summary.errors == 0 and summary.frames == len(ROUTE)
+    # the retries spent on pages: the ingest stops with an error, not a frame counted answered
+    service = Scripted([portal_page()] * (poster.MAX_RETRIES + 1))
+    _, _, run = _ingest(tmp_path / "spent", service)
+    with pytest.raises(poster.IngestError, match="not the service's answer") as e:
+        anyio.run(run)
+    assert e.value.summary.errors == 1 and e.value.summary.frames == 0
+
+
+def test_a_portals_page_for_the_map_stops_the_ingest_before_any_post(tmp_path):
+    posts = []
+
+    async def portal(request: httpx.Request) -> httpx.Response:
+        if request.method == "POST":
+            posts.append(request)
+        return portal_page()
+
+    _, _, run = _ingest(tmp_path, portal)
+    with pytest.raises(poster.IngestError, match="map 'm': 200"):
+        anyio.run(run)
+    assert posts == []
+
+
 def test_the_services_own_500_is_not_retried(tmp_path):
     """A problem+json 500 is the service's answer (a bug), not a proxy's: the ingest stops there."""
     problem = httpx.Response(500, json={"title": "Internal error", "detail": "quote request id r"},
