@@ -51,7 +51,7 @@ from service.request_context import RequestContextMiddleware
 from service.routes import api_router
 from service.routing import HeadMiddleware
 from service.settings import Settings
-from service.ui import UI_PATH, static_files
+from service.ui import mount_viewer
 
 __all__ = ["Component", "create_app", "map_registry"]
 
@@ -176,7 +176,7 @@ def create_app(settings: Settings | None = None, *, encoder_factory: EmbedderFac
         app.state.settings = settings
     install_edge(app, metrics)
     app.include_router(api_router)
-    app.mount(UI_PATH, static_files(), name="ui")  # the map viewer: static files, no API of its own
+    mount_viewer(app)  # the map viewer: static files, no API of its own
     app.openapi = openapi_with_problems(app)  # type: ignore[method-assign]
     return app
 
@@ -186,6 +186,9 @@ def install_edge(app: FastAPI, metrics: Metrics) -> None:
     problem+json handlers, then security headers, request ids, metrics, the upload limits and HEAD answered
     as GET, outermost first (docs/design/service.md §1.9, §2, §3, §9)."""
     install_error_handlers(app)
+    # A path with a slash too many is a 404 problem, not a 307 to an absolute URL made from the request's
+    # `Host` header (a client's word; a cache in front would keep it). `mount_viewer` redirects `/ui`.
+    app.router.redirect_slashes = False
     # add_middleware puts each one outside the previous: the last added runs first.
     app.add_middleware(HeadMiddleware)
     app.add_middleware(UploadLimitMiddleware)

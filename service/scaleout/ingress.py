@@ -40,7 +40,7 @@ from service.routes.health import UNNAMED_ERROR, readiness_reply
 from service.scaleout.shards import ShardSet
 from service.schemas import BudgetModel, Health, MapList, Readiness
 from service.settings import Settings
-from service.ui import UI_PATH, static_files
+from service.ui import mount_viewer
 
 __all__ = ["create_ingress_app"]
 
@@ -272,5 +272,5 @@ def create_ingress_app(settings: Settings, make_shards: Callable[[], ShardSet]) 
         return _reply(await shards.call(shards.shards[0], "request", "GET", "/openapi.json", "",
                                         _out_headers(request), b""))
 
-    app.mount(UI_PATH, static_files(), name="ui")
+    mount_viewer(app)
     return app

@@ -17,7 +17,7 @@ from tests.service.helpers import frame, make_client
 
 KEY = {"X-API-Key": "k3y"}
 #: Reads that stay open with the setting: the probes, the page of the viewer, the API's description.
-OPEN = {"/healthz", "/readyz", "/docs", "/redoc", "/openapi.json", "/docs/oauth2-redirect"}
+OPEN = {"/healthz", "/readyz", "/docs", "/redoc", "/openapi.json", "/docs/oauth2-redirect", "/ui"}
 
 
 def _filled(path: str, values: dict[str, str]) -> str:

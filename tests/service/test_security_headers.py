@@ -98,3 +98,19 @@ def test_a_page_too_large_to_hold_is_sent_whole_with_no_inline_code_allowed():
     assert "sha256-" not in csp and "'unsafe-inline'" not in csp
     sent, body = anyio.run(_page, 0)
     assert _hash("s()") in dict(sent[0]["headers"])[b"content-security-policy"].decode()
+
+
+@pytest.mark.parametrize("path", ["/v1/maps/", "/v1/maps/m/", "/healthz/", "/v1/maps/m/observations/"])
+def test_a_slash_too_many_is_a_404_problem_not_a_redirect_to_the_clients_host(client, path):
+    """An outside probe: `/v1/maps/` answered 307 with `Location: http://evil.example/v1/maps`, an absolute
+    URL made from the request's Host header (a cache in front would keep and serve it)."""
+    r = client.get(path, headers={"Host": "evil.example"}, follow_redirects=False)
+    assert r.status_code == 404 and r.headers["content-type"] == "application/problem+json"
+    assert "location" not in r.headers and "evil" not in r.text
+    _common(r)
+
+
+def test_the_viewers_redirect_is_relative(client):
+    for method in ("GET", "HEAD"):
+        r = client.request(method, "/ui", headers={"Host": "evil.example"}, follow_redirects=False)
+        assert r.status_code == 307 and r.headers["location"] == "/ui/"
