@@ -1,7 +1,8 @@
 """A map's loop-closure log, read back (docs/design/service.md §1.2, docs/design/science.md §11.6): a page
 in log order, and the export of candidate pairs for pose-graph back ends (CSV or JSON lines, with the
 geometric verification and relative pose where the map keeps keyframes, docs/design/science.md §12), or
-of the verified ones as g2o edges. Reads only: `MapStore` is safe to read from any thread while the
+of the verified ones as a g2o graph (their vertices at the posted poses, the edges in the same body axes,
+`g2o_lines`). Reads only: `MapStore` is safe to read from any thread while the
 writer appends.
 
 An export is rendered whole, every entry checked, before its body starts (`render`): what is not a
@@ -16,7 +17,7 @@ import io
 import json
 import math
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from typing import IO, Any
 
 import numpy as np
@@ -27,8 +28,8 @@ from models.localisation.motion import stamp_seconds
 from service.maps.results import LoopClosurePage, LoopClosureResult, StoredRow, VerificationResult
 from storage.mapstore import LoopClosure, MapStore
 
-__all__ = ["EXPORT_COLUMNS", "EXPORT_FORMATS", "VISIT_VERTEX_BASE", "chunks", "csv_cell", "g2o_lines",
-           "g2o_retracted", "page", "render"]
+__all__ = ["BODY_FROM_OPTICAL", "EXPORT_COLUMNS", "EXPORT_FORMATS", "VISIT_VERTEX_BASE", "body_relative_pose",
+           "chunks", "csv_cell", "g2o_lines", "g2o_retracted", "page", "render"]
 
 #: The export's fields, in CSV column order: both stamps in seconds, both ids, the confidence, both
 #: poses where the client gave them (x, y, yaw); empty (CSV) or null (JSON) where not.
@@ -60,6 +61,11 @@ G2O_ROTATION_INFORMATION = 1e4
 #: 2^31 - 10^9. An entry past them is in the CSV and JSON exports only.
 VISIT_VERTEX_BASE = 1_000_000_000
 _G2O_MAX_ID = 2**31 - 1
+#: The g2o export's axes from the camera's optical axes: X_body = BODY_FROM_OPTICAL X_optical. Optical: x
+#: right, y down, z ahead (the verification's, docs/design/science.md §12.3; REP 103's `_optical` frame).
+#: Body: x ahead, y left, z up (REP 103), the axes of a `metadata.pose` (x, y, yaw about z) for a camera
+#: that looks along its pose's heading, level: all a planar pose can say of it.
+BODY_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 #: A CSV text cell starting with one of these is read as a formula by spreadsheets (OWASP's CSV
 #: injection guidance): it is written with a leading single quote.
 _FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
@@ -157,38 +163,91 @@ def vertex_id(c: LoopClosure) -> int | None:
     return vertex if vertex <= _G2O_MAX_ID else None
 
 
-def g2o_lines(c: LoopClosure) -> str | None:
-    """A verified closure with a finite relative rotation as g2o text; None otherwise.
+def body_relative_pose(R: np.ndarray, t: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The query camera's pose in the keyframe camera's frame, in body axes (`BODY_FROM_OPTICAL`: x ahead,
+    y left, z up), from a verification's X_query = R X_keyframe + t in optical axes: the optical pose
+    (R^T, -R^T t) turned into body axes, B R^T B^T and -B R^T t. Returns (position (3,): a unit direction,
+    or zero where `t` is None, two views giving no scale; orientation (3, 3)). A camera turned left by
+    yaw about the vertical (R about optical y by +yaw) is a rotation about z by +yaw."""
+    B = BODY_FROM_OPTICAL
+    position = -B @ R.T @ (np.zeros(3) if t is None else t)
+    return position, B @ R.T @ B.T
 
-    The edge: `EDGE_SE3:QUAT keyframe_seq vertex  x y z  qx qy qz qw  information`, from the keyframe's
-    row (its seq) to the frame's vertex (`vertex_id`: its seq, or for a consolidated frame, a visit,
-    VISIT_VERTEX_BASE + the closure's log id; a localising stream's frame has none and no edge). A
-    visit is declared first, `VERTEX_SE3:QUAT id x y 0 0 0 qz qw`, at its metadata pose (x, y, yaw about
-    z; the origin without one): a back end has it from nowhere else (its stamp is in the CSV and JSON
-    exports, column `vertex`). The measurement is the query camera's pose in the keyframe camera's
-    frame (camera axes: x right, y down, z ahead): X_keyframe = R^T X_query - R^T t. Its translation is
-    the unit direction where observable, else zero, and carries zero information either way; the
-    rotation's information is G2O_ROTATION_INFORMATION divided by the answer's span (upper triangle of
-    the 6 x 6 matrix, row-major): an answer that could have been any of k places is a k times weaker
-    constraint (docs/design/science.md §11.11; an entry logged before the span, schema 11, counts 1)."""
+
+def _estimate(metadata: dict[str, Any] | None) -> tuple[tuple[float, ...], bool]:
+    """A vertex's estimate from `metadata.pose` (x, y, yaw about z, in the map's z-up frame) as g2o's x y z
+    qx qy qz qw, and whether the pose was whole (0 stands for what it lacks)."""
+    x, y, yaw = (p if isinstance(p, int | float) and not isinstance(p, bool) else None
+                 for p in _pose(metadata))
+    whole = x is not None and y is not None and yaw is not None
+    x, y, yaw = (0.0 if p is None else float(p) for p in (x, y, yaw))
+    return (x, y, 0.0, 0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)), whole
+
+
+def _vertex(vertex: int, metadata: dict[str, Any] | None) -> str:
+    """A vertex's declaration at its `metadata.pose`; a pose missing, or short of x, y or yaw, is preceded
+    by `# NOPOSE id`: the estimate is a placeholder (the identity where nothing is known)."""
+    estimate, whole = _estimate(metadata)
+    line = f"VERTEX_SE3:QUAT {vertex} " + " ".join(f"{e:.9g}" for e in estimate) + "\n"
+    return line if whole else f"# NOPOSE {vertex}\n" + line
+
+
+def _edge(c: LoopClosure) -> tuple[int, int, str] | None:
+    """(keyframe row, frame vertex, the `EDGE_SE3:QUAT` line) of a verified closure with a finite relative
+    rotation (`g2o_lines`); None otherwise."""
     v = c.verification or {}
     R = _rotation(v)
     vertex = vertex_id(c)
     keyframe = v.get("keyframe_seq") or c.place_seq
     if (not v.get("verified") or R is None or vertex is None or not isinstance(keyframe, int)
-            or not 0 < keyframe < VISIT_VERTEX_BASE):
+            or isinstance(keyframe, bool) or not 0 < keyframe < VISIT_VERTEX_BASE or keyframe == vertex):
         return None
-    t_dir = _translation(v)
-    t = -R.T @ (np.zeros(3) if t_dir is None else t_dir)
+    t, Rb = body_relative_pose(R, _translation(v))
     info = np.diag([0.0, 0.0, 0.0] + [G2O_ROTATION_INFORMATION / max(c.span or 1, 1)] * 3)[np.triu_indices(6)]
-    values = [*t, *quaternion(R.T), *info]
-    edge = f"EDGE_SE3:QUAT {int(keyframe)} {vertex} " + " ".join(f"{x:.9g}" for x in values) + "\n"
-    if c.seq is not None:
-        return edge
-    x, y, yaw = (p if isinstance(p, int | float) and not isinstance(p, bool) else 0.0
-                 for p in _pose(c.metadata))
-    estimate = (x, y, 0.0, 0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
-    return f"VERTEX_SE3:QUAT {vertex} " + " ".join(f"{e:.9g}" for e in estimate) + "\n" + edge
+    values = [*t, *quaternion(Rb), *info]
+    return keyframe, vertex, (f"EDGE_SE3:QUAT {keyframe} {vertex} " + " ".join(f"{x:.9g}" for x in values)
+                              + "\n")
+
+
+def g2o_lines(c: LoopClosure, declared: set[int] | None = None,
+              rows: Mapping[int, dict[str, Any] | None] | None = None) -> str | None:
+    """A verified closure with a finite relative rotation as g2o text; None otherwise.
+
+    The edge: `EDGE_SE3:QUAT keyframe_seq vertex  x y z  qx qy qz qw  information`, from the keyframe's
+    row (its seq) to the frame's vertex (`vertex_id`: its seq, or for a consolidated frame, a visit,
+    VISIT_VERTEX_BASE + the closure's log id; a localising stream's frame has none and no edge).
+
+    **One convention for vertices and edges**: a vertex is a posted `metadata.pose` (x, y, yaw about z in
+    the map's z-up frame, REP 103), `VERTEX_SE3:QUAT id x y 0 0 0 qz qw`; the edge is the query's pose in
+    the keyframe's, in those body axes (x ahead, y left, z up): the verification's optical relative pose
+    turned by `BODY_FROM_OPTICAL` (`body_relative_pose`), which holds for a camera that looks along its
+    pose's heading, level (the ROS 2 node posts the camera's pose: odometry composed with `camera_mount`).
+    So a camera turned by 8 degrees of yaw is an edge of 8 degrees about z, as the vertices' yaws differ.
+
+    **Every id an edge names is declared** before it, once (`declared`: the ids the file has declared so
+    far, updated; None: both of this edge's), at its pose: the frame's (its row's or its visit's) from
+    `c.metadata`, the keyframe's from `rows[keyframe_seq]` (the rows' metadata by seq; the place's row
+    from `c.place_metadata` where it is the keyframe). A vertex without a whole pose is declared at a
+    placeholder after a `# NOPOSE id` comment (`_vertex`), so the file loads on its own; a back end
+    merging it into its own graph keeps its own estimate for an id it holds.
+
+    The translation is the unit direction where observable, else zero, and carries zero information either
+    way; the rotation's information is G2O_ROTATION_INFORMATION divided by the answer's span (upper
+    triangle of the 6 x 6 matrix, row-major): an answer that could have been any of k places is a k times
+    weaker constraint (docs/design/science.md §11.11; an entry logged before the span, schema 11, counts
+    1)."""
+    edge = _edge(c)
+    if edge is None:
+        return None
+    keyframe, vertex, line = edge
+    declared = set() if declared is None else declared
+    known = {c.place_seq: c.place_metadata, **(rows or {})}
+    out = []
+    for vid, metadata in ((keyframe, known.get(keyframe)), (vertex, c.metadata)):
+        if vid not in declared:
+            declared.add(vid)
+            out.append(_vertex(vid, metadata))
+    return "".join(out) + line
 
 
 def csv_cell(value: Any) -> Any:
@@ -202,13 +261,26 @@ def csv_cell(value: Any) -> Any:
 
 
 def g2o_retracted(c: LoopClosure) -> str | None:
-    """The comment line standing for a retracted closure's edge in the g2o export (the edge, and a visit's
-    vertex, are left out: a g2o reader skips `#` lines), None where `g2o_lines` makes no edge of it."""
-    edge = g2o_lines(c)
+    """The comment line standing for a retracted closure's edge in the g2o export (the edge, and the
+    vertices only it named, are left out: a g2o reader skips `#` lines), None where `g2o_lines` makes no
+    edge of it."""
+    edge = _edge(c)
     if edge is None:
         return None
-    _, keyframe, vertex = edge.splitlines()[-1].split()[:3]
+    keyframe, vertex, _ = edge
     return f"# RETRACTED {keyframe} {vertex} closure {c.id}\n"
+
+
+def _keyframe_rows(store: MapStore, found: list[LoopClosure]) -> dict[int, dict[str, Any] | None]:
+    """The metadata of the keyframe rows a page of closures verified against that are not their place's
+    row (a route neighbour, docs/design/science.md §12.2): their vertices' poses. A row gone since is
+    absent (its vertex has no pose)."""
+    seqs = set()
+    for c in found:
+        keyframe = (c.verification or {}).get("keyframe_seq")
+        if isinstance(keyframe, int) and not isinstance(keyframe, bool) and keyframe != c.place_seq:
+            seqs.add(keyframe)
+    return {seq: row.metadata for seq, row in store.get_many(seqs).items()} if seqs else {}
 
 
 def _lines(store: MapStore, fmt: str) -> Iterator[str]:
@@ -216,11 +288,14 @@ def _lines(store: MapStore, fmt: str) -> Iterator[str]:
     if fmt == "csv":
         yield ",".join(EXPORT_COLUMNS) + "\n"
     retracted = store.retracted() if fmt == "g2o" else set()
+    declared: set[int] = set()  # the g2o vertices written so far
     after = 0
     while found := store.closures(after, _EXPORT_PAGE):
+        rows = _keyframe_rows(store, found) if fmt == "g2o" else {}
         for c in found:
             if fmt == "g2o":
-                if (lines := g2o_retracted(c) if c.id in retracted else g2o_lines(c)) is not None:
+                lines = g2o_retracted(c) if c.id in retracted else g2o_lines(c, declared, rows)
+                if lines is not None:
                     yield lines
                 continue
             rec = _record(c)

@@ -49,7 +49,8 @@ async def list_loop_closures(
 async def export_loop_closures(
     map_id: MapId, registry: RegistryDep,
     format: Annotated[Literal["csv", "jsonl", "g2o"], Query(
-        description="csv | jsonl | g2o (the verified closures as EDGE_SE3:QUAT lines)")] = "csv",
+        description="csv | jsonl | g2o (the verified closures as EDGE_SE3:QUAT lines, in the "
+                    "body axes of the VERTEX_SE3:QUAT lines declared for every id they name)")] = "csv",
 ) -> StreamingResponse:
     """Every logged loop closure as a candidate pair: both stamps in seconds, both ids, the confidence,
     both poses where given, the geometric verification and relative pose where the map keeps keyframes

@@ -216,7 +216,8 @@ class Client:
         """`GET /v1/maps/{map_id}/loop-closures/export`: the whole log as candidate pairs (`csv` or
         `jsonl`): both stamps in seconds, both ids, the confidence, both poses where given, and the
         verified relative pose on maps with keyframes; or (`g2o`) the verified closures as
-        `EDGE_SE3:QUAT` lines."""
+        `EDGE_SE3:QUAT` lines in body axes (x ahead, y left, z up), each id they name declared as a
+        `VERTEX_SE3:QUAT` at its posted pose (docs/design/service.md §1.2)."""
         return self._send(_core.export_loop_closures(map_id, fmt))
 
     def recent(self, map_id: str, *, limit: int = 50, stream: str | None = None) -> models.RecentAnswers:

@@ -380,7 +380,9 @@ def relative_pose(rotation: list[list[float]], translation: list[float] | None
     """The query camera's pose in the keyframe camera's frame (optical axes: x right, y down, z ahead),
     from the service's verification X_query = R X_keyframe + t: position -R^T t (a unit direction, or zero
     where unobservable: two views give no scale) and orientation R^T as (x, y, z, w). The convention of
-    the service's g2o export (docs/design/service.md §1.2)."""
+    the service's CSV and JSON lines exports; its g2o export writes the same pose in body axes (x ahead,
+    y left, z up: B p and B R^T B^T with B = [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]), the axes of the
+    posted poses (docs/design/service.md §1.2)."""
     R = np.asarray(rotation, np.float64)
     t = np.asarray(translation if translation is not None else (0.0, 0.0, 0.0), np.float64)
     p = -R.T @ t

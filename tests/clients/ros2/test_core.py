@@ -24,6 +24,7 @@ from cortexloc_ros.core import (
     Stamp,
     idempotency_key,
     image_array,
+    quaternion_from_matrix,
     yaw_from_quaternion,
 )
 from cortexloc_ros.params import (
@@ -416,9 +417,11 @@ def _answer(place: dict | None) -> Observation:
 
 
 def test_a_verified_loop_closure_carries_the_relative_pose_of_the_services_g2o_export():
+    """The document's relative pose is in the keyframe camera's optical axes (its `frame` says so); the g2o
+    export's edge is the same pose in body axes (x ahead, y left, z up: `BODY_FROM_OPTICAL`)."""
     from types import SimpleNamespace
 
-    from service.maps.closures import g2o_lines
+    from service.maps.closures import BODY_FROM_OPTICAL, g2o_lines
 
     a = 0.3
     R = [[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]]
@@ -436,10 +439,18 @@ def test_a_verified_loop_closure_carries_the_relative_pose_of_the_services_g2o_e
     assert doc["pose"]["x"] == 1.5 and doc["confidence"] == 0.95 and doc["verified"] is True
     assert doc["span"] == 2 and doc["span_seqs"] == [4, 5]
     edge = g2o_lines(SimpleNamespace(verification=place["verification"], seq=9, place_seq=4, id=1,
-                                     consolidated_into=None, metadata=None, span=doc["span"]))
-    want = [float(v) for v in edge.split()[3:10]]  # x y z qx qy qz qw
+                                     consolidated_into=None, metadata=None, place_metadata=None,
+                                     span=doc["span"]))
+    want = [float(v) for v in edge.splitlines()[-1].split()[3:10]]  # x y z qx qy qz qw
     rel = doc["relative_pose"]
-    got = [rel["position"][k] for k in "xyz"] + [rel["orientation"][k] for k in "xyzw"]
+    assert rel["frame"] == "keyframe_camera_optical"
+    B = BODY_FROM_OPTICAL
+    position = B @ [rel["position"][k] for k in "xyz"]
+    qx, qy, qz, qw = (rel["orientation"][k] for k in "xyzw")
+    orientation = np.array([[1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
+                            [2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw)],
+                            [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)]])
+    got = [*position, *quaternion_from_matrix(B @ orientation @ B.T)]
     assert np.allclose(got, want, atol=1e-8)
     assert loop_closure_json(_answer({**place, "revisit": False}), Stamp(1), "cam", None, "map") is None
     assert place_json(_answer(None), Stamp(1), "cam", None, 3.0, "map")["place"] is None
