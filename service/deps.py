@@ -85,6 +85,9 @@ def require_api_key(
     if expected is None:
         return
     given = api_key if api_key else (bearer.credentials if bearer is not None else None)
+    # A field value holds no whitespace at its ends (RFC 9110 §5.5); the HTTP parser drops the leading
+    # only, so a key sent with a trailing space or tab is the key.
+    given = None if given is None else given.strip(" \t")
     if given is not None and secrets.compare_digest(given.encode(), expected.encode()):
         return
     detail = ("this operation needs the API key: send it in X-API-Key or as Authorization: Bearer"

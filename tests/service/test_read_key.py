@@ -123,3 +123,22 @@ def test_without_the_setting_reads_stay_open_and_writes_need_the_key(tmp_path):
                     "/metrics"):
             assert c.get(url).status_code == 200, url
         assert c.post("/v1/maps", json={"map_id": "x"}).status_code == 401
+
+
+def test_a_key_sent_with_whitespace_at_its_ends_is_the_key():
+    """An outside probe: `X-API-Key: k3y ` (a trailing space) was refused while a leading one was taken:
+    the HTTP parser drops only the leading whitespace of a field value, which has none at either end
+    (RFC 9110 §5.5). Whitespace inside is part of the value: another key."""
+    from fastapi.security import HTTPAuthorizationCredentials
+
+    from service.deps import require_api_key
+    from service.errors import Problem
+    from service.settings import Settings
+
+    s = Settings(api_key="k3y")
+    for given in ("k3y", "k3y ", "k3y\t", " k3y \t"):
+        require_api_key(s, given, None)
+        require_api_key(s, None, HTTPAuthorizationCredentials(scheme="Bearer", credentials=given))
+    for wrong in ("k3 y", "k3y x", "", " "):
+        with pytest.raises(Problem):
+            require_api_key(s, wrong or None, None)
