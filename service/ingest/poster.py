@@ -278,8 +278,11 @@ async def _post_frame(client: httpx.AsyncClient, frame: Frame, opts: Options, he
                       {"detail": f"the file could not be read ({frame.unreadable}); not sent", "sent": False})
     params: dict[str, str] = {"learn": "true" if opts.learn else "false", "stream": opts.stream,
                               **frame.params}
-    if frame.stamp_ns is not None:  # where in time: the observation's `stamp` (seconds since the epoch)
-        params["metadata"] = json.dumps({"stamp": frame.stamp_ns / 1e9}, separators=(",", ":"))
+    if frame.stamp_ns is not None:  # where in time: the observation's `stamp` (seconds since the epoch),
+        # and `stamp_ns` (text: exact past 2^53), the message's stamp to the nanosecond, as the ROS 2 node
+        # posts it: seconds as a float keep about a quarter of a microsecond of a stamp today
+        params["metadata"] = json.dumps({"stamp": frame.stamp_ns / 1e9, "stamp_ns": str(frame.stamp_ns)},
+                                        separators=(",", ":"))
     if opts.label_stamp and frame.stamp_ns is not None:
         params["label"] = f"{frame.stamp_ns // 1_000_000_000}.{frame.stamp_ns % 1_000_000_000:09d}"
     # One key per frame, made once: each retry sends the same (a post learned already is replayed).
