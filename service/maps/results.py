@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from service.maps.config import MapConfig
+from service.maps.states import serving
 
 __all__ = ["BudgetInfo", "IndexMemory", "LoopClosurePage", "LoopClosureResult", "MapInfo", "MapReservation",
            "Match", "MemoryInfo", "ObservationResult", "PlaceResult", "RestoreResult", "SequenceStats",
@@ -215,15 +216,25 @@ class MapInfo:
            recovery: dict[str, Any] | None = None, snapshot_error: dict[str, Any] | None = None,
            snapshot_count: int = 0, snapshots_bytes: int = 0, places: PlacesInfo | None = None) -> MapInfo:
         """The map resource of a map with this configuration and catalog `record` (created_at, map_id);
-        `snapshot_count`, `snapshots_bytes`: `service.maps.recovery.snapshots.disk_use`."""
+        `snapshot_count`, `snapshots_bytes`: `service.maps.recovery.snapshots.disk_use`. A map that serves
+        no reads (`failed`, `recovering`) says in `warnings` that its counts are not read, not lost."""
+        warnings = list(config.warnings)
+        if not serving(state).reads:
+            warnings.append(NOT_READ)
         return cls(map_id=record.map_id, created_at=record.created_at, state=state, state_reason=state_reason,
                    preset=config.preset, params=config.shown(), encoder=config.encoder_id,
                    projection_sha256=config.projection_sha256, observations=observations, last_seq=last_seq,
-                   streams=streams or [], warnings=list(config.warnings), recovery=recovery,
+                   streams=streams or [], warnings=warnings, recovery=recovery,
                    snapshot_error=snapshot_error, backbone=config.backbone,
                    revisit_threshold=config.revisit_threshold, verify_revisit=config.verify_revisit,
                    thumbnails=config.thumbnails,
                    snapshot_count=snapshot_count, snapshots_bytes=snapshots_bytes, places=places)
+
+
+#: The warning of a map that serves no reads (`MapInfo.of`): its `observations`, `last_seq` and `streams`
+#: say 0 and none because the map is not open, whatever its store holds.
+NOT_READ = ("the map is not open: its observations, last_seq and streams are not read (0 and none here), "
+            "whatever its store holds")
 
 
 @dataclass(frozen=True)

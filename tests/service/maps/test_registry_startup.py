@@ -13,6 +13,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.maps.errors import DataDirectoryInUse
+from service.maps.results import NOT_READ
 from service.settings import Settings
 from storage.catalog import Catalog
 from storage.lock import DataDirLock
@@ -50,6 +51,9 @@ def test_a_map_that_cannot_be_opened_fails_alone(tmp_path, changes):
         # Listed as it was stored; the rest of the service works.
         listed = {m["map_id"]: m for m in c.get("/v1/maps").json()["maps"]}
         assert listed["lab"]["state"] == "failed" and listed["default"]["state"] == "ready"
+        # its counts are not read: it says so, not that the two frames it holds are gone
+        assert listed["lab"]["observations"] == 0 and NOT_READ in listed["lab"]["warnings"]
+        assert NOT_READ not in listed["default"]["warnings"]
         assert c.get("/v1/maps/lab/memory").status_code == 503
         assert c.get("/v1/maps/lab/snapshots").status_code == 200
         # (another stream: the default stream's own last row is not an answer to it, science.md §11.6)
