@@ -40,7 +40,14 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from cortexloc_client import Client, Observation, RetryPolicy
 from cortexloc_client.models import LoopClosure
-from cortexloc_ros.answers import epoch_json, loop_closure_json, place_json, place_pose, retraction_json
+from cortexloc_ros.answers import (
+    closure_colour,
+    epoch_json,
+    loop_closure_json,
+    place_json,
+    place_pose,
+    retraction_json,
+)
 from cortexloc_ros.core import (
     JUMP_CONFIRM,
     FrameKeys,
@@ -382,8 +389,9 @@ class CortexlocNode(Node):
 
     def _markers(self) -> MarkerArray:
         """Every kept loop-closure edge (frame's pose -> the place's stored pose) as one LINE_LIST in the
-        first edge's frame, coloured from red (confidence at the threshold) to green (1); with none left
-        (all retracted), the list deleted."""
+        first edge's frame, coloured from red (confidence at the map's `revisit_threshold`, as the poster
+        read it at first contact) to green (1) (`answers.closure_colour`); with none left (all retracted),
+        the list deleted."""
         edges = list(self._edges)
         m = Marker()
         m.ns, m.id, m.type = "cortexloc_loop_closures", 0, Marker.LINE_LIST
@@ -395,10 +403,12 @@ class CortexlocNode(Node):
         m.action = Marker.ADD
         m.pose.orientation.w = 1.0
         m.scale.x = 0.2
+        threshold = self.poster.revisit_threshold
         for _, a, b, confidence in edges:
             if a.frame_id != frame_id:
                 continue
-            colour = ColorRGBA(r=float(1.0 - confidence), g=float(confidence), b=0.2, a=1.0)
+            red, green = closure_colour(confidence, threshold)
+            colour = ColorRGBA(r=red, g=green, b=0.2, a=1.0)
             m.points.extend([Point(x=a.x, y=a.y), Point(x=b.x, y=b.y)])
             m.colors.extend([colour, colour])
         return MarkerArray(markers=[m])
@@ -432,7 +442,7 @@ class CortexlocNode(Node):
         rosout once the context is shut down)."""
         line = self.poster.stop()
         if line:
-            self.log.warning(f"{line} (dropped; a restart posts what the camera sends from then on)")
+            self.log.warning(f"{line}; a restart posts only what the camera sends from then on")
         self.client.close()
 
 

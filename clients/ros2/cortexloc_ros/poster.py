@@ -10,12 +10,13 @@ typed client; the ROS executor never waits on the service.
   learned twice. An
   answered frame is done: it is never posted again. Meanwhile the camera's frames queue, and the queue
   drops by its policy.
-- First contact, before any frame is posted (retried like a post until the service answers): a missing
-  map is created (service defaults) when learning, and the stream's sequence context is reset on the
-  service, so a new start is a new drive (the service keeps a stream's context across a node's restart),
-  unless `run_id` was given: a resumed drive keeps its context, and its frames' keys are the same. A map
-  missing later (deleted while the node runs) is never created again, which would reuse its seqs for
-  other frames: it is an error, its frame is retried like a service down until the map is back.
+- First contact, before any frame is posted (retried like a post until the service answers): the map is
+  read (its `revisit_threshold` scales the markers' colours), a missing map is created (service defaults)
+  when learning, and the stream's sequence context is reset on the service, so a new start is a new
+  drive (the service keeps a stream's context across a node's restart), unless `run_id` was given: a
+  resumed drive keeps its context, and its frames' keys are the same. A map missing later (deleted while
+  the node runs) is never created again, which would reuse its seqs for other frames: it is an error,
+  its frame is retried like a service down until the map is back.
 - A new drive (a frame whose `drive` is not the last one's: the camera's stamps went back, a bag played
   again): the stream is reset on the service before it is posted, as at a start, so the new pass does not
   continue the last one's sequence context.
@@ -164,7 +165,15 @@ class Poster:
         self._on_retraction = on_retraction
         self._drive = 0  # the drive of the frames posted (`Frame.drive`)
         self.in_flight: Frame | None = None  # the frame being posted
+        # A request of `in_flight` may have reached the service, its outcome unknown until it is answered:
+        # a stop then must not call it "not posted" (the service may have stored it, or may yet)
+        self._sent = False
+        #: The map's `revisit_threshold` as read at first contact (None: not read yet, or an older server).
+        self.revisit_threshold: float | None = None
         self._stop = threading.Event()
+        # Held while a post checks `_stop` and marks its frame sent: once `stop` has set `_stop` under it,
+        # no request starts, so a frame not marked sent then is never sent
+        self._sending = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="cortexloc-poster", daemon=True)
         self._last_probe = 0.0
         self._map_gone = False  # a 404 map-not-found after first contact, said in the log
@@ -175,18 +184,27 @@ class Poster:
 
     def stop(self, timeout: float | None = None) -> str:
         """Stops posting and waits for the thread, by default `request_timeout` + 1 s (a post under way
-        ends within its timeout); what it leaves unposted, as a log line ("" for nothing)."""
-        self._stop.set()
+        ends within its timeout); what it leaves unposted, as a log line ("" for nothing).
+
+        The line tells frames never sent (queued, or taken but not yet sent) from the frame whose request
+        was sent and not answered: that one may be stored (its request still under way, or its reply lost
+        or late past `request_timeout`), so it is never called "not posted". An outside probe: a post
+        whose reply came later than `request_timeout` ended the thread within the wait, the line said
+        "1 in flight not posted", and the service had stored the frame."""
+        with self._sending:
+            self._stop.set()
         self._thread.join(self.cfg.request_timeout + 1.0 if timeout is None else timeout)
-        queued, in_flight = self.unposted()
-        if not (queued or in_flight):
+        queued, unsent, sent = self.unposted()
+        if not (queued or unsent or sent):
             return ""
         frames = f"{queued} frame{'s' * (queued != 1)} queued"
-        if in_flight and self._thread.is_alive():  # its request is still under way: it may yet be stored
-            return (f"stopping: {frames} not posted and 1 in flight that may not have been posted (its "
-                    f"request had not ended)")
-        flight = " and 1 in flight" if in_flight else ""
-        return f"stopping: {frames}{flight} not posted"
+        line = (f"stopping: {frames} and 1 in flight not posted (never sent)" if unsent
+                else f"stopping: {frames} not posted")
+        if sent and self._thread.is_alive():
+            line += "; 1 frame sent whose request had not ended (the service may yet store it)"
+        elif sent:  # its reply lost, or late past request_timeout
+            line += "; 1 frame sent whose answer did not come (the service may have stored it)"
+        return line
 
     # -------------------------------------------------------------------------------------- thread
 
@@ -205,7 +223,7 @@ class Poster:
                     continue
                 self._step()
             except Exception as e:
-                frame, self.in_flight = self.in_flight, None
+                frame, self.in_flight, self._sent = self.in_flight, None, False
                 if frame is not None:
                     self._give_up(frame, e)
                 delay = self._back_off(self._trouble(e, delay), delay)
@@ -237,9 +255,11 @@ class Poster:
         self._error("given-up", f"frame {frame.stamp.ns} given up after a fault of the node's own: {e!r} "
                                 f"(not posted, or posted and its answer lost; counted as `failed`)")
 
-    def unposted(self) -> tuple[int, int]:
-        """(frames queued, frames in flight) not posted: what a stop leaves."""
-        return len(self.queue), int(self.in_flight is not None)
+    def unposted(self) -> tuple[int, int, int]:
+        """What a stop leaves: (frames queued, the frame in flight if none of its requests was sent, the
+        frame in flight if one was: its outcome unknown), the last two 0 or 1."""
+        in_flight = self.in_flight is not None
+        return len(self.queue), int(in_flight and not self._sent), int(in_flight and self._sent)
 
     def _retracted(self, entry: LoopClosure) -> None:
         with self.stats.lock:
@@ -303,7 +323,10 @@ class Poster:
         return meta
 
     def _post(self, frame: Frame) -> None:
-        self.in_flight = frame  # until it is answered or refused: a stop meanwhile leaves it unposted
+        # in flight until it is answered or refused: a stop meanwhile leaves it unposted, or, once one of
+        # its requests was sent, of unknown outcome
+        self._sent = False
+        self.in_flight = frame
         if frame.drive != self._drive:
             self._new_drive(frame.drive)
         if self._post_frame(frame):
@@ -330,14 +353,25 @@ class Poster:
         meta = self._metadata(frame, pose)
         delay = BACKOFF_S
         faults = 0
-        while not self._stop.is_set():
+        reached = False  # an earlier request of this frame may have reached the service
+        while True:
+            with self._sending:  # `stop` sets `_stop` under it: no request starts after a stop
+                if self._stop.is_set():
+                    break
+                self._sent = True
             t0 = time.perf_counter()
             try:
                 answer = self.client.observe(
                     self.cfg.map_id, frame.image, colour=frame.colour,  # type: ignore[arg-type]
                     stream=self.cfg.stream, learn=self.cfg.learn, top_k=self.cfg.top_k, metadata=meta,
                     idempotency_key=frame.key)
+            except (httpx.ConnectError, httpx.ConnectTimeout) as e:
+                # no connection: this request never left (the node's client tries once, so no earlier try
+                # within it left either); the frame is as unsent as before it
+                self._sent = reached
+                wait = self._trouble(e, delay)
             except CortexlocError as e:
+                reached = True
                 if e.status in FRAME_REFUSALS:
                     with self.stats.lock:
                         self.stats.refused += 1
@@ -354,9 +388,11 @@ class Poster:
                                    f"frames wait until it is back (restore it, or restart the node); it is "
                                    f"not created again, which would reuse its seqs for other frames")
                 wait = self._trouble(e, delay)
-            except httpx.HTTPError as e:
+            except httpx.HTTPError as e:  # a reply lost or late: the frame may have been stored
+                reached = True
                 wait = self._trouble(e, delay)
             except Exception as e:  # a fault of the node's own: retried, then the frame given up
+                reached = True  # raised before or after its request left: taken as sent
                 wait = self._trouble(e, delay)
                 faults += 1
                 if faults >= FAULT_TRIES:
@@ -442,13 +478,13 @@ class Poster:
             delay = self._back_off(wait, delay)
 
     def _open(self) -> bool:
-        """The map made sure of and the stream reset; False: the service refused to create the map (said
-        at ERROR, and on diagnostics), to be tried again."""
+        """The map made sure of (its `revisit_threshold` read, for the markers' colours) and the stream
+        reset; False: the service refused to create the map (said at ERROR, and on diagnostics), to be
+        tried again."""
         map_id, stream = self.cfg.map_id, self.cfg.stream
         try:
-            if self.cfg.resume:
-                self.client.get_map(map_id)
-            else:
+            found = self.client.get_map(map_id)
+            if not self.cfg.resume:
                 dropped = " (the last drive's context dropped)" if self.client.reset_stream(
                     map_id, stream).had_context else ""
                 self.log.info(f"stream {stream!r} reset on map {map_id!r}: a new drive{dropped}")
@@ -456,10 +492,11 @@ class Poster:
             if not (e.status == 404 and e.slug == "map-not-found" and self.cfg.learn):
                 raise
             try:  # a new map holds no stream context: nothing to reset
-                self.client.create_map(map_id)
+                found = self.client.create_map(map_id)
             except CortexlocError as e2:
                 if e2.slug == "map-exists":  # another node created it meanwhile
                     self.log.info(f"map {map_id!r} exists: created meanwhile (by another node?)")
+                    self.revisit_threshold = self.client.get_map(map_id).revisit_threshold
                     return True
                 if e2.problem is None or e2.status == 503:
                     raise  # a proxy's page, a reply it cannot read, the service busy: retried as such
@@ -470,4 +507,5 @@ class Poster:
                 self._state("error", f"map {map_id!r} cannot be created: {e2}", said=True)
                 return False
             self.log.info(f"created map {map_id!r} (the service's defaults)")
+        self.revisit_threshold = found.revisit_threshold
         return True

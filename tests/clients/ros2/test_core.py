@@ -460,6 +460,38 @@ def test_a_verified_loop_closure_carries_the_relative_pose_of_the_services_g2o_e
     assert said["lagging"] is True and said["span"] == 2 and said["span_seqs"] == [4, 5]
 
 
+def test_a_closures_marker_is_red_at_the_maps_revisit_threshold_and_green_at_1():
+    # The markers' docstring said red at the threshold, green at 1, but the colour was (1 - c, c): every
+    # closure (confidence >= 0.91 on the default threshold) drew about 91 % green, alike. The node scales by
+    # the threshold the poster read from the map at first contact, clamped to [0, 1].
+    from collections import deque
+    from types import SimpleNamespace
+
+    node = pytest.importorskip("cortexloc_ros.node", reason="rclpy is not installed (make install-ros)")
+    from cortexloc_ros.answers import DEFAULT_REVISIT_THRESHOLD as NODES_DEFAULT
+
+    from service.maps.config import DEFAULT_REVISIT_THRESHOLD
+
+    assert NODES_DEFAULT == DEFAULT_REVISIT_THRESHOLD  # the scale where the map's own is unknown
+
+    def colours(threshold: float | None, *confidences: float) -> list[tuple[float, float]]:
+        edges = deque((i, Pose2D(i, 0, 0, "odom"), Pose2D(i, 5, 0, "odom"), c)
+                      for i, c in enumerate(confidences))
+        fake = SimpleNamespace(_edges=edges, poster=SimpleNamespace(revisit_threshold=threshold))
+        (line,) = node.CortexlocNode._markers(fake).markers
+        assert line.colors[0::2] == line.colors[1::2]  # both ends of an edge alike
+        return [(round(c.r, 6), round(c.g, 6)) for c in line.colors[0::2]]
+
+    # the map's threshold 0.91: a closure at it is red, one at 1 green, halfway between half and half
+    assert colours(0.91, 0.91, 0.955, 1.0) == [(1.0, 0.0), (0.5, 0.5), (0.0, 1.0)]
+    # another map's threshold scales alike; a closure below it (the threshold lowered since) is red
+    assert colours(0.5, 0.5, 0.75, 0.4) == [(1.0, 0.0), (0.5, 0.5), (1.0, 0.0)]
+    # an older server's map names none: the service's default; at 1 nothing but a confidence of 1 is green
+    assert colours(None, 0.91, 1.0) == [(1.0, 0.0), (0.0, 1.0)]
+    assert colours(1.0, 1.0) == [(0.0, 1.0)] and colours(0.0, 0.25) == [(0.75, 0.25)]
+    assert colours(0.91, math.nan) == [(1.0, 0.0)]  # never outside [0, 1]
+
+
 def test_a_robots_nodes_name_one_trail_its_namespace_unless_the_parameter_names_another():
     # two cameras under /robot1 share the robot's short-term memory (service metadata.trail)
     assert trail_of("", "/robot1") == trail_of("", "/robot1/") == "robot1"

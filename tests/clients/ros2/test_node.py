@@ -152,6 +152,12 @@ def test_a_route_with_odometry_and_camera_info_gives_places_and_loop_closures_on
         w.probe.wait(lambda: len(w.probe.markers) == len(closures), 10, "a marker array per closure")
         marker = w.probe.markers[-1].markers[0]
         assert marker.header.frame_id == "odom" and len(marker.points) == 2 * len(closures)
+        # each edge red at the map's revisit_threshold, green at 1 (before: green = confidence, all ~green)
+        from cortexloc_ros.answers import closure_colour
+
+        threshold = w.client.get_map(w.map_id).revisit_threshold
+        assert np.allclose([(k.r, k.g) for k in marker.colors[0::2]],
+                           [closure_colour(c["confidence"], threshold) for c in closures], atol=1e-6)
         # camera_info's intrinsics stored with the learned rows (what geometric verification reads)
         stored = w.client.list_observations(w.map_id, limit=5).observations[0].metadata
         assert stored.model_extra["camera"] == {"fx": 60.0, "fy": 60.0, "cx": 32.0, "cy": 16.0,

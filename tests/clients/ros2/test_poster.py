@@ -7,6 +7,7 @@ import math
 import threading
 import time
 from dataclasses import replace
+from types import SimpleNamespace
 from typing import Any
 
 import httpx
@@ -28,6 +29,8 @@ ANSWER = Observation.model_validate({
         "step": 1, "active_columns": 1, "predicted_columns": 0, "bursting_columns": 1, "winner_cells": 1},
     "matches": [], "timings_ms": {},
     "versions": {"api": "v1", "code": "x", "encoder": "e", "weights": "w", "projection": "p", "map_seq": 1}})
+#: The map as `get_map` and `create_map` answer it, as far as the poster reads it.
+MAP = SimpleNamespace(revisit_threshold=0.8)
 
 
 class ScriptedClient:
@@ -175,21 +178,23 @@ def test_a_start_resets_the_stream_before_the_first_frame_unless_it_resumes_a_ru
     # restart, and without a reset a new drive's first frame continued the last one (an outside probe: a
     # row 30 frames away at confidence 0.96, published as a loop closure). The service down at start: the
     # reset is retried, and frames wait for it.
-    request = httpx.Request("POST", "http://cortexloc.test/v1/maps/default/streams/cam/reset")
-    p, stats, client = _poster(monkeypatch, httpx.ConnectError("refused", request=request),
+    # The map is read first: its revisit_threshold scales the markers' colours (node.py `_markers`).
+    request = httpx.Request("GET", "http://cortexloc.test/v1/maps/default")
+    p, stats, client = _poster(monkeypatch, httpx.ConnectError("refused", request=request), MAP,
                                StreamReset(stream="cam", had_context=True))
     p._first_contact()
-    assert client.calls == [("reset_stream", "default", "cam")] * 2
+    assert client.calls == [("get_map", "default")] * 2 + [("reset_stream", "default", "cam")]
     assert client.seen[1][0] == "down" and (stats.service, stats.retries) == ("up", 1)
     assert any("a new drive (the last drive's context dropped)" in line for line in p.log.lines)
+    assert p.revisit_threshold == 0.8
     # the same run_id again resumes that drive: its context (and its frames' keys) kept, the map checked
-    p, stats, client = _poster(monkeypatch, None, run_id="drive-a")
+    p, stats, client = _poster(monkeypatch, MAP, run_id="drive-a")
     p._first_contact()
-    assert client.calls == [("get_map", "default")] and stats.service == "up"
+    assert client.calls == [("get_map", "default")] and stats.service == "up" and p.revisit_threshold == 0.8
     # a learning node's missing map is created at first contact (a new map: nothing to reset)
-    p, stats, client = _poster(monkeypatch, _problem(404, "map-not-found"), None)
+    p, stats, client = _poster(monkeypatch, _problem(404, "map-not-found"), MAP)
     p._first_contact()
-    assert client.calls == [("reset_stream", "default", "cam"), ("create_map", "default")]
+    assert client.calls == [("get_map", "default"), ("create_map", "default")] and p.revisit_threshold == 0.8
 
 
 def test_a_map_deleted_while_the_node_learns_is_an_error_not_created_again(monkeypatch):
@@ -210,7 +215,7 @@ def test_between_frames_the_poster_hands_on_the_streams_retractions_and_counts_t
     # each `retractions_poll`) and hands the retraction on for the topic; the frame is answered as ever.
     from cortexloc_client.models import LoopClosureList
 
-    p, stats, client = _poster(monkeypatch, StreamReset(stream="cam", had_context=False), ANSWER,
+    p, stats, client = _poster(monkeypatch, MAP, StreamReset(stream="cam", had_context=False), ANSWER,
                                retractions_poll=0.05)
     withdrawn = {"id": 6, "stream": "cam", "seq": 4,
                  "place": {"seq": 1, "observation_id": "o1", "stream": "cam"},
@@ -300,7 +305,7 @@ def test_a_map_deleted_and_made_again_publishes_its_closure_1_again(monkeypatch)
 def test_a_stop_waits_for_a_post_under_way_and_says_when_it_may_have_been_posted(monkeypatch):
     # Before, a stop waited 5 s for the poster while a post may take request_timeout (10 s): "1 in flight not
     # posted" could be said of a frame the service then stored. Now it waits request_timeout + 1 s, and says
-    # "may not have been posted" when the post is still under way.
+    # the service may yet store it when the post is still under way.
     release = threading.Event()
 
     class Slow(ScriptedClient):
@@ -308,14 +313,12 @@ def test_a_stop_waits_for_a_post_under_way_and_says_when_it_may_have_been_posted
             release.wait(float(kwargs["metadata"]["stamp_ns"]) / 1e3)  # stamp_ns: how many ms it takes
             return ANSWER
 
-    for ms, timeout, said in ((300, 0.2, ""), (30_000, 0.1, "may not have been posted")):
+    for ms, timeout, said in ((300, 0.2, ""), (30_000, 0.1, "may yet store it")):
         p, stats, _ = _poster(monkeypatch, request_timeout=timeout)
-        p.client = Slow(stats, StreamReset(stream="cam", had_context=False))
+        p.client = Slow(stats, MAP, StreamReset(stream="cam", had_context=False))
         p.start()
         p.queue.put(_frame(Stamp(ms)))
-        deadline = time.monotonic() + 5
-        while p.in_flight is None and time.monotonic() < deadline:
-            time.sleep(0.01)
+        _wait_for(lambda p=p: p.unposted()[2], "the frame sent", 5)
         started = time.monotonic()
         try:
             line = p.stop()
@@ -323,11 +326,80 @@ def test_a_stop_waits_for_a_post_under_way_and_says_when_it_may_have_been_posted
             release.set()
         waited = time.monotonic() - started
         if said:
-            assert line == ("stopping: 0 frames queued not posted and 1 in flight that may not have been "
-                            "posted (its request had not ended)") and 1.0 <= waited < 2.0
+            assert line == ("stopping: 0 frames queued not posted; 1 frame sent whose request had not ended "
+                            "(the service may yet store it)") and 1.0 <= waited < 2.0
         else:  # the post ends within the wait: answered, nothing left
             assert line == "" and stats.answered == 1 and waited < 1.0
         release.clear()
+
+
+class Stalling(ScriptedClient):
+    """The service as a stop finds it: each post's outcome from `posts` (an exception raised after `after_s`,
+    as a reply late past request_timeout is; the last repeats), and a map that takes `reset_s` to reset."""
+
+    def __init__(self, stats: Stats, *posts: Exception, after_s: float = 0.0, reset_s: float = 0.0) -> None:
+        super().__init__(stats)
+        self.posts, self.after_s, self.reset_s = list(posts), after_s, reset_s
+        self.tries = 0
+
+    def observe(self, *args: Any, **kwargs: Any) -> Observation:
+        self.tries += 1
+        time.sleep(self.after_s)
+        raise self.posts.pop(0) if len(self.posts) > 1 else self.posts[0]
+
+    def get_map(self, map_id: str) -> Any:
+        return MAP
+
+    def reset_stream(self, map_id: str, stream: str) -> Any:
+        time.sleep(self.reset_s)
+        return StreamReset(stream=stream, had_context=False)
+
+    def ready(self) -> None:
+        pass
+
+
+def test_a_stop_tells_frames_never_sent_from_one_sent_whose_outcome_is_unknown(monkeypatch):
+    # An outside probe: SIGINT while a post's reply was late; the client's request_timeout (3 s) ended the
+    # post within the stop's wait (4 s), the thread ended, and the line said "1 frame queued and 1 in flight
+    # not posted" of a frame the service had stored. A frame whose request was sent is never "not posted":
+    # its reply lost or late, the service may have stored it. One whose requests never connected (the
+    # service down), or that waits for its new drive's reset, was never sent, and is said so.
+    read = httpx.Request("POST", "http://cortexloc.test/v1/maps/default/observations")
+    late = httpx.ReadTimeout("timed out", request=read)
+    refused = httpx.ConnectError("refused", request=read)
+    cases = [
+        # the probe's: the reply late past request_timeout, the thread ended within the wait; a frame queued
+        ((late,), 0.3, 1, "stopping: 1 frame queued not posted; 1 frame sent whose answer did not come (the "
+                          "service may have stored it)"),
+        # the service down: no request of the frame ever connected
+        ((refused,), 0.0, 2, "stopping: 0 frames queued and 1 in flight not posted (never sent)"),
+        # one reply lost, then the service down: the first may have been stored
+        ((late, refused), 0.0, 2, "stopping: 0 frames queued not posted; 1 frame sent whose answer did not "
+                                  "come (the service may have stored it)"),
+    ]
+    for posts, after_s, tries, said in cases:
+        p, stats, _ = _poster(monkeypatch, request_timeout=1.0, retractions_poll=0.0)
+        client = p.client = Stalling(stats, *posts, after_s=after_s)
+        p.start()
+        p.queue.put(_frame(Stamp(1)))
+        _wait_for(lambda c=client, n=tries: c.tries >= n, f"{tries} tries of the frame")
+        if "1 frame queued" in said:
+            p.queue.put(_frame(Stamp(2)))
+        line = p.stop()
+        assert line == said, posts
+        assert not p._thread.is_alive()
+    # a new drive's frame, its stream's reset under way when the stop's wait ends: never sent, nor after
+    # (resumed: no reset at start)
+    p, stats, _ = _poster(monkeypatch, request_timeout=0.1, run_id="drive-a", retractions_poll=0.0)
+    client = p.client = Stalling(stats, late, reset_s=3.0)
+    p.start()
+    _wait_for(lambda: stats.service == "up", "first contact")
+    p.queue.put(replace(_frame(Stamp(1)), drive=1))
+    _wait_for(lambda: p.in_flight is not None, "the frame taken")
+    assert p.stop() == "stopping: 0 frames queued and 1 in flight not posted (never sent)"
+    assert p._thread.is_alive()  # in the reset still
+    p._thread.join(5)
+    assert client.tries == 0 and not p._thread.is_alive()
 
 
 def test_a_new_drive_resets_the_stream_before_its_first_frame(monkeypatch):
@@ -414,8 +486,8 @@ def test_no_exception_ends_the_poster_thread_and_a_frame_faulting_again_and_agai
     # ERROR once a kind, diagnostics ERROR, the thread goes on; a frame that faults FAULT_TRIES times in a
     # row is given up (`failed`), and the next frame is answered.
     faults = [ValueError("boom")] * poster.FAULT_TRIES
-    p, stats, client = _poster(monkeypatch, StreamReset(stream="cam", had_context=False), *faults, ANSWER,
-                               ANSWER, retractions_poll=0.0)
+    p, stats, client = _poster(monkeypatch, MAP, StreamReset(stream="cam", had_context=False), *faults,
+                               ANSWER, ANSWER, retractions_poll=0.0)
     client.ready = lambda: None  # type: ignore[method-assign]  # the idle probe: up
     cameras: list[Exception] = []
     p.camera = lambda: (_ for _ in ()).throw(cameras.pop()) if cameras else None
@@ -468,10 +540,10 @@ def test_a_map_the_service_refuses_to_create_is_an_error_retried_not_created(mon
     # ERROR, and the creation is tried again until the service takes it.
     missing = _problem(404, "map-not-found")
     p, stats, client = _poster(monkeypatch, missing, _problem(409, "map-limit"), missing,
-                               _problem(409, "map-limit"), missing, None)
+                               _problem(409, "map-limit"), missing, MAP)
     p._first_contact()
-    assert client.calls == [("reset_stream", "default", "cam"), ("create_map", "default")] * 3
-    service, error = client.seen[2]  # the second reset, after the refusal
+    assert client.calls == [("get_map", "default"), ("create_map", "default")] * 3
+    service, error = client.seen[2]  # the second look, after the refusal
     assert (service, error) == ("error", "map 'default' cannot be created: 409 map-limit: map 'default' "
                                          "map-limit")
     assert Stats(service=service, last_error=error).health(0)[0] == "ERROR"
@@ -479,10 +551,11 @@ def test_a_map_the_service_refuses_to_create_is_an_error_retried_not_created(mon
     assert [line for line in p.log.lines if "created map" in line] == ["created map 'default' (the service's "
                                                                        "defaults)"]  # once, when it was
     assert stats.service == "up"
-    # made meanwhile by another node: used, and said so
-    p, stats, client = _poster(monkeypatch, missing, _problem(409, "map-exists"))
+    # made meanwhile by another node: used (read, for its threshold), and said so
+    p, stats, client = _poster(monkeypatch, missing, _problem(409, "map-exists"), MAP)
     p._first_contact()
-    assert stats.service == "up" and not p.log.errors
+    assert stats.service == "up" and not p.log.errors and p.revisit_threshold == 0.8
+    assert client.calls == [("get_map", "default"), ("create_map", "default"), ("get_map", "default")]
     assert any("exists: created meanwhile" in line for line in p.log.lines)
     assert not any("created map" in line for line in p.log.lines)
 

@@ -168,7 +168,7 @@ def test_the_node_publishes_a_retraction_and_takes_its_edge_off_the_markers():
 
     closures: list = []
     markers: list = []
-    fake = SimpleNamespace(cfg=SimpleNamespace(map_id="m"),
+    fake = SimpleNamespace(cfg=SimpleNamespace(map_id="m"), poster=SimpleNamespace(revisit_threshold=0.91),
                            pub_closures=SimpleNamespace(publish=closures.append),
                            pub_markers=SimpleNamespace(publish=markers.append),
                            _edges=deque([(41, Pose2D(0, 0, 0, "odom"), Pose2D(5, 0, 0, "odom"), 0.9),
