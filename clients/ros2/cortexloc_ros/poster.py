@@ -77,6 +77,10 @@ PROBE_S = 1.0
 FAULT_TRIES = 3
 #: Latencies kept for the diagnostics' median.
 LATENCY_WINDOW = 100
+#: Seconds a frame lost, dropped, refused, failed, unsupported or malformed keeps the diagnostics at WARN
+#: (`Stats.health`): the level says how the node is doing now, the counters in the values (cumulative)
+#: what happened since it started. One dropped frame in the morning is no warning at night.
+WARN_WINDOW_S = 60.0
 
 
 #: Seconds past `odom_tolerance` that a frame waits, after it arrived, for the odometry of its instant:
@@ -124,23 +128,37 @@ class Stats:
     last_latency_ms: float | None = None
     latencies_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
     lock: threading.Lock = field(default_factory=threading.Lock)
+    # (monotonic time, the troubles' totals) at each `health`, the first at or before WARN_WINDOW_S ago
+    # kept as the window's base: a health call a second keeps about WARN_WINDOW_S of them
+    _marks: deque[tuple[float, tuple[int, ...]]] = field(default_factory=deque, repr=False)
 
     def median_latency_ms(self) -> float | None:
         with self.lock:
             return statistics.median(self.latencies_ms) if self.latencies_ms else None
 
-    def health(self, dropped: int) -> tuple[str, str]:
+    def health(self, dropped: int, now: float | None = None) -> tuple[str, str]:
         """The diagnostics' level ("OK", "WARN" or "ERROR") and message; call with `lock` held. Slow is a
-        warning: frames are still answered, later, and the queue drops by its policy meanwhile."""
+        warning: frames are still answered, later, and the queue drops by its policy meanwhile. Frames
+        lost, dropped, refused, failed, unsupported or malformed warn for WARN_WINDOW_S after the last
+        one (`now`: time.monotonic()); the message counts those of the window."""
+        now = time.monotonic() if now is None else now
+        totals = (self.lost, dropped, self.refused, self.failed, self.unsupported, self.malformed)
+        if not self._marks:  # the node's start: nothing had happened
+            self._marks.append((now, (0,) * len(totals)))
+        self._marks.append((now, totals))
+        while len(self._marks) > 1 and self._marks[1][0] <= now - WARN_WINDOW_S:
+            self._marks.popleft()
+        lost, dropped, refused, failed, unsupported, malformed = (
+            a - b for a, b in zip(totals, self._marks[0][1], strict=True))
         if self.service in ("down", "error"):
             return "ERROR", f"service {self.service}: {self.last_error}"
         if self.service == "slow":
             return "WARN", f"service slow: {self.last_error}"
-        if dropped or self.refused or self.failed or self.unsupported or self.malformed or self.lost:
-            failed = f", failed {self.failed}" if self.failed else ""
-            return "WARN", (f"service {self.service}; lost {self.lost}, dropped {dropped}, refused "
-                            f"{self.refused}{failed}, unsupported {self.unsupported}, malformed "
-                            f"{self.malformed}")
+        if dropped or refused or failed or unsupported or malformed or lost:
+            said = f", failed {failed}" if failed else ""
+            return "WARN", (f"service {self.service}; in the last {WARN_WINDOW_S:g} s: lost {lost}, dropped "
+                            f"{dropped}, refused {refused}{said}, unsupported {unsupported}, malformed "
+                            f"{malformed}")
         return "OK", f"service {self.service}"
 
 

@@ -513,8 +513,8 @@ def test_no_exception_ends_the_poster_thread_and_a_frame_faulting_again_and_agai
         "cortexloc poster fault, going on"]
     assert "RuntimeError('camera_info callback failed')" in p.log.errors[2]
     with stats.lock:
-        assert stats.health(0) == ("WARN", "service up; lost 0, dropped 0, refused 0, failed 2, "
-                                           "unsupported 0, malformed 0")
+        assert stats.health(0) == ("WARN", "service up; in the last 60 s: lost 0, dropped 0, refused 0, "
+                                           "failed 2, unsupported 0, malformed 0")
 
 
 def test_a_pose_that_is_not_finite_is_not_posted(monkeypatch):
@@ -580,3 +580,23 @@ def test_refused_frames_are_logged_once_a_minute_a_kind_with_a_count(monkeypatch
     said = "422 invalid-metadata: map 'default' invalid-metadata"
     assert p.log.lines[-2:] == [f"frame 6 refused: {said}",
                                 f"frame 8 refused: {said} (1 more like it since the last line)"]
+
+
+def test_a_frame_lost_once_warns_for_a_minute_not_for_the_rest_of_the_run():
+    """An outside probe: one frame dropped kept the diagnostics at WARN for good (the counters are
+    cumulative). The level says how the node is now; the counters in the values stay cumulative."""
+    stats = Stats(service="up")
+    assert stats.health(0, now=100.0) == ("OK", "service up")
+    stats.refused = 1
+    assert stats.health(0, now=101.0)[0] == "WARN"
+    assert stats.health(2, now=130.0) == ("WARN", "service up; in the last 60 s: lost 0, dropped 2, "
+                                                  "refused 1, unsupported 0, malformed 0")
+    assert stats.health(2, now=161.0) == ("WARN", "service up; in the last 60 s: lost 0, dropped 2, "
+                                                  "refused 0, unsupported 0, malformed 0")
+    assert stats.health(2, now=191.0) == ("OK", "service up")  # nothing new for a minute
+    stats.lost = 3
+    assert stats.health(2, now=192.0)[1].endswith("lost 3, dropped 0, refused 0, unsupported 0, malformed 0")
+    assert stats.health(2, now=10_000.0) == ("OK", "service up")
+    assert len(stats._marks) <= 3  # a mark a call, bounded by the window
+    # counted before the first call (a node's diagnostics start after frames came): those warn too
+    assert Stats(service="up", malformed=1).health(0, now=5.0)[0] == "WARN"
