@@ -16,14 +16,16 @@ the app in another task):
   `receive()` past it raises `BodyTimeoutError` and the answer is 408 `request-timeout` (a half-sent
   upload no longer holds its connection and bytes for ever);
 - **in-flight budget**: a request with a body reserves its declared length (a chunked one: its limit)
-  until it is answered; one that would take the reservations of all requests past
-  `CORTEXLOC_MAX_INFLIGHT_UPLOAD_BYTES` is answered 503 `overloaded` with `Retry-After` before its body
-  is read (50 uploads of 9 MB held 450 MB before). **One map's share**: the requests for one map (the
-  path's `/v1/maps/{id}/`; other paths count as one map) reserve at most the budget less one largest
-  upload (`CORTEXLOC_MAX_UPLOAD_BYTES`), and never less than one largest upload, so a client
-  sending its largest bodies to one map cannot take the whole budget, and another map's robot still
-  gets in. With frames of a few hundred kB no map comes near it (128 MiB holds hundreds). It bounds
-  one map, it is no fair share: a client with two maps can still take the whole budget.
+  until its answer starts (the app is done with the body then; a reply its client does not read holds
+  no budget, and `cortexloc serve` closes its connection, `service.server`); one that would take the
+  reservations of all requests past `CORTEXLOC_MAX_INFLIGHT_UPLOAD_BYTES` is answered 503 `overloaded`
+  with `Retry-After` before its body is read (50 uploads of 9 MB held 450 MB before). **One map's
+  share**: the requests for one map (the path's `/v1/maps/{id}/`; other paths count as one map) reserve
+  at most the budget less one largest upload (`CORTEXLOC_MAX_UPLOAD_BYTES`), and never less than one
+  largest upload, so a client sending its largest bodies to one map cannot take the whole budget, and
+  another map's robot still gets in. With frames of a few hundred kB no map comes near it (128 MiB
+  holds hundreds). It bounds one map, it is no fair share: a client with two maps can still take the
+  whole budget.
 
 The limit is `CORTEXLOC_MAX_UPLOAD_BYTES`, read per request from `app.state.settings`, for a frame (`POST
 /v1/maps/{id}/observations`, the one route that takes an image), and 64 KiB for every other body and for
@@ -48,6 +50,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable
 from typing import Any
 
 import anyio
@@ -348,14 +351,24 @@ class UploadLimitMiddleware:
             await refusal(scope, receive, send)
             return
         self._reserve(scope, key, reserve)
+        held = reserve
+
+        def release() -> None:
+            nonlocal held
+            self._reserve(scope, key, -held)
+            held = 0
+
         try:
-            await self._limited(scope, receive, send, limit, timeout_s, deadline)
+            await self._limited(scope, receive, send, limit, timeout_s, deadline, release)
         finally:
-            self._reserve(scope, key, -reserve)
+            release()
 
     async def _limited(self, scope: Scope, receive: Receive, send: Send, limit: int, timeout_s: float,
-                       deadline: float) -> None:
-        """The app, its `receive()` cut at the limit and the deadline, its reply replaced then."""
+                       deadline: float, release: Callable[[], None]) -> None:
+        """The app, its `receive()` cut at the limit and the deadline, its reply replaced then. The
+        reservation is `release`d as the reply starts: the app is done with the body then (read, or
+        never to be: a 401 before it), and a client that does not read its reply must not hold the
+        budget while the reply waits for it (an outside probe: 13 such connections held all of it)."""
         received = 0
         exceeded: BodyTooLargeError | BodyTimeoutError | None = None
         app_started = body_done = False
@@ -386,6 +399,7 @@ class UploadLimitMiddleware:
                 return  # the app's reply to a cut-off body is replaced by the 413 below
             if message["type"] == "http.response.start":
                 app_started = True
+                release()
             await send(message)
 
         try:
@@ -395,6 +409,7 @@ class UploadLimitMiddleware:
                 raise
         if exceeded is None or app_started:
             return
+        release()  # the body is cut off: none of it is held
         if isinstance(exceeded, BodyTimeoutError):
             _count(scope, "timeout")
             await _timed_out(scope, exceeded)(scope, receive, send)

@@ -23,6 +23,13 @@ service needs below the app:
   `request-timeout` and closed. uvicorn bounds only an idle keep-alive connection (5 s, reset by any
   byte), so a client sending its headers a byte at a time would otherwise hold the connection for ever
   (the body is bounded by `service.limits`, docs/design/service.md §3).
+- It bounds how long a reply may wait for its client to read it: a connection whose writes stay paused
+  (more than the transport's high-water mark unsent, the kernel's buffers full) for
+  `CORTEXLOC_BODY_TIMEOUT_S` is aborted. A stall deadline, not a total one: a client that reads, however
+  slowly, resumes the writes and the clock. An outside probe: clients that never read a large reply held
+  their connections (and, pipelined behind it, an upload's budget) for as long as they kept them open;
+  only streamed replies had a deadline (`service.limits.ReadStreamingResponse`, which keeps it for any
+  server), and a graceful close never ends while unsent bytes wait, so the connection is aborted.
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import json
+import logging
 import re
 import resource
 
@@ -42,6 +50,8 @@ from service.request_ids import REQUEST_ID_HEADER, new_request_id
 from service.settings import Settings
 
 __all__ = ["BACKLOG", "FD_RESERVE", "ProblemHttpToolsProtocol", "connection_cap"]
+
+log = logging.getLogger("cortexloc.service")
 
 #: Connections the kernel may queue for accepting (`uvicorn.run(backlog=...)`): asyncio accepts up to that
 #: many in one turn of the loop, each holding a descriptor before the cap sees it (uvicorn's default, 2,048,
@@ -90,6 +100,7 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
     `invalid-parameter` problem+json, and a head that does not arrive in time a 408 (module docstring)."""
 
     _head_timer: asyncio.TimerHandle | None = None
+    _stall_timer: asyncio.TimerHandle | None = None  # set while the transport's writes are paused
     _in_head, _head_bytes = True, 0  # the current message's head is unfinished; bytes read since it began
     # The current message's first bytes (`_METHOD_PEEK`), or None where it began inside a read that ended
     # another (pipelined): only a read that starts with a message gives its method.
@@ -116,9 +127,33 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
         self._await_head()
 
     def connection_lost(self, exc: Exception | None) -> None:
-        if self._head_timer is not None:
-            self._head_timer.cancel()
+        for timer in (self._head_timer, self._stall_timer):
+            if timer is not None:
+                timer.cancel()
         super().connection_lost(exc)
+
+    # ---------------------------------------------------------------- the reply's reader
+
+    def pause_writing(self) -> None:
+        super().pause_writing()
+        if self._stall_timer is None:
+            self._stall_timer = self.loop.call_later(self._timeout_s(), self._stalled)
+
+    def resume_writing(self) -> None:
+        super().resume_writing()
+        if self._stall_timer is not None:
+            self._stall_timer.cancel()
+            self._stall_timer = None
+
+    def _stalled(self) -> None:
+        """The writes stayed paused `body_timeout_s`: the client takes none of its reply (module
+        docstring). Aborted, not closed: a close would wait for the unsent bytes for ever."""
+        self._stall_timer = None
+        if self.transport.is_closing() and self.transport.get_write_buffer_size() == 0:
+            return
+        log.warning("%s: the client read none of its reply for %g s; the connection is aborted",
+                    self.client or "a client", self._timeout_s())
+        self.transport.abort()
 
     # ---------------------------------------------------------------- the head's size
 
@@ -152,11 +187,15 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
 
     # ---------------------------------------------------------------- the head's time
 
+    def _timeout_s(self) -> float:
+        """`CORTEXLOC_BODY_TIMEOUT_S`: the head's, the body's (`service.limits`) and the reply's."""
+        return float(getattr(self._settings(), "body_timeout_s",
+                             Settings.model_fields["body_timeout_s"].default))
+
     def _await_head(self) -> None:
         if self._head_timer is not None:
             self._head_timer.cancel()
-        timeout = float(getattr(self._settings(), "body_timeout_s",
-                                Settings.model_fields["body_timeout_s"].default))
+        timeout = self._timeout_s()
         self._head_timer = self.loop.call_later(timeout, self._head_timed_out, self.cycle, timeout)
 
     def _head_timed_out(self, cycle: object, timeout: float) -> None:

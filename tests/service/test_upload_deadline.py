@@ -242,3 +242,64 @@ def test_a_head_sent_a_byte_at_a_time_is_answered_408_and_closed(live, keep_aliv
     assert status == 408 and problem["type"].endswith("request-timeout") and "connection: close" in head
     assert DEADLINE_S * 0.9 <= elapsed <= DEADLINE_S + 5
     sock.close()
+
+
+def test_a_client_that_reads_none_of_its_replies_is_cut_off_at_the_deadline(live):
+    """An outside probe: a client that never read its replies (here 40 pipelined GETs of /openapi.json, 5
+    MB, more than the kernel's buffers take) held its connection for as long as it kept it open; a
+    graceful close never ends while unsent bytes wait. Its writes stalled for the deadline, it is
+    aborted."""
+    port = int(live.rsplit(":", 1)[1])
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # before connecting: a small window
+    sock.connect(("127.0.0.1", port))
+    try:
+        sock.sendall(b"GET /openapi.json HTTP/1.1\r\nHost: t\r\n\r\n" * 40)
+        time.sleep(DEADLINE_S * 2.5)  # read nothing meanwhile
+        got, closed = answer(sock, DEADLINE_S * 3)  # reading now: before, every reply came (then a 408)
+        assert closed and got.count(b"HTTP/1.1 200 ") < 40
+    finally:
+        sock.close()
+    assert httpx.get(f"{live}/healthz", timeout=10).status_code == 200
+
+
+def test_an_answer_its_client_does_not_read_holds_no_upload_budget():
+    """An outside probe: an upload's reservation was released only once its reply was sent, so clients
+    that did not read their replies (a 401 or a 408 stuck behind a large reply they never took) held the
+    whole budget, and every robot got 503. It is released as the answer starts: the app is done with the
+    body then."""
+    from service.limits import UploadLimitMiddleware
+
+    sent_start, seen = anyio.Event(), []
+
+    async def app(scope, receive, send):
+        while (await receive()).get("more_body"):
+            pass
+        seen.append(mw.inflight)  # reserved while the app holds the body
+        await send({"type": "http.response.start", "status": 401, "headers": []})
+        await send({"type": "http.response.body", "body": b"x" * 10})
+
+    mw = UploadLimitMiddleware(app)
+    scope = {"type": "http", "method": "POST", "path": "/v1/maps/default/observations", "query_string": b"",
+             "headers": [(b"content-type", b"image/png"), (b"content-length", b"1000")]}
+
+    async def receive():
+        return {"type": "http.request", "body": b"\0" * 1000, "more_body": False}
+
+    async def send(message):
+        if message["type"] == "http.response.start":
+            sent_start.set()
+            return
+        await anyio.sleep_forever()  # the client reads nothing: the body's send never returns
+
+    async def main() -> None:
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(mw, scope, receive, send)
+            await sent_start.wait()
+            await anyio.sleep(0.1)  # the body's send waits for the client
+            seen.append(mw.inflight)
+            tg.cancel_scope.cancel()
+        seen.append(mw.inflight)
+
+    anyio.run(main)
+    assert seen == [1000, 0, 0]
