@@ -22,7 +22,7 @@ from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBea
 from service.errors import Problem
 from service.maps.registry import MapRegistry
 from service.metrics import Metrics
-from service.settings import Settings
+from service.settings import KEY_WHITESPACE, Settings
 
 __all__ = [
     "ApiKeyDep",
@@ -85,9 +85,7 @@ def require_api_key(
     if expected is None:
         return
     given = api_key if api_key else (bearer.credentials if bearer is not None else None)
-    # A field value holds no whitespace at its ends (RFC 9110 §5.5); the HTTP parser drops the leading
-    # only, so a key sent with a trailing space or tab is the key.
-    given = None if given is None else given.strip(" \t")
+    given = None if given is None else given.strip(KEY_WHITESPACE)  # as the setting is read
     if given is not None and secrets.compare_digest(given.encode(), expected.encode()):
         return
     detail = ("this operation needs the API key: send it in X-API-Key or as Authorization: Bearer"

@@ -34,7 +34,7 @@ from pydantic_settings.sources.utils import parse_env_vars
 from models.frontend import backbones, limits
 from models.localisation.index import MAX_ROWS
 
-__all__ = ["ENV_PREFIX", "OTHER_KNOWN_VARIABLES", "ConfigError", "Settings", "env_name"]
+__all__ = ["ENV_PREFIX", "KEY_WHITESPACE", "OTHER_KNOWN_VARIABLES", "ConfigError", "Settings", "env_name"]
 
 log = logging.getLogger("cortexloc.settings")
 
@@ -55,6 +55,9 @@ _YEAR_S = 365 * 86_400.0
 
 #: Fields whose value must never appear in a message or a repr.
 _SECRET_FIELDS = frozenset({"api_key"})
+#: What an API key is compared without at its ends, set and sent (RFC 9110 §5.5: a header field's value
+#: has no whitespace there; the HTTP parser drops only the leading).
+KEY_WHITESPACE = " \t"
 
 
 class ConfigError(ValueError):
@@ -200,6 +203,13 @@ class Settings(BaseSettings):
                                 description="when set, every write needs it (X-API-Key or Bearer)")
     api_key_reads: bool = Field(False, description="every /v1 read and /metrics need the key too (/healthz "
                                                    "and /readyz stay open); requires CORTEXLOC_API_KEY")
+
+    @field_validator("api_key", mode="before")
+    @classmethod
+    def _key_as_sent(cls, v: Any) -> Any:
+        # The key as a client can send it: a header field's value has no whitespace at its ends (RFC 9110
+        # §5.5), so a key set with a trailing space (an env file's) would match no request
+        return v.strip(KEY_WHITESPACE) if isinstance(v, str) else v
 
     @field_validator("data_dir")
     @classmethod

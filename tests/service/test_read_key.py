@@ -142,3 +142,8 @@ def test_a_key_sent_with_whitespace_at_its_ends_is_the_key():
     for wrong in ("k3 y", "k3y x", "", " "):
         with pytest.raises(Problem):
             require_api_key(s, wrong or None, None)
+    # a key set with whitespace at its ends (an env file's trailing space) is read as a client sends it
+    require_api_key(Settings(api_key="k3y \t"), "k3y", None)
+    assert Settings(api_key=" k3y").api_key == "k3y"
+    with pytest.raises(ValueError):
+        Settings(api_key=" \t")  # no key at all
