@@ -280,7 +280,8 @@ DOMAIN_PROBLEMS: dict[type[Exception], DomainProblem] = {
     maps_errors.MapReadOnly: DomainProblem(503, "map-read-only", ("map_id", "state", "state_reason")),
     maps_errors.MapReplaying: DomainProblem(503, "map-unavailable", (
         "state", "state_reason", "steps", "replayed", "retry_after")),
-    maps_errors.ShardUnavailable: DomainProblem(503, "map-unavailable", ("map_id", "shard", "retry_after")),
+    maps_errors.ShardUnavailable: DomainProblem(503, "map-unavailable", (
+        "map_id", "shard", "retry_after", "outcome_unknown")),
     maps_errors.Overloaded: DomainProblem(503, "overloaded", ("retry_after",), {"Retry-After": "1"}),
     maps_errors.EncoderUnavailable: DomainProblem(503, "not-ready", ("retry_after",)),
     # (raised at start only, where it keeps the service not ready: /readyz and every map route say why)

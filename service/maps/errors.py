@@ -233,11 +233,18 @@ class ClientGone(Exception):  # noqa: N818
 class ShardUnavailable(MapError):  # noqa: N818
     """The scale-out's shard that owns the map is restarting, or the map is moving between shards
     (service.scaleout; docs/scaling.md): retry after `retry_after` seconds, with the same
-    Idempotency-Key (a post the shard committed before it died is replayed, not learned twice)."""
+    Idempotency-Key (a post the shard committed before it died is replayed, not learned twice).
 
-    def __init__(self, map_id: str, shard: str, why: str, retry_after: int = 2) -> None:
-        super().__init__(f"map {map_id!r} is unavailable: {why}")
+    `outcome_unknown`: the request was handed to the shard, which did not answer (its replica died with
+    it, or it passed the ingress's `call_timeout_s`): it may have been done. Unlike the service's other
+    503s (refused before anything was done), a client sends it again only where a repeat is safe."""
+
+    def __init__(self, map_id: str, shard: str, why: str, retry_after: int = 2,
+                 outcome_unknown: bool = False) -> None:
+        super().__init__(f"map {map_id!r} is unavailable: {why}"
+                         + ("; the request reached it, and may have been done" if outcome_unknown else ""))
         self.map_id, self.shard, self.retry_after = map_id, shard, retry_after
+        self.outcome_unknown = outcome_unknown
 
 
 class EncoderUnavailable(MapError):  # noqa: N818

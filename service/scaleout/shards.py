@@ -112,7 +112,9 @@ class ShardSet:
         except self._errors as e:
             log.warning("shard %s did not answer %s: %s", shard, method, type(e).__name__)
             self._mark_down(shard)
-            raise ShardUnavailable(map_id or "*", shard, f"its shard {shard} is restarting") from e
+            # handed to the shard: it may have done it before it died or while the call timed out
+            raise ShardUnavailable(map_id or "*", shard, f"its shard {shard} is restarting",
+                                   outcome_unknown=True) from e
 
     def _mark_down(self, shard: str) -> None:
         """Answer the shard's maps 503 at once until a probe finds its (restarted) replica serving: a call
@@ -196,7 +198,8 @@ class ShardSet:
     async def delete(self, map_id: str, path: str, query: str, headers: list[tuple[str, str]]
                      ) -> ForwardedReply:
         reply = await self.forward(map_id, "DELETE", path, query, headers, b"")
-        if reply[0] == 204:
+        # 404 from its owner: gone there already (a first try that deleted it and did not answer)
+        if reply[0] == 204 or (reply[0] == 404 and _slug(reply) == "map-not-found"):
             self.table.delete(map_id)
         return reply
 
@@ -269,3 +272,13 @@ def _json(reply: ForwardedReply) -> dict[str, Any]:
     import json
 
     return json.loads(reply[2])
+
+
+def _slug(reply: ForwardedReply) -> str | None:
+    """The problem slug of a shard's reply (`map-not-found`), None for a body that is no problem."""
+    try:
+        body = _json(reply)
+    except ValueError:
+        return None
+    kind = body.get("type") if isinstance(body, dict) else None
+    return kind.rsplit(":", 1)[-1] if isinstance(kind, str) else None

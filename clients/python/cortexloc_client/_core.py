@@ -52,6 +52,9 @@ class RetryPolicy:
     - any other transport failure (reset, timeout while reading the reply): the service may have done
       the work, so only idempotent requests are retried (GET, DELETE, PATCH, a stream reset, and an
       observation or a map creation that carries an `Idempotency-Key`).
+    - the scale-out's 503 `map-unavailable` with `outcome_unknown: true` (the ingress handed the request
+      to its shard, which died with it or did not answer in time): it may have been done, so it is
+      retried as a proxy's page below (idempotent requests only).
     - a 500, 502, 503 or 504 that is not problem+json: a proxy's page, not the service's answer (Ray
       Serve's proxy sends a plain-text 500 for a request whose ingress replica died with it; nginx and
       load balancers send HTML 502 Bad Gateway, 503 and 504 Gateway Timeout when the upstream failed or
@@ -95,10 +98,10 @@ class RetryPolicy:
                 raise error
             return min(self.backoff_s * 2**attempt, self.max_wait_s)
         assert response is not None
-        proxy = may_have_done(response=response)
-        refused = response.status_code == 503 and not proxy  # the service's own 503: nothing was done
+        unsure = may_have_done(response=response)  # a proxy's page, or the scale-out's "outcome unknown"
+        refused = response.status_code == 503 and not unsure  # the service's own 503: nothing was done
         refused = refused or _rolled_back(response)  # nothing was kept
-        if last or not (refused or (proxy and call.idempotent)) or (refused and _failed_map(response)):
+        if last or not (refused or (unsure and call.idempotent)) or (refused and _failed_map(response)):
             raise error_from_response(response)
         asked = retry_after_seconds(response.headers.get("Retry-After"))
         return min(self.backoff_s * 2**attempt if asked is None else asked, self.max_wait_s)
@@ -112,35 +115,44 @@ def may_have_done(*, response: httpx.Response | None = None,
     if error is not None:
         return not isinstance(error, (httpx.ConnectError, httpx.ConnectTimeout))
     assert response is not None
-    return response.status_code in PROXY_STATUSES and not is_problem(response)
+    if response.status_code not in PROXY_STATUSES:
+        return False
+    return not is_problem(response) or _member(response, "outcome_unknown") is True
+
+
+#: The 404s that say a delete's target is gone: the map, or (a snapshot's delete) its snapshot or map.
+GONE = (":map-not-found", ":snapshot-not-found")
 
 
 def done_already(call: Call[Any], response: httpx.Response, unsure: bool) -> bool:
-    """A delete answered the service's 404 after an earlier try that may have deleted (`unsure`,
-    `may_have_done`): what it asked is so, and the try that did it lost its reply (a reset, a proxy's
-    page). A first try's 404 is the caller's error (`NotFoundError`): nothing of that name was there."""
-    return call.deletes and unsure and response.status_code == 404 and is_problem(response)
+    """A delete answered the service's 404 (its map or snapshot not found) after an earlier try that may
+    have deleted (`unsure`, `may_have_done`): what it asked is so, and the try that did it lost its
+    reply (a reset, a proxy's page, the scale-out's shard gone with it). A first try's 404 is the
+    caller's error (`NotFoundError`): nothing of that name was there."""
+    return (call.deletes and unsure and response.status_code == 404 and is_problem(response)
+            and str(_member(response, "type") or "").endswith(GONE))
+
+
+def _member(response: httpx.Response, name: str) -> Any:
+    """A member of the reply's JSON object (its body read), None where there is none."""
+    try:
+        body = response.json()
+    except ValueError:
+        return None
+    return body.get(name) if isinstance(body, dict) else None
 
 
 def _rolled_back(response: httpx.Response) -> bool:
     """The service's 409 `map-restored`: a restore rolled the post back before it was durable."""
     if response.status_code != 409 or not is_problem(response):
         return False
-    try:
-        body = response.json()
-    except ValueError:
-        return False
-    return isinstance(body, dict) and str(body.get("type", "")).endswith(":map-restored")
+    return str(_member(response, "type") or "").endswith(":map-restored")
 
 
 def _failed_map(response: httpx.Response) -> bool:
     """A 503 about a map left `failed` (a corrupt or unopenable file, one that did not fit the memory
     budget at start): no retry helps until an operator acts."""
-    try:
-        body = response.json()
-    except ValueError:
-        return False
-    return isinstance(body, dict) and body.get("state") == "failed"
+    return _member(response, "state") == "failed"
 
 
 @dataclass(frozen=True)

@@ -447,6 +447,27 @@ def test_a_delete_whose_reply_was_lost_is_done_when_its_retry_finds_nothing(wait
     assert asyncio.run(adelete()) is None and len(script.requests) == 2
 
 
+def test_only_its_targets_404_after_an_unsure_try_is_a_deletes_success(waits) -> None:
+    # a review: any problem+json 404 counted; one that is not about the map or the snapshot (a route's
+    # `not-found`) says nothing of whether the delete was done
+    other = problem_404("not-found")
+    script = Script(httpx.ReadError("reset"), other)
+    with pytest.raises(CortexlocError) as e:
+        make(script).delete_map("lab")
+    assert e.value.status == 404 and len(script.requests) == 2
+    # the scale-out's 503 that says the shard took the request: unsure, so the retry's 404 is done
+    unknown = httpx.Response(503, json={**OVERLOADED, "type": "urn:cortexloc:problem:map-unavailable",
+                                        "outcome_unknown": True},
+                             headers={"Content-Type": "application/problem+json", "Retry-After": "2"})
+    script = Script(unknown, problem_404("map-not-found"))
+    assert make(script).delete_map("lab") is None and waits[-1] == 2.0
+    # and a request that is not safe to repeat is not sent again after it
+    script = Script(unknown, httpx.Response(201, json=SNAPSHOT))
+    with pytest.raises(ServiceUnavailableError):
+        make(script).create_snapshot("lab")
+    assert len(script.requests) == 1
+
+
 @pytest.mark.parametrize("first", ["none", "refused", "own-503", "proxy-404"])
 def test_a_delete_of_nothing_there_is_still_not_found(waits, first: str) -> None:
     # A first try's 404, or one after tries the service surely did not do (a connection never opened, its

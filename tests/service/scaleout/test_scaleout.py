@@ -494,3 +494,58 @@ def test_a_stalled_body_meets_the_deadline_at_the_ingress(cluster):
         start = next(m for m in sent if m["type"] == "http.response.start")
         assert start["status"] == 408 and time.monotonic() - t0 < 10
         assert c.get("/v1/maps/m0").json()["observations"] == 0
+
+
+def test_a_request_its_shard_took_and_did_not_answer_is_of_unknown_outcome(tmp_path):
+    """A review: the ingress answered a request its shard took and did not answer (its replica died with
+    it, or it passed `call_timeout_s`) with the same 503 as one never sent, which clients read as "nothing
+    was done" and send again whatever it is. The shard had deleted the map: the typed client's retry got
+    404 and raised NotFoundError, and the ingress kept routing the deleted map. Now the 503 says
+    `outcome_unknown`, the client retries only what is safe (a delete, finding it gone, is done), and a
+    delete the owner answers 404 `map-not-found` drops the route."""
+    import httpx
+
+    from cortexloc_client import AsyncClient, RetryPolicy
+    from cortexloc_client.errors import ServiceUnavailableError
+
+    maps, seen = {"lab"}, []
+
+    async def shard_call(shard, method, *args):
+        if method == "map_ids":
+            return sorted(maps)
+        verb, path = args[0], args[1]
+        seen.append((verb, path))
+        if verb == "DELETE":
+            if "lab" in maps:
+                maps.discard("lab")  # the shard deletes the map, and its answer is late
+                await asyncio.sleep(1.0)
+                return 204, [], b""
+            body = json.dumps({"type": "urn:cortexloc:problem:map-not-found", "status": 404,
+                               "detail": "no map 'lab'"}).encode()
+            return 404, [("content-type", "application/problem+json")], body
+        await asyncio.sleep(1.0)  # a snapshot taken, its answer late
+        return 201, [], b"{}"
+
+    async def main() -> None:
+        app = create_ingress_app(Settings(data_dir=tmp_path / "var"), lambda: None)
+        shards = ShardSet(["shard-0"], shard_call, tmp_path / "shards.sqlite", call_timeout_s=0.2,
+                          down_s=0.05)
+        await shards.reconcile()
+        app.state.shards, app.state.shards_error = shards, None
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://ingress.test") as raw:
+            r = await raw.post("/v1/maps/lab/snapshots")
+            assert r.status_code == 503 and r.json()["outcome_unknown"] is True
+            await asyncio.sleep(0.3)  # the shard answers its probe again
+            assert (await raw.get("/v1/maps/nosuch")).status_code == 404
+        async with AsyncClient("http://ingress.test", transport=transport,
+                               retry=RetryPolicy(attempts=4, max_wait_s=0.3)) as c:
+            with pytest.raises(ServiceUnavailableError):  # not sent again: a second snapshot
+                await c.create_snapshot("lab")
+            assert [v for v, _ in seen].count("POST") == 2  # the raw one, and this one once
+            await asyncio.sleep(0.3)
+            assert await c.delete_map("lab") is None
+        assert shards.table.get("lab") is None and maps == set()
+        assert seen.count(("DELETE", "/v1/maps/lab")) == 2
+
+    asyncio.run(main())
