@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 
 from prometheus_client import (
     CollectorRegistry,
@@ -75,6 +75,7 @@ class Metrics:
             "body-read deadline), budget (503, the in-flight bytes)", ["reason"], registry=self.registry)
         self.observations = Counter(PREFIX + "observations", "Observations answered, by map and mode",
                                     ["map", "learned"], registry=self.registry)
+        self._counted: set[str] = set()  # maps with an `observations` series (`count_observation`)
         self.memory_budget = Gauge(PREFIX + "memory_budget_bytes", "CORTEXLOC_MEMORY_BUDGET_BYTES or its "
                                    "default", registry=self.registry)
         self.memory_used = Gauge(PREFIX + "memory_used_bytes", "Bytes of the memory budget the maps and "
@@ -101,10 +102,22 @@ class Metrics:
                                 ("snapshot_failures", "Automatic snapshots that failed since start (the "
                                                       "rows stay durable; /readyz says why)"))}
 
+    def count_observation(self, map_id: str, learned: bool) -> None:
+        """One observation answered on `map_id` (`cortexloc_observations_total{map,learned}`)."""
+        self.observations.labels(map=map_id, learned=str(learned).lower()).inc()
+        self._counted.add(map_id)
+
     def update_maps(self, maps: dict) -> None:
-        """Refresh the per-map gauges from the map runtimes (at scrape time: always current)."""
+        """Refresh the per-map gauges from the map runtimes (at scrape time: always current), and drop
+        the observation counts of maps deleted since: a series per map ever made grew without bound (an
+        outside probe: 50 maps made and deleted, 100 series more), past `CORTEXLOC_MAX_MAPS`."""
         for g in self.map_gauges.values():
             g.clear()
+        for gone in self._counted - maps.keys():
+            for learned in ("true", "false"):
+                with suppress(KeyError):  # a mode the map never saw
+                    self.observations.remove(gone, learned)
+        self._counted &= maps.keys()
         for map_id, rt in maps.items():
             catalog = getattr(rt, "catalog", None)
             if catalog is not None:  # failed maps too: their snapshots take the same disk

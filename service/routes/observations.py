@@ -376,7 +376,7 @@ def _count(metrics: Any, map_id: str, learn: bool, timings: dict[str, float]) ->
     for stage, ms in timings.items():
         if stage != "total":
             metrics.observe_stage(stage, ms / 1e3)
-    metrics.observations.labels(map=map_id, learned=str(learn).lower()).inc()
+    metrics.count_observation(map_id, learn)
 
 
 @router.get("/{map_id}/observations", responses=problem_responses(404, 503))

@@ -44,6 +44,24 @@ def test_fresh_install_serves_the_default_map(client):
     assert 'cortexloc_map_places{map="default"} 1.0' in text  # read off the runtime's `place_map`
 
 
+def test_a_deleted_maps_series_leave_metrics(client):
+    """An outside probe: `cortexloc_observations_total` kept a series for every map ever made (50 made
+    and deleted: 100 series more), past `CORTEXLOC_MAX_MAPS`; the per-map gauges did not."""
+    for round_ in range(3):
+        assert client.post("/v1/maps", json={"map_id": f"gone{round_}"}).status_code == 201
+        assert post(client, frame(1), map_id=f"gone{round_}").status_code == 200
+        assert post(client, frame(2), map_id=f"gone{round_}", learn="false").status_code == 200
+        assert f'map="gone{round_}"' in client.get("/metrics").text
+        assert client.delete(f"/v1/maps/gone{round_}").status_code == 204
+    assert post(client, frame(1)).status_code == 200
+    text = client.get("/metrics").text
+    assert "gone" not in text and 'cortexloc_observations_total{learned="true",map="default"} 1.0' in text
+    # a map made again under a deleted id counts from its own start
+    assert client.post("/v1/maps", json={"map_id": "gone0"}).status_code == 201
+    assert post(client, frame(1), map_id="gone0").status_code == 200
+    assert 'cortexloc_observations_total{learned="true",map="gone0"} 1.0' in client.get("/metrics").text
+
+
 def test_a_revisited_place_ranks_first(client):
     route = [frame(p) for p in range(8)]
     for img in route:
