@@ -21,10 +21,16 @@ route went more than 10 labels away and came back; tolerance 1 label):
   corridor B (other colours and spacing) at 0.14 m, then lap 2 along A at 0.14 m through lens 2 (f 80 px,
   radial distortion k1 0.25). Labels: metres (B's offset by 10,000).
 - `slow`: `outdoor` with each frame posted 3 times, each copy with σ 4 pixel noise (`stress.variant`).
+- `robots`: two robots on one map, each its own stream (`robot-a`, `robot-b`), on two held-out stretches:
+  A's summer lap [lo, lo + lap), then B's [lo + lap + gap, + lap) (ground A never drove), then A's
+  winter lap and B's (lap 2, each robot back on its own ground). Found from outside (docs/results.md
+  §10.25): one robot's frame consolidated into the other's row of another place became a link that a
+  later lap followed to a false revisit.
 
-Per route and seed, two maps: `slam` (every frame `learn=true`, one stream: loop closure while mapping)
-and `localise` (lap 1 and the stretch learned by one stream, lap 2 posted `learn=false` by another: the
-localise mode on the same lap-2 frames). Measured:
+Per route and seed, two maps: `slam` (every frame `learn=true`, one stream: loop closure while mapping;
+`robots`: a stream per robot) and `localise` (lap 1 and the stretch learned by one stream, lap 2 posted
+`learn=false` by another, `query-a`, `query-b` for the robots: the localise mode on the same lap-2
+frames). Measured:
 - false revisits while mapping: replies with `place.revisit` on lap 1 or the stretch (`slam.score`,
   lap 0), every one false (the truth has no revisit there);
 - merged places: places whose rows' labels differ by more than the tolerance (`stress.merges`), the
@@ -82,7 +88,7 @@ from storage.layout import Layout
 from storage.mapstore import MapStore
 
 TOLERANCE = stress.TOLERANCE
-ROUTES = ("outdoor", "corridor", "slow")
+ROUTES = ("outdoor", "corridor", "slow", "robots")
 DEFAULT_SEED = "default"  # a map created with no seed option
 
 
@@ -110,7 +116,8 @@ METRES_PER_FILE = 280.0
 class Route:
     """`pngs` (T,) encoded frames in driven order, `labels` (T,) place labels, `laps` (T,) 0 for lap 1 and
     the stretch after it (mapping), 1 for lap 2; `xy` (T, 2) each frame's position in metres and
-    `stamps` (T,) its time in seconds, posted as metadata with `--poses`."""
+    `stamps` (T,) its time in seconds, posted as metadata with `--poses`; `robots` (T,) which robot posts
+    each frame (its stream's suffix), None: one robot."""
 
     name: str
     pngs: list[bytes]
@@ -118,6 +125,12 @@ class Route:
     laps: np.ndarray
     xy: np.ndarray
     stamps: np.ndarray
+    robots: tuple[str, ...] | None = None
+
+    def stream(self, i: int, learn: bool) -> str:
+        """Frame i's stream: `robot` (`robot-a`) while learning, `query` (`query-a`) while localising."""
+        name = "robot" if learn else "query"
+        return name if self.robots is None else f"{name}-{self.robots[i]}"
 
     def metadata(self, i: int) -> str:
         """Frame i's `metadata` query parameter: its stamp and pose (compact JSON)."""
@@ -141,6 +154,27 @@ def outdoor(data: Path, sizes: Sizes) -> Route:
     lab = np.asarray(labels, np.int64)
     xy = np.stack([lab * METRES_PER_FILE, np.zeros(lab.size)], axis=1)  # a straight line, assumed
     return Route("outdoor", pngs, lab, np.asarray(laps, np.int64), xy, 10.0 * np.arange(lab.size))
+
+
+def two_robots(data: Path, sizes: Sizes) -> Route:
+    """Two robots on two stretches of held-out ground (module docstring): A's summer lap, B's, then A's
+    winter lap and B's. Labels: file index; poses: the file index x METRES_PER_FILE on one line, where
+    the stretches lie apart."""
+    names = sequences.paired_names(data / "summer", data / "winter")
+    b_lo = sizes.lo + sizes.lap + sizes.gap
+    legs = [("summer", sizes.lo, "a", 0), ("summer", b_lo, "b", 0), ("winter", sizes.lo, "a", 1),
+            ("winter", b_lo, "b", 1)]
+    pngs, labels, laps, robots = [], [], [], []
+    for season, lo, robot, lap in legs:
+        for i in range(lo, lo + sizes.lap):
+            pngs.append((data / season / names[i]).read_bytes())
+            labels.append(i)
+            laps.append(lap)
+            robots.append(robot)
+    lab = np.asarray(labels, np.int64)
+    xy = np.stack([lab * METRES_PER_FILE, np.zeros(lab.size)], axis=1)
+    return Route("robots", pngs, lab, np.asarray(laps, np.int64), xy, 10.0 * np.arange(lab.size),
+                 tuple(robots))
 
 
 def slower(r: Route, copies: int = 3, sigma: float = 4.0) -> Route:
@@ -189,7 +223,7 @@ def drifted(r: Route, scale_sd: float, heading_deg: float, seed: int = 5) -> Rou
     c, s = np.cos(heading), np.sin(heading)
     turned = np.stack([c * steps[:, 0] - s * steps[:, 1], s * steps[:, 0] + c * steps[:, 1]], axis=1)
     xy = np.vstack([r.xy[:1], r.xy[:1] + np.cumsum(turned * scale[:, None], axis=0)])
-    return Route(r.name, r.pngs, r.labels, r.laps, xy, r.stamps)
+    return Route(r.name, r.pngs, r.labels, r.laps, xy, r.stamps, r.robots)
 
 
 def build(name: str, data: Path, sizes: Sizes) -> Route:
@@ -197,6 +231,8 @@ def build(name: str, data: Path, sizes: Sizes) -> Route:
         return outdoor(data, sizes)
     if name == "slow":
         return slower(outdoor(data, sizes))
+    if name == "robots":
+        return two_robots(data, sizes)
     if name == "corridor":
         return indoor(sizes)
     raise ValueError(f"unknown route {name!r}; known: {', '.join(ROUTES)}")
@@ -247,7 +283,7 @@ async def run_map(http: httpx.AsyncClient, base: str, map_id: str, seed: str, ro
         replies = []
         for i, body in enumerate(route.pngs):
             learn = mode == "slam" or route.laps[i] == 0
-            params = {"stream": "robot" if learn else "query", "learn": str(learn).lower(), "top_k": "0"}
+            params = {"stream": route.stream(i, learn), "learn": str(learn).lower(), "top_k": "0"}
             if poses:
                 params["metadata"] = route.metadata(i)
             replies.append(await _post(http, url, body, params))

@@ -241,6 +241,28 @@ def test_the_loops_benchmark_poses_follow_the_route() -> None:
     assert np.allclose(np.diff(slow.stamps), 10.0 / 3) and list(slow.labels) == [7, 7, 7, 8, 8, 8, 9, 9, 9]
 
 
+def test_the_loops_benchmarks_two_robots_post_each_as_its_own_stream() -> None:
+    """`robots`: A's summer lap, then B's on ground A never drove, then both in winter, each robot its own
+    stream while mapping and while localising (docs/results.md §10.25); one robot's routes keep theirs."""
+    from benchmarks import bench_loops_http as b
+    from models.evaluation import datasets
+
+    one = b.indoor(b.Sizes(corridor=2.0, corridor_b=1.0))
+    assert {one.stream(i, True) for i in range(len(one.pngs))} == {"robot"}
+    assert one.stream(0, False) == "query"
+    data = datasets.nordland_dir()
+    if not (data / "winter").is_dir():
+        pytest.skip(f"no Nordland data at {data}")
+    tiny = b.Sizes(lo=1000, lap=6, gap=4)
+    r = b.build("robots", data, tiny)
+    assert list(r.labels) == [*range(1000, 1006), *range(1010, 1016)] * 2
+    assert list(r.laps) == [0] * 12 + [1] * 12 and np.all(np.diff(r.stamps) > 0)
+    localising = [r.stream(i, r.laps[i] == 0) for i in (0, 6, 12, 18)]
+    assert localising == ["robot-a", "robot-b", "query-a", "query-b"]
+    assert [r.stream(i, True) for i in (12, 18)] == ["robot-a", "robot-b"]  # mapping: a stream per robot
+    assert b.drifted(r, 0.0, 0.0).robots == r.robots
+
+
 def test_the_loops_benchmark_drifted_odometry_drifts_as_odometry_does() -> None:
     """`--drift S,H`: the posted poses keep the route's path length to within the scale noise and wander
     from the truth more the farther the robot drove; none at S = H = 0."""
