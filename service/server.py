@@ -24,12 +24,13 @@ service needs below the app:
   byte), so a client sending its headers a byte at a time would otherwise hold the connection for ever
   (the body is bounded by `service.limits`, docs/design/service.md §3).
 - It bounds how long a reply may wait for its client to read it: a connection whose writes stay paused
-  (more than the transport's high-water mark unsent, the kernel's buffers full) for
-  `CORTEXLOC_BODY_TIMEOUT_S` is aborted. A stall deadline, not a total one: a client that reads, however
-  slowly, resumes the writes and the clock. An outside probe: clients that never read a large reply held
-  their connections (and, pipelined behind it, an upload's budget) for as long as they kept them open;
-  only streamed replies had a deadline (`service.limits.ReadStreamingResponse`, which keeps it for any
-  server), and a graceful close never ends while unsent bytes wait, so the connection is aborted.
+  (more than the transport's high-water mark unsent, the kernel's buffers full) while its client takes
+  less than a piece (`REPLY_CHUNK_BYTES`, 64 KiB) in `CORTEXLOC_BODY_TIMEOUT_S` is aborted. A stall
+  deadline, not a total one: a client that reads a piece a timeout, however large the reply, is served.
+  An outside probe: clients that never read a large reply held their connections (and, pipelined
+  behind it, an upload's budget) for as long as they kept them open; only streamed replies had a
+  deadline (`service.limits.ReadStreamingResponse`, which keeps it for any server), and a graceful
+  close never ends while unsent bytes wait, so the connection is aborted.
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ import httptools
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from service.errors import PROBLEM_MEDIA_TYPE, problem_body
-from service.limits import HEAD_MAX_BYTES
+from service.limits import HEAD_MAX_BYTES, REPLY_CHUNK_BYTES
 from service.request_ids import REQUEST_ID_HEADER, new_request_id
 from service.settings import Settings
 
@@ -101,6 +102,7 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
 
     _head_timer: asyncio.TimerHandle | None = None
     _stall_timer: asyncio.TimerHandle | None = None  # set while the transport's writes are paused
+    _unsent = 0  # the transport's unsent bytes when the stall clock last started
     _in_head, _head_bytes = True, 0  # the current message's head is unfinished; bytes read since it began
     # The current message's first bytes (`_METHOD_PEEK`), or None where it began inside a read that ended
     # another (pipelined): only a read that starts with a message gives its method.
@@ -137,7 +139,11 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
     def pause_writing(self) -> None:
         super().pause_writing()
         if self._stall_timer is None:
-            self._stall_timer = self.loop.call_later(self._timeout_s(), self._stalled)
+            self._await_reader()
+
+    def _await_reader(self) -> None:
+        self._unsent = self.transport.get_write_buffer_size()
+        self._stall_timer = self.loop.call_later(self._timeout_s(), self._stalled)
 
     def resume_writing(self) -> None:
         super().resume_writing()
@@ -149,7 +155,14 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
         """The writes stayed paused `body_timeout_s`: the client takes none of its reply (module
         docstring). Aborted, not closed: a close would wait for the unsent bytes for ever."""
         self._stall_timer = None
-        if self.transport.is_closing() and self.transport.get_write_buffer_size() == 0:
+        unsent = self.transport.get_write_buffer_size()
+        if self.transport.is_closing() and unsent == 0:
+            return
+        # Writes resume only near the low-water mark, so a reply written at once stays paused while a slow
+        # client reads it (a review: a steady 64 KiB/s reader of a 1 MiB reply was cut at 2 s): a piece
+        # (`REPLY_CHUNK_BYTES`, or what was left) taken since is reading, and the clock starts again.
+        if self._unsent - unsent >= min(REPLY_CHUNK_BYTES, self._unsent):
+            self._await_reader()
             return
         log.warning("%s: the client read none of its reply for %g s; the connection is aborted",
                     self.client or "a client", self._timeout_s())

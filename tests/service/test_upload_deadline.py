@@ -303,3 +303,47 @@ def test_an_answer_its_client_does_not_read_holds_no_upload_budget():
 
     anyio.run(main)
     assert seen == [1000, 0, 0]
+
+
+class _SlowLink(ProblemHttpToolsProtocol):
+    """The protocol on a slow link: the kernel keeps tens of KiB of a reply, not loopback's megabytes,
+    so a reply written at once waits in the transport while its client reads."""
+
+    def connection_made(self, transport):  # type: ignore[override]
+        transport.get_extra_info("socket").setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 32 * 1024)
+        super().connection_made(transport)
+
+
+def test_a_client_reading_its_reply_slowly_but_steadily_is_served_whole(tmp_path):
+    """A review: writes resume only near the transport's low-water mark, so a reply written at once stayed
+    paused while a steady slow reader took it, and the stall deadline cut it (160 KiB/s of a 1 MiB reply,
+    cut at 3 s of 6.4). A piece a timeout read is reading: the clock starts again."""
+    from fastapi.responses import Response
+
+    size = 1024 * 1024
+    app = make_app(tmp_path / "var", body_timeout_s=DEADLINE_S)
+
+    async def big() -> Response:
+        return Response(b"x" * size, media_type="application/octet-stream")
+
+    app.router.add_api_route("/big", big, methods=["GET"])
+    with served(app, http=_SlowLink) as base:
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 65536)
+        sock.connect(("127.0.0.1", int(base.rsplit(":", 1)[1])))
+        sock.settimeout(5)
+        got = b""
+        try:
+            sock.sendall(b"GET /big HTTP/1.1\r\nHost: t\r\n\r\n")
+            while len(got) < size:  # 160 KiB a second: a piece every 0.4 s
+                want = 160 * 1024
+                while want > 0 and (chunk := sock.recv(min(want, 65536))):
+                    got += chunk
+                    want -= len(chunk)
+                if want > 0:  # closed
+                    break
+                time.sleep(1.0)
+        finally:
+            sock.close()
+        head, _, body = got.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 200 ") and body[:size] == b"x" * size  # (then the next head's 408)
