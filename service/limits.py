@@ -368,7 +368,7 @@ class UploadLimitMiddleware:
         """The app, its `receive()` cut at the limit and the deadline, its reply replaced then. The
         reservation is `release`d as the reply starts: the app is done with the body then (read, or
         never to be: a 401 before it), and a client that does not read its reply must not hold the
-        budget while the reply waits for it (an outside probe: 13 such connections held all of it)."""
+        budget while the reply waits for it (an outside probe: a few such connections held all of it)."""
         received = 0
         exceeded: BodyTooLargeError | BodyTimeoutError | None = None
         app_started = body_done = False

@@ -110,7 +110,7 @@ class Metrics:
     def update_maps(self, maps: dict) -> None:
         """Refresh the per-map gauges from the map runtimes (at scrape time: always current), and drop
         the observation counts of maps deleted since: a series per map ever made grew without bound (an
-        outside probe: 50 maps made and deleted, 100 series more), past `CORTEXLOC_MAX_MAPS`."""
+        outside probe), past `CORTEXLOC_MAX_MAPS`."""
         for g in self.map_gauges.values():
             g.clear()
         for gone in self._counted - maps.keys():
