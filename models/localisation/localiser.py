@@ -63,6 +63,9 @@ SPAN_LISTED = 16
 HYPOTHESIS_BYTES = sum(np.dtype(t).itemsize
                        for t in (np.int64, np.int8, np.float64, np.int64, np.int64, np.float64))
 
+#: `LocaliserState.revisit` where no path called a revisit (`best_path` of an empty state).
+NO_PATH = (-1, 0)
+
 #: What a path's lag keeps of itself at each move of its stream (docs/design/science.md §11.13): the lag
 #: is the stream's moves the path fell behind over about its last 1 / (1 - LAG_KEPT) = 10 moves, so a
 #: path that fell behind once (a stop, a wrong start) and has kept pace since is in step again, while a
@@ -155,6 +158,9 @@ class LocaliserState:
         background: the background level J of the last frame stepped that gave an answer (§11.2 step 3),
             from which a frame that only repeats its view is answered again off the same state (not
             saved; None: none yet, in warm-up, or restored).
+        revisit: the path that last called a revisit, as `best_path` names it; NO_PATH: none since the
+            last reset. A learning frame under the threshold joins the place its path names only on that
+            path (§11.8: a revisit is entered at the threshold and held at a fraction of it).
     """
 
     rows: np.ndarray
@@ -168,6 +174,7 @@ class LocaliserState:
     here: int = UNKNOWN
     here_code: np.ndarray | None = None
     background: float | None = None
+    revisit: tuple[int, int] = NO_PATH
 
     @classmethod
     def empty(cls, beam: int) -> LocaliserState:
@@ -185,13 +192,27 @@ class LocaliserState:
         self.frames = 0
         self.null = NULL_PRIOR
         self.here, self.here_code, self.background = UNKNOWN, None, None
+        self.revisit = NO_PATH
+
+    def best_path(self) -> tuple[int, int]:
+        """(the frame the best path began, counted in `frames`; its direction): the best path's identity
+        across steps, as long as it stays in the beam (two paths that began in one frame in one
+        direction are one path to this: alike in age and in what they have been shown). NO_PATH in an
+        empty state."""
+        if self.rows[0] < 0:
+            return NO_PATH
+        return self.frames - int(self.ages[0]), int(self.dirs[0])
+
+    def on_revisit_path(self) -> bool:
+        """Whether the best path is the one that last called a revisit (`revisit`, §11.8)."""
+        return self.revisit != NO_PATH and self.best_path() == self.revisit
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain numpy arrays for a snapshot (`np.savez`); `from_arrays` restores them."""
         return {"rows": self.rows.copy(), "dirs": self.dirs.copy(), "scores": self.scores.copy(),
                 "ages": self.ages.copy(), "born": self.born.copy(), "lags": self.lags.copy(),
                 "frames": np.array(self.frames, np.int64), "null": np.array(self.null, np.float64),
-                "here": np.array(self.here, np.int64)}
+                "here": np.array(self.here, np.int64), "revisit": np.array(self.revisit, np.int64)}
 
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, np.ndarray]) -> LocaliserState:
@@ -202,7 +223,9 @@ class LocaliserState:
         paths knew when they began (no "born") loads them as begun before every row: a path on the
         stream's own trail ends at its next step unless the frame is more like the row it reaches than
         like where the stream just was (§11.6); one saved before paths counted their lags (no
-        "lags") loads them as having stayed through no move (§11.13).
+        "lags") loads them as having stayed through no move (§11.13); one saved before a revisit's path
+        was kept (no "revisit") loads with none: its next unconfident frame makes a row until a revisit
+        is called again (§11.8).
 
         Raises:
             ValueError: the arrays are missing or of different lengths.
@@ -215,6 +238,7 @@ class LocaliserState:
             here = int(arrays["here"]) if "here" in arrays else UNKNOWN
             born = np.asarray(arrays["born"], np.int64) if "born" in arrays else np.zeros_like(rows)
             lags = np.asarray(arrays["lags"], np.float64) if "lags" in arrays else np.zeros(rows.shape)
+            revisit = np.asarray(arrays["revisit"], np.int64) if "revisit" in arrays else np.asarray(NO_PATH)
         except KeyError as e:
             raise ValueError(f"localiser state lacks {e}") from None
         if np.isnan(null) or null == np.inf:
@@ -224,8 +248,10 @@ class LocaliserState:
             raise ValueError("localiser state arrays differ in shape")
         if here < UNKNOWN:
             raise ValueError("localiser state's `here` must be a row, -1 or -2")
+        if revisit.shape != (2,):
+            raise ValueError("localiser state's `revisit` must be (frame, direction)")
         return cls(rows.copy(), dirs.copy(), scores.copy(), ages.copy(), born.copy(), lags.copy(), frames,
-                   null, here)
+                   null, here, revisit=(int(revisit[0]), int(revisit[1])))
 
 
 def top_candidates(sims: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -63,11 +63,12 @@ class LocaliserOptions:
     #: above `consolidate`: never (every such row stays a place of its own)
     join_kept: float = 0.1
     #: an unconfident frame is consolidated into the place its path names only with some sequence
-    #: evidence: a confidence of at least this fraction of the map's `revisit_threshold` (or, below it,
-    #: a path that is not an echo of the trail it lays; §11.8). Half the threshold: a pass's unconfident
-    #: frames then join the place they pass instead of becoming parallel places, while a frame the
-    #: filter barely prefers stays a row of its own (0: any unconfident frame may be consolidated;
-    #: 1: only one that is nearly a revisit)
+    #: evidence: a confidence of at least this fraction of the map's `revisit_threshold`, on the path
+    #: that called its stream's last revisit (a revisit is entered at the threshold and held at this
+    #: fraction of it), advancing, off the trail it lays (§11.8). Half the threshold: a pass's
+    #: unconfident frames then join the place they pass instead of becoming parallel places, while a
+    #: frame the filter barely prefers stays a row of its own (0: any unconfident frame on that path
+    #: may be consolidated; 1: only one that is nearly a revisit)
     unsure_fraction: float = 0.5
     #: rows a place keeps; beyond, the least recently used goes
     appearances: int = 8

@@ -282,6 +282,8 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     if not repeat:
         st.seen = None if flat or motion.pose is None else View(code, motion.pose)
     place = model.place_map.step(st.localiser, ranked, own, contrast, moved, departed, repeat)
+    if place is not None and threshold is not None and place.is_revisit(threshold):
+        st.localiser.revisit = st.localiser.best_path()  # learning or not: the path it is on (§11.8)
     visit, joined, touched, joins, kept = None, -1, [], [], []
     dropped: tuple[int, ...] = ()
     if learn:
@@ -315,10 +317,15 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                 or on in others)
             # (`unsure_fraction` of the threshold: some sequence evidence, LocaliserOptions)
             unsure = not confident and (place.confidence < threshold * place_map.options.unsure_fraction
-                                        or trail or not place.advancing)
+                                        or trail or not place.advancing
+                                        or not st.localiser.on_revisit_path())
             if visit is not None and unsure:
                 # unconfident, it needs some sequence evidence, and never a row of the trail it is
-                # laying (just behind its short-term memory a path in step with it is an echo, §11.6)
+                # laying (just behind its short-term memory a path in step with it is an echo, §11.6).
+                # Nor a place its path has not called a revisit of: a revisit is entered at the
+                # threshold and held on its path at a fraction of it. A path that never reached the
+                # threshold is no evidence that it is on stored ground: a robot on ground the map has
+                # not seen finds paths over look-alike rows at half of it (docs/results.md §10.25).
                 visit = None
             represented = at_level and visit is not None
             if visit is not None or confident:

@@ -18,7 +18,7 @@ from models.localisation import (
     top_candidates,
 )
 from models.localisation.condition import Condition
-from models.localisation.localiser import MIN_CONTRAST, SPAN_LISTED, evidence, flat_share
+from models.localisation.localiser import MIN_CONTRAST, NO_PATH, SPAN_LISTED, evidence, flat_share
 from models.localisation.options import LAG_OFF
 from models.localisation.short_term import ShortTerm
 from models.localisation.trail import OwnTrail
@@ -474,8 +474,9 @@ def test_options_are_normalised_and_the_state_size_is_bounded() -> None:
     loc = SequenceLocaliser(LocaliserOptions.of({"move_costs": [1, 0, 1], "jump_cost": 20, "beam": 4096}))
     assert loc.options.move_costs == (1.0, 0.0, 1.0) and loc.options.jump_cost == 20.0
     assert loc.options.values() == {**default_conf, "move_costs": (1.0, 0.0, 1.0), "beam": 4096}
+    scalars = ("frames", "null", "here", "revisit")  # a stream's few numbers beside its hypotheses
     assert loc.state_bytes() == 4096 * HYPOTHESIS_BYTES == sum(
-        v.nbytes for k, v in loc.new_state().to_arrays().items() if k not in ("frames", "null", "here"))
+        v.nbytes for k, v in loc.new_state().to_arrays().items() if k not in scalars)
     assert SequenceLocaliser().options.values() == LocaliserParams().model_dump() == default_conf
     # a stream's condition (§11.10) is at most 2 + 2 width 8-byte values on top, nothing when it is off
     # and its short-term memory (§11.6), two per stream slot (tests/models/localisation/test_short_term.py)
@@ -755,6 +756,27 @@ def test_lags_survive_a_snapshot_and_old_states_load_without_them() -> None:
     assert np.array_equal(LocaliserState.from_arrays(arrays).lags, state.lags)
     del arrays["lags"]
     assert not LocaliserState.from_arrays(arrays).lags.any()
+
+
+def test_the_best_path_keeps_its_name_as_it_walks_and_its_revisit_survives_a_snapshot() -> None:
+    """`best_path` names the best path by the frame it began and its direction, the same while it walks
+    on (docs/design/science.md §11.8); the path that called a revisit (`revisit`) is saved and restored,
+    a state saved before it loads with none, and a reset forgets it."""
+    S, graph, loc, state = half_way(0.1)
+    path = state.best_path()
+    assert path[1] == 1 and 0 <= path[0] < state.frames
+    run(S[:, 40:50], graph, loc=loc, state=state)
+    assert state.best_path() == path  # ten frames on, the same path
+    assert not state.on_revisit_path()
+    state.revisit = path
+    arrays = state.to_arrays()
+    assert LocaliserState.from_arrays(arrays).on_revisit_path()
+    before = {k: v for k, v in arrays.items() if k != "revisit"}  # saved before the rule
+    assert not LocaliserState.from_arrays(before).on_revisit_path()
+    with pytest.raises(ValueError, match="revisit"):
+        LocaliserState.from_arrays({**arrays, "revisit": np.zeros(3, np.int64)})
+    state.reset()
+    assert state.revisit == NO_PATH and state.best_path() == NO_PATH and not state.on_revisit_path()
 
 
 def reverse_on_own_trail(beyond: bool, own_trail: bool, shown: bool, conf: dict | None = None,

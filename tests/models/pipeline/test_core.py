@@ -207,6 +207,17 @@ def revisits(steps: list) -> int:
     return sum(s.place is not None and s.place.is_revisit(REVISIT) for s in steps)
 
 
+def on_a_revisit(m: MapModel, row: int = 3, called: bool = True) -> Stream:
+    """A stream whose best path (5 frames old, on `row`) called a revisit (`called`), or whose last
+    revisit was called on another path (False): what an answer `step` is patched to give is read
+    against it (docs/design/science.md §11.8)."""
+    st = Stream(localiser=m.place_map.new_state())
+    loc = st.localiser
+    loc.rows[0], loc.ages[0], loc.scores[0], loc.frames = row, 5, 0.0, 9
+    loc.revisit = loc.best_path() if called else (loc.frames - 7, 1)
+    return st
+
+
 def test_a_slower_robot_on_a_route_of_alike_places_never_revisits_its_own_trail() -> None:
     """Three frames per place, neighbouring places alike: the rows a few places back stay above the
     median candidate on every frame, and a path in step with the stream behind its rival window was an
@@ -394,7 +405,7 @@ def test_an_unconfident_frame_is_consolidated_only_above_the_maps_unsure_fractio
     place = Place(seq=3, confidence=0.6, support=5, place=m.place_map.place_of(3))
     monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: place)
     monkeypatch.setattr(m.place_map, "consolidation", lambda *args, **kwargs: 3)
-    step = observe(m, Stream(), route(1, seed=9)[0], learn=True, stream="b", top_k=3, seq=7,
+    step = observe(m, on_a_revisit(m), route(1, seed=9)[0], learn=True, stream="b", top_k=3, seq=7,
                    code_of=CODES.__getitem__, threshold=REVISIT)
     assert (step.visit == 3) is consolidated
 
@@ -434,7 +445,7 @@ def test_a_path_that_lags_its_stream_consolidates_and_joins_nothing(
     place = Place(seq=3, confidence=confidence, support=5, place=m.place_map.place_of(3), advancing=advancing)
     monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: place)
     monkeypatch.setattr(m.place_map, "consolidation", lambda *args, **kwargs: 3 if confidence < 0.9 else None)
-    step = observe(m, Stream(), route(1, seed=9)[0], learn=True, stream="b", top_k=3, seq=7,
+    step = observe(m, on_a_revisit(m), route(1, seed=9)[0], learn=True, stream="b", top_k=3, seq=7,
                    code_of=CODES.__getitem__, threshold=REVISIT)
     assert step.visit == visit
     assert (step.joined >= 0) is joined
@@ -535,6 +546,66 @@ def test_an_unconfident_frame_is_never_consolidated_into_the_trail_its_robots_ot
     place = Place(seq=3, confidence=0.6, support=5, place=m.place_map.place_of(3))
     monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: place)
     monkeypatch.setattr(m.place_map, "consolidation", lambda *args, **kwargs: 3)
-    step = observe(m, Stream(), frames[2], learn=True, stream="rear", top_k=3, seq=7,
+    step = observe(m, on_a_revisit(m), frames[2], learn=True, stream="rear", top_k=3, seq=7,
                    code_of=CODES.__getitem__, threshold=REVISIT, motion=Motion(trail=trail))
     assert (step.visit == 3) is consolidated
+
+
+@pytest.mark.parametrize(("called", "consolidated"), [("on its path", True), ("on another path", False),
+                                                       ("never", False)])
+def test_an_unconfident_frame_is_consolidated_only_on_the_path_that_called_a_revisit(
+        called: str, consolidated: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A revisit is entered at the threshold and held on its path at `unsure_fraction` of it
+    (docs/design/science.md §11.8): an answer at 0.6 like a stored appearance is a visit of it on the
+    path that called the stream's last revisit, and a row of its own on a path that never did. A
+    robot on ground the map has not seen finds paths over look-alike rows at half the threshold, and
+    each frame consolidated there merged two places (docs/results.md §10.25: two robots on one map)."""
+    m = model("none")
+    learn_route(m, route(6), Stream())
+    place = Place(seq=3, confidence=0.6, support=5, place=m.place_map.place_of(3))
+    monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: place)
+    monkeypatch.setattr(m.place_map, "consolidation", lambda *args, **kwargs: 3)
+    st = Stream() if called == "never" else on_a_revisit(m, called=called == "on its path")
+    step = observe(m, st, route(1, seed=9)[0], learn=True, stream="b", top_k=3, seq=7,
+                   code_of=CODES.__getitem__, threshold=REVISIT)
+    assert (step.visit == 3) is consolidated
+
+
+def test_a_robot_on_another_robots_ground_joins_its_places_only_once_its_path_called_a_revisit() -> None:
+    """Robot b drives robot a's route with a noisier camera. Before its path calls its first revisit
+    nothing says it is on stored ground, and none of its frames is consolidated, however confident
+    (before the rule, 1-3 warm-up frames per seed were, at half the threshold); from then on its
+    path holds the place through frames under the threshold, which are consolidated into a's rows, the
+    row each names a's row of the same place."""
+    held = 0
+    for seed in range(6):
+        lap = slow_route(60, 1, 0.8, seed)
+        m, codes = model("none"), {}
+        drive(m, lap, Stream(), stream="a", codes=codes)
+        again = lap + np.random.default_rng(seed + 100).normal(size=lap.shape).astype(np.float32)
+        steps = drive(m, again, Stream(), stream="b", codes=codes)
+        first = next(i for i, s in enumerate(steps) if s.place is not None and s.place.is_revisit(REVISIT))
+        assert all(s.visit is None for s in steps[:first])
+        unsure = [(i, s.visit) for i, s in enumerate(steps[first:], first)
+                  if s.visit is not None and not s.place.is_revisit(REVISIT)]
+        assert all(abs(row - (i + 1)) <= 1 for i, row in unsure)
+        held += len(unsure)
+    assert held >= 20
+
+
+def test_the_path_that_called_a_revisit_survives_a_snapshot_and_a_crash() -> None:
+    """Where a stream's path called its last revisit is its localiser's (`LocaliserState.revisit`):
+    a snapshot (`memory_state`) and a learned step's resume state (`resume_state`) both keep it, so a
+    restart mid-revisit holds the place as the process before it did; a reset forgets it."""
+    m = model("none")
+    st = on_a_revisit(m)
+    _, streams = load_memory_state(memory_state(m.tm, {"b": st}), 0, 0)
+    assert streams["b"].localiser.on_revisit_path()
+    back = Stream()
+    resume(back, resume_state(st), 0)
+    assert back.localiser.on_revisit_path() and back.localiser.revisit == st.localiser.revisit
+    after = Stream()
+    resume(after, resume_state(st, reset=True), 0)
+    assert after.localiser is None
+    st.localiser.reset()
+    assert not st.localiser.on_revisit_path()

@@ -10,7 +10,7 @@ import pytest
 
 from models.localisation import MIN_CONTRAST, Place
 from models.pipeline import MapModel, Stream, observe
-from tests.models.pipeline.test_core import REVISIT, model, route, slow_route
+from tests.models.pipeline.test_core import REVISIT, model, on_a_revisit, route, slow_route
 
 FLAT = 0.0  # a frame's contrast under MIN_CONTRAST (a tunnel, a lens cap)
 
@@ -51,7 +51,8 @@ def test_a_flat_frame_is_a_visit_of_the_flat_row_its_path_names_whatever_its_cod
     place = Place(seq=seq, confidence=confidence, support=5, informative=contrast is None,
                   place=m.place_map.place_of(seq))
     monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: place)
-    step = observe(m, Stream(), route(1, seed=9)[0], learn=True, stream="b", top_k=3, seq=7,
+    # (on the path that called the stream's last revisit, §11.8: where the place may be held unsure)
+    step = observe(m, on_a_revisit(m, seq), route(1, seed=9)[0], learn=True, stream="b", top_k=3, seq=7,
                    code_of=codes.__getitem__, threshold=REVISIT, contrast=contrast)
     assert step.visit == visit and step.flat is (contrast == FLAT)
     if visit is None:  # a row of its own, flat where the frame was
@@ -66,7 +67,7 @@ def test_a_flat_frame_never_visits_a_flat_row_of_its_own_short_term_memory(
     assert 3 in m.place_map.short_term_rows("a").tolist()
     place = Place(seq=3, confidence=0.6, support=5, informative=False, place=m.place_map.place_of(3))
     monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: place)
-    step = observe(m, Stream(), route(1, seed=9)[0], learn=True, stream="a", top_k=3, seq=7,
+    step = observe(m, on_a_revisit(m), route(1, seed=9)[0], learn=True, stream="a", top_k=3, seq=7,
                    code_of=codes.__getitem__, threshold=REVISIT, contrast=FLAT)
     assert step.visit is None
 
