@@ -158,9 +158,11 @@ class LocaliserState:
         background: the background level J of the last frame stepped that gave an answer (§11.2 step 3),
             from which a frame that only repeats its view is answered again off the same state (not
             saved; None: none yet, in warm-up, or restored).
-        revisit: the path that last called a revisit, as `best_path` names it; NO_PATH: none since the
-            last reset. A learning frame under the threshold joins the place its path names only on that
-            path (§11.8: a revisit is entered at the threshold and held at a fraction of it).
+        revisit: the path that called the revisit the stream is in, as `best_path` names it; NO_PATH:
+            none (none called since the last reset, or the path's confidence fell under the fraction of
+            the threshold that holds it). A learning frame under the threshold joins the place its path
+            names only on that path (§11.8: a revisit is entered at the threshold and held at a
+            fraction of it).
     """
 
     rows: np.ndarray
@@ -196,9 +198,10 @@ class LocaliserState:
 
     def best_path(self) -> tuple[int, int]:
         """(the frame the best path began, counted in `frames`; its direction): the best path's identity
-        across steps, as long as it stays in the beam (two paths that began in one frame in one
-        direction are one path to this: alike in age and in what they have been shown). NO_PATH in an
-        empty state."""
+        across steps, as long as it stays in the beam. Paths begun in one frame in one direction on
+        other rows share it: one of them that overtakes the path in a revisit is taken for it (a
+        per-path id would cost each hypothesis 8 bytes more, and later births soon push them out of
+        the beam). NO_PATH in an empty state."""
         if self.rows[0] < 0:
             return NO_PATH
         return self.frames - int(self.ages[0]), int(self.dirs[0])

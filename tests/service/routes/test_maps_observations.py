@@ -362,9 +362,12 @@ def test_a_restore_counts_the_learned_frames_it_takes_away_and_brings_back_acros
         return newest["snapshot_id"]
 
     with make_client(tmp_path / "a", snapshot_every=0) as c:
+        # a threshold this short route's second drive reaches (the default's is over its confidence): its
+        # frames are visits only on a path that called a revisit (docs/design/science.md §11.8)
+        assert c.patch("/v1/maps/default", json={"revisit_threshold": 0.75}).status_code == 200
         learn(c, range(8), "a")
         s1 = c.post("/v1/maps/default/snapshots").json()["snapshot_id"]
-        b = learn(c, list(range(8)) * 2, "b")  # the route again: mostly visits, no rows
+        b = learn(c, list(range(8)) * 2, "b")  # the route again: visits as well as rows
         visits = c.get("/v1/maps/default").json()["places"]["visits_logged"]
         assert visits > 0 and sum(r["learned"] for r in b) == 16
         assert restore(c, s1) == (16, 0)  # every learned post undone, rows and visits
