@@ -5,7 +5,6 @@ from models.localisation.index import IndexFull, InvertedIndex, Match
 from models.localisation.localiser import (
     HYPOTHESIS_BYTES,
     MIN_CONTRAST,
-    NO_PATH,
     NULL_PRIOR,
     LocaliserState,
     Place,
@@ -20,7 +19,6 @@ from models.localisation.trail import CodeStats, OwnTrail
 __all__ = [
     "HYPOTHESIS_BYTES",
     "MIN_CONTRAST",
-    "NO_PATH",
     "NULL_PRIOR",
     "CodeStats",
     "IndexFull",

@@ -158,10 +158,9 @@ class LocaliserState:
         background: the background level J of the last frame stepped that gave an answer (§11.2 step 3),
             from which a frame that only repeats its view is answered again off the same state (not
             saved; None: none yet, in warm-up, or restored).
-        revisit: the path that called the revisit the stream is in, as `best_path` names it; NO_PATH:
-            none (none called since the last reset, or the path's confidence fell under the fraction of
-            the threshold that holds it). A learning frame under the threshold joins the place its path
-            names only on that path (§11.8: a revisit is entered at the threshold and held at a
+        revisit: the path that called the stream's last revisit, as `best_path` names it; NO_PATH: none
+            since the last reset. A learning frame under the threshold joins the place its path names
+            only on that path (§11.8: a revisit is entered at the threshold and held on its path at a
             fraction of it).
     """
 

@@ -64,9 +64,8 @@ class LocaliserOptions:
     join_kept: float = 0.1
     #: an unconfident frame is consolidated into the place its path names only with some sequence
     #: evidence: a confidence of at least this fraction of the map's `revisit_threshold`, on the path
-    #: that called the revisit its stream is in (a revisit is entered at the threshold and held on its
-    #: path at this fraction of it: an informative frame under it ends the revisit), advancing, off the
-    #: trail it lays (§11.8). Half the threshold: a pass's
+    #: that called its stream's last revisit (a revisit is entered at the threshold and held on its
+    #: path at this fraction of it), advancing, off the trail it lays (§11.8). Half the threshold: a pass's
     #: unconfident frames then join the place they pass instead of becoming parallel places, while a
     #: frame the filter barely prefers stays a row of its own (0: any unconfident frame on that path
     #: may be consolidated; 1: only one that is nearly a revisit)

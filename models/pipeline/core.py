@@ -24,7 +24,7 @@ import numpy as np
 
 from models.frontend import slsbh
 from models.frontend.adaptation import RunningMean
-from models.localisation import NO_PATH, InvertedIndex, LocaliserOptions, Match, Place, PlaceMap, informative
+from models.localisation import InvertedIndex, LocaliserOptions, Match, Place, PlaceMap, informative
 from models.localisation.condition import Condition
 from models.localisation.motion import NO_MOTION, Motion
 from models.localisation.short_term import View
@@ -282,17 +282,12 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
     if not repeat:
         st.seen = None if flat or motion.pose is None else View(code, motion.pose)
     place = model.place_map.step(st.localiser, ranked, own, contrast, moved, departed, repeat)
-    if place is not None and threshold is not None:
-        # Learning or not, a revisit is entered on its path at the threshold and held on it down to
-        # `unsure_fraction` of it (§11.8): a frame under that on the path ends it, and the path must
-        # reach the threshold again. A flat frame's confidence is carried from the frames before it
-        # (§11.7): it neither enters a revisit nor ends one.
-        loc = st.localiser
-        if place.is_revisit(threshold):
-            loc.revisit = loc.best_path()
-        elif (place.informative and place.confidence < threshold * model.place_map.options.unsure_fraction
-              and loc.on_revisit_path()):
-            loc.revisit = NO_PATH
+    if place is not None and threshold is not None and place.is_revisit(threshold):
+        # Learning or not, a revisit is entered on its path at the threshold, and its unconfident frames
+        # are held on that path at `unsure_fraction` of it until another path calls a revisit or the
+        # search starts again (§11.8). A dip under the fraction does not end it: ending it there was
+        # measured and cost merged places on the stress suite (docs/results.md §10.26).
+        st.localiser.revisit = st.localiser.best_path()
     visit, joined, touched, joins, kept = None, -1, [], [], []
     dropped: tuple[int, ...] = ()
     if learn:
