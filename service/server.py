@@ -159,7 +159,7 @@ class ProblemHttpToolsProtocol(HttpToolsProtocol):
         if self.transport.is_closing() and unsent == 0:
             return
         # Writes resume only near the low-water mark, so a reply written at once stays paused while a slow
-        # client reads it (a review: a steady 64 KiB/s reader of a 1 MiB reply was cut at 2 s): a piece
+        # client reads it (a review: a steady slow reader of a large reply was cut): a piece
         # (`REPLY_CHUNK_BYTES`, or what was left) taken since is reading, and the clock starts again.
         if self._unsent - unsent >= min(REPLY_CHUNK_BYTES, self._unsent):
             self._await_reader()

@@ -574,7 +574,7 @@ def test_an_unconfident_frame_is_consolidated_only_on_the_path_that_called_a_rev
 def test_a_robot_on_another_robots_ground_joins_its_places_only_once_its_path_called_a_revisit() -> None:
     """Robot b drives robot a's route with a noisier camera. Before its path calls its first revisit
     nothing says it is on stored ground, and none of its frames is consolidated, however confident
-    (before the rule, 1-3 warm-up frames per seed were, at half the threshold); from then on its
+    (before the rule, warm-up frames at half the threshold were); from then on its
     path holds the place through frames under the threshold, which are consolidated into a's rows, the
     row each names a's row of the same place."""
     held = 0
