@@ -26,6 +26,18 @@ route went more than 10 labels away and came back; tolerance 1 label):
   winter lap and B's (lap 2, each robot back on its own ground). Found from outside (docs/results.md
   §10.25): one robot's frame consolidated into the other's row of another place became a link that a
   later lap followed to a false revisit.
+- `dropped`: `outdoor` with every other frame of lap 1 and the stretch lost (a link that drops frames
+  while the robot maps), lap 2 whole.
+- `station`: `outdoor` with a station stop on both laps at the lap's middle file: the 3 files before it
+  posted 2, 3 and 4 times (slowing), the file itself 40 times, the 3 after it 4, 3 and 2 times; every copy
+  after a frame's first with σ 2 pixel noise (`stress.variant`), one stamp per post, a copy's pose its
+  file's (the robot stands).
+The last two were seen once each, at one seed, by an ad hoc probe (docs/results.md §10.25).
+- `faster`: `outdoor` with lap 2 driven at twice the speed it was mapped at (every other file: every
+  frame a stored place, the map two rows a frame), as a robot on a faster drive, or one whose frames are
+  shed under load, posts it.
+- `slower`: `outdoor` with lap 2 at half the speed (each file posted twice, the copy with σ 4 pixel
+  noise); `slow` is a slower robot on both laps, this one slower than its own map.
 
 Per route and seed, two maps: `slam` (every frame `learn=true`, one stream: loop closure while mapping;
 `robots`: a stream per robot) and `localise` (lap 1 and the stretch learned by one stream, lap 2 posted
@@ -88,7 +100,7 @@ from storage.layout import Layout
 from storage.mapstore import MapStore
 
 TOLERANCE = stress.TOLERANCE
-ROUTES = ("outdoor", "corridor", "slow", "robots")
+ROUTES = ("outdoor", "corridor", "slow", "robots", "dropped", "station", "faster", "slower")
 DEFAULT_SEED = "default"  # a map created with no seed option
 
 
@@ -192,6 +204,53 @@ def slower(r: Route, copies: int = 3, sigma: float = 4.0) -> Route:
                  dt / copies * np.arange(len(pngs)))
 
 
+def dropped(r: Route, every: int = 2) -> Route:
+    """`r` with only every `every`-th frame of its mapping laps posted (module docstring); lap 2 whole."""
+    keep = np.flatnonzero((r.laps == 1) | (np.arange(len(r.pngs)) % every == 0))
+    return Route("dropped", [r.pngs[i] for i in keep], r.labels[keep], r.laps[keep], r.xy[keep],
+                 r.stamps[keep], None if r.robots is None else tuple(r.robots[i] for i in keep))
+
+
+def lap2_pace(r: Route, pace: float) -> Route:
+    """`r` with lap 2 driven at `pace` x the speed it was mapped at (module docstring): 2 posts every
+    other frame of it, 0.5 each frame twice (the copy with σ 4 pixel noise, seeded); lap 1 as it was."""
+    if pace >= 1:
+        keep = np.flatnonzero((r.laps == 0) | (np.cumsum(r.laps == 1) % int(pace) == 1))
+        pngs = [r.pngs[i] for i in keep]
+    else:
+        copies = round(1 / pace)
+        keep = np.repeat(np.arange(len(r.pngs)), np.where(r.laps == 1, copies, 1))
+        first = np.r_[True, keep[1:] != keep[:-1]]
+        pngs = [r.pngs[i] if new else stress.variant(
+            cv2.imdecode(np.frombuffer(r.pngs[i], np.uint8), cv2.IMREAD_COLOR), "noise:4", 1000 + int(i))
+            for i, new in zip(keep, first, strict=True)]
+    name = "faster" if pace > 1 else "slower"
+    return Route(name, pngs, r.labels[keep], r.laps[keep], r.xy[keep],
+                 float(r.stamps[1] - r.stamps[0]) * np.arange(len(pngs)),
+                 None if r.robots is None else tuple(r.robots[i] for i in keep))
+
+
+def station(r: Route, at: int, dwell: int = 40, ramp: tuple[int, ...] = (4, 3, 2)) -> Route:
+    """`r` with a stop at label `at` on every lap (module docstring): the frame labelled `at` posted
+    `dwell` times, those k = 1, 2, .. labels either side `ramp[k - 1]` times; copies after a frame's
+    first with σ 2 pixel noise (seeded), one stamp a post (the route's first step apart), a copy's pose
+    its frame's."""
+    pngs: list[bytes] = []
+    idx: list[int] = []
+    for i, b in enumerate(r.pngs):
+        k = abs(int(r.labels[i]) - at)
+        copies = dwell if k == 0 else ramp[k - 1] if k <= len(ramp) else 1
+        pngs.append(b)
+        if copies > 1:
+            img = cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR)
+            pngs.extend(stress.variant(img, "noise:2", 1000 * c + i) for c in range(1, copies))
+        idx.extend([i] * copies)
+    keep = np.asarray(idx, np.int64)
+    dt = float(r.stamps[1] - r.stamps[0]) if len(r.stamps) > 1 else 1.0
+    return Route("station", pngs, r.labels[keep], r.laps[keep], r.xy[keep], dt * np.arange(len(pngs)),
+                 None if r.robots is None else tuple(r.robots[i] for i in keep))
+
+
 def indoor(sizes: Sizes) -> Route:
     """The rendered corridor loop (module docstring, `models.evaluation.corridor`)."""
     a = corridor.Corridor(sizes.corridor, seed=3)
@@ -235,6 +294,12 @@ def build(name: str, data: Path, sizes: Sizes) -> Route:
         return two_robots(data, sizes)
     if name == "corridor":
         return indoor(sizes)
+    if name == "dropped":
+        return dropped(outdoor(data, sizes))
+    if name == "station":
+        return station(outdoor(data, sizes), sizes.lo + sizes.lap // 2)
+    if name in ("faster", "slower"):
+        return lap2_pace(outdoor(data, sizes), 2.0 if name == "faster" else 0.5)
     raise ValueError(f"unknown route {name!r}; known: {', '.join(ROUTES)}")
 
 

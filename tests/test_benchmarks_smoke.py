@@ -20,6 +20,7 @@ from benchmarks import bench_index, bench_localiser, bench_place
 from benchmarks.bench_longrun import noisy
 from models.localisation import LocaliserParams
 from service.cli import app
+from service.evaluation import stress
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -261,6 +262,41 @@ def test_the_loops_benchmarks_two_robots_post_each_as_its_own_stream() -> None:
     assert localising == ["robot-a", "robot-b", "query-a", "query-b"]
     assert [r.stream(i, True) for i in (12, 18)] == ["robot-a", "robot-b"]  # mapping: a stream per robot
     assert b.drifted(r, 0.0, 0.0).robots == r.robots
+
+
+def test_the_loops_benchmarks_speed_and_fault_routes_change_only_what_they_name() -> None:
+    """`dropped` loses every other mapping frame, `station` stops at one file on both laps, `faster` and
+    `slower` drive lap 2 at twice and half the mapped speed (docs/results.md §10.27): each keeps its
+    frames' labels, laps and poses together, stamps one per post, and leaves the other lap as it was."""
+    from benchmarks import bench_loops_http as b
+
+    img = np.random.default_rng(0).integers(0, 255, (8, 8, 3), np.uint8)
+    pngs = [stress.variant(img, "noise:4", i) for i in range(12)]
+    labels = np.array([*range(100, 106)] * 2)
+    laps = np.array([0] * 6 + [1] * 6)
+    r = b.Route("outdoor", pngs, labels, laps, np.stack([labels * 280.0, np.zeros(12)], axis=1),
+                10.0 * np.arange(12))
+
+    def whole(x: b.Route) -> None:
+        assert len(x.pngs) == len(x.labels) == len(x.laps) == len(x.xy) == len(x.stamps)
+        assert np.all(np.diff(x.stamps) > 0) and np.allclose(x.xy[:, 0], x.labels * 280.0)
+
+    dropped = b.dropped(r)
+    whole(dropped)
+    assert list(dropped.labels) == [100, 102, 104, *range(100, 106)] and dropped.pngs[3:] == pngs[6:]
+    faster, slower = b.lap2_pace(r, 2.0), b.lap2_pace(r, 0.5)
+    for x in (faster, slower):
+        whole(x)
+        assert x.pngs[:6] == pngs[:6] and list(x.labels[:6]) == list(labels[:6])
+    assert faster.name == "faster" and list(faster.labels[6:]) == [100, 102, 104]
+    assert faster.pngs[6:] == [pngs[6], pngs[8], pngs[10]]
+    assert slower.name == "slower" and list(slower.labels[6:]) == [v for v in range(100, 106) for _ in (0, 1)]
+    assert slower.pngs[6::2] == pngs[6:] and all(c not in pngs for c in slower.pngs[7::2])  # noisy copies
+    stop = b.station(r, 102, dwell=5, ramp=(2,))
+    whole(stop)
+    lap1 = list(stop.labels[stop.laps == 0])
+    assert lap1 == [100, 101, 101, *[102] * 5, 103, 103, 104, 105] == list(stop.labels[stop.laps == 1])
+    assert stop.pngs[0] == pngs[0] and stop.pngs[3] == pngs[2] and len(set(stop.pngs[3:8])) == 5
 
 
 def test_the_loops_benchmark_drifted_odometry_drifts_as_odometry_does() -> None:

@@ -201,8 +201,9 @@ def eval_slam_seasons(
 def eval_loops_http(
     data: Annotated[Path | None, typer.Option(help="the Nordland folder (default: the shared data's)")]
     = None,
-    routes: Annotated[str, typer.Option(help="comma-separated: outdoor, corridor, slow, robots")]
-    = "outdoor,corridor,slow,robots",
+    routes: Annotated[str, typer.Option(help="comma-separated: outdoor, corridor, slow, robots, dropped, "
+                                        "station, faster, slower")]
+    = "outdoor,corridor,slow,robots,dropped,station,faster,slower",
     seeds: Annotated[str, typer.Option(help="comma-separated map seeds; `default`: a map created with no "
                                        "seed option (a new map's)")] = "default,1,7",
     concurrency: Annotated[int, typer.Option(min=1, help="maps driven at once")] = 6,
