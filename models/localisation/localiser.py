@@ -59,9 +59,21 @@ def flat_share(contrast: float | None) -> float:
 #: is far wider than a revisit may be (`span_max`, default 3), and the reply stays small.
 SPAN_LISTED = 16
 
-#: Bytes of one hypothesis in a stream's state (LocaliserState: row, direction, score, age, born, lags).
+#: Bytes of one hypothesis in a stream's state (LocaliserState: row, direction, score, age, born, lags,
+#: phase, pace).
 HYPOTHESIS_BYTES = sum(np.dtype(t).itemsize
-                       for t in (np.int64, np.int8, np.float64, np.int64, np.int64, np.float64))
+                       for t in (np.int64, np.int8, np.float64, np.int64, np.int64, np.float64, np.float64,
+                                 np.float64))
+
+#: A stream's pace (§11.2 step 2) under 1 + this is one row a frame: a robot near its map's pace walks it
+#: as before, and a path that took a double step or two does not teach the stream a pace. Never under one
+#: row a frame: without poses a path that stays on its rows is a slower robot or a stretch of alike frames
+#: that it is stuck on, and appearance cannot tell which (a pace learned from it, down to a quarter,
+#: called 6 false revisits on the stress suite's `seasons` case at a new map's seed, docs/results.md §10.28).
+PACE_BAND = 0.25
+#: A stream learns its pace only from an answer at least this confident and advancing, on a path at least
+#: this many frames old (its steps' average has seen that many).
+PACE_CONFIDENCE, PACE_AGE = 0.5, 10
 
 #: `LocaliserState.revisit` where no path called a revisit (`best_path` of an empty state).
 NO_PATH = (-1, 0)
@@ -147,6 +159,10 @@ class LocaliserState:
             move (§11.13): at a move of the stream LAG_KEPT of itself + 1, - 1 a row the path advanced,
             never below 0; at least `lag_max` + 1 once it stayed through a move on a row with no successor
             along its direction (a dead end: it can never make that move up).
+        phases: (beam,) float64 the part of a row each path is behind (+) or ahead (-) of where its
+            stream's pace put it, carried from its last step (§11.2 step 2); 0 after a step off it.
+        paces: (beam,) float64 each path's own steps a frame, averaged at `pace_rate` a frame (a new path
+            starts at its stream's pace): what its stream learns its pace from.
         frames: frames stepped since the last reset (a frame that only repeats its view is not).
         null: the null hypothesis' decayed score ("a place the map has not stored",
             docs/design/science.md §11.5); NULL_PRIOR (-inf, not yet born) at the start of a stream.
@@ -162,6 +178,8 @@ class LocaliserState:
             since the last reset. A learning frame under the threshold joins the place its path names
             only on that path (§11.8: a revisit is entered at the threshold and held on its path at a
             fraction of it).
+        pace: the rows a frame the stream's paths walk for free (§11.2 step 2), learned from its answers;
+            1 in a new state, after a reset, and in one saved before the pace.
     """
 
     rows: np.ndarray
@@ -170,17 +188,21 @@ class LocaliserState:
     ages: np.ndarray
     born: np.ndarray
     lags: np.ndarray
+    phases: np.ndarray
+    paces: np.ndarray
     frames: int = 0
     null: float = NULL_PRIOR
     here: int = UNKNOWN
     here_code: np.ndarray | None = None
     background: float | None = None
     revisit: tuple[int, int] = NO_PATH
+    pace: float = 1.0
 
     @classmethod
     def empty(cls, beam: int) -> LocaliserState:
         return cls(np.full(beam, NONE, np.int64), np.ones(beam, np.int8), np.full(beam, -np.inf),
-                   np.zeros(beam, np.int64), np.zeros(beam, np.int64), np.zeros(beam))
+                   np.zeros(beam, np.int64), np.zeros(beam, np.int64), np.zeros(beam), np.zeros(beam),
+                   np.ones(beam))
 
     def reset(self) -> None:
         """Forget every hypothesis (a new traverse, a kidnapped robot); the size stays."""
@@ -190,10 +212,13 @@ class LocaliserState:
         self.ages[:] = 0
         self.born[:] = 0
         self.lags[:] = 0
+        self.phases[:] = 0.0
+        self.paces[:] = 1.0
         self.frames = 0
         self.null = NULL_PRIOR
         self.here, self.here_code, self.background = UNKNOWN, None, None
         self.revisit = NO_PATH
+        self.pace = 1.0
 
     def best_path(self) -> tuple[int, int]:
         """(the frame the best path began, counted in `frames`; its direction): the best path's identity
@@ -213,6 +238,7 @@ class LocaliserState:
         """Plain numpy arrays for a snapshot (`np.savez`); `from_arrays` restores them."""
         return {"rows": self.rows.copy(), "dirs": self.dirs.copy(), "scores": self.scores.copy(),
                 "ages": self.ages.copy(), "born": self.born.copy(), "lags": self.lags.copy(),
+                "phases": self.phases.copy(), "paces": self.paces.copy(), "pace": np.array(self.pace),
                 "frames": np.array(self.frames, np.int64), "null": np.array(self.null, np.float64),
                 "here": np.array(self.here, np.int64), "revisit": np.array(self.revisit, np.int64)}
 
@@ -227,7 +253,8 @@ class LocaliserState:
         like where the stream just was (§11.6); one saved before paths counted their lags (no
         "lags") loads them as having stayed through no move (§11.13); one saved before a revisit's path
         was kept (no "revisit") loads with none: its next unconfident frame makes a row until a revisit
-        is called again (§11.8).
+        is called again (§11.8); one saved before the pace (no "pace", "phases", "paces") at one row a
+        frame, its paths' phases 0 (§11.2 step 2).
 
         Raises:
             ValueError: the arrays are missing or of different lengths.
@@ -241,19 +268,25 @@ class LocaliserState:
             born = np.asarray(arrays["born"], np.int64) if "born" in arrays else np.zeros_like(rows)
             lags = np.asarray(arrays["lags"], np.float64) if "lags" in arrays else np.zeros(rows.shape)
             revisit = np.asarray(arrays["revisit"], np.int64) if "revisit" in arrays else np.asarray(NO_PATH)
+            phases = np.asarray(arrays["phases"], np.float64) if "phases" in arrays else np.zeros(rows.shape)
+            paces = np.asarray(arrays["paces"], np.float64) if "paces" in arrays else np.ones(rows.shape)
+            pace = float(arrays["pace"]) if "pace" in arrays else 1.0
         except KeyError as e:
             raise ValueError(f"localiser state lacks {e}") from None
         if np.isnan(null) or null == np.inf:
             raise ValueError("localiser state's null score must be finite or -inf")
         if not rows.ndim == 1 or not (rows.shape == dirs.shape == scores.shape == ages.shape == born.shape
-                                      == lags.shape):
+                                      == lags.shape == phases.shape == paces.shape):
             raise ValueError("localiser state arrays differ in shape")
         if here < UNKNOWN:
             raise ValueError("localiser state's `here` must be a row, -1 or -2")
+        if not np.isfinite(pace) or pace <= 0:
+            raise ValueError("localiser state's `pace` must be a positive number")
         if revisit.shape != (2,):
             raise ValueError("localiser state's `revisit` must be (frame, direction)")
-        return cls(rows.copy(), dirs.copy(), scores.copy(), ages.copy(), born.copy(), lags.copy(), frames,
-                   null, here, revisit=(int(revisit[0]), int(revisit[1])))
+        return cls(rows.copy(), dirs.copy(), scores.copy(), ages.copy(), born.copy(), lags.copy(),
+                   phases.copy(), paces.copy(), frames, null, here,
+                   revisit=(int(revisit[0]), int(revisit[1])), pace=pace)
 
 
 def top_candidates(sims: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -313,6 +346,12 @@ class SequenceLocaliser:
         self.options = LocaliserOptions() if options is None else options
         self.move_costs = np.asarray(self.options.move_costs, dtype=np.float64)
         self._still_costs = np.minimum(self.move_costs, np.r_[self.move_costs[1:], np.inf])
+
+    def _off_pace_cost(self, off: np.ndarray) -> np.ndarray:
+        """(H,) the cost of steps `off` rows from where a path's pace puts it (|off| > 1/2): `move_costs`
+        read at 1 + off (a whole row off costs what that step costs at one row a frame), linearly
+        between its entries and as its ends beyond them."""
+        return np.interp(1.0 + off, np.arange(self.move_costs.size), self.move_costs)
 
     def state_bytes(self) -> int:
         """Bytes of one stream's state (`new_state`): `beam` hypotheses of HYPOTHESIS_BYTES."""
@@ -388,7 +427,22 @@ class SequenceLocaliser:
         """
         if repeat and state.background is not None:
             return self._reply(state, graph, own, True)
-        return self._step(state, graph, seqs, scores, own, informative, moved, departed, shares)
+        place = self._step(state, graph, seqs, scores, own, informative, moved, departed, shares)
+        if place is not None and self.options.pace_rate > 0 and moved and departed:
+            self._learn_pace(state, place)
+        return place
+
+    def _learn_pace(self, state: LocaliserState, place: Place) -> None:
+        """The stream's pace (§11.2 step 2), at a move of the stream by its look (`departed`: a robot that
+        stands, its view unchanged, teaches no pace), from an answer it can trust: confident and
+        advancing, on a path old enough that its steps' average says how fast it walks; under 1 +
+        `PACE_BAND` rows a frame, one row a frame. Not "narrow": a stream at twice its map's pace has a
+        wide span while its paths walk one row a frame (the rows it skipped score near the best), which
+        is what learning the pace ends."""
+        if (place.informative and place.advancing and reaches(place.confidence, PACE_CONFIDENCE)
+                and state.ages[0] >= PACE_AGE):
+            pace = float(state.paces[0])
+            state.pace = pace if pace > 1.0 + PACE_BAND else 1.0
 
     def _step(self, state: LocaliserState, graph: SequenceGraph, seqs: np.ndarray, scores: np.ndarray,
               own: OwnTrail | None, informative: bool, moved: bool, departed: bool,
@@ -414,6 +468,7 @@ class SequenceLocaliser:
         rows, dirs = state.rows[live], state.dirs[live]
         past = decay * state.scores[live]
         ages, born = state.ages[live], state.born[live]
+        phases, paces = state.phases[live], state.paces[live]
         lags = state.lags[live] * LAG_KEPT + 1.0 if departed else state.lags[live]
         # The null decayed; -inf (NULL_PRIOR) before a stream's first frame stays -inf (0 * -inf is nan).
         null = decay * state.null if np.isfinite(state.null) else NULL_PRIOR
@@ -428,6 +483,14 @@ class SequenceLocaliser:
             ev = ev * shares[np.argsort(seqs, kind="stable")]  # in `evidence`'s order
 
         new_rows, new_dirs, new_scores, new_ages, new_born, new_lags = [], [], [], [], [], []
+        new_phases, new_paces = [], []
+        # A path walks at its stream's pace (§11.2 step 2): the step nearest where its pace and its phase
+        # (the fraction of a row it is behind or ahead) put it is free, and its phase carries the
+        # rounding, so a stream at 1.5 times its map's pace steps 1, 2, 1, 2 for nothing; a step off it
+        # pays `move_costs` as far off, and starts the phase again. At one row a frame (every stream
+        # that has not learned another pace) this is `move_costs` as it always was.
+        paced = c.pace_rate > 0 and moved
+        expect = state.pace + phases
         cur = rows
         # A frame that is no move of the stream (`moved` False: it and its last move posed, within
         # `move_metres`, §11.6) may stay where it was at no cost: each move costs the least of its own
@@ -449,7 +512,16 @@ class SequenceLocaliser:
             ok = cur >= 0
             new_rows.append(cur[ok])
             new_dirs.append(dirs[ok])
-            new_scores.append(past[ok] - cost)
+            if paced:
+                off = m - expect[ok]
+                on_pace = np.abs(off) <= 0.5
+                new_scores.append(past[ok] - np.where(on_pace, 0.0, self._off_pace_cost(off)))
+                new_phases.append(np.where(on_pace, -off, 0.0))
+                new_paces.append((1.0 - c.pace_rate) * paces[ok] + c.pace_rate * m)
+            else:
+                new_scores.append(past[ok] - cost)
+                new_phases.append(phases[ok])
+                new_paces.append(paces[ok])
             new_ages.append(ages[ok] + 1)
             new_born.append(born[ok])
             # the moves its stream made that the path did not keep pace with, one row a move
@@ -463,10 +535,13 @@ class SequenceLocaliser:
             new_born.append(np.full(seqs.size, len(graph), np.int64) if own is None else
                             own.born(graph, seqs, len(graph), c.exclusion // 2))
             new_lags.append(np.zeros(seqs.size))
+            new_phases.append(np.zeros(seqs.size))
+            new_paces.append(np.full(seqs.size, state.pace))
         r = np.concatenate(new_rows)
         d = np.concatenate(new_dirs).astype(np.int8)
         s = np.concatenate(new_scores) + _lookup(ev_rows, ev, r)
         a, b, lag = np.concatenate(new_ages), np.concatenate(new_born), np.concatenate(new_lags)
+        ph, pc = np.concatenate(new_phases), np.concatenate(new_paces)
         if own is not None and r.size:
             # A path ends where it walks onto the rows the stream has not left, or onto the trail the
             # stream laid while the path was followed, unless the frame is more like that row than like
@@ -474,6 +549,7 @@ class SequenceLocaliser:
             ends = own.holds(graph, r)
             ends[~ends] = own.laid_behind(graph, r[~ends], b[~ends])
             r, d, s, a, b, lag = r[~ends], d[~ends], s[~ends], a[~ends], b[~ends], lag[~ends]
+            ph, pc = ph[~ends], pc[~ends]
 
         # Viterbi: one survivor per (row, direction), the best score; ties to the older path.
         key = r * 2 + (d > 0)
@@ -502,8 +578,11 @@ class SequenceLocaliser:
         state.ages[:] = 0
         state.born[:] = 0
         state.lags[:] = 0
+        state.phases[:] = 0.0
+        state.paces[:] = 1.0
         state.rows[:n], state.dirs[:n], state.scores[:n], state.ages[:n] = r[idx], d[idx], s[idx], a[idx]
         state.born[:n], state.lags[:n] = b[idx], lag[idx]
+        state.phases[:n], state.paces[:n] = ph[idx], pc[idx]
         state.frames += 1
         if state.frames < c.warmup or n == 0:
             state.background = None

@@ -115,6 +115,9 @@ class LocaliserOptions:
     odometry_drift: float = 0.2
     odometry_slack: float = 5.0
     odometry_gap: float = 60.0
+    #: a stream's pace (§11.2 step 2): the rows a frame its paths walk for free, learned from its
+    #: confident answers' paths, each path's steps averaged at this rate a frame (0: one row a frame)
+    pace_rate: float = 0.1
 
     @classmethod
     def of(cls, values: Mapping[str, Any] | None = None) -> LocaliserOptions:
@@ -140,7 +143,7 @@ class LocaliserParams(BaseModel):
     `backward`.
 
     The upper bounds keep one stream's state and step small whatever a client asks for: the state is
-    `beam` hypotheses of HYPOTHESIS_BYTES each (4,096 of them: 164 KiB a stream); a step costs
+    `beam` hypotheses of HYPOTHESIS_BYTES each (4,096 of them: 228 KiB a stream); a step costs
     O(top_k + beam * len(move_costs)) plus an O(exclusion) walk over the links, and for a learning
     stream, where a path reaches the trail it laid, `exclusion` + 1 code reads plus one per distinct
     row so reached (at most beam * len(move_costs); §11.6). `span_margin` goes up to 100 temperatures
@@ -181,6 +184,7 @@ class LocaliserParams(BaseModel):
     odometry_drift: float = Field(_D.odometry_drift, ge=0.0, le=10.0)
     odometry_slack: float = Field(_D.odometry_slack, ge=0.0, le=1e5)
     odometry_gap: float = Field(_D.odometry_gap, gt=0.0, le=1e6)
+    pace_rate: float = Field(_D.pace_rate, ge=0.0, le=1.0)
 
 
 #: Every option's default by name (`LocaliserOptions`; meanings and why: docs/design/science.md §11.3).

@@ -336,9 +336,13 @@ def observe(model: MapModel, st: Stream, projected: np.ndarray, *, learn: bool, 
                 place_map.touch(place.seq, seq)  # a learning stream used the place (§11.9)
                 touched.append(place.seq)
                 joined = place.place
-        if place is not None and threshold is not None and place.is_revisit(threshold):
+        if (place is not None and threshold is not None and place.is_revisit(threshold)
+                and st.localiser.pace == 1.0):
             # Rows it made while it warmed up or was unsure, that the path now explains (§11.8): those the
             # old rows represent are held no more, the rest like them are kept, appearances of their places.
+            # Not at another pace than its map's (§11.2 step 2): where its path stood k moves ago is then
+            # known only as well as its pace, an average that lags the robot's: joined as if at that pace,
+            # the stress suite's `faster` case merged places (docs/results.md §10.28).
             found = place_map.explained(stream, place, int(st.localiser.dirs[0]), code_of, motion.trail,
                                         moved)
             joins, kept = found.joins, found.kept

@@ -173,7 +173,7 @@ def resume_state(st: Stream, *, reset: bool = False) -> bytes:
     localiser state (where it is on the map, docs/design/science.md §11), its adaptation mean (its
     frames' projections are not stored) and whether its last frame earned the place's conditions
     (`Stream.represented`, §11.8). The context, the step bookkeeping and the condition are
-    replayed (docs/design/service.md §4.4). A few KB: beam × 41 bytes, plus k floats with adaptation.
+    replayed (docs/design/service.md §4.4). A few KB: beam × 57 bytes, plus k floats with adaptation.
     `reset`: the stream as `Stream.break_sequence` leaves it, marked so that `resume` breaks the
     replayed sequence too (a reset after the stream's last learned step, which no row records)."""
     arrays = {} if st.localiser is None or reset else {

@@ -17,6 +17,8 @@ lap-2 frames and OpenSeqSLAM run online (`models.evaluation.slam.openseqslam_onl
   that looks the same from the same place (with distinct poses they would not be a loop).
 - `short-loop`: 40 frames driven three times (a real short loop must still close).
 - `seasons`, `noise`: the window, then again in winter or with pixel noise (σ 8): lap 2 is a revisit.
+- `faster`: the window, then every other file of it in winter: lap 2 at twice the pace the map was
+  learned at (a faster drive, frames shed under load; docs/results.md §10.27-§10.28).
 - `cameras`: the window posted by a robot's two cameras as two streams, `front` (the frames) and `rear`
   (each frame again with σ 4 noise: nearly one view, as a stereo pair's), both naming one trail
   (`metadata.trail`), both frames of a moment with its stamp: each camera's frames are the other's
@@ -49,7 +51,8 @@ from service.evaluation.slam import grey
 from service.maps.config import DEFAULT_REVISIT_THRESHOLD
 
 #: Every case of the full suite, in the order they are run.
-CASES = ("rate1", "rate3", "rate10", "parked", "flat", "repeat", "short-loop", "seasons", "noise", "cameras")
+CASES = ("rate1", "rate3", "rate10", "parked", "flat", "repeat", "short-loop", "seasons", "noise", "cameras",
+         "faster")
 #: What `--quick` runs: one case of each failure (a slower robot, low texture, a robot's two cameras) and
 #: of each real loop.
 QUICK_CASES = ("rate3", "flat", "cameras", "short-loop", "noise")
@@ -166,6 +169,9 @@ def route(frames: Frames, case: str, lo: int) -> Route:
     elif case == "noise":
         add("summer", range(lo, lo + WINDOW))
         add("summer", range(lo, lo + WINDOW), "noise:8", 1, 3)
+    elif case == "faster":
+        add("summer", range(lo, lo + WINDOW))
+        add("winter", range(lo, lo + WINDOW, 2), None, 1)
     elif case == "cameras":
         for season, lap in (("summer", 0), ("winter", 1)):
             for i in range(lo, lo + WINDOW):

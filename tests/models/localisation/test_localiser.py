@@ -474,7 +474,7 @@ def test_options_are_normalised_and_the_state_size_is_bounded() -> None:
     loc = SequenceLocaliser(LocaliserOptions.of({"move_costs": [1, 0, 1], "jump_cost": 20, "beam": 4096}))
     assert loc.options.move_costs == (1.0, 0.0, 1.0) and loc.options.jump_cost == 20.0
     assert loc.options.values() == {**default_conf, "move_costs": (1.0, 0.0, 1.0), "beam": 4096}
-    scalars = ("frames", "null", "here", "revisit")  # a stream's few numbers beside its hypotheses
+    scalars = ("frames", "null", "here", "revisit", "pace")  # a stream's few numbers beside its hypotheses
     assert loc.state_bytes() == 4096 * HYPOTHESIS_BYTES == sum(
         v.nbytes for k, v in loc.new_state().to_arrays().items() if k not in scalars)
     assert SequenceLocaliser().options.values() == LocaliserParams().model_dump() == default_conf
@@ -855,3 +855,64 @@ def test_a_frame_that_repeats_its_view_standing_leaves_the_state_and_gets_the_la
     assert restored.background is None
     stepped = loc.step(restored, graph, np.arange(n), lure, moved=False, repeat=True)
     assert stepped is not None and stepped != last and restored.frames == state.frames + 1
+
+
+def paced_drive(speed: float, conf: dict | None = None, n: int = 200, noise: float = 0.35,
+                seed: int = 4) -> tuple[list, np.ndarray, LocaliserState]:
+    """A stream along a chain of `n` rows at `speed` rows a frame (each frame a move by its look where it
+    shows a new row, §11.13): (its places, the true rows, its state)."""
+    truth = np.floor(np.arange(int((n - 1) / speed)) * speed).astype(int)
+    S = place_similarity(np.arange(n), truth, noise=noise, seed=seed)
+    loc = SequenceLocaliser(LocaliserOptions.of(conf))
+    state, graph = loc.new_state(), SequenceGraph.chain(n)
+    new = np.r_[True, truth[1:] != truth[:-1]]
+    return ([loc.step(state, graph, np.arange(n), S[:, j], departed=bool(new[j])) for j in range(truth.size)],
+            truth, state)
+
+
+@pytest.mark.parametrize("speed", [2.0, 1.5])
+def test_a_stream_faster_than_its_map_learns_its_pace_and_is_followed(speed: float) -> None:
+    # docs/design/science.md §11.2 step 2: a robot at twice the pace its map was learned at paid a move
+    # cost on every frame, and its right path sank to where any path starts: few revisits, and while
+    # mapping, false ones a few rows behind (docs/results.md §10.27).
+    def figures(conf: dict | None) -> tuple[float, float, float]:
+        places, truth, state = paced_drive(speed, conf)
+        right = [p is not None and abs(p.seq - r) <= 1 for p, r in zip(places, truth, strict=True)]
+        called = [p is not None and p.is_revisit(REVISIT) for p in places]
+        return float(np.mean(right[20:])), float(np.mean(called[20:])), state.pace
+
+    right, called, pace = figures(None)
+    assert abs(pace - speed) < 0.1 and right > 0.95 and called > 0.9
+    _, called_off, pace_off = figures({"pace_rate": 0.0})
+    assert pace_off == 1.0 and called_off < called - 0.2
+
+
+@pytest.mark.parametrize("speed", [1.0, 0.5])
+def test_a_stream_at_or_under_its_maps_pace_is_answered_as_before_the_pace(speed: float) -> None:
+    # The pace changes nothing at one row a frame: every answer is the same as with no pace at all,
+    # including a path that stalls a frame. Nor is a stream taught a pace under it: without poses a path
+    # that stays is a slower robot or one stuck on alike frames (§11.2 step 2, PACE_BAND).
+    for noise in (0.35, 0.6):
+        on, _, state = paced_drive(speed, noise=noise)
+        off, _, _ = paced_drive(speed, {"pace_rate": 0.0}, noise=noise)
+        assert on == off and state.pace == 1.0
+
+
+def test_a_stream_that_stands_teaches_no_pace_and_the_pace_survives_a_snapshot() -> None:
+    # A robot that stands is sure of its row and teaches no pace; a stream's pace and its paths' phases
+    # are saved with its state.
+    n = 60
+    loc, graph = SequenceLocaliser(), SequenceGraph.chain(n)
+    state = loc.new_state()
+    S = place_similarity(np.arange(n), np.r_[np.arange(30), np.full(40, 30)], noise=0.1, seed=1)
+    places = [loc.step(state, graph, np.arange(n), S[:, j], departed=j < 30) for j in range(70)]
+    assert all(p.seq == 30 for p in places[40:]) and places[-1].confidence > 0.9 and state.pace == 1.0
+    _, _, paced = paced_drive(2.0)
+    again = LocaliserState.from_arrays(paced.to_arrays())
+    assert again.pace == paced.pace != 1.0
+    assert np.array_equal(again.phases, paced.phases) and np.array_equal(again.paces, paced.paces)
+    old = {k: v for k, v in paced.to_arrays().items() if k not in ("pace", "phases", "paces")}
+    before = LocaliserState.from_arrays(old)  # saved before the pace: one row a frame
+    assert before.pace == 1.0 and not before.phases.any() and np.all(before.paces == 1.0)
+    with pytest.raises(ValueError, match="pace"):
+        LocaliserState.from_arrays({**paced.to_arrays(), "pace": np.array(np.nan)})

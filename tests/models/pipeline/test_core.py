@@ -451,6 +451,27 @@ def test_a_path_that_lags_its_stream_consolidates_and_joins_nothing(
     assert (step.joined >= 0) is joined
 
 
+@pytest.mark.parametrize("pace", [1.0, 2.0])
+def test_a_stream_at_another_pace_than_its_maps_joins_no_warm_up_rows(
+        pace: float, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A confident revisit folds the warm-up rows its path explains (docs/design/science.md §11.8), read
+    one row a move back along the path; a stream at another pace (§11.2 step 2, learned as an average that
+    lags the robot's) knows where its path stood only that well, and joins none: those rows stay places
+    of their own (the stress suite's `faster` case merged places so, docs/results.md §10.28)."""
+    m = model("none")
+    learn_route(m, route(6), Stream())
+    place = Place(seq=3, confidence=0.99, support=5, place=m.place_map.place_of(3))
+    monkeypatch.setattr(m.place_map, "step", lambda *args, **kwargs: place)
+    asked = []
+    explained = m.place_map.explained
+    monkeypatch.setattr(m.place_map, "explained", lambda *a, **kw: asked.append(a) or explained(*a, **kw))
+    st = on_a_revisit(m)
+    st.localiser.pace = pace
+    step = observe(m, st, route(1, seed=9)[0], learn=True, stream="b", top_k=3, seq=7,
+                   code_of=CODES.__getitem__, threshold=REVISIT)
+    assert step.place.is_revisit(REVISIT) and (len(asked) == 1) is (pace == 1.0) and step.joins == ()
+
+
 @pytest.mark.parametrize(("frame", "visit"), [(3, 4), (2, 3), (4, None)])
 def test_a_confident_frame_like_the_row_one_link_from_its_path_is_a_visit_of_it_not_a_new_appearance(
         frame: int, visit: int | None, monkeypatch: pytest.MonkeyPatch) -> None:

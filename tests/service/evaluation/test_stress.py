@@ -41,6 +41,21 @@ def test_every_case_builds_its_route_and_the_windows_cover_both_halves(tmp_path)
         stress.route(None, "nope", 0)  # type: ignore[arg-type]
 
 
+def test_the_faster_case_drives_lap_2_in_winter_at_twice_the_pace() -> None:
+    """`faster` (docs/results.md §10.28): the window in summer, then every other file of it in winter."""
+    class Seen:
+        def image(self, season: str, i: int) -> np.ndarray:
+            return np.full((4, 6, 3), (i % 100) + (100 if season == "winter" else 0), np.uint8)
+
+    r = stress.route(Seen(), "faster", 300)  # type: ignore[arg-type]
+    w = stress.WINDOW
+    assert list(r.labels) == [*range(300, 300 + w), *range(300, 300 + w, 2)]
+    assert list(r.laps) == [0] * w + [1] * (w // 2) and r.streams is None
+    assert r.pngs[w] == stress.png(Seen().image("winter", 300)) and r.pngs[w + 1] == stress.png(
+        Seen().image("winter", 302))
+    assert "faster" in stress.CASES and "faster" not in stress.QUICK_CASES
+
+
 @needs_data
 def test_the_quick_suite_maps_without_a_false_revisit_or_a_merged_place_and_closes_real_loops(tmp_path):
     """One robot mapping while it drives: a slower robot (each frame 3 times), a low-texture stretch and a
