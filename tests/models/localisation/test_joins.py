@@ -200,4 +200,3 @@ def test_a_warm_up_a_robot_stood_through_is_joined_to_where_it_stood_not_as_many
     assert place_map.explained("a", at(40), 1, codes.__getitem__) == ([], [(WARM, 39)])
     # this frame stood still too: the path stood on row 40 then, which the row is not like
     assert place_map.explained("a", at(40), 1, codes.__getitem__, moved=False) == ([], [])
-
