@@ -189,12 +189,28 @@ def two_robots(data: Path, sizes: Sizes) -> Route:
                  tuple(robots))
 
 
+def _noisy(png: bytes, sigma: float, seed: int) -> bytes:
+    """`png` again with σ pixel noise (`stress.variant`, seeded)."""
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    return stress.variant(img, f"noise:{sigma:g}", seed)
+
+
+def _taken(r: Route, name: str, keep: np.ndarray, pngs: list[bytes], stamps: np.ndarray) -> Route:
+    """`r`'s frames `keep` (T',) posted as `pngs` at `stamps`: their labels, laps, poses and robots."""
+    return Route(name, pngs, r.labels[keep], r.laps[keep], r.xy[keep], stamps,
+                 None if r.robots is None else tuple(r.robots[i] for i in keep))
+
+
+def _per_post(r: Route, posts: int) -> np.ndarray:
+    """(posts,) stamps one of `r`'s first steps apart: a robot posting at its rate whatever it shows."""
+    return (float(r.stamps[1] - r.stamps[0]) if len(r.stamps) > 1 else 1.0) * np.arange(posts)
+
+
 def slower(r: Route, copies: int = 3, sigma: float = 4.0) -> Route:
     """`r` driven by a slower robot: each frame `copies` times, each copy with σ pixel noise (seeded)."""
     pngs: list[bytes] = []
     for i, b in enumerate(r.pngs):
-        img = cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR)
-        pngs.extend(stress.variant(img, f"noise:{sigma:g}", 1000 * c + i) for c in range(copies))
+        pngs.extend(_noisy(b, sigma, 1000 * c + i) for c in range(copies))
     # the copies of a frame lie between it and the next (a slower robot), their stamps `copies` times denser
     step = np.diff(r.xy, axis=0, append=r.xy[-1:])
     xy = np.repeat(r.xy, copies, axis=0) + np.tile(np.arange(copies) / copies, r.xy.shape[0])[:, None] * \
@@ -207,8 +223,7 @@ def slower(r: Route, copies: int = 3, sigma: float = 4.0) -> Route:
 def dropped(r: Route, every: int = 2) -> Route:
     """`r` with only every `every`-th frame of its mapping laps posted (module docstring); lap 2 whole."""
     keep = np.flatnonzero((r.laps == 1) | (np.arange(len(r.pngs)) % every == 0))
-    return Route("dropped", [r.pngs[i] for i in keep], r.labels[keep], r.laps[keep], r.xy[keep],
-                 r.stamps[keep], None if r.robots is None else tuple(r.robots[i] for i in keep))
+    return _taken(r, "dropped", keep, [r.pngs[i] for i in keep], r.stamps[keep])
 
 
 def lap2_pace(r: Route, pace: float) -> Route:
@@ -221,13 +236,9 @@ def lap2_pace(r: Route, pace: float) -> Route:
         copies = round(1 / pace)
         keep = np.repeat(np.arange(len(r.pngs)), np.where(r.laps == 1, copies, 1))
         first = np.r_[True, keep[1:] != keep[:-1]]
-        pngs = [r.pngs[i] if new else stress.variant(
-            cv2.imdecode(np.frombuffer(r.pngs[i], np.uint8), cv2.IMREAD_COLOR), "noise:4", 1000 + int(i))
-            for i, new in zip(keep, first, strict=True)]
-    name = "faster" if pace > 1 else "slower"
-    return Route(name, pngs, r.labels[keep], r.laps[keep], r.xy[keep],
-                 float(r.stamps[1] - r.stamps[0]) * np.arange(len(pngs)),
-                 None if r.robots is None else tuple(r.robots[i] for i in keep))
+        pngs = [r.pngs[i] if new else _noisy(r.pngs[i], 4.0, 1000 + int(i))
+                for i, new in zip(keep, first, strict=True)]
+    return _taken(r, "faster" if pace > 1 else "slower", keep, pngs, _per_post(r, len(pngs)))
 
 
 def station(r: Route, at: int, dwell: int = 40, ramp: tuple[int, ...] = (4, 3, 2)) -> Route:
@@ -241,14 +252,9 @@ def station(r: Route, at: int, dwell: int = 40, ramp: tuple[int, ...] = (4, 3, 2
         k = abs(int(r.labels[i]) - at)
         copies = dwell if k == 0 else ramp[k - 1] if k <= len(ramp) else 1
         pngs.append(b)
-        if copies > 1:
-            img = cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR)
-            pngs.extend(stress.variant(img, "noise:2", 1000 * c + i) for c in range(1, copies))
+        pngs.extend(_noisy(b, 2.0, 1000 * c + i) for c in range(1, copies))
         idx.extend([i] * copies)
-    keep = np.asarray(idx, np.int64)
-    dt = float(r.stamps[1] - r.stamps[0]) if len(r.stamps) > 1 else 1.0
-    return Route("station", pngs, r.labels[keep], r.laps[keep], r.xy[keep], dt * np.arange(len(pngs)),
-                 None if r.robots is None else tuple(r.robots[i] for i in keep))
+    return _taken(r, "station", np.asarray(idx, np.int64), pngs, _per_post(r, len(pngs)))
 
 
 def indoor(sizes: Sizes) -> Route:
