@@ -240,7 +240,8 @@ class PlaceMap:
         code = np.asarray(code, np.int64)
         posed = self._posed(anchor, motion)  # (before the anchor takes a move)
         span = anchor.move(code, self.departure(code), motion, self.options)
-        memory.add(row, span, stream, still=posed and span is None)
+        # a reset's "no move" is its look's, not its poses' (§11.6): the poses did not say it stood
+        memory.add(row, span, stream, still=posed and not anchor.jumped and span is None)
         return span is not None
 
     def _posed(self, anchor: Anchor, motion: Motion) -> bool:
@@ -257,8 +258,10 @@ class PlaceMap:
         """Whether a frame (`code` (n,) sorted, its `motion`) moved the stream whose last move `anchor`
         holds, learning or not (§11.6); the anchor takes the frame where it is a move. It has not moved
         only where it and the anchor carry poses (`short_term_metres` > 0) and `Anchor.move` finds no
-        move (its pose within `move_metres` of that move's; a step faster than `max_speed` judged as the
-        memory judges it). Without poses, moved: appearance cannot tell a robot that stands from a
+        move (its pose within `move_metres` of that move's). A step faster than `max_speed` (a reset) is
+        a move whatever its look: the memory judges it by appearance, but its poses cannot say it stood
+        (before, a lap posed faster than that bound rehearsed its alike frames into the row it had
+        left, docs/results.md §10.29). Without poses, moved: appearance cannot tell a robot that stands from a
         stretch whose places look alike (measured, docs/results.md §11: at the `departure` level a
         Nordland frame and its copy with pixel noise of σ 8 read as a move, frames 5 apart as none on
         9 % of the route; rehearsing those merged places, and a localiser that expected such frames to
@@ -270,7 +273,9 @@ class PlaceMap:
         posed = self._posed(anchor, motion)
         code = np.asarray(code, np.int64)
         moved = anchor.move(code, self.departure(code), motion, conf) is not None
-        return moved or not posed
+        # a reset is judged by its look for the memory's sake alone: its poses cannot say it stood, and
+        # a frame that stood by its look alone is a move, as without poses (§11.6)
+        return moved or not posed or anchor.jumped
 
     def departs(self, look: np.ndarray, code: np.ndarray) -> bool:
         """Whether a frame of code `code` (n,) sorted is a move of its stream by its look (§11.13): unlike

@@ -77,12 +77,14 @@ class View(NamedTuple):
 
 
 class Anchor:
-    """One stream's last move (its code and pose) and its last posed learned frame (pose and stamp)."""
+    """One stream's last move (its code and pose) and its last posed learned frame (pose and stamp);
+    `jumped`: whether the frame `move` judged last was a reset (its pose says nothing of how far it went)."""
 
     def __init__(self) -> None:
         self.code: np.ndarray | None = None
         self.pose: tuple[float, float] | None = None
         self.last: tuple[tuple[float, float], float | None] | None = None
+        self.jumped = False
 
     def move(self, code: np.ndarray, level: float, motion: Motion, conf: LocaliserOptions) -> float | None:
         """The share of the memory this learned frame covers, as a move (0 for a reset), or None when it
@@ -102,6 +104,7 @@ class Anchor:
                 elif dt is not None:  # no time to judge a speed by: a move's worth of step is a jump
                     reset = step >= float(conf.move_metres)
             self.last = (pose, motion.stamp)
+        self.jumped = reset
         if reset:
             # The pose cannot say how far it went: appearance does, and the memory goes on from the new
             # pose. (A reset that covered nothing would leave a robot whose every step reads as one, a
