@@ -257,7 +257,8 @@ class LocaliserState:
         frame, its paths' phases 0 (§11.2 step 2).
 
         Raises:
-            ValueError: the arrays are missing or of different lengths.
+            ValueError: the arrays are missing, of different lengths, or hold what no saved state holds
+                (a NaN score, lag, phase or pace, a negative count).
         """
         try:
             rows, dirs = np.asarray(arrays["rows"], np.int64), np.asarray(arrays["dirs"], np.int8)
@@ -278,6 +279,14 @@ class LocaliserState:
         if not rows.ndim == 1 or not (rows.shape == dirs.shape == scores.shape == ages.shape == born.shape
                                       == lags.shape == phases.shape == paces.shape):
             raise ValueError("localiser state arrays differ in shape")
+        # a tampered or damaged snapshot must not load: a NaN score answers with a NaN confidence, a
+        # NaN lag never keeps pace again, a NaN phase or pace walks no path
+        if np.isnan(scores).any() or (scores == np.inf).any():
+            raise ValueError("localiser state's scores must be finite or -inf")
+        if not (np.isfinite(lags).all() and np.isfinite(phases).all() and np.isfinite(paces).all()):
+            raise ValueError("localiser state's lags, phases and paces must be finite")
+        if (lags < 0).any() or (paces < 0).any() or (ages < 0).any() or frames < 0:
+            raise ValueError("localiser state's lags, paces, ages and frames must not be negative")
         if here < UNKNOWN:
             raise ValueError("localiser state's `here` must be a row, -1 or -2")
         if not np.isfinite(pace) or pace <= 0:

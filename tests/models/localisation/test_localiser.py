@@ -406,6 +406,21 @@ def test_state_round_trips_through_plain_arrays_and_reset_forgets() -> None:
         LocaliserState.from_arrays({**arrays, "null": np.array(np.nan)})
 
 
+@pytest.mark.parametrize(("key", "value", "match"), [
+    ("scores", np.nan, "scores"), ("scores", np.inf, "scores"), ("lags", np.nan, "finite"),
+    ("phases", np.inf, "finite"), ("paces", np.nan, "finite"), ("paces", -1.0, "negative"),
+    ("lags", -1.0, "negative"), ("ages", -1, "negative")])
+def test_a_tampered_state_is_refused_not_loaded(key: str, value: float, match: str) -> None:
+    """A snapshot's localiser state with what no saved state holds: loaded, a NaN score answered every
+    frame with a NaN confidence, and NaN lags, phases or paces changed every later answer."""
+    _, _, _, state = half_way(0.3)
+    arrays = state.to_arrays()
+    bad = arrays[key].copy()
+    bad[0] = value
+    with pytest.raises(ValueError, match=match):
+        LocaliserState.from_arrays({**arrays, key: bad})
+
+
 def test_a_state_saved_before_the_null_loads_with_the_null_at_its_prior() -> None:
     S, graph, loc, state = half_way(0.3)
     old = {k: v for k, v in state.to_arrays().items() if k != "null"}  # the array set before the null
