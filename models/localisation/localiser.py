@@ -258,7 +258,8 @@ class LocaliserState:
 
         Raises:
             ValueError: the arrays are missing, of different lengths, or hold what no saved state holds
-                (a NaN score, lag, phase or pace, a negative count).
+                (a score not finite on a path or not -inf in an empty slot, a lag, phase or pace not
+                finite, a negative count, a direction not +-1).
         """
         try:
             rows, dirs = np.asarray(arrays["rows"], np.int64), np.asarray(arrays["dirs"], np.int8)
@@ -279,10 +280,13 @@ class LocaliserState:
         if not rows.ndim == 1 or not (rows.shape == dirs.shape == scores.shape == ages.shape == born.shape
                                       == lags.shape == phases.shape == paces.shape):
             raise ValueError("localiser state arrays differ in shape")
-        # a tampered or damaged snapshot must not load: a NaN score answers with a NaN confidence, a
-        # NaN lag never keeps pace again, a NaN phase or pace walks no path
-        if np.isnan(scores).any() or (scores == np.inf).any():
-            raise ValueError("localiser state's scores must be finite or -inf")
+        # a tampered or damaged snapshot must not load: a NaN score (or -inf on a path, times a decay
+        # of 0) answers with a NaN confidence, a NaN lag never keeps pace again, a NaN phase resets paths
+        if (rows < NONE).any() or (born < 0).any() or not np.isin(dirs, (-1, 1)).all():
+            raise ValueError("localiser state's rows, born and dirs must be rows, counts and +-1")
+        live = rows >= 0
+        if not (np.isfinite(scores[live]).all() and (scores[~live] == -np.inf).all()):
+            raise ValueError("localiser state's scores must be finite on a path and -inf in an empty slot")
         if not (np.isfinite(lags).all() and np.isfinite(phases).all() and np.isfinite(paces).all()):
             raise ValueError("localiser state's lags, phases and paces must be finite")
         if (lags < 0).any() or (paces < 0).any() or (ages < 0).any() or frames < 0:

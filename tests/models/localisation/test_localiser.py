@@ -407,16 +407,22 @@ def test_state_round_trips_through_plain_arrays_and_reset_forgets() -> None:
 
 
 @pytest.mark.parametrize(("key", "value", "match"), [
-    ("scores", np.nan, "scores"), ("scores", np.inf, "scores"), ("lags", np.nan, "finite"),
+    ("scores", np.nan, "scores"), ("scores", np.inf, "scores"), ("scores", -np.inf, "scores"),
+    ("lags", np.nan, "finite"), ("lags", np.inf, "finite"), ("phases", np.nan, "finite"),
     ("phases", np.inf, "finite"), ("paces", np.nan, "finite"), ("paces", -1.0, "negative"),
-    ("lags", -1.0, "negative"), ("ages", -1, "negative")])
+    ("lags", -1.0, "negative"), ("ages", -1, "negative"), ("frames", -1, "negative"),
+    ("dirs", 0, "dirs"), ("born", -1, "born"), ("rows", -5, "rows")])
 def test_a_tampered_state_is_refused_not_loaded(key: str, value: float, match: str) -> None:
     """A snapshot's localiser state with what no saved state holds: loaded, a NaN score answered every
     frame with a NaN confidence, and NaN lags, phases or paces changed every later answer."""
     _, _, _, state = half_way(0.3)
     arrays = state.to_arrays()
+    assert arrays["rows"][0] >= 0  # slot 0 holds a path (a -inf score there is no empty slot's)
     bad = arrays[key].copy()
-    bad[0] = value
+    if bad.ndim:
+        bad[0] = value
+    else:
+        bad = np.asarray(value, bad.dtype)
     with pytest.raises(ValueError, match=match):
         LocaliserState.from_arrays({**arrays, key: bad})
 
