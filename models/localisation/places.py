@@ -238,16 +238,9 @@ class PlaceMap:
         trail = motion.trail or stream
         memory = _recent(self._short, trail, lambda: ShortTerm(self.short_term))
         code = np.asarray(code, np.int64)
-        posed = self._posed(anchor, motion)  # (before the anchor takes a move)
         span = anchor.move(code, self.departure(code), motion, self.options)
-        # a reset's "no move" is its look's, not its poses' (§11.6): the poses did not say it stood
-        memory.add(row, span, stream, still=posed and not anchor.jumped and span is None)
+        memory.add(row, span, stream, still=anchor.stood)
         return span is not None
-
-    def _posed(self, anchor: Anchor, motion: Motion) -> bool:
-        """Whether a frame's move is judged by its poses (it and its stream's last move carry one, and the
-        memory reads them): where not, a frame is a move of its stream's paths whatever its look (§11.6)."""
-        return anchor.pose is not None and motion.pose is not None and self.options.short_term_metres > 0
 
     def departure(self, code: np.ndarray) -> float:
         """The Dice under which a frame of code `code` (n,) sorted has left a code (§11.6): the `departure`
@@ -270,12 +263,11 @@ class PlaceMap:
         conf = self.options
         if not self.short_term:
             return True
-        posed = self._posed(anchor, motion)
         code = np.asarray(code, np.int64)
-        moved = anchor.move(code, self.departure(code), motion, conf) is not None
-        # a reset is judged by its look for the memory's sake alone: its poses cannot say it stood, and
-        # a frame that stood by its look alone is a move, as without poses (§11.6)
-        return moved or not posed or anchor.jumped
+        anchor.move(code, self.departure(code), motion, conf)
+        # only poses say a robot stood: a frame alike by its look alone (no pose, or a reset, which the
+        # memory judges by its look) is a move, as without poses (§11.6)
+        return not anchor.stood
 
     def departs(self, look: np.ndarray, code: np.ndarray) -> bool:
         """Whether a frame of code `code` (n,) sorted is a move of its stream by its look (§11.13): unlike

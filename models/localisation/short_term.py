@@ -78,13 +78,14 @@ class View(NamedTuple):
 
 class Anchor:
     """One stream's last move (its code and pose) and its last posed learned frame (pose and stamp);
-    `jumped`: whether the frame `move` judged last was a reset (its pose says nothing of how far it went)."""
+    `stood`: whether the poses of the frame `move` judged last said it stood (no move within
+    `move_metres` of the last move's pose; never a reset's, whose pose says nothing of how far it went)."""
 
     def __init__(self) -> None:
         self.code: np.ndarray | None = None
         self.pose: tuple[float, float] | None = None
         self.last: tuple[tuple[float, float], float | None] | None = None
-        self.jumped = False
+        self.stood = False
 
     def move(self, code: np.ndarray, level: float, motion: Motion, conf: LocaliserOptions) -> float | None:
         """The share of the memory this learned frame covers, as a move (0 for a reset), or None when it
@@ -93,7 +94,7 @@ class Anchor:
         `max_speed`)."""
         metres = float(conf.short_term_metres)
         pose = motion.pose if metres > 0 else None
-        reset = False
+        reset, self.stood = False, False
         if pose is not None:
             if self.last is not None:
                 (lx, ly), stamp = self.last
@@ -104,7 +105,6 @@ class Anchor:
                 elif dt is not None:  # no time to judge a speed by: a move's worth of step is a jump
                     reset = step >= float(conf.move_metres)
             self.last = (pose, motion.stamp)
-        self.jumped = reset
         if reset:
             # The pose cannot say how far it went: appearance does, and the memory goes on from the new
             # pose. (A reset that covered nothing would leave a robot whose every step reads as one, a
@@ -117,6 +117,7 @@ class Anchor:
         if pose is not None and self.pose is not None:
             gone = math.hypot(pose[0] - self.pose[0], pose[1] - self.pose[1])
             if gone < float(conf.move_metres):
+                self.stood = True
                 return None
             self.code, self.pose = np.asarray(code), pose
             return gone / metres
