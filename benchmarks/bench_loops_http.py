@@ -59,6 +59,8 @@ frames). Measured:
   threshold leaves on the table; and the service's confidence alone swept (those gates off: what they
   cost). A sweep after the fact: the map was built at the default threshold (consolidation and joins
   follow it), so a swept point is not one the service runs at;
+- with several robots (`robots`), each robot's lap-2 recall in both modes over its own frames (the
+  JSON's `by_robot`): which robot's return a mode misses;
 - issue 37's count of the localise mode's lap-2 revisits (`span_right`): right only when a true row lies
   inside the revisit's span and the span is at most 3 rows; its precision, and the share of the right
   answers it calls a revisit.
@@ -453,7 +455,8 @@ def score_seed(route: Route, slam_run: dict[str, Any], loc_run: dict[str, Any],
                places: dict[int, int]) -> dict[str, Any]:
     """One seed's figures on one route (module docstring); `false_revisit_lags`: for each revisit called
     while mapping, how many frames and labels back the row it named lies (an echo of the stream's own
-    trail is a few frames back, aliasing far)."""
+    trail is a few frames back, aliasing far); `by_robot` (routes with several robots): each robot's
+    lap-2 recall in both modes, over its own frames."""
     thr = slam_run["threshold"]
     a = answers(slam_run["replies"], thr, slam_run["span_max"])
     s = slam.score(a["best"], a["confidence"], route.labels, thr, TOLERANCE, route.laps)
@@ -474,6 +477,14 @@ def score_seed(route: Route, slam_run: dict[str, Any], loc_run: dict[str, Any],
 
     swept, loc_swept = sweep(a["best"], a["decided"]), sweep(best, np.where(lap2, la["decided"], 0.0))
     ungated, loc_ungated = sweep(a["best"], a["raw"]), sweep(best, np.where(lap2, la["raw"], 0.0))
+    # each robot's lap 2 alone (`robots`): the other robots' frames scored as no lap of interest
+    by_robot: dict[str, dict[str, float | None]] = {}
+    for robot in sorted(set(route.robots or ())):
+        laps = np.where(np.asarray(route.robots) == robot, route.laps, -1)
+        own = slam.score(a["best"], a["confidence"], route.labels, thr, TOLERANCE, laps)["lap"].get(1, {})
+        own_loc = slam.score(best, conf, route.labels, loc_run["threshold"], TOLERANCE, laps,
+                             slam.localise_truth(route.labels, route.laps, TOLERANCE))["lap"].get(1, {})
+        by_robot[robot] = {"recall": own.get("recall"), "localise_recall": own_loc.get("recall")}
     called = np.flatnonzero((route.laps == 0) & (a["best"] >= 0) & reaches(a["confidence"], thr))
     lags = {"frames": (called - a["best"][called]).tolist(),
             "labels": np.abs(route.labels[called] - route.labels[a["best"][called]]).tolist()}
@@ -491,7 +502,7 @@ def score_seed(route: Route, slam_run: dict[str, Any], loc_run: dict[str, Any],
             "localise_recall_at_1": loc2.get("recall_at_1"), "localise_recall_at_100p": loc_swept,
             "recall_at_100p_ungated": ungated, "localise_recall_at_100p_ungated": loc_ungated,
             **{f"localise_{k}": v for k, v in span_right(route.labels, route.laps, la).items()},
-            "false_revisit_lags": lags}
+            "false_revisit_lags": lags, "by_robot": by_robot}
 
 
 def openseqslam(route: Route) -> dict[str, float | None]:

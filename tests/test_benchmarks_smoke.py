@@ -182,6 +182,34 @@ def test_the_loops_benchmark_counts_merges_over_the_rows_an_http_run_made() -> N
     assert b.roots({3: None, 4: 2}) == {3: 3, 4: 2}  # a join to a row not listed ends there
 
 
+def test_the_loops_benchmark_scores_each_robots_second_lap_on_its_own_frames() -> None:
+    """`by_robot`: each robot's lap-2 recall over its own frames, in both modes; the robots' recalls
+    weighted by their true revisits give the route's. Two robots' laps of 30 places each: mapping calls
+    every revisit of A's and every other one of B's, the localise mode every one."""
+    from benchmarks import bench_loops_http as b
+
+    labels = np.r_[np.arange(30), np.arange(100, 130), np.arange(30), np.arange(100, 130)]
+    laps, robots = np.repeat([0, 0, 1, 1], 30), tuple("abab" [k // 30] for k in range(120))
+    route = b.Route("robots", [b""] * 120, labels, laps, np.zeros((120, 2)), np.arange(120.0), robots)
+
+    def run(called) -> dict:
+        replies = [{"seq": i + 1, "place": None} for i in range(60)]
+        for i in range(60, 120):
+            row = i - 60 + 1  # the lap-1 row of the same label
+            replies.append({"seq": None, "place": {"seq": row, "confidence": 0.95, "revisit": called(i),
+                                                   "span": 1, "span_seqs": [row]}})
+        return {"seed": 42, "asked": b.DEFAULT_SEED, "threshold": 0.91, "span_max": 3, "replies": replies}
+
+    e = b.score_seed(route, run(lambda i: i < 90 or i % 2 == 0), run(lambda i: True), {})
+    assert e["by_robot"]["a"] == {"recall": 1.0, "localise_recall": 1.0}
+    assert e["by_robot"]["b"]["localise_recall"] == 1.0
+    assert e["by_robot"]["b"]["recall"] == pytest.approx(0.5, abs=0.05)
+    assert e["recall"] == pytest.approx((e["by_robot"]["a"]["recall"] + e["by_robot"]["b"]["recall"]) / 2)
+    one = b.score_seed(b.Route("one", route.pngs, labels, laps, route.xy, route.stamps), run(lambda i: True),
+                       run(lambda i: True), {})
+    assert one["by_robot"] == {}  # one robot: the route's own figures say it
+
+
 def test_the_loops_benchmark_drives_a_tiny_corridor_through_a_real_server(tmp_path: Path) -> None:
     """The whole command on a few dozen rendered frames (and a tiny Nordland loop where the data is
     here): a real `cortexloc serve` on loopback, a new map's seed, the table and the JSON's structure
