@@ -466,8 +466,8 @@ def score_seed(route: Route, slam_run: dict[str, Any], loc_run: dict[str, Any],
     lap2 = route.laps == 1
     best = np.where(lap2, la["best"], -1)
     conf = np.where(lap2, la["confidence"], 0.0)
-    ls = slam.score(best, conf, route.labels, loc_run["threshold"], TOLERANCE, route.laps,
-                    slam.localise_truth(route.labels, route.laps, TOLERANCE))
+    loc_truth = slam.localise_truth(route.labels, route.laps, TOLERANCE)
+    ls = slam.score(best, conf, route.labels, loc_run["threshold"], TOLERANCE, route.laps, loc_truth)
     mapping, second, loc2 = s["lap"][0], s["lap"].get(1, {}), ls["lap"].get(1, {})
     # swept as OpenSeqSLAM is (`openseqslam`), over the route's truth: each mode's decided confidence,
     # and its confidence alone (the span, pace and flatness gates off: what they cost)
@@ -483,7 +483,7 @@ def score_seed(route: Route, slam_run: dict[str, Any], loc_run: dict[str, Any],
         laps = np.where(np.asarray(route.robots) == robot, route.laps, -1)
         own = slam.score(a["best"], a["confidence"], route.labels, thr, TOLERANCE, laps)["lap"].get(1, {})
         own_loc = slam.score(best, conf, route.labels, loc_run["threshold"], TOLERANCE, laps,
-                             slam.localise_truth(route.labels, route.laps, TOLERANCE))["lap"].get(1, {})
+                             loc_truth)["lap"].get(1, {})
         by_robot[robot] = {"recall": own.get("recall"), "localise_recall": own_loc.get("recall")}
     called = np.flatnonzero((route.laps == 0) & (a["best"] >= 0) & reaches(a["confidence"], thr))
     lags = {"frames": (called - a["best"][called]).tolist(),
