@@ -444,9 +444,11 @@ class PlaceMap:
         appearance of the place of the row the path stood on then (not a step off) is at least
         `join_kept` like (another season's first frames, a noisier camera's), is joined and kept
         (`Explained.kept`): a new appearance of that place, not a place of its own. The old row is
-        never of a place a row of the stream's short-term memory shows, nor of the trail the joined
-        row lies on. Each row is tried on at most `exclusion` confident frames: O(reach · JOIN_SLACK ·
-        appearances) code reads on such a frame, O(reach) on the rest. `trail`: the short-term memory
+        never of a place a row of the stream's short-term memory shows, nor one a row the path covers
+        shows (held, or folded into it by an earlier join: two moves of one pass are two places), nor
+        of the trail the joined row lies on. Each
+        row is tried on at most `exclusion` confident frames: O(reach · JOIN_SLACK · appearances) code
+        reads on such a frame, O(reach) on the rest. `trail`: the short-term memory
         the stream learns into (`Motion.trail`; None: its own). `moved`: this frame was a move of its
         stream (`moves`).
         """
@@ -470,10 +472,16 @@ class PlaceMap:
         rows = [r for r in rows if ages[r] + 1 < place.support]  # the path covers it
         if not rows:
             return Explained([], [])
-        short = self.short_term_rows(trail or stream)
         if len(self._tried) > KEPT * self.reach():  # bounded: the rows of the streams kept
             self._tried.clear()
-        mine = set(g.place[short].tolist())
+        # The places the stream's own rows show: its short-term memory's, and every row it made since its
+        # path began (this pass), held or joined away. A row an earlier join folded into a place shows
+        # that place as much as a held one does, and two moves of one pass are two places (with the held
+        # rows alone, rows two moves apart were joined on two frames into one place that then spanned
+        # both: the stress suite's two cameras, docs/results.md §10.31). A pass before the path's (a
+        # drive before a restart) may show the place: that is a revisit.
+        this_pass = np.array([r for r, a in ages.items() if a + 1 < place.support], np.int64)
+        mine = set(g.place[np.r_[self.short_term_rows(trail or stream), this_pass]].tolist())
         first = min(rows)
         keeps = float(self.options.join_kept) < c
         out, kept = [], []
@@ -502,6 +510,7 @@ class PlaceMap:
                                                  (seen, self.codes.level(code, c))])
             if joined is not None:
                 out.append((r, joined))
+                mine.add(int(g.place[joined]))  # r shows that place now, in this call as after it
                 continue
             # Not represented, but like the row the path says it was: that place seen otherwise (another
             # season, a noisier camera), a new appearance of it. Never a flat row: its code is noise.
@@ -516,6 +525,7 @@ class PlaceMap:
                 like = _most_alike(code, code_of, [(seen[g.place[seen] == g.place[at[0]]], level)])
                 if like is not None:  # (recorded as the row the path stood on: the place it names)
                     kept.append((r, int(at[0])))
+                    mine.add(int(g.place[at[0]]))
                     continue
             self._tried[r] = self._tried.get(r, 0) + 1
         return Explained(out, kept)

@@ -98,6 +98,28 @@ def test_a_join_never_targets_the_short_term_memory() -> None:
     assert place_map.explained("a", at(40), 1, codes.__getitem__) == ([], [])
 
 
+@pytest.mark.parametrize("one_frame", [True, False])
+def test_two_rows_of_one_pass_never_join_one_place(one_frame: bool) -> None:
+    """Two warm-up rows a move apart that both look like old row 39 (a stretch where the route barely
+    changes): the newer joins 39's place, the older joins no place, whether both are joined on one
+    confident frame or the older on the next. Before, each was joined to 39 (the second after the first
+    had been folded away, so no held row showed the place), and the place then spanned both moves: the
+    stress suite's two cameras merged a place so (docs/results.md §10.31)."""
+    place_map, codes = build()  # the warm-up row 44 is the frame of row 39
+    codes[WARM + 1] = seen_otherwise(39, 0.5)  # and the next, a move on, is represented by row 39 too
+    if one_frame:
+        place_map.add(WARM + 1, WARM, codes[WARM + 1], stream="a")
+        # the path on row 40 now: on row 39 at row 45's frame, on row 38 at row 44's
+        assert place_map.explained("a", at(40), 1, codes.__getitem__) == ([(WARM + 1, 39)], [])
+        return
+    assert place_map.explained("a", at(40), 1, codes.__getitem__) == ([(WARM, 39)], [])
+    place_map.fold(WARM, 39, WARM + 1)
+    place_map.drop(WARM)  # (the caller's: it adds no appearance)
+    place_map.add(WARM + 1, WARM, codes[WARM + 1], stream="a")
+    # the path on row 41 now: on row 40 at row 45's frame, give or take one
+    assert place_map.explained("a", at(41), 1, codes.__getitem__) == ([], [])
+
+
 @pytest.mark.parametrize("more", [14, 15])
 def test_a_join_reaches_back_over_warmup_plus_exclusion_rows_only(more: int) -> None:
     """The warm-up row, then `more` rows of the stream: with 15 it is the 16th newest (reach: 15)."""
